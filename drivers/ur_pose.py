@@ -1,0 +1,38 @@
+"""The one conversion between Universal Robots poses and ``T_base_tool`` (MATH.md Sec. 1).
+
+A UR pose ``[x, y, z, rx, ry, rz]`` (as ``getActualTCPPose`` returns it and ``moveL`` takes it)
+is ``T_base_tool`` of the TCP set on the controller: metres and an axis-angle vector in radians.
+The teach pendant shows millimetres and RPY; :func:`pendant_text` prints both for humans.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from slidecal.solver.geometry import R_from_rvec, T_from_Rt, rvec_from_R
+
+
+def T_from_ur_pose(pose: list[float] | np.ndarray) -> np.ndarray:
+    """``T_base_tool`` (4, 4) from a UR pose ``[x, y, z, rx, ry, rz]`` (metres, radians)."""
+    p = np.asarray(pose, dtype=float).reshape(-1)
+    if p.shape != (6,) or not np.all(np.isfinite(p)):
+        raise ValueError(f"a UR pose is 6 finite numbers [x, y, z, rx, ry, rz], got {pose!r}")
+    return T_from_Rt(R_from_rvec(p[3:]), p[:3])
+
+
+def ur_pose_from_T(T_base_tool: np.ndarray) -> list[float]:
+    """UR pose ``[x, y, z, rx, ry, rz]`` (metres, radians, angle in [0, pi]) of a 4x4 transform."""
+    T = np.asarray(T_base_tool, dtype=float)
+    return [float(v) for v in (*T[:3, 3], *rvec_from_R(T[:3, :3]))]
+
+
+def pendant_text(T_base_tool: np.ndarray) -> str:
+    """The pose as the teach pendant shows it: millimetres and RPY in degrees (X-Y-Z fixed axes)."""
+    T = np.asarray(T_base_tool, dtype=float)
+    R = T[:3, :3]
+    pitch = np.arcsin(-np.clip(R[2, 0], -1.0, 1.0))
+    roll = np.arctan2(R[2, 1], R[2, 2])
+    yaw = np.arctan2(R[1, 0], R[0, 0])
+    x, y, z = T[:3, 3] * 1000.0
+    r, p, w = np.degrees([roll, pitch, yaw])
+    return f"X {x:.2f} Y {y:.2f} Z {z:.2f} mm, RPY {r:.3f} {p:.3f} {w:.3f} deg"

@@ -1,0 +1,133 @@
+"""Rigid transforms and rotations (MATH.md Sec. 1 conventions).
+
+``T_a_b`` is a 4x4 homogeneous transform mapping coordinates in frame ``b`` to frame ``a``
+(``p_a = T_a_b @ p_b``, ``T_a_c = T_a_b @ T_b_c``). ``R_a_b`` and ``t_a_b`` are its rotation and
+translation (metres). Rotation vectors (``rvec``) are axis-angle in radians.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_EPS = 1e-12
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrix ``[v]x`` of a (3,) vector, so that ``skew(a) @ b == cross(a, b)``."""
+    x, y, z = v
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def R_from_rvec(rvec: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) of a rotation vector (3,) in radians (Rodrigues' formula)."""
+    rvec = np.asarray(rvec, dtype=float)
+    theta = float(np.linalg.norm(rvec))
+    K = skew(rvec)
+    if theta < 1e-8:
+        return np.eye(3) + K + 0.5 * K @ K
+    a = np.sin(theta) / theta
+    b = (1.0 - np.cos(theta)) / theta**2
+    return np.eye(3) + a * K + b * K @ K
+
+
+def rvec_from_R(R: np.ndarray) -> np.ndarray:
+    """Rotation vector (3,) in radians, angle in [0, pi], of a rotation matrix (3, 3)."""
+    R = np.asarray(R, dtype=float)
+    cos_theta = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    theta = float(np.arccos(cos_theta))
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if theta < 1e-6:
+        return 0.5 * w
+    if np.pi - theta > 1e-4:
+        return theta / (2.0 * np.sin(theta)) * w
+    # Near pi: the axis from the symmetric part, the sign from the skew part.
+    B = 0.5 * (R + np.eye(3))
+    axis = np.sqrt(np.clip(np.diag(B), 0.0, None))
+    i = int(np.argmax(axis))
+    axis = B[i] / max(axis[i], _EPS)
+    axis /= np.linalg.norm(axis)
+    if axis @ w < 0:
+        axis = -axis
+    return theta * axis
+
+
+def project_to_SO3(M: np.ndarray) -> np.ndarray:
+    """The rotation nearest to a 3x3 matrix in the Frobenius norm (SVD, det = +1)."""
+    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=float))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def T_from_Rt(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """4x4 transform from a rotation (3, 3) and a translation (3,)."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, dtype=float).reshape(3)
+    return T
+
+
+def T_from_rvec_t(rvec: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """4x4 transform from a rotation vector (3,) in radians and a translation (3,)."""
+    return T_from_Rt(R_from_rvec(rvec), t)
+
+
+def inv_T(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform: ``inv_T(T_a_b) == T_b_a``."""
+    R = T[:3, :3]
+    return T_from_Rt(R.T, -R.T @ T[:3, 3])
+
+
+def transform_points(T_a_b: np.ndarray, p_b: np.ndarray) -> np.ndarray:
+    """Points (N, 3) in frame b mapped to frame a."""
+    p_b = np.asarray(p_b, dtype=float)
+    return p_b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
+
+
+def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray | None = None) -> float:
+    """Angle in degrees of ``R_a`` (or of ``R_a R_b'`` when ``R_b`` is given): an error measure."""
+    R = R_a if R_b is None else R_a @ np.asarray(R_b).T
+    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.degrees(np.arccos(c)))
+
+
+def Rx(angle_rad: float) -> np.ndarray:
+    """Rotation about x by an angle in radians."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def Ry(angle_rad: float) -> np.ndarray:
+    """Rotation about y by an angle in radians."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def Rz(angle_rad: float) -> np.ndarray:
+    """Rotation about z by an angle in radians."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def look_at_R_cam_world(
+    p_cam_world: np.ndarray, p_target_world: np.ndarray, up_world: np.ndarray
+) -> np.ndarray:
+    """``R_cam_world`` of a camera at ``p_cam_world`` looking at ``p_target_world``.
+
+    Camera axes (MATH.md Sec. 1): +z along the optical axis, +x right, +y down; ``up_world`` is
+    the world direction that should appear as up (-y) in the image.
+    """
+    z = np.asarray(p_target_world, float) - np.asarray(p_cam_world, float)
+    z /= np.linalg.norm(z)
+    x = np.cross(z, -np.asarray(up_world, float))
+    if np.linalg.norm(x) < 1e-9:
+        raise ValueError("look_at_R_cam_world: the up direction is parallel to the viewing ray")
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return np.stack([x, y, z])
+
+
+def random_rotation(rng: np.random.Generator, max_angle_rad: float = np.pi) -> np.ndarray:
+    """A random rotation with a uniformly drawn axis and an angle uniform in [0, max_angle_rad]."""
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    return R_from_rvec(axis * rng.uniform(0.0, max_angle_rad))
