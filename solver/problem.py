@@ -1,0 +1,179 @@
+"""The solver's input: a frozen description of what a calibration session observed.
+
+Board frame and corner ids (documented in the README; fixed within a session format version):
+
+- ``charuco`` and ``chessboard``: OpenCV's board frame. Origin at the outer top-left corner of
+  the printed board, +x along ``squares_x``, +y along ``squares_y`` (down the printed page), +z
+  into the board, away from a camera that reads the print. Inner corner ``(row r, column c)``,
+  ``0 <= c < squares_x - 1``, ``0 <= r < squares_y - 1``, has id ``r * (squares_x - 1) + c`` and
+  lies at ``((c + 1) * square_size_m, (r + 1) * square_size_m, 0)``: the id OpenCV's
+  ``CharucoBoard`` gives it.
+- ``points``: row ``i`` of ``points_m`` has id ``i`` (board coordinates, z = 0).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from slidecal.solver.errors import InputError
+
+Mount = Literal["eye_in_hand", "eye_to_hand", "none"]
+# What is known about the motion between frames (MATH.md Sec. 3 table):
+# - "robot": T_base_tool measured for every frame (translations and any rotations in the robot
+#   frame; board pose unknown). The general, real case; with a single translation direction and
+#   known steps it is the paper's Case 1.
+# - "board_translation": Frame.motion_board is the camera displacement since the group's first
+#   frame in board coordinates (the paper's Case 3).
+# - "board_direction": Frame.motion_board is the unit direction of that displacement in board
+#   coordinates, its length unknown (the paper's Case 2).
+# - "none": nothing known; every frame has its own pose (Zhang's general-motion method).
+Knowledge = Literal["robot", "board_translation", "board_direction", "none"]
+DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3")
+
+
+@dataclass(frozen=True)
+class Target:
+    """A planar calibration target. ``points_m`` (N, 3), board frame, z = 0; row i has id i."""
+
+    kind: Literal["charuco", "chessboard", "points"]
+    points_m: np.ndarray
+    squares_x: int = 0
+    squares_y: int = 0
+    square_size_m: float = 0.0
+    marker_size_m: float = 0.0
+    dictionary: str = ""
+
+    @staticmethod
+    def grid_points(squares_x: int, squares_y: int, square_size_m: float) -> np.ndarray:
+        """Inner corners (N, 3) of a board of squares, in id order (see the module docstring)."""
+        cols, rows = squares_x - 1, squares_y - 1
+        c, r = np.meshgrid(np.arange(cols), np.arange(rows))
+        xy = np.stack([(c.ravel() + 1) * square_size_m, (r.ravel() + 1) * square_size_m], axis=1)
+        return np.column_stack([xy, np.zeros(len(xy))])
+
+    @classmethod
+    def charuco(
+        cls,
+        squares_x: int,
+        squares_y: int,
+        square_size_m: float,
+        marker_size_m: float,
+        dictionary: str = "DICT_5X5_100",
+    ) -> Target:
+        """A ChArUco board (OpenCV ``CharucoBoard`` layout and ids)."""
+        return cls(
+            "charuco",
+            cls.grid_points(squares_x, squares_y, square_size_m),
+            squares_x,
+            squares_y,
+            float(square_size_m),
+            float(marker_size_m),
+            dictionary,
+        )
+
+    @classmethod
+    def chessboard(cls, squares_x: int, squares_y: int, square_size_m: float) -> Target:
+        """A chessboard of ``squares_x`` by ``squares_y`` squares."""
+        pts = cls.grid_points(squares_x, squares_y, square_size_m)
+        return cls("chessboard", pts, squares_x, squares_y, float(square_size_m))
+
+    @classmethod
+    def points(cls, points_m: np.ndarray) -> Target:
+        """Arbitrary board points: (N, 2) or (N, 3) with z = 0, board frame, metres."""
+        p = np.asarray(points_m, dtype=float)
+        if p.ndim != 2 or p.shape[1] not in (2, 3) or len(p) < 4:
+            raise InputError("points_m must be a list of at least 4 [X, Y] board coordinates")
+        if p.shape[1] == 2:
+            p = np.column_stack([p, np.zeros(len(p))])
+        if np.any(np.abs(p[:, 2]) > 1e-12):
+            raise InputError("points_m must lie on the board plane (z = 0)")
+        return cls("points", p)
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    """A camera of the session: its name and image size in pixels."""
+
+    name: str
+    width: int
+    height: int
+
+
+@dataclass(frozen=True)
+class Detection:
+    """Target corners one camera found in one frame: ids (n,) and pixels (n, 2).
+
+    Pixel (0, 0) is the centre of the top-left pixel.
+    """
+
+    ids: np.ndarray
+    px: np.ndarray
+
+    def __post_init__(self) -> None:
+        ids = np.asarray(self.ids, dtype=np.int64).reshape(-1)
+        px = np.asarray(self.px, dtype=float).reshape(-1, 2)
+        if len(ids) != len(px):
+            raise InputError(f"detection has {len(ids)} ids but {len(px)} pixel positions")
+        object.__setattr__(self, "ids", ids)
+        object.__setattr__(self, "px", px)
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One robot stop: what was measured and what each camera saw.
+
+    ``T_base_tool`` (4, 4): measured after settling (knowledge "robot"). ``motion_board`` (3,):
+    the paper's board-frame knowledge (see ``Knowledge``). ``group``: orientation group; derived
+    from the measured rotations when None.
+    """
+
+    id: int
+    detections: Mapping[str, Detection]
+    T_base_tool: np.ndarray | None = None
+    motion_board: np.ndarray | None = None
+    group: int | None = None
+
+
+@dataclass(frozen=True)
+class ModelOptions:
+    """What the camera model estimates.
+
+    ``skew``: estimate the skew ``s`` (else 0). ``unit_aspect``: ``fx == fy``.
+    ``distortion``: which of k1, k2, p1, p2, k3 are estimated (the others stay 0).
+    ``outlier_threshold_px``: a detection whose residual exceeds this after the first solve is
+    flagged and down-weighted (robust loss), never silently dropped.
+    """
+
+    skew: bool = False
+    unit_aspect: bool = False
+    distortion: tuple[bool, bool, bool, bool, bool] = (True, True, True, True, True)
+    outlier_threshold_px: float = 2.0
+
+
+@dataclass(frozen=True)
+class CalibrationProblem:
+    """Everything the solver needs; never modified by it."""
+
+    target: Target
+    cameras: tuple[CameraSpec, ...]
+    frames: tuple[Frame, ...]
+    mount: Mount = "eye_in_hand"
+    knowledge: Knowledge = "robot"
+    options: ModelOptions = field(default_factory=ModelOptions)
+    reference_camera: str | None = None  # rigs: the camera the others are expressed against
+
+    def camera(self, name: str) -> CameraSpec:
+        """The camera named ``name``."""
+        for c in self.cameras:
+            if c.name == name:
+                return c
+        raise InputError(f"no camera named {name!r}; cameras are {[c.name for c in self.cameras]}")
+
+    @property
+    def reference(self) -> str:
+        """Name of the reference camera of a rig (the first camera unless named)."""
+        return self.reference_camera or self.cameras[0].name
