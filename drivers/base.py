@@ -1,0 +1,77 @@
+"""The hardware interfaces the routine drives: small ``typing.Protocol`` classes.
+
+Real drivers (``drivers/ur.py`` through ur-rtde, ``drivers/oak.py`` through depthai v3,
+``drivers/uvc.py`` through OpenCV) and the simulated cell (``mocks/``) implement the same
+protocols, so the routine never knows which it has. Every failure is raised as
+:class:`slidecal.solver.errors.HardwareFault` with a message that says what to do.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from slidecal.solver.problem import CameraSpec
+
+
+@runtime_checkable
+class Robot(Protocol):
+    """A robot arm that moves its TCP in straight lines and reports where it is.
+
+    Poses are ``T_base_tool`` (4, 4), metres, with the TCP the robot was configured with.
+    """
+
+    def connect(self) -> None:
+        """Open the connection; raise ``HardwareFault`` when the robot is not ready to move."""
+        ...
+
+    def close(self) -> None:
+        """Close the connection (idempotent); never moves the robot."""
+        ...
+
+    def measured_pose(self) -> np.ndarray:
+        """``T_base_tool`` (4, 4) as measured now; raise ``HardwareFault`` if the data is stale."""
+        ...
+
+    def move_linear(self, T_base_tool: np.ndarray, speed_mps: float, accel_mps2: float) -> None:
+        """Move the TCP in a straight line to ``T_base_tool`` and block until it arrives.
+
+        Raises ``HardwareFault`` (after stopping the robot) on a protective or emergency stop,
+        a lost connection or a time-out.
+        """
+        ...
+
+    def wait_settled(self, settle_s: float) -> None:
+        """Wait until the arm is at rest (vibrations decayed) before a capture."""
+        ...
+
+    def stop(self) -> None:
+        """Decelerate and stop any motion now. Safe to call at any time, also after a fault."""
+        ...
+
+    def is_reachable(self, T_base_tool: np.ndarray) -> bool:
+        """Whether the pose has an inverse-kinematics solution inside joint and safety limits."""
+        ...
+
+
+@runtime_checkable
+class CameraRig(Protocol):
+    """One or more rigidly mounted, synchronised cameras (a single UVC camera is a rig of one)."""
+
+    @property
+    def specs(self) -> tuple[CameraSpec, ...]:
+        """Name and image size of every camera, in a fixed order."""
+        ...
+
+    def open(self) -> None:
+        """Start streaming; raise ``HardwareFault`` when a camera is missing."""
+        ...
+
+    def close(self) -> None:
+        """Stop streaming (idempotent)."""
+        ...
+
+    def capture(self) -> dict[str, np.ndarray]:
+        """One synchronised set of images, by camera name: uint8, (H, W) grey or (H, W, 3) BGR."""
+        ...
