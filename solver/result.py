@@ -1,0 +1,116 @@
+"""The solver's output: estimates with their diagnostics (STYLE.md point 5).
+
+Nothing here is a made-up number: a quantity the data cannot determine is ``None`` and named in
+``CalibrationResult.unobservable`` with the reason.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class CameraEstimate:
+    """One camera's intrinsics. ``K`` (3, 3) pixels; ``distortion`` (5,) k1 k2 p1 p2 k3 (OpenCV
+    order); ``std``: one-sigma of each estimated parameter by name (fx, fy, cx, cy, s, k1, ...);
+    ``reproj_rms_px``: root mean square reprojection error of this camera's inlier detections."""
+
+    name: str
+    width: int
+    height: int
+    K: np.ndarray
+    distortion: np.ndarray
+    std: dict[str, float]
+    reproj_rms_px: float
+
+
+@dataclass(frozen=True)
+class TransformEstimate:
+    """A rigid transform ``T_a_b`` whose translation may be unobservable.
+
+    ``R`` (3, 3); ``t_m`` (3,) metres or None when the data cannot determine it;
+    ``std_rot_deg``: one-sigma rotation error (root of the trace of the rotation covariance, as an
+    angle); ``std_t_mm``: one-sigma translation error (root of the trace), None with ``t_m``.
+    ``R`` itself is None when even the rotation is unobservable.
+    """
+
+    name: str
+    R: np.ndarray | None
+    t_m: np.ndarray | None
+    std_rot_deg: float | None = None
+    std_t_mm: float | None = None
+
+    @property
+    def T(self) -> np.ndarray | None:
+        """The 4x4 transform, or None unless rotation and translation are both known."""
+        if self.R is None or self.t_m is None:
+            return None
+        T = np.eye(4)
+        T[:3, :3] = self.R
+        T[:3, 3] = self.t_m
+        return T
+
+
+@dataclass(frozen=True)
+class ScaleCheck:
+    """Per move: the translation length the camera saw against the robot's (MATH.md Sec. 3).
+
+    A ratio far from 1 means a wrong board square size or a wrong TCP/robot scale.
+    ``frame_a``, ``frame_b``: the frame ids of the move; lengths in millimetres.
+    """
+
+    frame_a: int
+    frame_b: int
+    robot_mm: float
+    camera_mm: float
+
+    @property
+    def ratio(self) -> float:
+        """camera_mm / robot_mm."""
+        return self.camera_mm / self.robot_mm if self.robot_mm > 0 else float("nan")
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """Everything a solve determined, and how well.
+
+    ``hand_eye``: ``T_tool_cam`` (eye-in-hand) or ``T_base_cam`` (eye-to-hand) of the reference
+    camera, None without a robot. ``rig``: ``T_<name>_<reference>`` for every other camera.
+    ``T_target``: ``T_base_board`` (eye-in-hand) or ``T_tool_board`` (eye-to-hand).
+    ``H_inf``: infinite homographies ``x_a ~ H x_b`` keyed ``"a<-b"`` (MATH.md Sec. 8).
+    ``parameter_names`` name the rows of ``covariance``. ``residuals_px``: per (frame id, camera)
+    the rms reprojection error of that image. ``outliers``: (frame id, camera, corner id) flagged
+    by the robust loss. ``sigma_px``: the noise estimated from the residuals, ``s`` of MATH.md
+    Sec. 6. ``unobservable``: parameter name -> why it was fixed. ``messages``: soft failures of
+    secondary computations (e.g. a covariance that could not be computed).
+    ``linear``: the linear (closed-form) intrinsics per camera before refinement.
+    """
+
+    cameras: dict[str, CameraEstimate]
+    hand_eye: TransformEstimate | None
+    rig: dict[str, TransformEstimate]
+    T_target: TransformEstimate | None
+    converged: bool
+    iterations: int
+    reproj_rms_px: float
+    sigma_px: float
+    parameter_names: tuple[str, ...]
+    covariance: np.ndarray | None
+    residuals_px: dict[tuple[int, str], float]
+    outliers: tuple[tuple[int, str, int], ...]
+    unobservable: dict[str, str]
+    messages: tuple[str, ...]
+    scale_checks: tuple[ScaleCheck, ...] = ()
+    H_inf: dict[str, np.ndarray] = field(default_factory=dict)
+    linear: dict[str, np.ndarray] = field(default_factory=dict)
+    mount: str = "eye_in_hand"
+    reference_camera: str = ""
+
+    def std_of(self, name: str) -> float | None:
+        """One-sigma of a named parameter from the covariance, None when not estimated."""
+        if self.covariance is None or name not in self.parameter_names:
+            return None
+        i = self.parameter_names.index(name)
+        return float(np.sqrt(max(self.covariance[i, i], 0.0)))
