@@ -1,0 +1,265 @@
+"""Forward and analytic inverse kinematics of the Universal Robots e-Series (pure numpy).
+
+Convention: standard Denavit-Hartenberg parameters as Universal Robots publishes them
+("DH parameters for calculations of kinematics and dynamics"): joint i contributes
+``Rz(q_i) Tz(d_i) Tx(a_i) Rx(alpha_i)`` with ``a = (0, a2, a3, 0, 0, 0)``,
+``d = (d1, 0, 0, d4, d5, d6)``, ``alpha = (pi/2, 0, 0, pi/2, -pi/2, 0)``. The DH base frame is the
+controller's ``base`` frame (the frame of ``getActualTCPPose``) and DH frame 6 is the tool
+flange, so ``fk(q)`` is ``T_base_tool`` of a zero TCP, as the controller reports it.
+
+Inverse kinematics: the closed form of K. P. Hawkins, "Analytic inverse kinematics for the
+Universal Robots UR-5/UR-10 arms" (2013): two shoulder, two wrist and two elbow branches, eight
+solutions for a generic pose.
+
+Joint limits: the e-Series user manuals give +-360 deg for every joint. The elbow cannot
+physically turn further than about +-180 deg (the upper arm hits the shoulder), which is why
+Universal Robots' own ROS description limits it to +-pi; we do the same.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from slidecal.solver.errors import InputError
+from slidecal.solver.geometry import Rx, Rz, inv_T
+
+#: ``|sin(q5)|`` below this is a wrist singularity: joint axes 4 and 6 are nearly parallel, and the
+#: wrist joints' speeds grow as ``1 / |sin(q5)|`` (20 times the tool's angular speed at 0.05,
+#: i.e. within 2.9 deg of alignment), so a linear move near it trips the joint speed limits.
+WRIST_SIN_MIN = 0.05
+#: ``|sin(q3)|`` below this is an elbow singularity: the arm is stretched out (edge of the
+#: workspace) or folded; the shoulder/elbow speeds grow as ``1 / |a2 a3 sin(q3)|``.
+ELBOW_SIN_MIN = 0.05
+#: Horizontal distance (metres) from the base z axis to the wrist point below which we call the
+#: pose shoulder-singular: the base joint turns at ``v / r`` for a tool moving sideways at ``v``,
+#: so at 0.05 m a 0.25 m/s move needs 5 rad/s, beyond the base joint's 3.14 rad/s.
+SHOULDER_RADIUS_MIN_M = 0.05
+
+
+@dataclass(frozen=True)
+class URModel:
+    """DH lengths (metres) and joint limits (radians, (6,) each) of one UR arm."""
+
+    name: str
+    d1: float
+    a2: float
+    a3: float
+    d4: float
+    d5: float
+    d6: float
+    q_min: tuple[float, ...] = (-2 * np.pi, -2 * np.pi, -np.pi, -2 * np.pi, -2 * np.pi, -2 * np.pi)
+    q_max: tuple[float, ...] = (2 * np.pi, 2 * np.pi, np.pi, 2 * np.pi, 2 * np.pi, 2 * np.pi)
+
+    @property
+    def reach_m(self) -> float:
+        """Upper bound of the distance of the wrist point from the shoulder, metres."""
+        return abs(self.a2) + abs(self.a3)
+
+
+# Universal Robots' published DH table (e-Series).
+UR3E = URModel("UR3e", 0.15185, -0.24355, -0.2132, 0.13105, 0.08535, 0.0921)
+UR5E = URModel("UR5e", 0.1625, -0.425, -0.3922, 0.1333, 0.0997, 0.0996)
+UR10E = URModel("UR10e", 0.1807, -0.6127, -0.57155, 0.17415, 0.11985, 0.11655)
+UR16E = URModel("UR16e", 0.1807, -0.4784, -0.36, 0.17415, 0.11985, 0.11655)
+MODELS: dict[str, URModel] = {m.name.lower(): m for m in (UR3E, UR5E, UR10E, UR16E)}
+
+#: A common "home" configuration (elbow up, tool pointing down), radians.
+Q_HOME = np.array([0.0, -np.pi / 2, np.pi / 2, -np.pi / 2, -np.pi / 2, 0.0])
+
+
+def model_by_name(name: str) -> URModel:
+    """The :class:`URModel` of ``"UR5e"`` etc. (case-insensitive)."""
+    try:
+        return MODELS[name.lower()]
+    except KeyError:
+        raise InputError(
+            f"unknown robot model {name!r}; use one of {', '.join(m.name for m in MODELS.values())}"
+        ) from None
+
+
+def _dh(theta: float, d: float, a: float, alpha_rot: np.ndarray) -> np.ndarray:
+    """``Rz(theta) Tz(d) Tx(a) Rx(alpha)`` as 4x4 (alpha given as its rotation matrix)."""
+    T = np.eye(4)
+    Rzt = Rz(theta)
+    T[:3, :3] = Rzt @ alpha_rot
+    T[:3, 3] = Rzt @ np.array([a, 0.0, 0.0]) + np.array([0.0, 0.0, d])
+    return T
+
+
+_RX_P = Rx(np.pi / 2)
+_RX_M = Rx(-np.pi / 2)
+_RX_0 = np.eye(3)
+
+
+def _link_transforms(q: np.ndarray, m: URModel) -> list[np.ndarray]:
+    return [
+        _dh(q[0], m.d1, 0.0, _RX_P),
+        _dh(q[1], 0.0, m.a2, _RX_0),
+        _dh(q[2], 0.0, m.a3, _RX_0),
+        _dh(q[3], m.d4, 0.0, _RX_P),
+        _dh(q[4], m.d5, 0.0, _RX_M),
+        _dh(q[5], m.d6, 0.0, _RX_0),
+    ]
+
+
+def _check_q(q: np.ndarray) -> np.ndarray:
+    q = np.asarray(q, dtype=float).reshape(-1)
+    if q.shape != (6,) or not np.all(np.isfinite(q)):
+        raise InputError(f"a joint vector is 6 finite angles in radians, got {q!r}")
+    return q
+
+
+def _check_T(T: np.ndarray) -> np.ndarray:
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise InputError(f"a pose is a finite 4x4 transform, got shape {T.shape}")
+    return T
+
+
+def fk(q: np.ndarray, model: URModel = UR5E, T_flange_tcp: np.ndarray | None = None) -> np.ndarray:
+    """``T_base_tool`` (4, 4), metres, of joint angles ``q`` (6,) radians.
+
+    ``T_flange_tcp`` (4, 4), metres: the TCP offset set on the controller (None: the flange).
+    """
+    q = _check_q(q)
+    T = np.eye(4)
+    for Ti in _link_transforms(q, model):
+        T = T @ Ti
+    return T if T_flange_tcp is None else T @ T_flange_tcp
+
+
+def _wrap(a: float) -> float:
+    return float((a + np.pi) % (2 * np.pi) - np.pi)
+
+
+def _acos(x: float) -> float | None:
+    """arccos, tolerating rounding just outside [-1, 1]; None when truly outside."""
+    if abs(x) > 1.0 + 1e-10:
+        return None
+    return float(np.arccos(np.clip(x, -1.0, 1.0)))
+
+
+def _ik_flange(T: np.ndarray, m: URModel, q6_singular: float = 0.0) -> list[np.ndarray]:
+    """All closed-form solutions (angles in (-pi, pi]) for the flange pose ``T`` (Hawkins 2013).
+
+    At a wrist singularity (``sin(q5) = 0``) q6 is free; ``q6_singular`` is used for it.
+    """
+    R = T[:3, :3]
+    p06 = T[:3, 3]
+    p05 = p06 - m.d6 * R[:, 2]
+    rho = float(np.hypot(p05[0], p05[1]))
+    if rho < 1e-12:
+        return []
+    phi = _acos(m.d4 / rho)
+    if phi is None:
+        return []
+    sols: list[np.ndarray] = []
+    for s1 in (1.0, -1.0):
+        q1 = np.arctan2(p05[1], p05[0]) + s1 * phi + np.pi / 2
+        c1, sn1 = np.cos(q1), np.sin(q1)
+        c5 = (p06[0] * sn1 - p06[1] * c1 - m.d4) / m.d6
+        a5 = _acos(c5)
+        if a5 is None:
+            continue
+        for s5 in (1.0, -1.0):
+            q5 = s5 * a5
+            sn5 = np.sin(q5)
+            if abs(sn5) < 1e-7:
+                q6 = q6_singular  # wrist singular: q4 and q6 are coupled, q6 is free
+            else:
+                q6 = np.arctan2(
+                    (-R[0, 1] * sn1 + R[1, 1] * c1) / sn5, (R[0, 0] * sn1 - R[1, 0] * c1) / sn5
+                )
+            T01 = _dh(q1, m.d1, 0.0, _RX_P)
+            T45 = _dh(q5, m.d5, 0.0, _RX_M)
+            T56 = _dh(q6, m.d6, 0.0, _RX_0)
+            T14 = inv_T(T01) @ T @ inv_T(T45 @ T56)
+            px, py = T14[0, 3], T14[1, 3]
+            a3 = _acos((px * px + py * py - m.a2**2 - m.a3**2) / (2.0 * m.a2 * m.a3))
+            if a3 is None:
+                continue
+            q234 = np.arctan2(T14[1, 0], T14[0, 0])
+            for s3 in (1.0, -1.0):
+                q3 = s3 * a3
+                q2 = np.arctan2(py, px) - np.arctan2(m.a3 * np.sin(q3), m.a2 + m.a3 * np.cos(q3))
+                q4 = q234 - q2 - q3
+                sols.append(np.array([_wrap(v) for v in (q1, q2, q3, q4, q5, q6)]))
+    return sols
+
+
+def _nearest_within_limits(q: np.ndarray, q_near: np.ndarray, m: URModel) -> np.ndarray | None:
+    """Each angle shifted by a multiple of 2 pi to be nearest ``q_near`` inside the limits."""
+    out = np.empty(6)
+    for i in range(6):
+        k = np.round((q_near[i] - q[i]) / (2 * np.pi))
+        cands = [q[i] + 2 * np.pi * (k + j) for j in (-1, 0, 1)]
+        ok = [c for c in cands if m.q_min[i] - 1e-9 <= c <= m.q_max[i] + 1e-9]
+        if not ok:
+            return None
+        out[i] = min(ok, key=lambda c, i=i: abs(c - q_near[i]))
+    return out
+
+
+def ik(
+    T_base_tool: np.ndarray,
+    q_near: np.ndarray | None = None,
+    model: URModel = UR5E,
+    T_flange_tcp: np.ndarray | None = None,
+) -> list[np.ndarray]:
+    """Joint solutions (each (6,), radians) reaching ``T_base_tool`` (4, 4, metres).
+
+    Up to eight analytic solutions, each angle shifted by whole turns toward ``q_near`` (6,)
+    (default: the angles in (-pi, pi]) and kept only inside the joint limits; sorted by distance
+    to ``q_near`` when given. Empty when the pose is out of reach.
+    """
+    T = _check_T(T_base_tool)
+    if T_flange_tcp is not None:
+        T = T @ inv_T(_check_T(T_flange_tcp))
+    sols: list[np.ndarray] = []
+    q6_singular = 0.0 if q_near is None else float(_check_q(q_near)[5])
+    for q in _ik_flange(T, model, q6_singular):
+        qq = _nearest_within_limits(q, q if q_near is None else _check_q(q_near), model)
+        if qq is not None and not any(np.allclose(qq, s, atol=1e-9) for s in sols):
+            sols.append(qq)
+    if q_near is not None:
+        qn = _check_q(q_near)
+        sols.sort(key=lambda s: float(np.max(np.abs(s - qn))))
+    return sols
+
+
+def singularity(q: np.ndarray, model: URModel = UR5E) -> str | None:
+    """Which singularity the configuration ``q`` (6,) radians is near, or None.
+
+    Thresholds: :data:`WRIST_SIN_MIN`, :data:`ELBOW_SIN_MIN`, :data:`SHOULDER_RADIUS_MIN_M`.
+    """
+    q = _check_q(q)
+    if abs(np.sin(q[4])) < WRIST_SIN_MIN:
+        return f"wrist singularity (q5 = {np.degrees(q[4]):.1f} deg, axes 4 and 6 aligned)"
+    if abs(np.sin(q[2])) < ELBOW_SIN_MIN:
+        return f"elbow singularity (q3 = {np.degrees(q[2]):.1f} deg, arm stretched or folded)"
+    # Horizontal distance of the wrist point from the base axis, in the arm's plane.
+    r = model.a2 * np.cos(q[1]) + model.a3 * np.cos(q[1] + q[2]) + model.d5 * np.sin(
+        q[1] + q[2] + q[3]
+    )
+    if abs(r) < SHOULDER_RADIUS_MIN_M:
+        return f"shoulder singularity (wrist point {abs(r) * 1000:.0f} mm from the base axis)"
+    return None
+
+
+def reachable(
+    T_base_tool: np.ndarray,
+    q_near: np.ndarray | None = None,
+    model: URModel = UR5E,
+    T_flange_tcp: np.ndarray | None = None,
+) -> bool:
+    """Whether ``T_base_tool`` (4, 4, metres) has a non-singular solution inside the limits.
+
+    With ``q_near`` (6,) radians only the solution nearest to it counts (the one a linear move
+    from there would use); without it any solution does.
+    """
+    sols = ik(T_base_tool, q_near, model, T_flange_tcp)
+    if q_near is not None:
+        sols = sols[:1]
+    return any(singularity(q, model) is None for q in sols)
