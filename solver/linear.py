@@ -7,9 +7,13 @@ coefficient row :func:`conic_row` ``(a, b)``.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal
+
 import numpy as np
 
-from slidecal.solver.errors import DegenerateError
+from slidecal.solver.errors import DegenerateError, InputError
 
 W_NAMES = ("w11", "w12", "w22", "w13", "w23", "w33")
 
@@ -103,3 +107,295 @@ def image_normalisation(width: float, height: float) -> np.ndarray:
     cx = (float(width) - 1.0) / 2.0
     cy = (float(height) - 1.0) / 2.0
     return np.array([[s, 0.0, -s * cx], [0.0, s, -s * cy], [0.0, 0.0, 1.0]])
+
+
+Knowledge = Literal["robot", "board_translation", "board_direction", "lengths", "none"]
+KNOWLEDGE = ("robot", "board_translation", "board_direction", "lengths", "none")
+
+
+@dataclass(frozen=True)
+class LinearGroup:
+    """One orientation group for the linear method.
+
+    ``H`` (n, 3, 3): jointly estimated homographies (board plane to pixels, identical ``h1, h2``;
+    see ``slidecal.solver.homography.group_homographies``); frame 0 is the reference.
+    ``motion`` (n, 3) or None; ``motion[0] = 0``; by knowledge: ``"robot"``: the camera's
+    displacement since frame 0 in the robot frame (same length unit as the board; only inner
+    products are used, all pairs i, j); ``"board_translation"``: the displacement in the board
+    frame (Case 3); ``"board_direction"``: its unit direction in the board frame, length unknown
+    (Case 2); ``"lengths"``: only the norms are used (Case 1, eq. 27).
+    """
+
+    H: np.ndarray
+    motion: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class LinearSolution:
+    """Result of :func:`linear_intrinsics`.
+
+    ``K`` (3, 3) pixels, ``K[2, 2] = 1``. ``scales``: ``c = lambda^2`` per group in the caller's
+    units (``H`` as given in pixels and board units, ``H = lambda K [r1 r2 t]``). ``lengths``:
+    Case 2 only, per group an (n,) array of the recovered signed step lengths along the given
+    direction (board units; ``lengths[g][0] = 0``), else None. ``singular_values``: of the
+    conditioned system (descending; the last is the residual of the null vector). ``unknowns``:
+    names of the system's columns.
+    """
+
+    K: np.ndarray
+    scales: tuple[float, ...]
+    lengths: tuple[np.ndarray, ...] | None
+    singular_values: np.ndarray
+    unknowns: tuple[str, ...]
+
+    @property
+    def conditioning(self) -> float:
+        """Second smallest over largest singular value: near 0 means the null space is not 1-D."""
+        return float(self.singular_values[-2] / self.singular_values[0])
+
+
+@dataclass(frozen=True)
+class LinearSystem:
+    """The stacked, conditioned homogeneous system ``A x = 0`` of the linear method.
+
+    ``A`` (rows, m + G): unit-norm rows and columns; ``col_scale`` (m + G,): ``x = col_scale * y``
+    for a null vector ``y`` of ``A``; ``basis`` (6, m): ``w = basis @ x[:m]``; ``N`` (3, 3) the
+    image normalisation; ``sigma``: the board-side scale (board units per normalised unit).
+    """
+
+    A: np.ndarray
+    col_scale: np.ndarray
+    basis: np.ndarray
+    unknowns: tuple[str, ...]
+    N: np.ndarray
+    sigma: float
+    n_groups: int
+
+
+def w_basis(skew: bool, unit_aspect: bool) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Linear basis (6, m) of ``w`` for the camera model, and the coefficient names.
+
+    Zero skew: ``w12 = 0``; unit aspect (with zero skew): also ``w11 = w22``. Unit aspect with
+    skew is not linear in ``w``: the full basis is used and the refinement enforces it.
+    """
+    I6 = np.eye(6)
+    if skew:
+        return I6, W_NAMES
+    if unit_aspect:
+        return np.column_stack([I6[0] + I6[2], I6[3], I6[4], I6[5]]), (
+            "w11=w22",
+            "w13",
+            "w23",
+            "w33",
+        )
+    return I6[:, [0, 2, 3, 4, 5]], ("w11", "w22", "w13", "w23", "w33")
+
+
+def _common_h12(H: np.ndarray) -> np.ndarray:
+    """Rescale each H[k] (k >= 1) so its h1, h2 match frame 0's (no-op for joint estimates)."""
+    H = np.array(H, dtype=float)
+    ref = np.concatenate([H[0][:, 0], H[0][:, 1]])
+    for k in range(1, len(H)):
+        v = np.concatenate([H[k][:, 0], H[k][:, 1]])
+        H[k] *= (ref @ v) / (v @ v)
+    return H
+
+
+def _board_scale(Hs: list[np.ndarray]) -> float:
+    r = [
+        np.linalg.norm(H[:, 2]) / np.sqrt(0.5 * (H[:, 0] @ H[:, 0] + H[:, 1] @ H[:, 1])) for H in Hs
+    ]
+    return float(np.median(r))
+
+
+def _check_groups(groups: Sequence[LinearGroup], knowledge: str) -> None:
+    if knowledge not in KNOWLEDGE:
+        raise InputError(f"unknown motion knowledge {knowledge!r}; use one of {KNOWLEDGE}")
+    if len(groups) == 0:
+        raise InputError("the linear method needs at least one orientation group")
+    for g, grp in enumerate(groups):
+        H = np.asarray(grp.H)
+        if H.ndim != 3 or H.shape[1:] != (3, 3):
+            raise InputError(f"group {g}: H must be an (n, 3, 3) array of homographies")
+        if knowledge not in ("none",):
+            if grp.motion is None:
+                raise InputError(f"group {g}: motion is required for knowledge {knowledge!r}")
+            if np.shape(grp.motion) != (len(H), 3):
+                raise InputError(
+                    f"group {g}: motion must be ({len(H)}, 3), one row per frame, got "
+                    f"{np.shape(grp.motion)}"
+                )
+
+
+def linear_system(
+    groups: Sequence[LinearGroup],
+    knowledge: str,
+    *,
+    skew: bool = False,
+    unit_aspect: bool = False,
+    image_size: tuple[float, float],
+) -> LinearSystem:
+    """Stack and condition every constraint of MATH.md Sec. 3 (table) on ``(w, c_1 .. c_G)``.
+
+    Per group: ``h1' W h2 = 0``, ``h1' W h1 = c``, ``h2' W h2 = c`` (eqs. 10-11), then per
+    translation, by ``knowledge`` (see :class:`LinearGroup`): ``"lengths"``: ``Delta' W Delta =
+    L^2 c`` (eq. 27); ``"board_translation"``: ``h1' W Delta = T_x c``, ``h2' W Delta = T_y c``,
+    ``Delta' W Delta = |T|^2 c``; ``"board_direction"`` (eqs. 22-26): ``h1' W Delta = n_x a``,
+    ``h2' W Delta = n_y a`` with ``a`` eliminated (``q`` only fixes the length afterwards);
+    ``"robot"``: ``Delta_i' W Delta_j = (T_i . T_j) c`` for all pairs ``1 <= i <= j``;
+    ``"none"``: Zhang's two rows of every frame (each frame its own pose), no ``c``.
+    Conditioning (MATH.md "Numerical conditioning"): isotropic image normalisation, board-side
+    scale making the homography columns commensurate (translations scaled with it), unit-norm
+    rows and columns.
+    """
+    _check_groups(groups, knowledge)
+    N = image_normalisation(*image_size)
+    B, wnames = w_basis(skew, unit_aspect)
+    m = B.shape[1]
+    Hn = [np.einsum("ij,kjl->kil", N, _common_h12(np.asarray(g.H, dtype=float))) for g in groups]
+    sigma = _board_scale([H[0] for H in Hn])
+    S = np.diag([sigma, sigma, 1.0])
+    Hn = [H @ S for H in Hn]
+    G = 0 if knowledge == "none" else len(groups)
+    rows: list[np.ndarray] = []
+
+    def add(conic: np.ndarray, g: int | None = None, c_coef: float = 0.0) -> None:
+        r = np.zeros(m + G)
+        r[:m] = conic @ B
+        if g is not None:
+            r[m + g] = c_coef
+        rows.append(r)
+
+    for g, (grp, H) in enumerate(zip(groups, Hn, strict=True)):
+        if knowledge == "none":
+            for Hk in H:
+                for z in zhang_rows(Hk):
+                    add(z)
+            continue
+        h1, h2 = H[0][:, 0], H[0][:, 1]
+        add(conic_row(h1, h2))  # eq. 10
+        add(conic_row(h1, h1), g, -1.0)  # eq. 11
+        add(conic_row(h2, h2), g, -1.0)  # eq. 11
+        motion = np.asarray(grp.motion, dtype=float) / sigma
+        deltas = [H[0][:, 2] - H[k][:, 2] for k in range(len(H))]  # eqs. 12-13
+        for k in range(1, len(H)):
+            D, T = deltas[k], motion[k]
+            if knowledge == "lengths":  # eq. 27
+                add(conic_row(D, D), g, -(T @ T))
+            elif knowledge == "board_translation":  # Case 3
+                add(conic_row(h1, D), g, -T[0])
+                add(conic_row(h2, D), g, -T[1])
+                add(conic_row(D, D), g, -(T @ T))
+            elif knowledge == "board_direction":  # eqs. 22-26, a = s c eliminated
+                n = T / max(np.linalg.norm(T), 1e-300)
+                mxy = np.hypot(n[0], n[1])
+                if mxy < 1e-9:
+                    add(conic_row(h1, D))
+                    add(conic_row(h2, D))
+                else:
+                    add(conic_row((n[1] * h1 - n[0] * h2) / mxy, D))
+            elif knowledge == "robot":  # all pairs, generalising eq. 27
+                for j in range(1, k + 1):
+                    add(conic_row(deltas[j], D), g, -(motion[j] @ T))
+    A = np.array(rows)
+    rn = np.linalg.norm(A, axis=1)
+    A = A[rn > 0] / rn[rn > 0, None]
+    cn = np.linalg.norm(A, axis=0)
+    col_scale = 1.0 / np.where(cn > 0, cn, 1.0)
+    A = A * col_scale
+    names = wnames + tuple(f"c{g}" for g in range(G))
+    return LinearSystem(A, col_scale, B, names, N, sigma, G)
+
+
+def _solve_null(system: LinearSystem) -> tuple[np.ndarray, np.ndarray]:
+    A = system.A
+    n_unknowns = A.shape[1]
+    if A.shape[0] < n_unknowns - 1:
+        raise DegenerateError(
+            f"too few constraints ({A.shape[0]}) for {n_unknowns - 1} unknowns "
+            f"({', '.join(system.unknowns)} up to scale): add frames, translations in other "
+            "directions, or orientation groups, or assume zero skew / unit aspect"
+        )
+    _, sv, Vt = np.linalg.svd(A, full_matrices=True)
+    if len(sv) < n_unknowns:
+        sv = np.concatenate([sv, np.zeros(n_unknowns - len(sv))])
+    return Vt[-1] * system.col_scale, sv
+
+
+def linear_intrinsics(
+    groups: Sequence[LinearGroup],
+    knowledge: str,
+    *,
+    skew: bool = False,
+    unit_aspect: bool = False,
+    image_size: tuple[float, float],
+) -> LinearSolution:
+    """Closed-form intrinsics from translation groups (MATH.md Sec. 3, every row of the table).
+
+    ``groups``: orientation groups (:class:`LinearGroup`, homographies in pixels and board
+    units). ``image_size``: (width, height) pixels. Any number of groups; Zhang's rows of every
+    group are always stacked (they add information when the groups differ in orientation).
+    Raises ``DegenerateError`` when the system has no unique, positive definite solution.
+    """
+    system = linear_system(
+        groups, knowledge, skew=skew, unit_aspect=unit_aspect, image_size=image_size
+    )
+    x, sv = _solve_null(system)
+    m = system.basis.shape[1]
+    w = system.basis @ x[:m]
+    Kn = K_from_w(w)
+    K = np.linalg.inv(system.N) @ Kn
+    K /= K[2, 2]
+    Kni = np.linalg.inv(Kn)
+    Wt = Kni.T @ Kni
+    w_true = np.array([Wt[0, 0], Wt[0, 1], Wt[1, 1], Wt[0, 2], Wt[1, 2], Wt[2, 2]])
+    alpha = (w_true @ w) / (w @ w)
+    scales = tuple(float(alpha * c / system.sigma**2) for c in x[m:])
+    lengths = None
+    if knowledge == "board_direction":
+        lengths = tuple(
+            _signed_lengths(K, np.asarray(g.H, dtype=float), np.asarray(g.motion, dtype=float))
+            for g in groups
+        )
+    return LinearSolution(K, scales, lengths, sv, system.unknowns)
+
+
+def _signed_lengths(K: np.ndarray, H: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """Case 2 step lengths (n,): the camera displacement ``K^-1 Delta / lambda`` along ``R n``."""
+    H = _common_h12(H)
+    Ki = np.linalg.inv(K)
+    m1, m2 = Ki @ H[0][:, 0], Ki @ H[0][:, 1]
+    lam = np.sqrt(0.5 * (m1 @ m1 + m2 @ m2))
+    R = np.column_stack([m1 / lam, m2 / lam, np.cross(m1, m2) / lam**2])
+    out = np.zeros(len(H))
+    for k in range(1, len(H)):
+        n = directions[k] / np.linalg.norm(directions[k])
+        out[k] = (R @ n) @ (Ki @ (H[0][:, 2] - H[k][:, 2])) / lam  # eqs. 12-13
+    return out
+
+
+def zhang_intrinsics(
+    Hs: np.ndarray,
+    *,
+    skew: bool = False,
+    unit_aspect: bool = False,
+    image_size: tuple[float, float],
+) -> np.ndarray:
+    """Zhang's general-motion intrinsics ``K`` (3, 3) from homographies ``Hs`` (n, 3, 3).
+
+    Each homography (board plane to pixels, any scale) is its own pose (eqs. 10-11). Needs at
+    least 3 orientations with skew, 2 with zero skew (4 unknowns), fewer with unit aspect.
+    """
+    Hs = np.asarray(Hs, dtype=float).reshape(-1, 3, 3)
+    groups = [LinearGroup(H[None]) for H in Hs]
+    system = linear_system(
+        groups, "none", skew=skew, unit_aspect=unit_aspect, image_size=image_size
+    )
+    x, sv = _solve_null(system)
+    if sv[-2] <= 1e-10 * sv[0]:
+        raise DegenerateError(
+            "Zhang's method is singular for these views: use more orientations (at least 3 with "
+            "skew), tilted about different axes"
+        )
+    K = np.linalg.inv(system.N) @ K_from_w(system.basis @ x[: system.basis.shape[1]])
+    return K / K[2, 2]

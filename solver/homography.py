@@ -1,0 +1,258 @@
+"""Plane homographies: normalised DLT, reprojection refinement and joint group estimates.
+
+``H`` (3, 3) maps board points ``(X, Y, 1)`` (board frame, any length unit) to image points
+(pixels): ``x ~ H (X, Y, 1)``, ``H = lambda K [r1 r2 t]`` (MATH.md Sec. 2).
+
+Normalisation convention of every returned ``H``: unit Frobenius norm and ``H[2, 2] > 0``. Since
+``H[2, 2] = lambda t_z`` with ``t_z > 0`` for a board in front of the camera, this is the scale
+with ``lambda > 0`` (the third component of ``K^-1 h3`` is positive for any ``K`` with positive
+focal lengths). A joint group estimate (:func:`group_homographies`) applies one common scale to
+all its frames, chosen so that frame 0 has unit norm, so ``h1, h2`` are identical in all frames.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from slidecal.solver.errors import DegenerateError, InputError
+
+Observation = tuple[np.ndarray, np.ndarray]  # (board_xy (N, 2), px (N, 2))
+
+
+def _check_pairs(board_xy: np.ndarray, px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    b = np.asarray(board_xy, dtype=float)
+    p = np.asarray(px, dtype=float).reshape(-1, 2)
+    if b.ndim != 2 or b.shape[1] not in (2, 3):
+        raise InputError("board_xy must be an (N, 2) array of board-plane coordinates")
+    b = b[:, :2]
+    if len(b) != len(p):
+        raise InputError(f"board_xy has {len(b)} points but px has {len(p)}: pass matched pairs")
+    if len(b) < 4:
+        raise InputError(f"a homography needs at least 4 point pairs, got {len(b)}")
+    return b, p
+
+
+def _similarity(xy: np.ndarray) -> np.ndarray:
+    """Hartley normalisation (3, 3): centroid to origin, mean distance sqrt(2)."""
+    c = xy.mean(axis=0)
+    d = np.mean(np.linalg.norm(xy - c, axis=1))
+    if d <= 0.0:
+        raise DegenerateError(
+            "all points coincide: a homography needs points spread over the board"
+        )
+    s = np.sqrt(2.0) / d
+    return np.array([[s, 0.0, -s * c[0]], [0.0, s, -s * c[1]], [0.0, 0.0, 1.0]])
+
+
+def _apply(T: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    return xy @ T[:2, :2].T + T[:2, 2]
+
+
+def _sign_scale(H: np.ndarray) -> np.ndarray:
+    H = H / np.linalg.norm(H)
+    return -H if H[2, 2] < 0 else H
+
+
+def _dlt_normalised(b: np.ndarray, p: np.ndarray) -> np.ndarray:
+    n = len(b)
+    A = np.zeros((2 * n, 9))
+    X = np.column_stack([b, np.ones(n)])
+    A[0::2, 0:3] = X
+    A[0::2, 6:9] = -p[:, :1] * X
+    A[1::2, 3:6] = X
+    A[1::2, 6:9] = -p[:, 1:2] * X
+    _, sv, Vt = np.linalg.svd(A)
+    if sv[-2] <= 1e-12 * sv[0]:
+        raise DegenerateError(
+            "the board points are (nearly) colinear: a homography needs points spread in 2D"
+        )
+    return Vt[-1].reshape(3, 3)
+
+
+def homography_dlt(board_xy: np.ndarray, px: np.ndarray) -> np.ndarray:
+    """Normalised DLT homography (3, 3) (Hartley normalisation on both sides).
+
+    ``board_xy`` (N, 2): board frame, any length unit. ``px`` (N, 2): pixels. N >= 4.
+    Returned with unit Frobenius norm and ``H[2, 2] > 0`` (module docstring).
+    """
+    b, p = _check_pairs(board_xy, px)
+    Tb, Ti = _similarity(b), _similarity(p)
+    Hn = _dlt_normalised(_apply(Tb, b), _apply(Ti, p))
+    return _sign_scale(np.linalg.inv(Ti) @ Hn @ Tb)
+
+
+def _project(H: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    u = b @ H[:, :2].T + H[:, 2]
+    return u[:, :2] / u[:, 2:3], u
+
+
+def _residual_and_jac(H: np.ndarray, b: np.ndarray, p: np.ndarray):
+    """Residuals (2N,) x0 y0 x1 ... and their Jacobian (2N, 9) w.r.t. H's columns h1, h2, h3."""
+    xy, u = _project(H, b)
+    r = (xy - p).reshape(-1)
+    n = len(b)
+    iw = 1.0 / u[:, 2]
+    J = np.zeros((2 * n, 9))
+    X = np.column_stack([b, np.ones(n)])  # coefficient of column j is X[:, j]
+    for j in range(3):
+        J[0::2, 3 * j + 0] = X[:, j] * iw
+        J[0::2, 3 * j + 2] = -X[:, j] * iw * xy[:, 0]
+        J[1::2, 3 * j + 1] = X[:, j] * iw
+        J[1::2, 3 * j + 2] = -X[:, j] * iw * xy[:, 1]
+    return r, J
+
+
+def _h(H: np.ndarray) -> np.ndarray:
+    return H.T.reshape(-1)  # columns h1, h2, h3 stacked
+
+
+def _H(x: np.ndarray) -> np.ndarray:
+    return x.reshape(3, 3).T
+
+
+def refine_homography(H: np.ndarray, board_xy: np.ndarray, px: np.ndarray) -> np.ndarray:
+    """Homography (3, 3) minimising the image reprojection error (Levenberg-Marquardt).
+
+    ``H`` (3, 3): initial estimate. ``board_xy`` (N, 2): board frame, any unit. ``px`` (N, 2):
+    pixels. Solved in Hartley-normalised coordinates with an analytic Jacobian (the isotropic
+    image normalisation keeps the cost proportional to the pixel error). Returned with unit
+    Frobenius norm and ``H[2, 2] > 0``.
+    """
+    b, p = _check_pairs(board_xy, px)
+    Tb, Ti = _similarity(b), _similarity(p)
+    bn, pn = _apply(Tb, b), _apply(Ti, p)
+    Hn = Ti @ np.asarray(H, dtype=float) @ np.linalg.inv(Tb)
+    Hn /= np.linalg.norm(Hn)
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        return _residual_and_jac(_H(x), bn, pn)[0]
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        return _residual_and_jac(_H(x), bn, pn)[1]
+
+    sol = least_squares(fun, _h(Hn), jac=jac, method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14)
+    return _sign_scale(np.linalg.inv(Ti) @ _H(sol.x) @ Tb)
+
+
+def homography_rms_px(H: np.ndarray, board_xy: np.ndarray, px: np.ndarray) -> float:
+    """Root mean square point distance (pixels) between ``H`` applied to ``board_xy`` (N, 2)
+    and ``px`` (N, 2): ``sqrt(mean(dx^2 + dy^2))``."""
+    b, p = _check_pairs(board_xy, px)
+    xy, _ = _project(np.asarray(H, dtype=float), b)
+    return float(np.sqrt(np.mean(np.sum((xy - p) ** 2, axis=1))))
+
+
+def _prepare_group(observations: Sequence[Observation]):
+    if len(observations) < 1:
+        raise InputError("an orientation group needs at least one frame")
+    obs = [_check_pairs(b, p) for b, p in observations]
+    Tb = _similarity(np.concatenate([b for b, _ in obs]))
+    Ti = _similarity(np.concatenate([p for _, p in obs]))
+    obs_n = [(_apply(Tb, b), _apply(Ti, p)) for b, p in obs]
+    return obs_n, Tb, Ti
+
+
+def _common_scale_init(obs_n) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame DLTs rescaled to a common h1, h2: shared (6,) and per-frame h3 (n, 3)."""
+    Hs = [_dlt_normalised(b, p) for b, p in obs_n]
+    ref = np.concatenate([Hs[0][:, 0], Hs[0][:, 1]])
+    ref = ref / np.linalg.norm(ref)
+    h12, h3 = [], []
+    for H in Hs:
+        v = np.concatenate([H[:, 0], H[:, 1]])
+        alpha = (ref @ v) / (v @ v)  # least-squares scale (may be negative) onto the reference
+        h12.append(alpha * v)
+        h3.append(alpha * H[:, 2])
+    return np.mean(h12, axis=0), np.array(h3)
+
+
+def _finish_group(Hn: np.ndarray, Tb: np.ndarray, Ti: np.ndarray) -> np.ndarray:
+    Tii = np.linalg.inv(Ti)
+    Hs = np.array([Tii @ H @ Tb for H in Hn])
+    s = np.linalg.norm(Hs[0])
+    if np.median(Hs[:, 2, 2]) < 0:
+        s = -s
+    return Hs / s
+
+
+def group_homographies(observations: Sequence[Observation]) -> np.ndarray:
+    """Joint homographies (n, 3, 3) of one orientation group (MATH.md Sec. 3).
+
+    ``observations``: per frame ``(board_xy (N_k, 2) board frame, px (N_k, 2) pixels)``. One
+    shared ``h1, h2`` and one ``h3`` per frame minimise the reprojection error of all frames
+    jointly, so every ``Hs[k]`` has the same scale (identical first two columns) and
+    ``Delta_k = h3_0 - h3_k`` is meaningful (eqs. 12-13). Scale: ``Hs[0]`` has unit Frobenius
+    norm and ``h3[2] > 0`` (board in front of the camera).
+    """
+    obs_n, Tb, Ti = _prepare_group(observations)
+    h12, h3 = _common_scale_init(obs_n)
+    n = len(obs_n)
+
+    def unpack(x: np.ndarray) -> list[np.ndarray]:
+        return [np.column_stack([x[0:3], x[3:6], x[6 + 3 * k : 9 + 3 * k]]) for k in range(n)]
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        return np.concatenate(
+            [_residual_and_jac(H, b, p)[0] for H, (b, p) in zip(unpack(x), obs_n, strict=True)]
+        )
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        blocks = []
+        for k, (H, (b, p)) in enumerate(zip(unpack(x), obs_n, strict=True)):
+            Jk = _residual_and_jac(H, b, p)[1]
+            B = np.zeros((len(Jk), 6 + 3 * n))
+            B[:, 0:6] = Jk[:, 0:6]
+            B[:, 6 + 3 * k : 9 + 3 * k] = Jk[:, 6:9]
+            blocks.append(B)
+        return np.vstack(blocks)
+
+    x0 = np.concatenate([h12, h3.reshape(-1)])
+    sol = least_squares(fun, x0, jac=jac, method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14)
+    return _finish_group(np.array(unpack(sol.x)), Tb, Ti)
+
+
+def constrained_group_homographies(
+    observations: Sequence[Observation], steps: np.ndarray
+) -> np.ndarray:
+    """The paper's constrained estimate (n, 3, 3) of a sequence along one unknown direction.
+
+    ``observations``: per frame ``(board_xy (N_k, 2), px (N_k, 2) pixels)``. ``steps`` (n,): the
+    displacement of frame k from frame 0 along the line (any consistent unit, ``steps[0] = 0``).
+    ``H_k = [h1 h2 h3_0 - steps[k] d]``: 11 parameters for the whole sequence, fitted to the
+    reprojection error of all frames. Scale convention as :func:`group_homographies`.
+    """
+    steps = np.asarray(steps, dtype=float).reshape(-1)
+    if len(steps) != len(observations):
+        raise InputError(
+            f"steps has {len(steps)} entries for {len(observations)} frames: give one per frame"
+        )
+    if len(steps) < 2 or np.ptp(steps) == 0.0:
+        raise InputError("constrained_group_homographies needs at least two distinct steps")
+    steps = steps - steps[0]
+    obs_n, Tb, Ti = _prepare_group(observations)
+    h12, h3 = _common_scale_init(obs_n)
+    # Initial d: least squares of h3_0 - h3_k = steps[k] d over k, with h3_0 re-fitted.
+    A = np.column_stack([np.ones(len(steps)), -steps])
+    coef, *_ = np.linalg.lstsq(A, h3, rcond=None)
+    x0 = np.concatenate([h12, coef[0], coef[1]])
+
+    def unpack(x: np.ndarray) -> list[np.ndarray]:
+        return [np.column_stack([x[0:3], x[3:6], x[6:9] - s * x[9:12]]) for s in steps]
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        return np.concatenate(
+            [_residual_and_jac(H, b, p)[0] for H, (b, p) in zip(unpack(x), obs_n, strict=True)]
+        )
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        blocks = []
+        for H, s, (b, p) in zip(unpack(x), steps, obs_n, strict=True):
+            Jk = _residual_and_jac(H, b, p)[1]
+            blocks.append(np.hstack([Jk[:, 0:6], Jk[:, 6:9], -s * Jk[:, 6:9]]))
+        return np.vstack(blocks)
+
+    sol = least_squares(fun, x0, jac=jac, method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14)
+    return _finish_group(np.array(unpack(sol.x)), Tb, Ti)
