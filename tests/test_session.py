@@ -1,0 +1,237 @@
+"""Session directories: write then read gives the same problem; every bad input names its field."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from slidecal.drivers.ur_pose import T_from_ur_pose
+from slidecal.routines.session import (
+    SESSION_FILE,
+    SessionWriter,
+    load_session,
+    read_session,
+    write_session,
+)
+from slidecal.solver.errors import InputError
+from slidecal.solver.geometry import T_from_Rt, random_rotation
+from slidecal.solver.problem import (
+    CalibrationProblem,
+    CameraSpec,
+    Detection,
+    Frame,
+    ModelOptions,
+    Target,
+)
+
+
+def _problem(rng: np.random.Generator, n_frames: int = 4) -> CalibrationProblem:
+    target = Target.charuco(11, 8, 0.03, 0.022)
+    cams = (CameraSpec("left", 1280, 800), CameraSpec("right", 1280, 800))
+    frames = []
+    for i in range(n_frames):
+        T = T_from_Rt(random_rotation(rng, 0.5), rng.uniform(-0.5, 0.5, 3))
+        dets = {}
+        for c in cams:
+            ids = np.sort(rng.choice(70, size=int(rng.integers(5, 60)), replace=False))
+            dets[c.name] = Detection(ids, rng.uniform(0, 800, (len(ids), 2)))
+        if i == 2:  # the right camera saw nothing: the entry stays, with empty ids
+            dets["right"] = Detection(np.zeros(0, int), np.zeros((0, 2)))
+        frames.append(Frame(i, dets, T_base_tool=T, group=i // 2))
+    return CalibrationProblem(
+        target, cams, tuple(frames), options=ModelOptions(skew=True, outlier_threshold_px=3.0)
+    )
+
+
+def _same(a: CalibrationProblem, b: CalibrationProblem) -> None:
+    assert a.target.kind == b.target.kind
+    np.testing.assert_allclose(a.target.points_m, b.target.points_m, atol=1e-15)
+    assert a.cameras == b.cameras
+    assert (a.mount, a.knowledge, a.options) == (b.mount, b.knowledge, b.options)
+    assert [f.id for f in a.frames] == [f.id for f in b.frames]
+    for fa, fb in zip(a.frames, b.frames, strict=True):
+        assert fa.group == fb.group
+        if fa.T_base_tool is None:
+            assert fb.T_base_tool is None
+        else:
+            np.testing.assert_allclose(fa.T_base_tool, fb.T_base_tool, atol=1e-14)
+        assert set(fa.detections) == set(fb.detections)
+        for name, d in fa.detections.items():
+            np.testing.assert_array_equal(d.ids, fb.detections[name].ids)
+            np.testing.assert_array_equal(d.px, fb.detections[name].px)
+
+
+def test_round_trip_gives_the_same_problem(tmp_path: Path) -> None:
+    p = _problem(np.random.default_rng(3))
+    write_session(tmp_path / "s", p, simulation={"seed": 7})
+    q = read_session(tmp_path / "s")
+    _same(p, q)
+    assert len(q.frames[2].detections["right"].ids) == 0
+    s = load_session(tmp_path / "s")
+    assert s.simulation == {"seed": 7} and s.status == "complete"
+
+
+def test_writer_appends_frames_at_once_with_images(tmp_path: Path) -> None:
+    rng = np.random.default_rng(4)
+    p = _problem(rng, 3)
+    w = SessionWriter(tmp_path / "s", p.target, p.cameras)
+    img = rng.integers(0, 255, (800, 1280), dtype=np.uint8)
+    for k, fr in enumerate(p.frames):
+        w.append_frame(fr.T_base_tool, {"left": img}, fr.detections, group=fr.group)
+        # after each append the file on disk is a valid session holding every frame so far
+        s = load_session(tmp_path / "s", detect_images=False)
+        assert len(s.problem.frames) == k + 1 and s.status == "recording"
+        assert (tmp_path / "s" / "images" / f"{k:04d}_left.png").is_file()
+    w.add_event("fault", "protective stop", frame=3)
+    s = load_session(tmp_path / "s")
+    assert s.events[0]["kind"] == "fault"
+    assert not list((tmp_path / "s").glob(".*.tmp"))  # no temporary file left behind
+    with pytest.raises(InputError, match="already holds a session"):
+        SessionWriter(tmp_path / "s", p.target, p.cameras)
+
+
+def test_sessions_without_robot_have_no_knowledge_and_no_mount(tmp_path: Path) -> None:
+    p = _problem(np.random.default_rng(5))
+    frames = tuple(Frame(f.id, f.detections) for f in p.frames)
+    p2 = CalibrationProblem(p.target, p.cameras, frames, mount="none", knowledge="none")
+    write_session(tmp_path / "s", p2)
+    q = read_session(tmp_path / "s")
+    assert (q.mount, q.knowledge) == ("none", "none")
+
+
+def test_points_and_chessboard_targets_round_trip(tmp_path: Path) -> None:
+    rng = np.random.default_rng(6)
+    for k, target in enumerate(
+        [Target.chessboard(9, 7, 0.025), Target.points(rng.uniform(0, 0.2, (12, 2)))]
+    ):
+        frames = (Frame(0, {"c": Detection([0, 1, 3], rng.uniform(0, 99, (3, 2)))}),)
+        p = CalibrationProblem(
+            target, (CameraSpec("c", 640, 480),), frames, mount="none", knowledge="none"
+        )
+        write_session(tmp_path / f"s{k}", p)
+        _same(p, read_session(tmp_path / f"s{k}"))
+
+
+def test_ur_pose_is_converted_by_the_ur_adapter(tmp_path: Path) -> None:
+    pose = [0.4, -0.1, 0.3, 0.1, 2.9, -0.2]
+    _write(tmp_path, frames=[{"id": 0, "T_base_tool": pose, "detections": _det()}])
+    q = read_session(tmp_path)
+    np.testing.assert_allclose(q.frames[0].T_base_tool, T_from_ur_pose(pose), atol=1e-15)
+
+
+# ----------------------------------------------------------------------------- bad input
+
+_GOOD = {
+    "format": "slidecal.session/1",
+    "mount": "eye_in_hand",
+    "target": {
+        "kind": "charuco",
+        "squares_x": 11,
+        "squares_y": 8,
+        "square_size_m": 0.03,
+        "marker_size_m": 0.022,
+        "dictionary": "DICT_5X5_100",
+    },
+    "cameras": [{"name": "left", "width": 1280, "height": 800}],
+}
+
+
+def _det(ids=(0, 1, 2), px=((1.0, 2.0), (3.0, 4.0), (5.0, 6.0))):
+    return {"left": {"ids": list(ids), "px": [list(p) for p in px]}}
+
+
+def _write(d: Path, **changes) -> None:
+    data = yaml.safe_load(yaml.safe_dump(_GOOD))
+    data["frames"] = [{"id": 0, "T_base_tool": [0.4, 0, 0.3, 0, 3.1, 0], "detections": _det()}]
+    for k, v in changes.items():
+        if v is None:
+            data.pop(k, None)
+        else:
+            data[k] = v
+    d.mkdir(parents=True, exist_ok=True)
+    (d / SESSION_FILE).write_text(yaml.safe_dump(data))
+
+
+_T = [0.4, 0, 0.3, 0, 3.1, 0]
+_CASES = [
+    ({"format": "slidecal.sesion/1"}, "session.yaml: format", "not a slidecal session"),
+    ({"format": "slidecal.session/2"}, "session.yaml: format", "upgrade slidecal"),
+    ({"format": None}, "session.yaml: format", "missing"),
+    ({"target": {**_GOOD["target"], "kind": "circles"}}, "target.kind", "use one of"),
+    ({"target": {**_GOOD["target"], "square_size_m": 30}}, "square_size_m", "metres"),
+    ({"target": {**_GOOD["target"], "dictionary": "DICT_9X9_1"}}, "target.dictionary", "OpenCV"),
+    ({"target": {**_GOOD["target"], "marker_size_m": 0.04}}, "marker_size_m", "smaller"),
+    ({"target": {"kind": "points", "points_m": [[0, 0], [1, 0]]}}, "points_m", "at least 4"),
+    ({"cameras": []}, "session.yaml: cameras", "list"),
+    ({"cameras": [{"name": "left", "width": -5, "height": 800}]}, "cameras[0].width", "least"),
+    (
+        {"frames": [{"id": 0, "T_base_tool": [0.4, 0, 0.3, 0, 3.1], "detections": _det()}]},
+        "session.yaml: frames[0].T_base_tool",
+        "has 5 numbers",
+    ),
+    (
+        {"frames": [{"id": 0, "T_base_tool": [0.4, 0, "x", 0, 3.1, 0], "detections": _det()}]},
+        "frames[0].T_base_tool",
+        "array of numbers",
+    ),
+    (
+        {"frames": [{"id": 0, "T_base_tool": _T, "detections": _det(ids=(0, 1))}]},
+        "frames[0].detections.left.px",
+        "3 positions for 2 ids",
+    ),
+    (
+        {"frames": [{"id": 0, "T_base_tool": _T, "detections": _det(ids=(0, 1, 70))}]},
+        "frames[0].detections.left.ids",
+        "not on the target",
+    ),
+    (
+        {"frames": [{"id": 0, "T_base_tool": _T, "detections": {"middle": {"ids": []}}}]},
+        "frames[0].detections.middle",
+        "unknown camera",
+    ),
+    (
+        {"frames": [{"id": 0, "T_base_tool": _T, "images": {"left": "images/0000_left.png"}}]},
+        "frames[0].images.left",
+        "not found",
+    ),
+    (
+        {
+            "frames": [
+                {"id": 0, "T_base_tool": _T, "detections": _det()},
+                {"id": 1, "detections": _det()},
+            ]
+        },
+        "frames[1].T_base_tool",
+        "for every frame or for none",
+    ),
+    (
+        {"frames": [{"id": 0, "detections": _det()}, {"id": 0, "detections": _det()}]},
+        "frames[1].id",
+        "twice",
+    ),
+    ({"mount": "on_the_wall"}, "session.yaml: mount", "use one of"),
+    ({"reference_camera": "right"}, "reference_camera", "not a camera"),
+    ({"options": {"distortion": [True, True]}}, "options.distortion", "5 booleans"),
+]
+
+
+@pytest.mark.parametrize(("changes", "where", "what"), _CASES)
+def test_bad_input_names_file_and_field(tmp_path: Path, changes, where, what) -> None:
+    _write(tmp_path, **changes)
+    with pytest.raises(InputError) as e:
+        read_session(tmp_path)
+    assert where in str(e.value) and what in str(e.value)
+    assert e.value.where is not None and e.value.where.startswith("session.yaml")
+
+
+def test_missing_directory_and_file_and_bad_yaml(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="not a session directory"):
+        read_session(tmp_path / "nope")
+    with pytest.raises(InputError, match="session.yaml not found"):
+        read_session(tmp_path)
+    (tmp_path / SESSION_FILE).write_text("format: [unclosed\n")
+    with pytest.raises(InputError, match="not valid YAML at line"):
+        read_session(tmp_path)
