@@ -1,0 +1,375 @@
+"""A simulated UR e-Series arm implementing the ``Robot`` protocol (``drivers/base.py``).
+
+State is the true ``T_base_tool`` and the joint vector. ``move_linear`` checks the straight
+line joint by joint with the analytic kinematics of :mod:`slidecal.drivers.ur_kinematics`
+(reachable, inside the limits, away from singularities, continuous in joint space) and advances
+a simulated clock by the duration of a trapezoidal speed profile. ``measured_pose`` returns the
+true pose with configurable noise, as the controller's encoders and kinematic model would.
+Faults can be injected to test what the routine does with them.
+
+A cell description (the ``robot:`` section of a YAML cell file) builds one with
+:meth:`SimulatedUR.from_dict`::
+
+    model: UR5e
+    start_pose: [0.3, -0.4, 0.4, 3.1416, 0.0, 0.0]   # UR pose of the TCP: metres, axis-angle rad
+    tcp: [0.0, 0.0, 0.1, 0.0, 0.0, 0.0]               # optional T_flange_tcp as a UR pose
+    start_q: [0.0, -1.57, 1.57, -1.57, -1.57, 0.0]    # optional; overrides start_pose
+    limits: {max_speed_mps: 1.0, max_accel_mps2: 2.5, max_angular_speed_deg_s: 60,
+             max_angular_accel_deg_s2: 80, z_min_m: 0.0}
+    noise: {pose_noise_m: 5.0e-5, pose_noise_deg: 0.005}
+    seed: 0
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from slidecal.drivers import ur_kinematics as urk
+from slidecal.drivers.ur_pose import T_from_ur_pose, pendant_text, ur_pose_from_T
+from slidecal.solver.errors import HardwareFault, InputError
+from slidecal.solver.geometry import R_from_rvec, T_from_Rt, rvec_from_R
+
+#: Straight lines are checked at least every 5 mm and every 1 deg of tool rotation.
+STEP_M = 0.005
+STEP_RAD = np.radians(1.0)
+#: Largest joint change between two such samples before we call the path discontinuous (a
+#: branch flip or a pass through a singularity): 0.2 rad per 5 mm would be 10 rad/s at 0.25 m/s.
+MAX_JOINT_STEP_RAD = 0.2
+
+FAULT_KINDS = ("protective_stop", "disconnect", "timeout")
+
+
+def trapezoid_time_s(distance: float, max_speed: float, max_accel: float) -> float:
+    """Duration of a rest-to-rest move over ``distance`` with a trapezoidal speed profile.
+
+    Units are consistent (metres, m/s, m/s^2 or radians, rad/s, rad/s^2). A move too short to
+    reach ``max_speed`` is a triangle: ``2 sqrt(d / a)``; otherwise ``d / v + v / a``.
+    """
+    d = abs(float(distance))
+    if d == 0.0:
+        return 0.0
+    if d <= max_speed**2 / max_accel:
+        return 2.0 * float(np.sqrt(d / max_accel))
+    return d / max_speed + max_speed / max_accel
+
+
+def _interpolate(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
+    """Pose a fraction ``s`` along the straight line (and rotation geodesic) from T0 to T1."""
+    rvec = rvec_from_R(T0[:3, :3].T @ T1[:3, :3])
+    return T_from_Rt(T0[:3, :3] @ R_from_rvec(s * rvec), (1 - s) * T0[:3, 3] + s * T1[:3, 3])
+
+
+def _describe(T: np.ndarray) -> str:
+    pose = ", ".join(f"{v:.4f}" for v in ur_pose_from_T(T))
+    return f"[{pose}] ({pendant_text(T)})"
+
+
+class SimulatedUR:
+    """A simulated UR arm; see the module docstring.
+
+    Parameters
+    ----------
+    rng
+        Draws the measurement noise.
+    model
+        Kinematic model (``ur_kinematics.UR5E`` ...).
+    start_q
+        Initial joint vector (6,), radians.
+    T_flange_tcp
+        TCP offset (4, 4), metres; poses are of the TCP. None: the flange.
+    max_speed_mps, max_accel_mps2
+        Upper bounds of the linear speed and acceleration a move may ask for.
+    max_angular_speed_deg_s, max_angular_accel_deg_s2
+        Tool rotation speed and acceleration used for the rotational part of a move.
+    pose_noise_m
+        Standard deviation of the measured position, per axis, metres.
+    pose_noise_deg
+        Standard deviation of each component of a small rotation vector applied to the
+        measured orientation, degrees (the rms rotation angle is ``sqrt(3)`` times this).
+    z_min_m
+        Lowest allowed TCP height in the base frame (a table or safety plane), or None.
+    move_timeout_s
+        Time a move that times out (injected fault) spends before it gives up.
+    """
+
+    def __init__(
+        self,
+        rng: np.random.Generator,
+        *,
+        model: urk.URModel = urk.UR5E,
+        start_q: np.ndarray = urk.Q_HOME,
+        T_flange_tcp: np.ndarray | None = None,
+        max_speed_mps: float = 1.0,
+        max_accel_mps2: float = 2.5,
+        max_angular_speed_deg_s: float = 60.0,
+        max_angular_accel_deg_s2: float = 80.0,
+        pose_noise_m: float = 0.0,
+        pose_noise_deg: float = 0.0,
+        z_min_m: float | None = None,
+        move_timeout_s: float = 30.0,
+    ) -> None:
+        for name, value in (
+            ("max_speed_mps", max_speed_mps),
+            ("max_accel_mps2", max_accel_mps2),
+            ("max_angular_speed_deg_s", max_angular_speed_deg_s),
+            ("max_angular_accel_deg_s2", max_angular_accel_deg_s2),
+        ):
+            if not value > 0:
+                raise InputError(f"{name} must be positive, got {value}")
+        if pose_noise_m < 0 or pose_noise_deg < 0:
+            raise InputError("pose_noise_m and pose_noise_deg must not be negative")
+        self.rng = rng
+        self.model = model
+        self.T_flange_tcp = None if T_flange_tcp is None else np.asarray(T_flange_tcp, float)
+        self.max_speed_mps = float(max_speed_mps)
+        self.max_accel_mps2 = float(max_accel_mps2)
+        self.max_angular_speed_rad_s = float(np.radians(max_angular_speed_deg_s))
+        self.max_angular_accel_rad_s2 = float(np.radians(max_angular_accel_deg_s2))
+        self.pose_noise_m = float(pose_noise_m)
+        self.pose_noise_deg = float(pose_noise_deg)
+        self.z_min_m = z_min_m
+        self.move_timeout_s = float(move_timeout_s)
+        self._q = np.asarray(start_q, dtype=float).reshape(6).copy()
+        if urk.singularity(self._q, model) is not None:
+            raise InputError(f"start joints are singular: {urk.singularity(self._q, model)}")
+        self._T = urk.fk(self._q, model, self.T_flange_tcp)
+        self._time_s = 0.0
+        self._connected = False
+        self._moves = 0
+        self._faults: dict[int, str] = {}
+        self._state_fault: str | None = None
+        self.stop_calls = 0
+        self.move_log: list[np.ndarray] = []
+
+    # ----------------------------------------------------------------- construction from YAML
+    @classmethod
+    def from_dict(cls, cell: Mapping[str, Any]) -> SimulatedUR:
+        """Build from a cell description (see the module docstring); unknown keys are errors."""
+        known = {"model", "start_pose", "start_q", "tcp", "limits", "noise", "seed"}
+        unknown = set(cell) - known
+        if unknown:
+            raise InputError(
+                f"unknown key(s) {sorted(unknown)}; the robot section takes {sorted(known)}",
+                where="robot",
+            )
+        model = urk.model_by_name(str(cell.get("model", "UR5e")))
+        T_flange_tcp = T_from_ur_pose(cell["tcp"]) if cell.get("tcp") is not None else None
+        limits = dict(cell.get("limits") or {})
+        noise = dict(cell.get("noise") or {})
+        kw: dict[str, Any] = {}
+        for key in (
+            "max_speed_mps",
+            "max_accel_mps2",
+            "max_angular_speed_deg_s",
+            "max_angular_accel_deg_s2",
+            "z_min_m",
+            "move_timeout_s",
+        ):
+            if key in limits:
+                kw[key] = limits.pop(key)
+        for key in ("pose_noise_m", "pose_noise_deg"):
+            if key in noise:
+                kw[key] = float(noise.pop(key))
+        if limits or noise:
+            raise InputError(f"unknown key(s) {sorted(limits) + sorted(noise)}", where="robot")
+        if cell.get("start_q") is not None:
+            start_q = np.asarray(cell["start_q"], dtype=float)
+        elif cell.get("start_pose") is not None:
+            try:
+                T_start = T_from_ur_pose(cell["start_pose"])
+            except ValueError as e:
+                raise InputError(str(e), where="robot.start_pose") from None
+            sols = [
+                q
+                for q in urk.ik(T_start, urk.Q_HOME, model, T_flange_tcp)
+                if urk.singularity(q, model) is None
+            ]
+            if not sols:
+                raise InputError(
+                    f"start pose {_describe(T_start)} is out of reach or singular for a "
+                    f"{model.name}; move it closer to the base or give start_q",
+                    where="robot.start_pose",
+                )
+            start_q = sols[0]
+        else:
+            start_q = urk.Q_HOME
+        rng = np.random.default_rng(cell.get("seed", 0))
+        return cls(rng, model=model, start_q=start_q, T_flange_tcp=T_flange_tcp, **kw)
+
+    # ----------------------------------------------------------------------- simulation only
+    def true_pose(self) -> np.ndarray:
+        """The true ``T_base_tool`` (4, 4), metres (for the simulated cameras; not in Robot)."""
+        return self._T.copy()
+
+    @property
+    def q(self) -> np.ndarray:
+        """The current joint vector (6,), radians."""
+        return self._q.copy()
+
+    @property
+    def robot_time_s(self) -> float:
+        """Simulated time spent moving and settling, seconds."""
+        return self._time_s
+
+    @property
+    def moves(self) -> int:
+        """How many ``move_linear`` calls were made (including refused ones)."""
+        return self._moves
+
+    def inject_fault(self, kind: str, at_move: int) -> None:
+        """Make the ``move_linear`` call number ``at_move`` (counting from 0) fail.
+
+        ``"protective_stop"``: the arm stops halfway and the move raises; further moves raise
+        until :meth:`clear_fault`. ``"disconnect"``: the move arrives, then the connection is
+        lost: ``measured_pose`` and further moves raise (stale data). ``"timeout"``: the arm
+        stalls halfway and the move raises after ``move_timeout_s``.
+        """
+        if kind not in FAULT_KINDS:
+            raise InputError(f"unknown fault kind {kind!r}; use one of {FAULT_KINDS}")
+        self._faults[int(at_move)] = kind
+
+    def clear_fault(self) -> None:
+        """What an operator does after a fault: unlock the protective stop, reconnect."""
+        self._state_fault = None
+
+    # ------------------------------------------------------------------------ Robot protocol
+    def connect(self) -> None:
+        """Open the (simulated) connection."""
+        if self._state_fault is not None:
+            raise HardwareFault(f"cannot connect: {self._state_fault}")
+        self._connected = True
+
+    def close(self) -> None:
+        """Close the connection (idempotent); never moves the robot."""
+        self._connected = False
+
+    def _check_ready(self) -> None:
+        if self._state_fault is not None:
+            raise HardwareFault(self._state_fault)
+        if not self._connected:
+            raise HardwareFault("robot not connected: call connect() first")
+
+    def measured_pose(self) -> np.ndarray:
+        """``T_base_tool`` (4, 4), metres, with the configured measurement noise."""
+        self._check_ready()
+        T = self._T.copy()
+        if self.pose_noise_m > 0:
+            T[:3, 3] += self.rng.normal(0.0, self.pose_noise_m, 3)
+        if self.pose_noise_deg > 0:
+            dR = R_from_rvec(self.rng.normal(0.0, np.radians(self.pose_noise_deg), 3))
+            T[:3, :3] = T[:3, :3] @ dR
+        return T
+
+    def _check_line(self, T0: np.ndarray, T1: np.ndarray) -> list[np.ndarray]:
+        """Joint vectors along the line T0 -> T1; raise ``HardwareFault`` naming a bad pose."""
+        length = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
+        angle = float(np.linalg.norm(rvec_from_R(T0[:3, :3].T @ T1[:3, :3])))
+        n = max(1, int(np.ceil(length / STEP_M)), int(np.ceil(angle / STEP_RAD)))
+        q_prev = self._q
+        qs = []
+        for k in range(1, n + 1):
+            T = _interpolate(T0, T1, k / n)
+            where = f"pose {_describe(T)} ({k}/{n} along the move to {_describe(T1)})"
+            if self.z_min_m is not None and T[2, 3] < self.z_min_m:
+                raise HardwareFault(
+                    f"{where} is below the safety plane z = {self.z_min_m} m; plan higher poses"
+                )
+            sols = urk.ik(T, q_prev, self.model, self.T_flange_tcp)
+            if not sols:
+                raise HardwareFault(
+                    f"{where} is out of reach or outside the joint limits; plan poses closer "
+                    "to the robot's usual workspace"
+                )
+            q = sols[0]
+            sing = urk.singularity(q, self.model)
+            if sing is not None:
+                raise HardwareFault(f"{where} passes near a {sing}; plan around it")
+            jump = float(np.max(np.abs(q - q_prev)))
+            if jump > MAX_JOINT_STEP_RAD:
+                raise HardwareFault(
+                    f"{where} needs a joint jump of {np.degrees(jump):.1f} deg (a configuration "
+                    "change); a linear move cannot do that, plan a shorter or different move"
+                )
+            qs.append(q)
+            q_prev = q
+        return qs
+
+    def move_linear(self, T_base_tool: np.ndarray, speed_mps: float, accel_mps2: float) -> None:
+        """Move the TCP in a straight line to ``T_base_tool`` (4, 4), metres; block until there.
+
+        Raises ``HardwareFault`` (the arm staying where it was, or stopped halfway for an
+        injected fault) when the line leaves the workspace or a fault occurs.
+        """
+        move_index = self._moves
+        self._moves += 1
+        self._check_ready()
+        if not (0.0 < speed_mps <= self.max_speed_mps):
+            raise InputError(f"speed_mps must be in (0, {self.max_speed_mps}], got {speed_mps}")
+        if not (0.0 < accel_mps2 <= self.max_accel_mps2):
+            raise InputError(
+                f"accel_mps2 must be in (0, {self.max_accel_mps2}], got {accel_mps2}"
+            )
+        T1 = np.asarray(T_base_tool, dtype=float)
+        if T1.shape != (4, 4) or not np.all(np.isfinite(T1)):
+            raise InputError(f"move_linear needs a finite 4x4 T_base_tool, got shape {T1.shape}")
+        T0 = self._T
+        qs = self._check_line(T0, T1)
+        length = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
+        angle = float(np.linalg.norm(rvec_from_R(T0[:3, :3].T @ T1[:3, :3])))
+        duration = max(
+            trapezoid_time_s(length, speed_mps, accel_mps2),
+            trapezoid_time_s(angle, self.max_angular_speed_rad_s, self.max_angular_accel_rad_s2),
+        )
+        fault = self._faults.pop(move_index, None)
+        if fault in ("protective_stop", "timeout"):
+            half = len(qs) // 2
+            if half > 0:
+                self._q = qs[half - 1]
+                self._T = urk.fk(self._q, self.model, self.T_flange_tcp)
+            if fault == "protective_stop":
+                self._time_s += duration / 2
+                self._state_fault = (
+                    f"protective stop during move {move_index} at {_describe(self._T)}; "
+                    "check the cell for a collision, unlock it on the pendant and restart"
+                )
+                raise HardwareFault(self._state_fault)
+            self._time_s += self.move_timeout_s
+            raise HardwareFault(
+                f"move {move_index} to {_describe(T1)} did not finish within "
+                f"{self.move_timeout_s} s; check that the robot is in remote control and running"
+            )
+        self._q = qs[-1]
+        self._T = urk.fk(self._q, self.model, self.T_flange_tcp)
+        self._time_s += duration
+        self.move_log.append(self._T.copy())
+        if fault == "disconnect":
+            self._state_fault = (
+                "connection to the robot lost (the pose data stopped updating); check the "
+                "network cable and the controller, then reconnect"
+            )
+
+    def wait_settled(self, settle_s: float) -> None:
+        """Add ``settle_s`` seconds to the clock (the simulated arm has no vibration)."""
+        if settle_s < 0:
+            raise InputError(f"settle_s must not be negative, got {settle_s}")
+        self._check_ready()
+        self._time_s += float(settle_s)
+
+    def stop(self) -> None:
+        """Record the stop (the simulated arm is never moving between calls)."""
+        self.stop_calls += 1
+
+    @property
+    def stopped(self) -> bool:
+        """Whether :meth:`stop` was ever called."""
+        return self.stop_calls > 0
+
+    def is_reachable(self, T_base_tool: np.ndarray) -> bool:
+        """Whether the pose has a non-singular solution near the current joints, inside limits."""
+        T = np.asarray(T_base_tool, dtype=float)
+        if self.z_min_m is not None and T[2, 3] < self.z_min_m:
+            return False
+        return urk.reachable(T, self._q, self.model, self.T_flange_tcp)
