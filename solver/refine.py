@@ -1,0 +1,558 @@
+"""Maximum-likelihood refinement over all detections (MATH.md Sec. 5) and its Fisher information.
+
+The model, for camera ``c`` of a rig and frame ``k`` of orientation group ``g``::
+
+    P_c = T_c_ref  X_g  M_k  Y  p_board,     x = project(K_c, dist_c, P_c)
+
+- knowledge "robot", eye_in_hand: ``X = T_cam_tool`` (inverse hand-eye), ``M_k = T_tool_base(k)``
+  (measured, inverted), ``Y = T_base_board``; one ``X`` for all frames.
+- knowledge "robot", eye_to_hand: ``X = T_cam_base``, ``M_k = T_base_tool(k)``,
+  ``Y = T_tool_board``.
+- "board_translation" (paper's Case 3): ``X_g = T_cam_board`` of the group's first frame,
+  ``M_k = Trans(-T_k)`` with ``T_k`` the known camera displacement (board frame), ``Y = I``.
+- "board_direction" (Case 2): as Case 3 with ``T_k = s_k n_k``, lengths ``s_k`` unknown.
+- "none" (Zhang): one ``X`` per frame, ``M = Y = I``.
+
+Rotations are updated on the left (``R <- exp([d]x) R``); Jacobians are analytic (chain rule
+through :mod:`slidecal.solver.camera`). Parameters the data cannot determine are not estimated:
+each block carries a basis of its observable directions, and what was fixed is reported.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from slidecal.solver.camera import project_with_jacobians
+from slidecal.solver.errors import DegenerateError
+from slidecal.solver.geometry import R_from_rvec, T_from_Rt, rotation_angle_deg, rvec_from_R
+from slidecal.solver.problem import DISTORTION_NAMES, CalibrationProblem
+
+
+@dataclass(frozen=True)
+class ModelState:
+    """Values of every model quantity (estimated or fixed).
+
+    ``K`` (3, 3) and ``dist`` (5,) per camera name; ``T_cam_ref`` (4, 4) per non-reference camera;
+    ``X`` (G, 4, 4) per group; ``Y`` (4, 4); ``s`` (F,) per frame index (Case 2 lengths, else 0).
+    """
+
+    K: dict[str, np.ndarray]
+    dist: dict[str, np.ndarray]
+    T_cam_ref: dict[str, np.ndarray]
+    X: np.ndarray
+    Y: np.ndarray
+    s: np.ndarray
+
+
+@dataclass(frozen=True)
+class Structure:
+    """What is fixed by the data and the knowledge, decided once before refining.
+
+    ``group_of_frame`` (F,) group index per frame (index into ``ModelState.X``); ``M`` (F, 4, 4)
+    the known motion per frame (without the unknown Case 2 lengths); ``direction`` (F, 3) board
+    frame unit directions for Case 2; ``s_free`` (F,) bool; ``X_rot_basis``, ``X_t_basis``,
+    ``Y_rot_basis``, ``Y_t_basis`` (3, m): observable directions of each rotation (left
+    perturbation, radians) and translation (metres), m = 0 when fixed;
+    ``unobservable``: name -> reason for everything fixed.
+    """
+
+    group_of_frame: np.ndarray
+    M: np.ndarray
+    direction: np.ndarray
+    s_free: np.ndarray
+    X_rot_basis: np.ndarray
+    X_t_basis: np.ndarray
+    Y_rot_basis: np.ndarray
+    Y_t_basis: np.ndarray
+    unobservable: dict[str, str] = field(default_factory=dict)
+
+
+def intrinsic_names(problem: CalibrationProblem) -> tuple[str, ...]:
+    """Names of the estimated intrinsics of one camera under the problem's options."""
+    o = problem.options
+    names = ("f",) if o.unit_aspect else ("fx", "fy")
+    names += ("cx", "cy")
+    if o.skew:
+        names += ("s",)
+    return names
+
+
+def distortion_names(problem: CalibrationProblem) -> tuple[str, ...]:
+    """Names of the estimated distortion coefficients."""
+    return tuple(
+        n for n, on in zip(DISTORTION_NAMES, problem.options.distortion, strict=True) if on
+    )
+
+
+@dataclass(frozen=True)
+class _Chunk:
+    frame_index: int
+    camera: str
+    rows: slice
+    points: np.ndarray  # (n, 3) board
+    px: np.ndarray  # (n, 2)
+    key: tuple[int, str]  # (frame id, camera)
+    corner_ids: np.ndarray
+
+
+def _chunks(problem: CalibrationProblem) -> list[_Chunk]:
+    chunks = []
+    row = 0
+    pts = problem.target.points_m
+    for fi, frame in enumerate(problem.frames):
+        for cam in problem.cameras:
+            det = frame.detections.get(cam.name)
+            if det is None or len(det.ids) == 0:
+                continue
+            n = len(det.ids)
+            chunks.append(
+                _Chunk(
+                    fi,
+                    cam.name,
+                    slice(row, row + 2 * n),
+                    pts[det.ids],
+                    det.px,
+                    (frame.id, cam.name),
+                    det.ids,
+                )
+            )
+            row += 2 * n
+    return chunks
+
+
+class BundleModel:
+    """Residuals and analytic Jacobian of the model for one problem and structure."""
+
+    def __init__(self, problem: CalibrationProblem, structure: Structure) -> None:
+        self.problem = problem
+        self.st = structure
+        self.chunks = _chunks(problem)
+        self.n_rows = self.chunks[-1].rows.stop if self.chunks else 0
+        self.ref = problem.reference
+        self.cams = [c.name for c in problem.cameras]
+        self.intr = intrinsic_names(problem)
+        self.dist_names = distortion_names(problem)
+        self.dist_idx = [DISTORTION_NAMES.index(n) for n in self.dist_names]
+        n_groups = int(structure.group_of_frame.max()) + 1 if len(structure.group_of_frame) else 0
+        self.n_groups = n_groups
+        names: list[str] = []
+        self.slices: dict[str, slice] = {}
+
+        def add(key: str, block: list[str]) -> None:
+            self.slices[key] = slice(len(names), len(names) + len(block))
+            names.extend(block)
+
+        for c in self.cams:
+            add(f"intr:{c}", [f"{c}.{n}" for n in self.intr])
+            if self.dist_names:
+                add(f"dist:{c}", [f"{c}.{n}" for n in self.dist_names])
+            if c != self.ref:
+                add(
+                    f"rig:{c}",
+                    [f"T_{c}_{self.ref}.{a}" for a in ("rx", "ry", "rz", "tx", "ty", "tz")],
+                )
+        st = structure
+        for g in range(n_groups):
+            block = [f"X{g}.r{i}" for i in range(st.X_rot_basis.shape[1])]
+            block += [f"X{g}.t{i}" for i in range(st.X_t_basis.shape[1])]
+            if block:
+                add(f"X:{g}", block)
+        yb = [f"Y.r{i}" for i in range(st.Y_rot_basis.shape[1])]
+        yb += [f"Y.t{i}" for i in range(st.Y_t_basis.shape[1])]
+        if yb:
+            add("Y", yb)
+        self.s_frames = np.flatnonzero(structure.s_free)
+        if len(self.s_frames):
+            add("s", [f"s{int(problem.frames[i].id)}" for i in self.s_frames])
+        self.names = tuple(names)
+
+    # -- state updates -------------------------------------------------------------------------
+    def apply(self, state: ModelState, delta: np.ndarray) -> ModelState:
+        """The state moved by the parameter step ``delta`` (P,)."""
+        K = dict(state.K)
+        dist = dict(state.dist)
+        T_cam_ref = dict(state.T_cam_ref)
+        for c in self.cams:
+            d = delta[self.slices[f"intr:{c}"]]
+            k = K[c].copy()
+            if self.problem.options.unit_aspect:
+                k[0, 0] += d[0]
+                k[1, 1] += d[0]
+                rest = d[1:]
+            else:
+                k[0, 0] += d[0]
+                k[1, 1] += d[1]
+                rest = d[2:]
+            k[0, 2] += rest[0]
+            k[1, 2] += rest[1]
+            if self.problem.options.skew:
+                k[0, 1] += rest[2]
+            K[c] = k
+            if self.dist_names:
+                dd = dist[c].copy()
+                dd[self.dist_idx] += delta[self.slices[f"dist:{c}"]]
+                dist[c] = dd
+            if c != self.ref:
+                T_cam_ref[c] = _step_T(
+                    T_cam_ref[c], delta[self.slices[f"rig:{c}"]], np.eye(3), np.eye(3)
+                )
+        X = state.X.copy()
+        for g in range(self.n_groups):
+            key = f"X:{g}"
+            if key in self.slices:
+                X[g] = _step_T(
+                    X[g], delta[self.slices[key]], self.st.X_rot_basis, self.st.X_t_basis
+                )
+        Y = state.Y
+        if "Y" in self.slices:
+            Y = _step_T(Y, delta[self.slices["Y"]], self.st.Y_rot_basis, self.st.Y_t_basis)
+        s = state.s.copy()
+        if len(self.s_frames):
+            s[self.s_frames] += delta[self.slices["s"]]
+        return ModelState(K, dist, T_cam_ref, X, Y, s)
+
+    def motion(self, state: ModelState, fi: int) -> np.ndarray:
+        """``M_k`` (4, 4) of frame index ``fi`` with its current Case 2 length."""
+        M = self.st.M[fi]
+        if self.st.s_free[fi]:
+            M = M.copy()
+            M[:3, 3] -= state.s[fi] * self.st.direction[fi]
+        return M
+
+    def T_ref_board(self, state: ModelState, fi: int) -> np.ndarray:
+        """``T_ref_board`` (4, 4) of the reference camera at frame index ``fi``."""
+        return state.X[self.st.group_of_frame[fi]] @ self.motion(state, fi) @ state.Y
+
+    # -- residuals and Jacobian ----------------------------------------------------------------
+    def evaluate(
+        self, state: ModelState, jacobian: bool = True
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Residuals (R,) (projected minus observed, pixels) and the Jacobian (R, P)."""
+        r = np.empty(self.n_rows)
+        J = np.zeros((self.n_rows, len(self.names))) if jacobian else None
+        unit = self.problem.options.unit_aspect
+        skew_on = self.problem.options.skew
+        for ch in self.chunks:
+            fi, c = ch.frame_index, ch.camera
+            g = self.st.group_of_frame[fi]
+            Xg, M, Y = state.X[g], self.motion(state, fi), state.Y
+            p_Y = ch.points @ Y[:3, :3].T + Y[:3, 3]
+            p_M = p_Y @ M[:3, :3].T + M[:3, 3]
+            q_X = p_M @ Xg[:3, :3].T
+            p_X = q_X + Xg[:3, 3]
+            if c == self.ref:
+                R_cr, t_cr = np.eye(3), np.zeros(3)
+            else:
+                R_cr, t_cr = state.T_cam_ref[c][:3, :3], state.T_cam_ref[c][:3, 3]
+            q_cr = p_X @ R_cr.T
+            P = q_cr + t_cr
+            pr = project_with_jacobians(state.K[c], state.dist[c], P, jacobians=jacobian)
+            r[ch.rows] = (pr.px - ch.px).reshape(-1)
+            if not jacobian:
+                continue
+            n = len(P)
+            rows = ch.rows
+
+            def put(key: str, block: np.ndarray, rows: slice = rows, n: int = n) -> None:
+                J[rows, self.slices[key]] = block.reshape(2 * n, -1)
+
+            dK = pr.d_K
+            cols = [dK[:, :, 0] + dK[:, :, 1]] if unit else [dK[:, :, 0], dK[:, :, 1]]
+            cols += [dK[:, :, 2], dK[:, :, 3]]
+            if skew_on:
+                cols.append(dK[:, :, 4])
+            put(f"intr:{c}", np.stack(cols, axis=2))
+            if self.dist_names:
+                put(f"dist:{c}", pr.d_dist[:, :, self.dist_idx])
+            if c != self.ref:
+                put(
+                    f"rig:{c}", np.concatenate([np.cross(q_cr[:, None, :], pr.d_P), pr.d_P], axis=2)
+                )
+            A = pr.d_P @ R_cr  # d px / d p_X  (n, 2, 3)
+            key = f"X:{g}"
+            if key in self.slices:
+                blocks = [np.cross(q_X[:, None, :], A) @ self.st.X_rot_basis]
+                blocks.append(A @ self.st.X_t_basis)
+                put(key, np.concatenate(blocks, axis=2))
+            if "Y" in self.slices:
+                A2 = A @ (Xg[:3, :3] @ M[:3, :3])
+                blocks = []
+                blocks.append(
+                    np.cross((ch.points @ Y[:3, :3].T)[:, None, :], A2) @ self.st.Y_rot_basis
+                )
+                blocks.append(A2 @ self.st.Y_t_basis)
+                put("Y", np.concatenate(blocks, axis=2))
+            if self.st.s_free[fi]:
+                j = int(np.searchsorted(self.s_frames, fi))
+                col = self.slices["s"].start + j
+                J[rows, col] = (A @ (Xg[:3, :3] @ -self.st.direction[fi])).reshape(-1)
+        return r, J
+
+
+def _step_T(T: np.ndarray, d: np.ndarray, rot_basis: np.ndarray, t_basis: np.ndarray) -> np.ndarray:
+    mr = rot_basis.shape[1]
+    R = R_from_rvec(rot_basis @ d[:mr]) @ T[:3, :3] if mr else T[:3, :3]
+    t = T[:3, 3] + t_basis @ d[mr : mr + t_basis.shape[1]]
+    return T_from_Rt(R, t)
+
+
+@dataclass(frozen=True)
+class RefineOutput:
+    """What :func:`refine` returns: the state, the named covariance and the residual story."""
+
+    state: ModelState
+    names: tuple[str, ...]
+    covariance: np.ndarray | None
+    residuals: np.ndarray  # (R,) pixels, outliers included
+    inlier_rows: np.ndarray  # (R,) bool
+    sigma_px: float
+    converged: bool
+    iterations: int
+    outliers: tuple[tuple[int, str, int], ...]
+    messages: tuple[str, ...]
+    model: BundleModel
+
+
+def _lm(
+    model: BundleModel,
+    state: ModelState,
+    weights: np.ndarray,
+    max_iter: int,
+) -> tuple[ModelState, bool, int]:
+    lam = 1e-3
+    r, J = model.evaluate(state)
+    cost = float(np.sum(weights * r * r))
+    converged = False
+    it = 0
+    for it in range(1, max_iter + 1):  # noqa: B007 - the count is reported
+        Jw = J * weights[:, None]
+        A = J.T @ Jw
+        g = Jw.T @ r
+        diag = np.diag(A).copy()
+        diag[diag <= 0] = 1.0
+        while True:
+            try:
+                delta = np.linalg.solve(A + lam * np.diag(diag), -g)
+            except np.linalg.LinAlgError:
+                lam *= 10.0
+                if lam > 1e12:
+                    return state, False, it
+                continue
+            new = model.apply(state, delta)
+            r_new, _ = model.evaluate(new, jacobian=False)
+            cost_new = float(np.sum(weights * r_new * r_new))
+            if np.isfinite(cost_new) and cost_new <= cost:
+                break
+            lam *= 10.0
+            if lam > 1e12:
+                return state, cost < 1e-20, it
+        small_step = cost - cost_new <= 1e-12 * max(cost, 1e-30) + 1e-24
+        state, cost = new, cost_new
+        lam = max(lam / 10.0, 1e-9)
+        if small_step:
+            converged = True
+            break
+        r, J = model.evaluate(state)
+    return state, converged, it
+
+
+def refine(
+    problem: CalibrationProblem,
+    structure: Structure,
+    init: ModelState,
+    *,
+    max_iter: int = 100,
+    robust: bool = True,
+) -> RefineOutput:
+    """Minimise the reprojection error over all detections (MATH.md Sec. 5).
+
+    Outliers: after a first solve, detections whose residual exceeds both
+    ``options.outlier_threshold_px`` and 5 times the estimated noise are flagged, given zero
+    weight and the solve repeated (up to 3 rounds). They are returned in ``outliers``: never
+    silently dropped. Covariance: ``s^2 (J'J)^-1`` over the inliers with
+    ``s^2 = sum(r^2) / (n - p)`` (MATH.md Sec. 6).
+    """
+    model = BundleModel(problem, structure)
+    weights = np.ones(model.n_rows)
+    state = init
+    total_it = 0
+    converged = False
+    for _ in range(4):
+        state, converged, it = _lm(model, state, weights, max_iter)
+        total_it += it
+        if not robust:
+            break
+        r, _ = model.evaluate(state, jacobian=False)
+        per_pt = np.hypot(r[0::2], r[1::2])
+        inl = weights[0::2] > 0
+        dof = max(2 * int(inl.sum()) - len(model.names), 1)
+        sigma = float(np.sqrt(np.sum(per_pt[inl] ** 2) / dof))
+        thresh = max(problem.options.outlier_threshold_px, 5.0 * sigma)
+        new_out = per_pt > thresh
+        if np.array_equal(new_out, ~inl):
+            break
+        weights = np.repeat((~new_out).astype(float), 2)
+    r, J = model.evaluate(state)
+    inlier_rows = weights > 0
+    n_in = int(inlier_rows.sum())
+    dof = n_in - len(model.names)
+    messages: list[str] = []
+    sigma_px = float(np.sqrt(np.sum(r[inlier_rows] ** 2) / max(dof, 1)))
+    cov = None
+    if dof <= 0:
+        messages.append(
+            f"covariance not computed: {n_in} residuals for {len(model.names)} parameters; "
+            "capture more frames"
+        )
+    else:
+        Jin = J[inlier_rows]
+        A = Jin.T @ Jin
+        try:
+            scale = np.sqrt(np.diag(A))
+            scale[scale == 0] = 1.0
+            As = A / np.outer(scale, scale)
+            cond = np.linalg.cond(As)
+            if not np.isfinite(cond) or cond > 1e14:
+                raise np.linalg.LinAlgError(f"normal matrix condition {cond:.1e}")
+            cov = sigma_px**2 * np.linalg.inv(As) / np.outer(scale, scale)
+        except np.linalg.LinAlgError as e:
+            messages.append(
+                f"covariance not computed ({e}): some parameter is barely observable; "
+                "add tilts or frames covering the image"
+            )
+    outliers: list[tuple[int, str, int]] = []
+    for ch in model.chunks:
+        w = weights[ch.rows][0::2]
+        for cid in ch.corner_ids[w == 0]:
+            outliers.append((ch.key[0], ch.camera, int(cid)))
+    if not converged:
+        messages.append(f"refinement stopped after {total_it} iterations without converging")
+    return RefineOutput(
+        state,
+        model.names,
+        cov,
+        r,
+        inlier_rows,
+        sigma_px,
+        converged,
+        total_it,
+        tuple(outliers),
+        tuple(messages),
+        model,
+    )
+
+
+def fisher_covariance(
+    problem: CalibrationProblem, structure: Structure, truth: ModelState, sigma_px: float
+) -> tuple[tuple[str, ...], np.ndarray]:
+    """The Cramer-Rao bound (MATH.md Sec. 6): ``sigma^2 (J'J)^-1`` at the true state.
+
+    ``problem`` holds the detections' ids (their pixel values are not used). Returns the
+    parameter names and the covariance (P, P).
+    """
+    model = BundleModel(problem, structure)
+    _, J = model.evaluate(truth)
+    A = J.T @ J
+    scale = np.sqrt(np.diag(A))
+    scale[scale == 0] = 1.0
+    cov = sigma_px**2 * np.linalg.inv(A / np.outer(scale, scale)) / np.outer(scale, scale)
+    return model.names, cov
+
+
+def orientation_groups(T_base_tool: np.ndarray, tol_deg: float = 0.5) -> np.ndarray:
+    """Group index (F,) per frame: frames whose tool orientations agree within ``tol_deg``."""
+    reps: list[np.ndarray] = []
+    out = np.empty(len(T_base_tool), dtype=int)
+    for k, T in enumerate(T_base_tool):
+        for g, R in enumerate(reps):
+            if rotation_angle_deg(T[:3, :3], R) < tol_deg:
+                out[k] = g
+                break
+        else:
+            reps.append(T[:3, :3])
+            out[k] = len(reps) - 1
+    return out
+
+
+def _complement(u: np.ndarray) -> np.ndarray:
+    """Orthonormal basis (3, 2) of the plane perpendicular to ``u`` (3,)."""
+    u = u / np.linalg.norm(u)
+    return np.linalg.svd(np.eye(3) - np.outer(u, u))[0][:, :2]
+
+
+def build_structure(problem: CalibrationProblem, R_X: np.ndarray | None = None) -> Structure:
+    """Decide groups, known motions and what is observable (MATH.md Secs. 3, 4, 7).
+
+    ``R_X`` (3, 3): the current estimate of X's rotation, needed only to express an unobservable
+    hand-eye translation direction in X's frame when all rotations share one axis.
+    """
+    frames = problem.frames
+    F = len(frames)
+    unobs: dict[str, str] = {}
+    direction = np.zeros((F, 3))
+    s_free = np.zeros(F, dtype=bool)
+    M = np.tile(np.eye(4), (F, 1, 1))
+    I3, none = np.eye(3), np.zeros((3, 0))
+    X_rot, X_t, Y_rot, Y_t = I3, I3, none, none
+    kn = problem.knowledge
+    if kn == "robot":
+        T = np.stack([f.T_base_tool for f in frames])
+        M = np.stack([np.linalg.inv(t) for t in T]) if problem.mount == "eye_in_hand" else T
+        groups = np.zeros(F, dtype=int)
+        Y_rot, Y_t = I3, I3
+        # rotation axes of every frame relative to the first (tool frame for eye-in-hand, base
+        # frame for eye-to-hand): the hand-eye translation is observable across them (Tsai-Lenz)
+        R0 = T[0, :3, :3]
+        axes = []
+        for t in T[1:]:
+            rel = R0.T @ t[:3, :3] if problem.mount == "eye_in_hand" else t[:3, :3] @ R0.T
+            v = rvec_from_R(rel)
+            if np.linalg.norm(v) > np.radians(1.0):
+                axes.append(v / np.linalg.norm(v))
+        he = "T_tool_cam" if problem.mount == "eye_in_hand" else "T_base_cam"
+        if not axes:
+            X_t = none
+            unobs[f"{he}.t"] = (
+                "the session holds no rotations between frames, so the hand-eye translation is "
+                "unobservable (MATH.md Sec. 4); add orientation groups tilted about two "
+                "non-parallel axes"
+            )
+        else:
+            _, sv, Vt = np.linalg.svd(np.asarray(axes))
+            if len(sv) < 2 or sv[1] < 0.05 * sv[0]:
+                X_t = _complement((I3 if R_X is None else R_X) @ Vt[0])
+                unobs[f"{he}.t_along_rotation_axis"] = (
+                    "all rotations share one axis, so the hand-eye translation along it is "
+                    "unobservable; tilt about a second, non-parallel axis"
+                )
+            # with no rotations and one translation direction, X R_M Y can rotate about that
+            # direction without changing any image (gauge): fix Y's rotation about it
+        if not axes:
+            d = np.array([M[k, :3, 3] - M[0, :3, 3] for k in range(1, F)]).reshape(-1, 3)
+            d = d[np.linalg.norm(d, axis=1) > 1e-9]
+            if len(d) == 0:
+                raise DegenerateError(
+                    "the robot never moved between frames: translate the camera between captures"
+                )
+            _, sv, Vt = np.linalg.svd(d)
+            if len(sv) < 2 or sv[1] < 0.02 * sv[0]:
+                Y_rot = _complement(M[0, :3, :3].T @ Vt[0])
+                unobs[f"{he}.R"] = (
+                    "all translations are parallel, so the hand-eye rotation about that direction "
+                    "is unobservable; translate along at least two non-parallel directions"
+                )
+    elif kn in ("board_translation", "board_direction"):
+        groups = np.array([f.group if f.group is not None else 0 for f in frames], dtype=int)
+        for k, f in enumerate(frames):
+            m = np.zeros(3) if f.motion_board is None else np.asarray(f.motion_board, float)
+            if kn == "board_translation":
+                M[k, :3, 3] = -m
+            elif np.linalg.norm(m) > 0:
+                direction[k] = m / np.linalg.norm(m)
+                s_free[k] = True
+    else:  # "none": Zhang, one free pose per frame
+        groups = np.arange(F)
+    _, groups = np.unique(groups, return_inverse=True)
+    return Structure(groups, M, direction, s_free, X_rot, X_t, Y_rot, Y_t, unobs)
