@@ -1,0 +1,222 @@
+"""Simulated cameras: a ``CameraRig`` that renders the target at the true poses of the cell.
+
+Presets:
+
+- ``single_camera()``: SCENARIOS.md R1 (1280 x 800, fx = fy = 880, cx 640, cy 400,
+  k1 -0.12, k2 0.05, p1 5e-4, p2 -3e-4, k3 0).
+- ``oak_d_like()``: a Luxonis OAK-D-like head. Two global-shutter OV9282 mono cameras
+  "left" and "right" at 1280 x 800 with the datasheet's 72 deg HFOV / 50 deg VFOV
+  (fx = 640 / tan(36 deg) ~ 880 px), 75 mm baseline; an IMX378 colour camera "rgb" at
+  1920 x 1080 with 69 deg HFOV (fx ~ 1400 px), mounted midway between them. Each camera has
+  slightly different intrinsics and mild distortion, and the extrinsics carry sub-degree
+  misalignments, as a real unit would. ``oak_d_like_extrinsics()`` gives ``T_<name>_left``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from slidecal.mocks.render import render_target
+from slidecal.solver.camera import K_matrix
+from slidecal.solver.errors import HardwareFault, InputError
+from slidecal.solver.geometry import R_from_rvec, T_from_Rt
+from slidecal.solver.problem import CameraSpec, Target
+
+FAULT_KINDS = ("no_frame", "disconnect")
+
+
+@dataclass(frozen=True)
+class SimCamera:
+    """A simulated camera.
+
+    ``K`` (3, 3) pixels; ``dist`` (5,) k1, k2, p1, p2, k3 (OpenCV order); ``blur_sigma_px``
+    optical blur; ``noise_std`` read noise in grey levels; ``exposure`` gain (1.0: printed white
+    at about 217 of 255); ``colour``: BGR images instead of grey; ``vignetting``: relative
+    fall-off at the image corners.
+    """
+
+    name: str
+    width: int
+    height: int
+    K: np.ndarray
+    dist: np.ndarray
+    blur_sigma_px: float = 0.6
+    noise_std: float = 2.0
+    exposure: float = 1.0
+    colour: bool = False
+    vignetting: float = 0.0
+
+    def __post_init__(self) -> None:
+        K = np.asarray(self.K, dtype=float)
+        if K.shape != (3, 3):
+            raise InputError(f"camera {self.name!r}: K must be 3x3, got shape {K.shape}")
+        d = np.zeros(5)
+        dd = np.asarray(self.dist, dtype=float).reshape(-1)
+        if len(dd) > 5:
+            raise InputError(f"camera {self.name!r}: dist takes at most 5 values (k1 k2 p1 p2 k3)")
+        d[: len(dd)] = dd
+        if self.width <= 0 or self.height <= 0:
+            raise InputError(f"camera {self.name!r}: width and height must be positive")
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "dist", d)
+
+    @property
+    def spec(self) -> CameraSpec:
+        """Name and image size."""
+        return CameraSpec(self.name, int(self.width), int(self.height))
+
+
+def single_camera(name: str = "cam", **overrides: float | bool) -> SimCamera:
+    """The R1 camera of SCENARIOS.md; keyword overrides for blur, noise, exposure, colour."""
+    return SimCamera(
+        name,
+        1280,
+        800,
+        K_matrix(880.0, 880.0, 640.0, 400.0),
+        np.array([-0.12, 0.05, 5e-4, -3e-4, 0.0]),
+        **overrides,
+    )
+
+
+def oak_d_like(**overrides: float | bool) -> list[SimCamera]:
+    """An OAK-D-like head: mono "left", "right" (1280 x 800) and colour "rgb" (1920 x 1080).
+
+    Keyword overrides (blur, noise, exposure) apply to all three; see the module docstring.
+    """
+    mono = dict(overrides)
+    rgb = {**overrides, "colour": True}
+    return [
+        SimCamera(
+            "left",
+            1280,
+            800,
+            K_matrix(881.2, 880.6, 643.1, 401.7),
+            np.array([-0.052, 0.021, 2e-4, -1e-4, 0.0]),
+            **mono,
+        ),
+        SimCamera(
+            "right",
+            1280,
+            800,
+            K_matrix(879.8, 879.5, 636.4, 398.9),
+            np.array([-0.049, 0.018, -1e-4, 3e-4, 0.0]),
+            **mono,
+        ),
+        SimCamera(
+            "rgb",
+            1920,
+            1080,
+            K_matrix(1402.5, 1401.8, 957.3, 543.6),
+            np.array([0.071, -0.112, 4e-4, 2e-4, 0.03]),
+            **rgb,
+        ),
+    ]
+
+
+def oak_d_like_extrinsics() -> dict[str, np.ndarray]:
+    """True ``T_<name>_left`` (4, 4), metres, for the cameras of :func:`oak_d_like`.
+
+    The right camera sits 75 mm along the left camera's +x, the colour camera 37.5 mm; each has
+    a small misalignment (a few tenths of a degree) as assembled units do.
+    """
+    R_left_right = R_from_rvec(np.deg2rad([0.12, -0.35, 0.08]))
+    R_left_rgb = R_from_rvec(np.deg2rad([-0.25, 0.18, -0.30]))
+    T_left_right = T_from_Rt(R_left_right, np.array([0.0750, 0.0003, -0.0002]))
+    T_left_rgb = T_from_Rt(R_left_rgb, np.array([0.0375, 0.0004, 0.0008]))
+    return {
+        "left": np.eye(4),
+        "right": np.linalg.inv(T_left_right),
+        "rgb": np.linalg.inv(T_left_rgb),
+    }
+
+
+@dataclass
+class _Fault:
+    kind: str
+    at_capture: int
+
+
+@dataclass
+class SimulatedCameraRig:
+    """A ``CameraRig`` of simulated cameras looking at ``target``.
+
+    ``poses()`` returns the true ``T_<camera>_board`` (4, 4), metres, of every camera at the
+    current state of the simulated cell (supplied by the cell). ``capture()`` renders every
+    camera there and remembers those poses in ``last_poses`` (the truth of that capture).
+    ``capture_count`` counts the calls of ``capture()`` on an open rig, failed ones included.
+    """
+
+    cameras: Sequence[SimCamera]
+    target: Target
+    poses: Callable[[], dict[str, np.ndarray]]
+    rng: np.random.Generator
+    is_open: bool = False
+    capture_count: int = 0
+    last_poses: dict[str, np.ndarray] = field(default_factory=dict)
+    _faults: list[_Fault] = field(default_factory=list)
+    _disconnected: bool = False
+
+    def __post_init__(self) -> None:
+        names = [c.name for c in self.cameras]
+        if not names or len(set(names)) != len(names):
+            raise InputError(f"a rig needs at least one camera and unique names, got {names}")
+
+    @property
+    def specs(self) -> tuple[CameraSpec, ...]:
+        """Name and image size of every camera, in the order given."""
+        return tuple(c.spec for c in self.cameras)
+
+    def open(self) -> None:
+        """Start streaming (reconnects after an injected "disconnect")."""
+        self.is_open = True
+        self._disconnected = False
+
+    def close(self) -> None:
+        """Stop streaming (idempotent)."""
+        self.is_open = False
+
+    def inject_fault(self, kind: str, at_capture: int) -> None:
+        """Make the capture with 0-based index ``at_capture`` fail with ``HardwareFault``.
+
+        ``"no_frame"``: that one capture times out (a dropped frame; the next one works).
+        ``"disconnect"``: the device is lost at that capture; every capture fails until the rig
+        is closed and opened again.
+        """
+        if kind not in FAULT_KINDS:
+            raise InputError(f"unknown fault {kind!r}; use one of {FAULT_KINDS}")
+        self._faults.append(_Fault(kind, int(at_capture)))
+
+    def capture(self) -> dict[str, np.ndarray]:
+        """One synchronised set of images by camera name (uint8 grey, or BGR for colour)."""
+        if not self.is_open:
+            raise HardwareFault("capture() on a closed camera rig: call open() first")
+        index = self.capture_count
+        self.capture_count += 1
+        for f in self._faults:
+            if f.at_capture == index:
+                if f.kind == "disconnect":
+                    self._disconnected = True
+                else:
+                    names = [c.name for c in self.cameras]
+                    raise HardwareFault(
+                        f"no frame from cameras {names} within the time-out (capture {index}); "
+                        "check the cable and retry"
+                    )
+        if self._disconnected:
+            raise HardwareFault(
+                "camera rig disconnected; check the USB cable and power, then close() and open()"
+            )
+        poses = self.poses()
+        missing = [c.name for c in self.cameras if c.name not in poses]
+        if missing:
+            raise InputError(f"the cell gave no T_cam_board for cameras {missing}")
+        self.last_poses = {c.name: np.array(poses[c.name], dtype=float) for c in self.cameras}
+        return {
+            c.name: render_target(
+                self.target, c, self.last_poses[c.name], self.rng, vignetting=c.vignetting
+            )
+            for c in self.cameras
+        }
