@@ -160,7 +160,8 @@ class LinearSystem:
 
     ``A`` (rows, m + G): unit-norm rows and columns; ``col_scale`` (m + G,): ``x = col_scale * y``
     for a null vector ``y`` of ``A``; ``basis`` (6, m): ``w = basis @ x[:m]``; ``N`` (3, 3) the
-    image normalisation; ``sigma``: the board-side scale (board units per normalised unit).
+    image normalisation; ``sigma``: the board-side scale (board units per normalised unit);
+    ``h_scale`` (G,): each group's homographies were divided by it (so ``|h1|, |h2| ~ 1``).
     """
 
     A: np.ndarray
@@ -170,6 +171,7 @@ class LinearSystem:
     N: np.ndarray
     sigma: float
     n_groups: int
+    h_scale: np.ndarray
 
 
 def w_basis(skew: bool, unit_aspect: bool) -> tuple[np.ndarray, tuple[str, ...]]:
@@ -234,6 +236,7 @@ def linear_system(
     skew: bool = False,
     unit_aspect: bool = False,
     image_size: tuple[float, float],
+    condition: bool = True,
 ) -> LinearSystem:
     """Stack and condition every constraint of MATH.md Sec. 3 (table) on ``(w, c_1 .. c_G)``.
 
@@ -246,16 +249,20 @@ def linear_system(
     ``"none"``: Zhang's two rows of every frame (each frame its own pose), no ``c``.
     Conditioning (MATH.md "Numerical conditioning"): isotropic image normalisation, board-side
     scale making the homography columns commensurate (translations scaled with it), unit-norm
-    rows and columns.
+    rows and columns. ``condition=False`` skips all three (pixels and board units as given; only
+    for demonstrating why they matter).
     """
     _check_groups(groups, knowledge)
-    N = image_normalisation(*image_size)
+    N = image_normalisation(*image_size) if condition else np.eye(3)
     B, wnames = w_basis(skew, unit_aspect)
     m = B.shape[1]
     Hn = [np.einsum("ij,kjl->kil", N, _common_h12(np.asarray(g.H, dtype=float))) for g in groups]
-    sigma = _board_scale([H[0] for H in Hn])
+    sigma = _board_scale([H[0] for H in Hn]) if condition else 1.0
     S = np.diag([sigma, sigma, 1.0])
     Hn = [H @ S for H in Hn]
+    # Each group's scale so that |h1|, |h2| ~ 1: c = lambda^2 is then O(1) like w.
+    h_scale = np.array([np.sqrt(0.5 * np.sum(H[0][:, :2] ** 2)) if condition else 1.0 for H in Hn])
+    Hn = [H / s for H, s in zip(Hn, h_scale, strict=True)]
     G = 0 if knowledge == "none" else len(groups)
     rows: list[np.ndarray] = []
 
@@ -299,12 +306,15 @@ def linear_system(
                     add(conic_row(deltas[j], D), g, -(motion[j] @ T))
     A = np.array(rows)
     rn = np.linalg.norm(A, axis=1)
-    A = A[rn > 0] / rn[rn > 0, None]
-    cn = np.linalg.norm(A, axis=0)
-    col_scale = 1.0 / np.where(cn > 0, cn, 1.0)
-    A = A * col_scale
+    A = A[rn > 0]
+    col_scale = np.ones(A.shape[1])
+    if condition:
+        A = A / rn[rn > 0, None]
+        cn = np.linalg.norm(A, axis=0)
+        col_scale = 1.0 / np.where(cn > 0, cn, 1.0)
+        A = A * col_scale
     names = wnames + tuple(f"c{g}" for g in range(G))
-    return LinearSystem(A, col_scale, B, names, N, sigma, G)
+    return LinearSystem(A, col_scale, B, names, N, sigma, G, h_scale)
 
 
 def _solve_null(system: LinearSystem) -> tuple[np.ndarray, np.ndarray]:
@@ -329,6 +339,7 @@ def linear_intrinsics(
     skew: bool = False,
     unit_aspect: bool = False,
     image_size: tuple[float, float],
+    condition: bool = True,
 ) -> LinearSolution:
     """Closed-form intrinsics from translation groups (MATH.md Sec. 3, every row of the table).
 
@@ -336,9 +347,15 @@ def linear_intrinsics(
     units). ``image_size``: (width, height) pixels. Any number of groups; Zhang's rows of every
     group are always stacked (they add information when the groups differ in orientation).
     Raises ``DegenerateError`` when the system has no unique, positive definite solution.
+    ``condition``: see :func:`linear_system` (keep True).
     """
     system = linear_system(
-        groups, knowledge, skew=skew, unit_aspect=unit_aspect, image_size=image_size
+        groups,
+        knowledge,
+        skew=skew,
+        unit_aspect=unit_aspect,
+        image_size=image_size,
+        condition=condition,
     )
     x, sv = _solve_null(system)
     m = system.basis.shape[1]
@@ -350,7 +367,10 @@ def linear_intrinsics(
     Wt = Kni.T @ Kni
     w_true = np.array([Wt[0, 0], Wt[0, 1], Wt[1, 1], Wt[0, 2], Wt[1, 2], Wt[2, 2]])
     alpha = (w_true @ w) / (w @ w)
-    scales = tuple(float(alpha * c / system.sigma**2) for c in x[m:])
+    scales = tuple(
+        float(alpha * c * s**2 / system.sigma**2)
+        for c, s in zip(x[m:], system.h_scale[: len(x) - m], strict=True)
+    )
     lengths = None
     if knowledge == "board_direction":
         lengths = tuple(
