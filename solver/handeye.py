@@ -1,0 +1,196 @@
+"""Hand-eye orientation from pure translations (MATH.md Sec. 4) and classic AX = XB hand-eye.
+
+Frames (MATH.md Sec. 1): ``base``, ``tool``, ``cam``, ``board``; ``T_a_b`` maps frame b into a.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from slidecal.solver.errors import DegenerateError, InputError
+from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, project_to_SO3, rvec_from_R
+from slidecal.solver.linear import LinearGroup
+
+# Two directions count as distinct when the second singular value of the unit direction stack is
+# at least this fraction of the first (about 0.6 deg between two directions).
+_MIN_SPREAD = 1e-2
+
+
+def _group_scale(Kinv: np.ndarray, H0: np.ndarray) -> float:
+    m1, m2 = Kinv @ H0[:, 0], Kinv @ H0[:, 1]
+    return float(np.sqrt(0.5 * (m1 @ m1 + m2 @ m2)))
+
+
+def camera_displacements(K: np.ndarray, group: LinearGroup) -> np.ndarray:
+    """Camera displacements ``d`` (n, 3) since frame 0, camera axes, board length unit.
+
+    ``d_k = K^-1 Delta_k / lambda`` with ``Delta_k = h3_0 - h3_k`` (MATH.md eqs. 12-13), so
+    ``d_k = R_cam_board T_k`` for a camera displacement ``T_k`` in the board frame. ``K`` (3, 3)
+    pixels; ``group.H`` (n, 3, 3) jointly estimated (common ``h1, h2``, ``h3[2] > 0``).
+    ``d_0 = 0``.
+    """
+    H = np.asarray(group.H, dtype=float)
+    Kinv = np.linalg.inv(np.asarray(K, dtype=float))
+    lam = _group_scale(Kinv, H[0])
+    if H[0][2, 2] < 0:
+        lam = -lam
+    return np.array([Kinv @ (H[0][:, 2] - Hk[:, 2]) / lam for Hk in H])
+
+
+def rotation_from_directions(
+    d_cam: np.ndarray, t_robot: np.ndarray, weights: np.ndarray | None = None
+) -> np.ndarray:
+    """``R_cam_robot`` (3, 3) minimising ``sum w_k |d_k - R t_k|^2`` (weighted Kabsch, det +1).
+
+    ``d_cam`` (n, 3): displacements in camera axes; ``t_robot`` (n, 3): the same displacements
+    in the robot frame (any common unit; zero rows are ignored); ``weights`` (n,) or None.
+    Raises ``DegenerateError`` unless ``t_robot`` spans at least two directions.
+    """
+    d = np.asarray(d_cam, dtype=float).reshape(-1, 3)
+    t = np.asarray(t_robot, dtype=float).reshape(-1, 3)
+    if len(d) != len(t):
+        raise InputError(f"d_cam has {len(d)} rows but t_robot has {len(t)}: pass matched pairs")
+    w = np.ones(len(t)) if weights is None else np.asarray(weights, dtype=float).reshape(-1)
+    keep = (np.linalg.norm(t, axis=1) > 0) & (w > 0)
+    d, t, w = d[keep], t[keep], w[keep]
+    if len(t) >= 2:
+        u = t / np.linalg.norm(t, axis=1, keepdims=True)
+        sv = np.linalg.svd(u, compute_uv=False)
+    if len(t) < 2 or sv[1] < _MIN_SPREAD * sv[0]:
+        raise DegenerateError(
+            "the robot translations are all parallel: the rotation about their direction is "
+            "undetermined; translate along at least two non-parallel directions"
+        )
+    M = (d * w[:, None]).T @ t  # sum w d t'
+    return project_to_SO3(M)
+
+
+def hand_eye_rotation(
+    K: np.ndarray,
+    groups: Sequence[LinearGroup],
+    T_base_tool_per_group: Sequence[np.ndarray],
+    mount: str = "eye_in_hand",
+) -> np.ndarray:
+    """Hand-eye rotation from pure translations (MATH.md Sec. 4), all groups jointly.
+
+    ``K`` (3, 3) pixels; ``groups``: orientation groups (homographies, board unit = robot unit);
+    ``T_base_tool_per_group``: per group the measured poses (n, 4, 4), metres. Eye-in-hand: the
+    camera displacement is the TCP displacement ``t_k`` (base), ``d_k = R_cam_tool
+    R_base_tool' t_k``; returns ``R_tool_cam``. Eye-to-hand (board on the tool): the camera
+    moves by ``-t_k`` relative to the board, ``d_k = -R_cam_base t_k``; returns ``R_base_cam``.
+    """
+    if mount not in ("eye_in_hand", "eye_to_hand"):
+        raise InputError(f"mount must be 'eye_in_hand' or 'eye_to_hand', got {mount!r}")
+    if len(groups) != len(T_base_tool_per_group):
+        raise InputError("give one (n, 4, 4) array of T_base_tool per orientation group")
+    ds, ts = [], []
+    for g, (grp, T) in enumerate(zip(groups, T_base_tool_per_group, strict=True)):
+        T = np.asarray(T, dtype=float)
+        if T.shape != (len(grp.H), 4, 4):
+            raise InputError(f"group {g}: T_base_tool must be ({len(grp.H)}, 4, 4)")
+        t_base = T[:, :3, 3] - T[0, :3, 3]
+        if mount == "eye_in_hand":
+            ts.append(t_base @ T[0, :3, :3])  # R_base_tool' t_k: the displacement in tool axes
+        else:
+            ts.append(-t_base)
+        ds.append(camera_displacements(K, grp))
+    R_cam_x = rotation_from_directions(np.concatenate(ds), np.concatenate(ts))
+    return R_cam_x.T
+
+
+def board_pose_from_homography(K: np.ndarray, H: np.ndarray) -> np.ndarray:
+    """``T_cam_board`` (4, 4) from ``H`` (3, 3) (board plane to pixels) and ``K`` (3, 3).
+
+    ``K^-1 H = lambda [r1 r2 t]``; ``lambda`` from the mean norm of the first two columns, its
+    sign so that the board is in front (``t_z > 0``); ``R`` projected onto SO(3). The
+    translation is in the board's length unit.
+    """
+    M = np.linalg.inv(np.asarray(K, dtype=float)) @ np.asarray(H, dtype=float)
+    lam = np.sqrt(0.5 * (M[:, 0] @ M[:, 0] + M[:, 1] @ M[:, 1]))
+    if M[2, 2] < 0:
+        lam = -lam
+    r1, r2, t = M[:, 0] / lam, M[:, 1] / lam, M[:, 2] / lam
+    R = project_to_SO3(np.column_stack([r1, r2, np.cross(r1, r2)]))
+    return T_from_Rt(R, t)
+
+
+def _check_poses(T_base_tool: np.ndarray, T_cam_board: np.ndarray) -> tuple[np.ndarray, ...]:
+    A = np.asarray(T_base_tool, dtype=float)
+    B = np.asarray(T_cam_board, dtype=float)
+    if A.ndim != 3 or A.shape[1:] != (4, 4) or A.shape != B.shape:
+        raise InputError("T_base_tool and T_cam_board must both be (n, 4, 4) with the same n")
+    if len(A) < 3:
+        raise DegenerateError("hand-eye from general motions needs at least 3 poses")
+    return A, B
+
+
+def park_martin(T_base_tool: np.ndarray, T_cam_board: np.ndarray) -> np.ndarray:
+    """Eye-in-hand ``T_tool_cam`` (4, 4) from general motions, Park and Martin 1994 (AX = XB).
+
+    ``T_base_tool`` (n, 4, 4): robot poses (metres); ``T_cam_board`` (n, 4, 4): board poses seen
+    by the camera, same length unit. Uses all pairs ``i < j``:
+    ``A = T_tool_base(i) T_base_tool(j)``,
+    ``B = T_cam_board(i) T_board_cam(j)``. Needs rotations about two non-parallel axes.
+    """
+    Tg, Tc = _check_poses(T_base_tool, T_cam_board)
+    alphas, betas, As, Bs = [], [], [], []
+    for i in range(len(Tg)):
+        for j in range(i + 1, len(Tg)):
+            A = inv_T(Tg[i]) @ Tg[j]
+            B = Tc[i] @ inv_T(Tc[j])
+            alphas.append(rvec_from_R(A[:3, :3]))
+            betas.append(rvec_from_R(B[:3, :3]))
+            As.append(A)
+            Bs.append(B)
+    al, be = np.array(alphas), np.array(betas)
+    sv = np.linalg.svd(al, compute_uv=False)
+    if sv[1] < 1e-3 * sv[0]:
+        raise DegenerateError(
+            "the robot rotations are all about one axis (or absent): the hand-eye transform is "
+            "undetermined; rotate about at least two non-parallel axes"
+        )
+    # alpha = R_X beta for every pair: orthogonal Procrustes.
+    R_X = project_to_SO3(al.T @ be)
+    # (R_A - I) t_X = R_X t_B - t_A, stacked.
+    C = np.concatenate([A[:3, :3] - np.eye(3) for A in As])
+    d = np.concatenate([R_X @ B[:3, 3] - A[:3, 3] for A, B in zip(As, Bs, strict=True)])
+    t_X, *_ = np.linalg.lstsq(C, d, rcond=None)
+    return T_from_Rt(R_X, t_X)
+
+
+def tsai_lenz(T_base_tool: np.ndarray, T_cam_board: np.ndarray) -> np.ndarray:
+    """Eye-in-hand ``T_tool_cam`` (4, 4), Tsai and Lenz 1989 (modified Rodrigues parameters).
+
+    Same inputs as :func:`park_martin`; consecutive motion pairs.
+    """
+    Tg, Tc = _check_poses(T_base_tool, T_cam_board)
+    rows, rhs, As, Bs = [], [], [], []
+    for i in range(len(Tg) - 1):
+        A = inv_T(Tg[i]) @ Tg[i + 1]
+        B = Tc[i] @ inv_T(Tc[i + 1])
+        ra, rb = rvec_from_R(A[:3, :3]), rvec_from_R(B[:3, :3])
+        pa = 2.0 * np.sin(np.linalg.norm(ra) / 2) * ra / max(np.linalg.norm(ra), 1e-300)
+        pb = 2.0 * np.sin(np.linalg.norm(rb) / 2) * rb / max(np.linalg.norm(rb), 1e-300)
+        s = pa + pb
+        rows.append(np.array([[0, -s[2], s[1]], [s[2], 0, -s[0]], [-s[1], s[0], 0]]))
+        rhs.append(pb - pa)
+        As.append(A)
+        Bs.append(B)
+    M = np.concatenate(rows)
+    if np.linalg.svd(M, compute_uv=False)[1] < 1e-6:
+        raise DegenerateError(
+            "the robot rotations are all about one axis (or absent): the hand-eye transform is "
+            "undetermined; rotate about at least two non-parallel axes"
+        )
+    # skew(pa + pb) p' = pb - pa  (with the sign convention A X = X B, rotations of A).
+    pp, *_ = np.linalg.lstsq(M, np.concatenate(rhs), rcond=None)
+    p = 2.0 * pp / np.sqrt(1.0 + pp @ pp)
+    n = np.linalg.norm(p)
+    angle = 2.0 * np.arcsin(min(n / 2.0, 1.0))
+    R_X = R_from_rvec(angle * p / n) if n > 0 else np.eye(3)
+    C = np.concatenate([A[:3, :3] - np.eye(3) for A in As])
+    d = np.concatenate([R_X @ B[:3, 3] - A[:3, 3] for A, B in zip(As, Bs, strict=True)])
+    t_X, *_ = np.linalg.lstsq(C, d, rcond=None)
+    return T_from_Rt(R_X, t_X)
