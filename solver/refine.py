@@ -20,9 +20,11 @@ each block carries a basis of its observable directions, and what was fixed is r
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from slidecal.solver.camera import project_with_jacobians
 from slidecal.solver.errors import DegenerateError
@@ -167,6 +169,7 @@ class BundleModel:
         if len(self.s_frames):
             add("s", [f"s{int(problem.frames[i].id)}" for i in self.s_frames])
         self.names = tuple(names)
+        self._index()
 
     # -- state updates -------------------------------------------------------------------------
     def apply(self, state: ModelState, delta: np.ndarray) -> ModelState:
@@ -226,69 +229,99 @@ class BundleModel:
         return state.X[self.st.group_of_frame[fi]] @ self.motion(state, fi) @ state.Y
 
     # -- residuals and Jacobian ----------------------------------------------------------------
+    def _index(self) -> None:
+        """Per-observation index arrays (built once): frame, group, camera, board point."""
+        ch = self.chunks
+        counts = [len(c.points) for c in ch]
+        self.n_obs = int(sum(counts))
+        self.o_frame = np.repeat([c.frame_index for c in ch], counts).astype(int)
+        self.o_group = self.st.group_of_frame[self.o_frame] if self.n_obs else np.zeros(0, int)
+        cam_index = {c: i for i, c in enumerate(self.cams)}
+        self.o_cam = np.repeat([cam_index[c.camera] for c in ch], counts).astype(int)
+        self.o_pts = np.concatenate([c.points for c in ch]) if ch else np.zeros((0, 3))
+        self.o_px = np.concatenate([c.px for c in ch]) if ch else np.zeros((0, 2))
+        self.cam_obs = [np.flatnonzero(self.o_cam == i) for i in range(len(self.cams))]
+        s_col = np.full(len(self.problem.frames), -1)
+        if len(self.s_frames):
+            s_col[self.s_frames] = self.slices["s"].start + np.arange(len(self.s_frames))
+        self.o_s_col = s_col[self.o_frame]
+
     def evaluate(
         self, state: ModelState, jacobian: bool = True
     ) -> tuple[np.ndarray, np.ndarray | None]:
-        """Residuals (R,) (projected minus observed, pixels) and the Jacobian (R, P)."""
-        r = np.empty(self.n_rows)
-        J = np.zeros((self.n_rows, len(self.names))) if jacobian else None
-        unit = self.problem.options.unit_aspect
-        skew_on = self.problem.options.skew
-        for ch in self.chunks:
-            fi, c = ch.frame_index, ch.camera
-            g = self.st.group_of_frame[fi]
-            Xg, M, Y = state.X[g], self.motion(state, fi), state.Y
-            p_Y = ch.points @ Y[:3, :3].T + Y[:3, 3]
-            p_M = p_Y @ M[:3, :3].T + M[:3, 3]
-            q_X = p_M @ Xg[:3, :3].T
-            p_X = q_X + Xg[:3, 3]
-            if c == self.ref:
-                R_cr, t_cr = np.eye(3), np.zeros(3)
-            else:
-                R_cr, t_cr = state.T_cam_ref[c][:3, :3], state.T_cam_ref[c][:3, 3]
-            q_cr = p_X @ R_cr.T
-            P = q_cr + t_cr
-            pr = project_with_jacobians(state.K[c], state.dist[c], P, jacobians=jacobian)
-            r[ch.rows] = (pr.px - ch.px).reshape(-1)
-            if not jacobian:
-                continue
-            n = len(P)
-            rows = ch.rows
+        """Residuals (R,) (projected minus observed, pixels) and the Jacobian (R, P).
 
-            def put(key: str, block: np.ndarray, rows: slice = rows, n: int = n) -> None:
-                J[rows, self.slices[key]] = block.reshape(2 * n, -1)
-
+        Vectorised over all observations; rows ``2 i, 2 i + 1`` are observation i's u and v.
+        """
+        n, P_ = self.n_obs, len(self.names)
+        st = self.st
+        Ms = st.M.copy()
+        if len(self.s_frames):
+            Ms[self.s_frames, :3, 3] -= state.s[self.s_frames, None] * st.direction[self.s_frames]
+        f, g = self.o_frame, self.o_group
+        RY, tY = state.Y[:3, :3], state.Y[:3, 3]
+        q_Y = self.o_pts @ RY.T
+        p_Y = q_Y + tY
+        RM = Ms[f, :3, :3]
+        p_M = np.einsum("nij,nj->ni", RM, p_Y) + Ms[f, :3, 3]
+        RX = state.X[g, :3, :3]
+        q_X = np.einsum("nij,nj->ni", RX, p_M)
+        p_X = q_X + state.X[g, :3, 3]
+        T_cr = np.stack([state.T_cam_ref.get(c, np.eye(4)) for c in self.cams])
+        R_cr = T_cr[self.o_cam, :3, :3]
+        q_cr = np.einsum("nij,nj->ni", R_cr, p_X)
+        P = q_cr + T_cr[self.o_cam, :3, 3]
+        px = np.empty((n, 2))
+        projections = []
+        for ci, c in enumerate(self.cams):
+            idx = self.cam_obs[ci]
+            pr = project_with_jacobians(state.K[c], state.dist[c], P[idx], jacobians=jacobian)
+            px[idx] = pr.px
+            projections.append(pr)
+        r = (px - self.o_px).reshape(-1)
+        if not jacobian:
+            return r, None
+        J = np.zeros((n, 2, P_))
+        d_P = np.empty((n, 2, 3))
+        unit, skew_on = self.problem.options.unit_aspect, self.problem.options.skew
+        for ci, c in enumerate(self.cams):
+            idx, pr = self.cam_obs[ci], projections[ci]
+            d_P[idx] = pr.d_P
             dK = pr.d_K
             cols = [dK[:, :, 0] + dK[:, :, 1]] if unit else [dK[:, :, 0], dK[:, :, 1]]
             cols += [dK[:, :, 2], dK[:, :, 3]]
             if skew_on:
                 cols.append(dK[:, :, 4])
-            put(f"intr:{c}", np.stack(cols, axis=2))
+            J[idx, :, self.slices[f"intr:{c}"]] = np.stack(cols, axis=2)
             if self.dist_names:
-                put(f"dist:{c}", pr.d_dist[:, :, self.dist_idx])
+                J[idx, :, self.slices[f"dist:{c}"]] = pr.d_dist[:, :, self.dist_idx]
             if c != self.ref:
-                put(
-                    f"rig:{c}", np.concatenate([np.cross(q_cr[:, None, :], pr.d_P), pr.d_P], axis=2)
-                )
-            A = pr.d_P @ R_cr  # d px / d p_X  (n, 2, 3)
-            key = f"X:{g}"
-            if key in self.slices:
-                blocks = [np.cross(q_X[:, None, :], A) @ self.st.X_rot_basis]
-                blocks.append(A @ self.st.X_t_basis)
-                put(key, np.concatenate(blocks, axis=2))
-            if "Y" in self.slices:
-                A2 = A @ (Xg[:3, :3] @ M[:3, :3])
-                blocks = []
-                blocks.append(
-                    np.cross((ch.points @ Y[:3, :3].T)[:, None, :], A2) @ self.st.Y_rot_basis
-                )
-                blocks.append(A2 @ self.st.Y_t_basis)
-                put("Y", np.concatenate(blocks, axis=2))
-            if self.st.s_free[fi]:
-                j = int(np.searchsorted(self.s_frames, fi))
-                col = self.slices["s"].start + j
-                J[rows, col] = (A @ (Xg[:3, :3] @ -self.st.direction[fi])).reshape(-1)
-        return r, J
+                rig = np.concatenate([np.cross(q_cr[idx, None, :], pr.d_P), pr.d_P], axis=2)
+                J[idx, :, self.slices[f"rig:{c}"]] = rig
+        A = np.einsum("nab,nbc->nac", d_P, R_cr)  # d px / d p_X  (n, 2, 3)
+        mx = st.X_rot_basis.shape[1] + st.X_t_basis.shape[1]
+        if mx:
+            blk = np.concatenate(
+                [np.cross(q_X[:, None, :], A) @ st.X_rot_basis, A @ st.X_t_basis], axis=2
+            )
+            cols = self.slices["X:0"].start + g[:, None] * mx + np.arange(mx)
+            rows = np.arange(n)[:, None]
+            J[rows, 0, cols] = blk[:, 0, :]
+            J[rows, 1, cols] = blk[:, 1, :]
+        if "Y" in self.slices:
+            A2 = np.einsum("nab,nbc->nac", A, np.einsum("nij,njk->nik", RX, RM))
+            blk = np.concatenate(
+                [np.cross(q_Y[:, None, :], A2) @ st.Y_rot_basis, A2 @ st.Y_t_basis], axis=2
+            )
+            J[:, :, self.slices["Y"]] = blk
+        has_s = self.o_s_col >= 0
+        if np.any(has_s):
+            d = np.einsum("nij,nj->ni", RX[has_s], -st.direction[f[has_s]])
+            vals = np.einsum("nab,nb->na", A[has_s], d)
+            rows = np.flatnonzero(has_s)
+            J[rows, 0, self.o_s_col[has_s]] = vals[:, 0]
+            J[rows, 1, self.o_s_col[has_s]] = vals[:, 1]
+        return r, J.reshape(2 * n, P_)
 
 
 def _step_T(T: np.ndarray, d: np.ndarray, rot_basis: np.ndarray, t_basis: np.ndarray) -> np.ndarray:
@@ -358,6 +391,23 @@ def _lm(
     return state, converged, it
 
 
+def single_threaded_blas(fn):  # noqa: ANN001, ANN201 - a plain decorator
+    """Run ``fn`` with one BLAS thread.
+
+    The normal matrices here are small (tens of columns): a threaded BLAS gains nothing on them
+    and, on a busy 2-core machine, its spinning threads made one 2800 x 21 product take 250 ms
+    instead of 0.1 ms (measured). ``threadpoolctl`` is the maintained way to limit it.
+    """
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        with threadpool_limits(limits=1, user_api="blas"):
+            return fn(*args, **kwargs)
+
+    return wrapper
+
+
+@single_threaded_blas
 def refine(
     problem: CalibrationProblem,
     structure: Structure,
@@ -444,6 +494,7 @@ def refine(
     )
 
 
+@single_threaded_blas
 def fisher_covariance(
     problem: CalibrationProblem, structure: Structure, truth: ModelState, sigma_px: float
 ) -> tuple[tuple[str, ...], np.ndarray]:
