@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from slidecal.solver.camera import project_with_jacobians, undistort_normalised
+from slidecal.solver.detect import charuco_board
 from slidecal.solver.errors import InputError
 from slidecal.solver.problem import Target
 
@@ -99,20 +100,6 @@ def _texture(
         binary = np.where(black, 0.0, 1.0).astype(np.float32).reshape(h, w)
     image = (BLACK + (WHITE - BLACK) * binary).astype(np.float32)
     return _Texture(image, tps / square_size_m)
-
-
-def charuco_board(target: Target) -> cv2.aruco.CharucoBoard:
-    """OpenCV's ``CharucoBoard`` for a ``charuco`` target (ids and layout of ``Target``)."""
-    name = target.dictionary or "DICT_5X5_100"
-    if not hasattr(cv2.aruco, name):
-        raise InputError(f"unknown ArUco dictionary {name!r}; use an OpenCV name like DICT_5X5_100")
-    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
-    return cv2.aruco.CharucoBoard(
-        (target.squares_x, target.squares_y),
-        target.square_size_m,
-        target.marker_size_m,
-        dictionary,
-    )
 
 
 @lru_cache(maxsize=4)
