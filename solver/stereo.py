@@ -21,7 +21,14 @@ import numpy as np
 
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import project_to_SO3
-from slidecal.solver.linear import K_from_w, W_from_w, image_normalisation, zhang_rows
+from slidecal.solver.linear import (
+    K_from_w,
+    LinearGroup,
+    W_from_w,
+    conic_row,
+    image_normalisation,
+    zhang_rows,
+)
 
 # Relative size of the third singular value of the stacked (unit) columns h_b1, h_b2 of all views
 # below which the views are taken as one orientation (pure translation): H_inf is then not
@@ -284,3 +291,176 @@ def relative_rotation(K_a: np.ndarray, K_b: np.ndarray, H_inf: np.ndarray) -> np
     if not np.isfinite(d) or abs(d) < 1e-300:
         raise DegenerateError("relative_rotation: K_a^-1 H_inf K_b is singular; check H_inf")
     return project_to_SO3(M / (np.sign(d) * abs(d) ** (1.0 / 3.0)))
+
+
+_TRANSLATION_KNOWLEDGE = ("robot", "board_translation", "board_direction", "lengths")
+
+
+def _group_common_h12(H: np.ndarray) -> np.ndarray:
+    """Rescale each ``H[k]`` (k >= 1) so its ``h1, h2`` match frame 0's (eq. 13 needs one scale)."""
+    H = np.array(H, dtype=float)
+    ref = H[0][:, :2].reshape(-1)
+    for k in range(1, len(H)):
+        v = H[k][:, :2].reshape(-1)
+        H[k] *= (ref @ v) / (v @ v)
+    return H
+
+
+def rig_linear_intrinsics_translation(
+    groups_a: Sequence[LinearGroup],
+    groups_b: Sequence[LinearGroup],
+    knowledge: str,
+    *,
+    skew: bool = False,
+    unit_aspect: bool = False,
+    sizes: Sequence[tuple[float, float]],
+    use_eq62: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Joint linear intrinsics of a stereo head translated in front of a board (eqs. 33-42).
+
+    Both cameras undergo the same translations ``T`` (board frame). Unknowns ``(w_a, w_b, c_1
+    .. c_G)``: the scales of ``w_a`` and ``w_b`` are chosen so that both cameras share
+    ``c_g = lambda_g^2`` of each orientation group. Rows: per camera and group Zhang's rows with
+    ``c_g`` (eqs. 10-11) and the knowledge rows of MATH.md Sec. 3 (as
+    ``slidecal.solver.linear.linear_system``); coupling rows for every translation k of a group,
+    ``h_a1' W_a Delta_ak = h_b1' W_b Delta_bk`` (both ``T_x c``), the same with ``h2`` (``T_y c``)
+    and ``Delta_ai' W_a Delta_ak = Delta_bi' W_b Delta_bk`` (``T_i . T_k c``) for ``i <= k``,
+    which hold whatever the knowledge. With two or more groups, camera b's groups are first
+    rescaled by the per-view scales ``mu_g`` of :func:`infinite_homography` (computed from the
+    groups' reference frames) so that one ``c_g`` serves both cameras, and, with ``use_eq62``,
+    the six rows of eq. 62 are added. Conditioning as in the module docstring, plus a common
+    board-side scale (translations scaled with it).
+
+    Parameters
+    ----------
+    groups_a, groups_b : sequences of ``slidecal.solver.linear.LinearGroup``
+        Group g of camera a and of camera b hold the same frames: ``H`` (n_g, 3, 3) board plane
+        to pixels. ``motion`` (n_g, 3) is read from ``groups_a`` (``groups_b``'s must be None or
+        equal); its meaning follows ``knowledge`` (see ``LinearGroup``), in board units.
+    knowledge : "robot", "board_translation", "board_direction" or "lengths"
+    skew, unit_aspect : bool
+        Estimate the skew (else zero); assume ``fx == fy``.
+    sizes : ((width_a, height_a), (width_b, height_b)) in pixels.
+    use_eq62 : bool
+        Add eq. 62 when there are two or more groups (with one group ``H_inf`` is unknown).
+
+    Returns
+    -------
+    K_a, K_b : (3, 3) intrinsics in pixels, ``K[2, 2] = 1``.
+    """
+    if knowledge not in _TRANSLATION_KNOWLEDGE:
+        raise InputError(
+            f"unknown motion knowledge {knowledge!r} for a translated stereo head; use one of "
+            f"{_TRANSLATION_KNOWLEDGE} (general motion: rig_linear_intrinsics)"
+        )
+    G = len(groups_a)
+    if G == 0 or len(groups_b) != G:
+        raise InputError(
+            f"groups_a has {G} groups and groups_b {len(groups_b)}: pass the same non-empty "
+            "orientation groups for both cameras"
+        )
+    Ha, Hb, motions = [], [], []
+    for g, (ga, gb) in enumerate(zip(groups_a, groups_b, strict=True)):
+        A = _check_homographies(ga.H, f"groups_a[{g}].H")
+        B = _check_homographies(gb.H, f"groups_b[{g}].H")
+        if len(A) != len(B) or len(A) < 2:
+            raise InputError(
+                f"group {g}: camera a has {len(A)} frames, camera b {len(B)}; both need the same "
+                "frames, at least two (one translation)"
+            )
+        mot = None if ga.motion is None else np.asarray(ga.motion, dtype=float)
+        if mot is None or mot.shape != (len(A), 3):
+            raise InputError(f"group {g}: groups_a[{g}].motion must be ({len(A)}, 3)")
+        if gb.motion is not None and not np.allclose(np.asarray(gb.motion, float), mot):
+            raise InputError(
+                f"group {g}: the two cameras' motions differ; a rigid head has one translation "
+                "per frame: pass it in groups_a and None (or the same) in groups_b"
+            )
+        Ha.append(_group_common_h12(A))
+        Hb.append(_group_common_h12(B))
+        motions.append(mot)
+    H_inf = None
+    if G >= 2:
+        H_inf, mu = infinite_homography(
+            np.array([H[0] for H in Ha]), np.array([H[0] for H in Hb]), sizes=sizes
+        )
+        Hb = [H * m for H, m in zip(Hb, mu, strict=True)]  # now h_a = H_inf h_b per group
+
+    N_a = image_normalisation(*sizes[0])
+    N_b = image_normalisation(*sizes[1])
+    Ha = [np.einsum("ij,kjl->kil", N_a, H) for H in Ha]
+    Hb = [np.einsum("ij,kjl->kil", N_b, H) for H in Hb]
+    refs = [H[0] for H in Ha + Hb]
+    sigma = float(
+        np.median([np.linalg.norm(H[:, 2]) / np.linalg.norm(H[:, :2]) * np.sqrt(2) for H in refs])
+    )
+    f = 1.0 / np.linalg.norm(Ha[0][0][:, :2] * sigma)
+    S = np.diag([sigma * f, sigma * f, f])  # board-side scale, then one common magnitude
+    Ha = [H @ S for H in Ha]
+    Hb = [H @ S for H in Hb]
+    if G == 1:  # no relation between the cameras' homography scales: balance b on its own
+        Hb = [Hb[0] / np.linalg.norm(Hb[0][0][:, :2])]
+    motions = [m / sigma for m in motions]
+
+    basis = w_basis(skew, unit_aspect)
+    m = basis.shape[1]
+    n_x = 2 * m + G
+    rows: list[np.ndarray] = []
+
+    def add(conic_a=None, conic_b=None, g: int | None = None, c_coef: float = 0.0) -> None:
+        r = np.zeros(n_x)
+        if conic_a is not None:
+            r[:m] = conic_a @ basis
+        if conic_b is not None:
+            r[m : 2 * m] = conic_b @ basis
+        if g is not None:
+            r[2 * m + g] = c_coef
+        rows.append(r)
+
+    for g in range(G):
+        T = motions[g]
+        for cam, H in (("a", Ha[g]), ("b", Hb[g])):
+
+            def put(conic, gg=None, cc=0.0, cam=cam):
+                add(conic if cam == "a" else None, conic if cam == "b" else None, gg, cc)
+
+            h1, h2 = H[0][:, 0], H[0][:, 1]
+            put(conic_row(h1, h2))  # eq. 10
+            put(conic_row(h1, h1), g, -1.0)  # eq. 11
+            put(conic_row(h2, h2), g, -1.0)  # eq. 11
+            D = [H[0][:, 2] - H[k][:, 2] for k in range(len(H))]  # eqs. 12-13
+            for k in range(1, len(H)):
+                if knowledge == "lengths":  # eq. 27
+                    put(conic_row(D[k], D[k]), g, -(T[k] @ T[k]))
+                elif knowledge == "board_translation":  # Case 3
+                    put(conic_row(h1, D[k]), g, -T[k][0])
+                    put(conic_row(h2, D[k]), g, -T[k][1])
+                    put(conic_row(D[k], D[k]), g, -(T[k] @ T[k]))
+                elif knowledge == "board_direction":  # eqs. 22-26, a = s c eliminated
+                    n = T[k] / max(np.linalg.norm(T[k]), 1e-300)
+                    if np.hypot(n[0], n[1]) < 1e-9:
+                        put(conic_row(h1, D[k]))
+                        put(conic_row(h2, D[k]))
+                    else:
+                        put(conic_row(n[1] * h1 - n[0] * h2, D[k]))
+                else:  # "robot": all pairs, generalising eq. 27
+                    for i in range(1, k + 1):
+                        put(conic_row(D[i], D[k]), g, -(T[i] @ T[k]))
+        # Coupling (eqs. 33-42): both cameras see the same T, so the same T_x c, T_y c, T_i.T_k c.
+        A, B = Ha[g], Hb[g]
+        Da = [A[0][:, 2] - A[k][:, 2] for k in range(len(A))]
+        Db = [B[0][:, 2] - B[k][:, 2] for k in range(len(B))]
+        for k in range(1, len(A)):
+            for col in (0, 1):
+                add(conic_row(A[0][:, col], Da[k]), -conic_row(B[0][:, col], Db[k]))
+            for i in range(1, k + 1):
+                add(conic_row(Da[i], Da[k]), -conic_row(Db[i], Db[k]))
+    A_sys = np.array(rows)
+    if H_inf is not None and use_eq62:
+        Hn = N_a @ H_inf @ np.linalg.inv(N_b)  # exact scale: h_a = Hn h_b after the rescaling
+        eq62 = np.hstack([conic_transfer_matrix(Hn) @ basis, -basis, np.zeros((6, G))])
+        A_sys = np.vstack([A_sys, eq62])
+    x = _null_vector(A_sys, "joint stereo calibration from translations (eqs. 33-42)")
+    K_a = np.linalg.solve(N_a, K_from_w(basis @ x[:m]))
+    K_b = np.linalg.solve(N_b, K_from_w(basis @ x[m : 2 * m]))
+    return K_a / K_a[2, 2], K_b / K_b[2, 2]

@@ -171,3 +171,73 @@ def test_relative_rotation_projects_onto_SO3(scene):
     np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
     assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-12)
     assert rotation_angle_deg(R, R_true) < 0.1
+
+
+def _translated_groups(scene, views, steps_board, R_robot_board):
+    """Groups (one per view) of the head translated by ``steps_board`` (n, 3) board frame, l.u.
+
+    Returns groups of the left camera, of the right camera, and the motions by knowledge.
+    """
+    gl, gr = [], []
+    for v in views:
+        R = scene.R_right_board[v]
+        Rl = scene.R_left_right @ R
+        Hs_l, Hs_r = [], []
+        for T in steps_board:
+            t = scene.t_right_board[v] - R @ T  # the camera centre moves by T (eqs. 12-13)
+            tl = scene.R_left_right @ t + scene.t_left_right
+            Hs_r.append(scene.K_right @ np.column_stack([R[:, 0], R[:, 1], t]))
+            Hs_l.append(scene.K_left @ np.column_stack([Rl[:, 0], Rl[:, 1], tl]))
+        gl.append(np.array(Hs_l))
+        gr.append(np.array(Hs_r))
+    norms = np.linalg.norm(steps_board, axis=1, keepdims=True)
+    motion = {
+        "board_translation": steps_board,
+        "board_direction": np.divide(steps_board, norms, out=np.zeros_like(steps_board),
+                                     where=norms > 0),
+        "lengths": steps_board,
+        "robot": steps_board @ R_robot_board,  # T_robot = R_robot_board' ... any fixed rotation
+    }
+    return gl, gr, motion
+
+
+@pytest.mark.parametrize(
+    ("knowledge", "views", "skew"),
+    [
+        ("board_translation", [3], True),
+        ("robot", [3], True),
+        ("lengths", [3], False),
+        ("board_direction", [3], False),
+        ("robot", [3, 4], True),
+        ("lengths", [0, 1, 5], True),
+    ],
+)
+def test_translation_rig_noise_free(scene, knowledge, views, skew):
+    from slidecal.solver.linear import LinearGroup
+    from slidecal.solver.stereo import rig_linear_intrinsics_translation
+
+    steps = np.array([[0, 0, 0], [0, 0, 5.0], [0, 0, 10.0], [4.0, 0, 8.0], [0, -3.0, 6.0]])
+    R_rb = R_from_rvec(np.radians([10.0, -40.0, 70.0]))
+    gl, gr, motion = _translated_groups(scene, views, steps, R_rb)
+    rng = np.random.default_rng(5)
+    groups_l = [LinearGroup(H * rng.uniform(0.5, 2.0), motion[knowledge]) for H in gl]
+    groups_r = [LinearGroup(H * rng.uniform(0.5, 2.0)) for H in gr]
+    K_l, K_r = rig_linear_intrinsics_translation(
+        groups_l, groups_r, knowledge, skew=skew, sizes=SIZES
+    )
+    np.testing.assert_allclose(K_l, scene.K_left, atol=1e-8)
+    np.testing.assert_allclose(K_r, scene.K_right, atol=1e-8)
+
+
+def test_translation_rig_parallel_to_board_is_refused(scene):
+    """Translations parallel to the board plane only add points on it (MATH.md Sec. 7)."""
+    from slidecal.solver.linear import LinearGroup
+    from slidecal.solver.stereo import rig_linear_intrinsics_translation
+
+    steps = np.array([[0, 0, 0], [5.0, 0, 0], [0, 5.0, 0], [5.0, 5.0, 0]])
+    gl, gr, motion = _translated_groups(scene, [3], steps, np.eye(3))
+    with pytest.raises(DegenerateError):
+        rig_linear_intrinsics_translation(
+            [LinearGroup(gl[0], motion["lengths"])], [LinearGroup(gr[0])], "lengths",
+            skew=True, sizes=SIZES,
+        )
