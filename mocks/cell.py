@@ -1,0 +1,108 @@
+"""A simulated robot cell: a :class:`SimulatedUR`, a :class:`SimulatedCameraRig` and the truth.
+
+The rig's ``poses`` callable computes each camera's true ``T_cam_board`` from the robot's true
+pose (not the noisy measured one), the true hand-eye and rig extrinsics and the true target pose:
+
+- eye-in-hand: ``T_cam_board = T_cam_ref @ inv(T_tool_ref) @ inv(T_base_tool) @ T_base_board``
+- eye-to-hand: ``T_cam_board = T_cam_ref @ inv(T_base_ref) @ T_base_tool @ T_tool_board``
+
+where ``ref`` is the rig's reference camera and ``T_cam_ref`` its extrinsics (identity for the
+reference itself). The packaged cells: ``default_cell.yaml`` (UR5e, eye-in-hand, the R1
+camera), ``oak_cell.yaml`` (an OAK-D-like head, eye-in-hand), ``eye_to_hand_cell.yaml``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from slidecal.drivers.ur_pose import ur_pose_from_T
+from slidecal.mocks.camera import SimCamera, SimulatedCameraRig
+from slidecal.mocks.robot import SimulatedUR
+from slidecal.routines.config import CellConfig, truth_block
+from slidecal.solver.errors import InputError
+from slidecal.solver.geometry import inv_T
+
+
+@dataclass
+class SimulatedCell:
+    """A simulated robot, a simulated camera rig and the truth they were built from.
+
+    ``truth``: the session's ``simulation:`` block (result-file names, see
+    :func:`slidecal.routines.config.truth_block`).
+    """
+
+    config: CellConfig
+    robot: SimulatedUR
+    rig: SimulatedCameraRig
+    truth: dict[str, Any]
+    seed: int
+
+    @classmethod
+    def from_config(cls, cfg: CellConfig, seed: int | None = None) -> SimulatedCell:
+        """Build the cell of a simulated ``cfg``; ``seed`` overrides ``simulation.seed``.
+
+        The robot's measurement noise and the cameras' image noise come from independent
+        streams of ``numpy.random.default_rng(seed)``.
+        """
+        sim = cfg.simulation
+        if sim is None or cfg.robot.driver != "simulated":
+            raise InputError(
+                f"{cfg.source} describes real hardware; a SimulatedCell needs robot.driver: "
+                "simulated"
+            )
+        seed = sim.seed if seed is None else int(seed)
+        robot_seed, camera_seed = np.random.SeedSequence(seed).spawn(2)
+        rdict: dict[str, Any] = {
+            "model": cfg.robot.model,
+            "noise": {
+                "pose_noise_m": sim.robot_noise_m,
+                "pose_noise_deg": sim.robot_noise_deg,
+            },
+            "seed": robot_seed,
+        }
+        if cfg.robot.tcp is not None:
+            rdict["tcp"] = ur_pose_from_T(cfg.robot.tcp)
+        if cfg.robot.start_pose is not None:
+            rdict["start_pose"] = ur_pose_from_T(cfg.robot.start_pose)
+        for key in ("start_q", "limits"):
+            if cfg.robot.raw.get(key) is not None:
+                rdict[key] = cfg.robot.raw[key]
+        robot = SimulatedUR.from_dict(rdict)
+        cams = [
+            SimCamera(
+                c.name,
+                c.width,
+                c.height,
+                c.K,
+                c.distortion,
+                blur_sigma_px=c.blur_sigma_px,
+                noise_std=c.noise_std,
+                exposure=c.exposure,
+                colour=c.colour,
+            )
+            for c in sim.cameras
+        ]
+        ref = cfg.reference_camera
+        T_cam_ref = {c.name: (np.eye(4) if c.name == ref else sim.rig[c.name]) for c in cams}
+        T_he, T_tg = sim.T_hand_eye, sim.T_target
+        if cfg.mount == "eye_in_hand":
+            T_ref_tool = inv_T(T_he)
+
+            def poses() -> dict[str, np.ndarray]:
+                T_ref_board = T_ref_tool @ inv_T(robot.true_pose()) @ T_tg
+                return {n: T @ T_ref_board for n, T in T_cam_ref.items()}
+
+        else:
+            T_ref_base = inv_T(T_he)
+
+            def poses() -> dict[str, np.ndarray]:
+                T_ref_board = T_ref_base @ robot.true_pose() @ T_tg
+                return {n: T @ T_ref_board for n, T in T_cam_ref.items()}
+
+        rig = SimulatedCameraRig(cams, cfg.target, poses, np.random.default_rng(camera_seed))
+        truth = truth_block(cfg)
+        truth["seed"] = seed
+        return cls(cfg, robot, rig, truth, seed)
