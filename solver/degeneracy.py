@@ -1,0 +1,161 @@
+"""Degenerate configurations of the linear method (MATH.md Sec. 7; paper Sec. III-A).
+
+:func:`check_configuration` analyses the data before solving and raises ``DegenerateError``
+naming the configuration and the fix. Two kinds of test:
+
+- Geometric, on the camera pose implied by each group's homography with a nominal ``K``
+  (``f`` = image width, principal point at the centre, unless ``K_guess`` is given). They work on
+  noisy data, where an exactly singular configuration no longer gives a zero singular value.
+  Angle threshold ``MIN_ANGLE_DEG`` = 5 deg: below it the linear estimate of the nearest
+  non-degenerate configuration is already several times noisier than at 20-30 deg (measured on
+  the S1/S2 set-ups), and a nominal ``K`` misplaces the axes by a few degrees at most.
+- Algebraic: the conditioned linear system (``slidecal.solver.linear.linear_system``) must have a
+  one-dimensional null space: its second smallest singular value over its largest must exceed
+  ``MIN_CONDITIONING`` = 1e-6. Measured noise-free on the S1/S2/S3 set-ups: exactly degenerate
+  configurations give 1e-14 to 1e-16; the weakest accepted one tried (translations 3 deg out of
+  the board plane) gives 1e-3, regular ones 0.04 to 0.4.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from slidecal.solver.errors import DegenerateError
+from slidecal.solver.handeye import board_pose_from_homography, camera_displacements
+from slidecal.solver.linear import LinearGroup, _check_groups, linear_system
+
+MIN_ANGLE_DEG = 5.0
+MIN_CONDITIONING = 1e-6
+_MIN_SPREAD = 1e-2  # second/first singular value of unit directions: about 0.6 deg
+
+
+def nominal_K(image_size: tuple[float, float]) -> np.ndarray:
+    """Nominal intrinsics (3, 3) pixels: ``f`` = image width, principal point at the centre."""
+    w, h = float(image_size[0]), float(image_size[1])
+    return np.array([[w, 0.0, (w - 1) / 2], [0.0, w, (h - 1) / 2], [0.0, 0.0, 1.0]])
+
+
+def _n_directions(v: np.ndarray) -> int:
+    """How many independent directions (0 to 3) the non-zero rows of ``v`` (n, 3) span."""
+    v = v[np.linalg.norm(v, axis=1) > 0]
+    if len(v) == 0:
+        return 0
+    u = v / np.linalg.norm(v, axis=1, keepdims=True)
+    sv = np.linalg.svd(u, compute_uv=False)
+    return int(np.sum(sv >= _MIN_SPREAD * sv[0]))
+
+
+def _conditioning(A: np.ndarray) -> float:
+    if A.shape[0] < A.shape[1]:
+        return 0.0
+    sv = np.linalg.svd(A, compute_uv=False)
+    return float(sv[-2] / sv[0])
+
+
+def check_configuration(
+    groups: Sequence[LinearGroup],
+    knowledge: str,
+    *,
+    skew: bool = False,
+    unit_aspect: bool = False,
+    image_size: tuple[float, float],
+    K_guess: np.ndarray | None = None,
+    hand_eye: bool = False,
+    robot_translations: Sequence[np.ndarray] | None = None,
+) -> None:
+    """Refuse degenerate data for the linear method with a ``DegenerateError`` saying the fix.
+
+    ``groups``, ``knowledge``, ``skew``, ``unit_aspect``, ``image_size``: as for
+    ``linear_intrinsics``. ``K_guess`` (3, 3) pixels: used for the geometric tests (default
+    :func:`nominal_K`). ``hand_eye``: the hand-eye rotation is also wanted; then the robot
+    translations (``robot_translations``: per group (n, 3), default ``group.motion``) must span
+    two directions.
+    """
+    _check_groups(groups, knowledge)
+    K = nominal_K(image_size) if K_guess is None else np.asarray(K_guess, dtype=float)
+    if knowledge != "none":
+        for g, grp in enumerate(groups):
+            if len(grp.H) < 2 and len(groups) == 1:
+                raise DegenerateError(
+                    f"group {g} has a single frame: the translation methods need at least two "
+                    "frames per orientation (add translated frames)"
+                )
+    if hand_eye:
+        moves = robot_translations
+        if moves is None:
+            moves = [np.asarray(grp.motion, dtype=float) for grp in groups]
+        if _n_directions(np.concatenate([np.asarray(m, float).reshape(-1, 3) for m in moves])) < 2:
+            raise DegenerateError(
+                "all robot translations are colinear: the hand-eye rotation about that line is "
+                "undetermined; translate along at least two non-parallel directions"
+            )
+
+    # Geometric tests, only when the orientations alone (Zhang) cannot rescue the system.
+    zhang = linear_system(
+        [LinearGroup(np.asarray(grp.H)[:1]) for grp in groups],
+        "none",
+        skew=skew,
+        unit_aspect=unit_aspect,
+        image_size=image_size,
+    )
+    if knowledge != "none" and _conditioning(zhang.A) < MIN_CONDITIONING:
+        _geometric_tests(groups, knowledge, K)
+
+    system = linear_system(
+        groups, knowledge, skew=skew, unit_aspect=unit_aspect, image_size=image_size
+    )
+    n_unknowns = system.A.shape[1] - 1
+    if system.A.shape[0] < n_unknowns:
+        raise DegenerateError(
+            f"too few constraints ({system.A.shape[0]}) for {n_unknowns} unknowns "
+            f"({', '.join(system.unknowns)} up to scale): add translated frames, orientation "
+            "groups, or assume zero skew / unit aspect"
+        )
+    cond = _conditioning(system.A)
+    if cond < MIN_CONDITIONING:
+        raise DegenerateError(
+            f"the linear calibration system is singular (conditioning {cond:.1e}) for knowledge "
+            f"{knowledge!r}: the frames do not determine {', '.join(system.unknowns)}; tilt the "
+            "camera toward the board about both board axes, translate out of the board plane "
+            "in several directions, or add orientation groups"
+        )
+
+
+def _geometric_tests(groups: Sequence[LinearGroup], knowledge: str, K: np.ndarray) -> None:
+    sin_min = np.sin(np.radians(MIN_ANGLE_DEG))
+    out_of_plane, tilted, axes_ok = [], [], []
+    colinear = []
+    for grp in groups:
+        H = np.asarray(grp.H, dtype=float)
+        R = board_pose_from_homography(K, H[0])[:3, :3]  # R_cam_board
+        T_board = camera_displacements(K, grp) @ R  # rows: R' d_k
+        nz = np.linalg.norm(T_board, axis=1) > 0
+        if np.any(nz):
+            T = T_board[nz]
+            out_of_plane.append(np.max(np.abs(T[:, 2]) / np.linalg.norm(T, axis=1)) >= sin_min)
+        tilted.append(np.hypot(R[2, 0], R[2, 1]) >= sin_min)  # optical axis vs board normal
+        axes_ok.append(min(abs(R[0, 2]), abs(R[1, 2])) >= sin_min)  # camera x, y leave the board
+        motion = np.asarray(grp.motion, dtype=float) if grp.motion is not None else T_board
+        colinear.append(_n_directions(motion) <= 1)
+    if out_of_plane and not any(out_of_plane):
+        raise DegenerateError(
+            "every translation is parallel to the board plane (within "
+            f"{MIN_ANGLE_DEG:g} deg), which only adds points on the plane: tilt the camera "
+            "toward the board or move along its normal"
+        )
+    case1 = knowledge == "lengths" or (knowledge == "robot" and all(colinear))
+    if case1 and not any(tilted):
+        raise DegenerateError(
+            "the board plane is parallel to the image plane (within "
+            f"{MIN_ANGLE_DEG:g} deg), which is degenerate when only translation lengths are "
+            "known (Case 1): tilt the camera by 20-30 deg relative to the board"
+        )
+    if knowledge == "board_direction" and not any(axes_ok):
+        raise DegenerateError(
+            "the camera's x or y axis is parallel to the board plane (within "
+            f"{MIN_ANGLE_DEG:g} deg), which is degenerate when only the translation direction "
+            "is known (Case 2): tilt about both board axes (e.g. 30 deg about x, then 30 deg "
+            "about y)"
+        )
