@@ -104,3 +104,25 @@ def s2_group(
     R = tilt_R(30.0, 30.0)
     C0 = centre_on_axis(R)
     return make_group(K, R, C0, line_steps([0.0, 0.0, -1.0], n), rng, sigma_px)
+
+
+def robot_poses(
+    group: Group, T_base_fixed: np.ndarray, T_tool_x: np.ndarray, mount: str
+) -> np.ndarray:
+    """Measured ``T_base_tool`` (n, 4, 4) of a group's frames.
+
+    Eye-in-hand: ``T_base_fixed = T_base_board`` (board fixed), ``T_tool_x = T_tool_cam``.
+    Eye-to-hand: ``T_base_fixed = T_base_cam`` (camera fixed), ``T_tool_x = T_tool_board``; the
+    camera displacement ``T`` relative to the board is then a board motion.
+    """
+    out = []
+    for T in group.T_board:
+        T_board_cam = np.eye(4)
+        T_board_cam[:3, :3] = group.R_cam_board.T
+        T_board_cam[:3, 3] = group.C0 + T
+        if mount == "eye_in_hand":
+            out.append(T_base_fixed @ T_board_cam @ np.linalg.inv(T_tool_x))
+        else:
+            T_base_board = T_base_fixed @ np.linalg.inv(T_board_cam)
+            out.append(T_base_board @ np.linalg.inv(T_tool_x))
+    return np.array(out)
