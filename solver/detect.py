@@ -37,12 +37,13 @@ import numpy as np
 from slidecal.solver.errors import InputError
 from slidecal.solver.problem import Detection, Target
 
-# Local homography check: a corner whose position differs from the prediction of a homography
-# fitted to its grid neighbours (up to two squares away) by more than this is rejected. Over
-# such a neighbourhood lens distortion departs from a homography by < 0.3 px in the R1 set-up
-# (measured in tests/test_detect.py down to 0.3 m, up to the image corners), detector noise is
-# ~0.1 px, while gross errors are at least a marker margin (4 mm, > 5 px at 0.6 m with 880 px
-# focal length) or a whole square (an id error).
+# Local homography check: a corner whose position differs by more than this from the prediction
+# of a homography fitted to its grid neighbours (one square away, or two or three when too few)
+# is rejected. Over such a neighbourhood the R1 lens (k1 = -0.12) departs from a homography by at
+# most 1.33 px (noise-free, board 0.25-0.3 m away filling the image, extrapolating to the grid's
+# outer corners; tests/test_detect.py checks < 1.5 px) and detector noise adds ~0.1 px, while a
+# gross error is at least a marker margin (4 mm: 5.9 px at 0.6 m with 880 px focal length) or a
+# whole square (a wrong id).
 OUTLIER_THRESHOLD_PX = 3.0
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 60, 1e-3)
 _MAX_HALF_WINDOW_PX = 8
@@ -307,7 +308,7 @@ def _local_residuals(ids: np.ndarray, px: np.ndarray, target: Target) -> np.ndar
     xy = target.points_m[ids, :2]
     res = np.zeros(len(ids))
     for i in range(len(ids)):
-        for radius in (2, 3):
+        for radius in (1, 2, 3):
             nb = (np.abs(r - r[i]) <= radius) & (np.abs(c - c[i]) <= radius)
             nb[i] = False
             if nb.sum() >= 6:
