@@ -348,6 +348,21 @@ class RefineOutput:
     model: BundleModel
 
 
+def _respect_options(problem: CalibrationProblem, state: ModelState) -> ModelState:
+    """The start with the model's assumptions imposed (fy = fx, zero skew, unused k = 0)."""
+    o = problem.options
+    K, dist = {}, {}
+    for c, k in state.K.items():
+        k = k.copy()
+        if o.unit_aspect:
+            k[0, 0] = k[1, 1] = 0.5 * (k[0, 0] + k[1, 1])
+        if not o.skew:
+            k[0, 1] = 0.0
+        K[c] = k
+        dist[c] = np.where(np.array(o.distortion), state.dist[c], 0.0)
+    return ModelState(K, dist, state.T_cam_ref, state.X, state.Y, state.s)
+
+
 def _lm(
     model: BundleModel,
     state: ModelState,
@@ -426,7 +441,7 @@ def refine(
     """
     model = BundleModel(problem, structure)
     weights = np.ones(model.n_rows)
-    state = init
+    state = _respect_options(problem, init)
     total_it = 0
     converged = False
     for _ in range(4):
