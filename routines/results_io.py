@@ -367,11 +367,11 @@ def write_depthai_json(result: CalibrationResult, path: str | Path, sockets: Map
         from slidecal.drivers import oak
     except ImportError:  # the OAK driver is optional at run time (depthai missing)
         oak = None
-    writer = getattr(oak, "write_calibration_json", None) if oak is not None else None
+    writer = getattr(oak, "write_oak_calibration_json", None) if oak is not None else None
     if writer is None:
         raise InputError(
             "this slidecal has no depthai calibration writer (slidecal.drivers.oak."
-            "write_calibration_json); use the OpenCV or ROS exports"
+            "write_oak_calibration_json); use the OpenCV or ROS exports"
         )
     return writer(result, Path(path), dict(sockets))
 

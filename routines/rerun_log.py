@@ -1,0 +1,217 @@
+"""A rerun recording of a calibration run (rerun-sdk 0.41; the only module that imports rerun).
+
+One :class:`rerun.RecordingStream` per run, saved to ``SESSION_DIR/recording.rrd`` (and
+streamed to a viewer with ``spawn``). Entity tree (``world`` is the robot base frame, z up):
+
+- ``world/base``: the base axes (static); ``world/board``: the board corners (approximate pose
+  while recording, the estimate at the end);
+- ``world/tool``: ``T_base_tool`` at every capture; ``world/tool_path``: the TCP path so far;
+- ``world/tool/<cam>`` (eye-in-hand) or ``world/<cam>`` (eye-to-hand): the camera frustum
+  (``Pinhole``, RDF axes); ``.../<cam>/image``: the image, ``.../image/detections`` and, after
+  the solve, ``.../image/reprojections``;
+- ``residuals/<cam>``: per-frame reprojection rms (time series);
+- ``log``: events and the final estimate with its uncertainty (``TextLog``).
+
+Timelines: ``capture`` (frame id) and ``robot_time`` (simulated or measured robot seconds).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+
+from slidecal.solver.camera import project
+from slidecal.solver.geometry import inv_T
+from slidecal.solver.problem import CalibrationProblem, CameraSpec, Detection, Target
+from slidecal.solver.result import CalibrationResult
+
+RECORDING_FILE = "recording.rrd"
+_AXES = np.eye(3) * 0.05
+_AXIS_COLOURS = [[255, 0, 0], [0, 255, 0], [0, 0, 255]]
+
+
+def _nominal_K(spec: CameraSpec) -> np.ndarray:
+    """A stand-in pinhole (horizontal field of view about 70 deg) until the estimate exists."""
+    f = 0.7 * max(spec.width, spec.height)
+    return np.array([[f, 0.0, (spec.width - 1) / 2], [0.0, f, (spec.height - 1) / 2], [0, 0, 1]])
+
+
+class RerunLog:
+    """Log one run; see the module docstring for the entity tree.
+
+    Parameters
+    ----------
+    path
+        Where to save the ``.rrd`` recording (None: no file).
+    cameras
+        The rig's cameras (name and size).
+    target
+        The calibration target (board frame points).
+    mount
+        ``eye_in_hand`` | ``eye_to_hand``.
+    T_hand_eye_approx, T_target_approx
+        (4, 4) approximate ``T_tool_cam``/``T_base_cam`` and ``T_base_board``/``T_tool_board``
+        for the display while recording (metres).
+    spawn
+        Also open a viewer and stream to it.
+    """
+
+    def __init__(
+        self,
+        path: str | Path | None,
+        cameras: Sequence[CameraSpec],
+        target: Target,
+        mount: str,
+        T_hand_eye_approx: np.ndarray,
+        T_target_approx: np.ndarray,
+        spawn: bool = False,
+        recording_id: str | None = None,
+    ) -> None:
+        self.rec = rr.RecordingStream("slidecal", recording_id=recording_id)
+        self.path = Path(path) if path is not None else None
+        if spawn:
+            self.rec.spawn()
+        if self.path is not None:
+            self.rec.save(self.path)
+        self.cameras = {c.name: c for c in cameras}
+        self.target = target
+        self.mount = mount
+        self._path_points: list[np.ndarray] = []
+        self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        self.rec.log(
+            "world/base", rr.Arrows3D(vectors=_AXES * 2, colors=_AXIS_COLOURS), static=True
+        )
+        self._log_board(T_target_approx, static=True)
+        for name, spec in self.cameras.items():
+            self._log_camera(name, spec, _nominal_K(spec), T_hand_eye_approx, static=True)
+
+    def _cam_path(self, name: str) -> str:
+        return f"world/tool/{name}" if self.mount == "eye_in_hand" else f"world/{name}"
+
+    def _board_path(self) -> str:
+        return "world/board" if self.mount == "eye_in_hand" else "world/tool/board"
+
+    def _log_board(self, T_target: np.ndarray, static: bool = False) -> None:
+        p = self._board_path()
+        self.rec.log(
+            p, rr.Transform3D(translation=T_target[:3, 3], mat3x3=T_target[:3, :3]), static=static
+        )
+        self.rec.log(
+            f"{p}/corners",
+            rr.Points3D(self.target.points_m, radii=0.002, colors=[200, 200, 0]),
+            static=static,
+        )
+
+    def _log_camera(
+        self,
+        name: str,
+        spec: CameraSpec,
+        K: np.ndarray,
+        T_parent_cam: np.ndarray,
+        static: bool = False,
+    ) -> None:
+        p = self._cam_path(name)
+        self.rec.log(
+            p,
+            rr.Transform3D(translation=T_parent_cam[:3, 3], mat3x3=T_parent_cam[:3, :3]),
+            static=static,
+        )
+        self.rec.log(
+            p,
+            rr.Pinhole(
+                image_from_camera=K,
+                resolution=[spec.width, spec.height],
+                camera_xyz=rr.ViewCoordinates.RDF,
+                image_plane_distance=0.1,
+            ),
+            static=static,
+        )
+
+    def _time(self, frame: int, robot_time_s: float | None) -> None:
+        self.rec.set_time("capture", sequence=int(frame))
+        if robot_time_s is not None:
+            self.rec.set_time("robot_time", duration=float(robot_time_s))
+
+    def frame(
+        self,
+        frame: int,
+        T_base_tool: np.ndarray | None,
+        images: Mapping[str, np.ndarray],
+        detections: Mapping[str, Detection],
+        robot_time_s: float | None = None,
+    ) -> None:
+        """One capture: the measured tool pose (4, 4), metres; images; detections (pixels)."""
+        self._time(frame, robot_time_s)
+        if T_base_tool is not None:
+            self.rec.log(
+                "world/tool",
+                rr.Transform3D(translation=T_base_tool[:3, 3], mat3x3=T_base_tool[:3, :3]),
+            )
+            self.rec.log("world/tool/axes", rr.Arrows3D(vectors=_AXES, colors=_AXIS_COLOURS))
+            self._path_points.append(T_base_tool[:3, 3].copy())
+            self.rec.log("world/tool_path", rr.LineStrips3D([np.array(self._path_points)]))
+        for name, img in images.items():
+            self.rec.log(f"{self._cam_path(name)}/image", rr.Image(img).compress(jpeg_quality=80))
+        for name, det in detections.items():
+            self.rec.log(
+                f"{self._cam_path(name)}/image/detections",
+                rr.Points2D(det.px, radii=2.0, colors=[0, 255, 0]),
+            )
+
+    def event(self, text: str, level: str = "INFO") -> None:
+        """A line in ``log`` (``INFO``, ``WARN``, ``ERROR``)."""
+        self.rec.log("log", rr.TextLog(text, level=level))
+
+    def final(self, problem: CalibrationProblem, result: CalibrationResult, summary: str) -> None:
+        """The estimate: cameras and board at their estimated poses, reprojections, residuals
+        per frame, and the summary (estimate with its uncertainty) as a ``TextLog``."""
+        ref = problem.reference
+        he = result.hand_eye.T if result.hand_eye is not None else None
+        Tt = result.T_target.T if result.T_target is not None else None
+        if Tt is not None:
+            self._log_board(Tt, static=True)
+        T_ref_cam = {ref: np.eye(4)}
+        for key, te in result.rig.items():
+            name = key[2 : -len(ref) - 1]
+            if te.T is not None:
+                T_ref_cam[name] = inv_T(te.T)
+        for name, est in result.cameras.items():
+            if he is not None and name in T_ref_cam:
+                self._log_camera(name, self.cameras[name], est.K, he @ T_ref_cam[name], static=True)
+        for fr in problem.frames:
+            self._time(fr.id, None)
+            for name, det in fr.detections.items():
+                rms = result.residuals_px.get((fr.id, name))
+                if rms is not None:
+                    self.rec.log(f"residuals/{name}", rr.Scalars(float(rms)))
+                est = result.cameras.get(name)
+                if (
+                    est is None
+                    or he is None
+                    or Tt is None
+                    or fr.T_base_tool is None
+                    or name not in T_ref_cam
+                    or len(det.ids) == 0
+                ):
+                    continue
+                if problem.mount == "eye_in_hand":
+                    T_ref_board = inv_T(he) @ inv_T(fr.T_base_tool) @ Tt
+                else:
+                    T_ref_board = inv_T(he) @ fr.T_base_tool @ Tt
+                T_cam_board = inv_T(T_ref_cam[name]) @ T_ref_board
+                P = problem.target.points_m[det.ids] @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
+                px = project(est.K, est.distortion, P)
+                self.rec.log(
+                    f"{self._cam_path(name)}/image/reprojections",
+                    rr.Points2D(px, radii=1.5, colors=[255, 0, 255]),
+                )
+        self.rec.log("log", rr.TextLog(summary, level="INFO"))
+
+    def close(self) -> Path | None:
+        """Flush and finish the recording; return its path."""
+        self.rec.flush()
+        self.rec.disconnect()
+        return self.path
