@@ -542,7 +542,7 @@ def orientation_groups(T_base_tool: np.ndarray, tol_deg: float = 0.5) -> np.ndar
     return out
 
 
-def _complement(u: np.ndarray) -> np.ndarray:
+def complement_basis(u: np.ndarray) -> np.ndarray:
     """Orthonormal basis (3, 2) of the plane perpendicular to ``u`` (3,)."""
     u = u / np.linalg.norm(u)
     return np.linalg.svd(np.eye(3) - np.outer(u, u))[0][:, :2]
@@ -588,7 +588,7 @@ def build_structure(problem: CalibrationProblem, R_X: np.ndarray | None = None) 
         else:
             _, sv, Vt = np.linalg.svd(np.asarray(axes))
             if len(sv) < 2 or sv[1] < 0.05 * sv[0]:
-                X_t = _complement((I3 if R_X is None else R_X) @ Vt[0])
+                X_t = complement_basis((I3 if R_X is None else R_X) @ Vt[0])
                 unobs[f"{he}.t_along_rotation_axis"] = (
                     "all rotations share one axis, so the hand-eye translation along it is "
                     "unobservable; tilt about a second, non-parallel axis"
@@ -604,7 +604,7 @@ def build_structure(problem: CalibrationProblem, R_X: np.ndarray | None = None) 
                 )
             _, sv, Vt = np.linalg.svd(d)
             if len(sv) < 2 or sv[1] < 0.02 * sv[0]:
-                Y_rot = _complement(M[0, :3, :3].T @ Vt[0])
+                Y_rot = complement_basis(M[0, :3, :3].T @ Vt[0])
                 unobs[f"{he}.R"] = (
                     "all translations are parallel, so the hand-eye rotation about that direction "
                     "is unobservable; translate along at least two non-parallel directions"
