@@ -5,10 +5,14 @@ For every pixel the renderer undistorts the pixel (``solver/camera.py``, so it a
 texture up there (inverse mapping). Anti-aliasing: ``n x n`` sub-samples per pixel at offsets
 ``(k + 0.5) / n - 0.5`` px from the pixel centre (pixel (0, 0) is the centre of the top-left
 pixel), averaged (a sensor with 100 % fill factor). The texture is looked up with bilinear
-interpolation at a resolution chosen per render so that one texel is at least one sub-sample's
-footprint on the board: the sum of the sub-samples' tent kernels is then a continuous function of
-an edge's position, which is what makes corner positions unbiased (a texture much finer than the
-sub-samples would quantise edges in steps of ``1 / n`` px).
+interpolation at a resolution chosen per render so that one texel spans at least two
+sub-samples' footprints on the board. Why: a texture much finer than the sub-samples would
+quantise an edge's position in steps of ``1 / n`` px; with bilinear texels of width ``tau`` the
+sum over sub-samples of the edge's ramp is exact when ``tau`` is a multiple of the sub-sample
+spacing ``s`` and otherwise off by a periodic, zero-mean error of at most 0.028 px for
+``tau / s`` in [1, 2] and 0.017 px for ``tau / s`` in [2, 3] (n = 3; computed, and checked on
+rendered edges in ``tests/test_render.py``). The texture's own smoothing (a tent) is subtracted
+from the optical blur, so the total blur stays ``blur_sigma_px`` where it can.
 
 Then, in this order: optical blur (Gaussian, ``blur_sigma_px``), vignetting, exposure gain,
 additive Gaussian read noise (``noise_std`` grey levels), clipping and quantisation to uint8.
@@ -44,9 +48,11 @@ WHITE = 0.85
 BACK = 0.50
 BACKGROUND = 0.35
 SUBSAMPLES = 3  # n: n x n sub-samples per pixel
-# Texture resolutions available (texels per square); a render picks the finest whose texel is
-# still at least one sub-sample footprint. Steps of about sqrt(2).
-TEXELS_PER_SQUARE = (4, 6, 8, 11, 16, 23, 32, 45, 64, 90, 128, 181, 256)
+# Texture resolutions available (texels per square); a render picks the finest whose texel still
+# spans TEXEL_FOOTPRINTS sub-sample footprints. Steps of about sqrt(2); at least 16 so that
+# generateImage can draw a 5x5-bit marker with its border in a 22/30 square.
+TEXELS_PER_SQUARE = (16, 23, 32, 45, 64, 90, 128, 181, 256)
+TEXEL_FOOTPRINTS = 2.0
 _OUTSIDE = -1.0e5  # texture coordinate of a ray that hits the plane behind the camera
 
 
@@ -198,6 +204,7 @@ def render_target(
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise InputError("T_cam_board must be a finite 4x4 transform (board frame to camera)")
     n = SUBSAMPLES
+    texture_sigma_px = 0.0
     W, H = int(cam.width), int(cam.height)
     R, t = T[:3, :3], T[:3, 3]
     normal_cam = R[:, 2]  # board +z in camera axes
@@ -212,7 +219,12 @@ def render_target(
         G = np.linalg.inv(M)  # (X, Y, 1) / s = G (x, y, 1), s > 0 for a hit in front of the camera
         mg = margin_m(target)
         if front:
-            tps = _pick_texels_per_square(target, _footprint_m(cam, target, T, n))
+            footprint = _footprint_m(cam, target, T, n)
+            tps = _pick_texels_per_square(target, TEXEL_FOOTPRINTS * footprint)
+            if np.isfinite(footprint):
+                # bilinear tent of half-width one texel, in pixels: std texel / sqrt(6)
+                texel_px = target.square_size_m / tps / (footprint * n)
+                texture_sigma_px = texel_px / np.sqrt(6.0)
             tex = _texture(
                 target.kind,
                 target.squares_x,
@@ -243,28 +255,28 @@ def render_target(
             borderValue=BACKGROUND,
         )
     img = cv2.resize(hi, (W, H), interpolation=cv2.INTER_AREA)  # exact n x n box average
-    return _sensor(img, cam, rng, vignetting)
+    blur_px = float(np.sqrt(max(cam.blur_sigma_px**2 - texture_sigma_px**2, 0.0)))
+    return _sensor(img, cam, rng, vignetting, blur_px)
 
 
-def _pick_texels_per_square(target: Target, footprint_m: float) -> int:
-    if not np.isfinite(footprint_m):
+def _pick_texels_per_square(target: Target, texel_min_m: float) -> int:
+    """The finest texture level whose texel is at least ``texel_min_m``."""
+    if not np.isfinite(texel_min_m):
         return TEXELS_PER_SQUARE[0]
     best = TEXELS_PER_SQUARE[0]
     for tps in TEXELS_PER_SQUARE:
-        if target.square_size_m / tps >= footprint_m:
+        if target.square_size_m / tps >= texel_min_m:
             best = tps
     return best
 
 
 def _sensor(
-    img: np.ndarray, cam: SimCamera, rng: np.random.Generator, vignetting: float
+    img: np.ndarray, cam: SimCamera, rng: np.random.Generator, vignetting: float, blur_px: float
 ) -> np.ndarray:
     """Blur, vignetting, exposure, read noise, clipping and quantisation of a (H, W) image."""
     H, W = img.shape
-    if cam.blur_sigma_px > 0.0:
-        img = cv2.GaussianBlur(
-            img, (0, 0), sigmaX=cam.blur_sigma_px, borderType=cv2.BORDER_REPLICATE
-        )
+    if blur_px > 0.0:
+        img = cv2.GaussianBlur(img, (0, 0), sigmaX=blur_px, borderType=cv2.BORDER_REPLICATE)
     gain = 255.0 * cam.exposure
     if vignetting > 0.0:
         K = np.asarray(cam.K, float)
