@@ -28,6 +28,7 @@ from slidecal.solver.refine import (
     complement_basis,
     orientation_groups,
     refine,
+    single_threaded_blas,
 )
 from slidecal.solver.result import (
     CalibrationResult,
@@ -284,6 +285,7 @@ def init_motion(
 
 
 # -- the whole pipeline -------------------------------------------------------------------------
+@single_threaded_blas
 def calibrate(problem: CalibrationProblem) -> CalibrationResult:
     """Calibrate every camera, the hand-eye transform and the rig from one session."""
     check_problem(problem)
