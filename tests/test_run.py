@@ -1,0 +1,87 @@
+"""The routine end to end on the simulated cell, faults, and replaying a session offline."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from slidecal.mocks.cell import SimulatedCell
+from slidecal.routines.config import load_config
+from slidecal.routines.run import frames_on_disk, run_calibration, solve_session
+from slidecal.routines.session import load_session
+from slidecal.solver.errors import HardwareFault
+
+
+@pytest.fixture(scope="module")
+def outcome(tmp_path_factory):
+    out = tmp_path_factory.mktemp("run") / "session"
+    t0 = time.monotonic()
+    o = run_calibration(out_dir=out, progress=False, recording=True, seed=0)
+    assert time.monotonic() - t0 < 90.0
+    return o
+
+
+@pytest.mark.slow
+def test_default_cell_against_truth(outcome) -> None:
+    e = outcome.errors
+    # thresholds of the task; the default cell's injected noise: 2 grey levels of image noise,
+    # robot 0.05 mm / 0.005 deg per measured pose
+    assert e["cam.fx_rel"] < 1e-3
+    assert e["T_tool_cam.rot_deg"] < 0.05
+    assert e["T_tool_cam.t_mm"] < 1.0
+    assert outcome.n_frames == 20 and outcome.result.converged
+    assert outcome.robot_time_s is not None and outcome.robot_time_s > 10.0
+    d = outcome.session_dir
+    for name in ("session.yaml", "plan.yaml", "result.yaml", "summary.txt", "recording.rrd"):
+        assert (d / name).is_file(), name
+    assert (d / "export" / "opencv_cam.yaml").is_file()
+    s = load_session(d)
+    assert s.status == "complete" and s.simulation["T_tool_cam"]["t_m"] == [0.032, -0.061, 0.045]
+    assert len(list((d / "images").glob("*.png"))) == 20
+
+
+@pytest.mark.slow
+def test_session_replays_offline(outcome, tmp_path: Path) -> None:
+    again = solve_session(outcome.session_dir, tmp_path / "r.yaml")
+    np.testing.assert_allclose(
+        again.result.cameras["cam"].K, outcome.result.cameras["cam"].K, rtol=1e-9
+    )
+    assert yaml.safe_load((tmp_path / "r.yaml").read_text())["format"] == "slidecal.result/1"
+
+
+def test_fault_mid_run_stops_robot_and_keeps_frames(tmp_path: Path) -> None:
+    cfg = load_config()
+    cell = SimulatedCell.from_config(cfg, seed=0)
+    # moves: 0 via, 1-5 group 0 frames, 6 via, 7 first frame of group 1 -> 5 frames captured
+    cell.robot.inject_fault("protective_stop", at_move=7)
+    out = tmp_path / "s"
+    with pytest.raises(HardwareFault, match="5 frames captured before it"):
+        run_calibration(cfg, out_dir=out, progress=False, recording=False, cell=cell)
+    assert cell.robot.stopped
+    assert frames_on_disk(out) == 5
+    s = load_session(out, detect_images=False)
+    assert s.status == "aborted" and s.events[-1]["kind"] == "fault"
+    assert "protective stop" in s.events[-1]["message"]
+    assert len(list((out / "images").glob("*.png"))) == 5
+    assert not (out / "result.yaml").exists()
+
+
+def test_ctrl_c_stops_robot_and_keeps_frames(tmp_path: Path) -> None:
+    cfg = load_config()
+    cell = SimulatedCell.from_config(cfg, seed=0)
+    capture = cell.rig.capture
+
+    def capture_then_interrupt():
+        if cell.rig.capture_count == 2:
+            raise KeyboardInterrupt
+        return capture()
+
+    cell.rig.capture = capture_then_interrupt
+    with pytest.raises(KeyboardInterrupt):
+        run_calibration(cfg, out_dir=tmp_path / "s", progress=False, recording=False, cell=cell)
+    assert cell.robot.stopped and frames_on_disk(tmp_path / "s") == 2
+    assert load_session(tmp_path / "s", detect_images=False).events[-1]["kind"] == "interrupted"
