@@ -14,7 +14,10 @@ from slidecal.solver.geometry import R_from_rvec, T_from_Rt, rvec_from_R
 
 def T_from_ur_pose(pose: list[float] | np.ndarray) -> np.ndarray:
     """``T_base_tool`` (4, 4) from a UR pose ``[x, y, z, rx, ry, rz]`` (metres, radians)."""
-    p = np.asarray(pose, dtype=float).reshape(-1)
+    try:
+        p = np.asarray(pose, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        p = np.full(1, np.nan)
     if p.shape != (6,) or not np.all(np.isfinite(p)):
         raise ValueError(f"a UR pose is 6 finite numbers [x, y, z, rx, ry, rz], got {pose!r}")
     return T_from_Rt(R_from_rvec(p[3:]), p[:3])

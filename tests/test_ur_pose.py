@@ -52,30 +52,23 @@ def test_small_angles(angle):
     np.testing.assert_allclose(ur_pose_from_T(T), pose, atol=1e-15)
 
 
-NEAR_PI_BUG = pytest.mark.xfail(
-    strict=True,
-    reason="solver/geometry.py rvec_from_R within 1e-4 rad of pi takes the axis from the "
-    "unsymmetrised R + I and the angle from arccos: axis errors up to 1.2e-4 rad (0.007 deg); "
-    "fix proposed to the lead",
-)
-
-
 @pytest.mark.parametrize(
     "eps",
     [
         0.0,
         1e-12,
-        pytest.param(1e-9, marks=NEAR_PI_BUG),
-        pytest.param(1e-7, marks=NEAR_PI_BUG),
-        pytest.param(1e-5, marks=NEAR_PI_BUG),
-        pytest.param(1e-4, marks=NEAR_PI_BUG),
-        pytest.param(2e-4, marks=NEAR_PI_BUG),
+        1e-9,
+        1e-7,
+        1e-5,
+        1e-4,
+        2e-4,
         1e-3,
         1e-2,
         0.14,
     ],
 )
 def test_angles_near_pi(eps):
+    """UR poses with the tool pointing down sit near pi: the axis must stay exact there."""
     axis = np.array([0.6, 0.0, -0.8])
     angle = np.pi - eps
     T = T_from_ur_pose(_pose([0.0, 0.0, 0.0], axis, angle))
