@@ -1,0 +1,71 @@
+"""The command line: exit codes, one-line messages, solve on a recorded fixture."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from slidecal.routines import cli
+from slidecal.solver.errors import HardwareFault
+
+DATA = Path(__file__).parent / "data"
+
+
+def _slidecal(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "slidecal.routines.cli", *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+
+
+def test_missing_session_is_one_line_exit_2(tmp_path: Path) -> None:
+    p = _slidecal("solve", str(tmp_path / "nope"), cwd=tmp_path)
+    assert p.returncode == 2
+    assert p.stderr.startswith("slidecal: ") and p.stderr.count("\n") == 1
+    assert "Traceback" not in p.stderr
+
+
+def test_bad_cell_file_is_one_line_exit_2_and_writes_nothing(tmp_path: Path) -> None:
+    cell = tmp_path / "cell.yaml"
+    cell.write_text("robot: {driver: ur}\ntarget: {kind: charuco}\n")
+    p = _slidecal("run", "--config", str(cell), "--out", str(tmp_path / "s"), cwd=tmp_path)
+    assert p.returncode == 2 and p.stderr.count("\n") == 1
+    assert "cell.yaml: robot.host" in p.stderr and "controller's address" in p.stderr
+    assert not (tmp_path / "s").exists()
+
+
+def test_solve_recorded_fixture(tmp_path: Path) -> None:
+    shutil.copytree(DATA / "r1_session", tmp_path / "s")
+    p = _slidecal("solve", str(tmp_path / "s"), "--out", str(tmp_path / "r.yaml"), cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    r = yaml.safe_load((tmp_path / "r.yaml").read_text())
+    truth = yaml.safe_load((tmp_path / "s" / "session.yaml").read_text())["simulation"]
+    fx, fx_true = r["cameras"]["cam"]["K"][0][0], truth["cameras"]["cam"]["K"][0][0]
+    assert abs(fx - fx_true) / fx_true < 1e-3
+    assert "errors against the simulated truth" in p.stdout
+
+
+def test_hardware_fault_exit_3(monkeypatch, capsys) -> None:
+    import slidecal.routines.run as run
+
+    def boom(*a, **k):
+        raise HardwareFault("protective stop during move 3;\n unlock it on the pendant")
+
+    monkeypatch.setattr(run, "run_calibration", boom)
+    assert cli.main(["run", "--quiet"]) == 3
+    err = capsys.readouterr().err
+    assert err == "slidecal: protective stop during move 3; unlock it on the pendant\n"
+
+
+def test_subcommands_are_a_table() -> None:
+    assert {"run", "solve"} <= set(cli.SUBCOMMANDS)
+    with pytest.raises(SystemExit):
+        cli.build_parser().parse_args(["nothing"])
