@@ -39,8 +39,9 @@ from slidecal.solver.geometry import R_from_rvec, Rz, T_from_Rt, inv_T
 
 PLAN_FORMAT = "slidecal.plan/1"
 
-#: Camera displacements within a group, camera axes, as fractions of ``step_mm[1]``: five
-#: positions whose four moves from the first are non-coplanar and all leave the board plane.
+#: Camera displacements within a group, board axes, as fractions of ``step_mm[1]``: five
+#: positions whose four moves from the first are non-coplanar and all leave the board plane
+#: (board-normal components of 40 to 75 % of ``step_mm[1]``).
 _OFFSETS = np.array(
     [
         [0.0, 0.0, 0.0],
@@ -172,7 +173,7 @@ def camera_poses_board(
     ``target_centre_board`` (3,): board frame, metres. Group ``g`` looks at the centre from
     ``standoff_m``, tilted by ``tilt_deg`` about the in-plane axis at ``45 + 360 g / groups``
     degrees and rolled about the optical axis by ``(-10, 10, -20, 20, ...)`` degrees; frame
-    ``k`` is displaced by ``_OFFSETS[k] * step_m`` in camera axes.
+    ``k`` is displaced by ``_OFFSETS[k] * step_m`` in board axes.
     """
     if frames_per_group < 2 or frames_per_group > len(_OFFSETS):
         raise InputError(f"frames_per_group must be 2..{len(_OFFSETS)}, got {frames_per_group}")
@@ -187,7 +188,7 @@ def camera_poses_board(
         centre_cam = c - standoff_m * R_board_cam[:, 2]
         frames = []
         for k in range(frames_per_group):
-            p_cam_board = centre_cam + R_board_cam @ (_OFFSETS[k] * step_m)
+            p_cam_board = centre_cam + _OFFSETS[k] * step_m
             frames.append(inv_T(T_from_Rt(R_board_cam, p_cam_board)))
         out.append(frames)
     return out
