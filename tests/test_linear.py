@@ -1,0 +1,204 @@
+"""Closed-form intrinsics (MATH.md Secs. 2-3): every knowledge row, assumptions, groups, noise."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+import synth_linear as sl  # noqa: E402
+
+from slidecal.solver.errors import DegenerateError  # noqa: E402
+from slidecal.solver.geometry import random_rotation  # noqa: E402
+from slidecal.solver.homography import group_homographies  # noqa: E402
+from slidecal.solver.linear import (  # noqa: E402
+    K_from_w,
+    LinearGroup,
+    image_normalisation,
+    linear_intrinsics,
+    w_from_K,
+    zhang_intrinsics,
+    zhang_rows,
+)
+
+SIZE = sl.IMAGE_SIZE
+
+
+def _rel(K, K_true):
+    return np.abs(K - K_true).max() / K_true[0, 0]
+
+
+def _normal_dirs(n):
+    d = np.tile([0.0, 0.0, -1.0], (n, 1))
+    d[0] = 0.0
+    return d
+
+
+def test_conic_helpers():
+    K = sl.K_SKEW
+    w = w_from_K(K)
+    assert abs(np.linalg.norm(w) - 1) < 1e-12 and w[0] > 0
+    assert _rel(K_from_w(w), K) < 1e-12
+    assert _rel(K_from_w(-7.0 * w), K) < 1e-12  # sign and scale free
+    g = sl.s2_group(1, np.random.default_rng(0), K=K)
+    assert np.abs(zhang_rows(g.H[0] / np.linalg.norm(g.H[0])) @ w).max() < 1e-14
+    with pytest.raises(DegenerateError, match="not positive definite"):
+        K_from_w(np.array([1.0, 0.0, -1.0, 0.0, 0.0, 1.0]))
+    N = image_normalisation(300, 240)
+    corners = N @ np.array([[0, 299, 0, 299], [0, 0, 239, 239], [1, 1, 1, 1.0]])
+    assert np.allclose(np.abs(corners[:2]), [[149.5 / 270] * 4, [119.5 / 270] * 4])
+
+
+def test_case1_lengths_noise_free():
+    rng = np.random.default_rng(1)
+    for theta in (10.0, 30.0, 60.0):
+        g = sl.s1_group(theta, 5, rng)
+        grp = LinearGroup(group_homographies(g.observations), g.T_board)
+        sol = linear_intrinsics([grp], "lengths", unit_aspect=True, image_size=SIZE)
+        assert _rel(sol.K, sl.K_S1) < 1e-6
+        assert sol.lengths is None
+    # fx != fy (zero skew only): one direction gives 3 constraints for 4 unknowns, two suffice.
+    R = sl.tilt_R(30, 30)
+    T = np.array([[0, 0, 0], [0, 0, -5], [0, 0, -10], [4, 0, -3], [8, 0, -6.0]])
+    g = sl.make_group(sl.K_S2, R, sl.centre_on_axis(R), T, rng)
+    grp = LinearGroup(group_homographies(g.observations), T)
+    assert _rel(linear_intrinsics([grp], "lengths", image_size=SIZE).K, sl.K_S2) < 1e-6
+
+
+def test_case2_direction_noise_free_recovers_lengths_and_scale():
+    rng = np.random.default_rng(2)
+    g = sl.s2_group(5, rng)
+    Hs = group_homographies(g.observations)
+    sol = linear_intrinsics([LinearGroup(Hs, _normal_dirs(5))], "board_direction", image_size=SIZE)
+    assert _rel(sol.K, sl.K_S2) < 1e-6
+    assert np.allclose(sol.lengths[0], np.arange(5) * 5.0, rtol=1e-6, atol=1e-6)
+    lam = 1.0 / np.linalg.norm(g.H[0])  # Hs = g.H * lam and g.H = K [r1 r2 t]
+    assert abs(sol.scales[0] / lam**2 - 1) < 1e-6
+    # A direction with in-plane components (rows with n_x, n_y != 0) and unit aspect.
+    R = sl.tilt_R(30, 30)
+    d = np.array([0.3, -0.2, -1.0])
+    g = sl.make_group(sl.K_S1, R, sl.centre_on_axis(R), sl.line_steps(d, 4), rng)
+    dirs = np.tile(d / np.linalg.norm(d), (4, 1))
+    dirs[0] = 0
+    sol = linear_intrinsics(
+        [LinearGroup(group_homographies(g.observations), dirs)],
+        "board_direction",
+        unit_aspect=True,
+        image_size=SIZE,
+    )
+    assert _rel(sol.K, sl.K_S1) < 1e-6
+    assert np.allclose(sol.lengths[0], np.arange(4) * 5.0, atol=1e-6)
+
+
+def test_case3_full_translation_all_five_intrinsics():
+    rng = np.random.default_rng(3)
+    g = sl.s2_group(5, rng, K=sl.K_SKEW)
+    grp = LinearGroup(group_homographies(g.observations), g.T_board)
+    sol = linear_intrinsics([grp], "board_translation", skew=True, image_size=SIZE)
+    assert _rel(sol.K, sl.K_SKEW) < 1e-6
+    assert sol.unknowns[:6] == ("w11", "w12", "w22", "w13", "w23", "w33")
+
+
+def test_robot_frame_single_tilt_three_directions():
+    rng = np.random.default_rng(4)
+    R = sl.tilt_R(30, 30)
+    T = np.array([[0, 0, 0], [0, 0, -10], [8, 0, -6], [0, 8, -6], [5, 5, -5.0]])
+    g = sl.make_group(sl.K_SKEW, R, sl.centre_on_axis(R), T, rng)
+    R_robot_board = random_rotation(rng)
+    grp = LinearGroup(group_homographies(g.observations), T @ R_robot_board.T)
+    sol = linear_intrinsics([grp], "robot", skew=True, image_size=SIZE)
+    assert _rel(sol.K, sl.K_SKEW) < 1e-6
+    # Fronto-parallel board: still fine with three non-coplanar directions.
+    g = sl.make_group(sl.K_SKEW, sl.D0, sl.centre_on_axis(sl.D0), T, rng)
+    grp = LinearGroup(group_homographies(g.observations), T @ R_robot_board.T)
+    assert _rel(linear_intrinsics([grp], "robot", skew=True, image_size=SIZE).K, sl.K_SKEW) < 1e-6
+
+
+@pytest.mark.parametrize("knowledge", ["robot", "lengths", "board_direction", "board_translation"])
+def test_multi_group_noise_free(knowledge):
+    rng = np.random.default_rng(5)
+    groups = []
+    for ax, ay, d in ((30, 30, [0, 0, -1.0]), (-25, 10, [0.2, 0.1, -1]), (5, -35, [0, -0.3, -1])):
+        R = sl.tilt_R(ax, ay)
+        g = sl.make_group(sl.K_SKEW, R, sl.centre_on_axis(R), sl.line_steps(d, 3), rng)
+        motion = g.T_board.copy()
+        if knowledge == "robot":
+            motion = motion @ random_rotation(rng).T  # each group its own robot-board rotation
+        if knowledge == "board_direction":
+            motion[1:] /= np.linalg.norm(motion[1:], axis=1, keepdims=True)
+        groups.append(LinearGroup(group_homographies(g.observations), motion))
+    sol = linear_intrinsics(groups, knowledge, skew=True, image_size=SIZE)
+    assert _rel(sol.K, sl.K_SKEW) < 1e-6
+    assert len(sol.scales) == 3
+
+
+def test_zhang_alone():
+    rng = np.random.default_rng(6)
+    Hs = []
+    for ax, ay in ((30, 0), (0, 30), (20, -25)):
+        R = sl.tilt_R(ax, ay)
+        g = sl.make_group(sl.K_SKEW, R, sl.centre_on_axis(R), np.zeros((1, 3)), rng)
+        Hs.append(group_homographies(g.observations)[0])
+    assert _rel(zhang_intrinsics(np.array(Hs), skew=True, image_size=SIZE), sl.K_SKEW) < 1e-6
+    assert _rel(zhang_intrinsics(np.array(Hs[:2]), image_size=SIZE)[:, 1:], sl.K_SKEW[:, 1:]) > 0
+    K0 = sl.K_S2
+    Hs2 = [
+        sl.H_true(K0, sl.tilt_R(a, b), sl.centre_on_axis(sl.tilt_R(a, b)))
+        for a, b in ((30, 0), (0, 30))
+    ]
+    assert _rel(zhang_intrinsics(np.array(Hs2), image_size=SIZE), K0) < 1e-6
+    with pytest.raises(DegenerateError):
+        zhang_intrinsics(np.array(Hs[:1]), skew=True, image_size=SIZE)
+
+
+def _s2_fx_errors(trials, sigma, n, rng, condition=True):
+    err = []
+    for _ in range(trials):
+        g = sl.s2_group(n, rng, sigma)
+        grp = LinearGroup(group_homographies(g.observations), _normal_dirs(n))
+        sol = linear_intrinsics([grp], "board_direction", image_size=SIZE, condition=condition)
+        err.append(sol.K[0, 0] - sl.K_S2[0, 0])
+    return np.array(err)
+
+
+def test_s2_monte_carlo_against_reference():
+    # SCENARIOS.md: linear fx bias +3.5, std 5.6 px (5 images, sigma 0.5); Cramer-Rao 2.3 px.
+    e = _s2_fx_errors(40, 0.5, 5, np.random.default_rng(7))
+    std = e.std(ddof=1)
+    assert 2.3 * 0.9 < std < 5.6 * 1.5
+    assert abs(e.mean()) < 5.0
+
+
+def test_conditioning_matters():
+    # MATH.md "Numerical conditioning": the naive solve (pixels, board units, raw rows) is an
+    # order of magnitude worse than the conditioned one (S3, all five intrinsics, 0.01 px).
+    errs = {}
+    for condition in (True, False):
+        rng = np.random.default_rng(8)
+        e = []
+        for _ in range(5):
+            g = sl.s2_group(5, rng, 0.01, K=sl.K_SKEW)
+            grp = LinearGroup(group_homographies(g.observations), g.T_board)
+            K = linear_intrinsics(
+                [grp], "board_translation", skew=True, image_size=SIZE, condition=condition
+            ).K
+            e.append(_rel(K, sl.K_SKEW))
+        errs[condition] = max(e)
+    assert errs[True] < 1e-3
+    assert errs[False] > 5 * errs[True]
+
+
+def test_row_weighting_noise_beats_unit_rows():
+    # Rows divided by their noise scale (default) against unit-norm rows: same data, S2.
+    std = {}
+    for rw in ("noise", "unit"):
+        rng = np.random.default_rng(9)
+        e = []
+        for _ in range(30):
+            g = sl.s2_group(5, rng, 0.5)
+            grp = LinearGroup(group_homographies(g.observations), _normal_dirs(5))
+            sol = linear_intrinsics([grp], "board_direction", image_size=SIZE, row_weighting=rw)
+            e.append(sol.K[0, 0] - 400.0)
+        std[rw] = np.std(e)
+    assert std["noise"] < std["unit"]
