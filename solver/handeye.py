@@ -179,7 +179,8 @@ def tsai_lenz(T_base_tool: np.ndarray, T_cam_board: np.ndarray) -> np.ndarray:
         As.append(A)
         Bs.append(B)
     M = np.concatenate(rows)
-    if np.linalg.svd(M, compute_uv=False)[1] < 1e-6:
+    sv = np.linalg.svd(M, compute_uv=False)
+    if sv[2] < 1e-3 * sv[0]:  # each skew block has rank 2: one axis leaves sv[2] = 0
         raise DegenerateError(
             "the robot rotations are all about one axis (or absent): the hand-eye transform is "
             "undetermined; rotate about at least two non-parallel axes"

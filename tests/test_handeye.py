@@ -1,0 +1,149 @@
+"""Hand-eye rotation from translations (MATH.md Sec. 4) and the AX = XB cross-checks."""
+
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+import synth_linear as sl  # noqa: E402
+
+from slidecal.solver.errors import DegenerateError  # noqa: E402
+from slidecal.solver.geometry import (  # noqa: E402
+    Rz,
+    T_from_Rt,
+    inv_T,
+    random_rotation,
+    rvec_from_R,
+)
+from slidecal.solver.handeye import (  # noqa: E402
+    board_pose_from_homography,
+    camera_displacements,
+    hand_eye_rotation,
+    park_martin,
+    rotation_from_directions,
+    tsai_lenz,
+)
+from slidecal.solver.homography import group_homographies  # noqa: E402
+from slidecal.solver.linear import LinearGroup  # noqa: E402
+
+
+def angle_deg(R_a, R_b):
+    """Angle of ``R_a R_b'`` in degrees, accurate near zero (rotation vector norm)."""
+    return float(np.degrees(np.linalg.norm(rvec_from_R(R_a @ R_b.T))))
+
+
+def _groups(rng, sigma=0.0, tilts=((30, 30), (-25, 10), (10, -30))):
+    T = np.array([[0, 0, 0], [0, 0, -10], [8, 0, -6], [0, 8, -6.0]])
+    out = []
+    for ax, ay in tilts:
+        R = sl.tilt_R(ax, ay)
+        out.append(sl.make_group(sl.K_S2, R, sl.centre_on_axis(R), T, rng, sigma))
+    return out
+
+
+def test_camera_displacements_and_board_pose_noise_free():
+    rng = np.random.default_rng(1)
+    g = _groups(rng)[0]
+    grp = LinearGroup(group_homographies(g.observations))
+    d = camera_displacements(sl.K_S2, grp)
+    assert np.abs(d - g.T_board @ g.R_cam_board.T).max() < 1e-9
+    T_cam_board = board_pose_from_homography(sl.K_S2, grp.H[2])
+    assert angle_deg(T_cam_board[:3, :3], g.R_cam_board) < 1e-6
+    assert np.abs(T_cam_board[:3, 3] + g.R_cam_board @ (g.C0 + g.T_board[2])).max() < 1e-9
+
+
+def test_rotation_from_directions():
+    rng = np.random.default_rng(2)
+    R = random_rotation(rng)
+    t = rng.normal(size=(6, 3))
+    assert angle_deg(rotation_from_directions(t @ R.T, t), R) < 1e-6
+    w = rng.uniform(0.5, 2.0, size=6)
+    assert angle_deg(rotation_from_directions(t @ R.T, t, w), R) < 1e-6
+    line = np.outer(np.arange(1.0, 5.0), [1.0, 2.0, 0.5])
+    with pytest.raises(DegenerateError, match="non-parallel"):
+        rotation_from_directions(line @ R.T, line)
+
+
+@pytest.mark.parametrize("mount", ["eye_in_hand", "eye_to_hand"])
+def test_hand_eye_rotation_from_translations_noise_free(mount):
+    rng = np.random.default_rng(3)
+    T_tool_x = T_from_Rt(random_rotation(rng), rng.normal(size=3) * 20)
+    T_base_fixed = T_from_Rt(random_rotation(rng), rng.normal(size=3) * 500)
+    groups, poses = [], []
+    for g in _groups(rng):
+        groups.append(LinearGroup(group_homographies(g.observations)))
+        poses.append(sl.robot_poses(g, T_base_fixed, T_tool_x, mount))
+    R = hand_eye_rotation(sl.K_S2, groups, poses, mount)
+    if mount == "eye_in_hand":
+        truth = T_tool_x[:3, :3]  # R_tool_cam
+    else:
+        truth = T_base_fixed[:3, :3]  # R_base_cam
+    assert angle_deg(R, truth) < 1e-6
+    # A single group works too (two non-parallel translations suffice).
+    R1 = hand_eye_rotation(sl.K_S2, groups[:1], poses[:1], mount)
+    assert angle_deg(R1, truth) < 1e-6
+
+
+def test_hand_eye_rotation_noisy_agrees_with_park_martin():
+    # Three tilt groups: the translations give R_tool_cam; the board poses of all frames give
+    # general motions for Park-Martin. Both must agree with the truth within the noise.
+    rng = np.random.default_rng(4)
+    T_tool_cam = T_from_Rt(random_rotation(rng), rng.normal(size=3) * 20)
+    T_base_board = T_from_Rt(random_rotation(rng), rng.normal(size=3) * 500)
+    groups, poses, T_cam_board = [], [], []
+    for g in _groups(rng, sigma=0.2):
+        grp = LinearGroup(group_homographies(g.observations))
+        groups.append(grp)
+        poses.append(sl.robot_poses(g, T_base_board, T_tool_cam, "eye_in_hand"))
+        T_cam_board += [board_pose_from_homography(sl.K_S2, H) for H in grp.H]
+    R = hand_eye_rotation(sl.K_S2, groups, poses, "eye_in_hand")
+    X = park_martin(np.concatenate(poses), np.array(T_cam_board))
+    err_t, err_pm = angle_deg(R, T_tool_cam[:3, :3]), angle_deg(X[:3, :3], T_tool_cam[:3, :3])
+    assert err_t < 1.0 and err_pm < 1.0
+    assert angle_deg(R, X[:3, :3]) < 1.5
+
+
+def _general_motions(rng, n, noise_deg=0.0):
+    X = T_from_Rt(random_rotation(rng), rng.normal(size=3) * 0.1)
+    T_base_board = T_from_Rt(random_rotation(rng), rng.normal(size=3))
+    Tg, Tc = [], []
+    for _ in range(n):
+        T = T_from_Rt(random_rotation(rng, 0.7), rng.normal(size=3) * 0.2)
+        Tg.append(T)
+        Tcb = inv_T(X) @ inv_T(T) @ T_base_board
+        if noise_deg:
+            Tcb = T_from_Rt(random_rotation(rng, np.radians(noise_deg)), np.zeros(3)) @ Tcb
+            Tcb[:3, 3] += rng.normal(size=3) * 1e-3
+        Tc.append(Tcb)
+    return X, np.array(Tg), np.array(Tc)
+
+
+@pytest.mark.parametrize("method", [park_martin, tsai_lenz])
+def test_classic_hand_eye_noise_free_and_against_opencv(method):
+    rng = np.random.default_rng(5)
+    X, Tg, Tc = _general_motions(rng, 8)
+    Y = method(Tg, Tc)
+    assert angle_deg(Y[:3, :3], X[:3, :3]) < 1e-6
+    assert np.abs(Y[:3, 3] - X[:3, 3]).max() < 1e-9
+    X, Tg, Tc = _general_motions(rng, 10, noise_deg=0.05)
+    cv_method = {park_martin: cv2.CALIB_HAND_EYE_PARK, tsai_lenz: cv2.CALIB_HAND_EYE_TSAI}[method]
+    R_cv, t_cv = cv2.calibrateHandEye(
+        Tg[:, :3, :3], Tg[:, :3, 3], Tc[:, :3, :3], Tc[:, :3, 3], method=cv_method
+    )
+    Y = method(Tg, Tc)
+    assert angle_deg(Y[:3, :3], X[:3, :3]) < 0.2  # 10 poses at 0.05 deg noise each
+    assert angle_deg(Y[:3, :3], R_cv) < 0.05
+    assert np.linalg.norm(Y[:3, 3] - t_cv.ravel()) < 5e-3
+
+
+def test_classic_hand_eye_refuses_single_axis():
+    rng = np.random.default_rng(6)
+    X = T_from_Rt(random_rotation(rng), np.zeros(3))
+    Tg = np.array([T_from_Rt(Rz(a), rng.normal(size=3)) for a in (0.0, 0.3, 0.6, 0.9)])
+    Tc = np.array([inv_T(X) @ inv_T(T) for T in Tg])
+    for method in (park_martin, tsai_lenz):
+        with pytest.raises(DegenerateError, match="two non-parallel axes"):
+            method(Tg, Tc)
