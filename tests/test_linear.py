@@ -202,3 +202,25 @@ def test_row_weighting_noise_beats_unit_rows():
             e.append(sol.K[0, 0] - 400.0)
         std[rw] = np.std(e)
     assert std["noise"] < std["unit"]
+
+
+@pytest.mark.parametrize("knowledge", ["robot", "board_translation"])
+@pytest.mark.parametrize(
+    ("skew", "unit_aspect", "K_true"),
+    [
+        (True, False, sl.K_SKEW),
+        (False, False, sl.K_S2),
+        (False, True, sl.K_S1),
+        (True, True, sl.K_S1),
+    ],
+)
+def test_assumption_options_noise_free(knowledge, skew, unit_aspect, K_true):
+    rng = np.random.default_rng(10)
+    R = sl.tilt_R(25, -20)
+    T = np.array([[0, 0, 0], [0, 0, -10], [8, 0, -6], [0, 8, -6], [5, 5, -5.0]])
+    g = sl.make_group(K_true, R, sl.centre_on_axis(R), T, rng)
+    motion = T @ random_rotation(rng).T if knowledge == "robot" else T
+    grp = LinearGroup(group_homographies(g.observations), motion)
+    sol = linear_intrinsics([grp], knowledge, skew=skew, unit_aspect=unit_aspect, image_size=SIZE)
+    assert _rel(sol.K, K_true) < 1e-6
+    assert len(sol.unknowns) == sol.singular_values.size
