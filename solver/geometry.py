@@ -88,10 +88,13 @@ def transform_points(T_a_b: np.ndarray, p_b: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray | None = None) -> float:
-    """Angle in degrees of ``R_a`` (or of ``R_a R_b'`` when ``R_b`` is given): an error measure."""
-    R = R_a if R_b is None else R_a @ np.asarray(R_b).T
-    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    return float(np.degrees(np.arccos(c)))
+    """Angle in degrees of ``R_a`` (or of ``R_a R_b'`` when ``R_b`` is given): an error measure.
+
+    From :func:`rvec_from_R` (``atan2``), exact also for tiny angles where ``arccos`` of the
+    trace loses half the digits.
+    """
+    R = np.asarray(R_a, float) if R_b is None else np.asarray(R_a, float) @ np.asarray(R_b).T
+    return float(np.degrees(np.linalg.norm(rvec_from_R(R))))
 
 
 def Rx(angle_rad: float) -> np.ndarray:

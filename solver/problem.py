@@ -146,12 +146,18 @@ class ModelOptions:
     ``distortion``: which of k1, k2, p1, p2, k3 are estimated (the others stay 0).
     ``outlier_threshold_px``: a detection whose residual exceeds this after the first solve is
     flagged and down-weighted (robust loss), never silently dropped.
+    ``robot_noise_m``, ``robot_noise_deg``: one-sigma noise of each axis of the measured robot
+    poses (translation, and each rotation-vector component). With 0 the poses are exact inputs;
+    otherwise every pose gets a correction with this Gaussian prior (errors in variables), so
+    the estimate and its covariance account for the robot's measurement noise.
     """
 
     skew: bool = False
     unit_aspect: bool = False
     distortion: tuple[bool, bool, bool, bool, bool] = (True, True, True, True, True)
     outlier_threshold_px: float = 2.0
+    robot_noise_m: float = 0.0
+    robot_noise_deg: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -37,7 +37,9 @@ class ModelState:
     """Values of every model quantity (estimated or fixed).
 
     ``K`` (3, 3) and ``dist`` (5,) per camera name; ``T_cam_ref`` (4, 4) per non-reference camera;
-    ``X`` (G, 4, 4) per group; ``Y`` (4, 4); ``s`` (F,) per frame index (Case 2 lengths, else 0).
+    ``X`` (G, 4, 4) per group; ``Y`` (4, 4); ``s`` (F,) per frame index (Case 2 lengths, else 0);
+    ``E`` (F, 6): corrections of the measured robot poses (rotation vector in radians, applied
+    on the left in the base frame, then translation in metres), None when poses are exact.
     """
 
     K: dict[str, np.ndarray]
@@ -46,6 +48,7 @@ class ModelState:
     X: np.ndarray
     Y: np.ndarray
     s: np.ndarray
+    E: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -57,7 +60,8 @@ class Structure:
     frame unit directions for Case 2; ``s_free`` (F,) bool; ``X_rot_basis``, ``X_t_basis``,
     ``Y_rot_basis``, ``Y_t_basis`` (3, m): observable directions of each rotation (left
     perturbation, radians) and translation (metres), m = 0 when fixed;
-    ``unobservable``: name -> reason for everything fixed.
+    ``unobservable``: name -> reason for everything fixed. ``T_meas`` (F, 4, 4): the measured
+    ``T_base_tool`` when robot poses carry noise (``pose_sigma`` = (radians, metres)), else None.
     """
 
     group_of_frame: np.ndarray
@@ -69,6 +73,9 @@ class Structure:
     Y_rot_basis: np.ndarray
     Y_t_basis: np.ndarray
     unobservable: dict[str, str] = field(default_factory=dict)
+    T_meas: np.ndarray | None = None
+    pose_sigma: tuple[float, float] | None = None
+    eye_in_hand: bool = True
 
 
 def intrinsic_names(problem: CalibrationProblem) -> tuple[str, ...]:
@@ -165,10 +172,20 @@ class BundleModel:
         yb += [f"Y.t{i}" for i in range(st.Y_t_basis.shape[1])]
         if yb:
             add("Y", yb)
+        if structure.pose_sigma is not None:
+            add(
+                "E",
+                [
+                    f"pose{int(f.id)}.{a}"
+                    for f in problem.frames
+                    for a in ("rx", "ry", "rz", "tx", "ty", "tz")
+                ],
+            )
         self.s_frames = np.flatnonzero(structure.s_free)
         if len(self.s_frames):
             add("s", [f"s{int(problem.frames[i].id)}" for i in self.s_frames])
         self.names = tuple(names)
+        self.sigma_px = 1.0  # pixel noise used to weigh the pose prior rows (set by refine)
         self._index()
 
     # -- state updates -------------------------------------------------------------------------
@@ -214,19 +231,17 @@ class BundleModel:
         s = state.s.copy()
         if len(self.s_frames):
             s[self.s_frames] += delta[self.slices["s"]]
-        return ModelState(K, dist, T_cam_ref, X, Y, s)
-
-    def motion(self, state: ModelState, fi: int) -> np.ndarray:
-        """``M_k`` (4, 4) of frame index ``fi`` with its current Case 2 length."""
-        M = self.st.M[fi]
-        if self.st.s_free[fi]:
-            M = M.copy()
-            M[:3, 3] -= state.s[fi] * self.st.direction[fi]
-        return M
+        E = state.E
+        if "E" in self.slices:
+            E = (np.zeros((len(self.problem.frames), 6)) if E is None else E) + delta[
+                self.slices["E"]
+            ].reshape(-1, 6)
+        return ModelState(K, dist, T_cam_ref, X, Y, s, E)
 
     def T_ref_board(self, state: ModelState, fi: int) -> np.ndarray:
         """``T_ref_board`` (4, 4) of the reference camera at frame index ``fi``."""
-        return state.X[self.st.group_of_frame[fi]] @ self.motion(state, fi) @ state.Y
+        M = self.true_motions(state)[fi]
+        return state.X[self.st.group_of_frame[fi]] @ M @ state.Y
 
     # -- residuals and Jacobian ----------------------------------------------------------------
     def _index(self) -> None:
@@ -255,9 +270,7 @@ class BundleModel:
         """
         n, P_ = self.n_obs, len(self.names)
         st = self.st
-        Ms = st.M.copy()
-        if len(self.s_frames):
-            Ms[self.s_frames, :3, 3] -= state.s[self.s_frames, None] * st.direction[self.s_frames]
+        Ms = self.true_motions(state)
         f, g = self.o_frame, self.o_group
         RY, tY = state.Y[:3, :3], state.Y[:3, 3]
         q_Y = self.o_pts @ RY.T
@@ -279,6 +292,8 @@ class BundleModel:
             px[idx] = pr.px
             projections.append(pr)
         r = (px - self.o_px).reshape(-1)
+        if "E" in self.slices:
+            r = np.concatenate([r, self.prior_scale * state.E.reshape(-1)])
         if not jacobian:
             return r, None
         J = np.zeros((n, 2, P_))
@@ -321,7 +336,65 @@ class BundleModel:
             rows = np.flatnonzero(has_s)
             J[rows, 0, self.o_s_col[has_s]] = vals[:, 0]
             J[rows, 1, self.o_s_col[has_s]] = vals[:, 1]
+        if "E" in self.slices:
+            blk = self._pose_block(state, A, RX, RM, p_Y)
+            cols = self.slices["E"].start + f[:, None] * 6 + np.arange(6)
+            rows = np.arange(n)[:, None]
+            J[rows, 0, cols] = blk[:, 0, :]
+            J[rows, 1, cols] = blk[:, 1, :]
+            sl = self.slices["E"]
+            prior = np.zeros((sl.stop - sl.start, P_))
+            prior[np.arange(prior.shape[0]), np.arange(sl.start, sl.stop)] = self.prior_scale
+            return r, np.vstack([J.reshape(2 * n, P_), prior])
         return r, J.reshape(2 * n, P_)
+
+    @property
+    def prior_scale(self) -> np.ndarray:
+        """(6F,) pixel-unit scale of the pose-correction prior rows: sigma_px / sigma_axis."""
+        rot, t = self.st.pose_sigma
+        one = np.array([1.0 / rot] * 3 + [1.0 / t] * 3)
+        return self.sigma_px * np.tile(one, len(self.problem.frames))
+
+    def true_motions(self, state: ModelState) -> np.ndarray:
+        """``M_k`` (F, 4, 4) with the Case 2 lengths and the robot pose corrections applied."""
+        st = self.st
+        if st.pose_sigma is not None and state.E is not None:
+            Ms = np.empty_like(st.M)
+            for k, (T, e) in enumerate(zip(st.T_meas, state.E, strict=True)):
+                Tt = T_from_Rt(R_from_rvec(e[:3]) @ T[:3, :3], T[:3, 3] + e[3:])
+                Ms[k] = np.linalg.inv(Tt) if st.eye_in_hand else Tt
+        else:
+            Ms = st.M.copy()
+        if len(self.s_frames):
+            Ms[self.s_frames, :3, 3] -= state.s[self.s_frames, None] * st.direction[self.s_frames]
+        return Ms
+
+    def _pose_block(
+        self, state: ModelState, A: np.ndarray, RX: np.ndarray, RM: np.ndarray, p_Y: np.ndarray
+    ) -> np.ndarray:
+        """d px / d (pose correction) (n, 2, 6) of every observation's frame.
+
+        The correction acts on the measured pose as ``R <- exp([d]x) R``, ``t <- t + tau``.
+        """
+        n = self.n_obs
+        B = np.einsum("nab,nbc->nac", A, RX)  # d px / d p_M
+        if self.st.eye_in_hand:  # M = T^-1: p_M = R' (p_Y - t)
+            t_true = -np.einsum("nji,nj->ni", RM, self.true_motions(state)[self.o_frame, :3, 3])
+            D_rot = np.einsum("nij,njk->nik", RM, _skew_batch(p_Y - t_true))
+            D_t = -RM
+        else:  # M = T: p_M = R p_Y + t
+            D_rot = -_skew_batch(np.einsum("nij,nj->ni", RM, p_Y))
+            D_t = np.broadcast_to(np.eye(3), (n, 3, 3))
+        return np.concatenate([B @ D_rot, B @ D_t], axis=2)
+
+
+def _skew_batch(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices (n, 3, 3) of vectors (n, 3)."""
+    S = np.zeros((len(v), 3, 3))
+    S[:, 0, 1], S[:, 0, 2] = -v[:, 2], v[:, 1]
+    S[:, 1, 0], S[:, 1, 2] = v[:, 2], -v[:, 0]
+    S[:, 2, 0], S[:, 2, 1] = -v[:, 1], v[:, 0]
+    return S
 
 
 def _step_T(T: np.ndarray, d: np.ndarray, rot_basis: np.ndarray, t_basis: np.ndarray) -> np.ndarray:
@@ -440,31 +513,53 @@ def refine(
     ``s^2 = sum(r^2) / (n - p)`` (MATH.md Sec. 6).
     """
     model = BundleModel(problem, structure)
-    weights = np.ones(model.n_rows)
+    n_px = model.n_rows
+    n_prior = 6 * len(problem.frames) if "E" in model.slices else 0
+    weights = np.ones(n_px + n_prior)
     state = _respect_options(problem, init)
+    if n_prior and state.E is None:
+        state = ModelState(
+            state.K,
+            state.dist,
+            state.T_cam_ref,
+            state.X,
+            state.Y,
+            state.s,
+            np.zeros((len(problem.frames), 6)),
+        )
+    model.sigma_px = 0.2  # a typical corner noise; re-estimated below when poses are noisy
     total_it = 0
     converged = False
-    for _ in range(4):
+
+    def noise(r: np.ndarray, w: np.ndarray) -> float:
+        dof = max(int(np.sum(w[:n_px] > 0)) + n_prior - len(model.names), 1)
+        return float(np.sqrt(np.sum(w * r * r) / dof))
+
+    for _ in range(8):
         state, converged, it = _lm(model, state, weights, max_iter)
         total_it += it
+        r, _ = model.evaluate(state, jacobian=False)
+        if n_prior:  # the prior rows are weighed by the pixel noise: iterate to a fixed point
+            sigma = noise(r, weights)
+            if abs(sigma / model.sigma_px - 1.0) > 0.02:
+                model.sigma_px = sigma
+                continue
         if not robust:
             break
-        r, _ = model.evaluate(state, jacobian=False)
-        per_pt = np.hypot(r[0::2], r[1::2])
-        inl = weights[0::2] > 0
-        dof = max(2 * int(inl.sum()) - len(model.names), 1)
-        sigma = float(np.sqrt(np.sum(per_pt[inl] ** 2) / dof))
+        per_pt = np.hypot(r[0:n_px:2], r[1:n_px:2])
+        inl = weights[0:n_px:2] > 0
+        sigma = noise(r, weights)
         thresh = max(problem.options.outlier_threshold_px, 5.0 * sigma)
         new_out = per_pt > thresh
         if np.array_equal(new_out, ~inl):
             break
-        weights = np.repeat((~new_out).astype(float), 2)
+        weights[:n_px] = np.repeat((~new_out).astype(float), 2)
     r, J = model.evaluate(state)
     inlier_rows = weights > 0
-    n_in = int(inlier_rows.sum())
-    dof = n_in - len(model.names)
+    n_in = int(inlier_rows[:n_px].sum())
+    dof = n_in + n_prior - len(model.names)
     messages: list[str] = []
-    sigma_px = float(np.sqrt(np.sum(r[inlier_rows] ** 2) / max(dof, 1)))
+    sigma_px = noise(r, weights)
     cov = None
     if dof <= 0:
         messages.append(
@@ -487,6 +582,7 @@ def refine(
                 f"covariance not computed ({e}): some parameter is barely observable; "
                 "add tilts or frames covering the image"
             )
+    r, inlier_rows = r[:n_px], inlier_rows[:n_px]
     outliers: list[tuple[int, str, int]] = []
     for ch in model.chunks:
         w = weights[ch.rows][0::2]
@@ -519,6 +615,17 @@ def fisher_covariance(
     parameter names and the covariance (P, P).
     """
     model = BundleModel(problem, structure)
+    model.sigma_px = sigma_px
+    if "E" in model.slices and truth.E is None:
+        truth = ModelState(
+            truth.K,
+            truth.dist,
+            truth.T_cam_ref,
+            truth.X,
+            truth.Y,
+            truth.s,
+            np.zeros((len(problem.frames), 6)),
+        )
     _, J = model.evaluate(truth)
     A = J.T @ J
     scale = np.sqrt(np.diag(A))
@@ -621,4 +728,21 @@ def build_structure(problem: CalibrationProblem, R_X: np.ndarray | None = None) 
     else:  # "none": Zhang, one free pose per frame
         groups = np.arange(F)
     _, groups = np.unique(groups, return_inverse=True)
-    return Structure(groups, M, direction, s_free, X_rot, X_t, Y_rot, Y_t, unobs)
+    o = problem.options
+    noisy = kn == "robot" and (o.robot_noise_m > 0 or o.robot_noise_deg > 0)
+    return Structure(
+        groups,
+        M,
+        direction,
+        s_free,
+        X_rot,
+        X_t,
+        Y_rot,
+        Y_t,
+        unobs,
+        T_meas=np.stack([f.T_base_tool for f in frames]) if noisy else None,
+        pose_sigma=(max(np.radians(o.robot_noise_deg), 1e-9), max(o.robot_noise_m, 1e-9))
+        if noisy
+        else None,
+        eye_in_hand=problem.mount != "eye_to_hand",
+    )
