@@ -15,7 +15,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from slidecal.solver.errors import DegenerateError, InputError
 
@@ -64,7 +63,7 @@ def _dlt_normalised(b: np.ndarray, p: np.ndarray) -> np.ndarray:
     A[0::2, 6:9] = -p[:, :1] * X
     A[1::2, 3:6] = X
     A[1::2, 6:9] = -p[:, 1:2] * X
-    _, sv, Vt = np.linalg.svd(A)
+    _, sv, Vt = np.linalg.svd(A, full_matrices=False)
     if sv[-2] <= 1e-12 * sv[0]:
         raise DegenerateError(
             "the board points are (nearly) colinear: a homography needs points spread in 2D"
@@ -105,6 +104,37 @@ def _residual_and_jac(H: np.ndarray, b: np.ndarray, p: np.ndarray):
     return r, J
 
 
+def _levenberg_marquardt(fun, jac, x0: np.ndarray, max_iter: int = 30) -> np.ndarray:  # noqa: ANN001
+    """Minimise ``|fun(x)|^2`` from ``x0`` (small dense problems; tolerates the homographies'
+    scale gauge through the damping). Stops when the cost no longer falls by 1e-12 relative."""
+    x = np.asarray(x0, dtype=float)
+    r = fun(x)
+    cost = float(r @ r)
+    lam = 1e-4
+    for _ in range(max_iter):
+        J = jac(x)
+        A = J.T @ J
+        g = J.T @ r
+        d = np.diag(A).copy()
+        d[d <= 0] = 1.0
+        while True:
+            step = np.linalg.solve(A + lam * np.diag(d), -g)
+            x_new = x + step
+            r_new = fun(x_new)
+            cost_new = float(r_new @ r_new)
+            if np.isfinite(cost_new) and cost_new <= cost:
+                break
+            lam *= 10.0
+            if lam > 1e10:
+                return x
+        done = cost - cost_new <= 1e-12 * cost + 1e-30
+        x, r, cost = x_new, r_new, cost_new
+        lam = max(lam * 0.1, 1e-12)
+        if done:
+            break
+    return x
+
+
 def _h(H: np.ndarray) -> np.ndarray:
     return H.T.reshape(-1)  # columns h1, h2, h3 stacked
 
@@ -133,8 +163,8 @@ def refine_homography(H: np.ndarray, board_xy: np.ndarray, px: np.ndarray) -> np
     def jac(x: np.ndarray) -> np.ndarray:
         return _residual_and_jac(_H(x), bn, pn)[1]
 
-    sol = least_squares(fun, _h(Hn), jac=jac, method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14)
-    return _sign_scale(np.linalg.inv(Ti) @ _H(sol.x) @ Tb)
+    x = _levenberg_marquardt(fun, jac, _h(Hn))
+    return _sign_scale(np.linalg.inv(Ti) @ _H(x) @ Tb)
 
 
 def homography_rms_px(H: np.ndarray, board_xy: np.ndarray, px: np.ndarray) -> float:
@@ -210,8 +240,8 @@ def group_homographies(observations: Sequence[Observation]) -> np.ndarray:
         return np.vstack(blocks)
 
     x0 = np.concatenate([h12, h3.reshape(-1)])
-    sol = least_squares(fun, x0, jac=jac, method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14)
-    return _finish_group(np.array(unpack(sol.x)), Tb, Ti)
+    x = _levenberg_marquardt(fun, jac, x0)
+    return _finish_group(np.array(unpack(x)), Tb, Ti)
 
 
 def constrained_group_homographies(
@@ -254,5 +284,5 @@ def constrained_group_homographies(
             blocks.append(np.hstack([Jk[:, 0:6], Jk[:, 6:9], -s * Jk[:, 6:9]]))
         return np.vstack(blocks)
 
-    sol = least_squares(fun, x0, jac=jac, method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14)
-    return _finish_group(np.array(unpack(sol.x)), Tb, Ti)
+    x = _levenberg_marquardt(fun, jac, x0)
+    return _finish_group(np.array(unpack(x)), Tb, Ti)

@@ -333,6 +333,11 @@ def linear_system(
     return LinearSystem(A, col_scale, B, names, N, sigma, G, h_scale)
 
 
+#: second-smallest over largest singular value below which the conditioned system is singular:
+#: exactly degenerate data gives 1e-14..1e-16 (measured), accepted configurations 1e-3 and up.
+NULL_SPACE_TOL = 1e-10
+
+
 def _solve_null(system: LinearSystem) -> tuple[np.ndarray, np.ndarray]:
     A = system.A
     n_unknowns = A.shape[1]
@@ -345,6 +350,12 @@ def _solve_null(system: LinearSystem) -> tuple[np.ndarray, np.ndarray]:
     _, sv, Vt = np.linalg.svd(A, full_matrices=True)
     if len(sv) < n_unknowns:
         sv = np.concatenate([sv, np.zeros(n_unknowns - len(sv))])
+    if sv[-2] <= NULL_SPACE_TOL * sv[0]:
+        raise DegenerateError(
+            "the linear system is singular (its null space is not one-dimensional): the data "
+            "cannot determine the intrinsics with this knowledge; add translation directions "
+            "or tilts (MATH.md Sec. 7)"
+        )
     return Vt[-1] * system.col_scale, sv
 
 
