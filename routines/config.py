@@ -37,7 +37,8 @@ Layout (every field but ``target`` has a default)::
       rig: {right: {R, t_m}}              # T_<name>_<reference> of the other cameras
       noise: {robot_mm: 0.05, robot_deg: 0.005}
     plan: {frames_per_group: 5, tilt_deg: 25, step_mm: [40, 80]}
-    options: {skew: false, unit_aspect: false, distortion: [true, true, true, true, false]}
+    options: {skew: false, unit_aspect: false, distortion: [true, true, true, true, false],
+              robot_noise_mm: 0.05, robot_noise_deg: 0.005}   # robot: 1-sigma pose error per axis
 
 Every error names the file and the field, says what is wrong and how to fix it, in one line.
 """
