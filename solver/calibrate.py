@@ -11,6 +11,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 
@@ -35,6 +37,11 @@ from slidecal.solver.result import (
     CameraEstimate,
     ScaleCheck,
     TransformEstimate,
+)
+from slidecal.solver.stereo import (
+    infinite_homography,
+    rig_linear_intrinsics,
+    rig_linear_intrinsics_translation,
 )
 
 MIN_CORNERS = 6  # fewer corners than this in an image do not enter the linear step
@@ -112,32 +119,41 @@ def _motion_vectors(problem: CalibrationProblem, idx: list[int]) -> np.ndarray:
     return m - m[0] if problem.knowledge == "board_translation" else m
 
 
-def linear_camera(problem: CalibrationProblem, cam: str, groups: np.ndarray) -> np.ndarray:
-    """Closed-form ``K`` (3, 3) of one camera (MATH.md Sec. 3; Zhang for general motion)."""
-    spec = problem.camera(cam)
-    o = problem.options
+def _linear_groups(
+    problem: CalibrationProblem, cams: tuple[str, ...], groups: np.ndarray
+) -> list[tuple[list[int], list[LinearGroup]]]:
+    """Per orientation group: the frames every camera in ``cams`` saw well enough, and one
+    ``LinearGroup`` per camera (joint homographies of those frames, the known motion)."""
     pts = problem.target.points_m[:, :2]
-    lin_groups: list[LinearGroup] = []
-    Hs_all = []
+    out = []
     for g in np.unique(groups):
         idx = [
             i
             for i in np.flatnonzero(groups == g)
-            if len(problem.frames[i].detections.get(cam, _EMPTY).ids) >= MIN_CORNERS
+            if all(
+                len(problem.frames[i].detections.get(c, _EMPTY).ids) >= MIN_CORNERS for c in cams
+            )
         ]
         if not idx:
             continue
-        obs = [
-            (pts[problem.frames[i].detections[cam].ids], problem.frames[i].detections[cam].px)
-            for i in idx
-        ]
-        H = group_homographies(obs)
-        Hs_all.extend(H)
         motion = None if problem.knowledge == "none" else _motion_vectors(problem, idx)
         if problem.knowledge == "board_direction":
             motion = motion.copy()
             motion[0] = 0.0
-        lin_groups.append(LinearGroup(H, motion))
+        per_cam = []
+        for c in cams:
+            dets = [problem.frames[i].detections[c] for i in idx]
+            H = group_homographies([(pts[d.ids], d.px) for d in dets])
+            per_cam.append(LinearGroup(H, motion))
+        out.append((idx, per_cam))
+    return out
+
+
+def linear_camera(problem: CalibrationProblem, cam: str, groups: np.ndarray) -> np.ndarray:
+    """Closed-form ``K`` (3, 3) of one camera (MATH.md Sec. 3; Zhang for general motion)."""
+    spec = problem.camera(cam)
+    o = problem.options
+    lin_groups = [gs[0] for _, gs in _linear_groups(problem, (cam,), groups)]
     if not lin_groups:
         raise DegenerateError(
             f"camera {cam!r} saw the target in no frame: check the target "
@@ -146,7 +162,10 @@ def linear_camera(problem: CalibrationProblem, cam: str, groups: np.ndarray) -> 
     size = (spec.width, spec.height)
     if problem.knowledge == "none":
         return zhang_intrinsics(
-            np.array(Hs_all), skew=o.skew, unit_aspect=o.unit_aspect, image_size=size
+            np.concatenate([g.H for g in lin_groups]),
+            skew=o.skew,
+            unit_aspect=o.unit_aspect,
+            image_size=size,
         )
     knowledge = problem.knowledge
     check_configuration(
@@ -155,6 +174,31 @@ def linear_camera(problem: CalibrationProblem, cam: str, groups: np.ndarray) -> 
     return linear_intrinsics(
         lin_groups, knowledge, skew=o.skew, unit_aspect=o.unit_aspect, image_size=size
     ).K
+
+
+def linear_pair(
+    problem: CalibrationProblem, cam: str, ref: str, groups: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Joint closed-form ``(K_cam, K_ref)`` of two cameras of a rig (paper Sec. IV; MATH.md
+    Sec. 8): both see the same translations (eqs. 33-42) and, with two or more orientations,
+    the infinite homography couples their conics (eq. 62). Raises ``DegenerateError`` when the
+    common views do not determine it."""
+    o = problem.options
+    sizes = [(problem.camera(c).width, problem.camera(c).height) for c in (cam, ref)]
+    both = _linear_groups(problem, (cam, ref), groups)
+    if not both:
+        raise DegenerateError(f"cameras {cam!r} and {ref!r} share no view of the target")
+    ga = [gs[0] for _, gs in both]
+    gb = [gs[1] for _, gs in both]
+    if problem.knowledge == "none":
+        Ha, Hb = np.concatenate([g.H for g in ga]), np.concatenate([g.H for g in gb])
+        H_inf, _ = infinite_homography(Ha, Hb, sizes=sizes)
+        return rig_linear_intrinsics(
+            Ha, Hb, H_inf, skew=o.skew, unit_aspect=o.unit_aspect, sizes=sizes
+        )
+    return rig_linear_intrinsics_translation(
+        ga, gb, problem.knowledge, skew=o.skew, unit_aspect=o.unit_aspect, sizes=sizes
+    )
 
 
 class _Empty:
@@ -293,6 +337,17 @@ def calibrate(problem: CalibrationProblem) -> CalibrationResult:
     zero = np.zeros(5)
     K_lin = {c.name: linear_camera(problem, c.name, groups) for c in problem.cameras}
     ref = problem.reference
+    notes: list[str] = []
+    for c in K_lin:
+        if c == ref:
+            continue
+        try:  # the rig's joint linear step; the separate estimate stays when it cannot run
+            K_lin[c] = linear_pair(problem, c, ref, groups)[0]
+        except (DegenerateError, np.linalg.LinAlgError) as e:
+            notes.append(
+                f"joint linear step of {c!r} with {ref!r} skipped ({e}); "
+                "started from the separate estimate"
+            )
     poses = {c: _frame_poses(problem, c, K_lin[c], zero) for c in K_lin}
     if len(poses[ref]) < 2:
         raise DegenerateError(
@@ -314,6 +369,8 @@ def calibrate(problem: CalibrationProblem) -> CalibrationResult:
     init = ModelState(K_lin, {c: zero.copy() for c in K_lin}, T_cam_ref, X, Y, s)
     structure = build_structure(problem, X[0][:3, :3])
     out = refine(problem, structure, init)
+    if notes:
+        out = replace(out, messages=out.messages + tuple(notes))
     return _result(problem, out, K_lin, groups)
 
 
