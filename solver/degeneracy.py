@@ -48,9 +48,15 @@ def _n_directions(v: np.ndarray) -> int:
 
 
 def _conditioning(A: np.ndarray) -> float:
-    if A.shape[0] < A.shape[1]:
+    """Second-smallest over largest singular value of the homogeneous system ``A x = 0``
+    (the null space is one-dimensional when it is not ~0). A system with one row fewer than
+    unknowns is exactly determined (the paper's minimal cases, e.g. two images): not singular
+    by itself."""
+    rows, cols = A.shape
+    if rows < cols - 1:
         return 0.0
     sv = np.linalg.svd(A, compute_uv=False)
+    sv = np.concatenate([sv, np.zeros(cols - len(sv))])
     return float(sv[-2] / sv[0])
 
 
