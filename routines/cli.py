@@ -85,6 +85,7 @@ SUBCOMMANDS: dict[str, str | SimpleNamespace] = {
         help="solve a recorded session directory again",
     ),
     "bench": "slidecal.routines.bench",
+    "plan": "slidecal.routines.planner",
 }
 
 

@@ -1,0 +1,1104 @@
+"""The planner (``slidecal plan``): the shortest robot routine predicted to meet a goal.
+
+From the cell description (robot model and workspace box, mount, camera resolution and nominal
+intrinsics, target and its approximate pose) and a goal (one-sigma targets per parameter and a
+time budget), choose orientation groups (tilts) and translations per group such that
+
+- every pose is inside the workspace box, reachable within the joint limits and away from
+  singularities, and every straight move between them is too (the UR kinematics of
+  :mod:`slidecal.drivers.ur_kinematics`, sampled every 5 mm / 1 deg exactly as the simulated
+  arm of :mod:`slidecal.mocks.robot` moves);
+- every corner of the target is in the image with ``margin_px`` at every frame, and every
+  corner's depth is within ``depth_m``;
+- the plan is not degenerate: the linear step accepts it
+  (:func:`slidecal.solver.degeneracy.check_configuration` on exact homographies) and its Fisher
+  information (MATH.md Sec. 6) is of full rank, hand-eye translation included;
+- the predicted standard deviations meet the goal with the least robot time (moves by a
+  trapezoidal profile, plus settle and capture time per frame).
+
+Method: candidate groups look at the board centre from the standoff, tilted by ``tilts_deg``
+about in-plane axes at ``azimuths_deg``; candidate frames of a group are the group's pose
+displaced (camera axes) along 18 directions, each with a component along the viewing axis
+(translations parallel to the board are degenerate, MATH.md Sec. 7), by ``step_mm``. Each
+candidate frame's Fisher information on the shared parameters (intrinsics, distortion, hand-eye,
+target pose) is computed once, with its own robot-pose correction marginalised out (Schur
+complement; the corrections are per frame, so a plan's information is the sum over its frames).
+A greedy search then adds the frame or the new group (two frames) that most reduces the goal's
+predicted variance per second of robot time, until the goal and the minimum structure
+(``min_groups`` groups of ``min_frames_per_group`` frames) are met. The chosen plan is checked by
+a dry run of the simulated arm and its prediction recomputed with the solver's own
+:func:`~slidecal.solver.refine.fisher_covariance`.
+
+The ``plan:`` block of the cell file (every key optional)::
+
+    plan:
+      goal: {fx_rel_std: 5.0e-4, hand_eye_rot_std_deg: 0.03, hand_eye_t_std_mm: null}
+      max_duration_s: 60
+      tilts_deg: [15, 25, 35]          # candidate tilts of the view against the board normal
+      azimuths_deg: [0, 45, ..., 315]  # candidate tilt axes (in the board plane)
+      standoff_factors: [1.0]          # candidate standoffs, times approximate.standoff_m
+      step_mm: [40, 80]                # candidate translation lengths
+      margin_px: 20                    # every corner this far inside the image
+      depth_m: [0.2, 1.5]              # usable corner depth (default 0.4 .. 1.8 x standoff)
+      corner_noise_px: 0.03            # expected corner noise (default: 0.03 simulated, 0.1 real)
+      capture_s: 0.05                  # per frame, on top of robot.settle_s
+      fx_px: 880                       # nominal focal length (or hfov_deg); simulated cells:
+                                       # the simulated camera's data sheet values by default
+      min_groups: 2
+      min_frames_per_group: 3
+      max_groups: 6
+      max_frames_per_group: 8
+
+``frames_per_group``, ``groups`` and ``tilt_deg`` belong to the fixed default plan
+(:func:`slidecal.routines.plan.default_plan`). Only the reference camera is planned for (its
+visibility and its Fisher information); the other cameras of a rig are not checked.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from slidecal.drivers import ur_kinematics as urk
+from slidecal.drivers.ur_pose import ur_pose_from_T
+from slidecal.routines.config import CellConfig, load_config
+from slidecal.routines.plan import Plan, tool_pose, write_plan
+from slidecal.routines.session import Fields
+from slidecal.solver.camera import project
+from slidecal.solver.degeneracy import check_configuration, nominal_K
+from slidecal.solver.errors import DegenerateError, HardwareFault, InputError
+from slidecal.solver.geometry import R_from_rvec, Rz, T_from_Rt, inv_T, rvec_from_R, skew
+from slidecal.solver.linear import LinearGroup
+from slidecal.solver.problem import CalibrationProblem, CameraSpec, Detection, Frame
+from slidecal.solver.refine import (
+    BundleModel,
+    ModelState,
+    Structure,
+    build_structure,
+    fisher_covariance,
+)
+
+help = "choose the shortest robot routine predicted to meet the accuracy goal (writes plan.yaml)"
+
+#: Keys of the cell file's ``plan:`` block (the planner's, and the default plan's).
+PLAN_KEYS = (
+    "goal",
+    "max_duration_s",
+    "tilts_deg",
+    "azimuths_deg",
+    "standoff_factors",
+    "step_mm",
+    "margin_px",
+    "depth_m",
+    "corner_noise_px",
+    "capture_s",
+    "fx_px",
+    "hfov_deg",
+    "min_groups",
+    "min_frames_per_group",
+    "max_groups",
+    "max_frames_per_group",
+    "frames_per_group",
+    "groups",
+    "tilt_deg",
+)
+GOAL_KEYS = ("fx_rel_std", "hand_eye_rot_std_deg", "hand_eye_t_std_mm")
+#: Largest tilt of the view against the board normal: the detector is tested to 40 deg.
+MAX_TILT_DEG = 40.0
+#: Corner noise assumed for the rendered simulated camera (measured residual rms of the ChArUco
+#: detector on the default cell: 0.026 px, see docs/PLANNER.md) and for a real camera.
+SIM_CORNER_NOISE_PX = 0.03
+REAL_CORNER_NOISE_PX = 0.1
+#: Tool rotation speed / acceleration of a linear move (the simulated arm's defaults).
+ANGULAR_SPEED_DEG_S = 60.0
+ANGULAR_ACCEL_DEG_S2 = 80.0
+#: Information below this fraction of the largest (after scaling) is a singular plan.
+MIN_RCOND = 1e-10
+
+#: Frame displacements within a group (camera axes: right, down, forward), unit vectors; every
+#: one has a component along the viewing axis, none lies in the image plane.
+_S2, _S3 = 1.0 / np.sqrt(2.0), 1.0 / np.sqrt(3.0)
+DIRECTIONS = np.array(
+    [[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]
+    + [[sx * _S2, 0.0, sz * _S2] for sx in (1, -1) for sz in (1, -1)]
+    + [[0.0, sy * _S2, sz * _S2] for sy in (1, -1) for sz in (1, -1)]
+    + [[sx * _S3, sy * _S3, sz * _S3] for sx in (1, -1) for sy in (1, -1) for sz in (1, -1)]
+)
+
+
+@dataclass(frozen=True)
+class PlanGoal:
+    """What the plan must achieve: one-sigma targets (None: no target) and a time budget.
+
+    ``fx_rel_std``: std of fx over fx; ``hand_eye_rot_std_deg``: root of the trace of the
+    hand-eye rotation covariance, degrees; ``hand_eye_t_std_mm``: same for its translation.
+    """
+
+    fx_rel_std: float | None = 5e-4
+    hand_eye_rot_std_deg: float | None = 0.03
+    hand_eye_t_std_mm: float | None = None
+    max_duration_s: float = 60.0
+
+
+@dataclass(frozen=True)
+class PlannerSettings:
+    """Validated planner options (see the module docstring); ``K`` (3, 3) px and ``dist`` (5,)
+    the nominal reference camera; ``standoffs_m`` candidate standoffs, metres."""
+
+    goal: PlanGoal
+    K: np.ndarray
+    dist: np.ndarray
+    tilts_deg: tuple[float, ...] = (15.0, 25.0, 35.0)
+    azimuths_deg: tuple[float, ...] = tuple(float(a) for a in range(0, 360, 45))
+    standoffs_m: tuple[float, ...] = (0.5,)
+    step_mm: tuple[float, ...] = (40.0, 80.0)
+    margin_px: float = 20.0
+    depth_m: tuple[float, float] = (0.2, 0.9)
+    corner_noise_px: float = SIM_CORNER_NOISE_PX
+    capture_s: float = 0.05
+    min_groups: int = 2
+    min_frames_per_group: int = 3
+    max_groups: int = 6
+    max_frames_per_group: int = 8
+
+
+def _number_list(f: Fields, key: str, default: Sequence[float]) -> tuple[float, ...]:
+    v = f.get(key, list(default))
+    if not isinstance(v, list) or not v:
+        raise f.error(key, f"must be a non-empty list of numbers, got {v!r}")
+    out = []
+    for x in v:
+        if isinstance(x, bool) or not isinstance(x, int | float) or not np.isfinite(x):
+            raise f.error(key, f"must hold finite numbers only, got {x!r}")
+        out.append(float(x))
+    return tuple(out)
+
+
+def planner_settings(cfg: CellConfig) -> PlannerSettings:
+    """The planner options of a cell (its ``plan:`` block), validated; errors name the field."""
+    f = Fields(cfg.plan, cfg.source, "plan")
+    unknown = sorted(set(f.data) - set(PLAN_KEYS))
+    if unknown:
+        raise f.error(unknown[0], f"is not a plan option; the options are {sorted(PLAN_KEYS)}")
+    gf = f.sub("goal", required=False) or Fields({}, cfg.source, "plan.goal")
+    unknown = sorted(set(gf.data) - set(GOAL_KEYS))
+    if unknown:
+        raise gf.error(unknown[0], f"is not a goal; the goals are {list(GOAL_KEYS)}")
+    defaults = {} if gf.data else {"fx_rel_std": 5e-4, "hand_eye_rot_std_deg": 0.03}
+    vals = {k: gf.number(k, positive=True) if gf.has(k) else defaults.get(k) for k in GOAL_KEYS}
+    goal = PlanGoal(**vals, max_duration_s=f.number("max_duration_s", 60.0, positive=True))
+    if (
+        goal.fx_rel_std is None
+        and goal.hand_eye_rot_std_deg is None
+        and (goal.hand_eye_t_std_mm is None)
+    ):
+        raise gf.error(None, f"names no goal; give at least one of {list(GOAL_KEYS)}")
+    tilts = _number_list(f, "tilts_deg", (15.0, 25.0, 35.0))
+    if any(not 0.0 < t <= MAX_TILT_DEG for t in tilts):
+        raise f.error(
+            "tilts_deg",
+            f"must be in (0, {MAX_TILT_DEG:g}] deg: steeper views lose corners, untilted ones "
+            "make the hand-eye translation unobservable",
+        )
+    az = _number_list(f, "azimuths_deg", tuple(float(a) for a in range(0, 360, 45)))
+    factors = _number_list(f, "standoff_factors", (1.0,))
+    if any(not 0.2 <= x <= 5.0 for x in factors):
+        raise f.error("standoff_factors", "must be between 0.2 and 5 (times standoff_m)")
+    steps = _number_list(f, "step_mm", (40.0, 80.0))
+    if any(s <= 0 for s in steps):
+        raise f.error("step_mm", "must be positive lengths in millimetres")
+    standoffs = tuple(cfg.standoff_m * x for x in factors)
+    depth = f.array("depth_m", (2,), [0.4 * min(standoffs), 1.8 * max(standoffs)])
+    if not 0 < depth[0] < depth[1]:
+        raise f.error("depth_m", "must be [near, far] with 0 < near < far (metres)")
+    sim = cfg.simulation
+    noise = f.number(
+        "corner_noise_px",
+        SIM_CORNER_NOISE_PX if sim is not None else REAL_CORNER_NOISE_PX,
+        positive=True,
+    )
+    spec = next(c for c in cfg.cameras if c.name == cfg.reference_camera)
+    K, dist = _nominal_camera(cfg, f, spec)
+    min_groups = f.integer("min_groups", 2, minimum=2)
+    min_frames = f.integer("min_frames_per_group", 3, minimum=2)
+    max_groups = f.integer("max_groups", 6, minimum=min_groups)
+    max_frames = f.integer("max_frames_per_group", 8, minimum=min_frames)
+    return PlannerSettings(
+        goal=goal,
+        K=K,
+        dist=dist,
+        tilts_deg=tilts,
+        azimuths_deg=az,
+        standoffs_m=standoffs,
+        step_mm=steps,
+        margin_px=f.number("margin_px", 20.0, minimum=0.0),
+        depth_m=(float(depth[0]), float(depth[1])),
+        corner_noise_px=noise,
+        capture_s=f.number("capture_s", 0.05, minimum=0.0),
+        min_groups=min_groups,
+        min_frames_per_group=min_frames,
+        max_groups=max_groups,
+        max_frames_per_group=max_frames,
+    )
+
+
+def _nominal_camera(cfg: CellConfig, f: Fields, spec: CameraSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Nominal ``K`` (3, 3) px and distortion (5,) of the reference camera for planning."""
+    w, h = spec.width, spec.height
+    if f.has("fx_px") and f.has("hfov_deg"):
+        raise f.error("hfov_deg", "is given with fx_px; give one of them")
+    if f.has("fx_px"):
+        fx = f.number("fx_px", positive=True)
+    elif f.has("hfov_deg"):
+        hfov = f.number("hfov_deg", positive=True)
+        if hfov >= 170:
+            raise f.error("hfov_deg", f"is {hfov}; a pinhole camera has less than 170 deg")
+        fx = (w / 2.0) / np.tan(np.radians(hfov) / 2.0)
+    else:
+        sim = cfg.simulation
+        cam = (
+            None
+            if sim is None
+            else next((c for c in sim.cameras if c.name == cfg.reference_camera), None)
+        )
+        if cam is not None:  # a simulated camera's data sheet
+            return np.asarray(cam.K, float).copy(), np.asarray(cam.distortion, float).copy()
+        return nominal_K((w, h)), np.zeros(5)
+    K = np.array([[fx, 0.0, (w - 1) / 2.0], [0.0, fx, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
+    return K, np.zeros(5)
+
+
+# -- geometry of candidates -------------------------------------------------------------------
+def group_R_board_cam(tilt_deg: float, azimuth_deg: float) -> np.ndarray:
+    """``R_board_cam`` (3, 3) of a group: looking along +z_board, tilted by ``tilt_deg`` about
+    the in-plane axis at ``azimuth_deg`` (the geometry of ``plan.camera_poses_board``)."""
+    phi = np.radians(azimuth_deg)
+    axis = np.array([np.cos(phi), np.sin(phi), 0.0])
+    return R_from_rvec(axis * np.radians(tilt_deg)) @ Rz(0.0)
+
+
+def group_T_cam_board(
+    centre_board: np.ndarray, standoff_m: float, R_board_cam: np.ndarray, offsets_cam_m: np.ndarray
+) -> np.ndarray:
+    """``T_cam_board`` (n, 4, 4) of a group's frames.
+
+    ``centre_board`` (3,): the point looked at, board frame, metres; ``offsets_cam_m`` (n, 3):
+    displacements of the camera from the group's pose, camera axes, metres.
+    """
+    c0 = centre_board - standoff_m * R_board_cam[:, 2]
+    out = np.empty((len(offsets_cam_m), 4, 4))
+    for k, o in enumerate(offsets_cam_m):
+        out[k] = inv_T(T_from_Rt(R_board_cam, c0 + R_board_cam @ o))
+    return out
+
+
+def view_check(
+    T_cam_board: np.ndarray,
+    points_board_m: np.ndarray,
+    K: np.ndarray,
+    dist: np.ndarray,
+    size: tuple[int, int],
+    margin_px: float,
+    depth_m: tuple[float, float],
+) -> str | None:
+    """Why the target is not fully in view at ``T_cam_board`` (4, 4), or None when it is.
+
+    ``points_board_m`` (N, 3) board frame, metres; ``K`` (3, 3) px; ``dist`` (5,); ``size``
+    (width, height) px. Every corner must be at a depth in ``depth_m`` and at least
+    ``margin_px`` inside the image.
+    """
+    P = points_board_m @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
+    z = P[:, 2]
+    if np.any(z < depth_m[0]) or np.any(z > depth_m[1]):
+        return (
+            f"corner depths {z.min():.2f}..{z.max():.2f} m leave the usable range "
+            f"{depth_m[0]:.2f}..{depth_m[1]:.2f} m"
+        )
+    px = project(K, dist, P)
+    w, h = size
+    lo, hi = margin_px - 0.5, np.array([w, h]) - 0.5 - margin_px
+    if np.any(px < lo) or np.any(px > hi):
+        return f"the target leaves the image (margin {margin_px:g} px)"
+    return None
+
+
+def move_time_s(T0: np.ndarray, T1: np.ndarray, speed_mps: float, accel_mps2: float) -> float:
+    """Duration of a linear move ``T0 -> T1`` ((4, 4) each, metres): the longer of the
+    translation's and the rotation's trapezoidal profiles (as :class:`SimulatedUR` moves)."""
+    from slidecal.mocks.robot import trapezoid_time_s
+
+    length = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
+    angle = float(np.linalg.norm(rvec_from_R(T0[:3, :3].T @ T1[:3, :3])))
+    return max(
+        trapezoid_time_s(length, speed_mps, accel_mps2),
+        trapezoid_time_s(angle, np.radians(ANGULAR_SPEED_DEG_S), np.radians(ANGULAR_ACCEL_DEG_S2)),
+    )
+
+
+# -- the predicted model ----------------------------------------------------------------------
+@dataclass(frozen=True)
+class _Nominal:
+    """The nominal cell the prediction is made for."""
+
+    cfg: CellConfig
+    spec: CameraSpec
+    K: np.ndarray
+    dist: np.ndarray
+    X: np.ndarray  # T_cam_tool (eye-in-hand) or T_cam_base (eye-to-hand), (4, 4)
+    Y: np.ndarray  # T_base_board or T_tool_board, (4, 4)
+    sigma_px: float
+
+    @property
+    def cam(self) -> str:
+        return self.spec.name
+
+    def T_cam_board(self, T_base_tool: np.ndarray) -> np.ndarray:
+        """The nominal ``T_cam_board`` (4, 4) of the reference camera at a tool pose."""
+        if self.cfg.mount == "eye_in_hand":
+            return self.X @ inv_T(T_base_tool) @ self.Y
+        return self.X @ T_base_tool @ self.Y
+
+    def detection(self, T_cam_board: np.ndarray, margin_px: float = 2.0) -> Detection:
+        """Exact projections of the corners in the image (ids ascending)."""
+        pts = self.cfg.target.points_m
+        P = pts @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
+        ok = P[:, 2] > 1e-6
+        px = np.full((len(P), 2), np.nan)
+        px[ok] = project(self.K, self.dist, P[ok])
+        w, h = self.spec.width, self.spec.height
+        ok &= (px[:, 0] >= margin_px - 0.5) & (px[:, 0] <= w - 0.5 - margin_px)
+        ok &= (px[:, 1] >= margin_px - 0.5) & (px[:, 1] <= h - 0.5 - margin_px)
+        ids = np.flatnonzero(ok)
+        return Detection(ids, px[ids])
+
+    def problem(self, T_base_tool: np.ndarray) -> CalibrationProblem:
+        """The predicted problem of tool poses (F, 4, 4) (exact detections)."""
+        frames = tuple(
+            Frame(k, {self.cam: self.detection(self.T_cam_board(T))}, T_base_tool=T)
+            for k, T in enumerate(T_base_tool)
+        )
+        return CalibrationProblem(
+            self.cfg.target,
+            (CameraSpec(self.cam, self.spec.width, self.spec.height),),
+            frames,
+            self.cfg.mount,
+            "robot",
+            self.cfg.options,
+        )
+
+    def state(self, n_frames: int) -> ModelState:
+        """The nominal state in the solver's parametrisation."""
+        E = np.zeros((n_frames, 6)) if self._noisy else None
+        return ModelState(
+            {self.cam: self.K},
+            {self.cam: self.dist},
+            {},
+            self.X[None],
+            self.Y,
+            np.zeros(n_frames),
+            E,
+        )
+
+    @property
+    def _noisy(self) -> bool:
+        o = self.cfg.options
+        return o.robot_noise_m > 0 or o.robot_noise_deg > 0
+
+
+def _nominal(cfg: CellConfig, settings: PlannerSettings) -> _Nominal:
+    spec = next(c for c in cfg.cameras if c.name == cfg.reference_camera)
+    if cfg.mount == "eye_in_hand":
+        X = inv_T(cfg.approx_T_hand_eye)  # T_cam_tool
+    else:
+        X = inv_T(cfg.approx_T_hand_eye)  # T_cam_base
+    return _Nominal(
+        cfg, spec, settings.K, settings.dist, X, cfg.approx_T_target, settings.corner_noise_px
+    )
+
+
+def _full_structure(nom: _Nominal, T_base_tool: np.ndarray) -> Structure:
+    """Every block fully estimated (hand-eye translation observable): the per-frame blocks."""
+    F = len(T_base_tool)
+    eih = nom.cfg.mount == "eye_in_hand"
+    M = np.stack([inv_T(T) for T in T_base_tool]) if eih else np.array(T_base_tool)
+    o = nom.cfg.options
+    I3 = np.eye(3)
+    return Structure(
+        np.zeros(F, dtype=int),
+        M,
+        np.zeros((F, 3)),
+        np.zeros(F, dtype=bool),
+        I3,
+        I3,
+        I3,
+        I3,
+        {},
+        T_meas=np.array(T_base_tool) if nom._noisy else None,
+        pose_sigma=(max(np.radians(o.robot_noise_deg), 1e-9), max(o.robot_noise_m, 1e-9))
+        if nom._noisy
+        else None,
+        eye_in_hand=eih,
+    )
+
+
+def frame_information(nom: _Nominal, T_base_tool: np.ndarray) -> tuple[tuple[str, ...], np.ndarray]:
+    """Fisher information (F, P, P) of each frame on the shared parameters.
+
+    ``T_base_tool`` (F, 4, 4), metres; every frame must see the target. A frame's own robot
+    pose correction (Gaussian prior ``options.robot_noise_*``) is marginalised out by a Schur
+    complement, so the information of a set of frames is the sum of theirs (MATH.md Sec. 6).
+    Parameters: intrinsics, distortion, hand-eye ``X0.*`` and target ``Y.*`` (solver names).
+    """
+    problem = nom.problem(T_base_tool)
+    st = _full_structure(nom, T_base_tool)
+    model = BundleModel(problem, st)
+    model.sigma_px = nom.sigma_px
+    _, J = model.evaluate(nom.state(len(T_base_tool)))
+    e_sl = model.slices.get("E")
+    P = e_sl.start if e_sl is not None else len(model.names)
+    names = model.names[:P]
+    out = np.empty((len(T_base_tool), P, P))
+    n_rows = model.n_rows
+    by_frame = {ch.frame_index: ch.rows for ch in model.chunks}
+    for k in range(len(T_base_tool)):
+        rows = by_frame[k]
+        Jt = J[rows, :P]
+        A = Jt.T @ Jt
+        if e_sl is not None:
+            cols = slice(e_sl.start + 6 * k, e_sl.start + 6 * k + 6)
+            Je = J[rows, cols]
+            prior = J[n_rows + 6 * k : n_rows + 6 * k + 6, cols]
+            B = Je.T @ Je + prior.T @ prior
+            C = Jt.T @ Je
+            A = A - C @ np.linalg.solve(B, C.T)
+        out[k] = A / nom.sigma_px**2
+    return names, out
+
+
+@dataclass(frozen=True)
+class _Goals:
+    """Index of the goal parameters and how to turn a covariance into goal-relative stds."""
+
+    fx_index: int
+    rot_index: np.ndarray
+    t_index: np.ndarray
+    fx: float
+    X: np.ndarray
+    goal: PlanGoal
+
+    def ratios(self, cov: np.ndarray) -> np.ndarray:
+        """Predicted std over target per goal (only the goals that are set)."""
+        out = []
+        g = self.goal
+        if g.fx_rel_std is not None:
+            out.append(
+                np.sqrt(max(cov[self.fx_index, self.fx_index], 0.0)) / self.fx / g.fx_rel_std
+            )
+        if g.hand_eye_rot_std_deg is not None:
+            c = cov[np.ix_(self.rot_index, self.rot_index)]
+            out.append(np.degrees(np.sqrt(max(np.trace(c), 0.0))) / g.hand_eye_rot_std_deg)
+        if g.hand_eye_t_std_mm is not None:
+            out.append(
+                _hand_eye_t_mm(cov, self.rot_index, self.t_index, self.X) / g.hand_eye_t_std_mm
+            )
+        return np.array(out)
+
+
+def _hand_eye_t_mm(cov: np.ndarray, ri: np.ndarray, ti: np.ndarray, X: np.ndarray) -> float:
+    """One-sigma of the hand-eye translation (mm) from the covariance of ``X`` = its inverse
+    (left rotation perturbation, additive translation; as ``calibrate`` reports it)."""
+    idx = np.concatenate([ri, ti])
+    C = cov[np.ix_(idx, idx)]
+    R, t = X[:3, :3], X[:3, 3]
+    J = np.hstack([-R.T @ skew(t), -R.T])
+    return float(1000.0 * np.sqrt(max(np.trace(J @ C @ J.T), 0.0)))
+
+
+def _goals(names: Sequence[str], nom: _Nominal, goal: PlanGoal) -> _Goals:
+    cam = nom.cam
+    fname = f"{cam}.fx" if f"{cam}.fx" in names else f"{cam}.f"
+    names = list(names)
+    return _Goals(
+        names.index(fname),
+        np.array([names.index(f"X0.r{i}") for i in range(3)]),
+        np.array([names.index(f"X0.t{i}") for i in range(3)]),
+        float(nom.K[0, 0]),
+        nom.X,
+        goal,
+    )
+
+
+def _covariance(info: np.ndarray) -> np.ndarray | None:
+    """Inverse of a Fisher matrix, None when singular (scaled reciprocal condition)."""
+    d = np.sqrt(np.diag(info))
+    if np.any(d <= 0):
+        return None
+    A = info / np.outer(d, d)
+    ev = np.linalg.eigvalsh(A)
+    if ev[0] <= MIN_RCOND * ev[-1]:
+        return None
+    return np.linalg.inv(A) / np.outer(d, d)
+
+
+# -- candidates -------------------------------------------------------------------------------
+@dataclass
+class _Group:
+    """A candidate group: its pose (index 0) and displaced frames; which are usable, and why
+    not; each frame's tool pose and information."""
+
+    tilt_deg: float
+    azimuth_deg: float
+    standoff_m: float
+    T_base_tool: np.ndarray  # (n, 4, 4)
+    usable: np.ndarray  # (n,) bool
+    info: np.ndarray | None = None  # (n, P, P)
+    banned: set[int] = field(default_factory=set)
+
+
+def _rejection(
+    cfg: CellConfig, nom: _Nominal, s: PlannerSettings, T_base_tool: np.ndarray
+) -> str | None:
+    """Why a tool pose cannot be a frame (workspace, reach, view), or None."""
+    lo, hi = cfg.robot.workspace_min_m, cfg.robot.workspace_max_m
+    p = T_base_tool[:3, 3]
+    if lo is not None and hi is not None and (np.any(p < lo) or np.any(p > hi)):
+        return "workspace"
+    why = view_check(
+        nom.T_cam_board(T_base_tool),
+        cfg.target.points_m,
+        nom.K,
+        nom.dist,
+        (nom.spec.width, nom.spec.height),
+        s.margin_px,
+        s.depth_m,
+    )
+    if why is not None:
+        return "view"
+    model = urk.model_by_name(cfg.robot.model)
+    if not urk.reachable(T_base_tool, None, model, cfg.robot.tcp):
+        return "reach"
+    return None
+
+
+def _via(cfg: CellConfig) -> np.ndarray:
+    """The untilted view from ``standoff_m``, visited before each group (``Plan.via``)."""
+    centre = cfg.target.points_m.mean(axis=0)
+    T_cb = group_T_cam_board(centre, cfg.standoff_m, np.eye(3), np.zeros((1, 3)))[0]
+    return tool_pose(cfg, T_cb)
+
+
+def _candidates(
+    cfg: CellConfig, nom: _Nominal, s: PlannerSettings
+) -> tuple[list[_Group], dict[str, int], tuple[str, ...]]:
+    """Candidate groups with their usable frames' information; rejection counts by reason."""
+    centre = cfg.target.points_m.mean(axis=0)
+    offsets = np.vstack([np.zeros((1, 3))] + [DIRECTIONS * (L / 1000.0) for L in s.step_mm])
+    counts = {"workspace": 0, "view": 0, "reach": 0}
+    groups: list[_Group] = []
+    names: tuple[str, ...] = ()
+    via_why = _rejection(cfg, nom, s, _via(cfg))
+    if via_why is not None:
+        counts[via_why] += 1
+        return [], counts, names
+    for d in s.standoffs_m:
+        for tilt in s.tilts_deg:
+            for az in s.azimuths_deg:
+                R = group_R_board_cam(tilt, az)
+                T_cb = group_T_cam_board(centre, d, R, offsets)
+                T_bt = np.stack([tool_pose(cfg, T) for T in T_cb])
+                why = [_rejection(cfg, nom, s, T) for T in T_bt]
+                for w in why:
+                    if w is not None:
+                        counts[w] += 1
+                usable = np.array([w is None for w in why])
+                if not usable[0] or usable.sum() < s.min_frames_per_group:
+                    continue
+                g = _Group(tilt, az, d, T_bt, usable)
+                idx = np.flatnonzero(usable)
+                names, info = frame_information(nom, T_bt[idx])
+                g.info = np.zeros((len(T_bt),) + info.shape[1:])
+                g.info[idx] = info
+                groups.append(g)
+    return groups, counts, names
+
+
+# -- greedy search ----------------------------------------------------------------------------
+@dataclass
+class _Chosen:
+    group: int  # index into the candidate list
+    frames: list[int]  # offset indices, 0 (the group's pose) first
+
+
+class _Timing:
+    def __init__(self, cfg: CellConfig, s: PlannerSettings, start: np.ndarray | None) -> None:
+        self.v, self.a = cfg.robot.speed_mps, cfg.robot.accel_mps2
+        self.per_frame = cfg.robot.settle_s + s.capture_s
+        self.start = start
+
+    def move(self, T0: np.ndarray | None, T1: np.ndarray) -> float:
+        return 0.0 if T0 is None else move_time_s(T0, T1, self.v, self.a)
+
+
+def _sequence(cands: list[_Group], chosen: list[_Chosen], via: np.ndarray):
+    """The plan's pose sequence: (kind, T) with kind 'via' or 'frame'."""
+    seq = []
+    for c in chosen:
+        g = cands[c.group]
+        seq.append(("via", via))
+        seq.extend(("frame", g.T_base_tool[k]) for k in c.frames)
+    return seq
+
+
+def _duration(seq, timing: _Timing) -> float:
+    t, prev = 0.0, timing.start
+    for kind, T in seq:
+        t += timing.move(prev, T) + (timing.per_frame if kind == "frame" else 0.0)
+        prev = T
+    return t
+
+
+def _greedy(
+    cands: list[_Group],
+    names: tuple[str, ...],
+    nom: _Nominal,
+    s: PlannerSettings,
+    timing: _Timing,
+    via: np.ndarray,
+) -> tuple[list[_Chosen], float, np.ndarray | None]:
+    """Add the frame (or new group of two frames) with the largest drop of the goal's predicted
+    variance per second until the goal and the minimum structure are met or time runs out.
+
+    Returns the choice, its predicted duration and its goal ratios (None: still singular)."""
+    goals = _goals(names, nom, s.goal)
+    P = len(names)
+    ridge = _ridge(names, nom)
+    chosen: list[_Chosen] = []
+    info = np.zeros((P, P))
+    t_now = 0.0
+    ratios = None
+
+    def objective(A: np.ndarray) -> float:
+        c = np.linalg.inv(A + ridge)
+        return float(np.sum(goals.ratios(c) ** 2))
+
+    f_now = objective(info)
+    while True:
+        cov = _covariance(info) if chosen else None
+        ratios = goals.ratios(cov) if cov is not None else None
+        structure_ok = len(chosen) >= s.min_groups and all(
+            len(c.frames) >= s.min_frames_per_group for c in chosen
+        )
+        met = ratios is not None and bool(np.all(ratios <= 1.0))
+        if met and structure_ok and _linear_ok(cands, chosen, nom):
+            return chosen, t_now, ratios
+        only_fix = met and not structure_ok
+        seq = _sequence(cands, chosen, via)
+        last = seq[-1][1] if seq else timing.start
+        best = None  # (score, dt, new info, action)
+        used = {c.group for c in chosen}
+        # append a frame to an existing group
+        for ci, c in enumerate(chosen):
+            if len(c.frames) >= s.max_frames_per_group:
+                continue
+            if only_fix and len(c.frames) >= s.min_frames_per_group:
+                continue
+            g = cands[c.group]
+            T_last = g.T_base_tool[c.frames[-1]]
+            nxt = seq_next_via(chosen, ci, via)
+            base_dt = timing.move(T_last, nxt) if nxt is not None else 0.0
+            for k in np.flatnonzero(g.usable):
+                if k in c.frames or k in g.banned:
+                    continue
+                Tk = g.T_base_tool[k]
+                dt = timing.move(T_last, Tk) + timing.per_frame
+                if nxt is not None:
+                    dt += timing.move(Tk, nxt) - base_dt
+                A = info + g.info[k]
+                best = _better(best, f_now, objective(A), dt, A, ("add", ci, int(k)))
+        # open a new group with its pose and one displaced frame
+        if len(chosen) < s.max_groups and not (only_fix and len(chosen) >= s.min_groups):
+            for gi, g in enumerate(cands):
+                if gi in used or 0 in g.banned:
+                    continue
+                dt0 = timing.move(last, via) + timing.move(via, g.T_base_tool[0]) + timing.per_frame
+                A0 = info + g.info[0]
+                for k in np.flatnonzero(g.usable)[1:]:
+                    if k in g.banned:
+                        continue
+                    dt = dt0 + timing.move(g.T_base_tool[0], g.T_base_tool[k]) + timing.per_frame
+                    A = A0 + g.info[k]
+                    best = _better(best, f_now, objective(A), dt, A, ("new", gi, int(k)))
+        if best is None:
+            return chosen, t_now, ratios
+        _, dt, A, (kind, i, k) = best
+        if kind == "add":
+            chosen[i].frames.append(k)
+        else:
+            chosen.append(_Chosen(i, [0, k]))
+        info, f_now = A, objective(A)
+        t_now = _duration(_sequence(cands, chosen, via), timing)
+        if t_now > s.goal.max_duration_s:
+            return chosen, t_now, None if not met else ratios
+
+
+def seq_next_via(chosen, ci, via):  # noqa: ANN001, ANN201 - internal helper
+    """The via pose that follows group ``ci`` of the choice (None for the last group)."""
+    if ci + 1 >= len(chosen):
+        return None
+    return via
+
+
+def _better(best, f_now, f_new, dt, A, action):  # noqa: ANN001, ANN202 - internal helper
+    score = (np.log(f_now) - np.log(f_new)) / max(dt, 1e-3)
+    if best is None or score > best[0]:
+        return (score, dt, A, action)
+    return best
+
+
+def _ridge(names: Sequence[str], nom: _Nominal) -> np.ndarray:
+    """A weak prior (P, P) that keeps the greedy's first steps finite: 30 % of f on the
+    intrinsics, 1 on distortion, 0.5 rad / 0.5 m on the poses."""
+    d = []
+    for n in names:
+        key = n.split(".")[-1]
+        if n.startswith(f"{nom.cam}.") and key in ("fx", "fy", "f", "cx", "cy", "s"):
+            d.append(0.3 * nom.K[0, 0])
+        elif n.startswith(f"{nom.cam}."):
+            d.append(1.0)
+        else:
+            d.append(0.5)
+    return np.diag(1.0 / np.array(d) ** 2)
+
+
+def _linear_ok(cands: list[_Group], chosen: list[_Chosen], nom: _Nominal) -> bool:
+    """Whether the linear step accepts the plan (exact homographies of the nominal model)."""
+    try:
+        _check_linear(cands, chosen, nom)
+    except DegenerateError:
+        return False
+    return True
+
+
+def _check_linear(cands: list[_Group], chosen: list[_Chosen], nom: _Nominal) -> None:
+    groups, moves = [], []
+    K = nom.K
+    for c in chosen:
+        T = cands[c.group].T_base_tool[c.frames]
+        groups.append(_linear_group(nom, T))
+        moves.append(T[:, :3, 3] - T[0, :3, 3])
+    o = nom.cfg.options
+    check_configuration(
+        groups,
+        "robot",
+        skew=o.skew,
+        unit_aspect=o.unit_aspect,
+        image_size=(nom.spec.width, nom.spec.height),
+        K_guess=K,
+        hand_eye=True,
+        robot_translations=moves,
+    )
+
+
+def _linear_group(nom: _Nominal, T_base_tool: np.ndarray) -> LinearGroup:
+    """Exact homographies ``K [r1 r2 t]`` (eq. 10) of a group's frames and its robot moves."""
+    H = []
+    for T in T_base_tool:
+        T_cb = nom.T_cam_board(T)
+        Hk = nom.K @ np.column_stack([T_cb[:3, 0], T_cb[:3, 1], T_cb[:3, 3]])
+        H.append(Hk / np.linalg.norm(Hk[:, :2]))
+    p = T_base_tool[:, :3, 3]
+    return LinearGroup(np.array(H), p - p[0])
+
+
+# -- prediction of a whole plan ---------------------------------------------------------------
+def predict_std(
+    plan: Plan, cfg: CellConfig, settings: PlannerSettings | None = None
+) -> dict[str, float]:
+    """Predicted one-sigma of a plan's estimates (the Cramer-Rao bound, MATH.md Sec. 6).
+
+    Keys as :func:`slidecal.routines.results_io.errors_against_truth`: ``<cam>.fx_px`` ..
+    ``<cam>.cy_px``, ``<cam>.fx_rel``, distortion ``<cam>.k1`` ..., ``<hand-eye>.rot_deg`` /
+    ``.t_mm`` and ``<target>.rot_deg`` / ``.t_mm``. Raises ``DegenerateError`` when the plan's
+    Fisher information is singular or a parameter is unobservable.
+    """
+    s = settings or planner_settings(cfg)
+    nom = _nominal(cfg, s)
+    T = np.array([T for _, T in plan.poses])
+    problem = nom.problem(T)
+    if any(len(f.detections[nom.cam].ids) < 4 for f in problem.frames):
+        raise DegenerateError(
+            "a planned frame does not see the target; move the frame or the target into view"
+        )
+    st = build_structure(problem, nom.X[:3, :3])
+    if st.unobservable:
+        name, why = next(iter(st.unobservable.items()))
+        raise DegenerateError(f"the plan leaves {name} unobservable: {why}")
+    names, cov = fisher_covariance(problem, st, nom.state(len(T)), nom.sigma_px)
+    d = np.diag(cov)
+    if not np.all(np.isfinite(cov)) or np.any(d <= 0):
+        raise DegenerateError(
+            "the plan's Fisher information is singular: add orientation groups tilted about "
+            "different axes and translations out of the board plane"
+        )
+    names = list(names)
+    out: dict[str, float] = {}
+    cam = nom.cam
+    for n in names:
+        if n.startswith(f"{cam}."):
+            key = n.split(".", 1)[1]
+            sd = float(np.sqrt(d[names.index(n)]))
+            if key in ("f", "fx", "fy", "cx", "cy", "s"):
+                if key == "f":
+                    out[f"{cam}.fx_px"] = out[f"{cam}.fy_px"] = sd
+                else:
+                    out[f"{cam}.{key}_px"] = sd
+            else:
+                out[f"{cam}.{key}"] = sd
+    out[f"{cam}.fx_rel"] = out[f"{cam}.fx_px"] / float(nom.K[0, 0])
+    ri = np.array([names.index(f"X0.r{i}") for i in range(3)])
+    ti = np.array([names.index(f"X0.t{i}") for i in range(3)])
+    he = "T_tool_cam" if cfg.mount == "eye_in_hand" else "T_base_cam"
+    tg = "T_base_board" if cfg.mount == "eye_in_hand" else "T_tool_board"
+    out[f"{he}.rot_deg"] = float(np.degrees(np.sqrt(np.trace(cov[np.ix_(ri, ri)]))))
+    out[f"{he}.t_mm"] = _hand_eye_t_mm(cov, ri, ti, nom.X)
+    yr = np.array([names.index(f"Y.r{i}") for i in range(3)])
+    yt = np.array([names.index(f"Y.t{i}") for i in range(3)])
+    out[f"{tg}.rot_deg"] = float(np.degrees(np.sqrt(np.trace(cov[np.ix_(yr, yr)]))))
+    out[f"{tg}.t_mm"] = float(1000.0 * np.sqrt(np.trace(cov[np.ix_(yt, yt)])))
+    return out
+
+
+def goal_ratios(pred: dict[str, float], cfg: CellConfig, goal: PlanGoal) -> dict[str, float]:
+    """Predicted std over the goal's target, per goal that is set (<= 1: met)."""
+    cam = cfg.reference_camera
+    he = "T_tool_cam" if cfg.mount == "eye_in_hand" else "T_base_cam"
+    out = {}
+    if goal.fx_rel_std is not None:
+        out["fx_rel_std"] = pred[f"{cam}.fx_rel"] / goal.fx_rel_std
+    if goal.hand_eye_rot_std_deg is not None:
+        out["hand_eye_rot_std_deg"] = pred[f"{he}.rot_deg"] / goal.hand_eye_rot_std_deg
+    if goal.hand_eye_t_std_mm is not None:
+        out["hand_eye_t_std_mm"] = pred[f"{he}.t_mm"] / goal.hand_eye_t_std_mm
+    return out
+
+
+# -- dry run ----------------------------------------------------------------------------------
+def _robot_dict(cfg: CellConfig) -> dict:
+    """The simulated arm of the cell (as ``SimulatedCell`` builds it), without noise."""
+    r: dict = {"model": cfg.robot.model, "seed": 0}
+    if cfg.robot.tcp is not None:
+        r["tcp"] = ur_pose_from_T(cfg.robot.tcp)
+    if cfg.robot.start_pose is not None:
+        r["start_pose"] = ur_pose_from_T(cfg.robot.start_pose)
+    for key in ("start_q", "limits"):
+        if cfg.robot.raw.get(key) is not None:
+            r[key] = cfg.robot.raw[key]
+    return r
+
+
+def dry_run(plan: Plan, cfg: CellConfig) -> tuple[float, int | None, str]:
+    """Execute ``plan`` on a noise-free simulated arm of the cell's model and limits.
+
+    Real cells (and simulated ones without a start pose on a real model) start at the via pose
+    (or the first pose). Returns (robot time in seconds for moves and settling, index of the
+    first failing move in execution order or None, the failure message).
+    """
+    from slidecal.mocks.robot import SimulatedUR
+
+    r = _robot_dict(cfg)
+    first = plan.via if plan.via is not None else plan.groups[0][0]
+    if not cfg.simulated or ("start_pose" not in r and "start_q" not in r):
+        model = urk.model_by_name(cfg.robot.model)
+        sols = [
+            q
+            for q in urk.ik(first, urk.Q_HOME, model, cfg.robot.tcp)
+            if urk.singularity(q, model) is None
+        ]
+        if not sols:
+            return 0.0, 0, "the first pose of the plan is out of reach or singular"
+        r["start_q"] = sols[0].tolist()
+        r.pop("start_pose", None)
+    try:
+        robot = SimulatedUR.from_dict(r)
+    except InputError as e:
+        return 0.0, 0, str(e)
+    robot.connect()
+    i = 0
+    for group in plan.groups:
+        seq = ([("via", plan.via)] if plan.via is not None else []) + [("frame", T) for T in group]
+        for kind, T in seq:
+            try:
+                robot.move_linear(T, plan.speed_mps, plan.accel_mps2)
+            except (HardwareFault, InputError) as e:
+                return robot.robot_time_s, i, str(e)
+            if kind == "frame":
+                robot.wait_settled(plan.settle_s)
+            i += 1
+    return robot.robot_time_s, None, ""
+
+
+# -- the planner ------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PlanReport:
+    """What the planner chose and predicted: the plan (with ``predicted_std`` and
+    ``duration_s``), the goal ratios (predicted over target, <= 1 met) and the candidate
+    statistics."""
+
+    plan: Plan
+    ratios: dict[str, float]
+    n_candidates: int
+    rejected: dict[str, int]
+
+
+def make_plan(cfg: CellConfig, settings: PlannerSettings | None = None) -> PlanReport:
+    """The plan that meets the cell's goal with the least robot time (module docstring).
+
+    Raises ``InputError`` with the reason and what to change when no plan can: no reachable
+    view of the target, the target does not fit in the image, or the goal needs more time than
+    ``plan.max_duration_s``.
+    """
+    s = settings or planner_settings(cfg)
+    nom = _nominal(cfg, s)
+    where = f"{cfg.source}: plan"
+    cands, rejected, names = _candidates(cfg, nom, s)
+    if len(cands) < s.min_groups:
+        raise InputError(_no_candidates_message(cfg, s, rejected, len(cands)), where=where)
+    via = _via(cfg)
+    start = cfg.robot.start_pose if cfg.simulated else None
+    timing = _Timing(cfg, s, start)
+    last_failure = ""
+    for _attempt in range(12):
+        chosen, t_pred, ratios = _greedy(cands, names, nom, s, timing, via)
+        if ratios is None or np.any(ratios > 1.0) or len(chosen) < s.min_groups:
+            raise InputError(_goal_message(cfg, s, t_pred, ratios), where=where)
+        plan = _to_plan(cfg, cands, chosen, via, ())
+        robot_s, bad, why = dry_run(plan, cfg)
+        if bad is None:
+            break
+        last_failure = why
+        _ban(cands, chosen, bad)
+    else:
+        raise InputError(
+            f"no plan passed the robot's motion check (last: {last_failure}); move the target "
+            "closer to the robot's usual workspace or widen robot.workspace",
+            where=where,
+        )
+    try:
+        pred = predict_std(plan, cfg, s)
+    except DegenerateError as e:
+        raise InputError(f"the chosen plan is degenerate ({e})", where=where) from None
+    n = plan.n_poses
+    duration = robot_s + n * s.capture_s
+    ratios_d = goal_ratios(pred, cfg, s.goal)
+    notes = (
+        f"planned: {len(plan.groups)} groups, {n} frames, predicted {duration:.1f} s of robot time "
+        f"(moves and settling {robot_s:.1f} s, capture {n * s.capture_s:.1f} s); goal ratios "
+        + ", ".join(f"{k} {v:.2f}" for k, v in ratios_d.items()),
+        f"prediction for corner noise {s.corner_noise_px:g} px and robot noise "
+        f"{cfg.options.robot_noise_m * 1000:g} mm / {cfg.options.robot_noise_deg:g} deg",
+    )
+    plan = replace(plan, predicted_std=pred, duration_s=float(duration), notes=notes)
+    return PlanReport(plan, ratios_d, sum(int(g.usable.sum()) for g in cands), rejected)
+
+
+def _to_plan(cfg, cands, chosen, via, notes) -> Plan:  # noqa: ANN001 - internal helper
+    groups = tuple(tuple(cands[c.group].T_base_tool[k] for k in c.frames) for c in chosen)
+    return Plan(
+        groups=groups,
+        via=via,
+        speed_mps=cfg.robot.speed_mps,
+        accel_mps2=cfg.robot.accel_mps2,
+        settle_s=cfg.robot.settle_s,
+        notes=notes,
+    )
+
+
+def _ban(cands: list[_Group], chosen: list[_Chosen], bad: int) -> None:
+    """Ban what the failing move (index in execution order) went to."""
+    i = 0
+    for c in chosen:
+        if bad == i or bad == i + 1:  # the via move or the move to the group's pose
+            cands[c.group].banned.add(0)
+            return
+        i += 1
+        for k in c.frames:
+            if bad == i:
+                cands[c.group].banned.add(k if k != 0 else 0)
+                return
+            i += 1
+
+
+def _no_candidates_message(
+    cfg: CellConfig, s: PlannerSettings, rejected: dict[str, int], n_ok: int
+) -> str:
+    worst = max(rejected, key=lambda k: rejected[k]) if any(rejected.values()) else "view"
+    fix = {
+        "workspace": "the candidate poses leave the workspace box (robot.workspace); widen it "
+        "or move the target so that views from approximate.standoff_m fit inside",
+        "reach": "the candidate poses are unreachable or singular for the "
+        f"{cfg.robot.model}; move the target closer to the robot or change "
+        "approximate.standoff_m",
+        "view": "the target leaves the view (or the usable depth) at the candidate poses; "
+        "increase approximate.standoff_m, reduce plan.tilts_deg or plan.margin_px, or use a "
+        "smaller target",
+    }[worst]
+    return (
+        f"no plan possible: only {n_ok} usable tilt groups (need {s.min_groups}); "
+        f"rejected frames: {rejected}; {fix}"
+    )
+
+
+def _goal_message(cfg: CellConfig, s: PlannerSettings, t: float, ratios: np.ndarray | None) -> str:
+    if ratios is None:
+        return (
+            f"no non-degenerate plan within plan.max_duration_s = {s.goal.max_duration_s:g} s "
+            f"(reached {t:.1f} s); allow more time or widen the candidate tilts and steps"
+        )
+    names = [
+        n
+        for n, v in zip(
+            ("fx_rel_std", "hand_eye_rot_std_deg", "hand_eye_t_std_mm"),
+            (s.goal.fx_rel_std, s.goal.hand_eye_rot_std_deg, s.goal.hand_eye_t_std_mm),
+            strict=True,
+        )
+        if v is not None
+    ]
+    worst = names[int(np.argmax(ratios))]
+    return (
+        f"the goal needs more time than allowed: after {t:.1f} s the predicted {worst} is "
+        f"{float(np.max(ratios)):.2f} times the goal (plan.max_duration_s = "
+        f"{s.goal.max_duration_s:g} s); allow more time, relax plan.goal.{worst}, or reduce "
+        "the noise (robot_noise_*, corner noise)"
+    )
+
+
+# -- command line -----------------------------------------------------------------------------
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """``slidecal plan [--config cell.yaml] --out plan.yaml``."""
+    p.add_argument("--config", help="cell description (default: the simulated default cell)")
+    p.add_argument("--out", default="plan.yaml", help="plan file to write (default plan.yaml)")
+    p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+
+
+def main(args: argparse.Namespace) -> int:
+    """Plan, write ``plan.yaml``, print the prediction."""
+    cfg = load_config(args.config)
+    report = make_plan(cfg)
+    path = write_plan(report.plan, Path(args.out))
+    if not args.quiet:
+        for n in report.plan.notes:
+            print(n)
+        pred = report.plan.predicted_std or {}
+        cam = cfg.reference_camera
+        he = "T_tool_cam" if cfg.mount == "eye_in_hand" else "T_base_cam"
+        print(
+            f"predicted std: fx {pred[f'{cam}.fx_px']:.3f} px "
+            f"({pred[f'{cam}.fx_rel'] * 100:.4f} %), "
+            f"{he} {pred[f'{he}.rot_deg']:.4f} deg / {pred[f'{he}.t_mm']:.3f} mm"
+        )
+        print(f"plan: {path}  (run it with: slidecal run --plan {path})")
+    return 0
