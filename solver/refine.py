@@ -507,15 +507,25 @@ def refine(
     """Minimise the reprojection error over all detections (MATH.md Sec. 5).
 
     Outliers: after a first solve, detections whose residual exceeds both
-    ``options.outlier_threshold_px`` and 5 times the estimated noise are flagged, given zero
-    weight and the solve repeated (up to 3 rounds). They are returned in ``outliers``: never
-    silently dropped. Covariance: ``s^2 (J'J)^-1`` over the inliers with
-    ``s^2 = sum(r^2) / (n - p)`` (MATH.md Sec. 6).
+    ``options.outlier_threshold_px`` and 5 times their camera's estimated noise are flagged,
+    given zero weight and the solve repeated. They are returned in ``outliers``: never silently
+    dropped. Cameras of a rig may differ in noise (a mono global-shutter camera and a colour
+    camera): each camera's noise is estimated from its residuals and its rows weighed by it
+    (maximum likelihood with one noise level per camera), iterated to a fixed point together
+    with the pose-prior scale. Covariance: ``s^2 (J' W J)^-1`` with ``s^2 = sum(w r^2) / (n - p)``
+    (MATH.md Sec. 6); ``sigma_px`` is the reference camera's noise.
     """
     model = BundleModel(problem, structure)
     n_px = model.n_rows
     n_prior = 6 * len(problem.frames) if "E" in model.slices else 0
-    weights = np.ones(n_px + n_prior)
+    inlier = np.ones(n_px + n_prior, dtype=bool)
+    cam_w = np.ones(n_px + n_prior)  # per-camera noise weights, relative to the reference
+    cam_rows = []
+    for ci in range(len(model.cams)):
+        rows = np.zeros(n_px + n_prior, dtype=bool)
+        idx = model.cam_obs[ci]
+        rows[2 * idx] = rows[2 * idx + 1] = True
+        cam_rows.append(rows)
     state = _respect_options(problem, init)
     if n_prior and state.E is None:
         state = ModelState(
@@ -530,45 +540,71 @@ def refine(
     model.sigma_px = 0.2  # a typical corner noise; re-estimated below when poses are noisy
     total_it = 0
     converged = False
+    P = len(model.names)
+    n_obs_rows = max(n_px, 1)
 
     def noise(r: np.ndarray, w: np.ndarray) -> float:
-        dof = max(int(np.sum(w[:n_px] > 0)) + n_prior - len(model.names), 1)
+        dof = max(int(np.sum(w[:n_px] > 0)) + n_prior - P, 1)
         return float(np.sqrt(np.sum(w * r * r) / dof))
 
-    for _ in range(8):
+    def camera_sigmas(r: np.ndarray) -> np.ndarray:
+        """Each camera's own noise estimate (its share of the dof taken by the parameters)."""
+        out = []
+        for rows in cam_rows:
+            m = rows & inlier
+            n = int(m.sum())
+            dof = max(n - P * n / n_obs_rows, 1.0)
+            out.append(np.sqrt(np.sum(r[m] ** 2) / dof) if n else np.nan)
+        return np.array(out)
+
+    for _ in range(10):
+        weights = inlier * cam_w
         state, converged, it = _lm(model, state, weights, max_iter)
         total_it += it
         r, _ = model.evaluate(state, jacobian=False)
+        changed = False
+        if len(model.cams) > 1:  # per-camera noise: reweigh to a fixed point
+            sig = camera_sigmas(r)
+            ref_i = model.cams.index(model.ref)
+            ok = np.isfinite(sig) & (sig > 0)
+            if ok[ref_i] and np.all(ok):
+                new_w = np.ones(n_px + n_prior)
+                for rows, sc in zip(cam_rows, sig, strict=True):
+                    new_w[rows] = (sig[ref_i] / sc) ** 2
+                if np.max(np.abs(new_w / cam_w - 1.0)) > 0.04:
+                    cam_w, changed = new_w, True
         if n_prior:  # the prior rows are weighed by the pixel noise: iterate to a fixed point
-            sigma = noise(r, weights)
+            sigma = noise(r, inlier * cam_w)
             if abs(sigma / model.sigma_px - 1.0) > 0.02:
-                model.sigma_px = sigma
-                continue
+                model.sigma_px, changed = sigma, True
+        if changed:
+            continue
         if not robust:
             break
         per_pt = np.hypot(r[0:n_px:2], r[1:n_px:2])
-        inl = weights[0:n_px:2] > 0
-        sigma = noise(r, weights)
-        thresh = max(problem.options.outlier_threshold_px, 5.0 * sigma)
+        inl = inlier[0:n_px:2]
+        sigma = noise(r, inlier * cam_w)
+        thresh = np.maximum(
+            problem.options.outlier_threshold_px, 5.0 * sigma / np.sqrt(cam_w[0:n_px:2])
+        )
         new_out = per_pt > thresh
         if np.array_equal(new_out, ~inl):
             break
-        weights[:n_px] = np.repeat((~new_out).astype(float), 2)
+        inlier[:n_px] = np.repeat(~new_out, 2)
+    weights = inlier * cam_w
     r, J = model.evaluate(state)
-    inlier_rows = weights > 0
+    inlier_rows = inlier.copy()
     n_in = int(inlier_rows[:n_px].sum())
-    dof = n_in + n_prior - len(model.names)
+    dof = n_in + n_prior - P
     messages: list[str] = []
     sigma_px = noise(r, weights)
     cov = None
     if dof <= 0:
         messages.append(
-            f"covariance not computed: {n_in} residuals for {len(model.names)} parameters; "
-            "capture more frames"
+            f"covariance not computed: {n_in} residuals for {P} parameters; capture more frames"
         )
     else:
-        Jin = J[inlier_rows]
-        A = Jin.T @ Jin
+        A = J.T @ (J * weights[:, None])
         try:
             scale = np.sqrt(np.diag(A))
             scale[scale == 0] = 1.0
@@ -607,12 +643,17 @@ def refine(
 
 @single_threaded_blas
 def fisher_covariance(
-    problem: CalibrationProblem, structure: Structure, truth: ModelState, sigma_px: float
+    problem: CalibrationProblem,
+    structure: Structure,
+    truth: ModelState,
+    sigma_px: float,
+    camera_sigma_px: dict[str, float] | None = None,
 ) -> tuple[tuple[str, ...], np.ndarray]:
-    """The Cramer-Rao bound (MATH.md Sec. 6): ``sigma^2 (J'J)^-1`` at the true state.
+    """The Cramer-Rao bound (MATH.md Sec. 6): ``(J' W J)^-1`` at the true state.
 
-    ``problem`` holds the detections' ids (their pixel values are not used). Returns the
-    parameter names and the covariance (P, P).
+    ``problem`` holds the detections' ids (their pixel values are not used). ``sigma_px``: the
+    pixel noise (per coordinate); ``camera_sigma_px``: per camera name, when the cameras of a
+    rig differ (the others keep ``sigma_px``). Returns the parameter names and the covariance.
     """
     model = BundleModel(problem, structure)
     model.sigma_px = sigma_px
@@ -627,7 +668,12 @@ def fisher_covariance(
             np.zeros((len(problem.frames), 6)),
         )
     _, J = model.evaluate(truth)
-    A = J.T @ J
+    w = np.ones(J.shape[0])
+    for ci, c in enumerate(model.cams):
+        sc = (camera_sigma_px or {}).get(c, sigma_px)
+        idx = model.cam_obs[ci]
+        w[2 * idx] = w[2 * idx + 1] = (sigma_px / sc) ** 2
+    A = J.T @ (J * w[:, None])
     scale = np.sqrt(np.diag(A))
     scale[scale == 0] = 1.0
     cov = sigma_px**2 * np.linalg.inv(A / np.outer(scale, scale)) / np.outer(scale, scale)
