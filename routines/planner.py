@@ -900,27 +900,47 @@ def _robot_dict(cfg: CellConfig) -> dict:
     return r
 
 
+def _start_q(T_base_tool: np.ndarray, cfg: CellConfig) -> np.ndarray | None:
+    """Joints (6,) rad of a non-singular solution of a pose nearest the home configuration."""
+    model = urk.model_by_name(cfg.robot.model)
+    sols = [
+        q
+        for q in urk.ik(T_base_tool, urk.Q_HOME, model, cfg.robot.tcp)
+        if urk.singularity(q, model) is None
+    ]
+    return sols[0] if sols else None
+
+
+def _start_pose(cfg: CellConfig) -> np.ndarray | None:
+    """Where the simulated arm starts (``T_base_tool``), None for real cells (unknown)."""
+    if not cfg.simulated:
+        return None
+    if cfg.robot.raw.get("start_q") is not None:
+        q = np.asarray(cfg.robot.raw["start_q"], float)
+    elif cfg.robot.start_pose is not None:
+        return cfg.robot.start_pose
+    else:
+        q = urk.Q_HOME
+    return urk.fk(q, urk.model_by_name(cfg.robot.model), cfg.robot.tcp)
+
+
 def dry_run(plan: Plan, cfg: CellConfig) -> tuple[float, int | None, str]:
     """Execute ``plan`` on a noise-free simulated arm of the cell's model and limits.
 
-    Real cells (and simulated ones without a start pose on a real model) start at the via pose
-    (or the first pose). Returns (robot time in seconds for moves and settling, index of the
-    first failing move in execution order or None, the failure message).
+    Simulated cells start where their arm starts (``start_pose``, ``start_q`` or home); real
+    cells at the via pose (or the first pose), their start being unknown. Returns (robot time
+    in seconds for moves and settling, index of the first failing move in execution order or
+    None, the failure message).
     """
     from slidecal.mocks.robot import SimulatedUR
 
     r = _robot_dict(cfg)
-    first = plan.via if plan.via is not None else plan.groups[0][0]
-    if not cfg.simulated or ("start_pose" not in r and "start_q" not in r):
-        model = urk.model_by_name(cfg.robot.model)
-        sols = [
-            q
-            for q in urk.ik(first, urk.Q_HOME, model, cfg.robot.tcp)
-            if urk.singularity(q, model) is None
-        ]
-        if not sols:
+    if not cfg.simulated:
+        first = plan.via if plan.via is not None else plan.groups[0][0]
+        q = _start_q(first, cfg)
+        if q is None:
             return 0.0, 0, "the first pose of the plan is out of reach or singular"
-        r["start_q"] = sols[0].tolist()
+        r["start_q"] = q.tolist()
         r.pop("start_pose", None)
     try:
         robot = SimulatedUR.from_dict(r)
@@ -968,7 +988,7 @@ def make_plan(cfg: CellConfig, settings: PlannerSettings | None = None) -> PlanR
     if len(cands) < s.min_groups:
         raise InputError(_no_candidates_message(cfg, s, rejected, len(cands)), where=where)
     via = _via(cfg)
-    start = cfg.robot.start_pose if cfg.simulated else None
+    start = _start_pose(cfg)
     timing = _Timing(cfg, s, start)
     last_failure = ""
     for _attempt in range(12):
