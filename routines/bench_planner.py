@@ -73,7 +73,7 @@ def naive_plan(cfg: CellConfig, duration_s: float, rng: np.random.Generator) -> 
         if bad is not None:
             continue
         if t + cand.n_poses * s.capture_s > duration_s:
-            if len(groups) >= 2:
+            if len(groups) >= 3:  # two groups leave the hand-eye translation unobservable
                 break
             continue
         groups.append(poses)

@@ -44,7 +44,7 @@ The ``plan:`` block of the cell file (every key optional)::
       capture_s: 0.05                  # per frame, on top of robot.settle_s
       fx_px: 880                       # nominal focal length (or hfov_deg); simulated cells:
                                        # the simulated camera's data sheet values by default
-      min_groups: 2
+      min_groups: 3                    # two leave the hand-eye translation unobservable
       min_frames_per_group: 3
       max_groups: 6
       max_frames_per_group: 8
@@ -160,7 +160,7 @@ class PlannerSettings:
     depth_m: tuple[float, float] = (0.2, 0.9)
     corner_noise_px: float = SIM_CORNER_NOISE_PX
     capture_s: float = 0.05
-    min_groups: int = 2
+    min_groups: int = 3
     min_frames_per_group: int = 3
     max_groups: int = 6
     max_frames_per_group: int = 8
@@ -223,7 +223,7 @@ def planner_settings(cfg: CellConfig) -> PlannerSettings:
     )
     spec = next(c for c in cfg.cameras if c.name == cfg.reference_camera)
     K, dist = _nominal_camera(cfg, f, spec)
-    min_groups = f.integer("min_groups", 2, minimum=2)
+    min_groups = f.integer("min_groups", 3, minimum=2)
     min_frames = f.integer("min_frames_per_group", 3, minimum=2)
     max_groups = f.integer("max_groups", 6, minimum=min_groups)
     max_frames = f.integer("max_frames_per_group", 8, minimum=min_frames)
@@ -578,10 +578,23 @@ def _rejection(
     )
     if why is not None:
         return "view"
-    model = urk.model_by_name(cfg.robot.model)
-    if not urk.reachable(T_base_tool, None, model, cfg.robot.tcp):
+    if not _reachable(T_base_tool, cfg):
         return "reach"
     return None
+
+
+def _reachable(T_base_tool: np.ndarray, cfg: CellConfig) -> bool:
+    """``ur_kinematics.reachable(T, None, ...)`` without its duplicate filtering: the closed-form
+    solutions are wrapped to (-pi, pi], inside every e-Series joint limit, so a pose is reachable
+    when one of them is not singular."""
+    model = urk.model_by_name(cfg.robot.model)
+    T = T_base_tool if cfg.robot.tcp is None else T_base_tool @ inv_T(cfg.robot.tcp)
+    return any(
+        urk.singularity(q, model) is None
+        and np.all(q >= np.array(model.q_min))
+        and np.all(q <= np.array(model.q_max))
+        for q in urk._ik_flange(T, model)
+    )
 
 
 def _via(cfg: CellConfig) -> np.ndarray:
@@ -668,11 +681,12 @@ def _greedy(
     s: PlannerSettings,
     timing: _Timing,
     via: np.ndarray,
-) -> tuple[list[_Chosen], float, np.ndarray | None]:
+) -> tuple[list[_Chosen], float, np.ndarray | None, str]:
     """Add the frame (or new group of two frames) with the largest drop of the goal's predicted
     variance per second until the goal and the minimum structure are met or time runs out.
 
-    Returns the choice, its predicted duration and its goal ratios (None: still singular)."""
+    Returns the choice, its predicted duration, its goal ratios (None: still singular) and why
+    the search stopped: "met", "time" (over the budget) or "exhausted" (no candidate left)."""
     goals = _goals(names, nom, s.goal)
     P = len(names)
     ridge = _ridge(names, nom)
@@ -694,8 +708,12 @@ def _greedy(
         )
         met = ratios is not None and bool(np.all(ratios <= 1.0))
         if met and structure_ok and _linear_ok(cands, chosen, nom):
-            return chosen, t_now, ratios
+            return chosen, t_now, ratios, "met"
         only_fix = met and not structure_ok
+        # the minimum structure first: min_groups groups of min_frames_per_group frames (fewer
+        # groups cannot make the hand-eye translation observable, MATH.md Sec. 4)
+        building = len(chosen) < s.min_groups
+        short = any(len(c.frames) < s.min_frames_per_group for c in chosen)
         seq = _sequence(cands, chosen, via)
         last = seq[-1][1] if seq else timing.start
         best = None  # (score, dt, new info, action)
@@ -704,7 +722,7 @@ def _greedy(
         for ci, c in enumerate(chosen):
             if len(c.frames) >= s.max_frames_per_group:
                 continue
-            if only_fix and len(c.frames) >= s.min_frames_per_group:
+            if (only_fix or building) and len(c.frames) >= s.min_frames_per_group:
                 continue
             g = cands[c.group]
             T_last = g.T_base_tool[c.frames[-1]]
@@ -720,7 +738,11 @@ def _greedy(
                 A = info + g.info[k]
                 best = _better(best, f_now, objective(A), dt, A, ("add", ci, int(k)))
         # open a new group with its pose and one displaced frame
-        if len(chosen) < s.max_groups and not (only_fix and len(chosen) >= s.min_groups):
+        if (
+            len(chosen) < s.max_groups
+            and not (only_fix and len(chosen) >= s.min_groups)
+            and not (building and short)
+        ):
             for gi, g in enumerate(cands):
                 if gi in used or 0 in g.banned:
                     continue
@@ -733,7 +755,7 @@ def _greedy(
                     A = A0 + g.info[k]
                     best = _better(best, f_now, objective(A), dt, A, ("new", gi, int(k)))
         if best is None:
-            return chosen, t_now, ratios
+            return chosen, t_now, ratios, "exhausted"
         _, dt, A, (kind, i, k) = best
         if kind == "add":
             chosen[i].frames.append(k)
@@ -742,7 +764,8 @@ def _greedy(
         info, f_now = A, objective(A)
         t_now = _duration(_sequence(cands, chosen, via), timing)
         if t_now > s.goal.max_duration_s:
-            return chosen, t_now, None if not met else ratios
+            cov = _covariance(info)
+            return chosen, t_now, goals.ratios(cov) if cov is not None else None, "time"
 
 
 def seq_next_via(chosen, ci, via):  # noqa: ANN001, ANN201 - internal helper
@@ -992,9 +1015,9 @@ def make_plan(cfg: CellConfig, settings: PlannerSettings | None = None) -> PlanR
     timing = _Timing(cfg, s, start)
     last_failure = ""
     for _attempt in range(12):
-        chosen, t_pred, ratios = _greedy(cands, names, nom, s, timing, via)
-        if ratios is None or np.any(ratios > 1.0) or len(chosen) < s.min_groups:
-            raise InputError(_goal_message(cfg, s, t_pred, ratios), where=where)
+        chosen, t_pred, ratios, stop = _greedy(cands, names, nom, s, timing, via)
+        if stop != "met":
+            raise InputError(_goal_message(s, t_pred, ratios, stop), where=where)
         plan = _to_plan(cfg, cands, chosen, via, ())
         robot_s, bad, why = dry_run(plan, cfg)
         if bad is None:
@@ -1072,12 +1095,7 @@ def _no_candidates_message(
     )
 
 
-def _goal_message(cfg: CellConfig, s: PlannerSettings, t: float, ratios: np.ndarray | None) -> str:
-    if ratios is None:
-        return (
-            f"no non-degenerate plan within plan.max_duration_s = {s.goal.max_duration_s:g} s "
-            f"(reached {t:.1f} s); allow more time or widen the candidate tilts and steps"
-        )
+def _goal_message(s: PlannerSettings, t: float, ratios: np.ndarray | None, stop: str) -> str:
     names = [
         n
         for n, v in zip(
@@ -1087,12 +1105,22 @@ def _goal_message(cfg: CellConfig, s: PlannerSettings, t: float, ratios: np.ndar
         )
         if v is not None
     ]
-    worst = names[int(np.argmax(ratios))]
+    if ratios is None:
+        state = "no non-degenerate plan was found"
+        worst = names[0]
+    else:
+        worst = names[int(np.argmax(ratios))]
+        state = f"the predicted {worst} is {float(np.max(ratios)):.2f} times the goal"
+    if stop == "time":
+        return (
+            f"the goal needs more time than allowed: after {t:.1f} s {state} "
+            f"(plan.max_duration_s = {s.goal.max_duration_s:g} s); allow more time, relax "
+            f"plan.goal.{worst}, or reduce the noise (robot_noise_*, corner noise)"
+        )
     return (
-        f"the goal needs more time than allowed: after {t:.1f} s the predicted {worst} is "
-        f"{float(np.max(ratios)):.2f} times the goal (plan.max_duration_s = "
-        f"{s.goal.max_duration_s:g} s); allow more time, relax plan.goal.{worst}, or reduce "
-        "the noise (robot_noise_*, corner noise)"
+        f"the candidates ran out after {t:.1f} s of robot time and {state}; allow more groups "
+        "or frames (plan.max_groups, plan.max_frames_per_group), more plan.tilts_deg / "
+        f"azimuths_deg / step_mm, or relax plan.goal.{worst}"
     )
 
 
