@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from slidecal.mocks import rig_scenarios as rs
-from slidecal.routines.bench_rig import rig_bounds
+from slidecal.routines.bench_rig import rig_bounds, scale_pixels
 from slidecal.routines.results_io import read_result, write_result
 from slidecal.routines.session import read_session, write_session
 from slidecal.solver.calibrate import calibrate
@@ -225,3 +225,13 @@ def test_rig_session_and_result_round_trip(tmp_path):
     np.testing.assert_allclose(r2.rig["T_right_left"].T, res.rig["T_right_left"].T, atol=1e-12)
     np.testing.assert_allclose(r2.H_inf["right<-left"], res.H_inf["right<-left"], rtol=1e-12)
     assert r2.rig["T_right_left"].std_rot_deg == pytest.approx(res.rig["T_right_left"].std_rot_deg)
+
+
+def test_scale_pixels_scales_the_intrinsics_only():
+    s = rs.s5_rig(np.random.default_rng(10), 0.0)
+    res = calibrate(scale_pixels(s.problem, {"left": 0.5}))
+    S = np.diag([0.5, 0.5, 1.0])
+    np.testing.assert_allclose(res.cameras["left"].K, S @ s.truth.K["left"], atol=1e-6)
+    np.testing.assert_allclose(res.cameras["right"].K, s.truth.K["right"], atol=1e-6)
+    R = s.truth.T_cam_ref["left"][:3, :3]
+    assert rotation_angle_deg(res.rig["T_left_right"].R, R) < 1e-7
