@@ -103,7 +103,7 @@ def test_refused_when_the_workspace_excludes_every_view():
 
 def test_refused_when_the_target_leaves_the_view():
     d = _default_dict()
-    d["approximate"]["standoff_m"] = 0.25  # the board is wider than the image from 0.25 m
+    d["approximate"]["standoff_m"] = 0.2  # the board (0.33 m) spans 1450 px of 1280 from 0.2 m
     d["plan"] = {"depth_m": [0.1, 1.0]}
     with pytest.raises(SlidecalError, match="leaves the view"):
         make_plan(config_from_dict(d))
