@@ -73,7 +73,7 @@ def run_row(
         if t == 0 and bound:
             row.bound = _crb(s, s.sigma_px)
         try:
-            res = calibrate(s.problem)
+            res = calibrate(s.problem, joint_homographies=True)
         except SlidecalError:
             row.failures += 1
             continue
@@ -116,7 +116,7 @@ def r1_hand_eye_row(trials: int, robot_noise: bool, model_noise: bool) -> Row:
     for t in range(trials):
         s = sc.r1(np.random.default_rng(1000 + t), 0.15, *noise, options=opts)
         try:
-            res = calibrate(s.problem)
+            res = calibrate(s.problem, joint_homographies=True)
         except SlidecalError:
             row.failures += 1
             continue
@@ -184,7 +184,7 @@ def per_frame_rows(trials: int) -> list[str]:
             fx = s.truth.K["cam"][0, 0]
             try:
                 single.append(linear_per_frame(s)[0, 0] - fx)
-                joint.append(calibrate(s.problem).linear["cam"][0, 0] - fx)
+                joint.append(calibrate(s.problem, joint_homographies=True).linear["cam"][0, 0] - fx)
             except SlidecalError:
                 continue
         (jb, js), (pb, ps) = _stats(joint), _stats(single)

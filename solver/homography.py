@@ -208,14 +208,15 @@ def _finish_group(Hn: np.ndarray, Tb: np.ndarray, Ti: np.ndarray) -> np.ndarray:
     return Hs / s
 
 
-def group_homographies(observations: Sequence[Observation]) -> np.ndarray:
+def group_homographies(observations: Sequence[Observation], max_iter: int = 30) -> np.ndarray:
     """Joint homographies (n, 3, 3) of one orientation group (MATH.md Sec. 3).
 
     ``observations``: per frame ``(board_xy (N_k, 2) board frame, px (N_k, 2) pixels)``. One
     shared ``h1, h2`` and one ``h3`` per frame minimise the reprojection error of all frames
     jointly, so every ``Hs[k]`` has the same scale (identical first two columns) and
     ``Delta_k = h3_0 - h3_k`` is meaningful (eqs. 12-13). Scale: ``Hs[0]`` has unit Frobenius
-    norm and ``h3[2] > 0`` (board in front of the camera).
+    norm and ``h3[2] > 0`` (board in front of the camera). ``max_iter``: Levenberg-Marquardt
+    iterations from the rescaled per-frame DLTs (0 returns those; a start for a refinement).
     """
     obs_n, Tb, Ti = _prepare_group(observations)
     h12, h3 = _common_scale_init(obs_n)
@@ -240,7 +241,7 @@ def group_homographies(observations: Sequence[Observation]) -> np.ndarray:
         return np.vstack(blocks)
 
     x0 = np.concatenate([h12, h3.reshape(-1)])
-    x = _levenberg_marquardt(fun, jac, x0)
+    x = _levenberg_marquardt(fun, jac, x0, max_iter)
     return _finish_group(np.array(unpack(x)), Tb, Ti)
 
 

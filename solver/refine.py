@@ -442,7 +442,7 @@ def _lm(
     weights: np.ndarray,
     max_iter: int,
 ) -> tuple[ModelState, bool, int]:
-    lam = 1e-3
+    lam = 1e-4
     r, J = model.evaluate(state)
     cost = float(np.sum(weights * r * r))
     converged = False
@@ -469,7 +469,8 @@ def _lm(
             lam *= 10.0
             if lam > 1e12:
                 return state, cost < 1e-20, it
-        small_step = cost - cost_new <= 1e-12 * max(cost, 1e-30) + 1e-24
+        # a relative decrease below 1e-10 moves no parameter by more than ~1e-5 of its std
+        small_step = cost - cost_new <= 1e-10 * max(cost, 1e-30) + 1e-24
         state, cost = new, cost_new
         lam = max(lam / 10.0, 1e-9)
         if small_step:
