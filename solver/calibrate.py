@@ -370,7 +370,6 @@ def calibrate(
             f"the reference camera {ref!r} saw the target in fewer than 2 "
             "frames; choose another reference_camera or capture more"
         )
-    X, Y, s = init_motion(problem, poses[ref])
     T_cam_ref = {}
     for c in K_lin:
         if c == ref:
@@ -382,6 +381,12 @@ def calibrate(
                 "frame; the rig extrinsics need common views"
             )
         T_cam_ref[c] = _average_T([poses[c][i] @ inv_T(poses[ref][i]) for i in both])
+    # a frame the reference camera missed still has a pose through another camera of the rig
+    ref_poses = dict(poses[ref])
+    for c, T in T_cam_ref.items():
+        for i, T_c_board in poses[c].items():
+            ref_poses.setdefault(i, inv_T(T) @ T_c_board)
+    X, Y, s = init_motion(problem, ref_poses)
     init = ModelState(K_lin, {c: zero.copy() for c in K_lin}, T_cam_ref, X, Y, s)
     structure = build_structure(problem, X[0][:3, :3])
     out = refine(problem, structure, init)

@@ -237,13 +237,8 @@ def test_scale_pixels_scales_the_intrinsics_only():
     assert rotation_angle_deg(res.rig["T_left_right"].R, R) < 1e-7
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=DegenerateError,
-    reason="calibrate.init_motion (general motion) needs the reference camera in every frame; "
-    "the frame's pose could come from the other camera through T_cam_ref (reported to the lead)",
-)
 def test_general_motion_frame_without_the_reference_camera():
+    """The frame's pose comes from the other camera through the rig extrinsics."""
     s = rs.s5_rig(np.random.default_rng(11), 0.0)
     problem = rs.hide_views(s.problem, {(2, "right"): "none"})
     _assert_recovers(s, calibrate(problem))
