@@ -226,7 +226,7 @@ def r1_poses(rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.nda
     R_base_board = np.diag([1.0, -1.0, -1.0])
     T_base_board = T_from_Rt(R_base_board, np.array([0.55, -0.10, 0.02]))
     centre = transform_points(T_base_board, centre_board[None])[0]
-    up = np.array([-1.0, 0.0, 0.0])  # image up toward the robot base, board x to the right
+    up = np.array([1.0, 0.0, 0.0])  # image up away from the robot base
     tilts = [(25.0, 0.0), (0.0, 25.0), (-20.0, -18.0), (18.0, -20.0)]
     moves_mm = np.array(
         [
@@ -301,7 +301,7 @@ def r1(
 
 R1_T_BASE_CAM = T_from_Rt(
     look_at_R_cam_world(
-        np.array([0.9, 0.4, 0.6]), np.array([0.5, 0.0, 0.3]), np.array([0.0, 0.0, 1.0])
+        np.array([0.9, 0.4, 0.6]), np.array([0.5, 0.0, 0.3]), np.array([0.0, 0.0, -1.0])
     ).T,
     np.array([0.9, 0.4, 0.6]),
 )

@@ -125,7 +125,7 @@ def look_at_R_cam_world(
     """
     z = np.asarray(p_target_world, float) - np.asarray(p_cam_world, float)
     z /= np.linalg.norm(z)
-    x = np.cross(z, -np.asarray(up_world, float))
+    x = np.cross(z, np.asarray(up_world, float))  # then y = z x x = -(up without its z part)
     if np.linalg.norm(x) < 1e-9:
         raise ValueError("look_at_R_cam_world: the up direction is parallel to the viewing ray")
     x /= np.linalg.norm(x)
