@@ -1,9 +1,9 @@
 """Benchmark of rig calibration (issue 5): maximum likelihood against the Cramer-Rao bound.
 
 (i) S5 (SCENARIOS.md, paper Figs. 7-9) as a general-motion two-camera problem through
-``calibrate``: equal noise, then the left camera at twice the right's, as the solver does it
-(all rows weighed alike) and with rows weighed by each camera's noise (emulated by
-:func:`scale_pixels`). (ii) The OAK-D-like head
+``calibrate``: equal noise, then the left camera at twice the right's (the solver estimates
+and weighs each camera's noise), and that again with the left camera's pixels scaled to the
+right's noise (:func:`scale_pixels`, a cross-check of the weighting). (ii) The OAK-D-like head
 eye-in-hand on R1's poses (``mocks/rig_scenarios.oak_rig``), with exact and with noisy, modelled
 robot poses. Per camera and parameter: bias and std over the trials, the bound and the
 efficiency ratio std / bound; the relative rotation's rms error against its bound (root of the
@@ -11,11 +11,14 @@ trace of the rig rotation block), and the rms error of the linear eq. 63 rotatio
 end on the simulated OAK cell (rendered images, detection, solve) over a few seeds: baseline
 and relative rotation errors against the recorded truth, with the reported one-sigma.
 
-The bound with unequal camera noise weighs every residual row by its camera's noise (the
-solver's ``fisher_covariance`` takes one sigma for all rows): ``(J_w' J_w)^-1`` with
-``J_w = diag(1 / sigma_row) J`` and ``J`` from ``BundleModel(problem, structure).evaluate``. The
-solver weighs all pixel rows alike, so its best possible covariance is the sandwich
-``(J' W J)^-1 J' W Sigma W J (J' W J)^-1`` (``W`` its row weights), reported next to the bound.
+The bound with unequal camera noise weighs every residual row by its camera's noise:
+``(J_w' J_w)^-1`` with ``J_w = diag(1 / sigma_row) J`` and ``J`` from
+``BundleModel(problem, structure).evaluate`` (:func:`rig_bounds`; it equals ``fisher_covariance``
+with ``camera_sigma_px``). ``refine`` estimates each camera's noise and weighs its rows by it;
+the row with the left camera's pixels scaled by ``sigma_right / sigma_left``
+(:func:`scale_pixels`) cross-checks that weighting, and the column "equal weights" gives the
+best an estimator weighing all rows alike could do (the sandwich
+``(J' W J)^-1 J' W Sigma W J (J' W J)^-1``), i.e. what the per-camera weighting buys.
 
 Regenerate ``docs/RIG.md``::
 
@@ -54,7 +57,7 @@ def rig_bounds(
     truth: ModelState,
     sigma_by_camera_px: Mapping[str, float],
 ) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
-    """The Cramer-Rao bound with per-camera pixel noise, and the unit-weight solver's covariance.
+    """The Cramer-Rao bound with per-camera pixel noise, and an equal-weight estimator's.
 
     ``sigma_by_camera_px``: one-sigma corner noise (pixels, each axis) of every camera. Robot
     pose prior rows (``structure.pose_sigma``) are whitened by the model itself.
@@ -63,8 +66,8 @@ def rig_bounds(
     -------
     names : the parameter names (P,).
     crb : (P, P) ``(J_w' J_w)^-1``, rows whitened by their camera's noise.
-    unit_weight : (P, P) the sandwich covariance of the estimator that weighs all pixel rows
-        alike and the prior rows by the pooled noise, as ``refine`` does.
+    unit_weight : (P, P) the sandwich covariance of an estimator that weighs all pixel rows
+        alike and the prior rows by the pooled noise.
     """
     model = BundleModel(problem, structure)
     model.sigma_px = 1.0  # prior rows in units of their own sigma
@@ -186,7 +189,7 @@ def run_rig_row(
     """Monte-Carlo of ``calibrate`` over ``trials`` problems of ``make`` (seeds ``[seed, t]``).
 
     ``weigh_by_camera``: weigh each camera's rows by its known noise, emulated with
-    :func:`scale_pixels` (the solver itself weighs all pixel rows alike).
+    :func:`scale_pixels` (a cross-check of the solver's own per-camera weighting).
     """
     s0 = make(np.random.default_rng([seed, 0]))
     p0, ref = s0.problem, s0.problem.reference
@@ -247,7 +250,7 @@ def row_lines(row: RigRow) -> list[str]:
         f"{n} trials ({row.failures} failed), {row.time_s:.0f} s.",
         "",
         "| camera | parameter | bias (px) | std (px) | bound (px) | std / bound | "
-        "unit-weight solver's best (px) |",
+        "equal weights, best possible (px) |",
         "| --- | --- | --- | --- | --- | --- | --- |",
     ]
     for c in row.cameras:
@@ -263,8 +266,8 @@ def row_lines(row: RigRow) -> list[str]:
     out += [
         "",
         f"Relative rotation `{row.rig_key}`: ML rms error {rms:.4f} deg, bound "
-        f"{row.bound['rot']:.4f} deg (ratio {rms / row.bound['rot']:.2f}; the unit-weight "
-        f"solver's best {row.unit_weight['rot']:.4f} deg); mean reported one-sigma "
+        f"{row.bound['rot']:.4f} deg (ratio {rms / row.bound['rot']:.2f}; equal row weights "
+        f"at best {row.unit_weight['rot']:.4f} deg); mean reported one-sigma "
         f"{np.nanmean(row.rot_std_reported_deg):.4f} deg; linear eq. 63 rms error "
         f"{_rms(row.rot_eq63_err_deg):.4f} deg over {len(row.rot_eq63_err_deg)} trials. "
         f"Baseline length error: bias {np.mean(row.baseline_err_mm):+.4f}, std "
@@ -369,7 +372,7 @@ def rows_for(trials: int, seed: int) -> list[RigRow]:
         ),
         run_rig_row(
             "S5",
-            "right 0.5 px, left 1.0 px, rows weighted by camera noise (emulated)",
+            "right 0.5 px, left 1.0 px, left pixels scaled by 1/2 (weighting cross-check)",
             lambda r: rs.s5_rig(r, 0.5, left_factor=2.0),
             trials,
             seed + 1,

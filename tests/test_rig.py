@@ -242,3 +242,12 @@ def test_general_motion_frame_without_the_reference_camera():
     s = rs.s5_rig(np.random.default_rng(11), 0.0)
     problem = rs.hide_views(s.problem, {(2, "right"): "none"})
     _assert_recovers(s, calibrate(problem))
+
+
+def test_per_camera_bound_equals_the_solver_fisher_covariance():
+    s = rs.s5_rig(np.random.default_rng(12), 0.5, left_factor=2.0)
+    st = build_structure(s.problem, s.truth.X[0][:3, :3])
+    names, crb, _ = rig_bounds(s.problem, st, s.truth, s.sigma_by_camera_px)
+    n2, cov = fisher_covariance(s.problem, st, s.truth, 0.5, dict(s.sigma_by_camera_px))
+    assert n2 == names
+    np.testing.assert_allclose(crb, cov, rtol=1e-8, atol=1e-14)
