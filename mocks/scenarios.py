@@ -263,42 +263,6 @@ def _perturb(
     return T_from_Rt(dR @ T[:3, :3], T[:3, 3] + rng.normal(0.0, noise_m, 3))
 
 
-def r1(
-    rng: np.random.Generator,
-    sigma_px: float = 0.15,
-    robot_noise_m: float = 5e-5,
-    robot_noise_deg: float = 0.005,
-    options: ModelOptions | None = None,
-) -> Scenario:
-    """R1 (SCENARIOS.md): eye-in-hand UR5e-class cell, ChArUco 11 x 8 x 30 mm, 1280 x 800
-    camera with distortion, 4 tilt groups of 5 frames, robot poses measured with noise."""
-    target = Target.charuco(11, 8, 0.030, 0.022)
-    T_base_board, poses = r1_poses()
-    frames = []
-    for k, T_base_tool in enumerate(poses):
-        T_cam_board = inv_T(T_base_tool @ R1_T_TOOL_CAM) @ T_base_board
-        det = _detect(R1_K, R1_DIST, T_cam_board, target, (1280, 800), sigma_px, rng, 2.0)
-        measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
-        frames.append(Frame(k, {"cam": det}, T_base_tool=measured))
-    problem = CalibrationProblem(
-        target,
-        (CameraSpec("cam", 1280, 800),),
-        tuple(frames),
-        "eye_in_hand",
-        "robot",
-        options or ModelOptions(),
-    )
-    truth = ModelState(
-        {"cam": R1_K},
-        {"cam": R1_DIST.copy()},
-        {},
-        inv_T(R1_T_TOOL_CAM)[None],
-        T_base_board,
-        np.zeros(len(poses)),
-    )
-    return Scenario(problem, truth, sigma_px, R1_T_TOOL_CAM, T_base_board)
-
-
 R1_T_BASE_CAM = T_from_Rt(
     look_at_R_cam_world(
         np.array([0.9, 0.4, 0.6]), np.array([0.5, 0.0, 0.3]), np.array([0.0, 0.0, -1.0])
@@ -308,6 +272,60 @@ R1_T_BASE_CAM = T_from_Rt(
 R1_T_TOOL_BOARD = T_from_Rt(
     R_from_rvec(np.radians([180.0, 0.0, 0.0])), np.array([-0.165, -0.12, 0.02])
 )
+
+
+def _r1_cell(
+    rng: np.random.Generator,
+    sigma_px: float,
+    robot_noise_m: float,
+    robot_noise_deg: float,
+    options: ModelOptions | None,
+    eye_in_hand: bool,
+) -> Scenario:
+    """R1's camera-board poses, with the camera on the tool or fixed in the cell."""
+    target = Target.charuco(11, 8, 0.030, 0.022)
+    T_base_board, poses = r1_poses()
+    frames = []
+    for k, T_bt in enumerate(poses):
+        T_cam_board = inv_T(T_bt @ R1_T_TOOL_CAM) @ T_base_board
+        # eye-to-hand: the same camera-board poses, the board moving with the tool
+        T_base_tool = (
+            T_bt if eye_in_hand else (R1_T_BASE_CAM @ T_cam_board @ inv_T(R1_T_TOOL_BOARD))
+        )
+        det = _detect(R1_K, R1_DIST, T_cam_board, target, (1280, 800), sigma_px, rng, 2.0)
+        measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
+        frames.append(Frame(k, {"cam": det}, T_base_tool=measured))
+    problem = CalibrationProblem(
+        target,
+        (CameraSpec("cam", 1280, 800),),
+        tuple(frames),
+        "eye_in_hand" if eye_in_hand else "eye_to_hand",
+        "robot",
+        options or ModelOptions(),
+    )
+    T_hand_eye = R1_T_TOOL_CAM if eye_in_hand else R1_T_BASE_CAM
+    T_target = T_base_board if eye_in_hand else R1_T_TOOL_BOARD
+    truth = ModelState(
+        {"cam": R1_K},
+        {"cam": R1_DIST.copy()},
+        {},
+        inv_T(T_hand_eye)[None],
+        T_target,
+        np.zeros(len(poses)),
+    )
+    return Scenario(problem, truth, sigma_px, T_hand_eye, T_target)
+
+
+def r1(
+    rng: np.random.Generator,
+    sigma_px: float = 0.15,
+    robot_noise_m: float = 5e-5,
+    robot_noise_deg: float = 0.005,
+    options: ModelOptions | None = None,
+) -> Scenario:
+    """R1 (SCENARIOS.md): eye-in-hand UR5e-class cell, ChArUco 11 x 8 x 30 mm, 1280 x 800
+    camera with distortion, 4 tilt groups of 5 frames, robot poses measured with noise."""
+    return _r1_cell(rng, sigma_px, robot_noise_m, robot_noise_deg, options, True)
 
 
 def r1_eye_to_hand(
@@ -320,29 +338,4 @@ def r1_eye_to_hand(
     """R1 mirrored: the camera fixed in the cell, the board on the tool. The camera-board poses
     are R1's, so the tilt groups and translations carry over (the board moves, not the camera).
     """
-    target = Target.charuco(11, 8, 0.030, 0.022)
-    T_base_board_r1, poses_r1 = r1_poses()
-    frames = []
-    for k, T_bt in enumerate(poses_r1):
-        T_cam_board = inv_T(T_bt @ R1_T_TOOL_CAM) @ T_base_board_r1
-        T_base_tool = R1_T_BASE_CAM @ T_cam_board @ inv_T(R1_T_TOOL_BOARD)
-        det = _detect(R1_K, R1_DIST, T_cam_board, target, (1280, 800), sigma_px, rng, 2.0)
-        measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
-        frames.append(Frame(k, {"cam": det}, T_base_tool=measured))
-    problem = CalibrationProblem(
-        target,
-        (CameraSpec("cam", 1280, 800),),
-        tuple(frames),
-        "eye_to_hand",
-        "robot",
-        options or ModelOptions(),
-    )
-    truth = ModelState(
-        {"cam": R1_K},
-        {"cam": R1_DIST.copy()},
-        {},
-        inv_T(R1_T_BASE_CAM)[None],
-        R1_T_TOOL_BOARD,
-        np.zeros(len(poses_r1)),
-    )
-    return Scenario(problem, truth, sigma_px, R1_T_BASE_CAM, R1_T_TOOL_BOARD)
+    return _r1_cell(rng, sigma_px, robot_noise_m, robot_noise_deg, options, False)

@@ -89,16 +89,26 @@ def run_row(
     trials: int,
     params: tuple[str, ...],
     bound: bool = True,
+    bound_scenario: sc.Scenario | None = None,
+    reference: bool = True,
+    hand_eye_errors_deg: list[float] | None = None,
 ) -> Row:
-    """Monte-Carlo over ``trials`` seeds of ``make``; errors of K against the truth."""
+    """Monte-Carlo over ``trials`` seeds of ``make``; errors of K against the truth.
+
+    The bound (and the linearised sampling reference, with ``reference``) come from
+    ``bound_scenario`` or the first trial; ``hand_eye_errors_deg`` collects the hand-eye
+    rotation error of every trial when given.
+    """
     row = Row(scenario, setting, params, {p: [] for p in params}, {p: [] for p in params}, {})
     lin_ref = None
     for t in range(trials):
         s = make(np.random.default_rng(1000 + t))
         if t == 0 and bound:
-            row.bound = _crb(s, s.sigma_px)
-            lin_ref = Linearised(s, params)
-            row.ref = {p: [] for p in params}
+            sb = bound_scenario or s
+            row.bound = _crb(sb, sb.sigma_px)
+            if reference:
+                lin_ref = Linearised(sb, params)
+                row.ref = {p: [] for p in params}
         if lin_ref is not None:
             for p, v in lin_ref.errors(s).items():
                 row.ref[p].append(float(v))
@@ -112,6 +122,8 @@ def run_row(
             a, b = PARAMS[p]
             row.lin[p].append(float(res.linear["cam"][a, b] - Kt[a, b]))
             row.ml[p].append(float(res.cameras["cam"].K[a, b] - Kt[a, b]))
+        if hand_eye_errors_deg is not None:
+            hand_eye_errors_deg.append(rotation_angle_deg(res.hand_eye.R, s.T_hand_eye[:3, :3]))
     return row
 
 
@@ -135,31 +147,22 @@ def r1_hand_eye_row(trials: int, robot_noise: bool, model_noise: bool) -> Row:
         setting = "robot noise 0.05 mm, 0.005 deg, " + (
             "modelled" if model_noise else "poses taken as exact"
         )
-    row = Row("R1", setting, tuple(PARAMS), {p: [] for p in PARAMS}, {p: [] for p in PARAMS}, {})
     s0 = sc.r1(np.random.default_rng(1000), 0.15, 0.0, 0.0, options=opts)
     st = build_structure(s0.problem, s0.truth.X[0][:3, :3])
     names, cov = fisher_covariance(s0.problem, st, s0.truth, 0.15)
-    row.bound = _crb(s0, 0.15)
     i = names.index("X0.r0")
     rot_bound = float(np.degrees(np.sqrt(np.trace(cov[i : i + 3, i : i + 3]))))
-    errs = []
-    lin_ref = None if robot_noise else Linearised(s0, tuple(PARAMS))
-    row.ref = None if lin_ref is None else {p: [] for p in PARAMS}
-    for t in range(trials):
-        s = sc.r1(np.random.default_rng(1000 + t), 0.15, *noise, options=opts)
-        if lin_ref is not None:
-            for p, v in lin_ref.errors(s).items():
-                row.ref[p].append(float(v))
-        try:
-            res = calibrate(s.problem, joint_homographies=True)
-        except SlidecalError:
-            row.failures += 1
-            continue
-        for p in PARAMS:
-            a, b = PARAMS[p]
-            row.lin[p].append(float(res.linear["cam"][a, b] - sc.R1_K[a, b]))
-            row.ml[p].append(float(res.cameras["cam"].K[a, b] - sc.R1_K[a, b]))
-        errs.append(rotation_angle_deg(res.hand_eye.R, s.T_hand_eye[:3, :3]))
+    errs: list[float] = []
+    row = run_row(
+        "R1",
+        setting,
+        lambda rng: sc.r1(rng, 0.15, *noise, options=opts),
+        trials,
+        tuple(PARAMS),
+        bound_scenario=s0,
+        reference=not robot_noise,  # the truth of a noisy pose is not at hand for it
+        hand_eye_errors_deg=errs,
+    )
     rms = float(np.sqrt(np.mean(np.square(errs)))) if errs else float("nan")
     row.extra = (
         f"hand-eye rotation rms error {rms:.4f} deg, bound {rot_bound:.4f} deg "
