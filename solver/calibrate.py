@@ -217,13 +217,20 @@ _EMPTY = _Empty()
 
 # -- poses and motion initialisation ------------------------------------------------------------
 def pnp_pose(
-    K: np.ndarray, dist: np.ndarray, board_pts: np.ndarray, px: np.ndarray
+    K: np.ndarray, dist: np.ndarray, board_pts: np.ndarray, px: np.ndarray, fast: bool = False
 ) -> np.ndarray | None:
-    """``T_cam_board`` (4, 4) from one image by OpenCV's PnP, or None when it fails."""
+    """``T_cam_board`` (4, 4) from one image of the planar target, or None when it fails.
+
+    ``fast``: OpenCV's IPPE (closed form for planar targets, five times faster, within
+    micrometres of the iterative solver on consistent data: enough for a start); otherwise the
+    iterative reprojection-error minimum (what the scale check needs: on inconsistent data,
+    e.g. a wrong square size, IPPE's closed form hides part of the scale error).
+    """
     if len(px) < 4:
         return None
+    flags = cv2.SOLVEPNP_IPPE if fast else cv2.SOLVEPNP_ITERATIVE
     ok, rvec, tvec = cv2.solvePnP(
-        board_pts.astype(np.float64), px.astype(np.float64), K, dist, flags=cv2.SOLVEPNP_ITERATIVE
+        board_pts.astype(np.float64), px.astype(np.float64), K, dist, flags=flags
     )
     if not ok:
         return None
@@ -232,7 +239,7 @@ def pnp_pose(
 
 
 def _frame_poses(
-    problem: CalibrationProblem, cam: str, K: np.ndarray, dist: np.ndarray
+    problem: CalibrationProblem, cam: str, K: np.ndarray, dist: np.ndarray, fast: bool = False
 ) -> dict[int, np.ndarray]:
     pts = problem.target.points_m
     poses = {}
@@ -240,7 +247,7 @@ def _frame_poses(
         det = f.detections.get(cam)
         if det is None or len(det.ids) < MIN_CORNERS:
             continue
-        T = pnp_pose(K, dist, pts[det.ids], det.px)
+        T = pnp_pose(K, dist, pts[det.ids], det.px, fast)
         if T is not None and T[2, 3] > 0:
             poses[i] = T
     return poses
@@ -364,7 +371,7 @@ def calibrate(
                 f"joint linear step of {c!r} with {ref!r} skipped ({e}); "
                 "started from the separate estimate"
             )
-    poses = {c: _frame_poses(problem, c, K_lin[c], zero) for c in K_lin}
+    poses = {c: _frame_poses(problem, c, K_lin[c], zero, fast=True) for c in K_lin}
     if len(poses[ref]) < 2:
         raise DegenerateError(
             f"the reference camera {ref!r} saw the target in fewer than 2 "

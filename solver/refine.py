@@ -319,10 +319,13 @@ class BundleModel:
             blk = np.concatenate(
                 [np.cross(q_X[:, None, :], A) @ st.X_rot_basis, A @ st.X_t_basis], axis=2
             )
-            cols = self.slices["X:0"].start + g[:, None] * mx + np.arange(mx)
-            rows = np.arange(n)[:, None]
-            J[rows, 0, cols] = blk[:, 0, :]
-            J[rows, 1, cols] = blk[:, 1, :]
+            if self.n_groups == 1:
+                J[:, :, self.slices["X:0"]] = blk
+            else:
+                cols = self.slices["X:0"].start + g[:, None] * mx + np.arange(mx)
+                rows = np.arange(n)[:, None]
+                J[rows, 0, cols] = blk[:, 0, :]
+                J[rows, 1, cols] = blk[:, 1, :]
         if "Y" in self.slices:
             A2 = np.einsum("nab,nbc->nac", A, np.einsum("nij,njk->nik", RX, RM))
             blk = np.concatenate(
