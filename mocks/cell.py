@@ -22,8 +22,10 @@ from slidecal.drivers.ur_pose import ur_pose_from_T
 from slidecal.mocks.camera import SimCamera, SimulatedCameraRig
 from slidecal.mocks.robot import SimulatedUR
 from slidecal.routines.config import CellConfig, truth_block
+from slidecal.routines.results_io import target_pose_name
+from slidecal.routines.session import transform_to_dict
 from slidecal.solver.errors import InputError
-from slidecal.solver.geometry import inv_T
+from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T
 
 
 @dataclass
@@ -54,7 +56,7 @@ class SimulatedCell:
                 "simulated"
             )
         seed = sim.seed if seed is None else int(seed)
-        robot_seed, camera_seed = np.random.SeedSequence(seed).spawn(2)
+        robot_seed, camera_seed, target_seed = np.random.SeedSequence(seed).spawn(3)
         rdict: dict[str, Any] = {
             "model": cfg.robot.model,
             "noise": {
@@ -88,6 +90,11 @@ class SimulatedCell:
         ref = cfg.reference_camera
         T_cam_ref = {c.name: (np.eye(4) if c.name == ref else sim.rig[c.name]) for c in cams}
         T_he, T_tg = sim.T_hand_eye, sim.T_target
+        if sim.target_jitter_mm > 0 or sim.target_jitter_deg > 0:  # the target set up anew
+            jr = np.random.default_rng(target_seed)
+            dR = R_from_rvec(jr.normal(0.0, np.radians(sim.target_jitter_deg), 3))
+            dt = jr.normal(0.0, sim.target_jitter_mm / 1000.0, 3)
+            T_tg = T_tg @ T_from_Rt(dR, dt)
         if cfg.mount == "eye_in_hand":
             T_ref_tool = inv_T(T_he)
 
@@ -104,5 +111,6 @@ class SimulatedCell:
 
         rig = SimulatedCameraRig(cams, cfg.target, poses, np.random.default_rng(camera_seed))
         truth = truth_block(cfg)
+        truth[target_pose_name(cfg.mount)] = transform_to_dict(T_tg)
         truth["seed"] = seed
         return cls(cfg, robot, rig, truth, seed)

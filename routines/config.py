@@ -36,6 +36,7 @@ Layout (every field but ``target`` has a default)::
       T_base_board: {rpy_deg | R, t_m}    # or T_tool_board (eye_to_hand)
       rig: {right: {R, t_m}}              # T_<name>_<reference> of the other cameras
       noise: {robot_mm: 0.05, robot_deg: 0.005}
+      target_jitter: {mm: 2.0, deg: 0.5}  # the target's true pose moves this much per seed
     plan: {frames_per_group: 5, tilt_deg: 25, step_mm: [40, 80]}
     options: {skew: false, unit_aspect: false, distortion: [true, true, true, true, false],
               robot_noise_mm: 0.05, robot_noise_deg: 0.005}   # robot: 1-sigma pose error per axis
@@ -112,7 +113,9 @@ class SimulationConfig:
     ``T_hand_eye`` (4, 4): ``T_tool_cam`` (eye-in-hand) or ``T_base_cam`` (eye-to-hand) of the
     reference camera; ``T_target`` (4, 4): ``T_base_board`` or ``T_tool_board``; ``rig``:
     ``T_<name>_<reference>`` (4, 4) per other camera. Noise: robot position std per axis
-    (metres) and rotation std per axis (degrees).
+    (metres) and rotation std per axis (degrees). ``target_jitter_mm``/``_deg``: the target is
+    set up anew for each run: its true pose moves by this one-sigma amount per axis, drawn from
+    the run's seed (so a renderer's per-corner artefacts do not repeat from seed to seed).
     """
 
     seed: int
@@ -122,6 +125,8 @@ class SimulationConfig:
     rig: dict[str, np.ndarray]
     robot_noise_m: float = 5e-5
     robot_noise_deg: float = 0.005
+    target_jitter_mm: float = 0.0
+    target_jitter_deg: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -429,6 +434,7 @@ def _simulation(f: Fields, mount: str) -> SimulationConfig:
     if T_tg is None:
         raise f.error(tg_key, f"is missing; the simulated cell needs the true {tg_key}")
     nf = f.sub("noise", required=False) or Fields({}, f.file, f"{f.path}.noise")
+    jf = f.sub("target_jitter", required=False) or Fields({}, f.file, f"{f.path}.target_jitter")
     return SimulationConfig(
         seed=seed,
         cameras=tuple(cams),
@@ -437,6 +443,8 @@ def _simulation(f: Fields, mount: str) -> SimulationConfig:
         rig=rig,
         robot_noise_m=nf.number("robot_mm", 0.05, minimum=0.0) / 1000.0,
         robot_noise_deg=nf.number("robot_deg", 0.005, minimum=0.0),
+        target_jitter_mm=jf.number("mm", 0.0, minimum=0.0),
+        target_jitter_deg=jf.number("deg", 0.0, minimum=0.0),
     )
 
 
