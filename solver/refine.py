@@ -277,13 +277,24 @@ class BundleModel:
         p_Y = q_Y + tY
         RM = Ms[f, :3, :3]
         p_M = np.einsum("nij,nj->ni", RM, p_Y) + Ms[f, :3, 3]
-        RX = state.X[g, :3, :3]
-        q_X = np.einsum("nij,nj->ni", RX, p_M)
-        p_X = q_X + state.X[g, :3, 3]
-        T_cr = np.stack([state.T_cam_ref.get(c, np.eye(4)) for c in self.cams])
-        R_cr = T_cr[self.o_cam, :3, :3]
-        q_cr = np.einsum("nij,nj->ni", R_cr, p_X)
-        P = q_cr + T_cr[self.o_cam, :3, 3]
+        one_group, one_camera = self.n_groups == 1, len(self.cams) == 1
+        if one_group:  # the robot cases: one X for every frame (3x3 products, no gathers)
+            RX0 = state.X[0, :3, :3]
+            RX = np.broadcast_to(RX0, (n, 3, 3))
+            q_X = p_M @ RX0.T
+            p_X = q_X + state.X[0, :3, 3]
+        else:
+            RX = state.X[g, :3, :3]
+            q_X = np.einsum("nij,nj->ni", RX, p_M)
+            p_X = q_X + state.X[g, :3, 3]
+        if one_camera:
+            R_cr = None
+            q_cr = P = p_X
+        else:
+            T_cr = np.stack([state.T_cam_ref.get(c, np.eye(4)) for c in self.cams])
+            R_cr = T_cr[self.o_cam, :3, :3]
+            q_cr = np.einsum("nij,nj->ni", R_cr, p_X)
+            P = q_cr + T_cr[self.o_cam, :3, 3]
         px = np.empty((n, 2))
         projections = []
         for ci, c in enumerate(self.cams):
@@ -313,7 +324,7 @@ class BundleModel:
             if c != self.ref:
                 rig = np.concatenate([np.cross(q_cr[idx, None, :], pr.d_P), pr.d_P], axis=2)
                 J[idx, :, self.slices[f"rig:{c}"]] = rig
-        A = np.einsum("nab,nbc->nac", d_P, R_cr)  # d px / d p_X  (n, 2, 3)
+        A = d_P if R_cr is None else np.einsum("nab,nbc->nac", d_P, R_cr)  # d px / d p_X
         mx = st.X_rot_basis.shape[1] + st.X_t_basis.shape[1]
         if mx:
             blk = np.concatenate(
@@ -327,7 +338,11 @@ class BundleModel:
                 J[rows, 0, cols] = blk[:, 0, :]
                 J[rows, 1, cols] = blk[:, 1, :]
         if "Y" in self.slices:
-            A2 = np.einsum("nab,nbc->nac", A, np.einsum("nij,njk->nik", RX, RM))
+            if one_group:  # A2 = A RX RM: per frame RX RM, gathered once
+                B = RX0 @ Ms[:, :3, :3]
+                A2 = np.einsum("nab,nbc->nac", A, B[f])
+            else:
+                A2 = np.einsum("nab,nbc->nac", A, np.einsum("nij,njk->nik", RX, RM))
             blk = np.concatenate(
                 [np.cross(q_Y[:, None, :], A2) @ st.Y_rot_basis, A2 @ st.Y_t_basis], axis=2
             )
@@ -380,7 +395,7 @@ class BundleModel:
         The correction acts on the measured pose as ``R <- exp([d]x) R``, ``t <- t + tau``.
         """
         n = self.n_obs
-        B = np.einsum("nab,nbc->nac", A, RX)  # d px / d p_M
+        B = A @ RX[0] if self.n_groups == 1 else np.einsum("nab,nbc->nac", A, RX)  # d px/d p_M
         if self.st.eye_in_hand:  # M = T^-1: p_M = R' (p_Y - t)
             t_true = -np.einsum("nji,nj->ni", RM, self.true_motions(state)[self.o_frame, :3, 3])
             D_rot = np.einsum("nij,njk->nik", RM, _skew_batch(p_Y - t_true))
