@@ -24,7 +24,8 @@ from pathlib import Path
 from typing import Any
 
 from slidecal.routines.config import CellConfig, load_config
-from slidecal.routines.plan import Plan, check_plan, default_plan, read_plan, write_plan
+from slidecal.routines.plan import Plan, check_plan, read_plan, write_plan
+from slidecal.routines.planner import make_plan
 from slidecal.routines.progress import Progress
 from slidecal.routines.results_io import (
     RESULT_FILE,
@@ -126,7 +127,9 @@ def run_calibration(
     config
         A cell file, a loaded :class:`CellConfig`, or None for the default simulated cell.
     plan
-        A ``plan.yaml``, a :class:`Plan`, or None for :func:`default_plan`.
+        A ``plan.yaml``, a :class:`Plan`, or None: the planner chooses one for the cell
+        (:func:`slidecal.routines.planner.make_plan`: non-degenerate, reachable, in view, the
+        goal of the cell's ``plan:`` block in the least robot time), or refuses with the reason.
     out_dir
         The session directory to create (default ``sessions/<date>_<time>``).
     progress
@@ -144,7 +147,7 @@ def run_calibration(
     cfg = config if isinstance(config, CellConfig) else load_config(config, overrides)
     if isinstance(plan, str | Path):
         plan = read_plan(plan)
-    plan = plan if plan is not None else default_plan(cfg)
+    plan = plan if plan is not None else make_plan(cfg).plan
     out = Path(out_dir) if out_dir is not None else default_session_dir()
 
     truth: dict[str, Any] | None = None
