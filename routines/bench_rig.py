@@ -44,7 +44,13 @@ from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import rotation_angle_deg
 from slidecal.solver.homography import homography_dlt, refine_homography
 from slidecal.solver.problem import CalibrationProblem, CameraSpec, Detection, ModelOptions
-from slidecal.solver.refine import BundleModel, ModelState, Structure, build_structure
+from slidecal.solver.refine import (
+    BundleModel,
+    ModelState,
+    Structure,
+    build_structure,
+    with_pose_corrections,
+)
 from slidecal.solver.stereo import infinite_homography, relative_rotation, rig_linear_intrinsics
 
 PARAMS = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
@@ -71,16 +77,8 @@ def rig_bounds(
     """
     model = BundleModel(problem, structure)
     model.sigma_px = 1.0  # prior rows in units of their own sigma
-    if "E" in model.slices and truth.E is None:
-        truth = ModelState(
-            truth.K,
-            truth.dist,
-            truth.T_cam_ref,
-            truth.X,
-            truth.Y,
-            truth.s,
-            np.zeros((len(problem.frames), 6)),
-        )
+    if "E" in model.slices:
+        truth = with_pose_corrections(truth, len(problem.frames))
     _, J = model.evaluate(truth)
     sig_obs = np.array([sigma_by_camera_px[c] for c in model.cams])[model.o_cam]
     sig_px_rows = np.repeat(sig_obs, 2)

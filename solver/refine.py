@@ -439,6 +439,15 @@ class RefineOutput:
     model: BundleModel
 
 
+def with_pose_corrections(state: ModelState, n_frames: int) -> ModelState:
+    """``state`` with zero robot-pose corrections ``E`` (n_frames, 6) where it has none."""
+    if state.E is not None:
+        return state
+    return ModelState(
+        state.K, state.dist, state.T_cam_ref, state.X, state.Y, state.s, np.zeros((n_frames, 6))
+    )
+
+
 def _respect_options(problem: CalibrationProblem, state: ModelState) -> ModelState:
     """The start with the model's assumptions imposed (fy = fx, zero skew, unused k = 0)."""
     o = problem.options
@@ -546,16 +555,8 @@ def refine(
         rows[2 * idx] = rows[2 * idx + 1] = True
         cam_rows.append(rows)
     state = _respect_options(problem, init)
-    if n_prior and state.E is None:
-        state = ModelState(
-            state.K,
-            state.dist,
-            state.T_cam_ref,
-            state.X,
-            state.Y,
-            state.s,
-            np.zeros((len(problem.frames), 6)),
-        )
+    if n_prior:
+        state = with_pose_corrections(state, len(problem.frames))
     model.sigma_px = 0.2  # a typical corner noise; re-estimated below when poses are noisy
     total_it = 0
     converged = False
@@ -676,16 +677,8 @@ def fisher_covariance(
     """
     model = BundleModel(problem, structure)
     model.sigma_px = sigma_px
-    if "E" in model.slices and truth.E is None:
-        truth = ModelState(
-            truth.K,
-            truth.dist,
-            truth.T_cam_ref,
-            truth.X,
-            truth.Y,
-            truth.s,
-            np.zeros((len(problem.frames), 6)),
-        )
+    if "E" in model.slices:
+        truth = with_pose_corrections(truth, len(problem.frames))
     _, J = model.evaluate(truth)
     w = np.ones(J.shape[0])
     for ci, c in enumerate(model.cams):
