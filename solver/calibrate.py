@@ -217,21 +217,39 @@ _EMPTY = _Empty()
 
 # -- poses and motion initialisation ------------------------------------------------------------
 def pnp_pose(
-    K: np.ndarray, dist: np.ndarray, board_pts: np.ndarray, px: np.ndarray, fast: bool = False
+    K: np.ndarray,
+    dist: np.ndarray,
+    board_pts: np.ndarray,
+    px: np.ndarray,
+    fast: bool = False,
+    guess: np.ndarray | None = None,
 ) -> np.ndarray | None:
     """``T_cam_board`` (4, 4) from one image of the planar target, or None when it fails.
 
     ``fast``: OpenCV's IPPE (closed form for planar targets, five times faster, within
     micrometres of the iterative solver on consistent data: enough for a start); otherwise the
     iterative reprojection-error minimum (what the scale check needs: on inconsistent data,
-    e.g. a wrong square size, IPPE's closed form hides part of the scale error).
+    e.g. a wrong square size, IPPE's closed form hides part of the scale error). ``guess``
+    (4, 4): a start for the iterative minimum (the minimum itself depends on the image only).
     """
     if len(px) < 4:
         return None
-    flags = cv2.SOLVEPNP_IPPE if fast else cv2.SOLVEPNP_ITERATIVE
-    ok, rvec, tvec = cv2.solvePnP(
-        board_pts.astype(np.float64), px.astype(np.float64), K, dist, flags=flags
-    )
+    obj, img = board_pts.astype(np.float64), px.astype(np.float64)
+    if guess is not None:
+        rvec0, _ = cv2.Rodrigues(guess[:3, :3])
+        ok, rvec, tvec = cv2.solvePnP(
+            obj,
+            img,
+            K,
+            dist,
+            rvec0,
+            guess[:3, 3].reshape(3, 1).copy(),
+            useExtrinsicGuess=True,
+            flags=cv2.SOLVEPNP_ITERATIVE,
+        )
+    else:
+        flags = cv2.SOLVEPNP_IPPE if fast else cv2.SOLVEPNP_ITERATIVE
+        ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=flags)
     if not ok:
         return None
     R, _ = cv2.Rodrigues(rvec)
@@ -239,7 +257,12 @@ def pnp_pose(
 
 
 def _frame_poses(
-    problem: CalibrationProblem, cam: str, K: np.ndarray, dist: np.ndarray, fast: bool = False
+    problem: CalibrationProblem,
+    cam: str,
+    K: np.ndarray,
+    dist: np.ndarray,
+    fast: bool = False,
+    guesses: dict[int, np.ndarray] | None = None,
 ) -> dict[int, np.ndarray]:
     pts = problem.target.points_m
     poses = {}
@@ -247,7 +270,7 @@ def _frame_poses(
         det = f.detections.get(cam)
         if det is None or len(det.ids) < MIN_CORNERS:
             continue
-        T = pnp_pose(K, dist, pts[det.ids], det.px, fast)
+        T = pnp_pose(K, dist, pts[det.ids], det.px, fast, (guesses or {}).get(i))
         if T is not None and T[2, 3] > 0:
             poses[i] = T
     return poses
@@ -512,7 +535,12 @@ def _result(
         outliers=out.outliers,
         unobservable=unobs,
         messages=out.messages,
-        scale_checks=scale_checks(problem, state, groups),
+        scale_checks=scale_checks(
+            problem,
+            state,
+            groups,
+            {i: model.T_ref_board(state, i) for i in range(len(problem.frames))},
+        ),
         H_inf=H_inf,
         linear=K_lin,
         mount=problem.mount,
@@ -521,15 +549,19 @@ def _result(
 
 
 def scale_checks(
-    problem: CalibrationProblem, state: ModelState, groups: np.ndarray
+    problem: CalibrationProblem,
+    state: ModelState,
+    groups: np.ndarray,
+    guesses: dict[int, np.ndarray] | None = None,
 ) -> tuple[ScaleCheck, ...]:
     """Per move within an orientation group: the translation the reference camera saw (from a
-    PnP pose per frame with the final intrinsics) against the robot's. A ratio away from 1
-    means a wrong square size or a wrong robot/TCP scale."""
+    PnP pose per frame with the final intrinsics: the image alone, ``guesses`` only start it)
+    against the robot's. A ratio away from 1 means a wrong square size or a wrong robot/TCP
+    scale."""
     if problem.knowledge != "robot":
         return ()
     ref = problem.reference
-    poses = _frame_poses(problem, ref, state.K[ref], state.dist[ref])
+    poses = _frame_poses(problem, ref, state.K[ref], state.dist[ref], guesses=guesses)
     checks = []
     for g in np.unique(groups):
         idx = [i for i in np.flatnonzero(groups == g) if i in poses]
