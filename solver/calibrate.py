@@ -22,7 +22,7 @@ from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, project_to_S
 from slidecal.solver.handeye import rotation_from_directions
 from slidecal.solver.homography import group_homographies
 from slidecal.solver.linear import LinearGroup, linear_intrinsics, zhang_intrinsics
-from slidecal.solver.problem import DISTORTION_NAMES, CalibrationProblem
+from slidecal.solver.problem import DISTORTION_NAMES, CalibrationProblem, Detection
 from slidecal.solver.refine import (
     ModelState,
     RefineOutput,
@@ -208,11 +208,7 @@ def linear_pair(
     )
 
 
-class _Empty:
-    ids = np.zeros(0, dtype=int)
-
-
-_EMPTY = _Empty()
+_EMPTY = Detection(np.zeros(0, dtype=int), np.zeros((0, 2)))  # what a camera that saw nothing saw
 
 
 # -- poses and motion initialisation ------------------------------------------------------------
