@@ -429,11 +429,10 @@ def main(argv: list[str] | None = None) -> int:
         lines += [
             "## Simulated OAK cell end to end (rendered images, ChArUco detection, solve)",
             "",
-            "Every seed runs the cell's default plan: the same robot poses, new image noise and "
-            "robot measurement noise. The rendered corners' error is partly a deterministic "
-            "function of the pose (texture sampling, detector), so it repeats across seeds and "
-            "the seeds are not independent trials of it: compare the errors with the targets, "
-            "and read the error / reported std column with that in mind.",
+            "Every seed runs `slidecal run` on the cell: the planner's poses, new image noise, "
+            "new robot measurement noise and the target set up anew (the cell's "
+            "`simulation.target_jitter`, so that the renderer's per-corner artefacts do not "
+            "repeat from seed to seed).",
             "",
             *oak_cell_lines(runs),
             "",
