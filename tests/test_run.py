@@ -57,6 +57,36 @@ def test_session_replays_offline(outcome, tmp_path: Path) -> None:
     assert yaml.safe_load((tmp_path / "r.yaml").read_text())["format"] == "slidecal.result/1"
 
 
+@pytest.mark.slow
+def test_session_of_images_only_solves_the_same(outcome, tmp_path: Path) -> None:
+    """A session whose detections were dropped is detected again from its images."""
+    import shutil
+
+    d = tmp_path / "images_only"
+    shutil.copytree(outcome.session_dir, d)
+    doc = yaml.safe_load((d / "session.yaml").read_text())
+    for f in doc["frames"]:
+        f.pop("detections", None)
+    (d / "session.yaml").write_text(yaml.safe_dump(doc))
+    again = solve_session(d, tmp_path / "r.yaml")
+    # the detector is deterministic: the same corners, the same solution
+    np.testing.assert_allclose(
+        again.result.cameras["cam"].K, outcome.result.cameras["cam"].K, rtol=1e-9
+    )
+
+
+@pytest.mark.slow
+def test_eye_to_hand_cell_end_to_end(tmp_path: Path) -> None:
+    from importlib import resources
+
+    cell = resources.files("slidecal.mocks").joinpath("eye_to_hand_cell.yaml")
+    o = run_calibration(str(cell), out_dir=tmp_path / "s", progress=False, recording=False, seed=3)
+    assert o.result.mount == "eye_to_hand" and o.result.converged
+    assert o.errors["cam.fx_rel"] < 1e-3
+    assert o.errors["T_base_cam.rot_deg"] < 0.05 and o.errors["T_base_cam.t_mm"] < 1.0
+    assert o.errors["T_tool_board.t_mm"] < 1.0
+
+
 def test_fault_mid_run_stops_robot_and_keeps_frames(tmp_path: Path) -> None:
     cfg = load_config()
     cell = SimulatedCell.from_config(cfg, seed=0)
