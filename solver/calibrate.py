@@ -397,15 +397,19 @@ def calibrate(
             "frames; choose another reference_camera or capture more"
         )
     T_cam_ref = {}
+    apart = []  # cameras that never share a view with the reference
     for c in K_lin:
         if c == ref:
             continue
         both = [i for i in poses[c] if i in poses[ref]]
         if not both:
-            raise DegenerateError(
-                f"cameras {c!r} and {ref!r} never saw the target in the same "
-                "frame; the rig extrinsics need common views"
-            )
+            if problem.knowledge != "robot" or len(poses[c]) == 0:
+                raise DegenerateError(
+                    f"cameras {c!r} and {ref!r} never saw the target in the same frame; "
+                    "without robot poses the rig extrinsics need common views"
+                )
+            apart.append(c)
+            continue
         T_cam_ref[c] = _average_T([poses[c][i] @ inv_T(poses[ref][i]) for i in both])
     # a frame the reference camera missed still has a pose through another camera of the rig
     ref_poses = dict(poses[ref])
@@ -413,6 +417,15 @@ def calibrate(
         for i, T_c_board in poses[c].items():
             ref_poses.setdefault(i, inv_T(T) @ T_c_board)
     X, Y, s = init_motion(problem, ref_poses)
+    if apart:  # the measured robot motion carries the reference camera to their frames
+        st = build_structure(problem)
+        for c in apart:
+            T_cam_ref[c] = _average_T(
+                [
+                    T_c_board @ inv_T(X[st.group_of_frame[i]] @ st.M[i] @ Y)
+                    for i, T_c_board in poses[c].items()
+                ]
+            )
     init = ModelState(K_lin, {c: zero.copy() for c in K_lin}, T_cam_ref, X, Y, s)
     structure = build_structure(problem, X[0][:3, :3])
     out = refine(problem, structure, init)

@@ -251,3 +251,14 @@ def test_per_camera_bound_equals_the_solver_fisher_covariance():
     n2, cov = fisher_covariance(s.problem, st, s.truth, 0.5, dict(s.sigma_by_camera_px))
     assert n2 == names
     np.testing.assert_allclose(crb, cov, rtol=1e-8, atol=1e-14)
+
+
+def test_robot_rig_without_common_views():
+    """With robot poses the rig extrinsics need no frame seen by both cameras: the measured
+    motion carries the reference camera's pose to the other camera's frames."""
+    s = rs.oak_rig(np.random.default_rng(12), 0.0)
+    n = len(s.problem.frames)
+    hidden = {(i, "right" if i % 2 else "left"): "none" for i in range(n)}
+    res = calibrate(rs.hide_views(s.problem, hidden))
+    _assert_recovers(s, res)
+    assert any("joint linear step" in m for m in res.messages)  # no common view to pair
