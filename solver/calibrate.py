@@ -434,6 +434,14 @@ def calibrate(
     return _result(problem, out, K_lin, groups)
 
 
+def _kept(out: RefineOutput) -> np.ndarray:
+    """Indices of the parameters a result reports (all but the robot-pose corrections)."""
+    keep = np.ones(len(out.names), dtype=bool)
+    if "E" in out.model.slices:
+        keep[out.model.slices["E"]] = False
+    return np.flatnonzero(keep)
+
+
 def _block_cov(out: RefineOutput, key: str) -> np.ndarray | None:
     if out.covariance is None or key not in out.model.slices:
         return None
@@ -538,8 +546,10 @@ def _result(
         iterations=out.iterations,
         reproj_rms_px=rms,
         sigma_px=out.sigma_px,
-        parameter_names=names,
-        covariance=cov,
+        # the robot-pose corrections are nuisance parameters: the result keeps the marginal
+        # covariance of everything else (the matching block of the full inverse)
+        parameter_names=tuple(names[i] for i in _kept(out)),
+        covariance=None if cov is None else cov[np.ix_(_kept(out), _kept(out))],
         residuals_px=residuals,
         outliers=out.outliers,
         unobservable=unobs,
