@@ -173,10 +173,23 @@ class URRobot:
         self._fresh()
 
     def close(self) -> None:
-        """Stop the control script and disconnect (idempotent); never moves the robot."""
+        """Stop the control script and disconnect (idempotent); never moves the robot.
+
+        The script is stopped only over a live link: after a lost connection ur-rtde's
+        ``stopScript`` waits on the last received runtime state, i.e. up to 300 s.
+        """
         control, receive, dashboard = self._control, self._receive, self._dashboard
+        live = False
+        if control is not None and receive is not None:
+            try:
+                live = bool(control.isConnected())
+                if live:
+                    self._fresh()
+            except (HardwareFault, RuntimeError):
+                live = False
         self._control = self._receive = self._dashboard = None
-        for obj, methods in ((control, ("stopScript", "disconnect")), (receive, ("disconnect",))):
+        control_methods = ("stopScript", "disconnect") if live else ("disconnect",)
+        for obj, methods in ((control, control_methods), (receive, ("disconnect",))):
             if obj is None:
                 continue
             for m in methods:

@@ -1,0 +1,566 @@
+"""A fake Universal Robots controller on loopback for the real ur-rtde client (tests only).
+
+Run as its own process (``python tests/ur_fake_controller.py``): the ur-rtde constructors hold
+Python's GIL while they block, so the fake must never be a thread of the process under test.
+It binds 127.0.0.1 only, on the fixed UR ports:
+
+- 30004 RTDE (protocol 2; big-endian; header uint16 size incl. header + uint8 type):
+  ``V`` 86 protocol version (answer uint8 accepted), ``v`` 118 controller version (4 x uint32),
+  ``O`` 79 output recipe (request: float64 frequency + comma-separated names; answer: uint8
+  recipe id + comma-separated types, ``NOT_FOUND`` for an unknown name), ``I`` 73 input recipe
+  (answer: uint8 recipe id + types, numbered 1, 2, ... per connection), ``S`` 83 start and
+  ``P`` 80 pause (answer uint8 success), ``U`` 85 data package (uint8 recipe id + fields).
+- 30003 script port: the client writes its control script here; once a top-level ``end``
+  line arrives the "script" runs (runtime state 2, playing) and the fake plays its register
+  protocol: command id in ``input_int_register_0``, doubles in ``input_double_register_0..``;
+  ``output_int_register_0`` is 1 (ready) while the command is 0 and 2 (done) once a command is
+  processed; results in ``output_double_register_0..5`` (joint solutions) or
+  ``output_int_register_1`` (yes/no answers).
+- 29999 dashboard: one line per command, a welcome line on connect.
+
+Robot model: a UR5e (``slidecal.drivers.ur_kinematics``) at rest at ``Q0``, robot mode 7,
+safety mode 1; MOVEL (3) moves the TCP on a straight line at the commanded speed (rotation
+interpolated on the geodesic), STOPL (33) stops at once, SET_TCP (29) changes the reported TCP,
+GET_INVERSE_KINEMATICS (30, 46) answers the analytic solution nearest ``qnear`` and, like the
+real URScript ``get_inverse_kin``, stops the script with a runtime error when there is none;
+IS_POSE_WITHIN_SAFETY_LIMITS (36) and the has-solution variants (60, 61) answer 1/0;
+STOP_SCRIPT (255) ends the script. Poses below the plane ``z = SAFETY_Z_MIN_M`` are outside the
+safety limits.
+
+Control channel: one command per line on stdin, one JSON line per answer on stdout:
+``state`` (the robot state and logs), ``pstop`` (a protective stop halfway through the next
+move: safety mode 3, the script stops, the move never reports done), ``freeze`` (a silent
+network loss: the open sockets stay open but nothing is sent or answered any more and new
+connections are refused), ``drop`` (close every connection and listener), ``quit`` (also on
+end of stdin, so the fake never outlives its parent's pipe).
+At start it prints ``{"ready": true, ...}`` or ``{"error": ...}`` (exit code 2),
+e.g. when a port is taken.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import select
+import socket
+import struct
+import sys
+import time
+
+import numpy as np
+
+from slidecal.drivers import ur_kinematics as urk
+from slidecal.drivers.ur_pose import T_from_ur_pose, ur_pose_from_T
+from slidecal.solver.geometry import R_from_rvec, inv_T, rvec_from_R
+
+HOST = "127.0.0.1"
+RTDE_PORT, SCRIPT_PORT, DASHBOARD_PORT = 30004, 30003, 29999
+CONTROLLER_VERSION = (5, 11, 1, 108318)
+POLYSCOPE_TEXT = "URSoftware 5.11.1.108318 (Mar 22 2021)"
+SERIAL_NUMBER = "20185500001"
+Q0 = np.array([0.0, -1.9, 1.7, -1.37, -1.57, 0.0])
+SAFETY_Z_MIN_M = 0.0
+
+# RTDE message types
+V, v, O, I, S, P, U, M = (ord(c) for c in "VvOISPUM")
+RUNTIME_STOPPED, RUNTIME_PLAYING = 1, 2
+READY, DONE = 1, 2
+MOVEL, SET_TCP, IK_ARGS, STOPL, IS_POSE_SAFE, IK_DEFAULT = 3, 29, 30, 33, 36, 46
+IK_HAS_SOLUTION_DEFAULT, IK_HAS_SOLUTION_ARGS, STOP_SCRIPT = 60, 61, 255
+SAFETY_BIT_NORMAL, SAFETY_BIT_PROTECTIVE = 1 << 0, 1 << 2
+STATUS_BIT_POWER_ON, STATUS_BIT_PROGRAM_RUNNING = 1 << 0, 1 << 1
+
+FORMATS = {
+    "DOUBLE": ">d", "VECTOR6D": ">6d", "VECTOR3D": ">3d", "INT32": ">i", "UINT32": ">I",
+    "UINT64": ">Q", "VECTOR6INT32": ">6i", "VECTOR6UINT32": ">6I", "BOOL": ">?", "UINT8": ">B",
+}
+VECTOR6D_NAMES = (
+    "target_q target_qd target_qdd target_current target_moment actual_q actual_qd actual_current "
+    "joint_control_output actual_TCP_pose actual_TCP_speed actual_TCP_force target_TCP_pose "
+    "target_TCP_speed joint_temperatures actual_joint_voltage ft_raw_wrench payload_inertia "
+    "actual_current_as_torque external_force_torque"
+).split()
+DOUBLE_NAMES = (
+    "timestamp actual_execution_time speed_scaling target_speed_fraction actual_momentum "
+    "actual_main_voltage actual_robot_voltage actual_robot_current standard_analog_input0 "
+    "standard_analog_input1 standard_analog_output0 standard_analog_output1 payload"
+).split()
+TYPES = {
+    **{n: "VECTOR6D" for n in VECTOR6D_NAMES},
+    **{n: "DOUBLE" for n in DOUBLE_NAMES},
+    **{n: "VECTOR3D" for n in ("actual_tool_accelerometer", "payload_cog", "elbow_position",
+                                "elbow_velocity")},
+    "robot_mode": "INT32", "safety_mode": "INT32", "safety_status": "INT32",
+    "joint_mode": "VECTOR6INT32", "runtime_state": "UINT32", "robot_status_bits": "UINT32",
+    "safety_status_bits": "UINT32", "actual_digital_input_bits": "UINT64",
+    "actual_digital_output_bits": "UINT64",
+}
+
+
+def var_type(name: str) -> str:
+    """The RTDE type of a variable name, ``NOT_FOUND`` when this fake does not know it."""
+    if name in TYPES:
+        return TYPES[name]
+    for prefix, kind in (("input_int_register_", "INT32"), ("output_int_register_", "INT32"),
+                         ("input_double_register_", "DOUBLE"),
+                         ("output_double_register_", "DOUBLE")):
+        if name.startswith(prefix) and name[len(prefix):].isdigit():
+            return kind
+    return "NOT_FOUND"
+
+
+def message(kind: int, payload: bytes = b"") -> bytes:
+    """One RTDE message: header (uint16 size incl. the 3-byte header, uint8 type) + payload."""
+    return struct.pack(">HB", 3 + len(payload), kind) + payload
+
+
+class Robot:
+    """The simulated arm and its control script's registers."""
+
+    def __init__(self) -> None:
+        self.t0 = time.monotonic()
+        self.q = Q0.copy()
+        self.T_base_flange = urk.fk(Q0)
+        self.T_flange_tcp = np.eye(4)
+        self.speed = np.zeros(6)
+        self.robot_mode = 7
+        self.safety_mode = 1
+        self.runtime_state = RUNTIME_STOPPED
+        self.in_int: dict[int, int] = {}
+        self.in_double: dict[int, float] = {}
+        self.out_int = dict.fromkeys(range(24), 0)
+        self.out_double = dict.fromkeys(range(24), 0.0)
+        self.executing = False
+        self.motion: dict | None = None
+        self.pstop_armed = False
+        self.commands: list[int] = []  # every command id the script processed, in order
+        self.texts: list[str] = []  # what the script would textmsg()
+        self.script_uploads = 0
+        self.dashboard: list[str] = []
+
+    # ------------------------------------------------------------------------------- state
+    def tcp_pose(self) -> list[float]:
+        return ur_pose_from_T(self.T_base_flange @ self.T_flange_tcp)
+
+    def value(self, name: str) -> object:
+        """The current value of an RTDE output variable."""
+        if name == "timestamp":
+            return time.monotonic() - self.t0
+        if name in ("actual_q", "target_q"):
+            return list(self.q)
+        if name in ("actual_TCP_pose", "target_TCP_pose"):
+            return self.tcp_pose()
+        if name in ("actual_TCP_speed", "target_TCP_speed"):
+            return list(self.speed)
+        if name == "robot_mode":
+            return self.robot_mode
+        if name in ("safety_mode", "safety_status"):
+            return self.safety_mode
+        if name == "runtime_state":
+            return self.runtime_state
+        if name == "safety_status_bits":
+            return SAFETY_BIT_PROTECTIVE if self.safety_mode == 3 else SAFETY_BIT_NORMAL
+        if name == "robot_status_bits":
+            running = self.runtime_state == RUNTIME_PLAYING
+            return STATUS_BIT_POWER_ON | (STATUS_BIT_PROGRAM_RUNNING if running else 0)
+        if name == "joint_mode":
+            return [253] * 6
+        if name.startswith("output_int_register_"):
+            return self.out_int.get(int(name.rsplit("_", 1)[1]), 0)
+        if name.startswith("output_double_register_"):
+            return self.out_double.get(int(name.rsplit("_", 1)[1]), 0.0)
+        if name.startswith("input_int_register_"):
+            return self.in_int.get(int(name.rsplit("_", 1)[1]), 0)
+        if name.startswith("input_double_register_"):
+            return self.in_double.get(int(name.rsplit("_", 1)[1]), 0.0)
+        kind = var_type(name)
+        if name == "actual_tool_accelerometer":
+            return [0.0, 0.0, 9.81]
+        if name in ("actual_main_voltage", "actual_robot_voltage"):
+            return 48.0
+        if name in ("speed_scaling", "target_speed_fraction"):
+            return 1.0
+        return {"VECTOR6D": [0.0] * 6, "VECTOR3D": [0.0] * 3, "DOUBLE": 0.0}.get(kind, 0)
+
+    def set_input(self, name: str, val: object) -> None:
+        if name.startswith("input_int_register_"):
+            self.in_int[int(name.rsplit("_", 1)[1])] = int(val)  # type: ignore[call-overload]
+        elif name.startswith("input_double_register_"):
+            self.in_double[int(name.rsplit("_", 1)[1])] = float(val)  # type: ignore[arg-type]
+
+    # ------------------------------------------------------------------------------ script
+    def start_script(self) -> None:
+        self.script_uploads += 1
+        self.runtime_state = RUNTIME_PLAYING
+        self.executing = False
+        self.out_int[0] = READY
+        self.texts.append("RTDE Control Script Loaded")
+
+    def _script_error(self, text: str) -> None:
+        self.texts.append(text)
+        self.runtime_state = RUNTIME_STOPPED
+
+    def _doubles(self, first: int, n: int) -> list[float]:
+        return [self.in_double.get(first + i, 0.0) for i in range(n)]
+
+    def step(self) -> None:
+        """Advance the motion and the control script by one cycle."""
+        self._advance_motion()
+        if self.runtime_state != RUNTIME_PLAYING:
+            return
+        cmd = self.in_int.get(0, 0)
+        if cmd == 0:
+            self.executing = False
+            self.out_int[0] = READY
+        elif not self.executing:
+            self.executing = True
+            self.commands.append(cmd)
+            if self._process(cmd) and self.runtime_state == RUNTIME_PLAYING:
+                self.out_int[0] = DONE
+
+    def _process(self, cmd: int) -> bool:
+        """Run one command; True when it is done now (a blocking move signals done later)."""
+        if cmd == MOVEL:
+            target = T_from_ur_pose(self._doubles(0, 6)) @ inv_T(self.T_flange_tcp)
+            speed, asynchronous = self.in_double.get(6, 0.25), self.in_int.get(1, 0) == 1
+            self._start_motion(target, speed, blocking=not asynchronous)
+            return asynchronous
+        if cmd == STOPL:
+            self._stop_motion()
+            return True
+        if cmd == SET_TCP:
+            self.T_flange_tcp = T_from_ur_pose(self._doubles(0, 6))
+            return True
+        if cmd in (IK_ARGS, IK_DEFAULT, IK_HAS_SOLUTION_ARGS, IK_HAS_SOLUTION_DEFAULT):
+            near = self._doubles(6, 6) if cmd in (IK_ARGS, IK_HAS_SOLUTION_ARGS) else self.q
+            sols = urk.ik(T_from_ur_pose(self._doubles(0, 6)), np.asarray(near),
+                          T_flange_tcp=self.T_flange_tcp)
+            if cmd in (IK_HAS_SOLUTION_ARGS, IK_HAS_SOLUTION_DEFAULT):
+                self.out_int[1] = 1 if sols else 0
+                return True
+            if not sols:
+                self._script_error("get_inverse_kin: no solution (runtime error, script stopped)")
+                return False
+            for i, qi in enumerate(sols[0]):
+                self.out_double[i] = float(qi)
+            return True
+        if cmd == IS_POSE_SAFE:
+            self.out_int[1] = 1 if self._doubles(0, 6)[2] >= SAFETY_Z_MIN_M else 0
+            return True
+        if cmd == STOP_SCRIPT:
+            self._stop_motion()
+            self.runtime_state = RUNTIME_STOPPED
+            self.texts.append("Received stop script!")
+            return False
+        self.texts.append(f"command {cmd} is not simulated: signalled done without effect")
+        return True
+
+    # ------------------------------------------------------------------------------ motion
+    def _start_motion(self, T_target: np.ndarray, speed_mps: float, blocking: bool) -> None:
+        T0 = self.T_base_flange.copy()
+        dist = float(np.linalg.norm(T_target[:3, 3] - T0[:3, 3]))
+        rvec = np.asarray(rvec_from_R(T0[:3, :3].T @ T_target[:3, :3]))
+        duration = max(dist / max(speed_mps, 1e-3), float(np.linalg.norm(rvec)) / 1.0, 0.02)
+        self.motion = {"T0": T0, "T1": T_target, "rvec": rvec, "t_start": time.monotonic(),
+                       "duration": duration, "blocking": blocking,
+                       "pstop": self.pstop_armed}
+        self.pstop_armed = False
+        dt_tcp = (T_target[:3, 3] - T0[:3, 3]) / duration
+        self.speed = np.concatenate([dt_tcp, T0[:3, :3] @ rvec / duration])
+
+    def _pose_at(self, s: float) -> np.ndarray:
+        m = self.motion
+        assert m is not None
+        T = np.eye(4)
+        T[:3, :3] = m["T0"][:3, :3] @ R_from_rvec(s * m["rvec"])
+        T[:3, 3] = (1 - s) * m["T0"][:3, 3] + s * m["T1"][:3, 3]
+        return T
+
+    def _set_flange(self, T: np.ndarray) -> None:
+        self.T_base_flange = T
+        sols = urk.ik(T, self.q)
+        if sols:
+            self.q = sols[0]
+
+    def _advance_motion(self) -> None:
+        m = self.motion
+        if m is None:
+            return
+        s = min(1.0, (time.monotonic() - m["t_start"]) / m["duration"])
+        if m["pstop"] and s >= 0.5:
+            self._set_flange(self._pose_at(0.5))
+            self._stop_motion()
+            self.protective_stop()
+            return
+        self._set_flange(self._pose_at(s))
+        if s >= 1.0:
+            self._stop_motion()
+            if m["blocking"] and self.runtime_state == RUNTIME_PLAYING:
+                self.out_int[0] = DONE
+
+    def _stop_motion(self) -> None:
+        self.motion = None
+        self.speed = np.zeros(6)
+
+    def protective_stop(self) -> None:
+        self.safety_mode = 3
+        self._script_error("protective stop: the program stopped")
+
+    # --------------------------------------------------------------------------- dashboard
+    def dashboard_answer(self, line: str) -> str | None:
+        """The dashboard server's answer to one command line (None: close the connection)."""
+        self.dashboard.append(line)
+        cmd = line.strip()
+        running = self.runtime_state == RUNTIME_PLAYING
+        if cmd == "quit":
+            return None
+        answers = {
+            "PolyscopeVersion": POLYSCOPE_TEXT,
+            "get serial number": SERIAL_NUMBER,
+            "is in remote control": "true",
+            "robotmode": "Robotmode: RUNNING",
+            "safetymode": "Safetymode: " + ("PROTECTIVE_STOP" if self.safety_mode == 3
+                                            else "NORMAL"),
+            "safetystatus": "Safetystatus: " + ("PROTECTIVE_STOP" if self.safety_mode == 3
+                                                else "NORMAL"),
+            "running": f"Program running: {'true' if running else 'false'}",
+            "programState": ("PLAYING" if running else "STOPPED") + " <unnamed>",
+            "get robot model": "UR5",
+            "close popup": "closing popup",
+            "close safety popup": "closing safety popup",
+        }
+        if cmd in answers:
+            return answers[cmd]
+        if cmd == "stop":
+            self._stop_motion()
+            self.runtime_state = RUNTIME_STOPPED
+            return "Stopped"
+        if cmd == "unlock protective stop":
+            if self.safety_mode == 3:
+                self.safety_mode = 1
+            return "Protective stop releasing"
+        return f"could not understand: '{cmd}'"
+
+
+class Connection:
+    """One accepted client socket with its receive buffer."""
+
+    def __init__(self, sock: socket.socket, kind: str) -> None:
+        self.sock, self.kind, self.buf = sock, kind, b""
+        self.out_names: list[str] = []
+        self.frequency = 125.0
+        self.inputs: dict[int, list[str]] = {}
+        self.started = False
+        self.next_send = 0.0
+        sock.settimeout(1.0)  # a client that stops reading never blocks the fake for long
+
+
+class FakeController:
+    """Listeners, connections and the event loop."""
+
+    def __init__(self) -> None:
+        self.robot = Robot()
+        self.listeners: dict[socket.socket, str] = {}
+        self.conns: list[Connection] = []
+        self.frozen = False
+        self.running = True
+        self.log: list[str] = []
+
+    def bind(self) -> None:
+        for port, kind in ((RTDE_PORT, "rtde"), (SCRIPT_PORT, "script"),
+                           (DASHBOARD_PORT, "dashboard")):
+            s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind((HOST, port))
+            except OSError as e:
+                s.close()
+                self.close_all()
+                raise OSError(f"port {port} ({kind}) on {HOST} is taken: {e}") from None
+            s.listen(8)
+            self.listeners[s] = kind
+
+    def close_all(self) -> None:
+        for c in self.conns:
+            c.sock.close()
+        self.conns = []
+        for s in self.listeners:
+            s.close()
+        self.listeners = {}
+
+    def _drop(self, c: Connection) -> None:
+        c.sock.close()
+        if c in self.conns:
+            self.conns.remove(c)
+
+    def _send(self, c: Connection, data: bytes) -> None:
+        try:
+            c.sock.sendall(data)
+        except OSError:
+            self._drop(c)
+
+    # ------------------------------------------------------------------------------- RTDE
+    def _rtde_message(self, c: Connection, kind: int, payload: bytes) -> None:
+        if kind == V:
+            self._send(c, message(V, b"\x01"))
+        elif kind == v:
+            self._send(c, message(v, struct.pack(">4I", *CONTROLLER_VERSION)))
+        elif kind == O:
+            c.frequency = struct.unpack(">d", payload[:8])[0]
+            c.out_names = [n for n in payload[8:].decode().split(",") if n]
+            types = [var_type(n) for n in c.out_names]
+            self.log.append(f"output recipe at {c.frequency:g} Hz: {','.join(c.out_names)}")
+            self._send(c, message(O, b"\x01" + ",".join(types).encode()))
+        elif kind == I:
+            names = [n for n in payload.decode().split(",") if n]
+            rid = len(c.inputs) + 1
+            c.inputs[rid] = names
+            types = [var_type(n) for n in names]
+            self._send(c, message(I, bytes([rid]) + ",".join(types).encode()))
+        elif kind == S:
+            c.started, c.next_send = True, time.monotonic()
+            self._send(c, message(S, b"\x01"))
+        elif kind == P:
+            c.started = False
+            self._send(c, message(P, b"\x01"))
+        elif kind == U:
+            self._data_package(c, payload)
+
+    def _data_package(self, c: Connection, payload: bytes) -> None:
+        names = c.inputs.get(payload[0], [])
+        off = 1
+        for n in names:
+            fmt = FORMATS.get(var_type(n))
+            if fmt is None or off + struct.calcsize(fmt) > len(payload):
+                break  # the client packs only the fields a command needs
+            vals = struct.unpack_from(fmt, payload, off)
+            off += struct.calcsize(fmt)
+            self.robot.set_input(n, vals[0] if len(vals) == 1 else vals)
+
+    def _state_package(self, c: Connection) -> bytes:
+        parts = [b"\x01"]
+        for n in c.out_names:
+            val = self.robot.value(n)
+            fmt = FORMATS[var_type(n)]
+            parts.append(struct.pack(fmt, *val) if isinstance(val, list) else
+                         struct.pack(fmt, val))
+        return message(U, b"".join(parts))
+
+    # ---------------------------------------------------------------------- other sockets
+    def _on_data(self, c: Connection, data: bytes) -> None:
+        c.buf += data
+        if c.kind == "rtde":
+            while len(c.buf) >= 3:
+                size, kind = struct.unpack(">HB", c.buf[:3])
+                if len(c.buf) < size:
+                    break
+                payload, c.buf = c.buf[3:size], c.buf[size:]
+                self._rtde_message(c, kind, payload)
+        elif c.kind == "dashboard":
+            while b"\n" in c.buf:
+                line, c.buf = c.buf.split(b"\n", 1)
+                answer = self.robot.dashboard_answer(line.decode(errors="replace"))
+                if answer is None:
+                    self._send(c, b"Disconnected\n")
+                    self._drop(c)
+                    return
+                self._send(c, answer.encode() + b"\n")
+        else:  # script port: run a program once its top-level "end" line is in
+            text = c.buf.decode(errors="replace")
+            lines = text.split("\n")
+            if any(ln.startswith("def ") for ln in lines) and any(
+                ln.rstrip() == "end" for ln in lines[:-1]
+            ):
+                self.log.append(f"script received: {len(c.buf)} bytes")
+                c.buf = b""
+                self.robot.start_script()
+
+    def _control(self, line: str) -> None:
+        cmd = line.strip()
+        r = self.robot
+        if cmd == "state":
+            print(json.dumps({
+                "tcp_pose": r.tcp_pose(), "flange_pose": ur_pose_from_T(r.T_base_flange),
+                "tcp": ur_pose_from_T(r.T_flange_tcp), "q": list(r.q),
+                "safety_mode": r.safety_mode, "runtime_state": r.runtime_state,
+                "moving": r.motion is not None, "commands": r.commands, "texts": r.texts,
+                "script_uploads": r.script_uploads, "dashboard": r.dashboard, "log": self.log,
+                "connections": [c.kind for c in self.conns], "frozen": self.frozen,
+            }), flush=True)
+            return
+        if cmd == "pstop":
+            r.pstop_armed = True
+        elif cmd == "freeze":
+            self.frozen = True
+            for s in self.listeners:
+                s.close()
+            self.listeners = {}
+        elif cmd == "drop":
+            self.close_all()
+        elif cmd in ("quit", ""):
+            self.running = False
+        else:
+            print(json.dumps({"error": f"unknown control command {cmd!r}"}), flush=True)
+            return
+        print(json.dumps({"ok": cmd}), flush=True)
+
+    # --------------------------------------------------------------------------------- loop
+    def run(self) -> None:
+        stdin = sys.stdin.fileno()
+        while self.running:
+            now = time.monotonic()
+            started = [c for c in self.conns if c.started and not self.frozen]
+            timeout = min([max(0.0, c.next_send - now) for c in started], default=0.008)
+            readers = [stdin, *self.listeners, *(c.sock for c in self.conns)]
+            ready, _, _ = select.select(readers, [], [], min(timeout, 0.008))
+            for fd in ready:
+                if fd == stdin:
+                    line = os.read(stdin, 4096).decode()
+                    for ln in (line.splitlines() or [""]):
+                        self._control(ln)
+                elif fd in self.listeners:
+                    sock, _ = fd.accept()
+                    conn = Connection(sock, self.listeners[fd])
+                    self.conns.append(conn)
+                    if conn.kind == "dashboard":
+                        self._send(conn, b"Connected: Universal Robots Dashboard Server\n")
+                else:
+                    c = next((c for c in self.conns if c.sock is fd), None)
+                    if c is None:
+                        continue
+                    try:
+                        data = fd.recv(65536)
+                    except OSError:
+                        data = b""
+                    if data and not self.frozen:
+                        self._on_data(c, data)
+                    elif data:
+                        pass  # frozen: read and ignore, answer nothing
+                    else:
+                        self._drop(c)
+            self.robot.step()
+            if self.frozen:
+                continue
+            now = time.monotonic()
+            for c in list(self.conns):
+                if c.started and now >= c.next_send:
+                    c.next_send = max(c.next_send + 1.0 / c.frequency, now)
+                    self._send(c, self._state_package(c))
+        self.close_all()
+
+
+def main() -> int:
+    fake = FakeController()
+    try:
+        fake.bind()
+    except OSError as e:
+        print(json.dumps({"error": str(e)}), flush=True)
+        return 2
+    print(json.dumps({"ready": True, "pid": os.getpid(),
+                      "ports": [RTDE_PORT, SCRIPT_PORT, DASHBOARD_PORT]}), flush=True)
+    fake.run()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
