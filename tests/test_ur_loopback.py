@@ -223,7 +223,8 @@ def test_protective_stop_during_a_move_raises_and_stops(fake, monkeypatch):
         t0 = time.monotonic()
         with pytest.raises(HardwareFault, match="protective stop"):
             robot.move_linear(T1, 0.2, 1.0)
-        assert time.monotonic() - t0 < 2.0
+        # reacts within seconds (the client itself can wait up to 300 s); generous for a busy CI
+        assert time.monotonic() - t0 < 5.0
         assert calls == [("stopL", 10.0)]
         st = fake.state()
         assert st["safety_mode"] == 3 and st["runtime_state"] == 1
@@ -235,7 +236,7 @@ def test_protective_stop_during_a_move_raises_and_stops(fake, monkeypatch):
         T_half[:3, 3] = 0.5 * (T0[:3, 3] + T1[:3, 3])
         assert_pose_close(T_from_ur_pose(st["tcp_pose"]), T_half)
     finally:
-        assert bounded(robot.close, 10.0) < 5.0
+        assert bounded(robot.close, 10.0) < 8.0
 
 
 @pytest.mark.parametrize("how", ["drop", "freeze"])
@@ -260,7 +261,7 @@ def test_lost_connection_never_returns_a_stale_pose(fake, how):
             robot.move_linear(shifted(T, 0.01, 0.0, 0.0), 0.1, 1.0)
     finally:
         wait_until(lambda: not robot._control.isConnected(), 5.0, "control link giving up")
-        assert bounded(robot.close, 10.0) < 5.0
+        assert bounded(robot.close, 10.0) < 8.0
 
 
 def test_a_taken_port_fails_clearly(fake):
