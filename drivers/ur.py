@@ -317,11 +317,19 @@ class URRobot:
             pass  # connection gone: the controller stops the robot by itself
 
     def is_reachable(self, T_base_tool: np.ndarray) -> bool:
-        """Controller IK near the current joints succeeds and the pose is within safety limits."""
+        """Controller IK near the current joints succeeds and the pose is within safety limits.
+
+        ``getInverseKinematicsHasSolution`` is asked first: URScript's ``get_inverse_kin``
+        raises on an unreachable pose and stops the control script, so the next move would
+        fail (found with the real client against tests/ur_fake_controller.py). It needs
+        PolyScope 5.10 / 3.15 or newer.
+        """
         self._require()
         pose = ur_pose_from_T(np.asarray(T_base_tool, dtype=float))
         self._fresh()
         q_near = list(self._receive.getActualQ())
+        if not self._control.getInverseKinematicsHasSolution(pose, q_near):
+            return False
         q = self._control.getInverseKinematics(pose, q_near)
         if len(q) != 6:
             return False

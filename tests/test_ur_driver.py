@@ -127,6 +127,11 @@ def install_fakes(monkeypatch: pytest.MonkeyPatch, ctl: FakeController) -> None:
             sols = urk.ik(T_from_ur_pose(x), np.asarray(qnear))
             return list(sols[0]) if sols else []
 
+        def getInverseKinematicsHasSolution(self, x, qnear=(), max_position_error=1e-10,
+                                            max_orientation_error=1e-10):
+            ctl.calls.append(("getInverseKinematicsHasSolution", list(x), list(qnear)))
+            return not ctl.unreachable and bool(urk.ik(T_from_ur_pose(x), np.asarray(qnear)))
+
         def isPoseWithinSafetyLimits(self, pose):
             return not ctl.outside_safety
 
@@ -270,7 +275,11 @@ def test_is_reachable_uses_controller_ik_and_safety_limits(ctl):
     ik_call = [c for c in ctl.calls if c[0] == "getInverseKinematics"][-1]
     np.testing.assert_allclose(ik_call[2], Q0)  # near the current joints
     ctl.unreachable = True
+    n_ik = sum(c[0] == "getInverseKinematics" for c in ctl.calls)
     assert not robot.is_reachable(T)
+    # the has-solution query answers first: get_inverse_kin is never called on an unreachable
+    # pose (on a controller it raises and stops the control script)
+    assert sum(c[0] == "getInverseKinematics" for c in ctl.calls) == n_ik
     ctl.unreachable = False
     ctl.outside_safety = True
     assert not robot.is_reachable(T)

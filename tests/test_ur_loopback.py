@@ -193,12 +193,6 @@ def test_is_reachable_through_controller_calls(fake, robot):
     robot.move_linear(shifted(T, 0.01, 0.0, 0.0), 0.1, 1.0)  # the script still runs
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="URRobot.is_reachable calls getInverseKinematics, whose URScript get_inverse_kin "
-    "raises on an unreachable pose and stops the control script: the next move fails. Fix: "
-    "ask getInverseKinematicsHasSolution first (needs the fake in test_ur_driver.py to have it)",
-)
 def test_an_unreachable_pose_does_not_break_the_next_move(fake, robot):
     T = robot.measured_pose()
     assert not robot.is_reachable(shifted(T, 5.0, 0.0, 0.0))
