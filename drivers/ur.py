@@ -179,14 +179,7 @@ class URRobot:
         ``stopScript`` waits on the last received runtime state, i.e. up to 300 s.
         """
         control, receive, dashboard = self._control, self._receive, self._dashboard
-        live = False
-        if control is not None and receive is not None:
-            try:
-                live = bool(control.isConnected())
-                if live:
-                    self._fresh()
-            except (HardwareFault, RuntimeError):
-                live = False
+        live = self._link_alive()
         self._control = self._receive = self._dashboard = None
         control_methods = ("stopScript", "disconnect") if live else ("disconnect",)
         for obj, methods in ((control, control_methods), (receive, ("disconnect",))):
@@ -230,6 +223,20 @@ class URRobot:
                 )
             time.sleep(0.002)
 
+    def _link_alive(self) -> bool:
+        """Both interfaces connected and the controller's clock still advancing: only then can
+        a command be sent without ur-rtde waiting up to 300 s for an answer (measured: a silent
+        link keeps ``isConnected()`` True, so the clock is what tells)."""
+        if self._control is None or self._receive is None:
+            return False
+        try:
+            if not (self._control.isConnected() and self._receive.isConnected()):
+                return False
+            self._fresh()
+        except (HardwareFault, RuntimeError):
+            return False
+        return True
+
     def _diagnose(self, what: str) -> str:
         """A message saying why ``what`` failed, from the robot's state."""
         try:
@@ -259,7 +266,14 @@ class URRobot:
         return T_from_ur_pose(self._receive.getActualTCPPose())
 
     def move_linear(self, T_base_tool: np.ndarray, speed_mps: float, accel_mps2: float) -> None:
-        """``moveL`` to ``T_base_tool`` (4, 4), metres, blocking; ``HardwareFault`` on failure."""
+        """``moveL`` to ``T_base_tool`` (4, 4), metres; returns on arrival, ``HardwareFault`` on
+        failure.
+
+        The move is sent asynchronously and watched here (live pose, safety mode, a deadline
+        from the trapezoidal move time): a blocking ``moveL`` whose connection drops waits up to
+        300 s inside ur-rtde (measured against tests/ur_fake_controller.py), which an
+        unattended cell cannot afford.
+        """
         self._require()
         if not 0 < speed_mps <= self.max_speed_mps:
             raise InputError(f"speed_mps must be in (0, {self.max_speed_mps}], got {speed_mps}")
@@ -268,24 +282,45 @@ class URRobot:
         T = np.asarray(T_base_tool, dtype=float)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise InputError(f"move_linear needs a finite 4x4 T_base_tool, got shape {T.shape}")
-        self._fresh()
+        T_start = self.measured_pose()
         what = f"moveL to {_describe(T)} failed"
         try:
-            ok = self._control.moveL(ur_pose_from_T(T), float(speed_mps), float(accel_mps2), False)
+            ok = self._control.moveL(ur_pose_from_T(T), float(speed_mps), float(accel_mps2), True)
         except RuntimeError as e:
             self.stop()
             raise HardwareFault(f"{self._diagnose(what)} ({e})") from None
         if not ok:
             self.stop()
             raise HardwareFault(self._diagnose(what))
-        T_now = self.measured_pose()
-        miss = float(np.linalg.norm(T_now[:3, 3] - T[:3, 3]))
-        if miss > self.arrival_tol_m:
-            self.stop()
-            raise HardwareFault(
-                f"moveL to {_describe(T)} reported success but the robot is "
-                f"{miss * 1000:.1f} mm away, at {_describe(T_now)}; check the TCP setting"
-            )
+        d = float(np.linalg.norm(T[:3, 3] - T_start[:3, 3]))
+        expected_s = d / speed_mps + speed_mps / accel_mps2
+        t0 = time.monotonic()
+        deadline = t0 + 2.0 * expected_s + self.settle_timeout_s
+        while True:
+            try:
+                T_now = self.measured_pose()  # live data or HardwareFault
+                safety = int(self._receive.getSafetyMode())
+                speed = np.asarray(self._receive.getActualTCPSpeed(), dtype=float)
+            except HardwareFault:
+                self.stop()
+                raise
+            if safety != SAFETY_MODE_NORMAL:
+                self.stop()
+                raise HardwareFault(self._diagnose(what))
+            miss = float(np.linalg.norm(T_now[:3, 3] - T[:3, 3]))
+            at_rest = np.linalg.norm(speed[:3]) < 1e-3 and np.linalg.norm(speed[3:]) < 1e-3
+            if at_rest and miss <= self.arrival_tol_m:
+                return
+            now = time.monotonic()
+            if at_rest and now - t0 > expected_s + 0.2 or now > deadline:
+                self.stop()
+                raise HardwareFault(
+                    f"moveL to {_describe(T)} was accepted but the robot is "
+                    f"{miss * 1000:.1f} mm away, at {_describe(T_now)}, "
+                    + ("at rest" if at_rest else f"still moving after {now - t0:.1f} s")
+                    + "; check the pendant and the TCP setting"
+                )
+            time.sleep(0.004)
 
     def wait_settled(self, settle_s: float) -> None:
         """Wait until the reported TCP speed is below 1 mm/s, then ``settle_s`` for vibrations."""
@@ -308,13 +343,18 @@ class URRobot:
         time.sleep(settle_s)
 
     def stop(self) -> None:
-        """``stopL``: decelerate the tool to rest. Safe at any time, also when not connected."""
-        if self._control is None:
+        """``stopL``: decelerate the tool to rest. Safe at any time, also when not connected.
+
+        Over a lost link nothing can be sent: ur-rtde's ``stopL`` would then wait up to 300 s
+        (measured), so it is skipped; the controller finishes the move it was given (a planned,
+        checked pose) and stops there.
+        """
+        if not self._link_alive():
             return
         try:
             self._control.stopL(10.0)
         except RuntimeError:
-            pass  # connection gone: the controller stops the robot by itself
+            pass  # connection gone while stopping
 
     def is_reachable(self, T_base_tool: np.ndarray) -> bool:
         """Controller IK near the current joints succeeds and the pose is within safety limits.

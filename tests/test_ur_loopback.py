@@ -258,6 +258,25 @@ def test_lost_connection_never_returns_a_stale_pose(fake, how):
         assert bounded(robot.close, 10.0) < 8.0
 
 
+@pytest.mark.parametrize("how", ["drop", "freeze"])
+def test_link_lost_during_a_move_fails_within_seconds(fake, how):
+    """A blocking moveL would wait up to 300 s inside ur-rtde; the driver watches the move."""
+    robot = URRobot("127.0.0.1", frequency=FREQ_HZ)
+    robot.connect()
+    try:
+        T = robot.measured_pose()
+        cut = threading.Timer(0.3, fake.ctl, args=(how,))  # mid-move: the move takes ~2 s
+        cut.start()
+        t0 = time.monotonic()
+        with pytest.raises(HardwareFault, match="no new data|lost the RTDE connection"):
+            robot.move_linear(shifted(T, 0.2, 0.0, 0.0), 0.1, 1.0)
+        assert time.monotonic() - t0 < 5.0
+        cut.join(5.0)
+    finally:
+        wait_until(lambda: not robot._control.isConnected(), 5.0, "control link giving up")
+        assert bounded(robot.close, 10.0) < 8.0
+
+
 def test_a_taken_port_fails_clearly(fake):
     second = subprocess.run(
         [sys.executable, str(FAKE)], stdin=subprocess.DEVNULL, capture_output=True, text=True,
