@@ -28,6 +28,20 @@ from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T
 
 
+def simulated_arm_dict(cfg: CellConfig, seed: Any = 0) -> dict[str, Any]:
+    """The ``SimulatedUR.from_dict`` description of the cell's arm (model, TCP, start pose,
+    joints, limits), without measurement noise; ``seed`` for its random stream."""
+    r: dict[str, Any] = {"model": cfg.robot.model, "seed": seed}
+    if cfg.robot.tcp is not None:
+        r["tcp"] = ur_pose_from_T(cfg.robot.tcp)
+    if cfg.robot.start_pose is not None:
+        r["start_pose"] = ur_pose_from_T(cfg.robot.start_pose)
+    for key in ("start_q", "limits"):
+        if cfg.robot.raw.get(key) is not None:
+            r[key] = cfg.robot.raw[key]
+    return r
+
+
 @dataclass
 class SimulatedCell:
     """A simulated robot, a simulated camera rig and the truth they were built from.
@@ -57,21 +71,11 @@ class SimulatedCell:
             )
         seed = sim.seed if seed is None else int(seed)
         robot_seed, camera_seed, target_seed = np.random.SeedSequence(seed).spawn(3)
-        rdict: dict[str, Any] = {
-            "model": cfg.robot.model,
-            "noise": {
-                "pose_noise_m": sim.robot_noise_m,
-                "pose_noise_deg": sim.robot_noise_deg,
-            },
-            "seed": robot_seed,
+        rdict = simulated_arm_dict(cfg, robot_seed)
+        rdict["noise"] = {
+            "pose_noise_m": sim.robot_noise_m,
+            "pose_noise_deg": sim.robot_noise_deg,
         }
-        if cfg.robot.tcp is not None:
-            rdict["tcp"] = ur_pose_from_T(cfg.robot.tcp)
-        if cfg.robot.start_pose is not None:
-            rdict["start_pose"] = ur_pose_from_T(cfg.robot.start_pose)
-        for key in ("start_q", "limits"):
-            if cfg.robot.raw.get(key) is not None:
-                rdict[key] = cfg.robot.raw[key]
         robot = SimulatedUR.from_dict(rdict)
         cams = [
             SimCamera(

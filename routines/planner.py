@@ -64,7 +64,6 @@ from pathlib import Path
 import numpy as np
 
 from slidecal.drivers import ur_kinematics as urk
-from slidecal.drivers.ur_pose import ur_pose_from_T
 from slidecal.routines.config import CellConfig, load_config
 from slidecal.routines.plan import Plan, tool_pose, write_plan
 from slidecal.routines.session import Fields
@@ -910,19 +909,6 @@ def goal_ratios(pred: dict[str, float], cfg: CellConfig, goal: PlanGoal) -> dict
 
 
 # -- dry run ----------------------------------------------------------------------------------
-def _robot_dict(cfg: CellConfig) -> dict:
-    """The simulated arm of the cell (as ``SimulatedCell`` builds it), without noise."""
-    r: dict = {"model": cfg.robot.model, "seed": 0}
-    if cfg.robot.tcp is not None:
-        r["tcp"] = ur_pose_from_T(cfg.robot.tcp)
-    if cfg.robot.start_pose is not None:
-        r["start_pose"] = ur_pose_from_T(cfg.robot.start_pose)
-    for key in ("start_q", "limits"):
-        if cfg.robot.raw.get(key) is not None:
-            r[key] = cfg.robot.raw[key]
-    return r
-
-
 def _start_q(T_base_tool: np.ndarray, cfg: CellConfig) -> np.ndarray | None:
     """Joints (6,) rad of a non-singular solution of a pose nearest the home configuration."""
     model = urk.model_by_name(cfg.robot.model)
@@ -955,9 +941,10 @@ def dry_run(plan: Plan, cfg: CellConfig) -> tuple[float, int | None, str]:
     in seconds for moves and settling, index of the first failing move in execution order or
     None, the failure message).
     """
+    from slidecal.mocks.cell import simulated_arm_dict
     from slidecal.mocks.robot import SimulatedUR
 
-    r = _robot_dict(cfg)
+    r = simulated_arm_dict(cfg)
     if not cfg.simulated:
         first = plan.via if plan.via is not None else plan.groups[0][0]
         q = _start_q(first, cfg)
