@@ -70,11 +70,6 @@ def T_from_Rt(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return T
 
 
-def T_from_rvec_t(rvec: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """4x4 transform from a rotation vector (3,) in radians and a translation (3,)."""
-    return T_from_Rt(R_from_rvec(rvec), t)
-
-
 def inv_T(T: np.ndarray) -> np.ndarray:
     """Inverse of a rigid 4x4 transform: ``inv_T(T_a_b) == T_b_a``."""
     R = T[:3, :3]

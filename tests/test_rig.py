@@ -36,6 +36,19 @@ def _assert_recovers(s: rs.RigScenario, res, tol: float = 1e-6) -> None:
         np.testing.assert_allclose(res.T_target.T, s.T_target, atol=tol * 0.1)
 
 
+def _H_inf_from_images(s: rs.RigScenario) -> np.ndarray:
+    """Eqs. 58-61 from the detections alone: per-frame homographies of both S5 cameras."""
+    pts = s.problem.target.points_m[:, :2]
+    H = {"left": [], "right": []}
+    for f in s.problem.frames:
+        for c, d in f.detections.items():
+            H[c].append(refine_homography(homography_dlt(pts[d.ids], d.px), pts[d.ids], d.px))
+    H_lin, _ = infinite_homography(
+        np.array(H["left"]), np.array(H["right"]), sizes=[rs.S5_SIZE_PX] * 2
+    )
+    return H_lin
+
+
 @pytest.mark.parametrize(
     "make",
     [
@@ -100,14 +113,7 @@ def test_h_inf_in_result_is_K_R_Kinv_and_matches_eqs_58_61():
     H_res = res.H_inf["left<-right"]
     np.testing.assert_allclose(H_res, H_true / H_true[2, 2], rtol=1e-7, atol=1e-9)
     # eqs. 58-61 from the images alone (homographies of the noise-free detections)
-    pts = s.problem.target.points_m[:, :2]
-    H = {"left": [], "right": []}
-    for f in s.problem.frames:
-        for c, d in f.detections.items():
-            H[c].append(refine_homography(homography_dlt(pts[d.ids], d.px), pts[d.ids], d.px))
-    H_lin, _ = infinite_homography(
-        np.array(H["left"]), np.array(H["right"]), sizes=[rs.S5_SIZE_PX] * 2
-    )
+    H_lin = _H_inf_from_images(s)
     np.testing.assert_allclose(H_lin / H_lin[2, 2], H_res, rtol=1e-7, atol=1e-9)
     # eq. 63 on the result's own H_inf and K gives the rig rotation back
     R63 = relative_rotation(res.cameras["left"].K, res.cameras["right"].K, H_res)
@@ -143,14 +149,7 @@ def test_eq63_rotation_agrees_with_ml_within_the_noise():
     R_true = s.truth.T_cam_ref["left"][:3, :3]
     R_ml = res.rig["T_left_right"].R
     assert rotation_angle_deg(R_ml, R_true) < 4.0 * bound
-    pts = s.problem.target.points_m[:, :2]
-    H = {"left": [], "right": []}
-    for f in s.problem.frames:
-        for c, d in f.detections.items():
-            H[c].append(refine_homography(homography_dlt(pts[d.ids], d.px), pts[d.ids], d.px))
-    H_lin, _ = infinite_homography(
-        np.array(H["left"]), np.array(H["right"]), sizes=[rs.S5_SIZE_PX] * 2
-    )
+    H_lin = _H_inf_from_images(s)
     R63 = relative_rotation(res.cameras["left"].K, res.cameras["right"].K, H_lin)
     assert rotation_angle_deg(R63, R_ml) < 4.0 * np.sqrt(2.0) * bound
     # the reported one-sigma is the bound up to the estimated noise (within 15 %)
