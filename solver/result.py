@@ -73,6 +73,39 @@ class ScaleCheck:
 
 
 @dataclass(frozen=True)
+class ModelAdequacy:
+    """Whether the model explains the data, judged against the noise the detector is known to have.
+
+    ``normalised_rms``: per camera, the reprojection rms divided by ``detector_noise_px`` (about 1
+    when the model is adequate; much more means the model or the robot poses cannot explain the
+    images). ``worst_frames``: (frame id, camera, normalised rms of that image), worst first.
+    ``adequate``: False when the result must not be used; ``reasons`` says why, one line each,
+    with the figure and its limit.
+    """
+
+    detector_noise_px: dict[str, float]
+    normalised_rms: dict[str, float]
+    worst_frames: tuple[tuple[int, str, float], ...]
+    adequate: bool
+    reasons: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class RobotAccuracy:
+    """The robot's pose accuracy as the camera sees it.
+
+    ``translation_mm``, ``rotation_deg``: the estimated one-sigma per-axis pose error (rms);
+    ``worst_frames``: (frame id, translation error mm, rotation error deg), worst first;
+    ``estimated``: True when learned from the data, False when the user's prior was used as is.
+    """
+
+    translation_mm: float
+    rotation_deg: float
+    worst_frames: tuple[tuple[int, float, float], ...]
+    estimated: bool
+
+
+@dataclass(frozen=True)
 class CalibrationResult:
     """Everything a solve determined, and how well.
 
@@ -86,6 +119,8 @@ class CalibrationResult:
     Sec. 6. ``unobservable``: parameter name -> why it was fixed. ``messages``: soft failures of
     secondary computations (e.g. a covariance that could not be computed).
     ``linear``: the linear (closed-form) intrinsics per camera before refinement.
+    ``adequacy``: the model-adequacy test (None when it could not be made); ``robot_accuracy``:
+    the robot's pose accuracy as the data shows it (None without robot poses).
     """
 
     cameras: dict[str, CameraEstimate]
@@ -107,6 +142,8 @@ class CalibrationResult:
     linear: dict[str, np.ndarray] = field(default_factory=dict)
     mount: str = "eye_in_hand"
     reference_camera: str = ""
+    adequacy: ModelAdequacy | None = None
+    robot_accuracy: RobotAccuracy | None = None
 
     def std_of(self, name: str) -> float | None:
         """One-sigma of a named parameter from the covariance, None when not estimated."""
