@@ -1,6 +1,6 @@
 """Monte-Carlo benchmark of the solver against the Cramer-Rao bound (SCENARIOS.md S1-S4, R1).
 
-Run ``slidecal bench`` (or ``python -m slidecal.routines.bench``); ``--trials`` sets the
+Run ``slidecal bench solver`` (or ``python -m slidecal.routines.bench``); ``--trials`` sets the
 Monte-Carlo size (100 by default, as SCENARIOS.md asks), ``--out`` writes the markdown table
 committed as docs/BENCHMARKS.md. Per row and parameter: bias and standard deviation over the
 trials of the paper's linear method and of the maximum-likelihood estimator, the Cramer-Rao
@@ -12,7 +12,6 @@ measured in the same run.
 from __future__ import annotations
 
 import argparse
-import platform
 import statistics
 import sys
 import time
@@ -23,6 +22,7 @@ import cv2
 import numpy as np
 
 from slidecal.mocks import scenarios as sc
+from slidecal.routines.benchmarks import report_header
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import rotation_angle_deg
@@ -340,23 +340,17 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--out", help="write the markdown report here (e.g. docs/BENCHMARKS.md)")
 
 
-def main(args: argparse.Namespace | list[str] | None = None) -> int:
-    """Entry point of ``slidecal bench`` (a parsed namespace, or argv for ``python -m``)."""
-    if not isinstance(args, argparse.Namespace):
-        ap = argparse.ArgumentParser(prog="slidecal bench", description=__doc__.splitlines()[0])
-        add_arguments(ap)
-        args = ap.parse_args(args)
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``slidecal bench solver`` (and ``python -m``)."""
+    ap = argparse.ArgumentParser(prog="slidecal bench solver", description=__doc__.splitlines()[0])
+    add_arguments(ap)
+    args = ap.parse_args(argv)
     t0 = time.time()
     rows, notes = all_rows(args.trials)
     sp = speed()
     ratio = sp["slidecal_s"] / sp["opencv_s"]
     lines = [
-        "# Benchmarks",
-        "",
-        f"Regenerate with `slidecal bench --trials {args.trials} --out docs/BENCHMARKS.md` "
-        f"({platform.machine()}, {platform.python_version()}, numpy {np.__version__}, "
-        f"OpenCV {cv2.__version__}; this run took {time.time() - t0:.0f} s).",
-        "",
+        *report_header("Benchmarks", "solver", argv, time.time() - t0),
         f"Monte-Carlo over {args.trials} trials per row (seeds 1000..). Errors in pixels of the "
         "estimate minus the truth; 'bound' is the Cramer-Rao bound (MATH.md Sec. 6) for the same "
         "scenario, knowledge and noise; efficiency = ML std / bound (1.0 is perfect). 'sampling "

@@ -1,6 +1,6 @@
 """Benchmark of the planner on the default simulated cell: predicted against achieved accuracy.
 
-``python -m slidecal.routines.bench_planner --out docs/PLANNER.md [--seeds 20]``
+``slidecal bench planner --out docs/PLANNER.md [--seeds 20]``
 
 1. Plans the default cell (goal ``fx_rel_std`` 5e-4, ``hand_eye_rot_std_deg`` 0.03, 60 s).
 2. Runs the plan on the simulated cell (rendered images, ChArUco detection, robot noise) for
@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from slidecal.routines.benchmarks import report_header
 from slidecal.routines.config import CellConfig, load_config
 from slidecal.routines.plan import Plan, default_plan, tool_pose
 from slidecal.routines.planner import (
@@ -119,7 +120,7 @@ def _rms(x: np.ndarray) -> float:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and write the markdown report."""
-    ap = argparse.ArgumentParser(prog="python -m slidecal.routines.bench_planner")
+    ap = argparse.ArgumentParser(prog="slidecal bench planner", description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="docs/PLANNER.md")
     ap.add_argument("--seeds", type=int, default=20)
     args = ap.parse_args(argv)
@@ -154,10 +155,8 @@ def main(argv: list[str] | None = None) -> int:
 
     fx_sd = float(np.std(mc["fx"], ddof=1))
     lines = [
-        "# Planner benchmark (issue 4)",
-        "",
-        "Command: `python -m slidecal.routines.bench_planner --out docs/PLANNER.md "
-        f"--seeds {args.seeds}` (default simulated cell, seeds {seeds.start}..{seeds.stop - 1}).",
+        *report_header("Planner benchmark", "planner", argv, time.monotonic() - t0),
+        f"Default simulated cell, seeds {seeds.start}..{seeds.stop - 1}.",
         "",
         "## The plan",
         "",

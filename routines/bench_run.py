@@ -1,6 +1,6 @@
 """End-to-end benchmark of ``slidecal run`` on a simulated cell over many seeds.
 
-``python -m slidecal.routines.bench_run [--seeds 20] [--config cell.yaml] [--out docs/RUN.md]``
+``slidecal bench run [--seeds 20] [--config cell.yaml] [--out docs/RUN.md]``
 runs the whole routine (plan, simulated robot, rendered images, detection, solve) once per seed
 and reports: wall and simulated robot time, the errors against the recorded truth, and whether
 the reported standard deviations are honest: the share of parameters whose error lies inside
@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from slidecal.routines.benchmarks import report_header
 from slidecal.routines.results_io import hand_eye_transforms
 from slidecal.routines.run import run_calibration
 
@@ -54,14 +55,13 @@ def run_seeds(config: str | None, seeds: list[int]) -> list[dict[str, float]]:
     return rows
 
 
-def report(rows: list[dict[str, float]], command: str) -> str:
-    """The markdown report of :func:`run_seeds`."""
+def report(rows: list[dict[str, float]], argv: list[str] | None, elapsed_s: float) -> str:
+    """The markdown report of :func:`run_seeds` (``argv``: the benchmark's options)."""
     keys = rows[0].keys()
     n = len(rows)
     lines = [
-        "# `slidecal run` on the simulated cell",
-        "",
-        f"Regenerate with `{command}`. {n} seeds; each run plans, moves the simulated UR5e, "
+        *report_header("`slidecal run` on the simulated cell", "run", argv, elapsed_s),
+        f"{n} seeds; each run plans, moves the simulated UR5e, "
         "renders and detects every image, solves and writes the session.",
         "",
         f"- wall time per run: median {np.median([r['wall_s'] for r in rows]):.1f} s, "
@@ -111,18 +111,14 @@ def report(rows: list[dict[str, float]], command: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Command line of the benchmark."""
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="slidecal bench run", description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--config", default=None, help="cell file (default: the default cell)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
-    command = (
-        "python -m slidecal.routines.bench_run"
-        + (f" --config {args.config}" if args.config else "")
-        + f" --seeds {args.seeds}"
-        + (f" --out {args.out}" if args.out else "")
-    )
-    text = report(run_seeds(args.config, list(range(1, args.seeds + 1))), command)
+    t0 = time.perf_counter()
+    rows = run_seeds(args.config, list(range(1, args.seeds + 1)))
+    text = report(rows, argv, time.perf_counter() - t0)
     print(text)
     if args.out:
         Path(args.out).write_text(text, encoding="utf-8")

@@ -84,7 +84,7 @@ SUBCOMMANDS: dict[str, str | SimpleNamespace] = {
         main=_solve_main,
         help="solve a recorded session directory again",
     ),
-    "bench": "slidecal.routines.bench",
+    "bench": "slidecal.routines.benchmarks",
     "plan": "slidecal.routines.planner",
 }
 

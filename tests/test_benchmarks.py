@@ -1,0 +1,28 @@
+"""``slidecal bench NAME``: one command for every benchmark, one report header without paths."""
+
+import importlib
+import os
+
+from slidecal.routines.benchmarks import BENCHMARKS, report_header
+from slidecal.routines.cli import main
+
+
+def test_every_benchmark_module_has_a_main():
+    for name, (module, _) in BENCHMARKS.items():
+        assert callable(importlib.import_module(module).main), name
+
+
+def test_list_names_every_benchmark(capsys):
+    assert main(["bench", "--list"]) == 0
+    out = capsys.readouterr().out
+    for name in BENCHMARKS:
+        assert name in out
+
+
+def test_header_names_versions_and_machine_but_no_path():
+    lines = report_header("A title", "run", ["--seeds", "3"], 12.0)
+    text = "\n".join(lines)
+    assert lines[0] == "# A title"
+    assert "`slidecal bench run --seeds 3`" in text
+    assert "numpy" in text and "opencv" in text and "cores" in text
+    assert os.getcwd() not in text and "/" not in text.replace("slidecal bench", "")
