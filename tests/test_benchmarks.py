@@ -26,3 +26,11 @@ def test_header_names_versions_and_machine_but_no_path():
     assert "`slidecal bench run --seeds 3`" in text
     assert "numpy" in text and "opencv" in text and "cores" in text
     assert os.getcwd() not in text and "/" not in text.replace("slidecal bench", "")
+
+
+def test_scale_session_has_the_requested_frames_and_cameras():
+    from slidecal.routines.bench_scale import session
+
+    p = session(45, 2)
+    assert len(p.frames) == 45 and [f.id for f in p.frames] == list(range(45))
+    assert {c.name for c in p.cameras} == {"left", "right"}
