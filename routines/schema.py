@@ -187,7 +187,9 @@ class Fields:
         self.data = data
 
     def where(self, key: str | None = None) -> str:
-        """``file: path.key`` for error messages."""
+        """``file: path.key`` for error messages (a key that is not printable text quoted)."""
+        if key is not None and not (key.isprintable() and key.strip() == key and key):
+            key = repr(key)
         p = self.path if key is None else (f"{self.path}.{key}" if self.path else key)
         return f"{self.file}: {p}" if p else self.file
 

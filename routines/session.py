@@ -49,6 +49,7 @@ from slidecal.routines.schema import (  # noqa: F401 - re-exported: the format l
     dump_yaml,
     load_yaml,
     plain,
+    unknown_key_error,
     write_atomic,
 )
 from slidecal.solver.errors import InputError
@@ -207,7 +208,9 @@ def _dictionary_size(name: str) -> int | None:
 
 def target_from_dict(data: Any, file: str, path: str = "target") -> Target:
     """A :class:`Target` from a ``target:`` block (charuco, chessboard or points)."""
-    f = Fields(data, file, path)
+    f = Fields(data, file, path).only(
+        tuple(dict.fromkeys(k for v in TARGET_KEYS.values() for k in v))
+    )
     kind = f.choice("kind", TARGET_KINDS)
     f.only(TARGET_KEYS[kind])
     if kind == "points":
@@ -479,7 +482,7 @@ def _simulation_truth(f: Fields | None, names: Sequence[str]) -> dict[str, Any] 
         if isinstance(key, str) and re.fullmatch(r"T_\w+_\w+", key):
             transform_from_dict(f, key)
         elif key not in SESSION_KEYS["simulation"]:
-            raise f.error(str(key), "unknown key; the truth holds cameras, noise, seed, T_<a>_<b>")
+            raise unknown_key_error(f.where(str(key)), key, SESSION_KEYS["simulation"])
     cf = f.section("cameras")
     for name in cf.data:
         if name not in names:
