@@ -3,7 +3,7 @@
 THE ROBOT NEVER MOVES unless the file names real hardware: ``robot.driver: ur`` with a
 ``host``. Without a file, the packaged simulated cell (``mocks/default_cell.yaml``) is used.
 
-Layout (every field but ``target`` has a default)::
+Layout (every field but ``target`` and the approximate target pose has a default)::
 
     mount: eye_in_hand             # eye_in_hand (camera on the tool) | eye_to_hand
     robot:
@@ -37,11 +37,13 @@ Layout (every field but ``target`` has a default)::
       rig: {right: {R, t_m}}              # T_<name>_<reference> of the other cameras
       noise: {robot_mm: 0.05, robot_deg: 0.005}
       target_jitter: {mm: 2.0, deg: 0.5}  # the target's true pose moves this much per seed
-    plan: {frames_per_group: 5, tilt_deg: 25, step_mm: [40, 80]}
+    plan: {tilts_deg: [15, 25, 35], step_mm: [40, 80]}   # the planner's options (planner.py)
     options: {skew: false, unit_aspect: false, distortion: [true, true, true, true, false],
               robot_noise_mm: 0.05, robot_noise_deg: 0.005}   # robot: 1-sigma pose error per axis
 
-Every error names the file and the field, says what is wrong and how to fix it, in one line.
+Every key, its unit and its default: docs/FORMATS.md. The keys each section accepts are declared
+once, in :data:`CELL_KEYS`; an unknown key is refused with the nearest valid one. Every error
+names the file and the field, says what is wrong and how to fix it, in one line.
 """
 
 from __future__ import annotations

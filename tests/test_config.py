@@ -248,3 +248,27 @@ def test_mocks_import_only_solver_and_drivers() -> None:
                     offenders.append(f"{path.name}: {n}")
     assert offenders == []
     assert len(list(mocks.glob("*.py"))) >= 5
+
+
+def test_formats_doc_names_every_declared_key() -> None:
+    """docs/FORMATS.md documents every key the readers accept (one schema per format)."""
+    import re
+
+    from slidecal.routines.config import CELL_KEYS
+    from slidecal.routines.plan import PLAN_KEYS
+    from slidecal.routines.planner import GOAL_KEYS
+    from slidecal.routines.planner import PLAN_KEYS as PLANNER_KEYS
+    from slidecal.routines.results_io import RESULT_KEYS, RESULT_PART_KEYS
+    from slidecal.routines.session import OPTIONS_KEYS, SESSION_KEYS, TARGET_KEYS
+
+    doc = (Path(__file__).parents[1] / "docs" / "FORMATS.md").read_text(encoding="utf-8")
+    keys = {
+        k
+        for table in (CELL_KEYS, SESSION_KEYS, TARGET_KEYS, RESULT_PART_KEYS)
+        for v in table.values()
+        for k in v
+    }
+    keys |= set(PLAN_KEYS) | set(PLANNER_KEYS) | set(GOAL_KEYS) | set(RESULT_KEYS)
+    keys |= set(OPTIONS_KEYS)
+    missing = sorted(k for k in keys if not re.search(rf"(?<![\w]){re.escape(k)}(?![\w])", doc))
+    assert missing == []
