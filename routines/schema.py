@@ -32,12 +32,18 @@ _BaseLoader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 _Dumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
 
 
+class DuplicateKeyError(yaml.constructor.ConstructorError):
+    """A key given twice in one YAML mapping (PyYAML would keep the last silently)."""
+
+
 class StrictLoader(_BaseLoader):  # type: ignore[misc, valid-type]
     """The safe YAML loader, refusing a key that appears twice in one mapping."""
 
     def construct_mapping(self, node: Any, deep: bool = False) -> dict[Any, Any]:
         seen: dict[Any, Any] = {}
         for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":  # '<<: *anchor' merges, not a key
+                continue
             key = self.construct_object(key_node, deep=True)
             try:
                 hash(key)
@@ -46,10 +52,11 @@ class StrictLoader(_BaseLoader):  # type: ignore[misc, valid-type]
                     None, None, "a mapping key must be a plain value", key_node.start_mark
                 ) from None
             if key in seen:
-                raise yaml.constructor.ConstructorError(
+                raise DuplicateKeyError(
                     None,
                     None,
-                    f"duplicate key {key!r} (first at line {seen[key].line + 1}); keep one",
+                    f"key {key!r} appears twice in one mapping (lines {seen[key].line + 1} and "
+                    f"{key_node.start_mark.line + 1}); keep one",
                     key_node.start_mark,
                 )
             seen[key] = key_node.start_mark
@@ -136,6 +143,8 @@ def parse_yaml(text: str, source: str) -> Any:
     """Parse YAML text strictly (duplicate keys refused); errors name ``source`` and the line."""
     try:
         return yaml.load(text, Loader=StrictLoader)  # noqa: S506 - a SafeLoader subclass
+    except DuplicateKeyError as e:
+        raise InputError(str(e.problem), where=source) from None
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         line = f" at line {mark.line + 1}" if mark is not None else ""

@@ -181,3 +181,14 @@ def test_non_finite_numbers_never_pass() -> None:
         node[path[-1]] = math.nan
         with pytest.raises(InputError, match="finite"):
             _read(kind, data, Path("."))
+
+
+def test_duplicate_keys_are_refused_but_merge_keys_and_a_bom_are_read(tmp_path: Path) -> None:
+    p = tmp_path / "cell.yaml"
+    p.write_text("robot:\n  model: UR5e\n  speed_mps: 0.1\n  model: UR10e\n")
+    with pytest.raises(InputError, match=r"cell.yaml: key 'model' appears twice .*lines 2 and 4"):
+        load_yaml(p, "cell file")
+    p.write_text("base: &b {x: 1}\nd:\n  <<: *b\n  y: 2\n")
+    assert load_yaml(p, "cell file")["d"] == {"x": 1, "y": 2}
+    p.write_bytes(b"\xef\xbb\xbfa: 1\n")
+    assert load_yaml(p, "cell file") == {"a": 1}
