@@ -290,6 +290,6 @@ def check_plan(plan: Plan, cfg: CellConfig, is_reachable=None) -> None:
         if is_reachable is not None and not is_reachable(T):
             raise InputError(
                 f"pose {np.round(ur_pose_from_T(T), 4).tolist()} is not reachable by the "
-                "robot; move the target closer or reduce plan.tilt_deg",
+                "robot; move the target closer or lower plan.tilts_deg",
                 where=where,
             )

@@ -140,9 +140,18 @@ def read_text(path: Path, what: str) -> str:
 
 
 def parse_yaml(text: str, source: str) -> Any:
-    """Parse YAML text strictly (duplicate keys refused); errors name ``source`` and the line."""
+    """Parse YAML text strictly (a key twice in one mapping is refused, naming its field);
+    errors name ``source`` and the line."""
     try:
-        return yaml.load(text, Loader=StrictLoader)  # noqa: S506 - a SafeLoader subclass
+        loader = StrictLoader(text)
+        try:
+            node = loader.get_single_node()
+            if node is None:
+                return None
+            _refuse_duplicate_keys(node, "", source, set())
+            return loader.construct_document(node)
+        finally:
+            loader.dispose()
     except DuplicateKeyError as e:
         raise InputError(str(e.problem), where=source) from None
     except yaml.YAMLError as e:
@@ -154,6 +163,33 @@ def parse_yaml(text: str, source: str) -> Any:
         ) from None
     except RecursionError:
         raise InputError("nests too deeply to be a slidecal file", where=source) from None
+
+
+def _refuse_duplicate_keys(node: Any, path: str, source: str, seen: set[int]) -> None:
+    """Walk the composed YAML; a key given twice in one mapping is an ``InputError``."""
+    if id(node) in seen:  # an alias of a node already walked
+        return
+    seen.add(id(node))
+    if isinstance(node, yaml.MappingNode):
+        first: dict[tuple[str, str], int] = {}
+        for key_node, value_node in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
+            if not isinstance(key_node, yaml.ScalarNode):
+                continue  # refused by the constructor (a key must be a plain value)
+            name = key_node.value
+            field = f"{path}.{name}" if path else name
+            line = key_node.start_mark.line + 1
+            if (key_node.tag, name) in first:
+                raise InputError(
+                    f"appears twice (lines {first[(key_node.tag, name)]} and {line}); keep one",
+                    where=f"{source}: {field}",
+                )
+            first[(key_node.tag, name)] = line
+            _refuse_duplicate_keys(value_node, field, source, seen)
+    elif isinstance(node, yaml.SequenceNode):
+        for i, item in enumerate(node.value):
+            _refuse_duplicate_keys(item, f"{path}[{i}]", source, seen)
 
 
 def load_yaml(path: Path, what: str) -> Any:

@@ -17,7 +17,7 @@ from slidecal.routines import bad_input
 from slidecal.routines.config import config_from_dict
 from slidecal.routines.plan import plan_from_dict
 from slidecal.routines.results_io import result_from_dict
-from slidecal.routines.schema import load_yaml
+from slidecal.routines.schema import Fields, load_yaml
 from slidecal.routines.session import session_from_dict
 from slidecal.solver.errors import InputError
 
@@ -186,9 +186,12 @@ def test_non_finite_numbers_never_pass() -> None:
 def test_duplicate_keys_are_refused_but_merge_keys_and_a_bom_are_read(tmp_path: Path) -> None:
     p = tmp_path / "cell.yaml"
     p.write_text("robot:\n  model: UR5e\n  speed_mps: 0.1\n  model: UR10e\n")
-    with pytest.raises(InputError, match=r"cell.yaml: key 'model' appears twice .*lines 2 and 4"):
+    with pytest.raises(InputError, match=r"cell.yaml: robot.model: appears twice \(lines 2 and 4"):
         load_yaml(p, "cell file")
     p.write_text("base: &b {x: 1}\nd:\n  <<: *b\n  y: 2\n")
     assert load_yaml(p, "cell file")["d"] == {"x": 1, "y": 2}
     p.write_bytes(b"\xef\xbb\xbfa: 1\n")
     assert load_yaml(p, "cell file") == {"a": 1}
+    p.write_text("a: &x [1, *x]\n")  # a list holding itself: read, then refused as a value
+    with pytest.raises(InputError, match="array of numbers"):
+        Fields(load_yaml(p, "cell file"), "cell.yaml").array("a", (-1,))
