@@ -358,6 +358,89 @@ def config_from_dict(data: Any, source: str = "cell.yaml", sha256: str | None = 
     return cfg
 
 
+def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
+    """The cell file of a validated cell (the inverse of :func:`config_from_dict`): every
+    value explicit, transforms as ``{R, t_m}``, simulated cameras in full (no preset)."""
+    from slidecal.drivers.ur_pose import ur_pose_from_T
+    from slidecal.routines.session import options_to_dict, transform_to_dict
+
+    r = cfg.robot
+    robot: dict[str, Any] = {"driver": r.driver}
+    if r.host is not None:
+        robot["host"] = r.host
+    robot.update(model=r.model, speed_mps=r.speed_mps, accel_mps2=r.accel_mps2, settle_s=r.settle_s)
+    for key, T in (("tcp", r.tcp), ("start_pose", r.start_pose)):
+        if T is not None:
+            robot[key] = ur_pose_from_T(T)
+    if r.start_q is not None:
+        robot["start_q"] = r.start_q.tolist()
+    if r.workspace_min_m is not None and r.workspace_max_m is not None:
+        robot["workspace"] = {
+            "min_m": r.workspace_min_m.tolist(),
+            "max_m": r.workspace_max_m.tolist(),
+        }
+    if r.limits:
+        robot["limits"] = dict(r.limits)
+    cameras: dict[str, Any] = {"driver": cfg.camera_driver, "reference": cfg.reference_camera}
+    if cfg.device_id is not None:
+        cameras["device_id"] = cfg.device_id
+    if cfg.camera_driver != "simulated":
+        cameras["list"] = [
+            {"name": c.name, "width": c.width, "height": c.height, **cfg.camera_options[c.name]}
+            for c in cfg.cameras
+        ]
+    he_key, tg_key = _names(cfg.mount)
+    out: dict[str, Any] = {
+        "format": CELL_FORMAT,
+        "mount": cfg.mount,
+        "robot": robot,
+        "cameras": cameras,
+        "target": dict(cfg.target_dict),
+        "approximate": {
+            tg_key: transform_to_dict(cfg.approx_T_target),
+            he_key: transform_to_dict(cfg.approx_T_hand_eye),
+            "standoff_m": cfg.standoff_m,
+        },
+    }
+    sim = cfg.simulation
+    if sim is not None:
+        out["simulation"] = {
+            "seed": sim.seed,
+            "cameras": {
+                c.name: {
+                    "width": c.width,
+                    "height": c.height,
+                    "K": np.asarray(c.K).tolist(),
+                    "distortion": np.asarray(c.dist).tolist(),
+                    "blur_sigma_px": c.blur_sigma_px,
+                    "noise_std": c.noise_std,
+                    "exposure": c.exposure,
+                    "colour": c.colour,
+                    "vignetting": c.vignetting,
+                }
+                for c in sim.cameras
+            },
+            he_key: transform_to_dict(sim.T_hand_eye),
+            tg_key: transform_to_dict(sim.T_target),
+            "rig": {n: transform_to_dict(T) for n, T in sim.rig.items()},
+            "noise": {"robot_mm": sim.robot_noise_m * 1000.0, "robot_deg": sim.robot_noise_deg},
+            "target_jitter": {"mm": sim.target_jitter_mm, "deg": sim.target_jitter_deg},
+        }
+    out["plan"] = dict(cfg.plan)
+    out["options"] = options_to_dict(cfg.options)
+    return out
+
+
+def write_config(cfg: CellConfig, path: str | Path) -> Path:
+    """Write the cell file of ``cfg`` (:func:`config_to_dict`) atomically."""
+    from slidecal.routines.schema import dump_yaml, write_atomic
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(path, dump_yaml(config_to_dict(cfg)))
+    return path
+
+
 def _names(mount: str) -> tuple[str, str]:
     """Hand-eye and target-pose field names of a mount."""
     if mount == "eye_in_hand":

@@ -272,3 +272,52 @@ def test_formats_doc_names_every_declared_key() -> None:
     keys |= set(OPTIONS_KEYS)
     missing = sorted(k for k in keys if not re.search(rf"(?<![\w]){re.escape(k)}(?![\w])", doc))
     assert missing == []
+
+
+def _same_config(a, b) -> None:
+    from dataclasses import fields
+
+    def same(x, y) -> bool:
+        if isinstance(x, np.ndarray) or isinstance(y, np.ndarray):
+            return x is not None and y is not None and np.allclose(x, y, atol=1e-12)
+        if isinstance(x, dict) and isinstance(y, dict):
+            return x.keys() == y.keys() and all(same(x[k], y[k]) for k in x)
+        if isinstance(x, tuple | list) and isinstance(y, tuple | list):
+            return len(x) == len(y) and all(same(u, v) for u, v in zip(x, y, strict=True))
+        if hasattr(x, "__dataclass_fields__"):
+            return all(
+                same(getattr(x, f.name), getattr(y, f.name)) for f in fields(x) if f.name != "raw"
+            )
+        return x == y
+
+    for f in fields(a):
+        if f.name in ("raw", "source", "sha256"):
+            continue
+        assert same(getattr(a, f.name), getattr(b, f.name)), f.name
+
+
+@pytest.mark.parametrize("name", ["default_cell.yaml", "oak_cell.yaml", "eye_to_hand_cell.yaml"])
+def test_cell_write_then_read_gives_the_same_cell(tmp_path: Path, name: str) -> None:
+    from slidecal.routines.config import write_config
+
+    cfg = load_packaged_cell(name)
+    _same_config(cfg, load_config(write_config(cfg, tmp_path / "cell.yaml")))
+
+
+def test_real_cell_write_then_read_gives_the_same_cell(tmp_path: Path) -> None:
+    from slidecal.routines.config import write_config
+
+    d = _default_dict()
+    del d["simulation"]
+    d["robot"] = {"driver": "ur", "host": "10.0.0.2", "tcp": [0, 0, 0.1, 0, 0, 0]}
+    d["cameras"] = {
+        "driver": "oak",
+        "device_id": "1844301011B5",
+        "list": [
+            {"name": "left", "width": 1280, "height": 800, "socket": "CAM_B", "colour": False}
+        ],
+    }
+    p = tmp_path / "in.yaml"
+    p.write_text(yaml.safe_dump(d))
+    cfg = load_config(p)
+    _same_config(cfg, load_config(write_config(cfg, tmp_path / "out.yaml")))
