@@ -7,8 +7,11 @@ pose (not the noisy measured one), the true hand-eye and rig extrinsics and the 
 - eye-to-hand: ``T_cam_board = T_cam_ref @ inv(T_base_ref) @ T_base_tool @ T_tool_board``
 
 where ``ref`` is the rig's reference camera and ``T_cam_ref`` its extrinsics (identity for the
-reference itself). The packaged cells: ``default_cell.yaml`` (UR5e, eye-in-hand, the R1
-camera), ``oak_cell.yaml`` (an OAK-D-like head, eye-in-hand), ``eye_to_hand_cell.yaml``.
+reference itself). The cell is a validated cell description (``CellConfig`` of
+``slidecal.routines.config``), read by attribute: this package sits below ``routines`` and
+imports only ``solver`` and ``drivers``. The packaged cells: ``default_cell.yaml`` (UR5e,
+eye-in-hand, the R1 camera), ``oak_cell.yaml`` (an OAK-D-like head, eye-in-hand),
+``eye_to_hand_cell.yaml``.
 """
 
 from __future__ import annotations
@@ -19,16 +22,66 @@ from typing import Any
 import numpy as np
 
 from slidecal.drivers.ur_pose import ur_pose_from_T
-from slidecal.mocks.camera import SimCamera, SimulatedCameraRig
+from slidecal.mocks.camera import SimulatedCameraRig
 from slidecal.mocks.robot import SimulatedUR
-from slidecal.routines.config import CellConfig, truth_block
-from slidecal.routines.results_io import target_pose_name
-from slidecal.routines.session import transform_to_dict
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T
 
+#: Hand-eye and target-pose names per mount (the result file's names).
+POSE_NAMES = {
+    "eye_in_hand": ("T_tool_cam", "T_base_board"),
+    "eye_to_hand": ("T_base_cam", "T_tool_board"),
+}
 
-def simulated_arm_dict(cfg: CellConfig, seed: Any = 0) -> dict[str, Any]:
+
+def _transform_dict(T: np.ndarray) -> dict[str, Any]:
+    T = np.asarray(T, dtype=float)
+    return {"R": T[:3, :3].tolist(), "t_m": T[:3, 3].tolist()}
+
+
+def truth_block(cfg: Any, T_target: np.ndarray | None = None) -> dict[str, Any]:
+    """The session's ``simulation:`` block (result-file names) of a simulated cell ``cfg``.
+
+    ``T_target`` (4, 4): the target pose of this run (default: the cell's, before jitter).
+    """
+    sim = cfg.simulation
+    if sim is None:
+        return {}
+    he_key, tg_key = POSE_NAMES[cfg.mount]
+    frame = he_key.split("_")[1]  # tool | base
+    ref = cfg.reference_camera
+    out: dict[str, Any] = {
+        "cameras": {
+            c.name: {"K": np.asarray(c.K).tolist(), "distortion": np.asarray(c.dist).tolist()}
+            for c in sim.cameras
+        },
+    }
+    if len(sim.cameras) == 1:
+        out[he_key] = _transform_dict(sim.T_hand_eye)
+    else:
+        for c in sim.cameras:
+            T_ref_c = np.eye(4) if c.name == ref else np.linalg.inv(sim.rig[c.name])
+            out[f"T_{frame}_{c.name}"] = _transform_dict(sim.T_hand_eye @ T_ref_c)
+        for name, T in sim.rig.items():
+            out[f"T_{name}_{ref}"] = _transform_dict(T)
+    out[tg_key] = _transform_dict(sim.T_target if T_target is None else T_target)
+    out["noise"] = {
+        "robot_mm": sim.robot_noise_m * 1000.0,
+        "robot_deg": sim.robot_noise_deg,
+        "cameras": {
+            c.name: {
+                "blur_sigma_px": c.blur_sigma_px,
+                "noise_std": c.noise_std,
+                "exposure": c.exposure,
+            }
+            for c in sim.cameras
+        },
+    }
+    out["seed"] = sim.seed
+    return out
+
+
+def simulated_arm_dict(cfg: Any, seed: Any = 0) -> dict[str, Any]:
     """The ``SimulatedUR.from_dict`` description of the cell's arm (model, TCP, start pose,
     joints, limits), without measurement noise; ``seed`` for its random stream."""
     r: dict[str, Any] = {"model": cfg.robot.model, "seed": seed}
@@ -36,9 +89,10 @@ def simulated_arm_dict(cfg: CellConfig, seed: Any = 0) -> dict[str, Any]:
         r["tcp"] = ur_pose_from_T(cfg.robot.tcp)
     if cfg.robot.start_pose is not None:
         r["start_pose"] = ur_pose_from_T(cfg.robot.start_pose)
-    for key in ("start_q", "limits"):
-        if cfg.robot.raw.get(key) is not None:
-            r[key] = cfg.robot.raw[key]
+    if cfg.robot.start_q is not None:
+        r["start_q"] = np.asarray(cfg.robot.start_q, dtype=float).tolist()
+    if cfg.robot.limits:
+        r["limits"] = dict(cfg.robot.limits)
     return r
 
 
@@ -47,17 +101,17 @@ class SimulatedCell:
     """A simulated robot, a simulated camera rig and the truth they were built from.
 
     ``truth``: the session's ``simulation:`` block (result-file names, see
-    :func:`slidecal.routines.config.truth_block`).
+    :func:`truth_block`); ``config``: the cell description it was built from.
     """
 
-    config: CellConfig
+    config: Any
     robot: SimulatedUR
     rig: SimulatedCameraRig
     truth: dict[str, Any]
     seed: int
 
     @classmethod
-    def from_config(cls, cfg: CellConfig, seed: int | None = None) -> SimulatedCell:
+    def from_config(cls, cfg: Any, seed: int | None = None) -> SimulatedCell:
         """Build the cell of a simulated ``cfg``; ``seed`` overrides ``simulation.seed``.
 
         The robot's measurement noise and the cameras' image noise come from independent
@@ -77,20 +131,7 @@ class SimulatedCell:
             "pose_noise_deg": sim.robot_noise_deg,
         }
         robot = SimulatedUR.from_dict(rdict)
-        cams = [
-            SimCamera(
-                c.name,
-                c.width,
-                c.height,
-                c.K,
-                c.distortion,
-                blur_sigma_px=c.blur_sigma_px,
-                noise_std=c.noise_std,
-                exposure=c.exposure,
-                colour=c.colour,
-            )
-            for c in sim.cameras
-        ]
+        cams = list(sim.cameras)
         ref = cfg.reference_camera
         T_cam_ref = {c.name: (np.eye(4) if c.name == ref else sim.rig[c.name]) for c in cams}
         T_he, T_tg = sim.T_hand_eye, sim.T_target
@@ -114,7 +155,6 @@ class SimulatedCell:
                 return {n: T @ T_ref_board for n, T in T_cam_ref.items()}
 
         rig = SimulatedCameraRig(cams, cfg.target, poses, np.random.default_rng(camera_seed))
-        truth = truth_block(cfg)
-        truth[target_pose_name(cfg.mount)] = transform_to_dict(T_tg)
+        truth = truth_block(cfg, T_tg)
         truth["seed"] = seed
         return cls(cfg, robot, rig, truth, seed)

@@ -3,7 +3,7 @@
 THE ROBOT NEVER MOVES unless the file names real hardware: ``robot.driver: ur`` with a
 ``host``. Without a file, the packaged simulated cell (``mocks/default_cell.yaml``) is used.
 
-Layout (every field but ``target`` has a default)::
+Layout (every field but ``target`` and the approximate target pose has a default)::
 
     mount: eye_in_hand             # eye_in_hand (camera on the tool) | eye_to_hand
     robot:
@@ -37,46 +37,120 @@ Layout (every field but ``target`` has a default)::
       rig: {right: {R, t_m}}              # T_<name>_<reference> of the other cameras
       noise: {robot_mm: 0.05, robot_deg: 0.005}
       target_jitter: {mm: 2.0, deg: 0.5}  # the target's true pose moves this much per seed
-    plan: {frames_per_group: 5, tilt_deg: 25, step_mm: [40, 80]}
+    plan: {tilts_deg: [15, 25, 35], step_mm: [40, 80]}   # the planner's options (planner.py)
     options: {skew: false, unit_aspect: false, distortion: [true, true, true, true, false],
               robot_noise_mm: 0.05, robot_noise_deg: 0.005}   # robot: 1-sigma pose error per axis
 
-Every error names the file and the field, says what is wrong and how to fix it, in one line.
+Every key, its unit and its default: docs/FORMATS.md. The keys each section accepts are declared
+once, in :data:`CELL_KEYS`; an unknown key is refused with the nearest valid one. Every error
+names the file and the field, says what is wrong and how to fix it, in one line.
 """
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from slidecal.drivers.ur_pose import T_from_ur_pose
+from slidecal.mocks.camera import SimCamera
+from slidecal.routines.schema import Fields, load_yaml, parse_yaml
 from slidecal.routines.session import (
-    Fields,
-    as_array,
-    load_yaml,
+    OPTIONS_KEYS,
+    TARGET_KEYS,
     options_from_dict,
     target_from_dict,
+    target_to_dict,
     transform_from_dict,
+    ur_pose_field,
 )
 from slidecal.solver.errors import InputError
 from slidecal.solver.problem import CameraSpec, ModelOptions, Target
 
+CELL_FORMAT = "slidecal.cell/1"
 ROBOT_DRIVERS = ("simulated", "ur")
 CAMERA_DRIVERS = ("simulated", "oak", "uvc")
 CELL_MOUNTS = ("eye_in_hand", "eye_to_hand")
 CAMERA_PRESETS = ("r1", "oak_d_like")
 DEFAULT_CELL = "default_cell.yaml"
 
+#: The keys every section of a cell file accepts: add a new key here (one place per section),
+#: then read it in that section's function below. ``target`` and ``options`` take
+#: :data:`~slidecal.routines.session.TARGET_KEYS` and ``OPTIONS_KEYS`` (shared with sessions);
+#: ``plan`` takes :data:`slidecal.routines.planner.PLAN_KEYS`.
+CELL_KEYS: dict[str, tuple[str, ...]] = {
+    "": (
+        "format",
+        "mount",
+        "robot",
+        "cameras",
+        "target",
+        "approximate",
+        "simulation",
+        "plan",
+        "options",
+    ),
+    "robot": (
+        "driver",
+        "host",
+        "model",
+        "tcp",
+        "speed_mps",
+        "accel_mps2",
+        "settle_s",
+        "start_pose",
+        "start_q",
+        "workspace",
+        "limits",
+    ),
+    "robot.workspace": ("min_m", "max_m"),
+    "robot.limits": (
+        "max_speed_mps",
+        "max_accel_mps2",
+        "max_angular_speed_deg_s",
+        "max_angular_accel_deg_s2",
+        "z_min_m",
+        "move_timeout_s",
+    ),
+    "cameras": ("driver", "reference", "list", "device_id"),
+    "cameras.list[].oak": ("name", "width", "height", "socket", "colour"),
+    "cameras.list[].uvc": ("name", "width", "height", "fourcc", "exposure", "drop_frames"),
+    "approximate.eye_in_hand": ("T_base_board", "T_tool_cam", "standoff_m"),
+    "approximate.eye_to_hand": ("T_base_cam", "T_tool_board", "standoff_m"),
+    "simulation": ("seed", "camera_preset", "cameras", "rig", "noise", "target_jitter"),
+    "simulation.cameras.*": (
+        "width",
+        "height",
+        "K",
+        "distortion",
+        "blur_sigma_px",
+        "noise_std",
+        "exposure",
+        "colour",
+        "vignetting",
+    ),
+    "simulation.noise": ("robot_mm", "robot_deg"),
+    "simulation.target_jitter": ("mm", "deg"),
+}
+
+#: ``plan:`` keys of earlier versions that no longer act, and what to write instead.
+RETIRED_PLAN_KEYS = {
+    "frames_per_group": "the planner chooses the frames of each group; bound them with "
+    "min_frames_per_group and max_frames_per_group",
+    "groups": "the planner chooses the groups; bound them with min_groups and max_groups",
+    "tilt_deg": "the planner chooses among candidate tilts; give them as tilts_deg: [25]",
+}
+
 
 @dataclass(frozen=True)
 class RobotConfig:
     """The ``robot:`` section. ``tcp`` (4, 4) T_flange_tcp or None; workspace box (3,) each,
-    base frame, metres (None: unbounded); ``start_pose`` (4, 4) T_base_tool (simulated)."""
+    base frame, metres (None: unbounded); ``start_pose`` (4, 4) T_base_tool and ``start_q``
+    (6,) rad (simulated arm); ``limits``: the simulated arm's limits (``robot.limits``)."""
 
     driver: str = "simulated"
     host: str | None = None
@@ -88,38 +162,26 @@ class RobotConfig:
     start_pose: np.ndarray | None = None
     workspace_min_m: np.ndarray | None = None
     workspace_max_m: np.ndarray | None = None
+    start_q: np.ndarray | None = None
+    limits: dict[str, float] = field(default_factory=dict)
     raw: Mapping[str, Any] = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class SimCameraConfig:
-    """One simulated camera's truth: ``K`` (3, 3) px, ``distortion`` (5,) OpenCV order."""
-
-    name: str
-    width: int
-    height: int
-    K: np.ndarray
-    distortion: np.ndarray
-    blur_sigma_px: float = 0.6
-    noise_std: float = 2.0
-    exposure: float = 1.0
-    colour: bool = False
 
 
 @dataclass(frozen=True)
 class SimulationConfig:
     """The ``simulation:`` section: the truth of a simulated cell.
 
-    ``T_hand_eye`` (4, 4): ``T_tool_cam`` (eye-in-hand) or ``T_base_cam`` (eye-to-hand) of the
-    reference camera; ``T_target`` (4, 4): ``T_base_board`` or ``T_tool_board``; ``rig``:
-    ``T_<name>_<reference>`` (4, 4) per other camera. Noise: robot position std per axis
-    (metres) and rotation std per axis (degrees). ``target_jitter_mm``/``_deg``: the target is
-    set up anew for each run: its true pose moves by this one-sigma amount per axis, drawn from
-    the run's seed (so a renderer's per-corner artefacts do not repeat from seed to seed).
+    ``cameras``: the simulated cameras (:class:`~slidecal.mocks.camera.SimCamera`, the type the
+    simulator renders with). ``T_hand_eye`` (4, 4): ``T_tool_cam`` (eye-in-hand) or
+    ``T_base_cam`` (eye-to-hand) of the reference camera; ``T_target`` (4, 4): ``T_base_board``
+    or ``T_tool_board``; ``rig``: ``T_<name>_<reference>`` (4, 4) per other camera. Noise: robot
+    position std per axis (metres) and rotation std per axis (degrees). ``target_jitter_mm`` /
+    ``_deg``: the target is set up anew for each run: its true pose moves by this one-sigma
+    amount per axis, drawn from the run's seed.
     """
 
     seed: int
-    cameras: tuple[SimCameraConfig, ...]
+    cameras: tuple[SimCamera, ...]
     T_hand_eye: np.ndarray
     T_target: np.ndarray
     rig: dict[str, np.ndarray]
@@ -131,7 +193,12 @@ class SimulationConfig:
 
 @dataclass(frozen=True)
 class CellConfig:
-    """A validated cell description (see the module docstring)."""
+    """A validated cell description (see the module docstring).
+
+    ``source``: the file's name; ``sha256``: the SHA-256 of its bytes (recorded in sessions).
+    ``camera_options``: per camera the driver options of ``cameras.list``; ``sockets``: OAK
+    board socket per camera (empty for other drivers).
+    """
 
     source: str
     mount: str
@@ -149,11 +216,27 @@ class CellConfig:
     plan: dict[str, Any]
     options: ModelOptions
     raw: dict[str, Any]
+    sha256: str | None = None
+    device_id: str | None = None
 
     @property
     def simulated(self) -> bool:
         """True when no real robot moves (``robot.driver: simulated``)."""
         return self.robot.driver == "simulated"
+
+    @property
+    def sockets(self) -> dict[str, str]:
+        """OAK board socket per camera (empty unless ``cameras.driver: oak``)."""
+        return {n: str(o["socket"]) for n, o in self.camera_options.items() if o.get("socket")}
+
+    def session_fields(self) -> dict[str, Any]:
+        """What a session records about its cell (``cell``, ``cell_sha256``, the drivers)."""
+        out: dict[str, Any] = {"cell": self.source}
+        if self.sha256 is not None:
+            out["cell_sha256"] = self.sha256
+        out["robot_driver"] = self.robot.driver
+        out["camera_driver"] = self.camera_driver
+        return out
 
 
 def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None):
@@ -165,19 +248,20 @@ def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | N
         return load_packaged_cell(DEFAULT_CELL, overrides)
     path = Path(path)
     data = load_yaml(path, "cell file")
-    return config_from_dict(_merge(data, overrides or {}), path.name)
+    sha = hashlib.sha256(path.read_bytes()).hexdigest()
+    return config_from_dict(_merge(data, overrides or {}), path.name, sha256=sha)
 
 
 def load_packaged_cell(name: str, overrides: Mapping[str, Any] | None = None) -> CellConfig:
     """A cell shipped in ``slidecal.mocks`` (``default_cell.yaml``, ``oak_cell.yaml``,
     ``eye_to_hand_cell.yaml``)."""
     ref = resources.files("slidecal.mocks").joinpath(name)
-    if not ref.is_file():
+    if not name.endswith(".yaml") or not ref.is_file():
         raise InputError(f"no packaged cell named {name!r}; see slidecal/mocks/*.yaml")
-    import yaml
-
-    data = yaml.safe_load(ref.read_text(encoding="utf-8"))
-    return config_from_dict(_merge(data, overrides or {}), name)
+    raw = ref.read_bytes()
+    data = parse_yaml(raw.decode("utf-8"), name)
+    sha = hashlib.sha256(raw).hexdigest()
+    return config_from_dict(_merge(data, overrides or {}), name, sha256=sha)
 
 
 def _merge(base: Any, over: Mapping[str, Any]) -> Any:
@@ -192,35 +276,19 @@ def _merge(base: Any, over: Mapping[str, Any]) -> Any:
     return out
 
 
-def config_from_dict(data: Any, source: str = "cell.yaml") -> CellConfig:
+def config_from_dict(data: Any, source: str = "cell.yaml", sha256: str | None = None) -> CellConfig:
     """Validate a parsed cell description; errors name ``source: field``."""
-    f = Fields(data, source)
-    known = {
-        "format",
-        "mount",
-        "robot",
-        "cameras",
-        "target",
-        "approximate",
-        "simulation",
-        "plan",
-        "options",
-    }
-    unknown = sorted(set(f.data) - known)
-    if unknown:
-        raise f.error(unknown[0], f"is not a cell field; the fields are {sorted(known)}")
-    if f.has("format") and f.get("format") != "slidecal.cell/1":
-        raise f.error("format", f"is {f.get('format')!r}; expected 'slidecal.cell/1'")
+    f = Fields(data, source).only(CELL_KEYS[""])
+    if f.has("format") and f.get("format") != CELL_FORMAT:
+        raise f.error("format", f"is {f.get('format')!r}; expected {CELL_FORMAT!r}")
     mount = f.choice("mount", CELL_MOUNTS, "eye_in_hand")
-    robot = _robot(f.sub("robot", required=False) or Fields({}, source, "robot"))
+    robot = _robot(f.section("robot", CELL_KEYS["robot"]))
     target = target_from_dict(f.require("target"), source)
-    from slidecal.routines.session import target_to_dict
 
     sim = None
     if robot.driver == "simulated":
-        simf = f.sub("simulation", required=False) or Fields({}, source, "simulation")
-        sim = _simulation(simf, mount)
-    cam_f = f.sub("cameras", required=False) or Fields({}, source, "cameras")
+        sim = _simulation(f.section("simulation"), mount)
+    cam_f = f.section("cameras", CELL_KEYS["cameras"])
     driver = cam_f.choice("driver", CAMERA_DRIVERS, "simulated")
     if driver == "simulated" and sim is None:
         raise cam_f.error(
@@ -232,6 +300,13 @@ def config_from_dict(data: Any, source: str = "cell.yaml") -> CellConfig:
             f"is {driver!r} with a simulated robot; use driver: simulated, or a real "
             "robot (robot.driver: ur)",
         )
+    if driver == "simulated" and cam_f.has("list"):
+        raise cam_f.error(
+            "list", "is for real cameras; simulated cameras are described in simulation.cameras"
+        )
+    device_id = cam_f.string("device_id") if cam_f.has("device_id") else None
+    if device_id is not None and driver != "oak":
+        raise cam_f.error("device_id", f"is an OAK option; the driver here is {driver!r}")
     specs, cam_opts = _cameras(cam_f, driver, sim)
     names = [c.name for c in specs]
     reference = cam_f.string("reference", names[0])
@@ -244,29 +319,20 @@ def config_from_dict(data: Any, source: str = "cell.yaml") -> CellConfig:
                 f"gives no T_{missing[0]}_{reference}; add simulation.rig.{missing[0]}",
                 where=f"{source}: simulation.rig",
             )
+        extra = [n for n in sim.rig if n not in names or n == reference]
+        if extra:
+            raise InputError(
+                f"{extra[0]!r} is not a non-reference camera of this cell; cameras are {names}",
+                where=f"{source}: simulation.rig.{extra[0]}",
+            )
 
-    app = f.sub("approximate", required=False) or Fields({}, source, "approximate")
-    he_key, tg_key = _names(mount)
-    if app.has(tg_key):
-        approx_target = transform_from_dict(app, tg_key)
-    elif sim is not None:
-        approx_target = sim.T_target
-    else:
-        raise app.error(tg_key, "is missing; give the rough target pose (R or rpy_deg, t_m)")
-    if app.has(he_key):
-        approx_he = transform_from_dict(app, he_key)
-    elif sim is not None:
-        approx_he = sim.T_hand_eye
-    elif mount == "eye_in_hand":
-        approx_he = np.eye(4)  # camera looking along the tool's z axis at the flange
-    else:
-        raise app.error(he_key, "is missing; give the rough camera pose in the base frame")
-    standoff = app.number("standoff_m", 0.5, positive=True)
-    plan = f.get("plan", {})
-    if not isinstance(plan, Mapping):
-        raise f.error("plan", "must be a mapping of plan options")
+    approx_he, approx_target, standoff = _approximate(f, mount)
+    plan = f.section("plan")
+    for key, why in RETIRED_PLAN_KEYS.items():
+        if key in plan.data:
+            raise plan.error(key, f"no longer acts: {why}")
     options = options_from_dict(f.get("options", {}), source)
-    return CellConfig(
+    cfg = CellConfig(
         source=source,
         mount=mount,
         robot=robot,
@@ -280,10 +346,99 @@ def config_from_dict(data: Any, source: str = "cell.yaml") -> CellConfig:
         approx_T_target=approx_target,
         standoff_m=standoff,
         simulation=sim,
-        plan=dict(plan),
+        plan=dict(plan.data),
         options=options,
         raw=dict(f.data),
+        sha256=sha256,
+        device_id=device_id,
     )
+    from slidecal.routines.planner import planner_settings  # the plan: section's own schema
+
+    planner_settings(cfg)
+    return cfg
+
+
+def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
+    """The cell file of a validated cell (the inverse of :func:`config_from_dict`): every
+    value explicit, transforms as ``{R, t_m}``, simulated cameras in full (no preset)."""
+    from slidecal.drivers.ur_pose import ur_pose_from_T
+    from slidecal.routines.session import options_to_dict, transform_to_dict
+
+    r = cfg.robot
+    robot: dict[str, Any] = {"driver": r.driver}
+    if r.host is not None:
+        robot["host"] = r.host
+    robot.update(model=r.model, speed_mps=r.speed_mps, accel_mps2=r.accel_mps2, settle_s=r.settle_s)
+    for key, T in (("tcp", r.tcp), ("start_pose", r.start_pose)):
+        if T is not None:
+            robot[key] = ur_pose_from_T(T)
+    if r.start_q is not None:
+        robot["start_q"] = r.start_q.tolist()
+    if r.workspace_min_m is not None and r.workspace_max_m is not None:
+        robot["workspace"] = {
+            "min_m": r.workspace_min_m.tolist(),
+            "max_m": r.workspace_max_m.tolist(),
+        }
+    if r.limits:
+        robot["limits"] = dict(r.limits)
+    cameras: dict[str, Any] = {"driver": cfg.camera_driver, "reference": cfg.reference_camera}
+    if cfg.device_id is not None:
+        cameras["device_id"] = cfg.device_id
+    if cfg.camera_driver != "simulated":
+        cameras["list"] = [
+            {"name": c.name, "width": c.width, "height": c.height, **cfg.camera_options[c.name]}
+            for c in cfg.cameras
+        ]
+    he_key, tg_key = _names(cfg.mount)
+    out: dict[str, Any] = {
+        "format": CELL_FORMAT,
+        "mount": cfg.mount,
+        "robot": robot,
+        "cameras": cameras,
+        "target": dict(cfg.target_dict),
+        "approximate": {
+            tg_key: transform_to_dict(cfg.approx_T_target),
+            he_key: transform_to_dict(cfg.approx_T_hand_eye),
+            "standoff_m": cfg.standoff_m,
+        },
+    }
+    sim = cfg.simulation
+    if sim is not None:
+        out["simulation"] = {
+            "seed": sim.seed,
+            "cameras": {
+                c.name: {
+                    "width": c.width,
+                    "height": c.height,
+                    "K": np.asarray(c.K).tolist(),
+                    "distortion": np.asarray(c.dist).tolist(),
+                    "blur_sigma_px": c.blur_sigma_px,
+                    "noise_std": c.noise_std,
+                    "exposure": c.exposure,
+                    "colour": c.colour,
+                    "vignetting": c.vignetting,
+                }
+                for c in sim.cameras
+            },
+            he_key: transform_to_dict(sim.T_hand_eye),
+            tg_key: transform_to_dict(sim.T_target),
+            "rig": {n: transform_to_dict(T) for n, T in sim.rig.items()},
+            "noise": {"robot_mm": sim.robot_noise_m * 1000.0, "robot_deg": sim.robot_noise_deg},
+            "target_jitter": {"mm": sim.target_jitter_mm, "deg": sim.target_jitter_deg},
+        }
+    out["plan"] = dict(cfg.plan)
+    out["options"] = options_to_dict(cfg.options)
+    return out
+
+
+def write_config(cfg: CellConfig, path: str | Path) -> Path:
+    """Write the cell file of ``cfg`` (:func:`config_to_dict`) atomically."""
+    from slidecal.routines.schema import dump_yaml, write_atomic
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(path, dump_yaml(config_to_dict(cfg)))
+    return path
 
 
 def _names(mount: str) -> tuple[str, str]:
@@ -293,38 +448,54 @@ def _names(mount: str) -> tuple[str, str]:
     return "T_base_cam", "T_tool_board"
 
 
+def _other_mount(mount: str) -> str:
+    return "eye_to_hand" if mount == "eye_in_hand" else "eye_in_hand"
+
+
+def _refuse_other_mount(f: Fields, mount: str) -> None:
+    """A hand-eye or target pose named for the other mount is a user's mistake: say so."""
+    other = _other_mount(mount)
+    for mine, theirs in zip(_names(mount), _names(other), strict=True):
+        if theirs in f.data:
+            raise f.error(
+                theirs,
+                f"is a pose of an {other} cell but this cell is {mount} (mount); give {mine}, "
+                "or set mount",
+            )
+
+
+def _approximate(f: Fields, mount: str) -> tuple[np.ndarray, np.ndarray, float]:
+    """The ``approximate:`` section, used as given (simulated cells too: never the truth)."""
+    app = f.section("approximate")
+    _refuse_other_mount(app, mount)
+    app.only(CELL_KEYS[f"approximate.{mount}"])
+    he_key, tg_key = _names(mount)
+    if not app.has(tg_key):
+        raise app.error(tg_key, "is missing; give the rough target pose (R or rpy_deg, t_m)")
+    approx_target = transform_from_dict(app, tg_key)
+    if app.has(he_key):
+        approx_he = transform_from_dict(app, he_key)
+    elif mount == "eye_in_hand":
+        approx_he = np.eye(4)  # camera looking along the tool's z axis at the flange
+    else:
+        raise app.error(he_key, "is missing; give the rough camera pose in the base frame")
+    standoff = app.number("standoff_m", 0.5, positive=True, maximum=20.0)
+    return approx_he, approx_target, standoff
+
+
 def _pose(f: Fields, key: str) -> np.ndarray | None:
-    if not f.has(key):
-        return None
-    v = as_array(f.get(key), (-1,), f.where(key))
-    if v.shape != (6,):
-        raise f.error(key, f"has {v.size} numbers; a UR pose is [x, y, z, rx, ry, rz] (m, rad)")
-    return T_from_ur_pose(v)
+    return ur_pose_field(f, key) if f.has(key) else None
 
 
 def _robot(f: Fields) -> RobotConfig:
-    known = {
-        "driver",
-        "host",
-        "model",
-        "tcp",
-        "speed_mps",
-        "accel_mps2",
-        "settle_s",
-        "start_pose",
-        "start_q",
-        "workspace",
-        "limits",
-    }
-    unknown = sorted(set(f.data) - known)
-    if unknown:
-        raise f.error(unknown[0], f"is not a robot field; the fields are {sorted(known)}")
     driver = f.choice("driver", ROBOT_DRIVERS, "simulated")
     host = f.get("host")
     if driver == "ur" and not host:
         raise f.error("host", "is missing; driver 'ur' needs the controller's address")
-    if host is not None and not isinstance(host, str):
+    if host is not None and (not isinstance(host, str) or not host.strip()):
         raise f.error("host", f"must be a host name or IP address string, got {host!r}")
+    if host is not None and driver != "ur":
+        raise f.error("host", "is given for a simulated robot; set driver: ur or remove host")
     model = f.string("model", "UR5e")
     from slidecal.drivers import ur_kinematics as urk
 
@@ -338,13 +509,26 @@ def _robot(f: Fields) -> RobotConfig:
     accel = f.number("accel_mps2", 0.5, positive=True)
     if accel > 2.5:
         raise f.error("accel_mps2", f"is {accel} m/s2; use at most 2.5 for calibration moves")
-    settle = f.number("settle_s", 0.5, minimum=0.0)
+    settle = f.number("settle_s", 0.5, minimum=0.0, maximum=60.0)
     wmin = wmax = None
-    ws = f.sub("workspace", required=False)
-    if ws is not None:
+    if f.has("workspace"):
+        ws = f.section("workspace", CELL_KEYS["robot.workspace"])
         wmin, wmax = ws.array("min_m", (3,)), ws.array("max_m", (3,))
         if np.any(wmin >= wmax):
             raise ws.error("max_m", "must be larger than min_m on every axis")
+    start_q = None
+    if f.has("start_q"):
+        start_q = f.array("start_q", (6,))
+        if np.any(np.abs(start_q) > 2 * np.pi + 1e-9):
+            raise f.error("start_q", "has a joint beyond +-2 pi; give the joints in radians")
+        if driver != "simulated":
+            raise f.error("start_q", "is for the simulated arm; the real arm starts where it is")
+    if f.has("start_pose") and driver != "simulated":
+        raise f.error("start_pose", "is for the simulated arm; the real arm starts where it is")
+    lf = f.section("limits", CELL_KEYS["robot.limits"])
+    limits = {
+        k: lf.number(k, positive=k != "z_min_m") for k in CELL_KEYS["robot.limits"] if lf.has(k)
+    }
     return RobotConfig(
         driver=driver,
         host=host,
@@ -356,95 +540,100 @@ def _robot(f: Fields) -> RobotConfig:
         start_pose=_pose(f, "start_pose"),
         workspace_min_m=wmin,
         workspace_max_m=wmax,
+        start_q=start_q,
+        limits=limits,
         raw=dict(f.data),
     )
 
 
-def _preset_cameras(preset: str) -> tuple[list[SimCameraConfig], dict[str, np.ndarray]]:
+def _preset_cameras(preset: str) -> tuple[list[SimCamera], dict[str, np.ndarray]]:
     from slidecal.mocks import camera as simcam
 
     if preset == "r1":
-        cams = [simcam.single_camera("cam")]
-        rig: dict[str, np.ndarray] = {}
-    else:
-        cams = simcam.oak_d_like()
-        ext = simcam.oak_d_like_extrinsics()  # T_<name>_left
-        rig = {n: T for n, T in ext.items() if n != "left"}
-    out = [
-        SimCameraConfig(
-            c.name,
-            c.width,
-            c.height,
-            c.K,
-            c.dist,
-            c.blur_sigma_px,
-            c.noise_std,
-            c.exposure,
-            c.colour,
-        )
-        for c in cams
-    ]
-    return out, rig
+        return [simcam.single_camera("cam")], {}
+    ext = simcam.oak_d_like_extrinsics()  # T_<name>_left
+    return simcam.oak_d_like(), {n: T for n, T in ext.items() if n != "left"}
+
+
+def _sim_camera(c: Fields, name: str, base: SimCamera | None) -> SimCamera:
+    """One ``simulation.cameras.<name>`` entry, over the preset's camera of that name."""
+    if base is None:
+        for key in ("width", "height", "K"):
+            if not c.has(key):
+                raise c.error(key, f"is missing; camera {name!r} is not in the preset")
+    K = c.array("K", (3, 3)) if c.has("K") else base.K  # type: ignore[union-attr]
+    if (
+        K[2, 2] != 1.0
+        or K[1, 0] != 0
+        or K[2, 0] != 0
+        or K[2, 1] != 0
+        or K[0, 0] <= 0
+        or K[1, 1] <= 0
+    ):
+        raise c.error("K", "must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
+    dist = (
+        c.array("distortion", (5,))
+        if c.has("distortion")
+        else (base.dist if base is not None else np.zeros(5))
+    )
+    values: dict[str, Any] = {"K": K, "dist": dist}
+    for key in ("width", "height"):
+        if c.has(key):
+            values[key] = c.integer(key, minimum=1, maximum=100_000)
+    for key, lo, hi in (
+        ("blur_sigma_px", 0.0, 20.0),
+        ("noise_std", 0.0, 100.0),
+        ("exposure", 1e-6, 100.0),
+        ("vignetting", 0.0, 1.0),
+    ):
+        if c.has(key):
+            values[key] = c.number(key, minimum=lo, maximum=hi)
+    if c.has("colour"):
+        values["colour"] = c.boolean("colour")
+    if base is not None:
+        return replace(base, **values)
+    return SimCamera(name=name, **values)
 
 
 def _simulation(f: Fields, mount: str) -> SimulationConfig:
+    _refuse_other_mount(f, mount)
+    he_key, tg_key = _names(mount)
+    f.only((*CELL_KEYS["simulation"], he_key, tg_key))
     seed = f.integer("seed", 0, minimum=0)
     preset = f.choice("camera_preset", CAMERA_PRESETS, "r1") if f.has("camera_preset") else None
-    cams: list[SimCameraConfig] = []
+    cams: list[SimCamera] = []
     rig: dict[str, np.ndarray] = {}
     if preset is not None:
         cams, rig = _preset_cameras(preset)
-    cf = f.sub("cameras", required=False)
-    if cf is not None:
-        for name in cf.data:
-            c = cf.sub(str(name))
-            assert c is not None
-            base = next((x for x in cams if x.name == name), None)
-            K = c.array("K", (3, 3)) if c.has("K") or base is None else base.K
-            if K[2, 2] != 1.0 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[0, 0] <= 0:
-                raise c.error("K", "must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
-            dist = (
-                c.array("distortion", (5,))
-                if c.has("distortion") or base is None
-                else base.distortion
-            )
-            new = SimCameraConfig(
-                str(name),
-                c.integer("width", base.width if base else None, minimum=1),
-                c.integer("height", base.height if base else None, minimum=1),
-                K,
-                dist,
-                c.number("blur_sigma_px", base.blur_sigma_px if base else 0.6, minimum=0.0),
-                c.number("noise_std", base.noise_std if base else 2.0, minimum=0.0),
-                c.number("exposure", base.exposure if base else 1.0, positive=True),
-                c.boolean("colour", base.colour if base else False),
-            )
-            cams = [x for x in cams if x.name != name] + [new]
+    cf = f.section("cameras")
+    for name in cf.data:
+        if not isinstance(name, str) or not name.strip():
+            raise cf.error(str(name), "must be a camera name (text)")
+        c = cf.section(name, CELL_KEYS["simulation.cameras.*"])
+        base = next((x for x in cams if x.name == name), None)
+        new = _sim_camera(c, name, base)
+        cams = [x for x in cams if x.name != name] + [new]
     if not cams:
         cams, rig = _preset_cameras("r1")
-    rf = f.sub("rig", required=False)
-    if rf is not None:
-        for name in rf.data:
-            rig[str(name)] = transform_from_dict(rf, str(name))
-    he_key, tg_key = _names(mount)
-    T_he = transform_from_dict(f, he_key) if f.has(he_key) else None
-    T_tg = transform_from_dict(f, tg_key) if f.has(tg_key) else None
-    if T_he is None:
+    rf = f.section("rig")
+    for name in rf.data:
+        rig[str(name)] = transform_from_dict(rf, str(name))
+    if not f.has(he_key):
         raise f.error(he_key, f"is missing; the simulated cell needs the true {he_key}")
-    if T_tg is None:
+    if not f.has(tg_key):
         raise f.error(tg_key, f"is missing; the simulated cell needs the true {tg_key}")
-    nf = f.sub("noise", required=False) or Fields({}, f.file, f"{f.path}.noise")
-    jf = f.sub("target_jitter", required=False) or Fields({}, f.file, f"{f.path}.target_jitter")
+    nf = f.section("noise", CELL_KEYS["simulation.noise"])
+    jf = f.section("target_jitter", CELL_KEYS["simulation.target_jitter"])
     return SimulationConfig(
         seed=seed,
         cameras=tuple(cams),
-        T_hand_eye=T_he,
-        T_target=T_tg,
+        T_hand_eye=transform_from_dict(f, he_key),
+        T_target=transform_from_dict(f, tg_key),
         rig=rig,
-        robot_noise_m=nf.number("robot_mm", 0.05, minimum=0.0) / 1000.0,
-        robot_noise_deg=nf.number("robot_deg", 0.005, minimum=0.0),
-        target_jitter_mm=jf.number("mm", 0.0, minimum=0.0),
-        target_jitter_deg=jf.number("deg", 0.0, minimum=0.0),
+        robot_noise_m=nf.number("robot_mm", 0.05, minimum=0.0, maximum=100.0) / 1000.0,
+        robot_noise_deg=nf.number("robot_deg", 0.005, minimum=0.0, maximum=10.0),
+        target_jitter_mm=jf.number("mm", 0.0, minimum=0.0, maximum=1000.0),
+        target_jitter_deg=jf.number("deg", 0.0, minimum=0.0, maximum=90.0),
     )
 
 
@@ -455,59 +644,49 @@ def _cameras(
         assert sim is not None
         specs = tuple(CameraSpec(c.name, c.width, c.height) for c in sim.cameras)
         return specs, {c.name: {} for c in sim.cameras}
-    lst = f.get("list")
-    if not isinstance(lst, list) or not lst:
+    if not f.has("list"):
         raise f.error(
-            "list",
-            f"is missing; driver {driver!r} needs a list of {{name, width, height, ...}}}} cameras",
+            "list", f"is missing; driver {driver!r} needs a list of {{name, width, height}} cameras"
         )
+    lst = f.list("list", non_empty=True, hint="camera {name, width, height}")
     specs = []
     opts: dict[str, dict[str, Any]] = {}
     for i, c in enumerate(lst):
-        cf = Fields(c, f.file, f"{f.path}.list[{i}]")
+        cf = Fields(c, f.file, f"{f.path}.list[{i}]").only(CELL_KEYS[f"cameras.list[].{driver}"])
         name = cf.string("name")
         if name in opts:
             raise cf.error("name", f"{name!r} appears twice; camera names must be unique")
         specs.append(
-            CameraSpec(name, cf.integer("width", minimum=1), cf.integer("height", minimum=1))
+            CameraSpec(
+                name,
+                cf.integer("width", minimum=1, maximum=100_000),
+                cf.integer("height", minimum=1, maximum=100_000),
+            )
         )
+        if driver == "oak":
+            if not cf.has("socket"):
+                raise cf.error("socket", "is missing; an OAK camera needs its socket (CAM_A ..)")
+            from slidecal.routines.session import OAK_SOCKET
+
+            if not OAK_SOCKET.fullmatch(cf.string("socket")):
+                raise cf.error("socket", f"is {cf.get('socket')!r}; use CAM_A .. CAM_H")
+            if cf.has("colour"):
+                cf.boolean("colour")
+        else:
+            if cf.has("fourcc") and len(cf.string("fourcc")) != 4:
+                raise cf.error("fourcc", "must be 4 characters (e.g. MJPG)")
+            if cf.has("exposure"):
+                cf.number("exposure")
+            if cf.has("drop_frames"):
+                cf.integer("drop_frames", minimum=0, maximum=100)
         opts[name] = {k: v for k, v in cf.data.items() if k not in ("name", "width", "height")}
+    if driver == "oak":
+        socks = [o["socket"] for o in opts.values()]
+        dup = next((s for s in socks if socks.count(s) > 1), None)
+        if dup is not None:
+            raise f.error("list", f"gives socket {dup} to two cameras; each socket is one camera")
     return tuple(specs), opts
 
 
-def truth_block(cfg: CellConfig) -> dict[str, Any]:
-    """The session's ``simulation:`` block (result-file names) of a simulated cell."""
-    from slidecal.routines.session import transform_to_dict
-
-    sim = cfg.simulation
-    if sim is None:
-        return {}
-    he_key, tg_key = _names(cfg.mount)
-    frame = he_key.split("_")[1]  # tool | base
-    ref = cfg.reference_camera
-    out: dict[str, Any] = {
-        "cameras": {c.name: {"K": c.K, "distortion": c.distortion} for c in sim.cameras},
-    }
-    if len(sim.cameras) == 1:
-        out[he_key] = transform_to_dict(sim.T_hand_eye)
-    else:
-        for c in sim.cameras:
-            T_ref_c = np.eye(4) if c.name == ref else np.linalg.inv(sim.rig[c.name])
-            out[f"T_{frame}_{c.name}"] = transform_to_dict(sim.T_hand_eye @ T_ref_c)
-        for name, T in sim.rig.items():
-            out[f"T_{name}_{ref}"] = transform_to_dict(T)
-    out[tg_key] = transform_to_dict(sim.T_target)
-    out["noise"] = {
-        "robot_mm": sim.robot_noise_m * 1000.0,
-        "robot_deg": sim.robot_noise_deg,
-        "cameras": {
-            c.name: {
-                "blur_sigma_px": c.blur_sigma_px,
-                "noise_std": c.noise_std,
-                "exposure": c.exposure,
-            }
-            for c in sim.cameras
-        },
-    }
-    out["seed"] = sim.seed
-    return out
+# the sections shared with sessions are declared there; named here for readers of this module
+SHARED_KEYS = {"target": TARGET_KEYS, "options": OPTIONS_KEYS}

@@ -1,8 +1,9 @@
-"""Motion plans: orientation groups of ``T_base_tool`` poses, and a fixed default plan.
+"""Motion plans (``slidecal.plan/1``, docs/FORMATS.md): orientation groups of ``T_base_tool``
+poses, and a fixed default plan.
 
 A plan is what the robot will do: groups of poses sharing one orientation (pure translations
-inside a group, MATH.md Sec. 3) and the tilt changes between groups that make the hand-eye
-translation observable (Sec. 4). ``plan.yaml``::
+inside a group, docs/METHOD.md Sec. 3) and the tilt changes between groups that make the
+hand-eye translation observable (Sec. 4). ``plan.yaml`` (every key in :data:`PLAN_KEYS`)::
 
     format: slidecal.plan/1
     speed_mps: 0.25
@@ -15,29 +16,46 @@ translation observable (Sec. 4). ``plan.yaml``::
     predicted_std: null           # reserved for the planner: predicted one-sigma per parameter
     duration_s: null              # reserved for the planner: predicted robot time
 
-:func:`default_plan` is the fixed plan used until the planner exists: four groups tilted by
-``tilt_deg`` about four different axes in the board plane (plus a small roll about the optical
-axis), five frames each, translations of 40-80 mm in non-coplanar directions with components
-along the viewing axis (translations parallel to the board plane alone are degenerate, MATH.md
-Sec. 7), every pose looking at the board from ``standoff_m``.
+:func:`default_plan` is the fixed reference plan the planner is compared with: four
+groups tilted by ``tilt_deg`` about four different axes in the board plane (plus a small roll
+about the optical axis), five frames each, translations of 40-80 mm in non-coplanar
+directions with components along the viewing axis (translations parallel to the board plane
+alone are degenerate, docs/METHOD.md Sec. 7), every pose looking at the board from ``standoff_m``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from slidecal.drivers.ur_pose import T_from_ur_pose, ur_pose_from_T
+from slidecal.drivers.ur_pose import ur_pose_from_T
 from slidecal.routines.config import CellConfig
-from slidecal.routines.session import Fields, as_array, dump_yaml, load_yaml, write_atomic
+from slidecal.routines.schema import Fields, dump_yaml, load_yaml, write_atomic
+from slidecal.routines.session import ur_pose_field
 from slidecal.solver.errors import InputError
-from slidecal.solver.geometry import R_from_rvec, Rz, T_from_Rt, inv_T
+from slidecal.solver.geometry import R_from_rvec, Rz, T_from_Rt, inv_T, rotation_angle_deg
 
 PLAN_FORMAT = "slidecal.plan/1"
+#: The keys of ``plan.yaml`` (one list; :func:`plan_to_dict` writes exactly these).
+PLAN_KEYS = (
+    "format",
+    "speed_mps",
+    "accel_mps2",
+    "settle_s",
+    "groups",
+    "via",
+    "predicted_std",
+    "duration_s",
+    "notes",
+)
+#: Poses of one group may differ in orientation by this much (numerical round trips only).
+MAX_GROUP_ROTATION_DEG = 0.01
+#: Speed and acceleration limits of calibration moves (as for the cell's ``robot:``).
+MAX_SPEED_MPS = 1.0
+MAX_ACCEL_MPS2 = 2.5
 
 #: Camera displacements within a group, board axes, as fractions of ``step_mm[1]``: five
 #: positions whose four moves from the first are non-coplanar and all leave the board plane
@@ -112,48 +130,52 @@ def read_plan(path: str | Path) -> Plan:
 
 
 def plan_from_dict(data: Any, source: str = "plan.yaml") -> Plan:
-    """Validate a parsed plan; errors name ``source: field``."""
+    """Validate a parsed plan (the inverse of :func:`plan_to_dict`); errors name
+    ``source: field``."""
     f = Fields(data, source)
-    if f.get("format") != PLAN_FORMAT:
-        raise f.error("format", f"is {f.get('format')!r}; expected {PLAN_FORMAT!r}")
-    groups_raw = f.require("groups")
-    if not isinstance(groups_raw, list) or not groups_raw:
-        raise f.error("groups", "must be a non-empty list of groups of UR poses")
+    fmt = f.require("format")
+    if fmt != PLAN_FORMAT:
+        raise f.error("format", f"is {fmt!r}; expected {PLAN_FORMAT!r}")
+    f.only(PLAN_KEYS)
+    groups_raw = f.list("groups", non_empty=True, hint="group (a list of UR poses)")
     groups = []
     for g, grp in enumerate(groups_raw):
         if not isinstance(grp, list) or not grp:
             raise f.error(f"groups[{g}]", "must be a non-empty list of UR poses")
-        poses = []
-        for k, p in enumerate(grp):
-            where = f.where(f"groups[{g}][{k}]")
-            v = as_array(p, (-1,), where)
-            if v.shape != (6,):
-                raise InputError(
-                    f"has {v.size} numbers; a UR pose is [x, y, z, rx, ry, rz] (m, rad)",
-                    where=where,
+        poses = [ur_pose_field(_Item(f, f"groups[{g}]", grp), str(k)) for k in range(len(grp))]
+        for k, T in enumerate(poses[1:], start=1):
+            angle = rotation_angle_deg(T[:3, :3], poses[0][:3, :3])
+            if angle > MAX_GROUP_ROTATION_DEG:
+                raise f.error(
+                    f"groups[{g}][{k}]",
+                    f"turns {angle:.3g} deg from the group's first pose; the poses of a group "
+                    "differ by translations only (same rx, ry, rz; rotations in radians)",
                 )
-            poses.append(T_from_ur_pose(v))
         groups.append(tuple(poses))
-    pstd = f.get("predicted_std")
-    if pstd is not None and not isinstance(pstd, Mapping):
-        raise f.error("predicted_std", "must be a mapping parameter -> one-sigma, or null")
-    dur = f.get("duration_s")
-    via = None
-    if f.has("via"):
-        v = f.array("via", (-1,))
-        if v.shape != (6,):
-            raise f.error("via", f"has {v.size} numbers; a UR pose is [x, y, z, rx, ry, rz]")
-        via = T_from_ur_pose(v)
+    pstd = f.section("predicted_std")
+    predicted = {str(k): pstd.number(str(k), minimum=0.0) for k in pstd.data} or None
+    speed = f.number("speed_mps", 0.1, positive=True, maximum=MAX_SPEED_MPS)
+    accel = f.number("accel_mps2", 0.5, positive=True, maximum=MAX_ACCEL_MPS2)
     return Plan(
         groups=tuple(groups),
-        via=via,
-        speed_mps=f.number("speed_mps", 0.1, positive=True),
-        accel_mps2=f.number("accel_mps2", 0.5, positive=True),
-        settle_s=f.number("settle_s", 0.5, minimum=0.0),
-        predicted_std=dict(pstd) if pstd is not None else None,
-        duration_s=f.number("duration_s") if dur is not None else None,
-        notes=tuple(str(n) for n in f.get("notes", [])),
+        via=ur_pose_field(f, "via") if f.has("via") else None,
+        speed_mps=speed,
+        accel_mps2=accel,
+        settle_s=f.number("settle_s", 0.5, minimum=0.0, maximum=60.0),
+        predicted_std=predicted if f.has("predicted_std") else None,
+        duration_s=f.optional_number("duration_s", minimum=0.0),
+        notes=tuple(f.strings("notes")),
     )
+
+
+class _Item(Fields):
+    """The entries of a YAML list addressed as fields ``0``, ``1``, ... (``groups[2][3]``)."""
+
+    def __init__(self, parent: Fields, path: str, items: list[Any]) -> None:
+        super().__init__({str(i): v for i, v in enumerate(items)}, parent.file, path)
+
+    def where(self, key: str | None = None) -> str:
+        return f"{self.file}: {self.path}" + (f"[{key}]" if key is not None else "")
 
 
 def _axis_angle(axis: np.ndarray, angle_rad: float) -> np.ndarray:
@@ -194,36 +216,41 @@ def camera_poses_board(
     return out
 
 
-def default_plan(cfg: CellConfig) -> Plan:
-    """The fixed default plan of a cell (see the module docstring).
+def default_plan(
+    cfg: CellConfig,
+    frames_per_group: int = 5,
+    groups: int = 4,
+    tilt_deg: float = 25.0,
+    step_mm: float = 80.0,
+) -> Plan:
+    """The fixed default plan of a cell (see the module docstring): a reference the planner is
+    measured against (``slidecal bench planner``); ``slidecal run`` executes the planner's plan.
 
-    Uses the cell's approximate target pose and mount (``approximate:``), ``standoff_m`` and
-    ``plan: {frames_per_group, tilt_deg, step_mm: [min, max], groups}``; poses are converted
-    to ``T_base_tool`` through the approximate hand-eye (eye-in-hand) or target-on-tool
-    transform (eye-to-hand).
+    Uses the cell's approximate target pose and hand-eye (``approximate:``) and ``standoff_m``;
+    poses are converted to ``T_base_tool`` through the approximate hand-eye (eye-in-hand) or
+    target-on-tool transform (eye-to-hand). ``step_mm``: the longest move within a group.
     """
-    pf = Fields(cfg.plan, cfg.source, "plan")
-    frames = pf.integer("frames_per_group", 5, minimum=2)
-    n_groups = pf.integer("groups", 4, minimum=2)
-    tilt = pf.number("tilt_deg", 25.0, positive=True)
-    if tilt > 45.0:
-        raise pf.error("tilt_deg", f"is {tilt}; tilts beyond 45 deg lose the board's corners")
-    step = pf.array("step_mm", (2,), [40.0, 80.0])
-    if not 0 < step[0] <= step[1]:
-        raise pf.error("step_mm", "must be [min, max] with 0 < min <= max (millimetres)")
+    if not 2 <= groups <= 12:
+        raise InputError(f"groups must be 2..12, got {groups}")
+    if not 0.0 < tilt_deg <= 45.0:
+        raise InputError(f"tilt_deg must be in (0, 45], got {tilt_deg}")
+    if not step_mm > 0:
+        raise InputError(f"step_mm must be positive, got {step_mm}")
     centre = cfg.target.points_m.mean(axis=0)
-    T_cb = camera_poses_board(centre, cfg.standoff_m, tilt, step[1] / 1000.0, frames, n_groups)
-    groups = tuple(tuple(tool_pose(cfg, T) for T in grp) for grp in T_cb)
+    T_cb = camera_poses_board(
+        centre, cfg.standoff_m, tilt_deg, step_mm / 1000.0, frames_per_group, groups
+    )
+    plan_groups = tuple(tuple(tool_pose(cfg, T) for T in grp) for grp in T_cb)
     via = tool_pose(cfg, camera_poses_board(centre, cfg.standoff_m, 0.0, 0.0, 2, 1)[0][0])
     return Plan(
-        groups=groups,
+        groups=plan_groups,
         via=via,
         speed_mps=cfg.robot.speed_mps,
         accel_mps2=cfg.robot.accel_mps2,
         settle_s=cfg.robot.settle_s,
         notes=(
-            f"default plan: {n_groups} groups tilted {tilt:g} deg, {frames} frames each, "
-            f"moves up to {step[1]:g} mm at {cfg.standoff_m:g} m",
+            f"default plan: {groups} groups tilted {tilt_deg:g} deg, {frames_per_group} frames "
+            f"each, moves up to {step_mm:g} mm at {cfg.standoff_m:g} m",
         ),
     )
 
@@ -263,6 +290,6 @@ def check_plan(plan: Plan, cfg: CellConfig, is_reachable=None) -> None:
         if is_reachable is not None and not is_reachable(T):
             raise InputError(
                 f"pose {np.round(ur_pose_from_T(T), 4).tolist()} is not reachable by the "
-                "robot; move the target closer or reduce plan.tilt_deg",
+                "robot; move the target closer or lower plan.tilts_deg",
                 where=where,
             )

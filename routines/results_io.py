@@ -1,4 +1,4 @@
-"""Calibration results on disk: ``result.yaml`` (SESSION_FORMAT.md), exports, a human summary.
+"""Calibration results on disk: ``result.yaml`` (docs/FORMATS.md), exports, a human summary.
 
 ``result.yaml`` (format ``slidecal.result/1``) holds the contract's fields (``cameras`` with K,
 distortion, std, reproj_rms_px; ``T_tool_cam`` / ``T_base_cam`` or ``T_tool_<name>`` per camera
@@ -7,7 +7,7 @@ of a rig; rig ``T_<name>_<ref>``) and these extensions, all additive:
 - ``mount``, ``reference_camera``, ``converged``, ``iterations``;
 - ``T_base_board`` (eye-in-hand) or ``T_tool_board`` (eye-to-hand): the estimated target pose;
 - ``reprojection: {rms_px, sigma_px, per_image: [{frame, camera, rms_px}]}``; ``sigma_px`` is
-  the noise estimated from the residuals (MATH.md Sec. 6);
+  the noise estimated from the residuals (docs/METHOD.md Sec. 6);
 - ``unobservable: {parameter: reason}``; ``messages: [...]`` (soft failures);
 - ``scale_checks: [{frame_a, frame_b, robot_mm, camera_mm, ratio}]`` and ``scale_check:
   {median_ratio, worst_ratio, n}``;
@@ -26,6 +26,7 @@ camera, and the depthai calibration JSON through the OAK driver when the rig is 
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -33,12 +34,12 @@ from typing import Any
 import numpy as np
 
 from slidecal.drivers.ur_pose import pendant_text
-from slidecal.routines.session import (
+from slidecal.routines.schema import (
     Fields,
-    as_array,
     dump_yaml,
     load_yaml,
     plain,
+    unknown_key_error,
     write_atomic,
 )
 from slidecal.solver.errors import InputError
@@ -215,44 +216,112 @@ def write_result(result: CalibrationResult, path: str | Path) -> Path:
     return path
 
 
+#: The keys of ``result.yaml`` besides the transforms (named ``T_<a>_<b>``): one list, kept in
+#: step with :func:`result_to_dict`; the reader refuses any other key.
+RESULT_KEYS = (
+    "format",
+    "cameras",
+    "mount",
+    "reference_camera",
+    "converged",
+    "iterations",
+    "reprojection",
+    "unobservable",
+    "messages",
+    "scale_checks",
+    "scale_check",
+    "H_inf",
+    "outliers",
+    "linear",
+    "parameter_names",
+    "covariance",
+)
+#: The keys of the parts of ``result.yaml``.
+RESULT_PART_KEYS: dict[str, tuple[str, ...]] = {
+    "cameras.*": (
+        "width",
+        "height",
+        "K",
+        "distortion_model",
+        "distortion",
+        "std",
+        "reproj_rms_px",
+    ),
+    "transform": ("R", "t_m", "std_rot_deg", "std_t_mm"),
+    "reprojection": ("rms_px", "sigma_px", "per_image"),
+    "reprojection.per_image[]": ("frame", "camera", "rms_px"),
+    "scale_checks[]": ("frame_a", "frame_b", "robot_mm", "camera_mm", "ratio"),
+    "scale_check": ("median_ratio", "worst_ratio", "n"),
+}
+RESULT_MOUNTS = ("eye_in_hand", "eye_to_hand", "none")
+_TRANSFORM_KEY = re.compile(r"T_[A-Za-z0-9]+_[A-Za-z0-9_]+")
+
+
 def read_result(path: str | Path) -> CalibrationResult:
-    """Read a ``result.yaml`` back into a :class:`CalibrationResult` (round trip of
-    :func:`write_result`; the per-image residuals, outliers and covariance included)."""
+    """Read a ``result.yaml`` back into a :class:`CalibrationResult` (the inverse of
+    :func:`write_result`: per-image residuals, outliers and covariance included). Every field is
+    checked; a problem is one ``InputError`` naming ``result.yaml: field``."""
     path = Path(path)
-    data = load_yaml(path, "result file")
-    f = Fields(data, path.name)
+    return result_from_dict(load_yaml(path, "result file"), path.name)
+
+
+def _nullable(f: Fields, key: str, minimum: float | None = None) -> float:
+    """A number or null (NaN in the result object)."""
+    return f.number(key, minimum=minimum) if f.has(key) else float("nan")
+
+
+def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
+    """Validate a parsed ``result.yaml`` (see :func:`read_result`)."""
+    f = Fields(data, source)
     fmt = f.require("format")
     if fmt != RESULT_FORMAT:
         raise f.error("format", f"is {fmt!r}; expected {RESULT_FORMAT!r}")
+    for key in f.data:
+        if key not in RESULT_KEYS and not (isinstance(key, str) and _TRANSFORM_KEY.fullmatch(key)):
+            raise unknown_key_error(f.where(str(key)), key, RESULT_KEYS)
     cams: dict[str, CameraEstimate] = {}
     cf = f.sub("cameras")
     assert cf is not None
+    if not cf.data:
+        raise cf.error(None, "is empty; a result holds at least one camera")
     for name in cf.data:
-        c = cf.sub(str(name))
-        assert c is not None
-        cams[str(name)] = CameraEstimate(
-            str(name),
-            c.integer("width", minimum=1),
-            c.integer("height", minimum=1),
+        if not isinstance(name, str) or not name.strip():
+            raise cf.error(str(name), "must be a camera name (text)")
+        c = cf.section(name, RESULT_PART_KEYS["cameras.*"])
+        if c.has("distortion_model"):
+            c.choice("distortion_model", ("opencv5",))
+        std = c.section("std")
+        cams[name] = CameraEstimate(
+            name,
+            c.integer("width", minimum=1, maximum=100_000),
+            c.integer("height", minimum=1, maximum=100_000),
             c.array("K", (3, 3)),
             c.array("distortion", (5,)),
-            {k: (float(v) if v is not None else float("nan")) for k, v in c.get("std", {}).items()},
-            float(c.get("reproj_rms_px", float("nan"))),
+            {str(k): _nullable(std, str(k), minimum=0.0) for k in std.data},
+            _nullable(c, "reproj_rms_px", minimum=0.0),
         )
-    mount = f.string("mount", "eye_in_hand")
-    ref = f.string("reference_camera", next(iter(cams)))
+    names = list(cams)
+    mount = f.choice("mount", RESULT_MOUNTS, "eye_in_hand")
+    ref = f.string("reference_camera", names[0])
+    if ref not in cams:
+        raise f.error("reference_camera", f"{ref!r} is not a camera; cameras are {names}")
 
     def te(key: str, name: str | None = None) -> TransformEstimate | None:
         if not f.has(key):
             return None
-        s = f.sub(key)
-        assert s is not None
+        s = f.section(key, RESULT_PART_KEYS["transform"])
+        R = s.array("R", (3, 3)) if s.has("R") else None
+        if R is not None and (
+            not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0
+        ):
+            raise s.error("R", "is not a rotation matrix (orthonormal, det +1)")
+        t = s.array("t_m", (3,)) if s.has("t_m") else None
         return TransformEstimate(
             name or key,
-            s.array("R", (3, 3)) if s.has("R") else None,
-            s.array("t_m", (3,)) if s.has("t_m") else None,
-            s.get("std_rot_deg"),
-            s.get("std_t_mm"),
+            R,
+            t,
+            s.optional_number("std_rot_deg", minimum=0.0),
+            s.optional_number("std_t_mm", minimum=0.0),
         )
 
     frame = {"eye_in_hand": "tool", "eye_to_hand": "base"}.get(mount)
@@ -260,37 +329,90 @@ def read_result(path: str | Path) -> CalibrationResult:
     if frame is not None:
         key = f"T_{frame}_cam" if len(cams) == 1 else f"T_{frame}_{ref}"
         hand_eye = te(key, f"T_{frame}_cam")
+    for key in f.data:  # every transform named must be one this result can hold
+        if isinstance(key, str) and _TRANSFORM_KEY.fullmatch(key):
+            te(key)
     rig = {f"T_{n}_{ref}": t for n in cams if n != ref if (t := te(f"T_{n}_{ref}")) is not None}
     tname = target_pose_name(mount)
-    rep = f.sub("reprojection")
-    assert rep is not None
-    residuals = {
-        (int(r["frame"]), str(r["camera"])): float(r["rms_px"])
-        for r in rep.get("per_image", [])
-        if r.get("rms_px") is not None
-    }
-    cov = f.get("covariance")
+    rep = f.section("reprojection", RESULT_PART_KEYS["reprojection"])
+    residuals: dict[tuple[int, str], float] = {}
+    for i, r in enumerate(rep.list("per_image", required=False, hint="{frame, camera, rms_px}")):
+        rf = Fields(r, source, f"reprojection.per_image[{i}]")
+        rf.only(RESULT_PART_KEYS["reprojection.per_image[]"])
+        cam = rf.choice("camera", names)
+        fid = rf.integer("frame", minimum=0)
+        if rf.has("rms_px"):
+            residuals[(fid, cam)] = rf.number("rms_px", minimum=0.0)
+    pnames = f.strings("parameter_names")
+    cov = None
+    if f.has("covariance"):
+        cov = f.array("covariance", (len(pnames), len(pnames)))
+        if not np.allclose(cov, cov.T, rtol=1e-9, atol=1e-12 * max(1.0, np.abs(cov).max())):
+            raise f.error("covariance", "is not symmetric; it was not written by slidecal")
+    outliers = []
+    for i, o in enumerate(f.list("outliers", required=False, hint="[frame, camera, corner id]")):
+        if not (
+            isinstance(o, list)
+            and len(o) == 3
+            and isinstance(o[0], int)
+            and not isinstance(o[0], bool)
+            and o[1] in cams
+            and isinstance(o[2], int)
+            and not isinstance(o[2], bool)
+        ):
+            raise f.error(f"outliers[{i}]", "must be [frame id, camera name, corner id]")
+        outliers.append((int(o[0]), str(o[1]), int(o[2])))
+    unobs = f.section("unobservable")
+    for k, v in unobs.data.items():
+        if not isinstance(v, str):
+            raise unobs.error(str(k), "must be the reason as text")
+    checks = []
+    for i, sc in enumerate(f.list("scale_checks", required=False, hint="scale check")):
+        sf = Fields(sc, source, f"scale_checks[{i}]").only(RESULT_PART_KEYS["scale_checks[]"])
+        checks.append(
+            ScaleCheck(
+                sf.integer("frame_a", minimum=0),
+                sf.integer("frame_b", minimum=0),
+                _nullable(sf, "robot_mm", minimum=0.0),
+                _nullable(sf, "camera_mm", minimum=0.0),
+            )
+        )
+    sc_sum = f.section("scale_check", RESULT_PART_KEYS["scale_check"])
+    for k in ("median_ratio", "worst_ratio"):
+        _nullable(sc_sum, k)
+    if sc_sum.has("n"):
+        sc_sum.integer("n", minimum=0)
+    hf = f.section("H_inf")
+    H_inf = {}
+    for k in hf.data:
+        parts = str(k).split("<-")
+        if len(parts) != 2 or parts[0] not in cams or parts[1] not in cams:
+            raise hf.error(str(k), "must be named 'a<-b' with two of the result's cameras")
+        H_inf[str(k)] = hf.array(str(k), (3, 3))
+    lf = f.section("linear")
+    linear = {}
+    for k in lf.data:
+        if k not in cams:
+            raise lf.error(str(k), f"unknown camera {k!r}; cameras are {names}")
+        linear[str(k)] = lf.array(str(k), (3, 3))
     return CalibrationResult(
         cameras=cams,
         hand_eye=hand_eye,
         rig=rig,
         T_target=te(tname) if tname else None,
         converged=f.boolean("converged", False),
-        iterations=f.integer("iterations", 0),
-        reproj_rms_px=float(rep.get("rms_px", float("nan"))),
-        sigma_px=float(rep.get("sigma_px", float("nan"))),
-        parameter_names=tuple(f.get("parameter_names", [])),
-        covariance=as_array(cov, (-1, -1), f.where("covariance")) if cov is not None else None,
+        iterations=f.integer("iterations", 0, minimum=0),
+        reproj_rms_px=_nullable(rep, "rms_px", minimum=0.0),
+        sigma_px=_nullable(rep, "sigma_px", minimum=0.0),
+        parameter_names=tuple(pnames),
+        covariance=cov,
         residuals_px=residuals,
-        outliers=tuple((int(a), str(b), int(c)) for a, b, c in f.get("outliers", [])),
-        unobservable=dict(f.get("unobservable", {})),
-        messages=tuple(f.get("messages", [])),
-        scale_checks=tuple(
-            ScaleCheck(int(s["frame_a"]), int(s["frame_b"]), s["robot_mm"], s["camera_mm"])
-            for s in f.get("scale_checks", [])
-        ),
-        H_inf={k: np.asarray(v, dtype=float) for k, v in f.get("H_inf", {}).items()},
-        linear={k: np.asarray(v, dtype=float) for k, v in f.get("linear", {}).items()},
+        outliers=tuple(outliers),
+        unobservable={str(k): v for k, v in unobs.data.items()},
+        messages=tuple(f.strings("messages")),
+        scale_checks=tuple(checks),
+        H_inf=H_inf,
+        linear=linear,
         mount=mount,
         reference_camera=ref,
     )

@@ -180,11 +180,8 @@ def run_calibration(
             options=cfg.options,
             reference_camera=cfg.reference_camera,
             simulation=truth,
-            extra={
-                "cell": cfg.source,
-                "robot_driver": cfg.robot.driver,
-                "camera_driver": cfg.camera_driver,
-            },
+            extra=cfg.session_fields(),
+            sockets=cfg.sockets,
         )
         write_plan(plan, out / "plan.yaml")
         log = None

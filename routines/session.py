@@ -1,4 +1,4 @@
-"""Session directories on disk (``/work/shared/SESSION_FORMAT.md``): read them, write them.
+"""Session directories on disk (``slidecal.session/1``, docs/FORMATS.md): read them, write them.
 
 A session is everything one run observed: ``SESSION_DIR/session.yaml`` plus the images under
 ``SESSION_DIR/images/``. :func:`read_session` turns it into a
@@ -6,7 +6,9 @@ A session is everything one run observed: ``SESSION_DIR/session.yaml`` plus the 
 appends each frame the moment it is captured, rewriting ``session.yaml`` atomically (temporary
 file, fsync, rename), so a crash loses at most the frame in flight.
 
-Fields beyond the contract (all optional, additive, so the format stays ``slidecal.session/1``):
+The keys each part of the file accepts are declared once, in :data:`SESSION_KEYS`; reading
+refuses any other key with the nearest valid one. Fields beyond the first version (all
+optional, additive, so the format stays ``slidecal.session/1`` and older sessions still load):
 
 - ``knowledge``: ``robot`` | ``board_translation`` | ``board_direction`` | ``none`` (default:
   ``robot`` when every frame has ``T_base_tool``, ``none`` when no frame has one).
@@ -14,11 +16,14 @@ Fields beyond the contract (all optional, additive, so the format stays ``slidec
 - ``options``: ``{skew, unit_aspect, distortion: [k1, k2, p1, p2, k3 as booleans],
   outlier_threshold_px, robot_noise_mm, robot_noise_deg}`` (``ModelOptions``; the robot noise
   is the one-sigma error of each axis of the measured poses, 0 treats them as exact).
-- ``frames[i].group``: orientation group; ``frames[i].motion_board``: the paper's board-frame
-  motion knowledge (3 numbers, metres or a unit direction).
+- ``cell``, ``cell_sha256``: the cell file the run came from and the SHA-256 of its bytes;
+  ``robot_driver``, ``camera_driver``; ``cameras[i].socket``: an OAK camera's board socket
+  (what ``solve`` needs to write the depthai calibration again).
+- ``frames[i].group``: orientation group; ``frames[i].motion_board``: board-frame motion
+  knowledge (3 numbers, metres or a unit direction; docs/METHOD.md Sec. 3).
 - ``frames[i].quality``: per camera, what the detector said (``ok``, ``reasons``,
-  ``homography_rms_px``, ``coverage``); informative only.
-- ``events``: what happened during the run (``{kind, message, frame, time_s}``), e.g. a fault.
+  ``homography_rms_px``, ``coverage``, ``n_corners``); informative only.
+- ``events``: what happened during the run (``{kind, message, ...}``), e.g. a fault.
 - ``status``: ``recording`` | ``complete`` | ``aborted``.
 - ``simulation``: the truth of a simulated run under the result file's names:
   ``cameras: {name: {K, distortion}}``, ``T_tool_cam`` (or ``T_base_cam``; ``T_tool_<name>`` per
@@ -36,9 +41,17 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from slidecal.drivers.ur_pose import T_from_ur_pose, ur_pose_from_T
+from slidecal.routines.schema import (  # noqa: F401 - re-exported: the format layer's helpers
+    Fields,
+    as_array,
+    dump_yaml,
+    load_yaml,
+    plain,
+    unknown_key_error,
+    write_atomic,
+)
 from slidecal.solver.errors import InputError
 from slidecal.solver.problem import (
     CalibrationProblem,
@@ -54,195 +67,76 @@ SESSION_FILE = "session.yaml"
 IMAGE_DIR = "images"
 KNOWLEDGE = ("robot", "board_translation", "board_direction", "none")
 MOUNTS = ("eye_in_hand", "eye_to_hand", "none")
-TARGET_KINDS = ("charuco", "chessboard", "points")
+STATUSES = ("recording", "complete", "aborted")
+CAMERA_DRIVERS = ("simulated", "oak", "uvc")
+OAK_SOCKET = re.compile(r"CAM_[A-H]")
 
-_Loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
-_Dumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
+#: The keys every part of ``session.yaml`` accepts (add a new field here, then read it below).
+SESSION_KEYS: dict[str, tuple[str, ...]] = {
+    "": (
+        "format",
+        "status",
+        "mount",
+        "knowledge",
+        "target",
+        "cameras",
+        "reference_camera",
+        "options",
+        "cell",
+        "cell_sha256",
+        "robot_driver",
+        "camera_driver",
+        "simulation",
+        "frames",
+        "events",
+    ),
+    "cameras[]": ("name", "width", "height", "socket"),
+    "frames[]": (
+        "id",
+        "group",
+        "T_base_tool",
+        "motion_board",
+        "images",
+        "detections",
+        "quality",
+    ),
+    "detection": ("ids", "px"),
+    "simulation": ("cameras", "noise", "seed"),  # and transforms named T_<a>_<b>
+    "simulation.cameras.*": ("K", "distortion"),
+    "simulation.noise": ("robot_mm", "robot_deg", "cameras"),
+    "simulation.noise.cameras.*": ("blur_sigma_px", "noise_std", "exposure"),
+}
 
+#: The keys of a ``target:`` block per kind (cell files and sessions).
+TARGET_KEYS: dict[str, tuple[str, ...]] = {
+    "charuco": (
+        "kind",
+        "squares_x",
+        "squares_y",
+        "square_size_m",
+        "marker_size_m",
+        "dictionary",
+    ),
+    "chessboard": ("kind", "squares_x", "squares_y", "square_size_m"),
+    "points": ("kind", "points_m"),
+}
+TARGET_KINDS = tuple(TARGET_KEYS)
 
-# ----------------------------------------------------------------------------- YAML helpers
+#: The keys of an ``options:`` block (cell files and sessions).
+OPTIONS_KEYS = (
+    "skew",
+    "unit_aspect",
+    "distortion",
+    "outlier_threshold_px",
+    "robot_noise_mm",
+    "robot_noise_deg",
+)
 
-
-def plain(obj: Any) -> Any:
-    """``obj`` with numpy arrays and scalars turned into lists and Python numbers (for YAML)."""
-    if isinstance(obj, np.ndarray):
-        return plain(obj.tolist())
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, Mapping):
-        return {str(k): plain(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [plain(v) for v in obj]
-    return obj
-
-
-def dump_yaml(data: Any) -> str:
-    """YAML text of ``data`` (numbers in flow-style leaf lists, keys in insertion order)."""
-    return yaml.dump(
-        plain(data), Dumper=_Dumper, default_flow_style=None, sort_keys=False, width=100
-    )
-
-
-def write_atomic(path: Path, text: str | bytes) -> None:
-    """Write ``path`` so that it holds either its old or its new content, never a mix.
-
-    The text goes to a temporary file in the same directory, is flushed and fsynced, then
-    renamed over ``path``; the directory is fsynced so the rename survives a power cut.
-    """
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    data = text.encode() if isinstance(text, str) else text
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    _fsync_dir(path.parent)
-
-
-def _fsync_dir(directory: Path) -> None:
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:  # platforms without directory handles (Windows)
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
-def load_yaml(path: Path, what: str) -> Any:
-    """Parse a YAML file; a missing or malformed file is an ``InputError`` naming it."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{what} not found; check the path", where=str(path))
-    try:
-        with open(path, encoding="utf-8") as f:
-            return yaml.load(f, Loader=_Loader)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        line = f" at line {mark.line + 1}" if mark is not None else ""
-        raise InputError(
-            f"not valid YAML{line} ({getattr(e, 'problem', e)}); fix the syntax", where=path.name
-        ) from None
+#: Largest board (squares per side) slidecal accepts: beyond it a typo is likelier than a board.
+MAX_SQUARES = 200
 
 
-# ----------------------------------------------------------------------------- field checks
-
-
-class Fields:
-    """Typed access to one mapping of a YAML file; every failure names ``file: path.field``."""
-
-    def __init__(self, data: Any, file: str, path: str = "") -> None:
-        self.file, self.path = file, path
-        if not isinstance(data, Mapping):
-            raise InputError(
-                f"must be a mapping of fields, got {type(data).__name__}", where=self.where()
-            )
-        self.data = data
-
-    def where(self, key: str | None = None) -> str:
-        """``file: path.key`` for error messages."""
-        p = self.path if key is None else (f"{self.path}.{key}" if self.path else key)
-        return f"{self.file}: {p}" if p else self.file
-
-    def error(self, key: str | None, message: str) -> InputError:
-        """An ``InputError`` about ``key``."""
-        return InputError(message, where=self.where(key))
-
-    def has(self, key: str) -> bool:
-        """Whether ``key`` is present and not null."""
-        return self.data.get(key) is not None
-
-    def get(self, key: str, default: Any = None) -> Any:
-        """The raw value, ``default`` when absent or null."""
-        v = self.data.get(key)
-        return default if v is None else v
-
-    def require(self, key: str) -> Any:
-        """The raw value; a missing key is an error."""
-        if not self.has(key):
-            raise self.error(key, "is missing; add it (see SESSION_FORMAT.md)")
-        return self.data[key]
-
-    def sub(self, key: str, required: bool = True) -> Fields | None:
-        """The nested mapping at ``key``."""
-        if not self.has(key):
-            if required:
-                raise self.error(key, "is missing; add it (see SESSION_FORMAT.md)")
-            return None
-        return Fields(self.data[key], self.file, f"{self.path}.{key}" if self.path else key)
-
-    def choice(self, key: str, options: Sequence[str], default: str | None = None) -> str:
-        """A string among ``options``."""
-        v = self.get(key, default) if default is not None else self.require(key)
-        if v not in options:
-            raise self.error(key, f"is {v!r}; use one of {', '.join(options)}")
-        return str(v)
-
-    def number(
-        self,
-        key: str,
-        default: float | None = None,
-        positive: bool = False,
-        minimum: float | None = None,
-    ) -> float:
-        """A finite float (optionally > 0 or >= minimum)."""
-        v = self.require(key) if default is None else self.get(key, default)
-        if isinstance(v, bool) or not isinstance(v, int | float) or not np.isfinite(v):
-            raise self.error(key, f"must be a number, got {v!r}")
-        if positive and v <= 0:
-            raise self.error(key, f"must be positive, got {v!r}")
-        if minimum is not None and v < minimum:
-            raise self.error(key, f"must be at least {minimum}, got {v!r}")
-        return float(v)
-
-    def integer(self, key: str, default: int | None = None, minimum: int | None = None) -> int:
-        """An int (optionally >= minimum)."""
-        v = self.require(key) if default is None else self.get(key, default)
-        if isinstance(v, bool) or not isinstance(v, int):
-            raise self.error(key, f"must be an integer, got {v!r}")
-        if minimum is not None and v < minimum:
-            raise self.error(key, f"must be at least {minimum}, got {v!r}")
-        return int(v)
-
-    def boolean(self, key: str, default: bool) -> bool:
-        """A bool."""
-        v = self.get(key, default)
-        if not isinstance(v, bool):
-            raise self.error(key, f"must be true or false, got {v!r}")
-        return v
-
-    def string(self, key: str, default: str | None = None) -> str:
-        """A non-empty string."""
-        v = self.require(key) if default is None else self.get(key, default)
-        if not isinstance(v, str) or not v:
-            raise self.error(key, f"must be a non-empty string, got {v!r}")
-        return v
-
-    def array(self, key: str, shape: tuple[int, ...], default: Any = None) -> np.ndarray:
-        """A float array of ``shape`` (-1 for any length), finite."""
-        v = self.require(key) if default is None else self.get(key, default)
-        return as_array(v, shape, self.where(key))
-
-
-def as_array(value: Any, shape: tuple[int, ...], where: str) -> np.ndarray:
-    """``value`` as a finite float array of ``shape`` (-1: any length); else an ``InputError``."""
-    want = "x".join("n" if s < 0 else str(s) for s in shape)
-    try:
-        a = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(f"must be a {want} array of numbers, got {value!r}", where=where) from None
-    if a.size == 0 and len(shape) == 2 and shape[0] < 0:
-        a = a.reshape(0, shape[1])
-    ok = a.ndim == len(shape) and all(s < 0 or s == n for s, n in zip(shape, a.shape, strict=True))
-    if not ok:
-        raise InputError(f"must be a {want} array, got shape {list(a.shape)}", where=where)
-    if not np.all(np.isfinite(a)):
-        raise InputError("must hold finite numbers only (no NaN, no inf)", where=where)
-    return a
+# ----------------------------------------------------------------------------- transforms
 
 
 def transform_from_dict(f: Fields, key: str) -> np.ndarray:
@@ -254,6 +148,9 @@ def transform_from_dict(f: Fields, key: str) -> np.ndarray:
 
     sub = f.sub(key)
     assert sub is not None
+    sub.only(("R", "rpy_deg", "t_m"))
+    if sub.has("R") and sub.has("rpy_deg"):
+        raise sub.error("rpy_deg", "is given with R; give one of them")
     t = sub.array("t_m", (3,))
     if sub.has("R"):
         R = sub.array("R", (3, 3))
@@ -273,20 +170,60 @@ def transform_to_dict(T: np.ndarray) -> dict[str, Any]:
     return {"R": plain(T[:3, :3]), "t_m": plain(T[:3, 3])}
 
 
+def ur_pose_field(f: Fields, key: str) -> np.ndarray:
+    """A UR pose ``[x, y, z, rx, ry, rz]`` (metres, axis-angle radians) as a 4x4 transform."""
+    where = f.where(key)
+    pose = as_array(f.get(key), (-1,), where)
+    if pose.shape != (6,):
+        raise InputError(
+            f"has {pose.size} numbers; a UR pose is [x, y, z, rx, ry, rz] "
+            "(metres, axis-angle radians)",
+            where=where,
+        )
+    if np.linalg.norm(pose[:3]) > 100.0:
+        raise InputError(
+            f"is {np.linalg.norm(pose[:3]):.0f} m from the base; give positions in metres",
+            where=where,
+        )
+    try:
+        return T_from_ur_pose(pose)
+    except ValueError as e:
+        raise InputError(" ".join(str(e).split()), where=where) from None
+
+
 # ----------------------------------------------------------------------------- targets
+
+
+def _dictionary_size(name: str) -> int | None:
+    """Number of markers of an OpenCV predefined ArUco dictionary (None: not one)."""
+    import cv2
+
+    if not re.fullmatch(r"DICT_\w+", name) or not isinstance(getattr(cv2.aruco, name, None), int):
+        return None
+    try:
+        return int(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)).bytesList.shape[0])
+    except cv2.error:
+        return None
 
 
 def target_from_dict(data: Any, file: str, path: str = "target") -> Target:
     """A :class:`Target` from a ``target:`` block (charuco, chessboard or points)."""
-    f = Fields(data, file, path)
+    f = Fields(data, file, path).only(
+        tuple(dict.fromkeys(k for v in TARGET_KEYS.values() for k in v))
+    )
     kind = f.choice("kind", TARGET_KINDS)
+    f.only(TARGET_KEYS[kind])
     if kind == "points":
         pts = f.array("points_m", (-1, 2))
         if len(pts) < 4:
             raise f.error("points_m", f"has {len(pts)} points; give at least 4 [X, Y] pairs")
+        if len(np.unique(pts, axis=0)) != len(pts):
+            raise f.error("points_m", "has repeated points; each point may appear once")
+        if np.abs(pts).max() > 10.0:
+            raise f.error("points_m", "has points beyond 10 m; give the positions in metres")
         return Target.points(pts)
-    sx = f.integer("squares_x", minimum=3)
-    sy = f.integer("squares_y", minimum=3)
+    sx = f.integer("squares_x", minimum=3, maximum=MAX_SQUARES)
+    sy = f.integer("squares_y", minimum=3, maximum=MAX_SQUARES)
     size = f.number("square_size_m", positive=True)
     if size > 1.0:
         raise f.error("square_size_m", f"is {size} m; give the square size in metres (e.g. 0.030)")
@@ -296,12 +233,18 @@ def target_from_dict(data: Any, file: str, path: str = "target") -> Target:
     if marker >= size:
         raise f.error("marker_size_m", f"({marker}) must be smaller than square_size_m ({size})")
     dictionary = f.string("dictionary", "DICT_5X5_100")
-    import cv2
-
-    if not re.fullmatch(r"DICT_\w+", dictionary) or not hasattr(cv2.aruco, dictionary):
+    n_dict = _dictionary_size(dictionary)
+    if n_dict is None:
         raise f.error(
             "dictionary",
             f"{dictionary!r} is not an OpenCV predefined dictionary (e.g. DICT_5X5_100)",
+        )
+    needed = (sx * sy) // 2
+    if needed > n_dict:
+        raise f.error(
+            "dictionary",
+            f"{dictionary} has {n_dict} markers but a {sx}x{sy} ChArUco board needs {needed}; "
+            "use a larger dictionary (e.g. DICT_5X5_250) or fewer squares",
         )
     return Target.charuco(sx, sy, size, marker, dictionary)
 
@@ -324,7 +267,7 @@ def target_to_dict(target: Target) -> dict[str, Any]:
 
 def options_from_dict(data: Any, file: str, path: str = "options") -> ModelOptions:
     """:class:`ModelOptions` from an ``options:`` block (absent fields keep their defaults)."""
-    f = Fields(data, file, path)
+    f = Fields(data, file, path).only(OPTIONS_KEYS)
     base = ModelOptions()
     dist = base.distortion
     if f.has("distortion"):
@@ -339,8 +282,8 @@ def options_from_dict(data: Any, file: str, path: str = "options") -> ModelOptio
         outlier_threshold_px=f.number(
             "outlier_threshold_px", base.outlier_threshold_px, positive=True
         ),
-        robot_noise_m=f.number("robot_noise_mm", 0.0, minimum=0.0) / 1000.0,
-        robot_noise_deg=f.number("robot_noise_deg", 0.0, minimum=0.0),
+        robot_noise_m=f.number("robot_noise_mm", 0.0, minimum=0.0, maximum=100.0) / 1000.0,
+        robot_noise_deg=f.number("robot_noise_deg", 0.0, minimum=0.0, maximum=10.0),
     )
 
 
@@ -365,6 +308,8 @@ class Session:
 
     ``simulation``: the truth block of a simulated run (None for real runs). ``events``: what
     happened (faults, aborts). ``quality``: per (frame id, camera) the detector's report.
+    ``cell``/``cell_sha256``: the cell file the run came from (None in older sessions);
+    ``sockets``: camera name -> OAK board socket (empty unless the cameras were an OAK).
     """
 
     directory: Path
@@ -374,6 +319,11 @@ class Session:
     status: str = "complete"
     quality: dict[tuple[int, str], dict[str, Any]] = field(default_factory=dict)
     images: dict[tuple[int, str], Path] = field(default_factory=dict)
+    cell: str | None = None
+    cell_sha256: str | None = None
+    robot_driver: str | None = None
+    camera_driver: str | None = None
+    sockets: dict[str, str] = field(default_factory=dict)
 
 
 def read_session(directory: str | Path, detect_images: bool = True) -> CalibrationProblem:
@@ -397,27 +347,36 @@ def load_session(directory: str | Path, detect_images: bool = True) -> Session:
             where=str(directory),
         )
     data = load_yaml(directory / SESSION_FILE, "session.yaml")
+    return session_from_dict(data, directory, detect_images)
+
+
+def session_from_dict(data: Any, directory: Path, detect_images: bool = True) -> Session:
+    """Validate a parsed ``session.yaml`` of ``directory`` (see :func:`load_session`)."""
     f = Fields(data, SESSION_FILE)
     _check_format(f, SESSION_FORMAT, "session")
+    f.only(SESSION_KEYS[""])
     target = target_from_dict(f.require("target"), SESSION_FILE)
 
-    cams = f.require("cameras")
-    if not isinstance(cams, list) or not cams:
-        raise f.error("cameras", "must be a list of {name, width, height}; add the cameras")
+    cams = f.list("cameras", non_empty=True, hint="camera {name, width, height}")
     cameras: list[CameraSpec] = []
+    sockets: dict[str, str] = {}
     for i, c in enumerate(cams):
-        cf = Fields(c, SESSION_FILE, f"cameras[{i}]")
+        cf = Fields(c, SESSION_FILE, f"cameras[{i}]").only(SESSION_KEYS["cameras[]"])
         name = cf.string("name")
         if any(x.name == name for x in cameras):
             raise cf.error("name", f"{name!r} appears twice; camera names must be unique")
         cameras.append(
-            CameraSpec(name, cf.integer("width", minimum=1), cf.integer("height", minimum=1))
+            CameraSpec(
+                name,
+                cf.integer("width", minimum=1, maximum=100_000),
+                cf.integer("height", minimum=1, maximum=100_000),
+            )
         )
+        if cf.has("socket"):
+            sockets[name] = _socket(cf)
     names = [c.name for c in cameras]
 
-    raw_frames = f.require("frames")
-    if not isinstance(raw_frames, list):
-        raise f.error("frames", "must be a list of frames")
+    raw_frames = f.list("frames", hint="frame {id, T_base_tool, detections}")
     frames: list[Frame] = []
     quality: dict[tuple[int, str], dict[str, Any]] = {}
     images: dict[tuple[int, str], Path] = {}
@@ -448,7 +407,10 @@ def load_session(directory: str | Path, detect_images: bool = True) -> Session:
     else:
         knowledge = f.choice("knowledge", KNOWLEDGE, "none")
         if knowledge == "robot":
-            raise f.error("knowledge", "is 'robot' but no frame has a T_base_tool; remove it")
+            why = "the session holds no frames" if not frames else "no frame has a T_base_tool"
+            raise f.error("knowledge", f"is 'robot' but {why}; record frames with robot poses")
+        if f.has("mount"):
+            f.choice("mount", MOUNTS)  # checked; without robot poses there is no mount
         mount = "none"
     if knowledge in ("board_translation", "board_direction"):
         for i, fr in enumerate(frames):
@@ -457,7 +419,7 @@ def load_session(directory: str | Path, detect_images: bool = True) -> Session:
                     f"is missing; knowledge {knowledge!r} needs motion_board on every frame",
                     where=f"{SESSION_FILE}: frames[{i}].motion_board",
                 )
-    ref = f.get("reference_camera")
+    ref = f.string("reference_camera", names[0]) if f.has("reference_camera") else None
     if ref is not None and ref not in names:
         raise f.error("reference_camera", f"{ref!r} is not a camera; cameras are {names}")
     options = options_from_dict(f.get("options", {}), SESSION_FILE)
@@ -470,21 +432,75 @@ def load_session(directory: str | Path, detect_images: bool = True) -> Session:
         options=options,
         reference_camera=ref,
     )
-    events = f.get("events", [])
-    if not isinstance(events, list):
-        raise f.error("events", "must be a list")
-    sim = f.get("simulation")
-    if sim is not None and not isinstance(sim, Mapping):
-        raise f.error("simulation", "must be a mapping (the simulated truth)")
+    events = _events(f)
+    sim = _simulation_truth(f.sub("simulation", required=False), names)
+    sha = f.string("cell_sha256", "-") if f.has("cell_sha256") else None
+    if sha is not None and not re.fullmatch(r"[0-9a-f]{64}", sha):
+        raise f.error("cell_sha256", "must be 64 lowercase hex digits (a SHA-256)")
     return Session(
         directory=directory,
         problem=problem,
-        simulation=dict(sim) if sim is not None else None,
-        events=tuple(events),
-        status=str(f.get("status", "complete")),
+        simulation=sim,
+        events=events,
+        status=f.choice("status", STATUSES, "complete"),
         quality=quality,
         images=images,
+        cell=f.string("cell", "-") if f.has("cell") else None,
+        cell_sha256=sha,
+        robot_driver=f.choice("robot_driver", ("simulated", "ur"), "ur")
+        if f.has("robot_driver")
+        else None,
+        camera_driver=f.choice("camera_driver", CAMERA_DRIVERS, "oak")
+        if f.has("camera_driver")
+        else None,
+        sockets=sockets,
     )
+
+
+def _socket(cf: Fields) -> str:
+    s = cf.string("socket")
+    if not OAK_SOCKET.fullmatch(s):
+        raise cf.error("socket", f"is {s!r}; an OAK board socket is CAM_A .. CAM_H")
+    return s
+
+
+def _events(f: Fields) -> tuple[dict[str, Any], ...]:
+    out = []
+    for i, e in enumerate(f.list("events", required=False)):
+        ef = Fields(e, SESSION_FILE, f"events[{i}]")
+        ef.string("kind")
+        ef.string("message")
+        out.append(dict(ef.data))
+    return tuple(out)
+
+
+def _simulation_truth(f: Fields | None, names: Sequence[str]) -> dict[str, Any] | None:
+    """The ``simulation:`` block, checked: transforms are rotations, cameras known, K 3x3."""
+    if f is None:
+        return None
+    for key in f.data:
+        if isinstance(key, str) and re.fullmatch(r"T_\w+_\w+", key):
+            transform_from_dict(f, key)
+        elif key not in SESSION_KEYS["simulation"]:
+            raise unknown_key_error(f.where(str(key)), key, SESSION_KEYS["simulation"])
+    cf = f.section("cameras")
+    for name in cf.data:
+        if name not in names:
+            raise cf.error(str(name), f"unknown camera {name!r}; cameras are {list(names)}")
+        c = cf.section(str(name), SESSION_KEYS["simulation.cameras.*"])
+        c.array("K", (3, 3))
+        c.array("distortion", (5,))
+    nf = f.section("noise", SESSION_KEYS["simulation.noise"])
+    nf.number("robot_mm", 0.0, minimum=0.0)
+    nf.number("robot_deg", 0.0, minimum=0.0)
+    ncf = nf.section("cameras")
+    for name in ncf.data:
+        c = ncf.section(str(name), SESSION_KEYS["simulation.noise.cameras.*"])
+        for k in SESSION_KEYS["simulation.noise.cameras.*"]:
+            c.number(k, 0.0, minimum=0.0)
+    if f.has("seed"):
+        f.integer("seed", minimum=0)
+    return dict(f.data)
 
 
 def _check_format(f: Fields, expected: str, what: str) -> None:
@@ -507,68 +523,53 @@ def _read_frame(
     cameras: Sequence[CameraSpec],
     detect_images: bool,
 ) -> tuple[Frame, dict[tuple[int, str], dict[str, Any]], dict[tuple[int, str], Path]]:
+    f.only(SESSION_KEYS["frames[]"])
     fid = f.integer("id", minimum=0)
     names = [c.name for c in cameras]
-    T = None
-    if f.has("T_base_tool"):
-        v = f.get("T_base_tool")
-        where = f.where("T_base_tool")
-        pose = as_array(v, (-1,), where)
-        if pose.shape != (6,):
-            raise InputError(
-                f"has {pose.size} numbers; a UR pose is [x, y, z, rx, ry, rz] "
-                "(metres, axis-angle radians)",
-                where=where,
-            )
-        try:
-            T = T_from_ur_pose(pose)
-        except ValueError as e:
-            raise InputError(str(e), where=where) from None
+    T = ur_pose_field(f, "T_base_tool") if f.has("T_base_tool") else None
     motion = f.array("motion_board", (3,)) if f.has("motion_board") else None
     group = f.integer("group", minimum=0) if f.has("group") else None
 
     image_paths: dict[str, Path] = {}
-    ims = f.sub("images", required=False)
-    if ims is not None:
-        for name, rel in ims.data.items():
-            if name not in names:
-                raise ims.error(str(name), f"unknown camera {name!r}; cameras are {names}")
-            if not isinstance(rel, str):
-                raise ims.error(str(name), f"must be a path relative to the session, got {rel!r}")
-            image_paths[str(name)] = directory / rel
+    ims = f.section("images")
+    for name, rel in ims.data.items():
+        if name not in names:
+            raise ims.error(str(name), f"unknown camera {name!r}; cameras are {names}")
+        if not isinstance(rel, str) or not rel.strip():
+            raise ims.error(str(name), f"must be a path relative to the session, got {rel!r}")
+        if Path(rel).is_absolute() or ".." in Path(rel).parts:
+            raise ims.error(str(name), f"{rel!r} leaves the session; give a path inside it")
+        image_paths[str(name)] = directory / rel
 
     detections: dict[str, Detection] = {}
-    dets = f.sub("detections", required=False)
-    if dets is not None:
-        for name in dets.data:
-            if name not in names:
-                raise dets.error(str(name), f"unknown camera {name!r}; cameras are {names}")
-            df = dets.sub(str(name))
-            assert df is not None
-            detections[str(name)] = _read_detection(df, target)
+    dets = f.section("detections")
+    for name in dets.data:
+        if name not in names:
+            raise dets.error(str(name), f"unknown camera {name!r}; cameras are {names}")
+        detections[str(name)] = _read_detection(dets.section(str(name)), target)
 
     for name, path in image_paths.items():
         if name in detections:
             continue
         if not path.is_file():
-            raise ims.error(  # type: ignore[union-attr]
+            raise ims.error(
                 name, f"image {path.name} not found; restore it or give detections for {name!r}"
             )
         if not detect_images:
-            raise ims.error(  # type: ignore[union-attr]
-                name, "has an image but no detections, and detection was turned off"
-            )
-        detections[name] = _detect_file(path, target, ims.where(name))  # type: ignore[union-attr]
+            raise ims.error(name, "has an image but no detections, and detection was turned off")
+        detections[name] = _detect_file(path, target, ims.where(name))
     quality: dict[tuple[int, str], dict[str, Any]] = {}
-    q = f.sub("quality", required=False)
-    if q is not None:
-        for name, v in q.data.items():
-            quality[(fid, str(name))] = dict(v) if isinstance(v, Mapping) else {"value": v}
+    q = f.section("quality")
+    for name in q.data:
+        if name not in names:
+            raise q.error(str(name), f"unknown camera {name!r}; cameras are {names}")
+        quality[(fid, str(name))] = dict(q.section(str(name)).data)
     frame = Frame(id=fid, detections=detections, T_base_tool=T, motion_board=motion, group=group)
     return frame, quality, {(fid, n): p for n, p in image_paths.items()}
 
 
 def _read_detection(f: Fields, target: Target) -> Detection:
+    f.only(SESSION_KEYS["detection"])
     ids_raw = f.get("ids", [])
     px_raw = f.get("px", [])
     if not isinstance(ids_raw, list) or not all(
@@ -580,11 +581,11 @@ def _read_detection(f: Fields, target: Target) -> Detection:
         raise f.error(
             "px", f"has {len(px)} positions for {len(ids_raw)} ids; give one [u, v] per id"
         )
-    ids = np.asarray(ids_raw, dtype=np.int64)
     n = len(target.points_m)
-    bad = ids[(ids < 0) | (ids >= n)]
-    if len(bad):
-        raise f.error("ids", f"id {int(bad[0])} is not on the target (ids are 0..{n - 1})")
+    bad = [i for i in ids_raw if i < 0 or i >= n]
+    if bad:
+        raise f.error("ids", f"id {bad[0]} is not on the target (ids are 0..{n - 1})")
+    ids = np.asarray(ids_raw, dtype=np.int64)
     if len(np.unique(ids)) != len(ids):
         raise f.error("ids", "has repeated ids; each corner may appear once per image")
     return Detection(ids, px)
@@ -628,8 +629,10 @@ class SessionWriter:
         simulation: Mapping[str, Any] | None = None,
         extra: Mapping[str, Any] | None = None,
         overwrite: bool = False,
+        sockets: Mapping[str, str] | None = None,
     ) -> None:
         self.directory = Path(directory)
+        _declared(extra, SESSION_KEYS[""], "session")
         if (self.directory / SESSION_FILE).exists() and not overwrite:
             raise InputError(
                 "already holds a session; choose a new --out directory or delete the old one",
@@ -648,9 +651,12 @@ class SessionWriter:
             self.data["mount"] = mount
         self.data["knowledge"] = knowledge
         self.data["target"] = target_to_dict(target)
-        self.data["cameras"] = [
-            {"name": c.name, "width": int(c.width), "height": int(c.height)} for c in cameras
-        ]
+        self.data["cameras"] = []
+        for c in cameras:
+            entry = {"name": c.name, "width": int(c.width), "height": int(c.height)}
+            if sockets and sockets.get(c.name):
+                entry["socket"] = str(sockets[c.name])
+            self.data["cameras"].append(entry)
         if reference_camera is not None:
             self.data["reference_camera"] = reference_camera
         self.data["options"] = options_to_dict(options or ModelOptions())
@@ -687,6 +693,7 @@ class SessionWriter:
         """
         import cv2
 
+        _declared(extra, SESSION_KEYS["frames[]"], "frame")
         used = [int(fr["id"]) for fr in self.data["frames"]]
         fid = (max(used) + 1 if used else 0) if frame_id is None else int(frame_id)
         if fid in used:
@@ -738,6 +745,15 @@ class SessionWriter:
 
     def _write(self) -> None:
         write_atomic(self.directory / SESSION_FILE, dump_yaml(self.data))
+
+
+def _declared(extra: Mapping[str, Any] | None, keys: Sequence[str], what: str) -> None:
+    """Refuse to write a field the reader would refuse (declare it in ``SESSION_KEYS``)."""
+    for k in extra or {}:
+        if k not in keys:
+            raise InputError(
+                f"{k!r} is not a {what} field of {SESSION_FORMAT}; declare it in SESSION_KEYS"
+            )
 
 
 def write_session(

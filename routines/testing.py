@@ -36,7 +36,7 @@ def simulated_run(
     """Run the routine end to end on a simulated cell into ``tmp_path/session``.
 
     ``overrides``: top-level cell sections merged over the file (e.g.
-    ``simulation={"noise": {"robot_mm": 0.1}}``, ``plan={"tilt_deg": 20}``). Refuses cells
+    ``simulation={"noise": {"robot_mm": 0.1}}``, ``plan={"tilts_deg": [20]}``). Refuses cells
     that name real hardware.
     """
     cfg = config if isinstance(config, CellConfig) else load_config(config, overrides)

@@ -238,7 +238,7 @@ def _independent_checks(cfg, plan) -> None:
     model = urk.model_by_name(cfg.robot.model)
     spec = cfg.cameras[0]
     sim = cfg.simulation
-    K, dist = sim.cameras[0].K, sim.cameras[0].distortion
+    K, dist = sim.cameras[0].K, sim.cameras[0].dist
     pts = cfg.target.points_m
     for T in [plan.via] + [T for _, T in plan.poses]:
         p = T[:3, 3]

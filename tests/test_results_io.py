@@ -1,4 +1,4 @@
-"""result.yaml as SESSION_FORMAT.md says, its round trip, and the OpenCV / ROS exports."""
+"""result.yaml as docs/FORMATS.md says, its round trip, and the OpenCV / ROS exports."""
 
 from __future__ import annotations
 

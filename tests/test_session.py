@@ -235,3 +235,42 @@ def test_missing_directory_and_file_and_bad_yaml(tmp_path: Path) -> None:
     (tmp_path / SESSION_FILE).write_text("format: [unclosed\n")
     with pytest.raises(InputError, match="not valid YAML at line"):
         read_session(tmp_path)
+
+
+# ----------------------------------------------------------------------------- what solve needs
+
+DATA = Path(__file__).parent / "data"
+
+
+def test_old_sessions_still_load() -> None:
+    """tests/data holds a slidecal.session/1 file as the first version wrote it."""
+    s = load_session(DATA / "r1_session", detect_images=False)
+    assert len(s.problem.frames) > 10 and s.cell == "default_cell.yaml"
+    assert s.cell_sha256 is None and s.sockets == {} and s.camera_driver == "simulated"
+    assert s.simulation is not None and s.status == "complete"
+
+
+def test_session_records_the_cell_and_the_oak_sockets(tmp_path: Path) -> None:
+    import hashlib
+
+    p = _problem(np.random.default_rng(1), n_frames=2)
+    sha = hashlib.sha256(b"a cell").hexdigest()
+    w = SessionWriter(
+        tmp_path / "s",
+        p.target,
+        p.cameras,
+        extra={"cell": "line4.yaml", "cell_sha256": sha, "camera_driver": "oak"},
+        sockets={"left": "CAM_B", "right": "CAM_C"},
+    )
+    for fr in p.frames:
+        w.append_frame(fr.T_base_tool, detections=fr.detections, group=fr.group)
+    s = load_session(w.finish())
+    assert (s.cell, s.cell_sha256, s.camera_driver) == ("line4.yaml", sha, "oak")
+    assert s.sockets == {"left": "CAM_B", "right": "CAM_C"}
+
+
+def test_writer_refuses_a_field_the_reader_would_refuse(tmp_path: Path) -> None:
+    p = _problem(np.random.default_rng(2), n_frames=1)
+    with pytest.raises(InputError, match="declare it in SESSION_KEYS"):
+        SessionWriter(tmp_path / "s", p.target, p.cameras, extra={"cel": "x.yaml"})
+    assert not (tmp_path / "s" / SESSION_FILE).exists()
