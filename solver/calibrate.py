@@ -16,13 +16,13 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
-from slidecal.solver.degeneracy import check_configuration
+from slidecal.solver.degeneracy import check_configuration, n_directions
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, project_to_SO3, skew
-from slidecal.solver.handeye import rotation_from_directions
+from slidecal.solver.handeye import ax_xb_park_martin, rotation_from_directions
 from slidecal.solver.homography import group_homographies
 from slidecal.solver.linear import LinearGroup, linear_intrinsics, zhang_intrinsics
-from slidecal.solver.problem import DISTORTION_NAMES, CalibrationProblem, Detection
+from slidecal.solver.problem import DISTORTION_NAMES, CalibrationProblem, Detection, Frame
 from slidecal.solver.refine import (
     ModelState,
     RefineOutput,
@@ -44,7 +44,14 @@ from slidecal.solver.stereo import (
     rig_linear_intrinsics_translation,
 )
 
-MIN_CORNERS = 6  # fewer corners than this in an image do not enter the linear step
+# An image with fewer points than this is skipped (with a message): a plane homography and a
+# planar PnP pose need 4 points (8 equations for 8 unknowns). Intrinsics from few points are
+# honest only when there are enough images: the frame counts are checked separately.
+MIN_CORNERS = 4
+# Robot positions farther apart than this (and than 20 target sizes) are millimetres given as
+# metres: a camera that sees the target from every pose does not travel 20 m (moves of
+# 20-500 mm read as metres do). The target size keeps unit-free scenarios (the paper's) apart.
+MAX_SPAN_M = 20.0
 
 
 def check_problem(problem: CalibrationProblem) -> None:
@@ -93,10 +100,66 @@ def check_problem(problem: CalibrationProblem) -> None:
             f.motion_board is None
         ):
             raise InputError("motion_board is missing for this knowledge", f"{where}")
+    if problem.knowledge == "robot":
+        p = np.array([np.asarray(f.T_base_tool, float)[:3, 3] for f in problem.frames])
+        span = np.linalg.norm(p - p[0], axis=1)
+        pts = problem.target.points_m
+        extent = float(np.ptp(pts, axis=0).max()) if len(pts) else 0.0
+        if span.max() > max(MAX_SPAN_M, 20.0 * extent):
+            raise InputError(
+                f"T_base_tool translations look like millimetres (frame "
+                f"{problem.frames[int(np.argmax(span))].id} is {span.max():.0f} m from frame "
+                f"{problem.frames[0].id}); give metres",
+                f"frames[{int(np.argmax(span))}].T_base_tool",
+            )
     if problem.mount not in ("eye_in_hand", "eye_to_hand", "none"):
         raise InputError(f"mount must be eye_in_hand, eye_to_hand or none, not {problem.mount!r}")
     if problem.knowledge == "robot" and problem.mount == "none":
         raise InputError("a robot session needs mount: eye_in_hand or eye_to_hand")
+
+
+def usable_frames(problem: CalibrationProblem) -> tuple[CalibrationProblem, tuple[str, ...]]:
+    """The problem without the images and frames that cannot enter the solve, and why.
+
+    An image with fewer than ``MIN_CORNERS`` points is skipped; a frame in which no camera kept
+    an image is skipped whole (the session keeps its record: a frame that saw nothing is never
+    a reason to refuse a session). Returns the reduced problem (frame ids unchanged) and one
+    message per skipped image or frame. Raises ``DegenerateError`` when fewer than 2 frames
+    remain, with the count and what to add.
+    """
+    kept: list[Frame] = []
+    notes: list[str] = []
+    empty: list[int] = []
+    for f in problem.frames:
+        dets = {}
+        for cam, det in f.detections.items():
+            if len(det.ids) >= MIN_CORNERS:
+                dets[cam] = det
+            elif len(det.ids):
+                notes.append(
+                    f"frame {f.id}: camera {cam!r} found {len(det.ids)} target points, fewer "
+                    f"than the {MIN_CORNERS} a pose needs; image skipped"
+                )
+        if dets:
+            kept.append(replace(f, detections=dets) if len(dets) < len(f.detections) else f)
+        else:
+            empty.append(f.id)
+    if empty:
+        notes.append(
+            f"frames {empty}: the target was not found (at least {MIN_CORNERS} points) by any "
+            "camera; skipped"
+        )
+    if len(kept) < 2:
+        raise DegenerateError(
+            f"only {len(kept)} of {len(problem.frames)} frames saw the target (at least "
+            f"{MIN_CORNERS} points)"
+            + (f"; the detection found nothing usable in frames {empty}" if empty else "")
+            + ": check those images (focus, exposure, the target description) or capture more "
+            "frames with the target in view"
+        )
+    if len(kept) == len(problem.frames) and not notes:
+        return problem, ()
+    return replace(problem, frames=tuple(kept)), tuple(notes)
 
 
 # -- grouping and the linear step ---------------------------------------------------------------
@@ -167,7 +230,17 @@ def linear_camera(
             "description and that the target is in view"
         )
     size = (spec.width, spec.height)
-    if problem.knowledge == "none":
+    if problem.knowledge == "none" or all(len(g.H) < 2 for g in lin_groups):
+        # general motion, or a classic hand-eye session (no two frames at one orientation):
+        # Zhang from the homographies of all frames
+        n_need = 3 if o.skew else 2
+        if len(lin_groups) < n_need:
+            raise DegenerateError(
+                f"camera {cam!r} saw the target in {len(lin_groups)} frame(s) and no two at one "
+                f"orientation: the intrinsics need at least {n_need} views at different "
+                "orientations; capture more frames at different tilts (or translate the robot "
+                "between captures at one tilt)"
+            )
         return zhang_intrinsics(
             np.concatenate([g.H for g in lin_groups]),
             skew=o.skew,
@@ -286,6 +359,37 @@ def _align(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return R_from_rvec(v / np.linalg.norm(v) * np.arctan2(np.linalg.norm(v), c))
 
 
+def _align_translations(d_cam: np.ndarray, d_M: np.ndarray) -> np.ndarray:
+    """``R_X`` (3, 3) taking the one robot translation direction onto the camera's."""
+    sign = np.sign(d_M @ d_M[0])
+    return _align(d_M.T @ sign, d_cam.T @ sign)
+
+
+def _rotation_ax_xb(groups: np.ndarray, M: np.ndarray, poses: dict[int, np.ndarray]) -> np.ndarray:
+    """``R_X`` (3, 3) of ``T_cam_board(k) = X M_k Y`` from general motions (classic hand-eye).
+
+    Between frames ``i``, ``j``: ``P_i P_j^-1 = X (M_i M_j^-1) X^-1``, an ``AX = XB`` problem
+    (``A`` from the camera's board poses, ``B`` from the robot's), solved by Park and Martin over
+    all pairs of orientations (one frame per orientation group: frames of one group differ by a
+    translation, which carries no rotation information).
+    """
+    rep = {}
+    for i in sorted(poses):
+        rep.setdefault(int(groups[i]), i)
+    idx = list(rep.values())
+    if len(idx) < 3:
+        raise DegenerateError(
+            f"the board was seen at {len(idx)} orientation(s): the hand-eye rotation from "
+            "general motions needs at least 3 orientations, about two non-parallel axes"
+        )
+    a, b = np.triu_indices(len(idx), 1)
+    P = np.array([poses[i] for i in idx])
+    Mi = M[idx]
+    P_inv = np.array([inv_T(T) for T in P])
+    M_inv = np.array([inv_T(T) for T in Mi])
+    return ax_xb_park_martin(P[a] @ P_inv[b], Mi[a] @ M_inv[b])[:3, :3]
+
+
 def init_motion(
     problem: CalibrationProblem, poses: dict[int, np.ndarray]
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -331,16 +435,26 @@ def init_motion(
                 i, j = idx[a], idx[b]
                 d_cam.append(poses[j][:3, 3] - poses[i][:3, 3])
                 d_M.append(st.M[j][:3, 3] - st.M[i][:3, 3])
-    if len(d_M) == 0:
-        raise DegenerateError(
-            "no orientation group has two usable frames: translate the robot "
-            "between captures at each tilt"
-        )
-    d_cam, d_M = np.array(d_cam), np.array(d_M)
-    if st.Y_rot_basis.shape[1] == 3:
+    d_cam, d_M = np.array(d_cam).reshape(-1, 3), np.array(d_M).reshape(-1, 3)
+    n_dir = n_directions(d_M)
+    rotations = st.X_t_basis.shape[1] > 0  # the robot rotates between some frames
+    if n_dir >= 2:  # translations in two directions or more (MATH.md Sec. 4)
         R_X = rotation_from_directions(d_cam, d_M)
-    else:  # one translation direction: any R_X mapping it onto the camera's will do (gauge)
-        R_X = _align(d_M.T @ np.sign(d_M @ d_M[0]), d_cam.T @ np.sign(d_M @ d_M[0]))
+    elif rotations:
+        try:  # general motions between the orientations: AX = XB
+            R_X = _rotation_ax_xb(groups, st.M, poses)
+        except DegenerateError:
+            if n_dir == 0:
+                raise
+            R_X = _align_translations(d_cam, d_M)
+    elif n_dir == 1:  # one translation direction: any R_X mapping it onto the camera's (gauge)
+        R_X = _align_translations(d_cam, d_M)
+    else:
+        raise DegenerateError(
+            "the robot neither translated between frames at one orientation nor rotated "
+            f"between frames ({len(poses)} frames with a board pose): capture frames at "
+            "different tilts, or translate the robot between captures at each tilt"
+        )
     idx = sorted(poses)
     rows, rhs = [], []
     for i in idx:
@@ -374,12 +488,25 @@ def calibrate(
     measured) and costs a third of the solve time less.
     """
     check_problem(problem)
+    full = problem
+    problem, notes_skipped = usable_frames(problem)
+    notes: list[str] = list(notes_skipped)
     groups = frame_groups(problem)
     zero = np.zeros(5)
     jh = joint_homographies
-    K_lin = {c.name: linear_camera(problem, c.name, groups, jh) for c in problem.cameras}
+    K_lin = {}
+    for c in problem.cameras:
+        try:
+            K_lin[c.name] = linear_camera(problem, c.name, groups, jh)
+        except DegenerateError as e:
+            if not notes_skipped:
+                raise
+            raise DegenerateError(
+                f"{e} ({len(full.frames) - len(problem.frames)} of {len(full.frames)} frames, "
+                "and some images, were skipped because the target was not found in them: see "
+                "whether the detection failed there)"
+            ) from None
     ref = problem.reference
-    notes: list[str] = []
     for c in K_lin:
         if c == ref:
             continue
@@ -416,6 +543,18 @@ def calibrate(
     for c, T in T_cam_ref.items():
         for i, T_c_board in poses[c].items():
             ref_poses.setdefault(i, inv_T(T) @ T_c_board)
+    missing = [i for i in range(len(problem.frames)) if i not in ref_poses]
+    if missing and problem.knowledge == "none":  # each frame needs its own pose: skip it
+        kept = tuple(f for i, f in enumerate(problem.frames) if i in ref_poses)
+        ids = [problem.frames[i].id for i in missing]
+        if len(kept) < 2:
+            raise DegenerateError(
+                f"the board pose could be computed in {len(kept)} frame(s) only (not in "
+                f"frames {ids}): capture more frames with the whole target in view"
+            )
+        res = calibrate(replace(problem, frames=kept), joint_homographies=jh)
+        note = f"frames {ids}: no board pose could be computed from the image; skipped"
+        return replace(res, messages=(*notes_skipped, note, *res.messages))
     X, Y, s = init_motion(problem, ref_poses)
     if apart:  # the measured robot motion carries the reference camera to their frames
         st = build_structure(problem)
@@ -434,11 +573,15 @@ def calibrate(
     return _result(problem, out, K_lin, groups)
 
 
-def _kept(out: RefineOutput) -> np.ndarray:
-    """Indices of the parameters a result reports (all but the robot-pose corrections)."""
+def _kept(out: RefineOutput, unobservable: dict[str, str] | None = None) -> np.ndarray:
+    """Indices of the parameters a result reports: all but the robot-pose corrections and, when
+    the hand-eye translation is unobservable, the target pose's translation (its value is tied
+    to that translation, fixed by convention: not a measured number)."""
     keep = np.ones(len(out.names), dtype=bool)
     if "E" in out.model.slices:
         keep[out.model.slices["E"]] = False
+    if unobservable and any(k.endswith("_board.t") for k in unobservable):
+        keep &= np.array([not n.startswith("Y.t") for n in out.names], dtype=bool)
     return np.flatnonzero(keep)
 
 
@@ -508,14 +651,26 @@ def _result(
         )
         CY = _block_cov(out, "Y")
         mr = st.Y_rot_basis.shape[1]
+        # the target pose is tied to the hand-eye transform: what the data cannot determine of
+        # one, it cannot determine of the other (no made-up numbers)
+        if not rot_ok:
+            unobs[f"{tgt_name}.R"] = (
+                f"depends on the hand-eye rotation ({he_name}.R), which this session cannot "
+                "determine; translate along at least two non-parallel directions"
+            )
+        if not t_ok:
+            unobs[f"{tgt_name}.t"] = (
+                f"depends on the hand-eye translation ({he_name}.t), which this session cannot "
+                "determine; add orientations tilted about two non-parallel axes"
+            )
         T_target = TransformEstimate(
             tgt_name,
-            state.Y[:3, :3],
-            state.Y[:3, 3],
+            state.Y[:3, :3] if rot_ok else None,
+            state.Y[:3, 3] if t_ok else None,
             _std_rot_deg(st.Y_rot_basis @ CY[:mr, :mr] @ st.Y_rot_basis.T)
-            if CY is not None
+            if CY is not None and rot_ok
             else None,
-            _std_t_mm(CY[mr:, mr:]) if CY is not None else None,
+            _std_t_mm(CY[mr:, mr:]) if CY is not None and t_ok else None,
         )
     rig = {}
     H_inf = {}
@@ -548,8 +703,8 @@ def _result(
         sigma_px=out.sigma_px,
         # the robot-pose corrections are nuisance parameters: the result keeps the marginal
         # covariance of everything else (the matching block of the full inverse)
-        parameter_names=tuple(names[i] for i in _kept(out)),
-        covariance=None if cov is None else cov[np.ix_(_kept(out), _kept(out))],
+        parameter_names=tuple(names[i] for i in _kept(out, unobs)),
+        covariance=None if cov is None else cov[np.ix_(_kept(out, unobs), _kept(out, unobs))],
         residuals_px=residuals,
         outliers=out.outliers,
         unobservable=unobs,
