@@ -111,6 +111,7 @@ def classic(
     target: Target | None = None,
     per_orientation: int = 1,
     distortion: np.ndarray | None = None,
+    T_cam_board: np.ndarray | None = None,
 ) -> Scenario:
     """A classic hand-eye session in the R1 cell: ``n_frames`` orientations, all different.
 
@@ -118,18 +119,22 @@ def classic(
     ``n_frames`` orientations of ``per_orientation`` frames). ``target``: R1's ChArUco board by
     default; ``distortion`` (5,): the lens (R1's by default). Robot poses are measured with
     ``robot_noise_m`` per axis and ``robot_noise_deg`` per rotation-vector component.
+    ``T_cam_board`` (n, 4, 4): the views (:func:`camera_board_poses`) when the geometry must stay
+    the same over Monte-Carlo trials; ``rng`` then draws only the noise (and the translations).
     """
     target = target or Target.charuco(11, 8, 0.030, 0.022)
     dist = R1_DIST.copy() if distortion is None else np.asarray(distortion, dtype=float)
-    T_cb = _translated(camera_board_poses(rng, n_frames, target), rng, per_orientation)
+    if T_cam_board is None:
+        T_cam_board = camera_board_poses(rng, n_frames, target)
+    T_cb = _translated(np.asarray(T_cam_board, dtype=float), rng, per_orientation)
     T_base_board = r1_poses()[0]
     frames = []
-    for k, T_cam_board in enumerate(T_cb):
+    for k, T_c_b in enumerate(T_cb):
         if eye_in_hand:
-            T_base_tool = T_base_board @ inv_T(T_cam_board) @ inv_T(R1_T_TOOL_CAM)
+            T_base_tool = T_base_board @ inv_T(T_c_b) @ inv_T(R1_T_TOOL_CAM)
         else:
-            T_base_tool = R1_T_BASE_CAM @ T_cam_board @ inv_T(R1_T_TOOL_BOARD)
-        det = _detect(R1_K, dist, T_cam_board, target, IMAGE_SIZE, sigma_px, rng, 2.0)
+            T_base_tool = R1_T_BASE_CAM @ T_c_b @ inv_T(R1_T_TOOL_BOARD)
+        det = _detect(R1_K, dist, T_c_b, target, IMAGE_SIZE, sigma_px, rng, 2.0)
         measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
         frames.append(Frame(k, {"cam": det}, T_base_tool=measured))
     problem = CalibrationProblem(

@@ -447,6 +447,8 @@ def load_session(directory: str | Path, detect_images: bool = True) -> Session:
         mount = f.choice("mount", MOUNTS, "eye_in_hand")
     else:
         knowledge = f.choice("knowledge", KNOWLEDGE, "none")
+        if knowledge == "robot" and not frames:
+            raise f.error("frames", "is empty: the session recorded no frame; capture frames")
         if knowledge == "robot":
             raise f.error("knowledge", "is 'robot' but no frame has a T_base_tool; remove it")
         mount = "none"
@@ -518,6 +520,12 @@ def _read_frame(
             raise InputError(
                 f"has {pose.size} numbers; a UR pose is [x, y, z, rx, ry, rz] "
                 "(metres, axis-angle radians)",
+                where=where,
+            )
+        if np.any(np.abs(pose[3:]) > 2 * np.pi):
+            raise InputError(
+                "rotation components above 2 pi look like degrees; give the axis-angle "
+                "[rx, ry, rz] in radians",
                 where=where,
             )
         try:

@@ -107,9 +107,9 @@ def check_problem(problem: CalibrationProblem) -> None:
         extent = float(np.ptp(pts, axis=0).max()) if len(pts) else 0.0
         if span.max() > max(MAX_SPAN_M, 20.0 * extent):
             raise InputError(
-                f"T_base_tool translations look like millimetres (frame "
+                "T_base_tool translations look like millimetres; give metres (frame "
                 f"{problem.frames[int(np.argmax(span))].id} is {span.max():.0f} m from frame "
-                f"{problem.frames[0].id}); give metres",
+                f"{problem.frames[0].id})",
                 f"frames[{int(np.argmax(span))}].T_base_tool",
             )
     if problem.mount not in ("eye_in_hand", "eye_to_hand", "none"):
