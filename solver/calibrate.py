@@ -1,10 +1,13 @@
 """The calibration pipeline: a problem in, a result with its diagnostics out.
 
-1. check the problem (one clear error per bad input),
+1. check the problem (one clear error per bad input); images with fewer than 4 points and
+   frames that saw nothing are skipped with a message (never a reason to refuse a session),
 2. per camera and orientation group, joint homographies (MATH.md Sec. 3),
-3. the degeneracy analysis (Sec. 7) and the linear intrinsics for the knowledge at hand,
-4. per-frame board poses and the motion unknowns (hand-eye rotation from translations, Sec. 4;
-   hand-eye translation where rotations make it observable),
+3. the degeneracy analysis (Sec. 7) and the linear intrinsics for the knowledge at hand; Zhang
+   from all frames when no two frames share an orientation (classic hand-eye sessions),
+4. per-frame board poses and the motion unknowns (hand-eye rotation from translations, Sec. 4,
+   or from general motions, AX = XB, when the translations do not determine it; hand-eye
+   translation where rotations make it observable),
 5. maximum-likelihood refinement over all detections with covariance (Secs. 5, 6),
 6. the result: named covariance, what was unobservable, a per-move scale check.
 """
@@ -226,9 +229,10 @@ def linear_camera(
     lin_groups = [gs[0] for _, gs in _linear_groups(problem, (cam,), groups, joint)]
     if not lin_groups:
         raise DegenerateError(
-            f"camera {cam!r} saw the target in no frame: check the target "
-            "description and that the target is in view"
+            f"camera {cam!r} saw the target (at least {MIN_CORNERS} points) in no frame: check "
+            "the target description and that the target is in view"
         )
+    n_seen = sum(len(g.H) for g in lin_groups)
     size = (spec.width, spec.height)
     if problem.knowledge == "none" or all(len(g.H) < 2 for g in lin_groups):
         # general motion, or a classic hand-eye session (no two frames at one orientation):
@@ -236,10 +240,10 @@ def linear_camera(
         n_need = 3 if o.skew else 2
         if len(lin_groups) < n_need:
             raise DegenerateError(
-                f"camera {cam!r} saw the target in {len(lin_groups)} frame(s) and no two at one "
-                f"orientation: the intrinsics need at least {n_need} views at different "
-                "orientations; capture more frames at different tilts (or translate the robot "
-                "between captures at one tilt)"
+                f"camera {cam!r} saw the target in {len(lin_groups)} of {len(problem.frames)} "
+                f"frames: the intrinsics need at least {n_need} views at different orientations; "
+                "capture more frames at different tilts"
+                + ("" if problem.knowledge == "none" else ", or translate between captures")
             )
         return zhang_intrinsics(
             np.concatenate([g.H for g in lin_groups]),
@@ -248,12 +252,20 @@ def linear_camera(
             image_size=size,
         )
     knowledge = problem.knowledge
-    check_configuration(
-        lin_groups, knowledge, skew=o.skew, unit_aspect=o.unit_aspect, image_size=size
-    )
-    return linear_intrinsics(
-        lin_groups, knowledge, skew=o.skew, unit_aspect=o.unit_aspect, image_size=size
-    ).K
+    try:
+        check_configuration(
+            lin_groups, knowledge, skew=o.skew, unit_aspect=o.unit_aspect, image_size=size
+        )
+        return linear_intrinsics(
+            lin_groups, knowledge, skew=o.skew, unit_aspect=o.unit_aspect, image_size=size
+        ).K
+    except DegenerateError as e:
+        if n_seen == len(problem.frames):
+            raise
+        raise DegenerateError(
+            f"{e} (camera {cam!r} found the target, at least {MIN_CORNERS} points, in "
+            f"{n_seen} of {len(problem.frames)} frames: the detection failed in the others)"
+        ) from None
 
 
 def linear_pair(
