@@ -339,3 +339,35 @@ def test_a_points_target_of_four_corners_loads(tmp_path: Path):
     problem = read_session(tmp_path)
     assert problem.target.kind == "points" and len(problem.target.points_m) == 4
     assert isinstance(problem.target, Target)
+
+
+# -- the benchmark ------------------------------------------------------------------------------
+def test_benchmark_bounds_match_the_reported_std():
+    """The bench's bounds (rotation, translation through the inverse, fx) are the solver's
+    reported std at the same noise: both come from the same information matrix."""
+    from slidecal.routines.bench_handeye import hand_eye_bounds
+
+    s = hs.classic(np.random.default_rng(18), 15, 0.15, 0.0, 0.0)
+    res = calibrate(s.problem)
+    rot, t, fx = hand_eye_bounds(s, s.sigma_px)
+    assert abs(res.hand_eye.std_rot_deg / rot - 1) < 0.1
+    assert abs(res.hand_eye.std_t_mm / t - 1) < 0.1
+    assert abs(res.cameras["cam"].std["fx"] / fx - 1) < 0.1
+
+
+@pytest.mark.slow
+def test_benchmark_row_runs_and_stays_near_the_bound():
+    from slidecal.routines.bench_handeye import run_row, table
+
+    board = Target.charuco(11, 8, 0.030, 0.022)
+    geometry = hs.camera_board_poses(np.random.default_rng(15), 15, board)
+    row = run_row(
+        "eye-in-hand, 15 frames",
+        lambda rng, g: hs.classic(rng, 15, 0.15, 0.0, 0.0, T_cam_board=g),
+        geometry,
+        4,
+    )
+    assert row.failures == 0 and len(row.rot_deg) == 4
+    # four trials: the rms of a 3-dof error lies within a factor 2.5 of its bound
+    assert np.sqrt(np.mean(np.square(row.rot_deg))) < 2.5 * row.rot_bound_deg
+    assert "eye-in-hand, 15 frames" in "\n".join(table([row]))
