@@ -421,8 +421,9 @@ def init_motion(
         missing = [problem.frames[i].id for i in range(F) if i not in poses]
         if missing:
             raise DegenerateError(
-                f"frames {missing} have too few corners in the reference "
-                "camera for general-motion calibration; drop them"
+                f"frames {missing} have no board pose in the reference camera (fewer than "
+                f"{MIN_CORNERS} points, or PnP failed): general motion needs one per frame; "
+                "calibrate() skips such frames"
             )
         return X, np.eye(4), s
     if problem.knowledge in ("board_translation", "board_direction"):

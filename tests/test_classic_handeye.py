@@ -371,3 +371,24 @@ def test_benchmark_row_runs_and_stays_near_the_bound():
     # four trials: the rms of a 3-dof error lies within a factor 2.5 of its bound
     assert np.sqrt(np.mean(np.square(row.rot_deg))) < 2.5 * row.rot_bound_deg
     assert "eye-in-hand, 15 frames" in "\n".join(table([row]))
+
+
+# -- through the session files ------------------------------------------------------------------
+@pytest.mark.parametrize("robot", [True, False], ids=["classic-hand-eye", "images-only"])
+def test_solve_a_recorded_session_with_a_frame_that_saw_nothing(tmp_path: Path, robot):
+    from slidecal.routines.run import solve_session
+    from slidecal.routines.session import write_session
+
+    s = hs.classic(np.random.default_rng(19), 12, 0.0, 0.0, 0.0)
+    problem = _blank(s.problem, [5])
+    if not robot:
+        frames = tuple(Frame(f.id, f.detections) for f in problem.frames)
+        problem = replace(problem, frames=frames, knowledge="none", mount="none")
+    write_session(tmp_path / "session", problem)
+    outcome = solve_session(tmp_path / "session")
+    np.testing.assert_allclose(outcome.result.cameras["cam"].K, s.truth.K["cam"], rtol=1e-6)
+    assert outcome.n_frames == 12  # the frame keeps its place in the session
+    data = yaml.safe_load(outcome.result_path.read_text())
+    assert any("frames [5]" in m and "skipped" in m for m in data["messages"])
+    if robot:
+        assert data["T_tool_cam"]["t_m"] is not None
