@@ -24,9 +24,15 @@ from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, project_to_SO3, skew
 from slidecal.solver.handeye import ax_xb_park_martin, rotation_from_directions
 from slidecal.solver.homography import group_homographies
-from slidecal.solver.linear import LinearGroup, linear_intrinsics, zhang_intrinsics
+from slidecal.solver.linear import (
+    LinearGroup,
+    focal_from_homographies,
+    linear_intrinsics,
+    zhang_intrinsics,
+)
 from slidecal.solver.problem import DISTORTION_NAMES, CalibrationProblem, Detection, Frame
 from slidecal.solver.refine import (
+    BundleModel,
     ModelState,
     RefineOutput,
     build_structure,
@@ -216,13 +222,92 @@ def _linear_groups(
     return out
 
 
+def _plausible(K: np.ndarray, size: tuple[int, int]) -> bool:
+    """A start worth refining: principal point in the image, aspect ratio within 1:2."""
+    w, h = size
+    ratio = K[0, 0] / K[1, 1]
+    return -0.5 <= K[0, 2] <= w - 0.5 and -0.5 <= K[1, 2] <= h - 0.5 and 0.5 < ratio < 2.0
+
+
+def _best_start(problem: CalibrationProblem, cam: str, candidates: list[np.ndarray]) -> int:
+    """Index of the start ``K`` (3, 3) that explains the images best through the robot poses.
+
+    For each candidate: per-frame PnP poses and the hand-eye start (:func:`init_motion`) predict
+    every detection through the robot poses; the smallest median reprojection error wins.
+    """
+    o = problem.options
+    exact = replace(problem, options=replace(o, robot_noise_m=0.0, robot_noise_deg=0.0))
+    zero = np.zeros(5)
+    best, best_err = 0, np.inf
+    for k, K in enumerate(candidates):
+        poses = _frame_poses(exact, cam, K, zero, fast=True)
+        if len(poses) < 3:
+            continue
+        try:
+            X, Y, s = init_motion(exact, poses)
+        except DegenerateError:
+            continue
+        model = BundleModel(exact, build_structure(exact, X[0][:3, :3]))
+        r, _ = model.evaluate(ModelState({cam: K}, {cam: zero}, {}, X, Y, s), jacobian=False)
+        err = float(np.median(np.hypot(r[0::2], r[1::2])))
+        if np.isfinite(err) and err < best_err:
+            best, best_err = k, err
+    return best
+
+
+def _plausible(K: np.ndarray, size: tuple[int, int]) -> bool:
+    """A start worth refining: principal point in the image, aspect ratio within 1:2."""
+    w, h = size
+    ratio = K[0, 0] / K[1, 1]
+    return -0.5 <= K[0, 2] <= w - 0.5 and -0.5 <= K[1, 2] <= h - 0.5 and 0.5 < ratio < 2.0
+
+
+def _sweep_focal(problem: CalibrationProblem, cam: str, K0: np.ndarray) -> np.ndarray:
+    """The focal length (principal point at the centre) whose start explains the images best.
+
+    For a single camera with robot poses whose homographies alone are too noisy for a focal
+    length: for each candidate (``K0``'s and 0.25 to 4 times it, log-spaced), per-frame PnP
+    poses and the hand-eye start (:func:`init_motion`) predict every detection through the
+    robot poses; the candidate with the smallest median reprojection error wins.
+    """
+    o = problem.options
+    exact = replace(problem, options=replace(o, robot_noise_m=0.0, robot_noise_deg=0.0))
+    zero = np.zeros(5)
+    best, best_err = K0, np.inf
+    for factor in np.concatenate([[1.0], np.geomspace(0.25, 4.0, 17)]):
+        K = K0.copy()
+        K[0, 0] = K[1, 1] = K0[0, 0] * factor
+        poses = _frame_poses(exact, cam, K, zero, fast=True)
+        if len(poses) < 3:
+            continue
+        try:
+            X, Y, s = init_motion(exact, poses)
+        except DegenerateError:
+            continue
+        model = BundleModel(exact, build_structure(exact, X[0][:3, :3]))
+        r, _ = model.evaluate(ModelState({cam: K}, {cam: zero}, {}, X, Y, s), jacobian=False)
+        err = float(np.median(np.hypot(r[0::2], r[1::2])))
+        if np.isfinite(err) and err < best_err:
+            best, best_err = K, err
+    return best
+
+
 def linear_camera(
-    problem: CalibrationProblem, cam: str, groups: np.ndarray, joint: bool = True
+    problem: CalibrationProblem,
+    cam: str,
+    groups: np.ndarray,
+    joint: bool = True,
+    notes: list[str] | None = None,
+    focal_sweep: bool = False,
 ) -> np.ndarray:
     """Closed-form ``K`` (3, 3) of one camera (MATH.md Sec. 3; Zhang for general motion).
 
     ``joint``: the paper's joint homographies per orientation group (the accurate linear
     method); False uses rescaled per-frame DLTs, enough to start the refinement and faster.
+    Robot sessions without translation groups whose Zhang estimate is not positive definite or
+    not plausible (few, noisy points per image), or with ``focal_sweep``, start from the image
+    centre and the focal length that explains the images best through the robot poses (Zhang's
+    estimate competing); ``notes`` receives a line when Zhang's estimate is not the start.
     """
     spec = problem.camera(cam)
     o = problem.options
@@ -245,12 +330,39 @@ def linear_camera(
                 "capture more frames at different tilts"
                 + ("" if problem.knowledge == "none" else ", or translate between captures")
             )
-        return zhang_intrinsics(
-            np.concatenate([g.H for g in lin_groups]),
-            skew=o.skew,
-            unit_aspect=o.unit_aspect,
-            image_size=size,
-        )
+        Hs = np.concatenate([g.H for g in lin_groups])
+        candidates, reason = [], "not positive definite"
+        try:
+            K = zhang_intrinsics(Hs, skew=o.skew, unit_aspect=o.unit_aspect, image_size=size)
+            if problem.knowledge != "robot" or (_plausible(K, size) and not focal_sweep):
+                return K
+            if _plausible(K, size):
+                candidates.append(K)
+                reason = "a worse fit to the images through the robot poses"
+            else:
+                reason = "implausible"
+        except DegenerateError:
+            if problem.knowledge != "robot":
+                raise
+        # few or noisy points per image: the robot poses decide the focal length of the start
+        # (square pixels, principal point at the centre), Zhang's estimate competing
+        n_zhang = len(candidates)
+        Kf = focal_from_homographies(Hs, image_size=size)
+        factors = np.concatenate([[1.0], np.geomspace(0.25, 4.0, 17)])
+        if len(problem.cameras) > 1:  # the rig's cameras share the robot poses: keep it simple
+            factors = factors[:1]
+        for factor in factors:
+            Kc = Kf.copy()
+            Kc[0, 0] = Kc[1, 1] = Kf[0, 0] * factor
+            candidates.append(Kc)
+        best = _best_start(problem, cam, candidates) if len(problem.cameras) == 1 else 0
+        if best >= n_zhang and notes is not None:
+            notes.append(
+                f"camera {cam!r}: Zhang's closed form was {reason} for these views; the "
+                "refinement started from the image centre and the focal length that fits the "
+                "images best through the robot poses"
+            )
+        return candidates[best]
     knowledge = problem.knowledge
     try:
         check_configuration(
@@ -491,14 +603,18 @@ def init_motion(
 # -- the whole pipeline -------------------------------------------------------------------------
 @single_threaded_blas
 def calibrate(
-    problem: CalibrationProblem, *, joint_homographies: bool = False
+    problem: CalibrationProblem, *, joint_homographies: bool = False, focal_sweep: bool = False
 ) -> CalibrationResult:
     """Calibrate every camera, the hand-eye transform and the rig from one session.
 
     ``joint_homographies``: start from the paper's linear method with jointly refined
     homographies (``result.linear`` is then that method's estimate); by default the start uses
     rescaled per-frame DLTs, which the refinement does not need improved (same optimum,
-    measured) and costs a third of the solve time less.
+    measured) and costs a third of the solve time less. ``focal_sweep``: start a classic
+    single-camera robot session (no two frames at one orientation) from the focal length that
+    fits the images best through the robot poses instead of Zhang's closed form; done
+    automatically when the refinement from Zhang's start does not converge (few or noisy
+    points per image).
     """
     check_problem(problem)
     full = problem
@@ -510,7 +626,7 @@ def calibrate(
     K_lin = {}
     for c in problem.cameras:
         try:
-            K_lin[c.name] = linear_camera(problem, c.name, groups, jh)
+            K_lin[c.name] = linear_camera(problem, c.name, groups, jh, notes, focal_sweep)
         except DegenerateError as e:
             if not notes_skipped:
                 raise
@@ -565,7 +681,9 @@ def calibrate(
                 f"the board pose could be computed in {len(kept)} frame(s) only (not in "
                 f"frames {ids}): capture more frames with the whole target in view"
             )
-        res = calibrate(replace(problem, frames=kept), joint_homographies=jh)
+        res = calibrate(
+            replace(problem, frames=kept), joint_homographies=jh, focal_sweep=focal_sweep
+        )
         note = f"frames {ids}: no board pose could be computed from the image; skipped"
         return replace(res, messages=(*notes_skipped, note, *res.messages))
     X, Y, s = init_motion(problem, ref_poses)
@@ -581,6 +699,15 @@ def calibrate(
     init = ModelState(K_lin, {c: zero.copy() for c in K_lin}, T_cam_ref, X, Y, s)
     structure = build_structure(problem, X[0][:3, :3])
     out = refine(problem, structure, init)
+    classic = problem.knowledge == "robot" and np.bincount(groups).max() == 1
+    if not out.converged and classic and len(problem.cameras) == 1 and not focal_sweep:
+        retry = calibrate(full, joint_homographies=jh, focal_sweep=True)
+        if retry.converged:
+            note = (
+                "the refinement from Zhang's start did not converge; it was restarted from the "
+                "focal length that fits the images best through the robot poses"
+            )
+            return replace(retry, messages=(*retry.messages, note))
     if notes:
         out = replace(out, messages=out.messages + tuple(notes))
     return _result(problem, out, K_lin, groups)

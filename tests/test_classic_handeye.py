@@ -392,3 +392,51 @@ def test_solve_a_recorded_session_with_a_frame_that_saw_nothing(tmp_path: Path, 
     assert any("frames [5]" in m and "skipped" in m for m in data["messages"])
     if robot:
         assert data["T_tool_cam"]["t_m"] is not None
+
+
+# -- starts that the homographies alone cannot give ---------------------------------------------
+def _small_tag_session(seed, tilt_deg):
+    """A 4 cm tag 0.45-0.6 m away (about 70 px wide) with 1 px corner noise: the homographies
+    barely fix a focal length; the robot poses do."""
+    tag = hs.square_tag(0.04)
+    rng = np.random.default_rng(seed)
+    views = hs.camera_board_poses(rng, 15, tag, tilt_deg=tilt_deg, aim_spread_m=0.1)
+    return hs.classic(
+        rng,
+        15,
+        1.0,
+        0.0,
+        0.0,
+        target=tag,
+        options=NO_DIST,
+        distortion=np.zeros(5),
+        T_cam_board=views,
+    )
+
+
+@pytest.mark.parametrize(
+    ("seed", "tilt_deg"),
+    [(1, (5.0, 25.0)), (3, (5.0, 25.0)), (0, (0.0, 10.0))],
+    ids=["zhang-not-positive-definite", "zhang-far-off", "zhang-start-does-not-converge"],
+)
+def test_noisy_small_tag_starts_from_the_robot_poses(seed, tilt_deg):
+    s = _small_tag_session(seed, tilt_deg)
+    res = calibrate(s.problem)
+    assert res.converged
+    errs = _errors_in_std(res, s)
+    assert max(errs.values()) < 4.0, errs
+
+
+def test_focal_from_homographies_noise_free():
+    from slidecal.solver.homography import homography_dlt
+    from slidecal.solver.linear import focal_from_homographies
+
+    K = np.array([[900.0, 0.0, 639.5], [0.0, 900.0, 399.5], [0.0, 0.0, 1.0]])
+    views = hs.camera_board_poses(np.random.default_rng(20), 5, Target.chessboard(9, 7, 0.03))
+    pts = Target.chessboard(9, 7, 0.03).points_m
+    Hs = []
+    for T in views:
+        P = pts @ T[:3, :3].T + T[:3, 3]
+        px = P[:, :2] / P[:, 2:] * 900.0 + [639.5, 399.5]
+        Hs.append(homography_dlt(pts[:, :2], px))
+    np.testing.assert_allclose(focal_from_homographies(np.array(Hs), image_size=(1280, 800)), K)
