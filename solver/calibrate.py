@@ -255,43 +255,6 @@ def _best_start(problem: CalibrationProblem, cam: str, candidates: list[np.ndarr
     return best
 
 
-def _plausible(K: np.ndarray, size: tuple[int, int]) -> bool:
-    """A start worth refining: principal point in the image, aspect ratio within 1:2."""
-    w, h = size
-    ratio = K[0, 0] / K[1, 1]
-    return -0.5 <= K[0, 2] <= w - 0.5 and -0.5 <= K[1, 2] <= h - 0.5 and 0.5 < ratio < 2.0
-
-
-def _sweep_focal(problem: CalibrationProblem, cam: str, K0: np.ndarray) -> np.ndarray:
-    """The focal length (principal point at the centre) whose start explains the images best.
-
-    For a single camera with robot poses whose homographies alone are too noisy for a focal
-    length: for each candidate (``K0``'s and 0.25 to 4 times it, log-spaced), per-frame PnP
-    poses and the hand-eye start (:func:`init_motion`) predict every detection through the
-    robot poses; the candidate with the smallest median reprojection error wins.
-    """
-    o = problem.options
-    exact = replace(problem, options=replace(o, robot_noise_m=0.0, robot_noise_deg=0.0))
-    zero = np.zeros(5)
-    best, best_err = K0, np.inf
-    for factor in np.concatenate([[1.0], np.geomspace(0.25, 4.0, 17)]):
-        K = K0.copy()
-        K[0, 0] = K[1, 1] = K0[0, 0] * factor
-        poses = _frame_poses(exact, cam, K, zero, fast=True)
-        if len(poses) < 3:
-            continue
-        try:
-            X, Y, s = init_motion(exact, poses)
-        except DegenerateError:
-            continue
-        model = BundleModel(exact, build_structure(exact, X[0][:3, :3]))
-        r, _ = model.evaluate(ModelState({cam: K}, {cam: zero}, {}, X, Y, s), jacobian=False)
-        err = float(np.median(np.hypot(r[0::2], r[1::2])))
-        if np.isfinite(err) and err < best_err:
-            best, best_err = K, err
-    return best
-
-
 def linear_camera(
     problem: CalibrationProblem,
     cam: str,
