@@ -357,7 +357,7 @@ def linear_pair(
         raise DegenerateError(f"cameras {cam!r} and {ref!r} share no view of the target")
     ga = [gs[0] for _, gs in both]
     gb = [gs[1] for _, gs in both]
-    if problem.knowledge == "none":
+    if problem.knowledge == "none" or all(len(g.H) < 2 for g in ga):  # general motion only
         Ha, Hb = np.concatenate([g.H for g in ga]), np.concatenate([g.H for g in gb])
         H_inf, _ = infinite_homography(Ha, Hb, sizes=sizes)
         return rig_linear_intrinsics(

@@ -440,3 +440,34 @@ def test_focal_from_homographies_noise_free():
         px = P[:, :2] / P[:, 2:] * 900.0 + [639.5, 399.5]
         Hs.append(homography_dlt(pts[:, :2], px))
     np.testing.assert_allclose(focal_from_homographies(np.array(Hs), image_size=(1280, 800)), K)
+
+
+def test_classic_session_of_a_two_camera_rig():
+    """A stereo head on the tool, every frame at its own orientation: the rig's joint linear
+    step takes the general-motion path (infinite homography) instead of refusing."""
+    from slidecal.solver.geometry import R_from_rvec
+    from slidecal.solver.problem import CameraSpec
+
+    s = hs.classic(np.random.default_rng(21), 12, 0.0, 0.0, 0.0)
+    T_right_cam = T_from_Rt(R_from_rvec(np.radians([0.0, 3.0, 0.0])), np.array([-0.075, 0, 0]))
+    rng = np.random.default_rng(22)
+    frames = []
+    for f in s.problem.frames:
+        T_cam_board = inv_T(f.T_base_tool @ sc.R1_T_TOOL_CAM) @ s.T_target
+        right = sc._detect(
+            sc.R1_K,
+            sc.R1_DIST,
+            T_right_cam @ T_cam_board,
+            s.problem.target,
+            (1280, 800),
+            0.0,
+            rng,
+            2.0,
+        )
+        frames.append(replace(f, detections={"cam": f.detections["cam"], "right": right}))
+    cams = (*s.problem.cameras, CameraSpec("right", 1280, 800))
+    res = calibrate(replace(s.problem, frames=tuple(frames), cameras=cams))
+    assert not any("joint linear step" in m for m in res.messages)
+    _check_truth(res, s)
+    np.testing.assert_allclose(res.cameras["right"].K, sc.R1_K, rtol=1e-6)
+    np.testing.assert_allclose(res.rig["T_right_cam"].T, T_right_cam, atol=1e-8)
