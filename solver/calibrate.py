@@ -357,14 +357,20 @@ def linear_pair(
         raise DegenerateError(f"cameras {cam!r} and {ref!r} share no view of the target")
     ga = [gs[0] for _, gs in both]
     gb = [gs[1] for _, gs in both]
-    if problem.knowledge == "none" or all(len(g.H) < 2 for g in ga):  # general motion only
+    multi = [k for k, g in enumerate(ga) if len(g.H) >= 2]  # groups with a translation
+    if problem.knowledge == "none" or not multi:  # general motion only
         Ha, Hb = np.concatenate([g.H for g in ga]), np.concatenate([g.H for g in gb])
         H_inf, _ = infinite_homography(Ha, Hb, sizes=sizes)
         return rig_linear_intrinsics(
             Ha, Hb, H_inf, skew=o.skew, unit_aspect=o.unit_aspect, sizes=sizes
         )
     return rig_linear_intrinsics_translation(
-        ga, gb, problem.knowledge, skew=o.skew, unit_aspect=o.unit_aspect, sizes=sizes
+        [ga[k] for k in multi],
+        [gb[k] for k in multi],
+        problem.knowledge,
+        skew=o.skew,
+        unit_aspect=o.unit_aspect,
+        sizes=sizes,
     )
 
 

@@ -471,3 +471,35 @@ def test_classic_session_of_a_two_camera_rig():
     _check_truth(res, s)
     np.testing.assert_allclose(res.cameras["right"].K, sc.R1_K, rtol=1e-6)
     np.testing.assert_allclose(res.rig["T_right_cam"].T, T_right_cam, atol=1e-8)
+
+
+def test_mixed_session_of_a_two_camera_rig():
+    """Translation groups and single-orientation frames seen by both cameras of a head: the
+    joint linear step uses the groups with a translation (it refused single-frame groups)."""
+    from slidecal.solver.geometry import R_from_rvec
+    from slidecal.solver.problem import CameraSpec
+
+    rng = np.random.default_rng(23)
+    groups = hs.classic(rng, 3, 0.0, 0.0, 0.0, per_orientation=4)
+    singles = hs.classic(rng, 6, 0.0, 0.0, 0.0)
+    T_right_cam = T_from_Rt(R_from_rvec(np.radians([0.0, 3.0, 0.0])), np.array([-0.075, 0, 0]))
+    frames = []
+    for k, f in enumerate(groups.problem.frames + singles.problem.frames):
+        T_cam_board = inv_T(f.T_base_tool @ sc.R1_T_TOOL_CAM) @ groups.T_target
+        right = sc._detect(
+            sc.R1_K,
+            sc.R1_DIST,
+            T_right_cam @ T_cam_board,
+            groups.problem.target,
+            (1280, 800),
+            0.0,
+            rng,
+            2.0,
+        )
+        frames.append(replace(f, id=k, detections={"cam": f.detections["cam"], "right": right}))
+    cams = (*groups.problem.cameras, CameraSpec("right", 1280, 800))
+    s = replace(groups, problem=replace(groups.problem, frames=tuple(frames), cameras=cams))
+    res = calibrate(s.problem)
+    assert not any("joint linear step" in m for m in res.messages), res.messages
+    _check_truth(res, s)
+    np.testing.assert_allclose(res.rig["T_right_cam"].T, T_right_cam, atol=1e-8)
