@@ -185,6 +185,12 @@ def ur_pose_field(f: Fields, key: str) -> np.ndarray:
             f"is {np.linalg.norm(pose[:3]):.0f} m from the base; give positions in metres",
             where=where,
         )
+    if np.any(np.abs(pose[3:]) > 2 * np.pi):
+        raise InputError(
+            "rotation components above 2 pi look like degrees; give the axis-angle "
+            "[rx, ry, rz] in radians",
+            where=where,
+        )
     try:
         return T_from_ur_pose(pose)
     except ValueError as e:

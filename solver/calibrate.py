@@ -1,10 +1,13 @@
 """The calibration pipeline: a problem in, a result with its diagnostics out.
 
-1. check the problem (one clear error per bad input),
+1. check the problem (one clear error per bad input); images with fewer than 4 points and
+   frames that saw nothing are skipped with a message (never a reason to refuse a session),
 2. per camera and orientation group, joint homographies (MATH.md Sec. 3),
-3. the degeneracy analysis (Sec. 7) and the linear intrinsics for the knowledge at hand,
-4. per-frame board poses and the motion unknowns (hand-eye rotation from translations, Sec. 4;
-   hand-eye translation where rotations make it observable),
+3. the degeneracy analysis (Sec. 7) and the linear intrinsics for the knowledge at hand; Zhang
+   from all frames when no two frames share an orientation (classic hand-eye sessions),
+4. per-frame board poses and the motion unknowns (hand-eye rotation from translations, Sec. 4,
+   or from general motions, AX = XB, when the translations do not determine it; hand-eye
+   translation where rotations make it observable),
 5. maximum-likelihood refinement over all detections with covariance (Secs. 5, 6),
 6. the result: named covariance, what was unobservable, a per-move scale check.
 """
@@ -16,14 +19,20 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
-from slidecal.solver.degeneracy import check_configuration
+from slidecal.solver.degeneracy import check_configuration, n_directions
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, project_to_SO3, skew
-from slidecal.solver.handeye import rotation_from_directions
+from slidecal.solver.handeye import ax_xb_park_martin, rotation_from_directions
 from slidecal.solver.homography import group_homographies
-from slidecal.solver.linear import LinearGroup, linear_intrinsics, zhang_intrinsics
-from slidecal.solver.problem import DISTORTION_NAMES, CalibrationProblem, Detection
+from slidecal.solver.linear import (
+    LinearGroup,
+    focal_from_homographies,
+    linear_intrinsics,
+    zhang_intrinsics,
+)
+from slidecal.solver.problem import DISTORTION_NAMES, CalibrationProblem, Detection, Frame
 from slidecal.solver.refine import (
+    BundleModel,
     ModelState,
     RefineOutput,
     build_structure,
@@ -44,7 +53,14 @@ from slidecal.solver.stereo import (
     rig_linear_intrinsics_translation,
 )
 
-MIN_CORNERS = 6  # fewer corners than this in an image do not enter the linear step
+# An image with fewer points than this is skipped (with a message): a plane homography and a
+# planar PnP pose need 4 points (8 equations for 8 unknowns). Intrinsics from few points are
+# honest only when there are enough images: the frame counts are checked separately.
+MIN_CORNERS = 4
+# Robot positions farther apart than this (and than 20 target sizes) are millimetres given as
+# metres: a camera that sees the target from every pose does not travel 20 m (moves of
+# 20-500 mm read as metres do). The target size keeps unit-free scenarios (the paper's) apart.
+MAX_SPAN_M = 20.0
 
 
 def check_problem(problem: CalibrationProblem) -> None:
@@ -93,10 +109,66 @@ def check_problem(problem: CalibrationProblem) -> None:
             f.motion_board is None
         ):
             raise InputError("motion_board is missing for this knowledge", f"{where}")
+    if problem.knowledge == "robot":
+        p = np.array([np.asarray(f.T_base_tool, float)[:3, 3] for f in problem.frames])
+        span = np.linalg.norm(p - p[0], axis=1)
+        pts = problem.target.points_m
+        extent = float(np.ptp(pts, axis=0).max()) if len(pts) else 0.0
+        if span.max() > max(MAX_SPAN_M, 20.0 * extent):
+            raise InputError(
+                "T_base_tool translations look like millimetres; give metres (frame "
+                f"{problem.frames[int(np.argmax(span))].id} is {span.max():.0f} m from frame "
+                f"{problem.frames[0].id})",
+                f"frames[{int(np.argmax(span))}].T_base_tool",
+            )
     if problem.mount not in ("eye_in_hand", "eye_to_hand", "none"):
         raise InputError(f"mount must be eye_in_hand, eye_to_hand or none, not {problem.mount!r}")
     if problem.knowledge == "robot" and problem.mount == "none":
         raise InputError("a robot session needs mount: eye_in_hand or eye_to_hand")
+
+
+def usable_frames(problem: CalibrationProblem) -> tuple[CalibrationProblem, tuple[str, ...]]:
+    """The problem without the images and frames that cannot enter the solve, and why.
+
+    An image with fewer than ``MIN_CORNERS`` points is skipped; a frame in which no camera kept
+    an image is skipped whole (the session keeps its record: a frame that saw nothing is never
+    a reason to refuse a session). Returns the reduced problem (frame ids unchanged) and one
+    message per skipped image or frame. Raises ``DegenerateError`` when fewer than 2 frames
+    remain, with the count and what to add.
+    """
+    kept: list[Frame] = []
+    notes: list[str] = []
+    empty: list[int] = []
+    for f in problem.frames:
+        dets = {}
+        for cam, det in f.detections.items():
+            if len(det.ids) >= MIN_CORNERS:
+                dets[cam] = det
+            elif len(det.ids):
+                notes.append(
+                    f"frame {f.id}: camera {cam!r} found {len(det.ids)} target points, fewer "
+                    f"than the {MIN_CORNERS} a pose needs; image skipped"
+                )
+        if dets:
+            kept.append(replace(f, detections=dets) if len(dets) < len(f.detections) else f)
+        else:
+            empty.append(f.id)
+    if empty:
+        notes.append(
+            f"frames {empty}: the target was not found (at least {MIN_CORNERS} points) by any "
+            "camera; skipped"
+        )
+    if len(kept) < 2:
+        raise DegenerateError(
+            f"only {len(kept)} of {len(problem.frames)} frames saw the target (at least "
+            f"{MIN_CORNERS} points)"
+            + (f"; the detection found nothing usable in frames {empty}" if empty else "")
+            + ": check those images (focus, exposure, the target description) or capture more "
+            "frames with the target in view"
+        )
+    if len(kept) == len(problem.frames) and not notes:
+        return problem, ()
+    return replace(problem, frames=tuple(kept)), tuple(notes)
 
 
 # -- grouping and the linear step ---------------------------------------------------------------
@@ -150,37 +222,125 @@ def _linear_groups(
     return out
 
 
+def _plausible(K: np.ndarray, size: tuple[int, int]) -> bool:
+    """A start worth refining: principal point in the image, aspect ratio within 1:2."""
+    w, h = size
+    ratio = K[0, 0] / K[1, 1]
+    return -0.5 <= K[0, 2] <= w - 0.5 and -0.5 <= K[1, 2] <= h - 0.5 and 0.5 < ratio < 2.0
+
+
+def _best_start(problem: CalibrationProblem, cam: str, candidates: list[np.ndarray]) -> int:
+    """Index of the start ``K`` (3, 3) that explains the images best through the robot poses.
+
+    For each candidate: per-frame PnP poses and the hand-eye start (:func:`init_motion`) predict
+    every detection through the robot poses; the smallest median reprojection error wins.
+    """
+    o = problem.options
+    exact = replace(problem, options=replace(o, robot_noise_m=0.0, robot_noise_deg=0.0))
+    zero = np.zeros(5)
+    best, best_err = 0, np.inf
+    for k, K in enumerate(candidates):
+        poses = _frame_poses(exact, cam, K, zero, fast=True)
+        if len(poses) < 3:
+            continue
+        try:
+            X, Y, s = init_motion(exact, poses)
+        except DegenerateError:
+            continue
+        model = BundleModel(exact, build_structure(exact, X[0][:3, :3]))
+        r, _ = model.evaluate(ModelState({cam: K}, {cam: zero}, {}, X, Y, s), jacobian=False)
+        err = float(np.median(np.hypot(r[0::2], r[1::2])))
+        if np.isfinite(err) and err < best_err:
+            best, best_err = k, err
+    return best
+
+
 def linear_camera(
-    problem: CalibrationProblem, cam: str, groups: np.ndarray, joint: bool = True
+    problem: CalibrationProblem,
+    cam: str,
+    groups: np.ndarray,
+    joint: bool = True,
+    notes: list[str] | None = None,
+    focal_sweep: bool = False,
 ) -> np.ndarray:
     """Closed-form ``K`` (3, 3) of one camera (MATH.md Sec. 3; Zhang for general motion).
 
     ``joint``: the paper's joint homographies per orientation group (the accurate linear
     method); False uses rescaled per-frame DLTs, enough to start the refinement and faster.
+    Robot sessions without translation groups whose Zhang estimate is not positive definite or
+    not plausible (few, noisy points per image), or with ``focal_sweep``, start from the image
+    centre and the focal length that explains the images best through the robot poses (Zhang's
+    estimate competing); ``notes`` receives a line when Zhang's estimate is not the start.
     """
     spec = problem.camera(cam)
     o = problem.options
     lin_groups = [gs[0] for _, gs in _linear_groups(problem, (cam,), groups, joint)]
     if not lin_groups:
         raise DegenerateError(
-            f"camera {cam!r} saw the target in no frame: check the target "
-            "description and that the target is in view"
+            f"camera {cam!r} saw the target (at least {MIN_CORNERS} points) in no frame: check "
+            "the target description and that the target is in view"
         )
+    n_seen = sum(len(g.H) for g in lin_groups)
     size = (spec.width, spec.height)
-    if problem.knowledge == "none":
-        return zhang_intrinsics(
-            np.concatenate([g.H for g in lin_groups]),
-            skew=o.skew,
-            unit_aspect=o.unit_aspect,
-            image_size=size,
-        )
+    if problem.knowledge == "none" or all(len(g.H) < 2 for g in lin_groups):
+        # general motion, or a classic hand-eye session (no two frames at one orientation):
+        # Zhang from the homographies of all frames
+        n_need = 3 if o.skew else 2
+        if len(lin_groups) < n_need:
+            raise DegenerateError(
+                f"camera {cam!r} saw the target in {len(lin_groups)} of {len(problem.frames)} "
+                f"frames: the intrinsics need at least {n_need} views at different orientations; "
+                "capture more frames at different tilts"
+                + ("" if problem.knowledge == "none" else ", or translate between captures")
+            )
+        Hs = np.concatenate([g.H for g in lin_groups])
+        candidates, reason = [], "not positive definite"
+        try:
+            K = zhang_intrinsics(Hs, skew=o.skew, unit_aspect=o.unit_aspect, image_size=size)
+            if problem.knowledge != "robot" or (_plausible(K, size) and not focal_sweep):
+                return K
+            if _plausible(K, size):
+                candidates.append(K)
+                reason = "a worse fit to the images through the robot poses"
+            else:
+                reason = "implausible"
+        except DegenerateError:
+            if problem.knowledge != "robot":
+                raise
+        # few or noisy points per image: the robot poses decide the focal length of the start
+        # (square pixels, principal point at the centre), Zhang's estimate competing
+        n_zhang = len(candidates)
+        Kf = focal_from_homographies(Hs, image_size=size)
+        factors = np.concatenate([[1.0], np.geomspace(0.25, 4.0, 17)])
+        if len(problem.cameras) > 1:  # the rig's cameras share the robot poses: keep it simple
+            factors = factors[:1]
+        for factor in factors:
+            Kc = Kf.copy()
+            Kc[0, 0] = Kc[1, 1] = Kf[0, 0] * factor
+            candidates.append(Kc)
+        best = _best_start(problem, cam, candidates) if len(problem.cameras) == 1 else 0
+        if best >= n_zhang and notes is not None:
+            notes.append(
+                f"camera {cam!r}: Zhang's closed form was {reason} for these views; the "
+                "refinement started from the image centre and the focal length that fits the "
+                "images best through the robot poses"
+            )
+        return candidates[best]
     knowledge = problem.knowledge
-    check_configuration(
-        lin_groups, knowledge, skew=o.skew, unit_aspect=o.unit_aspect, image_size=size
-    )
-    return linear_intrinsics(
-        lin_groups, knowledge, skew=o.skew, unit_aspect=o.unit_aspect, image_size=size
-    ).K
+    try:
+        check_configuration(
+            lin_groups, knowledge, skew=o.skew, unit_aspect=o.unit_aspect, image_size=size
+        )
+        return linear_intrinsics(
+            lin_groups, knowledge, skew=o.skew, unit_aspect=o.unit_aspect, image_size=size
+        ).K
+    except DegenerateError as e:
+        if n_seen == len(problem.frames):
+            raise
+        raise DegenerateError(
+            f"{e} (camera {cam!r} found the target, at least {MIN_CORNERS} points, in "
+            f"{n_seen} of {len(problem.frames)} frames: the detection failed in the others)"
+        ) from None
 
 
 def linear_pair(
@@ -197,14 +357,20 @@ def linear_pair(
         raise DegenerateError(f"cameras {cam!r} and {ref!r} share no view of the target")
     ga = [gs[0] for _, gs in both]
     gb = [gs[1] for _, gs in both]
-    if problem.knowledge == "none":
+    multi = [k for k, g in enumerate(ga) if len(g.H) >= 2]  # groups with a translation
+    if problem.knowledge == "none" or not multi:  # general motion only
         Ha, Hb = np.concatenate([g.H for g in ga]), np.concatenate([g.H for g in gb])
         H_inf, _ = infinite_homography(Ha, Hb, sizes=sizes)
         return rig_linear_intrinsics(
             Ha, Hb, H_inf, skew=o.skew, unit_aspect=o.unit_aspect, sizes=sizes
         )
     return rig_linear_intrinsics_translation(
-        ga, gb, problem.knowledge, skew=o.skew, unit_aspect=o.unit_aspect, sizes=sizes
+        [ga[k] for k in multi],
+        [gb[k] for k in multi],
+        problem.knowledge,
+        skew=o.skew,
+        unit_aspect=o.unit_aspect,
+        sizes=sizes,
     )
 
 
@@ -286,6 +452,37 @@ def _align(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return R_from_rvec(v / np.linalg.norm(v) * np.arctan2(np.linalg.norm(v), c))
 
 
+def _align_translations(d_cam: np.ndarray, d_M: np.ndarray) -> np.ndarray:
+    """``R_X`` (3, 3) taking the one robot translation direction onto the camera's."""
+    sign = np.sign(d_M @ d_M[0])
+    return _align(d_M.T @ sign, d_cam.T @ sign)
+
+
+def _rotation_ax_xb(groups: np.ndarray, M: np.ndarray, poses: dict[int, np.ndarray]) -> np.ndarray:
+    """``R_X`` (3, 3) of ``T_cam_board(k) = X M_k Y`` from general motions (classic hand-eye).
+
+    Between frames ``i``, ``j``: ``P_i P_j^-1 = X (M_i M_j^-1) X^-1``, an ``AX = XB`` problem
+    (``A`` from the camera's board poses, ``B`` from the robot's), solved by Park and Martin over
+    all pairs of orientations (one frame per orientation group: frames of one group differ by a
+    translation, which carries no rotation information).
+    """
+    rep = {}
+    for i in sorted(poses):
+        rep.setdefault(int(groups[i]), i)
+    idx = list(rep.values())
+    if len(idx) < 3:
+        raise DegenerateError(
+            f"the board was seen at {len(idx)} orientation(s): the hand-eye rotation from "
+            "general motions needs at least 3 orientations, about two non-parallel axes"
+        )
+    a, b = np.triu_indices(len(idx), 1)
+    P = np.array([poses[i] for i in idx])
+    Mi = M[idx]
+    P_inv = np.array([inv_T(T) for T in P])
+    M_inv = np.array([inv_T(T) for T in Mi])
+    return ax_xb_park_martin(P[a] @ P_inv[b], Mi[a] @ M_inv[b])[:3, :3]
+
+
 def init_motion(
     problem: CalibrationProblem, poses: dict[int, np.ndarray]
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -305,8 +502,9 @@ def init_motion(
         missing = [problem.frames[i].id for i in range(F) if i not in poses]
         if missing:
             raise DegenerateError(
-                f"frames {missing} have too few corners in the reference "
-                "camera for general-motion calibration; drop them"
+                f"frames {missing} have no board pose in the reference camera (fewer than "
+                f"{MIN_CORNERS} points, or PnP failed): general motion needs one per frame; "
+                "calibrate() skips such frames"
             )
         return X, np.eye(4), s
     if problem.knowledge in ("board_translation", "board_direction"):
@@ -331,16 +529,26 @@ def init_motion(
                 i, j = idx[a], idx[b]
                 d_cam.append(poses[j][:3, 3] - poses[i][:3, 3])
                 d_M.append(st.M[j][:3, 3] - st.M[i][:3, 3])
-    if len(d_M) == 0:
-        raise DegenerateError(
-            "no orientation group has two usable frames: translate the robot "
-            "between captures at each tilt"
-        )
-    d_cam, d_M = np.array(d_cam), np.array(d_M)
-    if st.Y_rot_basis.shape[1] == 3:
+    d_cam, d_M = np.array(d_cam).reshape(-1, 3), np.array(d_M).reshape(-1, 3)
+    n_dir = n_directions(d_M)
+    rotations = st.X_t_basis.shape[1] > 0  # the robot rotates between some frames
+    if n_dir >= 2:  # translations in two directions or more (MATH.md Sec. 4)
         R_X = rotation_from_directions(d_cam, d_M)
-    else:  # one translation direction: any R_X mapping it onto the camera's will do (gauge)
-        R_X = _align(d_M.T @ np.sign(d_M @ d_M[0]), d_cam.T @ np.sign(d_M @ d_M[0]))
+    elif rotations:
+        try:  # general motions between the orientations: AX = XB
+            R_X = _rotation_ax_xb(groups, st.M, poses)
+        except DegenerateError:
+            if n_dir == 0:
+                raise
+            R_X = _align_translations(d_cam, d_M)
+    elif n_dir == 1:  # one translation direction: any R_X mapping it onto the camera's (gauge)
+        R_X = _align_translations(d_cam, d_M)
+    else:
+        raise DegenerateError(
+            "the robot neither translated between frames at one orientation nor rotated "
+            f"between frames ({len(poses)} frames with a board pose): capture frames at "
+            "different tilts, or translate the robot between captures at each tilt"
+        )
     idx = sorted(poses)
     rows, rhs = [], []
     for i in idx:
@@ -364,22 +572,39 @@ def init_motion(
 # -- the whole pipeline -------------------------------------------------------------------------
 @single_threaded_blas
 def calibrate(
-    problem: CalibrationProblem, *, joint_homographies: bool = False
+    problem: CalibrationProblem, *, joint_homographies: bool = False, focal_sweep: bool = False
 ) -> CalibrationResult:
     """Calibrate every camera, the hand-eye transform and the rig from one session.
 
     ``joint_homographies``: start from the paper's linear method with jointly refined
     homographies (``result.linear`` is then that method's estimate); by default the start uses
     rescaled per-frame DLTs, which the refinement does not need improved (same optimum,
-    measured) and costs a third of the solve time less.
+    measured) and costs a third of the solve time less. ``focal_sweep``: start a classic
+    single-camera robot session (no two frames at one orientation) from the focal length that
+    fits the images best through the robot poses instead of Zhang's closed form; done
+    automatically when the refinement from Zhang's start does not converge (few or noisy
+    points per image).
     """
     check_problem(problem)
+    full = problem
+    problem, notes_skipped = usable_frames(problem)
+    notes: list[str] = list(notes_skipped)
     groups = frame_groups(problem)
     zero = np.zeros(5)
     jh = joint_homographies
-    K_lin = {c.name: linear_camera(problem, c.name, groups, jh) for c in problem.cameras}
+    K_lin = {}
+    for c in problem.cameras:
+        try:
+            K_lin[c.name] = linear_camera(problem, c.name, groups, jh, notes, focal_sweep)
+        except DegenerateError as e:
+            if not notes_skipped:
+                raise
+            raise DegenerateError(
+                f"{e} ({len(full.frames) - len(problem.frames)} of {len(full.frames)} frames, "
+                "and some images, were skipped because the target was not found in them: see "
+                "whether the detection failed there)"
+            ) from None
     ref = problem.reference
-    notes: list[str] = []
     for c in K_lin:
         if c == ref:
             continue
@@ -416,6 +641,20 @@ def calibrate(
     for c, T in T_cam_ref.items():
         for i, T_c_board in poses[c].items():
             ref_poses.setdefault(i, inv_T(T) @ T_c_board)
+    missing = [i for i in range(len(problem.frames)) if i not in ref_poses]
+    if missing and problem.knowledge == "none":  # each frame needs its own pose: skip it
+        kept = tuple(f for i, f in enumerate(problem.frames) if i in ref_poses)
+        ids = [problem.frames[i].id for i in missing]
+        if len(kept) < 2:
+            raise DegenerateError(
+                f"the board pose could be computed in {len(kept)} frame(s) only (not in "
+                f"frames {ids}): capture more frames with the whole target in view"
+            )
+        res = calibrate(
+            replace(problem, frames=kept), joint_homographies=jh, focal_sweep=focal_sweep
+        )
+        note = f"frames {ids}: no board pose could be computed from the image; skipped"
+        return replace(res, messages=(*notes_skipped, note, *res.messages))
     X, Y, s = init_motion(problem, ref_poses)
     if apart:  # the measured robot motion carries the reference camera to their frames
         st = build_structure(problem)
@@ -429,16 +668,29 @@ def calibrate(
     init = ModelState(K_lin, {c: zero.copy() for c in K_lin}, T_cam_ref, X, Y, s)
     structure = build_structure(problem, X[0][:3, :3])
     out = refine(problem, structure, init)
+    classic = problem.knowledge == "robot" and np.bincount(groups).max() == 1
+    if not out.converged and classic and len(problem.cameras) == 1 and not focal_sweep:
+        retry = calibrate(full, joint_homographies=jh, focal_sweep=True)
+        if retry.converged:
+            note = (
+                "the refinement from Zhang's start did not converge; it was restarted from the "
+                "focal length that fits the images best through the robot poses"
+            )
+            return replace(retry, messages=(*retry.messages, note))
     if notes:
         out = replace(out, messages=out.messages + tuple(notes))
     return _result(problem, out, K_lin, groups)
 
 
-def _kept(out: RefineOutput) -> np.ndarray:
-    """Indices of the parameters a result reports (all but the robot-pose corrections)."""
+def _kept(out: RefineOutput, unobservable: dict[str, str] | None = None) -> np.ndarray:
+    """Indices of the parameters a result reports: all but the robot-pose corrections and, when
+    the hand-eye translation is unobservable, the target pose's translation (its value is tied
+    to that translation, fixed by convention: not a measured number)."""
     keep = np.ones(len(out.names), dtype=bool)
     if "E" in out.model.slices:
         keep[out.model.slices["E"]] = False
+    if unobservable and any(k.endswith("_board.t") for k in unobservable):
+        keep &= np.array([not n.startswith("Y.t") for n in out.names], dtype=bool)
     return np.flatnonzero(keep)
 
 
@@ -508,14 +760,26 @@ def _result(
         )
         CY = _block_cov(out, "Y")
         mr = st.Y_rot_basis.shape[1]
+        # the target pose is tied to the hand-eye transform: what the data cannot determine of
+        # one, it cannot determine of the other (no made-up numbers)
+        if not rot_ok:
+            unobs[f"{tgt_name}.R"] = (
+                f"depends on the hand-eye rotation ({he_name}.R), which this session cannot "
+                "determine; translate along at least two non-parallel directions"
+            )
+        if not t_ok:
+            unobs[f"{tgt_name}.t"] = (
+                f"depends on the hand-eye translation ({he_name}.t), which this session cannot "
+                "determine; add orientations tilted about two non-parallel axes"
+            )
         T_target = TransformEstimate(
             tgt_name,
-            state.Y[:3, :3],
-            state.Y[:3, 3],
+            state.Y[:3, :3] if rot_ok else None,
+            state.Y[:3, 3] if t_ok else None,
             _std_rot_deg(st.Y_rot_basis @ CY[:mr, :mr] @ st.Y_rot_basis.T)
-            if CY is not None
+            if CY is not None and rot_ok
             else None,
-            _std_t_mm(CY[mr:, mr:]) if CY is not None else None,
+            _std_t_mm(CY[mr:, mr:]) if CY is not None and t_ok else None,
         )
     rig = {}
     H_inf = {}
@@ -548,8 +812,8 @@ def _result(
         sigma_px=out.sigma_px,
         # the robot-pose corrections are nuisance parameters: the result keeps the marginal
         # covariance of everything else (the matching block of the full inverse)
-        parameter_names=tuple(names[i] for i in _kept(out)),
-        covariance=None if cov is None else cov[np.ix_(_kept(out), _kept(out))],
+        parameter_names=tuple(names[i] for i in _kept(out, unobs)),
+        covariance=None if cov is None else cov[np.ix_(_kept(out, unobs), _kept(out, unobs))],
         residuals_px=residuals,
         outliers=out.outliers,
         unobservable=unobs,

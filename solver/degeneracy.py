@@ -37,7 +37,7 @@ def nominal_K(image_size: tuple[float, float]) -> np.ndarray:
     return np.array([[w, 0.0, (w - 1) / 2], [0.0, w, (h - 1) / 2], [0.0, 0.0, 1.0]])
 
 
-def _n_directions(v: np.ndarray) -> int:
+def n_directions(v: np.ndarray) -> int:
     """How many independent directions (0 to 3) the non-zero rows of ``v`` (n, 3) span."""
     v = v[np.linalg.norm(v, axis=1) > 0]
     if len(v) == 0:
@@ -92,7 +92,7 @@ def check_configuration(
         moves = robot_translations
         if moves is None:
             moves = [np.asarray(grp.motion, dtype=float) for grp in groups]
-        if _n_directions(np.concatenate([np.asarray(m, float).reshape(-1, 3) for m in moves])) < 2:
+        if n_directions(np.concatenate([np.asarray(m, float).reshape(-1, 3) for m in moves])) < 2:
             raise DegenerateError(
                 "all robot translations are colinear: the hand-eye rotation about that line is "
                 "undetermined; translate along at least two non-parallel directions"
@@ -144,7 +144,7 @@ def _geometric_tests(groups: Sequence[LinearGroup], knowledge: str, K: np.ndarra
         tilted.append(np.hypot(R[2, 0], R[2, 1]) >= sin_min)  # optical axis vs board normal
         axes_ok.append(min(abs(R[0, 2]), abs(R[1, 2])) >= sin_min)  # camera x, y leave the board
         motion = np.asarray(grp.motion, dtype=float) if grp.motion is not None else T_board
-        colinear.append(_n_directions(motion) <= 1)
+        colinear.append(n_directions(motion) <= 1)
     if out_of_plane and not any(out_of_plane):
         raise DegenerateError(
             "every translation is parallel to the board plane (within "

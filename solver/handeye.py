@@ -10,7 +10,14 @@ from collections.abc import Sequence
 import numpy as np
 
 from slidecal.solver.errors import DegenerateError, InputError
-from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, project_to_SO3, rvec_from_R
+from slidecal.solver.geometry import (
+    R_from_rvec,
+    T_from_Rt,
+    inv_T,
+    project_to_SO3,
+    rvec_from_R,
+    skew,
+)
 from slidecal.solver.linear import LinearGroup
 
 # Two directions count as distinct when the second singular value of the unit direction stack is
@@ -126,6 +133,121 @@ def _check_poses(T_base_tool: np.ndarray, T_cam_board: np.ndarray) -> tuple[np.n
     return A, B
 
 
+def _motion_pairs(T_base_tool: np.ndarray, T_cam_board: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Eye-in-hand motions of all pairs ``i < j``: ``A = T_tool_base(i) T_base_tool(j)``,
+    ``B = T_cam_board(i) T_board_cam(j)``, so that ``A X = X B`` with ``X = T_tool_cam``."""
+    Tg, Tc = _check_poses(T_base_tool, T_cam_board)
+    i, j = np.triu_indices(len(Tg), 1)
+    Tg_inv = np.array([inv_T(T) for T in Tg])
+    Tc_inv = np.array([inv_T(T) for T in Tc])
+    return Tg_inv[i] @ Tg[j], Tc[i] @ Tc_inv[j]
+
+
+def _single_axis(alphas: np.ndarray) -> bool:
+    """True when the rotation vectors (n, 3) of the motions share one axis (or are absent)."""
+    sv = np.linalg.svd(np.asarray(alphas).reshape(-1, 3), compute_uv=False)
+    return len(sv) < 2 or sv[0] == 0.0 or sv[1] < 1e-3 * sv[0]
+
+
+_SINGLE_AXIS = (
+    "the robot rotations are all about one axis (or absent): the hand-eye transform is "
+    "undetermined; rotate about at least two non-parallel axes"
+)
+
+
+def _translation_ax_xb(A: np.ndarray, B: np.ndarray, R_X: np.ndarray) -> np.ndarray:
+    """``t_X`` (3,) of ``A X = X B`` for a known ``R_X``: ``(R_A - I) t_X = R_X t_B - t_A``."""
+    C = (A[:, :3, :3] - np.eye(3)).reshape(-1, 3)
+    d = (np.einsum("ij,nj->ni", R_X, B[:, :3, 3]) - A[:, :3, 3]).reshape(-1)
+    t_X, *_ = np.linalg.lstsq(C, d, rcond=None)
+    return t_X
+
+
+def ax_xb_park_martin(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``X`` (4, 4) solving ``A_k X = X B_k`` for motions ``A``, ``B`` (n, 4, 4), Park and Martin
+    1994: the rotation axes satisfy ``alpha_k = R_X beta_k`` (orthogonal Procrustes over all
+    motions), then ``t_X`` by linear least squares. Needs rotations about two non-parallel axes.
+    """
+    A, B = np.asarray(A, dtype=float), np.asarray(B, dtype=float)
+    al = np.array([rvec_from_R(R) for R in A[:, :3, :3]])
+    be = np.array([rvec_from_R(R) for R in B[:, :3, :3]])
+    if _single_axis(al):
+        raise DegenerateError(_SINGLE_AXIS)
+    R_X = project_to_SO3(al.T @ be)
+    return T_from_Rt(R_X, _translation_ax_xb(A, B, R_X))
+
+
+def _quat(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion ``(w, x, y, z)`` (4,) of a rotation matrix (3, 3), ``w >= 0``."""
+    v = rvec_from_R(R)
+    angle = np.linalg.norm(v)
+    axis = v / angle if angle > 0 else np.zeros(3)
+    return np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * axis])
+
+
+def _qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    w1, v1, w2, v2 = p[0], p[1:], q[0], q[1:]
+    return np.concatenate([[w1 * w2 - v1 @ v2], w1 * v2 + w2 * v1 + np.cross(v1, v2)])
+
+
+def _dual_quat(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Real and dual parts (4,), (4,) of the unit dual quaternion of ``T`` (4, 4)."""
+    q = _quat(T[:3, :3])
+    return q, 0.5 * _qmul(np.concatenate([[0.0], T[:3, 3]]), q)
+
+
+def ax_xb_daniilidis(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``X`` (4, 4) solving ``A_k X = X B_k`` (n, 4, 4), Daniilidis 1999 (dual quaternions).
+
+    Per motion, the vector parts of ``a q = q b`` and of its dual part give six rows on the dual
+    quaternion ``(q, q')`` of ``X`` (paper eq. 31); rotation and translation come together from
+    the two-dimensional null space of the stacked system and the unit and orthogonality
+    constraints (eqs. 34-35). Motions without rotation carry no information and are dropped.
+    """
+    A, B = np.asarray(A, dtype=float), np.asarray(B, dtype=float)
+    rows, alphas = [], []
+    for Ak, Bk in zip(A, B, strict=True):
+        a, a_d = _dual_quat(Ak)
+        b, b_d = _dual_quat(Bk)
+        if np.linalg.norm(a[1:]) < 1e-9 or np.linalg.norm(b[1:]) < 1e-9:
+            continue
+        if a[0] * b[0] < 0:  # the same screw angle needs the same sign of the scalar parts
+            b, b_d = -b, -b_d
+        alphas.append(a[1:])
+        top = np.hstack([(a[1:] - b[1:])[:, None], skew(a[1:] + b[1:]), np.zeros((3, 4))])
+        bottom = np.hstack(
+            [
+                (a_d[1:] - b_d[1:])[:, None],
+                skew(a_d[1:] + b_d[1:]),
+                (a[1:] - b[1:])[:, None],
+                skew(a[1:] + b[1:]),
+            ]
+        )
+        rows += [top, bottom]
+    if not alphas or _single_axis(np.array(alphas)):
+        raise DegenerateError(_SINGLE_AXIS)
+    _, _, Vt = np.linalg.svd(np.vstack(rows))
+    u1, v1, u2, v2 = Vt[-2, :4], Vt[-2, 4:], Vt[-1, :4], Vt[-1, 4:]
+    # lambda1 v7 + lambda2 v8 with |q| = 1 and q . q' = 0: s = lambda1 / lambda2 solves
+    # s^2 u1.v1 + s (u1.v2 + u2.v1) + u2.v2 = 0; pick the root giving the larger |q|^2.
+    roots = np.roots([u1 @ v1, u1 @ v2 + u2 @ v1, u2 @ v2])
+    roots = roots[np.isreal(roots)].real if len(roots) else np.zeros(0)
+    if len(roots) == 0:
+        raise DegenerateError(
+            "the dual-quaternion hand-eye system has no real solution: the motions are "
+            "inconsistent; check the robot poses and the detections"
+        )
+    norms = [s * s * (u1 @ u1) + 2 * s * (u1 @ u2) + u2 @ u2 for s in roots]
+    s = roots[int(np.argmax(norms))]
+    lam2 = 1.0 / np.sqrt(max(max(norms), 1e-300))
+    q, q_d = lam2 * (s * u1 + u2), lam2 * (s * v1 + v2)
+    t = 2.0 * _qmul(q_d, q * np.array([1.0, -1.0, -1.0, -1.0]))[1:]
+    angle = 2.0 * np.arctan2(np.linalg.norm(q[1:]), q[0])
+    n = np.linalg.norm(q[1:])
+    R_X = R_from_rvec(angle * q[1:] / n) if n > 0 else np.eye(3)
+    return T_from_Rt(R_X, t)
+
+
 def park_martin(T_base_tool: np.ndarray, T_cam_board: np.ndarray) -> np.ndarray:
     """Eye-in-hand ``T_tool_cam`` (4, 4) from general motions, Park and Martin 1994 (AX = XB).
 
@@ -134,30 +256,13 @@ def park_martin(T_base_tool: np.ndarray, T_cam_board: np.ndarray) -> np.ndarray:
     ``A = T_tool_base(i) T_base_tool(j)``,
     ``B = T_cam_board(i) T_board_cam(j)``. Needs rotations about two non-parallel axes.
     """
-    Tg, Tc = _check_poses(T_base_tool, T_cam_board)
-    alphas, betas, As, Bs = [], [], [], []
-    for i in range(len(Tg)):
-        for j in range(i + 1, len(Tg)):
-            A = inv_T(Tg[i]) @ Tg[j]
-            B = Tc[i] @ inv_T(Tc[j])
-            alphas.append(rvec_from_R(A[:3, :3]))
-            betas.append(rvec_from_R(B[:3, :3]))
-            As.append(A)
-            Bs.append(B)
-    al, be = np.array(alphas), np.array(betas)
-    sv = np.linalg.svd(al, compute_uv=False)
-    if sv[1] < 1e-3 * sv[0]:
-        raise DegenerateError(
-            "the robot rotations are all about one axis (or absent): the hand-eye transform is "
-            "undetermined; rotate about at least two non-parallel axes"
-        )
-    # alpha = R_X beta for every pair: orthogonal Procrustes.
-    R_X = project_to_SO3(al.T @ be)
-    # (R_A - I) t_X = R_X t_B - t_A, stacked.
-    C = np.concatenate([A[:3, :3] - np.eye(3) for A in As])
-    d = np.concatenate([R_X @ B[:3, 3] - A[:3, 3] for A, B in zip(As, Bs, strict=True)])
-    t_X, *_ = np.linalg.lstsq(C, d, rcond=None)
-    return T_from_Rt(R_X, t_X)
+    return ax_xb_park_martin(*_motion_pairs(T_base_tool, T_cam_board))
+
+
+def daniilidis(T_base_tool: np.ndarray, T_cam_board: np.ndarray) -> np.ndarray:
+    """Eye-in-hand ``T_tool_cam`` (4, 4), Daniilidis 1999 (dual quaternions); inputs as for
+    :func:`park_martin`, all pairs ``i < j``."""
+    return ax_xb_daniilidis(*_motion_pairs(T_base_tool, T_cam_board))
 
 
 def tsai_lenz(T_base_tool: np.ndarray, T_cam_board: np.ndarray) -> np.ndarray:

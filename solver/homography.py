@@ -63,7 +63,9 @@ def _dlt_normalised(b: np.ndarray, p: np.ndarray) -> np.ndarray:
     A[0::2, 6:9] = -p[:, :1] * X
     A[1::2, 3:6] = X
     A[1::2, 6:9] = -p[:, 1:2] * X
-    _, sv, Vt = np.linalg.svd(A, full_matrices=False)
+    # full_matrices: with 4 points (8 rows) the null vector is the 9th right singular vector
+    _, sv, Vt = np.linalg.svd(A, full_matrices=True)
+    sv = np.concatenate([sv, np.zeros(9 - len(sv))])
     if sv[-2] <= 1e-12 * sv[0]:
         raise DegenerateError(
             "the board points are (nearly) colinear: a homography needs points spread in 2D"

@@ -448,3 +448,31 @@ def zhang_intrinsics(
         )
     K = np.linalg.inv(system.N) @ K_from_w(system.basis @ x[: system.basis.shape[1]])
     return K / K[2, 2]
+
+
+def focal_from_homographies(Hs: np.ndarray, *, image_size: tuple[float, float]) -> np.ndarray:
+    """The one-parameter start ``K`` (3, 3): square pixels, no skew, the principal point at the
+    image centre, and the focal length that best satisfies Zhang's rows (eqs. 10-11) of the
+    homographies ``Hs`` (n, 3, 3).
+
+    In centred, normalised coordinates ``w = (1, 0, 1, 0, 0, f^2)`` up to scale, so each row
+    ``r`` gives ``r_11 + r_22 + r_33 f^2 = 0``: ``f^2`` by linear least squares. For starting a
+    refinement when the full Zhang system is too noisy to be positive definite (few points per
+    image, small targets); falls back to ``f`` = image width when even ``f^2`` comes out
+    negative. ``image_size``: (width, height) pixels.
+    """
+    Hs = np.asarray(Hs, dtype=float).reshape(-1, 3, 3)
+    N = image_normalisation(*image_size)
+    rows = []
+    for H in Hs:
+        Hn = N @ H
+        Hn = Hn / np.sqrt(0.5 * np.sum(Hn[:, :2] ** 2))  # |h1|, |h2| ~ 1
+        for r in zhang_rows(Hn):
+            rows.append(r / max(np.linalg.norm(r), 1e-300))
+    R = np.array(rows)
+    a, b = R[:, 0] + R[:, 2], R[:, 5]
+    f2 = -(a @ b) / (b @ b) if b @ b > 0 else -1.0
+    s = N[0, 0]
+    f_px = np.sqrt(f2) / s if f2 > 0 else float(image_size[0])
+    w, h = float(image_size[0]), float(image_size[1])
+    return np.array([[f_px, 0.0, (w - 1) / 2], [0.0, f_px, (h - 1) / 2], [0.0, 0.0, 1.0]])
