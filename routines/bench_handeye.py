@@ -1,6 +1,6 @@
 """Monte-Carlo benchmark of classic hand-eye sessions (every frame at its own orientation).
 
-Run ``python -m slidecal.routines.bench_handeye --trials 100 --out docs/HANDEYE.md``. Per row:
+Run ``slidecal bench handeye --trials 100 --out docs/HANDEYE.md``. Per row:
 the hand-eye rotation and translation rms errors of the joint maximum likelihood against their
 Cramer-Rao bounds (``fisher_covariance`` at the truth, same scenario, knowledge and noise), the
 focal length likewise; the closed-form AX = XB methods (ours and OpenCV's) on the same
@@ -13,7 +13,6 @@ pixel and robot noise.
 from __future__ import annotations
 
 import argparse
-import platform
 import sys
 import time
 from collections.abc import Callable
@@ -24,6 +23,7 @@ import numpy as np
 
 from slidecal.mocks import handeye_scenarios as hs
 from slidecal.mocks.scenarios import NO_DISTORTION, Scenario
+from slidecal.routines.benchmarks import report_header
 from slidecal.solver.calibrate import calibrate, pnp_pose
 from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import inv_T, rotation_angle_deg, skew
@@ -272,21 +272,15 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--out", help="write the markdown report here (e.g. docs/HANDEYE.md)")
 
 
-def main(args: argparse.Namespace | list[str] | None = None) -> int:
-    """Entry point (a parsed namespace, or argv for ``python -m``)."""
-    if not isinstance(args, argparse.Namespace):
-        ap = argparse.ArgumentParser(prog="bench_handeye", description=__doc__.splitlines()[0])
-        add_arguments(ap)
-        args = ap.parse_args(args)
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``slidecal bench handeye`` (and ``python -m``)."""
+    ap = argparse.ArgumentParser(prog="slidecal bench handeye", description=__doc__.splitlines()[0])
+    add_arguments(ap)
+    args = ap.parse_args(argv)
     t0 = time.time()
     rows = all_rows(args.trials)
     lines = [
-        "# Classic hand-eye sessions",
-        "",
-        f"Regenerate with `python -m slidecal.routines.bench_handeye --trials {args.trials} "
-        f"--out docs/HANDEYE.md` ({platform.machine()}, {platform.python_version()}, numpy "
-        f"{np.__version__}, OpenCV {cv2.__version__}; this run took {time.time() - t0:.0f} s).",
-        "",
+        *report_header("Classic hand-eye sessions", "handeye", argv, time.time() - t0),
         "Simulated R1 cell (`slidecal.mocks.handeye_scenarios`): 1280 x 800 camera with R1's "
         "distortion, every frame at its own orientation (tilts 15-35 deg toward random "
         "azimuths, rolls up to 30 deg, 0.45-0.6 m from the target), corner noise "

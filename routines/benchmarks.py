@@ -26,6 +26,10 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "planner": ("slidecal.routines.bench_planner", "the planner's prediction against Monte Carlo"),
     "stereo": ("slidecal.routines.bench_stereo", "S5: the linear stereo method, joint vs alone"),
     "rig": ("slidecal.routines.bench_rig", "rig maximum likelihood against the bound; OAK cell"),
+    "handeye": (
+        "slidecal.routines.bench_handeye",
+        "classic hand-eye sessions against the bound and cv2.calibrateHandEye",
+    ),
     "scale": ("slidecal.routines.bench_scale", "solve time from 20 to 1000 frames, 1-3 cameras"),
 }
 
