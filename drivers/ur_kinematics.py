@@ -130,13 +130,18 @@ def fk(q: np.ndarray, model: URModel = UR5E, T_flange_tcp: np.ndarray | None = N
     return T if T_flange_tcp is None else T @ T_flange_tcp
 
 
+#: ``|sin(q5)|`` below which the wrist is treated as exactly singular (q6 free) in the IK.
+_WRIST_EXACT = 1e-7
+_EPS = float(np.finfo(float).eps)
+
+
 def _wrap(a: float) -> float:
     return float((a + np.pi) % (2 * np.pi) - np.pi)
 
 
-def _acos(x: float) -> float | None:
-    """arccos, tolerating rounding just outside [-1, 1]; None when truly outside."""
-    if abs(x) > 1.0 + 1e-10:
+def _acos(x: float, tol: float = 1e-10) -> float | None:
+    """arccos, tolerating rounding up to ``tol`` outside [-1, 1]; None when truly outside."""
+    if abs(x) > 1.0 + tol:
         return None
     return float(np.arccos(np.clip(x, -1.0, 1.0)))
 
@@ -166,7 +171,7 @@ def _ik_flange(T: np.ndarray, m: URModel, q6_singular: float = 0.0) -> list[np.n
         for s5 in (1.0, -1.0):
             q5 = s5 * a5
             sn5 = np.sin(q5)
-            if abs(sn5) < 1e-7:
+            if abs(sn5) < _WRIST_EXACT:
                 q6 = q6_singular  # wrist singular: q4 and q6 are coupled, q6 is free
             else:
                 q6 = np.arctan2(
@@ -177,7 +182,15 @@ def _ik_flange(T: np.ndarray, m: URModel, q6_singular: float = 0.0) -> list[np.n
             T56 = _dh(q6, m.d6, 0.0, _RX_0)
             T14 = inv_T(T01) @ T @ inv_T(T45 @ T56)
             px, py = T14[0, 3], T14[1, 3]
-            a3 = _acos((px * px + py * py - m.a2**2 - m.a3**2) / (2.0 * m.a2 * m.a3))
+            # Near a wrist singularity q5 comes from arccos(c5) with an error of about
+            # eps / |sin(q5)| (1e-9 rad at 1e-7 rad from singular), which moves the wrist point
+            # by (d5 + d6) times that; a stretched elbow then sees its cosine pushed past 1 by
+            # r (d5 + d6) eps / (|a2 a3| |sin(q5)|): tolerate 8 times that (nanometres of reach).
+            r = float(np.hypot(px, py))
+            tol = 1e-10 + 8.0 * r * (m.d5 + m.d6) * _EPS / (
+                abs(m.a2 * m.a3) * max(abs(float(sn5)), _WRIST_EXACT)
+            )
+            a3 = _acos((px * px + py * py - m.a2**2 - m.a3**2) / (2.0 * m.a2 * m.a3), tol)
             if a3 is None:
                 continue
             q234 = np.arctan2(T14[1, 0], T14[0, 0])
