@@ -177,6 +177,38 @@ def move_time_s(distance: float, max_speed: float, max_accel: float) -> float:
     return d / max_speed + max_speed / max_accel
 
 
+def cell_options(robot_section: Any) -> dict[str, Any]:
+    """``URRobot`` keyword arguments from a cell file's ``robot:`` section (its raw mapping).
+
+    ``take_control: true`` is the user's consent to stop a program running on the controller
+    (ur-rtde stops it to upload its own script; without it :meth:`URRobot.connect` refuses).
+    ``payload: {mass_kg: 1.2, cog_m: [0, 0, 0.05]}`` is set on the controller at connect
+    (centre of gravity in the flange frame, metres; optional).
+    """
+    raw = dict(robot_section or {})
+    out: dict[str, Any] = {}
+    take = raw.get("take_control", False)
+    if not isinstance(take, bool):
+        raise InputError(f"must be true or false, got {take!r}", where="robot.take_control")
+    out["take_control"] = take
+    payload = raw.get("payload")
+    if payload is not None:
+        if not isinstance(payload, dict) or "mass_kg" not in payload or set(payload) - {
+            "mass_kg", "cog_m"
+        }:
+            raise InputError(
+                f"must be {{mass_kg: M, cog_m: [x, y, z]}} (cog_m optional), got {payload!r}",
+                where="robot.payload",
+            )
+        try:
+            out["payload_kg"] = float(payload["mass_kg"])
+        except (TypeError, ValueError):
+            raise InputError(f"must be a number in kg, got {payload['mass_kg']!r}",
+                             where="robot.payload.mass_kg") from None
+        out["payload_cog_m"] = payload.get("cog_m")
+    return out
+
+
 def _describe(T: np.ndarray) -> str:
     pose = ", ".join(f"{v:.4f}" for v in ur_pose_from_T(T))
     return f"[{pose}] ({pendant_text(T)})"

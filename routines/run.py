@@ -70,7 +70,7 @@ def default_session_dir() -> Path:
 
 def _connect_real(cfg: CellConfig) -> tuple[Any, Any]:
     """The real drivers named by the cell file (imported only here)."""
-    from slidecal.drivers.ur import URRobot
+    from slidecal.drivers.ur import URRobot, cell_options
 
     r = cfg.robot
     robot = URRobot(
@@ -79,6 +79,7 @@ def _connect_real(cfg: CellConfig) -> tuple[Any, Any]:
         max_accel_mps2=r.accel_mps2,
         tcp=r.tcp,
         model=r.model,
+        **cell_options(r.raw),  # take_control, payload
     )
     if cfg.camera_driver == "oak":
         from slidecal.drivers.oak import OakRig
