@@ -37,7 +37,8 @@ error is), and a host that drops every packet (``--silent``: connections are nev
 not even refused).
 
 Arm model: MOVEL (3) moves the TCP on a straight line at the commanded speed times the slider
-(rotation interpolated on the geodesic at 1 rad/s times the slider), STOPL (33) stops at once,
+(rotation interpolated on the geodesic at 1 rad/s times the slider), starting
+``MOTION_LATENCY_S`` after the command is acknowledged; STOPL (33) stops at once,
 SET_TCP (29), SET_PAYLOAD (17), GET_TCP_OFFSET (40), GET_INVERSE_KINEMATICS (30, 46) answer the
 analytic solution nearest ``qnear`` and, like URScript's ``get_inverse_kin``, stop the script
 with a runtime error when there is none; IS_POSE_WITHIN_SAFETY_LIMITS (36) and the
@@ -88,6 +89,9 @@ DEFAULT_VERSION = "5.12"
 SERIAL_NUMBER = "20185500001"
 Q0 = np.array([0.0, -1.9, 1.7, -1.37, -1.57, 0.0])
 SAFETY_Z_MIN_M = 0.0
+#: Between a move command being acknowledged and the arm starting to move, as on a controller
+#: whose motion thread starts planning in a later cycle: the arm reports rest at the start pose.
+MOTION_LATENCY_S = 0.03
 SAFETY_MODE_NAMES = {1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY",
                      5: "SAFEGUARD_STOP", 6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP",
                      8: "VIOLATION", 9: "FAULT"}
@@ -361,12 +365,13 @@ class Robot:
         slider = max(self.speed_slider, 1e-3)
         duration = max(dist / max(speed_mps, 1e-3), float(np.linalg.norm(rvec)) / 1.0,
                        0.02) / slider
-        self.motion = {"T0": T0, "T1": T_target, "rvec": rvec, "t_start": time.monotonic(),
+        self.motion = {"T0": T0, "T1": T_target, "rvec": rvec,
+                       "t_start": time.monotonic() + MOTION_LATENCY_S,
                        "duration": duration, "blocking": blocking,
                        "fault": self.next_move_fault}
         self.next_move_fault = None
         dt_tcp = (T_target[:3, 3] - T0[:3, 3]) / duration
-        self.speed = np.concatenate([dt_tcp, T0[:3, :3] @ rvec / duration])
+        self.motion["speed"] = np.concatenate([dt_tcp, T0[:3, :3] @ rvec / duration])
 
     def _pose_at(self, s: float) -> np.ndarray:
         m = self.motion
@@ -386,7 +391,11 @@ class Robot:
         m = self.motion
         if m is None:
             return
-        s = min(1.0, (time.monotonic() - m["t_start"]) / m["duration"])
+        now = time.monotonic()
+        if now < m["t_start"]:
+            return  # accepted, not started yet: at rest at the start pose
+        self.speed = m["speed"]
+        s = min(1.0, (now - m["t_start"]) / m["duration"])
         if m["fault"] and s >= 0.5:
             self._set_flange(self._pose_at(0.5))
             fault = m["fault"]

@@ -205,8 +205,10 @@ def test_move_linear_arrives_and_wait_settled_waits_for_rest(fake, robot):
     assert st["commands"][-1] == 3 and not st["moving"]  # MOVEL = 3, done
     # an asynchronous move through the real client: wait_settled must wait for rest
     T2 = shifted(T1, -0.06, 0.0, 0.0)
-    assert robot._control.moveL(ur_pose_from_T(T2), speed_mps, 1.0, True)
     t0 = time.monotonic()
+    assert robot._control.moveL(ur_pose_from_T(T2), speed_mps, 1.0, True)
+    # the controller starts the motion a few cycles after acknowledging the command
+    wait_until(lambda: np.linalg.norm(robot._receive.getActualTCPSpeed()) > 0, 1.0, "motion")
     robot.wait_settled(0.05)
     settled_s = time.monotonic() - t0
     assert settled_s >= 0.8 * (0.06 / speed_mps) + 0.05
