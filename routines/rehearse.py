@@ -9,10 +9,16 @@ solve) with the cell's simulated cameras rendering the target from the controlle
 pose. The controller reports that pose with the cell's simulated robot error
 (``simulation.noise``), drawn once per rest pose. Nothing leaves the machine; no robot moves.
 
-The cell must be a simulated one (``robot.driver: simulated``, e.g. the default cell): its
-``simulation`` block is the truth the cameras render. The session gets, besides what
-``slidecal run`` writes, ``rehearsal.yaml``: what the controller said it was
-(:attr:`URRobot.controller_info`) and what it saw (its events, the final arm state).
+A simulated cell (``robot.driver: simulated``, e.g. the default cell) is rehearsed as it is:
+its ``simulation`` block is the truth the cameras render. A real cell (``robot.driver: ur``) is
+rehearsed through its simulated twin (:func:`simulated_twin`): the same robot model, TCP,
+speeds, workspace, target, mount, camera names and sizes, the rough geometry of
+``approximate`` taken as the truth, cameras of a plausible lens (or the OAK-D-like preset for
+an OAK named left/right/rgb), the arm starting with the camera at the stand-off straight over
+the target; the cell's ``take_control`` and ``payload`` go to the driver as on the real cell.
+The session gets, besides what ``slidecal run`` writes, ``rehearsal.yaml``: what the
+controller said it was (:attr:`URRobot.controller_info`) and what it saw (its events, the final
+arm state).
 """
 
 from __future__ import annotations
@@ -88,6 +94,69 @@ class LoopbackController:
                 self.proc.wait(5.0)
 
 
+#: Horizontal field of view assumed for a real cell's cameras in its twin (degrees).
+TWIN_HFOV_DEG = 60.0
+
+
+def simulated_twin(cfg: Any) -> Any:
+    """The simulated cell standing in for a real one in a rehearsal (module docstring).
+
+    Raises ``InputError`` when the cell gives too little to build one (several cameras that are
+    not an OAK's left/right/rgb: their extrinsics are unknown).
+    """
+    from slidecal.drivers import ur_kinematics as urk
+    from slidecal.drivers.ur_pose import ur_pose_from_T
+    from slidecal.routines.config import config_from_dict
+    from slidecal.routines.session import transform_to_dict
+    from slidecal.solver.geometry import T_from_Rt, inv_T
+
+    raw = dict(cfg.raw)
+    robot = {k: v for k, v in dict(raw.get("robot") or {}).items()
+             if k not in ("driver", "host", "take_control", "payload")}
+    robot["driver"] = "simulated"
+    names = [c.name for c in cfg.cameras]
+    sim: dict[str, Any] = {"seed": 0}
+    if cfg.camera_driver == "oak" and set(names) <= {"left", "right", "rgb"}:
+        sim["camera_preset"] = "oak_d_like"
+    elif len(names) == 1:
+        c = cfg.cameras[0]
+        f_px = c.width / 2.0 / np.tan(np.radians(TWIN_HFOV_DEG) / 2.0)
+        K = [[f_px, 0.0, c.width / 2.0], [0.0, f_px, c.height / 2.0], [0.0, 0.0, 1.0]]
+        sim["cameras"] = {c.name: {"width": c.width, "height": c.height, "K": K,
+                                   "distortion": [0.0] * 5}}
+    else:
+        raise InputError(
+            f"cameras {names}: a rehearsal cannot invent the extrinsics of several cameras; "
+            "rehearse a copy of the cell with one camera, or a simulated cell",
+            where=f"{cfg.source}: cameras.list",
+        )
+    he_key, tg_key = ("T_tool_cam", "T_base_board") if cfg.mount == "eye_in_hand" else (
+        "T_base_cam", "T_tool_board")
+    sim[he_key] = transform_to_dict(cfg.approx_T_hand_eye)
+    sim[tg_key] = transform_to_dict(cfg.approx_T_target)
+    if "start_q" not in robot and "start_pose" not in robot:
+        # the camera at the stand-off, looking straight at the middle of the target
+        pts = np.asarray(cfg.target.points_m, dtype=float)
+        mid = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+        T_board_cam = T_from_Rt(np.eye(3), mid - [0.0, 0.0, cfg.standoff_m])
+        if cfg.mount == "eye_in_hand":
+            T_base_tool = cfg.approx_T_target @ T_board_cam @ inv_T(cfg.approx_T_hand_eye)
+        else:
+            T_base_tool = cfg.approx_T_hand_eye @ inv_T(T_board_cam) @ inv_T(
+                cfg.approx_T_target)
+        if not urk.reachable(T_base_tool, None, urk.model_by_name(cfg.robot.model),
+                             cfg.robot.tcp):
+            raise InputError(
+                "the pose that puts the camera at the stand-off over the target is out of "
+                "reach of the arm; check approximate and standoff_m, or give robot.start_q",
+                where=f"{cfg.source}: approximate",
+            )
+        robot["start_pose"] = ur_pose_from_T(T_base_tool)
+    twin = {**raw, "robot": robot, "simulation": sim,
+            "cameras": {"driver": "simulated", "reference": cfg.reference_camera}}
+    return config_from_dict(twin, f"{cfg.source} (simulated twin)")
+
+
 def rehearse(
     config: str | Path | None = None,
     out_dir: str | Path | None = None,
@@ -103,7 +172,7 @@ def rehearse(
     Raises like :func:`~slidecal.routines.run.run_calibration` (``HardwareFault`` after an
     injected fault, with every frame before it in the session).
     """
-    from slidecal.drivers.ur import URRobot
+    from slidecal.drivers.ur import URRobot, cell_options
     from slidecal.mocks.cell import SimulatedCell
     from slidecal.routines.config import load_config
     from slidecal.routines.faults import CONTROLLER, FaultInjector
@@ -111,13 +180,11 @@ def rehearse(
     from slidecal.routines.session import dump_yaml, write_atomic
 
     cfg = load_config(config)
-    if not cfg.simulated or cfg.simulation is None:
-        raise InputError(
-            "rehearse needs a simulated cell (robot.driver: simulated) whose simulation block "
-            "is the truth the cameras render; copy the cell and set its robot and cameras to "
-            "simulated",
-            where=f"{cfg.source}: robot.driver",
-        )
+    driver_options: dict[str, Any] = {}
+    if not cfg.simulated:
+        driver_options = cell_options(cfg.robot.raw)
+        cfg = simulated_twin(cfg)
+    assert cfg.simulation is not None
     cell = SimulatedCell.from_config(cfg, seed)
     sim = cfg.simulation
     options = [
@@ -136,6 +203,7 @@ def rehearse(
         tcp=cfg.robot.tcp,
         model=cfg.robot.model,
         frequency=125.0,
+        **driver_options,
     )
     # the simulated cameras render from the controller's arm, not the simulated one
     cell.robot.true_pose = controller.true_tcp_pose  # type: ignore[method-assign]
@@ -167,7 +235,7 @@ def rehearse(
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The ``slidecal rehearse`` options."""
-    p.add_argument("--config", help="a simulated cell file (default: the default cell)")
+    p.add_argument("--config", help="a cell file, real or simulated (default: the default cell)")
     p.add_argument("--out", help="session directory to create (default: sessions/<time>)")
     p.add_argument("--fault", action="append", metavar="KIND@FRAME",
                    help="inject a hardware fault (see slidecal.routines.faults)")
