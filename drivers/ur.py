@@ -8,10 +8,37 @@ the receive interface keeps returning its last values after a lost connection (w
 protective-stop recovery (an unattended calibration stops and reports). Every pose goes through
 :mod:`slidecal.drivers.ur_pose`. The ur-rtde modules are imported in :meth:`URRobot.connect`, so
 this module imports without them.
+
+Connecting (:meth:`URRobot.connect`), in this order, so that nothing blocks for long and nothing
+on the controller is disturbed without consent:
+
+1. Reachability: a TCP connection with a time-out to the dashboard (29999, whose welcome line
+   must arrive) and to RTDE (30004, which must answer a protocol-version request), before any
+   of ur-rtde's constructors, which block for about two minutes on a host that drops packets
+   and cannot be interrupted by Ctrl-C while they do.
+2. What the controller is, from the dashboard: PolyScope version, robot model, serial number
+   (:attr:`URRobot.controller_info`, for the session).
+3. Remote control, decided from the version: asked on e-Series from PolyScope 5.6 (before that
+   the dashboard cannot say and ur-rtde's ``isInRemoteControl`` answers False); CB3 arms
+   (PolyScope 3.x) have no local/remote control.
+4. Robot mode running; safety mode normal or reduced (reduced is normal operation).
+5. **A program already running**: ur-rtde's control interface stops it and uploads its own
+   script. Refused unless the user consented with ``take_control=True`` (the cell file's
+   ``robot.take_control: true``).
+6. The control interface; the TCP and, when given, the payload (``setPayload(mass, cog)``).
+
+Reachability queries (:meth:`URRobot.is_reachable`) use the controller's
+``getInverseKinematicsHasSolution`` where its script lines exist (PolyScope 5.10+ and 3.15+);
+below that ur-rtde leaves them out and the answer would be whatever the previous command left,
+so the host-side kinematics of :mod:`slidecal.drivers.ur_kinematics` (with the joint limits)
+answer instead.
 """
 
 from __future__ import annotations
 
+import re
+import socket
+import struct
 import time
 from typing import Any
 
@@ -20,9 +47,14 @@ import numpy as np
 from slidecal.drivers import ur_kinematics as urk
 from slidecal.drivers.ur_pose import T_from_ur_pose, pendant_text, ur_pose_from_T
 from slidecal.solver.errors import HardwareFault, InputError
+from slidecal.solver.geometry import rvec_from_R
 
 ROBOT_MODE_RUNNING = 7
 SAFETY_MODE_NORMAL = 1
+SAFETY_MODE_REDUCED = 2
+#: Safety modes in which the arm works normally (reduced mode: lower speed limits, still normal).
+SAFETY_MODES_OK = (SAFETY_MODE_NORMAL, SAFETY_MODE_REDUCED)
+DASHBOARD_PORT, RTDE_PORT = 29999, 30004
 
 #: Safety modes (``getSafetyMode``) and what the operator should do about them.
 SAFETY_MODES: dict[int, str] = {
@@ -55,6 +87,128 @@ ROBOT_MODES: dict[int, str] = {
 }
 
 
+def parse_version(text: str) -> tuple[int, ...] | None:
+    """``(major, minor, bugfix[, build])`` from a PolyScope version line, None if it holds none."""
+    m = re.search(r"(\d+)\.(\d+)\.(\d+)(?:\.(\d+))?", text or "")
+    return None if m is None else tuple(int(g) for g in m.groups() if g is not None)
+
+
+def remote_control_queryable(version: tuple[int, ...]) -> bool:
+    """Whether the dashboard can say if the arm is in remote control (e-Series, PolyScope 5.6+)."""
+    return version[0] == 5 and version[1] >= 6
+
+
+def has_ik_query(version: tuple[int, ...]) -> bool:
+    """Whether ur-rtde's script holds ``get_inverse_kin_has_solution`` (PolyScope 5.10+, 3.15+)."""
+    major, minor = version[0], version[1]
+    return (major == 3 and minor >= 15) or (major == 5 and minor >= 10) or major > 5
+
+
+def _recv_exactly(sock: socket.socket, n: int) -> bytes:
+    data = b""
+    while len(data) < n:
+        chunk = sock.recv(n - len(data))
+        if not chunk:
+            raise ConnectionResetError("closed by the controller")
+        data += chunk
+    return data
+
+
+def probe_controller(host: str, timeout_s: float) -> tuple[int, int, int, int]:
+    """Check within ``timeout_s`` (per port) that ``host`` answers as a UR controller.
+
+    The dashboard (29999) must send its welcome line; RTDE (30004) must accept protocol
+    version 2 and give its controller version, which is returned ``(major, minor, bugfix,
+    build)``. Pure Python sockets with time-outs: a host that drops packets fails here in
+    seconds (ur-rtde's constructors would block for minutes, deaf to Ctrl-C).
+    Raises ``HardwareFault`` saying which port did what.
+    """
+    where = f"the robot controller at {host}"
+
+    def fail(port: int, e: BaseException) -> HardwareFault:
+        if isinstance(e, TimeoutError | socket.timeout):
+            why = f"no answer within {timeout_s:g} s"
+        elif isinstance(e, ConnectionRefusedError):
+            why = "connection refused"
+        else:
+            why = str(e) or type(e).__name__
+        return HardwareFault(
+            f"{where} is not reachable on port {port} ({why}); check the address in the cell "
+            "file, the network cable and that the controller is switched on and booted"
+        )
+
+    try:
+        with socket.create_connection((host, DASHBOARD_PORT), timeout=timeout_s) as s:
+            s.settimeout(timeout_s)
+            welcome = b""
+            while b"\n" not in welcome:
+                chunk = s.recv(256)
+                if not chunk:
+                    raise ConnectionResetError("closed by the controller")
+                welcome += chunk
+    except OSError as e:
+        raise fail(DASHBOARD_PORT, e) from None
+    try:
+        with socket.create_connection((host, RTDE_PORT), timeout=timeout_s) as s:
+            s.settimeout(timeout_s)
+            s.sendall(struct.pack(">HBH", 5, ord("V"), 2))
+            size, _ = struct.unpack(">HB", _recv_exactly(s, 3))
+            accepted = _recv_exactly(s, size - 3)
+            if not accepted or accepted[0] != 1:
+                raise HardwareFault(
+                    f"{where} refused RTDE protocol version 2; it needs PolyScope 3.10 / 5.0 or "
+                    "newer"
+                )
+            s.sendall(struct.pack(">HB", 3, ord("v")))
+            size, _ = struct.unpack(">HB", _recv_exactly(s, 3))
+            payload = _recv_exactly(s, size - 3)
+            if len(payload) < 16:
+                raise ConnectionResetError("short controller-version answer")
+            return tuple(struct.unpack(">4I", payload[:16]))  # type: ignore[return-value]
+    except OSError as e:
+        raise fail(RTDE_PORT, e) from None
+
+
+def move_time_s(distance: float, max_speed: float, max_accel: float) -> float:
+    """Rest-to-rest time of a trapezoidal profile (metres or radians, per second, per s^2)."""
+    d = abs(float(distance))
+    if d <= max_speed**2 / max_accel:
+        return 2.0 * float(np.sqrt(d / max_accel))
+    return d / max_speed + max_speed / max_accel
+
+
+def cell_options(robot_section: Any) -> dict[str, Any]:
+    """``URRobot`` keyword arguments from a cell file's ``robot:`` section (its raw mapping).
+
+    ``take_control: true`` is the user's consent to stop a program running on the controller
+    (ur-rtde stops it to upload its own script; without it :meth:`URRobot.connect` refuses).
+    ``payload: {mass_kg: 1.2, cog_m: [0, 0, 0.05]}`` is set on the controller at connect
+    (centre of gravity in the flange frame, metres; optional).
+    """
+    raw = dict(robot_section or {})
+    out: dict[str, Any] = {}
+    take = raw.get("take_control", False)
+    if not isinstance(take, bool):
+        raise InputError(f"must be true or false, got {take!r}", where="robot.take_control")
+    out["take_control"] = take
+    payload = raw.get("payload")
+    if payload is not None:
+        if not isinstance(payload, dict) or "mass_kg" not in payload or set(payload) - {
+            "mass_kg", "cog_m"
+        }:
+            raise InputError(
+                f"must be {{mass_kg: M, cog_m: [x, y, z]}} (cog_m optional), got {payload!r}",
+                where="robot.payload",
+            )
+        try:
+            out["payload_kg"] = float(payload["mass_kg"])
+        except (TypeError, ValueError):
+            raise InputError(f"must be a number in kg, got {payload['mass_kg']!r}",
+                             where="robot.payload.mass_kg") from None
+        out["payload_cog_m"] = payload.get("cog_m")
+    return out
+
+
 def _describe(T: np.ndarray) -> str:
     pose = ", ".join(f"{v:.4f}" for v in ur_pose_from_T(T))
     return f"[{pose}] ({pendant_text(T)})"
@@ -79,8 +233,17 @@ class URRobot:
         of the controller's joint solution (``ur_kinematics.singularity``).
     stale_timeout_s
         How long ``getTimestamp()`` may stay unchanged before the data is called stale.
-    arrival_tol_m
-        Largest distance between the target and the measured pose after a completed move.
+    arrival_tol_m, arrival_tol_deg
+        Largest distance and rotation between the target and the measured pose after a
+        completed move: both must hold.
+    take_control
+        The user's consent to stop a program running on the controller (ur-rtde's control
+        interface stops it to upload its own script); without it :meth:`connect` refuses.
+    payload_kg, payload_cog_m
+        When given, set on the controller at connect (``setPayload``): mass in kg, centre of
+        gravity (3,) in metres in the flange frame (None: the controller's default estimate).
+    connect_timeout_s
+        How long each port of the controller may take to answer at connect.
     """
 
     def __init__(
@@ -95,6 +258,11 @@ class URRobot:
         stale_timeout_s: float = 0.1,
         settle_timeout_s: float = 5.0,
         arrival_tol_m: float = 1e-3,
+        arrival_tol_deg: float = 0.1,
+        take_control: bool = False,
+        payload_kg: float | None = None,
+        payload_cog_m: np.ndarray | list[float] | None = None,
+        connect_timeout_s: float = 3.0,
     ) -> None:
         if not 0 < max_speed_mps <= 3.0:
             raise InputError(f"max_speed_mps must be in (0, 3] (ur-rtde's range): {max_speed_mps}")
@@ -109,6 +277,25 @@ class URRobot:
         self.stale_timeout_s = float(stale_timeout_s)
         self.settle_timeout_s = float(settle_timeout_s)
         self.arrival_tol_m = float(arrival_tol_m)
+        self.arrival_tol_deg = float(arrival_tol_deg)
+        self.take_control = bool(take_control)
+        if payload_kg is not None and not 0.0 <= float(payload_kg) <= 50.0:
+            raise InputError(f"payload mass must be in [0, 50] kg, got {payload_kg}",
+                             where="robot.payload.mass_kg")
+        cog = None if payload_cog_m is None else np.asarray(payload_cog_m, dtype=float)
+        if cog is not None and (cog.shape != (3,) or not np.all(np.isfinite(cog))):
+            raise InputError(f"the payload's centre of gravity is 3 numbers in metres, got "
+                             f"{payload_cog_m!r}", where="robot.payload.cog_m")
+        if cog is not None and payload_kg is None:
+            raise InputError("a payload centre of gravity needs its mass; add mass_kg",
+                             where="robot.payload")
+        self.payload_kg = None if payload_kg is None else float(payload_kg)
+        self.payload_cog_m = cog
+        self.connect_timeout_s = float(connect_timeout_s)
+        self.controller_info: dict[str, Any] = {}
+        self._version: tuple[int, ...] = ()
+        self._ik_on_controller = True
+        self._T_flange_tcp = np.eye(4)
         self._control: Any = None
         self._receive: Any = None
         self._dashboard: Any = None
@@ -116,7 +303,16 @@ class URRobot:
 
     # ---------------------------------------------------------------------------- connection
     def connect(self) -> None:
-        """Connect; raise ``HardwareFault`` unless the robot is running in normal safety mode."""
+        """Connect (see the module docstring for the order of checks); ``HardwareFault`` unless
+        the robot is running in normal or reduced safety mode, ready for remote commands, and
+        nothing the user did not consent to would be stopped.
+
+        Afterwards :attr:`controller_info` says what the controller is: ``polyscope_version``,
+        ``robot_model``, ``serial_number`` (None where the PolyScope version cannot say),
+        ``controller_version`` (RTDE), ``remote_control`` (True, or None when it cannot be
+        asked), ``ik_check`` (``controller`` or ``host``), ``speed_slider``, ``safety_mode``,
+        ``program_stopped`` (the program stopped with consent, or None), ``payload``.
+        """
         try:
             import dashboard_client
             import rtde_control
@@ -126,18 +322,62 @@ class URRobot:
                 f"ur-rtde is not importable ({e}); install it with 'pip install ur-rtde>=1.6'"
             ) from None
         where = f"robot at {self.hostname}"
+        rtde_version = probe_controller(self.hostname, self.connect_timeout_s)
+        try:
+            self._dashboard = dashboard_client.DashboardClient(self.hostname)
+            self._dashboard.connect(int(self.connect_timeout_s * 1000))
+            if not self._dashboard.isConnected():
+                raise RuntimeError("no connection")
+            version_text = str(self._dashboard.polyscopeVersion())
+            model_text = str(self._dashboard.getRobotModel()).strip()
+            running = bool(self._dashboard.running())
+            program_state = str(self._dashboard.programState()).strip()
+        except RuntimeError as e:
+            self.close()
+            raise HardwareFault(
+                f"the dashboard server of the {where} (port 29999) does not answer ({e}); "
+                "check that the controller is booted and not in a pop-up"
+            ) from None
+        version = parse_version(version_text) or tuple(rtde_version)
+        self._version = version
+        try:
+            serial = str(self._dashboard.getSerialNumber()).strip()
+        except RuntimeError:
+            serial = None  # PolyScope < 5.6 cannot say
+        remote: bool | None = None
+        if remote_control_queryable(version):
+            remote = bool(self._dashboard.isInRemoteControl())
+            if not remote:
+                self.close()
+                raise HardwareFault(
+                    f"{where} is in local control; switch it to remote control on the teach "
+                    "pendant"
+                )
+        if self.model is None and model_text.upper().startswith("UR"):
+            name = model_text.split()[0] + ("e" if version[0] >= 5 else "")
+            try:
+                self.model = urk.model_by_name(name)
+            except InputError:
+                self.model = None
+        self.controller_info = {
+            "polyscope_version": ".".join(str(v) for v in version),
+            "controller_version": ".".join(str(v) for v in rtde_version),
+            "robot_model": model_text,
+            "serial_number": serial,
+            "remote_control": remote,
+            "ik_check": "controller" if has_ik_query(version) else "host",
+            "program_state": program_state,
+            "program_stopped": None,
+        }
+        self._ik_on_controller = has_ik_query(version)
         try:
             self._receive = rtde_receive.RTDEReceiveInterface(self.hostname, self.frequency)
         except RuntimeError as e:
+            self.close()
             raise HardwareFault(
                 f"cannot connect to the {where} over RTDE (port 30004): {e}; check the network "
                 "and that the controller is on"
             ) from None
-        try:
-            self._dashboard = dashboard_client.DashboardClient(self.hostname)
-            self._dashboard.connect()
-        except RuntimeError:
-            self._dashboard = None  # diagnostics only; the dashboard port may be firewalled
         robot_mode = int(self._receive.getRobotMode())
         if robot_mode != ROBOT_MODE_RUNNING:
             self.close()
@@ -147,17 +387,23 @@ class URRobot:
                 "on the teach pendant"
             )
         safety_mode = int(self._receive.getSafetyMode())
-        if safety_mode != SAFETY_MODE_NORMAL:
+        if safety_mode not in SAFETY_MODES_OK:
             self.close()
             raise HardwareFault(
                 f"{where} is not in normal safety mode: {safety_mode} "
                 f"({SAFETY_MODES.get(safety_mode, 'unknown')})"
             )
-        if self._dashboard is not None and not self._dashboard.isInRemoteControl():
-            self.close()
-            raise HardwareFault(
-                f"{where} is in local control; switch it to remote control on the teach pendant"
-            )
+        self.controller_info["safety_mode"] = SAFETY_MODES[safety_mode]
+        self.controller_info["speed_slider"] = float(self._receive.getSpeedScaling())
+        if running:
+            if not self.take_control:
+                self.close()
+                raise HardwareFault(
+                    f"a program is running on the {where} ({program_state}); connecting would "
+                    "stop it. Stop it on the pendant, or allow slidecal to stop it with "
+                    "'take_control: true' in the cell file's robot section"
+                )
+            self.controller_info["program_stopped"] = program_state
         try:
             self._control = rtde_control.RTDEControlInterface(self.hostname, self.frequency)
         except RuntimeError as e:
@@ -169,6 +415,18 @@ class URRobot:
         if self.tcp is not None and not self._control.setTcp(ur_pose_from_T(self.tcp)):
             self.close()
             raise HardwareFault(f"the {where} refused the TCP offset {ur_pose_from_T(self.tcp)}")
+        self._T_flange_tcp = (
+            self.tcp if self.tcp is not None else T_from_ur_pose(self._control.getTCPOffset())
+        )
+        if self.payload_kg is not None:
+            cog = [] if self.payload_cog_m is None else [float(v) for v in self.payload_cog_m]
+            if not self._control.setPayload(self.payload_kg, cog):
+                self.close()
+                raise HardwareFault(
+                    f"the {where} refused the payload {self.payload_kg} kg at {cog} m; check "
+                    "the values against the arm's rated payload"
+                )
+            self.controller_info["payload"] = {"mass_kg": self.payload_kg, "cog_m": cog or None}
         self._last_timestamp = -np.inf
         self._fresh()
 
@@ -246,7 +504,7 @@ class URRobot:
             robot_mode = int(self._receive.getRobotMode())
         except RuntimeError as e:
             return f"{what}: the robot did not answer ({e}); check the connection"
-        if safety != SAFETY_MODE_NORMAL:
+        if safety not in SAFETY_MODES_OK:
             return f"{what}: {SAFETY_MODES.get(safety, f'safety mode {safety}')}"
         if robot_mode != ROBOT_MODE_RUNNING:
             return (
@@ -271,8 +529,11 @@ class URRobot:
 
         The move is sent asynchronously and watched here (live pose, safety mode, a deadline
         from the trapezoidal move time): a blocking ``moveL`` whose connection drops waits up to
-        300 s inside ur-rtde (measured against tests/ur_fake_controller.py), which an
-        unattended cell cannot afford.
+        300 s inside ur-rtde (measured against ``slidecal.mocks.ur_controller``), which an
+        unattended cell cannot afford. The deadline counts the rotation (at ``speed_mps`` read
+        as rad/s, what the controller does for a pure rotation) and the pendant's speed slider
+        (``getSpeedScaling``, re-read while moving); arrival needs both the position within
+        ``arrival_tol_m`` and the orientation within ``arrival_tol_deg``.
         """
         self._require()
         if not 0 < speed_mps <= self.max_speed_mps:
@@ -293,32 +554,41 @@ class URRobot:
             self.stop()
             raise HardwareFault(self._diagnose(what))
         d = float(np.linalg.norm(T[:3, 3] - T_start[:3, 3]))
-        expected_s = d / speed_mps + speed_mps / accel_mps2
+        angle = float(np.linalg.norm(rvec_from_R(T_start[:3, :3].T @ T[:3, :3])))
+        full_speed_s = max(
+            move_time_s(d, speed_mps, accel_mps2), move_time_s(angle, speed_mps, accel_mps2)
+        )
         t0 = time.monotonic()
-        deadline = t0 + 2.0 * expected_s + self.settle_timeout_s
+        slowest = 1.0
         while True:
             try:
                 T_now = self.measured_pose()  # live data or HardwareFault
                 safety = int(self._receive.getSafetyMode())
                 speed = np.asarray(self._receive.getActualTCPSpeed(), dtype=float)
+                slider = float(self._receive.getSpeedScaling())
             except HardwareFault:
                 self.stop()
                 raise
-            if safety != SAFETY_MODE_NORMAL:
+            if safety not in SAFETY_MODES_OK:
                 self.stop()
                 raise HardwareFault(self._diagnose(what))
+            slowest = min(slowest, max(slider, 0.01))
+            expected_s = full_speed_s / slowest
             miss = float(np.linalg.norm(T_now[:3, 3] - T[:3, 3]))
+            miss_deg = float(np.degrees(np.linalg.norm(rvec_from_R(T_now[:3, :3].T @ T[:3, :3]))))
             at_rest = np.linalg.norm(speed[:3]) < 1e-3 and np.linalg.norm(speed[3:]) < 1e-3
-            if at_rest and miss <= self.arrival_tol_m:
+            if at_rest and miss <= self.arrival_tol_m and miss_deg <= self.arrival_tol_deg:
                 return
             now = time.monotonic()
-            if at_rest and now - t0 > expected_s + 0.2 or now > deadline:
+            if (at_rest and now - t0 > expected_s + 0.2) or (
+                now > t0 + 2.0 * expected_s + self.settle_timeout_s
+            ):
                 self.stop()
                 raise HardwareFault(
                     f"moveL to {_describe(T)} was accepted but the robot is "
-                    f"{miss * 1000:.1f} mm away, at {_describe(T_now)}, "
+                    f"{miss * 1000:.1f} mm and {miss_deg:.2f} deg away, at {_describe(T_now)}, "
                     + ("at rest" if at_rest else f"still moving after {now - t0:.1f} s")
-                    + "; check the pendant and the TCP setting"
+                    + f" (speed slider {slider:.0%}); check the pendant and the TCP setting"
                 )
             time.sleep(0.004)
 
@@ -357,22 +627,41 @@ class URRobot:
             pass  # connection gone while stopping
 
     def is_reachable(self, T_base_tool: np.ndarray) -> bool:
-        """Controller IK near the current joints succeeds and the pose is within safety limits.
+        """An IK solution near the current joints, inside the joint and safety limits.
 
-        ``getInverseKinematicsHasSolution`` is asked first: URScript's ``get_inverse_kin``
-        raises on an unreachable pose and stops the control script, so the next move would
-        fail (found with the real client against tests/ur_fake_controller.py). It needs
-        PolyScope 5.10 / 3.15 or newer.
+        On PolyScope 5.10+ / 3.15+ the controller answers (``getInverseKinematicsHasSolution``
+        first: URScript's ``get_inverse_kin`` raises on an unreachable pose and stops the
+        control script; found with the real client against ``slidecal.mocks.ur_controller``).
+        Below that the host-side kinematics (``ur_kinematics.ik`` with the model's joint limits
+        and the controller's TCP) answer, the controller still judges the safety limits.
         """
         self._require()
-        pose = ur_pose_from_T(np.asarray(T_base_tool, dtype=float))
+        T = np.asarray(T_base_tool, dtype=float)
+        pose = ur_pose_from_T(T)
         self._fresh()
         q_near = list(self._receive.getActualQ())
-        if not self._control.getInverseKinematicsHasSolution(pose, q_near):
-            return False
-        q = self._control.getInverseKinematics(pose, q_near)
-        if len(q) != 6:
-            return False
-        if not self._control.isPoseWithinSafetyLimits(pose):
-            return False
+        try:
+            if self._ik_on_controller:
+                if not self._control.getInverseKinematicsHasSolution(pose, q_near):
+                    return False
+                q = self._control.getInverseKinematics(pose, q_near)
+                if len(q) != 6:
+                    return False
+            else:
+                if self.model is None:
+                    raise HardwareFault(
+                        f"PolyScope {self.controller_info.get('polyscope_version')} cannot check "
+                        "reachability itself and the robot model is unknown; give robot.model "
+                        "in the cell file (or update PolyScope to 5.10 / 3.15 or newer)"
+                    )
+                sols = urk.ik(T, np.asarray(q_near), self.model, self._T_flange_tcp)
+                if not sols:
+                    return False
+                q = sols[0]
+            if not self._control.isPoseWithinSafetyLimits(pose):
+                return False
+        except RuntimeError as e:
+            raise HardwareFault(
+                f"{self._diagnose(f'the reachability query for {_describe(T)} failed')} ({e})"
+            ) from None
         return self.model is None or urk.singularity(np.asarray(q), self.model) is None

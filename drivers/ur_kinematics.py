@@ -63,7 +63,13 @@ UR3E = URModel("UR3e", 0.15185, -0.24355, -0.2132, 0.13105, 0.08535, 0.0921)
 UR5E = URModel("UR5e", 0.1625, -0.425, -0.3922, 0.1333, 0.0997, 0.0996)
 UR10E = URModel("UR10e", 0.1807, -0.6127, -0.57155, 0.17415, 0.11985, 0.11655)
 UR16E = URModel("UR16e", 0.1807, -0.4784, -0.36, 0.17415, 0.11985, 0.11655)
-MODELS: dict[str, URModel] = {m.name.lower(): m for m in (UR3E, UR5E, UR10E, UR16E)}
+# CB3 arms (PolyScope 3.x), from the same published table: other lengths than the e-Series.
+UR3 = URModel("UR3", 0.1519, -0.24365, -0.21325, 0.11235, 0.08535, 0.0819)
+UR5 = URModel("UR5", 0.089159, -0.425, -0.39225, 0.10915, 0.09465, 0.0823)
+UR10 = URModel("UR10", 0.1273, -0.612, -0.5723, 0.163941, 0.1157, 0.0922)
+MODELS: dict[str, URModel] = {
+    m.name.lower(): m for m in (UR3E, UR5E, UR10E, UR16E, UR3, UR5, UR10)
+}
 
 #: A common "home" configuration (elbow up, tool pointing down), radians.
 Q_HOME = np.array([0.0, -np.pi / 2, np.pi / 2, -np.pi / 2, -np.pi / 2, 0.0])
@@ -130,13 +136,18 @@ def fk(q: np.ndarray, model: URModel = UR5E, T_flange_tcp: np.ndarray | None = N
     return T if T_flange_tcp is None else T @ T_flange_tcp
 
 
+#: ``|sin(q5)|`` below which the wrist is treated as exactly singular (q6 free) in the IK.
+_WRIST_EXACT = 1e-7
+_EPS = float(np.finfo(float).eps)
+
+
 def _wrap(a: float) -> float:
     return float((a + np.pi) % (2 * np.pi) - np.pi)
 
 
-def _acos(x: float) -> float | None:
-    """arccos, tolerating rounding just outside [-1, 1]; None when truly outside."""
-    if abs(x) > 1.0 + 1e-10:
+def _acos(x: float, tol: float = 1e-10) -> float | None:
+    """arccos, tolerating rounding up to ``tol`` outside [-1, 1]; None when truly outside."""
+    if abs(x) > 1.0 + tol:
         return None
     return float(np.arccos(np.clip(x, -1.0, 1.0)))
 
@@ -166,7 +177,7 @@ def _ik_flange(T: np.ndarray, m: URModel, q6_singular: float = 0.0) -> list[np.n
         for s5 in (1.0, -1.0):
             q5 = s5 * a5
             sn5 = np.sin(q5)
-            if abs(sn5) < 1e-7:
+            if abs(sn5) < _WRIST_EXACT:
                 q6 = q6_singular  # wrist singular: q4 and q6 are coupled, q6 is free
             else:
                 q6 = np.arctan2(
@@ -177,7 +188,15 @@ def _ik_flange(T: np.ndarray, m: URModel, q6_singular: float = 0.0) -> list[np.n
             T56 = _dh(q6, m.d6, 0.0, _RX_0)
             T14 = inv_T(T01) @ T @ inv_T(T45 @ T56)
             px, py = T14[0, 3], T14[1, 3]
-            a3 = _acos((px * px + py * py - m.a2**2 - m.a3**2) / (2.0 * m.a2 * m.a3))
+            # Near a wrist singularity q5 comes from arccos(c5) with an error of about
+            # eps / |sin(q5)| (1e-9 rad at 1e-7 rad from singular), which moves the wrist point
+            # by (d5 + d6) times that; a stretched elbow then sees its cosine pushed past 1 by
+            # r (d5 + d6) eps / (|a2 a3| |sin(q5)|): tolerate 8 times that (nanometres of reach).
+            r = float(np.hypot(px, py))
+            tol = 1e-10 + 8.0 * r * (m.d5 + m.d6) * _EPS / (
+                abs(m.a2 * m.a3) * max(abs(float(sn5)), _WRIST_EXACT)
+            )
+            a3 = _acos((px * px + py * py - m.a2**2 - m.a3**2) / (2.0 * m.a2 * m.a3), tol)
             if a3 is None:
                 continue
             q234 = np.arctan2(T14[1, 0], T14[0, 0])

@@ -39,7 +39,7 @@ STEP_RAD = np.radians(1.0)
 #: branch flip or a pass through a singularity): 0.2 rad per 5 mm would be 10 rad/s at 0.25 m/s.
 MAX_JOINT_STEP_RAD = 0.2
 
-FAULT_KINDS = ("protective_stop", "disconnect", "timeout")
+FAULT_KINDS = ("protective_stop", "emergency_stop", "disconnect", "timeout")
 
 
 def trapezoid_time_s(distance: float, max_speed: float, max_accel: float) -> float:
@@ -222,10 +222,10 @@ class SimulatedUR:
     def inject_fault(self, kind: str, at_move: int) -> None:
         """Make the ``move_linear`` call number ``at_move`` (counting from 0) fail.
 
-        ``"protective_stop"``: the arm stops halfway and the move raises; further moves raise
-        until :meth:`clear_fault`. ``"disconnect"``: the move arrives, then the connection is
-        lost: ``measured_pose`` and further moves raise (stale data). ``"timeout"``: the arm
-        stalls halfway and the move raises after ``move_timeout_s``.
+        ``"protective_stop"`` (``"emergency_stop"``): the arm stops halfway and the move raises;
+        further moves raise until :meth:`clear_fault`. ``"disconnect"``: the move arrives, then
+        the connection is lost: ``measured_pose`` and further moves raise (stale data).
+        ``"timeout"``: the arm stalls halfway and the move raises after ``move_timeout_s``.
         """
         if kind not in FAULT_KINDS:
             raise InputError(f"unknown fault kind {kind!r}; use one of {FAULT_KINDS}")
@@ -324,7 +324,7 @@ class SimulatedUR:
             trapezoid_time_s(angle, self.max_angular_speed_rad_s, self.max_angular_accel_rad_s2),
         )
         fault = self._faults.pop(move_index, None)
-        if fault in ("protective_stop", "timeout"):
+        if fault in ("protective_stop", "emergency_stop", "timeout"):
             half = len(qs) // 2
             if half > 0:
                 self._q = qs[half - 1]
@@ -334,6 +334,13 @@ class SimulatedUR:
                 self._state_fault = (
                     f"protective stop during move {move_index} at {_describe(self._T)}; "
                     "check the cell for a collision, unlock it on the pendant and restart"
+                )
+                raise HardwareFault(self._state_fault)
+            if fault == "emergency_stop":
+                self._time_s += duration / 2
+                self._state_fault = (
+                    f"robot emergency stop during move {move_index} at {_describe(self._T)}; "
+                    "release the emergency-stop button and reset it on the pendant"
                 )
                 raise HardwareFault(self._state_fault)
             self._time_s += self.move_timeout_s

@@ -32,6 +32,8 @@ def _run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.add_argument("--no-recording", action="store_true", help="do not write recording.rrd")
     p.add_argument("--seed", type=int, help="simulated cells: the random seed")
+    p.add_argument("--fault", action="append", metavar="KIND@FRAME",
+                   help="simulated cells: inject a hardware fault (see slidecal.routines.faults)")
 
 
 def _run_main(args: argparse.Namespace) -> int:
@@ -45,6 +47,7 @@ def _run_main(args: argparse.Namespace) -> int:
         recording=not args.no_recording,
         spawn=args.spawn,
         seed=args.seed,
+        faults=args.fault,
     )
     if not args.quiet:
         print(outcome.summary, end="")
@@ -86,6 +89,7 @@ SUBCOMMANDS: dict[str, str | SimpleNamespace] = {
     ),
     "bench": "slidecal.routines.benchmarks",
     "plan": "slidecal.routines.planner",
+    "rehearse": "slidecal.routines.rehearse",
 }
 
 

@@ -16,6 +16,8 @@ Layout (every field but ``target`` and the approximate target pose has a default
       settle_s: 0.5
       start_pose: [x, y, z, rx, ry, rz]   # simulated only: where the arm starts
       workspace: {min_m: [x, y, z], max_m: [x, y, z]}   # TCP box (base frame) plans must keep
+      take_control: false          # ur only: true lets slidecal stop a program running on it
+      payload: {mass_kg: 1.2, cog_m: [0, 0, 0.05]}      # ur only, optional: set at connect
     cameras:
       driver: simulated            # simulated | oak | uvc
       reference: left              # rigs: the camera the others are expressed against
@@ -106,6 +108,8 @@ CELL_KEYS: dict[str, tuple[str, ...]] = {
         "start_q",
         "workspace",
         "limits",
+        "take_control",  # ur only; validated by slidecal.drivers.ur.cell_options
+        "payload",
     ),
     "robot.workspace": ("min_m", "max_m"),
     "robot.limits": (

@@ -70,7 +70,7 @@ def default_session_dir() -> Path:
 
 def _connect_real(cfg: CellConfig) -> tuple[Any, Any]:
     """The real drivers named by the cell file (imported only here)."""
-    from slidecal.drivers.ur import URRobot
+    from slidecal.drivers.ur import URRobot, cell_options
 
     r = cfg.robot
     robot = URRobot(
@@ -79,6 +79,7 @@ def _connect_real(cfg: CellConfig) -> tuple[Any, Any]:
         max_accel_mps2=r.accel_mps2,
         tcp=r.tcp,
         model=r.model,
+        **cell_options(r.raw),  # take_control, payload
     )
     if cfg.camera_driver == "oak":
         from slidecal.drivers.oak import OakRig
@@ -119,6 +120,7 @@ def run_calibration(
     seed: int | None = None,
     overrides: Mapping[str, Any] | None = None,
     cell: Any = None,
+    faults: Any = None,
 ) -> RunOutcome:
     """Run a calibration end to end and return what it produced.
 
@@ -142,6 +144,9 @@ def run_calibration(
         Nested values merged over the cell file (see :func:`load_config`).
     cell
         A prepared :class:`~slidecal.mocks.cell.SimulatedCell` (tests inject faults into it).
+    faults
+        ``KIND@FRAME`` strings (simulated cells only) or a prepared
+        :class:`~slidecal.routines.faults.FaultInjector`: faults to inject (``--fault``).
     """
     t0 = time.monotonic()
     cfg = config if isinstance(config, CellConfig) else load_config(config, overrides)
@@ -159,6 +164,10 @@ def run_calibration(
         robot, rig, truth = cell.robot, cell.rig, cell.truth
     else:
         robot, rig = _connect_real(cfg)
+    if faults and not hasattr(faults, "before_frame"):
+        from slidecal.routines.faults import FaultInjector
+
+        faults = FaultInjector.for_simulated(faults, robot, rig)
 
     prog = (
         progress
@@ -198,7 +207,7 @@ def run_calibration(
                 spawn=spawn,
             )
         try:
-            _acquire(robot, rig, plan, cfg, writer, log, prog)
+            _acquire(robot, rig, plan, cfg, writer, log, prog, faults)
         except (HardwareFault, KeyboardInterrupt) as e:
             robot.stop()
             kind = "fault" if isinstance(e, HardwareFault) else "interrupted"
@@ -253,7 +262,9 @@ def _clock(robot: Any) -> float | None:
     return float(t) if t is not None else None
 
 
-def _acquire(robot, rig, plan: Plan, cfg: CellConfig, writer, log, prog: Progress) -> None:
+def _acquire(
+    robot, rig, plan: Plan, cfg: CellConfig, writer, log, prog: Progress, faults=None
+) -> None:
     from slidecal.solver.detect import detect
 
     i = 0
@@ -263,6 +274,8 @@ def _acquire(robot, rig, plan: Plan, cfg: CellConfig, writer, log, prog: Progres
             robot.move_linear(plan.via, plan.speed_mps, plan.accel_mps2)
         for T in group:
             prog.step(i, f"group {g + 1}: moving")
+            if faults is not None:
+                faults.before_frame(i)
             robot.move_linear(T, plan.speed_mps, plan.accel_mps2)
             prog.step(i, f"group {g + 1}: settling")
             robot.wait_settled(plan.settle_s)

@@ -42,6 +42,10 @@ class FakeController:
         self.unreachable = False
         self.outside_safety = False
         self.refuse_connection = False
+        self.version = "5.12.2.1101534"
+        self.program: str | None = None
+        self.speed_scaling = 1.0
+        self.payload: tuple | None = None
 
 
 def install_fakes(monkeypatch: pytest.MonkeyPatch, ctl: FakeController) -> None:
@@ -68,6 +72,9 @@ def install_fakes(monkeypatch: pytest.MonkeyPatch, ctl: FakeController) -> None:
 
         def getActualTCPSpeed(self):
             return [0.0] * 6
+
+        def getSpeedScaling(self):
+            return ctl.speed_scaling
 
         def getRobotMode(self):
             return ctl.robot_mode
@@ -114,6 +121,14 @@ def install_fakes(monkeypatch: pytest.MonkeyPatch, ctl: FakeController) -> None:
         def stopL(self, a=10.0, asynchronous=False):
             ctl.calls.append(("stopL", a))
 
+        def getTCPOffset(self):
+            return list(ctl.tcp)
+
+        def setPayload(self, mass, cog):
+            ctl.calls.append(("setPayload", mass, list(cog)))
+            ctl.payload = (mass, list(cog))
+            return True
+
         def setTcp(self, tcp_offset):
             ctl.calls.append(("setTcp", list(tcp_offset)))
             ctl.tcp = list(tcp_offset)
@@ -148,6 +163,26 @@ def install_fakes(monkeypatch: pytest.MonkeyPatch, ctl: FakeController) -> None:
         def connect(self, timeout_ms=2000):
             ctl.calls.append(("dashboard.connect",))
 
+        def isConnected(self):
+            return True
+
+        def polyscopeVersion(self):
+            return ctl.version
+
+        def getRobotModel(self):
+            return "UR5"
+
+        def getSerialNumber(self):
+            if int(ctl.version.split(".")[0]) == 5 and int(ctl.version.split(".")[1]) > 5:
+                return "20185500001"
+            raise RuntimeError("getSerialNumber() function is not supported")
+
+        def running(self):
+            return ctl.program is not None
+
+        def programState(self):
+            return f"PLAYING {ctl.program}" if ctl.program else "STOPPED <unnamed>"
+
         def isInRemoteControl(self):
             return ctl.remote
 
@@ -157,6 +192,9 @@ def install_fakes(monkeypatch: pytest.MonkeyPatch, ctl: FakeController) -> None:
         def disconnect(self):
             pass
 
+    import slidecal.drivers.ur as ur_module
+
+    monkeypatch.setattr(ur_module, "probe_controller", lambda host, timeout_s: (5, 12, 2, 0))
     for name, cls in (
         ("rtde_receive", RTDEReceiveInterface),
         ("rtde_control", RTDEControlInterface),
@@ -229,7 +267,7 @@ def test_move_linear_passes_the_ur_pose_and_arrives(ctl):
         ("estop", "emergency-stop button"),
         ("raise", "script is not running"),
         ("disconnect", "connection to the robot was lost"),
-        ("no_motion", "mm away"),
+        ("no_motion", "mm and 0.00 deg away"),
     ],
 )
 def test_failed_move_stops_and_raises(ctl, kind, message):

@@ -1,21 +1,26 @@
-"""URRobot end to end through the REAL ur-rtde client against a fake controller on loopback.
+"""URRobot end to end through the REAL ur-rtde client against the loopback controller.
 
-The fake (``tests/ur_fake_controller.py``) runs in another process: the ur-rtde constructors
-hold the GIL while they block. It binds 127.0.0.1 on 30004/30003/29999; a taken port fails the
-test with the fake's message. Every wait is bounded: the fake's answers (select with a
-time-out), the driver's close (a daemon thread joined with a time-out; the ur-rtde methods
-release the GIL) and the fake's exit (killed in the fixture teardown).
+The controller (``slidecal.mocks.ur_controller``) runs in another process: the ur-rtde
+constructors hold the GIL while they block. Each test binds its own loopback address
+127.<pid>.<n> on 30004/30003/29999, so parallel test runs do not collide; a taken port fails
+the test with the controller's message. Every wait is bounded: the controller's answers (select
+with a time-out), the driver's close (a daemon thread joined with a time-out; the ur-rtde
+methods release the GIL) and the controller's exit (killed in the fixture teardown). What
+could block inside a ur-rtde constructor runs in a subprocess with a time-out.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
+import os
 import select
+import signal
 import subprocess
 import sys
+import textwrap
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -27,7 +32,14 @@ from slidecal.solver.geometry import R_from_rvec, T_from_Rt
 
 rtde_control = pytest.importorskip("rtde_control")
 
-FAKE = Path(__file__).with_name("ur_fake_controller.py")
+CONTROLLER = [sys.executable, "-m", "slidecal.mocks.ur_controller"]
+_hosts = itertools.count(1)
+
+
+def fresh_host() -> str:
+    """A loopback address of its own for one controller (Linux routes all of 127/8 to lo)."""
+    n = next(_hosts)
+    return f"127.{os.getpid() % 250 + 1}.{n // 250}.{n % 250 + 1}"
 FREQ_HZ = 125.0  # CB3 rate: a quarter of the e-Series load on the shared CPUs
 #: The fake sends the exact doubles it holds; what is left is float64 round-off of the pose
 #: algebra (axis-angle <-> matrix, TCP composition).
@@ -37,10 +49,11 @@ POSE_TOL = 1e-9
 class Fake:
     """A fake controller process and its stdin/stdout control channel."""
 
-    def __init__(self) -> None:
+    def __init__(self, *options: str, host: str | None = None) -> None:
+        self.host = host or fresh_host()
         self.proc = subprocess.Popen(
-            [sys.executable, str(FAKE)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-            text=True,
+            [*CONTROLLER, "--host", self.host, *options], stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE, text=True,
         )
         first = self._read(15.0)
         if "error" in first:
@@ -81,6 +94,22 @@ def fake():
         f.kill()
 
 
+@pytest.fixture
+def make_fake():
+    """Start controllers with options; all are killed at the end of the test."""
+    fakes: list[Fake] = []
+
+    def start(*options: str) -> Fake:
+        fakes.append(Fake(*options))
+        return fakes[-1]
+
+    try:
+        yield start
+    finally:
+        for f in fakes:
+            f.kill()
+
+
 def bounded(fn, timeout_s: float) -> float:
     """Run ``fn`` in a daemon thread; fail the test if it has not returned in ``timeout_s``."""
     errors: list[BaseException] = []
@@ -104,7 +133,7 @@ def bounded(fn, timeout_s: float) -> float:
 
 @pytest.fixture
 def robot(fake):
-    r = URRobot("127.0.0.1", frequency=FREQ_HZ)
+    r = URRobot(fake.host, frequency=FREQ_HZ)
     r.connect()
     try:
         yield r
@@ -137,7 +166,7 @@ def shifted(T: np.ndarray, dx_m: float, dy_m: float, dz_m: float, rz_deg: float 
 # --------------------------------------------------------------------------------- tests
 def test_connect_tcp_measured_pose_and_clean_close(fake):
     T_flange_tcp = T_from_Rt(R_from_rvec([0.0, 0.1, 0.0]), [0.01, 0.0, 0.15])
-    robot = URRobot("127.0.0.1", frequency=FREQ_HZ, tcp=T_flange_tcp)
+    robot = URRobot(fake.host, frequency=FREQ_HZ, tcp=T_flange_tcp)
     robot.connect()
     st = fake.state()
     # the real client asked the dashboard what URRobot and its constructor need, uploaded
@@ -176,8 +205,10 @@ def test_move_linear_arrives_and_wait_settled_waits_for_rest(fake, robot):
     assert st["commands"][-1] == 3 and not st["moving"]  # MOVEL = 3, done
     # an asynchronous move through the real client: wait_settled must wait for rest
     T2 = shifted(T1, -0.06, 0.0, 0.0)
-    assert robot._control.moveL(ur_pose_from_T(T2), speed_mps, 1.0, True)
     t0 = time.monotonic()
+    assert robot._control.moveL(ur_pose_from_T(T2), speed_mps, 1.0, True)
+    # the controller starts the motion a few cycles after acknowledging the command
+    wait_until(lambda: np.linalg.norm(robot._receive.getActualTCPSpeed()) > 0, 1.0, "motion")
     robot.wait_settled(0.05)
     settled_s = time.monotonic() - t0
     assert settled_s >= 0.8 * (0.06 / speed_mps) + 0.05
@@ -208,7 +239,7 @@ def test_protective_stop_during_a_move_raises_and_stops(fake, monkeypatch):
             return super().stopL(*args)
 
     monkeypatch.setattr(rtde_control, "RTDEControlInterface", RecordingControl)
-    robot = URRobot("127.0.0.1", frequency=FREQ_HZ)
+    robot = URRobot(fake.host, frequency=FREQ_HZ)
     robot.connect()
     try:
         T0 = robot.measured_pose()
@@ -224,7 +255,7 @@ def test_protective_stop_during_a_move_raises_and_stops(fake, monkeypatch):
         assert st["safety_mode"] == 3 and st["runtime_state"] == 1
         # the fake stopped the arm halfway; the client never put stopL on the wire (it returns
         # at once when the script is not running), and the driver did not unlock by itself
-        assert st["commands"] == [3]
+        assert st["commands"] == [40, 3]  # GET_TCP_OFFSET at connect, MOVEL
         assert "unlock protective stop" not in st["dashboard"]
         T_half = T0.copy()
         T_half[:3, 3] = 0.5 * (T0[:3, 3] + T1[:3, 3])
@@ -235,7 +266,7 @@ def test_protective_stop_during_a_move_raises_and_stops(fake, monkeypatch):
 
 @pytest.mark.parametrize("how", ["drop", "freeze"])
 def test_lost_connection_never_returns_a_stale_pose(fake, how):
-    robot = URRobot("127.0.0.1", frequency=FREQ_HZ)
+    robot = URRobot(fake.host, frequency=FREQ_HZ)
     robot.connect()
     try:
         T = robot.measured_pose()
@@ -261,7 +292,7 @@ def test_lost_connection_never_returns_a_stale_pose(fake, how):
 @pytest.mark.parametrize("how", ["drop", "freeze"])
 def test_link_lost_during_a_move_fails_within_seconds(fake, how):
     """A blocking moveL would wait up to 300 s inside ur-rtde; the driver watches the move."""
-    robot = URRobot("127.0.0.1", frequency=FREQ_HZ)
+    robot = URRobot(fake.host, frequency=FREQ_HZ)
     robot.connect()
     try:
         T = robot.measured_pose()
@@ -279,8 +310,174 @@ def test_link_lost_during_a_move_fails_within_seconds(fake, how):
 
 def test_a_taken_port_fails_clearly(fake):
     second = subprocess.run(
-        [sys.executable, str(FAKE)], stdin=subprocess.DEVNULL, capture_output=True, text=True,
-        timeout=20,
+        [*CONTROLLER, "--host", fake.host], stdin=subprocess.DEVNULL, capture_output=True,
+        text=True, timeout=20,
     )
     assert second.returncode == 2
-    assert "port 30004 (rtde) on 127.0.0.1 is taken" in json.loads(second.stdout)["error"]
+    assert f"port 30004 (rtde) on {fake.host} is taken" in json.loads(second.stdout)["error"]
+
+
+# ------------------------------------------------------------- issue 10: a real cell's controller
+VERSIONS = ["3.15", "5.5", "5.9", "5.12"]
+
+
+@pytest.mark.parametrize("version", VERSIONS)
+def test_connect_on_every_polyscope_version_and_report_it(make_fake, version):
+    """CB3 and e-Series below 5.6 cannot say whether they are in remote control (ur-rtde's
+    isInRemoteControl answers False there): connecting must not refuse them (issue 10.3)."""
+    fake = make_fake("--polyscope", version)
+    robot = URRobot(fake.host, frequency=FREQ_HZ, model="UR5e")
+    robot.connect()
+    try:
+        info = robot.controller_info
+        assert info["polyscope_version"].startswith(version + ".")
+        assert info["robot_model"] == "UR5"
+        assert info["serial_number"] == (None if version in ("3.15", "5.5") else "20185500001")
+        assert info["remote_control"] is (None if version in ("3.15", "5.5") else True)
+        assert info["ik_check"] == ("host" if version in ("5.5", "5.9") else "controller")
+        robot.move_linear(shifted(robot.measured_pose(), 0.01, 0.0, 0.0), 0.1, 1.0)
+    finally:
+        bounded(robot.close, 10.0)
+
+
+def test_local_control_is_refused_where_it_can_be_asked(make_fake):
+    fake = make_fake("--polyscope", "5.12", "--local")
+    with pytest.raises(HardwareFault, match="local control"):
+        URRobot(fake.host, frequency=FREQ_HZ).connect()
+    assert fake.state()["script_uploads"] == 0
+
+
+@pytest.mark.parametrize("version", VERSIONS)
+def test_reachability_below_5_10_does_not_trust_a_stale_register(make_fake, version):
+    """Without get_inverse_kin_has_solution (ur-rtde drops it below 5.10 / 3.15) the answer
+    register keeps the previous answer: a reachable pose then an unreachable one said True,
+    and the controller's get_inverse_kin stopped the script (issue 10.5)."""
+    fake = make_fake("--polyscope", version)
+    robot = URRobot(fake.host, frequency=FREQ_HZ, model="UR5e")
+    robot.connect()
+    try:
+        T = robot.measured_pose()
+        assert robot.is_reachable(shifted(T, 0.05, 0.0, 0.0))
+        assert not robot.is_reachable(shifted(T, 5.0, 0.0, 0.0))
+        below = shifted(T, 0.0, 0.0, -T[2, 3] - 0.05)  # reachable, under the z = 0 limit
+        assert not robot.is_reachable(below)
+        robot.move_linear(shifted(T, 0.01, 0.0, 0.0), 0.1, 1.0)  # the script still runs
+        st = fake.state()
+        assert st["runtime_state"] == 2
+        assert (61 in st["commands"]) == (version in ("3.15", "5.12"))
+    finally:
+        bounded(robot.close, 10.0)
+
+
+def test_a_running_program_is_not_stopped_without_consent(make_fake):
+    """ur-rtde's control interface stops a running program and uploads its own (issue 10.4)."""
+    fake = make_fake("--program", "palletizing.urp")
+    with pytest.raises(HardwareFault, match=r"program is running.*palletizing.urp.*take_control"):
+        URRobot(fake.host, frequency=FREQ_HZ).connect()
+    st = fake.state()
+    assert st["program"] == "palletizing.urp" and st["script_uploads"] == 0
+    assert "stop" not in st["dashboard"]
+    robot = URRobot(fake.host, frequency=FREQ_HZ, take_control=True)
+    robot.connect()
+    try:
+        assert "palletizing.urp" in robot.controller_info["program_stopped"]
+        assert fake.state()["program"] is None
+    finally:
+        bounded(robot.close, 10.0)
+
+
+def test_reduced_mode_is_normal_operation_and_the_payload_is_set(make_fake):
+    fake = make_fake("--safety-mode", "2")
+    robot = URRobot(fake.host, frequency=FREQ_HZ, payload_kg=1.2, payload_cog_m=[0, 0.01, 0.05])
+    robot.connect()
+    try:
+        robot.move_linear(shifted(robot.measured_pose(), 0.02, 0.0, 0.0), 0.1, 1.0)
+        st = fake.state()
+        assert st["payload"] == [1.2, [0.0, 0.01, 0.05]]
+        assert robot.controller_info["safety_mode"] == "reduced mode"
+        assert fake.ctl("safety 3") == {"ok": "safety 3"}
+        with pytest.raises(HardwareFault, match="protective stop"):
+            robot.move_linear(shifted(robot.measured_pose(), 0.02, 0.0, 0.0), 0.1, 1.0)
+    finally:
+        bounded(robot.close, 10.0)
+
+
+def test_a_slow_speed_slider_is_not_a_time_out(make_fake):
+    """At a 20 % slider a 5 cm move takes 2.5 s: the deadline from the commanded speed alone
+    (2 x 0.6 s + 1 s) aborted it (issue 10.6)."""
+    fake = make_fake("--speed-slider", "0.2")
+    robot = URRobot(fake.host, frequency=FREQ_HZ, settle_timeout_s=1.0)
+    robot.connect()
+    try:
+        T1 = shifted(robot.measured_pose(), 0.05, 0.0, 0.0)
+        robot.move_linear(T1, 0.1, 1.0)
+        assert_pose_close(T_from_ur_pose(fake.state()["tcp_pose"]), T1)
+        assert robot.controller_info["speed_slider"] == pytest.approx(0.2)
+    finally:
+        bounded(robot.close, 10.0)
+
+
+def test_pure_rotations_arrive_in_orientation(fake, robot):
+    """Arrival judged on position only returned at once from a pure rotation (issue 10.6)."""
+    T = robot.measured_pose()
+    for k in range(6):
+        T_k = shifted(T, 0.0, 0.0, 0.0, rz_deg=10.0 * (k + 1) * (-1) ** k)
+        robot.move_linear(T_k, 0.25, 1.0)
+        assert_pose_close(T_from_ur_pose(fake.state()["tcp_pose"]), T_k)
+
+
+def test_a_stalled_arm_is_a_fault_within_the_deadline(fake, robot):
+    T = robot.measured_pose()
+    assert fake.ctl("stall") == {"ok": "stall"}
+    t0 = time.monotonic()
+    with pytest.raises(HardwareFault, match="at rest"):
+        robot.move_linear(shifted(T, 0.05, 0.0, 0.0), 0.1, 1.0)
+    assert time.monotonic() - t0 < 3.0
+
+
+CONNECT_SCRIPT = textwrap.dedent(
+    """
+    import sys, time
+    from slidecal.drivers.ur import URRobot
+    from slidecal.solver.errors import HardwareFault
+    t0 = time.monotonic()
+    try:
+        URRobot(sys.argv[1], frequency=125.0, connect_timeout_s=float(sys.argv[2])).connect()
+    except HardwareFault as e:
+        print(f"{time.monotonic() - t0:.2f} fault: {e}", flush=True)
+        sys.exit(3)
+    except KeyboardInterrupt:
+        print(f"{time.monotonic() - t0:.2f} interrupted", flush=True)
+        sys.exit(130)
+    print("connected", flush=True)
+    """
+)
+
+
+def test_connect_to_a_host_that_drops_packets_fails_within_seconds(make_fake):
+    """ur-rtde's constructors block ~2 minutes on a silent host, deaf to Ctrl-C (issue 10.10);
+    run in a subprocess so the old behaviour fails this test instead of hanging it."""
+    fake = make_fake("--silent")
+    try:
+        out = subprocess.run([sys.executable, "-c", CONNECT_SCRIPT, fake.host, "2"],
+                             capture_output=True, text=True, timeout=30)
+    except subprocess.TimeoutExpired:
+        pytest.fail("connect() to a silent host did not return within 30 s")
+    assert out.returncode == 3, out.stderr
+    took_s, _, message = out.stdout.partition(" fault: ")
+    assert "not reachable on port 29999 (no answer within 2 s)" in message
+    assert float(took_s) < 4.0
+
+
+def test_connect_to_a_silent_host_honours_ctrl_c(make_fake):
+    fake = make_fake("--silent")
+    proc = subprocess.Popen([sys.executable, "-c", CONNECT_SCRIPT, fake.host, "60"],
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        time.sleep(1.5)  # imports done, waiting on the silent host
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        pytest.fail("connect() ignored Ctrl-C for 10 s")
+    assert proc.returncode == 130 and "interrupted" in out

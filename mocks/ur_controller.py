@@ -1,8 +1,9 @@
-"""A fake Universal Robots controller on loopback for the real ur-rtde client (tests only).
+"""A loopback Universal Robots controller for the real ur-rtde client (tests and rehearsals).
 
-Run as its own process (``python tests/ur_fake_controller.py``): the ur-rtde constructors hold
-Python's GIL while they block, so the fake must never be a thread of the process under test.
-It binds 127.0.0.1 only, on the fixed UR ports:
+Run as its own process (``python -m slidecal.mocks.ur_controller [options]``): the ur-rtde
+constructors hold Python's GIL while they block, so the controller must never be a thread of
+the process that drives it. It binds one loopback address (``--host``, default 127.0.0.1; any
+127.x.y.z works on Linux, so parallel runs do not collide) on the fixed UR ports:
 
 - 30004 RTDE (protocol 2; big-endian; header uint16 size incl. header + uint8 type):
   ``V`` 86 protocol version (answer uint8 accepted), ``v`` 118 controller version (4 x uint32),
@@ -11,34 +12,55 @@ It binds 127.0.0.1 only, on the fixed UR ports:
   (answer: uint8 recipe id + types, numbered 1, 2, ... per connection), ``S`` 83 start and
   ``P`` 80 pause (answer uint8 success), ``U`` 85 data package (uint8 recipe id + fields).
 - 30003 script port: the client writes its control script here; once a top-level ``end``
-  line arrives the "script" runs (runtime state 2, playing) and the fake plays its register
-  protocol: command id in ``input_int_register_0``, doubles in ``input_double_register_0..``;
-  ``output_int_register_0`` is 1 (ready) while the command is 0 and 2 (done) once a command is
-  processed; results in ``output_double_register_0..5`` (joint solutions) or
-  ``output_int_register_1`` (yes/no answers).
-- 29999 dashboard: one line per command, a welcome line on connect.
+  line arrives the "script" runs (runtime state 2, playing) and the controller plays its
+  register protocol: command id in ``input_int_register_0``, doubles in
+  ``input_double_register_0..``; ``output_int_register_0`` is 1 (ready) while the command is 0
+  and 2 (done) once a command is processed; results in ``output_double_register_0..5`` or
+  ``output_int_register_1`` (yes/no answers). A command whose script lines the client left out
+  for this controller version (ur-rtde drops lines tagged ``$5.10|3.15`` etc. below that
+  version) is signalled done without effect, so its answer register keeps whatever the previous
+  command left, as on a real controller.
+- 29999 dashboard: one line per command, a welcome line on connect; the commands a PolyScope
+  version lacks (``is in remote control``, ``get serial number`` before 5.6) are answered
+  ``could not understand``.
 
-Robot model: a UR5e (``slidecal.drivers.ur_kinematics``) at rest at ``Q0``, robot mode 7,
-safety mode 1; MOVEL (3) moves the TCP on a straight line at the commanded speed (rotation
-interpolated on the geodesic), STOPL (33) stops at once, SET_TCP (29) changes the reported TCP,
-GET_INVERSE_KINEMATICS (30, 46) answers the analytic solution nearest ``qnear`` and, like the
-real URScript ``get_inverse_kin``, stops the script with a runtime error when there is none;
-IS_POSE_WITHIN_SAFETY_LIMITS (36) and the has-solution variants (60, 61) answer 1/0;
-STOP_SCRIPT (255) ends the script. Poses below the plane ``z = SAFETY_Z_MIN_M`` are outside the
-safety limits.
+What it models (options): the PolyScope version (``--polyscope 3.15|5.5|5.9|5.12``: the RTDE
+controller version, the dashboard's commands, the script the client uploads), the robot model
+(``--model``, the kinematics of :mod:`slidecal.drivers.ur_kinematics`) and start joints
+(``--start-q``), the pendant's speed slider (``--speed-slider``: ``speed_scaling`` and
+``target_speed_fraction``, every motion slowed by it), the robot and safety modes
+(``--robot-mode``, ``--safety-mode``: 2 is reduced mode, where the arm moves normally), local
+or remote control (``--local``), a program already running (``--program NAME``: playing until
+stopped from the dashboard or replaced by an uploaded script), the error of the reported pose
+(``--noise-mm``, ``--noise-deg``, ``--seed``: drawn once per rest pose, as a kinematic model's
+error is), and a host that drops every packet (``--silent``: connections are never answered,
+not even refused).
+
+Arm model: MOVEL (3) moves the TCP on a straight line at the commanded speed times the slider
+(rotation interpolated on the geodesic at 1 rad/s times the slider), starting
+``MOTION_LATENCY_S`` after the command is acknowledged; STOPL (33) stops at once,
+SET_TCP (29), SET_PAYLOAD (17), GET_TCP_OFFSET (40), GET_INVERSE_KINEMATICS (30, 46) answer the
+analytic solution nearest ``qnear`` and, like URScript's ``get_inverse_kin``, stop the script
+with a runtime error when there is none; IS_POSE_WITHIN_SAFETY_LIMITS (36) and the
+has-solution variants (60, 61) answer 1/0; STOP_SCRIPT (255) ends the script. Poses below the
+plane ``z = SAFETY_Z_MIN_M`` are outside the safety limits.
 
 Control channel: one command per line on stdin, one JSON line per answer on stdout:
-``state`` (the robot state and logs), ``pstop`` (a protective stop halfway through the next
-move: safety mode 3, the script stops, the move never reports done), ``freeze`` (a silent
-network loss: the open sockets stay open but nothing is sent or answered any more and new
-connections are refused), ``drop`` (close every connection and listener), ``quit`` (also on
-end of stdin, so the fake never outlives its parent's pipe).
-At start it prints ``{"ready": true, ...}`` or ``{"error": ...}`` (exit code 2),
-e.g. when a port is taken.
+``state`` (the robot state and logs), ``pstop`` / ``estop`` (a protective / emergency stop
+halfway through the next move: safety mode 3 / 7, the script stops), ``stall`` (the next move
+stops halfway and never finishes, no fault raised), ``drop_next`` / ``freeze_next`` (``drop`` /
+``freeze`` halfway through the next move), ``freeze`` (a silent network loss: open sockets stay
+open but nothing is sent or answered and new connections are never answered), ``drop`` (close
+every connection and listener), ``slider X``, ``safety N``, ``robotmode N``, ``program NAME``,
+``quit`` (also on end of stdin, so the controller never outlives its parent's pipe).
+At start it prints ``{"ready": true, ...}`` or ``{"error": ...}`` (exit code 2), e.g. when a
+port is taken.
 """
+
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import select
@@ -55,19 +77,38 @@ from slidecal.solver.geometry import R_from_rvec, inv_T, rvec_from_R
 
 HOST = "127.0.0.1"
 RTDE_PORT, SCRIPT_PORT, DASHBOARD_PORT = 30004, 30003, 29999
-CONTROLLER_VERSION = (5, 11, 1, 108318)
-POLYSCOPE_TEXT = "URSoftware 5.11.1.108318 (Mar 22 2021)"
+#: The PolyScope versions modelled: RTDE controller version and the dashboard's version line.
+VERSIONS: dict[str, tuple[tuple[int, int, int, int], str]] = {
+    "3.15": ((3, 15, 7, 106331), "URSoftware 3.15.7.106331 (Jun 22 2021)"),
+    "5.5": ((5, 5, 1, 83007), "URSoftware 5.5.1.83007 (Nov 11 2019)"),
+    "5.9": ((5, 9, 4, 1031232), "URSoftware 5.9.4.1031232 (Jan 10 2021)"),
+    "5.11": ((5, 11, 1, 108318), "URSoftware 5.11.1.108318 (Mar 22 2021)"),
+    "5.12": ((5, 12, 2, 1101534), "URSoftware 5.12.2.1101534 (Feb 17 2022)"),
+}
+DEFAULT_VERSION = "5.12"
 SERIAL_NUMBER = "20185500001"
 Q0 = np.array([0.0, -1.9, 1.7, -1.37, -1.57, 0.0])
 SAFETY_Z_MIN_M = 0.0
+#: Between a move command being acknowledged and the arm starting to move, as on a controller
+#: whose motion thread starts planning in a later cycle: the arm reports rest at the start pose.
+MOTION_LATENCY_S = 0.03
+SAFETY_MODE_NAMES = {1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY",
+                     5: "SAFEGUARD_STOP", 6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP",
+                     8: "VIOLATION", 9: "FAULT"}
+ROBOT_MODE_NAMES = {3: "POWER_OFF", 4: "POWER_ON", 5: "IDLE", 7: "RUNNING"}
 
 # RTDE message types
 V, v, O, I, S, P, U, M = (ord(c) for c in "VvOISPUM")
 RUNTIME_STOPPED, RUNTIME_PLAYING = 1, 2
 READY, DONE = 1, 2
 MOVEL, SET_TCP, IK_ARGS, STOPL, IS_POSE_SAFE, IK_DEFAULT = 3, 29, 30, 33, 36, 46
+SET_PAYLOAD, GET_TCP_OFFSET = 17, 40
 IK_HAS_SOLUTION_DEFAULT, IK_HAS_SOLUTION_ARGS, STOP_SCRIPT = 60, 61, 255
-SAFETY_BIT_NORMAL, SAFETY_BIT_PROTECTIVE = 1 << 0, 1 << 2
+SAFETY_BIT_NORMAL, SAFETY_BIT_REDUCED, SAFETY_BIT_PROTECTIVE = 1 << 0, 1 << 1, 1 << 2
+SAFETY_BIT_ROBOT_ESTOP = 1 << 7
+#: Script functions whose presence in the uploaded script decides whether a command works.
+SCRIPT_FUNCTION = {IK_HAS_SOLUTION_DEFAULT: "get_inverse_kin_has_solution(",
+                   IK_HAS_SOLUTION_ARGS: "get_inverse_kin_has_solution("}
 STATUS_BIT_POWER_ON, STATUS_BIT_PROGRAM_RUNNING = 1 << 0, 1 << 1
 
 FORMATS = {
@@ -115,24 +156,42 @@ def message(kind: int, payload: bytes = b"") -> bytes:
 
 
 class Robot:
-    """The simulated arm and its control script's registers."""
+    """The simulated arm, its controller's state and its control script's registers."""
 
-    def __init__(self) -> None:
+    def __init__(self, version: str = DEFAULT_VERSION, model: str = "UR5e",
+                 start_q: np.ndarray = Q0, speed_slider: float = 1.0, robot_mode: int = 7,
+                 safety_mode: int = 1, remote: bool = True, program: str | None = None,
+                 noise_m: float = 0.0, noise_deg: float = 0.0, seed: int = 0) -> None:
+        if version not in VERSIONS:
+            raise ValueError(f"unknown PolyScope version {version!r}; use one of {list(VERSIONS)}")
+        self.version = version
+        self.controller_version, self.polyscope_text = VERSIONS[version]
+        self.model = urk.model_by_name(model)
         self.t0 = time.monotonic()
-        self.q = Q0.copy()
-        self.T_base_flange = urk.fk(Q0)
+        self.q = np.asarray(start_q, dtype=float).copy()
+        self.T_base_flange = urk.fk(self.q, self.model)
         self.T_flange_tcp = np.eye(4)
         self.speed = np.zeros(6)
-        self.robot_mode = 7
-        self.safety_mode = 1
-        self.runtime_state = RUNTIME_STOPPED
+        self.speed_slider = float(speed_slider)
+        self.robot_mode = int(robot_mode)
+        self.safety_mode = int(safety_mode)
+        self.remote = bool(remote)
+        self.program = program  # a program (not ur-rtde's script) playing on the controller
+        self.runtime_state = RUNTIME_PLAYING if program else RUNTIME_STOPPED
+        self.script_text = ""
+        self.payload: tuple[float, list[float]] | None = None
+        self.noise_m, self.noise_deg = float(noise_m), float(noise_deg)
+        self.rng = np.random.default_rng(seed)
+        self.T_error = np.eye(4)  # the reported pose's error at the current rest pose
+        self.next_move_fault: str | None = None
+        self.events: list[str] = []  # faults and stops as they happened
+        self.network_fault: str | None = None
         self.in_int: dict[int, int] = {}
         self.in_double: dict[int, float] = {}
         self.out_int = dict.fromkeys(range(24), 0)
         self.out_double = dict.fromkeys(range(24), 0.0)
         self.executing = False
         self.motion: dict | None = None
-        self.pstop_armed = False
         self.commands: list[int] = []  # every command id the script processed, in order
         self.texts: list[str] = []  # what the script would textmsg()
         self.script_uploads = 0
@@ -140,7 +199,32 @@ class Robot:
 
     # ------------------------------------------------------------------------------- state
     def tcp_pose(self) -> list[float]:
+        """The true TCP pose."""
         return ur_pose_from_T(self.T_base_flange @ self.T_flange_tcp)
+
+    def reported_tcp_pose(self) -> list[float]:
+        """The TCP pose as the controller reports it (its kinematic model's error included)."""
+        return ur_pose_from_T(self.T_base_flange @ self.T_flange_tcp @ self.T_error)
+
+    def _draw_error(self) -> None:
+        T = np.eye(4)
+        if self.noise_deg > 0:
+            T[:3, :3] = R_from_rvec(self.rng.normal(0.0, np.radians(self.noise_deg), 3))
+        if self.noise_m > 0:
+            T[:3, 3] = self.rng.normal(0.0, self.noise_m, 3)
+        self.T_error = T
+
+    def supports(self, cmd: int) -> bool:
+        """Whether the uploaded script holds the lines of this command (version-dependent)."""
+        fn = SCRIPT_FUNCTION.get(cmd)
+        return fn is None or fn in self.script_text
+
+    def dashboard_has(self, command: str) -> bool:
+        """Whether this PolyScope's dashboard server knows ``command``."""
+        major, minor = self.controller_version[:2]
+        if command in ("is in remote control", "get serial number"):
+            return major >= 5 and minor >= 6
+        return True
 
     def value(self, name: str) -> object:
         """The current value of an RTDE output variable."""
@@ -149,7 +233,7 @@ class Robot:
         if name in ("actual_q", "target_q"):
             return list(self.q)
         if name in ("actual_TCP_pose", "target_TCP_pose"):
-            return self.tcp_pose()
+            return self.reported_tcp_pose()
         if name in ("actual_TCP_speed", "target_TCP_speed"):
             return list(self.speed)
         if name == "robot_mode":
@@ -159,7 +243,8 @@ class Robot:
         if name == "runtime_state":
             return self.runtime_state
         if name == "safety_status_bits":
-            return SAFETY_BIT_PROTECTIVE if self.safety_mode == 3 else SAFETY_BIT_NORMAL
+            return {2: SAFETY_BIT_NORMAL | SAFETY_BIT_REDUCED, 3: SAFETY_BIT_PROTECTIVE,
+                    7: SAFETY_BIT_ROBOT_ESTOP}.get(self.safety_mode, SAFETY_BIT_NORMAL)
         if name == "robot_status_bits":
             running = self.runtime_state == RUNTIME_PLAYING
             return STATUS_BIT_POWER_ON | (STATUS_BIT_PROGRAM_RUNNING if running else 0)
@@ -179,7 +264,7 @@ class Robot:
         if name in ("actual_main_voltage", "actual_robot_voltage"):
             return 48.0
         if name in ("speed_scaling", "target_speed_fraction"):
-            return 1.0
+            return self.speed_slider
         return {"VECTOR6D": [0.0] * 6, "VECTOR3D": [0.0] * 3, "DOUBLE": 0.0}.get(kind, 0)
 
     def set_input(self, name: str, val: object) -> None:
@@ -189,7 +274,11 @@ class Robot:
             self.in_double[int(name.rsplit("_", 1)[1])] = float(val)  # type: ignore[arg-type]
 
     # ------------------------------------------------------------------------------ script
-    def start_script(self) -> None:
+    def start_script(self, text: str) -> None:
+        if self.program:
+            self.events.append(f"program {self.program} replaced by an uploaded script")
+            self.program = None
+        self.script_text = text
         self.script_uploads += 1
         self.runtime_state = RUNTIME_PLAYING
         self.executing = False
@@ -208,6 +297,8 @@ class Robot:
         self._advance_motion()
         if self.runtime_state != RUNTIME_PLAYING:
             return
+        if self.program:
+            return  # a program that is not ur-rtde's script ignores the registers
         cmd = self.in_int.get(0, 0)
         if cmd == 0:
             self.executing = False
@@ -220,6 +311,9 @@ class Robot:
 
     def _process(self, cmd: int) -> bool:
         """Run one command; True when it is done now (a blocking move signals done later)."""
+        if not self.supports(cmd):
+            self.texts.append(f"command {cmd}: no script lines for PolyScope {self.version}")
+            return True  # done, the answer registers untouched
         if cmd == MOVEL:
             target = T_from_ur_pose(self._doubles(0, 6)) @ inv_T(self.T_flange_tcp)
             speed, asynchronous = self.in_double.get(6, 0.25), self.in_int.get(1, 0) == 1
@@ -231,9 +325,17 @@ class Robot:
         if cmd == SET_TCP:
             self.T_flange_tcp = T_from_ur_pose(self._doubles(0, 6))
             return True
+        if cmd == GET_TCP_OFFSET:
+            for i, v in enumerate(ur_pose_from_T(self.T_flange_tcp)):
+                self.out_double[i] = float(v)
+            return True
+        if cmd == SET_PAYLOAD:
+            d = self._doubles(0, 4)
+            self.payload = (d[0], d[1:4])
+            return True
         if cmd in (IK_ARGS, IK_DEFAULT, IK_HAS_SOLUTION_ARGS, IK_HAS_SOLUTION_DEFAULT):
             near = self._doubles(6, 6) if cmd in (IK_ARGS, IK_HAS_SOLUTION_ARGS) else self.q
-            sols = urk.ik(T_from_ur_pose(self._doubles(0, 6)), np.asarray(near),
+            sols = urk.ik(T_from_ur_pose(self._doubles(0, 6)), np.asarray(near), self.model,
                           T_flange_tcp=self.T_flange_tcp)
             if cmd in (IK_HAS_SOLUTION_ARGS, IK_HAS_SOLUTION_DEFAULT):
                 self.out_int[1] = 1 if sols else 0
@@ -260,13 +362,16 @@ class Robot:
         T0 = self.T_base_flange.copy()
         dist = float(np.linalg.norm(T_target[:3, 3] - T0[:3, 3]))
         rvec = np.asarray(rvec_from_R(T0[:3, :3].T @ T_target[:3, :3]))
-        duration = max(dist / max(speed_mps, 1e-3), float(np.linalg.norm(rvec)) / 1.0, 0.02)
-        self.motion = {"T0": T0, "T1": T_target, "rvec": rvec, "t_start": time.monotonic(),
+        slider = max(self.speed_slider, 1e-3)
+        duration = max(dist / max(speed_mps, 1e-3), float(np.linalg.norm(rvec)) / 1.0,
+                       0.02) / slider
+        self.motion = {"T0": T0, "T1": T_target, "rvec": rvec,
+                       "t_start": time.monotonic() + MOTION_LATENCY_S,
                        "duration": duration, "blocking": blocking,
-                       "pstop": self.pstop_armed}
-        self.pstop_armed = False
+                       "fault": self.next_move_fault}
+        self.next_move_fault = None
         dt_tcp = (T_target[:3, 3] - T0[:3, 3]) / duration
-        self.speed = np.concatenate([dt_tcp, T0[:3, :3] @ rvec / duration])
+        self.motion["speed"] = np.concatenate([dt_tcp, T0[:3, :3] @ rvec / duration])
 
     def _pose_at(self, s: float) -> np.ndarray:
         m = self.motion
@@ -278,7 +383,7 @@ class Robot:
 
     def _set_flange(self, T: np.ndarray) -> None:
         self.T_base_flange = T
-        sols = urk.ik(T, self.q)
+        sols = urk.ik(T, self.q, self.model)
         if sols:
             self.q = sols[0]
 
@@ -286,12 +391,30 @@ class Robot:
         m = self.motion
         if m is None:
             return
-        s = min(1.0, (time.monotonic() - m["t_start"]) / m["duration"])
-        if m["pstop"] and s >= 0.5:
+        now = time.monotonic()
+        if now < m["t_start"]:
+            return  # accepted, not started yet: at rest at the start pose
+        self.speed = m["speed"]
+        s = min(1.0, (now - m["t_start"]) / m["duration"])
+        if m["fault"] and s >= 0.5:
             self._set_flange(self._pose_at(0.5))
+            fault = m["fault"]
+            if fault == "stall":
+                m["fault"], m["t_start"], m["duration"] = None, np.inf, 1.0
+                self.speed = np.zeros(6)
+                self.events.append("stall: the arm stopped halfway through a move")
+                return
             self._stop_motion()
-            self.protective_stop()
+            if fault == "pstop":
+                self.protective_stop()
+            elif fault == "estop":
+                self.emergency_stop()
+            else:
+                self.network_fault = fault  # drop | freeze, acted on by the controller loop
             return
+        if m["t_start"] == np.inf:
+            return  # stalled: never arrives
+
         self._set_flange(self._pose_at(s))
         if s >= 1.0:
             self._stop_motion()
@@ -299,12 +422,20 @@ class Robot:
                 self.out_int[0] = DONE
 
     def _stop_motion(self) -> None:
+        if self.motion is not None:
+            self._draw_error()
         self.motion = None
         self.speed = np.zeros(6)
 
     def protective_stop(self) -> None:
         self.safety_mode = 3
+        self.events.append("protective stop")
         self._script_error("protective stop: the program stopped")
+
+    def emergency_stop(self) -> None:
+        self.safety_mode = 7
+        self.events.append("robot emergency stop")
+        self._script_error("robot emergency stop: the program stopped")
 
     # --------------------------------------------------------------------------- dashboard
     def dashboard_answer(self, line: str) -> str | None:
@@ -314,18 +445,20 @@ class Robot:
         running = self.runtime_state == RUNTIME_PLAYING
         if cmd == "quit":
             return None
+        if not self.dashboard_has(cmd):
+            return f"could not understand: '{cmd}'"
+        safety = SAFETY_MODE_NAMES.get(self.safety_mode, "UNDEFINED_SAFETY_MODE")
+        name = self.program or ("<unnamed>" if not running else "rtde_control")
         answers = {
-            "PolyscopeVersion": POLYSCOPE_TEXT,
+            "PolyscopeVersion": self.polyscope_text,
             "get serial number": SERIAL_NUMBER,
-            "is in remote control": "true",
-            "robotmode": "Robotmode: RUNNING",
-            "safetymode": "Safetymode: " + ("PROTECTIVE_STOP" if self.safety_mode == 3
-                                            else "NORMAL"),
-            "safetystatus": "Safetystatus: " + ("PROTECTIVE_STOP" if self.safety_mode == 3
-                                                else "NORMAL"),
+            "is in remote control": "true" if self.remote else "false",
+            "robotmode": "Robotmode: " + ROBOT_MODE_NAMES.get(self.robot_mode, "NO_CONTROLLER"),
+            "safetymode": "Safetymode: " + safety,
+            "safetystatus": "Safetystatus: " + safety,
             "running": f"Program running: {'true' if running else 'false'}",
-            "programState": ("PLAYING" if running else "STOPPED") + " <unnamed>",
-            "get robot model": "UR5",
+            "programState": ("PLAYING " if running else "STOPPED ") + name,
+            "get robot model": self.model.name.rstrip("e"),
             "close popup": "closing popup",
             "close safety popup": "closing safety popup",
         }
@@ -333,6 +466,9 @@ class Robot:
             return answers[cmd]
         if cmd == "stop":
             self._stop_motion()
+            if self.program:
+                self.events.append(f"program {self.program} stopped from the dashboard")
+            self.program = None
             self.runtime_state = RUNTIME_STOPPED
             return "Stopped"
         if cmd == "unlock protective stop":
@@ -358,10 +494,12 @@ class Connection:
 class FakeController:
     """Listeners, connections and the event loop."""
 
-    def __init__(self) -> None:
-        self.robot = Robot()
+    def __init__(self, robot: Robot | None = None, host: str = HOST) -> None:
+        self.robot = robot if robot is not None else Robot()
+        self.host = host
         self.listeners: dict[socket.socket, str] = {}
         self.conns: list[Connection] = []
+        self.blackhole: list[socket.socket] = []
         self.frozen = False
         self.running = True
         self.log: list[str] = []
@@ -372,21 +510,37 @@ class FakeController:
             s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
             s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             try:
-                s.bind((HOST, port))
+                s.bind((self.host, port))
             except OSError as e:
                 s.close()
                 self.close_all()
-                raise OSError(f"port {port} ({kind}) on {HOST} is taken: {e}") from None
+                raise OSError(f"port {port} ({kind}) on {self.host} is taken: {e}") from None
             s.listen(8)
             self.listeners[s] = kind
+
+    def go_silent(self) -> None:
+        """Drop every packet from now on: the listeners are replaced by ones whose accept queue
+        is full and that are never served, so the kernel drops new connection requests (SYN)
+        without an answer, as a host behind a dead switch or a firewall does."""
+        for s in self.listeners:
+            s.close()
+        self.listeners = {}
+        for port in (RTDE_PORT, SCRIPT_PORT, DASHBOARD_PORT):
+            s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            s.bind((self.host, port))
+            s.listen(0)
+            filler = socket.create_connection((self.host, port), timeout=1.0)  # fills the queue
+            self.blackhole += [s, filler]
 
     def close_all(self) -> None:
         for c in self.conns:
             c.sock.close()
         self.conns = []
-        for s in self.listeners:
+        for s in [*self.listeners, *self.blackhole]:
             s.close()
         self.listeners = {}
+        self.blackhole = []
 
     def _drop(self, c: Connection) -> None:
         c.sock.close()
@@ -404,7 +558,7 @@ class FakeController:
         if kind == V:
             self._send(c, message(V, b"\x01"))
         elif kind == v:
-            self._send(c, message(v, struct.pack(">4I", *CONTROLLER_VERSION)))
+            self._send(c, message(v, struct.pack(">4I", *self.robot.controller_version)))
         elif kind == O:
             c.frequency = struct.unpack(">d", payload[:8])[0]
             c.out_names = [n for n in payload[8:].decode().split(",") if n]
@@ -472,37 +626,53 @@ class FakeController:
                 ln.rstrip() == "end" for ln in lines[:-1]
             ):
                 self.log.append(f"script received: {len(c.buf)} bytes")
+                self.robot.start_script(text)
                 c.buf = b""
-                self.robot.start_script()
 
     def _control(self, line: str) -> None:
         cmd = line.strip()
         r = self.robot
+        word, _, arg = cmd.partition(" ")
         if cmd == "state":
             print(json.dumps({
                 "tcp_pose": r.tcp_pose(), "flange_pose": ur_pose_from_T(r.T_base_flange),
+                "reported_tcp_pose": r.reported_tcp_pose(),
                 "tcp": ur_pose_from_T(r.T_flange_tcp), "q": list(r.q),
-                "safety_mode": r.safety_mode, "runtime_state": r.runtime_state,
-                "moving": r.motion is not None, "commands": r.commands, "texts": r.texts,
+                "safety_mode": r.safety_mode, "robot_mode": r.robot_mode,
+                "runtime_state": r.runtime_state, "program": r.program,
+                "speed_slider": r.speed_slider, "version": r.version,
+                "payload": None if r.payload is None else [r.payload[0], r.payload[1]],
+                "moving": r.motion is not None and r.motion["t_start"] != np.inf,
+                "stalled": r.motion is not None and r.motion["t_start"] == np.inf,
+                "commands": r.commands, "texts": r.texts, "events": r.events,
                 "script_uploads": r.script_uploads, "dashboard": r.dashboard, "log": self.log,
                 "connections": [c.kind for c in self.conns], "frozen": self.frozen,
             }), flush=True)
             return
-        if cmd == "pstop":
-            r.pstop_armed = True
+        if cmd in ("pstop", "estop", "stall", "drop_next", "freeze_next"):
+            r.next_move_fault = cmd.removesuffix("_next")
         elif cmd == "freeze":
-            self.frozen = True
-            for s in self.listeners:
-                s.close()
-            self.listeners = {}
+            self._freeze()
         elif cmd == "drop":
             self.close_all()
+        elif word == "slider" and arg:
+            r.speed_slider = float(arg)
+        elif word == "safety" and arg:
+            r.safety_mode = int(arg)
+        elif word == "robotmode" and arg:
+            r.robot_mode = int(arg)
+        elif word == "program" and arg:
+            r.program, r.runtime_state = arg, RUNTIME_PLAYING
         elif cmd in ("quit", ""):
             self.running = False
         else:
             print(json.dumps({"error": f"unknown control command {cmd!r}"}), flush=True)
             return
         print(json.dumps({"ok": cmd}), flush=True)
+
+    def _freeze(self) -> None:
+        self.frozen = True
+        self.go_silent()
 
     # --------------------------------------------------------------------------------- loop
     def run(self) -> None:
@@ -539,6 +709,13 @@ class FakeController:
                     else:
                         self._drop(c)
             self.robot.step()
+            fault, self.robot.network_fault = self.robot.network_fault, None
+            if fault == "drop":
+                self.robot.events.append("connection dropped")
+                self.close_all()
+            elif fault == "freeze":
+                self.robot.events.append("network went silent")
+                self._freeze()
             if self.frozen:
                 continue
             now = time.monotonic()
@@ -549,14 +726,50 @@ class FakeController:
         self.close_all()
 
 
-def main() -> int:
-    fake = FakeController()
+def _floats(text: str) -> list[float]:
+    return [float(v) for v in text.replace(",", " ").split()]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The controller's command line (see the module docstring)."""
+    p = argparse.ArgumentParser(
+        prog="python -m slidecal.mocks.ur_controller",
+        description="A loopback UR controller for the real ur-rtde client.",
+    )
+    p.add_argument("--host", default=HOST, help="loopback address to bind (127.x.y.z)")
+    p.add_argument("--polyscope", default=DEFAULT_VERSION, choices=list(VERSIONS))
+    p.add_argument("--model", default="UR5e", help="UR5e, UR10e, ... (the kinematics)")
+    p.add_argument("--start-q", type=_floats, help="six start joint angles, radians")
+    p.add_argument("--speed-slider", type=float, default=1.0, help="pendant speed slider, 0-1")
+    p.add_argument("--robot-mode", type=int, default=7)
+    p.add_argument("--safety-mode", type=int, default=1)
+    p.add_argument("--local", action="store_true", help="in local control (e-Series)")
+    p.add_argument("--program", help="a program already playing on the controller")
+    p.add_argument("--noise-mm", type=float, default=0.0, help="reported position error")
+    p.add_argument("--noise-deg", type=float, default=0.0, help="reported rotation error")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--silent", action="store_true", help="drop every packet (a dead host)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    a = build_parser().parse_args(argv)
+    try:
+        robot = Robot(a.polyscope, a.model, Q0 if a.start_q is None else np.array(a.start_q),
+                      a.speed_slider, a.robot_mode, a.safety_mode, not a.local, a.program,
+                      a.noise_mm / 1000.0, a.noise_deg, a.seed)
+    except Exception as e:  # noqa: BLE001 - reported on the channel the parent reads
+        print(json.dumps({"error": f"bad option: {e}"}), flush=True)
+        return 2
+    fake = FakeController(robot, a.host)
     try:
         fake.bind()
+        if a.silent:
+            fake.go_silent()
     except OSError as e:
         print(json.dumps({"error": str(e)}), flush=True)
         return 2
-    print(json.dumps({"ready": True, "pid": os.getpid(),
+    print(json.dumps({"ready": True, "pid": os.getpid(), "host": a.host,
                       "ports": [RTDE_PORT, SCRIPT_PORT, DASHBOARD_PORT]}), flush=True)
     fake.run()
     return 0
