@@ -86,6 +86,7 @@ SUBCOMMANDS: dict[str, str | SimpleNamespace] = {
     ),
     "bench": "slidecal.routines.bench",
     "plan": "slidecal.routines.planner",
+    "flash": "slidecal.routines.flash",
 }
 
 

@@ -70,6 +70,9 @@ def default_session_dir() -> Path:
 
 def _connect_real(cfg: CellConfig) -> tuple[Any, Any]:
     """The real drivers named by the cell file (imported only here)."""
+    from slidecal.routines.devices import camera_rig
+
+    rig = camera_rig(cfg)  # first: refuses a missing library or a bad camera field
     from slidecal.drivers.ur import URRobot
 
     r = cfg.robot
@@ -80,32 +83,6 @@ def _connect_real(cfg: CellConfig) -> tuple[Any, Any]:
         tcp=r.tcp,
         model=r.model,
     )
-    if cfg.camera_driver == "oak":
-        from slidecal.drivers.oak import OakRig
-
-        opts = cfg.camera_options
-        sockets = {n: o.get("socket") for n, o in opts.items()}
-        missing = [n for n, s in sockets.items() if not s]
-        if missing:
-            raise InputError(
-                f"camera {missing[0]!r} has no socket; add socket: CAM_A|CAM_B|CAM_C",
-                where=f"{cfg.source}: cameras.list",
-            )
-        sizes = {c.name: (c.width, c.height) for c in cfg.cameras}
-        colour = {n for n, o in opts.items() if o.get("colour")}
-        device = cfg.raw.get("cameras", {}).get("device_id")
-        rig = OakRig(device, sockets, sizes, colour=colour)
-    else:
-        try:
-            from slidecal.drivers.uvc import UvcCamera  # type: ignore[import-not-found]
-        except ImportError:
-            raise InputError(
-                "this slidecal has no UVC driver (slidecal.drivers.uvc); use an OAK or the "
-                "simulated cell",
-                where=f"{cfg.source}: cameras.driver",
-            ) from None
-        c = cfg.cameras[0]
-        rig = UvcCamera(c.name, c.width, c.height, **cfg.camera_options[c.name])
     return robot, rig
 
 
@@ -145,6 +122,10 @@ def run_calibration(
     """
     t0 = time.monotonic()
     cfg = config if isinstance(config, CellConfig) else load_config(config, overrides)
+    if not cfg.simulated:
+        from slidecal.routines.devices import check_libraries
+
+        check_libraries(cfg)  # a missing extra is said before planning
     if isinstance(plan, str | Path):
         plan = read_plan(plan)
     plan = plan if plan is not None else make_plan(cfg).plan
@@ -171,6 +152,9 @@ def run_calibration(
         rig.open()
         specs = tuple(rig.specs)
         check_plan(plan, cfg, robot.is_reachable)  # refuse before anything moves
+        from slidecal.routines.devices import record_devices
+
+        devices = record_devices(rig, out, cfg.standoff_m)
         writer = SessionWriter(
             out,
             cfg.target,
@@ -184,6 +168,7 @@ def run_calibration(
                 "cell": cfg.source,
                 "robot_driver": cfg.robot.driver,
                 "camera_driver": cfg.camera_driver,
+                **devices,
             },
         )
         write_plan(plan, out / "plan.yaml")
@@ -303,7 +288,13 @@ def write_outputs(
     if cfg is not None and cfg.camera_driver == "oak":
         oak = {n: o.get("socket") for n, o in cfg.camera_options.items()}
     exports = write_exports(result, result_path.parent / EXPORT_DIR, oak_sockets=oak)
-    summary = summary_text(result, truth)
+    from slidecal.routines.devices import device_calibration_outputs
+
+    device_exports, device_summary = device_calibration_outputs(
+        result, session_dir, result_path.parent / EXPORT_DIR
+    )
+    exports += [p for p in device_exports if p not in exports]
+    summary = summary_text(result, truth) + device_summary
     write_atomic(result_path.parent / SUMMARY_FILE, summary)
     return result_path, summary, exports
 

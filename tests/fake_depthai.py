@@ -91,6 +91,8 @@ class World:
         self.factory.setBoardInfo("OAK-D", "R3M2E3")
         self.flash_fails = False
         self.pipelines: list[Any] = []
+        #: socket name -> image of what the camera sees now (None: flat frames numbered k % 200)
+        self.render: Any = None
 
     def lose_device(self) -> None:
         """Unplug: every queue of every pipeline is closed (reads raise QueueException)."""
@@ -228,7 +230,10 @@ def make_fake_depthai(world: World) -> types.ModuleType:
         def _send(self, out, t, value):
             w, h = world.deliver_size or out._size
             colour = out._kind == dai.ImgFrame.Type.BGR888i
-            img = np.full((h, w, 3) if colour else (h, w), value, np.uint8)
+            if world.render is not None and value != 255:
+                img = world.render(out._socket)
+            else:
+                img = np.full((h, w, 3) if colour else (h, w), value, np.uint8)
             frame = dai.ImgFrame()
             frame.setCvFrame(img, out._kind)
             frame.setTimestamp(timedelta(seconds=t))
