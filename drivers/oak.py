@@ -388,9 +388,13 @@ class OakRig:
         """The device's calibrations as depthai JSON (``eepromToJson()``), read on open:
         ``user`` (``readCalibration``: what the device uses) and ``factory``
         (``readFactoryCalibration``); None where the device holds none."""
-        return {
-            k: None if h is None else dict(h.eepromToJson()) for k, h in self._calibration.items()
-        }
+        empty = self._dai.CalibrationHandler().eepromToJson()
+        out: dict[str, dict[str, Any] | None] = {}
+        for kind, handler in self._calibration.items():
+            data = None if handler is None else dict(handler.eepromToJson())
+            # readCalibration answers an empty handler when the area holds nothing
+            out[kind] = None if data == empty else data
+        return out
 
     def read_calibration(self) -> Any:
         """The device's current ``dai.CalibrationHandler`` (keep it as a backup before flashing)."""

@@ -32,6 +32,7 @@ REAL_NAMES = (
     "CameraSensorConfig",
     "Clock",
     "DeviceInfo",
+    "EepromError",
     "ImgFrame",
     "ImgResizeMode",
     "MessageQueue",
@@ -139,17 +140,17 @@ def make_fake_depthai(world: World) -> types.ModuleType:
         def getBootloaderVersion(self):
             return None
 
-        def readCalibration(self):
-            return _copy(world.user)
+        def readCalibration(self):  # an empty handler when the user area holds nothing
+            return dai.CalibrationHandler() if world.user is None else _copy(world.user)
 
         def readFactoryCalibration(self):
             if world.factory is None:
-                raise RuntimeError("No factory calibration")
+                raise dai.EepromError("No factory calibration")
             return _copy(world.factory)
 
         def flashCalibration(self, calibrationObj):
             if world.flash_fails:
-                raise RuntimeError("EEPROM write failed")
+                raise dai.EepromError("EEPROM write failed")
             world.calls.append(("flashCalibration",))
             world.user = _copy(calibrationObj)
 
@@ -175,10 +176,13 @@ def make_fake_depthai(world: World) -> types.ModuleType:
             features = {f.socket: f for f in world.sensors}
             if boardSocket not in features:
                 raise RuntimeError(f"Camera on socket {boardSocket.name} not found")
-            if sensorResolution is not None and tuple(sensorResolution) not in {
-                (c.width, c.height) for c in features[boardSocket].configs
-            }:
-                raise RuntimeError(f"no sensor mode {sensorResolution}")
+            if sensorResolution is not None:  # as depthai-core's Camera::build checks it
+                modes = {(c.width, c.height): c for c in features[boardSocket].configs}
+                mode = modes.get(tuple(sensorResolution))
+                if mode is None:
+                    raise RuntimeError("Invalid sensor resolution specified")
+                if sensorFps is not None and not mode.minFps <= sensorFps <= mode.maxFps:
+                    raise RuntimeError("Invalid sensor FPS specified")
             self._socket = boardSocket.name
             self.initialControl = dai.CameraControl()
             self._pipeline.cameras.append(self)

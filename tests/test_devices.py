@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -301,3 +302,34 @@ def test_camera_fields_are_checked(tmp_path, monkeypatch, cameras, message):
     path = write_cell(tmp_path, real_cell("oak_cell.yaml", cameras))
     with pytest.raises(InputError, match=message):
         camera_rig(load_config(path))
+
+
+def test_an_oak_lost_mid_run_aborts_the_session_and_keeps_the_frames(tmp_path, oak_device,
+                                                                     monkeypatch, capsys):
+    """Issue 10 item 8 through the run: the queues close at the third capture; the run stops
+    the robot, keeps the two frames, records the fault, exits with the hardware code and the
+    pipeline is stopped. (The fake streams flat frames: no board is seen, which is not what
+    this is about.)"""
+    world, sim = oak_device
+    robot = SimulatedCell.from_config(sim, seed=0).robot
+    use_simulated_robot(monkeypatch, SimpleNamespace(robot=robot))
+    settles = []
+
+    def wait_settled(settle_s):
+        settles.append(settle_s)
+        if len(settles) == 3:
+            world.lose_device()
+
+    monkeypatch.setattr(robot, "wait_settled", wait_settled)
+    path = write_cell(tmp_path, real_cell("oak_cell.yaml", OAK_CAMERAS))
+    sdir = tmp_path / "s"
+    code = cli.main(["run", "--config", str(path), "--out", str(sdir), "--quiet",
+                     "--no-recording"])
+    err = capsys.readouterr().err
+    assert code == 3, err
+    assert f"OAK device {world.device_id} lost during capture" in err
+    assert "the 2 frames captured before it" in err
+    session = yaml.safe_load((sdir / "session.yaml").read_text())
+    assert session["status"] == "aborted" and len(session["frames"]) == 2
+    assert session["events"][0]["kind"] == "fault"
+    assert not world.pipelines[0].isRunning() and ("stop",) in world.calls

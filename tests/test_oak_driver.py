@@ -474,3 +474,24 @@ def test_the_fake_depthai_matches_the_installed_one():
     Drifted.grabFrame = lambda self: None
     with pytest.raises(AssertionError, match="grabFrame: not in the installed depthai"):
         _check(Drifted, dai_real.node.Camera, "Camera")
+
+
+def test_a_device_without_calibration_reports_none(world):
+    world.user, world.factory = None, None
+    rig = OakRig(focus={"rgb": 130})
+    rig.open()
+    assert rig.device_calibrations() == {"user": None, "factory": None}
+    rig.close()
+
+
+def test_a_sensor_mode_the_device_refuses_is_never_requested(world):
+    """depthai-core's Camera::build refuses a resolution that is not one of the sensor's
+    modes, or a frame rate outside that mode's range (RuntimeError); the driver asks for a
+    mode that fits instead, or says in one line that none does."""
+    with pytest.raises(InputError, match=r"camera 'rgb' \(CAM_A\): no full-field-of-view"):
+        OakRig(focus={"rgb": 130}, fps=90.0).open()
+    assert world.pipelines[-1].isRunning() is False and ("start",) not in world.calls
+    rig = OakRig(focus={"rgb": 130}, fps=45.0)  # the full 4056x3040 mode stops at 30 fps
+    rig.open()
+    assert rig.capabilities()["outputs"]["rgb"]["sensor_mode"]["width"] == 2028
+    rig.close()
