@@ -351,6 +351,7 @@ class OakRig:
             "platform": _call(device, "getPlatformAsString"),
             "usb_speed": _text(_call(device, "getUsbSpeed")),
             "bootloader_version": None if bootloader is None else str(bootloader),
+            "os_version": _text(_call(device, "getOSVersion")),  # RVC4 devices
             "sensors": [_features_dict(f) for f in features.values()],
             "outputs": outputs,
             "stream_mb_per_s": round(bytes_per_s / 1e6, 1),

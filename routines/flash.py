@@ -52,21 +52,27 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-def _compare(a: dict[str, Any], b: dict[str, Any]) -> list[str]:
+def _close(a: Any, b: Any, **tolerance: float) -> bool:
+    x = np.asarray([] if a is None else a, float)
+    y = np.asarray([] if b is None else b, float)
+    return x.shape == y.shape and bool(np.allclose(x, y, **tolerance))
+
+
+def _compare(a: dict[str, Any], b: dict[str, Any]) -> list[int]:
     """The camera sockets whose calibration differs between two depthai JSON dicts."""
     cams_a = {int(k): v for k, v in a.get("cameraData", [])}
     cams_b = {int(k): v for k, v in b.get("cameraData", [])}
     bad = sorted(set(cams_a) ^ set(cams_b))
     for key in set(cams_a) & set(cams_b):
         for field in ("intrinsicMatrix", "distortionCoeff", "width", "height"):
-            if not np.allclose(cams_a[key].get(field), cams_b[key].get(field), rtol=1e-6):
+            if not _close(cams_a[key].get(field), cams_b[key].get(field), rtol=1e-6):
                 bad.append(key)
         ea, eb = cams_a[key].get("extrinsics", {}), cams_b[key].get("extrinsics", {})
         ta = [ea.get("translation", {}).get(k, 0.0) for k in "xyz"]
         tb = [eb.get("translation", {}).get(k, 0.0) for k in "xyz"]
         if not (
-            np.allclose(ea.get("rotationMatrix"), eb.get("rotationMatrix"), atol=1e-7)
-            and np.allclose(ta, tb, atol=1e-6)
+            _close(ea.get("rotationMatrix"), eb.get("rotationMatrix"), atol=1e-7)
+            and _close(ta, tb, atol=1e-6)
             and ea.get("toCameraSocket") == eb.get("toCameraSocket")
         ):
             bad.append(key)

@@ -91,6 +91,7 @@ class World:
         self.factory: Any = dai.CalibrationHandler()
         self.factory.setBoardInfo("OAK-D", "R3M2E3")
         self.flash_fails = False
+        self.flash_corrupts = False
         self.pipelines: list[Any] = []
         #: socket name -> image of what the camera sees now (None: flat frames numbered k % 200)
         self.render: Any = None
@@ -152,7 +153,10 @@ def make_fake_depthai(world: World) -> types.ModuleType:
             if world.flash_fails:
                 raise dai.EepromError("EEPROM write failed")
             world.calls.append(("flashCalibration",))
-            world.user = _copy(calibrationObj)
+            data = calibrationObj.eepromToJson()
+            if world.flash_corrupts:  # the EEPROM keeps something else than was sent
+                data["cameraData"][0][1]["intrinsicMatrix"][0][0] += 1.0
+            world.user = dai.CalibrationHandler.fromJson(data)
 
         def close(self):
             self.closed = True

@@ -255,6 +255,11 @@ def test_an_oak_session_records_the_device_compares_and_flashes(tmp_path, oak_de
     backups = sorted(sdir.glob("device_calibration_backup_*.json"))
     assert backups and norm(json.loads(backups[-1].read_text())) == norm(before)
     world.flash_fails = False
+    # what the device holds afterwards is not what was sent: said, with the backup to restore
+    world.flash_corrupts = True
+    assert cli.main(["flash", str(sdir), "--write"]) == 3
+    assert "differs from what was written" in capsys.readouterr().err
+    world.flash_corrupts = False
     assert cli.main(["flash", str(sdir), "--write"]) == 0
     assert "read back identical" in capsys.readouterr().out
     K_dev, _ = device_camera(world.user.eepromToJson(), "CAM_B", (1280, 800))
