@@ -123,6 +123,9 @@ def make_fake_depthai(world: World) -> types.ModuleType:
         def getConnectedCameraFeatures(self):
             return list(world.sensors)
 
+        def getConnectedCameras(self):
+            return [f.socket for f in world.sensors]
+
         def getDeviceId(self):
             return world.device_id
 
