@@ -26,7 +26,9 @@ host time, then keeps only frames whose device timestamp (``ImgFrame.getTimestam
 host's steady clock) is later than that. It returns the oldest frame of the first camera for
 which every other camera has a frame within ``sync_tolerance_s`` of it (the nearest one), so the
 set was exposed after the call and together. The stereo pair of an OAK-D is hardware-synced
-(a few microseconds apart); the colour camera is not, hence a tolerance of half a frame period.
+(a few microseconds apart); the colour camera runs free at the same rate with a fixed phase,
+so its nearest frame can be up to half a period away: the default tolerance is a little more
+than half a frame period (55 ms at 10 fps; the arm is at rest at every capture).
 A closed queue (``dai.MessageQueue.QueueException``) or a link error means the device is gone:
 the pipeline is stopped and a ``HardwareFault`` raised.
 
@@ -163,7 +165,7 @@ class OakRig:
     resize_mode
         ``stretch`` (whole field of view, default), ``crop`` or ``letterbox``.
     sync_tolerance_s
-        Largest timestamp difference within a set.
+        Largest timestamp difference within a set (default ``0.55 / fps``).
     timeout_s
         How long :meth:`capture` waits for a complete set.
     """
@@ -181,7 +183,7 @@ class OakRig:
         white_balance_k: Mapping[str, int] | None = None,
         fps: float = DEFAULT_FPS,
         resize_mode: str = "stretch",
-        sync_tolerance_s: float = 0.015,
+        sync_tolerance_s: float | None = None,
         timeout_s: float = 3.0,
     ) -> None:
         self.device_id = device_id
@@ -221,7 +223,9 @@ class OakRig:
         if resize_mode not in RESIZE_MODES:
             raise InputError(f"resize mode {resize_mode!r}; use one of {', '.join(RESIZE_MODES)}")
         self.resize_mode = resize_mode
-        self.sync_tolerance_s = float(sync_tolerance_s)
+        self.sync_tolerance_s = 0.55 / self.fps if sync_tolerance_s is None else float(
+            sync_tolerance_s
+        )
         self.timeout_s = float(timeout_s)
         # depthai is needed from here on: a missing extra or a bad socket name is reported now,
         # before anything is opened or moved.

@@ -130,7 +130,11 @@ def _oak(cfg: Any, section: Fields) -> Any:
             white_balance_k=wb,
             fps=section.number("fps", DEFAULT_FPS, positive=True),
             resize_mode=section.choice("resize", RESIZE_MODES, "stretch"),
-            sync_tolerance_s=section.number("sync_tolerance_s", 0.015, positive=True),
+            sync_tolerance_s=(
+                section.number("sync_tolerance_s", positive=True)
+                if section.has("sync_tolerance_s")
+                else None
+            ),
         )
     except InputError as e:
         if e.where:

@@ -334,6 +334,19 @@ def test_device_lost_mid_run_is_a_hardware_fault_and_stops_the_pipeline(world):
         rig.capture()
 
 
+def test_a_free_running_colour_camera_half_a_period_off_is_matched(world):
+    """At 10 fps the colour camera's frames can sit up to 50 ms from the stereo pair's (a
+    fixed phase): the default tolerance (0.55 / fps) still makes sets; the old fixed 15 ms
+    waited for a match that never comes."""
+    world.offsets["CAM_A"] = 0.045
+    rig = OakRig(focus={"rgb": 130}, timeout_s=1.0)
+    assert rig.sync_tolerance_s == pytest.approx(0.055)
+    rig.open()
+    images = rig.capture()
+    assert len({int(img.flat[0]) for img in images.values()}) == 1
+    rig.close()
+
+
 def test_capture_fault_when_cameras_are_not_synchronised(world):
     world.offsets["CAM_A"] = 0.016  # half a frame period away from the stereo pair
     rig = OakRig(sync_tolerance_s=0.005, timeout_s=0.2, focus={"rgb": 130}, fps=30)
