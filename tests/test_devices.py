@@ -309,6 +309,7 @@ def test_camera_fields_are_checked(tmp_path, monkeypatch, cameras, message):
         camera_rig(load_config(path))
 
 
+@pytest.mark.slow
 def test_an_oak_lost_mid_run_aborts_the_session_and_keeps_the_frames(tmp_path, oak_device,
                                                                      monkeypatch, capsys):
     """Issue 10 item 8 through the run: the queues close at the third capture; the run stops
