@@ -264,7 +264,7 @@ class OakRig:
             raise HardwareFault(
                 f"the OAK pipeline did not start ({e}); replug the device"
             ) from None
-        except (HardwareFault, InputError):
+        except BaseException:  # HardwareFault, InputError, Ctrl-C: nothing is left running
             self._stop(pipeline)
             raise
         self._pipeline = pipeline

@@ -115,7 +115,7 @@ class UvcCamera:
             )
         try:
             self._configure(cap)
-        except HardwareFault:
+        except BaseException:  # a refused setting, a cv2.error, Ctrl-C: the device is freed
             cap.release()
             raise
         self._cap = cap
