@@ -746,7 +746,7 @@ def projection_shift_px(
     result), are projected into each camera with the result's model and with the device's
     (intrinsics mapped to the session's image size, and its extrinsics to the reference camera
     where the camera is not the reference). Returns ``{name: {rms_px, max_px}}`` for the
-    cameras the device has a perspective calibration of.
+    cameras the device has a perspective calibration of and the result a complete transform.
     """
     import cv2
 
@@ -765,7 +765,10 @@ def projection_shift_px(
         T_dev = device_T_cam_ref(data, sockets[name], sockets[ref]) if name != ref else np.eye(4)
         if dev is None or T_dev is None:
             continue
-        T_ours = _T_cam_ref(result, name, ref) if name != ref else np.eye(4)
+        try:
+            T_ours = _T_cam_ref(result, name, ref)
+        except InputError:
+            continue  # the result has no complete transform of this camera: not compared
 
         def project(T, K, d):
             P = P_ref @ T[:3, :3].T + T[:3, 3]

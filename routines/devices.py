@@ -247,7 +247,7 @@ def device_calibration_outputs(
     sockets = {n: o["socket"] for n, o in outputs.items()}
     lens = {n: o["focus"] for n, o in outputs.items() if o.get("focus") is not None}
     user = read_device_calibration(session_dir, devices, "user")
-    paths = []
+    paths, lines = [], []
     try:
         paths.append(
             oak.write_oak_calibration_json(
@@ -256,16 +256,19 @@ def device_calibration_outputs(
             )
         )
     except InputError as e:
-        return [], f"note: no depthai calibration export: {e}\n"
+        lines.append(f"note: no depthai calibration export: {e}")
     distance = float(devices.get("working_distance_m") or 0.5)
     modes = {o.get("resize_mode", "stretch") for o in outputs.values()}
     resize = modes.pop() if len(modes) == 1 else "stretch"
-    lines = []
     for kind in ("factory", "user"):
         data = read_device_calibration(session_dir, devices, kind)
         if data is None:
             continue
-        shift = oak.projection_shift_px(result, data, sockets, distance, resize)
+        try:
+            shift = oak.projection_shift_px(result, data, sockets, distance, resize)
+        except InputError as e:
+            lines.append(f"note: the device {kind} calibration was not compared: {e}")
+            continue
         if shift:
             parts = ", ".join(
                 f"{n} {v['rms_px']:.2f} rms / {v['max_px']:.2f} max" for n, v in shift.items()

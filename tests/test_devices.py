@@ -26,6 +26,7 @@ from slidecal.routines import cli  # noqa: E402
 from slidecal.routines.config import load_config, load_packaged_cell  # noqa: E402
 from slidecal.routines.devices import camera_rig  # noqa: E402
 from slidecal.routines.run import run_calibration  # noqa: E402
+from slidecal.routines.session import SessionWriter  # noqa: E402
 from slidecal.solver.errors import InputError  # noqa: E402
 from slidecal.solver.result import (  # noqa: E402
     CalibrationResult,
@@ -340,3 +341,27 @@ def test_an_oak_lost_mid_run_aborts_the_session_and_keeps_the_frames(tmp_path, o
     assert session["status"] == "aborted" and len(session["frames"]) == 2
     assert session["events"][0]["kind"] == "fault"
     assert not world.pipelines[0].isRunning() and ("stop",) in world.calls
+
+
+def test_an_incomplete_rig_result_is_compared_where_it_can_be(tmp_path, oak_device):
+    """A result without the colour camera's translation (no tilts seen by it): no depthai
+    export (it needs every link), said in the summary; the other cameras still compared."""
+    from slidecal.drivers.oak import OakRig
+    from slidecal.routines.devices import device_calibration_outputs, record_devices
+
+    _, sim = oak_device
+    rig = OakRig(focus={"rgb": 130})
+    rig.open()
+    sdir = tmp_path / "s"
+    devices = record_devices(rig, sdir, 0.5)
+    rig.close()
+    SessionWriter(sdir, sim.target, rig.specs, extra=devices).finish()
+    r = truth_result(sim)
+    rot_only = TransformEstimate("T_rgb_left", r.rig["T_rgb_left"].R, None)
+    r = CalibrationResult(**{**r.__dict__, "rig": {**r.rig, "T_rgb_left": rot_only}})
+    paths, text = device_calibration_outputs(r, sdir, sdir / "export")
+    assert paths == []
+    assert "note: no depthai calibration export" in text and "T_rgb_left" in text
+    line = next(x for x in text.splitlines() if x.startswith("device factory"))
+    assert "left 0.00 rms" in line and "right 0.00 rms" in line and "rgb" not in line
+
