@@ -30,7 +30,7 @@ from slidecal.routines.results_io import RESULT_FILE, read_result
 from slidecal.routines.session import write_atomic
 from slidecal.solver.errors import HardwareFault, InputError
 
-help = "write a session's calibration into its OAK device's user area (with --write)"  # noqa: A001
+help = "write a session's calibration into its OAK device's user area (with --write)"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -365,3 +365,10 @@ def test_an_incomplete_rig_result_is_compared_where_it_can_be(tmp_path, oak_devi
     line = next(x for x in text.splitlines() if x.startswith("device factory"))
     assert "left 0.00 rms" in line and "right 0.00 rms" in line and "rgb" not in line
 
+
+
+def test_flash_refuses_a_session_without_an_oak(tmp_path, capsys):
+    sim = load_packaged_cell("default_cell.yaml")
+    SessionWriter(tmp_path / "s", sim.target, sim.cameras).finish()
+    assert cli.main(["flash", str(tmp_path / "s"), "--write"]) == 2
+    assert "was not recorded with an OAK" in capsys.readouterr().err
