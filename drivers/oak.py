@@ -1,30 +1,50 @@
-"""Luxonis OAK cameras through depthai v3 (``CameraRig`` protocol of ``drivers/base.py``), and
-writing a calibration result into a depthai ``CalibrationHandler``.
+"""Luxonis OAK cameras through depthai v3 (``CameraRig`` protocol of ``drivers/base.py``), the
+device's own calibration, and writing a calibration result into a depthai ``CalibrationHandler``.
 
-Capture (HARDWARE_NOTES.md): one ``dai.node.Camera`` per socket, outputs requested with
-``enableUndistortion=False`` at the calibrated size, manual exposure and focus, and the
-pipeline's auto-calibration turned OFF (it is on by default and would rewrite the stereo
-calibration on start). ``depthai`` is imported in :meth:`OakRig.open`, so this module imports
-without a device.
+Capture: one ``dai.node.Camera`` per socket and the pipeline's auto-calibration turned OFF (it is
+on by default and would rewrite the stereo calibration on start). ``depthai`` is an extra
+(``pip install 'slidecal[oak]'``); it is imported when an :class:`OakRig` is made, so this module
+imports without it.
+
+Image geometry: ``requestOutput`` crops to the requested aspect ratio by default (a 1920x1080
+output of a 4056x3040 sensor loses a quarter of its height). :class:`OakRig` builds each camera
+on the sensor mode with the widest field of view that runs at the requested frame rate (the
+smallest such mode that still covers the requested size) and asks for the output with an
+explicit resize mode, ``stretch`` by default: the whole field of view, scaled to the requested
+size (non-square pixels when the aspect ratios differ; the camera model's separate fx, fy take
+that). Undistortion is off. A frame rate is always requested (default 10 fps) so the three
+streams stay well within USB2/PoE bandwidth; the mode used is in :meth:`OakRig.capabilities`.
+
+Lens and exposure: manual exposure and ISO (``exposure_us``, ``iso``) for every camera, a manual
+lens position (``focus``) for every auto-focus camera and a fixed white balance
+(``white_balance_k``, default 5000 K) for colour cameras. A calibration holds at one lens
+position only, so an auto-focus camera without ``focus`` is refused with one line saying so
+(rather than locking wherever the autofocus happened to be).
 
 Synchronisation: :meth:`OakRig.capture` first discards every frame already queued, notes the
 host time, then keeps only frames whose device timestamp (``ImgFrame.getTimestamp()``, on the
 host's steady clock) is later than that. It returns the oldest frame of the first camera for
 which every other camera has a frame within ``sync_tolerance_s`` of it (the nearest one), so the
 set was exposed after the call and together. The stereo pair of an OAK-D is hardware-synced
-(a few microseconds apart); the colour camera is not, hence a tolerance of half a frame period.
+(a few microseconds apart); the colour camera runs free at the same rate with a fixed phase,
+so its nearest frame can be up to half a period away: the default tolerance is a little more
+than half a frame period (55 ms at 10 fps; the arm is at rest at every capture).
+A closed queue (``dai.MessageQueue.QueueException``) or a link error means the device is gone:
+the pipeline is stopped and a ``HardwareFault`` raised.
 
 Calibration files: extrinsics in depthai are in CENTIMETRES and ``setCameraExtrinsics(src, dst,
 R, t)`` maps points of ``src`` into ``dst`` (``R_dst_src``, ``t_dst_src``). Each camera stores one
 link; we chain them as the factory calibration does: stereo left -> stereo right -> the others.
 Distortion is 14 coefficients in OpenCV order (k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4 tx ty),
-zero-padded. The handler stores float32: values round-trip exactly at that precision.
+zero-padded. The handler stores float32: values round-trip exactly at that precision. A
+handler written for a device starts from the device's own (board name, IMU extrinsics, lens
+positions, design translations kept) and overwrites only what was calibrated.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -37,16 +57,86 @@ from slidecal.solver.result import CalibrationResult
 
 DEFAULT_SOCKETS = {"left": "CAM_B", "right": "CAM_C", "rgb": "CAM_A"}
 DEFAULT_SIZES = {"left": (1280, 800), "right": (1280, 800), "rgb": (1920, 1080)}
+#: Resize modes of ``requestOutput`` (``dai.ImgResizeMode``), as the cell file names them.
+RESIZE_MODES = ("stretch", "crop", "letterbox")
+#: Frame rate requested when the cell gives none: two 1280x800 grey and a 1920x1080 BGR stream
+#: at 10 fps are about 83 MB/s, within USB3 and a gigabit PoE link (the default 30 fps is 250).
+DEFAULT_FPS = 10.0
+DEFAULT_WHITE_BALANCE_K = 5000
 
 
-def _import_depthai() -> Any:
+def import_depthai() -> Any:
+    """The ``depthai`` module, or an ``InputError`` naming the extra that brings it."""
     try:
         import depthai
     except ImportError as e:
-        raise HardwareFault(
-            f"depthai is not importable ({e}); install it with 'pip install depthai>=3.6,<4'"
+        raise InputError(
+            f"the OAK driver needs depthai, which is not installed ({e}); install it with "
+            "pip install 'slidecal[oak]'"
         ) from None
     return depthai
+
+
+def socket_names(dai: Any) -> list[str]:
+    """The board socket names a cell file may use (``CAM_A`` ...), from the installed depthai."""
+    return sorted(n for n in dai.CameraBoardSocket.__members__ if n.startswith("CAM_"))
+
+
+def _board_socket(dai: Any, name: str, camera: str) -> Any:
+    if name not in socket_names(dai):
+        raise InputError(
+            f"camera {camera!r}: socket {name!r} is not an OAK board socket; use one of "
+            f"{', '.join(socket_names(dai))}"
+        )
+    return dai.CameraBoardSocket.__members__[name]
+
+
+def choose_sensor_mode(
+    modes: Sequence[Mapping[str, Any]], size: tuple[int, int], fps: float
+) -> dict[str, Any] | None:
+    """The sensor mode to build a camera on: the widest field of view that runs at ``fps``.
+
+    ``modes``: ``{width, height, min_fps, max_fps, fov: (x, y, w, h)}`` per sensor mode (the
+    device's ``CameraFeatures.configs``). Among the modes whose field of view is (within 1 %)
+    the largest and whose frame rate range holds ``fps``, the smallest that covers ``size``
+    (width, height), else the largest. None when the device lists no modes. ``InputError`` when
+    no widest-view mode runs at ``fps``.
+    """
+    if not modes:
+        return None
+
+    def area(m: Mapping[str, Any]) -> float:
+        fov = m.get("fov") or (0, 0, 0, 0)
+        return float(fov[2]) * float(fov[3]) or float(m["width"]) * float(m["height"])
+
+    widest = max(area(m) for m in modes)
+    wide = [m for m in modes if area(m) >= 0.99 * widest]
+    ok = [m for m in wide if m["min_fps"] - 1e-6 <= fps <= m["max_fps"] + 1e-6]
+    if not ok:
+        rates = ", ".join(f"{m['width']}x{m['height']} {m['min_fps']}-{m['max_fps']}" for m in wide)
+        raise InputError(
+            f"no full-field-of-view sensor mode runs at {fps:g} fps (modes: {rates} fps); "
+            "set cameras.fps within one of these ranges"
+        )
+    covering = [m for m in ok if m["width"] >= size[0] and m["height"] >= size[1]]
+    if covering:
+        return dict(min(covering, key=lambda m: m["width"] * m["height"]))
+    return dict(max(ok, key=lambda m: m["width"] * m["height"]))
+
+
+def _call(obj: Any, method: str) -> Any:
+    """``obj.method()`` or None where the device or platform does not provide it."""
+    try:
+        return getattr(obj, method)()
+    except (RuntimeError, AttributeError):
+        return None
+
+
+def _text(value: Any) -> str | None:
+    if value is None:
+        return None
+    name = getattr(value, "name", None)
+    return str(name) if isinstance(name, str) else str(value)
 
 
 class OakRig:
@@ -63,11 +153,19 @@ class OakRig:
     colour
         Names of the cameras delivered as BGR (``BGR888i``); the others as grey (``GRAY8``).
     exposure_us, iso
-        Manual exposure for every camera (both or neither).
+        Manual exposure (microseconds) and sensitivity for every camera (both or neither;
+        neither leaves auto-exposure on).
     focus
-        Camera name -> manual lens position 0..255 (auto-focus cameras only).
+        Camera name -> manual lens position 0..255; required for every auto-focus camera.
+    white_balance_k
+        Camera name -> colour temperature 1000..12000 K of the colour cameras' fixed white
+        balance (default 5000 K).
+    fps
+        Frame rate requested from every camera (one rate, so the streams stay in step).
+    resize_mode
+        ``stretch`` (whole field of view, default), ``crop`` or ``letterbox``.
     sync_tolerance_s
-        Largest timestamp difference within a set.
+        Largest timestamp difference within a set (default ``0.55 / fps``).
     timeout_s
         How long :meth:`capture` waits for a complete set.
     """
@@ -82,7 +180,10 @@ class OakRig:
         exposure_us: int | None = None,
         iso: int | None = None,
         focus: Mapping[str, int] | None = None,
-        sync_tolerance_s: float = 0.015,
+        white_balance_k: Mapping[str, int] | None = None,
+        fps: float = DEFAULT_FPS,
+        resize_mode: str = "stretch",
+        sync_tolerance_s: float | None = None,
         timeout_s: float = 3.0,
     ) -> None:
         self.device_id = device_id
@@ -107,11 +208,33 @@ class OakRig:
         for n, lens in self.focus.items():
             if n not in self.sockets or not 0 <= lens <= 255:
                 raise InputError(f"focus[{n!r}] = {lens}: needs a camera name and a lens 0..255")
-        self.sync_tolerance_s = float(sync_tolerance_s)
+        self.white_balance_k = {
+            n: DEFAULT_WHITE_BALANCE_K for n in self.colour if n in self.sockets
+        }
+        for n, k in (white_balance_k or {}).items():
+            if n not in self.colour or not 1000 <= k <= 12000:
+                raise InputError(
+                    f"white_balance_k[{n!r}] = {k}: needs a colour camera and 1000..12000 K"
+                )
+            self.white_balance_k[n] = int(k)
+        if not 0 < fps <= 120:
+            raise InputError(f"fps is {fps}; request a frame rate in (0, 120]")
+        self.fps = float(fps)
+        if resize_mode not in RESIZE_MODES:
+            raise InputError(f"resize mode {resize_mode!r}; use one of {', '.join(RESIZE_MODES)}")
+        self.resize_mode = resize_mode
+        self.sync_tolerance_s = 0.55 / self.fps if sync_tolerance_s is None else float(
+            sync_tolerance_s
+        )
         self.timeout_s = float(timeout_s)
+        # depthai is needed from here on: a missing extra or a bad socket name is reported now,
+        # before anything is opened or moved.
+        self._dai: Any = import_depthai()
+        self._board = {n: _board_socket(self._dai, s, n) for n, s in self.sockets.items()}
         self._pipeline: Any = None
         self._queues: dict[str, Any] = {}
-        self._dai: Any = None
+        self._capabilities: dict[str, Any] = {}
+        self._calibration: dict[str, Any] = {}
 
     @property
     def specs(self) -> tuple[CameraSpec, ...]:
@@ -119,8 +242,9 @@ class OakRig:
         return tuple(CameraSpec(n, *self.sizes[n]) for n in self.sockets)
 
     def open(self) -> None:
-        """Build and start the pipeline; ``HardwareFault`` when the device or a camera is absent."""
-        dai = self._dai = _import_depthai()
+        """Build and start the pipeline; ``HardwareFault`` when the device or a camera is absent,
+        ``InputError`` when the cell asks for what this device cannot do."""
+        dai = self._dai
         try:
             if self.device_id is None:
                 pipeline = dai.Pipeline()
@@ -133,42 +257,114 @@ class OakRig:
                 "link), check the udev rules, and in a container pass /dev/bus/usb through"
             ) from None
         try:
-            connected = list(pipeline.getDefaultDevice().getConnectedCameras())
-            absent = [
-                f"{n} ({s})"
-                for n, s in self.sockets.items()
-                if getattr(dai.CameraBoardSocket, s) not in connected
-            ]
-            if absent:
-                raise HardwareFault(
-                    f"camera(s) {', '.join(absent)} not on this device (it has "
-                    f"{[str(c) for c in connected]}); fix the sockets in the cell file"
-                )
-            pipeline.setAutoCalibrationMode(dai.Pipeline.AutoCalibrationMode.OFF)
-            queues = {}
-            for name, socket in self.sockets.items():
-                board_socket = getattr(dai.CameraBoardSocket, socket)
-                cam = pipeline.create(dai.node.Camera).build(board_socket)
-                if self.exposure_us is not None:
-                    cam.initialControl.setManualExposure(self.exposure_us, self.iso)
-                if name in self.focus:
-                    cam.initialControl.setManualFocus(self.focus[name])
-                kind = dai.ImgFrame.Type.GRAY8
-                if name in self.colour:
-                    kind = dai.ImgFrame.Type.BGR888i
-                out = cam.requestOutput(self.sizes[name], type=kind, enableUndistortion=False)
-                queues[name] = out.createOutputQueue(maxSize=8, blocking=False)
+            queues = self._build(pipeline)
             pipeline.start()
         except RuntimeError as e:
             self._stop(pipeline)
             raise HardwareFault(
                 f"the OAK pipeline did not start ({e}); replug the device"
             ) from None
-        except HardwareFault:
+        except BaseException:  # HardwareFault, InputError, Ctrl-C: nothing is left running
             self._stop(pipeline)
             raise
         self._pipeline = pipeline
         self._queues = queues
+
+    def _build(self, pipeline: Any) -> dict[str, Any]:
+        dai = self._dai
+        device = pipeline.getDefaultDevice()
+        features = {_text(f.socket): f for f in device.getConnectedCameraFeatures()}
+        absent = [f"{n} ({s})" for n, s in self.sockets.items() if s not in features]
+        if absent:
+            raise HardwareFault(
+                f"camera(s) {', '.join(absent)} not on this device (it has "
+                f"{sorted(features)}); fix the sockets in the cell file"
+            )
+        unfocused = [
+            f"{n} ({s})"
+            for n, s in self.sockets.items()
+            if features[s].hasAutofocus and n not in self.focus
+        ]
+        if unfocused:
+            raise InputError(
+                f"camera(s) {', '.join(unfocused)} have autofocus and the cell gives no lens "
+                "position; a calibration holds at one focus only: add focus: <0..255> to the "
+                "camera in the cell file (the lens position that is sharp at the working "
+                "distance, e.g. as depthai's autofocus reports it in ImgFrame.getLensPosition())"
+            )
+        pipeline.setAutoCalibrationMode(dai.Pipeline.AutoCalibrationMode.OFF)
+        resize = dai.ImgResizeMode.__members__[self.resize_mode.upper()]
+        queues: dict[str, Any] = {}
+        outputs: dict[str, Any] = {}
+        for name, socket in self.sockets.items():
+            size = self.sizes[name]
+            modes = [
+                {
+                    "width": int(c.width),
+                    "height": int(c.height),
+                    "min_fps": float(c.minFps),
+                    "max_fps": float(c.maxFps),
+                    "fov": (float(c.fov.x), float(c.fov.y), float(c.fov.width),
+                            float(c.fov.height)),
+                }
+                for c in features[socket].configs
+            ]
+            try:
+                mode = choose_sensor_mode(modes, size, self.fps)
+            except InputError as e:
+                raise InputError(f"camera {name!r} ({socket}): {e}") from None
+            resolution = (mode["width"], mode["height"]) if mode else None
+            cam = pipeline.create(dai.node.Camera).build(
+                self._board[name], sensorResolution=resolution, sensorFps=self.fps
+            )
+            control = cam.initialControl
+            if self.exposure_us is not None:
+                control.setManualExposure(self.exposure_us, self.iso)
+            if name in self.focus:
+                control.setManualFocus(self.focus[name])
+            if name in self.white_balance_k:
+                control.setManualWhiteBalance(self.white_balance_k[name])
+            kind = dai.ImgFrame.Type.BGR888i if name in self.colour else dai.ImgFrame.Type.GRAY8
+            out = cam.requestOutput(
+                size, type=kind, resizeMode=resize, fps=self.fps, enableUndistortion=False
+            )
+            queues[name] = out.createOutputQueue(maxSize=8, blocking=False)
+            outputs[name] = {
+                "socket": socket,
+                "size": list(size),
+                "type": _text(kind),
+                "resize_mode": self.resize_mode,
+                "fps": self.fps,
+                "sensor_mode": mode,
+                "exposure_us": self.exposure_us,
+                "iso": self.iso,
+                "focus": self.focus.get(name),
+                "white_balance_k": self.white_balance_k.get(name),
+            }
+        bytes_per_s = sum(
+            self.sizes[n][0] * self.sizes[n][1] * (3 if n in self.colour else 1) * self.fps
+            for n in self.sockets
+        )
+        bootloader = _call(device, "getBootloaderVersion")
+        self._capabilities = {
+            "driver": "oak",
+            "depthai_version": str(getattr(dai, "__version__", "")),
+            "device_id": _call(device, "getDeviceId"),
+            "device_name": _text(_call(device, "getDeviceName")),
+            "product_name": _text(_call(device, "getProductName")),
+            "platform": _call(device, "getPlatformAsString"),
+            "usb_speed": _text(_call(device, "getUsbSpeed")),
+            "bootloader_version": None if bootloader is None else str(bootloader),
+            "os_version": _text(_call(device, "getOSVersion")),  # RVC4 devices
+            "sensors": [_features_dict(f) for f in features.values()],
+            "outputs": outputs,
+            "stream_mb_per_s": round(bytes_per_s / 1e6, 1),
+        }
+        self._calibration = {
+            "user": _call(device, "readCalibration"),
+            "factory": _call(device, "readFactoryCalibration"),
+        }
+        return queues
 
     @staticmethod
     def _stop(pipeline: Any) -> None:
@@ -185,16 +381,50 @@ class OakRig:
         self._pipeline = None
         self._queues = {}
 
+    def capabilities(self) -> dict[str, Any]:
+        """What the open device is and how it streams (plain data for the session): device id
+        (MX id or IP), name, product, platform, USB speed, bootloader version, the connected
+        sensors with their modes, per camera the sensor mode, size, resize mode and controls."""
+        if not self._capabilities:
+            raise HardwareFault("OAK rig not open: call open() first")
+        return dict(self._capabilities)
+
+    def device_calibrations(self) -> dict[str, dict[str, Any] | None]:
+        """The device's calibrations as depthai JSON (``eepromToJson()``), read on open:
+        ``user`` (``readCalibration``: what the device uses) and ``factory``
+        (``readFactoryCalibration``); None where the device holds none."""
+        empty = self._dai.CalibrationHandler().eepromToJson()
+        out: dict[str, dict[str, Any] | None] = {}
+        for kind, handler in self._calibration.items():
+            data = None if handler is None else dict(handler.eepromToJson())
+            # readCalibration answers an empty handler when the area holds nothing
+            out[kind] = None if data == empty else data
+        return out
+
     def read_calibration(self) -> Any:
         """The device's current ``dai.CalibrationHandler`` (keep it as a backup before flashing)."""
         if self._pipeline is None:
             raise HardwareFault("OAK rig not open: call open() first")
         return self._pipeline.getDefaultDevice().readCalibration()
 
+    def _lost(self, reason: str) -> HardwareFault:
+        self.close()
+        which = f"OAK device {self._capabilities.get('device_id') or self.device_id or ''}"
+        return HardwareFault(
+            f"{which.strip()} lost during capture ({reason}); check the cable or PoE link and "
+            "replug the device"
+        )
+
     def capture(self) -> dict[str, np.ndarray]:
         """One synchronised set exposed after this call (see the module docstring)."""
         if self._pipeline is None:
             raise HardwareFault("OAK rig not open: call open() first")
+        try:
+            return self._capture()
+        except (self._dai.MessageQueue.QueueException, RuntimeError) as e:
+            raise self._lost(str(e) or type(e).__name__) from None
+
+    def _capture(self) -> dict[str, np.ndarray]:
         for q in self._queues.values():
             q.tryGetAll()  # frames exposed before the call (e.g. while the robot moved)
         t_call = self._dai.Clock.now().total_seconds()
@@ -203,7 +433,7 @@ class OakRig:
         deadline = time.monotonic() + self.timeout_s
         while True:
             if not self._pipeline.isRunning():
-                raise HardwareFault("the OAK pipeline stopped (device lost?); replug the device")
+                raise self._lost("the pipeline stopped")
             for n in names:
                 for msg in self._queues[n].tryGetAll():
                     t = msg.getTimestamp().total_seconds()
@@ -247,6 +477,83 @@ class OakRig:
         return img
 
 
+def _features_dict(f: Any) -> dict[str, Any]:
+    return {
+        "socket": _text(f.socket),
+        "sensor": str(f.sensorName),
+        "width": int(f.width),
+        "height": int(f.height),
+        "autofocus": bool(f.hasAutofocus),
+        "modes": [
+            {
+                "width": int(c.width),
+                "height": int(c.height),
+                "min_fps": float(c.minFps),
+                "max_fps": float(c.maxFps),
+                "type": _text(c.type),
+            }
+            for c in f.configs
+        ],
+    }
+
+
+# ---------------------------------------------------------------------- the device's EEPROM
+class OakCalibrationStore:
+    """The calibration areas of one OAK device, for ``slidecal flash``.
+
+    ``read()`` is the calibration the device uses (``readCalibration``); ``flash(handler)``
+    writes the user area (``flashCalibration``; never the factory area) and returns what the
+    device holds afterwards, read back. Use as a context manager.
+    """
+
+    def __init__(self, device_id: str | None = None) -> None:
+        self.device_id = device_id
+        self._dai = import_depthai()
+        self._device: Any = None
+
+    def __enter__(self) -> OakCalibrationStore:
+        dai = self._dai
+        try:
+            if self.device_id is None:
+                self._device = dai.Device()
+            else:
+                self._device = dai.Device(dai.DeviceInfo(self.device_id))
+        except RuntimeError as e:
+            which = "any OAK device" if self.device_id is None else f"OAK device {self.device_id}"
+            raise HardwareFault(f"cannot open {which} ({e}); plug it in and retry") from None
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._device is not None:
+            try:
+                self._device.close()
+            except RuntimeError:
+                pass
+        self._device = None
+
+    def connected_id(self) -> str:
+        """The connected device's id (MX id, or IP for PoE devices)."""
+        return str(self._device.getDeviceId())
+
+    def read(self) -> Any:
+        """The ``dai.CalibrationHandler`` the device uses now."""
+        try:
+            return self._device.readCalibration()
+        except RuntimeError as e:
+            raise HardwareFault(f"could not read the device's calibration ({e})") from None
+
+    def flash(self, handler: Any) -> Any:
+        """Write ``handler`` to the user area and return the calibration read back."""
+        try:
+            self._device.flashCalibration(handler)
+        except RuntimeError as e:
+            raise HardwareFault(
+                f"the device refused the calibration ({e}); its previous calibration is "
+                "unchanged or in the backup file"
+            ) from None
+        return self.read()
+
+
 # ------------------------------------------------------------------------ calibration writing
 def _reference(result: CalibrationResult) -> str:
     if result.reference_camera:
@@ -270,31 +577,48 @@ def _T_cam_ref(result: CalibrationResult, name: str, ref: str) -> np.ndarray:
     return te.T
 
 
+def handler_from_json(data: Mapping[str, Any] | None) -> Any:
+    """A ``dai.CalibrationHandler`` from depthai calibration JSON (``eepromToJson()``), or an
+    empty one for None."""
+    dai = import_depthai()
+    return dai.CalibrationHandler() if data is None else dai.CalibrationHandler.fromJson(dict(data))
+
+
+def _spec_translation(base_json: Mapping[str, Any] | None, socket: int) -> list[float]:
+    for key, cam in (base_json or {}).get("cameraData", []):
+        if int(key) == socket:
+            st = cam.get("extrinsics", {}).get("specTranslation", {})
+            return [float(st.get(k, 0.0)) for k in "xyz"]
+    return [0.0, 0.0, 0.0]
+
+
 def oak_calibration_handler(
     result: CalibrationResult,
     sockets: Mapping[str, str] | None = None,
     *,
     stereo: tuple[str, str] | None = ("left", "right"),
     base: Any = None,
+    lens_positions: Mapping[str, int] | None = None,
 ) -> Any:
     """A ``dai.CalibrationHandler`` holding the result's intrinsics, distortion and extrinsics.
 
     ``sockets``: camera name -> board socket name (default left CAM_B, right CAM_C, rgb CAM_A).
     ``stereo``: the (left, right) names of the stereo pair, or None; rectification rotations
-    come from ``cv2.stereoRectify``. ``base``: a handler to start from (e.g. the device's
-    current calibration, to keep its IMU and board data); it is not modified.
+    come from ``cv2.stereoRectify``. ``base``: a handler or its JSON dict to start from (the
+    device's own calibration: its board name, IMU extrinsics, lens positions and design
+    translations are kept); it is not modified. ``lens_positions``: camera name -> the lens
+    position 0..255 the calibration holds at (auto-focus cameras).
     """
     import cv2
 
-    dai = _import_depthai()
+    dai = import_depthai()
     sockets = dict(DEFAULT_SOCKETS if sockets is None else sockets)
     unknown = [n for n in result.cameras if n not in sockets]
     if unknown:
         raise InputError(f"no OAK socket for camera(s) {unknown}; add them to sockets")
-    handler = dai.CalibrationHandler() if base is None else dai.CalibrationHandler.fromJson(
-        base.eepromToJson()
-    )
-    sock = {n: getattr(dai.CameraBoardSocket, sockets[n]) for n in result.cameras}
+    base_json = base if base is None or isinstance(base, Mapping) else base.eepromToJson()
+    handler = handler_from_json(base_json)
+    sock = {n: _board_socket(dai, sockets[n], n) for n in result.cameras}
     for name, cam in result.cameras.items():
         K = np.asarray(cam.K, float).tolist()
         handler.setCameraIntrinsics(sock[name], K, cam.width, cam.height)
@@ -304,6 +628,10 @@ def oak_calibration_handler(
             raise InputError(f"camera {name}: {dist.size} distortion coefficients, OAK takes 14")
         d[: dist.size] = dist
         handler.setDistortionCoefficients(sock[name], d.tolist())
+        handler.setCameraType(sock[name], dai.CameraModel.Perspective)
+    for name, lens in (lens_positions or {}).items():
+        if name in sock:
+            handler.setLensPosition(sock[name], int(lens))
     ref = _reference(result)
     order = [n for n in (stereo or ()) if n in result.cameras]
     order += [n for n in result.cameras if n not in order]
@@ -311,7 +639,8 @@ def oak_calibration_handler(
     for src, dst in zip(order[:-1], order[1:], strict=True):
         T_dst_src = T_ref[dst] @ inv_T(T_ref[src])
         handler.setCameraExtrinsics(
-            sock[src], sock[dst], T_dst_src[:3, :3].tolist(), (T_dst_src[:3, 3] * 100.0).tolist()
+            sock[src], sock[dst], T_dst_src[:3, :3].tolist(), (T_dst_src[:3, 3] * 100.0).tolist(),
+            _spec_translation(base_json, int(sock[src])),
         )
     if stereo is not None and all(n in result.cameras for n in stereo):
         left, right = stereo
@@ -333,13 +662,121 @@ def write_oak_calibration_json(
     sockets: Mapping[str, str] | None = None,
     *,
     stereo: tuple[str, str] | None = ("left", "right"),
+    base: Any = None,
+    lens_positions: Mapping[str, int] | None = None,
 ) -> Path:
     """Write the result as a depthai calibration JSON (``eepromToJsonFile``); returns the path.
 
-    Load it with ``dai.CalibrationHandler(path)``; flash it with ``device.flashCalibration``.
+    ``base``: the device's calibration (handler or JSON dict) to start from, see
+    :func:`oak_calibration_handler`. Load the file with ``dai.CalibrationHandler(path)``;
+    ``slidecal flash`` writes it to the device.
     """
-    handler = oak_calibration_handler(result, sockets, stereo=stereo)
+    handler = oak_calibration_handler(
+        result, sockets, stereo=stereo, base=base, lens_positions=lens_positions
+    )
     path = Path(path)
     if not handler.eepromToJsonFile(str(path)):
         raise InputError("depthai could not write the file; check the directory", where=str(path))
     return path
+
+
+# --------------------------------------------------------------- comparing two calibrations
+def device_camera(
+    data: Mapping[str, Any], socket: str, size: tuple[int, int], resize_mode: str = "stretch"
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(K (3, 3) px, distortion (14,))`` of a socket in depthai calibration JSON, mapped to an
+    output of ``size`` (width, height) made from the calibrated field of view with
+    ``resize_mode``; None when the JSON holds no perspective calibration of that socket.
+
+    Pixel centres follow OpenCV ((0, 0) is the centre of the top-left pixel): a scale ``s`` and
+    an offset ``o`` map ``u`` to ``s (u + 0.5) - 0.5 + o``.
+    """
+    dai = import_depthai()
+    h = handler_from_json(data)
+    s = _board_socket(dai, socket, socket)
+    if not h.hasCameraCalibration(s) or h.getDistortionModel(s) != dai.CameraModel.Perspective:
+        return None
+    K0, w0, h0 = h.getDefaultIntrinsics(s)
+    K0 = np.asarray(K0, float)
+    if w0 <= 0 or h0 <= 0:
+        return None
+    w, hh = size
+    sx, sy = w / w0, hh / h0
+    if resize_mode == "crop":
+        sx = sy = max(sx, sy)
+    elif resize_mode == "letterbox":
+        sx = sy = min(sx, sy)
+    ox, oy = (w - sx * w0) / 2.0, (hh - sy * h0) / 2.0
+    K = K0.copy()
+    K[0, :] *= sx
+    K[1, :] *= sy
+    K[0, 2] = sx * (K0[0, 2] + 0.5) - 0.5 + ox
+    K[1, 2] = sy * (K0[1, 2] + 0.5) - 0.5 + oy
+    K[2] = [0.0, 0.0, 1.0]
+    return K, np.asarray(h.getDistortionCoefficients(s), float)
+
+
+def device_T_cam_ref(data: Mapping[str, Any], socket: str, ref_socket: str) -> np.ndarray | None:
+    """``T_cam_ref`` (4, 4), metres, between two sockets in depthai calibration JSON."""
+    dai = import_depthai()
+    h = handler_from_json(data)
+    a, b = _board_socket(dai, ref_socket, ref_socket), _board_socket(dai, socket, socket)
+    if a == b:
+        return np.eye(4)
+    try:
+        T = np.asarray(h.getCameraExtrinsics(a, b), float)
+    except RuntimeError:
+        return None
+    T[:3, 3] /= 100.0
+    return T
+
+
+def projection_shift_px(
+    result: CalibrationResult,
+    data: Mapping[str, Any],
+    sockets: Mapping[str, str],
+    distance_m: float,
+    resize_mode: str = "stretch",
+    grid: int = 9,
+) -> dict[str, dict[str, float]]:
+    """How far the device's calibration moves projected points against ``result``, per camera.
+
+    Points on a plane ``distance_m`` in front of the reference camera, spread over the image
+    (a ``grid`` x ``grid`` lattice of the reference camera's pixels, back-projected with the
+    result), are projected into each camera with the result's model and with the device's
+    (intrinsics mapped to the session's image size, and its extrinsics to the reference camera
+    where the camera is not the reference). Returns ``{name: {rms_px, max_px}}`` for the
+    cameras the device has a perspective calibration of and the result a complete transform.
+    """
+    import cv2
+
+    ref = _reference(result)
+    cref = result.cameras[ref]
+    lattice = np.linspace(0.05, 0.95, grid)
+    u, v = np.meshgrid(lattice * (cref.width - 1), lattice * (cref.height - 1))
+    px = np.stack([u.ravel(), v.ravel()], axis=1).reshape(-1, 1, 2)
+    rays = cv2.undistortPoints(px, np.asarray(cref.K, float), np.asarray(cref.distortion, float))
+    P_ref = np.hstack([rays.reshape(-1, 2), np.ones((len(px), 1))]) * distance_m
+    out: dict[str, dict[str, float]] = {}
+    for name, cam in result.cameras.items():
+        if name not in sockets:
+            continue
+        dev = device_camera(data, sockets[name], (cam.width, cam.height), resize_mode)
+        T_dev = device_T_cam_ref(data, sockets[name], sockets[ref]) if name != ref else np.eye(4)
+        if dev is None or T_dev is None:
+            continue
+        try:
+            T_ours = _T_cam_ref(result, name, ref)
+        except InputError:
+            continue  # the result has no complete transform of this camera: not compared
+
+        def project(T, K, d):
+            P = P_ref @ T[:3, :3].T + T[:3, 3]
+            img, _ = cv2.projectPoints(P, np.zeros(3), np.zeros(3), K, d)
+            return img.reshape(-1, 2)
+
+        ours = project(T_ours, np.asarray(cam.K, float), np.asarray(cam.distortion, float))
+        theirs = project(T_dev, *dev)
+        e = np.linalg.norm(ours - theirs, axis=1)
+        out[name] = {"rms_px": float(np.sqrt(np.mean(e**2))), "max_px": float(e.max())}
+    return out

@@ -1,16 +1,27 @@
 """A single UVC (USB video class) camera through ``cv2.VideoCapture``: a ``CameraRig`` of one.
 
-The resolution is set and read back (a camera silently falls back to another size, which
-would make the intrinsics wrong: we refuse a mismatch). Manual exposure is asked for where
-the backend supports it (V4L2: ``CAP_PROP_AUTO_EXPOSURE`` 1 means manual); when it does not,
-a note is kept in :attr:`UvcCamera.messages`. Drivers buffer a few frames, so a capture right
-after the robot stopped could return an image exposed while it moved: :meth:`UvcCamera.capture`
-grabs and drops ``drop_frames`` frames first, then retrieves a fresh one.
+Every setting is set and then read back, and what the camera did with it is recorded
+(:attr:`UvcCamera.settings`, :meth:`UvcCamera.capabilities`):
+
+- the resolution: a camera silently falls back to another size, which would make the
+  intrinsics wrong: a mismatch is refused;
+- autofocus is switched off (``CAP_PROP_AUTOFOCUS`` 0): a calibration holds at one focus only.
+  A camera that still reads autofocus on afterwards is refused; one without the control
+  (fixed focus, or a video file) is recorded as such. ``focus`` sets a manual focus value;
+- manual exposure where asked (V4L2: ``CAP_PROP_AUTO_EXPOSURE`` 1 means manual, exposure in
+  100 microsecond steps), and a frame rate where asked; a camera that ignores these or reads back
+  another value is reported in :attr:`UvcCamera.messages` (the run goes on: the images say
+  whether exposure is usable; the focus and size are what the intrinsics depend on).
+
+Drivers buffer a few frames, so a capture right after the robot stopped could return an image
+exposed while it moved: :meth:`UvcCamera.capture` grabs and drops ``drop_frames`` frames first,
+then retrieves a fresh one.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -37,6 +48,11 @@ class UvcCamera:
         Pixel format such as ``"MJPG"`` (needed by many cameras for large sizes), or None.
     exposure
         Manual exposure in the backend's unit (V4L2: 100 microsecond steps), or None for auto.
+    focus
+        Manual focus value in the backend's unit (V4L2: ``focus_absolute``), or None to keep
+        the lens where it is (autofocus is switched off either way).
+    fps
+        Frame rate to request, or None for the camera's default.
     drop_frames
         Buffered frames discarded before each capture.
     """
@@ -49,6 +65,8 @@ class UvcCamera:
         height: int,
         fourcc: str | None = None,
         exposure: float | None = None,
+        focus: float | None = None,
+        fps: float | None = None,
         drop_frames: int = 4,
     ) -> None:
         if width <= 0 or height <= 0:
@@ -57,50 +75,125 @@ class UvcCamera:
             raise InputError(f"camera {name}: fourcc must be 4 characters, got {fourcc!r}")
         if drop_frames < 0:
             raise InputError(f"camera {name}: drop_frames must not be negative")
+        if fps is not None and fps <= 0:
+            raise InputError(f"camera {name}: fps must be positive, got {fps}")
         self.source = str(index_or_path) if isinstance(index_or_path, Path) else index_or_path
         self.name = name
         self.width = int(width)
         self.height = int(height)
         self.fourcc = fourcc
         self.exposure = exposure
+        self.focus = focus
+        self.fps = fps
         self.drop_frames = int(drop_frames)
         self.messages: list[str] = []
+        #: setting -> {requested, read_back, accepted}, filled by :meth:`open`.
+        self.settings: dict[str, dict[str, Any]] = {}
         self._cap: cv2.VideoCapture | None = None
+        self._backend: str | None = None
 
     @property
     def specs(self) -> tuple[CameraSpec, ...]:
         """The one camera's name and size."""
         return (CameraSpec(self.name, self.width, self.height),)
 
+    def _set(self, cap: cv2.VideoCapture, key: str, prop: int, value: float) -> bool:
+        """Set, read back and record a property; True when the camera holds the value."""
+        ok = bool(cap.set(prop, float(value)))
+        got = float(cap.get(prop))
+        held = ok and abs(got - float(value)) <= max(0.5, 0.01 * abs(float(value)))
+        self.settings[key] = {"requested": float(value), "read_back": got, "accepted": held}
+        return held
+
     def open(self) -> None:
-        """Open, set format and size (refusing a mismatch) and exposure."""
+        """Open; set format, size, frame rate, focus and exposure, and read them back."""
         cap = cv2.VideoCapture(self.source)
         if not cap.isOpened():
             raise HardwareFault(
                 f"camera {self.name}: cannot open {self.source!r}; check that it is plugged in, "
                 "that no other program uses it, and the index or path (v4l2-ctl --list-devices)"
             )
+        try:
+            self._configure(cap)
+        except BaseException:  # a refused setting, a cv2.error, Ctrl-C: the device is freed
+            cap.release()
+            raise
+        self._cap = cap
+
+    def _configure(self, cap: cv2.VideoCapture) -> None:
+        self.settings, self.messages = {}, []
+        try:
+            self._backend = str(cap.getBackendName())
+        except cv2.error:
+            self._backend = None
         if self.fourcc is not None:
-            cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*self.fourcc))
+            code = cv2.VideoWriter_fourcc(*self.fourcc)
+            if not self._set(cap, "fourcc", cv2.CAP_PROP_FOURCC, code):
+                self.messages.append(
+                    f"camera {self.name}: pixel format {self.fourcc} not taken; it delivers "
+                    f"{_fourcc_text(self.settings['fourcc']['read_back'])}"
+                )
         cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.width)
         cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height)
         got = (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
+        self.settings["size"] = {
+            "requested": [self.width, self.height],
+            "read_back": list(got),
+            "accepted": got == (self.width, self.height),
+        }
         if got != (self.width, self.height):
-            cap.release()
             raise HardwareFault(
                 f"camera {self.name} delivers {got[0]}x{got[1]} instead of "
                 f"{self.width}x{self.height}; pick a size it supports (v4l2-ctl "
                 "--list-formats-ext), possibly with fourcc MJPG"
             )
+        if self.fps is not None and not self._set(cap, "fps", cv2.CAP_PROP_FPS, self.fps):
+            self.messages.append(
+                f"camera {self.name}: frame rate {self.fps:g} not taken (reads "
+                f"{self.settings['fps']['read_back']:g})"
+            )
+        self._lock_focus(cap)
         if self.exposure is not None:
-            ok = cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, V4L2_MANUAL_EXPOSURE)
-            ok = cap.set(cv2.CAP_PROP_EXPOSURE, float(self.exposure)) and ok
-            if not ok:
+            manual = self._set(cap, "auto_exposure", cv2.CAP_PROP_AUTO_EXPOSURE,
+                               V4L2_MANUAL_EXPOSURE)
+            held = self._set(cap, "exposure", cv2.CAP_PROP_EXPOSURE, self.exposure)
+            if not (manual and held):
                 self.messages.append(
-                    f"camera {self.name}: manual exposure not supported by this backend; "
-                    "auto exposure stays on"
+                    f"camera {self.name}: manual exposure {self.exposure:g} not taken (auto "
+                    f"exposure reads {self.settings['auto_exposure']['read_back']:g}, exposure "
+                    f"{self.settings['exposure']['read_back']:g}); auto exposure may stay on"
                 )
-        self._cap = cap
+
+    def _lock_focus(self, cap: cv2.VideoCapture) -> None:
+        ok = bool(cap.set(cv2.CAP_PROP_AUTOFOCUS, 0))
+        af = float(cap.get(cv2.CAP_PROP_AUTOFOCUS))
+        self.settings["autofocus"] = {"requested": 0.0, "read_back": af, "accepted": af == 0}
+        if af > 0:
+            raise HardwareFault(
+                f"camera {self.name} keeps autofocus on (reads {af:g} after switching it off); "
+                "a calibration holds at one focus only: switch it off (v4l2-ctl -c "
+                "focus_automatic_continuous=0) or use a fixed-focus camera"
+            )
+        if not ok and af < 0:
+            self.settings["autofocus"]["accepted"] = True
+            self.messages.append(f"camera {self.name}: no autofocus control (fixed focus)")
+        if self.focus is not None and not self._set(cap, "focus", cv2.CAP_PROP_FOCUS, self.focus):
+            self.messages.append(
+                f"camera {self.name}: focus {self.focus:g} not taken (reads "
+                f"{self.settings['focus']['read_back']:g}); the lens stays where it is"
+            )
+
+    def capabilities(self) -> dict[str, Any]:
+        """What the camera is and what it did with each setting (plain data for the session)."""
+        if self._cap is None:
+            raise HardwareFault(f"camera {self.name} not open: call open() first")
+        return {
+            "driver": "uvc",
+            "source": str(self.source),
+            "backend": self._backend,
+            "settings": {k: dict(v) for k, v in self.settings.items()},
+            "messages": list(self.messages),
+        }
 
     def close(self) -> None:
         """Release the camera (idempotent)."""
@@ -127,3 +220,8 @@ class UvcCamera:
                 f"{self.width}x{self.height}; reopen it"
             )
         return {self.name: np.ascontiguousarray(img, dtype=np.uint8)}
+
+
+def _fourcc_text(code: float) -> str:
+    c = int(code)
+    return "".join(chr((c >> (8 * i)) & 0xFF) for i in range(4)) if c > 0 else "unknown"

@@ -90,6 +90,7 @@ SUBCOMMANDS: dict[str, str | SimpleNamespace] = {
     "bench": "slidecal.routines.benchmarks",
     "plan": "slidecal.routines.planner",
     "rehearse": "slidecal.routines.rehearse",
+    "flash": "slidecal.routines.flash",
 }
 
 

@@ -60,6 +60,7 @@ from typing import Any
 import numpy as np
 
 from slidecal.mocks.camera import SimCamera
+from slidecal.routines.devices import OAK_CAMERA_KEYS, OAK_RIG_KEYS, UVC_CAMERA_KEYS
 from slidecal.routines.schema import Fields, load_yaml, parse_yaml
 from slidecal.routines.session import (
     OPTIONS_KEYS,
@@ -120,9 +121,10 @@ CELL_KEYS: dict[str, tuple[str, ...]] = {
         "z_min_m",
         "move_timeout_s",
     ),
-    "cameras": ("driver", "reference", "list", "device_id"),
-    "cameras.list[].oak": ("name", "width", "height", "socket", "colour"),
-    "cameras.list[].uvc": ("name", "width", "height", "fourcc", "exposure", "drop_frames"),
+    # the camera drivers' own fields are declared beside the code that reads them
+    "cameras": OAK_RIG_KEYS,
+    "cameras.list[].oak": ("name", "width", "height", *OAK_CAMERA_KEYS),
+    "cameras.list[].uvc": ("name", "width", "height", *UVC_CAMERA_KEYS),
     "approximate.eye_in_hand": ("T_base_board", "T_tool_cam", "standoff_m"),
     "approximate.eye_to_hand": ("T_base_cam", "T_tool_board", "standoff_m"),
     "simulation": ("seed", "camera_preset", "cameras", "rig", "noise", "target_jitter"),

@@ -70,6 +70,9 @@ def default_session_dir() -> Path:
 
 def _connect_real(cfg: CellConfig) -> tuple[Any, Any]:
     """The real drivers named by the cell file (imported only here)."""
+    from slidecal.routines.devices import camera_rig
+
+    rig = camera_rig(cfg)  # first: refuses a missing library or a bad camera field
     from slidecal.drivers.ur import URRobot, cell_options
 
     r = cfg.robot
@@ -81,32 +84,6 @@ def _connect_real(cfg: CellConfig) -> tuple[Any, Any]:
         model=r.model,
         **cell_options(r.raw),  # take_control, payload
     )
-    if cfg.camera_driver == "oak":
-        from slidecal.drivers.oak import OakRig
-
-        opts = cfg.camera_options
-        sockets = {n: o.get("socket") for n, o in opts.items()}
-        missing = [n for n, s in sockets.items() if not s]
-        if missing:
-            raise InputError(
-                f"camera {missing[0]!r} has no socket; add socket: CAM_A|CAM_B|CAM_C",
-                where=f"{cfg.source}: cameras.list",
-            )
-        sizes = {c.name: (c.width, c.height) for c in cfg.cameras}
-        colour = {n for n, o in opts.items() if o.get("colour")}
-        device = cfg.raw.get("cameras", {}).get("device_id")
-        rig = OakRig(device, sockets, sizes, colour=colour)
-    else:
-        try:
-            from slidecal.drivers.uvc import UvcCamera  # type: ignore[import-not-found]
-        except ImportError:
-            raise InputError(
-                "this slidecal has no UVC driver (slidecal.drivers.uvc); use an OAK or the "
-                "simulated cell",
-                where=f"{cfg.source}: cameras.driver",
-            ) from None
-        c = cfg.cameras[0]
-        rig = UvcCamera(c.name, c.width, c.height, **cfg.camera_options[c.name])
     return robot, rig
 
 
@@ -150,6 +127,10 @@ def run_calibration(
     """
     t0 = time.monotonic()
     cfg = config if isinstance(config, CellConfig) else load_config(config, overrides)
+    if not cfg.simulated:
+        from slidecal.routines.devices import check_libraries
+
+        check_libraries(cfg)  # a missing extra is said before planning
     if isinstance(plan, str | Path):
         plan = read_plan(plan)
     plan = plan if plan is not None else make_plan(cfg).plan
@@ -180,6 +161,9 @@ def run_calibration(
         rig.open()
         specs = tuple(rig.specs)
         check_plan(plan, cfg, robot.is_reachable)  # refuse before anything moves
+        from slidecal.routines.devices import record_devices
+
+        devices = record_devices(rig, out, cfg.standoff_m)
         writer = SessionWriter(
             out,
             cfg.target,
@@ -189,7 +173,7 @@ def run_calibration(
             options=cfg.options,
             reference_camera=cfg.reference_camera,
             simulation=truth,
-            extra=cfg.session_fields(),
+            extra={**cfg.session_fields(), **devices},
             sockets=cfg.sockets,
         )
         write_plan(plan, out / "plan.yaml")
@@ -313,7 +297,13 @@ def write_outputs(
     if cfg is not None and cfg.camera_driver == "oak":
         oak = {n: o.get("socket") for n, o in cfg.camera_options.items()}
     exports = write_exports(result, result_path.parent / EXPORT_DIR, oak_sockets=oak)
-    summary = summary_text(result, truth)
+    from slidecal.routines.devices import device_calibration_outputs
+
+    device_exports, device_summary = device_calibration_outputs(
+        result, session_dir, result_path.parent / EXPORT_DIR
+    )
+    exports += [p for p in device_exports if p not in exports]
+    summary = summary_text(result, truth) + device_summary
     write_atomic(result_path.parent / SUMMARY_FILE, summary)
     return result_path, summary, exports
 

@@ -86,6 +86,7 @@ SESSION_KEYS: dict[str, tuple[str, ...]] = {
         "cell_sha256",
         "robot_driver",
         "camera_driver",
+        "devices",
         "simulation",
         "frames",
         "events",

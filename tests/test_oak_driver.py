@@ -1,26 +1,43 @@
 """OAK driver: calibration writing against the real depthai; capture against a fake depthai.
 
-The CalibrationHandler part runs on the installed depthai 3.12 (no device needed). Capture
-cannot run here (no device), so it is checked against a fake ``depthai`` module with the
-classes and methods the driver uses, plus one slow test that the real library's "No available
-devices" becomes a HardwareFault.
+The CalibrationHandler part runs on the installed depthai (no device needed). Capture cannot run
+here (no device), so it runs against ``tests/fake_depthai.py``: the real depthai with only the
+device-bound classes (Pipeline, Device, node.Camera and its output) faked, and a test that
+checks every name of the fake against the installed depthai. One slow test checks that the
+real library's "No available devices" becomes a HardwareFault.
 """
 
 from __future__ import annotations
 
+import inspect
+import re
 import sys
-import time
 import types
-from datetime import timedelta
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from slidecal.drivers.base import CameraRig
-from slidecal.drivers.oak import OakRig, oak_calibration_handler, write_oak_calibration_json
-from slidecal.solver.errors import HardwareFault, InputError
-from slidecal.solver.geometry import inv_T, random_rotation
-from slidecal.solver.result import CalibrationResult, CameraEstimate, TransformEstimate
+dai_real = pytest.importorskip("depthai")
+sys.path.insert(0, str(Path(__file__).parent))
+import fake_depthai  # noqa: E402
+
+from slidecal.drivers.base import CameraRig  # noqa: E402
+from slidecal.drivers.oak import (  # noqa: E402
+    OakRig,
+    choose_sensor_mode,
+    device_camera,
+    oak_calibration_handler,
+    projection_shift_px,
+    write_oak_calibration_json,
+)
+from slidecal.solver.errors import HardwareFault, InputError  # noqa: E402
+from slidecal.solver.geometry import inv_T, random_rotation  # noqa: E402
+from slidecal.solver.result import (  # noqa: E402
+    CalibrationResult,
+    CameraEstimate,
+    TransformEstimate,
+)
 
 # ------------------------------------------------------------------ calibration (real depthai)
 
@@ -129,178 +146,169 @@ def test_calibration_handler_keeps_a_base_handler_untouched():
 
 @pytest.mark.slow
 def test_real_depthai_without_device_is_a_hardware_fault():
-    rig = OakRig(sockets={"left": "CAM_B"}, sizes={"left": (1280, 800)})
+    rig = OakRig(sockets={"left": "CAM_B"}, sizes={"left": (1280, 800)}, colour=set())
     with pytest.raises(HardwareFault, match="USB3"):
         rig.open()
+
+
+
+def test_handler_starts_from_the_device_and_keeps_what_was_not_calibrated():
+    dai = dai_real
+    S = dai.CameraBoardSocket
+    device = dai.CalibrationHandler()
+    device.setBoardInfo("OAK-D", "R3M2E3")
+    device.setLensPosition(S.CAM_A, 120)
+    R_imu = random_rotation(np.random.default_rng(1), 0.1)
+    device.setImuExtrinsics(S.CAM_C, R_imu.tolist(), [1.0, 2.0, 3.0], [1.0, 2.0, 3.0])
+    device.setCameraExtrinsics(S.CAM_B, S.CAM_C, np.eye(3).tolist(), [-7.5, 0, 0], [-7.5, 0, 0])
+    result = _result(np.random.default_rng(7))
+    h = oak_calibration_handler(result, base=device.eepromToJson(), lens_positions={"rgb": 131})
+    js = h.eepromToJson()
+    assert js["boardName"] == "OAK-D" and js["boardRev"] == "R3M2E3"
+    np.testing.assert_allclose(js["imuExtrinsics"]["rotationMatrix"], R_imu, atol=1e-6)
+    ext = {int(c[0]): c[1] for c in js["cameraData"]}
+    assert ext[int(S.CAM_B)]["extrinsics"]["specTranslation"]["x"] == pytest.approx(-7.5)
+    assert h.getLensPosition(S.CAM_A) == 131
+    # what was calibrated is the result's
+    np.testing.assert_allclose(
+        h.getCameraIntrinsics(S.CAM_B), result.cameras["left"].K, rtol=1e-6
+    )
+
+
+def test_device_camera_maps_the_calibration_to_the_output_size():
+    h = dai_real.CalibrationHandler()
+    K0 = np.array([[3000.0, 0, 2020.0], [0, 3001.0, 1530.0], [0, 0, 1]])
+    h.setCameraIntrinsics(dai_real.CameraBoardSocket.CAM_A, K0.tolist(), 4056, 3040)
+    h.setDistortionCoefficients(dai_real.CameraBoardSocket.CAM_A, [0.1] + [0.0] * 13)
+    js = h.eepromToJson()
+    K, d = device_camera(js, "CAM_A", (2028, 1520), "stretch")
+    np.testing.assert_allclose(K[[0, 1], [0, 1]], K0[[0, 1], [0, 1]] / 2, rtol=1e-6)
+    assert K[0, 2] == pytest.approx((2020.0 + 0.5) / 2 - 0.5, abs=1e-3)
+    assert d[0] == pytest.approx(0.1)
+    # 1920x1080 stretched: x scaled by 1920/4056, y by 1080/3040; cropped: one scale, centred
+    K, _ = device_camera(js, "CAM_A", (1920, 1080), "stretch")
+    assert K[0, 0] / K[1, 1] == pytest.approx(3000 / 3001 * (1920 / 4056) / (1080 / 3040), 1e-5)
+    K, _ = device_camera(js, "CAM_A", (1920, 1080), "crop")
+    s = 1920 / 4056
+    assert K[1, 2] == pytest.approx(s * 1530.5 - 0.5 + (1080 - s * 3040) / 2, abs=1e-3)
+    assert device_camera(js, "CAM_B", (1280, 800)) is None
+
+
+def test_projection_shift_against_a_device_calibration():
+    r = _result(np.random.default_rng(8))
+    cams = {n: CameraEstimate(n, c.width, c.height, c.K, np.zeros(5), {}, 0.1)
+            for n, c in r.cameras.items()}
+    r = CalibrationResult(**{**r.__dict__, "cameras": dict(cams)})
+    same = oak_calibration_handler(r).eepromToJson()
+    shift = projection_shift_px(r, same, {"left": "CAM_B", "right": "CAM_C", "rgb": "CAM_A"}, 0.5)
+    assert set(shift) == {"left", "right", "rgb"}
+    assert max(v["max_px"] for v in shift.values()) < 2e-3  # float32 storage only
+    # the device's left fx 2 px larger: a point at normalised x moves 2 x px, largest at the
+    # lattice's edge (5 % in from the border)
+    K = np.array(r.cameras["left"].K, float)
+    K[0, 0] += 2.0
+    cams["left"] = CameraEstimate("left", 1280, 800, K, np.zeros(5), {}, 0.1)
+    dev = oak_calibration_handler(CalibrationResult(**{**r.__dict__, "cameras": cams}))
+    shift = projection_shift_px(r, dev.eepromToJson(), {"left": "CAM_B"}, 0.5)
+    K0 = np.asarray(r.cameras["left"].K)
+    x_edge = max(abs(0.05 * 1279 - K0[0, 2]), abs(0.95 * 1279 - K0[0, 2])) / K0[0, 0]
+    assert shift["left"]["max_px"] == pytest.approx(2.0 * x_edge, rel=1e-3)
+
+
+def test_choose_sensor_mode():
+    full, crop = (0, 0, 4056, 3040), (0, 440, 4056, 2160)
+    modes = [
+        {"width": 4056, "height": 3040, "min_fps": 1, "max_fps": 30, "fov": full},
+        {"width": 1920, "height": 1080, "min_fps": 1, "max_fps": 60, "fov": crop},
+        {"width": 2028, "height": 1520, "min_fps": 1, "max_fps": 60, "fov": full},
+    ]
+    assert choose_sensor_mode(modes, (1920, 1080), 10)["width"] == 2028  # full view, smallest
+    assert choose_sensor_mode(modes, (3000, 2000), 10)["width"] == 4056
+    assert choose_sensor_mode(modes, (3000, 2000), 45)["width"] == 2028  # 4056 cannot do 45
+    with pytest.raises(InputError, match="no full-field-of-view sensor mode runs at 90 fps"):
+        choose_sensor_mode(modes, (1920, 1080), 90)
+    assert choose_sensor_mode([], (640, 480), 10) is None
 
 
 # -------------------------------------------------------------------- capture (fake depthai)
 
 
-class FakeWorld:
-    def __init__(self):
-        self.calls = []
-        self.no_device = False
-        self.connected = ["CAM_A", "CAM_B", "CAM_C"]
-        self.period_s = 1 / 30
-        self.offsets = {"CAM_A": 0.004, "CAM_B": 0.0, "CAM_C": 0.00001}
-        self.deliver_size = None
-
-
-def make_fake_depthai(world: FakeWorld) -> types.ModuleType:
-    dai = types.ModuleType("depthai")
-
-    class CameraBoardSocket:
-        CAM_A, CAM_B, CAM_C, CAM_D = "CAM_A", "CAM_B", "CAM_C", "CAM_D"
-
-    class ImgFrameType:
-        GRAY8, BGR888i = "GRAY8", "BGR888i"
-
-    class ImgFrame:
-        Type = ImgFrameType
-
-    class Clock:
-        @staticmethod
-        def now():
-            return timedelta(seconds=time.monotonic())
-
-    class Frame:
-        def __init__(self, t, img):
-            self.t, self.img = t, img
-
-        def getTimestamp(self):
-            return timedelta(seconds=self.t)
-
-        def getCvFrame(self):
-            return self.img
-
-    class Queue:
-        def __init__(self, socket, size, kind):
-            self.socket, self.size, self.kind = socket, size, kind
-            off = world.offsets[socket]
-            # Two stale frames from before the capture call, marked 255.
-            self.pending = [Frame(time.monotonic() - 1.0 + off, self._img(255)),
-                            Frame(time.monotonic() - 0.5 + off, self._img(255))]
-            self.k_next = int(np.ceil(time.monotonic() / world.period_s))
-
-        def _img(self, value):
-            w, h = world.deliver_size or self.size
-            shape = (h, w, 3) if self.kind == "BGR888i" else (h, w)
-            return np.full(shape, value, np.uint8)
-
-        def tryGetAll(self):
-            now = time.monotonic()
-            while self.k_next * world.period_s + world.offsets[self.socket] <= now:
-                t = self.k_next * world.period_s + world.offsets[self.socket]
-                self.pending.append(Frame(t, self._img(self.k_next % 200)))
-                self.k_next += 1
-            out, self.pending = self.pending, []
-            return out
-
-    class Output:
-        def __init__(self, socket, size, kind):
-            self.args = (socket, size, kind)
-
-        def createOutputQueue(self, maxSize=16, blocking=False):
-            world.calls.append(("createOutputQueue", maxSize, blocking))
-            return Queue(*self.args)
-
-    class Control:
-        def __init__(self, socket):
-            self.socket = socket
-
-        def setManualExposure(self, exposureTimeUs, sensitivityIso):
-            world.calls.append(("setManualExposure", self.socket, exposureTimeUs, sensitivityIso))
-
-        def setManualFocus(self, lensPosition):
-            world.calls.append(("setManualFocus", self.socket, lensPosition))
-
-    class Camera:
-        def build(self, boardSocket):
-            world.calls.append(("build", boardSocket))
-            self.socket = boardSocket
-            self.initialControl = Control(boardSocket)
-            return self
-
-        def requestOutput(self, size, type=None, enableUndistortion=None):  # noqa: A002
-            call = ("requestOutput", self.socket, tuple(size), type, enableUndistortion)
-            world.calls.append(call)
-            return Output(self.socket, tuple(size), type)
-
-    class Device:
-        def getConnectedCameras(self):
-            return list(world.connected)
-
-    class AutoCalibrationMode:
-        OFF, ON_START, CONTINUOUS = "OFF", "ON_START", "CONTINUOUS"
-
-    class Pipeline:
-        def __init__(self, device=None):
-            if world.no_device:
-                raise RuntimeError("No available devices")
-            self.running = False
-
-        def getDefaultDevice(self):
-            return Device()
-
-        def setAutoCalibrationMode(self, mode):
-            world.calls.append(("setAutoCalibrationMode", mode))
-
-        def create(self, cls):
-            return cls()
-
-        def start(self):
-            world.calls.append(("start",))
-            self.running = True
-
-        def isRunning(self):
-            return self.running
-
-        def stop(self):
-            world.calls.append(("stop",))
-            self.running = False
-
-        def wait(self):
-            world.calls.append(("wait",))
-
-    Pipeline.AutoCalibrationMode = AutoCalibrationMode
-    dai.CameraBoardSocket = CameraBoardSocket
-    dai.ImgFrame = ImgFrame
-    dai.Clock = Clock
-    dai.Pipeline = Pipeline
-    dai.Device = lambda info: Device()
-    dai.DeviceInfo = lambda s: s
-    dai.node = types.SimpleNamespace(Camera=Camera)
-    return dai
-
-
 @pytest.fixture
 def world(monkeypatch):
-    w = FakeWorld()
-    monkeypatch.setitem(sys.modules, "depthai", make_fake_depthai(w))
-    return w
+    w = fake_depthai.World()
+    monkeypatch.setitem(sys.modules, "depthai", fake_depthai.make_fake_depthai(w))
+    yield w
+    for p in w.pipelines:
+        p.stop()
+
+
+def _requests(world):
+    return {c[1]: c for c in world.calls if c[0] == "requestOutput"}
 
 
 def test_open_configures_the_pipeline_for_calibration(world):
-    rig = OakRig(exposure_us=8000, iso=400, focus={"rgb": 130})
+    dai = dai_real
+    rig = OakRig(exposure_us=8000, iso=400, focus={"rgb": 130}, white_balance_k={"rgb": 4500})
     assert isinstance(rig, CameraRig)
     rig.open()
-    assert ("setAutoCalibrationMode", "OFF") in world.calls
-    req = [c for c in world.calls if c[0] == "requestOutput"]
-    assert ("requestOutput", "CAM_B", (1280, 800), "GRAY8", False) in req
-    assert ("requestOutput", "CAM_C", (1280, 800), "GRAY8", False) in req
-    assert ("requestOutput", "CAM_A", (1920, 1080), "BGR888i", False) in req
-    assert all(c[4] is False for c in req)
-    assert sum(c[0] == "setManualExposure" and c[2:] == (8000, 400) for c in world.calls) == 3
-    assert ("setManualFocus", "CAM_A", 130) in world.calls
-    assert world.calls.index(("setAutoCalibrationMode", "OFF")) < world.calls.index(("start",))
+    off = ("setAutoCalibrationMode", dai.Pipeline.AutoCalibrationMode.OFF)
+    assert world.calls.index(off) < world.calls.index(("start",))
+    req = _requests(world)
+    gray, bgr = dai.ImgFrame.Type.GRAY8, dai.ImgFrame.Type.BGR888i
+    stretch = dai.ImgResizeMode.STRETCH
+    # the whole field of view, at a requested frame rate, undistortion off
+    assert req["CAM_B"][2:] == ((1280, 800), gray, stretch, 10.0, False)
+    assert req["CAM_C"][2:] == ((1280, 800), gray, stretch, 10.0, False)
+    assert req["CAM_A"][2:] == ((1920, 1080), bgr, stretch, 10.0, False)
+    builds = {c[1]: c[2:] for c in world.calls if c[0] == "build"}
+    assert builds["CAM_A"] == ((2028, 1520), 10.0)  # binned full-view mode, not the 1080p crop
+    assert builds["CAM_B"] == ((1280, 800), 10.0)
+    # the initial controls, read back from depthai's own CameraControl
+    controls = {c._socket: c.initialControl for c in world.pipelines[0].cameras}
+    for ctrl in controls.values():
+        assert ctrl.getExposureTime().total_seconds() == pytest.approx(0.008)
+        assert ctrl.getSensitivity() == 400
+    assert controls["CAM_A"].getLensPosition() == 130
+    assert "wbColorTemp: 4500" in str(controls["CAM_A"])
+    assert "wbColorTemp: 0" in str(controls["CAM_B"])
     rig.close()
     rig.close()
     assert world.calls.count(("stop",)) == 1
 
 
+def test_capabilities_and_device_calibrations_are_reported(world):
+    rig = OakRig(focus={"rgb": 130}, fps=15)
+    rig.open()
+    cap = rig.capabilities()
+    assert cap["device_id"] == world.device_id and cap["usb_speed"] == "SUPER"
+    assert cap["product_name"] == "OAK-D" and cap["platform"] == "RVC2"
+    sensors = {s["socket"]: s for s in cap["sensors"]}
+    assert sensors["CAM_A"]["sensor"] == "IMX378" and sensors["CAM_A"]["autofocus"]
+    assert len(sensors["CAM_B"]["modes"]) == 2
+    rgb = cap["outputs"]["rgb"]
+    assert rgb["sensor_mode"]["width"] == 2028 and rgb["fps"] == 15.0
+    assert rgb["focus"] == 130 and rgb["white_balance_k"] == 5000
+    assert cap["stream_mb_per_s"] == pytest.approx((2 * 1280 * 800 + 3 * 1920 * 1080) * 15 / 1e6,
+                                                   abs=0.1)
+    cal = rig.device_calibrations()
+    assert cal["user"]["boardName"] == "OAK-D" and cal["factory"]["boardName"] == "OAK-D"
+    rig.close()
+
+
+def test_autofocus_camera_without_focus_is_refused_and_the_pipeline_stopped(world):
+    with pytest.raises(InputError, match=r"rgb \(CAM_A\) have autofocus.*add focus"):
+        OakRig().open()
+    assert ("stop",) in world.calls and ("start",) not in world.calls
+
+
+def test_unknown_socket_lists_the_valid_ones_and_opens_nothing(world):
+    with pytest.raises(InputError, match="'CAM_Q' is not an OAK board socket; use one of CAM_A"):
+        OakRig(sockets={"left": "CAM_Q"}, sizes={"left": (1280, 800)})
+    assert world.pipelines == []
+
+
 def test_capture_returns_a_fresh_synchronised_set(world):
-    rig = OakRig(sync_tolerance_s=0.005)
+    rig = OakRig(sync_tolerance_s=0.005, focus={"rgb": 130}, fps=30)
     rig.open()
     assert [s.name for s in rig.specs] == ["left", "right", "rgb"]
     for _ in range(3):
@@ -313,40 +321,190 @@ def test_capture_returns_a_fresh_synchronised_set(world):
     rig.close()
 
 
+def test_device_lost_mid_run_is_a_hardware_fault_and_stops_the_pipeline(world):
+    rig = OakRig(focus={"rgb": 130}, fps=30)
+    rig.open()
+    rig.capture()
+    world.lose_device()
+    assert world.pipelines[0].isRunning()  # the pipeline does not know yet; the queues do
+    with pytest.raises(HardwareFault, match=f"OAK device {world.device_id} lost during capture"):
+        rig.capture()
+    assert ("stop",) in world.calls
+    with pytest.raises(HardwareFault, match="not open"):
+        rig.capture()
+
+
+def test_a_free_running_colour_camera_half_a_period_off_is_matched(world):
+    """At 10 fps the colour camera's frames can sit up to 50 ms from the stereo pair's (a
+    fixed phase): the default tolerance (0.55 / fps) still makes sets; the old fixed 15 ms
+    waited for a match that never comes."""
+    world.offsets["CAM_A"] = 0.045
+    rig = OakRig(focus={"rgb": 130}, timeout_s=1.0)
+    assert rig.sync_tolerance_s == pytest.approx(0.055)
+    rig.open()
+    images = rig.capture()
+    assert len({int(img.flat[0]) for img in images.values()}) == 1
+    rig.close()
+
+
 def test_capture_fault_when_cameras_are_not_synchronised(world):
     world.offsets["CAM_A"] = 0.016  # half a frame period away from the stereo pair
-    rig = OakRig(sync_tolerance_s=0.005, timeout_s=0.2)
+    rig = OakRig(sync_tolerance_s=0.005, timeout_s=0.2, focus={"rgb": 130}, fps=30)
     rig.open()
     with pytest.raises(HardwareFault, match="no set of frames within 5.0 ms"):
         rig.capture()
+    rig.close()
 
 
 def test_no_device_and_missing_camera_are_hardware_faults(world):
     world.no_device = True
     with pytest.raises(HardwareFault, match="plug it into a USB3 port"):
-        OakRig().open()
+        OakRig(focus={"rgb": 130}).open()
     world.no_device = False
-    world.connected = ["CAM_B", "CAM_C"]
+    world.sensors = world.sensors[1:]
     with pytest.raises(HardwareFault, match=r"rgb \(CAM_A\) not on this device"):
-        OakRig().open()
+        OakRig(focus={"rgb": 130}).open()
     assert ("stop",) in world.calls and ("start",) not in world.calls
 
 
 def test_wrong_delivered_size_is_a_fault(world):
     world.deliver_size = (640, 400)
-    rig = OakRig(sockets={"left": "CAM_B"}, sizes={"left": (1280, 800)})
+    rig = OakRig(sockets={"left": "CAM_B"}, sizes={"left": (1280, 800)}, fps=30)
     rig.open()
     with pytest.raises(HardwareFault, match="640x400 instead of 1280x800"):
         rig.capture()
+    rig.close()
 
 
-def test_bad_configuration():
+def test_bad_configuration(world):
     with pytest.raises(InputError, match="together"):
         OakRig(exposure_us=1000)
     with pytest.raises(InputError, match="no image size"):
         OakRig(sockets={"cam": "CAM_D"}, sizes={})
     with pytest.raises(InputError, match="lens"):
         OakRig(focus={"rgb": 300})
+    with pytest.raises(InputError, match="resize mode"):
+        OakRig(resize_mode="squash")
+    with pytest.raises(InputError, match="white_balance_k"):
+        OakRig(white_balance_k={"left": 5000})
     with pytest.raises(HardwareFault, match="open"):
         OakRig().capture()
 
+
+def test_missing_depthai_names_the_extra(monkeypatch):
+    monkeypatch.setitem(sys.modules, "depthai", None)  # import now fails
+    with pytest.raises(InputError, match=r"pip install 'slidecal\[oak\]'"):
+        OakRig()
+
+
+# ------------------------------------------------------- the fake against the installed depthai
+
+
+def _overloads(real, name):
+    """Parameter lists ``[(name, has_default), ...]`` of a pybind11 callable's overloads."""
+    doc = inspect.getdoc(real) or ""
+    out = []
+    for m in re.finditer(rf"^(?:\d+\. )?{re.escape(name)}\((.*)\) ->", doc, re.M):
+        params, depth, cur = [], 0, ""
+        for ch in m.group(1) + ",":
+            if ch in "[(<{":
+                depth += 1
+            elif ch in "])>}":
+                depth -= 1
+            if ch == "," and depth == 0:
+                params.append(cur.strip())
+                cur = ""
+            else:
+                cur += ch
+        out.append([(p.split(":")[0].strip(), "=" in p) for p in params if p and p != "self"
+                    and not p.startswith("self:")])
+    return out
+
+
+def _check_callable(fake, real, name, where):
+    assert callable(real), f"{where}: the fake has a method, depthai has {type(real).__name__}"
+    overloads = _overloads(real, name)
+    if not overloads:
+        return  # not introspectable (no signature in the docstring)
+    sig = inspect.signature(fake)
+    mine = [p for p in sig.parameters.values() if p.name != "self"]
+    names = [p.name for p in mine]
+    for params in overloads:
+        real = [(p, d) for p, d in params if not p.startswith("*")]
+        if len(names) > len(real) or any(not d for _, d in real[len(names):]):
+            continue  # the fake takes more, or lacks a parameter depthai requires
+        # by position and by name (pybind's argN names are positional only)
+        pairs = zip(real[: len(names)], names, strict=True)
+        if all(r == n or re.fullmatch(r"arg\d+", r) for (r, _), n in pairs):
+            return
+    raise AssertionError(f"{where}{sig} matches no overload of depthai's: {overloads}")
+
+
+def _check(fake, real, where):
+    if fake is real:
+        return
+    if isinstance(fake, types.SimpleNamespace):
+        for k, v in vars(fake).items():
+            assert hasattr(real, k), f"{where}.{k}: not in the installed depthai"
+            _check(v, getattr(real, k), f"{where}.{k}")
+        return
+    assert hasattr(real, "__members__") is False, f"{where}: depthai's is an enum; use it"
+    if inspect.isclass(fake):
+        assert inspect.isclass(real), f"{where}: a class in the fake, not in depthai"
+        for k, v in vars(fake).items():
+            if k.startswith("_") and k != "__init__":
+                continue
+            assert hasattr(real, k), f"{where}.{k}: not in the installed depthai"
+            r = getattr(real, k)
+            if inspect.isfunction(v):
+                _check_callable(v, r, k, f"{where}.{k}")
+            elif inspect.isclass(v) or isinstance(v, types.SimpleNamespace):
+                _check(v, r, f"{where}.{k}")
+            elif v is not None:
+                assert type(v) is type(r), f"{where}.{k}: {type(v)} against {type(r)}"
+        return
+    raise AssertionError(f"{where}: {type(fake).__name__} is neither depthai's nor a class")
+
+
+def test_the_fake_depthai_matches_the_installed_one():
+    fake = fake_depthai.make_fake_depthai(fake_depthai.World())
+    names = [n for n in vars(fake) if not n.startswith("_")]
+    assert set(fake_depthai.REAL_NAMES) < set(names)
+    faked = []
+    for n in names:
+        assert hasattr(dai_real, n), f"depthai.{n} does not exist"
+        _check(getattr(fake, n), getattr(dai_real, n), f"depthai.{n}")
+        faked += [n] if getattr(fake, n) is not getattr(dai_real, n) else []
+    assert sorted(faked) == ["Device", "Node", "Pipeline", "node"]
+    # and the checker catches a drifted fake: a renamed keyword, a method depthai lacks
+    class Drifted:
+        def requestOutput(self, size, type=None, resize_mode=None):  # noqa: A002
+            ...
+
+    with pytest.raises(AssertionError, match="matches no overload"):
+        _check(Drifted, dai_real.node.Camera, "Camera")
+    Drifted.requestOutput = lambda self, size: None
+    Drifted.grabFrame = lambda self: None
+    with pytest.raises(AssertionError, match="grabFrame: not in the installed depthai"):
+        _check(Drifted, dai_real.node.Camera, "Camera")
+
+
+def test_a_device_without_calibration_reports_none(world):
+    world.user, world.factory = None, None
+    rig = OakRig(focus={"rgb": 130})
+    rig.open()
+    assert rig.device_calibrations() == {"user": None, "factory": None}
+    rig.close()
+
+
+def test_a_sensor_mode_the_device_refuses_is_never_requested(world):
+    """depthai-core's Camera::build refuses a resolution that is not one of the sensor's
+    modes, or a frame rate outside that mode's range (RuntimeError); the driver asks for a
+    mode that fits instead, or says in one line that none does."""
+    with pytest.raises(InputError, match=r"camera 'rgb' \(CAM_A\): no full-field-of-view"):
+        OakRig(focus={"rgb": 130}, fps=90.0).open()
+    assert world.pipelines[-1].isRunning() is False and ("start",) not in world.calls
+    rig = OakRig(focus={"rgb": 130}, fps=45.0)  # the full 4056x3040 mode stops at 30 fps
+    rig.open()
+    assert rig.capabilities()["outputs"]["rgb"]["sensor_mode"]["width"] == 2028
+    rig.close()

@@ -49,16 +49,29 @@ def test_real_video_file_size_mismatch_refused(video):
 
 
 class FakeCapture:
-    """cv2.VideoCapture's interface: set/get of properties, grab/retrieve, isOpened/release."""
+    """cv2.VideoCapture's interface: set/get of properties, grab/retrieve, isOpened/release.
+
+    Like V4L2: a property the camera lacks cannot be set and reads -1; ``autofocus`` is
+    "off-able", "stuck" (reads 1 whatever is set) or "absent"; exposure snaps to steps of
+    ``exposure_step``."""
 
     instances: list[FakeCapture] = []
     sizes = [(640, 480), (1280, 720)]
     exposure_supported = True
+    exposure_step = 1.0
+    autofocus = "off-able"
     frames_left = 100
 
     def __init__(self, source):
         self.source = source
-        self.props = {cv2.CAP_PROP_FRAME_WIDTH: 640.0, cv2.CAP_PROP_FRAME_HEIGHT: 480.0}
+        self.props = {
+            cv2.CAP_PROP_FRAME_WIDTH: 640.0,
+            cv2.CAP_PROP_FRAME_HEIGHT: 480.0,
+            cv2.CAP_PROP_AUTOFOCUS: 1.0,
+            cv2.CAP_PROP_AUTO_EXPOSURE: 3.0,
+            cv2.CAP_PROP_EXPOSURE: 166.0,
+            cv2.CAP_PROP_FPS: 30.0,
+        }
         self.sets = []
         self.grabs = 0
         self.released = False
@@ -67,10 +80,22 @@ class FakeCapture:
     def isOpened(self):
         return self.source != 99
 
+    def getBackendName(self):
+        return "V4L2"
+
     def set(self, prop, value):
         self.sets.append((prop, value))
         if prop in (cv2.CAP_PROP_AUTO_EXPOSURE, cv2.CAP_PROP_EXPOSURE):
-            return self.exposure_supported
+            if not self.exposure_supported:
+                return False
+            if prop == cv2.CAP_PROP_EXPOSURE:
+                value = round(value / self.exposure_step) * self.exposure_step
+        if prop in (cv2.CAP_PROP_AUTOFOCUS, cv2.CAP_PROP_FOCUS):
+            if self.autofocus == "absent":
+                self.props.pop(cv2.CAP_PROP_AUTOFOCUS, None)
+                return False
+            if self.autofocus == "stuck" and prop == cv2.CAP_PROP_AUTOFOCUS:
+                return True  # the driver says yes and does nothing
         self.props[prop] = float(value)
         if prop == cv2.CAP_PROP_FRAME_HEIGHT:  # snap to a supported size, as drivers do
             want = (self.props[cv2.CAP_PROP_FRAME_WIDTH], value)
@@ -79,7 +104,7 @@ class FakeCapture:
         return True
 
     def get(self, prop):
-        return self.props.get(prop, 0.0)
+        return self.props.get(prop, -1.0)
 
     def grab(self):
         if FakeCapture.frames_left <= 0:
@@ -96,10 +121,17 @@ class FakeCapture:
         self.released = True
 
 
+def test_fake_capture_has_only_what_cv2_videocapture_has():
+    mine = [k for k, v in vars(FakeCapture).items() if not k.startswith("_") and callable(v)]
+    assert set(mine) <= set(dir(cv2.VideoCapture)), set(mine) - set(dir(cv2.VideoCapture))
+
+
 @pytest.fixture
 def fake(monkeypatch):
     FakeCapture.instances = []
     FakeCapture.exposure_supported = True
+    FakeCapture.exposure_step = 1.0
+    FakeCapture.autofocus = "off-able"
     FakeCapture.frames_left = 100
     monkeypatch.setattr(cv2, "VideoCapture", FakeCapture)
     return FakeCapture
@@ -119,6 +151,39 @@ def test_fake_sets_format_size_exposure_and_drops_frames(fake):
     assert cap.released
 
 
+def test_autofocus_is_switched_off_and_read_back(fake):
+    cam = UvcCamera(0, "c", 640, 480, focus=40, fps=15)
+    cam.open()
+    cap = fake.instances[0]
+    assert (cv2.CAP_PROP_AUTOFOCUS, 0.0) in cap.sets and cap.get(cv2.CAP_PROP_AUTOFOCUS) == 0
+    assert cap.get(cv2.CAP_PROP_FOCUS) == 40 and cap.get(cv2.CAP_PROP_FPS) == 15
+    settings = cam.capabilities()["settings"]
+    assert settings["autofocus"] == {"requested": 0.0, "read_back": 0.0, "accepted": True}
+    assert settings["focus"]["accepted"] and settings["fps"]["read_back"] == 15
+    assert cam.capabilities()["backend"] == "V4L2" and cam.messages == []
+    cam.close()
+
+
+def test_a_camera_that_keeps_autofocus_on_is_refused(fake):
+    fake.autofocus = "stuck"
+    with pytest.raises(HardwareFault, match="keeps autofocus on"):
+        UvcCamera(0, "c", 640, 480).open()
+    assert fake.instances[0].released
+    fake.autofocus = "absent"
+    cam = UvcCamera(0, "c", 640, 480)
+    cam.open()
+    assert cam.messages == ["camera c: no autofocus control (fixed focus)"]
+
+
+def test_settings_the_camera_ignores_are_reported(fake):
+    fake.exposure_step = 39.0  # 150 reads back as 156
+    cam = UvcCamera(0, "c", 640, 480, exposure=150)
+    cam.open()
+    assert cam.settings["exposure"] == {"requested": 150.0, "read_back": 156.0, "accepted": False}
+    assert "manual exposure 150 not taken" in cam.messages[0]
+    assert "exposure 156" in cam.messages[0]
+
+
 def test_fake_refuses_size_fallback_and_reports_missing_exposure(fake):
     with pytest.raises(HardwareFault, match="640x480 instead of 1920x1080"):
         UvcCamera(0, "c", 1920, 1080).open()
@@ -126,7 +191,7 @@ def test_fake_refuses_size_fallback_and_reports_missing_exposure(fake):
     fake.exposure_supported = False
     cam = UvcCamera(0, "c", 640, 480, exposure=100)
     cam.open()
-    assert "manual exposure not supported" in cam.messages[0]
+    assert "manual exposure 100 not taken" in cam.messages[0]
 
 
 def test_fake_unplugged_and_not_open(fake):

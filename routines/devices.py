@@ -1,0 +1,280 @@
+"""From a cell file to camera driver objects, and what the devices say about themselves into
+the session directory.
+
+:func:`check_libraries` refuses, before anything connects, a cell that names a driver whose
+library is not installed, naming the extra that brings it. :func:`camera_rig` maps the cell's
+``cameras:`` section to an :class:`~slidecal.drivers.oak.OakRig` or a
+:class:`~slidecal.drivers.uvc.UvcCamera`. :func:`record_devices` writes what the open camera
+reports (capabilities, and an OAK's own calibrations as depthai JSON beside ``session.yaml``)
+and returns the ``devices:`` block of the session. :func:`device_calibration_outputs` (after a
+solve) writes the depthai JSON export starting from the device's own calibration and says how
+far the device's calibrations move projected points against the new result.
+
+Camera keys of a cell file (besides ``name``, ``width``, ``height`` of each camera)::
+
+    cameras:
+      driver: oak
+      device_id: 18443010D1E4F1F500   # MX id or IP; default: the first device found
+      fps: 10                         # one frame rate for every camera (bandwidth)
+      resize: stretch                 # stretch (whole field of view) | crop | letterbox
+      exposure_us: 8000               # manual exposure for every camera, with iso
+      iso: 400
+      list:
+        - {name: left, width: 1280, height: 800, socket: CAM_B}
+        - {name: rgb, width: 1920, height: 1080, socket: CAM_A, colour: true, focus: 130,
+           white_balance_k: 5000}    # focus: lens position 0..255, required with autofocus
+
+    cameras:
+      driver: uvc
+      list:
+        - {name: cam, width: 1280, height: 720, source: 0, fourcc: MJPG, exposure: 150,
+           focus: 30, fps: 15, drop_frames: 4}   # source: index, /dev/video path or file
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from slidecal.routines.session import SESSION_FILE, Fields, load_yaml, write_atomic
+from slidecal.solver.errors import InputError
+from slidecal.solver.result import CalibrationResult
+
+#: Driver -> (module it needs, the package that brings it, the slidecal extra).
+LIBRARIES = {
+    "ur": ("rtde_control", "ur-rtde", "ur"),
+    "oak": ("depthai", "depthai", "oak"),
+}
+OAK_RIG_KEYS = ("driver", "reference", "list", "device_id", "fps", "resize", "exposure_us", "iso",
+                "sync_tolerance_s")
+OAK_CAMERA_KEYS = ("socket", "colour", "focus", "white_balance_k")
+UVC_CAMERA_KEYS = ("source", "fourcc", "exposure", "focus", "fps", "drop_frames")
+USER_FILE = "device_calibration_user.json"
+FACTORY_FILE = "device_calibration_factory.json"
+
+
+def _installed(module: str) -> bool:
+    if module in sys.modules:  # imported already (or blocked: None)
+        return sys.modules[module] is not None
+    try:
+        return importlib.util.find_spec(module) is not None
+    except (ImportError, ValueError):
+        return False
+
+
+def check_libraries(cfg: Any) -> None:
+    """``InputError`` when the cell names a driver whose library is not installed."""
+    for section, driver in (("robot", cfg.robot.driver), ("cameras", cfg.camera_driver)):
+        if driver in LIBRARIES:
+            module, package, extra = LIBRARIES[driver]
+            if not _installed(module):
+                raise InputError(
+                    f"is {driver!r}, which needs {package} (not installed); install it with "
+                    f"pip install 'slidecal[{extra}]'",
+                    where=f"{cfg.source}: {section}.driver",
+                )
+
+
+def camera_rig(cfg: Any) -> Any:
+    """The camera driver object of a real cell (not opened)."""
+    check_libraries(cfg)
+    section = Fields(cfg.raw.get("cameras") or {}, cfg.source, "cameras")
+    if cfg.camera_driver == "oak":
+        return _oak(cfg, section)
+    if cfg.camera_driver == "uvc":
+        return _uvc(cfg, section)
+    raise section.error("driver", f"is {cfg.camera_driver!r}; a real cell needs oak or uvc")
+
+
+def _camera_fields(cfg: Any, section: Fields, allowed: tuple[str, ...]) -> dict[str, Fields]:
+    out = {}
+    for i, c in enumerate(cfg.cameras):
+        f = Fields(cfg.camera_options[c.name], cfg.source, f"{section.path}.list[{i}]")
+        unknown = sorted(set(f.data) - set(allowed))
+        if unknown:
+            raise f.error(
+                unknown[0], f"is not a {cfg.camera_driver} camera field; use {', '.join(allowed)}"
+            )
+        out[c.name] = f
+    return out
+
+
+def _oak(cfg: Any, section: Fields) -> Any:
+    from slidecal.drivers.oak import DEFAULT_FPS, RESIZE_MODES, OakRig
+
+    unknown = sorted(set(section.data) - set(OAK_RIG_KEYS))
+    if unknown:
+        raise section.error(unknown[0], f"is not an oak field; use {', '.join(OAK_RIG_KEYS)}")
+    cams = _camera_fields(cfg, section, OAK_CAMERA_KEYS)
+    sockets = {n: f.string("socket") for n, f in cams.items()}
+    colour = {n for n, f in cams.items() if f.boolean("colour", False)}
+    focus = {n: f.integer("focus", minimum=0) for n, f in cams.items() if f.has("focus")}
+    wb = {n: f.integer("white_balance_k", minimum=1000) for n, f in cams.items()
+          if f.has("white_balance_k")}
+    exposure = section.integer("exposure_us", minimum=1) if section.has("exposure_us") else None
+    iso = section.integer("iso", minimum=100) if section.has("iso") else None
+    device = section.get("device_id")
+    try:
+        return OakRig(
+            None if device is None else str(device),
+            sockets,
+            {c.name: (c.width, c.height) for c in cfg.cameras},
+            colour=colour,
+            exposure_us=exposure,
+            iso=iso,
+            focus=focus,
+            white_balance_k=wb,
+            fps=section.number("fps", DEFAULT_FPS, positive=True),
+            resize_mode=section.choice("resize", RESIZE_MODES, "stretch"),
+            sync_tolerance_s=(
+                section.number("sync_tolerance_s", positive=True)
+                if section.has("sync_tolerance_s")
+                else None
+            ),
+        )
+    except InputError as e:
+        if e.where:
+            raise
+        raise InputError(str(e), where=section.where()) from None
+
+
+def _uvc(cfg: Any, section: Fields) -> Any:
+    from slidecal.drivers.uvc import UvcCamera
+
+    if len(cfg.cameras) != 1:
+        raise section.error("list", f"holds {len(cfg.cameras)} cameras; a uvc cell has one")
+    c = cfg.cameras[0]
+    f = _camera_fields(cfg, section, UVC_CAMERA_KEYS)[c.name]
+    source = f.require("source")
+    if isinstance(source, bool) or not isinstance(source, int | str):
+        raise f.error("source", f"must be a device index or a path, got {source!r}")
+
+    def opt(key: str) -> float | None:
+        return f.number(key) if f.has(key) else None
+
+    try:
+        return UvcCamera(
+            source,
+            c.name,
+            c.width,
+            c.height,
+            fourcc=str(f.get("fourcc")) if f.has("fourcc") else None,
+            exposure=opt("exposure"),
+            focus=opt("focus"),
+            fps=opt("fps"),
+            drop_frames=f.integer("drop_frames", 4, minimum=0),
+        )
+    except InputError as e:
+        raise InputError(str(e), where=f.where()) from None
+
+
+# ------------------------------------------------------------------------------ the session
+def record_devices(rig: Any, session_dir: str | Path, working_distance_m: float) -> dict[str, Any]:
+    """Write what the open rig reports into ``session_dir`` and return the session's
+    ``devices:`` block: ``camera`` (the driver's capabilities), ``working_distance_m`` and, for
+    an OAK, ``calibration_files`` (``user``/``factory``: depthai JSON files beside
+    ``session.yaml``, absent where the device holds none). Rigs without a report (the
+    simulated cell) give an empty block."""
+    capabilities = getattr(rig, "capabilities", None)
+    if capabilities is None:
+        return {}
+    out = Path(session_dir)
+    if (out / SESSION_FILE).exists():
+        raise InputError(
+            "already holds a session; choose a new --out directory or delete the old one",
+            where=str(out),
+        )
+    out.mkdir(parents=True, exist_ok=True)
+    block: dict[str, Any] = {"camera": capabilities(), "working_distance_m": working_distance_m}
+    calibrations = getattr(rig, "device_calibrations", None)
+    if calibrations is not None:
+        files = {}
+        for kind, data in calibrations().items():
+            if data is None:
+                continue
+            name = USER_FILE if kind == "user" else FACTORY_FILE
+            write_atomic(out / name, json.dumps(data, indent=1))
+            files[kind] = name
+        block["calibration_files"] = files
+    return {"devices": block}
+
+
+def session_devices(session_dir: str | Path) -> dict[str, Any]:
+    """The ``devices:`` block of a session (empty when it has none)."""
+    data = load_yaml(Path(session_dir) / SESSION_FILE, "session file")
+    block = data.get("devices") if isinstance(data, Mapping) else None
+    return dict(block) if isinstance(block, Mapping) else {}
+
+
+def oak_outputs(devices: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    """Camera name -> the OAK output record (socket, resize mode, focus ...), or empty."""
+    camera = devices.get("camera") or {}
+    return dict(camera.get("outputs") or {}) if camera.get("driver") == "oak" else {}
+
+
+def read_device_calibration(session_dir: str | Path, devices: Mapping[str, Any], kind: str):
+    """The depthai JSON dict of the device's ``user`` or ``factory`` calibration, or None."""
+    name = (devices.get("calibration_files") or {}).get(kind)
+    if name is None:
+        return None
+    path = Path(session_dir) / name
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:
+        raise InputError(f"cannot read the device calibration ({e})", where=str(path)) from None
+
+
+def device_calibration_outputs(
+    result: CalibrationResult, session_dir: str | Path, export_dir: str | Path
+) -> tuple[list[Path], str]:
+    """After a solve of an OAK session: the depthai JSON export started from the device's own
+    calibration (``export/depthai_calibration.json``, replacing the one made from scratch) and
+    the summary lines comparing the device's calibrations with the result. Sessions of other
+    cameras: nothing."""
+    session_dir = Path(session_dir)
+    if not any((session_dir / f).is_file() for f in (USER_FILE, FACTORY_FILE)):
+        return [], ""  # not an OAK session, or a device without calibration: nothing to add
+    devices = session_devices(session_dir)
+    outputs = oak_outputs(devices)
+    if not outputs or not set(result.cameras) <= set(outputs):
+        return [], ""
+    from slidecal.drivers import oak
+
+    sockets = {n: o["socket"] for n, o in outputs.items()}
+    lens = {n: o["focus"] for n, o in outputs.items() if o.get("focus") is not None}
+    user = read_device_calibration(session_dir, devices, "user")
+    paths, lines = [], []
+    try:
+        paths.append(
+            oak.write_oak_calibration_json(
+                result, Path(export_dir) / "depthai_calibration.json", sockets, base=user,
+                lens_positions=lens,
+            )
+        )
+    except InputError as e:
+        lines.append(f"note: no depthai calibration export: {e}")
+    distance = float(devices.get("working_distance_m") or 0.5)
+    modes = {o.get("resize_mode", "stretch") for o in outputs.values()}
+    resize = modes.pop() if len(modes) == 1 else "stretch"
+    for kind in ("factory", "user"):
+        data = read_device_calibration(session_dir, devices, kind)
+        if data is None:
+            continue
+        try:
+            shift = oak.projection_shift_px(result, data, sockets, distance, resize)
+        except InputError as e:
+            lines.append(f"note: the device {kind} calibration was not compared: {e}")
+            continue
+        if shift:
+            parts = ", ".join(
+                f"{n} {v['rms_px']:.2f} rms / {v['max_px']:.2f} max" for n, v in shift.items()
+            )
+            lines.append(
+                f"device {kind} calibration against this result, points at "
+                f"{distance:.2f} m move (px): {parts}"
+            )
+    return paths, "".join(line + "\n" for line in lines)
