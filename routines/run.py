@@ -173,7 +173,7 @@ def run_calibration(
             options=cfg.options,
             reference_camera=cfg.reference_camera,
             simulation=truth,
-            extra={**cfg.session_fields(), **devices},
+            extra={**cfg.session_fields(), **devices, **_controller(robot)},
             sockets=cfg.sockets,
         )
         write_plan(plan, out / "plan.yaml")
@@ -239,6 +239,12 @@ def run_calibration(
         recording_path=rec_path,
         exports=tuple(exports),
     )
+
+
+def _controller(robot: Any) -> dict[str, Any]:
+    """The session's ``controller:`` block: what a real robot controller reported on connect."""
+    info = getattr(robot, "controller_info", None)
+    return {"controller": dict(info)} if info else {}
 
 
 def _clock(robot: Any) -> float | None:

@@ -87,6 +87,7 @@ SESSION_KEYS: dict[str, tuple[str, ...]] = {
         "robot_driver",
         "camera_driver",
         "devices",
+        "controller",
         "simulation",
         "frames",
         "events",
