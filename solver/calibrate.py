@@ -16,6 +16,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
+from slidecal.solver.adequacy import assess
 from slidecal.solver.degeneracy import check_configuration
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, project_to_SO3, skew
@@ -537,6 +538,7 @@ def _result(
         residuals[ch.key] = float(np.sqrt(np.mean(r**2) * 2))
     inl = out.residuals[out.inlier_rows]
     rms = float(np.sqrt(np.mean(inl**2) * 2)) if len(inl) else float("nan")
+    adequacy, robot_accuracy = assess(problem, out)
     return CalibrationResult(
         cameras=cams,
         hand_eye=hand_eye,
@@ -564,6 +566,8 @@ def _result(
         linear=K_lin,
         mount=problem.mount,
         reference_camera=ref,
+        adequacy=adequacy,
+        robot_accuracy=robot_accuracy,
     )
 
 
