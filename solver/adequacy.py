@@ -17,10 +17,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+import cv2
 import numpy as np
 
-from slidecal.solver.camera import project_with_jacobians
-from slidecal.solver.geometry import R_from_rvec, T_from_Rt
+from slidecal.solver.camera import project
+from slidecal.solver.geometry import T_from_Rt, transform_points
 from slidecal.solver.result import ModelAdequacy, RobotAccuracy
 
 if TYPE_CHECKING:
@@ -39,6 +40,10 @@ MAX_ROBOT_ROTATION_DEG = 1.0
 #: The free-pose fit itself above this: the lens model or the detections are wrong (a corner
 #: detector on a sharp image is good to a few tenths of a pixel).
 MAX_DETECTOR_NOISE_PX = 1.5
+#: The robot's translation errors growing with the moves like this (the camera sees the moves
+#: this much longer or shorter than the robot reports): a wrong square size or robot units, not
+#: an arm's accuracy (real arms: 0.1-0.5 % with a printed board's own scale error).
+MAX_SCALE_ERROR = 0.02
 
 
 @dataclass(frozen=True)
@@ -56,58 +61,54 @@ def free_pose_fit(
     images: list[tuple[int, str, np.ndarray, np.ndarray]],
     K: dict[str, np.ndarray],
     dist: dict[str, np.ndarray],
-    starts: dict[tuple[int, str], np.ndarray],
-    iterations: int = 8,
+    starts: dict[tuple[int, str], np.ndarray] | None = None,
 ) -> FreePoseFit:
-    """Fit a free board pose to every image with fixed intrinsics (Gauss-Newton, all at once).
+    """Fit a free board pose to every image with fixed intrinsics and distortion.
 
     ``images``: (frame index, camera, board points (n, 3), pixels (n, 2)) of the inlier
-    detections; ``starts``: ``T_cam_board`` (4, 4) per (frame index, camera) to start from
-    (e.g. the robot model's prediction). Images with fewer than 4 points are skipped.
+    detections. Each pose is the reprojection-error minimum of OpenCV's iterative PnP, started
+    from the better of ``starts`` (``T_cam_board`` per (frame index, camera), e.g. the robot
+    model's prediction) and the closed-form planar solution (IPPE), so that a wildly wrong
+    robot model cannot spoil the floor it is judged against. Images with fewer than 4 points
+    are skipped.
     """
     rss: dict[tuple[int, str], float] = {}
     rows: dict[tuple[int, str], int] = {}
     poses: dict[tuple[int, str], np.ndarray] = {}
     sums: dict[str, list[float]] = {}
-    for cam in sorted({c for _, c, _, _ in images}):
-        imgs = [im for im in images if im[1] == cam and len(im[2]) >= 4]
-        if not imgs:
+    for fi, cam, pts, px in images:
+        if len(pts) < 4:
             continue
-        counts = np.array([len(im[2]) for im in imgs])
-        idx = np.repeat(np.arange(len(imgs)), counts)
-        pts = np.concatenate([im[2] for im in imgs])
-        px = np.concatenate([im[3] for im in imgs])
-        T = np.stack([starts[(im[0], cam)] for im in imgs])
-        for _ in range(iterations):
-            q = np.einsum("nij,nj->ni", T[idx, :3, :3], pts)
-            P = q + T[idx, :3, 3]
-            pr = project_with_jacobians(K[cam], dist[cam], P)
-            r = pr.px - px
-            Jp = np.concatenate([np.cross(q[:, None, :], pr.d_P), pr.d_P], axis=2)  # (n, 2, 6)
-            A = np.zeros((len(imgs), 6, 6))
-            g = np.zeros((len(imgs), 6))
-            np.add.at(A, idx, np.einsum("nai,naj->nij", Jp, Jp))
-            np.add.at(g, idx, np.einsum("nai,na->ni", Jp, r))
-            A += 1e-12 * np.eye(6) * np.trace(A, axis1=1, axis2=2)[:, None, None]
-            d = -np.linalg.solve(A, g[..., None])[..., 0]
-            T = np.stack(
-                [
-                    T_from_Rt(R_from_rvec(di[:3]) @ t[:3, :3], t[:3, 3] + di[3:])
-                    for di, t in zip(d, T, strict=True)
-                ]
+        key = (fi, cam)
+        Kc, dc = K[cam], dist[cam]
+        obj, img = pts.astype(np.float64), px.astype(np.float64)
+        candidates = []
+        if starts is not None and key in starts and starts[key][2, 3] > 0:
+            candidates.append(starts[key])
+        ok, rv, tv = cv2.solvePnP(obj, img, Kc, dc, flags=cv2.SOLVEPNP_IPPE)
+        if ok:
+            candidates.append(T_from_Rt(cv2.Rodrigues(rv)[0], tv.reshape(3)))
+        best = None
+        for T0 in candidates:
+            rv0 = cv2.Rodrigues(T0[:3, :3])[0]
+            ok, rv, tv = cv2.solvePnP(
+                obj, img, Kc, dc, rv0, T0[:3, 3].reshape(3, 1).copy(), True, cv2.SOLVEPNP_ITERATIVE
             )
-            if np.max(np.abs(d)) < 1e-12:
-                break
-        q = np.einsum("nij,nj->ni", T[idx, :3, :3], pts) + T[idx, :3, 3]
-        r = project_with_jacobians(K[cam], dist[cam], q, jacobians=False).px - px
-        e = np.bincount(idx, weights=np.sum(r * r, axis=1), minlength=len(imgs))
-        total, dof = 0.0, 0
-        for k, im in enumerate(imgs):
-            key = (im[0], cam)
-            rss[key], rows[key], poses[key] = float(e[k]), 2 * int(counts[k]), T[k]
-            total += float(e[k])
-            dof += 2 * int(counts[k]) - 6
-        sums[cam] = [total, dof]
+            if not ok:
+                continue
+            T = T_from_Rt(cv2.Rodrigues(rv)[0], tv.reshape(3))
+            P = transform_points(T, obj)
+            if np.any(P[:, 2] <= 0):
+                continue
+            e = float(np.sum((project(Kc, dc, P) - img) ** 2))
+            if best is None or e < best[0]:
+                best = (e, T)
+        if best is None:
+            continue
+        rss[key], rows[key], poses[key] = best[0], 2 * len(pts), best[1]
+        acc = sums.setdefault(cam, [0.0, 0])
+        acc[0] += best[0]
+        acc[1] += 2 * len(pts) - 6
     sigma = {c: float(np.sqrt(t / d)) if d > 0 else float("nan") for c, (t, d) in sums.items()}
     return FreePoseFit(rss, rows, poses, sigma)
 
@@ -187,6 +188,13 @@ def assess(
             "poses and detections"
         )
     robot = robot_accuracy(problem, out)
+    k = _move_scale(problem, fit, m.ref)
+    if k is not None and abs(k) > MAX_SCALE_ERROR:
+        reasons.append(
+            f"the camera sees the robot's moves {100 * k:+.1f} % longer than the robot reports "
+            f"(limit {100 * MAX_SCALE_ERROR:.0f} %): check the target's square_size_m and that "
+            "the robot poses are in metres"
+        )
     if robot is not None:
         if robot.translation_mm > MAX_ROBOT_TRANSLATION_MM:
             reasons.append(
@@ -208,6 +216,35 @@ def assess(
         reasons=tuple(reasons),
     )
     return adequacy, robot
+
+
+def _move_scale(problem: CalibrationProblem, fit: FreePoseFit, ref: str) -> float | None:
+    """Median over the moves at one orientation of (camera-seen length / robot length) - 1.
+
+    The camera's own view of each move (free board poses of the reference camera: the camera
+    centre eye-in-hand, the board origin eye-to-hand) against the measured tool translation;
+    None without such moves (of at least 5 mm).
+    """
+    if problem.knowledge != "robot":
+        return None
+    from slidecal.solver.refine import orientation_groups
+
+    T = np.stack([f.T_base_tool for f in problem.frames])
+    groups = orientation_groups(T)
+    ratios = []
+    for g in np.unique(groups):
+        idx = [i for i in np.flatnonzero(groups == g) if (i, ref) in fit.T_cam_board]
+        for a, b in zip(idx[:-1], idx[1:], strict=True):
+            robot = float(np.linalg.norm(T[b, :3, 3] - T[a, :3, 3]))
+            if robot < 0.005:
+                continue
+            Ta, Tb = fit.T_cam_board[(a, ref)], fit.T_cam_board[(b, ref)]
+            if problem.mount == "eye_in_hand":
+                seen = np.linalg.norm(Ta[:3, :3].T @ Ta[:3, 3] - Tb[:3, :3].T @ Tb[:3, 3])
+            else:
+                seen = np.linalg.norm(Tb[:3, 3] - Ta[:3, 3])
+            ratios.append(seen / robot)
+    return float(np.median(ratios)) - 1.0 if ratios else None
 
 
 def robot_accuracy(problem: CalibrationProblem, out: RefineOutput) -> RobotAccuracy | None:

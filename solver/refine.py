@@ -600,6 +600,9 @@ ROBOT_TEST_P = 1e-3
 #: Smallest robot pose sigma the estimation keeps (radians, metres): below it a component is
 #: as good as exact and the prior just holds its corrections at zero.
 SIGMA_FLOOR = (1e-7, 1e-7)
+#: Robot sigmas beyond any arm (radians, metres: 2 deg, 20 mm, twice what the adequacy test
+#: accepts): the estimation stops there, the model is wrong (units, frames) and will be marked so.
+SIGMA_BEYOND = (np.radians(2.0), 0.02)
 
 
 @single_threaded_blas
@@ -881,6 +884,8 @@ def _refine(
             if abs(new / old - 1.0) > 0.03 and max(new, old) > 2 * floor:
                 changed = True
         model.pose_sigma = (new_pose[0], new_pose[1])
+        if any(v > lim for v, lim in zip(new_pose, SIGMA_BEYOND, strict=True)):
+            return False
         return changed
 
     vce_step = [0]
