@@ -76,6 +76,8 @@ class SimulatedCell:
             "pose_noise_m": sim.robot_noise_m,
             "pose_noise_deg": sim.robot_noise_deg,
         }
+        if sim.kinematic_error is not None:  # a real arm's accuracy (mocks/robot.py)
+            rdict["kinematic_error"] = dict(sim.kinematic_error)
         robot = SimulatedUR.from_dict(rdict)
         cams = [
             SimCamera(

@@ -116,6 +116,9 @@ class SimulationConfig:
     (metres) and rotation std per axis (degrees). ``target_jitter_mm``/``_deg``: the target is
     set up anew for each run: its true pose moves by this one-sigma amount per axis, drawn from
     the run's seed (so a renderer's per-corner artefacts do not repeat from seed to seed).
+    ``kinematic_error``: the simulated arm's systematic error (``mm``, ``deg``,
+    ``repeatability_mm``, ``repeatability_deg``; ``slidecal.mocks.robot.KinematicError``), or
+    None for an arm that is exactly its nominal model.
     """
 
     seed: int
@@ -127,6 +130,7 @@ class SimulationConfig:
     robot_noise_deg: float = 0.005
     target_jitter_mm: float = 0.0
     target_jitter_deg: float = 0.0
+    kinematic_error: dict[str, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -435,6 +439,16 @@ def _simulation(f: Fields, mount: str) -> SimulationConfig:
         raise f.error(tg_key, f"is missing; the simulated cell needs the true {tg_key}")
     nf = f.sub("noise", required=False) or Fields({}, f.file, f"{f.path}.noise")
     jf = f.sub("target_jitter", required=False) or Fields({}, f.file, f"{f.path}.target_jitter")
+    kf = f.sub("kinematic_error", required=False)
+    kinematic_error = None
+    if kf is not None:
+        sizes = {"mm": 1.0, "deg": 0.1, "repeatability_mm": 0.03, "repeatability_deg": 0.005}
+        unknown = sorted(set(kf.data) - set(sizes))
+        if unknown:
+            raise f.error(
+                "kinematic_error", f"has unknown key(s) {unknown}; it takes {sorted(sizes)}"
+            )
+        kinematic_error = {k: kf.number(k, v, minimum=0.0) for k, v in sizes.items()}
     return SimulationConfig(
         seed=seed,
         cameras=tuple(cams),
@@ -445,6 +459,7 @@ def _simulation(f: Fields, mount: str) -> SimulationConfig:
         robot_noise_deg=nf.number("robot_deg", 0.005, minimum=0.0),
         target_jitter_mm=jf.number("mm", 0.0, minimum=0.0),
         target_jitter_deg=jf.number("deg", 0.0, minimum=0.0),
+        kinematic_error=kinematic_error,
     )
 
 
@@ -509,5 +524,7 @@ def truth_block(cfg: CellConfig) -> dict[str, Any]:
             for c in sim.cameras
         },
     }
+    if sim.kinematic_error is not None:
+        out["noise"]["kinematic_error"] = dict(sim.kinematic_error)
     out["seed"] = sim.seed
     return out

@@ -13,7 +13,12 @@ of a rig; rig ``T_<name>_<ref>``) and these extensions, all additive:
   {median_ratio, worst_ratio, n}``;
 - ``H_inf: {"a<-b": 3x3}``; ``outliers: [[frame, camera, corner id]]``;
   ``linear: {camera: K}`` (closed-form intrinsics before refinement);
-- ``parameter_names`` and ``covariance`` (rows named by ``parameter_names``).
+- ``parameter_names`` and ``covariance`` (rows named by ``parameter_names``);
+- ``adequacy: {adequate, reasons, detector_noise_px: {camera: px}, normalised_rms: {camera:
+  ratio}, worst_frames: [{frame, camera, normalised_rms}]}``: whether the model explains the
+  images against the detector's noise measured with a free board pose per image;
+- ``robot_accuracy: {translation_mm, rotation_deg, estimated, worst_frames: [{frame,
+  translation_mm, rotation_deg}]}``: the robot's pose accuracy as the camera sees it.
 
 A value the data cannot determine is ``null``, never a number. ``T_tool_<name>`` of a rig's
 non-reference camera is composed from the reference's hand-eye and the rig extrinsics; its std
@@ -46,6 +51,8 @@ from slidecal.solver.geometry import rotation_angle_deg, rvec_from_R
 from slidecal.solver.result import (
     CalibrationResult,
     CameraEstimate,
+    ModelAdequacy,
+    RobotAccuracy,
     ScaleCheck,
     TransformEstimate,
 )
@@ -194,6 +201,29 @@ def result_to_dict(result: CalibrationResult) -> dict[str, Any]:
     d["linear"] = {k: plain(v) for k, v in result.linear.items()}
     d["parameter_names"] = list(result.parameter_names)
     d["covariance"] = plain(result.covariance) if result.covariance is not None else None
+    ad = result.adequacy
+    if ad is not None:
+        d["adequacy"] = {
+            "adequate": bool(ad.adequate),
+            "reasons": list(ad.reasons),
+            "detector_noise_px": {k: _num(v) for k, v in ad.detector_noise_px.items()},
+            "normalised_rms": {k: _num(v) for k, v in ad.normalised_rms.items()},
+            "worst_frames": [
+                {"frame": int(f), "camera": c, "normalised_rms": _num(v)}
+                for f, c, v in ad.worst_frames
+            ],
+        }
+    ra = result.robot_accuracy
+    if ra is not None:
+        d["robot_accuracy"] = {
+            "translation_mm": _num(ra.translation_mm),
+            "rotation_deg": _num(ra.rotation_deg),
+            "estimated": bool(ra.estimated),
+            "worst_frames": [
+                {"frame": int(f), "translation_mm": _num(t), "rotation_deg": _num(r)}
+                for f, t, r in ra.worst_frames
+            ],
+        }
     return d
 
 
@@ -270,6 +300,31 @@ def read_result(path: str | Path) -> CalibrationResult:
         if r.get("rms_px") is not None
     }
     cov = f.get("covariance")
+    ad = f.get("adequacy")
+    adequacy = None
+    if isinstance(ad, Mapping):
+        adequacy = ModelAdequacy(
+            {str(k): float(v) for k, v in (ad.get("detector_noise_px") or {}).items()},
+            {str(k): float(v) for k, v in (ad.get("normalised_rms") or {}).items()},
+            tuple(
+                (int(w["frame"]), str(w["camera"]), float(w["normalised_rms"]))
+                for w in ad.get("worst_frames") or []
+            ),
+            bool(ad.get("adequate", False)),
+            tuple(str(r) for r in ad.get("reasons") or []),
+        )
+    ra = f.get("robot_accuracy")
+    robot_accuracy = None
+    if isinstance(ra, Mapping):
+        robot_accuracy = RobotAccuracy(
+            float(ra.get("translation_mm", float("nan"))),
+            float(ra.get("rotation_deg", float("nan"))),
+            tuple(
+                (int(w["frame"]), float(w["translation_mm"]), float(w["rotation_deg"]))
+                for w in ra.get("worst_frames") or []
+            ),
+            bool(ra.get("estimated", False)),
+        )
     return CalibrationResult(
         cameras=cams,
         hand_eye=hand_eye,
@@ -293,6 +348,8 @@ def read_result(path: str | Path) -> CalibrationResult:
         linear={k: np.asarray(v, dtype=float) for k, v in f.get("linear", {}).items()},
         mount=mount,
         reference_camera=ref,
+        adequacy=adequacy,
+        robot_accuracy=robot_accuracy,
     )
 
 
@@ -413,6 +470,7 @@ def summary_text(result: CalibrationResult, truth: Mapping[str, Any] | None = No
         f"reprojection rms {_fmt(result.reproj_rms_px)} px, "
         f"noise estimate sigma {_fmt(result.sigma_px)} px"
     )
+    lines.extend(_adequacy_lines(result))
     for name, c in result.cameras.items():
         K = np.asarray(c.K)
         std = c.std
@@ -458,6 +516,35 @@ def summary_text(result: CalibrationResult, truth: Mapping[str, Any] | None = No
             lines.append("errors against the simulated truth:")
             lines.extend(f"  {k} = {_fmt(v, '.4g')}" for k, v in errs.items())
     return "\n".join(lines) + "\n"
+
+
+def _adequacy_lines(result: CalibrationResult) -> list[str]:
+    """The model-adequacy verdict and the robot's accuracy as the camera saw it."""
+    out = []
+    ad = result.adequacy
+    if ad is not None:
+        noise = ", ".join(
+            f"{c} {_fmt(v)} px (residuals {_fmt(ad.normalised_rms.get(c), '.2f')}x)"
+            for c, v in ad.detector_noise_px.items()
+        )
+        if ad.adequate:
+            out.append(f"model adequacy: the model explains the images; detector noise {noise}")
+        else:
+            out.append("MODEL INADEQUATE: do not use this result")
+            out.extend(f"  - {r}" for r in ad.reasons)
+            out.append(f"  detector noise {noise}")
+    ra = result.robot_accuracy
+    if ra is not None:
+        how = "estimated from the images" if ra.estimated else "from the options"
+        if ra.estimated and ra.translation_mm == 0.0 and ra.rotation_deg == 0.0:
+            out.append("robot accuracy: the measured poses explain the images (taken as exact)")
+        else:
+            worst = ", ".join(f"{f} ({t:.2f} mm, {r:.3f} deg)" for f, t, r in ra.worst_frames[:3])
+            out.append(
+                f"robot accuracy ({how}): {ra.translation_mm:.3f} mm, {ra.rotation_deg:.4f} deg "
+                f"rms per axis" + (f"; worst frames {worst}" if worst else "")
+            )
+    return out
 
 
 def _transform_lines(key: str, t: TransformEstimate) -> list[str]:

@@ -12,8 +12,10 @@ Fields beyond the contract (all optional, additive, so the format stays ``slidec
   ``robot`` when every frame has ``T_base_tool``, ``none`` when no frame has one).
 - ``reference_camera``: the camera a rig's other cameras are expressed against.
 - ``options``: ``{skew, unit_aspect, distortion: [k1, k2, p1, p2, k3 as booleans],
-  outlier_threshold_px, robot_noise_mm, robot_noise_deg}`` (``ModelOptions``; the robot noise
-  is the one-sigma error of each axis of the measured poses, 0 treats them as exact).
+  outlier_threshold_px, robot_noise_mm, robot_noise_deg, estimate_robot_noise}``
+  (``ModelOptions``; the robot noise is the one-sigma error of each axis of the measured poses,
+  where the estimation of the robot's accuracy starts; with ``estimate_robot_noise: false``
+  it is taken as the truth, 0 then treating the poses as exact).
 - ``frames[i].group``: orientation group; ``frames[i].motion_board``: the paper's board-frame
   motion knowledge (3 numbers, metres or a unit direction).
 - ``frames[i].quality``: per camera, what the detector said (``ok``, ``reasons``,
@@ -341,6 +343,7 @@ def options_from_dict(data: Any, file: str, path: str = "options") -> ModelOptio
         ),
         robot_noise_m=f.number("robot_noise_mm", 0.0, minimum=0.0) / 1000.0,
         robot_noise_deg=f.number("robot_noise_deg", 0.0, minimum=0.0),
+        estimate_robot_noise=f.boolean("estimate_robot_noise", base.estimate_robot_noise),
     )
 
 
@@ -353,6 +356,7 @@ def options_to_dict(options: ModelOptions) -> dict[str, Any]:
         "outlier_threshold_px": options.outlier_threshold_px,
         "robot_noise_mm": options.robot_noise_m * 1000.0,
         "robot_noise_deg": options.robot_noise_deg,
+        "estimate_robot_noise": options.estimate_robot_noise,
     }
 
 
