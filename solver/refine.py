@@ -893,7 +893,7 @@ def _refine(
         model.sigma_px = max(noise(model.evaluate(state, jacobian=False)[0], inlier * cam_w), 1e-3)
     # while the variance components move, a few Gauss-Newton steps between their updates
     # reach the joint fixed point as surely as full solves, in a third of the time
-    steps = min(3, max_iter) if estimate else max_iter
+    steps = min(1, max_iter) if estimate else max_iter
     for _ in range(40 if estimate else 10):
         weights = inlier * cam_w
         state, converged, it = _lm(model, state, weights, steps)
