@@ -256,6 +256,9 @@ def robot_accuracy(problem: CalibrationProblem, out: RefineOutput) -> RobotAccur
     if sig is None:
         return None
     worst: list[tuple[int, float, float]] = []
+    st = out.model.st
+    if E is not None and out.state.U is not None and st.pose_groups is not None:
+        E = E + out.state.U[st.pose_groups]
     if E is not None:
         for f, e in zip(problem.frames, E, strict=True):
             worst.append(

@@ -49,6 +49,7 @@ class ModelState:
     Y: np.ndarray
     s: np.ndarray
     E: np.ndarray | None = None
+    U: np.ndarray | None = None  # (G, 6) per orientation group, added to its frames' E
 
 
 @dataclass(frozen=True)
@@ -76,6 +77,12 @@ class Structure:
     T_meas: np.ndarray | None = None
     pose_sigma: tuple[float, float] | None = None
     eye_in_hand: bool = True
+    # a real arm's error is smooth over the workspace: nearly the same for the frames of one
+    # orientation group, different between groups. ``pose_groups`` (F,): the group of each
+    # frame for a shared correction ``U`` per group with prior sigmas ``group_sigma`` (radians,
+    # metres); None: corrections independent from frame to frame
+    pose_groups: np.ndarray | None = None
+    group_sigma: tuple[float, float] | None = None
 
 
 def intrinsic_names(problem: CalibrationProblem) -> tuple[str, ...]:
@@ -172,6 +179,16 @@ class BundleModel:
         yb += [f"Y.t{i}" for i in range(st.Y_t_basis.shape[1])]
         if yb:
             add("Y", yb)
+        if structure.pose_sigma is not None and structure.pose_groups is not None:
+            n_pg = int(structure.pose_groups.max()) + 1
+            add(
+                "U",
+                [
+                    f"pose_group{g}.{a}"
+                    for g in range(n_pg)
+                    for a in ("rx", "ry", "rz", "tx", "ty", "tz")
+                ],
+            )
         if structure.pose_sigma is not None:
             add(
                 "E",
@@ -189,6 +206,7 @@ class BundleModel:
         # one-sigma (radians, metres) of the pose corrections' prior: the structure's, or the
         # robot's accuracy as refine estimates it
         self.pose_sigma = structure.pose_sigma
+        self.group_sigma = structure.group_sigma
         self._index()
 
     # -- state updates -------------------------------------------------------------------------
@@ -239,7 +257,11 @@ class BundleModel:
             E = (np.zeros((len(self.problem.frames), 6)) if E is None else E) + delta[
                 self.slices["E"]
             ].reshape(-1, 6)
-        return ModelState(K, dist, T_cam_ref, X, Y, s, E)
+        U = state.U
+        if "U" in self.slices:
+            du = delta[self.slices["U"]].reshape(-1, 6)
+            U = (np.zeros_like(du) if U is None else U) + du
+        return ModelState(K, dist, T_cam_ref, X, Y, s, E, U)
 
     def T_ref_board(self, state: ModelState, fi: int) -> np.ndarray:
         """``T_ref_board`` (4, 4) of the reference camera at frame index ``fi``."""
@@ -263,6 +285,12 @@ class BundleModel:
         if len(self.s_frames):
             s_col[self.s_frames] = self.slices["s"].start + np.arange(len(self.s_frames))
         self.o_s_col = s_col[self.o_frame]
+        # residual rows of each frame (contiguous: chunks come frame by frame)
+        self.frame_rows: dict[int, slice] = {}
+        for c in ch:
+            r0 = self.frame_rows.get(c.frame_index)
+            start = c.rows.start if r0 is None else r0.start
+            self.frame_rows[c.frame_index] = slice(start, c.rows.stop)
 
     def evaluate(
         self, state: ModelState, jacobian: bool = True, split: bool = False
@@ -311,6 +339,8 @@ class BundleModel:
         r = (px - self.o_px).reshape(-1)
         if "E" in self.slices:
             r = np.concatenate([r, self.prior_scale * state.E.reshape(-1)])
+        if "U" in self.slices:
+            r = np.concatenate([r, self.group_prior_scale * state.U.reshape(-1)])
         if not jacobian:
             return r, None
         if split:
@@ -365,6 +395,11 @@ class BundleModel:
             J[rows, 1, self.o_s_col[has_s]] = vals[:, 1]
         if "E" in self.slices:
             blk = self._pose_block(state, A, RX, RM, p_Y)
+            if "U" in self.slices:  # a group's correction moves its frames like theirs
+                ucols = self.slices["U"].start + self.st.pose_groups[f][:, None] * 6 + np.arange(6)
+                rows_u = np.arange(n)[:, None]
+                J[rows_u, 0, ucols] = blk[:, 0, :]
+                J[rows_u, 1, ucols] = blk[:, 1, :]
             if split:
                 return r, J.reshape(2 * n, P_), blk
             cols = self.slices["E"].start + f[:, None] * 6 + np.arange(6)
@@ -374,7 +409,15 @@ class BundleModel:
             sl = self.slices["E"]
             prior = np.zeros((sl.stop - sl.start, P_))
             prior[np.arange(prior.shape[0]), np.arange(sl.start, sl.stop)] = self.prior_scale
-            return r, np.vstack([J.reshape(2 * n, P_), prior])
+            blocks = [J.reshape(2 * n, P_), prior]
+            if "U" in self.slices:
+                su = self.slices["U"]
+                prior_u = np.zeros((su.stop - su.start, P_))
+                prior_u[np.arange(prior_u.shape[0]), np.arange(su.start, su.stop)] = (
+                    self.group_prior_scale
+                )
+                blocks.append(prior_u)
+            return r, np.vstack(blocks)
         return r, J.reshape(2 * n, P_)
 
     def normal_equations(
@@ -394,31 +437,41 @@ class BundleModel:
         n, P = self.n_obs, len(self.names)
         sl = self.slices["E"]
         P0, F = sl.start, len(self.problem.frames)
-        w, wp = weights[: 2 * n], weights[2 * n :]
+        w, wp = weights[: 2 * n], weights[2 * n : 2 * n + 6 * F]
         rp = r[: 2 * n]
         J0w = J0 * w[:, None]
         A = np.zeros((P, P))
         g = np.zeros(P)
         A[:P0, :P0] = J0.T @ J0w
         g[:P0] = J0w.T @ rp
-        Bw = B * w.reshape(n, 2)[:, :, None]
-        C = np.matmul(J0.reshape(n, 2, P0).transpose(0, 2, 1), Bw)
-        D = np.matmul(B.transpose(0, 2, 1), Bw)
-        gE = np.matmul(rp.reshape(n, 1, 2), Bw)[:, 0, :]
-        frames, starts = np.unique(self.o_frame, return_index=True)
-        Cf, Df, gf = np.zeros((F, P0, 6)), np.zeros((F, 6, 6)), np.zeros((F, 6))
-        if n:
-            Cf[frames] = np.add.reduceat(C, starts, axis=0)
-            Df[frames] = np.add.reduceat(D, starts, axis=0)
-            gf[frames] = np.add.reduceat(gE, starts, axis=0)
-        A[:P0, P0:] = Cf.transpose(1, 0, 2).reshape(P0, 6 * F)
+        B2 = B.reshape(2 * n, 6)
+        Bw = B2 * w[:, None]
+        for k, rows in self.frame_rows.items():  # each frame's rows are contiguous
+            Bk, Bwk = B2[rows], Bw[rows]
+            c = P0 + 6 * k
+            A[:P0, c : c + 6] = J0[rows].T @ Bwk
+            A[c : c + 6, c : c + 6] = Bk.T @ Bwk
+            g[c : c + 6] = Bwk.T @ rp[rows]
         A[P0:, :P0] = A[:P0, P0:].T
-        k = P0 + 6 * np.arange(F)[:, None, None] + np.arange(6)
-        A[np.swapaxes(k, 1, 2), k] = Df
         ps = self.prior_scale
-        A[P0:, P0:] += np.diag(wp * ps * ps)
-        g[P0:] = gf.reshape(-1) + wp * ps * r[2 * n :]
+        idx = np.arange(P0, P)
+        A[idx, idx] += wp * ps * ps
+        g[P0:] += wp * ps * r[2 * n : 2 * n + 6 * F]
+        if "U" in self.slices:
+            su = self.slices["U"]
+            pu, wu = self.group_prior_scale, weights[2 * n + 6 * F :]
+            idx = np.arange(su.start, su.stop)
+            A[idx, idx] += wu * pu * pu
+            g[idx] += wu * pu * r[2 * n + 6 * F :]
         return r, A, g
+
+    @property
+    def group_prior_scale(self) -> np.ndarray:
+        """(6G,) pixel-unit scale of the group corrections' prior rows."""
+        rot, t = self.group_sigma
+        one = np.array([1.0 / rot] * 3 + [1.0 / t] * 3)
+        su = self.slices["U"]
+        return self.sigma_px * np.tile(one, (su.stop - su.start) // 6)
 
     @property
     def prior_scale(self) -> np.ndarray:
@@ -431,8 +484,11 @@ class BundleModel:
         """``M_k`` (F, 4, 4) with the Case 2 lengths and the robot pose corrections applied."""
         st = self.st
         if st.pose_sigma is not None and state.E is not None:
-            R = np.einsum("nij,njk->nik", _R_batch(state.E[:, :3]), st.T_meas[:, :3, :3])
-            t = st.T_meas[:, :3, 3] + state.E[:, 3:]
+            E = state.E
+            if state.U is not None and st.pose_groups is not None:
+                E = E + state.U[st.pose_groups]
+            R = np.einsum("nij,njk->nik", _R_batch(E[:, :3]), st.T_meas[:, :3, :3])
+            t = st.T_meas[:, :3, 3] + E[:, 3:]
             Ms = np.tile(np.eye(4), (len(R), 1, 1))
             if st.eye_in_hand:  # the inverse of (R, t): (R', -R' t)
                 Ms[:, :3, :3] = np.transpose(R, (0, 2, 1))
@@ -513,13 +569,14 @@ class RefineOutput:
     robot_test: str = ""
 
 
-def with_pose_corrections(state: ModelState, n_frames: int) -> ModelState:
-    """``state`` with zero robot-pose corrections ``E`` (n_frames, 6) where it has none."""
-    if state.E is not None:
-        return state
-    return ModelState(
-        state.K, state.dist, state.T_cam_ref, state.X, state.Y, state.s, np.zeros((n_frames, 6))
-    )
+def with_pose_corrections(state: ModelState, n_frames: int, n_groups: int = 0) -> ModelState:
+    """``state`` with zero robot-pose corrections ``E`` (n_frames, 6) where it has none, and
+    zero group corrections ``U`` (n_groups, 6) when asked for."""
+    E = np.zeros((n_frames, 6)) if state.E is None else state.E
+    U = state.U
+    if n_groups and (U is None or len(U) != n_groups):
+        U = np.zeros((n_groups, 6))
+    return ModelState(state.K, state.dist, state.T_cam_ref, state.X, state.Y, state.s, E, U)
 
 
 def _respect_options(problem: CalibrationProblem, state: ModelState) -> ModelState:
@@ -673,6 +730,7 @@ def refine(
             max(np.radians(o.robot_noise_deg), SIGMA_FLOOR[0]),
             max(o.robot_noise_m, SIGMA_FLOOR[1]),
         )
+    pose_groups = orientation_groups(np.stack([f.T_base_tool for f in problem.frames]))
     noisy = Structure(
         structure.group_of_frame,
         structure.M,
@@ -686,11 +744,18 @@ def refine(
         T_meas=np.stack([f.T_base_tool for f in problem.frames]),
         pose_sigma=sig0,
         eye_in_hand=structure.eye_in_hand,
+        pose_groups=pose_groups if pose_groups.max() > 0 else None,
+        group_sigma=sig0,
     )
     out = _refine(problem, noisy, out0.state, max_iter, robust, estimate=True)
+    total = out.model.pose_sigma
+    if out.model.group_sigma is not None and "U" in out.model.slices:
+        total = tuple(
+            float(np.hypot(a, b)) for a, b in zip(total, out.model.group_sigma, strict=True)
+        )
     return _with_robot(
         out,
-        out.model.pose_sigma,
+        total,
         True,
         f"robot accuracy estimated: the poses taken as exact do not explain the images ({figure})",
     )
@@ -794,6 +859,10 @@ def _refine(
     model = BundleModel(problem, structure)
     n_px = model.n_rows
     n_prior = 6 * len(problem.frames) if "E" in model.slices else 0
+    n_groups_u = 0
+    if "U" in model.slices:
+        n_groups_u = (model.slices["U"].stop - model.slices["U"].start) // 6
+        n_prior += 6 * n_groups_u
     estimate = estimate and n_prior > 0
     inlier = np.ones(n_px + n_prior, dtype=bool)
     cam_w = np.ones(n_px + n_prior)  # per-camera noise weights, relative to the reference
@@ -805,7 +874,7 @@ def _refine(
         cam_rows.append(rows)
     state = _respect_options(problem, init)
     if n_prior:
-        state = with_pose_corrections(state, len(problem.frames))
+        state = with_pose_corrections(state, len(problem.frames), n_groups_u)
     model.sigma_px = 0.2  # a typical corner noise; re-estimated below when poses are noisy
     total_it = 0
     converged = False
@@ -835,6 +904,9 @@ def _refine(
         Ni = _inverse(A)
         sl = model.slices["E"]
         h = np.clip(model.prior_scale**2 * np.diag(Ni)[sl], 0.0, 1.0)
+        h_u = np.zeros(0)
+        if "U" in model.slices:
+            h_u = np.clip(model.group_prior_scale**2 * np.diag(Ni)[model.slices["U"]], 0.0, 1.0)
         sig = []
         for rows in cam_rows:
             m = rows & inlier
@@ -842,7 +914,7 @@ def _refine(
                 sig.append(np.nan)
                 continue
             if len(cam_rows) == 1:  # the hat matrix's trace is P: the prior rows take sum(h)
-                used = len(model.names) - float(np.sum(h))
+                used = len(model.names) - float(np.sum(h)) - float(np.sum(h_u))
             else:
                 used = float(np.sum(Ni * model.normal_equations(state, w * m)[1]))
             sig.append(np.sqrt(np.sum(r[m] ** 2) / max(m.sum() - used, 1.0)))
@@ -884,6 +956,25 @@ def _refine(
             if abs(new / old - 1.0) > 0.03 and max(new, old) > 2 * floor:
                 changed = True
         model.pose_sigma = (new_pose[0], new_pose[1])
+        if len(h_u):  # the orientation groups' shared corrections: their own two levels
+            U = state.U.reshape(-1)
+            u_rot = np.tile([True, True, True, False, False, False], len(U) // 6)
+            new_group = []
+            for comp, floor, old in zip(
+                (u_rot, ~u_rot), SIGMA_FLOOR, model.group_sigma, strict=True
+            ):
+                red = float(np.sum(1.0 - h_u[comp]))
+                v = np.sqrt(np.sum(U[comp] ** 2) / red) if red > 1e-6 else floor
+                if vce_step[0] > 2 and v < old and red < 0.25 * comp.sum():
+                    # falling while the prior holds three quarters of it: the images do not
+                    # support a level of its own (the iteration would creep toward 0 for
+                    # tens of steps); the frames' own corrections carry this part
+                    v = floor
+                v = max(float(v), floor)
+                if abs(v / old - 1.0) > 0.03 and max(v, old) > 2 * floor:
+                    changed = True
+                new_group.append(v)
+            model.group_sigma = (new_group[0], new_group[1])
         if any(v > lim for v, lim in zip(new_pose, SIGMA_BEYOND, strict=True)):
             return False
         return changed
