@@ -224,11 +224,17 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point (``python -m slidecal.routines.bench_reality``)."""
     ap = argparse.ArgumentParser(prog="bench_reality", description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=30, help="Monte-Carlo trials per scenario")
-    ap.add_argument("--clean-trials", type=int, default=100, help="trials of the clean rows")
     ap.add_argument("--images", choices=("points", "render"), default="points")
     ap.add_argument("--sigma-px", type=float, default=0.15, help="corner noise of 'points'")
     ap.add_argument("--arm-mm", type=float, default=1.0)
     ap.add_argument("--arm-deg", type=float, default=0.1)
+    ap.add_argument(
+        "--clean-trials",
+        dest="clean_trials",
+        type=int,
+        default=100,
+        help="trials of the clean efficiency rows (0: skip them)",
+    )
     ap.add_argument("--out", help="write the markdown report here (e.g. docs/REALITY.md)")
     args = ap.parse_args(argv)
     t0 = time.time()
@@ -243,8 +249,8 @@ def main(argv: list[str] | None = None) -> int:
         ),
     ]
     rows = [run_reality_row(n, m, args.trials) for n, m in scenarios]
-    clean, clean_notes = clean_rows(args.clean_trials)
-    sp = speed()
+    clean, clean_notes = clean_rows(args.clean_trials) if args.clean_trials > 0 else ([], [])
+    sp = speed() if args.clean_trials > 0 else None
     cmd = (
         f"python -m slidecal.routines.bench_reality --trials {args.trials} --clean-trials "
         f"{args.clean_trials} --images {args.images}"
@@ -275,11 +281,26 @@ def main(argv: list[str] | None = None) -> int:
         *reality_table(rows),
         "",
         *reality_notes(rows),
+    ]
+    if sp is not None:
+        lines += _clean_section(args.clean_trials, clean, clean_notes, sp)
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if args.out:
+        with open(args.out, "w", encoding="utf-8") as fh:
+            fh.write(text)
+    return 0
+
+
+def _clean_section(
+    trials: int, clean: list[bench.Row], clean_notes: list[str], sp: dict[str, float]
+) -> list[str]:
+    return [
         "",
         "## Clean scenarios: efficiency unchanged",
         "",
         f"The rows of docs/BENCHMARKS.md that a robot's learned accuracy could touch, "
-        f"{args.clean_trials} trials (same seeds as there). With exact poses the F test keeps "
+        f"{trials} trials (same seeds as there). With exact poses the F test keeps "
         "them exact, so the solve is the one of BENCHMARKS.md.",
         "",
         bench.table(clean),
@@ -295,12 +316,6 @@ def main(argv: list[str] | None = None) -> int:
         f"ms, cv2.calibrateCamera {1000 * sp['noisy_opencv_s']:.1f} ms, ratio "
         f"{sp['noisy_slidecal_s'] / sp['noisy_opencv_s']:.2f}",
     ]
-    text = "\n".join(lines) + "\n"
-    print(text)
-    if args.out:
-        with open(args.out, "w", encoding="utf-8") as fh:
-            fh.write(text)
-    return 0
 
 
 if __name__ == "__main__":

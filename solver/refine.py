@@ -937,7 +937,10 @@ def _refine(
                 m = float(np.mean(E[comp] ** 2 / one**2 - old**2 * h[comp] / one))
                 if m > floor**2:
                     v = min(v, np.sqrt(m))
-            new_pose.append(max(float(v), floor))
+            v = max(float(v), floor)
+            if vce_step[0] >= 2:
+                v = max(accelerate(f"E{comp[0]}", old, v, floor), floor)
+            new_pose.append(v)
         vce_step[0] += 1
         changed = False
         ok = np.isfinite(sig) & (sig > 0)
@@ -971,6 +974,8 @@ def _refine(
                     # tens of steps); the frames' own corrections carry this part
                     v = floor
                 v = max(float(v), floor)
+                if vce_step[0] > 2:
+                    v = max(accelerate(f"U{comp[0]}", old, v, floor), floor)
                 if abs(v / old - 1.0) > 0.03 and max(v, old) > 2 * floor:
                     changed = True
                 new_group.append(v)
@@ -980,6 +985,24 @@ def _refine(
         return changed
 
     vce_step = [0]
+    last_step: dict[str, float] = {}
+
+    def accelerate(key: str, old: float, new: float, floor: float) -> float:
+        """Steffensen in log space: Foerstner's iteration converges geometrically, at a rate
+        near 1 when the images pin the poses about as well as the prior does; two successive
+        steps in the same direction give the rate, and the step is stretched to the fixed
+        point it implies (at most 4 times)."""
+        if new <= floor or old <= floor:
+            last_step.pop(key, None)
+            return new
+        d = float(np.log(new / old))
+        prev = last_step.get(key)
+        last_step[key] = d
+        if prev is None or d * prev <= 0 or abs(d) >= abs(prev):
+            return new
+        rho = d / prev
+        return float(old * np.exp(d * min(1.0 / (1.0 - rho), 4.0)))
+
     if estimate:
         model.sigma_px = max(noise(model.evaluate(state, jacobian=False)[0], inlier * cam_w), 1e-3)
     # while the variance components move, a few Gauss-Newton steps between their updates
