@@ -82,27 +82,21 @@ def free_pose_fit(
         key = (fi, cam)
         Kc, dc = K[cam], dist[cam]
         obj, img = pts.astype(np.float64), px.astype(np.float64)
-        candidates = []
-        if starts is not None and key in starts and starts[key][2, 3] > 0:
-            candidates.append(starts[key])
-        ok, rv, tv = cv2.solvePnP(obj, img, Kc, dc, flags=cv2.SOLVEPNP_IPPE)
-        if ok:
-            candidates.append(T_from_Rt(cv2.Rodrigues(rv)[0], tv.reshape(3)))
         best = None
-        for T0 in candidates:
-            rv0 = cv2.Rodrigues(T0[:3, :3])[0]
-            ok, rv, tv = cv2.solvePnP(
-                obj, img, Kc, dc, rv0, T0[:3, 3].reshape(3, 1).copy(), True, cv2.SOLVEPNP_ITERATIVE
-            )
-            if not ok:
-                continue
-            T = T_from_Rt(cv2.Rodrigues(rv)[0], tv.reshape(3))
-            P = transform_points(T, obj)
-            if np.any(P[:, 2] <= 0):
-                continue
-            e = float(np.sum((project(Kc, dc, P) - img) ** 2))
-            if best is None or e < best[0]:
-                best = (e, T)
+        if starts is not None and key in starts and starts[key][2, 3] > 0:
+            best = _pnp(obj, img, Kc, dc, starts[key])
+        ok, rv, tv = cv2.solvePnP(obj, img, Kc, dc, flags=cv2.SOLVEPNP_IPPE)
+        closed = (
+            _scored(obj, img, Kc, dc, T_from_Rt(cv2.Rodrigues(rv)[0], tv.reshape(3)))
+            if ok
+            else None
+        )
+        # the closed form is refined only when it beats the refined model start (a wrong robot
+        # model starting the pose in the wrong basin)
+        if closed is not None and (best is None or closed[0] < best[0]):
+            alt = _pnp(obj, img, Kc, dc, closed[1])
+            if alt is not None and (best is None or alt[0] < best[0]):
+                best = alt
         if best is None:
             continue
         rss[key], rows[key], poses[key] = best[0], 2 * len(pts), best[1]
@@ -111,6 +105,29 @@ def free_pose_fit(
         acc[1] += 2 * len(pts) - 6
     sigma = {c: float(np.sqrt(t / d)) if d > 0 else float("nan") for c, (t, d) in sums.items()}
     return FreePoseFit(rss, rows, poses, sigma)
+
+
+def _scored(
+    obj: np.ndarray, img: np.ndarray, K: np.ndarray, dist: np.ndarray, T: np.ndarray
+) -> tuple[float, np.ndarray] | None:
+    """(residual sum of squares, T) of a board pose; None behind the camera."""
+    P = transform_points(T, obj)
+    if np.any(P[:, 2] <= 0):
+        return None
+    return float(np.sum((project(K, dist, P) - img) ** 2)), T
+
+
+def _pnp(
+    obj: np.ndarray, img: np.ndarray, K: np.ndarray, dist: np.ndarray, T0: np.ndarray
+) -> tuple[float, np.ndarray] | None:
+    """OpenCV's iterative PnP (the reprojection-error minimum) started at ``T0``, scored."""
+    rv0 = cv2.Rodrigues(T0[:3, :3])[0]
+    ok, rv, tv = cv2.solvePnP(
+        obj, img, K, dist, rv0, T0[:3, 3].reshape(3, 1).copy(), True, cv2.SOLVEPNP_ITERATIVE
+    )
+    if not ok:
+        return None
+    return _scored(obj, img, K, dist, T_from_Rt(cv2.Rodrigues(rv)[0], tv.reshape(3)))
 
 
 def session_images(out: RefineOutput) -> list[tuple[int, str, np.ndarray, np.ndarray]]:
