@@ -258,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
     lines = [
         "# The solver on a real arm: coverage of its reported uncertainty",
         "",
-        f"Regenerate with `{cmd} --out docs/REALITY.md` ({platform.machine()}, "
+        f"Regenerate with `{cmd} --out {args.out or 'docs/REALITY.md'}` ({platform.machine()}, "
         f"{platform.python_version()}, numpy {np.__version__}, OpenCV {cv2.__version__}; this "
         f"run took {time.time() - t0:.0f} s).",
         "",

@@ -438,8 +438,9 @@ def calibrate(
 def _kept(out: RefineOutput) -> np.ndarray:
     """Indices of the parameters a result reports (all but the robot-pose corrections)."""
     keep = np.ones(len(out.names), dtype=bool)
-    if "E" in out.model.slices:
-        keep[out.model.slices["E"]] = False
+    for key in ("E", "U"):  # per-frame and per-group robot-pose corrections
+        if key in out.model.slices:
+            keep[out.model.slices[key]] = False
     return np.flatnonzero(keep)
 
 

@@ -229,3 +229,21 @@ def test_normal_equations_match_the_full_jacobian():
     np.testing.assert_allclose(r2, r, atol=0)
     np.testing.assert_allclose(A, J.T @ (J * w[:, None]), rtol=1e-12, atol=1e-9 * np.abs(A).max())
     np.testing.assert_allclose(g, J.T @ (w * r), rtol=1e-12, atol=1e-9 * np.abs(g).max())
+
+
+def test_orientation_groups_get_a_shared_correction_with_its_own_level():
+    # a real arm: R1's four tilt groups see different constant orientation errors; the
+    # between-group level is estimated apart from the within-group scatter
+    from slidecal.solver import refine as rf
+
+    s = sc.r1_real_arm(np.random.default_rng(26))
+    st = build_structure(s.problem, s.truth.X[0][:3, :3])
+    out = rf.refine(s.problem, st, _perturbed(s.truth, np.random.default_rng(27), k_px=2.0))
+    assert (
+        "U" in out.model.slices and out.model.slices["U"].stop - out.model.slices["U"].start == 24
+    )
+    within, between = out.model.pose_sigma, out.model.group_sigma
+    # wrists 25 deg apart err differently: a between-group level of the arm's size, not the floor
+    assert np.degrees(between[0]) > 0.005
+    assert np.degrees(np.hypot(within[0], between[0])) < 0.2
+    np.testing.assert_allclose(out.robot_sigma, np.hypot(within, between), rtol=1e-12)
