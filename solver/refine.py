@@ -207,6 +207,7 @@ class BundleModel:
         # robot's accuracy as refine estimates it
         self.pose_sigma = structure.pose_sigma
         self.group_sigma = structure.group_sigma
+        self._normal_cache: tuple | None = None  # (state, pixel weights, r, A, g) of the last
         self._index()
 
     # -- state updates -------------------------------------------------------------------------
@@ -394,7 +395,7 @@ class BundleModel:
             J[rows, 0, self.o_s_col[has_s]] = vals[:, 0]
             J[rows, 1, self.o_s_col[has_s]] = vals[:, 1]
         if "E" in self.slices:
-            blk = self._pose_block(state, A, RX, RM, p_Y)
+            blk = self._pose_block(A, RX, RM, p_Y, Ms)
             if "U" in self.slices:  # a group's correction moves its frames like theirs
                 ucols = self.slices["U"].start + self.st.pose_groups[f][:, None] * 6 + np.arange(6)
                 rows_u = np.arange(n)[:, None]
@@ -433,37 +434,45 @@ class BundleModel:
             r, J = self.evaluate(state)
             Jw = J * weights[:, None]
             return r, J.T @ Jw, Jw.T @ r
-        r, J0, B = self.evaluate(state, split=True)
         n, P = self.n_obs, len(self.names)
         sl = self.slices["E"]
         P0, F = sl.start, len(self.problem.frames)
         w, wp = weights[: 2 * n], weights[2 * n : 2 * n + 6 * F]
-        rp = r[: 2 * n]
-        J0w = J0 * w[:, None]
-        A = np.zeros((P, P))
-        g = np.zeros(P)
-        A[:P0, :P0] = J0.T @ J0w
-        g[:P0] = J0w.T @ rp
-        B2 = B.reshape(2 * n, 6)
-        Bw = B2 * w[:, None]
-        for k, rows in self.frame_rows.items():  # each frame's rows are contiguous
-            Bk, Bwk = B2[rows], Bw[rows]
-            c = P0 + 6 * k
-            A[:P0, c : c + 6] = J0[rows].T @ Bwk
-            A[c : c + 6, c : c + 6] = Bk.T @ Bwk
-            g[c : c + 6] = Bwk.T @ rp[rows]
-        A[P0:, :P0] = A[:P0, P0:].T
+        cache = self._normal_cache
+        if cache is not None and cache[0] is state and np.array_equal(cache[1], w):
+            rp, A0, g0 = cache[2:]  # the same state and pixel weights: only the priors moved
+        else:
+            r, J0, B = self.evaluate(state, split=True)
+            rp = r[: 2 * n]
+            J0w = J0 * w[:, None]
+            A0 = np.zeros((P, P))
+            g0 = np.zeros(P)
+            A0[:P0, :P0] = J0.T @ J0w
+            g0[:P0] = J0w.T @ rp
+            B2 = B.reshape(2 * n, 6)
+            Bw = B2 * w[:, None]
+            for k, rows in self.frame_rows.items():  # each frame's rows are contiguous
+                Bk, Bwk = B2[rows], Bw[rows]
+                c = P0 + 6 * k
+                A0[:P0, c : c + 6] = J0[rows].T @ Bwk
+                A0[c : c + 6, c : c + 6] = Bk.T @ Bwk
+                g0[c : c + 6] = Bwk.T @ rp[rows]
+            A0[P0:, :P0] = A0[:P0, P0:].T
+            self._normal_cache = (state, w.copy(), rp, A0, g0)
+        A, g = A0.copy(), g0.copy()
         ps = self.prior_scale
+        r_prior = [ps * state.E.reshape(-1)]
         idx = np.arange(P0, P)
         A[idx, idx] += wp * ps * ps
-        g[P0:] += wp * ps * r[2 * n : 2 * n + 6 * F]
+        g[P0:] += wp * ps * r_prior[0]
         if "U" in self.slices:
             su = self.slices["U"]
             pu, wu = self.group_prior_scale, weights[2 * n + 6 * F :]
+            r_prior.append(pu * state.U.reshape(-1))
             idx = np.arange(su.start, su.stop)
             A[idx, idx] += wu * pu * pu
-            g[idx] += wu * pu * r[2 * n + 6 * F :]
-        return r, A, g
+            g[idx] += wu * pu * r_prior[1]
+        return np.concatenate([rp, *r_prior]), A, g
 
     @property
     def group_prior_scale(self) -> np.ndarray:
@@ -502,7 +511,7 @@ class BundleModel:
         return Ms
 
     def _pose_block(
-        self, state: ModelState, A: np.ndarray, RX: np.ndarray, RM: np.ndarray, p_Y: np.ndarray
+        self, A: np.ndarray, RX: np.ndarray, RM: np.ndarray, p_Y: np.ndarray, Ms: np.ndarray
     ) -> np.ndarray:
         """d px / d (pose correction) (n, 2, 6) of every observation's frame.
 
@@ -511,7 +520,7 @@ class BundleModel:
         n = self.n_obs
         B = A @ RX[0] if self.n_groups == 1 else np.einsum("nab,nbc->nac", A, RX)  # d px/d p_M
         if self.st.eye_in_hand:  # M = T^-1: p_M = R' (p_Y - t)
-            t_true = -np.einsum("nji,nj->ni", RM, self.true_motions(state)[self.o_frame, :3, 3])
+            t_true = -np.einsum("nji,nj->ni", RM, Ms[self.o_frame, :3, 3])
             D_rot = np.einsum("nij,njk->nik", RM, _skew_batch(p_Y - t_true))
             D_t = -RM
         else:  # M = T: p_M = R p_Y + t
