@@ -753,7 +753,7 @@ def refine(
         T_meas=np.stack([f.T_base_tool for f in problem.frames]),
         pose_sigma=sig0,
         eye_in_hand=structure.eye_in_hand,
-        pose_groups=pose_groups if pose_groups.max() > 0 else None,
+        pose_groups=pose_groups if _shared_groups(pose_groups) else None,
         group_sigma=sig0,
     )
     out = _refine(problem, noisy, out0.state, max_iter, robust, estimate=True)
@@ -768,6 +768,14 @@ def refine(
         True,
         f"robot accuracy estimated: the poses taken as exact do not explain the images ({figure})",
     )
+
+
+def _shared_groups(pose_groups: np.ndarray) -> bool:
+    """Whether a shared correction per orientation group adds anything: two or more groups,
+    each of two or more frames (a group of one frame would duplicate that frame's own
+    correction, as in a classic hand-eye session where every orientation differs)."""
+    counts = np.bincount(pose_groups)
+    return len(counts) > 1 and int(counts.min()) >= 2
 
 
 def _with_robot(

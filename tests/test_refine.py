@@ -247,3 +247,12 @@ def test_orientation_groups_get_a_shared_correction_with_its_own_level():
     assert np.degrees(between[0]) > 0.005
     assert np.degrees(np.hypot(within[0], between[0])) < 0.2
     np.testing.assert_allclose(out.robot_sigma, np.hypot(within, between), rtol=1e-12)
+
+
+def test_no_group_correction_without_groups_of_several_frames():
+    from slidecal.solver.refine import _shared_groups
+
+    assert _shared_groups(np.array([0, 0, 1, 1, 1]))
+    assert not _shared_groups(np.array([0, 0, 0]))  # one group: the hand-eye's gauge
+    assert not _shared_groups(np.arange(6))  # classic hand-eye: every orientation differs
+    assert not _shared_groups(np.array([0, 0, 1, 2, 2]))
