@@ -77,6 +77,8 @@ def truth_block(cfg: Any, T_target: np.ndarray | None = None) -> dict[str, Any]:
             for c in sim.cameras
         },
     }
+    if sim.kinematic_error is not None:
+        out["noise"]["kinematic_error"] = dict(sim.kinematic_error)
     out["seed"] = sim.seed
     return out
 
@@ -130,6 +132,8 @@ class SimulatedCell:
             "pose_noise_m": sim.robot_noise_m,
             "pose_noise_deg": sim.robot_noise_deg,
         }
+        if sim.kinematic_error is not None:  # a real arm's accuracy (mocks/robot.py)
+            rdict["kinematic_error"] = dict(sim.kinematic_error)
         robot = SimulatedUR.from_dict(rdict)
         cams = list(sim.cameras)
         ref = cfg.reference_camera

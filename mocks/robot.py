@@ -7,6 +7,14 @@ a simulated clock by the duration of a trapezoidal speed profile. ``measured_pos
 true pose with configurable noise, as the controller's encoders and kinematic model would.
 Faults can be injected to test what the routine does with them.
 
+A real arm is not its nominal model: :class:`KinematicError` perturbs the kinematic parameters
+(joint zero offsets, link lengths and offsets, twists between nominally parallel axes), adds a
+gravity-dependent deflection of the shoulder and elbow and a cyclic transmission error per
+joint, so that the flange misses the pose the controller computes by 0.5-2 mm and
+0.05-0.2 deg, smoothly over the workspace (ISO 9283 *accuracy*), on top of a random
+repeatability of tens of micrometres and ~0.005 deg per stop. The controller reports the
+nominal model's pose of the joints (``measured_pose``); the cameras see ``true_pose``.
+
 A cell description (the ``robot:`` section of a YAML cell file) builds one with
 :meth:`SimulatedUR.from_dict`::
 
@@ -17,12 +25,18 @@ A cell description (the ``robot:`` section of a YAML cell file) builds one with
     limits: {max_speed_mps: 1.0, max_accel_mps2: 2.5, max_angular_speed_deg_s: 60,
              max_angular_accel_deg_s2: 80, z_min_m: 0.0}
     noise: {pose_noise_m: 5.0e-5, pose_noise_deg: 0.005}
+    kinematic_error: {mm: 1.0, deg: 0.1, repeatability_mm: 0.03, repeatability_deg: 0.005}
     seed: 0
+
+``kinematic_error`` (optional; absent: the arm is its nominal model): the size of the arm's
+systematic error (see :meth:`KinematicError.random`) and its repeatability; drawn from the
+arm's own seed.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -30,7 +44,7 @@ import numpy as np
 from slidecal.drivers import ur_kinematics as urk
 from slidecal.drivers.ur_pose import T_from_ur_pose, pendant_text, ur_pose_from_T
 from slidecal.solver.errors import HardwareFault, InputError
-from slidecal.solver.geometry import R_from_rvec, T_from_Rt, rvec_from_R
+from slidecal.solver.geometry import R_from_rvec, Rx, Rz, T_from_Rt, rvec_from_R
 
 #: Straight lines are checked at least every 5 mm and every 1 deg of tool rotation.
 STEP_M = 0.005
@@ -40,6 +54,8 @@ STEP_RAD = np.radians(1.0)
 MAX_JOINT_STEP_RAD = 0.2
 
 FAULT_KINDS = ("protective_stop", "emergency_stop", "disconnect", "timeout")
+#: Cycles per joint turn of the simulated gearboxes' transmission error (a 12 deg period).
+GEAR_CYCLES = 30.0
 
 
 def trapezoid_time_s(distance: float, max_speed: float, max_accel: float) -> float:
@@ -60,6 +76,100 @@ def _interpolate(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
     """Pose a fraction ``s`` along the straight line (and rotation geodesic) from T0 to T1."""
     rvec = rvec_from_R(T0[:3, :3].T @ T1[:3, :3])
     return T_from_Rt(T0[:3, :3] @ R_from_rvec(s * rvec), (1 - s) * T0[:3, 3] + s * T1[:3, 3])
+
+
+@dataclass(frozen=True)
+class KinematicError:
+    """How a real arm differs from its nominal Denavit-Hartenberg model (all (6,) per joint).
+
+    Joint ``i`` of the true arm is ``Rz(q_i + d_theta_i + e_i(q)) Tz(d_i + d_d_i)
+    Tx(a_i + d_a_i) Rx(alpha_i + d_alpha_i)``, with ``e_i(q) = gravity_rad_i * cos(load
+    angle) + cyclic_rad_i * sin(2 q_i + cyclic_phase_i) + gear_rad_i * sin(GEAR_CYCLES q_i +
+    gear_phase_i)``: the shoulder and elbow sag with the horizontal reach of the links they carry
+    (the load angle of joint 2 is ``q2``, of joint 3 ``q2 + q3``; the other joints' gravity terms
+    are 0), every joint has a twice-per-turn error (bearing and encoder eccentricity) and a
+    faster transmission error of its gearbox (``GEAR_CYCLES`` per turn, a period of 12 deg of
+    joint motion: a 50 mm move already sees it change). ``repeatability_m``,
+    ``repeatability_deg``: the one-sigma random error of each stop (per axis), redrawn at every
+    move.
+    """
+
+    d_theta: np.ndarray
+    d_d: np.ndarray
+    d_a: np.ndarray
+    d_alpha: np.ndarray
+    gravity_rad: np.ndarray
+    cyclic_rad: np.ndarray
+    cyclic_phase: np.ndarray
+    gear_rad: np.ndarray
+    gear_phase: np.ndarray
+    repeatability_m: float = 3e-5
+    repeatability_deg: float = 0.005
+
+    @classmethod
+    def random(
+        cls,
+        rng: np.random.Generator,
+        mm: float = 1.0,
+        deg: float = 0.1,
+        repeatability_mm: float = 0.03,
+        repeatability_deg: float = 0.005,
+    ) -> KinematicError:
+        """A random arm whose flange errs by about ``mm`` and ``deg`` (rms over the workspace).
+
+        Angular parameters are drawn at ``deg / 3`` one-sigma each (the flange's orientation
+        error adds six joints' and two twists' worth); lengths at ``mm / 3`` each. Measured
+        on UR5e arms drawn with the defaults (1 mm, 0.1 deg): 0.5-2 mm and 0.05-0.2 deg over
+        the reachable workspace (``tests/test_sim_robot.py``).
+        """
+        if mm < 0 or deg < 0 or repeatability_mm < 0 or repeatability_deg < 0:
+            raise InputError("kinematic_error sizes must not be negative", where="robot")
+        ang = np.radians(deg) / 3.0
+        lin = mm / 1000.0 / 3.0
+        twist = rng.normal(0.0, ang, 6)
+        twist[[0, 3, 4, 5]] *= 0.5  # the perpendicular axes are machined more easily than the
+        # nominally parallel shoulder/elbow/wrist-1 axes, whose misalignment builds up
+        return cls(
+            d_theta=rng.normal(0.0, ang, 6),
+            d_d=rng.normal(0.0, lin, 6),
+            d_a=rng.normal(0.0, lin, 6) * np.array([0, 1, 1, 0, 0, 0]),
+            d_alpha=twist,
+            gravity_rad=np.abs(rng.normal(0.0, ang, 6)) * np.array([0, 1, 1, 0, 0, 0]),
+            cyclic_rad=rng.normal(0.0, 0.3 * ang, 6),
+            cyclic_phase=rng.uniform(0.0, 2 * np.pi, 6),
+            gear_rad=rng.normal(0.0, 0.5 * ang, 6),
+            gear_phase=rng.uniform(0.0, 2 * np.pi, 6),
+            repeatability_m=repeatability_mm / 1000.0,
+            repeatability_deg=repeatability_deg,
+        )
+
+    def joint_errors(self, q: np.ndarray) -> np.ndarray:
+        """The joint-angle errors (6,) radians at joints ``q`` (offsets, sag, transmission)."""
+        load = np.array([0.0, q[1], q[1] + q[2], 0.0, 0.0, 0.0])
+        return (
+            self.d_theta
+            + self.gravity_rad * np.cos(load)
+            + self.cyclic_rad * np.sin(2.0 * q + self.cyclic_phase)
+            + self.gear_rad * np.sin(GEAR_CYCLES * q + self.gear_phase)
+        )
+
+    def fk(
+        self, q: np.ndarray, model: urk.URModel, T_flange_tcp: np.ndarray | None = None
+    ) -> np.ndarray:
+        """The true ``T_base_tool`` (4, 4) of the arm at joints ``q`` (without repeatability)."""
+        q = np.asarray(q, dtype=float)
+        theta = q + self.joint_errors(q)
+        d = np.array([model.d1, 0.0, 0.0, model.d4, model.d5, model.d6]) + self.d_d
+        a = np.array([0.0, model.a2, model.a3, 0.0, 0.0, 0.0]) + self.d_a
+        alpha = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0]) + self.d_alpha
+        T = np.eye(4)
+        for i in range(6):
+            L = np.eye(4)
+            Rzt = Rz(theta[i])
+            L[:3, :3] = Rzt @ Rx(alpha[i])
+            L[:3, 3] = Rzt @ np.array([a[i], 0.0, 0.0]) + np.array([0.0, 0.0, d[i]])
+            T = T @ L
+        return T if T_flange_tcp is None else T @ T_flange_tcp
 
 
 def _describe(T: np.ndarray) -> str:
@@ -93,6 +203,11 @@ class SimulatedUR:
         Lowest allowed TCP height in the base frame (a table or safety plane), or None.
     move_timeout_s
         Time a move that times out (injected fault) spends before it gives up.
+    kinematic_error
+        The arm's deviation from its nominal model (None: the arm is its model, exactly).
+        ``true_pose`` is then the perturbed arm's pose of the joints with the stop's
+        repeatability error; ``measured_pose`` stays the nominal model's (what the controller
+        computes), with ``pose_noise_*`` on top.
     """
 
     def __init__(
@@ -110,6 +225,7 @@ class SimulatedUR:
         pose_noise_deg: float = 0.0,
         z_min_m: float | None = None,
         move_timeout_s: float = 30.0,
+        kinematic_error: KinematicError | None = None,
     ) -> None:
         for name, value in (
             ("max_speed_mps", max_speed_mps),
@@ -136,6 +252,8 @@ class SimulatedUR:
         if urk.singularity(self._q, model) is not None:
             raise InputError(f"start joints are singular: {urk.singularity(self._q, model)}")
         self._T = urk.fk(self._q, model, self.T_flange_tcp)
+        self.kinematic_error = kinematic_error
+        self._stop_error = np.eye(4)  # this stop's repeatability error (true = fk_true @ it)
         self._time_s = 0.0
         self._connected = False
         self._moves = 0
@@ -148,7 +266,16 @@ class SimulatedUR:
     @classmethod
     def from_dict(cls, cell: Mapping[str, Any]) -> SimulatedUR:
         """Build from a cell description (see the module docstring); unknown keys are errors."""
-        known = {"model", "start_pose", "start_q", "tcp", "limits", "noise", "seed"}
+        known = {
+            "model",
+            "start_pose",
+            "start_q",
+            "tcp",
+            "limits",
+            "noise",
+            "seed",
+            "kinematic_error",
+        }
         unknown = set(cell) - known
         if unknown:
             raise InputError(
@@ -197,12 +324,37 @@ class SimulatedUR:
         else:
             start_q = urk.Q_HOME
         rng = np.random.default_rng(cell.get("seed", 0))
+        ke = cell.get("kinematic_error")
+        if ke is not None:
+            ke = dict(ke)
+            sizes = {}
+            for key in ("mm", "deg", "repeatability_mm", "repeatability_deg"):
+                if key in ke:
+                    sizes[key] = float(ke.pop(key))
+            if ke:
+                raise InputError(
+                    f"unknown key(s) {sorted(ke)}; kinematic_error takes mm, deg, "
+                    "repeatability_mm, repeatability_deg",
+                    where="robot.kinematic_error",
+                )
+            kw["kinematic_error"] = KinematicError.random(rng, **sizes)
         return cls(rng, model=model, start_q=start_q, T_flange_tcp=T_flange_tcp, **kw)
 
     # ----------------------------------------------------------------------- simulation only
     def true_pose(self) -> np.ndarray:
-        """The true ``T_base_tool`` (4, 4), metres (for the simulated cameras; not in Robot)."""
-        return self._T.copy()
+        """The true ``T_base_tool`` (4, 4), metres (for the simulated cameras; not in Robot):
+        the nominal pose, or with a ``kinematic_error`` the real arm's pose of the joints."""
+        if self.kinematic_error is None:
+            return self._T.copy()
+        return self.kinematic_error.fk(self._q, self.model, self.T_flange_tcp) @ self._stop_error
+
+    def _new_stop(self) -> None:
+        """Draw the repeatability error of the stop just reached."""
+        ke = self.kinematic_error
+        if ke is None or (ke.repeatability_m == 0 and ke.repeatability_deg == 0):
+            return
+        dR = R_from_rvec(self.rng.normal(0.0, np.radians(ke.repeatability_deg), 3))
+        self._stop_error = T_from_Rt(dR, self.rng.normal(0.0, ke.repeatability_m, 3))
 
     @property
     def q(self) -> np.ndarray:
@@ -309,9 +461,7 @@ class SimulatedUR:
         if not (0.0 < speed_mps <= self.max_speed_mps):
             raise InputError(f"speed_mps must be in (0, {self.max_speed_mps}], got {speed_mps}")
         if not (0.0 < accel_mps2 <= self.max_accel_mps2):
-            raise InputError(
-                f"accel_mps2 must be in (0, {self.max_accel_mps2}], got {accel_mps2}"
-            )
+            raise InputError(f"accel_mps2 must be in (0, {self.max_accel_mps2}], got {accel_mps2}")
         T1 = np.asarray(T_base_tool, dtype=float)
         if T1.shape != (4, 4) or not np.all(np.isfinite(T1)):
             raise InputError(f"move_linear needs a finite 4x4 T_base_tool, got shape {T1.shape}")
@@ -350,6 +500,7 @@ class SimulatedUR:
             )
         self._q = qs[-1]
         self._T = urk.fk(self._q, self.model, self.T_flange_tcp)
+        self._new_stop()
         self._time_s += duration
         self.move_log.append(self._T.copy())
         if fault == "disconnect":

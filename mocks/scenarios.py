@@ -8,18 +8,23 @@ and with the Cramer-Rao bound. No images: the rendered-image simulator is ``mock
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import least_squares
 
+from slidecal.drivers import ur_kinematics as urk
 from slidecal.solver.camera import K_matrix, project
 from slidecal.solver.geometry import (
     R_from_rvec,
     Rx,
     Ry,
+    Rz,
     T_from_Rt,
     inv_T,
     look_at_R_cam_world,
+    rvec_from_R,
     transform_points,
 )
 from slidecal.solver.problem import (
@@ -49,6 +54,7 @@ class Scenario:
     sigma_px: float
     T_hand_eye: np.ndarray | None = None
     T_target: np.ndarray | None = None
+    T_base_tool_true: np.ndarray | None = None  # (F, 4, 4) where the arm really was
 
 
 def paper_grid() -> Target:
@@ -339,3 +345,171 @@ def r1_eye_to_hand(
     are R1's, so the tilt groups and translations carry over (the board moves, not the camera).
     """
     return _r1_cell(rng, sigma_px, robot_noise_m, robot_noise_deg, options, False)
+
+
+# -- a real arm: systematic kinematic error (REALITY: accuracy is not repeatability) ------------
+#: R1's cell placed in front of a UR5e so that every pose is reachable: turned 180 deg about
+#: the base z axis, the board's origin at (0.5, 0, 0) m.
+R1_IN_REACH = T_from_Rt(Rz(np.pi), np.zeros(3))
+
+
+def _in_reach() -> np.ndarray:
+    T_base_board, _ = r1_poses()
+    S = R1_IN_REACH.copy()
+    S[:3, 3] = np.array([0.5, 0.0, 0.0]) - S[:3, :3] @ T_base_board[:3, 3]
+    return S
+
+
+def real_arm_poses(
+    planned: np.ndarray,
+    rng: np.random.Generator,
+    arm_mm: float = 1.0,
+    arm_deg: float = 0.1,
+    repeatability_mm: float = 0.03,
+    repeatability_deg: float = 0.005,
+) -> np.ndarray:
+    """Where a UR5e with a random kinematic error really puts the tool for ``planned``
+    ``T_base_tool`` poses (F, 4, 4): the controller's inverse kinematics (nominal model) gives
+    the joints, the perturbed arm (``KinematicError.random`` with these sizes) the pose, plus
+    the stop's repeatability error. The controller reports the planned poses."""
+    from slidecal.mocks.robot import KinematicError
+
+    ke = KinematicError.random(rng, arm_mm, arm_deg, repeatability_mm, repeatability_deg)
+    out = np.empty_like(planned)
+    q_prev = urk.Q_HOME
+    for k, T in enumerate(planned):
+        sols = [q for q in urk.ik(T, q_prev, urk.UR5E) if urk.singularity(q, urk.UR5E) is None]
+        if not sols:
+            raise ValueError(f"planned pose {k} is out of the UR5e's reach")
+        q_prev = sols[0]
+        dR = R_from_rvec(rng.normal(0.0, np.radians(repeatability_deg), 3))
+        stop = T_from_Rt(dR, rng.normal(0.0, repeatability_mm / 1000.0, 3))
+        out[k] = ke.fk(q_prev, urk.UR5E) @ stop
+    return out
+
+
+def r1_real_arm(
+    rng: np.random.Generator,
+    sigma_px: float = 0.15,
+    arm_mm: float = 1.0,
+    arm_deg: float = 0.1,
+    *,
+    eye_in_hand: bool = True,
+    translations_only: bool = False,
+    options: ModelOptions | None = None,
+    detect: Callable[[np.ndarray, np.random.Generator], Detection] | None = None,
+) -> Scenario:
+    """R1 on a real arm: a UR5e (R1's cell within its reach) whose kinematics err by about
+    ``arm_mm`` and ``arm_deg`` (:class:`slidecal.mocks.robot.KinematicError`, drawn anew from
+    ``rng``); the measured poses are the planned ones, the camera sees the true ones.
+
+    ``translations_only``: one orientation (R1's first tilt) and 12 translations of 40-80 mm in
+    non-coplanar directions, the session of the issue's real data. ``detect``: the image model,
+    ``T_cam_board -> Detection`` (default: R1's projected corners with ``sigma_px`` Gaussian
+    noise). ``T_hand_eye`` and ``T_target`` are the physical truth; see
+    :func:`effective_truth` for what the data can determine.
+    """
+    target = Target.charuco(11, 8, 0.030, 0.022)
+    S = _in_reach()
+    T_base_board, poses = r1_poses()
+    T_base_board = S @ T_base_board
+    poses = np.stack([S @ T for T in poses])
+    if translations_only:
+        base = poses[0]
+        R_base_cam = (base @ R1_T_TOOL_CAM)[:3, :3]
+        dirs = np.array(
+            [
+                [1.0, 0.0, -0.6],
+                [0.0, 1.0, 0.7],
+                [-0.7, -0.6, 1.0],
+                [0.6, -0.8, -0.9],
+                [0.9, 0.5, 0.4],
+                [-0.5, 0.9, -0.5],
+            ]
+        )
+        moves = [
+            R_base_cam @ (d / np.linalg.norm(d)) * length for d in dirs for length in (0.05, -0.07)
+        ]
+        poses = np.stack([base] + [T_from_Rt(base[:3, :3], base[:3, 3] + m) for m in moves])
+    if eye_in_hand:
+        planned = poses
+    else:  # the same camera-board poses, the board on the tool, the camera fixed
+        planned = np.stack(
+            [
+                R1_T_BASE_CAM @ inv_T(T @ R1_T_TOOL_CAM) @ T_base_board @ inv_T(R1_T_TOOL_BOARD)
+                for T in poses
+            ]
+        )
+    true = real_arm_poses(planned, rng, arm_mm, arm_deg)
+    if detect is None:
+
+        def detect(T_cam_board: np.ndarray, g: np.random.Generator) -> Detection:
+            return _detect(R1_K, R1_DIST, T_cam_board, target, (1280, 800), sigma_px, g, 2.0)
+
+    frames = []
+    for k, (T_true, T_meas) in enumerate(zip(true, planned, strict=True)):
+        if eye_in_hand:
+            T_cam_board = inv_T(T_true @ R1_T_TOOL_CAM) @ T_base_board
+        else:
+            T_cam_board = inv_T(R1_T_BASE_CAM) @ T_true @ R1_T_TOOL_BOARD
+        frames.append(Frame(k, {"cam": detect(T_cam_board, rng)}, T_base_tool=T_meas))
+    problem = CalibrationProblem(
+        target,
+        (CameraSpec("cam", 1280, 800),),
+        tuple(frames),
+        "eye_in_hand" if eye_in_hand else "eye_to_hand",
+        "robot",
+        options or ModelOptions(),
+    )
+    T_hand_eye = R1_T_TOOL_CAM if eye_in_hand else R1_T_BASE_CAM
+    T_target = T_base_board if eye_in_hand else R1_T_TOOL_BOARD
+    truth = ModelState(
+        {"cam": R1_K},
+        {"cam": R1_DIST.copy()},
+        {},
+        inv_T(T_hand_eye)[None],
+        T_target,
+        np.zeros(len(planned)),
+    )
+    return Scenario(problem, truth, sigma_px, T_hand_eye, T_target, true)
+
+
+def effective_truth(
+    s: Scenario, sigma_rot_deg: float = 0.1, sigma_mm: float = 1.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """The hand-eye and target pose ``(T_hand_eye, T_target)`` as the session can know them.
+
+    A constant part of the arm's error is indistinguishable from a change of the hand-eye (in
+    the tool frame) or of the target (in the base frame): no camera can tell them apart. The
+    solver's per-frame pose corrections have a zero-mean prior, so it converges to the pair
+    that leaves the smallest corrections: ``X' = X B``, ``Y' = A Y`` minimising, over the
+    frames, ``|rot(E_k)|^2 / sigma_rot^2 + |t(E_k)|^2 / sigma_t^2`` with ``E_k`` the correction
+    that maps the measured pose onto the one the camera saw. Physical truth and effective
+    truth differ by the arm's constant error (about ``sigma_*``).
+    """
+    T_meas = np.stack([f.T_base_tool for f in s.problem.frames])
+    T_true = s.T_base_tool_true
+    eih = s.problem.mount == "eye_in_hand"
+    X, Y = s.truth.X[0], s.truth.Y  # X = T_cam_tool / T_cam_base; Y = T_base_board / T_tool_board
+    w = np.array([1.0 / np.radians(sigma_rot_deg)] * 3 + [1000.0 / sigma_mm] * 3)
+
+    def corrections(p: np.ndarray) -> np.ndarray:
+        A = T_from_Rt(R_from_rvec(p[:3]), p[3:6])
+        B = T_from_Rt(R_from_rvec(p[6:9]), p[9:12])
+        out = []
+        for Tt, Tm in zip(T_true, T_meas, strict=True):
+            # the pose the camera saw with the model's X' = B X, Y' = Y A (eye-in-hand:
+            # X' (T)^-1 Y' = X Tt^-1 Y, so T = Y' Y^-1 Tt X^-1 X'); eye-to-hand alike
+            if eih:
+                T = (Y @ A) @ inv_T(Y) @ Tt @ inv_T(X) @ (B @ X)
+            else:
+                T = inv_T(B @ X) @ X @ Tt @ Y @ inv_T(Y @ A)
+            E_rot = rvec_from_R(T[:3, :3] @ Tm[:3, :3].T)
+            out.append(np.r_[E_rot, T[:3, 3] - Tm[:3, 3]] * w)
+        return np.concatenate(out)
+
+    p = least_squares(corrections, np.zeros(12), method="lm").x
+    A = T_from_Rt(R_from_rvec(p[:3]), p[3:6])
+    B = T_from_Rt(R_from_rvec(p[6:9]), p[9:12])
+    X_eff, Y_eff = B @ X, Y @ A
+    return inv_T(X_eff), Y_eff

@@ -85,6 +85,16 @@ DEFAULT_CELL = "default_cell.yaml"
 #: then read it in that section's function below. ``target`` and ``options`` take
 #: :data:`~slidecal.routines.session.TARGET_KEYS` and ``OPTIONS_KEYS`` (shared with sessions);
 #: ``plan`` takes :data:`slidecal.routines.planner.PLAN_KEYS`.
+#: ``simulation.kinematic_error``: the simulated arm's systematic error and its defaults
+#: (``slidecal.mocks.robot.KinematicError``: flange errors of this size, mm and deg rms, on top of
+#: per-stop repeatability).
+KINEMATIC_ERROR_DEFAULTS = {
+    "mm": 1.0,
+    "deg": 0.1,
+    "repeatability_mm": 0.03,
+    "repeatability_deg": 0.005,
+}
+
 CELL_KEYS: dict[str, tuple[str, ...]] = {
     "": (
         "format",
@@ -127,7 +137,15 @@ CELL_KEYS: dict[str, tuple[str, ...]] = {
     "cameras.list[].uvc": ("name", "width", "height", *UVC_CAMERA_KEYS),
     "approximate.eye_in_hand": ("T_base_board", "T_tool_cam", "standoff_m"),
     "approximate.eye_to_hand": ("T_base_cam", "T_tool_board", "standoff_m"),
-    "simulation": ("seed", "camera_preset", "cameras", "rig", "noise", "target_jitter"),
+    "simulation": (
+        "seed",
+        "camera_preset",
+        "cameras",
+        "rig",
+        "noise",
+        "target_jitter",
+        "kinematic_error",
+    ),
     "simulation.cameras.*": (
         "width",
         "height",
@@ -141,6 +159,7 @@ CELL_KEYS: dict[str, tuple[str, ...]] = {
     ),
     "simulation.noise": ("robot_mm", "robot_deg"),
     "simulation.target_jitter": ("mm", "deg"),
+    "simulation.kinematic_error": ("mm", "deg", "repeatability_mm", "repeatability_deg"),
 }
 
 #: ``plan:`` keys of earlier versions that no longer act, and what to write instead.
@@ -184,6 +203,9 @@ class SimulationConfig:
     position std per axis (metres) and rotation std per axis (degrees). ``target_jitter_mm`` /
     ``_deg``: the target is set up anew for each run: its true pose moves by this one-sigma
     amount per axis, drawn from the run's seed.
+    ``kinematic_error``: the simulated arm's systematic error (``mm``, ``deg``,
+    ``repeatability_mm``, ``repeatability_deg``; ``slidecal.mocks.robot.KinematicError``), or
+    None for an arm that is exactly its nominal model.
     """
 
     seed: int
@@ -195,6 +217,7 @@ class SimulationConfig:
     robot_noise_deg: float = 0.005
     target_jitter_mm: float = 0.0
     target_jitter_deg: float = 0.0
+    kinematic_error: dict[str, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -630,6 +653,13 @@ def _simulation(f: Fields, mount: str) -> SimulationConfig:
         raise f.error(tg_key, f"is missing; the simulated cell needs the true {tg_key}")
     nf = f.section("noise", CELL_KEYS["simulation.noise"])
     jf = f.section("target_jitter", CELL_KEYS["simulation.target_jitter"])
+    kinematic_error = None
+    if f.has("kinematic_error"):
+        kf = f.section("kinematic_error", CELL_KEYS["simulation.kinematic_error"])
+        kinematic_error = {
+            k: kf.number(k, v, minimum=0.0, maximum=1000.0)
+            for k, v in KINEMATIC_ERROR_DEFAULTS.items()
+        }
     return SimulationConfig(
         seed=seed,
         cameras=tuple(cams),
@@ -640,6 +670,7 @@ def _simulation(f: Fields, mount: str) -> SimulationConfig:
         robot_noise_deg=nf.number("robot_deg", 0.005, minimum=0.0, maximum=10.0),
         target_jitter_mm=jf.number("mm", 0.0, minimum=0.0, maximum=1000.0),
         target_jitter_deg=jf.number("deg", 0.0, minimum=0.0, maximum=90.0),
+        kinematic_error=kinematic_error,
     )
 
 

@@ -13,7 +13,12 @@ of a rig; rig ``T_<name>_<ref>``) and these extensions, all additive:
   {median_ratio, worst_ratio, n}``;
 - ``H_inf: {"a<-b": 3x3}``; ``outliers: [[frame, camera, corner id]]``;
   ``linear: {camera: K}`` (closed-form intrinsics before refinement);
-- ``parameter_names`` and ``covariance`` (rows named by ``parameter_names``).
+- ``parameter_names`` and ``covariance`` (rows named by ``parameter_names``);
+- ``adequacy: {adequate, reasons, detector_noise_px: {camera: px}, normalised_rms: {camera:
+  ratio}, worst_frames: [{frame, camera, normalised_rms}]}``: whether the model explains the
+  images against the detector's noise measured with a free board pose per image;
+- ``robot_accuracy: {translation_mm, rotation_deg, estimated, worst_frames: [{frame,
+  translation_mm, rotation_deg}]}``: the robot's pose accuracy as the camera sees it.
 
 A value the data cannot determine is ``null``, never a number. ``T_tool_<name>`` of a rig's
 non-reference camera is composed from the reference's hand-eye and the rig extrinsics; its std
@@ -47,6 +52,8 @@ from slidecal.solver.geometry import rotation_angle_deg, rvec_from_R
 from slidecal.solver.result import (
     CalibrationResult,
     CameraEstimate,
+    ModelAdequacy,
+    RobotAccuracy,
     ScaleCheck,
     TransformEstimate,
 )
@@ -195,6 +202,29 @@ def result_to_dict(result: CalibrationResult) -> dict[str, Any]:
     d["linear"] = {k: plain(v) for k, v in result.linear.items()}
     d["parameter_names"] = list(result.parameter_names)
     d["covariance"] = plain(result.covariance) if result.covariance is not None else None
+    ad = result.adequacy
+    if ad is not None:
+        d["adequacy"] = {
+            "adequate": bool(ad.adequate),
+            "reasons": list(ad.reasons),
+            "detector_noise_px": {k: _num(v) for k, v in ad.detector_noise_px.items()},
+            "normalised_rms": {k: _num(v) for k, v in ad.normalised_rms.items()},
+            "worst_frames": [
+                {"frame": int(f), "camera": c, "normalised_rms": _num(v)}
+                for f, c, v in ad.worst_frames
+            ],
+        }
+    ra = result.robot_accuracy
+    if ra is not None:
+        d["robot_accuracy"] = {
+            "translation_mm": _num(ra.translation_mm),
+            "rotation_deg": _num(ra.rotation_deg),
+            "estimated": bool(ra.estimated),
+            "worst_frames": [
+                {"frame": int(f), "translation_mm": _num(t), "rotation_deg": _num(r)}
+                for f, t, r in ra.worst_frames
+            ],
+        }
     return d
 
 
@@ -235,6 +265,8 @@ RESULT_KEYS = (
     "linear",
     "parameter_names",
     "covariance",
+    "adequacy",
+    "robot_accuracy",
 )
 #: The keys of the parts of ``result.yaml``.
 RESULT_PART_KEYS: dict[str, tuple[str, ...]] = {
@@ -252,6 +284,10 @@ RESULT_PART_KEYS: dict[str, tuple[str, ...]] = {
     "reprojection.per_image[]": ("frame", "camera", "rms_px"),
     "scale_checks[]": ("frame_a", "frame_b", "robot_mm", "camera_mm", "ratio"),
     "scale_check": ("median_ratio", "worst_ratio", "n"),
+    "adequacy": ("adequate", "reasons", "detector_noise_px", "normalised_rms", "worst_frames"),
+    "adequacy.worst_frames[]": ("frame", "camera", "normalised_rms"),
+    "robot_accuracy": ("translation_mm", "rotation_deg", "estimated", "worst_frames"),
+    "robot_accuracy.worst_frames[]": ("frame", "translation_mm", "rotation_deg"),
 }
 RESULT_MOUNTS = ("eye_in_hand", "eye_to_hand", "none")
 _TRANSFORM_KEY = re.compile(r"T_[A-Za-z0-9]+_[A-Za-z0-9_]+")
@@ -268,6 +304,49 @@ def read_result(path: str | Path) -> CalibrationResult:
 def _nullable(f: Fields, key: str, minimum: float | None = None) -> float:
     """A number or null (NaN in the result object)."""
     return f.number(key, minimum=minimum) if f.has(key) else float("nan")
+
+
+def _camera_numbers(f: Fields, key: str, names: list[str]) -> dict[str, float]:
+    sub = f.section(key, names)
+    return {str(k): _nullable(sub, str(k), minimum=0.0) for k in sub.data}
+
+
+def _adequacy_from(f: Fields, names: list[str]) -> ModelAdequacy:
+    a = f.section("adequacy", RESULT_PART_KEYS["adequacy"])
+    reasons = a.strings("reasons") if a.has("reasons") else []
+    worst = []
+    for i, w in enumerate(a.list("worst_frames", required=False, hint="{frame, camera, ...}")):
+        wf = Fields(w, f.file, f"adequacy.worst_frames[{i}]")
+        wf.only(RESULT_PART_KEYS["adequacy.worst_frames[]"])
+        worst.append(
+            (wf.integer("frame", minimum=0), wf.choice("camera", names),
+             _nullable(wf, "normalised_rms", minimum=0.0))
+        )
+    return ModelAdequacy(
+        _camera_numbers(a, "detector_noise_px", names),
+        _camera_numbers(a, "normalised_rms", names),
+        tuple(worst),
+        a.boolean("adequate"),
+        tuple(reasons),
+    )
+
+
+def _robot_accuracy_from(f: Fields) -> RobotAccuracy:
+    r = f.section("robot_accuracy", RESULT_PART_KEYS["robot_accuracy"])
+    worst = []
+    for i, w in enumerate(r.list("worst_frames", required=False, hint="{frame, ...}")):
+        wf = Fields(w, f.file, f"robot_accuracy.worst_frames[{i}]")
+        wf.only(RESULT_PART_KEYS["robot_accuracy.worst_frames[]"])
+        worst.append(
+            (wf.integer("frame", minimum=0), _nullable(wf, "translation_mm", minimum=0.0),
+             _nullable(wf, "rotation_deg", minimum=0.0))
+        )
+    return RobotAccuracy(
+        _nullable(r, "translation_mm", minimum=0.0),
+        _nullable(r, "rotation_deg", minimum=0.0),
+        tuple(worst),
+        r.boolean("estimated"),
+    )
 
 
 def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
@@ -395,6 +474,8 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
         if k not in cams:
             raise lf.error(str(k), f"unknown camera {k!r}; cameras are {names}")
         linear[str(k)] = lf.array(str(k), (3, 3))
+    adequacy = _adequacy_from(f, names) if f.has("adequacy") else None
+    robot_accuracy = _robot_accuracy_from(f) if f.has("robot_accuracy") else None
     return CalibrationResult(
         cameras=cams,
         hand_eye=hand_eye,
@@ -415,6 +496,8 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
         linear=linear,
         mount=mount,
         reference_camera=ref,
+        adequacy=adequacy,
+        robot_accuracy=robot_accuracy,
     )
 
 
@@ -535,6 +618,7 @@ def summary_text(result: CalibrationResult, truth: Mapping[str, Any] | None = No
         f"reprojection rms {_fmt(result.reproj_rms_px)} px, "
         f"noise estimate sigma {_fmt(result.sigma_px)} px"
     )
+    lines.extend(_adequacy_lines(result))
     for name, c in result.cameras.items():
         K = np.asarray(c.K)
         std = c.std
@@ -580,6 +664,35 @@ def summary_text(result: CalibrationResult, truth: Mapping[str, Any] | None = No
             lines.append("errors against the simulated truth:")
             lines.extend(f"  {k} = {_fmt(v, '.4g')}" for k, v in errs.items())
     return "\n".join(lines) + "\n"
+
+
+def _adequacy_lines(result: CalibrationResult) -> list[str]:
+    """The model-adequacy verdict and the robot's accuracy as the camera saw it."""
+    out = []
+    ad = result.adequacy
+    if ad is not None:
+        noise = ", ".join(
+            f"{c} {_fmt(v)} px (residuals {_fmt(ad.normalised_rms.get(c), '.2f')}x)"
+            for c, v in ad.detector_noise_px.items()
+        )
+        if ad.adequate:
+            out.append(f"model adequacy: the model explains the images; detector noise {noise}")
+        else:
+            out.append("MODEL INADEQUATE: do not use this result")
+            out.extend(f"  - {r}" for r in ad.reasons)
+            out.append(f"  detector noise {noise}")
+    ra = result.robot_accuracy
+    if ra is not None:
+        how = "estimated from the images" if ra.estimated else "from the options"
+        if ra.estimated and ra.translation_mm == 0.0 and ra.rotation_deg == 0.0:
+            out.append("robot accuracy: the measured poses explain the images (taken as exact)")
+        else:
+            worst = ", ".join(f"{f} ({t:.2f} mm, {r:.3f} deg)" for f, t, r in ra.worst_frames[:3])
+            out.append(
+                f"robot accuracy ({how}): {ra.translation_mm:.3f} mm, {ra.rotation_deg:.4f} deg "
+                f"rms per axis" + (f"; worst frames {worst}" if worst else "")
+            )
+    return out
 
 
 def _transform_lines(key: str, t: TransformEstimate) -> list[str]:

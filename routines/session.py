@@ -14,8 +14,10 @@ optional, additive, so the format stays ``slidecal.session/1`` and older session
   ``robot`` when every frame has ``T_base_tool``, ``none`` when no frame has one).
 - ``reference_camera``: the camera a rig's other cameras are expressed against.
 - ``options``: ``{skew, unit_aspect, distortion: [k1, k2, p1, p2, k3 as booleans],
-  outlier_threshold_px, robot_noise_mm, robot_noise_deg}`` (``ModelOptions``; the robot noise
-  is the one-sigma error of each axis of the measured poses, 0 treats them as exact).
+  outlier_threshold_px, robot_noise_mm, robot_noise_deg, estimate_robot_noise}``
+  (``ModelOptions``; the robot noise is the one-sigma error of each axis of the measured poses,
+  where the estimation of the robot's accuracy starts; with ``estimate_robot_noise: false``
+  it is taken as the truth, 0 then treating the poses as exact).
 - ``cell``, ``cell_sha256``: the cell file the run came from and the SHA-256 of its bytes;
   ``robot_driver``, ``camera_driver``; ``cameras[i].socket``: an OAK camera's board socket
   (what ``solve`` needs to write the depthai calibration again).
@@ -105,7 +107,8 @@ SESSION_KEYS: dict[str, tuple[str, ...]] = {
     "detection": ("ids", "px"),
     "simulation": ("cameras", "noise", "seed"),  # and transforms named T_<a>_<b>
     "simulation.cameras.*": ("K", "distortion"),
-    "simulation.noise": ("robot_mm", "robot_deg", "cameras"),
+    "simulation.noise": ("robot_mm", "robot_deg", "cameras", "kinematic_error"),
+    "simulation.noise.kinematic_error": ("mm", "deg", "repeatability_mm", "repeatability_deg"),
     "simulation.noise.cameras.*": ("blur_sigma_px", "noise_std", "exposure"),
 }
 
@@ -132,6 +135,7 @@ OPTIONS_KEYS = (
     "outlier_threshold_px",
     "robot_noise_mm",
     "robot_noise_deg",
+    "estimate_robot_noise",
 )
 
 #: Largest board (squares per side) slidecal accepts: beyond it a typo is likelier than a board.
@@ -292,6 +296,7 @@ def options_from_dict(data: Any, file: str, path: str = "options") -> ModelOptio
         ),
         robot_noise_m=f.number("robot_noise_mm", 0.0, minimum=0.0, maximum=100.0) / 1000.0,
         robot_noise_deg=f.number("robot_noise_deg", 0.0, minimum=0.0, maximum=10.0),
+        estimate_robot_noise=f.boolean("estimate_robot_noise", base.estimate_robot_noise),
     )
 
 
@@ -304,6 +309,7 @@ def options_to_dict(options: ModelOptions) -> dict[str, Any]:
         "outlier_threshold_px": options.outlier_threshold_px,
         "robot_noise_mm": options.robot_noise_m * 1000.0,
         "robot_noise_deg": options.robot_noise_deg,
+        "estimate_robot_noise": options.estimate_robot_noise,
     }
 
 
@@ -501,6 +507,9 @@ def _simulation_truth(f: Fields | None, names: Sequence[str]) -> dict[str, Any] 
     nf = f.section("noise", SESSION_KEYS["simulation.noise"])
     nf.number("robot_mm", 0.0, minimum=0.0)
     nf.number("robot_deg", 0.0, minimum=0.0)
+    kf = nf.section("kinematic_error", SESSION_KEYS["simulation.noise.kinematic_error"])
+    for k in SESSION_KEYS["simulation.noise.kinematic_error"]:
+        kf.number(k, 0.0, minimum=0.0)
     ncf = nf.section("cameras")
     for name in ncf.data:
         c = ncf.section(str(name), SESSION_KEYS["simulation.noise.cameras.*"])

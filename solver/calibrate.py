@@ -19,6 +19,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
+from slidecal.solver.adequacy import assess
 from slidecal.solver.degeneracy import check_configuration, n_directions
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, project_to_SO3, skew
@@ -687,8 +688,9 @@ def _kept(out: RefineOutput, unobservable: dict[str, str] | None = None) -> np.n
     the hand-eye translation is unobservable, the target pose's translation (its value is tied
     to that translation, fixed by convention: not a measured number)."""
     keep = np.ones(len(out.names), dtype=bool)
-    if "E" in out.model.slices:
-        keep[out.model.slices["E"]] = False
+    for key in ("E", "U"):  # per-frame and per-group robot-pose corrections
+        if key in out.model.slices:
+            keep[out.model.slices[key]] = False
     if unobservable and any(k.endswith("_board.t") for k in unobservable):
         keep &= np.array([not n.startswith("Y.t") for n in out.names], dtype=bool)
     return np.flatnonzero(keep)
@@ -801,6 +803,7 @@ def _result(
         residuals[ch.key] = float(np.sqrt(np.mean(r**2) * 2))
     inl = out.residuals[out.inlier_rows]
     rms = float(np.sqrt(np.mean(inl**2) * 2)) if len(inl) else float("nan")
+    adequacy, robot_accuracy = assess(problem, out)
     return CalibrationResult(
         cameras=cams,
         hand_eye=hand_eye,
@@ -828,6 +831,8 @@ def _result(
         linear=K_lin,
         mount=problem.mount,
         reference_camera=ref,
+        adequacy=adequacy,
+        robot_accuracy=robot_accuracy,
     )
 
 

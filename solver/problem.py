@@ -150,6 +150,12 @@ class ModelOptions:
     poses (translation, and each rotation-vector component). With 0 the poses are exact inputs;
     otherwise every pose gets a correction with this Gaussian prior (errors in variables), so
     the estimate and its covariance account for the robot's measurement noise.
+    ``estimate_robot_noise``: learn the robot's accuracy from the data (robot sessions): the
+    poses are first taken as exact and tested against a free board pose per image; when they
+    do not explain the images, every pose gets a correction whose one-sigma levels (rotation,
+    translation) are estimated together with the parameters and the image noise (variance
+    components), ``robot_noise_*`` then being only where the estimation starts. False: the
+    ``robot_noise_*`` values are taken as the truth.
     """
 
     skew: bool = False
@@ -158,6 +164,7 @@ class ModelOptions:
     outlier_threshold_px: float = 2.0
     robot_noise_m: float = 0.0
     robot_noise_deg: float = 0.0
+    estimate_robot_noise: bool = True
 
 
 @dataclass(frozen=True)

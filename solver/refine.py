@@ -49,6 +49,7 @@ class ModelState:
     Y: np.ndarray
     s: np.ndarray
     E: np.ndarray | None = None
+    U: np.ndarray | None = None  # (G, 6) per orientation group, added to its frames' E
 
 
 @dataclass(frozen=True)
@@ -76,6 +77,12 @@ class Structure:
     T_meas: np.ndarray | None = None
     pose_sigma: tuple[float, float] | None = None
     eye_in_hand: bool = True
+    # a real arm's error is smooth over the workspace: nearly the same for the frames of one
+    # orientation group, different between groups. ``pose_groups`` (F,): the group of each
+    # frame for a shared correction ``U`` per group with prior sigmas ``group_sigma`` (radians,
+    # metres); None: corrections independent from frame to frame
+    pose_groups: np.ndarray | None = None
+    group_sigma: tuple[float, float] | None = None
 
 
 def intrinsic_names(problem: CalibrationProblem) -> tuple[str, ...]:
@@ -172,6 +179,16 @@ class BundleModel:
         yb += [f"Y.t{i}" for i in range(st.Y_t_basis.shape[1])]
         if yb:
             add("Y", yb)
+        if structure.pose_sigma is not None and structure.pose_groups is not None:
+            n_pg = int(structure.pose_groups.max()) + 1
+            add(
+                "U",
+                [
+                    f"pose_group{g}.{a}"
+                    for g in range(n_pg)
+                    for a in ("rx", "ry", "rz", "tx", "ty", "tz")
+                ],
+            )
         if structure.pose_sigma is not None:
             add(
                 "E",
@@ -186,6 +203,11 @@ class BundleModel:
             add("s", [f"s{int(problem.frames[i].id)}" for i in self.s_frames])
         self.names = tuple(names)
         self.sigma_px = 1.0  # pixel noise used to weigh the pose prior rows (set by refine)
+        # one-sigma (radians, metres) of the pose corrections' prior: the structure's, or the
+        # robot's accuracy as refine estimates it
+        self.pose_sigma = structure.pose_sigma
+        self.group_sigma = structure.group_sigma
+        self._normal_cache: tuple | None = None  # (state, pixel weights, r, A, g) of the last
         self._index()
 
     # -- state updates -------------------------------------------------------------------------
@@ -236,7 +258,11 @@ class BundleModel:
             E = (np.zeros((len(self.problem.frames), 6)) if E is None else E) + delta[
                 self.slices["E"]
             ].reshape(-1, 6)
-        return ModelState(K, dist, T_cam_ref, X, Y, s, E)
+        U = state.U
+        if "U" in self.slices:
+            du = delta[self.slices["U"]].reshape(-1, 6)
+            U = (np.zeros_like(du) if U is None else U) + du
+        return ModelState(K, dist, T_cam_ref, X, Y, s, E, U)
 
     def T_ref_board(self, state: ModelState, fi: int) -> np.ndarray:
         """``T_ref_board`` (4, 4) of the reference camera at frame index ``fi``."""
@@ -260,13 +286,22 @@ class BundleModel:
         if len(self.s_frames):
             s_col[self.s_frames] = self.slices["s"].start + np.arange(len(self.s_frames))
         self.o_s_col = s_col[self.o_frame]
+        # residual rows of each frame (contiguous: chunks come frame by frame)
+        self.frame_rows: dict[int, slice] = {}
+        for c in ch:
+            r0 = self.frame_rows.get(c.frame_index)
+            start = c.rows.start if r0 is None else r0.start
+            self.frame_rows[c.frame_index] = slice(start, c.rows.stop)
 
     def evaluate(
-        self, state: ModelState, jacobian: bool = True
+        self, state: ModelState, jacobian: bool = True, split: bool = False
     ) -> tuple[np.ndarray, np.ndarray | None]:
         """Residuals (R,) (projected minus observed, pixels) and the Jacobian (R, P).
 
         Vectorised over all observations; rows ``2 i, 2 i + 1`` are observation i's u and v.
+        ``split`` (with pose corrections, whose columns come last): the pixel rows' Jacobian
+        without the pose-correction columns (2 n, P0) and, third, each observation's block of
+        its own frame's correction (n, 2, 6); the prior rows are left to the caller.
         """
         n, P_ = self.n_obs, len(self.names)
         st = self.st
@@ -305,8 +340,13 @@ class BundleModel:
         r = (px - self.o_px).reshape(-1)
         if "E" in self.slices:
             r = np.concatenate([r, self.prior_scale * state.E.reshape(-1)])
+        if "U" in self.slices:
+            r = np.concatenate([r, self.group_prior_scale * state.U.reshape(-1)])
         if not jacobian:
             return r, None
+        if split:
+            P_ = self.slices["E"].start
+            assert P_ + 6 * len(self.problem.frames) == len(self.names)
         J = np.zeros((n, 2, P_))
         d_P = np.empty((n, 2, 3))
         unit, skew_on = self.problem.options.unit_aspect, self.problem.options.skew
@@ -355,7 +395,14 @@ class BundleModel:
             J[rows, 0, self.o_s_col[has_s]] = vals[:, 0]
             J[rows, 1, self.o_s_col[has_s]] = vals[:, 1]
         if "E" in self.slices:
-            blk = self._pose_block(state, A, RX, RM, p_Y)
+            blk = self._pose_block(A, RX, RM, p_Y, Ms)
+            if "U" in self.slices:  # a group's correction moves its frames like theirs
+                ucols = self.slices["U"].start + self.st.pose_groups[f][:, None] * 6 + np.arange(6)
+                rows_u = np.arange(n)[:, None]
+                J[rows_u, 0, ucols] = blk[:, 0, :]
+                J[rows_u, 1, ucols] = blk[:, 1, :]
+            if split:
+                return r, J.reshape(2 * n, P_), blk
             cols = self.slices["E"].start + f[:, None] * 6 + np.arange(6)
             rows = np.arange(n)[:, None]
             J[rows, 0, cols] = blk[:, 0, :]
@@ -363,13 +410,82 @@ class BundleModel:
             sl = self.slices["E"]
             prior = np.zeros((sl.stop - sl.start, P_))
             prior[np.arange(prior.shape[0]), np.arange(sl.start, sl.stop)] = self.prior_scale
-            return r, np.vstack([J.reshape(2 * n, P_), prior])
+            blocks = [J.reshape(2 * n, P_), prior]
+            if "U" in self.slices:
+                su = self.slices["U"]
+                prior_u = np.zeros((su.stop - su.start, P_))
+                prior_u[np.arange(prior_u.shape[0]), np.arange(su.start, su.stop)] = (
+                    self.group_prior_scale
+                )
+                blocks.append(prior_u)
+            return r, np.vstack(blocks)
         return r, J.reshape(2 * n, P_)
+
+    def normal_equations(
+        self, state: ModelState, weights: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Residuals (R,), ``J' W J`` (P, P) and ``J' W r`` (P,) with row weights ``weights``.
+
+        With pose corrections the Jacobian is never formed whole: each frame's six correction
+        columns touch only that frame's rows (and one prior row each), so their blocks are
+        accumulated per frame (a hundred columns fewer in the big products).
+        """
+        if "E" not in self.slices:
+            r, J = self.evaluate(state)
+            Jw = J * weights[:, None]
+            return r, J.T @ Jw, Jw.T @ r
+        n, P = self.n_obs, len(self.names)
+        sl = self.slices["E"]
+        P0, F = sl.start, len(self.problem.frames)
+        w, wp = weights[: 2 * n], weights[2 * n : 2 * n + 6 * F]
+        cache = self._normal_cache
+        if cache is not None and cache[0] is state and np.array_equal(cache[1], w):
+            rp, A0, g0 = cache[2:]  # the same state and pixel weights: only the priors moved
+        else:
+            r, J0, B = self.evaluate(state, split=True)
+            rp = r[: 2 * n]
+            J0w = J0 * w[:, None]
+            A0 = np.zeros((P, P))
+            g0 = np.zeros(P)
+            A0[:P0, :P0] = J0.T @ J0w
+            g0[:P0] = J0w.T @ rp
+            B2 = B.reshape(2 * n, 6)
+            Bw = B2 * w[:, None]
+            for k, rows in self.frame_rows.items():  # each frame's rows are contiguous
+                Bk, Bwk = B2[rows], Bw[rows]
+                c = P0 + 6 * k
+                A0[:P0, c : c + 6] = J0[rows].T @ Bwk
+                A0[c : c + 6, c : c + 6] = Bk.T @ Bwk
+                g0[c : c + 6] = Bwk.T @ rp[rows]
+            A0[P0:, :P0] = A0[:P0, P0:].T
+            self._normal_cache = (state, w.copy(), rp, A0, g0)
+        A, g = A0.copy(), g0.copy()
+        ps = self.prior_scale
+        r_prior = [ps * state.E.reshape(-1)]
+        idx = np.arange(P0, P)
+        A[idx, idx] += wp * ps * ps
+        g[P0:] += wp * ps * r_prior[0]
+        if "U" in self.slices:
+            su = self.slices["U"]
+            pu, wu = self.group_prior_scale, weights[2 * n + 6 * F :]
+            r_prior.append(pu * state.U.reshape(-1))
+            idx = np.arange(su.start, su.stop)
+            A[idx, idx] += wu * pu * pu
+            g[idx] += wu * pu * r_prior[1]
+        return np.concatenate([rp, *r_prior]), A, g
+
+    @property
+    def group_prior_scale(self) -> np.ndarray:
+        """(6G,) pixel-unit scale of the group corrections' prior rows."""
+        rot, t = self.group_sigma
+        one = np.array([1.0 / rot] * 3 + [1.0 / t] * 3)
+        su = self.slices["U"]
+        return self.sigma_px * np.tile(one, (su.stop - su.start) // 6)
 
     @property
     def prior_scale(self) -> np.ndarray:
         """(6F,) pixel-unit scale of the pose-correction prior rows: sigma_px / sigma_axis."""
-        rot, t = self.st.pose_sigma
+        rot, t = self.pose_sigma
         one = np.array([1.0 / rot] * 3 + [1.0 / t] * 3)
         return self.sigma_px * np.tile(one, len(self.problem.frames))
 
@@ -377,10 +493,17 @@ class BundleModel:
         """``M_k`` (F, 4, 4) with the Case 2 lengths and the robot pose corrections applied."""
         st = self.st
         if st.pose_sigma is not None and state.E is not None:
-            Ms = np.empty_like(st.M)
-            for k, (T, e) in enumerate(zip(st.T_meas, state.E, strict=True)):
-                Tt = T_from_Rt(R_from_rvec(e[:3]) @ T[:3, :3], T[:3, 3] + e[3:])
-                Ms[k] = np.linalg.inv(Tt) if st.eye_in_hand else Tt
+            E = state.E
+            if state.U is not None and st.pose_groups is not None:
+                E = E + state.U[st.pose_groups]
+            R = np.einsum("nij,njk->nik", _R_batch(E[:, :3]), st.T_meas[:, :3, :3])
+            t = st.T_meas[:, :3, 3] + E[:, 3:]
+            Ms = np.tile(np.eye(4), (len(R), 1, 1))
+            if st.eye_in_hand:  # the inverse of (R, t): (R', -R' t)
+                Ms[:, :3, :3] = np.transpose(R, (0, 2, 1))
+                Ms[:, :3, 3] = -np.einsum("nji,nj->ni", R, t)
+            else:
+                Ms[:, :3, :3], Ms[:, :3, 3] = R, t
         else:
             Ms = st.M.copy()
         if len(self.s_frames):
@@ -388,7 +511,7 @@ class BundleModel:
         return Ms
 
     def _pose_block(
-        self, state: ModelState, A: np.ndarray, RX: np.ndarray, RM: np.ndarray, p_Y: np.ndarray
+        self, A: np.ndarray, RX: np.ndarray, RM: np.ndarray, p_Y: np.ndarray, Ms: np.ndarray
     ) -> np.ndarray:
         """d px / d (pose correction) (n, 2, 6) of every observation's frame.
 
@@ -397,13 +520,24 @@ class BundleModel:
         n = self.n_obs
         B = A @ RX[0] if self.n_groups == 1 else np.einsum("nab,nbc->nac", A, RX)  # d px/d p_M
         if self.st.eye_in_hand:  # M = T^-1: p_M = R' (p_Y - t)
-            t_true = -np.einsum("nji,nj->ni", RM, self.true_motions(state)[self.o_frame, :3, 3])
+            t_true = -np.einsum("nji,nj->ni", RM, Ms[self.o_frame, :3, 3])
             D_rot = np.einsum("nij,njk->nik", RM, _skew_batch(p_Y - t_true))
             D_t = -RM
         else:  # M = T: p_M = R p_Y + t
             D_rot = -_skew_batch(np.einsum("nij,nj->ni", RM, p_Y))
             D_t = np.broadcast_to(np.eye(3), (n, 3, 3))
         return np.concatenate([B @ D_rot, B @ D_t], axis=2)
+
+
+def _R_batch(v: np.ndarray) -> np.ndarray:
+    """Rotation matrices (n, 3, 3) of rotation vectors (n, 3) (Rodrigues, series near 0)."""
+    th = np.linalg.norm(v, axis=1)
+    small = th < 1e-8
+    ts = np.where(small, 1.0, th)
+    a = np.where(small, 1.0 - th**2 / 6.0, np.sin(ts) / ts)
+    b = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
+    S = _skew_batch(v)
+    return np.eye(3) + a[:, None, None] * S + b[:, None, None] * (S @ S)
 
 
 def _skew_batch(v: np.ndarray) -> np.ndarray:
@@ -437,15 +571,21 @@ class RefineOutput:
     outliers: tuple[tuple[int, str, int], ...]
     messages: tuple[str, ...]
     model: BundleModel
+    # robot sessions: the robot's one-sigma pose error per axis (radians, metres) the model used:
+    # (0, 0) for exact poses; whether it was estimated from the data; the test that decided
+    robot_sigma: tuple[float, float] | None = None
+    robot_sigma_estimated: bool = False
+    robot_test: str = ""
 
 
-def with_pose_corrections(state: ModelState, n_frames: int) -> ModelState:
-    """``state`` with zero robot-pose corrections ``E`` (n_frames, 6) where it has none."""
-    if state.E is not None:
-        return state
-    return ModelState(
-        state.K, state.dist, state.T_cam_ref, state.X, state.Y, state.s, np.zeros((n_frames, 6))
-    )
+def with_pose_corrections(state: ModelState, n_frames: int, n_groups: int = 0) -> ModelState:
+    """``state`` with zero robot-pose corrections ``E`` (n_frames, 6) where it has none, and
+    zero group corrections ``U`` (n_groups, 6) when asked for."""
+    E = np.zeros((n_frames, 6)) if state.E is None else state.E
+    U = state.U
+    if n_groups and (U is None or len(U) != n_groups):
+        U = np.zeros((n_groups, 6))
+    return ModelState(state.K, state.dist, state.T_cam_ref, state.X, state.Y, state.s, E, U)
 
 
 def _respect_options(problem: CalibrationProblem, state: ModelState) -> ModelState:
@@ -470,14 +610,11 @@ def _lm(
     max_iter: int,
 ) -> tuple[ModelState, bool, int]:
     lam = 1e-4
-    r, J = model.evaluate(state)
+    r, A, g = model.normal_equations(state, weights)
     cost = float(np.sum(weights * r * r))
     converged = False
     it = 0
     for it in range(1, max_iter + 1):  # noqa: B007 - the count is reported
-        Jw = J * weights[:, None]
-        A = J.T @ Jw
-        g = Jw.T @ r
         diag = np.diag(A).copy()
         diag[diag <= 0] = 1.0
         while True:
@@ -503,7 +640,7 @@ def _lm(
         if small_step:
             converged = True
             break
-        r, J = model.evaluate(state)
+        r, A, g = model.normal_equations(state, weights)
     return state, converged, it
 
 
@@ -521,6 +658,17 @@ def single_threaded_blas(fn):  # noqa: ANN001, ANN201 - a plain decorator
             return fn(*args, **kwargs)
 
     return wrapper
+
+
+#: Significance level of the test "the measured robot poses explain the images as well as a
+#: free board pose per image does" (an F test): below it, the robot's accuracy is estimated.
+ROBOT_TEST_P = 1e-3
+#: Smallest robot pose sigma the estimation keeps (radians, metres): below it a component is
+#: as good as exact and the prior just holds its corrections at zero.
+SIGMA_FLOOR = (1e-7, 1e-7)
+#: Robot sigmas beyond any arm (radians, metres: 2 deg, 20 mm, twice what the adequacy test
+#: accepts): the estimation stops there, the model is wrong (units, frames) and will be marked so.
+SIGMA_BEYOND = (np.radians(2.0), 0.02)
 
 
 @single_threaded_blas
@@ -542,10 +690,197 @@ def refine(
     (maximum likelihood with one noise level per camera), iterated to a fixed point together
     with the pose-prior scale. Covariance: ``s^2 (J' W J)^-1`` with ``s^2 = sum(w r^2) / (n - p)``
     (MATH.md Sec. 6); ``sigma_px`` is the reference camera's noise.
+
+    Robot sessions with ``options.estimate_robot_noise`` (the default) learn the robot's
+    accuracy: the measured poses are first taken as exact, and an F test compares that fit with
+    a free board pose per image (the detector's floor, :mod:`slidecal.solver.adequacy`). When
+    the poses explain the images, that solve stands (``robot_sigma`` (0, 0)). Otherwise every
+    pose gets a correction (rotation, translation) with a zero-mean Gaussian prior whose two
+    one-sigma levels are estimated with the image noise of every camera by variance-component
+    estimation (Foerstner's iteration with redundancy numbers, to a fixed point): the
+    covariance then carries the robot's accuracy.
     """
+    o = problem.options
+    robot = problem.knowledge == "robot"
+    if not (robot and o.estimate_robot_noise):
+        out = _refine(problem, structure, init, max_iter, robust, estimate=False)
+        if robot:
+            sig = structure.pose_sigma if structure.pose_sigma is not None else (0.0, 0.0)
+            out = _with_robot(out, sig, False, "robot noise taken from the options")
+        return out
+    from slidecal.solver.adequacy import free_pose_fit, model_starts, session_images
+
+    exact = Structure(
+        structure.group_of_frame,
+        structure.M,
+        structure.direction,
+        structure.s_free,
+        structure.X_rot_basis,
+        structure.X_t_basis,
+        structure.Y_rot_basis,
+        structure.Y_t_basis,
+        structure.unobservable,
+        eye_in_hand=structure.eye_in_hand,
+    )
+    start = ModelState(init.K, init.dist, init.T_cam_ref, init.X, init.Y, init.s)
+    out0 = _refine(problem, exact, start, max_iter, robust, estimate=False)
+    fit = free_pose_fit(session_images(out0), out0.state.K, out0.state.dist, model_starts(out0))
+    p_value, figure = _robot_pose_test(out0, fit)
+    if p_value > ROBOT_TEST_P:
+        return _with_robot(
+            out0,
+            (0.0, 0.0),
+            True,
+            f"robot poses taken as exact: they explain the images ({figure})",
+        )
+    sig0 = _pose_discrepancy(problem, out0, fit)
+    if o.robot_noise_deg > 0 or o.robot_noise_m > 0:  # the user's values: where to start
+        sig0 = (
+            max(np.radians(o.robot_noise_deg), SIGMA_FLOOR[0]),
+            max(o.robot_noise_m, SIGMA_FLOOR[1]),
+        )
+    pose_groups = orientation_groups(np.stack([f.T_base_tool for f in problem.frames]))
+    noisy = Structure(
+        structure.group_of_frame,
+        structure.M,
+        structure.direction,
+        structure.s_free,
+        structure.X_rot_basis,
+        structure.X_t_basis,
+        structure.Y_rot_basis,
+        structure.Y_t_basis,
+        structure.unobservable,
+        T_meas=np.stack([f.T_base_tool for f in problem.frames]),
+        pose_sigma=sig0,
+        eye_in_hand=structure.eye_in_hand,
+        pose_groups=pose_groups if _shared_groups(pose_groups) else None,
+        group_sigma=sig0,
+    )
+    out = _refine(problem, noisy, out0.state, max_iter, robust, estimate=True)
+    total = out.model.pose_sigma
+    if out.model.group_sigma is not None and "U" in out.model.slices:
+        total = tuple(
+            float(np.hypot(a, b)) for a, b in zip(total, out.model.group_sigma, strict=True)
+        )
+    return _with_robot(
+        out,
+        total,
+        True,
+        f"robot accuracy estimated: the poses taken as exact do not explain the images ({figure})",
+    )
+
+
+def _shared_groups(pose_groups: np.ndarray) -> bool:
+    """Whether a shared correction per orientation group adds anything: two or more groups,
+    each of two or more frames (a group of one frame would duplicate that frame's own
+    correction, as in a classic hand-eye session where every orientation differs)."""
+    counts = np.bincount(pose_groups)
+    return len(counts) > 1 and int(counts.min()) >= 2
+
+
+def _with_robot(
+    out: RefineOutput, sigma: tuple[float, float], estimated: bool, test: str
+) -> RefineOutput:
+    return RefineOutput(
+        *(getattr(out, f) for f in RefineOutput.__dataclass_fields__ if not f.startswith("robot")),
+        robot_sigma=(float(sigma[0]), float(sigma[1])),
+        robot_sigma_estimated=estimated,
+        robot_test=test,
+    )
+
+
+def _robot_pose_test(out: RefineOutput, fit) -> tuple[float, str]:  # noqa: ANN001 - FreePoseFit
+    """p-value and a one-line figure of the F test: robot-pose model against free poses.
+
+    Nested models on the same inlier detections and intrinsics: the free-pose fit spends 6
+    unknowns per image where the robot model spends its motion unknowns. Each camera's sums
+    are weighed by its floor noise.
+    """
+    from scipy.stats import f as f_dist
+
+    m = out.model
+    rss_r = rss_f = 0.0
+    rows = images = 0
+    for ch in m.chunks:
+        key = (ch.frame_index, ch.camera)
+        sig = fit.sigma_px.get(ch.camera, float("nan"))
+        if key not in fit.rss or not sig > 0:
+            continue
+        r = out.residuals[ch.rows][out.inlier_rows[ch.rows]]
+        rss_r += float(r @ r) / sig**2
+        rss_f += fit.rss[key] / sig**2
+        rows += fit.rows[key]
+        images += 1
+    shape = sum(
+        sl.stop - sl.start for k, sl in m.slices.items() if k.startswith(("intr:", "dist:"))
+    )
+    d1 = max(6 * images - (len(m.names) - shape), 1)
+    d2 = max(rows - 6 * images, 1)
+    if rss_f <= 0:
+        return 1.0, "no image to test"
+    F = ((rss_r - rss_f) / d1) / (rss_f / d2)
+    p = float(f_dist.sf(F, d1, d2))
+    ratio = np.sqrt(max(rss_r, 0.0) / max(rss_f, 1e-300))
+    return (
+        p,
+        f"F = {F:.2f} on ({d1}, {d2}) dof, p = {p:.1e}; residuals {ratio:.2f}x the free-pose fit's",
+    )
+
+
+def _pose_discrepancy(problem: CalibrationProblem, out: RefineOutput, fit) -> tuple[float, float]:  # noqa: ANN001
+    """Rms per axis (radians, metres) of the tool poses the images imply (free poses through
+    the fitted hand-eye and target) against the measured ones: where the estimation starts."""
+    m, st = out.model, out.state
+    rot, tr = [], []
+    for i, f in enumerate(problem.frames):
+        T_cb = fit.T_cam_board.get((i, m.ref))
+        if T_cb is None:
+            continue
+        X, Y = st.X[m.st.group_of_frame[i]], st.Y
+        if m.st.eye_in_hand:
+            T = Y @ np.linalg.inv(T_cb) @ X
+        else:
+            T = np.linalg.inv(X) @ T_cb @ np.linalg.inv(Y)
+        rot.append(rvec_from_R(T[:3, :3] @ f.T_base_tool[:3, :3].T))
+        tr.append(T[:3, 3] - f.T_base_tool[:3, 3])
+    if not rot:
+        return 1e-4, 1e-4
+    return (
+        max(float(np.sqrt(np.mean(np.square(rot)))), SIGMA_FLOOR[0]),
+        max(float(np.sqrt(np.mean(np.square(tr)))), SIGMA_FLOOR[1]),
+    )
+
+
+def _inverse(A: np.ndarray) -> np.ndarray:
+    """Inverse of a normal matrix with diagonal scaling (pseudo-inverse when singular)."""
+    scale = np.sqrt(np.diag(A))
+    scale[scale == 0] = 1.0
+    As = A / np.outer(scale, scale)
+    try:
+        Ai = np.linalg.inv(As)
+    except np.linalg.LinAlgError:
+        Ai = np.linalg.pinv(As)
+    return Ai / np.outer(scale, scale)
+
+
+def _refine(
+    problem: CalibrationProblem,
+    structure: Structure,
+    init: ModelState,
+    max_iter: int,
+    robust: bool,
+    estimate: bool,
+) -> RefineOutput:
+    """The solve behind :func:`refine`; ``estimate``: estimate the pose prior's sigmas and each
+    camera's noise by variance components (the structure must carry pose corrections)."""
     model = BundleModel(problem, structure)
     n_px = model.n_rows
     n_prior = 6 * len(problem.frames) if "E" in model.slices else 0
+    n_groups_u = 0
+    if "U" in model.slices:
+        n_groups_u = (model.slices["U"].stop - model.slices["U"].start) // 6
+        n_prior += 6 * n_groups_u
+    estimate = estimate and n_prior > 0
     inlier = np.ones(n_px + n_prior, dtype=bool)
     cam_w = np.ones(n_px + n_prior)  # per-camera noise weights, relative to the reference
     cam_rows = []
@@ -556,7 +891,7 @@ def refine(
         cam_rows.append(rows)
     state = _respect_options(problem, init)
     if n_prior:
-        state = with_pose_corrections(state, len(problem.frames))
+        state = with_pose_corrections(state, len(problem.frames), n_groups_u)
     model.sigma_px = 0.2  # a typical corner noise; re-estimated below when poses are noisy
     total_it = 0
     converged = False
@@ -577,26 +912,144 @@ def refine(
             out.append(np.sqrt(np.sum(r[m] ** 2) / dof) if n else np.nan)
         return np.array(out)
 
-    for _ in range(10):
-        weights = inlier * cam_w
-        state, converged, it = _lm(model, state, weights, max_iter)
-        total_it += it
-        r, _ = model.evaluate(state, jacobian=False)
+    def variance_components() -> bool:
+        """One Foerstner step: every camera's noise and the two pose sigmas from their
+        residuals and redundancy numbers; True when one moved by more than 2-3 %."""
+        nonlocal cam_w
+        w = inlier * cam_w
+        r, A, _ = model.normal_equations(state, w)
+        Ni = _inverse(A)
+        sl = model.slices["E"]
+        h = np.clip(model.prior_scale**2 * np.diag(Ni)[sl], 0.0, 1.0)
+        h_u = np.zeros(0)
+        if "U" in model.slices:
+            h_u = np.clip(model.group_prior_scale**2 * np.diag(Ni)[model.slices["U"]], 0.0, 1.0)
+        sig = []
+        for rows in cam_rows:
+            m = rows & inlier
+            if not m.any():
+                sig.append(np.nan)
+                continue
+            if len(cam_rows) == 1:  # the hat matrix's trace is P: the prior rows take sum(h)
+                used = len(model.names) - float(np.sum(h)) - float(np.sum(h_u))
+            else:
+                used = float(np.sum(Ni * model.normal_equations(state, w * m)[1]))
+            sig.append(np.sqrt(np.sum(r[m] ** 2) / max(m.sum() - used, 1.0)))
+        sig = np.array(sig)
+        ref_i = model.cams.index(model.ref)
+        E = state.E.reshape(-1)
+        is_rot = np.tile([True, True, True, False, False, False], len(problem.frames))
+        new_pose = []
+        for comp, floor, old in zip((is_rot, ~is_rot), SIGMA_FLOOR, model.pose_sigma, strict=True):
+            red = float(np.sum(1.0 - h[comp]))
+            v = np.sqrt(np.sum(E[comp] ** 2) / red) if red > 1e-12 else floor
+            if vce_step[0] < 2 and red > 0.2 * comp.sum():
+                # the first steps jump: with the corrections' pixel-only estimates
+                # e / (1 - h) and their noise variance c = s h / (1 - h), the moment
+                # estimate mean(e^2 / (1 - h)^2 - c) is the fixed point of a scalar model;
+                # Foerstner's iteration then converges to its own fixed point in a few steps
+                # (from above, alone, at a rate c / (sigma^2 + c): slow when the pixels pin
+                # each pose about as well as the arm's accuracy does)
+                one = 1.0 - h[comp]
+                m = float(np.mean(E[comp] ** 2 / one**2 - old**2 * h[comp] / one))
+                if m > floor**2:
+                    v = min(v, np.sqrt(m))
+            v = max(float(v), floor)
+            if vce_step[0] >= 2:
+                v = max(accelerate(f"E{comp[0]}", old, v, floor), floor)
+            new_pose.append(v)
+        vce_step[0] += 1
         changed = False
-        if len(model.cams) > 1:  # per-camera noise: reweigh to a fixed point
-            sig = camera_sigmas(r)
-            ref_i = model.cams.index(model.ref)
-            ok = np.isfinite(sig) & (sig > 0)
-            if ok[ref_i] and np.all(ok):
+        ok = np.isfinite(sig) & (sig > 0)
+        if ok[ref_i]:
+            if abs(sig[ref_i] / model.sigma_px - 1.0) > 0.02:
+                changed = True
+            model.sigma_px = float(sig[ref_i])
+            if len(model.cams) > 1 and np.all(ok):
                 new_w = np.ones(n_px + n_prior)
                 for rows, sc in zip(cam_rows, sig, strict=True):
                     new_w[rows] = (sig[ref_i] / sc) ** 2
-                if np.max(np.abs(new_w / cam_w - 1.0)) > 0.04:
-                    cam_w, changed = new_w, True
-        if n_prior:  # the prior rows are weighed by the pixel noise: iterate to a fixed point
-            sigma = noise(r, inlier * cam_w)
-            if abs(sigma / model.sigma_px - 1.0) > 0.02:
-                model.sigma_px, changed = sigma, True
+                if np.max(np.abs(new_w / cam_w - 1.0)) > 0.02:
+                    changed = True
+                cam_w = new_w
+        for new, old, floor in zip(new_pose, model.pose_sigma, SIGMA_FLOOR, strict=True):
+            if abs(new / old - 1.0) > 0.03 and max(new, old) > 2 * floor:
+                changed = True
+        model.pose_sigma = (new_pose[0], new_pose[1])
+        if len(h_u):  # the orientation groups' shared corrections: their own two levels
+            U = state.U.reshape(-1)
+            u_rot = np.tile([True, True, True, False, False, False], len(U) // 6)
+            new_group = []
+            for comp, floor, old in zip(
+                (u_rot, ~u_rot), SIGMA_FLOOR, model.group_sigma, strict=True
+            ):
+                red = float(np.sum(1.0 - h_u[comp]))
+                v = np.sqrt(np.sum(U[comp] ** 2) / red) if red > 1e-6 else floor
+                if vce_step[0] > 2 and v < old and red < 0.25 * comp.sum():
+                    # falling while the prior holds three quarters of it: the images do not
+                    # support a level of its own (the iteration would creep toward 0 for
+                    # tens of steps); the frames' own corrections carry this part
+                    v = floor
+                v = max(float(v), floor)
+                if vce_step[0] > 2:
+                    v = max(accelerate(f"U{comp[0]}", old, v, floor), floor)
+                if abs(v / old - 1.0) > 0.03 and max(v, old) > 2 * floor:
+                    changed = True
+                new_group.append(v)
+            model.group_sigma = (new_group[0], new_group[1])
+        if any(v > lim for v, lim in zip(new_pose, SIGMA_BEYOND, strict=True)):
+            return False
+        return changed
+
+    vce_step = [0]
+    last_step: dict[str, float] = {}
+
+    def accelerate(key: str, old: float, new: float, floor: float) -> float:
+        """Steffensen in log space: Foerstner's iteration converges geometrically, at a rate
+        near 1 when the images pin the poses about as well as the prior does; two successive
+        steps in the same direction give the rate, and the step is stretched to the fixed
+        point it implies (at most 4 times)."""
+        if new <= floor or old <= floor:
+            last_step.pop(key, None)
+            return new
+        d = float(np.log(new / old))
+        prev = last_step.get(key)
+        last_step[key] = d
+        if prev is None or d * prev <= 0 or abs(d) >= abs(prev):
+            return new
+        rho = d / prev
+        return float(old * np.exp(d * min(1.0 / (1.0 - rho), 4.0)))
+
+    if estimate:
+        model.sigma_px = max(noise(model.evaluate(state, jacobian=False)[0], inlier * cam_w), 1e-3)
+    # while the variance components move, a few Gauss-Newton steps between their updates
+    # reach the joint fixed point as surely as full solves, in a third of the time
+    steps = min(1, max_iter) if estimate else max_iter
+    for _ in range(40 if estimate else 10):
+        weights = inlier * cam_w
+        state, converged, it = _lm(model, state, weights, steps)
+        total_it += it
+        r, _ = model.evaluate(state, jacobian=False)
+        changed = False
+        if estimate:
+            changed = variance_components()
+            if not changed and steps < max_iter:
+                steps, changed = max_iter, True  # converge fully at the final levels
+        else:
+            if len(model.cams) > 1:  # per-camera noise: reweigh to a fixed point
+                sig = camera_sigmas(r)
+                ref_i = model.cams.index(model.ref)
+                ok = np.isfinite(sig) & (sig > 0)
+                if ok[ref_i] and np.all(ok):
+                    new_w = np.ones(n_px + n_prior)
+                    for rows, sc in zip(cam_rows, sig, strict=True):
+                        new_w[rows] = (sig[ref_i] / sc) ** 2
+                    if np.max(np.abs(new_w / cam_w - 1.0)) > 0.04:
+                        cam_w, changed = new_w, True
+            if n_prior:  # the prior rows are weighed by the pixel noise: a fixed point
+                sigma = noise(r, inlier * cam_w)
+                if abs(sigma / model.sigma_px - 1.0) > 0.02:
+                    model.sigma_px, changed = sigma, True
         if changed:
             continue
         if not robust:
@@ -612,7 +1065,7 @@ def refine(
             break
         inlier[:n_px] = np.repeat(~new_out, 2)
     weights = inlier * cam_w
-    r, J = model.evaluate(state)
+    r, A, _ = model.normal_equations(state, weights)
     inlier_rows = inlier.copy()
     n_in = int(inlier_rows[:n_px].sum())
     dof = n_in + n_prior - P
@@ -624,7 +1077,6 @@ def refine(
             f"covariance not computed: {n_in} residuals for {P} parameters; capture more frames"
         )
     else:
-        A = J.T @ (J * weights[:, None])
         try:
             scale = np.sqrt(np.diag(A))
             scale[scale == 0] = 1.0

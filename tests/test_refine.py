@@ -162,3 +162,97 @@ def test_no_rotations_leaves_hand_eye_translation_unobservable():
     _, J = model.evaluate(s.truth)
     sv = np.linalg.svd(J / np.linalg.norm(J, axis=0), compute_uv=False)
     assert sv[-1] / sv[0] > 1e-6  # no gauge freedom left in the parametrisation
+
+
+# -- the robot's accuracy learned from the data (variance components) --------------------------
+def _calibrate(problem):
+    from slidecal.solver.calibrate import calibrate
+
+    return calibrate(problem)
+
+
+def test_exact_poses_are_recognised_and_solved_as_before():
+    s = sc.r1(np.random.default_rng(21), 0.15, 0.0, 0.0)
+    learned = _calibrate(s.problem)
+    fixed = _calibrate(
+        sc.r1(
+            np.random.default_rng(21), 0.15, 0.0, 0.0, ModelOptions(estimate_robot_noise=False)
+        ).problem
+    )
+    assert learned.robot_accuracy.translation_mm == 0.0
+    assert learned.robot_accuracy.rotation_deg == 0.0
+    np.testing.assert_allclose(learned.cameras["cam"].K, fixed.cameras["cam"].K, atol=1e-9)
+    np.testing.assert_allclose(learned.covariance, fixed.covariance, rtol=1e-9, atol=1e-15)
+
+
+@pytest.mark.parametrize(
+    ("noise_m", "noise_deg"),
+    [(1e-3, 0.1), (2e-4, 0.02), (5e-5, 0.005)],
+    ids=["1mm", "0.2mm", "50um"],
+)
+def test_robot_noise_levels_are_estimated(noise_m, noise_deg):
+    # white pose noise of known size; the options say nothing: 20 frames x 3 axes per level,
+    # relative spread of an rms from 60 values ~ 1 / sqrt(120) = 9 %: 30 % is over 3 of those
+    s = sc.r1(np.random.default_rng(22), 0.15, noise_m, noise_deg)
+    res = _calibrate(s.problem)
+    ra = res.robot_accuracy
+    assert ra.estimated
+    assert ra.translation_mm == pytest.approx(1000 * noise_m, rel=0.3)
+    assert ra.rotation_deg == pytest.approx(noise_deg, rel=0.3)
+    assert res.sigma_px == pytest.approx(0.15, rel=0.05)
+    for name, (a, b) in {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}.items():
+        err = res.cameras["cam"].K[a, b] - s.truth.K["cam"][a, b]
+        assert abs(err) < 3.5 * res.cameras["cam"].std[name], name
+
+
+def test_user_prior_is_a_start_not_the_truth():
+    # the options claim 0.05 mm, the arm errs by 1 mm: the estimate follows the data
+    opts = ModelOptions(robot_noise_m=5e-5, robot_noise_deg=0.005)
+    s = sc.r1(np.random.default_rng(23), 0.15, 1e-3, 0.05, options=opts)
+    ra = _calibrate(s.problem).robot_accuracy
+    assert ra.translation_mm == pytest.approx(1.0, rel=0.3)
+    assert ra.rotation_deg == pytest.approx(0.05, rel=0.3)
+
+
+def test_normal_equations_match_the_full_jacobian():
+    opts = ModelOptions(robot_noise_m=1e-4, robot_noise_deg=0.01)
+    s = sc.r1(np.random.default_rng(24), options=opts)
+    model = BundleModel(s.problem, build_structure(s.problem, s.truth.X[0][:3, :3]))
+    model.sigma_px = 0.15
+    rng = np.random.default_rng(25)
+    state = ModelState(
+        s.truth.K, s.truth.dist, {}, s.truth.X, s.truth.Y, s.truth.s, rng.normal(0, 1e-4, (20, 6))
+    )
+    w = rng.uniform(0.5, 1.5, model.n_rows + 120)
+    r, J = model.evaluate(state)
+    r2, A, g = model.normal_equations(state, w)
+    np.testing.assert_allclose(r2, r, atol=0)
+    np.testing.assert_allclose(A, J.T @ (J * w[:, None]), rtol=1e-12, atol=1e-9 * np.abs(A).max())
+    np.testing.assert_allclose(g, J.T @ (w * r), rtol=1e-12, atol=1e-9 * np.abs(g).max())
+
+
+def test_orientation_groups_get_a_shared_correction_with_its_own_level():
+    # a real arm: R1's four tilt groups see different constant orientation errors; the
+    # between-group level is estimated apart from the within-group scatter
+    from slidecal.solver import refine as rf
+
+    s = sc.r1_real_arm(np.random.default_rng(26))
+    st = build_structure(s.problem, s.truth.X[0][:3, :3])
+    out = rf.refine(s.problem, st, _perturbed(s.truth, np.random.default_rng(27), k_px=2.0))
+    assert (
+        "U" in out.model.slices and out.model.slices["U"].stop - out.model.slices["U"].start == 24
+    )
+    within, between = out.model.pose_sigma, out.model.group_sigma
+    # wrists 25 deg apart err differently: a between-group level of the arm's size, not the floor
+    assert np.degrees(between[0]) > 0.005
+    assert np.degrees(np.hypot(within[0], between[0])) < 0.2
+    np.testing.assert_allclose(out.robot_sigma, np.hypot(within, between), rtol=1e-12)
+
+
+def test_no_group_correction_without_groups_of_several_frames():
+    from slidecal.solver.refine import _shared_groups
+
+    assert _shared_groups(np.array([0, 0, 1, 1, 1]))
+    assert not _shared_groups(np.array([0, 0, 0]))  # one group: the hand-eye's gauge
+    assert not _shared_groups(np.arange(6))  # classic hand-eye: every orientation differs
+    assert not _shared_groups(np.array([0, 0, 1, 2, 2]))

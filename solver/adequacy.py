@@ -1,0 +1,298 @@
+"""Does the model explain the data? The detector's noise, measured without the robot model.
+
+A robot-pose model that is wrong (poses taken as exact when the arm errs by a millimetre, angles
+in degrees read as radians, a wrong square size) leaves residuals larger than the detector's
+noise. To say so, the detector's noise must be known independently of the robot poses: here it
+is the residual of a fit of every image alone, with the solution's intrinsics and distortion and
+a free board pose per image (:func:`free_pose_fit`). That residual is the floor of the detector
+and the lens model; what the robot model leaves above it is the robot model's share.
+
+:func:`assess` compares the two per camera and per image, reads the robot's accuracy as the
+camera saw it (the per-frame pose corrections of the refinement) and marks the result unusable,
+with the figure and its limit, when the model cannot explain the data.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+
+from slidecal.solver.camera import project
+from slidecal.solver.geometry import T_from_Rt, transform_points
+from slidecal.solver.result import ModelAdequacy, RobotAccuracy
+
+if TYPE_CHECKING:
+    from slidecal.solver.problem import CalibrationProblem
+    from slidecal.solver.refine import RefineOutput
+
+#: A camera whose robot-model residual exceeds its free-pose (detector) floor by this factor is
+#: not explained by the model (about 1.0 when it is; sampling spread a few percent).
+MAX_NORMALISED_RMS = 1.5
+#: One image this far above the floor: the frame's pose or detection is wrong.
+MAX_FRAME_NORMALISED_RMS = 4.0
+#: Robot accuracy beyond anything a working arm has (ISO 9283 accuracy of uncalibrated
+#: industrial arms: about 1 mm and 0.2 deg): units or frames are wrong, not the arm.
+MAX_ROBOT_TRANSLATION_MM = 10.0
+MAX_ROBOT_ROTATION_DEG = 1.0
+#: The free-pose fit itself above this: the lens model or the detections are wrong (a corner
+#: detector on a sharp image is good to a few tenths of a pixel).
+MAX_DETECTOR_NOISE_PX = 1.5
+#: The robot's translation errors growing with the moves like this (the camera sees the moves
+#: this much longer or shorter than the robot reports): a wrong square size or robot units, not
+#: an arm's accuracy (real arms: 0.1-0.5 % with a printed board's own scale error).
+MAX_SCALE_ERROR = 0.02
+
+
+@dataclass(frozen=True)
+class FreePoseFit:
+    """Per image ``(frame index, camera)``: residual sum of squares (pixels^2), rows used and
+    the fitted ``T_cam_board``; ``sigma_px`` per camera: ``sqrt(sum rss / sum(rows - 6))``."""
+
+    rss: dict[tuple[int, str], float]
+    rows: dict[tuple[int, str], int]
+    T_cam_board: dict[tuple[int, str], np.ndarray]
+    sigma_px: dict[str, float]
+
+
+def free_pose_fit(
+    images: list[tuple[int, str, np.ndarray, np.ndarray]],
+    K: dict[str, np.ndarray],
+    dist: dict[str, np.ndarray],
+    starts: dict[tuple[int, str], np.ndarray] | None = None,
+) -> FreePoseFit:
+    """Fit a free board pose to every image with fixed intrinsics and distortion.
+
+    ``images``: (frame index, camera, board points (n, 3), pixels (n, 2)) of the inlier
+    detections. Each pose is the reprojection-error minimum of OpenCV's iterative PnP, started
+    from the better of ``starts`` (``T_cam_board`` per (frame index, camera), e.g. the robot
+    model's prediction) and the closed-form planar solution (IPPE), so that a wildly wrong
+    robot model cannot spoil the floor it is judged against. Images with fewer than 4 points
+    are skipped.
+    """
+    rss: dict[tuple[int, str], float] = {}
+    rows: dict[tuple[int, str], int] = {}
+    poses: dict[tuple[int, str], np.ndarray] = {}
+    sums: dict[str, list[float]] = {}
+    for fi, cam, pts, px in images:
+        if len(pts) < 4:
+            continue
+        key = (fi, cam)
+        Kc, dc = K[cam], dist[cam]
+        obj, img = pts.astype(np.float64), px.astype(np.float64)
+        best = None
+        if starts is not None and key in starts and starts[key][2, 3] > 0:
+            best = _pnp(obj, img, Kc, dc, starts[key])
+        ok, rv, tv = cv2.solvePnP(obj, img, Kc, dc, flags=cv2.SOLVEPNP_IPPE)
+        closed = (
+            _scored(obj, img, Kc, dc, T_from_Rt(cv2.Rodrigues(rv)[0], tv.reshape(3)))
+            if ok
+            else None
+        )
+        # the closed form is refined only when it beats the refined model start (a wrong robot
+        # model starting the pose in the wrong basin)
+        if closed is not None and (best is None or closed[0] < best[0]):
+            alt = _pnp(obj, img, Kc, dc, closed[1])
+            if alt is not None and (best is None or alt[0] < best[0]):
+                best = alt
+        if best is None:
+            continue
+        rss[key], rows[key], poses[key] = best[0], 2 * len(pts), best[1]
+        acc = sums.setdefault(cam, [0.0, 0])
+        acc[0] += best[0]
+        acc[1] += 2 * len(pts) - 6
+    sigma = {c: float(np.sqrt(t / d)) if d > 0 else float("nan") for c, (t, d) in sums.items()}
+    return FreePoseFit(rss, rows, poses, sigma)
+
+
+def _scored(
+    obj: np.ndarray, img: np.ndarray, K: np.ndarray, dist: np.ndarray, T: np.ndarray
+) -> tuple[float, np.ndarray] | None:
+    """(residual sum of squares, T) of a board pose; None behind the camera."""
+    P = transform_points(T, obj)
+    if np.any(P[:, 2] <= 0):
+        return None
+    return float(np.sum((project(K, dist, P) - img) ** 2)), T
+
+
+def _pnp(
+    obj: np.ndarray, img: np.ndarray, K: np.ndarray, dist: np.ndarray, T0: np.ndarray
+) -> tuple[float, np.ndarray] | None:
+    """OpenCV's iterative PnP (the reprojection-error minimum) started at ``T0``, scored."""
+    rv0 = cv2.Rodrigues(T0[:3, :3])[0]
+    ok, rv, tv = cv2.solvePnP(
+        obj, img, K, dist, rv0, T0[:3, 3].reshape(3, 1).copy(), True, cv2.SOLVEPNP_ITERATIVE
+    )
+    if not ok:
+        return None
+    return _scored(obj, img, K, dist, T_from_Rt(cv2.Rodrigues(rv)[0], tv.reshape(3)))
+
+
+def session_images(out: RefineOutput) -> list[tuple[int, str, np.ndarray, np.ndarray]]:
+    """The inlier detections of a refinement as ``free_pose_fit`` takes them."""
+    images = []
+    for ch in out.model.chunks:
+        keep = out.inlier_rows[ch.rows][0::2]
+        images.append((ch.frame_index, ch.camera, ch.points[keep], ch.px[keep]))
+    return images
+
+
+def model_starts(out: RefineOutput) -> dict[tuple[int, str], np.ndarray]:
+    """``T_cam_board`` per (frame index, camera) as the refined robot model predicts it."""
+    m, state = out.model, out.state
+    starts = {}
+    for ch in m.chunks:
+        T = m.T_ref_board(state, ch.frame_index)
+        if ch.camera != m.ref:
+            T = state.T_cam_ref[ch.camera] @ T
+        starts[(ch.frame_index, ch.camera)] = T
+    return starts
+
+
+def assess(
+    problem: CalibrationProblem, out: RefineOutput
+) -> tuple[ModelAdequacy, RobotAccuracy | None]:
+    """The model-adequacy test and the robot's accuracy of a refinement (see the module doc)."""
+    images = session_images(out)
+    fit = free_pose_fit(images, out.state.K, out.state.dist, model_starts(out))
+    m = out.model
+    reasons: list[str] = []
+    per_frame: list[tuple[int, str, float]] = []
+    normalised: dict[str, float] = {}
+    frame_ids = [f.id for f in problem.frames]
+    for c in m.cams:
+        sig = fit.sigma_px.get(c, float("nan"))
+        chunks = [ch for ch in m.chunks if ch.camera == c]
+        rss = n = 0.0
+        for ch in chunks:
+            inl = out.inlier_rows[ch.rows]
+            r = out.residuals[ch.rows][inl]
+            if len(r) == 0:
+                continue
+            rss += float(r @ r)
+            n += len(r)
+            if sig > 0:
+                per_frame.append(
+                    (int(frame_ids[ch.frame_index]), c, float(np.sqrt(np.mean(r * r)) / sig))
+                )
+        if not (sig > 0) or n == 0:
+            continue
+        # the robot model's residual against the floor, both per residual row: the image-wise
+        # fit spends 6 rows per image on its pose, the robot model its (fewer) motion unknowns
+        n_img = sum(1 for ch in chunks if np.any(out.inlier_rows[ch.rows]))
+        floor_rms = sig * np.sqrt(max(n - 6 * n_img, 1.0) / n)
+        normalised[c] = float(np.sqrt(rss / n) / floor_rms) if floor_rms > 0 else float("nan")
+        if normalised[c] > MAX_NORMALISED_RMS:
+            reasons.append(
+                f"camera {c!r}: the residuals are {normalised[c]:.2f} times the detector's noise "
+                f"({sig:.3f} px from a free pose per image; limit {MAX_NORMALISED_RMS}): the robot "
+                "poses or the model do not explain the images"
+            )
+        if sig > MAX_DETECTOR_NOISE_PX:
+            reasons.append(
+                f"camera {c!r}: even a free board pose per image leaves {sig:.2f} px rms (limit "
+                f"{MAX_DETECTOR_NOISE_PX} px): the lens model, the target description or the "
+                "detections are wrong"
+            )
+    per_frame.sort(key=lambda x: -x[2])
+    bad = [f for f in per_frame if f[2] > MAX_FRAME_NORMALISED_RMS]
+    if bad:
+        reasons.append(
+            f"{len(bad)} image(s) above {MAX_FRAME_NORMALISED_RMS} times the detector's noise "
+            f"(worst: frame {bad[0][0]} {bad[0][1]!r}, {bad[0][2]:.1f}): check those frames' "
+            "poses and detections"
+        )
+    robot = robot_accuracy(problem, out)
+    k = _move_scale(problem, fit, m.ref)
+    if k is not None and abs(k) > MAX_SCALE_ERROR:
+        reasons.append(
+            f"the camera sees the robot's moves {100 * k:+.1f} % longer than the robot reports "
+            f"(limit {100 * MAX_SCALE_ERROR:.0f} %): check the target's square_size_m and that "
+            "the robot poses are in metres"
+        )
+    if robot is not None:
+        if robot.translation_mm > MAX_ROBOT_TRANSLATION_MM:
+            reasons.append(
+                f"the robot poses would be off by {robot.translation_mm:.1f} mm rms per axis "
+                f"(limit {MAX_ROBOT_TRANSLATION_MM} mm): check the pose units (metres), the "
+                "square size and the TCP"
+            )
+        if robot.rotation_deg > MAX_ROBOT_ROTATION_DEG:
+            reasons.append(
+                f"the robot orientations would be off by {robot.rotation_deg:.2f} deg rms per "
+                f"axis (limit {MAX_ROBOT_ROTATION_DEG} deg): check that rotations are axis-angle "
+                "vectors in radians and the frame conventions"
+            )
+    adequacy = ModelAdequacy(
+        detector_noise_px=dict(fit.sigma_px),
+        normalised_rms=normalised,
+        worst_frames=tuple(per_frame[:5]),
+        adequate=not reasons,
+        reasons=tuple(reasons),
+    )
+    return adequacy, robot
+
+
+def _move_scale(problem: CalibrationProblem, fit: FreePoseFit, ref: str) -> float | None:
+    """Median over the moves at one orientation of (camera-seen length / robot length) - 1.
+
+    The camera's own view of each move (free board poses of the reference camera: the camera
+    centre eye-in-hand, the board origin eye-to-hand) against the measured tool translation;
+    None without such moves (of at least 5 mm).
+    """
+    if problem.knowledge != "robot":
+        return None
+    from slidecal.solver.refine import orientation_groups
+
+    T = np.stack([f.T_base_tool for f in problem.frames])
+    groups = orientation_groups(T)
+    ratios = []
+    for g in np.unique(groups):
+        idx = [i for i in np.flatnonzero(groups == g) if (i, ref) in fit.T_cam_board]
+        for a, b in zip(idx[:-1], idx[1:], strict=True):
+            robot = float(np.linalg.norm(T[b, :3, 3] - T[a, :3, 3]))
+            if robot < 0.005:
+                continue
+            Ta, Tb = fit.T_cam_board[(a, ref)], fit.T_cam_board[(b, ref)]
+            if problem.mount == "eye_in_hand":
+                seen = np.linalg.norm(Ta[:3, :3].T @ Ta[:3, 3] - Tb[:3, :3].T @ Tb[:3, 3])
+            else:
+                seen = np.linalg.norm(Tb[:3, 3] - Ta[:3, 3])
+            ratios.append(seen / robot)
+    return float(np.median(ratios)) - 1.0 if ratios else None
+
+
+def robot_accuracy(problem: CalibrationProblem, out: RefineOutput) -> RobotAccuracy | None:
+    """The robot's pose accuracy the refinement estimated (None without robot poses)."""
+    if problem.knowledge != "robot":
+        return None
+    sig = out.robot_sigma
+    E = out.state.E
+    if sig is None:
+        return None
+    worst: list[tuple[int, float, float]] = []
+    st = out.model.st
+    if E is not None and out.state.U is not None and st.pose_groups is not None:
+        E = E + out.state.U[st.pose_groups]
+    if E is not None:
+        for f, e in zip(problem.frames, E, strict=True):
+            worst.append(
+                (
+                    int(f.id),
+                    float(1000.0 * np.linalg.norm(e[3:])),
+                    float(np.degrees(np.linalg.norm(e[:3]))),
+                )
+            )
+        worst.sort(
+            key=lambda w: (
+                -(w[1] / max(1000.0 * sig[1], 1e-6) + w[2] / max(np.degrees(sig[0]), 1e-9))
+            )
+        )
+    return RobotAccuracy(
+        translation_mm=float(1000.0 * sig[1]),
+        rotation_deg=float(np.degrees(sig[0])),
+        worst_frames=tuple(worst[:5]),
+        estimated=out.robot_sigma_estimated,
+    )

@@ -1,0 +1,67 @@
+"""The robot's accuracy and the model-adequacy test on disk, in the summary, in the options and
+in the simulated cell (the files that carry them: results_io, session, config, mocks/cell)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from slidecal.mocks import scenarios as sc
+from slidecal.mocks.cell import SimulatedCell
+from slidecal.routines.config import load_packaged_cell
+from slidecal.routines.results_io import read_result, summary_text, write_result
+from slidecal.routines.session import options_from_dict, options_to_dict
+from slidecal.solver.calibrate import calibrate
+from slidecal.solver.problem import ModelOptions
+
+
+def test_adequacy_and_robot_accuracy_round_trip_and_are_summarised(tmp_path: Path) -> None:
+    s = sc.r1(np.random.default_rng(31), 0.15, 1e-3, 0.05)
+    res = calibrate(s.problem)
+    path = write_result(res, tmp_path / "result.yaml")
+    raw = yaml.safe_load(path.read_text())
+    assert raw["adequacy"]["adequate"] is True
+    assert raw["robot_accuracy"]["estimated"] is True
+    assert 0.5 < raw["robot_accuracy"]["translation_mm"] < 1.5
+    back = read_result(path)
+    assert back.adequacy == res.adequacy
+    assert back.robot_accuracy.worst_frames == res.robot_accuracy.worst_frames
+    text = summary_text(res)
+    assert "model adequacy: the model explains the images" in text
+    assert "robot accuracy (estimated from the images)" in text
+
+
+def test_an_inadequate_result_says_so_first(tmp_path: Path) -> None:
+    opts = ModelOptions(robot_noise_m=5e-5, robot_noise_deg=0.005, estimate_robot_noise=False)
+    s = sc.r1(np.random.default_rng(32), 0.15, 5e-3, 0.005, options=opts)
+    res = calibrate(s.problem)
+    text = summary_text(res)
+    lines = text.splitlines()
+    assert lines[3] == "MODEL INADEQUATE: do not use this result"
+    assert "times the detector's noise" in lines[4]
+    back = read_result(write_result(res, tmp_path / "result.yaml"))
+    assert back.adequacy.adequate is False and back.adequacy.reasons == res.adequacy.reasons
+
+
+def test_estimate_robot_noise_option_round_trips() -> None:
+    o = options_from_dict({"estimate_robot_noise": False, "robot_noise_mm": 0.5}, "s.yaml")
+    assert o.estimate_robot_noise is False and o.robot_noise_m == 0.0005
+    assert options_from_dict(options_to_dict(o), "s.yaml") == o
+    assert options_from_dict({}, "s.yaml").estimate_robot_noise is True
+
+
+def test_simulated_cell_with_a_real_arms_kinematic_error() -> None:
+    over = {"simulation": {"kinematic_error": {"mm": 1.0, "deg": 0.1}}}
+    cfg = load_packaged_cell("default_cell.yaml", over)
+    assert cfg.simulation.kinematic_error["repeatability_mm"] == 0.03
+    cell = SimulatedCell.from_config(cfg, seed=3)
+    cell.robot.connect()
+    T_true, T_meas = cell.robot.true_pose(), cell.robot.measured_pose()
+    err_mm = 1000 * np.linalg.norm(T_true[:3, 3] - T_meas[:3, 3])
+    assert 0.1 < err_mm < 3.0
+    assert cell.truth["noise"]["kinematic_error"]["deg"] == 0.1
+    plain = SimulatedCell.from_config(load_packaged_cell("default_cell.yaml"), seed=3)
+    assert plain.robot.kinematic_error is None
+    assert "kinematic_error" not in plain.truth["noise"]
