@@ -133,21 +133,29 @@ def _stats(v: list[float]) -> tuple[float, float]:
     return float(np.mean(v)), float(np.std(v, ddof=1))
 
 
-def r1_hand_eye_row(trials: int, robot_noise: bool, model_noise: bool) -> Row:
+def r1_hand_eye_row(
+    trials: int, robot_noise: bool, model_noise: bool, learn: bool = False
+) -> Row:
     """R1 with distortion: K errors and the hand-eye rotation error against its bound.
 
     ``robot_noise``: the measured poses carry 0.05 mm / 0.005 deg noise; ``model_noise``: the
-    solver models it (errors in variables, ``ModelOptions.robot_noise_*``), and the bound is
-    that of the same model.
+    solver is told that level (errors in variables, ``ModelOptions.robot_noise_*``) and the bound
+    is that of the same model; ``learn``: the solver's default, the level learned from the data
+    (``ModelOptions.estimate_robot_noise``), against the bound of the model with the true level.
+    Without ``learn`` the level is taken as given (0: poses exact).
     """
     noise = (5e-5, 0.005) if robot_noise else (0.0, 0.0)
-    opts = ModelOptions(robot_noise_m=5e-5, robot_noise_deg=0.005) if model_noise else None
+    told = {"robot_noise_m": 5e-5, "robot_noise_deg": 0.005} if model_noise else {}
+    opts = ModelOptions(**told, estimate_robot_noise=learn)
+    bound_opts = ModelOptions(robot_noise_m=5e-5, robot_noise_deg=0.005) if learn else opts
     setting = "no robot noise"
     if robot_noise:
         setting = "robot noise 0.05 mm, 0.005 deg, " + (
-            "modelled" if model_noise else "poses taken as exact"
+            "learned from the data (default)"
+            if learn
+            else "modelled" if model_noise else "poses taken as exact"
         )
-    s0 = sc.r1(np.random.default_rng(1000), 0.15, 0.0, 0.0, options=opts)
+    s0 = sc.r1(np.random.default_rng(1000), 0.15, 0.0, 0.0, options=bound_opts)
     st = build_structure(s0.problem, s0.truth.X[0][:3, :3])
     names, cov = fisher_covariance(s0.problem, st, s0.truth, 0.15)
     i = names.index("X0.r0")
@@ -168,7 +176,7 @@ def r1_hand_eye_row(trials: int, robot_noise: bool, model_noise: bool) -> Row:
         f"hand-eye rotation rms error {rms:.4f} deg, bound {rot_bound:.4f} deg "
         f"(ratio {rms / rot_bound:.2f})"
     )
-    if robot_noise and not model_noise:
+    if robot_noise and not model_noise and not learn:
         row.extra += "; the bound is that of exact poses, so the ratio is what the noise costs"
     return row
 
@@ -303,8 +311,13 @@ def all_rows(trials: int) -> tuple[list[Row], list[str]]:
                 bound=phi == 0,
             )
         )
-    for robot_noise, model_noise in ((False, False), (True, False), (True, True)):
-        row = r1_hand_eye_row(trials, robot_noise, model_noise)
+    for robot_noise, model_noise, learn in (
+        (False, False, False),
+        (True, False, False),
+        (True, True, False),
+        (True, False, True),
+    ):
+        row = r1_hand_eye_row(trials, robot_noise, model_noise, learn)
         rows.append(row)
         notes.append(f"R1 ({row.setting}): {row.extra}")
     return rows, notes
