@@ -198,7 +198,9 @@ def test_symmetric_chessboard_rule_and_partial_view():
     assert np.max(np.abs(px - truth)) < 0.5
     partial = _pose(tg, 0, 0, 0.3, shift_m=(0.12, 0.0))
     rep = detect(render_target(tg, SMALL, partial, np.random.default_rng(8)), tg)
-    assert not rep.ok and len(rep.detection.ids) == 0 and "not found" in rep.reasons[0]
+    assert not rep.ok and len(rep.detection.ids) == 0
+    assert "7 x 6 inner corners" in rep.reasons[0] and "whole board" in rep.reasons[0]
+    assert rep.detection.reason == rep.diagnosis
 
 
 def test_homography_check_threshold_and_rejection():
