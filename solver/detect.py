@@ -21,9 +21,11 @@ Chessboard: a cascade, fastest first, each step tried only when the one before f
 
 No step uses ``CALIB_CB_NORMALIZE_IMAGE`` (it lost the board in most real photographs). The
 corners are then refined at full resolution by ``cv2.cornerSubPix`` in a window per corner of
-0.45 times the distance to its nearest grid neighbour (3 to 25 px half-width): on rendered images
-this is as accurate as ``findChessboardCornersSB`` with ``CALIB_CB_ACCURACY`` within 0.01 px rms,
-at a twentieth of the time. The whole board must be in view (a plain chessboard seen in part has
+0.3 times the distance to its nearest grid neighbour (3 to 25 px half-width): on rendered images
+within 0.01 px rms of ``findChessboardCornersSB`` with ``CALIB_CB_ACCURACY`` at a twentieth of
+the time, and on real photographs (``tests/data/opencv_left``) more consistent with a lens model
+than it (``tests/test_detect.py``); larger windows reach background clutter in photographs. The
+whole board must be in view (a plain chessboard seen in part has
 no corner that says which one it is). Its corner order is ambiguous under the board's
 symmetries; the rule used here:
 
@@ -338,7 +340,7 @@ def _refine_charuco(
 # at once on images without a board; never CALIB_CB_NORMALIZE_IMAGE for SB (see the docstring).
 _CLASSIC_FLAGS = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_FAST_CHECK
 REDUCED_LONG_SIDE_PX = 1000
-SUBPIX_WINDOW_FRACTION = 0.45
+SUBPIX_WINDOW_FRACTION = 0.3
 _SUBPIX_HALF_WINDOW_PX = (3, 25)
 
 

@@ -1,7 +1,9 @@
 """Target detection on rendered images, against the projected ground truth."""
 
 from dataclasses import replace
+from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -11,6 +13,7 @@ from slidecal.solver.camera import K_matrix, project
 from slidecal.solver.detect import (
     OUTLIER_THRESHOLD_PX,
     _local_residuals,
+    _orient_chessboard,
     _reject_outliers,
     charuco_board,
     detect,
@@ -244,3 +247,56 @@ def test_bad_inputs_raise():
         * 256
     )
     assert detect(u16, CHARUCO).ok
+
+
+# ----------------------------------------------------------------------------- real photographs
+
+REAL_DIR = Path(__file__).parent / "data" / "opencv_left"
+REAL_BOARD = Target.chessboard(10, 7, 0.025)  # 9 x 6 inner corners (see data/opencv_left)
+
+
+def _real_images():
+    files = sorted(REAL_DIR.glob("left*.jpg"))
+    assert len(files) == 13
+    return [cv2.imread(str(f), cv2.IMREAD_UNCHANGED) for f in files]
+
+
+def _sb_accuracy(img):
+    # the careful reference: SB exhaustive + accuracy, with NORMALIZE_IMAGE (needed on
+    # left05.jpg here, the opposite of the real 2-megapixel photographs that prompted its removal)
+    flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_NORMALIZE_IMAGE
+    found, c = cv2.findChessboardCornersSB(img, (9, 6), flags=flags)
+    assert found
+    return _orient_chessboard(img, np.asarray(c, float).reshape(6, 9, 2)).reshape(-1, 2)
+
+
+def _calibration_rms(corner_sets):
+    obj = REAL_BOARD.points_m.astype(np.float32)
+    rms, *_ = cv2.calibrateCamera(
+        [obj] * len(corner_sets),
+        [c.astype(np.float32).reshape(-1, 1, 2) for c in corner_sets],
+        (640, 480),
+        None,
+        None,
+        flags=cv2.CALIB_RATIONAL_MODEL,
+    )
+    return rms
+
+
+def test_real_photographs_found_and_consistent():
+    images = _real_images()
+    ours, refs = [], []
+    for img in images:
+        rep = detect(img, REAL_BOARD)
+        assert rep.ok, rep.reasons  # found in every photograph
+        assert len(rep.detection.ids) == 54 and len(rep.rejected_ids) == 0
+        ours.append(rep.detection.px)
+        refs.append(_sb_accuracy(img))
+    e = np.concatenate(ours) - np.concatenate(refs)
+    rms = float(np.sqrt(np.mean(np.sum(e * e, axis=1))))
+    # sub-pixel finders disagree on real photographs (measured: 0.29 px rms, 1.26 px at most,
+    # no common offset); a wrong id or a corner snapped to another edge would be >= 5 px
+    assert rms < 0.4 and np.abs(e).max() < 1.6 and np.all(np.abs(e.mean(axis=0)) < 0.1)
+    # which is nearer the truth: the one a lens model explains better (same camera, same
+    # model: calibration rms 0.18 px with ours, 0.25 px with the reference)
+    assert _calibration_rms(ours) < 0.9 * _calibration_rms(refs)
