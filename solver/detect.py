@@ -230,8 +230,15 @@ def image_stats(grey: np.ndarray) -> tuple[float, float, float]:
     return float(grey.mean()), float(np.mean(grey >= 255)), sigma
 
 
+MIN_CORNERS = 4  # one tag's corners: the least that fixes a homography (a board pose)
+
+
 def detect(
-    image: np.ndarray, target: Target, *, min_corners: int = 8, colour: str = COLOUR_CONVERSION
+    image: np.ndarray,
+    target: Target,
+    *,
+    min_corners: int = MIN_CORNERS,
+    colour: str = COLOUR_CONVERSION,
 ) -> DetectionReport:
     """Find the target's corners in ``image``; never raises for an image without the target.
 
@@ -242,8 +249,8 @@ def detect(
     target
         A ``charuco``, ``chessboard``, ``apriltag`` or ``aprilgrid`` target.
     min_corners
-        Fewer kept corners than this make the frame unusable (``ok`` False); 4 is the least
-        any target can give (one tag).
+        Fewer kept corners than this make the frame unusable (``ok`` False); at least 4 (one
+        tag's corners, the least that fixes the board's pose in the image).
     colour
         How a colour image becomes grey: "green" (default), "luma" or "mean".
 
