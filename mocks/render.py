@@ -30,7 +30,8 @@ Board appearance (board frame of ``solver/problem.py``: +z into the board, away 
 that reads the print): the print (ChArUco from OpenCV's own ``CharucoBoard.generateImage``, or a
 chessboard whose square (0, 0) at the board origin is black, or AprilTags from OpenCV's
 dictionary bits; an AprilGrid with Kalibr's black squares in the gaps at every tag corner) with a
-white margin all round (one square; a quarter of a tag for tags).
+white margin all round (one square; a quarter of a tag for tags, beyond an AprilGrid's outer
+corner squares).
 A camera on the +z side sees the back of the board: plain grey. Rays that miss the
 board show a plain background grey.
 """
@@ -70,7 +71,10 @@ _OUTSIDE = -1.0e5  # texture coordinate of a ray that hits the plane behind the 
 def margin_m(target: Target) -> float:
     """Width of the white margin around the printed pattern, metres."""
     if target.kind in ("apriltag", "aprilgrid"):
-        return 0.25 * target.tag_size_m
+        # an AprilGrid's outer corner squares (tag_spacing wide) sit in the margin
+        return (
+            0.25 + (target.tag_spacing if target.kind == "aprilgrid" else 0.0)
+        ) * target.tag_size_m
     return target.square_size_m
 
 
@@ -145,59 +149,61 @@ def _tag_texture(
     dictionary: str,
     texels_per_tag: int,
 ) -> _Texture:
-    """Tags printed by their dictionary bits, each texel the mean of 3 x 3 point samples (tag
-    edges need not fall on texel boundaries: the area average keeps them in place)."""
+    """Tags printed by their dictionary bits (and an AprilGrid's corner squares). The print is
+    piecewise constant on the rectangles between its edges; each texel is its exact area
+    average over them (tag edges need not fall on texel boundaries)."""
     d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
     cells = d.markerSize + 2
     s = tag_size_m
     tpm = texels_per_tag / s
-    mg = 0.25 * s
+    gap = tag_spacing * s
+    mg = (0.25 + (tag_spacing if kind == "aprilgrid" else 0.0)) * s  # margin_m
     if kind == "aprilgrid":
-        pitch = s * (1.0 + tag_spacing)
-        gap = tag_spacing * s
+        pitch = s + gap
         width, height = tag_cols * pitch - gap, tag_rows * pitch - gap
         # tag t sits at tag row i = t // cols counted from the bottom (Kalibr), column k
         origins = [
             ((t % tag_cols) * pitch, (tag_rows - 1 - t // tag_cols) * pitch) for t in tag_ids
         ]
     else:
+        pitch = 0.0
         origins = list(tag_origins_m)
         width = max(o[0] for o in origins) + s
         height = max(o[1] for o in origins) + s
     w = int(np.ceil((width + 2 * mg) * tpm))
     h = int(np.ceil((height + 2 * mg) * tpm))
-    k = 3
-    off = (np.arange(k) + 0.5) / k
-    acc = np.zeros((h, w), np.float32)
-    for dy in off:
-        for dx in off:
-            X = (np.arange(w, dtype=np.float64)[None, :] + dx) / tpm - mg
-            Y = (np.arange(h, dtype=np.float64)[:, None] + dy) / tpm - mg
-            X, Y = np.broadcast_arrays(X, Y)
-            val = np.ones((h, w), np.float32)
-            for t, (x0, y0) in zip(tag_ids, origins, strict=True):
-                bits = cv2.aruco.generateImageMarker(d, int(t), cells, borderBits=1)
-                u = np.floor((X - x0) / s * cells).astype(int)
-                v = np.floor((Y - y0) / s * cells).astype(int)
-                inside = (u >= 0) & (u < cells) & (v >= 0) & (v < cells)
-                val[inside] = bits[v[inside], u[inside]] / 255.0
-            if kind == "aprilgrid":
-                # Kalibr's corner squares: side gap, in the gaps at every tag corner
-                gx = np.floor((X + gap) / pitch)
-                gy = np.floor((Y + gap) / pitch)
-                fx = X + gap - gx * pitch
-                fy = Y + gap - gy * pitch
-                sq = (
-                    (fx < gap)
-                    & (fy < gap)
-                    & (gx >= 0)
-                    & (gx <= tag_cols)
-                    & (gy >= 0)
-                    & (gy <= tag_rows)
-                )
-                val[sq] = 0.0
-            acc += val
-    binary = acc / (k * k)
+    steps = np.arange(cells + 1) * (s / cells)
+    xb = [np.array([-mg, w / tpm - mg])] + [x0 + steps for x0, _ in origins]
+    yb = [np.array([-mg, h / tpm - mg])] + [y0 + steps for _, y0 in origins]
+    if kind == "aprilgrid":
+        xb += [np.arange(tag_cols + 1) * pitch - gap, np.arange(tag_cols + 1) * pitch]
+        yb += [np.arange(tag_rows + 1) * pitch - gap, np.arange(tag_rows + 1) * pitch]
+    xb = np.unique(np.clip(np.concatenate(xb), -mg, w / tpm - mg))
+    yb = np.unique(np.clip(np.concatenate(yb), -mg, h / tpm - mg))
+    # value of every rectangle between consecutive edges, at its centre
+    X, Y = np.meshgrid(0.5 * (xb[:-1] + xb[1:]), 0.5 * (yb[:-1] + yb[1:]))
+    val = np.ones(X.shape)
+    for t, (x0, y0) in zip(tag_ids, origins, strict=True):
+        bits = cv2.aruco.generateImageMarker(d, int(t), cells, borderBits=1)
+        u = np.floor((X - x0) / s * cells).astype(int)
+        v = np.floor((Y - y0) / s * cells).astype(int)
+        inside = (u >= 0) & (u < cells) & (v >= 0) & (v < cells)
+        val[inside] = bits[v[inside], u[inside]] / 255.0
+    if kind == "aprilgrid":
+        # Kalibr's corner squares: side gap, in the gaps at every tag corner
+        gx, gy = np.floor((X + gap) / pitch), np.floor((Y + gap) / pitch)
+        fx, fy = X + gap - gx * pitch, Y + gap - gy * pitch
+        sq = (fx < gap) & (fy < gap) & (gx >= 0) & (gx <= tag_cols) & (gy >= 0) & (gy <= tag_rows)
+        val[sq] = 0.0
+
+    def coverage(edges: np.ndarray, n: int) -> np.ndarray:
+        """(n, m) fraction of texel j inside the interval [edges[i], edges[i + 1])."""
+        t0 = np.arange(n) / tpm - mg
+        lo = np.maximum(t0[:, None], edges[None, :-1])
+        hi = np.minimum(t0[:, None] + 1.0 / tpm, edges[None, 1:])
+        return np.clip(hi - lo, 0.0, None) * tpm
+
+    binary = coverage(yb, h) @ val @ coverage(xb, w).T
     image = (BLACK + (WHITE - BLACK) * binary).astype(np.float32)
     return _Texture(image, tpm)
 

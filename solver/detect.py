@@ -208,26 +208,30 @@ def image_stats(grey: np.ndarray) -> tuple[float, float, float]:
 
     Edge width: a step of contrast ``C`` blurred by a Gaussian of std ``sigma`` has a steepest
     gradient ``C / (sqrt(2 pi) sigma)``; ``C`` is the 1st-99th percentile range and the
-    steepest gradient the 99.9th percentile of the gradient magnitude (Sobel, per pixel),
-    computed on a reduced copy of a large image and scaled back.
+    steepest gradient the 99.9th percentile of the gradient magnitude (Sobel, per pixel), all
+    computed on the image reduced as for detection (``reduction_factor``) and scaled back.
     """
-    h, w = grey.shape
-    step = max(1, int(max(h, w) // 1000))
-    g = _reduce(grey, step)
-    f = g.astype(np.float32)
+    step = reduction_factor(grey.shape)
+    small = _reduce(grey, step)
+    hist = np.bincount(small.ravel(), minlength=256).astype(np.float64)
+    cdf = np.cumsum(hist) / hist.sum()
+    mean = float(np.arange(256) @ hist / hist.sum())
+    saturated = float(hist[255] / hist.sum())
+    lo, hi = (float(np.searchsorted(cdf, q)) for q in (0.01, 0.99))
+    f = small.astype(np.float32)
     gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3) / 8.0
     gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3) / 8.0
-    mag = np.sqrt(gx * gx + gy * gy)
-    lo, hi = np.percentile(f, [1.0, 99.0])
-    steep = float(np.percentile(mag, 99.9))
-    contrast = float(hi - lo)
+    mag = cv2.magnitude(gx, gy).ravel()
+    k = int(0.999 * (len(mag) - 1))
+    steep = float(np.partition(mag, k)[k])
+    contrast = hi - lo
     if contrast < 8.0 or steep <= 0.0:
         sigma = float("inf")
     else:
         # the 3x3 Sobel and the box of the reduction add their own width (0.5 px, step / sqrt(12))
         sigma_small = contrast / (np.sqrt(2.0 * np.pi) * steep)
         sigma = step * float(np.sqrt(max(sigma_small**2 - 0.5**2, 0.0)))
-    return float(grey.mean()), float(np.mean(grey >= 255)), sigma
+    return mean, saturated, sigma
 
 
 MIN_CORNERS = 4  # one tag's corners: the least that fixes a homography (a board pose)
@@ -538,24 +542,32 @@ def _detect_tags(
 
 
 def _refine_tag(grey: np.ndarray, q: np.ndarray, target: Target) -> np.ndarray:
-    """``cornerSubPix`` of one tag's corners (4, 2) in a window that stays inside the tag's black
-    border cell (and, on an AprilGrid, inside the gap's corner square)."""
+    """``cornerSubPix`` of one tag's corners (4, 2), finally in a window that stays inside the
+    tag's black border cell (and, on an AprilGrid, inside the gap's corner square).
+
+    On an AprilGrid the quad fit's corners can be 3-4 px off (the corner squares touch the tag
+    and bend its outline), more than that window: a first pass with a window of 1.5 cells
+    brings them within reach (slightly biased by the tag's data bits), the second removes the
+    bias."""
     cells = 8.0
     if target.dictionary:
         d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, target.dictionary))
         cells = float(d.markerSize + 2)
     side = float(np.mean(np.linalg.norm(q - np.roll(q, 1, axis=0), axis=1)))
     cell_px = side / cells
+    limit_px = cell_px
     if target.kind == "aprilgrid":
-        cell_px = min(cell_px, side * target.tag_spacing)
-    half = int(np.floor(0.8 * cell_px - 1.0))
-    if half < _MIN_HALF_WINDOW_PX:
-        return q
-    half = min(half, 15)
-    r = cv2.cornerSubPix(
-        grey, q.astype(np.float32).reshape(-1, 1, 2), (half, half), (-1, -1), _SUBPIX_CRITERIA
-    )
-    return np.asarray(r, dtype=np.float64).reshape(4, 2)
+        limit_px = min(cell_px, side * target.tag_spacing)
+    halves = [int(np.floor(0.8 * limit_px - 1.0))]
+    if target.kind == "aprilgrid":
+        halves.insert(0, int(np.floor(1.5 * cell_px)))
+    c = q.astype(np.float32).reshape(-1, 1, 2)
+    for half in halves:
+        if half < _MIN_HALF_WINDOW_PX:
+            break
+        half = min(half, 15 if half == halves[-1] else 30)
+        c = cv2.cornerSubPix(grey, c, (half, half), (-1, -1), _SUBPIX_CRITERIA)
+    return np.asarray(c, dtype=np.float64).reshape(4, 2)
 
 
 def _orient_chessboard(grey: np.ndarray, grid: np.ndarray) -> np.ndarray | None:
