@@ -445,3 +445,23 @@ def test_aprilgrid_tags_missed_by_aruco_are_recovered_never_invented():
     cv2.fillConvexPoly(painted, np.rint(gone).astype(np.int32), 200)
     ids = detect(painted, GRID).detection.ids
     assert not np.isin(GRID.tag_corner_ids()[14], ids).any() and len(ids) == 116
+
+
+def test_tag_targets_round_trip_through_the_session_block():
+    from slidecal.routines.session import target_from_dict, target_to_dict
+
+    for tg in (
+        GRID,
+        Target.apriltag(0.05, (1, 9), ((0.0, 0.0), (0.12, 0.03))),
+        Target.apriltag(0.1),
+    ):
+        back = target_from_dict(target_to_dict(tg), "session.yaml")
+        assert back.kind == tg.kind and back.tag_ids == tg.tag_ids
+        np.testing.assert_array_equal(back.points_m, tg.points_m)
+    block = {"kind": "aprilgrid", "tag_cols": 6, "tag_rows": 6, "tag_size_m": 0.088}
+    with pytest.raises(InputError, match="tag_spacing"):
+        target_from_dict(block, "cell.yaml")
+    with pytest.raises(InputError, match="tag_origins_m"):
+        target_from_dict({"kind": "apriltag", "tag_size_m": 0.1, "tag_ids": [1, 2]}, "cell.yaml")
+    one = target_from_dict({"kind": "apriltag", "tag_size_m": 0.1, "tag_ids": [7]}, "c.yaml")
+    assert one.tag_ids == (7,) and one.dictionary == "DICT_APRILTAG_36h11"
