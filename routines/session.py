@@ -320,9 +320,7 @@ def target_from_dict(data: Any, file: str, path: str = "target") -> Target:
         if f.has("tag_origins_m"):
             o = f.array("tag_origins_m", (-1, 2))
             if len(o) != len(ids_raw):
-                raise f.error(
-                    "tag_origins_m", f"has {len(o)} positions for {len(ids_raw)} tag_ids"
-                )
+                raise f.error("tag_origins_m", f"has {len(o)} positions for {len(ids_raw)} tag_ids")
             origins = tuple((float(x), float(y)) for x, y in o)
         elif len(ids_raw) > 1:
             raise f.error(
