@@ -36,7 +36,9 @@ CHARUCO = Target.charuco(12, 9, 0.04, 0.03, "DICT_5X5_100")
 APRILGRID = Target.aprilgrid(6, 5, 0.05, 0.3)
 APRILTAG = Target.apriltag(0.16, (3,))
 # (tilt about x, tilt about y, roll, distance m)
-VIEWS = ((0, 0, 0, 0.9), (25, 0, 10, 1.0), (0, -35, 0, 0.9), (30, 25, -20, 1.1), (-40, 10, 5, 1.3))
+VIEWS = ((0, 0, 0, 0.9), (25, 0, 10, 1.0), (0, -35, 0, 0.9), (-40, 25, -20, 1.3))
+# paths of a second or more per image run on these conditions only (the benchmark's time)
+SLOW_CONDITIONS = ("clean", "photo")
 CONDITIONS = {
     "clean": None,
     "photo": Photo(),
@@ -133,6 +135,9 @@ def chessboard_paths() -> dict[str, tuple[Callable, bool]]:
     }
 
 
+SLOW_PATHS = ("SB exhaustive+accuracy full size",)
+
+
 def bench_chessboard(rng: np.random.Generator) -> dict[tuple[str, str], Stats]:
     """Stats per (path, condition)."""
     tg = CHESSBOARD
@@ -142,6 +147,8 @@ def bench_chessboard(rng: np.random.Generator) -> dict[tuple[str, str], Stats]:
         grey = det.grey_of(img)
         found: dict[int, tuple[np.ndarray | None, float]] = {}
         for name, (finder, refine) in chessboard_paths().items():
+            if name in SLOW_PATHS and cond not in SLOW_CONDITIONS:
+                continue
             t0 = time.perf_counter()
             if id(finder) in found:  # the same finder, refined differently: time it once
                 c, t_find = found[id(finder)]
@@ -198,6 +205,8 @@ def bench_tags(rng: np.random.Generator) -> dict[tuple[str, str], Stats]:
                 continue
             grey = det.grey_of(img)
             for refinement in det.TAG_REFINEMENTS:
+                if refinement == "apriltag" and cond not in SLOW_CONDITIONS:
+                    continue
                 t0 = time.perf_counter()
                 ids, px, _ = det._detect_tags(grey, tg, refinement)
                 dt = time.perf_counter() - t0
@@ -317,7 +326,7 @@ def diagnosis_examples(rng: np.random.Generator) -> list[str]:
             render_target(tg, cam, T, rng),
             Target.chessboard(10, 7, 0.04),
         ),
-        "exposure 0.08": (render_target(tg, replace(cam, exposure=0.08), T, rng), tg),
+        "exposure 0.02": (render_target(tg, replace(cam, exposure=0.02), T, rng), tg),
         "exposure 3": (render_target(tg, replace(cam, exposure=3.0), T, rng), tg),
         "defocused (aperture 40 mm, focus 0.3 m)": (
             render_target(
@@ -335,6 +344,54 @@ def diagnosis_examples(rng: np.random.Generator) -> list[str]:
 
 
 # ----------------------------------------------------------------------------- report
+
+FINDINGS = """## What the tables show, and what detect() does with it
+
+- **No flag that loses boards.** `CALIB_CB_NORMALIZE_IMAGE` (the detector before this
+  benchmark) loses most photograph-like boards (uneven light, glare, colour fringes), as it lost
+  25 of 30 real 2-megapixel photographs; no path of the cascade uses it.
+- **Chessboard: fast path first, refined at full resolution.** The classic detector with the
+  fast check on the image reduced to a long side of about 1000 px finds every board here in
+  about 0.01 s; its corners refined by `cornerSubPix` at full resolution (window 0.3 of the
+  corner spacing) are as accurate as SB's at full size, and more accurate than SB with
+  `CALIB_CB_ACCURACY` on photograph-like images (which costs over a second). On clean renders
+  SB with `CALIB_CB_ACCURACY` is 0.005 px rms better, within the renderer's own texel error;
+  on the real photographs our corners are the most consistent with a lens model. The slower
+  SB paths run only when the fast one finds nothing.
+- **Colour:** the green channel. Chromatic aberration moves red and blue edges radially
+  against green; the luma mix blends the three and its error grows with the aberration.
+- **AprilGrid:** tag corners refined by `cornerSubPix` (X-junctions with Kalibr's corner
+  squares: unbiased); OpenCV's `CORNER_REFINE_APRILTAG` is biased by about 0.65 px along the
+  diagonal and takes 0.2-0.6 s. OpenCV's quad finder misses tags whose outline merges with the
+  corner squares (a fifth of them on tilted views, most when tags are small): detect() predicts
+  them from their neighbours, refines them and keeps them only if their code reads back.
+- **One AprilTag:** its corners are L-corners; `cornerSubPix` pulls them inwards by about a
+  third of the blur (0.15-0.25 px rms here), still the best of the three refinements measured.
+- **ChArUco:** `CharucoDetector`'s own corners are 0.2-0.3 px rms off; each corner is refined
+  again by `cornerSubPix` in the largest window clear of the adjacent markers (0.05 px rms on
+  clean renders, 0.1 px on photograph-like ones). Windows narrower than 1.5 times the image's
+  edge width are skipped (they drift by up to 2 px on defocused images). Under strong defocus
+  at steep tilts, OpenCV's interpolated corners themselves are off by 1-2 px: prefer a
+  chessboard or an AprilGrid there.
+- **Partial chessboards** are not used: a plain chessboard seen in part has no corner that says
+  which one it is (SB's `CALIB_CB_LARGER` finds the visible grid, and detect() uses it only to
+  say what it saw); ChArUco and AprilGrid give partial views.
+- **Time:** detect() takes 0.02-0.07 s per 2-megapixel image (chessboard, AprilGrid, ChArUco)
+  on this machine under load; the 0.3 s target holds with a margin.
+
+## Target kinds and corner ids
+
+- `chessboard`, `charuco`: OpenCV's board frame and ids (`solver/problem.py`).
+- `apriltag`: one tag (or a few at given positions) of side `tag_size_m` across the black
+  border; tag `tag_ids[k]` has corners `4 k + j`, `j` = 0 top-left, 1 top-right, 2 bottom-right,
+  3 bottom-left as printed (OpenCV's marker corner order).
+- `aprilgrid`: Kalibr's board (`tag_cols`, `tag_rows`, `tag_size_m`, `tag_spacing` =
+  Kalibr's tagCols, tagRows, tagSize, tagSpacing; family 36h11). Tag ids from the bottom-left
+  tag, left to right, then upwards; corner id `r * 2 tag_cols + c`, corner row `r` from the
+  bottom (each tag row gives its bottom then its top edge), column `c` from the left: Kalibr's
+  order. The board frame is slidecal's (origin at the top-left tag's outer top-left corner, +y
+  down the print, +z into the board), Kalibr's flipped: `Y = height - Y_kalibr`.
+"""
 
 
 def _table(title: str, stats: dict[tuple[str, str], Stats], note: str = "") -> list[str]:
@@ -373,7 +430,8 @@ def report(seed: int = 0, data_dir: Path | None = None) -> str:
         "OpenCV calls, and vary with the load).",
         "",
         "Rendered scenes: a 1920 x 1080 colour camera (fx 1400 px), boards at 0.9-1.3 m, "
-        f"tilts up to 40 deg ({len(VIEWS)} views per condition). Conditions: *clean* "
+        f"tilts up to 40 deg ({len(VIEWS)} views per condition; the paths that take a second "
+        f"or more per image only under {' and '.join(SLOW_CONDITIONS)}). Conditions: *clean* "
         "(blur 0.6 px, read noise 2 grey levels); *photo* (the `Photo()` defaults of "
         "`mocks/render.py`: defocus at f/4, lateral chromatic aberration 5e-4, shot noise, "
         "Bayer mosaic, JPEG 90, vignetting 0.3, light gradient 0.2, one glare spot); "
@@ -383,7 +441,7 @@ def report(seed: int = 0, data_dir: Path | None = None) -> str:
         "mean per image.",
         "",
     ]
-    lines = head
+    lines = head + FINDINGS.splitlines() + [""]
     lines += _table(
         "Chessboard (11 x 8 inner corners): detector paths",
         chess,

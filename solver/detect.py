@@ -264,8 +264,9 @@ def detect(
         Ids and pixels (pixel (0, 0) is the centre of the top-left pixel) and diagnostics.
     """
     grey = grey_of(image, colour)
+    stats = image_stats(grey)
     if target.kind == "charuco":
-        ids, px, reasons, path = (*_detect_charuco(grey, target), "charuco")
+        ids, px, reasons, path = (*_detect_charuco(grey, target, stats[2]), "charuco")
     elif target.kind == "chessboard":
         ids, px, reasons, path = _detect_chessboard(grey, target)
     elif target.kind in ("apriltag", "aprilgrid"):
@@ -277,14 +278,16 @@ def detect(
         )
     if not len(ids):
         path = ""
-    return _report(grey, target, ids, px, list(reasons), min_corners, path)
+    return _report(grey, target, ids, px, list(reasons), min_corners, path, stats)
 
 
 def _empty() -> tuple[np.ndarray, np.ndarray]:
     return np.zeros(0, dtype=np.int64), np.zeros((0, 2))
 
 
-def _detect_charuco(grey: np.ndarray, target: Target) -> tuple[np.ndarray, np.ndarray, list]:
+def _detect_charuco(
+    grey: np.ndarray, target: Target, blur_px: float = 0.0
+) -> tuple[np.ndarray, np.ndarray, list]:
     key = (
         target.squares_x,
         target.squares_y,
@@ -310,35 +313,72 @@ def _detect_charuco(grey: np.ndarray, target: Target) -> tuple[np.ndarray, np.nd
     # windows (CharucoBoard.matchImagePoints takes ChArUco corners, not marker corners)
     index = {int(m): k for k, m in enumerate(np.asarray(board.getIds()).reshape(-1))}
     board_obj = board.getObjPoints()
-    obj, img = [], []
+    markers: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     for mc, mid in zip(m_corners, np.asarray(m_ids).reshape(-1), strict=True):
         if int(mid) in index:
-            obj.append(np.asarray(board_obj[index[int(mid)]], dtype=np.float64).reshape(4, 3))
-            img.append(np.asarray(mc, dtype=np.float64).reshape(4, 2))
-    H = _homography(np.concatenate(obj)[:, :2], np.concatenate(img)) if obj else None
-    if H is not None:
-        px = _refine_charuco(grey, target, ids, px, H)
+            k = index[int(mid)]
+            obj = np.asarray(board_obj[k], dtype=np.float64).reshape(4, 3)[:, :2]
+            markers[k] = (obj, np.asarray(mc, dtype=np.float64).reshape(4, 2))
+    if markers:
+        H = _homography(
+            np.concatenate([o for o, _ in markers.values()]),
+            np.concatenate([i for _, i in markers.values()]),
+        )
+        if H is not None:
+            px = _refine_charuco(grey, target, board, ids, px, markers, H, blur_px)
     return ids, px, []
 
 
 def _refine_charuco(
-    grey: np.ndarray, target: Target, ids: np.ndarray, px: np.ndarray, H: np.ndarray
+    grey: np.ndarray,
+    target: Target,
+    board: cv2.aruco.CharucoBoard,
+    ids: np.ndarray,
+    px: np.ndarray,
+    markers: dict[int, tuple[np.ndarray, np.ndarray]],
+    H: np.ndarray,
+    blur_px: float = 0.0,
 ) -> np.ndarray:
-    """``cornerSubPix`` per corner with the largest window that holds no marker edge."""
-    P = target.points_m[ids, :2]
-    g = 0.5 * (target.square_size_m - target.marker_size_m)
-    offsets = np.array([[g, g], [g, -g], [-g, g], [-g, -g]])
-    centre = _apply_h(H, P)
+    """``cornerSubPix`` per corner with the largest window that holds no marker edge.
+
+    The four marker outlines around a corner are mapped into the image by the homography of
+    the adjacent markers that were detected (exact for their own corners; the board-wide one
+    ``H`` when none was), and the window, centred on the corner's estimate, stops 2 px short
+    of the nearest outline point (L-inf: the window is a square). Sampling the outlines, not
+    only their corners: under perspective an edge can come nearer than its corner. A window
+    narrower than 1.5 times the image's blur (``blur_px``, the edge width) sees only the blurred
+    middle of the junction and drifts (by up to 2 px on defocused images, docs/DETECTION.md):
+    such a corner keeps the detector's estimate.
+    """
+    sq, m = target.square_size_m, target.marker_size_m
+    g = 0.5 * (sq - m)
+    t = g + np.linspace(0.0, 1.0, 9) * m
+    outline = np.concatenate(
+        [np.stack([sx * t, np.full_like(t, sy * g)], axis=1) for sx in (-1, 1) for sy in (-1, 1)]
+        + [np.stack([np.full_like(t, sx * g), sy * t], axis=1) for sx in (-1, 1) for sy in (-1, 1)]
+    )
+    centres = np.array(
+        [np.asarray(o).reshape(4, 3)[:, :2].mean(axis=0) for o in board.getObjPoints()]
+    )
     dist = np.full(len(ids), np.inf)
-    for o in offsets:
-        q = _apply_h(H, P + o)
-        dist = np.minimum(dist, np.max(np.abs(q - centre), axis=1))  # L-inf: square window
+    for i, (cid, p0) in enumerate(zip(ids, px, strict=True)):
+        P = target.points_m[cid, :2]
+        near = np.flatnonzero(np.all(np.abs(centres - P) < 0.75 * sq, axis=1))
+        seen = [markers[k] for k in near if k in markers]
+        Hl = None
+        if seen:
+            Hl = _homography(
+                np.concatenate([o for o, _ in seen]), np.concatenate([q for _, q in seen])
+            )
+        q = _apply_h(Hl if Hl is not None else H, P + outline)
+        dist[i] = float(np.min(np.max(np.abs(q - p0), axis=1)))
     # keep the blurred marker edge (~2 px) out of the (2 w + 1) window
     half = np.floor(dist - 2.0).astype(int)
+    smallest = max(float(_MIN_HALF_WINDOW_PX), 1.5 * blur_px if np.isfinite(blur_px) else 0.0)
     out = px.copy()
     for w in np.unique(half):
         sel = half == w
-        if w < _MIN_HALF_WINDOW_PX:
+        if w < smallest:
             continue  # too close to a marker to refine reliably; keep the detector's estimate
         w = min(int(w), _MAX_HALF_WINDOW_PX)
         c = px[sel].astype(np.float32).reshape(-1, 1, 2)
@@ -746,6 +786,7 @@ def _report(
     reasons: list[str],
     min_corners: int,
     path: str,
+    stats: tuple[float, float, float],
 ) -> DetectionReport:
     shape = grey.shape
     rejected = np.zeros(0, dtype=np.int64)
@@ -770,7 +811,7 @@ def _report(
         if len(rejected):
             msg += f" ({len(rejected)} rejected by the homography check)"
         reasons.append(msg)
-    mean, saturated, blur = image_stats(grey)
+    mean, saturated, blur = stats
     if not len(ids):
         if mean < DARK_MEAN_GREY:
             reasons.append(
@@ -783,8 +824,9 @@ def _report(
             )
         if blur > BLURRED_SIGMA_PX and mean >= DARK_MEAN_GREY:
             reasons.append(
-                f"the image is blurred (edge width {blur:.1f} px, a focused image has < 1.5): "
-                "focus the lens at the working distance or stop it down"
+                f"the image has no sharp edge (edge width {blur:.1f} px, a focused image of "
+                "the board has < 1.5): the lens is out of focus at this distance, or nothing "
+                "with edges is in view"
             )
     diagnosis = "; ".join(reasons)
     return DetectionReport(

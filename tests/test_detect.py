@@ -360,7 +360,7 @@ def test_dark_saturated_and_blurred_images_are_named():
     assert not white.ok and "saturated" in white.diagnosis and white.saturated_fraction == 1.0
     far = _pose(tg, 10, 0, 0.9)  # squares of 15 px
     blurred = detect(render_target(tg, replace(SMALL, blur_sigma_px=8.0), far, rng), tg)
-    assert not blurred.ok and "blurred" in blurred.diagnosis
+    assert not blurred.ok and "no sharp edge" in blurred.diagnosis
 
 
 @pytest.mark.parametrize("blur_px", [1.0, 2.0, 4.0])
