@@ -365,6 +365,8 @@ FINDINGS = """## What the tables show, and what detect() does with it
   diagonal and takes 0.2-0.6 s. OpenCV's quad finder misses tags whose outline merges with the
   corner squares (a fifth of them on tilted views, most when tags are small): detect() predicts
   them from their neighbours, refines them and keeps them only if their code reads back.
+  Under strong defocus on a steep, far view a few corners still err by up to 2 px (the
+  refinement window must stay inside a tag's border cell, a few pixels there).
 - **One AprilTag:** its corners are L-corners; `cornerSubPix` pulls them inwards by about a
   third of the blur (0.15-0.25 px rms here), still the best of the three refinements measured.
 - **ChArUco:** `CharucoDetector`'s own corners are 0.2-0.3 px rms off; each corner is refined
