@@ -1,4 +1,5 @@
-"""Target detection: corner ids and pixels of a ChArUco board or a chessboard in one image.
+"""Target detection: corner ids and pixels of a ChArUco board, a chessboard, an AprilGrid or
+AprilTags in one image.
 
 Convention: ids and the board frame of ``solver/problem.py``; pixel (0, 0) is the centre of the
 top-left pixel (OpenCV's convention for corner positions, checked against rendered images in
@@ -15,9 +16,9 @@ Chessboard: a cascade, fastest first, each step tried only when the one before f
 (figures per 2-megapixel image on the development machine, ``docs/DETECTION.md``):
 
 1. ``cv2.findChessboardCorners`` (adaptive threshold, fast check) on the image reduced by an
-   integer factor to a long side of about 1000 px (~0.02 s);
-2. ``cv2.findChessboardCornersSB`` without flags on the reduced image (~0.1 s);
-3. the same at full resolution (~0.4 s), then with ``CALIB_CB_EXHAUSTIVE`` on the reduced image.
+   integer factor to a long side of about 1000 px (~0.01 s);
+2. ``cv2.findChessboardCornersSB`` without flags on the reduced image (~0.05 s);
+3. the same at full resolution (~0.2 s), then with ``CALIB_CB_EXHAUSTIVE`` on the reduced image.
 
 No step uses ``CALIB_CB_NORMALIZE_IMAGE`` (it lost the board in most real photographs). The
 corners are then refined at full resolution by ``cv2.cornerSubPix`` in a window per corner of
@@ -25,9 +26,8 @@ corners are then refined at full resolution by ``cv2.cornerSubPix`` in a window 
 within 0.01 px rms of ``findChessboardCornersSB`` with ``CALIB_CB_ACCURACY`` at a twentieth of
 the time, and on real photographs (``tests/data/opencv_left``) more consistent with a lens model
 than it (``tests/test_detect.py``); larger windows reach background clutter in photographs. The
-whole board must be in view (a plain chessboard seen in part has
-no corner that says which one it is). Its corner order is ambiguous under the board's
-symmetries; the rule used here:
+whole board must be in view (a plain chessboard seen in part has no corner that says which one
+it is). Its corner order is ambiguous under the board's symmetries; the rule used here:
 
 1. the board is seen from its printed side, so its +x and +y axes keep their handedness in the
    image (``x`` cross ``y`` > 0 with v pointing down);
@@ -38,9 +38,10 @@ symmetries; the rule used here:
    right in the image. Prefer boards with one odd and one even count of squares.
 
 AprilTag and AprilGrid: ``cv2.aruco.ArucoDetector`` with ``DICT_APRILTAG_36h11`` (or the
-target's family), corners refined by ``cornerSubPix`` (more accurate than
-``CORNER_REFINE_APRILTAG`` on rendered tags, ``docs/DETECTION.md``); each decoded tag of the
-target gives its four corners with the ids of ``solver/problem.py``.
+target's family), corners refined by ``cornerSubPix`` (``CORNER_REFINE_APRILTAG`` is biased by
+about 0.65 px on rendered tags, ``docs/DETECTION.md``); each decoded tag of the target gives its
+four corners with the ids of ``solver/problem.py``. On an AprilGrid, tags the quad finder missed
+are predicted from their neighbours and kept when their code reads back.
 
 Colour images: the green channel is used (it carries half of a Bayer sensor's pixels, and
 lateral chromatic aberration moves red and blue edges against it; a luma mix blends the three
@@ -189,10 +190,6 @@ def grey_of(image: np.ndarray, colour: str = COLOUR_CONVERSION) -> np.ndarray:
         scale = 255.0 / (hi - lo) if hi > lo else 0.0
         img = np.clip((f - lo) * scale, 0, 255).astype(np.uint8)
     return np.ascontiguousarray(img)
-
-
-def _grey(image: np.ndarray) -> np.ndarray:
-    return grey_of(image)
 
 
 # Image checks, reported when the target is not found. Thresholds: a printed board needs its
