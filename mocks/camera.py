@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from slidecal.mocks.render import render_target
+from slidecal.mocks.render import Photo, render_target
 from slidecal.solver.camera import K_matrix
 from slidecal.solver.errors import HardwareFault, InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt
@@ -35,7 +35,9 @@ class SimCamera:
     ``K`` (3, 3) pixels; ``dist`` (5,) k1, k2, p1, p2, k3 (OpenCV order); ``blur_sigma_px``
     optical blur; ``noise_std`` read noise in grey levels; ``exposure`` gain (1.0: printed white
     at about 217 of 255); ``colour``: BGR images instead of grey; ``vignetting``: relative
-    fall-off at the image corners.
+    fall-off at the image corners. ``photo``: photograph-like imaging (``mocks/render.py``
+    ``Photo``: defocus, chromatic aberration, shot noise, Bayer, JPEG, uneven light, glare);
+    None: the clean renderer.
     """
 
     name: str
@@ -48,6 +50,7 @@ class SimCamera:
     exposure: float = 1.0
     colour: bool = False
     vignetting: float = 0.0
+    photo: Photo | None = None
 
     def __post_init__(self) -> None:
         K = np.asarray(self.K, dtype=float)
@@ -69,8 +72,9 @@ class SimCamera:
         return CameraSpec(self.name, int(self.width), int(self.height))
 
 
-def single_camera(name: str = "cam", **overrides: float | bool) -> SimCamera:
-    """The R1 camera (docs/BENCHMARKS.md); keyword overrides for blur, noise, exposure, colour."""
+def single_camera(name: str = "cam", **overrides: float | bool | Photo) -> SimCamera:
+    """The R1 camera (docs/BENCHMARKS.md); keyword overrides for blur, noise, exposure, colour,
+    photo."""
     return SimCamera(
         name,
         1280,
@@ -81,7 +85,7 @@ def single_camera(name: str = "cam", **overrides: float | bool) -> SimCamera:
     )
 
 
-def oak_d_like(**overrides: float | bool) -> list[SimCamera]:
+def oak_d_like(**overrides: float | bool | Photo) -> list[SimCamera]:
     """An OAK-D-like head: mono "left", "right" (1280 x 800) and colour "rgb" (1920 x 1080).
 
     Keyword overrides (blur, noise, exposure) apply to all three; see the module docstring.

@@ -17,10 +17,22 @@ from the optical blur, so the total blur stays ``blur_sigma_px`` where it can.
 Then, in this order: optical blur (Gaussian, ``blur_sigma_px``), vignetting, exposure gain,
 additive Gaussian read noise (``noise_std`` grey levels), clipping and quantisation to uint8.
 
+Photograph-like imaging (``Photo``, off unless asked for: the clean path above is what the
+accuracy tests and benchmarks of the solver rely on): depth-dependent defocus (thin lens: a blur
+circle of ``f_px * aperture * |1/z - 1/z_focus|`` px, rendered as a Gaussian of a quarter of that
+diameter), uneven light (vignetting and a linear gradient), specular glare spots, lateral
+chromatic aberration (the red and blue images scaled radially about the principal point against
+green, whose geometry is the lens model's, so the truth is the green channel's), shot and read
+noise on a Bayer mosaic demosaiced by OpenCV (colour) or per pixel (mono), and JPEG
+compression.
+
 Board appearance (board frame of ``solver/problem.py``: +z into the board, away from a camera
 that reads the print): the print (ChArUco from OpenCV's own ``CharucoBoard.generateImage``, or a
-chessboard whose square (0, 0) at the board origin is black) with a white margin of one square
-all round. A camera on the +z side sees the back of the board: plain grey. Rays that miss the
+chessboard whose square (0, 0) at the board origin is black, or AprilTags from OpenCV's
+dictionary bits; an AprilGrid with Kalibr's black squares in the gaps at every tag corner) with a
+white margin all round (one square; a quarter of a tag for tags, beyond an AprilGrid's outer
+corner squares).
+A camera on the +z side sees the back of the board: plain grey. Rays that miss the
 board show a plain background grey.
 """
 
@@ -57,8 +69,26 @@ _OUTSIDE = -1.0e5  # texture coordinate of a ray that hits the plane behind the 
 
 
 def margin_m(target: Target) -> float:
-    """Width of the white margin around the printed pattern, metres (one square)."""
+    """Width of the white margin around the printed pattern, metres."""
+    if target.kind in ("apriltag", "aprilgrid"):
+        # an AprilGrid's outer corner squares (tag_spacing wide) sit in the margin
+        return (
+            0.25 + (target.tag_spacing if target.kind == "aprilgrid" else 0.0)
+        ) * target.tag_size_m
     return target.square_size_m
+
+
+def unit_m(target: Target) -> float:
+    """The print's unit (a square, or a tag): texture resolutions are texels per unit."""
+    return target.tag_size_m if target.kind in ("apriltag", "aprilgrid") else target.square_size_m
+
+
+def extent_m(target: Target) -> tuple[float, float]:
+    """Width and height (metres) of the printed pattern, from the board origin, margin excluded."""
+    if target.kind in ("charuco", "chessboard"):
+        return target.squares_x * target.square_size_m, target.squares_y * target.square_size_m
+    xy = target.points_m[:, :2]
+    return float(xy[:, 0].max()), float(xy[:, 1].max())
 
 
 @dataclass(frozen=True)
@@ -68,13 +98,114 @@ class _Texture:
 
 
 def _check_target(target: Target) -> None:
-    if target.kind not in ("charuco", "chessboard"):
+    kinds = ("charuco", "chessboard", "apriltag", "aprilgrid")
+    if target.kind not in kinds:
         raise InputError(
-            f"cannot render a target of kind {target.kind!r}; "
-            "use a 'charuco' or 'chessboard' target"
+            f"cannot render a target of kind {target.kind!r}; use one of {', '.join(kinds)}"
         )
+    if target.kind in ("apriltag", "aprilgrid"):
+        if target.tag_size_m <= 0.0:
+            raise InputError("a tag target needs tag_size_m > 0")
+        return
     if target.squares_x < 2 or target.squares_y < 2 or target.square_size_m <= 0.0:
         raise InputError("the target needs squares_x, squares_y >= 2 and square_size_m > 0")
+
+
+def _texture_of(target: Target, texels_per_unit: int) -> _Texture:
+    if target.kind in ("apriltag", "aprilgrid"):
+        return _tag_texture(
+            target.kind,
+            target.tag_size_m,
+            target.tag_ids,
+            tuple(map(tuple, np.round(target.points_m[::4, :2], 12)))
+            if target.kind == "apriltag"
+            else (),
+            target.tag_cols,
+            target.tag_rows,
+            target.tag_spacing,
+            target.dictionary or "DICT_APRILTAG_36h11",
+            texels_per_unit,
+        )
+    return _texture(
+        target.kind,
+        target.squares_x,
+        target.squares_y,
+        target.square_size_m,
+        target.marker_size_m,
+        target.dictionary,
+        texels_per_unit,
+    )
+
+
+@lru_cache(maxsize=8)
+def _tag_texture(
+    kind: str,
+    tag_size_m: float,
+    tag_ids: tuple[int, ...],
+    tag_origins_m: tuple[tuple[float, float], ...],
+    tag_cols: int,
+    tag_rows: int,
+    tag_spacing: float,
+    dictionary: str,
+    texels_per_tag: int,
+) -> _Texture:
+    """Tags printed by their dictionary bits (and an AprilGrid's corner squares). The print is
+    piecewise constant on the rectangles between its edges; each texel is its exact area
+    average over them (tag edges need not fall on texel boundaries)."""
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
+    cells = d.markerSize + 2
+    s = tag_size_m
+    tpm = texels_per_tag / s
+    gap = tag_spacing * s
+    mg = (0.25 + (tag_spacing if kind == "aprilgrid" else 0.0)) * s  # margin_m
+    if kind == "aprilgrid":
+        pitch = s + gap
+        width, height = tag_cols * pitch - gap, tag_rows * pitch - gap
+        # tag t sits at tag row i = t // cols counted from the bottom (Kalibr), column k
+        origins = [
+            ((t % tag_cols) * pitch, (tag_rows - 1 - t // tag_cols) * pitch) for t in tag_ids
+        ]
+    else:
+        pitch = 0.0
+        origins = list(tag_origins_m)
+        width = max(o[0] for o in origins) + s
+        height = max(o[1] for o in origins) + s
+    w = int(np.ceil((width + 2 * mg) * tpm))
+    h = int(np.ceil((height + 2 * mg) * tpm))
+    steps = np.arange(cells + 1) * (s / cells)
+    xb = [np.array([-mg, w / tpm - mg])] + [x0 + steps for x0, _ in origins]
+    yb = [np.array([-mg, h / tpm - mg])] + [y0 + steps for _, y0 in origins]
+    if kind == "aprilgrid":
+        xb += [np.arange(tag_cols + 1) * pitch - gap, np.arange(tag_cols + 1) * pitch]
+        yb += [np.arange(tag_rows + 1) * pitch - gap, np.arange(tag_rows + 1) * pitch]
+    xb = np.unique(np.clip(np.concatenate(xb), -mg, w / tpm - mg))
+    yb = np.unique(np.clip(np.concatenate(yb), -mg, h / tpm - mg))
+    # value of every rectangle between consecutive edges, at its centre
+    X, Y = np.meshgrid(0.5 * (xb[:-1] + xb[1:]), 0.5 * (yb[:-1] + yb[1:]))
+    val = np.ones(X.shape)
+    for t, (x0, y0) in zip(tag_ids, origins, strict=True):
+        bits = cv2.aruco.generateImageMarker(d, int(t), cells, borderBits=1)
+        u = np.floor((X - x0) / s * cells).astype(int)
+        v = np.floor((Y - y0) / s * cells).astype(int)
+        inside = (u >= 0) & (u < cells) & (v >= 0) & (v < cells)
+        val[inside] = bits[v[inside], u[inside]] / 255.0
+    if kind == "aprilgrid":
+        # Kalibr's corner squares: side gap, in the gaps at every tag corner
+        gx, gy = np.floor((X + gap) / pitch), np.floor((Y + gap) / pitch)
+        fx, fy = X + gap - gx * pitch, Y + gap - gy * pitch
+        sq = (fx < gap) & (fy < gap) & (gx >= 0) & (gx <= tag_cols) & (gy >= 0) & (gy <= tag_rows)
+        val[sq] = 0.0
+
+    def coverage(edges: np.ndarray, n: int) -> np.ndarray:
+        """(n, m) fraction of texel j inside the interval [edges[i], edges[i + 1])."""
+        t0 = np.arange(n) / tpm - mg
+        lo = np.maximum(t0[:, None], edges[None, :-1])
+        hi = np.minimum(t0[:, None] + 1.0 / tpm, edges[None, 1:])
+        return np.clip(hi - lo, 0.0, None) * tpm
+
+    binary = coverage(yb, h) @ val @ coverage(xb, w).T
+    image = (BLACK + (WHITE - BLACK) * binary).astype(np.float32)
+    return _Texture(image, tpm)
 
 
 @lru_cache(maxsize=8)
@@ -147,8 +278,8 @@ def _rays(cam: SimCamera, n: int) -> np.ndarray:
 
 def _footprint_m(cam: SimCamera, target: Target, T_cam_board: np.ndarray, n: int) -> float:
     """Largest sub-sample footprint (metres on the board) over the board's visible part."""
-    sx, sy, sq = target.squares_x, target.squares_y, target.square_size_m
-    gx, gy = np.meshgrid(np.linspace(0.0, sx * sq, 7), np.linspace(0.0, sy * sq, 7))
+    ex, ey = extent_m(target)
+    gx, gy = np.meshgrid(np.linspace(0.0, ex, 7), np.linspace(0.0, ey, 7))
     P_board = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])
     R, t = T_cam_board[:3, :3], T_cam_board[:3, 3]
     P_cam = P_board @ R.T + t
@@ -176,6 +307,7 @@ def render_target(
     rng: np.random.Generator,
     *,
     vignetting: float = 0.0,
+    photo: Photo | None = None,
 ) -> np.ndarray:
     """The image camera ``cam`` takes of ``target`` at pose ``T_cam_board``.
 
@@ -192,7 +324,10 @@ def render_target(
         Source of the read noise.
     vignetting
         Relative fall-off at the image corners (0: none; 0.3: corners 30 % darker), quadratic in
-        the distance from the principal point.
+        the distance from the principal point (the clean path; ``photo`` has its own).
+    photo
+        Photograph-like imaging (``Photo``); None: ``cam.photo`` (None there too: the clean
+        renderer of the module docstring).
 
     Returns
     -------
@@ -203,8 +338,10 @@ def render_target(
     T = np.asarray(T_cam_board, dtype=float)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise InputError("T_cam_board must be a finite 4x4 transform (board frame to camera)")
+    photo = photo if photo is not None else getattr(cam, "photo", None)
     n = SUBSAMPLES
     texture_sigma_px = 0.0
+    inv_depth = None  # (nH, nW, 1) 1 / z of the board along every sub-sample ray
     W, H = int(cam.width), int(cam.height)
     R, t = T[:3, :3], T[:3, 3]
     normal_cam = R[:, 2]  # board +z in camera axes
@@ -215,6 +352,7 @@ def render_target(
     M = np.column_stack([R[:, 0], R[:, 1], t])  # x ~ M (X, Y, 1)
     if abs(np.linalg.det(M)) < 1e-15:  # camera centre on the board plane: sees the edge only
         hi = np.full((H * n, W * n), BACKGROUND, np.float32)
+        inv_depth = np.zeros((H * n, W * n, 1), np.float32)
     else:
         G = np.linalg.inv(M)  # (X, Y, 1) / s = G (x, y, 1), s > 0 for a hit in front of the camera
         mg = margin_m(target)
@@ -223,27 +361,21 @@ def render_target(
             tps = _pick_texels_per_square(target, TEXEL_FOOTPRINTS * footprint)
             if np.isfinite(footprint):
                 # bilinear tent of half-width one texel, in pixels: std texel / sqrt(6)
-                texel_px = target.square_size_m / tps / (footprint * n)
+                texel_px = unit_m(target) / tps / (footprint * n)
                 texture_sigma_px = texel_px / np.sqrt(6.0)
-            tex = _texture(
-                target.kind,
-                target.squares_x,
-                target.squares_y,
-                target.square_size_m,
-                target.marker_size_m,
-                target.dictionary,
-                tps,
-            )
+            tex = _texture_of(target, tps)
             image, tpm = tex.image, tex.texels_per_m
         else:
-            tpm = 8.0 / target.square_size_m
-            h = int(round((target.squares_y * target.square_size_m + 2 * mg) * tpm))
-            w = int(round((target.squares_x * target.square_size_m + 2 * mg) * tpm))
+            tpm = 8.0 / unit_m(target)
+            ex, ey = extent_m(target)
+            h = int(round((ey + 2 * mg) * tpm))
+            w = int(round((ex + 2 * mg) * tpm))
             image = np.full((h, w), BACK, np.float32)
         # board metres -> texture coordinates (texel centres at integers, cv2.remap convention)
         S = np.array([[tpm, 0.0, mg * tpm - 0.5], [0.0, tpm, mg * tpm - 0.5], [0.0, 0.0, 1.0]])
         A = S @ G
         w_h = cv2.transform(rays, G[2:3, :].astype(np.float64))  # 1 / s, (nH, nW, 1)
+        inv_depth = np.maximum(w_h, 0.0)
         uv = cv2.perspectiveTransform(rays, A)
         uv[w_h[..., 0] <= 0.0] = _OUTSIDE
         hi = cv2.remap(
@@ -256,7 +388,12 @@ def render_target(
         )
     img = cv2.resize(hi, (W, H), interpolation=cv2.INTER_AREA)  # exact n x n box average
     blur_px = float(np.sqrt(max(cam.blur_sigma_px**2 - texture_sigma_px**2, 0.0)))
-    return _sensor(img, cam, rng, vignetting, blur_px)
+    if photo is None:
+        return _sensor(img, cam, rng, vignetting, blur_px)
+    inv_z = cv2.resize(
+        np.ascontiguousarray(inv_depth.reshape(H * n, W * n)), (W, H), interpolation=cv2.INTER_AREA
+    )
+    return _photo(img, inv_z, cam, photo, rng, texture_sigma_px)
 
 
 def _pick_texels_per_square(target: Target, texel_min_m: float) -> int:
@@ -265,7 +402,7 @@ def _pick_texels_per_square(target: Target, texel_min_m: float) -> int:
         return TEXELS_PER_SQUARE[0]
     best = TEXELS_PER_SQUARE[0]
     for tps in TEXELS_PER_SQUARE:
-        if target.square_size_m / tps >= texel_min_m:
+        if unit_m(target) / tps >= texel_min_m:
             best = tps
     return best
 
@@ -295,3 +432,186 @@ def _sensor(
             )
         out.append(np.clip(np.rint(noisy), 0, 255).astype(np.uint8))
     return out[0] if channels == 1 else np.stack(out, axis=2)
+
+
+@dataclass(frozen=True)
+class Photo:
+    """Photograph-like imaging; the defaults are those of an industrial colour camera with a
+    fixed-focus lens at f/4 under workshop light, as they show in real calibration images.
+
+    ``aperture_mm``: entrance pupil diameter (focal length / f-number); 0: no defocus.
+    ``focus_distance_m``: where the lens is focused; None: at the board's nearest point's depth
+    plus 10 % (so the board is slightly out of focus, more at its far side).
+    ``pixel_pitch_um``: converts ``aperture_mm`` and ``K``'s focal length in pixels to the blur
+    circle. ``chromatic_red``, ``chromatic_blue``: radial scale of the red and blue images
+    against green (lateral chromatic aberration; 5e-4 moves an edge 0.5 px at 1000 px from the
+    principal point). ``full_well_e``: electrons at full scale (shot noise; 0: none); the read
+    noise is the camera's ``noise_std`` (grey levels). ``bayer``: colour cameras mosaic and
+    demosaic (RGGB, OpenCV's edge-aware demosaicing). ``jpeg_quality``: 1..100, 0: no
+    compression. ``vignetting``: fall-off at the image corners; ``gradient``: brightness change
+    across the image along a random direction (uneven light). ``glare_spots``: number of
+    specular highlights (Gaussian, ``glare_radius`` times the image diagonal, peak
+    ``glare_strength`` of full scale) at random positions in the middle of the image.
+    """
+
+    aperture_mm: float = 2.0
+    focus_distance_m: float | None = None
+    pixel_pitch_um: float = 3.0
+    chromatic_red: float = 5e-4
+    chromatic_blue: float = -5e-4
+    full_well_e: float = 8000.0
+    bayer: bool = True
+    jpeg_quality: int = 90
+    vignetting: float = 0.3
+    gradient: float = 0.2
+    glare_spots: int = 1
+    glare_strength: float = 0.5
+    glare_radius: float = 0.04
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.jpeg_quality <= 100:
+            raise InputError(f"jpeg_quality must be 0 (none) or 1..100, got {self.jpeg_quality}")
+        if min(self.aperture_mm, self.pixel_pitch_um, self.full_well_e, self.glare_radius) < 0:
+            raise InputError("aperture_mm, pixel_pitch_um, full_well_e, glare_radius must be >= 0")
+
+
+CLEAN_PHOTO = Photo(
+    aperture_mm=0.0,
+    chromatic_red=0.0,
+    chromatic_blue=0.0,
+    full_well_e=0.0,
+    bayer=False,
+    jpeg_quality=0,
+    vignetting=0.0,
+    gradient=0.0,
+    glare_spots=0,
+)  # the photo pipeline with every effect off (equals the clean renderer but for the noise draw)
+
+
+def defocus_sigma_px(photo: Photo, f_px: float, inv_z: np.ndarray, inv_focus: float) -> np.ndarray:
+    """Gaussian std (px) of the defocus blur at inverse depths ``inv_z`` (1/m): a quarter of the
+    thin-lens blur circle diameter ``f_px * aperture * |1/z - 1/z_focus|``."""
+    return 0.25 * f_px * photo.aperture_mm * 1e-3 * np.abs(inv_z - inv_focus)
+
+
+def _varying_blur(img: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Blur with a per-pixel Gaussian std: blurred copies at a ladder of stds, interpolated."""
+    top = float(np.max(sigma))
+    if top <= 0.05:
+        return img
+    levels = [0.0]
+    while levels[-1] < top:
+        levels.append(max(0.5, levels[-1] * 1.5))
+    copies = [img] + [
+        cv2.GaussianBlur(img, (0, 0), sigmaX=lv, borderType=cv2.BORDER_REPLICATE)
+        for lv in levels[1:]
+    ]
+    lv = np.asarray(levels)
+    k = np.clip(np.searchsorted(lv, sigma, side="right") - 1, 0, len(lv) - 2)
+    t = np.clip((sigma - lv[k]) / (lv[k + 1] - lv[k]), 0.0, 1.0).astype(np.float32)
+    out = np.empty_like(img)
+    for i in range(len(lv) - 1):
+        sel = k == i
+        if np.any(sel):
+            out[sel] = (1.0 - t[sel]) * copies[i][sel] + t[sel] * copies[i + 1][sel]
+    return out
+
+
+def _radial_scale(img: np.ndarray, K: np.ndarray, scale: float) -> np.ndarray:
+    """The image magnified by ``1 + scale`` about the principal point (bilinear)."""
+    if scale == 0.0:
+        return img
+    H, W = img.shape
+    cx, cy = float(K[0, 2]), float(K[1, 2])
+    u = np.arange(W, dtype=np.float32)[None, :]
+    v = np.arange(H, dtype=np.float32)[:, None]
+    mx = (cx + (u - cx) / (1.0 + scale)).astype(np.float32) + np.zeros((H, 1), np.float32)
+    my = (cy + (v - cy) / (1.0 + scale)).astype(np.float32) + np.zeros((1, W), np.float32)
+    return cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def _photo(
+    img: np.ndarray,
+    inv_z: np.ndarray,
+    cam: SimCamera,
+    photo: Photo,
+    rng: np.random.Generator,
+    texture_sigma_px: float,
+) -> np.ndarray:
+    """Light, optics, sensor and compression of a (H, W) reflectance image (see ``Photo``)."""
+    H, W = img.shape
+    K = np.asarray(cam.K, float)
+    # light: vignetting, a gradient, glare (before the optics: they blur with the board)
+    u = (np.arange(W, dtype=np.float32) - K[0, 2]) / max(K[0, 2], W - K[0, 2])
+    v = (np.arange(H, dtype=np.float32) - K[1, 2]) / max(K[1, 2], H - K[1, 2])
+    light = 1.0 - photo.vignetting * (u[None, :] ** 2 + v[:, None] ** 2) / 2.0
+    angle = rng.uniform(0.0, 2.0 * np.pi)
+    ramp = (np.cos(angle) * u[None, :] + np.sin(angle) * v[:, None]) / 2.0
+    light = light * (1.0 + photo.gradient * ramp)
+    img = img * light.astype(np.float32)
+    if photo.glare_spots > 0 and photo.glare_strength > 0.0:
+        radius = photo.glare_radius * float(np.hypot(W, H))
+        for _ in range(photo.glare_spots):
+            x0, y0 = rng.uniform(0.25, 0.75) * W, rng.uniform(0.25, 0.75) * H
+            g = np.exp(
+                -0.5
+                * ((np.arange(W) - x0)[None, :] ** 2 + (np.arange(H) - y0)[:, None] ** 2)
+                / radius**2
+            )
+            img = img + np.float32(photo.glare_strength / cam.exposure) * g.astype(np.float32)
+    # optics: the camera's blur (less the texture's own) and the defocus
+    base = max(cam.blur_sigma_px**2 - texture_sigma_px**2, 0.0)
+    f_px = float(K[0, 0])
+    if photo.aperture_mm > 0.0:
+        hit = inv_z > 0.0
+        if photo.focus_distance_m is not None:
+            inv_focus = 1.0 / photo.focus_distance_m
+        elif np.any(hit):
+            inv_focus = 1.0 / (1.1 / float(inv_z[hit].max()))
+        else:
+            inv_focus = 0.0
+        z_inv = np.where(hit, inv_z, 0.0)  # background: at infinity
+        defocus = defocus_sigma_px(photo, f_px, z_inv, inv_focus)
+    else:
+        defocus = np.zeros((H, W))
+    sigma = np.sqrt(base + defocus**2).astype(np.float32)
+    img = _varying_blur(np.ascontiguousarray(img, dtype=np.float32), sigma)
+    # lateral chromatic aberration: red and blue magnified against green
+    gain = np.float32(255.0 * cam.exposure)
+    if cam.colour:
+        bgr = [
+            _radial_scale(img, K, photo.chromatic_blue),
+            img,
+            _radial_scale(img, K, photo.chromatic_red),
+        ]
+        signal = [c * gain for c in bgr]
+    else:
+        signal = [img * gain]
+
+    # sensor: shot noise (electrons), read noise (grey levels), quantisation
+    def expose(x: np.ndarray) -> np.ndarray:
+        x = np.maximum(x, 0.0)
+        if photo.full_well_e > 0.0:
+            e_per_dn = photo.full_well_e / 255.0
+            x = x + np.sqrt(x / e_per_dn) * rng.standard_normal(x.shape, dtype=np.float32)
+        if cam.noise_std > 0.0:
+            x = x + np.float32(cam.noise_std) * rng.standard_normal(x.shape, dtype=np.float32)
+        return np.clip(np.rint(x), 0, 255).astype(np.uint8)
+
+    if cam.colour and photo.bayer:
+        mosaic = np.empty((H, W), np.float32)
+        b, g, r = signal
+        mosaic[0::2, 0::2] = r[0::2, 0::2]
+        mosaic[0::2, 1::2] = g[0::2, 1::2]
+        mosaic[1::2, 0::2] = g[1::2, 0::2]
+        mosaic[1::2, 1::2] = b[1::2, 1::2]
+        out = cv2.cvtColor(expose(mosaic), cv2.COLOR_BayerRGGB2BGR_EA)
+    elif cam.colour:
+        out = np.stack([expose(c) for c in signal], axis=2)
+    else:
+        out = expose(signal[0])
+    if photo.jpeg_quality > 0:
+        ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(photo.jpeg_quality)])
+        if ok:
+            out = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    return out

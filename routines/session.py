@@ -124,6 +124,8 @@ TARGET_KEYS: dict[str, tuple[str, ...]] = {
     ),
     "chessboard": ("kind", "squares_x", "squares_y", "square_size_m"),
     "points": ("kind", "points_m"),
+    "apriltag": ("kind", "tag_size_m", "dictionary", "tag_ids", "tag_origins_m"),
+    "aprilgrid": ("kind", "tag_cols", "tag_rows", "tag_size_m", "tag_spacing", "dictionary"),
 }
 TARGET_KINDS = tuple(TARGET_KEYS)
 
@@ -219,7 +221,8 @@ def _dictionary_size(name: str) -> int | None:
 
 
 def target_from_dict(data: Any, file: str, path: str = "target") -> Target:
-    """A :class:`Target` from a ``target:`` block (charuco, chessboard or points)."""
+    """A :class:`Target` from a ``target:`` block (charuco, chessboard, points, apriltag or
+    aprilgrid)."""
     f = Fields(data, file, path).only(
         tuple(dict.fromkeys(k for v in TARGET_KEYS.values() for k in v))
     )
@@ -234,6 +237,48 @@ def target_from_dict(data: Any, file: str, path: str = "target") -> Target:
         if np.abs(pts).max() > 10.0:
             raise f.error("points_m", "has points beyond 10 m; give the positions in metres")
         return Target.points(pts)
+    if kind in ("apriltag", "aprilgrid"):
+        import cv2
+
+        tag = f.number("tag_size_m", positive=True)
+        if tag > 2.0:
+            raise f.error("tag_size_m", f"is {tag} m; give the tag size in metres (e.g. 0.088)")
+        family = f.string("dictionary", "DICT_APRILTAG_36h11")
+        if not re.fullmatch(r"DICT_\w+", family) or not hasattr(cv2.aruco, family):
+            raise f.error(
+                "dictionary",
+                f"{family!r} is not an OpenCV predefined dictionary (e.g. DICT_APRILTAG_36h11)",
+            )
+        if kind == "aprilgrid":
+            spacing = f.number("tag_spacing", positive=True)
+            if spacing >= 2.0:
+                raise f.error(
+                    "tag_spacing",
+                    f"is {spacing}; give the gap between tags as a fraction of the tag size "
+                    "(Kalibr's tagSpacing, e.g. 0.3)",
+                )
+            cols = f.integer("tag_cols", minimum=1)
+            rows = f.integer("tag_rows", minimum=1)
+            return Target.aprilgrid(cols, rows, tag, spacing, family)
+        ids_raw = f.get("tag_ids", [0])
+        if not isinstance(ids_raw, list) or not all(
+            isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in ids_raw
+        ):
+            raise f.error("tag_ids", "must be a list of non-negative integer tag ids")
+        if not ids_raw or len(set(ids_raw)) != len(ids_raw):
+            raise f.error("tag_ids", "must name at least one tag, each once")
+        origins = None
+        if f.has("tag_origins_m"):
+            o = f.array("tag_origins_m", (-1, 2))
+            if len(o) != len(ids_raw):
+                raise f.error("tag_origins_m", f"has {len(o)} positions for {len(ids_raw)} tag_ids")
+            origins = tuple((float(x), float(y)) for x, y in o)
+        elif len(ids_raw) > 1:
+            raise f.error(
+                "tag_origins_m",
+                "is missing; give the top-left corner [X, Y] (metres) of every tag",
+            )
+        return Target.apriltag(tag, tuple(ids_raw), origins, family)
     sx = f.integer("squares_x", minimum=3, maximum=MAX_SQUARES)
     sy = f.integer("squares_y", minimum=3, maximum=MAX_SQUARES)
     size = f.number("square_size_m", positive=True)
@@ -265,6 +310,23 @@ def target_to_dict(target: Target) -> dict[str, Any]:
     """The ``target:`` block of a :class:`Target`."""
     if target.kind == "points":
         return {"kind": "points", "points_m": plain(target.points_m[:, :2])}
+    if target.kind == "aprilgrid":
+        return {
+            "kind": "aprilgrid",
+            "tag_cols": target.tag_cols,
+            "tag_rows": target.tag_rows,
+            "tag_size_m": target.tag_size_m,
+            "tag_spacing": target.tag_spacing,
+            "dictionary": target.dictionary,
+        }
+    if target.kind == "apriltag":
+        return {
+            "kind": "apriltag",
+            "tag_size_m": target.tag_size_m,
+            "tag_ids": [int(i) for i in target.tag_ids],
+            "tag_origins_m": [[float(x), float(y)] for x, y in target.tag_origins_m],
+            "dictionary": target.dictionary,
+        }
     d: dict[str, Any] = {
         "kind": target.kind,
         "squares_x": target.squares_x,

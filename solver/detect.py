@@ -1,4 +1,5 @@
-"""Target detection: corner ids and pixels of a ChArUco board or a chessboard in one image.
+"""Target detection: corner ids and pixels of a ChArUco board, a chessboard, an AprilGrid or
+AprilTags in one image.
 
 Convention: ids and the board frame of ``solver/problem.py``; pixel (0, 0) is the centre of the
 top-left pixel (OpenCV's convention for corner positions, checked against rendered images in
@@ -11,8 +12,22 @@ it holds no marker edge: the nearest marker corner lies ``(square - marker) / 2`
 chessboard corner along both board axes, which under a tilt can be only a few pixels away, and
 a marker edge inside the window pulls the corner by tenths of a pixel.
 
-Chessboard: ``cv2.findChessboardCornersSB`` (exhaustive, accuracy flags; the whole board must be
-visible). Its corner order is ambiguous under the board's symmetries; the rule used here:
+Chessboard: a cascade, fastest first, each step tried only when the one before found nothing
+(figures per 2-megapixel image on the development machine, ``docs/DETECTION.md``):
+
+1. ``cv2.findChessboardCorners`` (adaptive threshold, fast check) on the image reduced by an
+   integer factor to a long side of about 1000 px (~0.01 s);
+2. ``cv2.findChessboardCornersSB`` without flags on the reduced image (~0.05 s);
+3. the same at full resolution (~0.2 s), then with ``CALIB_CB_EXHAUSTIVE`` on the reduced image.
+
+No step uses ``CALIB_CB_NORMALIZE_IMAGE`` (it lost the board in most real photographs). The
+corners are then refined at full resolution by ``cv2.cornerSubPix`` in a window per corner of
+0.3 times the distance to its nearest grid neighbour (3 to 25 px half-width): on rendered images
+within 0.01 px rms of ``findChessboardCornersSB`` with ``CALIB_CB_ACCURACY`` at a twentieth of
+the time, and on real photographs (``tests/data/opencv_left``) more consistent with a lens model
+than it (``tests/test_detect.py``); larger windows reach background clutter in photographs. The
+whole board must be in view (a plain chessboard seen in part has no corner that says which one
+it is). Its corner order is ambiguous under the board's symmetries; the rule used here:
 
 1. the board is seen from its printed side, so its +x and +y axes keep their handedness in the
    image (``x`` cross ``y`` > 0 with v pointing down);
@@ -21,6 +36,21 @@ visible). Its corner order is ambiguous under the board's symmetries; the rule u
 3. if the board is symmetric under that test (``squares_x + squares_y`` even, the outer corner
    squares are all black), corner 0 is the one that makes the board's +x axis point most to the
    right in the image. Prefer boards with one odd and one even count of squares.
+
+AprilTag and AprilGrid: ``cv2.aruco.ArucoDetector`` with ``DICT_APRILTAG_36h11`` (or the
+target's family), corners refined by ``cornerSubPix`` (``CORNER_REFINE_APRILTAG`` is biased by
+about 0.65 px on rendered tags, ``docs/DETECTION.md``); each decoded tag of the target gives its
+four corners with the ids of ``solver/problem.py``. On an AprilGrid, tags the quad finder missed
+are predicted from their neighbours and kept when their code reads back.
+
+Colour images: the green channel is used (it carries half of a Bayer sensor's pixels, and
+lateral chromatic aberration moves red and blue edges against it; a luma mix blends the three
+and moves corners by a fraction of the fringe).
+
+When nothing usable is found, the report says what was seen: no board, a board of another size
+(with the fix for ``squares_x``/``squares_y``), too few corners, an image too dark, saturated or
+blurred (the blur figure is the edge width: the std of a Gaussian blur that explains the
+steepest edges of the image).
 
 Quality: a local homography check flags corners that are grossly wrong (wrong id, snapped onto
 a marker corner); they are removed and listed in ``rejected_ids``.
@@ -54,11 +84,14 @@ _MIN_HALF_WINDOW_PX = 2
 class DetectionReport:
     """What ``detect`` found in one image.
 
-    ``detection``: ids (n,) and pixels (n, 2) (empty when nothing usable). ``ok``: usable for
-    calibration. ``reasons``: why not (empty when ok). ``homography_rms_px``: rms residual of one
-    homography fitted to all kept corners (non-zero with lens distortion; nan below 4 corners).
-    ``coverage``: fraction of the image area inside the corners' convex hull.
-    ``rejected_ids``: corners removed by the local homography check.
+    ``detection``: ids (n,) and pixels (n, 2) (empty when nothing usable; its ``reason`` is the
+    ``diagnosis``). ``ok``: usable for calibration. ``reasons``: why not (empty when ok).
+    ``homography_rms_px``: rms residual of one homography fitted to all kept corners (non-zero
+    with lens distortion; nan below 4 corners). ``coverage``: fraction of the image area inside
+    the corners' convex hull. ``rejected_ids``: corners removed by the local homography check.
+    ``path``: the detector step that found the corners ("" when none did). ``blur_sigma_px``:
+    edge width of the image (std of the Gaussian blur that explains its steepest edges).
+    ``mean_grey``: mean grey level (0..255); ``saturated_fraction``: fraction of pixels at 255.
     """
 
     detection: Detection
@@ -67,6 +100,15 @@ class DetectionReport:
     homography_rms_px: float
     coverage: float
     rejected_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    path: str = ""
+    blur_sigma_px: float = float("nan")
+    mean_grey: float = float("nan")
+    saturated_fraction: float = float("nan")
+
+    @property
+    def diagnosis(self) -> str:
+        """The reasons as one line ("" when ok)."""
+        return "; ".join(self.reasons)
 
 
 def charuco_board(target: Target) -> cv2.aruco.CharucoBoard:
@@ -113,13 +155,33 @@ def _charuco_detector(
     return cv2.aruco.CharucoDetector(board, cp, dp)
 
 
-def _grey(image: np.ndarray) -> np.ndarray:
+COLOUR_CONVERSIONS = ("green", "luma", "mean")
+COLOUR_CONVERSION = "green"  # measured in docs/DETECTION.md (chromatic aberration)
+
+
+def grey_of(image: np.ndarray, colour: str = COLOUR_CONVERSION) -> np.ndarray:
+    """uint8 (H, W) of an (H, W) grey or (H, W, 3|4) BGR(A) image.
+
+    ``colour``: "green" (the G channel), "luma" (OpenCV's BGR2GRAY mix) or "mean" (the
+    channels' mean). Other dtypes are rescaled to 0..255 over their range.
+    """
     img = np.asarray(image)
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[:, :, 0]
     if img.ndim == 3 and img.shape[2] in (3, 4):
-        code = cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
-        img = cv2.cvtColor(np.ascontiguousarray(img), code)
+        if colour == "green":
+            img = img[:, :, 1]
+        elif colour == "luma":
+            code = cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+            img = cv2.cvtColor(np.ascontiguousarray(img), code)
+        elif colour == "mean":
+            img = img[:, :, :3].astype(np.float64).mean(axis=2)
+            if np.asarray(image).dtype == np.uint8:
+                img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+        else:
+            raise InputError(
+                f"colour conversion {colour!r} unknown; use one of {COLOUR_CONVERSIONS}"
+            )
     if img.ndim != 2 or min(img.shape) < 8:
         raise InputError(f"image must be (H, W) grey or (H, W, 3) BGR, got shape {np.shape(image)}")
     if img.dtype != np.uint8:
@@ -130,7 +192,55 @@ def _grey(image: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
-def detect(image: np.ndarray, target: Target, *, min_corners: int = 8) -> DetectionReport:
+# Image checks, reported when the target is not found. Thresholds: a printed board needs its
+# white well above its black; these are the levels at which OpenCV's detectors start to fail on
+# rendered boards (docs/DETECTION.md).
+DARK_MEAN_GREY = 25.0
+SATURATED_FRACTION = 0.25
+BLURRED_SIGMA_PX = 2.5
+
+
+def image_stats(grey: np.ndarray) -> tuple[float, float, float]:
+    """(mean grey level, fraction of pixels at 255, edge width in px) of a uint8 image.
+
+    Edge width: a step of contrast ``C`` blurred by a Gaussian of std ``sigma`` has a steepest
+    gradient ``C / (sqrt(2 pi) sigma)``; ``C`` is the 1st-99th percentile range and the
+    steepest gradient the 99.9th percentile of the gradient magnitude (Sobel, per pixel), all
+    computed on the image reduced as for detection (``reduction_factor``) and scaled back.
+    """
+    step = reduction_factor(grey.shape)
+    small = _reduce(grey, step)
+    hist = np.bincount(small.ravel(), minlength=256).astype(np.float64)
+    cdf = np.cumsum(hist) / hist.sum()
+    mean = float(np.arange(256) @ hist / hist.sum())
+    saturated = float(hist[255] / hist.sum())
+    lo, hi = (float(np.searchsorted(cdf, q)) for q in (0.01, 0.99))
+    f = small.astype(np.float32)
+    gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+    gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    mag = cv2.magnitude(gx, gy).ravel()
+    k = int(0.999 * (len(mag) - 1))
+    steep = float(np.partition(mag, k)[k])
+    contrast = hi - lo
+    if contrast < 8.0 or steep <= 0.0:
+        sigma = float("inf")
+    else:
+        # the 3x3 Sobel and the box of the reduction add their own width (0.5 px, step / sqrt(12))
+        sigma_small = contrast / (np.sqrt(2.0 * np.pi) * steep)
+        sigma = step * float(np.sqrt(max(sigma_small**2 - 0.5**2, 0.0)))
+    return mean, saturated, sigma
+
+
+MIN_CORNERS = 4  # one tag's corners: the least that fixes a homography (a board pose)
+
+
+def detect(
+    image: np.ndarray,
+    target: Target,
+    *,
+    min_corners: int = MIN_CORNERS,
+    colour: str = COLOUR_CONVERSION,
+) -> DetectionReport:
     """Find the target's corners in ``image``; never raises for an image without the target.
 
     Parameters
@@ -138,33 +248,43 @@ def detect(image: np.ndarray, target: Target, *, min_corners: int = 8) -> Detect
     image
         uint8 (H, W) grey or (H, W, 3) BGR (other dtypes are rescaled to 0..255).
     target
-        A ``charuco`` or ``chessboard`` target.
+        A ``charuco``, ``chessboard``, ``apriltag`` or ``aprilgrid`` target.
     min_corners
-        Fewer kept corners than this make the frame unusable (``ok`` False).
+        Fewer kept corners than this make the frame unusable (``ok`` False); at least 4 (one
+        tag's corners, the least that fixes the board's pose in the image).
+    colour
+        How a colour image becomes grey: "green" (default), "luma" or "mean".
 
     Returns
     -------
     DetectionReport
         Ids and pixels (pixel (0, 0) is the centre of the top-left pixel) and diagnostics.
     """
-    grey = _grey(image)
+    grey = grey_of(image, colour)
+    stats = image_stats(grey)
     if target.kind == "charuco":
-        ids, px, reasons = _detect_charuco(grey, target)
+        ids, px, reasons, path = (*_detect_charuco(grey, target, stats[2]), "charuco")
     elif target.kind == "chessboard":
-        ids, px, reasons = _detect_chessboard(grey, target)
+        ids, px, reasons, path = _detect_chessboard(grey, target)
+    elif target.kind in ("apriltag", "aprilgrid"):
+        ids, px, reasons, path = (*_detect_tags(grey, target), "aruco")
     else:
         raise InputError(
             f"cannot detect a target of kind {target.kind!r} in images; give its detections in "
             "the session file instead"
         )
-    return _report(grey.shape, target, ids, px, list(reasons), min_corners)
+    if not len(ids):
+        path = ""
+    return _report(grey, target, ids, px, list(reasons), min_corners, path, stats)
 
 
 def _empty() -> tuple[np.ndarray, np.ndarray]:
     return np.zeros(0, dtype=np.int64), np.zeros((0, 2))
 
 
-def _detect_charuco(grey: np.ndarray, target: Target) -> tuple[np.ndarray, np.ndarray, list]:
+def _detect_charuco(
+    grey: np.ndarray, target: Target, blur_px: float = 0.0
+) -> tuple[np.ndarray, np.ndarray, list]:
     key = (
         target.squares_x,
         target.squares_y,
@@ -190,35 +310,72 @@ def _detect_charuco(grey: np.ndarray, target: Target) -> tuple[np.ndarray, np.nd
     # windows (CharucoBoard.matchImagePoints takes ChArUco corners, not marker corners)
     index = {int(m): k for k, m in enumerate(np.asarray(board.getIds()).reshape(-1))}
     board_obj = board.getObjPoints()
-    obj, img = [], []
+    markers: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     for mc, mid in zip(m_corners, np.asarray(m_ids).reshape(-1), strict=True):
         if int(mid) in index:
-            obj.append(np.asarray(board_obj[index[int(mid)]], dtype=np.float64).reshape(4, 3))
-            img.append(np.asarray(mc, dtype=np.float64).reshape(4, 2))
-    H = _homography(np.concatenate(obj)[:, :2], np.concatenate(img)) if obj else None
-    if H is not None:
-        px = _refine_charuco(grey, target, ids, px, H)
+            k = index[int(mid)]
+            obj = np.asarray(board_obj[k], dtype=np.float64).reshape(4, 3)[:, :2]
+            markers[k] = (obj, np.asarray(mc, dtype=np.float64).reshape(4, 2))
+    if markers:
+        H = _homography(
+            np.concatenate([o for o, _ in markers.values()]),
+            np.concatenate([i for _, i in markers.values()]),
+        )
+        if H is not None:
+            px = _refine_charuco(grey, target, board, ids, px, markers, H, blur_px)
     return ids, px, []
 
 
 def _refine_charuco(
-    grey: np.ndarray, target: Target, ids: np.ndarray, px: np.ndarray, H: np.ndarray
+    grey: np.ndarray,
+    target: Target,
+    board: cv2.aruco.CharucoBoard,
+    ids: np.ndarray,
+    px: np.ndarray,
+    markers: dict[int, tuple[np.ndarray, np.ndarray]],
+    H: np.ndarray,
+    blur_px: float = 0.0,
 ) -> np.ndarray:
-    """``cornerSubPix`` per corner with the largest window that holds no marker edge."""
-    P = target.points_m[ids, :2]
-    g = 0.5 * (target.square_size_m - target.marker_size_m)
-    offsets = np.array([[g, g], [g, -g], [-g, g], [-g, -g]])
-    centre = _apply_h(H, P)
+    """``cornerSubPix`` per corner with the largest window that holds no marker edge.
+
+    The four marker outlines around a corner are mapped into the image by the homography of
+    the adjacent markers that were detected (exact for their own corners; the board-wide one
+    ``H`` when none was), and the window, centred on the corner's estimate, stops 2 px short
+    of the nearest outline point (L-inf: the window is a square). Sampling the outlines, not
+    only their corners: under perspective an edge can come nearer than its corner. A window
+    narrower than 1.5 times the image's blur (``blur_px``, the edge width) sees only the blurred
+    middle of the junction and drifts (by up to 2 px on defocused images, docs/DETECTION.md):
+    such a corner keeps the detector's estimate.
+    """
+    sq, m = target.square_size_m, target.marker_size_m
+    g = 0.5 * (sq - m)
+    t = g + np.linspace(0.0, 1.0, 9) * m
+    outline = np.concatenate(
+        [np.stack([sx * t, np.full_like(t, sy * g)], axis=1) for sx in (-1, 1) for sy in (-1, 1)]
+        + [np.stack([np.full_like(t, sx * g), sy * t], axis=1) for sx in (-1, 1) for sy in (-1, 1)]
+    )
+    centres = np.array(
+        [np.asarray(o).reshape(4, 3)[:, :2].mean(axis=0) for o in board.getObjPoints()]
+    )
     dist = np.full(len(ids), np.inf)
-    for o in offsets:
-        q = _apply_h(H, P + o)
-        dist = np.minimum(dist, np.max(np.abs(q - centre), axis=1))  # L-inf: square window
+    for i, (cid, p0) in enumerate(zip(ids, px, strict=True)):
+        P = target.points_m[cid, :2]
+        near = np.flatnonzero(np.all(np.abs(centres - P) < 0.75 * sq, axis=1))
+        seen = [markers[k] for k in near if k in markers]
+        Hl = None
+        if seen:
+            Hl = _homography(
+                np.concatenate([o for o, _ in seen]), np.concatenate([q for _, q in seen])
+            )
+        q = _apply_h(Hl if Hl is not None else H, P + outline)
+        dist[i] = float(np.min(np.max(np.abs(q - p0), axis=1)))
     # keep the blurred marker edge (~2 px) out of the (2 w + 1) window
     half = np.floor(dist - 2.0).astype(int)
+    smallest = max(float(_MIN_HALF_WINDOW_PX), 1.5 * blur_px if np.isfinite(blur_px) else 0.0)
     out = px.copy()
     for w in np.unique(half):
         sel = half == w
-        if w < _MIN_HALF_WINDOW_PX:
+        if w < smallest:
             continue  # too close to a marker to refine reliably; keep the detector's estimate
         w = min(int(w), _MAX_HALF_WINDOW_PX)
         c = px[sel].astype(np.float32).reshape(-1, 1, 2)
@@ -227,24 +384,303 @@ def _refine_charuco(
     return out
 
 
-def _detect_chessboard(grey: np.ndarray, target: Target) -> tuple[np.ndarray, np.ndarray, list]:
+# Classic detector on the reduced image: adaptive threshold, and the quick check that gives up
+# at once on images without a board; never CALIB_CB_NORMALIZE_IMAGE for SB (see the docstring).
+_CLASSIC_FLAGS = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_FAST_CHECK
+REDUCED_LONG_SIDE_PX = 1000
+SUBPIX_WINDOW_FRACTION = 0.3
+_SUBPIX_HALF_WINDOW_PX = (3, 25)
+
+
+def reduction_factor(shape: tuple[int, int]) -> int:
+    """Integer factor that brings the image's long side to about ``REDUCED_LONG_SIDE_PX``."""
+    return max(1, int(round(max(shape) / REDUCED_LONG_SIDE_PX)))
+
+
+def _reduce(grey: np.ndarray, factor: int) -> np.ndarray:
+    if factor == 1:
+        return grey
+    h, w = grey.shape
+    return cv2.resize(grey, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
+
+
+def _classic(img: np.ndarray, size: tuple[int, int]) -> np.ndarray | None:
+    found, corners = cv2.findChessboardCorners(img, size, flags=_CLASSIC_FLAGS)
+    return np.asarray(corners, np.float64).reshape(-1, 2) if found and corners is not None else None
+
+
+def _sb(img: np.ndarray, size: tuple[int, int], flags: int = 0) -> np.ndarray | None:
+    found, corners = cv2.findChessboardCornersSB(img, size, flags=flags)
+    return np.asarray(corners, np.float64).reshape(-1, 2) if found and corners is not None else None
+
+
+CHESSBOARD_PATHS = ("classic_reduced", "sb_reduced", "sb_full", "sb_exhaustive_reduced")
+
+
+def find_chessboard(
+    grey: np.ndarray, size: tuple[int, int], paths: tuple[str, ...] = CHESSBOARD_PATHS
+) -> tuple[np.ndarray | None, str]:
+    """Unrefined corners (n, 2) in full-resolution pixels of a ``size`` = (cols, rows) inner
+    corner chessboard by the first of ``paths`` that finds it, and that path's name."""
+    f = reduction_factor(grey.shape)
+    small = _reduce(grey, f)
+    for path in paths:
+        if path == "classic_reduced":
+            c = _classic(small, size)
+        elif path == "sb_reduced":
+            c = _sb(small, size)
+        elif path == "sb_full":
+            if f == 1:
+                continue  # the same image as sb_reduced
+            c = _sb(grey, size)
+            if c is not None:
+                return c, path
+        elif path == "sb_exhaustive_reduced":
+            c = _sb(small, size, cv2.CALIB_CB_EXHAUSTIVE)
+        elif path == "classic_full":
+            c = _classic(grey, size)
+            if c is not None:
+                return c, path
+        elif path == "sb_accuracy_full":
+            c = _sb(grey, size, cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
+            if c is not None:
+                return c, path
+        else:
+            raise InputError(f"unknown chessboard detector path {path!r}")
+        if c is not None:
+            return (c + 0.5) * f - 0.5, path  # pixel centres of the reduced image
+    return None, ""
+
+
+def refine_grid(grey: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """``cornerSubPix`` of a (rows, cols, 2) corner grid at full resolution, each corner in a
+    window of ``SUBPIX_WINDOW_FRACTION`` times the distance to its nearest grid neighbour."""
+    rows, cols = grid.shape[:2]
+    d = np.full((rows, cols), np.inf)
+    if cols > 1:
+        dx = np.linalg.norm(np.diff(grid, axis=1), axis=2)
+        d[:, :-1] = np.minimum(d[:, :-1], dx)
+        d[:, 1:] = np.minimum(d[:, 1:], dx)
+    if rows > 1:
+        dy = np.linalg.norm(np.diff(grid, axis=0), axis=2)
+        d[:-1] = np.minimum(d[:-1], dy)
+        d[1:] = np.minimum(d[1:], dy)
+    lo, hi = _SUBPIX_HALF_WINDOW_PX
+    half = np.clip(np.floor(SUBPIX_WINDOW_FRACTION * d), lo, hi).astype(int).ravel()
+    px = grid.reshape(-1, 2)
+    out = px.copy()
+    for w in np.unique(half):
+        sel = half == w
+        c = px[sel].astype(np.float32).reshape(-1, 1, 2)
+        r = cv2.cornerSubPix(grey, c, (int(w), int(w)), (-1, -1), _SUBPIX_CRITERIA)
+        out[sel] = np.asarray(r, dtype=np.float64).reshape(-1, 2)
+    return out.reshape(rows, cols, 2)
+
+
+def _detect_chessboard(
+    grey: np.ndarray, target: Target
+) -> tuple[np.ndarray, np.ndarray, list, str]:
     cols, rows = target.squares_x - 1, target.squares_y - 1
-    flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_NORMALIZE_IMAGE
-    found, corners = cv2.findChessboardCornersSB(grey, (cols, rows), flags=flags)
-    if not found or corners is None:
-        return *_empty(), [
-            f"chessboard of {cols} x {rows} inner corners not found (the whole "
-            "board must be in view, seen from its printed side)"
-        ]
-    grid = np.asarray(corners, dtype=np.float64).reshape(rows, cols, 2)
+    corners, path = find_chessboard(grey, (cols, rows))
+    if corners is None:
+        return *_empty(), [_chessboard_not_found(grey, target)], ""
+    grid = corners.reshape(rows, cols, 2)
     grid = _orient_chessboard(grey, grid)
     if grid is None:
-        return *_empty(), [
-            "chessboard found but its orientation is inconsistent (seen in a "
-            "mirror or from the back?)"
-        ]
+        return (
+            *_empty(),
+            [
+                "chessboard found but its orientation is inconsistent (seen in a "
+                "mirror or from the back?)"
+            ],
+            path,
+        )
+    grid = refine_grid(grey, grid)
     ids = np.arange(rows * cols, dtype=np.int64)
-    return ids, grid.reshape(-1, 2), []
+    return ids, grid.reshape(-1, 2), [], path
+
+
+def _chessboard_not_found(grey: np.ndarray, target: Target) -> str:
+    """What was seen where the expected chessboard was not: another board size, or nothing."""
+    cols, rows = target.squares_x - 1, target.squares_y - 1
+    small = _reduce(grey, reduction_factor(grey.shape))
+    found, corners, meta = cv2.findChessboardCornersSBWithMeta(small, (3, 3), cv2.CALIB_CB_LARGER)
+    if found and meta is not None and corners is not None:
+        r, c = (int(v) for v in np.shape(meta)[:2])
+        if (min(r, c), max(r, c)) != (min(rows, cols), max(rows, cols)):
+            a, b = (c, r) if (cols >= rows) == (c >= r) else (r, c)
+            return (
+                f"a chessboard of {a} x {b} inner corners was found where {cols} x {rows} were "
+                f"expected: if that is the whole board, set squares_x: {a + 1}, squares_y: "
+                f"{b + 1} (squares, one more than inner corners); otherwise bring the whole "
+                "board into view"
+            )
+        return (
+            f"a chessboard of {cols} x {rows} inner corners is visible but could not be "
+            "measured; check focus and lighting"
+        )
+    return (
+        f"no chessboard found (expected {cols} x {rows} inner corners, squares_x: "
+        f"{target.squares_x}, squares_y: {target.squares_y}); the whole board must be in "
+        "view, seen from its printed side"
+    )
+
+
+TAG_REFINEMENTS = ("subpix", "apriltag", "none")
+TAG_REFINEMENT = "subpix"  # measured in docs/DETECTION.md
+
+
+@lru_cache(maxsize=8)
+def _tag_detector(dictionary: str, refinement: str) -> cv2.aruco.ArucoDetector:
+    if not dictionary.startswith("DICT_") or not hasattr(cv2.aruco, dictionary):
+        raise InputError(
+            f"unknown tag family {dictionary!r}; use an OpenCV name such as DICT_APRILTAG_36h11"
+        )
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
+    dp = cv2.aruco.DetectorParameters()
+    if refinement == "apriltag":
+        dp.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_APRILTAG
+    else:
+        dp.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_NONE  # refined below, per tag
+    return cv2.aruco.ArucoDetector(d, dp)
+
+
+def _detect_tags(
+    grey: np.ndarray, target: Target, refinement: str = ""
+) -> tuple[np.ndarray, np.ndarray, list]:
+    """Corners of the target's AprilTags: each decoded tag of the target gives 4 corners."""
+    refinement = refinement or TAG_REFINEMENT
+    if refinement not in TAG_REFINEMENTS:
+        raise InputError(f"tag refinement {refinement!r} unknown; use one of {TAG_REFINEMENTS}")
+    family = target.dictionary or "DICT_APRILTAG_36h11"
+    corners, tag_ids, _ = _tag_detector(family, refinement).detectMarkers(grey)
+    if tag_ids is None or len(tag_ids) == 0:
+        return *_empty(), [
+            f"no tag of family {family} found (target not in view, seen from its back, too "
+            "small, blurred or dark)"
+        ]
+    wanted = target.tag_corner_ids()
+    ids, px, strangers = [], [], []
+    for c, t in zip(corners, np.asarray(tag_ids).reshape(-1), strict=True):
+        if int(t) not in wanted:
+            strangers.append(int(t))
+            continue
+        q = np.asarray(c, dtype=np.float64).reshape(4, 2)
+        if refinement == "subpix":
+            q = _refine_tag(grey, q, target)
+        ids.append(wanted[int(t)])
+        px.append(q)
+    if not ids:
+        return *_empty(), [
+            f"tags {sorted(strangers)} of family {family} found, none of the target's tags "
+            f"{list(target.tag_ids)[:8]}: check tag_ids (or tag_cols/tag_rows)"
+        ]
+    ids_a, px_a = np.concatenate(ids).astype(np.int64), np.concatenate(px)
+    if target.kind == "aprilgrid" and refinement == "subpix":
+        ids_a, px_a = _recover_grid_tags(grey, target, ids_a, px_a)
+    return ids_a, px_a, []
+
+
+def _recover_grid_tags(
+    grey: np.ndarray, target: Target, ids: np.ndarray, px: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Tags of an AprilGrid the marker detector missed, found where the found ones predict them.
+
+    Kalibr's corner squares touch every tag's corners, which merges the tag's outline with them
+    and makes OpenCV's quad finder miss tags (a fifth of them on tilted views, most of them when
+    tags are small). Each missing tag's corners are predicted by a homography fitted to the found
+    corners of the tags around it, refined like found ones, and kept only if the tag's cells read
+    back as its own code (at most 3 of its bits wrong; the 36h11 codes differ in at least 11).
+    """
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, target.dictionary))
+    cells = d.markerSize + 2
+    corner_ids = target.tag_corner_ids()
+    found = {int(t) for t, c in corner_ids.items() if np.isin(c, ids).all()}
+    if len(found) < 2:
+        return ids, px
+    pos = dict(zip(ids.tolist(), px, strict=True))
+    xy = target.points_m[:, :2]
+    h, w = grey.shape
+    new_ids, new_px = [ids], [px]
+    for t in sorted(set(corner_ids) - found):
+        ti, tk = divmod(t, target.tag_cols)
+        near = [
+            f
+            for f in found
+            if max(abs(f // target.tag_cols - ti), abs(f % target.tag_cols - tk)) <= 2
+        ]
+        if len(near) < 2:
+            near = sorted(found)
+        src = np.concatenate([corner_ids[f] for f in near])
+        H = _homography(xy[src], np.array([pos[int(i)] for i in src]))
+        if H is None:
+            continue
+        q = _apply_h(H, xy[corner_ids[t]])
+        side = float(np.mean(np.linalg.norm(q - np.roll(q, 1, axis=0), axis=1)))
+        if (
+            side < 2.0 * cells
+            or np.any(q < 2)
+            or np.any(q[:, 0] > w - 3)
+            or np.any(q[:, 1] > h - 3)
+        ):
+            continue
+        r = _refine_tag(grey, q, target)
+        if np.max(np.linalg.norm(r - q, axis=1)) > 1.5 * side / cells:
+            continue
+        if _code_errors(grey, r, d, t, cells) > 3:
+            continue
+        new_ids.append(corner_ids[t])
+        new_px.append(r)
+    return np.concatenate(new_ids), np.concatenate(new_px)
+
+
+def _code_errors(
+    grey: np.ndarray, q: np.ndarray, d: cv2.aruco.Dictionary, tag: int, cells: int
+) -> int:
+    """Cells (border included) of the quad ``q`` (TL, TR, BR, BL) that differ from tag ``tag``."""
+    bits = cv2.aruco.generateImageMarker(d, int(tag), cells, borderBits=1) > 127
+    unit = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    H = cv2.getPerspectiveTransform(unit.astype(np.float32), q.astype(np.float32))
+    c = (np.arange(cells) + 0.5) / cells
+    u, v = np.meshgrid(c, c)
+    p = _apply_h(H, np.column_stack([u.ravel(), v.ravel()]))
+    sample = cv2.remap(
+        grey.astype(np.float32),
+        p[:, 0].astype(np.float32).reshape(1, -1),
+        p[:, 1].astype(np.float32).reshape(1, -1),
+        cv2.INTER_LINEAR,
+    ).reshape(cells, cells)
+    lo, hi = np.percentile(sample, [10.0, 90.0])
+    return int(np.sum((sample > 0.5 * (lo + hi)) != bits))
+
+
+def _refine_tag(grey: np.ndarray, q: np.ndarray, target: Target) -> np.ndarray:
+    """``cornerSubPix`` of one tag's corners (4, 2), finally in a window that stays inside the
+    tag's black border cell (and, on an AprilGrid, inside the gap's corner square).
+
+    On an AprilGrid the quad fit's corners can be 3-4 px off (the corner squares touch the tag
+    and bend its outline), more than that window: a first pass with a window of 1.5 cells
+    brings them within reach (slightly biased by the tag's data bits), the second removes the
+    bias."""
+    cells = 8.0
+    if target.dictionary:
+        d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, target.dictionary))
+        cells = float(d.markerSize + 2)
+    side = float(np.mean(np.linalg.norm(q - np.roll(q, 1, axis=0), axis=1)))
+    cell_px = side / cells
+    limit_px = cell_px
+    if target.kind == "aprilgrid":
+        limit_px = min(cell_px, side * target.tag_spacing)
+    halves = [int(np.floor(0.8 * limit_px - 1.0))]
+    if target.kind == "aprilgrid":
+        halves.insert(0, int(np.floor(1.5 * cell_px)))
+    c = q.astype(np.float32).reshape(-1, 1, 2)
+    for half in halves:
+        if half < _MIN_HALF_WINDOW_PX:
+            break
+        half = min(half, 15 if half == halves[-1] else 30)
+        c = cv2.cornerSubPix(grey, c, (half, half), (-1, -1), _SUBPIX_CRITERIA)
+    return np.asarray(c, dtype=np.float64).reshape(4, 2)
 
 
 def _orient_chessboard(grey: np.ndarray, grid: np.ndarray) -> np.ndarray | None:
@@ -303,7 +739,12 @@ def _homography(xy: np.ndarray, px: np.ndarray) -> np.ndarray | None:
 
 def _local_residuals(ids: np.ndarray, px: np.ndarray, target: Target) -> np.ndarray:
     """Per corner: distance (px) to the prediction of a homography on its grid neighbours."""
-    cols = target.squares_x - 1
+    if target.kind == "aprilgrid":
+        cols = 2 * target.tag_cols
+    elif target.kind in ("charuco", "chessboard"):
+        cols = target.squares_x - 1
+    else:
+        return np.zeros(len(ids))  # no grid: a tag's 4 corners fix a homography exactly
     r, c = np.divmod(ids, cols)
     xy = target.points_m[ids, :2]
     res = np.zeros(len(ids))
@@ -335,13 +776,16 @@ def _reject_outliers(
 
 
 def _report(
-    shape: tuple[int, int],
+    grey: np.ndarray,
     target: Target,
     ids: np.ndarray,
     px: np.ndarray,
     reasons: list[str],
     min_corners: int,
+    path: str,
+    stats: tuple[float, float, float],
 ) -> DetectionReport:
+    shape = grey.shape
     rejected = np.zeros(0, dtype=np.int64)
     rms = float("nan")
     coverage = 0.0
@@ -358,16 +802,39 @@ def _report(
         if len(ids) >= 3:
             hull = cv2.convexHull(px.astype(np.float32))
             coverage = float(cv2.contourArea(hull)) / float(shape[0] * shape[1])
+    min_corners = max(4, int(min_corners))
     if len(ids) < min_corners and (len(ids) or not reasons):
         msg = f"only {len(ids)} corners kept, fewer than min_corners={min_corners}"
         if len(rejected):
             msg += f" ({len(rejected)} rejected by the homography check)"
         reasons.append(msg)
+    mean, saturated, blur = stats
+    if not len(ids):
+        if mean < DARK_MEAN_GREY:
+            reasons.append(
+                f"the image is too dark (mean grey {mean:.0f} of 255): more light or exposure"
+            )
+        if saturated > SATURATED_FRACTION:
+            reasons.append(
+                f"the image is saturated ({100 * saturated:.0f} % of pixels at 255): less "
+                "exposure or gain, or move the glare off the board"
+            )
+        if blur > BLURRED_SIGMA_PX and mean >= DARK_MEAN_GREY:
+            reasons.append(
+                f"the image has no sharp edge (edge width {blur:.1f} px, a focused image of "
+                "the board has < 1.5): the lens is out of focus at this distance, or nothing "
+                "with edges is in view"
+            )
+    diagnosis = "; ".join(reasons)
     return DetectionReport(
-        Detection(ids, px),
+        Detection(ids, px, diagnosis),
         ok=not reasons,
         reasons=tuple(reasons),
         homography_rms_px=rms,
         coverage=coverage,
         rejected_ids=rejected,
+        path=path,
+        blur_sigma_px=blur,
+        mean_grey=mean,
+        saturated_fraction=saturated,
     )

@@ -8,6 +8,22 @@ Board frame and corner ids (documented in the README; fixed within a session for
   ``0 <= c < squares_x - 1``, ``0 <= r < squares_y - 1``, has id ``r * (squares_x - 1) + c`` and
   lies at ``((c + 1) * square_size_m, (r + 1) * square_size_m, 0)``: the id OpenCV's
   ``CharucoBoard`` gives it.
+- ``apriltag``: one AprilTag (or a few) of family ``dictionary`` (OpenCV's name, default
+  ``DICT_APRILTAG_36h11``), side ``tag_size_m`` measured across the black border. The tag
+  ``tag_ids[k]`` has its outer top-left corner at ``tag_origins_m[k]`` (the first at the origin);
+  its corners have ids ``4 k + j``, ``j`` = 0 top-left, 1 top-right, 2 bottom-right,
+  3 bottom-left as the tag is printed (+x right, +y down the page: OpenCV's marker corner order).
+- ``aprilgrid``: Kalibr's AprilGrid, ``tag_cols`` x ``tag_rows`` tags of ``tag_size_m`` with a
+  gap of ``tag_spacing * tag_size_m`` between them, tag ids ``0 .. tag_cols * tag_rows - 1``
+  from the bottom-left tag of the printed grid, left to right, then upwards (Kalibr's order).
+  Corner ids are Kalibr's: corner row ``r`` counted from the bottom (two per tag row: its bottom
+  then its top edge), column ``c`` from the left (two per tag column), id
+  ``r * 2 tag_cols + c``; so tag ``t`` at tag row ``i = t // tag_cols``, column
+  ``k = t % tag_cols`` has corners ``b = 4 i tag_cols + 2 k`` (bottom-left), ``b + 1``
+  (bottom-right), ``b + 2 tag_cols + 1`` (top-right), ``b + 2 tag_cols`` (top-left). The board
+  frame keeps this module's convention (origin at the outer top-left corner of the top-left tag,
+  +x right, +y down the printed page, +z into the board), so it differs from Kalibr's frame (origin
+  at the bottom-left, +y up) by the flip ``Y = height - Y_kalibr``, ``Z = -Z_kalibr``.
 - ``points``: row ``i`` of ``points_m`` has id ``i`` (board coordinates, z = 0).
 """
 
@@ -39,13 +55,20 @@ DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3")
 class Target:
     """A planar calibration target. ``points_m`` (N, 3), board frame, z = 0; row i has id i."""
 
-    kind: Literal["charuco", "chessboard", "points"]
+    kind: Literal["charuco", "chessboard", "points", "apriltag", "aprilgrid"]
     points_m: np.ndarray
     squares_x: int = 0
     squares_y: int = 0
     square_size_m: float = 0.0
     marker_size_m: float = 0.0
     dictionary: str = ""
+    # apriltag, aprilgrid (see the module docstring)
+    tag_size_m: float = 0.0
+    tag_ids: tuple[int, ...] = ()
+    tag_origins_m: tuple[tuple[float, float], ...] = ()
+    tag_cols: int = 0
+    tag_rows: int = 0
+    tag_spacing: float = 0.0
 
     @staticmethod
     def grid_points(squares_x: int, squares_y: int, square_size_m: float) -> np.ndarray:
@@ -82,6 +105,93 @@ class Target:
         return cls("chessboard", pts, squares_x, squares_y, float(square_size_m))
 
     @classmethod
+    def apriltag(
+        cls,
+        tag_size_m: float,
+        tag_ids: tuple[int, ...] = (0,),
+        tag_origins_m: tuple[tuple[float, float], ...] | None = None,
+        dictionary: str = "DICT_APRILTAG_36h11",
+    ) -> Target:
+        """One AprilTag (or a few): ``tag_origins_m[k]`` is tag ``tag_ids[k]``'s top-left corner.
+
+        With ``tag_origins_m`` None there must be one tag, at the origin.
+        """
+        ids = tuple(int(i) for i in tag_ids)
+        if not ids or len(set(ids)) != len(ids) or min(ids) < 0:
+            raise InputError(f"tag_ids must be distinct non-negative tag ids, got {list(ids)}")
+        if not tag_size_m > 0.0:
+            raise InputError(f"tag_size_m must be positive, got {tag_size_m}")
+        if tag_origins_m is None:
+            if len(ids) != 1:
+                raise InputError("give tag_origins_m (the top-left corner of every tag)")
+            tag_origins_m = ((0.0, 0.0),)
+        origins = tuple((float(x), float(y)) for x, y in tag_origins_m)
+        if len(origins) != len(ids):
+            raise InputError(f"{len(ids)} tag_ids but {len(origins)} tag_origins_m; give one each")
+        s = float(tag_size_m)
+        corners = np.array([[0.0, 0.0], [s, 0.0], [s, s], [0.0, s]])
+        xy = np.concatenate([corners + np.array(o) for o in origins])
+        if np.any(xy < -1e-12):
+            raise InputError("tag_origins_m must put every tag at X, Y >= 0 (board frame)")
+        return cls(
+            "apriltag",
+            np.column_stack([xy, np.zeros(len(xy))]),
+            dictionary=dictionary,
+            tag_size_m=s,
+            tag_ids=ids,
+            tag_origins_m=origins,
+        )
+
+    @classmethod
+    def aprilgrid(
+        cls,
+        tag_cols: int,
+        tag_rows: int,
+        tag_size_m: float,
+        tag_spacing: float,
+        dictionary: str = "DICT_APRILTAG_36h11",
+    ) -> Target:
+        """Kalibr's AprilGrid (``tagCols``, ``tagRows``, ``tagSize``, ``tagSpacing``)."""
+        if tag_cols < 1 or tag_rows < 1 or not tag_size_m > 0.0 or not tag_spacing > 0.0:
+            raise InputError(
+                "an aprilgrid needs tag_cols, tag_rows >= 1, tag_size_m > 0 and tag_spacing > 0 "
+                "(the gap between tags as a fraction of the tag size, Kalibr's tagSpacing)"
+            )
+        s = float(tag_size_m)
+        pitch = s * (1.0 + float(tag_spacing))
+        height = tag_rows * pitch - float(tag_spacing) * s
+        n_c, n_r = 2 * tag_cols, 2 * tag_rows
+        r, c = np.divmod(np.arange(n_r * n_c), n_c)  # Kalibr's corner rows from the bottom
+        x = (c // 2) * pitch + (c % 2) * s
+        y_up = (r // 2) * pitch + (r % 2) * s
+        xy = np.column_stack([x, height - y_up])
+        return cls(
+            "aprilgrid",
+            np.column_stack([xy, np.zeros(len(xy))]),
+            dictionary=dictionary,
+            tag_size_m=s,
+            tag_ids=tuple(range(tag_cols * tag_rows)),
+            tag_cols=int(tag_cols),
+            tag_rows=int(tag_rows),
+            tag_spacing=float(tag_spacing),
+        )
+
+    def tag_corner_ids(self) -> dict[int, np.ndarray]:
+        """Tag id -> the ids (4,) of its corners in OpenCV's marker corner order (TL, TR, BR, BL
+        as printed); empty for targets without tags."""
+        if self.kind == "apriltag":
+            return {t: 4 * k + np.arange(4) for k, t in enumerate(self.tag_ids)}
+        if self.kind == "aprilgrid":
+            out = {}
+            nc = 2 * self.tag_cols
+            for t in self.tag_ids:
+                i, k = divmod(t, self.tag_cols)
+                b = 2 * i * nc + 2 * k
+                out[t] = np.array([b + nc, b + nc + 1, b + 1, b])
+            return out
+        return {}
+
+    @classmethod
     def points(cls, points_m: np.ndarray) -> Target:
         """Arbitrary board points: (N, 2) or (N, 3) with z = 0, board frame, metres."""
         p = np.asarray(points_m, dtype=float)
@@ -107,11 +217,14 @@ class CameraSpec:
 class Detection:
     """Target corners one camera found in one frame: ids (n,) and pixels (n, 2).
 
-    Pixel (0, 0) is the centre of the top-left pixel.
+    Pixel (0, 0) is the centre of the top-left pixel. ``reason``: when the detector kept nothing
+    usable, what it saw (e.g. "a chessboard of 8 x 5 inner corners where 9 x 6 were expected");
+    empty otherwise. The frame keeps its place with its (possibly empty) ids.
     """
 
     ids: np.ndarray
     px: np.ndarray
+    reason: str = ""
 
     def __post_init__(self) -> None:
         ids = np.asarray(self.ids, dtype=np.int64).reshape(-1)

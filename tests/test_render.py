@@ -196,3 +196,126 @@ def test_presets():
     np.testing.assert_allclose(ext["left"], np.eye(4))
     assert ext["rgb"][0, 3] == pytest.approx(-0.0375, abs=1e-3)
     np.testing.assert_allclose(ext["rgb"][:3, :3] @ ext["rgb"][:3, :3].T, np.eye(3), atol=1e-12)
+
+
+# ----------------------------------------------------------------------------- photograph-like
+
+FLAT = render.CLEAN_PHOTO
+
+
+def test_photo_is_seeded_and_shaped_like_a_camera_image():
+    tg = Target.chessboard(7, 6, 0.03)
+    T = _facing(tg, 0.4, R=Rx(np.radians(20)))
+    colour = replace(SMALL, colour=True, photo=render.Photo())
+    a = render.render_target(tg, colour, T, np.random.default_rng(1))
+    b = render.render_target(tg, colour, T, np.random.default_rng(1))
+    assert a.shape == (240, 320, 3) and a.dtype == np.uint8
+    np.testing.assert_array_equal(a, b)
+    mono = render.render_target(
+        tg, replace(SMALL, photo=render.Photo()), T, np.random.default_rng(1)
+    )
+    assert mono.shape == (240, 320) and mono.dtype == np.uint8
+    with pytest.raises(InputError):
+        render.Photo(jpeg_quality=120)
+
+
+def test_photo_shot_noise_follows_the_signal():
+    # a flat grey background, no light effects: variance = read^2 + signal / (electrons per DN)
+    tg = Target.chessboard(7, 6, 0.03)
+    photo = replace(FLAT, full_well_e=2000.0)
+    cam = replace(SMALL, noise_std=1.0, blur_sigma_px=0.0, photo=photo)
+    img = render.render_target(tg, cam, _facing(tg, -0.3), np.random.default_rng(2)).astype(float)
+    signal = render.BACKGROUND * 255
+    expected = np.sqrt(1.0 + signal / (2000.0 / 255.0) + 1.0 / 12.0)  # + quantisation
+    assert abs(img.mean() - signal) < 0.3
+    assert img.std() == pytest.approx(expected, rel=0.05)  # 76800 samples
+
+
+def test_photo_defocus_grows_away_from_the_focus_distance():
+    s = render.defocus_sigma_px(render.Photo(aperture_mm=4.0), 1000.0, np.array([2.0, 1.0]), 2.0)
+    np.testing.assert_allclose(s, [0.0, 0.25 * 1000 * 0.004 * 1.0])
+    # a board tilted 60 deg, focused on its near side: its far side is blurred
+    tg = Target.chessboard(9, 6, 0.03)
+    T = _facing(tg, 0.35, R=Ry(np.radians(60)))
+    photo = replace(FLAT, aperture_mm=20.0, focus_distance_m=0.27)  # far side: sigma ~3 px
+    cam = replace(SMALL, noise_std=0.0, photo=photo)
+    img = render.render_target(tg, cam, T, np.random.default_rng(3))
+    truth = project(cam.K, cam.dist, tg.points_m @ T[:3, :3].T + T[:3, 3])
+    z = (tg.points_m @ T[:3, :3].T + T[:3, 3])[:, 2]
+    near, far = truth[np.argmin(z)], truth[np.argmax(z)]
+
+    def steepest(p):
+        u, v = np.rint(p).astype(int)
+        patch = img[v - 6 : v + 7, u - 6 : u + 7].astype(float)
+        return np.abs(np.diff(patch, axis=1)).max()
+
+    assert steepest(near) > 2.0 * steepest(far)
+
+
+def test_photo_chromatic_aberration_moves_red_and_blue_against_green():
+    # vertical edges on the principal point's row, located by area (as in the first test):
+    # red lies 1 + 2e-3 times as far from the principal point as green, blue 1 - 2e-3
+    tg = Target.chessboard(9, 7, 0.02)
+    photo = replace(FLAT, chromatic_red=2e-3, chromatic_blue=-2e-3)
+    cam = replace(SMALL, noise_std=0.0, colour=True, photo=photo)
+    T = _facing(tg, 0.3)  # the principal point's row runs through the middle of a square row
+    img = render.render_target(tg, cam, T, np.random.default_rng(4)).astype(float)
+    lo, hi = render.BLACK * 255, render.WHITE * 255
+    cx, cy = cam.K[0, 2], int(cam.K[1, 2])
+    square_px = 0.02 * 400 / 0.3
+    shifts = {0: [], 2: []}
+    for k in (-4, -3, 3, 4):
+        edge = cx + (k - 0.5 * np.sign(k)) * square_px
+        a = int(np.floor(edge)) - 8
+        pos = []
+        for ch in (0, 1, 2):
+            row = img[cy, a : a + 17, ch]
+            frac = (row - lo) / (hi - lo)
+            if frac[0] < 0.5:  # the fraction of the left-hand colour
+                frac = 1.0 - frac
+            pos.append(a - 0.5 + frac.sum())
+        for ch in (0, 2):
+            shifts[ch].append((pos[ch] - pos[1], pos[1] - cx))
+    for ch, scale in ((2, 2e-3), (0, -2e-3)):
+        for d, r in shifts[ch]:
+            assert d == pytest.approx(scale * r, abs=0.02)  # 0.1-0.2 px
+
+
+def test_photo_light_is_uneven_and_glare_brightens():
+    tg = Target.chessboard(7, 6, 0.03)
+    away = _facing(tg, -0.3)
+    cam = replace(SMALL, noise_std=0.0)
+    lit = replace(FLAT, vignetting=0.3, gradient=0.4)
+    img = render.render_target(tg, replace(cam, photo=lit), away, np.random.default_rng(5))
+    assert img[120, 160] > img[0, 0] and img.max() - img.min() > 0.2 * render.BACKGROUND * 255
+    glare = replace(FLAT, glare_spots=1, glare_strength=0.5)
+    g = render.render_target(tg, replace(cam, photo=glare), away, np.random.default_rng(5))
+    assert g.max() > render.BACKGROUND * 255 + 0.4 * 255
+
+
+def test_photo_jpeg_and_bayer_stay_close_to_the_clean_image():
+    tg = Target.chessboard(7, 6, 0.03)
+    T = _facing(tg, 0.4)
+    cam = replace(SMALL, noise_std=0.0, colour=True)
+    clean = render.render_target(tg, replace(cam, photo=FLAT), T, np.random.default_rng(6))
+    jb = replace(FLAT, bayer=True, jpeg_quality=90)
+    img = render.render_target(tg, replace(cam, photo=jb), T, np.random.default_rng(6))
+    d = img.astype(float) - clean.astype(float)
+    assert 0.3 < np.abs(d).mean() < 6.0  # changed, but only near edges and by a few levels
+
+
+def test_tag_prints_are_exact_off_the_texel_grid():
+    # corners of an AprilGrid and of a lone tag, noise-free: cornerSubPix started at the truth
+    # stays there (a print whose edges snapped to texels was off by up to 0.2 px)
+    cam = replace(single_camera(), noise_std=0.0, dist=np.zeros(5))
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-5)
+    tg = Target.aprilgrid(6, 5, 0.03, 0.3)
+    w, h = render.extent_m(tg)
+    T = T_from_Rt(np.eye(3), np.array([-w / 2, -h / 2, 0.6]))
+    img = render.render_target(tg, cam, T, np.random.default_rng(7))
+    truth = project(cam.K, cam.dist, tg.points_m + T[:3, 3]).astype(np.float32)
+    c = cv2.cornerSubPix(img, truth.reshape(-1, 1, 2).copy(), (5, 5), (-1, -1), crit)
+    e = c.reshape(-1, 2) - truth
+    # cornerSubPix locks to pixels by a few hundredths (test_corners_agree_with_the_lens_model);
+    # a print with edges snapped to texels gave 0.17 px rms
+    assert np.abs(e).max() < 0.12 and np.sqrt(np.mean(np.sum(e * e, axis=1))) < 0.08
