@@ -151,6 +151,28 @@ def model_starts(out: RefineOutput) -> dict[tuple[int, str], np.ndarray]:
     return starts
 
 
+def _parameters_used(out: RefineOutput) -> dict[str, float]:
+    """Per camera: how many parameters its inlier pixel rows pay for (the trace of the hat
+    matrix over those rows; pose corrections under a prior count by how much the pixels, not
+    the prior, determine them). Rows weigh alike: exact for one camera, close for rigs whose
+    cameras' noise levels are alike."""
+    from slidecal.solver.refine import _inverse
+
+    m = out.model
+    n_all = len(m.evaluate(out.state)[0])
+    w = np.ones(n_all)
+    w[: len(out.inlier_rows)] = out.inlier_rows
+    Ni = _inverse(m.normal_equations(out.state, w)[1])
+    used = {}
+    for c in m.cams:
+        wc = np.zeros(n_all)
+        for ch in m.chunks:
+            if ch.camera == c:
+                wc[ch.rows] = w[ch.rows]
+        used[c] = float(np.sum(Ni * m.normal_equations(out.state, wc)[1]))
+    return used
+
+
 def assess(
     problem: CalibrationProblem, out: RefineOutput
 ) -> tuple[ModelAdequacy, RobotAccuracy | None]:
@@ -162,6 +184,7 @@ def assess(
     per_frame: list[tuple[int, str, float]] = []
     normalised: dict[str, float] = {}
     frame_ids = [f.id for f in problem.frames]
+    used = _parameters_used(out)
     for c in m.cams:
         sig = fit.sigma_px.get(c, float("nan"))
         chunks = [ch for ch in m.chunks if ch.camera == c]
@@ -179,11 +202,13 @@ def assess(
                 )
         if not (sig > 0) or n == 0:
             continue
-        # the robot model's residual against the floor, both per residual row: the image-wise
-        # fit spends 6 rows per image on its pose, the robot model its (fewer) motion unknowns
-        n_img = sum(1 for ch in chunks if np.any(out.inlier_rows[ch.rows]))
-        floor_rms = sig * np.sqrt(max(n - 6 * n_img, 1.0) / n)
-        normalised[c] = float(np.sqrt(rss / n) / floor_rms) if floor_rms > 0 else float("nan")
+        # the robot model's noise estimate against the floor, each from its own redundancy:
+        # the image-wise fit spends 6 rows per image on its pose, the robot model the share of
+        # its parameters (pose corrections under their prior count in part) this camera's rows
+        # carry; both estimate the detector's noise when the model is adequate, whatever the
+        # number of points per image
+        redundancy = max(n - used.get(c, 0.0), 1.0)
+        normalised[c] = float(np.sqrt(rss / redundancy) / sig)
         if normalised[c] > MAX_NORMALISED_RMS:
             reasons.append(
                 f"camera {c!r}: the residuals are {normalised[c]:.2f} times the detector's noise "

@@ -89,3 +89,22 @@ def test_real_arm_with_poses_taken_as_exact_is_unusable_and_honest_by_default():
     assert 0.001 < res.robot_accuracy.rotation_deg < 0.2
     for name, a, b in (("fx", 0, 0), ("fy", 1, 1), ("cx", 0, 2), ("cy", 1, 2)):
         assert abs(_z(res, s, name, a, b)) < 3.0
+
+
+@pytest.mark.parametrize("robot_noise_mm", [0.0, 0.8])
+def test_a_four_point_target_is_judged_by_its_own_redundancy(robot_noise_mm):
+    """A single tag (4 corners, 2 redundant rows per image after a free pose): the robot model's
+    noise estimate and the free-pose floor agree when the model is right, with exact poses and
+    with a noisy arm learned from the data (the raw rms ratio would be up to 2 here)."""
+    from slidecal.mocks.handeye_scenarios import classic, square_tag
+
+    s = classic(
+        np.random.default_rng(3), n_frames=7, per_orientation=8, eye_in_hand=False,
+        target=square_tag(0.12), sigma_px=0.25,
+        robot_noise_m=robot_noise_mm / 1000.0 / np.sqrt(3), robot_noise_deg=0.03 * bool(
+            robot_noise_mm),
+    )
+    r = calibrate(s.problem)
+    assert r.adequacy is not None and r.adequacy.adequate, r.adequacy
+    # 56 images x 2 redundant rows: the ratio of two noise estimates is within ~15 % (2 sigma)
+    assert 0.8 < r.adequacy.normalised_rms["cam"] < 1.25
