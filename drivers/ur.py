@@ -1,7 +1,7 @@
 """A Universal Robots arm through ur-rtde (``Robot`` protocol of ``drivers/base.py``).
 
 Built on ``rtde_control.RTDEControlInterface``, ``rtde_receive.RTDEReceiveInterface`` and
-``dashboard_client.DashboardClient`` (ur-rtde >= 1.6). The traps of HARDWARE_NOTES.md are handled
+``dashboard_client.DashboardClient`` (ur-rtde >= 1.6). The client's traps are handled
 here: ``moveL`` returns False instead of raising (we stop and raise ``HardwareFault`` saying why);
 the receive interface keeps returning its last values after a lost connection (we check
 ``isConnected()`` and that ``getTimestamp()`` advances before trusting a pose); no automatic

@@ -1,4 +1,4 @@
-"""The one conversion between Universal Robots poses and ``T_base_tool`` (MATH.md Sec. 1).
+"""The one conversion between Universal Robots poses and ``T_base_tool`` (docs/METHOD.md Sec. 1).
 
 A UR pose ``[x, y, z, rx, ry, rz]`` (as ``getActualTCPPose`` returns it and ``moveL`` takes it)
 is ``T_base_tool`` of the TCP set on the controller: metres and an axis-angle vector in radians.

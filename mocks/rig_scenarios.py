@@ -1,6 +1,6 @@
 """Synthetic rig problems with ground truth: stereo heads and multi-camera rigs (issue 5).
 
-- :func:`s5_rig`: SCENARIOS.md S5 (paper Figs. 7-9) as a general-motion calibration problem:
+- :func:`s5_rig`: docs/SETUPS.md S5 (paper Figs. 7-9) as a general-motion calibration problem:
   cameras "left" and "right", reference "right", six board poses, nothing known about the
   motion (knowledge "none"), ``X_left = R_left_right X_right + t_left_right``.
 - :func:`oak_rig`: the OAK-D-like head of ``mocks/camera.py`` eye-in-hand on the R1 cell
@@ -47,7 +47,7 @@ from slidecal.solver.refine import ModelState
 S5_SIZE_PX = (300, 240)
 S5_K_LEFT = K_matrix(420.0, 410.0, 152.0, 118.0)
 S5_K_RIGHT = K_matrix(400.0, 400.0, 150.0, 120.0)
-# X_left = R X_right + t (SCENARIOS.md S5): T_left_right, l.u.
+# X_left = R X_right + t (docs/SETUPS.md S5): T_left_right, l.u.
 S5_T_LEFT_RIGHT = T_from_Rt(R_from_rvec(np.radians([0.0, 5.0, 0.0])), np.array([-20.0, 0.0, 0.0]))
 S5_VIEWS_DEG = ((20, 0, 0), (0, 20, 0), (-20, -20, 0), (15, -15, 10), (-10, 25, -5), (25, 10, 5))
 
@@ -69,7 +69,7 @@ def s5_grid() -> Target:
 
 
 def s5_T_right_board() -> np.ndarray:
-    """The right camera's six view poses ``T_right_board`` (6, 4, 4), l.u. (SCENARIOS.md S5).
+    """The right camera's six view poses ``T_right_board`` (6, 4, 4), l.u. (docs/SETUPS.md S5).
 
     ``R_right_board = R(r) diag(1, -1, -1)``, camera centre 130 l.u. from the grid centre on the
     optical axis.

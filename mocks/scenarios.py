@@ -1,4 +1,4 @@
-"""Synthetic detections with ground truth: the benchmark set-ups of SCENARIOS.md (S1-S4, R1).
+"""Synthetic detections with ground truth: the benchmark set-ups of docs/SETUPS.md (S1-S4, R1).
 
 Each builder returns a :class:`Scenario`: the calibration problem (noisy detections and measured
 motion), the true model state in the solver's parametrisation (``slidecal.solver.refine``) and
@@ -224,7 +224,7 @@ def r1_poses(rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.nda
     Board flat on the table 0.5 m below the camera's first pose; 4 tilt groups (25 deg about
     different axes, looking at the board centre from 0.5 m) of 5 frames: the group's pose and
     4 translations of 40-80 mm in non-coplanar directions (each with a component along the
-    viewing axis: translations parallel to the board are degenerate, MATH.md Sec. 7).
+    viewing axis: translations parallel to the board are degenerate, docs/METHOD.md Sec. 7).
     """
     target = Target.charuco(11, 8, 0.030, 0.022)
     centre_board = target.points_m.mean(axis=0)
@@ -329,7 +329,7 @@ def r1(
     robot_noise_deg: float = 0.005,
     options: ModelOptions | None = None,
 ) -> Scenario:
-    """R1 (SCENARIOS.md): eye-in-hand UR5e-class cell, ChArUco 11 x 8 x 30 mm, 1280 x 800
+    """R1 (docs/SETUPS.md): eye-in-hand UR5e-class cell, ChArUco 11 x 8 x 30 mm, 1280 x 800
     camera with distortion, 4 tilt groups of 5 frames, robot poses measured with noise."""
     return _r1_cell(rng, sigma_px, robot_noise_m, robot_noise_deg, options, True)
 

@@ -1,7 +1,7 @@
-"""Monte-Carlo benchmark of the solver against the Cramer-Rao bound (SCENARIOS.md S1-S4, R1).
+"""Monte-Carlo benchmark of the solver against the Cramer-Rao bound (docs/SETUPS.md S1-S4, R1).
 
 Run ``slidecal bench solver`` (or ``python -m slidecal.routines.bench``); ``--trials`` sets the
-Monte-Carlo size (100 by default, as SCENARIOS.md asks), ``--out`` writes the markdown table
+Monte-Carlo size (100 by default), ``--out`` writes the markdown table
 committed as docs/BENCHMARKS.md. Per row and parameter: bias and standard deviation over the
 trials of the paper's linear method and of the maximum-likelihood estimator, the Cramer-Rao
 bound computed by the project for the same scenario and knowledge, and the efficiency ratio
@@ -183,7 +183,7 @@ def r1_hand_eye_row(
 
 def linear_per_frame(s: sc.Scenario) -> np.ndarray:
     """The linear method with per-frame homographies (each refined alone, then rescaled to the
-    first frame's h1, h2 as MATH.md Sec. 3 allows) instead of the joint group estimate."""
+    first frame's h1, h2 as docs/METHOD.md Sec. 3 allows) instead of the joint group estimate."""
     p = s.problem
     pts = p.target.points_m[:, :2]
     Hs = []
@@ -365,7 +365,8 @@ def main(argv: list[str] | None = None) -> int:
     lines = [
         *report_header("Benchmarks", "solver", argv, time.time() - t0),
         f"Monte-Carlo over {args.trials} trials per row (seeds 1000..). Errors in pixels of the "
-        "estimate minus the truth; 'bound' is the Cramer-Rao bound (MATH.md Sec. 6) for the same "
+        "estimate minus the truth; 'bound' is the Cramer-Rao bound (docs/METHOD.md Sec. 6) for the "
+        "same "
         "scenario, knowledge and noise; efficiency = ML std / bound (1.0 is perfect). 'sampling "
         "reference' is the same ratio for the linearised ML estimator at the truth on the same "
         "noise draws: exactly efficient by construction, it shows how far from 1.0 a perfect "
@@ -378,10 +379,10 @@ def main(argv: list[str] | None = None) -> int:
         "",
         "## The linear method against the reference figures (fx, pixels)",
         "",
-        "SCENARIOS.md's reference figures for the paper's linear method were measured by an",
+        "The reference figures for the paper's linear method (docs/SETUPS.md) were measured by an",
         "independent implementation. Ours estimates each orientation group's homographies",
-        "jointly (shared h1, h2; MATH.md Sec. 3) and weighs the rows by their noise scale: its",
-        "spread is 1.4 to 3.6 times smaller than the reference's, and it has no bias. With",
+        "jointly (shared h1, h2; docs/METHOD.md Sec. 3) and weighs the rows by their noise scale:",
+        "its spread is 1.4 to 3.6 times smaller than the reference's, and it has no bias. With",
         "per-frame homographies (each fitted alone, then rescaled) the spread is of the",
         "reference's order (within 10-40 % on S2, twice it on S1); the reference's bias, growing",
         "with the number of images and the noise, is not reproduced by either variant.",

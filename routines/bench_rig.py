@@ -1,6 +1,6 @@
 """Benchmark of rig calibration (issue 5): maximum likelihood against the Cramer-Rao bound.
 
-(i) S5 (SCENARIOS.md, paper Figs. 7-9) as a general-motion two-camera problem through
+(i) S5 (docs/SETUPS.md, paper Figs. 7-9) as a general-motion two-camera problem through
 ``calibrate``: equal noise, then the left camera at twice the right's (the solver estimates
 and weighs each camera's noise), and that again with the left camera's pixels scaled to the
 right's noise (:func:`scale_pixels`, a cross-check of the weighting). (ii) The OAK-D-like head

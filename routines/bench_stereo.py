@@ -1,4 +1,4 @@
-"""Benchmark S5 (SCENARIOS.md; Malm and Heyden 2006, Figs. 7-9): stereo head, general motion.
+"""Benchmark S5 (docs/SETUPS.md; Malm and Heyden 2006, Figs. 7-9): stereo head, general motion.
 
 Each camera calibrated alone (Zhang, eqs. 10-11) against both cameras calibrated jointly with
 the infinite homography (eqs. 58-62), over noise levels sigma = 0.1 ... 0.8 px, then with the
@@ -67,7 +67,7 @@ class StereoScene:
 
 
 def s5_scene() -> StereoScene:
-    """The S5 set-up of SCENARIOS.md (14 x 10 grid, pitch 5 l.u., six stereo views)."""
+    """The S5 set-up of docs/SETUPS.md (14 x 10 grid, pitch 5 l.u., six stereo views)."""
     c, r = np.meshgrid((np.arange(14) - 6.5) * 5.0, (np.arange(10) - 4.5) * 5.0)
     board_xy = np.column_stack([c.ravel(), r.ravel()])
     flip = np.diag([1.0, -1.0, -1.0])

@@ -12,14 +12,14 @@ time budget), choose orientation groups (tilts) and translations per group such 
   corner's depth is within ``depth_m``;
 - the plan is not degenerate: the linear step accepts it
   (:func:`slidecal.solver.degeneracy.check_configuration` on exact homographies) and its Fisher
-  information (MATH.md Sec. 6) is of full rank, hand-eye translation included;
+  information (docs/METHOD.md Sec. 6) is of full rank, hand-eye translation included;
 - the predicted standard deviations meet the goal with the least robot time (moves by a
   trapezoidal profile, plus settle and capture time per frame).
 
 Method: candidate groups look at the board centre from the standoff, tilted by ``tilts_deg``
 about in-plane axes at ``azimuths_deg``; candidate frames of a group are the group's pose
 displaced (camera axes) along 18 directions, each with a component along the viewing axis
-(translations parallel to the board are degenerate, MATH.md Sec. 7), by ``step_mm``. Each
+(translations parallel to the board are degenerate, docs/METHOD.md Sec. 7), by ``step_mm``. Each
 candidate frame's Fisher information on the shared parameters (intrinsics, distortion, hand-eye,
 target pose) is computed once, with its own robot-pose correction marginalised out (Schur
 complement; the corrections are per frame, so a plan's information is the sum over its frames).
@@ -439,7 +439,7 @@ def frame_information(nom: _Nominal, T_base_tool: np.ndarray) -> tuple[tuple[str
 
     ``T_base_tool`` (F, 4, 4), metres; every frame must see the target. A frame's own robot
     pose correction (Gaussian prior ``options.robot_noise_*``) is marginalised out by a Schur
-    complement, so the information of a set of frames is the sum of theirs (MATH.md Sec. 6).
+    complement, so the information of a set of frames is the sum of theirs (docs/METHOD.md Sec. 6).
     Parameters: intrinsics, distortion, hand-eye ``X0.*`` and target ``Y.*`` (solver names).
     """
     problem = nom.problem(T_base_tool)
@@ -700,7 +700,7 @@ def _greedy(
             return chosen, t_now, ratios, "met"
         only_fix = met and not structure_ok
         # the minimum structure first: min_groups groups of min_frames_per_group frames (fewer
-        # groups cannot make the hand-eye translation observable, MATH.md Sec. 4)
+        # groups cannot make the hand-eye translation observable, docs/METHOD.md Sec. 4)
         building = len(chosen) < s.min_groups
         short = any(len(c.frames) < s.min_frames_per_group for c in chosen)
         seq = _sequence(cands, chosen, via)
@@ -830,7 +830,7 @@ def _linear_group(nom: _Nominal, T_base_tool: np.ndarray) -> LinearGroup:
 def predict_std(
     plan: Plan, cfg: CellConfig, settings: PlannerSettings | None = None
 ) -> dict[str, float]:
-    """Predicted one-sigma of a plan's estimates (the Cramer-Rao bound, MATH.md Sec. 6).
+    """Predicted one-sigma of a plan's estimates (the Cramer-Rao bound, docs/METHOD.md Sec. 6).
 
     Keys as :func:`slidecal.routines.results_io.errors_against_truth`: ``<cam>.fx_px`` ..
     ``<cam>.cy_px``, ``<cam>.fx_rel``, distortion ``<cam>.k1`` ..., ``<hand-eye>.rot_deg`` /

@@ -2,7 +2,7 @@
 
 1. check the problem (one clear error per bad input); images with fewer than 4 points and
    frames that saw nothing are skipped with a message (never a reason to refuse a session),
-2. per camera and orientation group, joint homographies (MATH.md Sec. 3),
+2. per camera and orientation group, joint homographies (docs/METHOD.md Sec. 3),
 3. the degeneracy analysis (Sec. 7) and the linear intrinsics for the knowledge at hand; Zhang
    from all frames when no two frames share an orientation (classic hand-eye sessions),
 4. per-frame board poses and the motion unknowns (hand-eye rotation from translations, Sec. 4,
@@ -264,7 +264,7 @@ def linear_camera(
     notes: list[str] | None = None,
     focal_sweep: bool = False,
 ) -> np.ndarray:
-    """Closed-form ``K`` (3, 3) of one camera (MATH.md Sec. 3; Zhang for general motion).
+    """Closed-form ``K`` (3, 3) of one camera (docs/METHOD.md Sec. 3; Zhang for general motion).
 
     ``joint``: the paper's joint homographies per orientation group (the accurate linear
     method); False uses rescaled per-frame DLTs, enough to start the refinement and faster.
@@ -347,7 +347,7 @@ def linear_camera(
 def linear_pair(
     problem: CalibrationProblem, cam: str, ref: str, groups: np.ndarray, joint: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Joint closed-form ``(K_cam, K_ref)`` of two cameras of a rig (paper Sec. IV; MATH.md
+    """Joint closed-form ``(K_cam, K_ref)`` of two cameras of a rig (paper Sec. IV; docs/METHOD.md
     Sec. 8): both see the same translations (eqs. 33-42) and, with two or more orientations,
     the infinite homography couples their conics (eq. 62). Raises ``DegenerateError`` when the
     common views do not determine it."""
@@ -491,7 +491,7 @@ def init_motion(
 
     Robot knowledge: within an orientation group, ``t_cam_board(k) - t_cam_board(0) = R_X
     (t_M(k) - t_M(0))`` (camera displacement in camera axes against the known motion), so
-    ``R_X`` is the orthogonal Procrustes solution over all such pairs (MATH.md Sec. 4); then
+    ``R_X`` is the orthogonal Procrustes solution over all such pairs (docs/METHOD.md Sec. 4); then
     ``X^-1 T_cam_board(k) = M_k Y`` is linear in ``R_X' t_X`` and ``t_Y`` (with the hand-eye
     translation fixed at 0 when no rotations make it observable).
     """
@@ -533,7 +533,7 @@ def init_motion(
     d_cam, d_M = np.array(d_cam).reshape(-1, 3), np.array(d_M).reshape(-1, 3)
     n_dir = n_directions(d_M)
     rotations = st.X_t_basis.shape[1] > 0  # the robot rotates between some frames
-    if n_dir >= 2:  # translations in two directions or more (MATH.md Sec. 4)
+    if n_dir >= 2:  # translations in two directions or more (docs/METHOD.md Sec. 4)
         R_X = rotation_from_directions(d_cam, d_M)
     elif rotations:
         try:  # general motions between the orientations: AX = XB

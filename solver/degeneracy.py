@@ -1,4 +1,4 @@
-"""Degenerate configurations of the linear method (MATH.md Sec. 7; paper Sec. III-A).
+"""Degenerate configurations of the linear method (docs/METHOD.md Sec. 7; paper Sec. III-A).
 
 :func:`check_configuration` analyses the data before solving and raises ``DegenerateError``
 naming the configuration and the fix. Two kinds of test:

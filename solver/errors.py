@@ -23,7 +23,7 @@ class InputError(SlidecalError):
 
 
 class DegenerateError(SlidecalError):
-    """The data (or a plan) cannot determine the requested parameters (MATH.md Sec. 7)."""
+    """The data (or a plan) cannot determine the requested parameters (docs/METHOD.md Sec. 7)."""
 
 
 class ConvergenceError(SlidecalError):

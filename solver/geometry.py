@@ -1,4 +1,4 @@
-"""Rigid transforms and rotations (MATH.md Sec. 1 conventions).
+"""Rigid transforms and rotations (docs/METHOD.md Sec. 1 conventions).
 
 ``T_a_b`` is a 4x4 homogeneous transform mapping coordinates in frame ``b`` to frame ``a``
 (``p_a = T_a_b @ p_b``, ``T_a_c = T_a_b @ T_b_c``). ``R_a_b`` and ``t_a_b`` are its rotation and
@@ -115,7 +115,8 @@ def look_at_R_cam_world(
 ) -> np.ndarray:
     """``R_cam_world`` of a camera at ``p_cam_world`` looking at ``p_target_world``.
 
-    Camera axes (MATH.md Sec. 1): +z along the optical axis, +x right, +y down; ``up_world`` is
+    Camera axes (docs/METHOD.md Sec. 1): +z along the optical axis, +x right, +y down;
+    ``up_world`` is
     the world direction that should appear as up (-y) in the image.
     """
     z = np.asarray(p_target_world, float) - np.asarray(p_cam_world, float)

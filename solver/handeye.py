@@ -1,6 +1,7 @@
-"""Hand-eye orientation from pure translations (MATH.md Sec. 4) and classic AX = XB hand-eye.
+"""Hand-eye orientation from pure translations (docs/METHOD.md Sec. 4) and classic AX = XB hand-eye.
 
-Frames (MATH.md Sec. 1): ``base``, ``tool``, ``cam``, ``board``; ``T_a_b`` maps frame b into a.
+Frames (docs/METHOD.md Sec. 1): ``base``, ``tool``, ``cam``, ``board``; ``T_a_b`` maps frame b
+into a.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ def _group_scale(Kinv: np.ndarray, H0: np.ndarray) -> float:
 def camera_displacements(K: np.ndarray, group: LinearGroup) -> np.ndarray:
     """Camera displacements ``d`` (n, 3) since frame 0, camera axes, board length unit.
 
-    ``d_k = K^-1 Delta_k / lambda`` with ``Delta_k = h3_0 - h3_k`` (MATH.md eqs. 12-13), so
+    ``d_k = K^-1 Delta_k / lambda`` with ``Delta_k = h3_0 - h3_k`` (docs/METHOD.md eqs. 12-13), so
     ``d_k = R_cam_board T_k`` for a camera displacement ``T_k`` in the board frame. ``K`` (3, 3)
     pixels; ``group.H`` (n, 3, 3) jointly estimated (common ``h1, h2``, ``h3[2] > 0``).
     ``d_0 = 0``.
@@ -80,7 +81,7 @@ def hand_eye_rotation(
     T_base_tool_per_group: Sequence[np.ndarray],
     mount: str = "eye_in_hand",
 ) -> np.ndarray:
-    """Hand-eye rotation from pure translations (MATH.md Sec. 4), all groups jointly.
+    """Hand-eye rotation from pure translations (docs/METHOD.md Sec. 4), all groups jointly.
 
     ``K`` (3, 3) pixels; ``groups``: orientation groups (homographies, board unit = robot unit);
     ``T_base_tool_per_group``: per group the measured poses (n, 4, 4), metres. Eye-in-hand: the

@@ -1,7 +1,7 @@
 """Plane homographies: normalised DLT, reprojection refinement and joint group estimates.
 
 ``H`` (3, 3) maps board points ``(X, Y, 1)`` (board frame, any length unit) to image points
-(pixels): ``x ~ H (X, Y, 1)``, ``H = lambda K [r1 r2 t]`` (MATH.md Sec. 2).
+(pixels): ``x ~ H (X, Y, 1)``, ``H = lambda K [r1 r2 t]`` (docs/METHOD.md Sec. 2).
 
 Normalisation convention of every returned ``H``: unit Frobenius norm and ``H[2, 2] > 0``. Since
 ``H[2, 2] = lambda t_z`` with ``t_z > 0`` for a board in front of the camera, this is the scale
@@ -211,7 +211,7 @@ def _finish_group(Hn: np.ndarray, Tb: np.ndarray, Ti: np.ndarray) -> np.ndarray:
 
 
 def group_homographies(observations: Sequence[Observation], max_iter: int = 30) -> np.ndarray:
-    """Joint homographies (n, 3, 3) of one orientation group (MATH.md Sec. 3).
+    """Joint homographies (n, 3, 3) of one orientation group (docs/METHOD.md Sec. 3).
 
     ``observations``: per frame ``(board_xy (N_k, 2) board frame, px (N_k, 2) pixels)``. One
     shared ``h1, h2`` and one ``h3`` per frame minimise the reprojection error of all frames

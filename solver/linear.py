@@ -1,4 +1,4 @@
-"""Closed-form calibration from plane homographies (MATH.md Secs. 2-3; Malm and Heyden 2006).
+"""Closed-form calibration from plane homographies (docs/METHOD.md Secs. 2-3; Malm and Heyden 2006).
 
 The image of the absolute conic ``w = K^-T K^-1`` (symmetric, defined up to scale) is handled as
 the vector ``w = (w11, w12, w22, w13, w23, w33)``; ``a' W b`` is linear in it with the
@@ -46,7 +46,7 @@ def W_from_w(w: np.ndarray) -> np.ndarray:
 
 
 def zhang_rows(H: np.ndarray) -> np.ndarray:
-    """Zhang's two rows (2, 6) on ``w`` of one plane homography (MATH.md eqs. 10-11).
+    """Zhang's two rows (2, 6) on ``w`` of one plane homography (docs/METHOD.md eqs. 10-11).
 
     ``H`` (3, 3): board plane (X, Y, 1) to image (pixels or normalised pixels). Rows:
     ``h1' W h2 = 0`` (eq. 10) and ``h1' W h1 - h2' W h2 = 0`` (eq. 11).
@@ -79,7 +79,7 @@ def K_from_w(w: np.ndarray) -> np.ndarray:
             "the estimated image of the absolute conic is not positive definite, which means "
             "degenerate or inconsistent data: check the motion knowledge (step lengths, "
             "directions, board square size), the detections, and that the configuration is not "
-            "degenerate (MATH.md Sec. 7)"
+            "degenerate (docs/METHOD.md Sec. 7)"
         ) from None
     K = np.linalg.inv(L.T)
     return K / K[2, 2]
@@ -240,7 +240,7 @@ def linear_system(
     condition: bool = True,
     row_weighting: Literal["noise", "unit"] = "noise",
 ) -> LinearSystem:
-    """Stack and condition every constraint of MATH.md Sec. 3 (table) on ``(w, c_1 .. c_G)``.
+    """Stack and condition every constraint of docs/METHOD.md Sec. 3 (table) on ``(w, c_1 .. c_G)``.
 
     Per group: ``h1' W h2 = 0``, ``h1' W h1 = c``, ``h2' W h2 = c`` (eqs. 10-11), then per
     translation, by ``knowledge`` (see :class:`LinearGroup`): ``"lengths"``: ``Delta' W Delta =
@@ -249,13 +249,15 @@ def linear_system(
     ``h2' W Delta = n_y a`` with ``a`` eliminated (``q`` only fixes the length afterwards);
     ``"robot"``: ``Delta_i' W Delta_j = (T_i . T_j) c`` for all pairs ``1 <= i <= j``;
     ``"none"``: Zhang's two rows of every frame (each frame its own pose), no ``c``.
-    Conditioning (MATH.md "Numerical conditioning"): isotropic image normalisation, board-side
+    Conditioning (docs/METHOD.md, "Numerical conditioning"): isotropic image normalisation,
+    board-side
     scale making the homography columns commensurate (translations scaled with it), each group's
     homographies scaled so ``|h1|, |h2| ~ 1`` (``c`` commensurate with ``w``), then rows and
     columns normalised. Rows: ``row_weighting="noise"`` (default) divides the row of ``a' W b``
     by ``|a| + |b|``, its noise scale when every homography column carries similar noise, so a
     short translation's row weighs less than a long one's; ``"unit"`` gives unit-norm rows
-    (MATH.md's recipe). Measured over 100 trials at 0.5 px: ``fx`` std 2.9 px ("noise") against
+    (docs/METHOD.md's recipe). Measured over 100 trials at 0.5 px: ``fx`` std 2.9 px ("noise")
+    against
     4.1 px ("unit") on S2 with 5 images, 3.2 against 5.0 px on S1 (30 deg). Columns always
     unit norm. ``condition=False`` skips all of it (pixels and board units as given; only for
     demonstrating why it matters).
@@ -354,7 +356,7 @@ def _solve_null(system: LinearSystem) -> tuple[np.ndarray, np.ndarray]:
         raise DegenerateError(
             "the linear system is singular (its null space is not one-dimensional): the data "
             "cannot determine the intrinsics with this knowledge; add translation directions "
-            "or tilts (MATH.md Sec. 7)"
+            "or tilts (docs/METHOD.md Sec. 7)"
         )
     return Vt[-1] * system.col_scale, sv
 
@@ -369,7 +371,8 @@ def linear_intrinsics(
     condition: bool = True,
     row_weighting: Literal["noise", "unit"] = "noise",
 ) -> LinearSolution:
-    """Closed-form intrinsics from translation groups (MATH.md Sec. 3, every row of the table).
+    """Closed-form intrinsics from translation groups (docs/METHOD.md Sec. 3, every row of its
+    table).
 
     ``groups``: orientation groups (:class:`LinearGroup`, homographies in pixels and board
     units). ``image_size``: (width, height) pixels. Any number of groups; Zhang's rows of every

@@ -38,7 +38,7 @@ import numpy as np
 from slidecal.solver.errors import InputError
 
 Mount = Literal["eye_in_hand", "eye_to_hand", "none"]
-# What is known about the motion between frames (MATH.md Sec. 3 table):
+# What is known about the motion between frames (docs/METHOD.md Sec. 3 table):
 # - "robot": T_base_tool measured for every frame (translations and any rotations in the robot
 #   frame; board pose unknown). The general, real case; with a single translation direction and
 #   known steps it is the paper's Case 1.

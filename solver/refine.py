@@ -1,4 +1,6 @@
-"""Maximum-likelihood refinement over all detections (MATH.md Sec. 5) and its Fisher information.
+"""Maximum-likelihood refinement over all detections and its Fisher information.
+
+docs/METHOD.md Secs. 5 and 6.
 
 The model, for camera ``c`` of a rig and frame ``k`` of orientation group ``g``::
 
@@ -680,7 +682,7 @@ def refine(
     max_iter: int = 100,
     robust: bool = True,
 ) -> RefineOutput:
-    """Minimise the reprojection error over all detections (MATH.md Sec. 5).
+    """Minimise the reprojection error over all detections (docs/METHOD.md Sec. 5).
 
     Outliers: after a first solve, detections whose residual exceeds both
     ``options.outlier_threshold_px`` and 5 times their camera's estimated noise are flagged,
@@ -689,7 +691,7 @@ def refine(
     camera): each camera's noise is estimated from its residuals and its rows weighed by it
     (maximum likelihood with one noise level per camera), iterated to a fixed point together
     with the pose-prior scale. Covariance: ``s^2 (J' W J)^-1`` with ``s^2 = sum(w r^2) / (n - p)``
-    (MATH.md Sec. 6); ``sigma_px`` is the reference camera's noise.
+    (docs/METHOD.md Sec. 6); ``sigma_px`` is the reference camera's noise.
 
     Robot sessions with ``options.estimate_robot_noise`` (the default) learn the robot's
     accuracy: the measured poses are first taken as exact, and an F test compares that fit with
@@ -1121,7 +1123,7 @@ def fisher_covariance(
     sigma_px: float,
     camera_sigma_px: dict[str, float] | None = None,
 ) -> tuple[tuple[str, ...], np.ndarray]:
-    """The Cramer-Rao bound (MATH.md Sec. 6): ``(J' W J)^-1`` at the true state.
+    """The Cramer-Rao bound (docs/METHOD.md Sec. 6): ``(J' W J)^-1`` at the true state.
 
     ``problem`` holds the detections' ids (their pixel values are not used). ``sigma_px``: the
     pixel noise (per coordinate); ``camera_sigma_px``: per camera name, when the cameras of a
@@ -1166,7 +1168,7 @@ def complement_basis(u: np.ndarray) -> np.ndarray:
 
 
 def build_structure(problem: CalibrationProblem, R_X: np.ndarray | None = None) -> Structure:
-    """Decide groups, known motions and what is observable (MATH.md Secs. 3, 4, 7).
+    """Decide groups, known motions and what is observable (docs/METHOD.md Secs. 3, 4, 7).
 
     ``R_X`` (3, 3): the current estimate of X's rotation, needed only to express an unobservable
     hand-eye translation direction in X's frame when all rotations share one axis.
@@ -1199,7 +1201,7 @@ def build_structure(problem: CalibrationProblem, R_X: np.ndarray | None = None) 
             X_t = none
             unobs[f"{he}.t"] = (
                 "the session holds no rotations between frames, so the hand-eye translation is "
-                "unobservable (MATH.md Sec. 4); add orientation groups tilted about two "
+                "unobservable (docs/METHOD.md Sec. 4); add orientation groups tilted about two "
                 "non-parallel axes"
             )
         else:

@@ -1,4 +1,4 @@
-"""The solver's output: estimates with their diagnostics (STYLE.md point 5).
+"""The solver's output: estimates with their diagnostics.
 
 Nothing here is a made-up number: a quantity the data cannot determine is ``None`` and named in
 ``CalibrationResult.unobservable`` with the reason.
@@ -55,7 +55,7 @@ class TransformEstimate:
 
 @dataclass(frozen=True)
 class ScaleCheck:
-    """Per move: the translation length the camera saw against the robot's (MATH.md Sec. 3).
+    """Per move: the translation length the camera saw against the robot's (docs/METHOD.md Sec. 3).
 
     A ratio far from 1 means a wrong board square size or a wrong TCP/robot scale.
     ``frame_a``, ``frame_b``: the frame ids of the move; lengths in millimetres.
@@ -112,10 +112,11 @@ class CalibrationResult:
     ``hand_eye``: ``T_tool_cam`` (eye-in-hand) or ``T_base_cam`` (eye-to-hand) of the reference
     camera, None without a robot. ``rig``: ``T_<name>_<reference>`` for every other camera.
     ``T_target``: ``T_base_board`` (eye-in-hand) or ``T_tool_board`` (eye-to-hand).
-    ``H_inf``: infinite homographies ``x_a ~ H x_b`` keyed ``"a<-b"`` (MATH.md Sec. 8).
+    ``H_inf``: infinite homographies ``x_a ~ H x_b`` keyed ``"a<-b"`` (docs/METHOD.md Sec. 8).
     ``parameter_names`` name the rows of ``covariance``. ``residuals_px``: per (frame id, camera)
     the rms reprojection error of that image. ``outliers``: (frame id, camera, corner id) flagged
-    by the robust loss. ``sigma_px``: the noise estimated from the residuals, ``s`` of MATH.md
+    by the robust loss. ``sigma_px``: the noise estimated from the residuals, ``s`` of
+    docs/METHOD.md
     Sec. 6. ``unobservable``: parameter name -> why it was fixed. ``messages``: soft failures of
     secondary computations (e.g. a covariance that could not be computed).
     ``linear``: the linear (closed-form) intrinsics per camera before refinement.

@@ -1,6 +1,7 @@
 """Stereo heads: the infinite homography and the joint linear calibration of two cameras.
 
-MATH.md Sec. 8 (Malm and Heyden 2006, Sec. IV). Two cameras ``a`` and ``b`` are rigidly joined
+docs/METHOD.md Sec. 8 (Malm and Heyden 2006, Sec. IV). Two cameras ``a`` and ``b`` are rigidly
+joined
 with ``X_a = R_a_b X_b + t_a_b`` (camera-frame coordinates). For a board pose seen by both,
 ``H_a = lambda_a K_a [r1 r2 t]_a`` and ``H_b = lambda_b K_b [r1 r2 t]_b`` (plane to pixels), and the
 infinite homography ``H_inf = K_a R_a_b K_b^-1`` maps camera b's image to camera a's
@@ -10,7 +11,7 @@ Conventions used throughout: homographies are (3, 3) from board-plane coordinate
 pixels; ``sizes`` are ``((width_a, height_a), (width_b, height_b))`` in pixels; every linear system
 is solved in isotropically normalised image coordinates (``linear.image_normalisation``) with the
 homography columns scaled to unit norm, unit-norm rows and unit-norm columns before the SVD
-(MATH.md Sec. 3, "Numerical conditioning").
+(docs/METHOD.md Sec. 3, "Numerical conditioning").
 """
 
 from __future__ import annotations
@@ -321,7 +322,7 @@ def rig_linear_intrinsics_translation(
     Both cameras undergo the same translations ``T`` (board frame). Unknowns ``(w_a, w_b, c_1
     .. c_G)``: the scales of ``w_a`` and ``w_b`` are chosen so that both cameras share
     ``c_g = lambda_g^2`` of each orientation group. Rows: per camera and group Zhang's rows with
-    ``c_g`` (eqs. 10-11) and the knowledge rows of MATH.md Sec. 3 (as
+    ``c_g`` (eqs. 10-11) and the knowledge rows of docs/METHOD.md Sec. 3 (as
     ``slidecal.solver.linear.linear_system``); coupling rows for every translation k of a group,
     ``h_a1' W_a Delta_ak = h_b1' W_b Delta_bk`` (both ``T_x c``), the same with ``h2`` (``T_y c``)
     and ``Delta_ai' W_a Delta_ak = Delta_bi' W_b Delta_bk`` (``T_i . T_k c``) for ``i <= k``,

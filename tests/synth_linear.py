@@ -1,4 +1,4 @@
-"""Synthetic ground truth for the linear-solver tests (SCENARIOS.md S1-S3 and variants).
+"""Synthetic ground truth for the linear-solver tests (docs/SETUPS.md S1-S3 and variants).
 
 Board frame: z = 0 plane; a camera with ``R_cam_board`` and centre ``C`` (board frame) sees board
 point ``X`` at ``K (R_cam_board (X - C))``. Lengths in the paper's units ("l.u.").
@@ -16,7 +16,7 @@ K_S1 = np.array([[400.0, 0.0, 150.0], [0.0, 400.0, 120.0], [0.0, 0.0, 1.0]])
 K_S2 = np.array([[400.0, 0.0, 150.0], [0.0, 440.0, 120.0], [0.0, 0.0, 1.0]])
 K_SKEW = np.array([[400.0, 3.0, 150.0], [0.0, 440.0, 120.0], [0.0, 0.0, 1.0]])
 IMAGE_SIZE = (300, 240)
-D0 = np.diag([1.0, -1.0, -1.0])  # camera looking at the board along -z (SCENARIOS.md)
+D0 = np.diag([1.0, -1.0, -1.0])  # camera looking at the board along -z (docs/SETUPS.md)
 
 
 def board_xy(nx: int = 9, ny: int = 7, pitch: float = 5.0) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Degenerate configurations (MATH.md Sec. 7) refused, their neighbours accepted."""
+"""Degenerate configurations (docs/METHOD.md Sec. 7) refused, their neighbours accepted."""
 
 import sys
 from pathlib import Path

@@ -1,4 +1,4 @@
-"""Hand-eye rotation from translations (MATH.md Sec. 4) and the AX = XB cross-checks."""
+"""Hand-eye rotation from translations (docs/METHOD.md Sec. 4) and the AX = XB cross-checks."""
 
 import sys
 from pathlib import Path

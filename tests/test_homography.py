@@ -1,4 +1,6 @@
-"""Homographies: DLT, LM refinement, joint and constrained group estimates (MATH.md Sec. 3)."""
+"""Homographies: DLT, LM refinement, joint and constrained group estimates.
+
+docs/METHOD.md Sec. 3."""
 
 import sys
 from pathlib import Path

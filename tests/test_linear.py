@@ -1,4 +1,5 @@
-"""Closed-form intrinsics (MATH.md Secs. 2-3): every knowledge row, assumptions, groups, noise."""
+"""Closed-form intrinsics (docs/METHOD.md Secs. 2-3): every knowledge row, assumptions, groups,
+noise."""
 
 import sys
 from pathlib import Path
@@ -163,7 +164,7 @@ def _s2_fx_errors(trials, sigma, n, rng, condition=True):
 
 
 def test_s2_monte_carlo_against_reference():
-    # SCENARIOS.md: linear fx bias +3.5, std 5.6 px (5 images, sigma 0.5); Cramer-Rao 2.3 px.
+    # docs/SETUPS.md: linear fx bias +3.5, std 5.6 px (5 images, sigma 0.5); Cramer-Rao 2.3 px.
     e = _s2_fx_errors(40, 0.5, 5, np.random.default_rng(7))
     std = e.std(ddof=1)
     assert 2.3 * 0.9 < std < 5.6 * 1.5
@@ -171,7 +172,7 @@ def test_s2_monte_carlo_against_reference():
 
 
 def test_conditioning_matters():
-    # MATH.md "Numerical conditioning": the naive solve (pixels, board units, raw rows) is an
+    # docs/METHOD.md "Numerical conditioning": the naive solve (pixels, board units, raw rows) is an
     # order of magnitude worse than the conditioned one (S3, all five intrinsics, 0.01 px).
     errs = {}
     for condition in (True, False):

@@ -75,7 +75,7 @@ def test_noise_free_recovery(make):
     rng = np.random.default_rng(2)
     s = make(rng)
     st = build_structure(s.problem, s.truth.X[0][:3, :3])
-    # S1-S3 move along one direction only: their problems are exactly determined (MATH.md
+    # S1-S3 move along one direction only: their problems are exactly determined (docs/METHOD.md
     # Sec. 3 counts) and have further exact solutions a few pixels away, so start within 1 px
     paper = s.problem.cameras[0].width == 300
     init = _perturbed(

@@ -253,7 +253,7 @@ def _workspace(robot, rng, n=12, reach_m=0.12, tilt_deg=15.0):
 
 @pytest.mark.parametrize("seed", range(5))
 def test_kinematic_error_is_a_real_arms_size(seed):
-    # REALITY.md: uncalibrated arms miss by 0.5-2 mm and 0.05-0.2 deg; the default sizes
+    # docs/ROBOT_ACCURACY.md: uncalibrated arms miss by 0.5-2 mm and 0.05-0.2 deg; the default sizes
     # (1 mm, 0.1 deg) must land there (mean over the workspace), never beyond 3 mm / 0.3 deg
     robot = _cell(
         seed=seed,

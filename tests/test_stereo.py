@@ -1,6 +1,8 @@
-"""Stereo head: infinite homography, joint linear calibration, relative rotation (MATH.md Sec. 8).
+"""Stereo head: infinite homography, joint linear calibration, relative rotation.
 
-Ground truth is the S5 set-up of SCENARIOS.md (routines/bench_stereo.py builds it).
+docs/METHOD.md Sec. 8.
+
+Ground truth is the S5 set-up of docs/SETUPS.md (routines/bench_stereo.py builds it).
 """
 
 from __future__ import annotations
@@ -96,7 +98,7 @@ def test_one_view_is_refused(scene):
 
 
 def test_parallel_views_are_refused(scene):
-    """Pure translations of the head: every view has the same orientation (MATH.md Sec. 7)."""
+    """Pure translations of the head: every view has one orientation (docs/METHOD.md Sec. 7)."""
     R = scene.R_right_board[3]
     Hs_l, Hs_r = [], []
     for shift in ([0, 0, 0], [10, 0, 0], [0, -8, 5], [3, 4, -12]):
@@ -230,7 +232,7 @@ def test_translation_rig_noise_free(scene, knowledge, views, skew):
 
 
 def test_translation_rig_parallel_to_board_is_refused(scene):
-    """Translations parallel to the board plane only add points on it (MATH.md Sec. 7)."""
+    """Translations parallel to the board plane only add points on it (docs/METHOD.md Sec. 7)."""
     from slidecal.solver.linear import LinearGroup
     from slidecal.solver.stereo import rig_linear_intrinsics_translation
 

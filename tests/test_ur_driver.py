@@ -1,7 +1,7 @@
 """URRobot against fakes of the ur-rtde modules (rtde_control, rtde_receive, dashboard_client).
 
 The fakes copy the real method names and signatures of ur-rtde 1.6.5 and the semantics listed
-in HARDWARE_NOTES.md: moveL returns False on a protective stop, the receive interface keeps
+of the installed library: moveL returns False on a protective stop, the receive interface keeps
 returning its last values after a lost connection while isConnected() turns False and
 getTimestamp() stops advancing, getInverseKinematics returns [] on failure.
 """
