@@ -207,11 +207,18 @@ def scale_check_summary(checks: tuple[ScaleCheck, ...]) -> dict[str, Any] | None
     return {"median_ratio": float(np.median(ratios)), "worst_ratio": float(worst), "n": len(ratios)}
 
 
-def write_result(result: CalibrationResult, path: str | Path) -> Path:
-    """Write ``result.yaml`` atomically; return its path."""
+def write_result(
+    result: CalibrationResult, path: str | Path, header: Mapping[str, Any] | None = None
+) -> Path:
+    """Write ``result.yaml`` atomically; return its path. ``header``: written after
+    ``format`` (slidecal version, time, cell file hash: :func:`slidecal.routines.exports.
+    result_header`)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(path, dump_yaml(result_to_dict(result)))
+    d = result_to_dict(result)
+    if header:
+        d = {"format": d.pop("format"), "header": dict(header), **d}
+    write_atomic(path, dump_yaml(d))
     return path
 
 
