@@ -205,6 +205,8 @@ def config_from_dict(data: Any, source: str = "cell.yaml") -> CellConfig:
         "simulation",
         "plan",
         "options",
+        "limits",  # the verdict's limits (routines/verdict.py: limits_from_dict)
+        "install",  # the install store (routines/run.py: cell_install)
     }
     unknown = sorted(set(f.data) - known)
     if unknown:

@@ -584,7 +584,7 @@ def _open_log(out: Path, cfg: CellConfig, specs: tuple, recording: bool, spawn: 
             spawn=spawn,
         )
     except Exception as e:  # noqa: BLE001 - rerun raises its own types for a missing viewer
-        msg = " ".join(str(e).split()) or type(e).__name__
+        msg = " ".join(str(e).split()).split(". ")[0] or type(e).__name__
         writer.add_event("fault", f"rerun viewer: {msg}", frames_kept=0)
         writer.finish("aborted")
         raise InputError(

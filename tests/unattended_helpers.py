@@ -63,11 +63,17 @@ def record_without_translation(out: Path, seed: int = 0) -> Path:
     cfg = load_config()
     plan = make_plan(cfg).plan
     groups = tuple(tuple(g[0] for _ in g) for g in plan.groups)
-    bad = Plan(groups=groups, via=plan.via, speed_mps=plan.speed_mps,
-               accel_mps2=plan.accel_mps2, settle_s=plan.settle_s)
+    bad = Plan(
+        groups=groups,
+        via=plan.via,
+        speed_mps=plan.speed_mps,
+        accel_mps2=plan.accel_mps2,
+        settle_s=plan.settle_s,
+    )
     cell = SimulatedCell.from_config(cfg, seed)
-    writer = SessionWriter(out, cfg.target, cell.rig.specs, options=cfg.options,
-                           simulation=cell.truth)
+    writer = SessionWriter(
+        out, cfg.target, cell.rig.specs, options=cfg.options, simulation=cell.truth
+    )
     write_plan(bad, out / "plan.yaml")
     cell.robot.connect()
     cell.rig.open()
