@@ -2,21 +2,22 @@
 
 A short verification, not a calibration: a handful of frames (at most
 :data:`MAX_ROBOT_TIME_S` of robot time) at known robot poses, taken from the plan of the
-installed calibration (or the planner's plan for the cell), first frames of its groups. The
-installed intrinsics, distortion, hand-eye and rig are held fixed; only the target's pose is
-fitted (the board may have been put back slightly differently). What the fixed calibration
-cannot explain is the drift:
+installed calibration (or the planner's plan for the cell): the first two poses of its first
+groups. Two measurements, both against the installed calibration:
 
-- ``residual_rms_px``: rms of the reprojection residuals per camera;
-- ``expected_rms_px``: what the installed calibration explains at those poses (the rms of the
-  same residuals on the installed calibration's own session, recorded at install time in
-  ``installed.yaml``; else its reprojection rms and the robot's noise at the standoff);
-- ``drift_px = sqrt(residual^2 - expected^2)`` and ``drift_sigma``: the drift in units of the
-  installed calibration's projection uncertainty at the observed corners (from its covariance).
+- the change: the installed calibration re-estimated from the check's frames (:func:`refit`:
+  fx, fy, cx, cy, the hand-eye and the target pose free; distortion and rig fixed; the robot's
+  pose noise in the model), compared by :func:`slidecal.routines.verdict.compare` as the
+  largest change in units of the combined one-sigma and as the largest pixel displacement of
+  points at the working distance (limits ``max_change_sigma``, ``max_change_px``);
+- what the fixed calibration cannot explain: the installed calibration held fixed, only the
+  target's pose fitted (the board may have been put back slightly differently), the residual
+  rms against what the installed calibration explained on its own session (``chain_rms_px``
+  in ``installed.yaml``), ``drift_px = sqrt(residual^2 - expected^2)`` (limits
+  ``check_max_rms_ratio`` and ``check_max_px``, both exceeded for a failure).
 
-Verdict ``ok`` or ``drifted`` (:func:`slidecal.routines.verdict.judge_check`): drifted when the
-rms exceeds ``limits.check_max_rms_ratio`` times the expected rms and the drift exceeds
-``limits.check_max_px``. Written to the check's session as ``verdict.yaml``; exit 0 / 5.
+Verdict ``ok`` when every test passes, else ``drifted``; written with the figures to the
+check's session as ``verdict.yaml``; exit 0 / 5.
 """
 
 from __future__ import annotations
@@ -192,6 +193,122 @@ def projection_sigma_px(installed: CalibrationResult, camera: str) -> float | No
     return None if m is None else float(np.sqrt(np.mean(m**2)))
 
 
+def refit(
+    problem: CalibrationProblem,
+    installed: CalibrationResult,
+    robot_noise_m: float = 5e-5,
+    robot_noise_deg: float = 0.005,
+) -> CalibrationResult:
+    """The installed calibration re-estimated from the check's frames: each camera's fx, fy,
+    cx, cy, the reference camera's hand-eye and the target pose are free; the distortion and a
+    rig's extrinsics stay as installed. Each measured robot pose gets a small correction with
+    the robot's noise as its prior (``robot_noise_m`` / ``_deg``, one-sigma per axis, as in the
+    solver): with a handful of frames the robot's pose errors, common to all corners of a
+    frame, dominate and must be in the covariance. Residuals are whitened by the installed
+    calibration's pixel noise; one-sigmas from the covariance, scaled up by the reduced
+    chi-square when it exceeds 1. Compared with the installed one by
+    :func:`slidecal.routines.verdict.compare`."""
+    import dataclasses
+
+    from scipy.optimize import least_squares
+
+    from slidecal.solver.camera import project
+    from slidecal.solver.geometry import R_from_rvec, T_from_Rt
+    from slidecal.solver.result import TransformEstimate
+
+    mount = installed.mount
+    ref = installed.reference_camera or next(iter(installed.cameras))
+    cams = [c.name for c in problem.cameras if c.name in installed.cameras]
+    X0 = _hand_eye_T(installed, ref)
+    T_c_ref = {}
+    for c in cams:
+        if c == ref:
+            T_c_ref[c] = np.eye(4)
+        else:
+            t = installed.rig.get(f"T_{c}_{ref}")
+            if t is None or t.T is None:
+                raise InputError(f"the installed calibration has no complete T_{c}_{ref}")
+            T_c_ref[c] = t.T
+    Y0, _ = fit_target(problem, installed)
+    pts = problem.target.points_m
+    frames = [fr for fr in problem.frames if fr.T_base_tool is not None]
+    obs = [
+        (k, c, fr.T_base_tool, pts[fr.detections[c].ids], np.asarray(fr.detections[c].px, float))
+        for k, fr in enumerate(frames)
+        for c in cams
+        if c in fr.detections and len(fr.detections[c].ids) >= 4
+    ]
+    sigma_px = max(float(installed.sigma_px), 0.02) if np.isfinite(installed.sigma_px) else 0.1
+    s_rot = max(np.radians(robot_noise_deg), 1e-7)
+    s_t = max(robot_noise_m, 1e-7)
+    K0 = {c: np.asarray(installed.cameras[c].K, float) for c in cams}
+    dist = {c: np.asarray(installed.cameras[c].distortion, float) for c in cams}
+    nk = 4 * len(cams)
+
+    def unpack(theta: np.ndarray):  # noqa: ANN202
+        K = {}
+        for j, c in enumerate(cams):
+            fx, fy, cx, cy = theta[4 * j : 4 * j + 4]
+            K[c] = np.array([[fx, K0[c][0, 1], cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        X = T_from_Rt(
+            R_from_rvec(theta[nk : nk + 3]) @ X0[:3, :3], X0[:3, 3] + theta[nk + 3 : nk + 6]
+        )
+        Y = T_from_Rt(
+            R_from_rvec(theta[nk + 6 : nk + 9]) @ Y0[:3, :3], Y0[:3, 3] + theta[nk + 9 : nk + 12]
+        )
+        return K, X, Y
+
+    n_glob = nk + 12
+
+    def residuals(theta: np.ndarray) -> np.ndarray:
+        K, X, Y = unpack(theta)
+        d = theta[n_glob:].reshape(-1, 6)
+        out = []
+        for k, c, T, P, px in obs:
+            Tk = T @ T_from_Rt(R_from_rvec(d[k, :3]), d[k, 3:])  # the true pose, corrected
+            Tcb = T_c_ref[c] @ _T_cam_board(mount, X, Tk, Y)
+            Pc = P @ Tcb[:3, :3].T + Tcb[:3, 3]
+            out.append((project(K[c], dist[c], Pc) - px).ravel() / sigma_px)
+        out.append((d[:, :3] / s_rot).ravel())
+        out.append((d[:, 3:] / s_t).ravel())
+        return np.concatenate(out)
+
+    theta0 = np.concatenate(
+        [[K0[c][0, 0], K0[c][1, 1], K0[c][0, 2], K0[c][1, 2]] for c in cams]
+        + [np.zeros(12 + 6 * len(frames))]
+    )
+    sol = least_squares(residuals, theta0, x_scale="jac")
+    r = sol.fun
+    dof = max(len(r) - len(theta0), 1)
+    JtJ = sol.jac.T @ sol.jac
+    try:
+        cov = np.linalg.inv(JtJ)[:n_glob, :n_glob] * max(1.0, float(r @ r) / dof)
+    except np.linalg.LinAlgError:
+        raise InputError(
+            "the check's frames cannot determine the calibration (singular); take more frames "
+            "(--frames) or check that the plan has tilted groups"
+        ) from None
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    K, X, Y = unpack(sol.x)
+    cameras = {}
+    for j, c in enumerate(cams):
+        std = dict(
+            zip(("fx", "fy", "cx", "cy"), (float(v) for v in sd[4 * j : 4 * j + 4]), strict=True)
+        )
+        cameras[c] = dataclasses.replace(installed.cameras[c], K=K[c], std=std)
+    rot_deg = float(np.degrees(np.sqrt(np.trace(cov[nk : nk + 3, nk : nk + 3]))))
+    t_mm = float(np.sqrt(np.trace(cov[nk + 3 : nk + 6, nk + 3 : nk + 6])) * 1000.0)
+    he = TransformEstimate(installed.hand_eye.name, X[:3, :3], X[:3, 3], rot_deg, t_mm)
+    return dataclasses.replace(
+        installed,
+        cameras=cameras,
+        hand_eye=he,
+        T_target=TransformEstimate("target", Y[:3, :3], Y[:3, 3]),
+        covariance=None,
+        parameter_names=(),
+    )
+
+
 def judge_problem(
     problem: CalibrationProblem,
     installed: CalibrationResult,
@@ -199,7 +316,10 @@ def judge_problem(
     cfg: CellConfig,
 ) -> Verdict:
     """The check's verdict of recorded check frames against the installed calibration."""
+    import dataclasses
+
     from slidecal.routines.run import cell_limits
+    from slidecal.routines.verdict import compare
 
     Y, res = fit_target(problem, installed)
     rms = {n: float(np.sqrt(np.mean(np.sum(r**2, axis=1)))) for n, r in res.items() if len(r)}
@@ -223,7 +343,14 @@ def judge_problem(
         + (f" = {sig[n]:.1f} times the installed projection one-sigma" if sig[n] else "")
         for n in rms
     ]
-    return judge_check(rms, expected, drift, cell_limits(cfg), len(problem.frames), extra, notes)
+    lim = cell_limits(cfg)
+    v = judge_check(rms, expected, drift, lim, len(problem.frames), extra, notes)
+    again = refit(problem, installed, cfg.options.robot_noise_m, cfg.options.robot_noise_deg)
+    change, info = compare(again, installed, lim)
+    extra["check"]["change"] = info
+    checks = v.checks + tuple(change)
+    verdict = "ok" if all(c.passed for c in checks) else "drifted"
+    return dataclasses.replace(v, verdict=verdict, checks=checks, installed=info)
 
 
 def run_check(

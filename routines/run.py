@@ -27,6 +27,8 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from slidecal.routines.config import CellConfig, load_config
 from slidecal.routines.plan import Plan, check_plan, read_plan, write_plan
 from slidecal.routines.planner import make_plan
@@ -46,6 +48,10 @@ from slidecal.solver.result import CalibrationResult
 SUMMARY_FILE = "summary.txt"
 EXPORT_DIR = "export"
 REJECTED_DIR = "rejected"
+#: A user's plan: poses of one group may differ in orientation by this much (pendant rounding).
+MAX_GROUP_ROTATION_DEG = 0.5
+#: A user's plan: the smallest move inside a group that counts as a translation.
+MIN_GROUP_MOVE_M = 0.002
 #: Captures of one pose tried again after a dropped frame or no corners at all (cell or CLI).
 DEFAULT_RETRIES = 2
 
@@ -209,11 +215,33 @@ def cell_install(cfg: CellConfig) -> dict[str, Any]:
 
 
 def check_user_plan(plan: Plan, cfg: CellConfig, where: str) -> None:
-    """Refuse a user's plan that cannot determine the calibration, before the robot moves
-    (the planner's prediction: a plan with no translation inside a group, a single
-    orientation, or frames that do not see the target)."""
+    """Refuse a user's plan that cannot determine the calibration, before the robot moves:
+    a group whose poses differ in orientation or hold no translation (the method needs pure
+    translations inside each group), or a plan the planner's prediction finds degenerate
+    (frames that do not see the target, too few orientations)."""
     from slidecal.routines.planner import predict_std
+    from slidecal.solver.geometry import rotation_angle_deg
 
+    for g, group in enumerate(plan.groups):
+        T0 = group[0]
+        for k, T in enumerate(group[1:], start=1):
+            angle = rotation_angle_deg(T[:3, :3], T0[:3, :3])
+            if angle > MAX_GROUP_ROTATION_DEG:
+                raise InputError(
+                    f"pose {k} of group {g} is rotated {angle:.2f} deg from the group's first "
+                    "pose; the poses of a group must share one orientation (pure translations), "
+                    "start a new group for a new orientation",
+                    where=where,
+                )
+        d = np.array([T[:3, 3] - T0[:3, 3] for T in group[1:]]).reshape(-1, 3)
+        d = d[np.linalg.norm(d, axis=1) >= MIN_GROUP_MOVE_M]
+        if len(d) == 0:
+            raise InputError(
+                f"group {g} has no translation (all its poses within "
+                f"{MIN_GROUP_MOVE_M * 1000:g} mm of each other): the method needs translated "
+                "frames in every orientation group; make a plan with slidecal plan --config CELL",
+                where=where,
+            )
     try:
         predict_std(plan, cfg)
     except DegenerateError as e:
