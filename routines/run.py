@@ -9,9 +9,16 @@ Callable from Python for scripted commissioning::
 THE ROBOT NEVER MOVES unless the cell file names real hardware (``robot.driver: ur`` with a
 ``host``); without a file the packaged simulated cell is used. Every captured frame is on disk
 the moment it is captured (:class:`~slidecal.routines.session.SessionWriter`). On a
-``HardwareFault`` the robot is stopped, the fault is written into the session
-(``events``, ``status: aborted``) and the fault is raised again with where the frames are; on
-Ctrl-C the robot is stopped likewise. No result file is written unless the solve succeeded.
+``HardwareFault``, Ctrl-C, SIGTERM or SIGHUP the robot is stopped, the event is written into
+the session (``events``, ``status: aborted``) and the exception raised again with where the
+frames are; ``run_calibration(resume=SESSION)`` continues such a session. A dropped frame or an
+image without corners is captured again (``retries``). Two runs on one cell cannot interleave
+(:mod:`slidecal.routines.lock`).
+
+After the solve the gate of :mod:`slidecal.routines.verdict` decides: ``verdict.yaml`` in the
+session; ``result.yaml`` and ``export/`` for an accepted (or drifted) result, ``rejected/``
+without exports otherwise; ``report.html`` and ``report.png``; and, with an install store,
+the install (:mod:`slidecal.routines.install`). ``docs/UNATTENDED.md`` is the contract.
 """
 
 from __future__ import annotations
