@@ -178,6 +178,9 @@ def _rate(k: int, n: int) -> str:
 
 
 def part_gate(n: int, real_changes: int, work: Path) -> list[str]:
+    from slidecal.routines.verdict import Limits
+
+    lim = Limits()
     t0 = time.monotonic()
     runs = _runs(n, work)
     alone = sum(o.verdict.verdict == "accepted" for o, _ in runs)
@@ -201,7 +204,8 @@ def part_gate(n: int, real_changes: int, work: Path) -> list[str]:
         "|---|---|---|",
         f"| each run alone | {_rate(n - alone, n)} | gate without an installed calibration |",
         f"| unchanged cell | {_rate(fr, len(pairs))} | false rejects; largest change seen "
-        f"{max_sig:.2f} sigma (limit 4), {max_px:.2f} px (limit 0.6) |",
+        f"{max_sig:.2f} sigma (limit {lim.max_change_sigma:g}), {max_px:.2f} px (limit "
+        f"{lim.max_change_px:g}) |",
     ]
     for name, ch in CHANGES.items():
         flagged = 0

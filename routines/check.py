@@ -346,7 +346,9 @@ def judge_problem(
     lim = cell_limits(cfg)
     v = judge_check(rms, expected, drift, lim, len(problem.frames), extra, notes)
     again = refit(problem, installed, cfg.options.robot_noise_m, cfg.options.robot_noise_deg)
-    change, info = compare(again, installed, lim)
+    change, info = compare(
+        again, installed, dataclasses.replace(lim, max_change_px=lim.check_change_px)
+    )
     extra["check"]["change"] = info
     checks = v.checks + tuple(change)
     verdict = "ok" if all(c.passed for c in checks) else "drifted"

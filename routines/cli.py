@@ -188,7 +188,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_INPUT
     except KeyboardInterrupt as e:
         how = getattr(e, "how", "Ctrl-C")
-        print(f"\nslidecal: interrupted by {how}; the robot was stopped", file=sys.stderr)
+        print(
+            f"\nslidecal: interrupted by {how}; a moving robot was stopped, its frames kept",
+            file=sys.stderr,
+        )
         return EXIT_INTERRUPTED
     except OSError as e:  # a file that cannot be read or written: one line, not a traceback
         where = f"{e.filename}: " if e.filename else ""

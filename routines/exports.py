@@ -64,12 +64,22 @@ def file_sha256(path: str | Path | None) -> str | None:
 
 
 def result_header(cell_path: str | Path | None, cell_name: str | None = None) -> dict[str, Any]:
-    """``{slidecal_version, created_utc, cell, cell_sha256}`` for result files and exports."""
+    """``{slidecal_version, created_utc, cell, cell_sha256}`` for result files and exports.
+
+    Without a cell file, a packaged cell named ``cell_name`` (``default_cell.yaml``) is hashed.
+    """
+    digest = file_sha256(cell_path)
+    if cell_path is None and cell_name:
+        from importlib import resources
+
+        ref = resources.files("slidecal.mocks").joinpath(str(cell_name))
+        if ref.is_file():
+            digest = hashlib.sha256(ref.read_bytes()).hexdigest()
     return {
         "slidecal_version": slidecal_version(),
         "created_utc": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
-        "cell": str(cell_name or (Path(cell_path).name if cell_path else "packaged default")),
-        "cell_sha256": file_sha256(cell_path),
+        "cell": str(cell_name or (Path(cell_path).name if cell_path else "unknown")),
+        "cell_sha256": digest,
     }
 
 

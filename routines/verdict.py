@@ -77,6 +77,8 @@ class Limits:
     over the central ``change_region`` (fraction of width and height) of the image.
     ``check_max_rms_ratio``: ``slidecal check``: residual rms over the expected rms (detector
     noise and installed uncertainty together). ``check_max_px``: the drift a check tolerates.
+    ``check_change_px``: the check's ``max_change_px`` (its re-estimate from a handful of
+    frames is noisier than a full calibration's).
     """
 
     max_rms_px: float = 1.0
@@ -88,11 +90,12 @@ class Limits:
     min_coverage: float = 0.25
     coverage_grid: tuple[int, int] = (8, 6)
     max_change_sigma: float = 4.0
-    max_change_px: float = 0.6
+    max_change_px: float = 0.65
     working_distance_m: float = 0.5
     change_region: float = 0.6
     check_max_rms_ratio: float = 1.6
     check_max_px: float = 0.5
+    check_change_px: float = 0.8
 
 
 def limits_from_dict(data: Any, source: str = "cell.yaml", path: str = "limits") -> Limits:

@@ -488,3 +488,31 @@ def test_hardware_fault_cli_exit_3_kept(monkeypatch, capsys) -> None:
 
     monkeypatch.setattr(run, "run_calibration", boom)
     assert cli.main(["run", "--quiet"]) == 3
+
+
+def test_spawn_without_a_viewer_is_one_line(tmp_path: Path) -> None:
+    p = _slidecal(
+        "run",
+        "--out",
+        str(tmp_path / "s"),
+        "--spawn",
+        "--quiet",
+        cwd=tmp_path,
+        env={"PATH": str(tmp_path), "SLIDECAL_LOCK_DIR": str(tmp_path)},
+    )
+    _one_line_exit_2(p)
+    assert "--spawn could not start the rerun viewer" in p.stderr
+    doc = yaml.safe_load((tmp_path / "s" / "session.yaml").read_text())
+    assert doc["status"] == "aborted" and doc["frames"] == []
+    assert "rerun viewer" in doc["events"][-1]["message"]
+
+
+def test_board_bigger_than_the_view_is_not_a_workspace_problem() -> None:
+    from slidecal.routines.planner import make_plan
+
+    cfg = load_config(overrides={"target": {"square_size_m": 0.1}})
+    with pytest.raises(InputError) as e:
+        make_plan(cfg)
+    msg = str(e.value)
+    assert "more than the 1280 x 800 px image holds" in msg and "standoff_m to at least" in msg
+    assert "widen" not in msg
