@@ -199,7 +199,7 @@ def uncertainty_panel(result: CalibrationResult, camera: str) -> np.ndarray | No
     img = np.full((H + 40, PANEL_W, 3), 255, np.uint8)
     img[:H] = col
     _text(
-        img, f"{camera}: projection one-sigma {lo:.3f} (dark) to {hi:.3f} px (bright)", (6, H + 25)
+        img, f"{camera}: projection one-sigma {lo:.3g} (dark) to {hi:.3g} px (bright)", (6, H + 25)
     )
     return img
 
