@@ -392,16 +392,22 @@ def run_calibration(
         if out_dir is not None or plan is not None:
             raise InputError("--resume continues a session's own plan into it; drop --out/--plan")
         out = Path(resume)
-        prior = load_session(out, detect_images=False)
-        if prior.status == "complete":
+        if not (out / "session.yaml").is_file():
+            raise InputError("holds no session.yaml; nothing to resume", where=str(out))
+        prior = load_yaml(out / "session.yaml", "session.yaml")
+        frames = prior.get("frames") if isinstance(prior, Mapping) else None
+        if not isinstance(frames, list):
+            raise InputError("is not a slidecal session (no frames list)", where=str(out))
+        if prior.get("status") == "complete":
             raise InputError(
                 "is complete; nothing to resume (solve it again with slidecal solve)",
                 where=str(out),
             )
         plan = read_plan(out / "plan.yaml")
-        start = len(prior.problem.frames)
-        if seed is None and prior.simulation is not None and "seed" in prior.simulation:
-            seed = int(prior.simulation["seed"])  # the same simulated cell (target pose)
+        start = len(frames)
+        sim = prior.get("simulation")
+        if seed is None and isinstance(sim, Mapping) and isinstance(sim.get("seed"), int):
+            seed = int(sim["seed"])  # the same simulated cell (target pose)
         recording = False  # the first part's recording stays as it is
     else:
         if isinstance(plan, str | Path):
@@ -433,6 +439,7 @@ def run_calibration(
         prog,
         lock_key=_lock_key(config, cfg),
         start=start,
+        resume=resume is not None,
         recording=recording,
         spawn=spawn,
         seed=seed,
@@ -505,6 +512,7 @@ def record_session(
     prog: Progress,
     lock_key: str | None = None,
     start: int = 0,
+    resume: bool = False,
     recording: bool = False,
     spawn: bool = False,
     seed: int | None = None,
@@ -513,8 +521,9 @@ def record_session(
     extra: Mapping[str, Any] | None = None,
 ) -> Recorded:
     """Connect, lock the cell, move through ``plan`` (from pose ``start``), capture, detect and
-    write the session ``out``; on a fault or an interrupt (Ctrl-C, SIGTERM, SIGHUP) the robot
-    is stopped, the session marked aborted with the event, and the exception raised again."""
+    write the session ``out`` (``resume``: append to the session there). On a fault or an
+    interrupt (Ctrl-C, SIGTERM, SIGHUP) the robot is stopped, the session marked aborted with
+    the event, and the exception raised again."""
     truth: dict[str, Any] | None = None
     if cfg.simulated:
         if cell is None:
@@ -541,8 +550,8 @@ def record_session(
                 rig.open()
                 specs = tuple(rig.specs)
                 check_plan(plan, cfg, robot.is_reachable)  # refuse before anything moves
-                writer = _open_writer(out, cfg, specs, truth, start, extra)
-                if start == 0:
+                writer = _open_writer(out, cfg, specs, truth, resume, extra)
+                if not resume:
                     write_plan(plan, out / "plan.yaml")
                 else:
                     writer.add_event("resumed", f"resumed at frame {start + 1} of {plan.n_poses}")
@@ -571,10 +580,10 @@ def _open_writer(
     cfg: CellConfig,
     specs: tuple,
     truth: Mapping[str, Any] | None,
-    start: int,
+    resume: bool,
     more: Mapping[str, Any] | None = None,
 ) -> SessionWriter:
-    if start > 0 or (out / "session.yaml").exists():
+    if resume:
         return SessionWriter.reopen(out)
     extra: dict[str, Any] = {
         "cell": cfg.source,

@@ -676,11 +676,20 @@ class SessionWriter:
         events are kept, new frames are appended, ``status`` goes back to ``recording``."""
         directory = Path(directory)
         data = load_yaml(directory / SESSION_FILE, "session file")
-        problem = read_session(directory, detect_images=False)
+        f = Fields(data, SESSION_FILE)
+        _check_format(f, SESSION_FORMAT, "session")
+        cams = f.require("cameras")
+        if not isinstance(cams, list):
+            raise f.error("cameras", "must be a list of {name, width, height}")
         w = cls.__new__(cls)
         w.directory = directory
-        w.target = problem.target
-        w.cameras = problem.cameras
+        w.target = target_from_dict(f.require("target"), SESSION_FILE)
+        w.cameras = tuple(
+            CameraSpec(
+                c.string("name"), c.integer("width", minimum=1), c.integer("height", minimum=1)
+            )
+            for c in (Fields(x, SESSION_FILE, f"cameras[{i}]") for i, x in enumerate(cams))
+        )
         w._names = [c.name for c in w.cameras]
         w.data = dict(data)
         w.data.setdefault("frames", [])

@@ -134,14 +134,16 @@ def test_resume_of_a_complete_session_refused(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_fault_then_resume_in_process(tmp_path: Path) -> None:
+@pytest.mark.parametrize(("at_move", "kept"), [(4, 3), (0, 0)])
+def test_fault_then_resume_in_process(tmp_path: Path, at_move: int, kept: int) -> None:
     cfg = load_config()
     cell = SimulatedCell.from_config(cfg, seed=2)
-    cell.robot.inject_fault("protective_stop", at_move=4)
+    cell.robot.inject_fault("protective_stop", at_move=at_move)
     out = tmp_path / "s"
     with pytest.raises(HardwareFault, match="slidecal run --resume"):
         run_calibration(cfg, out_dir=out, progress=False, recording=False, cell=cell)
-    assert cell.robot.stopped and frames_on_disk(out) == 3
+    n = len(yaml.safe_load((out / "session.yaml").read_text())["frames"])
+    assert cell.robot.stopped and n == kept
     o = run_calibration(cfg, resume=out, progress=False)
     assert o.verdict.verdict == "accepted" and o.n_frames == 9
     s = load_session(out, detect_images=False)
