@@ -359,6 +359,17 @@ def _fault_row(kind: str, at: int, work: Path) -> str:
     cell = SimulatedCell.from_config(cfg, seed=1)
     if kind in ("protective_stop", "timeout"):
         cell.robot.inject_fault(kind, at_move=at)
+    elif kind == "camera lost for good":
+        cell.rig.inject_fault("disconnect", at_capture=at)
+        real_open, opened = cell.rig.open, []
+
+        def open_once() -> None:  # the camera does not come back for this run
+            if opened:
+                raise HardwareFault("no camera found")
+            opened.append(1)
+            real_open()
+
+        cell.rig.open = open_once
     else:
         cell.rig.inject_fault(kind, at_capture=at)
     out = work / f"fault_{kind}_{at}"
@@ -376,6 +387,8 @@ def _fault_row(kind: str, at: int, work: Path) -> str:
         r = run_calibration(cfg, resume=out, progress=False)
         resumed = f"{r.n_frames} frames, {r.verdict.verdict}"
     where = "move" if kind in ("protective_stop", "timeout") else "capture"
+    if at == 0 and where == "move":
+        where = "move (the via pose, before any frame)"
     return (
         f"| {kind} at {where} {at} | {code} | {'yes' if cell.robot.stopped else 'no (not needed)'} "
         f"| {kept} | {', '.join(kinds) or '-'} | {resumed or '-'} |"
@@ -386,7 +399,9 @@ def part_faults(work: Path) -> list[str]:
     t0 = time.monotonic()
     lines = [
         "Signals sent to a `slidecal run` subprocess (default cell, seed 1) after the given "
-        "frame was done, then `slidecal run --resume SESSION`:",
+        "frame was done, then `slidecal run --resume SESSION`. 'robot stopped': the session's "
+        "event says so (it is written after the robot's stop() returned); the in-process "
+        "rows below check the simulated robot's stopped flag itself.",
         "",
         "| signal | exit | robot stopped | frames kept | event | resume: exit, frames, verdict |",
         "|---|---|---|---|---|---|",
@@ -405,11 +420,13 @@ def part_faults(work: Path) -> list[str]:
         "|---|---|---|---|---|---|",
     ]
     for kind, at in [
+        ("protective_stop", 0),
         ("protective_stop", 3),
         ("protective_stop", 8),
         ("timeout", 6),
         ("no_frame", 2),
         ("disconnect", 5),
+        ("camera lost for good", 4),
     ]:
         lines.append(_fault_row(kind, at, work))
     lines += ["", f"Took {time.monotonic() - t0:.0f} s."]

@@ -1076,7 +1076,8 @@ def _board_too_big(cfg: CellConfig, s: PlannerSettings, nom: _Nominal) -> str | 
         return None
     d_min = min(max(fx * ext[0] / w, fy * ext[1] / h), max(fx * ext[1] / w, fy * ext[0] / h))
     return (
-        f"the target ({ext[0] * 1000:.0f} x {ext[1] * 1000:.0f} mm) spans {need[0]:.0f} x "
+        f"the target leaves the view: it ({ext[0] * 1000:.0f} x {ext[1] * 1000:.0f} mm) spans "
+        f"{need[0]:.0f} x "
         f"{need[1]:.0f} px at {d:.2f} m, more than the {nom.spec.width} x {nom.spec.height} px "
         f"image holds (margins {s.margin_px:g} px); increase approximate.standoff_m to at "
         f"least {d_min:.2f} m or use a smaller target"
