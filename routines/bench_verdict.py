@@ -379,18 +379,21 @@ def _fault_row(kind: str, at: int, work: Path) -> str:
         code = f"completed, {o.verdict.verdict}"
     except HardwareFault:
         code = "HardwareFault (exit 3)"
-    s = load_session(out, detect_images=False)
-    kinds = [e["kind"] for e in s.events]
-    kept = len(s.problem.frames)
+    import yaml
+
+    doc = yaml.safe_load((out / "session.yaml").read_text())  # also with no frame at all
+    kinds = [e["kind"] for e in doc["events"]]
+    kept = len(doc["frames"])
     resumed = ""
-    if s.status != "complete":
+    if doc["status"] != "complete":
         r = run_calibration(cfg, resume=out, progress=False)
         resumed = f"{r.n_frames} frames, {r.verdict.verdict}"
     where = "move" if kind in ("protective_stop", "timeout") else "capture"
-    if at == 0 and where == "move":
-        where = "move (the via pose, before any frame)"
+    where = f"{where} {at}" + (
+        " (the via pose, before any frame)" if where == "move" and at == 0 else ""
+    )
     return (
-        f"| {kind} at {where} {at} | {code} | {'yes' if cell.robot.stopped else 'no (not needed)'} "
+        f"| {kind} at {where} | {code} | {'yes' if cell.robot.stopped else 'no (not needed)'} "
         f"| {kept} | {', '.join(kinds) or '-'} | {resumed or '-'} |"
     )
 

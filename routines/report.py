@@ -169,7 +169,7 @@ def residual_panel(
     mag = 1.0
     if len(res):
         rms = float(np.sqrt(np.mean(np.sum(res**2, 1))))
-        mag = 20.0 / max(rms, 1e-6) if rms > 0 else 1.0
+        mag = 12.0 / max(rms * s, 1e-9)  # about 12 display pixels for an rms residual
         mag = float(10 ** np.floor(np.log10(mag)))
         for p, r in zip(at, res, strict=True):
             a = (int(p[0] * s), int(p[1] * s))
