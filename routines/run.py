@@ -410,6 +410,14 @@ def run_calibration(
             seed = int(sim["seed"])  # the same simulated cell (target pose)
         recording = False  # the first part's recording stays as it is
     else:
+        out = Path(out_dir) if out_dir is not None else default_session_dir()
+        check_out_dir(out)  # before planning: a bad --out is refused at once
+        if (out / "session.yaml").exists():
+            raise InputError(
+                "already holds a session; choose a new --out directory, or continue it with "
+                "--resume",
+                where=str(out),
+            )
         if isinstance(plan, str | Path):
             plan_where = str(plan)
             plan = read_plan(plan)
@@ -417,14 +425,6 @@ def run_calibration(
         elif isinstance(plan, Plan):
             check_user_plan(plan, cfg, "plan")
         plan = plan if plan is not None else make_plan(cfg).plan
-        out = Path(out_dir) if out_dir is not None else default_session_dir()
-        check_out_dir(out)
-        if (out / "session.yaml").exists():
-            raise InputError(
-                "already holds a session; choose a new --out directory, or continue it with "
-                "--resume",
-                where=str(out),
-            )
     inst_result, inst_path = installed_calibration(installed if installed is not None else install)
 
     prog = (

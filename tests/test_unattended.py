@@ -170,6 +170,7 @@ def test_dropped_frames_and_a_lost_camera_are_retried(tmp_path: Path) -> None:
     assert "retry 1 of 2" in buf.getvalue()
 
 
+@pytest.mark.slow
 def test_retries_exhausted_is_a_fault_with_frames_kept(tmp_path: Path) -> None:
     cfg = load_config()
     cell = SimulatedCell.from_config(cfg, seed=0)
