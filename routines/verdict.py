@@ -90,9 +90,9 @@ class Limits:
     min_coverage: float = 0.25
     coverage_grid: tuple[int, int] = (8, 6)
     max_change_sigma: float = 4.0
-    max_change_px: float = 0.65
+    max_change_px: float = 0.6
     working_distance_m: float = 0.5
-    change_region: float = 0.6
+    change_region: float = 0.5
     check_max_rms_ratio: float = 1.6
     check_max_px: float = 0.5
     check_change_px: float = 0.8
@@ -478,7 +478,7 @@ def displacement_px(
     old: CalibrationResult,
     camera: str,
     distance_m: float,
-    region: float = 0.6,
+    region: float = 0.5,
     n: int = 11,
 ) -> float:
     """The largest image displacement of points at ``distance_m`` in front of ``camera``.
