@@ -30,6 +30,10 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
         "slidecal.routines.bench_handeye",
         "classic hand-eye sessions against the bound and cv2.calibrateHandEye",
     ),
+    "verdict": (
+        "slidecal.routines.bench_verdict",
+        "the verdict's gate, garbage sessions, slidecal check, signals and faults",
+    ),
     "scale": ("slidecal.routines.bench_scale", "solve time from 20 to 1000 frames, 1-3 cameras"),
 }
 

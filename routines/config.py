@@ -106,6 +106,8 @@ CELL_KEYS: dict[str, tuple[str, ...]] = {
         "simulation",
         "plan",
         "options",
+        "limits",  # the verdict's limits (routines/verdict.py: limits_from_dict)
+        "install",  # the install store (routines/run.py: cell_install)
     ),
     "robot": (
         "driver",

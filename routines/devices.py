@@ -247,6 +247,7 @@ def device_calibration_outputs(
     sockets = {n: o["socket"] for n, o in outputs.items()}
     lens = {n: o["focus"] for n, o in outputs.items() if o.get("focus") is not None}
     user = read_device_calibration(session_dir, devices, "user")
+    Path(export_dir).mkdir(parents=True, exist_ok=True)
     paths, lines = [], []
     try:
         paths.append(

@@ -56,6 +56,7 @@ visibility and its Fisher information); the other cameras of a rig are not check
 from __future__ import annotations
 
 import argparse
+import shlex
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -986,7 +987,7 @@ def make_plan(cfg: CellConfig, settings: PlannerSettings | None = None) -> PlanR
     where = f"{cfg.source}: plan"
     cands, rejected, names = _candidates(cfg, nom, s)
     if len(cands) < s.min_groups:
-        raise InputError(_no_candidates_message(cfg, s, rejected, len(cands)), where=where)
+        raise InputError(_no_candidates_message(cfg, s, rejected, len(cands), nom), where=where)
     via = _via(cfg)
     start = _start_pose(cfg)
     timing = _Timing(cfg, s, start)
@@ -1052,9 +1053,37 @@ def _ban(cands: list[_Group], chosen: list[_Chosen], bad: int) -> None:
             i += 1
 
 
+def _board_too_big(cfg: CellConfig, s: PlannerSettings, nom: _Nominal) -> str | None:
+    """Why the target cannot fit the image at any planned standoff (head-on view), or None."""
+    pts = cfg.target.points_m
+    ext = pts.max(axis=0)[:2] - pts.min(axis=0)[:2]
+    d = max(s.standoffs_m)
+    w = nom.spec.width - 2 * s.margin_px
+    h = nom.spec.height - 2 * s.margin_px
+    fx, fy = float(nom.K[0, 0]), float(nom.K[1, 1])
+    need = (fx * ext[0] / d, fy * ext[1] / d)
+    if (need[0] <= w and need[1] <= h) or (fx * ext[1] / d <= w and fy * ext[0] / d <= h):
+        return None
+    d_min = min(max(fx * ext[0] / w, fy * ext[1] / h), max(fx * ext[1] / w, fy * ext[0] / h))
+    return (
+        f"the target leaves the view: it ({ext[0] * 1000:.0f} x {ext[1] * 1000:.0f} mm) spans "
+        f"{need[0]:.0f} x "
+        f"{need[1]:.0f} px at {d:.2f} m, more than the {nom.spec.width} x {nom.spec.height} px "
+        f"image holds (margins {s.margin_px:g} px); increase approximate.standoff_m to at "
+        f"least {d_min:.2f} m or use a smaller target"
+    )
+
+
 def _no_candidates_message(
-    cfg: CellConfig, s: PlannerSettings, rejected: dict[str, int], n_ok: int
+    cfg: CellConfig,
+    s: PlannerSettings,
+    rejected: dict[str, int],
+    n_ok: int,
+    nom: _Nominal | None = None,
 ) -> str:
+    too_big = _board_too_big(cfg, s, nom) if nom is not None else None
+    if too_big is not None:
+        return f"no plan possible: {too_big}"
     worst = max(rejected, key=lambda k: rejected[k]) if any(rejected.values()) else "view"
     fix = {
         "workspace": "the candidate poses leave the workspace box (robot.workspace); widen it "
@@ -1111,9 +1140,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Plan, write ``plan.yaml``, print the prediction."""
+    out = Path(args.out)
+    if str(out) in ("", "."):
+        raise InputError("--out is empty; name the plan file to write (e.g. plan.yaml)")
+    if out.is_dir():
+        raise InputError("is a directory; --out must name a plan file", where=str(out))
+    if out.parent.exists() and not out.parent.is_dir():
+        raise InputError(f"{out.parent} is a file; --out must lie in a directory", str(out))
     cfg = load_config(args.config)
     report = make_plan(cfg)
-    path = write_plan(report.plan, Path(args.out))
+    path = write_plan(report.plan, out)
     if not args.quiet:
         for n in report.plan.notes:
             print(n)
@@ -1125,5 +1161,6 @@ def main(args: argparse.Namespace) -> int:
             f"({pred[f'{cam}.fx_rel'] * 100:.4f} %), "
             f"{he} {pred[f'{he}.rot_deg']:.4f} deg / {pred[f'{he}.t_mm']:.3f} mm"
         )
-        print(f"plan: {path}  (run it with: slidecal run --plan {path})")
+        config = f" --config {shlex.quote(str(args.config))}" if args.config else ""
+        print(f"plan: {path}  (run it with: slidecal run{config} --plan {shlex.quote(str(path))})")
     return 0

@@ -1,28 +1,40 @@
-"""Progress on the terminal: frame i of n, the current step, the time left.
+"""Progress of a run: frame i of n, the current step, the time left, and what happened.
 
-Quiet when the stream is not a terminal (CI logs, pipes) or when asked; never used by solvers.
+On a terminal: one status line rewritten in place. Elsewhere (a nightly job's log, a pipe):
+plain lines, each with a UTC timestamp, one per move, capture, detection count, retry, event
+and the verdict, so the log a job keeps tells what the run did. ``quiet`` prints nothing.
+Never used by solvers.
 """
 
 from __future__ import annotations
 
 import sys
 import time
+from datetime import UTC, datetime
 from typing import TextIO
 
 
 class Progress:
-    """One status line, rewritten in place (``\\r``), finished with a newline by :meth:`done`.
+    """Progress output; see the module docstring.
 
-    ``quiet``: None decides from ``stream.isatty()``.
+    ``quiet``: True prints nothing; False or None print (a status line on a terminal, plain
+    timestamped lines otherwise). ``lines``: force the plain-line mode (None: when ``stream``
+    is not a terminal).
     """
 
-    def __init__(self, total: int, stream: TextIO | None = None, quiet: bool | None = None):
+    def __init__(
+        self,
+        total: int,
+        stream: TextIO | None = None,
+        quiet: bool | None = None,
+        lines: bool | None = None,
+    ):
         self.total = int(total)
         self.stream = stream if stream is not None else sys.stderr
-        if quiet is None:
-            isatty = getattr(self.stream, "isatty", None)
-            quiet = not (isatty is not None and isatty())
-        self.quiet = quiet
+        isatty = getattr(self.stream, "isatty", None)
+        tty = bool(isatty is not None and isatty())
+        self.quiet = bool(quiet)
+        self.lines = (not tty) if lines is None else bool(lines)
         self._t0 = time.monotonic()
         self._done = 0
         self._width = 0
@@ -40,16 +52,37 @@ class Progress:
         eta = f", about {left:.0f} s left" if left is not None else ""
         self._show(f"frame {index + 1} of {self.total}: {what}{eta}")
 
-    def frame_done(self) -> None:
-        """Count one frame as done (for the time estimate)."""
+    def frame_done(self, detail: str | None = None) -> None:
+        """Count one frame as done (for the time estimate); ``detail``: e.g. the corner counts,
+        logged in the plain-line mode."""
         self._done += 1
+        if detail and self.lines:
+            self._line(f"frame {self._done} of {self.total} done: {detail}")
 
     def message(self, text: str) -> None:
         """A status line that is not about a frame (connecting, solving)."""
         self._show(text)
 
+    def event(self, text: str) -> None:
+        """Something a log must keep (a retry, a fault, the verdict): its own line always."""
+        if self.quiet:
+            return
+        if not self.lines:
+            self.done()
+        self._line(text)
+
+    def _line(self, text: str) -> None:
+        if self.quiet:
+            return
+        stamp = datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
+        self.stream.write(f"{stamp} {text}\n")
+        self.stream.flush()
+
     def _show(self, text: str) -> None:
         if self.quiet:
+            return
+        if self.lines:
+            self._line(text)
             return
         pad = max(0, self._width - len(text))
         self.stream.write("\r" + text + " " * pad)
@@ -57,8 +90,14 @@ class Progress:
         self._width = len(text)
 
     def done(self, text: str = "") -> None:
-        """End the line (and print ``text`` on its own line)."""
+        """End the status line (and print ``text`` on its own line)."""
         if self.quiet:
+            return
+        if self.lines:
+            if text:
+                self._line(text)
+            return
+        if self._width == 0 and not text:
             return
         self._show(text)
         self.stream.write("\n")

@@ -238,11 +238,18 @@ def scale_check_summary(checks: tuple[ScaleCheck, ...]) -> dict[str, Any] | None
     return {"median_ratio": float(np.median(ratios)), "worst_ratio": float(worst), "n": len(ratios)}
 
 
-def write_result(result: CalibrationResult, path: str | Path) -> Path:
-    """Write ``result.yaml`` atomically; return its path."""
+def write_result(
+    result: CalibrationResult, path: str | Path, header: Mapping[str, Any] | None = None
+) -> Path:
+    """Write ``result.yaml`` atomically; return its path. ``header``: written after
+    ``format`` (slidecal version, time, cell file hash: :func:`slidecal.routines.exports.
+    result_header`)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(path, dump_yaml(result_to_dict(result)))
+    d = result_to_dict(result)
+    if header:
+        d = {"format": d.pop("format"), "header": dict(header), **d}
+    write_atomic(path, dump_yaml(d))
     return path
 
 
@@ -267,6 +274,7 @@ RESULT_KEYS = (
     "covariance",
     "adequacy",
     "robot_accuracy",
+    "header",
 )
 #: The keys of the parts of ``result.yaml``.
 RESULT_PART_KEYS: dict[str, tuple[str, ...]] = {
@@ -288,6 +296,7 @@ RESULT_PART_KEYS: dict[str, tuple[str, ...]] = {
     "adequacy.worst_frames[]": ("frame", "camera", "normalised_rms"),
     "robot_accuracy": ("translation_mm", "rotation_deg", "estimated", "worst_frames"),
     "robot_accuracy.worst_frames[]": ("frame", "translation_mm", "rotation_deg"),
+    "header": ("slidecal_version", "created_utc", "cell", "cell_sha256", "verdict"),
 }
 RESULT_MOUNTS = ("eye_in_hand", "eye_to_hand", "none")
 _TRANSFORM_KEY = re.compile(r"T_[A-Za-z0-9]+_[A-Za-z0-9_]+")
@@ -474,6 +483,10 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
         if k not in cams:
             raise lf.error(str(k), f"unknown camera {k!r}; cameras are {names}")
         linear[str(k)] = lf.array(str(k), (3, 3))
+    hf_ = f.section("header", RESULT_PART_KEYS["header"])  # provenance: checked, not kept
+    for k in hf_.data:
+        if hf_.get(k) is not None and not isinstance(hf_.get(k), str):
+            raise hf_.error(str(k), "must be text (as slidecal writes it)")
     adequacy = _adequacy_from(f, names) if f.has("adequacy") else None
     robot_accuracy = _robot_accuracy_from(f) if f.has("robot_accuracy") else None
     return CalibrationResult(

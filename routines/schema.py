@@ -90,16 +90,24 @@ def write_atomic(path: Path, text: str | bytes) -> None:
     """Write ``path`` so that it holds either its old or its new content, never a mix.
 
     The text goes to a temporary file in the same directory, is flushed and fsynced, then
-    renamed over ``path``; the directory is fsynced so the rename survives a power cut.
+    renamed over ``path``; the directory is fsynced so the rename survives a power cut. When
+    writing fails (a full disk) the temporary file is removed and the error raised.
     """
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp")
     data = text.encode() if isinstance(text, str) else text
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:  # a full disk, a signal: leave the old file and no temporary one
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+        raise
     _fsync_dir(path.parent)
 
 

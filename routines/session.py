@@ -90,6 +90,7 @@ SESSION_KEYS: dict[str, tuple[str, ...]] = {
         "camera_driver",
         "devices",
         "controller",
+        "limits",
         "simulation",
         "frames",
         "events",
@@ -746,6 +747,34 @@ class SessionWriter:
         self.data["frames"] = []
         self.data["events"] = []
         self._write()
+
+    @classmethod
+    def reopen(cls, directory: str | Path) -> SessionWriter:
+        """Continue writing an existing session (``slidecal run --resume``): its frames and
+        events are kept, new frames are appended, ``status`` goes back to ``recording``."""
+        directory = Path(directory)
+        data = load_yaml(directory / SESSION_FILE, "session file")
+        f = Fields(data, SESSION_FILE)
+        _check_format(f, SESSION_FORMAT, "session")
+        cams = f.require("cameras")
+        if not isinstance(cams, list):
+            raise f.error("cameras", "must be a list of {name, width, height}")
+        w = cls.__new__(cls)
+        w.directory = directory
+        w.target = target_from_dict(f.require("target"), SESSION_FILE)
+        w.cameras = tuple(
+            CameraSpec(
+                c.string("name"), c.integer("width", minimum=1), c.integer("height", minimum=1)
+            )
+            for c in (Fields(x, SESSION_FILE, f"cameras[{i}]") for i, x in enumerate(cams))
+        )
+        w._names = [c.name for c in w.cameras]
+        w.data = dict(data)
+        w.data.setdefault("frames", [])
+        w.data.setdefault("events", [])
+        w.data["status"] = "recording"
+        w._write()
+        return w
 
     @property
     def n_frames(self) -> int:

@@ -8,6 +8,7 @@ then in a test::
 
     def test_our_cell_calibrates(simulated_run_fixture):
         outcome = simulated_run_fixture(config="cells/line4.yaml")
+        assert outcome.verdict.verdict == "accepted", outcome.verdict.lines()
         assert outcome.errors["cam.fx_rel"] < 1e-3
 
 or call :func:`simulated_run` directly with a temporary directory. Only simulated cells are
@@ -36,8 +37,10 @@ def simulated_run(
     """Run the routine end to end on a simulated cell into ``tmp_path/session``.
 
     ``overrides``: top-level cell sections merged over the file (e.g.
-    ``simulation={"noise": {"robot_mm": 0.1}}``, ``plan={"tilts_deg": [20]}``). Refuses cells
-    that name real hardware.
+    ``simulation={"noise": {"robot_mm": 0.1}}``, ``plan={"tilts_deg": [20, 30]}``, the
+    planner's options; ``limits={"max_rms_px": 0.5}``, the verdict's). The outcome carries the
+    verdict (``outcome.verdict.verdict``, ``outcome.exit_code``). Refuses cells that name real
+    hardware.
     """
     cfg = config if isinstance(config, CellConfig) else load_config(config, overrides)
     if not cfg.simulated:

@@ -69,3 +69,36 @@ def test_subcommands_are_a_table() -> None:
     assert {"run", "solve"} <= set(cli.SUBCOMMANDS)
     with pytest.raises(SystemExit):
         cli.build_parser().parse_args(["nothing"])
+
+
+def test_unattended_subcommands_registered() -> None:
+    assert {"check", "rollback"} <= set(cli.SUBCOMMANDS)
+    p = cli.build_parser()
+    assert p.parse_args(["check", "--installed", "s"]).installed == "s"
+    assert p.parse_args(["rollback", "s"]).store == "s"
+
+
+def test_solve_rejected_exit_4_and_rollback_cli(tmp_path: Path, capsys) -> None:
+    from slidecal.routines.install import install, installed_result
+    from slidecal.routines.run import solve_session
+
+    shutil.copytree(DATA / "r1_session", tmp_path / "s")
+    good = solve_session(tmp_path / "s")
+    store = tmp_path / "store"
+    first = install(store, tmp_path / "s", good.result, "accepted")
+    install(store, tmp_path / "s", good.result, "accepted")
+    assert cli.main(["rollback", str(store)]) == 0
+    assert first.name in capsys.readouterr().out
+    assert (store / "current").resolve() == first and installed_result(store) is not None
+    # a session whose board is given as 0.025 m squares instead of 0.030 m: rejected, exit 4,
+    # nothing installed
+    doc = yaml.safe_load((tmp_path / "s" / "session.yaml").read_text())
+    t = doc["target"]
+    t["marker_size_m"] = t["marker_size_m"] * 0.025 / t["square_size_m"]
+    t["square_size_m"] = 0.025
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "session.yaml").write_text(yaml.safe_dump(doc))
+    assert cli.main(["solve", str(tmp_path / "d"), "--quiet", "--installed", str(store)]) == 4
+    assert capsys.readouterr().out.startswith("verdict: rejected")
+    assert (tmp_path / "d" / "rejected" / "result.yaml").is_file()
+    assert cli.main(["rollback", str(store)]) == 2  # nothing before the first install

@@ -206,9 +206,8 @@ def test_the_oak_cell_settings_reach_the_driver(tmp_path, oak_device):
 
 def test_an_oak_session_records_the_device_compares_and_flashes(tmp_path, oak_device, capsys):
     from slidecal.drivers.oak import OakRig, device_camera
-    from slidecal.routines.devices import record_devices
+    from slidecal.routines.devices import device_calibration_outputs, record_devices
     from slidecal.routines.results_io import write_result
-    from slidecal.routines.run import write_outputs
     from slidecal.routines.session import SessionWriter
 
     world, sim = oak_device
@@ -231,7 +230,7 @@ def test_an_oak_session_records_the_device_compares_and_flashes(tmp_path, oak_de
     # calibration and the summary says how far points move
     result = truth_result(sim, dfx_left_px=2.0)
     write_result(result, sdir / "result.yaml")
-    _, summary, exports = write_outputs(result, sdir)
+    exports, summary = device_calibration_outputs(result, sdir, sdir / "export")
     export = json.loads((sdir / "export" / "depthai_calibration.json").read_text())
     assert export["boardName"] == "OAK-D" and export["boardRev"] == "R3M2E3"
     assert {int(k): v["lensPosition"] for k, v in export["cameraData"]}[0] == 130  # CAM_A

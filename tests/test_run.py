@@ -40,9 +40,23 @@ def test_default_cell_against_truth(outcome) -> None:
     assert n_planned >= 9 and outcome.n_frames == n_planned and outcome.result.converged
     assert outcome.robot_time_s is not None and outcome.robot_time_s > 10.0
     d = outcome.session_dir
-    for name in ("session.yaml", "plan.yaml", "result.yaml", "summary.txt", "recording.rrd"):
+    names = (
+        "session.yaml",
+        "plan.yaml",
+        "result.yaml",
+        "summary.txt",
+        "recording.rrd",
+        "verdict.yaml",
+        "report.html",
+        "report.png",
+    )
+    for name in names:
         assert (d / name).is_file(), name
     assert (d / "export" / "opencv_cam.yaml").is_file()
+    assert (d / "export" / "camchain.yaml").is_file() and (d / "export" / "hand_eye.yaml").is_file()
+    assert outcome.verdict.verdict == "accepted" and outcome.exit_code == 0
+    assert yaml.safe_load((d / "verdict.yaml").read_text())["verdict"] == "accepted"
+    assert "verdict: accepted" in outcome.summary
     s = load_session(d)
     assert s.status == "complete" and s.simulation["T_tool_cam"]["t_m"] == [0.032, -0.061, 0.045]
     assert len(list((d / "images").glob("*.png"))) == n_planned
@@ -118,4 +132,5 @@ def test_ctrl_c_stops_robot_and_keeps_frames(tmp_path: Path) -> None:
     with pytest.raises(KeyboardInterrupt):
         run_calibration(cfg, out_dir=tmp_path / "s", progress=False, recording=False, cell=cell)
     assert cell.robot.stopped and frames_on_disk(tmp_path / "s") == 2
-    assert load_session(tmp_path / "s", detect_images=False).events[-1]["kind"] == "interrupted"
+    ev = load_session(tmp_path / "s", detect_images=False).events[-1]
+    assert ev["kind"] == "interrupted" and ev["message"] == "stopped by Ctrl-C (robot stopped)"

@@ -1,0 +1,456 @@
+"""``slidecal check --config CELL --installed STORE``: does the installed calibration still hold?
+
+A short verification, not a calibration: a handful of frames (at most
+:data:`MAX_ROBOT_TIME_S` of robot time) at known robot poses, taken from the plan of the
+installed calibration (or the planner's plan for the cell): the first two poses of its first
+groups. Two measurements, both against the installed calibration:
+
+- the change: the installed calibration re-estimated from the check's frames (:func:`refit`:
+  fx, fy, cx, cy, the hand-eye and the target pose free; distortion and rig fixed; the robot's
+  pose noise in the model), compared by :func:`slidecal.routines.verdict.compare` as the
+  largest change in units of the combined one-sigma and as the largest pixel displacement of
+  points at the working distance (limits ``max_change_sigma``, ``max_change_px``);
+- what the fixed calibration cannot explain: the installed calibration held fixed, only the
+  target's pose fitted (the board may have been put back slightly differently), the residual
+  rms against what the installed calibration explained on its own session (``chain_rms_px``
+  in ``installed.yaml``), ``drift_px = sqrt(residual^2 - expected^2)`` (limits
+  ``check_max_rms_ratio`` and ``check_max_px``, both exceeded for a failure).
+
+Verdict ``ok`` when every test passes, else ``drifted``; written with the figures to the
+check's session as ``verdict.yaml``; exit 0 / 5.
+"""
+
+from __future__ import annotations
+
+import argparse
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from slidecal.routines.config import CellConfig, load_config
+from slidecal.routines.plan import Plan, read_plan
+from slidecal.routines.progress import Progress
+from slidecal.routines.verdict import Verdict, judge_check, write_verdict
+from slidecal.solver.errors import InputError
+from slidecal.solver.geometry import inv_T
+from slidecal.solver.problem import CalibrationProblem
+from slidecal.solver.result import CalibrationResult
+
+MAX_ROBOT_TIME_S = 15.0
+DEFAULT_FRAMES = 6
+help = "verify the installed calibration at a few known robot poses (ok or drifted)"
+
+
+def check_plan_from(plan: Plan, cfg: CellConfig, frames: int = DEFAULT_FRAMES) -> Plan:
+    """A short plan: the first two poses of as many of ``plan``'s groups as ``frames`` allows
+    (two tilts at least), shortened until the predicted robot time is at most
+    :data:`MAX_ROBOT_TIME_S`."""
+    from slidecal.routines.planner import dry_run
+
+    per = 2 if frames >= 4 else 1
+    n_groups = max(1, min(len(plan.groups), frames // per))
+    while True:
+        groups = tuple(tuple(g[:per]) for g in plan.groups[:n_groups])
+        short = Plan(
+            groups=groups,
+            via=plan.via,
+            speed_mps=plan.speed_mps,
+            accel_mps2=plan.accel_mps2,
+            settle_s=plan.settle_s,
+            notes=(f"check: {sum(len(g) for g in groups)} frames of the installed plan",),
+        )
+        robot_s, bad, why = dry_run(short, cfg)
+        if bad is not None:
+            raise InputError(f"the check's poses fail the motion check ({why})", cfg.source)
+        total = robot_s + short.n_poses * 0.1
+        if total <= MAX_ROBOT_TIME_S or (n_groups == 1 and per == 1):
+            return short
+        if n_groups > 2 or per == 1:
+            n_groups -= 1
+        else:
+            per = 1
+
+
+def _hand_eye_T(installed: CalibrationResult, camera: str) -> np.ndarray:
+    from slidecal.routines.results_io import hand_eye_names, hand_eye_transforms
+
+    key = hand_eye_names(installed).get(camera)
+    t = hand_eye_transforms(installed).get(key) if key else None
+    if t is None or t.T is None:
+        raise InputError(
+            f"the installed calibration has no complete hand-eye for camera {camera!r}; "
+            "check needs the hand-eye rotation and translation"
+        )
+    return t.T
+
+
+def _T_cam_board(mount: str, X: np.ndarray, T_base_tool: np.ndarray, Y: np.ndarray):
+    """``T_cam_board`` from the hand-eye ``X`` (T_tool_cam or T_base_cam), the robot pose and
+    the target pose ``Y`` (T_base_board or T_tool_board)."""
+    if mount == "eye_in_hand":
+        return inv_T(X) @ inv_T(T_base_tool) @ Y
+    return inv_T(X) @ T_base_tool @ Y
+
+
+def fit_target(
+    problem: CalibrationProblem, installed: CalibrationResult
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The target pose (4, 4) that best explains the images with the installed calibration
+    held fixed, and the residual vectors (N, 2) px per camera."""
+    from scipy.optimize import least_squares
+
+    from slidecal.solver.camera import project
+    from slidecal.solver.geometry import R_from_rvec, T_from_Rt, rvec_from_R
+
+    mount = installed.mount
+    cams = [c.name for c in problem.cameras if c.name in installed.cameras]
+    X = {c: _hand_eye_T(installed, c) for c in cams}
+    pts = problem.target.points_m
+    obs = []
+    for fr in problem.frames:
+        if fr.T_base_tool is None:
+            continue
+        for c in cams:
+            det = fr.detections.get(c)
+            if det is not None and len(det.ids) >= 4:
+                obs.append((c, fr.T_base_tool, pts[det.ids], np.asarray(det.px, float)))
+    if not obs:
+        raise InputError("no frame of the check saw the target; check the cell and the board")
+    Y0 = installed.T_target.T if installed.T_target is not None else None
+    if Y0 is None:
+        import cv2
+
+        c, T, P, px = obs[0]
+        cam = installed.cameras[c]
+        ok, rv, tv = cv2.solvePnP(
+            P.astype(np.float64), px, np.asarray(cam.K, float), np.asarray(cam.distortion, float)
+        )
+        T_cb = T_from_Rt(cv2.Rodrigues(rv)[0], tv.ravel())
+        Y0 = T @ X[c] @ T_cb if mount == "eye_in_hand" else inv_T(T) @ X[c] @ T_cb
+
+    def residuals(theta: np.ndarray) -> np.ndarray:
+        Y = T_from_Rt(R_from_rvec(theta[:3]), theta[3:])
+        out = []
+        for c, T, P, px in obs:
+            cam = installed.cameras[c]
+            Tcb = _T_cam_board(mount, X[c], T, Y)
+            Pc = P @ Tcb[:3, :3].T + Tcb[:3, 3]
+            out.append((project(np.asarray(cam.K), np.asarray(cam.distortion), Pc) - px).ravel())
+        return np.concatenate(out)
+
+    theta0 = np.concatenate([rvec_from_R(Y0[:3, :3]), Y0[:3, 3]])
+    sol = least_squares(residuals, theta0, x_scale="jac")
+    Y = T_from_Rt(R_from_rvec(sol.x[:3]), sol.x[3:])
+    r = residuals(sol.x).reshape(-1, 2)
+    per: dict[str, list[np.ndarray]] = {c: [] for c in cams}
+    k = 0
+    for c, _T, P, _px in obs:
+        per[c].append(r[k : k + len(P)])
+        k += len(P)
+    return Y, {c: np.vstack(v) if v else np.zeros((0, 2)) for c, v in per.items()}
+
+
+def expected_rms_px(
+    installed: CalibrationResult, info: dict[str, Any], cfg: CellConfig
+) -> dict[str, float]:
+    """What the installed calibration explains per camera (see the module docstring)."""
+    rec = info.get("chain_rms_px") or {}
+    out = {}
+    for n, c in installed.cameras.items():
+        if rec.get(n) is not None:
+            out[n] = float(rec[n])
+            continue
+        f = float(np.asarray(c.K)[0, 0])
+        d = cfg.standoff_m
+        robot_px = (
+            f / d * np.hypot(cfg.options.robot_noise_m, d * np.radians(cfg.options.robot_noise_deg))
+        )
+        out[n] = float(np.hypot(c.reproj_rms_px, np.sqrt(2) * robot_px))
+    return out
+
+
+def chain_rms_px(result: CalibrationResult, problem: CalibrationProblem) -> dict[str, float]:
+    """Per camera, the rms (norm) of the residuals of ``result`` on its own session with the
+    robot poses as measured (what :func:`fit_target` sees on an unchanged cell)."""
+    out = {}
+    try:
+        _, res = fit_target(problem, result)
+    except InputError:
+        return out
+    for n, r in res.items():
+        if len(r):
+            out[n] = float(np.sqrt(np.mean(np.sum(r**2, axis=1))))
+    return out
+
+
+def projection_sigma_px(installed: CalibrationResult, camera: str) -> float | None:
+    """The rms over the image of the installed calibration's projection one-sigma (px)."""
+    from slidecal.routines.report import uncertainty_map
+
+    m = uncertainty_map(installed, camera, (16, 10))
+    return None if m is None else float(np.sqrt(np.mean(m**2)))
+
+
+def refit(
+    problem: CalibrationProblem,
+    installed: CalibrationResult,
+    robot_noise_m: float = 5e-5,
+    robot_noise_deg: float = 0.005,
+) -> CalibrationResult:
+    """The installed calibration re-estimated from the check's frames: each camera's fx, fy,
+    cx, cy, the reference camera's hand-eye and the target pose are free; the distortion and a
+    rig's extrinsics stay as installed. Each measured robot pose gets a small correction with
+    the robot's noise as its prior (``robot_noise_m`` / ``_deg``, one-sigma per axis, as in the
+    solver): with a handful of frames the robot's pose errors, common to all corners of a
+    frame, dominate and must be in the covariance. Residuals are whitened by the installed
+    calibration's pixel noise; one-sigmas from the covariance, scaled up by the reduced
+    chi-square when it exceeds 1. Compared with the installed one by
+    :func:`slidecal.routines.verdict.compare`."""
+    import dataclasses
+
+    from scipy.optimize import least_squares
+
+    from slidecal.solver.camera import project
+    from slidecal.solver.geometry import R_from_rvec, T_from_Rt
+    from slidecal.solver.result import TransformEstimate
+
+    mount = installed.mount
+    ref = installed.reference_camera or next(iter(installed.cameras))
+    cams = [c.name for c in problem.cameras if c.name in installed.cameras]
+    X0 = _hand_eye_T(installed, ref)
+    T_c_ref = {}
+    for c in cams:
+        if c == ref:
+            T_c_ref[c] = np.eye(4)
+        else:
+            t = installed.rig.get(f"T_{c}_{ref}")
+            if t is None or t.T is None:
+                raise InputError(f"the installed calibration has no complete T_{c}_{ref}")
+            T_c_ref[c] = t.T
+    Y0, _ = fit_target(problem, installed)
+    pts = problem.target.points_m
+    frames = [fr for fr in problem.frames if fr.T_base_tool is not None]
+    obs = [
+        (k, c, fr.T_base_tool, pts[fr.detections[c].ids], np.asarray(fr.detections[c].px, float))
+        for k, fr in enumerate(frames)
+        for c in cams
+        if c in fr.detections and len(fr.detections[c].ids) >= 4
+    ]
+    sigma_px = max(float(installed.sigma_px), 0.02) if np.isfinite(installed.sigma_px) else 0.1
+    s_rot = max(np.radians(robot_noise_deg), 1e-7)
+    s_t = max(robot_noise_m, 1e-7)
+    K0 = {c: np.asarray(installed.cameras[c].K, float) for c in cams}
+    dist = {c: np.asarray(installed.cameras[c].distortion, float) for c in cams}
+    nk = 4 * len(cams)
+
+    def unpack(theta: np.ndarray):  # noqa: ANN202
+        K = {}
+        for j, c in enumerate(cams):
+            fx, fy, cx, cy = theta[4 * j : 4 * j + 4]
+            K[c] = np.array([[fx, K0[c][0, 1], cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        X = T_from_Rt(
+            R_from_rvec(theta[nk : nk + 3]) @ X0[:3, :3], X0[:3, 3] + theta[nk + 3 : nk + 6]
+        )
+        Y = T_from_Rt(
+            R_from_rvec(theta[nk + 6 : nk + 9]) @ Y0[:3, :3], Y0[:3, 3] + theta[nk + 9 : nk + 12]
+        )
+        return K, X, Y
+
+    n_glob = nk + 12
+
+    def residuals(theta: np.ndarray) -> np.ndarray:
+        K, X, Y = unpack(theta)
+        d = theta[n_glob:].reshape(-1, 6)
+        out = []
+        for k, c, T, P, px in obs:
+            Tk = T @ T_from_Rt(R_from_rvec(d[k, :3]), d[k, 3:])  # the true pose, corrected
+            Tcb = T_c_ref[c] @ _T_cam_board(mount, X, Tk, Y)
+            Pc = P @ Tcb[:3, :3].T + Tcb[:3, 3]
+            out.append((project(K[c], dist[c], Pc) - px).ravel() / sigma_px)
+        out.append((d[:, :3] / s_rot).ravel())
+        out.append((d[:, 3:] / s_t).ravel())
+        return np.concatenate(out)
+
+    theta0 = np.concatenate(
+        [[K0[c][0, 0], K0[c][1, 1], K0[c][0, 2], K0[c][1, 2]] for c in cams]
+        + [np.zeros(12 + 6 * len(frames))]
+    )
+    sol = least_squares(residuals, theta0, x_scale="jac")
+    r = sol.fun
+    dof = max(len(r) - len(theta0), 1)
+    JtJ = sol.jac.T @ sol.jac
+    try:
+        cov = np.linalg.inv(JtJ)[:n_glob, :n_glob] * max(1.0, float(r @ r) / dof)
+    except np.linalg.LinAlgError:
+        raise InputError(
+            "the check's frames cannot determine the calibration (singular); take more frames "
+            "(--frames) or check that the plan has tilted groups"
+        ) from None
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    K, X, Y = unpack(sol.x)
+    cameras = {}
+    for j, c in enumerate(cams):
+        std = dict(
+            zip(("fx", "fy", "cx", "cy"), (float(v) for v in sd[4 * j : 4 * j + 4]), strict=True)
+        )
+        cameras[c] = dataclasses.replace(installed.cameras[c], K=K[c], std=std)
+    rot_deg = float(np.degrees(np.sqrt(np.trace(cov[nk : nk + 3, nk : nk + 3]))))
+    t_mm = float(np.sqrt(np.trace(cov[nk + 3 : nk + 6, nk + 3 : nk + 6])) * 1000.0)
+    he = TransformEstimate(installed.hand_eye.name, X[:3, :3], X[:3, 3], rot_deg, t_mm)
+    return dataclasses.replace(
+        installed,
+        cameras=cameras,
+        hand_eye=he,
+        T_target=TransformEstimate("target", Y[:3, :3], Y[:3, 3]),
+        covariance=None,
+        parameter_names=(),
+    )
+
+
+def judge_problem(
+    problem: CalibrationProblem,
+    installed: CalibrationResult,
+    expected: dict[str, float],
+    cfg: CellConfig,
+) -> Verdict:
+    """The check's verdict of recorded check frames against the installed calibration."""
+    import dataclasses
+
+    from slidecal.routines.run import cell_limits
+    from slidecal.routines.verdict import compare
+
+    Y, res = fit_target(problem, installed)
+    rms = {n: float(np.sqrt(np.mean(np.sum(r**2, axis=1)))) for n, r in res.items() if len(r)}
+    drift = {n: float(np.sqrt(max(rms[n] ** 2 - expected[n] ** 2, 0.0))) for n in rms}
+    sig = {}
+    for n in rms:
+        s = projection_sigma_px(installed, n)
+        sig[n] = None if not s else drift[n] / s
+    extra = {
+        "check": {
+            "frames": len(problem.frames),
+            "residual_rms_px": rms,
+            "expected_rms_px": {n: expected[n] for n in rms},
+            "drift_px": drift,
+            "drift_sigma": sig,
+            "target_pose_t_m": [float(v) for v in Y[:3, 3]],
+        }
+    }
+    notes = [
+        f"camera {n}: drift {drift[n]:.2f} px"
+        + (f" = {sig[n]:.1f} times the installed projection one-sigma" if sig[n] else "")
+        for n in rms
+    ]
+    lim = cell_limits(cfg)
+    v = judge_check(rms, expected, drift, lim, len(problem.frames), extra, notes)
+    again = refit(problem, installed, cfg.options.robot_noise_m, cfg.options.robot_noise_deg)
+    change, info = compare(
+        again, installed, dataclasses.replace(lim, max_change_px=lim.check_change_px)
+    )
+    extra["check"]["change"] = info
+    checks = v.checks + tuple(change)
+    verdict = "ok" if all(c.passed for c in checks) else "drifted"
+    return dataclasses.replace(v, verdict=verdict, checks=checks, installed=info)
+
+
+def run_check(
+    config: str | Path | CellConfig | None,
+    installed: str | Path,
+    out_dir: str | Path | None = None,
+    frames: int = DEFAULT_FRAMES,
+    progress: bool | Progress | None = None,
+    seed: int | None = None,
+    cell: Any = None,
+    retries: int = 2,
+) -> tuple[Verdict, Path]:
+    """Record a short check session and judge it against the installed calibration; write
+    ``verdict.yaml`` into the session; return the verdict and the session directory."""
+    from slidecal.routines.install import INSTALLED_FILE, current_dir
+    from slidecal.routines.results_io import read_result
+    from slidecal.routines.run import _lock_key, check_out_dir, record_session
+    from slidecal.routines.session import load_session, load_yaml
+
+    cfg = config if isinstance(config, CellConfig) else load_config(config)
+    store = Path(installed)
+    cur = current_dir(store) if store.is_dir() else None
+    if cur is None:
+        raise InputError(
+            "holds no installed calibration (no current/); install one with slidecal run --install",
+            where=str(store),
+        )
+    inst = read_result(cur / "result.yaml")
+    info = (
+        load_yaml(cur / INSTALLED_FILE, "installed.yaml")
+        if (cur / INSTALLED_FILE).is_file()
+        else {}
+    )
+    if (cur / "plan.yaml").is_file():
+        base = read_plan(cur / "plan.yaml")
+    else:
+        from slidecal.routines.planner import make_plan
+
+        base = make_plan(cfg).plan
+    plan = check_plan_from(base, cfg, frames)
+    if seed is not None and seed < 0:
+        raise InputError(f"--seed must be 0 or a positive integer, got {seed}")
+    out = (
+        Path(out_dir)
+        if out_dir is not None
+        else Path("sessions") / datetime.now().strftime("check_%Y%m%d_%H%M%S")
+    )
+    check_out_dir(out)
+    if (out / "session.yaml").exists():
+        raise InputError("already holds a session; choose a new --out directory", str(out))
+    prog = (
+        progress
+        if isinstance(progress, Progress)
+        else Progress(plan.n_poses, quiet=False if progress is None else not progress)
+    )
+    rec = record_session(
+        cfg,
+        plan,
+        out,
+        prog,
+        lock_key=_lock_key(config, cfg),
+        seed=seed,
+        cell=cell,
+        retries=retries,
+        extra={"purpose": "check", "installed": str(cur)},
+    )
+    problem = load_session(out).problem
+    verdict = judge_problem(problem, inst, expected_rms_px(inst, info or {}, cfg), cfg)
+    t = getattr(rec.robot, "robot_time_s", None)
+    verdict.extra["check"]["robot_time_s"] = None if t is None else float(t)
+    write_verdict(verdict, out)
+    for line in verdict.lines():
+        prog.event(line)
+    return verdict, out
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """``slidecal check --config CELL --installed STORE [--out DIR] [--frames N]``."""
+    p.add_argument("--config", help="cell description (default: the simulated default cell)")
+    p.add_argument("--installed", required=True, metavar="STORE", help="the install store")
+    p.add_argument("--out", help="check session directory (default: sessions/check_<time>)")
+    p.add_argument("--frames", type=int, default=DEFAULT_FRAMES, help="frames to take (2-12)")
+    p.add_argument("--seed", type=int, help="simulated cells: the random seed")
+    p.add_argument("--quiet", action="store_true", help="print only the verdict")
+
+
+def main(args: argparse.Namespace) -> int:
+    """Check, print the verdict, exit 0 (ok) or 5 (drifted)."""
+    if not 2 <= args.frames <= 12:
+        raise InputError(f"--frames must be 2 to 12, got {args.frames}")
+    verdict, out = run_check(
+        args.config,
+        args.installed,
+        args.out,
+        frames=args.frames,
+        progress=False if args.quiet else None,
+        seed=args.seed,
+    )
+    print("\n".join(verdict.lines()) if not args.quiet else f"verdict: {verdict.verdict}")
+    print(f"check session: {out}")
+    return verdict.exit_code

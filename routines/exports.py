@@ -1,0 +1,230 @@
+"""Exports of an accepted calibration for other tools, and the result header.
+
+Written into ``export/`` next to ``result.yaml`` (never for a rejected result):
+
+- ``opencv_<cam>.yaml``, ``camera_info_<cam>.yaml``: OpenCV FileStorage and ROS camera_info
+  (:mod:`slidecal.routines.results_io`);
+- ``camchain.yaml``: Kalibr's camera chain (``pinhole`` / ``radtan``; ``T_cn_cnm1`` maps
+  camera n-1 into camera n), for rigs and single cameras;
+- ``hand_eye.yaml``: every hand-eye transform as a 4x4 matrix, as translation plus quaternion
+  (order x, y, z, w, the Hamilton convention) with the parent and child frame names, and as the
+  UR teach pendant shows a pose (millimetres, rotation vector in radians, RPY in degrees);
+- ``depthai_calibration.json``: for OAK rigs (the session names the sockets).
+
+A failed export does not stop the others; :func:`write_all_exports` returns the failures as
+one-line messages for the caller to print (``slidecal: export ...: ...``) and record.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Mapping
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from slidecal.routines.results_io import (
+    hand_eye_transforms,
+    write_camera_info,
+    write_depthai_json,
+    write_opencv_yaml,
+)
+from slidecal.routines.session import dump_yaml, plain, write_atomic
+from slidecal.solver.errors import SlidecalError
+from slidecal.solver.result import CalibrationResult
+
+CAMCHAIN_FILE = "camchain.yaml"
+HAND_EYE_FILE = "hand_eye.yaml"
+DEPTHAI_FILE = "depthai_calibration.json"
+
+#: Socket of each camera of the simulated OAK-D-like head (as on an OAK-D).
+OAK_DEFAULT_SOCKETS = {"left": "CAM_B", "right": "CAM_C", "rgb": "CAM_A"}
+
+
+def slidecal_version() -> str:
+    """The installed slidecal's version (``unknown`` when not installed as a package)."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("slidecal")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def file_sha256(path: str | Path | None) -> str | None:
+    """SHA-256 of a file's bytes (None without a file)."""
+    if path is None:
+        return None
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    except OSError:
+        return None
+
+
+def result_header(cell_path: str | Path | None, cell_name: str | None = None) -> dict[str, Any]:
+    """``{slidecal_version, created_utc, cell, cell_sha256}`` for result files and exports.
+
+    Without a cell file, a packaged cell named ``cell_name`` (``default_cell.yaml``) is hashed.
+    """
+    digest = file_sha256(cell_path)
+    if cell_path is None and cell_name:
+        from importlib import resources
+
+        ref = resources.files("slidecal.mocks").joinpath(str(cell_name))
+        if ref.is_file():
+            digest = hashlib.sha256(ref.read_bytes()).hexdigest()
+    return {
+        "slidecal_version": slidecal_version(),
+        "created_utc": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "cell": str(cell_name or (Path(cell_path).name if cell_path else "unknown")),
+        "cell_sha256": digest,
+    }
+
+
+def _ordered_cameras(result: CalibrationResult) -> list[str]:
+    ref = result.reference_camera or next(iter(result.cameras))
+    return [ref] + [n for n in result.cameras if n != ref]
+
+
+def _T_cam_ref(result: CalibrationResult, name: str, ref: str) -> np.ndarray | None:
+    if name == ref:
+        return np.eye(4)
+    t = result.rig.get(f"T_{name}_{ref}")
+    return t.T if t is not None else None
+
+
+def camchain_dict(result: CalibrationResult, header: Mapping[str, Any] | None = None) -> dict:
+    """Kalibr's ``camchain.yaml`` mapping (cam0 is the reference camera)."""
+    out: dict[str, Any] = {}
+    names = _ordered_cameras(result)
+    ref = names[0]
+    for i, n in enumerate(names):
+        c = result.cameras[n]
+        K = np.asarray(c.K, dtype=float)
+        d = np.asarray(c.distortion, dtype=float).reshape(-1)
+        entry: dict[str, Any] = {
+            "camera_model": "pinhole",
+            "intrinsics": plain([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]),
+            "distortion_model": "radtan",
+            "distortion_coeffs": plain(d[:4]),
+            "resolution": [int(c.width), int(c.height)],
+            "rostopic": f"/{n}/image_raw",
+            "cam_overlaps": [j for j in range(len(names)) if j != i],
+        }
+        if i > 0:
+            Ta, Tb = _T_cam_ref(result, n, ref), _T_cam_ref(result, names[i - 1], ref)
+            if Ta is not None and Tb is not None:
+                entry["T_cn_cnm1"] = plain(Ta @ np.linalg.inv(Tb))
+        out[f"cam{i}"] = entry
+    return out
+
+
+def _quat_xyzw(R: np.ndarray) -> list[float]:
+    from scipy.spatial.transform import Rotation
+
+    q = Rotation.from_matrix(np.asarray(R, dtype=float)).as_quat()  # x, y, z, w
+    if q[3] < 0:
+        q = -q
+    return [float(v) for v in q]
+
+
+def _rpy_deg(R: np.ndarray) -> list[float]:
+    pitch = np.arcsin(-np.clip(R[2, 0], -1.0, 1.0))
+    roll = np.arctan2(R[2, 1], R[2, 2])
+    yaw = np.arctan2(R[1, 0], R[0, 0])
+    return [float(v) for v in np.degrees([roll, pitch, yaw])]
+
+
+def hand_eye_dict(result: CalibrationResult, header: Mapping[str, Any] | None = None) -> dict:
+    """``hand_eye.yaml``: every hand-eye transform in three forms (see the module docstring).
+
+    A transform whose translation the data did not determine is written with ``null``
+    translation fields and no matrix.
+    """
+    from slidecal.solver.geometry import rvec_from_R
+
+    out: dict[str, Any] = {}
+    if header:
+        out["header"] = dict(header)
+    out["conventions"] = (
+        "T_a_b maps points in frame b into frame a; translation in metres unless named _mm; "
+        "quaternion order x, y, z, w (Hamilton); rpy_deg: R = Rz(yaw) Ry(pitch) Rx(roll), the "
+        "teach pendant's RPY"
+    )
+    for key, t in hand_eye_transforms(result).items():
+        _, parent, child = key.split("_", 2)
+        child = child if len(result.cameras) > 1 else next(iter(result.cameras))
+        e: dict[str, Any] = {"parent_frame": parent, "child_frame": child}
+        if t.R is None:
+            e["rotation"] = None
+            out[key] = e
+            continue
+        R = np.asarray(t.R, dtype=float)
+        tm = None if t.t_m is None else np.asarray(t.t_m, dtype=float)
+        e["matrix_4x4"] = plain(t.T) if tm is not None else None
+        e["translation_m"] = plain(tm) if tm is not None else None
+        e["quaternion_xyzw"] = _quat_xyzw(R)
+        e["ur_pendant"] = {
+            "position_mm": plain(tm * 1000.0) if tm is not None else None,
+            "rotation_vector_rad": plain(rvec_from_R(R)),
+            "rpy_deg": _rpy_deg(R),
+        }
+        e["std_rot_deg"] = t.std_rot_deg
+        e["std_t_mm"] = t.std_t_mm if tm is not None else None
+        out[key] = e
+    return out
+
+
+def write_all_exports(
+    result: CalibrationResult,
+    out_dir: str | Path,
+    header: Mapping[str, Any] | None = None,
+    oak_sockets: Mapping[str, Any] | None = None,
+) -> tuple[list[Path], list[str]]:
+    """Write every export into ``out_dir``; return (paths written, one-line failures)."""
+    out = Path(out_dir)
+    paths: list[Path] = []
+    errors: list[str] = []
+
+    def attempt(name: str, fn) -> None:  # noqa: ANN001 - a writer returning its path
+        try:
+            paths.append(fn())
+        except (SlidecalError, OSError, ValueError) as e:
+            errors.append(f"export {name} failed: {' '.join(str(e).split())}")
+
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        return [], [f"export directory {out} cannot be created: {e.strerror or e}"]
+    for name, cam in result.cameras.items():
+        attempt(
+            f"opencv_{name}.yaml",
+            lambda c=cam, n=name: write_opencv_yaml(c, out / f"opencv_{n}.yaml"),
+        )
+        attempt(
+            f"camera_info_{name}.yaml",
+            lambda c=cam, n=name: write_camera_info(c, out / f"camera_info_{n}.yaml"),
+        )
+
+    def camchain() -> Path:
+        p = out / CAMCHAIN_FILE
+        text = dump_yaml(camchain_dict(result))
+        if header:
+            text = "".join(f"# {k}: {v}\n" for k, v in header.items()) + text
+        write_atomic(p, text)
+        return p
+
+    attempt(CAMCHAIN_FILE, camchain)
+    if result.hand_eye is not None:
+
+        def hand_eye() -> Path:
+            p = out / HAND_EYE_FILE
+            write_atomic(p, dump_yaml(hand_eye_dict(result, header)))
+            return p
+
+        attempt(HAND_EYE_FILE, hand_eye)
+    if oak_sockets:
+        attempt(DEPTHAI_FILE, lambda: write_depthai_json(result, out / DEPTHAI_FILE, oak_sockets))
+    return paths, errors

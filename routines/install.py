@@ -1,0 +1,247 @@
+"""The install store: where the calibration in use lives, with its history and a rollback.
+
+``STORE/`` (``--install STORE`` or ``install: {dir: STORE}`` in the cell file)::
+
+    current -> history/20261201T020000_123456Z     # a symbolic link, replaced atomically
+    history/20261130T020000_654321Z/               # every install, complete, never modified
+        result.yaml  summary.txt  verdict.yaml  plan.yaml  report.html  export/...
+        installed.yaml                             # when, from which session, which cell
+    history/<older>/ROLLED_BACK                    # marks an install that was rolled back
+
+An install copies the files into ``STORE/.staging-<time>/``, fsyncs every file and the
+directory, renames it into ``history/`` (one atomic rename) and then points ``current`` at it
+by renaming a new link over the old one (atomic): a reader sees the old install or the new
+one, never a half-written file, and a crash at any point leaves ``current`` intact.
+``slidecal rollback STORE`` points ``current`` at the install before it (skipping rolled-back
+ones) and marks the one it leaves ``ROLLED_BACK``.
+
+Only ``accepted`` results are installed (``drifted`` ones with ``--accept-drift``): a
+rejected result never replaces an accepted one. A result whose uncertainty is larger than the
+installed one's (any of fx, fy, cx, cy, hand-eye rotation and translation one-sigma by more
+than :data:`WORSE_FACTOR`) needs ``force``.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from slidecal.routines.lock import Lock
+from slidecal.routines.schema import _fsync_dir, dump_yaml, write_atomic
+from slidecal.solver.errors import InputError
+from slidecal.solver.result import CalibrationResult
+
+CURRENT = "current"
+HISTORY = "history"
+ROLLED_BACK = "ROLLED_BACK"
+INSTALLED_FILE = "installed.yaml"
+#: A new result is "worse" when one of its one-sigmas exceeds the installed one's by this factor.
+WORSE_FACTOR = 1.25
+
+_FILES = ("result.yaml", "summary.txt", "verdict.yaml", "plan.yaml", "report.html", "report.png")
+
+
+class NotInstalled(InputError):
+    """The result was not installed (rejected, drifted, or worse than the installed one)."""
+
+
+def _stamp() -> str:
+    return datetime.now(UTC).strftime("%Y%m%dT%H%M%S_%fZ")
+
+
+def current_dir(store: str | Path) -> Path | None:
+    """The directory ``current`` points at, or None when nothing is installed."""
+    cur = Path(store) / CURRENT
+    if not cur.exists():
+        return None
+    return cur.resolve()
+
+
+def installed_result(store: str | Path) -> CalibrationResult | None:
+    """The installed calibration (``current/result.yaml``), or None."""
+    from slidecal.routines.results_io import read_result
+
+    d = current_dir(store)
+    if d is None:
+        return None
+    return read_result(d / "result.yaml")
+
+
+def history(store: str | Path) -> list[Path]:
+    """Every install, oldest first."""
+    h = Path(store) / HISTORY
+    if not h.is_dir():
+        return []
+    return sorted(p for p in h.iterdir() if p.is_dir() and not p.name.startswith("."))
+
+
+def _uncertainties(r: CalibrationResult) -> dict[str, float]:
+    out: dict[str, float] = {}
+    for n, c in r.cameras.items():
+        K = np.asarray(c.K, dtype=float)
+        for p, v in (("fx", K[0, 0]), ("fy", K[1, 1])):
+            s = c.std.get(p)
+            if s is not None and np.isfinite(s):
+                out[f"{n}.{p}_rel"] = float(s) / abs(v)
+        for p in ("cx", "cy"):
+            s = c.std.get(p)
+            if s is not None and np.isfinite(s):
+                out[f"{n}.{p}_px"] = float(s)
+    for t in ([r.hand_eye] if r.hand_eye is not None else []) + list(r.rig.values()):
+        if t.std_rot_deg is not None and np.isfinite(t.std_rot_deg):
+            out[f"{t.name}.rot_deg"] = float(t.std_rot_deg)
+        if t.t_m is not None and t.std_t_mm is not None and np.isfinite(t.std_t_mm):
+            out[f"{t.name}.t_mm"] = float(t.std_t_mm)
+    return out
+
+
+def worse_than(new: CalibrationResult, old: CalibrationResult) -> str | None:
+    """Why ``new`` is less certain than ``old`` (one line), or None when it is not."""
+    a, b = _uncertainties(new), _uncertainties(old)
+    worst = None
+    for k in a:
+        if k in b and b[k] > 0 and a[k] > WORSE_FACTOR * b[k]:
+            r = a[k] / b[k]
+            if worst is None or r > worst[1]:
+                worst = (k, r)
+    if worst is None:
+        return None
+    return (
+        f"its {worst[0]} one-sigma is {worst[1]:.2f} times the installed one's "
+        f"(more than {WORSE_FACTOR:g})"
+    )
+
+
+def _copy_synced(src: Path, dst: Path) -> None:
+    with open(src, "rb") as fi, open(dst, "wb") as fo:
+        shutil.copyfileobj(fi, fo)
+        fo.flush()
+        os.fsync(fo.fileno())
+
+
+def _publish_link(store: Path, target: Path) -> None:
+    tmp = store / f".{CURRENT}.tmp"
+    if tmp.is_symlink() or tmp.exists():
+        tmp.unlink()
+    os.symlink(os.path.relpath(target, store), tmp)
+    os.replace(tmp, store / CURRENT)
+    _fsync_dir(store)
+
+
+def install(
+    store: str | Path,
+    source_dir: str | Path,
+    result: CalibrationResult,
+    verdict: str,
+    force: bool = False,
+    accept_drift: bool = False,
+    info: dict[str, Any] | None = None,
+) -> Path:
+    """Install the solved session ``source_dir`` (its result, exports, verdict, report) into
+    ``store``; return the new install's directory. Raises :class:`NotInstalled` with the
+    reason when the result must not replace the installed one."""
+    store = Path(store)
+    src = Path(source_dir)
+    if verdict == "rejected":
+        raise NotInstalled(
+            "the result was rejected; the installed calibration stays", where=str(store)
+        )
+    if verdict == "drifted" and not accept_drift:
+        raise NotInstalled(
+            "the result differs from the installed calibration (drifted); look at the report, "
+            "then install it with --accept-drift",
+            where=str(store),
+        )
+    if store.exists() and not store.is_dir():
+        raise InputError("is a file; --install needs a directory", where=str(store))
+    try:
+        (store / HISTORY).mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError(f"cannot be created ({e.strerror}); check the path", str(store)) from None
+    with Lock(store / ".lock", f"the install store {store}"):
+        old = installed_result(store)
+        if old is not None and not force:
+            why = worse_than(result, old)
+            if why is not None:
+                raise NotInstalled(
+                    f"the new result is less certain than the installed one: {why}; install "
+                    "it anyway with --force",
+                    where=str(store),
+                )
+        stamp = _stamp()
+        staging = store / f".staging-{stamp}"
+        staging.mkdir()
+        try:
+            for name in _FILES:
+                if (src / name).is_file():
+                    _copy_synced(src / name, staging / name)
+            exp = src / "export"
+            if exp.is_dir():
+                (staging / "export").mkdir()
+                for p in sorted(exp.iterdir()):
+                    if p.is_file():
+                        _copy_synced(p, staging / "export" / p.name)
+                _fsync_dir(staging / "export")
+            meta = {
+                "installed_utc": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+                "session": str(src.resolve()),
+                "verdict": verdict,
+                "forced": bool(force),
+                **(info or {}),
+            }
+            write_atomic(staging / INSTALLED_FILE, dump_yaml(meta))
+            _fsync_dir(staging)
+            final = store / HISTORY / stamp
+            os.replace(staging, final)
+            _fsync_dir(store / HISTORY)
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+        _publish_link(store, final)
+        return final
+
+
+def rollback(store: str | Path) -> tuple[Path, Path]:
+    """Point ``current`` at the install before it; return (left, now current)."""
+    store = Path(store)
+    if not store.is_dir():
+        raise InputError("is not an install store (no such directory)", where=str(store))
+    with Lock(store / ".lock", f"the install store {store}"):
+        cur = current_dir(store)
+        if cur is None:
+            raise InputError("has nothing installed; nothing to roll back", where=str(store))
+        entries = history(store)
+        older = [p for p in entries if p.name < cur.name and not (p / ROLLED_BACK).exists()]
+        if not older:
+            raise InputError(
+                f"has no install before {cur.name}; nothing to roll back to", where=str(store)
+            )
+        prev = older[-1]
+        write_atomic(
+            cur / ROLLED_BACK,
+            f"rolled back at {datetime.now(UTC).strftime('%Y-%m-%dT%H:%M:%SZ')}\n",
+        )
+        _publish_link(store, prev)
+        return cur, prev
+
+
+# ----------------------------------------------------------------------------- command line
+
+help = "restore the install store's previous calibration (slidecal rollback STORE)"
+
+
+def add_arguments(p) -> None:  # noqa: ANN001 - argparse parser
+    """``slidecal rollback STORE``."""
+    p.add_argument("store", help="the install store (the directory given to --install)")
+
+
+def main(args) -> int:  # noqa: ANN001 - argparse namespace
+    """Roll back and say what is installed now."""
+    left, now = rollback(args.store)
+    print(f"rolled back {left.name}; installed now: {now.name} ({Path(args.store) / CURRENT})")
+    return 0

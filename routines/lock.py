@@ -1,0 +1,112 @@
+"""A lock file so that two runs on one cell (or two installs into one store) cannot interleave.
+
+The lock is a file created with ``O_CREAT | O_EXCL`` holding the owner's pid, host and start
+time. A lock whose pid no longer runs on this host is stale: it is reported and taken over.
+Cells are keyed by what they drive: a real robot by its controller's address (two cell files
+naming one robot share a lock), a simulated cell by its file's absolute path. Locks live in
+``$SLIDECAL_LOCK_DIR`` (default: the system's temporary directory).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import socket
+import tempfile
+import time
+from pathlib import Path
+
+from slidecal.solver.errors import InputError
+
+
+def lock_dir() -> Path:
+    """Where cell locks live (``$SLIDECAL_LOCK_DIR`` or the temporary directory)."""
+    return Path(os.environ.get("SLIDECAL_LOCK_DIR") or tempfile.gettempdir())
+
+
+def cell_lock_path(key: str) -> Path:
+    """The lock file of a cell key (a robot host or a cell file path)."""
+    digest = hashlib.sha256(key.encode()).hexdigest()[:16]
+    return lock_dir() / f"slidecal-cell-{digest}.lock"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by another user
+        return True
+    return True
+
+
+class Lock:
+    """An exclusive lock file; a context manager. ``what`` names the locked thing in messages.
+
+    ``stale``: after :meth:`acquire`, the description of a stale lock that was taken over
+    (None when there was none).
+    """
+
+    def __init__(self, path: str | Path, what: str) -> None:
+        self.path = Path(path)
+        self.what = what
+        self.stale: str | None = None
+        self._held = False
+
+    def acquire(self) -> Lock:
+        """Take the lock or raise ``InputError`` naming the process that holds it."""
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        body = f"{os.getpid()} {socket.gethostname()} {time.time():.0f}\n".encode()
+        for _ in range(3):
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                holder = self._holder()
+                if holder is None:  # stale: its process is gone; take it over
+                    continue
+                pid, host = holder
+                raise InputError(
+                    f"{self.what} is in use by process {pid} on {host} (lock {self.path}); "
+                    "wait for it to finish, or remove the lock if that process is not slidecal"
+                ) from None
+            with os.fdopen(fd, "wb") as f:
+                f.write(body)
+                f.flush()
+                os.fsync(f.fileno())
+            self._held = True
+            return self
+        raise InputError(f"could not take the lock {self.path}; remove it and retry")
+
+    def _holder(self) -> tuple[int, str] | None:
+        """(pid, host) of the lock's owner, or None after removing a stale lock."""
+        try:
+            text = self.path.read_text().split()
+        except FileNotFoundError:
+            return None
+        try:
+            pid, host = int(text[0]), text[1]
+        except (IndexError, ValueError):
+            pid, host = -1, socket.gethostname()
+        if host == socket.gethostname() and (pid <= 0 or not _pid_alive(pid)):
+            self.stale = f"stale lock of process {pid} (no longer running) taken over"
+            try:
+                self.path.unlink()
+            except FileNotFoundError:
+                pass
+            return None
+        return pid, host
+
+    def release(self) -> None:
+        """Remove the lock (only when held by this object)."""
+        if self._held:
+            self._held = False
+            try:
+                self.path.unlink()
+            except FileNotFoundError:
+                pass
+
+    def __enter__(self) -> Lock:
+        return self.acquire()
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()

@@ -1,0 +1,351 @@
+"""The morning report of a run: ``report.html`` (self-contained) and ``report.png``.
+
+Written into the session by every ``run`` and ``solve`` (and ``check``): the verdict and its
+reasons; per camera the residual vectors over the image (magnified) on the corner coverage
+grid, and the projection-uncertainty map (one-sigma pixel error of a ray through each pixel,
+from the covariance of the intrinsics); the robot's accuracy per frame when the solver
+estimated it; the difference from the installed calibration. Drawn with OpenCV; the HTML
+inlines its images (``data:`` URIs) and needs no network.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from slidecal.routines.verdict import Verdict, coverage_fraction
+from slidecal.solver.camera import project
+from slidecal.solver.geometry import inv_T
+from slidecal.solver.problem import CalibrationProblem
+from slidecal.solver.result import CalibrationResult
+
+REPORT_HTML = "report.html"
+REPORT_PNG = "report.png"
+PANEL_W = 560
+_COLOURS = {
+    "accepted": (60, 160, 60),
+    "ok": (60, 160, 60),
+    "drifted": (0, 140, 230),
+    "rejected": (40, 40, 210),
+}
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+def _board_poses(
+    result: CalibrationResult, problem: CalibrationProblem, camera: str
+) -> dict[int, np.ndarray]:
+    """``T_cam_board`` per frame id: the solved chain (robot pose, hand-eye, target, rig)
+    when it is fully determined, else each image's own pose from the estimated intrinsics."""
+    cam = result.cameras[camera]
+    K, d = np.asarray(cam.K, float), np.asarray(cam.distortion, float).reshape(-1)[:5]
+    ref = result.reference_camera or next(iter(result.cameras))
+    he, tg = result.hand_eye, result.T_target
+    T_cam_ref = np.eye(4)
+    if camera != ref:
+        rig = result.rig.get(f"T_{camera}_{ref}")
+        T_cam_ref = rig.T if rig is not None and rig.T is not None else None
+    chain = (
+        he is not None
+        and he.T is not None
+        and tg is not None
+        and tg.T is not None
+        and T_cam_ref is not None
+    )
+    out: dict[int, np.ndarray] = {}
+    pts = problem.target.points_m
+    for fr in problem.frames:
+        det = fr.detections.get(camera)
+        if det is None or len(det.ids) < 4:
+            continue
+        if chain and fr.T_base_tool is not None:
+            if result.mount == "eye_in_hand":
+                T_ref_board = inv_T(he.T) @ inv_T(fr.T_base_tool) @ tg.T
+            else:
+                T_ref_board = inv_T(he.T) @ fr.T_base_tool @ tg.T
+            out[fr.id] = T_cam_ref @ T_ref_board
+            continue
+        ok, rvec, tvec = cv2.solvePnP(
+            pts[det.ids].astype(np.float64), np.asarray(det.px, np.float64), K, d
+        )
+        if ok:
+            T = np.eye(4)
+            T[:3, :3] = cv2.Rodrigues(rvec)[0]
+            T[:3, 3] = tvec.ravel()
+            out[fr.id] = T
+    return out
+
+
+def residual_vectors(
+    result: CalibrationResult, problem: CalibrationProblem, camera: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """(detected px (N, 2), detected minus projected px (N, 2)) of every corner of a camera."""
+    cam = result.cameras[camera]
+    K, d = np.asarray(cam.K, float), np.asarray(cam.distortion, float).reshape(-1)[:5]
+    poses = _board_poses(result, problem, camera)
+    pts = problem.target.points_m
+    at, res = [], []
+    for fr in problem.frames:
+        det = fr.detections.get(camera)
+        if fr.id not in poses or det is None:
+            continue
+        T = poses[fr.id]
+        P = pts[det.ids] @ T[:3, :3].T + T[:3, 3]
+        px = np.asarray(det.px, float)
+        at.append(px)
+        res.append(px - project(K, d, P))
+    if not at:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    return np.vstack(at), np.vstack(res)
+
+
+def uncertainty_map(result: CalibrationResult, camera: str, n: tuple[int, int] = (32, 20)):
+    """One-sigma pixel error (``n[1]`` x ``n[0]`` grid over the image) of the projection of a
+    fixed ray through each grid pixel, from the covariance of the camera's intrinsics; None
+    without a covariance."""
+    if result.covariance is None:
+        return None
+    cam = result.cameras[camera]
+    names = [f"{camera}.{p}" for p in ("fx", "fy", "cx", "cy", "s", "k1", "k2", "p1", "p2", "k3")]
+    idx = [
+        (k, result.parameter_names.index(nm))
+        for k, nm in enumerate(names)
+        if nm in result.parameter_names
+    ]
+    if not idx:
+        return None
+    C = np.asarray(result.covariance, float)[np.ix_([i for _, i in idx], [i for _, i in idx])]
+    K, d = np.asarray(cam.K, float), np.asarray(cam.distortion, float).reshape(-1)[:5]
+    u, v = np.meshgrid(np.linspace(0, cam.width - 1, n[0]), np.linspace(0, cam.height - 1, n[1]))
+    px = np.stack([u.ravel(), v.ravel()], 1)
+    rays = cv2.undistortPoints(px.reshape(-1, 1, 2), K, d).reshape(-1, 2)
+    P = np.hstack([rays, np.ones((len(rays), 1))])
+
+    def proj(theta: np.ndarray) -> np.ndarray:
+        Kp = np.array([[theta[0], theta[4], theta[2]], [0, theta[1], theta[3]], [0, 0, 1.0]])
+        return project(Kp, theta[5:], P)
+
+    theta0 = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1], *d])
+    J = np.zeros((len(P), 2, len(idx)))
+    for j, (k, _) in enumerate(idx):
+        h = 1e-6 * max(1.0, abs(theta0[k]))
+        tp, tm = theta0.copy(), theta0.copy()
+        tp[k] += h
+        tm[k] -= h
+        J[:, :, j] = (proj(tp) - proj(tm)) / (2 * h)
+    var = np.einsum("nij,jk,nik->n", J, C, J)
+    return np.sqrt(np.maximum(var, 0.0)).reshape(n[1], n[0])
+
+
+def _text(img: np.ndarray, s: str, org: tuple[int, int], scale=0.5, colour=(30, 30, 30), th=1):
+    cv2.putText(img, s, org, _FONT, scale, colour, th, cv2.LINE_AA)
+
+
+def residual_panel(
+    result: CalibrationResult, problem: CalibrationProblem, camera: str, grid=(8, 6)
+) -> np.ndarray:
+    """The image area (``PANEL_W`` wide): coverage cells shaded by corner count, residual
+    vectors magnified (the scale bar says by how much)."""
+    cam = result.cameras[camera]
+    s = PANEL_W / cam.width
+    H = int(round(cam.height * s))
+    img = np.full((H + 40, PANEL_W, 3), 255, np.uint8)
+    frac, counts = coverage_fraction(problem, camera, grid)
+    nx, ny = grid
+    top = counts.max() if counts.size else 1
+    for iy in range(ny):
+        for ix in range(nx):
+            c = counts[iy, ix]
+            shade = 255 - int(90 * c / top) if c > 0 else 255
+            col = (shade, 255, shade) if c > 0 else (225, 225, 245)
+            p0 = (int(ix * PANEL_W / nx), int(iy * H / ny))
+            p1 = (int((ix + 1) * PANEL_W / nx) - 1, int((iy + 1) * H / ny) - 1)
+            cv2.rectangle(img, p0, p1, col, -1)
+            cv2.rectangle(img, p0, p1, (200, 200, 200), 1)
+    at, res = residual_vectors(result, problem, camera)
+    mag = 1.0
+    if len(res):
+        rms = float(np.sqrt(np.mean(np.sum(res**2, 1))))
+        mag = 12.0 / max(rms * s, 1e-9)  # about 12 display pixels for an rms residual
+        mag = float(10 ** np.floor(np.log10(mag)))
+        for p, r in zip(at, res, strict=True):
+            a = (int(p[0] * s), int(p[1] * s))
+            b = (int((p[0] + r[0] * mag) * s), int((p[1] + r[1] * mag) * s))
+            cv2.line(img, a, b, (40, 40, 200), 1, cv2.LINE_AA)
+            cv2.circle(img, a, 1, (90, 90, 90), -1)
+        _text(
+            img,
+            f"{camera}: residuals x{mag:g} (rms {rms:.3f} px), corners in {frac * 100:.0f} % "
+            "of cells",
+            (6, H + 25),
+        )
+    return img
+
+
+def uncertainty_panel(result: CalibrationResult, camera: str) -> np.ndarray | None:
+    """The projection-uncertainty map as a colour image with its range written under it."""
+    m = uncertainty_map(result, camera)
+    if m is None:
+        return None
+    cam = result.cameras[camera]
+    H = int(round(cam.height * PANEL_W / cam.width))
+    lo, hi = float(m.min()), float(m.max())
+    norm = ((m - lo) / (hi - lo + 1e-12) * 255).astype(np.uint8)
+    big = cv2.resize(norm, (PANEL_W, H), interpolation=cv2.INTER_CUBIC)
+    col = cv2.applyColorMap(big, cv2.COLORMAP_VIRIDIS)
+    img = np.full((H + 40, PANEL_W, 3), 255, np.uint8)
+    img[:H] = col
+    _text(
+        img, f"{camera}: projection one-sigma {lo:.3g} (dark) to {hi:.3g} px (bright)", (6, H + 25)
+    )
+    return img
+
+
+def robot_panel(result: CalibrationResult) -> np.ndarray | None:
+    """The robot's pose error per frame (bars, mm), when the solver estimated it."""
+    ra = result.robot_accuracy
+    if ra is None or not ra.worst_frames:
+        return None
+    frames = sorted(ra.worst_frames)
+    img = np.full((200, PANEL_W, 3), 255, np.uint8)
+    top = max(f[1] for f in frames) or 1.0
+    w = max(2, (PANEL_W - 40) // len(frames))
+    for k, (_fid, t_mm, _deg) in enumerate(frames):
+        h = int(140 * t_mm / top)
+        x = 20 + k * w
+        cv2.rectangle(img, (x, 160 - h), (x + w - 2, 160), (180, 120, 60), -1)
+    _text(
+        img,
+        f"robot pose error per frame (max {top:.3f} mm); sigma {ra.translation_mm:.3f} mm,"
+        f" {ra.rotation_deg:.4f} deg",
+        (6, 185),
+    )
+    return img
+
+
+def banner(verdict: Verdict, width: int = PANEL_W * 2) -> np.ndarray:
+    """The verdict in its colour and up to six reasons."""
+    lines = [c.message for c in verdict.reasons][:6]
+    img = np.full((60 + 22 * len(lines), width, 3), 255, np.uint8)
+    cv2.rectangle(img, (0, 0), (width, 44), _COLOURS.get(verdict.verdict, (80, 80, 80)), -1)
+    _text(img, f"{verdict.command}: {verdict.verdict.upper()}", (10, 32), 0.9, (255, 255, 255), 2)
+    for k, line in enumerate(lines):
+        _text(img, line[:150], (10, 64 + 22 * k), 0.42)
+    return img
+
+
+def _stack(rows: list[np.ndarray], width: int) -> np.ndarray:
+    out = []
+    for r in rows:
+        if r.shape[1] < width:
+            pad = np.full((r.shape[0], width - r.shape[1], 3), 255, np.uint8)
+            r = np.hstack([r, pad])
+        out.append(r)
+    return np.vstack(out)
+
+
+def _png_b64(img: np.ndarray) -> str:
+    ok, buf = cv2.imencode(".png", img)
+    if not ok:
+        raise ValueError("OpenCV could not encode a report image")
+    return base64.b64encode(buf.tobytes()).decode()
+
+
+def write_report(
+    session_dir: str | Path,
+    result: CalibrationResult,
+    verdict: Verdict,
+    problem: CalibrationProblem,
+    installed: CalibrationResult | None = None,
+    summary: str | None = None,
+) -> Path:
+    """Write ``report.png`` and ``report.html`` into ``session_dir``; return the HTML's path."""
+    from slidecal.routines.session import write_atomic
+
+    d = Path(session_dir)
+    panels: list[tuple[str, np.ndarray]] = []
+    for name in result.cameras:
+        panels.append(
+            (f"Residuals and coverage, camera {name}", residual_panel(result, problem, name))
+        )
+        u = uncertainty_panel(result, name)
+        if u is not None:
+            panels.append((f"Projection uncertainty, camera {name}", u))
+    rp = robot_panel(result)
+    if rp is not None:
+        panels.append(("Robot accuracy per frame", rp))
+    rows = [banner(verdict)]
+    for k in range(0, len(panels), 2):
+        pair = [p for _, p in panels[k : k + 2]]
+        h = max(p.shape[0] for p in pair)
+        pair = [np.vstack([p, np.full((h - p.shape[0], PANEL_W, 3), 255, np.uint8)]) for p in pair]
+        rows.append(np.hstack(pair))
+    png = _stack(rows, PANEL_W * 2)
+    ok, buf = cv2.imencode(".png", png)
+    if not ok:
+        raise ValueError("OpenCV could not encode report.png")
+    write_atomic(d / REPORT_PNG, buf.tobytes())
+
+    e = html.escape
+    b, g, r = _COLOURS.get(verdict.verdict, (80, 80, 80))
+    colour = f"#{r:02x}{g:02x}{b:02x}"
+    parts = [
+        "<!DOCTYPE html><html><head><meta charset='utf-8'>",
+        f"<title>slidecal {e(verdict.command)}: {e(verdict.verdict)}</title>",
+        "<style>body{font-family:sans-serif;margin:20px;max-width:1200px}"
+        "table{border-collapse:collapse}td,th{border:1px solid #bbb;padding:3px 8px;"
+        "font-size:13px}.fail{background:#fdd}.pass{background:#efe}"
+        f".banner{{background:{colour};color:#fff;padding:10px 16px;font-size:24px}}"
+        "img{max-width:100%;border:1px solid #ccc}</style></head><body>",
+        f"<div class='banner'>{e(verdict.command)}: {e(verdict.verdict.upper())}</div>",
+        f"<p>Session: {e(str(d.resolve()))}; {len(problem.frames)} frames.</p>",
+    ]
+    if verdict.reasons:
+        parts.append("<h2>Reasons</h2><ul>")
+        parts += [f"<li>{e(c.message)}</li>" for c in verdict.reasons]
+        parts.append("</ul>")
+    parts.append(
+        "<h2>Every test</h2><table><tr><th>test</th><th>result</th><th>figure</th>"
+        "<th>limit</th><th>what</th></tr>"
+    )
+    for c in verdict.checks:
+        cls = "pass" if c.passed else "fail"
+        val = "" if c.value is None else f"{c.value:.4g}"
+        lim = "" if c.limit is None else f"{c.limit:.4g}"
+        parts.append(
+            f"<tr class='{cls}'><td>{e(c.test)}</td><td>{'pass' if c.passed else 'FAIL'}</td>"
+            f"<td>{val}</td><td>{lim}</td><td>{e(c.message)}</td></tr>"
+        )
+    parts.append("</table>")
+    if verdict.installed is not None:
+        parts.append(
+            "<h2>Against the installed calibration</h2><table>"
+            "<tr><th>quantity</th><th>change (combined sigma)</th></tr>"
+        )
+        for k, v in (verdict.installed.get("sigma") or {}).items():
+            parts.append(f"<tr><td>{e(k)}</td><td>{'' if v is None else f'{v:.2f}'}</td></tr>")
+        for k, v in (verdict.installed.get("max_displacement_px") or {}).items():
+            parts.append(
+                f"<tr><td>{e(k)}: displacement at the working distance (px)</td>"
+                f"<td>{'' if v is None else f'{v:.3f}'}</td></tr>"
+            )
+        parts.append("</table>")
+    elif installed is None:
+        parts.append("<p>No installed calibration to compare with.</p>")
+    for title, img in panels:
+        parts.append(
+            f"<h2>{e(title)}</h2><img alt='{e(title)}' src='data:image/png;base64,{_png_b64(img)}'>"
+        )
+    if verdict.notes:
+        parts.append(
+            "<h2>Notes</h2><ul>" + "".join(f"<li>{e(n)}</li>" for n in verdict.notes) + "</ul>"
+        )
+    if summary:
+        parts.append(f"<h2>Summary</h2><pre>{e(summary)}</pre>")
+    parts.append("</body></html>")
+    path = d / REPORT_HTML
+    write_atomic(path, "\n".join(parts))
+    return path

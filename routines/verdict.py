@@ -1,0 +1,646 @@
+"""The verdict a nightly job can trust: ``accepted | rejected | drifted | ok``, with reasons.
+
+Every ``slidecal run``, ``solve`` and ``check`` writes ``verdict.yaml`` into the session::
+
+    format: slidecal.verdict/1
+    verdict: rejected        # accepted | rejected | drifted (run, solve); ok | drifted (check)
+    command: run
+    exit_code: 4
+    reasons:                       # every test that failed, each with its figure and limit
+      - {test: scale, message: "...", value: 0.833, limit: 0.01}
+    checks:                        # every test made, passed or not
+      - {test: reprojection, passed: true, value: 0.21, limit: 1.0, message: "..."}
+    installed: {path: ..., max_sigma: 1.3, max_displacement_px: 0.21}   # when compared
+
+The gate (:func:`judge`), each test with a limit from the cell file's ``limits:`` section
+(:class:`Limits`, defaults below):
+
+- ``converged``: the solver's least squares converged;
+- ``reprojection``: the model-adequacy test of the solver (``result.adequacy``) when present,
+  else the reprojection rms against ``max_rms_px``;
+- ``std``: each parameter's one-sigma against its limit (``fx_rel_std``, ``cxy_std_px``,
+  ``hand_eye_rot_std_deg``, ``hand_eye_t_std_mm``, rig likewise);
+- ``scale``: the median camera/robot length ratio of the moves must be within 1 +- tol, tol
+  the larger of ``scale_tolerance`` and 4 times the ratio's own standard error (and the test
+  fails as inconclusive when tol exceeds 5 times ``scale_tolerance``);
+- ``coverage``: the fraction of a ``coverage_grid`` of image cells holding a detected corner;
+- ``installed``: the difference from the installed calibration, per parameter in units of
+  the two calibrations' combined one-sigma (``max_change_sigma``) and as the largest pixel
+  displacement of points at the working distance (``max_change_px``). Only this test makes a
+  result ``drifted`` (a valid calibration that differs from the installed one); any other
+  failure makes it ``rejected``.
+
+Exit codes (documented in ``docs/UNATTENDED.md``): 0 accepted / ok, 4 rejected, 5 drifted.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from slidecal.routines.session import Fields, dump_yaml, load_yaml, write_atomic
+from slidecal.solver.errors import InputError
+from slidecal.solver.geometry import rotation_angle_deg
+from slidecal.solver.problem import CalibrationProblem
+from slidecal.solver.result import CalibrationResult
+
+VERDICT_FORMAT = "slidecal.verdict/1"
+VERDICT_FILE = "verdict.yaml"
+
+EXIT_OK = 0
+EXIT_REJECTED = 4
+EXIT_DRIFTED = 5
+EXIT_CODES = {
+    "accepted": EXIT_OK,
+    "ok": EXIT_OK,
+    "rejected": EXIT_REJECTED,
+    "drifted": EXIT_DRIFTED,
+}
+
+
+@dataclass(frozen=True)
+class Limits:
+    """The gate's limits (the cell file's ``limits:`` section; every field optional).
+
+    ``max_rms_px``: reprojection rms when the solver gives no adequacy test.
+    ``fx_rel_std``: relative one-sigma of fx and fy. ``cxy_std_px``: one-sigma of cx, cy.
+    ``hand_eye_rot_std_deg`` / ``hand_eye_t_std_mm``: one-sigma of the hand-eye (and rig).
+    ``scale_tolerance``: smallest tolerance of the camera/robot length ratio around 1.
+    ``min_coverage``: fraction of the ``coverage_grid`` ([columns, rows]) cells holding a
+    corner, over all frames, per camera. ``max_change_sigma``: a parameter's change from the
+    installed calibration in units of the combined one-sigma. ``max_change_px``: the largest
+    displacement of a point at the working distance (``working_distance_m``) between the two,
+    over the central ``change_region`` (fraction of width and height) of the image.
+    ``check_max_rms_ratio``: ``slidecal check``: residual rms over the expected rms (detector
+    noise and installed uncertainty together). ``check_max_px``: the drift a check tolerates.
+    ``check_change_px``: the check's ``max_change_px`` (its re-estimate from a handful of
+    frames is noisier than a full calibration's).
+    """
+
+    max_rms_px: float = 1.0
+    fx_rel_std: float = 0.005
+    cxy_std_px: float = 3.0
+    hand_eye_rot_std_deg: float = 0.2
+    hand_eye_t_std_mm: float = 2.0
+    scale_tolerance: float = 0.01
+    min_coverage: float = 0.25
+    coverage_grid: tuple[int, int] = (8, 6)
+    max_change_sigma: float = 4.0
+    max_change_px: float = 0.6
+    working_distance_m: float = 0.5
+    change_region: float = 0.5
+    check_max_rms_ratio: float = 1.6
+    check_max_px: float = 0.5
+    check_change_px: float = 0.8
+
+
+def limits_from_dict(data: Any, source: str = "cell.yaml", path: str = "limits") -> Limits:
+    """:class:`Limits` from a cell file's ``limits:`` mapping (unknown keys refused)."""
+    if data is None:
+        return Limits()
+    f = Fields(data, source, path)
+    base = Limits()
+    known = [x.name for x in fields(Limits)]
+    for k in f.data:
+        if k not in known:
+            import difflib
+
+            near = difflib.get_close_matches(str(k), known, n=1)
+            hint = f"did you mean {near[0]!r}? " if near else ""
+            raise f.error(str(k), f"is not a limit; {hint}the limits are {known}")
+    kw: dict[str, Any] = {}
+    for x in fields(Limits):
+        if x.name == "coverage_grid":
+            if f.has(x.name):
+                g = f.get(x.name)
+                if not (
+                    isinstance(g, list)
+                    and len(g) == 2
+                    and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in g)
+                ):
+                    raise f.error(x.name, "must be [columns, rows], two positive integers")
+                kw[x.name] = (int(g[0]), int(g[1]))
+            continue
+        kw[x.name] = f.number(x.name, getattr(base, x.name), positive=True)
+    return Limits(**kw)
+
+
+@dataclass(frozen=True)
+class Check:
+    """One test of the gate: its name, whether it passed, the figure, the limit, one line."""
+
+    test: str
+    passed: bool
+    value: float | None
+    limit: float | None
+    message: str
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """What the gate decided and why. ``installed``: the comparison with the installed
+    calibration (None when there was none)."""
+
+    verdict: str
+    command: str
+    checks: tuple[Check, ...]
+    installed: dict[str, Any] | None = None
+    notes: tuple[str, ...] = ()
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def reasons(self) -> tuple[Check, ...]:
+        """The failed tests."""
+        return tuple(c for c in self.checks if not c.passed)
+
+    @property
+    def exit_code(self) -> int:
+        """0 accepted / ok, 4 rejected, 5 drifted."""
+        return EXIT_CODES[self.verdict]
+
+    def lines(self) -> list[str]:
+        """Human lines: the verdict, then each reason (or note)."""
+        out = [f"verdict: {self.verdict}"]
+        out += [f"  reason: {c.message}" for c in self.reasons]
+        out += [f"  note: {n}" for n in self.notes]
+        return out
+
+
+def _f(x: Any) -> float | None:
+    if x is None:
+        return None
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+def verdict_to_dict(v: Verdict) -> dict[str, Any]:
+    """The ``verdict.yaml`` mapping."""
+
+    def c(ch: Check) -> dict[str, Any]:
+        d = asdict(ch)
+        d["value"], d["limit"] = _f(ch.value), _f(ch.limit)
+        return d
+
+    d: dict[str, Any] = {
+        "format": VERDICT_FORMAT,
+        "verdict": v.verdict,
+        "command": v.command,
+        "exit_code": v.exit_code,
+        "reasons": [{k: x for k, x in c(ch).items() if k != "passed"} for ch in v.reasons],
+        "checks": [c(ch) for ch in v.checks],
+    }
+    if v.installed is not None:
+        d["installed"] = v.installed
+    if v.notes:
+        d["notes"] = list(v.notes)
+    d.update(v.extra)
+    return d
+
+
+def write_verdict(v: Verdict, directory: str | Path) -> Path:
+    """Write ``verdict.yaml`` atomically into ``directory``; return its path."""
+    path = Path(directory) / VERDICT_FILE
+    write_atomic(path, dump_yaml(verdict_to_dict(v)))
+    return path
+
+
+def read_verdict(directory: str | Path) -> dict[str, Any]:
+    """The ``verdict.yaml`` of a directory as a mapping (format checked)."""
+    path = Path(directory) / VERDICT_FILE
+    data = load_yaml(path, "verdict file")
+    if not isinstance(data, Mapping) or data.get("format") != VERDICT_FORMAT:
+        raise InputError(f"is not a {VERDICT_FORMAT} file", where=str(path))
+    return dict(data)
+
+
+# ----------------------------------------------------------------------------- the gate
+
+
+def judge(
+    result: CalibrationResult,
+    limits: Limits | None = None,
+    problem: CalibrationProblem | None = None,
+    installed: CalibrationResult | None = None,
+    command: str = "run",
+    session_status: str = "complete",
+    installed_path: str | None = None,
+) -> Verdict:
+    """The verdict of a solved calibration (see the module docstring)."""
+    lim = limits or Limits()
+    checks: list[Check] = []
+    notes: list[str] = []
+    if session_status != "complete":
+        checks.append(
+            Check(
+                "session",
+                False,
+                None,
+                None,
+                f"the session is {session_status} (the run stopped before its plan was done); "
+                "run it again or resume it with slidecal run --resume",
+            )
+        )
+    checks.append(
+        Check(
+            "converged",
+            bool(result.converged),
+            float(result.iterations),
+            None,
+            f"the solver {'converged' if result.converged else 'did NOT converge'} "
+            f"after {result.iterations} iterations",
+        )
+    )
+    checks.extend(_reprojection(result, lim))
+    checks.extend(_stds(result, lim))
+    checks.extend(_scale(result, lim))
+    if problem is not None:
+        checks.extend(_coverage(problem, lim))
+    cmp_info = None
+    quality_ok = all(c.passed for c in checks)
+    if installed is not None:
+        change, cmp_info = compare(result, installed, lim)
+        if installed_path is not None:
+            cmp_info = {"path": installed_path, **cmp_info}
+        checks.extend(change)
+    for name, why in result.unobservable.items():
+        notes.append(f"{name} not determined: {why}")
+    if not quality_ok:
+        verdict = "rejected"
+    elif installed is not None and not all(c.passed for c in checks):
+        verdict = "drifted"
+    else:
+        verdict = "accepted"
+    return Verdict(verdict, command, tuple(checks), cmp_info, tuple(notes))
+
+
+def _reprojection(result: CalibrationResult, lim: Limits) -> list[Check]:
+    ad = result.adequacy
+    if ad is not None:
+        worst = max(ad.normalised_rms.values(), default=float("nan"))
+        msg = (
+            f"model adequacy: reprojection rms {worst:.2f} times the detector's noise"
+            if ad.adequate
+            else "model adequacy failed: " + "; ".join(ad.reasons)
+        )
+        return [Check("adequacy", bool(ad.adequate), _f(worst), None, msg)]
+    out = []
+    rms = result.reproj_rms_px
+    for name, c in result.cameras.items():
+        r = c.reproj_rms_px
+        ok = bool(np.isfinite(r) and r <= lim.max_rms_px)
+        out.append(
+            Check(
+                "reprojection",
+                ok,
+                _f(r),
+                lim.max_rms_px,
+                f"camera {name}: reprojection rms {r:.3f} px (limit {lim.max_rms_px:g} px"
+                + ("" if ok else "; the model or the robot poses do not explain the images")
+                + ")",
+            )
+        )
+    if not result.cameras:
+        ok = bool(np.isfinite(rms) and rms <= lim.max_rms_px)
+        out.append(Check("reprojection", ok, _f(rms), lim.max_rms_px, f"rms {rms:.3f} px"))
+    return out
+
+
+def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
+    out = []
+    for name, c in result.cameras.items():
+        K = np.asarray(c.K, dtype=float)
+        for p, val in (("fx", K[0, 0]), ("fy", K[1, 1])):
+            s = _f(c.std.get(p))
+            rel = s / abs(val) if s is not None and val != 0 else None
+            ok = rel is not None and rel <= lim.fx_rel_std
+            out.append(
+                Check(
+                    "std",
+                    ok,
+                    rel,
+                    lim.fx_rel_std,
+                    f"camera {name}: {p} one-sigma "
+                    + (f"{rel * 100:.3f} %" if rel is not None else "unknown")
+                    + f" (limit {lim.fx_rel_std * 100:g} %)",
+                )
+            )
+        for p in ("cx", "cy"):
+            s = _f(c.std.get(p))
+            ok = s is not None and s <= lim.cxy_std_px
+            out.append(
+                Check(
+                    "std",
+                    ok,
+                    s,
+                    lim.cxy_std_px,
+                    f"camera {name}: {p} one-sigma "
+                    + (f"{s:.3f} px" if s is not None else "unknown")
+                    + f" (limit {lim.cxy_std_px:g} px)",
+                )
+            )
+    transforms = []
+    if result.hand_eye is not None:
+        transforms.append(result.hand_eye)
+    transforms.extend(result.rig.values())
+    for t in transforms:
+        if t.R is None:
+            out.append(Check("std", False, None, None, f"{t.name}: rotation not determined"))
+            continue
+        s = _f(t.std_rot_deg)
+        ok = s is not None and s <= lim.hand_eye_rot_std_deg
+        out.append(
+            Check(
+                "std",
+                ok,
+                s,
+                lim.hand_eye_rot_std_deg,
+                f"{t.name}: rotation one-sigma "
+                + (f"{s:.4f} deg" if s is not None else "unknown")
+                + f" (limit {lim.hand_eye_rot_std_deg:g} deg)",
+            )
+        )
+        if t.t_m is not None:
+            s = _f(t.std_t_mm)
+            ok = s is not None and s <= lim.hand_eye_t_std_mm
+            out.append(
+                Check(
+                    "std",
+                    ok,
+                    s,
+                    lim.hand_eye_t_std_mm,
+                    f"{t.name}: translation one-sigma "
+                    + (f"{s:.3f} mm" if s is not None else "unknown")
+                    + f" (limit {lim.hand_eye_t_std_mm:g} mm)",
+                )
+            )
+    return out
+
+
+#: The scale check is inconclusive (and fails) when its tolerance exceeds this many times
+#: ``scale_tolerance``: the moves disagree with each other about the scale.
+SCALE_INCONCLUSIVE = 5.0
+
+
+def scale_tolerance(ratios: np.ndarray, floor: float) -> tuple[float, float]:
+    """(median ratio, tolerance): the tolerance is the larger of ``floor`` and four standard
+    errors of the median (1.4826 MAD / sqrt(n) * 1.25)."""
+    m = float(np.median(ratios))
+    mad = float(np.median(np.abs(ratios - m))) * 1.4826
+    se = 1.25 * mad / np.sqrt(len(ratios))
+    return m, max(floor, 4.0 * se)
+
+
+def _scale(result: CalibrationResult, lim: Limits) -> list[Check]:
+    ratios = np.array([s.ratio for s in result.scale_checks], dtype=float)
+    ratios = ratios[np.isfinite(ratios)]
+    if len(ratios) == 0:
+        return []
+    m, tol = scale_tolerance(ratios, lim.scale_tolerance)
+    if tol > SCALE_INCONCLUSIVE * lim.scale_tolerance:
+        return [
+            Check(
+                "scale",
+                False,
+                tol,
+                SCALE_INCONCLUSIVE * lim.scale_tolerance,
+                f"the camera/robot length ratios of the {len(ratios)} moves scatter too much to "
+                f"check the scale (median {m:.4f} +- {tol:.4f}); check target.square_size_m, "
+                "the robot's TCP and units",
+            )
+        ]
+    ok = abs(m - 1.0) <= tol
+    return [
+        Check(
+            "scale",
+            bool(ok),
+            abs(m - 1.0),
+            tol,
+            f"camera/robot length ratio {m:.4f} over {len(ratios)} moves (allowed 1 +- {tol:.4f})"
+            + ("" if ok else "; check target.square_size_m and the robot's TCP and units"),
+        )
+    ]
+
+
+def coverage_fraction(
+    problem: CalibrationProblem, camera: str, grid: tuple[int, int] = (8, 6)
+) -> tuple[float, np.ndarray]:
+    """Fraction of a ``grid`` ([columns, rows]) of image cells holding a detected corner of
+    ``camera`` in any frame, and the (rows, columns) count of corners per cell."""
+    spec = next(c for c in problem.cameras if c.name == camera)
+    nx, ny = grid
+    counts = np.zeros((ny, nx), dtype=int)
+    for fr in problem.frames:
+        det = fr.detections.get(camera)
+        if det is None or len(det.ids) == 0:
+            continue
+        px = np.asarray(det.px, dtype=float)
+        ix = np.clip((px[:, 0] / spec.width * nx).astype(int), 0, nx - 1)
+        iy = np.clip((px[:, 1] / spec.height * ny).astype(int), 0, ny - 1)
+        np.add.at(counts, (iy, ix), 1)
+    return float(np.mean(counts > 0)), counts
+
+
+def _coverage(problem: CalibrationProblem, lim: Limits) -> list[Check]:
+    out = []
+    for c in problem.cameras:
+        frac, _ = coverage_fraction(problem, c.name, lim.coverage_grid)
+        ok = frac >= lim.min_coverage
+        nx, ny = lim.coverage_grid
+        out.append(
+            Check(
+                "coverage",
+                bool(ok),
+                frac,
+                lim.min_coverage,
+                f"camera {c.name}: corners seen in {frac * 100:.0f} % of the {nx}x{ny} image "
+                f"cells (at least {lim.min_coverage * 100:.0f} %)"
+                + ("" if ok else "; plan views that bring the target to the image's edges"),
+            )
+        )
+    return out
+
+
+# ----------------------------------------------------------------------------- comparison
+
+
+def _hand_eyes(result: CalibrationResult) -> dict[str, Any]:
+    from slidecal.routines.results_io import hand_eye_transforms
+
+    return hand_eye_transforms(result)
+
+
+def displacement_px(
+    new: CalibrationResult,
+    old: CalibrationResult,
+    camera: str,
+    distance_m: float,
+    region: float = 0.5,
+    n: int = 11,
+) -> float:
+    """The largest image displacement of points at ``distance_m`` in front of ``camera``.
+
+    A grid of ``n x n`` pixels over the central ``region`` (fraction of width and height: the
+    image's corners hold no target in a usual plan, and the distortion is extrapolated there)
+    of the old calibration's image is cast to rays with its
+    intrinsics, placed at ``distance_m``, carried into the tool (or base) frame with its
+    hand-eye, and projected back with the new calibration's hand-eye and intrinsics. Without
+    a hand-eye in both, the intrinsics alone are compared.
+    """
+    import cv2
+
+    a, b = old.cameras[camera], new.cameras[camera]
+    hw, hh = region * (a.width - 1) / 2, region * (a.height - 1) / 2
+    cu, cv = (a.width - 1) / 2, (a.height - 1) / 2
+    u, v = np.meshgrid(np.linspace(cu - hw, cu + hw, n), np.linspace(cv - hh, cv + hh, n))
+    px = np.stack([u.ravel(), v.ravel()], axis=1)
+    K_a = np.asarray(a.K, dtype=float)
+    d_a = np.asarray(a.distortion, dtype=float).reshape(-1)[:5]
+    rays = cv2.undistortPoints(px.reshape(-1, 1, 2), K_a, d_a).reshape(-1, 2)
+    P_cam = np.hstack([rays, np.ones((len(rays), 1))]) * distance_m
+    from slidecal.routines.results_io import hand_eye_names
+
+    key = hand_eye_names(old).get(camera)
+    he_a, he_b = _hand_eyes(old), _hand_eyes(new)
+    Ta = he_a[key].T if key in he_a else None
+    Tb = he_b[key].T if key in he_b else None
+    if Ta is not None and Tb is not None:
+        P_frame = P_cam @ Ta[:3, :3].T + Ta[:3, 3]
+        Tb_inv = np.linalg.inv(Tb)
+        P_cam_b = P_frame @ Tb_inv[:3, :3].T + Tb_inv[:3, 3]
+    else:
+        P_cam_b = P_cam
+    K_b = np.asarray(b.K, dtype=float)
+    d_b = np.asarray(b.distortion, dtype=float).reshape(-1)[:5]
+    proj, _ = cv2.projectPoints(P_cam_b, np.zeros(3), np.zeros(3), K_b, d_b)
+    return float(np.max(np.linalg.norm(proj.reshape(-1, 2) - px, axis=1)))
+
+
+def _z(a: float, b: float, sa: float | None, sb: float | None) -> float | None:
+    if sa is None or sb is None or not np.isfinite(sa) or not np.isfinite(sb):
+        return None
+    s = float(np.hypot(sa, sb))
+    return abs(a - b) / s if s > 0 else None
+
+
+def compare(
+    new: CalibrationResult, old: CalibrationResult, lim: Limits | None = None
+) -> tuple[list[Check], dict[str, Any]]:
+    """The change from the installed calibration ``old``: per parameter in combined sigmas,
+    and as a pixel displacement at the working distance (see :func:`displacement_px`)."""
+    lim = lim or Limits()
+    common = [n for n in new.cameras if n in old.cameras]
+    if not common:
+        check = Check(
+            "installed",
+            False,
+            None,
+            None,
+            f"the installed calibration has cameras {list(old.cameras)}, this one "
+            f"{list(new.cameras)}; they cannot be compared",
+        )
+        return [check], {"comparable": False}
+    z: dict[str, float] = {}
+    for n in common:
+        a, b = new.cameras[n], old.cameras[n]
+        Ka, Kb = np.asarray(a.K), np.asarray(b.K)
+        vals = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
+        for p, (i, j) in vals.items():
+            zz = _z(Ka[i, j], Kb[i, j], _f(a.std.get(p)), _f(b.std.get(p)))
+            if zz is not None:
+                z[f"{n}.{p}"] = zz
+        da = np.asarray(a.distortion).reshape(-1)
+        db = np.asarray(b.distortion).reshape(-1)
+        for k, p in enumerate(("k1", "k2", "p1", "p2", "k3")):
+            zz = _z(da[k], db[k], _f(a.std.get(p)), _f(b.std.get(p)))
+            if zz is not None:
+                z[f"{n}.{p}"] = zz
+    he_a, he_b = _hand_eyes(new), _hand_eyes(old)
+    pairs = [(k, he_a[k], he_b[k]) for k in he_a if k in he_b]
+    pairs += [(k, t, old.rig[k]) for k, t in new.rig.items() if k in old.rig]
+    for key, ta, tb in pairs:
+        if ta.R is not None and tb.R is not None:
+            ang = rotation_angle_deg(ta.R, tb.R)
+            zz = _z(ang, 0.0, _f(ta.std_rot_deg), _f(tb.std_rot_deg))
+            if zz is not None:
+                z[f"{key}.rot"] = zz
+        if ta.t_m is not None and tb.t_m is not None:
+            dt = float(np.linalg.norm(np.asarray(ta.t_m) - np.asarray(tb.t_m)) * 1000.0)
+            zz = _z(dt, 0.0, _f(ta.std_t_mm), _f(tb.std_t_mm))
+            if zz is not None:
+                z[f"{key}.t"] = zz
+    disp = {
+        n: displacement_px(new, old, n, lim.working_distance_m, lim.change_region) for n in common
+    }
+    worst_p = max(z, key=lambda k: z[k]) if z else None
+    worst_z = z[worst_p] if worst_p else None
+    worst_c = max(disp, key=lambda k: disp[k])
+    checks = [
+        Check(
+            "installed",
+            worst_z is None or worst_z <= lim.max_change_sigma,
+            worst_z,
+            lim.max_change_sigma,
+            (
+                f"largest change from the installed calibration: {worst_p} by {worst_z:.1f} "
+                f"combined sigma (limit {lim.max_change_sigma:g})"
+                if worst_z is not None
+                else "no uncertainties to compare the installed calibration with"
+            ),
+        ),
+        Check(
+            "installed",
+            disp[worst_c] <= lim.max_change_px,
+            disp[worst_c],
+            lim.max_change_px,
+            f"camera {worst_c}: points at {lim.working_distance_m:g} m move by up to "
+            f"{disp[worst_c]:.2f} px against the installed calibration "
+            f"(limit {lim.max_change_px:g} px)",
+        ),
+    ]
+    info = {
+        "max_sigma": _f(worst_z),
+        "max_sigma_parameter": worst_p,
+        "max_displacement_px": {k: _f(v) for k, v in disp.items()},
+        "sigma": {k: _f(v) for k, v in z.items()},
+    }
+    return checks, info
+
+
+def judge_check(
+    residual_rms_px: Mapping[str, float],
+    expected_rms_px: Mapping[str, float],
+    drift_px: Mapping[str, float],
+    limits: Limits | None = None,
+    n_frames: int = 0,
+    extra: Mapping[str, Any] | None = None,
+    notes: Sequence[str] = (),
+) -> Verdict:
+    """The verdict of ``slidecal check``: ``ok`` unless the images at known robot poses
+    disagree with the installed calibration by more than the limits (then ``drifted``).
+
+    Per camera: ``residual_rms_px`` measured, ``expected_rms_px`` what detector noise and the
+    installed uncertainty explain, ``drift_px`` the part beyond that (px).
+    """
+    lim = limits or Limits()
+    checks = []
+    for n, r in residual_rms_px.items():
+        ratio = r / expected_rms_px[n] if expected_rms_px[n] > 0 else float("inf")
+        ok = ratio <= lim.check_max_rms_ratio or drift_px[n] <= lim.check_max_px
+        checks.append(
+            Check(
+                "check",
+                bool(ok),
+                _f(ratio),
+                lim.check_max_rms_ratio,
+                f"camera {n}: residual rms {r:.3f} px at {n_frames} known robot poses is "
+                f"{ratio:.2f} times what the installed calibration explains "
+                f"({expected_rms_px[n]:.3f} px; limit {lim.check_max_rms_ratio:g}); drift "
+                f"{drift_px[n]:.2f} px (limit {lim.check_max_px:g} px)",
+            )
+        )
+    verdict = "ok" if all(c.passed for c in checks) else "drifted"
+    return Verdict(verdict, "check", tuple(checks), None, tuple(notes), dict(extra or {}))

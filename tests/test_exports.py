@@ -1,0 +1,124 @@
+"""Exports: Kalibr camchain, the hand-eye in three forms, depthai JSON from solve, the header,
+and a failed export reported, not swallowed."""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from scipy.spatial.transform import Rotation
+
+from slidecal.drivers.ur_pose import T_from_ur_pose
+from slidecal.routines.exports import (
+    camchain_dict,
+    hand_eye_dict,
+    result_header,
+    write_all_exports,
+)
+from slidecal.routines.run import solve_session
+from slidecal.solver.geometry import R_from_rvec, Rx, Ry, Rz
+from slidecal.solver.result import TransformEstimate
+
+DATA = Path(__file__).parent / "data"
+
+
+@pytest.fixture(scope="module")
+def result(tmp_path_factory):
+    d = tmp_path_factory.mktemp("exp") / "s"
+    shutil.copytree(DATA / "r1_session", d)
+    return solve_session(d).result
+
+
+def _rig(result):  # noqa: ANN001, ANN202
+    """A two-camera rig (left = the solved camera, right 75 mm to its right, rotated 1 deg)."""
+    cam = result.cameras["cam"]
+    R = R_from_rvec(np.radians([0.0, 1.0, 0.0]))
+    rig = TransformEstimate("T_right_left", R, np.array([-0.075, 0.0, 0.0]), 0.01, 0.05)
+    return dataclasses.replace(
+        result,
+        cameras={
+            "left": dataclasses.replace(cam, name="left"),
+            "right": dataclasses.replace(cam, name="right"),
+        },
+        rig={"T_right_left": rig},
+        reference_camera="left",
+    )
+
+
+def test_hand_eye_three_forms_agree(result) -> None:
+    d = hand_eye_dict(result, result_header(None))
+    e = d["T_tool_cam"]
+    assert (e["parent_frame"], e["child_frame"]) == ("tool", "cam")
+    T = np.array(e["matrix_4x4"])
+    np.testing.assert_allclose(T, result.hand_eye.T, atol=1e-12)
+    # translation + quaternion (x, y, z, w)
+    q = np.array(e["quaternion_xyzw"])
+    np.testing.assert_allclose(Rotation.from_quat(q).as_matrix(), T[:3, :3], atol=1e-9)
+    np.testing.assert_allclose(e["translation_m"], T[:3, 3])
+    # the UR pendant: millimetres and the rotation vector; RPY as the pendant shows it
+    p = e["ur_pendant"]
+    pose = [v / 1000.0 for v in p["position_mm"]] + p["rotation_vector_rad"]
+    np.testing.assert_allclose(T_from_ur_pose(pose), T, atol=1e-9)
+    r, pi, y = np.radians(p["rpy_deg"])
+    np.testing.assert_allclose(Rz(y) @ Ry(pi) @ Rx(r), T[:3, :3], atol=1e-9)
+    assert "x, y, z, w" in d["conventions"] and d["header"]["slidecal_version"]
+
+
+def test_unobservable_translation_is_null(result) -> None:
+    he = dataclasses.replace(result.hand_eye, t_m=None, std_t_mm=None)
+    e = hand_eye_dict(dataclasses.replace(result, hand_eye=he))["T_tool_cam"]
+    assert e["matrix_4x4"] is None and e["translation_m"] is None
+    assert e["ur_pendant"]["position_mm"] is None and e["quaternion_xyzw"] is not None
+
+
+def test_kalibr_camchain_of_a_rig(result) -> None:
+    rig = _rig(result)
+    c = camchain_dict(rig)
+    assert list(c) == ["cam0", "cam1"]
+    assert c["cam0"]["camera_model"] == "pinhole" and c["cam0"]["distortion_model"] == "radtan"
+    K = rig.cameras["left"].K
+    assert c["cam0"]["intrinsics"] == pytest.approx([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+    assert len(c["cam0"]["distortion_coeffs"]) == 4 and c["cam0"]["resolution"] == [1280, 800]
+    np.testing.assert_allclose(c["cam1"]["T_cn_cnm1"], rig.rig["T_right_left"].T, atol=1e-12)
+    assert "T_cn_cnm1" not in c["cam0"]
+
+
+def test_depthai_json_for_an_oak_rig_and_failed_export_reported(result, tmp_path) -> None:
+    dai = pytest.importorskip("depthai")
+    rig = _rig(result)
+    paths, errors = write_all_exports(rig, tmp_path, None, {"left": "CAM_B", "right": "CAM_C"})
+    assert errors == []
+    j = tmp_path / "depthai_calibration.json"
+    assert j in paths
+    h = dai.CalibrationHandler(str(j))
+    K = np.array(h.getCameraIntrinsics(dai.CameraBoardSocket.CAM_B, 1280, 800))
+    np.testing.assert_allclose(K, rig.cameras["left"].K, rtol=1e-6)
+    # a socket missing for a camera: the other exports stand, the failure is one line
+    paths, errors = write_all_exports(rig, tmp_path / "b", None, {"left": "CAM_B"})
+    assert len(errors) == 1 and errors[0].startswith("export depthai_calibration.json failed")
+    assert "\n" not in errors[0] and (tmp_path / "b" / "camchain.yaml").is_file()
+
+
+def test_solve_writes_depthai_json_when_the_session_names_sockets(tmp_path: Path) -> None:
+    pytest.importorskip("depthai")
+    shutil.copytree(DATA / "r1_session", tmp_path / "s")
+    doc = yaml.safe_load((tmp_path / "s" / "session.yaml").read_text())
+    doc["cameras"][0]["socket"] = "CAM_A"
+    (tmp_path / "s" / "session.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+    o = solve_session(tmp_path / "s")
+    assert (tmp_path / "s" / "export" / "depthai_calibration.json") in o.exports
+    assert o.export_errors == ()
+
+
+def test_result_header(tmp_path: Path) -> None:
+    cell = tmp_path / "cell.yaml"
+    cell.write_text("x: 1\n")
+    h = result_header(cell)
+    import hashlib
+
+    assert h["cell"] == "cell.yaml" and h["cell_sha256"] == hashlib.sha256(b"x: 1\n").hexdigest()
+    assert h["created_utc"].endswith("Z") and h["slidecal_version"]

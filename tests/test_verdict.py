@@ -1,0 +1,233 @@
+"""The verdict: garbage calibrations rejected with reasons, good ones accepted, changes from
+the installed calibration flagged (against a recorded simulated session with known truth)."""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+sys.path.insert(0, str(Path(__file__).parent))
+from unattended_helpers import (  # noqa: E402
+    DATA,
+    copy_session,
+    edit_session,
+    record_without_translation,
+    rotations_in_degrees,
+    square_size,
+)
+
+from slidecal.routines.config import load_config  # noqa: E402
+from slidecal.routines.run import solve_session  # noqa: E402
+from slidecal.routines.session import load_session  # noqa: E402
+from slidecal.routines.verdict import (  # noqa: E402
+    Limits,
+    compare,
+    judge,
+    limits_from_dict,
+    read_verdict,
+)
+from slidecal.solver.errors import InputError  # noqa: E402
+from slidecal.solver.geometry import R_from_rvec  # noqa: E402
+from slidecal.solver.result import ModelAdequacy, ScaleCheck  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def solved(tmp_path_factory):
+    d = tmp_path_factory.mktemp("v") / "s"
+    shutil.copytree(DATA / "r1_session", d)
+    o = solve_session(d)
+    return o, load_session(d).problem
+
+
+def test_good_session_is_accepted_with_exports(solved) -> None:
+    o, _ = solved
+    assert o.verdict.verdict == "accepted" and o.exit_code == 0
+    v = read_verdict(o.session_dir)
+    assert v["verdict"] == "accepted" and v["reasons"] == [] and v["exit_code"] == 0
+    tests = {c["test"] for c in v["checks"]}
+    assert {"converged", "std", "scale", "coverage"} <= tests
+    assert tests & {"reprojection", "adequacy"}  # the solver's adequacy test when it made one
+    assert (o.session_dir / "export" / "camchain.yaml").is_file()
+    assert (o.session_dir / "export" / "hand_eye.yaml").is_file()
+    assert o.result_path == o.session_dir / "result.yaml"
+    header = yaml.safe_load(o.result_path.read_text())["header"]
+    assert header["verdict"] == "accepted" and header["slidecal_version"]
+
+
+def _solve_edited(tmp_path: Path, edit) -> object:  # noqa: ANN001
+    d = edit_session(copy_session(DATA / "r1_session", tmp_path / "s"), edit)
+    return solve_session(d)
+
+
+def test_rotations_in_degrees_refused_as_they_are_read(tmp_path: Path) -> None:
+    # a camera looking down turns about 180 deg: written in degrees, no axis-angle component of
+    # a rotation can be that large, so the session reader says so before anything is solved
+    with pytest.raises(InputError, match="look like degrees"):
+        _solve_edited(tmp_path, rotations_in_degrees)
+    assert not (tmp_path / "s" / "result.yaml").exists()
+    assert not (tmp_path / "s" / "rejected").exists()
+
+
+def test_rejected_result_is_kept_apart_without_exports(tmp_path: Path) -> None:
+    o = _solve_edited(tmp_path, square_size(0.025))
+    assert o.verdict.verdict == "rejected" and o.exit_code == 4
+    # the result is kept for a person to look at, apart and without exports
+    assert o.result_path == tmp_path / "s" / "rejected" / "result.yaml"
+    assert not (tmp_path / "s" / "result.yaml").exists()
+    assert not (tmp_path / "s" / "export").exists() and not o.exports
+    assert "verdict: rejected" in (tmp_path / "s" / "rejected" / "summary.txt").read_text()
+
+
+@pytest.mark.parametrize("given_m", [0.025, 0.036])
+def test_wrong_square_size_rejected(tmp_path: Path, given_m: float) -> None:
+    # 0.036 given for the recorded 0.030 board is the ratio of a 0.025 board given as 0.030
+    o = _solve_edited(tmp_path, square_size(given_m))
+    assert o.verdict.verdict == "rejected" and o.exit_code == 4
+    assert any(c.test in ("reprojection", "adequacy", "scale") for c in o.verdict.reasons)
+
+
+@pytest.mark.slow
+def test_plan_without_translation_rejected(tmp_path: Path) -> None:
+    d = record_without_translation(tmp_path / "s")
+    o = solve_session(d)
+    assert o.verdict.verdict == "rejected"
+    assert any(c.test == "std" for c in o.verdict.reasons)
+
+
+def test_solve_does_not_overwrite_a_result(solved) -> None:
+    o, _ = solved
+    with pytest.raises(InputError, match="already holds a result"):
+        solve_session(o.session_dir)
+
+
+def test_aborted_session_is_said_and_rejected(tmp_path: Path) -> None:
+    def abort(doc: dict) -> None:
+        doc["status"] = "aborted"
+        doc["frames"] = doc["frames"][:12]
+        doc["events"] = [{"kind": "interrupted", "message": "stopped by SIGTERM"}]
+
+    o = _solve_edited(tmp_path, abort)
+    assert o.verdict.verdict == "rejected"
+    assert o.verdict.reasons[0].test == "session" and "aborted" in o.verdict.reasons[0].message
+    assert "SESSION ABORTED" in o.summary and "SIGTERM" in o.summary
+
+
+# ----------------------------------------------------------------------------- gate by gate
+
+
+def _failed(result, problem=None, **kw) -> set[str]:  # noqa: ANN001
+    return {c.test for c in judge(result, problem=problem, **kw).reasons}
+
+
+def test_each_gate_fails_on_its_own(solved) -> None:
+    o, problem = solved
+    r = dataclasses.replace(o.result, adequacy=None)  # the rms limit applies without it
+    assert _failed(r, problem) == set()
+    assert _failed(dataclasses.replace(r, converged=False)) == {"converged"}
+    cam = r.cameras["cam"]
+    big = dataclasses.replace(cam, std={**cam.std, "fx": 0.01 * cam.K[0, 0]})
+    assert _failed(dataclasses.replace(r, cameras={"cam": big})) == {"std"}
+    bad_rms = dataclasses.replace(cam, reproj_rms_px=3.0)
+    assert _failed(dataclasses.replace(r, cameras={"cam": bad_rms})) == {"reprojection"}
+    # a board 0.025 m given as 0.030 m: the camera sees 5/6 of the robot's lengths
+    scaled = tuple(
+        ScaleCheck(s.frame_a, s.frame_b, s.robot_mm, s.robot_mm * 0.025 / 0.030 * (1 + 1e-4 * k))
+        for k, s in enumerate(r.scale_checks)
+    )
+    assert _failed(dataclasses.replace(r, scale_checks=scaled)) == {"scale"}
+    # the model-adequacy test of the solver replaces the rms limit when present
+    bad = ModelAdequacy(
+        {"cam": 0.1},
+        {"cam": 7.5},
+        ((3, "cam", 12.0),),
+        False,
+        ("camera cam: residuals 7.5 times the detector noise (limit 1.5)",),
+    )
+    v = judge(dataclasses.replace(r, adequacy=bad))
+    assert {c.test for c in v.reasons} == {"adequacy"} and "7.5 times" in v.reasons[0].message
+    good = dataclasses.replace(bad, normalised_rms={"cam": 1.02}, adequate=True, reasons=())
+    assert _failed(dataclasses.replace(r, adequacy=good)) == set()
+
+
+def test_coverage_gate(solved) -> None:
+    o, problem = solved
+    few = dataclasses.replace(problem, frames=problem.frames[:1])
+    v = judge(o.result, Limits(min_coverage=0.5), few)
+    assert "coverage" in {c.test for c in v.reasons}
+
+
+# ----------------------------------------------------------------------------- installed
+
+
+def _changed(r, fx_rel=0.0, cx_px=0.0, he_deg=0.0):  # noqa: ANN001, ANN202
+    cam = r.cameras["cam"]
+    K = np.array(cam.K, dtype=float)
+    K[0, 0] *= 1 + fx_rel
+    K[1, 1] *= 1 + fx_rel
+    K[0, 2] += cx_px
+    he = r.hand_eye
+    R = R_from_rvec(np.radians(he_deg) * np.array([0.6, 0.0, 0.8])) @ he.R
+    return dataclasses.replace(
+        r,
+        cameras={"cam": dataclasses.replace(cam, K=K)},
+        hand_eye=dataclasses.replace(he, R=R),
+    )
+
+
+def test_unchanged_installed_is_accepted(solved) -> None:
+    o, problem = solved
+    v = judge(o.result, problem=problem, installed=o.result)
+    assert v.verdict == "accepted"
+    assert v.installed["max_sigma"] == pytest.approx(0.0, abs=1e-9)
+
+
+@pytest.mark.parametrize(
+    "change", [{"fx_rel": 0.003}, {"cx_px": 1.0}, {"he_deg": 0.1}], ids=["fx", "cx", "hand_eye"]
+)
+def test_change_from_installed_is_drifted(solved, change) -> None:
+    o, problem = solved
+    v = judge(o.result, problem=problem, installed=_changed(o.result, **change))
+    assert v.verdict == "drifted" and v.exit_code == 5
+    assert {c.test for c in v.reasons} == {"installed"}
+
+
+def test_compare_reports_sigma_and_pixels(solved) -> None:
+    o, _ = solved
+    checks, info = compare(o.result, _changed(o.result, cx_px=1.0))
+    assert info["max_sigma_parameter"] == "cam.cx"
+    assert info["max_displacement_px"]["cam"] == pytest.approx(1.0, abs=0.05)
+    assert len(checks) == 2
+
+
+def test_rejected_stays_rejected_against_installed(solved) -> None:
+    o, _ = solved
+    v = judge(dataclasses.replace(o.result, converged=False), installed=o.result)
+    assert v.verdict == "rejected"
+
+
+# ----------------------------------------------------------------------------- limits
+
+
+def test_limits_from_cell_file(tmp_path: Path) -> None:
+    from importlib import resources
+
+    text = resources.files("slidecal.mocks").joinpath("default_cell.yaml").read_text()
+    cell = tmp_path / "cell.yaml"
+    cell.write_text(text + "limits: {max_rms_px: 0.5, coverage_grid: [4, 3]}\n")
+    from slidecal.routines.run import cell_limits
+
+    lim = cell_limits(load_config(cell))
+    assert lim.max_rms_px == 0.5 and lim.coverage_grid == (4, 3) and lim.fx_rel_std == 0.005
+
+
+def test_unknown_limit_refused_with_nearest() -> None:
+    with pytest.raises(InputError, match="did you mean 'max_rms_px'"):
+        limits_from_dict({"max_rms": 1.0}, "cell.yaml")
+    with pytest.raises(InputError, match="must be positive"):
+        limits_from_dict({"max_rms_px": -1.0}, "cell.yaml")
