@@ -25,7 +25,7 @@ from slidecal.solver.errors import HardwareFault, InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt
 from slidecal.solver.problem import CameraSpec, Target
 
-FAULT_KINDS = ("no_frame", "disconnect")
+FAULT_KINDS = ("no_frame", "disconnect", "lost")
 
 
 @dataclass(frozen=True)
@@ -162,6 +162,7 @@ class SimulatedCameraRig:
     last_poses: dict[str, np.ndarray] = field(default_factory=dict)
     _faults: list[_Fault] = field(default_factory=list)
     _disconnected: bool = False
+    _lost: bool = False
 
     def __post_init__(self) -> None:
         names = [c.name for c in self.cameras]
@@ -174,7 +175,9 @@ class SimulatedCameraRig:
         return tuple(c.spec for c in self.cameras)
 
     def open(self) -> None:
-        """Start streaming (reconnects after an injected "disconnect")."""
+        """Start streaming (reconnects after an injected "disconnect", not after "lost")."""
+        if self._lost:
+            raise HardwareFault("no camera found: the camera rig is gone (injected fault)")
         self.is_open = True
         self._disconnected = False
 
@@ -187,7 +190,8 @@ class SimulatedCameraRig:
 
         ``"no_frame"``: that one capture times out (a dropped frame; the next one works).
         ``"disconnect"``: the device is lost at that capture; every capture fails until the rig
-        is closed and opened again.
+        is closed and opened again. ``"lost"``: the device is gone for good from that capture
+        on (opening the rig again fails too).
         """
         if kind not in FAULT_KINDS:
             raise InputError(f"unknown fault {kind!r}; use one of {FAULT_KINDS}")
@@ -201,8 +205,9 @@ class SimulatedCameraRig:
         self.capture_count += 1
         for f in self._faults:
             if f.at_capture == index:
-                if f.kind == "disconnect":
+                if f.kind in ("disconnect", "lost"):
                     self._disconnected = True
+                    self._lost = self._lost or f.kind == "lost"
                 else:
                     names = [c.name for c in self.cameras]
                     raise HardwareFault(

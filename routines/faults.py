@@ -3,8 +3,9 @@
 
 Kinds (:data:`FAULT_KINDS`): ``protective_stop``, ``emergency_stop`` (the arm stops halfway
 through the move to that frame), ``disconnect`` (the robot's link is lost during that move),
-``stall`` (the arm stops halfway without any fault and never arrives), ``no_frame`` (that
-frame's capture times out), ``camera_lost`` (the camera is gone from that capture on).
+``stall`` (the arm stops halfway without any fault and never arrives), ``no_frame`` (every
+capture at that frame's pose times out, its retries included), ``camera_lost`` (the camera is
+gone for good from that capture on: reconnecting fails).
 ``FRAME`` counts captured frames from 0: the fault hits the move to (or the capture of) that
 frame, so every frame before it is on disk. The routine then stops the arm, records the event
 in the session and exits with the hardware-fault code 3.
@@ -33,7 +34,10 @@ ROBOT_FAULTS = ("protective_stop", "emergency_stop", "disconnect", "stall")
 #: How the simulated arm and camera rig (mocks/) produce each kind.
 SIMULATED = {"protective_stop": "protective_stop", "emergency_stop": "emergency_stop",
              "disconnect": "disconnect", "stall": "timeout", "no_frame": "no_frame",
-             "camera_lost": "disconnect"}
+             "camera_lost": "lost"}
+#: Captures a ``no_frame`` fault spoils from its frame on: more than any capture retries, so the
+#: frame cannot be captured at that pose at all (a single dropped frame is retried, and survives)
+NO_FRAME_CAPTURES = 20
 #: The loopback controller's control command for each robot fault (mocks/ur_controller.py).
 CONTROLLER = {"protective_stop": "pstop", "emergency_stop": "estop", "disconnect": "drop_next",
               "stall": "stall"}
@@ -99,6 +103,9 @@ class FaultInjector:
                 continue
             if s.kind in ROBOT_FAULTS:
                 self._arm_robot(s.kind)
+            elif s.kind == "no_frame":
+                for k in range(NO_FRAME_CAPTURES):
+                    self._rig.inject_fault("no_frame", self._rig.capture_count + k)
             else:
                 self._rig.inject_fault(SIMULATED[s.kind], self._rig.capture_count)
             self.fired.append(s)

@@ -91,6 +91,8 @@ SESSION_KEYS: dict[str, tuple[str, ...]] = {
         "devices",
         "controller",
         "limits",
+        "purpose",
+        "installed",
         "simulation",
         "frames",
         "events",

@@ -1004,6 +1004,7 @@ def _refine(
         return changed
 
     vce_step = [0]
+    vce_note: list[str] = []
     last_step: dict[str, float] = {}
 
     def accelerate(key: str, old: float, new: float, floor: float) -> float:
@@ -1066,12 +1067,22 @@ def _refine(
         if np.array_equal(new_out, ~inl):
             break
         inlier[:n_px] = np.repeat(~new_out, 2)
+    else:
+        if estimate:  # the noise levels still creep (toward the floor, or slowly): keep the
+            # last ones and converge the parameters under them, so the estimate is the
+            # minimum of a definite model and not a point part way along the creep
+            state, converged, it = _lm(model, state, inlier * cam_w, max_iter)
+            total_it += it
+            vce_note.append(
+                f"the noise levels were still moving after {vce_step[0]} updates; the last "
+                "ones were kept"
+            )
     weights = inlier * cam_w
     r, A, _ = model.normal_equations(state, weights)
     inlier_rows = inlier.copy()
     n_in = int(inlier_rows[:n_px].sum())
     dof = n_in + n_prior - P
-    messages: list[str] = []
+    messages: list[str] = list(vce_note)
     sigma_px = noise(r, weights)
     cov = None
     if dof <= 0:

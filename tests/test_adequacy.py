@@ -108,3 +108,20 @@ def test_a_four_point_target_is_judged_by_its_own_redundancy(robot_noise_mm):
     assert r.adequacy is not None and r.adequacy.adequate, r.adequacy
     # 56 images x 2 redundant rows: the ratio of two noise estimates is within ~15 % (2 sigma)
     assert 0.8 < r.adequacy.normalised_rms["cam"] < 1.25
+
+
+def test_noise_levels_that_keep_creeping_still_give_a_converged_solve():
+    """The default simulated cell, seed 2 (a recorded session): the robot's noise levels were
+    still moving after the last variance-component update, and the solve used to stop part way
+    (not converged, verdict rejected). The last levels are kept and the parameters converged."""
+    from pathlib import Path
+
+    from slidecal.routines.session import load_session
+
+    s = load_session(Path(__file__).parent / "data" / "default_cell_seed2")
+    r = calibrate(s.problem)
+    assert r.converged and r.adequacy is not None and r.adequacy.adequate
+    K_true = np.asarray(s.simulation["cameras"]["cam"]["K"])
+    K = r.cameras["cam"].K
+    for name, (i, j) in {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}.items():
+        assert abs(K[i, j] - K_true[i, j]) < 3 * r.cameras["cam"].std[name], name

@@ -57,6 +57,8 @@ def test_each_fault_stops_keeps_frames_records_and_exits_3(kind, tmp_path, monke
     session = load_session(out, detect_images=False)
     assert len(session.problem.frames) == 2
     assert session.status == "aborted"
-    (event,) = session.events
+    *retries, event = session.events  # a camera fault is first retried (reconnecting)
+    assert all(e["kind"] == "retry" for e in retries)
+    assert len(retries) == (2 if kind in ("no_frame", "camera_lost") else 0)
     assert event["kind"] == "fault" and event["frames_kept"] == 2
     assert not (out / "result.yaml").exists()
