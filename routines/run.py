@@ -218,6 +218,7 @@ def run_calibration(
 
     prog.message("solving")
     session = load_session(out)  # solve what is on disk: the run can be replayed exactly
+    truth = session.simulation  # the truth as recorded, with the poses the arm really reached
     from slidecal.solver.calibrate import calibrate
 
     result = calibrate(session.problem)
@@ -283,7 +284,10 @@ def _acquire(
                     "coverage": float(rep.coverage),
                     "n_corners": int(len(rep.detection.ids)),
                 }
-            fid = writer.append_frame(T_meas, images, detections, group=g, quality=quality)
+            T_true = robot.true_pose() if hasattr(robot, "true_pose") else None  # simulated
+            fid = writer.append_frame(
+                T_meas, images, detections, group=g, quality=quality, T_base_tool_true=T_true
+            )
             if log is not None:
                 log.frame(fid, T_meas, images, detections, _clock(robot))
             prog.frame_done()
