@@ -12,7 +12,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from slidecal.drivers import ur_kinematics as urk
 from slidecal.solver.camera import K_matrix, project
@@ -24,7 +23,6 @@ from slidecal.solver.geometry import (
     T_from_Rt,
     inv_T,
     look_at_R_cam_world,
-    rvec_from_R,
     transform_points,
 )
 from slidecal.solver.problem import (
@@ -482,34 +480,19 @@ def effective_truth(
     A constant part of the arm's error is indistinguishable from a change of the hand-eye (in
     the tool frame) or of the target (in the base frame): no camera can tell them apart. The
     solver's per-frame pose corrections have a zero-mean prior, so it converges to the pair
-    that leaves the smallest corrections: ``X' = X B``, ``Y' = A Y`` minimising, over the
-    frames, ``|rot(E_k)|^2 / sigma_rot^2 + |t(E_k)|^2 / sigma_t^2`` with ``E_k`` the correction
-    that maps the measured pose onto the one the camera saw. Physical truth and effective
-    truth differ by the arm's constant error (about ``sigma_*``).
+    that leaves the smallest corrections (:func:`slidecal.mocks.cell.effective_truth`, which
+    the session judge uses too). Physical truth and effective truth differ by the arm's
+    constant error (about ``sigma_*``).
     """
-    T_meas = np.stack([f.T_base_tool for f in s.problem.frames])
-    T_true = s.T_base_tool_true
-    eih = s.problem.mount == "eye_in_hand"
-    X, Y = s.truth.X[0], s.truth.Y  # X = T_cam_tool / T_cam_base; Y = T_base_board / T_tool_board
-    w = np.array([1.0 / np.radians(sigma_rot_deg)] * 3 + [1000.0 / sigma_mm] * 3)
+    from slidecal.mocks.cell import effective_truth as _effective
 
-    def corrections(p: np.ndarray) -> np.ndarray:
-        A = T_from_Rt(R_from_rvec(p[:3]), p[3:6])
-        B = T_from_Rt(R_from_rvec(p[6:9]), p[9:12])
-        out = []
-        for Tt, Tm in zip(T_true, T_meas, strict=True):
-            # the pose the camera saw with the model's X' = B X, Y' = Y A (eye-in-hand:
-            # X' (T)^-1 Y' = X Tt^-1 Y, so T = Y' Y^-1 Tt X^-1 X'); eye-to-hand alike
-            if eih:
-                T = (Y @ A) @ inv_T(Y) @ Tt @ inv_T(X) @ (B @ X)
-            else:
-                T = inv_T(B @ X) @ X @ Tt @ Y @ inv_T(Y @ A)
-            E_rot = rvec_from_R(T[:3, :3] @ Tm[:3, :3].T)
-            out.append(np.r_[E_rot, T[:3, 3] - Tm[:3, 3]] * w)
-        return np.concatenate(out)
-
-    p = least_squares(corrections, np.zeros(12), method="lm").x
-    A = T_from_Rt(R_from_rvec(p[:3]), p[3:6])
-    B = T_from_Rt(R_from_rvec(p[6:9]), p[9:12])
-    X_eff, Y_eff = B @ X, Y @ A
-    return inv_T(X_eff), Y_eff
+    T_he, T_tg = _effective(
+        s.problem.mount,
+        s.T_base_tool_true,
+        [f.T_base_tool for f in s.problem.frames],
+        inv_T(s.truth.X[0]),  # X = T_cam_tool / T_cam_base
+        s.truth.Y,
+        sigma_rot_deg,
+        sigma_mm,
+    )
+    return T_he, T_tg

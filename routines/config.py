@@ -52,7 +52,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -60,6 +60,7 @@ from typing import Any
 import numpy as np
 
 from slidecal.mocks.camera import SimCamera
+from slidecal.mocks.render import Photo
 from slidecal.routines.devices import OAK_CAMERA_KEYS, OAK_RIG_KEYS, UVC_CAMERA_KEYS
 from slidecal.routines.schema import Fields, load_yaml, parse_yaml
 from slidecal.routines.session import (
@@ -94,6 +95,10 @@ KINEMATIC_ERROR_DEFAULTS = {
     "repeatability_mm": 0.03,
     "repeatability_deg": 0.005,
 }
+
+#: ``simulation.cameras.<name>.photo``: the fields of ``slidecal.mocks.render.Photo``
+#: (photograph-like imaging) a cell file may set.
+PHOTO_KEYS = tuple(f.name for f in fields(Photo))
 
 CELL_KEYS: dict[str, tuple[str, ...]] = {
     "": (
@@ -158,7 +163,10 @@ CELL_KEYS: dict[str, tuple[str, ...]] = {
         "exposure",
         "colour",
         "vignetting",
+        "photo",
     ),
+    # ``photo: true`` takes every default of ``slidecal.mocks.render.Photo``; a mapping sets some
+    "simulation.cameras.*.photo": PHOTO_KEYS,
     "simulation.noise": ("robot_mm", "robot_deg"),
     "simulation.target_jitter": ("mm", "deg"),
     "simulation.kinematic_error": ("mm", "deg", "repeatability_mm", "repeatability_deg"),
@@ -448,6 +456,7 @@ def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
                     "exposure": c.exposure,
                     "colour": c.colour,
                     "vignetting": c.vignetting,
+                    "photo": asdict(c.photo) if c.photo is not None else False,
                 }
                 for c in sim.cameras
             },
@@ -457,6 +466,8 @@ def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
             "noise": {"robot_mm": sim.robot_noise_m * 1000.0, "robot_deg": sim.robot_noise_deg},
             "target_jitter": {"mm": sim.target_jitter_mm, "deg": sim.target_jitter_deg},
         }
+        if sim.kinematic_error is not None:
+            out["simulation"]["kinematic_error"] = dict(sim.kinematic_error)
     out["plan"] = dict(cfg.plan)
     out["options"] = options_to_dict(cfg.options)
     return out
@@ -621,9 +632,40 @@ def _sim_camera(c: Fields, name: str, base: SimCamera | None) -> SimCamera:
             values[key] = c.number(key, minimum=lo, maximum=hi)
     if c.has("colour"):
         values["colour"] = c.boolean("colour")
+    if c.has("photo"):
+        values["photo"] = _photo(c)
     if base is not None:
         return replace(base, **values)
     return SimCamera(name=name, **values)
+
+
+def _photo(c: Fields) -> Photo | None:
+    """``simulation.cameras.<name>.photo``: true (the defaults), false (the clean renderer) or a
+    mapping of :class:`~slidecal.mocks.render.Photo` fields over the defaults."""
+    if isinstance(c.data.get("photo"), bool):
+        return Photo() if c.boolean("photo") else None
+    if not isinstance(c.data.get("photo"), Mapping):
+        raise c.error("photo", "must be true, false or a mapping of photo parameters")
+    pf = c.section("photo", CELL_KEYS["simulation.cameras.*.photo"])
+    defaults = Photo()
+    values: dict[str, Any] = {}
+    for name in pf.data:
+        default = getattr(defaults, name)
+        if isinstance(default, bool):
+            values[name] = pf.boolean(name)
+        elif name == "jpeg_quality":
+            values[name] = pf.integer(name, minimum=0, maximum=100)
+        elif name == "glare_spots":
+            values[name] = pf.integer(name, minimum=0, maximum=100)
+        elif name == "focus_distance_m":
+            values[name] = None if pf.data[name] is None else pf.number(name, minimum=1e-3)
+        elif name in ("chromatic_red", "chromatic_blue"):
+            values[name] = pf.number(name, minimum=-0.05, maximum=0.05)
+        elif name in ("vignetting", "gradient", "glare_strength"):
+            values[name] = pf.number(name, minimum=0.0, maximum=1.0)
+        else:  # aperture_mm, pixel_pitch_um, full_well_e, glare_radius
+            values[name] = pf.number(name, minimum=0.0, maximum=1e6)
+    return Photo(**values)
 
 
 def _simulation(f: Fields, mount: str) -> SimulationConfig:

@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from slidecal.drivers.ur_pose import pendant_text
+from slidecal.drivers.ur_pose import T_from_ur_pose, pendant_text
 from slidecal.routines.schema import (
     Fields,
     dump_yaml,
@@ -674,7 +674,7 @@ def summary_text(result: CalibrationResult, truth: Mapping[str, Any] | None = No
     if truth:
         errs = errors_against_truth(result, truth)
         if errs:
-            lines.append("errors against the simulated truth:")
+            lines.append(f"errors against the simulated truth ({truth_kind(truth)}):")
             lines.extend(f"  {k} = {_fmt(v, '.4g')}" for k, v in errs.items())
     return "\n".join(lines) + "\n"
 
@@ -742,6 +742,11 @@ def errors_against_truth(result: CalibrationResult, truth: Mapping[str, Any]) ->
     Keys: ``<cam>.fx_rel`` (relative), ``<cam>.fx_px``, ``fy``, ``cx``, ``cy`` (pixels);
     ``<T_name>.rot_deg`` (angle of R_est R_true'), ``<T_name>.t_mm`` (translation error norm)
     for every hand-eye, rig and target transform present in both.
+
+    The intrinsics and the rig are judged against the physical truth. The hand-eye and the
+    target pose are judged against the truth the data can know (:func:`judged_truth`): when the
+    block records the poses the arm really reached (``frames``), the physical truth moved by
+    the arm's constant error over the frames the solve used.
     """
     out: dict[str, float] = {}
     tcams = truth.get("cameras") or {}
@@ -758,15 +763,92 @@ def errors_against_truth(result: CalibrationResult, truth: Mapping[str, Any]) ->
     tname = target_pose_name(result.mount)
     if tname and result.T_target is not None:
         est[tname] = result.T_target
+    judged = judged_truth(result, truth)
     for key, t in est.items():
-        tt = truth.get(key)
-        if not isinstance(tt, Mapping) or t.R is None or "R" not in tt:
+        T_true = judged.get(key)
+        if T_true is None or t.R is None:
             continue
-        out[f"{key}.rot_deg"] = rotation_angle_deg(t.R, np.asarray(tt["R"], dtype=float))
-        if t.t_m is not None and tt.get("t_m") is not None:
-            dt = np.asarray(t.t_m) - np.asarray(tt["t_m"], dtype=float)
+        out[f"{key}.rot_deg"] = rotation_angle_deg(t.R, T_true[:3, :3])
+        if t.t_m is not None:
+            dt = np.asarray(t.t_m) - T_true[:3, 3]
             out[f"{key}.t_mm"] = float(np.linalg.norm(dt) * 1000.0)
     return out
+
+
+def judged_truth(result: CalibrationResult, truth: Mapping[str, Any]) -> dict[str, np.ndarray]:
+    """The transforms (4x4, result-file names) a result is judged against.
+
+    Every ``T_<a>_<b>`` of the block; with the arm's true and reported poses (``frames``) the
+    hand-eye of every camera and the target pose become the effective truth
+    (:func:`slidecal.mocks.cell.effective_truth`) over the frames the solve used, weighted by
+    the robot accuracy the solve estimated (else the simulated arm's).
+    """
+    out = {
+        k: T
+        for k in truth
+        if isinstance(k, str) and re.fullmatch(r"T_\w+_\w+", k)
+        for T in [truth_transform(truth, k)]
+        if T is not None
+    }
+    frames = truth_frames(truth)
+    used = {fid for fid, _ in result.residuals_px}
+    frames = [f for f in frames if not used or f[0] in used]
+    he_names = hand_eye_names(result)
+    tname = target_pose_name(result.mount)
+    ref_key = he_names.get(_reference(result))
+    if not frames or ref_key not in out or tname not in out:
+        return out
+    from slidecal.mocks.cell import effective_truth
+
+    rot_deg, mm = _robot_sigma(result, truth)
+    T_he, T_tg = out[ref_key], out[tname]
+    T_he_eff, T_tg_eff = effective_truth(
+        result.mount, [f[1] for f in frames], [f[2] for f in frames], T_he, T_tg, rot_deg, mm
+    )
+    shift = T_he_eff @ np.linalg.inv(T_he)  # the same for every camera of a rig
+    for key in he_names.values():
+        if key in out:
+            out[key] = shift @ out[key]
+    out[ref_key], out[tname] = T_he_eff, T_tg_eff
+    return out
+
+
+def truth_frames(truth: Mapping[str, Any]) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """``(frame id, true T_base_tool, measured T_base_tool)`` of the block's ``frames``."""
+    out = []
+    for fr in truth.get("frames") or []:
+        out.append(
+            (
+                int(fr["id"]),
+                T_from_ur_pose(np.asarray(fr["T_base_tool"], dtype=float)),
+                T_from_ur_pose(np.asarray(fr["T_base_tool_measured"], dtype=float)),
+            )
+        )
+    return out
+
+
+def truth_kind(truth: Mapping[str, Any] | None) -> str:
+    """Which truth :func:`errors_against_truth` judges the hand-eye and target against."""
+    if truth and truth.get("frames"):
+        n = len(truth["frames"])
+        return (
+            f"hand-eye and target: the effective truth over {n} frames, the physical one moved "
+            "by the arm's constant error; intrinsics and rig: the physical truth"
+        )
+    return "the physical truth"
+
+
+def _robot_sigma(result: CalibrationResult, truth: Mapping[str, Any]) -> tuple[float, float]:
+    """Rotation (deg) and translation (mm) weights of the effective truth: the accuracy the
+    solve estimated, else the simulated arm's (kinematic error, else measurement noise)."""
+    ra = result.robot_accuracy
+    if ra is not None and (ra.rotation_deg > 0 or ra.translation_mm > 0):
+        return max(ra.rotation_deg, 1e-4), max(ra.translation_mm, 1e-3)
+    noise = truth.get("noise") or {}
+    ke = noise.get("kinematic_error") or {}
+    rot = float(ke.get("deg", noise.get("robot_deg", 0.0)) or 0.0)
+    mm = float(ke.get("mm", noise.get("robot_mm", 0.0)) or 0.0)
+    return max(rot, 1e-4), max(mm, 1e-3)
 
 
 def truth_transform(truth: Mapping[str, Any], key: str) -> np.ndarray | None:

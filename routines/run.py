@@ -437,6 +437,7 @@ def run_calibration(
 
     prog.message("solving")
     session = load_session(out)  # solve what is on disk: the run can be replayed exactly
+    truth = session.simulation  # the truth as recorded, with the poses the arm really reached
     from slidecal.solver.calibrate import calibrate
 
     result = calibrate(session.problem)
@@ -791,7 +792,10 @@ def _acquire(
             T_meas = robot.measured_pose()
             prog.step(i, f"group {g + 1}: capturing")
             images, detections, quality = _capture(rig, cfg, writer, prog, i, retries)
-            fid = writer.append_frame(T_meas, images, detections, group=g, quality=quality)
+            T_true = robot.true_pose() if hasattr(robot, "true_pose") else None  # simulated
+            fid = writer.append_frame(
+                T_meas, images, detections, group=g, quality=quality, T_base_tool_true=T_true
+            )
             if log is not None:
                 log.frame(fid, T_meas, images, detections, _clock(robot))
             counts = ", ".join(f"{n} {q['n_corners']} corners" for n, q in quality.items())

@@ -30,7 +30,9 @@ optional, additive, so the format stays ``slidecal.session/1`` and older session
 - ``simulation``: the truth of a simulated run under the result file's names:
   ``cameras: {name: {K, distortion}}``, ``T_tool_cam`` (or ``T_base_cam``; ``T_tool_<name>`` per
   camera of a rig), ``T_base_board`` (or ``T_tool_board``), ``T_<name>_<ref>``, ``noise``,
-  ``seed``. Transforms are ``{R: 3x3, t_m: [x, y, z]}``.
+  ``seed``, ``frames: [{id, T_base_tool, T_base_tool_measured}]`` (per frame the pose the arm
+  really reached and the one it reported, UR poses: what the judge of the result needs).
+  Transforms are ``{R: 3x3, t_m: [x, y, z]}``.
 """
 
 from __future__ import annotations
@@ -108,7 +110,9 @@ SESSION_KEYS: dict[str, tuple[str, ...]] = {
         "quality",
     ),
     "detection": ("ids", "px"),
-    "simulation": ("cameras", "noise", "seed"),  # and transforms named T_<a>_<b>
+    "simulation": ("cameras", "noise", "seed", "frames"),  # and transforms named T_<a>_<b>
+    # per frame id: the pose the simulated arm really reached and the one it reported
+    "simulation.frames[]": ("id", "T_base_tool", "T_base_tool_measured"),
     "simulation.cameras.*": ("K", "distortion"),
     "simulation.noise": ("robot_mm", "robot_deg", "cameras", "kinematic_error"),
     "simulation.noise.kinematic_error": ("mm", "deg", "repeatability_mm", "repeatability_deg"),
@@ -582,6 +586,16 @@ def _simulation_truth(f: Fields | None, names: Sequence[str]) -> dict[str, Any] 
             c.number(k, 0.0, minimum=0.0)
     if f.has("seed"):
         f.integer("seed", minimum=0)
+    seen: set[int] = set()
+    for i, fr in enumerate(f.list("frames", required=False)):
+        ff = Fields(fr, f.file, f"{f.path}.frames[{i}]")
+        ff.only(SESSION_KEYS["simulation.frames[]"])
+        fid = ff.integer("id", minimum=0)
+        if fid in seen:
+            raise ff.error("id", f"frame {fid} is listed twice; give each frame's truth once")
+        seen.add(fid)
+        ur_pose_field(ff, "T_base_tool")
+        ur_pose_field(ff, "T_base_tool_measured")
     return dict(f.data)
 
 
@@ -793,13 +807,16 @@ class SessionWriter:
         motion_board: np.ndarray | None = None,
         extra: Mapping[str, Any] | None = None,
         frame_id: int | None = None,
+        T_base_tool_true: np.ndarray | None = None,
     ) -> int:
         """Write one frame now and return its id (``frame_id``, default: the next free id).
 
         ``T_base_tool`` (4, 4), metres: the pose measured after settling (None without a robot).
         ``images``: uint8 (H, W) or (H, W, 3) per camera name, saved as PNG. ``detections``:
         per camera (an empty detection when the camera saw nothing). ``motion_board`` (3,):
-        board-frame motion knowledge (paper's cases).
+        board-frame motion knowledge (paper's cases). ``T_base_tool_true`` (4, 4): simulated
+        runs, the pose the arm really reached, recorded with ``T_base_tool`` in the
+        ``simulation:`` block's ``frames`` (ignored without a ``simulation:`` block).
         """
         import cv2
 
@@ -834,6 +851,15 @@ class SessionWriter:
         if extra:
             entry.update(plain(dict(extra)))
         self.data["frames"].append(entry)
+        sim = self.data.get("simulation")
+        if T_base_tool_true is not None and sim is not None and T_base_tool is not None:
+            sim.setdefault("frames", []).append(
+                {
+                    "id": fid,
+                    "T_base_tool": ur_pose_from_T(np.asarray(T_base_tool_true, dtype=float)),
+                    "T_base_tool_measured": entry["T_base_tool"],
+                }
+            )
         self._write()
         return fid
 

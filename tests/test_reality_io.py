@@ -3,6 +3,7 @@ in the simulated cell (the files that carry them: results_io, session, config, m
 
 from __future__ import annotations
 
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +11,7 @@ import yaml
 
 from slidecal.mocks import scenarios as sc
 from slidecal.mocks.cell import SimulatedCell
-from slidecal.routines.config import load_packaged_cell
+from slidecal.routines.config import load_config, load_packaged_cell
 from slidecal.routines.results_io import read_result, summary_text, write_result
 from slidecal.routines.session import options_from_dict, options_to_dict
 from slidecal.solver.calibrate import calibrate
@@ -52,7 +53,7 @@ def test_estimate_robot_noise_option_round_trips() -> None:
     assert options_from_dict({}, "s.yaml").estimate_robot_noise is True
 
 
-def test_simulated_cell_with_a_real_arms_kinematic_error() -> None:
+def test_simulated_cell_with_a_real_arms_kinematic_error(tmp_path) -> None:
     over = {"simulation": {"kinematic_error": {"mm": 1.0, "deg": 0.1}}}
     cfg = load_packaged_cell("default_cell.yaml", over)
     assert cfg.simulation.kinematic_error["repeatability_mm"] == 0.03
@@ -62,6 +63,10 @@ def test_simulated_cell_with_a_real_arms_kinematic_error() -> None:
     err_mm = 1000 * np.linalg.norm(T_true[:3, 3] - T_meas[:3, 3])
     assert 0.1 < err_mm < 3.0
     assert cell.truth["noise"]["kinematic_error"]["deg"] == 0.1
-    plain = SimulatedCell.from_config(load_packaged_cell("default_cell.yaml"), seed=3)
+    # the shipped cell carries a real arm; a cell without the key has an exact arm
+    text = resources.files("slidecal.mocks").joinpath("default_cell.yaml").read_text()
+    lines = [ln for ln in text.splitlines() if not ln.lstrip().startswith("kinematic_error:")]
+    (tmp_path / "exact_arm.yaml").write_text("\n".join(lines) + "\n")
+    plain = SimulatedCell.from_config(load_config(str(tmp_path / "exact_arm.yaml")), seed=3)
     assert plain.robot.kinematic_error is None
     assert "kinematic_error" not in plain.truth["noise"]

@@ -1,0 +1,239 @@
+"""Simulated cells as hard as reality: the photo key, the arm's true poses in the session, and
+results judged against the truth a session can know (the effective hand-eye and target)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from slidecal.drivers.ur_pose import ur_pose_from_T
+from slidecal.mocks.cell import effective_truth
+from slidecal.mocks.render import Photo
+from slidecal.routines.config import load_config
+from slidecal.routines.results_io import errors_against_truth, summary_text
+from slidecal.routines.session import SessionWriter, load_session
+from slidecal.solver.errors import InputError
+from slidecal.solver.geometry import R_from_rvec, T_from_Rt
+from slidecal.solver.problem import CameraSpec, Detection, Target
+from slidecal.solver.result import CalibrationResult, CameraEstimate, TransformEstimate
+
+K = np.array([[880.0, 0.0, 640.0], [0.0, 880.0, 400.0], [0.0, 0.0, 1.0]])
+
+
+def _T(rng: np.random.Generator, rot_deg: float, mm: float) -> np.ndarray:
+    return T_from_Rt(
+        R_from_rvec(rng.normal(0.0, np.radians(rot_deg), 3)), rng.normal(0.0, mm / 1000.0, 3)
+    )
+
+
+def _arm(rng: np.random.Generator, n: int = 12):
+    """Measured poses spread over a workspace, and true ones off by a constant tool-frame error
+    ``D`` (the arm's constant error) plus a small varying one."""
+    D = _T(rng, 0.1, 1.0)
+    meas, true = [], []
+    for _ in range(n):
+        Tm = T_from_Rt(
+            R_from_rvec(np.r_[np.pi, 0.0, 0.0] + rng.normal(0, 0.4, 3)),
+            np.r_[-0.4, 0.0, 0.5] + rng.normal(0, 0.1, 3),
+        )
+        meas.append(Tm)
+        true.append(Tm @ D @ _T(rng, 0.005, 0.03))
+    return D, meas, true
+
+
+def _result(T_he: np.ndarray, T_tg: np.ndarray, mount: str, frames: int) -> CalibrationResult:
+    he_key, tg_key = (
+        ("T_tool_cam", "T_base_board")
+        if mount == "eye_in_hand"
+        else (
+            "T_base_cam",
+            "T_tool_board",
+        )
+    )
+    return CalibrationResult(
+        cameras={"cam": CameraEstimate("cam", 1280, 800, K, np.zeros(5), {"fx": 0.2}, 0.05)},
+        hand_eye=TransformEstimate(he_key, T_he[:3, :3], T_he[:3, 3], 0.05, 0.5),
+        rig={},
+        T_target=TransformEstimate(tg_key, T_tg[:3, :3], T_tg[:3, 3], 0.05, 0.5),
+        converged=True,
+        iterations=5,
+        reproj_rms_px=0.05,
+        sigma_px=0.05,
+        parameter_names=("fx",),
+        covariance=np.array([[0.04]]),
+        residuals_px={(i, "cam"): 0.05 for i in range(frames)},
+        outliers=(),
+        unobservable={},
+        messages=(),
+        mount=mount,
+        reference_camera="cam",
+    )
+
+
+def _truth(T_he, T_tg, mount, meas, true) -> dict:
+    he_key, tg_key = (
+        ("T_tool_cam", "T_base_board")
+        if mount == "eye_in_hand"
+        else (
+            "T_base_cam",
+            "T_tool_board",
+        )
+    )
+
+    def d(T):
+        return {"R": T[:3, :3].tolist(), "t_m": T[:3, 3].tolist()}
+
+    return {
+        "cameras": {"cam": {"K": K.tolist(), "distortion": [0.0] * 5}},
+        he_key: d(T_he),
+        tg_key: d(T_tg),
+        "noise": {"robot_mm": 0.05, "robot_deg": 0.005},
+        "frames": [
+            {"id": i, "T_base_tool": ur_pose_from_T(Tt), "T_base_tool_measured": ur_pose_from_T(Tm)}
+            for i, (Tt, Tm) in enumerate(zip(true, meas, strict=True))
+        ],
+    }
+
+
+@pytest.mark.parametrize("mount", ["eye_in_hand", "eye_to_hand"])
+def test_constant_arm_error_moves_the_judged_hand_eye_or_target(mount: str) -> None:
+    """A constant tool-frame error D is a hand-eye change (eye-in-hand: T_tool_cam' = D
+    T_tool_cam) or a target change (eye-to-hand: T_tool_board' = D T_tool_board); a result
+    equal to that is judged right, within the arm's varying error, and the physical truth is
+    1 mm / 0.1 deg away (the old judge)."""
+    rng = np.random.default_rng(5)
+    D, meas, true = _arm(rng)
+    T_he = T_from_Rt(R_from_rvec([0.01, -0.02, 1.57]), [0.032, -0.061, 0.045])
+    T_tg = T_from_Rt(R_from_rvec([np.pi, 0.0, 0.03]), [-0.56, 0.12, 0.0])
+    if mount == "eye_in_hand":
+        he_eff, tg_eff = effective_truth(mount, true, meas, T_he, T_tg, 0.1, 1.0)
+        np.testing.assert_allclose(he_eff, D @ T_he, atol=2e-4)
+        np.testing.assert_allclose(tg_eff, T_tg, atol=2e-4)
+        est_he, est_tg = D @ T_he, T_tg
+        moved = "T_tool_cam"
+    else:
+        T_he = T_from_Rt(R_from_rvec([np.pi, 0.0, 0.02]), [-0.40, 0.0, 1.05])
+        T_tg = T_from_Rt(R_from_rvec([0.01, 0.0, 0.0]), [-0.165, -0.12, 0.05])
+        he_eff, tg_eff = effective_truth(mount, true, meas, T_he, T_tg, 0.1, 1.0)
+        np.testing.assert_allclose(he_eff, T_he, atol=2e-4)
+        np.testing.assert_allclose(tg_eff, D @ T_tg, atol=2e-4)
+        est_he, est_tg = T_he, D @ T_tg
+        moved = "T_tool_board"
+    truth = _truth(T_he, T_tg, mount, meas, true)
+    r = _result(est_he, est_tg, mount, len(meas))
+    e = errors_against_truth(r, truth)
+    for k in ("rot_deg", "t_mm"):
+        assert e[f"{moved}.{k}"] < (0.01 if k == "rot_deg" else 0.1)
+    # without the arm's poses the block only knows the physical truth: D's size shows
+    physical = errors_against_truth(r, {k: v for k, v in truth.items() if k != "frames"})
+    assert physical[f"{moved}.t_mm"] > 0.3
+    assert "effective truth over 12 frames" in summary_text(r, truth)
+    no_frames = {k: v for k, v in truth.items() if k != "frames"}
+    assert "the physical truth" in summary_text(r, no_frames)
+
+
+def test_only_the_frames_the_solve_used_are_judged() -> None:
+    """Frames without residuals (the camera saw nothing) do not move the effective truth."""
+    rng = np.random.default_rng(6)
+    D, meas, true = _arm(rng, 10)
+    T_he = T_from_Rt(R_from_rvec([0.0, 0.0, 1.57]), [0.03, -0.06, 0.04])
+    T_tg = T_from_Rt(R_from_rvec([np.pi, 0.0, 0.0]), [-0.56, 0.12, 0.0])
+    true[9] = meas[9] @ _T(rng, 2.0, 20.0)  # a wild pose the solve never saw
+    truth = _truth(T_he, T_tg, "eye_in_hand", meas, true)
+    r = _result(D @ T_he, T_tg, "eye_in_hand", 9)
+    assert errors_against_truth(r, truth)["T_tool_cam.t_mm"] < 0.1
+
+
+def test_photo_key_in_the_cell(tmp_path: Path) -> None:
+    cam = load_config(None, {"simulation": {"cameras": {"cam": {"photo": True}}}}).simulation
+    assert cam.cameras[0].photo == Photo()
+    cfg = load_config(
+        None,
+        {"simulation": {"cameras": {"cam": {"photo": {"jpeg_quality": 70, "bayer": False}}}}},
+    )
+    assert cfg.simulation.cameras[0].photo == Photo(jpeg_quality=70, bayer=False)
+    off = load_config(None, {"simulation": {"cameras": {"cam": {"photo": False}}}})
+    assert off.simulation.cameras[0].photo is None
+    with pytest.raises(InputError, match=r"simulation\.cameras\.cam\.photo\.jpeg_qualty"):
+        load_config(None, {"simulation": {"cameras": {"cam": {"photo": {"jpeg_qualty": 70}}}}})
+    with pytest.raises(InputError, match=r"photo.*true, false or a mapping"):
+        load_config(None, {"simulation": {"cameras": {"cam": {"photo": "yes"}}}})
+    with pytest.raises(InputError, match=r"photo\.jpeg_quality"):
+        load_config(None, {"simulation": {"cameras": {"cam": {"photo": {"jpeg_quality": 101}}}}})
+
+
+def test_shipped_cells_are_as_hard_as_reality() -> None:
+    from importlib import resources
+
+    for name in ("default_cell.yaml", "eye_to_hand_cell.yaml"):
+        cfg = load_config(str(resources.files("slidecal.mocks").joinpath(name)))
+        assert cfg.simulation.kinematic_error is not None, name
+        assert all(c.photo is not None for c in cfg.simulation.cameras), name
+
+
+def _writer(tmp_path: Path, simulation: dict | None) -> SessionWriter:
+    target = Target.chessboard(9, 6, 0.03)
+    return SessionWriter(
+        tmp_path / "s", target, [CameraSpec("cam", 1280, 800)], simulation=simulation
+    )
+
+
+def test_session_records_and_checks_the_true_poses(tmp_path: Path) -> None:
+    rng = np.random.default_rng(2)
+    _, meas, true = _arm(rng, 3)
+    sim = {"cameras": {"cam": {"K": K.tolist(), "distortion": [0.0] * 5}}}
+    w = _writer(tmp_path, sim)
+    empty = Detection(np.zeros(0, int), np.zeros((0, 2)))
+    for Tm, Tt in zip(meas, true, strict=True):
+        w.append_frame(Tm, detections={"cam": empty}, T_base_tool_true=Tt)
+    w.finish()
+    s = load_session(tmp_path / "s", detect_images=False)
+    frames = s.simulation["frames"]
+    assert [f["id"] for f in frames] == [0, 1, 2]
+    np.testing.assert_allclose(frames[1]["T_base_tool"], ur_pose_from_T(true[1]), atol=1e-9)
+    np.testing.assert_allclose(frames[1]["T_base_tool_measured"], ur_pose_from_T(meas[1]))
+    # a real run (no simulation block) records nothing
+    w2 = SessionWriter(tmp_path / "r", w.target, w.cameras)
+    w2.append_frame(meas[0], detections={"cam": empty}, T_base_tool_true=true[0])
+    assert "simulation" not in w2.data
+    # a pose that is not a UR pose, a frame listed twice: refused with the field
+    import yaml
+
+    path = tmp_path / "s" / "session.yaml"
+    doc = yaml.safe_load(path.read_text())
+    doc["simulation"]["frames"][2]["id"] = 1
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(InputError, match=r"simulation\.frames\[2\]\.id.*twice"):
+        load_session(tmp_path / "s", detect_images=False)
+    doc["simulation"]["frames"][2]["id"] = 2
+    doc["simulation"]["frames"][0]["T_base_tool"] = [0.1, 0.2]
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(InputError, match=r"simulation\.frames\[0\]\.T_base_tool.*UR pose"):
+        load_session(tmp_path / "s", detect_images=False)
+
+
+@pytest.mark.slow
+def test_default_cell_run_judged_against_the_effective_truth(tmp_path: Path) -> None:
+    """The realistic default cell end to end: the session holds the arm's true poses, every
+    error lies within 4 reported std of the truth the session can know."""
+    from slidecal.routines.run import run_calibration
+
+    o = run_calibration(out_dir=tmp_path / "s", progress=False, recording=False, seed=4)
+    s = load_session(o.session_dir, detect_images=False)
+    assert len(s.simulation["frames"]) == o.n_frames
+    T_true = [np.asarray(f["T_base_tool"]) for f in s.simulation["frames"]]
+    T_meas = [np.asarray(f["T_base_tool_measured"]) for f in s.simulation["frames"]]
+    # the arm really errs (about 1 mm): the reported poses are not the reached ones
+    dt = [np.linalg.norm(a[:3] - b[:3]) for a, b in zip(T_true, T_meas, strict=True)]
+    assert np.mean(dt) > 2e-4
+    r = o.result
+    assert r.adequacy is not None and r.adequacy.adequate
+    cam = r.cameras["cam"]
+    for p in ("fx", "fy", "cx", "cy"):
+        assert o.errors[f"cam.{p}_px"] <= 4.0 * cam.std[p], p
+    for key, t in (("T_tool_cam", r.hand_eye), ("T_base_board", r.T_target)):
+        assert o.errors[f"{key}.rot_deg"] <= 3.0 * t.std_rot_deg, key
+        assert o.errors[f"{key}.t_mm"] <= 3.0 * t.std_t_mm, key
+    assert "effective truth" in o.summary
