@@ -26,7 +26,9 @@ The gate (:func:`judge`), each test with a limit from the cell file's ``limits:`
 - ``coverage``: the fraction of a ``coverage_grid`` of image cells holding a detected corner;
 - ``installed``: the difference from the installed calibration, per parameter in units of
   the two calibrations' combined one-sigma (``max_change_sigma``) and as the largest pixel
-  displacement of points at the working distance (``max_change_px``). Only this test makes a
+  displacement of points at the working distance (``max_change_px``; it counts only when the
+  change is also beyond ``max_change_sigma``, so a re-estimate too imprecise to tell is not
+  called a drift). Only this test makes a
   result ``drifted`` (a valid calibration that differs from the installed one); any other
   failure makes it ``rejected``.
 
@@ -593,12 +595,17 @@ def compare(
         ),
         Check(
             "installed",
-            disp[worst_c] <= lim.max_change_px,
+            # a displacement counts only when the change behind it is beyond the two
+            # calibrations' noise: an imprecise re-estimate (a realistic arm, a few frames)
+            # moves points by more than the limit without anything having changed
+            disp[worst_c] <= lim.max_change_px
+            or (worst_z is not None and worst_z <= lim.max_change_sigma),
             disp[worst_c],
             lim.max_change_px,
             f"camera {worst_c}: points at {lim.working_distance_m:g} m move by up to "
             f"{disp[worst_c]:.2f} px against the installed calibration "
-            f"(limit {lim.max_change_px:g} px)",
+            f"(limit {lim.max_change_px:g} px, when the change is beyond "
+            f"{lim.max_change_sigma:g} combined sigma)",
         ),
     ]
     info = {
