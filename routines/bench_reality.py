@@ -1,6 +1,6 @@
 """Honesty on a real arm: coverage of the reported uncertainty under a simulated arm's accuracy.
 
-Run ``python -m slidecal.routines.bench_reality`` (``--trials``, ``--images points|render``,
+Run ``slidecal bench reality`` (``--trials``, ``--images points|render``,
 ``--out docs/REALITY.md``). Each trial draws a new UR5e whose kinematics err like an
 uncalibrated real arm (``slidecal.mocks.robot.KinematicError``: 0.5-2 mm, 0.05-0.2 deg, smooth
 over the workspace, plus repeatability) and a new image noise; the controller reports the
@@ -221,7 +221,7 @@ def speed(repeats: int = 15) -> dict[str, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point (``python -m slidecal.routines.bench_reality``)."""
+    """Entry point (``slidecal bench reality``)."""
     ap = argparse.ArgumentParser(prog="bench_reality", description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=30, help="Monte-Carlo trials per scenario")
     ap.add_argument("--images", choices=("points", "render"), default="points")
@@ -252,7 +252,7 @@ def main(argv: list[str] | None = None) -> int:
     clean, clean_notes = clean_rows(args.clean_trials) if args.clean_trials > 0 else ([], [])
     sp = speed() if args.clean_trials > 0 else None
     cmd = (
-        f"python -m slidecal.routines.bench_reality --trials {args.trials} --clean-trials "
+        f"slidecal bench reality --trials {args.trials} --clean-trials "
         f"{args.clean_trials} --images {args.images}"
     )
     lines = [

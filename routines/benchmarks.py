@@ -30,6 +30,15 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
         "slidecal.routines.bench_handeye",
         "classic hand-eye sessions against the bound and cv2.calibrateHandEye",
     ),
+    "detect": (
+        "slidecal.routines.bench_detect",
+        "detection paths: corner bias and rms on rendered images, time per 2 MP image",
+    ),
+    "reality": (
+        "slidecal.routines.bench_reality",
+        "coverage of the reported std on a simulated real arm; clean efficiency; speed",
+    ),
+    "faults": ("slidecal.routines.faults", "each injected hardware fault in run and rehearse"),
     "verdict": (
         "slidecal.routines.bench_verdict",
         "the verdict's gate, garbage sessions, slidecal check, signals and faults",

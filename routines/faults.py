@@ -12,7 +12,7 @@ in the session and exits with the hardware-fault code 3.
 
 The table (``docs/FAULTS.md``) is made by running every kind at a few frames::
 
-    python -m slidecal.routines.faults --out docs/FAULTS.md --frames 2 [--no-rehearse]
+    slidecal bench faults --out docs/FAULTS.md --frames 2 [--no-rehearse]
 """
 
 from __future__ import annotations
@@ -195,7 +195,7 @@ def table(rows: Sequence[FaultRow]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m slidecal.routines.faults --out docs/FAULTS.md``: the fault table."""
+    """``slidecal bench faults --out docs/FAULTS.md``: the fault table."""
     p = argparse.ArgumentParser(description="Inject every fault kind and tabulate the outcome.")
     p.add_argument("--out", help="Markdown file to write (default: print)")
     p.add_argument("--frames", type=int, nargs="+", default=[2])
@@ -208,7 +208,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 for frame in a.frames:
                     rows.append(run_row(FaultSpec(kind, frame), rehearse, Path(tmp)))
                     print(table(rows[-1:]).splitlines()[-1], flush=True)
-    cmd = "python -m slidecal.routines.faults" + (f" --out {a.out}" if a.out else "")
+    cmd = "slidecal bench faults" + (f" --out {a.out}" if a.out else "")
     cmd += " --frames " + " ".join(str(f) for f in a.frames)
     cmd += " --no-rehearse" if a.no_rehearse else ""
     text = (
