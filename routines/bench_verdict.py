@@ -153,7 +153,10 @@ def cell_overrides(fx_rel: float = 0.0, cx_px: float = 0.0, he_deg: float = 0.0)
     if he_deg:
         r, p, y = np.radians([0.8, -1.2, 90.5])  # the default cell's true T_tool_cam
         R = R_from_rvec(np.radians(he_deg) * np.array([0.6, 0.0, 0.8])) @ Rz(y) @ Ry(p) @ Rx(r)
-        sim["T_tool_cam"] = {"R": R.tolist(), "t_m": [0.032, -0.061, 0.045]}
+        rpy = np.degrees(
+            [np.arctan2(R[2, 1], R[2, 2]), -np.arcsin(R[2, 0]), np.arctan2(R[1, 0], R[0, 0])]
+        )  # the cell's rpy_deg convention: R = Rz(yaw) Ry(pitch) Rx(roll)
+        sim["T_tool_cam"] = {"rpy_deg": rpy.tolist(), "t_m": [0.032, -0.061, 0.045]}
     return {"simulation": sim}
 
 

@@ -73,6 +73,10 @@ class RerunLog:
         self.rec = rr.RecordingStream("slidecal", recording_id=recording_id)
         self.path = Path(path) if path is not None else None
         if spawn:
+            import shutil
+
+            if shutil.which("rerun") is None:  # asked first: rerun itself would log to stderr
+                raise RuntimeError("no rerun viewer executable (`rerun`) on PATH")
             self.rec.spawn()
         if self.path is not None:
             self.rec.save(self.path)
