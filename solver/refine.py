@@ -23,7 +23,7 @@ each block carries a basis of its observable directions, and what was fixed is r
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -712,18 +712,7 @@ def refine(
         return out
     from slidecal.solver.adequacy import free_pose_fit, model_starts, session_images
 
-    exact = Structure(
-        structure.group_of_frame,
-        structure.M,
-        structure.direction,
-        structure.s_free,
-        structure.X_rot_basis,
-        structure.X_t_basis,
-        structure.Y_rot_basis,
-        structure.Y_t_basis,
-        structure.unobservable,
-        eye_in_hand=structure.eye_in_hand,
-    )
+    exact = replace(structure, T_meas=None, pose_sigma=None, pose_groups=None, group_sigma=None)
     start = ModelState(init.K, init.dist, init.T_cam_ref, init.X, init.Y, init.s)
     out0 = _refine(problem, exact, start, max_iter, robust, estimate=False)
     fit = free_pose_fit(session_images(out0), out0.state.K, out0.state.dist, model_starts(out0))
@@ -742,19 +731,10 @@ def refine(
             max(o.robot_noise_m, SIGMA_FLOOR[1]),
         )
     pose_groups = orientation_groups(np.stack([f.T_base_tool for f in problem.frames]))
-    noisy = Structure(
-        structure.group_of_frame,
-        structure.M,
-        structure.direction,
-        structure.s_free,
-        structure.X_rot_basis,
-        structure.X_t_basis,
-        structure.Y_rot_basis,
-        structure.Y_t_basis,
-        structure.unobservable,
+    noisy = replace(
+        structure,
         T_meas=np.stack([f.T_base_tool for f in problem.frames]),
         pose_sigma=sig0,
-        eye_in_hand=structure.eye_in_hand,
         pose_groups=pose_groups if _shared_groups(pose_groups) else None,
         group_sigma=sig0,
     )
