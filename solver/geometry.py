@@ -134,3 +134,16 @@ def random_rotation(rng: np.random.Generator, max_angle_rad: float = np.pi) -> n
     axis = rng.normal(size=3)
     axis /= np.linalg.norm(axis)
     return R_from_rvec(axis * rng.uniform(0.0, max_angle_rad))
+
+
+def right_singular(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Singular values ``sv`` (n,) and right singular vectors ``Vt`` (n, n) of ``A`` (m, n),
+    any m: a system with fewer rows than unknowns is padded with zero rows (its null space is
+    then the last rows of ``Vt``). Thin SVD: ``U`` is never formed, so the cost stays linear in
+    m (a full ``U`` of a 10000-row system is 10000 x 10000)."""
+    A = np.asarray(A, dtype=float)
+    m, n = A.shape
+    if m < n:
+        A = np.vstack([A, np.zeros((n - m, n))])
+    _, sv, Vt = np.linalg.svd(A, full_matrices=False)
+    return sv, Vt

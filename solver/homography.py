@@ -17,6 +17,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from slidecal.solver.errors import DegenerateError, InputError
+from slidecal.solver.geometry import right_singular
 
 Observation = tuple[np.ndarray, np.ndarray]  # (board_xy (N, 2), px (N, 2))
 
@@ -63,9 +64,8 @@ def _dlt_normalised(b: np.ndarray, p: np.ndarray) -> np.ndarray:
     A[0::2, 6:9] = -p[:, :1] * X
     A[1::2, 3:6] = X
     A[1::2, 6:9] = -p[:, 1:2] * X
-    # full_matrices: with 4 points (8 rows) the null vector is the 9th right singular vector
-    _, sv, Vt = np.linalg.svd(A, full_matrices=True)
-    sv = np.concatenate([sv, np.zeros(9 - len(sv))])
+    # with 4 points (8 rows) the null vector is the 9th right singular vector
+    sv, Vt = right_singular(A)
     if sv[-2] <= 1e-12 * sv[0]:
         raise DegenerateError(
             "the board points are (nearly) colinear: a homography needs points spread in 2D"

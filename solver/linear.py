@@ -14,6 +14,7 @@ from typing import Literal
 import numpy as np
 
 from slidecal.solver.errors import DegenerateError, InputError
+from slidecal.solver.geometry import right_singular
 
 W_NAMES = ("w11", "w12", "w22", "w13", "w23", "w33")
 
@@ -349,9 +350,7 @@ def _solve_null(system: LinearSystem) -> tuple[np.ndarray, np.ndarray]:
             f"({', '.join(system.unknowns)} up to scale): add frames, translations in other "
             "directions, or orientation groups, or assume zero skew / unit aspect"
         )
-    _, sv, Vt = np.linalg.svd(A, full_matrices=True)
-    if len(sv) < n_unknowns:
-        sv = np.concatenate([sv, np.zeros(n_unknowns - len(sv))])
+    sv, Vt = right_singular(A)
     if sv[-2] <= NULL_SPACE_TOL * sv[0]:
         raise DegenerateError(
             "the linear system is singular (its null space is not one-dimensional): the data "

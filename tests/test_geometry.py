@@ -81,3 +81,20 @@ def test_look_at_points_the_optical_axis():
     np.testing.assert_allclose(z_world, -np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0), atol=1e-12)
     up_in_cam = R_cam_world @ np.array([0.0, 0.0, 1.0])
     assert up_in_cam[1] < 0  # world up appears as up (-y) in the image
+
+
+def test_right_singular_matches_the_full_svd_for_short_and_tall_systems():
+    from slidecal.solver.geometry import right_singular
+
+    rng = np.random.default_rng(5)
+    for m in (8, 9, 2000):
+        A = rng.normal(size=(m, 9))
+        if m == 8:  # 4 points: the null vector is the 9th right singular vector
+            sv, Vt = right_singular(A)
+            assert sv.shape == (9,) and sv[-1] == 0.0
+            assert np.linalg.norm(A @ Vt[-1]) < 1e-12
+        else:
+            sv, Vt = right_singular(A)
+            sv_full = np.linalg.svd(A, compute_uv=False)
+            assert np.allclose(sv, sv_full)
+            assert abs(abs(Vt[-1] @ np.linalg.svd(A)[2][-1]) - 1.0) < 1e-9
