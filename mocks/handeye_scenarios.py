@@ -23,6 +23,7 @@ from slidecal.mocks.scenarios import (
     _detect,
     _perturb,
     r1_poses,
+    r1_scenario,
 )
 from slidecal.solver.geometry import (
     R_from_rvec,
@@ -31,13 +32,10 @@ from slidecal.solver.geometry import (
     look_at_R_cam_world,
 )
 from slidecal.solver.problem import (
-    CalibrationProblem,
-    CameraSpec,
     Frame,
     ModelOptions,
     Target,
 )
-from slidecal.solver.refine import ModelState
 
 IMAGE_SIZE = (1280, 800)
 
@@ -137,25 +135,9 @@ def classic(
         det = _detect(R1_K, dist, T_c_b, target, IMAGE_SIZE, sigma_px, rng, 2.0)
         measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
         frames.append(Frame(k, {"cam": det}, T_base_tool=measured))
-    problem = CalibrationProblem(
-        target,
-        (CameraSpec("cam", *IMAGE_SIZE),),
-        tuple(frames),
-        "eye_in_hand" if eye_in_hand else "eye_to_hand",
-        "robot",
-        options or ModelOptions(),
+    return r1_scenario(
+        target, frames, eye_in_hand, options, sigma_px, T_base_board, dist, IMAGE_SIZE
     )
-    T_hand_eye = R1_T_TOOL_CAM if eye_in_hand else R1_T_BASE_CAM
-    T_target = T_base_board if eye_in_hand else R1_T_TOOL_BOARD
-    truth = ModelState(
-        {"cam": R1_K},
-        {"cam": dist},
-        {},
-        inv_T(T_hand_eye)[None],
-        T_target,
-        np.zeros(len(frames)),
-    )
-    return Scenario(problem, truth, sigma_px, T_hand_eye, T_target)
 
 
 def board_in_view(s: Scenario) -> np.ndarray:

@@ -278,6 +278,40 @@ R1_T_TOOL_BOARD = T_from_Rt(
 )
 
 
+def r1_scenario(
+    target: Target,
+    frames: list[Frame],
+    eye_in_hand: bool,
+    options: ModelOptions | None,
+    sigma_px: float,
+    T_base_board: np.ndarray,
+    dist: np.ndarray = R1_DIST,
+    size: tuple[int, int] = (1280, 800),
+    T_base_tool_true: np.ndarray | None = None,
+) -> Scenario:
+    """The scenario of R1's camera (``R1_K``, ``dist``) with these ``frames``: the problem, the
+    truth in the solver's parametrisation and the hand-eye and target poses of the mount."""
+    problem = CalibrationProblem(
+        target,
+        (CameraSpec("cam", *size),),
+        tuple(frames),
+        "eye_in_hand" if eye_in_hand else "eye_to_hand",
+        "robot",
+        options or ModelOptions(),
+    )
+    T_hand_eye = R1_T_TOOL_CAM if eye_in_hand else R1_T_BASE_CAM
+    T_target = T_base_board if eye_in_hand else R1_T_TOOL_BOARD
+    truth = ModelState(
+        {"cam": R1_K},
+        {"cam": np.array(dist, dtype=float)},
+        {},
+        inv_T(T_hand_eye)[None],
+        T_target,
+        np.zeros(len(frames)),
+    )
+    return Scenario(problem, truth, sigma_px, T_hand_eye, T_target, T_base_tool_true)
+
+
 def _r1_cell(
     rng: np.random.Generator,
     sigma_px: float,
@@ -299,25 +333,7 @@ def _r1_cell(
         det = _detect(R1_K, R1_DIST, T_cam_board, target, (1280, 800), sigma_px, rng, 2.0)
         measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
         frames.append(Frame(k, {"cam": det}, T_base_tool=measured))
-    problem = CalibrationProblem(
-        target,
-        (CameraSpec("cam", 1280, 800),),
-        tuple(frames),
-        "eye_in_hand" if eye_in_hand else "eye_to_hand",
-        "robot",
-        options or ModelOptions(),
-    )
-    T_hand_eye = R1_T_TOOL_CAM if eye_in_hand else R1_T_BASE_CAM
-    T_target = T_base_board if eye_in_hand else R1_T_TOOL_BOARD
-    truth = ModelState(
-        {"cam": R1_K},
-        {"cam": R1_DIST.copy()},
-        {},
-        inv_T(T_hand_eye)[None],
-        T_target,
-        np.zeros(len(poses)),
-    )
-    return Scenario(problem, truth, sigma_px, T_hand_eye, T_target)
+    return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board)
 
 
 def r1(
@@ -451,25 +467,9 @@ def r1_real_arm(
         else:
             T_cam_board = inv_T(R1_T_BASE_CAM) @ T_true @ R1_T_TOOL_BOARD
         frames.append(Frame(k, {"cam": detect(T_cam_board, rng)}, T_base_tool=T_meas))
-    problem = CalibrationProblem(
-        target,
-        (CameraSpec("cam", 1280, 800),),
-        tuple(frames),
-        "eye_in_hand" if eye_in_hand else "eye_to_hand",
-        "robot",
-        options or ModelOptions(),
+    return r1_scenario(
+        target, frames, eye_in_hand, options, sigma_px, T_base_board, T_base_tool_true=true
     )
-    T_hand_eye = R1_T_TOOL_CAM if eye_in_hand else R1_T_BASE_CAM
-    T_target = T_base_board if eye_in_hand else R1_T_TOOL_BOARD
-    truth = ModelState(
-        {"cam": R1_K},
-        {"cam": R1_DIST.copy()},
-        {},
-        inv_T(T_hand_eye)[None],
-        T_target,
-        np.zeros(len(planned)),
-    )
-    return Scenario(problem, truth, sigma_px, T_hand_eye, T_target, true)
 
 
 def effective_truth(
