@@ -403,11 +403,7 @@ def run_check(
     check_out_dir(out)
     if (out / "session.yaml").exists():
         raise InputError("already holds a session; choose a new --out directory", str(out))
-    prog = (
-        progress
-        if isinstance(progress, Progress)
-        else Progress(plan.n_poses, quiet=False if progress is None else not progress)
-    )
+    prog = Progress.from_option(progress, plan.n_poses)
     rec = record_session(
         cfg,
         plan,

@@ -22,6 +22,14 @@ class Progress:
     is not a terminal).
     """
 
+    @classmethod
+    def from_option(cls, progress: bool | Progress | None, total: int) -> Progress:
+        """The progress of a routine's ``progress`` option: a given :class:`Progress` as it
+        is, True/False to force the output on/off, None for on."""
+        if isinstance(progress, Progress):
+            return progress
+        return cls(total, quiet=False if progress is None else not progress)
+
     def __init__(
         self,
         total: int,

@@ -413,11 +413,7 @@ def run_calibration(
         plan = plan if plan is not None else make_plan(cfg).plan
     inst_result, inst_path = installed_calibration(installed if installed is not None else install)
 
-    prog = (
-        progress
-        if isinstance(progress, Progress)
-        else Progress(plan.n_poses, quiet=False if progress is None else not progress)
-    )
+    prog = Progress.from_option(progress, plan.n_poses)
     rec = record_session(
         cfg,
         plan,
