@@ -201,22 +201,8 @@ def speed(repeats: int = 15) -> dict[str, float]:
         ("clean", sc.r1(np.random.default_rng(7), 0.15, 0.0, 0.0)),
         ("noisy", sc.r1(np.random.default_rng(7))),
     ):
-        obj = [
-            s.problem.target.points_m[f.detections["cam"].ids].astype(np.float32)
-            for f in s.problem.frames
-        ]
-        img = [f.detections["cam"].px.astype(np.float32) for f in s.problem.frames]
-        calibrate(s.problem)
-        ours, theirs = [], []
-        for _ in range(repeats):
-            t = time.perf_counter()
-            calibrate(s.problem)
-            ours.append(time.perf_counter() - t)
-            t = time.perf_counter()
-            cv2.calibrateCamera(obj, img, (1280, 800), None, None)
-            theirs.append(time.perf_counter() - t)
-        out[f"{label}_slidecal_s"] = statistics.median(ours)
-        out[f"{label}_opencv_s"] = statistics.median(theirs)
+        t = bench.time_against_opencv(s, repeats)
+        out[f"{label}_slidecal_s"], out[f"{label}_opencv_s"] = t["slidecal_s"], t["opencv_s"]
     return out
 
 
