@@ -196,9 +196,13 @@ def bench_colour(rng: np.random.Generator) -> dict[tuple[str, str], Stats]:
 # ----------------------------------------------------------------------------- tags, charuco
 
 
-def bench_tags(rng: np.random.Generator) -> dict[tuple[str, str], Stats]:
-    """AprilGrid and one AprilTag: corner refinements."""
+def bench_tags(
+    rng: np.random.Generator,
+) -> tuple[dict[tuple[str, str], Stats], dict[tuple[str, str], list[float]]]:
+    """AprilGrid and one AprilTag: corner refinements; and, for the lone tag, each corner's
+    error towards the tag's centre (a tag shrunk by its refinement biases the focal length)."""
     out: dict[tuple[str, str], Stats] = {}
+    inward: dict[tuple[str, str], list[float]] = {}
     for tg in (APRILGRID, APRILTAG):
         for cond, img, tru in scenes(tg, rng):
             if cond == "photo, CA x3":
@@ -212,7 +216,11 @@ def bench_tags(rng: np.random.Generator) -> dict[tuple[str, str], Stats]:
                 dt = time.perf_counter() - t0
                 err = px - tru[ids] if len(ids) else None
                 out.setdefault((f"{tg.kind}: {refinement}", cond), _stats()).add(err, dt)
-    return out
+                if tg.kind == "apriltag" and err is not None:
+                    towards = px.mean(axis=0) - px
+                    w = np.sum(err * towards, axis=1) / np.linalg.norm(towards, axis=1)
+                    inward.setdefault((refinement, cond), []).extend(w.tolist())
+    return out, inward
 
 
 def _charuco_variant(name: str) -> cv2.aruco.CharucoDetector:
@@ -367,8 +375,14 @@ FINDINGS = """## What the tables show, and what detect() does with it
   them from their neighbours, refines them and keeps them only if their code reads back.
   Under strong defocus on a steep, far view a few corners still err by up to 2 px (the
   refinement window must stay inside a tag's border cell, a few pixels there).
-- **One AprilTag:** its corners are L-corners; `cornerSubPix` pulls them inwards by about a
-  third of the blur (0.15-0.25 px rms here), still the best of the three refinements measured.
+- **One AprilTag:** its corners are L-corners; `cornerSubPix` pulls them towards the tag's
+  centre by a third of the blur (0.05-0.25 px: the tag looks smaller, a focal-length bias of a
+  few tenths of a percent for a tag filling a tenth of the image). A lone tag's corners are
+  therefore the intersections of its border edges, each located across the edge where the
+  intensity is half-way between the black border and the white margin (unbiased for a
+  symmetric blur) and fitted with a quadratic along the side (lens distortion bends it):
+  about 0.01 px towards the centre, rms 0.04 px on clean renders and 0.1 px on photograph-like
+  ones. On an AprilGrid the corner squares touch the tags' corners, so `cornerSubPix` stays.
 - **ChArUco:** `CharucoDetector`'s own corners are 0.2-0.3 px rms off; each corner is refined
   again by `cornerSubPix` in the largest window clear of the adjacent markers (0.05 px rms on
   clean renders, 0.1 px on photograph-like ones). Windows narrower than 1.5 times the image's
@@ -417,7 +431,7 @@ def report(seed: int = 0, data_dir: Path | None = None) -> str:
     render_target(CHESSBOARD, camera_rays, pose(CHESSBOARD, VIEWS[0]), rng)  # warm the caches
     chess = bench_chessboard(rng)
     colour = bench_colour(rng)
-    tags = bench_tags(rng)
+    tags, inward = bench_tags(rng)
     charuco = bench_charuco(rng)
     data_dir = data_dir or Path(__file__).resolve().parents[1] / "tests" / "data" / "opencv_left"
     real = bench_real(data_dir)
@@ -459,9 +473,20 @@ def report(seed: int = 0, data_dir: Path | None = None) -> str:
     lines += _table(
         "AprilGrid (6 x 5 tags of 50 mm, spacing 0.3) and one AprilTag (160 mm): corner refinement",
         tags,
-        "subpix: cornerSubPix in a window inside the tag's border cell (shipped); apriltag: "
-        "OpenCV's CORNER_REFINE_APRILTAG; none: the quad fit alone.",
+        "subpix: cornerSubPix in a window inside the tag's border cell (shipped for the "
+        "AprilGrid); edges: the intersections of the tag's fitted border edges (shipped for a "
+        "lone tag); apriltag: OpenCV's CORNER_REFINE_APRILTAG; none: the quad fit alone.",
     )
+    lines += [
+        "One AprilTag, mean error of its corners towards the tag's centre (px; positive: the "
+        "tag looks smaller than it is):",
+        "",
+        *(
+            f"- {ref}, {cond}: {np.mean(v):+.3f}"
+            for (ref, cond), v in sorted(inward.items(), key=lambda kv: kv[0][1])
+        ),
+        "",
+    ]
     lines += _table(
         "ChArUco (12 x 9 squares of 40 mm, DICT_5X5_100): detector parameters",
         charuco,

@@ -39,9 +39,11 @@ it is). Its corner order is ambiguous under the board's symmetries; the rule use
 
 AprilTag and AprilGrid: ``cv2.aruco.ArucoDetector`` with ``DICT_APRILTAG_36h11`` (or the
 target's family), corners refined by ``cornerSubPix`` (``CORNER_REFINE_APRILTAG`` is biased by
-about 0.65 px on rendered tags, ``docs/DETECTION.md``); each decoded tag of the target gives its
-four corners with the ids of ``solver/problem.py``. On an AprilGrid, tags the quad finder missed
-are predicted from their neighbours and kept when their code reads back.
+about 0.65 px on rendered tags, ``docs/DETECTION.md``); a lone tag's corners (L-corners, which
+``cornerSubPix`` pulls inwards) are then the intersections of its fitted border edges; each
+decoded tag of the target gives its four corners with the ids of ``solver/problem.py``. On an
+AprilGrid, tags the quad finder missed are predicted from their neighbours and kept when their
+code reads back.
 
 Colour images: the green channel is used (it carries half of a Bayer sensor's pixels, and
 lateral chromatic aberration moves red and blue edges against it; a luma mix blends the three
@@ -526,8 +528,11 @@ def _chessboard_not_found(grey: np.ndarray, target: Target) -> str:
     )
 
 
-TAG_REFINEMENTS = ("subpix", "apriltag", "none")
-TAG_REFINEMENT = "subpix"  # measured in docs/DETECTION.md
+TAG_REFINEMENTS = ("edges", "subpix", "apriltag", "none")
+# measured in docs/DETECTION.md: an AprilGrid's tag corners are X-junctions with its corner
+# squares (``cornerSubPix`` is unbiased on them); a lone tag's corners are L-corners, which
+# ``cornerSubPix`` pulls inwards, so its corners are intersections of its fitted border edges
+TAG_REFINEMENT = {"apriltag": "edges", "aprilgrid": "subpix"}
 
 
 @lru_cache(maxsize=8)
@@ -549,7 +554,7 @@ def _detect_tags(
     grey: np.ndarray, target: Target, refinement: str = ""
 ) -> tuple[np.ndarray, np.ndarray, list]:
     """Corners of the target's AprilTags: each decoded tag of the target gives 4 corners."""
-    refinement = refinement or TAG_REFINEMENT
+    refinement = refinement or TAG_REFINEMENT[target.kind]
     if refinement not in TAG_REFINEMENTS:
         raise InputError(f"tag refinement {refinement!r} unknown; use one of {TAG_REFINEMENTS}")
     family = target.dictionary or "DICT_APRILTAG_36h11"
@@ -566,8 +571,10 @@ def _detect_tags(
             strangers.append(int(t))
             continue
         q = np.asarray(c, dtype=np.float64).reshape(4, 2)
-        if refinement == "subpix":
+        if refinement in ("subpix", "edges"):
             q = _refine_tag(grey, q, target)
+        if refinement == "edges":
+            q = _tag_edge_corners(grey, q, _tag_cells(target))
         ids.append(wanted[int(t)])
         px.append(q)
     if not ids:
@@ -654,6 +661,99 @@ def _code_errors(
     return int(np.sum((sample > 0.5 * (lo + hi)) != bits))
 
 
+def _tag_cells(target: Target) -> float:
+    """Cells across one tag, its black border included (8 for the 36h11 family)."""
+    if target.dictionary:
+        d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, target.dictionary))
+        return float(d.markerSize + 2)
+    return 8.0
+
+
+#: Edge points per tag side used by the edge fit (fewer: the side is too short or blurred, and
+#: the tag keeps its ``cornerSubPix`` corners)
+_MIN_EDGE_POINTS = 8
+
+
+def _side_curve(
+    grey: np.ndarray, a: np.ndarray, b: np.ndarray, centre: np.ndarray, half_px: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """The border edge of a tag between corners ``a`` and ``b`` as ``a + t u + f(t) n``.
+
+    Intensity profiles across the side (normal ``n`` pointing out of the tag, ``half_px`` each
+    way: inside the black border cell, out into the white margin) locate the edge where each
+    profile crosses half-way between its dark and bright ends (unbiased for a symmetric blur);
+    ``f`` is a quadratic in ``t`` (lens distortion bends the side a little), fitted with the
+    outlying points (glare, a scratch) removed. Returns (a, u, n, coefficients) or None."""
+    length = float(np.linalg.norm(b - a))
+    u = (b - a) / length
+    n = np.array([-u[1], u[0]])
+    if np.dot(n, 0.5 * (a + b) - centre) < 0:
+        n = -n
+    t = np.linspace(0.12, 0.88, max(int(length / 2), _MIN_EDGE_POINTS)) * length
+    s = np.arange(-half_px, half_px + 1e-9, 0.25)
+    P = a + t[:, None, None] * u + s[None, :, None] * n
+    prof = cv2.remap(
+        grey.astype(np.float32),
+        P[..., 0].astype(np.float32),
+        P[..., 1].astype(np.float32),
+        cv2.INTER_LINEAR,
+    ).astype(np.float64)
+    k = max(len(s) // 5, 2)
+    dark, bright = np.median(prof[:, :k], axis=1), np.median(prof[:, -k:], axis=1)
+    p = prof - 0.5 * (dark + bright)[:, None]
+    up = (p[:, :-1] < 0) & (p[:, 1:] >= 0)
+    one = (np.sum(up, axis=1) == 1) & (bright - dark > 10.0)
+    if np.sum(one) < _MIN_EDGE_POINTS:
+        return None
+    j = np.argmax(up[one], axis=1)
+    rows = np.flatnonzero(one)
+    p0, p1 = p[rows, j], p[rows, j + 1]
+    off = s[j] + 0.25 * (-p0) / (p1 - p0)
+    tt = t[rows]
+    keep = np.ones(len(tt), dtype=bool)
+    coef = np.zeros(3)
+    for _ in range(3):
+        coef = np.polyfit(tt[keep], off[keep], 2)
+        r = off - np.polyval(coef, tt)
+        mad = 1.4826 * float(np.median(np.abs(r[keep])))
+        keep = np.abs(r) < max(3.0 * mad, 0.05)
+        if np.sum(keep) < _MIN_EDGE_POINTS:
+            return None
+    return a, u, n, coef
+
+
+def _tag_edge_corners(grey: np.ndarray, q: np.ndarray, cells: float) -> np.ndarray:
+    """A lone tag's corners (4, 2) as the intersections of its fitted border edges.
+
+    A tag's outer corners are L-corners: ``cornerSubPix`` pulls them towards the inside of the
+    tag by about a third of the blur (docs/DETECTION.md), which shrinks every tag and biases
+    the focal length. The edges themselves are located without that bias. Any side that cannot
+    be fitted keeps the input corners (``q``, from ``cornerSubPix``)."""
+    side = float(np.mean(np.linalg.norm(q - np.roll(q, 1, axis=0), axis=1)))
+    half = max(0.8 * side / cells, 2.0)
+    centre = q.mean(axis=0)
+    curves = [_side_curve(grey, q[i], q[(i + 1) % 4], centre, half) for i in range(4)]
+    if any(c is None for c in curves):
+        return q
+    out = q.copy()
+    for i in range(4):
+        x = q[i].copy()
+        for _ in range(5):  # Newton on the two curves' equations dot(x - a, n) = f(dot(x - a, u))
+            rows, rhs = [], []
+            for a, u, n, coef in (curves[i - 1], curves[i]):
+                t = float(np.dot(x - a, u))
+                rows.append(n - np.polyval(np.polyder(coef), t) * u)
+                rhs.append(np.polyval(coef, t) - float(np.dot(x - a, n)))
+            try:
+                x = x + np.linalg.solve(np.array(rows), np.array(rhs))
+            except np.linalg.LinAlgError:
+                return q
+        if not np.all(np.isfinite(x)) or np.linalg.norm(x - q[i]) > half:
+            return q
+        out[i] = x
+    return out
+
+
 def _refine_tag(grey: np.ndarray, q: np.ndarray, target: Target) -> np.ndarray:
     """``cornerSubPix`` of one tag's corners (4, 2), finally in a window that stays inside the
     tag's black border cell (and, on an AprilGrid, inside the gap's corner square).
@@ -662,12 +762,8 @@ def _refine_tag(grey: np.ndarray, q: np.ndarray, target: Target) -> np.ndarray:
     and bend its outline), more than that window: a first pass with a window of 1.5 cells
     brings them within reach (slightly biased by the tag's data bits), the second removes the
     bias."""
-    cells = 8.0
-    if target.dictionary:
-        d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, target.dictionary))
-        cells = float(d.markerSize + 2)
     side = float(np.mean(np.linalg.norm(q - np.roll(q, 1, axis=0), axis=1)))
-    cell_px = side / cells
+    cell_px = side / _tag_cells(target)
     limit_px = cell_px
     if target.kind == "aprilgrid":
         limit_px = min(cell_px, side * target.tag_spacing)
