@@ -86,6 +86,7 @@ VIEWS = [
 ]
 
 
+@pytest.mark.slow  # renders a dozen 2-megapixel views: the statistical tier
 def test_charuco_detection_rate_and_accuracy():
     rng = np.random.default_rng(11)
     errors, n_visible, n_ident, n_found_visible, n_found_ident = [], 0, 0, 0, 0
@@ -121,6 +122,7 @@ def test_charuco_detection_rate_and_accuracy():
     assert np.abs(e).max() < 0.5
 
 
+@pytest.mark.slow  # renders and detects several full-size views
 def test_pixel_convention_of_a_shifted_camera():
     # Moving the principal point by +0.5 px in u moves every detected corner by +0.5 px: the
     # detector reports positions in the same continuous pixel frame as the lens model.
