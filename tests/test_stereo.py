@@ -2,7 +2,7 @@
 
 docs/METHOD.md Sec. 8.
 
-Ground truth is the S5 set-up of docs/SETUPS.md (routines/bench_stereo.py builds it).
+Ground truth is the S5 set-up of docs/SETUPS.md (``slidecal.mocks.scenarios.s5_scene``).
 """
 
 from __future__ import annotations
@@ -10,12 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from slidecal.routines.bench_stereo import (
-    IMAGE_SIZE_PX,
-    estimate_homographies,
-    params_of,
-    s5_scene,
-)
+from slidecal.mocks.scenarios import PAPER_SIZE_PX, s5_scene
+from slidecal.routines.bench_stereo import estimate_homographies, params_of
 from slidecal.solver.errors import DegenerateError
 from slidecal.solver.geometry import R_from_rvec, rotation_angle_deg
 from slidecal.solver.linear import w_from_K
@@ -26,7 +22,7 @@ from slidecal.solver.stereo import (
     rig_linear_intrinsics,
 )
 
-SIZES = (IMAGE_SIZE_PX, IMAGE_SIZE_PX)
+SIZES = (PAPER_SIZE_PX, PAPER_SIZE_PX)
 
 
 @pytest.fixture(scope="module")
@@ -180,18 +176,7 @@ def _translated_groups(scene, views, steps_board, R_robot_board):
 
     Returns groups of the left camera, of the right camera, and the motions by knowledge.
     """
-    gl, gr = [], []
-    for v in views:
-        R = scene.R_right_board[v]
-        Rl = scene.R_left_right @ R
-        Hs_l, Hs_r = [], []
-        for T in steps_board:
-            t = scene.t_right_board[v] - R @ T  # the camera centre moves by T (eqs. 12-13)
-            tl = scene.R_left_right @ t + scene.t_left_right
-            Hs_r.append(scene.K_right @ np.column_stack([R[:, 0], R[:, 1], t]))
-            Hs_l.append(scene.K_left @ np.column_stack([Rl[:, 0], Rl[:, 1], tl]))
-        gl.append(np.array(Hs_l))
-        gr.append(np.array(Hs_r))
+    gl, gr = scene.translated(views, steps_board)
     norms = np.linalg.norm(steps_board, axis=1, keepdims=True)
     motion = {
         "board_translation": steps_board,
@@ -259,7 +244,7 @@ def test_rig_rows_are_the_linear_methods(scene, row_weighting):
         H_l, H_r, None, skew=True, sizes=SIZES, row_weighting=row_weighting
     )
     for K, H in ((K_l, H_l), (K_r, H_r)):
-        K1 = zhang_intrinsics(H, skew=True, image_size=IMAGE_SIZE_PX, row_weighting=row_weighting)
+        K1 = zhang_intrinsics(H, skew=True, image_size=PAPER_SIZE_PX, row_weighting=row_weighting)
         np.testing.assert_allclose(K, K1, rtol=1e-12)
 
 
@@ -294,7 +279,7 @@ def test_translation_rig_noisy_not_worse_than_each_camera_alone(scene):
         ]
         K_l, K_r = rig_linear_intrinsics_translation(*groups, "lengths", sizes=SIZES)
         err["joint"].append([np.diag(K_l)[:2], np.diag(K_r)[:2]] - truth)
-        alone = [linear_intrinsics(g, "lengths", image_size=IMAGE_SIZE_PX).K for g in groups]
+        alone = [linear_intrinsics(g, "lengths", image_size=PAPER_SIZE_PX).K for g in groups]
         err["alone"].append([np.diag(K)[:2] for K in alone] - truth)
     rms = {k: np.sqrt(np.mean(np.square(v), axis=(0, 2))) for k, v in err.items()}
     assert np.all(rms["joint"] <= rms["alone"]), rms
