@@ -1,20 +1,36 @@
-"""Synthetic detections with ground truth: the benchmark set-ups of docs/SETUPS.md (S1-S4, R1).
+"""Synthetic scenes with ground truth: the one place every set-up of docs/SETUPS.md is built.
 
-Each builder returns a :class:`Scenario`: the calibration problem (noisy detections and measured
-motion), the true model state in the solver's parametrisation (``slidecal.solver.refine``) and
-the noise it was built with, so that benchmarks and tests can compare an estimate with the truth
-and with the Cramer-Rao bound. No images: the rendered-image simulator is ``mocks/camera.py``.
+Tests, benchmarks and docs take their scenes from here:
+
+- homography-level scenes (noise-free homographies and pixel observations, for the linear
+  method and its tests): :func:`board_xy`, :func:`tilt_R`, :func:`centre_on_axis`,
+  :func:`make_group` (one orientation group of a translated camera), :func:`s1_group`,
+  :func:`s2_group`, :func:`robot_poses`, and S5's stereo head :func:`s5_scene`
+  (:class:`StereoScene`);
+- calibration problems (:class:`Scenario`: noisy detections and measured motion, the true model
+  state in the solver's parametrisation and the noise): S1-S4 (:func:`s1`, :func:`s2`,
+  :func:`s3`), R1 and its variants (:func:`r1`, :func:`r1_eye_to_hand`,
+  :func:`r1_real_arm`), rigs (:class:`RigScenario`: :func:`s5_rig`, :func:`oak_rig`,
+  :func:`hide_views`) and classic hand-eye sessions (:func:`classic`, every frame at its own
+  orientation, in R1's cell).
+
+Board frame: z = 0 plane; a camera with ``R_cam_board`` and centre ``C`` (board frame) sees
+board point ``X`` at ``K (R_cam_board (X - C))``. S1-S5 lengths in the paper's units ("l.u."),
+R1 in metres. No images: the rendered-image simulator is ``mocks/camera.py``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Literal
 
 import numpy as np
 
 from slidecal.drivers import ur_kinematics as urk
+from slidecal.mocks.camera import oak_d_like, oak_d_like_extrinsics
 from slidecal.solver.camera import K_matrix, project
+from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import (
     R_from_rvec,
     Rx,
@@ -36,6 +52,12 @@ from slidecal.solver.problem import (
 from slidecal.solver.refine import ModelState
 
 NO_DISTORTION = (False, False, False, False, False)
+#: S1-S5's images (pixels).
+PAPER_SIZE_PX = (300, 240)
+K_S1 = K_matrix(400.0, 400.0, 150.0, 120.0)
+K_S2 = K_matrix(400.0, 440.0, 150.0, 120.0)
+K_SKEW = np.array([[400.0, 3.0, 150.0], [0.0, 440.0, 120.0], [0.0, 0.0, 1.0]])
+D0 = np.diag([1.0, -1.0, -1.0])  # camera looking at the board along -z (docs/SETUPS.md)
 
 
 @dataclass(frozen=True)
@@ -55,12 +77,142 @@ class Scenario:
     T_base_tool_true: np.ndarray | None = None  # (F, 4, 4) where the arm really was
 
 
+@dataclass(frozen=True)
+class RigScenario(Scenario):
+    """A rig :class:`Scenario`; ``sigma_by_camera_px``: the pixel noise of each camera.
+
+    ``sigma_px`` is the reference camera's noise.
+    """
+
+    sigma_by_camera_px: Mapping[str, float] = field(default_factory=dict)
+
+
+# -- homography-level scenes (the linear method's tests) ---------------------------------------
+def board_xy(nx: int = 9, ny: int = 7, pitch: float = 5.0) -> np.ndarray:
+    """Grid points (nx * ny, 2), board frame, centred on the origin."""
+    x = (np.arange(nx) - (nx - 1) / 2) * pitch
+    y = (np.arange(ny) - (ny - 1) / 2) * pitch
+    X, Y = np.meshgrid(x, y)
+    return np.column_stack([X.ravel(), Y.ravel()])
+
+
 def paper_grid() -> Target:
     """S1-S4's target: 9 x 7 points, pitch 5 l.u., centred on the board origin."""
-    x, y = np.meshgrid((np.arange(9) - 4) * 5.0, (np.arange(7) - 3) * 5.0)
-    return Target.points(np.column_stack([x.ravel(), y.ravel()]))
+    return Target.points(board_xy())
 
 
+def tilt_R(ax_deg: float = 0.0, ay_deg: float = 0.0, order: str = "xy") -> np.ndarray:
+    """``R_cam_board = D0 (Rx Ry)^T`` (order "xy") or ``D0 (Ry Rx)^T`` (order "yx")."""
+    a, b = Rx(np.radians(ax_deg)), Ry(np.radians(ay_deg))
+    M = a @ b if order == "xy" else b @ a
+    return D0 @ M.T
+
+
+def centre_on_axis(R_cam_board: np.ndarray, distance: float = 100.0) -> np.ndarray:
+    """Camera centre (3,) in the board frame, ``distance`` from the origin on the optical axis."""
+    return -distance * (R_cam_board.T @ np.array([0.0, 0.0, 1.0]))
+
+
+def H_true(K: np.ndarray, R_cam_board: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """``K [r1 r2 t]`` (3, 3) with ``t = -R C`` (lambda = 1)."""
+    t = -R_cam_board @ C
+    return K @ np.column_stack([R_cam_board[:, 0], R_cam_board[:, 1], t])
+
+
+def plane_pixels(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Pixels (..., N, 2) of board points ``xy`` (N, 2) through homographies ``H`` (..., 3, 3)."""
+    X = np.column_stack([xy, np.ones(len(xy))])
+    u = np.einsum("...ij,nj->...ni", H, X)
+    return u[..., :2] / u[..., 2:3]
+
+
+@dataclass
+class Group:
+    """One orientation group: true pose, displacements (board frame) and noisy observations."""
+
+    R_cam_board: np.ndarray
+    C0: np.ndarray
+    T_board: np.ndarray  # (n, 3) camera displacement since frame 0, board frame
+    observations: list
+    H: np.ndarray  # (n, 3, 3) true homographies, common scale
+
+
+def make_group(
+    K: np.ndarray,
+    R_cam_board: np.ndarray,
+    C0: np.ndarray,
+    T_board: np.ndarray,
+    rng: np.random.Generator,
+    sigma_px: float = 0.0,
+    xy: np.ndarray | None = None,
+) -> Group:
+    """Observations of the board from ``C0 + T_board[k]`` with i.i.d. pixel noise ``sigma_px``."""
+    xy = board_xy() if xy is None else xy
+    T_board = np.asarray(T_board, dtype=float)
+    Hs = np.array([H_true(K, R_cam_board, C0 + T) for T in T_board])
+    obs = []
+    for px in plane_pixels(Hs, xy):
+        obs.append((xy, px + sigma_px * rng.normal(size=px.shape)))
+    return Group(R_cam_board, C0, T_board, obs, Hs)
+
+
+def line_steps(direction: np.ndarray, n: int, step: float = 5.0) -> np.ndarray:
+    """Displacements (n, 3): 0, step, 2 step, ... along ``direction`` (normalised)."""
+    d = np.asarray(direction, dtype=float)
+    d = d / np.linalg.norm(d)
+    return np.arange(n)[:, None] * step * d
+
+
+def s1_geometry(theta_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """S1's ``R_cam_board`` (tilted ``theta`` about the board's y axis) and first centre, 100
+    l.u. from the grid centre on the optical axis."""
+    R = D0 @ Ry(np.radians(theta_deg)).T
+    return R, centre_on_axis(R)
+
+
+def s2_geometry() -> tuple[np.ndarray, np.ndarray]:
+    """S2/S3's ``R_cam_board`` (30 deg about x then 30 about y) and first centre."""
+    R = tilt_R(30.0, 30.0)
+    return R, centre_on_axis(R)
+
+
+def s1_group(theta_deg: float, n: int, rng: np.random.Generator, sigma_px: float = 0.0) -> Group:
+    """S1: rotated by theta about the board's y axis, translated toward the grid centre."""
+    R, C0 = s1_geometry(theta_deg)
+    return make_group(K_S1, R, C0, line_steps(-C0, n), rng, sigma_px)
+
+
+def s2_group(
+    n: int, rng: np.random.Generator, sigma_px: float = 0.0, K: np.ndarray = K_S2
+) -> Group:
+    """S2/S3: 30 deg about x then 30 about y, translated along the board normal toward it."""
+    R, C0 = s2_geometry()
+    return make_group(K, R, C0, line_steps([0.0, 0.0, -1.0], n), rng, sigma_px)
+
+
+def robot_poses(
+    group: Group, T_base_fixed: np.ndarray, T_tool_x: np.ndarray, mount: str
+) -> np.ndarray:
+    """Measured ``T_base_tool`` (n, 4, 4) of a group's frames.
+
+    Eye-in-hand: ``T_base_fixed = T_base_board`` (board fixed), ``T_tool_x = T_tool_cam``.
+    Eye-to-hand: ``T_base_fixed = T_base_cam`` (camera fixed), ``T_tool_x = T_tool_board``; the
+    camera displacement ``T`` relative to the board is then a board motion.
+    """
+    out = []
+    for T in group.T_board:
+        T_board_cam = np.eye(4)
+        T_board_cam[:3, :3] = group.R_cam_board.T
+        T_board_cam[:3, 3] = group.C0 + T
+        if mount == "eye_in_hand":
+            out.append(T_base_fixed @ T_board_cam @ np.linalg.inv(T_tool_x))
+        else:
+            T_base_board = T_base_fixed @ np.linalg.inv(T_board_cam)
+            out.append(T_base_board @ np.linalg.inv(T_tool_x))
+    return np.array(out)
+
+
+# -- calibration problems: S1-S4 ----------------------------------------------------------------
 def _detect(
     K: np.ndarray,
     dist: np.ndarray,
@@ -105,13 +257,13 @@ def _board_frame_scenario(
     for k, C in enumerate(centres):
         T = T_from_Rt(R_cam_board, -R_cam_board @ C)
         Ts.append(T)
-        det = _detect(K, dist, T, target, (300, 240), sigma_px, rng)
+        det = _detect(K, dist, T, target, PAPER_SIZE_PX, sigma_px, rng)
         m = moves[k]
         if knowledge == "board_direction":
             m = m / np.linalg.norm(m) if np.linalg.norm(m) > 0 else np.zeros(3)
         frames.append(Frame(k, {"cam": det}, motion_board=m, group=0))
     problem = CalibrationProblem(
-        target, (CameraSpec("cam", 300, 240),), tuple(frames), "none", knowledge, options
+        target, (CameraSpec("cam", *PAPER_SIZE_PX),), tuple(frames), "none", knowledge, options
     )
     s = np.array([np.linalg.norm(c - centres[0]) for c in centres])
     truth = ModelState({"cam": K}, {"cam": dist}, {}, np.stack([Ts[0]]), np.eye(4), s)
@@ -140,11 +292,11 @@ def _robot_translation_scenario(
     frames = []
     for k, C in enumerate(centres):
         T_cam_board = T_from_Rt(R_cam_board, -R_cam_board @ C)
-        det = _detect(K, dist, T_cam_board, target, (300, 240), sigma_px, rng)
+        det = _detect(K, dist, T_cam_board, target, PAPER_SIZE_PX, sigma_px, rng)
         T_base_cam_told = T_base_board @ inv_T(T_from_Rt(R_cam_board, -R_cam_board @ told[k]))
         frames.append(Frame(k, {"cam": det}, T_base_tool=T_base_cam_told))
     problem = CalibrationProblem(
-        target, (CameraSpec("cam", 300, 240),), tuple(frames), "eye_in_hand", "robot", options
+        target, (CameraSpec("cam", *PAPER_SIZE_PX),), tuple(frames), "eye_in_hand", "robot", options
     )
     truth = ModelState(
         {"cam": K}, {"cam": dist}, {}, np.eye(4)[None], T_base_board, np.zeros(len(centres))
@@ -161,35 +313,26 @@ def s1(
 ) -> Scenario:
     """S1 (paper Table I): tilt ``theta`` about the board y axis, steps of known length 5 toward
     the grid centre; unit aspect, zero skew. ``step_error``: real steps are 5 (1 + e) (S4)."""
-    K = K_matrix(400.0, 400.0, 150.0, 120.0)
-    R = np.diag([1.0, -1.0, -1.0]) @ Ry(np.radians(theta_deg)).T
+    R, C0 = s1_geometry(theta_deg)
     axis = R.T @ np.array([0.0, 0.0, 1.0])  # optical axis in the board frame
-    C0 = -100.0 * axis
     steps = np.arange(n_images)[:, None] * 5.0
     centres = C0 + steps * (1.0 + step_error) * axis
     presumed = C0 + steps * axis
     opts = ModelOptions(unit_aspect=True, distortion=NO_DISTORTION)
-    return _robot_translation_scenario(K, R, centres, opts, sigma_px, rng, presumed)
-
-
-def _s2_geometry() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    K = K_matrix(400.0, 440.0, 150.0, 120.0)
-    R = np.diag([1.0, -1.0, -1.0]) @ (Rx(np.radians(30.0)) @ Ry(np.radians(30.0))).T
-    axis = R.T @ np.array([0.0, 0.0, 1.0])
-    return K, R, -100.0 * axis
+    return _robot_translation_scenario(K_S1, R, centres, opts, sigma_px, rng, presumed)
 
 
 def s2(n_images: int, sigma_px: float, rng: np.random.Generator, phi_deg: float = 0.0) -> Scenario:
     """S2 (Tables II, III): tilted 30 deg about x then 30 about y, translated along the board
     normal toward the plane by steps of 5; direction known, lengths unknown; zero skew.
     ``phi_deg``: the real direction is rotated by phi about the board x axis (S4)."""
-    K, R, C0 = _s2_geometry()
+    R, C0 = s2_geometry()
     normal = np.array([0.0, 0.0, 1.0]) * np.sign(-C0[2])  # toward the plane
     real = Rx(np.radians(phi_deg)) @ normal
     steps = np.arange(n_images)[:, None] * 5.0
     opts = ModelOptions(distortion=NO_DISTORTION)
     return _board_frame_scenario(
-        K,
+        K_S2,
         R,
         C0 + steps * real,
         "board_direction",
@@ -202,18 +345,165 @@ def s2(n_images: int, sigma_px: float, rng: np.random.Generator, phi_deg: float 
 
 def s3(n_images: int, sigma_px: float, rng: np.random.Generator) -> Scenario:
     """S3 (Case 3): the S2 set-up with the full translation known; all five intrinsics."""
-    K, R, C0 = _s2_geometry()
+    R, C0 = s2_geometry()
     normal = np.array([0.0, 0.0, 1.0]) * np.sign(-C0[2])
     centres = C0 + np.arange(n_images)[:, None] * 5.0 * normal
     opts = ModelOptions(skew=True, distortion=NO_DISTORTION)
-    return _board_frame_scenario(K, R, centres, "board_translation", opts, sigma_px, rng)
+    return _board_frame_scenario(K_S2, R, centres, "board_translation", opts, sigma_px, rng)
 
 
+
+
+# -- S5: a stereo head (paper Figs. 7-9) --------------------------------------------------------
+S5_K_LEFT = K_matrix(420.0, 410.0, 152.0, 118.0)
+S5_K_RIGHT = K_matrix(400.0, 400.0, 150.0, 120.0)
+# X_left = R X_right + t (docs/SETUPS.md S5): T_left_right, l.u.
+S5_T_LEFT_RIGHT = T_from_Rt(R_from_rvec(np.radians([0.0, 5.0, 0.0])), np.array([-20.0, 0.0, 0.0]))
+S5_VIEWS_DEG = ((20, 0, 0), (0, 20, 0), (-20, -20, 0), (15, -15, 10), (-10, 25, -5), (25, 10, 5))
+
+
+def s5_grid() -> Target:
+    """S5's target: 14 x 10 points, pitch 5 l.u., centred on the board origin."""
+    return Target.points(board_xy(14, 10))
+
+
+def s5_T_right_board() -> np.ndarray:
+    """The right camera's six view poses ``T_right_board`` (6, 4, 4), l.u. (docs/SETUPS.md S5).
+
+    ``R_right_board = R(r) diag(1, -1, -1)``, camera centre 130 l.u. from the grid centre on the
+    optical axis.
+    """
+    flip = np.diag([1.0, -1.0, -1.0])
+    out = []
+    for rv in S5_VIEWS_DEG:
+        R = R_from_rvec(np.radians(rv)) @ flip
+        centre_board = -130.0 * R[2]
+        out.append(T_from_Rt(R, -R @ centre_board))
+    return np.stack(out)
+
+
+@dataclass(frozen=True)
+class StereoScene:
+    """Noise-free S5 set-up at the level of homographies.
+
+    ``board_xy`` (N, 2): grid points, board frame, l.u. ``K_left``, ``K_right`` (3, 3) pixels.
+    ``R_left_right`` (3, 3), ``t_left_right`` (3,) l.u.: ``X_left = R X_right + t``.
+    ``R_right_board`` (n, 3, 3), ``t_right_board`` (n, 3) l.u.: the right camera's view poses.
+    """
+
+    board_xy: np.ndarray
+    K_left: np.ndarray
+    K_right: np.ndarray
+    R_left_right: np.ndarray
+    t_left_right: np.ndarray
+    R_right_board: np.ndarray
+    t_right_board: np.ndarray
+
+    def _pair(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Left and right homographies (3, 3) of the right camera at ``(R, t)``."""
+        Rl, tl = self.R_left_right @ R, self.R_left_right @ t + self.t_left_right
+        return (
+            self.K_left @ np.column_stack([Rl[:, 0], Rl[:, 1], tl]),
+            self.K_right @ np.column_stack([R[:, 0], R[:, 1], t]),
+        )
+
+    def homographies(self) -> tuple[np.ndarray, np.ndarray]:
+        """True plane-to-pixel homographies (n, 3, 3) of the left and the right camera."""
+        pairs = [self._pair(R, t) for R, t in zip(self.R_right_board, self.t_right_board,
+                                                  strict=True)]
+        return np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
+
+    def translated(
+        self, views: Sequence[int], steps_board: np.ndarray
+    ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """The head translated by ``steps_board`` (n, 3) (board frame, l.u.) at each of the
+        ``views``: per view, the left and the right camera's homographies (n, 3, 3)."""
+        left, right = [], []
+        for v in views:
+            R = self.R_right_board[v]
+            # the camera centre moves by T (eqs. 12-13)
+            pairs = [self._pair(R, self.t_right_board[v] - R @ T) for T in steps_board]
+            left.append(np.array([p[0] for p in pairs]))
+            right.append(np.array([p[1] for p in pairs]))
+        return left, right
+
+    def pixels(self) -> tuple[np.ndarray, np.ndarray]:
+        """True image points (n, N, 2) of the grid in the left and the right camera."""
+        H_l, H_r = self.homographies()
+        return plane_pixels(H_l, self.board_xy), plane_pixels(H_r, self.board_xy)
+
+
+def s5_scene() -> StereoScene:
+    """The S5 set-up of docs/SETUPS.md (14 x 10 grid, pitch 5 l.u., six stereo views)."""
+    Ts = s5_T_right_board()
+    return StereoScene(
+        board_xy=board_xy(14, 10),
+        K_left=S5_K_LEFT,
+        K_right=S5_K_RIGHT,
+        R_left_right=S5_T_LEFT_RIGHT[:3, :3],
+        t_left_right=S5_T_LEFT_RIGHT[:3, 3],
+        R_right_board=Ts[:, :3, :3],
+        t_right_board=Ts[:, :3, 3],
+    )
+
+
+def s5_rig(
+    rng: np.random.Generator,
+    sigma_px: float = 0.5,
+    left_factor: float = 1.0,
+    options: ModelOptions | None = None,
+) -> RigScenario:
+    """S5 as a general-motion rig problem (knowledge "none", mount "none", reference "right").
+
+    ``sigma_px``: the right camera's corner noise; the left camera's is ``left_factor`` times
+    it. Options default to zero skew and no distortion (the paper's model). Points outside the
+    300 x 240 images are not detected.
+    """
+    target = s5_grid()
+    Ts = s5_T_right_board()
+    sig = {"left": left_factor * sigma_px, "right": sigma_px}
+    K = {"left": S5_K_LEFT, "right": S5_K_RIGHT}
+    T_cam_right = {"left": S5_T_LEFT_RIGHT, "right": np.eye(4)}
+    frames = []
+    for k, T in enumerate(Ts):
+        dets = {
+            c: _detect(K[c], np.zeros(5), T_cam_right[c] @ T, target, PAPER_SIZE_PX, sig[c], rng)
+            for c in ("left", "right")
+        }
+        frames.append(Frame(k, dets))
+    problem = CalibrationProblem(
+        target,
+        (CameraSpec("left", *PAPER_SIZE_PX), CameraSpec("right", *PAPER_SIZE_PX)),
+        tuple(frames),
+        "none",
+        "none",
+        options or ModelOptions(distortion=NO_DISTORTION),
+        reference_camera="right",
+    )
+    truth = ModelState(
+        {c: K[c].copy() for c in K},
+        {c: np.zeros(5) for c in K},
+        {"left": S5_T_LEFT_RIGHT.copy()},
+        Ts,
+        np.eye(4),
+        np.zeros(len(Ts)),
+    )
+    return RigScenario(problem, truth, sigma_px, sigma_by_camera_px=sig)
+
+
+
+# -- R1: a UR5e-class cell, eye-in-hand or eye-to-hand ------------------------------------------
+R1_SIZE_PX = (1280, 800)
 R1_K = K_matrix(880.0, 880.0, 640.0, 400.0)
 R1_DIST = np.array([-0.12, 0.05, 5e-4, -3e-4, 0.0])
 R1_T_TOOL_CAM = T_from_Rt(
     R_from_rvec(np.radians([1.5, -2.0, 90.0])), np.array([0.035, -0.06, 0.09])
 )
+
+
+def r1_target() -> Target:
+    """R1's ChArUco board: 11 x 8 squares of 30 mm, 22 mm markers."""
+    return Target.charuco(11, 8, 0.030, 0.022)
 
 
 def r1_poses(rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -224,7 +514,7 @@ def r1_poses(rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.nda
     4 translations of 40-80 mm in non-coplanar directions (each with a component along the
     viewing axis: translations parallel to the board are degenerate, docs/METHOD.md Sec. 7).
     """
-    target = Target.charuco(11, 8, 0.030, 0.022)
+    target = r1_target()
     centre_board = target.points_m.mean(axis=0)
     # board frame: +z into the table (down), so a camera above reads the print (R_cam_board ~ I)
     R_base_board = np.diag([1.0, -1.0, -1.0])
@@ -286,7 +576,7 @@ def r1_scenario(
     sigma_px: float,
     T_base_board: np.ndarray,
     dist: np.ndarray = R1_DIST,
-    size: tuple[int, int] = (1280, 800),
+    size: tuple[int, int] = R1_SIZE_PX,
     T_base_tool_true: np.ndarray | None = None,
 ) -> Scenario:
     """The scenario of R1's camera (``R1_K``, ``dist``) with these ``frames``: the problem, the
@@ -321,7 +611,7 @@ def _r1_cell(
     eye_in_hand: bool,
 ) -> Scenario:
     """R1's camera-board poses, with the camera on the tool or fixed in the cell."""
-    target = Target.charuco(11, 8, 0.030, 0.022)
+    target = r1_target()
     T_base_board, poses = r1_poses()
     frames = []
     for k, T_bt in enumerate(poses):
@@ -330,7 +620,7 @@ def _r1_cell(
         T_base_tool = (
             T_bt if eye_in_hand else (R1_T_BASE_CAM @ T_cam_board @ inv_T(R1_T_TOOL_BOARD))
         )
-        det = _detect(R1_K, R1_DIST, T_cam_board, target, (1280, 800), sigma_px, rng, 2.0)
+        det = _detect(R1_K, R1_DIST, T_cam_board, target, R1_SIZE_PX, sigma_px, rng, 2.0)
         measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
         frames.append(Frame(k, {"cam": det}, T_base_tool=measured))
     return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board)
@@ -423,7 +713,7 @@ def r1_real_arm(
     noise). ``T_hand_eye`` and ``T_target`` are the physical truth; see
     :func:`effective_truth` for what the data can determine.
     """
-    target = Target.charuco(11, 8, 0.030, 0.022)
+    target = r1_target()
     S = _in_reach()
     T_base_board, poses = r1_poses()
     T_base_board = S @ T_base_board
@@ -458,7 +748,7 @@ def r1_real_arm(
     if detect is None:
 
         def detect(T_cam_board: np.ndarray, g: np.random.Generator) -> Detection:
-            return _detect(R1_K, R1_DIST, T_cam_board, target, (1280, 800), sigma_px, g, 2.0)
+            return _detect(R1_K, R1_DIST, T_cam_board, target, R1_SIZE_PX, sigma_px, g, 2.0)
 
     frames = []
     for k, (T_true, T_meas) in enumerate(zip(true, planned, strict=True)):
@@ -496,3 +786,208 @@ def effective_truth(
         sigma_mm,
     )
     return T_he, T_tg
+
+
+# -- rigs on R1: the OAK-D-like head --------------------------------------------------------------
+def oak_rig(
+    rng: np.random.Generator,
+    sigma_px: float | Mapping[str, float] = 0.15,
+    cameras: Sequence[str] = ("left", "right"),
+    robot_noise_m: float = 0.0,
+    robot_noise_deg: float = 0.0,
+    options: ModelOptions | None = None,
+    view_offset_deg: float = 20.0,
+) -> RigScenario:
+    """The OAK-D-like head eye-in-hand on the R1 cell; reference camera "left".
+
+    ``sigma_px``: corner noise (pixels) of every camera, or per camera name. ``cameras``: which
+    of "left", "right", "rgb" the rig has (must include "left"). ``robot_noise_m``,
+    ``robot_noise_deg``: one-sigma noise injected into the measured ``T_base_tool`` (the model
+    is told through ``options``). ``view_offset_deg``: the left camera is R1's camera turned by
+    this angle about its y axis (the robot poses stay R1's), so the board sits off-centre and,
+    at 20 deg, the right camera loses up to a third of the corners in half of the frames.
+    Corners outside an image (2 px margin) are not detected.
+    """
+    sims = {c.name: c for c in oak_d_like()}
+    cameras = tuple(cameras)
+    if "left" not in cameras or any(c not in sims for c in cameras):
+        raise InputError(f"cameras must include 'left' and be among {list(sims)}, got {cameras}")
+    sig = (
+        {c: float(sigma_px[c]) for c in cameras}
+        if isinstance(sigma_px, Mapping)
+        else {c: float(sigma_px) for c in cameras}
+    )
+    extr = oak_d_like_extrinsics()
+    T_tool_left = R1_T_TOOL_CAM @ T_from_Rt(Ry(np.radians(view_offset_deg)), np.zeros(3))
+    target = r1_target()
+    T_base_board, poses = r1_poses()
+    frames = []
+    for k, T_base_tool in enumerate(poses):
+        T_left_board = inv_T(T_base_tool @ T_tool_left) @ T_base_board
+        dets = {}
+        for c in cameras:
+            s = sims[c]
+            dets[c] = _detect(
+                s.K, s.dist, extr[c] @ T_left_board, target, (s.width, s.height), sig[c], rng, 2.0
+            )
+        measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
+        frames.append(Frame(k, dets, T_base_tool=measured))
+    problem = CalibrationProblem(
+        target,
+        tuple(sims[c].spec for c in cameras),
+        tuple(frames),
+        "eye_in_hand",
+        "robot",
+        options or ModelOptions(),
+        reference_camera="left",
+    )
+    truth = ModelState(
+        {c: sims[c].K.copy() for c in cameras},
+        {c: sims[c].dist.copy() for c in cameras},
+        {c: extr[c].copy() for c in cameras if c != "left"},
+        inv_T(T_tool_left)[None],
+        T_base_board,
+        np.zeros(len(poses)),
+    )
+    return RigScenario(
+        problem, truth, sig["left"], T_tool_left, T_base_board, sigma_by_camera_px=sig
+    )
+
+
+Hide = Literal["none", "empty", "half"]
+
+
+def hide_views(
+    problem: CalibrationProblem, hidden: Mapping[tuple[int, str], Hide]
+) -> CalibrationProblem:
+    """The problem with some views removed or cut, keyed by (frame index, camera name).
+
+    ``"none"``: the camera has no detection in that frame; ``"empty"``: a detection with no
+    corners (a session records it so); ``"half"``: only the corners whose board x is below the
+    median of the detected ones (the board half out of view).
+    """
+    frames = list(problem.frames)
+    for (fi, cam), how in hidden.items():
+        f = frames[fi]
+        dets = dict(f.detections)
+        if cam not in dets:
+            raise InputError(f"frame {fi} has no detection of camera {cam!r} to hide")
+        if how == "none":
+            del dets[cam]
+        elif how == "empty":
+            dets[cam] = Detection(np.zeros(0, dtype=int), np.zeros((0, 2)))
+        elif how == "half":
+            d = dets[cam]
+            x = problem.target.points_m[d.ids, 0]
+            keep = x < np.median(x)
+            dets[cam] = Detection(d.ids[keep], d.px[keep])
+        else:
+            raise InputError(f"unknown way to hide a view {how!r}; use none, empty or half")
+        frames[fi] = replace(f, detections=dets)
+    return replace(problem, frames=tuple(frames))
+
+
+# -- classic hand-eye sessions: every frame at its own orientation (R1's cell) -----------------
+def square_tag(side_m: float = 0.08) -> Target:
+    """A single square tag's 4 corners (an AprilTag's outer corners), centred on the origin."""
+    h = side_m / 2.0
+    return Target.points(np.array([[-h, -h], [h, -h], [h, h], [-h, h]]))
+
+
+def camera_board_poses(
+    rng: np.random.Generator,
+    n_orientations: int,
+    target: Target,
+    distance_m: tuple[float, float] = (0.45, 0.6),
+    tilt_deg: tuple[float, float] = (15.0, 35.0),
+    roll_deg: float = 30.0,
+    aim_spread_m: float = 0.06,
+) -> np.ndarray:
+    """``T_cam_board`` (n, 4, 4): views of the target, each at its own orientation.
+
+    The camera looks at a point near the target centre (within ``aim_spread_m`` in the board
+    plane, so the target lands on different parts of the image) from ``distance_m``, its axis
+    tilted from the board normal by ``tilt_deg`` toward a random azimuth, rolled about the
+    optical axis by up to ``roll_deg``.
+    """
+    centre = target.points_m.mean(axis=0)
+    out = []
+    for _ in range(n_orientations):
+        az = rng.uniform(0.0, 2.0 * np.pi)
+        tilt = np.radians(rng.uniform(*tilt_deg))
+        # board frame: +z into the board, so a camera in front sits at negative z
+        view = np.array([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), -np.cos(tilt)])
+        aim = centre + np.array([*rng.uniform(-aim_spread_m, aim_spread_m, 2), 0.0])
+        p_cam = aim + rng.uniform(*distance_m) * view
+        up = np.array([0.0, -1.0, 0.0])  # board -y appears up in the image
+        R_cam_board = look_at_R_cam_world(p_cam, aim, up)
+        R_cam_board = R_from_rvec([0.0, 0.0, np.radians(rng.uniform(-roll_deg, roll_deg))]) @ (
+            R_cam_board
+        )
+        out.append(T_from_Rt(R_cam_board, -R_cam_board @ p_cam))
+    return np.array(out)
+
+
+def _translated(
+    T_cam_board: np.ndarray, rng: np.random.Generator, per_orientation: int
+) -> np.ndarray:
+    """Each pose followed by ``per_orientation - 1`` translated copies (30-60 mm moves of the
+    camera in non-coplanar directions, each with a component along the optical axis)."""
+    out = []
+    for T in T_cam_board:
+        out.append(T)
+        dirs = np.array([[1.0, 0.2, 0.6], [-0.3, 1.0, 0.5], [0.4, -0.6, -0.8], [-0.8, -0.4, 0.7]])
+        for k in range(per_orientation - 1):
+            d = dirs[k % len(dirs)] / np.linalg.norm(dirs[k % len(dirs)])
+            move_cam = rng.uniform(0.03, 0.06) * d  # camera displacement, camera axes
+            Tk = T.copy()
+            Tk[:3, 3] -= move_cam  # p_cam' = p_cam - move: the camera moved by +move
+            out.append(Tk)
+    return np.array(out)
+
+
+def classic(
+    rng: np.random.Generator,
+    n_frames: int = 20,
+    sigma_px: float = 0.15,
+    robot_noise_m: float = 5e-5,
+    robot_noise_deg: float = 0.005,
+    eye_in_hand: bool = True,
+    options: ModelOptions | None = None,
+    target: Target | None = None,
+    per_orientation: int = 1,
+    distortion: np.ndarray | None = None,
+    T_cam_board: np.ndarray | None = None,
+) -> Scenario:
+    """A classic hand-eye session in the R1 cell: ``n_frames`` orientations, all different.
+
+    ``per_orientation`` > 1 adds translated frames at each orientation (a mixed session: then
+    ``n_frames`` orientations of ``per_orientation`` frames). ``target``: R1's ChArUco board by
+    default; ``distortion`` (5,): the lens (R1's by default). Robot poses are measured with
+    ``robot_noise_m`` per axis and ``robot_noise_deg`` per rotation-vector component.
+    ``T_cam_board`` (n, 4, 4): the views (:func:`camera_board_poses`) when the geometry must stay
+    the same over Monte-Carlo trials; ``rng`` then draws only the noise (and the translations).
+    """
+    target = target or r1_target()
+    dist = R1_DIST.copy() if distortion is None else np.asarray(distortion, dtype=float)
+    if T_cam_board is None:
+        T_cam_board = camera_board_poses(rng, n_frames, target)
+    T_cb = _translated(np.asarray(T_cam_board, dtype=float), rng, per_orientation)
+    T_base_board = r1_poses()[0]
+    frames = []
+    for k, T_c_b in enumerate(T_cb):
+        if eye_in_hand:
+            T_base_tool = T_base_board @ inv_T(T_c_b) @ inv_T(R1_T_TOOL_CAM)
+        else:
+            T_base_tool = R1_T_BASE_CAM @ T_c_b @ inv_T(R1_T_TOOL_BOARD)
+        det = _detect(R1_K, dist, T_c_b, target, R1_SIZE_PX, sigma_px, rng, 2.0)
+        measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
+        frames.append(Frame(k, {"cam": det}, T_base_tool=measured))
+    return r1_scenario(
+        target, frames, eye_in_hand, options, sigma_px, T_base_board, dist, R1_SIZE_PX
+    )
+
+
+def board_in_view(s: Scenario) -> np.ndarray:
+    """Per frame, the number of target points the camera saw (for checking a built scenario)."""
+    return np.array([len(f.detections["cam"].ids) for f in s.problem.frames])

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from slidecal.mocks import handeye_scenarios as hs
+from slidecal.mocks import scenarios as hs
 from slidecal.mocks.scenarios import NO_DISTORTION, Scenario
 from slidecal.routines.benchmarks import report_header
 from slidecal.solver.calibrate import calibrate, pnp_pose
@@ -281,7 +281,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = all_rows(args.trials)
     lines = [
         *report_header("Classic hand-eye sessions", "handeye", argv, time.time() - t0),
-        "Simulated R1 cell (`slidecal.mocks.handeye_scenarios`): 1280 x 800 camera with R1's "
+        "Simulated R1 cell (`slidecal.mocks.scenarios.classic`): 1280 x 800 camera with R1's "
         "distortion, every frame at its own orientation (tilts 15-35 deg toward random "
         "azimuths, rolls up to 30 deg, 0.45-0.6 m from the target), corner noise "
         f"{SIGMA_PX} px, robot poses measured with {1000 * ROBOT_NOISE[0]:.2f} mm per axis and "

@@ -63,13 +63,7 @@ def naive_plan(cfg: CellConfig, duration_s: float, rng: np.random.Generator) -> 
         poses = tuple(tool_pose(cfg, T) for T in T_cb)
         if len(poses) < 3 or any(_rejection(cfg, nom, s, T) is not None for T in poses):
             continue
-        cand = Plan(
-            tuple(groups) + (poses,),
-            via,
-            cfg.robot.speed_mps,
-            cfg.robot.accel_mps2,
-            cfg.robot.settle_s,
-        )
+        cand = Plan.build([*groups, poses], cfg.robot, via=via)
         t, bad, _ = dry_run(cand, cfg)
         if bad is not None:
             continue
@@ -78,7 +72,7 @@ def naive_plan(cfg: CellConfig, duration_s: float, rng: np.random.Generator) -> 
         if len(groups) >= 3 and t + cand.n_poses * s.capture_s > duration_s:
             break
         groups.append(poses)
-    return Plan(tuple(groups), via, cfg.robot.speed_mps, cfg.robot.accel_mps2, cfg.robot.settle_s)
+    return Plan.build(groups, cfg.robot, via=via)
 
 
 def _monte_carlo(cfg: CellConfig, plan: Plan, seeds: range) -> dict[str, np.ndarray]:

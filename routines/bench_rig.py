@@ -4,7 +4,7 @@
 ``calibrate``: equal noise, then the left camera at twice the right's (the solver estimates
 and weighs each camera's noise), and that again with the left camera's pixels scaled to the
 right's noise (:func:`scale_pixels`, a cross-check of the weighting). (ii) The OAK-D-like head
-eye-in-hand on R1's poses (``mocks/rig_scenarios.oak_rig``), with exact and with noisy, modelled
+eye-in-hand on R1's poses (``mocks/scenarios.oak_rig``), with exact and with noisy, modelled
 robot poses. Per camera and parameter: bias and std over the trials, the bound and the
 efficiency ratio std / bound; the relative rotation's rms error against its bound (root of the
 trace of the rig rotation block), and the rms error of the linear eq. 63 rotation. (iii) End to
@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slidecal.mocks import rig_scenarios as rs
+from slidecal.mocks import scenarios as rs
 from slidecal.routines.benchmarks import report_header
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import SlidecalError

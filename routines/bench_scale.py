@@ -21,7 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from slidecal.mocks.rig_scenarios import oak_rig
+from slidecal.mocks.scenarios import oak_rig
 from slidecal.routines.benchmarks import report_header
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.problem import CalibrationProblem, Frame

@@ -14,79 +14,18 @@ from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from slidecal.mocks.scenarios import PAPER_SIZE_PX, StereoScene, s5_scene
 from slidecal.routines.benchmarks import report_header
-from slidecal.solver.camera import K_matrix
-from slidecal.solver.geometry import R_from_rvec, rotation_angle_deg
+from slidecal.solver.geometry import rotation_angle_deg
 from slidecal.solver.homography import homography_dlt, refine_homography
 from slidecal.solver.stereo import infinite_homography, relative_rotation, rig_linear_intrinsics
 
 PARAMS = ("fx", "fy", "cx", "cy")
 SIGMAS_PX = tuple(np.round(np.arange(0.1, 0.81, 0.1), 2))
-IMAGE_SIZE_PX = (300, 240)
-
-
-@dataclass(frozen=True)
-class StereoScene:
-    """Noise-free S5 set-up.
-
-    ``board_xy`` (N, 2): grid points, board frame, l.u. ``K_left``, ``K_right`` (3, 3) pixels.
-    ``R_left_right`` (3, 3), ``t_left_right`` (3,) l.u.: ``X_left = R X_right + t``.
-    ``R_right_board`` (n, 3, 3), ``t_right_board`` (n, 3) l.u.: the right camera's view poses.
-    """
-
-    board_xy: np.ndarray
-    K_left: np.ndarray
-    K_right: np.ndarray
-    R_left_right: np.ndarray
-    t_left_right: np.ndarray
-    R_right_board: np.ndarray
-    t_right_board: np.ndarray
-
-    def homographies(self) -> tuple[np.ndarray, np.ndarray]:
-        """True plane-to-pixel homographies (n, 3, 3) of the left and the right camera."""
-        H_l, H_r = [], []
-        for R, t in zip(self.R_right_board, self.t_right_board, strict=True):
-            H_r.append(self.K_right @ np.column_stack([R[:, 0], R[:, 1], t]))
-            Rl, tl = self.R_left_right @ R, self.R_left_right @ t + self.t_left_right
-            H_l.append(self.K_left @ np.column_stack([Rl[:, 0], Rl[:, 1], tl]))
-        return np.array(H_l), np.array(H_r)
-
-    def pixels(self) -> tuple[np.ndarray, np.ndarray]:
-        """True image points (n, N, 2) of the grid in the left and the right camera."""
-        X = np.column_stack([self.board_xy, np.ones(len(self.board_xy))])
-        out = []
-        for H in self.homographies():
-            u = np.einsum("kij,nj->kni", H, X)
-            out.append(u[..., :2] / u[..., 2:3])
-        return out[0], out[1]
-
-
-def s5_scene() -> StereoScene:
-    """The S5 set-up of docs/SETUPS.md (14 x 10 grid, pitch 5 l.u., six stereo views)."""
-    c, r = np.meshgrid((np.arange(14) - 6.5) * 5.0, (np.arange(10) - 4.5) * 5.0)
-    board_xy = np.column_stack([c.ravel(), r.ravel()])
-    flip = np.diag([1.0, -1.0, -1.0])
-    rvecs_deg = [(20, 0, 0), (0, 20, 0), (-20, -20, 0), (15, -15, 10), (-10, 25, -5), (25, 10, 5)]
-    Rs, ts = [], []
-    for rv in rvecs_deg:
-        R = R_from_rvec(np.radians(rv)) @ flip  # R_right_board
-        centre_board = -130.0 * R[2]  # on the optical axis, 130 l.u. from the grid centre
-        Rs.append(R)
-        ts.append(-R @ centre_board)
-    return StereoScene(
-        board_xy=board_xy,
-        K_left=K_matrix(420.0, 410.0, 152.0, 118.0),
-        K_right=K_matrix(400.0, 400.0, 150.0, 120.0),
-        R_left_right=R_from_rvec(np.radians([0.0, 5.0, 0.0])),
-        t_left_right=np.array([-20.0, 0.0, 0.0]),
-        R_right_board=np.array(Rs),
-        t_right_board=np.array(ts),
-    )
 
 
 def estimate_homographies(board_xy: np.ndarray, px: np.ndarray) -> np.ndarray:
@@ -119,7 +58,7 @@ def run_trial(
     px_r = px_r + rng.normal(scale=sigma_right_px, size=px_r.shape)
     H_l = estimate_homographies(scene.board_xy, px_l)
     H_r = estimate_homographies(scene.board_xy, px_r)
-    sizes = (IMAGE_SIZE_PX, IMAGE_SIZE_PX)
+    sizes = (PAPER_SIZE_PX, PAPER_SIZE_PX)
     Ks_l, Ks_r = rig_linear_intrinsics(H_l, H_r, None, skew=skew, sizes=sizes)
     H_inf, _ = infinite_homography(H_l, H_r, sizes=sizes)
     Kj_l, Kj_r = rig_linear_intrinsics(H_l, H_r, H_inf, skew=skew, sizes=sizes)

@@ -125,13 +125,7 @@ def record_without_translation(out: Path, seed: int = 0) -> Path:
 
     cfg = load_config()
     plan = make_plan(cfg).plan
-    bad = Plan(
-        groups=tuple(tuple(g[0] for _ in g) for g in plan.groups),
-        via=plan.via,
-        speed_mps=plan.speed_mps,
-        accel_mps2=plan.accel_mps2,
-        settle_s=plan.settle_s,
-    )
+    bad = Plan.build([[g[0] for _ in g] for g in plan.groups], plan, via=plan.via)
     cell = SimulatedCell.from_config(cfg, seed)
     writer = SessionWriter(
         out, cfg.target, cell.rig.specs, options=cfg.options, simulation=cell.truth

@@ -53,12 +53,10 @@ def check_plan_from(plan: Plan, cfg: CellConfig, frames: int = DEFAULT_FRAMES) -
     n_groups = max(1, min(len(plan.groups), frames // per))
     while True:
         groups = tuple(tuple(g[:per]) for g in plan.groups[:n_groups])
-        short = Plan(
-            groups=groups,
+        short = Plan.build(
+            groups,
+            plan,
             via=plan.via,
-            speed_mps=plan.speed_mps,
-            accel_mps2=plan.accel_mps2,
-            settle_s=plan.settle_s,
             notes=(f"check: {sum(len(g) for g in groups)} frames of the installed plan",),
         )
         robot_s, bad, why = dry_run(short, cfg)

@@ -25,6 +25,7 @@ alone are degenerate, docs/METHOD.md Sec. 7), every pose looking at the board fr
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from slidecal.drivers.ur_pose import ur_pose_from_T
-from slidecal.routines.config import CellConfig
+from slidecal.routines.config import CellConfig, RobotConfig
 from slidecal.routines.schema import Fields, dump_yaml, load_yaml, write_atomic
 from slidecal.routines.session import ur_pose_field
 from slidecal.solver.errors import InputError
@@ -88,6 +89,31 @@ class Plan:
     predicted_std: dict[str, float] | None = None
     duration_s: float | None = None
     notes: tuple[str, ...] = field(default=())
+
+    @classmethod
+    def build(
+        cls,
+        groups: Sequence[Sequence[np.ndarray]],
+        motion: RobotConfig | Plan,
+        *,
+        via: np.ndarray | None = None,
+        notes: Sequence[str] = (),
+        predicted_std: dict[str, float] | None = None,
+        duration_s: float | None = None,
+    ) -> Plan:
+        """The one way a plan is made: ``groups`` of ``T_base_tool`` (4, 4) poses moved with the
+        speed, acceleration and settling time of ``motion``, the cell's ``robot:`` section
+        (``cfg.robot``) or the plan whose poses these are taken from."""
+        return cls(
+            groups=tuple(tuple(g) for g in groups),
+            via=via,
+            speed_mps=motion.speed_mps,
+            accel_mps2=motion.accel_mps2,
+            settle_s=motion.settle_s,
+            predicted_std=predicted_std,
+            duration_s=duration_s,
+            notes=tuple(notes),
+        )
 
     @property
     def poses(self) -> list[tuple[int, np.ndarray]]:
@@ -154,14 +180,15 @@ def plan_from_dict(data: Any, source: str = "plan.yaml") -> Plan:
         groups.append(tuple(poses))
     pstd = f.section("predicted_std")
     predicted = {str(k): pstd.number(str(k), minimum=0.0) for k in pstd.data} or None
-    speed = f.number("speed_mps", 0.1, positive=True, maximum=MAX_SPEED_MPS)
-    accel = f.number("accel_mps2", 0.5, positive=True, maximum=MAX_ACCEL_MPS2)
-    return Plan(
-        groups=tuple(groups),
-        via=ur_pose_field(f, "via") if f.has("via") else None,
-        speed_mps=speed,
-        accel_mps2=accel,
+    motion = RobotConfig(
+        speed_mps=f.number("speed_mps", 0.1, positive=True, maximum=MAX_SPEED_MPS),
+        accel_mps2=f.number("accel_mps2", 0.5, positive=True, maximum=MAX_ACCEL_MPS2),
         settle_s=f.number("settle_s", 0.5, minimum=0.0, maximum=60.0),
+    )
+    return Plan.build(
+        groups,
+        motion,
+        via=ur_pose_field(f, "via") if f.has("via") else None,
         predicted_std=predicted if f.has("predicted_std") else None,
         duration_s=f.optional_number("duration_s", minimum=0.0),
         notes=tuple(f.strings("notes")),
@@ -242,12 +269,10 @@ def default_plan(
     )
     plan_groups = tuple(tuple(tool_pose(cfg, T) for T in grp) for grp in T_cb)
     via = tool_pose(cfg, camera_poses_board(centre, cfg.standoff_m, 0.0, 0.0, 2, 1)[0][0])
-    return Plan(
-        groups=plan_groups,
+    return Plan.build(
+        plan_groups,
+        cfg.robot,
         via=via,
-        speed_mps=cfg.robot.speed_mps,
-        accel_mps2=cfg.robot.accel_mps2,
-        settle_s=cfg.robot.settle_s,
         notes=(
             f"default plan: {groups} groups tilted {tilt_deg:g} deg, {frames_per_group} frames "
             f"each, moves up to {step_mm:g} mm at {cfg.standoff_m:g} m",

@@ -1028,14 +1028,7 @@ def make_plan(cfg: CellConfig, settings: PlannerSettings | None = None) -> PlanR
 
 def _to_plan(cfg, cands, chosen, via, notes) -> Plan:  # noqa: ANN001 - internal helper
     groups = tuple(tuple(cands[c.group].T_base_tool[k] for k in c.frames) for c in chosen)
-    return Plan(
-        groups=groups,
-        via=via,
-        speed_mps=cfg.robot.speed_mps,
-        accel_mps2=cfg.robot.accel_mps2,
-        settle_s=cfg.robot.settle_s,
-        notes=notes,
-    )
+    return Plan.build(groups, cfg.robot, via=via, notes=notes)
 
 
 def _ban(cands: list[_Group], chosen: list[_Chosen], bad: int) -> None:

@@ -341,23 +341,76 @@ def linear_system(
 NULL_SPACE_TOL = 1e-10
 
 
-def _solve_null(system: LinearSystem) -> tuple[np.ndarray, np.ndarray]:
-    A = system.A
+_SINGULAR_REMEDY = (
+    "the data cannot determine the intrinsics with this knowledge; add translation directions "
+    "or tilts (docs/METHOD.md Sec. 7)"
+)
+
+
+def solve_null(
+    A: np.ndarray,
+    col_scale: np.ndarray,
+    unknowns: Sequence[str],
+    remedy: str = _SINGULAR_REMEDY,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Null vector ``x`` (n,) of a conditioned homogeneous system and its singular values.
+
+    ``A`` (rows, n): weighted rows, columns already scaled by ``col_scale`` (n,);
+    ``x = col_scale * y`` for the unit null vector ``y`` of ``A``. ``unknowns``: the column
+    names (for the message). ``remedy``: what to do when the null space is not one-dimensional.
+    Raises ``DegenerateError`` with too few rows or a null space of more than one dimension.
+    """
     n_unknowns = A.shape[1]
     if A.shape[0] < n_unknowns - 1:
         raise DegenerateError(
             f"too few constraints ({A.shape[0]}) for {n_unknowns - 1} unknowns "
-            f"({', '.join(system.unknowns)} up to scale): add frames, translations in other "
+            f"({', '.join(unknowns)} up to scale): add frames, translations in other "
             "directions, or orientation groups, or assume zero skew / unit aspect"
         )
     sv, Vt = right_singular(A)
     if sv[-2] <= NULL_SPACE_TOL * sv[0]:
         raise DegenerateError(
-            "the linear system is singular (its null space is not one-dimensional): the data "
-            "cannot determine the intrinsics with this knowledge; add translation directions "
-            "or tilts (docs/METHOD.md Sec. 7)"
+            f"the linear system is singular (its null space is not one-dimensional): {remedy}"
         )
-    return Vt[-1] * system.col_scale, sv
+    return Vt[-1] * col_scale, sv
+
+
+def _solve_null(system: LinearSystem) -> tuple[np.ndarray, np.ndarray]:
+    return solve_null(system.A, system.col_scale, system.unknowns)
+
+
+def unit_columns(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(A * col_scale, col_scale)``: the columns of ``A`` (rows, n) scaled to unit norm (an
+    all-zero column is left as it is)."""
+    cn = np.linalg.norm(A, axis=0)
+    col_scale = 1.0 / np.where(cn > 0, cn, 1.0)
+    return A * col_scale, col_scale
+
+
+def weighted_rows(system: LinearSystem) -> np.ndarray:
+    """The rows of ``system`` with their weights but the columns as the unknowns are (the column
+    scaling undone): the block a larger system (a rig's) stacks and conditions again."""
+    return system.A / system.col_scale
+
+
+def conditioned_homographies(
+    groups: Sequence[LinearGroup], system: LinearSystem
+) -> list[np.ndarray]:
+    """Each group's homographies (n, 3, 3) as the rows of ``system`` (:func:`linear_system` of
+    ``groups``) use them: common ``h1, h2`` per group, then ``N H diag(sigma, sigma, 1) /
+    h_scale``. Translations pair with them divided by ``system.sigma``."""
+    S = np.diag([system.sigma, system.sigma, 1.0])
+    return [
+        np.einsum("ij,kjl->kil", system.N, _common_h12(np.asarray(g.H, dtype=float))) @ S / s
+        for g, s in zip(groups, system.h_scale, strict=True)
+    ]
+
+
+def K_from_normalised_w(w: np.ndarray, N: np.ndarray) -> np.ndarray:
+    """Intrinsics (3, 3) in pixels, ``K[2, 2] = 1``, from the conic vector ``w`` (6,) of the
+    normalised image ``x_n = N x_px`` (:func:`image_normalisation`)."""
+    K = np.linalg.solve(N, K_from_w(w))
+    return K / K[2, 2]
 
 
 def linear_intrinsics(
@@ -392,8 +445,7 @@ def linear_intrinsics(
     m = system.basis.shape[1]
     w = system.basis @ x[:m]
     Kn = K_from_w(w)
-    K = np.linalg.inv(system.N) @ Kn
-    K /= K[2, 2]
+    K = K_from_normalised_w(w, system.N)
     Kni = np.linalg.inv(Kn)
     Wt = Kni.T @ Kni
     w_true = np.array([Wt[0, 0], Wt[0, 1], Wt[1, 1], Wt[0, 2], Wt[1, 2], Wt[2, 2]])
@@ -431,16 +483,23 @@ def zhang_intrinsics(
     skew: bool = False,
     unit_aspect: bool = False,
     image_size: tuple[float, float],
+    row_weighting: Literal["noise", "unit"] = "noise",
 ) -> np.ndarray:
     """Zhang's general-motion intrinsics ``K`` (3, 3) from homographies ``Hs`` (n, 3, 3).
 
     Each homography (board plane to pixels, any scale) is its own pose (eqs. 10-11). Needs at
     least 3 orientations with skew, 2 with zero skew (4 unknowns), fewer with unit aspect.
+    ``row_weighting``: see :func:`linear_system`.
     """
     Hs = np.asarray(Hs, dtype=float).reshape(-1, 3, 3)
     groups = [LinearGroup(H[None]) for H in Hs]
     system = linear_system(
-        groups, "none", skew=skew, unit_aspect=unit_aspect, image_size=image_size
+        groups,
+        "none",
+        skew=skew,
+        unit_aspect=unit_aspect,
+        image_size=image_size,
+        row_weighting=row_weighting,
     )
     x, sv = _solve_null(system)
     if sv[-2] <= 1e-10 * sv[0]:
@@ -448,8 +507,7 @@ def zhang_intrinsics(
             "Zhang's method is singular for these views: use more orientations (at least 3 with "
             "skew), tilted about different axes"
         )
-    K = np.linalg.inv(system.N) @ K_from_w(system.basis @ x[: system.basis.shape[1]])
-    return K / K[2, 2]
+    return K_from_normalised_w(system.basis @ x[: system.basis.shape[1]], system.N)
 
 
 def focal_from_homographies(Hs: np.ndarray, *, image_size: tuple[float, float]) -> np.ndarray:

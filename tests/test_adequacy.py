@@ -96,7 +96,7 @@ def test_a_four_point_target_is_judged_by_its_own_redundancy(robot_noise_mm):
     """A single tag (4 corners, 2 redundant rows per image after a free pose): the robot model's
     noise estimate and the free-pose floor agree when the model is right, with exact poses and
     with a noisy arm learned from the data (the raw rms ratio would be up to 2 here)."""
-    from slidecal.mocks.handeye_scenarios import classic, square_tag
+    from slidecal.mocks.scenarios import classic, square_tag
 
     s = classic(
         np.random.default_rng(3), n_frames=7, per_orientation=8, eye_in_hand=False,

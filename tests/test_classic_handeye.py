@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 import yaml
 
-from slidecal.mocks import handeye_scenarios as hs
 from slidecal.mocks import scenarios as sc
 from slidecal.routines.session import SESSION_FILE, read_session
 from slidecal.solver.calibrate import calibrate, pnp_pose
@@ -112,7 +111,7 @@ def test_daniilidis_agrees_with_opencv():
 # -- classic sessions through the whole pipeline ------------------------------------------------
 @pytest.mark.parametrize("eye_in_hand", [True, False], ids=["eye-in-hand", "eye-to-hand"])
 def test_classic_session_noise_free(eye_in_hand):
-    s = hs.classic(np.random.default_rng(3), 15, 0.0, 0.0, 0.0, eye_in_hand=eye_in_hand)
+    s = sc.classic(np.random.default_rng(3), 15, 0.0, 0.0, 0.0, eye_in_hand=eye_in_hand)
     assert len({round(float(np.trace(f.T_base_tool[:3, :3])), 6) for f in s.problem.frames}) == 15
     res = calibrate(s.problem)
     _check_truth(res, s)
@@ -122,7 +121,7 @@ def test_classic_session_noise_free(eye_in_hand):
 @pytest.mark.parametrize("eye_in_hand", [True, False], ids=["eye-in-hand", "eye-to-hand"])
 def test_classic_session_noisy_within_bound(eye_in_hand):
     """Pixel noise only: the reported std is the Cramer-Rao bound and covers the errors."""
-    s = hs.classic(np.random.default_rng(4), 20, 0.15, 0.0, 0.0, eye_in_hand=eye_in_hand)
+    s = sc.classic(np.random.default_rng(4), 20, 0.15, 0.0, 0.0, eye_in_hand=eye_in_hand)
     res = calibrate(s.problem)
     st = build_structure(s.problem, s.truth.X[0][:3, :3])
     names, cov = fisher_covariance(s.problem, st, s.truth, s.sigma_px)
@@ -136,7 +135,7 @@ def test_classic_session_noisy_within_bound(eye_in_hand):
 
 
 def test_classic_session_agrees_with_opencv_park():
-    s = hs.classic(np.random.default_rng(5), 20, 0.15, 0.0, 0.0)
+    s = sc.classic(np.random.default_rng(5), 20, 0.15, 0.0, 0.0)
     res = calibrate(s.problem)
     K, dist = res.cameras["cam"].K, res.cameras["cam"].distortion
     Tg, Tc = [], []
@@ -157,8 +156,8 @@ def test_classic_session_agrees_with_opencv_park():
 def test_mixed_session_uses_groups_and_single_frames():
     """Three orientations translated (groups) plus ten single-orientation frames."""
     rng = np.random.default_rng(6)
-    groups = hs.classic(rng, 3, 0.0, 0.0, 0.0, per_orientation=4)
-    singles = hs.classic(rng, 10, 0.0, 0.0, 0.0)
+    groups = sc.classic(rng, 3, 0.0, 0.0, 0.0, per_orientation=4)
+    singles = sc.classic(rng, 10, 0.0, 0.0, 0.0)
     frames = [
         replace(f, id=k) for k, f in enumerate(groups.problem.frames + singles.problem.frames)
     ]
@@ -170,12 +169,12 @@ def test_mixed_session_uses_groups_and_single_frames():
 
 def test_single_tag_four_corners_eye_to_hand_seven_orientations():
     """One AprilTag's 4 corners per image, eye-to-hand, 7 orientations of 5 frames."""
-    tag = hs.square_tag(0.08)
+    tag = sc.square_tag(0.08)
     kw = dict(eye_in_hand=False, target=tag, per_orientation=5, distortion=np.zeros(5))
-    s = hs.classic(np.random.default_rng(7), 7, 0.0, 0.0, 0.0, options=NO_DIST, **kw)
-    assert set(hs.board_in_view(s)) == {4}
+    s = sc.classic(np.random.default_rng(7), 7, 0.0, 0.0, 0.0, options=NO_DIST, **kw)
+    assert set(sc.board_in_view(s)) == {4}
     _check_truth(calibrate(s.problem), s)
-    s = hs.classic(np.random.default_rng(8), 7, 0.15, 0.0, 0.0, options=NO_DIST, **kw)
+    s = sc.classic(np.random.default_rng(8), 7, 0.15, 0.0, 0.0, options=NO_DIST, **kw)
     res = calibrate(s.problem)
     errs = _errors_in_std(res, s)
     assert max(errs.values()) < 4.0, errs
@@ -183,8 +182,8 @@ def test_single_tag_four_corners_eye_to_hand_seven_orientations():
 
 
 def test_four_corner_tag_in_a_classic_session():
-    tag = hs.square_tag(0.08)
-    s = hs.classic(
+    tag = sc.square_tag(0.08)
+    s = sc.classic(
         np.random.default_rng(9),
         12,
         0.0,
@@ -198,7 +197,7 @@ def test_four_corner_tag_in_a_classic_session():
 
 
 def test_classic_session_too_few_frames_is_refused_with_the_count():
-    s = hs.classic(np.random.default_rng(10), 2, 0.0, 0.0, 0.0, options=NO_DIST)
+    s = sc.classic(np.random.default_rng(10), 2, 0.0, 0.0, 0.0, options=NO_DIST)
     with pytest.raises(DegenerateError, match="at least 3 orientations"):
         calibrate(s.problem)
 
@@ -215,7 +214,7 @@ def _blank(problem, which, keep=0):
 @pytest.mark.parametrize("kind", ["classic", "groups", "images-only"])
 def test_a_frame_that_saw_nothing_is_skipped_not_refused(kind):
     if kind == "classic":
-        s = hs.classic(np.random.default_rng(11), 12, 0.0, 0.0, 0.0)
+        s = sc.classic(np.random.default_rng(11), 12, 0.0, 0.0, 0.0)
     else:
         s = sc.r1(np.random.default_rng(11), 0.0, 0.0, 0.0)
     problem = _blank(s.problem, [3])
@@ -347,7 +346,7 @@ def test_benchmark_bounds_match_the_reported_std():
     reported std at the same noise: both come from the same information matrix."""
     from slidecal.routines.bench_handeye import hand_eye_bounds
 
-    s = hs.classic(np.random.default_rng(18), 15, 0.15, 0.0, 0.0)
+    s = sc.classic(np.random.default_rng(18), 15, 0.15, 0.0, 0.0)
     res = calibrate(s.problem)
     rot, t, fx = hand_eye_bounds(s, s.sigma_px)
     assert abs(res.hand_eye.std_rot_deg / rot - 1) < 0.1
@@ -360,10 +359,10 @@ def test_benchmark_row_runs_and_stays_near_the_bound():
     from slidecal.routines.bench_handeye import run_row, table
 
     board = Target.charuco(11, 8, 0.030, 0.022)
-    geometry = hs.camera_board_poses(np.random.default_rng(15), 15, board)
+    geometry = sc.camera_board_poses(np.random.default_rng(15), 15, board)
     row = run_row(
         "eye-in-hand, 15 frames",
-        lambda rng, g: hs.classic(rng, 15, 0.15, 0.0, 0.0, T_cam_board=g),
+        lambda rng, g: sc.classic(rng, 15, 0.15, 0.0, 0.0, T_cam_board=g),
         geometry,
         4,
     )
@@ -379,7 +378,7 @@ def test_solve_a_recorded_session_with_a_frame_that_saw_nothing(tmp_path: Path, 
     from slidecal.routines.run import solve_session
     from slidecal.routines.session import write_session
 
-    s = hs.classic(np.random.default_rng(19), 12, 0.0, 0.0, 0.0)
+    s = sc.classic(np.random.default_rng(19), 12, 0.0, 0.0, 0.0)
     problem = _blank(s.problem, [5])
     if not robot:
         frames = tuple(Frame(f.id, f.detections) for f in problem.frames)
@@ -398,10 +397,10 @@ def test_solve_a_recorded_session_with_a_frame_that_saw_nothing(tmp_path: Path, 
 def _small_tag_session(seed, tilt_deg):
     """A 4 cm tag 0.45-0.6 m away (about 70 px wide) with 1 px corner noise: the homographies
     barely fix a focal length; the robot poses do."""
-    tag = hs.square_tag(0.04)
+    tag = sc.square_tag(0.04)
     rng = np.random.default_rng(seed)
-    views = hs.camera_board_poses(rng, 15, tag, tilt_deg=tilt_deg, aim_spread_m=0.1)
-    return hs.classic(
+    views = sc.camera_board_poses(rng, 15, tag, tilt_deg=tilt_deg, aim_spread_m=0.1)
+    return sc.classic(
         rng,
         15,
         1.0,
@@ -432,7 +431,7 @@ def test_focal_from_homographies_noise_free():
     from slidecal.solver.linear import focal_from_homographies
 
     K = np.array([[900.0, 0.0, 639.5], [0.0, 900.0, 399.5], [0.0, 0.0, 1.0]])
-    views = hs.camera_board_poses(np.random.default_rng(20), 5, Target.chessboard(9, 7, 0.03))
+    views = sc.camera_board_poses(np.random.default_rng(20), 5, Target.chessboard(9, 7, 0.03))
     pts = Target.chessboard(9, 7, 0.03).points_m
     Hs = []
     for T in views:
@@ -448,7 +447,7 @@ def test_classic_session_of_a_two_camera_rig():
     from slidecal.solver.geometry import R_from_rvec
     from slidecal.solver.problem import CameraSpec
 
-    s = hs.classic(np.random.default_rng(21), 12, 0.0, 0.0, 0.0)
+    s = sc.classic(np.random.default_rng(21), 12, 0.0, 0.0, 0.0)
     T_right_cam = T_from_Rt(R_from_rvec(np.radians([0.0, 3.0, 0.0])), np.array([-0.075, 0, 0]))
     rng = np.random.default_rng(22)
     frames = []
@@ -480,8 +479,8 @@ def test_mixed_session_of_a_two_camera_rig():
     from slidecal.solver.problem import CameraSpec
 
     rng = np.random.default_rng(23)
-    groups = hs.classic(rng, 3, 0.0, 0.0, 0.0, per_orientation=4)
-    singles = hs.classic(rng, 6, 0.0, 0.0, 0.0)
+    groups = sc.classic(rng, 3, 0.0, 0.0, 0.0, per_orientation=4)
+    singles = sc.classic(rng, 6, 0.0, 0.0, 0.0)
     T_right_cam = T_from_Rt(R_from_rvec(np.radians([0.0, 3.0, 0.0])), np.array([-0.075, 0, 0]))
     frames = []
     for k, f in enumerate(groups.problem.frames + singles.problem.frames):

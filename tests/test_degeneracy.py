@@ -1,20 +1,16 @@
 """Degenerate configurations (docs/METHOD.md Sec. 7) refused, their neighbours accepted."""
 
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-import synth_linear as sl  # noqa: E402
+from slidecal.mocks import scenarios as sl
+from slidecal.solver.degeneracy import check_configuration
+from slidecal.solver.errors import DegenerateError
+from slidecal.solver.homography import group_homographies
+from slidecal.solver.linear import LinearGroup, linear_intrinsics
 
-from slidecal.solver.degeneracy import check_configuration  # noqa: E402
-from slidecal.solver.errors import DegenerateError  # noqa: E402
-from slidecal.solver.homography import group_homographies  # noqa: E402
-from slidecal.solver.linear import LinearGroup, linear_intrinsics  # noqa: E402
-
-SIZE = sl.IMAGE_SIZE
+SIZE = sl.PAPER_SIZE_PX
 NORMAL = sl.line_steps([0.0, 0.0, -1.0], 5)
 
 

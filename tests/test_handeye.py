@@ -1,24 +1,20 @@
 """Hand-eye rotation from translations (docs/METHOD.md Sec. 4) and the AX = XB cross-checks."""
 
-import sys
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-import synth_linear as sl  # noqa: E402
-
-from slidecal.solver.errors import DegenerateError  # noqa: E402
-from slidecal.solver.geometry import (  # noqa: E402
+from slidecal.mocks import scenarios as sl
+from slidecal.solver.errors import DegenerateError
+from slidecal.solver.geometry import (
     Rz,
     T_from_Rt,
     inv_T,
     random_rotation,
     rvec_from_R,
 )
-from slidecal.solver.handeye import (  # noqa: E402
+from slidecal.solver.handeye import (
     board_pose_from_homography,
     camera_displacements,
     hand_eye_rotation,
@@ -26,8 +22,8 @@ from slidecal.solver.handeye import (  # noqa: E402
     rotation_from_directions,
     tsai_lenz,
 )
-from slidecal.solver.homography import group_homographies  # noqa: E402
-from slidecal.solver.linear import LinearGroup  # noqa: E402
+from slidecal.solver.homography import group_homographies
+from slidecal.solver.linear import LinearGroup
 
 
 def angle_deg(R_a, R_b):

@@ -2,17 +2,13 @@
 
 docs/METHOD.md Sec. 3."""
 
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-import synth_linear as sl  # noqa: E402
-
-from slidecal.solver.errors import DegenerateError, InputError  # noqa: E402
-from slidecal.solver.homography import (  # noqa: E402
+from slidecal.mocks import scenarios as sl
+from slidecal.solver.errors import DegenerateError, InputError
+from slidecal.solver.homography import (
     constrained_group_homographies,
     group_homographies,
     homography_dlt,

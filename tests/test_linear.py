@@ -1,19 +1,15 @@
 """Closed-form intrinsics (docs/METHOD.md Secs. 2-3): every knowledge row, assumptions, groups,
 noise."""
 
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-import synth_linear as sl  # noqa: E402
-
-from slidecal.solver.errors import DegenerateError  # noqa: E402
-from slidecal.solver.geometry import random_rotation  # noqa: E402
-from slidecal.solver.homography import group_homographies  # noqa: E402
-from slidecal.solver.linear import (  # noqa: E402
+from slidecal.mocks import scenarios as sl
+from slidecal.solver.errors import DegenerateError
+from slidecal.solver.geometry import random_rotation
+from slidecal.solver.homography import group_homographies
+from slidecal.solver.linear import (
     K_from_w,
     LinearGroup,
     image_normalisation,
@@ -23,7 +19,7 @@ from slidecal.solver.linear import (  # noqa: E402
     zhang_rows,
 )
 
-SIZE = sl.IMAGE_SIZE
+SIZE = sl.PAPER_SIZE_PX
 
 
 def _rel(K, K_true):

@@ -84,6 +84,30 @@ def test_plan_file_round_trip_and_cli(tmp_path, capsys):
     assert "predicted std" in capsys.readouterr().out
 
 
+def test_every_plan_moves_with_the_cells_robot_settings(tmp_path, default_report):
+    """``Plan.build`` is the one constructor: the planner's and the default plan take the
+    cell's ``robot:`` speed, acceleration and settling; a plan derived from another keeps its
+    settings; the file keeps them."""
+    from dataclasses import replace
+
+    from slidecal.routines.plan import Plan, default_plan, write_plan
+
+    cfg, report = default_report
+    slow = replace(cfg, robot=replace(cfg.robot, speed_mps=0.05, accel_mps2=0.3, settle_s=1.5))
+
+    def motion(x):
+        return (x.speed_mps, x.accel_mps2, x.settle_s)
+
+    assert motion(report.plan) == motion(cfg.robot)
+    plan = default_plan(slow)
+    assert motion(plan) == (0.05, 0.3, 1.5)
+    first = Plan.build([g[:1] for g in plan.groups], plan, via=plan.via, notes=("first poses",))
+    assert motion(first) == motion(plan) and first.n_poses == len(plan.groups)
+    back = read_plan(write_plan(first, tmp_path / "plan.yaml"))
+    assert motion(back) == motion(plan) and back.notes == ("first poses",)
+    np.testing.assert_allclose(back.via, plan.via, atol=1e-9)
+
+
 # -- refusals ------------------------------------------------------------------------------------
 def _default_dict() -> dict:
     from importlib import resources

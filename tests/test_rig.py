@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from slidecal.mocks import rig_scenarios as rs
+from slidecal.mocks import scenarios as rs
 from slidecal.routines.bench_rig import rig_bounds, scale_pixels
 from slidecal.routines.results_io import read_result, write_result
 from slidecal.routines.session import read_session, write_session
@@ -44,7 +44,7 @@ def _H_inf_from_images(s: rs.RigScenario) -> np.ndarray:
         for c, d in f.detections.items():
             H[c].append(refine_homography(homography_dlt(pts[d.ids], d.px), pts[d.ids], d.px))
     H_lin, _ = infinite_homography(
-        np.array(H["left"]), np.array(H["right"]), sizes=[rs.S5_SIZE_PX] * 2
+        np.array(H["left"]), np.array(H["right"]), sizes=[rs.PAPER_SIZE_PX] * 2
     )
     return H_lin
 
