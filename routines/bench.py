@@ -28,8 +28,9 @@ from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import rotation_angle_deg
 from slidecal.solver.homography import homography_dlt, refine_homography
 from slidecal.solver.linear import LinearGroup, linear_intrinsics
+from slidecal.solver.named import predicted_covariance
 from slidecal.solver.problem import ModelOptions
-from slidecal.solver.refine import BundleModel, build_structure, fisher_covariance
+from slidecal.solver.refine import BundleModel, build_structure
 
 PARAMS = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
 
@@ -50,13 +51,8 @@ class Row:
 
 
 def _crb(s: sc.Scenario, sigma: float) -> dict[str, float]:
-    st = build_structure(s.problem, s.truth.X[0][:3, :3])
-    names, cov = fisher_covariance(s.problem, st, s.truth, sigma)
-    out = {}
-    for p in PARAMS:
-        n = f"cam.{p}" if f"cam.{p}" in names else "cam.f"
-        out[p] = float(np.sqrt(cov[names.index(n), names.index(n)]))
-    return out
+    bound = predicted_covariance(s.problem, s.truth, sigma)
+    return {p: bound.std(f"cam.{p}") for p in PARAMS}
 
 
 class Linearised:
@@ -156,10 +152,7 @@ def r1_hand_eye_row(
             else "modelled" if model_noise else "poses taken as exact"
         )
     s0 = sc.r1(np.random.default_rng(1000), 0.15, 0.0, 0.0, options=bound_opts)
-    st = build_structure(s0.problem, s0.truth.X[0][:3, :3])
-    names, cov = fisher_covariance(s0.problem, st, s0.truth, 0.15)
-    i = names.index("X0.r0")
-    rot_bound = float(np.degrees(np.sqrt(np.trace(cov[i : i + 3, i : i + 3]))))
+    rot_bound = predicted_covariance(s0.problem, s0.truth, 0.15).std_rot_deg("T_tool_cam")
     errs: list[float] = []
     row = run_row(
         "R1",

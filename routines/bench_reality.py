@@ -37,7 +37,7 @@ from slidecal.mocks import scenarios as sc
 from slidecal.routines import bench
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import SlidecalError
-from slidecal.solver.geometry import inv_T, rvec_from_R
+from slidecal.solver.geometry import rvec_from_R
 from slidecal.solver.problem import Detection
 
 INTRINSICS = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
@@ -78,20 +78,19 @@ def render_detector(sigma_px: float) -> Callable[[np.ndarray, np.random.Generato
 
 
 def _hand_eye_errors(res, s: sc.Scenario, T_eff: np.ndarray) -> dict[str, np.ndarray]:  # noqa: ANN001
-    """Per block ("rot", "t"): (error in the solver's X parametrisation, its covariance)."""
+    """Per block ("rot", "t"): (error of the reported hand-eye in the result's parametrisation:
+    rotation vector on the left, radians; translation, metres) and its covariance."""
     out = {}
-    names = res.parameter_names
-    X_eff = inv_T(T_eff)
-    R_est = res.hand_eye.R
-    X_R = R_est.T  # X = inv(hand-eye): its rotation
-    d_rot = rvec_from_R(X_R @ X_eff[:3, :3].T)
-    rot = [i for i, n in enumerate(names) if n.startswith("X0.r")]
-    if len(rot) == 3 and res.covariance is not None:
-        out["rot"] = (d_rot, res.covariance[np.ix_(rot, rot)])
-    tr = [i for i, n in enumerate(names) if n.startswith("X0.t")]
-    if len(tr) == 3 and res.hand_eye.t_m is not None and res.covariance is not None:
-        X_t = -X_R @ res.hand_eye.t_m
-        out["t"] = (X_t - X_eff[:3, 3], res.covariance[np.ix_(tr, tr)])
+    named = res.named_covariance
+    he = res.hand_eye
+    if named is None:
+        return out
+    C = named.block([f"{he.name}.{a}" for a in ("rx", "ry", "rz")])
+    if C is not None:
+        out["rot"] = (rvec_from_R(he.R @ T_eff[:3, :3].T), C)
+    C = named.block([f"{he.name}.{a}" for a in ("tx", "ty", "tz")])
+    if C is not None and he.t_m is not None:
+        out["t"] = (he.t_m - T_eff[:3, 3], C)
     return out
 
 
