@@ -269,6 +269,11 @@ def _jacobian(layout: Layout, internal: tuple[str, ...]) -> tuple[tuple[str, ...
     return tuple(out.names), np.array(out.rows)
 
 
+def reported_names(layout: Layout, internal: tuple[str, ...]) -> tuple[str, ...]:
+    """The names of the reported quantities of a layout whose optimiser names are ``internal``."""
+    return _jacobian(layout, tuple(internal))[0]
+
+
 def propagate(layout: Layout, internal: tuple[str, ...], cov: np.ndarray) -> NamedCovariance:
     """The covariance of the reported quantities from the optimiser's ``cov`` (P, P) named
     ``internal``: ``J cov J'`` through the Jacobian of every reported quantity (inversions and
@@ -285,7 +290,7 @@ def result_covariance(problem, out) -> tuple[tuple[str, ...], NamedCovariance | 
     named covariance (None when the refinement has none)."""
     layout = layout_of(problem, out.model.st, out.state)
     if out.covariance is None:
-        return _jacobian(layout, tuple(out.names))[0], None
+        return reported_names(layout, out.names), None
     named = propagate(layout, out.names, out.covariance)
     return named.names, named
 
