@@ -318,6 +318,40 @@ def predicted_covariance(
     return propagate(layout_of(problem, st, truth), names, cov)
 
 
+def equal_weight_covariance(
+    problem,  # noqa: ANN001 - CalibrationProblem
+    truth,  # noqa: ANN001 - ModelState
+    camera_sigma_px: dict[str, float],
+    *,
+    structure=None,  # noqa: ANN001 - Structure; built from the problem when None
+) -> NamedCovariance:
+    """The covariance of the reported quantities for an estimator that weighs every pixel row
+    alike (and the robot-pose prior rows by the pooled noise) when each camera's corner noise
+    is ``camera_sigma_px`` (pixels, per axis): the sandwich ``A^-1 B A^-1`` at ``truth``. It
+    equals :func:`predicted_covariance` when all cameras are equally noisy and cannot beat it
+    otherwise."""
+    from slidecal.solver.refine import BundleModel, build_structure, with_pose_corrections
+
+    st = build_structure(problem, truth.X[0][:3, :3]) if structure is None else structure
+    model = BundleModel(problem, st)
+    model.sigma_px = 1.0  # prior rows in units of their own sigma
+    state = with_pose_corrections(truth, len(problem.frames)) if "E" in model.slices else truth
+    _, J = model.evaluate(state)
+    sig_rows = np.repeat(np.array([camera_sigma_px[c] for c in model.cams])[model.o_cam], 2)
+    n_px = len(sig_rows)
+    Jw = J.copy()
+    Jw[:n_px] /= sig_rows[:, None]  # whitened: every row has unit noise
+    scale = np.sqrt(np.sum(Jw * Jw, axis=0))
+    scale[scale == 0] = 1.0
+    Js = Jw / scale
+    w = np.ones(len(J))  # the estimator's weights on the whitened rows
+    w[:n_px] = sig_rows**2
+    w[n_px:] = float(np.mean(sig_rows**2))
+    Ai = np.linalg.inv(Js.T @ (w[:, None] * Js))
+    cov = Ai @ (Js.T @ ((w**2)[:, None] * Js)) @ Ai / np.outer(scale, scale)
+    return propagate(layout_of(problem, st, truth), model.names, cov)
+
+
 @dataclass(frozen=True)
 class FrameInformation:
     """Each frame's Fisher information on the shared parameters, and how to name its inverse.
