@@ -28,12 +28,10 @@ from slidecal.mocks.camera import SimulatedCameraRig
 from slidecal.mocks.robot import SimulatedUR
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, rvec_from_R
+from slidecal.solver.named import MOUNTS
 
 #: Hand-eye and target-pose names per mount (the result file's names).
-POSE_NAMES = {
-    "eye_in_hand": ("T_tool_cam", "T_base_board"),
-    "eye_to_hand": ("T_base_cam", "T_tool_board"),
-}
+POSE_NAMES = {mount: (m.hand_eye, m.target) for mount, m in MOUNTS.items()}
 
 
 def _transform_dict(T: np.ndarray) -> dict[str, Any]:

@@ -161,3 +161,21 @@ def test_result_of_an_earlier_version_is_read_in_the_named_quantities(tmp_path: 
     assert q.parameter_names == bound.names and not is_legacy(q.parameter_names)
     np.testing.assert_allclose(q.covariance, bound.matrix, rtol=1e-6, atol=1e-15)
     assert q.std_of("cam.fx") == q.std_of("cam.fy") == pytest.approx(bound.std("cam.fx"))
+
+
+def test_public_api_is_declared_and_light():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, slidecal.solver as s; assert 'slidecal.solver.refine' not in sys.modules; "
+        "[getattr(s, n) for n in s.__all__]; print(len(s.__all__))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert int(out.stdout) >= 20
+    import slidecal.solver as solver
+
+    assert solver.predicted_covariance is predicted_covariance
+    assert solver.MOUNTS["eye_to_hand"].hand_eye == "T_base_cam"
+    with pytest.raises(AttributeError):
+        _ = solver.BundleModel  # the optimiser's model is private
