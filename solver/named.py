@@ -22,7 +22,7 @@ nuisance parameters: marginalised (their rows dropped from the joint covariance)
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -278,7 +278,11 @@ def propagate(layout: Layout, internal: tuple[str, ...], cov: np.ndarray) -> Nam
     """The covariance of the reported quantities from the optimiser's ``cov`` (P, P) named
     ``internal``: ``J cov J'`` through the Jacobian of every reported quantity (inversions and
     compositions of transforms included; nuisance parameters marginalised)."""
-    names, J = _jacobian(layout, tuple(internal))
+    return _apply(*_jacobian(layout, tuple(internal)), cov)
+
+
+def _apply(names: tuple[str, ...], J: np.ndarray, cov: np.ndarray) -> NamedCovariance:
+    """``J cov J'`` over the columns ``J`` uses, named ``names``."""
     used = np.flatnonzero(np.any(J != 0, axis=0))
     Ju = J[:, used]
     C = Ju @ np.asarray(cov, float)[np.ix_(used, used)] @ Ju.T
@@ -366,10 +370,14 @@ class FrameInformation:
     kinds: tuple[str, ...]
     layout: Layout
     internal: tuple[str, ...]
+    _map: tuple[tuple[str, ...], np.ndarray] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:  # the Jacobian once: a planner reads thousands of sums
+        object.__setattr__(self, "_map", _jacobian(self.layout, self.internal))
 
     def named(self, cov: np.ndarray) -> NamedCovariance:
         """The named covariance of an inverse (P, P) of summed information."""
-        return propagate(self.layout, self.internal, cov)
+        return _apply(*self._map, cov)
 
 
 def frame_information(problem, structure, truth, sigma_px: float) -> FrameInformation:  # noqa: ANN001
