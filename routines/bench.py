@@ -28,9 +28,8 @@ from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import rotation_angle_deg
 from slidecal.solver.homography import homography_dlt, refine_homography
 from slidecal.solver.linear import LinearGroup, linear_intrinsics
-from slidecal.solver.named import predicted_covariance
+from slidecal.solver.named import linearised_estimator, predicted_covariance
 from slidecal.solver.problem import ModelOptions
-from slidecal.solver.refine import BundleModel, build_structure
 
 PARAMS = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
 
@@ -53,29 +52,6 @@ class Row:
 def _crb(s: sc.Scenario, sigma: float) -> dict[str, float]:
     bound = predicted_covariance(s.problem, s.truth, sigma)
     return {p: bound.std(f"cam.{p}") for p in PARAMS}
-
-
-class Linearised:
-    """The linearised maximum-likelihood estimator at the truth, ``-(J'J)^-1 J' r``: exactly
-    efficient by construction, so its Monte-Carlo std over the same noise draws tells how far
-    from the bound a perfect estimator lands with this many trials (the sampling reference)."""
-
-    def __init__(self, s: sc.Scenario, params: tuple[str, ...]) -> None:
-        self.st = build_structure(s.problem, s.truth.X[0][:3, :3])
-        model = BundleModel(s.problem, self.st)
-        _, J = model.evaluate(s.truth)
-        G = np.linalg.solve(J.T @ J, J.T)
-        idx = [
-            model.names.index(f"cam.{p}" if f"cam.{p}" in model.names else "cam.f") for p in params
-        ]
-        self.G = G[idx]
-        self.params = params
-
-    def errors(self, s: sc.Scenario) -> dict[str, float]:
-        """The linearised estimator's errors on one trial's detections."""
-        r, _ = BundleModel(s.problem, self.st).evaluate(s.truth, jacobian=False)
-        d = -(self.G @ r)
-        return dict(zip(self.params, d, strict=True))
 
 
 def run_row(
@@ -103,11 +79,12 @@ def run_row(
             sb = bound_scenario or s
             row.bound = _crb(sb, sb.sigma_px)
             if reference:
-                lin_ref = Linearised(sb, params)
+                lin_ref = linearised_estimator(sb.problem, sb.truth)
                 row.ref = {p: [] for p in params}
         if lin_ref is not None:
-            for p, v in lin_ref.errors(s).items():
-                row.ref[p].append(float(v))
+            errors = lin_ref.errors(s.problem)
+            for p in params:
+                row.ref[p].append(float(errors[f"cam.{p}"]))
         try:
             res = calibrate(s.problem, joint_homographies=True)
         except SlidecalError:

@@ -36,6 +36,8 @@ _EXPORTS = {
     "predicted_covariance": "named",
     "equal_weight_covariance": "named",
     "frame_information": "named",
+    "LinearisedEstimator": "named",
+    "linearised_estimator": "named",
     # errors
     "SlidecalError": "errors",
     "InputError": "errors",

@@ -19,6 +19,7 @@ from slidecal.solver.named import (
     Layout,
     hand_eye_names,
     is_legacy,
+    linearised_estimator,
     predicted_covariance,
     propagate,
 )
@@ -179,3 +180,30 @@ def test_public_api_is_declared_and_light():
     assert solver.MOUNTS["eye_to_hand"].hand_eye == "T_base_cam"
     with pytest.raises(AttributeError):
         _ = solver.BundleModel  # the optimiser's model is private
+
+
+def test_named_convention_matches_the_solvers_actual_errors():
+    """The linearised estimator in the named quantities predicts the errors ``calibrate`` makes
+    on the same noise draw (rotation vector on the left of the reported T_tool_cam, its
+    translation, the intrinsics): one convention from the optimiser to the result."""
+    s = sc.r1(np.random.default_rng(3), 0.15, 0.0, 0.0)
+    lin = linearised_estimator(s.problem, s.truth)
+    predicted = lin.errors(s.problem)
+    res = calibrate(s.problem)
+    bound = predicted_covariance(s.problem, s.truth, s.sigma_px)
+    assert set(predicted) == set(bound.names) == set(res.parameter_names)
+    K, Kt = res.cameras["cam"].K, s.truth.K["cam"]
+    actual = {"cam.fx": K[0, 0] - Kt[0, 0], "cam.fy": K[1, 1] - Kt[1, 1]}
+    actual |= {"cam.cx": K[0, 2] - Kt[0, 2], "cam.cy": K[1, 2] - Kt[1, 2]}
+    for name, T, T_true in (
+        ("T_tool_cam", res.hand_eye.T, s.T_hand_eye),
+        ("T_base_board", res.T_target.T, s.T_target),
+    ):
+        r = rvec_from_R(T[:3, :3] @ T_true[:3, :3].T)
+        dt = T[:3, 3] - T_true[:3, 3]
+        actual |= {f"{name}.{a}": v for a, v in zip(SIX, np.r_[r, dt], strict=True)}
+    for n, v in actual.items():
+        assert abs(predicted[n] - v) < 0.05 * bound.std(n), n
+    # noise-free detections: no error at all
+    s0 = sc.r1(np.random.default_rng(3), 0.0, 0.0, 0.0)
+    assert max(abs(v) for v in lin.errors(s0.problem).values()) < 1e-9
