@@ -10,7 +10,8 @@ error is within 2 reported standard deviations (the target is >= 90 %), the larg
 rms of |error| / std. The hand-eye is compared with the effective truth (what the session can
 know: the physical hand-eye moved by the arm's constant error, ``effective_truth``), rotation
 and translation as 3-vectors (Mahalanobis distance against the reported covariance; 2-sigma
-coverage is a chi-square(3) below 8.03) and per axis.
+coverage is a chi-square(3) below 8.03) and per axis, in the result's own parametrisation of
+the reported transform (``T_tool_cam.rx`` .. ``.tz``, docs/FORMATS.md).
 
 Image models: ``points``: the true corners with Gaussian noise (0.15 px, what a good corner
 detector leaves on a sharp image); ``render``: images from ``slidecal.mocks.render`` and the
@@ -261,7 +262,9 @@ def main(argv: list[str] | None = None) -> int:
         "seed). The hand-eye is judged against the effective truth (the physical one moved by "
         "the arm's constant error, which no camera can separate from it: docs/ROBOT_ACCURACY.md)"
         "; its 3-vectors by their Mahalanobis distance (2-sigma: chi-square(3) <= "
-        f"{CHI2_3_2SIGMA:.2f}; the max column shows the distance in sigmas).",
+        f"{CHI2_3_2SIGMA:.2f}; the max column shows the distance in sigmas); its axes are those "
+        "of the reported transform (`T_tool_cam.rx` .. `.tz`: rotation vector on the left, "
+        "translation, docs/FORMATS.md).",
         "",
         *reality_table(rows),
         "",
