@@ -16,8 +16,9 @@ Convention: a transform ``T_a_b`` (rotation ``R``, translation ``t``) carries si
 ``T_a_b.rx, .ry, .rz`` (radians) and ``.tx, .ty, .tz`` (metres): the perturbed transform is
 ``R' = exp([r]x) R`` (rotation vector ``r`` applied on the LEFT, i.e. expressed in frame ``a``)
 and ``t' = t + (tx, ty, tz)`` (frame ``a``). A component the data cannot determine is absent
-from the names (never a zero row). Robot-pose corrections and per-frame board poses are
-nuisance parameters: marginalised (their rows dropped from the joint covariance).
+from the names (never a zero row). Robot-pose corrections, per-frame board poses and any
+other coordinate of the optimiser's that is not a reported quantity are nuisance parameters:
+marginalised (their rows dropped from the joint covariance).
 """
 
 from __future__ import annotations
