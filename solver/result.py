@@ -117,7 +117,8 @@ class CalibrationResult:
     ``H_inf``: infinite homographies ``x_a ~ H x_b`` keyed ``"a<-b"`` (docs/METHOD.md Sec. 8).
     ``parameter_names`` name the rows of ``covariance``: the reported quantities as users read
     them (``cam.fx``, ``T_tool_cam.rx`` .. ``.tz`` of the transform as reported, rig
-    ``T_right_left.*``; :mod:`slidecal.solver.named`). ``residuals_px``: per (frame id, camera)
+    ``T_right_left.*``; a rig's hand-eye of every camera as the file names it, ``T_tool_<name>``;
+    :mod:`slidecal.solver.named`). ``residuals_px``: per (frame id, camera)
     the rms reprojection error of that image. ``outliers``: (frame id, camera, corner id) flagged
     by the robust loss. ``sigma_px``: the noise estimated from the residuals, ``s`` of
     docs/METHOD.md
