@@ -207,3 +207,26 @@ def test_named_convention_matches_the_solvers_actual_errors():
     # noise-free detections: no error at all
     s0 = sc.r1(np.random.default_rng(3), 0.0, 0.0, 0.0)
     assert max(abs(v) for v in lin.errors(s0.problem).values()) < 1e-9
+
+
+def test_rig_result_of_an_earlier_version_gets_the_composed_hand_eye_std(tmp_path: Path):
+    s = rs.oak_rig(np.random.default_rng(6), 0.15)
+    st = build_structure(s.problem, s.truth.X[0][:3, :3])
+    internal, cov = fisher_covariance(s.problem, st, s.truth, 0.15)
+    res = calibrate(s.problem)
+    he = inv_T(s.truth.X[0])
+    T_rl = s.truth.T_cam_ref["right"]
+    old = replace(
+        res,
+        hand_eye=TransformEstimate("T_tool_cam", he[:3, :3], he[:3, 3]),
+        T_target=TransformEstimate("T_base_board", s.truth.Y[:3, :3], s.truth.Y[:3, 3]),
+        rig={"T_right_left": TransformEstimate("T_right_left", T_rl[:3, :3], T_rl[:3, 3])},
+        parameter_names=internal,
+        covariance=cov,
+    )
+    q = read_result(write_result(old, tmp_path / "result.yaml"))
+    bound = predicted_covariance(s.problem, s.truth, 0.15, structure=st)
+    assert q.parameter_names == bound.names
+    composed = hand_eye_transforms(q)["T_tool_right"]
+    assert composed.std_t_mm == pytest.approx(bound.std_t_mm("T_tool_right"), rel=1e-6)
+    assert composed.std_rot_deg == pytest.approx(bound.std_rot_deg("T_tool_right"), rel=1e-6)
