@@ -230,3 +230,25 @@ def test_rig_result_of_an_earlier_version_gets_the_composed_hand_eye_std(tmp_pat
     composed = hand_eye_transforms(q)["T_tool_right"]
     assert composed.std_t_mm == pytest.approx(bound.std_t_mm("T_tool_right"), rel=1e-6)
     assert composed.std_rot_deg == pytest.approx(bound.std_rot_deg("T_tool_right"), rel=1e-6)
+
+
+@pytest.mark.slow
+def test_composed_rig_hand_eye_std_matches_monte_carlo():
+    """40 noise draws of the OAK rig: the rms error of T_tool_right (3-vectors, 120 squared
+    components: relative spread of the rms about 6.5 %, so 3 of them: 20 %) is its reported
+    std; the root sum of squares of its two parts, which ignored their correlation, is not."""
+    err_t, err_r, sd_t, sd_r, rss_t = [], [], [], [], []
+    for seed in range(100, 140):
+        s = rs.oak_rig(np.random.default_rng(seed), 0.15)
+        res = calibrate(s.problem)
+        c = hand_eye_transforms(res)["T_tool_right"]
+        T = s.T_hand_eye @ inv_T(s.truth.T_cam_ref["right"])
+        err_t.append(1000.0 * np.linalg.norm(c.t_m - T[:3, 3]))
+        err_r.append(np.degrees(np.linalg.norm(rvec_from_R(c.R @ T[:3, :3].T))))
+        sd_t.append(c.std_t_mm)
+        sd_r.append(c.std_rot_deg)
+        rss_t.append(np.hypot(res.hand_eye.std_t_mm, res.rig["T_right_left"].std_t_mm))
+    rms_t, rms_r = np.sqrt(np.mean(np.square(err_t))), np.sqrt(np.mean(np.square(err_r)))
+    assert rms_t / np.median(sd_t) == pytest.approx(1.0, abs=0.2)
+    assert rms_r / np.median(sd_r) == pytest.approx(1.0, abs=0.2)
+    assert np.median(rss_t) > 1.3 * rms_t
