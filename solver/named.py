@@ -24,11 +24,15 @@ marginalised (their rows dropped from the joint covariance).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from slidecal.solver.geometry import inv_T, skew
-from slidecal.solver.problem import DISTORTION_NAMES
+from slidecal.solver.problem import DISTORTION_NAMES, CalibrationProblem
+
+if TYPE_CHECKING:  # the optimiser is imported where it is used: importing this module stays light
+    from slidecal.solver.refine import ModelState, RefineOutput, Structure
 
 ROT = ("rx", "ry", "rz")
 TRANS = ("tx", "ty", "tz")
@@ -147,7 +151,7 @@ class Layout:
         return self.rotation_reported and self.X_t_basis.shape[1] == 3 == self.Y_t_basis.shape[1]
 
 
-def layout_of(problem, structure, state) -> Layout:  # noqa: ANN001 - solver types, kept light
+def layout_of(problem: CalibrationProblem, structure: Structure, state: ModelState) -> Layout:
     """The layout of a problem (``CalibrationProblem``), its ``Structure`` and a ``ModelState``."""
     robot = problem.knowledge == "robot" and problem.mount in MOUNTS
     return Layout(
@@ -290,7 +294,9 @@ def _apply(names: tuple[str, ...], J: np.ndarray, cov: np.ndarray) -> NamedCovar
     return NamedCovariance(names, 0.5 * (C + C.T))
 
 
-def result_covariance(problem, out) -> tuple[tuple[str, ...], NamedCovariance | None]:  # noqa: ANN001
+def result_covariance(
+    problem: CalibrationProblem, out: RefineOutput
+) -> tuple[tuple[str, ...], NamedCovariance | None]:
     """The reported quantities of a refinement (``RefineOutput``) of ``problem`` and their
     named covariance (None when the refinement has none)."""
     layout = layout_of(problem, out.model.st, out.state)
@@ -301,12 +307,21 @@ def result_covariance(problem, out) -> tuple[tuple[str, ...], NamedCovariance | 
 
 
 # -- predictions at a known state -----------------------------------------------------------------
+def _structure(
+    problem: CalibrationProblem, truth: ModelState, structure: Structure | None
+) -> Structure:
+    """``structure``, or the problem's at the true hand-eye rotation when None."""
+    from slidecal.solver.refine import build_structure
+
+    return build_structure(problem, truth.X[0][:3, :3]) if structure is None else structure
+
+
 def predicted_covariance(
-    problem,  # noqa: ANN001 - CalibrationProblem
-    truth,  # noqa: ANN001 - ModelState
+    problem: CalibrationProblem,
+    truth: ModelState,
     sigma_px: float,
     *,
-    structure=None,  # noqa: ANN001 - Structure; built from the problem when None
+    structure: Structure | None = None,
     camera_sigma_px: dict[str, float] | None = None,
 ) -> NamedCovariance:
     """The Cramer-Rao bound (docs/METHOD.md Sec. 6) of the reported quantities at ``truth``.
@@ -316,28 +331,28 @@ def predicted_covariance(
     differ. ``structure``: what is observable (``build_structure`` of the problem at the true
     hand-eye rotation when None).
     """
-    from slidecal.solver.refine import build_structure, fisher_covariance
+    from slidecal.solver.refine import fisher_covariance
 
-    st = build_structure(problem, truth.X[0][:3, :3]) if structure is None else structure
+    st = _structure(problem, truth, structure)
     names, cov = fisher_covariance(problem, st, truth, sigma_px, camera_sigma_px)
     return propagate(layout_of(problem, st, truth), names, cov)
 
 
 def equal_weight_covariance(
-    problem,  # noqa: ANN001 - CalibrationProblem
-    truth,  # noqa: ANN001 - ModelState
+    problem: CalibrationProblem,
+    truth: ModelState,
     camera_sigma_px: dict[str, float],
     *,
-    structure=None,  # noqa: ANN001 - Structure; built from the problem when None
+    structure: Structure | None = None,
 ) -> NamedCovariance:
     """The covariance of the reported quantities for an estimator that weighs every pixel row
     alike (and the robot-pose prior rows by the pooled noise) when each camera's corner noise
     is ``camera_sigma_px`` (pixels, per axis): the sandwich ``A^-1 B A^-1`` at ``truth``. It
     equals :func:`predicted_covariance` when all cameras are equally noisy and cannot beat it
     otherwise."""
-    from slidecal.solver.refine import BundleModel, build_structure, with_pose_corrections
+    from slidecal.solver.refine import BundleModel, with_pose_corrections
 
-    st = build_structure(problem, truth.X[0][:3, :3]) if structure is None else structure
+    st = _structure(problem, truth, structure)
     model = BundleModel(problem, st)
     model.sigma_px = 1.0  # prior rows in units of their own sigma
     state = with_pose_corrections(truth, len(problem.frames)) if "E" in model.slices else truth
@@ -366,10 +381,10 @@ class LinearisedEstimator:
 
     names: tuple[str, ...]
     gain: np.ndarray  # (n, R): named quantities from the residuals at the state
-    structure: object  # Structure
-    state: object  # ModelState
+    structure: Structure
+    state: ModelState
 
-    def errors(self, problem) -> dict[str, float]:  # noqa: ANN001 - CalibrationProblem
+    def errors(self, problem: CalibrationProblem) -> dict[str, float]:
         """The linearised estimator's error of every named quantity on ``problem``'s
         detections (the same frames, cameras and corner ids as the problem it was built on)."""
         from slidecal.solver.refine import BundleModel
@@ -379,15 +394,15 @@ class LinearisedEstimator:
 
 
 def linearised_estimator(
-    problem,  # noqa: ANN001 - CalibrationProblem
-    truth,  # noqa: ANN001 - ModelState
+    problem: CalibrationProblem,
+    truth: ModelState,
     *,
-    structure=None,  # noqa: ANN001 - Structure; built from the problem when None
+    structure: Structure | None = None,
 ) -> LinearisedEstimator:
     """The linearised estimator (:class:`LinearisedEstimator`) of ``problem`` at ``truth``."""
-    from slidecal.solver.refine import BundleModel, build_structure, with_pose_corrections
+    from slidecal.solver.refine import BundleModel, with_pose_corrections
 
-    st = build_structure(problem, truth.X[0][:3, :3]) if structure is None else structure
+    st = _structure(problem, truth, structure)
     model = BundleModel(problem, st)
     state = with_pose_corrections(truth, len(problem.frames)) if "E" in model.slices else truth
     _, J = model.evaluate(state)
@@ -419,7 +434,9 @@ class FrameInformation:
         return _apply(*self._map, cov)
 
 
-def frame_information(problem, structure, truth, sigma_px: float) -> FrameInformation:  # noqa: ANN001
+def frame_information(
+    problem: CalibrationProblem, structure: Structure, truth: ModelState, sigma_px: float
+) -> FrameInformation:
     """The Fisher information of every frame of ``problem`` (each must see the target) at
     ``truth``, pixel noise ``sigma_px``; robot-pose corrections (Gaussian prior of the
     ``structure``) marginalised by a Schur complement (docs/METHOD.md Sec. 6)."""
