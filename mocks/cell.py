@@ -28,12 +28,10 @@ from slidecal.mocks.camera import SimulatedCameraRig
 from slidecal.mocks.robot import SimulatedUR
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, rvec_from_R
+from slidecal.solver.named import MOUNTS
 
 #: Hand-eye and target-pose names per mount (the result file's names).
-POSE_NAMES = {
-    "eye_in_hand": ("T_tool_cam", "T_base_board"),
-    "eye_to_hand": ("T_base_cam", "T_tool_board"),
-}
+POSE_NAMES = {mount: (m.hand_eye, m.target) for mount, m in MOUNTS.items()}
 
 
 def _transform_dict(T: np.ndarray) -> dict[str, Any]:
@@ -50,7 +48,7 @@ def truth_block(cfg: Any, T_target: np.ndarray | None = None) -> dict[str, Any]:
     if sim is None:
         return {}
     he_key, tg_key = POSE_NAMES[cfg.mount]
-    frame = he_key.split("_")[1]  # tool | base
+    frames = MOUNTS[cfg.mount]
     ref = cfg.reference_camera
     out: dict[str, Any] = {
         "cameras": {
@@ -63,7 +61,7 @@ def truth_block(cfg: Any, T_target: np.ndarray | None = None) -> dict[str, Any]:
     else:
         for c in sim.cameras:
             T_ref_c = np.eye(4) if c.name == ref else np.linalg.inv(sim.rig[c.name])
-            out[f"T_{frame}_{c.name}"] = _transform_dict(sim.T_hand_eye @ T_ref_c)
+            out[frames.hand_eye_of(c.name)] = _transform_dict(sim.T_hand_eye @ T_ref_c)
         for name, T in sim.rig.items():
             out[f"T_{name}_{ref}"] = _transform_dict(T)
     out[tg_key] = _transform_dict(sim.T_target if T_target is None else T_target)

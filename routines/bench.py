@@ -28,8 +28,8 @@ from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import rotation_angle_deg
 from slidecal.solver.homography import homography_dlt, refine_homography
 from slidecal.solver.linear import LinearGroup, linear_intrinsics
+from slidecal.solver.named import linearised_estimator, predicted_covariance
 from slidecal.solver.problem import ModelOptions
-from slidecal.solver.refine import BundleModel, build_structure, fisher_covariance
 
 PARAMS = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
 
@@ -50,36 +50,8 @@ class Row:
 
 
 def _crb(s: sc.Scenario, sigma: float) -> dict[str, float]:
-    st = build_structure(s.problem, s.truth.X[0][:3, :3])
-    names, cov = fisher_covariance(s.problem, st, s.truth, sigma)
-    out = {}
-    for p in PARAMS:
-        n = f"cam.{p}" if f"cam.{p}" in names else "cam.f"
-        out[p] = float(np.sqrt(cov[names.index(n), names.index(n)]))
-    return out
-
-
-class Linearised:
-    """The linearised maximum-likelihood estimator at the truth, ``-(J'J)^-1 J' r``: exactly
-    efficient by construction, so its Monte-Carlo std over the same noise draws tells how far
-    from the bound a perfect estimator lands with this many trials (the sampling reference)."""
-
-    def __init__(self, s: sc.Scenario, params: tuple[str, ...]) -> None:
-        self.st = build_structure(s.problem, s.truth.X[0][:3, :3])
-        model = BundleModel(s.problem, self.st)
-        _, J = model.evaluate(s.truth)
-        G = np.linalg.solve(J.T @ J, J.T)
-        idx = [
-            model.names.index(f"cam.{p}" if f"cam.{p}" in model.names else "cam.f") for p in params
-        ]
-        self.G = G[idx]
-        self.params = params
-
-    def errors(self, s: sc.Scenario) -> dict[str, float]:
-        """The linearised estimator's errors on one trial's detections."""
-        r, _ = BundleModel(s.problem, self.st).evaluate(s.truth, jacobian=False)
-        d = -(self.G @ r)
-        return dict(zip(self.params, d, strict=True))
+    bound = predicted_covariance(s.problem, s.truth, sigma)
+    return {p: bound.std(f"cam.{p}") for p in PARAMS}
 
 
 def run_row(
@@ -107,11 +79,12 @@ def run_row(
             sb = bound_scenario or s
             row.bound = _crb(sb, sb.sigma_px)
             if reference:
-                lin_ref = Linearised(sb, params)
+                lin_ref = linearised_estimator(sb.problem, sb.truth)
                 row.ref = {p: [] for p in params}
         if lin_ref is not None:
-            for p, v in lin_ref.errors(s).items():
-                row.ref[p].append(float(v))
+            errors = lin_ref.errors(s.problem)
+            for p in params:
+                row.ref[p].append(float(errors[f"cam.{p}"]))
         try:
             res = calibrate(s.problem, joint_homographies=True)
         except SlidecalError:
@@ -156,10 +129,7 @@ def r1_hand_eye_row(
             else "modelled" if model_noise else "poses taken as exact"
         )
     s0 = sc.r1(np.random.default_rng(1000), 0.15, 0.0, 0.0, options=bound_opts)
-    st = build_structure(s0.problem, s0.truth.X[0][:3, :3])
-    names, cov = fisher_covariance(s0.problem, st, s0.truth, 0.15)
-    i = names.index("X0.r0")
-    rot_bound = float(np.degrees(np.sqrt(np.trace(cov[i : i + 3, i : i + 3]))))
+    rot_bound = predicted_covariance(s0.problem, s0.truth, 0.15).std_rot_deg("T_tool_cam")
     errs: list[float] = []
     row = run_row(
         "R1",

@@ -26,10 +26,10 @@ from slidecal.mocks.scenarios import NO_DISTORTION, Scenario
 from slidecal.routines.benchmarks import report_header
 from slidecal.solver.calibrate import calibrate, pnp_pose
 from slidecal.solver.errors import SlidecalError
-from slidecal.solver.geometry import inv_T, rotation_angle_deg, skew
+from slidecal.solver.geometry import inv_T, rotation_angle_deg
 from slidecal.solver.handeye import daniilidis, park_martin, tsai_lenz
+from slidecal.solver.named import hand_eye_names, predicted_covariance
 from slidecal.solver.problem import ModelOptions, Target
-from slidecal.solver.refine import build_structure, fisher_covariance
 
 SIGMA_PX = 0.15
 ROBOT_NOISE = (5e-5, 0.005)  # metres per axis, degrees per rotation-vector component
@@ -61,17 +61,9 @@ class HandEyeRow:
 def hand_eye_bounds(s: Scenario, sigma_px: float) -> tuple[float, float, float]:
     """Cramer-Rao bounds of the hand-eye rotation (deg, root of the trace), translation (mm)
     and ``fx`` (px) for the scenario's geometry, knowledge and noise model."""
-    st = build_structure(s.problem, s.truth.X[0][:3, :3])
-    names, cov = fisher_covariance(s.problem, st, s.truth, sigma_px)
-    i = names.index("X0.r0")
-    C = cov[i : i + 6, i : i + 6]
-    X = s.truth.X[0]
-    # hand-eye = X^-1: its translation -R' t moves with both blocks of X (as in the result)
-    J = np.hstack([-X[:3, :3].T @ skew(X[:3, 3]), -X[:3, :3].T])
-    rot = float(np.degrees(np.sqrt(np.trace(C[:3, :3]))))
-    t = float(1000.0 * np.sqrt(np.trace(J @ C @ J.T)))
-    f = float(np.sqrt(cov[names.index("cam.fx"), names.index("cam.fx")]))
-    return rot, t, f
+    bound = predicted_covariance(s.problem, s.truth, sigma_px)
+    he = hand_eye_names(s.problem.mount, ["cam"])["cam"]
+    return bound.std_rot_deg(he), bound.std_t_mm(he), bound.std("cam.fx")
 
 
 def _poses_for_ax_xb(s: Scenario, K: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

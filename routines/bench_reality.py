@@ -10,7 +10,8 @@ error is within 2 reported standard deviations (the target is >= 90 %), the larg
 rms of |error| / std. The hand-eye is compared with the effective truth (what the session can
 know: the physical hand-eye moved by the arm's constant error, ``effective_truth``), rotation
 and translation as 3-vectors (Mahalanobis distance against the reported covariance; 2-sigma
-coverage is a chi-square(3) below 8.03) and per axis.
+coverage is a chi-square(3) below 8.03) and per axis, in the result's own parametrisation of
+the reported transform (``T_tool_cam.rx`` .. ``.tz``, docs/FORMATS.md).
 
 Image models: ``points``: the true corners with Gaussian noise (0.15 px, what a good corner
 detector leaves on a sharp image); ``render``: images from ``slidecal.mocks.render`` and the
@@ -37,7 +38,7 @@ from slidecal.mocks import scenarios as sc
 from slidecal.routines import bench
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import SlidecalError
-from slidecal.solver.geometry import inv_T, rvec_from_R
+from slidecal.solver.geometry import rvec_from_R
 from slidecal.solver.problem import Detection
 
 INTRINSICS = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
@@ -78,20 +79,19 @@ def render_detector(sigma_px: float) -> Callable[[np.ndarray, np.random.Generato
 
 
 def _hand_eye_errors(res, s: sc.Scenario, T_eff: np.ndarray) -> dict[str, np.ndarray]:  # noqa: ANN001
-    """Per block ("rot", "t"): (error in the solver's X parametrisation, its covariance)."""
+    """Per block ("rot", "t"): (error of the reported hand-eye in the result's parametrisation:
+    rotation vector on the left, radians; translation, metres) and its covariance."""
     out = {}
-    names = res.parameter_names
-    X_eff = inv_T(T_eff)
-    R_est = res.hand_eye.R
-    X_R = R_est.T  # X = inv(hand-eye): its rotation
-    d_rot = rvec_from_R(X_R @ X_eff[:3, :3].T)
-    rot = [i for i, n in enumerate(names) if n.startswith("X0.r")]
-    if len(rot) == 3 and res.covariance is not None:
-        out["rot"] = (d_rot, res.covariance[np.ix_(rot, rot)])
-    tr = [i for i, n in enumerate(names) if n.startswith("X0.t")]
-    if len(tr) == 3 and res.hand_eye.t_m is not None and res.covariance is not None:
-        X_t = -X_R @ res.hand_eye.t_m
-        out["t"] = (X_t - X_eff[:3, 3], res.covariance[np.ix_(tr, tr)])
+    named = res.named_covariance
+    he = res.hand_eye
+    if named is None:
+        return out
+    C = named.block([f"{he.name}.{a}" for a in ("rx", "ry", "rz")])
+    if C is not None:
+        out["rot"] = (rvec_from_R(he.R @ T_eff[:3, :3].T), C)
+    C = named.block([f"{he.name}.{a}" for a in ("tx", "ty", "tz")])
+    if C is not None and he.t_m is not None:
+        out["t"] = (he.t_m - T_eff[:3, 3], C)
     return out
 
 
@@ -262,7 +262,9 @@ def main(argv: list[str] | None = None) -> int:
         "seed). The hand-eye is judged against the effective truth (the physical one moved by "
         "the arm's constant error, which no camera can separate from it: docs/ROBOT_ACCURACY.md)"
         "; its 3-vectors by their Mahalanobis distance (2-sigma: chi-square(3) <= "
-        f"{CHI2_3_2SIGMA:.2f}; the max column shows the distance in sigmas).",
+        f"{CHI2_3_2SIGMA:.2f}; the max column shows the distance in sigmas); its axes are those "
+        "of the reported transform (`T_tool_cam.rx` .. `.tz`: rotation vector on the left, "
+        "translation, docs/FORMATS.md).",
         "",
         *reality_table(rows),
         "",

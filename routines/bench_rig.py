@@ -12,13 +12,13 @@ end on the simulated OAK cell (rendered images, detection, solve) over a few see
 and relative rotation errors against the recorded truth, with the reported one-sigma.
 
 The bound with unequal camera noise weighs every residual row by its camera's noise:
-``(J_w' J_w)^-1`` with ``J_w = diag(1 / sigma_row) J`` and ``J`` from
-``BundleModel(problem, structure).evaluate`` (:func:`rig_bounds`; it equals ``fisher_covariance``
-with ``camera_sigma_px``). ``refine`` estimates each camera's noise and weighs its rows by it;
-the row with the left camera's pixels scaled by ``sigma_right / sigma_left``
-(:func:`scale_pixels`) cross-checks that weighting, and the column "equal weights" gives the
-best an estimator weighing all rows alike could do (the sandwich
-``(J' W J)^-1 J' W Sigma W J (J' W J)^-1``), i.e. what the per-camera weighting buys.
+``(J_w' J_w)^-1`` with ``J_w = diag(1 / sigma_row) J`` (:func:`rig_bounds`, through the named
+model's ``predicted_covariance`` with ``camera_sigma_px``). ``refine`` estimates each camera's
+noise and weighs its rows by it; the row with the left camera's pixels scaled by
+``sigma_right / sigma_left`` (:func:`scale_pixels`) cross-checks that weighting, and the
+column "equal weights" gives the best an estimator weighing all rows alike could do (the
+sandwich ``(J' W J)^-1 J' W Sigma W J (J' W J)^-1``, the named model's
+``equal_weight_covariance``), i.e. what the per-camera weighting buys.
 
 Regenerate ``docs/RIG.md``::
 
@@ -42,14 +42,9 @@ from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import rotation_angle_deg
 from slidecal.solver.homography import homography_dlt, refine_homography
+from slidecal.solver.named import NamedCovariance, equal_weight_covariance, predicted_covariance
 from slidecal.solver.problem import CalibrationProblem, CameraSpec, Detection, ModelOptions
-from slidecal.solver.refine import (
-    BundleModel,
-    ModelState,
-    Structure,
-    build_structure,
-    with_pose_corrections,
-)
+from slidecal.solver.refine import ModelState, Structure, build_structure
 from slidecal.solver.stereo import infinite_homography, relative_rotation, rig_linear_intrinsics
 
 PARAMS = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
@@ -61,7 +56,7 @@ def rig_bounds(
     structure: Structure,
     truth: ModelState,
     sigma_by_camera_px: Mapping[str, float],
-) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
+) -> tuple[NamedCovariance, NamedCovariance]:
     """The Cramer-Rao bound with per-camera pixel noise, and an equal-weight estimator's.
 
     ``sigma_by_camera_px``: one-sigma corner noise (pixels, each axis) of every camera. Robot
@@ -69,45 +64,14 @@ def rig_bounds(
 
     Returns
     -------
-    names : the parameter names (P,).
-    crb : (P, P) ``(J_w' J_w)^-1``, rows whitened by their camera's noise.
-    unit_weight : (P, P) the sandwich covariance of an estimator that weighs all pixel rows
-        alike and the prior rows by the pooled noise.
+    crb : the bound, rows weighed by their camera's noise (the named quantities).
+    unit_weight : the sandwich covariance of an estimator that weighs all pixel rows alike and
+        the prior rows by the pooled noise.
     """
-    model = BundleModel(problem, structure)
-    model.sigma_px = 1.0  # prior rows in units of their own sigma
-    if "E" in model.slices:
-        truth = with_pose_corrections(truth, len(problem.frames))
-    _, J = model.evaluate(truth)
-    sig_obs = np.array([sigma_by_camera_px[c] for c in model.cams])[model.o_cam]
-    sig_px_rows = np.repeat(sig_obs, 2)
-    n_px = len(sig_px_rows)
-    Jw = J.copy()
-    Jw[:n_px] /= sig_px_rows[:, None]
-    scale = np.sqrt(np.sum(Jw * Jw, axis=0))
-    scale[scale == 0] = 1.0
-    Js = Jw / scale
-    crb = np.linalg.inv(Js.T @ Js) / np.outer(scale, scale)
-    # the solver's weights on the whitened rows: sigma_c^2 on pixel rows, pooled s^2 on priors
-    pooled = float(np.sqrt(np.mean(sig_px_rows**2)))
-    w = np.ones(len(J))
-    w[:n_px] = sig_px_rows**2
-    w[n_px:] = pooled**2
-    A = Js.T @ (w[:, None] * Js)
-    B = Js.T @ ((w**2)[:, None] * Js)
-    Ai = np.linalg.inv(A)
-    unit_weight = Ai @ B @ Ai / np.outer(scale, scale)
-    return model.names, crb, unit_weight
-
-
-def _sd(cov: np.ndarray, names: tuple[str, ...], name: str) -> float:
-    i = names.index(name)
-    return float(np.sqrt(cov[i, i]))
-
-
-def _rot_bound_deg(cov: np.ndarray, names: tuple[str, ...], rig_key: str) -> float:
-    i = names.index(f"{rig_key}.rx")
-    return float(np.degrees(np.sqrt(np.trace(cov[i : i + 3, i : i + 3]))))
+    sig = dict(sigma_by_camera_px)
+    ref = sig[problem.reference]
+    crb = predicted_covariance(problem, truth, ref, structure=structure, camera_sigma_px=sig)
+    return crb, equal_weight_covariance(problem, truth, sig, structure=structure)
 
 
 @dataclass
@@ -194,14 +158,14 @@ def run_rig_row(
     cams = tuple(c.name for c in p0.cameras)
     row = RigRow(name, setting, cams, f"T_{other}_{ref}")
     st = build_structure(p0, s0.truth.X[0][:3, :3])
-    names, crb, uw = rig_bounds(p0, st, s0.truth, s0.sigma_by_camera_px)
+    crb, uw = rig_bounds(p0, st, s0.truth, s0.sigma_by_camera_px)
     for c in cams:
         for p in PARAMS:
-            row.bound[f"{c}.{p}"] = _sd(crb, names, f"{c}.{p}")
-            row.unit_weight[f"{c}.{p}"] = _sd(uw, names, f"{c}.{p}")
+            row.bound[f"{c}.{p}"] = crb.std(f"{c}.{p}")
+            row.unit_weight[f"{c}.{p}"] = uw.std(f"{c}.{p}")
             row.errors[f"{c}.{p}"] = []
-    row.bound["rot"] = _rot_bound_deg(crb, names, row.rig_key)
-    row.unit_weight["rot"] = _rot_bound_deg(uw, names, row.rig_key)
+    row.bound["rot"] = crb.std_rot_deg(row.rig_key)
+    row.unit_weight["rot"] = uw.std_rot_deg(row.rig_key)
     T_true = s0.truth.T_cam_ref[other]
     t0 = time.perf_counter()
     for t in range(trials):

@@ -73,6 +73,7 @@ from slidecal.routines.session import (
     ur_pose_field,
 )
 from slidecal.solver.errors import InputError
+from slidecal.solver.named import MOUNTS
 from slidecal.solver.problem import CameraSpec, ModelOptions, Target
 
 CELL_FORMAT = "slidecal.cell/1"
@@ -485,9 +486,8 @@ def write_config(cfg: CellConfig, path: str | Path) -> Path:
 
 def _names(mount: str) -> tuple[str, str]:
     """Hand-eye and target-pose field names of a mount."""
-    if mount == "eye_in_hand":
-        return "T_tool_cam", "T_base_board"
-    return "T_base_cam", "T_tool_board"
+    frames = MOUNTS["eye_in_hand" if mount == "eye_in_hand" else "eye_to_hand"]
+    return frames.hand_eye, frames.target
 
 
 def _other_mount(mount: str) -> str:

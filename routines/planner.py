@@ -70,16 +70,17 @@ from slidecal.routines.session import Fields
 from slidecal.solver.camera import project
 from slidecal.solver.degeneracy import check_configuration, nominal_K
 from slidecal.solver.errors import DegenerateError, HardwareFault, InputError
-from slidecal.solver.geometry import R_from_rvec, Rz, T_from_Rt, inv_T, rvec_from_R, skew
+from slidecal.solver.geometry import R_from_rvec, Rz, T_from_Rt, inv_T, rvec_from_R
 from slidecal.solver.linear import LinearGroup
-from slidecal.solver.problem import CalibrationProblem, CameraSpec, Detection, Frame
-from slidecal.solver.refine import (
-    BundleModel,
-    ModelState,
-    Structure,
-    build_structure,
-    fisher_covariance,
+from slidecal.solver.named import (
+    INTRINSIC_NAMES,
+    FrameInformation,
+    mount_names,
+    predicted_covariance,
 )
+from slidecal.solver.named import frame_information as named_frame_information
+from slidecal.solver.problem import CalibrationProblem, CameraSpec, Detection, Frame
+from slidecal.solver.refine import ModelState, Structure, build_structure
 
 help = "choose the shortest robot routine predicted to meet the accuracy goal (writes plan.yaml)"
 
@@ -435,91 +436,54 @@ def _full_structure(nom: _Nominal, T_base_tool: np.ndarray) -> Structure:
     )
 
 
-def frame_information(nom: _Nominal, T_base_tool: np.ndarray) -> tuple[tuple[str, ...], np.ndarray]:
-    """Fisher information (F, P, P) of each frame on the shared parameters.
+def frame_information(nom: _Nominal, T_base_tool: np.ndarray) -> FrameInformation:
+    """Fisher information of each frame on the shared parameters (the named layer's).
 
     ``T_base_tool`` (F, 4, 4), metres; every frame must see the target. A frame's own robot
     pose correction (Gaussian prior ``options.robot_noise_*``) is marginalised out by a Schur
     complement, so the information of a set of frames is the sum of theirs (docs/METHOD.md Sec. 6).
-    Parameters: intrinsics, distortion, hand-eye ``X0.*`` and target ``Y.*`` (solver names).
     """
-    problem = nom.problem(T_base_tool)
-    st = _full_structure(nom, T_base_tool)
-    model = BundleModel(problem, st)
-    model.sigma_px = nom.sigma_px
-    _, J = model.evaluate(nom.state(len(T_base_tool)))
-    e_sl = model.slices.get("E")
-    P = e_sl.start if e_sl is not None else len(model.names)
-    names = model.names[:P]
-    out = np.empty((len(T_base_tool), P, P))
-    n_rows = model.n_rows
-    by_frame = {ch.frame_index: ch.rows for ch in model.chunks}
-    for k in range(len(T_base_tool)):
-        rows = by_frame[k]
-        Jt = J[rows, :P]
-        A = Jt.T @ Jt
-        if e_sl is not None:
-            cols = slice(e_sl.start + 6 * k, e_sl.start + 6 * k + 6)
-            Je = J[rows, cols]
-            prior = J[n_rows + 6 * k : n_rows + 6 * k + 6, cols]
-            B = Je.T @ Je + prior.T @ prior
-            C = Jt.T @ Je
-            A = A - C @ np.linalg.solve(B, C.T)
-        out[k] = A / nom.sigma_px**2
-    return names, out
+    return named_frame_information(
+        nom.problem(T_base_tool),
+        _full_structure(nom, T_base_tool),
+        nom.state(len(T_base_tool)),
+        nom.sigma_px,
+    )
 
 
 @dataclass(frozen=True)
 class _Goals:
-    """Index of the goal parameters and how to turn a covariance into goal-relative stds."""
+    """The goal parameters' names and how to turn a covariance into goal-relative stds."""
 
-    fx_index: int
-    rot_index: np.ndarray
-    t_index: np.ndarray
+    info: FrameInformation
+    fx_name: str
+    hand_eye: str
     fx: float
-    X: np.ndarray
     goal: PlanGoal
 
     def ratios(self, cov: np.ndarray) -> np.ndarray:
-        """Predicted std over target per goal (only the goals that are set)."""
+        """Predicted std over target per goal (only the goals that are set); ``cov`` is the
+        inverse of summed frame information."""
+        named = self.info.named(cov)
         out = []
         g = self.goal
         if g.fx_rel_std is not None:
-            out.append(
-                np.sqrt(max(cov[self.fx_index, self.fx_index], 0.0)) / self.fx / g.fx_rel_std
-            )
+            out.append(_or_inf(named.std(self.fx_name)) / self.fx / g.fx_rel_std)
         if g.hand_eye_rot_std_deg is not None:
-            c = cov[np.ix_(self.rot_index, self.rot_index)]
-            out.append(np.degrees(np.sqrt(max(np.trace(c), 0.0))) / g.hand_eye_rot_std_deg)
+            out.append(_or_inf(named.std_rot_deg(self.hand_eye)) / g.hand_eye_rot_std_deg)
         if g.hand_eye_t_std_mm is not None:
-            out.append(
-                _hand_eye_t_mm(cov, self.rot_index, self.t_index, self.X) / g.hand_eye_t_std_mm
-            )
+            out.append(_or_inf(named.std_t_mm(self.hand_eye)) / g.hand_eye_t_std_mm)
         return np.array(out)
 
 
-def _hand_eye_t_mm(cov: np.ndarray, ri: np.ndarray, ti: np.ndarray, X: np.ndarray) -> float:
-    """One-sigma of the hand-eye translation (mm) from the covariance of ``X`` = its inverse
-    (left rotation perturbation, additive translation; as ``calibrate`` reports it)."""
-    idx = np.concatenate([ri, ti])
-    C = cov[np.ix_(idx, idx)]
-    R, t = X[:3, :3], X[:3, 3]
-    J = np.hstack([-R.T @ skew(t), -R.T])
-    return float(1000.0 * np.sqrt(max(np.trace(J @ C @ J.T), 0.0)))
+def _or_inf(v: float | None) -> float:
+    return float("inf") if v is None else v
 
 
-def _goals(names: Sequence[str], nom: _Nominal, goal: PlanGoal) -> _Goals:
-    cam = nom.cam
-    fname = f"{cam}.fx" if f"{cam}.fx" in names else f"{cam}.f"
-    names = list(names)
-    return _Goals(
-        names.index(fname),
-        np.array([names.index(f"X0.r{i}") for i in range(3)]),
-        np.array([names.index(f"X0.t{i}") for i in range(3)]),
-        float(nom.K[0, 0]),
-        nom.X,
-        goal,
-    )
+def _goals(info: FrameInformation, nom: _Nominal, goal: PlanGoal) -> _Goals:
+    frames = mount_names(nom.cfg.mount)
+    assert frames is not None  # the planner plans robot sessions only
+    return _Goals(info, f"{nom.cam}.fx", frames.hand_eye, float(nom.K[0, 0]), goal)
 
 
 def _covariance(info: np.ndarray) -> np.ndarray | None:
@@ -596,17 +560,18 @@ def _via(cfg: CellConfig) -> np.ndarray:
 
 def _candidates(
     cfg: CellConfig, nom: _Nominal, s: PlannerSettings
-) -> tuple[list[_Group], dict[str, int], tuple[str, ...]]:
-    """Candidate groups with their usable frames' information; rejection counts by reason."""
+) -> tuple[list[_Group], dict[str, int], FrameInformation | None]:
+    """Candidate groups with their usable frames' information; rejection counts by reason; the
+    named layer's reading of the information (None without a candidate)."""
     centre = cfg.target.points_m.mean(axis=0)
     offsets = np.vstack([np.zeros((1, 3))] + [DIRECTIONS * (L / 1000.0) for L in s.step_mm])
     counts = {"workspace": 0, "view": 0, "reach": 0}
     groups: list[_Group] = []
-    names: tuple[str, ...] = ()
+    fim: FrameInformation | None = None
     via_why = _rejection(cfg, nom, s, _via(cfg))
     if via_why is not None:
         counts[via_why] += 1
-        return [], counts, names
+        return [], counts, fim
     for d in s.standoffs_m:
         for tilt in s.tilts_deg:
             for az in s.azimuths_deg:
@@ -622,11 +587,12 @@ def _candidates(
                     continue
                 g = _Group(tilt, az, d, T_bt, usable)
                 idx = np.flatnonzero(usable)
-                names, info = frame_information(nom, T_bt[idx])
+                fim = frame_information(nom, T_bt[idx])
+                info = fim.per_frame
                 g.info = np.zeros((len(T_bt),) + info.shape[1:])
                 g.info[idx] = info
                 groups.append(g)
-    return groups, counts, names
+    return groups, counts, fim
 
 
 # -- greedy search ----------------------------------------------------------------------------
@@ -666,7 +632,7 @@ def _duration(seq, timing: _Timing) -> float:
 
 def _greedy(
     cands: list[_Group],
-    names: tuple[str, ...],
+    fim: FrameInformation,
     nom: _Nominal,
     s: PlannerSettings,
     timing: _Timing,
@@ -677,9 +643,9 @@ def _greedy(
 
     Returns the choice, its predicted duration, its goal ratios (None: still singular) and why
     the search stopped: "met", "time" (over the budget) or "exhausted" (no candidate left)."""
-    goals = _goals(names, nom, s.goal)
-    P = len(names)
-    ridge = _ridge(names, nom)
+    goals = _goals(fim, nom, s.goal)
+    P = len(fim.kinds)
+    ridge = _ridge(fim, nom)
     chosen: list[_Chosen] = []
     info = np.zeros((P, P))
     t_now = 0.0
@@ -772,19 +738,12 @@ def _better(best, f_now, f_new, dt, A, action):  # noqa: ANN001, ANN202 - intern
     return best
 
 
-def _ridge(names: Sequence[str], nom: _Nominal) -> np.ndarray:
+def _ridge(info: FrameInformation, nom: _Nominal) -> np.ndarray:
     """A weak prior (P, P) that keeps the greedy's first steps finite: 30 % of f on the
     intrinsics, 1 on distortion, 0.5 rad / 0.5 m on the poses."""
-    d = []
-    for n in names:
-        key = n.split(".")[-1]
-        if n.startswith(f"{nom.cam}.") and key in ("fx", "fy", "f", "cx", "cy", "s"):
-            d.append(0.3 * nom.K[0, 0])
-        elif n.startswith(f"{nom.cam}."):
-            d.append(1.0)
-        else:
-            d.append(0.5)
-    return np.diag(1.0 / np.array(d) ** 2)
+    sd = {"intrinsics": 0.3 * nom.K[0, 0], "distortion": 1.0}
+    d = np.array([sd.get(k, 0.5) for k in info.kinds])
+    return np.diag(1.0 / d**2)
 
 
 def _linear_ok(cands: list[_Group], chosen: list[_Chosen], nom: _Nominal) -> bool:
@@ -850,45 +809,40 @@ def predict_std(
     if st.unobservable:
         name, why = next(iter(st.unobservable.items()))
         raise DegenerateError(f"the plan leaves {name} unobservable: {why}")
-    names, cov = fisher_covariance(problem, st, nom.state(len(T)), nom.sigma_px)
-    d = np.diag(cov)
-    if not np.all(np.isfinite(cov)) or np.any(d <= 0):
+    named = predicted_covariance(problem, nom.state(len(T)), nom.sigma_px, structure=st)
+    d = np.diag(named.matrix)
+    if not np.all(np.isfinite(named.matrix)) or np.any(d <= 0):
         raise DegenerateError(
             "the plan's Fisher information is singular: add orientation groups tilted about "
             "different axes and translations out of the board plane"
         )
-    names = list(names)
     out: dict[str, float] = {}
     cam = nom.cam
-    for n in names:
+    for n, var in zip(named.names, d, strict=True):
         if n.startswith(f"{cam}."):
             key = n.split(".", 1)[1]
-            sd = float(np.sqrt(d[names.index(n)]))
-            if key in ("f", "fx", "fy", "cx", "cy", "s"):
-                if key == "f":
-                    out[f"{cam}.fx_px"] = out[f"{cam}.fy_px"] = sd
-                else:
-                    out[f"{cam}.{key}_px"] = sd
-            else:
-                out[f"{cam}.{key}"] = sd
+            unit = "_px" if key in INTRINSIC_NAMES else ""
+            out[f"{cam}.{key}{unit}"] = float(np.sqrt(var))
     out[f"{cam}.fx_rel"] = out[f"{cam}.fx_px"] / float(nom.K[0, 0])
-    ri = np.array([names.index(f"X0.r{i}") for i in range(3)])
-    ti = np.array([names.index(f"X0.t{i}") for i in range(3)])
-    he = "T_tool_cam" if cfg.mount == "eye_in_hand" else "T_base_cam"
-    tg = "T_base_board" if cfg.mount == "eye_in_hand" else "T_tool_board"
-    out[f"{he}.rot_deg"] = float(np.degrees(np.sqrt(np.trace(cov[np.ix_(ri, ri)]))))
-    out[f"{he}.t_mm"] = _hand_eye_t_mm(cov, ri, ti, nom.X)
-    yr = np.array([names.index(f"Y.r{i}") for i in range(3)])
-    yt = np.array([names.index(f"Y.t{i}") for i in range(3)])
-    out[f"{tg}.rot_deg"] = float(np.degrees(np.sqrt(np.trace(cov[np.ix_(yr, yr)]))))
-    out[f"{tg}.t_mm"] = float(1000.0 * np.sqrt(np.trace(cov[np.ix_(yt, yt)])))
+    frames = mount_names(cfg.mount)
+    assert frames is not None  # the planner plans robot sessions only
+    for tf in (frames.hand_eye, frames.target):
+        out[f"{tf}.rot_deg"] = _or_inf(named.std_rot_deg(tf))
+        out[f"{tf}.t_mm"] = _or_inf(named.std_t_mm(tf))
     return out
+
+
+def _hand_eye(cfg: CellConfig) -> str:
+    """The name of the planned hand-eye transform (the planner plans robot sessions only)."""
+    frames = mount_names(cfg.mount)
+    assert frames is not None
+    return frames.hand_eye
 
 
 def goal_ratios(pred: dict[str, float], cfg: CellConfig, goal: PlanGoal) -> dict[str, float]:
     """Predicted std over the goal's target, per goal that is set (<= 1: met)."""
     cam = cfg.reference_camera
-    he = "T_tool_cam" if cfg.mount == "eye_in_hand" else "T_base_cam"
+    he = _hand_eye(cfg)
     out = {}
     if goal.fx_rel_std is not None:
         out["fx_rel_std"] = pred[f"{cam}.fx_rel"] / goal.fx_rel_std
@@ -985,7 +939,7 @@ def make_plan(cfg: CellConfig, settings: PlannerSettings | None = None) -> PlanR
     s = settings or planner_settings(cfg)
     nom = _nominal(cfg, s)
     where = f"{cfg.source}: plan"
-    cands, rejected, names = _candidates(cfg, nom, s)
+    cands, rejected, fim = _candidates(cfg, nom, s)
     if len(cands) < s.min_groups:
         raise InputError(_no_candidates_message(cfg, s, rejected, len(cands), nom), where=where)
     via = _via(cfg)
@@ -993,7 +947,8 @@ def make_plan(cfg: CellConfig, settings: PlannerSettings | None = None) -> PlanR
     timing = _Timing(cfg, s, start)
     last_failure = ""
     for _attempt in range(12):
-        chosen, t_pred, ratios, stop = _greedy(cands, names, nom, s, timing, via)
+        assert fim is not None  # there are candidates
+        chosen, t_pred, ratios, stop = _greedy(cands, fim, nom, s, timing, via)
         if stop != "met":
             raise InputError(_goal_message(s, t_pred, ratios, stop), where=where)
         plan = _to_plan(cfg, cands, chosen, via, ())
@@ -1148,7 +1103,7 @@ def main(args: argparse.Namespace) -> int:
             print(n)
         pred = report.plan.predicted_std or {}
         cam = cfg.reference_camera
-        he = "T_tool_cam" if cfg.mount == "eye_in_hand" else "T_base_cam"
+        he = _hand_eye(cfg)
         print(
             f"predicted std: fx {pred[f'{cam}.fx_px']:.3f} px "
             f"({pred[f'{cam}.fx_rel'] * 100:.4f} %), "

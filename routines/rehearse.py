@@ -37,6 +37,7 @@ import numpy as np
 
 from slidecal.drivers.ur_pose import T_from_ur_pose
 from slidecal.solver.errors import HardwareFault, InputError
+from slidecal.solver.named import MOUNTS
 
 help = "rehearse the cell's routine through the real ur-rtde client on a loopback controller"
 REHEARSAL_FILE = "rehearsal.yaml"
@@ -130,8 +131,8 @@ def simulated_twin(cfg: Any) -> Any:
             "rehearse a copy of the cell with one camera, or a simulated cell",
             where=f"{cfg.source}: cameras.list",
         )
-    he_key, tg_key = ("T_tool_cam", "T_base_board") if cfg.mount == "eye_in_hand" else (
-        "T_base_cam", "T_tool_board")
+    frames = MOUNTS["eye_in_hand" if cfg.mount == "eye_in_hand" else "eye_to_hand"]
+    he_key, tg_key = frames.hand_eye, frames.target
     sim[he_key] = transform_to_dict(cfg.approx_T_hand_eye)
     sim[tg_key] = transform_to_dict(cfg.approx_T_target)
     if "start_q" not in robot and "start_pose" not in robot:

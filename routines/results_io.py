@@ -22,7 +22,11 @@ of a rig; rig ``T_<name>_<ref>``) and these extensions, all additive:
 
 A value the data cannot determine is ``null``, never a number. ``T_tool_<name>`` of a rig's
 non-reference camera is composed from the reference's hand-eye and the rig extrinsics; its std
-is the root sum of squares of the two (correlations ignored: an approximation).
+comes from the joint covariance (correlations kept, :mod:`slidecal.solver.named`).
+
+``parameter_names`` are the reported quantities (``cam.fx``, ``T_tool_cam.rx`` .. ``.tz``,
+docs/FORMATS.md). A result written before them (the optimiser's ``X0.r0`` .. ``Y.t2`` and
+``cam.f``) is read and its covariance converted to these names (:func:`_named_from_legacy`).
 
 Exports for existing tools: OpenCV ``FileStorage`` YAML per camera (``camera_matrix``,
 ``distortion_coefficients``, ``image_width``, ``image_height``), ROS ``camera_info`` YAML per
@@ -48,7 +52,15 @@ from slidecal.routines.schema import (
     write_atomic,
 )
 from slidecal.solver.errors import InputError
-from slidecal.solver.geometry import rotation_angle_deg, rvec_from_R
+from slidecal.solver.geometry import T_from_Rt, rotation_angle_deg, rvec_from_R
+from slidecal.solver.named import hand_eye_names as named_hand_eye_names
+from slidecal.solver.named import (
+    is_legacy,
+    legacy_layout,
+    mount_names,
+    propagate,
+    reported_names,
+)
 from slidecal.solver.result import (
     CalibrationResult,
     CameraEstimate,
@@ -71,18 +83,15 @@ def hand_eye_names(result: CalibrationResult) -> dict[str, str]:
     ``T_tool_cam`` / ``T_base_cam`` for a single camera; ``T_tool_<name>`` / ``T_base_<name>``
     for every camera of a rig. Empty without a robot.
     """
-    frame = {"eye_in_hand": "tool", "eye_to_hand": "base"}.get(result.mount)
-    if frame is None or result.hand_eye is None:
+    if result.hand_eye is None:
         return {}
-    names = list(result.cameras)
-    if len(names) == 1:
-        return {names[0]: f"T_{frame}_cam"}
-    return {n: f"T_{frame}_{n}" for n in names}
+    return named_hand_eye_names(result.mount, list(result.cameras))
 
 
 def target_pose_name(mount: str) -> str | None:
     """``T_base_board`` (eye-in-hand), ``T_tool_board`` (eye-to-hand), None otherwise."""
-    return {"eye_in_hand": "T_base_board", "eye_to_hand": "T_tool_board"}.get(mount)
+    frames = mount_names(mount)
+    return None if frames is None else frames.target
 
 
 def _reference(result: CalibrationResult) -> str:
@@ -97,6 +106,7 @@ def hand_eye_transforms(result: CalibrationResult) -> dict[str, TransformEstimat
     he = result.hand_eye
     assert he is not None
     ref = _reference(result)
+    named = result.named_covariance
     out: dict[str, TransformEstimate] = {}
     for cam, key in names.items():
         if cam == ref:
@@ -116,16 +126,48 @@ def hand_eye_transforms(result: CalibrationResult) -> dict[str, TransformEstimat
             key,
             R,
             t,
-            _rss(he.std_rot_deg, rig.std_rot_deg),
-            _rss(he.std_t_mm, rig.std_t_mm) if t is not None else None,
+            named.std_rot_deg(key) if named is not None else None,
+            named.std_t_mm(key) if named is not None and t is not None else None,
         )
     return out
 
 
-def _rss(a: float | None, b: float | None) -> float | None:
-    if a is None or b is None:
-        return None
-    return float(np.hypot(a, b))
+def _named_from_legacy(
+    pnames: list[str],
+    cov: np.ndarray | None,
+    cams: dict[str, CameraEstimate],
+    ref: str,
+    mount: str,
+    hand_eye: TransformEstimate | None,
+    target: TransformEstimate | None,
+    rig: dict[str, TransformEstimate],
+) -> tuple[list[str], np.ndarray | None]:
+    """A covariance written with the optimiser's names (``X0.r0``, ``Y.t1``, ``cam.f``: results
+    of earlier versions) converted to the reported quantities; other names pass unchanged."""
+    if not is_legacy(pnames):
+        return pnames, cov
+
+    def T(t: TransformEstimate | None) -> np.ndarray | None:
+        if t is None or t.R is None:
+            return None
+        return T_from_Rt(t.R, np.zeros(3) if t.t_m is None else t.t_m)
+
+    T_cam_ref = {
+        c: T(t) for c in cams if c != ref and (t := rig.get(f"T_{c}_{ref}")) is not None
+    }
+    layout = legacy_layout(
+        tuple(pnames),
+        tuple(cams),
+        ref,
+        mount,
+        T(hand_eye),
+        T(target),
+        {c: v for c, v in T_cam_ref.items() if v is not None},
+    )
+    if cov is None:
+        return list(reported_names(layout, tuple(pnames))), None
+    named = propagate(layout, tuple(pnames), cov)
+    return list(named.names), named.matrix
 
 
 # ----------------------------------------------------------------------------- result.yaml
@@ -412,11 +454,10 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
             s.optional_number("std_t_mm", minimum=0.0),
         )
 
-    frame = {"eye_in_hand": "tool", "eye_to_hand": "base"}.get(mount)
+    frames = mount_names(mount)
     hand_eye = None
-    if frame is not None:
-        key = f"T_{frame}_cam" if len(cams) == 1 else f"T_{frame}_{ref}"
-        hand_eye = te(key, f"T_{frame}_cam")
+    if frames is not None:
+        hand_eye = te(named_hand_eye_names(mount, names)[ref], frames.hand_eye)
     for key in f.data:  # every transform named must be one this result can hold
         if isinstance(key, str) and _TRANSFORM_KEY.fullmatch(key):
             te(key)
@@ -489,11 +530,13 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
             raise hf_.error(str(k), "must be text (as slidecal writes it)")
     adequacy = _adequacy_from(f, names) if f.has("adequacy") else None
     robot_accuracy = _robot_accuracy_from(f) if f.has("robot_accuracy") else None
+    T_target = te(tname) if tname else None
+    pnames, cov = _named_from_legacy(pnames, cov, cams, ref, mount, hand_eye, T_target, rig)
     return CalibrationResult(
         cameras=cams,
         hand_eye=hand_eye,
         rig=rig,
-        T_target=te(tname) if tname else None,
+        T_target=T_target,
         converged=f.boolean("converged", False),
         iterations=f.integer("iterations", 0, minimum=0),
         reproj_rms_px=_nullable(rep, "rms_px", minimum=0.0),

@@ -22,7 +22,7 @@ import numpy as np
 from slidecal.solver.adequacy import assess
 from slidecal.solver.degeneracy import check_configuration, n_directions
 from slidecal.solver.errors import DegenerateError, InputError
-from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, project_to_SO3, skew
+from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, project_to_SO3
 from slidecal.solver.handeye import ax_xb_park_martin, rotation_from_directions
 from slidecal.solver.homography import group_homographies
 from slidecal.solver.linear import (
@@ -30,6 +30,13 @@ from slidecal.solver.linear import (
     focal_from_homographies,
     linear_intrinsics,
     zhang_intrinsics,
+)
+from slidecal.solver.named import (
+    INTRINSIC_NAMES,
+    hand_eye_names,
+    layout_of,
+    mount_names,
+    result_covariance,
 )
 from slidecal.solver.problem import DISTORTION_NAMES, CalibrationProblem, Detection, Frame
 from slidecal.solver.refine import (
@@ -683,53 +690,19 @@ def calibrate(
     return _result(problem, out, K_lin, groups)
 
 
-def _kept(out: RefineOutput, unobservable: dict[str, str] | None = None) -> np.ndarray:
-    """Indices of the parameters a result reports: all but the robot-pose corrections and, when
-    the hand-eye translation is unobservable, the target pose's translation (its value is tied
-    to that translation, fixed by convention: not a measured number)."""
-    keep = np.ones(len(out.names), dtype=bool)
-    for key in ("E", "U"):  # per-frame and per-group robot-pose corrections
-        if key in out.model.slices:
-            keep[out.model.slices[key]] = False
-    if unobservable and any(k.endswith("_board.t") for k in unobservable):
-        keep &= np.array([not n.startswith("Y.t") for n in out.names], dtype=bool)
-    return np.flatnonzero(keep)
-
-
-def _block_cov(out: RefineOutput, key: str) -> np.ndarray | None:
-    if out.covariance is None or key not in out.model.slices:
-        return None
-    sl = out.model.slices[key]
-    return out.covariance[sl, sl]
-
-
-def _std_rot_deg(C: np.ndarray | None) -> float | None:
-    return None if C is None else float(np.degrees(np.sqrt(max(np.trace(C), 0.0))))
-
-
-def _std_t_mm(C: np.ndarray | None) -> float | None:
-    return None if C is None else float(1000.0 * np.sqrt(max(np.trace(C), 0.0)))
-
-
 def _result(
     problem: CalibrationProblem, out: RefineOutput, K_lin: dict[str, np.ndarray], groups: np.ndarray
 ) -> CalibrationResult:
     model, st, state = out.model, out.model.st, out.state
-    cov = out.covariance
-    names = out.names
+    reported, named = result_covariance(problem, out)
     cams = {}
     for spec in problem.cameras:
         c = spec.name
         std = {}
-        for n in model.intr + model.dist_names:
-            full = f"{c}.{n}"
-            if cov is not None and full in names:
-                i = names.index(full)
-                v = float(np.sqrt(max(cov[i, i], 0.0)))
-                if n == "f":
-                    std["fx"] = std["fy"] = v
-                else:
-                    std[n] = v
+        for n in (*INTRINSIC_NAMES, *DISTORTION_NAMES):
+            v = named.std(f"{c}.{n}") if named is not None else None
+            if v is not None:
+                std[n] = v
         rows = np.concatenate(
             [np.r_[ch.rows] for ch in model.chunks if ch.camera == c] or [np.zeros(0, int)]
         )
@@ -740,28 +713,21 @@ def _result(
     for i, on in enumerate(problem.options.distortion):
         if not on:
             unobs.setdefault(f"distortion.{DISTORTION_NAMES[i]}", "fixed at 0 by the options")
+    layout = layout_of(problem, st, state)
+    frames = mount_names(layout.mount)
     hand_eye = T_target = None
-    if problem.knowledge == "robot":
-        he_name = "T_tool_cam" if problem.mount == "eye_in_hand" else "T_base_cam"
-        tgt_name = "T_base_board" if problem.mount == "eye_in_hand" else "T_tool_board"
-        Xm = state.X[0]
-        C = _block_cov(out, "X:0")
-        Br, Bt = st.X_rot_basis, st.X_t_basis
-        T_he = inv_T(Xm)
-        rot_ok = f"{he_name}.R" not in unobs
-        t_ok = rot_ok and Bt.shape[1] == 3
-        std_r = std_t = None
-        if C is not None:
-            mr = Br.shape[1]
-            std_r = _std_rot_deg(Br @ C[:mr, :mr] @ Br.T) if rot_ok else None
-            if t_ok:
-                J = np.hstack([-Xm[:3, :3].T @ skew(Xm[:3, 3]) @ Br, -Xm[:3, :3].T @ Bt])
-                std_t = _std_t_mm(J @ C @ J.T)
+    if frames is not None:
+        he_name, tgt_name = frames.hand_eye, frames.target
+        he_key = hand_eye_names(problem.mount, [c.name for c in problem.cameras])[problem.reference]
+        rot_ok, t_ok = layout.rotation_reported, layout.translation_reported
+        T_he = inv_T(state.X[0])
         hand_eye = TransformEstimate(
-            he_name, T_he[:3, :3] if rot_ok else None, T_he[:3, 3] if t_ok else None, std_r, std_t
+            he_name,
+            T_he[:3, :3] if rot_ok else None,
+            T_he[:3, 3] if t_ok else None,
+            named.std_rot_deg(he_key) if named is not None else None,
+            named.std_t_mm(he_key) if named is not None else None,
         )
-        CY = _block_cov(out, "Y")
-        mr = st.Y_rot_basis.shape[1]
         # the target pose is tied to the hand-eye transform: what the data cannot determine of
         # one, it cannot determine of the other (no made-up numbers)
         if not rot_ok:
@@ -778,22 +744,20 @@ def _result(
             tgt_name,
             state.Y[:3, :3] if rot_ok else None,
             state.Y[:3, 3] if t_ok else None,
-            _std_rot_deg(st.Y_rot_basis @ CY[:mr, :mr] @ st.Y_rot_basis.T)
-            if CY is not None and rot_ok
-            else None,
-            _std_t_mm(CY[mr:, mr:]) if CY is not None and t_ok else None,
+            named.std_rot_deg(tgt_name) if named is not None else None,
+            named.std_t_mm(tgt_name) if named is not None else None,
         )
     rig = {}
     H_inf = {}
     ref = problem.reference
     for c, T in state.T_cam_ref.items():
-        C = _block_cov(out, f"rig:{c}")
-        rig[f"T_{c}_{ref}"] = TransformEstimate(
-            f"T_{c}_{ref}",
+        key = f"T_{c}_{ref}"
+        rig[key] = TransformEstimate(
+            key,
             T[:3, :3],
             T[:3, 3],
-            _std_rot_deg(C[:3, :3]) if C is not None else None,
-            _std_t_mm(C[3:, 3:]) if C is not None else None,
+            named.std_rot_deg(key) if named is not None else None,
+            named.std_t_mm(key) if named is not None else None,
         )
         Hab = state.K[c] @ T[:3, :3] @ np.linalg.inv(state.K[ref])
         H_inf[f"{c}<-{ref}"] = Hab / Hab[2, 2]
@@ -813,10 +777,10 @@ def _result(
         iterations=out.iterations,
         reproj_rms_px=rms,
         sigma_px=out.sigma_px,
-        # the robot-pose corrections are nuisance parameters: the result keeps the marginal
-        # covariance of everything else (the matching block of the full inverse)
-        parameter_names=tuple(names[i] for i in _kept(out, unobs)),
-        covariance=None if cov is None else cov[np.ix_(_kept(out, unobs), _kept(out, unobs))],
+        # the reported quantities (solver/named.py): robot-pose corrections and board poses are
+        # nuisance parameters, marginalised
+        parameter_names=reported,
+        covariance=named.matrix if named is not None else None,
         residuals_px=residuals,
         outliers=out.outliers,
         unobservable=unobs,

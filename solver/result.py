@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from slidecal.solver.named import NamedCovariance
+
 
 @dataclass(frozen=True)
 class CameraEstimate:
@@ -113,7 +115,10 @@ class CalibrationResult:
     camera, None without a robot. ``rig``: ``T_<name>_<reference>`` for every other camera.
     ``T_target``: ``T_base_board`` (eye-in-hand) or ``T_tool_board`` (eye-to-hand).
     ``H_inf``: infinite homographies ``x_a ~ H x_b`` keyed ``"a<-b"`` (docs/METHOD.md Sec. 8).
-    ``parameter_names`` name the rows of ``covariance``. ``residuals_px``: per (frame id, camera)
+    ``parameter_names`` name the rows of ``covariance``: the reported quantities as users read
+    them (``cam.fx``, ``T_tool_cam.rx`` .. ``.tz`` of the transform as reported, rig
+    ``T_right_left.*``; a rig's hand-eye of every camera as the file names it, ``T_tool_<name>``;
+    :mod:`slidecal.solver.named`). ``residuals_px``: per (frame id, camera)
     the rms reprojection error of that image. ``outliers``: (frame id, camera, corner id) flagged
     by the robust loss. ``sigma_px``: the noise estimated from the residuals, ``s`` of
     docs/METHOD.md
@@ -145,6 +150,13 @@ class CalibrationResult:
     reference_camera: str = ""
     adequacy: ModelAdequacy | None = None
     robot_accuracy: RobotAccuracy | None = None
+
+    @property
+    def named_covariance(self) -> NamedCovariance | None:
+        """``covariance`` with its names (std of a transform's rotation and translation)."""
+        if self.covariance is None:
+            return None
+        return NamedCovariance(tuple(self.parameter_names), np.asarray(self.covariance, float))
 
     def std_of(self, name: str) -> float | None:
         """One-sigma of a named parameter from the covariance, None when not estimated."""

@@ -58,8 +58,10 @@ def test_noisy_r1_errors_within_reported_uncertainty():
     assert err < 4.0 * res.hand_eye.std_rot_deg + 0.005
     t_err_mm = 1000.0 * np.linalg.norm(res.hand_eye.t_m - s.T_hand_eye[:3, 3])
     assert t_err_mm < 4.0 * res.hand_eye.std_t_mm + 0.1
-    assert {"cam.fx", "cam.k1", "X0.r0"} <= set(res.parameter_names)
+    assert {"cam.fx", "cam.k1", "T_tool_cam.rx", "T_base_board.tz"} <= set(res.parameter_names)
+    assert not any(n.startswith(("X0.", "Y.", "pose")) for n in res.parameter_names)
     assert res.covariance.shape == (len(res.parameter_names),) * 2
+    assert res.std_of("T_tool_cam.tx") is not None
     assert all(abs(c.ratio - 1.0) < 0.01 for c in res.scale_checks)
 
 

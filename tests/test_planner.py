@@ -23,7 +23,8 @@ from slidecal.solver.degeneracy import check_configuration
 from slidecal.solver.errors import InputError, SlidecalError
 from slidecal.solver.geometry import inv_T
 from slidecal.solver.linear import LinearGroup
-from slidecal.solver.refine import build_structure, fisher_covariance
+from slidecal.solver.named import predicted_covariance
+from slidecal.solver.refine import build_structure
 
 
 @pytest.fixture(scope="module")
@@ -65,14 +66,15 @@ def test_summed_frame_information_equals_solver_bound(default_report):
     s = planner_settings(cfg)
     nom = _nominal(cfg, s)
     T = np.array([T for _, T in rep.plan.poses])
-    names, info = frame_information(nom, T)
-    cov = np.linalg.inv(info.sum(axis=0))
+    fim = frame_information(nom, T)
+    named = fim.named(np.linalg.inv(fim.per_frame.sum(axis=0)))
     problem = nom.problem(T)
     st = build_structure(problem, nom.X[:3, :3])
-    names2, cov2 = fisher_covariance(problem, st, nom.state(len(T)), nom.sigma_px)
-    for n in ("cam.fx", "cam.cy", "cam.k1", "X0.r0", "X0.t2", "Y.t1"):
-        i, j = names.index(n), names2.index(n)
-        assert np.sqrt(cov[i, i]) == pytest.approx(np.sqrt(cov2[j, j]), rel=1e-6)
+    bound = predicted_covariance(problem, nom.state(len(T)), nom.sigma_px, structure=st)
+    assert named.names == bound.names
+    for n in ("cam.fx", "cam.cy", "cam.k1", "T_tool_cam.rx", "T_tool_cam.tz", "T_base_board.ty"):
+        assert named.std(n) == pytest.approx(bound.std(n), rel=1e-6)
+    np.testing.assert_allclose(named.matrix, bound.matrix, rtol=1e-5, atol=1e-12)
 
 
 def test_plan_file_round_trip_and_cli(tmp_path, capsys):
@@ -286,9 +288,9 @@ def _independent_checks(cfg, plan) -> None:
     problem = nom.problem(Ts)
     st = build_structure(problem, nom.X[:3, :3])
     assert st.unobservable == {}
-    _, cov = fisher_covariance(problem, st, nom.state(len(Ts)), 0.1)
-    assert np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0)
-    assert np.sqrt(cov[0, 0]) < 0.01 * K[0, 0]
+    bound = predicted_covariance(problem, nom.state(len(Ts)), 0.1, structure=st)
+    assert np.all(np.isfinite(bound.matrix)) and np.all(np.diag(bound.matrix) > 0)
+    assert bound.std("cam.fx") < 0.01 * K[0, 0]
     # and the linear step accepts it
     groups = []
     for g in plan.groups:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -103,7 +104,13 @@ def test_unobservable_translation_is_null_never_a_number(tmp_path: Path) -> None
 
 
 def test_rig_names_and_composed_hand_eye(tmp_path: Path) -> None:
-    r = _result(rig=True)
+    # the composed hand-eye's std is read from the joint covariance under its own name
+    var = np.array([1e-8, 2e-8, 3e-8, 1e-8, 4e-8, 4e-8])
+    r = replace(
+        _result(rig=True),
+        parameter_names=tuple(f"T_tool_right.{a}" for a in ("rx", "ry", "rz", "tx", "ty", "tz")),
+        covariance=np.diag(var),
+    )
     d = yaml.safe_load(write_result(r, tmp_path / "r.yaml").read_text())
     assert {"T_tool_left", "T_tool_right", "T_right_left"} <= set(d)
     assert "T_tool_cam" not in d
@@ -115,7 +122,11 @@ def test_rig_names_and_composed_hand_eye(tmp_path: Path) -> None:
     T_tr = np.eye(4)
     T_tr[:3, :3], T_tr[:3, 3] = d["T_tool_right"]["R"], d["T_tool_right"]["t_m"]
     np.testing.assert_allclose(T_tr, T_tl @ np.linalg.inv(T_rl), atol=1e-12)
-    assert d["T_tool_right"]["std_t_mm"] == pytest.approx(np.hypot(0.3, 0.2))
+    assert d["T_tool_right"]["std_t_mm"] == pytest.approx(1000.0 * np.sqrt(var[3:].sum()))
+    assert d["T_tool_right"]["std_rot_deg"] == pytest.approx(np.degrees(np.sqrt(var[:3].sum())))
+    # without it, no made-up number (the root sum of squares ignored the correlations)
+    d = yaml.safe_load(write_result(_result(rig=True), tmp_path / "q.yaml").read_text())
+    assert d["T_tool_right"]["std_t_mm"] is None and d["T_tool_right"]["std_rot_deg"] is None
 
 
 @pytest.mark.parametrize("rig", [False, True])

@@ -11,6 +11,7 @@ from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import DegenerateError
 from slidecal.solver.geometry import rotation_angle_deg
 from slidecal.solver.homography import homography_dlt, refine_homography
+from slidecal.solver.named import predicted_covariance
 from slidecal.solver.refine import build_structure, fisher_covariance
 from slidecal.solver.stereo import infinite_homography, relative_rotation
 
@@ -131,10 +132,7 @@ def test_h_inf_keys_for_three_cameras():
 
 
 def _rot_bound_deg(s: rs.RigScenario, key: str) -> float:
-    st = build_structure(s.problem, s.truth.X[0][:3, :3])
-    names, cov = fisher_covariance(s.problem, st, s.truth, s.sigma_px)
-    i = names.index(f"{key}.rx")
-    return float(np.degrees(np.sqrt(np.trace(cov[i : i + 3, i : i + 3]))))
+    return predicted_covariance(s.problem, s.truth, s.sigma_px).std_rot_deg(key)
 
 
 def test_eq63_rotation_agrees_with_ml_within_the_noise():
@@ -159,11 +157,10 @@ def test_eq63_rotation_agrees_with_ml_within_the_noise():
 def test_noisy_oak_rig_within_its_bound():
     s = rs.oak_rig(np.random.default_rng(7), 0.15)
     res = calibrate(s.problem)
-    st = build_structure(s.problem, s.truth.X[0][:3, :3])
-    names, cov = fisher_covariance(s.problem, st, s.truth, s.sigma_px)
+    bound = predicted_covariance(s.problem, s.truth, s.sigma_px)
     for c in ("left", "right"):
         for p, (i, j) in PARAMS.items():
-            sd = np.sqrt(cov[names.index(f"{c}.{p}"), names.index(f"{c}.{p}")])
+            sd = bound.std(f"{c}.{p}")
             assert abs(res.cameras[c].K[i, j] - s.truth.K[c][i, j]) < 4.5 * sd, (c, p)
     T = s.truth.T_cam_ref["right"]
     assert rotation_angle_deg(res.rig["T_right_left"].R, T[:3, :3]) < 4.0 * _rot_bound_deg(
@@ -175,17 +172,17 @@ def test_noisy_oak_rig_within_its_bound():
 def test_per_camera_bound_weighs_rows_by_camera_noise():
     s = rs.s5_rig(np.random.default_rng(8), 0.5)
     st = build_structure(s.problem, s.truth.X[0][:3, :3])
-    names, ref_cov = fisher_covariance(s.problem, st, s.truth, 0.5)
-    n2, crb, uw = rig_bounds(s.problem, st, s.truth, {"left": 0.5, "right": 0.5})
-    assert n2 == names
-    np.testing.assert_allclose(crb, ref_cov, rtol=1e-8, atol=1e-14)
-    np.testing.assert_allclose(uw, ref_cov, rtol=1e-8, atol=1e-14)
-    _, crb2, uw2 = rig_bounds(s.problem, st, s.truth, {"left": 1.0, "right": 0.5})
-    i, j = names.index("left.fx"), names.index("right.fx")
+    ref = predicted_covariance(s.problem, s.truth, 0.5, structure=st)
+    crb, uw = rig_bounds(s.problem, st, s.truth, {"left": 0.5, "right": 0.5})
+    assert crb.names == uw.names == ref.names
+    np.testing.assert_allclose(crb.matrix, ref.matrix, rtol=1e-8, atol=1e-14)
+    np.testing.assert_allclose(uw.matrix, ref.matrix, rtol=1e-8, atol=1e-14)
+    crb2, uw2 = rig_bounds(s.problem, st, s.truth, {"left": 1.0, "right": 0.5})
     # a noisier left camera: its bound grows, nothing gets better, and weighing every row
     # alike (the solver) cannot beat the bound
-    assert crb2[i, i] > 1.5 * ref_cov[i, i] and crb2[j, j] >= ref_cov[j, j] * (1 - 1e-9)
-    assert np.all(np.diag(uw2) >= np.diag(crb2) * (1 - 1e-9))
+    assert crb2.std("left.fx") > np.sqrt(1.5) * ref.std("left.fx")
+    assert crb2.std("right.fx") >= ref.std("right.fx") * (1 - 1e-9)
+    assert np.all(np.diag(uw2.matrix) >= np.diag(crb2.matrix) * (1 - 1e-9))
 
 
 def test_s5_ml_monte_carlo_near_the_bound():
@@ -193,8 +190,7 @@ def test_s5_ml_monte_carlo_near_the_bound():
     std over 30 trials about 13 %, so 1.15 + 3 x 0.15); the rotation's rms error (90 squared
     components, relative error about 7 %) within the 1.5 target."""
     s0 = rs.s5_rig(np.random.default_rng(100), 0.5)
-    st = build_structure(s0.problem, s0.truth.X[0][:3, :3])
-    names, cov = fisher_covariance(s0.problem, st, s0.truth, 0.5)
+    bound = predicted_covariance(s0.problem, s0.truth, 0.5)
     errs = {f"{c}.{p}": [] for c in ("left", "right") for p in PARAMS}
     rot = []
     for t in range(30):
@@ -205,7 +201,7 @@ def test_s5_ml_monte_carlo_near_the_bound():
                 errs[f"{c}.{p}"].append(res.cameras[c].K[i, j] - s.truth.K[c][i, j])
         rot.append(rotation_angle_deg(res.rig["T_left_right"].R, s.truth.T_cam_ref["left"][:3, :3]))
     for k, e in errs.items():
-        ratio = np.std(e, ddof=1) / np.sqrt(cov[names.index(k), names.index(k)])
+        ratio = np.std(e, ddof=1) / bound.std(k)
         assert ratio < 1.6, (k, ratio)
     assert np.sqrt(np.mean(np.square(rot))) < 1.5 * _rot_bound_deg(s0, "T_left_right")
 
@@ -246,10 +242,11 @@ def test_general_motion_frame_without_the_reference_camera():
 def test_per_camera_bound_equals_the_solver_fisher_covariance():
     s = rs.s5_rig(np.random.default_rng(12), 0.5, left_factor=2.0)
     st = build_structure(s.problem, s.truth.X[0][:3, :3])
-    names, crb, _ = rig_bounds(s.problem, st, s.truth, s.sigma_by_camera_px)
-    n2, cov = fisher_covariance(s.problem, st, s.truth, 0.5, dict(s.sigma_by_camera_px))
-    assert n2 == names
-    np.testing.assert_allclose(crb, cov, rtol=1e-8, atol=1e-14)
+    crb, _ = rig_bounds(s.problem, st, s.truth, s.sigma_by_camera_px)
+    names, cov = fisher_covariance(s.problem, st, s.truth, 0.5, dict(s.sigma_by_camera_px))
+    i = [names.index(f"{c}.{p}") for c in ("left", "right") for p in ("cx", "cy")]
+    n = [f"{c}.{p}" for c in ("left", "right") for p in ("cx", "cy")]
+    np.testing.assert_allclose(crb.block(n), cov[np.ix_(i, i)], rtol=1e-8, atol=1e-14)
 
 
 def test_robot_rig_without_common_views():

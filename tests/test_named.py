@@ -1,0 +1,254 @@
+"""The named model (solver/named.py): the reported quantities' covariance, checked against
+finite differences of the transforms as reported, a calibration and results of earlier versions."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from slidecal.mocks import rig_scenarios as rs
+from slidecal.mocks import scenarios as sc
+from slidecal.routines.results_io import hand_eye_transforms, read_result, write_result
+from slidecal.solver.calibrate import calibrate, complement_basis
+from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, random_rotation, rvec_from_R
+from slidecal.solver.named import (
+    MOUNTS,
+    Layout,
+    hand_eye_names,
+    is_legacy,
+    linearised_estimator,
+    predicted_covariance,
+    propagate,
+)
+from slidecal.solver.refine import build_structure, fisher_covariance
+from slidecal.solver.result import TransformEstimate
+
+ROT = ("rx", "ry", "rz")
+SIX = ROT + ("tx", "ty", "tz")
+
+
+def _random_T(rng: np.random.Generator) -> np.ndarray:
+    return T_from_Rt(random_rotation(rng), rng.normal(0, 0.3, 3))
+
+
+def _step(T: np.ndarray, d: np.ndarray, Br: np.ndarray, Bt: np.ndarray) -> np.ndarray:
+    """The optimiser's update: rotation on the left in the basis, translation added."""
+    mr = Br.shape[1]
+    return T_from_Rt(R_from_rvec(Br @ d[:mr]) @ T[:3, :3], T[:3, 3] + Bt @ d[mr:])
+
+
+def _reported(layout: Layout, internal: tuple[str, ...], d: np.ndarray) -> dict[str, float]:
+    """Every reported quantity after the optimiser's step ``d``, computed from the transforms
+    themselves (inverse, composition): the oracle for the propagation's Jacobian."""
+    v = dict(zip(internal, d, strict=True))
+    out = {}
+    for c in layout.cameras:
+        f = v.get(f"{c}.f", 0.0)
+        out[f"{c}.fx"] = v.get(f"{c}.fx", f)
+        out[f"{c}.fy"] = v.get(f"{c}.fy", f)
+        out[f"{c}.cx"] = v[f"{c}.cx"]
+    ref = layout.reference
+    Xr, Xt, Yr, Yt = layout.X_rot_basis, layout.X_t_basis, layout.Y_rot_basis, layout.Y_t_basis
+    dx = [v[f"X0.r{k}"] for k in range(Xr.shape[1])] + [v[f"X0.t{k}"] for k in range(Xt.shape[1])]
+    dy = [v[f"Y.r{k}"] for k in range(Yr.shape[1])] + [v[f"Y.t{k}"] for k in range(Yt.shape[1])]
+    X = _step(layout.X, np.array(dx), Xr, Xt)
+    Y = _step(layout.Y, np.array(dy), Yr, Yt)
+    he = hand_eye_names(layout.mount, list(layout.cameras))
+    pairs = {he[ref]: (inv_T(X), inv_T(layout.X)), MOUNTS[layout.mount].target: (Y, layout.Y)}
+    for c, T0 in layout.T_cam_ref.items():
+        T = _step(T0, np.array([v[f"T_{c}_{ref}.{a}"] for a in SIX]), np.eye(3), np.eye(3))
+        pairs[f"T_{c}_{ref}"] = (T, T0)
+        pairs[he[c]] = (inv_T(T @ X), inv_T(T0 @ layout.X))
+    for name, (T, T0) in pairs.items():
+        r = rvec_from_R(T[:3, :3] @ T0[:3, :3].T)  # left perturbation of the reported transform
+        for k, a in enumerate(ROT):
+            out[f"{name}.{a}"] = r[k]
+        for k, a in enumerate(("tx", "ty", "tz")):
+            out[f"{name}.{a}"] = (T[:3, 3] - T0[:3, 3])[k]
+    return out
+
+
+def _layout(rng, mount: str, rig: bool, Xt: np.ndarray) -> tuple[Layout, tuple[str, ...]]:
+    cams = ("left", "right") if rig else ("cam",)
+    internal = []
+    for c in cams:
+        internal += [f"{c}.f", f"{c}.cx"] if c == "cam" else [f"{c}.fx", f"{c}.fy", f"{c}.cx"]
+    T_cam_ref = {"right": _random_T(rng)} if rig else {}
+    internal += [f"T_right_left.{a}" for a in SIX] if rig else []
+    internal += [f"X0.r{k}" for k in range(3)] + [f"X0.t{k}" for k in range(Xt.shape[1])]
+    internal += [f"Y.r{k}" for k in range(3)] + [f"Y.t{k}" for k in range(3)]
+    internal += [f"pose{k}.{a}" for k in range(2) for a in SIX]  # nuisance: marginalised
+    I3 = np.eye(3)
+    layout = Layout(
+        cams, cams[0], mount, _random_T(rng), _random_T(rng), T_cam_ref, I3, Xt, I3, I3
+    )
+    return layout, tuple(internal)
+
+
+@pytest.mark.parametrize(
+    "mount, rig, t_rank",
+    [("eye_in_hand", True, 3), ("eye_to_hand", False, 3), ("eye_in_hand", False, 2)],
+    ids=["eye-in-hand-rig", "eye-to-hand", "translation-along-axis-unobservable"],
+)
+def test_propagation_is_that_of_the_transforms_as_reported(mount, rig, t_rank):
+    rng = np.random.default_rng(11)
+    Xt = np.eye(3) if t_rank == 3 else complement_basis(rng.normal(size=3))
+    layout, internal = _layout(rng, mount, rig, Xt)
+    A = rng.normal(size=(len(internal), len(internal)))
+    cov = 1e-4 * (A @ A.T + np.eye(len(internal)))
+    named = propagate(layout, internal, cov)
+    # central differences of the reported quantities through inverse and composition
+    h = 1e-6
+    base = _reported(layout, internal, np.zeros(len(internal)))
+    J = np.zeros((len(named.names), len(internal)))
+    for k in range(len(internal)):
+        e = np.zeros(len(internal))
+        e[k] = h
+        plus, minus = _reported(layout, internal, e), _reported(layout, internal, -e)
+        J[:, k] = [(plus[n] - minus[n]) / (2 * h) for n in named.names]
+    assert set(named.names) <= set(base)
+    np.testing.assert_allclose(named.matrix, J @ cov @ J.T, rtol=1e-6, atol=1e-12)
+    he = MOUNTS[mount].hand_eye if not rig else "T_tool_left"
+    assert f"{he}.rx" in named.names and named.std_rot_deg(he) > 0
+    # what the data cannot determine is absent, not zero
+    assert (named.std_t_mm(he) is None) == (t_rank < 3)
+    assert not any(n.startswith(("X0.", "Y.", "pose")) for n in named.names)
+    if rig:
+        assert named.std_t_mm("T_tool_right") > 0  # composed, with the correlations
+
+
+def test_rig_hand_eye_std_comes_from_the_joint_covariance(tmp_path: Path):
+    s = rs.oak_rig(np.random.default_rng(4), 0.15)
+    res = calibrate(s.problem)
+    assert {f"T_tool_right.{a}" for a in SIX} <= set(res.parameter_names)
+    composed = hand_eye_transforms(res)["T_tool_right"]
+    named = res.named_covariance
+    assert composed.std_rot_deg == pytest.approx(named.std_rot_deg("T_tool_right"))
+    assert composed.std_t_mm == pytest.approx(named.std_t_mm("T_tool_right"))
+    # the reported std is the bound at the truth within the spread of the estimated noise
+    bound = predicted_covariance(s.problem, s.truth, s.sigma_px)
+    assert composed.std_t_mm / bound.std_t_mm("T_tool_right") == pytest.approx(1.0, abs=0.15)
+    # and the composed estimate's error is within it
+    T_true = s.T_hand_eye @ inv_T(s.truth.T_cam_ref["right"])
+    err_mm = 1000.0 * np.linalg.norm(composed.t_m - T_true[:3, 3])
+    assert err_mm < 4.0 * composed.std_t_mm
+    q = read_result(write_result(res, tmp_path / "result.yaml"))
+    assert q.parameter_names == res.parameter_names
+    assert hand_eye_transforms(q)["T_tool_right"].std_t_mm == pytest.approx(composed.std_t_mm)
+
+
+def test_result_of_an_earlier_version_is_read_in_the_named_quantities(tmp_path: Path):
+    """A covariance written with the optimiser's names (X0.r0 .. Y.t2, cam.f) is converted on
+    reading: it equals the named layer's own propagation of the same covariance."""
+    s = sc.r1(np.random.default_rng(5), 0.15, 0.0, 0.0)
+    problem = replace(s.problem, options=replace(s.problem.options, unit_aspect=True))
+    st = build_structure(problem, s.truth.X[0][:3, :3])
+    internal, cov = fisher_covariance(problem, st, s.truth, 0.15)
+    assert is_legacy(internal)
+    res = calibrate(s.problem)
+    he = inv_T(s.truth.X[0])
+    old = replace(
+        res,
+        hand_eye=TransformEstimate("T_tool_cam", he[:3, :3], he[:3, 3]),
+        T_target=TransformEstimate("T_base_board", s.truth.Y[:3, :3], s.truth.Y[:3, 3]),
+        parameter_names=internal,
+        covariance=cov,
+    )
+    q = read_result(write_result(old, tmp_path / "result.yaml"))
+    bound = predicted_covariance(problem, s.truth, 0.15, structure=st)
+    assert q.parameter_names == bound.names and not is_legacy(q.parameter_names)
+    np.testing.assert_allclose(q.covariance, bound.matrix, rtol=1e-6, atol=1e-15)
+    assert q.std_of("cam.fx") == q.std_of("cam.fy") == pytest.approx(bound.std("cam.fx"))
+
+
+def test_public_api_is_declared_and_light():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, slidecal.solver as s; assert 'slidecal.solver.refine' not in sys.modules; "
+        "[getattr(s, n) for n in s.__all__]; print(len(s.__all__))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert int(out.stdout) >= 20
+    import slidecal.solver as solver
+
+    assert solver.predicted_covariance is predicted_covariance
+    assert solver.MOUNTS["eye_to_hand"].hand_eye == "T_base_cam"
+    with pytest.raises(AttributeError):
+        _ = solver.BundleModel  # the optimiser's model is private
+
+
+def test_named_convention_matches_the_solvers_actual_errors():
+    """The linearised estimator in the named quantities predicts the errors ``calibrate`` makes
+    on the same noise draw (rotation vector on the left of the reported T_tool_cam, its
+    translation, the intrinsics): one convention from the optimiser to the result."""
+    s = sc.r1(np.random.default_rng(3), 0.15, 0.0, 0.0)
+    lin = linearised_estimator(s.problem, s.truth)
+    predicted = lin.errors(s.problem)
+    res = calibrate(s.problem)
+    bound = predicted_covariance(s.problem, s.truth, s.sigma_px)
+    assert set(predicted) == set(bound.names) == set(res.parameter_names)
+    K, Kt = res.cameras["cam"].K, s.truth.K["cam"]
+    actual = {"cam.fx": K[0, 0] - Kt[0, 0], "cam.fy": K[1, 1] - Kt[1, 1]}
+    actual |= {"cam.cx": K[0, 2] - Kt[0, 2], "cam.cy": K[1, 2] - Kt[1, 2]}
+    for name, T, T_true in (
+        ("T_tool_cam", res.hand_eye.T, s.T_hand_eye),
+        ("T_base_board", res.T_target.T, s.T_target),
+    ):
+        r = rvec_from_R(T[:3, :3] @ T_true[:3, :3].T)
+        dt = T[:3, 3] - T_true[:3, 3]
+        actual |= {f"{name}.{a}": v for a, v in zip(SIX, np.r_[r, dt], strict=True)}
+    for n, v in actual.items():
+        assert abs(predicted[n] - v) < 0.05 * bound.std(n), n
+    # noise-free detections: no error at all
+    s0 = sc.r1(np.random.default_rng(3), 0.0, 0.0, 0.0)
+    assert max(abs(v) for v in lin.errors(s0.problem).values()) < 1e-9
+
+
+def test_rig_result_of_an_earlier_version_gets_the_composed_hand_eye_std(tmp_path: Path):
+    s = rs.oak_rig(np.random.default_rng(6), 0.15)
+    st = build_structure(s.problem, s.truth.X[0][:3, :3])
+    internal, cov = fisher_covariance(s.problem, st, s.truth, 0.15)
+    res = calibrate(s.problem)
+    he = inv_T(s.truth.X[0])
+    T_rl = s.truth.T_cam_ref["right"]
+    old = replace(
+        res,
+        hand_eye=TransformEstimate("T_tool_cam", he[:3, :3], he[:3, 3]),
+        T_target=TransformEstimate("T_base_board", s.truth.Y[:3, :3], s.truth.Y[:3, 3]),
+        rig={"T_right_left": TransformEstimate("T_right_left", T_rl[:3, :3], T_rl[:3, 3])},
+        parameter_names=internal,
+        covariance=cov,
+    )
+    q = read_result(write_result(old, tmp_path / "result.yaml"))
+    bound = predicted_covariance(s.problem, s.truth, 0.15, structure=st)
+    assert q.parameter_names == bound.names
+    composed = hand_eye_transforms(q)["T_tool_right"]
+    assert composed.std_t_mm == pytest.approx(bound.std_t_mm("T_tool_right"), rel=1e-6)
+    assert composed.std_rot_deg == pytest.approx(bound.std_rot_deg("T_tool_right"), rel=1e-6)
+
+
+@pytest.mark.slow
+def test_composed_rig_hand_eye_std_matches_monte_carlo():
+    """40 noise draws of the OAK rig: the rms error of T_tool_right (3-vectors, 120 squared
+    components: relative spread of the rms about 6.5 %, so 3 of them: 20 %) is its reported
+    std; the root sum of squares of its two parts, which ignored their correlation, is not."""
+    err_t, err_r, sd_t, sd_r, rss_t = [], [], [], [], []
+    for seed in range(100, 140):
+        s = rs.oak_rig(np.random.default_rng(seed), 0.15)
+        res = calibrate(s.problem)
+        c = hand_eye_transforms(res)["T_tool_right"]
+        T = s.T_hand_eye @ inv_T(s.truth.T_cam_ref["right"])
+        err_t.append(1000.0 * np.linalg.norm(c.t_m - T[:3, 3]))
+        err_r.append(np.degrees(np.linalg.norm(rvec_from_R(c.R @ T[:3, :3].T))))
+        sd_t.append(c.std_t_mm)
+        sd_r.append(c.std_rot_deg)
+        rss_t.append(np.hypot(res.hand_eye.std_t_mm, res.rig["T_right_left"].std_t_mm))
+    rms_t, rms_r = np.sqrt(np.mean(np.square(err_t))), np.sqrt(np.mean(np.square(err_r)))
+    assert rms_t / np.median(sd_t) == pytest.approx(1.0, abs=0.2)
+    assert rms_r / np.median(sd_r) == pytest.approx(1.0, abs=0.2)
+    assert np.median(rss_t) > 1.3 * rms_t
