@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from slidecal.mocks import rig_scenarios as rs
 from slidecal.mocks import scenarios as sc
 from slidecal.routines.results_io import hand_eye_transforms, read_result, write_result
 from slidecal.solver.calibrate import calibrate, complement_basis
@@ -121,7 +120,7 @@ def test_propagation_is_that_of_the_transforms_as_reported(mount, rig, t_rank):
 
 
 def test_rig_hand_eye_std_comes_from_the_joint_covariance(tmp_path: Path):
-    s = rs.oak_rig(np.random.default_rng(4), 0.15)
+    s = sc.oak_rig(np.random.default_rng(4), 0.15)
     res = calibrate(s.problem)
     assert {f"T_tool_right.{a}" for a in SIX} <= set(res.parameter_names)
     composed = hand_eye_transforms(res)["T_tool_right"]
@@ -210,7 +209,7 @@ def test_named_convention_matches_the_solvers_actual_errors():
 
 
 def test_rig_result_of_an_earlier_version_gets_the_composed_hand_eye_std(tmp_path: Path):
-    s = rs.oak_rig(np.random.default_rng(6), 0.15)
+    s = sc.oak_rig(np.random.default_rng(6), 0.15)
     st = build_structure(s.problem, s.truth.X[0][:3, :3])
     internal, cov = fisher_covariance(s.problem, st, s.truth, 0.15)
     res = calibrate(s.problem)
@@ -239,7 +238,7 @@ def test_composed_rig_hand_eye_std_matches_monte_carlo():
     std; the root sum of squares of its two parts, which ignored their correlation, is not."""
     err_t, err_r, sd_t, sd_r, rss_t = [], [], [], [], []
     for seed in range(100, 140):
-        s = rs.oak_rig(np.random.default_rng(seed), 0.15)
+        s = sc.oak_rig(np.random.default_rng(seed), 0.15)
         res = calibrate(s.problem)
         c = hand_eye_transforms(res)["T_tool_right"]
         T = s.T_hand_eye @ inv_T(s.truth.T_cam_ref["right"])
