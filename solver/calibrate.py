@@ -688,7 +688,7 @@ def _kept(out: RefineOutput, unobservable: dict[str, str] | None = None) -> np.n
     the hand-eye translation is unobservable, the target pose's translation (its value is tied
     to that translation, fixed by convention: not a measured number)."""
     keep = np.ones(len(out.names), dtype=bool)
-    for key in ("E", "U"):  # per-frame and per-group robot-pose corrections
+    for key in ("E", "U", "V"):  # per-frame, per-group and trend robot-pose corrections
         if key in out.model.slices:
             keep[out.model.slices[key]] = False
     if unobservable and any(k.endswith("_board.t") for k in unobservable):
