@@ -239,43 +239,17 @@ def test_default_cell_run_judged_against_the_effective_truth(tmp_path: Path) -> 
     assert "effective truth" in o.summary
 
 
-def _drifting_arm(seed: int, drift_deg: float = 0.06, over_m: float = 0.06):
-    """The one-orientation session of ``r1_real_arm`` on an arm whose orientation drifts
-    linearly along the moves: ``drift_deg`` (largest) per ``over_m`` of translation, plus a
-    0.003 deg / 0.02 mm repeatability per stop; the controller reports the commanded poses."""
-    from slidecal.mocks import scenarios as sc
-    from slidecal.solver.camera import project
-    from slidecal.solver.geometry import inv_T, transform_points
-    from slidecal.solver.problem import Frame
-
-    rng = np.random.default_rng(seed)
-    base = sc.r1_real_arm(np.random.default_rng(seed), translations_only=True)
-    T_meas = np.stack([f.T_base_tool for f in base.problem.frames])
-    D = rng.normal(size=(3, 3))
-    D *= np.radians(drift_deg) / over_m / np.linalg.norm(D, 2)  # rad/m
-    t0 = T_meas[:, :3, 3].mean(axis=0)
-    target, frames = base.problem.target, []
-    for k, T in enumerate(T_meas):
-        e = D @ (T[:3, 3] - t0) + rng.normal(0, np.radians(0.003), 3)
-        T_true = T_from_Rt(R_from_rvec(e) @ T[:3, :3], T[:3, 3] + rng.normal(0, 2e-5, 3))
-        T_cam_board = inv_T(T_true @ sc.R1_T_TOOL_CAM) @ base.T_target
-        px = project(sc.R1_K, sc.R1_DIST, transform_points(T_cam_board, target.points_m))
-        ids = np.flatnonzero((px[:, 0] > 2) & (px[:, 0] < 1277) & (px[:, 1] > 2) & (px[:, 1] < 797))
-        noisy = px[ids] + rng.normal(0, 0.15, (len(ids), 2))
-        frames.append(Frame(k, {"cam": Detection(ids, noisy)}, T_base_tool=T))
-    return sc.r1_scenario(target, frames, True, None, 0.15, base.T_target), D
-
-
-@pytest.mark.parametrize("seed", [4, 9, 11])
+@pytest.mark.parametrize("seed", [7, 17, 26])
 def test_drift_along_the_moves_is_learned_and_covers_the_principal_point(seed: int) -> None:
     # one orientation, 13 frames, the arm's orientation drifting 0.06 deg over 60 mm: the drift
     # shifts the focus of expansion, i.e. the principal point. With independent per-frame
-    # corrections cx came out 3.5-4.5 reported std off on these seeds; the trend of the
-    # correction along the moves carries it (within 3 std)
+    # corrections the principal point came out 3.6-5.2 reported std off on these seeds; the trend
+    # of the correction along the moves carries it (within 3 std)
+    from slidecal.routines.bench_reality import drifting_arm
     from slidecal.solver.calibrate import calibrate
     from slidecal.solver.refine import build_structure, refine
 
-    s, D = _drifting_arm(seed)
+    s, D = drifting_arm(np.random.default_rng(seed))
     res = calibrate(s.problem)
     cam = res.cameras["cam"]
     for name, (a, b) in {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}.items():
