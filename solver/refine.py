@@ -521,6 +521,13 @@ class BundleModel:
             J[idx, :, o : o + cols.shape[2] * m] = cols.reshape(len(idx), 2, -1)
 
     @property
+    def trend_spread(self) -> float:
+        """Rms (metres) of the trend frames' offsets from their groups' means: a trend level
+        times it is the trend's share of a frame's correction."""
+        c = self.st.trend_coords[self.st.trend_groups >= 0]
+        return float(np.sqrt(np.mean(np.sum(c**2, axis=1))))
+
+    @property
     def trend_prior_scale(self) -> np.ndarray:
         """(n,) pixel-unit scale of the trends' prior rows."""
         rot, t = self.trend_sigma
@@ -1087,25 +1094,37 @@ def _refine(
         if len(h_u):  # the orientation groups' shared corrections: their own two levels
             U = state.U.reshape(-1)
             u_rot = np.tile([True, True, True, False, False, False], len(U) // 6)
-            model.group_sigma, moved = shared_levels("U", U, h_u, u_rot, model.group_sigma)
+            model.group_sigma, moved = shared_levels("U", U, h_u, u_rot, model.group_sigma, 1.0)
             changed |= moved
         if len(h_v):  # the trends along the moves: two levels of their own
             v_rot = np.concatenate(
                 [np.repeat(np.array(TREND_AXES) < 3, m) for m in model.st.trend_dims]
             )
-            model.trend_sigma, moved = shared_levels("V", state.V, h_v, v_rot, model.trend_sigma)
+            model.trend_sigma, moved = shared_levels(
+                "V", state.V, h_v, v_rot, model.trend_sigma, model.trend_spread
+            )
             changed |= moved
         if any(v > lim for v, lim in zip(new_pose, SIGMA_BEYOND, strict=True)):
             return False
         return changed
 
     def shared_levels(
-        key: str, values: np.ndarray, h_s: np.ndarray, rot: np.ndarray, levels: tuple
+        key: str,
+        values: np.ndarray,
+        h_s: np.ndarray,
+        rot: np.ndarray,
+        levels: tuple,
+        per_frame: float,
     ) -> tuple[tuple[float, float], bool]:
         """Foerstner's step for the two levels (rotation, translation) of corrections shared by
-        several frames; the new levels and whether one moved by more than 3 %."""
+        several frames; the new levels and whether one that matters moved by more than 3 %.
+        ``per_frame`` turns a level into its share of a frame's correction: a share below a
+        tenth of the frames' own level adds under 1 % to their variance, and its creeping
+        (from the floor, at a few % per step) keeps no iteration going."""
         new, moved = [], False
-        for comp, floor, old in zip((rot, ~rot), SIGMA_FLOOR, levels, strict=True):
+        for comp, floor, old, own in zip(
+            (rot, ~rot), SIGMA_FLOOR, levels, model.pose_sigma, strict=True
+        ):
             if not comp.any():
                 new.append(old)
                 continue
@@ -1119,7 +1138,8 @@ def _refine(
             v = max(float(v), floor)
             if vce_step[0] > 2:
                 v = max(accelerate(f"{key}{comp[0]}", old, v, floor), floor)
-            if abs(v / old - 1.0) > 0.03 and max(v, old) > 2 * floor:
+            big = max(v, old) > max(2 * floor, 0.1 * own / per_frame)
+            if abs(v / old - 1.0) > 0.03 and big:
                 moved = True
             new.append(v)
         return (new[0], new[1]), moved
