@@ -95,10 +95,11 @@ def drifting_arm(
     D = rng.normal(size=(3, 3))
     D *= np.radians(drift_deg) / over_m / np.linalg.norm(D, 2)
     t0 = T_meas[:, :3, 3].mean(axis=0)
-    target, frames = base.problem.target, []
+    target, frames, true = base.problem.target, [], []
     for k, T in enumerate(T_meas):
         e = D @ (T[:3, 3] - t0) + rng.normal(0.0, np.radians(0.003), 3)
         T_true = T_from_Rt(R_from_rvec(e) @ T[:3, :3], T[:3, 3] + rng.normal(0.0, 2e-5, 3))
+        true.append(T_true)
         T_cam_board = inv_T(T_true @ sc.R1_T_TOOL_CAM) @ base.T_target
         if detect is None:
             px = project(sc.R1_K, sc.R1_DIST, transform_points(T_cam_board, target.points_m))
@@ -109,7 +110,10 @@ def drifting_arm(
         else:
             det = detect(T_cam_board, rng)
         frames.append(Frame(k, {"cam": det}, T_base_tool=T))
-    return sc.r1_scenario(target, frames, True, None, sigma_px, base.T_target), D
+    scenario = sc.r1_scenario(
+        target, frames, True, None, sigma_px, base.T_target, T_base_tool_true=np.stack(true)
+    )
+    return scenario, D
 
 
 def _hand_eye_errors(res, s: sc.Scenario, T_eff: np.ndarray) -> dict[str, np.ndarray]:  # noqa: ANN001

@@ -260,3 +260,20 @@ def test_drift_along_the_moves_is_learned_and_covers_the_principal_point(seed: i
     assert "V" in out.model.slices and out.model.st.trend_dims == (3,)
     true_rms = np.sqrt(np.mean(D**2))
     assert 0.5 * true_rms < out.model.trend_sigma[0] < 2.0 * true_rms
+
+
+def test_run_report_tells_the_images_share_of_a_miss():
+    # a seed whose worst intrinsic is as far off with free board poses (no robot) is the
+    # images' miss, not the robot's: the report counts it apart
+    from slidecal.routines.bench_run import report
+
+    def row(seed: int, cx_err: float, free: float) -> dict:
+        r = {"seed": seed, "wall_s": 1.0, "robot_s": 2.0, "robot_mm": 0.2, "robot_deg": 0.03}
+        r.update({"adequate": True, "cam.fx_rel": 1e-4, "free_worst": free, "free_of": "cam.cx"})
+        r.update({"cam.cx_err": cx_err, "cam.cx_std": 0.25})
+        return r
+
+    text = report([row(1, 1.0, 4.3), row(2, 0.9, 1.2), row(3, 0.1, 0.5)], ["--seeds", "3"], 1.0)
+    assert "| 1 | 4.00 | cam.cx | 4.30 cam.cx |" in text
+    assert "above 3: 2 of 3; of them, also above 3 with free poses" in text
+    assert "(the images' own error, not the robot's): 1" in text
