@@ -307,6 +307,12 @@ def main(argv: list[str] | None = None) -> int:
         "; its 3-vectors by their Mahalanobis distance (2-sigma: chi-square(3) <= "
         f"{CHI2_3_2SIGMA:.2f}; the max column shows the distance in sigmas).",
         "",
+        "The drifting-arm row takes the one-orientation session's commanded poses on an arm "
+        "whose orientation drifts linearly along the moves (0.06 deg per 60 mm in a random "
+        "direction per trial, plus 0.003 deg / 0.02 mm per stop: `drifting_arm`), the physics "
+        "of docs/ROBOT_ACCURACY.md in its pure form; the session's linear trend of the pose "
+        "correction is built for it.",
+        "",
         *reality_table(rows),
         "",
         *reality_notes(rows),
