@@ -294,13 +294,10 @@ def robot_accuracy(problem: CalibrationProblem, out: RefineOutput) -> RobotAccur
     if problem.knowledge != "robot":
         return None
     sig = out.robot_sigma
-    E = out.state.E
     if sig is None:
         return None
     worst: list[tuple[int, float, float]] = []
-    st = out.model.st
-    if E is not None and out.state.U is not None and st.pose_groups is not None:
-        E = E + out.state.U[st.pose_groups]
+    E = out.model.pose_corrections(out.state)
     if E is not None:
         for f, e in zip(problem.frames, E, strict=True):
             worst.append(

@@ -33,6 +33,12 @@ from slidecal.solver.errors import DegenerateError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, rotation_angle_deg, rvec_from_R
 from slidecal.solver.problem import DISTORTION_NAMES, CalibrationProblem
 
+#: Axis names of a pose correction: rotation vector (radians), translation (metres).
+POSE_AXES = ("rx", "ry", "rz", "tx", "ty", "tz")
+#: The axes of the pose correction that drift linearly along a group's translations
+#: (``Structure.trend_*``).
+TREND_AXES = (0, 1, 2, 3, 4, 5)
+
 
 @dataclass(frozen=True)
 class ModelState:
@@ -52,6 +58,9 @@ class ModelState:
     s: np.ndarray
     E: np.ndarray | None = None
     U: np.ndarray | None = None  # (G, 6) per orientation group, added to its frames' E
+    # (n,) the orientation groups' linear trends of the correction along their translations
+    # (``Structure.trend_*``), added to their frames' E
+    V: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -85,6 +94,16 @@ class Structure:
     # metres); None: corrections independent from frame to frame
     pose_groups: np.ndarray | None = None
     group_sigma: tuple[float, float] | None = None
+    # and it drifts smoothly along a move: the correction of frame k in trend group g gains
+    # ``D_g c_k``, ``c_k`` (trend_dims[g],) the frame's measured translation offset from the
+    # group's mean in a basis of the directions the group spans (``trend_coords`` (F, 3),
+    # metres, zero-padded), ``D_g`` (6, trend_dims[g]) per unit of offset (rad/m, m/m) with
+    # prior sigmas ``trend_sigma``; ``trend_groups`` (F,): the trend group of each frame, -1
+    # for none (groups of too few frames, or not spread along a direction)
+    trend_groups: np.ndarray | None = None
+    trend_coords: np.ndarray | None = None
+    trend_dims: tuple[int, ...] = ()
+    trend_sigma: tuple[float, float] | None = None
 
 
 def intrinsic_names(problem: CalibrationProblem) -> tuple[str, ...]:
@@ -185,20 +204,19 @@ class BundleModel:
             n_pg = int(structure.pose_groups.max()) + 1
             add(
                 "U",
-                [
-                    f"pose_group{g}.{a}"
-                    for g in range(n_pg)
-                    for a in ("rx", "ry", "rz", "tx", "ty", "tz")
-                ],
+                [f"pose_group{g}.{a}" for g in range(n_pg) for a in POSE_AXES],
             )
+        self.trend_offsets: list[int] = []  # first V index of each trend group
+        if structure.pose_sigma is not None and structure.trend_sigma is not None:
+            block = []
+            for g, m in enumerate(structure.trend_dims):
+                self.trend_offsets.append(len(block))
+                block += [f"trend{g}.{POSE_AXES[a]}_d{j}" for a in TREND_AXES for j in range(m)]
+            add("V", block)
         if structure.pose_sigma is not None:
             add(
                 "E",
-                [
-                    f"pose{int(f.id)}.{a}"
-                    for f in problem.frames
-                    for a in ("rx", "ry", "rz", "tx", "ty", "tz")
-                ],
+                [f"pose{int(f.id)}.{a}" for f in problem.frames for a in POSE_AXES],
             )
         self.s_frames = np.flatnonzero(structure.s_free)
         if len(self.s_frames):
@@ -209,6 +227,7 @@ class BundleModel:
         # robot's accuracy as refine estimates it
         self.pose_sigma = structure.pose_sigma
         self.group_sigma = structure.group_sigma
+        self.trend_sigma = structure.trend_sigma
         self._normal_cache: tuple | None = None  # (state, pixel weights, r, A, g) of the last
         self._index()
 
@@ -264,7 +283,11 @@ class BundleModel:
         if "U" in self.slices:
             du = delta[self.slices["U"]].reshape(-1, 6)
             U = (np.zeros_like(du) if U is None else U) + du
-        return ModelState(K, dist, T_cam_ref, X, Y, s, E, U)
+        V = state.V
+        if "V" in self.slices:
+            dv = delta[self.slices["V"]]
+            V = (np.zeros_like(dv) if V is None else V) + dv
+        return ModelState(K, dist, T_cam_ref, X, Y, s, E, U, V)
 
     def T_ref_board(self, state: ModelState, fi: int) -> np.ndarray:
         """``T_ref_board`` (4, 4) of the reference camera at frame index ``fi``."""
@@ -342,8 +365,8 @@ class BundleModel:
         r = (px - self.o_px).reshape(-1)
         if "E" in self.slices:
             r = np.concatenate([r, self.prior_scale * state.E.reshape(-1)])
-        if "U" in self.slices:
-            r = np.concatenate([r, self.group_prior_scale * state.U.reshape(-1)])
+        for _, scale, values in self._shared_priors(state):
+            r = np.concatenate([r, scale * values])
         if not jacobian:
             return r, None
         if split:
@@ -403,6 +426,8 @@ class BundleModel:
                 rows_u = np.arange(n)[:, None]
                 J[rows_u, 0, ucols] = blk[:, 0, :]
                 J[rows_u, 1, ucols] = blk[:, 1, :]
+            if "V" in self.slices:  # a trend moves a frame like its own correction, times c_k
+                self._trend_columns(J, blk)
             if split:
                 return r, J.reshape(2 * n, P_), blk
             cols = self.slices["E"].start + f[:, None] * 6 + np.arange(6)
@@ -413,12 +438,9 @@ class BundleModel:
             prior = np.zeros((sl.stop - sl.start, P_))
             prior[np.arange(prior.shape[0]), np.arange(sl.start, sl.stop)] = self.prior_scale
             blocks = [J.reshape(2 * n, P_), prior]
-            if "U" in self.slices:
-                su = self.slices["U"]
+            for su, scale, _ in self._shared_priors(state):
                 prior_u = np.zeros((su.stop - su.start, P_))
-                prior_u[np.arange(prior_u.shape[0]), np.arange(su.start, su.stop)] = (
-                    self.group_prior_scale
-                )
+                prior_u[np.arange(prior_u.shape[0]), np.arange(su.start, su.stop)] = scale
                 blocks.append(prior_u)
             return r, np.vstack(blocks)
         return r, J.reshape(2 * n, P_)
@@ -467,14 +489,66 @@ class BundleModel:
         idx = np.arange(P0, P)
         A[idx, idx] += wp * ps * ps
         g[P0:] += wp * ps * r_prior[0]
-        if "U" in self.slices:
-            su = self.slices["U"]
-            pu, wu = self.group_prior_scale, weights[2 * n + 6 * F :]
-            r_prior.append(pu * state.U.reshape(-1))
+        row = 2 * n + 6 * F
+        for su, pu, values in self._shared_priors(state):
             idx = np.arange(su.start, su.stop)
+            wu = weights[row : row + len(idx)]
+            row += len(idx)
+            r_prior.append(pu * values)
             A[idx, idx] += wu * pu * pu
-            g[idx] += wu * pu * r_prior[1]
+            g[idx] += wu * pu * r_prior[-1]
         return np.concatenate([rp, *r_prior]), A, g
+
+    def _shared_priors(self, state: ModelState) -> list[tuple[slice, np.ndarray, np.ndarray]]:
+        """(columns, pixel-unit prior scale, values) of the corrections shared by several frames
+        (the groups' ``U``, then the trends' ``V``): their prior rows follow the frames' ones."""
+        out = []
+        if "U" in self.slices:
+            out.append((self.slices["U"], self.group_prior_scale, state.U.reshape(-1)))
+        if "V" in self.slices:
+            out.append((self.slices["V"], self.trend_prior_scale, state.V))
+        return out
+
+    def _trend_columns(self, J: np.ndarray, blk: np.ndarray) -> None:
+        """Fill the trend columns of ``J`` (n, 2, P) from every observation's pose block."""
+        st, f = self.st, self.o_frame
+        tg = st.trend_groups[f]
+        for g, m in enumerate(st.trend_dims):
+            idx = np.flatnonzero(tg == g)
+            c = st.trend_coords[f[idx], :m]
+            cols = np.einsum("nac,nj->nacj", blk[idx][:, :, list(TREND_AXES)], c)
+            o = self.slices["V"].start + self.trend_offsets[g]
+            J[idx, :, o : o + cols.shape[2] * m] = cols.reshape(len(idx), 2, -1)
+
+    @property
+    def trend_spread(self) -> float:
+        """Rms (metres) of the trend frames' offsets from their groups' means: a trend level
+        times it is the trend's share of a frame's correction."""
+        c = self.st.trend_coords[self.st.trend_groups >= 0]
+        return float(np.sqrt(np.mean(np.sum(c**2, axis=1))))
+
+    @property
+    def trend_prior_scale(self) -> np.ndarray:
+        """(n,) pixel-unit scale of the trends' prior rows."""
+        rot, t = self.trend_sigma
+        one = np.array([1.0 / rot] * 3 + [1.0 / t] * 3)[list(TREND_AXES)]
+        return self.sigma_px * np.concatenate([np.repeat(one, m) for m in self.st.trend_dims])
+
+    def pose_corrections(self, state: ModelState) -> np.ndarray | None:
+        """(F, 6) the whole correction of every measured pose (rotation vector, translation):
+        its own, its orientation group's and its group's trend at its offset; None without."""
+        if state.E is None:
+            return None
+        st, E = self.st, state.E.copy()
+        if state.U is not None and st.pose_groups is not None:
+            E += state.U[st.pose_groups]
+        if state.V is not None and "V" in self.slices:
+            for g, m in enumerate(st.trend_dims):
+                k = np.flatnonzero(st.trend_groups == g)
+                o = self.trend_offsets[g]
+                D = state.V[o : o + len(TREND_AXES) * m].reshape(len(TREND_AXES), m)
+                E[np.ix_(k, TREND_AXES)] += st.trend_coords[k, :m] @ D.T
+        return E
 
     @property
     def group_prior_scale(self) -> np.ndarray:
@@ -495,9 +569,7 @@ class BundleModel:
         """``M_k`` (F, 4, 4) with the Case 2 lengths and the robot pose corrections applied."""
         st = self.st
         if st.pose_sigma is not None and state.E is not None:
-            E = state.E
-            if state.U is not None and st.pose_groups is not None:
-                E = E + state.U[st.pose_groups]
+            E = self.pose_corrections(state)
             R = np.einsum("nij,njk->nik", _R_batch(E[:, :3]), st.T_meas[:, :3, :3])
             t = st.T_meas[:, :3, 3] + E[:, 3:]
             Ms = np.tile(np.eye(4), (len(R), 1, 1))
@@ -580,14 +652,18 @@ class RefineOutput:
     robot_test: str = ""
 
 
-def with_pose_corrections(state: ModelState, n_frames: int, n_groups: int = 0) -> ModelState:
+def with_pose_corrections(
+    state: ModelState, n_frames: int, n_groups: int = 0, n_trend: int = 0
+) -> ModelState:
     """``state`` with zero robot-pose corrections ``E`` (n_frames, 6) where it has none, and
-    zero group corrections ``U`` (n_groups, 6) when asked for."""
+    zero group corrections ``U`` (n_groups, 6) and trends ``V`` (n_trend,) when asked for."""
     E = np.zeros((n_frames, 6)) if state.E is None else state.E
-    U = state.U
+    U, V = state.U, state.V
     if n_groups and (U is None or len(U) != n_groups):
         U = np.zeros((n_groups, 6))
-    return ModelState(state.K, state.dist, state.T_cam_ref, state.X, state.Y, state.s, E, U)
+    if n_trend and (V is None or len(V) != n_trend):
+        V = np.zeros(n_trend)
+    return ModelState(state.K, state.dist, state.T_cam_ref, state.X, state.Y, state.s, E, U, V)
 
 
 def _respect_options(problem: CalibrationProblem, state: ModelState) -> ModelState:
@@ -671,6 +747,9 @@ SIGMA_FLOOR = (1e-7, 1e-7)
 #: Robot sigmas beyond any arm (radians, metres: 2 deg, 20 mm, twice what the adequacy test
 #: accepts): the estimation stops there, the model is wrong (units, frames) and will be marked so.
 SIGMA_BEYOND = (np.radians(2.0), 0.02)
+#: Smallest rms spread (metres) of an orientation group's positions along a direction for the
+#: trend of the pose correction along it to be estimated (``translation_trends``).
+TREND_MIN_SPREAD_M = 0.005
 
 
 @single_threaded_blas
@@ -712,7 +791,17 @@ def refine(
         return out
     from slidecal.solver.adequacy import free_pose_fit, model_starts, session_images
 
-    exact = replace(structure, T_meas=None, pose_sigma=None, pose_groups=None, group_sigma=None)
+    exact = replace(
+        structure,
+        T_meas=None,
+        pose_sigma=None,
+        pose_groups=None,
+        group_sigma=None,
+        trend_groups=None,
+        trend_coords=None,
+        trend_dims=(),
+        trend_sigma=None,
+    )
     start = ModelState(init.K, init.dist, init.T_cam_ref, init.X, init.Y, init.s)
     out0 = _refine(problem, exact, start, max_iter, robust, estimate=False)
     fit = free_pose_fit(session_images(out0), out0.state.K, out0.state.dist, model_starts(out0))
@@ -730,26 +819,66 @@ def refine(
             max(np.radians(o.robot_noise_deg), SIGMA_FLOOR[0]),
             max(o.robot_noise_m, SIGMA_FLOOR[1]),
         )
-    pose_groups = orientation_groups(np.stack([f.T_base_tool for f in problem.frames]))
+    T_meas = np.stack([f.T_base_tool for f in problem.frames])
+    pose_groups = orientation_groups(T_meas)
+    trend_groups, trend_coords, trend_dims = translation_trends(T_meas, pose_groups)
+    spread = float(np.sqrt(np.mean(np.sum(trend_coords**2, axis=1)))) if trend_dims else 0.0
     noisy = replace(
         structure,
-        T_meas=np.stack([f.T_base_tool for f in problem.frames]),
+        T_meas=T_meas,
         pose_sigma=sig0,
         pose_groups=pose_groups if _shared_groups(pose_groups) else None,
         group_sigma=sig0,
+        trend_groups=trend_groups if trend_dims else None,
+        trend_coords=trend_coords if trend_dims else None,
+        trend_dims=trend_dims,
+        trend_sigma=(sig0[0] / spread, sig0[1] / spread) if trend_dims else None,
     )
     out = _refine(problem, noisy, out0.state, max_iter, robust, estimate=True)
-    total = out.model.pose_sigma
-    if out.model.group_sigma is not None and "U" in out.model.slices:
-        total = tuple(
-            float(np.hypot(a, b)) for a, b in zip(total, out.model.group_sigma, strict=True)
-        )
+    m = out.model
+    levels = [m.pose_sigma]
+    if m.group_sigma is not None and "U" in m.slices:
+        levels.append(m.group_sigma)
+    if "V" in m.slices:  # a trend's share of a frame's error: its level times the offset
+        levels.append(tuple(spread * np.asarray(m.trend_sigma)))
+    total = tuple(float(np.linalg.norm(axis)) for axis in zip(*levels, strict=True))
     return _with_robot(
         out,
         total,
         True,
         f"robot accuracy estimated: the poses taken as exact do not explain the images ({figure})",
     )
+
+
+def translation_trends(
+    T_base_tool: np.ndarray, groups: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, tuple[int, ...]]:
+    """The frames' coordinates for a linear trend of the pose correction along the moves of
+    each orientation group (``Structure.trend_*``).
+
+    A group takes part with three or more frames spread along a line or a plane: the offsets
+    ``d_k = t_k - mean(t)`` of its measured positions (metres) in an orthonormal basis of the
+    directions they span (rms spread above ``TREND_MIN_SPREAD_M`` and a tenth of the widest;
+    at most ``frames - 2`` of them, so the trend stays apart from the frames' own corrections).
+    Returns the trend group per frame (-1: none), the coordinates (F, 3), zero-padded, and
+    the number of directions per trend group.
+    """
+    F = len(T_base_tool)
+    trend_groups, coords, dims = np.full(F, -1), np.zeros((F, 3)), []
+    for g in np.unique(groups):
+        k = np.flatnonzero(groups == g)
+        if len(k) < 3:
+            continue
+        d = T_base_tool[k, :3, 3] - T_base_tool[k, :3, 3].mean(axis=0)
+        _, sv, Vt = np.linalg.svd(d, full_matrices=False)
+        spread = sv / np.sqrt(len(k))
+        m = min(int(np.sum(spread > max(TREND_MIN_SPREAD_M, 0.1 * spread[0]))), len(k) - 2)
+        if m < 1:
+            continue
+        trend_groups[k] = len(dims)
+        coords[k, :m] = d @ Vt[:m].T
+        dims.append(m)
+    return trend_groups, coords, tuple(dims)
 
 
 def _shared_groups(pose_groups: np.ndarray) -> bool:
@@ -862,6 +991,8 @@ def _refine(
     if "U" in model.slices:
         n_groups_u = (model.slices["U"].stop - model.slices["U"].start) // 6
         n_prior += 6 * n_groups_u
+    n_trend = model.slices["V"].stop - model.slices["V"].start if "V" in model.slices else 0
+    n_prior += n_trend
     estimate = estimate and n_prior > 0
     inlier = np.ones(n_px + n_prior, dtype=bool)
     cam_w = np.ones(n_px + n_prior)  # per-camera noise weights, relative to the reference
@@ -873,7 +1004,7 @@ def _refine(
         cam_rows.append(rows)
     state = _respect_options(problem, init)
     if n_prior:
-        state = with_pose_corrections(state, len(problem.frames), n_groups_u)
+        state = with_pose_corrections(state, len(problem.frames), n_groups_u, n_trend)
     model.sigma_px = 0.2  # a typical corner noise; re-estimated below when poses are noisy
     total_it = 0
     converged = False
@@ -903,9 +1034,11 @@ def _refine(
         Ni = _inverse(A)
         sl = model.slices["E"]
         h = np.clip(model.prior_scale**2 * np.diag(Ni)[sl], 0.0, 1.0)
-        h_u = np.zeros(0)
+        h_u = h_v = np.zeros(0)
         if "U" in model.slices:
             h_u = np.clip(model.group_prior_scale**2 * np.diag(Ni)[model.slices["U"]], 0.0, 1.0)
+        if "V" in model.slices:
+            h_v = np.clip(model.trend_prior_scale**2 * np.diag(Ni)[model.slices["V"]], 0.0, 1.0)
         sig = []
         for rows in cam_rows:
             m = rows & inlier
@@ -913,7 +1046,7 @@ def _refine(
                 sig.append(np.nan)
                 continue
             if len(cam_rows) == 1:  # the hat matrix's trace is P: the prior rows take sum(h)
-                used = len(model.names) - float(np.sum(h)) - float(np.sum(h_u))
+                used = len(model.names) - float(np.sum(h) + np.sum(h_u) + np.sum(h_v))
             else:
                 used = float(np.sum(Ni * model.normal_equations(state, w * m)[1]))
             sig.append(np.sqrt(np.sum(r[m] ** 2) / max(m.sum() - used, 1.0)))
@@ -961,27 +1094,55 @@ def _refine(
         if len(h_u):  # the orientation groups' shared corrections: their own two levels
             U = state.U.reshape(-1)
             u_rot = np.tile([True, True, True, False, False, False], len(U) // 6)
-            new_group = []
-            for comp, floor, old in zip(
-                (u_rot, ~u_rot), SIGMA_FLOOR, model.group_sigma, strict=True
-            ):
-                red = float(np.sum(1.0 - h_u[comp]))
-                v = np.sqrt(np.sum(U[comp] ** 2) / red) if red > 1e-6 else floor
-                if vce_step[0] > 2 and v < old and red < 0.25 * comp.sum():
-                    # falling while the prior holds three quarters of it: the images do not
-                    # support a level of its own (the iteration would creep toward 0 for
-                    # tens of steps); the frames' own corrections carry this part
-                    v = floor
-                v = max(float(v), floor)
-                if vce_step[0] > 2:
-                    v = max(accelerate(f"U{comp[0]}", old, v, floor), floor)
-                if abs(v / old - 1.0) > 0.03 and max(v, old) > 2 * floor:
-                    changed = True
-                new_group.append(v)
-            model.group_sigma = (new_group[0], new_group[1])
+            model.group_sigma, moved = shared_levels("U", U, h_u, u_rot, model.group_sigma, 1.0)
+            changed |= moved
+        if len(h_v):  # the trends along the moves: two levels of their own
+            v_rot = np.concatenate(
+                [np.repeat(np.array(TREND_AXES) < 3, m) for m in model.st.trend_dims]
+            )
+            model.trend_sigma, moved = shared_levels(
+                "V", state.V, h_v, v_rot, model.trend_sigma, model.trend_spread
+            )
+            changed |= moved
         if any(v > lim for v, lim in zip(new_pose, SIGMA_BEYOND, strict=True)):
             return False
         return changed
+
+    def shared_levels(
+        key: str,
+        values: np.ndarray,
+        h_s: np.ndarray,
+        rot: np.ndarray,
+        levels: tuple,
+        per_frame: float,
+    ) -> tuple[tuple[float, float], bool]:
+        """Foerstner's step for the two levels (rotation, translation) of corrections shared by
+        several frames; the new levels and whether one that matters moved by more than 3 %.
+        ``per_frame`` turns a level into its share of a frame's correction: a share below a
+        tenth of the frames' own level adds under 1 % to their variance, and its creeping
+        (from the floor, at a few % per step) keeps no iteration going."""
+        new, moved = [], False
+        for comp, floor, old, own in zip(
+            (rot, ~rot), SIGMA_FLOOR, levels, model.pose_sigma, strict=True
+        ):
+            if not comp.any():
+                new.append(old)
+                continue
+            red = float(np.sum(1.0 - h_s[comp]))
+            v = np.sqrt(np.sum(values[comp] ** 2) / red) if red > 1e-6 else floor
+            if vce_step[0] > 2 and v < old and red < 0.25 * comp.sum():
+                # falling while the prior holds three quarters of it: the images do not
+                # support a level of its own (the iteration would creep toward 0 for
+                # tens of steps); the frames' own corrections carry this part
+                v = floor
+            v = max(float(v), floor)
+            if vce_step[0] > 2:
+                v = max(accelerate(f"{key}{comp[0]}", old, v, floor), floor)
+            big = max(v, old) > max(2 * floor, 0.1 * own / per_frame)
+            if abs(v / old - 1.0) > 0.03 and big:
+                moved = True
+            new.append(v)
+        return (new[0], new[1]), moved
 
     vce_step = [0]
     vce_note: list[str] = []

@@ -246,7 +246,12 @@ def test_orientation_groups_get_a_shared_correction_with_its_own_level():
     # wrists 25 deg apart err differently: a between-group level of the arm's size, not the floor
     assert np.degrees(between[0]) > 0.005
     assert np.degrees(np.hypot(within[0], between[0])) < 0.2
-    np.testing.assert_allclose(out.robot_sigma, np.hypot(within, between), rtol=1e-12)
+    # the reported accuracy: the three parts (frames, groups, trends along the moves) together
+    c = out.model.st.trend_coords
+    trend = np.sqrt(np.mean(np.sum(c**2, axis=1))) * np.asarray(out.model.trend_sigma)
+    np.testing.assert_allclose(
+        out.robot_sigma, np.sqrt(np.square(within) + np.square(between) + trend**2), rtol=1e-12
+    )
 
 
 def test_no_group_correction_without_groups_of_several_frames():
@@ -256,3 +261,107 @@ def test_no_group_correction_without_groups_of_several_frames():
     assert not _shared_groups(np.array([0, 0, 0]))  # one group: the hand-eye's gauge
     assert not _shared_groups(np.arange(6))  # classic hand-eye: every orientation differs
     assert not _shared_groups(np.array([0, 0, 1, 2, 2]))
+
+
+def _trend_model(s, pose_sigma=(1e-4, 1e-4)):  # noqa: ANN001, ANN202 - a scenario
+    """The model of a real-arm structure with frame, group and trend corrections."""
+    from dataclasses import replace
+
+    from slidecal.solver import refine as rf
+
+    T = np.stack([f.T_base_tool for f in s.problem.frames])
+    groups = rf.orientation_groups(T)
+    trend_groups, coords, dims = rf.translation_trends(T, groups)
+    st = replace(
+        build_structure(s.problem, s.truth.X[0][:3, :3]),
+        T_meas=T,
+        pose_sigma=pose_sigma,
+        pose_groups=groups if rf._shared_groups(groups) else None,
+        group_sigma=pose_sigma,
+        trend_groups=trend_groups,
+        trend_coords=coords,
+        trend_dims=dims,
+        trend_sigma=(1e-2, 1e-3),
+    )
+    model = BundleModel(s.problem, st)
+    model.sigma_px = 0.15
+    return model
+
+
+@pytest.mark.parametrize("translations_only", [False, True])
+def test_trend_columns_match_finite_differences(translations_only: bool):
+    # the trend block V sits before E; its columns are the pose block times the frame's offset
+    s = sc.r1_real_arm(np.random.default_rng(31), translations_only=translations_only)
+    model = _trend_model(s)
+    assert list(model.slices)[-2:] == ["V", "E"]
+    assert model.st.trend_dims == ((3,) if translations_only else (3, 3, 3, 3))
+    rng = np.random.default_rng(32)
+    su = model.slices.get("U", slice(0, 0))
+    n_u = (su.stop - su.start) // 6
+    sl = model.slices["V"]
+    state = ModelState(
+        s.truth.K,
+        s.truth.dist,
+        {},
+        s.truth.X,
+        s.truth.Y,
+        s.truth.s,
+        rng.normal(0, 1e-7, (len(s.problem.frames), 6)),
+        rng.normal(0, 1e-7, (n_u, 6)) if n_u else None,
+        rng.normal(0, 1e-6, sl.stop - sl.start),
+    )
+    r, J = model.evaluate(state)
+    h = 1e-6
+    for i in range(sl.start, sl.stop):
+        d = np.zeros(len(model.names))
+        d[i] = h
+        rp = model.evaluate(model.apply(state, d), jacobian=False)[0]
+        rm = model.evaluate(model.apply(state, -d), jacobian=False)[0]
+        # the pose block is the derivative at zero correction: exact up to ~1e-7 relative here
+        np.testing.assert_allclose(J[:, i], (rp - rm) / (2 * h), atol=1e-5 * np.abs(J[:, i]).max())
+    w = rng.uniform(0.5, 1.5, len(r))
+    r2, A, g = model.normal_equations(state, w)
+    np.testing.assert_allclose(r2, r, atol=0)
+    np.testing.assert_allclose(A, J.T @ (J * w[:, None]), rtol=1e-12, atol=1e-9 * np.abs(A).max())
+    np.testing.assert_allclose(g, J.T @ (w * r), rtol=1e-12, atol=1e-9 * np.abs(g).max())
+    # the frames' whole corrections: their own, their group's and the trend at their offset
+    E = model.pose_corrections(state)
+    k = 3
+    o = model.trend_offsets[model.st.trend_groups[k]]
+    D = state.V[o : o + 18].reshape(6, 3)
+    want = state.E[k] + D @ model.st.trend_coords[k]
+    if n_u:
+        want = want + state.U[model.st.pose_groups[k]]
+    np.testing.assert_allclose(E[k], want, rtol=1e-12)
+
+
+def test_trend_directions_are_the_ones_a_group_spans():
+    from slidecal.solver.refine import translation_trends
+
+    def pose(t):  # noqa: ANN001, ANN202
+        return T_from_Rt(np.eye(3), np.asarray(t, float))
+
+    line = [pose([0.1 * k, 0.0, 0.5]) for k in range(4)]  # a line: one direction
+    plane = [pose([0.05 * (k % 2), 0.05 * (k // 2), 0.5]) for k in range(4)]  # a plane: two
+    pair = [pose([0.0, 0.0, 0.4]), pose([0.05, 0.0, 0.4])]  # two frames: no trend
+    still = [pose([0.3, 0.3, 0.3])] * 3  # no spread: no trend
+    T = np.stack(line + plane + pair + still)
+    groups = np.repeat([0, 1, 2, 3], [4, 4, 2, 3])
+    trend_groups, coords, dims = translation_trends(T, groups)
+    assert dims == (1, 2)
+    np.testing.assert_array_equal(trend_groups, np.repeat([0, 1, -1, -1], [4, 4, 2, 3]))
+    # the coordinates are the offsets from the group's mean, in an orthonormal basis
+    np.testing.assert_allclose(np.abs(coords[:4, 0]), np.abs([-0.15, -0.05, 0.05, 0.15]))
+    np.testing.assert_allclose(np.linalg.norm(coords[4:8], axis=1), np.full(4, 0.025 * np.sqrt(2)))
+    assert not np.any(coords[:4, 1:]) and not np.any(coords[8:])
+    # a classic hand-eye session (every orientation differs) has no trend
+    assert translation_trends(T, np.arange(len(T)))[2] == ()
+
+
+def test_exact_poses_get_no_trend():
+    # a clean cell: the F test keeps the poses exact, no correction of any kind is added
+    s = sc.r1(np.random.default_rng(33), 0.15, 0.0, 0.0)
+    st = build_structure(s.problem, s.truth.X[0][:3, :3])
+    out = refine(s.problem, st, _perturbed(s.truth, np.random.default_rng(34), k_px=2.0))
+    assert out.robot_sigma == (0.0, 0.0)
+    assert not {"E", "U", "V"} & set(out.model.slices)
