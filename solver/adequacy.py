@@ -156,20 +156,21 @@ def _parameters_used(out: RefineOutput) -> dict[str, float]:
     matrix over those rows; pose corrections under a prior count by how much the pixels, not
     the prior, determine them). Rows weigh alike: exact for one camera, close for rigs whose
     cameras' noise levels are alike."""
-    from slidecal.solver.refine import _inverse
-
     m = out.model
-    n_all = len(m.evaluate(out.state)[0])
+    n_px = len(out.inlier_rows)
+    n_all = n_px + (len(m.prior_scale) if "E" in m.slices else 0)
+    if "U" in m.slices:
+        n_all += len(m.group_prior_scale)
     w = np.ones(n_all)
-    w[: len(out.inlier_rows)] = out.inlier_rows
-    Ni = _inverse(m.normal_equations(out.state, w)[1])
+    w[:n_px] = out.inlier_rows
+    Ni = m.normal_blocks(out.state, w).inverse()  # the blocks of the inverse that are needed
     used = {}
     for c in m.cams:
         wc = np.zeros(n_all)
         for ch in m.chunks:
             if ch.camera == c:
                 wc[ch.rows] = w[ch.rows]
-        used[c] = float(np.sum(Ni * m.normal_equations(out.state, wc)[1]))
+        used[c] = Ni.trace_with(m.normal_blocks(out.state, wc))
     return used
 
 

@@ -26,7 +26,7 @@ import functools
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 from slidecal.solver.camera import project_with_jacobians
 from slidecal.solver.errors import DegenerateError
@@ -140,6 +140,152 @@ def _chunks(problem: CalibrationProblem) -> list[_Chunk]:
     return chunks
 
 
+@dataclass(frozen=True)
+class BlockInverse:
+    """Blocks of the inverse normal matrix (see :meth:`NormalBlocks.inverse`).
+
+    ``gg`` (P0, P0): the global parameters' block (the inverse of the reduced matrix);
+    ``gE`` (P0, F, 6): their coupling with each frame's correction; ``EE`` (F, 6, 6): each
+    frame's own block. ``frame_inv`` (F, 6, 6), ``coupling`` (P0, 6 F) and ``reduced_inv``
+    (P0, P0) give the frames' cross blocks ``coupling' reduced_inv coupling`` for :meth:`dense`.
+    """
+
+    gg: np.ndarray
+    gE: np.ndarray
+    EE: np.ndarray
+    frame_inv: np.ndarray
+    coupling: np.ndarray
+    reduced_inv: np.ndarray
+
+    def trace_with(self, blocks: NormalBlocks) -> float:
+        """``trace(inverse @ M)`` for ``M`` of the same block pattern (``blocks``' normal
+        matrix), without dense matrices: the hat matrix's trace over some rows."""
+        return float(
+            np.sum(self.gg * blocks.A_gg)
+            + 2.0 * np.sum(self.gE * blocks.A_gE)
+            + np.sum(self.EE * blocks.A_EE)
+        )
+
+    def dense(self) -> np.ndarray:
+        """The whole inverse (P, P), frames' cross blocks included (one product of the size
+        of the frames' block: only for a caller that asks for the full covariance)."""
+        cross = self.coupling.T @ self.reduced_inv @ self.coupling
+        return _assemble(self.gg, self.gE, self.frame_inv, cross)
+
+
+def _assemble(
+    gg: np.ndarray, gE: np.ndarray, EE: np.ndarray, frames: np.ndarray | None = None
+) -> np.ndarray:
+    """The symmetric matrix (P0 + 6 F, P0 + 6 F) of the blocks ``gg`` (P0, P0), ``gE``
+    (P0, F, 6) and the frames' diagonal blocks ``EE`` (F, 6, 6), added to ``frames``
+    (6 F, 6 F) when given (else zero between frames)."""
+    P0, F = gE.shape[:2]
+    M = np.zeros((P0 + 6 * F, P0 + 6 * F))
+    M[:P0, :P0] = gg
+    M[:P0, P0:] = gE.reshape(P0, 6 * F)
+    M[P0:, :P0] = M[:P0, P0:].T
+    if frames is not None:
+        M[P0:, P0:] = frames
+    for k in range(F):
+        c = P0 + 6 * k
+        M[c : c + 6, c : c + 6] += EE[k]
+    return M
+
+
+@dataclass(frozen=True)
+class NormalBlocks:
+    """Normal equations ``J' W J``, ``J' W r`` in blocks: the global parameters (every column
+    before the per-frame pose corrections ``E``) and one 6 x 6 block per frame.
+
+    ``r`` (R,) the residuals; ``A_gg`` (P0, P0), ``g_g`` (P0,); ``A_gE`` (P0, F, 6) the coupling
+    of the global parameters with frame k's correction; ``A_EE`` (F, 6, 6) the frames' own
+    blocks (frames do not couple with one another), ``g_E`` (F, 6). Without pose corrections
+    F = 0. The per-frame blocks are eliminated by the Schur complement, as bundle adjusters do:
+    every solve and inverse costs O(F P0^2 + P0^3) instead of O((P0 + 6 F)^3).
+    """
+
+    r: np.ndarray
+    A_gg: np.ndarray
+    g_g: np.ndarray
+    A_gE: np.ndarray
+    A_EE: np.ndarray
+    g_E: np.ndarray
+
+    def dense(self) -> tuple[np.ndarray, np.ndarray]:
+        """``J' W J`` (P, P) and ``J' W r`` (P,), global columns first, then frame by frame."""
+        A = _assemble(self.A_gg, self.A_gE, self.A_EE)
+        return A, np.concatenate([self.g_g, self.g_E.reshape(-1)])
+
+    def diagonal(self) -> tuple[np.ndarray, np.ndarray]:
+        """The diagonal of ``J' W J``: global (P0,) and per frame (F, 6)."""
+        return np.diagonal(self.A_gg).copy(), np.diagonal(self.A_EE, axis1=1, axis2=2).copy()
+
+    def solve(self, lam: float = 0.0) -> np.ndarray:
+        """The step ``delta`` (P,) of ``(A + lam diag(A)) delta = -g`` (Levenberg-Marquardt;
+        zero diagonal entries damped by 1), per-frame blocks eliminated. Raises
+        ``np.linalg.LinAlgError`` when the damped system is singular."""
+        d_g, d_E = self.diagonal()
+        d_g[d_g <= 0] = 1.0
+        d_E[d_E <= 0] = 1.0
+        A_gg = self.A_gg + lam * np.diag(d_g)
+        A_EE = self.A_EE.copy()
+        i6 = np.arange(6)
+        A_EE[:, i6, i6] += lam * d_E
+        Ei = np.linalg.inv(A_EE)  # (F, 6, 6)
+        L = np.einsum("pkj,kji->pki", self.A_gE, Ei)  # A_gE Ei per frame (P0, F, 6)
+        P0 = len(self.g_g)
+        S = A_gg - L.reshape(P0, -1) @ self.A_gE.reshape(P0, -1).T
+        rhs = -self.g_g + L.reshape(P0, -1) @ self.g_E.reshape(-1)
+        d_glob = np.linalg.solve(S, rhs)
+        back = -self.g_E - np.einsum("pki,p->ki", self.A_gE, d_glob)
+        d_frames = np.einsum("kij,kj->ki", Ei, back)
+        return np.concatenate([d_glob, d_frames.reshape(-1)])
+
+    def inverse(self, check_condition: bool = False) -> BlockInverse:
+        """The blocks of ``(J' W J)^-1`` that are needed: the global one (the inverse of the
+        reduced matrix), the global-frame couplings and each frame's own 6 x 6 block
+        ``Ei + Ei A_Eg S^-1 A_gE Ei``. Computed on the diagonally scaled matrix; a singular
+        reduced matrix gets the pseudo-inverse, unless ``check_condition``: then its condition
+        number (scaled) above 1e14 raises ``np.linalg.LinAlgError``. The frames' blocks carry
+        their prior, so the reduced matrix decides."""
+        d_g, d_E = self.diagonal()
+        s_g, s_E = np.sqrt(np.maximum(d_g, 0.0)), np.sqrt(np.maximum(d_E, 0.0))
+        s_g[s_g == 0] = 1.0
+        s_E[s_E == 0] = 1.0
+        A_gg = self.A_gg / np.outer(s_g, s_g)
+        A_gE = self.A_gE / (s_g[:, None, None] * s_E[None, :, :])
+        A_EE = self.A_EE / (s_E[:, :, None] * s_E[:, None, :])
+        try:
+            Ei = np.linalg.inv(A_EE)
+        except np.linalg.LinAlgError:
+            Ei = np.linalg.pinv(A_EE)
+        P0 = len(s_g)
+        L = np.einsum("pkj,kji->pki", A_gE, Ei).reshape(P0, -1)  # (P0, 6F)
+        S = A_gg - L @ A_gE.reshape(P0, -1).T
+        if check_condition:
+            cond = np.linalg.cond(S)
+            if not np.isfinite(cond) or cond > 1e14:
+                raise np.linalg.LinAlgError(f"normal matrix condition {cond:.1e}")
+            Si = np.linalg.inv(S)
+        else:
+            try:
+                Si = np.linalg.inv(S)
+            except np.linalg.LinAlgError:
+                Si = np.linalg.pinv(S)
+        F = len(s_E)
+        SiL = (Si @ L).reshape(P0, F, 6)
+        EE = Ei + np.einsum("pki,pkj->kij", L.reshape(P0, F, 6), SiL)
+        outer_E = s_E[:, :, None] * s_E[:, None, :]
+        return BlockInverse(
+            gg=Si / np.outer(s_g, s_g),
+            gE=-SiL / (s_g[:, None, None] * s_E[None, :, :]),
+            EE=EE / outer_E,
+            frame_inv=Ei / outer_E,
+            coupling=L / s_E.reshape(1, -1),
+            reduced_inv=Si,
+        )
+
+
 class BundleModel:
     """Residuals and analytic Jacobian of the model for one problem and structure."""
 
@@ -209,7 +355,8 @@ class BundleModel:
         # robot's accuracy as refine estimates it
         self.pose_sigma = structure.pose_sigma
         self.group_sigma = structure.group_sigma
-        self._normal_cache: tuple | None = None  # (state, pixel weights, r, A, g) of the last
+        self._normal_cache: tuple | None = None  # (state, pixel weights, blocks) of the last
+        self._eval_cache: tuple | None = None  # (state, evaluate's output) of the last
         self._index()
 
     # -- state updates -------------------------------------------------------------------------
@@ -428,53 +575,77 @@ class BundleModel:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Residuals (R,), ``J' W J`` (P, P) and ``J' W r`` (P,) with row weights ``weights``.
 
+        The dense form of :meth:`normal_blocks` (the solver itself never forms it).
+        """
+        nb = self.normal_blocks(state, weights)
+        A, g = nb.dense()
+        return nb.r, A, g
+
+    def normal_blocks(self, state: ModelState, weights: np.ndarray) -> NormalBlocks:
+        """``J' W J`` and ``J' W r`` split into the global parameters and the per-frame blocks.
+
         With pose corrections the Jacobian is never formed whole: each frame's six correction
         columns touch only that frame's rows (and one prior row each), so their blocks are
-        accumulated per frame (a hundred columns fewer in the big products).
+        accumulated per frame; everything else (intrinsics, rig, X, Y, the groups' U, ...) is
+        global. The evaluation is kept for the last state, so reweighing (a camera's rows, the
+        priors) costs products only.
         """
         if "E" not in self.slices:
-            r, J = self.evaluate(state)
+            r, J = self._evaluation(state)
             Jw = J * weights[:, None]
-            return r, J.T @ Jw, Jw.T @ r
-        n, P = self.n_obs, len(self.names)
+            P0 = J.shape[1]
+            return NormalBlocks(
+                r, J.T @ Jw, Jw.T @ r, np.zeros((P0, 0, 6)), np.zeros((0, 6, 6)), np.zeros((0, 6))
+            )
+        n = self.n_obs
         sl = self.slices["E"]
         P0, F = sl.start, len(self.problem.frames)
         w, wp = weights[: 2 * n], weights[2 * n : 2 * n + 6 * F]
         cache = self._normal_cache
         if cache is not None and cache[0] is state and np.array_equal(cache[1], w):
-            rp, A0, g0 = cache[2:]  # the same state and pixel weights: only the priors moved
+            rp, A_gg, g_g, A_gE, A_EE, g_E = cache[2:]  # only the priors' weights moved
         else:
-            r, J0, B = self.evaluate(state, split=True)
+            r, J0, B = self._evaluation(state)
             rp = r[: 2 * n]
             J0w = J0 * w[:, None]
-            A0 = np.zeros((P, P))
-            g0 = np.zeros(P)
-            A0[:P0, :P0] = J0.T @ J0w
-            g0[:P0] = J0w.T @ rp
+            A_gg = J0.T @ J0w
+            g_g = J0w.T @ rp
+            A_gE = np.zeros((P0, F, 6))
+            A_EE = np.zeros((F, 6, 6))
+            g_E = np.zeros((F, 6))
             B2 = B.reshape(2 * n, 6)
             Bw = B2 * w[:, None]
             for k, rows in self.frame_rows.items():  # each frame's rows are contiguous
-                Bk, Bwk = B2[rows], Bw[rows]
-                c = P0 + 6 * k
-                A0[:P0, c : c + 6] = J0[rows].T @ Bwk
-                A0[c : c + 6, c : c + 6] = Bk.T @ Bwk
-                g0[c : c + 6] = Bwk.T @ rp[rows]
-            A0[P0:, :P0] = A0[:P0, P0:].T
-            self._normal_cache = (state, w.copy(), rp, A0, g0)
-        A, g = A0.copy(), g0.copy()
+                Bwk = Bw[rows]
+                A_gE[:, k] = J0[rows].T @ Bwk
+                A_EE[k] = B2[rows].T @ Bwk
+                g_E[k] = Bwk.T @ rp[rows]
+            self._normal_cache = (state, w.copy(), rp, A_gg, g_g, A_gE, A_EE, g_E)
         ps = self.prior_scale
         r_prior = [ps * state.E.reshape(-1)]
-        idx = np.arange(P0, P)
-        A[idx, idx] += wp * ps * ps
-        g[P0:] += wp * ps * r_prior[0]
+        A_EE = A_EE.copy()
+        idx = np.arange(6)
+        A_EE[:, idx, idx] += (wp * ps * ps).reshape(F, 6)
+        g_E = g_E + (wp * ps * r_prior[0]).reshape(F, 6)
         if "U" in self.slices:
             su = self.slices["U"]
             pu, wu = self.group_prior_scale, weights[2 * n + 6 * F :]
             r_prior.append(pu * state.U.reshape(-1))
-            idx = np.arange(su.start, su.stop)
-            A[idx, idx] += wu * pu * pu
-            g[idx] += wu * pu * r_prior[1]
-        return np.concatenate([rp, *r_prior]), A, g
+            A_gg, g_g = A_gg.copy(), g_g.copy()
+            iu = np.arange(su.start, su.stop)
+            A_gg[iu, iu] += wu * pu * pu
+            g_g[iu] += wu * pu * r_prior[1]
+        return NormalBlocks(np.concatenate([rp, *r_prior]), A_gg, g_g, A_gE, A_EE, g_E)
+
+    def _evaluation(self, state: ModelState) -> tuple:
+        """``evaluate(state)`` with the Jacobian (split with pose corrections), kept for the
+        last state (a state is immutable: the same object, the same values)."""
+        cache = self._eval_cache
+        if cache is not None and cache[0] is state:
+            return cache[1]
+        out = self.evaluate(state, split="E" in self.slices)
+        self._eval_cache = (state, out)
+        return out
 
     @property
     def group_prior_scale(self) -> np.ndarray:
@@ -612,16 +783,14 @@ def _lm(
     max_iter: int,
 ) -> tuple[ModelState, bool, int]:
     lam = 1e-4
-    r, A, g = model.normal_equations(state, weights)
-    cost = float(np.sum(weights * r * r))
+    nb = model.normal_blocks(state, weights)
+    cost = float(np.sum(weights * nb.r * nb.r))
     converged = False
     it = 0
     for it in range(1, max_iter + 1):  # noqa: B007 - the count is reported
-        diag = np.diag(A).copy()
-        diag[diag <= 0] = 1.0
         while True:
             try:
-                delta = np.linalg.solve(A + lam * np.diag(diag), -g)
+                delta = nb.solve(lam)
             except np.linalg.LinAlgError:
                 lam *= 10.0
                 if lam > 1e12:
@@ -642,8 +811,16 @@ def _lm(
         if small_step:
             converged = True
             break
-        r, A, g = model.normal_equations(state, weights)
+        nb = model.normal_blocks(state, weights)
     return state, converged, it
+
+
+@functools.cache
+def _blas_controller() -> ThreadpoolController:
+    """One controller for the process: building one scans the loaded libraries (about 2 ms,
+    more than a small solve's BLAS work), limiting through it does not. Built on first use,
+    when numpy's BLAS is loaded."""
+    return ThreadpoolController()
 
 
 def single_threaded_blas(fn):  # noqa: ANN001, ANN201 - a plain decorator
@@ -651,12 +828,13 @@ def single_threaded_blas(fn):  # noqa: ANN001, ANN201 - a plain decorator
 
     The normal matrices here are small (tens of columns): a threaded BLAS gains nothing on them
     and, on a busy 2-core machine, its spinning threads made one 2800 x 21 product take 250 ms
-    instead of 0.1 ms (measured). ``threadpoolctl`` is the maintained way to limit it.
+    instead of 0.1 ms (measured). ``threadpoolctl`` is the maintained way to limit it; one
+    controller (:func:`_blas_controller`) serves every call.
     """
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
-        with threadpool_limits(limits=1, user_api="blas"):
+        with _blas_controller().limit(limits=1, user_api="blas"):
             return fn(*args, **kwargs)
 
     return wrapper
@@ -833,18 +1011,6 @@ def _pose_discrepancy(problem: CalibrationProblem, out: RefineOutput, fit) -> tu
     )
 
 
-def _inverse(A: np.ndarray) -> np.ndarray:
-    """Inverse of a normal matrix with diagonal scaling (pseudo-inverse when singular)."""
-    scale = np.sqrt(np.diag(A))
-    scale[scale == 0] = 1.0
-    As = A / np.outer(scale, scale)
-    try:
-        Ai = np.linalg.inv(As)
-    except np.linalg.LinAlgError:
-        Ai = np.linalg.pinv(As)
-    return Ai / np.outer(scale, scale)
-
-
 def _refine(
     problem: CalibrationProblem,
     structure: Structure,
@@ -899,13 +1065,15 @@ def _refine(
         residuals and redundancy numbers; True when one moved by more than 2-3 %."""
         nonlocal cam_w
         w = inlier * cam_w
-        r, A, _ = model.normal_equations(state, w)
-        Ni = _inverse(A)
-        sl = model.slices["E"]
-        h = np.clip(model.prior_scale**2 * np.diag(Ni)[sl], 0.0, 1.0)
+        nb = model.normal_blocks(state, w)
+        r = nb.r
+        Ni = nb.inverse()
+        diag_E = np.diagonal(Ni.EE, axis1=1, axis2=2).reshape(-1)
+        h = np.clip(model.prior_scale**2 * diag_E, 0.0, 1.0)
         h_u = np.zeros(0)
         if "U" in model.slices:
-            h_u = np.clip(model.group_prior_scale**2 * np.diag(Ni)[model.slices["U"]], 0.0, 1.0)
+            diag_U = np.diagonal(Ni.gg)[model.slices["U"]]
+            h_u = np.clip(model.group_prior_scale**2 * diag_U, 0.0, 1.0)
         sig = []
         for rows in cam_rows:
             m = rows & inlier
@@ -915,7 +1083,7 @@ def _refine(
             if len(cam_rows) == 1:  # the hat matrix's trace is P: the prior rows take sum(h)
                 used = len(model.names) - float(np.sum(h)) - float(np.sum(h_u))
             else:
-                used = float(np.sum(Ni * model.normal_equations(state, w * m)[1]))
+                used = Ni.trace_with(model.normal_blocks(state, w * m))
             sig.append(np.sqrt(np.sum(r[m] ** 2) / max(m.sum() - used, 1.0)))
         sig = np.array(sig)
         ref_i = model.cams.index(model.ref)
@@ -1058,7 +1226,8 @@ def _refine(
                 "ones were kept"
             )
     weights = inlier * cam_w
-    r, A, _ = model.normal_equations(state, weights)
+    nb = model.normal_blocks(state, weights)
+    r = nb.r
     inlier_rows = inlier.copy()
     n_in = int(inlier_rows[:n_px].sum())
     dof = n_in + n_prior - P
@@ -1071,13 +1240,7 @@ def _refine(
         )
     else:
         try:
-            scale = np.sqrt(np.diag(A))
-            scale[scale == 0] = 1.0
-            As = A / np.outer(scale, scale)
-            cond = np.linalg.cond(As)
-            if not np.isfinite(cond) or cond > 1e14:
-                raise np.linalg.LinAlgError(f"normal matrix condition {cond:.1e}")
-            cov = sigma_px**2 * np.linalg.inv(As) / np.outer(scale, scale)
+            cov = sigma_px**2 * nb.inverse(check_condition=True).dense()
         except np.linalg.LinAlgError as e:
             messages.append(
                 f"covariance not computed ({e}): some parameter is barely observable; "
