@@ -178,8 +178,9 @@ def assess(
     problem: CalibrationProblem, out: RefineOutput
 ) -> tuple[ModelAdequacy, RobotAccuracy | None]:
     """The model-adequacy test and the robot's accuracy of a refinement (see the module doc)."""
-    images = session_images(out)
-    fit = free_pose_fit(images, out.state.K, out.state.dist, model_starts(out))
+    fit = out.free_pose
+    if fit is None:  # the robot test's fit is of the same detections, intrinsics and starts
+        fit = free_pose_fit(session_images(out), out.state.K, out.state.dist, model_starts(out))
     m = out.model
     reasons: list[str] = []
     per_frame: list[tuple[int, str, float]] = []

@@ -369,9 +369,11 @@ def linear_system(
                 g,
                 -np.sum(motion[1:][j] * T[k], axis=1),
             )
-    A = np.concatenate(
-        [np.concatenate(conics) @ B, np.concatenate(c_cols)], axis=1
-    ) if conics else np.zeros((0, m + G))
+    A = (
+        np.concatenate([np.concatenate(conics) @ B, np.concatenate(c_cols)], axis=1)
+        if conics
+        else np.zeros((0, m + G))
+    )
     noise_all = np.concatenate(noises) if noises else np.zeros(0)
     rn = np.linalg.norm(A, axis=1)
     keep = rn > 1e-300

@@ -24,14 +24,18 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
 from slidecal.solver.camera import project_with_jacobians
 from slidecal.solver.errors import DegenerateError
-from slidecal.solver.geometry import R_from_rvec, T_from_Rt, rotation_angle_deg, rvec_from_R
+from slidecal.solver.geometry import R_from_rvec, T_from_Rt, rvec_from_R
 from slidecal.solver.problem import DISTORTION_NAMES, CalibrationProblem
+
+if TYPE_CHECKING:
+    from slidecal.solver.adequacy import FreePoseFit
 
 
 @dataclass(frozen=True)
@@ -744,6 +748,9 @@ class RefineOutput:
     outliers: tuple[tuple[int, str, int], ...]
     messages: tuple[str, ...]
     model: BundleModel
+    # the free board pose per image fitted to this solve's detections and intrinsics (the
+    # robot test's; :func:`slidecal.solver.adequacy.assess` reuses it), when one was made
+    free_pose: FreePoseFit | None = None
     # robot sessions: the robot's one-sigma pose error per axis (radians, metres) the model used:
     # (0, 0) for exact poses; whether it was estimated from the data; the test that decided
     robot_sigma: tuple[float, float] | None = None
@@ -897,7 +904,7 @@ def refine(
     p_value, figure = _robot_pose_test(out0, fit)
     if p_value > ROBOT_TEST_P:
         return _with_robot(
-            out0,
+            replace(out0, free_pose=fit),
             (0.0, 0.0),
             True,
             f"robot poses taken as exact: they explain the images ({figure})",
@@ -1301,17 +1308,27 @@ def fisher_covariance(
 
 
 def orientation_groups(T_base_tool: np.ndarray, tol_deg: float = 0.5) -> np.ndarray:
-    """Group index (F,) per frame: frames whose tool orientations agree within ``tol_deg``."""
-    reps: list[np.ndarray] = []
-    out = np.empty(len(T_base_tool), dtype=int)
-    for k, T in enumerate(T_base_tool):
-        for g, R in enumerate(reps):
-            if rotation_angle_deg(T[:3, :3], R) < tol_deg:
-                out[k] = g
-                break
-        else:
-            reps.append(T[:3, :3])
-            out[k] = len(reps) - 1
+    """Group index (F,) per frame: frames whose tool orientations agree within ``tol_deg``.
+
+    The first frame not yet grouped founds the next group; a frame joins the first group whose
+    founder it agrees with (vectorised over the frames, one pass per group).
+    """
+    R = np.asarray(T_base_tool, dtype=float)[:, :3, :3]
+    out = np.full(len(R), -1, dtype=int)
+    g = 0
+    while np.any(out < 0):
+        free = np.flatnonzero(out < 0)
+        rel = R[free] @ R[free[0]].T  # (n, 3, 3)
+        w = np.stack(
+            [rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]],
+            axis=1,
+        )
+        angle = np.arctan2(
+            0.5 * np.linalg.norm(w, axis=1), 0.5 * (np.trace(rel, axis1=1, axis2=2) - 1)
+        )
+        out[free[np.degrees(angle) < tol_deg]] = g
+        out[free[0]] = g
+        g += 1
     return out
 
 

@@ -277,8 +277,14 @@ def _noisy_model_and_blocks(seed: int, groups: bool):
     n_g = int(st.pose_groups.max()) + 1 if groups else 0
     state = with_pose_corrections(_perturbed(s.truth, rng, k_px=2.0), 20, n_g)
     state = ModelState(
-        state.K, state.dist, {}, state.X, state.Y, state.s,
-        rng.normal(0, 1e-4, (20, 6)), None if state.U is None else rng.normal(0, 1e-4, (n_g, 6)),
+        state.K,
+        state.dist,
+        {},
+        state.X,
+        state.Y,
+        state.s,
+        rng.normal(0, 1e-4, (20, 6)),
+        None if state.U is None else rng.normal(0, 1e-4, (n_g, 6)),
     )
     n_rows = len(model.evaluate(state, jacobian=False)[0])
     w = rng.uniform(0.5, 1.5, n_rows)
@@ -319,3 +325,28 @@ def test_schur_solve_and_inverse_equal_the_dense_ones(groups):
     bad = np.array(inv.gE)
     bad[:, 3] *= 1.01
     assert not np.allclose(bad.reshape(P0, -1), Ni[:P0, P0:], **tol)
+
+
+def test_orientation_groups_match_the_first_founder_rule():
+    # the vectorised grouping against the rule it implements, on clusters whose spread
+    # straddles the tolerance (0.5 deg): a frame joins the first group whose founding frame
+    # it agrees with, else founds a new one
+    from slidecal.solver.refine import orientation_groups
+
+    rng = np.random.default_rng(41)
+    centres = [R_from_rvec(rng.normal(0, 1.0, 3)) for _ in range(5)]
+    T = np.tile(np.eye(4), (300, 1, 1))
+    for k in range(300):
+        T[k, :3, :3] = R_from_rvec(rng.normal(0, np.radians(0.3), 3)) @ centres[k % 5]
+    founders, expected = [], []
+    for t in T:
+        for g, R in enumerate(founders):
+            if rotation_angle_deg(t[:3, :3], R) < 0.5:
+                expected.append(g)
+                break
+        else:
+            founders.append(t[:3, :3])
+            expected.append(len(founders) - 1)
+    got = orientation_groups(T)
+    assert len(founders) > 5  # the spread made extra groups: the rule is exercised
+    np.testing.assert_array_equal(got, expected)
