@@ -464,7 +464,7 @@ class BundleModel:
         q_Y = self.o_pts @ RY.T
         p_Y = q_Y + tY
         RM = Ms[f, :3, :3]
-        p_M = np.einsum("nij,nj->ni", RM, p_Y) + Ms[f, :3, 3]
+        p_M = _mv(RM, p_Y) + Ms[f, :3, 3]
         one_group, one_camera = self.n_groups == 1, len(self.cams) == 1
         if one_group:  # the robot cases: one X for every frame (3x3 products, no gathers)
             RX0 = state.X[0, :3, :3]
@@ -473,7 +473,7 @@ class BundleModel:
             p_X = q_X + state.X[0, :3, 3]
         else:
             RX = state.X[g, :3, :3]
-            q_X = np.einsum("nij,nj->ni", RX, p_M)
+            q_X = _mv(RX, p_M)
             p_X = q_X + state.X[g, :3, 3]
         if one_camera:
             R_cr = None
@@ -481,7 +481,7 @@ class BundleModel:
         else:
             T_cr = np.stack([state.T_cam_ref.get(c, np.eye(4)) for c in self.cams])
             R_cr = T_cr[self.o_cam, :3, :3]
-            q_cr = np.einsum("nij,nj->ni", R_cr, p_X)
+            q_cr = _mv(R_cr, p_X)
             P = q_cr + T_cr[self.o_cam, :3, 3]
         px = np.empty((n, 2))
         projections = []
@@ -504,7 +504,8 @@ class BundleModel:
         d_P = np.empty((n, 2, 3))
         unit, skew_on = self.problem.options.unit_aspect, self.problem.options.skew
         for ci, c in enumerate(self.cams):
-            idx, pr = self.cam_obs[ci], projections[ci]
+            pr = projections[ci]
+            idx = slice(None) if one_camera else self.cam_obs[ci]  # a slice scatters faster
             d_P[idx] = pr.d_P
             dK = pr.d_K
             cols = [dK[:, :, 0] + dK[:, :, 1]] if unit else [dK[:, :, 0], dK[:, :, 1]]
@@ -515,13 +516,14 @@ class BundleModel:
             if self.dist_names:
                 J[idx, :, self.slices[f"dist:{c}"]] = pr.d_dist[:, :, self.dist_idx]
             if c != self.ref:
-                rig = np.concatenate([np.cross(q_cr[idx, None, :], pr.d_P), pr.d_P], axis=2)
+                rig = np.concatenate([_cross_rows(q_cr[idx], pr.d_P), pr.d_P], axis=2)
                 J[idx, :, self.slices[f"rig:{c}"]] = rig
-        A = d_P if R_cr is None else np.einsum("nab,nbc->nac", d_P, R_cr)  # d px / d p_X
+        A = d_P if R_cr is None else d_P @ R_cr  # d px / d p_X
         mx = st.X_rot_basis.shape[1] + st.X_t_basis.shape[1]
         if mx:
             blk = np.concatenate(
-                [np.cross(q_X[:, None, :], A) @ st.X_rot_basis, A @ st.X_t_basis], axis=2
+                [_rmul(_cross_rows(q_X, A), st.X_rot_basis), _rmul(A, st.X_t_basis)],
+                axis=2,
             )
             if self.n_groups == 1:
                 J[:, :, self.slices["X:0"]] = blk
@@ -533,11 +535,12 @@ class BundleModel:
         if "Y" in self.slices:
             if one_group:  # A2 = A RX RM: per frame RX RM, gathered once
                 B = RX0 @ Ms[:, :3, :3]
-                A2 = np.einsum("nab,nbc->nac", A, B[f])
+                A2 = A @ B[f]
             else:
-                A2 = np.einsum("nab,nbc->nac", A, np.einsum("nij,njk->nik", RX, RM))
+                A2 = A @ (RX @ RM)
             blk = np.concatenate(
-                [np.cross(q_Y[:, None, :], A2) @ st.Y_rot_basis, A2 @ st.Y_t_basis], axis=2
+                [_rmul(_cross_rows(q_Y, A2), st.Y_rot_basis), _rmul(A2, st.Y_t_basis)],
+                axis=2,
             )
             J[:, :, self.slices["Y"]] = blk
         has_s = self.o_s_col >= 0
@@ -695,15 +698,35 @@ class BundleModel:
         The correction acts on the measured pose as ``R <- exp([d]x) R``, ``t <- t + tau``.
         """
         n = self.n_obs
-        B = A @ RX[0] if self.n_groups == 1 else np.einsum("nab,nbc->nac", A, RX)  # d px/d p_M
+        B = _rmul(A, RX[0]) if self.n_groups == 1 else A @ RX  # d px / d p_M
         if self.st.eye_in_hand:  # M = T^-1: p_M = R' (p_Y - t)
-            t_true = -np.einsum("nji,nj->ni", RM, Ms[self.o_frame, :3, 3])
-            D_rot = np.einsum("nij,njk->nik", RM, _skew_batch(p_Y - t_true))
+            t_true = -_mv(np.swapaxes(RM, 1, 2), Ms[self.o_frame, :3, 3])
+            D_rot = RM @ _skew_batch(p_Y - t_true)
             D_t = -RM
         else:  # M = T: p_M = R p_Y + t
-            D_rot = -_skew_batch(np.einsum("nij,nj->ni", RM, p_Y))
+            D_rot = -_skew_batch(_mv(RM, p_Y))
             D_t = np.broadcast_to(np.eye(3), (n, 3, 3))
         return np.concatenate([B @ D_rot, B @ D_t], axis=2)
+
+
+def _mv(M: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Matrix-vector products (n, 3) of stacks ``M`` (n, 3, 3) and ``v`` (n, 3) (matmul: einsum
+    is several times slower on stacks of small matrices)."""
+    return (M @ v[:, :, None])[:, :, 0]
+
+
+def _cross_rows(q: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """``cross(q_n, A_n[i])`` (n, m, 3) of vectors ``q`` (n, 3) with the rows of ``A``
+    (n, m, 3) (``np.cross`` with broadcasting, without its copies)."""
+    q0, q1, q2 = q[:, 0, None], q[:, 1, None], q[:, 2, None]
+    a0, a1, a2 = A[:, :, 0], A[:, :, 1], A[:, :, 2]
+    return np.stack([q1 * a2 - q2 * a1, q2 * a0 - q0 * a2, q0 * a1 - q1 * a0], axis=2)
+
+
+def _rmul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A @ B`` for a stack ``A`` (n, a, b) and one matrix ``B`` (b, c), as one product."""
+    n, a, b = A.shape
+    return (A.reshape(n * a, b) @ B).reshape(n, a, B.shape[1])
 
 
 def _R_batch(v: np.ndarray) -> np.ndarray:
