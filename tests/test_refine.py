@@ -350,3 +350,27 @@ def test_orientation_groups_match_the_first_founder_rule():
     got = orientation_groups(T)
     assert len(founders) > 5  # the spread made extra groups: the rule is exercised
     np.testing.assert_array_equal(got, expected)
+
+
+@pytest.mark.parametrize("noisy", [False, True], ids=["exact poses", "pose corrections"])
+def test_rig_normal_equations_camera_by_camera_match_the_full_jacobian(noisy):
+    # three cameras: each camera's rows are multiplied over the columns they touch only; the
+    # sum must be the whole J' W J (other cameras' columns are zero in those rows)
+    from slidecal.mocks.rig_scenarios import oak_rig
+    from slidecal.solver.refine import with_pose_corrections
+
+    opts = ModelOptions(robot_noise_m=1e-4, robot_noise_deg=0.01) if noisy else None
+    s = oak_rig(np.random.default_rng(42), cameras=("left", "right", "rgb"), options=opts)
+    model = BundleModel(s.problem, build_structure(s.problem, s.truth.X[0][:3, :3]))
+    model.sigma_px = 0.15
+    state = s.truth
+    if noisy:
+        state = with_pose_corrections(state, len(s.problem.frames))
+    rng = np.random.default_rng(43)
+    r, J = model.evaluate(state)
+    w = rng.uniform(0.5, 1.5, len(r))
+    r2, A, g = model.normal_equations(state, w)
+    assert len(model.cams) == 3 and ("E" in model.slices) == noisy
+    np.testing.assert_allclose(r2, r, atol=0)
+    np.testing.assert_allclose(A, J.T @ (J * w[:, None]), rtol=1e-12, atol=1e-9 * np.abs(A).max())
+    np.testing.assert_allclose(g, J.T @ (w * r), rtol=1e-12, atol=1e-9 * np.abs(g).max())
