@@ -1,16 +1,17 @@
 """How solve time grows with the data: 20 to 1000 frames, one to three cameras, against OpenCV.
 
 ``slidecal bench scale [--frames 20 100 200 400] [--cameras 1 2 3] [--arm-frames ...]
-[--out docs/SCALE.md]`` builds the OAK-D-like head eye-in-hand on the R1 cell (the simulator's
-``oak_rig``), repeats its 20 robot poses with fresh corner noise until the session has the
-requested number of frames, and times, in the same process: ``calibrate`` (linear start,
-refinement, covariance) and ``cv2.calibrateCamera`` on the reference camera's detections of the
-same session (intrinsics and per-frame poses only, so it is a floor, not a like-for-like peer).
-Reported: wall seconds, the ratio to OpenCV, and the growth from the previous row (time ratio
-over frame ratio: 1 is linear in frames). Two tables: exact robot poses (the robot test keeps
-them), and an arm erring by 0.2 mm / 0.02 deg per pose, whose accuracy the solve learns (six
-pose corrections per frame, eliminated by the Schur complement). Then the targets: R1's solve
-against OpenCV (median of 15), 400 frames against OpenCV, time(400 frames) / time(100 frames).
+[--repeats 3] [--out docs/SCALE.md]`` builds the OAK-D-like head eye-in-hand on the R1 cell
+(the simulator's ``oak_rig``), repeats its 20 robot poses with fresh corner noise until the
+session has the requested number of frames, and times, in the same process: ``calibrate``
+(linear start, refinement, covariance) and ``cv2.calibrateCamera`` on the reference camera's
+detections of the same session (intrinsics and per-frame poses only, so it is a floor, not a
+like-for-like peer). Reported: wall seconds (medians of ``--repeats`` alternating runs), the
+ratio to OpenCV, and the growth from the previous row (time ratio over frame ratio: 1 is
+linear in frames). Two tables: exact robot poses (the robot test keeps them), and an arm
+erring by 0.2 mm / 0.02 deg per pose, whose accuracy the solve learns (six pose corrections
+per frame, eliminated by the Schur complement). Then the targets: R1's solve against OpenCV
+(median of 15), 400 frames against OpenCV, time(400 frames) / time(100 frames).
 """
 
 from __future__ import annotations
@@ -72,18 +73,24 @@ def _opencv_s(problem: CalibrationProblem) -> float:
     return time.perf_counter() - t
 
 
-def measure(n_frames: int, n_cameras: int, arm_error: bool = False) -> dict[str, float]:
-    """Wall seconds of one solve and of OpenCV on the same session."""
+def measure(
+    n_frames: int, n_cameras: int, arm_error: bool = False, repeats: int = 1
+) -> dict[str, float]:
+    """Wall seconds of a solve and of OpenCV on the same session: medians of ``repeats``
+    alternating runs (a machine shared with other work slows single runs unevenly)."""
     problem = session(n_frames, n_cameras, arm_error=arm_error)
-    t = time.perf_counter()
-    res = calibrate(problem)
-    ours = time.perf_counter() - t
+    ours, theirs = [], []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        res = calibrate(problem)
+        ours.append(time.perf_counter() - t)
+        theirs.append(_opencv_s(problem))
     learned = res.robot_accuracy is not None and res.robot_accuracy.translation_mm > 0
     return {
         "frames": n_frames,
         "cameras": n_cameras,
-        "slidecal_s": ours,
-        "opencv_s": _opencv_s(problem),
+        "slidecal_s": float(np.median(ours)),
+        "opencv_s": float(np.median(theirs)),
         "learned": learned,
     }
 
@@ -102,12 +109,12 @@ def _table(rows: list[dict]) -> list[str]:
     return lines
 
 
-def _series(frames: list[int], cameras: list[int], arm_error: bool) -> list[dict]:
+def _series(frames: list[int], cameras: list[int], arm_error: bool, repeats: int) -> list[dict]:
     rows = []
     for nc in cameras:
         prev = None
         for nf in sorted(frames):
-            r = measure(nf, nc, arm_error)
+            r = measure(nf, nc, arm_error, repeats)
             r["growth"] = (
                 (r["slidecal_s"] / prev["slidecal_s"]) / (nf / prev["frames"]) if prev else np.nan
             )
@@ -156,13 +163,14 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="frame counts of the learned-arm table (one camera; default: --frames; none: skip)",
     )
+    ap.add_argument("--repeats", type=int, default=3, help="runs per row; the medians are reported")
     ap.add_argument("--out", type=Path, default=None, help="markdown file to write")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     measure(20, 1)  # warm-up: first calls pay for imports and caches, not for the data
-    rows = _series(args.frames, args.cameras, False)
+    rows = _series(args.frames, args.cameras, False, args.repeats)
     arm_frames = args.frames if args.arm_frames is None else args.arm_frames
-    arm_rows = _series(arm_frames, [1], True) if arm_frames else []
+    arm_rows = _series(arm_frames, [1], True, args.repeats) if arm_frames else []
     r1 = speed(15)
     lines = [
         *report_header(
@@ -173,6 +181,8 @@ def main(argv: list[str] | None = None) -> int:
         *_targets(rows, r1),
         "",
         "## Exact robot poses",
+        "",
+        f"Each time is the median of {args.repeats} runs, alternating with OpenCV's.",
         "",
         *_table(rows),
         "",
