@@ -841,10 +841,13 @@ def _lm(
     state: ModelState,
     weights: np.ndarray,
     max_iter: int,
-) -> tuple[ModelState, bool, int]:
+) -> tuple[ModelState, bool, int, np.ndarray]:
+    """Levenberg-Marquardt from ``state``: the state reached, whether it converged, the
+    iterations, and the residuals (R,) of the state reached (the caller needs no new pass)."""
     lam = 1e-4
     nb = model.normal_blocks(state, weights)
-    cost = float(np.sum(weights * nb.r * nb.r))
+    r = nb.r
+    cost = float(np.sum(weights * r * r))
     converged = False
     it = 0
     for it in range(1, max_iter + 1):  # noqa: B007 - the count is reported
@@ -854,7 +857,7 @@ def _lm(
             except np.linalg.LinAlgError:
                 lam *= 10.0
                 if lam > 1e12:
-                    return state, False, it
+                    return state, False, it, r
                 continue
             new = model.apply(state, delta)
             r_new, _ = model.evaluate(new, jacobian=False)
@@ -863,16 +866,16 @@ def _lm(
                 break
             lam *= 10.0
             if lam > 1e12:
-                return state, cost < 1e-20, it
+                return state, cost < 1e-20, it, r
         # a relative decrease below 1e-10 moves no parameter by more than ~1e-5 of its std
         small_step = cost - cost_new <= 1e-10 * max(cost, 1e-30) + 1e-24
-        state, cost = new, cost_new
+        state, cost, r = new, cost_new, r_new
         lam = max(lam / 10.0, 1e-9)
         if small_step:
             converged = True
             break
         nb = model.normal_blocks(state, weights)
-    return state, converged, it
+    return state, converged, it, r
 
 
 @functools.cache
@@ -1238,9 +1241,8 @@ def _refine(
     steps = min(1, max_iter) if estimate else max_iter
     for _ in range(40 if estimate else 10):
         weights = inlier * cam_w
-        state, converged, it = _lm(model, state, weights, steps)
+        state, converged, it, r = _lm(model, state, weights, steps)
         total_it += it
-        r, _ = model.evaluate(state, jacobian=False)
         changed = False
         if estimate:
             changed = variance_components()
@@ -1279,7 +1281,7 @@ def _refine(
         if estimate:  # the noise levels still creep (toward the floor, or slowly): keep the
             # last ones and converge the parameters under them, so the estimate is the
             # minimum of a definite model and not a point part way along the creep
-            state, converged, it = _lm(model, state, inlier * cam_w, max_iter)
+            state, converged, it, _ = _lm(model, state, inlier * cam_w, max_iter)
             total_it += it
             vce_note.append(
                 f"the noise levels were still moving after {vce_step[0]} updates; the last "
