@@ -512,12 +512,12 @@ class BundleModel:
             cols += [dK[:, :, 2], dK[:, :, 3]]
             if skew_on:
                 cols.append(dK[:, :, 4])
-            J[idx, :, self.slices[f"intr:{c}"]] = np.stack(cols, axis=2)
+            _put_rows(J, idx, self.slices[f"intr:{c}"], np.stack(cols, axis=2))
             if self.dist_names:
-                J[idx, :, self.slices[f"dist:{c}"]] = pr.d_dist[:, :, self.dist_idx]
+                _put_rows(J, idx, self.slices[f"dist:{c}"], pr.d_dist[:, :, self.dist_idx])
             if c != self.ref:
                 rig = np.concatenate([_cross_rows(q_cr[idx], pr.d_P), pr.d_P], axis=2)
-                J[idx, :, self.slices[f"rig:{c}"]] = rig
+                _put_rows(J, idx, self.slices[f"rig:{c}"], rig)
         A = d_P if R_cr is None else d_P @ R_cr  # d px / d p_X
         mx = st.X_rot_basis.shape[1] + st.X_t_basis.shape[1]
         if mx:
@@ -743,6 +743,13 @@ def _mv(M: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Matrix-vector products (n, 3) of stacks ``M`` (n, 3, 3) and ``v`` (n, 3) (matmul: einsum
     is several times slower on stacks of small matrices)."""
     return (M @ v[:, :, None])[:, :, 0]
+
+
+def _put_rows(J: np.ndarray, idx: np.ndarray | slice, cols: slice, vals: np.ndarray) -> None:
+    """``J[idx, :, cols] = vals`` for ``J`` (n, 2, P), as one 2-D assignment per pixel axis
+    (numpy's mixed index-and-slice assignment on the 3-D array is several times slower)."""
+    for i in range(J.shape[1]):
+        J[:, i, :][idx, cols] = vals[:, i, :]
 
 
 def _cross_rows(q: np.ndarray, A: np.ndarray) -> np.ndarray:
