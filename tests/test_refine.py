@@ -353,9 +353,9 @@ def test_orientation_groups_match_the_first_founder_rule():
 
 
 @pytest.mark.parametrize("noisy", [False, True], ids=["exact poses", "pose corrections"])
-def test_rig_normal_equations_camera_by_camera_match_the_full_jacobian(noisy):
-    # three cameras: each camera's rows are multiplied over the columns they touch only; the
-    # sum must be the whole J' W J (other cameras' columns are zero in those rows)
+def test_rig_normal_equations_match_the_full_jacobian(noisy):
+    # three cameras (their Jacobian columns written camera by camera), with and without the
+    # per-frame pose corrections accumulated frame by frame: the whole J' W J
     from slidecal.mocks.rig_scenarios import oak_rig
     from slidecal.solver.refine import with_pose_corrections
 
