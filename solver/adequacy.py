@@ -158,9 +158,7 @@ def _parameters_used(out: RefineOutput) -> dict[str, float]:
     cameras' noise levels are alike."""
     m = out.model
     n_px = len(out.inlier_rows)
-    n_all = n_px + (len(m.prior_scale) if "E" in m.slices else 0)
-    if "U" in m.slices:
-        n_all += len(m.group_prior_scale)
+    n_all = len(m.evaluate(out.state, jacobian=False)[0])  # pixel rows, then every prior row
     w = np.ones(n_all)
     w[:n_px] = out.inlier_rows
     Ni = m.normal_blocks(out.state, w).inverse()  # the blocks of the inverse that are needed
