@@ -156,20 +156,19 @@ def _parameters_used(out: RefineOutput) -> dict[str, float]:
     matrix over those rows; pose corrections under a prior count by how much the pixels, not
     the prior, determine them). Rows weigh alike: exact for one camera, close for rigs whose
     cameras' noise levels are alike."""
-    from slidecal.solver.refine import _inverse
-
     m = out.model
-    n_all = len(m.evaluate(out.state)[0])
+    n_px = len(out.inlier_rows)
+    n_all = len(m.evaluate(out.state, jacobian=False)[0])  # pixel rows, then every prior row
     w = np.ones(n_all)
-    w[: len(out.inlier_rows)] = out.inlier_rows
-    Ni = _inverse(m.normal_equations(out.state, w)[1])
+    w[:n_px] = out.inlier_rows
+    Ni = m.normal_blocks(out.state, w).inverse()  # the blocks of the inverse that are needed
     used = {}
     for c in m.cams:
         wc = np.zeros(n_all)
         for ch in m.chunks:
             if ch.camera == c:
                 wc[ch.rows] = w[ch.rows]
-        used[c] = float(np.sum(Ni * m.normal_equations(out.state, wc)[1]))
+        used[c] = Ni.trace_with(m.normal_blocks(out.state, wc))
     return used
 
 
@@ -177,8 +176,9 @@ def assess(
     problem: CalibrationProblem, out: RefineOutput
 ) -> tuple[ModelAdequacy, RobotAccuracy | None]:
     """The model-adequacy test and the robot's accuracy of a refinement (see the module doc)."""
-    images = session_images(out)
-    fit = free_pose_fit(images, out.state.K, out.state.dist, model_starts(out))
+    fit = out.free_pose
+    if fit is None:  # the robot test's fit is of the same detections, intrinsics and starts
+        fit = free_pose_fit(session_images(out), out.state.K, out.state.dist, model_starts(out))
     m = out.model
     reasons: list[str] = []
     per_frame: list[tuple[int, str, float]] = []

@@ -34,3 +34,24 @@ def test_scale_session_has_the_requested_frames_and_cameras():
     p = session(45, 2)
     assert len(p.frames) == 45 and [f.id for f in p.frames] == list(range(45))
     assert {c.name for c in p.cameras} == {"left", "right"}
+
+
+def test_scale_arm_session_and_targets():
+    import numpy as np
+
+    from slidecal.routines.bench_scale import _targets, session
+
+    exact, arm = session(25, 1), session(25, 1, arm_error=True)
+    assert len(arm.frames) == 25
+    assert arm.options.robot_noise_m == 0.0  # the solve is told nothing: it learns the arm
+    moved = [
+        np.linalg.norm(a.T_base_tool[:3, 3] - e.T_base_tool[:3, 3])
+        for a, e in zip(arm.frames, exact.frames, strict=True)
+    ]
+    assert 0 < np.median(moved) < 0.01  # the measured poses carry the arm's error
+    rows = [
+        {"cameras": 1, "frames": 100, "slidecal_s": 0.2, "opencv_s": 0.05},
+        {"cameras": 1, "frames": 400, "slidecal_s": 0.9, "opencv_s": 0.2},
+    ]
+    text = "\n".join(_targets(rows, {"slidecal_s": 0.03, "opencv_s": 0.012}))
+    assert "| 2.5 | 1.5 |" in text and "| 4.5 | 2 |" in text and "| 4.5 | 5 |" in text

@@ -365,3 +365,119 @@ def test_exact_poses_get_no_trend():
     out = refine(s.problem, st, _perturbed(s.truth, np.random.default_rng(34), k_px=2.0))
     assert out.robot_sigma == (0.0, 0.0)
     assert not {"E", "U", "V"} & set(out.model.slices)
+def _noisy_model_and_blocks(seed: int, groups: bool):
+    """R1 with per-frame pose corrections (and, with ``groups``, the tilt groups' shared ones)
+    at a perturbed state: the blocked normal equations and the model."""
+    from dataclasses import replace
+
+    from slidecal.solver.refine import orientation_groups, with_pose_corrections
+
+    opts = ModelOptions(robot_noise_m=1e-4, robot_noise_deg=0.01)
+    s = sc.r1(np.random.default_rng(seed), options=opts)
+    st = build_structure(s.problem, s.truth.X[0][:3, :3])
+    if groups:
+        pg = orientation_groups(np.stack([f.T_base_tool for f in s.problem.frames]))
+        st = replace(st, pose_groups=pg, group_sigma=(2e-4, 3e-4))
+    model = BundleModel(s.problem, st)
+    model.sigma_px = 0.15
+    rng = np.random.default_rng(seed + 1)
+    n_g = int(st.pose_groups.max()) + 1 if groups else 0
+    state = with_pose_corrections(_perturbed(s.truth, rng, k_px=2.0), 20, n_g)
+    state = ModelState(
+        state.K,
+        state.dist,
+        {},
+        state.X,
+        state.Y,
+        state.s,
+        rng.normal(0, 1e-4, (20, 6)),
+        None if state.U is None else rng.normal(0, 1e-4, (n_g, 6)),
+    )
+    n_rows = len(model.evaluate(state, jacobian=False)[0])
+    w = rng.uniform(0.5, 1.5, n_rows)
+    return model, state, w
+
+
+@pytest.mark.parametrize("groups", [False, True], ids=["frames", "frames+groups"])
+def test_schur_solve_and_inverse_equal_the_dense_ones(groups):
+    # the per-frame correction blocks eliminated by the Schur complement: the damped step, the
+    # inverse's blocks VCE and the covariance use, and the hat-matrix traces equal the dense
+    # algebra's to round-off (the dense normal matrix is checked against J' W J above)
+    model, state, w = _noisy_model_and_blocks(31, groups)
+    nb = model.normal_blocks(state, w)
+    A, g = nb.dense()
+    P0 = model.slices["E"].start
+    assert A.shape == (P0 + 120,) * 2 and ("U" in model.slices) == groups
+    for lam in (0.0, 1e-3, 10.0):
+        D = np.diag(np.where(np.diag(A) > 0, np.diag(A), 1.0))
+        dense = np.linalg.solve(A + lam * D, -g)
+        np.testing.assert_allclose(nb.solve(lam), dense, rtol=1e-7, atol=1e-9 * np.abs(dense).max())
+    Ni = np.linalg.inv(A)
+    inv = nb.inverse()
+    tol = dict(rtol=1e-6, atol=1e-8 * np.abs(Ni).max())
+    np.testing.assert_allclose(inv.gg, Ni[:P0, :P0], **tol)
+    np.testing.assert_allclose(inv.gE.reshape(P0, -1), Ni[:P0, P0:], **tol)
+    for k in range(20):
+        c = P0 + 6 * k
+        np.testing.assert_allclose(inv.EE[k], Ni[c : c + 6, c : c + 6], **tol)
+    np.testing.assert_allclose(inv.dense(), Ni, **tol)
+    # the hat matrix's trace over one camera's rows (here: the pixel rows)
+    wc = w.copy()
+    wc[model.n_rows :] = 0.0
+    Ac = model.normal_blocks(state, wc).dense()[0]
+    assert inv.trace_with(model.normal_blocks(state, wc)) == pytest.approx(
+        float(np.sum(Ni * Ac)), rel=1e-8
+    )
+    # a wrong block (frame 3's coupling altered) is seen: the comparison can fail
+    bad = np.array(inv.gE)
+    bad[:, 3] *= 1.01
+    assert not np.allclose(bad.reshape(P0, -1), Ni[:P0, P0:], **tol)
+
+
+def test_orientation_groups_match_the_first_founder_rule():
+    # the vectorised grouping against the rule it implements, on clusters whose spread
+    # straddles the tolerance (0.5 deg): a frame joins the first group whose founding frame
+    # it agrees with, else founds a new one
+    from slidecal.solver.refine import orientation_groups
+
+    rng = np.random.default_rng(41)
+    centres = [R_from_rvec(rng.normal(0, 1.0, 3)) for _ in range(5)]
+    T = np.tile(np.eye(4), (300, 1, 1))
+    for k in range(300):
+        T[k, :3, :3] = R_from_rvec(rng.normal(0, np.radians(0.3), 3)) @ centres[k % 5]
+    founders, expected = [], []
+    for t in T:
+        for g, R in enumerate(founders):
+            if rotation_angle_deg(t[:3, :3], R) < 0.5:
+                expected.append(g)
+                break
+        else:
+            founders.append(t[:3, :3])
+            expected.append(len(founders) - 1)
+    got = orientation_groups(T)
+    assert len(founders) > 5  # the spread made extra groups: the rule is exercised
+    np.testing.assert_array_equal(got, expected)
+
+
+@pytest.mark.parametrize("noisy", [False, True], ids=["exact poses", "pose corrections"])
+def test_rig_normal_equations_match_the_full_jacobian(noisy):
+    # three cameras (their Jacobian columns written camera by camera), with and without the
+    # per-frame pose corrections accumulated frame by frame: the whole J' W J
+    from slidecal.mocks.scenarios import oak_rig
+    from slidecal.solver.refine import with_pose_corrections
+
+    opts = ModelOptions(robot_noise_m=1e-4, robot_noise_deg=0.01) if noisy else None
+    s = oak_rig(np.random.default_rng(42), cameras=("left", "right", "rgb"), options=opts)
+    model = BundleModel(s.problem, build_structure(s.problem, s.truth.X[0][:3, :3]))
+    model.sigma_px = 0.15
+    state = s.truth
+    if noisy:
+        state = with_pose_corrections(state, len(s.problem.frames))
+    rng = np.random.default_rng(43)
+    r, J = model.evaluate(state)
+    w = rng.uniform(0.5, 1.5, len(r))
+    r2, A, g = model.normal_equations(state, w)
+    assert len(model.cams) == 3 and ("E" in model.slices) == noisy
+    np.testing.assert_allclose(r2, r, atol=0)
+    np.testing.assert_allclose(A, J.T @ (J * w[:, None]), rtol=1e-12, atol=1e-9 * np.abs(A).max())
+    np.testing.assert_allclose(g, J.T @ (w * r), rtol=1e-12, atol=1e-9 * np.abs(g).max())
