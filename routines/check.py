@@ -3,7 +3,13 @@
 A short verification, not a calibration: a handful of frames (at most
 :data:`MAX_ROBOT_TIME_S` of robot time) at known robot poses, taken from the plan of the
 installed calibration (or the planner's plan for the cell): the first two poses of its first
-groups. Two measurements, both against the installed calibration:
+groups, among those the installed session recorded a frame at (:func:`recorded_plan`).
+
+When the install keeps its session (``session.yaml``), the paired comparison decides: the
+check's corners against those the installed session recorded at the same robot poses
+(:func:`slidecal.routines.verdict.paired_compare`; limit ``check_max_px``). Otherwise (and
+said in the verdict's notes) two measurements against the installed calibration decide; with
+a paired comparison their figures are kept in the verdict file:
 
 - the change: the installed calibration re-estimated from the check's frames (:func:`refit`:
   fx, fy, cx, cy, the hand-eye and the target pose free; distortion and rig fixed; the robot's

@@ -29,8 +29,14 @@ The gate (:func:`judge`), each test with a limit from the cell file's ``limits:`
   displacement of points at the working distance (``max_change_px``; it counts only when the
   change is also beyond ``max_change_sigma``, so a re-estimate too imprecise to tell is not
   called a drift). Only this test makes a
-  result ``drifted`` (a valid calibration that differs from the installed one); any other
-  failure makes it ``rejected``.
+  result ``drifted`` (a valid calibration that differs from the installed one), with:
+- ``paired``: when the installed session is known (``installed_problem``, or the
+  ``session.yaml`` an install store keeps) and shares robot poses with this one (the same
+  plan): the corners at the shared poses compared with the installed session's, corner by
+  corner (:func:`paired_compare`, :mod:`slidecal.solver.drift`): drift when their
+  displacement field is beyond :data:`slidecal.solver.drift.Z_LIMIT` sigma of its noise and
+  moves points of the central ``change_region`` by more than ``max_change_px``.
+  Any other failure makes it ``rejected``.
 
 Exit codes (documented in ``docs/UNATTENDED.md``): 0 accepted / ok, 4 rejected, 5 drifted.
 """
