@@ -392,7 +392,10 @@ def judge_problem(
         # the paired comparison decides; the re-estimate's figures stay in the verdict file
         checks = tuple(paired)
         shared = extra["check"]["paired"]["shared_poses"]
-        notes = [f"paired comparison at {shared} of the installed session's robot poses"] + notes
+        notes = [f"paired comparison at {shared} of the installed session's robot poses"] + [
+            f"not deciding: {n} (the installed calibration fixed, the board re-fitted)"
+            for n in notes
+        ]
     else:
         fallback = (
             f"no paired comparison ({why}); fell back to re-estimating the calibration from "

@@ -98,22 +98,18 @@ def match_poses(
 ) -> list[tuple[int, int]]:
     """Pairs ``(i, j)``: pose ``new[i]`` is ``old[j]`` (``T_base_tool`` (4, 4) both, within
     ``tol_m`` and ``tol_deg``; the nearest when several are); None poses never match."""
-    out = []
-    for i, a in enumerate(new):
-        if a is None:
-            continue
-        best, best_d = None, np.inf
-        for j, b in enumerate(old):
-            if b is None:
-                continue
-            dt = float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
-            c = np.clip((np.trace(a[:3, :3].T @ b[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-            dr = float(np.degrees(np.arccos(c)))
-            if dt <= tol_m and dr <= tol_deg and dt / tol_m + dr / tol_deg < best_d:
-                best, best_d = j, dt / tol_m + dr / tol_deg
-        if best is not None:
-            out.append((i, best))
-    return out
+    ia = [i for i, T in enumerate(new) if T is not None]
+    jb = [j for j, T in enumerate(old) if T is not None]
+    if not ia or not jb:
+        return []
+    A = np.array([new[i] for i in ia], dtype=float)
+    B = np.array([old[j] for j in jb], dtype=float)
+    dt = np.linalg.norm(A[:, None, :3, 3] - B[None, :, :3, 3], axis=2)
+    cos = (np.einsum("iab,jab->ij", A[:, :3, :3], B[:, :3, :3]) - 1.0) / 2.0
+    dr = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    cost = np.where((dt <= tol_m) & (dr <= tol_deg), dt / tol_m + dr / tol_deg, np.inf)
+    best = np.argmin(cost, axis=1)
+    return [(ia[k], jb[int(best[k])]) for k in range(len(ia)) if np.isfinite(cost[k, best[k]])]
 
 
 def common_corners(
