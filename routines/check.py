@@ -3,7 +3,13 @@
 A short verification, not a calibration: a handful of frames (at most
 :data:`MAX_ROBOT_TIME_S` of robot time) at known robot poses, taken from the plan of the
 installed calibration (or the planner's plan for the cell): the first two poses of its first
-groups. Two measurements, both against the installed calibration:
+groups, among those the installed session recorded a frame at (:func:`recorded_plan`).
+
+When the install keeps its session (``session.yaml``), the paired comparison decides: the
+check's corners against those the installed session recorded at the same robot poses
+(:func:`slidecal.routines.verdict.paired_compare`; limit ``check_max_px``). Otherwise (and
+said in the verdict's notes) two measurements against the installed calibration decide; with
+a paired comparison their figures are kept in the verdict file:
 
 - the change: the installed calibration re-estimated from the check's frames (:func:`refit`:
   fx, fy, cx, cy, the hand-eye and the target pose free; distortion and rig fixed; the robot's
@@ -32,7 +38,7 @@ import numpy as np
 from slidecal.routines.config import CellConfig, load_config
 from slidecal.routines.plan import Plan, read_plan
 from slidecal.routines.progress import Progress
-from slidecal.routines.verdict import Verdict, judge_check, write_verdict
+from slidecal.routines.verdict import Check, Verdict, judge_check, write_verdict
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import inv_T
 from slidecal.solver.problem import CalibrationProblem
@@ -69,6 +75,25 @@ def check_plan_from(plan: Plan, cfg: CellConfig, frames: int = DEFAULT_FRAMES) -
             n_groups -= 1
         else:
             per = 1
+
+
+def recorded_plan(plan: Plan, recorded: CalibrationProblem) -> Plan:
+    """``plan`` with only the poses the installed session recorded a frame at (its measured
+    robot pose within :data:`slidecal.solver.drift.MATCH_M` / ``MATCH_DEG`` of the commanded
+    one) and groups left empty dropped; ``plan`` itself when none matches."""
+    import dataclasses
+
+    from slidecal.solver.drift import match_poses
+
+    seen = [
+        f.T_base_tool for f in recorded.frames if any(len(d.ids) for d in f.detections.values())
+    ]
+    groups = tuple(
+        kept
+        for kept in (tuple(T for T in g if match_poses([T], seen)) for g in plan.groups)
+        if kept
+    )
+    return dataclasses.replace(plan, groups=groups) if groups else plan
 
 
 def _hand_eye_T(installed: CalibrationResult, camera: str) -> np.ndarray:
@@ -312,12 +337,16 @@ def judge_problem(
     installed: CalibrationResult,
     expected: dict[str, float],
     cfg: CellConfig,
+    installed_problem: CalibrationProblem | None = None,
 ) -> Verdict:
-    """The check's verdict of recorded check frames against the installed calibration."""
+    """The check's verdict of recorded check frames against the installed calibration: the
+    paired comparison with ``installed_problem`` (the installed session's frames) when the
+    check's poses are among its poses, else (said in the notes) the re-estimate and the
+    fixed-calibration residuals."""
     import dataclasses
 
     from slidecal.routines.run import cell_limits
-    from slidecal.routines.verdict import compare
+    from slidecal.routines.verdict import compare, paired_compare
 
     Y, res = fit_target(problem, installed)
     rms = {n: float(np.sqrt(np.mean(np.sum(r**2, axis=1)))) for n, r in res.items() if len(r)}
@@ -342,15 +371,40 @@ def judge_problem(
         for n in rms
     ]
     lim = cell_limits(cfg)
+    paired: list = []
+    if installed_problem is None:
+        why = "the install keeps no session (installed before sessions were kept)"
+    else:
+        paired, pinfo = paired_compare(
+            problem, installed_problem, installed, lim.check_max_px, lim.change_region
+        )
+        extra["check"]["paired"] = pinfo
+        why = pinfo.get("why", "")
     v = judge_check(rms, expected, drift, lim, len(problem.frames), extra, notes)
     again = refit(problem, installed, cfg.options.robot_noise_m, cfg.options.robot_noise_deg)
     change, info = compare(
         again, installed, dataclasses.replace(lim, max_change_px=lim.check_change_px)
     )
     extra["check"]["change"] = info
-    checks = v.checks + tuple(change)
+    if paired:
+        # the paired comparison decides; the re-estimate's figures stay in the verdict file
+        checks = tuple(paired)
+        shared = extra["check"]["paired"]["shared_poses"]
+        notes = [f"paired comparison at {shared} of the installed session's robot poses"] + [
+            f"not deciding: {n} (the installed calibration fixed, the board re-fitted)"
+            for n in notes
+        ]
+    else:
+        fallback = (
+            f"no paired comparison ({why}); fell back to re-estimating the calibration from "
+            "the check's frames"
+        )
+        checks = (Check("paired", True, None, None, fallback),) + v.checks + tuple(change)
+        notes = [fallback] + notes
     verdict = "ok" if all(c.passed for c in checks) else "drifted"
-    return dataclasses.replace(v, verdict=verdict, checks=checks, installed=info)
+    return dataclasses.replace(
+        v, verdict=verdict, checks=checks, installed=info, notes=tuple(notes)
+    )
 
 
 def run_check(
@@ -390,6 +444,11 @@ def run_check(
         from slidecal.routines.planner import make_plan
 
         base = make_plan(cfg).plan
+    from slidecal.routines.install import installed_session
+
+    recorded = installed_session(cur)
+    if recorded is not None:
+        base = recorded_plan(base, recorded)
     plan = check_plan_from(base, cfg, frames)
     if seed is not None and seed < 0:
         raise InputError(f"--seed must be 0 or a positive integer, got {seed}")
@@ -414,7 +473,9 @@ def run_check(
         extra={"purpose": "check", "installed": str(cur)},
     )
     problem = load_session(out).problem
-    verdict = judge_problem(problem, inst, expected_rms_px(inst, info or {}, cfg), cfg)
+    verdict = judge_problem(
+        problem, inst, expected_rms_px(inst, info or {}, cfg), cfg, installed_problem=recorded
+    )
     t = getattr(rec.robot, "robot_time_s", None)
     verdict.extra["check"]["robot_time_s"] = None if t is None else float(t)
     write_verdict(verdict, out)

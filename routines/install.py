@@ -5,6 +5,7 @@
     current -> history/20261201T020000_123456Z     # a symbolic link, replaced atomically
     history/20261130T020000_654321Z/               # every install, complete, never modified
         result.yaml  summary.txt  verdict.yaml  plan.yaml  report.html  export/...
+        session.yaml                               # the session's frames, without images
         installed.yaml                             # when, from which session, which cell
     history/<older>/ROLLED_BACK                    # marks an install that was rolled back
 
@@ -12,6 +13,9 @@ An install copies the files into ``STORE/.staging-<time>/``, fsyncs every file a
 directory, renames it into ``history/`` (one atomic rename) and then points ``current`` at it
 by renaming a new link over the old one (atomic): a reader sees the old install or the new
 one, never a half-written file, and a crash at any point leaves ``current`` intact.
+``session.yaml`` is the installed session's file (``slidecal.session/1``) with its frames'
+measured robot poses and detections but without the image paths: ``slidecal check`` revisits
+those poses and compares its corners with these (:func:`installed_session`).
 ``slidecal rollback STORE`` points ``current`` at the install before it (skipping rolled-back
 ones) and marks the one it leaves ``ROLLED_BACK``.
 
@@ -34,12 +38,14 @@ import numpy as np
 from slidecal.routines.lock import Lock
 from slidecal.routines.schema import _fsync_dir, dump_yaml, write_atomic
 from slidecal.solver.errors import InputError
+from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.result import CalibrationResult
 
 CURRENT = "current"
 HISTORY = "history"
 ROLLED_BACK = "ROLLED_BACK"
 INSTALLED_FILE = "installed.yaml"
+SESSION_FILE = "session.yaml"
 #: A new result is "worse" when one of its one-sigmas exceeds the installed one's by this factor.
 WORSE_FACTOR = 1.25
 
@@ -70,6 +76,37 @@ def installed_result(store: str | Path) -> CalibrationResult | None:
     if d is None:
         return None
     return read_result(d / "result.yaml")
+
+
+def installed_session(directory: str | Path) -> CalibrationProblem | None:
+    """The frames of the installed session kept in an install's ``directory`` (its
+    ``session.yaml``: measured robot poses and detections), or None when it keeps none."""
+    from slidecal.routines.session import load_session
+
+    d = Path(directory)
+    if not (d / SESSION_FILE).is_file():
+        return None
+    return load_session(d, detect_images=False).problem
+
+
+def _session_copy(src: Path) -> str | None:
+    """The text of ``src/session.yaml`` without its frames' image paths (None when there is
+    no session file or no frame holds detections: nothing a check could compare with)."""
+    from slidecal.routines.session import load_yaml
+
+    if not (src / SESSION_FILE).is_file():
+        return None
+    data = load_yaml(src / SESSION_FILE, "session.yaml")
+    frames = data.get("frames") if isinstance(data, dict) else None
+    if not isinstance(frames, list) or not any(
+        isinstance(f, dict) and f.get("detections") for f in frames
+    ):
+        return None
+    doc = dict(data)
+    doc["frames"] = [
+        {k: v for k, v in f.items() if k != "images"} if isinstance(f, dict) else f for f in frames
+    ]
+    return dump_yaml(doc)
 
 
 def history(store: str | Path) -> list[Path]:
@@ -187,6 +224,9 @@ def install(
                     if p.is_file():
                         _copy_synced(p, staging / "export" / p.name)
                 _fsync_dir(staging / "export")
+            session_text = _session_copy(src)
+            if session_text is not None:
+                write_atomic(staging / SESSION_FILE, session_text)
             meta = {
                 "installed_utc": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
                 "session": str(src.resolve()),

@@ -29,8 +29,14 @@ The gate (:func:`judge`), each test with a limit from the cell file's ``limits:`
   displacement of points at the working distance (``max_change_px``; it counts only when the
   change is also beyond ``max_change_sigma``, so a re-estimate too imprecise to tell is not
   called a drift). Only this test makes a
-  result ``drifted`` (a valid calibration that differs from the installed one); any other
-  failure makes it ``rejected``.
+  result ``drifted`` (a valid calibration that differs from the installed one), with:
+- ``paired``: when the installed session is known (``installed_problem``, or the
+  ``session.yaml`` an install store keeps) and shares robot poses with this one (the same
+  plan): the corners at the shared poses compared with the installed session's, corner by
+  corner (:func:`paired_compare`, :mod:`slidecal.solver.drift`): drift when their
+  displacement field is beyond :data:`slidecal.solver.drift.Z_LIMIT` sigma of its noise and
+  moves points of the central ``change_region`` by more than ``max_change_px``.
+  Any other failure makes it ``rejected``.
 
 Exit codes (documented in ``docs/UNATTENDED.md``): 0 accepted / ok, 4 rejected, 5 drifted.
 """
@@ -230,8 +236,11 @@ def judge(
     command: str = "run",
     session_status: str = "complete",
     installed_path: str | None = None,
+    installed_problem: CalibrationProblem | None = None,
 ) -> Verdict:
-    """The verdict of a solved calibration (see the module docstring)."""
+    """The verdict of a solved calibration (see the module docstring). ``installed_problem``:
+    the installed session's frames (default: the ``session.yaml`` an install store keeps
+    beside ``installed_path``), for the paired comparison at the poses both sessions share."""
     lim = limits or Limits()
     checks: list[Check] = []
     notes: list[str] = []
@@ -268,6 +277,19 @@ def judge(
         if installed_path is not None:
             cmp_info = {"path": installed_path, **cmp_info}
         checks.extend(change)
+        if problem is not None:
+            if installed_problem is None and installed_path is not None:
+                installed_problem, why = _stored_session(installed_path)
+                if why:
+                    notes.append(why)
+            if installed_problem is not None:
+                paired, info = paired_compare(
+                    problem, installed_problem, installed, lim.max_change_px, lim.change_region
+                )
+                checks.extend(paired)
+                cmp_info["paired"] = info
+                if not info["usable"]:
+                    notes.append(f"no paired comparison: {info['why']}")
     for name, why in result.unobservable.items():
         notes.append(f"{name} not determined: {why}")
     if not quality_ok:
@@ -614,6 +636,119 @@ def compare(
         "max_displacement_px": {k: _f(v) for k, v in disp.items()},
         "sigma": {k: _f(v) for k, v in z.items()},
     }
+    return checks, info
+
+
+def _stored_session(path: str) -> tuple[CalibrationProblem | None, str | None]:
+    """The installed session an install directory keeps, or (None, why it could not be read)."""
+    from slidecal.routines.install import installed_session
+
+    p = Path(path)
+    if not p.is_dir():
+        return None, None
+    try:
+        return installed_session(p), None
+    except InputError as e:
+        return None, f"the installed session could not be read ({e}); no paired comparison"
+
+
+def paired_compare(
+    new: CalibrationProblem,
+    old: CalibrationProblem,
+    installed: CalibrationResult,
+    px_limit: float,
+    region: float = 0.5,
+) -> tuple[list[Check], dict[str, Any]]:
+    """The paired drift test (:mod:`slidecal.solver.drift`) of the frames of ``new`` taken at
+    the measured robot poses of frames of ``old`` (the installed session), per camera:
+    ``drifted`` when the corners' displacement field is significant and moves points of the
+    central ``region`` of the image by more than ``px_limit``. ``info["usable"]`` is False
+    (with ``info["why"]`` and no checks) when no camera has enough shared poses."""
+    from slidecal.solver import drift
+    from slidecal.solver.errors import DegenerateError
+
+    pairs = drift.match_poses(
+        [f.T_base_tool for f in new.frames], [f.T_base_tool for f in old.frames]
+    )
+    if not pairs:
+        why = "no robot pose of this session is one of the installed session's poses"
+        return [], {"usable": False, "why": why}
+    old_names = {c.name for c in old.cameras}
+    checks, per, whys = [], {}, []
+    for spec in new.cameras:
+        cam = spec.name
+        if cam not in installed.cameras or cam not in old_names:
+            continue
+        olds, news, gross = [], [], 0
+        for i, j in pairs:
+            dn, do = new.frames[i].detections.get(cam), old.frames[j].detections.get(cam)
+            if dn is None or do is None:
+                continue
+            a, b = drift.common_corners(dn.ids, dn.px, do.ids, do.px)
+            if len(a) < drift.MIN_CORNERS:
+                continue
+            if float(np.median(np.linalg.norm(b - a, axis=1))) > drift.GROSS_PX:
+                gross += 1
+                continue
+            olds.append(a)
+            news.append(b)
+        cal = installed.cameras[cam]
+        hw, hh = region * (cal.width - 1) / 2, region * (cal.height - 1) / 2
+        cu, cv = (cal.width - 1) / 2, (cal.height - 1) / 2
+        try:
+            fld = drift.displacement_field(
+                olds, news, np.asarray(cal.K, float), (cu - hw, cv - hh, cu + hw, cv + hh)
+            )
+        except DegenerateError as e:
+            moved = (
+                f"; at {gross} the corners moved by more than {drift.GROSS_PX:g} px (the board "
+                "or the camera moved far)"
+                if gross
+                else ""
+            )
+            whys.append(f"camera {cam}: {len(pairs)} poses shared{moved}; {e}")
+            continue
+        bad = fld.drifted(px_limit)
+        eq = fld.equivalent
+        s = fld.mean_px
+        checks.append(
+            Check(
+                "paired",
+                not bad,
+                fld.max_px,
+                px_limit,
+                f"camera {cam}: at {fld.n_poses} of the installed session's robot poses its "
+                f"corners moved by up to {fld.max_px:.2f} px (limit {px_limit:g} px) at "
+                f"{fld.max_z:.1f} sigma (limit {drift.Z_LIMIT:g}): shift ({s[0]:+.2f}, "
+                f"{s[1]:+.2f}) px, scale {s[2]:+.2f} px, turn {s[3]:+.2f} px at "
+                f"{fld.radius_px:.0f} px from the principal point; as the camera: principal "
+                f"point ({eq['cx_px']:+.2f}, {eq['cy_px']:+.2f}) px or a rotation of "
+                f"{eq['rotation_deg']:.3f} deg, focal length {eq['f_rel'] * 100:+.3f} %"
+                + (
+                    "; the camera changed or the board moved (a paired comparison cannot tell "
+                    "them apart: if the board was moved, calibrate and install anew)"
+                    if bad
+                    else ""
+                ),
+            )
+        )
+        per[cam] = {
+            "poses": fld.n_poses,
+            "corners": fld.n_corners,
+            "max_px": _f(fld.max_px),
+            "max_z": _f(fld.max_z),
+            "field_px": [_f(v) for v in fld.mean_px],
+            "field_std_px": [_f(v) for v in fld.std_px],
+            "radius_px": _f(fld.radius_px),
+            "corner_noise_px": _f(fld.corner_noise_px),
+            "pose_scatter_px": _f(fld.pose_scatter_px),
+            "equivalent": {k: _f(v) for k, v in eq.items()},
+        }
+    if not checks:
+        return [], {"usable": False, "why": "; ".join(whys) or "no camera in common"}
+    info: dict[str, Any] = {"usable": True, "shared_poses": len(pairs), "cameras": per}
+    if whys:
+        info["why"] = "; ".join(whys)
     return checks, info
 
 

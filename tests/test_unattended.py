@@ -324,31 +324,60 @@ def test_a_crash_while_installing_leaves_current_intact(solved_dir, tmp_path, mo
 
 @pytest.mark.slow
 def test_run_install_then_check_ok_then_drifted(tmp_path: Path) -> None:
+    from slidecal.routines.bench_verdict import cell_overrides, same_cell
     from slidecal.routines.check import run_check
 
     store = tmp_path / "store"
+    cfg = load_config()
     o = run_calibration(
-        out_dir=tmp_path / "s", progress=False, recording=False, seed=3, install=store
+        cfg,
+        out_dir=tmp_path / "s",
+        progress=False,
+        recording=False,
+        install=store,
+        cell=same_cell(cfg, 3, 1),
     )
     assert o.installed_to is not None and o.exit_code == 0
     info = yaml.safe_load((store / CURRENT / "installed.yaml").read_text())
     assert info["chain_rms_px"]["cam"] > 0
-    v, d = run_check(None, store, tmp_path / "c1", progress=False, seed=4)
+    # the same cell (arm, board) checked again with fresh noise
+    v, d = run_check(cfg, store, tmp_path / "c1", progress=False, cell=same_cell(cfg, 3, 2))
     assert v.verdict == "ok", v.lines()
     chk = yaml.safe_load((d / "verdict.yaml").read_text())["check"]
     assert chk["robot_time_s"] <= 15.0 and chk["frames"] == 6
-    # the camera's focal length changed by 0.3 % since the install
-    cfg = load_config(
-        overrides={
-            "simulation": {
-                "cameras": {
-                    "cam": {"K": [[880.0 * 1.003, 0, 640.0], [0, 880.0 * 1.003, 400.0], [0, 0, 1]]}
-                }
-            }
-        }
-    )
-    v, _ = run_check(cfg, store, tmp_path / "c2", progress=False, seed=4)
+    assert chk["paired"]["usable"] and chk["paired"]["cameras"]["cam"]["max_px"] < 0.5
+    # the camera's principal point moved by 1 px since the install
+    moved = load_config(overrides=cell_overrides(cx_px=1.0))
+    v, _ = run_check(moved, store, tmp_path / "c2", progress=False, cell=same_cell(moved, 3, 3))
     assert v.verdict == "drifted" and v.exit_code == 5
+    assert [c.test for c in v.reasons] == ["paired"]
+
+
+def test_install_keeps_the_session_without_images(solved_dir, tmp_path: Path) -> None:
+    from slidecal.routines.install import installed_session
+    from slidecal.routines.verdict import judge
+
+    d, r = solved_dir
+    doc = yaml.safe_load((d / "session.yaml").read_text())
+    doc["frames"][0]["images"] = {"cam": "images/0000_cam.png"}  # not copied into the store
+    src = tmp_path / "src"
+    src.mkdir()
+    for p in d.iterdir():
+        if p.is_file():
+            (src / p.name).write_bytes(p.read_bytes())
+    (src / "session.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+    entry = install(tmp_path / "store", src, r, "accepted")
+    kept = yaml.safe_load((entry / "session.yaml").read_text())
+    assert not any("images" in f for f in kept["frames"])
+    mine, theirs = load_session(d).problem, installed_session(entry)
+    assert len(theirs.frames) == len(mine.frames)
+    f0, g0 = mine.frames[0], theirs.frames[0]
+    assert (f0.T_base_tool == g0.T_base_tool).all()
+    assert (f0.detections["cam"].px == g0.detections["cam"].px).all()
+    # the gate finds the session beside the installed result: the same frames, no drift
+    v = judge(r, problem=mine, installed=r, installed_path=str(entry))
+    assert v.installed["paired"]["usable"] and v.verdict == "accepted"
+    assert installed_session(tmp_path) is None  # no session kept there
 
 
 # ----------------------------------------------------------------------------- one line, exit 2

@@ -211,6 +211,87 @@ def test_rejected_stays_rejected_against_installed(solved) -> None:
     assert v.verdict == "rejected"
 
 
+# ----------------------------------------------------------------------------- paired
+
+#: the noise of a re-run at the same poses: per-corner detector noise and the per-pose shift
+#: of the arm's repeatability, one-sigma per axis, px (what the simulated cell shows)
+CORNER_PX, POSE_PX = 0.06, 0.1
+
+
+def _rerun(problem, seed: int, shift=(0.0, 0.0), moved_m: float = 0.0):  # noqa: ANN001, ANN202
+    """``problem`` seen again at the same robot poses: fresh noise, every corner shifted by
+    ``shift`` px (a changed camera), the measured poses moved by ``moved_m`` along x."""
+    rng = np.random.default_rng(seed)
+    frames = []
+    for fr in problem.frames:
+        dets = {
+            n: dataclasses.replace(
+                d,
+                px=np.asarray(d.px)
+                + np.asarray(shift)
+                + rng.normal(0.0, CORNER_PX, (len(d.ids), 2))
+                + rng.normal(0.0, POSE_PX, 2),
+            )
+            for n, d in fr.detections.items()
+        }
+        T = np.array(fr.T_base_tool, dtype=float)
+        T[0, 3] += moved_m
+        frames.append(dataclasses.replace(fr, detections=dets, T_base_tool=T))
+    return dataclasses.replace(problem, frames=tuple(frames))
+
+
+def test_paired_unchanged_is_accepted(solved) -> None:
+    o, problem = solved
+    for seed in range(5):
+        v = judge(
+            o.result, problem=_rerun(problem, seed), installed=o.result, installed_problem=problem
+        )
+        assert v.verdict == "accepted", v.lines()
+        info = v.installed["paired"]
+        assert info["usable"] and info["shared_poses"] == len(problem.frames)
+        assert info["cameras"]["cam"]["max_px"] < 0.3
+
+
+def test_paired_one_pixel_shift_is_drifted_and_named(solved) -> None:
+    o, problem = solved
+    new = _rerun(problem, 1, shift=(1.0, 0.0))
+    v = judge(o.result, problem=new, installed=o.result, installed_problem=problem)
+    assert v.verdict == "drifted" and v.exit_code == 5
+    (reason,) = v.reasons  # the parameters are the same: only the paired test sees it
+    assert reason.test == "paired" and "the camera changed or the board moved" in reason.message
+    eq = v.installed["paired"]["cameras"]["cam"]["equivalent"]
+    n = len(problem.frames)
+    assert eq["cx_px"] == pytest.approx(1.0, abs=5 * POSE_PX * np.sqrt(2 / n))
+
+
+def test_paired_needs_shared_poses(solved) -> None:
+    o, problem = solved
+    new = _rerun(problem, 2, shift=(1.0, 0.0), moved_m=0.005)
+    v = judge(o.result, problem=new, installed=o.result, installed_problem=problem)
+    assert v.verdict == "accepted" and "paired" not in {c.test for c in v.checks}
+    assert not v.installed["paired"]["usable"]
+    assert any("no paired comparison" in n for n in v.notes)
+
+
+@pytest.mark.slow
+def test_check_pairs_or_falls_back_and_says_so(solved) -> None:
+    from slidecal.routines.check import judge_problem
+
+    o, problem = solved
+    cfg = load_config()
+    new = _rerun(problem, 3, shift=(1.0, 0.0))
+    expected = {"cam": 0.3}
+    v = judge_problem(new, o.result, expected, cfg, installed_problem=problem)
+    assert v.verdict == "drifted" and [c.test for c in v.reasons] == ["paired"]
+    assert v.notes[0].startswith(f"paired comparison at {len(problem.frames)}")
+    assert "change" in v.extra["check"]  # the re-estimate's figures are kept
+    v = judge_problem(_rerun(problem, 3), o.result, expected, cfg, installed_problem=problem)
+    assert v.verdict == "ok", v.lines()
+    v = judge_problem(new, o.result, expected, cfg, installed_problem=None)
+    assert v.notes[0].startswith("no paired comparison (the install keeps no session")
+    assert "paired" not in {c.test for c in v.reasons}
+
+
 # ----------------------------------------------------------------------------- limits
 
 
