@@ -32,6 +32,7 @@ from threadpoolctl import ThreadpoolController
 from slidecal.solver.camera import project_with_jacobians
 from slidecal.solver.errors import DegenerateError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, rvec_from_R
+from slidecal.solver.named import MOUNTS
 from slidecal.solver.problem import DISTORTION_NAMES, CalibrationProblem
 
 #: Axis names of a pose correction: rotation vector (radians), translation (metres).
@@ -1570,7 +1571,7 @@ def build_structure(problem: CalibrationProblem, R_X: np.ndarray | None = None) 
             v = rvec_from_R(rel)
             if np.linalg.norm(v) > np.radians(1.0):
                 axes.append(v / np.linalg.norm(v))
-        he = "T_tool_cam" if problem.mount == "eye_in_hand" else "T_base_cam"
+        he = MOUNTS[problem.mount].hand_eye
         if not axes:
             X_t = none
             unobs[f"{he}.t"] = (
