@@ -325,8 +325,13 @@ def part_check(n: int, work: Path) -> list[str]:
     cases.append((BOARD_MOVED, board_moved_overrides()))
     rows: dict[str, list] = {name: [] for name, _ in cases}
     plan = make_plan(load_config()).plan
+    not_installed: list[str] = []
     for seed in range(1, n + 1):
         o, p = _run(load_config(), work, seed, 1, plan)
+        if o.verdict.verdict == "rejected":  # nothing to install, nothing to check against
+            why = "; ".join(c.message for c in o.verdict.reasons[:1])
+            not_installed.append(f"cell {seed}: {why}")
+            continue
         store = work / f"store{seed}"
         info = {"chain_rms_px": chain_rms_px(o.result, p)}
         install(store, o.session_dir, o.result, o.verdict.verdict, info=info)
@@ -352,8 +357,9 @@ def part_check(n: int, work: Path) -> list[str]:
                 )
             )
     lim = Limits()
+    n_all, n = n, len(rows["unchanged cell"])
     lines = [
-        f"{n} simulated cells (cell seeds 1..{n}). Per cell: one run installed, then "
+        f"{n_all} simulated cells (cell seeds 1..{n_all}). Per cell: one run installed, then "
         "`slidecal check` on the same cell (same arm, same board; fresh noise) unchanged, "
         "with each change of the camera, and with the board moved instead (a paired "
         "comparison cannot tell that from a camera change and says so). The check revisits "
@@ -376,7 +382,17 @@ def part_check(n: int, work: Path) -> list[str]:
             f"{_span([x[2] for x in r], '.2f')} | {_span([x[3] for x in r], '.1f')} | "
             f"{max(x[5] for x in r)} | {max(x[4] for x in r):.1f} s |"
         )
-    lines += ["", f"Took {time.monotonic() - t0:.0f} s ({n} runs and {len(cases) * n} checks)."]
+    if not_installed:
+        lines += [
+            "",
+            f"Not installed, so not checked: {len(not_installed)} of {n_all} cells whose "
+            "installed run was itself rejected (the rates above are over the other "
+            f"{n}): " + "; ".join(not_installed) + ".",
+        ]
+    lines += [
+        "",
+        f"Took {time.monotonic() - t0:.0f} s ({n_all} runs and {len(cases) * n} checks).",
+    ]
     return lines
 
 
