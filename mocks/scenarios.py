@@ -213,7 +213,7 @@ def robot_poses(
 
 
 # -- calibration problems: S1-S4 ----------------------------------------------------------------
-def _detect(
+def projected_detection(
     K: np.ndarray,
     dist: np.ndarray,
     T_cam_board: np.ndarray,
@@ -223,6 +223,8 @@ def _detect(
     rng: np.random.Generator,
     margin_px: float = 0.0,
 ) -> Detection:
+    """The target's points that project into the image (``margin_px`` inside its border) at
+    their true pixels plus ``sigma_px`` Gaussian noise per coordinate."""
     P = transform_points(T_cam_board, target.points_m)
     ok = P[:, 2] > 0
     px = np.full((len(P), 2), np.nan)
@@ -257,7 +259,7 @@ def _board_frame_scenario(
     for k, C in enumerate(centres):
         T = T_from_Rt(R_cam_board, -R_cam_board @ C)
         Ts.append(T)
-        det = _detect(K, dist, T, target, PAPER_SIZE_PX, sigma_px, rng)
+        det = projected_detection(K, dist, T, target, PAPER_SIZE_PX, sigma_px, rng)
         m = moves[k]
         if knowledge == "board_direction":
             m = m / np.linalg.norm(m) if np.linalg.norm(m) > 0 else np.zeros(3)
@@ -292,7 +294,7 @@ def _robot_translation_scenario(
     frames = []
     for k, C in enumerate(centres):
         T_cam_board = T_from_Rt(R_cam_board, -R_cam_board @ C)
-        det = _detect(K, dist, T_cam_board, target, PAPER_SIZE_PX, sigma_px, rng)
+        det = projected_detection(K, dist, T_cam_board, target, PAPER_SIZE_PX, sigma_px, rng)
         T_base_cam_told = T_base_board @ inv_T(T_from_Rt(R_cam_board, -R_cam_board @ told[k]))
         frames.append(Frame(k, {"cam": det}, T_base_tool=T_base_cam_told))
     problem = CalibrationProblem(
@@ -467,7 +469,9 @@ def s5_rig(
     frames = []
     for k, T in enumerate(Ts):
         dets = {
-            c: _detect(K[c], np.zeros(5), T_cam_right[c] @ T, target, PAPER_SIZE_PX, sig[c], rng)
+            c: projected_detection(
+                K[c], np.zeros(5), T_cam_right[c] @ T, target, PAPER_SIZE_PX, sig[c], rng
+            )
             for c in ("left", "right")
         }
         frames.append(Frame(k, dets))
@@ -620,7 +624,9 @@ def _r1_cell(
         T_base_tool = (
             T_bt if eye_in_hand else (R1_T_BASE_CAM @ T_cam_board @ inv_T(R1_T_TOOL_BOARD))
         )
-        det = _detect(R1_K, R1_DIST, T_cam_board, target, R1_SIZE_PX, sigma_px, rng, 2.0)
+        det = projected_detection(
+            R1_K, R1_DIST, T_cam_board, target, R1_SIZE_PX, sigma_px, rng, 2.0
+        )
         measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
         frames.append(Frame(k, {"cam": det}, T_base_tool=measured))
     return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board)
@@ -748,7 +754,9 @@ def r1_real_arm(
     if detect is None:
 
         def detect(T_cam_board: np.ndarray, g: np.random.Generator) -> Detection:
-            return _detect(R1_K, R1_DIST, T_cam_board, target, R1_SIZE_PX, sigma_px, g, 2.0)
+            return projected_detection(
+                R1_K, R1_DIST, T_cam_board, target, R1_SIZE_PX, sigma_px, g, 2.0
+            )
 
     frames = []
     for k, (T_true, T_meas) in enumerate(zip(true, planned, strict=True)):
@@ -827,7 +835,7 @@ def oak_rig(
         dets = {}
         for c in cameras:
             s = sims[c]
-            dets[c] = _detect(
+            dets[c] = projected_detection(
                 s.K, s.dist, extr[c] @ T_left_board, target, (s.width, s.height), sig[c], rng, 2.0
             )
         measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
@@ -980,7 +988,7 @@ def classic(
             T_base_tool = T_base_board @ inv_T(T_c_b) @ inv_T(R1_T_TOOL_CAM)
         else:
             T_base_tool = R1_T_BASE_CAM @ T_c_b @ inv_T(R1_T_TOOL_BOARD)
-        det = _detect(R1_K, dist, T_c_b, target, R1_SIZE_PX, sigma_px, rng, 2.0)
+        det = projected_detection(R1_K, dist, T_c_b, target, R1_SIZE_PX, sigma_px, rng, 2.0)
         measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
         frames.append(Frame(k, {"cam": det}, T_base_tool=measured))
     return r1_scenario(

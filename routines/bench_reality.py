@@ -37,9 +37,8 @@ from scipy.stats import chi2
 from slidecal.mocks import scenarios as sc
 from slidecal.routines import bench
 from slidecal.solver.calibrate import calibrate
-from slidecal.solver.camera import project
 from slidecal.solver.errors import SlidecalError
-from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, rvec_from_R, transform_points
+from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, rvec_from_R
 from slidecal.solver.problem import Detection, Frame
 
 INTRINSICS = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
@@ -103,11 +102,9 @@ def drifting_arm(
         true.append(T_true)
         T_cam_board = inv_T(T_true @ sc.R1_T_TOOL_CAM) @ base.T_target
         if detect is None:
-            px = project(sc.R1_K, sc.R1_DIST, transform_points(T_cam_board, target.points_m))
-            ids = np.flatnonzero(
-                (px[:, 0] > 1.5) & (px[:, 0] < 1277.5) & (px[:, 1] > 1.5) & (px[:, 1] < 797.5)
+            det = sc.projected_detection(
+                sc.R1_K, sc.R1_DIST, T_cam_board, target, sc.R1_SIZE_PX, sigma_px, rng, 2.0
             )
-            det = Detection(ids, px[ids] + rng.normal(0.0, sigma_px, (len(ids), 2)))
         else:
             det = detect(T_cam_board, rng)
         frames.append(Frame(k, {"cam": det}, T_base_tool=T))

@@ -118,7 +118,9 @@ def test_translations_parallel_to_the_board_are_refused():
         # move within the board plane (board x, y axes in the base frame)
         T_base_tool[:3, 3] += T_base_board[:3, :3] @ np.array([0.02 * k, 0.015 * (k % 2), 0.0])
         T_cam_board = inv_T(T_base_tool @ sc.R1_T_TOOL_CAM) @ T_base_board
-        det = sc._detect(sc.R1_K, sc.R1_DIST, T_cam_board, s.problem.target, (1280, 800), 0.1, rng)
+        det = sc.projected_detection(
+            sc.R1_K, sc.R1_DIST, T_cam_board, s.problem.target, (1280, 800), 0.1, rng
+        )
         frames.append(Frame(k, {"cam": det}, T_base_tool=T_base_tool))
     with pytest.raises(DegenerateError, match="parallel to the board"):
         calibrate(replace(s.problem, frames=tuple(frames)))

@@ -455,7 +455,7 @@ def test_classic_session_of_a_two_camera_rig():
     frames = []
     for f in s.problem.frames:
         T_cam_board = inv_T(f.T_base_tool @ sc.R1_T_TOOL_CAM) @ s.T_target
-        right = sc._detect(
+        right = sc.projected_detection(
             sc.R1_K,
             sc.R1_DIST,
             T_right_cam @ T_cam_board,
@@ -487,7 +487,7 @@ def test_mixed_session_of_a_two_camera_rig():
     frames = []
     for k, f in enumerate(groups.problem.frames + singles.problem.frames):
         T_cam_board = inv_T(f.T_base_tool @ sc.R1_T_TOOL_CAM) @ groups.T_target
-        right = sc._detect(
+        right = sc.projected_detection(
             sc.R1_K,
             sc.R1_DIST,
             T_right_cam @ T_cam_board,
