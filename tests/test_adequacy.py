@@ -30,6 +30,7 @@ def test_clean_session_is_adequate_with_exact_poses_and_the_detector_noise_is_fo
     assert res.robot_accuracy.estimated
 
 
+@pytest.mark.slow  # several seconds: the second CI tier
 def test_rotations_in_degrees_are_marked_unusable():
     s = sc.r1(np.random.default_rng(12))
     frames = tuple(

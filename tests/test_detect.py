@@ -136,6 +136,7 @@ def test_pixel_convention_of_a_shifted_camera():
     assert abs(du[:, 0].mean() - 0.5) < 0.02 and abs(du[:, 1].mean()) < 0.02
 
 
+@pytest.mark.slow  # several seconds: the second CI tier
 def test_colour_input_and_min_corners():
     cam = replace(R1, colour=True)
     T = _pose(CHARUCO, 15, 0, 0.5)

@@ -59,6 +59,7 @@ def _H_inf_from_images(s: rs.RigScenario) -> np.ndarray:
     ],
     ids=["oak-stereo", "oak-three-cameras", "S5-general-motion"],
 )
+@pytest.mark.slow  # several seconds: the second CI tier
 def test_noise_free_rig_recovers_truth(make):
     s = make(np.random.default_rng(0))
     _assert_recovers(s, calibrate(s.problem))
@@ -121,6 +122,7 @@ def test_h_inf_in_result_is_K_R_Kinv_and_matches_eqs_58_61():
     assert rotation_angle_deg(R63, res.rig["T_left_right"].R) < 1e-7
 
 
+@pytest.mark.slow  # several seconds: the second CI tier
 def test_h_inf_keys_for_three_cameras():
     s = rs.oak_rig(np.random.default_rng(5), 0.0, cameras=("left", "right", "rgb"))
     res = calibrate(s.problem)

@@ -264,6 +264,7 @@ def test_protective_stop_during_a_move_raises_and_stops(fake, monkeypatch):
         assert bounded(robot.close, 10.0) < 8.0
 
 
+@pytest.mark.slow  # several seconds: the second CI tier
 @pytest.mark.parametrize("how", ["drop", "freeze"])
 def test_lost_connection_never_returns_a_stale_pose(fake, how):
     robot = URRobot(fake.host, frequency=FREQ_HZ)
@@ -289,6 +290,7 @@ def test_lost_connection_never_returns_a_stale_pose(fake, how):
         assert bounded(robot.close, 10.0) < 8.0
 
 
+@pytest.mark.slow  # several seconds: the second CI tier
 @pytest.mark.parametrize("how", ["drop", "freeze"])
 def test_link_lost_during_a_move_fails_within_seconds(fake, how):
     """A blocking moveL would wait up to 300 s inside ur-rtde; the driver watches the move."""
@@ -369,6 +371,7 @@ def test_reachability_below_5_10_does_not_trust_a_stale_register(make_fake, vers
         bounded(robot.close, 10.0)
 
 
+@pytest.mark.slow  # several seconds: the second CI tier
 def test_a_running_program_is_not_stopped_without_consent(make_fake):
     """ur-rtde's control interface stops a running program and uploads its own (issue 10.4)."""
     fake = make_fake("--program", "palletizing.urp")
@@ -402,6 +405,7 @@ def test_reduced_mode_is_normal_operation_and_the_payload_is_set(make_fake):
         bounded(robot.close, 10.0)
 
 
+@pytest.mark.slow  # several seconds: the second CI tier
 def test_a_slow_speed_slider_is_not_a_time_out(make_fake):
     """At a 20 % slider a 5 cm move takes 2.5 s: the deadline from the commanded speed alone
     (2 x 0.6 s + 1 s) aborted it (issue 10.6)."""
@@ -417,6 +421,7 @@ def test_a_slow_speed_slider_is_not_a_time_out(make_fake):
         bounded(robot.close, 10.0)
 
 
+@pytest.mark.slow  # several seconds: the second CI tier
 def test_pure_rotations_arrive_in_orientation(fake, robot):
     """Arrival judged on position only returned at once from a pure rotation (issue 10.6)."""
     T = robot.measured_pose()
