@@ -693,7 +693,7 @@ def _side_curve(
     s = np.arange(-half_px, half_px + 1e-9, 0.25)
     P = a + t[:, None, None] * u + s[None, :, None] * n
     prof = cv2.remap(
-        grey.astype(np.float32),
+        grey,
         P[..., 0].astype(np.float32),
         P[..., 1].astype(np.float32),
         cv2.INTER_LINEAR,
@@ -732,7 +732,8 @@ def _tag_edge_corners(grey: np.ndarray, q: np.ndarray, cells: float) -> np.ndarr
     side = float(np.mean(np.linalg.norm(q - np.roll(q, 1, axis=0), axis=1)))
     half = max(0.8 * side / cells, 2.0)
     centre = q.mean(axis=0)
-    curves = [_side_curve(grey, q[i], q[(i + 1) % 4], centre, half) for i in range(4)]
+    grey_f = grey.astype(np.float32)  # interpolated profiles without 8-bit rounding
+    curves = [_side_curve(grey_f, q[i], q[(i + 1) % 4], centre, half) for i in range(4)]
     if any(c is None for c in curves):
         return q
     out = q.copy()
