@@ -48,6 +48,8 @@ The ``plan:`` block of the cell file (every key optional)::
       min_frames_per_group: 3
       max_groups: 6
       max_frames_per_group: 8
+      extend_max_s: 60                 # robot time a run may add when its result misses the
+                                       # gate's one-sigma limits (0: never; routines/run.py)
 
 Only the reference camera is planned for (its
 visibility and its Fisher information); the other cameras of a rig are not checked.
@@ -57,7 +59,7 @@ from __future__ import annotations
 
 import argparse
 import shlex
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -70,7 +72,14 @@ from slidecal.routines.session import Fields
 from slidecal.solver.camera import project
 from slidecal.solver.degeneracy import check_configuration, nominal_K
 from slidecal.solver.errors import DegenerateError, HardwareFault, InputError
-from slidecal.solver.geometry import R_from_rvec, Rz, T_from_Rt, inv_T, rvec_from_R
+from slidecal.solver.geometry import (
+    R_from_rvec,
+    Rz,
+    T_from_Rt,
+    inv_T,
+    rotation_angle_deg,
+    rvec_from_R,
+)
 from slidecal.solver.linear import LinearGroup
 from slidecal.solver.named import (
     INTRINSIC_NAMES,
@@ -102,6 +111,7 @@ PLAN_KEYS = (
     "min_frames_per_group",
     "max_groups",
     "max_frames_per_group",
+    "extend_max_s",
 )
 GOAL_KEYS = ("fx_rel_std", "hand_eye_rot_std_deg", "hand_eye_t_std_mm")
 #: Largest tilt of the view against the board normal: the detector is tested to 40 deg.
@@ -161,6 +171,7 @@ class PlannerSettings:
     min_frames_per_group: int = 3
     max_groups: int = 6
     max_frames_per_group: int = 8
+    extend_max_s: float = 60.0
 
 
 def _number_list(f: Fields, key: str, default: Sequence[float]) -> tuple[float, ...]:
@@ -234,6 +245,7 @@ def planner_settings(cfg: CellConfig) -> PlannerSettings:
         min_frames_per_group=min_frames,
         max_groups=max_groups,
         max_frames_per_group=max_frames,
+        extend_max_s=f.number("extend_max_s", 60.0, minimum=0.0),
     )
 
 
@@ -596,6 +608,16 @@ def _candidates(
 
 
 # -- greedy search ----------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _Prior:
+    """Frames already recorded: their summed information (P, P), their number of orientation
+    groups, and the candidate groups of the same orientation (not chosen again)."""
+
+    info: np.ndarray
+    n_groups: int
+    groups: set[int]
+
+
 @dataclass
 class _Chosen:
     group: int  # index into the candidate list
@@ -637,9 +659,12 @@ def _greedy(
     s: PlannerSettings,
     timing: _Timing,
     via: np.ndarray,
+    prior: _Prior | None = None,
 ) -> tuple[list[_Chosen], float, np.ndarray | None, str]:
     """Add the frame (or new group of two frames) with the largest drop of the goal's predicted
     variance per second until the goal and the minimum structure are met or time runs out.
+    ``prior``: frames already recorded (an extension, :func:`extend_plan`): their information
+    counts, their groups count towards ``min_groups``, and new groups are chosen after them.
 
     Returns the choice, its predicted duration, its goal ratios (None: still singular) and why
     the search stopped: "met", "time" (over the budget) or "exhausted" (no candidate left)."""
@@ -647,7 +672,8 @@ def _greedy(
     P = len(fim.kinds)
     ridge = _ridge(fim, nom)
     chosen: list[_Chosen] = []
-    info = np.zeros((P, P))
+    info = np.zeros((P, P)) if prior is None else prior.info.copy()
+    n_prior = 0 if prior is None else prior.n_groups
     t_now = 0.0
     ratios = None
 
@@ -657,23 +683,23 @@ def _greedy(
 
     f_now = objective(info)
     while True:
-        cov = _covariance(info) if chosen else None
+        cov = _covariance(info) if chosen or n_prior else None
         ratios = goals.ratios(cov) if cov is not None else None
-        structure_ok = len(chosen) >= s.min_groups and all(
+        structure_ok = len(chosen) + n_prior >= s.min_groups and all(
             len(c.frames) >= s.min_frames_per_group for c in chosen
         )
         met = ratios is not None and bool(np.all(ratios <= 1.0))
-        if met and structure_ok and _linear_ok(cands, chosen, nom):
+        if met and structure_ok and (n_prior or _linear_ok(cands, chosen, nom)):
             return chosen, t_now, ratios, "met"
         only_fix = met and not structure_ok
         # the minimum structure first: min_groups groups of min_frames_per_group frames (fewer
         # groups cannot make the hand-eye translation observable, docs/METHOD.md Sec. 4)
-        building = len(chosen) < s.min_groups
+        building = len(chosen) + n_prior < s.min_groups
         short = any(len(c.frames) < s.min_frames_per_group for c in chosen)
         seq = _sequence(cands, chosen, via)
         last = seq[-1][1] if seq else timing.start
         best = None  # (score, dt, new info, action)
-        used = {c.group for c in chosen}
+        used = {c.group for c in chosen} | (prior.groups if prior is not None else set())
         # append a frame to an existing group
         for ci, c in enumerate(chosen):
             if len(c.frames) >= s.max_frames_per_group:
@@ -696,7 +722,7 @@ def _greedy(
         # open a new group with its pose and one displaced frame
         if (
             len(chosen) < s.max_groups
-            and not (only_fix and len(chosen) >= s.min_groups)
+            and not (only_fix and len(chosen) + n_prior >= s.min_groups)
             and not (building and short)
         ):
             for gi, g in enumerate(cands):
@@ -943,26 +969,8 @@ def make_plan(cfg: CellConfig, settings: PlannerSettings | None = None) -> PlanR
     if len(cands) < s.min_groups:
         raise InputError(_no_candidates_message(cfg, s, rejected, len(cands), nom), where=where)
     via = _via(cfg)
-    start = _start_pose(cfg)
-    timing = _Timing(cfg, s, start)
-    last_failure = ""
-    for _attempt in range(12):
-        assert fim is not None  # there are candidates
-        chosen, t_pred, ratios, stop = _greedy(cands, fim, nom, s, timing, via)
-        if stop != "met":
-            raise InputError(_goal_message(s, t_pred, ratios, stop), where=where)
-        plan = _to_plan(cfg, cands, chosen, via, ())
-        robot_s, bad, why = dry_run(plan, cfg)
-        if bad is None:
-            break
-        last_failure = why
-        _ban(cands, chosen, bad)
-    else:
-        raise InputError(
-            f"no plan passed the robot's motion check (last: {last_failure}); move the target "
-            "closer to the robot's usual workspace or widen robot.workspace",
-            where=where,
-        )
+    assert fim is not None  # there are candidates
+    plan, robot_s = _search(cfg, cands, fim, nom, s, _Timing(cfg, s, _start_pose(cfg)), via, where)
     try:
         pred = predict_std(plan, cfg, s)
     except DegenerateError as e:
@@ -979,6 +987,121 @@ def make_plan(cfg: CellConfig, settings: PlannerSettings | None = None) -> PlanR
     )
     plan = replace(plan, predicted_std=pred, duration_s=float(duration), notes=notes)
     return PlanReport(plan, ratios_d, sum(int(g.usable.sum()) for g in cands), rejected)
+
+
+def _search(
+    cfg: CellConfig,
+    cands: list[_Group],
+    fim: FrameInformation,
+    nom: _Nominal,
+    s: PlannerSettings,
+    timing: _Timing,
+    via: np.ndarray,
+    where: str,
+    before: Plan | None = None,
+    prior: _Prior | None = None,
+) -> tuple[Plan, float]:
+    """The greedy choice that passes the dry run (a failing move bans its pose and the search
+    runs again), as a plan after ``before`` (an extension: ``before``'s groups first); and its
+    robot time (moves and settling) in seconds. Raises ``InputError`` when none does."""
+    last_failure = ""
+    skip = 0 if before is None else sum(len(g) + (before.via is not None) for g in before.groups)
+    for _attempt in range(12):
+        chosen, t_pred, ratios, stop = _greedy(cands, fim, nom, s, timing, via, prior)
+        if stop != "met":
+            raise InputError(_goal_message(s, t_pred, ratios, stop), where=where)
+        plan = _to_plan(cfg, cands, chosen, via, ())
+        if before is not None:
+            plan = Plan.build(before.groups + plan.groups, before, via=before.via)
+        robot_s, bad, why = dry_run(plan, cfg)
+        if bad is None:
+            return plan, robot_s
+        last_failure = why
+        if bad < skip:  # the recorded part itself fails: nothing to ban in the new part
+            break
+        _ban(cands, chosen, bad - skip)
+    raise InputError(
+        f"no plan passed the robot's motion check (last: {last_failure}); move the target "
+        "closer to the robot's usual workspace or widen robot.workspace",
+        where=where,
+    )
+
+
+def extend_plan(
+    cfg: CellConfig,
+    plan: Plan,
+    goal: PlanGoal,
+    achieved: Mapping[str, float],
+    corner_noise_px: float,
+    robot_noise_mm: float,
+    robot_noise_deg: float,
+    max_duration_s: float,
+) -> PlanReport:
+    """``plan`` with more orientation groups after it, for a run whose recorded frames missed
+    the accuracy its gate asks for: the greedy search of :func:`make_plan` with the frames of
+    ``plan`` already counted, the noise the data showed (``corner_noise_px``, the robot's
+    accuracy ``robot_noise_mm`` / ``robot_noise_deg`` per axis) instead of the cell's prior, the
+    ``goal`` to meet, and orientations not visited yet (a systematic arm error repeats at a
+    repeated pose, so going back adds less than the model would credit). ``achieved``: the
+    one-sigma the recorded frames gave, per goal key (as :class:`PlanGoal`'s): where it exceeds
+    the prediction for those frames (the arm's error is partly systematic, which the
+    prediction's independent per-frame errors understate), the goal is tightened by that
+    factor. The new groups take at most ``max_duration_s`` of robot time. Raises
+    ``InputError`` (with the reason) when no extension within that time is predicted to meet
+    the goal.
+    """
+    options = replace(
+        cfg.options, robot_noise_m=robot_noise_mm / 1000.0, robot_noise_deg=robot_noise_deg
+    )
+    cfg_x = replace(cfg, options=options)
+    base = planner_settings(cfg)
+    where = f"{cfg.source}: plan (extension)"
+    s = replace(base, corner_noise_px=corner_noise_px)
+    try:
+        before = goal_ratios(predict_std(plan, cfg_x, s), cfg_x, PlanGoal(1.0, 1.0, 1.0))
+    except DegenerateError:
+        before = {}
+    tight: dict[str, float | None] = dict.fromkeys(GOAL_KEYS)
+    for k in GOAL_KEYS:
+        target = getattr(goal, k)
+        if target is not None:
+            pred, got = before.get(k), achieved.get(k)
+            factor = got / pred if pred and got and np.isfinite(got / pred) else 1.0
+            tight[k] = target / max(1.0, factor)
+    goal = PlanGoal(**tight, max_duration_s=max_duration_s)
+    s = replace(s, goal=goal)
+    nom = _nominal(cfg_x, s)
+    cands, rejected, fim = _candidates(cfg_x, nom, s)
+    if fim is None:
+        raise InputError("no candidate view of the target is left to extend the plan", where=where)
+    T_old = np.array([T for _, T in plan.poses])
+    sees = [len(nom.detection(nom.T_cam_board(T)).ids) >= 4 for T in T_old]
+    info = frame_information(nom, T_old[sees]).per_frame.sum(axis=0)
+    R_first = [g[0][:3, :3] for g in plan.groups]
+    same = {
+        i
+        for i, g in enumerate(cands)
+        if any(rotation_angle_deg(R.T @ g.T_base_tool[0][:3, :3]) < 1.0 for R in R_first)
+    }
+    prior = _Prior(info, len(plan.groups), same)
+    via = plan.via if plan.via is not None else _via(cfg)
+    timing = _Timing(cfg, s, T_old[-1])
+    ext, robot_s = _search(cfg_x, cands, fim, nom, s, timing, via, where, plan, prior)
+    try:
+        pred = predict_std(ext, cfg_x, s)
+    except DegenerateError as e:
+        raise InputError(f"the extended plan is degenerate ({e})", where=where) from None
+    n_new = ext.n_poses - plan.n_poses
+    ratios = goal_ratios(pred, cfg_x, goal)
+    notes = plan.notes + (
+        f"extended by {len(ext.groups) - len(plan.groups)} groups, {n_new} frames (the first "
+        f"run's data: corner noise {corner_noise_px:.3g} px, robot accuracy "
+        f"{robot_noise_mm:.3g} mm / {robot_noise_deg:.3g} deg); predicted goal ratios "
+        + ", ".join(f"{k} {v:.2f}" for k, v in ratios.items()),
+    )
+    duration = robot_s + ext.n_poses * s.capture_s
+    ext = replace(ext, predicted_std=pred, notes=notes, duration_s=float(duration))
+    return PlanReport(ext, ratios, sum(int(g.usable.sum()) for g in cands), rejected)
 
 
 def _to_plan(cfg, cands, chosen, via, notes) -> Plan:  # noqa: ANN001 - internal helper

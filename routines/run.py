@@ -27,10 +27,11 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +39,7 @@ import numpy as np
 
 from slidecal.routines.config import CellConfig, load_config
 from slidecal.routines.plan import Plan, check_plan, read_plan, write_plan
-from slidecal.routines.planner import make_plan
+from slidecal.routines.planner import PlanGoal, extend_plan, make_plan, planner_settings
 from slidecal.routines.progress import Progress
 from slidecal.routines.results_io import (
     RESULT_FILE,
@@ -412,31 +413,49 @@ def run_calibration(
             check_user_plan(plan, cfg, "plan")
         plan = plan if plan is not None else make_plan(cfg).plan
     inst_result, inst_path = installed_calibration(installed if installed is not None else install)
+    if cfg.simulated and cell is None:  # one simulated cell for the run and its extensions
+        from slidecal.mocks.cell import SimulatedCell
+
+        cell = SimulatedCell.from_config(cfg, seed)
 
     prog = Progress.from_option(progress, plan.n_poses)
-    rec = record_session(
-        cfg,
-        plan,
-        out,
-        prog,
-        lock_key=_lock_key(config, cfg),
+    record = partial(
+        record_session, cfg, out=out, prog=prog, lock_key=_lock_key(config, cfg), cell=cell
+    )
+    record = partial(record, retries=retries, faults=faults)
+    rec = record(
+        plan=plan,
         start=start,
         resume=resume is not None,
         recording=recording,
         spawn=spawn,
         seed=seed,
-        cell=cell,
-        retries=retries,
-        faults=faults,
     )
     truth, robot, log = rec.truth, rec.robot, rec.log
 
-    prog.message("solving")
-    session = load_session(out)  # solve what is on disk: the run can be replayed exactly
-    truth = session.simulation  # the truth as recorded, with the poses the arm really reached
     from slidecal.solver.calibrate import calibrate
 
-    result = calibrate(session.problem)
+    notes: list[str] = []
+    for extension in range(EXTEND_ROUNDS + 1):
+        prog.message("solving")
+        session = load_session(out)  # solve what is on disk: the run can be replayed exactly
+        result = calibrate(session.problem)
+        if extension == EXTEND_ROUNDS:
+            break
+        longer, why = extend_for_limits(cfg, plan, result, limits, session)
+        if longer is None:
+            if why:
+                notes.append(why)
+                prog.event(why)
+            break
+        n_done, plan = plan.n_poses, longer
+        said = f"extending the plan by {plan.n_poses - n_done} frames: {why}"
+        notes.append(said)
+        prog.event(said)
+        prog.total = plan.n_poses
+        rec = record(plan=plan, start=n_done, resume=True, extended=said, log=log)
+        robot = rec.robot
+    truth = session.simulation  # the truth as recorded, with the poses the arm really reached
     fin = finish_solve(
         result,
         out,
@@ -450,6 +469,7 @@ def run_calibration(
         installed=inst_result,
         installed_path=inst_path,
         plan_poses=plan.n_poses,
+        notes=notes,
     )
     rec_path = None
     if log is not None:
@@ -504,11 +524,14 @@ def record_session(
     retries: int = DEFAULT_RETRIES,
     extra: Mapping[str, Any] | None = None,
     faults: Any = None,
+    extended: str | None = None,
+    log: Any = None,
 ) -> Recorded:
     """Connect, lock the cell, move through ``plan`` (from pose ``start``), capture, detect and
-    write the session ``out`` (``resume``: append to the session there). On a fault or an
-    interrupt (Ctrl-C, SIGTERM, SIGHUP) the robot is stopped, the session marked aborted with
-    the event, and the exception raised again."""
+    write the session ``out`` (``resume``: append to the session there; ``extended``: the plan
+    grew, why, and ``plan.yaml`` is rewritten). ``log``: the run's open rerun log, to go on
+    with. On a fault or an interrupt (Ctrl-C, SIGTERM, SIGHUP) the robot is stopped, the
+    session marked aborted with the event, and the exception raised again."""
     truth: dict[str, Any] | None = None
     if cfg.simulated:
         if cell is None:
@@ -530,7 +553,6 @@ def record_session(
         lock.acquire()
         if lock.stale:
             prog.event(lock.stale)
-    log = None
     try:
         with signals_as_interrupt():
             prog.message("connecting")
@@ -543,17 +565,17 @@ def record_session(
 
                 found = {**record_devices(rig, out, cfg.standoff_m), **_controller(robot)}
                 writer = _open_writer(out, cfg, specs, truth, resume, {**found, **(extra or {})})
-                if not resume:
+                if not resume or extended:
                     write_plan(plan, out / "plan.yaml")
-                else:
+                if extended:
+                    writer.add_event("extended", extended)
+                elif resume:
                     writer.add_event("resumed", f"resumed at frame {start + 1} of {plan.n_poses}")
                     prog.event(f"resuming {out} at frame {start + 1} of {plan.n_poses}")
-                if recording or spawn:
+                if log is None and (recording or spawn):
                     log = _open_log(out, cfg, specs, recording, spawn, writer)
                 try:
-                    _acquire(
-                        robot, rig, plan, cfg, writer, log, prog, start, retries, faults
-                    )
+                    _acquire(robot, rig, plan, cfg, writer, log, prog, start, retries, faults)
                 except (HardwareFault, KeyboardInterrupt, OSError) as e:
                     _abort(robot, writer, log, prog, e, out)
                 writer.finish("complete")
@@ -799,6 +821,78 @@ def _acquire(
             i += 1
 
 
+#: How many times a run extends its plan when its result misses the gate's one-sigma limits.
+EXTEND_ROUNDS = 2
+#: An extension plans for this fraction of each one-sigma limit (the prediction is a model).
+EXTEND_MARGIN = 0.7
+
+
+def extend_for_limits(
+    cfg: CellConfig,
+    plan: Plan,
+    result: CalibrationResult,
+    limits: Limits,
+    session: Any,
+) -> tuple[Plan | None, str]:
+    """The longer plan a run records next when its result misses only the gate's one-sigma
+    limits (the data is sound but not enough of it: an arm less accurate than the plan was made
+    for), with why; or None and why not (an empty reason when nothing was missed).
+
+    Planned for the accuracy the data showed (:func:`slidecal.routines.planner.extend_plan`):
+    the reference camera's residual rms, the robot's learned accuracy, the one-sigma each limit
+    asks for times :data:`EXTEND_MARGIN`, within the cell's ``plan.extend_max_s`` of robot time
+    (0: never extend). Only the planner's plans are extended (they carry its prediction,
+    ``predicted_std``); a plan written by hand is run as written. Simulated and real cells
+    alike: the extension is checked like any plan before the robot moves.
+    """
+    verdict = judge(result, limits, session.problem, command="run")
+    if verdict.verdict != "rejected":
+        return None, ""
+    failed = verdict.reasons
+    if any(c.test != "std" for c in failed):
+        return None, ""  # more frames cannot cure a model that does not fit
+    budget_s = planner_settings(cfg).extend_max_s
+    if budget_s <= 0:
+        return None, "not extended: plan.extend_max_s is 0"
+    if plan.predicted_std is None:
+        return None, "not extended: a plan written by hand is run as written"
+    cam = result.cameras.get(cfg.reference_camera)
+    he = result.hand_eye
+    if cam is None or he is None:
+        return None, "not extended: the reference camera or the hand-eye was not determined"
+    K = np.asarray(cam.K, dtype=float)
+    rel = [
+        float(cam.std[p]) / abs(v)
+        for p, v in (("fx", K[0, 0]), ("fy", K[1, 1]))
+        if cam.std.get(p) is not None
+    ]
+    achieved = {
+        "fx_rel_std": max(rel) if rel else float("nan"),
+        "hand_eye_rot_std_deg": he.std_rot_deg if he.std_rot_deg is not None else float("nan"),
+        "hand_eye_t_std_mm": he.std_t_mm if he.std_t_mm is not None else float("nan"),
+    }
+    goal = PlanGoal(
+        fx_rel_std=EXTEND_MARGIN * limits.fx_rel_std,
+        hand_eye_rot_std_deg=EXTEND_MARGIN * limits.hand_eye_rot_std_deg,
+        hand_eye_t_std_mm=EXTEND_MARGIN * limits.hand_eye_t_std_mm,
+    )
+    acc = result.robot_accuracy
+    t_mm = acc.translation_mm if acc is not None else cfg.options.robot_noise_m * 1000.0
+    rot_deg = acc.rotation_deg if acc is not None else cfg.options.robot_noise_deg
+    try:
+        report = extend_plan(
+            cfg, plan, goal, achieved, float(cam.reproj_rms_px), t_mm, rot_deg, budget_s
+        )
+    except InputError as e:
+        return None, f"not extended: {e}"
+    if report.plan.n_poses == plan.n_poses:
+        return None, "not extended: the planner predicts no gain from more frames"
+    missed = "; ".join(c.message for c in failed)
+    return report.plan, (
+        f"{missed} (robot accuracy {t_mm:.2f} mm / {rot_deg:.3f} deg as the data shows it)"
+    )
+
+
 def finish_solve(
     result: CalibrationResult,
     session_dir: Path,
@@ -813,8 +907,10 @@ def finish_solve(
     installed_path: str | None = None,
     result_path: Path | None = None,
     plan_poses: int | None = None,
+    notes: Sequence[str] = (),
 ) -> dict[str, Any]:
-    """Judge a solved session and write what the verdict allows.
+    """Judge a solved session and write what the verdict allows (``notes``: what the run
+    itself has to say, e.g. that it extended its plan, added to the verdict's notes).
 
     Always: ``verdict.yaml`` in the session, ``summary.txt`` next to the result, the report
     (``report.html``, ``report.png``) in the session. Accepted or drifted: ``result.yaml`` and
@@ -832,6 +928,8 @@ def finish_solve(
         session_status=status,
         installed_path=installed_path,
     )
+    if notes:
+        verdict = replace(verdict, notes=tuple(notes) + verdict.notes)
     target = result_path or session_dir / RESULT_FILE
     if verdict.verdict == "rejected":
         target = target.parent / REJECTED_DIR / target.name
