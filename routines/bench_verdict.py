@@ -232,11 +232,12 @@ def part_gate(n: int, work: Path) -> list[str]:
     lim = Limits()
     t0 = time.monotonic()
     rows: dict[str, list] = {name: [] for name, _ in CASES}
-    alone = 0
+    alone = alone_ext = 0
     plan = make_plan(load_config()).plan  # the same for every run (the cell's plan: block)
     for seed in range(1, n + 1):
         inst, inst_problem = _run(load_config(), work, seed, 1, plan)
         alone += inst.verdict.verdict != "accepted"
+        alone_ext += _extended(inst)
         for k, (name, ch) in enumerate(CASES):
             cfg = load_config(overrides=cell_overrides(**ch)) if ch else load_config()
             o, p = _run(cfg, work, seed, 2 + k, plan)
@@ -247,7 +248,7 @@ def part_gate(n: int, work: Path) -> list[str]:
                 installed_problem=inst_problem,
             )
             param = any(c.test == "installed" and not c.passed for c in v.checks)
-            rows[name].append((v.verdict != "accepted", param, *_paired(v)))
+            rows[name].append((v.verdict != "accepted", param, *_paired(v), _extended(o)))
     lines = [
         f"{n} simulated cells (cell seeds 1..{n}: each its own arm error and board pose). Per "
         "cell: an installed run, then a new run of the same cell (same arm, same board, same "
@@ -255,12 +256,14 @@ def part_gate(n: int, work: Path) -> list[str]:
         "of the camera (the simulated truth changed); the new run's verdict against the "
         "installed one. 'paired': the corner-by-corner comparison at the poses both runs "
         f"share (drift: beyond {Z_LIMIT:g} sigma and {lim.max_change_px:g} px); 'parameters': "
-        "the change of the parameters in combined sigmas (and px).",
+        "the change of the parameters in combined sigmas (and px); 'extended': runs that "
+        "missed a one-sigma limit with the plan's frames and extended their plan "
+        "(docs/UNATTENDED.md).",
         "",
         "| case | flagged (drifted or rejected) | paired flagged | parameters flagged | "
-        "paired px (min-max) | paired sigma (min-max) |",
-        "|---|---|---|---|---|---|",
-        f"| installed run alone | {_rate(alone, n)} | - | - | - | - |",
+        "paired px (min-max) | paired sigma (min-max) | extended |",
+        "|---|---|---|---|---|---|---|",
+        f"| installed run alone | {_rate(alone, n)} | - | - | - | - | {alone_ext} |",
     ]
     for name, ch in CASES:
         r = rows[name]
@@ -273,10 +276,15 @@ def part_gate(n: int, work: Path) -> list[str]:
         lines.append(
             f"| {name} | {_rate(flagged, n)}: {what} | {_rate(sum(x[2] for x in r), n)} | "
             f"{_rate(sum(x[1] for x in r), n)} | {_span([x[3] for x in r], '.2f')} | "
-            f"{_span([x[4] for x in r], '.1f')} |"
+            f"{_span([x[4] for x in r], '.1f')} | {sum(x[5] for x in r)} |"
         )
     lines += ["", f"Took {time.monotonic() - t0:.0f} s ({5 * n} runs)."]
     return lines
+
+
+def _extended(o) -> bool:  # noqa: ANN001 - a RunOutcome
+    """Whether the run extended its plan (its verdict says so)."""
+    return any(n.startswith("extending the plan") for n in o.verdict.notes)
 
 
 def part_garbage(work: Path) -> list[str]:
