@@ -380,7 +380,9 @@ class BundleModel:
         self.trend_sigma = structure.trend_sigma
         self._normal_cache: tuple | None = None  # (state, pixel weights, blocks) of the last
         self._eval_cache: tuple | None = None  # (state, evaluate's output) of the last
+        self._motion_cache: tuple | None = None  # (state, true_motions) of the last
         self._index()
+        self.shared_map = self._shared_map()
 
     # -- state updates -------------------------------------------------------------------------
     def apply(self, state: ModelState, delta: np.ndarray) -> ModelState:
@@ -520,9 +522,9 @@ class BundleModel:
             r = np.concatenate([r, scale * values])
         if not jacobian:
             return r, None
-        if split:
-            P_ = self.slices["E"].start
-            assert P_ + 6 * len(self.problem.frames) == len(self.names)
+        if split:  # the shared corrections' columns derive from the pose block (normal_blocks)
+            P_ = self.shared_start
+            assert self.slices["E"].stop == len(self.names)
         J = np.zeros((n, 2, P_))
         d_P = np.empty((n, 2, 3))
         unit, skew_on = self.problem.options.unit_aspect, self.problem.options.skew
@@ -575,6 +577,8 @@ class BundleModel:
             J[rows, 1, self.o_s_col[has_s]] = vals[:, 1]
         if "E" in self.slices:
             blk = self._pose_block(A, RX, RM, p_Y, Ms)
+            if split:
+                return r, J.reshape(2 * n, P_), blk
             if "U" in self.slices:  # a group's correction moves its frames like theirs
                 ucols = self.slices["U"].start + self.st.pose_groups[f][:, None] * 6 + np.arange(6)
                 rows_u = np.arange(n)[:, None]
@@ -582,8 +586,6 @@ class BundleModel:
                 J[rows_u, 1, ucols] = blk[:, 1, :]
             if "V" in self.slices:  # a trend moves a frame like its own correction, times c_k
                 self._trend_columns(J, blk)
-            if split:
-                return r, J.reshape(2 * n, P_), blk
             cols = self.slices["E"].start + f[:, None] * 6 + np.arange(6)
             rows = np.arange(n)[:, None]
             J[rows, 0, cols] = blk[:, 0, :]
@@ -634,10 +636,11 @@ class BundleModel:
         if cache is not None and cache[0] is state and np.array_equal(cache[1], w):
             rp, A_gg, g_g, A_gE, A_EE, g_E = cache[2:]  # only the priors' weights moved
         else:
-            r, J0, B = self._evaluation(state)
+            r, J0, B = self._evaluation(state)  # J0: the columns before the shared ones
             rp = r[: 2 * n]
+            P1 = J0.shape[1]
             A_gg, g_g = self._weighted_gram(J0, w, rp)
-            A_gE = np.zeros((P0, F, 6))
+            A_gE = np.zeros((P1, F, 6))
             A_EE = np.zeros((F, 6, 6))
             g_E = np.zeros((F, 6))
             B2 = B.reshape(2 * n, 6)
@@ -647,6 +650,8 @@ class BundleModel:
                 A_gE[:, k] = J0[rows].T @ Bwk  # the frame's rows: its cameras' columns
                 A_EE[k] = B2[rows].T @ Bwk
                 g_E[k] = Bwk.T @ rp[rows]
+            if P1 < P0:  # the shared corrections: their columns are the frames' ones times S
+                A_gg, g_g, A_gE = self._with_shared(A_gg, g_g, A_gE, A_EE, g_E)
             self._normal_cache = (state, w.copy(), rp, A_gg, g_g, A_gE, A_EE, g_E)
         ps = self.prior_scale
         r_prior = [ps * state.E.reshape(-1)]
@@ -666,6 +671,64 @@ class BundleModel:
             A_gg[iu, iu] += wu * pu * pu
             g_g[iu] += wu * pu * r_prior[-1]
         return NormalBlocks(np.concatenate([rp, *r_prior]), A_gg, g_g, A_gE, A_EE, g_E)
+
+    @property
+    def shared_start(self) -> int:
+        """First column of the corrections shared by several frames (the groups' ``U``, the
+        trends' ``V``; they sit just before the frames' ``E``); ``E``'s start without them."""
+        for key in ("U", "V", "E"):
+            if key in self.slices:
+                return self.slices[key].start
+        return len(self.names)
+
+    def _shared_map(self) -> np.ndarray | None:
+        """``S`` (F, 6, m): the shared corrections' m columns as combinations of the frames'
+        correction columns, ``J_shared = J_E S`` (a group's correction moves each of its frames
+        like the frame's own; a trend's like the frame's own times its offset ``c_k``). None
+        without shared corrections."""
+        if "E" not in self.slices:
+            return None
+        s0, st = self.shared_start, self.st
+        F, m = len(self.problem.frames), self.slices["E"].start - s0
+        if m == 0:
+            return None
+        S = np.zeros((F, 6, m))
+        k = np.arange(F)
+        if "U" in self.slices:
+            u0 = self.slices["U"].start - s0
+            for a in range(6):
+                S[k, a, u0 + 6 * st.pose_groups + a] = 1.0
+        if "V" in self.slices:
+            v0 = self.slices["V"].start - s0
+            for g, dims in enumerate(st.trend_dims):
+                kg = np.flatnonzero(st.trend_groups == g)
+                o = v0 + self.trend_offsets[g]
+                for ai, a in enumerate(TREND_AXES):
+                    S[kg, a, o + ai * dims : o + (ai + 1) * dims] = st.trend_coords[kg, :dims]
+        return S
+
+    def _with_shared(
+        self,
+        A_gg: np.ndarray,
+        g_g: np.ndarray,
+        A_gE: np.ndarray,
+        A_EE: np.ndarray,
+        g_E: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The global blocks extended by the shared corrections' columns ``J_E S``
+        (:meth:`_shared_map`), from the frames' pixel blocks alone: ``A_gE S``, ``S' A_EE S``,
+        ``S' A_EE`` and ``S' g_E`` (block-diagonal products, no pass over the rows)."""
+        S = self.shared_map
+        F, _, m = S.shape
+        P1 = len(g_g)
+        S2 = S.reshape(6 * F, m)
+        Z = A_EE @ S  # (F, 6, m); A_EE is symmetric: Z[k]' = S[k]' A_EE[k]
+        A_ss = S2.T @ Z.reshape(6 * F, m)
+        A_gs = A_gE.reshape(P1, 6 * F) @ S2
+        A = np.empty((P1 + m, P1 + m))
+        A[:P1, :P1], A[:P1, P1:], A[P1:, :P1], A[P1:, P1:] = A_gg, A_gs, A_gs.T, A_ss
+        g = np.concatenate([g_g, S2.T @ g_E.reshape(-1)])
+        return A, g, np.concatenate([A_gE, np.transpose(Z, (2, 0, 1))], axis=0)
 
     @staticmethod
     def _weighted_gram(
@@ -727,16 +790,16 @@ class BundleModel:
         its own, its orientation group's and its group's trend at its offset; None without."""
         if state.E is None:
             return None
-        st, E = self.st, state.E.copy()
-        if state.U is not None and st.pose_groups is not None:
-            E += state.U[st.pose_groups]
-        if state.V is not None and "V" in self.slices:
-            for g, m in enumerate(st.trend_dims):
-                k = np.flatnonzero(st.trend_groups == g)
-                o = self.trend_offsets[g]
-                D = state.V[o : o + len(TREND_AXES) * m].reshape(len(TREND_AXES), m)
-                E[np.ix_(k, TREND_AXES)] += st.trend_coords[k, :m] @ D.T
-        return E
+        if self.shared_map is None:
+            return state.E.copy()
+        parts = []  # the shared corrections' values, in their columns' order
+        for key, values in (("U", state.U), ("V", state.V)):
+            if key in self.slices:
+                sl = self.slices[key]
+                parts.append(np.zeros(sl.stop - sl.start) if values is None else values.ravel())
+        S = self.shared_map
+        F, _, m = S.shape
+        return state.E + (S.reshape(6 * F, m) @ np.concatenate(parts)).reshape(F, 6)
 
     @property
     def group_prior_scale(self) -> np.ndarray:
@@ -754,7 +817,17 @@ class BundleModel:
         return self.sigma_px * np.tile(one, len(self.problem.frames))
 
     def true_motions(self, state: ModelState) -> np.ndarray:
-        """``M_k`` (F, 4, 4) with the Case 2 lengths and the robot pose corrections applied."""
+        """``M_k`` (F, 4, 4) with the Case 2 lengths and the robot pose corrections applied
+        (read-only: kept for the last state, which every frame's ``T_ref_board`` asks for)."""
+        cache = self._motion_cache
+        if cache is not None and cache[0] is state:
+            return cache[1]
+        Ms = self._true_motions(state)
+        Ms.setflags(write=False)
+        self._motion_cache = (state, Ms)
+        return Ms
+
+    def _true_motions(self, state: ModelState) -> np.ndarray:
         st = self.st
         if st.pose_sigma is not None and state.E is not None:
             E = self.pose_corrections(state)
@@ -904,10 +977,11 @@ def _lm(
     state: ModelState,
     weights: np.ndarray,
     max_iter: int,
-) -> tuple[ModelState, bool, int, np.ndarray]:
-    """Levenberg-Marquardt from ``state``: the state reached, whether it converged, the
-    iterations, and the residuals (R,) of the state reached (the caller needs no new pass)."""
-    lam = 1e-4
+    lam: float = 1e-4,
+) -> tuple[ModelState, bool, int, np.ndarray, float]:
+    """Levenberg-Marquardt from ``state`` with the damping ``lam`` to start: the state
+    reached, whether it converged, the iterations, the residuals (R,) of the state reached (the
+    caller needs no new pass) and the damping reached (a warm start for the next call)."""
     nb = model.normal_blocks(state, weights)
     r = nb.r
     cost = float(np.sum(weights * r * r))
@@ -920,7 +994,7 @@ def _lm(
             except np.linalg.LinAlgError:
                 lam *= 10.0
                 if lam > 1e12:
-                    return state, False, it, r
+                    return state, False, it, r, lam
                 continue
             new = model.apply(state, delta)
             r_new, _ = model.evaluate(new, jacobian=False)
@@ -929,7 +1003,7 @@ def _lm(
                 break
             lam *= 10.0
             if lam > 1e12:
-                return state, cost < 1e-20, it, r
+                return state, cost < 1e-20, it, r, lam
         # a relative decrease below 1e-10 moves no parameter by more than ~1e-5 of its std
         small_step = cost - cost_new <= 1e-10 * max(cost, 1e-30) + 1e-24
         state, cost, r = new, cost_new, r_new
@@ -938,7 +1012,7 @@ def _lm(
             converged = True
             break
         nb = model.normal_blocks(state, weights)
-    return state, converged, it, r
+    return state, converged, it, r, lam
 
 
 @functools.cache
@@ -1390,7 +1464,7 @@ def _refine(
     steps = min(1, max_iter) if estimate else max_iter
     for _ in range(40 if estimate else 10):
         weights = inlier * cam_w
-        state, converged, it, r = _lm(model, state, weights, steps)
+        state, converged, it, r, _ = _lm(model, state, weights, steps)
         total_it += it
         changed = False
         if estimate:
@@ -1430,7 +1504,7 @@ def _refine(
         if estimate:  # the noise levels still creep (toward the floor, or slowly): keep the
             # last ones and converge the parameters under them, so the estimate is the
             # minimum of a definite model and not a point part way along the creep
-            state, converged, it, _ = _lm(model, state, inlier * cam_w, max_iter)
+            state, converged, it, _, _ = _lm(model, state, inlier * cam_w, max_iter)
             total_it += it
             vce_note.append(
                 f"the noise levels were still moving after {vce_step[0]} updates; the last "
