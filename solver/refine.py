@@ -1462,9 +1462,14 @@ def _refine(
     # while the variance components move, a few Gauss-Newton steps between their updates
     # reach the joint fixed point as surely as full solves, in a third of the time
     steps = min(1, max_iter) if estimate else max_iter
+    lam = 1e-4
     for _ in range(40 if estimate else 10):
         weights = inlier * cam_w
-        state, converged, it, r, _ = _lm(model, state, weights, steps)
+        # the full solves after the levels' steps start from the damping the last step reached
+        # (a fresh 1e-4 damps the weakly determined pose corrections' directions: two more
+        # iterations to the same minimum)
+        warm = estimate and steps == max_iter
+        state, converged, it, r, lam = _lm(model, state, weights, steps, lam if warm else 1e-4)
         total_it += it
         changed = False
         if estimate:
