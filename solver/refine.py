@@ -472,7 +472,11 @@ class BundleModel:
             self.frame_rows[c.frame_index] = slice(start, c.rows.stop)
 
     def evaluate(
-        self, state: ModelState, jacobian: bool = True, split: bool = False
+        self,
+        state: ModelState,
+        jacobian: bool = True,
+        split: bool = False,
+        transposed: bool = False,
     ) -> tuple[np.ndarray, np.ndarray | None]:
         """Residuals (R,) (projected minus observed, pixels) and the Jacobian (R, P).
 
@@ -480,6 +484,10 @@ class BundleModel:
         ``split`` (with pose corrections, whose columns come last): the pixel rows' Jacobian
         without the pose-correction columns (2 n, P0) and, third, each observation's block of
         its own frame's correction (n, 2, 6); the prior rows are left to the caller.
+        ``transposed`` (with ``split``, or without pose corrections): the pixel rows' Jacobian
+        transposed, (P, 2 n), every observation's u row first, then every v row
+        (``axis_rows`` orders a row vector so): one parameter's column is contiguous, and
+        the normal matrix's product runs at the speed of a symmetric rank-k update.
         """
         n, P_ = self.n_obs, len(self.names)
         st = self.st
@@ -525,7 +533,7 @@ class BundleModel:
         if split:  # the shared corrections' columns derive from the pose block (normal_blocks)
             P_ = self.shared_start
             assert self.slices["E"].stop == len(self.names)
-        J = np.zeros((n, 2, P_))
+        J = np.zeros((n, 2, P_), order="F" if transposed else "C")
         d_P = np.empty((n, 2, 3))
         unit, skew_on = self.problem.options.unit_aspect, self.problem.options.skew
         for ci, c in enumerate(self.cams):
@@ -578,7 +586,7 @@ class BundleModel:
         if "E" in self.slices:
             blk = self._pose_block(A, RX, RM, p_Y, Ms)
             if split:
-                return r, J.reshape(2 * n, P_), blk
+                return r, self._pixel_jacobian(J, transposed), blk
             if "U" in self.slices:  # a group's correction moves its frames like theirs
                 ucols = self.slices["U"].start + self.st.pose_groups[f][:, None] * 6 + np.arange(6)
                 rows_u = np.arange(n)[:, None]
@@ -599,7 +607,14 @@ class BundleModel:
                 prior_u[np.arange(prior_u.shape[0]), np.arange(su.start, su.stop)] = scale
                 blocks.append(prior_u)
             return r, np.vstack(blocks)
-        return r, J.reshape(2 * n, P_)
+        return r, self._pixel_jacobian(J, transposed)
+
+    @staticmethod
+    def _pixel_jacobian(J: np.ndarray, transposed: bool) -> np.ndarray:
+        """``J`` (n, 2, P) as the (2 n, P) Jacobian, or (a view) as its transpose (P, 2 n) in
+        ``axis_rows`` order when ``transposed`` (``J`` then Fortran-ordered)."""
+        n, _, P_ = J.shape
+        return J.reshape(2 * n, P_, order="F").T if transposed else J.reshape(2 * n, P_)
 
     def normal_equations(
         self, state: ModelState, weights: np.ndarray
@@ -621,10 +636,11 @@ class BundleModel:
         global. The evaluation is kept for the last state, so reweighing (a camera's rows, the
         priors) costs products only.
         """
+        ax = self.axis_rows
         if "E" not in self.slices:
-            r, J = self._evaluation(state)
-            A, g = self._weighted_gram(J, weights, r)
-            P0 = J.shape[1]
+            r, JT = self._evaluation(state)
+            A, g = self._weighted_gram(JT, weights[ax], r[ax])
+            P0 = JT.shape[0]
             return NormalBlocks(
                 r, A, g, np.zeros((P0, 0, 6)), np.zeros((0, 6, 6)), np.zeros((0, 6))
             )
@@ -636,18 +652,21 @@ class BundleModel:
         if cache is not None and cache[0] is state and np.array_equal(cache[1], w):
             rp, A_gg, g_g, A_gE, A_EE, g_E = cache[2:]  # only the priors' weights moved
         else:
-            r, J0, B = self._evaluation(state)  # J0: the columns before the shared ones
+            # JT (P1, 2 n): the columns before the shared ones, transposed, in axis_rows order
+            r, JT, B = self._evaluation(state)
             rp = r[: 2 * n]
-            P1 = J0.shape[1]
-            A_gg, g_g = self._weighted_gram(J0, w, rp)
+            P1 = JT.shape[0]
+            A_gg, g_g = self._weighted_gram(JT, w[ax], rp[ax])
             A_gE = np.zeros((P1, F, 6))
             A_EE = np.zeros((F, 6, 6))
             g_E = np.zeros((F, 6))
             B2 = B.reshape(2 * n, 6)
             Bw = B2 * w[:, None]
+            Bw3 = Bw.reshape(n, 2, 6)
             for k, rows in self.frame_rows.items():  # each frame's rows are contiguous
                 Bwk = Bw[rows]
-                A_gE[:, k] = J0[rows].T @ Bwk  # the frame's rows: its cameras' columns
+                a, b = rows.start // 2, rows.stop // 2  # its observations: u, then v columns
+                A_gE[:, k] = JT[:, a:b] @ Bw3[a:b, 0] + JT[:, n + a : n + b] @ Bw3[a:b, 1]
                 A_EE[k] = B2[rows].T @ Bwk
                 g_E[k] = Bwk.T @ rp[rows]
             if P1 < P0:  # the shared corrections: their columns are the frames' ones times S
@@ -732,13 +751,26 @@ class BundleModel:
 
     @staticmethod
     def _weighted_gram(
-        J: np.ndarray, w: np.ndarray, r: np.ndarray
+        JT: np.ndarray, w: np.ndarray, r: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """``J' W J`` and ``J' W r`` of the pixel rows ``J`` (2 n, P). (Multiplying a rig's
-        cameras apart, over the columns each touches, gathers as much as it saves: measured
-        47 ms either way for 3 cameras, 400 frames.)"""
-        Jw = J * w[: len(J), None]
-        return J.T @ Jw, Jw.T @ r[: len(J)]
+        """``J' W J`` and ``J' W r`` of the pixel rows from ``JT`` = J' (P, 2 n), C-ordered,
+        with ``w`` and ``r`` in its column order: ``(J' W^1/2)(J' W^1/2)'``, one symmetric
+        product (BLAS's rank-k update: 2.5x faster than ``J' (W J)`` for 3 cameras, 400
+        frames). (Multiplying a rig's cameras apart, over the columns each touches, gathers
+        as much as it saves: measured 47 ms either way.)"""
+        if np.all(w >= 0):
+            sw = np.sqrt(w)
+            Js = JT * sw
+            return Js @ Js.T, Js @ (sw * r)
+        Jw = JT * w
+        return JT @ Jw.T, Jw @ r
+
+    @functools.cached_property
+    def axis_rows(self) -> np.ndarray:
+        """(2 n,) the pixel rows reordered as the transposed Jacobian's columns: every
+        observation's u row, then every v row (``evaluate(..., transposed=True)``)."""
+        rows = np.arange(2 * self.n_obs)
+        return np.concatenate([rows[0::2], rows[1::2]])
 
     def _evaluation(self, state: ModelState) -> tuple:
         """``evaluate(state)`` with the Jacobian (split with pose corrections), kept for the
@@ -746,7 +778,7 @@ class BundleModel:
         cache = self._eval_cache
         if cache is not None and cache[0] is state:
             return cache[1]
-        out = self.evaluate(state, split="E" in self.slices)
+        out = self.evaluate(state, split="E" in self.slices, transposed=True)
         self._eval_cache = (state, out)
         return out
 
