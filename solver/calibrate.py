@@ -529,15 +529,14 @@ def init_motion(
                     s[i] = -d @ (poses[i][:3, 3] - X[g][:3, 3])
         return X, np.eye(4), s
     groups = frame_groups(problem)
-    d_cam, d_M = [], []
-    for g in np.unique(groups):
-        idx = [i for i in np.flatnonzero(groups == g) if i in poses]
-        for a in range(len(idx)):
-            for b in range(a + 1, len(idx)):
-                i, j = idx[a], idx[b]
-                d_cam.append(poses[j][:3, 3] - poses[i][:3, 3])
-                d_M.append(st.M[j][:3, 3] - st.M[i][:3, 3])
-    d_cam, d_M = np.array(d_cam).reshape(-1, 3), np.array(d_M).reshape(-1, 3)
+    d_cam, d_M = [np.zeros((0, 3))], [np.zeros((0, 3))]
+    for g in np.unique(groups):  # every pair of frames a < b of a group (n^2 / 2 of them)
+        idx = np.array([i for i in np.flatnonzero(groups == g) if i in poses], dtype=int)
+        a, b = np.triu_indices(len(idx), 1)
+        t_cam = np.array([poses[i][:3, 3] for i in idx]).reshape(-1, 3)
+        d_cam.append(t_cam[b] - t_cam[a])
+        d_M.append(st.M[idx[b], :3, 3] - st.M[idx[a], :3, 3])
+    d_cam, d_M = np.concatenate(d_cam), np.concatenate(d_M)
     n_dir = n_directions(d_M)
     rotations = st.X_t_basis.shape[1] > 0  # the robot rotates between some frames
     if n_dir >= 2:  # translations in two directions or more (docs/METHOD.md Sec. 4)
