@@ -772,6 +772,12 @@ class BundleModel:
         rows = np.arange(2 * self.n_obs)
         return np.concatenate([rows[0::2], rows[1::2]])
 
+    def trial_residuals(self, state: ModelState) -> np.ndarray:
+        """Residuals (R,) of ``state``, evaluated with the Jacobian the normal equations use
+        and kept (:meth:`_evaluation`): a step Levenberg-Marquardt accepts (nearly all) is where
+        it linearises next, so its residuals are not computed twice."""
+        return self._evaluation(state)[0]
+
     def _evaluation(self, state: ModelState) -> tuple:
         """``evaluate(state)`` with the Jacobian (split with pose corrections), kept for the
         last state (a state is immutable: the same object, the same values)."""
@@ -1029,7 +1035,8 @@ def _lm(
                     return state, False, it, r, lam
                 continue
             new = model.apply(state, delta)
-            r_new, _ = model.evaluate(new, jacobian=False)
+            # with the Jacobian, kept: an accepted step's state is the next linearisation
+            r_new = model.trial_residuals(new)
             cost_new = float(np.sum(weights * r_new * r_new))
             if np.isfinite(cost_new) and cost_new <= cost:
                 break
