@@ -255,13 +255,13 @@ class NormalBlocks:
         i6 = np.arange(6)
         A_EE[:, i6, i6] += lam * d_E
         Ei = np.linalg.inv(A_EE)  # (F, 6, 6)
-        L = np.einsum("pkj,kji->pki", self.A_gE, Ei)  # A_gE Ei per frame (P0, F, 6)
+        L = _per_frame(self.A_gE, Ei)  # A_gE Ei per frame (P0, F, 6)
         P0 = len(self.g_g)
         S = A_gg - L.reshape(P0, -1) @ self.A_gE.reshape(P0, -1).T
         rhs = -self.g_g + L.reshape(P0, -1) @ self.g_E.reshape(-1)
         d_glob = np.linalg.solve(S, rhs)
-        back = -self.g_E - np.einsum("pki,p->ki", self.A_gE, d_glob)
-        d_frames = np.einsum("kij,kj->ki", Ei, back)
+        back = -self.g_E - (d_glob @ self.A_gE.reshape(P0, -1)).reshape(-1, 6)
+        d_frames = (Ei @ back[:, :, None])[:, :, 0]
         return np.concatenate([d_glob, d_frames.reshape(-1)])
 
     def inverse(self, check_condition: bool = False) -> BlockInverse:
@@ -283,7 +283,7 @@ class NormalBlocks:
         except np.linalg.LinAlgError:
             Ei = np.linalg.pinv(A_EE)
         P0 = len(s_g)
-        L = np.einsum("pkj,kji->pki", A_gE, Ei).reshape(P0, -1)  # (P0, 6F)
+        L = _per_frame(A_gE, Ei).reshape(P0, -1)  # (P0, 6F)
         S = A_gg - L @ A_gE.reshape(P0, -1).T
         if check_condition:
             cond = np.linalg.cond(S)
@@ -297,7 +297,8 @@ class NormalBlocks:
                 Si = np.linalg.pinv(S)
         F = len(s_E)
         SiL = (Si @ L).reshape(P0, F, 6)
-        EE = Ei + np.einsum("pki,pkj->kij", L.reshape(P0, F, 6), SiL)
+        # each frame's L_k' Si L_k, as a stack of products (einsum: 3x slower here)
+        EE = Ei + np.transpose(L.reshape(P0, F, 6), (1, 2, 0)) @ np.transpose(SiL, (1, 0, 2))
         outer_E = s_E[:, :, None] * s_E[:, None, :]
         return BlockInverse(
             gg=Si / np.outer(s_g, s_g),
@@ -900,6 +901,12 @@ class BundleModel:
             D_rot = -_skew_batch(_mv(RM, p_Y))
             D_t = np.broadcast_to(np.eye(3), (n, 3, 3))
         return np.concatenate([B @ D_rot, B @ D_t], axis=2)
+
+
+def _per_frame(A_gE: np.ndarray, Ei: np.ndarray) -> np.ndarray:
+    """``A_gE[:, k] @ Ei[k]`` for every frame k: (P0, F, 6) from (P0, F, 6) and (F, 6, 6), as
+    a stack of products (einsum: 3x slower on these shapes)."""
+    return np.transpose(np.transpose(A_gE, (1, 0, 2)) @ Ei, (1, 0, 2))
 
 
 def _mv(M: np.ndarray, v: np.ndarray) -> np.ndarray:
