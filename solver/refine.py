@@ -1692,7 +1692,7 @@ def build_structure(problem: CalibrationProblem, R_X: np.ndarray | None = None) 
     kn = problem.knowledge
     if kn == "robot":
         T = np.stack([f.T_base_tool for f in frames])
-        M = np.stack([np.linalg.inv(t) for t in T]) if problem.mount == "eye_in_hand" else T
+        M = np.linalg.inv(T) if problem.mount == "eye_in_hand" else T  # one batched call
         groups = np.zeros(F, dtype=int)
         Y_rot, Y_t = I3, I3
         # rotation axes of every frame relative to the first (tool frame for eye-in-hand, base
