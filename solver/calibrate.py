@@ -433,11 +433,13 @@ def _frame_poses(
     dist: np.ndarray,
     fast: bool = False,
     guesses: dict[int, np.ndarray] | None = None,
+    only: list[int] | None = None,
 ) -> dict[int, np.ndarray]:
+    """``T_cam_board`` per frame index of camera ``cam`` (PnP; ``only``: of these frames)."""
     pts = problem.target.points_m
     poses = {}
-    for i, f in enumerate(problem.frames):
-        det = f.detections.get(cam)
+    for i in range(len(problem.frames)) if only is None else only:
+        det = problem.frames[i].detections.get(cam)
         if det is None or len(det.ids) < MIN_CORNERS:
             continue
         T = pnp_pose(K, dist, pts[det.ids], det.px, fast, (guesses or {}).get(i))
@@ -789,6 +791,7 @@ def _result(
             state,
             groups,
             {i: model.T_ref_board(state, i) for i in range(len(problem.frames))},
+            _fitted_poses(out),
         ),
         H_inf=H_inf,
         linear=K_lin,
@@ -799,20 +802,44 @@ def _result(
     )
 
 
+def _fitted_poses(out: RefineOutput) -> dict[int, np.ndarray]:
+    """The reference camera's ``T_cam_board`` per frame index from the robot test's free-pose
+    fit, when the refinement kept it (it is then of this state's intrinsics, started from its
+    predictions), for the images in which no detection was flagged (the fit uses the inliers):
+    the same PnP minimum :func:`scale_checks` would compute again."""
+    fit, m = out.free_pose, out.model
+    if fit is None:
+        return {}
+    return {
+        ch.frame_index: fit.T_cam_board[(ch.frame_index, m.ref)]
+        for ch in m.chunks
+        if ch.camera == m.ref
+        and (ch.frame_index, m.ref) in fit.T_cam_board
+        and out.inlier_rows[ch.rows].all()
+    }
+
+
 def scale_checks(
     problem: CalibrationProblem,
     state: ModelState,
     groups: np.ndarray,
     guesses: dict[int, np.ndarray] | None = None,
+    known: dict[int, np.ndarray] | None = None,
 ) -> tuple[ScaleCheck, ...]:
     """Per move within an orientation group: the translation the reference camera saw (from a
     PnP pose per frame with the final intrinsics: the image alone, ``guesses`` only start it)
     against the robot's. A ratio away from 1 means a wrong square size or a wrong robot/TCP
-    scale."""
+    scale. ``known``: such poses (frame index -> ``T_cam_board``) already computed."""
     if problem.knowledge != "robot":
         return ()
     ref = problem.reference
-    poses = _frame_poses(problem, ref, state.K[ref], state.dist[ref], guesses=guesses)
+    known = known or {}
+    poses = dict(known)
+    todo = [i for i in range(len(problem.frames)) if i not in known]
+    if todo:
+        poses.update(
+            _frame_poses(problem, ref, state.K[ref], state.dist[ref], guesses=guesses, only=todo)
+        )
     checks = []
     for g in np.unique(groups):
         idx = [i for i in np.flatnonzero(groups == g) if i in poses]
