@@ -200,11 +200,17 @@ def _motion_vectors(problem: CalibrationProblem, idx: list[int]) -> np.ndarray:
 
 
 def _linear_groups(
-    problem: CalibrationProblem, cams: tuple[str, ...], groups: np.ndarray, joint: bool = True
+    problem: CalibrationProblem,
+    cams: tuple[str, ...],
+    groups: np.ndarray,
+    joint: bool = True,
+    homographies: dict | None = None,
 ) -> list[tuple[list[int], list[LinearGroup]]]:
     """Per orientation group: the frames every camera in ``cams`` saw well enough, and one
     ``LinearGroup`` per camera (the group's homographies with a common scale: jointly refined
-    with ``joint``, else the rescaled per-frame DLTs; the known motion)."""
+    with ``joint``, else the rescaled per-frame DLTs; the known motion). ``homographies``: a
+    cache of them by (camera, frames, joint), filled here (a rig's pairs reuse each camera's)."""
+    cache = {} if homographies is None else homographies
     pts = problem.target.points_m[:, :2]
     out = []
     for g in np.unique(groups):
@@ -223,9 +229,13 @@ def _linear_groups(
             motion[0] = 0.0
         per_cam = []
         for c in cams:
-            dets = [problem.frames[i].detections[c] for i in idx]
-            H = group_homographies([(pts[d.ids], d.px) for d in dets], 30 if joint else 0)
-            per_cam.append(LinearGroup(H, motion))
+            key = (c, tuple(int(i) for i in idx), joint)
+            if key not in cache:
+                dets = [problem.frames[i].detections[c] for i in idx]
+                H = group_homographies([(pts[d.ids], d.px) for d in dets], 30 if joint else 0)
+                H.setflags(write=False)  # shared by every use
+                cache[key] = H
+            per_cam.append(LinearGroup(cache[key], motion))
         out.append((idx, per_cam))
     return out
 
@@ -270,6 +280,7 @@ def linear_camera(
     joint: bool = True,
     notes: list[str] | None = None,
     focal_sweep: bool = False,
+    homographies: dict | None = None,
 ) -> np.ndarray:
     """Closed-form ``K`` (3, 3) of one camera (docs/METHOD.md Sec. 3; Zhang for general motion).
 
@@ -282,7 +293,7 @@ def linear_camera(
     """
     spec = problem.camera(cam)
     o = problem.options
-    lin_groups = [gs[0] for _, gs in _linear_groups(problem, (cam,), groups, joint)]
+    lin_groups = [gs[0] for _, gs in _linear_groups(problem, (cam,), groups, joint, homographies)]
     if not lin_groups:
         raise DegenerateError(
             f"camera {cam!r} saw the target (at least {MIN_CORNERS} points) in no frame: check "
@@ -352,7 +363,12 @@ def linear_camera(
 
 
 def linear_pair(
-    problem: CalibrationProblem, cam: str, ref: str, groups: np.ndarray, joint: bool = True
+    problem: CalibrationProblem,
+    cam: str,
+    ref: str,
+    groups: np.ndarray,
+    joint: bool = True,
+    homographies: dict | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Joint closed-form ``(K_cam, K_ref)`` of two cameras of a rig (paper Sec. IV; docs/METHOD.md
     Sec. 8): both see the same translations (eqs. 33-42) and, with two or more orientations,
@@ -360,7 +376,7 @@ def linear_pair(
     common views do not determine it."""
     o = problem.options
     sizes = [(problem.camera(c).width, problem.camera(c).height) for c in (cam, ref)]
-    both = _linear_groups(problem, (cam, ref), groups, joint)
+    both = _linear_groups(problem, (cam, ref), groups, joint, homographies)
     if not both:
         raise DegenerateError(f"cameras {cam!r} and {ref!r} share no view of the target")
     ga = [gs[0] for _, gs in both]
@@ -602,9 +618,10 @@ def calibrate(
     zero = np.zeros(5)
     jh = joint_homographies
     K_lin = {}
+    H_cache: dict = {}  # every camera's homographies, reused by the rig's pairs
     for c in problem.cameras:
         try:
-            K_lin[c.name] = linear_camera(problem, c.name, groups, jh, notes, focal_sweep)
+            K_lin[c.name] = linear_camera(problem, c.name, groups, jh, notes, focal_sweep, H_cache)
         except DegenerateError as e:
             if not notes_skipped:
                 raise
@@ -618,7 +635,7 @@ def calibrate(
         if c == ref:
             continue
         try:  # the rig's joint linear step; the separate estimate stays when it cannot run
-            K_lin[c] = linear_pair(problem, c, ref, groups, jh)[0]
+            K_lin[c] = linear_pair(problem, c, ref, groups, jh, H_cache)[0]
         except (DegenerateError, np.linalg.LinAlgError) as e:
             notes.append(
                 f"joint linear step of {c!r} with {ref!r} skipped ({e}); "
