@@ -554,31 +554,26 @@ class BundleModel:
                 rig = np.concatenate([_cross_rows(q_cr[idx], pr.d_P), pr.d_P], axis=2)
                 _put_rows(J, idx, self.slices[f"rig:{c}"], rig)
         mx = st.X_rot_basis.shape[1] + st.X_t_basis.shape[1]
-        if mx:
+        if mx and self.n_groups == 1:  # written in place (no product with an identity basis)
+            _put_pose(J, self.slices["X:0"].start, q_X, A, st.X_rot_basis, st.X_t_basis)
+        elif mx:  # one X per group: each observation's columns are its group's
             blk = np.concatenate(
                 [_rmul(_cross_rows(q_X, A), st.X_rot_basis), _rmul(A, st.X_t_basis)],
                 axis=2,
             )
-            if self.n_groups == 1:
-                J[:, :, self.slices["X:0"]] = blk
-            else:
-                cols = self.slices["X:0"].start + g[:, None] * mx + np.arange(mx)
-                rows = np.arange(n)[:, None]
-                J[rows, 0, cols] = blk[:, 0, :]
-                J[rows, 1, cols] = blk[:, 1, :]
+            cols = self.slices["X:0"].start + g[:, None] * mx + np.arange(mx)
+            rows = np.arange(n)[:, None]
+            J[rows, 0, cols] = blk[:, 0, :]
+            J[rows, 1, cols] = blk[:, 1, :]
         if "Y" in self.slices:
             if one_group:  # A2 = A RX RM: per frame RX RM, gathered once
                 B = RX0 @ Ms[:, :3, :3]
                 A2 = A @ B[f]
             else:
                 A2 = A @ (RX @ RM)
-            blk = np.concatenate(
-                [_rmul(_cross_rows(q_Y, A2), st.Y_rot_basis), _rmul(A2, st.Y_t_basis)],
-                axis=2,
-            )
-            J[:, :, self.slices["Y"]] = blk
+            _put_pose(J, self.slices["Y"].start, q_Y, A2, st.Y_rot_basis, st.Y_t_basis)
         has_s = self.o_s_col >= 0
-        if np.any(has_s):
+        if len(self.s_frames):
             d = np.einsum("nij,nj->ni", RX[has_s], -st.direction[f[has_s]])
             vals = np.einsum("nab,nb->na", A[has_s], d)
             rows = np.flatnonzero(has_s)
@@ -925,6 +920,29 @@ def _put_rows(J: np.ndarray, idx: np.ndarray | slice, cols: slice, vals: np.ndar
     (numpy's mixed index-and-slice assignment on the 3-D array is several times slower)."""
     for i in range(J.shape[1]):
         J[:, i, :][idx, cols] = vals[:, i, :]
+
+
+def _put_pose(
+    J: np.ndarray, c0: int, q: np.ndarray, A: np.ndarray, rot_basis: np.ndarray, t_basis: np.ndarray
+) -> None:
+    """Write a pose's columns into ``J`` (n, 2, P) from column ``c0``: d px / d (left rotation)
+    ``cross(q, A rows)`` times ``rot_basis`` (3, mr), then d px / d translation ``A`` (n, 2, 3)
+    times ``t_basis`` (3, mt); a full basis (the identity) is written without its product."""
+    mr, mt = rot_basis.shape[1], t_basis.shape[1]
+    if mr:
+        rot = _cross_rows(q, A)
+        J[:, :, c0 : c0 + mr] = rot if mr == 3 and _is_eye(rot_basis) else _rmul(rot, rot_basis)
+    if mt:
+        c1 = c0 + mr
+        J[:, :, c1 : c1 + mt] = A if mt == 3 and _is_eye(t_basis) else _rmul(A, t_basis)
+
+
+def _is_eye(B: np.ndarray) -> bool:
+    """Whether the basis ``B`` (3, 3) is exactly the identity."""
+    return bool(np.array_equal(B, _EYE3))
+
+
+_EYE3 = np.eye(3)
 
 
 def _cross_rows(q: np.ndarray, A: np.ndarray) -> np.ndarray:
