@@ -510,7 +510,7 @@ def _rotation_ax_xb(groups: np.ndarray, M: np.ndarray, poses: dict[int, np.ndarr
 
 
 def init_motion(
-    problem: CalibrationProblem, poses: dict[int, np.ndarray]
+    problem: CalibrationProblem, poses: dict[int, np.ndarray], groups: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Initial ``X`` (G, 4, 4), ``Y`` (4, 4), ``s`` (F,) from per-frame reference-camera poses.
 
@@ -518,7 +518,8 @@ def init_motion(
     (t_M(k) - t_M(0))`` (camera displacement in camera axes against the known motion), so
     ``R_X`` is the orthogonal Procrustes solution over all such pairs (docs/METHOD.md Sec. 4); then
     ``X^-1 T_cam_board(k) = M_k Y`` is linear in ``R_X' t_X`` and ``t_Y`` (with the hand-eye
-    translation fixed at 0 when no rotations make it observable).
+    translation fixed at 0 when no rotations make it observable). ``groups``: the problem's
+    :func:`frame_groups` when the caller has them.
     """
     st = build_structure(problem)
     F = len(problem.frames)
@@ -546,7 +547,7 @@ def init_motion(
                     d = X[g][:3, :3] @ st.direction[i]
                     s[i] = -d @ (poses[i][:3, 3] - X[g][:3, 3])
         return X, np.eye(4), s
-    groups = frame_groups(problem)
+    groups = frame_groups(problem) if groups is None else groups
     d_cam, d_M = [np.zeros((0, 3))], [np.zeros((0, 3))]
     for g in np.unique(groups):  # every pair of frames a < b of a group (n^2 / 2 of them)
         idx = np.array([i for i in np.flatnonzero(groups == g) if i in poses], dtype=int)
@@ -681,7 +682,7 @@ def calibrate(
         )
         note = f"frames {ids}: no board pose could be computed from the image; skipped"
         return replace(res, messages=(*notes_skipped, note, *res.messages))
-    X, Y, s = init_motion(problem, ref_poses)
+    X, Y, s = init_motion(problem, ref_poses, groups)
     if apart:  # the measured robot motion carries the reference camera to their frames
         st = build_structure(problem)
         for c in apart:
