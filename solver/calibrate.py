@@ -200,11 +200,17 @@ def _motion_vectors(problem: CalibrationProblem, idx: list[int]) -> np.ndarray:
 
 
 def _linear_groups(
-    problem: CalibrationProblem, cams: tuple[str, ...], groups: np.ndarray, joint: bool = True
+    problem: CalibrationProblem,
+    cams: tuple[str, ...],
+    groups: np.ndarray,
+    joint: bool = True,
+    homographies: dict | None = None,
 ) -> list[tuple[list[int], list[LinearGroup]]]:
     """Per orientation group: the frames every camera in ``cams`` saw well enough, and one
     ``LinearGroup`` per camera (the group's homographies with a common scale: jointly refined
-    with ``joint``, else the rescaled per-frame DLTs; the known motion)."""
+    with ``joint``, else the rescaled per-frame DLTs; the known motion). ``homographies``: a
+    cache of them by (camera, frames, joint), filled here (a rig's pairs reuse each camera's)."""
+    cache = {} if homographies is None else homographies
     pts = problem.target.points_m[:, :2]
     out = []
     for g in np.unique(groups):
@@ -223,9 +229,13 @@ def _linear_groups(
             motion[0] = 0.0
         per_cam = []
         for c in cams:
-            dets = [problem.frames[i].detections[c] for i in idx]
-            H = group_homographies([(pts[d.ids], d.px) for d in dets], 30 if joint else 0)
-            per_cam.append(LinearGroup(H, motion))
+            key = (c, tuple(int(i) for i in idx), joint)
+            if key not in cache:
+                dets = [problem.frames[i].detections[c] for i in idx]
+                H = group_homographies([(pts[d.ids], d.px) for d in dets], 30 if joint else 0)
+                H.setflags(write=False)  # shared by every use
+                cache[key] = H
+            per_cam.append(LinearGroup(cache[key], motion))
         out.append((idx, per_cam))
     return out
 
@@ -270,6 +280,7 @@ def linear_camera(
     joint: bool = True,
     notes: list[str] | None = None,
     focal_sweep: bool = False,
+    homographies: dict | None = None,
 ) -> np.ndarray:
     """Closed-form ``K`` (3, 3) of one camera (docs/METHOD.md Sec. 3; Zhang for general motion).
 
@@ -282,7 +293,7 @@ def linear_camera(
     """
     spec = problem.camera(cam)
     o = problem.options
-    lin_groups = [gs[0] for _, gs in _linear_groups(problem, (cam,), groups, joint)]
+    lin_groups = [gs[0] for _, gs in _linear_groups(problem, (cam,), groups, joint, homographies)]
     if not lin_groups:
         raise DegenerateError(
             f"camera {cam!r} saw the target (at least {MIN_CORNERS} points) in no frame: check "
@@ -352,7 +363,12 @@ def linear_camera(
 
 
 def linear_pair(
-    problem: CalibrationProblem, cam: str, ref: str, groups: np.ndarray, joint: bool = True
+    problem: CalibrationProblem,
+    cam: str,
+    ref: str,
+    groups: np.ndarray,
+    joint: bool = True,
+    homographies: dict | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Joint closed-form ``(K_cam, K_ref)`` of two cameras of a rig (paper Sec. IV; docs/METHOD.md
     Sec. 8): both see the same translations (eqs. 33-42) and, with two or more orientations,
@@ -360,7 +376,7 @@ def linear_pair(
     common views do not determine it."""
     o = problem.options
     sizes = [(problem.camera(c).width, problem.camera(c).height) for c in (cam, ref)]
-    both = _linear_groups(problem, (cam, ref), groups, joint)
+    both = _linear_groups(problem, (cam, ref), groups, joint, homographies)
     if not both:
         raise DegenerateError(f"cameras {cam!r} and {ref!r} share no view of the target")
     ga = [gs[0] for _, gs in both]
@@ -433,11 +449,13 @@ def _frame_poses(
     dist: np.ndarray,
     fast: bool = False,
     guesses: dict[int, np.ndarray] | None = None,
+    only: list[int] | None = None,
 ) -> dict[int, np.ndarray]:
+    """``T_cam_board`` per frame index of camera ``cam`` (PnP; ``only``: of these frames)."""
     pts = problem.target.points_m
     poses = {}
-    for i, f in enumerate(problem.frames):
-        det = f.detections.get(cam)
+    for i in range(len(problem.frames)) if only is None else only:
+        det = problem.frames[i].detections.get(cam)
         if det is None or len(det.ids) < MIN_CORNERS:
             continue
         T = pnp_pose(K, dist, pts[det.ids], det.px, fast, (guesses or {}).get(i))
@@ -492,7 +510,7 @@ def _rotation_ax_xb(groups: np.ndarray, M: np.ndarray, poses: dict[int, np.ndarr
 
 
 def init_motion(
-    problem: CalibrationProblem, poses: dict[int, np.ndarray]
+    problem: CalibrationProblem, poses: dict[int, np.ndarray], groups: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Initial ``X`` (G, 4, 4), ``Y`` (4, 4), ``s`` (F,) from per-frame reference-camera poses.
 
@@ -500,7 +518,8 @@ def init_motion(
     (t_M(k) - t_M(0))`` (camera displacement in camera axes against the known motion), so
     ``R_X`` is the orthogonal Procrustes solution over all such pairs (docs/METHOD.md Sec. 4); then
     ``X^-1 T_cam_board(k) = M_k Y`` is linear in ``R_X' t_X`` and ``t_Y`` (with the hand-eye
-    translation fixed at 0 when no rotations make it observable).
+    translation fixed at 0 when no rotations make it observable). ``groups``: the problem's
+    :func:`frame_groups` when the caller has them.
     """
     st = build_structure(problem)
     F = len(problem.frames)
@@ -528,16 +547,15 @@ def init_motion(
                     d = X[g][:3, :3] @ st.direction[i]
                     s[i] = -d @ (poses[i][:3, 3] - X[g][:3, 3])
         return X, np.eye(4), s
-    groups = frame_groups(problem)
-    d_cam, d_M = [], []
-    for g in np.unique(groups):
-        idx = [i for i in np.flatnonzero(groups == g) if i in poses]
-        for a in range(len(idx)):
-            for b in range(a + 1, len(idx)):
-                i, j = idx[a], idx[b]
-                d_cam.append(poses[j][:3, 3] - poses[i][:3, 3])
-                d_M.append(st.M[j][:3, 3] - st.M[i][:3, 3])
-    d_cam, d_M = np.array(d_cam).reshape(-1, 3), np.array(d_M).reshape(-1, 3)
+    groups = frame_groups(problem) if groups is None else groups
+    d_cam, d_M = [np.zeros((0, 3))], [np.zeros((0, 3))]
+    for g in np.unique(groups):  # every pair of frames a < b of a group (n^2 / 2 of them)
+        idx = np.array([i for i in np.flatnonzero(groups == g) if i in poses], dtype=int)
+        a, b = np.triu_indices(len(idx), 1)
+        t_cam = np.array([poses[i][:3, 3] for i in idx]).reshape(-1, 3)
+        d_cam.append(t_cam[b] - t_cam[a])
+        d_M.append(st.M[idx[b], :3, 3] - st.M[idx[a], :3, 3])
+    d_cam, d_M = np.concatenate(d_cam), np.concatenate(d_M)
     n_dir = n_directions(d_M)
     rotations = st.X_t_basis.shape[1] > 0  # the robot rotates between some frames
     if n_dir >= 2:  # translations in two directions or more (docs/METHOD.md Sec. 4)
@@ -601,9 +619,10 @@ def calibrate(
     zero = np.zeros(5)
     jh = joint_homographies
     K_lin = {}
+    H_cache: dict = {}  # every camera's homographies, reused by the rig's pairs
     for c in problem.cameras:
         try:
-            K_lin[c.name] = linear_camera(problem, c.name, groups, jh, notes, focal_sweep)
+            K_lin[c.name] = linear_camera(problem, c.name, groups, jh, notes, focal_sweep, H_cache)
         except DegenerateError as e:
             if not notes_skipped:
                 raise
@@ -617,7 +636,7 @@ def calibrate(
         if c == ref:
             continue
         try:  # the rig's joint linear step; the separate estimate stays when it cannot run
-            K_lin[c] = linear_pair(problem, c, ref, groups, jh)[0]
+            K_lin[c] = linear_pair(problem, c, ref, groups, jh, H_cache)[0]
         except (DegenerateError, np.linalg.LinAlgError) as e:
             notes.append(
                 f"joint linear step of {c!r} with {ref!r} skipped ({e}); "
@@ -663,7 +682,7 @@ def calibrate(
         )
         note = f"frames {ids}: no board pose could be computed from the image; skipped"
         return replace(res, messages=(*notes_skipped, note, *res.messages))
-    X, Y, s = init_motion(problem, ref_poses)
+    X, Y, s = init_motion(problem, ref_poses, groups)
     if apart:  # the measured robot motion carries the reference camera to their frames
         st = build_structure(problem)
         for c in apart:
@@ -790,6 +809,7 @@ def _result(
             state,
             groups,
             {i: model.T_ref_board(state, i) for i in range(len(problem.frames))},
+            _fitted_poses(out),
         ),
         H_inf=H_inf,
         linear=K_lin,
@@ -800,20 +820,44 @@ def _result(
     )
 
 
+def _fitted_poses(out: RefineOutput) -> dict[int, np.ndarray]:
+    """The reference camera's ``T_cam_board`` per frame index from the robot test's free-pose
+    fit, when the refinement kept it (it is then of this state's intrinsics, started from its
+    predictions), for the images in which no detection was flagged (the fit uses the inliers):
+    the same PnP minimum :func:`scale_checks` would compute again."""
+    fit, m = out.free_pose, out.model
+    if fit is None:
+        return {}
+    return {
+        ch.frame_index: fit.T_cam_board[(ch.frame_index, m.ref)]
+        for ch in m.chunks
+        if ch.camera == m.ref
+        and (ch.frame_index, m.ref) in fit.T_cam_board
+        and out.inlier_rows[ch.rows].all()
+    }
+
+
 def scale_checks(
     problem: CalibrationProblem,
     state: ModelState,
     groups: np.ndarray,
     guesses: dict[int, np.ndarray] | None = None,
+    known: dict[int, np.ndarray] | None = None,
 ) -> tuple[ScaleCheck, ...]:
     """Per move within an orientation group: the translation the reference camera saw (from a
     PnP pose per frame with the final intrinsics: the image alone, ``guesses`` only start it)
     against the robot's. A ratio away from 1 means a wrong square size or a wrong robot/TCP
-    scale."""
+    scale. ``known``: such poses (frame index -> ``T_cam_board``) already computed."""
     if problem.knowledge != "robot":
         return ()
     ref = problem.reference
-    poses = _frame_poses(problem, ref, state.K[ref], state.dist[ref], guesses=guesses)
+    known = known or {}
+    poses = dict(known)
+    todo = [i for i in range(len(problem.frames)) if i not in known]
+    if todo:
+        poses.update(
+            _frame_poses(problem, ref, state.K[ref], state.dist[ref], guesses=guesses, only=todo)
+        )
     checks = []
     for g in np.unique(groups):
         idx = [i for i in np.flatnonzero(groups == g) if i in poses]

@@ -255,13 +255,13 @@ class NormalBlocks:
         i6 = np.arange(6)
         A_EE[:, i6, i6] += lam * d_E
         Ei = np.linalg.inv(A_EE)  # (F, 6, 6)
-        L = np.einsum("pkj,kji->pki", self.A_gE, Ei)  # A_gE Ei per frame (P0, F, 6)
+        L = _per_frame(self.A_gE, Ei)  # A_gE Ei per frame (P0, F, 6)
         P0 = len(self.g_g)
         S = A_gg - L.reshape(P0, -1) @ self.A_gE.reshape(P0, -1).T
         rhs = -self.g_g + L.reshape(P0, -1) @ self.g_E.reshape(-1)
         d_glob = np.linalg.solve(S, rhs)
-        back = -self.g_E - np.einsum("pki,p->ki", self.A_gE, d_glob)
-        d_frames = np.einsum("kij,kj->ki", Ei, back)
+        back = -self.g_E - (d_glob @ self.A_gE.reshape(P0, -1)).reshape(-1, 6)
+        d_frames = (Ei @ back[:, :, None])[:, :, 0]
         return np.concatenate([d_glob, d_frames.reshape(-1)])
 
     def inverse(self, check_condition: bool = False) -> BlockInverse:
@@ -283,7 +283,7 @@ class NormalBlocks:
         except np.linalg.LinAlgError:
             Ei = np.linalg.pinv(A_EE)
         P0 = len(s_g)
-        L = np.einsum("pkj,kji->pki", A_gE, Ei).reshape(P0, -1)  # (P0, 6F)
+        L = _per_frame(A_gE, Ei).reshape(P0, -1)  # (P0, 6F)
         S = A_gg - L @ A_gE.reshape(P0, -1).T
         if check_condition:
             cond = np.linalg.cond(S)
@@ -297,7 +297,8 @@ class NormalBlocks:
                 Si = np.linalg.pinv(S)
         F = len(s_E)
         SiL = (Si @ L).reshape(P0, F, 6)
-        EE = Ei + np.einsum("pki,pkj->kij", L.reshape(P0, F, 6), SiL)
+        # each frame's L_k' Si L_k, as a stack of products (einsum: 3x slower here)
+        EE = Ei + np.transpose(L.reshape(P0, F, 6), (1, 2, 0)) @ np.transpose(SiL, (1, 0, 2))
         outer_E = s_E[:, :, None] * s_E[:, None, :]
         return BlockInverse(
             gg=Si / np.outer(s_g, s_g),
@@ -380,7 +381,9 @@ class BundleModel:
         self.trend_sigma = structure.trend_sigma
         self._normal_cache: tuple | None = None  # (state, pixel weights, blocks) of the last
         self._eval_cache: tuple | None = None  # (state, evaluate's output) of the last
+        self._motion_cache: tuple | None = None  # (state, true_motions) of the last
         self._index()
+        self.shared_map = self._shared_map()
 
     # -- state updates -------------------------------------------------------------------------
     def apply(self, state: ModelState, delta: np.ndarray) -> ModelState:
@@ -470,7 +473,11 @@ class BundleModel:
             self.frame_rows[c.frame_index] = slice(start, c.rows.stop)
 
     def evaluate(
-        self, state: ModelState, jacobian: bool = True, split: bool = False
+        self,
+        state: ModelState,
+        jacobian: bool = True,
+        split: bool = False,
+        transposed: bool = False,
     ) -> tuple[np.ndarray, np.ndarray | None]:
         """Residuals (R,) (projected minus observed, pixels) and the Jacobian (R, P).
 
@@ -478,6 +485,10 @@ class BundleModel:
         ``split`` (with pose corrections, whose columns come last): the pixel rows' Jacobian
         without the pose-correction columns (2 n, P0) and, third, each observation's block of
         its own frame's correction (n, 2, 6); the prior rows are left to the caller.
+        ``transposed`` (with ``split``, or without pose corrections): the pixel rows' Jacobian
+        transposed, (P, 2 n), every observation's u row first, then every v row
+        (``axis_rows`` orders a row vector so): one parameter's column is contiguous, and
+        the normal matrix's product runs at the speed of a symmetric rank-k update.
         """
         n, P_ = self.n_obs, len(self.names)
         st = self.st
@@ -498,14 +509,15 @@ class BundleModel:
             RX = state.X[g, :3, :3]
             q_X = _mv(RX, p_M)
             p_X = q_X + state.X[g, :3, 3]
+        T_cr = [state.T_cam_ref.get(c, np.eye(4)) for c in self.cams]
         if one_camera:
-            R_cr = None
             q_cr = P = p_X
-        else:
-            T_cr = np.stack([state.T_cam_ref.get(c, np.eye(4)) for c in self.cams])
-            R_cr = T_cr[self.o_cam, :3, :3]
-            q_cr = _mv(R_cr, p_X)
-            P = q_cr + T_cr[self.o_cam, :3, 3]
+        else:  # camera by camera: one 3x3 product each (no per-observation rotations)
+            q_cr, P = np.empty((n, 3)), np.empty((n, 3))
+            for ci, T in enumerate(T_cr):
+                idx = self.cam_obs[ci]
+                q_cr[idx] = p_X[idx] @ T[:3, :3].T
+                P[idx] = q_cr[idx] + T[:3, 3]
         px = np.empty((n, 2))
         projections = []
         for ci, c in enumerate(self.cams):
@@ -520,16 +532,16 @@ class BundleModel:
             r = np.concatenate([r, scale * values])
         if not jacobian:
             return r, None
-        if split:
-            P_ = self.slices["E"].start
-            assert P_ + 6 * len(self.problem.frames) == len(self.names)
-        J = np.zeros((n, 2, P_))
-        d_P = np.empty((n, 2, 3))
+        if split:  # the shared corrections' columns derive from the pose block (normal_blocks)
+            P_ = self.shared_start
+            assert self.slices["E"].stop == len(self.names)
+        J = np.zeros((n, 2, P_), order="F" if transposed else "C")
+        A = np.empty((n, 2, 3))  # d px / d p_X
         unit, skew_on = self.problem.options.unit_aspect, self.problem.options.skew
         for ci, c in enumerate(self.cams):
             pr = projections[ci]
             idx = slice(None) if one_camera else self.cam_obs[ci]  # a slice scatters faster
-            d_P[idx] = pr.d_P
+            A[idx] = pr.d_P if one_camera else _rmul(pr.d_P, T_cr[ci][:3, :3])
             dK = pr.d_K
             cols = [dK[:, :, 0] + dK[:, :, 1]] if unit else [dK[:, :, 0], dK[:, :, 1]]
             cols += [dK[:, :, 2], dK[:, :, 3]]
@@ -541,33 +553,27 @@ class BundleModel:
             if c != self.ref:
                 rig = np.concatenate([_cross_rows(q_cr[idx], pr.d_P), pr.d_P], axis=2)
                 _put_rows(J, idx, self.slices[f"rig:{c}"], rig)
-        A = d_P if R_cr is None else d_P @ R_cr  # d px / d p_X
         mx = st.X_rot_basis.shape[1] + st.X_t_basis.shape[1]
-        if mx:
+        if mx and self.n_groups == 1:  # written in place (no product with an identity basis)
+            _put_pose(J, self.slices["X:0"].start, q_X, A, st.X_rot_basis, st.X_t_basis)
+        elif mx:  # one X per group: each observation's columns are its group's
             blk = np.concatenate(
                 [_rmul(_cross_rows(q_X, A), st.X_rot_basis), _rmul(A, st.X_t_basis)],
                 axis=2,
             )
-            if self.n_groups == 1:
-                J[:, :, self.slices["X:0"]] = blk
-            else:
-                cols = self.slices["X:0"].start + g[:, None] * mx + np.arange(mx)
-                rows = np.arange(n)[:, None]
-                J[rows, 0, cols] = blk[:, 0, :]
-                J[rows, 1, cols] = blk[:, 1, :]
+            cols = self.slices["X:0"].start + g[:, None] * mx + np.arange(mx)
+            rows = np.arange(n)[:, None]
+            J[rows, 0, cols] = blk[:, 0, :]
+            J[rows, 1, cols] = blk[:, 1, :]
         if "Y" in self.slices:
             if one_group:  # A2 = A RX RM: per frame RX RM, gathered once
                 B = RX0 @ Ms[:, :3, :3]
                 A2 = A @ B[f]
             else:
                 A2 = A @ (RX @ RM)
-            blk = np.concatenate(
-                [_rmul(_cross_rows(q_Y, A2), st.Y_rot_basis), _rmul(A2, st.Y_t_basis)],
-                axis=2,
-            )
-            J[:, :, self.slices["Y"]] = blk
+            _put_pose(J, self.slices["Y"].start, q_Y, A2, st.Y_rot_basis, st.Y_t_basis)
         has_s = self.o_s_col >= 0
-        if np.any(has_s):
+        if len(self.s_frames):
             d = np.einsum("nij,nj->ni", RX[has_s], -st.direction[f[has_s]])
             vals = np.einsum("nab,nb->na", A[has_s], d)
             rows = np.flatnonzero(has_s)
@@ -575,6 +581,8 @@ class BundleModel:
             J[rows, 1, self.o_s_col[has_s]] = vals[:, 1]
         if "E" in self.slices:
             blk = self._pose_block(A, RX, RM, p_Y, Ms)
+            if split:
+                return r, self._pixel_jacobian(J, transposed), blk
             if "U" in self.slices:  # a group's correction moves its frames like theirs
                 ucols = self.slices["U"].start + self.st.pose_groups[f][:, None] * 6 + np.arange(6)
                 rows_u = np.arange(n)[:, None]
@@ -582,8 +590,6 @@ class BundleModel:
                 J[rows_u, 1, ucols] = blk[:, 1, :]
             if "V" in self.slices:  # a trend moves a frame like its own correction, times c_k
                 self._trend_columns(J, blk)
-            if split:
-                return r, J.reshape(2 * n, P_), blk
             cols = self.slices["E"].start + f[:, None] * 6 + np.arange(6)
             rows = np.arange(n)[:, None]
             J[rows, 0, cols] = blk[:, 0, :]
@@ -597,7 +603,14 @@ class BundleModel:
                 prior_u[np.arange(prior_u.shape[0]), np.arange(su.start, su.stop)] = scale
                 blocks.append(prior_u)
             return r, np.vstack(blocks)
-        return r, J.reshape(2 * n, P_)
+        return r, self._pixel_jacobian(J, transposed)
+
+    @staticmethod
+    def _pixel_jacobian(J: np.ndarray, transposed: bool) -> np.ndarray:
+        """``J`` (n, 2, P) as the (2 n, P) Jacobian, or (a view) as its transpose (P, 2 n) in
+        ``axis_rows`` order when ``transposed`` (``J`` then Fortran-ordered)."""
+        n, _, P_ = J.shape
+        return J.reshape(2 * n, P_, order="F").T if transposed else J.reshape(2 * n, P_)
 
     def normal_equations(
         self, state: ModelState, weights: np.ndarray
@@ -619,10 +632,11 @@ class BundleModel:
         global. The evaluation is kept for the last state, so reweighing (a camera's rows, the
         priors) costs products only.
         """
+        ax = self.axis_rows
         if "E" not in self.slices:
-            r, J = self._evaluation(state)
-            A, g = self._weighted_gram(J, weights, r)
-            P0 = J.shape[1]
+            r, JT = self._evaluation(state)
+            A, g = self._weighted_gram(JT, weights[ax], r[ax])
+            P0 = JT.shape[0]
             return NormalBlocks(
                 r, A, g, np.zeros((P0, 0, 6)), np.zeros((0, 6, 6)), np.zeros((0, 6))
             )
@@ -634,19 +648,25 @@ class BundleModel:
         if cache is not None and cache[0] is state and np.array_equal(cache[1], w):
             rp, A_gg, g_g, A_gE, A_EE, g_E = cache[2:]  # only the priors' weights moved
         else:
-            r, J0, B = self._evaluation(state)
+            # JT (P1, 2 n): the columns before the shared ones, transposed, in axis_rows order
+            r, JT, B = self._evaluation(state)
             rp = r[: 2 * n]
-            A_gg, g_g = self._weighted_gram(J0, w, rp)
-            A_gE = np.zeros((P0, F, 6))
+            P1 = JT.shape[0]
+            A_gg, g_g = self._weighted_gram(JT, w[ax], rp[ax])
+            A_gE = np.zeros((P1, F, 6))
             A_EE = np.zeros((F, 6, 6))
             g_E = np.zeros((F, 6))
             B2 = B.reshape(2 * n, 6)
             Bw = B2 * w[:, None]
+            Bw3 = Bw.reshape(n, 2, 6)
             for k, rows in self.frame_rows.items():  # each frame's rows are contiguous
                 Bwk = Bw[rows]
-                A_gE[:, k] = J0[rows].T @ Bwk  # the frame's rows: its cameras' columns
+                a, b = rows.start // 2, rows.stop // 2  # its observations: u, then v columns
+                A_gE[:, k] = JT[:, a:b] @ Bw3[a:b, 0] + JT[:, n + a : n + b] @ Bw3[a:b, 1]
                 A_EE[k] = B2[rows].T @ Bwk
                 g_E[k] = Bwk.T @ rp[rows]
+            if P1 < P0:  # the shared corrections: their columns are the frames' ones times S
+                A_gg, g_g, A_gE = self._with_shared(A_gg, g_g, A_gE, A_EE, g_E)
             self._normal_cache = (state, w.copy(), rp, A_gg, g_g, A_gE, A_EE, g_E)
         ps = self.prior_scale
         r_prior = [ps * state.E.reshape(-1)]
@@ -667,15 +687,97 @@ class BundleModel:
             g_g[iu] += wu * pu * r_prior[-1]
         return NormalBlocks(np.concatenate([rp, *r_prior]), A_gg, g_g, A_gE, A_EE, g_E)
 
+    @property
+    def shared_start(self) -> int:
+        """First column of the corrections shared by several frames (the groups' ``U``, the
+        trends' ``V``; they sit just before the frames' ``E``); ``E``'s start without them."""
+        for key in ("U", "V", "E"):
+            if key in self.slices:
+                return self.slices[key].start
+        return len(self.names)
+
+    def _shared_map(self) -> np.ndarray | None:
+        """``S`` (F, 6, m): the shared corrections' m columns as combinations of the frames'
+        correction columns, ``J_shared = J_E S`` (a group's correction moves each of its frames
+        like the frame's own; a trend's like the frame's own times its offset ``c_k``). None
+        without shared corrections."""
+        if "E" not in self.slices:
+            return None
+        s0, st = self.shared_start, self.st
+        F, m = len(self.problem.frames), self.slices["E"].start - s0
+        if m == 0:
+            return None
+        S = np.zeros((F, 6, m))
+        k = np.arange(F)
+        if "U" in self.slices:
+            u0 = self.slices["U"].start - s0
+            for a in range(6):
+                S[k, a, u0 + 6 * st.pose_groups + a] = 1.0
+        if "V" in self.slices:
+            v0 = self.slices["V"].start - s0
+            for g, dims in enumerate(st.trend_dims):
+                kg = np.flatnonzero(st.trend_groups == g)
+                o = v0 + self.trend_offsets[g]
+                for ai, a in enumerate(TREND_AXES):
+                    S[kg, a, o + ai * dims : o + (ai + 1) * dims] = st.trend_coords[kg, :dims]
+        return S
+
+    def _with_shared(
+        self,
+        A_gg: np.ndarray,
+        g_g: np.ndarray,
+        A_gE: np.ndarray,
+        A_EE: np.ndarray,
+        g_E: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The global blocks extended by the shared corrections' columns ``J_E S``
+        (:meth:`_shared_map`), from the frames' pixel blocks alone: ``A_gE S``, ``S' A_EE S``,
+        ``S' A_EE`` and ``S' g_E`` (block-diagonal products, no pass over the rows)."""
+        S = self.shared_map
+        F, _, m = S.shape
+        P1 = len(g_g)
+        S2 = S.reshape(6 * F, m)
+        Z = A_EE @ S  # (F, 6, m); A_EE is symmetric: Z[k]' = S[k]' A_EE[k]
+        A_ss = S2.T @ Z.reshape(6 * F, m)
+        A_gs = A_gE.reshape(P1, 6 * F) @ S2
+        A = np.empty((P1 + m, P1 + m))
+        A[:P1, :P1], A[:P1, P1:], A[P1:, :P1], A[P1:, P1:] = A_gg, A_gs, A_gs.T, A_ss
+        g = np.concatenate([g_g, S2.T @ g_E.reshape(-1)])
+        return A, g, np.concatenate([A_gE, np.transpose(Z, (2, 0, 1))], axis=0)
+
     @staticmethod
     def _weighted_gram(
-        J: np.ndarray, w: np.ndarray, r: np.ndarray
+        JT: np.ndarray, w: np.ndarray, r: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """``J' W J`` and ``J' W r`` of the pixel rows ``J`` (2 n, P). (Multiplying a rig's
-        cameras apart, over the columns each touches, gathers as much as it saves: measured
-        47 ms either way for 3 cameras, 400 frames.)"""
-        Jw = J * w[: len(J), None]
-        return J.T @ Jw, Jw.T @ r[: len(J)]
+        """``J' W J`` and ``J' W r`` of the pixel rows from ``JT`` = J' (P, 2 n), C-ordered,
+        with ``w`` and ``r`` in its column order: ``(J' W^1/2)(J' W^1/2)'``, one symmetric
+        product of a row-major matrix (measured for 3 cameras, 400 frames: 63 ms against 80 ms
+        for ``J' (W J)`` of the row-interleaved Jacobian). (Multiplying a rig's cameras apart,
+        over the columns each touches, gathers as much as it saves: measured 47 ms either
+        way.) Columns of zero weight (another camera's rows when a camera's share is asked
+        for) are left out when they are a quarter or more."""
+        nz = w != 0
+        if np.count_nonzero(nz) < 0.75 * len(w):
+            JT, w, r = JT[:, nz], w[nz], r[nz]
+        if np.all(w >= 0):
+            sw = np.sqrt(w)
+            Js = JT * sw
+            return Js @ Js.T, Js @ (sw * r)
+        Jw = JT * w
+        return JT @ Jw.T, Jw @ r
+
+    @functools.cached_property
+    def axis_rows(self) -> np.ndarray:
+        """(2 n,) the pixel rows reordered as the transposed Jacobian's columns: every
+        observation's u row, then every v row (``evaluate(..., transposed=True)``)."""
+        rows = np.arange(2 * self.n_obs)
+        return np.concatenate([rows[0::2], rows[1::2]])
+
+    def trial_residuals(self, state: ModelState) -> np.ndarray:
+        """Residuals (R,) of ``state``, evaluated with the Jacobian the normal equations use
+        and kept (:meth:`_evaluation`): a step Levenberg-Marquardt accepts (nearly all) is where
+        it linearises next, so its residuals are not computed twice."""
+        return self._evaluation(state)[0]
 
     def _evaluation(self, state: ModelState) -> tuple:
         """``evaluate(state)`` with the Jacobian (split with pose corrections), kept for the
@@ -683,7 +785,7 @@ class BundleModel:
         cache = self._eval_cache
         if cache is not None and cache[0] is state:
             return cache[1]
-        out = self.evaluate(state, split="E" in self.slices)
+        out = self.evaluate(state, split="E" in self.slices, transposed=True)
         self._eval_cache = (state, out)
         return out
 
@@ -727,16 +829,16 @@ class BundleModel:
         its own, its orientation group's and its group's trend at its offset; None without."""
         if state.E is None:
             return None
-        st, E = self.st, state.E.copy()
-        if state.U is not None and st.pose_groups is not None:
-            E += state.U[st.pose_groups]
-        if state.V is not None and "V" in self.slices:
-            for g, m in enumerate(st.trend_dims):
-                k = np.flatnonzero(st.trend_groups == g)
-                o = self.trend_offsets[g]
-                D = state.V[o : o + len(TREND_AXES) * m].reshape(len(TREND_AXES), m)
-                E[np.ix_(k, TREND_AXES)] += st.trend_coords[k, :m] @ D.T
-        return E
+        if self.shared_map is None:
+            return state.E.copy()
+        parts = []  # the shared corrections' values, in their columns' order
+        for key, values in (("U", state.U), ("V", state.V)):
+            if key in self.slices:
+                sl = self.slices[key]
+                parts.append(np.zeros(sl.stop - sl.start) if values is None else values.ravel())
+        S = self.shared_map
+        F, _, m = S.shape
+        return state.E + (S.reshape(6 * F, m) @ np.concatenate(parts)).reshape(F, 6)
 
     @property
     def group_prior_scale(self) -> np.ndarray:
@@ -754,7 +856,17 @@ class BundleModel:
         return self.sigma_px * np.tile(one, len(self.problem.frames))
 
     def true_motions(self, state: ModelState) -> np.ndarray:
-        """``M_k`` (F, 4, 4) with the Case 2 lengths and the robot pose corrections applied."""
+        """``M_k`` (F, 4, 4) with the Case 2 lengths and the robot pose corrections applied
+        (read-only: kept for the last state, which every frame's ``T_ref_board`` asks for)."""
+        cache = self._motion_cache
+        if cache is not None and cache[0] is state:
+            return cache[1]
+        Ms = self._true_motions(state)
+        Ms.setflags(write=False)
+        self._motion_cache = (state, Ms)
+        return Ms
+
+    def _true_motions(self, state: ModelState) -> np.ndarray:
         st = self.st
         if st.pose_sigma is not None and state.E is not None:
             E = self.pose_corrections(state)
@@ -791,6 +903,12 @@ class BundleModel:
         return np.concatenate([B @ D_rot, B @ D_t], axis=2)
 
 
+def _per_frame(A_gE: np.ndarray, Ei: np.ndarray) -> np.ndarray:
+    """``A_gE[:, k] @ Ei[k]`` for every frame k: (P0, F, 6) from (P0, F, 6) and (F, 6, 6), as
+    a stack of products (einsum: 3x slower on these shapes)."""
+    return np.transpose(np.transpose(A_gE, (1, 0, 2)) @ Ei, (1, 0, 2))
+
+
 def _mv(M: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Matrix-vector products (n, 3) of stacks ``M`` (n, 3, 3) and ``v`` (n, 3) (matmul: einsum
     is several times slower on stacks of small matrices)."""
@@ -802,6 +920,29 @@ def _put_rows(J: np.ndarray, idx: np.ndarray | slice, cols: slice, vals: np.ndar
     (numpy's mixed index-and-slice assignment on the 3-D array is several times slower)."""
     for i in range(J.shape[1]):
         J[:, i, :][idx, cols] = vals[:, i, :]
+
+
+def _put_pose(
+    J: np.ndarray, c0: int, q: np.ndarray, A: np.ndarray, rot_basis: np.ndarray, t_basis: np.ndarray
+) -> None:
+    """Write a pose's columns into ``J`` (n, 2, P) from column ``c0``: d px / d (left rotation)
+    ``cross(q, A rows)`` times ``rot_basis`` (3, mr), then d px / d translation ``A`` (n, 2, 3)
+    times ``t_basis`` (3, mt); a full basis (the identity) is written without its product."""
+    mr, mt = rot_basis.shape[1], t_basis.shape[1]
+    if mr:
+        rot = _cross_rows(q, A)
+        J[:, :, c0 : c0 + mr] = rot if mr == 3 and _is_eye(rot_basis) else _rmul(rot, rot_basis)
+    if mt:
+        c1 = c0 + mr
+        J[:, :, c1 : c1 + mt] = A if mt == 3 and _is_eye(t_basis) else _rmul(A, t_basis)
+
+
+def _is_eye(B: np.ndarray) -> bool:
+    """Whether the basis ``B`` (3, 3) is exactly the identity."""
+    return bool(np.array_equal(B, _EYE3))
+
+
+_EYE3 = np.eye(3)
 
 
 def _cross_rows(q: np.ndarray, A: np.ndarray) -> np.ndarray:
@@ -904,10 +1045,11 @@ def _lm(
     state: ModelState,
     weights: np.ndarray,
     max_iter: int,
-) -> tuple[ModelState, bool, int, np.ndarray]:
-    """Levenberg-Marquardt from ``state``: the state reached, whether it converged, the
-    iterations, and the residuals (R,) of the state reached (the caller needs no new pass)."""
-    lam = 1e-4
+    lam: float = 1e-4,
+) -> tuple[ModelState, bool, int, np.ndarray, float]:
+    """Levenberg-Marquardt from ``state`` with the damping ``lam`` to start: the state
+    reached, whether it converged, the iterations, the residuals (R,) of the state reached (the
+    caller needs no new pass) and the damping reached (a warm start for the next call)."""
     nb = model.normal_blocks(state, weights)
     r = nb.r
     cost = float(np.sum(weights * r * r))
@@ -920,16 +1062,17 @@ def _lm(
             except np.linalg.LinAlgError:
                 lam *= 10.0
                 if lam > 1e12:
-                    return state, False, it, r
+                    return state, False, it, r, lam
                 continue
             new = model.apply(state, delta)
-            r_new, _ = model.evaluate(new, jacobian=False)
+            # with the Jacobian, kept: an accepted step's state is the next linearisation
+            r_new = model.trial_residuals(new)
             cost_new = float(np.sum(weights * r_new * r_new))
             if np.isfinite(cost_new) and cost_new <= cost:
                 break
             lam *= 10.0
             if lam > 1e12:
-                return state, cost < 1e-20, it, r
+                return state, cost < 1e-20, it, r, lam
         # a relative decrease below 1e-10 moves no parameter by more than ~1e-5 of its std
         small_step = cost - cost_new <= 1e-10 * max(cost, 1e-30) + 1e-24
         state, cost, r = new, cost_new, r_new
@@ -938,7 +1081,7 @@ def _lm(
             converged = True
             break
         nb = model.normal_blocks(state, weights)
-    return state, converged, it, r
+    return state, converged, it, r, lam
 
 
 @functools.cache
@@ -966,6 +1109,13 @@ def single_threaded_blas(fn):  # noqa: ANN001, ANN201 - a plain decorator
     return wrapper
 
 
+#: Levenberg-Marquardt's damping (times the normal matrix's diagonal) at the start of a solve:
+#: the linear start is close enough for nearly Gauss-Newton steps (measured: 4 iterations to
+#: the minimum instead of 5-6 from 1e-4 on R1 and on 1-3 cameras with 100-400 frames; a start
+#: it does not suit raises it tenfold per refused step)
+LM_START_DAMPING = 1e-6
+#: The damping of each Gauss-Newton step between two variance-component updates
+VCE_STEP_DAMPING = 1e-4
 #: Significance level of the test "the measured robot poses explain the images as well as a
 #: free board pose per image does" (an F test): below it, the robot's accuracy is estimated.
 ROBOT_TEST_P = 1e-3
@@ -1388,9 +1538,15 @@ def _refine(
     # while the variance components move, a few Gauss-Newton steps between their updates
     # reach the joint fixed point as surely as full solves, in a third of the time
     steps = min(1, max_iter) if estimate else max_iter
+    lam = LM_START_DAMPING
     for _ in range(40 if estimate else 10):
         weights = inlier * cam_w
-        state, converged, it, r = _lm(model, state, weights, steps)
+        # the full solves after the levels' steps start from the damping the last step reached
+        # (a fresh 1e-4 damps the weakly determined pose corrections' directions: two more
+        # iterations to the same minimum)
+        warm = estimate and steps == max_iter
+        start = VCE_STEP_DAMPING if estimate else LM_START_DAMPING
+        state, converged, it, r, lam = _lm(model, state, weights, steps, lam if warm else start)
         total_it += it
         changed = False
         if estimate:
@@ -1430,7 +1586,7 @@ def _refine(
         if estimate:  # the noise levels still creep (toward the floor, or slowly): keep the
             # last ones and converge the parameters under them, so the estimate is the
             # minimum of a definite model and not a point part way along the creep
-            state, converged, it, _ = _lm(model, state, inlier * cam_w, max_iter)
+            state, converged, it, _, _ = _lm(model, state, inlier * cam_w, max_iter)
             total_it += it
             vce_note.append(
                 f"the noise levels were still moving after {vce_step[0]} updates; the last "
@@ -1559,7 +1715,7 @@ def build_structure(problem: CalibrationProblem, R_X: np.ndarray | None = None) 
     kn = problem.knowledge
     if kn == "robot":
         T = np.stack([f.T_base_tool for f in frames])
-        M = np.stack([np.linalg.inv(t) for t in T]) if problem.mount == "eye_in_hand" else T
+        M = np.linalg.inv(T) if problem.mount == "eye_in_hand" else T  # one batched call
         groups = np.zeros(F, dtype=int)
         Y_rot, Y_t = I3, I3
         # rotation axes of every frame relative to the first (tool frame for eye-in-hand, base

@@ -360,17 +360,24 @@ def _shared_translation_rows(
     (``linear.conditioned_homographies``); camera b's side is multiplied by ``f1`` on the first
     two (camera a's translation scale over camera b's and c over camera b's ``c``) and by ``f2``
     on the ``Delta' W Delta`` rows (the same with the translation scales squared)."""
-    nrm = np.linalg.norm
-    Da = [Ha[0][:, 2] - Ha[k][:, 2] for k in range(len(Ha))]
-    Db = [Hb[0][:, 2] - Hb[k][:, 2] for k in range(len(Hb))]
-    rows, noises = [], []
+    Da, Db = Ha[0][:, 2] - Ha[:, :, 2], Hb[0][:, 2] - Hb[:, :, 2]  # (n, 3): Delta_k
+    # every row's four vectors, in the order (k, then h1, h2, Delta_1 .. Delta_k), vectorised
+    # (a group of n frames has n^2 / 2 rows)
+    k_of, i_of = [], []
     for k in range(1, len(Ha)):
-        pairs = [(Ha[0][:, c], Da[k], Hb[0][:, c], Db[k], f1) for c in (0, 1)]
-        pairs += [(Da[i], Da[k], Db[i], Db[k], f2) for i in range(1, k + 1)]
-        for a1, b1, a2, b2, fb in pairs:
-            rows.append(np.concatenate([conic_row(a1, b1), -fb * conic_row(a2, b2)]))
-            noises.append(nrm(a1) + nrm(b1) + fb * (nrm(a2) + nrm(b2)))
-    return np.array(rows), np.array(noises)
+        k_of += [k] * (k + 2)
+        i_of += [-2, -1, *range(1, k + 1)]  # -2, -1: the first homography's columns 0 and 1
+    k_of, i_of = np.array(k_of, dtype=int), np.array(i_of, dtype=int)
+    col = np.where(i_of < 0, i_of + 2, 0)
+    h = i_of < 0
+    a1 = np.where(h[:, None], Ha[0][:, col].T, Da[np.maximum(i_of, 0)])
+    a2 = np.where(h[:, None], Hb[0][:, col].T, Db[np.maximum(i_of, 0)])
+    b1, b2 = Da[k_of], Db[k_of]
+    fb = np.where(h, f1, f2)
+    rows = np.hstack([conic_row(a1, b1), -fb[:, None] * conic_row(a2, b2)])
+    nrm = np.linalg.norm
+    noises = nrm(a1, axis=1) + nrm(b1, axis=1) + fb * (nrm(a2, axis=1) + nrm(b2, axis=1))
+    return rows.reshape(-1, 12), noises
 
 
 def rig_linear_intrinsics_translation(

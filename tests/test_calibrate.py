@@ -132,3 +132,34 @@ def test_bad_input_is_named():
     frames[2] = Frame(2, frames[2].detections, T_base_tool=None)
     with pytest.raises(InputError, match=r"frames\[2\].T_base_tool"):
         calibrate(replace(s.problem, frames=tuple(frames)))
+
+
+def test_scale_checks_reuse_the_robot_tests_free_poses(monkeypatch):
+    # poses kept exact: the robot test's free-pose fit already holds each image's PnP minimum
+    # at the final intrinsics; the scale checks take it (images with a flagged detection
+    # excepted) and equal the ones computed afresh from the model's guesses
+    import importlib
+
+    from slidecal.solver.calibrate import _fitted_poses, frame_groups, scale_checks
+
+    pipeline = importlib.import_module("slidecal.solver.calibrate")  # the module, not calibrate()
+    s = sc.r1(np.random.default_rng(3), 0.15, 0.0, 0.0)
+    outs = []
+    real = pipeline.refine
+
+    def spy(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        outs.append(real(*args, **kwargs))
+        return outs[-1]
+
+    monkeypatch.setattr(pipeline, "refine", spy)
+    res = calibrate(s.problem)
+    out = outs[-1]
+    assert res.robot_accuracy.translation_mm == 0.0 and out.free_pose is not None
+    known = _fitted_poses(out)
+    assert len(known) == sum(bool(out.inlier_rows[ch.rows].all()) for ch in out.model.chunks) > 10
+    guesses = {i: out.model.T_ref_board(out.state, i) for i in range(len(s.problem.frames))}
+    fresh = scale_checks(s.problem, out.state, frame_groups(s.problem), guesses)
+    assert len(fresh) == len(res.scale_checks) > 10
+    for a, b in zip(res.scale_checks, fresh, strict=True):
+        assert (a.frame_a, a.frame_b) == (b.frame_a, b.frame_b)
+        assert a.camera_mm == pytest.approx(b.camera_mm, abs=1e-6)

@@ -481,3 +481,20 @@ def test_rig_normal_equations_match_the_full_jacobian(noisy):
     np.testing.assert_allclose(r2, r, atol=0)
     np.testing.assert_allclose(A, J.T @ (J * w[:, None]), rtol=1e-12, atol=1e-9 * np.abs(A).max())
     np.testing.assert_allclose(g, J.T @ (w * r), rtol=1e-12, atol=1e-9 * np.abs(g).max())
+
+
+def test_one_cameras_normal_equations_leave_the_other_rows_out():
+    # a camera's share of J' W J (the hat-matrix traces per camera): the rows of the other
+    # cameras have zero weight and are left out of the product; the result is the full one's
+    from slidecal.mocks.scenarios import oak_rig
+
+    s = oak_rig(np.random.default_rng(44), cameras=("left", "right", "rgb"))
+    model = BundleModel(s.problem, build_structure(s.problem, s.truth.X[0][:3, :3]))
+    r, J = model.evaluate(s.truth)
+    w = np.random.default_rng(45).uniform(0.5, 1.5, len(r))
+    w[np.repeat(model.o_cam != 1, 2)] = 0.0  # only the second camera's rows
+    assert 0.2 < np.mean(w > 0) < 0.5
+    _, A, g = model.normal_equations(s.truth, w)
+    np.testing.assert_allclose(A, J.T @ (J * w[:, None]), rtol=1e-12, atol=1e-9 * np.abs(A).max())
+    np.testing.assert_allclose(g, J.T @ (w * r), rtol=1e-12, atol=1e-9 * np.abs(g).max())
+    assert np.abs(A[model.slices["intr:left"]]).max() == 0.0  # the first camera: no rows

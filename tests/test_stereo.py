@@ -277,3 +277,27 @@ def test_translation_rig_noisy_not_worse_than_each_camera_alone(scene):
         err["alone"].append([np.diag(K)[:2] for K in alone] - truth)
     rms = {k: np.sqrt(np.mean(np.square(v), axis=(0, 2))) for k, v in err.items()}
     assert np.all(rms["joint"] <= rms["alone"]), rms
+
+
+def test_shared_translation_rows_are_every_pair_of_translations():
+    # the coupling rows (eqs. 33-42), vectorised over a group's n^2 / 2 pairs, against their
+    # definition written pair by pair: h1' W D_k, h2' W D_k, then D_i' W D_k for i <= k
+    from slidecal.solver.linear import conic_row
+    from slidecal.solver.stereo import _shared_translation_rows
+
+    rng = np.random.default_rng(5)
+    Ha, Hb = rng.normal(size=(6, 3, 3)), rng.normal(size=(6, 3, 3))
+    f1, f2 = 1.3, 0.7
+    rows, noises = _shared_translation_rows(Ha, Hb, f1, f2)
+    D = [(Ha[0][:, 2] - Ha[k][:, 2], Hb[0][:, 2] - Hb[k][:, 2]) for k in range(6)]
+    want, want_noise = [], []
+    for k in range(1, 6):
+        pairs = [(Ha[0][:, c], D[k][0], Hb[0][:, c], D[k][1], f1) for c in (0, 1)]
+        pairs += [(D[i][0], D[k][0], D[i][1], D[k][1], f2) for i in range(1, k + 1)]
+        for a1, b1, a2, b2, fb in pairs:
+            want.append(np.concatenate([conic_row(a1, b1), -fb * conic_row(a2, b2)]))
+            n = np.linalg.norm
+            want_noise.append(n(a1) + n(b1) + fb * (n(a2) + n(b2)))
+    assert rows.shape == (5 * 2 + 15, 12)
+    np.testing.assert_allclose(rows, want, rtol=1e-14, atol=1e-14)
+    np.testing.assert_allclose(noises, want_noise, rtol=1e-14)
