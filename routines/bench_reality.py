@@ -11,7 +11,10 @@ rms of |error| / std. The hand-eye is compared with the effective truth (what th
 know: the physical hand-eye moved by the arm's constant error, ``effective_truth``), rotation
 and translation as 3-vectors (Mahalanobis distance against the reported covariance; 2-sigma
 coverage is a chi-square(3) below 8.03) and per axis, in the result's own parametrisation of
-the reported transform (``T_tool_cam.rx`` .. ``.tz``, docs/FORMATS.md).
+the reported transform (``T_tool_cam.rx`` .. ``.tz``, docs/FORMATS.md). Beside every figure,
+what a calibrated Gaussian estimator gives over as many trials (:func:`calibration`: binomial
+ranges of the coverage and of the count beyond 3 sigma, chi-square for the rms) and a verdict,
+so a row that is off tells itself from sampling noise.
 
 Image models: ``points``: the true corners with Gaussian noise (0.15 px, what a good corner
 detector leaves on a sharp image); ``render``: images from ``slidecal.mocks.render`` and the
@@ -402,6 +405,28 @@ def main(argv: list[str] | None = None) -> int:
         f"{CHI2_3_2SIGMA:.2f}; the max column shows the distance in sigmas); its axes are those "
         "of the reported transform (`T_tool_cam.rx` .. `.tz`: rotation vector on the left, "
         "translation, docs/FORMATS.md).",
+        "",
+        "Each figure stands beside what a calibrated Gaussian estimator (errors exactly as "
+        "large as the reported standard deviations say) gives over as many trials, at the "
+        f"{100 * (1 - VERDICT_P):.0f} % level: the range of its 2-sigma coverage "
+        f"(binomial, p = {P_2SIGMA:.4f}; for the 3-vectors chi-square(3) <= {CHI2_3_2SIGMA:.2f}), "
+        f"of its count beyond 3 sigma (p = {1 - P_3SIGMA:.4f}; chi-square(3) > "
+        f"{CHI2_3_3SIGMA:.2f}), and the interval of the rms error/std that the data imply "
+        "(the sum of squares is chi-square with one degree of freedom per trial and axis). The "
+        "verdict says 'consistent' unless the sum of squares, the coverage or the tail is "
+        f"beyond what the calibrated estimator gives with probability {VERDICT_P} (then how much "
+        "the std is too small or too large, or which test failed); three tests on some 40 rows "
+        "give about one such row per report by chance. A 3-vector's largest distance is also "
+        "given as the scalar error of the same tail probability. With honest standard "
+        f"deviations, {args.trials} trials put {args.trials * (1 - P_3SIGMA):.2f} errors per "
+        f"row beyond 3 sigma on average and leave a row without any with probability "
+        f"{100 * P_3SIGMA**args.trials:.0f} %: abs(error)/std <= 3 on every seed is a statement "
+        "about the tail that a calibrated estimator meets only by luck at this many trials.",
+        "",
+        "The covariance covers the arm's smooth error (docs/ROBOT_ACCURACY.md): where an "
+        "orientation group has too few frames to tell a linear trend of the pose error along its "
+        "moves from the frames' scatter (R1's groups of five), the reported covariance is the "
+        "larger of the estimator's spread under both readings (`smooth_arm_excess`).",
         "",
         "The drifting-arm row takes the one-orientation session's commanded poses on an arm "
         "whose orientation drifts linearly along the moves (0.06 deg per 60 mm in a random "
