@@ -303,7 +303,65 @@ def result_covariance(
     if out.covariance is None:
         return reported_names(layout, out.names), None
     named = propagate(layout, out.names, out.covariance)
+    extra = smooth_arm_excess(out)
+    if extra is not None:  # cover both readings of the frames' error: its positive part
+        w, V = np.linalg.eigh(propagate(layout, out.names, extra).matrix)
+        cover = (V * np.clip(w, 0.0, None)) @ V.T
+        named = NamedCovariance(named.names, named.matrix + 0.5 * (cover + cover.T))
     return named.names, named
+
+
+def smooth_arm_excess(out: RefineOutput) -> np.ndarray | None:
+    """What the covariance of the optimiser's coordinates (P, P; symmetric, not PSD) gains when
+    the frames' own pose corrections, modelled independent, are in truth a linear trend along
+    the moves of their orientation group, in the axes (rotation, translation) whose trend the
+    images could not resolve; None when there is nothing to add (docs/ROBOT_ACCURACY.md).
+
+    A real arm's error is smooth over the workspace: frames a few centimetres apart err alike.
+    Where the trend's level went to the floor and its group has too few frames to tell a trend
+    from scatter (fewer degrees of freedom left to the scatter than the trend takes, per axis:
+    R1's groups of five frames spanning three directions keep one for three), the data cannot
+    say which share of the frames' error is smooth, and the estimator's spread differs between
+    the readings: a trend of the translation is a scale error of the moves, which reaches the
+    focal lengths, and independent corrections average it down. The estimate stays the model's;
+    its covariance is the sandwich ``C L^-1 S L^-1 C`` over the corrections' prior rows (``C``:
+    the covariance's columns of the corrections, ``L``: their prior variances, ``S``: the
+    corrections' true covariance). Independent (``S = L``) gives the model's own covariance;
+    all trend gives, per group and axis, ``S = tau^2 c c'`` with ``c`` the frames' offsets
+    along the moves and ``tau`` such that the trend carries each frame's level on average. The
+    excess of the second over the first is returned: its positive part (added by
+    :func:`result_covariance`) covers both readings and every mixture of them.
+    """
+    m, st = out.model, out.model.st
+    if out.covariance is None or "E" not in m.slices or not st.trend_dims:
+        return None
+    if st.trend_groups is None or st.trend_coords is None or m.pose_sigma is None:
+        return None
+    sig = np.asarray(m.pose_sigma, float)
+    tau = np.asarray(m.trend_sigma, float) if "V" in m.slices else np.zeros(2)
+    floored = tau * m.trend_spread < 0.1 * sig  # the trend's share below a tenth of the frames'
+    short = [
+        len(np.flatnonzero(st.trend_groups == g)) - 1 - d < d for g, d in enumerate(st.trend_dims)
+    ]
+    if not (floored.any() and any(short)):
+        return None
+    cov = np.asarray(out.covariance, float)
+    e = m.slices["E"]
+    A = cov[:, e] / np.tile(np.repeat(sig**2, 3), (e.stop - e.start) // 6)  # gain on the priors
+    excess = np.zeros_like(cov)
+    for g, dims in enumerate(st.trend_dims):
+        k = np.flatnonzero(st.trend_groups == g)
+        if not short[g]:  # the scatter keeps as many dof as the trend takes: the images tell
+            continue
+        c = st.trend_coords[k, :dims]
+        c = c / np.sqrt(np.mean(np.sum(c**2, axis=1)))  # the trend carries sig per frame
+        for a in range(6):
+            i = a // 3
+            if floored[i]:
+                Ak = A[:, 6 * k + a]
+                B = Ak @ c
+                excess += sig[i] ** 2 * (B @ B.T - Ak @ Ak.T)
+    return excess
 
 
 # -- predictions at a known state -----------------------------------------------------------------
