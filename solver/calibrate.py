@@ -347,12 +347,9 @@ def linear_camera(
         return candidates[best]
     knowledge = problem.knowledge
     try:
-        check_configuration(
-            lin_groups, knowledge, skew=o.skew, unit_aspect=o.unit_aspect, image_size=size
-        )
-        return linear_intrinsics(
-            lin_groups, knowledge, skew=o.skew, unit_aspect=o.unit_aspect, image_size=size
-        ).K
+        opts = {"skew": o.skew, "unit_aspect": o.unit_aspect, "image_size": size}
+        system = check_configuration(lin_groups, knowledge, **opts)
+        return linear_intrinsics(lin_groups, knowledge, **opts, system=system).K
     except DegenerateError as e:
         if n_seen == len(problem.frames):
             raise

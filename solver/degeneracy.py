@@ -24,7 +24,7 @@ import numpy as np
 
 from slidecal.solver.errors import DegenerateError
 from slidecal.solver.handeye import board_pose_from_homography, camera_displacements
-from slidecal.solver.linear import LinearGroup, _check_groups, linear_system
+from slidecal.solver.linear import LinearGroup, LinearSystem, _check_groups, linear_system
 
 MIN_ANGLE_DEG = 5.0
 MIN_CONDITIONING = 1e-6
@@ -70,8 +70,9 @@ def check_configuration(
     K_guess: np.ndarray | None = None,
     hand_eye: bool = False,
     robot_translations: Sequence[np.ndarray] | None = None,
-) -> None:
-    """Refuse degenerate data for the linear method with a ``DegenerateError`` saying the fix.
+) -> LinearSystem:
+    """Refuse degenerate data for the linear method with a ``DegenerateError`` saying the fix;
+    return the conditioned linear system it accepted (``linear_intrinsics`` solves it as is).
 
     ``groups``, ``knowledge``, ``skew``, ``unit_aspect``, ``image_size``: as for
     ``linear_intrinsics``. ``K_guess`` (3, 3) pixels: used for the geometric tests (default
@@ -127,6 +128,7 @@ def check_configuration(
             "camera toward the board about both board axes, translate out of the board plane "
             "in several directions, or add orientation groups"
         )
+    return system
 
 
 def _geometric_tests(groups: Sequence[LinearGroup], knowledge: str, K: np.ndarray) -> None:

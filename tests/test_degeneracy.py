@@ -101,3 +101,19 @@ def test_multiple_orientations_rescue_in_plane_translations():
     flat = np.array([[0, 0, 0], [5, 0, 0], [0, 5, 0.0]])
     groups = [_group(sl.tilt_R(a, b), flat, 0.0, rng) for a, b in ((30, 0), (0, 30), (20, -25))]
     check_configuration(groups, "board_translation", skew=True, image_size=SIZE)
+
+
+@pytest.mark.parametrize("knowledge", ["board_direction", "robot"])
+def test_the_accepted_system_is_the_one_linear_intrinsics_solves(knowledge):
+    """``check_configuration`` returns the system it accepted; solving it gives exactly what
+    ``linear_intrinsics`` gives when it builds the system itself (the calibration's linear step
+    builds it once)."""
+    rng = np.random.default_rng(7)
+    motion = _dirs(NORMAL) if knowledge == "board_direction" else NORMAL
+    grp = _group(sl.tilt_R(30, 30, "xy"), NORMAL, 0.5, rng, motion=motion)
+    grp2 = _group(sl.tilt_R(-25, 20, "yx"), NORMAL, 0.5, rng, motion=motion)
+    system = check_configuration([grp, grp2], knowledge, image_size=SIZE)
+    fresh = linear_intrinsics([grp, grp2], knowledge, image_size=SIZE)
+    reused = linear_intrinsics([grp, grp2], knowledge, image_size=SIZE, system=system)
+    np.testing.assert_array_equal(reused.K, fresh.K)
+    assert reused.scales == fresh.scales
