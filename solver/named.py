@@ -308,7 +308,69 @@ def result_covariance(
         w, V = np.linalg.eigh(propagate(layout, out.names, extra).matrix)
         cover = (V * np.clip(w, 0.0, None)) @ V.T
         named = NamedCovariance(named.names, named.matrix + 0.5 * (cover + cover.T))
+    level = level_excess(out)
+    if level is not None:  # the noise levels are estimates: their uncertainty, carried
+        more = propagate(layout, out.names, level).matrix
+        named = NamedCovariance(named.names, named.matrix + 0.5 * (more + more.T))
     return named.names, named
+
+
+#: Fewest degrees of freedom behind an estimated pose level for which its uncertainty is
+#: carried into the covariance (below, the level is hardly estimated at all: ``nu / (nu - 2)``
+#: would exceed 3).
+MIN_LEVEL_DOF = 3.0
+
+
+def level_excess(out: RefineOutput) -> np.ndarray | None:
+    """What the covariance of the optimiser's coordinates (P, P; positive semi-definite) gains
+    because the robot's accuracy levels are estimated from few degrees of freedom, not known;
+    None when there is nothing to add (docs/ROBOT_ACCURACY.md).
+
+    The variance-component step estimates each level (rotation, translation) of the frames'
+    own pose corrections ``E``, their orientation groups' ``U`` and the trends along the moves
+    ``V`` with redundancy ``nu`` (the sum of ``1 - h`` over the block's prior rows: 5 to 15 for
+    13 frames whose images pin their poses nearly as well as the arm's accuracy does). Taken
+    as known, a level's share of the covariance, ``C_b C_b' / sigma^2`` over the block's prior
+    rows of that kind (``C_b``: the covariance's columns of the block, ``sigma``: the level),
+    is what the estimator spreads when the level is right; with the level an estimate on
+    ``nu`` degrees of freedom the expected true variance is ``nu / (nu - 2)`` times it (the
+    mean of a scaled inverse chi-square), the error's law a Student t's rather than a
+    Gaussian's. The excess of the shares is returned, for levels resting on at least
+    :data:`MIN_LEVEL_DOF` degrees of freedom and not at their floor (a shared level below a
+    tenth of the frames' own: what :func:`smooth_arm_excess` covers).
+    """
+    m = out.model
+    red = getattr(m, "level_redundancy", None)
+    if out.covariance is None or not red or m.pose_sigma is None:
+        return None
+    from slidecal.solver.refine import SIGMA_FLOOR, TREND_AXES
+
+    sig = np.asarray(m.pose_sigma, float)
+    blocks = []  # (key, levels, per-frame share of a level, rotation rows)
+    for key in ("E", "U", "V"):
+        if key not in m.slices or key not in red:
+            continue
+        n = m.slices[key].stop - m.slices[key].start
+        if key == "V":
+            rot = np.concatenate([np.repeat(np.array(TREND_AXES) < 3, d) for d in m.st.trend_dims])
+            blocks.append((key, np.asarray(m.trend_sigma, float), m.trend_spread, rot))
+        else:
+            rot = np.tile([True, True, True, False, False, False], n // 6)
+            levels = sig if key == "E" else np.asarray(m.group_sigma, float)
+            blocks.append((key, levels, 1.0, rot))
+    cov = np.asarray(out.covariance, float)
+    excess = np.zeros_like(cov)
+    for key, levels, per_frame, rot in blocks:
+        C = cov[:, m.slices[key]]
+        for i, rows in enumerate((rot, ~rot)):
+            nu, level = float(red[key][i]), float(levels[i])
+            if nu < MIN_LEVEL_DOF or not rows.any() or level <= 2.0 * SIGMA_FLOOR[i]:
+                continue
+            if key != "E" and level * per_frame < 0.1 * sig[i]:
+                continue
+            Ci = C[:, rows]
+            excess += (nu / (nu - 2.0) - 1.0) * (Ci @ Ci.T) / level**2
+    return excess if np.any(excess) else None
 
 
 def smooth_arm_excess(out: RefineOutput) -> np.ndarray | None:

@@ -379,6 +379,10 @@ class BundleModel:
         self.pose_sigma = structure.pose_sigma
         self.group_sigma = structure.group_sigma
         self.trend_sigma = structure.trend_sigma
+        # the redundancy (degrees of freedom) behind each estimated pose level, per block
+        # ("E" frames, "U" groups, "V" trends): (rotation, translation), the last
+        # variance-component step's sum of 1 - h over the block's prior rows
+        self.level_redundancy: dict[str, tuple[float, float]] = {}
         self._normal_cache: tuple | None = None  # (state, pixel weights, blocks) of the last
         self._eval_cache: tuple | None = None  # (state, evaluate's output) of the last
         self._motion_cache: tuple | None = None  # (state, true_motions) of the last
@@ -1424,6 +1428,10 @@ def _refine(
         E = state.E.reshape(-1)
         is_rot = np.tile([True, True, True, False, False, False], len(problem.frames))
         new_pose = []
+        model.level_redundancy["E"] = (
+            float(np.sum(1.0 - h[is_rot])),
+            float(np.sum(1.0 - h[~is_rot])),
+        )
         for comp, floor, old in zip((is_rot, ~is_rot), SIGMA_FLOOR, model.pose_sigma, strict=True):
             red = float(np.sum(1.0 - h[comp]))
             v = np.sqrt(np.sum(E[comp] ** 2) / red) if red > 1e-12 else floor
@@ -1472,6 +1480,7 @@ def _refine(
             model.trend_sigma, moved = shared_levels(
                 "V", state.V, h_v, v_rot, model.trend_sigma, model.trend_spread
             )
+
             changed |= moved
         if any(v > lim for v, lim in zip(new_pose, SIGMA_BEYOND, strict=True)):
             return False
@@ -1491,6 +1500,10 @@ def _refine(
         tenth of the frames' own level adds under 1 % to their variance, and its creeping
         (from the floor, at a few % per step) keeps no iteration going."""
         new, moved = [], False
+        model.level_redundancy[key] = (
+            float(np.sum(1.0 - h_s[rot])),
+            float(np.sum(1.0 - h_s[~rot])),
+        )
         for comp, floor, old, own in zip(
             (rot, ~rot), SIGMA_FLOOR, levels, model.pose_sigma, strict=True
         ):

@@ -323,3 +323,34 @@ def test_focal_lengths_on_a_real_arm_are_covered(monkeypatch):
     for i in range(2):
         assert calibration(np.array(z_own)[:, i], 1).verdict.startswith("std too small")
         assert calibration(np.array(z_reported)[:, i], 1).verdict == "consistent"
+
+
+def test_estimated_levels_carry_their_own_uncertainty(monkeypatch):
+    # the drifting arm's 13 frames: the frames' and the trends' levels rest on a few degrees of
+    # freedom each (5-15); the reported covariance adds, per level, nu / (nu - 2) - 1 times its
+    # share, never less than the model's own, and nothing for exact poses
+    from slidecal.routines.bench_reality import drifting_arm
+    from slidecal.solver.named import MIN_LEVEL_DOF, layout_of, level_excess, propagate
+
+    s = drifting_arm(np.random.default_rng(2001))[0]
+    _, out = _solve_keeping_the_refinement(s.problem, monkeypatch)
+    red = out.model.level_redundancy
+    assert set(red) >= {"E", "V"} and all(v >= 0 for nu in red.values() for v in nu)
+    extra = level_excess(out)
+    assert extra is not None
+    assert np.all(np.linalg.eigvalsh(extra) > -1e-12 * np.abs(extra).max())
+    # the frames' rotation level alone: its share of the covariance, times nu / (nu - 2) - 1
+    m, cov = out.model, np.asarray(out.covariance)
+    nu = red["E"][0]
+    assert nu >= MIN_LEVEL_DOF
+    rot = np.tile([True, True, True, False, False, False], len(s.problem.frames))
+    C = cov[:, m.slices["E"]][:, rot]
+    share = (nu / (nu - 2.0) - 1.0) * (C @ C.T) / m.pose_sigma[0] ** 2
+    assert np.all(np.linalg.eigvalsh(extra - share) > -1e-9 * np.abs(extra).max())
+    layout = layout_of(s.problem, m.st, out.state)
+    more = propagate(layout, out.names, extra)
+    assert more.std("cam.fy") > 0
+    _, exact = _solve_keeping_the_refinement(
+        sc.r1(np.random.default_rng(7), 0.15, 0.0, 0.0).problem, monkeypatch
+    )
+    assert level_excess(exact) is None
