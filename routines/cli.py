@@ -41,7 +41,12 @@ def _run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--spawn", action="store_true", help="open the rerun viewer live")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.add_argument("--no-recording", action="store_true", help="do not write recording.rrd")
-    p.add_argument("--seed", type=int, help="simulated cells: the random seed (0 or more)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        help="simulated cells: the random seed (0 or more; it draws the arm's error and the "
+        "board's placement too: another seed is another cell)",
+    )
     p.add_argument("--fault", action="append", metavar="KIND@FRAME",
                    help="simulated cells: inject a hardware fault (see slidecal.routines.faults)")
     p.add_argument(
