@@ -1427,13 +1427,10 @@ def _refine(
         ref_i = model.cams.index(model.ref)
         E = state.E.reshape(-1)
         is_rot = np.tile([True, True, True, False, False, False], len(problem.frames))
-        new_pose = []
-        model.level_redundancy["E"] = (
-            float(np.sum(1.0 - h[is_rot])),
-            float(np.sum(1.0 - h[~is_rot])),
-        )
+        new_pose, reds = [], []
         for comp, floor, old in zip((is_rot, ~is_rot), SIGMA_FLOOR, model.pose_sigma, strict=True):
             red = float(np.sum(1.0 - h[comp]))
+            reds.append(red)
             v = np.sqrt(np.sum(E[comp] ** 2) / red) if red > 1e-12 else floor
             if vce_step[0] < 2 and red > 0.2 * comp.sum():
                 # the first steps jump: with the corrections' pixel-only estimates
@@ -1450,6 +1447,7 @@ def _refine(
             if vce_step[0] >= 2:
                 v = max(accelerate(f"E{comp[0]}", old, v, floor), floor)
             new_pose.append(v)
+        model.level_redundancy["E"] = (reds[0], reds[1])
         vce_step[0] += 1
         changed = False
         ok = np.isfinite(sig) & (sig > 0)
@@ -1499,18 +1497,15 @@ def _refine(
         ``per_frame`` turns a level into its share of a frame's correction: a share below a
         tenth of the frames' own level adds under 1 % to their variance, and its creeping
         (from the floor, at a few % per step) keeps no iteration going."""
-        new, moved = [], False
-        model.level_redundancy[key] = (
-            float(np.sum(1.0 - h_s[rot])),
-            float(np.sum(1.0 - h_s[~rot])),
-        )
+        new, moved, reds = [], False, []
         for comp, floor, old, own in zip(
             (rot, ~rot), SIGMA_FLOOR, levels, model.pose_sigma, strict=True
         ):
+            red = float(np.sum(1.0 - h_s[comp]))
+            reds.append(red)
             if not comp.any():
                 new.append(old)
                 continue
-            red = float(np.sum(1.0 - h_s[comp]))
             v = np.sqrt(np.sum(values[comp] ** 2) / red) if red > 1e-6 else floor
             if vce_step[0] > 2 and v < old and red < 0.25 * comp.sum():
                 # falling while the prior holds three quarters of it: the images do not
@@ -1524,6 +1519,7 @@ def _refine(
             if abs(v / old - 1.0) > 0.03 and big:
                 moved = True
             new.append(v)
+        model.level_redundancy[key] = (reds[0], reds[1])
         return (new[0], new[1]), moved
 
     vce_step = [0]
