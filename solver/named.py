@@ -343,7 +343,7 @@ def level_excess(out: RefineOutput) -> np.ndarray | None:
     red = getattr(m, "level_redundancy", None)
     if out.covariance is None or not red or m.pose_sigma is None:
         return None
-    from slidecal.solver.refine import SIGMA_FLOOR, TREND_AXES
+    from slidecal.solver.refine import SIGMA_FLOOR
 
     sig = np.asarray(m.pose_sigma, float)
     blocks = []  # (key, levels, per-frame share of a level, rotation rows)
@@ -352,7 +352,7 @@ def level_excess(out: RefineOutput) -> np.ndarray | None:
             continue
         n = m.slices[key].stop - m.slices[key].start
         if key == "V":
-            rot = np.concatenate([np.repeat(np.array(TREND_AXES) < 3, d) for d in m.st.trend_dims])
+            rot = m.trend_rotation_rows
             blocks.append((key, np.asarray(m.trend_sigma, float), m.trend_spread, rot))
         else:
             rot = np.tile([True, True, True, False, False, False], n // 6)

@@ -815,6 +815,11 @@ class BundleModel:
             J[idx, :, o : o + cols.shape[2] * m] = cols.reshape(len(idx), 2, -1)
 
     @property
+    def trend_rotation_rows(self) -> np.ndarray:
+        """(n,) bool over the trend coordinates ``V``: True for those of a rotation axis."""
+        return np.concatenate([np.repeat(np.array(TREND_AXES) < 3, m) for m in self.st.trend_dims])
+
+    @property
     def trend_spread(self) -> float:
         """Rms (metres) of the trend frames' offsets from their groups' means: a trend level
         times it is the trend's share of a frame's correction."""
@@ -1472,13 +1477,10 @@ def _refine(
             model.group_sigma, moved = shared_levels("U", U, h_u, u_rot, model.group_sigma, 1.0)
             changed |= moved
         if len(h_v):  # the trends along the moves: two levels of their own
-            v_rot = np.concatenate(
-                [np.repeat(np.array(TREND_AXES) < 3, m) for m in model.st.trend_dims]
-            )
+            v_rot = model.trend_rotation_rows
             model.trend_sigma, moved = shared_levels(
                 "V", state.V, h_v, v_rot, model.trend_sigma, model.trend_spread
             )
-
             changed |= moved
         if any(v > lim for v, lim in zip(new_pose, SIGMA_BEYOND, strict=True)):
             return False
