@@ -300,19 +300,34 @@ def result_covariance(
     """The reported quantities of a refinement (``RefineOutput``) of ``problem`` and their
     named covariance (None when the refinement has none)."""
     layout = layout_of(problem, out.model.st, out.state)
-    if out.covariance is None:
+    if out.covariance_blocks is None:
         return reported_names(layout, out.names), None
-    named = propagate(layout, out.names, out.covariance)
-    extra = smooth_arm_excess(out)
+    names, J = _jacobian(layout, tuple(out.names))
+    used = np.flatnonzero(np.any(J != 0, axis=0))
+    project = (J[:, used], used)  # the reported quantities from the parameters they use
+    C = project[0] @ out.covariance_blocks.submatrix(used, used) @ project[0].T
+    named = NamedCovariance(names, 0.5 * (C + C.T))
+    extra = smooth_arm_excess(out, project)
     if extra is not None:  # cover both readings of the frames' error: its positive part
-        w, V = np.linalg.eigh(propagate(layout, out.names, extra).matrix)
+        w, V = np.linalg.eigh(0.5 * (extra + extra.T))
         cover = (V * np.clip(w, 0.0, None)) @ V.T
-        named = NamedCovariance(named.names, named.matrix + 0.5 * (cover + cover.T))
-    level = level_excess(out)
+        named = NamedCovariance(names, named.matrix + 0.5 * (cover + cover.T))
+    level = level_excess(out, project)
     if level is not None:  # the noise levels are estimates: their uncertainty, carried
-        more = propagate(layout, out.names, level).matrix
-        named = NamedCovariance(named.names, named.matrix + 0.5 * (more + more.T))
-    return named.names, named
+        named = NamedCovariance(names, named.matrix + 0.5 * (level + level.T))
+    return names, named
+
+
+def _columns(
+    out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None, cols: np.ndarray
+) -> np.ndarray:
+    """``cov[:, cols]`` of the optimiser's covariance, or with ``project`` = (J (k, u), the u
+    parameters it uses) ``J cov[used, cols]`` (k, len(cols)): the reported quantities' rows."""
+    cols = np.asarray(cols, int)
+    if project is None:
+        return np.asarray(out.covariance, float)[:, cols]
+    J, used = project
+    return J @ out.covariance_blocks.submatrix(used, cols)
 
 
 #: Fewest degrees of freedom behind an estimated pose level for which its uncertainty is
@@ -321,7 +336,9 @@ def result_covariance(
 MIN_LEVEL_DOF = 3.0
 
 
-def level_excess(out: RefineOutput) -> np.ndarray | None:
+def level_excess(
+    out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
+) -> np.ndarray | None:
     """What the covariance of the optimiser's coordinates (P, P; positive semi-definite) gains
     because the robot's accuracy levels are estimated from few degrees of freedom, not known;
     None when there is nothing to add (docs/ROBOT_ACCURACY.md).
@@ -337,11 +354,13 @@ def level_excess(out: RefineOutput) -> np.ndarray | None:
     mean of a scaled inverse chi-square), the error's law a Student t's rather than a
     Gaussian's. The excess of the shares is returned, for levels resting on at least
     :data:`MIN_LEVEL_DOF` degrees of freedom and not at their floor (a shared level below a
-    tenth of the frames' own: what :func:`smooth_arm_excess` covers).
+    tenth of the frames' own: what :func:`smooth_arm_excess` covers). With ``project`` (the
+    reported quantities' Jacobian (k, u) and the u parameters it uses), the excess of the
+    reported quantities (k, k), made without the P x P matrix.
     """
     m = out.model
     red = getattr(m, "level_redundancy", None)
-    if out.covariance is None or not red or m.pose_sigma is None:
+    if out.covariance_blocks is None or not red or m.pose_sigma is None:
         return None
     from slidecal.solver.refine import SIGMA_FLOOR
 
@@ -358,10 +377,11 @@ def level_excess(out: RefineOutput) -> np.ndarray | None:
             rot = np.tile([True, True, True, False, False, False], n // 6)
             levels = sig if key == "E" else np.asarray(m.group_sigma, float)
             blocks.append((key, levels, 1.0, rot))
-    cov = np.asarray(out.covariance, float)
-    excess = np.zeros_like(cov)
+    k = len(out.names) if project is None else len(project[0])
+    excess = np.zeros((k, k))
     for key, levels, per_frame, rot in blocks:
-        C = cov[:, m.slices[key]]
+        sl = m.slices[key]
+        C = _columns(out, project, np.arange(sl.start, sl.stop))
         for i, rows in enumerate((rot, ~rot)):
             nu, level = float(red[key][i]), float(levels[i])
             if nu < MIN_LEVEL_DOF or not rows.any() or level <= 2.0 * SIGMA_FLOOR[i]:
@@ -373,7 +393,9 @@ def level_excess(out: RefineOutput) -> np.ndarray | None:
     return excess if np.any(excess) else None
 
 
-def smooth_arm_excess(out: RefineOutput) -> np.ndarray | None:
+def smooth_arm_excess(
+    out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
+) -> np.ndarray | None:
     """What the covariance of the optimiser's coordinates (P, P; symmetric, not PSD) gains when
     the frames' own pose corrections, modelled independent, are in truth a linear trend along
     the moves of their orientation group, in the axes (rotation, translation) whose trend the
@@ -392,10 +414,11 @@ def smooth_arm_excess(out: RefineOutput) -> np.ndarray | None:
     all trend gives, per group and axis, ``S = tau^2 c c'`` with ``c`` the frames' offsets
     along the moves and ``tau`` such that the trend carries each frame's level on average. The
     excess of the second over the first is returned: its positive part (added by
-    :func:`result_covariance`) covers both readings and every mixture of them.
+    :func:`result_covariance`) covers both readings and every mixture of them. With
+    ``project`` (as :func:`level_excess`), the excess of the reported quantities (k, k).
     """
     m, st = out.model, out.model.st
-    if out.covariance is None or "E" not in m.slices or not st.trend_dims:
+    if out.covariance_blocks is None or "E" not in m.slices or not st.trend_dims:
         return None
     if st.trend_groups is None or st.trend_coords is None or m.pose_sigma is None:
         return None
@@ -407,10 +430,10 @@ def smooth_arm_excess(out: RefineOutput) -> np.ndarray | None:
     ]
     if not (floored.any() and any(short)):
         return None
-    cov = np.asarray(out.covariance, float)
     e = m.slices["E"]
-    A = cov[:, e] / np.tile(np.repeat(sig**2, 3), (e.stop - e.start) // 6)  # gain on the priors
-    excess = np.zeros_like(cov)
+    A = _columns(out, project, np.arange(e.start, e.stop))
+    A = A / np.tile(np.repeat(sig**2, 3), (e.stop - e.start) // 6)  # gain on the priors
+    excess = np.zeros((len(A), len(A)))
     for g, dims in enumerate(st.trend_dims):
         k = np.flatnonzero(st.trend_groups == g)
         if not short[g]:  # the scatter keeps as many dof as the trend takes: the images tell

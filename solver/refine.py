@@ -170,7 +170,9 @@ class BlockInverse:
     ``gg`` (P0, P0): the global parameters' block (the inverse of the reduced matrix);
     ``gE`` (P0, F, 6): their coupling with each frame's correction; ``EE`` (F, 6, 6): each
     frame's own block. ``frame_inv`` (F, 6, 6), ``coupling`` (P0, 6 F) and ``reduced_inv``
-    (P0, P0) give the frames' cross blocks ``coupling' reduced_inv coupling`` for :meth:`dense`.
+    (P0, P0) give the frames' cross blocks ``coupling' reduced_inv coupling`` for :meth:`dense`;
+    ``global_scale`` (P0,): the global parameters' scaling of ``reduced_inv``
+    (``gg = reduced_inv / outer(global_scale, global_scale)``).
     """
 
     gg: np.ndarray
@@ -179,6 +181,7 @@ class BlockInverse:
     frame_inv: np.ndarray
     coupling: np.ndarray
     reduced_inv: np.ndarray
+    global_scale: np.ndarray
 
     def trace_with(self, blocks: NormalBlocks) -> float:
         """``trace(inverse @ M)`` for ``M`` of the same block pattern (``blocks``' normal
@@ -194,6 +197,45 @@ class BlockInverse:
         of the frames' block: only for a caller that asks for the full covariance)."""
         cross = self.coupling.T @ self.reduced_inv @ self.coupling
         return _assemble(self.gg, self.gE, self.frame_inv, cross)
+
+    def scaled(self, factor: float) -> BlockInverse:
+        """The same blocks times ``factor`` (a covariance ``s^2 (J' W J)^-1``)."""
+        return BlockInverse(
+            gg=factor * self.gg,
+            gE=factor * self.gE,
+            EE=factor * self.EE,
+            frame_inv=factor * self.frame_inv,
+            coupling=self.coupling,
+            reduced_inv=factor * self.reduced_inv,
+            global_scale=self.global_scale,
+        )
+
+    def submatrix(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """``dense()[np.ix_(rows, cols)]`` without the dense matrix: the inverse is
+        ``W' reduced_inv W`` plus the frames' own ``frame_inv`` on the diagonal blocks, where
+        ``W``'s column of a global parameter is its unit vector over its scale and a frame
+        correction's is minus its ``coupling`` column; a few rows (the reported quantities'
+        parameters) against any columns cost O(P0^2 (rows + cols))."""
+        rows, cols = np.asarray(rows, int), np.asarray(cols, int)
+        P0 = self.gg.shape[0]
+        Si, s_g = self.reduced_inv, self.global_scale
+
+        def factor(idx: np.ndarray) -> np.ndarray:
+            W = np.zeros((P0, len(idx)))
+            g = idx < P0
+            W[idx[g], np.flatnonzero(g)] = 1.0 / s_g[idx[g]]
+            if not g.all():
+                W[:, ~g] = -self.coupling[:, idx[~g] - P0]
+            return W
+
+        out = factor(rows).T @ Si @ factor(cols)
+        fr, fc = rows >= P0, cols >= P0
+        if fr.any() and fc.any():  # the frames' own blocks, where a row and a column share one
+            a, b = rows[fr] - P0, cols[fc] - P0
+            same = (a[:, None] // 6) == (b[None, :] // 6)
+            own = self.frame_inv[a[:, None] // 6, a[:, None] % 6, b[None, :] % 6]
+            out[np.ix_(np.flatnonzero(fr), np.flatnonzero(fc))] += np.where(same, own, 0.0)
+        return out
 
 
 def _assemble(
@@ -307,6 +349,7 @@ class NormalBlocks:
             frame_inv=Ei / outer_E,
             coupling=L / s_E.reshape(1, -1),
             reduced_inv=Si,
+            global_scale=s_g,
         )
 
 
@@ -1001,7 +1044,10 @@ class RefineOutput:
 
     state: ModelState
     names: tuple[str, ...]
-    covariance: np.ndarray | None
+    # the covariance of the optimiser's coordinates in blocks (``covariance`` is its dense
+    # form, made on demand: P x P is 6000 x 6000 at 1000 frames with the arm's accuracy
+    # learned, where the reported quantities need a few rows of it)
+    covariance_blocks: BlockInverse | None
     residuals: np.ndarray  # (R,) pixels, outliers included
     inlier_rows: np.ndarray  # (R,) bool
     sigma_px: float
@@ -1018,6 +1064,12 @@ class RefineOutput:
     robot_sigma: tuple[float, float] | None = None
     robot_sigma_estimated: bool = False
     robot_test: str = ""
+
+    @functools.cached_property
+    def covariance(self) -> np.ndarray | None:
+        """The covariance (P, P) of the optimiser's coordinates ``names``; None when it could
+        not be computed."""
+        return None if self.covariance_blocks is None else self.covariance_blocks.dense()
 
 
 def with_pose_corrections(
@@ -1618,7 +1670,7 @@ def _refine(
         )
     else:
         try:
-            cov = sigma_px**2 * nb.inverse(check_condition=True).dense()
+            cov = nb.inverse(check_condition=True).scaled(sigma_px**2)
         except np.linalg.LinAlgError as e:
             messages.append(
                 f"covariance not computed ({e}): some parameter is barely observable; "

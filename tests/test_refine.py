@@ -421,6 +421,14 @@ def test_schur_solve_and_inverse_equal_the_dense_ones(groups):
         c = P0 + 6 * k
         np.testing.assert_allclose(inv.EE[k], Ni[c : c + 6, c : c + 6], **tol)
     np.testing.assert_allclose(inv.dense(), Ni, **tol)
+    # any rows against any columns (global and frames mixed, a frame's own block included),
+    # scaled as a covariance, without the dense matrix
+    rng = np.random.default_rng(5)
+    rows = np.concatenate([rng.choice(P0, 7, replace=False), P0 + np.array([0, 5, 13, 119])])
+    cols = np.concatenate([P0 + np.array([1, 5, 12, 17, 118]), rng.choice(P0, 4, replace=False)])
+    np.testing.assert_allclose(
+        inv.scaled(0.04).submatrix(rows, cols), 0.04 * Ni[np.ix_(rows, cols)], **tol
+    )
     # the hat matrix's trace over one camera's rows (here: the pixel rows)
     wc = w.copy()
     wc[model.n_rows :] = 0.0
