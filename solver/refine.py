@@ -670,14 +670,18 @@ class BundleModel:
         A, g = nb.dense()
         return nb.r, A, g
 
-    def normal_blocks(self, state: ModelState, weights: np.ndarray) -> NormalBlocks:
+    def normal_blocks(
+        self, state: ModelState, weights: np.ndarray, keep: bool = True
+    ) -> NormalBlocks:
         """``J' W J`` and ``J' W r`` split into the global parameters and the per-frame blocks.
 
         With pose corrections the Jacobian is never formed whole: each frame's six correction
         columns touch only that frame's rows (and one prior row each), so their blocks are
         accumulated per frame; everything else (intrinsics, rig, X, Y, the groups' U, ...) is
         global. The evaluation is kept for the last state, so reweighing (a camera's rows, the
-        priors) costs products only.
+        priors) costs products only; so are the pixel blocks of the last weights, unless
+        ``keep`` is False (a one-off weighting, e.g. one camera's rows, that should not push
+        out the solve's own).
         """
         ax = self.axis_rows
         if "E" not in self.slices:
@@ -691,7 +695,7 @@ class BundleModel:
         sl = self.slices["E"]
         P0, F = sl.start, len(self.problem.frames)
         w, wp = weights[: 2 * n], weights[2 * n : 2 * n + 6 * F]
-        cache = self._normal_cache
+        cache = self._normal_cache if keep else None
         if cache is not None and cache[0] is state and np.array_equal(cache[1], w):
             rp, A_gg, g_g, A_gE, A_EE, g_E = cache[2:]  # only the priors' weights moved
         else:
@@ -714,7 +718,8 @@ class BundleModel:
                 g_E[k] = Bwk.T @ rp[rows]
             if P1 < P0:  # the shared corrections: their columns are the frames' ones times S
                 A_gg, g_g, A_gE = self._with_shared(A_gg, g_g, A_gE, A_EE, g_E)
-            self._normal_cache = (state, w.copy(), rp, A_gg, g_g, A_gE, A_EE, g_E)
+            if keep:
+                self._normal_cache = (state, w.copy(), rp, A_gg, g_g, A_gE, A_EE, g_E)
         ps = self.prior_scale
         r_prior = [ps * state.E.reshape(-1)]
         A_EE = A_EE.copy()
@@ -819,6 +824,23 @@ class BundleModel:
         observation's u row, then every v row (``evaluate(..., transposed=True)``)."""
         rows = np.arange(2 * self.n_obs)
         return np.concatenate([rows[0::2], rows[1::2]])
+
+    def pixel_step(self, state: ModelState, delta: np.ndarray) -> np.ndarray:
+        """``J delta`` over the pixel rows (2 n,) with the Jacobian at ``state`` (evaluated
+        once and kept): the pixel residuals of the step ``delta`` to first order, without a
+        new evaluation. Pose corrections only (``E`` in the model)."""
+        _, JT, B = self._evaluation(state)
+        P1 = JT.shape[0]
+        d = np.empty(2 * self.n_obs)
+        d[self.axis_rows] = delta[:P1] @ JT
+        sl = self.slices["E"]
+        dE = delta[sl].reshape(-1, 6)
+        if self.shared_map is not None:  # the shared corrections move each frame like its own
+            S = self.shared_map
+            F, _, m = S.shape
+            dE = dE + (S.reshape(6 * F, m) @ delta[P1 : sl.start]).reshape(F, 6)
+        d += np.einsum("nac,nc->na", B, dE[self.o_frame]).reshape(-1)
+        return d
 
     def trial_residuals(self, state: ModelState) -> np.ndarray:
         """Residuals (R,) of ``state``, evaluated with the Jacobian the normal equations use
@@ -1175,8 +1197,14 @@ def single_threaded_blas(fn):  # noqa: ANN001, ANN201 - a plain decorator
 #: the minimum instead of 5-6 from 1e-4 on R1 and on 1-3 cameras with 100-400 frames; a start
 #: it does not suit raises it tenfold per refused step)
 LM_START_DAMPING = 1e-6
-#: The damping of each Gauss-Newton step between two variance-component updates
-VCE_STEP_DAMPING = 1e-4
+#: The damping of the Gauss-Newton steps of the variance-component phase: nearly none. A
+#: damping of 1e-4 of the normal matrix's diagonal held back the directions only the pose
+#: prior pins (an orientation group's translation against the board's): the state crept along
+#: them by a few % per step and the groups' levels with it, for tens of steps (measured on R1
+#: with a real arm's error: 27-40 level steps, against 7)
+VCE_STEP_DAMPING = 1e-9
+#: Most variance-component steps of one solve (then the last levels are kept, with a note)
+MAX_VCE_STEPS = 40
 #: Significance level of the test "the measured robot poses explain the images as well as a
 #: free board pose per image does" (an F test): below it, the robot's accuracy is estimated.
 ROBOT_TEST_P = 1e-3
@@ -1452,13 +1480,15 @@ def _refine(
             out.append(np.sqrt(np.sum(r[m] ** 2) / dof) if n else np.nan)
         return np.array(out)
 
-    def variance_components() -> bool:
-        """One Foerstner step: every camera's noise and the two pose sigmas from their
-        residuals and redundancy numbers; True when one moved by more than 2-3 %."""
+    def variance_components(nb: NormalBlocks, delta: np.ndarray) -> bool:
+        """One Foerstner step at the state ``delta`` (P,) from ``state``, to first order
+        (``nb``: the normal equations at ``state``): every camera's noise and the two pose
+        sigmas from their residuals and redundancy numbers; True when one moved by more than
+        2-3 %."""
         nonlocal cam_w
-        w = inlier * cam_w
-        nb = model.normal_blocks(state, w)
-        r = nb.r
+        r = nb.r.copy()
+        r[:n_px] += model.pixel_step(state, delta)
+        moved = model.apply(state, delta)  # E, U and V at the step (linear in delta)
         Ni = nb.inverse()
         diag_E = np.diagonal(Ni.EE, axis1=1, axis2=2).reshape(-1)
         h = np.clip(model.prior_scale**2 * diag_E, 0.0, 1.0)
@@ -1470,7 +1500,7 @@ def _refine(
             diag_V = np.diagonal(Ni.gg)[model.slices["V"]]
             h_v = np.clip(model.trend_prior_scale**2 * diag_V, 0.0, 1.0)
         sig = []
-        for rows in cam_rows:
+        for ci, rows in enumerate(cam_rows):
             m = rows & inlier
             if not m.any():
                 sig.append(np.nan)
@@ -1478,11 +1508,11 @@ def _refine(
             if len(cam_rows) == 1:  # the hat matrix's trace is P: the prior rows take sum(h)
                 used = len(model.names) - float(np.sum(h) + np.sum(h_u) + np.sum(h_v))
             else:
-                used = Ni.trace_with(model.normal_blocks(state, w * m))
+                used = camera_trace(Ni, ci, m)
             sig.append(np.sqrt(np.sum(r[m] ** 2) / max(m.sum() - used, 1.0)))
         sig = np.array(sig)
         ref_i = model.cams.index(model.ref)
-        E = state.E.reshape(-1)
+        E = moved.E.reshape(-1)
         is_rot = np.tile([True, True, True, False, False, False], len(problem.frames))
         new_pose, reds = [], []
         for comp, floor, old in zip((is_rot, ~is_rot), SIGMA_FLOOR, model.pose_sigma, strict=True):
@@ -1497,7 +1527,9 @@ def _refine(
                 # (from above, alone, at a rate c / (sigma^2 + c): slow when the pixels pin
                 # each pose about as well as the arm's accuracy does)
                 one = 1.0 - h[comp]
-                m = float(np.mean(E[comp] ** 2 / one**2 - old**2 * h[comp] / one))
+                pinned = one > 1e-9  # a correction the prior alone holds has no pixel estimate
+                e, one, hc = E[comp][pinned], one[pinned], h[comp][pinned]
+                m = float(np.mean(e**2 / one**2 - old**2 * hc / one)) if len(e) else 0.0
                 if m > floor**2:
                     v = min(v, np.sqrt(m))
             v = max(float(v), floor)
@@ -1524,19 +1556,31 @@ def _refine(
                 changed = True
         model.pose_sigma = (new_pose[0], new_pose[1])
         if len(h_u):  # the orientation groups' shared corrections: their own two levels
-            U = state.U.reshape(-1)
+            U = moved.U.reshape(-1)
             u_rot = np.tile([True, True, True, False, False, False], len(U) // 6)
-            model.group_sigma, moved = shared_levels("U", U, h_u, u_rot, model.group_sigma, 1.0)
-            changed |= moved
+            model.group_sigma, shifted = shared_levels("U", U, h_u, u_rot, model.group_sigma, 1.0)
+            changed |= shifted
         if len(h_v):  # the trends along the moves: two levels of their own
             v_rot = model.trend_rotation_rows
-            model.trend_sigma, moved = shared_levels(
-                "V", state.V, h_v, v_rot, model.trend_sigma, model.trend_spread
+            model.trend_sigma, shifted = shared_levels(
+                "V", moved.V, h_v, v_rot, model.trend_sigma, model.trend_spread
             )
-            changed |= moved
+            changed |= shifted
         if any(v > lim for v, lim in zip(new_pose, SIGMA_BEYOND, strict=True)):
             return False
         return changed
+
+    camera_blocks: dict[int, tuple] = {}
+
+    def camera_trace(Ni: BlockInverse, ci: int, m: np.ndarray) -> float:
+        """The hat matrix's trace over camera ``ci``'s inlier rows ``m``: the parameters its
+        rows take. The camera's pixel blocks are made once per linearisation (its weight is
+        one number over its rows: a factor)."""
+        hit = camera_blocks.get(ci)
+        if hit is None or hit[0] is not state or not np.array_equal(hit[1], m):
+            hit = (state, m.copy(), model.normal_blocks(state, m.astype(float), keep=False))
+            camera_blocks[ci] = hit
+        return float(cam_w[np.flatnonzero(m)[0]]) * Ni.trace_with(hit[2])
 
     def shared_levels(
         key: str,
@@ -1596,10 +1640,29 @@ def _refine(
         rho = d / prev
         return float(old * np.exp(d * min(1.0 / (1.0 - rho), 4.0)))
 
+    def settle_levels() -> bool:
+        """The noise levels to their fixed point at the present linearisation: Foerstner's
+        steps, each at the Gauss-Newton step the last levels give, to first order (the pose
+        corrections enter the residuals nearly linearly: a step costs a solve and an inverse of
+        the reduced system, no evaluation); True when they moved. The caller then steps the
+        state under them and settles again: at the minimum, the first step moves nothing."""
+        moved = False
+        while vce_step[0] < MAX_VCE_STEPS:
+            nb = model.normal_blocks(state, inlier * cam_w)
+            try:
+                delta = nb.solve(VCE_STEP_DAMPING)
+            except np.linalg.LinAlgError:
+                delta = np.zeros(P)
+            if not variance_components(nb, delta):
+                break
+            moved = True
+        return moved
+
     if estimate:
         model.sigma_px = max(noise(model.evaluate(state, jacobian=False)[0], inlier * cam_w), 1e-3)
-    # while the variance components move, a few Gauss-Newton steps between their updates
-    # reach the joint fixed point as surely as full solves, in a third of the time
+    # while the variance components move: the levels settle at the present linearisation
+    # (settle_levels), one Gauss-Newton step moves the state under them, and again; at the
+    # joint fixed point the first level step moves nothing and the state is converged fully
     steps = min(1, max_iter) if estimate else max_iter
     lam = LM_START_DAMPING
     for _ in range(40 if estimate else 10):
@@ -1613,7 +1676,15 @@ def _refine(
         total_it += it
         changed = False
         if estimate:
-            changed = variance_components()
+            if vce_step[0] < MAX_VCE_STEPS:
+                changed = settle_levels()
+            elif not vce_note:  # still creeping (toward the floor, or slowly): the last
+                # levels are kept and the parameters converged under them, so the estimate
+                # is the minimum of a definite model and not a point part way along the creep
+                vce_note.append(
+                    f"the noise levels were still moving after {vce_step[0]} updates; the last "
+                    "ones were kept"
+                )
             if not changed and steps < max_iter:
                 steps, changed = max_iter, True  # converge fully at the final levels
         else:

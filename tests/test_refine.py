@@ -335,6 +335,39 @@ def test_trend_columns_match_finite_differences(translations_only: bool):
     np.testing.assert_allclose(E[k], want, rtol=1e-12)
 
 
+@pytest.mark.parametrize("translations_only", [False, True])
+def test_pixel_step_is_the_jacobian_times_the_step(translations_only: bool):
+    # the variance-component steps read the pixel residuals of a step to first order from the
+    # kept split Jacobian (global columns, the groups' and the trends' corrections through the
+    # frames' pose blocks): equal to the whole Jacobian's product
+    s = sc.r1_real_arm(np.random.default_rng(33), translations_only=translations_only)
+    model = _trend_model(s)
+    rng = np.random.default_rng(34)
+    su = model.slices.get("U", slice(0, 0))
+    n_u = (su.stop - su.start) // 6
+    state = ModelState(
+        s.truth.K,
+        s.truth.dist,
+        {},
+        s.truth.X,
+        s.truth.Y,
+        s.truth.s,
+        rng.normal(0, 1e-5, (len(s.problem.frames), 6)),
+        rng.normal(0, 1e-5, (n_u, 6)) if n_u else None,
+        rng.normal(0, 1e-5, model.slices["V"].stop - model.slices["V"].start),
+    )
+    assert ("U" in model.slices) != translations_only
+    J = model.evaluate(state)[1][: model.n_rows]
+    delta = rng.normal(0, 1e-4, len(model.names)) * np.abs(np.diag(J.T @ J)) ** -0.5
+    want = J @ delta
+    got = model.pixel_step(state, delta)
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9 * np.abs(want).max())
+    # a step along the trends alone is seen (the comparison can fail)
+    dv = np.zeros_like(delta)
+    dv[model.slices["V"]] = delta[model.slices["V"]]
+    assert np.abs(model.pixel_step(state, dv)).max() > 1e-3 * np.abs(want).max()
+
+
 def test_trend_directions_are_the_ones_a_group_spans():
     from slidecal.solver.refine import translation_trends
 
