@@ -42,6 +42,7 @@ from slidecal.routines import bench
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, rvec_from_R
+from slidecal.solver.named import TOOL_OFFSET_SIGMA_M
 from slidecal.solver.problem import Detection, Frame
 
 INTRINSICS = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
@@ -426,7 +427,11 @@ def main(argv: list[str] | None = None) -> int:
         "The covariance covers the arm's smooth error (docs/ROBOT_ACCURACY.md): where an "
         "orientation group has too few frames to tell a linear trend of the pose error along its "
         "moves from the frames' scatter (R1's groups of five), the reported covariance is the "
-        "larger of the estimator's spread under both readings (`smooth_arm_excess`).",
+        "larger of the estimator's spread under both readings (`smooth_arm_excess`). Where one "
+        "orientation leaves the camera's offset from the flange unobserved (the two 13-frame "
+        f"rows), it carries the estimator's response to that offset at {TOOL_OFFSET_SIGMA_M} m "
+        "per axis "
+        "(`tool_offset_excess`).",
         "",
         "The drifting-arm row takes the one-orientation session's commanded poses on an arm "
         "whose orientation drifts linearly along the moves (0.06 deg per 60 mm in a random "

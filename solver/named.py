@@ -315,6 +315,9 @@ def result_covariance(
     level = level_excess(out, project)
     if level is not None:  # the noise levels are estimates: their uncertainty, carried
         named = NamedCovariance(names, named.matrix + 0.5 * (level + level.T))
+    offset = tool_offset_excess(problem, out, project)
+    if offset is not None:  # an unobserved hand-eye translation, taken as zero
+        named = NamedCovariance(names, named.matrix + 0.5 * (offset + offset.T))
     return names, named
 
 
@@ -391,6 +394,74 @@ def level_excess(
             Ci = C[:, rows]
             excess += (nu / (nu - 2.0) - 1.0) * (Ci @ Ci.T) / level**2
     return excess if np.any(excess) else None
+
+
+#: One-sigma per axis (metres) of a tool-side translation the session cannot observe (the
+#: camera's offset from the flange eye-in-hand, the board's eye-to-hand, with one
+#: orientation): the covariance carries it for an offset within about 17 cm of the flange.
+TOOL_OFFSET_SIGMA_M = 0.1
+
+
+def tool_offset_gain(
+    problem: CalibrationProblem, out: RefineOutput, project: tuple[np.ndarray, np.ndarray]
+) -> np.ndarray | None:
+    """How the reported quantities move per metre of the tool-side translation the session
+    cannot observe (k, m): the m unobserved directions of the camera's offset from the flange
+    (eye-in-hand) or the board's (eye-to-hand), which the solve takes as zero. None when every
+    direction is observed or the poses carry no corrections (docs/ROBOT_ACCURACY.md).
+
+    With one orientation the offset only moves the target's pose, as long as the poses are
+    exact. With the pose corrections, a frame's rotation turns the tool about the flange and
+    moves the camera (or board) by the rotation times the offset: a part of the arm's error the
+    solve attributes to the translation corrections and, through their trend along the moves,
+    to the scale of the moves and the focal lengths. The gain is the estimator's response to the
+    offset held at another value: ``-N^-1 J' W J_o`` (``N`` the normal matrix, ``J_o`` the
+    residuals' Jacobian along the unobserved directions, ``W`` the solve's row weights), through
+    the reported quantities' Jacobian (``project``, as :func:`level_excess`).
+    """
+    from dataclasses import replace
+
+    from slidecal.solver.refine import BundleModel
+
+    m, st = out.model, out.model.st
+    weights = getattr(m, "row_weights", None)
+    if out.covariance_blocks is None or "E" not in m.slices or weights is None:
+        return None
+    basis = st.X_t_basis if st.eye_in_hand else st.Y_t_basis
+    if basis.shape[1] == 3:
+        return None
+    # the observed directions first (their columns keep their names), then the others
+    free = np.linalg.svd(np.eye(3) - basis @ basis.T)[0][:, : 3 - basis.shape[1]]
+    whole = np.hstack([basis, free])
+    ext = BundleModel(
+        problem, replace(st, **{"X_t_basis" if st.eye_in_hand else "Y_t_basis": whole})
+    )
+    ext.sigma_px, ext.pose_sigma = m.sigma_px, m.pose_sigma
+    ext.group_sigma, ext.trend_sigma = m.group_sigma, m.trend_sigma
+    nb = ext.normal_blocks(out.state, weights, keep=False)
+    at = {n: i for i, n in enumerate(ext.names)}
+    known = set(m.names)
+    new = np.array([i for i, n in enumerate(ext.names) if n not in known])
+    P0 = m.slices["E"].start
+    glob = np.array([at[n] for n in m.names[:P0]])
+    cross = np.vstack(  # J' W J_o (P, m) in the solve's parameter order
+        [nb.A_gg[np.ix_(glob, new)], nb.A_gE[new].reshape(len(new), -1).T]
+    )
+    J, used = project
+    C = out.covariance_blocks.submatrix(used, np.arange(len(m.names)))
+    return -(J @ C @ cross) / out.sigma_px**2
+
+
+def tool_offset_excess(
+    problem: CalibrationProblem, out: RefineOutput, project: tuple[np.ndarray, np.ndarray]
+) -> np.ndarray | None:
+    """What the reported quantities' covariance (k, k) gains from the unobserved tool-side
+    translation (:func:`tool_offset_gain`) at :data:`TOOL_OFFSET_SIGMA_M` per axis; None when
+    there is none."""
+    G = tool_offset_gain(problem, out, project)
+    if G is None:
+        return None
+    return TOOL_OFFSET_SIGMA_M**2 * (G @ G.T)
 
 
 def smooth_arm_excess(

@@ -426,6 +426,9 @@ class BundleModel:
         # ("E" frames, "U" groups, "V" trends): (rotation, translation), the last
         # variance-component step's sum of 1 - h over the block's prior rows
         self.level_redundancy: dict[str, tuple[float, float]] = {}
+        # the row weights of the last solve (inliers, each camera's noise against the
+        # reference camera's): what its covariance was made with; None before one
+        self.row_weights: np.ndarray | None = None
         self._normal_cache: tuple | None = None  # (state, pixel weights, blocks) of the last
         self._eval_cache: tuple | None = None  # (state, evaluate's output) of the last
         self._motion_cache: tuple | None = None  # (state, true_motions) of the last
@@ -1727,6 +1730,7 @@ def _refine(
                 "ones were kept"
             )
     weights = inlier * cam_w
+    model.row_weights = weights  # the solve's last row weights (its covariance's)
     nb = model.normal_blocks(state, weights)
     r = nb.r
     inlier_rows = inlier.copy()

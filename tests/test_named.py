@@ -354,3 +354,49 @@ def test_estimated_levels_carry_their_own_uncertainty(monkeypatch):
         sc.r1(np.random.default_rng(7), 0.15, 0.0, 0.0).problem, monkeypatch
     )
     assert level_excess(exact) is None
+
+
+def test_unobserved_tool_offset_gain_is_the_response_of_a_solve(monkeypatch):
+    # one orientation: the camera's offset from the flange is not observed and taken as zero;
+    # with the arm's rotation learned per frame, holding it at another value moves the focal
+    # lengths. The gain the covariance carries is that response, to first order: re-solving
+    # with the offset held 5 mm off along each axis moves the intrinsics by the gain times it
+    from slidecal.routines.bench_reality import drifting_arm
+    from slidecal.solver.named import _jacobian, layout_of, tool_offset_gain
+    from slidecal.solver.refine import _refine
+
+    s = drifting_arm(np.random.default_rng(2001))[0]
+    _, out = _solve_keeping_the_refinement(s.problem, monkeypatch)
+    m = out.model
+    assert m.st.X_t_basis.shape[1] == 0 and "E" in m.slices
+    names, J = _jacobian(layout_of(s.problem, m.st, out.state), tuple(out.names))
+    used = np.flatnonzero(np.any(J != 0, axis=0))
+    G = tool_offset_gain(s.problem, out, (J[:, used], used))
+    assert G.shape == (len(names), 3)
+    levels = {"pose_sigma": m.pose_sigma, "group_sigma": m.group_sigma}
+    st = replace(m.st, trend_sigma=m.trend_sigma, **levels)
+
+    def solve(t: np.ndarray) -> np.ndarray:
+        X = out.state.X.copy()
+        X[0, :3, 3] = t
+        init = replace(out.state, X=X)
+        res = _refine(s.problem, st, init, 100, robust=False, estimate=False)
+        return np.array([res.state.K["cam"][i, j] for i, j in ((0, 0), (1, 1), (0, 2), (1, 2))])
+
+    h = 0.002
+    response = np.array([(solve(h * e) - solve(-h * e)) / (2 * h) for e in np.eye(3)]).T
+    rows = [names.index(f"cam.{p}") for p in ("fx", "fy", "cx", "cy")]
+    # the gain's directions are an orthonormal basis of the unobserved ones: compare the
+    # spread per parameter, sqrt(diag(G G')) (px per m); cy barely moves (under 1 px per m,
+    # where second-order terms the gain leaves out are of its size)
+    want = np.sqrt(np.diag(response @ response.T))
+    got = np.sqrt(np.diag(G[rows] @ G[rows].T))
+    assert want[:3].min() > 5.0  # the offset matters here: fx, fy and cx move
+    np.testing.assert_allclose(got, want, rtol=0.15, atol=1.0)
+    # poses taken as exact: the offset only moves the target, nothing to carry
+    p = replace(s.problem, options=replace(s.problem.options, estimate_robot_noise=False))
+    res, exact = _solve_keeping_the_refinement(p, monkeypatch)
+    assert "E" not in exact.model.slices
+    names, J = _jacobian(layout_of(p, exact.model.st, exact.state), tuple(exact.names))
+    used = np.flatnonzero(np.any(J != 0, axis=0))
+    assert tool_offset_gain(p, exact, (J[:, used], used)) is None
