@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from slidecal.mocks import scenarios as sc
-from slidecal.routines.benchmarks import report_header
+from slidecal.routines.benchmarks import publish_report, report_header
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import rotation_angle_deg
@@ -374,11 +374,7 @@ def main(argv: list[str] | None = None) -> int:
         f"- ratio: {ratio:.2f}",
     ]
     text = "\n".join(lines) + "\n"
-    print(text)
-    if args.out:
-        with open(args.out, "w", encoding="utf-8") as fh:
-            fh.write(text)
-    return 0
+    return publish_report(text, args.out)
 
 
 if __name__ == "__main__":

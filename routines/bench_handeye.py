@@ -23,7 +23,7 @@ import numpy as np
 
 from slidecal.mocks import scenarios as hs
 from slidecal.mocks.scenarios import NO_DISTORTION, Scenario
-from slidecal.routines.benchmarks import report_header
+from slidecal.routines.benchmarks import publish_report, report_header
 from slidecal.solver.calibrate import calibrate, pnp_pose
 from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import inv_T, rotation_angle_deg
@@ -293,11 +293,7 @@ def main(argv: list[str] | None = None) -> int:
         "",
     ]
     text = "\n".join(lines) + "\n"
-    print(text)
-    if args.out:
-        with open(args.out, "w", encoding="utf-8") as fh:
-            fh.write(text)
-    return 0
+    return publish_report(text, args.out)
 
 
 if __name__ == "__main__":

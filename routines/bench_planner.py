@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slidecal.routines.benchmarks import report_header
+from slidecal.routines.benchmarks import publish_report, report_header
 from slidecal.routines.config import CellConfig, load_config
 from slidecal.routines.plan import Plan, default_plan, tool_pose
 from slidecal.routines.planner import (
@@ -226,10 +226,7 @@ def main(argv: list[str] | None = None) -> int:
         "",
     ]
     text = "\n".join(lines)
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(text, encoding="utf-8")
-    sys.stdout.write(text)
-    return 0
+    return publish_report(text, args.out)
 
 
 def _with_noise(s, sigma_px: float):  # noqa: ANN001, ANN202 - small helper

@@ -39,6 +39,7 @@ from scipy.stats import binom, chi2, norm
 
 from slidecal.mocks import scenarios as sc
 from slidecal.routines import bench
+from slidecal.routines.benchmarks import publish_report
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, rvec_from_R
@@ -446,11 +447,7 @@ def main(argv: list[str] | None = None) -> int:
     if sp is not None:
         lines += _clean_section(args.clean_trials, clean, clean_notes, sp)
     text = "\n".join(lines) + "\n"
-    print(text)
-    if args.out:
-        with open(args.out, "w", encoding="utf-8") as fh:
-            fh.write(text)
-    return 0
+    return publish_report(text, args.out)
 
 
 def _clean_section(

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from slidecal.mocks import scenarios as rs
-from slidecal.routines.benchmarks import report_header
+from slidecal.routines.benchmarks import publish_report, report_header
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import rotation_angle_deg
@@ -401,11 +401,7 @@ def main(argv: list[str] | None = None) -> int:
             "",
         ]
     text = "\n".join(lines)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text)
-    print(text)
-    return 0
+    return publish_report(text, args.out)
 
 
 if __name__ == "__main__":

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slidecal.routines.benchmarks import report_header
+from slidecal.routines.benchmarks import publish_report, report_header
 from slidecal.routines.results_io import hand_eye_transforms
 from slidecal.routines.run import run_calibration
 from slidecal.routines.session import load_session
@@ -193,10 +193,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     rows = run_seeds(args.config, list(range(1, args.seeds + 1)))
     text = report(rows, argv, time.perf_counter() - t0)
-    print(text)
-    if args.out:
-        Path(args.out).write_text(text, encoding="utf-8")
-    return 0
+    return publish_report(text, args.out)
 
 
 if __name__ == "__main__":

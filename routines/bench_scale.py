@@ -28,7 +28,7 @@ import numpy as np
 from slidecal.mocks.scenarios import oak_rig
 from slidecal.mocks.scenarios import r1 as r1_scenario  # the module's r1 is a table row
 from slidecal.routines.bench import speed, time_against_opencv
-from slidecal.routines.benchmarks import report_header
+from slidecal.routines.benchmarks import publish_report, report_header
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.problem import CalibrationProblem, Frame
 
@@ -218,10 +218,7 @@ def main(argv: list[str] | None = None) -> int:
         "",
     ]
     text = "\n".join(lines)
-    if args.out is not None:
-        args.out.write_text(text, encoding="utf-8")
-    print(text)
-    return 0
+    return publish_report(text, args.out)
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ import platform
 import sys
 from collections.abc import Sequence
 from importlib import metadata
+from pathlib import Path
 
 #: benchmark name -> (module, what it measures)
 BENCHMARKS: dict[str, tuple[str, str]] = {
@@ -77,6 +78,17 @@ def report_header(title: str, name: str, argv: Sequence[str] | None, elapsed_s: 
         f"{libs}; {machine}; this run took {elapsed_s:.0f} s).",
         "",
     ]
+
+
+def publish_report(text: str, out: str | os.PathLike[str] | None) -> int:
+    """Print a benchmark's report and, when ``out`` is given, write it there (its folder made
+    if missing); the benchmark's exit status (0)."""
+    print(text)
+    if out:
+        path = Path(out)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text, encoding="utf-8")
+    return 0
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
