@@ -999,3 +999,14 @@ def classic(
 def board_in_view(s: Scenario) -> np.ndarray:
     """Per frame, the number of target points the camera saw (for checking a built scenario)."""
     return np.array([len(f.detections["cam"].ids) for f in s.problem.frames])
+
+
+#: The single-camera cells without any noise (pixels, robot poses), by name: a solve of each
+#: must return its truth to round-off (the pipeline's and the refinement's tests).
+NOISE_FREE: dict[str, Callable[[np.random.Generator], Scenario]] = {
+    "R1": lambda rng: r1(rng, 0.0, 0.0, 0.0),
+    "R1-eye-to-hand": lambda rng: r1_eye_to_hand(rng, 0.0, 0.0, 0.0),
+    "S1": lambda rng: s1(30.0, 0.0, rng),
+    "S2": lambda rng: s2(5, 0.0, rng),
+    "S3": lambda rng: s3(5, 0.0, rng),
+}

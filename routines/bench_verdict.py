@@ -404,20 +404,17 @@ def part_check(n: int, work: Path) -> list[str]:
     return lines
 
 
+def simulated_run_command(out: Path, seed: int = 1) -> list[str]:
+    """The command line of ``slidecal run`` on the default simulated cell into ``out``, without
+    a recording, run by this interpreter (a subprocess a signal can be sent to)."""
+    cli = [sys.executable, "-m", "slidecal.routines.cli"]
+    return [*cli, "run", "--out", str(out), "--no-recording", "--seed", str(seed)]
+
+
 def _signal_row(sig: int, name: str, after: int, work: Path) -> str:
     out = work / f"sig_{name}_{after}"
     env = {**os.environ, "SLIDECAL_LOCK_DIR": str(work)}
-    cmd = [
-        sys.executable,
-        "-m",
-        "slidecal.routines.cli",
-        "run",
-        "--out",
-        str(out),
-        "--no-recording",
-        "--seed",
-        "1",
-    ]
+    cmd = simulated_run_command(out)
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     while True:
         line = p.stderr.readline()

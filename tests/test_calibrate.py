@@ -13,17 +13,7 @@ from slidecal.solver.geometry import inv_T, rotation_angle_deg
 from slidecal.solver.problem import Frame, Target
 
 
-@pytest.mark.parametrize(
-    "make",
-    [
-        lambda rng: sc.r1(rng, 0.0, 0.0, 0.0),
-        lambda rng: sc.r1_eye_to_hand(rng, 0.0, 0.0, 0.0),
-        lambda rng: sc.s1(30.0, 0.0, rng),
-        lambda rng: sc.s2(5, 0.0, rng),
-        lambda rng: sc.s3(5, 0.0, rng),
-    ],
-    ids=["R1", "R1-eye-to-hand", "S1", "S2", "S3"],
-)
+@pytest.mark.parametrize("make", list(sc.NOISE_FREE.values()), ids=list(sc.NOISE_FREE))
 def test_noise_free_pipeline_recovers_truth(make):
     s = make(np.random.default_rng(0))
     res = calibrate(s.problem)

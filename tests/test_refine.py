@@ -60,17 +60,7 @@ def test_jacobian_matches_finite_differences():
         assert np.abs(J[:, j] - num).max() / scale < 1e-4, model.names[j]
 
 
-@pytest.mark.parametrize(
-    "make",
-    [
-        lambda rng: sc.r1(rng, 0.0, 0.0, 0.0),
-        lambda rng: sc.r1_eye_to_hand(rng, 0.0, 0.0, 0.0),
-        lambda rng: sc.s1(30.0, 0.0, rng),
-        lambda rng: sc.s2(5, 0.0, rng),
-        lambda rng: sc.s3(5, 0.0, rng),
-    ],
-    ids=["R1", "R1-eye-to-hand", "S1", "S2", "S3"],
-)
+@pytest.mark.parametrize("make", list(sc.NOISE_FREE.values()), ids=list(sc.NOISE_FREE))
 def test_noise_free_recovery(make):
     rng = np.random.default_rng(2)
     s = make(rng)

@@ -17,6 +17,7 @@ import yaml
 
 from slidecal.mocks.cell import SimulatedCell
 from slidecal.routines import cli
+from slidecal.routines.bench_verdict import simulated_run_command
 from slidecal.routines.config import load_config
 from slidecal.routines.install import (
     CURRENT,
@@ -57,17 +58,7 @@ def _one_line_exit_2(p: subprocess.CompletedProcess) -> None:
 
 def _start_run(out: Path, cwd: Path, lock_dir: Path) -> subprocess.Popen:
     return subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "slidecal.routines.cli",
-            "run",
-            "--out",
-            str(out),
-            "--no-recording",
-            "--seed",
-            "1",
-        ],
+        simulated_run_command(out),
         cwd=cwd,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
