@@ -19,7 +19,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
-from slidecal.solver.adequacy import assess
+from slidecal.solver.adequacy import FreePoseFit, assess, final_free_pose_fit
 from slidecal.solver.degeneracy import check_configuration, n_directions
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, project_to_SO3
@@ -783,7 +783,8 @@ def _result(
         residuals[ch.key] = float(np.sqrt(np.mean(r**2) * 2))
     inl = out.residuals[out.inlier_rows]
     rms = float(np.sqrt(np.mean(inl**2) * 2)) if len(inl) else float("nan")
-    adequacy, robot_accuracy = assess(problem, out)
+    fit = final_free_pose_fit(out)  # the adequacy test's and the scale checks' poses
+    adequacy, robot_accuracy = assess(problem, out, fit)
     return CalibrationResult(
         cameras=cams,
         hand_eye=hand_eye,
@@ -806,7 +807,7 @@ def _result(
             state,
             groups,
             {i: model.T_ref_board(state, i) for i in range(len(problem.frames))},
-            _fitted_poses(out),
+            _fitted_poses(out, fit),
         ),
         H_inf=H_inf,
         linear=K_lin,
@@ -817,12 +818,12 @@ def _result(
     )
 
 
-def _fitted_poses(out: RefineOutput) -> dict[int, np.ndarray]:
-    """The reference camera's ``T_cam_board`` per frame index from the robot test's free-pose
-    fit, when the refinement kept it (it is then of this state's intrinsics, started from its
-    predictions), for the images in which no detection was flagged (the fit uses the inliers):
-    the same PnP minimum :func:`scale_checks` would compute again."""
-    fit, m = out.free_pose, out.model
+def _fitted_poses(out: RefineOutput, fit: FreePoseFit | None = None) -> dict[int, np.ndarray]:
+    """The reference camera's ``T_cam_board`` per frame index from a free-pose fit of this
+    state's intrinsics started from its predictions (``fit``, by default the robot test's when
+    the refinement kept it), for the images in which no detection was flagged (the fit uses the
+    inliers): the same PnP minimum :func:`scale_checks` would compute again."""
+    fit, m = out.free_pose if fit is None else fit, out.model
     if fit is None:
         return {}
     return {

@@ -1,0 +1,105 @@
+"""The solve's work outside the refinement, done once: the free-pose fit scores every image's
+candidate poses together, the final fit serves the adequacy test and the scale checks, and the
+linear start does not repeat a homography, a PnP or a system it already has. Against synthetic
+ground truth: the same answers as the direct computation."""
+
+import importlib
+
+import numpy as np
+import pytest
+
+from slidecal.mocks import scenarios as sc
+from slidecal.solver.adequacy import free_pose_fit
+from slidecal.solver.calibrate import calibrate, frame_groups, scale_checks
+from slidecal.solver.camera import K_matrix, project
+from slidecal.solver.geometry import R_from_rvec, T_from_Rt, transform_points
+
+SIGMA_PX = 0.2
+pipeline = importlib.import_module("slidecal.solver.calibrate")  # the module, not calibrate()
+
+
+def _images(rng: np.random.Generator):
+    """Two cameras (different intrinsics), 12 views each of the R1 target with SIGMA_PX noise,
+    and one image of 3 points; the true ``T_cam_board`` per (frame, camera)."""
+    target = sc.r1_target()
+    K = {"a": sc.R1_K, "b": K_matrix(600.0, 610.0, 330.0, 250.0)}
+    dist = {"a": sc.R1_DIST, "b": np.array([0.05, -0.02, 0.0, 0.0, 0.0])}
+    size = {"a": (1280, 800), "b": (640, 480)}
+    images, truth = [], {}
+    for cam in K:
+        for i, T in enumerate(sc.camera_board_poses(rng, 12, target)):
+            det = sc.projected_detection(K[cam], dist[cam], T, target, size[cam], SIGMA_PX, rng)
+            images.append((i, cam, target.points_m[det.ids], det.px))
+            truth[(i, cam)] = T
+    images.append((12, "a", target.points_m[:3], np.zeros((3, 2))))
+    return images, K, dist, truth
+
+
+def _flipped(T: np.ndarray) -> np.ndarray:
+    """The board turned half a turn about its own x axis: a start in the wrong basin."""
+    return T @ T_from_Rt(R_from_rvec([np.pi, 0.0, 0.0]), np.zeros(3))
+
+
+def test_free_pose_fit_finds_each_images_minimum_whatever_the_start():
+    images, K, dist, truth = _images(np.random.default_rng(5))
+    fits = [
+        free_pose_fit(images, K, dist),
+        free_pose_fit(images, K, dist, truth),
+        free_pose_fit(images, K, dist, {k: _flipped(T) for k, T in truth.items()}),
+    ]
+    ref = fits[1]
+    assert set(ref.rss) == set(truth)  # the 3-point image is skipped
+    for fi, cam, pts, px in images[:-1]:
+        key = (fi, cam)
+        T = ref.T_cam_board[key]
+        # the score is the residual of the pose itself
+        e = project(K[cam], dist[cam], transform_points(T, pts)) - px
+        assert ref.rss[key] == pytest.approx(float(np.sum(e * e)), rel=1e-12)
+        assert ref.rows[key] == 2 * len(pts)
+        # near the truth: 70 points at 0.2 px put the board to well under a millimetre
+        assert np.linalg.norm(T[:3, 3] - truth[key][:3, 3]) < 1e-3
+        for other in (fits[0], fits[2]):  # the same minimum from IPPE or from a wrong start
+            assert other.rss[key] == pytest.approx(ref.rss[key], rel=1e-6)
+            assert np.allclose(other.T_cam_board[key], T, atol=1e-6)
+    for cam in K:  # sqrt(rss / (rows - 6)) estimates the injected noise (1000+ rows: ~3 %)
+        assert ref.sigma_px[cam] == pytest.approx(SIGMA_PX, rel=0.1)
+        assert ref.sigma_px[cam] == pytest.approx(fits[0].sigma_px[cam], rel=1e-9)
+
+
+def test_a_start_behind_the_camera_is_ignored():
+    images, K, dist, truth = _images(np.random.default_rng(6))
+    behind = {k: T_from_Rt(T[:3, :3], -T[:3, 3]) for k, T in truth.items()}
+    a, b = free_pose_fit(images, K, dist, behind), free_pose_fit(images, K, dist)
+    assert set(a.rss) == set(b.rss) == set(truth)
+    for key in truth:
+        assert a.rss[key] == pytest.approx(b.rss[key], rel=1e-9)
+
+
+def test_scale_checks_of_a_learned_arm_take_the_final_fit(monkeypatch):
+    # the arm's accuracy learned (R1's default): the adequacy test's free-pose fit at the final
+    # intrinsics gives the scale checks their poses; no PnP of the reference camera again
+    s = sc.r1(np.random.default_rng(7))
+    outs, pnp_runs = [], []
+    real_refine, real_poses = pipeline.refine, pipeline._frame_poses
+
+    def spy_refine(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        outs.append(real_refine(*args, **kwargs))
+        return outs[-1]
+
+    def spy_poses(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        pnp_runs.append(kwargs.get("only"))
+        return real_poses(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "refine", spy_refine)
+    monkeypatch.setattr(pipeline, "_frame_poses", spy_poses)
+    res = calibrate(s.problem)
+    out = outs[-1]
+    assert res.robot_accuracy.translation_mm > 0.0 and out.free_pose is None
+    assert pnp_runs == [None]  # the start's poses only
+    monkeypatch.setattr(pipeline, "_frame_poses", real_poses)
+    guesses = {i: out.model.T_ref_board(out.state, i) for i in range(len(s.problem.frames))}
+    fresh = scale_checks(s.problem, out.state, frame_groups(s.problem), guesses)
+    assert len(fresh) == len(res.scale_checks) > 10
+    for a, b in zip(res.scale_checks, fresh, strict=True):
+        assert (a.frame_a, a.frame_b, a.robot_mm) == (b.frame_a, b.frame_b, b.robot_mm)
+        assert a.camera_mm == pytest.approx(b.camera_mm, abs=1e-6)
