@@ -43,6 +43,7 @@ from slidecal.solver.refine import (
     BundleModel,
     ModelState,
     RefineOutput,
+    Structure,
     build_structure,
     complement_basis,
     orientation_groups,
@@ -507,7 +508,10 @@ def _rotation_ax_xb(groups: np.ndarray, M: np.ndarray, poses: dict[int, np.ndarr
 
 
 def init_motion(
-    problem: CalibrationProblem, poses: dict[int, np.ndarray], groups: np.ndarray | None = None
+    problem: CalibrationProblem,
+    poses: dict[int, np.ndarray],
+    groups: np.ndarray | None = None,
+    structure: Structure | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Initial ``X`` (G, 4, 4), ``Y`` (4, 4), ``s`` (F,) from per-frame reference-camera poses.
 
@@ -515,10 +519,10 @@ def init_motion(
     (t_M(k) - t_M(0))`` (camera displacement in camera axes against the known motion), so
     ``R_X`` is the orthogonal Procrustes solution over all such pairs (docs/METHOD.md Sec. 4); then
     ``X^-1 T_cam_board(k) = M_k Y`` is linear in ``R_X' t_X`` and ``t_Y`` (with the hand-eye
-    translation fixed at 0 when no rotations make it observable). ``groups``: the problem's
-    :func:`frame_groups` when the caller has them.
+    translation fixed at 0 when no rotations make it observable). ``groups``, ``structure``:
+    the problem's :func:`frame_groups` and ``build_structure(problem)`` when the caller has them.
     """
-    st = build_structure(problem)
+    st = build_structure(problem) if structure is None else structure
     F = len(problem.frames)
     s = np.zeros(F)
     if problem.knowledge == "none":
@@ -679,9 +683,9 @@ def calibrate(
         )
         note = f"frames {ids}: no board pose could be computed from the image; skipped"
         return replace(res, messages=(*notes_skipped, note, *res.messages))
-    X, Y, s = init_motion(problem, ref_poses, groups)
+    st = build_structure(problem)
+    X, Y, s = init_motion(problem, ref_poses, groups, st)
     if apart:  # the measured robot motion carries the reference camera to their frames
-        st = build_structure(problem)
         for c in apart:
             T_cam_ref[c] = _average_T(
                 [
@@ -690,7 +694,9 @@ def calibrate(
                 ]
             )
     init = ModelState(K_lin, {c: zero.copy() for c in K_lin}, T_cam_ref, X, Y, s)
-    structure = build_structure(problem, X[0][:3, :3])
+    # X's rotation enters the structure only through an unobservable hand-eye translation
+    # direction (all rotations about one axis: a basis of the two others)
+    structure = st if st.X_t_basis.shape[1] != 2 else build_structure(problem, X[0][:3, :3])
     out = refine(problem, structure, init)
     classic = problem.knowledge == "robot" and np.bincount(groups).max() == 1
     if not out.converged and classic and len(problem.cameras) == 1 and not focal_sweep:

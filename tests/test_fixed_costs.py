@@ -103,3 +103,43 @@ def test_scale_checks_of_a_learned_arm_take_the_final_fit(monkeypatch):
     for a, b in zip(res.scale_checks, fresh, strict=True):
         assert (a.frame_a, a.frame_b, a.robot_mm) == (b.frame_a, b.frame_b, b.robot_mm)
         assert a.camera_mm == pytest.approx(b.camera_mm, abs=1e-6)
+
+
+def _spy(monkeypatch, name: str) -> list:
+    """Record the positional arguments of every call of the pipeline's ``name``."""
+    calls, real = [], getattr(pipeline, name)
+
+    def spy(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        calls.append(args)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, name, spy)
+    return calls
+
+
+def test_the_structure_is_built_once_when_the_hand_eye_rotation_does_not_enter_it(monkeypatch):
+    built = _spy(monkeypatch, "build_structure")
+    calibrate(sc.r1(np.random.default_rng(7), 0.15, 0.0, 0.0).problem)
+    assert len(built) == 1 and len(built[0]) == 1  # rotations about several axes: no R_X
+
+
+def test_rotations_about_one_axis_get_the_hand_eye_translation_basis_of_the_start():
+    # R1's first two tilt groups: every rotation is about one axis, the hand-eye translation
+    # along it is unobservable; the refinement's free directions are perpendicular to that axis
+    # as the camera sees it (X's rotation of the start), not as the tool sees it
+    from dataclasses import replace
+
+    from slidecal.solver.geometry import rvec_from_R
+
+    s = sc.r1(np.random.default_rng(21), 0.15, 0.0, 0.0)
+    problem = replace(s.problem, frames=s.problem.frames[:10])
+    with pytest.MonkeyPatch.context() as mp:
+        refined = _spy(mp, "refine")
+        res = calibrate(problem)
+    _, structure, init = refined[0]
+    T = [f.T_base_tool for f in problem.frames]
+    axis = rvec_from_R(T[0][:3, :3].T @ T[9][:3, :3])
+    axis_cam = init.X[0][:3, :3] @ (axis / np.linalg.norm(axis))
+    assert structure.X_t_basis.shape == (3, 2)
+    assert np.abs(structure.X_t_basis.T @ axis_cam).max() < 1e-9
+    assert "T_tool_cam.t_along_rotation_axis" in res.unobservable
