@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from slidecal.solver.camera import project
-from slidecal.solver.geometry import T_from_Rt, transform_points
+from slidecal.solver.geometry import T_from_Rt
 from slidecal.solver.result import ModelAdequacy, RobotAccuracy
 
 if TYPE_CHECKING:
@@ -129,15 +129,17 @@ def _scored(
         sel = [k for k, (_, c, _, _) in enumerate(todo) if c == cam and poses[k] is not None]
         if not sel:
             continue
-        P = [transform_points(poses[k], todo[k][2]) for k in sel]
-        ends = np.cumsum([len(p) for p in P])
-        e = project(K[cam], dist[cam], np.concatenate(P)) - np.concatenate(
-            [todo[k][3] for k in sel]
-        )
-        e = e * e
-        for k, p, b in zip(sel, P, ends, strict=True):
-            if not np.any(p[:, 2] <= 0):
-                out[k] = float(np.sum(e[b - len(p) : b]))
+        n = np.array([len(todo[k][2]) for k in sel])
+        T = np.repeat(np.stack([poses[k] for k in sel]), n, axis=0)  # each point's pose
+        obj = np.concatenate([todo[k][2] for k in sel])
+        P = np.einsum("nij,nj->ni", T[:, :3, :3], obj) + T[:, :3, 3]
+        e = project(K[cam], dist[cam], P) - np.concatenate([todo[k][3] for k in sel])
+        first = np.concatenate([[0], np.cumsum(n)[:-1]])
+        rss = np.add.reduceat(np.sum(e * e, axis=1), first)
+        front = np.minimum.reduceat(P[:, 2], first) > 0
+        for k, r, f in zip(sel, rss, front, strict=True):
+            if f:
+                out[k] = float(r)
     return out
 
 
@@ -183,7 +185,9 @@ def _parameters_used(out: RefineOutput) -> dict[str, float]:
     cameras' noise levels are alike."""
     m = out.model
     n_px = len(out.inlier_rows)
-    n_all = len(m.evaluate(out.state, jacobian=False)[0])  # pixel rows, then every prior row
+    # pixel rows, then one prior row per pose-correction coordinate (the shared ones, then the
+    # frames'; they are the last columns)
+    n_all = n_px + (len(m.names) - m.shared_start if "E" in m.slices else 0)
     w = np.ones(n_all)
     w[:n_px] = out.inlier_rows
     Ni = m.normal_blocks(out.state, w).inverse()  # the blocks of the inverse that are needed

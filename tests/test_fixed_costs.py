@@ -143,3 +143,33 @@ def test_rotations_about_one_axis_get_the_hand_eye_translation_basis_of_the_star
     assert structure.X_t_basis.shape == (3, 2)
     assert np.abs(structure.X_t_basis.T @ axis_cam).max() < 1e-9
     assert "T_tool_cam.t_along_rotation_axis" in res.unobservable
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: sc.r1(np.random.default_rng(7)),  # the arm's accuracy learned: priors
+        lambda: sc.r1(np.random.default_rng(7), 0.15, 0.0, 0.0),  # exact poses: no priors
+        lambda: sc.oak_rig(np.random.default_rng(3), robot_noise_m=3e-4, robot_noise_deg=0.02),
+    ],
+)
+def test_the_hat_matrix_counts_every_row_of_the_model(make, monkeypatch):
+    from slidecal.solver import adequacy
+
+    outs = _spy(monkeypatch, "assess")
+    res = calibrate(make().problem)
+    out = outs[0][1]
+    n_all = len(out.model.evaluate(out.state, jacobian=False)[0])  # pixels, then the priors
+    sizes = []
+    real = out.model.normal_blocks
+
+    def count(state, weights):  # noqa: ANN001, ANN202
+        sizes.append(len(weights))
+        return real(state, weights)
+
+    monkeypatch.setattr(out.model, "normal_blocks", count)
+    used = adequacy._parameters_used(out)
+    assert set(sizes) == {n_all}
+    assert set(used) == set(res.cameras)
+    # the pixels pay for at most every parameter, and for the intrinsics at least
+    assert all(9 < u < len(out.names) + 1e-6 for u in used.values())
