@@ -84,40 +84,8 @@ def check_problem(problem: CalibrationProblem) -> None:
     n_pts = len(problem.target.points_m)
     if len(problem.frames) < 2:
         raise InputError("a calibration needs at least 2 frames; capture more")
-    for i, f in enumerate(problem.frames):
-        where = f"frames[{i}]"
-        for cam, det in f.detections.items():
-            if cam not in names:
-                raise InputError(f"unknown camera {cam!r}; cameras are {names}", where)
-            if len(det.ids) and (det.ids.min() < 0 or det.ids.max() >= n_pts):
-                raise InputError(
-                    f"corner id out of range 0..{n_pts - 1} for this target; check the target "
-                    "description (squares_x, squares_y)",
-                    f"{where}.detections.{cam}.ids",
-                )
-            if not np.all(np.isfinite(det.px)):
-                raise InputError("pixel coordinates must be finite", f"{where}.detections.{cam}")
-            if len(np.unique(det.ids)) != len(det.ids):
-                raise InputError("a corner id appears twice", f"{where}.detections.{cam}.ids")
-        if problem.knowledge == "robot":
-            T = f.T_base_tool
-            if T is None:
-                raise InputError(
-                    "T_base_tool is missing: every frame of a robot session needs "
-                    "the measured pose",
-                    f"{where}.T_base_tool",
-                )
-            T = np.asarray(T, float)
-            if (
-                T.shape != (4, 4)
-                or not np.all(np.isfinite(T))
-                or abs(np.linalg.det(T[:3, :3]) - 1) > 1e-6
-            ):
-                raise InputError("T_base_tool is not a rigid transform", f"{where}.T_base_tool")
-        if problem.knowledge in ("board_translation", "board_direction") and (
-            f.motion_board is None
-        ):
-            raise InputError("motion_board is missing for this knowledge", f"{where}")
+    for i in _suspect_frames(problem, n_pts):
+        _check_frame(problem, i, n_pts)
     if problem.knowledge == "robot":
         p = np.array([np.asarray(f.T_base_tool, float)[:3, 3] for f in problem.frames])
         span = np.linalg.norm(p - p[0], axis=1)
@@ -134,6 +102,84 @@ def check_problem(problem: CalibrationProblem) -> None:
         raise InputError(f"mount must be eye_in_hand, eye_to_hand or none, not {problem.mount!r}")
     if problem.knowledge == "robot" and problem.mount == "none":
         raise InputError("a robot session needs mount: eye_in_hand or eye_to_hand")
+
+
+def _check_frame(problem: CalibrationProblem, i: int, n_pts: int) -> None:
+    """Raise :class:`InputError` naming what is wrong with frame ``i`` of ``problem`` (its
+    detections, its pose or motion for the knowledge), if anything."""
+    names = [c.name for c in problem.cameras]
+    f = problem.frames[i]
+    where = f"frames[{i}]"
+    for cam, det in f.detections.items():
+        if cam not in names:
+            raise InputError(f"unknown camera {cam!r}; cameras are {names}", where)
+        if len(det.ids) and (det.ids.min() < 0 or det.ids.max() >= n_pts):
+            raise InputError(
+                f"corner id out of range 0..{n_pts - 1} for this target; check the target "
+                "description (squares_x, squares_y)",
+                f"{where}.detections.{cam}.ids",
+            )
+        if not np.all(np.isfinite(det.px)):
+            raise InputError("pixel coordinates must be finite", f"{where}.detections.{cam}")
+        if len(np.unique(det.ids)) != len(det.ids):
+            raise InputError("a corner id appears twice", f"{where}.detections.{cam}.ids")
+    if problem.knowledge == "robot":
+        T = f.T_base_tool
+        if T is None:
+            raise InputError(
+                "T_base_tool is missing: every frame of a robot session needs the measured pose",
+                f"{where}.T_base_tool",
+            )
+        T = np.asarray(T, float)
+        if (
+            T.shape != (4, 4)
+            or not np.all(np.isfinite(T))
+            or abs(np.linalg.det(T[:3, :3]) - 1) > 1e-6
+        ):
+            raise InputError("T_base_tool is not a rigid transform", f"{where}.T_base_tool")
+    if problem.knowledge in ("board_translation", "board_direction") and (
+        f.motion_board is None
+    ):
+        raise InputError("motion_board is missing for this knowledge", f"{where}")
+
+
+def _suspect_frames(problem: CalibrationProblem, n_pts: int) -> np.ndarray:
+    """The indices of the frames :func:`_check_frame` may refuse (every frame it refuses is
+    among them, in order): its tests at once over all frames' detections and poses, so a valid
+    session needs no pass frame by frame."""
+    names = {c.name for c in problem.cameras}
+    F = len(problem.frames)
+    bad = np.zeros(F, dtype=bool)
+    counts, ids, px = [], [], []
+    for i, f in enumerate(problem.frames):
+        for cam, det in f.detections.items():
+            bad[i] |= cam not in names
+            counts.append((i, len(det.ids)))
+            ids.append(det.ids)
+            px.append(det.px)
+    if counts:
+        owner = np.array([i for i, _ in counts])
+        n = np.array([k for _, k in counts])
+        frame_of = np.repeat(owner, n)
+        ids_all = np.concatenate(ids).astype(np.int64)
+        bad[frame_of[(ids_all < 0) | (ids_all >= n_pts)]] = True
+        bad[frame_of[~np.all(np.isfinite(np.concatenate(px).reshape(-1, 2)), axis=1)]] = True
+        # a corner id twice in one detection: equal keys (detection, id) side by side once sorted
+        keys = np.sort(np.repeat(np.arange(len(n)), n) * (n_pts + 1) + np.clip(ids_all, 0, n_pts))
+        bad[frame_of[np.flatnonzero(keys[1:] == keys[:-1])]] = True
+    if problem.knowledge == "robot":
+        T = [f.T_base_tool for f in problem.frames]
+        shaped = [t is not None and np.shape(t) == (4, 4) for t in T]
+        bad |= ~np.array(shaped)
+        k = np.flatnonzero(shaped)
+        if len(k):
+            Ts = np.array([T[i] for i in k], dtype=float)
+            ok = np.all(np.isfinite(Ts), axis=(1, 2))
+            ok[ok] = np.abs(np.linalg.det(Ts[ok, :3, :3]) - 1) <= 1e-6
+            bad[k[~ok]] = True
+    if problem.knowledge in ("board_translation", "board_direction"):
+        bad |= np.array([f.motion_board is None for f in problem.frames])
+    return np.flatnonzero(bad)
 
 
 def usable_frames(problem: CalibrationProblem) -> tuple[CalibrationProblem, tuple[str, ...]]:

@@ -173,3 +173,64 @@ def test_the_hat_matrix_counts_every_row_of_the_model(make, monkeypatch):
     assert set(used) == set(res.cameras)
     # the pixels pay for at most every parameter, and for the intrinsics at least
     assert all(9 < u < len(out.names) + 1e-6 for u in used.values())
+
+
+def _corrupt(problem, rng: np.random.Generator, knowledge_robot: bool = True):
+    """``problem`` with 1-3 frames spoilt, each in one of the ways check_problem refuses."""
+    from dataclasses import replace
+
+    from slidecal.solver.problem import Detection, Frame
+
+    frames = list(problem.frames)
+    for i in rng.choice(len(frames), rng.integers(1, 4), replace=False):
+        f = frames[i]
+        det = f.detections["cam"]
+        ids, px = det.ids.copy(), det.px.copy()
+        kind = rng.integers(7 if knowledge_robot else 5)
+        dets = dict(f.detections)
+        T = f.T_base_tool
+        if kind == 0:
+            ids[rng.integers(len(ids))] = 10_000
+        elif kind == 1:
+            ids[rng.integers(len(ids))] = -1
+        elif kind == 2:
+            px[rng.integers(len(px)), rng.integers(2)] = np.nan
+        elif kind == 3:
+            ids[1] = ids[0]
+        elif kind == 4:
+            dets["ghost"] = det
+        elif kind == 5:
+            T = None
+        else:
+            T = T.copy()
+            T[:3, :3] *= 1.01
+        dets["cam"] = Detection(ids, px)
+        frames[i] = Frame(f.id, dets, T_base_tool=T)
+    return replace(problem, frames=tuple(frames))
+
+
+def test_the_first_bad_frame_is_named_as_a_check_frame_by_frame_would():
+    from slidecal.solver.errors import InputError
+
+    base = sc.r1(np.random.default_rng(7)).problem
+    rng = np.random.default_rng(0)
+    n_pts = len(base.target.points_m)
+    for _ in range(60):
+        problem = _corrupt(base, rng)
+        first = None
+        for i in range(len(problem.frames)):  # the reference: every frame in order
+            try:
+                pipeline._check_frame(problem, i, n_pts)
+            except InputError as e:
+                first = str(e)
+                break
+        assert first is not None
+        with pytest.raises(InputError) as got:
+            pipeline.check_problem(problem)
+        assert str(got.value) == first
+
+
+def test_a_valid_session_is_checked_without_a_pass_per_frame(monkeypatch):
+    checked = _spy(monkeypatch, "_check_frame")
+    pipeline.check_problem(sc.r1(np.random.default_rng(7)).problem)
+    assert checked == []
