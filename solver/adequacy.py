@@ -211,11 +211,15 @@ def final_free_pose_fit(out: RefineOutput) -> FreePoseFit:
 
 
 def assess(
-    problem: CalibrationProblem, out: RefineOutput, fit: FreePoseFit | None = None
+    problem: CalibrationProblem,
+    out: RefineOutput,
+    fit: FreePoseFit | None = None,
+    groups: np.ndarray | None = None,
 ) -> tuple[ModelAdequacy, RobotAccuracy | None]:
     """The model-adequacy test and the robot's accuracy of a refinement (see the module doc).
 
-    ``fit``: :func:`final_free_pose_fit` of ``out`` when the caller already has it."""
+    ``fit``: :func:`final_free_pose_fit` of ``out``, ``groups``: the frames' orientation groups
+    (robot sessions), when the caller already has them."""
     if fit is None:
         fit = final_free_pose_fit(out)
     m = out.model
@@ -269,7 +273,7 @@ def assess(
             "poses and detections"
         )
     robot = robot_accuracy(problem, out)
-    k = _move_scale(problem, fit, m.ref)
+    k = _move_scale(problem, fit, m.ref, groups)
     if k is not None and abs(k) > MAX_SCALE_ERROR:
         reasons.append(
             f"the camera sees the robot's moves {100 * k:+.1f} % longer than the robot reports "
@@ -299,19 +303,22 @@ def assess(
     return adequacy, robot
 
 
-def _move_scale(problem: CalibrationProblem, fit: FreePoseFit, ref: str) -> float | None:
+def _move_scale(
+    problem: CalibrationProblem, fit: FreePoseFit, ref: str, groups: np.ndarray | None = None
+) -> float | None:
     """Median over the moves at one orientation of (camera-seen length / robot length) - 1.
 
     The camera's own view of each move (free board poses of the reference camera: the camera
     centre eye-in-hand, the board origin eye-to-hand) against the measured tool translation;
-    None without such moves (of at least 5 mm).
+    None without such moves (of at least 5 mm). ``groups``: ``orientation_groups`` of the
+    measured poses when the caller has them.
     """
     if problem.knowledge != "robot":
         return None
     from slidecal.solver.refine import orientation_groups
 
     T = np.stack([f.T_base_tool for f in problem.frames])
-    groups = orientation_groups(T)
+    groups = orientation_groups(T) if groups is None else groups
     ratios = []
     for g in np.unique(groups):
         idx = [i for i in np.flatnonzero(groups == g) if (i, ref) in fit.T_cam_board]

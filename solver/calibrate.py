@@ -836,7 +836,7 @@ def _result(
     inl = out.residuals[out.inlier_rows]
     rms = float(np.sqrt(np.mean(inl**2) * 2)) if len(inl) else float("nan")
     fit = final_free_pose_fit(out)  # the adequacy test's and the scale checks' poses
-    adequacy, robot_accuracy = assess(problem, out, fit)
+    adequacy, robot_accuracy = assess(problem, out, fit, groups)
     return CalibrationResult(
         cameras=cams,
         hand_eye=hand_eye,
@@ -908,12 +908,12 @@ def scale_checks(
         poses.update(
             _frame_poses(problem, ref, state.K[ref], state.dist[ref], guesses=guesses, only=todo)
         )
+    centre = {i: -T[:3, :3].T @ T[:3, 3] for i, T in poses.items()}  # the camera, board frame
     checks = []
     for g in np.unique(groups):
         idx = [i for i in np.flatnonzero(groups == g) if i in poses]
         for a, b in zip(idx[:-1], idx[1:], strict=True):
-            Ca = inv_T(poses[a])[:3, 3]
-            Cb = inv_T(poses[b])[:3, 3]
+            Ca, Cb = centre[a], centre[b]
             pa = problem.frames[a].T_base_tool[:3, 3]
             pb = problem.frames[b].T_base_tool[:3, 3]
             robot = float(np.linalg.norm(pb - pa)) * 1000.0
