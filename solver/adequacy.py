@@ -190,7 +190,17 @@ def _parameters_used(out: RefineOutput) -> dict[str, float]:
     n_all = n_px + (len(m.names) - m.shared_start if "E" in m.slices else 0)
     w = np.ones(n_all)
     w[:n_px] = out.inlier_rows
-    Ni = m.normal_blocks(out.state, w).inverse()  # the blocks of the inverse that are needed
+    normal = m.normal_blocks(out.state, w)
+    # the blocks of the inverse that are needed: the refinement's covariance over s^2 when it
+    # was made with these weights (one camera; its trace against this normal matrix is then
+    # the number of parameters), else inverted here
+    Ni = None
+    if out.covariance_blocks is not None and out.sigma_px > 0:
+        Ni = out.covariance_blocks.scaled(1.0 / out.sigma_px**2)
+        if not abs(Ni.trace_with(normal) - len(m.names)) <= 1e-6 * len(m.names):
+            Ni = None
+    if Ni is None:
+        Ni = normal.inverse()
     used = {}
     for c in m.cams:
         wc = np.zeros(n_all)

@@ -234,3 +234,53 @@ def test_a_valid_session_is_checked_without_a_pass_per_frame(monkeypatch):
     checked = _spy(monkeypatch, "_check_frame")
     pipeline.check_problem(sc.r1(np.random.default_rng(7)).problem)
     assert checked == []
+
+
+def _used_afresh(out) -> dict[str, float]:
+    """The hat matrix's trace per camera with the inverse computed from the inlier rows."""
+    m = out.model
+    n_px = len(out.inlier_rows)
+    w = np.ones(n_px + (len(m.names) - m.shared_start if "E" in m.slices else 0))
+    w[:n_px] = out.inlier_rows
+    Ni = m.normal_blocks(out.state, w).inverse()
+    used = {}
+    for c in m.cams:
+        wc = np.zeros(len(w))
+        for ch in m.chunks:
+            if ch.camera == c:
+                wc[ch.rows] = w[ch.rows]
+        used[c] = Ni.trace_with(m.normal_blocks(out.state, wc))
+    return used
+
+
+@pytest.mark.parametrize(
+    ("make", "inverted"),
+    [
+        (lambda: sc.r1(np.random.default_rng(7)), 0),  # one camera, the arm learned
+        (lambda: sc.r1(np.random.default_rng(7), 0.15, 0.0, 0.0), 0),  # one camera, exact
+        # a rig whose cameras differ in noise: the refinement weighed them, the hat matrix not
+        (lambda: sc.oak_rig(np.random.default_rng(3), sigma_px={"left": 0.1, "right": 0.3}), 1),
+    ],
+)
+def test_the_hat_matrix_reuses_the_refinements_inverse_when_the_weights_agree(
+    make, inverted, monkeypatch
+):
+    from slidecal.solver import adequacy
+    from slidecal.solver.refine import NormalBlocks
+
+    outs = _spy(monkeypatch, "assess")
+    calibrate(make().problem)
+    out = outs[0][1]
+    expected = _used_afresh(out)
+    calls = []
+    real = NormalBlocks.inverse
+
+    def count(self, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        calls.append(1)
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(NormalBlocks, "inverse", count)
+    used = adequacy._parameters_used(out)
+    assert len(calls) == inverted
+    for c, u in expected.items():
+        assert used[c] == pytest.approx(u, rel=1e-9)
