@@ -837,6 +837,7 @@ def _result(
     rms = float(np.sqrt(np.mean(inl**2) * 2)) if len(inl) else float("nan")
     fit = final_free_pose_fit(out)  # the adequacy test's and the scale checks' poses
     adequacy, robot_accuracy = assess(problem, out, fit, groups)
+    known = _fitted_poses(out, fit)  # the scale checks' poses; the model guesses the others'
     return CalibrationResult(
         cameras=cams,
         hand_eye=hand_eye,
@@ -858,8 +859,8 @@ def _result(
             problem,
             state,
             groups,
-            {i: model.T_ref_board(state, i) for i in range(len(problem.frames))},
-            _fitted_poses(out, fit),
+            {i: model.T_ref_board(state, i) for i in range(len(problem.frames)) if i not in known},
+            known,
         ),
         H_inf=H_inf,
         linear=K_lin,
