@@ -294,6 +294,17 @@ def _plausible(K: np.ndarray, size: tuple[int, int]) -> bool:
     return -0.5 <= K[0, 2] <= w - 0.5 and -0.5 <= K[1, 2] <= h - 0.5 and 0.5 < ratio < 2.0
 
 
+def _rotation_enters(st: Structure) -> bool:
+    """Whether X's rotation enters ``build_structure``: only through an unobservable hand-eye
+    translation direction (all rotations about one axis: a basis of the two others)."""
+    return st.X_t_basis.shape[1] == 2
+
+
+def _with_rotation(problem: CalibrationProblem, st: Structure, R_X: np.ndarray) -> Structure:
+    """``build_structure(problem, R_X)`` given ``st = build_structure(problem)``."""
+    return build_structure(problem, R_X) if _rotation_enters(st) else st
+
+
 def _best_start(problem: CalibrationProblem, cam: str, candidates: list[np.ndarray]) -> int:
     """Index of the start ``K`` (3, 3) that explains the images best through the robot poses.
 
@@ -303,16 +314,20 @@ def _best_start(problem: CalibrationProblem, cam: str, candidates: list[np.ndarr
     o = problem.options
     exact = replace(problem, options=replace(o, robot_noise_m=0.0, robot_noise_deg=0.0))
     zero = np.zeros(5)
+    groups = frame_groups(exact)
+    st = model = None  # the structure and its model, shared by the candidates where they can be
     best, best_err = 0, np.inf
     for k, K in enumerate(candidates):
         poses = _frame_poses(exact, cam, K, zero, fast=True)
         if len(poses) < 3:
             continue
         try:
-            X, Y, s = init_motion(exact, poses)
+            st = build_structure(exact) if st is None else st
+            X, Y, s = init_motion(exact, poses, groups, st)
         except DegenerateError:
             continue
-        model = BundleModel(exact, build_structure(exact, X[0][:3, :3]))
+        if model is None or _rotation_enters(st):
+            model = BundleModel(exact, _with_rotation(exact, st, X[0][:3, :3]))
         r, _ = model.evaluate(ModelState({cam: K}, {cam: zero}, {}, X, Y, s), jacobian=False)
         err = float(np.median(np.hypot(r[0::2], r[1::2])))
         if np.isfinite(err) and err < best_err:
@@ -740,9 +755,7 @@ def calibrate(
                 ]
             )
     init = ModelState(K_lin, {c: zero.copy() for c in K_lin}, T_cam_ref, X, Y, s)
-    # X's rotation enters the structure only through an unobservable hand-eye translation
-    # direction (all rotations about one axis: a basis of the two others)
-    structure = st if st.X_t_basis.shape[1] != 2 else build_structure(problem, X[0][:3, :3])
+    structure = _with_rotation(problem, st, X[0][:3, :3])
     out = refine(problem, structure, init)
     classic = problem.knowledge == "robot" and np.bincount(groups).max() == 1
     if not out.converged and classic and len(problem.cameras) == 1 and not focal_sweep:
