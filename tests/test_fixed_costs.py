@@ -1,7 +1,8 @@
 """The solve's work outside the refinement, done once: the free-pose fit scores every image's
-candidate poses together, the final fit serves the adequacy test and the scale checks, and the
-linear start does not repeat a homography, a PnP or a system it already has. Against synthetic
-ground truth: the same answers as the direct computation."""
+candidate poses together, the final fit serves the adequacy test and the scale checks, the hat
+matrix reuses the refinement's inverse, the start builds its structure once, and the input
+check goes frame by frame only where something may be wrong. Against synthetic ground truth
+and the direct computation: the same answers."""
 
 import importlib
 
