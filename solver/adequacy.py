@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from slidecal.solver.camera import project
-from slidecal.solver.geometry import T_from_Rt, transform_points
+from slidecal.solver.geometry import T_from_Rt
 from slidecal.solver.result import ModelAdequacy, RobotAccuracy
 
 if TYPE_CHECKING:
@@ -70,64 +70,91 @@ def free_pose_fit(
     from the better of ``starts`` (``T_cam_board`` per (frame index, camera), e.g. the robot
     model's prediction) and the closed-form planar solution (IPPE), so that a wildly wrong
     robot model cannot spoil the floor it is judged against. Images with fewer than 4 points
-    are skipped.
+    are skipped. The candidate poses are scored for all images at once (one projection per
+    camera), not image by image.
     """
+    todo = [
+        (fi, cam, pts.astype(np.float64), px.astype(np.float64))
+        for fi, cam, pts, px in images
+        if len(pts) >= 4
+    ]
+    starts = starts or {}
+    refined: list[np.ndarray | None] = []
+    closed: list[np.ndarray | None] = []
+    for fi, cam, obj, img in todo:
+        T0 = starts.get((fi, cam))
+        good_start = T0 is not None and T0[2, 3] > 0
+        refined.append(_pnp(obj, img, K[cam], dist[cam], T0) if good_start else None)
+        ok, rv, tv = cv2.solvePnP(obj, img, K[cam], dist[cam], flags=cv2.SOLVEPNP_IPPE)
+        closed.append(T_from_Rt(cv2.Rodrigues(rv)[0], tv.reshape(3)) if ok else None)
+    best = _scored(todo, refined, K, dist)
+    closed_rss = _scored(todo, closed, K, dist)
+    # the closed form is refined only when it beats the refined model start (a wrong robot
+    # model starting the pose in the wrong basin)
+    alt: list[np.ndarray | None] = [None] * len(todo)
+    for k, (_, cam, obj, img) in enumerate(todo):
+        if closed_rss[k] is not None and (best[k] is None or closed_rss[k] < best[k]):
+            alt[k] = _pnp(obj, img, K[cam], dist[cam], closed[k])
+    alt_rss = _scored(todo, alt, K, dist)
     rss: dict[tuple[int, str], float] = {}
     rows: dict[tuple[int, str], int] = {}
     poses: dict[tuple[int, str], np.ndarray] = {}
     sums: dict[str, list[float]] = {}
-    for fi, cam, pts, px in images:
-        if len(pts) < 4:
+    for k, (fi, cam, obj, _) in enumerate(todo):
+        T, e = refined[k], best[k]
+        if alt_rss[k] is not None and (e is None or alt_rss[k] < e):
+            T, e = alt[k], alt_rss[k]
+        if e is None:
             continue
         key = (fi, cam)
-        Kc, dc = K[cam], dist[cam]
-        obj, img = pts.astype(np.float64), px.astype(np.float64)
-        best = None
-        if starts is not None and key in starts and starts[key][2, 3] > 0:
-            best = _pnp(obj, img, Kc, dc, starts[key])
-        ok, rv, tv = cv2.solvePnP(obj, img, Kc, dc, flags=cv2.SOLVEPNP_IPPE)
-        closed = (
-            _scored(obj, img, Kc, dc, T_from_Rt(cv2.Rodrigues(rv)[0], tv.reshape(3)))
-            if ok
-            else None
-        )
-        # the closed form is refined only when it beats the refined model start (a wrong robot
-        # model starting the pose in the wrong basin)
-        if closed is not None and (best is None or closed[0] < best[0]):
-            alt = _pnp(obj, img, Kc, dc, closed[1])
-            if alt is not None and (best is None or alt[0] < best[0]):
-                best = alt
-        if best is None:
-            continue
-        rss[key], rows[key], poses[key] = best[0], 2 * len(pts), best[1]
+        rss[key], rows[key], poses[key] = e, 2 * len(obj), T
         acc = sums.setdefault(cam, [0.0, 0])
-        acc[0] += best[0]
-        acc[1] += 2 * len(pts) - 6
+        acc[0] += e
+        acc[1] += 2 * len(obj) - 6
     sigma = {c: float(np.sqrt(t / d)) if d > 0 else float("nan") for c, (t, d) in sums.items()}
     return FreePoseFit(rss, rows, poses, sigma)
 
 
 def _scored(
-    obj: np.ndarray, img: np.ndarray, K: np.ndarray, dist: np.ndarray, T: np.ndarray
-) -> tuple[float, np.ndarray] | None:
-    """(residual sum of squares, T) of a board pose; None behind the camera."""
-    P = transform_points(T, obj)
-    if np.any(P[:, 2] <= 0):
-        return None
-    return float(np.sum((project(K, dist, P) - img) ** 2)), T
+    todo: list[tuple[int, str, np.ndarray, np.ndarray]],
+    poses: list[np.ndarray | None],
+    K: dict[str, np.ndarray],
+    dist: dict[str, np.ndarray],
+) -> list[float | None]:
+    """Per image of ``todo`` (frame index, camera, board points, pixels): the residual sum of
+    squares (pixels^2) of its board pose ``T_cam_board`` in ``poses``; None without a pose or
+    with the board behind the camera. One projection per camera for all its images."""
+    out: list[float | None] = [None] * len(todo)
+    for cam in dict.fromkeys(c for _, c, _, _ in todo):
+        sel = [k for k, (_, c, _, _) in enumerate(todo) if c == cam and poses[k] is not None]
+        if not sel:
+            continue
+        n = np.array([len(todo[k][2]) for k in sel])
+        T = np.repeat(np.stack([poses[k] for k in sel]), n, axis=0)  # each point's pose
+        obj = np.concatenate([todo[k][2] for k in sel])
+        P = np.einsum("nij,nj->ni", T[:, :3, :3], obj) + T[:, :3, 3]
+        e = project(K[cam], dist[cam], P) - np.concatenate([todo[k][3] for k in sel])
+        first = np.concatenate([[0], np.cumsum(n)[:-1]])
+        rss = np.add.reduceat(np.sum(e * e, axis=1), first)
+        front = np.minimum.reduceat(P[:, 2], first) > 0
+        for k, r, f in zip(sel, rss, front, strict=True):
+            if f:
+                out[k] = float(r)
+    return out
 
 
 def _pnp(
     obj: np.ndarray, img: np.ndarray, K: np.ndarray, dist: np.ndarray, T0: np.ndarray
-) -> tuple[float, np.ndarray] | None:
-    """OpenCV's iterative PnP (the reprojection-error minimum) started at ``T0``, scored."""
+) -> np.ndarray | None:
+    """OpenCV's iterative PnP (the reprojection-error minimum) started at ``T0``: the pose
+    ``T_cam_board``, or None when it fails."""
     rv0 = cv2.Rodrigues(T0[:3, :3])[0]
     ok, rv, tv = cv2.solvePnP(
         obj, img, K, dist, rv0, T0[:3, 3].reshape(3, 1).copy(), True, cv2.SOLVEPNP_ITERATIVE
     )
     if not ok:
         return None
-    return _scored(obj, img, K, dist, T_from_Rt(cv2.Rodrigues(rv)[0], tv.reshape(3)))
+    return T_from_Rt(cv2.Rodrigues(rv)[0], tv.reshape(3))
 
 
 def session_images(out: RefineOutput) -> list[tuple[int, str, np.ndarray, np.ndarray]]:
@@ -158,10 +185,22 @@ def _parameters_used(out: RefineOutput) -> dict[str, float]:
     cameras' noise levels are alike."""
     m = out.model
     n_px = len(out.inlier_rows)
-    n_all = len(m.evaluate(out.state, jacobian=False)[0])  # pixel rows, then every prior row
+    # pixel rows, then one prior row per pose-correction coordinate (the shared ones, then the
+    # frames'; they are the last columns)
+    n_all = n_px + (len(m.names) - m.shared_start if "E" in m.slices else 0)
     w = np.ones(n_all)
     w[:n_px] = out.inlier_rows
-    Ni = m.normal_blocks(out.state, w).inverse()  # the blocks of the inverse that are needed
+    normal = m.normal_blocks(out.state, w)
+    # the blocks of the inverse that are needed: the refinement's covariance over s^2 when it
+    # was made with these weights (one camera; its trace against this normal matrix is then
+    # the number of parameters), else inverted here
+    Ni = None
+    if out.covariance_blocks is not None and out.sigma_px > 0:
+        Ni = out.covariance_blocks.scaled(1.0 / out.sigma_px**2)
+        if not abs(Ni.trace_with(normal) - len(m.names)) <= 1e-6 * len(m.names):
+            Ni = None
+    if Ni is None:
+        Ni = normal.inverse()
     used = {}
     for c in m.cams:
         wc = np.zeros(n_all)
@@ -172,13 +211,27 @@ def _parameters_used(out: RefineOutput) -> dict[str, float]:
     return used
 
 
+def final_free_pose_fit(out: RefineOutput) -> FreePoseFit:
+    """The free-pose fit of a refinement's inlier detections at its final intrinsics, started
+    from its predictions: the robot test's when the refinement kept it (same detections,
+    intrinsics and starts), else made here."""
+    if out.free_pose is not None:
+        return out.free_pose
+    return free_pose_fit(session_images(out), out.state.K, out.state.dist, model_starts(out))
+
+
 def assess(
-    problem: CalibrationProblem, out: RefineOutput
+    problem: CalibrationProblem,
+    out: RefineOutput,
+    fit: FreePoseFit | None = None,
+    groups: np.ndarray | None = None,
 ) -> tuple[ModelAdequacy, RobotAccuracy | None]:
-    """The model-adequacy test and the robot's accuracy of a refinement (see the module doc)."""
-    fit = out.free_pose
-    if fit is None:  # the robot test's fit is of the same detections, intrinsics and starts
-        fit = free_pose_fit(session_images(out), out.state.K, out.state.dist, model_starts(out))
+    """The model-adequacy test and the robot's accuracy of a refinement (see the module doc).
+
+    ``fit``: :func:`final_free_pose_fit` of ``out``, ``groups``: the frames' orientation groups
+    (robot sessions), when the caller already has them."""
+    if fit is None:
+        fit = final_free_pose_fit(out)
     m = out.model
     reasons: list[str] = []
     per_frame: list[tuple[int, str, float]] = []
@@ -230,7 +283,7 @@ def assess(
             "poses and detections"
         )
     robot = robot_accuracy(problem, out)
-    k = _move_scale(problem, fit, m.ref)
+    k = _move_scale(problem, fit, m.ref, groups)
     if k is not None and abs(k) > MAX_SCALE_ERROR:
         reasons.append(
             f"the camera sees the robot's moves {100 * k:+.1f} % longer than the robot reports "
@@ -260,19 +313,22 @@ def assess(
     return adequacy, robot
 
 
-def _move_scale(problem: CalibrationProblem, fit: FreePoseFit, ref: str) -> float | None:
+def _move_scale(
+    problem: CalibrationProblem, fit: FreePoseFit, ref: str, groups: np.ndarray | None = None
+) -> float | None:
     """Median over the moves at one orientation of (camera-seen length / robot length) - 1.
 
     The camera's own view of each move (free board poses of the reference camera: the camera
     centre eye-in-hand, the board origin eye-to-hand) against the measured tool translation;
-    None without such moves (of at least 5 mm).
+    None without such moves (of at least 5 mm). ``groups``: ``orientation_groups`` of the
+    measured poses when the caller has them.
     """
     if problem.knowledge != "robot":
         return None
     from slidecal.solver.refine import orientation_groups
 
     T = np.stack([f.T_base_tool for f in problem.frames])
-    groups = orientation_groups(T)
+    groups = orientation_groups(T) if groups is None else groups
     ratios = []
     for g in np.unique(groups):
         idx = [i for i in np.flatnonzero(groups == g) if (i, ref) in fit.T_cam_board]

@@ -19,7 +19,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
-from slidecal.solver.adequacy import assess
+from slidecal.solver.adequacy import FreePoseFit, assess, final_free_pose_fit
 from slidecal.solver.degeneracy import check_configuration, n_directions
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, project_to_SO3
@@ -43,6 +43,7 @@ from slidecal.solver.refine import (
     BundleModel,
     ModelState,
     RefineOutput,
+    Structure,
     build_structure,
     complement_basis,
     orientation_groups,
@@ -83,40 +84,8 @@ def check_problem(problem: CalibrationProblem) -> None:
     n_pts = len(problem.target.points_m)
     if len(problem.frames) < 2:
         raise InputError("a calibration needs at least 2 frames; capture more")
-    for i, f in enumerate(problem.frames):
-        where = f"frames[{i}]"
-        for cam, det in f.detections.items():
-            if cam not in names:
-                raise InputError(f"unknown camera {cam!r}; cameras are {names}", where)
-            if len(det.ids) and (det.ids.min() < 0 or det.ids.max() >= n_pts):
-                raise InputError(
-                    f"corner id out of range 0..{n_pts - 1} for this target; check the target "
-                    "description (squares_x, squares_y)",
-                    f"{where}.detections.{cam}.ids",
-                )
-            if not np.all(np.isfinite(det.px)):
-                raise InputError("pixel coordinates must be finite", f"{where}.detections.{cam}")
-            if len(np.unique(det.ids)) != len(det.ids):
-                raise InputError("a corner id appears twice", f"{where}.detections.{cam}.ids")
-        if problem.knowledge == "robot":
-            T = f.T_base_tool
-            if T is None:
-                raise InputError(
-                    "T_base_tool is missing: every frame of a robot session needs "
-                    "the measured pose",
-                    f"{where}.T_base_tool",
-                )
-            T = np.asarray(T, float)
-            if (
-                T.shape != (4, 4)
-                or not np.all(np.isfinite(T))
-                or abs(np.linalg.det(T[:3, :3]) - 1) > 1e-6
-            ):
-                raise InputError("T_base_tool is not a rigid transform", f"{where}.T_base_tool")
-        if problem.knowledge in ("board_translation", "board_direction") and (
-            f.motion_board is None
-        ):
-            raise InputError("motion_board is missing for this knowledge", f"{where}")
+    for i in _suspect_frames(problem, n_pts):
+        _check_frame(problem, i, n_pts)
     if problem.knowledge == "robot":
         p = np.array([np.asarray(f.T_base_tool, float)[:3, 3] for f in problem.frames])
         span = np.linalg.norm(p - p[0], axis=1)
@@ -133,6 +102,84 @@ def check_problem(problem: CalibrationProblem) -> None:
         raise InputError(f"mount must be eye_in_hand, eye_to_hand or none, not {problem.mount!r}")
     if problem.knowledge == "robot" and problem.mount == "none":
         raise InputError("a robot session needs mount: eye_in_hand or eye_to_hand")
+
+
+def _check_frame(problem: CalibrationProblem, i: int, n_pts: int) -> None:
+    """Raise :class:`InputError` naming what is wrong with frame ``i`` of ``problem`` (its
+    detections, its pose or motion for the knowledge), if anything."""
+    names = [c.name for c in problem.cameras]
+    f = problem.frames[i]
+    where = f"frames[{i}]"
+    for cam, det in f.detections.items():
+        if cam not in names:
+            raise InputError(f"unknown camera {cam!r}; cameras are {names}", where)
+        if len(det.ids) and (det.ids.min() < 0 or det.ids.max() >= n_pts):
+            raise InputError(
+                f"corner id out of range 0..{n_pts - 1} for this target; check the target "
+                "description (squares_x, squares_y)",
+                f"{where}.detections.{cam}.ids",
+            )
+        if not np.all(np.isfinite(det.px)):
+            raise InputError("pixel coordinates must be finite", f"{where}.detections.{cam}")
+        if len(np.unique(det.ids)) != len(det.ids):
+            raise InputError("a corner id appears twice", f"{where}.detections.{cam}.ids")
+    if problem.knowledge == "robot":
+        T = f.T_base_tool
+        if T is None:
+            raise InputError(
+                "T_base_tool is missing: every frame of a robot session needs the measured pose",
+                f"{where}.T_base_tool",
+            )
+        T = np.asarray(T, float)
+        if (
+            T.shape != (4, 4)
+            or not np.all(np.isfinite(T))
+            or abs(np.linalg.det(T[:3, :3]) - 1) > 1e-6
+        ):
+            raise InputError("T_base_tool is not a rigid transform", f"{where}.T_base_tool")
+    if problem.knowledge in ("board_translation", "board_direction") and (
+        f.motion_board is None
+    ):
+        raise InputError("motion_board is missing for this knowledge", f"{where}")
+
+
+def _suspect_frames(problem: CalibrationProblem, n_pts: int) -> np.ndarray:
+    """The indices of the frames :func:`_check_frame` may refuse (every frame it refuses is
+    among them, in order): its tests at once over all frames' detections and poses, so a valid
+    session needs no pass frame by frame."""
+    names = {c.name for c in problem.cameras}
+    F = len(problem.frames)
+    bad = np.zeros(F, dtype=bool)
+    counts, ids, px = [], [], []
+    for i, f in enumerate(problem.frames):
+        for cam, det in f.detections.items():
+            bad[i] |= cam not in names
+            counts.append((i, len(det.ids)))
+            ids.append(det.ids)
+            px.append(det.px)
+    if counts:
+        owner = np.array([i for i, _ in counts])
+        n = np.array([k for _, k in counts])
+        frame_of = np.repeat(owner, n)
+        ids_all = np.concatenate(ids).astype(np.int64)
+        bad[frame_of[(ids_all < 0) | (ids_all >= n_pts)]] = True
+        bad[frame_of[~np.all(np.isfinite(np.concatenate(px).reshape(-1, 2)), axis=1)]] = True
+        # a corner id twice in one detection: equal keys (detection, id) side by side once sorted
+        keys = np.sort(np.repeat(np.arange(len(n)), n) * (n_pts + 1) + np.clip(ids_all, 0, n_pts))
+        bad[frame_of[np.flatnonzero(keys[1:] == keys[:-1])]] = True
+    if problem.knowledge == "robot":
+        T = [f.T_base_tool for f in problem.frames]
+        shaped = [t is not None and np.shape(t) == (4, 4) for t in T]
+        bad |= ~np.array(shaped)
+        k = np.flatnonzero(shaped)
+        if len(k):
+            Ts = np.array([T[i] for i in k], dtype=float)
+            ok = np.all(np.isfinite(Ts), axis=(1, 2))
+            ok[ok] = np.abs(np.linalg.det(Ts[ok, :3, :3]) - 1) <= 1e-6
+            bad[k[~ok]] = True
+    if problem.knowledge in ("board_translation", "board_direction"):
+        bad |= np.array([f.motion_board is None for f in problem.frames])
+    return np.flatnonzero(bad)
 
 
 def usable_frames(problem: CalibrationProblem) -> tuple[CalibrationProblem, tuple[str, ...]]:
@@ -247,6 +294,17 @@ def _plausible(K: np.ndarray, size: tuple[int, int]) -> bool:
     return -0.5 <= K[0, 2] <= w - 0.5 and -0.5 <= K[1, 2] <= h - 0.5 and 0.5 < ratio < 2.0
 
 
+def _rotation_enters(st: Structure) -> bool:
+    """Whether X's rotation enters ``build_structure``: only through an unobservable hand-eye
+    translation direction (all rotations about one axis: a basis of the two others)."""
+    return st.X_t_basis.shape[1] == 2
+
+
+def _with_rotation(problem: CalibrationProblem, st: Structure, R_X: np.ndarray) -> Structure:
+    """``build_structure(problem, R_X)`` given ``st = build_structure(problem)``."""
+    return build_structure(problem, R_X) if _rotation_enters(st) else st
+
+
 def _best_start(problem: CalibrationProblem, cam: str, candidates: list[np.ndarray]) -> int:
     """Index of the start ``K`` (3, 3) that explains the images best through the robot poses.
 
@@ -256,16 +314,20 @@ def _best_start(problem: CalibrationProblem, cam: str, candidates: list[np.ndarr
     o = problem.options
     exact = replace(problem, options=replace(o, robot_noise_m=0.0, robot_noise_deg=0.0))
     zero = np.zeros(5)
+    groups = frame_groups(exact)
+    st = model = None  # the structure and its model, shared by the candidates where they can be
     best, best_err = 0, np.inf
     for k, K in enumerate(candidates):
         poses = _frame_poses(exact, cam, K, zero, fast=True)
         if len(poses) < 3:
             continue
         try:
-            X, Y, s = init_motion(exact, poses)
+            st = build_structure(exact) if st is None else st
+            X, Y, s = init_motion(exact, poses, groups, st)
         except DegenerateError:
             continue
-        model = BundleModel(exact, build_structure(exact, X[0][:3, :3]))
+        if model is None or _rotation_enters(st):
+            model = BundleModel(exact, _with_rotation(exact, st, X[0][:3, :3]))
         r, _ = model.evaluate(ModelState({cam: K}, {cam: zero}, {}, X, Y, s), jacobian=False)
         err = float(np.median(np.hypot(r[0::2], r[1::2])))
         if np.isfinite(err) and err < best_err:
@@ -507,7 +569,10 @@ def _rotation_ax_xb(groups: np.ndarray, M: np.ndarray, poses: dict[int, np.ndarr
 
 
 def init_motion(
-    problem: CalibrationProblem, poses: dict[int, np.ndarray], groups: np.ndarray | None = None
+    problem: CalibrationProblem,
+    poses: dict[int, np.ndarray],
+    groups: np.ndarray | None = None,
+    structure: Structure | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Initial ``X`` (G, 4, 4), ``Y`` (4, 4), ``s`` (F,) from per-frame reference-camera poses.
 
@@ -515,10 +580,10 @@ def init_motion(
     (t_M(k) - t_M(0))`` (camera displacement in camera axes against the known motion), so
     ``R_X`` is the orthogonal Procrustes solution over all such pairs (docs/METHOD.md Sec. 4); then
     ``X^-1 T_cam_board(k) = M_k Y`` is linear in ``R_X' t_X`` and ``t_Y`` (with the hand-eye
-    translation fixed at 0 when no rotations make it observable). ``groups``: the problem's
-    :func:`frame_groups` when the caller has them.
+    translation fixed at 0 when no rotations make it observable). ``groups``, ``structure``:
+    the problem's :func:`frame_groups` and ``build_structure(problem)`` when the caller has them.
     """
-    st = build_structure(problem)
+    st = build_structure(problem) if structure is None else structure
     F = len(problem.frames)
     s = np.zeros(F)
     if problem.knowledge == "none":
@@ -679,9 +744,9 @@ def calibrate(
         )
         note = f"frames {ids}: no board pose could be computed from the image; skipped"
         return replace(res, messages=(*notes_skipped, note, *res.messages))
-    X, Y, s = init_motion(problem, ref_poses, groups)
+    st = build_structure(problem)
+    X, Y, s = init_motion(problem, ref_poses, groups, st)
     if apart:  # the measured robot motion carries the reference camera to their frames
-        st = build_structure(problem)
         for c in apart:
             T_cam_ref[c] = _average_T(
                 [
@@ -690,7 +755,7 @@ def calibrate(
                 ]
             )
     init = ModelState(K_lin, {c: zero.copy() for c in K_lin}, T_cam_ref, X, Y, s)
-    structure = build_structure(problem, X[0][:3, :3])
+    structure = _with_rotation(problem, st, X[0][:3, :3])
     out = refine(problem, structure, init)
     classic = problem.knowledge == "robot" and np.bincount(groups).max() == 1
     if not out.converged and classic and len(problem.cameras) == 1 and not focal_sweep:
@@ -783,7 +848,9 @@ def _result(
         residuals[ch.key] = float(np.sqrt(np.mean(r**2) * 2))
     inl = out.residuals[out.inlier_rows]
     rms = float(np.sqrt(np.mean(inl**2) * 2)) if len(inl) else float("nan")
-    adequacy, robot_accuracy = assess(problem, out)
+    fit = final_free_pose_fit(out)  # the adequacy test's and the scale checks' poses
+    adequacy, robot_accuracy = assess(problem, out, fit, groups)
+    known = _fitted_poses(out, fit)  # the scale checks' poses; the model guesses the others'
     return CalibrationResult(
         cameras=cams,
         hand_eye=hand_eye,
@@ -805,8 +872,8 @@ def _result(
             problem,
             state,
             groups,
-            {i: model.T_ref_board(state, i) for i in range(len(problem.frames))},
-            _fitted_poses(out),
+            {i: model.T_ref_board(state, i) for i in range(len(problem.frames)) if i not in known},
+            known,
         ),
         H_inf=H_inf,
         linear=K_lin,
@@ -817,12 +884,12 @@ def _result(
     )
 
 
-def _fitted_poses(out: RefineOutput) -> dict[int, np.ndarray]:
-    """The reference camera's ``T_cam_board`` per frame index from the robot test's free-pose
-    fit, when the refinement kept it (it is then of this state's intrinsics, started from its
-    predictions), for the images in which no detection was flagged (the fit uses the inliers):
-    the same PnP minimum :func:`scale_checks` would compute again."""
-    fit, m = out.free_pose, out.model
+def _fitted_poses(out: RefineOutput, fit: FreePoseFit | None = None) -> dict[int, np.ndarray]:
+    """The reference camera's ``T_cam_board`` per frame index from a free-pose fit of this
+    state's intrinsics started from its predictions (``fit``, by default the robot test's when
+    the refinement kept it), for the images in which no detection was flagged (the fit uses the
+    inliers): the same PnP minimum :func:`scale_checks` would compute again."""
+    fit, m = out.free_pose if fit is None else fit, out.model
     if fit is None:
         return {}
     return {
@@ -855,12 +922,12 @@ def scale_checks(
         poses.update(
             _frame_poses(problem, ref, state.K[ref], state.dist[ref], guesses=guesses, only=todo)
         )
+    centre = {i: -T[:3, :3].T @ T[:3, 3] for i, T in poses.items()}  # the camera, board frame
     checks = []
     for g in np.unique(groups):
         idx = [i for i in np.flatnonzero(groups == g) if i in poses]
         for a, b in zip(idx[:-1], idx[1:], strict=True):
-            Ca = inv_T(poses[a])[:3, 3]
-            Cb = inv_T(poses[b])[:3, 3]
+            Ca, Cb = centre[a], centre[b]
             pa = problem.frames[a].T_base_tool[:3, 3]
             pb = problem.frames[b].T_base_tool[:3, 3]
             robot = float(np.linalg.norm(pb - pa)) * 1000.0

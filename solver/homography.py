@@ -110,6 +110,8 @@ def _levenberg_marquardt(fun, jac, x0: np.ndarray, max_iter: int = 30) -> np.nda
     """Minimise ``|fun(x)|^2`` from ``x0`` (small dense problems; tolerates the homographies'
     scale gauge through the damping). Stops when the cost no longer falls by 1e-12 relative."""
     x = np.asarray(x0, dtype=float)
+    if max_iter <= 0:  # the start itself (no residuals to evaluate)
+        return x
     r = fun(x)
     cost = float(r @ r)
     lam = 1e-4

@@ -56,6 +56,19 @@ def test_group_homographies_share_h1_h2_and_match_truth():
     assert Hs[0, 2, 2] > 0
 
 
+def test_group_homographies_without_iterations_are_the_rescaled_dlts(monkeypatch):
+    # max_iter=0 (the refinement's start): the per-frame DLTs with a common h1, h2, and no
+    # residual evaluated for a Levenberg-Marquardt that does not run
+    import slidecal.solver.homography as hom
+
+    g = sl.s2_group(5, np.random.default_rng(3))
+    monkeypatch.setattr(hom, "_residual_and_jac", None)
+    Hs = group_homographies(g.observations, 0)
+    truth = g.H / np.linalg.norm(g.H[0])
+    assert np.abs(Hs - truth).max() < 1e-10  # noise-free: the DLTs are exact
+    assert np.abs(Hs[:, :, :2] - Hs[0, :, :2]).max() < 1e-12
+
+
 def test_group_homographies_noisy_common_scale_and_residual():
     rng = np.random.default_rng(4)
     sigma = 0.5
