@@ -62,6 +62,7 @@ def free_pose_fit(
     K: dict[str, np.ndarray],
     dist: dict[str, np.ndarray],
     starts: dict[tuple[int, str], np.ndarray] | None = None,
+    closed_form: bool = True,
 ) -> FreePoseFit:
     """Fit a free board pose to every image with fixed intrinsics and distortion.
 
@@ -71,7 +72,8 @@ def free_pose_fit(
     model's prediction) and the closed-form planar solution (IPPE), so that a wildly wrong
     robot model cannot spoil the floor it is judged against. Images with fewer than 4 points
     are skipped. The candidate poses are scored for all images at once (one projection per
-    camera), not image by image.
+    camera), not image by image. ``closed_form`` False: the closed form only for the images
+    without a start (the starts are free-pose minima already, e.g. of an earlier fit).
     """
     todo = [
         (fi, cam, pts.astype(np.float64), px.astype(np.float64))
@@ -85,6 +87,9 @@ def free_pose_fit(
         T0 = starts.get((fi, cam))
         good_start = T0 is not None and T0[2, 3] > 0
         refined.append(_pnp(obj, img, K[cam], dist[cam], T0) if good_start else None)
+        if good_start and not closed_form:
+            closed.append(None)
+            continue
         ok, rv, tv = cv2.solvePnP(obj, img, K[cam], dist[cam], flags=cv2.SOLVEPNP_IPPE)
         closed.append(T_from_Rt(cv2.Rodrigues(rv)[0], tv.reshape(3)) if ok else None)
     best = _scored(todo, refined, K, dist)
@@ -212,12 +217,19 @@ def _parameters_used(out: RefineOutput) -> dict[str, float]:
 
 
 def final_free_pose_fit(out: RefineOutput) -> FreePoseFit:
-    """The free-pose fit of a refinement's inlier detections at its final intrinsics, started
-    from its predictions: the robot test's when the refinement kept it (same detections,
-    intrinsics and starts), else made here."""
+    """The free-pose fit of a refinement's inlier detections at its final intrinsics: the robot
+    test's when the refinement kept it as its own (same detections, intrinsics and starts);
+    started from the robot test's poses when the refinement went on to learn the arm's accuracy
+    (free minima at nearly the same intrinsics: no closed form needed); else started from the
+    refinement's predictions, with the closed form as a guard."""
     if out.free_pose is not None:
         return out.free_pose
-    return free_pose_fit(session_images(out), out.state.K, out.state.dist, model_starts(out))
+    images = session_images(out)
+    if out.test_fit is not None:  # its poses: the free minima at nearly these intrinsics
+        return free_pose_fit(
+            images, out.state.K, out.state.dist, out.test_fit.T_cam_board, closed_form=False
+        )
+    return free_pose_fit(images, out.state.K, out.state.dist, model_starts(out))
 
 
 def assess(

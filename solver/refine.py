@@ -1084,6 +1084,9 @@ class RefineOutput:
     # the free board pose per image fitted to this solve's detections and intrinsics (the
     # robot test's; :func:`slidecal.solver.adequacy.assess` reuses it), when one was made
     free_pose: FreePoseFit | None = None
+    # the robot test's free-pose fit when the solve went on to learn the arm's accuracy (made
+    # at the exact-pose intrinsics: its poses start the final fit)
+    test_fit: FreePoseFit | None = None
     # robot sessions: the robot's one-sigma pose error per axis (radians, metres) the model used:
     # (0, 0) for exact poses; whether it was estimated from the data; the test that decided
     robot_sigma: tuple[float, float] | None = None
@@ -1304,7 +1307,9 @@ def refine(
         trend_dims=trend_dims,
         trend_sigma=(sig0[0] / spread, sig0[1] / spread) if trend_dims else None,
     )
-    out = _refine(problem, noisy, out0.state, max_iter, robust, estimate=True)
+    out = replace(
+        _refine(problem, noisy, out0.state, max_iter, robust, estimate=True), test_fit=fit
+    )
     m = out.model
     levels = [m.pose_sigma]
     if m.group_sigma is not None and "U" in m.slices:

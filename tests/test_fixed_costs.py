@@ -6,6 +6,7 @@ and the direct computation: the same answers."""
 
 import importlib
 
+import cv2
 import numpy as np
 import pytest
 
@@ -104,6 +105,41 @@ def test_scale_checks_of_a_learned_arm_take_the_final_fit(monkeypatch):
     for a, b in zip(res.scale_checks, fresh, strict=True):
         assert (a.frame_a, a.frame_b, a.robot_mm) == (b.frame_a, b.frame_b, b.robot_mm)
         assert a.camera_mm == pytest.approx(b.camera_mm, abs=1e-6)
+
+
+def test_the_final_fit_of_a_learned_arm_starts_from_the_robot_tests(monkeypatch):
+    # the robot test's fit (exact-pose intrinsics) starts the final fit at the learned-arm
+    # intrinsics without the closed form: the same poses and scores as the guarded fit
+    from slidecal.solver.adequacy import final_free_pose_fit, model_starts, session_images
+
+    s = sc.r1_real_arm(np.random.default_rng(2001))
+    outs = []
+    real_refine = pipeline.refine
+
+    def spy_refine(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        outs.append(real_refine(*args, **kwargs))
+        return outs[-1]
+
+    monkeypatch.setattr(pipeline, "refine", spy_refine)
+    calibrate(s.problem)
+    out = outs[-1]
+    assert out.free_pose is None and out.test_fit is not None
+    ippe = []
+    real_pnp = cv2.solvePnP
+
+    def spy_pnp(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        ippe.append(kwargs.get("flags") == cv2.SOLVEPNP_IPPE)
+        return real_pnp(*args, **kwargs)
+
+    monkeypatch.setattr(cv2, "solvePnP", spy_pnp)
+    fit = final_free_pose_fit(out)
+    assert len(ippe) == len(fit.rss) and not any(ippe)  # one iterative PnP per image
+    monkeypatch.setattr(cv2, "solvePnP", real_pnp)
+    guarded = free_pose_fit(session_images(out), out.state.K, out.state.dist, model_starts(out))
+    assert fit.rss.keys() == guarded.rss.keys()
+    for key, rss in guarded.rss.items():
+        assert fit.rss[key] == pytest.approx(rss, rel=1e-9)
+        np.testing.assert_allclose(fit.T_cam_board[key], guarded.T_cam_board[key], atol=1e-8)
 
 
 def _spy(monkeypatch, name: str) -> list:

@@ -388,6 +388,8 @@ def test_exact_poses_get_no_trend():
     out = refine(s.problem, st, _perturbed(s.truth, np.random.default_rng(34), k_px=2.0))
     assert out.robot_sigma == (0.0, 0.0)
     assert not {"E", "U", "V"} & set(out.model.slices)
+
+
 def _noisy_model_and_blocks(seed: int, groups: bool):
     """R1 with per-frame pose corrections (and, with ``groups``, the tilt groups' shared ones)
     at a perturbed state: the blocked normal equations and the model."""
