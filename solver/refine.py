@@ -1730,10 +1730,11 @@ def _refine(
             # minimum of a definite model and not a point part way along the creep
             state, converged, it, _, _ = _lm(model, state, inlier * cam_w, max_iter)
             total_it += it
-            vce_note.append(
-                f"the noise levels were still moving after {vce_step[0]} updates; the last "
-                "ones were kept"
-            )
+            if not vce_note:
+                vce_note.append(
+                    f"the noise levels were still moving after {vce_step[0]} updates; the last "
+                    "ones were kept"
+                )
     weights = inlier * cam_w
     model.row_weights = weights  # the solve's last row weights (its covariance's)
     nb = model.normal_blocks(state, weights)
