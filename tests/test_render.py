@@ -127,9 +127,11 @@ def test_full_size_render_is_fast():
     T = _facing(tg, 0.5, R=Rx(np.radians(30)))
     rng = np.random.default_rng(0)
     render.render_target(tg, cam, T, rng)  # warms the per-camera and texture caches
-    t0 = time.perf_counter()
+    # the process's CPU time, not the wall clock: a machine busy with other work (a CI runner,
+    # benchmarks alongside) stretched the wall time of this 0.2 s render past 3 s
+    t0 = time.process_time()
     img = render.render_target(tg, cam, T, rng)
-    elapsed = time.perf_counter() - t0
+    elapsed = time.process_time() - t0
     assert img.shape == (800, 1280)
     assert elapsed < 1.0
 
