@@ -278,6 +278,26 @@ def _trend_model(s, pose_sigma=(1e-4, 1e-4)):  # noqa: ANN001, ANN202 - a scenar
     return model
 
 
+def _truth_with_corrections(s, model, rng, sigma, sigma_trend):  # noqa: ANN001, ANN202
+    """The scenario's true state with random pose corrections of ``sigma`` (frames, groups)
+    and ``sigma_trend`` (trends) in ``model``'s blocks; and the number of groups."""
+    su = model.slices.get("U", slice(0, 0))
+    n_u = (su.stop - su.start) // 6
+    sv = model.slices["V"]
+    state = ModelState(
+        s.truth.K,
+        s.truth.dist,
+        {},
+        s.truth.X,
+        s.truth.Y,
+        s.truth.s,
+        rng.normal(0, sigma, (len(s.problem.frames), 6)),
+        rng.normal(0, sigma, (n_u, 6)) if n_u else None,
+        rng.normal(0, sigma_trend, sv.stop - sv.start),
+    )
+    return state, n_u
+
+
 @pytest.mark.parametrize("translations_only", [False, True])
 def test_trend_columns_match_finite_differences(translations_only: bool):
     # the trend block V sits before E; its columns are the pose block times the frame's offset
@@ -286,20 +306,8 @@ def test_trend_columns_match_finite_differences(translations_only: bool):
     assert list(model.slices)[-2:] == ["V", "E"]
     assert model.st.trend_dims == ((3,) if translations_only else (3, 3, 3, 3))
     rng = np.random.default_rng(32)
-    su = model.slices.get("U", slice(0, 0))
-    n_u = (su.stop - su.start) // 6
     sl = model.slices["V"]
-    state = ModelState(
-        s.truth.K,
-        s.truth.dist,
-        {},
-        s.truth.X,
-        s.truth.Y,
-        s.truth.s,
-        rng.normal(0, 1e-7, (len(s.problem.frames), 6)),
-        rng.normal(0, 1e-7, (n_u, 6)) if n_u else None,
-        rng.normal(0, 1e-6, sl.stop - sl.start),
-    )
+    state, n_u = _truth_with_corrections(s, model, rng, 1e-7, 1e-6)
     r, J = model.evaluate(state)
     h = 1e-6
     for i in range(sl.start, sl.stop):
@@ -333,19 +341,7 @@ def test_pixel_step_is_the_jacobian_times_the_step(translations_only: bool):
     s = sc.r1_real_arm(np.random.default_rng(33), translations_only=translations_only)
     model = _trend_model(s)
     rng = np.random.default_rng(34)
-    su = model.slices.get("U", slice(0, 0))
-    n_u = (su.stop - su.start) // 6
-    state = ModelState(
-        s.truth.K,
-        s.truth.dist,
-        {},
-        s.truth.X,
-        s.truth.Y,
-        s.truth.s,
-        rng.normal(0, 1e-5, (len(s.problem.frames), 6)),
-        rng.normal(0, 1e-5, (n_u, 6)) if n_u else None,
-        rng.normal(0, 1e-5, model.slices["V"].stop - model.slices["V"].start),
-    )
+    state, n_u = _truth_with_corrections(s, model, rng, 1e-5, 1e-5)
     assert ("U" in model.slices) != translations_only
     J = model.evaluate(state)[1][: model.n_rows]
     delta = rng.normal(0, 1e-4, len(model.names)) * np.abs(np.diag(J.T @ J)) ** -0.5
