@@ -183,6 +183,14 @@ class BlockInverse:
     reduced_inv: np.ndarray
     global_scale: np.ndarray
 
+    def times(self, g_g: np.ndarray, g_E: np.ndarray) -> np.ndarray:
+        """``inverse @ v`` (P,) for ``v`` = (global part (P0,), frames' part (F, 6)): the
+        factor form of :meth:`submatrix`, ``W' reduced_inv (W v)`` plus the frames' own
+        blocks times their part (a Gauss-Newton step from an inverse already made)."""
+        y = self.reduced_inv @ (g_g / self.global_scale - self.coupling @ g_E.reshape(-1))
+        frames = (self.frame_inv @ g_E[:, :, None])[:, :, 0].reshape(-1) - self.coupling.T @ y
+        return np.concatenate([y / self.global_scale, frames])
+
     def trace_with(self, blocks: NormalBlocks) -> float:
         """``trace(inverse @ M)`` for ``M`` of the same block pattern (``blocks``' normal
         matrix), without dense matrices: the hat matrix's trace over some rows."""
@@ -1203,7 +1211,9 @@ def single_threaded_blas(fn):  # noqa: ANN001, ANN201 - a plain decorator
 #: the minimum instead of 5-6 from 1e-4 on R1 and on 1-3 cameras with 100-400 frames; a start
 #: it does not suit raises it tenfold per refused step)
 LM_START_DAMPING = 1e-6
-#: The damping of the Gauss-Newton steps of the variance-component phase: nearly none. A
+#: The damping of the Gauss-Newton steps of the variance-component phase (the steps between
+#: two linearisations; the level steps at one linearisation take the undamped step from the
+#: inverse they need anyway): nearly none. A
 #: damping of 1e-4 of the normal matrix's diagonal held back the directions only the pose
 #: prior pins (an orientation group's translation against the board's): the state crept along
 #: them by a few % per step and the groups' levels with it, for tens of steps (measured on R1
@@ -1488,16 +1498,15 @@ def _refine(
             out.append(np.sqrt(np.sum(r[m] ** 2) / dof) if n else np.nan)
         return np.array(out)
 
-    def variance_components(nb: NormalBlocks, delta: np.ndarray) -> bool:
+    def variance_components(nb: NormalBlocks, Ni: BlockInverse, delta: np.ndarray) -> bool:
         """One Foerstner step at the state ``delta`` (P,) from ``state``, to first order
-        (``nb``: the normal equations at ``state``): every camera's noise and the two pose
-        sigmas from their residuals and redundancy numbers; True when one moved by more than
-        2-3 %."""
+        (``nb``: the normal equations at ``state``, ``Ni`` their inverse): every camera's noise
+        and the two pose sigmas from their residuals and redundancy numbers; True when one
+        moved by more than 2-3 %."""
         nonlocal cam_w
         r = nb.r.copy()
         r[:n_px] += model.pixel_step(state, delta)
         moved = model.apply(state, delta)  # E, U and V at the step (linear in delta)
-        Ni = nb.inverse()
         diag_E = np.diagonal(Ni.EE, axis1=1, axis2=2).reshape(-1)
         h = np.clip(model.prior_scale**2 * diag_E, 0.0, 1.0)
         h_u = h_v = np.zeros(0)
@@ -1657,11 +1666,11 @@ def _refine(
         moved = False
         while vce_step[0] < MAX_VCE_STEPS:
             nb = model.normal_blocks(state, inlier * cam_w)
-            try:
-                delta = nb.solve(VCE_STEP_DAMPING)
-            except np.linalg.LinAlgError:
+            Ni = nb.inverse()  # the redundancy numbers' and the step's
+            delta = -Ni.times(nb.g_g, nb.g_E)
+            if not np.all(np.isfinite(delta)):
                 delta = np.zeros(P)
-            if not variance_components(nb, delta):
+            if not variance_components(nb, Ni, delta):
                 break
             moved = True
         return moved

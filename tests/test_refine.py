@@ -450,6 +450,11 @@ def test_schur_solve_and_inverse_equal_the_dense_ones(groups):
     np.testing.assert_allclose(
         inv.scaled(0.04).submatrix(rows, cols), 0.04 * Ni[np.ix_(rows, cols)], **tol
     )
+    # the inverse times a vector (the variance-component steps' Gauss-Newton step)
+    want = Ni @ g
+    np.testing.assert_allclose(
+        inv.times(nb.g_g, nb.g_E), want, rtol=1e-6, atol=1e-8 * np.abs(want).max()
+    )
     # the hat matrix's trace over one camera's rows (here: the pixel rows)
     wc = w.copy()
     wc[model.n_rows :] = 0.0
