@@ -133,7 +133,11 @@ def bounded(fn, timeout_s: float) -> float:
 
 @pytest.fixture
 def robot(fake):
-    r = URRobot(fake.host, frequency=FREQ_HZ)
+    # the fake controller is a Python thread: on a machine busy with other work it can stall
+    # for more than the driver's 0.1 s (seen: a pure-rotation test failed with "no new data
+    # for 0.1 s" while benchmarks ran). Motion tests are not about that; the staleness tests
+    # build their own robot with the driver's default.
+    r = URRobot(fake.host, frequency=FREQ_HZ, stale_timeout_s=1.0)
     r.connect()
     try:
         yield r
