@@ -288,10 +288,16 @@ def propagate(layout: Layout, internal: tuple[str, ...], cov: np.ndarray) -> Nam
 
 def _apply(names: tuple[str, ...], J: np.ndarray, cov: np.ndarray) -> NamedCovariance:
     """``J cov J'`` over the columns ``J`` uses, named ``names``."""
-    used = np.flatnonzero(np.any(J != 0, axis=0))
-    Ju = J[:, used]
+    Ju, used = _used(J)
     C = Ju @ np.asarray(cov, float)[np.ix_(used, used)] @ Ju.T
     return NamedCovariance(names, 0.5 * (C + C.T))
+
+
+def _used(J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``J`` restricted to the parameters it uses, and their indices: the projection of the
+    optimiser's coordinates onto the reported quantities."""
+    used = np.flatnonzero(np.any(J != 0, axis=0))
+    return J[:, used], used
 
 
 def result_covariance(
@@ -303,9 +309,8 @@ def result_covariance(
     if out.covariance_blocks is None:
         return reported_names(layout, out.names), None
     names, J = _jacobian(layout, tuple(out.names))
-    used = np.flatnonzero(np.any(J != 0, axis=0))
-    project = (J[:, used], used)  # the reported quantities from the parameters they use
-    C = project[0] @ out.covariance_blocks.submatrix(used, used) @ project[0].T
+    project = _used(J)  # the reported quantities from the parameters they use
+    C = project[0] @ out.covariance_blocks.submatrix(project[1], project[1]) @ project[0].T
     named = NamedCovariance(names, 0.5 * (C + C.T))
     extra = smooth_arm_excess(out, project)
     if extra is not None:  # cover both readings of the frames' error: its positive part
