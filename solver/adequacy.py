@@ -73,7 +73,8 @@ def free_pose_fit(
     robot model cannot spoil the floor it is judged against. Images with fewer than 4 points
     are skipped. The candidate poses are scored for all images at once (one projection per
     camera), not image by image. ``closed_form`` False: the closed form only for the images
-    without a start (the starts are free-pose minima already, e.g. of an earlier fit).
+    without a start, or whose start PnP does not refine (the starts are free-pose minima
+    already, e.g. of an earlier fit).
     """
     todo = [
         (fi, cam, pts.astype(np.float64), px.astype(np.float64))
@@ -87,7 +88,7 @@ def free_pose_fit(
         T0 = starts.get((fi, cam))
         good_start = T0 is not None and T0[2, 3] > 0
         refined.append(_pnp(obj, img, K[cam], dist[cam], T0) if good_start else None)
-        if good_start and not closed_form:
+        if good_start and not closed_form and refined[-1] is not None:
             closed.append(None)
             continue
         ok, rv, tv = cv2.solvePnP(obj, img, K[cam], dist[cam], flags=cv2.SOLVEPNP_IPPE)
