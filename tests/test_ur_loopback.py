@@ -478,10 +478,19 @@ def test_connect_to_a_host_that_drops_packets_fails_within_seconds(make_fake):
     assert float(took_s) < 4.0
 
 
+def _ctrl_c_as_a_terminal_delivers_it() -> None:
+    """In the child before it runs: Ctrl-C's default disposition. A process started in the
+    background by a shell without job control (a CI step run with '&', nohup-style) inherits
+    SIGINT ignored, and Python then never raises KeyboardInterrupt: the test would hang on the
+    harness, not on the driver."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_connect_to_a_silent_host_honours_ctrl_c(make_fake):
     fake = make_fake("--silent")
     proc = subprocess.Popen([sys.executable, "-c", CONNECT_SCRIPT, fake.host, "60"],
-                            stdout=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, text=True,
+                            preexec_fn=_ctrl_c_as_a_terminal_delivers_it)
     try:
         time.sleep(1.5)  # imports done, waiting on the silent host
         proc.send_signal(signal.SIGINT)
