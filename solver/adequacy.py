@@ -198,14 +198,12 @@ def _parameters_used(out: RefineOutput) -> dict[str, float]:
     w[:n_px] = out.inlier_rows
     normal = m.normal_blocks(out.state, w)
     # the blocks of the inverse that are needed: the refinement's covariance over s^2 when it
-    # was made with these weights (one camera; its trace against this normal matrix is then
-    # the number of parameters), else inverted here
-    Ni = None
-    if out.covariance_blocks is not None and out.sigma_px > 0:
+    # was made with these weights (one camera: the solve's own row weights are these), else
+    # inverted here
+    same = m.row_weights is not None and np.array_equal(m.row_weights, w)
+    if same and out.covariance_blocks is not None and out.sigma_px > 0:
         Ni = out.covariance_blocks.scaled(1.0 / out.sigma_px**2)
-        if not abs(Ni.trace_with(normal) - len(m.names)) <= 1e-6 * len(m.names):
-            Ni = None
-    if Ni is None:
+    else:
         Ni = normal.inverse()
     used = {}
     for c in m.cams:
