@@ -206,11 +206,8 @@ def _parameters_used(out: RefineOutput) -> dict[str, float]:
     else:
         Ni = normal.inverse()
     used = {}
-    for c in m.cams:
-        wc = np.zeros(n_all)
-        for ch in m.chunks:
-            if ch.camera == c:
-                wc[ch.rows] = w[ch.rows]
+    for ci, c in enumerate(m.cams):
+        wc = np.where(m.camera_rows(ci, n_all), w, 0.0)
         used[c] = Ni.trace_with(m.normal_blocks(out.state, wc))
     return used
 

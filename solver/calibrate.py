@@ -84,7 +84,7 @@ def check_problem(problem: CalibrationProblem) -> None:
     n_pts = len(problem.target.points_m)
     if len(problem.frames) < 2:
         raise InputError("a calibration needs at least 2 frames; capture more")
-    for i in _suspect_frames(problem, n_pts):
+    for i in range(len(problem.frames)):
         _check_frame(problem, i, n_pts)
     if problem.knowledge == "robot":
         p = np.array([np.asarray(f.T_base_tool, float)[:3, 3] for f in problem.frames])
@@ -137,49 +137,8 @@ def _check_frame(problem: CalibrationProblem, i: int, n_pts: int) -> None:
             or abs(np.linalg.det(T[:3, :3]) - 1) > 1e-6
         ):
             raise InputError("T_base_tool is not a rigid transform", f"{where}.T_base_tool")
-    if problem.knowledge in ("board_translation", "board_direction") and (
-        f.motion_board is None
-    ):
+    if problem.knowledge in ("board_translation", "board_direction") and (f.motion_board is None):
         raise InputError("motion_board is missing for this knowledge", f"{where}")
-
-
-def _suspect_frames(problem: CalibrationProblem, n_pts: int) -> np.ndarray:
-    """The indices of the frames :func:`_check_frame` may refuse (every frame it refuses is
-    among them, in order): its tests at once over all frames' detections and poses, so a valid
-    session needs no pass frame by frame."""
-    names = {c.name for c in problem.cameras}
-    F = len(problem.frames)
-    bad = np.zeros(F, dtype=bool)
-    counts, ids, px = [], [], []
-    for i, f in enumerate(problem.frames):
-        for cam, det in f.detections.items():
-            bad[i] |= cam not in names
-            counts.append((i, len(det.ids)))
-            ids.append(det.ids)
-            px.append(det.px)
-    if counts:
-        owner = np.array([i for i, _ in counts])
-        n = np.array([k for _, k in counts])
-        frame_of = np.repeat(owner, n)
-        ids_all = np.concatenate(ids).astype(np.int64)
-        bad[frame_of[(ids_all < 0) | (ids_all >= n_pts)]] = True
-        bad[frame_of[~np.all(np.isfinite(np.concatenate(px).reshape(-1, 2)), axis=1)]] = True
-        # a corner id twice in one detection: equal keys (detection, id) side by side once sorted
-        keys = np.sort(np.repeat(np.arange(len(n)), n) * (n_pts + 1) + np.clip(ids_all, 0, n_pts))
-        bad[frame_of[np.flatnonzero(keys[1:] == keys[:-1])]] = True
-    if problem.knowledge == "robot":
-        T = [f.T_base_tool for f in problem.frames]
-        shaped = [t is not None and np.shape(t) == (4, 4) for t in T]
-        bad |= ~np.array(shaped)
-        k = np.flatnonzero(shaped)
-        if len(k):
-            Ts = np.array([T[i] for i in k], dtype=float)
-            ok = np.all(np.isfinite(Ts), axis=(1, 2))
-            ok[ok] = np.abs(np.linalg.det(Ts[ok, :3, :3]) - 1) <= 1e-6
-            bad[k[~ok]] = True
-    if problem.knowledge in ("board_translation", "board_direction"):
-        bad |= np.array([f.motion_board is None for f in problem.frames])
-    return np.flatnonzero(bad)
 
 
 def usable_frames(problem: CalibrationProblem) -> tuple[CalibrationProblem, tuple[str, ...]]:
@@ -784,11 +743,17 @@ def _result(
             v = named.std(f"{c}.{n}") if named is not None else None
             if v is not None:
                 std[n] = v
-        rows = np.concatenate(
-            [np.r_[ch.rows] for ch in model.chunks if ch.camera == c] or [np.zeros(0, int)]
+        n_px = len(out.inlier_rows)
+        rows = (
+            model.camera_rows(model.cams.index(c), n_px) & out.inlier_rows
+            if c in model.cams
+            else np.zeros(n_px, dtype=bool)
         )
-        rows = rows[out.inlier_rows[rows]] if len(rows) else rows
-        rms = float(np.sqrt(np.mean(out.residuals[rows] ** 2) * 2)) if len(rows) else float("nan")
+        rms = (
+            float(np.sqrt(np.mean(out.residuals[:n_px][rows] ** 2) * 2))
+            if rows.any()
+            else float("nan")
+        )
         cams[c] = CameraEstimate(c, spec.width, spec.height, state.K[c], state.dist[c], std, rms)
     unobs = dict(st.unobservable)
     for i, on in enumerate(problem.options.distortion):

@@ -507,6 +507,14 @@ class BundleModel:
         return state.X[self.st.group_of_frame[fi]] @ M @ state.Y
 
     # -- residuals and Jacobian ----------------------------------------------------------------
+    def camera_rows(self, ci: int, n_rows: int) -> np.ndarray:
+        """Which of ``n_rows`` residual rows (the pixel rows first, two per observation, then
+        any prior rows) are camera ``ci``'s pixels (bool mask)."""
+        rows = np.zeros(n_rows, dtype=bool)
+        idx = self.cam_obs[ci]
+        rows[2 * idx] = rows[2 * idx + 1] = True
+        return rows
+
     def _index(self) -> None:
         """Per-observation index arrays (built once): frame, group, camera, board point."""
         ch = self.chunks
@@ -1469,12 +1477,7 @@ def _refine(
     estimate = estimate and n_prior > 0
     inlier = np.ones(n_px + n_prior, dtype=bool)
     cam_w = np.ones(n_px + n_prior)  # per-camera noise weights, relative to the reference
-    cam_rows = []
-    for ci in range(len(model.cams)):
-        rows = np.zeros(n_px + n_prior, dtype=bool)
-        idx = model.cam_obs[ci]
-        rows[2 * idx] = rows[2 * idx + 1] = True
-        cam_rows.append(rows)
+    cam_rows = [model.camera_rows(ci, n_px + n_prior) for ci in range(len(model.cams))]
     state = _respect_options(problem, init)
     if n_prior:
         state = with_pose_corrections(state, len(problem.frames), n_groups_u, n_trend)
