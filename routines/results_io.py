@@ -661,7 +661,11 @@ def write_exports(
 
 
 def _fmt(x: float | None, spec: str = ".3f") -> str:
-    return "n/a" if x is None or not np.isfinite(x) else format(x, spec)
+    """A figure of the summary; "n/a" when absent, powers of ten when it is a million or more
+    (a one-sigma of a result the data does not determine, which the verdict rejects)."""
+    if x is None or not np.isfinite(x):
+        return "n/a"
+    return format(x, ".1e") if abs(x) >= 1e6 else format(x, spec)
 
 
 def summary_text(result: CalibrationResult, truth: Mapping[str, Any] | None = None) -> str:

@@ -70,3 +70,16 @@ def test_simulated_cell_with_a_real_arms_kinematic_error(tmp_path) -> None:
     plain = SimulatedCell.from_config(load_config(str(tmp_path / "exact_arm.yaml")), seed=3)
     assert plain.robot.kinematic_error is None
     assert "kinematic_error" not in plain.truth["noise"]
+
+
+def test_the_summary_writes_an_undetermined_std_in_powers_of_ten() -> None:
+    import dataclasses
+
+    res = calibrate(sc.r1(np.random.default_rng(31)).problem)
+    cam = res.cameras["cam"]
+    huge = dataclasses.replace(cam, std={**cam.std, "fx": 4.8e15})
+    text = summary_text(dataclasses.replace(res, cameras={**res.cameras, "cam": huge}))
+    line = next(ln for ln in text.splitlines() if ln.lstrip().startswith("fx"))
+    assert line.endswith("+- 4.8e+15 px")
+    fy = next(ln for ln in text.splitlines() if ln.lstrip().startswith("fy"))
+    assert f"+- {cam.std['fy']:.3f} px" in fy
