@@ -45,7 +45,7 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from slidecal.solver.camera import project_with_jacobians, undistort_normalised
+from slidecal.solver.camera import distortion_jacobian, project_with_jacobians, undistort_normalised
 from slidecal.solver.detect import charuco_board
 from slidecal.solver.errors import InputError
 from slidecal.solver.problem import Target
@@ -253,7 +253,7 @@ def _subsample_rays(
     u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
     px = np.stack([u.ravel(), v.ravel()], axis=1)
     xy = undistort_normalised(K, dist, px)
-    J = project_with_jacobians(K, dist, np.column_stack([xy, np.ones(len(xy))])).d_P[:, :, :2]
+    J = distortion_jacobian(K, dist, xy)[1]
     det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
     Jinv = np.stack(
         [J[:, 1, 1] / det, -J[:, 0, 1] / det, -J[:, 1, 0] / det, J[:, 0, 0] / det], axis=1

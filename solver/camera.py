@@ -52,6 +52,53 @@ class Projection:
     d_dist: np.ndarray | None = None
 
 
+def _distort(
+    k1: float,
+    k2: float,
+    p1: float,
+    p2: float,
+    k3: float,
+    x: np.ndarray,
+    y: np.ndarray,
+    r2: np.ndarray,
+    jacobian: bool = False,
+) -> tuple[np.ndarray, ...]:
+    """Distorted normalised coordinates ``xd, yd`` of ``x, y`` (``r2 = x^2 + y^2``) and, with
+    ``jacobian``, their partial derivatives ``dxd_dx, dxd_dy, dyd_dx, dyd_dy``."""
+    a = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xy = x * y
+    xd = a * x + 2.0 * p1 * xy + p2 * (r2 + 2.0 * x * x)
+    yd = a * y + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * xy
+    if not jacobian:
+        return xd, yd
+    da = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d a / d r2
+    dxd_dx = a + 2.0 * x * x * da + 2.0 * p1 * y + 6.0 * p2 * x
+    dxd_dy = 2.0 * x * y * da + 2.0 * p1 * x + 2.0 * p2 * y
+    dyd_dx = 2.0 * x * y * da + 2.0 * p1 * x + 2.0 * p2 * y
+    dyd_dy = a + 2.0 * y * y * da + 6.0 * p1 * y + 2.0 * p2 * x
+    return xd, yd, dxd_dx, dxd_dy, dyd_dx, dyd_dy
+
+
+def distortion_jacobian(
+    K: np.ndarray, dist: np.ndarray | None, xy: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (N, 2) of normalised undistorted coordinates ``xy`` (N, 2) and the 2 x 2
+    Jacobians (N, 2, 2) of the pixels with respect to them: ``project_with_jacobians`` at
+    ``z = 1`` without the parameters' Jacobians (the same numbers, a fraction of the work)."""
+    k1, k2, p1, p2, k3 = _dist5(dist)
+    fx, s, cx = K[0]
+    fy, cy = K[1, 1], K[1, 2]
+    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+    x, y = xy[:, 0], xy[:, 1]
+    xd, yd, dxd_dx, dxd_dy, dyd_dx, dyd_dy = _distort(k1, k2, p1, p2, k3, x, y, x * x + y * y, True)
+    J = np.empty((len(xy), 2, 2))
+    J[:, 0, 0] = fx * dxd_dx + s * dyd_dx
+    J[:, 0, 1] = fx * dxd_dy + s * dyd_dy
+    J[:, 1, 0] = fy * dyd_dx
+    J[:, 1, 1] = fy * dyd_dy
+    return np.stack([fx * xd + s * yd + cx, fy * yd + cy], axis=1), J
+
+
 def project_with_jacobians(
     K: np.ndarray, dist: np.ndarray | None, P_cam: np.ndarray, jacobians: bool = True
 ) -> Projection:
@@ -64,19 +111,12 @@ def project_with_jacobians(
     iz = 1.0 / Z
     x, y = X * iz, Y * iz
     r2 = x * x + y * y
-    a = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xy = x * y
-    xd = a * x + 2.0 * p1 * xy + p2 * (r2 + 2.0 * x * x)
-    yd = a * y + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * xy
-    px = np.stack([fx * xd + s * yd + cx, fy * yd + cy], axis=1)
     if not jacobians:
-        return Projection(px)
+        xd, yd = _distort(k1, k2, p1, p2, k3, x, y, r2)[:2]
+        return Projection(np.stack([fx * xd + s * yd + cx, fy * yd + cy], axis=1))
+    xd, yd, dxd_dx, dxd_dy, dyd_dx, dyd_dy = _distort(k1, k2, p1, p2, k3, x, y, r2, True)
+    px = np.stack([fx * xd + s * yd + cx, fy * yd + cy], axis=1)
     n = len(P)
-    da = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d a / d r2
-    dxd_dx = a + 2.0 * x * x * da + 2.0 * p1 * y + 6.0 * p2 * x
-    dxd_dy = 2.0 * x * y * da + 2.0 * p1 * x + 2.0 * p2 * y
-    dyd_dx = 2.0 * x * y * da + 2.0 * p1 * x + 2.0 * p2 * y
-    dyd_dy = a + 2.0 * y * y * da + 6.0 * p1 * y + 2.0 * p2 * x
     # pixel w.r.t. normalised (x, y)
     du_dx = fx * dxd_dx + s * dyd_dx
     du_dy = fx * dxd_dy + s * dyd_dy
@@ -96,6 +136,7 @@ def project_with_jacobians(
     d_K[:, 1, 3] = 1.0
     d_K[:, 0, 4] = yd
     r4 = r2 * r2
+    xy = x * y
     # distorted normalised coordinates w.r.t. (k1, k2, p1, p2, k3)
     dxd = np.stack([x * r2, x * r4, 2.0 * xy, r2 + 2.0 * x * x, x * r4 * r2], axis=1)
     dyd = np.stack([y * r2, y * r4, r2 + 2.0 * y * y, 2.0 * xy, y * r4 * r2], axis=1)
@@ -127,11 +168,9 @@ def undistort_normalised(
         x = (xd - dx) / a
         y = (yd - dy) / a
     if np.any(d != 0.0):
-        ones = np.ones_like(x)
         for _ in range(3):
-            pr = project_with_jacobians(np.eye(3), d, np.stack([x, y, ones], axis=1))
-            r = np.stack([xd, yd], axis=1) - pr.px
-            J = pr.d_P[:, :, :2]
+            pr, J = distortion_jacobian(np.eye(3), d, np.stack([x, y], axis=1))
+            r = np.stack([xd, yd], axis=1) - pr
             det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
             x = x + (J[:, 1, 1] * r[:, 0] - J[:, 0, 1] * r[:, 1]) / det
             y = y + (-J[:, 1, 0] * r[:, 0] + J[:, 0, 0] * r[:, 1]) / det

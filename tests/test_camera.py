@@ -5,6 +5,7 @@ import numpy as np
 
 from slidecal.solver.camera import (
     K_matrix,
+    distortion_jacobian,
     project,
     project_with_jacobians,
     undistort_normalised,
@@ -59,3 +60,23 @@ def test_undistort_inverts_projection():
     px = project(K, DIST, P)
     xy = undistort_normalised(K, DIST, px)
     np.testing.assert_allclose(xy, P[:, :2] / P[:, 2:], atol=1e-10)
+
+
+def test_distortion_jacobian_is_the_projection_at_unit_depth():
+    rng = np.random.default_rng(4)
+    K = np.array([[880.0, 0.4, 640.0], [0.0, 870.0, 400.0], [0.0, 0.0, 1.0]])
+    dist = np.array([-0.12, 0.05, 5e-4, -3e-4, 0.01])
+    xy = rng.uniform(-0.8, 0.8, (200, 2))
+    px, J = distortion_jacobian(K, dist, xy)
+    full = project_with_jacobians(K, dist, np.column_stack([xy, np.ones(len(xy))]))
+    assert np.array_equal(px, full.px)
+    assert np.array_equal(J, full.d_P[:, :, :2])
+    # and the Jacobian is the derivative: central differences
+    h = 1e-6
+    for a in range(2):
+        e = np.zeros(2)
+        e[a] = h
+        num = (
+            distortion_jacobian(K, dist, xy + e)[0] - distortion_jacobian(K, dist, xy - e)[0]
+        ) / (2 * h)
+        assert np.allclose(J[:, :, a], num, rtol=1e-6, atol=1e-4)
