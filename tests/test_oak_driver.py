@@ -10,7 +10,6 @@ real library's "No available devices" becomes a HardwareFault.
 from __future__ import annotations
 
 import inspect
-import re
 import sys
 import time
 import types
@@ -22,6 +21,7 @@ import pytest
 dai_real = pytest.importorskip("depthai")
 sys.path.insert(0, str(Path(__file__).parent))
 import fake_depthai  # noqa: E402
+from pybind_signatures import check_callable as _check_callable  # noqa: E402
 
 from slidecal.drivers import oak  # noqa: E402
 from slidecal.drivers.base import CameraRig  # noqa: E402
@@ -466,46 +466,6 @@ def test_missing_depthai_names_the_extra(monkeypatch):
 
 
 # ------------------------------------------------------- the fake against the installed depthai
-
-
-def _overloads(real, name):
-    """Parameter lists ``[(name, has_default), ...]`` of a pybind11 callable's overloads."""
-    doc = inspect.getdoc(real) or ""
-    out = []
-    for m in re.finditer(rf"^(?:\d+\. )?{re.escape(name)}\((.*)\) ->", doc, re.M):
-        params, depth, cur = [], 0, ""
-        for ch in m.group(1) + ",":
-            if ch in "[(<{":
-                depth += 1
-            elif ch in "])>}":
-                depth -= 1
-            if ch == "," and depth == 0:
-                params.append(cur.strip())
-                cur = ""
-            else:
-                cur += ch
-        out.append([(p.split(":")[0].strip(), "=" in p) for p in params if p and p != "self"
-                    and not p.startswith("self:")])
-    return out
-
-
-def _check_callable(fake, real, name, where):
-    assert callable(real), f"{where}: the fake has a method, depthai has {type(real).__name__}"
-    overloads = _overloads(real, name)
-    if not overloads:
-        return  # not introspectable (no signature in the docstring)
-    sig = inspect.signature(fake)
-    mine = [p for p in sig.parameters.values() if p.name != "self"]
-    names = [p.name for p in mine]
-    for params in overloads:
-        real = [(p, d) for p, d in params if not p.startswith("*")]
-        if len(names) > len(real) or any(not d for _, d in real[len(names):]):
-            continue  # the fake takes more, or lacks a parameter depthai requires
-        # by position and by name (pybind's argN names are positional only)
-        pairs = zip(real[: len(names)], names, strict=True)
-        if all(r == n or re.fullmatch(r"arg\d+", r) for (r, _), n in pairs):
-            return
-    raise AssertionError(f"{where}{sig} matches no overload of depthai's: {overloads}")
 
 
 def _check(fake, real, where):
