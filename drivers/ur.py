@@ -356,7 +356,14 @@ class URRobot:
             serial = None  # PolyScope < 5.6 cannot say
         remote: bool | None = None
         if remote_control_queryable(version):
-            remote = bool(self._dashboard.isInRemoteControl())
+            try:
+                remote = bool(self._dashboard.isInRemoteControl())
+            except RuntimeError as e:  # the dashboard's socket failed (boost system_error)
+                self.close()
+                raise HardwareFault(
+                    f"the dashboard server of the {where} (port 29999) stopped answering ({e}); "
+                    "check the network and that the controller is not in a pop-up"
+                ) from None
             if not remote:
                 self.close()
                 raise HardwareFault(

@@ -211,6 +211,8 @@ def install_fakes(monkeypatch: pytest.MonkeyPatch, ctl: FakeController) -> None:
             return f"PAUSED {ctl.paused}" if ctl.paused else "STOPPED <unnamed>"
 
         def isInRemoteControl(self):
+            if ctl.remote is None:  # the socket failed: ur-rtde lets boost's error through
+                raise RuntimeError("read: End of file [asio.misc:2]")
             return ctl.remote
 
         def unlockProtectiveStop(self):
@@ -264,6 +266,7 @@ def test_connect_and_measured_pose(ctl):
         ("safety_mode", 3, "protective stop"),
         ("safety_mode", 7, "emergency"),
         ("remote", False, "remote control"),
+        ("remote", None, "stopped answering"),  # was a RuntimeError traceback
         ("refuse_connection", True, "cannot connect"),
     ],
 )
