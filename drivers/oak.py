@@ -19,7 +19,14 @@ Lens and exposure: manual exposure and ISO (``exposure_us``, ``iso``) for every 
 lens position (``focus``) for every auto-focus camera and a fixed white balance
 (``white_balance_k``, default 5000 K) for colour cameras. A calibration holds at one lens
 position only, so an auto-focus camera without ``focus`` is refused with one line saying so
-(rather than locking wherever the autofocus happened to be).
+(rather than locking wherever the autofocus happened to be). Without ``exposure_us`` the auto
+exposure runs for ``AUTO_EXPOSURE_SETTLE_S`` after start and is then locked
+(``CameraControl.setAutoExposureLock`` through each camera's ``inputControl`` queue): nothing
+is captured with the exposure still moving. After start every camera's settings are read back
+from two frame sets (``ImgFrame.getExposureTime``, ``getSensitivity``, ``getLensPosition``,
+``getColorTemperature``) into :meth:`OakRig.capabilities` (``outputs.<name>.read_back``); an
+exposure that still changes between the two is a ``HardwareFault``, a value the device did not
+take is reported in ``messages``.
 
 Synchronisation: :meth:`OakRig.capture` first discards every frame already queued, notes the
 host time, then keeps only frames whose device timestamp (``ImgFrame.getTimestamp()``, on the
@@ -29,8 +36,13 @@ set was exposed after the call and together. The stereo pair of an OAK-D is hard
 (a few microseconds apart); the colour camera runs free at the same rate with a fixed phase,
 so its nearest frame can be up to half a period away: the default tolerance is a little more
 than half a frame period (55 ms at 10 fps; the arm is at rest at every capture).
-A closed queue (``dai.MessageQueue.QueueException``) or a link error means the device is gone:
-the pipeline is stopped and a ``HardwareFault`` raised.
+A closed queue (``dai.MessageQueue.QueueException``), a link error or a closed device means the
+device is gone: the pipeline is stopped and a ``HardwareFault`` raised. depthai v3 does not close
+the output queues when a device crashes or is unplugged (its XLink reader waits for a
+reconnection and the pipeline still says it runs), so ``Device.isClosed()`` is checked while
+waiting for frames; automatic reconnection is switched off (``setMaxReconnectionAttempts(0)``):
+a reconnected device restarts with the initial controls only (the exposure lock lost) and
+depthai reconnects to any available device.
 
 Calibration files: extrinsics in depthai are in CENTIMETRES and ``setCameraExtrinsics(src, dst,
 R, t)`` maps points of ``src`` into ``dst`` (``R_dst_src``, ``t_dst_src``). Each camera stores one
@@ -63,6 +75,10 @@ RESIZE_MODES = ("stretch", "crop", "letterbox")
 #: at 10 fps are about 83 MB/s, within USB3 and a gigabit PoE link (the default 30 fps is 250).
 DEFAULT_FPS = 10.0
 DEFAULT_WHITE_BALANCE_K = 5000
+#: How long the auto exposure runs after start before it is locked (cells without exposure_us).
+AUTO_EXPOSURE_SETTLE_S = 1.0
+#: Relative difference between a requested and a read-back exposure that counts as not taken.
+READ_BACK_TOLERANCE = 0.05
 
 
 def import_depthai() -> Any:
@@ -233,6 +249,7 @@ class OakRig:
         self._board = {n: _board_socket(self._dai, s, n) for n, s in self.sockets.items()}
         self._pipeline: Any = None
         self._queues: dict[str, Any] = {}
+        self._controls: dict[str, Any] = {}
         self._capabilities: dict[str, Any] = {}
         self._calibration: dict[str, Any] = {}
 
@@ -257,7 +274,7 @@ class OakRig:
                 "link), check the udev rules, and in a container pass /dev/bus/usb through"
             ) from None
         try:
-            queues = self._build(pipeline)
+            self._queues = self._build(pipeline)
             pipeline.start()
         except RuntimeError as e:
             self._stop(pipeline)
@@ -268,7 +285,39 @@ class OakRig:
             self._stop(pipeline)
             raise
         self._pipeline = pipeline
-        self._queues = queues
+        try:
+            self._lock_and_read_back()
+        except (self._dai.MessageQueue.QueueException, RuntimeError) as e:
+            raise self._lost(str(e) or type(e).__name__) from None
+        except BaseException:
+            self.close()
+            raise
+
+    def _lock_and_read_back(self) -> None:
+        """Lock a running auto exposure, then read every camera's settings back from two frame
+        sets (module docstring)."""
+        dai = self._dai
+        if self.exposure_us is None:
+            time.sleep(AUTO_EXPOSURE_SETTLE_S)
+            for q in self._controls.values():
+                ctrl = dai.CameraControl()
+                ctrl.setAutoExposureLock(True)
+                q.send(ctrl)
+            time.sleep(3.0 / self.fps)  # the lock applies from a later frame
+        first, second = self._capture_set(), self._capture_set()
+        messages: list[str] = []
+        for name, out in self._capabilities["outputs"].items():
+            a, b = _settings(first[name]), _settings(second[name])
+            out["read_back"] = b
+            if (a["exposure_us"], a["iso"]) != (b["exposure_us"], b["iso"]):
+                raise HardwareFault(
+                    f"camera {name} ({out['socket']}) still changes its exposure after it was "
+                    f"locked ({a['exposure_us']} us ISO {a['iso']}, then {b['exposure_us']} us "
+                    f"ISO {b['iso']}); set cameras.exposure_us and iso in the cell file"
+                )
+            messages += _not_taken(name, out, b)
+        self._capabilities["exposure_locked"] = "manual" if self.exposure_us else "auto, locked"
+        self._capabilities["messages"] = messages
 
     def _build(self, pipeline: Any) -> dict[str, Any]:
         dai = self._dai
@@ -293,6 +342,8 @@ class OakRig:
                 "distance, e.g. as depthai's autofocus reports it in ImgFrame.getLensPosition())"
             )
         pipeline.setAutoCalibrationMode(dai.Pipeline.AutoCalibrationMode.OFF)
+        device.setMaxReconnectionAttempts(0)
+        self._controls = {}
         resize = dai.ImgResizeMode.__members__[self.resize_mode.upper()]
         queues: dict[str, Any] = {}
         outputs: dict[str, Any] = {}
@@ -329,6 +380,8 @@ class OakRig:
                 size, type=kind, resizeMode=resize, fps=self.fps, enableUndistortion=False
             )
             queues[name] = out.createOutputQueue(maxSize=8, blocking=False)
+            if self.exposure_us is None:  # created before start, as depthai v3 requires
+                self._controls[name] = cam.inputControl.createInputQueue()
             outputs[name] = {
                 "socket": socket,
                 "size": list(size),
@@ -380,6 +433,7 @@ class OakRig:
             self._stop(self._pipeline)
         self._pipeline = None
         self._queues = {}
+        self._controls = {}
 
     def capabilities(self) -> dict[str, Any]:
         """What the open device is and how it streams (plain data for the session): device id
@@ -420,11 +474,13 @@ class OakRig:
         if self._pipeline is None:
             raise HardwareFault("OAK rig not open: call open() first")
         try:
-            return self._capture()
+            found = self._capture_set()
         except (self._dai.MessageQueue.QueueException, RuntimeError) as e:
             raise self._lost(str(e) or type(e).__name__) from None
+        return {n: self._image(n, msg) for n, msg in found.items()}
 
-    def _capture(self) -> dict[str, np.ndarray]:
+    def _capture_set(self) -> dict[str, Any]:
+        """The frames (``dai.ImgFrame``) of one synchronised set, by camera name."""
         for q in self._queues.values():
             q.tryGetAll()  # frames exposed before the call (e.g. while the robot moved)
         t_call = self._dai.Clock.now().total_seconds()
@@ -434,6 +490,8 @@ class OakRig:
         while True:
             if not self._pipeline.isRunning():
                 raise self._lost("the pipeline stopped")
+            if self._pipeline.getDefaultDevice().isClosed():
+                raise self._lost("the device closed its connection")
             for n in names:
                 for msg in self._queues[n].tryGetAll():
                     t = msg.getTimestamp().total_seconds()
@@ -441,7 +499,7 @@ class OakRig:
                         buffers[n].append((t, msg))
             found = self._match(buffers, names)
             if found is not None:
-                return {n: self._image(n, found[n]) for n in names}
+                return found
             if time.monotonic() > deadline:
                 counts = {n: len(b) for n, b in buffers.items()}
                 raise HardwareFault(
@@ -475,6 +533,32 @@ class OakRig:
                 "device cannot produce this size without resizing: pick a native size"
             )
         return img
+
+
+def _settings(msg: Any) -> dict[str, Any]:
+    """What a frame says its camera ran with: exposure (us), ISO, lens position, colour
+    temperature (K; 0 for a mono camera)."""
+    return {
+        "exposure_us": int(round(msg.getExposureTime().total_seconds() * 1e6)),
+        "iso": int(msg.getSensitivity()),
+        "lens_position": int(msg.getLensPosition()),
+        "colour_temperature_k": int(msg.getColorTemperature()),
+    }
+
+
+def _not_taken(name: str, out: Mapping[str, Any], got: Mapping[str, Any]) -> list[str]:
+    """One line per requested setting the frames show the camera did not take."""
+    lines = []
+    want = out.get("exposure_us")
+    if want and abs(got["exposure_us"] - want) > READ_BACK_TOLERANCE * want:
+        lines.append(f"camera {name}: exposure {want} us requested, frames report "
+                     f"{got['exposure_us']} us (the sensor's limit at this frame rate?)")
+    if out.get("iso") and got["iso"] != out["iso"]:
+        lines.append(f"camera {name}: ISO {out['iso']} requested, frames report {got['iso']}")
+    if out.get("focus") is not None and got["lens_position"] != out["focus"]:
+        lines.append(f"camera {name}: lens position {out['focus']} requested, frames report "
+                     f"{got['lens_position']}")
+    return lines
 
 
 def _features_dict(f: Any) -> dict[str, Any]:

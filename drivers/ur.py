@@ -22,9 +22,13 @@ on the controller is disturbed without consent:
    the dashboard cannot say and ur-rtde's ``isInRemoteControl`` answers False); CB3 arms
    (PolyScope 3.x) have no local/remote control.
 4. Robot mode running; safety mode normal or reduced (reduced is normal operation).
-5. **A program already running**: ur-rtde's control interface stops it and uploads its own
-   script. Refused unless the user consented with ``take_control=True`` (the cell file's
-   ``robot.take_control: true``).
+5. **A program already running or paused**: ur-rtde's control interface stops it and uploads
+   its own script (a paused program too: the script is sent on port 30003, which ends whatever
+   program the controller holds, while the dashboard's ``running`` answers False for a paused
+   one). Refused unless the user consented with ``take_control=True`` (the cell file's
+   ``robot.take_control: true``). Asked twice: the dashboard's program state, and just before
+   the control interface opens the RTDE runtime state (``getRuntimeState``: anything but
+   stopped), so a program started in between is not stopped either.
 6. The control interface; the TCP and, when given, the payload (``setPayload(mass, cog)``).
 
 Reachability queries (:meth:`URRobot.is_reachable`) use the controller's
@@ -55,6 +59,10 @@ SAFETY_MODE_REDUCED = 2
 #: Safety modes in which the arm works normally (reduced mode: lower speed limits, still normal).
 SAFETY_MODES_OK = (SAFETY_MODE_NORMAL, SAFETY_MODE_REDUCED)
 DASHBOARD_PORT, RTDE_PORT = 29999, 30004
+#: RTDE runtime states (``getRuntimeState``); only STOPPED means no program would be ended.
+RUNTIME_STATES = {0: "stopping", 1: "stopped", 2: "playing", 3: "pausing", 4: "paused",
+                  5: "resuming"}
+RUNTIME_STOPPED = 1
 
 #: Safety modes (``getSafetyMode``) and what the operator should do about them.
 SAFETY_MODES: dict[int, str] = {
@@ -330,8 +338,10 @@ class URRobot:
                 raise RuntimeError("no connection")
             version_text = str(self._dashboard.polyscopeVersion())
             model_text = str(self._dashboard.getRobotModel()).strip()
-            running = bool(self._dashboard.running())
             program_state = str(self._dashboard.programState()).strip()
+            running = bool(self._dashboard.running()) or program_state.upper().startswith(
+                ("PLAYING", "PAUSED", "PAUSING", "RESUMING")
+            )
         except RuntimeError as e:
             self.close()
             raise HardwareFault(
@@ -346,7 +356,14 @@ class URRobot:
             serial = None  # PolyScope < 5.6 cannot say
         remote: bool | None = None
         if remote_control_queryable(version):
-            remote = bool(self._dashboard.isInRemoteControl())
+            try:
+                remote = bool(self._dashboard.isInRemoteControl())
+            except RuntimeError as e:  # the dashboard's socket failed (boost system_error)
+                self.close()
+                raise HardwareFault(
+                    f"the dashboard server of the {where} (port 29999) stopped answering ({e}); "
+                    "check the network and that the controller is not in a pop-up"
+                ) from None
             if not remote:
                 self.close()
                 raise HardwareFault(
@@ -395,6 +412,11 @@ class URRobot:
             )
         self.controller_info["safety_mode"] = SAFETY_MODES[safety_mode]
         self.controller_info["speed_slider"] = float(self._receive.getSpeedScaling())
+        runtime = int(self._receive.getRuntimeState())
+        if runtime != RUNTIME_STOPPED and not running:
+            running = True
+            program_state = f"runtime state {RUNTIME_STATES.get(runtime, runtime)}"
+            self.controller_info["program_state"] = program_state
         if running:
             if not self.take_control:
                 self.close()
@@ -415,9 +437,16 @@ class URRobot:
         if self.tcp is not None and not self._control.setTcp(ur_pose_from_T(self.tcp)):
             self.close()
             raise HardwareFault(f"the {where} refused the TCP offset {ur_pose_from_T(self.tcp)}")
-        self._T_flange_tcp = (
-            self.tcp if self.tcp is not None else T_from_ur_pose(self._control.getTCPOffset())
-        )
+        try:  # ur-rtde raises RuntimeError when the control script does not answer
+            self._T_flange_tcp = (
+                self.tcp if self.tcp is not None else T_from_ur_pose(self._control.getTCPOffset())
+            )
+        except (RuntimeError, ValueError) as e:
+            self.close()
+            raise HardwareFault(
+                f"the {where} did not give its TCP offset ({e}); check the pendant for a "
+                "message, or set robot.tcp in the cell file"
+            ) from None
         if self.payload_kg is not None:
             cog = [] if self.payload_cog_m is None else [float(v) for v in self.payload_cog_m]
             if not self._control.setPayload(self.payload_kg, cog):
@@ -626,6 +655,14 @@ class URRobot:
         except RuntimeError:
             pass  # connection gone while stopping
 
+    def _script_answered(self, T: np.ndarray) -> None:
+        """``HardwareFault`` when a "no" from the controller came from a stopped control script
+        (ur-rtde answers False / [] then, as for an unreachable pose)."""
+        if not self._control.isProgramRunning():
+            raise HardwareFault(
+                self._diagnose(f"the reachability query for {_describe(T)} failed")
+            )
+
     def is_reachable(self, T_base_tool: np.ndarray) -> bool:
         """An IK solution near the current joints, inside the joint and safety limits.
 
@@ -645,7 +682,8 @@ class URRobot:
                 if not self._control.getInverseKinematicsHasSolution(pose, q_near):
                     return False
                 q = self._control.getInverseKinematics(pose, q_near)
-                if len(q) != 6:
+                if len(q) != 6:  # [] also when the control script stopped
+                    self._script_answered(T)
                     return False
             else:
                 if self.model is None:
@@ -659,6 +697,7 @@ class URRobot:
                     return False
                 q = sols[0]
             if not self._control.isPoseWithinSafetyLimits(pose):
+                self._script_answered(T)  # False also when the control script stopped
                 return False
         except RuntimeError as e:
             raise HardwareFault(

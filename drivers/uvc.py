@@ -8,10 +8,16 @@ Every setting is set and then read back, and what the camera did with it is reco
 - autofocus is switched off (``CAP_PROP_AUTOFOCUS`` 0): a calibration holds at one focus only.
   A camera that still reads autofocus on afterwards is refused; one without the control
   (fixed focus, or a video file) is recorded as such. ``focus`` sets a manual focus value;
-- manual exposure where asked (V4L2: ``CAP_PROP_AUTO_EXPOSURE`` 1 means manual, exposure in
-  100 microsecond steps), and a frame rate where asked; a camera that ignores these or reads back
-  another value is reported in :attr:`UvcCamera.messages` (the run goes on: the images say
-  whether exposure is usable; the focus and size are what the intrinsics depend on).
+- the exposure is locked: manual at ``exposure`` where asked (V4L2: ``CAP_PROP_AUTO_EXPOSURE``
+  1 means manual, exposure in 100 microsecond steps); otherwise a camera (not a video file) runs
+  its auto exposure for ``settle_frames`` frames, then auto exposure is switched off and the
+  exposure it reached is set and read back (``settings.exposure``). The white balance likewise:
+  a camera whose auto white balance is on (``CAP_PROP_AUTO_WB``) has it switched off at the
+  colour temperature it reached (``CAP_PROP_WB_TEMPERATURE``); a grey camera has no such
+  control, which is recorded. A frame rate is set where asked. A camera that ignores any of
+  these or reads back another value is reported in :attr:`UvcCamera.messages` (the run goes
+  on: the images say whether exposure is usable; the focus and size are what the intrinsics
+  depend on).
 
 Drivers buffer a few frames, so a capture right after the robot stopped could return an image
 exposed while it moved: :meth:`UvcCamera.capture` grabs and drops ``drop_frames`` frames first,
@@ -31,6 +37,8 @@ from slidecal.solver.problem import CameraSpec
 
 #: V4L2's value of CAP_PROP_AUTO_EXPOSURE for manual exposure (3 is aperture priority/auto).
 V4L2_MANUAL_EXPOSURE = 1
+#: Frames the auto exposure and white balance run before they are locked (about 1 s).
+SETTLE_FRAMES = 30
 
 
 class UvcCamera:
@@ -55,6 +63,9 @@ class UvcCamera:
         Frame rate to request, or None for the camera's default.
     drop_frames
         Buffered frames discarded before each capture.
+    settle_frames
+        Frames the auto exposure / white balance run before they are locked (cameras only, not
+        video files).
     """
 
     def __init__(
@@ -68,6 +79,7 @@ class UvcCamera:
         focus: float | None = None,
         fps: float | None = None,
         drop_frames: int = 4,
+        settle_frames: int = SETTLE_FRAMES,
     ) -> None:
         if width <= 0 or height <= 0:
             raise InputError(f"camera {name}: width and height must be positive")
@@ -86,6 +98,7 @@ class UvcCamera:
         self.focus = focus
         self.fps = fps
         self.drop_frames = int(drop_frames)
+        self.settle_frames = int(settle_frames)
         self.messages: list[str] = []
         #: setting -> {requested, read_back, accepted}, filled by :meth:`open`.
         self.settings: dict[str, dict[str, Any]] = {}
@@ -153,16 +166,51 @@ class UvcCamera:
                 f"{self.settings['fps']['read_back']:g})"
             )
         self._lock_focus(cap)
-        if self.exposure is not None:
-            manual = self._set(cap, "auto_exposure", cv2.CAP_PROP_AUTO_EXPOSURE,
-                               V4L2_MANUAL_EXPOSURE)
-            held = self._set(cap, "exposure", cv2.CAP_PROP_EXPOSURE, self.exposure)
-            if not (manual and held):
+        auto_wb = float(cap.get(cv2.CAP_PROP_AUTO_WB)) > 0
+        if (self.exposure is None or auto_wb) and not Path(str(self.source)).is_file():
+            for _ in range(self.settle_frames):  # let the automatics settle, then lock them
+                if not cap.grab():
+                    break
+        self._lock_exposure(cap)
+        self._lock_white_balance(cap, auto_wb)
+
+    def _lock_exposure(self, cap: cv2.VideoCapture) -> None:
+        manual = self._set(cap, "auto_exposure", cv2.CAP_PROP_AUTO_EXPOSURE, V4L2_MANUAL_EXPOSURE)
+        value = self.exposure
+        if value is None:  # keep what the auto exposure reached
+            value = float(cap.get(cv2.CAP_PROP_EXPOSURE))
+            if not manual and value <= 0:
                 self.messages.append(
-                    f"camera {self.name}: manual exposure {self.exposure:g} not taken (auto "
-                    f"exposure reads {self.settings['auto_exposure']['read_back']:g}, exposure "
-                    f"{self.settings['exposure']['read_back']:g}); auto exposure may stay on"
+                    f"camera {self.name}: no exposure control (a video file, or a camera that "
+                    "does not expose it); the exposure is not locked"
                 )
+                return
+        held = self._set(cap, "exposure", cv2.CAP_PROP_EXPOSURE, value)
+        if not (manual and held):
+            what = "manual exposure" if self.exposure is not None else "locking the exposure at"
+            self.messages.append(
+                f"camera {self.name}: {what} {value:g} not taken (auto "
+                f"exposure reads {self.settings['auto_exposure']['read_back']:g}, exposure "
+                f"{self.settings['exposure']['read_back']:g}); auto exposure may stay on"
+            )
+
+    def _lock_white_balance(self, cap: cv2.VideoCapture, auto_wb: bool) -> None:
+        if not auto_wb:
+            self.settings["auto_white_balance"] = {
+                "requested": 0.0, "read_back": float(cap.get(cv2.CAP_PROP_AUTO_WB)),
+                "accepted": True,
+            }
+            return  # off already, or no such control (a grey camera, a video file)
+        kelvin = float(cap.get(cv2.CAP_PROP_WB_TEMPERATURE))
+        off = self._set(cap, "auto_white_balance", cv2.CAP_PROP_AUTO_WB, 0)
+        held = kelvin > 0 and self._set(cap, "white_balance_k", cv2.CAP_PROP_WB_TEMPERATURE,
+                                        kelvin)
+        if not (off and held):
+            self.messages.append(
+                f"camera {self.name}: the auto white balance could not be locked (reads "
+                f"{self.settings['auto_white_balance']['read_back']:g}, colour temperature "
+                f"{float(cap.get(cv2.CAP_PROP_WB_TEMPERATURE)):g} K); it may keep changing"
+            )
 
     def _lock_focus(self, cap: cv2.VideoCapture) -> None:
         ok = bool(cap.set(cv2.CAP_PROP_AUTOFOCUS, 0))

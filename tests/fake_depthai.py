@@ -5,17 +5,26 @@ What needs no device is the installed depthai itself: the enums (``CameraBoardSo
 messages and queues (``ImgFrame``, ``MessageQueue`` with its ``QueueException``), the initial
 ``CameraControl`` each camera node carries, ``CameraFeatures`` / ``CameraSensorConfig``, ``Clock``
 and ``CalibrationHandler``. Faked: ``Pipeline`` (a device-backed pipeline cannot be made here),
-``Device``, ``node.Camera`` and the ``Node.Output`` it returns. Once started, the fake pipeline
-sends real ``ImgFrame`` messages into real ``MessageQueue`` objects from a thread, at the frame rate
-each output requested, timestamped on depthai's own clock; losing the device closes the queues,
-as a real disconnect does. ``tests/test_oak_driver.py`` checks every name defined here against the
-installed depthai (kind, members, method names and signatures), so the fake cannot drift.
+``Device``, ``node.Camera``, the ``Node.Output`` and ``Node.Input`` it has and the ``InputQueue``
+of its control input. Once started, the fake pipeline sends real ``ImgFrame`` messages (a subclass
+that reports the exposure, ISO, lens position and colour temperature the camera runs with) into
+real ``MessageQueue`` objects from a thread, at the frame rate each output requested, timestamped
+on depthai's own clock. The camera runs as its initial ``CameraControl`` says (manual exposure,
+lens, white balance) and otherwise with an auto exposure that keeps changing until a control
+with the auto-exposure lock arrives on its input queue. Losing the device does what depthai-core
+3.x does (``DeviceBase::monitorCallback``, ``XLinkInHost::run``, ``PipelineImpl::stop``): the
+frames stop, ``Device.isClosed()`` turns True, the pipeline still says it runs and the output
+queues stay open (only ``Pipeline.stop()`` closes them). ``tests/test_oak_driver.py`` checks
+every name defined here against the installed depthai (kind, members, method names and
+signatures), so the fake cannot drift.
 """
 
 from __future__ import annotations
 
+import re
 import threading
 import types
+from collections import deque
 from datetime import timedelta
 from typing import Any
 
@@ -95,15 +104,48 @@ class World:
         self.pipelines: list[Any] = []
         #: socket name -> image of what the camera sees now (None: flat frames numbered k % 200)
         self.render: Any = None
+        #: the auto exposure's exposure (us) and ISO before it is locked; it changes every frame
+        self.auto_exposure = (12000, 400)
+        self.ignore_exposure_lock = False  # a device whose auto exposure does not lock
+        self.exposure_limit_us: int | None = None  # longer manual exposures are clamped
+        self.lost = False
 
     def lose_device(self) -> None:
-        """Unplug: every queue of every pipeline is closed (reads raise QueueException)."""
+        """Unplug (or a firmware crash): the frames stop and the device is closed; the queues
+        stay open and the pipeline still says it runs, as in depthai-core."""
+        self.lost = True
         for p in self.pipelines:
-            p._lose()
+            p._halt.set()
+
+    def close_queues(self) -> None:
+        """Every output queue of every pipeline is closed (reads raise QueueException)."""
+        for p in self.pipelines:
+            for out in p.outputs:
+                if out._queue is not None:
+                    out._queue.close()
 
 
 def _copy(handler: Any) -> Any:
     return dai.CalibrationHandler.fromJson(handler.eepromToJson())
+
+
+class _Frame(dai.ImgFrame):
+    """A real ``ImgFrame`` carrying the camera settings depthai fills in on a device (its
+    Python binding has getters only)."""
+
+    _settings: tuple[int, int, int, int] = (0, 0, 0, 0)
+
+    def getExposureTime(self):
+        return timedelta(microseconds=self._settings[0])
+
+    def getSensitivity(self):
+        return self._settings[1]
+
+    def getLensPosition(self):
+        return self._settings[2]
+
+    def getColorTemperature(self):
+        return self._settings[3]
 
 
 def make_fake_depthai(world: World) -> types.ModuleType:
@@ -165,7 +207,10 @@ def make_fake_depthai(world: World) -> types.ModuleType:
             self.closed = True
 
         def isClosed(self):
-            return self.closed
+            return self.closed or world.lost
+
+        def setMaxReconnectionAttempts(self, maxAttempts, callback=None):
+            world.calls.append(("setMaxReconnectionAttempts", maxAttempts))
 
     class Output:  # the fake's own state is private (underscored): depthai has none of it
         _queue: Any = None
@@ -175,8 +220,44 @@ def make_fake_depthai(world: World) -> types.ModuleType:
             self._queue = dai.MessageQueue(self._socket, maxSize, blocking)
             return self._queue
 
+    class InputQueue:
+        def __init__(self) -> None:
+            self._messages: list[Any] = []
+
+        def send(self, msg):
+            self._messages.append(msg)
+
+    class Input:
+        _queue: Any = None
+
+        def createInputQueue(self, maxSize=16, blocking=False):
+            world.calls.append(("createInputQueue", self._socket))
+            self._queue = InputQueue()
+            return self._queue
+
     class Camera:
         initialControl: Any = None
+        inputControl: Any = None
+
+        def _settings(self, k):
+            """(exposure us, ISO, lens, colour temperature K) of frame ``k``."""
+            ctrl = self.initialControl
+            if ctrl.getCommand(dai.CameraControl.Command.AE_MANUAL):
+                exposure = round(ctrl.getExposureTime().total_seconds() * 1e6)
+                if world.exposure_limit_us is not None:
+                    exposure = min(exposure, world.exposure_limit_us)
+                self._exposure = (exposure, ctrl.getSensitivity())
+            elif self._locked is None:
+                sent = self.inputControl._queue._messages if self.inputControl._queue else []
+                if any("aeLockMode: true" in str(m) for m in sent) and not \
+                        world.ignore_exposure_lock:
+                    self._locked = self._exposure
+                exposure, iso = world.auto_exposure
+                self._exposure = (exposure + 40 * (k % 25), iso)
+            if self._locked is not None:
+                self._exposure = self._locked
+            wb = re.search(r"wbColorTemp: (\d+)", str(ctrl))
+            return (*self._exposure, max(ctrl.getLensPosition(), 0), int(wb.group(1)))
 
         def build(self, boardSocket, sensorResolution=None, sensorFps=None):
             world.calls.append(("build", boardSocket.name, sensorResolution, sensorFps))
@@ -192,6 +273,10 @@ def make_fake_depthai(world: World) -> types.ModuleType:
                     raise RuntimeError("Invalid sensor FPS specified")
             self._socket = boardSocket.name
             self.initialControl = dai.CameraControl()
+            self.inputControl = Input()
+            self.inputControl._socket = boardSocket.name
+            self._locked: tuple[int, int] | None = None
+            self._exposure = world.auto_exposure
             self._pipeline.cameras.append(self)
             return self
 
@@ -202,6 +287,7 @@ def make_fake_depthai(world: World) -> types.ModuleType:
             world.calls.append(call)
             out = Output()
             out._socket, out._size, out._kind, out._fps = self._socket, tuple(size), type, fps or 30
+            out._camera = self
             self._pipeline.outputs.append(out)
             return out
 
@@ -215,6 +301,7 @@ def make_fake_depthai(world: World) -> types.ModuleType:
             self.outputs: list[Output] = []
             self._halt = threading.Event()
             self._thread: threading.Thread | None = None
+            self._sent: deque = deque(maxlen=256)  # keeps the frames' Python objects alive
             world.pipelines.append(self)
 
         def getDefaultDevice(self):
@@ -238,16 +325,18 @@ def make_fake_depthai(world: World) -> types.ModuleType:
             self._thread = threading.Thread(target=self._stream, daemon=True)
             self._thread.start()
 
-        def _send(self, out, t, value):
+        def _send(self, out, t, value, k=0):
             w, h = world.deliver_size or out._size
             colour = out._kind == dai.ImgFrame.Type.BGR888i
             if world.render is not None and value != 255:
                 img = world.render(out._socket)
             else:
                 img = np.full((h, w, 3) if colour else (h, w), value, np.uint8)
-            frame = dai.ImgFrame()
+            frame = _Frame()
             frame.setCvFrame(img, out._kind)
             frame.setTimestamp(timedelta(seconds=t))
+            frame._settings = out._camera._settings(k)
+            self._sent.append(frame)
             if out._queue is not None and not out._queue.isClosed():
                 out._queue.send(frame)
 
@@ -260,14 +349,8 @@ def make_fake_depthai(world: World) -> types.ModuleType:
                 if wait > 0 and self._halt.wait(wait):
                     break
                 for out in self.outputs:
-                    self._send(out, t + world.offsets[out._socket], k % 200)
+                    self._send(out, t + world.offsets[out._socket], k % 200, k)
                 k += 1
-
-        def _lose(self):
-            self._halt.set()
-            for out in self.outputs:
-                if out._queue is not None:
-                    out._queue.close()
 
         def isRunning(self):
             return self.running
@@ -278,12 +361,17 @@ def make_fake_depthai(world: World) -> types.ModuleType:
             self._halt.set()
             if self._thread is not None:
                 self._thread.join()
+            for out in self.outputs:  # as PipelineImpl::stop: the queues, then the device
+                if out._queue is not None:
+                    out._queue.close()
+            self.device.close()
 
         def wait(self):
             world.calls.append(("wait",))
 
     fake.Pipeline = Pipeline
     fake.Device = Device
-    fake.Node = types.SimpleNamespace(Output=Output)
+    fake.InputQueue = InputQueue
+    fake.Node = types.SimpleNamespace(Output=Output, Input=Input)
     fake.node = types.SimpleNamespace(Camera=Camera)
     return fake

@@ -182,6 +182,7 @@ def oak_device(monkeypatch):
     world.factory = oak_calibration_handler(truth_result(sim), base=world.factory)
     world.user = fake_depthai._copy(world.factory)
     monkeypatch.setitem(sys.modules, "depthai", fake_depthai.make_fake_depthai(world))
+    monkeypatch.setattr("slidecal.drivers.oak.AUTO_EXPOSURE_SETTLE_S", 0.05)
     yield world, sim
     for p in world.pipelines:
         p.stop()

@@ -10,8 +10,8 @@ real library's "No available devices" becomes a HardwareFault.
 from __future__ import annotations
 
 import inspect
-import re
 import sys
+import time
 import types
 from pathlib import Path
 
@@ -21,7 +21,9 @@ import pytest
 dai_real = pytest.importorskip("depthai")
 sys.path.insert(0, str(Path(__file__).parent))
 import fake_depthai  # noqa: E402
+from pybind_signatures import check_callable as _check_callable  # noqa: E402
 
+from slidecal.drivers import oak  # noqa: E402
 from slidecal.drivers.base import CameraRig  # noqa: E402
 from slidecal.drivers.oak import (  # noqa: E402
     OakRig,
@@ -237,6 +239,7 @@ def test_choose_sensor_mode():
 def world(monkeypatch):
     w = fake_depthai.World()
     monkeypatch.setitem(sys.modules, "depthai", fake_depthai.make_fake_depthai(w))
+    monkeypatch.setattr(oak, "AUTO_EXPOSURE_SETTLE_S", 0.05, raising=False)
     yield w
     for p in w.pipelines:
         p.stop()
@@ -322,16 +325,80 @@ def test_capture_returns_a_fresh_synchronised_set(world):
 
 
 def test_device_lost_mid_run_is_a_hardware_fault_and_stops_the_pipeline(world):
-    rig = OakRig(focus={"rgb": 130}, fps=30)
+    """depthai v3 keeps the output queues open and the pipeline running when the device
+    crashes or is unplugged (XLinkInHost waits for a reconnection): only Device.isClosed()
+    says so. The fault comes at once and names the device, not after the capture time-out
+    as a synchronisation problem; reconnection is off (it would lose the exposure lock)."""
+    rig = OakRig(focus={"rgb": 130}, fps=30, timeout_s=3.0)
     rig.open()
+    assert ("setMaxReconnectionAttempts", 0) in world.calls
     rig.capture()
     world.lose_device()
-    assert world.pipelines[0].isRunning()  # the pipeline does not know yet; the queues do
-    with pytest.raises(HardwareFault, match=f"OAK device {world.device_id} lost during capture"):
+    assert world.pipelines[0].isRunning() and not world.pipelines[0].outputs[0]._queue.isClosed()
+    t0 = time.monotonic()
+    with pytest.raises(HardwareFault, match=f"OAK device {world.device_id} lost during capture"
+                       r" \(the device closed its connection\)"):
         rig.capture()
+    assert time.monotonic() - t0 < 1.0
     assert ("stop",) in world.calls
     with pytest.raises(HardwareFault, match="not open"):
         rig.capture()
+
+
+def test_closed_queues_are_a_lost_device(world):
+    rig = OakRig(focus={"rgb": 130}, fps=30)
+    rig.open()
+    world.close_queues()
+    with pytest.raises(HardwareFault, match="lost during capture .MessageQueue was closed"):
+        rig.capture()
+    assert not world.pipelines[0].isRunning()
+
+
+def test_auto_exposure_is_locked_before_any_capture_and_read_back(world):
+    """Without exposure_us the auto exposure settles, then is locked through each camera's
+    control input; the settings the frames report are recorded. The old driver left the
+    auto exposure running for the whole session."""
+    rig = OakRig(focus={"rgb": 130}, fps=30)
+    rig.open()
+    controls = [c for c in world.calls if c[0] == "createInputQueue"]
+    assert world.calls.index(controls[-1]) < world.calls.index(("start",))
+    cams = {c._socket: c for c in world.pipelines[0].cameras}
+    for cam in cams.values():
+        sent = cam.inputControl._queue._messages
+        assert len(sent) == 1 and sent[0].getCommand(dai_real.CameraControl.Command.AE_LOCK)
+    cap = rig.capabilities()
+    assert cap["exposure_locked"] == "auto, locked" and cap["messages"] == []
+    read = {n: o["read_back"] for n, o in cap["outputs"].items()}
+    assert read["rgb"]["lens_position"] == 130 and read["rgb"]["colour_temperature_k"] == 5000
+    assert read["left"]["colour_temperature_k"] == 0
+    locked = {n: (r["exposure_us"], r["iso"]) for n, r in read.items()}
+    for _ in range(3):  # the exposure no longer moves
+        rig.capture()
+        assert {n: c._locked for n, c in zip(("rgb", "left", "right"),
+                                             (cams["CAM_A"], cams["CAM_B"], cams["CAM_C"]),
+                                             strict=True)} == locked
+    rig.close()
+
+
+def test_an_exposure_that_does_not_lock_is_refused(world):
+    world.ignore_exposure_lock = True
+    with pytest.raises(HardwareFault, match="still changes its exposure after it was locked"):
+        OakRig(focus={"rgb": 130}, fps=30).open()
+    assert not world.pipelines[0].isRunning()
+
+
+def test_manual_settings_are_read_back_and_a_clamped_one_reported(world):
+    world.exposure_limit_us = 20000
+    rig = OakRig(focus={"rgb": 130}, fps=30, exposure_us=30000, iso=800)
+    rig.open()
+    assert not any(c[0] == "createInputQueue" for c in world.calls)  # nothing to lock
+    cap = rig.capabilities()
+    assert cap["exposure_locked"] == "manual"
+    assert cap["outputs"]["left"]["read_back"]["exposure_us"] == 20000
+    assert cap["outputs"]["left"]["read_back"]["iso"] == 800
+    assert any("camera left: exposure 30000 us requested, frames report 20000 us" in m
+               for m in cap["messages"])
+    rig.close()
 
 
 def test_a_free_running_colour_camera_half_a_period_off_is_matched(world):
@@ -350,10 +417,11 @@ def test_a_free_running_colour_camera_half_a_period_off_is_matched(world):
 def test_capture_fault_when_cameras_are_not_synchronised(world):
     world.offsets["CAM_A"] = 0.016  # half a frame period away from the stereo pair
     rig = OakRig(sync_tolerance_s=0.005, timeout_s=0.2, focus={"rgb": 130}, fps=30)
-    rig.open()
     with pytest.raises(HardwareFault, match="no set of frames within 5.0 ms"):
+        rig.open()  # reading the settings back needs a set already
+    assert not world.pipelines[0].isRunning()
+    with pytest.raises(HardwareFault, match="not open"):
         rig.capture()
-    rig.close()
 
 
 def test_no_device_and_missing_camera_are_hardware_faults(world):
@@ -400,46 +468,6 @@ def test_missing_depthai_names_the_extra(monkeypatch):
 # ------------------------------------------------------- the fake against the installed depthai
 
 
-def _overloads(real, name):
-    """Parameter lists ``[(name, has_default), ...]`` of a pybind11 callable's overloads."""
-    doc = inspect.getdoc(real) or ""
-    out = []
-    for m in re.finditer(rf"^(?:\d+\. )?{re.escape(name)}\((.*)\) ->", doc, re.M):
-        params, depth, cur = [], 0, ""
-        for ch in m.group(1) + ",":
-            if ch in "[(<{":
-                depth += 1
-            elif ch in "])>}":
-                depth -= 1
-            if ch == "," and depth == 0:
-                params.append(cur.strip())
-                cur = ""
-            else:
-                cur += ch
-        out.append([(p.split(":")[0].strip(), "=" in p) for p in params if p and p != "self"
-                    and not p.startswith("self:")])
-    return out
-
-
-def _check_callable(fake, real, name, where):
-    assert callable(real), f"{where}: the fake has a method, depthai has {type(real).__name__}"
-    overloads = _overloads(real, name)
-    if not overloads:
-        return  # not introspectable (no signature in the docstring)
-    sig = inspect.signature(fake)
-    mine = [p for p in sig.parameters.values() if p.name != "self"]
-    names = [p.name for p in mine]
-    for params in overloads:
-        real = [(p, d) for p, d in params if not p.startswith("*")]
-        if len(names) > len(real) or any(not d for _, d in real[len(names):]):
-            continue  # the fake takes more, or lacks a parameter depthai requires
-        # by position and by name (pybind's argN names are positional only)
-        pairs = zip(real[: len(names)], names, strict=True)
-        if all(r == n or re.fullmatch(r"arg\d+", r) for (r, _), n in pairs):
-            return
-    raise AssertionError(f"{where}{sig} matches no overload of depthai's: {overloads}")
-
-
 def _check(fake, real, where):
     if fake is real:
         return
@@ -475,7 +503,7 @@ def test_the_fake_depthai_matches_the_installed_one():
         assert hasattr(dai_real, n), f"depthai.{n} does not exist"
         _check(getattr(fake, n), getattr(dai_real, n), f"depthai.{n}")
         faked += [n] if getattr(fake, n) is not getattr(dai_real, n) else []
-    assert sorted(faked) == ["Device", "Node", "Pipeline", "node"]
+    assert sorted(faked) == ["Device", "InputQueue", "Node", "Pipeline", "node"]
     # and the checker catches a drifted fake: a renamed keyword, a method depthai lacks
     class Drifted:
         def requestOutput(self, size, type=None, resize_mode=None):  # noqa: A002

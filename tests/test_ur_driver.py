@@ -1,15 +1,19 @@
 """URRobot against fakes of the ur-rtde modules (rtde_control, rtde_receive, dashboard_client).
 
-The fakes copy the real method names and signatures of ur-rtde 1.6.5 and the semantics listed
-of the installed library: moveL returns False on a protective stop, the receive interface keeps
-returning its last values after a lost connection while isConnected() turns False and
-getTimestamp() stops advancing, getInverseKinematics returns [] on failure.
+The fakes copy the real method names and signatures of ur-rtde 1.6.5 (a test checks them
+against the installed modules) and the semantics of the library's sources
+(``rtde_control_interface.cpp``, ``dashboard_client.cpp``): moveL returns False on a protective
+stop, the receive interface keeps returning its last values after a lost connection while
+isConnected() turns False and getTimestamp() stops advancing, getInverseKinematics returns []
+and isPoseWithinSafetyLimits False when the command fails (e.g. the control script stopped),
+getTCPOffset raises RuntimeError then, the dashboard's ``running`` is False for a paused program.
 """
 
 from __future__ import annotations
 
 import sys
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -46,6 +50,19 @@ class FakeController:
         self.program: str | None = None
         self.speed_scaling = 1.0
         self.payload: tuple | None = None
+        self.paused: str | None = None  # a program paused on the pendant
+        self.runtime_state: int | None = None  # None: from program / paused
+        self.script_running = True  # ur-rtde's control script, once uploaded
+        self.tcp_offset_fails = False
+
+    def runtime(self) -> int:
+        if self.runtime_state is not None:
+            return self.runtime_state
+        return 2 if self.program else 4 if self.paused else 1
+
+
+#: module name -> the fake class installed for it (filled by install_fakes)
+FAKES: dict[str, type] = {}
 
 
 def install_fakes(monkeypatch: pytest.MonkeyPatch, ctl: FakeController) -> None:
@@ -81,6 +98,9 @@ def install_fakes(monkeypatch: pytest.MonkeyPatch, ctl: FakeController) -> None:
 
         def getSafetyMode(self):
             return ctl.safety_mode
+
+        def getRuntimeState(self):
+            return ctl.runtime()
 
         def isProtectiveStopped(self):
             return ctl.safety_mode == 3
@@ -122,7 +142,12 @@ def install_fakes(monkeypatch: pytest.MonkeyPatch, ctl: FakeController) -> None:
             ctl.calls.append(("stopL", a))
 
         def getTCPOffset(self):
+            if ctl.tcp_offset_fails:
+                raise RuntimeError("getTCPOffset() function did not succeed!")
             return list(ctl.tcp)
+
+        def isProgramRunning(self):
+            return ctl.script_running
 
         def setPayload(self, mass, cog):
             ctl.calls.append(("setPayload", mass, list(cog)))
@@ -148,7 +173,7 @@ def install_fakes(monkeypatch: pytest.MonkeyPatch, ctl: FakeController) -> None:
             return not ctl.unreachable and bool(urk.ik(T_from_ur_pose(x), np.asarray(qnear)))
 
         def isPoseWithinSafetyLimits(self, pose):
-            return not ctl.outside_safety
+            return ctl.script_running and not ctl.outside_safety
 
         def stopScript(self):
             ctl.calls.append(("stopScript",))
@@ -177,13 +202,17 @@ def install_fakes(monkeypatch: pytest.MonkeyPatch, ctl: FakeController) -> None:
                 return "20185500001"
             raise RuntimeError("getSerialNumber() function is not supported")
 
-        def running(self):
+        def running(self):  # the dashboard answers "Program running: false" when paused
             return ctl.program is not None
 
         def programState(self):
-            return f"PLAYING {ctl.program}" if ctl.program else "STOPPED <unnamed>"
+            if ctl.program:
+                return f"PLAYING {ctl.program}"
+            return f"PAUSED {ctl.paused}" if ctl.paused else "STOPPED <unnamed>"
 
         def isInRemoteControl(self):
+            if ctl.remote is None:  # the socket failed: ur-rtde lets boost's error through
+                raise RuntimeError("read: End of file [asio.misc:2]")
             return ctl.remote
 
         def unlockProtectiveStop(self):
@@ -192,6 +221,8 @@ def install_fakes(monkeypatch: pytest.MonkeyPatch, ctl: FakeController) -> None:
         def disconnect(self):
             pass
 
+    FAKES.update(rtde_receive=RTDEReceiveInterface, rtde_control=RTDEControlInterface,
+                 dashboard_client=DashboardClient)
     import slidecal.drivers.ur as ur_module
 
     monkeypatch.setattr(ur_module, "probe_controller", lambda host, timeout_s: (5, 12, 2, 0))
@@ -235,6 +266,7 @@ def test_connect_and_measured_pose(ctl):
         ("safety_mode", 3, "protective stop"),
         ("safety_mode", 7, "emergency"),
         ("remote", False, "remote control"),
+        ("remote", None, "stopped answering"),  # was a RuntimeError traceback
         ("refuse_connection", True, "cannot connect"),
     ],
 )
@@ -348,3 +380,65 @@ def test_not_connected_and_missing_library(monkeypatch):
     monkeypatch.setitem(sys.modules, "rtde_receive", None)  # import now fails
     with pytest.raises(HardwareFault, match="pip install ur-rtde"):
         robot.connect()
+
+
+def test_a_paused_program_is_not_stopped_without_consent(ctl):
+    """The dashboard's ``running`` says False for a paused program, but ur-rtde's upload on
+    port 30003 ends it all the same: the old driver connected and ended it."""
+    ctl.paused = "glue.urp"
+    with pytest.raises(HardwareFault, match=r"a program is running .*PAUSED glue.urp.*"
+                       "take_control: true"):
+        URRobot("r").connect()
+    assert "RTDEControlInterface" not in _names(ctl)
+    robot = URRobot("r", take_control=True)
+    robot.connect()
+    assert robot.controller_info["program_stopped"] == "PAUSED glue.urp"
+
+
+def test_a_program_started_after_the_dashboard_check_is_not_stopped(ctl):
+    ctl.runtime_state = 2  # RTDE says playing, the dashboard had said stopped
+    with pytest.raises(HardwareFault, match="runtime state playing"):
+        URRobot("r").connect()
+    assert "RTDEControlInterface" not in _names(ctl)
+
+
+def test_a_controller_that_does_not_give_its_tcp_is_a_hardware_fault(ctl):
+    ctl.tcp_offset_fails = True  # ur-rtde raises RuntimeError: was a traceback
+    with pytest.raises(HardwareFault, match="did not give its TCP offset"):
+        URRobot("r").connect()
+    assert "stopScript" in _names(ctl)  # closed again
+    URRobot("r", tcp=np.eye(4)).connect()  # a cell that sets the TCP never asks
+
+
+def test_a_stopped_control_script_is_not_an_unreachable_pose(ctl):
+    """isPoseWithinSafetyLimits answers False when its command fails (the script stopped,
+    e.g. after a fault): the old driver called every pose unreachable."""
+    robot = URRobot("r")
+    robot.connect()
+    T = robot.measured_pose()
+    ctl.script_running = False
+    with pytest.raises(HardwareFault, match="reachability query .* failed"):
+        robot.is_reachable(T)
+    ctl.script_running, ctl.outside_safety = True, True
+    assert not robot.is_reachable(T)  # a real "no"
+
+
+@pytest.mark.parametrize("module", ["rtde_receive", "rtde_control", "dashboard_client"])
+def test_the_fakes_match_the_installed_ur_rtde(monkeypatch, module):
+    """Every method of the fakes exists in ur-rtde with the parameters the fake takes (names
+    and order, from the pybind11 signatures of the installed modules)."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from pybind_signatures import check_callable, overloads
+
+    real_module = pytest.importorskip(module)  # before the fakes take its place
+    install_fakes(monkeypatch, FakeController())
+    fake = FAKES[module]
+    real = getattr(real_module, fake.__name__)
+    methods = [k for k, v in vars(fake).items() if callable(v) and (not k.startswith("_")
+                                                                     or k == "__init__")]
+    assert len(methods) >= 5
+    for name in methods:
+        assert hasattr(real, name), f"{module}.{fake.__name__}.{name} is not in ur-rtde"
+        assert overloads(getattr(real, name), name), name  # introspectable: really checked
+        check_callable(vars(fake)[name], getattr(real, name), name,
+                       f"{module}.{fake.__name__}.{name}")

@@ -3,6 +3,9 @@ cv2.VideoCapture for what a file cannot show (size fallback, exposure, unpluggin
 
 from __future__ import annotations
 
+import inspect
+import re
+
 import cv2
 import numpy as np
 import pytest
@@ -60,6 +63,7 @@ class FakeCapture:
     exposure_supported = True
     exposure_step = 1.0
     autofocus = "off-able"
+    white_balance = "absent"  # "off-able", "stuck" (stays on) or "absent" (a grey camera)
     frames_left = 100
 
     def __init__(self, source):
@@ -72,6 +76,9 @@ class FakeCapture:
             cv2.CAP_PROP_EXPOSURE: 166.0,
             cv2.CAP_PROP_FPS: 30.0,
         }
+        if self.white_balance != "absent":
+            self.props[cv2.CAP_PROP_AUTO_WB] = 1.0
+            self.props[cv2.CAP_PROP_WB_TEMPERATURE] = 4600.0
         self.sets = []
         self.grabs = 0
         self.released = False
@@ -90,6 +97,11 @@ class FakeCapture:
                 return False
             if prop == cv2.CAP_PROP_EXPOSURE:
                 value = round(value / self.exposure_step) * self.exposure_step
+        if prop in (cv2.CAP_PROP_AUTO_WB, cv2.CAP_PROP_WB_TEMPERATURE):
+            if self.white_balance == "absent":
+                return False
+            if self.white_balance == "stuck" and prop == cv2.CAP_PROP_AUTO_WB:
+                return True
         if prop in (cv2.CAP_PROP_AUTOFOCUS, cv2.CAP_PROP_FOCUS):
             if self.autofocus == "absent":
                 self.props.pop(cv2.CAP_PROP_AUTOFOCUS, None)
@@ -124,6 +136,12 @@ class FakeCapture:
 def test_fake_capture_has_only_what_cv2_videocapture_has():
     mine = [k for k, v in vars(FakeCapture).items() if not k.startswith("_") and callable(v)]
     assert set(mine) <= set(dir(cv2.VideoCapture)), set(mine) - set(dir(cv2.VideoCapture))
+    for name in mine:  # the required arguments, from OpenCV's "set(propId, value) -> retval"
+        doc = getattr(cv2.VideoCapture, name).__doc__.strip().splitlines()[0]
+        args = re.match(rf"{name}\((.*?)\) ->", doc).group(1).split("[")[0]  # [optional]
+        required = [a for a in args.split(", ") if a.strip(" ,")]
+        params = list(inspect.signature(vars(FakeCapture)[name]).parameters)[1:]
+        assert len(params) == len(required), (name, params, required)
 
 
 @pytest.fixture
@@ -211,3 +229,42 @@ def test_bad_arguments():
         UvcCamera(0, "c", 0, 480)
     with pytest.raises(InputError, match="fourcc"):
         UvcCamera(0, "c", 640, 480, fourcc="MJPEG")
+
+
+def test_auto_exposure_is_locked_where_it_settled_and_read_back(fake):
+    """Without a manual exposure the camera's auto exposure runs ``settle_frames`` frames and is
+    then switched off at the exposure it reached (the old driver left it running)."""
+    cam = UvcCamera(0, "c", 640, 480, settle_frames=12)
+    cam.open()
+    cap = fake.instances[0]
+    assert cap.grabs == 12  # settled before locking
+    assert (cv2.CAP_PROP_AUTO_EXPOSURE, 1) in cap.sets
+    assert (cv2.CAP_PROP_EXPOSURE, 166.0) in cap.sets
+    settings = cam.capabilities()["settings"]
+    assert settings["auto_exposure"]["read_back"] == 1.0
+    assert settings["exposure"] == {"requested": 166.0, "read_back": 166.0, "accepted": True}
+    assert settings["auto_white_balance"]["read_back"] == -1.0  # a grey camera: no control
+    assert cam.messages == []
+
+
+def test_auto_white_balance_is_locked_where_it_settled(fake):
+    fake.white_balance = "off-able"
+    cam = UvcCamera(0, "c", 640, 480, exposure=100, settle_frames=6)
+    cam.open()
+    cap = fake.instances[0]
+    assert cap.grabs == 6 and cap.get(cv2.CAP_PROP_AUTO_WB) == 0.0
+    settings = cam.capabilities()["settings"]
+    assert settings["white_balance_k"] == {"requested": 4600.0, "read_back": 4600.0,
+                                           "accepted": True}
+    assert cam.messages == []
+    fake.white_balance = "stuck"
+    cam = UvcCamera(0, "c", 640, 480, exposure=100)
+    cam.open()
+    assert "auto white balance could not be locked" in cam.messages[0]
+
+
+def test_a_camera_without_exposure_control_is_reported(fake):
+    fake.exposure_supported = False
+    cam = UvcCamera(0, "c", 640, 480, settle_frames=0)
+    cam.open()
+    assert "locking the exposure at 166 not taken" in cam.messages[0]
