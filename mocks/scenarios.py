@@ -354,8 +354,6 @@ def s3(n_images: int, sigma_px: float, rng: np.random.Generator) -> Scenario:
     return _board_frame_scenario(K_S2, R, centres, "board_translation", opts, sigma_px, rng)
 
 
-
-
 # -- S5: a stereo head (paper Figs. 7-9) --------------------------------------------------------
 S5_K_LEFT = K_matrix(420.0, 410.0, 152.0, 118.0)
 S5_K_RIGHT = K_matrix(400.0, 400.0, 150.0, 120.0)
@@ -411,8 +409,9 @@ class StereoScene:
 
     def homographies(self) -> tuple[np.ndarray, np.ndarray]:
         """True plane-to-pixel homographies (n, 3, 3) of the left and the right camera."""
-        pairs = [self._pair(R, t) for R, t in zip(self.R_right_board, self.t_right_board,
-                                                  strict=True)]
+        pairs = [
+            self._pair(R, t) for R, t in zip(self.R_right_board, self.t_right_board, strict=True)
+        ]
         return np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
 
     def translated(
@@ -493,7 +492,6 @@ def s5_rig(
         np.zeros(len(Ts)),
     )
     return RigScenario(problem, truth, sigma_px, sigma_by_camera_px=sig)
-
 
 
 # -- R1: a UR5e-class cell, eye-in-hand or eye-to-hand ------------------------------------------
@@ -751,23 +749,39 @@ def r1_real_arm(
             ]
         )
     true = real_arm_poses(planned, rng, arm_mm, arm_deg)
-    if detect is None:
+    frames = _real_arm_frames(true, planned, T_base_board, eye_in_hand, sigma_px, rng, detect)
+    return r1_scenario(
+        target, frames, eye_in_hand, options, sigma_px, T_base_board, T_base_tool_true=true
+    )
 
-        def detect(T_cam_board: np.ndarray, g: np.random.Generator) -> Detection:
-            return projected_detection(
-                R1_K, R1_DIST, T_cam_board, target, R1_SIZE_PX, sigma_px, g, 2.0
-            )
 
+def _real_arm_frames(
+    true: np.ndarray,
+    planned: np.ndarray,
+    T_base_board: np.ndarray,
+    eye_in_hand: bool,
+    sigma_px: float,
+    rng: np.random.Generator,
+    detect: Callable[[np.ndarray, np.random.Generator], Detection] | None,
+) -> list[Frame]:
+    """R1's camera and board at the arm's true poses; each frame records the planned pose (what
+    the controller reports) and what ``detect`` sees (default: R1's projected corners with
+    ``sigma_px`` Gaussian noise)."""
+    target = r1_target()
     frames = []
     for k, (T_true, T_meas) in enumerate(zip(true, planned, strict=True)):
         if eye_in_hand:
             T_cam_board = inv_T(T_true @ R1_T_TOOL_CAM) @ T_base_board
         else:
             T_cam_board = inv_T(R1_T_BASE_CAM) @ T_true @ R1_T_TOOL_BOARD
-        frames.append(Frame(k, {"cam": detect(T_cam_board, rng)}, T_base_tool=T_meas))
-    return r1_scenario(
-        target, frames, eye_in_hand, options, sigma_px, T_base_board, T_base_tool_true=true
-    )
+        if detect is None:
+            det = projected_detection(
+                R1_K, R1_DIST, T_cam_board, target, R1_SIZE_PX, sigma_px, rng, 2.0
+            )
+        else:
+            det = detect(T_cam_board, rng)
+        frames.append(Frame(k, {"cam": det}, T_base_tool=T_meas))
+    return frames
 
 
 def effective_truth(
@@ -952,6 +966,43 @@ def _translated(
             Tk[:3, 3] -= move_cam  # p_cam' = p_cam - move: the camera moved by +move
             out.append(Tk)
     return np.array(out)
+
+
+def classic_real_arm(
+    rng: np.random.Generator,
+    n_frames: int = 28,
+    sigma_px: float = 0.15,
+    arm_mm: float = 1.0,
+    arm_deg: float = 0.1,
+    eye_in_hand: bool = True,
+    detect: Callable[[np.ndarray, np.random.Generator], Detection] | None = None,
+) -> Scenario:
+    """A classic hand-eye session (every frame at its own orientation, :func:`camera_board_poses`)
+    on a real arm: a UR5e whose kinematics err by about ``arm_mm`` and ``arm_deg``
+    (:func:`real_arm_poses`); the controller reports the planned poses. Views the arm cannot
+    reach (R1's cell moved within reach, :func:`_in_reach`) are drawn again. ``detect``: the
+    image model, as :func:`r1_real_arm`'s. A real classic session: 28 frames, no two alike."""
+    target = r1_target()
+    S = _in_reach()
+    T_base_board = S @ r1_poses()[0]
+
+    def planned_pose(T_cam_board: np.ndarray) -> np.ndarray:
+        if eye_in_hand:
+            return T_base_board @ inv_T(T_cam_board) @ inv_T(R1_T_TOOL_CAM)
+        return R1_T_BASE_CAM @ T_cam_board @ inv_T(R1_T_TOOL_BOARD)
+
+    views: list[np.ndarray] = []
+    while len(views) < n_frames:
+        for T in camera_board_poses(rng, 2 * n_frames, target):
+            q = urk.ik(planned_pose(T), urk.Q_HOME, urk.UR5E)
+            if len(views) < n_frames and any(urk.singularity(x, urk.UR5E) is None for x in q):
+                views.append(T)
+    planned = np.stack([planned_pose(T) for T in views])
+    true = real_arm_poses(planned, rng, arm_mm, arm_deg)
+    frames = _real_arm_frames(true, planned, T_base_board, eye_in_hand, sigma_px, rng, detect)
+    return r1_scenario(
+        target, frames, eye_in_hand, None, sigma_px, T_base_board, T_base_tool_true=true
+    )
 
 
 def classic(

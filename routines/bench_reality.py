@@ -375,6 +375,11 @@ def main(argv: list[str] | None = None) -> int:
             "13 frames, one orientation, drift 0.06 deg / 60 mm",
             lambda rng: drifting_arm(rng, args.sigma_px, detect=det)[0],
         ),
+        ("classic eye-in-hand, 28 orientations", lambda rng: sc.classic_real_arm(rng, **kw)),
+        (
+            "classic eye-to-hand, 28 orientations",
+            lambda rng: sc.classic_real_arm(rng, eye_in_hand=False, **kw),
+        ),
     ]
     rows = [run_reality_row(n, m, args.trials) for n, m in scenarios]
     clean, clean_notes = clean_rows(args.clean_trials) if args.clean_trials > 0 else ([], [])
@@ -439,6 +444,12 @@ def main(argv: list[str] | None = None) -> int:
         "direction per trial, plus 0.003 deg / 0.02 mm per stop: `drifting_arm`), the physics "
         "of docs/ROBOT_ACCURACY.md in its pure form; the session's linear trend of the pose "
         "correction is built for it.",
+        "",
+        "The classic rows are hand-eye sessions of 28 frames, each at its own orientation "
+        "(`classic_real_arm`: tilts of 15-35 deg, rolls up to 30 deg, 0.45-0.6 m from the "
+        "board), on the same arm. No orientation group has a trend of its own; eye-in-hand, "
+        "the session gets one linear trend of the pose corrections over the tool's positions "
+        "(`SESSION_TREND_MIN_FRAMES`); eye-to-hand, the corrections stay independent.",
         "",
         *reality_table(rows),
         "",

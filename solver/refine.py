@@ -1241,6 +1241,11 @@ SIGMA_BEYOND = (np.radians(2.0), 0.02)
 #: Smallest rms spread (metres) of an orientation group's positions along a direction for the
 #: trend of the pose correction along it to be estimated (``translation_trends``).
 TREND_MIN_SPREAD_M = 0.005
+#: Fewest frames of an eye-in-hand session without trends of its own orientation groups (a
+#: classic hand-eye session) for one linear trend of the pose corrections over the tool's
+#: positions of the whole session: an arm's error is smooth over its workspace, and its linear
+#: part (a scale or shear of the positions) reaches the focal lengths through the moves.
+SESSION_TREND_MIN_FRAMES = 8
 
 
 @single_threaded_blas
@@ -1313,6 +1318,11 @@ def refine(
     T_meas = np.stack([f.T_base_tool for f in problem.frames])
     pose_groups = orientation_groups(T_meas)
     trend_groups, trend_coords, trend_dims = translation_trends(T_meas, pose_groups)
+    if not trend_dims and structure.eye_in_hand and len(T_meas) >= SESSION_TREND_MIN_FRAMES:
+        # no orientation group long enough for a trend of its own (a classic hand-eye session):
+        # one trend over the whole session (docs/ROBOT_ACCURACY.md)
+        whole = np.zeros(len(T_meas), dtype=int)
+        trend_groups, trend_coords, trend_dims = translation_trends(T_meas, whole)
     spread = float(np.sqrt(np.mean(np.sum(trend_coords**2, axis=1)))) if trend_dims else 0.0
     noisy = replace(
         structure,
