@@ -1,0 +1,408 @@
+"""A black-box checker of ``slidecal solve``: sessions written by hand from the public session
+contract (README, docs/FORMATS.md), never with slidecal's own session writer, and judged
+against the simulation's truth as a user's acceptance check would judge them.
+
+The scenes: a 2-megapixel colour camera (photograph-like images: defocus, chromatic
+aberration, shot noise, Bayer, JPEG, uneven light, glare) on or beside a UR5e whose kinematics
+err like an uncalibrated real arm (``mocks/scenarios.py`` ``real_arm_poses``: about 1 mm and
+0.1 deg, smooth, plus repeatability). Used by ``tests/test_blackbox_sessions.py``; run
+``python tests/blackbox.py [--full]`` for the figures (``--full``: the 2-megapixel image
+sessions too).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import yaml
+
+from slidecal.drivers import ur_kinematics as urk
+from slidecal.mocks.camera import SimCamera
+from slidecal.mocks.render import Photo, render_target
+from slidecal.mocks.scenarios import real_arm_poses
+from slidecal.solver import geometry as geo
+from slidecal.solver.camera import K_matrix, project
+from slidecal.solver.geometry import T_from_Rt, inv_T, rvec_from_R
+from slidecal.solver.problem import Target
+
+SLIDECAL = str(Path(sys.executable).parent / "slidecal")
+
+#: the harshest imaging the photograph-like renderer offers that a real cell still shows:
+#: twice the default defocus and chromatic aberration, JPEG 80, stronger uneven light and glare
+HARSH = Photo(
+    aperture_mm=4.0,
+    chromatic_red=1e-3,
+    chromatic_blue=-1e-3,
+    jpeg_quality=80,
+    vignetting=0.4,
+    gradient=0.3,
+    glare_spots=1,
+    glare_strength=0.6,
+)
+#: a 2-megapixel colour camera (1920 x 1080) with a real lens's distortion
+CAM_1080 = SimCamera(
+    "left",
+    1920,
+    1080,
+    K_matrix(1480.0, 1478.5, 963.2, 537.4),
+    np.array([-0.09, 0.11, 4e-4, -3e-4, 0.0]),
+    blur_sigma_px=0.7,
+    noise_std=2.5,
+    colour=True,
+    photo=HARSH,
+)
+#: a 2-megapixel grey camera (1600 x 1200)
+CAM_1200 = SimCamera(
+    "left",
+    1600,
+    1200,
+    K_matrix(1390.0, 1391.2, 801.7, 597.9),
+    np.array([-0.11, 0.09, -3e-4, 2e-4, 0.0]),
+    blur_sigma_px=0.7,
+    noise_std=2.5,
+    colour=False,
+    photo=replace(HARSH, bayer=False),
+)
+T_TOOL_CAM = T_from_Rt(
+    geo.R_from_rvec(np.radians([1.2, -1.7, 90.0])), np.array([0.04, -0.055, 0.085])
+)
+#: the board on the table, print up (board +z into the table), in the UR5e's reach
+R_BASE_BOARD = np.diag([-1.0, 1.0, -1.0])
+#: eye-to-hand: a camera on a stand looking at the arm's workspace
+T_BASE_CAM = T_from_Rt(
+    geo.look_at_R_cam_world(np.array([0.95, 0.45, 0.55]), np.array([0.45, 0.0, 0.3]), [0, 0, -1]).T,
+    np.array([0.95, 0.45, 0.55]),
+)
+#: an AprilTag on the tool, its print facing away from the flange
+T_TOOL_TAG = T_from_Rt(
+    geo.R_from_rvec(np.radians([180.0, 0.0, 0.0])), np.array([-0.06, -0.06, 0.03])
+)
+
+
+# ----------------------------------------------------------------------------- the contract
+def chessboard(squares_x: int, squares_y: int, square_size_m: float) -> dict[str, Any]:
+    return {
+        "kind": "chessboard",
+        "squares_x": squares_x,
+        "squares_y": squares_y,
+        "square_size_m": square_size_m,
+    }
+
+
+def charuco(sx: int, sy: int, square_m: float, marker_m: float, dictionary: str) -> dict:
+    return {
+        "kind": "charuco",
+        "squares_x": sx,
+        "squares_y": sy,
+        "square_size_m": square_m,
+        "marker_size_m": marker_m,
+        "dictionary": dictionary,
+    }
+
+
+def ur_pose(T: np.ndarray) -> list[float]:
+    """``[x, y, z, rx, ry, rz]``: metres, axis-angle radians (a UR controller's pose)."""
+    return [float(v) for v in T[:3, 3]] + [float(v) for v in rvec_from_R(T[:3, :3])]
+
+
+def write_session(
+    directory: Path,
+    target: dict[str, Any],
+    camera: SimCamera,
+    frames: list[dict[str, Any]],
+    mount: str | None = "eye_in_hand",
+) -> Path:
+    """``directory/session.yaml`` as a user writes it: plain YAML of the contract's keys."""
+    directory.mkdir(parents=True, exist_ok=True)
+    doc: dict[str, Any] = {"format": "slidecal.session/1"}
+    if mount is not None:
+        doc["mount"] = mount
+    doc["target"] = target
+    doc["cameras"] = [{"name": camera.name, "width": camera.width, "height": camera.height}]
+    doc["frames"] = frames
+    (directory / "session.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+    return directory
+
+
+def frame_entry(
+    k: int,
+    T_base_tool: np.ndarray | None,
+    image: str | None = None,
+    detection: tuple[np.ndarray, np.ndarray] | None = None,
+    camera: str = "left",
+) -> dict[str, Any]:
+    e: dict[str, Any] = {"id": k}
+    if T_base_tool is not None:
+        e["T_base_tool"] = ur_pose(T_base_tool)
+    if image is not None:
+        e["images"] = {camera: image}
+    if detection is not None:
+        ids, px = detection
+        e["detections"] = {
+            camera: {"ids": [int(i) for i in ids], "px": [[float(u), float(v)] for u, v in px]}
+        }
+    return e
+
+
+def solve(
+    session: Path, out: Path | None = None, in_process: bool = False
+) -> tuple[int, str, dict | None, float]:
+    """``slidecal solve SESSION --out result.yaml --quiet`` as a user runs it: exit code,
+    stderr + stdout, the result (None when none was written) and the wall time.
+    ``in_process``: the console script's ``main`` in this process (the same code without the
+    second or so a new interpreter takes to import)."""
+    out = out or session / "result.yaml"
+    out.unlink(missing_ok=True)  # a checker solves each session afresh
+    argv = ["solve", str(session), "--out", str(out), "--quiet"]
+    t0 = time.perf_counter()
+    if in_process:
+        from slidecal.routines.cli import main
+
+        text = io.StringIO()
+        with contextlib.redirect_stdout(text), contextlib.redirect_stderr(text):
+            code = main(argv)
+        message = text.getvalue()
+    else:
+        p = subprocess.run([SLIDECAL, *argv], capture_output=True, text=True, timeout=900)
+        code, message = p.returncode, p.stderr + p.stdout
+    dt = time.perf_counter() - t0
+    result = yaml.safe_load(out.read_text()) if out.is_file() else None
+    return code, message.strip(), result, dt
+
+
+# ----------------------------------------------------------------------------- scenes
+def target_of(t: dict[str, Any]) -> Target:
+    """The simulator's target for a contract ``target`` (for rendering and the truth)."""
+    if t["kind"] == "chessboard":
+        return Target.chessboard(t["squares_x"], t["squares_y"], t["square_size_m"])
+    return Target.charuco(
+        t["squares_x"], t["squares_y"], t["square_size_m"], t["marker_size_m"], t["dictionary"]
+    )
+
+
+def board_extent_m(target: Target) -> tuple[float, float]:
+    s = target.square_size_m
+    return target.squares_x * s, target.squares_y * s
+
+
+def T_base_board_for(target: Target, centre=(0.45, 0.0, -0.2)) -> np.ndarray:
+    """The board flat on a table below the arm's base, its centre at ``centre`` (base frame,
+    metres)."""
+    w, h = board_extent_m(target)
+    c = np.asarray(centre, float)
+    return T_from_Rt(R_BASE_BOARD, c - R_BASE_BOARD @ np.array([w / 2, h / 2, 0.0]))
+
+
+def view_pose(
+    T_base_board: np.ndarray,
+    target: Target,
+    tilt_deg: tuple[float, float],
+    distance: float,
+    roll_deg: float = 0.0,
+    offset_m=(0.0, 0.0),
+) -> np.ndarray:
+    """``T_base_tool`` of a camera looking at the board's centre (plus ``offset_m`` on the
+    board) from ``distance`` m, the view tilted by ``tilt_deg`` about the board's x and y."""
+    w, h = board_extent_m(target)
+    centre = T_base_board[:3, :3] @ np.array([w / 2 + offset_m[0], h / 2 + offset_m[1], 0.0])
+    centre = centre + T_base_board[:3, 3]
+    up_board = T_base_board[:3, :3] @ np.array([0.0, -1.0, 0.0])  # board -y: image up
+    normal = -T_base_board[:3, 2]  # from the print towards the camera
+    d = (
+        geo.Rx(np.radians(tilt_deg[0]))
+        @ geo.Ry(np.radians(tilt_deg[1]))
+        @ np.array([0.0, 0.0, 1.0])
+    )
+    view = T_base_board[:3, :3] @ np.array([d[0], d[1], -d[2]])
+    view = view if view @ normal > 0 else -view
+    p = centre + distance * view
+    R_base_cam = geo.look_at_R_cam_world(p, centre, up_board).T @ geo.Rz(np.radians(roll_deg))
+    return T_from_Rt(R_base_cam, p) @ inv_T(T_TOOL_CAM)
+
+
+def translations(T: np.ndarray, n: int, rng: np.random.Generator) -> list[np.ndarray]:
+    """``n`` poses at ``T``'s orientation, moved 40-80 mm in non-coplanar camera directions
+    (each with a component along the viewing axis)."""
+    R_base_cam = (T @ T_TOOL_CAM)[:3, :3]
+    out = []
+    for _ in range(n):
+        d = rng.normal(size=3)
+        d[2] = np.sign(d[2] or 1.0) * max(abs(d[2]), 0.5)
+        d /= np.linalg.norm(d)
+        m = R_base_cam @ d * rng.uniform(0.04, 0.08)
+        out.append(T_from_Rt(T[:3, :3], T[:3, 3] + m))
+    return out
+
+
+def reachable(T_base_tool: np.ndarray) -> bool:
+    """A UR5e reaches ``T_base_tool`` away from its singularities."""
+    return any(urk.singularity(q) is None for q in urk.ik(T_base_tool, urk.Q_HOME))
+
+
+def varied_views(
+    T_base_board: np.ndarray,
+    target: Target,
+    n: int,
+    rng: np.random.Generator,
+    distance_m=(0.5, 0.7),
+    tilt_deg=(15.0, 35.0),
+) -> list[np.ndarray]:
+    """``n`` reachable poses, each at its own orientation: tilts of ``tilt_deg`` in random
+    directions, rolls of +-25 deg, the board's centre moved by up to 3 cm."""
+    out: list[np.ndarray] = []
+    while len(out) < n:
+        a = rng.uniform(0, 2 * np.pi)
+        tilt = rng.uniform(*tilt_deg) * np.array([np.cos(a), np.sin(a)])
+        T = view_pose(
+            T_base_board,
+            target,
+            (float(tilt[0]), float(tilt[1])),
+            rng.uniform(*distance_m),
+            rng.uniform(-25, 25),
+            tuple(rng.uniform(-0.03, 0.03, 2)),
+        )
+        if reachable(T):
+            out.append(T)
+    return out
+
+
+@dataclass
+class Truth:
+    """What the simulation knows: the camera, the mount's transforms, true and measured poses."""
+
+    camera: SimCamera
+    mount: str
+    T_hand_eye: np.ndarray  # T_tool_cam or T_base_cam
+    T_target: np.ndarray  # T_base_board or T_tool_board
+    true: np.ndarray  # (F, 4, 4) where the arm really was
+    measured: np.ndarray  # (F, 4, 4) what it reported
+    T_cam_board: list[np.ndarray] = field(default_factory=list)
+
+
+def arm(
+    planned: list[np.ndarray], rng: np.random.Generator, arm_mm: float = 1.0, arm_deg: float = 0.1
+) -> tuple[np.ndarray, np.ndarray]:
+    """(true, measured) poses of a UR5e with a real arm's kinematic error."""
+    planned_a = np.stack(planned)
+    return real_arm_poses(planned_a, rng, arm_mm, arm_deg), planned_a
+
+
+def eye_in_hand_truth(
+    camera: SimCamera,
+    T_base_board: np.ndarray,
+    planned: list[np.ndarray],
+    rng: np.random.Generator,
+    arm_mm: float = 1.0,
+    arm_deg: float = 0.1,
+) -> Truth:
+    true, measured = arm(planned, rng, arm_mm, arm_deg)
+    t = Truth(camera, "eye_in_hand", T_TOOL_CAM, T_base_board, true, measured)
+    t.T_cam_board = [inv_T(T @ T_TOOL_CAM) @ T_base_board for T in true]
+    return t
+
+
+def render_frames(
+    truth: Truth,
+    target: Target,
+    directory: Path,
+    rng: np.random.Generator,
+    ext: str = "png",
+    skip: set[int] = frozenset(),
+) -> list[str]:
+    """Render every frame's image into ``directory/images`` (``ext``: png or jpg); a frame in
+    ``skip`` shows a blank wall instead (the detector must miss it)."""
+    (directory / "images").mkdir(parents=True, exist_ok=True)
+    names = []
+    for k, T in enumerate(truth.T_cam_board):
+        if k in skip:
+            T = T_from_Rt(np.eye(3), np.array([5.0, 5.0, 1.0])) @ T  # the board out of view
+        img = render_target(target, truth.camera, T, rng)
+        name = f"images/{k:04d}_left.{ext}"
+        params = [cv2.IMWRITE_JPEG_QUALITY, 88] if ext == "jpg" else []
+        cv2.imwrite(str(directory / name), img, params)
+        names.append(name)
+    return names
+
+
+def projected(
+    camera: SimCamera,
+    target_points_m: np.ndarray,
+    T_cam_board: np.ndarray,
+    rng: np.random.Generator,
+    sigma_px: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The corners inside the image (2 px margin), with Gaussian noise ``sigma_px``."""
+    p_cam = target_points_m @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
+    px = project(camera.K, camera.dist, p_cam)
+    ok = (
+        (p_cam[:, 2] > 0)
+        & (px[:, 0] > 2)
+        & (px[:, 0] < camera.width - 3)
+        & (px[:, 1] > 2)
+        & (px[:, 1] < camera.height - 3)
+    )
+    ids = np.flatnonzero(ok)
+    return ids, px[ok] + rng.normal(0.0, sigma_px, (len(ids), 2))
+
+
+# ----------------------------------------------------------------------------- judging
+def intrinsic_errors(result: dict, camera: SimCamera, name: str = "left") -> dict[str, float]:
+    """Per estimated intrinsic: |error| / reported std (inf when no std is reported)."""
+    c = result["cameras"][name]
+    K = np.asarray(c["K"], float)
+    dist = np.asarray(c["distortion"], float)
+    truth = {
+        "fx": camera.K[0, 0],
+        "fy": camera.K[1, 1],
+        "cx": camera.K[0, 2],
+        "cy": camera.K[1, 2],
+    }
+    est = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}
+    for i, k in enumerate(("k1", "k2", "p1", "p2", "k3")):
+        truth[k], est[k] = camera.dist[i], dist[i]
+    out = {}
+    for k, std in (c.get("std") or {}).items():
+        if k in truth and std:
+            out[k] = abs(est[k] - truth[k]) / std
+    return out
+
+
+def fx_error_pct(result: dict, camera: SimCamera, name: str = "left") -> float:
+    return 100.0 * abs(result["cameras"][name]["K"][0][0] / camera.K[0, 0] - 1.0)
+
+
+def transform_of(est: dict) -> np.ndarray:
+    return T_from_Rt(np.asarray(est["R"], float), np.asarray(est["t_m"], float))
+
+
+def hand_eye_errors(result: dict, key: str, T_true: np.ndarray) -> dict[str, float]:
+    """The reported hand-eye against ``T_true``: per component |error| / std from the result's
+    covariance (its names ``key.rx`` .. ``key.tz``: R' = exp([r]x) R, t' = t + dt)."""
+    est = result[key]
+    t = est["t_m"] if est["t_m"] is not None else T_true[:3, 3]  # an unobservable translation
+    T = T_from_Rt(np.asarray(est["R"], float), np.asarray(t, float))
+    r = rvec_from_R(T_true[:3, :3] @ T[:3, :3].T)
+    dt = T_true[:3, 3] - T[:3, 3]
+    names = result["parameter_names"]
+    cov = np.asarray(result["covariance"], float)
+    out = {}
+    for i, a in enumerate(("rx", "ry", "rz", "tx", "ty", "tz")):
+        n = f"{key}.{a}"
+        if n in names:
+            j = names.index(n)
+            e = r[i] if i < 3 else dt[i - 3]
+            out[a] = abs(e) / np.sqrt(cov[j, j])
+    return out
+
+
+def rotation_deg(A: np.ndarray, B: np.ndarray) -> float:
+    return float(np.degrees(np.linalg.norm(rvec_from_R(A[:3, :3] @ B[:3, :3].T))))
