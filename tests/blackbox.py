@@ -406,3 +406,51 @@ def hand_eye_errors(result: dict, key: str, T_true: np.ndarray) -> dict[str, flo
 
 def rotation_deg(A: np.ndarray, B: np.ndarray) -> float:
     return float(np.degrees(np.linalg.norm(rvec_from_R(A[:3, :3] @ B[:3, :3].T))))
+
+
+# ----------------------------------------------------------------------------- eye-to-hand tag
+#: one AprilTag (36h11) of 100 mm on the tool, described as the checker may describe it without
+#: knowing slidecal's ``apriltag`` kind: its 4 outer corners as ``points`` (OpenCV's order:
+#: top-left, top-right, bottom-right, bottom-left as printed), detections given
+TAG_SIDE_M = 0.10
+TAG_POINTS_M = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float) * TAG_SIDE_M
+#: 7 tag orientations seen by the camera: (tilt about x, tilt about y, roll) deg
+TAG_TILTS_DEG = ((0, 0, 0), (30, 0, 10), (-30, 0, -10), (0, 30, 20), (0, -30, -20), (22, 22, 30))
+TAG_TILTS_DEG = (*TAG_TILTS_DEG, (-22, -22, -30))
+
+
+def eye_to_hand_tag_session(
+    directory: Path, seed: int, arm_mm: float = 0.8, sigma_px: float = 0.1, n_frames: int = 205
+) -> Truth:
+    """The checker's eye-to-hand session: a fixed 2-megapixel camera, one AprilTag on the tool,
+    ``n_frames`` frames in 7 orientations at random places across the image 0.45-0.85 m away,
+    the arm off by about ``arm_mm`` (and ``arm_mm / 10`` deg); the tag's 4 corners given as
+    detections with ``sigma_px`` noise (corners within 2 px of the border are not seen, so a
+    few frames have fewer than 4)."""
+    rng = np.random.default_rng(seed)
+    cam = CAM_1080
+    points = np.column_stack([TAG_POINTS_M, np.zeros(4)])
+    planned: list[np.ndarray] = []
+    per = [n_frames // 7 + (o < n_frames % 7) for o in range(7)]
+    for (ax, ay, rz), n in zip(TAG_TILTS_DEG, per, strict=True):
+        R = geo.Rz(np.radians(rz)) @ geo.Rx(np.radians(ax)) @ geo.Ry(np.radians(ay))
+        group: list[np.ndarray] = []
+        while len(group) < n:
+            z = rng.uniform(0.45, 0.85)
+            u, v = rng.uniform(150, cam.width - 150), rng.uniform(120, cam.height - 120)
+            c = np.array([(u - cam.K[0, 2]) / cam.K[0, 0], (v - cam.K[1, 2]) / cam.K[1, 1], 1.0])
+            T_cam_tag = T_from_Rt(R, z * c - R @ np.array([TAG_SIDE_M / 2, TAG_SIDE_M / 2, 0]))
+            T = T_BASE_CAM @ T_cam_tag @ inv_T(T_TOOL_TAG)
+            if reachable(T):
+                group.append(T)
+        planned += group
+    true, measured = arm(planned, rng, arm_mm, arm_mm / 10.0)
+    truth = Truth(cam, "eye_to_hand", T_BASE_CAM, T_TOOL_TAG, true, measured)
+    truth.T_cam_board = [inv_T(T_BASE_CAM) @ T @ T_TOOL_TAG for T in true]
+    frames = [
+        frame_entry(k, measured[k], detection=projected(cam, points, T, rng, sigma_px))
+        for k, T in enumerate(truth.T_cam_board)
+    ]
+    target = {"kind": "points", "points_m": TAG_POINTS_M.tolist()}
+    write_session(directory, target, cam, frames, mount="eye_to_hand")
+    return truth

@@ -210,3 +210,15 @@ def test_eye_in_hand_2_megapixel_photographs(tmp_path, kind, cam, ext):
     assert max(bb.intrinsic_errors(r13, cam).values()) < 3.0
     assert r13["cameras"]["left"]["std"]["fx"] / cam.K[0, 0] < 1e-3
     assert r13["T_tool_cam"]["t_m"] is None  # no rotation: the translation is unobservable
+
+
+def test_eye_to_hand_one_tag_as_points_with_given_detections(tmp_path):
+    # 205 frames in 7 orientations, the arm 0.8 mm off; a few frames see only 3 corners
+    truth = bb.eye_to_hand_tag_session(tmp_path / "tag", seed=1)
+    code, message, result, _ = bb.solve(tmp_path / "tag", in_process=True)
+    assert code == 0 and result is not None, message
+    assert result["mount"] == "eye_to_hand"
+    # every intrinsic within 3 of its std: holds for this seed; tests/test_blackbox_reproducers.py
+    # holds one where it does not (the std is too small under the arm's smooth error)
+    assert max(bb.intrinsic_errors(result, truth.camera).values()) < 3.0
+    assert bb.fx_error_pct(result, truth.camera) < 0.1
