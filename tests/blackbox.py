@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import shutil
 import subprocess
 import sys
 import time
@@ -31,6 +32,7 @@ from slidecal.mocks.render import Photo, render_target
 from slidecal.mocks.scenarios import real_arm_poses
 from slidecal.solver import geometry as geo
 from slidecal.solver.camera import K_matrix, project
+from slidecal.solver.detect import detect
 from slidecal.solver.geometry import T_from_Rt, inv_T, rvec_from_R
 from slidecal.solver.problem import Target
 
@@ -408,6 +410,126 @@ def rotation_deg(A: np.ndarray, B: np.ndarray) -> float:
     return float(np.degrees(np.linalg.norm(rvec_from_R(A[:3, :3] @ B[:3, :3].T))))
 
 
+# ----------------------------------------------------------------------------- the sessions
+def classic_session(directory: Path, mount: str, seed: int, empty: tuple[int, ...] = ()):
+    """28 frames, each at its own orientation, detections given (0.1 px noise); the frames in
+    ``empty`` saw nothing (empty ids). Returns (session dir, frames, measured poses, truth)."""
+    rng = np.random.default_rng(seed)
+    cam = CAM_1080
+    tdict = charuco(12, 9, 0.03, 0.022, "DICT_5X5_100")
+    target = target_of(tdict)
+    T_base_board = T_base_board_for(target)
+    views = varied_views(T_base_board, target, 28, rng, (0.45, 0.65), (5.0, 35.0))
+    if mount == "eye_in_hand":
+        true, measured = arm(views, rng)
+        T_cam_board = [inv_T(T @ T_TOOL_CAM) @ T_base_board for T in true]
+        T_hand_eye = T_TOOL_CAM
+    else:  # the same camera-board poses, the board on the tool, the camera on a stand
+        T_tool_board = T_from_Rt(np.diag([1.0, -1.0, -1.0]), np.array([-0.18, -0.135, 0.03]))
+        planned = [
+            T_BASE_CAM @ inv_T(T @ T_TOOL_CAM) @ T_base_board @ inv_T(T_tool_board) for T in views
+        ]
+        true, measured = arm([T for T in planned if reachable(T)], rng)
+        T_cam_board = [inv_T(T_BASE_CAM) @ T @ T_tool_board for T in true]
+        T_hand_eye = T_BASE_CAM
+    frames = []
+    for k, T in enumerate(T_cam_board):
+        det = projected(cam, target.points_m, T, rng, 0.1)
+        if k in empty:
+            det = (np.zeros(0, int), np.zeros((0, 2)))
+        frames.append(frame_entry(k, measured[k], detection=det))
+    root = write_session(directory / mount, tdict, cam, frames, mount=mount)
+    return root, frames, measured, target, T_hand_eye
+
+
+def park(frames, measured, target, mount: str, size: tuple[int, int]) -> np.ndarray:
+    """The checker's reference: cv2.calibrateCamera on the same detections, then
+    cv2.calibrateHandEye (Park) with the board poses it gives."""
+    used = [k for k, f in enumerate(frames) if len(f["detections"]["left"]["ids"]) >= 6]
+    obj = [
+        target.points_m[np.array(frames[k]["detections"]["left"]["ids"])].astype(np.float32)
+        for k in used
+    ]
+    img = [np.array(frames[k]["detections"]["left"]["px"], np.float32) for k in used]
+    _, _, _, rv, tv = cv2.calibrateCamera(obj, img, size, None, None)
+    # eye-to-hand: OpenCV takes the base in the gripper frame as the "gripper" pose
+    Tg = [measured[k] if mount == "eye_in_hand" else inv_T(measured[k]) for k in used]
+    R, t = cv2.calibrateHandEye(
+        [T[:3, :3] for T in Tg],
+        [T[:3, 3] for T in Tg],
+        [cv2.Rodrigues(r)[0] for r in rv],
+        [t.ravel() for t in tv],
+        method=cv2.CALIB_HAND_EYE_PARK,
+    )
+    return T_from_Rt(R, t.ravel())
+
+
+def eye_in_hand_2mp(directory: Path, tdict: dict, cam: SimCamera, ext: str, seed: int):
+    """30 frames: 13 translation-only (one orientation), 17 each at its own orientation; the
+    arm errs by 1 mm / 0.1 deg. Returns (full session, 13-frame session, truth, target)."""
+    rng = np.random.default_rng(seed)
+    target = target_of(tdict)
+    T_base_board = T_base_board_for(target)
+    T0 = view_pose(T_base_board, target, (22.0, 8.0), 0.6)
+    planned = [T0, *translations(T0, 12, rng)]
+    planned += varied_views(T_base_board, target, 17, rng)
+    truth = eye_in_hand_truth(cam, T_base_board, planned, rng)
+    full = directory / "full"
+    names = render_frames(truth, target, full, rng, ext)
+    frames = [frame_entry(k, truth.measured[k], image=n) for k, n in enumerate(names)]
+    write_session(full, tdict, cam, frames)
+    t13 = directory / "t13"
+    (t13 / "images").mkdir(parents=True)
+    for n in names[:13]:
+        shutil.copy(full / n, t13 / n)
+    write_session(t13, tdict, cam, frames[:13])
+    return full, t13, truth, target
+
+
+def translation_only_session(
+    directory: Path, seed: int, arm_mm: float = 1.0, sigma_px: float = 0.05
+) -> Truth:
+    """The checker's 13 translation-only frames with given detections: the 2-megapixel grey
+    camera over a ChArUco board (12 x 9 squares of 30 mm) 0.6 m away at one orientation, 12
+    moves of 40-80 mm; the arm errs by ``arm_mm`` (and ``arm_mm / 10`` deg)."""
+    rng = np.random.default_rng(seed)
+    tdict = charuco(12, 9, 0.03, 0.022, "DICT_5X5_100")
+    target = target_of(tdict)
+    T_base_board = T_base_board_for(target)
+    T0 = view_pose(T_base_board, target, (22.0, 8.0), 0.6)
+    planned = [T0, *translations(T0, 12, rng)]
+    truth = eye_in_hand_truth(CAM_1200, T_base_board, planned, rng, arm_mm, arm_mm / 10.0)
+    frames = [
+        frame_entry(
+            k, truth.measured[k], detection=projected(CAM_1200, target.points_m, T, rng, sigma_px)
+        )
+        for k, T in enumerate(truth.T_cam_board)
+    ]
+    write_session(directory, tdict, CAM_1200, frames)
+    return truth
+
+
+def images_only_session(
+    directory: Path,
+    camera: SimCamera,
+    n: int,
+    skip: int | None,
+    seed: int,
+    mount: str | None = None,
+) -> None:
+    """``n`` chessboard images (10 x 7 squares of 30 mm) from views 0.4-0.6 m away tilted by
+    5-40 deg, no robot poses; frame ``skip`` shows a wall."""
+    rng = np.random.default_rng(seed)
+    tdict = chessboard(10, 7, 0.03)
+    target = target_of(tdict)
+    T_base_board = T_base_board_for(target)
+    views = varied_views(T_base_board, target, n, rng, (0.4, 0.6), (5.0, 40.0))
+    truth = eye_in_hand_truth(camera, T_base_board, views, rng)
+    names = render_frames(truth, target, directory, rng, "png", skip={skip} - {None})
+    frames = [frame_entry(k, None, image=name) for k, name in enumerate(names)]
+    write_session(directory, tdict, camera, frames, mount=mount)
+
+
 # ----------------------------------------------------------------------------- eye-to-hand tag
 #: one AprilTag (36h11) of 100 mm on the tool, described as the checker may describe it without
 #: knowing slidecal's ``apriltag`` kind: its 4 outer corners as ``points`` (OpenCV's order:
@@ -454,3 +576,82 @@ def eye_to_hand_tag_session(
     target = {"kind": "points", "points_m": TAG_POINTS_M.tolist()}
     write_session(directory, target, cam, frames, mount="eye_to_hand")
     return truth
+
+
+# ----------------------------------------------------------------------------- figures
+def _row(name: str, code: int, message: str, result: dict | None, dt: float, cam: SimCamera) -> str:
+    if result is None:
+        return f"| {name} | {code} | - | - | {dt:.1f} | {message[:160]} |"
+    e = intrinsic_errors(result, cam)
+    worst = max(e, key=e.get)
+    msgs = "; ".join(result.get("messages") or []) or "-"
+    return (
+        f"| {name} | {code} | {fx_error_pct(result, cam):.3f} | {e[worst]:.2f} ({worst}) | "
+        f"{dt:.1f} | {msgs[:160]} |"
+    )
+
+
+def _detection_figures(directory: Path, target: Target) -> str:
+    found, times = 0, []
+    images = sorted((directory / "images").iterdir())
+    for path in images:
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        t0 = time.perf_counter()
+        found += detect(img, target).ok
+        times.append(time.perf_counter() - t0)
+    return f"{found}/{len(images)} found, {np.median(times):.3f} s median, {max(times):.3f} s max"
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Print the rehearsal's figures as a Markdown table (``--full``: the rendered 2-megapixel
+    sessions too, some minutes)."""
+    import argparse
+    import tempfile
+
+    ap = argparse.ArgumentParser(description=main.__doc__)
+    ap.add_argument("--full", action="store_true")
+    args = ap.parse_args(argv)
+    print("| session | exit | fx error % | max abs(error)/std | solve s | messages |")
+    print("| --- | --- | --- | --- | --- | --- |")
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp)
+        for mount, seed in (("eye_in_hand", 5), ("eye_to_hand", 6)):
+            d, frames, measured, target, _ = classic_session(root, mount, seed, empty=(3, 9))
+            code, msg, res, dt = solve(d)
+            print(_row(f"classic hand-eye {mount}", code, msg, res, dt, CAM_1080))
+            if res is not None:
+                key = "T_tool_cam" if mount == "eye_in_hand" else "T_base_cam"
+                T, T_park = (
+                    transform_of(res[key]),
+                    park(frames, measured, target, mount, (1920, 1080)),
+                )
+                print(
+                    f"|  vs cv2 Park | | | {rotation_deg(T, T_park):.3f} deg, "
+                    f"{1000 * np.linalg.norm(T[:3, 3] - T_park[:3, 3]):.2f} mm | | |"
+                )
+        for seed in range(1, 17):
+            d = root / f"tag{seed}"
+            eye_to_hand_tag_session(d, seed)
+            print(_row(f"eye-to-hand tag seed {seed}", *solve(d), CAM_1080))
+        if args.full:
+            for kind, cam, ext in (("chessboard", CAM_1080, "png"), ("charuco", CAM_1200, "jpg")):
+                tdict = (
+                    chessboard(11, 8, 0.035)
+                    if kind == "chessboard"
+                    else charuco(12, 9, 0.03, 0.022, "DICT_5X5_100")
+                )
+                d = root / kind
+                full, t13, _, target = eye_in_hand_2mp(d, tdict, cam, ext, 2)
+                print(
+                    f"| {kind} {cam.width}x{cam.height} {ext}: {_detection_figures(full, target)} |"
+                )
+                print(_row(f"{kind} 30 frames", *solve(full), cam))
+                print(_row(f"{kind} 13 translation-only", *solve(t13), cam))
+            d = root / "images_only"
+            images_only_session(d, CAM_1200, 50, skip=17, seed=4)
+            print(_row("images only, 50, frame 17 blank", *solve(d), CAM_1200))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
