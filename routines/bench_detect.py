@@ -365,7 +365,10 @@ FINDINGS = """## What the tables show, and what detect() does with it
   `CALIB_CB_ACCURACY` on photograph-like images (which costs over a second). On clean renders
   SB with `CALIB_CB_ACCURACY` is 0.005 px rms better, within the renderer's own texel error;
   on the real photographs our corners are the most consistent with a lens model. The slower
-  SB paths run only when the fast one finds nothing.
+  SB paths run only when the fast one finds nothing. A glare that lifts the black squares
+  towards white loses the board in every path; the classic detector on the reduced image with
+  its light made even (`flatten_light`: local mean and contrast) finds it again, second in the
+  cascade (corners under a saturated glare then err by up to 1-2 px and are down-weighted).
 - **Colour:** the green channel. Chromatic aberration moves red and blue edges radially
   against green; the luma mix blends the three and its error grows with the aberration.
 - **AprilGrid:** tag corners refined by `cornerSubPix` (X-junctions with Kalibr's corner
@@ -461,9 +464,9 @@ def report(seed: int = 0, data_dir: Path | None = None) -> str:
     lines += _table(
         "Chessboard (11 x 8 inner corners): detector paths",
         chess,
-        "The shipped cascade tries classic, then SB on the reduced image, then SB at full "
-        "size, then SB exhaustive; all paths but the raw SB ones are refined by `refine_grid` "
-        "(cornerSubPix, window 0.3 of the corner spacing).",
+        "The shipped cascade tries classic, then classic on the light made even, then SB on the "
+        "reduced image, then SB at full size, then SB exhaustive; all paths but the raw SB ones "
+        "are refined by `refine_grid` (cornerSubPix, window 0.3 of the corner spacing).",
     )
     lines += _table(
         "Colour images: grey conversion under chromatic aberration (chessboard, detect())",

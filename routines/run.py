@@ -994,6 +994,20 @@ def _session_status(session: Any, plan_poses: int | None) -> str:
     return "complete"
 
 
+def detection_hint(reasons: Mapping[tuple[int, str], Sequence[str]], n_frames: int) -> str:
+    """What the detector said most often of the images it found nothing usable in (a board
+    counted in inner corners, another board size, nothing at all), or "" when it said nothing.
+    """
+    counts: dict[str, int] = {}
+    for why in reasons.values():
+        if why:
+            counts[why[0]] = counts.get(why[0], 0) + 1
+    if not counts:
+        return ""
+    reason = max(counts, key=lambda r: counts[r])
+    return f"the detector says of {counts[reason]} of {n_frames} images: {reason}"
+
+
 def solve_session(
     session_dir: str | Path,
     out: str | Path | None = None,
@@ -1032,7 +1046,13 @@ def solve_session(
     if (session_dir / "plan.yaml").is_file():
         plan_poses = read_plan(session_dir / "plan.yaml").n_poses
     inst_result, inst_path = installed_calibration(installed)
-    result = calibrate(session.problem)
+    try:
+        result = calibrate(session.problem)
+    except DegenerateError as e:
+        hint = detection_hint(session.detect_reasons, len(session.problem.frames))
+        if not hint:
+            raise
+        raise DegenerateError(f"{e}; {hint}") from e
     fin = finish_solve(
         result,
         session_dir,

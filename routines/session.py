@@ -393,6 +393,8 @@ class Session:
     happened (faults, aborts). ``quality``: per (frame id, camera) the detector's report.
     ``cell``/``cell_sha256``: the cell file the run came from (None in older sessions);
     ``sockets``: camera name -> OAK board socket (empty unless the cameras were an OAK).
+    ``detect_reasons``: per (frame id, camera) whose image was detected on reading and gave
+    nothing usable, why (the detector's reasons, e.g. a board of another size seen).
     """
 
     directory: Path
@@ -407,6 +409,7 @@ class Session:
     robot_driver: str | None = None
     camera_driver: str | None = None
     sockets: dict[str, str] = field(default_factory=dict)
+    detect_reasons: dict[tuple[int, str], tuple[str, ...]] = field(default_factory=dict)
 
 
 def read_session(directory: str | Path, detect_images: bool = True) -> CalibrationProblem:
@@ -463,9 +466,15 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
     frames: list[Frame] = []
     quality: dict[tuple[int, str], dict[str, Any]] = {}
     images: dict[tuple[int, str], Path] = {}
+    reasons: dict[tuple[int, str], tuple[str, ...]] = {}
     for i, fr in enumerate(raw_frames):
         frame, q, im = _read_frame(
-            Fields(fr, SESSION_FILE, f"frames[{i}]"), directory, target, cameras, detect_images
+            Fields(fr, SESSION_FILE, f"frames[{i}]"),
+            directory,
+            target,
+            cameras,
+            detect_images,
+            reasons,
         )
         if any(x.id == frame.id for x in frames):
             raise InputError(
@@ -492,8 +501,10 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
         if knowledge == "robot":
             why = "the session holds no frames" if not frames else "no frame has a T_base_tool"
             raise f.error("knowledge", f"is 'robot' but {why}; record frames with robot poses")
-        if f.has("mount"):
-            f.choice("mount", MOUNTS)  # checked; without robot poses there is no mount
+        # without robot poses there is no mount: whatever the file says of it is not used (a
+        # word of the user's own is no reason to refuse images that calibrate a camera)
+        if f.has("mount") and not isinstance(f.get("mount"), str):
+            f.choice("mount", MOUNTS)
         mount = "none"
     if knowledge in ("board_translation", "board_direction"):
         for i, fr in enumerate(frames):
@@ -537,6 +548,7 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
         if f.has("camera_driver")
         else None,
         sockets=sockets,
+        detect_reasons=reasons,
     )
 
 
@@ -618,7 +630,9 @@ def _read_frame(
     target: Target,
     cameras: Sequence[CameraSpec],
     detect_images: bool,
+    reasons: dict[tuple[int, str], tuple[str, ...]],
 ) -> tuple[Frame, dict[tuple[int, str], dict[str, Any]], dict[tuple[int, str], Path]]:
+    """One frame; ``reasons`` collects why an image detected here gave nothing usable."""
     f.only(SESSION_KEYS["frames[]"])
     fid = f.integer("id", minimum=0)
     names = [c.name for c in cameras]
@@ -653,7 +667,9 @@ def _read_frame(
             )
         if not detect_images:
             raise ims.error(name, "has an image but no detections, and detection was turned off")
-        detections[name] = _detect_file(path, target, ims.where(name))
+        detections[name], why = _detect_file(path, target, ims.where(name))
+        if why:
+            reasons[(fid, name)] = why
     quality: dict[tuple[int, str], dict[str, Any]] = {}
     q = f.section("quality")
     for name in q.data:
@@ -687,7 +703,8 @@ def _read_detection(f: Fields, target: Target) -> Detection:
     return Detection(ids, px)
 
 
-def _detect_file(path: Path, target: Target, where: str) -> Detection:
+def _detect_file(path: Path, target: Target, where: str) -> tuple[Detection, tuple[str, ...]]:
+    """The detection of an image file, and the detector's reasons when it found nothing usable."""
     import cv2
 
     from slidecal.solver.detect import detect
@@ -695,7 +712,8 @@ def _detect_file(path: Path, target: Target, where: str) -> Detection:
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise InputError(f"{path.name} is not a readable image; replace it", where=where)
-    return detect(image, target).detection
+    report = detect(image, target)
+    return report.detection, () if report.ok else tuple(report.reasons)
 
 
 # ----------------------------------------------------------------------------- writing

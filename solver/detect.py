@@ -17,8 +17,10 @@ Chessboard: a cascade, fastest first, each step tried only when the one before f
 
 1. ``cv2.findChessboardCorners`` (adaptive threshold, fast check) on the image reduced by an
    integer factor to a long side of about 1000 px (~0.01 s);
-2. ``cv2.findChessboardCornersSB`` without flags on the reduced image (~0.05 s);
-3. the same at full resolution (~0.2 s), then with ``CALIB_CB_EXHAUSTIVE`` on the reduced image.
+2. the same on the reduced image with its light made even (``flatten_light``: a glare that
+   lifts the black squares towards white, ~0.05 s);
+3. ``cv2.findChessboardCornersSB`` without flags on the reduced image (~0.05 s);
+4. the same at full resolution (~0.2 s), then with ``CALIB_CB_EXHAUSTIVE`` on the reduced image.
 
 No step uses ``CALIB_CB_NORMALIZE_IMAGE`` (it lost the board in most real photographs). The
 corners are then refined at full resolution by ``cv2.cornerSubPix`` in a window per corner of
@@ -416,7 +418,28 @@ def _sb(img: np.ndarray, size: tuple[int, int], flags: int = 0) -> np.ndarray | 
     return np.asarray(corners, np.float64).reshape(-1, 2) if found and corners is not None else None
 
 
-CHESSBOARD_PATHS = ("classic_reduced", "sb_reduced", "sb_full", "sb_exhaustive_reduced")
+#: the local-contrast scale of ``flatten_light``, in pixels of the reduced image
+FLATTEN_SIGMA_PX = 10.0
+
+
+def flatten_light(grey: np.ndarray, sigma_px: float = FLATTEN_SIGMA_PX) -> np.ndarray:
+    """``grey`` with its light made even: each pixel's difference from the local mean over the
+    local standard deviation (Gaussian windows of ``sigma_px``), mapped to 0..255. A glare or a
+    light gradient that lifts the black squares towards the white ones leaves the pattern's
+    local contrast, which the classic detector's adaptive threshold then finds again."""
+    g = grey.astype(np.float32)
+    d = g - cv2.GaussianBlur(g, (0, 0), sigma_px)
+    s = np.sqrt(cv2.GaussianBlur(d * d, (0, 0), sigma_px)) + 2.0  # + 2: flat areas stay grey
+    return np.clip(128.0 + 50.0 * d / s, 0, 255).astype(np.uint8)
+
+
+CHESSBOARD_PATHS = (
+    "classic_reduced",
+    "classic_flat_reduced",
+    "sb_reduced",
+    "sb_full",
+    "sb_exhaustive_reduced",
+)
 
 
 def find_chessboard(
@@ -429,6 +452,8 @@ def find_chessboard(
     for path in paths:
         if path == "classic_reduced":
             c = _classic(small, size)
+        elif path == "classic_flat_reduced":
+            c = _classic(flatten_light(small), size)
         elif path == "sb_reduced":
             c = _sb(small, size)
         elif path == "sb_full":
