@@ -746,23 +746,36 @@ def _capture(rig, cfg: CellConfig, writer, prog: Progress, i: int, retries: int)
     """Capture and detect at the current pose; a dropped frame is captured again after
     reopening the camera, an image set without a single corner is captured again; each retry
     is an event of the session. The last failure of a dropped frame is raised."""
+    failure = ""  # the capture's own fault, kept while the camera is reconnected
     for attempt in range(retries + 1):
+        if failure:  # reconnect before capturing again (a camera may come back after a while)
+            try:
+                rig.close()
+                rig.open()
+                failure = ""
+            except HardwareFault as e:
+                reason = " ".join(str(e).split())
+                if attempt == retries:  # the root cause first, not "capture on a closed rig"
+                    raise HardwareFault(f"{failure}; reconnecting failed: {reason}") from None
+                msg = (
+                    f"frame {i + 1}: reconnecting the camera failed ({reason}); "
+                    f"retry {attempt + 1} of {retries}"
+                )
+                writer.add_event("retry", msg, frame_index=i)
+                prog.event(msg)
+                continue
         try:
             images = rig.capture()
         except HardwareFault as e:
             if attempt == retries:
                 raise
+            failure = " ".join(str(e).split())
             msg = (
-                f"frame {i + 1}: capture failed ({' '.join(str(e).split())}); reconnecting "
+                f"frame {i + 1}: capture failed ({failure}); reconnecting "
                 f"the camera, retry {attempt + 1} of {retries}"
             )
             writer.add_event("retry", msg, frame_index=i)
             prog.event(msg)
-            try:
-                rig.close()
-                rig.open()
-            except HardwareFault as e2:
-                prog.event(f"frame {i + 1}: reconnecting failed ({e2})")
             continue
         detections, quality = _detect_all(images, cfg)
         if any(q["n_corners"] > 0 for q in quality.values()) or attempt == retries:

@@ -62,3 +62,18 @@ def test_each_fault_stops_keeps_frames_records_and_exits_3(kind, tmp_path, monke
     assert len(retries) == (2 if kind in ("no_frame", "camera_lost") else 0)
     assert event["kind"] == "fault" and event["frames_kept"] == 2
     assert not (out / "result.yaml").exists()
+
+
+def test_a_camera_lost_for_good_is_reported_by_its_cause(tmp_path, capsys):
+    # the retries reconnect the camera; when that fails too, the error names what happened
+    # (the rig disconnected, and reconnecting found no camera), not the closed rig the last
+    # capture would have met
+    out = tmp_path / "session"
+    code = cli.main(["run", "--out", str(out), "--fault", "camera_lost@1", "--quiet",
+                     "--no-recording"])
+    err = capsys.readouterr().err
+    assert code == 3, err
+    assert "camera rig disconnected" in err and "reconnecting failed: no camera found" in err
+    assert "closed camera rig" not in err
+    event = load_session(out, detect_images=False).events[-1]
+    assert "camera rig disconnected" in event["message"]
