@@ -485,6 +485,7 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
             and len(o) == 3
             and isinstance(o[0], int)
             and not isinstance(o[0], bool)
+            and isinstance(o[1], str)
             and o[1] in cams
             and isinstance(o[2], int)
             and not isinstance(o[2], bool)

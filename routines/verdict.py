@@ -19,7 +19,8 @@ The gate (:func:`judge`), each test with a limit from the cell file's ``limits:`
 - ``reprojection``: the model-adequacy test of the solver (``result.adequacy``) when present,
   else the reprojection rms against ``max_rms_px``;
 - ``std``: each parameter's one-sigma against its limit (``fx_rel_std``, ``cxy_std_px``,
-  ``hand_eye_rot_std_deg``, ``hand_eye_t_std_mm``, rig likewise);
+  ``hand_eye_rot_std_deg``, ``hand_eye_t_std_mm``, rig likewise;
+  ``hand_eye_rot_std_deg_from_translations`` for a hand-eye rotation from translations alone);
 - ``scale``: the median camera/robot length ratio of the moves must be within 1 +- tol, tol
   the larger of ``scale_tolerance`` and 4 times the ratio's own standard error (and the test
   fails as inconclusive when tol exceeds 5 times ``scale_tolerance``);
@@ -77,6 +78,10 @@ class Limits:
     ``max_rms_px``: reprojection rms when the solver gives no adequacy test.
     ``fx_rel_std``: relative one-sigma of fx and fy. ``cxy_std_px``: one-sigma of cx, cy.
     ``hand_eye_rot_std_deg`` / ``hand_eye_t_std_mm``: one-sigma of the hand-eye (and rig).
+    ``hand_eye_rot_std_deg_from_translations``: one-sigma of a hand-eye rotation the session
+    determines from translations alone (one orientation: its translation is not observable);
+    on a real arm it is a few tenths of a degree, and the full hand-eye's limit would reject
+    the intrinsics with it.
     ``scale_tolerance``: smallest tolerance of the camera/robot length ratio around 1.
     ``min_coverage``: fraction of the ``coverage_grid`` ([columns, rows]) cells holding a
     corner, over all frames, per camera. ``max_change_sigma``: a parameter's change from the
@@ -94,6 +99,7 @@ class Limits:
     cxy_std_px: float = 3.0
     hand_eye_rot_std_deg: float = 0.2
     hand_eye_t_std_mm: float = 2.0
+    hand_eye_rot_std_deg_from_translations: float = 1.0
     scale_tolerance: float = 0.01
     min_coverage: float = 0.25
     coverage_grid: tuple[int, int] = (8, 6)
@@ -375,16 +381,20 @@ def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
             out.append(Check("std", False, None, None, f"{t.name}: rotation not determined"))
             continue
         s = _f(t.std_rot_deg)
-        ok = s is not None and s <= lim.hand_eye_rot_std_deg
+        full = t.t_m is not None  # else: from translations alone (no rotation in the session)
+        rot_lim = lim.hand_eye_rot_std_deg if full else lim.hand_eye_rot_std_deg_from_translations
+        ok = s is not None and s <= rot_lim
         out.append(
             Check(
                 "std",
                 ok,
                 s,
-                lim.hand_eye_rot_std_deg,
+                rot_lim,
                 f"{t.name}: rotation one-sigma "
                 + (f"{s:.4f} deg" if s is not None else "unknown")
-                + f" (limit {lim.hand_eye_rot_std_deg:g} deg)",
+                + f" (limit {rot_lim:g} deg"
+                + ("" if full else ", a hand-eye from translations alone")
+                + ")",
             )
         )
         if t.t_m is not None:

@@ -195,3 +195,12 @@ def test_duplicate_keys_are_refused_but_merge_keys_and_a_bom_are_read(tmp_path: 
     p.write_text("a: &x [1, *x]\n")  # a list holding itself: read, then refused as a value
     with pytest.raises(InputError, match="array of numbers"):
         Fields(load_yaml(p, "cell file"), "cell.yaml").array("a", (-1,))
+
+
+@pytest.mark.parametrize("camera", [[], {}, 3])
+def test_an_outlier_whose_camera_is_not_a_name_is_refused(camera: Any) -> None:
+    # the fuzzer found it: a list in a name's place crashed the reader (unhashable)
+    data = copy.deepcopy(bad_input.valid_data("result"))
+    data["outliers"] = [[0, camera, 3]]
+    with pytest.raises(InputError, match=r"outliers\[0\]"):
+        result_from_dict(data)

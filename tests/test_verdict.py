@@ -155,6 +155,27 @@ def test_each_gate_fails_on_its_own(solved) -> None:
     assert _failed(dataclasses.replace(r, adequacy=good)) == set()
 
 
+def test_a_hand_eye_from_translations_alone_has_its_own_limit(solved) -> None:
+    # one orientation: the hand-eye translation is not observable and the rotation comes from
+    # the translations, a few tenths of a degree on a real arm; the full hand-eye's 0.2 deg
+    # would reject the intrinsics with it
+    o, problem = solved
+    r = dataclasses.replace(o.result, adequacy=None)
+    he = r.hand_eye
+    full = dataclasses.replace(he, std_rot_deg=0.5)
+    assert _failed(dataclasses.replace(r, hand_eye=full)) == {"std"}
+    alone = dataclasses.replace(he, std_rot_deg=0.5, t_m=None, std_t_mm=None)
+    assert _failed(dataclasses.replace(r, hand_eye=alone)) == set()
+    worse = dataclasses.replace(alone, std_rot_deg=1.5)
+    v = judge(dataclasses.replace(r, hand_eye=worse), Limits())
+    assert {c.test for c in v.reasons} == {"std"}
+    assert "from translations alone" in v.reasons[0].message
+    strict = Limits(hand_eye_rot_std_deg_from_translations=0.3)
+    assert {c.test for c in judge(dataclasses.replace(r, hand_eye=alone), strict).reasons} == {
+        "std"
+    }
+
+
 def test_coverage_gate(solved) -> None:
     o, problem = solved
     few = dataclasses.replace(problem, frames=problem.frames[:1])
