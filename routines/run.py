@@ -746,6 +746,12 @@ def _capture(rig, cfg: CellConfig, writer, prog: Progress, i: int, retries: int)
     """Capture and detect at the current pose; a dropped frame is captured again after
     reopening the camera, an image set without a single corner is captured again; each retry
     is an event of the session. The last failure of a dropped frame is raised."""
+
+    def retry(what: str) -> None:  # an event of the session and a line of progress
+        msg = f"frame {i + 1}: {what}"
+        writer.add_event("retry", msg, frame_index=i)
+        prog.event(msg)
+
     failure = ""  # the capture's own fault, kept while the camera is reconnected
     for attempt in range(retries + 1):
         if failure:  # reconnect before capturing again (a camera may come back after a while)
@@ -757,12 +763,9 @@ def _capture(rig, cfg: CellConfig, writer, prog: Progress, i: int, retries: int)
                 reason = " ".join(str(e).split())
                 if attempt == retries:  # the root cause first, not "capture on a closed rig"
                     raise HardwareFault(f"{failure}; reconnecting failed: {reason}") from None
-                msg = (
-                    f"frame {i + 1}: reconnecting the camera failed ({reason}); "
-                    f"retry {attempt + 1} of {retries}"
+                retry(
+                    f"reconnecting the camera failed ({reason}); retry {attempt + 1} of {retries}"
                 )
-                writer.add_event("retry", msg, frame_index=i)
-                prog.event(msg)
                 continue
         try:
             images = rig.capture()
@@ -770,21 +773,15 @@ def _capture(rig, cfg: CellConfig, writer, prog: Progress, i: int, retries: int)
             if attempt == retries:
                 raise
             failure = " ".join(str(e).split())
-            msg = (
-                f"frame {i + 1}: capture failed ({failure}); reconnecting "
-                f"the camera, retry {attempt + 1} of {retries}"
+            retry(
+                f"capture failed ({failure}); reconnecting the camera, retry {attempt + 1} of "
+                f"{retries}"
             )
-            writer.add_event("retry", msg, frame_index=i)
-            prog.event(msg)
             continue
         detections, quality = _detect_all(images, cfg)
         if any(q["n_corners"] > 0 for q in quality.values()) or attempt == retries:
             return images, detections, quality
-        msg = (
-            f"frame {i + 1}: no corner detected; capturing again, retry {attempt + 1} of {retries}"
-        )
-        writer.add_event("retry", msg, frame_index=i)
-        prog.event(msg)
+        retry(f"no corner detected; capturing again, retry {attempt + 1} of {retries}")
     raise AssertionError("unreachable")  # the loop returns or raises
 
 
