@@ -995,8 +995,10 @@ def classic_real_arm(
     while len(views) < n_frames:
         for T in camera_board_poses(rng, 2 * n_frames, target):
             q = urk.ik(planned_pose(T), urk.Q_HOME, urk.UR5E)
-            if len(views) < n_frames and any(urk.singularity(x, urk.UR5E) is None for x in q):
+            if any(urk.singularity(x, urk.UR5E) is None for x in q):
                 views.append(T)
+                if len(views) == n_frames:
+                    break
     planned = np.stack([planned_pose(T) for T in views])
     true = real_arm_poses(planned, rng, arm_mm, arm_deg)
     frames = _real_arm_frames(true, planned, T_base_board, eye_in_hand, sigma_px, rng, detect)
