@@ -317,6 +317,11 @@ def result_covariance(
         w, V = np.linalg.eigh(0.5 * (extra + extra.T))
         cover = (V * np.clip(w, 0.0, None)) @ V.T
         named = NamedCovariance(names, named.matrix + 0.5 * (cover + cover.T))
+    shared = common_trend_excess(out, project)
+    if shared is not None:  # the groups' translation trends: one field or independent
+        w, V = np.linalg.eigh(0.5 * (shared + shared.T))
+        cover = (V * np.clip(w, 0.0, None)) @ V.T
+        named = NamedCovariance(names, named.matrix + 0.5 * (cover + cover.T))
     level = level_excess(out, project)
     if level is not None:  # the noise levels are estimates: their uncertainty, carried
         named = NamedCovariance(names, named.matrix + 0.5 * (level + level.T))
@@ -374,13 +379,16 @@ def level_excess(
 
     sig = np.asarray(m.pose_sigma, float)
     blocks = []  # (key, levels, per-frame share of a level, rotation rows)
-    for key in ("E", "U", "V"):
+    for key in ("E", "U", "V", "W"):
         if key not in m.slices or key not in red:
             continue
         n = m.slices[key].stop - m.slices[key].start
         if key == "V":
             rot = m.trend_rotation_rows
             blocks.append((key, np.asarray(m.trend_sigma, float), m.trend_spread, rot))
+        elif key == "W":
+            rot = m.common_rotation_rows
+            blocks.append((key, np.asarray(m.common_sigma, float), m.common_spread, rot))
         else:
             rot = np.tile([True, True, True, False, False, False], n // 6)
             levels = sig if key == "E" else np.asarray(m.group_sigma, float)
@@ -394,7 +402,8 @@ def level_excess(
             nu, level = float(red[key][i]), float(levels[i])
             if nu < MIN_LEVEL_DOF or not rows.any() or level <= 2.0 * SIGMA_FLOOR[i]:
                 continue
-            if key != "E" and level * per_frame < 0.1 * sig[i]:
+            share = per_frame if np.isscalar(per_frame) else per_frame[i]
+            if key != "E" and level * share < 0.1 * sig[i]:
                 continue
             Ci = C[:, rows]
             excess += (nu / (nu - 2.0) - 1.0) * (Ci @ Ci.T) / level**2
@@ -443,6 +452,7 @@ def tool_offset_gain(
     )
     ext.sigma_px, ext.pose_sigma = m.sigma_px, m.pose_sigma
     ext.group_sigma, ext.trend_sigma = m.group_sigma, m.trend_sigma
+    ext.common_sigma = m.common_sigma
     nb = ext.normal_blocks(out.state, weights, keep=False)
     at = {n: i for i, n in enumerate(ext.names)}
     known = set(m.names)
@@ -522,6 +532,51 @@ def smooth_arm_excess(
                 Ak = A[:, 6 * k + a]
                 B = Ak @ c
                 excess += sig[i] ** 2 * (B @ B.T - Ak @ Ak.T)
+    return excess
+
+
+def common_trend_excess(
+    out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
+) -> np.ndarray | None:
+    """What the covariance gains when the orientation groups' translation trends, modelled
+    independent from group to group, are in truth one field the groups share (symmetric, not
+    PSD: its positive part is added); None without two trend groups (docs/ROBOT_ACCURACY.md).
+
+    A real arm errs alike at one place whatever the orientation: the groups' trends along their
+    moves have a common part. Its rotation is estimated where the session has the frames for
+    it (the shared corrections ``W``, :func:`slidecal.solver.refine.common_trend`); its linear
+    translation never is, because its scales and shears of the moves are the focal lengths and
+    the principal point again (a field that shifts the positions along y in proportion to their
+    depth moves the vanishing point of the depth moves, which the principal point also moves):
+    the images cannot tell them apart, and independent trends average it down over the groups.
+    The estimate stays the model's; its covariance is the sandwich over the trends' prior
+    rows, with each translation trend's prior variance ``tau^2`` (the level learned) shared by
+    every group along the directions they have in common (``C L^-1 S L^-1 C`` as in
+    :func:`smooth_arm_excess`)."""
+    m, st = out.model, out.model.st
+    if out.covariance_blocks is None or "V" not in m.slices or len(st.trend_dims) < 2:
+        return None
+    if st.T_meas is None or m.trend_sigma is None:
+        return None
+    from slidecal.solver.refine import TREND_AXES
+
+    tau = float(m.trend_sigma[1])
+    sv = m.slices["V"]
+    A = _columns(out, project, np.arange(sv.start, sv.stop)) / tau**2  # gain on the priors
+    axes = list(TREND_AXES)
+    excess = np.zeros((len(A), len(A)))
+    for a in (3, 4, 5):
+        ai = axes.index(a)
+        common = np.zeros((len(A), 3))
+        for g, dims in enumerate(st.trend_dims):
+            k = np.flatnonzero(st.trend_groups == g)
+            d = st.T_meas[k, :3, 3] - st.T_meas[k, :3, 3].mean(axis=0)
+            B = np.linalg.pinv(d) @ st.trend_coords[k, :dims]  # (3, dims): the group's basis
+            o = m.trend_offsets[g] + ai * dims
+            Ag = A[:, o : o + dims]
+            common += Ag @ B.T
+            excess -= tau**2 * (Ag @ Ag.T)
+        excess += tau**2 * (common @ common.T)
     return excess
 
 

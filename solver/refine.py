@@ -65,6 +65,9 @@ class ModelState:
     # (n,) the orientation groups' linear trends of the correction along their translations
     # (``Structure.trend_*``), added to their frames' E
     V: np.ndarray | None = None
+    # (n,) the corrections every trend group shares (``Structure.common_*``), added to their
+    # frames' E
+    W: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -108,6 +111,17 @@ class Structure:
     trend_coords: np.ndarray | None = None
     trend_dims: tuple[int, ...] = ()
     trend_sigma: tuple[float, float] | None = None
+    # and the arm errs alike at one place whatever the orientation: the groups share part of
+    # their error (a rotation trend, a quadratic translation field: :func:`common_trend`). The
+    # correction of frame k gains ``common_map[k] W`` (``common_map`` (F, 6, n), per metre of
+    # the frame's offset; zero for frames of no trend group), ``W`` (n,) with prior sigmas
+    # ``common_sigma`` (rad/m, m/m) on the columns of ``common_rotation`` (n,) and the
+    # others; none with fewer than two trend groups or too few frames; ``common_spread``
+    # (rotation, translation): what a level is in a frame's correction (metres per axis)
+    common_map: np.ndarray | None = None
+    common_rotation: np.ndarray | None = None
+    common_sigma: tuple[float, float] | None = None
+    common_spread: tuple[float, float] = (0.0, 0.0)
 
 
 def intrinsic_names(problem: CalibrationProblem) -> tuple[str, ...]:
@@ -415,6 +429,8 @@ class BundleModel:
                 self.trend_offsets.append(len(block))
                 block += [f"trend{g}.{POSE_AXES[a]}_d{j}" for a in TREND_AXES for j in range(m)]
             add("V", block)
+        if structure.pose_sigma is not None and structure.common_sigma is not None:
+            add("W", [f"shared_field.{j}" for j in range(structure.common_map.shape[2])])
         if structure.pose_sigma is not None:
             add(
                 "E",
@@ -430,6 +446,7 @@ class BundleModel:
         self.pose_sigma = structure.pose_sigma
         self.group_sigma = structure.group_sigma
         self.trend_sigma = structure.trend_sigma
+        self.common_sigma = structure.common_sigma
         # the redundancy (degrees of freedom) behind each estimated pose level, per block
         # ("E" frames, "U" groups, "V" trends): (rotation, translation), the last
         # variance-component step's sum of 1 - h over the block's prior rows
@@ -499,7 +516,11 @@ class BundleModel:
         if "V" in self.slices:
             dv = delta[self.slices["V"]]
             V = (np.zeros_like(dv) if V is None else V) + dv
-        return ModelState(K, dist, T_cam_ref, X, Y, s, E, U, V)
+        W = state.W
+        if "W" in self.slices:
+            dw = delta[self.slices["W"]]
+            W = (np.zeros_like(dw) if W is None else W) + dw
+        return ModelState(K, dist, T_cam_ref, X, Y, s, E, U, V, W)
 
     def T_ref_board(self, state: ModelState, fi: int) -> np.ndarray:
         """``T_ref_board`` (4, 4) of the reference camera at frame index ``fi``."""
@@ -656,6 +677,10 @@ class BundleModel:
                 J[rows_u, 1, ucols] = blk[:, 1, :]
             if "V" in self.slices:  # a trend moves a frame like its own correction, times c_k
                 self._trend_columns(J, blk)
+            if "W" in self.slices:  # so does the common trend
+                sw, s0 = self.slices["W"], self.shared_start
+                Sw = self.shared_map[f][:, :, sw.start - s0 : sw.stop - s0]
+                J[:, :, sw] = np.einsum("nab,nbm->nam", blk, Sw)
             cols = self.slices["E"].start + f[:, None] * 6 + np.arange(6)
             rows = np.arange(n)[:, None]
             J[rows, 0, cols] = blk[:, 0, :]
@@ -762,7 +787,7 @@ class BundleModel:
     def shared_start(self) -> int:
         """First column of the corrections shared by several frames (the groups' ``U``, the
         trends' ``V``; they sit just before the frames' ``E``); ``E``'s start without them."""
-        for key in ("U", "V", "E"):
+        for key in ("U", "V", "W", "E"):
             if key in self.slices:
                 return self.slices[key].start
         return len(self.names)
@@ -791,6 +816,9 @@ class BundleModel:
                 o = v0 + self.trend_offsets[g]
                 for ai, a in enumerate(TREND_AXES):
                     S[kg, a, o + ai * dims : o + (ai + 1) * dims] = st.trend_coords[kg, :dims]
+        if "W" in self.slices:
+            sw = self.slices["W"]
+            S[:, :, sw.start - s0 : sw.stop - s0] = st.common_map
         return S
 
     def _with_shared(
@@ -885,6 +913,8 @@ class BundleModel:
             out.append((self.slices["U"], self.group_prior_scale, state.U.reshape(-1)))
         if "V" in self.slices:
             out.append((self.slices["V"], self.trend_prior_scale, state.V))
+        if "W" in self.slices:  # the corrections the trend groups share
+            out.append((self.slices["W"], self.common_prior_scale, state.W))
         return out
 
     def _trend_columns(self, J: np.ndarray, blk: np.ndarray) -> None:
@@ -911,6 +941,23 @@ class BundleModel:
         return float(np.sqrt(np.mean(np.sum(c**2, axis=1))))
 
     @property
+    def common_rotation_rows(self) -> np.ndarray:
+        """(n,) bool over the common trend's coordinates ``W``: True for a rotation's."""
+        return self.st.common_rotation
+
+    @property
+    def common_spread(self) -> tuple[float, float]:
+        """(rotation, translation) metres: a level of the shared corrections ``W`` times it is
+        its share of a frame's correction, per axis."""
+        return self.st.common_spread
+
+    @property
+    def common_prior_scale(self) -> np.ndarray:
+        """(n,) pixel-unit scale of the common trend's prior rows."""
+        rot, t = self.common_sigma
+        return self.sigma_px * np.where(self.st.common_rotation, 1.0 / rot, 1.0 / t)
+
+    @property
     def trend_prior_scale(self) -> np.ndarray:
         """(n,) pixel-unit scale of the trends' prior rows."""
         rot, t = self.trend_sigma
@@ -925,7 +972,7 @@ class BundleModel:
         if self.shared_map is None:
             return state.E.copy()
         parts = []  # the shared corrections' values, in their columns' order
-        for key, values in (("U", state.U), ("V", state.V)):
+        for key, values in (("U", state.U), ("V", state.V), ("W", state.W)):
             if key in self.slices:
                 sl = self.slices[key]
                 parts.append(np.zeros(sl.stop - sl.start) if values is None else values.ravel())
@@ -1117,17 +1164,20 @@ class RefineOutput:
 
 
 def with_pose_corrections(
-    state: ModelState, n_frames: int, n_groups: int = 0, n_trend: int = 0
+    state: ModelState, n_frames: int, n_groups: int = 0, n_trend: int = 0, n_common: int = 0
 ) -> ModelState:
     """``state`` with zero robot-pose corrections ``E`` (n_frames, 6) where it has none, and
-    zero group corrections ``U`` (n_groups, 6) and trends ``V`` (n_trend,) when asked for."""
+    zero group corrections ``U`` (n_groups, 6), trends ``V`` (n_trend,) and common trend ``W``
+    (n_common,) when asked for."""
     E = np.zeros((n_frames, 6)) if state.E is None else state.E
-    U, V = state.U, state.V
+    U, V, W = state.U, state.V, state.W
     if n_groups and (U is None or len(U) != n_groups):
         U = np.zeros((n_groups, 6))
     if n_trend and (V is None or len(V) != n_trend):
         V = np.zeros(n_trend)
-    return ModelState(state.K, state.dist, state.T_cam_ref, state.X, state.Y, state.s, E, U, V)
+    if n_common and (W is None or len(W) != n_common):
+        W = np.zeros(n_common)
+    return ModelState(state.K, state.dist, state.T_cam_ref, state.X, state.Y, state.s, E, U, V, W)
 
 
 def _respect_options(problem: CalibrationProblem, state: ModelState) -> ModelState:
@@ -1246,6 +1296,10 @@ TREND_MIN_SPREAD_M = 0.005
 #: positions of the whole session: an arm's error is smooth over its workspace, and its linear
 #: part (a scale or shear of the positions) reaches the focal lengths through the moves.
 SESSION_TREND_MIN_FRAMES = 8
+#: Trend frames per coordinate of the corrections the trend groups share (:func:`common_trend`):
+#: the rotation trend's 9 coordinates need 36 frames, the quadratic translation field's 18
+#: coordinates 72 (positions spread in space)
+COMMON_FIELD_FRAMES_PER_COORD = 4
 
 
 @single_threaded_blas
@@ -1297,6 +1351,10 @@ def refine(
         trend_coords=None,
         trend_dims=(),
         trend_sigma=None,
+        common_map=None,
+        common_rotation=None,
+        common_sigma=None,
+        common_spread=(0.0, 0.0),
     )
     start = ModelState(init.K, init.dist, init.T_cam_ref, init.X, init.Y, init.s)
     out0 = _refine(problem, exact, start, max_iter, robust, estimate=False)
@@ -1324,6 +1382,7 @@ def refine(
         whole = np.zeros(len(T_meas), dtype=int)
         trend_groups, trend_coords, trend_dims = translation_trends(T_meas, whole)
     spread = float(np.sqrt(np.mean(np.sum(trend_coords**2, axis=1)))) if trend_dims else 0.0
+    common_map, common_rotation, common_spread = common_trend(T_meas, trend_groups, trend_dims)
     noisy = replace(
         structure,
         T_meas=T_meas,
@@ -1334,6 +1393,14 @@ def refine(
         trend_coords=trend_coords if trend_dims else None,
         trend_dims=trend_dims,
         trend_sigma=(sig0[0] / spread, sig0[1] / spread) if trend_dims else None,
+        common_map=common_map,
+        common_rotation=common_rotation,
+        common_sigma=(
+            (sig0[0] / common_spread[0], sig0[1] / max(common_spread[1], 1e-3))
+            if common_map is not None
+            else None
+        ),
+        common_spread=common_spread,
     )
     out = replace(
         _refine(problem, noisy, out0.state, max_iter, robust, estimate=True), test_fit=fit
@@ -1344,6 +1411,8 @@ def refine(
         levels.append(m.group_sigma)
     if "V" in m.slices:  # a trend's share of a frame's error: its level times the offset
         levels.append(tuple(spread * np.asarray(m.trend_sigma)))
+    if "W" in m.slices:  # a rotation only
+        levels.append(tuple(np.asarray(common_spread) * np.asarray(m.common_sigma)))
     total = tuple(float(np.linalg.norm(axis)) for axis in zip(*levels, strict=True))
     return _with_robot(
         out,
@@ -1382,6 +1451,72 @@ def translation_trends(
         coords[k, :m] = d @ Vt[:m].T
         dims.append(m)
     return trend_groups, coords, tuple(dims)
+
+
+def common_trend(
+    T_base_tool: np.ndarray, trend_groups: np.ndarray, trend_dims: tuple[int, ...]
+) -> tuple[np.ndarray | None, np.ndarray | None, tuple[float, float]]:
+    """The smooth error every trend group shares (``Structure.common_*``): its map (F, 6, n)
+    from its n coordinates to each frame's correction, which of them are rotations (n,), and
+    what a level of each kind (rotation, translation) is in a frame's correction (metres: the
+    coordinates' rms over the frames); ``(None, None, (0, 0))`` with fewer than two trend groups.
+
+    - The rotation: one linear trend of it over the frames' offsets from their own group's mean
+      (3 x m coordinates over the m directions those offsets span, as
+      :func:`translation_trends` makes for one group): the part of the groups' rotation trends
+      they have in common. Only with :data:`COMMON_FIELD_FRAMES_PER_COORD` trend frames or more
+      per coordinate (36 for offsets spread in space): fewer cannot tell it from the groups'
+      own trends and offsets (R1's four groups of five frames: 9 coordinates for 20 frames).
+    - The translation: a quadratic field of the positions (3 axes times the products of the
+      positions' coordinates over the directions they span, each less its mean): an arm
+      sagging under gravity by an amount that grows with its reach, and the like; only with
+      :data:`COMMON_FIELD_FRAMES_PER_COORD` trend frames or more per coordinate of it (fewer
+      cannot tell a field from the frames' own scatter: R1's 20 frames would give 18
+      coordinates to it and learn the white noise of the poses as a field). Its linear
+      part is left out: a scale or shear of the moves is the focal lengths and the principal
+      point again, a skew one a rotation of the robot's base (the camera's or the board's pose
+      again), which the images cannot tell apart from them; the covariance carries it
+      (:func:`slidecal.solver.named.common_trend_excess`).
+    """
+    none = (None, None, (0.0, 0.0))
+    if len(trend_dims) < 2:
+        return none
+    k = np.flatnonzero(trend_groups >= 0)
+    within = T_base_tool[k].copy()  # each frame's offset from its own group's mean
+    for g in range(len(trend_dims)):
+        kg = trend_groups[k] == g
+        within[kg, :3, 3] -= within[kg, :3, 3].mean(axis=0)
+    _, c, dims = translation_trends(within, np.zeros(len(k), dtype=int))
+    if not dims or len(k) < COMMON_FIELD_FRAMES_PER_COORD * 3 * dims[0]:
+        return none
+    F, m = len(T_base_tool), dims[0]
+    cols: list[np.ndarray] = []
+    for a in range(3):  # the rotation about axis a grows along each spanned direction
+        for j in range(m):
+            col = np.zeros((F, 6))
+            col[k, a] = c[:, j]
+            cols.append(col)
+    _, p, pdims = translation_trends(T_base_tool[k], np.zeros(len(k), dtype=int))
+    n_rot = len(cols)
+    if pdims and len(k) >= COMMON_FIELD_FRAMES_PER_COORD * 3 * pdims[0] * (pdims[0] + 1) // 2:
+        scale = float(np.sqrt(np.mean(np.sum(p**2, axis=1))))
+        u = p[:, : pdims[0]] / scale  # the positions' coordinates at unit rms
+        for i in range(pdims[0]):
+            for j in range(i, pdims[0]):
+                q = u[:, i] * u[:, j]
+                q = (q - q.mean()) * scale  # metres at the positions' rms
+                for a in range(3):
+                    col = np.zeros((F, 6))
+                    col[k, 3 + a] = q
+                    cols.append(col)
+    common = np.stack(cols, axis=2)
+    rotation = np.arange(len(cols)) < n_rot
+
+    def share(columns: np.ndarray) -> float:  # per axis: a level's share of a frame's
+        n_axes = 3
+        return float(np.sqrt(np.sum(common[k][:, :, columns] ** 2) / (len(k) * n_axes)))
+
+    return common, rotation, (share(rotation), share(~rotation) if (~rotation).any() else 0.0)
 
 
 def _shared_groups(pose_groups: np.ndarray) -> bool:
@@ -1483,14 +1618,15 @@ def _refine(
         n_groups_u = (model.slices["U"].stop - model.slices["U"].start) // 6
         n_prior += 6 * n_groups_u
     n_trend = model.slices["V"].stop - model.slices["V"].start if "V" in model.slices else 0
-    n_prior += n_trend
+    n_common = model.slices["W"].stop - model.slices["W"].start if "W" in model.slices else 0
+    n_prior += n_trend + n_common
     estimate = estimate and n_prior > 0
     inlier = np.ones(n_px + n_prior, dtype=bool)
     cam_w = np.ones(n_px + n_prior)  # per-camera noise weights, relative to the reference
     cam_rows = [model.camera_rows(ci, n_px + n_prior) for ci in range(len(model.cams))]
     state = _respect_options(problem, init)
     if n_prior:
-        state = with_pose_corrections(state, len(problem.frames), n_groups_u, n_trend)
+        state = with_pose_corrections(state, len(problem.frames), n_groups_u, n_trend, n_common)
     model.sigma_px = 0.2  # a typical corner noise; re-estimated below when poses are noisy
     total_it = 0
     converged = False
@@ -1522,13 +1658,16 @@ def _refine(
         moved = model.apply(state, delta)  # E, U and V at the step (linear in delta)
         diag_E = np.diagonal(Ni.EE, axis1=1, axis2=2).reshape(-1)
         h = np.clip(model.prior_scale**2 * diag_E, 0.0, 1.0)
-        h_u = h_v = np.zeros(0)
+        h_u = h_v = h_w = np.zeros(0)
         if "U" in model.slices:
             diag_U = np.diagonal(Ni.gg)[model.slices["U"]]
             h_u = np.clip(model.group_prior_scale**2 * diag_U, 0.0, 1.0)
         if "V" in model.slices:
             diag_V = np.diagonal(Ni.gg)[model.slices["V"]]
             h_v = np.clip(model.trend_prior_scale**2 * diag_V, 0.0, 1.0)
+        if "W" in model.slices:
+            diag_W = np.diagonal(Ni.gg)[model.slices["W"]]
+            h_w = np.clip(model.common_prior_scale**2 * diag_W, 0.0, 1.0)
         sig = []
         for ci, rows in enumerate(cam_rows):
             m = rows & inlier
@@ -1536,7 +1675,7 @@ def _refine(
                 sig.append(np.nan)
                 continue
             if len(cam_rows) == 1:  # the hat matrix's trace is P: the prior rows take sum(h)
-                used = len(model.names) - float(np.sum(h) + np.sum(h_u) + np.sum(h_v))
+                used = len(model.names) - float(np.sum(h) + np.sum(h_u) + np.sum(h_v) + np.sum(h_w))
             else:
                 used = camera_trace(Ni, ci, m)
             sig.append(np.sqrt(np.sum(r[m] ** 2) / max(m.sum() - used, 1.0)))
@@ -1596,6 +1735,16 @@ def _refine(
                 "V", moved.V, h_v, v_rot, model.trend_sigma, model.trend_spread
             )
             changed |= shifted
+        if len(h_w):  # the trend every group shares: two levels of its own
+            model.common_sigma, shifted = shared_levels(
+                "W",
+                moved.W,
+                h_w,
+                model.common_rotation_rows,
+                model.common_sigma,
+                model.common_spread,
+            )
+            changed |= shifted
         if any(v > lim for v, lim in zip(new_pose, SIGMA_BEYOND, strict=True)):
             return False
         return changed
@@ -1618,7 +1767,7 @@ def _refine(
         h_s: np.ndarray,
         rot: np.ndarray,
         levels: tuple,
-        per_frame: float,
+        per_frame: float | tuple[float, float],
     ) -> tuple[tuple[float, float], bool]:
         """Foerstner's step for the two levels (rotation, translation) of corrections shared by
         several frames; the new levels and whether one that matters moved by more than 3 %.
@@ -1639,11 +1788,12 @@ def _refine(
                 # falling while the prior holds three quarters of it: the images do not
                 # support a level of its own (the iteration would creep toward 0 for
                 # tens of steps); the frames' own corrections carry this part
-                v = floor
+                v = old if key == "W" else floor
             v = max(float(v), floor)
             if vce_step[0] > 2:
                 v = max(accelerate(f"{key}{comp[0]}", old, v, floor), floor)
-            big = max(v, old) > max(2 * floor, 0.1 * own / per_frame)
+            share = per_frame if np.isscalar(per_frame) else per_frame[len(new)]
+            big = max(v, old) > max(2 * floor, 0.1 * own / max(share, 1e-12))
             if abs(v / old - 1.0) > 0.03 and big:
                 moved = True
             new.append(v)

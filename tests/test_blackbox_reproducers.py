@@ -2,17 +2,6 @@
 solver's uncertainty model, kept as strict expected failures: a fix makes them pass, and the
 marker must then go.
 
-Eye-to-hand, one AprilTag (4 corners) on the tool, 205 frames in 7 orientations, the arm off
-by 0.8 mm / 0.08 deg smoothly over its workspace (``mocks/scenarios.py`` ``real_arm_poses``),
-detections given with 0.1 px noise. Over seeds 1-16 the intrinsics' |error| / reported std
-has a largest value of 2.2-2.6 in a typical session (a calibrated estimator: about 2.0 for 9
-parameters) and exceeds 3 in 2 of 16 sessions (seed 12: fx 3.1; seed 15: cx 3.75);
-with the arm's error off (``arm_mm=0``) the same sessions give an rms |error| / std of 1.05 and
-no value above 3. The per-frame robot-pose noise is modelled as independent between frames
-(estimated 0.15-0.6 mm here), but the arm's error is smooth: frames at nearby poses share it, so
-with 4 corners per image (the board pose rests on the robot poses) the intrinsics' std comes
-out some 30-40 % too small.
-
 The checker's 13 translation-only frames (one orientation, 12 moves of 40-80 mm, given
 detections with 0.05 px noise, the arm 1 mm / 0.1 deg off; seeds 1-9): fx's reported std
 ranges from 0.04 % to 0.25 % of fx between sessions of the same geometry, following the
@@ -35,12 +24,6 @@ import blackbox as bb  # noqa: E402
 
 #: (id, the session, why it fails): strict expected failures
 CASES = (
-    (
-        "eye_to_hand_one_tag",
-        lambda d: bb.eye_to_hand_tag_session(d, seed=15),
-        "intrinsics' std too small under a smooth arm error (eye-to-hand, one tag): cx is "
-        "3.75 std off in this seeded session",
-    ),
     (
         "translation_only_13_frames",
         lambda d: bb.translation_only_session(d, seed=3),

@@ -236,7 +236,9 @@ def test_orientation_groups_get_a_shared_correction_with_its_own_level():
     # wrists 25 deg apart err differently: a between-group level of the arm's size, not the floor
     assert np.degrees(between[0]) > 0.005
     assert np.degrees(np.hypot(within[0], between[0])) < 0.2
-    # the reported accuracy: the three parts (frames, groups, trends along the moves) together
+    # the reported accuracy: the three parts (frames, groups, trends along the moves) together;
+    # 20 frames are too few for corrections the groups share (common_trend)
+    assert "W" not in out.model.slices
     c = out.model.st.trend_coords
     trend = np.sqrt(np.mean(np.sum(c**2, axis=1))) * np.asarray(out.model.trend_sigma)
     np.testing.assert_allclose(
