@@ -580,9 +580,11 @@ def r1_scenario(
     dist: np.ndarray = R1_DIST,
     size: tuple[int, int] = R1_SIZE_PX,
     T_base_tool_true: np.ndarray | None = None,
+    T_tool_board: np.ndarray = R1_T_TOOL_BOARD,
 ) -> Scenario:
     """The scenario of R1's camera (``R1_K``, ``dist``) with these ``frames``: the problem, the
-    truth in the solver's parametrisation and the hand-eye and target poses of the mount."""
+    truth in the solver's parametrisation and the hand-eye and target poses of the mount (the
+    target on the tool at ``T_tool_board`` eye-to-hand)."""
     problem = CalibrationProblem(
         target,
         (CameraSpec("cam", *size),),
@@ -592,7 +594,7 @@ def r1_scenario(
         options or ModelOptions(),
     )
     T_hand_eye = R1_T_TOOL_CAM if eye_in_hand else R1_T_BASE_CAM
-    T_target = T_base_board if eye_in_hand else R1_T_TOOL_BOARD
+    T_target = T_base_board if eye_in_hand else T_tool_board
     truth = ModelState(
         {"cam": R1_K},
         {"cam": np.array(dist, dtype=float)},
@@ -763,17 +765,20 @@ def _real_arm_frames(
     sigma_px: float,
     rng: np.random.Generator,
     detect: Callable[[np.ndarray, np.random.Generator], Detection] | None,
+    target: Target | None = None,
+    T_tool_board: np.ndarray = R1_T_TOOL_BOARD,
 ) -> list[Frame]:
-    """R1's camera and board at the arm's true poses; each frame records the planned pose (what
-    the controller reports) and what ``detect`` sees (default: R1's projected corners with
+    """R1's camera and board (``target``, R1's by default; on the tool at ``T_tool_board``
+    eye-to-hand) at the arm's true poses; each frame records the planned pose (what the
+    controller reports) and what ``detect`` sees (default: the projected points with
     ``sigma_px`` Gaussian noise)."""
-    target = r1_target()
+    target = target or r1_target()
     frames = []
     for k, (T_true, T_meas) in enumerate(zip(true, planned, strict=True)):
         if eye_in_hand:
             T_cam_board = inv_T(T_true @ R1_T_TOOL_CAM) @ T_base_board
         else:
-            T_cam_board = inv_T(R1_T_BASE_CAM) @ T_true @ R1_T_TOOL_BOARD
+            T_cam_board = inv_T(R1_T_BASE_CAM) @ T_true @ T_tool_board
         if detect is None:
             det = projected_detection(
                 R1_K, R1_DIST, T_cam_board, target, R1_SIZE_PX, sigma_px, rng, 2.0
@@ -968,6 +973,13 @@ def _translated(
     return np.array(out)
 
 
+def _reachable(T_base_tool: np.ndarray) -> bool:
+    """A UR5e reaches ``T_base_tool`` from its home joints away from its singularities."""
+    return any(
+        urk.singularity(q, urk.UR5E) is None for q in urk.ik(T_base_tool, urk.Q_HOME, urk.UR5E)
+    )
+
+
 def classic_real_arm(
     rng: np.random.Generator,
     n_frames: int = 28,
@@ -994,8 +1006,7 @@ def classic_real_arm(
     views: list[np.ndarray] = []
     while len(views) < n_frames:
         for T in camera_board_poses(rng, 2 * n_frames, target):
-            q = urk.ik(planned_pose(T), urk.Q_HOME, urk.UR5E)
-            if any(urk.singularity(x, urk.UR5E) is None for x in q):
+            if _reachable(planned_pose(T)):
                 views.append(T)
                 if len(views) == n_frames:
                     break
@@ -1004,6 +1015,75 @@ def classic_real_arm(
     frames = _real_arm_frames(true, planned, T_base_board, eye_in_hand, sigma_px, rng, detect)
     return r1_scenario(
         target, frames, eye_in_hand, None, sigma_px, T_base_board, T_base_tool_true=true
+    )
+
+
+#: The tag session's 7 orientations of the tag seen by the camera: (tilt about x, tilt about y,
+#: roll) deg
+TAG_TILTS_DEG = (
+    (0, 0, 0),
+    (30, 0, 10),
+    (-30, 0, -10),
+    (0, 30, 20),
+    (0, -30, -20),
+    (22, 22, 30),
+    (-22, -22, -30),
+)
+#: The tag on the tool, facing away from the flange a few centimetres off its axis
+TAG_T_TOOL_TAG = T_from_Rt(
+    R_from_rvec(np.radians([180.0, 0.0, 0.0])), np.array([0.03, -0.02, 0.02])
+)
+
+
+def tag_real_arm(
+    rng: np.random.Generator,
+    n_frames: int = 205,
+    sigma_px: float = 0.1,
+    arm_mm: float = 0.8,
+    arm_deg: float = 0.08,
+    side_m: float = 0.10,
+    detect: Callable[[np.ndarray, np.random.Generator], Detection] | None = None,
+) -> Scenario:
+    """Eye-to-hand with one AprilTag (its 4 corners, ``side_m``) on the tool, R1's fixed camera:
+    ``n_frames`` frames in the 7 orientations of ``TAG_TILTS_DEG``, each at a random place in
+    the image 0.45-0.85 m away, on a UR5e whose kinematics err by about ``arm_mm`` and
+    ``arm_deg`` (:func:`real_arm_poses`; the controller reports the planned poses). Frames whose
+    tag reaches the image border keep the corners inside it. The session of a fixed camera
+    calibrated against a tag on the arm, with many frames spread over a large part of the
+    workspace: where a real arm's error is correlated from frame to frame."""
+    target = square_tag(side_m)
+    w, h = R1_SIZE_PX
+    planned: list[np.ndarray] = []
+    per = [n_frames // 7 + (o < n_frames % 7) for o in range(7)]
+    for (ax, ay, rz), n in zip(TAG_TILTS_DEG, per, strict=True):
+        R = Rz(np.radians(rz)) @ Rx(np.radians(ax)) @ Ry(np.radians(ay))
+        group: list[np.ndarray] = []
+        for _ in range(200 * n):
+            if len(group) == n:
+                break
+            z = rng.uniform(0.45, 0.85)
+            u, v = rng.uniform(0.12 * w, 0.88 * w), rng.uniform(0.15 * h, 0.85 * h)
+            ray = np.array([(u - R1_K[0, 2]) / R1_K[0, 0], (v - R1_K[1, 2]) / R1_K[1, 1], 1.0])
+            T = R1_T_BASE_CAM @ T_from_Rt(R, z * ray) @ inv_T(TAG_T_TOOL_TAG)
+            if _reachable(T):
+                group.append(T)
+        if len(group) < n:
+            raise ValueError("the tag session's views are out of the UR5e's reach")
+        planned += group
+    planned_a = np.stack(planned)
+    true = real_arm_poses(planned_a, rng, arm_mm, arm_deg)
+    frames = _real_arm_frames(
+        true, planned_a, np.eye(4), False, sigma_px, rng, detect, target, TAG_T_TOOL_TAG
+    )
+    return r1_scenario(
+        target,
+        frames,
+        False,
+        None,
+        sigma_px,
+        np.eye(4),
+        T_base_tool_true=true,
+        T_tool_board=TAG_T_TOOL_TAG,
     )
 
 
