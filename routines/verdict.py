@@ -20,7 +20,8 @@ The gate (:func:`judge`), each test with a limit from the cell file's ``limits:`
   else the reprojection rms against ``max_rms_px``;
 - ``std``: each parameter's one-sigma against its limit (``fx_rel_std``, ``cxy_std_px``,
   ``hand_eye_rot_std_deg``, ``hand_eye_t_std_mm``, rig likewise;
-  ``hand_eye_rot_std_deg_from_translations`` for a hand-eye rotation from translations alone);
+  ``hand_eye_rot_std_deg_from_translations`` for a hand-eye rotation from translations alone,
+  ``cxy_std_px_from_translations`` for the principal point of such a session);
 - ``scale``: the median camera/robot length ratio of the moves must be within 1 +- tol, tol
   the larger of ``scale_tolerance`` and 4 times the ratio's own standard error (and the test
   fails as inconclusive when tol exceeds 5 times ``scale_tolerance``);
@@ -81,7 +82,10 @@ class Limits:
     ``hand_eye_rot_std_deg_from_translations``: one-sigma of a hand-eye rotation the session
     determines from translations alone (one orientation: its translation is not observable);
     on a real arm it is a few tenths of a degree, and the full hand-eye's limit would reject
-    the intrinsics with it.
+    the intrinsics with it. ``cxy_std_px_from_translations``: one-sigma of cx, cy in such a
+    session: the principal point rests on the arm's orientation accuracy (an orientation error
+    of d radians moves the image by f d pixels: 3.5 px at 0.1 deg and f = 2000 px), and the
+    general limit would reject an honest result that the session cannot make more precise.
     ``scale_tolerance``: smallest tolerance of the camera/robot length ratio around 1.
     ``min_coverage``: fraction of the ``coverage_grid`` ([columns, rows]) cells holding a
     corner, over all frames, per camera. ``max_change_sigma``: a parameter's change from the
@@ -100,6 +104,7 @@ class Limits:
     hand_eye_rot_std_deg: float = 0.2
     hand_eye_t_std_mm: float = 2.0
     hand_eye_rot_std_deg_from_translations: float = 1.0
+    cxy_std_px_from_translations: float = 8.0
     scale_tolerance: float = 0.01
     min_coverage: float = 0.25
     coverage_grid: tuple[int, int] = (8, 6)
@@ -341,6 +346,9 @@ def _reprojection(result: CalibrationResult, lim: Limits) -> list[Check]:
 
 def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
     out = []
+    he = result.hand_eye
+    one_orientation = he is not None and he.R is not None and he.t_m is None
+    cxy_lim = lim.cxy_std_px_from_translations if one_orientation else lim.cxy_std_px
     for name, c in result.cameras.items():
         K = np.asarray(c.K, dtype=float)
         for p, val in (("fx", K[0, 0]), ("fy", K[1, 1])):
@@ -360,16 +368,18 @@ def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
             )
         for p in ("cx", "cy"):
             s = _f(c.std.get(p))
-            ok = s is not None and s <= lim.cxy_std_px
+            ok = s is not None and s <= cxy_lim
             out.append(
                 Check(
                     "std",
                     ok,
                     s,
-                    lim.cxy_std_px,
+                    cxy_lim,
                     f"camera {name}: {p} one-sigma "
                     + (f"{s:.3f} px" if s is not None else "unknown")
-                    + f" (limit {lim.cxy_std_px:g} px)",
+                    + f" (limit {cxy_lim:g} px"
+                    + (", a session of one orientation" if one_orientation else "")
+                    + ")",
                 )
             )
     transforms = []

@@ -142,10 +142,21 @@ def test_eye_to_hand_one_tag_as_points_with_given_detections(tmp_path):
     code, message, result, _ = bb.solve(tmp_path / "tag", in_process=True)
     assert code == 0 and result is not None, message
     assert result["mount"] == "eye_to_hand"
-    # every intrinsic within 3 of its std: holds for this seed; tests/test_blackbox_reproducers.py
-    # holds one where it does not (the std is too small under the arm's smooth error)
+    # every intrinsic within 3 of its std (40 seeds: none beyond 3 since the groups share part
+    # of the arm's error in the model, docs/ROBOT_ACCURACY.md)
     assert max(bb.intrinsic_errors(result, truth.camera).values()) < 3.0
     assert bb.fx_error_pct(result, truth.camera) < 0.1
+
+
+def test_translation_only_session_is_judged_by_what_one_orientation_can_know(tmp_path):
+    # 13 frames at one orientation on a 1 mm arm: the principal point rests on the arm's
+    # orientation accuracy, 3.9 px one-sigma here (cy). The general 3 px limit rejected this
+    # honest result (4 of 40 such sessions); a session of one orientation has its own (8 px)
+    truth = bb.translation_only_session(tmp_path / "t13", seed=20)
+    code, message, result, _ = bb.solve(tmp_path / "t13", in_process=True)
+    assert code == 0 and result is not None, message
+    assert 3.0 < result["cameras"]["left"]["std"]["cy"] < 8.0
+    assert max(bb.intrinsic_errors(result, truth.camera).values()) < 3.0
 
 
 @pytest.mark.slow

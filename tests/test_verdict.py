@@ -174,6 +174,18 @@ def test_a_hand_eye_from_translations_alone_has_its_own_limit(solved) -> None:
     assert {c.test for c in judge(dataclasses.replace(r, hand_eye=alone), strict).reasons} == {
         "std"
     }
+    # the principal point of such a session rests on the arm's orientation accuracy: 5 px is
+    # within its own limit (8 px), beyond the general one (3 px)
+    cam = r.cameras["cam"]
+    loose = dataclasses.replace(cam, std={**cam.std, "cy": 5.0})
+    with_loose = dataclasses.replace(r, cameras={"cam": loose})
+    assert _failed(with_loose) == {"std"}  # the session's own full hand-eye: 3 px
+    assert _failed(dataclasses.replace(with_loose, hand_eye=alone)) == set()
+    worst = dataclasses.replace(cam, std={**cam.std, "cy": 9.0})
+    v = judge(dataclasses.replace(r, cameras={"cam": worst}, hand_eye=alone), Limits())
+    assert [c.message for c in v.reasons] == [
+        "camera cam: cy one-sigma 9.000 px (limit 8 px, a session of one orientation)"
+    ]
 
 
 def test_coverage_gate(solved) -> None:
