@@ -385,7 +385,7 @@ def main(argv: list[str] | None = None) -> int:
         scenarios.append(
             (
                 "eye-to-hand, one tag, 205 frames in 7 orientations",
-                lambda rng: sc.tag_real_arm(rng, **{k: v for k, v in kw.items() if k != "detect"}),
+                lambda rng: sc.tag_real_arm(rng, **kw),
             )
         )
     rows = [run_reality_row(n, m, args.trials) for n, m in scenarios]

@@ -677,10 +677,10 @@ class BundleModel:
                 J[rows_u, 1, ucols] = blk[:, 1, :]
             if "V" in self.slices:  # a trend moves a frame like its own correction, times c_k
                 self._trend_columns(J, blk)
-            if "W" in self.slices:  # so does the common trend
+            if "W" in self.slices:  # so do the corrections the groups share, through their map
                 sw, s0 = self.slices["W"], self.shared_start
-                Sw = self.shared_map[f][:, :, sw.start - s0 : sw.stop - s0]
-                J[:, :, sw] = np.einsum("nab,nbm->nam", blk, Sw)
+                Sw = self.shared_map[:, :, sw.start - s0 : sw.stop - s0]
+                J[:, :, sw] = np.einsum("nab,nbm->nam", blk, Sw[f])
             cols = self.slices["E"].start + f[:, None] * 6 + np.arange(6)
             rows = np.arange(n)[:, None]
             J[rows, 0, cols] = blk[:, 0, :]
@@ -1411,7 +1411,7 @@ def refine(
         levels.append(m.group_sigma)
     if "V" in m.slices:  # a trend's share of a frame's error: its level times the offset
         levels.append(tuple(spread * np.asarray(m.trend_sigma)))
-    if "W" in m.slices:  # a rotation only
+    if "W" in m.slices:  # what the groups share: its levels times their shares
         levels.append(tuple(np.asarray(common_spread) * np.asarray(m.common_sigma)))
     total = tuple(float(np.linalg.norm(axis)) for axis in zip(*levels, strict=True))
     return _with_robot(
@@ -1512,9 +1512,8 @@ def common_trend(
     common = np.stack(cols, axis=2)
     rotation = np.arange(len(cols)) < n_rot
 
-    def share(columns: np.ndarray) -> float:  # per axis: a level's share of a frame's
-        n_axes = 3
-        return float(np.sqrt(np.sum(common[k][:, :, columns] ** 2) / (len(k) * n_axes)))
+    def share(columns: np.ndarray) -> float:  # a level's rms share of a frame's, per axis
+        return float(np.sqrt(np.sum(common[k][:, :, columns] ** 2) / (3 * len(k))))
 
     return common, rotation, (share(rotation), share(~rotation) if (~rotation).any() else 0.0)
 

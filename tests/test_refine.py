@@ -221,6 +221,55 @@ def test_normal_equations_match_the_full_jacobian():
     np.testing.assert_allclose(g, J.T @ (w * r), rtol=1e-12, atol=1e-9 * np.abs(g).max())
 
 
+def test_normal_equations_match_the_full_jacobian_with_what_the_groups_share():
+    # the tag session's groups, offsets, trends and shared corrections (W): the blocks the solver
+    # eliminates against the dense Jacobian, whose shared columns come from their map
+    from dataclasses import replace
+
+    from slidecal.solver import refine as rf
+
+    s = sc.tag_real_arm(np.random.default_rng(28), n_frames=100)
+    T = np.stack([f.T_base_tool for f in s.problem.frames])
+    groups = rf.orientation_groups(T)
+    tg, tc, dims = rf.translation_trends(T, groups)
+    common, rot, spread = rf.common_trend(T, tg, dims)
+    assert common is not None and int(rot.sum()) == 9 and len(rot) == 27
+    st = replace(
+        build_structure(s.problem, s.truth.X[0][:3, :3]),
+        T_meas=T,
+        pose_sigma=(2e-4, 3e-4),
+        pose_groups=groups,
+        group_sigma=(3e-4, 4e-4),
+        trend_groups=tg,
+        trend_coords=tc,
+        trend_dims=dims,
+        trend_sigma=(1e-3, 2e-3),
+        common_map=common,
+        common_rotation=rot,
+        common_sigma=(5e-4, 1e-3),
+        common_spread=spread,
+    )
+    model = BundleModel(s.problem, st)
+    model.sigma_px = 0.1
+    rng = np.random.default_rng(29)
+    F = len(s.problem.frames)
+    state = rf.with_pose_corrections(
+        ModelState(s.truth.K, s.truth.dist, {}, s.truth.X, s.truth.Y, s.truth.s),
+        F,
+        len(np.unique(groups)),
+        model.slices["V"].stop - model.slices["V"].start,
+        len(rot),
+    )
+    state = replace(state, E=rng.normal(0, 1e-4, (F, 6)), W=rng.normal(0, 1e-4, len(rot)))
+    n_prior = sum(sl.stop - sl.start for k, sl in model.slices.items() if k in "UVWE")
+    w = rng.uniform(0.5, 1.5, model.n_rows + n_prior)
+    r, J = model.evaluate(state)
+    r2, A, g = model.normal_equations(state, w)
+    np.testing.assert_allclose(r2, r, atol=0)
+    np.testing.assert_allclose(A, J.T @ (J * w[:, None]), rtol=1e-10, atol=1e-9 * np.abs(A).max())
+    np.testing.assert_allclose(g, J.T @ (w * r), rtol=1e-10, atol=1e-9 * np.abs(g).max())
+
+
 def test_orientation_groups_get_a_shared_correction_with_its_own_level():
     # a real arm: R1's four tilt groups see different constant orientation errors; the
     # between-group level is estimated apart from the within-group scatter
