@@ -1297,9 +1297,11 @@ TREND_MIN_SPREAD_M = 0.005
 #: part (a scale or shear of the positions) reaches the focal lengths through the moves.
 SESSION_TREND_MIN_FRAMES = 8
 #: Trend frames per coordinate of the corrections the trend groups share (:func:`common_trend`):
-#: the rotation trend's 9 coordinates need 36 frames, the quadratic translation field's 18
-#: coordinates 72 (positions spread in space)
-COMMON_FIELD_FRAMES_PER_COORD = 4
+#: the rotation trend's 9 coordinates need 27 frames, the quadratic translation field's 18
+#: coordinates 54 (positions spread in space). Measured on the one-tag session of 35 frames
+#: (5 per orientation, 30 arms): at 4 per coordinate it got no shared rotation and cy came out
+#: 1.82 times its std off in rms; at 3, 1.38.
+COMMON_FIELD_FRAMES_PER_COORD = 3
 
 
 @single_threaded_blas
@@ -1465,7 +1467,7 @@ def common_trend(
       (3 x m coordinates over the m directions those offsets span, as
       :func:`translation_trends` makes for one group): the part of the groups' rotation trends
       they have in common. Only with :data:`COMMON_FIELD_FRAMES_PER_COORD` trend frames or more
-      per coordinate (36 for offsets spread in space): fewer cannot tell it from the groups'
+      per coordinate (27 for offsets spread in space): fewer cannot tell it from the groups'
       own trends and offsets (R1's four groups of five frames: 9 coordinates for 20 frames).
     - The translation: a quadratic field of the positions (3 axes times the products of the
       positions' coordinates over the directions they span, each less its mean): an arm
