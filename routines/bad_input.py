@@ -329,7 +329,16 @@ def _cases() -> list[Case]:
     cases += _typos("cell", ("simulation",), ("seed", "camera_preset", "noise", "target_jitter"))
     cases += _typos("cell", ("simulation", "noise"), CELL_KEYS["simulation.noise"])
     cases += _typos("cell", ("simulation", "target_jitter"), CELL_KEYS["simulation.target_jitter"])
-    cases += _typos("cell", ("approximate", "T_tool_cam"), ("rpy_deg", "t_m"))
+    cases += _typos("cell", ("approximate", "T_tool_cam"), ("rpy_deg",))
+    cases.append(  # t_m's doubled letter is t_mm, a key of its own: a dropped underscore
+        Case(
+            "cell: misspelt approximate.T_tool_cam.tm",
+            "cell",
+            "approximate.T_tool_cam.tm",
+            renames=((("approximate", "T_tool_cam", "t_m"), "tm"),),
+            base="simulated",
+        )
+    )
     cases += _typos("cell", ("plan",), PLANNER_KEYS)
     cases += _typos("cell", ("options",), OPTIONS_KEYS)
     cases += _typos("plan", (), PLAN_KEYS)
@@ -905,6 +914,34 @@ def _cases() -> list[Case]:
             "session",
             "frames[1].T_base_tool",
             ((("frames", 1, "T_base_tool"), [inf, 0, 0, 0, 0, 0]),),
+        ),
+        C(
+            "session pose quaternion not unit",
+            "session",
+            "frames[0].T_base_tool.q_wxyz",
+            (
+                (
+                    ("frames", 0, "T_base_tool"),
+                    {"q_wxyz": [0.5, 0.5, 0.5, 0.6], "t_mm": [400, 0, 300]},
+                ),
+            ),
+        ),
+        C(
+            "session pose transform in mm given as t_m",
+            "session",
+            "frames[0].T_base_tool.t_m",
+            ((("frames", 0, "T_base_tool"), {"rpy_deg": [180, 0, 0], "t_m": [400, 0, 300]}),),
+        ),
+        C(
+            "session pose quaternion and angles",
+            "session",
+            "frames[0].T_base_tool.q_wxyz",
+            (
+                (
+                    ("frames", 0, "T_base_tool"),
+                    {"q_wxyz": [1, 0, 0, 0], "rpy_deg": [0, 0, 0], "t_mm": [400, 0, 300]},
+                ),
+            ),
         ),
         C(
             "session pose on one frame only",

@@ -34,8 +34,8 @@ Layout (every field but ``target`` and the approximate target pose has a default
       seed: 0
       camera_preset: r1            # r1 | oak_d_like (fills cameras and rig below)
       cameras: {cam: {width, height, K, distortion, blur_sigma_px, noise_std, exposure}}
-      T_tool_cam: {rpy_deg | R, t_m}      # or T_base_cam (eye_to_hand); the reference camera
-      T_base_board: {rpy_deg | R, t_m}    # or T_tool_board (eye_to_hand)
+      T_tool_cam: {rpy_deg | R | q_wxyz, t_m | t_mm}  # or T_base_cam (eye_to_hand); ref. camera
+      T_base_board: {rpy_deg | R | q_wxyz, t_m | t_mm}  # or T_tool_board (eye_to_hand)
       rig: {right: {R, t_m}}              # T_<name>_<reference> of the other cameras
       noise: {robot_mm: 0.05, robot_deg: 0.005}
       target_jitter: {mm: 2.0, deg: 0.5}  # the target's true pose moves this much per seed
@@ -513,7 +513,9 @@ def _approximate(f: Fields, mount: str) -> tuple[np.ndarray, np.ndarray, float]:
     app.only(CELL_KEYS[f"approximate.{mount}"])
     he_key, tg_key = _names(mount)
     if not app.has(tg_key):
-        raise app.error(tg_key, "is missing; give the rough target pose (R or rpy_deg, t_m)")
+        raise app.error(
+            tg_key, "is missing; give the rough target pose (R, rpy_deg or q_wxyz; t_m or t_mm)"
+        )
     approx_target = transform_from_dict(app, tg_key)
     if app.has(he_key):
         approx_he = transform_from_dict(app, he_key)

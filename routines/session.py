@@ -33,6 +33,8 @@ optional, additive, so the format stays ``slidecal.session/1`` and older session
   ``seed``, ``frames: [{id, T_base_tool, T_base_tool_measured}]`` (per frame the pose the arm
   really reached and the one it reported, UR poses: what the judge of the result needs).
   Transforms are ``{R: 3x3, t_m: [x, y, z]}``.
+- ``frames[i].T_base_tool``: a UR pose, or from another controller a transform
+  (``{q_wxyz | rpy_deg | R, t_mm | t_m}``: :func:`robot_pose_field`).
 """
 
 from __future__ import annotations
@@ -154,19 +156,32 @@ MAX_SQUARES = 200
 # ----------------------------------------------------------------------------- transforms
 
 
-def transform_from_dict(f: Fields, key: str) -> np.ndarray:
-    """A 4x4 transform from ``{R: 3x3, t_m: [x, y, z]}`` or ``{rpy_deg: [r, p, y], t_m}``.
+#: The ways a transform's rotation may be written, and its translation
+ROTATION_KEYS = ("R", "rpy_deg", "q_wxyz")
+TRANSLATION_KEYS = ("t_m", "t_mm")
 
-    ``rpy_deg`` follows the teach pendant (X-Y-Z fixed axes: ``R = Rz(y) Ry(p) Rx(r)``).
+
+def transform_from_dict(f: Fields, key: str) -> np.ndarray:
+    """A 4x4 transform from a mapping of one rotation and one translation.
+
+    Rotation: ``R`` (3x3), ``rpy_deg`` ([roll, pitch, yaw], the teach pendant's X-Y-Z fixed
+    axes: ``R = Rz(yaw) Ry(pitch) Rx(roll)``; KUKA's A, B, C are yaw, pitch, roll, Fanuc's W, P,
+    R roll, pitch, yaw) or ``q_wxyz`` (a unit quaternion, scalar first as ABB writes it).
+    Translation: ``t_m`` (metres) or ``t_mm`` (millimetres).
     """
-    from slidecal.solver.geometry import Rx, Ry, Rz, T_from_Rt
+    from slidecal.solver.geometry import R_from_quat_wxyz, Rx, Ry, Rz, T_from_Rt
 
     sub = f.sub(key)
     assert sub is not None
-    sub.only(("R", "rpy_deg", "t_m"))
-    if sub.has("R") and sub.has("rpy_deg"):
-        raise sub.error("rpy_deg", "is given with R; give one of them")
-    t = sub.array("t_m", (3,))
+    sub.only(ROTATION_KEYS + TRANSLATION_KEYS)
+    for keys, what in ((ROTATION_KEYS, "rotation"), (TRANSLATION_KEYS, "translation")):
+        given = [k for k in keys if sub.has(k)]
+        if len(given) > 1:
+            raise sub.error(given[1], f"is given with {given[0]}; give the {what} once")
+    if sub.has("t_mm"):
+        t = sub.array("t_mm", (3,)) / 1000.0
+    else:
+        t = sub.array("t_m", (3,))
     if sub.has("R"):
         R = sub.array("R", (3, 3))
         if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
@@ -174,8 +189,19 @@ def transform_from_dict(f: Fields, key: str) -> np.ndarray:
     elif sub.has("rpy_deg"):
         r, p, y = np.radians(sub.array("rpy_deg", (3,)))
         R = Rz(y) @ Ry(p) @ Rx(r)
+    elif sub.has("q_wxyz"):
+        q = sub.array("q_wxyz", (4,))
+        norm = float(np.linalg.norm(q))
+        if abs(norm - 1.0) > 1e-3:
+            raise sub.error(
+                "q_wxyz",
+                f"has norm {norm:.4g}, not a unit quaternion; give [w, x, y, z] of the rotation",
+            )
+        R = R_from_quat_wxyz(q)
     else:
-        raise sub.error("R", "is missing; give R (3x3) or rpy_deg ([roll, pitch, yaw] degrees)")
+        raise sub.error(
+            "R", "is missing; give R (3x3), rpy_deg ([roll, pitch, yaw] degrees) or q_wxyz"
+        )
     return T_from_Rt(R, t)
 
 
@@ -210,6 +236,23 @@ def ur_pose_field(f: Fields, key: str) -> np.ndarray:
         return T_from_ur_pose(pose)
     except ValueError as e:
         raise InputError(" ".join(str(e).split()), where=where) from None
+
+
+def robot_pose_field(f: Fields, key: str) -> np.ndarray:
+    """A frame's robot pose (4x4): a UR pose ``[x, y, z, rx, ry, rz]`` or, from any other
+    controller, a transform (:func:`transform_from_dict`: ``{q_wxyz, t_mm}`` as ABB records
+    it, ``{rpy_deg, t_mm}`` for KUKA's A, B, C or Fanuc's W, P, R, ``{R, t_m}``)."""
+    if not isinstance(f.get(key), Mapping):
+        return ur_pose_field(f, key)
+    T = transform_from_dict(f, key)
+    if np.linalg.norm(T[:3, 3]) > 100.0:
+        unit = "t_m" if f.sub(key).has("t_m") else "t_mm"
+        raise InputError(
+            f"is {np.linalg.norm(T[:3, 3]):.0f} m from the base; "
+            + ("millimetres go in t_mm" if unit == "t_m" else "give the position in t_mm"),
+            where=f.where(f"{key}.{unit}"),
+        )
+    return T
 
 
 # ----------------------------------------------------------------------------- targets
@@ -636,7 +679,7 @@ def _read_frame(
     f.only(SESSION_KEYS["frames[]"])
     fid = f.integer("id", minimum=0)
     names = [c.name for c in cameras]
-    T = ur_pose_field(f, "T_base_tool") if f.has("T_base_tool") else None
+    T = robot_pose_field(f, "T_base_tool") if f.has("T_base_tool") else None
     motion = f.array("motion_board", (3,)) if f.has("motion_board") else None
     group = f.integer("group", minimum=0) if f.has("group") else None
 

@@ -55,6 +55,20 @@ def rvec_from_R(R: np.ndarray) -> np.ndarray:
     return theta * axis
 
 
+def R_from_quat_wxyz(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) of a unit quaternion ``(w, x, y, z)`` (4,) (scalar first, as ABB
+    controllers and Eigen's constructor order it; ROS orders ``(x, y, z, w)``). The quaternion
+    is normalised; ``q`` and ``-q`` give the same rotation."""
+    w, x, y, z = np.asarray(q, dtype=float) / float(np.linalg.norm(q))
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
 def project_to_SO3(M: np.ndarray) -> np.ndarray:
     """The rotation nearest to a 3x3 matrix in the Frobenius norm (SVD, det = +1)."""
     U, _, Vt = np.linalg.svd(np.asarray(M, dtype=float))

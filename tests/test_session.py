@@ -122,6 +122,47 @@ def test_ur_pose_is_converted_by_the_ur_adapter(tmp_path: Path) -> None:
     np.testing.assert_allclose(q.frames[0].T_base_tool, T_from_ur_pose(pose), atol=1e-15)
 
 
+def test_robot_pose_in_another_controllers_form(tmp_path: Path) -> None:
+    # one pose as UR records it and as ABB (quaternion, mm), KUKA/Fanuc (fixed-axes angles, mm)
+    # and a matrix give one transform; scipy's rotations are the independent oracle
+    from scipy.spatial.transform import Rotation
+
+    pose = [0.4, -0.1, 0.3, 0.1, 2.9, -0.2]
+    rot = Rotation.from_rotvec(pose[3:])
+    x, y, z, w = (float(v) for v in rot.as_quat())
+    t_mm = [1000.0 * v for v in pose[:3]]
+    forms = [
+        {"q_wxyz": [w, x, y, z], "t_mm": t_mm},
+        {"q_wxyz": [-w, -x, -y, -z], "t_m": pose[:3]},
+        {"rpy_deg": rot.as_euler("xyz", degrees=True).tolist(), "t_mm": t_mm},
+        {"R": rot.as_matrix().tolist(), "t_m": pose[:3]},
+    ]
+    frames = [{"id": k, "T_base_tool": p, "detections": _det()} for k, p in enumerate(forms)]
+    _write(tmp_path, frames=frames)
+    for fr in read_session(tmp_path).frames:
+        np.testing.assert_allclose(fr.T_base_tool, T_from_ur_pose(pose), atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("pose", "field", "says"),
+    [
+        ({"q_wxyz": [1, 0, 0, 0], "R": np.eye(3).tolist(), "t_m": [0.4, 0, 0.3]}, "q_wxyz", "once"),
+        ({"q_wxyz": [1, 0, 0, 0], "t_m": [0.4, 0, 0.3], "t_mm": [400, 0, 300]}, "t_mm", "once"),
+        ({"q_wxyz": [0.5, 0.5, 0.5, 0.6], "t_m": [0.4, 0, 0.3]}, "q_wxyz", "unit quaternion"),
+        ({"q_wxyz": [1, 0, 0, 0], "t_m": [400, 0, 300]}, "t_m", "t_mm"),
+        ({"q_wxyz": [1, 0, 0], "t_m": [0.4, 0, 0.3]}, "q_wxyz", "4"),
+        ({"t_mm": [400, 0, 300]}, "R", "q_wxyz"),
+        ({"quat": [1, 0, 0, 0], "t_mm": [400, 0, 300]}, "quat", "q_wxyz"),
+    ],
+)
+def test_bad_robot_pose_transform_names_its_field(tmp_path: Path, pose, field, says) -> None:
+    _write(tmp_path, frames=[{"id": 0, "T_base_tool": pose, "detections": _det()}])
+    with pytest.raises(InputError) as e:
+        read_session(tmp_path)
+    assert f"frames[0].T_base_tool.{field}" in str(e.value)
+    assert says in str(e.value)
+
+
 # ----------------------------------------------------------------------------- bad input
 
 _GOOD = {
