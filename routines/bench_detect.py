@@ -392,6 +392,12 @@ FINDINGS = """## What the tables show, and what detect() does with it
   edge width are skipped (they drift by up to 2 px on defocused images). Under strong defocus
   at steep tilts, OpenCV's interpolated corners themselves are off by 1-2 px: prefer a
   chessboard or an AprilGrid there.
+- **ChArUco boards of the old layout.** OpenCV 4.6 moved the markers of boards with an even
+  number of rows (`squares_y`); boards printed before, and many bought ones, keep the old
+  layout, whose markers decode but whose corners do not interpolate. When at most half as many
+  corners as markers come out on such a board, the image is detected again with the old
+  layout (`setLegacyPattern`) and the layout with more corners is kept; corner ids and board
+  positions are the same in both (`tests/test_detect.py`).
 - **Partial chessboards** are not used: a plain chessboard seen in part has no corner that says
   which one it is (SB's `CALIB_CB_LARGER` finds the visible grid, and detect() uses it only to
   say what it saw); ChArUco and AprilGrid give partial views.

@@ -115,9 +115,18 @@ class DetectionReport:
         return "; ".join(self.reasons)
 
 
-def charuco_board(target: Target) -> cv2.aruco.CharucoBoard:
-    """OpenCV's ``CharucoBoard`` for a ``charuco`` target (same layout and corner ids)."""
-    return _charuco_board(
+def charuco_board(target: Target, legacy: bool = False) -> cv2.aruco.CharucoBoard:
+    """OpenCV's ``CharucoBoard`` for a ``charuco`` target (same layout and corner ids);
+    ``legacy``: the layout of OpenCV before 4.6 (see :func:`_detect_charuco`)."""
+    return _charuco_board(_charuco_key(target), legacy)
+
+
+#: (squares_x, squares_y, square_size_m, marker_size_m, dictionary) of a ChArUco target
+CharucoKey = tuple[int, int, float, float, str]
+
+
+def _charuco_key(target: Target) -> CharucoKey:
+    return (
         target.squares_x,
         target.squares_y,
         target.square_size_m,
@@ -127,9 +136,8 @@ def charuco_board(target: Target) -> cv2.aruco.CharucoBoard:
 
 
 @lru_cache(maxsize=8)
-def _charuco_board(
-    squares_x: int, squares_y: int, square_m: float, marker_m: float, dictionary: str
-) -> cv2.aruco.CharucoBoard:
+def _charuco_board(key: CharucoKey, legacy: bool = False) -> cv2.aruco.CharucoBoard:
+    squares_x, squares_y, square_m, marker_m, dictionary = key
     if not dictionary.startswith("DICT_") or not hasattr(cv2.aruco, dictionary):
         raise InputError(
             f"unknown ArUco dictionary {dictionary!r}; use an OpenCV name such as DICT_5X5_100"
@@ -140,14 +148,15 @@ def _charuco_board(
             f"({square_m})"
         )
     d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
-    return cv2.aruco.CharucoBoard((squares_x, squares_y), square_m, marker_m, d)
+    board = cv2.aruco.CharucoBoard((squares_x, squares_y), square_m, marker_m, d)
+    if legacy:
+        board.setLegacyPattern(True)
+    return board
 
 
 @lru_cache(maxsize=8)
-def _charuco_detector(
-    squares_x: int, squares_y: int, square_m: float, marker_m: float, dictionary: str
-) -> cv2.aruco.CharucoDetector:
-    board = _charuco_board(squares_x, squares_y, square_m, marker_m, dictionary)
+def _charuco_detector(key: CharucoKey, legacy: bool = False) -> cv2.aruco.CharucoDetector:
+    board = _charuco_board(key, legacy)
     cp = cv2.aruco.CharucoParameters()
     cp.minMarkers = 1  # a corner next to one decoded marker; wrong ids are caught afterwards
     cp.tryRefineMarkers = True
@@ -267,7 +276,7 @@ def detect(
     grey = grey_of(image, colour)
     stats = image_stats(grey)
     if target.kind == "charuco":
-        ids, px, reasons, path = (*_detect_charuco(grey, target, stats[2]), "charuco")
+        ids, px, reasons, path = _detect_charuco(grey, target, stats[2])
     elif target.kind == "chessboard":
         ids, px, reasons, path = _detect_chessboard(grey, target)
     elif target.kind in ("apriltag", "aprilgrid"):
@@ -288,26 +297,50 @@ def _empty() -> tuple[np.ndarray, np.ndarray]:
 
 def _detect_charuco(
     grey: np.ndarray, target: Target, blur_px: float = 0.0
-) -> tuple[np.ndarray, np.ndarray, list]:
-    key = (
-        target.squares_x,
-        target.squares_y,
-        target.square_size_m,
-        target.marker_size_m,
-        target.dictionary or "DICT_5X5_100",
-    )
-    detector = _charuco_detector(*key)
-    board = _charuco_board(*key)
+) -> tuple[np.ndarray, np.ndarray, list, str]:
+    """The ChArUco corners, the reasons when none, and the path ("charuco", or
+    "charuco-legacy" for a board of OpenCV's layout before 4.6).
+
+    OpenCV 4.6 changed where the markers sit on a board with an even number of rows
+    (``squares_y``); boards printed before, and many bought ones, keep the old layout. Their
+    markers decode but no corner interpolates (the markers' neighbours disagree with the
+    board). Such an image is detected again with the old layout, and the layout giving more
+    corners is kept; the corners' ids and board positions are the same in both.
+    """
+    ids, px, reasons, n_markers = _detect_charuco_layout(grey, target, blur_px, legacy=False)
+    if target.squares_y % 2 == 0 and n_markers >= 2 and len(ids) < n_markers / 2:
+        old = _detect_charuco_layout(grey, target, blur_px, legacy=True)
+        if len(old[0]) > len(ids):
+            return *old[:3], "charuco-legacy"
+    return ids, px, reasons, "charuco"
+
+
+def _detect_charuco_layout(
+    grey: np.ndarray, target: Target, blur_px: float, legacy: bool
+) -> tuple[np.ndarray, np.ndarray, list, int]:
+    """The corners of one layout, the reasons when none, and how many markers decoded."""
+    key = _charuco_key(target)
+    detector = _charuco_detector(key, legacy)
+    board = _charuco_board(key, legacy)
     ch_corners, ch_ids, m_corners, m_ids = detector.detectBoard(grey)
     if m_ids is None or len(m_ids) == 0:
-        return *_empty(), [
-            "no ArUco marker of the target found (board not in view, seen from "
-            "its back, or too blurred/dark)"
-        ]
+        return (
+            *_empty(),
+            [
+                "no ArUco marker of the target found (board not in view, seen from "
+                "its back, or too blurred/dark)"
+            ],
+            0,
+        )
     if ch_ids is None or len(ch_ids) == 0:
-        return *_empty(), [
-            f"{len(m_ids)} markers found but no ChArUco corner could be interpolated"
-        ]
+        return (
+            *_empty(),
+            [
+                f"{len(m_ids)} markers found but no ChArUco corner could be interpolated "
+                "(check squares_x, squares_y and the dictionary against the board)"
+            ],
+            len(m_ids),
+        )
     ids = np.asarray(ch_ids, dtype=np.int64).reshape(-1)
     px = np.asarray(ch_corners, dtype=np.float64).reshape(-1, 2)
     # marker corners (board frame) against their image positions, to size the refinement
@@ -327,7 +360,7 @@ def _detect_charuco(
         )
         if H is not None:
             px = _refine_charuco(grey, target, board, ids, px, markers, H, blur_px)
-    return ids, px, []
+    return ids, px, [], len(m_ids)
 
 
 def _refine_charuco(

@@ -424,8 +424,13 @@ def test_lone_tag_corners_are_not_pulled_inwards():
     cam = replace(R1, photo=Photo())
     rng = np.random.default_rng(5)
     inward = []
-    for tilt_x, tilt_y, dist, roll in ((0, 0, 0.9, 0), (25, 0, 1.0, 10), (0, -35, 0.9, 0),
-                                       (-30, 20, 1.2, -20), (15, 15, 0.8, 45)):
+    for tilt_x, tilt_y, dist, roll in (
+        (0, 0, 0.9, 0),
+        (25, 0, 1.0, 10),
+        (0, -35, 0.9, 0),
+        (-30, 20, 1.2, -20),
+        (15, 15, 0.8, 45),
+    ):
         T = _pose_extent(tg, tilt_x, tilt_y, dist, roll)
         rep = detect(render_target(tg, cam, T, rng), tg)
         assert rep.ok, rep.reasons
@@ -510,3 +515,35 @@ def test_chessboard_under_a_glare_found_with_its_light_made_even():
     # corners outside the glare as accurate as on any photo-like render; those under the
     # saturated glare err by up to 1.3 px (the robust solve down-weights them)
     assert np.median(e) < 0.2 and e.max() < 2.0
+
+
+@pytest.mark.parametrize(("squares_x", "squares_y"), [(8, 6), (11, 8), (12, 9)])
+def test_charuco_board_of_the_layout_before_opencv_4_6(squares_x, squares_y):
+    # OpenCV 4.6 moved the markers of boards with an even number of rows; a board printed in
+    # the old layout (older prints, many bought boards) decodes its markers but interpolated no
+    # corner. Both layouts, printed alike and seen in perspective, give the same corners with
+    # the same ids (odd rows: one layout)
+    target = Target.charuco(squares_x, squares_y, 0.03, 0.022, "DICT_5X5_100")
+    sq, margin = 60, 60
+    size = (squares_x * sq + 2 * margin, squares_y * sq + 2 * margin)
+    src = np.float32([[0, 0], [size[0], 0], [size[0], size[1]], [0, size[1]]])
+    dst = np.float32([[40, 30], [size[0] + 60, 70], [size[0] + 20, size[1] + 90], [10, size[1]]])
+    H = cv2.getPerspectiveTransform(src, dst)
+    found = {}
+    for legacy in (False, True):
+        flat = charuco_board(target, legacy).generateImage(size, marginSize=margin, borderBits=1)
+        seen = cv2.warpPerspective(flat, H, (size[0] + 100, size[1] + 120), borderValue=255)
+        seen = cv2.GaussianBlur(seen, (0, 0), 0.8)
+        rng = np.random.default_rng(squares_x)
+        seen = np.clip(0.8 * seen + 20 + rng.normal(0, 2, seen.shape), 0, 255).astype(np.uint8)
+        report = detect(seen, target)
+        assert report.ok, report.reasons
+        found[legacy] = report
+    new, old = found[False], found[True]
+    assert len(new.detection.ids) == (squares_x - 1) * (squares_y - 1)
+    np.testing.assert_array_equal(np.sort(new.detection.ids), np.sort(old.detection.ids))
+    a = new.detection.px[np.argsort(new.detection.ids)]
+    b = old.detection.px[np.argsort(old.detection.ids)]
+    assert np.max(np.hypot(*(a - b).T)) < 0.1
+    assert new.path == "charuco"
+    assert old.path == ("charuco-legacy" if squares_y % 2 == 0 else "charuco")
