@@ -1005,6 +1005,17 @@ def _cases() -> list[Case]:
             ((("frames", 1, "detections", "cam", "px"), [[nan, 1.0], [1.0, 1.0], [2.0, 1.0]]),),
         ),
         C(
+            "session px outside the image",
+            "session",
+            "frames[1].detections.cam.px",
+            (
+                (
+                    ("frames", 1, "detections", "cam", "px"),
+                    [[100.0, 100.0], [1500.0, 90.0], [2.0, 1.0]],
+                ),
+            ),
+        ),
+        C(
             "session image that does not exist",
             "session",
             "frames[0].images.cam",

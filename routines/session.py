@@ -149,6 +149,9 @@ OPTIONS_KEYS = (
     "estimate_robot_noise",
 )
 
+#: How far (pixels) a given detection may lie outside its camera's image (a corner is inside)
+DETECTION_MARGIN_PX = 2.0
+
 #: Largest board (squares per side) slidecal accepts: beyond it a typo is likelier than a board.
 MAX_SQUARES = 200
 
@@ -699,7 +702,8 @@ def _read_frame(
     for name in dets.data:
         if name not in names:
             raise dets.error(str(name), f"unknown camera {name!r}; cameras are {names}")
-        detections[str(name)] = _read_detection(dets.section(str(name)), target)
+        spec = cameras[names.index(str(name))]
+        detections[str(name)] = _read_detection(dets.section(str(name)), target, spec)
 
     for name, path in image_paths.items():
         if name in detections:
@@ -710,7 +714,8 @@ def _read_frame(
             )
         if not detect_images:
             raise ims.error(name, "has an image but no detections, and detection was turned off")
-        detections[name], why = _detect_file(path, target, ims.where(name))
+        spec = cameras[names.index(name)]
+        detections[name], why = _detect_file(path, target, ims.where(name), spec)
         if why:
             reasons[(fid, name)] = why
     quality: dict[tuple[int, str], dict[str, Any]] = {}
@@ -723,7 +728,7 @@ def _read_frame(
     return frame, quality, {(fid, n): p for n, p in image_paths.items()}
 
 
-def _read_detection(f: Fields, target: Target) -> Detection:
+def _read_detection(f: Fields, target: Target, camera: CameraSpec) -> Detection:
     f.only(SESSION_KEYS["detection"])
     ids_raw = f.get("ids", [])
     px_raw = f.get("px", [])
@@ -743,10 +748,22 @@ def _read_detection(f: Fields, target: Target) -> Detection:
     ids = np.asarray(ids_raw, dtype=np.int64)
     if len(np.unique(ids)) != len(ids):
         raise f.error("ids", "has repeated ids; each corner may appear once per image")
+    w, h = camera.width, camera.height
+    outside = (px[:, 0] < -DETECTION_MARGIN_PX - 0.5) | (px[:, 0] > w - 0.5 + DETECTION_MARGIN_PX)
+    outside |= (px[:, 1] < -DETECTION_MARGIN_PX - 0.5) | (px[:, 1] > h - 0.5 + DETECTION_MARGIN_PX)
+    if outside.any():
+        u, v = px[np.flatnonzero(outside)[0]]
+        raise f.error(
+            "px",
+            f"[{u:.1f}, {v:.1f}] lies outside the {w} x {h} image of camera {camera.name!r}; give "
+            "pixels of that image (u across, v down; check the cameras' width and height)",
+        )
     return Detection(ids, px)
 
 
-def _detect_file(path: Path, target: Target, where: str) -> tuple[Detection, tuple[str, ...]]:
+def _detect_file(
+    path: Path, target: Target, where: str, camera: CameraSpec
+) -> tuple[Detection, tuple[str, ...]]:
     """The detection of an image file, and the detector's reasons when it found nothing usable."""
     import cv2
 
@@ -755,6 +772,14 @@ def _detect_file(path: Path, target: Target, where: str) -> tuple[Detection, tup
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise InputError(f"{path.name} is not a readable image; replace it", where=where)
+    h, w = image.shape[:2]
+    if (w, h) != (camera.width, camera.height):
+        raise InputError(
+            f"{path.name} is {w} x {h} pixels, but camera {camera.name!r} is "
+            f"{camera.width} x {camera.height}; give the cameras' width and height of their "
+            "images (or images of that size)",
+            where=where,
+        )
     report = detect(image, target)
     return report.detection, () if report.ok else tuple(report.reasons)
 

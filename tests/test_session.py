@@ -163,6 +163,23 @@ def test_bad_robot_pose_transform_names_its_field(tmp_path: Path, pose, field, s
     assert says in str(e.value)
 
 
+def test_image_of_another_size_than_its_camera_is_refused(tmp_path: Path) -> None:
+    import cv2
+
+    (tmp_path / "images").mkdir()
+    cv2.imwrite(str(tmp_path / "images" / "a.png"), np.full((720, 1280), 128, np.uint8))
+    _write(
+        tmp_path,
+        frames=[
+            {"id": 0, "T_base_tool": [0.4, 0, 0.3, 0, 3.1, 0], "images": {"left": "images/a.png"}}
+        ],
+    )
+    with pytest.raises(InputError) as e:
+        read_session(tmp_path)
+    assert "frames[0].images.left" in str(e.value)
+    assert "a.png is 1280 x 720 pixels, but camera 'left' is 1280 x 800" in str(e.value)
+
+
 # ----------------------------------------------------------------------------- bad input
 
 _GOOD = {
