@@ -323,7 +323,9 @@ def config_from_dict(data: Any, source: str = "cell.yaml", sha256: str | None = 
         raise f.error("format", f"is {f.get('format')!r}; expected {CELL_FORMAT!r}")
     mount = f.choice("mount", CELL_MOUNTS, "eye_in_hand")
     robot = _robot(f.section("robot", CELL_KEYS["robot"]))
-    target = target_from_dict(f.require("target"), source)
+    simulated = f.section("robot").get("driver", "simulated") == "simulated"
+    # a simulated board is exactly as described unless the cell gives its tolerance
+    target = target_from_dict(f.require("target"), source, exact_by_default=simulated)
 
     sim = None
     if robot.driver == "simulated":

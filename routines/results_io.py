@@ -62,6 +62,7 @@ from slidecal.solver.named import (
     reported_names,
 )
 from slidecal.solver.result import (
+    BoardShape,
     CalibrationResult,
     CameraEstimate,
     ModelAdequacy,
@@ -152,9 +153,7 @@ def _named_from_legacy(
             return None
         return T_from_Rt(t.R, np.zeros(3) if t.t_m is None else t.t_m)
 
-    T_cam_ref = {
-        c: T(t) for c in cams if c != ref and (t := rig.get(f"T_{c}_{ref}")) is not None
-    }
+    T_cam_ref = {c: T(t) for c in cams if c != ref and (t := rig.get(f"T_{c}_{ref}")) is not None}
     layout = legacy_layout(
         tuple(pnames),
         tuple(cams),
@@ -256,6 +255,14 @@ def result_to_dict(result: CalibrationResult) -> dict[str, Any]:
                 for f, c, v in ad.worst_frames
             ],
         }
+    bd = result.board
+    if bd is not None:
+        d["board"] = {
+            "bow_mm": [_num(v) for v in bd.bow_mm],
+            "bow_std_mm": [_num(v) for v in bd.bow_std_mm],
+            "flatness_mm": _num(bd.flatness_mm),
+            "print_tolerance": _num(bd.print_tolerance),
+        }
     ra = result.robot_accuracy
     if ra is not None:
         d["robot_accuracy"] = {
@@ -316,6 +323,7 @@ RESULT_KEYS = (
     "covariance",
     "adequacy",
     "robot_accuracy",
+    "board",
     "header",
 )
 #: The keys of the parts of ``result.yaml``.
@@ -337,6 +345,7 @@ RESULT_PART_KEYS: dict[str, tuple[str, ...]] = {
     "adequacy": ("adequate", "reasons", "detector_noise_px", "normalised_rms", "worst_frames"),
     "adequacy.worst_frames[]": ("frame", "camera", "normalised_rms"),
     "robot_accuracy": ("translation_mm", "rotation_deg", "estimated", "worst_frames"),
+    "board": ("bow_mm", "bow_std_mm", "flatness_mm", "print_tolerance"),
     "robot_accuracy.worst_frames[]": ("frame", "translation_mm", "rotation_deg"),
     "header": ("slidecal_version", "created_utc", "cell", "cell_sha256", "verdict"),
 }
@@ -370,8 +379,11 @@ def _adequacy_from(f: Fields, names: list[str]) -> ModelAdequacy:
         wf = Fields(w, f.file, f"adequacy.worst_frames[{i}]")
         wf.only(RESULT_PART_KEYS["adequacy.worst_frames[]"])
         worst.append(
-            (wf.integer("frame", minimum=0), wf.choice("camera", names),
-             _nullable(wf, "normalised_rms", minimum=0.0))
+            (
+                wf.integer("frame", minimum=0),
+                wf.choice("camera", names),
+                _nullable(wf, "normalised_rms", minimum=0.0),
+            )
         )
     return ModelAdequacy(
         _camera_numbers(a, "detector_noise_px", names),
@@ -382,6 +394,17 @@ def _adequacy_from(f: Fields, names: list[str]) -> ModelAdequacy:
     )
 
 
+def _board_from(f: Fields) -> BoardShape:
+    b = f.section("board", RESULT_PART_KEYS["board"])
+    bow, sd = b.array("bow_mm", (2,)), b.array("bow_std_mm", (2,))
+    return BoardShape(
+        (float(bow[0]), float(bow[1])),
+        (float(sd[0]), float(sd[1])),
+        b.number("flatness_mm", minimum=0.0),
+        b.number("print_tolerance", minimum=0.0),
+    )
+
+
 def _robot_accuracy_from(f: Fields) -> RobotAccuracy:
     r = f.section("robot_accuracy", RESULT_PART_KEYS["robot_accuracy"])
     worst = []
@@ -389,8 +412,11 @@ def _robot_accuracy_from(f: Fields) -> RobotAccuracy:
         wf = Fields(w, f.file, f"robot_accuracy.worst_frames[{i}]")
         wf.only(RESULT_PART_KEYS["robot_accuracy.worst_frames[]"])
         worst.append(
-            (wf.integer("frame", minimum=0), _nullable(wf, "translation_mm", minimum=0.0),
-             _nullable(wf, "rotation_deg", minimum=0.0))
+            (
+                wf.integer("frame", minimum=0),
+                _nullable(wf, "translation_mm", minimum=0.0),
+                _nullable(wf, "rotation_deg", minimum=0.0),
+            )
         )
     return RobotAccuracy(
         _nullable(r, "translation_mm", minimum=0.0),
@@ -531,6 +557,7 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
             raise hf_.error(str(k), "must be text (as slidecal writes it)")
     adequacy = _adequacy_from(f, names) if f.has("adequacy") else None
     robot_accuracy = _robot_accuracy_from(f) if f.has("robot_accuracy") else None
+    board = _board_from(f) if f.has("board") else None
     T_target = te(tname) if tname else None
     pnames, cov = _named_from_legacy(pnames, cov, cams, ref, mount, hand_eye, T_target, rig)
     return CalibrationResult(
@@ -555,6 +582,7 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
         reference_camera=ref,
         adequacy=adequacy,
         robot_accuracy=robot_accuracy,
+        board=board,
     )
 
 
@@ -753,6 +781,14 @@ def _adequacy_lines(result: CalibrationResult) -> list[str]:
                 f"robot accuracy ({how}): {ra.translation_mm:.3f} mm, {ra.rotation_deg:.4f} deg "
                 f"rms per axis" + (f"; worst frames {worst}" if worst else "")
             )
+    bd = result.board
+    if bd is not None:
+        out.append(
+            f"board: bow {bd.bow_mm[0]:+.3f} mm along x, {bd.bow_mm[1]:+.3f} mm along y "
+            f"(+- {bd.bow_std_mm[0]:.3f}, {bd.bow_std_mm[1]:.3f}); tolerance assumed: flatness "
+            f"{bd.flatness_mm:.2f} mm, print {100.0 * bd.print_tolerance:.3g} % "
+            "(target.flatness_mm, target.print_tolerance)"
+        )
     return out
 
 

@@ -42,7 +42,7 @@ from __future__ import annotations
 import os
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -122,6 +122,8 @@ SESSION_KEYS: dict[str, tuple[str, ...]] = {
 }
 
 #: The keys of a ``target:`` block per kind (cell files and sessions).
+#: How well the real board matches its description (every kind): its bow and its print's error
+TOLERANCE_KEYS = ("flatness_mm", "print_tolerance")
 TARGET_KEYS: dict[str, tuple[str, ...]] = {
     "charuco": (
         "kind",
@@ -130,11 +132,20 @@ TARGET_KEYS: dict[str, tuple[str, ...]] = {
         "square_size_m",
         "marker_size_m",
         "dictionary",
+        *TOLERANCE_KEYS,
     ),
-    "chessboard": ("kind", "squares_x", "squares_y", "square_size_m"),
-    "points": ("kind", "points_m"),
-    "apriltag": ("kind", "tag_size_m", "dictionary", "tag_ids", "tag_origins_m"),
-    "aprilgrid": ("kind", "tag_cols", "tag_rows", "tag_size_m", "tag_spacing", "dictionary"),
+    "chessboard": ("kind", "squares_x", "squares_y", "square_size_m", *TOLERANCE_KEYS),
+    "points": ("kind", "points_m", *TOLERANCE_KEYS),
+    "apriltag": ("kind", "tag_size_m", "dictionary", "tag_ids", "tag_origins_m", *TOLERANCE_KEYS),
+    "aprilgrid": (
+        "kind",
+        "tag_cols",
+        "tag_rows",
+        "tag_size_m",
+        "tag_spacing",
+        "dictionary",
+        *TOLERANCE_KEYS,
+    ),
 }
 TARGET_KINDS = tuple(TARGET_KEYS)
 
@@ -273,14 +284,39 @@ def _dictionary_size(name: str) -> int | None:
         return None
 
 
-def target_from_dict(data: Any, file: str, path: str = "target") -> Target:
+def target_from_dict(
+    data: Any, file: str, path: str = "target", exact_by_default: bool = False
+) -> Target:
     """A :class:`Target` from a ``target:`` block (charuco, chessboard, points, apriltag or
-    aprilgrid)."""
+    aprilgrid). Its tolerance (``flatness_mm``, ``print_tolerance``) takes a real board's
+    defaults when not given (``solver/target_shape.py``), or 0 with ``exact_by_default`` (a
+    simulated board is exactly as described)."""
+    from slidecal.solver.target_shape import PRINT_TOLERANCE, default_flatness_m
+
     f = Fields(data, file, path).only(
         tuple(dict.fromkeys(k for v in TARGET_KEYS.values() for k in v))
     )
     kind = f.choice("kind", TARGET_KINDS)
     f.only(TARGET_KEYS[kind])
+    target = _target_of_kind(f, kind)
+    flat = f.number("flatness_mm", None, minimum=0.0) if f.has("flatness_mm") else None
+    if flat is not None and flat > 20.0:
+        raise f.error("flatness_mm", f"is {flat} mm; give the board's one-sigma bow in mm")
+    tol = f.number("print_tolerance", None, minimum=0.0) if f.has("print_tolerance") else None
+    if tol is not None and tol > 0.05:
+        raise f.error(
+            "print_tolerance",
+            f"is {tol}; give the print's one-sigma relative error (0.0002 for 0.02 %)",
+        )
+    if flat is None:
+        flat = 0.0 if exact_by_default else 1000.0 * default_flatness_m(target.points_m)
+    if tol is None:
+        tol = 0.0 if exact_by_default else PRINT_TOLERANCE
+    return replace(target, flatness_m=flat / 1000.0, print_tolerance=float(tol))
+
+
+def _target_of_kind(f: Fields, kind: str) -> Target:
+    """The :class:`Target` of a validated ``target:`` block's kind-specific keys."""
     if kind == "points":
         pts = f.array("points_m", (-1, 2))
         if len(pts) < 4:
@@ -360,7 +396,14 @@ def target_from_dict(data: Any, file: str, path: str = "target") -> Target:
 
 
 def target_to_dict(target: Target) -> dict[str, Any]:
-    """The ``target:`` block of a :class:`Target`."""
+    """The ``target:`` block of a :class:`Target`, its tolerance included."""
+    d = _kind_to_dict(target)
+    d["flatness_mm"] = 1000.0 * float(target.flatness_m)
+    d["print_tolerance"] = float(target.print_tolerance)
+    return d
+
+
+def _kind_to_dict(target: Target) -> dict[str, Any]:
     if target.kind == "points":
         return {"kind": "points", "points_m": plain(target.points_m[:, :2])}
     if target.kind == "aprilgrid":

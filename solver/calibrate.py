@@ -51,6 +51,7 @@ from slidecal.solver.refine import (
     single_threaded_blas,
 )
 from slidecal.solver.result import (
+    BoardShape,
     CalibrationResult,
     CameraEstimate,
     ScaleCheck,
@@ -61,6 +62,7 @@ from slidecal.solver.stereo import (
     rig_linear_intrinsics,
     rig_linear_intrinsics_translation,
 )
+from slidecal.solver.target_shape import BoardFit, fit_board
 
 # An image with fewer points than this is skipped (with a message): a plane homography and a
 # planar PnP pose need 4 points (8 equations for 8 unknowns). Intrinsics from few points are
@@ -727,6 +729,9 @@ def calibrate(
             return replace(retry, messages=(*retry.messages, note))
     if notes:
         out = replace(out, messages=out.messages + tuple(notes))
+    board = fit_board(problem, out)
+    if board is not None:
+        out = replace(out, board=board)
     return _result(problem, out, K_lin, groups)
 
 
@@ -734,7 +739,9 @@ def _result(
     problem: CalibrationProblem, out: RefineOutput, K_lin: dict[str, np.ndarray], groups: np.ndarray
 ) -> CalibrationResult:
     model, st, state = out.model, out.model.st, out.state
-    reported, named = result_covariance(problem, out)
+    reported, named = result_covariance(problem, out)  # at the flat board's solve
+    if out.board is not None:  # the values at the bowed board (first order)
+        state = model.apply(state, out.board.shift)
     cams = {}
     for spec in problem.cameras:
         c = spec.name
@@ -846,6 +853,20 @@ def _result(
         reference_camera=ref,
         adequacy=adequacy,
         robot_accuracy=robot_accuracy,
+        board=_board_shape(problem, out.board),
+    )
+
+
+def _board_shape(problem: CalibrationProblem, fit: BoardFit | None) -> BoardShape | None:
+    """The result's :class:`BoardShape` of a board fit (None without one)."""
+    if fit is None:
+        return None
+    sd = np.sqrt(np.clip(np.diag(fit.bow_cov), 0.0, None))
+    return BoardShape(
+        (float(1000.0 * fit.bow_m[0]), float(1000.0 * fit.bow_m[1])),
+        (float(1000.0 * sd[0]), float(1000.0 * sd[1])),
+        float(1000.0 * problem.target.flatness_m),
+        float(problem.target.print_tolerance),
     )
 
 

@@ -30,6 +30,7 @@ import numpy as np
 
 from slidecal.solver.geometry import inv_T, skew
 from slidecal.solver.problem import DISTORTION_NAMES, CalibrationProblem
+from slidecal.solver.target_shape import shape_excess
 
 if TYPE_CHECKING:  # the optimiser is imported where it is used: importing this module stays light
     from slidecal.solver.refine import ModelState, RefineOutput, Structure
@@ -328,6 +329,9 @@ def result_covariance(
     offset = tool_offset_excess(problem, out, project)
     if offset is not None:  # an unobserved hand-eye translation, taken as zero
         named = NamedCovariance(names, named.matrix + 0.5 * (offset + offset.T))
+    board = shape_excess(out, project)
+    if board is not None:  # the real board is not quite the one described
+        named = NamedCovariance(names, named.matrix + 0.5 * (board + board.T))
     return names, named
 
 

@@ -69,6 +69,12 @@ class Target:
     tag_cols: int = 0
     tag_rows: int = 0
     tag_spacing: float = 0.0
+    # how well the real board matches this description (one-sigma): the bow of its surface
+    # (metres) and the relative error of the printed pattern's scale, anisotropy and shear; 0: as
+    # described (a target read from a file gets a real board's defaults,
+    # ``solver/target_shape.py``)
+    flatness_m: float = 0.0
+    print_tolerance: float = 0.0
 
     @staticmethod
     def grid_points(squares_x: int, squares_y: int, square_size_m: float) -> np.ndarray:

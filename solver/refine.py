@@ -715,7 +715,11 @@ class BundleModel:
         return nb.r, A, g
 
     def normal_blocks(
-        self, state: ModelState, weights: np.ndarray, keep: bool = True
+        self,
+        state: ModelState,
+        weights: np.ndarray,
+        keep: bool = True,
+        pixel_residuals: np.ndarray | None = None,
     ) -> NormalBlocks:
         """``J' W J`` and ``J' W r`` split into the global parameters and the per-frame blocks.
 
@@ -725,11 +729,15 @@ class BundleModel:
         global. The evaluation is kept for the last state, so reweighing (a camera's rows, the
         priors) costs products only; so are the pixel blocks of the last weights, unless
         ``keep`` is False (a one-off weighting, e.g. one camera's rows, that should not push
-        out the solve's own).
+        out the solve's own). ``pixel_residuals`` (2 n,): the pixel rows' residuals to use in
+        ``J' W r`` instead of the state's (the response to a perturbation of the observations);
+        the blocks are then not kept.
         """
         ax = self.axis_rows
         if "E" not in self.slices:
             r, JT = self._evaluation(state)
+            if pixel_residuals is not None:
+                r = pixel_residuals
             A, g = self._weighted_gram(JT, weights[ax], r[ax])
             P0 = JT.shape[0]
             return NormalBlocks(
@@ -739,13 +747,14 @@ class BundleModel:
         sl = self.slices["E"]
         P0, F = sl.start, len(self.problem.frames)
         w, wp = weights[: 2 * n], weights[2 * n : 2 * n + 6 * F]
+        keep = keep and pixel_residuals is None
         cache = self._normal_cache if keep else None
         if cache is not None and cache[0] is state and np.array_equal(cache[1], w):
             rp, A_gg, g_g, A_gE, A_EE, g_E = cache[2:]  # only the priors' weights moved
         else:
             # JT (P1, 2 n): the columns before the shared ones, transposed, in axis_rows order
             r, JT, B = self._evaluation(state)
-            rp = r[: 2 * n]
+            rp = r[: 2 * n] if pixel_residuals is None else pixel_residuals
             P1 = JT.shape[0]
             A_gg, g_g = self._weighted_gram(JT, w[ax], rp[ax])
             A_gE = np.zeros((P1, F, 6))
@@ -1155,6 +1164,8 @@ class RefineOutput:
     robot_sigma: tuple[float, float] | None = None
     robot_sigma_estimated: bool = False
     robot_test: str = ""
+    # the board's bow and tolerance (``solver/target_shape.py`` ``BoardFit``) once fitted
+    board: object | None = None
 
     @functools.cached_property
     def covariance(self) -> np.ndarray | None:
@@ -1531,8 +1542,8 @@ def _shared_groups(pose_groups: np.ndarray) -> bool:
 def _with_robot(
     out: RefineOutput, sigma: tuple[float, float], estimated: bool, test: str
 ) -> RefineOutput:
-    return RefineOutput(
-        *(getattr(out, f) for f in RefineOutput.__dataclass_fields__ if not f.startswith("robot")),
+    return replace(
+        out,
         robot_sigma=(float(sigma[0]), float(sigma[1])),
         robot_sigma_estimated=estimated,
         robot_test=test,

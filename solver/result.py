@@ -108,6 +108,22 @@ class RobotAccuracy:
 
 
 @dataclass(frozen=True)
+class BoardShape:
+    """The board as the solve saw it (``solver/target_shape.py``).
+
+    ``bow_mm`` (x, y): the estimated bow along the board's x and y axes (its centre line against
+    its edges, +z into the board), ``bow_std_mm`` their one-sigma; ``flatness_mm`` and
+    ``print_tolerance``: the board's tolerance the solve assumed (the bow's prior; the print's
+    error, carried in the covariance).
+    """
+
+    bow_mm: tuple[float, float]
+    bow_std_mm: tuple[float, float]
+    flatness_mm: float
+    print_tolerance: float
+
+
+@dataclass(frozen=True)
 class CalibrationResult:
     """Everything a solve determined, and how well.
 
@@ -126,7 +142,8 @@ class CalibrationResult:
     secondary computations (e.g. a covariance that could not be computed).
     ``linear``: the linear (closed-form) intrinsics per camera before refinement.
     ``adequacy``: the model-adequacy test (None when it could not be made); ``robot_accuracy``:
-    the robot's pose accuracy as the data shows it (None without robot poses).
+    the robot's pose accuracy as the data shows it (None without robot poses). ``board``: the
+    board's bow and assumed tolerance (None for a board taken as exact).
     """
 
     cameras: dict[str, CameraEstimate]
@@ -150,6 +167,7 @@ class CalibrationResult:
     reference_camera: str = ""
     adequacy: ModelAdequacy | None = None
     robot_accuracy: RobotAccuracy | None = None
+    board: BoardShape | None = None
 
     @property
     def named_covariance(self) -> NamedCovariance | None:

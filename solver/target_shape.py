@@ -1,0 +1,163 @@
+"""What a real board's tolerance does to the estimate: the covariance it adds.
+
+The model takes the board as described: a flat plane with the pattern printed at its nominal
+scale. Real boards are neither: a printed board bows by a few tenths of a millimetre over half
+a metre, and a print is scaled, stretched along one axis and sheared by a few hundredths of a
+per cent (docs/ROBOT_ACCURACY.md, "The board"). These errors do not average out over frames:
+every frame sees the same board. Their effect depends on the session: with many orientations
+the images tell the board's shape from the camera's, but the focal length still follows the
+bow (a bowl seen face-on looks like a closer or farther board: 0.1-0.3 % of fx on public robot
+data); with one orientation (translation-only sessions) the principal point rests on the
+board's perspective in that one view, which a shear of 0.02 % moves by several pixels.
+
+The estimate stays the model's. Its covariance gains the spread these errors cause, to first
+order: the estimator's response ``G = -N^-1 J' W J_n`` to each of five board-shape modes
+(isotropic scale, anisotropy and shear of the print; a bow along x and along y, zero at the
+board's edges and ``1`` at its centre line), times the mode's tolerance, ``G S G'``. ``J_n``
+is made by differences of the model's residuals with the board points moved; ``J' W J_n`` with
+the solve's own Jacobian (:meth:`BundleModel.normal_blocks` with given pixel residuals).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from slidecal.solver.problem import Target
+
+#: Default one-sigma bow of a board's surface, per metre of its diagonal: 0.2 mm for a board of
+#: 0.65 m (public robot data: 0.14 and 0.41 mm on boards of 0.66 and 0.90 m; mrcal's estimate
+#: on real boards 0.16-0.35 mm).
+FLATNESS_PER_DIAGONAL = 3e-4
+#: Default one-sigma relative error of the printed pattern: its scale, the difference of its
+#: x and y scales and its shear (a good print on a rigid plate; a paper print from an office
+#: printer errs by 0.1-0.5 %: give that board's ``print_tolerance``).
+PRINT_TOLERANCE = 2e-4
+#: Difference step of the board-shape modes (metres of bow, relative strain)
+_STEP = 1e-6
+
+
+def default_flatness_m(points_m: np.ndarray) -> float:
+    """A real board's one-sigma bow (metres) for a pattern of these points:
+    :data:`FLATNESS_PER_DIAGONAL` times the pattern's diagonal."""
+    xy = np.asarray(points_m, float)[:, :2]
+    return FLATNESS_PER_DIAGONAL * float(np.hypot(*(xy.max(axis=0) - xy.min(axis=0))))
+
+
+def tolerances(target: Target) -> np.ndarray:
+    """The one-sigma (5,) of the board-shape modes of ``target``: scale, anisotropy and shear
+    (relative), bow along x and along y (metres)."""
+    tol, flat = float(target.print_tolerance), float(target.flatness_m)
+    return np.array([tol, tol, tol, flat, flat], float)
+
+
+def shape_modes(target: Target, points_m: np.ndarray) -> list[np.ndarray]:
+    """The displacement (n, 3) of each board point ``points_m`` (board frame) under a unit of
+    each mode: isotropic scale, anisotropy (x stretched, y shrunk), shear, bow along x and
+    along y (z = 1 - u^2 with u from -1 to 1 across the pattern; +z into the board)."""
+    xy = np.asarray(target.points_m, float)[:, :2]
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    centre, half = (lo + hi) / 2.0, np.maximum((hi - lo) / 2.0, 1e-9)
+    x, y = points_m[:, 0] - centre[0], points_m[:, 1] - centre[1]
+    u, v = x / half[0], y / half[1]
+    z = np.zeros_like(x)
+    return [
+        np.column_stack([x, y, z]),
+        np.column_stack([x / 2.0, -y / 2.0, z]),
+        np.column_stack([y / 2.0, x / 2.0, z]),
+        np.column_stack([z, z, 1.0 - u * u]),
+        np.column_stack([z, z, 1.0 - v * v]),
+    ]
+
+
+@dataclass(frozen=True)
+class BoardFit:
+    """The board's shape as the solve sees it (:func:`fit_board`).
+
+    ``bow_m`` (2,): the bow along x and along y (metres at the pattern's centre line, +z into
+    the board) estimated with the parameters, to first order from the flat-board solve;
+    ``bow_cov`` (2, 2) its covariance. ``response`` (P, 5): the optimiser's coordinates per
+    unit of each mode (:func:`shape_modes`) at the flat-board solve; ``mode_cov`` (5, 5): what
+    the modes leave uncertain (the print's tolerance, the bow's posterior).
+    """
+
+    bow_m: np.ndarray
+    bow_cov: np.ndarray
+    response: np.ndarray
+    mode_cov: np.ndarray
+
+    @property
+    def shift(self) -> np.ndarray:
+        """The optimiser's coordinates' step (P,) from the flat board to the bowed one."""
+        return self.response[:, 3:] @ self.bow_m
+
+
+def fit_board(problem, out) -> BoardFit | None:  # noqa: ANN001 - CalibrationProblem, RefineOutput
+    """The board's bow estimated jointly with the parameters, to first order, and what the
+    board's tolerance leaves uncertain; None without a covariance or with a tolerance of 0.
+
+    With ``N = J' W J`` the solve's normal matrix (its covariance over ``s^2``), ``J_n`` the
+    residuals' change per unit of each mode (differences of the model's residuals with the
+    board points moved) and ``b = J' W J_n``: a mode moves the estimate by ``G = -N^-1 b`` per
+    unit. The bow's two modes are estimated as parameters would be, their prior the board's
+    flatness: ``C = J_n' W J_n + b' G`` is their information after the parameters',
+    ``bow = -(C + L)^-1 (J_n' W r + G' g)`` (``L = s^2 / flatness^2``, ``r`` the pixel
+    residuals, ``g`` the solve's whole gradient, priors included), its covariance
+    ``s^2 (C + L)^-1``; the parameters move by ``G bow`` (the values reported; the covariance
+    and the residuals are the flat board's solve's). The print's three modes stay at their
+    nominal values, their tolerance carried as uncertainty.
+    """
+    m, state = out.model, out.state
+    sig = tolerances(problem.target)
+    if out.covariance_blocks is None or m.row_weights is None or not out.sigma_px > 0:
+        return None
+    if not np.any(sig > 0):
+        return None
+    w = m.row_weights
+    n2 = 2 * m.n_obs
+    r0 = m.evaluate(state, jacobian=False)[0][:n2]
+    pts = m.o_pts
+    Jn = []
+    try:
+        for D in shape_modes(problem.target, pts):
+            m.o_pts = pts + _STEP * D
+            Jn.append((m.evaluate(state, jacobian=False)[0][:n2] - r0) / _STEP)
+    finally:
+        m.o_pts = pts
+    Jn = np.array(Jn).T  # (2 n, 5)
+    zero = m.normal_blocks(state, w, keep=False, pixel_residuals=np.zeros(n2))
+
+    def gradient(v: np.ndarray) -> np.ndarray:  # J' W v of the pixel rows (P,)
+        nb = m.normal_blocks(state, w, keep=False, pixel_residuals=v)
+        return np.concatenate([nb.g_g - zero.g_g, (nb.g_E - zero.g_E).reshape(-1)])
+
+    b = np.array([gradient(Jn[:, k]) for k in range(Jn.shape[1])]).T  # (P, 5)
+    Ni = out.covariance_blocks.scaled(1.0 / out.sigma_px**2)
+    P0 = len(zero.g_g)
+    G = np.array([-Ni.times(b[:P0, k], b[P0:, k].reshape(-1, 6)) for k in range(b.shape[1])]).T
+    wp = w[:n2]
+    bow, bow_cov = np.zeros(2), np.zeros((2, 2))
+    if sig[3] > 0:
+        B = slice(3, 5)
+        C = Jn[:, B].T @ (wp[:, None] * Jn[:, B]) + b[:, B].T @ G[:, B]
+        full = m.normal_blocks(state, w, keep=False)  # the whole gradient: ~0 at the minimum
+        g = Jn[:, B].T @ (wp * r0) + G[:, B].T @ np.concatenate([full.g_g, full.g_E.ravel()])
+        post = np.linalg.inv(C + (out.sigma_px / sig[3]) ** 2 * np.eye(2))
+        bow, bow_cov = -post @ g, out.sigma_px**2 * post
+    mode_cov = np.diag(np.r_[sig[:3] ** 2, 0.0, 0.0])
+    mode_cov[3:, 3:] = bow_cov
+    return BoardFit(bow, 0.5 * (bow_cov + bow_cov.T), G, mode_cov)
+
+
+def shape_excess(out, project) -> np.ndarray | None:  # noqa: ANN001 - RefineOutput
+    """What the covariance of the reported quantities (k, k) gains from the board's shape
+    (``out.board``, :class:`BoardFit`): ``G S G'`` with ``S`` the modes' covariance, ``G``
+    mapped by ``project`` = (the reported quantities' Jacobian (k, u), the u parameters it
+    uses); None without a board fit."""
+    fit = getattr(out, "board", None)
+    if fit is None:
+        return None
+    J, used = project
+    D = J @ fit.response[used]
+    return D @ fit.mode_cov @ D.T
