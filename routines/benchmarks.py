@@ -45,6 +45,10 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
         "the verdict's gate, garbage sessions, slidecal check, signals and faults",
     ),
     "scale": ("slidecal.routines.bench_scale", "solve time from 20 to 1000 frames, 1-3 cameras"),
+    "public": (
+        "slidecal.routines.bench_public",
+        "real robot data: the public KUKA sessions (data not shipped: --data DIR)",
+    ),
 }
 
 #: the libraries whose versions a report names

@@ -3,6 +3,8 @@
 import importlib
 import os
 
+import pytest
+
 from slidecal.routines.benchmarks import BENCHMARKS, report_header
 from slidecal.routines.cli import main
 
@@ -55,3 +57,29 @@ def test_scale_arm_session_and_targets():
     ]
     text = "\n".join(_targets(rows, {"slidecal_s": 0.03, "opencv_s": 0.012}))
     assert "| 2.5 | 1.5 |" in text and "| 4.5 | 2 |" in text and "| 4.5 | 5 |" in text
+
+
+def test_public_data_bench_writes_sessions_a_user_would_and_names_missing_data(tmp_path):
+    # the public KUKA data is not shipped: a folder without it is refused with what to give;
+    # a set's poses (row-major 4 x 4, metres) and images become a session read back exactly
+    import cv2
+    import numpy as np
+
+    from slidecal.routines import bench_public
+    from slidecal.routines.session import read_session
+    from slidecal.solver.errors import InputError
+
+    with pytest.raises(InputError, match="kuka_1, kuka_2 and kuka_3"):
+        bench_public.main(["--data", str(tmp_path)])
+    d = tmp_path / "kuka_1"
+    d.mkdir()
+    T = np.eye(4)
+    T[:3, 3] = [1.205, -0.808, 0.524]
+    np.savetxt(d / "RobotPosesVec.txt", np.stack([T.ravel(), T.ravel()]), delimiter="\t")
+    for k in (1, 2):
+        cv2.imwrite(str(d / f"{k:02d}.png"), np.full((120, 160), 200, np.uint8))
+    s = bench_public.write_session("kuka_1", tmp_path, tmp_path / "s")
+    p = read_session(s)
+    assert [f.id for f in p.frames] == [1, 2]
+    np.testing.assert_allclose(p.frames[1].T_base_tool, T, atol=1e-12)
+    assert bench_public.translation_frames("kuka_1", tmp_path) == [1, 2]
