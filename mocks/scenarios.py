@@ -708,6 +708,7 @@ def r1_real_arm(
     translations_only: bool = False,
     options: ModelOptions | None = None,
     detect: Callable[[np.ndarray, np.random.Generator], Detection] | None = None,
+    real_board: bool = False,
 ) -> Scenario:
     """R1 on a real arm: a UR5e (R1's cell within its reach) whose kinematics err by about
     ``arm_mm`` and ``arm_deg`` (:class:`slidecal.mocks.robot.KinematicError`, drawn anew from
@@ -716,10 +717,15 @@ def r1_real_arm(
     ``translations_only``: one orientation (R1's first tilt) and 12 translations of 40-80 mm in
     non-coplanar directions, the session of the issue's real data. ``detect``: the image model,
     ``T_cam_board -> Detection`` (default: R1's projected corners with ``sigma_px`` Gaussian
-    noise). ``T_hand_eye`` and ``T_target`` are the physical truth; see
+    noise). ``real_board``: the board is a real one, bowed along x and y by a draw of a real
+    board's flatness (:func:`real_board_of`), and the session describes it as a file would (a real
+    board's tolerance). ``T_hand_eye`` and ``T_target`` are the physical truth; see
     :func:`effective_truth` for what the data can determine.
     """
     target = r1_target()
+    seen = None
+    if real_board:
+        target, seen = real_board_of(target, rng)
     S = _in_reach()
     T_base_board, poses = r1_poses()
     T_base_board = S @ T_base_board
@@ -751,10 +757,26 @@ def r1_real_arm(
             ]
         )
     true = real_arm_poses(planned, rng, arm_mm, arm_deg)
-    frames = _real_arm_frames(true, planned, T_base_board, eye_in_hand, sigma_px, rng, detect)
+    frames = _real_arm_frames(
+        true, planned, T_base_board, eye_in_hand, sigma_px, rng, detect, target=seen
+    )
     return r1_scenario(
         target, frames, eye_in_hand, options, sigma_px, T_base_board, T_base_tool_true=true
     )
+
+
+def real_board_of(target: Target, rng: np.random.Generator) -> tuple[Target, Target]:
+    """A real board of ``target``'s description: (the target as a session describes it, with a
+    real board's tolerance; the board as it is, bowed along x and y by draws of that flatness,
+    which the camera sees). The print is exact: its error is carried, not estimated."""
+    from slidecal.solver.target_shape import PRINT_TOLERANCE, default_flatness_m, shape_modes
+
+    flat = default_flatness_m(target.points_m)
+    described = replace(target, flatness_m=flat, print_tolerance=PRINT_TOLERANCE)
+    bow = rng.normal(0.0, flat, 2)
+    modes = shape_modes(target, target.points_m)
+    seen = replace(target, points_m=target.points_m + bow[0] * modes[3] + bow[1] * modes[4])
+    return described, seen
 
 
 def _real_arm_frames(

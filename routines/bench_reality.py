@@ -366,6 +366,10 @@ def main(argv: list[str] | None = None) -> int:
     kw = {"sigma_px": args.sigma_px, "arm_mm": args.arm_mm, "arm_deg": args.arm_deg, "detect": det}
     scenarios = [
         ("R1 eye-in-hand", lambda rng: sc.r1_real_arm(rng, **kw)),
+        (
+            "R1 eye-in-hand, a real board (bowed; its tolerance as a file gives it)",
+            lambda rng: sc.r1_real_arm(rng, real_board=True, **kw),
+        ),
         ("R1 eye-to-hand", lambda rng: sc.r1_real_arm(rng, eye_in_hand=False, **kw)),
         (
             "13 frames, one orientation",
