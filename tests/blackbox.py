@@ -616,8 +616,16 @@ def main(argv: list[str] | None = None) -> int:
         default=16,
         help="eye-to-hand tag sessions (seeds 0..N-1); their rms error/std follows the table",
     )
+    ap.add_argument(
+        "--translation-seeds",
+        type=int,
+        default=0,
+        help="13-frame translation-only sessions (seeds 0..N-1): rms error/std, fx within 0.1 %%",
+    )
     args = ap.parse_args(argv)
     tag_z: list[dict[str, float]] = []
+    trans_z: list[dict[str, float]] = []
+    trans_fx: list[float] = []
     print("| session | exit | fx error % | max abs(error)/std | solve s | messages |")
     print("| --- | --- | --- | --- | --- | --- |")
     with tempfile.TemporaryDirectory() as tmp:
@@ -643,6 +651,14 @@ def main(argv: list[str] | None = None) -> int:
             print(_row(f"eye-to-hand tag seed {seed}", code, msg, res, dt, CAM_1080))
             if res is not None:
                 tag_z.append(intrinsic_errors(res, truth.camera))
+        for seed in range(args.translation_seeds):
+            d = root / f"trans{seed}"
+            truth = translation_only_session(d, seed)
+            code, msg, res, dt = solve(d, in_process=True)
+            print(_row(f"translation-only seed {seed}", code, msg, res, dt, truth.camera))
+            if res is not None:
+                trans_z.append(intrinsic_errors(res, truth.camera))
+                trans_fx.append(fx_error_pct(res, truth.camera))
         if args.full:
             for kind, cam, ext in (("chessboard", CAM_1080, "png"), ("charuco", CAM_1200, "jpg")):
                 tdict = (
@@ -660,15 +676,20 @@ def main(argv: list[str] | None = None) -> int:
             d = root / "images_only"
             images_only_session(d, CAM_1200, 50, skip=17, seed=4)
             print(_row("images only, 50, frame 17 blank", *solve(d), CAM_1200))
-    if tag_z:
-        names = list(tag_z[0])
-        z = np.array([[t.get(n, np.nan) for n in names] for t in tag_z])
+    for label, zs in (("eye-to-hand tag", tag_z), ("translation-only", trans_z)):
+        if not zs:
+            continue
+        names = [n for n in zs[0] if n in ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")]
+        z = np.array([[t.get(n, np.nan) for n in names] for t in zs])
         rms = np.sqrt(np.nanmean(z**2, axis=0))
         print(
-            f"\neye-to-hand tag, {len(tag_z)} sessions: rms abs(error)/std "
+            f"\n{label}, {len(zs)} sessions: rms abs(error)/std "
             + ", ".join(f"{n} {v:.2f}" for n, v in zip(names, rms, strict=True))
             + f"; sessions with an intrinsic beyond 3 std: {int(np.sum(np.nanmax(z, axis=1) > 3))}"
         )
+    if trans_fx:
+        within = int(np.sum(np.abs(trans_fx) < 0.1))
+        print(f"translation-only: fx within 0.1 % of the truth in {within} of {len(trans_fx)}")
     return 0
 
 
