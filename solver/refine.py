@@ -715,11 +715,7 @@ class BundleModel:
         return nb.r, A, g
 
     def normal_blocks(
-        self,
-        state: ModelState,
-        weights: np.ndarray,
-        keep: bool = True,
-        pixel_residuals: np.ndarray | None = None,
+        self, state: ModelState, weights: np.ndarray, keep: bool = True
     ) -> NormalBlocks:
         """``J' W J`` and ``J' W r`` split into the global parameters and the per-frame blocks.
 
@@ -729,15 +725,11 @@ class BundleModel:
         global. The evaluation is kept for the last state, so reweighing (a camera's rows, the
         priors) costs products only; so are the pixel blocks of the last weights, unless
         ``keep`` is False (a one-off weighting, e.g. one camera's rows, that should not push
-        out the solve's own). ``pixel_residuals`` (2 n,): the pixel rows' residuals to use in
-        ``J' W r`` instead of the state's (the response to a perturbation of the observations);
-        the blocks are then not kept.
+        out the solve's own).
         """
         ax = self.axis_rows
         if "E" not in self.slices:
             r, JT = self._evaluation(state)
-            if pixel_residuals is not None:
-                r = pixel_residuals
             A, g = self._weighted_gram(JT, weights[ax], r[ax])
             P0 = JT.shape[0]
             return NormalBlocks(
@@ -747,14 +739,13 @@ class BundleModel:
         sl = self.slices["E"]
         P0, F = sl.start, len(self.problem.frames)
         w, wp = weights[: 2 * n], weights[2 * n : 2 * n + 6 * F]
-        keep = keep and pixel_residuals is None
         cache = self._normal_cache if keep else None
         if cache is not None and cache[0] is state and np.array_equal(cache[1], w):
             rp, A_gg, g_g, A_gE, A_EE, g_E = cache[2:]  # only the priors' weights moved
         else:
             # JT (P1, 2 n): the columns before the shared ones, transposed, in axis_rows order
             r, JT, B = self._evaluation(state)
-            rp = r[: 2 * n] if pixel_residuals is None else pixel_residuals
+            rp = r[: 2 * n]
             P1 = JT.shape[0]
             A_gg, g_g = self._weighted_gram(JT, w[ax], rp[ax])
             A_gE = np.zeros((P1, F, 6))
@@ -897,6 +888,22 @@ class BundleModel:
             dE = dE + (S.reshape(6 * F, m) @ delta[P1 : sl.start]).reshape(F, 6)
         d += np.einsum("nac,nc->na", B, dE[self.o_frame]).reshape(-1)
         return d
+
+    def pixel_gradient(self, state: ModelState, weights: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """``J' W v`` (P,) over the pixel rows (``v``, ``weights``: (2 n,)) with the Jacobian at
+        ``state`` (evaluated once and kept): the adjoint of :meth:`pixel_step`, the gradient a
+        perturbation ``v`` of the pixel residuals gives, without the normal matrix."""
+        n = self.n_obs
+        wv = weights[: 2 * n] * v
+        if "E" not in self.slices:
+            return self._evaluation(state)[1] @ wv[self.axis_rows]
+        _, JT, B = self._evaluation(state)
+        g_E = np.zeros((len(self.problem.frames), 6))
+        np.add.at(g_E, self.o_frame, np.einsum("nac,na->nc", B, wv.reshape(n, 2)))
+        parts = [JT @ wv[self.axis_rows]]
+        if self.shared_map is not None:  # the shared corrections gather their frames' parts
+            parts.append(self.shared_map.reshape(-1, self.shared_map.shape[2]).T @ g_E.ravel())
+        return np.concatenate([*parts, g_E.ravel()])
 
     def trial_residuals(self, state: ModelState) -> np.ndarray:
         """Residuals (R,) of ``state``, evaluated with the Jacobian the normal equations use

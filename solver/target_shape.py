@@ -15,7 +15,7 @@ order: the estimator's response ``G = -N^-1 J' W J_n`` to each of five board-sha
 (isotropic scale, anisotropy and shear of the print; a bow along x and along y, zero at the
 board's edges and ``1`` at its centre line), times the mode's tolerance, ``G S G'``. ``J_n``
 is made by differences of the model's residuals with the board points moved; ``J' W J_n`` with
-the solve's own Jacobian (:meth:`BundleModel.normal_blocks` with given pixel residuals).
+the solve's own Jacobian (:meth:`BundleModel.pixel_gradient`).
 """
 
 from __future__ import annotations
@@ -126,22 +126,16 @@ def fit_board(problem, out) -> BoardFit | None:  # noqa: ANN001 - CalibrationPro
     finally:
         m.o_pts = pts
     Jn = np.array(Jn).T  # (2 n, 5)
-    zero = m.normal_blocks(state, w, keep=False, pixel_residuals=np.zeros(n2))
-
-    def gradient(v: np.ndarray) -> np.ndarray:  # J' W v of the pixel rows (P,)
-        nb = m.normal_blocks(state, w, keep=False, pixel_residuals=v)
-        return np.concatenate([nb.g_g - zero.g_g, (nb.g_E - zero.g_E).reshape(-1)])
-
-    b = np.array([gradient(Jn[:, k]) for k in range(Jn.shape[1])]).T  # (P, 5)
+    b = np.array([m.pixel_gradient(state, w, Jn[:, k]) for k in range(Jn.shape[1])]).T  # (P, 5)
     Ni = out.covariance_blocks.scaled(1.0 / out.sigma_px**2)
-    P0 = len(zero.g_g)
+    P0 = m.slices["E"].start if "E" in m.slices else len(m.names)
     G = np.array([-Ni.times(b[:P0, k], b[P0:, k].reshape(-1, 6)) for k in range(b.shape[1])]).T
     wp = w[:n2]
     bow, bow_cov = np.zeros(2), np.zeros((2, 2))
     if sig[3] > 0:
         B = slice(3, 5)
         C = Jn[:, B].T @ (wp[:, None] * Jn[:, B]) + b[:, B].T @ G[:, B]
-        full = m.normal_blocks(state, w, keep=False)  # the whole gradient: ~0 at the minimum
+        full = m.normal_blocks(state, w)  # the whole gradient (~0 at the minimum): the solve's
         g = Jn[:, B].T @ (wp * r0) + G[:, B].T @ np.concatenate([full.g_g, full.g_E.ravel()])
         post = np.linalg.inv(C + (out.sigma_px / sig[3]) ** 2 * np.eye(2))
         bow, bow_cov = -post @ g, out.sigma_px**2 * post
