@@ -740,7 +740,7 @@ def _result(
 ) -> CalibrationResult:
     model, st, state = out.model, out.model.st, out.state
     reported, named = result_covariance(problem, out)  # at the flat board's solve
-    if out.board is not None:  # the values at the bowed board (first order)
+    if out.board is not None:  # between the readings of the board's misfit (target_shape.py)
         state = model.apply(state, out.board.shift)
     cams = {}
     for spec in problem.cameras:

@@ -114,7 +114,8 @@ class BoardShape:
     ``bow_mm`` (x, y): the estimated bow along the board's x and y axes (its centre line against
     its edges, +z into the board), ``bow_std_mm`` their one-sigma; ``flatness_mm`` and
     ``print_tolerance``: the board's tolerance the solve assumed (the bow's prior; the print's
-    error, carried in the covariance).
+    error, carried in the covariance). The parameters are reported halfway between the readings
+    "the misfit is the board" and "it is not", the spread of the two in their covariance.
     """
 
     bow_mm: tuple[float, float]

@@ -10,12 +10,19 @@ bow (a bowl seen face-on looks like a closer or farther board: 0.1-0.3 % of fx o
 data); with one orientation (translation-only sessions) the principal point rests on the
 board's perspective in that one view, which a shear of 0.02 % moves by several pixels.
 
-The estimate stays the model's. Its covariance gains the spread these errors cause, to first
-order: the estimator's response ``G = -N^-1 J' W J_n`` to each of five board-shape modes
-(isotropic scale, anisotropy and shear of the print; a bow along x and along y, zero at the
-board's edges and ``1`` at its centre line), times the mode's tolerance, ``G S G'``. ``J_n``
-is made by differences of the model's residuals with the board points moved; ``J' W J_n`` with
-the solve's own Jacobian (:meth:`BundleModel.pixel_gradient`).
+To first order, the estimator responds to each of five board-shape modes (isotropic scale,
+anisotropy and shear of the print; a bow along x and along y, zero at the board's edges and
+``1`` at its centre line) by ``G = -N^-1 J' W J_n``. The bow is measured: the low-order misfit
+the images show, under the board's flatness as prior. Whether that misfit is the board is
+another matter: a lens the distortion model fits imperfectly leaves a misfit of the same low
+order, and where the frames hold the board at one place in the image (a robot's translation
+groups do) the images cannot say which it is (public robot data: taking the bow off brought
+one board's fx toward the robot's own scale and took the other's away from it). Both readings
+are kept, weighted by :data:`BOW_WEIGHT` (one half): the estimate moves by ``G w bow``, and
+the covariance gains ``G S G'``, ``S`` the modes' second moment about the reported value: for
+the bow the readings' spread and the bow's posterior, ``w (1 - w) bow bow' + w cov(bow)``; for
+the print its tolerance. ``J_n`` is made by differences of the model's residuals with the
+board points moved; ``J' W J_n`` with the solve's own Jacobian (:meth:`BundleModel.pixel_gradient`).
 """
 
 from __future__ import annotations
@@ -34,6 +41,10 @@ FLATNESS_PER_DIAGONAL = 3e-4
 #: x and y scales and its shear (a good print on a rigid plate; a paper print from an office
 #: printer errs by 0.1-0.5 %: give that board's ``print_tolerance``).
 PRINT_TOLERANCE = 2e-4
+#: The weight of the reading "the misfit the images show is the board's bow" against "it is
+#: not the board" (a lens the distortion model fits imperfectly): the images of a robot's
+#: session cannot tell them apart, so each is given half
+BOW_WEIGHT = 0.5
 #: Difference step of the board-shape modes (metres of bow, relative strain)
 _STEP = 1e-6
 
@@ -52,13 +63,27 @@ def tolerances(target: Target) -> np.ndarray:
     return np.array([tol, tol, tol, flat, flat], float)
 
 
+def _pattern_frame(target: Target) -> tuple[np.ndarray, np.ndarray]:
+    """(centre, half-extent) (2,) of the pattern's points in the board frame (metres)."""
+    xy = np.asarray(target.points_m, float)[:, :2]
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    return (lo + hi) / 2.0, np.maximum((hi - lo) / 2.0, 1e-9)
+
+
+def bow_height_m(target: Target, bow_m: np.ndarray, x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
+    """The height (+z into the board, metres) of a board bowed by ``bow_m`` (along x, along y:
+    the two bow modes of :func:`shape_modes`) at board points ``(x_m, y_m)`` (any shape; the
+    surface continues past the pattern's edges as the same quadratic)."""
+    centre, half = _pattern_frame(target)
+    u, v = (x_m - centre[0]) / half[0], (y_m - centre[1]) / half[1]
+    return bow_m[0] * (1.0 - u * u) + bow_m[1] * (1.0 - v * v)
+
+
 def shape_modes(target: Target, points_m: np.ndarray) -> list[np.ndarray]:
     """The displacement (n, 3) of each board point ``points_m`` (board frame) under a unit of
     each mode: isotropic scale, anisotropy (x stretched, y shrunk), shear, bow along x and
     along y (z = 1 - u^2 with u from -1 to 1 across the pattern; +z into the board)."""
-    xy = np.asarray(target.points_m, float)[:, :2]
-    lo, hi = xy.min(axis=0), xy.max(axis=0)
-    centre, half = (lo + hi) / 2.0, np.maximum((hi - lo) / 2.0, 1e-9)
+    centre, half = _pattern_frame(target)
     x, y = points_m[:, 0] - centre[0], points_m[:, 1] - centre[1]
     u, v = x / half[0], y / half[1]
     z = np.zeros_like(x)
@@ -78,8 +103,9 @@ class BoardFit:
     ``bow_m`` (2,): the bow along x and along y (metres at the pattern's centre line, +z into
     the board) estimated with the parameters, to first order from the flat-board solve;
     ``bow_cov`` (2, 2) its covariance. ``response`` (P, 5): the optimiser's coordinates per
-    unit of each mode (:func:`shape_modes`) at the flat-board solve; ``mode_cov`` (5, 5): what
-    the modes leave uncertain (the print's tolerance, the bow's posterior).
+    unit of each mode (:func:`shape_modes`) at the flat-board solve; ``mode_cov`` (5, 5): the
+    modes' second moment about the reported value (the print's tolerance; the bow's two
+    readings, module docstring).
     """
 
     bow_m: np.ndarray
@@ -89,8 +115,9 @@ class BoardFit:
 
     @property
     def shift(self) -> np.ndarray:
-        """The optimiser's coordinates' step (P,) from the flat board to the bowed one."""
-        return self.response[:, 3:] @ self.bow_m
+        """The optimiser's coordinates' step (P,) from the flat-board solve to the reported
+        value: the bow's response at its reading's weight."""
+        return BOW_WEIGHT * (self.response[:, 3:] @ self.bow_m)
 
 
 def fit_board(problem, out) -> BoardFit | None:  # noqa: ANN001 - CalibrationProblem, RefineOutput
@@ -104,9 +131,11 @@ def fit_board(problem, out) -> BoardFit | None:  # noqa: ANN001 - CalibrationPro
     flatness: ``C = J_n' W J_n + b' G`` is their information after the parameters',
     ``bow = -(C + L)^-1 (J_n' W r + G' g)`` (``L = s^2 / flatness^2``, ``r`` the pixel
     residuals, ``g`` the solve's whole gradient, priors included), its covariance
-    ``s^2 (C + L)^-1``; the parameters move by ``G bow`` (the values reported; the covariance
-    and the residuals are the flat board's solve's). The print's three modes stay at their
-    nominal values, their tolerance carried as uncertainty.
+    ``s^2 (C + L)^-1``. The parameters move by ``G w bow`` (:attr:`BoardFit.shift`; the
+    covariance and the residuals are the flat board's solve's), ``w`` the weight of the
+    reading that the misfit is the board (module docstring): the readings' spread ``w (1 - w)
+    bow bow'``, the bow's posterior at ``w`` and the print's tolerance are carried as
+    uncertainty (``mode_cov``).
     """
     m, state = out.model, out.state
     sig = tolerances(problem.target)
@@ -140,13 +169,13 @@ def fit_board(problem, out) -> BoardFit | None:  # noqa: ANN001 - CalibrationPro
         post = np.linalg.inv(C + (out.sigma_px / sig[3]) ** 2 * np.eye(2))
         bow, bow_cov = -post @ g, out.sigma_px**2 * post
     mode_cov = np.diag(np.r_[sig[:3] ** 2, 0.0, 0.0])
-    mode_cov[3:, 3:] = bow_cov
+    mode_cov[3:, 3:] = BOW_WEIGHT * bow_cov + BOW_WEIGHT * (1.0 - BOW_WEIGHT) * np.outer(bow, bow)
     return BoardFit(bow, 0.5 * (bow_cov + bow_cov.T), G, mode_cov)
 
 
 def shape_excess(out, project) -> np.ndarray | None:  # noqa: ANN001 - RefineOutput
     """What the covariance of the reported quantities (k, k) gains from the board's shape
-    (``out.board``, :class:`BoardFit`): ``G S G'`` with ``S`` the modes' covariance, ``G``
+    (``out.board``, :class:`BoardFit`): ``G S G'`` with ``S`` the modes' second moment, ``G``
     mapped by ``project`` = (the reported quantities' Jacobian (k, u), the u parameters it
     uses); None without a board fit."""
     fit = getattr(out, "board", None)

@@ -350,7 +350,7 @@ def test_a_short_tag_session_shares_the_rotation_trend_only() -> None:
 def test_a_bowed_board_is_estimated_where_a_flat_one_misses() -> None:
     # R1 on a real arm in front of a real board (bowed by a draw of a real board's flatness,
     # described as a file describes it): solved as flat, fx is 4.7 std off (seed 2010); with the
-    # bow estimated every intrinsic is within 3 std
+    # bow estimated (its two readings carried) every intrinsic is within 3 std
     from dataclasses import replace
 
     from slidecal.solver.calibrate import calibrate
