@@ -418,6 +418,10 @@ def level_excess(
 #: camera's offset from the flange eye-in-hand, the board's eye-to-hand, with one
 #: orientation): the covariance carries it for an offset within about 17 cm of the flange.
 TOOL_OFFSET_SIGMA_M = 0.1
+#: One-sigma relative error of the length of an arm's moves (0.1 %: 0.2 mm over 20 cm), the
+#: least the all-trend reading of a one-orientation session carries: there the moves' scale is
+#: the focal length's and no image tells it, whatever scatter the frames show
+MOVE_SCALE_SIGMA = 1e-3
 
 
 def tool_offset_gain(
@@ -518,7 +522,12 @@ def smooth_arm_excess(
     short = [
         len(np.flatnonzero(st.trend_groups == g)) - 1 - d < d for g, d in enumerate(st.trend_dims)
     ]
-    if not (floored.any() and any(short)):
+    # per group, (rotation, translation): carried; one orientation's translation trend always
+    # (its level is not learned: refine.Structure.trend_scale_fixed)
+    carried = [
+        (bool(floored[0] and s), bool(floored[1] and (s or st.trend_scale_fixed))) for s in short
+    ]
+    if not any(any(c) for c in carried):
         return None
     e = m.slices["E"]
     A = _columns(out, project, np.arange(e.start, e.stop))
@@ -526,16 +535,19 @@ def smooth_arm_excess(
     excess = np.zeros((len(A), len(A)))
     for g, dims in enumerate(st.trend_dims):
         k = np.flatnonzero(st.trend_groups == g)
-        if not short[g]:  # the scatter keeps as many dof as the trend takes: the images tell
-            continue
+        if not any(carried[g]):  # the scatter keeps as many dof as the trend takes: the images
+            continue  # tell
         c = st.trend_coords[k, :dims]
-        c = c / np.sqrt(np.mean(np.sum(c**2, axis=1)))  # the trend carries sig per frame
+        rms = np.sqrt(np.mean(np.sum(c**2, axis=1)))
+        c = c / rms  # the trend carries sig per frame
+        # one orientation: the moves' scale is never below an arm's (MOVE_SCALE_SIGMA)
+        level = (sig[0], max(sig[1], MOVE_SCALE_SIGMA * rms) if st.trend_scale_fixed else sig[1])
         for a in range(6):
             i = a // 3
-            if floored[i]:
+            if carried[g][i]:
                 Ak = A[:, 6 * k + a]
                 B = Ak @ c
-                excess += sig[i] ** 2 * (B @ B.T - Ak @ Ak.T)
+                excess += level[i] ** 2 * (B @ B.T) - sig[i] ** 2 * (Ak @ Ak.T)
     return excess
 
 

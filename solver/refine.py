@@ -111,6 +111,12 @@ class Structure:
     trend_coords: np.ndarray | None = None
     trend_dims: tuple[int, ...] = ()
     trend_sigma: tuple[float, float] | None = None
+    # one orientation (a translation-only session): the trend's scale along the moves is the
+    # focal length's, which no image tells apart, and one group's trend is too few coordinates
+    # to learn a level from; its translation part stays at the floor and the reading that the
+    # frames' translation error is all trend is carried in the covariance
+    # (named.smooth_arm_excess)
+    trend_scale_fixed: bool = False
     # and the arm errs alike at one place whatever the orientation: the groups share part of
     # their error (a rotation trend, a quadratic translation field: :func:`common_trend`). The
     # correction of frame k gains ``common_map[k] W`` (``common_map`` (F, 6, n), per metre of
@@ -1402,6 +1408,7 @@ def refine(
         whole = np.zeros(len(T_meas), dtype=int)
         trend_groups, trend_coords, trend_dims = translation_trends(T_meas, whole)
     spread = float(np.sqrt(np.mean(np.sum(trend_coords**2, axis=1)))) if trend_dims else 0.0
+    scale_fixed = len(trend_dims) == 1 and len(np.unique(pose_groups)) == 1
     common_map, common_rotation, common_spread = common_trend(T_meas, trend_groups, trend_dims)
     noisy = replace(
         structure,
@@ -1412,7 +1419,12 @@ def refine(
         trend_groups=trend_groups if trend_dims else None,
         trend_coords=trend_coords if trend_dims else None,
         trend_dims=trend_dims,
-        trend_sigma=(sig0[0] / spread, sig0[1] / spread) if trend_dims else None,
+        trend_sigma=(
+            (sig0[0] / spread, SIGMA_FLOOR[1] if scale_fixed else sig0[1] / spread)
+            if trend_dims
+            else None
+        ),
+        trend_scale_fixed=scale_fixed,
         common_map=common_map,
         common_rotation=common_rotation,
         common_sigma=(
@@ -1808,6 +1820,8 @@ def _refine(
                 # support a level of its own (the iteration would creep toward 0 for
                 # tens of steps); the frames' own corrections carry this part
                 v = old if key == "W" else floor
+            if key == "V" and new and model.st.trend_scale_fixed:
+                v = floor  # the translation trend of one orientation (Structure)
             v = max(float(v), floor)
             if vce_step[0] > 2:
                 v = max(accelerate(f"{key}{comp[0]}", old, v, floor), floor)

@@ -284,20 +284,33 @@ def test_smooth_arm_cover_widens_what_the_groups_cannot_tell(monkeypatch):
     assert reported.std("cam.fy") > 1.05 * own.std("cam.fy")
 
 
-def test_smooth_arm_cover_leaves_resolved_trends_and_exact_poses_alone(monkeypatch):
-    # thirteen frames of one orientation tell a trend from scatter (the drifting arm's trend is
-    # learned; the simulated arm's goes to the floor on the data's word), and exact poses carry
-    # no correction at all: nothing is added
+def test_smooth_arm_cover_leaves_exact_poses_alone_and_carries_one_orientations_scale(
+    monkeypatch,
+):
+    # exact poses carry no correction at all: nothing is added. Thirteen frames of one
+    # orientation learn their rotation trend, but the translation trend's scale along the moves
+    # is the focal length's: its level stays at the floor and the reading that the frames'
+    # translation error is all trend is carried, on the translation axes only (the drifting
+    # arm's rotation trend is learned, not carried)
     from slidecal.routines.bench_reality import drifting_arm
     from slidecal.solver.named import smooth_arm_excess
+    from slidecal.solver.refine import SIGMA_FLOOR
 
-    for s in (
-        drifting_arm(np.random.default_rng(7))[0],
-        sc.r1_real_arm(np.random.default_rng(2000), translations_only=True),
-        sc.r1(np.random.default_rng(7), 0.15, 0.0, 0.0),
+    _, out = _solve_keeping_the_refinement(
+        sc.r1(np.random.default_rng(7), 0.15, 0.0, 0.0).problem, monkeypatch
+    )
+    assert smooth_arm_excess(out) is None
+    for s, drifts in (
+        (drifting_arm(np.random.default_rng(7))[0], True),
+        (sc.r1_real_arm(np.random.default_rng(2000), translations_only=True), False),
     ):
         _, out = _solve_keeping_the_refinement(s.problem, monkeypatch)
-        assert smooth_arm_excess(out) is None
+        m = out.model
+        assert m.st.trend_scale_fixed and m.trend_sigma[1] == SIGMA_FLOOR[1]
+        if drifts:  # the drifting arm's rotation trend is learned
+            assert m.trend_sigma[0] * m.trend_spread > 0.1 * m.pose_sigma[0]
+        extra = smooth_arm_excess(out)
+        assert extra is not None and np.trace(extra) > 0.0
 
 
 @pytest.mark.slow
