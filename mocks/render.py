@@ -49,6 +49,7 @@ from slidecal.solver.camera import distortion_jacobian, project_with_jacobians, 
 from slidecal.solver.detect import charuco_board
 from slidecal.solver.errors import InputError
 from slidecal.solver.problem import Target
+from slidecal.solver.target_shape import bow_height_m
 
 if TYPE_CHECKING:
     from slidecal.mocks.camera import SimCamera
@@ -308,6 +309,7 @@ def render_target(
     *,
     vignetting: float = 0.0,
     photo: Photo | None = None,
+    bow_m: tuple[float, float] = (0.0, 0.0),
 ) -> np.ndarray:
     """The image camera ``cam`` takes of ``target`` at pose ``T_cam_board``.
 
@@ -328,6 +330,11 @@ def render_target(
     photo
         Photograph-like imaging (``Photo``); None: ``cam.photo`` (None there too: the clean
         renderer of the module docstring).
+    bow_m
+        The real board's bow along its x and y (metres at the pattern's centre line against its
+        edges, +z into the board: ``solver/target_shape.py``'s bow modes); (0, 0): flat. Each
+        ray meets the bowed surface (two fixed-point steps from the plane; the bow's slope is
+        about 1e-3, so the second step moves the hit by under a micrometre).
 
     Returns
     -------
@@ -341,7 +348,7 @@ def render_target(
     photo = photo if photo is not None else getattr(cam, "photo", None)
     n = SUBSAMPLES
     texture_sigma_px = 0.0
-    inv_depth = None  # (nH, nW, 1) 1 / z of the board along every sub-sample ray
+    inv_depth = None  # (nH, nW) 1 / z of the board along every sub-sample ray
     W, H = int(cam.width), int(cam.height)
     R, t = T[:3, :3], T[:3, 3]
     normal_cam = R[:, 2]  # board +z in camera axes
@@ -352,7 +359,7 @@ def render_target(
     M = np.column_stack([R[:, 0], R[:, 1], t])  # x ~ M (X, Y, 1)
     if abs(np.linalg.det(M)) < 1e-15:  # camera centre on the board plane: sees the edge only
         hi = np.full((H * n, W * n), BACKGROUND, np.float32)
-        inv_depth = np.zeros((H * n, W * n, 1), np.float32)
+        inv_depth = np.zeros((H * n, W * n), np.float32)
     else:
         G = np.linalg.inv(M)  # (X, Y, 1) / s = G (x, y, 1), s > 0 for a hit in front of the camera
         mg = margin_m(target)
@@ -374,10 +381,14 @@ def render_target(
         # board metres -> texture coordinates (texel centres at integers, cv2.remap convention)
         S = np.array([[tpm, 0.0, mg * tpm - 0.5], [0.0, tpm, mg * tpm - 0.5], [0.0, 0.0, 1.0]])
         A = S @ G
-        w_h = cv2.transform(rays, G[2:3, :].astype(np.float64))  # 1 / s, (nH, nW, 1)
+        w_h = cv2.transform(rays, G[2:3, :].astype(np.float64))  # 1 / s, (nH, nW)
         inv_depth = np.maximum(w_h, 0.0)
-        uv = cv2.perspectiveTransform(rays, A)
-        uv[w_h[..., 0] <= 0.0] = _OUTSIDE
+        if bow_m[0] or bow_m[1]:
+            xy, inv_depth = _bowed_hits(target, np.asarray(bow_m, float), rays, G, R[:, 2], w_h)
+            uv = (xy * tpm + (mg * tpm - 0.5)).astype(np.float32)
+        else:
+            uv = cv2.perspectiveTransform(rays, A)
+        uv[w_h <= 0.0] = _OUTSIDE  # behind the camera: past the board plane's horizon
         hi = cv2.remap(
             image,
             uv,
@@ -394,6 +405,31 @@ def render_target(
         np.ascontiguousarray(inv_depth.reshape(H * n, W * n)), (W, H), interpolation=cv2.INTER_AREA
     )
     return _photo(img, inv_z, cam, photo, rng, texture_sigma_px)
+
+
+def _bowed_hits(
+    target: Target,
+    bow_m: np.ndarray,
+    rays: np.ndarray,
+    G: np.ndarray,
+    z_axis_cam: np.ndarray,
+    w_h: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Board coordinates (nH, nW, 2) where each ray meets the bowed board, and 1 / depth there.
+
+    A point ``(X, Y, z)`` of the board is ``M (X, Y, 1) + z r3`` in the camera (``M = [r1 r2
+    t]``, ``G = M^-1``); on the ray ``s x`` that gives ``(X, Y) = (X0, Y0) + z (g3 (X0, Y0) -
+    (g1, g2))`` and ``1 / s = w / (1 + z g3)``, ``(X0, Y0)`` the plane's hit, ``w = (G x)_3``,
+    ``g = G r3``.
+    """
+    g = G @ z_axis_cam
+    XY0 = cv2.perspectiveTransform(rays, G).astype(np.float64)
+    XY = XY0
+    z = np.zeros(XY.shape[:2])
+    for _ in range(2):
+        z = bow_height_m(target, bow_m, XY[..., 0], XY[..., 1])
+        XY = XY0 + z[..., None] * (g[2] * XY0 - g[:2])
+    return XY, np.maximum(w_h / (1.0 + z * g[2]), 0.0).astype(np.float32)
 
 
 def _pick_texels_per_square(target: Target, texel_min_m: float) -> int:

@@ -51,6 +51,11 @@ from slidecal.solver.problem import (
 )
 from slidecal.solver.refine import ModelState
 
+#: An image model: what a camera finds of the board at ``T_cam_board`` (4, 4), drawing noise
+#: from the generator, the board bowed by ``bow_m`` (2,) (metres, ``solver/target_shape.py``'s
+#: bow modes; zeros: flat)
+ImageModel = Callable[[np.ndarray, np.random.Generator, np.ndarray], Detection]
+
 NO_DISTORTION = (False, False, False, False, False)
 #: S1-S5's images (pixels).
 PAPER_SIZE_PX = (300, 240)
@@ -707,7 +712,7 @@ def r1_real_arm(
     eye_in_hand: bool = True,
     translations_only: bool = False,
     options: ModelOptions | None = None,
-    detect: Callable[[np.ndarray, np.random.Generator], Detection] | None = None,
+    detect: ImageModel | None = None,
     real_board: bool = False,
 ) -> Scenario:
     """R1 on a real arm: a UR5e (R1's cell within its reach) whose kinematics err by about
@@ -723,9 +728,9 @@ def r1_real_arm(
     :func:`effective_truth` for what the data can determine.
     """
     target = r1_target()
-    seen = None
+    seen, bow = None, np.zeros(2)
     if real_board:
-        target, seen = real_board_of(target, rng)
+        target, seen, bow = real_board_of(target, rng)
     S = _in_reach()
     T_base_board, poses = r1_poses()
     T_base_board = S @ T_base_board
@@ -758,17 +763,18 @@ def r1_real_arm(
         )
     true = real_arm_poses(planned, rng, arm_mm, arm_deg)
     frames = _real_arm_frames(
-        true, planned, T_base_board, eye_in_hand, sigma_px, rng, detect, target=seen
+        true, planned, T_base_board, eye_in_hand, sigma_px, rng, detect, target=seen, bow_m=bow
     )
     return r1_scenario(
         target, frames, eye_in_hand, options, sigma_px, T_base_board, T_base_tool_true=true
     )
 
 
-def real_board_of(target: Target, rng: np.random.Generator) -> tuple[Target, Target]:
+def real_board_of(target: Target, rng: np.random.Generator) -> tuple[Target, Target, np.ndarray]:
     """A real board of ``target``'s description: (the target as a session describes it, with a
     real board's tolerance; the board as it is, bowed along x and y by draws of that flatness,
-    which the camera sees). The print is exact: its error is carried, not estimated."""
+    which the camera sees; that bow (2,), metres). The print is exact: its error is carried,
+    not estimated."""
     from slidecal.solver.target_shape import PRINT_TOLERANCE, default_flatness_m, shape_modes
 
     flat = default_flatness_m(target.points_m)
@@ -776,7 +782,7 @@ def real_board_of(target: Target, rng: np.random.Generator) -> tuple[Target, Tar
     bow = rng.normal(0.0, flat, 2)
     modes = shape_modes(target, target.points_m)
     seen = replace(target, points_m=target.points_m + bow[0] * modes[3] + bow[1] * modes[4])
-    return described, seen
+    return described, seen, bow
 
 
 def _real_arm_frames(
@@ -786,9 +792,10 @@ def _real_arm_frames(
     eye_in_hand: bool,
     sigma_px: float,
     rng: np.random.Generator,
-    detect: Callable[[np.ndarray, np.random.Generator], Detection] | None,
+    detect: ImageModel | None,
     target: Target | None = None,
     T_tool_board: np.ndarray = R1_T_TOOL_BOARD,
+    bow_m: np.ndarray | None = None,
 ) -> list[Frame]:
     """R1's camera and board (``target``, R1's by default; on the tool at ``T_tool_board``
     eye-to-hand) at the arm's true poses; each frame records the planned pose (what the
@@ -806,7 +813,7 @@ def _real_arm_frames(
                 R1_K, R1_DIST, T_cam_board, target, R1_SIZE_PX, sigma_px, rng, 2.0
             )
         else:
-            det = detect(T_cam_board, rng)
+            det = detect(T_cam_board, rng, np.zeros(2) if bow_m is None else bow_m)
         frames.append(Frame(k, {"cam": det}, T_base_tool=T_meas))
     return frames
 
@@ -1009,7 +1016,7 @@ def classic_real_arm(
     arm_mm: float = 1.0,
     arm_deg: float = 0.1,
     eye_in_hand: bool = True,
-    detect: Callable[[np.ndarray, np.random.Generator], Detection] | None = None,
+    detect: ImageModel | None = None,
 ) -> Scenario:
     """A classic hand-eye session (every frame at its own orientation, :func:`camera_board_poses`)
     on a real arm: a UR5e whose kinematics err by about ``arm_mm`` and ``arm_deg``
@@ -1064,7 +1071,7 @@ def tag_real_arm(
     arm_mm: float = 0.8,
     arm_deg: float = 0.08,
     side_m: float = 0.10,
-    detect: Callable[[np.ndarray, np.random.Generator], Detection] | None = None,
+    detect: ImageModel | None = None,
 ) -> Scenario:
     """Eye-to-hand with one AprilTag (its 4 corners, ``side_m``) on the tool, R1's fixed camera:
     ``n_frames`` frames in the 7 orientations of ``TAG_TILTS_DEG``, each at a random place in

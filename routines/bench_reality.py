@@ -161,8 +161,9 @@ class RealityRow:
     seconds: list[float] = field(default_factory=list)
 
 
-def render_detector(sigma_px: float) -> Callable[[np.ndarray, np.random.Generator], Detection]:
-    """The ``render`` image model: R1's camera renders the board, the detector finds it."""
+def render_detector(sigma_px: float) -> sc.ImageModel:
+    """The ``render`` image model: R1's camera renders the board (bowed as the trial's board
+    is), the detector finds it."""
     from slidecal.mocks.camera import single_camera
     from slidecal.mocks.render import render_target
     from slidecal.solver.detect import detect
@@ -171,8 +172,8 @@ def render_detector(sigma_px: float) -> Callable[[np.ndarray, np.random.Generato
     cam = single_camera()
     target = Target.charuco(11, 8, 0.030, 0.022)
 
-    def run(T_cam_board: np.ndarray, rng: np.random.Generator) -> Detection:
-        image = render_target(target, cam, T_cam_board, rng)
+    def run(T_cam_board: np.ndarray, rng: np.random.Generator, bow_m: np.ndarray) -> Detection:
+        image = render_target(target, cam, T_cam_board, rng, bow_m=(bow_m[0], bow_m[1]))
         return detect(image, target).detection
 
     return run
@@ -183,7 +184,7 @@ def drifting_arm(
     sigma_px: float = 0.15,
     drift_deg: float = 0.06,
     over_m: float = 0.06,
-    detect: Callable[[np.ndarray, np.random.Generator], Detection] | None = None,
+    detect: sc.ImageModel | None = None,
 ) -> tuple[sc.Scenario, np.ndarray]:
     """The one-orientation session of ``r1_real_arm`` on an arm whose orientation drifts
     linearly along the moves (the part of a real arm's error that mimics the principal point):
@@ -206,7 +207,7 @@ def drifting_arm(
                 sc.R1_K, sc.R1_DIST, T_cam_board, target, sc.R1_SIZE_PX, sigma_px, rng, 2.0
             )
         else:
-            det = detect(T_cam_board, rng)
+            det = detect(T_cam_board, rng, np.zeros(2))
         frames.append(Frame(k, {"cam": det}, T_base_tool=T))
     scenario = sc.r1_scenario(
         target, frames, True, None, sigma_px, base.T_target, T_base_tool_true=np.stack(true)
@@ -444,7 +445,10 @@ def main(argv: list[str] | None = None) -> int:
         "The covariance covers the arm's smooth error (docs/ROBOT_ACCURACY.md): where an "
         "orientation group has too few frames to tell a linear trend of the pose error along its "
         "moves from the frames' scatter (R1's groups of five), the reported covariance is the "
-        "larger of the estimator's spread under both readings (`smooth_arm_excess`). Where one "
+        "larger of the estimator's spread under both readings (`smooth_arm_excess`); a "
+        "one-orientation session (the two 13-frame rows) does not learn its translation trend, "
+        "which is a scale of the moves and so the focal length's, and always carries that "
+        "reading on the translation axes, at no less than 0.1 % of the moves. Where one "
         "orientation leaves the camera's offset from the flange unobserved (the two 13-frame "
         f"rows), it carries the estimator's response to that offset at {TOOL_OFFSET_SIGMA_M} m "
         "per axis "

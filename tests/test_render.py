@@ -17,7 +17,7 @@ from slidecal.mocks.camera import (
 )
 from slidecal.solver.camera import K_matrix, project
 from slidecal.solver.errors import HardwareFault, InputError
-from slidecal.solver.geometry import Rx, Ry, T_from_Rt
+from slidecal.solver.geometry import Rx, Ry, Rz, T_from_Rt
 from slidecal.solver.problem import Target
 
 SMALL = SimCamera("small", 320, 240, K_matrix(400.0, 400.0, 160.0, 120.0), np.zeros(5))
@@ -72,6 +72,55 @@ def test_corners_agree_with_the_lens_model():
     rms = float(np.sqrt(np.mean(np.sum(e * e, axis=1))))
     assert rms < 0.08
     assert np.all(np.abs(e.mean(axis=0)) < 0.02)
+
+
+def test_a_bowed_board_is_drawn_where_its_bowed_corners_project():
+    # the R1 camera, noise-free, tilted, a board bowed by 3 mm along x and -2 mm along y
+    # (exaggerated tenfold so the bow moves corners by pixels): cornerSubPix stays on the
+    # projection of the bowed corners (solver/target_shape.py's modes) and off the flat ones
+    from slidecal.solver.target_shape import shape_modes
+
+    tg = Target.chessboard(11, 8, 0.03)
+    cam = replace(single_camera(), noise_std=0.0)
+    T = _facing(tg, 0.45, (0.05, 0.03), Rx(np.radians(25)) @ Ry(np.radians(-20)))
+    bow = (3e-3, -2e-3)
+    modes = shape_modes(tg, tg.points_m)
+    bowed = tg.points_m + bow[0] * modes[3] + bow[1] * modes[4]
+    img = render.render_target(tg, cam, T, np.random.default_rng(1), bow_m=bow)
+    truth = project(cam.K, cam.dist, bowed @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+    flat = project(cam.K, cam.dist, tg.points_m @ T[:3, :3].T + T[:3, 3])
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-5)
+    ref = cv2.cornerSubPix(img, truth.reshape(-1, 1, 2).copy(), (5, 5), (-1, -1), crit)
+    e = ref.reshape(-1, 2) - truth
+    assert float(np.sqrt(np.mean(np.sum(e * e, axis=1)))) < 0.08
+    assert np.all(np.abs(e.mean(axis=0)) < 0.02)
+    assert np.max(np.linalg.norm(truth - flat, axis=1)) > 1.0
+    # no bow: the flat renderer, bit for bit
+    a = render.render_target(tg, cam, T, np.random.default_rng(2))
+    b = render.render_target(tg, cam, T, np.random.default_rng(2), bow_m=(0.0, 0.0))
+    assert np.array_equal(a, b)
+
+
+def test_nothing_is_drawn_past_the_board_planes_horizon():
+    # a camera 0.3 m above the middle of a 4 m board, looking at it at a grazing 10 deg and
+    # rolled 30 deg: the plane's horizon crosses the image diagonally. Every pixel whose ray
+    # points away from the plane is background, though the ray's backward extension meets the
+    # board behind the camera for 2889 of them (the renderer once masked such rays row by row,
+    # by the row's first column, and drew the board there)
+    tg = Target.chessboard(40, 40, 0.1)
+    cam = replace(SMALL, blur_sigma_px=0.0, noise_std=0.0)
+    R_board_cam = Rx(np.radians(80.0)) @ Rz(np.radians(-30.0))  # 10 deg towards the board
+    R = R_board_cam.T
+    c = np.array([2.0, 2.0, -0.3])  # the camera centre, board frame (print side: z < 0)
+    T = T_from_Rt(R, -R @ c)
+    img = render.render_target(tg, cam, T, np.random.default_rng(0)).astype(float) / 255.0
+    u, v = np.meshgrid(np.arange(cam.width), np.arange(cam.height))
+    d_cam = np.stack([(u - 160.0) / 400.0, (v - 120.0) / 400.0, np.ones_like(u, float)], -1)
+    away = (d_cam @ R_board_cam.T)[..., 2] <= -0.01  # board +z is away from the print side
+    towards = (d_cam @ R_board_cam.T)[..., 2] >= 0.01
+    assert away.sum() > 1000 and towards.sum() > 1000
+    assert np.allclose(img[away], render.BACKGROUND, atol=2.0 / 255.0)
+    assert img[towards].std() > 0.1  # the board, seen
 
 
 def test_back_of_the_board_is_plain_and_misses_show_background():
