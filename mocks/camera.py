@@ -151,12 +151,14 @@ class SimulatedCameraRig:
     current state of the simulated cell (supplied by the cell). ``capture()`` renders every
     camera there and remembers those poses in ``last_poses`` (the truth of that capture).
     ``capture_count`` counts the calls of ``capture()`` on an open rig, failed ones included.
+    ``bow_m``: the board's true bow along its x and y (metres; ``mocks/render.py``), (0, 0): flat.
     """
 
     cameras: Sequence[SimCamera]
     target: Target
     poses: Callable[[], dict[str, np.ndarray]]
     rng: np.random.Generator
+    bow_m: tuple[float, float] = (0.0, 0.0)
     is_open: bool = False
     capture_count: int = 0
     last_poses: dict[str, np.ndarray] = field(default_factory=dict)
@@ -225,7 +227,12 @@ class SimulatedCameraRig:
         self.last_poses = {c.name: np.array(poses[c.name], dtype=float) for c in self.cameras}
         return {
             c.name: render_target(
-                self.target, c, self.last_poses[c.name], self.rng, vignetting=c.vignetting
+                self.target,
+                c,
+                self.last_poses[c.name],
+                self.rng,
+                vignetting=c.vignetting,
+                bow_m=self.bow_m,
             )
             for c in self.cameras
         }

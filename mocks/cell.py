@@ -79,6 +79,8 @@ def truth_block(cfg: Any, T_target: np.ndarray | None = None) -> dict[str, Any]:
     }
     if sim.kinematic_error is not None:
         out["noise"]["kinematic_error"] = dict(sim.kinematic_error)
+    if any(sim.board_bow_mm):
+        out["board_bow_mm"] = list(sim.board_bow_mm)
     out["seed"] = sim.seed
     return out
 
@@ -216,7 +218,10 @@ class SimulatedCell:
                 T_ref_board = T_ref_base @ robot.true_pose() @ T_tg
                 return {n: T @ T_ref_board for n, T in T_cam_ref.items()}
 
-        rig = SimulatedCameraRig(cams, cfg.target, poses, np.random.default_rng(camera_seed))
+        bow_m = (sim.board_bow_mm[0] / 1000.0, sim.board_bow_mm[1] / 1000.0)
+        rig = SimulatedCameraRig(
+            cams, cfg.target, poses, np.random.default_rng(camera_seed), bow_m=bow_m
+        )
         truth = truth_block(cfg, T_tg)
         truth["seed"] = seed
         return cls(cfg, robot, rig, truth, seed)

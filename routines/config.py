@@ -153,6 +153,7 @@ CELL_KEYS: dict[str, tuple[str, ...]] = {
         "noise",
         "target_jitter",
         "kinematic_error",
+        "board_bow_mm",
     ),
     "simulation.cameras.*": (
         "width",
@@ -216,7 +217,9 @@ class SimulationConfig:
     amount per axis, drawn from the run's seed.
     ``kinematic_error``: the simulated arm's systematic error (``mm``, ``deg``,
     ``repeatability_mm``, ``repeatability_deg``; ``slidecal.mocks.robot.KinematicError``), or
-    None for an arm that is exactly its nominal model.
+    None for an arm that is exactly its nominal model. ``board_bow_mm``: the simulated board's
+    true bow along its x and y (``solver/target_shape.py``'s bow modes, mm; the renderer draws
+    it).
     """
 
     seed: int
@@ -229,6 +232,7 @@ class SimulationConfig:
     target_jitter_mm: float = 0.0
     target_jitter_deg: float = 0.0
     kinematic_error: dict[str, float] | None = None
+    board_bow_mm: tuple[float, float] = (0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -324,8 +328,9 @@ def config_from_dict(data: Any, source: str = "cell.yaml", sha256: str | None = 
     mount = f.choice("mount", CELL_MOUNTS, "eye_in_hand")
     robot = _robot(f.section("robot", CELL_KEYS["robot"]))
     simulated = f.section("robot").get("driver", "simulated") == "simulated"
-    # a simulated board is exactly as described unless the cell gives its tolerance
-    target = target_from_dict(f.require("target"), source, exact_by_default=simulated)
+    # a simulated board is exactly as described unless the cell gives its tolerance or bows it
+    bowed = simulated and f.section("simulation").has("board_bow_mm")
+    target = target_from_dict(f.require("target"), source, exact_by_default=simulated and not bowed)
 
     sim = None
     if robot.driver == "simulated":
@@ -471,6 +476,8 @@ def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
         }
         if sim.kinematic_error is not None:
             out["simulation"]["kinematic_error"] = dict(sim.kinematic_error)
+        if any(sim.board_bow_mm):
+            out["simulation"]["board_bow_mm"] = list(sim.board_bow_mm)
     out["plan"] = dict(cfg.plan)
     out["options"] = options_to_dict(cfg.options)
     return out
@@ -719,7 +726,22 @@ def _simulation(f: Fields, mount: str) -> SimulationConfig:
         target_jitter_mm=jf.number("mm", 0.0, minimum=0.0, maximum=1000.0),
         target_jitter_deg=jf.number("deg", 0.0, minimum=0.0, maximum=90.0),
         kinematic_error=kinematic_error,
+        board_bow_mm=_board_bow(f),
     )
+
+
+def _board_bow(f: Fields) -> tuple[float, float]:
+    """``simulation.board_bow_mm``: two numbers (mm) within +-20, or (0, 0) when absent."""
+    if not f.has("board_bow_mm"):
+        return (0.0, 0.0)
+    bow = f.array("board_bow_mm", (2,))
+    if np.any(np.abs(bow) > 20.0):
+        raise f.error(
+            "board_bow_mm",
+            f"is {bow.tolist()} mm; a board bows by tenths of a millimetre (at most 20 mm here): "
+            "give the bow along the board's x and y in mm",
+        )
+    return (float(bow[0]), float(bow[1]))
 
 
 def _cameras(

@@ -112,7 +112,8 @@ SESSION_KEYS: dict[str, tuple[str, ...]] = {
         "quality",
     ),
     "detection": ("ids", "px"),
-    "simulation": ("cameras", "noise", "seed", "frames"),  # and transforms named T_<a>_<b>
+    # and transforms named T_<a>_<b>
+    "simulation": ("cameras", "noise", "seed", "frames", "board_bow_mm"),
     # per frame id: the pose the simulated arm really reached and the one it reported
     "simulation.frames[]": ("id", "T_base_tool", "T_base_tool_measured"),
     "simulation.cameras.*": ("K", "distortion"),
@@ -687,6 +688,8 @@ def _simulation_truth(f: Fields | None, names: Sequence[str]) -> dict[str, Any] 
             c.number(k, 0.0, minimum=0.0)
     if f.has("seed"):
         f.integer("seed", minimum=0)
+    if f.has("board_bow_mm"):
+        f.array("board_bow_mm", (2,))
     seen: set[int] = set()
     for i, fr in enumerate(f.list("frames", required=False)):
         ff = Fields(fr, f.file, f"{f.path}.frames[{i}]")

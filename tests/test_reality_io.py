@@ -72,6 +72,33 @@ def test_simulated_cell_with_a_real_arms_kinematic_error(tmp_path) -> None:
     assert "kinematic_error" not in plain.truth["noise"]
 
 
+def test_a_simulated_cell_can_bow_its_board() -> None:
+    # simulation.board_bow_mm: the rig renders a bowed board (the images differ from the flat
+    # board's at the same seed), the truth records the bow, the target is described as a real
+    # board (a real board's tolerance by default); a bow of metres is refused with its field
+    import pytest
+
+    from slidecal.solver.errors import InputError
+
+    flat_cfg = load_packaged_cell("default_cell.yaml")
+    assert flat_cfg.target.flatness_m == 0.0 and flat_cfg.simulation.board_bow_mm == (0.0, 0.0)
+    cfg = load_packaged_cell("default_cell.yaml", {"simulation": {"board_bow_mm": [0.4, -0.2]}})
+    assert cfg.simulation.board_bow_mm == (0.4, -0.2)
+    assert cfg.target.flatness_m > 0.0 and cfg.target.print_tolerance > 0.0
+    images = []
+    for c in (flat_cfg, cfg):
+        cell = SimulatedCell.from_config(c, seed=3)
+        cell.robot.connect()
+        cell.rig.open()
+        images.append(next(iter(cell.rig.capture().values())).astype(float))
+    assert cell.rig.bow_m == (0.0004, -0.0002)
+    assert cell.truth["board_bow_mm"] == [0.4, -0.2]
+    changed = np.abs(images[1] - images[0]) > 20.0  # grey levels: edges moved by the bow
+    assert 0 < changed.mean() < 0.05
+    with pytest.raises(InputError, match="board_bow_mm"):
+        load_packaged_cell("default_cell.yaml", {"simulation": {"board_bow_mm": [400, 0]}})
+
+
 def test_the_summary_writes_an_undetermined_std_in_powers_of_ten() -> None:
     import dataclasses
 
