@@ -20,6 +20,7 @@ import numpy as np
 
 from slidecal.mocks.scenarios import PAPER_SIZE_PX, StereoScene, s5_scene
 from slidecal.routines.benchmarks import report_header
+from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import rotation_angle_deg
 from slidecal.solver.homography import homography_dlt, refine_homography
 from slidecal.solver.stereo import infinite_homography, relative_rotation, rig_linear_intrinsics
@@ -154,6 +155,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--trials", type=int, default=100)
     ap.add_argument("--seed", type=int, default=20060401)
     args = ap.parse_args(argv)
+    try:  # checked before the sweeps, not after them
+        import matplotlib  # noqa: F401
+    except ImportError as e:
+        raise InputError(
+            f"slidecal bench stereo draws its figures with matplotlib, which is not installed "
+            f"({e}); install it with pip install 'slidecal[bench]'"
+        ) from None
     args.out.mkdir(parents=True, exist_ok=True)
     scene = s5_scene()
     t0 = time.perf_counter()
