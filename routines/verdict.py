@@ -89,7 +89,8 @@ class Limits:
     general limit would reject an honest result that the session cannot make more precise.
     ``fx_rel_std_from_translations``: relative one-sigma of fx, fy in such a session: they rest
     on the lengths of the arm's moves and on the board's perspective in one view (public real
-    data, 13 frames: 0.35-0.56 % with the arm's accuracy and the board's tolerance carried).
+    data, 13 frames: 0.12-0.30 % with the arm's accuracy, the scale of its moves and the
+    board's tolerance carried).
     ``scale_tolerance``: smallest tolerance of the camera/robot length ratio around 1.
     ``min_coverage``: fraction of the ``coverage_grid`` ([columns, rows]) cells holding a
     corner, over all frames, per camera. ``max_change_sigma``: a parameter's change from the
