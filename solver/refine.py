@@ -1820,7 +1820,8 @@ def _refine(
                 # support a level of its own (the iteration would creep toward 0 for
                 # tens of steps); the frames' own corrections carry this part
                 v = old if key == "W" else floor
-            if key == "V" and new and model.st.trend_scale_fixed:
+            translation = len(new) == 1  # the levels come as (rotation, translation)
+            if key == "V" and translation and model.st.trend_scale_fixed:
                 v = floor  # the translation trend of one orientation (Structure)
             v = max(float(v), floor)
             if vce_step[0] > 2:
