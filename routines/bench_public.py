@@ -157,9 +157,17 @@ def _z_subset(sub, full, p: str, index: tuple[int, int]) -> tuple[float, float]:
 INTRINSICS = {"fx": (0, 0), "cx": (0, 2), "cy": (1, 2)}
 
 
-def opencv_reference(name: str, data: Path) -> tuple[np.ndarray, float]:
+def _peer_row(name: str, peer: tuple[np.ndarray, float] | None) -> str:
+    if peer is None:
+        return f"| {name} | the board in fewer than 3 frames | | | | |"
+    K, rms = peer
+    return f"| {name} | {K[0, 0]:.2f} | {K[1, 1]:.2f} | {K[0, 2]:.2f} | {K[1, 2]:.2f} | {rms:.3f} |"
+
+
+def opencv_reference(name: str, data: Path) -> tuple[np.ndarray, float] | None:
     """The peer's answer on all of a set's frames: ``cv2.calibrateCamera`` (default flags: k1,
-    k2, p1, p2, k3; no robot, the board as described) on slidecal's detections; (K, rms px)."""
+    k2, p1, p2, k3; no robot, the board as described) on slidecal's detections; (K, rms px),
+    or None when fewer than three frames show the board."""
     from slidecal.routines.session import target_from_dict
     from slidecal.solver.detect import detect
 
@@ -174,6 +182,8 @@ def opencv_reference(name: str, data: Path) -> tuple[np.ndarray, float]:
         if len(d.ids) >= 6:
             obj.append(target.points_m[d.ids].astype(np.float32))
             img.append(d.px.astype(np.float32).reshape(-1, 1, 2))
+    if len(obj) < 3:
+        return None
     rms, K, *_ = cv2.calibrateCamera(obj, img, size, None, None)
     return K, float(rms)
 
@@ -237,11 +247,7 @@ def main(argv: list[str] | None = None) -> int:
         "",
         "| set | fx (px) | fy (px) | cx (px) | cy (px) | rms (px) |",
         "| --- | ---: | ---: | ---: | ---: | ---: |",
-        *(
-            f"| {name} | {K[0, 0]:.2f} | {K[1, 1]:.2f} | {K[0, 2]:.2f} | {K[1, 2]:.2f} | "
-            f"{rms:.3f} |"
-            for name, (K, rms) in peer.items()
-        ),
+        *(_peer_row(name, p) for name, p in peer.items()),
         "",
         "## Agreement",
         "",
@@ -271,7 +277,7 @@ def main(argv: list[str] | None = None) -> int:
                 + " | ".join(cells)
                 + " |"
             )
-        if sub:
+        if sub and peer[name] is not None:
             K, c = peer[name][0], sub.cameras["cam"]
             cells = [
                 f"{c.K[ix] - K[ix]:+.2f} px ({(c.K[ix] - K[ix]) / c.std[p]:+.2f} of its std)"

@@ -83,3 +83,5 @@ def test_public_data_bench_writes_sessions_a_user_would_and_names_missing_data(t
     assert [f.id for f in p.frames] == [1, 2]
     np.testing.assert_allclose(p.frames[1].T_base_tool, T, atol=1e-12)
     assert bench_public.translation_frames("kuka_1", tmp_path) == [1, 2]
+    # no board in the images: no peer answer (not an OpenCV exception)
+    assert bench_public.opencv_reference("kuka_1", tmp_path) is None
