@@ -380,14 +380,13 @@ def render_target(
             image = np.full((h, w), BACK, np.float32)
         # board metres -> texture coordinates (texel centres at integers, cv2.remap convention)
         S = np.array([[tpm, 0.0, mg * tpm - 0.5], [0.0, tpm, mg * tpm - 0.5], [0.0, 0.0, 1.0]])
-        A = S @ G
         w_h = cv2.transform(rays, G[2:3, :].astype(np.float64))  # 1 / s, (nH, nW)
         inv_depth = np.maximum(w_h, 0.0)
         if bow_m[0] or bow_m[1]:
             xy, inv_depth = _bowed_hits(target, np.asarray(bow_m, float), rays, G, R[:, 2], w_h)
-            uv = (xy * tpm + (mg * tpm - 0.5)).astype(np.float32)
+            uv = (xy @ S[:2, :2].T + S[:2, 2]).astype(np.float32)
         else:
-            uv = cv2.perspectiveTransform(rays, A)
+            uv = cv2.perspectiveTransform(rays, S @ G)
         uv[w_h <= 0.0] = _OUTSIDE  # behind the camera: past the board plane's horizon
         hi = cv2.remap(
             image,
