@@ -686,20 +686,30 @@ def real_arm_poses(
     """Where a UR5e with a random kinematic error really puts the tool for ``planned``
     ``T_base_tool`` poses (F, 4, 4): the controller's inverse kinematics (nominal model) gives
     the joints, the perturbed arm (``KinematicError.random`` with these sizes) the pose, plus
-    the stop's repeatability error. The controller reports the planned poses."""
+    the stop's repeatability error. The controller reports the planned poses.
+
+    Each pose's joints are the solution nearest the previous pose's, as a program's moves take
+    them, starting from the configuration the walk from ``Q_HOME`` ends in: the solution
+    nearest ``Q_HOME`` for the first pose can be a branch the next poses cannot reach, and that
+    first frame would then stand on another configuration, with another kinematic error, than
+    the frames after it (a session no integrator records)."""
     from slidecal.mocks.robot import KinematicError
 
     ke = KinematicError.random(rng, arm_mm, arm_deg, repeatability_mm, repeatability_deg)
     out = np.empty_like(planned)
     q_prev = urk.Q_HOME
-    for k, T in enumerate(planned):
-        sols = [q for q in urk.ik(T, q_prev, urk.UR5E) if urk.singularity(q, urk.UR5E) is None]
-        if not sols:
-            raise ValueError(f"planned pose {k} is out of the UR5e's reach")
-        q_prev = sols[0]
+    for _ in range(2):  # the first walk finds the configuration, the second starts in it
+        joints = []
+        for k, T in enumerate(planned):
+            sols = [q for q in urk.ik(T, q_prev, urk.UR5E) if urk.singularity(q, urk.UR5E) is None]
+            if not sols:
+                raise ValueError(f"planned pose {k} is out of the UR5e's reach")
+            q_prev = sols[0]
+            joints.append(q_prev)
+    for k, q in enumerate(joints):
         dR = R_from_rvec(rng.normal(0.0, np.radians(repeatability_deg), 3))
         stop = T_from_Rt(dR, rng.normal(0.0, repeatability_mm / 1000.0, 3))
-        out[k] = ke.fk(q_prev, urk.UR5E) @ stop
+        out[k] = ke.fk(q, urk.UR5E) @ stop
     return out
 
 
@@ -819,9 +829,13 @@ def _real_arm_frames(
 
 
 def effective_truth(
-    s: Scenario, sigma_rot_deg: float = 0.1, sigma_mm: float = 1.0
+    s: Scenario,
+    sigma_rot_deg: float = 0.1,
+    sigma_mm: float = 1.0,
+    frames: Sequence[int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The hand-eye and target pose ``(T_hand_eye, T_target)`` as the session can know them.
+    """The hand-eye and target pose ``(T_hand_eye, T_target)`` as the session can know them
+    (``frames``: the indices of the frames the solve used; default all).
 
     A constant part of the arm's error is indistinguishable from a change of the hand-eye (in
     the tool frame) or of the target (in the base frame): no camera can tell them apart. The
@@ -832,10 +846,12 @@ def effective_truth(
     """
     from slidecal.mocks.cell import effective_truth as _effective
 
+    used = list(range(len(s.problem.frames)) if frames is None else frames)
+    true = s.T_base_tool_true
     T_he, T_tg = _effective(
         s.problem.mount,
-        s.T_base_tool_true,
-        [f.T_base_tool for f in s.problem.frames],
+        true if true is None or frames is None else true[used],
+        [s.problem.frames[i].T_base_tool for i in used],
         inv_T(s.truth.X[0]),  # X = T_cam_tool / T_cam_base
         s.truth.Y,
         sigma_rot_deg,

@@ -419,8 +419,9 @@ def level_excess(
 #: orientation): the covariance carries it for an offset within about 17 cm of the flange.
 TOOL_OFFSET_SIGMA_M = 0.1
 #: One-sigma relative error of the length of an arm's moves (0.1 %: 0.2 mm over 20 cm), the
-#: least the all-trend reading of a one-orientation session carries: there the moves' scale is
-#: the focal length's and no image tells it, whatever scatter the frames show
+#: least the all-trend reading of a one-orientation session carries (there the moves' scale is
+#: the focal length's and no image tells it, whatever scatter the frames show), and the least
+#: level of the field the groups' translation trends share (:func:`common_trend_excess`)
 MOVE_SCALE_SIGMA = 1e-3
 
 
@@ -566,9 +567,11 @@ def common_trend_excess(
     depth moves the vanishing point of the depth moves, which the principal point also moves):
     the images cannot tell them apart, and independent trends average it down over the groups.
     The estimate stays the model's; its covariance is the sandwich over the trends' prior
-    rows, with each translation trend's prior variance ``tau^2`` (the level learned) shared by
-    every group along the directions they have in common (``C L^-1 S L^-1 C`` as in
-    :func:`smooth_arm_excess`)."""
+    rows, with each translation trend's prior variance ``tau^2`` (the level learned; where the
+    groups could not tell it, because it went to the floor or a group is too short to tell a
+    trend from its scatter, at least ``MOVE_SCALE_SIGMA``: an arm's moves are not known better
+    than 0.1 % in scale) shared by every group along the directions they have in common
+    (``C L^-1 S L^-1 C`` as in :func:`smooth_arm_excess`)."""
     m, st = out.model, out.model.st
     if out.covariance_blocks is None or "V" not in m.slices or len(st.trend_dims) < 2:
         return None
@@ -577,6 +580,14 @@ def common_trend_excess(
     from slidecal.solver.refine import TREND_AXES
 
     tau = float(m.trend_sigma[1])
+    # the field's level: the one learned, unless the groups could not tell it (it went to the
+    # floor, or a group is too short to tell a trend from its frames' scatter, as in
+    # smooth_arm_excess): then never below an arm's scale error of its moves
+    floored = m.pose_sigma is not None and tau * m.trend_spread < 0.1 * float(m.pose_sigma[1])
+    short = any(
+        len(np.flatnonzero(st.trend_groups == g)) - 1 - d < d for g, d in enumerate(st.trend_dims)
+    )
+    level = max(tau, MOVE_SCALE_SIGMA) if floored or short else tau
     sv = m.slices["V"]
     A = _columns(out, project, np.arange(sv.start, sv.stop)) / tau**2  # gain on the priors
     axes = list(TREND_AXES)
@@ -592,7 +603,7 @@ def common_trend_excess(
             Ag = A[:, o : o + dims]
             common += Ag @ B.T
             excess -= tau**2 * (Ag @ Ag.T)
-        excess += tau**2 * (common @ common.T)
+        excess += level**2 * (common @ common.T)
     return excess
 
 
