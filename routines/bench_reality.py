@@ -253,7 +253,11 @@ def run_reality_row(
         ra = res.robot_accuracy
         row.robot.append((ra.translation_mm, ra.rotation_deg))
         row.adequate += bool(res.adequacy.adequate)
-        T_eff, _ = sc.effective_truth(s, max(ra.rotation_deg, 1e-4), max(ra.translation_mm, 1e-3))
+        gone = {f for f, _, _ in ra.left_out}  # the truth of the frames the solve used
+        used = [i for i, f in enumerate(s.problem.frames) if f.id not in gone]
+        T_eff, _ = sc.effective_truth(
+            s, max(ra.rotation_deg, 1e-4), max(ra.translation_mm, 1e-3), used
+        )
         for key, (d, C) in _hand_eye_errors(res, s, T_eff).items():
             row.maha.setdefault(key, []).append(float(d @ np.linalg.solve(C, d)))
             for i, ax in enumerate("xyz"):

@@ -18,7 +18,9 @@ of a rig; rig ``T_<name>_<ref>``) and these extensions, all additive:
   ratio}, worst_frames: [{frame, camera, normalised_rms}]}``: whether the model explains the
   images against the detector's noise measured with a free board pose per image;
 - ``robot_accuracy: {translation_mm, rotation_deg, estimated, worst_frames: [{frame,
-  translation_mm, rotation_deg}]}``: the robot's pose accuracy as the camera sees it.
+  translation_mm, rotation_deg}], left_out_frames: [...]}``: the robot's pose accuracy as the
+  camera sees it; ``left_out_frames`` (only when there are some, same fields): the frames the
+  solve left out because their recorded pose was off far beyond the others'.
 
 A value the data cannot determine is ``null``, never a number. ``T_tool_<name>`` of a rig's
 non-reference camera is composed from the reference's hand-eye and the rig extrinsics; its std
@@ -274,6 +276,11 @@ def result_to_dict(result: CalibrationResult) -> dict[str, Any]:
                 for f, t, r in ra.worst_frames
             ],
         }
+        if ra.left_out:
+            d["robot_accuracy"]["left_out_frames"] = [
+                {"frame": int(f), "translation_mm": _num(t), "rotation_deg": _num(r)}
+                for f, t, r in ra.left_out
+            ]
     return d
 
 
@@ -344,9 +351,16 @@ RESULT_PART_KEYS: dict[str, tuple[str, ...]] = {
     "scale_check": ("median_ratio", "worst_ratio", "n"),
     "adequacy": ("adequate", "reasons", "detector_noise_px", "normalised_rms", "worst_frames"),
     "adequacy.worst_frames[]": ("frame", "camera", "normalised_rms"),
-    "robot_accuracy": ("translation_mm", "rotation_deg", "estimated", "worst_frames"),
+    "robot_accuracy": (
+        "translation_mm",
+        "rotation_deg",
+        "estimated",
+        "worst_frames",
+        "left_out_frames",
+    ),
     "board": ("bow_mm", "bow_std_mm", "flatness_mm", "print_tolerance"),
     "robot_accuracy.worst_frames[]": ("frame", "translation_mm", "rotation_deg"),
+    "robot_accuracy.left_out_frames[]": ("frame", "translation_mm", "rotation_deg"),
     "header": ("slidecal_version", "created_utc", "cell", "cell_sha256", "verdict"),
 }
 RESULT_MOUNTS = ("eye_in_hand", "eye_to_hand", "none")
@@ -407,22 +421,26 @@ def _board_from(f: Fields) -> BoardShape:
 
 def _robot_accuracy_from(f: Fields) -> RobotAccuracy:
     r = f.section("robot_accuracy", RESULT_PART_KEYS["robot_accuracy"])
-    worst = []
-    for i, w in enumerate(r.list("worst_frames", required=False, hint="{frame, ...}")):
-        wf = Fields(w, f.file, f"robot_accuracy.worst_frames[{i}]")
-        wf.only(RESULT_PART_KEYS["robot_accuracy.worst_frames[]"])
-        worst.append(
-            (
-                wf.integer("frame", minimum=0),
-                _nullable(wf, "translation_mm", minimum=0.0),
-                _nullable(wf, "rotation_deg", minimum=0.0),
+    lists = {}
+    for key in ("worst_frames", "left_out_frames"):
+        rows = []
+        for i, w in enumerate(r.list(key, required=False, hint="{frame, ...}")):
+            wf = Fields(w, f.file, f"robot_accuracy.{key}[{i}]")
+            wf.only(RESULT_PART_KEYS[f"robot_accuracy.{key}[]"])
+            rows.append(
+                (
+                    wf.integer("frame", minimum=0),
+                    _nullable(wf, "translation_mm", minimum=0.0),
+                    _nullable(wf, "rotation_deg", minimum=0.0),
+                )
             )
-        )
+        lists[key] = tuple(rows)
     return RobotAccuracy(
         _nullable(r, "translation_mm", minimum=0.0),
         _nullable(r, "rotation_deg", minimum=0.0),
-        tuple(worst),
+        lists["worst_frames"],
         r.boolean("estimated"),
+        lists["left_out_frames"],
     )
 
 

@@ -54,6 +54,7 @@ from typing import Any
 import numpy as np
 
 from slidecal.routines.session import Fields, dump_yaml, load_yaml, write_atomic
+from slidecal.solver.adequacy import LEFT_OUT
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import rotation_angle_deg
 from slidecal.solver.problem import CalibrationProblem
@@ -309,6 +310,7 @@ def judge(
                     notes.append(f"no paired comparison: {info['why']}")
     for name, why in result.unobservable.items():
         notes.append(f"{name} not determined: {why}")
+    notes.extend(m for m in result.messages if LEFT_OUT in m)  # frames left out for their poses
     if not quality_ok:
         verdict = "rejected"
     elif installed is not None and not all(c.passed for c in checks):

@@ -19,7 +19,15 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
-from slidecal.solver.adequacy import FreePoseFit, assess, final_free_pose_fit
+from slidecal.solver.adequacy import (
+    LEFT_OUT,
+    FreePoseFit,
+    PoseOutlier,
+    assess,
+    final_free_pose_fit,
+    pairing_check,
+    pose_outlier,
+)
 from slidecal.solver.degeneracy import check_configuration, n_directions
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, project_to_SO3
@@ -633,7 +641,22 @@ def calibrate(
     fits the images best through the robot poses instead of Zhang's closed form; done
     automatically when the refinement from Zhang's start does not converge (few or noisy
     points per image).
+
+    A frame whose robot pose the images contradict far beyond the arm's accuracy elsewhere
+    (``adequacy.pose_outlier``: a pose read before the arm settled, an image paired with another
+    pose) is left out and the session solved again without it, with a message naming it and its
+    misfit; at most one frame in ten (at least one) is left out so.
     """
+    return _calibrate(problem, joint_homographies, focal_sweep, ())
+
+
+def _calibrate(
+    problem: CalibrationProblem,
+    joint_homographies: bool,
+    focal_sweep: bool,
+    left_out: tuple[PoseOutlier, ...],
+) -> CalibrationResult:
+    """:func:`calibrate` with the frames ``left_out`` so far for their robot poses."""
     check_problem(problem)
     full = problem
     problem, notes_skipped = usable_frames(problem)
@@ -647,6 +670,9 @@ def calibrate(
         try:
             K_lin[c.name] = linear_camera(problem, c.name, groups, jh, notes, focal_sweep, H_cache)
         except DegenerateError as e:
+            paired = pairing_check(problem)
+            if paired is not None:  # the cause, told from the images alone
+                raise DegenerateError(f"{paired} (the linear start failed: {e})") from None
             if not notes_skipped:
                 raise
             raise DegenerateError(
@@ -700,9 +726,7 @@ def calibrate(
                 f"the board pose could be computed in {len(kept)} frame(s) only (not in "
                 f"frames {ids}): capture more frames with the whole target in view"
             )
-        res = calibrate(
-            replace(problem, frames=kept), joint_homographies=jh, focal_sweep=focal_sweep
-        )
+        res = _calibrate(replace(problem, frames=kept), jh, focal_sweep, left_out)
         note = f"frames {ids}: no board pose could be computed from the image; skipped"
         return replace(res, messages=(*notes_skipped, note, *res.messages))
     st = build_structure(problem)
@@ -720,13 +744,41 @@ def calibrate(
     out = refine(problem, structure, init)
     classic = problem.knowledge == "robot" and np.bincount(groups).max() == 1
     if not out.converged and classic and len(problem.cameras) == 1 and not focal_sweep:
-        retry = calibrate(full, joint_homographies=jh, focal_sweep=True)
+        retry = _calibrate(full, jh, True, left_out)
         if retry.converged:
             note = (
                 "the refinement from Zhang's start did not converge; it was restarted from the "
                 "focal length that fits the images best through the robot poses"
             )
             return replace(retry, messages=(*retry.messages, note))
+    bad = pose_outlier(problem, out) if out.converged else None
+    if bad is not None:
+        n_all = len(problem.frames) + len(left_out)
+        allowed = max(1, n_all // 10)
+        if len(left_out) < allowed:
+            kept = tuple(f for i, f in enumerate(problem.frames) if i != bad.index)
+            try:
+                res = _calibrate(replace(problem, frames=kept), jh, focal_sweep, (*left_out, bad))
+            except DegenerateError as e:
+                notes.append(f"{bad.describe()}; it stays in the solve: without it, {e}")
+            else:
+                note = (
+                    f"{bad.describe()}: {LEFT_OUT} (a pose read before the arm settled, a "
+                    "glitch of the record, or an image paired with another pose); the session "
+                    "keeps it"
+                )
+                ra = res.robot_accuracy
+                if ra is not None:
+                    gone = (bad.frame, bad.translation_mm, bad.rotation_deg)
+                    ra = replace(ra, left_out=(gone, *ra.left_out))
+                return replace(
+                    res, messages=(*notes_skipped, note, *res.messages), robot_accuracy=ra
+                )
+        else:
+            notes.append(
+                f"{bad.describe()}; no more than {allowed} of {n_all} frames are left out for "
+                "their poses: check that each image is paired with the pose it was taken at"
+            )
     if notes:
         out = replace(out, messages=out.messages + tuple(notes))
     board = fit_board(problem, out)

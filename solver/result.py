@@ -98,13 +98,16 @@ class RobotAccuracy:
 
     ``translation_mm``, ``rotation_deg``: the estimated one-sigma per-axis pose error (rms);
     ``worst_frames``: (frame id, translation error mm, rotation error deg), worst first;
-    ``estimated``: True when learned from the data, False when the user's prior was used as is.
+    ``estimated``: True when learned from the data, False when the user's prior was used as is;
+    ``left_out``: (frame id, translation error mm, rotation error deg) of the frames the solve
+    left out because their recorded pose was off far beyond the others' (in the order left out).
     """
 
     translation_mm: float
     rotation_deg: float
     worst_frames: tuple[tuple[int, float, float], ...]
     estimated: bool
+    left_out: tuple[tuple[int, float, float], ...] = ()
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,7 @@ import pytest
 
 from slidecal.mocks import scenarios as sc
 from slidecal.solver.calibrate import calibrate
+from slidecal.solver.errors import DegenerateError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, rvec_from_R
 from slidecal.solver.problem import ModelOptions, Target
 
@@ -126,3 +127,102 @@ def test_noise_levels_that_keep_creeping_still_give_a_converged_solve():
     K = r.cameras["cam"].K
     for name, (i, j) in {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}.items():
         assert abs(K[i, j] - K_true[i, j]) < 3 * r.cameras["cam"].std[name], name
+
+
+def _glitched(problem, k, dt_m=(0.0, 0.0, 0.0), drot_deg=0.0):
+    """``problem`` with frame ``k``'s recorded pose off by ``dt_m`` and ``drot_deg`` about the
+    tool's y axis: a pose read before the arm settled."""
+    frames = list(problem.frames)
+    T = frames[k].T_base_tool.copy()
+    T[:3, 3] += dt_m
+    T[:3, :3] = T[:3, :3] @ R_from_rvec(np.radians([0.0, drot_deg, 0.0]))
+    frames[k] = replace(frames[k], T_base_tool=T)
+    return replace(problem, frames=tuple(frames))
+
+
+def _left_out(res) -> list[int]:
+    return [int(m.split(":")[0].split()[1]) for m in res.messages if "left out of the solve" in m]
+
+
+@pytest.mark.parametrize(("dt_m", "drot_deg"), [((0.006, 0.0, 0.0), 0.0), ((0.0, 0.0, 0.0), 1.0)])
+def test_a_pose_glitch_is_left_out_and_named(dt_m, drot_deg):
+    # R1 on a real arm (about 1 mm, 0.1 deg, 20 frames): one recorded pose 6 mm or 1 deg off
+    # its frame is 7-15 times a typical frame's correction (clean frames: below 4); it is left
+    # out, named with its misfit, and the intrinsics stay within 3 std of the truth
+    s = sc.r1_real_arm(np.random.default_rng(1))
+    assert _left_out(calibrate(s.problem)) == []
+    res = calibrate(_glitched(s.problem, 7, dt_m, drot_deg))
+    assert _left_out(res) == [s.problem.frames[7].id]
+    assert res.adequacy.adequate
+    for name, (a, b) in {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}.items():
+        assert abs(_z(res, s, name, a, b)) < 3.0, name
+
+
+def test_no_more_than_one_frame_in_ten_is_left_out():
+    # three glitches in 20 frames: the two worst are left out (one in ten), the third is named
+    # with what to check; the median-based typical size keeps them from hiding each other
+    s = sc.r1_real_arm(np.random.default_rng(0))
+    p = _glitched(s.problem, 7, (0.006, 0.0, 0.0))
+    p = _glitched(p, 12, drot_deg=1.0)
+    p = _glitched(p, 3, (0.0, -0.005, 0.003))
+    res = calibrate(p)
+    assert sorted(_left_out(res)) == [3, 12]
+    kept = [m for m in res.messages if m.startswith("frame 7:")]
+    assert len(kept) == 1 and "no more than 2 of 20 frames" in kept[0]
+
+
+def _poses_reassigned(problem, order):
+    """``problem`` with frame k given the recorded pose of frame ``order[k]``."""
+    frames = tuple(
+        replace(f, T_base_tool=problem.frames[o].T_base_tool)
+        for f, o in zip(problem.frames, order, strict=True)
+    )
+    return replace(problem, frames=frames)
+
+
+def test_pairing_check_is_silent_on_a_right_session_and_names_the_wrong_pairing():
+    from slidecal.solver.adequacy import pairing_check
+
+    s = sc.classic_real_arm(np.random.default_rng(4))  # 28 frames, every orientation different
+    n = len(s.problem.frames)
+    assert pairing_check(s.problem) is None
+    # the logger one frame behind: image k carries the pose of frame k - 1
+    late = pairing_check(_poses_reassigned(s.problem, [0, *range(n - 1)]))
+    assert late is not None and "the pose recorded 1 frame(s) later" in late
+    # two images swapped: those two frames are named
+    order = list(range(n))
+    order[5], order[17] = 17, 5
+    swapped = pairing_check(_poses_reassigned(s.problem, order))
+    assert swapped is not None and swapped.startswith("frames [5, 17]:")
+    # the same session with the poses in a random order
+    shuffled = _poses_reassigned(s.problem, np.random.default_rng(0).permutation(n))
+    assert "not paired as recorded" in pairing_check(shuffled)
+
+
+def test_a_shuffled_session_is_refused_for_its_pairing_first():
+    # R1's translation groups: the linear start fails, and says why
+    s = sc.r1_real_arm(np.random.default_rng(2))
+    order = np.random.default_rng(1).permutation(len(s.problem.frames))
+    with pytest.raises(DegenerateError, match="not paired as recorded"):
+        calibrate(_poses_reassigned(s.problem, order))
+
+
+@pytest.mark.slow  # a solve that does not converge: seconds
+def test_a_shuffled_classic_session_is_unusable_for_its_pairing_first():
+    s = sc.classic_real_arm(np.random.default_rng(5))
+    order = np.random.default_rng(1).permutation(len(s.problem.frames))
+    res = calibrate(_poses_reassigned(s.problem, order))
+    assert not res.adequacy.adequate
+    assert "not paired as recorded" in res.adequacy.reasons[0]
+
+
+def test_frames_left_out_are_recorded_in_the_result_file(tmp_path):
+    from slidecal.routines.results_io import read_result, write_result
+
+    s = sc.r1_real_arm(np.random.default_rng(1))
+    res = calibrate(_glitched(s.problem, 7, (0.006, 0.0, 0.0)))
+    ((frame, t_mm, _),) = res.robot_accuracy.left_out
+    assert frame == 7 and 3.0 < t_mm < 7.0
+    write_result(res, tmp_path / "result.yaml")
+    back = read_result(tmp_path / "result.yaml").robot_accuracy.left_out
+    assert np.allclose(back, res.robot_accuracy.left_out)
