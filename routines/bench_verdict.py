@@ -36,9 +36,10 @@ import numpy as np
 from slidecal.routines.config import load_config
 from slidecal.routines.session import load_session
 from slidecal.routines.verdict import judge
+from slidecal.solver.adequacy import LEFT_OUT
 from slidecal.solver.drift import Z_LIMIT
 from slidecal.solver.errors import InputError
-from slidecal.solver.geometry import R_from_rvec
+from slidecal.solver.geometry import R_from_rvec, T_from_Rt, rvec_from_R
 
 DOC = Path(__file__).resolve().parent.parent / "docs" / "VERDICT.md"
 COMMAND = "slidecal bench verdict"
@@ -94,6 +95,43 @@ def square_size(size_m: float):  # noqa: ANN201
         t["square_size_m"] = size_m
 
     return edit
+
+
+def pose_glitch(frame: int, dt_mm: tuple[float, float, float]):  # noqa: ANN201
+    """One frame's recorded robot position off by ``dt_mm`` (a pose read before the arm
+    settled)."""
+
+    def edit(doc: dict) -> None:
+        p = doc["frames"][frame]["T_base_tool"]
+        doc["frames"][frame]["T_base_tool"] = [
+            v + d / 1000.0 for v, d in zip(p[:3], dt_mm, strict=True)
+        ] + p[3:]
+
+    return edit
+
+
+def poses_one_frame_late(doc: dict) -> None:
+    """From the second frame on, each image paired with the previous frame's robot pose: a
+    logger that fell one frame behind."""
+    frames = doc["frames"]
+    poses = [f["T_base_tool"] for f in frames]
+    for k in range(len(frames) - 1, 0, -1):
+        frames[k]["T_base_tool"] = poses[k - 1]
+
+
+def poses_inverted(doc: dict) -> None:
+    """The robot poses written as ``T_tool_base`` where ``T_base_tool`` is meant."""
+    for f in doc["frames"]:
+        p = f["T_base_tool"]
+        T_tool_base = np.linalg.inv(T_from_Rt(R_from_rvec(np.array(p[3:])), np.array(p[:3])))
+        f["T_base_tool"] = [float(v) for v in T_tool_base[:3, 3]] + [
+            float(v) for v in rvec_from_R(T_tool_base[:3, :3])
+        ]
+
+
+def mount_eye_to_hand(doc: dict) -> None:
+    """An eye-in-hand session declared eye-to-hand."""
+    doc["mount"] = "eye_to_hand"
 
 
 def record_without_translation(out: Path, seed: int = 0) -> Path:
@@ -295,6 +333,10 @@ def part_garbage(work: Path) -> list[str]:
         ("robot rotations in degrees", rotations_in_degrees),
         ("square size 0.025 m for a 0.030 m board", square_size(0.025)),
         ("square size 0.036 m for 0.030 m (= 0.025 given as 0.030)", square_size(0.036)),
+        ("one robot pose 6 mm off (read before the arm settled)", pose_glitch(3, (5.0, 0.0, -3.0))),
+        ("from frame 1 on, each image paired with the previous pose", poses_one_frame_late),
+        ("robot poses written as T_tool_base", poses_inverted),
+        ("eye-in-hand session declared eye_to_hand", mount_eye_to_hand),
     ]
     lines = [
         "Each case: the session of a good run (default cell, seed 1) edited as a user's mistake "
@@ -319,6 +361,8 @@ def part_garbage(work: Path) -> list[str]:
 def _garbage_row(name: str, o) -> str:  # noqa: ANN001
     fx = float(next(iter(o.result.cameras.values())).K[0, 0])
     why = "; ".join(c.message for c in o.verdict.reasons[:2]).replace("|", "/")
+    if not why:  # accepted: what it left out, if anything
+        why = "; ".join(n for n in o.verdict.notes if LEFT_OUT in n).replace("|", "/")
     return f"| {name} | {o.verdict.verdict} | {o.exit_code} | {fx:.0f} | {why} |"
 
 
