@@ -375,12 +375,7 @@ def pairing_check(problem: CalibrationProblem) -> str | None:
     T_cam = [
         T_from_Rt(cv2.Rodrigues(r)[0], t.reshape(3)) for r, t in zip(rvecs, tvecs, strict=True)
     ]
-    # what moves with the robot, in the camera's view: the camera centre in the board's frame
-    # (eye-in-hand) or the board's origin in the camera's (eye-to-hand)
-    if problem.mount == "eye_in_hand":
-        seen = [-T[:3, :3].T @ T[:3, 3] for T in T_cam]
-    else:
-        seen = [T[:3, 3] for T in T_cam]
+    seen = [_moving_point(T, problem.mount) for T in T_cam]
 
     def scores(shift: int) -> dict[tuple[int, int], float]:
         rot: dict[tuple[int, int], float] = {}
@@ -446,6 +441,15 @@ def pairing_check(problem: CalibrationProblem) -> str | None:
     )
 
 
+def _moving_point(T_cam_board: np.ndarray, mount: str) -> np.ndarray:
+    """What moves with the robot, as the camera sees it: the camera centre in the board's frame
+    (eye-in-hand) or the board's origin in the camera's (eye-to-hand); a pure move of the tool
+    moves it by the tool's translation (up to a rotation)."""
+    if mount == "eye_in_hand":
+        return -T_cam_board[:3, :3].T @ T_cam_board[:3, 3]
+    return T_cam_board[:3, 3]
+
+
 def _move_scale(
     problem: CalibrationProblem, fit: FreePoseFit, ref: str, groups: np.ndarray | None = None
 ) -> float | None:
@@ -469,12 +473,8 @@ def _move_scale(
             robot = float(np.linalg.norm(T[b, :3, 3] - T[a, :3, 3]))
             if robot < 0.005:
                 continue
-            Ta, Tb = fit.T_cam_board[(a, ref)], fit.T_cam_board[(b, ref)]
-            if problem.mount == "eye_in_hand":
-                seen = np.linalg.norm(Ta[:3, :3].T @ Ta[:3, 3] - Tb[:3, :3].T @ Tb[:3, 3])
-            else:
-                seen = np.linalg.norm(Tb[:3, 3] - Ta[:3, 3])
-            ratios.append(seen / robot)
+            pa, pb = (_moving_point(fit.T_cam_board[(i, ref)], problem.mount) for i in (a, b))
+            ratios.append(float(np.linalg.norm(pb - pa)) / robot)
     return float(np.median(ratios)) - 1.0 if ratios else None
 
 
@@ -531,27 +531,26 @@ def pose_outlier(problem: CalibrationProblem, out: RefineOutput) -> PoseOutlier 
     E = out.model.pose_corrections(out.state)
     if E is None or len(E) < POSE_OUTLIER_MIN_FRAMES:
         return None
-    worst: PoseOutlier | None = None
     sizes = [np.linalg.norm(E[:, :3], axis=1), np.linalg.norm(E[:, 3:], axis=1)]
     # the rms size of a Gaussian 3-vector whose median squared size is the frames' (the median
     # of chi-square with 3 degrees of freedom is 2.366)
-    others = [np.full(len(E), np.sqrt(3.0 * np.median(size**2) / 2.366)) for size in sizes]
-    for k in range(len(E)):
-        ratio = max(
-            float(size[k] / rest[k]) if rest[k] > 0 else 0.0
-            for size, rest in zip(sizes, others, strict=True)
-        )
-        if ratio > POSE_OUTLIER_RATIO and (worst is None or ratio > worst.ratio):
-            worst = PoseOutlier(
-                index=k,
-                frame=int(problem.frames[k].id),
-                rotation_deg=float(np.degrees(sizes[0][k])),
-                translation_mm=float(1000.0 * sizes[1][k]),
-                others_rotation_deg=float(np.degrees(others[0][k])),
-                others_translation_mm=float(1000.0 * others[1][k]),
-                ratio=ratio,
-            )
-    return worst
+    typical = [float(np.sqrt(3.0 * np.median(size**2) / 2.366)) for size in sizes]
+    ratios = np.max(
+        [size / t if t > 0 else np.zeros(len(E)) for size, t in zip(sizes, typical, strict=True)],
+        axis=0,
+    )
+    k = int(np.argmax(ratios))
+    if ratios[k] <= POSE_OUTLIER_RATIO:
+        return None
+    return PoseOutlier(
+        index=k,
+        frame=int(problem.frames[k].id),
+        rotation_deg=float(np.degrees(sizes[0][k])),
+        translation_mm=float(1000.0 * sizes[1][k]),
+        others_rotation_deg=float(np.degrees(typical[0])),
+        others_translation_mm=float(1000.0 * typical[1]),
+        ratio=float(ratios[k]),
+    )
 
 
 def robot_accuracy(problem: CalibrationProblem, out: RefineOutput) -> RobotAccuracy | None:
