@@ -850,7 +850,7 @@ def effective_truth(
     true = s.T_base_tool_true
     T_he, T_tg = _effective(
         s.problem.mount,
-        true if true is None or frames is None else true[used],
+        true if true is None else true[used],
         [s.problem.frames[i].T_base_tool for i in used],
         inv_T(s.truth.X[0]),  # X = T_cam_tool / T_cam_base
         s.truth.Y,

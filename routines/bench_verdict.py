@@ -33,13 +33,14 @@ from pathlib import Path
 
 import numpy as np
 
+from slidecal.drivers.ur_pose import T_from_ur_pose, ur_pose_from_T
 from slidecal.routines.config import load_config
 from slidecal.routines.session import load_session
 from slidecal.routines.verdict import judge
 from slidecal.solver.adequacy import LEFT_OUT
 from slidecal.solver.drift import Z_LIMIT
 from slidecal.solver.errors import InputError
-from slidecal.solver.geometry import R_from_rvec, T_from_Rt, rvec_from_R
+from slidecal.solver.geometry import R_from_rvec
 
 DOC = Path(__file__).resolve().parent.parent / "docs" / "VERDICT.md"
 COMMAND = "slidecal bench verdict"
@@ -122,11 +123,7 @@ def poses_one_frame_late(doc: dict) -> None:
 def poses_inverted(doc: dict) -> None:
     """The robot poses written as ``T_tool_base`` where ``T_base_tool`` is meant."""
     for f in doc["frames"]:
-        p = f["T_base_tool"]
-        T_tool_base = np.linalg.inv(T_from_Rt(R_from_rvec(np.array(p[3:])), np.array(p[:3])))
-        f["T_base_tool"] = [float(v) for v in T_tool_base[:3, 3]] + [
-            float(v) for v in rvec_from_R(T_tool_base[:3, :3])
-        ]
+        f["T_base_tool"] = ur_pose_from_T(np.linalg.inv(T_from_ur_pose(f["T_base_tool"])))
 
 
 def mount_eye_to_hand(doc: dict) -> None:

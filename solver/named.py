@@ -33,7 +33,7 @@ from slidecal.solver.problem import DISTORTION_NAMES, CalibrationProblem
 from slidecal.solver.target_shape import shape_excess
 
 if TYPE_CHECKING:  # the optimiser is imported where it is used: importing this module stays light
-    from slidecal.solver.refine import ModelState, RefineOutput, Structure
+    from slidecal.solver.refine import BundleModel, ModelState, RefineOutput, Structure
 
 ROT = ("rx", "ry", "rz")
 TRANS = ("tx", "ty", "tz")
@@ -488,6 +488,21 @@ def tool_offset_excess(
     return TOOL_OFFSET_SIGMA_M**2 * (G @ G.T)
 
 
+def _untold_trends(m: BundleModel) -> tuple[np.ndarray, list[bool]]:
+    """Whether the images could tell the orientation groups' trends: per axis (rotation,
+    translation), the trend's level went to the floor (its share below a tenth of the frames');
+    per trend group, it is too short to tell a trend from its frames' scatter (fewer degrees of
+    freedom left to the scatter than the trend takes)."""
+    st = m.st
+    sig = np.asarray(m.pose_sigma, float)
+    tau = np.asarray(m.trend_sigma, float) if "V" in m.slices else np.zeros(2)
+    floored = tau * m.trend_spread < 0.1 * sig
+    short = [
+        len(np.flatnonzero(st.trend_groups == g)) - 1 - d < d for g, d in enumerate(st.trend_dims)
+    ]
+    return floored, short
+
+
 def smooth_arm_excess(
     out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
 ) -> np.ndarray | None:
@@ -518,11 +533,7 @@ def smooth_arm_excess(
     if st.trend_groups is None or st.trend_coords is None or m.pose_sigma is None:
         return None
     sig = np.asarray(m.pose_sigma, float)
-    tau = np.asarray(m.trend_sigma, float) if "V" in m.slices else np.zeros(2)
-    floored = tau * m.trend_spread < 0.1 * sig  # the trend's share below a tenth of the frames'
-    short = [
-        len(np.flatnonzero(st.trend_groups == g)) - 1 - d < d for g, d in enumerate(st.trend_dims)
-    ]
+    floored, short = _untold_trends(m)
     # per group, (rotation, translation): carried; one orientation's translation trend always
     # (its level is not learned: refine.Structure.trend_scale_fixed)
     carried = [
@@ -581,13 +592,12 @@ def common_trend_excess(
 
     tau = float(m.trend_sigma[1])
     # the field's level: the one learned, unless the groups could not tell it (it went to the
-    # floor, or a group is too short to tell a trend from its frames' scatter, as in
-    # smooth_arm_excess): then never below an arm's scale error of its moves
-    floored = m.pose_sigma is not None and tau * m.trend_spread < 0.1 * float(m.pose_sigma[1])
-    short = any(
-        len(np.flatnonzero(st.trend_groups == g)) - 1 - d < d for g, d in enumerate(st.trend_dims)
-    )
-    level = max(tau, MOVE_SCALE_SIGMA) if floored or short else tau
+    # floor, or a group is too short): then never below an arm's scale error of its moves
+    level = tau
+    if m.pose_sigma is not None:
+        floored, short = _untold_trends(m)
+        if floored[1] or any(short):
+            level = max(tau, MOVE_SCALE_SIGMA)
     sv = m.slices["V"]
     A = _columns(out, project, np.arange(sv.start, sv.stop)) / tau**2  # gain on the priors
     axes = list(TREND_AXES)
