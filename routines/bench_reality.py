@@ -468,7 +468,10 @@ def main(argv: list[str] | None = None) -> int:
         "(`classic_real_arm`: tilts of 15-35 deg, rolls up to 30 deg, 0.45-0.6 m from the "
         "board), on the same arm. No orientation group has a trend of its own; eye-in-hand, "
         "the session gets one linear trend of the pose corrections over the tool's positions "
-        "(`SESSION_TREND_MIN_FRAMES`); eye-to-hand, the corrections stay independent.",
+        "(`SESSION_TREND_MIN_FRAMES`), whose translation the covariance carries at no less "
+        "than 0.1 % of the moves (`session_trend_excess`); eye-to-hand, the corrections stay "
+        "independent and the covariance carries a linear field of the translations over the "
+        "positions at that level (`untold_field_excess`).",
         "",
         "The tag row (points only) is a fixed camera watching one AprilTag's 4 corners on the "
         "tool: 205 frames in 7 orientations, each at a random place in R1's image 0.45-0.85 m "

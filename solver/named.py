@@ -323,6 +323,12 @@ def result_covariance(
         w, V = np.linalg.eigh(0.5 * (shared + shared.T))
         cover = (V * np.clip(w, 0.0, None)) @ V.T
         named = NamedCovariance(names, named.matrix + 0.5 * (cover + cover.T))
+    session = session_trend_excess(out, project)
+    if session is not None:  # a classic session's trend: never below an arm's scale error
+        named = NamedCovariance(names, named.matrix + 0.5 * (session + session.T))
+    field = untold_field_excess(out, project)
+    if field is not None:  # no trend modelled: the arm's linear field carried at its least
+        named = NamedCovariance(names, named.matrix + 0.5 * (field + field.T))
     level = level_excess(out, project)
     if level is not None:  # the noise levels are estimates: their uncertainty, carried
         named = NamedCovariance(names, named.matrix + 0.5 * (level + level.T))
@@ -614,6 +620,68 @@ def common_trend_excess(
             common += Ag @ B.T
             excess -= tau**2 * (Ag @ Ag.T)
         excess += level**2 * (common @ common.T)
+    return excess
+
+
+def session_trend_excess(
+    out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
+) -> np.ndarray | None:
+    """What the covariance gains (PSD) when a classic session's one trend, over the tool's
+    positions of the whole session, errs in its translation by at least an arm's scale error of
+    its moves (:data:`MOVE_SCALE_SIGMA`); None for any other session or a learned level already
+    above that (docs/ROBOT_ACCURACY.md, "A classic session").
+
+    With every frame at its own orientation, the linear part of the arm's error over the
+    positions (a scale or shear of the moves) reaches the focal lengths through the robot's
+    translations, and the images tell it only as far as they tell the focal lengths alone. Its
+    learned level, from the same frames, comes out below 0.1 % of the moves on most simulated
+    arms, while the arm's error that is not linear in the position (it follows the joints)
+    pulls the robot's share of fx and fy the same way on every frame. The estimate stays the
+    model's; its covariance is the sandwich over the trend's translation rows with their prior
+    variance ``tau^2`` raised to ``MOVE_SCALE_SIGMA^2`` (as :func:`common_trend_excess`)."""
+    m, st = out.model, out.model.st
+    if out.covariance_blocks is None or "V" not in m.slices or m.trend_sigma is None:
+        return None
+    whole = st.trend_groups is not None and bool(np.all(st.trend_groups == 0))
+    if len(st.trend_dims) != 1 or st.trend_scale_fixed or not whole:
+        return None
+    tau = float(m.trend_sigma[1])
+    if tau >= MOVE_SCALE_SIGMA:
+        return None
+    sv = m.slices["V"]
+    A = _columns(out, project, np.arange(sv.start, sv.stop))[:, ~m.trend_rotation_rows]
+    return (MOVE_SCALE_SIGMA**2 - tau**2) / tau**4 * (A @ A.T)
+
+
+def untold_field_excess(
+    out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
+) -> np.ndarray | None:
+    """What the covariance gains (PSD) from a linear field of the arm's translation error over
+    the tool's positions that the solve does not model (no trend: an eye-to-hand classic
+    session, or one too short for the session's trend), at an arm's scale error of its moves
+    (:data:`MOVE_SCALE_SIGMA` per coefficient); None when the solve models a trend, has no pose
+    corrections or holds the user's levels (docs/ROBOT_ACCURACY.md, "A classic session").
+
+    A frame's translation correction is in the base frame, so the field adds ``M d_k`` to frame
+    k's (``d_k`` its measured position less the session's mean, ``M`` (3, 3) with independent
+    coefficients). The estimate responds to a shift of the corrections' prior means by the
+    covariance's columns of the corrections over their prior variance; the field's share of
+    the covariance is that response's square at the field's level, as the trend's would be
+    with its level at ``MOVE_SCALE_SIGMA`` (:func:`session_trend_excess`)."""
+    m, st = out.model, out.model.st
+    if out.covariance_blocks is None or "E" not in m.slices or "V" in m.slices:
+        return None
+    if st.T_meas is None or m.pose_sigma is None or len(st.T_meas) < 3:
+        return None
+    if not getattr(m, "level_redundancy", None):  # the levels are the user's, not learned
+        return None
+    e = m.slices["E"]
+    A = _columns(out, project, np.arange(e.start, e.stop)) / float(m.pose_sigma[1]) ** 2
+    D = st.T_meas[:, :3, 3] - st.T_meas[:, :3, 3].mean(axis=0)
+    excess = np.zeros((len(A), len(A)))
+    for a in range(3):  # the base frame's axis of the correction; D's columns: M's row a
+        B = A[:, 3 + a :: 6] @ D
+        excess += MOVE_SCALE_SIGMA**2 * (B @ B.T)
     return excess
 
 

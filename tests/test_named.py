@@ -413,3 +413,68 @@ def test_unobserved_tool_offset_gain_is_the_response_of_a_solve(monkeypatch):
     names, J = _jacobian(layout_of(p, exact.model.st, exact.state), tuple(exact.names))
     used = np.flatnonzero(np.any(J != 0, axis=0))
     assert tool_offset_gain(p, exact, (J[:, used], used)) is None
+
+
+def test_untold_field_gain_is_the_response_of_a_solve(monkeypatch):
+    # a classic eye-to-hand session (28 frames, each at its own orientation) keeps independent
+    # pose corrections: no trend over the tool's positions. The covariance carries a linear
+    # field of the arm's translation error over them at an arm's scale error (0.1 %) through
+    # the estimate's response to it; that response, to first order, is what re-solving with the
+    # measured positions moved by the field gives (the levels held at the learned ones)
+    from slidecal.solver.named import (
+        MOVE_SCALE_SIGMA,
+        _jacobian,
+        _used,
+        layout_of,
+        untold_field_excess,
+    )
+    from slidecal.solver.refine import _refine
+
+    s = sc.classic_real_arm(np.random.default_rng(2005), eye_in_hand=False)
+    res, out = _solve_keeping_the_refinement(s.problem, monkeypatch)
+    m = out.model
+    assert "E" in m.slices and "V" not in m.slices
+    names, J = _jacobian(layout_of(s.problem, m.st, out.state), tuple(out.names))
+    project = _used(J)
+    extra = untold_field_excess(out, project)
+    assert extra is not None
+    assert np.all(np.linalg.eigvalsh(extra) > -1e-12 * np.abs(extra).max())
+    rows = [names.index(f"cam.{p}") for p in ("fx", "fy", "cx", "cy")]
+    T_meas = m.st.T_meas
+    D = T_meas[:, :3, 3] - T_meas[:, :3, 3].mean(axis=0)
+    levels = {"pose_sigma": m.pose_sigma, "group_sigma": m.group_sigma}
+
+    def solve(M: np.ndarray) -> np.ndarray:
+        moved = T_meas.copy()
+        moved[:, :3, 3] += D @ M.T
+        st = replace(m.st, T_meas=moved, **levels)
+        r = _refine(s.problem, st, out.state, 100, robust=False, estimate=False)
+        return np.array([r.state.K["cam"][i, j] for i, j in ((0, 0), (1, 1), (0, 2), (1, 2))])
+
+    h = 2e-3
+    response = []
+    for a in range(3):
+        for j in range(3):
+            M = np.zeros((3, 3))
+            M[a, j] = h
+            response.append((solve(M) - solve(-M)) / (2 * h))
+    response = np.array(response).T  # (4, 9): px per unit of each coefficient
+    want = MOVE_SCALE_SIGMA * np.sqrt(np.diag(response @ response.T))
+    got = np.sqrt(np.diag(extra)[rows])
+    assert want[:2].min() > 0.2 * res.cameras["cam"].std["fx"]  # the field matters to fx, fy
+    np.testing.assert_allclose(got, want, rtol=0.15, atol=0.02)
+    # the trend an eye-in-hand classic session learns is carried at no less than 0.1 %
+    from slidecal.solver.named import session_trend_excess
+
+    e = sc.classic_real_arm(np.random.default_rng(2135))
+    res_e, out_e = _solve_keeping_the_refinement(e.problem, monkeypatch)
+    assert "V" in out_e.model.slices and out_e.model.trend_sigma[1] < MOVE_SCALE_SIGMA
+    names_e, J_e = _jacobian(layout_of(e.problem, out_e.model.st, out_e.state), out_e.names)
+    more = session_trend_excess(out_e, _used(J_e))
+    assert more is not None and untold_field_excess(out_e, _used(J_e)) is None
+    assert np.all(np.linalg.eigvalsh(more) > -1e-12 * np.abs(more).max())
+    assert more[names_e.index("cam.fx"), names_e.index("cam.fx")] > 0.0
+    # R1's groups have trends of their own, and exact poses carry no correction: neither adds
+    for scen in (sc.r1_real_arm(np.random.default_rng(2000)), sc.r1(np.random.default_rng(7))):
+        _, o = _solve_keeping_the_refinement(scen.problem, monkeypatch)
+        assert session_trend_excess(o) is None and untold_field_excess(o) is None
