@@ -313,31 +313,26 @@ def result_covariance(
     project = _used(J)  # the reported quantities from the parameters they use
     C = project[0] @ out.covariance_blocks.submatrix(project[1], project[1]) @ project[0].T
     named = NamedCovariance(names, 0.5 * (C + C.T))
-    extra = smooth_arm_excess(out, project)
-    if extra is not None:  # cover both readings of the frames' error: its positive part
-        w, V = np.linalg.eigh(0.5 * (extra + extra.T))
-        cover = (V * np.clip(w, 0.0, None)) @ V.T
-        named = NamedCovariance(names, named.matrix + 0.5 * (cover + cover.T))
-    shared = common_trend_excess(out, project)
-    if shared is not None:  # the groups' translation trends: one field or independent
-        w, V = np.linalg.eigh(0.5 * (shared + shared.T))
-        cover = (V * np.clip(w, 0.0, None)) @ V.T
-        named = NamedCovariance(names, named.matrix + 0.5 * (cover + cover.T))
-    session = session_trend_excess(out, project)
-    if session is not None:  # a classic session's trend: never below an arm's scale error
-        named = NamedCovariance(names, named.matrix + 0.5 * (session + session.T))
-    field = untold_field_excess(out, project)
-    if field is not None:  # no trend modelled: the arm's linear field carried at its least
-        named = NamedCovariance(names, named.matrix + 0.5 * (field + field.T))
-    level = level_excess(out, project)
-    if level is not None:  # the noise levels are estimates: their uncertainty, carried
-        named = NamedCovariance(names, named.matrix + 0.5 * (level + level.T))
-    offset = tool_offset_excess(problem, out, project)
-    if offset is not None:  # an unobserved hand-eye translation, taken as zero
-        named = NamedCovariance(names, named.matrix + 0.5 * (offset + offset.T))
-    board = shape_excess(out, project)
-    if board is not None:  # the real board is not quite the one described
-        named = NamedCovariance(names, named.matrix + 0.5 * (board + board.T))
+    # what the model's own covariance leaves out, each a (k, k) symmetric addition; the first
+    # two compare two readings of the same error (not PSD): their positive part covers both
+    parts = (
+        (smooth_arm_excess(out, project), True),  # the frames' error: independent or trend
+        (common_trend_excess(out, project), True),  # the groups' trends: one field or each its own
+        (session_trend_excess(out, project), False),  # a classic session's trend, at least 0.1 %
+        (untold_field_excess(out, project), False),  # no trend modelled: the arm's linear field
+        (level_excess(out, project), False),  # the noise levels are estimates
+        (tool_offset_excess(problem, out, project), False),  # an unobserved hand-eye offset
+        (shape_excess(out, project), False),  # the real board is not quite the one described
+    )
+    for extra, two_readings in parts:
+        if extra is None:
+            continue
+        extra = 0.5 * (extra + extra.T)
+        if two_readings:
+            w, V = np.linalg.eigh(extra)
+            cover = (V * np.clip(w, 0.0, None)) @ V.T
+            extra = 0.5 * (cover + cover.T)
+        named = NamedCovariance(names, named.matrix + extra)
     return names, named
 
 
