@@ -31,8 +31,10 @@ take is reported in ``messages``.
 Synchronisation: :meth:`OakRig.capture` first discards every frame already queued, notes the
 host time, then keeps only frames whose device timestamp (``ImgFrame.getTimestamp()``, on the
 host's steady clock) is later than that. It returns the oldest frame of the first camera for
-which every other camera has a frame within ``sync_tolerance_s`` of it (the nearest one), so the
-set was exposed after the call and together. The stereo pair of an OAK-D is hardware-synced
+which every other camera has a frame within ``sync_tolerance_s`` of it (the nearest one, taken
+once that camera has a frame at or after it: frames of the cameras arrive through their own
+queues, and an earlier frame read first is not the nearest when the next is nearer), so the set
+was exposed after the call and together. The stereo pair of an OAK-D is hardware-synced
 (a few microseconds apart); the colour camera runs free at the same rate with a fixed phase,
 so its nearest frame can be up to half a period away: the default tolerance is a little more
 than half a frame period (55 ms at 10 fps; the arm is at rest at every capture).
@@ -514,8 +516,8 @@ class OakRig:
         for t_ref, msg_ref in buffers[ref]:
             chosen = {ref: msg_ref}
             for n in others:
-                if not buffers[n]:
-                    return None
+                if not buffers[n] or buffers[n][-1][0] < t_ref:
+                    return None  # its frame at or after t_ref, maybe the nearest, is still to come
                 t, msg = min(buffers[n], key=lambda tm, t_ref=t_ref: abs(tm[0] - t_ref))
                 if abs(t - t_ref) > self.sync_tolerance_s:
                     break

@@ -414,6 +414,25 @@ def test_a_free_running_colour_camera_half_a_period_off_is_matched(world):
     rig.close()
 
 
+def test_the_nearest_frame_is_taken_only_once_it_cannot_come_later(world):
+    """A colour camera 45 ms after the stereo pair at 10 fps: its frame 54 ms before a stereo
+    frame is within the tolerance too. Read first (each camera has its own queue), it used to
+    make a set with the wrong period (a race the test above lost under load); the driver waits
+    for the colour frame at or after the stereo frame's time and takes the nearest."""
+    rig = OakRig(focus={"rgb": 130}, timeout_s=1.0)
+    names = list(rig.sockets)
+    ref, colour = names[0], "rgb"
+    assert ref != colour  # the first camera, whose frames the others are matched to
+    buffers = {n: [(1.0, f"{n}@1.0")] for n in names}
+    buffers[colour] = [(0.946, "rgb@0.946")]
+    assert abs(1.0 - 0.946) <= rig.sync_tolerance_s
+    assert rig._match(buffers, names) is None  # the next colour frame may be nearer
+    buffers[colour].append((1.045, "rgb@1.045"))
+    assert rig._match(buffers, names) == {n: f"{n}@1.0" for n in names if n != colour} | {
+        colour: "rgb@1.045"
+    }
+
+
 def test_capture_fault_when_cameras_are_not_synchronised(world):
     world.offsets["CAM_A"] = 0.016  # half a frame period away from the stereo pair
     rig = OakRig(sync_tolerance_s=0.005, timeout_s=0.2, focus={"rgb": 130}, fps=30)
