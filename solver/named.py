@@ -489,6 +489,19 @@ def tool_offset_excess(
     return TOOL_OFFSET_SIGMA_M**2 * (G @ G.T)
 
 
+def _correction_gain(
+    out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None
+) -> np.ndarray:
+    """How the estimate moves per unit shift of each frame's pose-correction prior mean: the
+    covariance's columns of the corrections ``E`` over their prior variances (k, 6 F; per
+    frame rotation then translation, as ``E``)."""
+    m = out.model
+    e = m.slices["E"]
+    sig = np.asarray(m.pose_sigma, float)
+    A = _columns(out, project, np.arange(e.start, e.stop))
+    return A / np.tile(np.repeat(sig**2, 3), (e.stop - e.start) // 6)
+
+
 def _untold_trends(m: BundleModel) -> tuple[np.ndarray, list[bool]]:
     """Whether the images could tell the orientation groups' trends: per axis (rotation,
     translation), the trend's level went to the floor (its share below a tenth of the frames');
@@ -542,9 +555,7 @@ def smooth_arm_excess(
     ]
     if not any(any(c) for c in carried):
         return None
-    e = m.slices["E"]
-    A = _columns(out, project, np.arange(e.start, e.stop))
-    A = A / np.tile(np.repeat(sig**2, 3), (e.stop - e.start) // 6)  # gain on the priors
+    A = _correction_gain(out, project)
     excess = np.zeros((len(A), len(A)))
     for g, dims in enumerate(st.trend_dims):
         k = np.flatnonzero(st.trend_groups == g)
@@ -670,8 +681,7 @@ def untold_field_excess(
         return None
     if not getattr(m, "level_redundancy", None):  # the levels are the user's, not learned
         return None
-    e = m.slices["E"]
-    A = _columns(out, project, np.arange(e.start, e.stop)) / float(m.pose_sigma[1]) ** 2
+    A = _correction_gain(out, project)
     D = st.T_meas[:, :3, 3] - st.T_meas[:, :3, 3].mean(axis=0)
     excess = np.zeros((len(A), len(A)))
     for a in range(3):  # the base frame's axis of the correction; D's columns: M's row a
