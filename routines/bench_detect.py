@@ -343,6 +343,10 @@ def diagnosis_examples(rng: np.random.Generator) -> list[str]:
             tg,
         ),
         "board out of view": (render_target(tg, cam, pose(tg, (0, 0, 0, -1.0)), rng), tg),
+        "ChArUco board of DICT_5X5_100 markers, target says DICT_4X4_50": (
+            render_target(CHARUCO, cam, pose(CHARUCO, VIEWS[1]), rng),
+            replace(CHARUCO, dictionary="DICT_4X4_50"),
+        ),
     }
     rows = []
     for name, (img, target) in cases.items():
@@ -398,6 +402,14 @@ FINDINGS = """## What the tables show, and what detect() does with it
   corners as markers come out on such a board, the image is detected again with the old
   layout (`setLegacyPattern`) and the layout with more corners is kept; corner ids and board
   positions are the same in both (`tests/test_detect.py`).
+- **A marker board described with the wrong dictionary** (ChArUco, AprilGrid, a lone tag):
+  when no marker of the target's family is found, the image (reduced to a long side of about
+  1000 px) is searched with every other family OpenCV decodes, and a family with three markers
+  or more is named with the smallest dictionary holding every id seen (an ArUco family's
+  smaller dictionaries are the first markers of its largest). On OpenCV's real photograph of a
+  ChArUco board (`tests/data/opencv_charuco`) described with `DICT_5X5_100`: "17 markers of
+  DICT_6X6_50 are in view". The search costs a failed frame 0.02-0.4 s (a blank image, a noise
+  image), nothing when the board is found.
 - **Partial chessboards** are not used: a plain chessboard seen in part has no corner that says
   which one it is (SB's `CALIB_CB_LARGER` finds the visible grid, and detect() uses it only to
   say what it saw); ChArUco and AprilGrid give partial views.

@@ -324,10 +324,13 @@ def _detect_charuco_layout(
     board = _charuco_board(key, legacy)
     ch_corners, ch_ids, m_corners, m_ids = detector.detectBoard(grey)
     if m_ids is None or len(m_ids) == 0:
+        why = "" if legacy else other_family(grey, target.dictionary)
         return (
             *_empty(),
             [
-                "no ArUco marker of the target found (board not in view, seen from "
+                f"no ArUco marker of {target.dictionary} found, {why}"
+                if why
+                else "no ArUco marker of the target found (board not in view, seen from "
                 "its back, or too blurred/dark)"
             ],
             0,
@@ -593,6 +596,64 @@ TAG_REFINEMENTS = ("edges", "subpix", "apriltag", "none")
 TAG_REFINEMENT = {"apriltag": "edges", "aprilgrid": "subpix"}
 
 
+#: The marker families :func:`other_family` tries when none of the target's is found: each
+#: ArUco size by its largest dictionary (the smaller ones are its first 50, 100, 250 markers),
+#: the original ArUco set, and the AprilTag families OpenCV decodes
+_FAMILIES = (
+    "DICT_4X4_1000",
+    "DICT_5X5_1000",
+    "DICT_6X6_1000",
+    "DICT_7X7_1000",
+    "DICT_ARUCO_ORIGINAL",
+    "DICT_APRILTAG_16h5",
+    "DICT_APRILTAG_25h9",
+    "DICT_APRILTAG_36h10",
+    "DICT_APRILTAG_36h11",
+    "DICT_ARUCO_MIP_36h12",
+)
+#: Fewest markers of another family that make :func:`other_family` name it (one can be a
+#: texture that happens to decode, in the small families most)
+_OTHER_FAMILY_MIN_MARKERS = 3
+
+
+def _family_of(dictionary: str) -> str:
+    """The family a dictionary belongs to: ``DICT_6X6_250`` -> ``DICT_6X6_1000``."""
+    for size in ("4X4", "5X5", "6X6", "7X7"):
+        if dictionary.startswith(f"DICT_{size}_"):
+            return f"DICT_{size}_1000"
+    return dictionary
+
+
+def other_family(grey: np.ndarray, dictionary: str) -> str:
+    """Why no marker of ``dictionary`` was found when markers of another family are in view:
+    the family with the most markers (at least ``_OTHER_FAMILY_MIN_MARKERS``) and the
+    smallest dictionary of it that holds every id seen, as a sentence; "" when none is. Looked
+    for on the image reduced to a long side of about ``REDUCED_LONG_SIDE_PX`` (a failed
+    frame's cost: about 10 ms per family there)."""
+    img = _reduce(grey, reduction_factor(grey.shape))
+    own = _family_of(dictionary)
+    best: tuple[int, str, int] = (0, "", 0)
+    for family in _FAMILIES:
+        if family == own:
+            continue
+        d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, family))
+        _, ids, _ = cv2.aruco.ArucoDetector(d, cv2.aruco.DetectorParameters()).detectMarkers(img)
+        n = 0 if ids is None else len(ids)
+        if n > best[0]:
+            best = (n, family, int(np.max(ids)))
+    n, family, top = best
+    if n < _OTHER_FAMILY_MIN_MARKERS:
+        return ""
+    name = family
+    if family.endswith("_1000"):
+        size = next(k for k in (50, 100, 250, 1000) if top < k)
+        name = f"{family[: -len('1000')]}{size}"
+    return (
+        f"but {n} markers of {name} are in view (ids up to {top}): set target.dictionary to "
+        f"{name} (or to the larger dictionary of its family that the board was made with)"
+    )
+
+
 @lru_cache(maxsize=8)
 def _tag_detector(dictionary: str, refinement: str) -> cv2.aruco.ArucoDetector:
     if not dictionary.startswith("DICT_") or not hasattr(cv2.aruco, dictionary):
@@ -618,9 +679,12 @@ def _detect_tags(
     family = target.dictionary or "DICT_APRILTAG_36h11"
     corners, tag_ids, _ = _tag_detector(family, refinement).detectMarkers(grey)
     if tag_ids is None or len(tag_ids) == 0:
+        why = other_family(grey, family)
         return *_empty(), [
-            f"no tag of family {family} found (target not in view, seen from its back, too "
-            "small, blurred or dark)"
+            f"no tag of family {family} found, {why}"
+            if why
+            else f"no tag of family {family} found (target not in view, seen from its back, "
+            "too small, blurred or dark)"
         ]
     wanted = target.tag_corner_ids()
     ids, px, strangers = [], [], []

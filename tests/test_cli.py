@@ -102,3 +102,30 @@ def test_solve_rejected_exit_4_and_rollback_cli(tmp_path: Path, capsys) -> None:
     assert capsys.readouterr().out.startswith("verdict: rejected")
     assert (tmp_path / "d" / "rejected" / "result.yaml").is_file()
     assert cli.main(["rollback", str(store)]) == 2  # nothing before the first install
+
+
+def test_session_of_photographs_with_a_wrong_dictionary_names_the_right_one(tmp_path: Path) -> None:
+    # a user's mistake on real photographs (data/opencv_charuco): the board's markers are
+    # DICT_6X6_250, the session says the default DICT_5X5_100; the refusal says what is in view
+    s = tmp_path / "s"
+    (s / "images").mkdir(parents=True)
+    for k in range(3):
+        shutil.copy(DATA / "opencv_charuco" / "choriginal.jpg", s / "images" / f"{k}.jpg")
+    session = {
+        "format": "slidecal.session/1",
+        "target": {
+            "kind": "charuco",
+            "squares_x": 5,
+            "squares_y": 7,
+            "square_size_m": 0.04,
+            "marker_size_m": 0.02,
+        },
+        "cameras": [{"name": "cam", "width": 640, "height": 480}],
+        "frames": [{"id": k, "images": {"cam": f"images/{k}.jpg"}} for k in range(3)],
+    }
+    (s / "session.yaml").write_text(yaml.safe_dump(session))
+    p = _slidecal("solve", str(s), "--out", str(tmp_path / "r.yaml"), cwd=tmp_path)
+    assert p.returncode != 0 and p.stderr.count("\n") == 1 and "Traceback" not in p.stderr
+    assert "no ArUco marker of DICT_5X5_100 found" in p.stderr
+    assert "set target.dictionary to DICT_6X6_50" in p.stderr
+    assert not (tmp_path / "r.yaml").exists()
