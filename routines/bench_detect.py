@@ -408,8 +408,10 @@ FINDINGS = """## What the tables show, and what detect() does with it
   or more is named with the smallest dictionary holding every id seen (an ArUco family's
   smaller dictionaries are the first markers of its largest). On OpenCV's real photograph of a
   ChArUco board (`tests/data/opencv_charuco`) described with `DICT_5X5_100`: "17 markers of
-  DICT_6X6_50 are in view". The search costs a failed frame 0.02-0.4 s (a blank image, a noise
-  image), nothing when the board is found.
+  DICT_6X6_50 are in view". A ChArUco target whose image holds no marker of any family but a
+  plain chessboard of its size (OpenCV's `left01.jpg`) is told to set `kind: chessboard`. The
+  search costs a failed frame 0.02-0.4 s (a blank image, a noise image), nothing when the
+  board is found.
 - **Partial chessboards** are not used: a plain chessboard seen in part has no corner that says
   which one it is (SB's `CALIB_CB_LARGER` finds the visible grid, and detect() uses it only to
   say what it saw); ChArUco and AprilGrid give partial views.

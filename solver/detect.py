@@ -325,6 +325,13 @@ def _detect_charuco_layout(
     ch_corners, ch_ids, m_corners, m_ids = detector.detectBoard(grey)
     if m_ids is None or len(m_ids) == 0:
         why = "" if legacy else other_family(grey, target.dictionary)
+        if not why and not legacy:
+            size = (target.squares_x - 1, target.squares_y - 1)
+            if _classic(_reduce(grey, reduction_factor(grey.shape)), size) is not None:
+                why = (
+                    f"but a chessboard of {size[0]} x {size[1]} inner corners without markers "
+                    "is in view: if the board has no markers, set target.kind to chessboard"
+                )
         return (
             *_empty(),
             [

@@ -355,6 +355,11 @@ def test_real_charuco_photograph_with_a_wrong_description_names_it():
     # the right family, the board's sides swapped: the markers decode, no corner interpolates
     rep = detect(img, Target.charuco(7, 5, 0.04, 0.02, "DICT_6X6_250"))
     assert not rep.ok and "check squares_x, squares_y" in rep.diagnosis
+    # a plain chessboard (data/opencv_left) described as a ChArUco board of its size
+    left = cv2.imread(str(REAL_DIR / "left01.jpg"), cv2.IMREAD_UNCHANGED)
+    rep = detect(left, Target.charuco(10, 7, 0.025, 0.018))
+    assert "a chessboard of 9 x 6 inner corners without markers is in view" in rep.diagnosis
+    assert "set target.kind to chessboard" in rep.diagnosis
     # nothing of any family in view: the plain reason
     rep = detect(np.full((480, 640), 128, np.uint8), PHOTO_BOARD)
     assert "board not in view" in rep.diagnosis and "are in view" not in rep.diagnosis
