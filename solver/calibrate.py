@@ -41,6 +41,7 @@ from slidecal.solver.linear import (
 )
 from slidecal.solver.named import (
     INTRINSIC_NAMES,
+    correlated_image_errors,
     hand_eye_names,
     layout_of,
     mount_names,
@@ -787,11 +788,23 @@ def _calibrate(
     return _result(problem, out, K_lin, groups)
 
 
+def _correlation_note(seen: tuple[float, int] | None) -> tuple[str, ...]:
+    """A line when the covariance was read image by image (``correlated_image_errors``)."""
+    if seen is None:
+        return ()
+    return (
+        f"the residuals of neighbouring corners go together (correlation {seen[0]:.2f} over "
+        f"{seen[1]} pairs; about 0 when each corner's error is its own): the uncertainty is "
+        "taken from the images' spread, image by image (docs/METHOD.md Sec. 6)",
+    )
+
+
 def _result(
     problem: CalibrationProblem, out: RefineOutput, K_lin: dict[str, np.ndarray], groups: np.ndarray
 ) -> CalibrationResult:
     model, st, state = out.model, out.model.st, out.state
-    reported, named = result_covariance(problem, out)  # at the flat board's solve
+    correlated = correlated_image_errors(out)  # an image's errors go together: read so
+    reported, named = result_covariance(problem, out, correlated)  # at the flat board's solve
     if out.board is not None:  # between the readings of the board's misfit (target_shape.py)
         state = model.apply(state, out.board.shift)
     cams = {}
@@ -891,7 +904,7 @@ def _result(
         residuals_px=residuals,
         outliers=out.outliers,
         unobservable=unobs,
-        messages=out.messages,
+        messages=out.messages + _correlation_note(correlated if named is not None else None),
         scale_checks=scale_checks(
             problem,
             state,

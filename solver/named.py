@@ -302,10 +302,14 @@ def _used(J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def result_covariance(
-    problem: CalibrationProblem, out: RefineOutput
+    problem: CalibrationProblem,
+    out: RefineOutput,
+    correlated: tuple[float, int] | None | str = "read",
 ) -> tuple[tuple[str, ...], NamedCovariance | None]:
     """The reported quantities of a refinement (``RefineOutput``) of ``problem`` and their
-    named covariance (None when the refinement has none)."""
+    named covariance (None when the refinement has none). ``correlated``: what
+    :func:`correlated_image_errors` says of ``out``, when the caller has it ("read": read it
+    here)."""
     layout = layout_of(problem, out.model.st, out.state)
     if out.covariance_blocks is None:
         return reported_names(layout, out.names), None
@@ -313,8 +317,8 @@ def result_covariance(
     project = _used(J)  # the reported quantities from the parameters they use
     C = project[0] @ out.covariance_blocks.submatrix(project[1], project[1]) @ project[0].T
     named = NamedCovariance(names, 0.5 * (C + C.T))
-    # what the model's own covariance leaves out, each a (k, k) symmetric addition; the first
-    # two compare two readings of the same error (not PSD): their positive part covers both
+    # what the model's own covariance leaves out, each a (k, k) symmetric addition; those that
+    # compare two readings of the same error (not PSD) add their positive part
     parts = (
         (smooth_arm_excess(out, project), True),  # the frames' error: independent or trend
         (common_trend_excess(out, project), True),  # the groups' trends: one field or each its own
@@ -323,6 +327,7 @@ def result_covariance(
         (level_excess(out, project), False),  # the noise levels are estimates
         (tool_offset_excess(problem, out, project), False),  # an unobserved hand-eye offset
         (shape_excess(out, project), False),  # the real board is not quite the one described
+        (image_misfit_excess(out, project, correlated), True),  # an image's errors go together
     )
     for extra, two_readings in parts:
         if extra is None:
@@ -688,6 +693,69 @@ def untold_field_excess(
         B = A[:, 3 + a :: 6] @ D
         excess += MOVE_SCALE_SIGMA**2 * (B @ B.T)
     return excess
+
+
+#: Fewest frames for the covariance with frames as clusters (:func:`image_misfit_excess`): its
+#: estimate rests on the frames' scores, one term each
+MIN_CLUSTER_FRAMES = 4
+#: Neighbouring corners' residuals correlated beyond this (and beyond twice their sampling
+#: spread, :func:`~slidecal.solver.adequacy.neighbour_correlation`): an image's errors are not
+#: independent corner by corner. Independent detections give -0.06 to 0.06 (the fit's own
+#: share), real photographs 0.37-0.45; below it the frames' scores would only add their noise
+CORRELATED_NEIGHBOURS = 0.1
+
+
+def correlated_image_errors(out: RefineOutput) -> tuple[float, int] | None:
+    """The neighbouring corners' residual correlation and its pairs when it says that an
+    image's errors go together (beyond :data:`CORRELATED_NEIGHBOURS` and twice its sampling
+    spread), else None: when :func:`image_misfit_excess` reads the frames' scores."""
+    from slidecal.solver.adequacy import neighbour_correlation  # adequacy imports this module
+
+    rho, pairs = neighbour_correlation(out)
+    if pairs == 0 or rho < CORRELATED_NEIGHBOURS + 2.0 / np.sqrt(pairs):
+        return None
+    return rho, pairs
+
+
+def image_misfit_excess(
+    out: RefineOutput,
+    project: tuple[np.ndarray, np.ndarray] | None = None,
+    correlated: tuple[float, int] | None | str = "read",
+) -> np.ndarray | None:
+    """What the covariance of the reported quantities gains when each image's errors are taken
+    together rather than corner by corner (symmetric, not PSD: its positive part is carried);
+    None without a covariance, with fewer than :data:`MIN_CLUSTER_FRAMES` frames or without
+    ``project`` (docs/METHOD.md, "The images' errors, image by image").
+
+    The model's covariance ``s^2 A^-1`` holds when every corner's error is independent of the
+    others'. A real image's are not: neighbouring corners' residuals correlate by 0.37-0.45 on
+    real photographs (the lens beyond its model, the print, the light), and the principal point
+    of half a session then lands 2 to 4 of its reported std from the other half's. The
+    covariance that holds whatever the errors within an image are is the sandwich with frames
+    as clusters, ``A^-1 (G / (G - 1) sum_k g_k g_k') A^-1`` over the global parameters
+    (``g_k``: frame k's score, :meth:`BundleModel.frame_scores`; a frame's own pose
+    correction has none at the minimum); the difference from the model's is returned. With
+    independent errors the two agree to the sampling noise of G terms. Read only when
+    ``correlated`` (:func:`correlated_image_errors` of ``out``, read here when "read") is not
+    None."""
+    m = out.model
+    w_all = getattr(m, "row_weights", None)
+    if project is None or out.covariance_blocks is None or w_all is None:
+        return None
+    if not out.sigma_px > 0 or len(m.frame_rows) < MIN_CLUSTER_FRAMES:
+        return None
+    if (correlated_image_errors(out) if correlated == "read" else correlated) is None:
+        return None  # each corner's error its own: the model's covariance holds
+    Sg = m.frame_scores(out.state, np.asarray(w_all, float))
+    G, P0 = Sg.shape
+    J, used = project
+    if np.any(used >= P0):
+        return None
+    gg = out.covariance_blocks.gg[used, :]  # s^2 times the rows of the reduced inverse
+    Q = J @ gg  # (k, P0)
+    meat = (Sg.T @ Sg) * (G / (G - 1.0))
+    C_clusters = Q @ meat @ Q.T / out.sigma_px**4
+    return C_clusters - J @ gg[:, used] @ J.T
 
 
 # -- predictions at a known state -----------------------------------------------------------------

@@ -927,6 +927,29 @@ class BundleModel:
         self._eval_cache = (state, out)
         return out
 
+    def frame_scores(self, state: ModelState, weights: np.ndarray) -> np.ndarray:
+        """Each frame's share of ``J' W r`` from its pixel rows, over the global columns (every
+        column before the frames' own corrections ``E``, the shared ones included): (F_seen,
+        P0), frames in ``frame_rows`` order. A frame's own correction takes no share of the
+        others' rows, and at the minimum its score, pixels and prior together, is zero: these
+        are the frames' whole scores (the terms of a covariance with frames as clusters)."""
+        n = self.n_obs
+        ev = self._evaluation(state)
+        r, JT = ev[0], ev[1]
+        wr = np.asarray(weights[: 2 * n], float) * r[: 2 * n]
+        wr_ax = wr[self.axis_rows]  # JT's column order: every u row, then every v row
+        split = "E" in self.slices
+        S = self.shared_map if split else None
+        out = []
+        for k, rows in self.frame_rows.items():
+            a, b = rows.start // 2, rows.stop // 2
+            g = JT[:, a:b] @ wr_ax[a:b] + JT[:, n + a : n + b] @ wr_ax[n + a : n + b]
+            if S is not None:  # the shared corrections' columns are the frame's own times S
+                g_E = np.einsum("oij,oi->j", ev[2][a:b], wr[2 * a : 2 * b].reshape(-1, 2))
+                g = np.concatenate([g, S[k].T @ g_E])
+            out.append(g)
+        return np.array(out)
+
     def _shared_priors(self, state: ModelState) -> list[tuple[slice, np.ndarray, np.ndarray]]:
         """(columns, pixel-unit prior scale, values) of the corrections shared by several frames
         (the groups' ``U``, then the trends' ``V``): their prior rows follow the frames' ones."""

@@ -258,9 +258,9 @@ def _solve_keeping_the_refinement(problem, monkeypatch):  # noqa: ANN001, ANN202
     kept = {}
     inner = cal.result_covariance
 
-    def keep(p, out):  # noqa: ANN001, ANN202
+    def keep(p, out, *rest):  # noqa: ANN001, ANN002, ANN202
         kept["out"] = out
-        return inner(p, out)
+        return inner(p, out, *rest)
 
     monkeypatch.setattr(cal, "result_covariance", keep)
     return cal.calibrate(problem), kept["out"]

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 import yaml
 
 from slidecal.routines import cli
@@ -82,6 +83,7 @@ def _opencv_stereo(s: Path) -> dict:
     return {"rms": rms, "K": {"left": K1, "right": K2}, "R": R, "t_m": T.reshape(3)}
 
 
+@pytest.mark.slow
 def test_real_stereo_pairs_agree_with_opencv_within_the_reported_std(tmp_path: Path) -> None:
     s = _session(tmp_path)
     assert cli.main(["solve", str(s), "--out", str(tmp_path / "r.yaml"), "--quiet"]) == 0

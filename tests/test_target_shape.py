@@ -46,7 +46,9 @@ def _images_only(seed: int, bow_m: tuple[float, float], described: Target) -> Ca
 
 
 def test_a_bowed_board_is_measured_and_the_focal_length_is_covered():
-    # a bow of 0.4 mm moves a flat-board solve's fx beyond 3 of its std; with the bow estimated
+    # a bow of 0.4 mm moves a flat-board solve's fx beyond 2 of its std (beyond 3 before the
+    # solve read its residuals' correlation: the bow moves neighbouring corners alike, and the
+    # frames' scores carry part of it, docs/METHOD.md); with the bow estimated
     # (the board's default flatness as prior) the bow comes out within 3 std of the truth, and
     # fx, taken halfway between the readings "the misfit is the board" and "it is not" with
     # their spread in its std, within 3 std of R1's
@@ -64,7 +66,7 @@ def test_a_bowed_board_is_measured_and_the_focal_length_is_covered():
         c0, c1 = r0.cameras["cam"], r1.cameras["cam"]
         flat.append((c0.K[0, 0] - sc.R1_K[0, 0]) / c0.std["fx"])
         fitted.append((c1.K[0, 0] - sc.R1_K[0, 0]) / c1.std["fx"])
-    assert min(np.abs(flat)) > 3.0
+    assert min(np.abs(flat)) > 2.0
     assert max(np.abs(fitted)) < 3.0
 
 
