@@ -452,24 +452,13 @@ def simulated_run_command(out: Path, seed: int = 1) -> list[str]:
     return [*cli, "run", "--out", str(out), "--no-recording", "--seed", str(seed)]
 
 
-def _default_sigint() -> None:
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
 def _signal_row(sig: int, name: str, after: int, work: Path) -> str:
     out = work / f"sig_{name}_{after}"
     env = {**os.environ, "SLIDECAL_LOCK_DIR": str(work)}
     cmd = simulated_run_command(out)
-    # Ctrl-C's default disposition in the child: a benchmark started in the background (no job
-    # control) hands its children SIGINT ignored, and the row would measure the shell, not us
-    p = subprocess.Popen(
-        cmd,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
-        preexec_fn=_default_sigint,
-    )
+    # a benchmark started in the background (no job control) hands its children SIGINT
+    # ignored: slidecal's run installs its own Ctrl-C handler, so the row measures it either way
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     while True:
         line = p.stderr.readline()
         if not line or (f"frame {after} of" in line and "done" in line):

@@ -74,12 +74,15 @@ class Interrupted(KeyboardInterrupt):
 
 @contextmanager
 def signals_as_interrupt() -> Iterator[None]:
-    """Within the block, SIGTERM and SIGHUP raise :class:`Interrupted` like Ctrl-C does
-    (main thread only; the previous handlers come back after)."""
+    """Within the block, SIGINT (Ctrl-C), SIGTERM and SIGHUP raise :class:`Interrupted` (main
+    thread only; the previous handlers come back after). SIGINT gets its handler too: a
+    process started in the background by a shell or under ``nohup`` inherits SIGINT ignored,
+    and Python then installs no Ctrl-C handler of its own: ``kill -INT`` would not stop the
+    robot (seen: a run started so went on to its last frame)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    names = {signal.SIGTERM: "SIGTERM"}
+    names = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM"}
     if hasattr(signal, "SIGHUP"):
         names[signal.SIGHUP] = "SIGHUP"
 

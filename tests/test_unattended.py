@@ -56,7 +56,13 @@ def _one_line_exit_2(p: subprocess.CompletedProcess) -> None:
 # ----------------------------------------------------------------------------- signals, resume
 
 
-def _start_run(out: Path, cwd: Path, lock_dir: Path) -> subprocess.Popen:
+def _ignore_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _start_run(
+    out: Path, cwd: Path, lock_dir: Path, sigint_ignored: bool = False
+) -> subprocess.Popen:
     return subprocess.Popen(
         simulated_run_command(out),
         cwd=cwd,
@@ -64,17 +70,28 @@ def _start_run(out: Path, cwd: Path, lock_dir: Path) -> subprocess.Popen:
         stderr=subprocess.PIPE,
         text=True,
         env={**os.environ, "SLIDECAL_LOCK_DIR": str(lock_dir)},
+        # what a shell's background job (no job control) or nohup hands its children
+        preexec_fn=_ignore_sigint if sigint_ignored else None,
     )
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    ("sig", "name", "after"),
-    [(signal.SIGTERM, "SIGTERM", 2), (signal.SIGHUP, "SIGHUP", 5), (signal.SIGINT, "Ctrl-C", 1)],
+    ("sig", "name", "after", "sigint_ignored"),
+    [
+        (signal.SIGTERM, "SIGTERM", 2, False),
+        (signal.SIGHUP, "SIGHUP", 5, False),
+        (signal.SIGINT, "Ctrl-C", 1, False),
+        # started with SIGINT ignored, as a background job is: Ctrl-C still stops the robot
+        # (before, such a run went on to its last frame and exited 0)
+        (signal.SIGINT, "Ctrl-C", 1, True),
+    ],
 )
-def test_signal_stops_the_run_and_resume_completes(tmp_path: Path, sig, name, after) -> None:
+def test_signal_stops_the_run_and_resume_completes(
+    tmp_path: Path, sig, name, after, sigint_ignored
+) -> None:
     out = tmp_path / "s"
-    p = _start_run(out, tmp_path, tmp_path)
+    p = _start_run(out, tmp_path, tmp_path, sigint_ignored)
     # the plain progress lines (stderr is a pipe) say when a frame is done
     lines = []
     deadline = time.monotonic() + 240
