@@ -7,6 +7,7 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
+import pytest
 import yaml
 
 from slidecal.mocks import scenarios as sc
@@ -72,6 +73,7 @@ def test_simulated_cell_with_a_real_arms_kinematic_error(tmp_path) -> None:
     assert "kinematic_error" not in plain.truth["noise"]
 
 
+@pytest.mark.slow
 def test_a_simulated_cell_can_bow_its_board() -> None:
     # simulation.board_bow_mm: the rig renders a bowed board (the images differ from the flat
     # board's at the same seed), the truth records the bow, the target is described as a real

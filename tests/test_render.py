@@ -74,6 +74,7 @@ def test_corners_agree_with_the_lens_model():
     assert np.all(np.abs(e.mean(axis=0)) < 0.02)
 
 
+@pytest.mark.slow
 def test_a_bowed_board_is_drawn_where_its_bowed_corners_project():
     # the R1 camera, noise-free, tilted, a board bowed by 3 mm along x and -2 mm along y
     # (exaggerated tenfold so the bow moves corners by pixels): cornerSubPix stays on the

@@ -324,7 +324,13 @@ def test_a_taken_port_fails_clearly(fake):
 
 
 # ------------------------------------------------------------- issue 10: a real cell's controller
-VERSIONS = ["3.15", "5.5", "5.9", "5.12"]
+# the oldest (CB3) and the newest in the fast tier, the two between in the slow one
+VERSIONS = [
+    "3.15",
+    pytest.param("5.5", marks=pytest.mark.slow),
+    pytest.param("5.9", marks=pytest.mark.slow),
+    "5.12",
+]
 
 
 @pytest.mark.parametrize("version", VERSIONS)
