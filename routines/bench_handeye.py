@@ -133,14 +133,36 @@ def _rms(v: list[float]) -> float:
     return float(np.sqrt(np.mean(np.square(v)))) if v else float("nan")
 
 
+def one_tag_geometry() -> np.ndarray:
+    """The one-tag row's camera-board poses: 7 orientations of an 8 cm tag (seed 7)."""
+    return hs.camera_board_poses(
+        np.random.default_rng(7), 7, hs.square_tag(0.08), aim_spread_m=0.15
+    )
+
+
+def one_tag_session(rng: np.random.Generator, geometry: np.ndarray) -> Scenario:
+    """The one-tag row's session: eye-to-hand, 5 frames at each of ``geometry``'s 7
+    orientations, the tag's 4 corners, no distortion."""
+    return hs.classic(
+        rng,
+        7,
+        SIGMA_PX,
+        *ROBOT_NOISE,
+        eye_in_hand=False,
+        options=ModelOptions(
+            distortion=NO_DISTORTION, robot_noise_m=ROBOT_NOISE[0], robot_noise_deg=ROBOT_NOISE[1]
+        ),
+        target=hs.square_tag(0.08),
+        per_orientation=5,
+        distortion=np.zeros(5),
+        T_cam_board=geometry,
+    )
+
+
 def all_rows(trials: int) -> list[HandEyeRow]:
     """Classic sessions of 15, 20 and 30 frames (both mounts) and the single-tag set-up."""
     board = Target.charuco(11, 8, 0.030, 0.022)
-    tag = hs.square_tag(0.08)
     opts = ModelOptions(robot_noise_m=ROBOT_NOISE[0], robot_noise_deg=ROBOT_NOISE[1])
-    tag_opts = ModelOptions(
-        distortion=NO_DISTORTION, robot_noise_m=ROBOT_NOISE[0], robot_noise_deg=ROBOT_NOISE[1]
-    )
     rows = []
     for n, eye_in_hand in ((15, True), (20, True), (30, True), (20, False)):
         geometry = hs.camera_board_poses(np.random.default_rng(n), n, board)
@@ -155,23 +177,11 @@ def all_rows(trials: int) -> list[HandEyeRow]:
                 trials,
             )
         )
-    geometry = hs.camera_board_poses(np.random.default_rng(7), 7, tag, aim_spread_m=0.15)
     rows.append(
         run_row(
             "eye-to-hand, one tag (4 corners), 7 orientations x 5 frames, no distortion",
-            lambda rng, g: hs.classic(
-                rng,
-                7,
-                SIGMA_PX,
-                *ROBOT_NOISE,
-                eye_in_hand=False,
-                options=tag_opts,
-                target=tag,
-                per_orientation=5,
-                distortion=np.zeros(5),
-                T_cam_board=g,
-            ),
-            geometry,
+            one_tag_session,
+            one_tag_geometry(),
             trials,
         )
     )

@@ -16,11 +16,11 @@ import yaml
 
 import slidecal.solver.named as named_mod
 from slidecal.mocks import scenarios as sc
+from slidecal.routines.bench_handeye import one_tag_geometry, one_tag_session
 from slidecal.routines.session import read_session
 from slidecal.solver.adequacy import neighbour_correlation
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.named import CORRELATED_NEIGHBOURS
-from slidecal.solver.problem import ModelOptions
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_named import _solve_keeping_the_refinement  # noqa: E402
@@ -90,22 +90,7 @@ def test_a_lone_tag_says_nothing_of_its_corners_correlation(monkeypatch):
     # 4 corners an image: the pose takes 6 of their 8 residuals' freedom, and their
     # correlation is the fit's (independent noise read 0.28-0.36 on 9 of 100 draws of this
     # session before such images were left out); nothing is read, nothing added
-    tag = sc.square_tag(0.08)
-    opts = ModelOptions(distortion=sc.NO_DISTORTION, robot_noise_m=5e-5, robot_noise_deg=0.005)
-    geometry = sc.camera_board_poses(np.random.default_rng(7), 7, tag, aim_spread_m=0.15)
-    s = sc.classic(
-        np.random.default_rng(1087),  # one of the nine
-        7,
-        0.15,
-        5e-5,
-        0.005,
-        eye_in_hand=False,
-        options=opts,
-        target=tag,
-        per_orientation=5,
-        distortion=np.zeros(5),
-        T_cam_board=geometry,
-    )
+    s = one_tag_session(np.random.default_rng(1087), one_tag_geometry())  # one of the nine
     _, out = _solve_keeping_the_refinement(s.problem, monkeypatch)
     assert neighbour_correlation(out) == (0.0, 0)
     assert named_mod.correlated_image_errors(out) is None
