@@ -324,8 +324,9 @@ def _detect_charuco_layout(
     board = _charuco_board(key, legacy)
     ch_corners, ch_ids, m_corners, m_ids = detector.detectBoard(grey)
     if m_ids is None or len(m_ids) == 0:
-        why = "" if legacy else other_family(grey, target.dictionary)
-        if not why and not legacy:
+        # (the old layout is tried only after markers were found: this is the first try)
+        why = other_family(grey, target.dictionary)
+        if not why:
             size = (target.squares_x - 1, target.squares_y - 1)
             if _classic(_reduce(grey, reduction_factor(grey.shape)), size) is not None:
                 why = (
