@@ -146,6 +146,21 @@ def test_an_edge_error_shared_along_the_board_lines_is_read(monkeypatch):
     assert max(res.cameras["cam"].std[p] / model_only[p] for p in P) > 1.1
 
 
+@pytest.mark.slow
+def test_rendered_photographs_read_their_errors_across_the_board_lines(monkeypatch):
+    # mocks/render.py's photograph-like images of R1 on a real arm, detected: their corners
+    # err together across the board's lines (0.08-0.17 over 120 arms) and not along them, so
+    # the frames' scores are read; pooled they stayed under the previous gate
+    from slidecal.routines.bench_reality import render_detector
+
+    s = sc.r1_real_arm(np.random.default_rng(2000), detect=render_detector(0.15))
+    res, out = _solve_keeping_the_refinement(s.problem, monkeypatch)
+    rho, pairs = neighbour_correlation(out)
+    assert rho > CORRELATED_NEIGHBOURS + 2.0 / np.sqrt(pairs)
+    assert _pooled(out) < 0.1 + 2.0 / np.sqrt(pairs)
+    assert any("neighbouring corners go together" in m for m in res.messages)
+
+
 def test_a_lone_tag_says_nothing_of_its_corners_correlation(monkeypatch):
     # 4 corners an image: the pose takes 6 of their 8 residuals' freedom, and their
     # correlation is the fit's (independent noise read 0.28-0.36 on 9 of 100 draws of this
