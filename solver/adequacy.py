@@ -609,11 +609,10 @@ def neighbour_correlation(out: RefineOutput) -> tuple[float, int]:
     About 0 when each corner's error is its own: simulated detections of independent noise
     read -0.06 to 0.03 on sessions of 13 frames or more, -0.1 to 0.11 on small ones (the fit
     itself makes it slightly negative), with a sampling spread of about one over the square
-    root of the pairs. Corners on one line of the board share its
-    edge, and an error of that edge (the print, blur, the light) moves them together across
-    it: the rendered images of mocks/render.py read 0.08-0.17 across and nothing along (-0.03,
-    the fit's share), real photographs (OpenCV's stereo samples, ``tests/data/opencv_left``,
-    ``opencv_right``) 0.4 and more."""
+    root of the pairs. Corners on one line of the board share its edge, and an error of that
+    edge (the print, blur, the light) moves them together across it: the rendered images of
+    mocks/render.py read 0.08-0.17 across and nothing along (-0.03, the fit's share), real
+    photographs (OpenCV's stereo samples, ``tests/data/opencv_left``, ``opencv_right``) 0.47."""
     m = out.model
     pts = m.problem.target.points_m
     if len(pts) < 2:
