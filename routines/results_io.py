@@ -284,6 +284,22 @@ def result_to_dict(result: CalibrationResult) -> dict[str, Any]:
     return d
 
 
+#: The scale check is inconclusive (and fails) when its tolerance exceeds this many times its
+#: floor: the moves disagree with each other about the scale.
+SCALE_INCONCLUSIVE = 5.0
+
+
+def scale_tolerance(ratios: np.ndarray, floor: float) -> tuple[float, float]:
+    """(median ratio, tolerance) of the moves' camera/robot length ratios: the tolerance is the
+    larger of ``floor`` and four standard errors of the median (1.4826 MAD / sqrt(n) * 1.25).
+    One move's ratio scatters with the robot's accuracy over its length; a wrong square size or
+    TCP scale moves the median."""
+    m = float(np.median(ratios))
+    mad = float(np.median(np.abs(ratios - m))) * 1.4826
+    se = 1.25 * mad / np.sqrt(len(ratios))
+    return m, max(floor, 4.0 * se)
+
+
 def scale_check_summary(checks: tuple[ScaleCheck, ...]) -> dict[str, Any] | None:
     """Median and worst (farthest from 1) camera/robot length ratio; None without checks."""
     ratios = np.array([s.ratio for s in checks], dtype=float)
@@ -715,10 +731,15 @@ def _fmt(x: float | None, spec: str = ".3f") -> str:
     return format(x, ".1e") if abs(x) >= 1e6 else format(x, spec)
 
 
-def summary_text(result: CalibrationResult, truth: Mapping[str, Any] | None = None) -> str:
+def summary_text(
+    result: CalibrationResult,
+    truth: Mapping[str, Any] | None = None,
+    scale_floor: float = 0.01,
+) -> str:
     """A human summary: reprojection error, per-parameter std, hand-eye in mm and degrees,
     what was unobservable and why, the scale check, and (simulated runs) the errors against
-    the truth."""
+    the truth. ``scale_floor``: the verdict's ``scale_tolerance`` (the scale line says what the
+    verdict's scale check says: the median ratio against its tolerance)."""
     lines = ["slidecal calibration result", "=" * 27]
     lines.append(
         f"converged: {'yes' if result.converged else 'NO'} after {result.iterations} iterations; "
@@ -755,11 +776,18 @@ def summary_text(result: CalibrationResult, truth: Mapping[str, Any] | None = No
         lines.extend(f"  {k}: {v}" for k, v in result.unobservable.items())
     sc = scale_check_summary(result.scale_checks)
     if sc is not None:
-        ok = abs(sc["worst_ratio"] - 1.0) < 0.01
+        ratios = np.array([c.ratio for c in result.scale_checks], dtype=float)
+        median, tol = scale_tolerance(ratios[np.isfinite(ratios)], scale_floor)
+        if tol > SCALE_INCONCLUSIVE * scale_floor:
+            verdict = "  <- the moves disagree too much to check the scale"
+        elif abs(median - 1.0) > tol:
+            verdict = "  <- check target.square_size_m and the robot's TCP and units"
+        else:
+            verdict = ""
         lines.append(
             f"scale check ({sc['n']} moves, camera/robot length): median "
-            f"{sc['median_ratio']:.4f}, worst {sc['worst_ratio']:.4f}"
-            + ("" if ok else "  <- check the board's square size and the robot's TCP/scale")
+            f"{sc['median_ratio']:.4f} (allowed 1 +- {tol:.4f}), worst move "
+            f"{sc['worst_ratio']:.4f}" + verdict
         )
     if result.outliers:
         lines.append(f"outliers flagged and down-weighted: {len(result.outliers)} corners")

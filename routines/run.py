@@ -963,7 +963,7 @@ def finish_solve(
             result, session_dir, target.parent / EXPORT_DIR
         )
         exports += [p for p in device_exports if p not in exports]
-    lines = [summary_text(result, truth).rstrip("\n")]
+    lines = [summary_text(result, truth, limits.scale_tolerance).rstrip("\n")]
     if device_summary.strip():
         lines.append(device_summary.rstrip("\n"))
     if status != "complete":

@@ -53,6 +53,10 @@ from typing import Any
 
 import numpy as np
 
+from slidecal.routines.results_io import (
+    SCALE_INCONCLUSIVE,
+    scale_tolerance,
+)
 from slidecal.routines.session import Fields, dump_yaml, load_yaml, write_atomic
 from slidecal.solver.adequacy import LEFT_OUT
 from slidecal.solver.errors import InputError
@@ -431,20 +435,6 @@ def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
                 )
             )
     return out
-
-
-#: The scale check is inconclusive (and fails) when its tolerance exceeds this many times
-#: ``scale_tolerance``: the moves disagree with each other about the scale.
-SCALE_INCONCLUSIVE = 5.0
-
-
-def scale_tolerance(ratios: np.ndarray, floor: float) -> tuple[float, float]:
-    """(median ratio, tolerance): the tolerance is the larger of ``floor`` and four standard
-    errors of the median (1.4826 MAD / sqrt(n) * 1.25)."""
-    m = float(np.median(ratios))
-    mad = float(np.median(np.abs(ratios - m))) * 1.4826
-    se = 1.25 * mad / np.sqrt(len(ratios))
-    return m, max(floor, 4.0 * se)
 
 
 def _scale(result: CalibrationResult, lim: Limits) -> list[Check]:

@@ -103,6 +103,26 @@ def test_unobservable_translation_is_null_never_a_number(tmp_path: Path) -> None
     assert "translation: not determined" in text and "no rotations between frames" in text
 
 
+def _scale_line(ratios: list[float]) -> str:
+    checks = tuple(ScaleCheck(i, i + 1, 60.0, 60.0 * q) for i, q in enumerate(ratios))
+    text = summary_text(replace(_result(), scale_checks=checks))
+    return next(line for line in text.splitlines() if line.startswith("scale check"))
+
+
+def test_the_scale_line_blames_the_square_size_only_when_the_verdict_would() -> None:
+    # one short move off by 1.7 % among moves that agree: the robot's accuracy over that move,
+    # not a wrong square size (the median, which a wrong square size moves, is 1)
+    line = _scale_line([0.9997, 1.0003, 0.9995, 1.0001, 1.0174, 0.9999])
+    assert "median 1.0000" in line and "worst move 1.0174" in line
+    assert "square_size" not in line and "<-" not in line
+    # every move 3 % long: the square size or the TCP scale
+    line = _scale_line([1.0297, 1.0303, 1.0295, 1.0301, 1.0304, 1.0299])
+    assert "check target.square_size_m and the robot's TCP and units" in line
+    # moves that disagree by tens of percent cannot check the scale
+    line = _scale_line([0.7, 1.3, 0.8, 1.25, 1.0, 0.9])
+    assert "disagree too much" in line
+
+
 def test_rig_names_and_composed_hand_eye(tmp_path: Path) -> None:
     # the composed hand-eye's std is read from the joint covariance under its own name
     var = np.array([1e-8, 2e-8, 3e-8, 1e-8, 4e-8, 4e-8])
