@@ -968,7 +968,12 @@ def finish_solve(
         lines.append(device_summary.rstrip("\n"))
     if status != "complete":
         lines.append(f"SESSION {status.upper()}: solved from the frames it holds")
-    lines += verdict.lines() + [f"error: {e}" for e in export_errors]
+    # the verdict's notes on what was not determined and on the frames left out repeat the
+    # result's own lines above: summary.txt says them once (verdict.yaml keeps them all)
+    shown = {f"{k} not determined: {v}" for k, v in result.unobservable.items()}
+    shown |= set(result.messages)
+    lines += [v for v in verdict.lines() if v.removeprefix("  note: ") not in shown]
+    lines += [f"error: {e}" for e in export_errors]
     summary = "\n".join(lines) + "\n"
     write_atomic(target.parent / SUMMARY_FILE, summary)
     write_verdict(verdict, session_dir)

@@ -57,6 +57,10 @@ def test_default_cell_against_truth(outcome) -> None:
     assert outcome.verdict.verdict == "accepted" and outcome.exit_code == 0
     assert yaml.safe_load((d / "verdict.yaml").read_text())["verdict"] == "accepted"
     assert "verdict: accepted" in outcome.summary
+    # each thing said once (verdict.yaml keeps the verdict's own notes); the scale line blames
+    # nothing on a cell whose square size and TCP are right
+    assert outcome.summary.count("fixed at 0 by the options") == 1
+    assert "square_size" not in outcome.summary
     s = load_session(d)
     assert s.status == "complete" and s.simulation["T_tool_cam"]["t_m"] == [0.032, -0.061, 0.045]
     assert len(list((d / "images").glob("*.png"))) == n_planned
