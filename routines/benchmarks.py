@@ -51,6 +51,8 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     ),
 }
 
+help = "run a benchmark and write its report (slidecal bench --list names them)"
+
 #: the libraries whose versions a report names
 _LIBRARIES = ("numpy", "scipy", "opencv-python-headless")
 
