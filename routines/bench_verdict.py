@@ -126,6 +126,26 @@ def poses_inverted(doc: dict) -> None:
         f["T_base_tool"] = ur_pose_from_T(np.linalg.inv(T_from_ur_pose(f["T_base_tool"])))
 
 
+def quaternions_scalar_last(doc: dict) -> None:
+    """The robot poses given as quaternions in ROS's order [x, y, z, w] under ``q_wxyz``."""
+    from scipy.spatial.transform import Rotation
+
+    for f in doc["frames"]:
+        T = T_from_ur_pose(f["T_base_tool"])
+        xyzw = Rotation.from_matrix(T[:3, :3]).as_quat()
+        f["T_base_tool"] = {"q_wxyz": xyzw.tolist(), "t_m": T[:3, 3].tolist()}
+
+
+def kuka_angles_as_rpy(doc: dict) -> None:
+    """The robot poses given as a KUKA's [A, B, C] (yaw, pitch, roll) under ``rpy_deg``."""
+    from scipy.spatial.transform import Rotation
+
+    for f in doc["frames"]:
+        T = T_from_ur_pose(f["T_base_tool"])
+        abc = Rotation.from_matrix(T[:3, :3]).as_euler("ZYX", degrees=True)
+        f["T_base_tool"] = {"rpy_deg": abc.tolist(), "t_m": T[:3, 3].tolist()}
+
+
 def mount_eye_to_hand(doc: dict) -> None:
     """An eye-in-hand session declared eye-to-hand."""
     doc["mount"] = "eye_to_hand"
@@ -333,6 +353,8 @@ def part_garbage(work: Path) -> list[str]:
         ("one robot pose 6 mm off (read before the arm settled)", pose_glitch(3, (5.0, 0.0, -3.0))),
         ("from frame 1 on, each image paired with the previous pose", poses_one_frame_late),
         ("robot poses written as T_tool_base", poses_inverted),
+        ("quaternions in ROS's order [x, y, z, w] given as q_wxyz", quaternions_scalar_last),
+        ("a KUKA's angles [A, B, C] given as rpy_deg", kuka_angles_as_rpy),
         ("eye-in-hand session declared eye_to_hand", mount_eye_to_hand),
     ]
     lines = [

@@ -21,7 +21,17 @@ import cv2
 import numpy as np
 
 from slidecal.solver.camera import project
-from slidecal.solver.geometry import T_from_Rt, rotation_angle_deg
+from slidecal.solver.geometry import (
+    R_from_quat_wxyz,
+    Rx,
+    Ry,
+    Rz,
+    T_from_Rt,
+    inv_T,
+    project_to_SO3,
+    rotation_angle_deg,
+    rvec_from_R,
+)
 from slidecal.solver.result import ModelAdequacy, RobotAccuracy
 
 if TYPE_CHECKING:
@@ -311,7 +321,7 @@ def assess(
                 f"axis (limit {MAX_ROBOT_ROTATION_DEG} deg): check that rotations are axis-angle "
                 "vectors in radians and the frame conventions"
             )
-    if (reasons or not out.converged) and (paired := pairing_check(problem)) is not None:
+    if (reasons or not out.converged) and (paired := record_check(problem)) is not None:
         reasons.insert(0, paired)  # the cause of the others
     adequacy = ModelAdequacy(
         detector_noise_px=dict(fit.sigma_px),
@@ -340,17 +350,10 @@ MAX_PAIRING_LENGTH = 0.05
 PAIRING_SHIFTS = (-2, -1, 1, 2)
 
 
-def pairing_check(problem: CalibrationProblem) -> str | None:
-    """Whether the robot poses and the images are paired as recorded, told without the robot
-    model: the reference camera's board poses from the images alone (``cv2.calibrateCamera``,
-    Zhang's method; sessions of two orientations or more) give its motion between every two
-    frames. The rotation angle must equal the robot's; a pure move's length must equal the
-    robot's up to one scale for the session. Each pair is scored against
-    ``MAX_PAIRING_ROTATION_DEG`` or ``MAX_PAIRING_LENGTH`` (above 1: they disagree). When the
-    median pair disagrees, the poses and images are paired wrongly throughout (and the shift
-    of ``PAIRING_SHIFTS`` that fits, if one does, is named); else the frames whose median pair
-    disagrees are named. None when they agree or the session cannot tell. Costs an OpenCV
-    calibration: run it for a result already in doubt."""
+def _images_alone(problem: CalibrationProblem) -> tuple[list[int], list[np.ndarray]] | None:
+    """The reference camera's board poses ``T_cam_board`` from the images alone
+    (``cv2.calibrateCamera``, Zhang's method) and the frame indices they belong to; None when the
+    session cannot give them (no robot poses, one orientation, fewer than 4 images)."""
     if problem.knowledge != "robot":
         return None
     ref = problem.reference
@@ -375,6 +378,39 @@ def pairing_check(problem: CalibrationProblem) -> str | None:
     T_cam = [
         T_from_Rt(cv2.Rodrigues(r)[0], t.reshape(3)) for r, t in zip(rvecs, tvecs, strict=True)
     ]
+    return frames, T_cam
+
+
+def record_check(problem: CalibrationProblem) -> str | None:
+    """What is wrong with the robot's records, told from the images alone: read in another
+    convention (:func:`convention_check`: one reading then fits every frame), else paired with
+    the wrong images (:func:`pairing_check`; a rotation read in the wrong convention also
+    changes the angles between frames, so the convention is asked first). One OpenCV
+    calibration for both; None when neither is found. Run it for a result already in doubt."""
+    seen = _images_alone(problem)
+    if seen is None:
+        return None
+    return _convention(problem, *seen) or _pairing(problem, *seen)
+
+
+def pairing_check(problem: CalibrationProblem) -> str | None:
+    """Whether the robot poses and the images are paired as recorded, told without the robot
+    model: the reference camera's board poses from the images alone (``cv2.calibrateCamera``,
+    Zhang's method; sessions of two orientations or more) give its motion between every two
+    frames. The rotation angle must equal the robot's; a pure move's length must equal the
+    robot's up to one scale for the session. Each pair is scored against
+    ``MAX_PAIRING_ROTATION_DEG`` or ``MAX_PAIRING_LENGTH`` (above 1: they disagree). When the
+    median pair disagrees, the poses and images are paired wrongly throughout (and the shift
+    of ``PAIRING_SHIFTS`` that fits, if one does, is named); else the frames whose median pair
+    disagrees are named. None when they agree or the session cannot tell. Costs an OpenCV
+    calibration: run it for a result already in doubt."""
+    seen = _images_alone(problem)
+    return None if seen is None else _pairing(problem, *seen)
+
+
+def _pairing(problem: CalibrationProblem, frames: list[int], T_cam: list[np.ndarray]) -> str | None:
+    """:func:`pairing_check` on the images-alone poses ``T_cam`` of ``frames``."""
+    T_tool = np.stack([f.T_base_tool for f in problem.frames])
     seen = [_moving_point(T, problem.mount) for T in T_cam]
 
     def scores(shift: int) -> dict[tuple[int, int], float]:
@@ -438,6 +474,147 @@ def pairing_check(problem: CalibrationProblem) -> str | None:
     return (
         f"frames {bad}: {what} in most of their pairs with the other frames: those images are "
         "paired with other poses (swapped, or read at another stop)" + end
+    )
+
+
+#: A reading of the robot's records fits the images when what must stay fixed through it (the
+#: board in the base frame eye-in-hand, the target on the tool eye-to-hand) spreads by no more
+#: than a working arm and the images' own poses explain: the pairing test's rotation limit and
+#: the robot-accuracy limit on translation. The records as read must spread by more than
+#: ``CONVENTION_MARGIN`` times that for another reading to be named.
+CONVENTION_MARGIN = 2.0
+
+
+def _quat_wxyz(R: np.ndarray) -> np.ndarray:
+    v = rvec_from_R(R)
+    angle = float(np.linalg.norm(v))
+    axis = v / angle if angle > 0 else np.zeros(3)
+    return np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * axis])
+
+
+def _rpy(R: np.ndarray) -> tuple[float, float, float]:
+    """(roll, pitch, yaw) of ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (radians)."""
+    pitch = float(-np.arcsin(np.clip(R[2, 0], -1.0, 1.0)))
+    return float(np.arctan2(R[2, 1], R[2, 2])), pitch, float(np.arctan2(R[1, 0], R[0, 0]))
+
+
+def _rotation_read_as(kind: str, R: np.ndarray) -> np.ndarray:
+    """The rotation a record meant when slidecal read it as ``R`` under the mistake ``kind``."""
+    if kind == "transposed":
+        return R.T
+    if kind == "quaternion scalar last":  # [x, y, z, w] read as [w, x, y, z]
+        w, x, y, z = _quat_wxyz(R)
+        return R_from_quat_wxyz(np.array([z, w, x, y]))
+    roll, pitch, yaw = _rpy(R)
+    if kind == "angles reversed":  # [yaw, pitch, roll] (KUKA's A, B, C) read as [roll, ...]
+        return Rz(roll) @ Ry(pitch) @ Rx(yaw)
+    assert kind == "rotations composed the other way"  # R = Rx(roll) Ry(pitch) Rz(yaw)
+    return Rx(roll) @ Ry(pitch) @ Rz(yaw)
+
+
+#: The readings tried, each with what it means and its fix (``{other}``: the other mount).
+CONVENTIONS = (
+    (
+        "inverted",
+        "the records are T_tool_base (the base in the tool's frame), not T_base_tool, or the "
+        "camera is mounted the other way ({other})",
+        "invert the poses, or set mount: {other}",
+    ),
+    (
+        "transposed",
+        "the rotation matrices are transposed (their rows, not their columns, are the tool's axes)",
+        "transpose R",
+    ),
+    (
+        "quaternion scalar last",
+        "the quaternions are [x, y, z, w] (ROS's order), read as [w, x, y, z]",
+        "give q_wxyz with the scalar first",
+    ),
+    (
+        "angles reversed",
+        "the angles are [yaw, pitch, roll] (KUKA's A, B, C), read as [roll, pitch, yaw]",
+        "give rpy_deg as [roll, pitch, yaw] (KUKA: [C, B, A])",
+    ),
+    (
+        "rotations composed the other way",
+        "the angles compose as Rx(roll) Ry(pitch) Rz(yaw), read as Rz(yaw) Ry(pitch) Rx(roll)",
+        "convert them to the fixed-axes X-Y-Z convention of rpy_deg",
+    ),
+)
+
+
+def _fixed_spread(
+    T_tool: np.ndarray, T_cam: list[np.ndarray], eye_in_hand: bool
+) -> tuple[float, float]:
+    """How much what must stay fixed moves through the poses ``T_tool`` (``T_base_tool``) and
+    the images-alone ``T_cam`` (``T_cam_board``), with the hand-eye that fits them best (Park's
+    method): rms rotation (deg) and translation (mm) about its mean. Eye-in-hand that is the
+    board in the base frame, eye-to-hand the target on the tool."""
+    G = list(T_tool) if eye_in_hand else [inv_T(T) for T in T_tool]
+    try:
+        R, t = cv2.calibrateHandEye(
+            [g[:3, :3] for g in G],
+            [g[:3, 3] for g in G],
+            [c[:3, :3] for c in T_cam],
+            [c[:3, 3] for c in T_cam],
+            method=cv2.CALIB_HAND_EYE_PARK,
+        )
+    except cv2.error:
+        return float("inf"), float("inf")
+    X = T_from_Rt(R, np.asarray(t).reshape(3))
+    fixed = np.stack([g @ X @ c for g, c in zip(G, T_cam, strict=True)])
+    if not np.all(np.isfinite(fixed)):
+        return float("inf"), float("inf")
+    R_mean = project_to_SO3(fixed[:, :3, :3].mean(axis=0))
+    rot = float(np.sqrt(np.mean([rotation_angle_deg(R_mean, f[:3, :3]) ** 2 for f in fixed])))
+    t_m = fixed[:, :3, 3]
+    return rot, 1000.0 * float(np.sqrt(np.mean(np.sum((t_m - t_m.mean(axis=0)) ** 2, axis=1))))
+
+
+def convention_check(problem: CalibrationProblem) -> str | None:
+    """Whether the robot's records were read in their own convention, told from the images
+    alone: through the right poses and the best hand-eye, the board stays fixed in the base
+    frame (eye-in-hand; eye-to-hand the target on the tool) to within the arm's accuracy. When
+    it does not through the poses as read, the readings of ``CONVENTIONS`` (inverted poses,
+    transposed rotations, a quaternion's scalar last, angles in the other order or composed the
+    other way) are tried, and the one through which it does is named with its fix. None when the
+    poses as read fit, none of the readings does, or the session cannot tell (one
+    orientation). Costs an OpenCV calibration: run it for a result already in doubt."""
+    seen = _images_alone(problem)
+    return None if seen is None else _convention(problem, *seen)
+
+
+def _convention(
+    problem: CalibrationProblem, frames: list[int], T_cam: list[np.ndarray]
+) -> str | None:
+    """:func:`convention_check` on the images-alone poses ``T_cam`` of ``frames``."""
+    eye_in_hand = problem.mount == "eye_in_hand"
+    T_tool = np.stack([problem.frames[k].T_base_tool for k in frames])
+    rot_lim, t_lim = MAX_PAIRING_ROTATION_DEG, MAX_ROBOT_TRANSLATION_MM
+    as_read = _fixed_spread(T_tool, T_cam, eye_in_hand)
+    if as_read[0] <= CONVENTION_MARGIN * rot_lim and as_read[1] <= CONVENTION_MARGIN * t_lim:
+        return None
+    fits = []
+    for kind, meaning, fix in CONVENTIONS:
+        if kind == "inverted":
+            T_alt = np.stack([inv_T(T) for T in T_tool])
+        else:
+            T_alt = np.stack(
+                [T_from_Rt(_rotation_read_as(kind, T[:3, :3]), T[:3, 3]) for T in T_tool]
+            )
+        rot, t_mm = _fixed_spread(T_alt, T_cam, eye_in_hand)
+        if rot <= rot_lim and t_mm <= t_lim:
+            fits.append((rot / rot_lim + t_mm / t_lim, rot, t_mm, meaning, fix))
+    if not fits:
+        return None
+    _, rot, t_mm, meaning, fix = min(fits)
+    other = "eye_to_hand" if eye_in_hand else "eye_in_hand"
+    fixed = "the board's pose in the base frame" if eye_in_hand else "the target's pose on the tool"
+    return (
+        f"the robot poses as read do not fit the camera's own view of the motion ({fixed}, which "
+        f"must stay fixed, spreads through them by {as_read[0]:.1f} deg and {as_read[1]:.0f} mm; "
+        f"the images alone), and they fit when read otherwise ({rot:.2f} deg, {t_mm:.1f} mm): "
+        f"{meaning.format(other=other)}; {fix.format(other=other)}"
     )
 
 

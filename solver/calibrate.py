@@ -25,8 +25,8 @@ from slidecal.solver.adequacy import (
     PoseOutlier,
     assess,
     final_free_pose_fit,
-    pairing_check,
     pose_outlier,
+    record_check,
 )
 from slidecal.solver.degeneracy import check_configuration, n_directions
 from slidecal.solver.errors import DegenerateError, InputError
@@ -671,7 +671,7 @@ def _calibrate(
         try:
             K_lin[c.name] = linear_camera(problem, c.name, groups, jh, notes, focal_sweep, H_cache)
         except DegenerateError as e:
-            paired = pairing_check(problem)
+            paired = record_check(problem)
             if paired is not None:  # the cause, told from the images alone
                 raise DegenerateError(f"{paired} (the linear start failed: {e})") from None
             if not notes_skipped:

@@ -199,6 +199,57 @@ def test_pairing_check_is_silent_on_a_right_session_and_names_the_wrong_pairing(
     assert "not paired as recorded" in pairing_check(shuffled)
 
 
+def _misread(problem, kind: str):
+    """``problem`` with every recorded pose as slidecal would read it after the mistake
+    ``kind`` in the records (made with scipy's conventions, not the solver's helpers)."""
+    from scipy.spatial.transform import Rotation
+
+    from slidecal.solver.geometry import R_from_quat_wxyz, inv_T
+
+    def read(T):
+        R, t = T[:3, :3], T[:3, 3]
+        if kind == "inverted":  # T_tool_base given for T_base_tool
+            return inv_T(T)
+        if kind == "transposed":
+            return T_from_Rt(R.T, t)
+        if kind == "quaternion":  # ROS's [x, y, z, w] given as q_wxyz
+            return T_from_Rt(R_from_quat_wxyz(Rotation.from_matrix(R).as_quat()), t)
+        if kind == "abc":  # KUKA's [A, B, C] given as rpy_deg [roll, pitch, yaw]
+            a, b, c = Rotation.from_matrix(R).as_euler("ZYX")
+            return T_from_Rt(Rotation.from_euler("ZYX", [c, b, a]).as_matrix(), t)
+        assert kind == "intrinsic"  # angles of R = Rx(a) Ry(b) Rz(c) given as rpy_deg
+        a, b, c = Rotation.from_matrix(R).as_euler("XYZ")
+        return T_from_Rt(Rotation.from_euler("ZYX", [c, b, a]).as_matrix(), t)
+
+    frames = tuple(replace(f, T_base_tool=read(f.T_base_tool)) for f in problem.frames)
+    return replace(problem, frames=frames)
+
+
+@pytest.mark.parametrize("eye_in_hand", [True, False])
+def test_convention_check_names_how_the_records_were_misread(eye_in_hand):
+    from slidecal.solver.adequacy import convention_check, pairing_check
+
+    # a classic session on a real arm (28 frames, every orientation different): silent as read
+    s = sc.classic_real_arm(np.random.default_rng(4), eye_in_hand=eye_in_hand)
+    assert convention_check(s.problem) is None
+    other = "eye_to_hand" if eye_in_hand else "eye_in_hand"
+    expected = {
+        "inverted": f"not T_base_tool, or the camera is mounted the other way ({other})",
+        "transposed": "the rotation matrices are transposed",
+        "quaternion": "the quaternions are [x, y, z, w]",
+        "abc": "the angles are [yaw, pitch, roll] (KUKA's A, B, C)",
+        "intrinsic": "the angles compose as Rx(roll) Ry(pitch) Rz(yaw)",
+    }
+    for kind, meaning in expected.items():
+        said = convention_check(_misread(s.problem, kind))
+        assert said is not None and meaning in said, (kind, said)
+        assert said.startswith("the robot poses as read do not fit")
+    # poses paired with the wrong images are not a convention: that test says nothing
+    n = len(s.problem.frames)
+    shuffled = _poses_reassigned(s.problem, np.random.default_rng(0).permutation(n))
+    assert convention_check(shuffled) is None and pairing_check(shuffled) is not None
+
+
 def test_a_shuffled_session_is_refused_for_its_pairing_first():
     # R1's translation groups: the linear start fails, and says why
     s = sc.r1_real_arm(np.random.default_rng(2))
