@@ -24,6 +24,10 @@ from slidecal.solver.linear import LinearGroup
 # Two directions count as distinct when the second singular value of the unit direction stack is
 # at least this fraction of the first (about 0.6 deg between two directions).
 _MIN_SPREAD = 1e-2
+#: The third singular value of the moves' cross-covariance, against the first, above which a
+#: reflection's better fit is taken as shown: the moves span three directions, and the camera's
+#: own errors in them (about 1 % of their lengths) cannot turn a rotation into a reflection.
+_MIRRORED = 0.1
 
 
 def _group_scale(Kinv: np.ndarray, H0: np.ndarray) -> float:
@@ -72,6 +76,16 @@ def rotation_from_directions(
             "undetermined; translate along at least two non-parallel directions"
         )
     M = (d * w[:, None]).T @ t  # sum w d t'
+    U, sv_m, Vt = np.linalg.svd(M)
+    if np.linalg.det(U @ Vt) < 0 and sv_m[2] > _MIRRORED * sv_m[0]:
+        # the moves span three directions and a reflection maps them far better than any
+        # rotation: the camera sees the robot's moves mirrored, which no hand-eye explains
+        raise DegenerateError(
+            "the camera sees the robot's moves mirrored (a reflection, not a rotation, maps the "
+            "robot's translations onto the camera's): the poses are T_tool_base (the inverse of "
+            "T_base_tool), the session's mount is the other one, or one axis of the robot's "
+            "frame is flipped; check the pose records and the mount"
+        )
     return project_to_SO3(M)
 
 

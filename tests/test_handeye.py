@@ -63,6 +63,21 @@ def test_rotation_from_directions():
         rotation_from_directions(line @ R.T, line)
 
 
+def test_moves_seen_mirrored_are_named_not_fitted():
+    # a tool's moves read through inverted poses (-R' t) or the wrong mount reach the camera
+    # mirrored: when they span three directions no rotation fits, and the solve is refused
+    rng = np.random.default_rng(3)
+    R = random_rotation(rng)
+    t = rng.normal(size=(8, 3)) * [0.2, 0.1, 0.05]
+    d = (t @ R.T) * (1.0 + 0.01 * rng.normal(size=(8, 3)))  # the camera's own 1 % errors
+    assert angle_deg(rotation_from_directions(d, t), R) < 2.0
+    with pytest.raises(DegenerateError, match="mirrored.*T_tool_base"):
+        rotation_from_directions(-d, t)
+    # moves in one plane: a mirror of the plane is a half-turn about its normal, a rotation
+    flat = t * [1.0, 1.0, 0.0]
+    assert rotation_from_directions(-(flat @ R.T), flat) is not None
+
+
 @pytest.mark.parametrize("mount", ["eye_in_hand", "eye_to_hand"])
 def test_hand_eye_rotation_from_translations_noise_free(mount):
     rng = np.random.default_rng(3)
