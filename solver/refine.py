@@ -1388,7 +1388,12 @@ def refine(
             sig = structure.pose_sigma if structure.pose_sigma is not None else (0.0, 0.0)
             out = _with_robot(out, sig, False, "robot noise taken from the options")
         return out
-    from slidecal.solver.adequacy import free_pose_fit, model_starts, session_images
+    from slidecal.solver.adequacy import (
+        free_pose_fit,
+        model_starts,
+        record_check,
+        session_images,
+    )
 
     exact = replace(
         structure,
@@ -1417,6 +1422,14 @@ def refine(
             f"robot poses taken as exact: they explain the images ({figure})",
         )
     sig0 = _pose_discrepancy(problem, out0, fit)
+    beyond = any(v > lim for v, lim in zip(sig0, SIGMA_BEYOND, strict=True))
+    if (beyond or not out0.converged) and (cause := record_check(problem)) is not None:
+        # the records were read in another convention or paired with other images (told from
+        # the images alone): no accuracy of an arm explains them, and learning one would run
+        # its full budget of iterations (minutes) to the same rejection
+        return _with_robot(
+            replace(out0, free_pose=fit), (0.0, 0.0), False, f"robot accuracy not learned: {cause}"
+        )
     if o.robot_noise_deg > 0 or o.robot_noise_m > 0:  # the user's values: where to start
         sig0 = (
             max(np.radians(o.robot_noise_deg), SIGMA_FLOOR[0]),

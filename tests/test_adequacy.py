@@ -244,6 +244,11 @@ def test_convention_check_names_how_the_records_were_misread(eye_in_hand):
         said = convention_check(_misread(s.problem, kind))
         assert said is not None and meaning in said, (kind, said)
         assert said.startswith("the robot poses as read do not fit")
+    # the whole solve: rejected with the reading named first, without learning an arm's
+    # accuracy for records no arm explains (that ran its full budget: minutes on real sessions)
+    res = calibrate(_misread(s.problem, "quaternion"))
+    assert not res.adequacy.adequate and expected["quaternion"] in res.adequacy.reasons[0]
+    assert res.robot_accuracy is None or not res.robot_accuracy.estimated
     # poses paired with the wrong images are not a convention: that test says nothing
     n = len(s.problem.frames)
     shuffled = _poses_reassigned(s.problem, np.random.default_rng(0).permutation(n))
