@@ -760,10 +760,16 @@ def summary_text(
             ("cy", K[1, 2]),
             ("s", K[0, 1]),
         ):
-            lines.append(f"  {label:3s} = {val:10.3f} px  +- {_fmt(std.get(label))} px")
+            if label in std or not std:  # no std at all: the covariance was not computed
+                lines.append(f"  {label:3s} = {val:10.3f} px  +- {_fmt(std.get(label))} px")
+            else:  # held by the options (the skew: 0 unless estimated), not estimated
+                lines.append(f"  {label:3s} = {val:10.3f} px  (fixed)")
         dist = np.asarray(c.distortion).reshape(-1)
         for label, val in zip(("k1", "k2", "p1", "p2", "k3"), dist[:5], strict=False):
-            lines.append(f"  {label:3s} = {val:+.6f}     +- {_fmt(std.get(label), '.6f')}")
+            if label in std or not std:
+                lines.append(f"  {label:3s} = {val:+.6f}     +- {_fmt(std.get(label), '.6f')}")
+            else:
+                lines.append(f"  {label:3s} = {val:+.6f}     (fixed)")
     for key, t in hand_eye_transforms(result).items():
         lines.extend(_transform_lines(key, t))
     for key, t in result.rig.items():

@@ -103,6 +103,15 @@ def test_unobservable_translation_is_null_never_a_number(tmp_path: Path) -> None
     assert "translation: not determined" in text and "no rotations between frames" in text
 
 
+def test_a_parameter_held_by_the_options_reads_fixed_not_unknown() -> None:
+    lines = summary_text(_result()).splitlines()
+    assert any(line.split() == ["s", "=", "0.100", "px", "(fixed)"] for line in lines)
+    assert any(line.split()[:3] == ["fx", "=", "880.400"] and "+-" in line for line in lines)
+    # no covariance at all: every std is unknown, none is called fixed
+    bare = replace(_result(), cameras={"left": replace(_result().cameras["left"], std={})})
+    assert "(fixed)" not in summary_text(bare) and "+- n/a px" in summary_text(bare)
+
+
 def _scale_line(ratios: list[float]) -> str:
     checks = tuple(ScaleCheck(i, i + 1, 60.0, 60.0 * q) for i, q in enumerate(ratios))
     text = summary_text(replace(_result(), scale_checks=checks))
