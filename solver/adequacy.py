@@ -322,7 +322,10 @@ def assess(
                 "vectors in radians and the frame conventions"
             )
     if (reasons or not out.converged) and (paired := record_check(problem)) is not None:
-        reasons.insert(0, paired)  # the cause of the others
+        # the cause, told from the images alone: the other figures come from a solve on wrong
+        # records (its intrinsics too, so even the free-pose floor looks like a lens problem)
+        # and would send the user elsewhere
+        reasons[:] = [paired]
     adequacy = ModelAdequacy(
         detector_noise_px=dict(fit.sigma_px),
         normalised_rms=normalised,
