@@ -472,7 +472,7 @@ def _pairing(problem: CalibrationProblem, frames: list[int], T_cam: list[np.ndar
         return (
             f"{what} in most pairs of frames ({overall:.1f} times the limit, median over "
             f"{len(recorded)} pairs): the poses and the images are not paired as recorded, or "
-            "the rotations are not axis-angle vectors of T_base_tool" + end
+            "the rotations are not axis-angle vectors of T_base_tool in radians (degrees?)" + end
         )
     return (
         f"frames {bad}: {what} in most of their pairs with the other frames: those images are "
