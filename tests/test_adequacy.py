@@ -255,6 +255,17 @@ def test_convention_check_names_how_the_records_were_misread(eye_in_hand):
     assert convention_check(shuffled) is None and pairing_check(shuffled) is not None
 
 
+def test_convention_check_reads_a_lone_tag_session():
+    from slidecal.solver.adequacy import convention_check
+
+    # a fixed camera, one tag's 4 corners per image, 205 frames in 7 orientations: the
+    # images-alone poses are rougher, a wrong reading still spreads by degrees and decimetres
+    s = sc.tag_real_arm(np.random.default_rng(2000), sigma_px=0.15, arm_mm=1.0, arm_deg=0.1)
+    assert convention_check(s.problem) is None
+    said = convention_check(_misread(s.problem, "abc"))
+    assert said is not None and "KUKA's A, B, C" in said and "target's pose on the tool" in said
+
+
 def test_a_shuffled_session_is_refused_for_its_pairing_first():
     # R1's translation groups: the linear start fails, and says why
     s = sc.r1_real_arm(np.random.default_rng(2))
