@@ -492,6 +492,7 @@ CONVENTION_MARGIN = 2.0
 
 
 def _quat_wxyz(R: np.ndarray) -> np.ndarray:
+    """The unit quaternion (w, x, y, z) of ``R`` (the inverse of ``R_from_quat_wxyz``)."""
     v = rvec_from_R(R)
     angle = float(np.linalg.norm(v))
     axis = v / angle if angle > 0 else np.zeros(3)
