@@ -1257,6 +1257,7 @@ def _lm(
     cost = float(np.sum(weights * r * r))
     converged = False
     it = 0
+    lam_start = lam
     for it in range(1, max_iter + 1):  # noqa: B007 - the count is reported
         while True:
             try:
@@ -1274,6 +1275,12 @@ def _lm(
                 break
             lam *= 10.0
             if lam > 1e12:
+                if lam_start > 1.0:  # a warm start this stiff takes only round-off steps:
+                    # once more from a light damping (the minimum, or a real step, is there)
+                    state, converged, more, r, lam = _lm(
+                        model, state, weights, max_iter - it + 1, 1e-6
+                    )
+                    return state, converged, it - 1 + more, r, lam
                 return state, cost < 1e-20, it, r, lam
         # a relative decrease below 1e-10 moves no parameter by more than ~1e-5 of its std
         small_step = cost - cost_new <= 1e-10 * max(cost, 1e-30) + 1e-24
