@@ -457,6 +457,9 @@ class BundleModel:
         # ("E" frames, "U" groups, "V" trends): (rotation, translation), the last
         # variance-component step's sum of 1 - h over the block's prior rows
         self.level_redundancy: dict[str, tuple[float, float]] = {}
+        # the groups' level as their corrections alone say it (radians, metres), without its
+        # prior (GROUP_LEVEL_PRIOR_DOF): the arm's accuracy reported
+        self.group_sigma_data: tuple[float, float] | None = None
         # the row weights of the last solve (inliers, each camera's noise against the
         # reference camera's): what its covariance was made with; None before one
         self.row_weights: np.ndarray | None = None
@@ -1339,6 +1342,15 @@ ROBOT_TEST_P = 1e-3
 #: Smallest robot pose sigma the estimation keeps (radians, metres): below it a component is
 #: as good as exact and the prior just holds its corrections at zero.
 SIGMA_FLOOR = (1e-7, 1e-7)
+#: Weight (degrees of freedom) of the prior on the orientation groups' shared level: the
+#: frames' own level, as if seen twice (a scaled inverse chi-square prior; the level is the
+#: mean of the two). A real arm errs mostly alike within a group, and the images tell the
+#: groups' offsets from the hand-eye on a few degrees of freedom only (R1's four groups: about
+#: four per kind); there the estimate alone falls to zero, where the prior then holds every
+#: group's correction, the redundancy vanishes with the level and the iteration stays, and
+#: the frames' corrections, taken as independent, overstate what the groups tell the hand-eye
+#: (R1 seed 2010: its z 5.5 std off; with the prior 3.2).
+GROUP_LEVEL_PRIOR_DOF = 2.0
 #: Robot sigmas beyond any arm (radians, metres: 2 deg, 20 mm, twice what the adequacy test
 #: accepts): the estimation stops there, the model is wrong (units, frames) and will be marked so.
 SIGMA_BEYOND = (np.radians(2.0), 0.02)
@@ -1482,8 +1494,8 @@ def refine(
     )
     m = out.model
     levels = [m.pose_sigma]
-    if m.group_sigma is not None and "U" in m.slices:
-        levels.append(m.group_sigma)
+    if m.group_sigma is not None and "U" in m.slices:  # as the data say it, not its prior
+        levels.append(m.group_sigma if m.group_sigma_data is None else m.group_sigma_data)
     if "V" in m.slices:  # a trend's share of a frame's error: its level times the offset
         levels.append(tuple(spread * np.asarray(m.trend_sigma)))
     if "W" in m.slices:  # what the groups share: its levels times their shares
@@ -1848,7 +1860,7 @@ def _refine(
         ``per_frame`` turns a level into its share of a frame's correction: a share below a
         tenth of the frames' own level adds under 1 % to their variance, and its creeping
         (from the floor, at a few % per step) keeps no iteration going."""
-        new, moved, reds = [], False, []
+        new, moved, reds, data = [], False, [], []
         for comp, floor, old, own in zip(
             (rot, ~rot), SIGMA_FLOOR, levels, model.pose_sigma, strict=True
         ):
@@ -1858,7 +1870,11 @@ def _refine(
                 new.append(old)
                 continue
             v = np.sqrt(np.sum(values[comp] ** 2) / red) if red > 1e-6 else floor
-            if vce_step[0] > 2 and v < old and red < 0.25 * comp.sum():
+            if key == "U":  # the groups' level, under its prior at the frames' own
+                nu = GROUP_LEVEL_PRIOR_DOF
+                data.append(float(v) if red > 1e-6 else 0.0)
+                v = np.sqrt((np.sum(values[comp] ** 2) + nu * own**2) / (red + nu))
+            elif vce_step[0] > 2 and v < old and red < 0.25 * comp.sum():
                 # falling while the prior holds three quarters of it: the images do not
                 # support a level of its own (the iteration would creep toward 0 for
                 # tens of steps); the frames' own corrections carry this part
@@ -1875,6 +1891,8 @@ def _refine(
                 moved = True
             new.append(v)
         model.level_redundancy[key] = (reds[0], reds[1])
+        if len(data) == 2:
+            model.group_sigma_data = (data[0], data[1])
         return (new[0], new[1]), moved
 
     vce_step = [0]

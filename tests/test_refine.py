@@ -285,14 +285,45 @@ def test_orientation_groups_get_a_shared_correction_with_its_own_level():
     # wrists 25 deg apart err differently: a between-group level of the arm's size, not the floor
     assert np.degrees(between[0]) > 0.005
     assert np.degrees(np.hypot(within[0], between[0])) < 0.2
-    # the reported accuracy: the three parts (frames, groups, trends along the moves) together;
-    # 20 frames are too few for corrections the groups share (common_trend)
+    # the reported accuracy: the three parts (frames, groups, trends along the moves) together,
+    # the groups' as their corrections say it (their level's prior pulls it toward the
+    # frames' own); 20 frames are too few for corrections the groups share (common_trend)
     assert "W" not in out.model.slices
     c = out.model.st.trend_coords
     trend = np.sqrt(np.mean(np.sum(c**2, axis=1))) * np.asarray(out.model.trend_sigma)
+    data = np.asarray(out.model.group_sigma_data)
     np.testing.assert_allclose(
-        out.robot_sigma, np.sqrt(np.square(within) + np.square(between) + trend**2), rtol=1e-12
+        out.robot_sigma, np.sqrt(np.square(within) + np.square(data) + trend**2), rtol=1e-12
     )
+
+
+def test_groups_level_does_not_fall_to_zero_where_few_dof_see_it():
+    # R1 on a real arm, seed 2010: four groups tell their offsets from the hand-eye on about
+    # four degrees of freedom per kind; alone the groups' level fell to zero and stayed there
+    # (redundancy 0), the frames' corrections taken as independent, and the hand-eye's z came
+    # out 5.5 std off the effective truth (fx 3.5). Under its prior at the frames' own level
+    # it stays of the arm's size and z is 3.2 std off: 4 is beyond that, below the collapse
+    from slidecal.routines.bench_reality import _hand_eye_errors
+    from slidecal.solver import refine as rf
+
+    models = []
+    orig = rf.BundleModel.__init__
+
+    def spy(self, *a, **k):  # noqa: ANN001, ANN002, ANN003, ANN202
+        orig(self, *a, **k)
+        models.append(self)
+
+    s = sc.r1_real_arm(np.random.default_rng(2010), sigma_px=0.15, arm_mm=1.0, arm_deg=0.1)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(rf.BundleModel, "__init__", spy)
+        res = _calibrate(s.problem)
+    m = models[-1]
+    assert m.level_redundancy["U"][1] > 1.0
+    assert m.group_sigma[1] > 0.3 * m.pose_sigma[1]
+    ra = res.robot_accuracy
+    T_eff, _ = sc.effective_truth(s, ra.rotation_deg, ra.translation_mm, list(range(20)))
+    d, C = _hand_eye_errors(res, s, T_eff)["t"]
+    assert abs(d[2]) < 4.0 * np.sqrt(C[2, 2])
 
 
 def test_no_group_correction_without_groups_of_several_frames():
