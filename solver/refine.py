@@ -1343,8 +1343,9 @@ ROBOT_TEST_P = 1e-3
 #: as good as exact and the prior just holds its corrections at zero.
 SIGMA_FLOOR = (1e-7, 1e-7)
 #: Weight (degrees of freedom) of the prior on the orientation groups' shared level: the
-#: frames' own level, as if seen twice (a scaled inverse chi-square prior; the level is the
-#: mean of the two). A real arm errs mostly alike within a group, and the images tell the
+#: frames' own level, as if seen twice (a scaled inverse chi-square prior: the level's square
+#: is the groups' sum of squares plus twice the frames' level squared, over the groups'
+#: redundancy plus two). A real arm errs mostly alike within a group, and the images tell the
 #: groups' offsets from the hand-eye on a few degrees of freedom only (R1's four groups: about
 #: four per kind); there the estimate alone falls to zero, where the prior then holds every
 #: group's correction, the redundancy vanishes with the level and the iteration stays, and
