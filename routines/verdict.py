@@ -312,6 +312,8 @@ def judge(
                 cmp_info["paired"] = info
                 if not info["usable"]:
                     notes.append(f"no paired comparison: {info['why']}")
+    if any(c.test == "std" and not c.passed for c in checks):
+        notes.append(STD_HINT)
     for name, why in result.unobservable.items():
         notes.append(f"{name} not determined: {why}")
     notes.extend(m for m in result.messages if LEFT_OUT in m)  # frames left out for their poses
@@ -356,12 +358,23 @@ def _reprojection(result: CalibrationResult, lim: Limits) -> list[Check]:
     return out
 
 
+#: What a user can do about a one-sigma beyond its limit (a note of the verdict): the data
+#: tell no more; more of them, or a limit that fits the cell
+STD_HINT = (
+    "a one-sigma beyond its limit is what this session's data can tell: more frames or tilts "
+    "narrow it (slidecal run extends its plan for this by itself), or set the limit named in "
+    "the cell file's limits: section (slidecal solve judges with the limits the session "
+    "recorded; --config CELL overrides them)"
+)
+
+
 def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
     out = []
     he = result.hand_eye
     one_orientation = he is not None and he.R is not None and he.t_m is None
     cxy_lim = lim.cxy_std_px_from_translations if one_orientation else lim.cxy_std_px
     fx_lim = lim.fx_rel_std_from_translations if one_orientation else lim.fx_rel_std
+    own = "_from_translations" if one_orientation else ""  # the limits' field names
     for name, c in result.cameras.items():
         K = np.asarray(c.K, dtype=float)
         for p, val in (("fx", K[0, 0]), ("fy", K[1, 1])):
@@ -376,7 +389,7 @@ def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
                     fx_lim,
                     f"camera {name}: {p} one-sigma "
                     + (f"{rel * 100:.3f} %" if rel is not None else "unknown")
-                    + f" (limit {fx_lim * 100:g} %)",
+                    + f" (limit {fx_lim * 100:g} %; limits.fx_rel_std{own})",
                 )
             )
         for p in ("cx", "cy"):
@@ -392,7 +405,7 @@ def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
                     + (f"{s:.3f} px" if s is not None else "unknown")
                     + f" (limit {cxy_lim:g} px"
                     + (", a session of one orientation" if one_orientation else "")
-                    + ")",
+                    + f"; limits.cxy_std_px{own})",
                 )
             )
     transforms = []
@@ -417,7 +430,7 @@ def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
                 + (f"{s:.4f} deg" if s is not None else "unknown")
                 + f" (limit {rot_lim:g} deg"
                 + ("" if full else ", a hand-eye from translations alone")
-                + ")",
+                + f"; limits.hand_eye_rot_std_deg{'' if full else '_from_translations'})",
             )
         )
         if t.t_m is not None:
@@ -431,7 +444,7 @@ def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
                     lim.hand_eye_t_std_mm,
                     f"{t.name}: translation one-sigma "
                     + (f"{s:.3f} mm" if s is not None else "unknown")
-                    + f" (limit {lim.hand_eye_t_std_mm:g} mm)",
+                    + f" (limit {lim.hand_eye_t_std_mm:g} mm; limits.hand_eye_t_std_mm)",
                 )
             )
     return out

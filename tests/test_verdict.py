@@ -26,6 +26,7 @@ from slidecal.routines.config import load_config  # noqa: E402
 from slidecal.routines.run import solve_session  # noqa: E402
 from slidecal.routines.session import load_session  # noqa: E402
 from slidecal.routines.verdict import (  # noqa: E402
+    STD_HINT,
     Limits,
     compare,
     judge,
@@ -184,8 +185,10 @@ def test_a_hand_eye_from_translations_alone_has_its_own_limit(solved) -> None:
     worst = dataclasses.replace(cam, std={**cam.std, "cy": 9.0})
     v = judge(dataclasses.replace(r, cameras={"cam": worst}, hand_eye=alone), Limits())
     assert [c.message for c in v.reasons] == [
-        "camera cam: cy one-sigma 9.000 px (limit 8 px, a session of one orientation)"
+        "camera cam: cy one-sigma 9.000 px (limit 8 px, a session of one orientation; "
+        "limits.cxy_std_px_from_translations)"
     ]
+    assert STD_HINT in v.notes  # what to do about it
 
 
 def test_coverage_gate(solved) -> None:
