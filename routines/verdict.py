@@ -312,8 +312,8 @@ def judge(
                 cmp_info["paired"] = info
                 if not info["usable"]:
                     notes.append(f"no paired comparison: {info['why']}")
-    if any(c.test == "std" and not c.passed for c in checks):
-        notes.append(STD_HINT)
+    if any(c.test == "std" and not c.passed and c.limit is not None for c in checks):
+        notes.append(STD_HINT)  # not for a transform the data did not determine at all
     for name, why in result.unobservable.items():
         notes.append(f"{name} not determined: {why}")
     notes.extend(m for m in result.messages if LEFT_OUT in m)  # frames left out for their poses
@@ -374,7 +374,7 @@ def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
     one_orientation = he is not None and he.R is not None and he.t_m is None
     cxy_lim = lim.cxy_std_px_from_translations if one_orientation else lim.cxy_std_px
     fx_lim = lim.fx_rel_std_from_translations if one_orientation else lim.fx_rel_std
-    own = "_from_translations" if one_orientation else ""  # the limits' field names
+    suffix = "_from_translations" if one_orientation else ""  # the limits' field names
     for name, c in result.cameras.items():
         K = np.asarray(c.K, dtype=float)
         for p, val in (("fx", K[0, 0]), ("fy", K[1, 1])):
@@ -389,7 +389,7 @@ def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
                     fx_lim,
                     f"camera {name}: {p} one-sigma "
                     + (f"{rel * 100:.3f} %" if rel is not None else "unknown")
-                    + f" (limit {fx_lim * 100:g} %; limits.fx_rel_std{own})",
+                    + f" (limit {fx_lim * 100:g} %; limits.fx_rel_std{suffix})",
                 )
             )
         for p in ("cx", "cy"):
@@ -405,7 +405,7 @@ def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
                     + (f"{s:.3f} px" if s is not None else "unknown")
                     + f" (limit {cxy_lim:g} px"
                     + (", a session of one orientation" if one_orientation else "")
-                    + f"; limits.cxy_std_px{own})",
+                    + f"; limits.cxy_std_px{suffix})",
                 )
             )
     transforms = []

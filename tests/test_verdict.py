@@ -189,6 +189,10 @@ def test_a_hand_eye_from_translations_alone_has_its_own_limit(solved) -> None:
         "limits.cxy_std_px_from_translations)"
     ]
     assert STD_HINT in v.notes  # what to do about it
+    undetermined = dataclasses.replace(he, R=None)  # no one-sigma to narrow: no such note
+    v = judge(dataclasses.replace(r, hand_eye=undetermined), Limits())
+    assert [c.message for c in v.reasons] == ["T_tool_cam: rotation not determined"]
+    assert STD_HINT not in v.notes
 
 
 def test_coverage_gate(solved) -> None:
