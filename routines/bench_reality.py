@@ -39,7 +39,7 @@ from scipy.stats import binom, chi2, norm
 
 from slidecal.mocks import scenarios as sc
 from slidecal.routines import bench
-from slidecal.routines.benchmarks import publish_report
+from slidecal.routines.benchmarks import publish_report, shown_out
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, rvec_from_R
@@ -407,7 +407,8 @@ def main(argv: list[str] | None = None) -> int:
     lines = [
         "# The solver on a real arm: coverage of its reported uncertainty",
         "",
-        f"Regenerate with `{cmd} --out {args.out or 'docs/REALITY.md'}` ({platform.machine()}, "
+        f"Regenerate with `{cmd} --out {shown_out(args.out or 'docs/REALITY.md')}` "
+        f"({platform.machine()}, "
         f"{platform.python_version()}, numpy {np.__version__}, OpenCV {cv2.__version__}; this "
         f"run took {time.time() - t0:.0f} s).",
         "",

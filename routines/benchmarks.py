@@ -64,9 +64,26 @@ def _version(dist: str) -> str:
         return "absent"
 
 
+def shown_out(out: str | os.PathLike[str]) -> str:
+    """A report's ``--out`` as its header shows it: a path inside the project as given, any
+    other (a scratch folder, a home directory) as the report's place under ``docs/``, so no
+    path of this machine reaches a committed report."""
+    text = os.fspath(out)
+    parts = Path(text).parts
+    if not Path(text).is_absolute() and ".." not in parts and not text.startswith("~"):
+        return text
+    return "docs/" + ("" if text.endswith(("/", os.sep)) else Path(text).name)
+
+
 def bench_command(name: str, argv: Sequence[str] | None) -> str:
-    """The command line that regenerates benchmark ``name`` with these options."""
+    """The command line that regenerates benchmark ``name`` with these options (an ``--out``
+    outside the project shown as its place under ``docs/``: :func:`shown_out`)."""
     args = list(sys.argv[1:] if argv is None else argv)
+    for i, a in enumerate(args):
+        if a.startswith("--out="):
+            args[i] = "--out=" + shown_out(a.removeprefix("--out="))
+        elif i > 0 and args[i - 1] == "--out":
+            args[i] = shown_out(a)
     return " ".join(["slidecal bench", name, *args])
 
 

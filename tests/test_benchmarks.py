@@ -85,3 +85,12 @@ def test_public_data_bench_writes_sessions_a_user_would_and_names_missing_data(t
     assert bench_public.translation_frames("kuka_1", tmp_path) == [1, 2]
     # no board in the images: no peer answer (not an OpenCV exception)
     assert bench_public.opencv_reference("kuka_1", tmp_path) is None
+
+
+def test_header_shows_an_out_of_project_report_path_as_its_place_in_docs():
+    lines = report_header("T", "run", ["--seeds", "3", "--out", "/tmp/scratch/RUN.md"], 1.0)
+    assert "`slidecal bench run --seeds 3 --out docs/RUN.md`" in lines[2]
+    lines = report_header("T", "stereo", ["--out=/home/me/figs/"], 1.0)
+    assert "`slidecal bench stereo --out=docs/`" in lines[2]
+    lines = report_header("T", "run", ["--out", "docs/RUN.md"], 1.0)
+    assert "--out docs/RUN.md`" in lines[2]
