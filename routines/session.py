@@ -754,6 +754,10 @@ def _read_frame(
     for name, path in image_paths.items():
         if name in detections:
             continue
+        if path.is_dir():
+            raise ims.error(
+                name, f"{path.name} is a folder, not an image; give the image file's path"
+            )
         if not path.is_file():
             raise ims.error(
                 name, f"image {path.name} not found; restore it or give detections for {name!r}"

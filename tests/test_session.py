@@ -285,6 +285,13 @@ def test_bad_input_names_file_and_field(tmp_path: Path, changes, where, what) ->
     assert e.value.where is not None and e.value.where.startswith("session.yaml")
 
 
+def test_an_image_path_that_names_a_folder_is_told_as_such(tmp_path: Path) -> None:
+    (tmp_path / "images").mkdir()
+    _write(tmp_path, frames=[{"id": 0, "T_base_tool": _T, "images": {"left": "images"}}])
+    with pytest.raises(InputError, match=r"frames\[0\]\.images\.left: images is a folder"):
+        read_session(tmp_path)
+
+
 def test_missing_directory_and_file_and_bad_yaml(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="not a session directory"):
         read_session(tmp_path / "nope")
