@@ -44,6 +44,7 @@ from slidecal.solver.named import (
     correlated_image_errors,
     hand_eye_names,
     layout_of,
+    misfit_image,
     mount_names,
     result_covariance,
 )
@@ -788,14 +789,31 @@ def _calibrate(
     return _result(problem, out, K_lin, groups)
 
 
-def _correlation_note(seen: tuple[float, int] | None) -> tuple[str, ...]:
-    """A line when the covariance was read image by image (``correlated_image_errors``)."""
-    if seen is None:
+def _correlation_note(
+    problem: CalibrationProblem,
+    seen: tuple[float, int] | None,
+    misfit: tuple[int, float, float] | None,
+) -> tuple[str, ...]:
+    """A line when the covariance was read image by image: why (``correlated_image_errors``,
+    else ``misfit_image``)."""
+    why = None
+    if seen is not None:
+        why = (
+            f"the residuals of neighbouring corners go together (correlation {seen[0]:.2f} "
+            f"over {seen[1]} pairs; about 0 when each corner's error is its own)"
+        )
+    elif misfit is not None:
+        k, ratio, p = misfit
+        why = (
+            f"the residuals of frame {problem.frames[k].id} are {ratio:.2f} times the noise of "
+            f"the session (p = {p:.1e} with each corner's error its own; a glare spot or a "
+            "misplaced corner makes some of an image's corners err together)"
+        )
+    if why is None:
         return ()
     return (
-        f"the residuals of neighbouring corners go together (correlation {seen[0]:.2f} over "
-        f"{seen[1]} pairs; about 0 when each corner's error is its own): the uncertainty is "
-        "taken from the images' spread, image by image (docs/METHOD.md Sec. 6)",
+        f"{why}: the uncertainty is taken from the images' spread, image by image "
+        "(docs/METHOD.md Sec. 6)",
     )
 
 
@@ -804,7 +822,8 @@ def _result(
 ) -> CalibrationResult:
     model, st, state = out.model, out.model.st, out.state
     correlated = correlated_image_errors(out)  # an image's errors go together: read so
-    reported, named = result_covariance(problem, out, correlated)  # at the flat board's solve
+    misfit = None if correlated is not None else misfit_image(out)  # or one image's do
+    reported, named = result_covariance(problem, out, correlated or misfit)  # at the flat board
     if out.board is not None:  # between the readings of the board's misfit (target_shape.py)
         state = model.apply(state, out.board.shift)
     cams = {}
@@ -904,7 +923,8 @@ def _result(
         residuals_px=residuals,
         outliers=out.outliers,
         unobservable=unobs,
-        messages=out.messages + _correlation_note(correlated if named is not None else None),
+        messages=out.messages
+        + (_correlation_note(problem, correlated, misfit) if named is not None else ()),
         scale_checks=scale_checks(
             problem,
             state,

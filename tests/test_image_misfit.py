@@ -20,13 +20,19 @@ from slidecal.routines.bench_handeye import one_tag_geometry, one_tag_session
 from slidecal.routines.session import read_session
 from slidecal.solver.adequacy import _neighbour_pairs, neighbour_correlation
 from slidecal.solver.calibrate import calibrate
-from slidecal.solver.named import CORRELATED_NEIGHBOURS
+from slidecal.solver.named import CORRELATED_NEIGHBOURS, misfit_image
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_named import _solve_keeping_the_refinement  # noqa: E402
 
 DATA = Path(__file__).parent / "data"
 P = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
+
+
+def _model_only(monkeypatch) -> None:  # noqa: ANN001
+    """Neither reading of an image's errors taken together: the model's covariance alone."""
+    monkeypatch.setattr(named_mod, "CORRELATED_NEIGHBOURS", 10.0)
+    monkeypatch.setattr(named_mod, "MISFIT_IMAGE_P", 0.0)
 
 
 def _photographs(root: Path, camera: str):  # noqa: ANN202
@@ -138,7 +144,7 @@ def test_an_edge_error_shared_along_the_board_lines_is_read(monkeypatch):
     assert any("neighbouring corners go together" in m for m in res.messages)
     # the two directions pooled (their mean) read half: under the previous gate of 0.1
     assert _pooled(out) < 0.1 + 2.0 / np.sqrt(pairs)
-    monkeypatch.setattr(named_mod, "CORRELATED_NEIGHBOURS", 10.0)  # the model's alone
+    _model_only(monkeypatch)
     model_only = calibrate(problem).cameras["cam"].std
     for p in P:
         assert res.cameras["cam"].std[p] >= model_only[p]
@@ -180,7 +186,7 @@ def test_real_photographs_carry_their_correlated_errors(tmp_path, monkeypatch):
     res, out = _solve_keeping_the_refinement(problem, monkeypatch)
     rho, pairs = neighbour_correlation(out)
     assert rho > CORRELATED_NEIGHBOURS + 2.0 / np.sqrt(pairs) and rho > 0.25
-    monkeypatch.setattr(named_mod, "CORRELATED_NEIGHBOURS", 10.0)  # the model's alone
+    _model_only(monkeypatch)
     model_only = calibrate(problem).cameras["cam"].std
     ours = res.cameras["cam"].std
     assert ours["cx"] > 2.0 * model_only["cx"] and ours["cy"] > 1.5 * model_only["cy"]
@@ -213,6 +219,50 @@ def test_real_photographs_halves_agree_within_the_reported_std(tmp_path, monkeyp
 
     ours = z_rms()
     assert max(ours.values()) < 1.6, ours
-    monkeypatch.setattr(named_mod, "CORRELATED_NEIGHBOURS", 10.0)
+    _model_only(monkeypatch)
     model_only = z_rms()
     assert model_only["cx"] > 2.5 and model_only["cy"] > 1.6, model_only
+
+
+def _glare(problem, frame: int, shift_px: float):  # noqa: ANN001, ANN202
+    """The corners of one image within two board squares of its centremost corner moved
+    together by ``shift_px`` along x (a specular highlight on the board biases the corners
+    under it alike; the image's other corners keep their own noise)."""
+    f = problem.frames[frame]
+    d = f.detections["cam"]
+    centre = d.px[np.argmin(np.linalg.norm(d.px - d.px.mean(axis=0), axis=1))]
+    pitch = np.median(np.linalg.norm(np.diff(d.px, axis=0), axis=1))
+    near = np.linalg.norm(d.px - centre, axis=1) < 2.0 * pitch
+    px = d.px.copy()
+    px[near, 0] += shift_px
+    frames = list(problem.frames)
+    frames[frame] = replace(f, detections={"cam": replace(d, px=px)})
+    return replace(problem, frames=tuple(frames)), int(near.sum())
+
+
+def test_independent_detections_leave_every_image_within_its_noise(monkeypatch):
+    for seed in (2000, 2001, 2002):
+        _, out = _solve_keeping_the_refinement(
+            sc.r1_real_arm(np.random.default_rng(seed)).problem, monkeypatch
+        )
+        assert misfit_image(out) is None
+
+
+def test_a_few_corners_of_one_image_erring_together_are_read(monkeypatch):
+    # what the neighbours' correlation does not see: a glare spot moving a dozen corners of one
+    # image alike by 0.6 px (4 times the corner noise). That image's residuals are beyond
+    # what independent errors give, so the frames' scores are read and the std widen
+    s = sc.r1_real_arm(np.random.default_rng(2001))
+    problem, moved = _glare(s.problem, 5, 0.6)
+    assert moved >= 8
+    res, out = _solve_keeping_the_refinement(problem, monkeypatch)
+    rho, pairs = neighbour_correlation(out)
+    assert rho < CORRELATED_NEIGHBOURS + 2.0 / np.sqrt(pairs)  # the neighbours do not tell
+    frame, ratio, p = misfit_image(out)
+    assert frame == 5 and ratio > 1.2 and p < named_mod.MISFIT_IMAGE_P
+    note = [m for m in res.messages if "image by image" in m]
+    assert len(note) == 1 and f"frame {problem.frames[5].id} are" in note[0]
+    _model_only(monkeypatch)
+    model_only = calibrate(problem).cameras["cam"].std
+    assert all(res.cameras["cam"].std[p] >= model_only[p] for p in P)
+    assert max(res.cameras["cam"].std[p] / model_only[p] for p in P) > 1.05
