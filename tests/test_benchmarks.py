@@ -57,6 +57,16 @@ def test_scale_arm_session_and_targets():
     ]
     text = "\n".join(_targets(rows, {"slidecal_s": 0.03, "opencv_s": 0.012}))
     assert "| 2.5 | 1.5 |" in text and "| 4.5 | 2 |" in text and "| 4.5 | 5 |" in text
+    split = {"solve_s": 0.03, "learned_s": 0.012}  # the rest: 18 ms, 1.5 times OpenCV's 12
+    text = "\n".join(_targets(rows, {"slidecal_s": 0.03, "opencv_s": 0.012}, None, split))
+    assert "covariance: 18 of 30 ms) / cv2.calibrateCamera | 1.5 | 1.5 |" in text
+
+
+def test_scale_bench_times_the_learned_refinement_inside_the_solve():
+    from slidecal.routines.bench_scale import learned_refinement_s
+
+    t = learned_refinement_s(2)
+    assert 0.0 < t["learned_s"] < t["solve_s"]
 
 
 def test_public_data_bench_writes_sessions_a_user_would_and_names_missing_data(tmp_path):
