@@ -41,6 +41,7 @@ from slidecal.solver.linear import (
 )
 from slidecal.solver.named import (
     INTRINSIC_NAMES,
+    MIN_CLUSTER_FRAMES,
     correlated_image_errors,
     hand_eye_names,
     layout_of,
@@ -821,8 +822,10 @@ def _result(
     problem: CalibrationProblem, out: RefineOutput, K_lin: dict[str, np.ndarray], groups: np.ndarray
 ) -> CalibrationResult:
     model, st, state = out.model, out.model.st, out.state
-    correlated = correlated_image_errors(out)  # an image's errors go together: read so
-    misfit = None if correlated is not None else misfit_image(out)  # or one image's do
+    correlated = misfit = None  # an image's errors go together, or one image's do: read so
+    if len(model.frame_rows) >= MIN_CLUSTER_FRAMES:  # (with fewer frames they cannot be)
+        correlated = correlated_image_errors(out)
+        misfit = None if correlated is not None else misfit_image(out)
     reported, named = result_covariance(problem, out, correlated or misfit)  # at the flat board
     if out.board is not None:  # between the readings of the board's misfit (target_shape.py)
         state = model.apply(state, out.board.shift)

@@ -279,3 +279,12 @@ def test_a_few_corners_of_one_image_erring_together_are_read(monkeypatch):
     model_only = calibrate(problem).cameras["cam"].std
     assert all(res.cameras["cam"].std[p] >= model_only[p] for p in P)
     assert max(res.cameras["cam"].std[p] / model_only[p] for p in P) > 1.05
+
+
+def test_too_few_frames_to_read_image_by_image_say_nothing_of_it(monkeypatch):
+    # three images of one glare: the frames' scores need four frames at least, so the
+    # covariance stays the model's and no line says it was read image by image
+    s = sc.s2(3, 0.2, np.random.default_rng(4))
+    problem, _ = _glare(s.problem, 1, 2.0)
+    res = calibrate(problem)
+    assert not any("image by image" in m for m in res.messages)
