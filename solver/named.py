@@ -718,9 +718,6 @@ MISFIT_IMAGE_P = 0.01
 #: (the public KUKA sessions: the worst image 1.2-1.4 times the noise, 2.5-3.3 % of the squares)
 #: stay below it; a glare on one of 9 images (28 %) does not
 MISFIT_IMAGE_SHARE = 0.1
-#: Fewest corners of an image for its misfit to be read (a lone tag's 4 corners: its pose takes
-#: most of their freedom)
-MISFIT_MIN_CORNERS = 12
 
 
 def misfit_image(out: RefineOutput) -> tuple[int, float, float] | None:
@@ -740,6 +737,10 @@ def misfit_image(out: RefineOutput) -> tuple[int, float, float] | None:
     none."""
     from scipy.special import chdtrc  # the chi-square's tail (scipy.stats costs 0.4 s)
 
+    # an image needs as many corners as its neighbours' correlation does (a lone tag's pose
+    # takes most of its 4 corners' freedom); adequacy imports this module
+    from slidecal.solver.adequacy import NEIGHBOUR_MIN_CORNERS
+
     m = out.model
     n_px = len(out.residuals)
     if not out.sigma_px > 0:
@@ -751,7 +752,7 @@ def misfit_image(out: RefineOutput) -> tuple[int, float, float] | None:
         n = int(np.count_nonzero(wk > 0))
         S = float(np.sum(wk * rk * rk)) / out.sigma_px**2
         total += S
-        if n >= 2 * MISFIT_MIN_CORNERS:
+        if n >= 2 * NEIGHBOUR_MIN_CORNERS:
             tails.append((float(chdtrc(n, S)), k, float(np.sqrt(S / n)), S - n))
     if not tails:
         return None
