@@ -22,9 +22,12 @@ import numpy as np
 from slidecal.solver.adequacy import (
     LEFT_OUT,
     FreePoseFit,
+    ImageOutlier,
     PoseOutlier,
     assess,
+    bad_images_note,
     final_free_pose_fit,
+    image_outlier,
     pose_outlier,
     record_check,
 )
@@ -648,7 +651,9 @@ def calibrate(
     A frame whose robot pose the images contradict far beyond the arm's accuracy elsewhere
     (``adequacy.pose_outlier``: a pose read before the arm settled, an image paired with another
     pose) is left out and the session solved again without it, with a message naming it and its
-    misfit; at most one frame in ten (at least one) is left out so.
+    misfit; so is, when no pose is, a frame whose image the robot model leaves far beyond its
+    camera's detector noise (``adequacy.image_outlier``: a corner misplaced by a glare or a
+    blur, a misdetection); at most one frame in ten (at least one) is left out so.
     """
     return _calibrate(problem, joint_homographies, focal_sweep, ())
 
@@ -657,9 +662,9 @@ def _calibrate(
     problem: CalibrationProblem,
     joint_homographies: bool,
     focal_sweep: bool,
-    left_out: tuple[PoseOutlier, ...],
+    left_out: tuple[PoseOutlier | ImageOutlier, ...],
 ) -> CalibrationResult:
-    """:func:`calibrate` with the frames ``left_out`` so far for their robot poses."""
+    """:func:`calibrate` with the frames ``left_out`` so far for their robot poses or images."""
     check_problem(problem)
     full = problem
     problem, notes_skipped = usable_frames(problem)
@@ -754,7 +759,11 @@ def _calibrate(
                 "focal length that fits the images best through the robot poses"
             )
             return replace(retry, messages=(*retry.messages, note))
+    fit = None  # the adequacy test's and the scale checks' poses
     bad = pose_outlier(problem, out) if out.converged else None
+    if bad is None and out.converged:
+        fit = final_free_pose_fit(out)
+        bad = image_outlier(problem, out, fit)
     if bad is not None:
         n_all = len(problem.frames) + len(left_out)
         allowed = max(1, n_all // 10)
@@ -765,11 +774,7 @@ def _calibrate(
             except DegenerateError as e:
                 notes.append(f"{bad.describe()}; it stays in the solve: without it, {e}")
             else:
-                note = (
-                    f"{bad.describe()}: {LEFT_OUT} (a pose read before the arm settled, a "
-                    "glitch of the record, or an image paired with another pose); the session "
-                    "keeps it"
-                )
+                note = f"{bad.describe()}: {LEFT_OUT} ({bad.causes}); the session keeps it"
                 ra = res.robot_accuracy
                 if ra is not None:
                     gone = (bad.frame, bad.translation_mm, bad.rotation_deg)
@@ -777,17 +782,19 @@ def _calibrate(
                 return replace(
                     res, messages=(*notes_skipped, note, *res.messages), robot_accuracy=ra
                 )
-        else:
+        elif isinstance(bad, PoseOutlier):  # images beyond it: the adequacy test weighs them
             notes.append(
                 f"{bad.describe()}; no more than {allowed} of {n_all} frames are left out for "
                 "their poses: check that each image is paired with the pose it was taken at"
             )
+    if fit is None:
+        fit = final_free_pose_fit(out)
     if notes:
         out = replace(out, messages=out.messages + tuple(notes))
     board = fit_board(problem, out)
     if board is not None:
         out = replace(out, board=board)
-    return _result(problem, out, K_lin, groups)
+    return _result(problem, out, K_lin, groups, fit)
 
 
 def _correlation_note(
@@ -819,7 +826,11 @@ def _correlation_note(
 
 
 def _result(
-    problem: CalibrationProblem, out: RefineOutput, K_lin: dict[str, np.ndarray], groups: np.ndarray
+    problem: CalibrationProblem,
+    out: RefineOutput,
+    K_lin: dict[str, np.ndarray],
+    groups: np.ndarray,
+    fit: FreePoseFit,
 ) -> CalibrationResult:
     model, st, state = out.model, out.model.st, out.state
     correlated = misfit = None  # an image's errors go together, or one image's do: read so
@@ -907,7 +918,6 @@ def _result(
         residuals[ch.key] = float(np.sqrt(np.mean(r**2) * 2))
     inl = out.residuals[out.inlier_rows]
     rms = float(np.sqrt(np.mean(inl**2) * 2)) if len(inl) else float("nan")
-    fit = final_free_pose_fit(out)  # the adequacy test's and the scale checks' poses
     adequacy, robot_accuracy = assess(problem, out, fit, groups)
     known = _fitted_poses(out, fit)  # the scale checks' poses; the model guesses the others'
     return CalibrationResult(
@@ -927,7 +937,8 @@ def _result(
         outliers=out.outliers,
         unobservable=unobs,
         messages=out.messages
-        + (_correlation_note(problem, correlated, misfit) if named is not None else ()),
+        + (_correlation_note(problem, correlated, misfit) if named is not None else ())
+        + bad_images_note(adequacy),
         scale_checks=scale_checks(
             problem,
             state,

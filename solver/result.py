@@ -100,7 +100,8 @@ class RobotAccuracy:
     ``worst_frames``: (frame id, translation error mm, rotation error deg), worst first;
     ``estimated``: True when learned from the data, False when the user's prior was used as is;
     ``left_out``: (frame id, translation error mm, rotation error deg) of the frames the solve
-    left out because their recorded pose was off far beyond the others' (in the order left out).
+    left out because their recorded pose was off far beyond the others', or their image far
+    beyond the detector's noise (in the order left out; the pose correction they had).
     """
 
     translation_mm: float

@@ -296,3 +296,52 @@ def test_frames_left_out_are_recorded_in_the_result_file(tmp_path):
     write_result(res, tmp_path / "result.yaml")
     back = read_result(tmp_path / "result.yaml").robot_accuracy.left_out
     assert np.allclose(back, res.robot_accuracy.left_out)
+
+
+def test_a_run_of_frames_on_another_joint_configuration_is_not_a_glitch():
+    # the eye-to-hand tag session (205 frames, 7 orientations, a UR5e erring by about 1 mm):
+    # seed 2008's controller reaches frames 102-111 with the wrist turned over (each pose's
+    # joints the solution nearest the last), and that run errs 0.7-1.0 mm off the rest of its
+    # group, 5 times a typical frame's correction: the arm, not ten glitches. None is left out
+    # (five were, one at a time), and the intrinsics stay within 3 std of the truth. A pose
+    # 6 mm off in the same session still is left out.
+    s = sc.tag_real_arm(np.random.default_rng(2008), sigma_px=0.15, arm_mm=1.0, arm_deg=0.1)
+    res = calibrate(s.problem)
+    assert _left_out(res) == []
+    for name, (a, b) in {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}.items():
+        assert abs(_z(res, s, name, a, b)) < 3.0, name
+    res = calibrate(_glitched(s.problem, 40, (0.006, 0.0, 0.0)))
+    assert _left_out(res) == [s.problem.frames[40].id]
+
+
+def _noisier(problem, k, factor, rng):
+    """``problem`` with frame ``k``'s detections given ``factor`` times more noise (0.15 px
+    is the scenarios' noise): a blurred or badly lit image."""
+    frames = list(problem.frames)
+    dets = {
+        c: replace(d, px=d.px + rng.normal(0.0, 0.15 * factor, d.px.shape))
+        for c, d in frames[k].detections.items()
+    }
+    frames[k] = replace(frames[k], detections=dets)
+    return replace(problem, frames=tuple(frames))
+
+
+def test_a_noisy_image_is_left_out_and_one_beyond_the_budget_weighs():
+    # R1 (20 images of 88 corners, exact poses): one image with 10 times the detector's noise
+    # is half of the session's squares; it is left out (named) and the result is adequate
+    s = sc.r1(np.random.default_rng(11), 0.15, 0.0, 0.0)
+    res = calibrate(_noisier(s.problem, 7, 10.0, np.random.default_rng(0)))
+    assert _left_out(res) == [s.problem.frames[7].id] and res.adequacy.adequate
+    (note,) = [m for m in res.messages if "left out of the solve" in m]
+    assert "its image of 'cam' has residuals" in note
+    assert [f for f, _, _ in res.robot_accuracy.left_out] == [s.problem.frames[7].id]
+
+
+def test_a_noisy_image_among_many_is_left_out_the_result_within_its_std():
+    # the eye-to-hand tag session (205 images of 4 corners, a real arm): one image with 10
+    # times the detector's noise is left out; the intrinsics stay within 3 std of the truth
+    s = sc.tag_real_arm(np.random.default_rng(2002), sigma_px=0.15, arm_mm=1.0, arm_deg=0.1)
+    res = calibrate(_noisier(s.problem, 60, 10.0, np.random.default_rng(0)))
+    assert _left_out(res) == [s.problem.frames[60].id] and res.adequacy.adequate
+    for name, (a, b) in {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}.items():
+        assert abs(_z(res, s, name, a, b)) < 3.0, name
