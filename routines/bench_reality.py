@@ -179,6 +179,26 @@ def render_detector(sigma_px: float) -> sc.ImageModel:
     return run
 
 
+def render_tag_detector(side_m: float = 0.10) -> sc.ImageModel:
+    """The ``render`` image model of the tag session: R1's camera renders one AprilTag of
+    ``side_m`` (36h11, id 0, a white margin of two cells on the tool's darker surround), the
+    detector finds its 4 corners (ids 0-3 in the centred frame of ``scenarios.square_tag``)."""
+    from slidecal.mocks.camera import single_camera
+    from slidecal.mocks.render import render_target
+    from slidecal.solver.detect import detect
+    from slidecal.solver.problem import Target
+
+    cam = single_camera()
+    tag = Target.apriltag(side_m)
+    # square_tag's centred frame <- the tag's (origin at its top-left corner)
+    T_square_tag = T_from_Rt(np.eye(3), np.array([-side_m / 2, -side_m / 2, 0.0]))
+
+    def run(T_cam_square: np.ndarray, rng: np.random.Generator, bow_m: np.ndarray) -> Detection:
+        return detect(render_target(tag, cam, T_cam_square @ T_square_tag, rng), tag).detection
+
+    return run
+
+
 def drifting_arm(
     rng: np.random.Generator,
     sigma_px: float = 0.15,
@@ -390,13 +410,13 @@ def main(argv: list[str] | None = None) -> int:
             lambda rng: sc.classic_real_arm(rng, eye_in_hand=False, **kw),
         ),
     ]
-    if det is None:  # a tag's 4 corners as points (the renderer draws R1's board)
-        scenarios.append(
-            (
-                "eye-to-hand, one tag, 205 frames in 7 orientations",
-                lambda rng: sc.tag_real_arm(rng, **kw),
-            )
+    tag_kw = {**kw, "detect": render_tag_detector() if det is not None else None}
+    scenarios.append(
+        (
+            "eye-to-hand, one tag, 205 frames in 7 orientations",
+            lambda rng: sc.tag_real_arm(rng, **tag_kw),
         )
+    )
     rows = [run_reality_row(n, m, args.trials) for n, m in scenarios]
     clean, clean_notes = clean_rows(args.clean_trials) if args.clean_trials > 0 else ([], [])
     sp = speed() if args.clean_trials > 0 else None
@@ -474,8 +494,9 @@ def main(argv: list[str] | None = None) -> int:
         "independent and the covariance carries a linear field of the translations over the "
         "positions at that level (`untold_field_excess`).",
         "",
-        "The tag row (points only) is a fixed camera watching one AprilTag's 4 corners on the "
-        "tool: 205 frames in 7 orientations, each at a random place in R1's image 0.45-0.85 m "
+        "The tag row is a fixed camera watching one AprilTag's 4 corners on the tool "
+        "(rendered: a 100 mm tag on a white margin of two cells, `render_tag_detector`): 205 "
+        "frames in 7 orientations, each at a random place in R1's image 0.45-0.85 m "
         "away (`tag_real_arm`): many frames spread over a large part of the workspace, where "
         "the arm's error is correlated from frame to frame and the images pin each pose "
         "loosely. Besides each group's offset and trend, the groups share a trend of the "
