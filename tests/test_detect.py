@@ -522,6 +522,32 @@ def test_lone_tag_corners_are_not_pulled_inwards():
     assert abs(float(np.mean(np.concatenate(inward)))) < 0.05
 
 
+@pytest.mark.parametrize("tilt", [(0, 30, 20), (0, -30, -20)])
+def test_lone_tag_corners_have_no_fixed_pattern_at_a_steep_tilt(tilt):
+    """At the eye-to-hand tag session's 30 deg tilts one side of the tag is foreshortened;
+    profiles as deep as the mean side's border cell reached the data cells there, and one corner
+    erred by 0.1 px on every frame at that tilt (a fixed pattern the principal point took). The
+    mean error of each corner over a dozen views at the tilt stays at the noise's level."""
+    tg = Target.apriltag(0.10)
+    ax, ay, rz = np.radians(tilt)
+    R = Rz(rz) @ Rx(ax) @ Ry(ay)
+    rng = np.random.default_rng(4)
+    errors = []
+    for _ in range(12):
+        z = rng.uniform(0.5, 0.8)
+        u, v = rng.uniform(250, 1030), rng.uniform(200, 600)
+        ray = np.array([(u - 640.0) / 880.0, (v - 400.0) / 880.0, 1.0])
+        # the tag's centre at the ray's point: its frame's origin is its top-left corner
+        T = T_from_Rt(R, z * ray - R @ np.array([0.05, 0.05, 0.0]))
+        rep = detect(render_target(tg, R1, T, rng), tg)
+        assert rep.ok, rep.reasons
+        errors.append(rep.detection.px - _truth(R1, tg, T)[rep.detection.ids])
+    e = np.array(errors)  # (views, corner, xy)
+    # measured: 0.010 px and 0.017 px rms (0.039 and 0.043 before, at the first tilt)
+    assert np.abs(e.mean(axis=0)).max() < 0.02, e.mean(axis=0)
+    assert np.sqrt(np.mean(e**2)) < 0.03
+
+
 def test_a_few_apriltags_with_their_positions():
     tg = Target.apriltag(0.05, (1, 9), ((0.0, 0.0), (0.12, 0.03)))
     assert tg.points_m[4].tolist() == [0.12, 0.03, 0.0]
