@@ -46,6 +46,7 @@ from slidecal.solver.named import (
     INTRINSIC_NAMES,
     MIN_CLUSTER_FRAMES,
     correlated_image_errors,
+    grouped_detection_errors,
     hand_eye_names,
     layout_of,
     misfit_image,
@@ -825,6 +826,19 @@ def _correlation_note(
     )
 
 
+def _grouped_note(grouped: tuple[float, int, float] | None) -> tuple[str, ...]:
+    """A line when the covariance was read with the orientation groups as clusters."""
+    if grouped is None:
+        return ()
+    stat, dof, p = grouped
+    return (
+        "the detections' errors go together over the frames of an orientation group (the "
+        f"corners' mean residuals per group give chi-square {stat:.0f} on {dof} degrees of "
+        f"freedom, p = {p:.1e} with each detection's error its own): the uncertainty is taken "
+        "from the groups' spread, group by group (docs/METHOD.md Sec. 6)",
+    )
+
+
 def _result(
     problem: CalibrationProblem,
     out: RefineOutput,
@@ -837,7 +851,11 @@ def _result(
     if len(model.frame_rows) >= MIN_CLUSTER_FRAMES:  # (with fewer frames they cannot be)
         correlated = correlated_image_errors(out)
         misfit = None if correlated is not None else misfit_image(out)
-    reported, named = result_covariance(problem, out, correlated or misfit)  # at the flat board
+    # a group's detections err together (images too small for the two readings above)
+    grouped = grouped_detection_errors(out, groups) if problem.knowledge == "robot" else None
+    reported, named = result_covariance(
+        problem, out, correlated or misfit, groups if grouped is not None else None
+    )  # at the flat board
     if out.board is not None:  # between the readings of the board's misfit (target_shape.py)
         state = model.apply(state, out.board.shift)
     cams = {}
@@ -938,6 +956,7 @@ def _result(
         unobservable=unobs,
         messages=out.messages
         + (_correlation_note(problem, correlated, misfit) if named is not None else ())
+        + (_grouped_note(grouped) if named is not None else ())
         + bad_images_note(adequacy),
         scale_checks=scale_checks(
             problem,
