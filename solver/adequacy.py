@@ -722,8 +722,9 @@ def bad_images_note(adequacy: ModelAdequacy | None) -> tuple[str, ...]:
     names = ", ".join(f"{fid} {cam!r} ({ratio:.1f})" for fid, cam, ratio in bad)
     return (
         f"image(s) of frame {names} above {MAX_FRAME_NORMALISED_RMS} times the detector's "
-        "noise: check their poses and detections; under a tenth of the session's squares, the "
-        "result does not lean on them",
+        "noise: check their poses and detections; under "
+        f"{100 * MAX_BAD_IMAGE_SHARE:.0f} % of the session's squares, the result does not lean "
+        "on them",
     )
 
 

@@ -345,3 +345,16 @@ def test_a_noisy_image_among_many_is_left_out_the_result_within_its_std():
     assert _left_out(res) == [s.problem.frames[60].id] and res.adequacy.adequate
     for name, (a, b) in {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}.items():
         assert abs(_z(res, s, name, a, b)) < 3.0, name
+
+
+def test_images_beyond_the_ratio_that_do_not_weigh_are_named():
+    from slidecal.solver.adequacy import bad_images_note
+    from slidecal.solver.result import ModelAdequacy
+
+    worst = ((12, "cam", 5.2), (3, "cam", 4.4), (9, "cam", 2.0))
+    ok = ModelAdequacy({"cam": 0.05}, {"cam": 1.02}, worst, adequate=True)
+    (note,) = bad_images_note(ok)
+    assert note.startswith("image(s) of frame 12 'cam' (5.2), 3 'cam' (4.4) above 4.0 times")
+    assert "10 % of the session's squares" in note
+    assert bad_images_note(replace(ok, adequate=False, reasons=("x",))) == ()
+    assert bad_images_note(replace(ok, worst_frames=worst[2:])) == ()
