@@ -666,9 +666,10 @@ def other_family(grey: np.ndarray, dictionary: str) -> str:
 #: groups quads whose corners lie closer on average than 0.125 of the smaller one's perimeter
 #: and decodes one of each group: a tag printed with a white margin narrower than about 2.8 of
 #: its cells, on a darker tool or background, is grouped with its paper's outline, and when the
-#: outline is the one tried the tag is lost (measured: one rendered lone tag of 100 mm in 35 to
-#: 70, every one found at 0.02; a tag's duplicate quads from the adaptive thresholds lie within a
-#: pixel or two and stay grouped).
+#: outline is the one tried the tag is lost (measured: 1 to 7 of the 205 frames of a rendered
+#: eye-to-hand tag session, a 100 mm tag on a margin of two cells; every one found at 0.02; a
+#: tag's duplicate quads from the adaptive thresholds lie within a pixel or two and stay
+#: grouped).
 TAG_RETRY_MARKER_DISTANCE_RATE = 0.02
 
 
@@ -901,7 +902,8 @@ def _side_curve(
 #: its profiles reach into the data cells next to the border, and the corner between two such
 #: sides erred by 0.1 px on every frame at that orientation: a fixed pattern that put the
 #: principal point of the eye-to-hand tag session about one std off, up to 3.6 (measured on
-#: its renders; per orientation the worst corner's mean error 0.035-0.098 -> 0.004-0.018 px).
+#: its renders; per orientation the worst corner's mean error 0.035-0.098 -> 0.008-0.027 px
+#: with the cubic sampling of :func:`_side_curve`).
 TAG_EDGE_DEPTH = 0.7
 
 
