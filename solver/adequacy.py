@@ -811,7 +811,9 @@ class PoseOutlier:
         )
 
 
-def pose_outlier(problem: CalibrationProblem, out: RefineOutput) -> PoseOutlier | None:
+def pose_outlier(
+    problem: CalibrationProblem, out: RefineOutput, groups: np.ndarray | None = None
+) -> PoseOutlier | None:
     """The frame whose robot pose correction is largest against the typical frame's, when it is
     beyond ``POSE_OUTLIER_RATIO`` (rotation and translation tested apart: a 3-vector each); None
     without pose corrections, with fewer than ``POSE_OUTLIER_MIN_FRAMES`` frames or when every
@@ -820,7 +822,8 @@ def pose_outlier(problem: CalibrationProblem, out: RefineOutput) -> PoseOutlier 
     is not flagged (the test is conservative). A frame is flagged only when its correction less
     the median of its neighbours' is beyond the ratio too, both in space and in time
     (:data:`POSE_OUTLIER_NEIGHBOURS`): a glitch is alone, a real arm's error is shared; the
-    largest such frame is the one returned."""
+    largest such frame is the one returned. ``groups``: the frames' orientation groups, when
+    the caller has them."""
     if problem.knowledge != "robot" or "E" not in out.model.slices:
         return None
     E = out.model.pose_corrections(out.state)
@@ -841,7 +844,11 @@ def pose_outlier(problem: CalibrationProblem, out: RefineOutput) -> PoseOutlier 
     for k in np.argsort(-ratios):
         if ratios[k] <= POSE_OUTLIER_RATIO:
             return None
-        local = [E[k] - np.median(E[nb], axis=0) for nb in _pose_neighbours(T, int(k))]
+        if groups is None:
+            from slidecal.solver.refine import orientation_groups
+
+            groups = orientation_groups(T)
+        local = [E[k] - np.median(E[nb], axis=0) for nb in _pose_neighbours(T, groups, int(k))]
         if min(float(ratio(d[None])[0]) for d in local) > POSE_OUTLIER_RATIO:
             break
     else:
@@ -858,14 +865,11 @@ def pose_outlier(problem: CalibrationProblem, out: RefineOutput) -> PoseOutlier 
     )
 
 
-def _pose_neighbours(T_base_tool: np.ndarray, k: int) -> list[np.ndarray]:
+def _pose_neighbours(T_base_tool: np.ndarray, groups: np.ndarray, k: int) -> list[np.ndarray]:
     """Frame ``k``'s neighbours (:data:`POSE_OUTLIER_NEIGHBOURS` each): its nearest in tool
-    position within its orientation group (within the session when the group has fewer other
-    frames), and the frames recorded just before and after it."""
-    from slidecal.solver.refine import orientation_groups
-
+    position within its orientation group (``groups``; within the session when the group has
+    fewer other frames), and the frames recorded just before and after it."""
     n, F = POSE_OUTLIER_NEIGHBOURS, len(T_base_tool)
-    groups = orientation_groups(T_base_tool)
     others = np.delete(np.arange(F), k)
     same = others[groups[others] == groups[k]]
     pool = same if len(same) >= n else others
@@ -921,6 +925,15 @@ def _neighbour_pairs(points_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.nonzero(np.triu(d <= 1.01 * d.min()))
 
 
+def corner_residuals(out: RefineOutput) -> tuple[np.ndarray, np.ndarray]:
+    """Every detected corner's residual (n, 2) weighted as the solve weighs it (the robust
+    loss's row weights; the inliers alone without them), and whether it counts (n,)."""
+    m = out.model
+    n_px = len(out.residuals)
+    w = m.row_weights[:n_px] if m.row_weights is not None else out.inlier_rows.astype(float)
+    return (out.residuals * np.sqrt(np.maximum(w, 0.0))).reshape(-1, 2), w[0::2] > 0
+
+
 def neighbour_correlation(out: RefineOutput) -> tuple[float, int]:
     """How much the residuals of neighbouring corners of one image go together, and over how
     many pairs: over every image's neighbour pairs (corners at the target's smallest spacing),
@@ -941,10 +954,7 @@ def neighbour_correlation(out: RefineOutput) -> tuple[float, int]:
     if len(pts) < 2:
         return 0.0, 0
     a, b = _neighbour_pairs(pts)
-    n_px = len(out.residuals)
-    w = m.row_weights[:n_px] if m.row_weights is not None else out.inlier_rows.astype(float)
-    e = (out.residuals * np.sqrt(np.maximum(w, 0.0))).reshape(-1, 2)  # per corner
-    ok = w[0::2] > 0
+    e, ok = corner_residuals(out)
     # each image's corners by id: the row of corner id i of image c in table[c, i] (-1: none)
     table = np.full((len(m.chunks), len(pts)), -1)
     for c, ch in enumerate(m.chunks):

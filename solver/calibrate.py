@@ -761,7 +761,7 @@ def _calibrate(
             )
             return replace(retry, messages=(*retry.messages, note))
     fit = None  # the adequacy test's and the scale checks' poses
-    bad = pose_outlier(problem, out) if out.converged else None
+    bad = pose_outlier(problem, out, groups) if out.converged else None
     if bad is None and out.converged:
         fit = final_free_pose_fit(out)
         bad = image_outlier(problem, out, fit)

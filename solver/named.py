@@ -796,10 +796,10 @@ def grouped_detection_errors(
     and 0.3 to 1 on others."""
     from scipy.special import chdtrc  # the chi-square's tail (scipy.stats costs 0.4 s)
 
-    from slidecal.solver.adequacy import NEIGHBOUR_MIN_CORNERS  # adequacy imports this module
+    # adequacy imports this module
+    from slidecal.solver.adequacy import NEIGHBOUR_MIN_CORNERS, corner_residuals
 
     m = out.model
-    n_px = len(out.residuals)
     if not m.chunks or len(groups) != len(m.problem.frames):
         return None
     if np.median([len(ch.corner_ids) for ch in m.chunks]) >= NEIGHBOUR_MIN_CORNERS:
@@ -807,9 +807,7 @@ def grouped_detection_errors(
     sizes = np.bincount(groups[[ch.frame_index for ch in m.chunks]])
     if np.count_nonzero(sizes >= 2) < MIN_CLUSTER_GROUPS:
         return None
-    w = m.row_weights[:n_px] if m.row_weights is not None else out.inlier_rows.astype(float)
-    e = (out.residuals * np.sqrt(np.maximum(w, 0.0))).reshape(-1, 2)  # per corner
-    ok = w[0::2] > 0
+    e, ok = corner_residuals(out)
     sums: dict[tuple[int, str, int], np.ndarray] = {}
     counts: dict[tuple[int, str, int], int] = {}
     for ch in m.chunks:
