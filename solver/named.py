@@ -849,16 +849,9 @@ def group_misfit_excess(
     Sf = m.frame_scores(out.state, np.asarray(w_all, float))
     of = np.array([groups[k] for k in m.frame_rows])
     S = np.array([Sf[of == g].sum(axis=0) for g in np.unique(of)])
-    G, P0 = S.shape
-    if G < MIN_CLUSTER_GROUPS:
+    if len(S) < MIN_CLUSTER_GROUPS:
         return None
-    J, used = project
-    if np.any(used >= P0):
-        return None
-    gg = out.covariance_blocks.gg[used, :]  # s^2 times the rows of the reduced inverse
-    Q = J @ gg
-    C_clusters = Q @ ((S.T @ S) * (G / (G - 1.0))) @ Q.T / out.sigma_px**4
-    return C_clusters - J @ gg[:, used] @ J.T
+    return _cluster_excess(out, project, S)
 
 
 def correlated_image_errors(out: RefineOutput) -> tuple[float, int] | None:
@@ -904,16 +897,23 @@ def image_misfit_excess(
         correlated = correlated_image_errors(out) or misfit_image(out)
     if correlated is None:
         return None  # each corner's error its own: the model's covariance holds
-    Sg = m.frame_scores(out.state, np.asarray(w_all, float))
-    G, P0 = Sg.shape
+    return _cluster_excess(out, project, m.frame_scores(out.state, np.asarray(w_all, float)))
+
+
+def _cluster_excess(
+    out: RefineOutput, project: tuple[np.ndarray, np.ndarray], S: np.ndarray
+) -> np.ndarray | None:
+    """The sandwich ``A^-1 (G / (G - 1) sum_c s_c s_c') A^-1`` of the reported quantities over
+    the clusters' scores ``S`` (G, P0: global columns) less the model's covariance; None when
+    the reported quantities use a frame's own columns."""
+    G, P0 = S.shape
     J, used = project
     if np.any(used >= P0):
         return None
     gg = out.covariance_blocks.gg[used, :]  # s^2 times the rows of the reduced inverse
     Q = J @ gg  # (k, P0)
-    meat = (Sg.T @ Sg) * (G / (G - 1.0))
-    C_clusters = Q @ meat @ Q.T / out.sigma_px**4
-    return C_clusters - J @ gg[:, used] @ J.T
+    meat = (S.T @ S) * (G / (G - 1.0))
+    return Q @ meat @ Q.T / out.sigma_px**4 - J @ gg[:, used] @ J.T
 
 
 # -- predictions at a known state -----------------------------------------------------------------
