@@ -600,11 +600,14 @@ def common_trend_excess(
     depth moves the vanishing point of the depth moves, which the principal point also moves):
     the images cannot tell them apart, and independent trends average it down over the groups.
     The estimate stays the model's; its covariance is the sandwich over the trends' prior
-    rows, with each translation trend's prior variance ``tau^2`` (the level learned; where the
-    groups could not tell it, because it went to the floor or a group is too short to tell a
-    trend from its scatter, at least ``MOVE_SCALE_SIGMA``: an arm's moves are not known better
-    than 0.1 % in scale) shared by every group along the directions they have in common
-    (``C L^-1 S L^-1 C`` as in :func:`smooth_arm_excess`)."""
+    rows, with each translation trend's prior variance ``tau^2`` shared by every group along
+    the directions they have in common (``C L^-1 S L^-1 C`` as in :func:`smooth_arm_excess`).
+    The shared field's level is the trends' level learned, which measures only how the groups'
+    trends differ; at least the level learned for the quadratic field the groups share, where
+    the session has the frames for one (a smooth field's linear part is no smaller than its
+    quadratic part over the same span); and where the groups could not tell their trends
+    (the level went to the floor, or a group is too short to tell a trend from its scatter), at
+    least ``MOVE_SCALE_SIGMA``: an arm's moves are not known better than 0.1 % in scale."""
     m, st = out.model, out.model.st
     if out.covariance_blocks is None or "V" not in m.slices or len(st.trend_dims) < 2:
         return None
@@ -613,13 +616,17 @@ def common_trend_excess(
     from slidecal.solver.refine import TREND_AXES
 
     tau = float(m.trend_sigma[1])
-    # the field's level: the one learned, unless the groups could not tell it (it went to the
-    # floor, or a group is too short): then never below an arm's scale error of its moves
+    # the field's level. The trends' level learned is what tells the groups' trends apart, not
+    # what they share (no image measures that); the quadratic field they share, where the
+    # session learns one, says how much the arm's error varies over the workspace, and a
+    # smooth field's linear part is no smaller than its quadratic part over the same span
     level = tau
-    if m.pose_sigma is not None:
-        floored, short = _untold_trends(m)
+    if "W" in m.slices and m.common_sigma is not None and np.any(~m.common_rotation_rows):
+        level = max(level, float(m.common_sigma[1]))
+    if m.pose_sigma is not None:  # the groups could not tell their trends (floor or too short):
+        floored, short = _untold_trends(m)  # never below an arm's scale error of its moves
         if floored[1] or any(short):
-            level = max(tau, MOVE_SCALE_SIGMA)
+            level = max(level, MOVE_SCALE_SIGMA)
     sv = m.slices["V"]
     A = _columns(out, project, np.arange(sv.start, sv.stop)) / tau**2  # gain on the priors
     axes = list(TREND_AXES)
