@@ -21,7 +21,8 @@ of a rig; rig ``T_<name>_<ref>``) and these extensions, all additive:
   translation_mm, rotation_deg}], left_out_frames: [...]}``: the robot's pose accuracy as the
   camera sees it; ``left_out_frames`` (only when there are some, same fields): the frames the
   solve left out because their recorded pose was off far beyond the others' (or their image
-  far beyond the detector's noise), with the pose correction the solve had given them.
+  far beyond the detector's noise; a rig's frame that lost one image keeps the others and is not
+  listed), with the pose correction the solve had given them.
 
 A value the data cannot determine is ``null``, never a number. ``T_tool_<name>`` of a rig's
 non-reference camera is composed from the reference's hand-eye and the rig extrinsics; its std

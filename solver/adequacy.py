@@ -266,7 +266,8 @@ class ImageOutlier:
     """An image whose residuals are far beyond its camera's detector noise
     (:data:`MAX_FRAME_NORMALISED_RMS`): ``index`` (position in the problem's frames),
     ``frame`` (id), ``camera``, ``ratio`` (its rms over the noise), ``noise_px`` (the noise:
-    the free-pose fit's)."""
+    the free-pose fit's). ``image_only``: the frame's other cameras' images stay in the solve
+    (a rig's frame), only this image is left out."""
 
     index: int
     frame: int
@@ -275,6 +276,7 @@ class ImageOutlier:
     noise_px: float
     translation_mm: float  # the frame's pose correction (the record of a frame left out)
     rotation_deg: float
+    image_only: bool = False
     causes: ClassVar[str] = (
         "a corner misplaced by a glare or a blur, or misdetected; or a pose the arm did not reach"
     )

@@ -766,18 +766,34 @@ def _calibrate(
         fit = final_free_pose_fit(out)
         bad = image_outlier(problem, out, fit)
     if bad is not None:
-        n_all = len(problem.frames) + len(left_out)
+        whole = [o for o in left_out if not getattr(o, "image_only", False)]  # frames, not images
+        n_all = len(problem.frames) + len(whole)
         allowed = max(1, n_all // 10)
         if len(left_out) < allowed:
-            kept = tuple(f for i, f in enumerate(problem.frames) if i != bad.index)
+            frame = problem.frames[bad.index]
+            others = {
+                c: d
+                for c, d in frame.detections.items()
+                if c != getattr(bad, "camera", None) and len(d.ids)
+            }
+            image_only = isinstance(bad, ImageOutlier) and bool(others)
+            if image_only:  # a rig's frame keeps its other cameras' images
+                bad = replace(bad, image_only=True)
+                kept = tuple(
+                    replace(f, detections=others) if i == bad.index else f
+                    for i, f in enumerate(problem.frames)
+                )
+            else:
+                kept = tuple(f for i, f in enumerate(problem.frames) if i != bad.index)
             try:
                 res = _calibrate(replace(problem, frames=kept), jh, focal_sweep, (*left_out, bad))
             except DegenerateError as e:
                 notes.append(f"{bad.describe()}; it stays in the solve: without it, {e}")
             else:
-                note = f"{bad.describe()}: {LEFT_OUT} ({bad.causes}); the session keeps it"
+                stays = "; the frame's other images stay in it" if image_only else ""
+                note = f"{bad.describe()}: {LEFT_OUT} ({bad.causes}){stays}; the session keeps it"
                 ra = res.robot_accuracy
-                if ra is not None:
+                if ra is not None and not image_only:
                     gone = (bad.frame, bad.translation_mm, bad.rotation_deg)
                     ra = replace(ra, left_out=(gone, *ra.left_out))
                 return replace(

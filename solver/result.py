@@ -101,7 +101,8 @@ class RobotAccuracy:
     ``estimated``: True when learned from the data, False when the user's prior was used as is;
     ``left_out``: (frame id, translation error mm, rotation error deg) of the frames the solve
     left out because their recorded pose was off far beyond the others', or their image far
-    beyond the detector's noise (in the order left out; the pose correction they had).
+    beyond the detector's noise (in the order left out; the pose correction they had). A rig's
+    frame whose one image was left out keeps its other images and is not listed.
     """
 
     translation_mm: float

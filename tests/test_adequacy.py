@@ -314,12 +314,15 @@ def test_a_run_of_frames_on_another_joint_configuration_is_not_a_glitch():
     assert _left_out(res) == [s.problem.frames[40].id]
 
 
-def _noisier(problem, k, factor, rng):
-    """``problem`` with frame ``k``'s detections given ``factor`` times more noise (0.15 px
-    is the scenarios' noise): a blurred or badly lit image."""
+def _noisier(problem, k, factor, rng, camera=None):
+    """``problem`` with frame ``k``'s detections (of ``camera`` only, when given) given
+    ``factor`` times more noise (0.15 px is the scenarios' noise): a blurred or badly lit
+    image."""
     frames = list(problem.frames)
     dets = {
         c: replace(d, px=d.px + rng.normal(0.0, 0.15 * factor, d.px.shape))
+        if camera in (None, c)
+        else d
         for c, d in frames[k].detections.items()
     }
     frames[k] = replace(frames[k], detections=dets)
@@ -345,6 +348,21 @@ def test_a_noisy_image_among_many_is_left_out_the_result_within_its_std():
     assert _left_out(res) == [s.problem.frames[60].id] and res.adequacy.adequate
     for name, (a, b) in {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}.items():
         assert abs(_z(res, s, name, a, b)) < 3.0, name
+
+
+def test_a_rigs_noisy_image_is_left_out_and_its_frame_keeps_the_other():
+    # the OAK-D-like head eye-in-hand on R1 (robot poses with 0.05 mm / 0.005 deg noise): the
+    # right camera's image of frame 7 has 10 times the detector's noise. That image is left out
+    # (named); the frame stays in the solve with its left image, so no frame is recorded as
+    # left out and the result is adequate
+    s = sc.oak_rig(np.random.default_rng(3), robot_noise_m=5e-5, robot_noise_deg=0.005)
+    res = calibrate(_noisier(s.problem, 7, 10.0, np.random.default_rng(0), camera="right"))
+    (note,) = [m for m in res.messages if "left out of the solve" in m]
+    frame = s.problem.frames[7].id
+    assert f"frame {frame}: its image of 'right' has residuals" in note
+    assert "the frame's other images stay in it" in note
+    assert res.robot_accuracy.left_out == () and res.adequacy.adequate
+    assert all(c != "right" or f != frame for f, c, _ in res.adequacy.worst_frames)
 
 
 def test_images_beyond_the_ratio_that_do_not_weigh_are_named():
