@@ -30,8 +30,8 @@ Board appearance (board frame of ``solver/problem.py``: +z into the board, away 
 that reads the print): the print (ChArUco from OpenCV's own ``CharucoBoard.generateImage``, or a
 chessboard whose square (0, 0) at the board origin is black, or AprilTags from OpenCV's
 dictionary bits; an AprilGrid with Kalibr's black squares in the gaps at every tag corner) with a
-white margin all round (one square; a quarter of a tag for tags, beyond an AprilGrid's outer
-corner squares).
+white margin all round (one square; one cell of a lone tag, as tags are printed from their
+family's images; a quarter of a tag beyond an AprilGrid's outer corner squares).
 A camera on the +z side sees the back of the board: plain grey. Rays that miss the
 board show a plain background grey.
 """
@@ -71,11 +71,11 @@ _OUTSIDE = -1.0e5  # texture coordinate of a ray that hits the plane behind the 
 
 def margin_m(target: Target) -> float:
     """Width of the white margin around the printed pattern, metres."""
-    if target.kind in ("apriltag", "aprilgrid"):
-        # an AprilGrid's outer corner squares (tag_spacing wide) sit in the margin
-        return (
-            0.25 + (target.tag_spacing if target.kind == "aprilgrid" else 0.0)
-        ) * target.tag_size_m
+    if target.kind == "apriltag":  # one cell, as a tag is printed from its family's images
+        d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, target.dictionary))
+        return target.tag_size_m / (d.markerSize + 2)
+    if target.kind == "aprilgrid":  # its outer corner squares (tag_spacing wide) sit in it
+        return (0.25 + target.tag_spacing) * target.tag_size_m
     return target.square_size_m
 
 
@@ -158,7 +158,7 @@ def _tag_texture(
     s = tag_size_m
     tpm = texels_per_tag / s
     gap = tag_spacing * s
-    mg = (0.25 + (tag_spacing if kind == "aprilgrid" else 0.0)) * s  # margin_m
+    mg = (0.25 + tag_spacing if kind == "aprilgrid" else 1.0 / cells) * s  # margin_m
     if kind == "aprilgrid":
         pitch = s + gap
         width, height = tag_cols * pitch - gap, tag_rows * pitch - gap

@@ -181,7 +181,7 @@ def render_detector(sigma_px: float) -> sc.ImageModel:
 
 def render_tag_detector(side_m: float = 0.10) -> sc.ImageModel:
     """The ``render`` image model of the tag session: R1's camera renders one AprilTag of
-    ``side_m`` (36h11, id 0, a white margin of two cells on the tool's darker surround), the
+    ``side_m`` (36h11, id 0, a white margin of one cell on the tool's darker surround), the
     detector finds its 4 corners (ids 0-3 in the centred frame of ``scenarios.square_tag``)."""
     from slidecal.mocks.camera import single_camera
     from slidecal.mocks.render import render_target
@@ -495,7 +495,7 @@ def main(argv: list[str] | None = None) -> int:
         "positions at that level (`untold_field_excess`).",
         "",
         "The tag row is a fixed camera watching one AprilTag's 4 corners on the tool "
-        "(rendered: a 100 mm tag on a white margin of two cells, `render_tag_detector`): 205 "
+        "(rendered: a 100 mm tag on a white margin of one cell, `render_tag_detector`): 205 "
         "frames in 7 orientations, each at a random place in R1's image 0.45-0.85 m "
         "away (`tag_real_arm`): many frames spread over a large part of the workspace, where "
         "the arm's error is correlated from frame to frame and the images pin each pose "

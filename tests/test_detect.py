@@ -475,8 +475,8 @@ def test_one_apriltag_gives_four_corners():
 @pytest.mark.parametrize(
     "rvec, t_m",
     [
-        ((0.52125, 0.04369, 0.17028), (0.07491, -0.19107, 0.4837)),
-        ((0.27023, 0.4695, 0.58442), (-0.26691, -0.19757, 0.4902)),
+        ((0.52153, 0.04464, 0.17058), (0.10981, -0.21202, 0.49817)),
+        ((-0.46871, -0.27129, -0.43808), (-0.15056, 0.16968, 0.62423)),
     ],
 )
 def test_lone_tag_grouped_with_its_paper_outline_is_found(rvec, t_m):
@@ -493,6 +493,26 @@ def test_lone_tag_grouped_with_its_paper_outline_is_found(rvec, t_m):
     assert rep.ok, rep.reasons
     np.testing.assert_array_equal(rep.detection.ids, [0, 1, 2, 3])
     assert np.abs(rep.detection.px - _truth(R1, tg, T)).max() < 0.3
+
+
+@pytest.mark.parametrize(
+    "rvec, t_m",
+    [
+        ((0.27085, 0.47024, 0.58485), (-0.29022, -0.05042, 0.52218)),
+        ((0.27023, 0.4695, 0.58442), (-0.26691, -0.19757, 0.4902)),
+    ],
+)
+def test_lone_tag_corner_is_not_pulled_onto_its_papers(rvec, t_m):
+    """A tag printed with a margin of one cell, the usual print, on a darker tool: the last
+    cornerSubPix window (0.8 of a cell each way) reaches past the paper, and at these poses of
+    the eye-to-hand tag session one corner was pulled 8.6-8.7 px onto the paper's corner (19 of
+    its 205 views had a corner beyond 0.5 px; real photographs of a tag on a card showed the
+    same). A corner that jumps keeps where it was, and the edge fit places it."""
+    tg = Target.apriltag(0.10)
+    T = T_from_Rt(R_from_rvec(np.array(rvec)), np.array(t_m))
+    rep = detect(render_target(tg, R1, T, np.random.default_rng(0)), tg)
+    assert rep.ok, rep.reasons
+    assert np.abs(rep.detection.px - _truth(R1, tg, T)[rep.detection.ids]).max() < 0.3
 
 
 def test_lone_tag_corners_are_not_pulled_inwards():
@@ -543,9 +563,11 @@ def test_lone_tag_corners_have_no_fixed_pattern_at_a_steep_tilt(tilt):
         assert rep.ok, rep.reasons
         errors.append(rep.detection.px - _truth(R1, tg, T)[rep.detection.ids])
     e = np.array(errors)  # (views, corner, xy)
-    # measured: 0.010 px and 0.017 px rms (0.039 and 0.043 before, at the first tilt)
+    # measured: worst corner's mean 0.005 and 0.018 px, rms 0.020 and 0.031 px on a paper
+    # margin of one cell (0.010 and 0.017 rms on two; the mean 0.039 and 0.043 before, at the
+    # first tilt)
     assert np.abs(e.mean(axis=0)).max() < 0.02, e.mean(axis=0)
-    assert np.sqrt(np.mean(e**2)) < 0.03
+    assert np.sqrt(np.mean(e**2)) < 0.04
 
 
 def test_a_few_apriltags_with_their_positions():
