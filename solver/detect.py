@@ -668,9 +668,8 @@ def other_family(grey: np.ndarray, dictionary: str) -> str:
 #: its cells, on a darker tool or background, is grouped with its paper's outline, and when the
 #: outline is the one tried the tag is lost (measured: 1 to 7 of the 205 frames of a rendered
 #: eye-to-hand tag session, a 100 mm tag on a margin of two cells, 3 on one cell; every one
-#: found at 0.02; a
-#: tag's duplicate quads from the adaptive thresholds lie within a pixel or two and stay
-#: grouped).
+#: found at 0.02; a tag's duplicate quads from the adaptive thresholds lie within a pixel or
+#: two and stay grouped).
 TAG_RETRY_MARKER_DISTANCE_RATE = 0.02
 
 
@@ -950,11 +949,11 @@ def _tag_edge_corners(grey: np.ndarray, q: np.ndarray, cells: float) -> np.ndarr
 
 #: Farthest a tag corner may move in its last ``cornerSubPix`` pass, in cells of the tag (and
 #: at least :data:`TAG_SUBPIX_JUMP_MIN_PX`): OpenCV's quad corners are within about a pixel of
-#: a lone tag's, and the window of that pass (0.8 of a cell each way) reaches past a paper
-#: margin of one cell, the usual print, where the paper's corner and the background beyond it
-#: pull the corner away. On real photographs of a 36h11 tag on a card (100 px across, turned
-#: by -60 to 60 deg) 10 of 13 views had a corner pulled 3-10 px off, the wrong corner kept in
-#: 4 of them.
+#: a lone tag's, and the window of that pass can reach past a paper margin of one cell, the
+#: usual print, where the paper's corner and the background beyond it pull the corner away.
+#: On real photographs of a 36h11 tag on a card (100 px across, turned by -60 to 60 deg), with
+#: a window of 0.8 of a cell each way, 10 of 13 views had a corner pulled 3-10 px off, the
+#: wrong corner kept in 4 of them.
 TAG_SUBPIX_JUMP_CELLS = 0.25
 TAG_SUBPIX_JUMP_MIN_PX = 2.0
 #: How far a lone tag's ``cornerSubPix`` window reaches each way, in cells (an AprilGrid's: 0.8
