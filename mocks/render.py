@@ -71,12 +71,19 @@ _OUTSIDE = -1.0e5  # texture coordinate of a ray that hits the plane behind the 
 
 def margin_m(target: Target) -> float:
     """Width of the white margin around the printed pattern, metres."""
-    if target.kind == "apriltag":  # one cell, as a tag is printed from its family's images
+    if target.kind in ("apriltag", "aprilgrid"):
         d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, target.dictionary))
-        return target.tag_size_m / (d.markerSize + 2)
-    if target.kind == "aprilgrid":  # its outer corner squares (tag_spacing wide) sit in it
-        return (0.25 + target.tag_spacing) * target.tag_size_m
+        return _tag_margin_m(target.kind, target.tag_size_m, target.tag_spacing, d.markerSize + 2)
     return target.square_size_m
+
+
+def _tag_margin_m(kind: str, tag_size_m: float, tag_spacing: float, cells: int) -> float:
+    """A tag print's white margin, metres: one cell of a lone tag (``cells`` across it), as a
+    tag is printed from its family's images; a quarter of a tag beyond an AprilGrid's outer
+    corner squares (``tag_spacing`` of a tag wide)."""
+    if kind == "aprilgrid":
+        return (0.25 + tag_spacing) * tag_size_m
+    return tag_size_m / cells
 
 
 def unit_m(target: Target) -> float:
@@ -158,7 +165,7 @@ def _tag_texture(
     s = tag_size_m
     tpm = texels_per_tag / s
     gap = tag_spacing * s
-    mg = (0.25 + tag_spacing if kind == "aprilgrid" else 1.0 / cells) * s  # margin_m
+    mg = _tag_margin_m(kind, s, tag_spacing, cells)
     if kind == "aprilgrid":
         pitch = s + gap
         width, height = tag_cols * pitch - gap, tag_rows * pitch - gap

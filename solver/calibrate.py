@@ -770,14 +770,12 @@ def _calibrate(
         n_all = len(problem.frames) + len(whole)
         allowed = max(1, n_all // 10)
         if len(left_out) < allowed:
-            frame = problem.frames[bad.index]
-            others = {
-                c: d
-                for c, d in frame.detections.items()
-                if c != getattr(bad, "camera", None) and len(d.ids)
-            }
-            image_only = isinstance(bad, ImageOutlier) and bool(others)
-            if image_only:  # a rig's frame keeps its other cameras' images
+            others = {}  # a rig's frame keeps its other cameras' images
+            if isinstance(bad, ImageOutlier):
+                dets = problem.frames[bad.index].detections
+                others = {c: d for c, d in dets.items() if c != bad.camera and len(d.ids)}
+            image_only = bool(others)
+            if image_only:
                 bad = replace(bad, image_only=True)
                 kept = tuple(
                     replace(f, detections=others) if i == bad.index else f
