@@ -95,6 +95,30 @@ def test_public_data_bench_writes_sessions_a_user_would_and_names_missing_data(t
     assert bench_public.translation_frames("kuka_1", tmp_path) == [1, 2]
     # no board in the images: no peer answer (not an OpenCV exception)
     assert bench_public.opencv_reference("kuka_1", tmp_path) is None
+    # the solve with the levels given: the session file carries them
+    fixed = {"robot_noise_mm": 0.6, "robot_noise_deg": 0.04, "estimate_robot_noise": False}
+    o = read_session(bench_public.write_session("kuka_1", tmp_path, tmp_path / "f", options=fixed))
+    assert not o.options.estimate_robot_noise
+    assert o.options.robot_noise_m == pytest.approx(6e-4) and o.options.robot_noise_deg == 0.04
+    assert p.options.estimate_robot_noise  # none given: the defaults
+
+
+def test_public_data_bench_compares_rotations_in_the_results_convention():
+    # R_b = exp([d]x) R_a: the angle of d and its Mahalanobis distance under the covariance
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from slidecal.routines.bench_public import _rotation_difference
+
+    R_a = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+    d = np.radians([0.1, 0.0, 0.0])
+    R_b = Rotation.from_rotvec(d).as_matrix() @ R_a
+    cov = np.diag(np.radians([0.05, 0.5, 0.5]) ** 2)
+    angle, z = _rotation_difference(R_a, R_b, cov)
+    assert angle == pytest.approx(0.1, rel=1e-6)
+    assert z == pytest.approx(2.0, rel=1e-6)  # 0.1 deg along x, whose std is 0.05 deg
+    # on the right instead (R_a exp([d]x)) the difference is another axis in the left frame
+    assert _rotation_difference(R_a, R_a @ Rotation.from_rotvec(d).as_matrix(), cov)[1] < 1.9
 
 
 def test_header_shows_an_out_of_project_report_path_as_its_place_in_docs():
