@@ -1033,12 +1033,16 @@ def classic_real_arm(
     arm_deg: float = 0.1,
     eye_in_hand: bool = True,
     detect: ImageModel | None = None,
+    arm_scale: float = 0.0,
 ) -> Scenario:
     """A classic hand-eye session (every frame at its own orientation, :func:`camera_board_poses`)
     on a real arm: a UR5e whose kinematics err by about ``arm_mm`` and ``arm_deg``
     (:func:`real_arm_poses`); the controller reports the planned poses. Views the arm cannot
     reach (R1's cell moved within reach, :func:`_in_reach`) are drawn again. ``detect``: the
-    image model, as :func:`r1_real_arm`'s. A real classic session: 28 frames, no two alike."""
+    image model, as :func:`r1_real_arm`'s. ``arm_scale``: the arm's true positions are
+    ``1 + arm_scale`` times as far from its base as the reported ones (an arm whose link
+    lengths err alike; a calibrated arm's moves are right to about 0.1 %). A real classic
+    session: 28 frames, no two alike."""
     target = r1_target()
     S = _in_reach()
     T_base_board = S @ r1_poses()[0]
@@ -1057,6 +1061,7 @@ def classic_real_arm(
                     break
     planned = np.stack([planned_pose(T) for T in views])
     true = real_arm_poses(planned, rng, arm_mm, arm_deg)
+    true[:, :3, 3] *= 1.0 + arm_scale
     frames = _real_arm_frames(true, planned, T_base_board, eye_in_hand, sigma_px, rng, detect)
     return r1_scenario(
         target, frames, eye_in_hand, None, sigma_px, T_base_board, T_base_tool_true=true

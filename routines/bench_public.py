@@ -414,10 +414,11 @@ def _hand_eye_agreement(results: dict, peer: dict[str, Peer | None]) -> list[str
         "above, then `calibrateHandEye`) and take the robot's poses as exact. 'its levels "
         "fixed': the same session solved with the robot accuracy slidecal learned on it given "
         "as options (`robot_noise_mm`, `robot_noise_deg`, `estimate_robot_noise: false`), so "
-        "that no linear field of the arm's error over its positions is modelled; where the two "
-        "slidecal rows differ, the difference is that field's (a classic session learns one "
-        "over the whole session, docs/ROBOT_ACCURACY.md, 'A classic session'), which the "
-        "closed forms do not model either.",
+        "that no linear field of the arm's error over its positions is modelled, as the "
+        "closed forms model none. A classic session (kuka_2) learns one over the whole "
+        "session and is reported halfway between the readings with and without it, their "
+        "spread in its covariance (docs/ROBOT_ACCURACY.md, 'Two readings of the field'); "
+        "'its levels fixed' is the reading without it.",
         "",
         "| compared | rotation | translation |",
         "| --- | --- | --- |",

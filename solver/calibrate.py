@@ -43,6 +43,7 @@ from slidecal.solver.linear import (
     zhang_intrinsics,
 )
 from slidecal.solver.named import (
+    FIELD_WEIGHT,
     INTRINSIC_NAMES,
     MIN_CLUSTER_FRAMES,
     correlated_image_errors,
@@ -51,7 +52,9 @@ from slidecal.solver.named import (
     layout_of,
     misfit_image,
     mount_names,
+    named_step,
     result_covariance,
+    session_field_step,
 )
 from slidecal.solver.problem import DISTORTION_NAMES, CalibrationProblem, Detection, Frame
 from slidecal.solver.refine import (
@@ -812,6 +815,32 @@ def _calibrate(
     return _result(problem, out, K_lin, groups, fit)
 
 
+def _field_note(
+    problem: CalibrationProblem, out: RefineOutput, step: np.ndarray
+) -> tuple[str, ...]:
+    """A line saying how far a classic session's two readings of its arm's linear field put
+    the hand-eye apart (``session_field_step``), when they do by half a millimetre or 0.05 deg
+    or more (what a cell would notice)."""
+    layout = layout_of(problem, out.model.st, out.state)
+    frames = mount_names(layout.mount)
+    if frames is None:
+        return ()
+    d = named_step(layout, tuple(out.names), step)
+    he = frames.hand_eye
+    rot = [d.get(f"{he}.{a}", 0.0) for a in ("rx", "ry", "rz")]
+    t = [d.get(f"{he}.{a}", 0.0) for a in ("tx", "ty", "tz")]
+    rot_deg, t_mm = float(np.degrees(np.linalg.norm(rot))), float(1000.0 * np.linalg.norm(t))
+    if rot_deg < 0.05 and t_mm < 0.5:
+        return ()
+    return (
+        f"the arm's error varies linearly over the session's positions (learned from the "
+        f"frames); read without that field, {he} would move by {rot_deg:.3f} deg and "
+        f"{t_mm:.2f} mm: the images cannot tell which reading is the arm's, so it is reported "
+        "halfway and the difference is in its uncertainty (docs/ROBOT_ACCURACY.md, "
+        "'Two readings of the field')",
+    )
+
+
 def _correlation_note(
     problem: CalibrationProblem,
     seen: tuple[float, int] | None,
@@ -872,6 +901,11 @@ def _result(
     )  # at the flat board
     if out.board is not None:  # between the readings of the board's misfit (target_shape.py)
         state = model.apply(state, out.board.shift)
+    field = session_field_step(out)  # a classic session: with its arm's linear field or not
+    field_note = ()
+    if field is not None:
+        state = model.apply(state, FIELD_WEIGHT * field)
+        field_note = _field_note(problem, out, field)
     cams = {}
     for spec in problem.cameras:
         c = spec.name
@@ -971,6 +1005,7 @@ def _result(
         messages=out.messages
         + (_correlation_note(problem, correlated, misfit) if named is not None else ())
         + (_grouped_note(grouped) if named is not None else ())
+        + field_note
         + bad_images_note(adequacy),
         scale_checks=scale_checks(
             problem,

@@ -287,6 +287,13 @@ def propagate(layout: Layout, internal: tuple[str, ...], cov: np.ndarray) -> Nam
     return _apply(*_jacobian(layout, tuple(internal)), cov)
 
 
+def named_step(layout: Layout, internal: tuple[str, ...], step: np.ndarray) -> dict[str, float]:
+    """How far each reported quantity moves (first order) for the step ``step`` (P,) of the
+    optimiser's coordinates named ``internal`` (radians and metres for transforms)."""
+    names, J = _jacobian(layout, tuple(internal))
+    return dict(zip(names, (J @ np.asarray(step, float)).tolist(), strict=True))
+
+
 def _apply(names: tuple[str, ...], J: np.ndarray, cov: np.ndarray) -> NamedCovariance:
     """``J cov J'`` over the columns ``J`` uses, named ``names``."""
     Ju, used = _used(J)
@@ -326,6 +333,7 @@ def result_covariance(
         (smooth_arm_excess(out, project), True),  # the frames' error: independent or trend
         (common_trend_excess(out, project), True),  # the groups' trends: one field or each its own
         (session_trend_excess(out, project), False),  # a classic session's trend, at least 0.1 %
+        (session_field_excess(out, project), False),  # its two readings: with the field or not
         (untold_field_excess(out, project), False),  # no trend modelled: the arm's linear field
         (level_excess(out, project), False),  # the noise levels are estimates
         (tool_offset_excess(problem, out, project), False),  # an unobserved hand-eye offset
@@ -674,6 +682,56 @@ def session_trend_excess(
     sv = m.slices["V"]
     A = _columns(out, project, np.arange(sv.start, sv.stop))[:, ~m.trend_rotation_rows]
     return (MOVE_SCALE_SIGMA**2 - tau**2) / tau**4 * (A @ A.T)
+
+
+#: The weight of the reading "the arm erred by the linear field the classic session learned"
+#: against "its moves were as reported" (the solve without that field, its levels as learned):
+#: the images cannot tell which, so each is given half (docs/ROBOT_ACCURACY.md, "A classic
+#: session")
+FIELD_WEIGHT = 0.5
+
+
+def session_field_step(out: RefineOutput) -> np.ndarray | None:
+    """The step (P,) of the optimiser's coordinates from the solve of a classic session (one
+    linear trend of the pose corrections over the whole session's positions) to its reading
+    without that field; None for any other session.
+
+    The reading without the field is the solve with the trend held at zero, the levels as
+    learned: to first order the solve's posterior conditioned on ``V = 0``, the step
+    ``-C[:, V] C[V, V]^-1 V``. Where the arm's error is mostly linear over the positions the
+    field takes it; where a scale of the arm's moves is among it, a classic session cannot
+    tell that scale from the hand-eye's translation along the viewing direction, and the
+    trend's level, learned from the same frames, understates it. Neither reading is the
+    better on every arm (docs/ROBOT_ACCURACY.md), so the result is reported between them
+    (:data:`FIELD_WEIGHT`) and their spread is carried in the covariance
+    (:func:`session_field_excess`)."""
+    m, st = out.model, out.model.st
+    if out.covariance_blocks is None or "V" not in m.slices or m.trend_sigma is None:
+        return None
+    whole = st.trend_groups is not None and bool(np.all(st.trend_groups == 0))
+    if len(st.trend_dims) != 1 or st.trend_scale_fixed or not whole or out.state.V is None:
+        return None
+    sv = m.slices["V"]
+    v = np.arange(sv.start, sv.stop)
+    C = out.covariance_blocks.submatrix(np.arange(len(out.names)), v)
+    try:
+        return -C @ np.linalg.solve(C[v], out.state.V)
+    except np.linalg.LinAlgError:
+        return None
+
+
+def session_field_excess(
+    out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
+) -> np.ndarray | None:
+    """What the covariance gains (PSD) from the two readings of a classic session's linear
+    field (:func:`session_field_step`): their spread about the reported value,
+    ``w (1 - w) d d'`` with ``d`` the reported quantities' step between them and ``w``
+    :data:`FIELD_WEIGHT`; None for any other session."""
+    step = session_field_step(out)
+    if step is None:
+        return None
+    d = step if project is None else project[0] @ step[project[1]]
+    return FIELD_WEIGHT * (1.0 - FIELD_WEIGHT) * np.outer(d, d)
 
 
 def untold_field_excess(
