@@ -33,8 +33,8 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 import yaml
-from scipy.spatial.transform import Rotation
 
+from slidecal.routines.bench_reality import hand_eye_errors
 from slidecal.routines.benchmarks import publish_report, report_header
 from slidecal.routines.results_io import read_result
 from slidecal.solver.errors import InputError
@@ -228,31 +228,32 @@ def opencv_reference(name: str, data: Path) -> Peer | None:
     return Peer(K, float(rms), hand_eye)
 
 
-def _rotation_difference(a, b, cov: np.ndarray) -> tuple[float, float]:  # noqa: ANN001
-    """(angle in degrees, Mahalanobis distance under ``cov``) of rotation ``b`` against ``a``
-    in the result's convention (``R_b = exp([d]x) R_a``)."""
-    d = Rotation.from_matrix(np.asarray(b) @ np.asarray(a).T).as_rotvec()
-    return float(np.degrees(np.linalg.norm(d))), float(np.sqrt(d @ np.linalg.solve(cov, d)))
-
-
-def _hand_eye_cells(a, b, cov_from: tuple) -> tuple[str, str]:  # noqa: ANN001
-    """Table cells of ``b``'s hand-eye (a result or a 4 x 4) against result ``a``'s: rotation
-    and translation difference, each as a Mahalanobis distance under the covariance of the
-    results in ``cov_from`` summed (n/a where one has no translation)."""
-    name = a.hand_eye.name
-    Ra, ta = a.hand_eye.R, a.hand_eye.t_m
-    Rb, tb = (b[:3, :3], b[:3, 3]) if isinstance(b, np.ndarray) else (b.hand_eye.R, b.hand_eye.t_m)
-    blocks = {}
-    for part, comps in (("r", ("rx", "ry", "rz")), ("t", ("tx", "ty", "tz"))):
-        covs = [r.named_covariance.block([f"{name}.{c}" for c in comps]) for r in cov_from]
-        blocks[part] = None if any(c is None for c in covs) else sum(covs)
-    angle, z = _rotation_difference(Ra, Rb, blocks["r"])
-    rot = f"{angle:.3f} deg ({z:.2f})"
-    if ta is None or tb is None or blocks["t"] is None:
-        return rot, "n/a"
-    d = np.asarray(tb) - np.asarray(ta)
-    z = float(np.sqrt(d @ np.linalg.solve(blocks["t"], d)))
-    return rot, f"{1000.0 * np.linalg.norm(d):.2f} mm ({z:.2f})"
+def _hand_eye_cells(a, b, other=None) -> tuple[str, str]:  # noqa: ANN001 - results
+    """Table cells of result ``a``'s hand-eye against ``b`` (a result or a 4 x 4): rotation
+    angle and translation distance, each with its Mahalanobis distance under ``a``'s
+    covariance, plus result ``other``'s where given (n/a where a translation is not reported)."""
+    if isinstance(b, np.ndarray):
+        T, b_t = b, True
+    else:
+        T, b_t = np.eye(4), b.hand_eye.t_m is not None
+        T[:3, :3] = b.hand_eye.R
+        T[:3, 3] = b.hand_eye.t_m if b_t else 0.0
+    errors = hand_eye_errors(a, T)
+    extra = hand_eye_errors(other, T) if other is not None else {}
+    cells = []
+    for key, scale, unit in (("rot", np.degrees(1.0), "deg"), ("t", 1000.0, "mm")):
+        if (
+            key not in errors
+            or (key == "t" and not b_t)
+            or (other is not None and key not in extra)
+        ):
+            cells.append("n/a")
+            continue
+        d, C = errors[key]
+        C = C + extra[key][1] if other is not None else C
+        z = float(np.sqrt(d @ np.linalg.solve(C, d)))
+        cells.append(f"{scale * np.linalg.norm(d):.{3 if key == 'rot' else 2}f} {unit} ({z:.2f})")
+    return cells[0], cells[1]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -374,7 +375,7 @@ def _hand_eye_agreement(results: dict, peer: dict[str, Peer | None]) -> list[str
     rows = []
     for a, b in SAME_CAMERA:
         if results.get(a) and results.get(b):
-            cells = _hand_eye_cells(results[a], results[b], (results[a], results[b]))
+            cells = _hand_eye_cells(results[b], results[a], other=results[a])
             rows.append(
                 f"| {b} against {a} (one camera and mount, two boards) | "
                 + " | ".join(cells)
@@ -383,7 +384,7 @@ def _hand_eye_agreement(results: dict, peer: dict[str, Peer | None]) -> list[str
     for name in ("kuka_1", "kuka_3"):
         sub, full = results.get(f"{name}_t"), results.get(name)
         if sub and full:
-            cells = _hand_eye_cells(full, sub, (sub,))
+            cells = _hand_eye_cells(sub, full)
             rows.append(
                 f"| {name}'s one-orientation frames against all its frames | "
                 + " | ".join(cells)
@@ -394,7 +395,7 @@ def _hand_eye_agreement(results: dict, peer: dict[str, Peer | None]) -> list[str
         for method, T in (p.hand_eye if p is not None else {}).items():
             for key, how in ((name, ""), (f"{name}_fixed", ", its levels fixed")):
                 if results.get(key):
-                    cells = _hand_eye_cells(results[key], T, (results[key],))
+                    cells = _hand_eye_cells(results[key], T)
                     rows.append(
                         f"| OpenCV's {method} against slidecal{how} on {name} | "
                         + " | ".join(cells)

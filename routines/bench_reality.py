@@ -238,9 +238,10 @@ def drifting_arm(
     return scenario, D
 
 
-def _hand_eye_errors(res, s: sc.Scenario, T_eff: np.ndarray) -> dict[str, np.ndarray]:  # noqa: ANN001
-    """Per block ("rot", "t"): (error of the reported hand-eye in the result's parametrisation:
-    rotation vector on the left, radians; translation, metres) and its covariance."""
+def hand_eye_errors(res, T_ref: np.ndarray) -> dict[str, np.ndarray]:  # noqa: ANN001
+    """Per block ("rot", "t"): (the reported hand-eye's difference from ``T_ref`` (4, 4) in the
+    result's parametrisation: rotation vector on the left, radians; translation, metres) and
+    its covariance."""
     out = {}
     named = res.named_covariance
     he = res.hand_eye
@@ -248,10 +249,10 @@ def _hand_eye_errors(res, s: sc.Scenario, T_eff: np.ndarray) -> dict[str, np.nda
         return out
     C = named.block([f"{he.name}.{a}" for a in ("rx", "ry", "rz")])
     if C is not None:
-        out["rot"] = (rvec_from_R(he.R @ T_eff[:3, :3].T), C)
+        out["rot"] = (rvec_from_R(he.R @ T_ref[:3, :3].T), C)
     C = named.block([f"{he.name}.{a}" for a in ("tx", "ty", "tz")])
     if C is not None and he.t_m is not None:
-        out["t"] = (he.t_m - T_eff[:3, 3], C)
+        out["t"] = (he.t_m - T_ref[:3, 3], C)
     return out
 
 
@@ -281,7 +282,7 @@ def run_reality_row(
         T_eff, _ = sc.effective_truth(
             s, max(ra.rotation_deg, 1e-4), max(ra.translation_mm, 1e-3), used
         )
-        for key, (d, C) in _hand_eye_errors(res, s, T_eff).items():
+        for key, (d, C) in hand_eye_errors(res, T_eff).items():
             row.maha.setdefault(key, []).append(float(d @ np.linalg.solve(C, d)))
             for i, ax in enumerate("xyz"):
                 row.z.setdefault(f"hand-eye {key} {ax}", []).append(float(d[i] / np.sqrt(C[i, i])))

@@ -654,6 +654,16 @@ def common_trend_excess(
     return excess
 
 
+def _session_trend(out: RefineOutput) -> bool:
+    """Whether the solve, with a covariance, models a classic session's one linear trend of the
+    pose corrections over the whole session's positions (its scale learned)."""
+    m, st = out.model, out.model.st
+    if out.covariance_blocks is None or "V" not in m.slices or m.trend_sigma is None:
+        return False
+    whole = st.trend_groups is not None and bool(np.all(st.trend_groups == 0))
+    return len(st.trend_dims) == 1 and not st.trend_scale_fixed and whole
+
+
 def session_trend_excess(
     out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
 ) -> np.ndarray | None:
@@ -670,11 +680,8 @@ def session_trend_excess(
     pulls the robot's share of fx and fy the same way on every frame. The estimate stays the
     model's; its covariance is the sandwich over the trend's translation rows with their prior
     variance ``tau^2`` raised to ``MOVE_SCALE_SIGMA^2`` (as :func:`common_trend_excess`)."""
-    m, st = out.model, out.model.st
-    if out.covariance_blocks is None or "V" not in m.slices or m.trend_sigma is None:
-        return None
-    whole = st.trend_groups is not None and bool(np.all(st.trend_groups == 0))
-    if len(st.trend_dims) != 1 or st.trend_scale_fixed or not whole:
+    m = out.model
+    if not _session_trend(out):
         return None
     tau = float(m.trend_sigma[1])
     if tau >= MOVE_SCALE_SIGMA:
@@ -705,11 +712,8 @@ def session_field_step(out: RefineOutput) -> np.ndarray | None:
     better on every arm (docs/ROBOT_ACCURACY.md), so the result is reported between them
     (:data:`FIELD_WEIGHT`) and their spread is carried in the covariance
     (:func:`session_field_excess`)."""
-    m, st = out.model, out.model.st
-    if out.covariance_blocks is None or "V" not in m.slices or m.trend_sigma is None:
-        return None
-    whole = st.trend_groups is not None and bool(np.all(st.trend_groups == 0))
-    if len(st.trend_dims) != 1 or st.trend_scale_fixed or not whole or out.state.V is None:
+    m = out.model
+    if not _session_trend(out) or out.state.V is None:
         return None
     sv = m.slices["V"]
     v = np.arange(sv.start, sv.stop)

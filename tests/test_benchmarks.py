@@ -103,22 +103,34 @@ def test_public_data_bench_writes_sessions_a_user_would_and_names_missing_data(t
     assert p.options.estimate_robot_noise  # none given: the defaults
 
 
-def test_public_data_bench_compares_rotations_in_the_results_convention():
-    # R_b = exp([d]x) R_a: the angle of d and its Mahalanobis distance under the covariance
+def test_public_data_bench_compares_hand_eyes_in_the_results_convention():
+    # a result's hand-eye against a transform moved by d on the left (R_b = exp([d]x) R_a, the
+    # result's convention) and by 1 mm: the angle and distance, and their Mahalanobis distances
+    # under the result's covariance (and under two results' summed)
     import numpy as np
     from scipy.spatial.transform import Rotation
 
-    from slidecal.routines.bench_public import _rotation_difference
+    from slidecal.mocks.scenarios import classic
+    from slidecal.routines.bench_public import _hand_eye_cells
+    from slidecal.solver.calibrate import calibrate
 
-    R_a = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+    res = calibrate(classic(np.random.default_rng(1)).problem)
+    he = res.hand_eye
     d = np.radians([0.1, 0.0, 0.0])
-    R_b = Rotation.from_rotvec(d).as_matrix() @ R_a
-    cov = np.diag(np.radians([0.05, 0.5, 0.5]) ** 2)
-    angle, z = _rotation_difference(R_a, R_b, cov)
-    assert angle == pytest.approx(0.1, rel=1e-6)
-    assert z == pytest.approx(2.0, rel=1e-6)  # 0.1 deg along x, whose std is 0.05 deg
+    dt = np.array([1e-3, 0.0, 0.0])
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(d).as_matrix() @ he.R
+    T[:3, 3] = he.t_m + dt
+    C_r = res.named_covariance.block([f"{he.name}.{a}" for a in ("rx", "ry", "rz")])
+    C_t = res.named_covariance.block([f"{he.name}.{a}" for a in ("tx", "ty", "tz")])
+    z_r = float(np.sqrt(d @ np.linalg.solve(C_r, d)))
+    z_t = float(np.sqrt(dt @ np.linalg.solve(C_t, dt)))
+    assert _hand_eye_cells(res, T) == (f"0.100 deg ({z_r:.2f})", f"1.00 mm ({z_t:.2f})")
+    halved = (f"0.100 deg ({z_r / np.sqrt(2):.2f})", f"1.00 mm ({z_t / np.sqrt(2):.2f})")
+    assert _hand_eye_cells(res, T, other=res) == halved
     # on the right instead (R_a exp([d]x)) the difference is another axis in the left frame
-    assert _rotation_difference(R_a, R_a @ Rotation.from_rotvec(d).as_matrix(), cov)[1] < 1.9
+    T[:3, :3] = he.R @ Rotation.from_rotvec(d).as_matrix()
+    assert _hand_eye_cells(res, T)[0] != f"0.100 deg ({z_r:.2f})"
 
 
 def test_header_shows_an_out_of_project_report_path_as_its_place_in_docs():

@@ -277,7 +277,7 @@ def test_a_classic_sessions_linear_field_is_read_both_ways(monkeypatch):
     # is what that re-solve gives; the result is halfway, the spread in its covariance
     from scipy.spatial.transform import Rotation
 
-    from slidecal.routines.bench_reality import _hand_eye_errors
+    from slidecal.routines.bench_reality import hand_eye_errors
     from slidecal.solver.geometry import inv_T
     from slidecal.solver.named import (
         FIELD_WEIGHT,
@@ -318,7 +318,7 @@ def test_a_classic_sessions_linear_field_is_read_both_ways(monkeypatch):
     assert any("read without that field" in line for line in res.messages)
     ra = res.robot_accuracy
     T_eff, _ = sc.effective_truth(s, ra.rotation_deg, ra.translation_mm)
-    for key, (e, C) in _hand_eye_errors(res, s, T_eff).items():
+    for key, (e, C) in hand_eye_errors(res, T_eff).items():
         assert np.all(np.abs(e) < 3.0 * np.sqrt(np.diag(C))), key
     # R1's groups have trends of their own: one reading
     _, o = _solve_keeping_the_refinement(

@@ -294,7 +294,7 @@ def test_a_classic_session_on_a_real_arm_learns_one_trend_over_its_positions() -
     # tool's positions (eye-in-hand). Without it this seed's fx, fy and hand-eye z came out 4.5,
     # 3.7 and 6.7 reported std off: the arm's error is smooth over the workspace, and its linear
     # part scales the positions, which the focal lengths follow
-    from slidecal.routines.bench_reality import _hand_eye_errors
+    from slidecal.routines.bench_reality import hand_eye_errors
     from slidecal.solver.calibrate import calibrate
     from slidecal.solver.refine import build_structure, refine
 
@@ -304,7 +304,7 @@ def test_a_classic_session_on_a_real_arm_learns_one_trend_over_its_positions() -
     _assert_within_3_std(cam, s)
     ra = res.robot_accuracy
     T_eff, _ = sc.effective_truth(s, ra.rotation_deg, ra.translation_mm)
-    for key, (d, C) in _hand_eye_errors(res, s, T_eff).items():
+    for key, (d, C) in hand_eye_errors(res, T_eff).items():
         assert np.all(np.abs(d) < 3.0 * np.sqrt(np.diag(C))), key
     out = refine(s.problem, build_structure(s.problem), s.truth)
     assert "V" in out.model.slices and out.model.st.trend_dims == (3,)
@@ -348,7 +348,7 @@ def test_a_tag_sessions_shared_linear_field_is_carried_at_its_quadratic_level(mo
     sys.path.insert(0, str(Path(__file__).parent))
     from test_named import _solve_keeping_the_refinement
 
-    from slidecal.routines.bench_reality import _hand_eye_errors
+    from slidecal.routines.bench_reality import hand_eye_errors
 
     s = sc.tag_real_arm(np.random.default_rng(2098), sigma_px=0.15, arm_mm=1.0, arm_deg=0.1)
     res, out = _solve_keeping_the_refinement(s.problem, monkeypatch)
@@ -357,7 +357,7 @@ def test_a_tag_sessions_shared_linear_field_is_carried_at_its_quadratic_level(mo
     ra = res.robot_accuracy
     assert not ra.left_out
     T_eff, _ = sc.effective_truth(s, ra.rotation_deg, ra.translation_mm)
-    d, C = _hand_eye_errors(res, s, T_eff)["t"]
+    d, C = hand_eye_errors(res, T_eff)["t"]
     assert np.all(np.abs(d) / np.sqrt(np.diag(C)) < 3.0)
     assert float(d @ np.linalg.solve(C, d)) < 14.16  # chi-square(3) at 3 sigma's tail
     _assert_within_3_std(res.cameras["cam"], s)

@@ -303,7 +303,7 @@ def test_groups_level_does_not_fall_to_zero_where_few_dof_see_it():
     # (redundancy 0), the frames' corrections taken as independent, and the hand-eye's z came
     # out 5.5 std off the effective truth (fx 3.5). Under its prior at the frames' own level
     # it stays of the arm's size and z is 3.2 std off: 4 is beyond that, below the collapse
-    from slidecal.routines.bench_reality import _hand_eye_errors
+    from slidecal.routines.bench_reality import hand_eye_errors
     from slidecal.solver import refine as rf
 
     models = []
@@ -324,7 +324,7 @@ def test_groups_level_does_not_fall_to_zero_where_few_dof_see_it():
     gone = {f for f, _, _ in ra.left_out}
     used = [i for i, f in enumerate(s.problem.frames) if f.id not in gone]
     T_eff, _ = sc.effective_truth(s, ra.rotation_deg, ra.translation_mm, used)
-    d, C = _hand_eye_errors(res, s, T_eff)["t"]
+    d, C = hand_eye_errors(res, T_eff)["t"]
     assert abs(d[2]) < 4.0 * np.sqrt(C[2, 2])
 
 
