@@ -9,7 +9,14 @@ Written into ``export/`` next to ``result.yaml`` (never for a rejected result):
 - ``hand_eye.yaml``: every hand-eye transform as a 4x4 matrix, as translation plus quaternion
   (order x, y, z, w, the Hamilton convention) with the parent and child frame names, and as the
   UR teach pendant shows a pose (millimetres, rotation vector in radians, RPY in degrees);
+- ``mrcal_<cam>.cameramodel``: mrcal's native camera model per camera (``LENSMODEL_OPENCV5``;
+  ``rt_cam_ref`` the reference camera's pose in this one), read by ``mrcal.cameramodel`` and
+  mrcal's tools (``mrcal-show-projection-uncertainty`` needs mrcal's own solve, not this file);
 - ``depthai_calibration.json``: for OAK rigs (the session names the sockets).
+
+Kalibr's ``pinhole`` and mrcal's OpenCV models have no skew: a camera solved with skew (the
+``skew`` option) and a skew that is not zero gets no ``camchain.yaml`` or ``.cameramodel``, and
+the failure line says so.
 
 A failed export does not stop the others; :func:`write_all_exports` returns the failures as
 one-line messages for the caller to print (``slidecal: export ...: ...``) and record.
@@ -36,6 +43,7 @@ from slidecal.solver.errors import SlidecalError
 from slidecal.solver.result import CalibrationResult
 
 CAMCHAIN_FILE = "camchain.yaml"
+MRCAL_SUFFIX = ".cameramodel"
 HAND_EYE_FILE = "hand_eye.yaml"
 DEPTHAI_FILE = "depthai_calibration.json"
 
@@ -95,8 +103,21 @@ def _T_cam_ref(result: CalibrationResult, name: str, ref: str) -> np.ndarray | N
     return t.T if t is not None else None
 
 
+def _no_skew(result: CalibrationResult, model: str) -> None:
+    """Raise ``ValueError`` (one line) when a camera's skew is not zero (``model`` has none)."""
+    for name, c in result.cameras.items():
+        K = np.asarray(c.K, dtype=float)
+        if abs(K[0, 1]) > 1e-9 * abs(K[0, 0]):
+            raise ValueError(
+                f"camera {name} has a skew of {K[0, 1]:.4g} px, which {model} cannot hold; "
+                "solve without the skew option (options: {skew: false}) for this export"
+            )
+
+
 def camchain_dict(result: CalibrationResult, header: Mapping[str, Any] | None = None) -> dict:
-    """Kalibr's ``camchain.yaml`` mapping (cam0 is the reference camera)."""
+    """Kalibr's ``camchain.yaml`` mapping (cam0 is the reference camera). ``ValueError`` when a
+    camera has a skew (Kalibr's pinhole model has none)."""
+    _no_skew(result, "Kalibr's pinhole model")
     out: dict[str, Any] = {}
     names = _ordered_cameras(result)
     ref = names[0]
@@ -119,6 +140,52 @@ def camchain_dict(result: CalibrationResult, header: Mapping[str, Any] | None = 
                 entry["T_cn_cnm1"] = plain(Ta @ np.linalg.inv(Tb))
         out[f"cam{i}"] = entry
     return out
+
+
+def _numbers(values: Any) -> str:
+    return "[" + ", ".join(repr(float(v)) for v in values) + "]"
+
+
+def mrcal_cameramodel(
+    result: CalibrationResult, name: str, header: Mapping[str, Any] | None = None
+) -> str:
+    """mrcal's ``.cameramodel`` text of camera ``name`` (a Python literal ``dict``, as mrcal
+    writes and reads it). ``ValueError`` when a camera has a skew or the rig transform of
+    ``name`` is not in the result.
+
+    ``lensmodel`` ``LENSMODEL_OPENCV5``, written before ``intrinsics`` (mrcal's C reader wants
+    that order): ``fx, fy, cx, cy`` and OpenCV's ``k1 k2 p1 p2 k3`` (mrcal's OpenCV models are
+    OpenCV's projection, pixel coordinates as OpenCV's and slidecal's). ``rt_cam_ref``: the
+    reference camera's frame into this camera's (a Rodrigues vector, then the translation in
+    metres; zero for the reference camera), also written as ``extrinsics`` for mrcal before
+    2.5. ``imagersize``: width, height."""
+    from slidecal.solver.geometry import rvec_from_R
+
+    _no_skew(result, "mrcal's OpenCV lens models")
+    c = result.cameras[name]
+    ref = _ordered_cameras(result)[0]
+    T = _T_cam_ref(result, name, ref)
+    if T is None:
+        raise ValueError(f"the result holds no T_{name}_{ref}: camera {name} has no pose")
+    K = np.asarray(c.K, dtype=float)
+    d = np.zeros(5)
+    dist = np.asarray(c.distortion, dtype=float).reshape(-1)[:5]
+    d[: len(dist)] = dist
+    intrinsics = [K[0, 0], K[1, 1], K[0, 2], K[1, 2], *d]
+    rt = [*rvec_from_R(T[:3, :3]), *T[:3, 3]]
+    lines = [f"# {k}: {v}" for k, v in (header or {}).items()]
+    lines += [
+        f"# camera {name} from slidecal; the reference camera is {ref}",
+        "{",
+        "    'lensmodel': 'LENSMODEL_OPENCV5',",
+        "    # fx, fy, cx, cy, then OpenCV's k1, k2, p1, p2, k3",
+        f"    'intrinsics': {_numbers(intrinsics)},",
+        f"    'rt_cam_ref': {_numbers(rt)},",
+        f"    'extrinsics': {_numbers(rt)},",
+        f"    'imagersize': [{int(c.width)}, {int(c.height)}],",
+        "}",
+    ]
+    return "\n".join(lines) + "\n"
 
 
 def _quat_xyzw(R: np.ndarray) -> list[float]:
@@ -217,6 +284,14 @@ def write_all_exports(
         return p
 
     attempt(CAMCHAIN_FILE, camchain)
+    for name in result.cameras:
+
+        def cameramodel(n: str = name) -> Path:
+            p = out / f"mrcal_{n}{MRCAL_SUFFIX}"
+            write_atomic(p, mrcal_cameramodel(result, n, header))
+            return p
+
+        attempt(f"mrcal_{name}{MRCAL_SUFFIX}", cameramodel)
     if result.hand_eye is not None:
 
         def hand_eye() -> Path:

@@ -1,8 +1,9 @@
-"""Exports: Kalibr camchain, the hand-eye in three forms, depthai JSON from solve, the header,
-and a failed export reported, not swallowed."""
+"""Exports: Kalibr camchain, mrcal camera models, the hand-eye in three forms, depthai JSON from
+solve, the header, and a failed export reported, not swallowed."""
 
 from __future__ import annotations
 
+import ast
 import dataclasses
 import shutil
 from pathlib import Path
@@ -16,6 +17,7 @@ from slidecal.drivers.ur_pose import T_from_ur_pose
 from slidecal.routines.exports import (
     camchain_dict,
     hand_eye_dict,
+    mrcal_cameramodel,
     result_header,
     write_all_exports,
 )
@@ -85,6 +87,63 @@ def test_kalibr_camchain_of_a_rig(result) -> None:
     assert len(c["cam0"]["distortion_coeffs"]) == 4 and c["cam0"]["resolution"] == [1280, 800]
     np.testing.assert_allclose(c["cam1"]["T_cn_cnm1"], rig.rig["T_right_left"].T, atol=1e-12)
     assert "T_cn_cnm1" not in c["cam0"]
+
+
+def _mrcal_project(model: dict, p_ref: np.ndarray) -> np.ndarray:
+    """Pixels of points in the reference frame (n, 3) by a ``.cameramodel`` read as mrcal's
+    documentation reads it: ``rt_cam_ref`` into the camera, then LENSMODEL_OPENCV5's
+    ``q = f (P_radial + P_tangential) + c`` with ``k_0 .. k_4``."""
+    r, t = np.array(model["rt_cam_ref"][:3]), np.array(model["rt_cam_ref"][3:])
+    p = p_ref @ R_from_rvec(r).T + t
+    fx, fy, cx, cy, k0, k1, k2, k3, k4 = model["intrinsics"]
+    P = p[:, :2] / p[:, 2:]
+    r2 = (P**2).sum(axis=1)
+    radial = (1 + k0 * r2 + k1 * r2**2 + k4 * r2**3)[:, None] * P
+    x, y = P[:, 0], P[:, 1]
+    tangential = np.column_stack(
+        [2 * k2 * x * y + k3 * (r2 + 2 * x**2), 2 * k3 * x * y + k2 * (r2 + 2 * y**2)]
+    )
+    return (radial + tangential) * [fx, fy] + [cx, cy]
+
+
+def test_mrcal_cameramodels_of_a_rig_project_as_the_result(result, tmp_path) -> None:
+    import cv2
+
+    rig = _rig(result)
+    header = result_header(None)
+    paths, errors = write_all_exports(rig, tmp_path, header)
+    assert errors == []
+    rng = np.random.default_rng(7)
+    p_ref = np.column_stack([rng.uniform(-0.3, 0.3, (20, 2)), rng.uniform(0.4, 1.0, 20)])
+    for name in ("left", "right"):
+        path = tmp_path / f"mrcal_{name}.cameramodel"
+        assert path in paths
+        text = path.read_text()
+        assert text.startswith("# slidecal_version: ")
+        model = ast.literal_eval(text)  # how mrcal.cameramodel reads the file
+        # mrcal's C reader wants the lens model before the intrinsics; both pose keys agree
+        assert list(model)[:2] == ["lensmodel", "intrinsics"]
+        assert model["lensmodel"] == "LENSMODEL_OPENCV5" and model["imagersize"] == [1280, 800]
+        assert model["rt_cam_ref"] == model["extrinsics"]
+        cam = rig.cameras[name]
+        T = np.eye(4) if name == "left" else rig.rig["T_right_left"].T
+        got = _mrcal_project(model, p_ref)
+        rvec = cv2.Rodrigues(T[:3, :3])[0]
+        want = cv2.projectPoints(p_ref, rvec, T[:3, 3], cam.K, cam.distortion)[0].reshape(-1, 2)
+        np.testing.assert_allclose(got, want, atol=1e-9)
+    assert ast.literal_eval(mrcal_cameramodel(rig, "left"))["rt_cam_ref"] == [0.0] * 6
+
+
+def test_a_skewed_camera_gets_no_kalibr_or_mrcal_file(result, tmp_path) -> None:
+    cam = result.cameras["cam"]
+    K = cam.K.copy()
+    K[0, 1] = 0.8
+    skewed = dataclasses.replace(result, cameras={"cam": dataclasses.replace(cam, K=K)})
+    paths, errors = write_all_exports(skewed, tmp_path)
+    assert len(errors) == 2 and all("\n" not in e and "skew of 0.8 px" in e for e in errors)
+    assert errors[0].startswith("export camchain.yaml failed")
+    assert errors[1].startswith("export mrcal_cam.cameramodel failed")
+    assert (tmp_path / "opencv_cam.yaml") in paths and not (tmp_path / "camchain.yaml").exists()
 
 
 def test_depthai_json_for_an_oak_rig_and_failed_export_reported(result, tmp_path) -> None:
