@@ -435,6 +435,13 @@ def main(argv: list[str] | None = None) -> int:
         f"slidecal bench reality --trials {args.trials} --clean-trials "
         f"{args.clean_trials} --images {args.images}"
     )
+    for flag, value in (
+        ("--sigma-px", "sigma_px"),
+        ("--arm-mm", "arm_mm"),
+        ("--arm-deg", "arm_deg"),
+    ):
+        if getattr(args, value) != ap.get_default(value):  # what the report needs to be rerun
+            cmd += f" {flag} {getattr(args, value):g}"
     lines = [
         "# The solver on a real arm: coverage of its reported uncertainty",
         "",
