@@ -23,9 +23,10 @@ The gate (:func:`judge`), each test with a limit from the cell file's ``limits:`
   ``hand_eye_rot_std_deg_from_translations`` for a hand-eye rotation from translations alone,
   ``cxy_std_px_from_translations`` and ``fx_rel_std_from_translations`` for the intrinsics of
   such a session);
-- ``scale``: the median camera/robot length ratio of the moves must be within 1 +- tol, tol
-  the larger of ``scale_tolerance`` and 4 times the ratio's own standard error (and the test
-  fails as inconclusive when tol exceeds 5 times ``scale_tolerance``);
+- ``scale``: the median camera/robot length ratio of the moves (``result.scale_checks``:
+  translations, or a classic session's moves where its geometry pins the scale) must be
+  within 1 +- tol, tol the larger of ``scale_tolerance`` and 4 times the ratio's own standard
+  error (and the test fails as inconclusive when tol exceeds 5 times ``scale_tolerance``);
 - ``coverage``: the fraction of a ``coverage_grid`` of image cells holding a detected corner;
 - ``installed``: the difference from the installed calibration, per parameter in units of
   the two calibrations' combined one-sigma (``max_change_sigma``) and as the largest pixel

@@ -36,7 +36,7 @@ from slidecal.solver.result import ModelAdequacy, RobotAccuracy
 
 if TYPE_CHECKING:
     from slidecal.solver.problem import CalibrationProblem
-    from slidecal.solver.refine import RefineOutput
+    from slidecal.solver.refine import ModelState, RefineOutput
 
 #: A camera whose robot-model residual exceeds its free-pose (detector) floor by this factor is
 #: not explained by the model (about 1.0 when it is; sampling spread a few percent).
@@ -376,7 +376,7 @@ def assess(
             "detections"
         )
     robot = robot_accuracy(problem, out)
-    k = _move_scale(problem, fit, m.ref, groups)
+    k = _move_scale(problem, fit, m.ref, static_rotation(out.state, problem.mount), groups)
     if k is not None and abs(k) > MAX_SCALE_ERROR:
         reasons.append(
             f"the camera sees the robot's moves {100 * k:+.1f} % longer than the robot reports "
@@ -731,31 +731,122 @@ def bad_images_note(adequacy: ModelAdequacy | None) -> tuple[str, ...]:
 
 
 def _move_scale(
-    problem: CalibrationProblem, fit: FreePoseFit, ref: str, groups: np.ndarray | None = None
+    problem: CalibrationProblem,
+    fit: FreePoseFit,
+    ref: str,
+    R_static_base: np.ndarray,
+    groups: np.ndarray | None = None,
 ) -> float | None:
-    """Median over the moves at one orientation of (camera-seen length / robot length) - 1.
-
-    The camera's own view of each move (free board poses of the reference camera: the camera
-    centre eye-in-hand, the board origin eye-to-hand) against the measured tool translation;
-    None without such moves (of at least 5 mm). ``groups``: ``orientation_groups`` of the
-    measured poses when the caller has them.
-    """
+    """Median over the session's moves (:func:`scale_moves`, of at least 5 mm) of
+    (camera-seen length / robot length) - 1; None without such moves. The camera's own view
+    comes from the free board poses of the reference camera. ``R_static_base``, ``groups``: as
+    :func:`scale_moves` takes them."""
     if problem.knowledge != "robot":
         return None
+    poses = {i: T for (i, cam), T in fit.T_cam_board.items() if cam == ref}
+    moves = scale_moves(problem, poses, R_static_base, groups, 0.005)
+    return float(np.median([c / r for _, _, r, c in moves])) - 1.0 if moves else None
+
+
+#: A classic session's moves are checked for their scale only when the session pins the
+#: camera/robot length ratio to this relative standard error (:func:`classic_scale_fit`). With
+#: every frame aimed at the board from nearly one distance, a scale of what the camera sees is
+#: a shift of the hand-eye along the viewing direction: the public classic KUKA session (28
+#: frames, 0.41-0.46 m from its board) pins it to 0.8 % (its ratio reads 1.05), and a check
+#: there would test the geometry, not the board. Simulated classic sessions (0.4-0.7 m):
+#: 0.1-0.2 % eye-in-hand, 0.03-0.1 % eye-to-hand.
+MAX_CLASSIC_SCALE_SE = 0.003
+
+
+def static_rotation(state: ModelState, mount: str) -> np.ndarray:
+    """The rotation from the base into the frame that stays still while the tool moves: the
+    board's (eye-in-hand) or the camera's (eye-to-hand), from a refinement's state."""
+    if mount == "eye_in_hand":
+        return state.Y[:3, :3].T  # Y = T_base_board
+    return state.X[0][:3, :3]  # X = T_cam_base
+
+
+def classic_scale_fit(
+    problem: CalibrationProblem, poses: dict[int, np.ndarray], R_static_base: np.ndarray
+) -> tuple[float, float, np.ndarray] | None:
+    """The camera/robot length ratio of a session from the images alone: ``(ratio, relative
+    standard error, q)``, ``q`` the tool-frame place of the point that rides with the tool
+    (:func:`_moving_point`: the camera centre eye-in-hand, the board's origin eye-to-hand) in
+    metres; None with fewer than four frames with a pose or a geometry that leaves the scale
+    free (every frame on one sphere about the point it is aimed at).
+
+    The point as the camera sees it, ``a_k`` in the still frame (the board's eye-in-hand, the
+    camera's eye-to-hand; ``poses``: frame index -> ``T_cam_board`` from the images alone),
+    is where the robot puts it up to the still frame's pose and the scale the camera reads
+    lengths in: ``lambda a_k = R (p_k + R_k q) + t`` (``R_static_base`` = ``R``: a rotation,
+    which a wrong square size does not change; ``p_k``, ``R_k``: the measured tool pose),
+    linear least squares in ``lambda``, ``q``, ``t``. The ratio is ``1 / lambda``; its
+    standard error is the fit's, from its residuals (the arm's error taken as independent from
+    frame to frame: a lower bound, used to tell whether the session's geometry pins the scale
+    at all)."""
+    idx = sorted(poses)
+    if len(idx) < 4:
+        return None
+    rows, rhs = [], []
+    for i in idx:
+        T = problem.frames[i].T_base_tool
+        a = _moving_point(poses[i], problem.mount)
+        rows.append(np.hstack([a[:, None], -(R_static_base @ T[:3, :3]), -np.eye(3)]))
+        rhs.append(R_static_base @ T[:3, 3])
+    A, y = np.vstack(rows), np.concatenate(rhs)
+    U, sv, Vt = np.linalg.svd(A, full_matrices=False)
+    if not sv[-1] > 1e-9 * sv[0]:  # the geometry leaves the scale free
+        return None
+    x = Vt.T @ ((U.T @ y) / sv)
+    r = y - A @ x
+    var = float(r @ r / (len(y) - A.shape[1]) * np.sum((Vt[:, 0] / sv) ** 2))
+    lam = float(x[0])
+    if not lam > 0:
+        return None
+    return 1.0 / lam, float(np.sqrt(var)) / lam, x[1:4]
+
+
+def scale_moves(
+    problem: CalibrationProblem,
+    poses: dict[int, np.ndarray],
+    R_static_base: np.ndarray,
+    groups: np.ndarray | None,
+    min_move_m: float,
+) -> list[tuple[int, int, float, float]]:
+    """The moves whose length both the camera and the robot tell, ``(frame index a, b, robot
+    length, camera length)`` in metres, of at least ``min_move_m`` for the robot; ``poses``:
+    frame index -> ``T_cam_board`` from the images alone. ``groups``: the frames'
+    ``orientation_groups`` (computed when None).
+
+    Between consecutive frames of an orientation group: the point that rides with the tool as
+    the camera sees it (:func:`_moving_point`) against the tool's translation. A session with
+    no two such frames (a classic hand-eye session: every frame at its own orientation) has
+    no move the robot makes without turning: between consecutive frames, that point's move
+    against the robot's move of the same point, placed on the tool by
+    :func:`classic_scale_fit`, when the fit pins the ratio (:data:`MAX_CLASSIC_SCALE_SE`); no
+    moves otherwise. A wrong square size scales every length the camera tells."""
     from slidecal.solver.refine import orientation_groups
 
     T = np.stack([f.T_base_tool for f in problem.frames])
     groups = orientation_groups(T) if groups is None else groups
-    ratios = []
-    for g in np.unique(groups):
-        idx = [i for i in np.flatnonzero(groups == g) if (i, ref) in fit.T_cam_board]
+    q = np.zeros(3)
+    chains = [[i for i in np.flatnonzero(groups == g) if i in poses] for g in np.unique(groups)]
+    if all(len(c) < 2 for c in chains):  # a classic session
+        fit = classic_scale_fit(problem, poses, R_static_base)
+        if fit is None or fit[1] > MAX_CLASSIC_SCALE_SE:
+            return []
+        q, chains = fit[2], [sorted(poses)]
+    moves = []
+    for idx in chains:
         for a, b in zip(idx[:-1], idx[1:], strict=True):
-            robot = float(np.linalg.norm(T[b, :3, 3] - T[a, :3, 3]))
-            if robot < 0.005:
+            robot = float(
+                np.linalg.norm(T[b, :3, :3] @ q + T[b, :3, 3] - T[a, :3, :3] @ q - T[a, :3, 3])
+            )
+            if robot < min_move_m:
                 continue
-            pa, pb = (_moving_point(fit.T_cam_board[(i, ref)], problem.mount) for i in (a, b))
-            ratios.append(float(np.linalg.norm(pb - pa)) / robot)
-    return float(np.median(ratios)) - 1.0 if ratios else None
+            pa, pb = (_moving_point(poses[i], problem.mount) for i in (a, b))
+            moves.append((int(a), int(b), robot, float(np.linalg.norm(pb - pa))))
+    return moves
 
 
 #: A frame whose robot pose correction (rotation or translation, as a 3-vector) is this many

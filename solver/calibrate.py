@@ -30,6 +30,8 @@ from slidecal.solver.adequacy import (
     image_outlier,
     pose_outlier,
     record_check,
+    scale_moves,
+    static_rotation,
 )
 from slidecal.solver.degeneracy import check_configuration, n_directions
 from slidecal.solver.errors import DegenerateError, InputError
@@ -1061,10 +1063,12 @@ def scale_checks(
     guesses: dict[int, np.ndarray] | None = None,
     known: dict[int, np.ndarray] | None = None,
 ) -> tuple[ScaleCheck, ...]:
-    """Per move within an orientation group: the translation the reference camera saw (from a
-    PnP pose per frame with the final intrinsics: the image alone, ``guesses`` only start it)
-    against the robot's. A ratio away from 1 means a wrong square size or a wrong robot/TCP
-    scale. ``known``: such poses (frame index -> ``T_cam_board``) already computed."""
+    """Per move (:func:`slidecal.solver.adequacy.scale_moves`: within an orientation group, or
+    between consecutive frames of a classic session whose geometry pins the scale): its length
+    as the reference camera saw it (from a PnP pose per frame with the final intrinsics: the
+    image alone, ``guesses`` only start it) against the robot's. A ratio away from 1 means a
+    wrong square size or a wrong robot/TCP scale. ``known``: such poses (frame index ->
+    ``T_cam_board``) already computed."""
     if problem.knowledge != "robot":
         return ()
     ref = problem.reference
@@ -1075,23 +1079,6 @@ def scale_checks(
         poses.update(
             _frame_poses(problem, ref, state.K[ref], state.dist[ref], guesses=guesses, only=todo)
         )
-    centre = {i: -T[:3, :3].T @ T[:3, 3] for i, T in poses.items()}  # the camera, board frame
-    checks = []
-    for g in np.unique(groups):
-        idx = [i for i in np.flatnonzero(groups == g) if i in poses]
-        for a, b in zip(idx[:-1], idx[1:], strict=True):
-            Ca, Cb = centre[a], centre[b]
-            pa = problem.frames[a].T_base_tool[:3, 3]
-            pb = problem.frames[b].T_base_tool[:3, 3]
-            robot = float(np.linalg.norm(pb - pa)) * 1000.0
-            if robot < 1.0:
-                continue
-            checks.append(
-                ScaleCheck(
-                    problem.frames[a].id,
-                    problem.frames[b].id,
-                    robot,
-                    float(np.linalg.norm(Cb - Ca)) * 1000.0,
-                )
-            )
-    return tuple(checks)
+    moves = scale_moves(problem, poses, static_rotation(state, problem.mount), groups, 0.001)
+    ids = [f.id for f in problem.frames]
+    return tuple(ScaleCheck(ids[a], ids[b], 1000.0 * r, 1000.0 * c) for a, b, r, c in moves)

@@ -11,13 +11,27 @@ import yaml
 
 from slidecal.mocks import scenarios as sc
 from slidecal.routines.session import SESSION_FILE, read_session
+from slidecal.solver.adequacy import MAX_CLASSIC_SCALE_SE, classic_scale_fit, scale_moves
 from slidecal.solver.calibrate import calibrate, pnp_pose
 from slidecal.solver.errors import DegenerateError, InputError
-from slidecal.solver.geometry import T_from_Rt, inv_T, random_rotation, rotation_angle_deg
+from slidecal.solver.geometry import (
+    T_from_Rt,
+    inv_T,
+    look_at_R_cam_world,
+    random_rotation,
+    rotation_angle_deg,
+)
 from slidecal.solver.handeye import ax_xb_daniilidis, ax_xb_park_martin, daniilidis
 from slidecal.solver.homography import homography_dlt
 from slidecal.solver.named import predicted_covariance
-from slidecal.solver.problem import Detection, Frame, ModelOptions, Target
+from slidecal.solver.problem import (
+    CalibrationProblem,
+    CameraSpec,
+    Detection,
+    Frame,
+    ModelOptions,
+    Target,
+)
 
 EMPTY = Detection(np.zeros(0, int), np.zeros((0, 2)))
 NO_DIST = ModelOptions(distortion=sc.NO_DISTORTION)
@@ -504,3 +518,78 @@ def test_mixed_session_of_a_two_camera_rig():
     assert not any("joint linear step" in m for m in res.messages), res.messages
     _check_truth(res, s)
     np.testing.assert_allclose(res.rig["T_right_cam"].T, T_right_cam, atol=1e-8)
+
+
+# -- a classic session's scale: the camera's lengths against the robot's -------------------------
+def _aimed_session(rng, distances_m, board_scale=1.0, arm_mm=0.5):
+    """Eye-in-hand, 20 frames each at its own orientation, every camera aimed at the board's
+    centre from ``distances_m`` (per frame), the camera's view of the board ``board_scale``
+    times as large as the robot's (a board described that much too large), the recorded tool
+    positions off by ``arm_mm`` (per axis, independent). Returns the problem (no detections:
+    only the poses matter here), the images-alone ``T_cam_board`` per frame index and
+    ``R_board_base``."""
+    T_base_board = T_from_Rt(np.eye(3), np.array([0.6, 0.0, 0.0]))
+    centre = np.array([0.6, 0.0, 0.0]) + [0.15, 0.1, 0.0]
+    T_tool_cam = T_from_Rt(random_rotation(rng, 0.3), np.array([0.03, -0.08, 0.06]))
+    frames, poses = [], {}
+    for k, d in enumerate(distances_m):
+        u = np.array([*rng.uniform(-0.5, 0.5, 2), 1.0])
+        c = centre + d * u / np.linalg.norm(u)
+        R_cam_base = look_at_R_cam_world(c, centre, rng.normal(size=3))
+        T_base_cam = T_from_Rt(R_cam_base.T, c)
+        T_base_tool = T_base_cam @ inv_T(T_tool_cam)
+        T_cam_board = inv_T(T_base_cam) @ T_base_board
+        T_cam_board[:3, 3] *= board_scale
+        measured = T_base_tool.copy()
+        measured[:3, 3] += rng.normal(0.0, arm_mm / 1000.0, 3)
+        frames.append(Frame(k, {}, T_base_tool=measured))
+        poses[k] = T_cam_board
+    target = Target.chessboard(9, 6, 0.03)
+    problem = CalibrationProblem(target, (CameraSpec("cam", 1280, 800),), tuple(frames))
+    return problem, poses, T_base_board[:3, :3].T
+
+
+def test_a_classic_sessions_scale_is_read_only_where_its_geometry_pins_it():
+    rng = np.random.default_rng(11)
+    # 0.4-0.7 m from the board: the fit pins the ratio, and a board described 2 % too large
+    # shows as the camera's lengths 2 % longer than the robot's
+    far_near = rng.uniform(0.4, 0.7, 20)
+    for scale in (1.0, 1.02):
+        problem, poses, R = _aimed_session(np.random.default_rng(3), far_near, scale)
+        ratio, se, _ = classic_scale_fit(problem, poses, R)
+        assert se < MAX_CLASSIC_SCALE_SE and abs(ratio - scale) < 4 * se + 1e-4, (ratio, se)
+        moves = scale_moves(problem, poses, R, None, 0.001)
+        assert len(moves) == 19
+        assert abs(np.median([c / r for *_, r, c in moves]) - scale) < 0.003
+    # every frame 0.43 m from the board's centre, aimed at it: a scale of the camera's view is
+    # a shift of the hand-eye along the viewing direction, which the fit cannot tell apart;
+    # at 0.41-0.46 m (the public classic KUKA session's distances) it barely can: no move
+    # is checked
+    for distances in (np.full(20, 0.43), rng.uniform(0.41, 0.46, 20)):
+        problem, poses, R = _aimed_session(np.random.default_rng(3), distances, 1.02)
+        fit = classic_scale_fit(problem, poses, R)
+        assert fit is None or fit[1] > MAX_CLASSIC_SCALE_SE, fit
+        assert scale_moves(problem, poses, R, None, 0.001) == []
+
+
+@pytest.mark.parametrize("eye_in_hand", [True, False], ids=["eye-in-hand", "eye-to-hand"])
+def test_a_classic_session_with_a_wrong_square_size_is_rejected_for_its_scale(eye_in_hand):
+    # a classic session (28 frames, each at its own orientation) on a real arm, its board
+    # described 2 % too small: eye-to-hand the solve took it as the arm's error (learned
+    # accuracy 0.1-0.25 -> 0.7-0.8 mm) and put the camera 10 mm off, 14-16 times its reported
+    # std, and the verdict accepted it (no move at one orientation to check the scale on)
+    from slidecal.routines.verdict import judge
+
+    s = sc.classic_real_arm(np.random.default_rng(2001), eye_in_hand=eye_in_hand)
+    t = s.problem.target
+    for scale in (1.0, 0.98):
+        board = replace(t, points_m=t.points_m * scale, square_size_m=t.square_size_m * scale)
+        problem = replace(s.problem, target=board)
+        res = calibrate(problem)
+        ratios = [c.ratio for c in res.scale_checks]
+        assert len(ratios) >= 20 and abs(np.median(ratios) - scale) < 0.005, ratios
+        failed = {c.test: c.message for c in judge(res, problem=problem).checks if not c.passed}
+        if scale == 1.0:
+            assert "scale" not in failed, failed
+        else:
+            assert "target.square_size_m" in failed["scale"], failed
