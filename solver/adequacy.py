@@ -752,9 +752,10 @@ def _move_scale(
 #: camera/robot length ratio to this relative standard error (:func:`classic_scale_fit`). With
 #: every frame aimed at the board from nearly one distance, a scale of what the camera sees is
 #: a shift of the hand-eye along the viewing direction: the public classic KUKA session (28
-#: frames, 0.41-0.46 m from its board) pins it to 0.8 % (its ratio reads 1.05), and a check
-#: there would test the geometry, not the board. Simulated classic sessions (0.4-0.7 m):
-#: 0.1-0.2 % eye-in-hand, 0.03-0.1 % eye-to-hand.
+#: frames, its camera 0.35-0.47 m from the board's centre) pins it to 0.7-0.8 % (its ratio
+#: reads 1.05), and a check there would test the geometry, not the board
+#: (:func:`unchecked_scale_note` says so). Simulated classic sessions (0.44-0.61 m): 0.1-0.2 %
+#: eye-in-hand, 0.03-0.1 % eye-to-hand.
 MAX_CLASSIC_SCALE_SE = 0.003
 
 
@@ -847,6 +848,38 @@ def scale_moves(
             pa, pb = (_moving_point(poses[i], problem.mount) for i in (a, b))
             moves.append((int(a), int(b), robot, float(np.linalg.norm(pb - pa))))
     return moves
+
+
+def unchecked_scale_note(
+    problem: CalibrationProblem,
+    poses: dict[int, np.ndarray],
+    R_static_base: np.ndarray,
+    groups: np.ndarray | None,
+) -> tuple[str, ...]:
+    """The line saying that a classic session's geometry leaves its camera/robot scale
+    unchecked (:func:`scale_moves` gives it no move), with the frames' distances from the
+    board and what would let it be checked; () for any other session. ``poses``: frame index
+    -> ``T_cam_board`` from the images alone."""
+    from slidecal.solver.refine import orientation_groups
+
+    if len(poses) < 4:
+        return ()
+    if groups is None:
+        groups = orientation_groups(np.stack([f.T_base_tool for f in problem.frames]))
+    if np.bincount(groups[sorted(poses)]).max() > 1:  # moves at one orientation: checked
+        return ()
+    fit = classic_scale_fit(problem, poses, R_static_base)
+    if fit is not None and fit[1] <= MAX_CLASSIC_SCALE_SE:
+        return ()
+    centre = problem.target.points_m.mean(axis=0)
+    dist = [float(np.linalg.norm(T[:3, :3] @ centre + T[:3, 3])) for T in poses.values()]
+    pinned = "not at all" if fit is None else f"only to {100 * fit[1]:.1f} %"
+    return (
+        "the camera/robot scale (the board's square size against the robot's lengths) is not "
+        f"checked: every frame is {min(dist):.2f}-{max(dist):.2f} m from the board, which pins "
+        f"it {pinned}, and a wrong square size would move the hand-eye along the viewing "
+        "direction unseen; frames nearer to and farther from the board let it be checked",
+    )
 
 
 #: A frame whose robot pose correction (rotation or translation, as a 3-vector) is this many

@@ -32,6 +32,7 @@ from slidecal.solver.adequacy import (
     record_check,
     scale_moves,
     static_rotation,
+    unchecked_scale_note,
 )
 from slidecal.solver.degeneracy import check_configuration, n_directions
 from slidecal.solver.errors import DegenerateError, InputError
@@ -988,6 +989,15 @@ def _result(
     rms = float(np.sqrt(np.mean(inl**2) * 2)) if len(inl) else float("nan")
     adequacy, robot_accuracy = assess(problem, out, fit, groups)
     known = _fitted_poses(out, fit)  # the scale checks' poses; the model guesses the others'
+    guesses = {i: model.T_ref_board(state, i) for i in range(len(problem.frames)) if i not in known}
+    poses = image_poses(problem, state, guesses, known)
+    checks = scale_checks(problem, state, groups, known=poses)
+    if not checks and poses:  # a classic session whose geometry leaves its scale unchecked
+        scale_note = unchecked_scale_note(
+            problem, poses, static_rotation(state, problem.mount), groups
+        )
+    else:
+        scale_note = ()
     return CalibrationResult(
         cameras=cams,
         hand_eye=hand_eye,
@@ -1008,14 +1018,9 @@ def _result(
         + (_correlation_note(problem, correlated, misfit) if named is not None else ())
         + (_grouped_note(grouped) if named is not None else ())
         + field_note
-        + bad_images_note(adequacy),
-        scale_checks=scale_checks(
-            problem,
-            state,
-            groups,
-            {i: model.T_ref_board(state, i) for i in range(len(problem.frames)) if i not in known},
-            known,
-        ),
+        + bad_images_note(adequacy)
+        + scale_note,
+        scale_checks=checks,
         H_inf=H_inf,
         linear=K_lin,
         mount=problem.mount,
@@ -1056,6 +1061,27 @@ def _fitted_poses(out: RefineOutput, fit: FreePoseFit | None = None) -> dict[int
     }
 
 
+def image_poses(
+    problem: CalibrationProblem,
+    state: ModelState,
+    guesses: dict[int, np.ndarray] | None = None,
+    known: dict[int, np.ndarray] | None = None,
+) -> dict[int, np.ndarray]:
+    """The reference camera's ``T_cam_board`` per frame index from its image alone (PnP with
+    the final intrinsics; ``guesses`` only start it), for the frames ``known`` does not hold
+    already; {} for a session without robot poses."""
+    if problem.knowledge != "robot":
+        return {}
+    ref = problem.reference
+    poses = dict(known or {})
+    todo = [i for i in range(len(problem.frames)) if i not in poses]
+    if todo:
+        poses.update(
+            _frame_poses(problem, ref, state.K[ref], state.dist[ref], guesses=guesses, only=todo)
+        )
+    return poses
+
+
 def scale_checks(
     problem: CalibrationProblem,
     state: ModelState,
@@ -1071,14 +1097,7 @@ def scale_checks(
     ``T_cam_board``) already computed."""
     if problem.knowledge != "robot":
         return ()
-    ref = problem.reference
-    known = known or {}
-    poses = dict(known)
-    todo = [i for i in range(len(problem.frames)) if i not in known]
-    if todo:
-        poses.update(
-            _frame_poses(problem, ref, state.K[ref], state.dist[ref], guesses=guesses, only=todo)
-        )
+    poses = image_poses(problem, state, guesses, known)
     moves = scale_moves(problem, poses, static_rotation(state, problem.mount), groups, 0.001)
     ids = [f.id for f in problem.frames]
     return tuple(ScaleCheck(ids[a], ids[b], 1000.0 * r, 1000.0 * c) for a, b, r, c in moves)

@@ -11,7 +11,12 @@ import yaml
 
 from slidecal.mocks import scenarios as sc
 from slidecal.routines.session import SESSION_FILE, read_session
-from slidecal.solver.adequacy import MAX_CLASSIC_SCALE_SE, classic_scale_fit, scale_moves
+from slidecal.solver.adequacy import (
+    MAX_CLASSIC_SCALE_SE,
+    classic_scale_fit,
+    scale_moves,
+    unchecked_scale_note,
+)
 from slidecal.solver.calibrate import calibrate, pnp_pose
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import (
@@ -561,15 +566,17 @@ def test_a_classic_sessions_scale_is_read_only_where_its_geometry_pins_it():
         moves = scale_moves(problem, poses, R, None, 0.001)
         assert len(moves) == 19
         assert abs(np.median([c / r for *_, r, c in moves]) - scale) < 0.003
-    # every frame 0.43 m from the board's centre, aimed at it: a scale of the camera's view is
-    # a shift of the hand-eye along the viewing direction, which the fit cannot tell apart;
-    # at 0.41-0.46 m (the public classic KUKA session's distances) it barely can: no move
-    # is checked
+    assert unchecked_scale_note(problem, poses, R, None) == ()
+    # every frame 0.43 m from the point it is aimed at: a scale of the camera's view is a
+    # shift of the hand-eye along the viewing direction, which the fit cannot tell apart; at
+    # 0.41-0.46 m it barely can: no move is checked, and the result says so
     for distances in (np.full(20, 0.43), rng.uniform(0.41, 0.46, 20)):
         problem, poses, R = _aimed_session(np.random.default_rng(3), distances, 1.02)
         fit = classic_scale_fit(problem, poses, R)
         assert fit is None or fit[1] > MAX_CLASSIC_SCALE_SE, fit
         assert scale_moves(problem, poses, R, None, 0.001) == []
+        (note,) = unchecked_scale_note(problem, poses, R, None)
+        assert "scale" in note and "not checked" in note and "nearer to and farther" in note
 
 
 @pytest.mark.parametrize("eye_in_hand", [True, False], ids=["eye-in-hand", "eye-to-hand"])
