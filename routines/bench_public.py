@@ -36,7 +36,7 @@ import yaml
 
 from slidecal.routines.bench_reality import hand_eye_errors
 from slidecal.routines.benchmarks import publish_report, report_header
-from slidecal.routines.results_io import read_result
+from slidecal.routines.results_io import read_result, scale_check_summary
 from slidecal.solver.errors import InputError
 from slidecal.solver.refine import orientation_groups
 
@@ -132,7 +132,7 @@ def solve(session: Path) -> tuple[int, dict, float]:
 
 def _row(label: str, code: int, r, dt: float) -> str:  # noqa: ANN001 - CalibrationResult
     if r is None:
-        return f"| {label} | {code} | | | | | | | {dt:.1f} |"
+        return f"| {label} | {code} | | | | | | | | {dt:.1f} |"
     c = r.cameras["cam"]
     he = r.hand_eye
     bow = (
@@ -144,10 +144,12 @@ def _row(label: str, code: int, r, dt: float) -> str:  # noqa: ANN001 - Calibrat
     ra = r.robot_accuracy
     arm = f"{ra.translation_mm:.2f} mm, {ra.rotation_deg:.3f} deg" if ra is not None else ""
     t = f"{he.std_t_mm:.2f}" if he is not None and he.std_t_mm is not None else "n/a"
+    sc = scale_check_summary(r.scale_checks)
+    scale = f"{sc['median_ratio']:.4f} over {sc['n']} moves" if sc else "not checked"
     return (
         f"| {label} | {code} | {c.K[0, 0]:.2f} +- {c.std['fx']:.2f} | "
         f"{c.K[0, 2]:.2f} +- {c.std['cx']:.2f} | {c.K[1, 2]:.2f} +- {c.std['cy']:.2f} | {bow} | "
-        f"{arm} | {he.std_rot_deg:.3f} deg, {t} mm | {dt:.1f} |"
+        f"{arm} | {scale} | {he.std_rot_deg:.3f} deg, {t} mm | {dt:.1f} |"
     )
 
 
@@ -307,11 +309,13 @@ def main(argv: list[str] | None = None) -> int:
         "DIR: the folder holding the data set's kuka_1, kuka_2 and kuka_3 (Ali, Suominen, "
         "Gotchev, Morales: Methods for simultaneous robot-world-hand-eye calibration, Sensors "
         "19(12) 2837, 2019; not shipped). What the board's bow and print do: "
-        "docs/ROBOT_ACCURACY.md, 'The board'.",
+        "docs/ROBOT_ACCURACY.md, 'The board'. Camera/robot scale: the median ratio of the "
+        "moves' lengths as the camera and the robot tell them (the verdict's scale test); "
+        "kuka_2's geometry does not pin it (docs/METHOD.md Sec. 3), and its result says so.",
         "",
         "| session | exit | fx (px) | cx (px) | cy (px) | bow x, y (mm) | robot accuracy "
-        "learned | hand-eye std | solve s |",
-        "| --- | ---: | ---: | ---: | ---: | --- | --- | --- | ---: |",
+        "learned | camera/robot scale | hand-eye std | solve s |",
+        "| --- | ---: | ---: | ---: | ---: | --- | --- | --- | --- | ---: |",
         *rows,
         "",
         "The peer on the same detections: OpenCV's `calibrateCamera` on all of a set's frames "
