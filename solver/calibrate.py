@@ -21,11 +21,13 @@ import numpy as np
 
 from slidecal.solver.adequacy import (
     LEFT_OUT,
+    MAX_CLASSIC_SCALE_SE,
     FreePoseFit,
     ImageOutlier,
     PoseOutlier,
     assess,
     bad_images_note,
+    classic_scale_fit,
     final_free_pose_fit,
     image_outlier,
     pose_outlier,
@@ -812,10 +814,56 @@ def _calibrate(
         fit = final_free_pose_fit(out)
     if notes:
         out = replace(out, messages=out.messages + tuple(notes))
-    board = fit_board(problem, out)
+    scale = session_scale(problem, out, fit, groups)
+    board = with_session_scale(problem, out, fit_board(problem, out), scale)
     if board is not None:
         out = replace(out, board=board)
     return _result(problem, out, K_lin, groups, fit)
+
+
+def session_scale(
+    problem: CalibrationProblem, out: RefineOutput, fit: FreePoseFit, groups: np.ndarray
+) -> float:
+    """How far a classic session's camera/robot length ratio is from 1 beyond what its fit can
+    tell from noise (:func:`slidecal.solver.adequacy.classic_scale_fit`):
+    ``sqrt(max(0, (ratio - 1)^2 - (2 se)^2))``, relative; 0 for any other session or where its
+    geometry does not pin the ratio (docs/METHOD.md Sec. 3).
+
+    A classic session cannot tell a board printed at another scale from an arm whose moves are
+    longer or shorter than it reports: with every frame aimed at the board, either moves the
+    hand-eye along the viewing direction, and the solve, which models the arm's linear field
+    at a level learned from the same frames, takes little of it. Where the images alone read a
+    scale the noise does not explain, it is carried in the covariance as the board's scale
+    uncertainty (:func:`with_session_scale`)."""
+    if problem.knowledge != "robot" or np.bincount(groups).max() > 1:
+        return 0.0
+    poses = _fitted_poses(out, fit)
+    scale = classic_scale_fit(problem, poses, static_rotation(out.state, problem.mount))
+    if scale is None or scale[1] > MAX_CLASSIC_SCALE_SE:
+        return 0.0
+    ratio, se, _ = scale
+    return float(np.sqrt(max(0.0, (ratio - 1.0) ** 2 - (2.0 * se) ** 2)))
+
+
+def with_session_scale(
+    problem: CalibrationProblem, out: RefineOutput, board: BoardFit | None, scale: float
+) -> BoardFit | None:
+    """``board`` (the session's :func:`fit_board`) with its scale mode's second moment at
+    least ``scale^2``, the others kept; for a board described as exact (no fit), a fit of the
+    scale mode alone (no bow read: the estimate stays)."""
+    if scale <= 0.0:
+        return board
+    if board is None:
+        exact = replace(problem.target, print_tolerance=scale, flatness_m=0.0)
+        board = fit_board(replace(problem, target=exact), out)
+        if board is None:
+            return None
+        return replace(board, mode_cov=np.diag([scale**2, 0.0, 0.0, 0.0, 0.0]))
+    if board.mode_cov[0, 0] >= scale**2:
+        return board
+    mode_cov = board.mode_cov.copy()
+    mode_cov[0, 0] = scale**2
+    return replace(board, mode_cov=mode_cov)
 
 
 def _field_note(
@@ -1033,8 +1081,8 @@ def _result(
 
 def _board_shape(problem: CalibrationProblem, fit: BoardFit | None) -> BoardShape | None:
     """The result's :class:`BoardShape` of a board fit (None without one)."""
-    if fit is None:
-        return None
+    if fit is None or (problem.target.flatness_m <= 0 and problem.target.print_tolerance <= 0):
+        return None  # a board described as exact: a scale carried for the session alone
     sd = np.sqrt(np.clip(np.diag(fit.bow_cov), 0.0, None))
     return BoardShape(
         (float(1000.0 * fit.bow_m[0]), float(1000.0 * fit.bow_m[1])),

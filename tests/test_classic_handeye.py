@@ -600,3 +600,37 @@ def test_a_classic_session_with_a_wrong_square_size_is_rejected_for_its_scale(ey
             assert "scale" not in failed, failed
         else:
             assert "target.square_size_m" in failed["scale"], failed
+
+
+def test_a_classic_sessions_unexplained_scale_is_carried_in_its_covariance(monkeypatch):
+    # an arm whose moves are 0.5 % longer than it reports (classic_real_arm(arm_scale=...),
+    # seed 2002): the images alone read the camera/robot length ratio at 1.0037 +- 0.0012, a
+    # scale the noise does not explain, which with every frame aimed at the board moves the
+    # hand-eye along the viewing direction; the solve put T_tool_cam.tz 1.69 of its std off the
+    # truth the session can know. The scale is now carried as the board's scale uncertainty
+    import slidecal.solver.calibrate as cal
+
+    def z_tz(res, s):  # noqa: ANN001, ANN202
+        ra = res.robot_accuracy
+        X, _ = sc.effective_truth(s, max(ra.rotation_deg, 1e-4), max(ra.translation_mm, 1e-3))
+        return abs(res.hand_eye.t_m[2] - X[2, 3]) / res.std_of("T_tool_cam.tz")
+
+    s = sc.classic_real_arm(np.random.default_rng(2002), arm_scale=0.005)
+    kept = {}
+    inner = cal.session_scale
+
+    def keep(*a):  # noqa: ANN002, ANN202
+        kept["scale"] = inner(*a)
+        return kept["scale"]
+
+    monkeypatch.setattr(cal, "session_scale", keep)
+    res = calibrate(s.problem)
+    assert 0.002 < kept["scale"] < 0.006 and res.board is None  # an exact board: no bow told
+    monkeypatch.setattr(cal, "session_scale", lambda *a: 0.0)
+    before = calibrate(s.problem)
+    assert z_tz(before, s) > 1.5 and z_tz(res, s) < 1.0
+    np.testing.assert_allclose(res.hand_eye.t_m, before.hand_eye.t_m, atol=1e-12)  # the same
+    # an arm right to scale (seed 2000, the ratio 0.9985 +- 0.0018): nothing carried
+    monkeypatch.setattr(cal, "session_scale", keep)
+    calibrate(sc.classic_real_arm(np.random.default_rng(2000)).problem)
+    assert kept["scale"] == 0.0
