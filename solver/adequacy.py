@@ -759,6 +759,13 @@ def _move_scale(
 MAX_CLASSIC_SCALE_SE = 0.003
 
 
+def classic(groups: np.ndarray, frames: list[int] | dict[int, np.ndarray]) -> bool:
+    """Whether no two of ``frames`` (frame indices) share an orientation group (``groups``):
+    a classic hand-eye session, as far as those frames go."""
+    idx = sorted(frames)
+    return bool(idx) and int(np.bincount(np.asarray(groups)[idx]).max()) < 2
+
+
 def static_rotation(state: ModelState, mount: str) -> np.ndarray:
     """The rotation from the base into the frame that stays still while the tool moves: the
     board's (eye-in-hand) or the camera's (eye-to-hand), from a refinement's state."""
@@ -832,7 +839,7 @@ def scale_moves(
     groups = orientation_groups(T) if groups is None else groups
     q = np.zeros(3)
     chains = [[i for i in np.flatnonzero(groups == g) if i in poses] for g in np.unique(groups)]
-    if all(len(c) < 2 for c in chains):  # a classic session
+    if classic(groups, poses):
         fit = classic_scale_fit(problem, poses, R_static_base)
         if fit is None or fit[1] > MAX_CLASSIC_SCALE_SE:
             return []
@@ -866,7 +873,7 @@ def unchecked_scale_note(
         return ()
     if groups is None:
         groups = orientation_groups(np.stack([f.T_base_tool for f in problem.frames]))
-    if np.bincount(groups[sorted(poses)]).max() > 1:  # moves at one orientation: checked
+    if not classic(groups, poses):  # moves at one orientation: checked
         return ()
     fit = classic_scale_fit(problem, poses, R_static_base)
     if fit is not None and fit[1] <= MAX_CLASSIC_SCALE_SE:

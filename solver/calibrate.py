@@ -27,6 +27,7 @@ from slidecal.solver.adequacy import (
     PoseOutlier,
     assess,
     bad_images_note,
+    classic,
     classic_scale_fit,
     final_free_pose_fit,
     image_outlier,
@@ -835,9 +836,9 @@ def session_scale(
     at a level learned from the same frames, takes little of it. Where the images alone read a
     scale the noise does not explain, it is carried in the covariance as the board's scale
     uncertainty (:func:`with_session_scale`)."""
-    if problem.knowledge != "robot" or np.bincount(groups).max() > 1:
+    poses = _fitted_poses(out, fit) if problem.knowledge == "robot" else {}
+    if not classic(groups, poses):
         return 0.0
-    poses = _fitted_poses(out, fit)
     scale = classic_scale_fit(problem, poses, static_rotation(out.state, problem.mount))
     if scale is None or scale[1] > MAX_CLASSIC_SCALE_SE:
         return 0.0
