@@ -85,7 +85,12 @@ class Limits:
 
     ``max_rms_px``: reprojection rms when the solver gives no adequacy test.
     ``fx_rel_std``: relative one-sigma of fx and fy. ``cxy_std_px``: one-sigma of cx, cy.
-    ``hand_eye_rot_std_deg`` / ``hand_eye_t_std_mm``: one-sigma of the hand-eye (and rig).
+    ``hand_eye_rot_std_deg`` / ``hand_eye_t_std_mm``: one-sigma of the hand-eye (and rig); the
+    translation's is the root of the three axes' variances. A real arm's accuracy (0.5-2 mm,
+    mostly systematic) sets it for a sound session: on public real sessions (an industrial arm,
+    28-30 frames) 1.5-1.9 mm, 1.2-2.0 mm with two of their frames left out
+    (docs/PUBLIC_DATA.md), so the default (3 mm) accepts those; a cell that needs less sets
+    its own.
     ``hand_eye_rot_std_deg_from_translations``: one-sigma of a hand-eye rotation the session
     determines from translations alone (one orientation: its translation is not observable);
     on a real arm it is a few tenths of a degree, and the full hand-eye's limit would reject
@@ -113,7 +118,7 @@ class Limits:
     fx_rel_std: float = 0.005
     cxy_std_px: float = 3.0
     hand_eye_rot_std_deg: float = 0.2
-    hand_eye_t_std_mm: float = 2.0
+    hand_eye_t_std_mm: float = 3.0
     hand_eye_rot_std_deg_from_translations: float = 1.0
     cxy_std_px_from_translations: float = 8.0
     fx_rel_std_from_translations: float = 0.01

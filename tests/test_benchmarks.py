@@ -140,3 +140,53 @@ def test_header_shows_an_out_of_project_report_path_as_its_place_in_docs():
     assert "`slidecal bench stereo --out=docs/`" in lines[2]
     lines = report_header("T", "run", ["--out", "docs/RUN.md"], 1.0)
     assert "--out docs/RUN.md`" in lines[2]
+
+
+def test_public_data_bench_leaves_frames_out_and_reports_each_verdict(tmp_path, monkeypatch):
+    # each session of a set with two frames left out: drawn without repeat, seeded by the set,
+    # solved as a user solves it; a session not accepted is named with the frames it lacks
+    from types import SimpleNamespace
+
+    import cv2
+    import numpy as np
+
+    from slidecal.routines import bench_public
+    from slidecal.routines.session import read_session
+
+    d = tmp_path / "kuka_1"
+    d.mkdir()
+    T = np.eye(4)
+    np.savetxt(d / "RobotPosesVec.txt", np.stack([T.ravel()] * 5), delimiter="\t")
+    for k in range(1, 6):
+        cv2.imwrite(str(d / f"{k:02d}.png"), np.full((120, 160), 200, np.uint8))
+
+    def result(t_mm: float, fx: float):  # noqa: ANN202 - the fields the bench reads
+        he = SimpleNamespace(t_m=np.array([t_mm, 0.0, 0.0]) / 1000, std_t_mm=1.5, std_rot_deg=0.1)
+        return SimpleNamespace(
+            hand_eye=he, cameras={"cam": SimpleNamespace(K=np.diag([fx, fx, 1]))}
+        )
+
+    full = result(0.0, 1000.0)
+    seen = []
+
+    def solve(session):  # noqa: ANN001, ANN202
+        kept = [f.id for f in read_session(session).frames]
+        seen.append(kept)
+        return (4 if 3 not in kept else 0), result(2.0, 1001.0), 0.1
+
+    monkeypatch.setattr(bench_public, "solve", solve)
+    rows = bench_public.leave_out_rows("kuka_1", tmp_path, tmp_path / "w", full, 4)
+    assert len(rows) == 4
+    for r, kept in zip(rows, seen, strict=True):
+        assert len(set(r.gone)) == 2 and set(r.gone) <= {1, 2, 3, 4, 5}
+        assert sorted(kept + r.gone) == [1, 2, 3, 4, 5]
+        assert r.code == (4 if 3 in r.gone else 0)
+        assert r.dfx_px == 1.0 and abs(r.dt_mm - 2.0) < 1e-9
+    again = bench_public.leave_out_rows("kuka_1", tmp_path, tmp_path / "w2", full, 4)
+    assert [r.gone for r in again] == [r.gone for r in rows]  # seeded by the set
+    table = bench_public._leave_out_section({"kuka_1": rows})
+    line = next(x for x in table if x.startswith("| kuka_1 |"))
+    accepted = sum(3 not in r.gone for r in rows)
+    assert line.startswith(f"| kuka_1 | 4 | {accepted} | 0.100 to 0.100 | 1.50 to 1.50 |")
+    for r in rows:
+        assert (f"frames {r.gone} left out: exit 4" in line) == (3 in r.gone)
