@@ -172,11 +172,17 @@ COLOUR_CONVERSIONS = ("green", "luma", "mean")
 COLOUR_CONVERSION = "green"  # measured in docs/DETECTION.md (chromatic aberration)
 
 
+#: The percentiles of a non-8-bit image mapped to 0 and 255 (:func:`grey_of`)
+GREY_RANGE_PERCENTILES = (0.01, 99.99)
+
+
 def grey_of(image: np.ndarray, colour: str = COLOUR_CONVERSION) -> np.ndarray:
     """uint8 (H, W) of an (H, W) grey or (H, W, 3|4) BGR(A) image.
 
     ``colour``: "green" (the G channel), "luma" (OpenCV's BGR2GRAY mix) or "mean" (the
-    channels' mean). Other dtypes are rescaled to 0..255 over their range.
+    channels' mean). Other dtypes (a 12- or 16-bit sensor's, a float image) are rescaled to
+    0..255 between their 0.01 and 99.99 percentiles, so that a few hot or dead pixels do not
+    squeeze the board into a handful of grey levels.
     """
     img = np.asarray(image)
     if img.ndim == 3 and img.shape[2] == 1:
@@ -199,7 +205,7 @@ def grey_of(image: np.ndarray, colour: str = COLOUR_CONVERSION) -> np.ndarray:
         raise InputError(f"image must be (H, W) grey or (H, W, 3) BGR, got shape {np.shape(image)}")
     if img.dtype != np.uint8:
         f = img.astype(np.float64)
-        lo, hi = float(np.min(f)), float(np.max(f))
+        lo, hi = (float(x) for x in np.percentile(f, GREY_RANGE_PERCENTILES))
         scale = 255.0 / (hi - lo) if hi > lo else 0.0
         img = np.clip((f - lo) * scale, 0, 255).astype(np.uint8)
     return np.ascontiguousarray(img)

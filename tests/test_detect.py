@@ -253,6 +253,14 @@ def test_bad_inputs_raise():
         * 256
     )
     assert detect(u16, CHARUCO).ok
+    # a 12-bit sensor's image in 16 bits with a few hot pixels at full scale: the board keeps
+    # its contrast (scaled by the full range, it would fall into 16 grey levels and be missed)
+    u12 = u16 // 16
+    hot = u12.copy()
+    hot[np.random.default_rng(2).integers(0, hot.shape[0], 20), np.arange(20)] = 65535
+    assert grey_of(hot).max() == 255 and np.ptp(grey_of(hot)[hot < 4096]) > 200
+    assert detect(hot, CHARUCO).ok
+    assert len(detect(hot, CHARUCO).detection.ids) == len(detect(u16, CHARUCO).detection.ids)
 
 
 # ----------------------------------------------------------------------------- real photographs
