@@ -59,6 +59,7 @@ from slidecal.solver.named import (
     misfit_image,
     mount_names,
     named_step,
+    reported_response,
     result_covariance,
     session_field_step,
 )
@@ -817,8 +818,8 @@ def _calibrate(
         out = replace(out, messages=out.messages + tuple(notes))
     scale = session_scale(problem, out, fit, groups)
     board = with_session_scale(problem, out, fit_board(problem, out), scale)
-    if board is not None:
-        out = replace(out, board=board)
+    if board is not None:  # its modes' response at the reported value (a classic session's)
+        out = replace(out, board=replace(board, response=reported_response(out, board.response)))
     return _result(problem, out, K_lin, groups, fit)
 
 

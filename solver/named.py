@@ -712,16 +712,38 @@ def session_field_step(out: RefineOutput) -> np.ndarray | None:
     better on every arm (docs/ROBOT_ACCURACY.md), so the result is reported between them
     (:data:`FIELD_WEIGHT`) and their spread is carried in the covariance
     (:func:`session_field_excess`)."""
+    return _without_field(out, out.state.V)
+
+
+def _without_field(out: RefineOutput, V: np.ndarray | None) -> np.ndarray | None:
+    """``-C[:, V] C[V, V]^-1 V`` for a classic session's solve (``V``: the trend's coordinates,
+    (n_V,) or (n_V, k)): the optimiser's step to its reading without the field; None for any
+    other session."""
     m = out.model
-    if not _session_trend(out) or out.state.V is None:
+    if not _session_trend(out) or V is None:
         return None
     sv = m.slices["V"]
     v = np.arange(sv.start, sv.stop)
     C = out.covariance_blocks.submatrix(np.arange(len(out.names)), v)
     try:
-        return -C @ np.linalg.solve(C[v], out.state.V)
+        return -C @ np.linalg.solve(C[v], V)
     except np.linalg.LinAlgError:
         return None
+
+
+def reported_response(out: RefineOutput, response: np.ndarray) -> np.ndarray:
+    """The reported value's response (P, k) to what moves the solve by ``response`` (P, k):
+    for a classic session, reported between its readings with and without the field
+    (:func:`session_field_step`), the solve's own plus :data:`FIELD_WEIGHT` times the field
+    step's response (the trend's part of ``response`` taken back); ``response`` itself for any
+    other session. The board's modes reach the result so (its scale: a classic session's
+    reading without the field takes it whole as a shift of the hand-eye along the view, the
+    field's reading partly as an arm scale)."""
+    if out.state.V is None:
+        return response
+    v = out.model.slices["V"] if "V" in out.model.slices else None
+    step = _without_field(out, response[v] if v is not None else None)
+    return response if step is None else response + FIELD_WEIGHT * step
 
 
 def session_field_excess(

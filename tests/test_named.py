@@ -539,3 +539,58 @@ def test_untold_field_gain_is_the_response_of_a_solve(monkeypatch):
     for scen in (sc.r1_real_arm(np.random.default_rng(2000)), sc.r1(np.random.default_rng(7))):
         _, o = _solve_keeping_the_refinement(scen.problem, monkeypatch)
         assert session_trend_excess(o) is None and untold_field_excess(o) is None
+
+
+def test_a_classic_sessions_board_reaches_the_result_between_its_two_readings(monkeypatch):
+    # the result of a classic session is reported halfway between its readings with and
+    # without the arm's linear field; a board printed at another scale moves the two readings
+    # differently (without the field, the hand-eye takes the whole scale as a shift along the
+    # view; with it, the field takes part as the arm's scale). The board's modes reach the
+    # reported value by the response of that halfway reading (reported_response): checked
+    # against re-solves with the board 0.2 % larger, the levels held. With the response of the
+    # field's reading alone, T_tool_cam.tz's share of the board's scale was understated
+    from dataclasses import replace as dc_replace
+
+    from slidecal.solver.geometry import inv_T
+    from slidecal.solver.named import (
+        FIELD_WEIGHT,
+        layout_of,
+        named_step,
+        reported_response,
+        session_field_step,
+    )
+    from slidecal.solver.refine import _refine
+    from slidecal.solver.target_shape import fit_board
+
+    s = sc.classic_real_arm(np.random.default_rng(2006), arm_scale=0.005)
+    _, out = _solve_keeping_the_refinement(s.problem, monkeypatch)
+    p = s.problem
+    tol = dc_replace(p, target=dc_replace(p.target, print_tolerance=1e-3, flatness_m=0.0))
+    G = fit_board(tol, out).response[:, :1]  # per unit of the board's scale
+    eps = 2e-3
+    big = dc_replace(p, target=dc_replace(p.target, points_m=p.target.points_m * (1.0 + eps)))
+    m = out.model
+    held = dc_replace(  # the levels as learned
+        m.st, pose_sigma=m.pose_sigma, group_sigma=m.group_sigma, trend_sigma=m.trend_sigma
+    )
+    base = _refine(p, held, out.state, 100, robust=False, estimate=False)
+    r = _refine(big, held, out.state, 100, robust=False, estimate=False)
+    layout = layout_of(p, m.st, out.state)
+
+    def tz(o, step=None):  # noqa: ANN001, ANN202 - the reading (with a step of the field)
+        state = o.state if step is None else o.model.apply(o.state, step)
+        return inv_T(state.X[0])[2, 3]
+
+    def predicted(response):  # noqa: ANN001, ANN202
+        return named_step(layout, tuple(out.names), eps * response[:, 0])["T_tool_cam.tz"]
+
+    moved_with = tz(r) - tz(base)
+    moved_reported = tz(r, FIELD_WEIGHT * session_field_step(r)) - tz(
+        base, FIELD_WEIGHT * session_field_step(base)
+    )
+    rep = reported_response(out, G)
+    # the readings take the scale unlike: here the field's moves tz by +0.12 mm, the reported
+    # value by -0.18 mm (without the field, -0.49 mm)
+    assert abs(moved_reported - moved_with) > 2.0 * abs(moved_with)
+    np.testing.assert_allclose(predicted(G), moved_with, rtol=0.05)
+    np.testing.assert_allclose(predicted(rep), moved_reported, rtol=0.05)
