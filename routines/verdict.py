@@ -88,7 +88,7 @@ class Limits:
     ``hand_eye_rot_std_deg`` / ``hand_eye_t_std_mm``: one-sigma of the hand-eye (and rig); the
     translation's is the root of the three axes' variances. A real arm's accuracy (0.5-2 mm,
     mostly systematic) sets it for a sound session: on public real sessions (an industrial arm,
-    28-30 frames) 1.5-1.9 mm, 1.2-2.0 mm with two of their frames left out
+    28-30 frames) 1.5-1.9 mm, 1.1-2.0 mm with two of their frames left out
     (docs/PUBLIC_DATA.md), so the default (3 mm) accepts those; a cell that needs less sets
     its own.
     ``hand_eye_rot_std_deg_from_translations``: one-sigma of a hand-eye rotation the session
