@@ -739,10 +739,8 @@ def reported_response(out: RefineOutput, response: np.ndarray) -> np.ndarray:
     other session. The board's modes reach the result so (its scale: a classic session's
     reading without the field takes it whole as a shift of the hand-eye along the view, the
     field's reading partly as an arm scale)."""
-    if out.state.V is None:
-        return response
-    v = out.model.slices["V"] if "V" in out.model.slices else None
-    step = _without_field(out, response[v] if v is not None else None)
+    v = out.model.slices.get("V")
+    step = None if v is None else _without_field(out, response[v])
     return response if step is None else response + FIELD_WEIGHT * step
 
 
