@@ -12,10 +12,10 @@ runs it too and writes the table with the message of each case.
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import copy
 import io
-import sys
 import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from slidecal.routines.schema import dump_yaml
+from tests.bench.report import RESULTS, publish_report
 
 DELETE = object()
 
@@ -1276,15 +1277,7 @@ def _clean(o: Outcome) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m tests.bench.bad_input [OUT.md]``: write (or print) the table."""
-    argv = sys.argv[1:] if argv is None else argv
-    text = table_markdown()
-    if argv:
-        Path(argv[0]).write_text(text, encoding="utf-8")
-    else:
-        sys.stdout.write(text)
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+    """``python -m tests.bench bad_input``: run the table and write its page."""
+    ap = argparse.ArgumentParser(prog="python -m tests.bench bad_input", description=__doc__)
+    ap.add_argument("--out", default=str(RESULTS / "BAD_INPUT.md"), help="the page to write")
+    return publish_report(table_markdown(), ap.parse_args(argv).out)
