@@ -33,3 +33,17 @@ def test_public_data_bench_names_missing_data_in_one_line(tmp_path):
     o = bench("public", "--data", str(tmp_path))
     assert o.returncode == 2 and "Traceback" not in o.stderr
     assert "kuka_1, kuka_2 and kuka_3" in o.stderr and len(o.stderr.strip().splitlines()) == 1
+
+
+def test_split_half_runs_on_a_session_and_reports_without_local_paths(tmp_path):
+    # a simulated session with robot poses: z per intrinsic and per hand-eye axis, OpenCV's beside
+    out = tmp_path / "SPLIT.md"
+    o = bench("split_half", "tests/data/r1_session", "--seeds", "2", "--out", str(out))
+    assert o.returncode == 0, o.stderr
+    text = out.read_text()
+    assert "`python -m tests.bench split_half tests/data/r1_session --seeds 2 --out " \
+           "docs/results/SPLIT.md`" in text
+    assert str(tmp_path) not in text
+    for row in ("| fx |", "| cy |", "| hand-eye rx |", "| hand-eye tz |"):
+        assert row in text
+    assert "0 split(s) where a half did not solve" in text
