@@ -20,17 +20,20 @@ import io
 import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import yaml
 
+from slidecal.routines import cli
 from slidecal.routines.config import CELL_KEYS
 from slidecal.routines.plan import PLAN_KEYS
 from slidecal.routines.planner import PLAN_KEYS as PLANNER_KEYS
-from slidecal.routines.results_io import RESULT_KEYS, RESULT_PART_KEYS
-from slidecal.routines.schema import dump_yaml
+from slidecal.routines.results_io import RESULT_KEYS, RESULT_PART_KEYS, read_result
+from slidecal.routines.schema import dump_yaml, parse_yaml
 from slidecal.routines.session import OPTIONS_KEYS, SESSION_KEYS, TARGET_KEYS
+from slidecal.solver.errors import InputError
 from tests.bench.report import RESULTS, publish_report
 
 DELETE = object()
@@ -61,10 +64,6 @@ class Case:
 
 
 def _cell(base: str) -> dict[str, Any]:
-    from importlib import resources
-
-    from slidecal.routines.schema import parse_yaml
-
     text = resources.files("slidecal.mocks").joinpath("default_cell.yaml").read_text("utf-8")
     d = parse_yaml(text, "default_cell.yaml")
     if base == "real":
@@ -212,8 +211,6 @@ class Outcome:
 
 def run_case(case: Case, directory: Path) -> Outcome:
     """Write the case's files under ``directory`` and feed them to slidecal."""
-    from slidecal.routines import cli
-
     directory.mkdir(parents=True, exist_ok=True)
     data = _apply(valid_data(case.kind, case.base), case)
     text: str | bytes = dump_yaml(data)
@@ -249,9 +246,6 @@ def run_case(case: Case, directory: Path) -> Outcome:
 
 
 def _read_result_case(path: Path, text: str | bytes) -> Outcome:
-    from slidecal.routines.results_io import read_result
-    from slidecal.solver.errors import InputError
-
     path.write_bytes(text.encode("utf-8") if isinstance(text, str) else text)
     try:
         read_result(path)
@@ -382,8 +376,6 @@ def cases() -> tuple[Case, ...]:
 
 def missing_file_outcomes(directory: Path) -> list[tuple[str, Outcome]]:
     """Files named on the command line that are missing or not files."""
-    from slidecal.routines import cli
-
     directory.mkdir(parents=True, exist_ok=True)
     out = directory / "out"
     runs = {

@@ -15,6 +15,7 @@ Regenerate ``docs/results/DETECTION.md`` (about 3 minutes on two shared cores)::
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import time
 from collections.abc import Callable
@@ -561,8 +562,6 @@ def report(seed: int = 0, data_dir: Path | None = None) -> str:
 
 
 def _cores() -> int:
-    import os
-
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
 
 

@@ -36,6 +36,7 @@ from slidecal.routines.planner import (
     planner_settings,
     predict_std,
 )
+from slidecal.routines.run import run_calibration
 from tests.bench.report import RESULTS, publish_report, report_header
 
 
@@ -77,8 +78,6 @@ def naive_plan(cfg: CellConfig, duration_s: float, rng: np.random.Generator) -> 
 
 
 def _monte_carlo(cfg: CellConfig, plan: Plan, seeds: range) -> dict[str, np.ndarray]:
-    from slidecal.routines.run import run_calibration
-
     cam = cfg.reference_camera
     K_true = cfg.simulation.cameras[0].K
     out: dict[str, list[float]] = {

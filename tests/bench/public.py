@@ -38,7 +38,10 @@ import numpy as np
 import yaml
 
 from slidecal.mocks.truth import hand_eye_errors
+from slidecal.routines.cli import main as cli
 from slidecal.routines.results_io import read_result, scale_check_summary
+from slidecal.routines.session import target_from_dict
+from slidecal.solver.detect import detect
 from slidecal.solver.errors import InputError
 from slidecal.solver.refine import orientation_groups
 from tests.bench.report import RESULTS, publish_report, report_header
@@ -122,8 +125,6 @@ def translation_frames(name: str, data: Path) -> list[int]:
 
 def solve(session: Path) -> tuple[int, dict, float]:
     """``slidecal solve SESSION`` as a user runs it: exit code, the result file, seconds."""
-    from slidecal.routines.cli import main as cli
-
     out = session / "result.yaml"
     t0 = time.perf_counter()
     with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
@@ -199,9 +200,6 @@ def opencv_reference(name: str, data: Path) -> Peer | None:
     k2, p1, p2, k3; no robot, the board as described) on slidecal's detections, and
     ``cv2.calibrateHandEye`` on its board poses with the robot's; None when fewer than three
     frames show the board."""
-    from slidecal.routines.session import target_from_dict
-    from slidecal.solver.detect import detect
-
     spec, pattern = SETS[name]
     target = target_from_dict(dict(spec), name)
     poses = np.loadtxt(data / name / "RobotPosesVec.txt").reshape(-1, 4, 4)

@@ -36,9 +36,13 @@ from pathlib import Path
 
 import numpy as np
 
+import slidecal.mocks as mocks
 from slidecal.mocks import scenarios as rs
 from slidecal.mocks.scenarios import scale_pixels
 from slidecal.mocks.truth import rig_bounds
+from slidecal.routines.results_io import truth_transform
+from slidecal.routines.run import run_calibration
+from slidecal.routines.session import load_session
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import rotation_angle_deg
@@ -215,11 +219,6 @@ def oak_cell_end_to_end(seeds: list[int]) -> list[dict[str, float]]:
     ``c.t_mm``, ``c.rot_deg`` against the recorded truth and the reported ``c.std_rot_deg``,
     ``c.std_t_mm``; ``time_s``.
     """
-    import slidecal.mocks as mocks
-    from slidecal.routines.results_io import truth_transform
-    from slidecal.routines.run import run_calibration
-    from slidecal.routines.session import load_session
-
     cfg = Path(mocks.__file__).parent / "oak_cell.yaml"
     out = []
     for seed in seeds:

@@ -23,6 +23,7 @@ import time
 import cv2
 import numpy as np
 
+import slidecal.solver.refine as refine_module
 from slidecal.mocks.scenarios import ARM_ERROR, scale_session
 from slidecal.mocks.scenarios import r1 as r1_scenario  # the module's r1 is a table row
 from slidecal.solver.calibrate import calibrate
@@ -71,8 +72,6 @@ def learned_refinement_s(repeats: int = 15) -> dict[str, float]:
     """R1's solve (the arm's accuracy learned, as ``speed``) split: median wall seconds of the
     whole solve and of the part inside the learned refinement (pose corrections, their levels
     by variance components), timed around ``refine._refine`` with ``estimate`` set."""
-    import slidecal.solver.refine as refine_module
-
     s = r1_scenario(np.random.default_rng(7))
     inner = refine_module._refine
     spent: list[float] = []

@@ -7,7 +7,7 @@ left camera at twice the right's noise. Camera ``a`` is the left camera, ``b`` t
 
 Regenerate the figures and the table of ``docs/results/S5.md``::
 
-    python -m tests.bench stereo --out docs/
+    python -m tests.bench stereo
 """
 
 from __future__ import annotations

@@ -33,8 +33,12 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import yaml
+from scipy.spatial.transform import Rotation
 
 from slidecal.drivers.ur_pose import T_from_ur_pose, ur_pose_from_T
+from slidecal.mocks import scenarios as sc
+from slidecal.mocks.cell import SimulatedCell
 from slidecal.mocks.scenarios import (
     cell_overrides,
     copy_session,
@@ -43,12 +47,17 @@ from slidecal.mocks.scenarios import (
     same_cell,
     square_size,
 )
+from slidecal.routines.check import chain_rms_px, run_check
 from slidecal.routines.config import load_config
+from slidecal.routines.install import install
+from slidecal.routines.planner import make_plan
+from slidecal.routines.run import run_calibration, solve_session
 from slidecal.routines.session import load_session
-from slidecal.routines.verdict import judge
+from slidecal.routines.verdict import Limits, judge
 from slidecal.solver.adequacy import LEFT_OUT
+from slidecal.solver.calibrate import calibrate
 from slidecal.solver.drift import Z_LIMIT
-from slidecal.solver.errors import InputError
+from slidecal.solver.errors import HardwareFault, InputError
 from tests.bench.report import RESULTS
 from tests.unattended_helpers import record_without_translation, simulated_run_command
 
@@ -95,8 +104,6 @@ def poses_inverted(doc: dict) -> None:
 
 def quaternions_scalar_last(doc: dict) -> None:
     """The robot poses given as quaternions in ROS's order [x, y, z, w] under ``q_wxyz``."""
-    from scipy.spatial.transform import Rotation
-
     for f in doc["frames"]:
         T = T_from_ur_pose(f["T_base_tool"])
         xyzw = Rotation.from_matrix(T[:3, :3]).as_quat()
@@ -105,8 +112,6 @@ def quaternions_scalar_last(doc: dict) -> None:
 
 def kuka_angles_as_rpy(doc: dict) -> None:
     """The robot poses given as a KUKA's [A, B, C] (yaw, pitch, roll) under ``rpy_deg``."""
-    from scipy.spatial.transform import Rotation
-
     for f in doc["frames"]:
         T = T_from_ur_pose(f["T_base_tool"])
         abc = Rotation.from_matrix(T[:3, :3]).as_euler("ZYX", degrees=True)
@@ -121,8 +126,6 @@ def mount_eye_to_hand(doc: dict) -> None:
 def _run(cfg, work: Path, cell_seed: int, run_seed: int, plan=None):  # noqa: ANN001, ANN202
     """A run of the cell ``cell_seed`` (see :func:`same_cell`) and its session's problem;
     ``plan``: the plan (default: the planner's for ``cfg``)."""
-    from slidecal.routines.run import run_calibration
-
     o = run_calibration(
         cfg,
         plan=plan,
@@ -136,8 +139,6 @@ def _run(cfg, work: Path, cell_seed: int, run_seed: int, plan=None):  # noqa: AN
 
 def _runs(n: int, work: Path, overrides: dict | None = None, first: int = 1):
     """``n`` runs with seeds ``first``.. (each its own arm and board pose)."""
-    from slidecal.routines.run import run_calibration
-
     cfg = load_config(overrides=overrides)
     out = []
     for seed in range(first, first + n):
@@ -191,9 +192,6 @@ def board_moved_overrides(mm: float = 1.0, deg: float = 0.2) -> dict:
 
 
 def part_gate(n: int, work: Path) -> list[str]:
-    from slidecal.routines.planner import make_plan
-    from slidecal.routines.verdict import Limits
-
     lim = Limits()
     t0 = time.monotonic()
     rows: dict[str, list] = {name: [] for name, _ in CASES}
@@ -253,8 +251,6 @@ def _extended(o) -> bool:  # noqa: ANN001 - a RunOutcome
 
 
 def part_garbage(work: Path) -> list[str]:
-    from slidecal.routines.run import solve_session
-
     ((o, _),) = _runs(1, work)
     cases = [
         ("robot rotations in degrees", rotations_in_degrees),
@@ -292,9 +288,6 @@ def classic_square_rows() -> list[str]:
     arm: ``classic_real_arm``, seed 2001) solved and judged as ``slidecal solve`` does, its
     board described 2 % too small or too large: the hand-eye's error against the truth the
     session can know, in mm and in its reported standard deviations."""
-    from slidecal.mocks import scenarios as sc
-    from slidecal.solver.calibrate import calibrate
-
     lines = [
         "A classic hand-eye session (28 frames, each at its own orientation, a simulated real "
         "arm: `classic_real_arm`, seed 2001), its board described 2 % too small or too large, "
@@ -337,11 +330,6 @@ def _garbage_row(name: str, o) -> str:  # noqa: ANN001
 
 
 def part_check(n: int, work: Path) -> list[str]:
-    from slidecal.routines.check import chain_rms_px, run_check
-    from slidecal.routines.install import install
-    from slidecal.routines.planner import make_plan
-    from slidecal.routines.verdict import Limits
-
     t0 = time.monotonic()
     cases = [(name, cell_overrides(**ch) if ch else {}) for name, ch in CASES]
     cases.append((BOARD_MOVED, board_moved_overrides()))
@@ -447,10 +435,6 @@ def _signal_row(sig: int, name: str, after: int, work: Path) -> str:
 
 
 def _fault_row(kind: str, at: int, work: Path) -> str:
-    from slidecal.mocks.cell import SimulatedCell
-    from slidecal.routines.run import run_calibration
-    from slidecal.solver.errors import HardwareFault
-
     cfg = load_config()
     cell = SimulatedCell.from_config(cfg, seed=1)
     if kind in ("protective_stop", "timeout"):
@@ -475,7 +459,6 @@ def _fault_row(kind: str, at: int, work: Path) -> str:
         code = f"completed, {o.verdict.verdict}"
     except HardwareFault:
         code = "HardwareFault (exit 3)"
-    import yaml
 
     doc = yaml.safe_load((out / "session.yaml").read_text())  # also with no frame at all
     kinds = [e["kind"] for e in doc["events"]]
