@@ -1,20 +1,22 @@
 """Honesty on a real arm: coverage of the reported uncertainty under a simulated arm's accuracy.
 
-Run ``python -m tests.bench reality`` (``--trials``, ``--images points|render``,
-``--out docs/results/REALITY.md``). Each trial draws a new UR5e whose kinematics err like an
-uncalibrated real arm (``slidecal.mocks.robot.KinematicError``: 0.5-2 mm, 0.05-0.2 deg, smooth
-over the workspace, plus repeatability) and a new image noise; the controller reports the
-nominal poses, the camera sees the true ones, and ``calibrate`` runs with default settings
-(the robot's accuracy learned from the data). Per parameter: the fraction of trials whose
-error is within 2 reported standard deviations (the target is >= 90 %), the largest and the
-rms of |error| / std. The hand-eye is compared with the effective truth (what the session can
-know: the physical hand-eye moved by the arm's constant error, ``effective_truth``), rotation
-and translation as 3-vectors (Mahalanobis distance against the reported covariance; 2-sigma
-coverage is a chi-square(3) below 8.03) and per axis, in the result's own parametrisation of
-the reported transform (``T_tool_cam.rx`` .. ``.tz``, docs/FORMATS.md). Beside every figure,
-what a calibrated Gaussian estimator gives over as many trials (:func:`calibration`: binomial
-ranges of the coverage and of the count beyond 3 sigma, chi-square for the rms) and a verdict,
-so a row that is off tells itself from sampling noise.
+One study, four tables: ``python -m tests.bench reality --table
+reality|arm_2mm|arm_05mm|render`` writes docs/results/REALITY.md, REALITY_ARM_2MM.md,
+REALITY_ARM_05MM.md, REALITY_RENDER.md (or give ``--trials``, ``--images points|render``,
+``--arm-mm``, ``--arm-deg``, ``--out``). Each trial draws a new UR5e whose kinematics err like
+an uncalibrated real arm (``slidecal.mocks.robot.KinematicError``: 0.5-2 mm, 0.05-0.2 deg,
+smooth over the workspace, plus repeatability) and a new image noise; the controller reports the
+nominal poses, the camera sees the true ones, and ``calibrate`` runs with default settings (the
+robot's accuracy learned from the data). Per parameter: the fraction of trials whose error is
+within 2 reported standard deviations (the target is >= 90 %), the largest and the rms of
+|error| / std. The hand-eye is compared with the effective truth (what the session can know: the
+physical hand-eye moved by the arm's constant error, ``effective_truth``), rotation and
+translation as 3-vectors (Mahalanobis distance against the reported covariance; 2-sigma coverage
+is a chi-square(3) below 8.03) and per axis, in the result's own parametrisation of the reported
+transform (``T_tool_cam.rx`` .. ``.tz``, docs/FORMATS.md). Beside every figure, what a
+calibrated Gaussian estimator gives over as many trials (:func:`calibration`: binomial ranges of
+the coverage and of the count beyond 3 sigma, chi-square for the rms) and a verdict, so a row
+that is off tells itself from sampling noise.
 
 Image models: ``points``: the true corners with Gaussian noise (0.15 px, what a good corner
 detector leaves on a sharp image); ``render``: images from ``slidecal.mocks.render`` and the
@@ -191,9 +193,24 @@ def speed(repeats: int = 15) -> dict[str, float]:
     return out
 
 
+#: The study's tables: ``--table NAME`` sets these options (any given explicitly wins) and writes
+#: the page; without it, the options as given and REALITY.md
+TABLES = {
+    "reality": ({"trials": 200, "clean_trials": 100}, "REALITY.md"),
+    "arm_2mm": ({"trials": 100, "clean_trials": 0, "arm_mm": 2.0, "arm_deg": 0.2},
+                "REALITY_ARM_2MM.md"),
+    "arm_05mm": ({"trials": 100, "clean_trials": 0, "arm_mm": 0.5, "arm_deg": 0.05},
+                 "REALITY_ARM_05MM.md"),
+    "render": ({"trials": 20, "clean_trials": 0, "images": "render"}, "REALITY_RENDER.md"),
+}
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point (``python -m tests.bench reality``)."""
-    ap = argparse.ArgumentParser(prog="bench_reality", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        prog="python -m tests.bench reality", description=__doc__.splitlines()[0]
+    )
+    ap.add_argument("--table", choices=sorted(TABLES), help="one of the study's tables and page")
     ap.add_argument("--trials", type=int, default=30, help="Monte-Carlo trials per scenario")
     ap.add_argument("--images", choices=("points", "render"), default="points")
     ap.add_argument("--sigma-px", type=float, default=0.15, help="corner noise of 'points'")
@@ -207,6 +224,10 @@ def main(argv: list[str] | None = None) -> int:
         help="trials of the clean efficiency rows (0: skip them)",
     )
     ap.add_argument("--out", default=str(RESULTS / "REALITY.md"), help="the report to write")
+    base = {k: ap.get_default(k) for k in ("sigma_px", "arm_mm", "arm_deg")}
+    table = ap.parse_args(argv).table
+    if table:
+        ap.set_defaults(**TABLES[table][0], out=str(RESULTS / TABLES[table][1]))
     args = ap.parse_args(argv)
     t0 = time.time()
     det = render_detector(args.sigma_px) if args.images == "render" else None
@@ -258,7 +279,7 @@ def main(argv: list[str] | None = None) -> int:
         ("--arm-mm", "arm_mm"),
         ("--arm-deg", "arm_deg"),
     ):
-        if getattr(args, value) != ap.get_default(value):  # what the report needs to be rerun
+        if getattr(args, value) != base[value]:  # what the report needs to be rerun
             cmd += f" {flag} {getattr(args, value):g}"
     lines = [
         "# The solver on a real arm: coverage of its reported uncertainty",
