@@ -2,7 +2,7 @@
 
 Presets:
 
-- ``single_camera()``: the R1 robot-cell camera of docs/BENCHMARKS.md (1280 x 800,
+- ``single_camera()``: the R1 robot-cell camera of docs/results/BENCHMARKS.md (1280 x 800,
   fx = fy = 880, cx 640, cy 400, k1 -0.12, k2 0.05, p1 5e-4, p2 -3e-4, k3 0).
 - ``oak_d_like()``: a Luxonis OAK-D-like head. Two global-shutter OV9282 mono cameras
   "left" and "right" at 1280 x 800 with the datasheet's 72 deg HFOV / 50 deg VFOV
@@ -73,8 +73,8 @@ class SimCamera:
 
 
 def single_camera(name: str = "cam", **overrides: float | bool | Photo) -> SimCamera:
-    """The R1 camera (docs/BENCHMARKS.md); keyword overrides for blur, noise, exposure, colour,
-    photo."""
+    """The R1 camera (docs/results/BENCHMARKS.md); keyword overrides for blur, noise, exposure,
+    colour, photo."""
     return SimCamera(
         name,
         1280,

@@ -21,15 +21,21 @@ R1 in metres. No images: the rendered-image simulator is ``mocks/camera.py``.
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
+import yaml
 
 from slidecal.drivers import ur_kinematics as urk
-from slidecal.mocks.camera import oak_d_like, oak_d_like_extrinsics
+from slidecal.mocks.camera import oak_d_like, oak_d_like_extrinsics, single_camera
+from slidecal.mocks.cell import SimulatedCell
+from slidecal.mocks.render import render_target
 from slidecal.solver.camera import K_matrix, project
+from slidecal.solver.detect import detect as detect_target
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import (
     R_from_rvec,
@@ -41,6 +47,7 @@ from slidecal.solver.geometry import (
     look_at_R_cam_world,
     transform_points,
 )
+from slidecal.solver.homography import homography_dlt, refine_homography
 from slidecal.solver.problem import (
     CalibrationProblem,
     CameraSpec,
@@ -1193,3 +1200,235 @@ NOISE_FREE: dict[str, Callable[[np.random.Generator], Scenario]] = {
     "S2": lambda rng: s2(5, 0.0, rng),
     "S3": lambda rng: s3(5, 0.0, rng),
 }
+
+
+# --------------------------------------------- scenes of the studies and the tests built on them
+def render_detector(sigma_px: float) -> ImageModel:
+    """The ``render`` image model: R1's camera renders the board (bowed as the trial's board
+    is), the detector finds it."""
+    cam = single_camera()
+    target = Target.charuco(11, 8, 0.030, 0.022)
+
+    def run(T_cam_board: np.ndarray, rng: np.random.Generator, bow_m: np.ndarray) -> Detection:
+        image = render_target(target, cam, T_cam_board, rng, bow_m=(bow_m[0], bow_m[1]))
+        return detect_target(image, target).detection
+
+    return run
+
+
+def render_tag_detector(side_m: float = 0.10) -> ImageModel:
+    """The ``render`` image model of the tag session: R1's camera renders one AprilTag of
+    ``side_m`` (36h11, id 0, a white margin of one cell on the tool's darker surround), the
+    detector finds its 4 corners (ids 0-3 in the centred frame of ``scenarios.square_tag``)."""
+    cam = single_camera()
+    tag = Target.apriltag(side_m)
+    # square_tag's centred frame <- the tag's (origin at its top-left corner)
+    T_square_tag = T_from_Rt(np.eye(3), np.array([-side_m / 2, -side_m / 2, 0.0]))
+
+    def run(T_cam_square: np.ndarray, rng: np.random.Generator, bow_m: np.ndarray) -> Detection:
+        image = render_target(tag, cam, T_cam_square @ T_square_tag, rng)
+        return detect_target(image, tag).detection
+
+    return run
+
+
+def drifting_arm(
+    rng: np.random.Generator,
+    sigma_px: float = 0.15,
+    drift_deg: float = 0.06,
+    over_m: float = 0.06,
+    detect: ImageModel | None = None,
+) -> tuple[Scenario, np.ndarray]:
+    """The one-orientation session of ``r1_real_arm`` on an arm whose orientation drifts
+    linearly along the moves (the part of a real arm's error that mimics the principal point):
+    a random ``D`` (rad/m, largest gain ``drift_deg`` per ``over_m``) turns the tool by
+    ``D (t - mean t)``, plus 0.003 deg / 0.02 mm repeatability per stop; the controller
+    reports the commanded poses. Returns the scenario and ``D``."""
+    base = r1_real_arm(rng, sigma_px, translations_only=True)
+    T_meas = np.stack([f.T_base_tool for f in base.problem.frames])
+    D = rng.normal(size=(3, 3))
+    D *= np.radians(drift_deg) / over_m / np.linalg.norm(D, 2)
+    t0 = T_meas[:, :3, 3].mean(axis=0)
+    target, frames, true = base.problem.target, [], []
+    for k, T in enumerate(T_meas):
+        e = D @ (T[:3, 3] - t0) + rng.normal(0.0, np.radians(0.003), 3)
+        T_true = T_from_Rt(R_from_rvec(e) @ T[:3, :3], T[:3, 3] + rng.normal(0.0, 2e-5, 3))
+        true.append(T_true)
+        T_cam_board = inv_T(T_true @ R1_T_TOOL_CAM) @ base.T_target
+        if detect is None:
+            det = projected_detection(
+                R1_K, R1_DIST, T_cam_board, target, R1_SIZE_PX, sigma_px, rng, 2.0
+            )
+        else:
+            det = detect(T_cam_board, rng, np.zeros(2))
+        frames.append(Frame(k, {"cam": det}, T_base_tool=T))
+    scenario = r1_scenario(
+        target, frames, True, None, sigma_px, base.T_target, T_base_tool_true=np.stack(true)
+    )
+    return scenario, D
+
+
+#: the one-tag session's corner noise (px) and robot pose noise (metres per axis, degrees per
+#: rotation-vector component): the classic hand-eye study's levels
+ONE_TAG_SIGMA_PX = 0.15
+ONE_TAG_ROBOT_NOISE = (5e-5, 0.005)
+
+
+def one_tag_geometry() -> np.ndarray:
+    """The one-tag row's camera-board poses: 7 orientations of an 8 cm tag (seed 7)."""
+    return camera_board_poses(
+        np.random.default_rng(7), 7, square_tag(0.08), aim_spread_m=0.15
+    )
+
+
+def one_tag_session(rng: np.random.Generator, geometry: np.ndarray) -> Scenario:
+    """The one-tag row's session: eye-to-hand, 5 frames at each of ``geometry``'s 7
+    orientations, the tag's 4 corners, no distortion."""
+    return classic(
+        rng,
+        7,
+        ONE_TAG_SIGMA_PX,
+        *ONE_TAG_ROBOT_NOISE,
+        eye_in_hand=False,
+        options=ModelOptions(
+            distortion=NO_DISTORTION, robot_noise_m=ONE_TAG_ROBOT_NOISE[0],
+            robot_noise_deg=ONE_TAG_ROBOT_NOISE[1],
+        ),
+        target=square_tag(0.08),
+        per_orientation=5,
+        distortion=np.zeros(5),
+        T_cam_board=geometry,
+    )
+
+
+def scale_pixels(problem: CalibrationProblem, factor: Mapping[str, float]) -> CalibrationProblem:
+    """The problem with camera ``c``'s pixel coordinates and image size multiplied by
+    ``factor[c]`` (about pixel (0, 0)).
+
+    The camera ``K`` becomes ``diag(f, f, 1) K`` (distortion acts before ``K`` and is unchanged)
+    and its corner noise ``f sigma``: calibrating the scaled problem with the solver's equal
+    row weights is the maximum-likelihood estimate with per-camera weights ``1 / sigma_c^2``
+    when ``factor[c] = sigma_ref / sigma_c``.
+    """
+    frames = []
+    for fr in problem.frames:
+        dets = {c: Detection(d.ids, d.px * factor.get(c, 1.0)) for c, d in fr.detections.items()}
+        frames.append(replace(fr, detections=dets))
+    cams = tuple(
+        CameraSpec(
+            c.name,
+            round(c.width * factor.get(c.name, 1.0)),
+            round(c.height * factor.get(c.name, 1.0)),
+        )
+        for c in problem.cameras
+    )
+    return replace(problem, frames=tuple(frames), cameras=cams)
+
+
+def estimate_homographies(board_xy: np.ndarray, px: np.ndarray) -> np.ndarray:
+    """Homographies (n, 3, 3): normalised DLT, then reprojection-error refinement, per view.
+
+    ``board_xy`` (N, 2) l.u.; ``px`` (n, N, 2) pixels.
+    """
+    return np.array([refine_homography(homography_dlt(board_xy, p), board_xy, p) for p in px])
+
+
+def params_of(K: np.ndarray) -> np.ndarray:
+    """(fx, fy, cx, cy) of an intrinsic matrix (3, 3), pixels."""
+    return np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+
+
+#: the cameras of a 1, 2 or 3-camera session of :func:`scale_session`
+CAMERA_SETS = {1: ("left",), 2: ("left", "right"), 3: ("left", "right", "rgb")}
+
+
+#: :func:`scale_session`'s erring arm: one-sigma pose error per axis (metres, degrees).
+ARM_ERROR = (2e-4, 0.02)
+
+
+def scale_session(
+    n_frames: int, n_cameras: int, seed: int = 7, arm_error: bool = False
+) -> CalibrationProblem:
+    """A simulated session of ``n_frames`` frames (R1's 20 poses repeated, new noise each time);
+    ``arm_error``: the robot poses err by ``ARM_ERROR``."""
+    rng = np.random.default_rng(seed)
+    frames: list[Frame] = []
+    base = None
+    noise_m, noise_deg = ARM_ERROR if arm_error else (0.0, 0.0)
+    while len(frames) < n_frames:
+        s = oak_rig(
+            rng, cameras=CAMERA_SETS[n_cameras], robot_noise_m=noise_m, robot_noise_deg=noise_deg
+        )
+        base = base or s.problem
+        for f in s.problem.frames:
+            if len(frames) < n_frames:
+                frames.append(replace(f, id=len(frames)))
+    assert base is not None
+    return replace(base, frames=tuple(frames))
+
+
+# ------------------------------------------- session files edited as a user's mistakes make them
+def copy_session(src: Path, dst: Path) -> Path:
+    """The session file and plan of ``src`` (detections inline, no images) in ``dst``."""
+    dst.mkdir(parents=True)
+    for name in ("session.yaml", "plan.yaml"):
+        if (src / name).is_file():
+            shutil.copy(src / name, dst / name)
+    doc = yaml.safe_load((dst / "session.yaml").read_text())
+    for f in doc["frames"]:
+        f.pop("images", None)
+    (dst / "session.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+    return dst
+
+
+def edit_session(d: Path, fn) -> Path:  # noqa: ANN001 - fn edits the parsed document
+    """Apply ``fn`` to the parsed ``session.yaml`` of ``d`` and write it back."""
+    doc = yaml.safe_load((d / "session.yaml").read_text())
+    fn(doc)
+    (d / "session.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+    return d
+
+
+def rotations_in_degrees(doc: dict) -> None:
+    """The robot's rotation vectors written in degrees where radians are meant."""
+    for f in doc["frames"]:
+        p = f["T_base_tool"]
+        f["T_base_tool"] = p[:3] + [float(np.degrees(v)) for v in p[3:]]
+
+
+def square_size(size_m: float):  # noqa: ANN201
+    """A wrong square size (the marker scaled alike) in the session's target."""
+
+    def edit(doc: dict) -> None:
+        t = doc["target"]
+        t["marker_size_m"] = t["marker_size_m"] * size_m / t["square_size_m"]
+        t["square_size_m"] = size_m
+
+    return edit
+
+
+def cell_overrides(fx_rel: float = 0.0, cx_px: float = 0.0, he_deg: float = 0.0) -> dict:
+    """Overrides of the default cell's truth for the same changes (a changed cell)."""
+    f = 880.0 * (1 + fx_rel)
+    sim: dict = {"cameras": {"cam": {"K": [[f, 0.0, 640.0 + cx_px], [0.0, f, 400.0], [0, 0, 1]]}}}
+    if he_deg:
+        r, p, y = np.radians([0.8, -1.2, 90.5])  # the default cell's true T_tool_cam
+        R = R_from_rvec(np.radians(he_deg) * np.array([0.6, 0.0, 0.8])) @ Rz(y) @ Ry(p) @ Rx(r)
+        rpy = np.degrees(
+            [np.arctan2(R[2, 1], R[2, 2]), -np.arcsin(R[2, 0]), np.arctan2(R[1, 0], R[0, 0])]
+        )  # the cell's rpy_deg convention: R = Rz(yaw) Ry(pitch) Rx(roll)
+        sim["T_tool_cam"] = {"rpy_deg": rpy.tolist(), "t_m": [0.032, -0.061, 0.045]}
+    return {"simulation": sim}
+
+
+def same_cell(cfg, cell_seed: int, run_seed: int) -> SimulatedCell:  # noqa: ANN001
+    """The simulated cell of ``cfg`` built with ``cell_seed`` (its arm's kinematic error and
+    the board's pose: the cell itself), run with fresh random streams from ``run_seed`` (the
+    arm's repeatability and pose noise, the cameras' image and detector noise): two runs of
+    one cell are the same arm in front of the same board, as in a real cell. (A plain
+    ``seed`` draws a new arm and a new board pose for every run.)"""
+    cell = SimulatedCell.from_config(cfg, cell_seed)
+    robot_rng, camera_rng = np.random.SeedSequence([cell_seed, run_seed]).spawn(2)
+    cell.robot.rng = np.random.default_rng(robot_rng)
+    cell.rig.rng = np.random.default_rng(camera_rng)
+    return cell

@@ -155,7 +155,6 @@ SUBCOMMANDS: dict[str, str | SimpleNamespace] = {
     ),
     "check": "slidecal.routines.check",
     "rollback": "slidecal.routines.install",
-    "bench": "slidecal.routines.benchmarks",
     "plan": "slidecal.routines.planner",
     "rehearse": "slidecal.routines.rehearse",
     "flash": "slidecal.routines.flash",

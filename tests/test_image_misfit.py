@@ -16,7 +16,7 @@ import yaml
 
 import slidecal.solver.named as named_mod
 from slidecal.mocks import scenarios as sc
-from slidecal.routines.bench_handeye import one_tag_geometry, one_tag_session
+from slidecal.mocks.scenarios import one_tag_geometry, one_tag_session, render_detector
 from slidecal.routines.session import read_session
 from slidecal.solver.adequacy import _neighbour_pairs, neighbour_correlation
 from slidecal.solver.calibrate import calibrate
@@ -158,7 +158,6 @@ def test_rendered_photographs_read_their_errors_across_the_board_lines(monkeypat
     # mocks/render.py's photograph-like images of R1 on a real arm, detected: their corners
     # err together across the board's lines (0.08-0.17 over 120 arms) and not along them, so
     # the frames' scores are read; pooled they stayed under the previous gate
-    from slidecal.routines.bench_reality import render_detector
 
     s = sc.r1_real_arm(np.random.default_rng(2000), detect=render_detector(0.15))
     res, out = _solve_keeping_the_refinement(s.problem, monkeypatch)

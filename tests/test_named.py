@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 
 from slidecal.mocks import scenarios as sc
+from slidecal.mocks.scenarios import drifting_arm
+from slidecal.mocks.truth import calibration, hand_eye_errors
 from slidecal.routines.results_io import hand_eye_transforms, read_result, write_result
 from slidecal.solver.calibrate import calibrate, complement_basis
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, random_rotation, rvec_from_R
@@ -277,7 +279,6 @@ def test_a_classic_sessions_linear_field_is_read_both_ways(monkeypatch):
     # is what that re-solve gives; the result is halfway, the spread in its covariance
     from scipy.spatial.transform import Rotation
 
-    from slidecal.routines.bench_reality import hand_eye_errors
     from slidecal.solver.geometry import inv_T
     from slidecal.solver.named import (
         FIELD_WEIGHT,
@@ -353,7 +354,6 @@ def test_smooth_arm_cover_leaves_exact_poses_alone_and_carries_one_orientations_
     # is the focal length's: its level stays at the floor and the reading that the frames'
     # translation error is all trend is carried, on the translation axes only (the drifting
     # arm's rotation trend is learned, not carried)
-    from slidecal.routines.bench_reality import drifting_arm
     from slidecal.solver.named import smooth_arm_excess
     from slidecal.solver.refine import SIGMA_FLOOR
 
@@ -379,7 +379,6 @@ def test_focal_lengths_on_a_real_arm_are_covered(monkeypatch):
     # 40 simulated arms (seeds 2000-2039), R1 eye-in-hand: with the frames' corrections read as
     # independent only, fx and fy are 1.33 and 1.37 times their std off in rms (beyond the 99 %
     # chi-square(40) interval of a calibrated estimator); with the cover, consistent with it
-    from slidecal.routines.bench_reality import calibration
     from slidecal.solver.named import layout_of, propagate
 
     z_own, z_reported = [], []
@@ -403,7 +402,6 @@ def test_estimated_levels_carry_their_own_uncertainty(monkeypatch):
     # the drifting arm's 13 frames: the frames' and the trends' levels rest on a few degrees of
     # freedom each (5-15); the reported covariance adds, per level, nu / (nu - 2) - 1 times its
     # share, never less than the model's own, and nothing for exact poses
-    from slidecal.routines.bench_reality import drifting_arm
     from slidecal.solver.named import MIN_LEVEL_DOF, layout_of, level_excess, propagate
 
     s = drifting_arm(np.random.default_rng(2001))[0]
@@ -435,7 +433,6 @@ def test_unobserved_tool_offset_gain_is_the_response_of_a_solve(monkeypatch):
     # with the arm's rotation learned per frame, holding it at another value moves the focal
     # lengths. The gain the covariance carries is that response, to first order: re-solving
     # with the offset held 5 mm off along each axis moves the intrinsics by the gain times it
-    from slidecal.routines.bench_reality import drifting_arm
     from slidecal.solver.named import _jacobian, layout_of, tool_offset_gain
     from slidecal.solver.refine import _refine
 

@@ -12,6 +12,8 @@ from slidecal.drivers.ur_pose import ur_pose_from_T
 from slidecal.mocks import scenarios as sc
 from slidecal.mocks.cell import effective_truth
 from slidecal.mocks.render import Photo
+from slidecal.mocks.scenarios import drifting_arm
+from slidecal.mocks.truth import hand_eye_errors
 from slidecal.routines.config import load_config
 from slidecal.routines.results_io import errors_against_truth, summary_text
 from slidecal.routines.session import SessionWriter, load_session
@@ -255,7 +257,6 @@ def test_drift_along_the_moves_is_learned_and_covers_the_principal_point(seed: i
     # shifts the focus of expansion, i.e. the principal point. With independent per-frame
     # corrections the principal point came out 3.6-5.2 reported std off on these seeds; the trend
     # of the correction along the moves carries it (within 3 std)
-    from slidecal.routines.bench_reality import drifting_arm
     from slidecal.solver.calibrate import calibrate
     from slidecal.solver.refine import build_structure, refine
 
@@ -271,30 +272,12 @@ def test_drift_along_the_moves_is_learned_and_covers_the_principal_point(seed: i
     assert 0.5 * true_rms < out.model.trend_sigma[0] < 2.0 * true_rms
 
 
-def test_run_report_tells_the_images_share_of_a_miss():
-    # a seed whose worst intrinsic is as far off with free board poses (no robot) is the
-    # images' miss, not the robot's: the report counts it apart
-    from slidecal.routines.bench_run import report
-
-    def row(seed: int, cx_err: float, free: float) -> dict:
-        r = {"seed": seed, "wall_s": 1.0, "robot_s": 2.0, "robot_mm": 0.2, "robot_deg": 0.03}
-        r.update({"adequate": True, "cam.fx_rel": 1e-4, "free_worst": free, "free_of": "cam.cx"})
-        r.update({"cam.cx_err": cx_err, "cam.cx_std": 0.25})
-        return r
-
-    text = report([row(1, 1.0, 4.3), row(2, 0.9, 1.2), row(3, 0.1, 0.5)], ["--seeds", "3"], 1.0)
-    assert "| 1 | 4.00 | cam.cx | 4.30 cam.cx |" in text
-    assert "above 3: 2 of 3; of them, also above 3 with free poses" in text
-    assert "(the images' own error, not the robot's): 1" in text
-
-
 def test_a_classic_session_on_a_real_arm_learns_one_trend_over_its_positions() -> None:
     # 28 frames, each at its own orientation, on a UR5e whose kinematics err by about 1 mm and
     # 0.1 deg: no orientation group has a trend of its own, so the session gets one over the
     # tool's positions (eye-in-hand). Without it this seed's fx, fy and hand-eye z came out 4.5,
     # 3.7 and 6.7 reported std off: the arm's error is smooth over the workspace, and its linear
     # part scales the positions, which the focal lengths follow
-    from slidecal.routines.bench_reality import hand_eye_errors
     from slidecal.solver.calibrate import calibrate
     from slidecal.solver.refine import build_structure, refine
 
@@ -348,7 +331,6 @@ def test_a_tag_sessions_shared_linear_field_is_carried_at_its_quadratic_level(mo
     sys.path.insert(0, str(Path(__file__).parent))
     from test_named import _solve_keeping_the_refinement
 
-    from slidecal.routines.bench_reality import hand_eye_errors
 
     s = sc.tag_real_arm(np.random.default_rng(2098), sigma_px=0.15, arm_mm=1.0, arm_deg=0.1)
     res, out = _solve_keeping_the_refinement(s.problem, monkeypatch)

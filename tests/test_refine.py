@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from slidecal.mocks import scenarios as sc
+from slidecal.mocks.truth import hand_eye_errors
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, rotation_angle_deg
 from slidecal.solver.problem import ModelOptions
 from slidecal.solver.refine import (
@@ -303,7 +304,6 @@ def test_groups_level_does_not_fall_to_zero_where_few_dof_see_it():
     # (redundancy 0), the frames' corrections taken as independent, and the hand-eye's z came
     # out 5.5 std off the effective truth (fx 3.5). Under its prior at the frames' own level
     # it stays of the arm's size and z is 3.2 std off: 4 is beyond that, below the collapse
-    from slidecal.routines.bench_reality import hand_eye_errors
     from slidecal.solver import refine as rf
 
     models = []

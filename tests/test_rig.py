@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from slidecal.mocks import scenarios as rs
-from slidecal.routines.bench_rig import rig_bounds, scale_pixels
+from slidecal.mocks.scenarios import scale_pixels
+from slidecal.mocks.truth import rig_bounds
 from slidecal.routines.results_io import read_result, write_result
 from slidecal.routines.session import read_session, write_session
 from slidecal.solver.calibrate import calibrate
@@ -141,7 +142,7 @@ def test_eq63_rotation_agrees_with_ml_within_the_noise():
     """S5 at 0.5 px: eq. 63 on the linear H_inf and the ML rotation, both near the truth.
 
     The rotation error's square over the bound's is about chi-square(3) / 3, so 4 bounds is a
-    tail below 1e-6; eq. 63's own spread is of the same size (docs/RIG.md), hence 4 sqrt(2).
+    tail below 1e-6; eq. 63's own spread is of the same size (docs/results/RIG.md), hence 4 sqrt(2).
     """
     s = rs.s5_rig(np.random.default_rng(6), 0.5)
     res = calibrate(s.problem)

@@ -10,8 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from slidecal.mocks.scenarios import PAPER_SIZE_PX, s5_scene
-from slidecal.routines.bench_stereo import estimate_homographies, params_of
+from slidecal.mocks.scenarios import PAPER_SIZE_PX, estimate_homographies, params_of, s5_scene
 from slidecal.solver.errors import DegenerateError
 from slidecal.solver.geometry import R_from_rvec, rotation_angle_deg
 from slidecal.solver.linear import w_from_K

@@ -16,8 +16,8 @@ import pytest
 import yaml
 
 from slidecal.mocks.cell import SimulatedCell
+from slidecal.mocks.scenarios import cell_overrides, same_cell
 from slidecal.routines import cli
-from slidecal.routines.bench_verdict import simulated_run_command
 from slidecal.routines.config import load_config
 from slidecal.routines.install import (
     CURRENT,
@@ -32,6 +32,9 @@ from slidecal.routines.progress import Progress
 from slidecal.routines.run import frames_on_disk, run_calibration
 from slidecal.routines.session import SessionWriter, load_session, write_atomic
 from slidecal.solver.errors import HardwareFault, InputError
+
+sys.path.insert(0, str(Path(__file__).parent))
+from unattended_helpers import simulated_run_command  # noqa: E402
 
 DATA = Path(__file__).parent / "data"
 
@@ -332,7 +335,6 @@ def test_a_crash_while_installing_leaves_current_intact(solved_dir, tmp_path, mo
 
 @pytest.mark.slow
 def test_run_install_then_check_ok_then_drifted(tmp_path: Path) -> None:
-    from slidecal.routines.bench_verdict import cell_overrides, same_cell
     from slidecal.routines.check import run_check
 
     store = tmp_path / "store"

@@ -1,0 +1,210 @@
+"""The truth side of the simulator: errors of a result against the truth, the Cramer-Rao bounds
+of a simulated session, and what a calibrated estimator's normalised errors look like.
+
+Tests and the studies of ``tests/bench/`` measure the solver with these, on the scenes of
+:mod:`slidecal.mocks.scenarios`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import binom, chi2, norm
+
+from slidecal.mocks.scenarios import Scenario
+from slidecal.solver.geometry import rvec_from_R
+from slidecal.solver.named import (
+    NamedCovariance,
+    equal_weight_covariance,
+    hand_eye_names,
+    predicted_covariance,
+)
+from slidecal.solver.problem import CalibrationProblem
+from slidecal.solver.refine import ModelState, Structure
+
+#: the intrinsics by name: their (row, column) in K
+INTRINSICS = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
+P_2SIGMA = float(norm.cdf(2.0) - norm.cdf(-2.0))  # 0.9545
+P_3SIGMA = float(norm.cdf(3.0) - norm.cdf(-3.0))  # 0.9973
+CHI2_3_2SIGMA = float(chi2.ppf(P_2SIGMA, 3))
+CHI2_3_3SIGMA = float(chi2.ppf(P_3SIGMA, 3))
+#: a row's verdict: miscalibrated when a calibrated Gaussian estimator would give its sum of
+#: squared normalised errors (or fewer / more trials inside 2 sigma) with probability below
+#: this (two-sided; the tail test one-sided). Three tests on some 40 rows: about one false
+#: alarm per report is sampling noise. The report's ranges and intervals are at this level
+VERDICT_P = 0.01
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """What a row's normalised errors say against a calibrated Gaussian estimator.
+
+    ``dof`` per trial: 1 for a scalar error / std, 3 for a 3-vector's squared Mahalanobis
+    distance (chi-square(3)). Coverage: trials within 2 sigma (scalar) or below
+    chi-square(3)'s 95.45 % point, and the binomial range that holds that count with
+    probability 1 - ``VERDICT_P``; beyond 3 sigma likewise (its 99.73 % point). ``scale``:
+    the rms of error / std per degree of freedom, the factor by which the reported std is too
+    small (above 1) or too large, with its 1 - ``VERDICT_P`` interval from the
+    chi-square(dof x trials) law of the sum; ``verdict``: "consistent" or
+    what is off, at the two-sided level ``VERDICT_P`` of either test.
+    """
+
+    trials: int
+    dof: int
+    inside_2: int
+    inside_2_range: tuple[int, int]
+    beyond_3: int
+    beyond_3_range: tuple[int, int]
+    scale: float
+    scale_range: tuple[float, float]
+    worst_z: float  # the largest error as a scalar z of the same tail probability
+    verdict: str
+
+
+def _two_sided(cdf_below: float, sf_above: float) -> float:
+    return min(1.0, 2.0 * min(cdf_below, sf_above))
+
+
+def calibration(values: list[float] | np.ndarray, dof: int) -> Calibration:
+    """Compare normalised errors with a calibrated Gaussian estimator (:class:`Calibration`).
+
+    ``values``: error / std per trial (``dof`` 1) or the squared Mahalanobis distance (``dof``
+    3). The sum of squares over ``n`` trials is chi-square(``dof n``) when the reported std is
+    right; the count inside 2 sigma is binomial(``n``, 0.9545), beyond 3 sigma binomial(``n``,
+    0.0027).
+    """
+    v = np.asarray(values, dtype=float)
+    n = len(v)
+    q = v**2 if dof == 1 else v  # squared distance per trial
+    limit_2, limit_3 = (4.0, 9.0) if dof == 1 else (CHI2_3_2SIGMA, CHI2_3_3SIGMA)
+    inside = int(np.sum(q <= limit_2))
+    beyond = int(np.sum(q > limit_3))
+    total = float(np.sum(q))
+    nu = dof * n
+    scale = float(np.sqrt(total / nu))
+    lo, hi = chi2.ppf([1.0 - VERDICT_P / 2.0, VERDICT_P / 2.0], nu)
+    scale_range = (float(np.sqrt(total / lo)), float(np.sqrt(total / hi)) if hi > 0 else np.inf)
+    p_sum = _two_sided(float(chi2.cdf(total, nu)), float(chi2.sf(total, nu)))
+    p_cov = _two_sided(
+        float(binom.cdf(inside, n, P_2SIGMA)), float(binom.sf(inside - 1, n, P_2SIGMA))
+    )
+    p_tail = float(binom.sf(beyond - 1, n, 1.0 - P_3SIGMA)) if beyond else 1.0
+    tail_max = float(chi2.sf(q.max(), dof))
+    worst = float(norm.isf(tail_max / 2.0))
+    lo_s, hi_s = scale_range
+    if p_sum < VERDICT_P and scale > 1.0:
+        verdict = f"std too small by {scale:.2f} ({lo_s:.2f}-{hi_s:.2f})"
+    elif p_sum < VERDICT_P:
+        verdict = f"std too large by {1.0 / scale:.2f} ({1.0 / hi_s:.2f}-{1.0 / lo_s:.2f})"
+    elif p_cov < VERDICT_P:
+        verdict = "coverage off (rms consistent)"
+    elif p_tail < VERDICT_P:
+        verdict = "heavy tail (rms consistent)"
+    else:
+        verdict = "consistent"
+    return Calibration(
+        n,
+        dof,
+        inside,
+        _binomial_range(n, P_2SIGMA),
+        beyond,
+        _binomial_range(n, 1.0 - P_3SIGMA),
+        scale,
+        scale_range,
+        worst,
+        verdict,
+    )
+
+
+def _binomial_range(n: int, p: float) -> tuple[int, int]:
+    """The central range of a binomial(n, p) count that holds it with probability
+    1 - ``VERDICT_P``."""
+    return int(binom.ppf(VERDICT_P / 2.0, n, p)), int(binom.ppf(1.0 - VERDICT_P / 2.0, n, p))
+
+
+def hand_eye_errors(res, T_ref: np.ndarray) -> dict[str, np.ndarray]:  # noqa: ANN001
+    """Per block ("rot", "t"): (the reported hand-eye's difference from ``T_ref`` (4, 4) in the
+    result's parametrisation: rotation vector on the left, radians; translation, metres) and
+    its covariance."""
+    out = {}
+    named = res.named_covariance
+    he = res.hand_eye
+    if named is None:
+        return out
+    C = named.block([f"{he.name}.{a}" for a in ("rx", "ry", "rz")])
+    if C is not None:
+        out["rot"] = (rvec_from_R(he.R @ T_ref[:3, :3].T), C)
+    C = named.block([f"{he.name}.{a}" for a in ("tx", "ty", "tz")])
+    if C is not None and he.t_m is not None:
+        out["t"] = (he.t_m - T_ref[:3, 3], C)
+    return out
+
+
+def hand_eye_bounds(s: Scenario, sigma_px: float) -> tuple[float, float, float]:
+    """Cramer-Rao bounds of the hand-eye rotation (deg, root of the trace), translation (mm)
+    and ``fx`` (px) for the scenario's geometry, knowledge and noise model."""
+    bound = predicted_covariance(s.problem, s.truth, sigma_px)
+    he = hand_eye_names(s.problem.mount, ["cam"])["cam"]
+    return bound.std_rot_deg(he), bound.std_t_mm(he), bound.std("cam.fx")
+
+
+def rig_bounds(
+    problem: CalibrationProblem,
+    structure: Structure,
+    truth: ModelState,
+    sigma_by_camera_px: Mapping[str, float],
+) -> tuple[NamedCovariance, NamedCovariance]:
+    """The Cramer-Rao bound with per-camera pixel noise, and an equal-weight estimator's.
+
+    ``sigma_by_camera_px``: one-sigma corner noise (pixels, each axis) of every camera. Robot
+    pose prior rows (``structure.pose_sigma``) are whitened by the model itself.
+
+    Returns
+    -------
+    crb : the bound, rows weighed by their camera's noise (the named quantities).
+    unit_weight : the sandwich covariance of an estimator that weighs all pixel rows alike and
+        the prior rows by the pooled noise.
+    """
+    sig = dict(sigma_by_camera_px)
+    ref = sig[problem.reference]
+    crb = predicted_covariance(problem, truth, ref, structure=structure, camera_sigma_px=sig)
+    return crb, equal_weight_covariance(problem, truth, sig, structure=structure)
+
+
+# ------------------------------------------------------------------------------ split halves
+def split_halves(
+    groups: Sequence[int], rng: np.random.Generator, by_group: bool = False
+) -> np.ndarray:
+    """A random split of a session's frames into two halves: True for half A (per frame).
+
+    ``groups``: each frame's orientation group (all equal where there are none). Within each
+    group half its frames go to A (the odd one to either at random); ``by_group``: whole groups
+    instead, half of them to A, so an error shared by one group's frames falls in one half.
+    """
+    g = np.asarray(groups)
+    in_a = np.zeros(len(g), dtype=bool)
+    if by_group:
+        names = rng.permutation(np.unique(g))
+        n_a = len(names) // 2 + int(len(names) % 2 and rng.random() < 0.5)
+        return np.isin(g, names[:n_a])
+    for name in np.unique(g):
+        idx = rng.permutation(np.flatnonzero(g == name))
+        n_a = len(idx) // 2 + int(len(idx) % 2 and rng.random() < 0.5)
+        in_a[idx[:n_a]] = True
+    return in_a
+
+
+def halves_z(a: float, std_a: float, b: float, std_b: float) -> float:
+    """The halves' difference in the std both report: ``(a - b) / sqrt(std_a^2 + std_b^2)``.
+
+    Over random splits its rms is about 1 when the std is honest (below 1 when the halves
+    share an error, such as the arm's smooth error, that the std counts)."""
+    return float((a - b) / np.hypot(std_a, std_b))
+
+
+def rms(values: Sequence[float]) -> float:
+    """The root mean square (NaN for none)."""
+    v = np.asarray(values, dtype=float)
+    return float(np.sqrt(np.mean(v**2))) if len(v) else float("nan")
