@@ -41,6 +41,7 @@ from slidecal.solver.geometry import (
     look_at_R_cam_world,
     transform_points,
 )
+from slidecal.solver.model import ModelState
 from slidecal.solver.problem import (
     CalibrationProblem,
     CameraSpec,
@@ -49,7 +50,6 @@ from slidecal.solver.problem import (
     ModelOptions,
     Target,
 )
-from slidecal.solver.refine import ModelState
 
 #: An image model: what a camera finds of the board at ``T_cam_board`` (4, 4), drawing noise
 #: from the generator, the board bowed by ``bow_m`` (2,) (metres, ``solver/target_shape.py``'s

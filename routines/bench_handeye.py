@@ -28,8 +28,8 @@ from slidecal.solver.calibrate import calibrate, pnp_pose
 from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import inv_T, rotation_angle_deg
 from slidecal.solver.handeye import daniilidis, park_martin, tsai_lenz
-from slidecal.solver.named import hand_eye_names, predicted_covariance
-from slidecal.solver.problem import ModelOptions, Target
+from slidecal.solver.problem import ModelOptions, Target, hand_eye_names
+from slidecal.solver.uncertainty import predicted_covariance
 
 SIGMA_PX = 0.15
 ROBOT_NOISE = (5e-5, 0.005)  # metres per axis, degrees per rotation-vector component

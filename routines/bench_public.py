@@ -40,7 +40,7 @@ from slidecal.routines.bench_reality import hand_eye_errors
 from slidecal.routines.benchmarks import publish_report, report_header
 from slidecal.routines.results_io import read_result, scale_check_summary
 from slidecal.solver.errors import InputError
-from slidecal.solver.refine import orientation_groups
+from slidecal.solver.model import orientation_groups
 
 #: The sets: the target as counted on the images (the ChArUco's marker side measured at 0.75 of
 #: its square; its dictionary the one whose ids 0-53 decode) and the image file pattern

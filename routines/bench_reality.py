@@ -43,8 +43,8 @@ from slidecal.routines.benchmarks import publish_report, shown_out
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, rvec_from_R
-from slidecal.solver.named import TOOL_OFFSET_SIGMA_M
 from slidecal.solver.problem import Detection, Frame
+from slidecal.solver.robot_error import TOOL_OFFSET_SIGMA_M
 
 INTRINSICS = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
 #: The long-armed classic row: the arm's positions this much further from its base than

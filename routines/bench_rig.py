@@ -42,10 +42,11 @@ from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import rotation_angle_deg
 from slidecal.solver.homography import homography_dlt, refine_homography
-from slidecal.solver.named import NamedCovariance, equal_weight_covariance, predicted_covariance
+from slidecal.solver.model import ModelState, Structure, build_structure
 from slidecal.solver.problem import CalibrationProblem, CameraSpec, Detection, ModelOptions
-from slidecal.solver.refine import ModelState, Structure, build_structure
+from slidecal.solver.result import NamedCovariance
 from slidecal.solver.stereo import infinite_homography, relative_rotation, rig_linear_intrinsics
+from slidecal.solver.uncertainty import equal_weight_covariance, predicted_covariance
 
 PARAMS = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
 ROBOT_NOISE = (5e-5, 0.005)  # metres, degrees: R1's robot pose noise

@@ -57,14 +57,8 @@ from slidecal.routines.schema import (
 )
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import T_from_Rt, rotation_angle_deg, rvec_from_R
-from slidecal.solver.named import hand_eye_names as named_hand_eye_names
-from slidecal.solver.named import (
-    is_legacy,
-    legacy_layout,
-    mount_names,
-    propagate,
-    reported_names,
-)
+from slidecal.solver.problem import hand_eye_names as named_hand_eye_names
+from slidecal.solver.problem import mount_names
 from slidecal.solver.result import (
     BoardShape,
     CalibrationResult,
@@ -74,6 +68,7 @@ from slidecal.solver.result import (
     ScaleCheck,
     TransformEstimate,
 )
+from slidecal.solver.uncertainty import is_legacy, legacy_layout, propagate, reported_names
 
 RESULT_FORMAT = "slidecal.result/1"
 RESULT_FILE = "result.yaml"
