@@ -428,10 +428,11 @@ def _garbage_row(name: str, o) -> str:  # noqa: ANN001
 
 
 def part_check(n: int, work: Path) -> list[str]:
-    from slidecal.routines.check import chain_rms_px, run_check
+    from slidecal.routines.check import run_check
     from slidecal.routines.install import install
     from slidecal.routines.planner import make_plan
     from slidecal.routines.verdict import Limits
+    from slidecal.solver.drift import chain_rms_px
 
     t0 = time.monotonic()
     cases = [(name, cell_overrides(**ch) if ch else {}) for name, ch in CASES]
