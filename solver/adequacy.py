@@ -42,12 +42,8 @@ from slidecal.solver.result import ModelAdequacy, RobotAccuracy
 MAX_NORMALISED_RMS = 1.5
 #: One image this far above the floor: the frame's pose or detection is wrong.
 MAX_FRAME_NORMALISED_RMS = 4.0
-#: Such images make the result unusable when their squares beyond the floor are at least this
-#: share of the session's: the result leans on them. Fewer are named and the result stands
-#: (the share :func:`slidecal.solver.robot_error.misfit_image` reads an image's errors from): a
-#: detector's error is not the same on every image (blur, distance, angle), and among the 205
-#: rendered images of one AprilTag of the simulated eye-to-hand session one image 4-6 times the
-#: floor made 4 of 20 sessions unusable whose results were within 2.2 std of the truth.
+#: Images beyond that limit make the result unusable when their squares beyond the floor are at
+#: least this share of the session's (the result leans on them); fewer are named and it stands.
 MAX_BAD_IMAGE_SHARE = 0.1
 #: Robot accuracy beyond anything a working arm has (ISO 9283 accuracy of uncalibrated
 #: industrial arms: about 1 mm and 0.2 deg): units or frames are wrong, not the arm.
@@ -609,14 +605,10 @@ def _move_scale(
     return float(np.median([c / r for _, _, r, c in moves])) - 1.0 if moves else None
 
 
-#: A classic session's moves are checked for their scale only when the session pins the
-#: camera/robot length ratio to this relative standard error (:func:`classic_scale_fit`). With
-#: every frame aimed at the board from nearly one distance, a scale of what the camera sees is
-#: a shift of the hand-eye along the viewing direction: the public classic KUKA session (28
-#: frames, its camera 0.35-0.47 m from the board's centre) pins it to 0.7-0.8 % (its ratio
-#: reads 1.05), and a check there would test the geometry, not the board
-#: (:func:`unchecked_scale_note` says so). Simulated classic sessions (0.44-0.61 m): 0.1-0.2 %
-#: eye-in-hand, 0.03-0.1 % eye-to-hand.
+#: A classic session's moves are checked for their scale only when it pins the camera/robot
+#: length ratio to this relative standard error (:func:`classic_scale_fit`): aimed at the board
+#: from nearly one distance, a scale of what the camera sees is a shift of the hand-eye along
+#: the view, and a check would test the geometry, not the board (:func:`unchecked_scale_note`).
 MAX_CLASSIC_SCALE_SE = 0.003
 
 
@@ -747,25 +739,17 @@ def unchecked_scale_note(
 
 
 #: A frame whose robot pose correction (rotation or translation, as a 3-vector) is this many
-#: times the typical frame's is a gross error, not the arm's accuracy: a pose read before the
-#: arm settled, a glitch of the record, an image paired with another pose. The typical size is
-#: robust (from the median: two bad frames must not hide each other). Measured on simulated
-#: real arms (13-28 frames, 40 sessions: at most 3.8) and on the public KUKA sessions (at most
-#: 2.9); one pose 5-6 mm or 1 deg off: 6 to 15.
+#: times the typical frame's (robust: from the median) is a gross error, not the arm's accuracy:
+#: a pose read before the arm settled, a glitch of the record, an image paired with another pose.
 POSE_OUTLIER_RATIO = 5.0
 #: The words of the message that names a frame left out for its pose (the verdict lists them)
 LEFT_OUT = "left out of the solve"
 #: Fewest frames with pose corrections for the test (the typical size must mean something).
 POSE_OUTLIER_MIN_FRAMES = 8
 #: How many neighbours a frame's correction is held against, in space (the nearest tool
-#: positions of its orientation group, or of the session when the group has fewer others) and
-#: in time (the frames recorded just before and after it). A glitch stands out against both;
-#: a real arm's error does not: it is alike at nearby places (a smooth field the model's
-#: shared parts leave a remainder of) and over a run of frames the controller reached on
-#: another joint configuration (a wrist or elbow turned over between two moves: a different
-#: kinematic error for that run; measured on the simulated eye-to-hand tag session, seed 2008:
-#: ten consecutive frames 0.7-1.0 mm off the others, each left out in turn as a glitch, the
-#: focal length 4.8 std off on rendered images).
+#: positions of its orientation group, or of the session) and in time (the frames recorded just
+#: before and after it): a glitch stands out against both; a real arm's error, alike at nearby
+#: places and over a run of frames on one joint configuration, does not.
 POSE_OUTLIER_NEIGHBOURS = 4
 
 

@@ -134,17 +134,12 @@ def _lm(
 
 
 #: Levenberg-Marquardt's damping (times the normal matrix's diagonal) at the start of a solve:
-#: the linear start is close enough for nearly Gauss-Newton steps (measured: 4 iterations to
-#: the minimum instead of 5-6 from 1e-4 on R1 and on 1-3 cameras with 100-400 frames; a start
-#: it does not suit raises it tenfold per refused step)
+#: the linear start is close enough for nearly Gauss-Newton steps; a start it does not suit
+#: raises it tenfold per refused step.
 LM_START_DAMPING = 1e-6
-#: The damping of the Gauss-Newton steps of the variance-component phase (the steps between
-#: two linearisations; the level steps at one linearisation take the undamped step from the
-#: inverse they need anyway): nearly none. A
-#: damping of 1e-4 of the normal matrix's diagonal held back the directions only the pose
-#: prior pins (an orientation group's translation against the board's): the state crept along
-#: them by a few % per step and the groups' levels with it, for tens of steps (measured on R1
-#: with a real arm's error: 27-40 level steps, against 7)
+#: The damping of the Gauss-Newton steps of the variance-component phase: nearly none, since a
+#: larger one holds back the directions only the pose prior pins (an orientation group's
+#: translation against the board's) and the levels creep along with them for tens of steps.
 VCE_STEP_DAMPING = 1e-9
 #: Most variance-component steps of one solve (then the last levels are kept, with a note)
 MAX_VCE_STEPS = 40
@@ -157,12 +152,9 @@ SIGMA_FLOOR = (1e-7, 1e-7)
 #: Weight (degrees of freedom) of the prior on the orientation groups' shared level: the
 #: frames' own level, as if seen twice (a scaled inverse chi-square prior: the level's square
 #: is the groups' sum of squares plus twice the frames' level squared, over the groups'
-#: redundancy plus two). A real arm errs mostly alike within a group, and the images tell the
-#: groups' offsets from the hand-eye on a few degrees of freedom only (R1's four groups: about
-#: four per kind); there the estimate alone falls to zero, where the prior then holds every
-#: group's correction, the redundancy vanishes with the level and the iteration stays, and
-#: the frames' corrections, taken as independent, overstate what the groups tell the hand-eye
-#: (R1 seed 2010: its z 5.5 std off; with the prior 3.2).
+#: redundancy plus two). The images tell the groups' offsets from the hand-eye on a few degrees
+#: of freedom only; there the level alone falls to zero and stays, and the frames' corrections,
+#: taken as independent, overstate what the groups tell the hand-eye.
 GROUP_LEVEL_PRIOR_DOF = 2.0
 #: Robot sigmas beyond any arm (radians, metres: 2 deg, 20 mm, twice what the adequacy test
 #: accepts): the estimation stops there, the model is wrong (units, frames) and will be marked so.
@@ -177,9 +169,8 @@ TREND_MIN_SPREAD_M = 0.005
 SESSION_TREND_MIN_FRAMES = 8
 #: Trend frames per coordinate of the corrections the trend groups share (:func:`common_trend`):
 #: the rotation trend's 9 coordinates need 27 frames, the quadratic translation field's 18
-#: coordinates 54 (positions spread in space). Measured on the one-tag session of 35 frames
-#: (5 per orientation, 30 arms): at 4 per coordinate it got no shared rotation and cy came out
-#: 1.82 times its std off in rms; at 3, 1.38.
+#: coordinates 54 (positions spread in space); fewer cannot tell a shared field from the
+#: groups' own trends and scatter.
 COMMON_FIELD_FRAMES_PER_COORD = 3
 
 

@@ -529,11 +529,9 @@ def untold_field_excess(
 #: estimate rests on the frames' scores, one term each
 MIN_CLUSTER_FRAMES = 4
 #: Neighbouring corners' residuals correlated beyond this, along their line or across it (and
-#: beyond twice their sampling spread, :func:`~neighbour_correlation`):
-#: an image's errors are not independent corner by corner. Independent detections give -0.1
-#: to 0.11 (the fit's share and the sampling spread; never past the gate in 300 solves),
-#: mocks/render.py's images 0.08-0.17 across, real photographs 0.47; below it the frames'
-#: scores would only add their noise
+#: beyond twice their sampling spread, :func:`neighbour_correlation`): an image's errors are not
+#: independent corner by corner. Independent detections stay below it; below it the frames'
+#: scores would only add their noise.
 CORRELATED_NEIGHBOURS = 0.05
 
 
@@ -544,9 +542,7 @@ CORRELATED_NEIGHBOURS = 0.05
 MISFIT_IMAGE_P = 0.01
 #: ... and its excess over that chi-square's mean at least this share of the session's weighted
 #: squares: the model's covariance, which spreads that excess over every image, understates the
-#: spread it causes by about as much. Real photographs whose images differ a little in sharpness
-#: (the public KUKA sessions: the worst image 1.2-1.4 times the noise, 2.5-3.3 % of the squares)
-#: stay below it; a glare on one of 9 images (28 %) does not
+#: spread it causes by about as much; images that differ a little in sharpness stay below it.
 MISFIT_IMAGE_SHARE = 0.1
 
 
@@ -560,11 +556,7 @@ def misfit_image(out: RefineOutput) -> tuple[int, float, float] | None:
     of it: counting every row makes the test err on the side of silence). The smallest upper
     tail over the G frames, times G (Bonferroni), below :data:`MISFIT_IMAGE_P` says that some
     image's errors go together; it is read when that image's excess is at least
-    :data:`MISFIT_IMAGE_SHARE` of the session's squares. Simulated detections of independent
-    noise passed it in none of 460 solves of R1 on a real arm (eye-in-hand, eye-to-hand, one
-    orientation, a bowed board), R1 with white pose noise and the lone tag (not read); the
-    default cell's rendered images (a glare spot each) in 11 of 60, the public KUKA sessions in
-    none."""
+    :data:`MISFIT_IMAGE_SHARE` of the session's squares."""
     # an image needs as many corners as its neighbours' correlation does (a lone tag's pose
     # takes most of its 4 corners' freedom)
     m = out.model
@@ -611,10 +603,7 @@ def grouped_detection_errors(
     ``sum n m^2 / v`` (``v``: the residuals' mean square, which takes what the fit leaves of
     each residual) is about chi-square with one degree of freedom per cluster and axis. Its
     upper tail below :data:`GROUPED_ERRORS_P` reads them (with :data:`MIN_CLUSTER_GROUPS`
-    groups or more). Measured on the eye-to-hand tag session (205 frames, 7 orientations):
-    independent detections gave p of 0.2 to 1; its renders before the detector's tilt bias
-    was removed 1e-7 (seed 2024, the principal point 3.7 std off), after it 1e-5 on that seed
-    and 0.3 to 1 on others."""
+    groups or more)."""
     m = out.model
     if not m.chunks or len(groups) != len(m.problem.frames):
         return None
@@ -733,8 +722,7 @@ def _cluster_excess(
 
 #: Fewest corners of an image for its neighbours to enter :func:`neighbour_correlation`: with
 #: fewer, its pose takes most of what its residuals could vary (a lone tag's 4 corners: 8
-#: residuals, 6 pose coordinates), and their correlation says little of the errors' (measured:
-#: a one-tag session of 35 images with independent noise read 0.28-0.36 on 9 of 100 draws)
+#: residuals, 6 pose coordinates), and their correlation says little of the errors'.
 NEIGHBOUR_MIN_CORNERS = 12
 
 
