@@ -371,7 +371,8 @@ def predicted_covariance(
     ``problem`` holds the detections' ids (their pixel values are not used); ``sigma_px``: the
     pixel noise (per coordinate); ``camera_sigma_px``: per camera, when the cameras of a rig
     differ. ``structure``: what is observable (``build_structure`` of the problem at the true
-    hand-eye rotation when None).
+    hand-eye rotation when None). The arm's per-pose error enters at the level of
+    ``problem.options`` (``robot_noise_deg``, ``robot_noise_m``; exact poses when both are 0).
     """
     st = _structure(problem, truth, structure)
     names, cov = fisher_covariance(problem, st, truth, sigma_px, camera_sigma_px)
