@@ -28,7 +28,7 @@ from slidecal.mocks.camera import SimulatedCameraRig
 from slidecal.mocks.robot import SimulatedUR
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, rvec_from_R
-from slidecal.solver.named import MOUNTS
+from slidecal.solver.problem import MOUNTS
 
 #: Hand-eye and target-pose names per mount (the result file's names).
 POSE_NAMES = {mount: (m.hand_eye, m.target) for mount, m in MOUNTS.items()}

@@ -48,6 +48,7 @@ from slidecal.solver.geometry import (
     transform_points,
 )
 from slidecal.solver.homography import homography_dlt, refine_homography
+from slidecal.solver.model import ModelState
 from slidecal.solver.problem import (
     CalibrationProblem,
     CameraSpec,
@@ -56,7 +57,6 @@ from slidecal.solver.problem import (
     ModelOptions,
     Target,
 )
-from slidecal.solver.refine import ModelState
 
 #: An image model: what a camera finds of the board at ``T_cam_board`` (4, 4), drawing noise
 #: from the generator, the board bowed by ``bow_m`` (2,) (metres, ``solver/target_shape.py``'s

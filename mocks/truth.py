@@ -15,14 +15,10 @@ from scipy.stats import binom, chi2, norm
 
 from slidecal.mocks.scenarios import Scenario
 from slidecal.solver.geometry import rvec_from_R
-from slidecal.solver.named import (
-    NamedCovariance,
-    equal_weight_covariance,
-    hand_eye_names,
-    predicted_covariance,
-)
-from slidecal.solver.problem import CalibrationProblem
-from slidecal.solver.refine import ModelState, Structure
+from slidecal.solver.model import ModelState, Structure
+from slidecal.solver.problem import CalibrationProblem, hand_eye_names
+from slidecal.solver.result import NamedCovariance
+from slidecal.solver.uncertainty import equal_weight_covariance, predicted_covariance
 
 #: the intrinsics by name: their (row, column) in K
 INTRINSICS = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}

@@ -39,8 +39,9 @@ from slidecal.routines.config import CellConfig, load_config
 from slidecal.routines.plan import Plan, read_plan
 from slidecal.routines.progress import Progress
 from slidecal.routines.verdict import Check, Verdict, judge_check, write_verdict
+from slidecal.solver.drift import T_cam_board as _T_cam_board
+from slidecal.solver.drift import fit_target
 from slidecal.solver.errors import InputError
-from slidecal.solver.geometry import inv_T
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.result import CalibrationResult
 
@@ -109,72 +110,6 @@ def _hand_eye_T(installed: CalibrationResult, camera: str) -> np.ndarray:
     return t.T
 
 
-def _T_cam_board(mount: str, X: np.ndarray, T_base_tool: np.ndarray, Y: np.ndarray):
-    """``T_cam_board`` from the hand-eye ``X`` (T_tool_cam or T_base_cam), the robot pose and
-    the target pose ``Y`` (T_base_board or T_tool_board)."""
-    if mount == "eye_in_hand":
-        return inv_T(X) @ inv_T(T_base_tool) @ Y
-    return inv_T(X) @ T_base_tool @ Y
-
-
-def fit_target(
-    problem: CalibrationProblem, installed: CalibrationResult
-) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """The target pose (4, 4) that best explains the images with the installed calibration
-    held fixed, and the residual vectors (N, 2) px per camera."""
-    from scipy.optimize import least_squares
-
-    from slidecal.solver.camera import project
-    from slidecal.solver.geometry import R_from_rvec, T_from_Rt, rvec_from_R
-
-    mount = installed.mount
-    cams = [c.name for c in problem.cameras if c.name in installed.cameras]
-    X = {c: _hand_eye_T(installed, c) for c in cams}
-    pts = problem.target.points_m
-    obs = []
-    for fr in problem.frames:
-        if fr.T_base_tool is None:
-            continue
-        for c in cams:
-            det = fr.detections.get(c)
-            if det is not None and len(det.ids) >= 4:
-                obs.append((c, fr.T_base_tool, pts[det.ids], np.asarray(det.px, float)))
-    if not obs:
-        raise InputError("no frame of the check saw the target; check the cell and the board")
-    Y0 = installed.T_target.T if installed.T_target is not None else None
-    if Y0 is None:
-        import cv2
-
-        c, T, P, px = obs[0]
-        cam = installed.cameras[c]
-        ok, rv, tv = cv2.solvePnP(
-            P.astype(np.float64), px, np.asarray(cam.K, float), np.asarray(cam.distortion, float)
-        )
-        T_cb = T_from_Rt(cv2.Rodrigues(rv)[0], tv.ravel())
-        Y0 = T @ X[c] @ T_cb if mount == "eye_in_hand" else inv_T(T) @ X[c] @ T_cb
-
-    def residuals(theta: np.ndarray) -> np.ndarray:
-        Y = T_from_Rt(R_from_rvec(theta[:3]), theta[3:])
-        out = []
-        for c, T, P, px in obs:
-            cam = installed.cameras[c]
-            Tcb = _T_cam_board(mount, X[c], T, Y)
-            Pc = P @ Tcb[:3, :3].T + Tcb[:3, 3]
-            out.append((project(np.asarray(cam.K), np.asarray(cam.distortion), Pc) - px).ravel())
-        return np.concatenate(out)
-
-    theta0 = np.concatenate([rvec_from_R(Y0[:3, :3]), Y0[:3, 3]])
-    sol = least_squares(residuals, theta0, x_scale="jac")
-    Y = T_from_Rt(R_from_rvec(sol.x[:3]), sol.x[3:])
-    r = residuals(sol.x).reshape(-1, 2)
-    per: dict[str, list[np.ndarray]] = {c: [] for c in cams}
-    k = 0
-    for c, _T, P, _px in obs:
-        per[c].append(r[k : k + len(P)])
-        k += len(P)
-    return Y, {c: np.vstack(v) if v else np.zeros((0, 2)) for c, v in per.items()}
-
-
 def expected_rms_px(
     installed: CalibrationResult, info: dict[str, Any], cfg: CellConfig
 ) -> dict[str, float]:
@@ -191,20 +126,6 @@ def expected_rms_px(
             f / d * np.hypot(cfg.options.robot_noise_m, d * np.radians(cfg.options.robot_noise_deg))
         )
         out[n] = float(np.hypot(c.reproj_rms_px, np.sqrt(2) * robot_px))
-    return out
-
-
-def chain_rms_px(result: CalibrationResult, problem: CalibrationProblem) -> dict[str, float]:
-    """Per camera, the rms (norm) of the residuals of ``result`` on its own session with the
-    robot poses as measured (what :func:`fit_target` sees on an unchanged cell)."""
-    out = {}
-    try:
-        _, res = fit_target(problem, result)
-    except InputError:
-        return out
-    for n, r in res.items():
-        if len(r):
-            out[n] = float(np.sqrt(np.mean(np.sum(r**2, axis=1))))
     return out
 
 

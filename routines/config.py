@@ -73,8 +73,7 @@ from slidecal.routines.session import (
     ur_pose_field,
 )
 from slidecal.solver.errors import InputError
-from slidecal.solver.named import MOUNTS
-from slidecal.solver.problem import CameraSpec, ModelOptions, Target
+from slidecal.solver.problem import MOUNTS, CameraSpec, ModelOptions, Target
 
 CELL_FORMAT = "slidecal.cell/1"
 ROBOT_DRIVERS = ("simulated", "ur")

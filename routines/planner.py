@@ -81,15 +81,17 @@ from slidecal.solver.geometry import (
     rvec_from_R,
 )
 from slidecal.solver.linear import LinearGroup
-from slidecal.solver.named import (
+from slidecal.solver.model import ModelState, Structure, build_structure
+from slidecal.solver.problem import (
     INTRINSIC_NAMES,
-    FrameInformation,
+    CalibrationProblem,
+    CameraSpec,
+    Detection,
+    Frame,
     mount_names,
-    predicted_covariance,
 )
-from slidecal.solver.named import frame_information as named_frame_information
-from slidecal.solver.problem import CalibrationProblem, CameraSpec, Detection, Frame
-from slidecal.solver.refine import ModelState, Structure, build_structure
+from slidecal.solver.uncertainty import FrameInformation, predicted_covariance
+from slidecal.solver.uncertainty import frame_information as named_frame_information
 
 help = "choose the shortest robot routine predicted to meet the accuracy goal (writes plan.yaml)"
 

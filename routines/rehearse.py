@@ -37,7 +37,7 @@ import numpy as np
 
 from slidecal.drivers.ur_pose import T_from_ur_pose
 from slidecal.solver.errors import HardwareFault, InputError
-from slidecal.solver.named import MOUNTS
+from slidecal.solver.problem import MOUNTS
 
 help = "rehearse the cell's routine through the real ur-rtde client on a loopback controller"
 REHEARSAL_FILE = "rehearsal.yaml"

@@ -26,7 +26,7 @@ of a rig; rig ``T_<name>_<ref>``) and these extensions, all additive:
 
 A value the data cannot determine is ``null``, never a number. ``T_tool_<name>`` of a rig's
 non-reference camera is composed from the reference's hand-eye and the rig extrinsics; its std
-comes from the joint covariance (correlations kept, :mod:`slidecal.solver.named`).
+comes from the joint covariance (correlations kept, :mod:`slidecal.solver.uncertainty`).
 
 ``parameter_names`` are the reported quantities (``cam.fx``, ``T_tool_cam.rx`` .. ``.tz``,
 docs/FORMATS.md). A result written before them (the optimiser's ``X0.r0`` .. ``Y.t2`` and
@@ -57,14 +57,8 @@ from slidecal.routines.schema import (
 )
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import T_from_Rt, rotation_angle_deg, rvec_from_R
-from slidecal.solver.named import hand_eye_names as named_hand_eye_names
-from slidecal.solver.named import (
-    is_legacy,
-    legacy_layout,
-    mount_names,
-    propagate,
-    reported_names,
-)
+from slidecal.solver.problem import hand_eye_names as named_hand_eye_names
+from slidecal.solver.problem import mount_names
 from slidecal.solver.result import (
     BoardShape,
     CalibrationResult,
@@ -74,6 +68,7 @@ from slidecal.solver.result import (
     ScaleCheck,
     TransformEstimate,
 )
+from slidecal.solver.uncertainty import is_legacy, legacy_layout, propagate, reported_names
 
 RESULT_FORMAT = "slidecal.result/1"
 RESULT_FILE = "result.yaml"

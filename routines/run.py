@@ -693,8 +693,8 @@ def _install(
     """Install an accepted (or accepted-drift) result; (new entry, None) or (None, why not)."""
     if store is None:
         return None, None
-    from slidecal.routines.check import chain_rms_px
     from slidecal.routines.install import NotInstalled, install
+    from slidecal.solver.drift import chain_rms_px
 
     v: Verdict = fin["verdict"]
     if v.verdict == "rejected":

@@ -1,9 +1,10 @@
 """slidecal.solver: the pure maths (a frozen problem in, a result out; no I/O, no logging).
 
-The public API is listed in ``__all__``; each name is imported on first use, so importing the
-package stays light. The reported quantities and their covariance are named by
-:mod:`slidecal.solver.named` (``cam.fx``, ``T_tool_cam.rx`` .. ``.tz``); the optimiser's own
-coordinates (:mod:`slidecal.solver.refine`) are private to it.
+The contract is listed in ``__all__``: the pipeline, the problem and result types, the named
+covariance (:mod:`slidecal.solver.uncertainty` names the reported quantities: ``cam.fx``,
+``T_tool_cam.rx`` .. ``.tz``), the predicted covariance of a plan, the mount names and the
+errors. Each name is imported on first use, so importing the package stays light. The
+optimiser's own coordinates and the error model's terms are internal to their modules.
 """
 
 from __future__ import annotations
@@ -22,22 +23,17 @@ _EXPORTS = {
     "Frame": "problem",
     "ModelOptions": "problem",
     "Target": "problem",
+    "MOUNTS": "problem",
+    "MountNames": "problem",
+    "mount_names": "problem",
+    "hand_eye_names": "problem",
     # results
     "CalibrationResult": "result",
     "CameraEstimate": "result",
     "TransformEstimate": "result",
-    # the named model
-    "MOUNTS": "named",
-    "MountNames": "named",
-    "NamedCovariance": "named",
-    "FrameInformation": "named",
-    "mount_names": "named",
-    "hand_eye_names": "named",
-    "predicted_covariance": "named",
-    "equal_weight_covariance": "named",
-    "frame_information": "named",
-    "LinearisedEstimator": "named",
-    "linearised_estimator": "named",
+    "NamedCovariance": "result",
+    # the uncertainty of a plan
+    "predicted_covariance": "uncertainty",
     # errors
     "SlidecalError": "errors",
     "InputError": "errors",

@@ -15,12 +15,12 @@ with the figure and its limit, when the model cannot explain the data.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, ClassVar
+from typing import ClassVar
 
 import cv2
 import numpy as np
 
-from slidecal.solver.camera import project
+from slidecal.solver.free_pose import FreePoseFit, free_pose_fit, model_starts, session_images
 from slidecal.solver.geometry import (
     R_from_quat_wxyz,
     Rx,
@@ -32,23 +32,18 @@ from slidecal.solver.geometry import (
     rotation_angle_deg,
     rvec_from_R,
 )
+from slidecal.solver.model import ModelState, orientation_groups
+from slidecal.solver.problem import CalibrationProblem
+from slidecal.solver.refine import RefineOutput
 from slidecal.solver.result import ModelAdequacy, RobotAccuracy
-
-if TYPE_CHECKING:
-    from slidecal.solver.problem import CalibrationProblem
-    from slidecal.solver.refine import ModelState, RefineOutput
 
 #: A camera whose robot-model residual exceeds its free-pose (detector) floor by this factor is
 #: not explained by the model (about 1.0 when it is; sampling spread a few percent).
 MAX_NORMALISED_RMS = 1.5
 #: One image this far above the floor: the frame's pose or detection is wrong.
 MAX_FRAME_NORMALISED_RMS = 4.0
-#: Such images make the result unusable when their squares beyond the floor are at least this
-#: share of the session's: the result leans on them. Fewer are named and the result stands
-#: (the share :func:`slidecal.solver.named.misfit_image` reads an image's errors from): a
-#: detector's error is not the same on every image (blur, distance, angle), and among the 205
-#: rendered images of one AprilTag of the simulated eye-to-hand session one image 4-6 times the
-#: floor made 4 of 20 sessions unusable whose results were within 2.2 std of the truth.
+#: Images beyond that limit make the result unusable when their squares beyond the floor are at
+#: least this share of the session's (the result leans on them); fewer are named and it stands.
 MAX_BAD_IMAGE_SHARE = 0.1
 #: Robot accuracy beyond anything a working arm has (ISO 9283 accuracy of uncalibrated
 #: industrial arms: about 1 mm and 0.2 deg): units or frames are wrong, not the arm.
@@ -61,144 +56,6 @@ MAX_DETECTOR_NOISE_PX = 1.5
 #: this much longer or shorter than the robot reports): a wrong square size or robot units, not
 #: an arm's accuracy (real arms: 0.1-0.5 % with a printed board's own scale error).
 MAX_SCALE_ERROR = 0.02
-
-
-@dataclass(frozen=True)
-class FreePoseFit:
-    """Per image ``(frame index, camera)``: residual sum of squares (pixels^2), rows used and
-    the fitted ``T_cam_board``; ``sigma_px`` per camera: ``sqrt(sum rss / sum(rows - 6))``."""
-
-    rss: dict[tuple[int, str], float]
-    rows: dict[tuple[int, str], int]
-    T_cam_board: dict[tuple[int, str], np.ndarray]
-    sigma_px: dict[str, float]
-
-
-def free_pose_fit(
-    images: list[tuple[int, str, np.ndarray, np.ndarray]],
-    K: dict[str, np.ndarray],
-    dist: dict[str, np.ndarray],
-    starts: dict[tuple[int, str], np.ndarray] | None = None,
-    closed_form: bool = True,
-) -> FreePoseFit:
-    """Fit a free board pose to every image with fixed intrinsics and distortion.
-
-    ``images``: (frame index, camera, board points (n, 3), pixels (n, 2)) of the inlier
-    detections. Each pose is the reprojection-error minimum of OpenCV's iterative PnP, started
-    from the better of ``starts`` (``T_cam_board`` per (frame index, camera), e.g. the robot
-    model's prediction) and the closed-form planar solution (IPPE), so that a wildly wrong
-    robot model cannot spoil the floor it is judged against. Images with fewer than 4 points
-    are skipped. The candidate poses are scored for all images at once (one projection per
-    camera), not image by image. ``closed_form`` False: the closed form only for the images
-    without a start, or whose start PnP does not refine (the starts are free-pose minima
-    already, e.g. of an earlier fit).
-    """
-    todo = [
-        (fi, cam, pts.astype(np.float64), px.astype(np.float64))
-        for fi, cam, pts, px in images
-        if len(pts) >= 4
-    ]
-    starts = starts or {}
-    refined: list[np.ndarray | None] = []
-    closed: list[np.ndarray | None] = []
-    for fi, cam, obj, img in todo:
-        T0 = starts.get((fi, cam))
-        good_start = T0 is not None and T0[2, 3] > 0
-        refined.append(_pnp(obj, img, K[cam], dist[cam], T0) if good_start else None)
-        if good_start and not closed_form and refined[-1] is not None:
-            closed.append(None)
-            continue
-        ok, rv, tv = cv2.solvePnP(obj, img, K[cam], dist[cam], flags=cv2.SOLVEPNP_IPPE)
-        closed.append(T_from_Rt(cv2.Rodrigues(rv)[0], tv.reshape(3)) if ok else None)
-    best = _scored(todo, refined, K, dist)
-    closed_rss = _scored(todo, closed, K, dist)
-    # the closed form is refined only when it beats the refined model start (a wrong robot
-    # model starting the pose in the wrong basin)
-    alt: list[np.ndarray | None] = [None] * len(todo)
-    for k, (_, cam, obj, img) in enumerate(todo):
-        if closed_rss[k] is not None and (best[k] is None or closed_rss[k] < best[k]):
-            alt[k] = _pnp(obj, img, K[cam], dist[cam], closed[k])
-    alt_rss = _scored(todo, alt, K, dist)
-    rss: dict[tuple[int, str], float] = {}
-    rows: dict[tuple[int, str], int] = {}
-    poses: dict[tuple[int, str], np.ndarray] = {}
-    sums: dict[str, list[float]] = {}
-    for k, (fi, cam, obj, _) in enumerate(todo):
-        T, e = refined[k], best[k]
-        if alt_rss[k] is not None and (e is None or alt_rss[k] < e):
-            T, e = alt[k], alt_rss[k]
-        if e is None:
-            continue
-        key = (fi, cam)
-        rss[key], rows[key], poses[key] = e, 2 * len(obj), T
-        acc = sums.setdefault(cam, [0.0, 0])
-        acc[0] += e
-        acc[1] += 2 * len(obj) - 6
-    sigma = {c: float(np.sqrt(t / d)) if d > 0 else float("nan") for c, (t, d) in sums.items()}
-    return FreePoseFit(rss, rows, poses, sigma)
-
-
-def _scored(
-    todo: list[tuple[int, str, np.ndarray, np.ndarray]],
-    poses: list[np.ndarray | None],
-    K: dict[str, np.ndarray],
-    dist: dict[str, np.ndarray],
-) -> list[float | None]:
-    """Per image of ``todo`` (frame index, camera, board points, pixels): the residual sum of
-    squares (pixels^2) of its board pose ``T_cam_board`` in ``poses``; None without a pose or
-    with the board behind the camera. One projection per camera for all its images."""
-    out: list[float | None] = [None] * len(todo)
-    for cam in dict.fromkeys(c for _, c, _, _ in todo):
-        sel = [k for k, (_, c, _, _) in enumerate(todo) if c == cam and poses[k] is not None]
-        if not sel:
-            continue
-        n = np.array([len(todo[k][2]) for k in sel])
-        T = np.repeat(np.stack([poses[k] for k in sel]), n, axis=0)  # each point's pose
-        obj = np.concatenate([todo[k][2] for k in sel])
-        P = np.einsum("nij,nj->ni", T[:, :3, :3], obj) + T[:, :3, 3]
-        e = project(K[cam], dist[cam], P) - np.concatenate([todo[k][3] for k in sel])
-        first = np.concatenate([[0], np.cumsum(n)[:-1]])
-        rss = np.add.reduceat(np.sum(e * e, axis=1), first)
-        front = np.minimum.reduceat(P[:, 2], first) > 0
-        for k, r, f in zip(sel, rss, front, strict=True):
-            if f:
-                out[k] = float(r)
-    return out
-
-
-def _pnp(
-    obj: np.ndarray, img: np.ndarray, K: np.ndarray, dist: np.ndarray, T0: np.ndarray
-) -> np.ndarray | None:
-    """OpenCV's iterative PnP (the reprojection-error minimum) started at ``T0``: the pose
-    ``T_cam_board``, or None when it fails."""
-    rv0 = cv2.Rodrigues(T0[:3, :3])[0]
-    ok, rv, tv = cv2.solvePnP(
-        obj, img, K, dist, rv0, T0[:3, 3].reshape(3, 1).copy(), True, cv2.SOLVEPNP_ITERATIVE
-    )
-    if not ok:
-        return None
-    return T_from_Rt(cv2.Rodrigues(rv)[0], tv.reshape(3))
-
-
-def session_images(out: RefineOutput) -> list[tuple[int, str, np.ndarray, np.ndarray]]:
-    """The inlier detections of a refinement as ``free_pose_fit`` takes them."""
-    images = []
-    for ch in out.model.chunks:
-        keep = out.inlier_rows[ch.rows][0::2]
-        images.append((ch.frame_index, ch.camera, ch.points[keep], ch.px[keep]))
-    return images
-
-
-def model_starts(out: RefineOutput) -> dict[tuple[int, str], np.ndarray]:
-    """``T_cam_board`` per (frame index, camera) as the refined robot model predicts it."""
-    m, state = out.model, out.state
-    starts = {}
-    for ch in m.chunks:
-        T = m.T_ref_board(state, ch.frame_index)
-        if ch.camera != m.ref:
-            T = state.T_cam_ref[ch.camera] @ T
-        starts[(ch.frame_index, ch.camera)] = T
-    return starts
 
 
 def _parameters_used(out: RefineOutput) -> dict[str, float]:
@@ -237,12 +94,12 @@ def final_free_pose_fit(out: RefineOutput) -> FreePoseFit:
     refinement's predictions, with the closed form as a guard."""
     if out.free_pose is not None:
         return out.free_pose
-    images = session_images(out)
+    images = session_images(out.model, out.inlier_rows)
     if out.test_fit is not None:  # its poses: the free minima at nearly these intrinsics
         return free_pose_fit(
             images, out.state.K, out.state.dist, out.test_fit.T_cam_board, closed_form=False
         )
-    return free_pose_fit(images, out.state.K, out.state.dist, model_starts(out))
+    return free_pose_fit(images, out.state.K, out.state.dist, model_starts(out.model, out.state))
 
 
 def _image_scores(out: RefineOutput, fit: FreePoseFit) -> list[tuple[int, str, float, float, int]]:
@@ -748,14 +605,10 @@ def _move_scale(
     return float(np.median([c / r for _, _, r, c in moves])) - 1.0 if moves else None
 
 
-#: A classic session's moves are checked for their scale only when the session pins the
-#: camera/robot length ratio to this relative standard error (:func:`classic_scale_fit`). With
-#: every frame aimed at the board from nearly one distance, a scale of what the camera sees is
-#: a shift of the hand-eye along the viewing direction: the public classic KUKA session (28
-#: frames, its camera 0.35-0.47 m from the board's centre) pins it to 0.7-0.8 % (its ratio
-#: reads 1.05), and a check there would test the geometry, not the board
-#: (:func:`unchecked_scale_note` says so). Simulated classic sessions (0.44-0.61 m): 0.1-0.2 %
-#: eye-in-hand, 0.03-0.1 % eye-to-hand.
+#: A classic session's moves are checked for their scale only when it pins the camera/robot
+#: length ratio to this relative standard error (:func:`classic_scale_fit`): aimed at the board
+#: from nearly one distance, a scale of what the camera sees is a shift of the hand-eye along
+#: the view, and a check would test the geometry, not the board (:func:`unchecked_scale_note`).
 MAX_CLASSIC_SCALE_SE = 0.003
 
 
@@ -833,8 +686,6 @@ def scale_moves(
     against the robot's move of the same point, placed on the tool by
     :func:`classic_scale_fit`, when the fit pins the ratio (:data:`MAX_CLASSIC_SCALE_SE`); no
     moves otherwise. A wrong square size scales every length the camera tells."""
-    from slidecal.solver.refine import orientation_groups
-
     T = np.stack([f.T_base_tool for f in problem.frames])
     groups = orientation_groups(T) if groups is None else groups
     q = np.zeros(3)
@@ -867,8 +718,6 @@ def unchecked_scale_note(
     unchecked (:func:`scale_moves` gives it no move), with the frames' distances from the
     board and what would let it be checked; () for any other session. ``poses``: frame index
     -> ``T_cam_board`` from the images alone."""
-    from slidecal.solver.refine import orientation_groups
-
     if len(poses) < 4:
         return ()
     if groups is None:
@@ -890,25 +739,17 @@ def unchecked_scale_note(
 
 
 #: A frame whose robot pose correction (rotation or translation, as a 3-vector) is this many
-#: times the typical frame's is a gross error, not the arm's accuracy: a pose read before the
-#: arm settled, a glitch of the record, an image paired with another pose. The typical size is
-#: robust (from the median: two bad frames must not hide each other). Measured on simulated
-#: real arms (13-28 frames, 40 sessions: at most 3.8) and on the public KUKA sessions (at most
-#: 2.9); one pose 5-6 mm or 1 deg off: 6 to 15.
+#: times the typical frame's (robust: from the median) is a gross error, not the arm's accuracy:
+#: a pose read before the arm settled, a glitch of the record, an image paired with another pose.
 POSE_OUTLIER_RATIO = 5.0
 #: The words of the message that names a frame left out for its pose (the verdict lists them)
 LEFT_OUT = "left out of the solve"
 #: Fewest frames with pose corrections for the test (the typical size must mean something).
 POSE_OUTLIER_MIN_FRAMES = 8
 #: How many neighbours a frame's correction is held against, in space (the nearest tool
-#: positions of its orientation group, or of the session when the group has fewer others) and
-#: in time (the frames recorded just before and after it). A glitch stands out against both;
-#: a real arm's error does not: it is alike at nearby places (a smooth field the model's
-#: shared parts leave a remainder of) and over a run of frames the controller reached on
-#: another joint configuration (a wrist or elbow turned over between two moves: a different
-#: kinematic error for that run; measured on the simulated eye-to-hand tag session, seed 2008:
-#: ten consecutive frames 0.7-1.0 mm off the others, each left out in turn as a glitch, the
-#: focal length 4.8 std off on rendered images).
+#: positions of its orientation group, or of the session) and in time (the frames recorded just
+#: before and after it): a glitch stands out against both; a real arm's error, alike at nearby
+#: places and over a run of frames on one joint configuration, does not.
 POSE_OUTLIER_NEIGHBOURS = 4
 
 
@@ -978,8 +819,6 @@ def pose_outlier(
         if ratios[k] <= POSE_OUTLIER_RATIO:
             return None
         if groups is None:
-            from slidecal.solver.refine import orientation_groups
-
             groups = orientation_groups(T)
         local = [E[k] - np.median(E[nb], axis=0) for nb in _pose_neighbours(T, groups, int(k))]
         if min(float(ratio(d[None])[0]) for d in local) > POSE_OUTLIER_RATIO:
@@ -1042,71 +881,3 @@ def robot_accuracy(problem: CalibrationProblem, out: RefineOutput) -> RobotAccur
         worst_frames=tuple(worst[:5]),
         estimated=out.robot_sigma_estimated,
     )
-
-
-#: Fewest corners of an image for its neighbours to enter :func:`neighbour_correlation`: with
-#: fewer, its pose takes most of what its residuals could vary (a lone tag's 4 corners: 8
-#: residuals, 6 pose coordinates), and their correlation says little of the errors' (measured:
-#: a one-tag session of 35 images with independent noise read 0.28-0.36 on 9 of 100 draws)
-NEIGHBOUR_MIN_CORNERS = 12
-
-
-def _neighbour_pairs(points_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The target's neighbouring points: each pair (a < b) at its smallest spacing."""
-    d = np.linalg.norm(points_m[:, None, :] - points_m[None, :, :], axis=2)
-    np.fill_diagonal(d, np.inf)
-    return np.nonzero(np.triu(d <= 1.01 * d.min()))
-
-
-def corner_residuals(out: RefineOutput) -> tuple[np.ndarray, np.ndarray]:
-    """Every detected corner's residual (n, 2) weighted as the solve weighs it (the robust
-    loss's row weights; the inliers alone without them), and whether it counts (n,)."""
-    m = out.model
-    n_px = len(out.residuals)
-    w = m.row_weights[:n_px] if m.row_weights is not None else out.inlier_rows.astype(float)
-    return (out.residuals * np.sqrt(np.maximum(w, 0.0))).reshape(-1, 2), w[0::2] > 0
-
-
-def neighbour_correlation(out: RefineOutput) -> tuple[float, int]:
-    """How much the residuals of neighbouring corners of one image go together, and over how
-    many pairs: over every image's neighbour pairs (corners at the target's smallest spacing),
-    the mean product of their weighted residuals along the line through the two corners and,
-    apart, across it, each over the mean square of one coordinate; the larger of the two, and
-    the pairs' count; (0, 0) without a pair. Images with fewer than
-    :data:`NEIGHBOUR_MIN_CORNERS` corners are left out.
-
-    About 0 when each corner's error is its own: simulated detections of independent noise
-    read -0.06 to 0.03 on sessions of 13 frames or more, -0.1 to 0.11 on small ones (the fit
-    itself makes it slightly negative), with a sampling spread of about one over the square
-    root of the pairs. Corners on one line of the board share its edge, and an error of that
-    edge (the print, blur, the light) moves them together across it: the rendered images of
-    mocks/render.py read 0.08-0.17 across and nothing along (-0.03, the fit's share), real
-    photographs (OpenCV's stereo samples, ``tests/data/opencv_left``, ``opencv_right``) 0.47."""
-    m = out.model
-    pts = m.problem.target.points_m
-    if len(pts) < 2:
-        return 0.0, 0
-    a, b = _neighbour_pairs(pts)
-    e, ok = corner_residuals(out)
-    # each image's corners by id: the row of corner id i of image c in table[c, i] (-1: none)
-    table = np.full((len(m.chunks), len(pts)), -1)
-    for c, ch in enumerate(m.chunks):
-        first = ch.rows.start // 2
-        seen = ok[first : first + len(ch.corner_ids)]
-        if np.count_nonzero(seen) >= NEIGHBOUR_MIN_CORNERS:
-            table[c, ch.corner_ids[seen]] = first + np.flatnonzero(seen)
-    ia, ib = table[:, a], table[:, b]
-    both = (ia >= 0) & (ib >= 0)
-    pairs, corners = int(both.sum()), int(ok.sum())
-    squares = float(np.sum(e[ok] ** 2))
-    if pairs == 0 or squares <= 0.0:
-        return 0.0, 0
-    ia, ib = ia[both], ib[both]
-    line = m.o_px[ib] - m.o_px[ia]  # the two corners' line in the image
-    along = line / np.maximum(np.linalg.norm(line, axis=1, keepdims=True), 1e-12)
-    across = np.stack([-along[:, 1], along[:, 0]], axis=1)
-    per_coordinate = pairs * squares / (2 * corners)
-    return max(
-        float(np.sum(np.sum(e[ia] * u, axis=1) * np.sum(e[ib] * u, axis=1))) / per_coordinate
-        for u in (along, across)
-    ), pairs

@@ -14,7 +14,7 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -22,7 +22,6 @@ import numpy as np
 from slidecal.solver.adequacy import (
     LEFT_OUT,
     MAX_CLASSIC_SCALE_SE,
-    FreePoseFit,
     ImageOutlier,
     PoseOutlier,
     assess,
@@ -39,6 +38,7 @@ from slidecal.solver.adequacy import (
 )
 from slidecal.solver.degeneracy import check_configuration, n_directions
 from slidecal.solver.errors import DegenerateError, InputError
+from slidecal.solver.free_pose import FreePoseFit
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, project_to_SO3
 from slidecal.solver.handeye import ax_xb_park_martin, rotation_from_directions
 from slidecal.solver.homography import group_homographies
@@ -48,33 +48,25 @@ from slidecal.solver.linear import (
     linear_intrinsics,
     zhang_intrinsics,
 )
-from slidecal.solver.named import (
-    FIELD_WEIGHT,
-    INTRINSIC_NAMES,
-    MIN_CLUSTER_FRAMES,
-    correlated_image_errors,
-    grouped_detection_errors,
-    hand_eye_names,
-    layout_of,
-    misfit_image,
-    mount_names,
-    named_step,
-    reported_response,
-    result_covariance,
-    session_field_step,
-)
-from slidecal.solver.problem import DISTORTION_NAMES, CalibrationProblem, Detection, Frame
-from slidecal.solver.refine import (
+from slidecal.solver.model import (
     BundleModel,
     ModelState,
-    RefineOutput,
     Structure,
     build_structure,
     complement_basis,
     orientation_groups,
-    refine,
     single_threaded_blas,
 )
+from slidecal.solver.problem import (
+    DISTORTION_NAMES,
+    INTRINSIC_NAMES,
+    CalibrationProblem,
+    Detection,
+    Frame,
+    hand_eye_names,
+    mount_names,
+)
+from slidecal.solver.refine import RefineOutput, refine
 from slidecal.solver.result import (
     BoardShape,
     CalibrationResult,
@@ -87,7 +79,8 @@ from slidecal.solver.stereo import (
     rig_linear_intrinsics,
     rig_linear_intrinsics_translation,
 )
-from slidecal.solver.target_shape import BoardFit, fit_board
+from slidecal.solver.target_shape import BoardFit
+from slidecal.solver.uncertainty import Reported, layout_of, named_step, reported_covariance
 
 # An image with fewer points than this is skipped (with a message): a plane homography and a
 # planar PnP pose need 4 points (8 equations for 8 unknowns). Intrinsics from few points are
@@ -666,23 +659,93 @@ def calibrate(
     camera's detector noise (``adequacy.image_outlier``: a corner misplaced by a glare or a
     blur, a misdetection); at most one frame in ten (at least one) is left out so.
     """
-    return _calibrate(problem, joint_homographies, focal_sweep, ())
+    return _pipeline(problem, joint_homographies, focal_sweep, ())
 
 
-def _calibrate(
+@dataclass
+class _Pass:
+    """One pass of the pipeline over a problem: its solve, and what it asks of the loop.
+
+    ``again``: the problem to solve next (a frame or image left out, or frames without a board
+    pose skipped), with ``prefix`` the lines the final result then opens with and ``gone`` the
+    frame left out for its pose (for ``RobotAccuracy.left_out``); ``bad``: the outlier left
+    out, whose pass is finished instead should the next one fail; ``result``: a restart's."""
+
+    problem: CalibrationProblem
+    notes: list[str]
+    out: RefineOutput | None = None
+    K_lin: dict[str, np.ndarray] = field(default_factory=dict)
+    groups: np.ndarray | None = None
+    fit: FreePoseFit | None = None
+    again: CalibrationProblem | None = None
+    prefix: tuple[str, ...] = ()
+    bad: PoseOutlier | ImageOutlier | None = None
+    gone: tuple[int, float, float] | None = None
+    result: CalibrationResult | None = None
+
+
+def _pipeline(
     problem: CalibrationProblem,
-    joint_homographies: bool,
+    jh: bool,
     focal_sweep: bool,
     left_out: tuple[PoseOutlier | ImageOutlier, ...],
 ) -> CalibrationResult:
-    """:func:`calibrate` with the frames ``left_out`` so far for their robot poses or images."""
+    """:func:`calibrate`'s loop: solve, and while the solve leaves a frame (or an image) out,
+    solve again without it; when a solve without it fails, the pass that left it out is
+    finished with it kept. ``left_out``: the frames left out before (a restart's)."""
+    passes: list[_Pass] = []  # the passes that asked for another, outermost first
+    while True:
+        try:
+            p = _pass(problem, jh, focal_sweep, left_out)
+            if p.again is None:
+                res = p.result if p.result is not None else _finish(p)
+                break
+        except DegenerateError as e:
+            res = _fall_back(passes, e)
+            break
+        passes.append(p)
+        problem = p.again
+        if p.bad is not None:
+            left_out = (*left_out, p.bad)
+    for p in reversed(passes):  # the lines of what each pass left out, outermost first
+        ra = res.robot_accuracy
+        if ra is not None and p.gone is not None:
+            ra = replace(ra, left_out=(p.gone, *ra.left_out))
+        res = replace(res, messages=(*p.prefix, *res.messages), robot_accuracy=ra)
+    return res
+
+
+def _fall_back(passes: list[_Pass], error: DegenerateError) -> CalibrationResult:
+    """The result of the innermost pass of ``passes`` that left an outlier out, finished with
+    the outlier kept because the solve without it failed (``error``); the passes after it are
+    dropped. ``error`` itself when no pass did."""
+    while True:
+        while passes and passes[-1].bad is None:
+            passes.pop()
+        if not passes:
+            raise error
+        p = passes.pop()
+        p.notes.append(f"{p.bad.describe()}; it stays in the solve: without it, {error}")
+        try:
+            return _finish(p)
+        except DegenerateError as e:
+            error = e
+
+
+def _pass(
+    problem: CalibrationProblem,
+    jh: bool,
+    focal_sweep: bool,
+    left_out: tuple[PoseOutlier | ImageOutlier, ...],
+) -> _Pass:
+    """One solve of ``problem`` with the frames ``left_out`` so far for their poses or images:
+    the linear start, the refinement and the outlier tests."""
     check_problem(problem)
     full = problem
     problem, notes_skipped = usable_frames(problem)
     notes: list[str] = list(notes_skipped)
     groups = frame_groups(problem)
     zero = np.zeros(5)
-    jh = joint_homographies
     K_lin = {}
     H_cache: dict = {}  # every camera's homographies, reused by the rig's pairs
     for c in problem.cameras:
@@ -745,9 +808,9 @@ def _calibrate(
                 f"the board pose could be computed in {len(kept)} frame(s) only (not in "
                 f"frames {ids}): capture more frames with the whole target in view"
             )
-        res = _calibrate(replace(problem, frames=kept), jh, focal_sweep, left_out)
         note = f"frames {ids}: no board pose could be computed from the image; skipped"
-        return replace(res, messages=(*notes_skipped, note, *res.messages))
+        again = replace(problem, frames=kept)
+        return _Pass(problem, notes, again=again, prefix=(*notes_skipped, note))
     st = build_structure(problem)
     X, Y, s = init_motion(problem, ref_poses, groups, st)
     if apart:  # the measured robot motion carries the reference camera to their frames
@@ -760,67 +823,64 @@ def _calibrate(
             )
     init = ModelState(K_lin, {c: zero.copy() for c in K_lin}, T_cam_ref, X, Y, s)
     structure = _with_rotation(problem, st, X[0][:3, :3])
-    out = refine(problem, structure, init)
-    classic = problem.knowledge == "robot" and np.bincount(groups).max() == 1
-    if not out.converged and classic and len(problem.cameras) == 1 and not focal_sweep:
-        retry = _calibrate(full, jh, True, left_out)
+    out = refine(problem, structure, init, record_check=record_check)
+    is_classic = problem.knowledge == "robot" and np.bincount(groups).max() == 1
+    if not out.converged and is_classic and len(problem.cameras) == 1 and not focal_sweep:
+        retry = _pipeline(full, jh, True, left_out)
         if retry.converged:
             note = (
                 "the refinement from Zhang's start did not converge; it was restarted from the "
                 "focal length that fits the images best through the robot poses"
             )
-            return replace(retry, messages=(*retry.messages, note))
-    fit = None  # the adequacy test's and the scale checks' poses
+            return _Pass(problem, notes, result=replace(retry, messages=(*retry.messages, note)))
+    p = _Pass(problem, notes, out, K_lin, groups)
     bad = pose_outlier(problem, out, groups) if out.converged else None
     if bad is None and out.converged:
-        fit = final_free_pose_fit(out)
-        bad = image_outlier(problem, out, fit)
-    if bad is not None:
-        whole = [o for o in left_out if not getattr(o, "image_only", False)]  # frames, not images
-        n_all = len(problem.frames) + len(whole)
-        allowed = max(1, n_all // 10)
-        if len(left_out) < allowed:
-            others = {}  # a rig's frame keeps its other cameras' images
-            if isinstance(bad, ImageOutlier):
-                dets = problem.frames[bad.index].detections
-                others = {c: d for c, d in dets.items() if c != bad.camera and len(d.ids)}
-            image_only = bool(others)
-            if image_only:
-                bad = replace(bad, image_only=True)
-                kept = tuple(
-                    replace(f, detections=others) if i == bad.index else f
-                    for i, f in enumerate(problem.frames)
-                )
-            else:
-                kept = tuple(f for i, f in enumerate(problem.frames) if i != bad.index)
-            try:
-                res = _calibrate(replace(problem, frames=kept), jh, focal_sweep, (*left_out, bad))
-            except DegenerateError as e:
-                notes.append(f"{bad.describe()}; it stays in the solve: without it, {e}")
-            else:
-                stays = "; the frame's other images stay in it" if image_only else ""
-                note = f"{bad.describe()}: {LEFT_OUT} ({bad.causes}){stays}; the session keeps it"
-                ra = res.robot_accuracy
-                if ra is not None and not image_only:
-                    gone = (bad.frame, bad.translation_mm, bad.rotation_deg)
-                    ra = replace(ra, left_out=(gone, *ra.left_out))
-                return replace(
-                    res, messages=(*notes_skipped, note, *res.messages), robot_accuracy=ra
-                )
-        elif isinstance(bad, PoseOutlier):  # images beyond it: the adequacy test weighs them
-            notes.append(
-                f"{bad.describe()}; no more than {allowed} of {n_all} frames are left out for "
-                "their poses: check that each image is paired with the pose it was taken at"
+        p.fit = final_free_pose_fit(out)  # the adequacy test's and the scale checks' poses
+        bad = image_outlier(problem, out, p.fit)
+    if bad is None:
+        return p
+    whole = [o for o in left_out if not getattr(o, "image_only", False)]  # frames, not images
+    n_all = len(problem.frames) + len(whole)
+    allowed = max(1, n_all // 10)
+    if len(left_out) < allowed:
+        others = {}  # a rig's frame keeps its other cameras' images
+        if isinstance(bad, ImageOutlier):
+            dets = problem.frames[bad.index].detections
+            others = {c: d for c, d in dets.items() if c != bad.camera and len(d.ids)}
+        image_only = bool(others)
+        if image_only:
+            bad = replace(bad, image_only=True)
+            kept = tuple(
+                replace(f, detections=others) if i == bad.index else f
+                for i, f in enumerate(problem.frames)
             )
-    if fit is None:
-        fit = final_free_pose_fit(out)
-    if notes:
-        out = replace(out, messages=out.messages + tuple(notes))
-    scale = session_scale(problem, out, fit, groups)
-    board = with_session_scale(problem, out, fit_board(problem, out), scale)
-    if board is not None:  # its modes' response at the reported value (a classic session's)
-        out = replace(out, board=replace(board, response=reported_response(out, board.response)))
-    return _result(problem, out, K_lin, groups, fit)
+        else:
+            kept = tuple(f for i, f in enumerate(problem.frames) if i != bad.index)
+        stays = "; the frame's other images stay in it" if image_only else ""
+        note = f"{bad.describe()}: {LEFT_OUT} ({bad.causes}){stays}; the session keeps it"
+        p.again, p.bad, p.prefix = replace(problem, frames=kept), bad, (*notes_skipped, note)
+        if not image_only:
+            p.gone = (bad.frame, bad.translation_mm, bad.rotation_deg)
+    elif isinstance(bad, PoseOutlier):  # images beyond it: the adequacy test weighs them
+        notes.append(
+            f"{bad.describe()}; no more than {allowed} of {n_all} frames are left out for "
+            "their poses: check that each image is paired with the pose it was taken at"
+        )
+    return p
+
+
+def _finish(p: _Pass) -> CalibrationResult:
+    """The result of a pass's solve: its free-pose fit, the board's scale a classic session's
+    images read, what is reported (:func:`slidecal.solver.uncertainty.reported_covariance`)
+    and the checks on it."""
+    problem, out = p.problem, p.out
+    fit = final_free_pose_fit(out) if p.fit is None else p.fit
+    if p.notes:
+        out = replace(out, messages=out.messages + tuple(p.notes))
+    scale = session_scale(problem, out, fit, p.groups)
+    reported = reported_covariance(problem, out, p.groups, scale)
+    return _result(problem, out, reported, p.K_lin, p.groups, fit)
 
 
 def session_scale(
@@ -845,27 +905,6 @@ def session_scale(
         return 0.0
     ratio, se, _ = scale
     return float(np.sqrt(max(0.0, (ratio - 1.0) ** 2 - (2.0 * se) ** 2)))
-
-
-def with_session_scale(
-    problem: CalibrationProblem, out: RefineOutput, board: BoardFit | None, scale: float
-) -> BoardFit | None:
-    """``board`` (the session's :func:`fit_board`) with its scale mode's second moment at
-    least ``scale^2``, the others kept; for a board described as exact (no fit), a fit of the
-    scale mode alone (no bow read: the estimate stays)."""
-    if scale <= 0.0:
-        return board
-    if board is None:
-        exact = replace(problem.target, print_tolerance=scale, flatness_m=0.0)
-        board = fit_board(replace(problem, target=exact), out)
-        if board is None:
-            return None
-        return replace(board, mode_cov=np.diag([scale**2, 0.0, 0.0, 0.0, 0.0]))
-    if board.mode_cov[0, 0] >= scale**2:
-        return board
-    mode_cov = board.mode_cov.copy()
-    mode_cov[0, 0] = scale**2
-    return replace(board, mode_cov=mode_cov)
 
 
 def _field_note(
@@ -938,27 +977,17 @@ def _grouped_note(grouped: tuple[float, int, float] | None) -> tuple[str, ...]:
 def _result(
     problem: CalibrationProblem,
     out: RefineOutput,
+    reported: Reported,
     K_lin: dict[str, np.ndarray],
     groups: np.ndarray,
     fit: FreePoseFit,
 ) -> CalibrationResult:
-    model, st, state = out.model, out.model.st, out.state
-    correlated = misfit = None  # an image's errors go together, or one image's do: read so
-    if len(model.frame_rows) >= MIN_CLUSTER_FRAMES:  # (with fewer frames they cannot be)
-        correlated = correlated_image_errors(out)
-        misfit = None if correlated is not None else misfit_image(out)
-    # a group's detections err together (images too small for the two readings above)
-    grouped = grouped_detection_errors(out, groups) if problem.knowledge == "robot" else None
-    reported, named = result_covariance(
-        problem, out, correlated or misfit, groups if grouped is not None else None
-    )  # at the flat board
-    if out.board is not None:  # between the readings of the board's misfit (target_shape.py)
-        state = model.apply(state, out.board.shift)
-    field = session_field_step(out)  # a classic session: with its arm's linear field or not
+    """The result of a finished solve ``out`` as ``reported``, with its checks and notes."""
+    model, st, state = out.model, out.model.st, reported.state
+    named, images = reported.covariance, reported.images
     field_note = ()
-    if field is not None:
-        state = model.apply(state, FIELD_WEIGHT * field)
-        field_note = _field_note(problem, out, field)
+    if reported.field_step is not None:
+        field_note = _field_note(problem, out, reported.field_step)
     cams = {}
     for spec in problem.cameras:
         c = spec.name
@@ -1057,16 +1086,20 @@ def _result(
         iterations=out.iterations,
         reproj_rms_px=rms,
         sigma_px=out.sigma_px,
-        # the reported quantities (solver/named.py): robot-pose corrections and board poses are
-        # nuisance parameters, marginalised
-        parameter_names=reported,
+        # the reported quantities (solver/uncertainty.py): robot-pose corrections and board
+        # poses are nuisance parameters, marginalised
+        parameter_names=reported.names,
         covariance=named.matrix if named is not None else None,
         residuals_px=residuals,
         outliers=out.outliers,
         unobservable=unobs,
         messages=out.messages
-        + (_correlation_note(problem, correlated, misfit) if named is not None else ())
-        + (_grouped_note(grouped) if named is not None else ())
+        + (
+            _correlation_note(problem, images.correlated, images.misfit)
+            if named is not None
+            else ()
+        )
+        + (_grouped_note(images.grouped) if named is not None else ())
         + field_note
         + bad_images_note(adequacy)
         + scale_note,
@@ -1077,7 +1110,7 @@ def _result(
         reference_camera=ref,
         adequacy=adequacy,
         robot_accuracy=robot_accuracy,
-        board=_board_shape(problem, out.board),
+        board=_board_shape(problem, reported.board),
     )
 
 

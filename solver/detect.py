@@ -71,13 +71,10 @@ import numpy as np
 from slidecal.solver.errors import InputError
 from slidecal.solver.problem import Detection, Target
 
-# Local homography check: a corner whose position differs by more than this from the prediction
-# of a homography fitted to its grid neighbours (one square away, or two or three when too few)
-# is rejected. Over such a neighbourhood the R1 lens (k1 = -0.12) departs from a homography by at
-# most 1.33 px (noise-free, board 0.25-0.3 m away filling the image, extrapolating to the grid's
-# outer corners; tests/test_detect.py checks < 1.5 px) and detector noise adds ~0.1 px, while a
-# gross error is at least a marker margin (4 mm: 5.9 px at 0.6 m with 880 px focal length) or a
-# whole square (a wrong id).
+# Local homography check: a corner farther than this from the prediction of a homography fitted
+# to its grid neighbours (one square away, or two or three when too few) is rejected: a lens
+# departs from a homography over such a neighbourhood by about a pixel and the detector's noise
+# adds a tenth, while a gross error is at least a marker margin or a whole square (a wrong id).
 OUTLIER_THRESHOLD_PX = 3.0
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 60, 1e-3)
 _MAX_HALF_WINDOW_PX = 8
@@ -668,14 +665,10 @@ def other_family(grey: np.ndarray, dictionary: str) -> str:
     )
 
 
-#: ``minMarkerDistanceRate`` of the second look for tags the first missed. OpenCV (4.7 on)
-#: groups quads whose corners lie closer on average than 0.125 of the smaller one's perimeter
-#: and decodes one of each group: a tag printed with a white margin narrower than about 2.8 of
-#: its cells, on a darker tool or background, is grouped with its paper's outline, and when the
-#: outline is the one tried the tag is lost (measured: 1 to 7 of the 205 frames of a rendered
-#: eye-to-hand tag session, a 100 mm tag on a margin of two cells, 3 on one cell; every one
-#: found at 0.02; a tag's duplicate quads from the adaptive thresholds lie within a pixel or
-#: two and stay grouped).
+#: ``minMarkerDistanceRate`` of the second look for tags the first missed: OpenCV groups quads
+#: whose corners lie closer on average than 0.125 of the smaller one's perimeter and decodes one
+#: of each group, so a tag on a narrow white margin is grouped with its paper's outline and may
+#: be lost; at this rate a tag's duplicate quads from the adaptive thresholds still group.
 TAG_RETRY_MARKER_DISTANCE_RATE = 0.02
 
 
@@ -903,13 +896,8 @@ def _side_curve(
 
 
 #: How deep, in border cells, a lone tag's edge profiles reach each way (in, into the black
-#: border; out, into the white margin), the cell taken at the side's narrow end. With the
-#: cell of the tag's mean side (0.8 of it, before), a side foreshortened by a 30 deg tilt had
-#: its profiles reach into the data cells next to the border, and the corner between two such
-#: sides erred by 0.1 px on every frame at that orientation: a fixed pattern that put the
-#: principal point of the eye-to-hand tag session about one std off, up to 3.6 (measured on
-#: its renders; per orientation the worst corner's mean error 0.035-0.098 -> 0.008-0.027 px
-#: with the cubic sampling of :func:`_side_curve`).
+#: border; out, into the white margin), the cell taken at the side's narrow end: a side
+#: foreshortened by a tilt keeps its profiles out of the data cells next to the border.
 TAG_EDGE_DEPTH = 0.7
 
 
@@ -954,18 +942,13 @@ def _tag_edge_corners(grey: np.ndarray, q: np.ndarray, cells: float) -> np.ndarr
 
 
 #: Farthest a tag corner may move in its last ``cornerSubPix`` pass, in cells of the tag (and
-#: at least :data:`TAG_SUBPIX_JUMP_MIN_PX`): OpenCV's quad corners are within about a pixel of
-#: a lone tag's, and the window of that pass can reach past a paper margin of one cell, the
-#: usual print, where the paper's corner and the background beyond it pull the corner away.
-#: On real photographs of a 36h11 tag on a card (100 px across, turned by -60 to 60 deg), with
-#: a window of 0.8 of a cell each way, 10 of 13 views had a corner pulled 3-10 px off, the
-#: wrong corner kept in 4 of them.
+#: at least :data:`TAG_SUBPIX_JUMP_MIN_PX`): OpenCV's quad corners are within about a pixel of a
+#: lone tag's, and a farther move is the paper's corner or the background beyond a one-cell
+#: margin pulling the window.
 TAG_SUBPIX_JUMP_CELLS = 0.25
 TAG_SUBPIX_JUMP_MIN_PX = 2.0
 #: How far a lone tag's ``cornerSubPix`` window reaches each way, in cells (an AprilGrid's: 0.8
-#: of its limit): 0.8 reached past a paper margin of one cell often enough that the corners of
-#: the "subpix" refinement were 0.72 px rms off on the rendered tag session (3.8 px at worst),
-#: 0.19 px (0.53) at 0.6; the edge fit that follows by default is the same either way.
+#: of its limit): short of a usual one-cell paper margin, whose corner would pull the tag's.
 TAG_SUBPIX_WINDOW_CELLS = 0.6
 
 

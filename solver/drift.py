@@ -25,6 +25,10 @@ change, the rotation a camera rotation about its optical axis. A board moved sin
 installed session gives the same kind of field: a paired comparison cannot tell a bumped
 board from a changed camera.
 
+The unpaired check (:func:`fit_target`, :func:`chain_rms_px`): the installed calibration held
+fixed, the one target pose that best explains new images through the measured robot poses, and
+the residuals it leaves per camera.
+
 Pure: arrays in, :class:`DisplacementField` out; no I/O.
 """
 
@@ -33,9 +37,15 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
+from scipy.optimize import least_squares
 
-from slidecal.solver.errors import DegenerateError
+from slidecal.solver.camera import project
+from slidecal.solver.errors import DegenerateError, InputError
+from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, rvec_from_R
+from slidecal.solver.problem import CalibrationProblem
+from slidecal.solver.result import CalibrationResult
 
 #: A field is significant beyond this many one-sigmas.
 Z_LIMIT = 5.0
@@ -219,3 +229,103 @@ def displacement_field(
         pose_scatter_px=float(np.sqrt(np.mean(dev[:, :2] ** 2))) if n > 1 else 0.0,
         equivalent=equivalent,
     )
+
+
+# -- the installed calibration against new images, unpaired ------------------------------------
+def hand_eye_T(installed: CalibrationResult, camera: str) -> np.ndarray:
+    """``T_tool_<camera>`` (eye-in-hand) or ``T_base_<camera>`` (eye-to-hand) (4, 4) of the
+    installed calibration: its hand-eye for the reference camera, composed with the rig's
+    ``T_<camera>_<reference>`` for the others; InputError unless rotation and translation are
+    both known."""
+    he = installed.hand_eye
+    T = None
+    if he is not None:
+        ref = installed.reference_camera or next(iter(installed.cameras))
+        if camera == ref:
+            T = he.T
+        elif (rig := installed.rig.get(f"T_{camera}_{ref}")) is not None:
+            # T_tool_cam = T_tool_ref @ T_ref_cam = T_tool_ref @ inv(T_cam_ref)
+            known = (he.R, rig.R, he.t_m, rig.t_m)
+            if all(v is not None for v in known):
+                T = np.eye(4)
+                T[:3, :3] = he.R @ rig.R.T
+                T[:3, 3] = he.R @ (-rig.R.T @ rig.t_m) + he.t_m
+    if T is None:
+        raise InputError(
+            f"the installed calibration has no complete hand-eye for camera {camera!r}; "
+            "check needs the hand-eye rotation and translation"
+        )
+    return T
+
+
+def T_cam_board(mount: str, X: np.ndarray, T_base_tool: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """``T_cam_board`` (4, 4) from the hand-eye ``X`` (T_tool_cam or T_base_cam), the robot pose
+    and the target pose ``Y`` (T_base_board or T_tool_board)."""
+    if mount == "eye_in_hand":
+        return inv_T(X) @ inv_T(T_base_tool) @ Y
+    return inv_T(X) @ T_base_tool @ Y
+
+
+def fit_target(
+    problem: CalibrationProblem, installed: CalibrationResult
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The target pose (4, 4) that best explains the images with the installed calibration
+    held fixed, and the residual vectors (N, 2) px per camera."""
+    mount = installed.mount
+    cams = [c.name for c in problem.cameras if c.name in installed.cameras]
+    X = {c: hand_eye_T(installed, c) for c in cams}
+    pts = problem.target.points_m
+    obs = []
+    for fr in problem.frames:
+        if fr.T_base_tool is None:
+            continue
+        for c in cams:
+            det = fr.detections.get(c)
+            if det is not None and len(det.ids) >= 4:
+                obs.append((c, fr.T_base_tool, pts[det.ids], np.asarray(det.px, float)))
+    if not obs:
+        raise InputError("no frame of the check saw the target; check the cell and the board")
+    Y0 = installed.T_target.T if installed.T_target is not None else None
+    if Y0 is None:
+        c, T, P, px = obs[0]
+        cam = installed.cameras[c]
+        ok, rv, tv = cv2.solvePnP(
+            P.astype(np.float64), px, np.asarray(cam.K, float), np.asarray(cam.distortion, float)
+        )
+        T_cb = T_from_Rt(cv2.Rodrigues(rv)[0], tv.ravel())
+        Y0 = T @ X[c] @ T_cb if mount == "eye_in_hand" else inv_T(T) @ X[c] @ T_cb
+
+    def residuals(theta: np.ndarray) -> np.ndarray:
+        Y = T_from_Rt(R_from_rvec(theta[:3]), theta[3:])
+        out = []
+        for c, T, P, px in obs:
+            cam = installed.cameras[c]
+            Tcb = T_cam_board(mount, X[c], T, Y)
+            Pc = P @ Tcb[:3, :3].T + Tcb[:3, 3]
+            out.append((project(np.asarray(cam.K), np.asarray(cam.distortion), Pc) - px).ravel())
+        return np.concatenate(out)
+
+    theta0 = np.concatenate([rvec_from_R(Y0[:3, :3]), Y0[:3, 3]])
+    sol = least_squares(residuals, theta0, x_scale="jac")
+    Y = T_from_Rt(R_from_rvec(sol.x[:3]), sol.x[3:])
+    r = residuals(sol.x).reshape(-1, 2)
+    per: dict[str, list[np.ndarray]] = {c: [] for c in cams}
+    k = 0
+    for c, _T, P, _px in obs:
+        per[c].append(r[k : k + len(P)])
+        k += len(P)
+    return Y, {c: np.vstack(v) if v else np.zeros((0, 2)) for c, v in per.items()}
+
+
+def chain_rms_px(result: CalibrationResult, problem: CalibrationProblem) -> dict[str, float]:
+    """Per camera, the rms (norm) of the residuals of ``result`` on its own session with the
+    robot poses as measured (what :func:`fit_target` sees on an unchanged cell)."""
+    out = {}
+    try:
+        _, res = fit_target(problem, result)
+    except InputError:
+        return out
+    for n, r in res.items():
+        if len(r):
+            out[n] = float(np.sqrt(np.mean(np.sum(r**2, axis=1))))
+    return out

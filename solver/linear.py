@@ -239,12 +239,9 @@ def _check_groups(groups: Sequence[LinearGroup], knowledge: str) -> None:
 
 
 #: Partners of each translation in a large orientation group (the robot knowledge): every pair
-#: of a group's n translations gives a row, n^2 / 2 rows, while the information grows like n
-#: (each translation's own rows against a fixed set carry it). Beyond ``ROBOT_PARTNERS + 1``
-#: translations, each pairs with itself and with ``ROBOT_PARTNERS`` translations spread evenly
-#: over the group. Measured on the 400-frame R1 session (groups of 100, 6 seeds, linear
-#: estimate against the truth): rms error of fx 24.5 px with every pair, 22.3 px with 20
-#: partners; cy 6.2 against 4.8 px.
+#: of a group's n translations gives a row, n^2 / 2 rows, while the information grows like n.
+#: Beyond ``ROBOT_PARTNERS + 1`` translations, each pairs with itself and with
+#: ``ROBOT_PARTNERS`` translations spread evenly over the group (as accurate, far fewer rows).
 ROBOT_PARTNERS = 20
 
 
@@ -392,7 +389,7 @@ def linear_system(
 
 
 #: second-smallest over largest singular value below which the conditioned system is singular:
-#: exactly degenerate data gives 1e-14..1e-16 (measured), accepted configurations 1e-3 and up.
+#: exactly degenerate data sits at rounding, accepted configurations far above it.
 NULL_SPACE_TOL = 1e-10
 
 

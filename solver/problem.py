@@ -49,6 +49,8 @@ Mount = Literal["eye_in_hand", "eye_to_hand", "none"]
 # - "none": nothing known; every frame has its own pose (Zhang's general-motion method).
 Knowledge = Literal["robot", "board_translation", "board_direction", "none"]
 DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3")
+#: The intrinsics a camera reports, in pixels (``s``: skew, with ``ModelOptions.skew``).
+INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "s")
 
 
 @dataclass(frozen=True)
@@ -309,3 +311,48 @@ class CalibrationProblem:
     def reference(self) -> str:
         """Name of the reference camera of a rig (the first camera unless named)."""
         return self.reference_camera or self.cameras[0].name
+
+
+# -- the mounts: the frame names a mount implies ---------------------------------------------------
+@dataclass(frozen=True)
+class MountNames:
+    """The frame names a mount implies.
+
+    ``holder``: the frame that carries the camera (``tool`` or ``base``); ``hand_eye``: the
+    reference camera's hand-eye transform (``T_tool_cam`` / ``T_base_cam``); ``target``: the
+    target pose (``T_base_board`` / ``T_tool_board``).
+    """
+
+    holder: str
+    hand_eye: str
+    target: str
+
+    def hand_eye_of(self, camera: str) -> str:
+        """``T_<holder>_<camera>``: a rig camera's hand-eye transform."""
+        return f"T_{self.holder}_{camera}"
+
+
+#: The one table from mount to frame names.
+MOUNTS: dict[str, MountNames] = {
+    "eye_in_hand": MountNames("tool", "T_tool_cam", "T_base_board"),
+    "eye_to_hand": MountNames("base", "T_base_cam", "T_tool_board"),
+}
+
+
+def mount_names(mount: str) -> MountNames | None:
+    """The frame names of ``mount`` (``eye_in_hand`` / ``eye_to_hand``), None without a robot."""
+    return MOUNTS.get(mount)
+
+
+def hand_eye_names(mount: str, cameras: list[str] | tuple[str, ...]) -> dict[str, str]:
+    """Camera name -> the name of its hand-eye transform in a result.
+
+    ``T_tool_cam`` / ``T_base_cam`` for a single camera, ``T_tool_<name>`` / ``T_base_<name>``
+    for every camera of a rig; empty without a robot.
+    """
+    m = mount_names(mount)
+    if m is None:
+        return {}
+    if len(cameras) == 1:
+        return {cameras[0]: m.hand_eye}
+    return {c: m.hand_eye_of(c) for c in cameras}

@@ -10,7 +10,46 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from slidecal.solver.named import NamedCovariance
+#: A transform's perturbation, rotation vector (radians) then translation (metres), named so in
+#: a covariance (``T_tool_cam.rx`` .. ``T_tool_cam.tz``): docs/FORMATS.md
+ROT = ("rx", "ry", "rz")
+TRANS = ("tx", "ty", "tz")
+
+
+@dataclass(frozen=True)
+class NamedCovariance:
+    """A covariance whose rows are named reported quantities (:mod:`slidecal.solver.uncertainty`
+    names them and states the convention)."""
+
+    names: tuple[str, ...]
+    matrix: np.ndarray
+
+    def index(self, names: list[str] | tuple[str, ...]) -> np.ndarray | None:
+        """Row indices of ``names``, None unless all are present."""
+        where = {n: i for i, n in enumerate(self.names)}
+        if any(n not in where for n in names):
+            return None
+        return np.array([where[n] for n in names], dtype=int)
+
+    def block(self, names: list[str] | tuple[str, ...]) -> np.ndarray | None:
+        """The covariance of ``names`` (n, n), None unless all are present."""
+        i = self.index(names)
+        return None if i is None else self.matrix[np.ix_(i, i)]
+
+    def std(self, name: str) -> float | None:
+        """One-sigma of ``name``, None when it is not estimated."""
+        C = self.block((name,))
+        return None if C is None else float(np.sqrt(max(C[0, 0], 0.0)))
+
+    def std_rot_deg(self, transform: str) -> float | None:
+        """One-sigma rotation error of ``transform`` (root of the trace, degrees), or None."""
+        C = self.block(tuple(f"{transform}.{a}" for a in ROT))
+        return None if C is None else float(np.degrees(np.sqrt(max(np.trace(C), 0.0))))
+
+    def std_t_mm(self, transform: str) -> float | None:
+        """One-sigma translation error of ``transform`` (root of the trace, mm), or None."""
+        C = self.block(tuple(f"{transform}.{a}" for a in TRANS))
+        return None if C is None else float(1000.0 * np.sqrt(max(np.trace(C), 0.0)))
 
 
 @dataclass(frozen=True)
@@ -140,7 +179,7 @@ class CalibrationResult:
     ``parameter_names`` name the rows of ``covariance``: the reported quantities as users read
     them (``cam.fx``, ``T_tool_cam.rx`` .. ``.tz`` of the transform as reported, rig
     ``T_right_left.*``; a rig's hand-eye of every camera as the file names it, ``T_tool_<name>``;
-    :mod:`slidecal.solver.named`). ``residuals_px``: per (frame id, camera)
+    :mod:`slidecal.solver.uncertainty`). ``residuals_px``: per (frame id, camera)
     the rms reprojection error of that image. ``outliers``: (frame id, camera, corner id) flagged
     by the robust loss. ``sigma_px``: the noise estimated from the residuals, ``s`` of
     docs/METHOD.md

@@ -34,8 +34,7 @@ import numpy as np
 from slidecal.solver.problem import Target
 
 #: Default one-sigma bow of a board's surface, per metre of its diagonal: 0.2 mm for a board of
-#: 0.65 m (public robot data: 0.14 and 0.41 mm on boards of 0.66 and 0.90 m; mrcal's estimate
-#: on real boards 0.16-0.35 mm).
+#: 0.65 m, the size real boards show.
 FLATNESS_PER_DIAGONAL = 3e-4
 #: Default one-sigma relative error of the printed pattern: its scale, the difference of its
 #: x and y scales and its shear (a good print on a rigid plate; a paper print from an office

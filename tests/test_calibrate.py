@@ -6,6 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
+import slidecal.solver.adequacy as adequacy
+import slidecal.solver.calibrate as pipeline
 from slidecal.mocks import scenarios as sc
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import DegenerateError, InputError
@@ -153,3 +155,38 @@ def test_scale_checks_reuse_the_robot_tests_free_poses(monkeypatch):
     for a, b in zip(res.scale_checks, fresh, strict=True):
         assert (a.frame_a, a.frame_b) == (b.frame_a, b.frame_b)
         assert a.camera_mm == pytest.approx(b.camera_mm, abs=1e-6)
+
+
+def test_the_outlier_loop_keeps_a_frame_whose_leaving_out_fails(monkeypatch):
+    # every frame beyond the typical one's pose error is an outlier here: the loop leaves frames
+    # out one at a time (at most 2 of 20). When the solve without the second fails, the pass that
+    # left the second out is finished with it kept (a line says why); when that pass's own
+    # finish fails too, the first pass's result stands
+    p = sc.r1_real_arm(np.random.default_rng(21)).problem
+    n = len(p.frames)
+    monkeypatch.setattr(adequacy, "POSE_OUTLIER_RATIO", 1.0)
+    res = calibrate(p)
+    assert len(res.robot_accuracy.left_out) == 2
+    assert sum("left out of the solve" in m for m in res.messages) == 2
+    real_motion, real_scale = pipeline.init_motion, pipeline.session_scale
+
+    def init_motion(problem, *a, **k):  # noqa: ANN001, ANN002, ANN003, ANN202
+        if len(problem.frames) == n - 2:
+            raise DegenerateError("forced")
+        return real_motion(problem, *a, **k)
+
+    monkeypatch.setattr(pipeline, "init_motion", init_motion)
+    res = calibrate(p)
+    assert len(res.robot_accuracy.left_out) == 1
+    assert "left out of the solve" in res.messages[0]
+    assert "it stays in the solve: without it, forced" in res.messages[1]
+
+    def session_scale(problem, *a, **k):  # noqa: ANN001, ANN002, ANN003, ANN202
+        if len(problem.frames) == n - 1:
+            raise DegenerateError("forced too")
+        return real_scale(problem, *a, **k)
+
+    monkeypatch.setattr(pipeline, "session_scale", session_scale)
+    res = calibrate(p)
+    assert res.robot_accuracy.left_out == ()
+    assert res.messages[0].endswith("it stays in the solve: without it, forced too")

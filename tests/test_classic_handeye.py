@@ -29,7 +29,6 @@ from slidecal.solver.geometry import (
 )
 from slidecal.solver.handeye import ax_xb_daniilidis, ax_xb_park_martin, daniilidis
 from slidecal.solver.homography import homography_dlt
-from slidecal.solver.named import predicted_covariance
 from slidecal.solver.problem import (
     CalibrationProblem,
     CameraSpec,
@@ -38,6 +37,7 @@ from slidecal.solver.problem import (
     ModelOptions,
     Target,
 )
+from slidecal.solver.uncertainty import predicted_covariance
 
 EMPTY = Detection(np.zeros(0, int), np.zeros((0, 2)))
 NO_DIST = ModelOptions(distortion=sc.NO_DISTORTION)

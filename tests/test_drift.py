@@ -6,11 +6,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from slidecal.mocks import scenarios as sc
+from slidecal.routines.results_io import hand_eye_names, hand_eye_transforms
+from slidecal.solver.calibrate import calibrate
 from slidecal.solver.drift import (
     MIN_POSES,
     Z_LIMIT,
+    chain_rms_px,
     common_corners,
     displacement_field,
+    fit_target,
+    hand_eye_T,
     match_poses,
 )
 from slidecal.solver.errors import DegenerateError
@@ -123,3 +129,19 @@ def test_match_poses_and_common_corners() -> None:
         np.array([3, 1, 7]), np.eye(3)[:, :2], np.array([7, 3, 9]), np.ones((3, 2))
     )
     assert len(a) == 2 and np.allclose(b, [[1, 0], [0, 0]]) and np.allclose(a, 1.0)
+
+
+def test_fit_target_explains_the_session_the_calibration_was_made_from():
+    # the unpaired check on the installed session itself: the target pose comes back and the
+    # residuals stay near the solve's own (the arm's noise adds a little); a rig's cameras
+    # take the hand-eye the result file names for them (T_tool_<name>)
+    s = sc.r1(np.random.default_rng(3))
+    res = calibrate(s.problem)
+    Y, per = fit_target(s.problem, res)
+    assert np.abs(Y - res.T_target.T).max() < 1e-4
+    assert len(per["cam"]) == sum(len(f.detections["cam"].ids) for f in s.problem.frames)
+    assert res.reproj_rms_px < chain_rms_px(res, s.problem)["cam"] < 2.0 * res.reproj_rms_px
+    rig = calibrate(sc.oak_rig(np.random.default_rng(6)).problem)
+    names, he = hand_eye_names(rig), hand_eye_transforms(rig)
+    for c in rig.cameras:
+        np.testing.assert_allclose(hand_eye_T(rig, c), he[names[c]].T, atol=1e-15)

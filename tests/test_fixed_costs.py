@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from slidecal.mocks import scenarios as sc
-from slidecal.solver.adequacy import free_pose_fit
 from slidecal.solver.calibrate import calibrate, frame_groups, scale_checks
 from slidecal.solver.camera import K_matrix, project
+from slidecal.solver.free_pose import free_pose_fit
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, transform_points
 
 SIGMA_PX = 0.2
@@ -111,7 +111,8 @@ def test_scale_checks_of_a_learned_arm_take_the_final_fit(monkeypatch):
 def test_the_final_fit_of_a_learned_arm_starts_from_the_robot_tests(monkeypatch):
     # the robot test's fit (exact-pose intrinsics) starts the final fit at the learned-arm
     # intrinsics without the closed form: the same poses and scores as the guarded fit
-    from slidecal.solver.adequacy import final_free_pose_fit, model_starts, session_images
+    from slidecal.solver.adequacy import final_free_pose_fit
+    from slidecal.solver.free_pose import model_starts, session_images
 
     s = sc.r1_real_arm(np.random.default_rng(2001))
     outs = []
@@ -136,7 +137,8 @@ def test_the_final_fit_of_a_learned_arm_starts_from_the_robot_tests(monkeypatch)
     fit = final_free_pose_fit(out)
     assert len(ippe) == len(fit.rss) and not any(ippe)  # one iterative PnP per image
     monkeypatch.setattr(cv2, "solvePnP", real_pnp)
-    guarded = free_pose_fit(session_images(out), out.state.K, out.state.dist, model_starts(out))
+    images = session_images(out.model, out.inlier_rows)
+    guarded = free_pose_fit(images, out.state.K, out.state.dist, model_starts(out.model, out.state))
     assert fit.rss.keys() == guarded.rss.keys()
     for key, rss in guarded.rss.items():
         assert fit.rss[key] == pytest.approx(rss, rel=1e-9)
@@ -291,7 +293,7 @@ def test_the_hat_matrix_reuses_the_refinements_inverse_when_the_weights_agree(
     make, inverted, monkeypatch
 ):
     from slidecal.solver import adequacy
-    from slidecal.solver.refine import NormalBlocks
+    from slidecal.solver.model import NormalBlocks
 
     outs = _spy(monkeypatch, "assess")
     calibrate(make().problem)

@@ -1,6 +1,6 @@
 """An image's errors taken together: the frames' scores, the neighbouring corners' residual
 correlation that decides whether they are read, and what that does on real photographs
-(solver/named.py ``image_misfit_excess``, docs/METHOD.md Sec. 6)."""
+(solver/robot_error.py ``image_misfit_excess``, docs/METHOD.md Sec. 6)."""
 
 from __future__ import annotations
 
@@ -14,13 +14,17 @@ import numpy as np
 import pytest
 import yaml
 
-import slidecal.solver.named as named_mod
+import slidecal.solver.robot_error as named_mod
 from slidecal.mocks import scenarios as sc
 from slidecal.mocks.scenarios import one_tag_geometry, one_tag_session, render_detector
 from slidecal.routines.session import read_session
-from slidecal.solver.adequacy import _neighbour_pairs, neighbour_correlation
 from slidecal.solver.calibrate import calibrate
-from slidecal.solver.named import CORRELATED_NEIGHBOURS, misfit_image
+from slidecal.solver.robot_error import (
+    CORRELATED_NEIGHBOURS,
+    _neighbour_pairs,
+    misfit_image,
+    neighbour_correlation,
+)
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_named import _solve_keeping_the_refinement  # noqa: E402
@@ -306,7 +310,7 @@ def test_a_fixed_pattern_at_one_orientation_is_read_group_by_group(monkeypatch):
     # the eye-to-hand tag session (205 frames of a lone tag's 4 corners, 7 orientations): no
     # image shows a corner that errs alike on every frame at one orientation; the corners'
     # mean residuals per group do. Independent detections: not read, no line
-    from slidecal.solver.refine import orientation_groups
+    from slidecal.solver.model import orientation_groups
 
     s = sc.tag_real_arm(np.random.default_rng(2002), sigma_px=0.15, arm_mm=1.0, arm_deg=0.1)
     clean = calibrate(s.problem)

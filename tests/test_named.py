@@ -1,4 +1,4 @@
-"""The named model (solver/named.py): the reported quantities' covariance, checked against
+"""The named model (solver/uncertainty.py): the reported quantities' covariance, checked against
 finite differences of the transforms as reported, a calibration and results of earlier versions."""
 
 from __future__ import annotations
@@ -13,19 +13,18 @@ from slidecal.mocks import scenarios as sc
 from slidecal.mocks.scenarios import drifting_arm
 from slidecal.mocks.truth import calibration, hand_eye_errors
 from slidecal.routines.results_io import hand_eye_transforms, read_result, write_result
-from slidecal.solver.calibrate import calibrate, complement_basis
+from slidecal.solver.calibrate import calibrate
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, random_rotation, rvec_from_R
-from slidecal.solver.named import (
-    MOUNTS,
+from slidecal.solver.model import build_structure, complement_basis, fisher_covariance
+from slidecal.solver.problem import MOUNTS, hand_eye_names
+from slidecal.solver.result import TransformEstimate
+from slidecal.solver.uncertainty import (
     Layout,
-    hand_eye_names,
     is_legacy,
     linearised_estimator,
     predicted_covariance,
     propagate,
 )
-from slidecal.solver.refine import build_structure, fisher_covariance
-from slidecal.solver.result import TransformEstimate
 
 ROT = ("rx", "ry", "rz")
 SIX = ROT + ("tx", "ty", "tz")
@@ -256,15 +255,16 @@ def test_composed_rig_hand_eye_std_matches_monte_carlo():
 def _solve_keeping_the_refinement(problem, monkeypatch):  # noqa: ANN001, ANN202
     """``calibrate`` of ``problem`` and the refinement behind its result."""
     import slidecal.solver.calibrate as cal
+    import slidecal.solver.uncertainty as unc
 
     kept = {}
-    inner = cal.result_covariance
+    inner = unc.result_covariance
 
     def keep(p, out, *rest):  # noqa: ANN001, ANN002, ANN202
         kept["out"] = out
         return inner(p, out, *rest)
 
-    monkeypatch.setattr(cal, "result_covariance", keep)
+    monkeypatch.setattr(unc, "result_covariance", keep)
     return cal.calibrate(problem), kept["out"]
 
 
@@ -280,13 +280,9 @@ def test_a_classic_sessions_linear_field_is_read_both_ways(monkeypatch):
     from scipy.spatial.transform import Rotation
 
     from slidecal.solver.geometry import inv_T
-    from slidecal.solver.named import (
-        FIELD_WEIGHT,
-        layout_of,
-        named_step,
-        session_field_step,
-    )
     from slidecal.solver.refine import _refine
+    from slidecal.solver.robot_error import FIELD_WEIGHT, session_field_step
+    from slidecal.solver.uncertainty import layout_of, named_step
 
     s = sc.classic_real_arm(np.random.default_rng(2006), arm_scale=0.005)
     res, out = _solve_keeping_the_refinement(s.problem, monkeypatch)
@@ -333,7 +329,8 @@ def test_smooth_arm_cover_widens_what_the_groups_cannot_tell(monkeypatch):
     # moves from the frames' scatter (the trend's level goes to the floor); the reported
     # covariance covers the estimator's spread under both readings: never below the model's
     # own, the focal lengths (a trend of the translation is a scale error of the moves) wider
-    from slidecal.solver.named import layout_of, propagate, smooth_arm_excess
+    from slidecal.solver.robot_error import smooth_arm_excess
+    from slidecal.solver.uncertainty import layout_of, propagate
 
     s = sc.r1_real_arm(np.random.default_rng(2000))
     res, out = _solve_keeping_the_refinement(s.problem, monkeypatch)
@@ -354,8 +351,8 @@ def test_smooth_arm_cover_leaves_exact_poses_alone_and_carries_one_orientations_
     # is the focal length's: its level stays at the floor and the reading that the frames'
     # translation error is all trend is carried, on the translation axes only (the drifting
     # arm's rotation trend is learned, not carried)
-    from slidecal.solver.named import smooth_arm_excess
     from slidecal.solver.refine import SIGMA_FLOOR
+    from slidecal.solver.robot_error import smooth_arm_excess
 
     _, out = _solve_keeping_the_refinement(
         sc.r1(np.random.default_rng(7), 0.15, 0.0, 0.0).problem, monkeypatch
@@ -379,7 +376,7 @@ def test_focal_lengths_on_a_real_arm_are_covered(monkeypatch):
     # 40 simulated arms (seeds 2000-2039), R1 eye-in-hand: with the frames' corrections read as
     # independent only, fx and fy are 1.33 and 1.37 times their std off in rms (beyond the 99 %
     # chi-square(40) interval of a calibrated estimator); with the cover, consistent with it
-    from slidecal.solver.named import layout_of, propagate
+    from slidecal.solver.uncertainty import layout_of, propagate
 
     z_own, z_reported = [], []
     for seed in range(2000, 2040):
@@ -402,7 +399,8 @@ def test_estimated_levels_carry_their_own_uncertainty(monkeypatch):
     # the drifting arm's 13 frames: the frames' and the trends' levels rest on a few degrees of
     # freedom each (5-15); the reported covariance adds, per level, nu / (nu - 2) - 1 times its
     # share, never less than the model's own, and nothing for exact poses
-    from slidecal.solver.named import MIN_LEVEL_DOF, layout_of, level_excess, propagate
+    from slidecal.solver.robot_error import MIN_LEVEL_DOF, level_excess
+    from slidecal.solver.uncertainty import layout_of, propagate
 
     s = drifting_arm(np.random.default_rng(2001))[0]
     _, out = _solve_keeping_the_refinement(s.problem, monkeypatch)
@@ -433,8 +431,9 @@ def test_unobserved_tool_offset_gain_is_the_response_of_a_solve(monkeypatch):
     # with the arm's rotation learned per frame, holding it at another value moves the focal
     # lengths. The gain the covariance carries is that response, to first order: re-solving
     # with the offset held 5 mm off along each axis moves the intrinsics by the gain times it
-    from slidecal.solver.named import _jacobian, layout_of, tool_offset_gain
     from slidecal.solver.refine import _refine
+    from slidecal.solver.robot_error import tool_offset_gain
+    from slidecal.solver.uncertainty import _jacobian, layout_of
 
     s = drifting_arm(np.random.default_rng(2001))[0]
     _, out = _solve_keeping_the_refinement(s.problem, monkeypatch)
@@ -479,14 +478,9 @@ def test_untold_field_gain_is_the_response_of_a_solve(monkeypatch):
     # field of the arm's translation error over them at an arm's scale error (0.1 %) through
     # the estimate's response to it; that response, to first order, is what re-solving with the
     # measured positions moved by the field gives (the levels held at the learned ones)
-    from slidecal.solver.named import (
-        MOVE_SCALE_SIGMA,
-        _jacobian,
-        _used,
-        layout_of,
-        untold_field_excess,
-    )
     from slidecal.solver.refine import _refine
+    from slidecal.solver.robot_error import MOVE_SCALE_SIGMA, untold_field_excess
+    from slidecal.solver.uncertainty import _jacobian, _used, layout_of
 
     s = sc.classic_real_arm(np.random.default_rng(2005), eye_in_hand=False)
     res, out = _solve_keeping_the_refinement(s.problem, monkeypatch)
@@ -522,7 +516,7 @@ def test_untold_field_gain_is_the_response_of_a_solve(monkeypatch):
     assert want[:2].min() > 0.2 * res.cameras["cam"].std["fx"]  # the field matters to fx, fy
     np.testing.assert_allclose(got, want, rtol=0.15, atol=0.02)
     # the trend an eye-in-hand classic session learns is carried at no less than 0.1 %
-    from slidecal.solver.named import session_trend_excess
+    from slidecal.solver.robot_error import session_trend_excess
 
     e = sc.classic_real_arm(np.random.default_rng(2135))
     res_e, out_e = _solve_keeping_the_refinement(e.problem, monkeypatch)
@@ -549,15 +543,10 @@ def test_a_classic_sessions_board_reaches_the_result_between_its_two_readings(mo
     from dataclasses import replace as dc_replace
 
     from slidecal.solver.geometry import inv_T
-    from slidecal.solver.named import (
-        FIELD_WEIGHT,
-        layout_of,
-        named_step,
-        reported_response,
-        session_field_step,
-    )
     from slidecal.solver.refine import _refine
+    from slidecal.solver.robot_error import FIELD_WEIGHT, reported_response, session_field_step
     from slidecal.solver.target_shape import fit_board
+    from slidecal.solver.uncertainty import layout_of, named_step
 
     s = sc.classic_real_arm(np.random.default_rng(2006), arm_scale=0.005)
     _, out = _solve_keeping_the_refinement(s.problem, monkeypatch)

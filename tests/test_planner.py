@@ -23,8 +23,8 @@ from slidecal.solver.degeneracy import check_configuration
 from slidecal.solver.errors import InputError, SlidecalError
 from slidecal.solver.geometry import inv_T
 from slidecal.solver.linear import LinearGroup
-from slidecal.solver.named import predicted_covariance
-from slidecal.solver.refine import build_structure
+from slidecal.solver.model import build_structure
+from slidecal.solver.uncertainty import predicted_covariance
 
 
 @pytest.fixture(scope="module")

@@ -258,7 +258,8 @@ def test_drift_along_the_moves_is_learned_and_covers_the_principal_point(seed: i
     # corrections the principal point came out 3.6-5.2 reported std off on these seeds; the trend
     # of the correction along the moves carries it (within 3 std)
     from slidecal.solver.calibrate import calibrate
-    from slidecal.solver.refine import build_structure, refine
+    from slidecal.solver.model import build_structure
+    from slidecal.solver.refine import refine
 
     s, D = drifting_arm(np.random.default_rng(seed))
     res = calibrate(s.problem)
@@ -279,7 +280,8 @@ def test_a_classic_session_on_a_real_arm_learns_one_trend_over_its_positions() -
     # 3.7 and 6.7 reported std off: the arm's error is smooth over the workspace, and its linear
     # part scales the positions, which the focal lengths follow
     from slidecal.solver.calibrate import calibrate
-    from slidecal.solver.refine import build_structure, refine
+    from slidecal.solver.model import build_structure
+    from slidecal.solver.refine import refine
 
     s = sc.classic_real_arm(np.random.default_rng(3129))
     res = calibrate(s.problem)
@@ -306,7 +308,8 @@ def test_a_tag_session_on_a_real_arm_shares_a_field_across_its_groups() -> None:
     # gravity grows with the reach whatever the orientation). With each group's offset and
     # trend alone this seed's cy came out 7.0 reported std off (1.9 px)
     from slidecal.solver.calibrate import calibrate
-    from slidecal.solver.refine import build_structure, refine
+    from slidecal.solver.model import build_structure
+    from slidecal.solver.refine import refine
 
     s = sc.tag_real_arm(np.random.default_rng(6))
     res = calibrate(s.problem)
@@ -353,7 +356,8 @@ def test_a_short_tag_session_shares_the_rotation_trend_only(monkeypatch) -> None
     # arm is still too simple"); fx, fy and cx are within 3 std
     import slidecal.solver.refine as rf
     from slidecal.solver.calibrate import calibrate
-    from slidecal.solver.refine import build_structure, refine
+    from slidecal.solver.model import build_structure
+    from slidecal.solver.refine import refine
 
     s = sc.tag_real_arm(np.random.default_rng(19), n_frames=35)
     cam = calibrate(s.problem).cameras["cam"]

@@ -6,14 +6,9 @@ import pytest
 from slidecal.mocks import scenarios as sc
 from slidecal.mocks.truth import hand_eye_errors
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, rotation_angle_deg
+from slidecal.solver.model import BundleModel, ModelState, build_structure, fisher_covariance
 from slidecal.solver.problem import ModelOptions
-from slidecal.solver.refine import (
-    BundleModel,
-    ModelState,
-    build_structure,
-    fisher_covariance,
-    refine,
-)
+from slidecal.solver.refine import refine
 
 
 def _perturbed(
@@ -227,11 +222,12 @@ def test_normal_equations_match_the_full_jacobian_with_what_the_groups_share():
     # eliminates against the dense Jacobian, whose shared columns come from their map
     from dataclasses import replace
 
+    from slidecal.solver import model as md
     from slidecal.solver import refine as rf
 
     s = sc.tag_real_arm(np.random.default_rng(28), n_frames=100)
     T = np.stack([f.T_base_tool for f in s.problem.frames])
-    groups = rf.orientation_groups(T)
+    groups = md.orientation_groups(T)
     tg, tc, dims = rf.translation_trends(T, groups)
     common, rot, spread = rf.common_trend(T, tg, dims)
     assert common is not None and int(rot.sum()) == 9 and len(rot) == 27
@@ -254,7 +250,7 @@ def test_normal_equations_match_the_full_jacobian_with_what_the_groups_share():
     model.sigma_px = 0.1
     rng = np.random.default_rng(29)
     F = len(s.problem.frames)
-    state = rf.with_pose_corrections(
+    state = md.with_pose_corrections(
         ModelState(s.truth.K, s.truth.dist, {}, s.truth.X, s.truth.Y, s.truth.s),
         F,
         len(np.unique(groups)),
@@ -304,10 +300,10 @@ def test_groups_level_does_not_fall_to_zero_where_few_dof_see_it():
     # (redundancy 0), the frames' corrections taken as independent, and the hand-eye's z came
     # out 5.5 std off the effective truth (fx 3.5). Under its prior at the frames' own level
     # it stays of the arm's size and z is 3.2 std off: 4 is beyond that, below the collapse
-    from slidecal.solver import refine as rf
+    from slidecal.solver import model as md
 
     models = []
-    orig = rf.BundleModel.__init__
+    orig = md.BundleModel.__init__
 
     def spy(self, *a, **k):  # noqa: ANN001, ANN002, ANN003, ANN202
         orig(self, *a, **k)
@@ -315,7 +311,7 @@ def test_groups_level_does_not_fall_to_zero_where_few_dof_see_it():
 
     s = sc.r1_real_arm(np.random.default_rng(2010), sigma_px=0.15, arm_mm=1.0, arm_deg=0.1)
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(rf.BundleModel, "__init__", spy)
+        mp.setattr(md.BundleModel, "__init__", spy)
         res = _calibrate(s.problem)
     m = models[-1]
     assert m.level_redundancy["U"][1] > 1.0
@@ -341,10 +337,11 @@ def _trend_model(s, pose_sigma=(1e-4, 1e-4)):  # noqa: ANN001, ANN202 - a scenar
     """The model of a real-arm structure with frame, group and trend corrections."""
     from dataclasses import replace
 
+    from slidecal.solver import model as md
     from slidecal.solver import refine as rf
 
     T = np.stack([f.T_base_tool for f in s.problem.frames])
-    groups = rf.orientation_groups(T)
+    groups = md.orientation_groups(T)
     trend_groups, coords, dims = rf.translation_trends(T, groups)
     st = replace(
         build_structure(s.problem, s.truth.X[0][:3, :3]),
@@ -475,7 +472,7 @@ def _noisy_model_and_blocks(seed: int, groups: bool):
     at a perturbed state: the blocked normal equations and the model."""
     from dataclasses import replace
 
-    from slidecal.solver.refine import orientation_groups, with_pose_corrections
+    from slidecal.solver.model import orientation_groups, with_pose_corrections
 
     opts = ModelOptions(robot_noise_m=1e-4, robot_noise_deg=0.01)
     s = sc.r1(np.random.default_rng(seed), options=opts)
@@ -556,7 +553,7 @@ def test_orientation_groups_match_the_first_founder_rule():
     # the vectorised grouping against the rule it implements, on clusters whose spread
     # straddles the tolerance (0.5 deg): a frame joins the first group whose founding frame
     # it agrees with, else founds a new one
-    from slidecal.solver.refine import orientation_groups
+    from slidecal.solver.model import orientation_groups
 
     rng = np.random.default_rng(41)
     centres = [R_from_rvec(rng.normal(0, 1.0, 3)) for _ in range(5)]
@@ -582,7 +579,7 @@ def test_rig_normal_equations_match_the_full_jacobian(noisy):
     # three cameras (their Jacobian columns written camera by camera), with and without the
     # per-frame pose corrections accumulated frame by frame: the whole J' W J
     from slidecal.mocks.scenarios import oak_rig
-    from slidecal.solver.refine import with_pose_corrections
+    from slidecal.solver.model import with_pose_corrections
 
     opts = ModelOptions(robot_noise_m=1e-4, robot_noise_deg=0.01) if noisy else None
     s = oak_rig(np.random.default_rng(42), cameras=("left", "right", "rgb"), options=opts)

@@ -43,7 +43,7 @@ from slidecal.routines.results_io import read_result, scale_check_summary
 from slidecal.routines.session import target_from_dict
 from slidecal.solver.detect import detect
 from slidecal.solver.errors import InputError
-from slidecal.solver.refine import orientation_groups
+from slidecal.solver.model import orientation_groups
 from tests.bench.report import RESULTS, publish_report, report_header
 
 #: The sets: the target as counted on the images (the ChArUco's marker side measured at 0.75 of

@@ -53,7 +53,7 @@ from slidecal.mocks.truth import (
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import rvec_from_R
-from slidecal.solver.named import TOOL_OFFSET_SIGMA_M
+from slidecal.solver.robot_error import TOOL_OFFSET_SIGMA_M
 from tests.bench import solver as bench
 from tests.bench.report import RESULTS, publish_report, shown_out
 

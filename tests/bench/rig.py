@@ -47,8 +47,8 @@ from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import rotation_angle_deg
 from slidecal.solver.homography import homography_dlt, refine_homography
+from slidecal.solver.model import build_structure
 from slidecal.solver.problem import ModelOptions
-from slidecal.solver.refine import build_structure
 from slidecal.solver.stereo import infinite_homography, relative_rotation, rig_linear_intrinsics
 from tests.bench.report import RESULTS, publish_report, report_header
 

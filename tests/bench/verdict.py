@@ -47,7 +47,7 @@ from slidecal.mocks.scenarios import (
     same_cell,
     square_size,
 )
-from slidecal.routines.check import chain_rms_px, run_check
+from slidecal.routines.check import run_check
 from slidecal.routines.config import load_config
 from slidecal.routines.install import install
 from slidecal.routines.planner import make_plan
@@ -56,7 +56,7 @@ from slidecal.routines.session import load_session
 from slidecal.routines.verdict import Limits, judge
 from slidecal.solver.adequacy import LEFT_OUT
 from slidecal.solver.calibrate import calibrate
-from slidecal.solver.drift import Z_LIMIT
+from slidecal.solver.drift import Z_LIMIT, chain_rms_px
 from slidecal.solver.errors import HardwareFault, InputError
 from tests.bench.report import RESULTS
 from tests.unattended_helpers import record_without_translation, simulated_run_command

@@ -1,0 +1,545 @@
+"""The uncertainty: the reported quantities and their covariance, of a solve or of a plan.
+
+The optimiser (:mod:`slidecal.solver.refine`) keeps its own coordinates (the inverse hand-eye
+``X`` in an observable basis, the target pose ``Y``, robot-pose corrections, ...). This module
+is the one place that turns them into what a result reports:
+
+- per camera ``<cam>.fx``, ``.fy``, ``.cx``, ``.cy`` (and ``.s`` with skew) in pixels, and the
+  estimated distortion coefficients ``<cam>.k1`` ... (OpenCV order);
+- the hand-eye transform as reported, ``T_tool_cam`` (eye-in-hand) or ``T_base_cam``
+  (eye-to-hand); in a rig one per camera, ``T_tool_<cam>`` / ``T_base_<cam>`` (as the result
+  file names them, :func:`hand_eye_names`);
+- the target pose ``T_base_board`` (eye-in-hand) or ``T_tool_board`` (eye-to-hand);
+- the rig extrinsics ``T_<cam>_<reference>``.
+
+Convention: a transform ``T_a_b`` (rotation ``R``, translation ``t``) carries six parameters
+``T_a_b.rx, .ry, .rz`` (radians) and ``.tx, .ty, .tz`` (metres): the perturbed transform is
+``R' = exp([r]x) R`` (rotation vector ``r`` applied on the LEFT, i.e. expressed in frame ``a``)
+and ``t' = t + (tx, ty, tz)`` (frame ``a``). A component the data cannot determine is absent
+from the names (never a zero row). Robot-pose corrections, per-frame board poses and any
+other coordinate of the optimiser's that is not a reported quantity are nuisance parameters:
+marginalised (their rows dropped from the joint covariance).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from slidecal.solver.geometry import inv_T, skew
+from slidecal.solver.model import (
+    BundleModel,
+    ModelState,
+    Structure,
+    build_structure,
+    fisher_covariance,
+    with_pose_corrections,
+)
+from slidecal.solver.problem import (
+    DISTORTION_NAMES,
+    INTRINSIC_NAMES,
+    MOUNTS,
+    CalibrationProblem,
+    hand_eye_names,
+    mount_names,
+)
+from slidecal.solver.refine import RefineOutput
+from slidecal.solver.result import ROT, TRANS, NamedCovariance
+from slidecal.solver.robot_error import (
+    FIELD_WEIGHT,
+    ImageErrors,
+    covariance_terms,
+    image_errors,
+    reported_response,
+    session_field_step,
+)
+from slidecal.solver.target_shape import BoardFit, fit_board
+
+
+# -- the optimiser's coordinates ------------------------------------------------------------------
+@dataclass(frozen=True)
+class Layout:
+    """What the optimiser's coordinates stand for, enough to name them.
+
+    ``cameras`` (reference first or not: any order), ``reference``; ``mount`` (``none`` without
+    a robot); ``X`` (4, 4) the optimiser's inverse hand-eye (``T_cam_tool`` / ``T_cam_base``),
+    ``Y`` (4, 4) the target pose, both None without a robot; ``T_cam_ref`` (4, 4) per other
+    camera; the observable bases (3, m) of X's and Y's rotation and translation.
+    """
+
+    cameras: tuple[str, ...]
+    reference: str
+    mount: str
+    X: np.ndarray | None
+    Y: np.ndarray | None
+    T_cam_ref: dict[str, np.ndarray]
+    X_rot_basis: np.ndarray
+    X_t_basis: np.ndarray
+    Y_rot_basis: np.ndarray
+    Y_t_basis: np.ndarray
+
+    @property
+    def rotation_reported(self) -> bool:
+        """Whether the hand-eye (and target) rotation is determined by the data."""
+        return self.X is not None and self.X_rot_basis.shape[1] == 3 == self.Y_rot_basis.shape[1]
+
+    @property
+    def translation_reported(self) -> bool:
+        """Whether the hand-eye (and target) translation is determined by the data."""
+        return self.rotation_reported and self.X_t_basis.shape[1] == 3 == self.Y_t_basis.shape[1]
+
+
+def layout_of(problem: CalibrationProblem, structure: Structure, state: ModelState) -> Layout:
+    """The layout of a problem (``CalibrationProblem``), its ``Structure`` and a ``ModelState``."""
+    robot = problem.knowledge == "robot" and problem.mount in MOUNTS
+    return Layout(
+        tuple(c.name for c in problem.cameras),
+        problem.reference,
+        problem.mount if robot else "none",
+        np.asarray(state.X[0], float) if robot else None,
+        np.asarray(state.Y, float) if robot else None,
+        {c: np.asarray(T, float) for c, T in state.T_cam_ref.items()},
+        structure.X_rot_basis,
+        structure.X_t_basis,
+        structure.Y_rot_basis,
+        structure.Y_t_basis,
+    )
+
+
+def _inverse_jacobian(T: np.ndarray) -> np.ndarray:
+    """(6, 6): the perturbation (r, t) of ``inv(T)`` from that of ``T`` (left convention)."""
+    R, t = T[:3, :3], T[:3, 3]
+    J = np.zeros((6, 6))
+    J[:3, :3] = -R.T
+    J[3:, :3] = -R.T @ skew(t)
+    J[3:, 3:] = -R.T
+    return J
+
+
+def _compose_jacobians(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(6, 6) twice: the perturbation of ``A @ B`` from that of ``A`` and from that of ``B``."""
+    RA = A[:3, :3]
+    JA = np.eye(6)
+    JA[3:, :3] = -skew(RA @ B[:3, 3])
+    JB = np.zeros((6, 6))
+    JB[:3, :3] = RA
+    JB[3:, 3:] = RA
+    return JA, JB
+
+
+class _Rows:
+    """Builds the Jacobian of the named quantities with respect to the optimiser's."""
+
+    def __init__(self, internal: tuple[str, ...]) -> None:
+        self.col = {n: i for i, n in enumerate(internal)}
+        self.names: list[str] = []
+        self.rows: list[np.ndarray] = []
+
+    def cols(self, names: list[str]) -> np.ndarray | None:
+        if any(n not in self.col for n in names):
+            return None
+        return np.array([self.col[n] for n in names], dtype=int)
+
+    def add(self, name: str, cols: np.ndarray, coef: np.ndarray) -> None:
+        row = np.zeros(len(self.col))
+        np.add.at(row, cols, coef)
+        self.names.append(name)
+        self.rows.append(row)
+
+    def add_transform(
+        self, name: str, cols: np.ndarray, J: np.ndarray, rot: bool, trans: bool
+    ) -> None:
+        """Rows ``name.rx`` .. ``name.tz`` (those reported) of ``J`` (6, len(cols))."""
+        for k, a in enumerate(ROT + TRANS):
+            if (k < 3 and rot) or (k >= 3 and trans):
+                self.add(f"{name}.{a}", cols, J[k])
+
+
+def _block_names(prefix: str, rot_basis: np.ndarray, t_basis: np.ndarray) -> list[str]:
+    """The optimiser's names of a transform block in its observable basis."""
+    return [f"{prefix}.r{k}" for k in range(rot_basis.shape[1])] + [
+        f"{prefix}.t{k}" for k in range(t_basis.shape[1])
+    ]
+
+
+def _jacobian(layout: Layout, internal: tuple[str, ...]) -> tuple[tuple[str, ...], np.ndarray]:
+    """Names of the reported quantities and their Jacobian (n, len(internal))."""
+    out = _Rows(internal)
+    for c in layout.cameras:
+        for n in INTRINSIC_NAMES[:2]:  # unit aspect: one focal length for both
+            i = out.cols([f"{c}.{n}"])
+            i = out.cols([f"{c}.f"]) if i is None else i
+            if i is not None:
+                out.add(f"{c}.{n}", i, np.ones(1))
+        for n in INTRINSIC_NAMES[2:] + DISTORTION_NAMES:
+            i = out.cols([f"{c}.{n}"])
+            if i is not None:
+                out.add(f"{c}.{n}", i, np.ones(1))
+    ref = layout.reference
+    rig_cols = {}
+    for c in layout.T_cam_ref:
+        key = f"T_{c}_{ref}"
+        i = out.cols([f"{key}.{a}" for a in ROT + TRANS])
+        if i is not None:
+            rig_cols[c] = i
+            out.add_transform(key, i, np.eye(6), True, True)
+    m = mount_names(layout.mount)
+    rot, trans = layout.rotation_reported, layout.translation_reported
+    if m is None or not rot or layout.X is None or layout.Y is None:
+        return tuple(out.names), np.array(out.rows).reshape(len(out.names), len(internal))
+    Xr, Xt = layout.X_rot_basis, layout.X_t_basis
+    Yr, Yt = layout.Y_rot_basis, layout.Y_t_basis
+    xi = out.cols(_block_names("X0", Xr, Xt))
+    yi = out.cols(_block_names("Y", Yr, Yt))
+    if xi is None or yi is None:
+        return tuple(out.names), np.array(out.rows).reshape(len(out.names), len(internal))
+    BX = np.zeros((6, len(xi)))  # the optimiser's X coordinates -> X's perturbation
+    BX[:3, : Xr.shape[1]] = Xr
+    BX[3:, Xr.shape[1] :] = Xt
+    BY = np.zeros((6, len(yi)))
+    BY[:3, : Yr.shape[1]] = Yr
+    BY[3:, Yr.shape[1] :] = Yt
+    he = hand_eye_names(layout.mount, list(layout.cameras))
+    out.add_transform(he[ref], xi, _inverse_jacobian(layout.X) @ BX, rot, trans)
+    for c, T in layout.T_cam_ref.items():  # T_holder_c = inv(T_c_ref @ X), correlations kept
+        if c not in rig_cols or c not in he:
+            continue
+        JA, JB = _compose_jacobians(T, layout.X)
+        Jinv = _inverse_jacobian(T @ layout.X)
+        cols = np.concatenate([rig_cols[c], xi])
+        out.add_transform(he[c], cols, np.hstack([Jinv @ JA, Jinv @ JB @ BX]), rot, trans)
+    out.add_transform(m.target, yi, BY, rot, trans)
+    return tuple(out.names), np.array(out.rows)
+
+
+def reported_names(layout: Layout, internal: tuple[str, ...]) -> tuple[str, ...]:
+    """The names of the reported quantities of a layout whose optimiser names are ``internal``."""
+    return _jacobian(layout, tuple(internal))[0]
+
+
+def propagate(layout: Layout, internal: tuple[str, ...], cov: np.ndarray) -> NamedCovariance:
+    """The covariance of the reported quantities from the optimiser's ``cov`` (P, P) named
+    ``internal``: ``J cov J'`` through the Jacobian of every reported quantity (inversions and
+    compositions of transforms included; nuisance parameters marginalised)."""
+    return _apply(*_jacobian(layout, tuple(internal)), cov)
+
+
+def named_step(layout: Layout, internal: tuple[str, ...], step: np.ndarray) -> dict[str, float]:
+    """How far each reported quantity moves (first order) for the step ``step`` (P,) of the
+    optimiser's coordinates named ``internal`` (radians and metres for transforms)."""
+    names, J = _jacobian(layout, tuple(internal))
+    return dict(zip(names, (J @ np.asarray(step, float)).tolist(), strict=True))
+
+
+def _apply(names: tuple[str, ...], J: np.ndarray, cov: np.ndarray) -> NamedCovariance:
+    """``J cov J'`` over the columns ``J`` uses, named ``names``."""
+    Ju, used = _used(J)
+    C = Ju @ np.asarray(cov, float)[np.ix_(used, used)] @ Ju.T
+    return NamedCovariance(names, 0.5 * (C + C.T))
+
+
+def _used(J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``J`` restricted to the parameters it uses, and their indices: the projection of the
+    optimiser's coordinates onto the reported quantities."""
+    used = np.flatnonzero(np.any(J != 0, axis=0))
+    return J[:, used], used
+
+
+def result_covariance(
+    problem: CalibrationProblem,
+    out: RefineOutput,
+    correlated: tuple | None | str = "read",
+    grouped: np.ndarray | None = None,
+) -> tuple[tuple[str, ...], NamedCovariance | None]:
+    """The reported quantities of a refinement (``RefineOutput``) of ``problem`` and their
+    named covariance (None when the refinement has none). ``correlated``: what
+    :func:`correlated_image_errors` (or else :func:`misfit_image`) says of ``out``, when the
+    caller has it ("read": read it here). ``grouped``: the frames' orientation groups when
+    :func:`grouped_detection_errors` says their detections' errors go together (then the
+    covariance carries :func:`group_misfit_excess`).
+
+    The model's own covariance ``J C J'`` of the reported quantities, plus every term of the
+    error model (:func:`slidecal.solver.robot_error.covariance_terms`)."""
+    layout = layout_of(problem, out.model.st, out.state)
+    if out.covariance_blocks is None:
+        return reported_names(layout, out.names), None
+    names, J = _jacobian(layout, tuple(out.names))
+    project = _used(J)  # the reported quantities from the parameters they use
+    C = project[0] @ out.covariance_blocks.submatrix(project[1], project[1]) @ project[0].T
+    named = NamedCovariance(names, 0.5 * (C + C.T))
+    for extra in covariance_terms(problem, out, project, correlated, grouped):
+        named = NamedCovariance(names, named.matrix + extra)
+    return names, named
+
+
+# -- a finished solve, as reported ------------------------------------------------------------
+@dataclass(frozen=True)
+class Reported:
+    """A finished solve as it is reported (:func:`reported_covariance`).
+
+    ``state``: the reported value (the solve's, moved between the readings of the board's
+    misfit and of a classic session's linear field); ``names``: the reported quantities;
+    ``covariance``: theirs (None when the solve has none); ``board``: the board's fit (None for
+    a board taken as exact); ``images``: how the images' errors were read; ``field_step``: a
+    classic session's step (P,) to its reading without the arm's linear field, else None.
+    """
+
+    state: ModelState
+    names: tuple[str, ...]
+    covariance: NamedCovariance | None
+    board: BoardFit | None
+    images: ImageErrors
+    field_step: np.ndarray | None
+
+
+def reported_covariance(
+    problem: CalibrationProblem,
+    out: RefineOutput,
+    groups: np.ndarray,
+    board_scale: float = 0.0,
+) -> Reported:
+    """The one way from a finished solve (``out`` of ``problem``; ``groups`` (F,): its frames'
+    orientation groups) to its reported value and covariance, whatever the session:
+
+    1. the board: its bow and print scale (:func:`slidecal.solver.target_shape.fit_board`), the
+       scale at least ``board_scale`` (a classic session's unexplained length ratio, relative;
+       :func:`with_session_scale`), its response taken at the reported value;
+    2. the images: whether their errors go together, image by image or over an orientation
+       group (:func:`slidecal.solver.robot_error.image_errors`);
+    3. the covariance: the model's own, plus every term of the error model
+       (:func:`result_covariance`, :func:`slidecal.solver.robot_error.covariance_terms`);
+    4. the value: the solve's, moved by the board's fit and halfway to a classic session's
+       reading without its linear field (:data:`~slidecal.solver.robot_error.FIELD_WEIGHT`).
+    """
+    board = with_session_scale(problem, out, fit_board(problem, out), board_scale)
+    if board is not None:  # its modes' response at the reported value (a classic session's)
+        board = replace(board, response=reported_response(out, board.response))
+        out = replace(out, board=board)
+    images = image_errors(problem, out, groups)
+    grouped = groups if images.grouped is not None else None
+    names, named = result_covariance(problem, out, images.correlated or images.misfit, grouped)
+    state = out.state
+    if board is not None:  # between the readings of the board's misfit (target_shape.py)
+        state = out.model.apply(state, board.shift)
+    field_step = session_field_step(out)  # a classic session: with its arm's field or not
+    if field_step is not None:
+        state = out.model.apply(state, FIELD_WEIGHT * field_step)
+    return Reported(state, names, named, board, images, field_step)
+
+
+def with_session_scale(
+    problem: CalibrationProblem, out: RefineOutput, board: BoardFit | None, scale: float
+) -> BoardFit | None:
+    """``board`` (the session's :func:`fit_board`) with its scale mode's second moment at
+    least ``scale^2``, the others kept; for a board described as exact (no fit), a fit of the
+    scale mode alone (no bow read: the estimate stays)."""
+    if scale <= 0.0:
+        return board
+    if board is None:
+        exact = replace(problem.target, print_tolerance=scale, flatness_m=0.0)
+        board = fit_board(replace(problem, target=exact), out)
+        if board is None:
+            return None
+        return replace(board, mode_cov=np.diag([scale**2, 0.0, 0.0, 0.0, 0.0]))
+    if board.mode_cov[0, 0] >= scale**2:
+        return board
+    mode_cov = board.mode_cov.copy()
+    mode_cov[0, 0] = scale**2
+    return replace(board, mode_cov=mode_cov)
+
+
+# -- predictions at a known state -----------------------------------------------------------------
+def _structure(
+    problem: CalibrationProblem, truth: ModelState, structure: Structure | None
+) -> Structure:
+    """``structure``, or the problem's at the true hand-eye rotation when None."""
+    return build_structure(problem, truth.X[0][:3, :3]) if structure is None else structure
+
+
+def predicted_covariance(
+    problem: CalibrationProblem,
+    truth: ModelState,
+    sigma_px: float,
+    *,
+    structure: Structure | None = None,
+    camera_sigma_px: dict[str, float] | None = None,
+) -> NamedCovariance:
+    """The Cramer-Rao bound (docs/METHOD.md Sec. 6) of the reported quantities at ``truth``.
+
+    ``problem`` holds the detections' ids (their pixel values are not used); ``sigma_px``: the
+    pixel noise (per coordinate); ``camera_sigma_px``: per camera, when the cameras of a rig
+    differ. ``structure``: what is observable (``build_structure`` of the problem at the true
+    hand-eye rotation when None). The arm's per-pose error enters at the level of
+    ``problem.options`` (``robot_noise_deg``, ``robot_noise_m``; exact poses when both are 0).
+    """
+    st = _structure(problem, truth, structure)
+    names, cov = fisher_covariance(problem, st, truth, sigma_px, camera_sigma_px)
+    return propagate(layout_of(problem, st, truth), names, cov)
+
+
+def equal_weight_covariance(
+    problem: CalibrationProblem,
+    truth: ModelState,
+    camera_sigma_px: dict[str, float],
+    *,
+    structure: Structure | None = None,
+) -> NamedCovariance:
+    """The covariance of the reported quantities for an estimator that weighs every pixel row
+    alike (and the robot-pose prior rows by the pooled noise) when each camera's corner noise
+    is ``camera_sigma_px`` (pixels, per axis): the sandwich ``A^-1 B A^-1`` at ``truth``. It
+    equals :func:`predicted_covariance` when all cameras are equally noisy and cannot beat it
+    otherwise."""
+    st = _structure(problem, truth, structure)
+    model = BundleModel(problem, st)
+    model.sigma_px = 1.0  # prior rows in units of their own sigma
+    state = with_pose_corrections(truth, len(problem.frames)) if "E" in model.slices else truth
+    _, J = model.evaluate(state)
+    sig_rows = np.repeat(np.array([camera_sigma_px[c] for c in model.cams])[model.o_cam], 2)
+    n_px = len(sig_rows)
+    Jw = J.copy()
+    Jw[:n_px] /= sig_rows[:, None]  # whitened: every row has unit noise
+    scale = np.sqrt(np.sum(Jw * Jw, axis=0))
+    scale[scale == 0] = 1.0
+    Js = Jw / scale
+    w = np.ones(len(J))  # the estimator's weights on the whitened rows
+    w[:n_px] = sig_rows**2
+    w[n_px:] = float(np.mean(sig_rows**2))
+    Ai = np.linalg.inv(Js.T @ (w[:, None] * Js))
+    cov = Ai @ (Js.T @ ((w**2)[:, None] * Js)) @ Ai / np.outer(scale, scale)
+    return propagate(layout_of(problem, st, truth), model.names, cov)
+
+
+@dataclass(frozen=True)
+class LinearisedEstimator:
+    """The maximum-likelihood step linearised at a known state, ``-(J'J)^-1 J' r``, in the
+    named quantities: exactly efficient by construction, so its Monte-Carlo spread over the
+    same noise draws tells how far from the bound a perfect estimator lands with that many
+    trials (a sampling reference). Build it with :func:`linearised_estimator`."""
+
+    names: tuple[str, ...]
+    gain: np.ndarray  # (n, R): named quantities from the residuals at the state
+    structure: Structure
+    state: ModelState
+
+    def errors(self, problem: CalibrationProblem) -> dict[str, float]:
+        """The linearised estimator's error of every named quantity on ``problem``'s
+        detections (the same frames, cameras and corner ids as the problem it was built on)."""
+        r, _ = BundleModel(problem, self.structure).evaluate(self.state, jacobian=False)
+        return dict(zip(self.names, -(self.gain @ r), strict=True))
+
+
+def linearised_estimator(
+    problem: CalibrationProblem,
+    truth: ModelState,
+    *,
+    structure: Structure | None = None,
+) -> LinearisedEstimator:
+    """The linearised estimator (:class:`LinearisedEstimator`) of ``problem`` at ``truth``."""
+    st = _structure(problem, truth, structure)
+    model = BundleModel(problem, st)
+    state = with_pose_corrections(truth, len(problem.frames)) if "E" in model.slices else truth
+    _, J = model.evaluate(state)
+    names, Jn = _jacobian(layout_of(problem, st, truth), model.names)
+    return LinearisedEstimator(names, Jn @ np.linalg.solve(J.T @ J, J.T), st, state)
+
+
+@dataclass(frozen=True)
+class FrameInformation:
+    """Each frame's Fisher information on the shared parameters, and how to name its inverse.
+
+    ``per_frame`` (F, P, P): in the optimiser's coordinates (opaque: sum the frames of a plan,
+    invert, then :meth:`named`); a frame's own robot-pose correction is marginalised out, so the
+    information of a set of frames is the sum of theirs. ``kinds`` (P,): ``intrinsics``,
+    ``distortion`` or ``pose`` per coordinate (for a weak prior).
+    """
+
+    per_frame: np.ndarray
+    kinds: tuple[str, ...]
+    layout: Layout
+    internal: tuple[str, ...]
+    _map: tuple[tuple[str, ...], np.ndarray] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:  # the Jacobian once: a planner reads thousands of sums
+        object.__setattr__(self, "_map", _jacobian(self.layout, self.internal))
+
+    def named(self, cov: np.ndarray) -> NamedCovariance:
+        """The named covariance of an inverse (P, P) of summed information."""
+        return _apply(*self._map, cov)
+
+
+def frame_information(
+    problem: CalibrationProblem, structure: Structure, truth: ModelState, sigma_px: float
+) -> FrameInformation:
+    """The Fisher information of every frame of ``problem`` (each must see the target) at
+    ``truth``, pixel noise ``sigma_px``; robot-pose corrections (Gaussian prior of the
+    ``structure``) marginalised by a Schur complement (docs/METHOD.md Sec. 6)."""
+    model = BundleModel(problem, structure)
+    model.sigma_px = sigma_px
+    if "E" in model.slices:
+        truth = with_pose_corrections(truth, len(problem.frames))
+    _, J = model.evaluate(truth)
+    e_sl = model.slices.get("E")
+    P = e_sl.start if e_sl is not None else len(model.names)
+    out = np.empty((len(problem.frames), P, P))
+    by_frame = {ch.frame_index: ch.rows for ch in model.chunks}
+    for k in range(len(problem.frames)):
+        rows = by_frame[k]
+        Jt = J[rows, :P]
+        A = Jt.T @ Jt
+        if e_sl is not None:
+            cols = slice(e_sl.start + 6 * k, e_sl.start + 6 * k + 6)
+            Je = J[rows, cols]
+            prior = J[model.n_rows + 6 * k : model.n_rows + 6 * k + 6, cols]
+            B = Je.T @ Je + prior.T @ prior
+            C = Jt.T @ Je
+            A = A - C @ np.linalg.solve(B, C.T)
+        out[k] = A / sigma_px**2
+    kinds = []
+    for key, sl in model.slices.items():
+        kind = {"intr": "intrinsics", "dist": "distortion"}.get(key.split(":")[0], "pose")
+        kinds += [kind] * (min(sl.stop, P) - sl.start)
+    return FrameInformation(
+        out, tuple(kinds[:P]), layout_of(problem, structure, truth), model.names[:P]
+    )
+
+
+# -- result files of earlier versions -------------------------------------------------------------
+def legacy_layout(
+    internal: tuple[str, ...],
+    cameras: tuple[str, ...],
+    reference: str,
+    mount: str,
+    T_hand_eye: np.ndarray | None,
+    T_target: np.ndarray | None,
+    T_cam_ref: dict[str, np.ndarray],
+) -> Layout:
+    """The layout of a covariance written with the optimiser's names (result files before the
+    named model): the hand-eye ``T_hand_eye`` and target pose ``T_target`` as reported (None
+    when not determined); bases are the identity for the blocks written whole, otherwise the
+    block is not reported (its basis is not in the file)."""
+
+    def basis(prefix: str) -> np.ndarray:
+        n = sum(1 for x in internal if x.startswith(prefix))
+        return np.eye(3) if n == 3 else np.zeros((3, 0))
+
+    robot = mount in MOUNTS and T_hand_eye is not None and T_target is not None
+    return Layout(
+        cameras,
+        reference,
+        mount if robot else "none",
+        inv_T(T_hand_eye) if robot else None,
+        T_target if robot else None,
+        T_cam_ref,
+        basis("X0.r"),
+        basis("X0.t"),
+        basis("Y.r"),
+        basis("Y.t"),
+    )
+
+
+def is_legacy(names: tuple[str, ...] | list[str]) -> bool:
+    """Whether covariance row names are the optimiser's (a result of an earlier version)."""
+    pat = re.compile(r"(X\d+|Y)\.[rt]\d|s\d+|.+\.f")
+    return any(pat.fullmatch(n) for n in names)
