@@ -311,8 +311,8 @@ def _dup(kind: str, key: str) -> Callable[[str], str]:
 
 def _cases() -> list[Case]:
     from slidecal.routines.config import CELL_KEYS
+    from slidecal.routines.config import PLAN_KEYS as PLANNER_KEYS
     from slidecal.routines.plan import PLAN_KEYS
-    from slidecal.routines.planner import PLAN_KEYS as PLANNER_KEYS
     from slidecal.routines.results_io import RESULT_KEYS, RESULT_PART_KEYS
     from slidecal.routines.session import OPTIONS_KEYS, SESSION_KEYS, TARGET_KEYS
 

@@ -157,10 +157,10 @@ def record_without_translation(out: Path, seed: int = 0) -> Path:
     its first pose): what a hand-made plan can do (``slidecal run`` refuses such a plan
     before the robot moves; this records it anyway, to show what the verdict makes of it)."""
     from slidecal.mocks.cell import SimulatedCell
+    from slidecal.routines.acquire import acquire
     from slidecal.routines.plan import Plan, write_plan
     from slidecal.routines.planner import make_plan
     from slidecal.routines.progress import Progress
-    from slidecal.routines.run import _acquire
     from slidecal.routines.session import SessionWriter
 
     cfg = load_config()
@@ -173,7 +173,7 @@ def record_without_translation(out: Path, seed: int = 0) -> Path:
     write_plan(bad, out / "plan.yaml")
     cell.robot.connect()
     cell.rig.open()
-    _acquire(cell.robot, cell.rig, bad, cfg, writer, None, Progress(bad.n_poses, quiet=True))
+    acquire(cell.robot, cell.rig, bad, cfg, writer, None, Progress(bad.n_poses, quiet=True))
     writer.finish("complete")
     return out
 
@@ -212,33 +212,33 @@ def same_cell(cfg, cell_seed: int, run_seed: int):  # noqa: ANN001, ANN201
 def _run(cfg, work: Path, cell_seed: int, run_seed: int, plan=None):  # noqa: ANN001, ANN202
     """A run of the cell ``cell_seed`` (see :func:`same_cell`) and its session's problem;
     ``plan``: the plan (default: the planner's for ``cfg``)."""
-    from slidecal.routines.run import run_calibration
+    from slidecal.routines.run import RunRequest, run_calibration
 
-    o = run_calibration(
+    o = run_calibration(RunRequest(
         cfg,
         plan=plan,
         out_dir=work / f"run{cell_seed}_{run_seed}_{len(list(work.iterdir()))}",
         progress=False,
         recording=False,
         cell=same_cell(cfg, cell_seed, run_seed),
-    )
+    ))
     return o, load_session(o.session_dir).problem
 
 
 def _runs(n: int, work: Path, overrides: dict | None = None, first: int = 1):
     """``n`` runs with seeds ``first``.. (each its own arm and board pose)."""
-    from slidecal.routines.run import run_calibration
+    from slidecal.routines.run import RunRequest, run_calibration
 
     cfg = load_config(overrides=overrides)
     out = []
     for seed in range(first, first + n):
-        o = run_calibration(
+        o = run_calibration(RunRequest(
             cfg,
             out_dir=work / f"run{seed}_{len(list(work.iterdir()))}",
             progress=False,
             recording=False,
             seed=seed,
-        )
+        ))
         out.append((o, load_session(o.session_dir).problem))
     return out
 
@@ -344,7 +344,7 @@ def _extended(o) -> bool:  # noqa: ANN001 - a RunOutcome
 
 
 def part_garbage(work: Path) -> list[str]:
-    from slidecal.routines.run import solve_session
+    from slidecal.routines.solve import solve_session
 
     ((o, _),) = _runs(1, work)
     cases = [
@@ -546,7 +546,7 @@ def _signal_row(sig: int, name: str, after: int, work: Path) -> str:
 
 def _fault_row(kind: str, at: int, work: Path) -> str:
     from slidecal.mocks.cell import SimulatedCell
-    from slidecal.routines.run import run_calibration
+    from slidecal.routines.run import RunRequest, run_calibration
     from slidecal.solver.errors import HardwareFault
 
     cfg = load_config()
@@ -569,7 +569,9 @@ def _fault_row(kind: str, at: int, work: Path) -> str:
     out = work / f"fault_{kind}_{at}"
     code = "completed"
     try:
-        o = run_calibration(cfg, out_dir=out, progress=False, recording=False, cell=cell)
+        o = run_calibration(
+            RunRequest(cfg, out_dir=out, progress=False, recording=False, cell=cell)
+        )
         code = f"completed, {o.verdict.verdict}"
     except HardwareFault:
         code = "HardwareFault (exit 3)"
@@ -580,7 +582,7 @@ def _fault_row(kind: str, at: int, work: Path) -> str:
     kept = len(doc["frames"])
     resumed = ""
     if doc["status"] != "complete":
-        r = run_calibration(cfg, resume=out, progress=False)
+        r = run_calibration(RunRequest(cfg, resume=out, progress=False))
         resumed = f"{r.n_frames} frames, {r.verdict.verdict}"
     where = "move" if kind in ("protective_stop", "timeout") else "capture"
     where = f"{where} {at}" + (
