@@ -40,9 +40,6 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from slidecal.drivers import oak
-from slidecal.drivers.oak import DEFAULT_FPS, RESIZE_MODES, OakRig
-from slidecal.drivers.uvc import UvcCamera
 from slidecal.routines.session import SESSION_FILE, Fields, load_yaml, write_atomic
 from slidecal.solver.errors import InputError
 from slidecal.solver.result import CalibrationResult
@@ -107,6 +104,8 @@ def _camera_fields(cfg: Any, section: Fields, allowed: tuple[str, ...]) -> dict[
 
 
 def _oak(cfg: Any, section: Fields) -> Any:
+    from slidecal.drivers.oak import DEFAULT_FPS, RESIZE_MODES, OakRig
+
     unknown = sorted(set(section.data) - set(OAK_RIG_KEYS))
     if unknown:
         raise section.error(unknown[0], f"is not an oak field; use {', '.join(OAK_RIG_KEYS)}")
@@ -144,6 +143,8 @@ def _oak(cfg: Any, section: Fields) -> Any:
 
 
 def _uvc(cfg: Any, section: Fields) -> Any:
+    from slidecal.drivers.uvc import UvcCamera
+
     if len(cfg.cameras) != 1:
         raise section.error("list", f"holds {len(cfg.cameras)} cameras; a uvc cell has one")
     c = cfg.cameras[0]
@@ -241,6 +242,8 @@ def device_calibration_outputs(
     outputs = oak_outputs(devices)
     if not outputs or not set(result.cameras) <= set(outputs):
         return [], ""
+    from slidecal.drivers import oak
+
     sockets = {n: o["socket"] for n, o in outputs.items()}
     lens = {n: o["focus"] for n, o in outputs.items() if o.get("focus") is not None}
     user = read_device_calibration(session_dir, devices, "user")
