@@ -70,10 +70,9 @@ def _connect_real(cfg: CellConfig) -> tuple[Any, Any]:
 
 @dataclass
 class Recorded:
-    """What :func:`record_session` leaves: the simulated truth (None for real cells), the
-    (closed) robot for its clock, the open rerun log (None without recording)."""
+    """What :func:`record_session` leaves: the (closed) robot for its clock, the open rerun
+    log (None without recording)."""
 
-    truth: dict[str, Any] | None
     robot: Any
     log: Any
 
@@ -149,7 +148,7 @@ def record_session(
     finally:
         if lock is not None:
             lock.release()
-    return Recorded(truth, robot, log)
+    return Recorded(robot, log)
 
 
 def _open_writer(

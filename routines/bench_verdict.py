@@ -613,7 +613,8 @@ def part_faults(work: Path) -> list[str]:
         lines.append(_signal_row(sig, name.split()[0], after, work))
     lines += [
         "",
-        "Faults injected in the simulated cell (in-process), then `run_calibration(resume=...)`:",
+        "Faults injected in the simulated cell (in-process), then "
+        "`run_calibration(RunRequest(resume=...))`:",
         "",
         "| fault | run | robot stopped | frames kept | events | resume |",
         "|---|---|---|---|---|---|",

@@ -69,8 +69,6 @@ from slidecal.routines.devices import OAK_CAMERA_KEYS, OAK_RIG_KEYS, UVC_CAMERA_
 from slidecal.routines.schema import Fields, dump_yaml, load_yaml, parse_yaml, write_atomic
 from slidecal.routines.session import (
     OAK_SOCKET,
-    OPTIONS_KEYS,
-    TARGET_KEYS,
     options_from_dict,
     options_to_dict,
     target_from_dict,
@@ -1016,7 +1014,3 @@ def _cameras(
         if dup is not None:
             raise f.error("list", f"gives socket {dup} to two cameras; each socket is one camera")
     return tuple(specs), opts
-
-
-# the sections shared with sessions are declared there; named here for readers of this module
-SHARED_KEYS = {"target": TARGET_KEYS, "options": OPTIONS_KEYS}

@@ -121,8 +121,8 @@ def simulated_twin(cfg: CellConfig) -> CellConfig:
     not an OAK's left/right/rgb: their extrinsics are unknown).
     """
     given = config_to_dict(cfg)
-    # the twin's board and camera are simulated: exact and with the simulated camera's noise,
-    # unless the cell says otherwise
+    # the twin's board is simulated, so exact; its camera plans with the simulated camera's
+    # noise unless the cell sets one other than the real camera's default
     given["target"] = {k: v for k, v in given["target"].items()
                        if k not in ("flatness_mm", "print_tolerance")}
     if cfg.plan.corner_noise_px == REAL_CORNER_NOISE_PX:

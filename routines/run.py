@@ -7,18 +7,16 @@ Callable from Python for scripted commissioning::
     print(outcome.summary)
 
 THE ROBOT NEVER MOVES unless the cell file names real hardware (``robot.driver: ur`` with a
-``host``); without a file the packaged simulated cell is used. Every captured frame is on disk
-the moment it is captured (:class:`~slidecal.routines.session.SessionWriter`). On a
-``HardwareFault``, Ctrl-C, SIGTERM or SIGHUP the robot is stopped, the event is written into
-the session (``events``, ``status: aborted``) and the exception raised again with where the
-frames are; ``RunRequest(resume=SESSION)`` continues such a session. A dropped frame or an
-image without corners is captured again (``retries``). Two runs on one cell cannot interleave
-(:mod:`slidecal.routines.lock`).
+``host``); without a file the packaged simulated cell is used. The capture loop
+(:mod:`slidecal.routines.acquire`) writes every frame the moment it is captured and, on a fault
+or an interrupt, stops the robot and marks the session aborted; ``RunRequest(resume=SESSION)``
+continues such a session.
 
-After the solve the gate of :mod:`slidecal.routines.verdict` decides: ``verdict.yaml`` in the
-session; ``result.yaml`` and ``export/`` for an accepted (or drifted) result, ``rejected/``
-without exports otherwise; ``report.html`` and ``report.png``; and, with an install store,
-the install (:mod:`slidecal.routines.install`). ``docs/UNATTENDED.md`` is the contract.
+After the solve the gate of :mod:`slidecal.routines.verdict` decides
+(:func:`slidecal.routines.solve.finish_solve`): ``verdict.yaml`` in the session; ``result.yaml``
+and ``export/`` for an accepted (or drifted) result, ``rejected/`` without exports otherwise;
+``report.html`` and ``report.png``; and, with an install store, the install
+(:mod:`slidecal.routines.install`). ``docs/UNATTENDED.md`` is the contract.
 """
 
 from __future__ import annotations
