@@ -34,7 +34,7 @@ from slidecal.solver.errors import HardwareFault, InputError
 DEFAULT_RETRIES = 2
 
 
-def lock_key(config: Any, cfg: CellConfig) -> str | None:
+def cell_key(config: Any, cfg: CellConfig) -> str | None:
     """What a run locks: a real robot by its address, a simulated cell by its file."""
     if not cfg.simulated:
         return f"ur:{cfg.robot.host}"

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import least_squares
 
-from slidecal.routines.acquire import lock_key, record_session
+from slidecal.routines.acquire import cell_key, record_session
 from slidecal.routines.config import CellConfig, load_config
 from slidecal.routines.install import INSTALLED_FILE, current_dir, installed_session
 from slidecal.routines.plan import Plan, read_plan
@@ -453,7 +453,7 @@ def run_check(
         plan,
         out,
         prog,
-        lock_key=lock_key(config, cfg),
+        lock_key=cell_key(config, cfg),
         seed=seed,
         cell=cell,
         retries=retries,

@@ -209,6 +209,7 @@ MAX_TILT_DEG = 40.0
 #: limits extends its plan with the noise it measured (docs/UNATTENDED.md).
 SIM_CORNER_NOISE_PX = 0.03
 REAL_CORNER_NOISE_PX = 0.1
+#: Keys of the ``install:`` section (:class:`InstallSettings`).
 INSTALL_KEYS = ("dir", "accept_drift", "retries")
 #: ``cameras:`` keys with a field of their own in :class:`CellConfig` (not in ``rig_options``).
 RIG_TYPED = ("driver", "reference", "list", "device_id")

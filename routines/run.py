@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from slidecal.mocks.cell import SimulatedCell
-from slidecal.routines.acquire import DEFAULT_RETRIES, clock, lock_key, record_session, sockets
+from slidecal.routines.acquire import DEFAULT_RETRIES, cell_key, clock, record_session, sockets
 from slidecal.routines.check import chain_rms_px
 from slidecal.routines.config import CellConfig, PlanGoal, load_config
 from slidecal.routines.devices import check_libraries
@@ -194,7 +194,7 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
 
     prog = Progress.from_option(q.progress, plan.n_poses)
     record = partial(
-        record_session, cfg, out=out, prog=prog, lock_key=lock_key(q.config, cfg), cell=cell
+        record_session, cfg, out=out, prog=prog, lock_key=cell_key(q.config, cfg), cell=cell
     )
     record = partial(record, retries=retries, faults=q.faults)
     recording = q.recording and q.resume is None  # a resumed run's recording stays as it was
