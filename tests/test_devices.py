@@ -64,9 +64,9 @@ def write_cell(tmp_path, data) -> Path:
 
 
 def use_simulated_robot(monkeypatch, cell):
-    import slidecal.drivers.ur as ur
+    import slidecal.routines.acquire as acquire
 
-    monkeypatch.setattr(ur, "URRobot", lambda *a, **k: cell.robot)
+    monkeypatch.setattr(acquire, "URRobot", lambda *a, **k: cell.robot)
 
 
 # ---------------------------------------------------------------------------------- UVC cell
