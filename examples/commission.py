@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from slidecal.routines.run import run_calibration
+from slidecal.routines.run import RunRequest, run_calibration
 from slidecal.solver.errors import HardwareFault, SlidecalError
 
 
@@ -25,7 +25,7 @@ def main() -> int:
     ap.add_argument("--install", default=None, help="install store for an accepted result")
     args = ap.parse_args()
     try:
-        outcome = run_calibration(args.config, out_dir=args.out, install=args.install)
+        outcome = run_calibration(RunRequest(args.config, out_dir=args.out, install=args.install))
     except HardwareFault as e:
         print(f"commissioning stopped (robot stopped, frames kept): {e}", file=sys.stderr)
         return 3

@@ -29,21 +29,39 @@ check's session as ``verdict.yaml``; exit 0 / 5.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from datetime import datetime
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.optimize import least_squares
 
+from slidecal.routines.acquire import cell_key, record_session
 from slidecal.routines.config import CellConfig, load_config
+from slidecal.routines.install import INSTALLED_FILE, current_dir, installed_session
 from slidecal.routines.plan import Plan, read_plan
+from slidecal.routines.planner import dry_run, make_plan
 from slidecal.routines.progress import Progress
-from slidecal.routines.verdict import Check, Verdict, judge_check, write_verdict
+from slidecal.routines.report import uncertainty_map
+from slidecal.routines.results_io import hand_eye_names, hand_eye_transforms, read_result
+from slidecal.routines.schema import check_out_dir
+from slidecal.routines.session import load_session, load_yaml
+from slidecal.routines.verdict import (
+    Check,
+    Verdict,
+    compare,
+    judge_check,
+    paired_compare,
+    write_verdict,
+)
+from slidecal.solver.camera import project
 from slidecal.solver.drift import T_cam_board as _T_cam_board
-from slidecal.solver.drift import fit_target
+from slidecal.solver.drift import fit_target, match_poses
 from slidecal.solver.errors import InputError
+from slidecal.solver.geometry import R_from_rvec, T_from_Rt
 from slidecal.solver.problem import CalibrationProblem
-from slidecal.solver.result import CalibrationResult
+from slidecal.solver.result import CalibrationResult, TransformEstimate
 
 MAX_ROBOT_TIME_S = 15.0
 DEFAULT_FRAMES = 6
@@ -54,8 +72,6 @@ def check_plan_from(plan: Plan, cfg: CellConfig, frames: int = DEFAULT_FRAMES) -
     """A short plan: the first two poses of as many of ``plan``'s groups as ``frames`` allows
     (two tilts at least), shortened until the predicted robot time is at most
     :data:`MAX_ROBOT_TIME_S`."""
-    from slidecal.routines.planner import dry_run
-
     per = 2 if frames >= 4 else 1
     n_groups = max(1, min(len(plan.groups), frames // per))
     while True:
@@ -82,10 +98,6 @@ def recorded_plan(plan: Plan, recorded: CalibrationProblem) -> Plan:
     """``plan`` with only the poses the installed session recorded a frame at (its measured
     robot pose within :data:`slidecal.solver.drift.MATCH_M` / ``MATCH_DEG`` of the commanded
     one) and groups left empty dropped; ``plan`` itself when none matches."""
-    import dataclasses
-
-    from slidecal.solver.drift import match_poses
-
     seen = [
         f.T_base_tool for f in recorded.frames if any(len(d.ids) for d in f.detections.values())
     ]
@@ -98,7 +110,6 @@ def recorded_plan(plan: Plan, recorded: CalibrationProblem) -> Plan:
 
 
 def _hand_eye_T(installed: CalibrationResult, camera: str) -> np.ndarray:
-    from slidecal.routines.results_io import hand_eye_names, hand_eye_transforms
 
     key = hand_eye_names(installed).get(camera)
     t = hand_eye_transforms(installed).get(key) if key else None
@@ -131,8 +142,6 @@ def expected_rms_px(
 
 def projection_sigma_px(installed: CalibrationResult, camera: str) -> float | None:
     """The rms over the image of the installed calibration's projection one-sigma (px)."""
-    from slidecal.routines.report import uncertainty_map
-
     m = uncertainty_map(installed, camera, (16, 10))
     return None if m is None else float(np.sqrt(np.mean(m**2)))
 
@@ -152,14 +161,6 @@ def refit(
     calibration's pixel noise; one-sigmas from the covariance, scaled up by the reduced
     chi-square when it exceeds 1. Compared with the installed one by
     :func:`slidecal.routines.verdict.compare`."""
-    import dataclasses
-
-    from scipy.optimize import least_squares
-
-    from slidecal.solver.camera import project
-    from slidecal.solver.geometry import R_from_rvec, T_from_Rt
-    from slidecal.solver.result import TransformEstimate
-
     mount = installed.mount
     ref = installed.reference_camera or next(iter(installed.cameras))
     cams = [c.name for c in problem.cameras if c.name in installed.cameras]
@@ -264,11 +265,6 @@ def judge_problem(
     paired comparison with ``installed_problem`` (the installed session's frames) when the
     check's poses are among its poses, else (said in the notes) the re-estimate and the
     fixed-calibration residuals."""
-    import dataclasses
-
-    from slidecal.routines.run import cell_limits
-    from slidecal.routines.verdict import compare, paired_compare
-
     Y, res = fit_target(problem, installed)
     rms = {n: float(np.sqrt(np.mean(np.sum(r**2, axis=1)))) for n, r in res.items() if len(r)}
     drift = {n: float(np.sqrt(max(rms[n] ** 2 - expected[n] ** 2, 0.0))) for n in rms}
@@ -291,7 +287,7 @@ def judge_problem(
         + (f" = {sig[n]:.1f} times the installed projection one-sigma" if sig[n] else "")
         for n in rms
     ]
-    lim = cell_limits(cfg)
+    lim = cfg.limits
     paired: list = []
     if installed_problem is None:
         why = "the install keeps no session (installed before sessions were kept)"
@@ -340,11 +336,6 @@ def run_check(
 ) -> tuple[Verdict, Path]:
     """Record a short check session and judge it against the installed calibration; write
     ``verdict.yaml`` into the session; return the verdict and the session directory."""
-    from slidecal.routines.install import INSTALLED_FILE, current_dir
-    from slidecal.routines.results_io import read_result
-    from slidecal.routines.run import _lock_key, check_out_dir, record_session
-    from slidecal.routines.session import load_session, load_yaml
-
     cfg = config if isinstance(config, CellConfig) else load_config(config)
     store = Path(installed)
     cur = current_dir(store) if store.is_dir() else None
@@ -362,11 +353,7 @@ def run_check(
     if (cur / "plan.yaml").is_file():
         base = read_plan(cur / "plan.yaml")
     else:
-        from slidecal.routines.planner import make_plan
-
         base = make_plan(cfg).plan
-    from slidecal.routines.install import installed_session
-
     recorded = installed_session(cur)
     if recorded is not None:
         base = recorded_plan(base, recorded)
@@ -387,7 +374,7 @@ def run_check(
         plan,
         out,
         prog,
-        lock_key=_lock_key(config, cfg),
+        lock_key=cell_key(config, cfg),
         seed=seed,
         cell=cell,
         retries=retries,

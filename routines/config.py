@@ -39,7 +39,7 @@ Layout (every field but ``target`` and the approximate target pose has a default
       rig: {right: {R, t_m}}              # T_<name>_<reference> of the other cameras
       noise: {robot_mm: 0.05, robot_deg: 0.005}
       target_jitter: {mm: 2.0, deg: 0.5}  # the target's true pose moves this much per seed
-    plan: {tilts_deg: [15, 25, 35], step_mm: [40, 80]}   # the planner's options (planner.py)
+    plan: {tilts_deg: [15, 25, 35], step_mm: [40, 80]}   # the planner's options (PLAN_KEYS)
     options: {skew: false, unit_aspect: false, distortion: [true, true, true, true, false],
               robot_noise_mm: 0.05, robot_noise_deg: 0.005}   # robot: 1-sigma pose error per axis
 
@@ -51,7 +51,7 @@ names the file and the field, says what is wrong and how to fix it, in one line.
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields, replace
 from importlib import resources
 from pathlib import Path
@@ -59,19 +59,26 @@ from typing import Any
 
 import numpy as np
 
+from slidecal.drivers import ur_kinematics as urk
+from slidecal.drivers.ur import cell_options
+from slidecal.drivers.ur_pose import ur_pose_from_T
+from slidecal.mocks import camera as simcam
 from slidecal.mocks.camera import SimCamera
 from slidecal.mocks.render import Photo
 from slidecal.routines.devices import OAK_CAMERA_KEYS, OAK_RIG_KEYS, UVC_CAMERA_KEYS
-from slidecal.routines.schema import Fields, load_yaml, parse_yaml
+from slidecal.routines.schema import Fields, dump_yaml, load_yaml, parse_yaml, write_atomic
 from slidecal.routines.session import (
-    OPTIONS_KEYS,
-    TARGET_KEYS,
+    OAK_SOCKET,
     options_from_dict,
+    options_to_dict,
     target_from_dict,
     target_to_dict,
     transform_from_dict,
+    transform_to_dict,
     ur_pose_field,
 )
+from slidecal.routines.verdict import Limits, limits_from_dict
+from slidecal.solver.degeneracy import nominal_K
 from slidecal.solver.errors import InputError
 from slidecal.solver.problem import MOUNTS, CameraSpec, ModelOptions, Target
 
@@ -85,7 +92,7 @@ DEFAULT_CELL = "default_cell.yaml"
 #: The keys every section of a cell file accepts: add a new key here (one place per section),
 #: then read it in that section's function below. ``target`` and ``options`` take
 #: :data:`~slidecal.routines.session.TARGET_KEYS` and ``OPTIONS_KEYS`` (shared with sessions);
-#: ``plan`` takes :data:`slidecal.routines.planner.PLAN_KEYS`.
+#: ``plan`` takes :data:`PLAN_KEYS`.
 #: ``simulation.kinematic_error``: the simulated arm's systematic error and its defaults
 #: (``slidecal.mocks.robot.KinematicError``: flange errors of this size, mm and deg rms, on top of
 #: per-stop repeatability).
@@ -112,7 +119,7 @@ CELL_KEYS: dict[str, tuple[str, ...]] = {
         "plan",
         "options",
         "limits",  # the verdict's limits (routines/verdict.py: limits_from_dict)
-        "install",  # the install store (routines/run.py: cell_install)
+        "install",  # the install store (INSTALL_KEYS)
     ),
     "robot": (
         "driver",
@@ -173,6 +180,39 @@ CELL_KEYS: dict[str, tuple[str, ...]] = {
     "simulation.kinematic_error": ("mm", "deg", "repeatability_mm", "repeatability_deg"),
 }
 
+#: Keys of the cell file's ``plan:`` block, the planner's options (slidecal.routines.planner).
+PLAN_KEYS = (
+    "goal",
+    "max_duration_s",
+    "tilts_deg",
+    "azimuths_deg",
+    "standoff_factors",
+    "step_mm",
+    "margin_px",
+    "depth_m",
+    "corner_noise_px",
+    "capture_s",
+    "fx_px",
+    "hfov_deg",
+    "min_groups",
+    "min_frames_per_group",
+    "max_groups",
+    "max_frames_per_group",
+    "extend_max_s",
+)
+GOAL_KEYS = ("fx_rel_std", "hand_eye_rot_std_deg", "hand_eye_t_std_mm")
+#: Largest tilt of the view against the board normal: the detector is tested to 40 deg.
+MAX_TILT_DEG = 40.0
+#: Corner noise assumed for the rendered simulated camera and for a real camera. The default
+#: cell's photograph-like images give about 0.043 px (docs/PLANNER.md); a run that misses its
+#: limits extends its plan with the noise it measured (docs/UNATTENDED.md).
+SIM_CORNER_NOISE_PX = 0.03
+REAL_CORNER_NOISE_PX = 0.1
+#: Keys of the ``install:`` section (:class:`InstallSettings`).
+INSTALL_KEYS = ("dir", "accept_drift", "retries")
+#: ``cameras:`` keys with a field of their own in :class:`CellConfig` (not in ``rig_options``).
+RIG_TYPED = ("driver", "reference", "list", "device_id")
+
 #: ``plan:`` keys of earlier versions that no longer act, and what to write instead.
 RETIRED_PLAN_KEYS = {
     "frames_per_group": "the planner chooses the frames of each group; bound them with "
@@ -183,10 +223,174 @@ RETIRED_PLAN_KEYS = {
 
 
 @dataclass(frozen=True)
+class PlanGoal:
+    """What the plan must achieve: one-sigma targets (None: no target) and a time budget.
+
+    ``fx_rel_std``: std of fx over fx; ``hand_eye_rot_std_deg``: root of the trace of the
+    hand-eye rotation covariance, degrees; ``hand_eye_t_std_mm``: same for its translation.
+    """
+
+    fx_rel_std: float | None = 5e-4
+    hand_eye_rot_std_deg: float | None = 0.03
+    hand_eye_t_std_mm: float | None = None
+    max_duration_s: float = 60.0
+
+
+@dataclass(frozen=True)
+class PlanSettings:
+    """The ``plan:`` section, the planner's options (docstring of slidecal.routines.planner);
+    ``K`` (3, 3) px and ``dist`` (5,) the nominal reference camera (from ``fx_px``, None: the
+    simulated camera's data sheet or a nominal one); ``standoffs_m`` the candidate standoffs,
+    ``standoff_factors`` times ``approximate.standoff_m``, metres."""
+
+    goal: PlanGoal
+    K: np.ndarray
+    dist: np.ndarray
+    fx_px: float | None
+    tilts_deg: tuple[float, ...]
+    azimuths_deg: tuple[float, ...]
+    standoff_factors: tuple[float, ...]
+    standoffs_m: tuple[float, ...]
+    step_mm: tuple[float, ...]
+    margin_px: float
+    depth_m: tuple[float, float]
+    corner_noise_px: float
+    capture_s: float
+    min_groups: int
+    min_frames_per_group: int
+    max_groups: int
+    max_frames_per_group: int
+    extend_max_s: float
+
+
+def _number_list(f: Fields, key: str, default: Sequence[float]) -> tuple[float, ...]:
+    v = f.get(key, list(default))
+    if not isinstance(v, list) or not v:
+        raise f.error(key, f"must be a non-empty list of numbers, got {v!r}")
+    out = []
+    for x in v:
+        if isinstance(x, bool) or not isinstance(x, int | float) or not np.isfinite(x):
+            raise f.error(key, f"must hold finite numbers only, got {x!r}")
+        out.append(float(x))
+    return tuple(out)
+
+
+def _plan(
+    f: Fields, standoff_m: float, spec: CameraSpec, sim: SimulationConfig | None
+) -> PlanSettings:
+    """The ``plan:`` section (``spec``: the reference camera); errors name the field."""
+    f.only(PLAN_KEYS)
+    gf = f.section("goal", GOAL_KEYS)
+    defaults = {} if gf.data else {"fx_rel_std": 5e-4, "hand_eye_rot_std_deg": 0.03}
+    vals = {k: gf.number(k, positive=True) if gf.has(k) else defaults.get(k) for k in GOAL_KEYS}
+    goal = PlanGoal(**vals, max_duration_s=f.number("max_duration_s", 60.0, positive=True))
+    if (
+        goal.fx_rel_std is None
+        and goal.hand_eye_rot_std_deg is None
+        and (goal.hand_eye_t_std_mm is None)
+    ):
+        raise gf.error(None, f"names no goal; give at least one of {list(GOAL_KEYS)}")
+    tilts = _number_list(f, "tilts_deg", (15.0, 25.0, 35.0))
+    if any(not 0.0 < t <= MAX_TILT_DEG for t in tilts):
+        raise f.error(
+            "tilts_deg",
+            f"must be in (0, {MAX_TILT_DEG:g}] deg: steeper views lose corners, untilted ones "
+            "make the hand-eye translation unobservable",
+        )
+    az = _number_list(f, "azimuths_deg", tuple(float(a) for a in range(0, 360, 45)))
+    factors = _number_list(f, "standoff_factors", (1.0,))
+    if any(not 0.2 <= x <= 5.0 for x in factors):
+        raise f.error("standoff_factors", "must be between 0.2 and 5 (times standoff_m)")
+    steps = _number_list(f, "step_mm", (40.0, 80.0))
+    if any(s <= 0 for s in steps):
+        raise f.error("step_mm", "must be positive lengths in millimetres")
+    standoffs = tuple(standoff_m * x for x in factors)
+    depth = f.array("depth_m", (2,), [0.4 * min(standoffs), 1.8 * max(standoffs)])
+    if not 0 < depth[0] < depth[1]:
+        raise f.error("depth_m", "must be [near, far] with 0 < near < far (metres)")
+    noise = f.number(
+        "corner_noise_px",
+        SIM_CORNER_NOISE_PX if sim is not None else REAL_CORNER_NOISE_PX,
+        positive=True,
+    )
+    fx = _nominal_fx(f, spec)
+    cam = None if sim is None else next((c for c in sim.cameras if c.name == spec.name), None)
+    if fx is not None:
+        w, h = spec.width, spec.height
+        K = np.array([[fx, 0.0, (w - 1) / 2.0], [0.0, fx, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
+        dist = np.zeros(5)
+    elif cam is not None:  # a simulated camera's data sheet
+        K, dist = np.asarray(cam.K, float).copy(), np.asarray(cam.dist, float).copy()
+    else:
+        K, dist = nominal_K((spec.width, spec.height)), np.zeros(5)
+    min_groups = f.integer("min_groups", 3, minimum=2)
+    min_frames = f.integer("min_frames_per_group", 3, minimum=2)
+    max_groups = f.integer("max_groups", 6, minimum=min_groups)
+    max_frames = f.integer("max_frames_per_group", 8, minimum=min_frames)
+    return PlanSettings(
+        goal=goal,
+        K=K,
+        dist=dist,
+        fx_px=fx,
+        tilts_deg=tilts,
+        azimuths_deg=az,
+        standoff_factors=factors,
+        standoffs_m=standoffs,
+        step_mm=steps,
+        margin_px=f.number("margin_px", 20.0, minimum=0.0),
+        depth_m=(float(depth[0]), float(depth[1])),
+        corner_noise_px=noise,
+        capture_s=f.number("capture_s", 0.05, minimum=0.0),
+        min_groups=min_groups,
+        min_frames_per_group=min_frames,
+        max_groups=max_groups,
+        max_frames_per_group=max_frames,
+        extend_max_s=f.number("extend_max_s", 60.0, minimum=0.0),
+    )
+
+
+def _nominal_fx(f: Fields, spec: CameraSpec) -> float | None:
+    """``fx_px`` (or from ``hfov_deg``) of the reference camera; None when neither is given."""
+    if f.has("fx_px") and f.has("hfov_deg"):
+        raise f.error("hfov_deg", "is given with fx_px; give one of them")
+    if f.has("fx_px"):
+        return f.number("fx_px", positive=True)
+    if not f.has("hfov_deg"):
+        return None
+    hfov = f.number("hfov_deg", positive=True)
+    if hfov >= 170:
+        raise f.error("hfov_deg", f"is {hfov}; a pinhole camera has less than 170 deg")
+    return float((spec.width / 2.0) / np.tan(np.radians(hfov) / 2.0))
+
+
+def _plan_to_dict(p: PlanSettings) -> dict[str, Any]:
+    """The ``plan:`` section of ``p``, every value explicit."""
+    goal = {k: getattr(p.goal, k) for k in GOAL_KEYS if getattr(p.goal, k) is not None}
+    out: dict[str, Any] = {"goal": goal, "max_duration_s": p.goal.max_duration_s}
+    for k in PLAN_KEYS:
+        v = getattr(p, k, None)
+        if k not in out and v is not None:
+            out[k] = list(v) if isinstance(v, tuple) else v
+    return out
+
+
+@dataclass(frozen=True)
+class InstallSettings:
+    """The ``install:`` section: the install store (None: none), whether a drifted result is
+    installed, captures tried again per pose (None: the run's default)."""
+
+    dir: str | None = None
+    accept_drift: bool = False
+    retries: int | None = None
+
+
+@dataclass(frozen=True)
 class RobotConfig:
     """The ``robot:`` section. ``tcp`` (4, 4) T_flange_tcp or None; workspace box (3,) each,
     base frame, metres (None: unbounded); ``start_pose`` (4, 4) T_base_tool and ``start_q``
-    (6,) rad (simulated arm); ``limits``: the simulated arm's limits (``robot.limits``)."""
+    (6,) rad (simulated arm); ``limits``: the simulated arm's limits (``robot.limits``);
+    ``ur_options``: the UR driver's ``take_control`` and payload keywords
+    (``slidecal.drivers.ur.cell_options``)."""
 
     driver: str = "simulated"
     host: str | None = None
@@ -200,7 +404,7 @@ class RobotConfig:
     workspace_max_m: np.ndarray | None = None
     start_q: np.ndarray | None = None
     limits: dict[str, float] = field(default_factory=dict)
-    raw: Mapping[str, Any] = field(default_factory=dict)
+    ur_options: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -239,8 +443,10 @@ class CellConfig:
     """A validated cell description (see the module docstring).
 
     ``source``: the file's name; ``sha256``: the SHA-256 of its bytes (recorded in sessions).
-    ``camera_options``: per camera the driver options of ``cameras.list``; ``sockets``: OAK
-    board socket per camera (empty for other drivers).
+    ``camera_options``: per camera the driver options of ``cameras.list``; ``rig_options``: the
+    camera driver's options of the ``cameras:`` section (``fps``, ``resize`` ..; read by
+    slidecal.routines.devices); ``sockets``: OAK board socket per camera (empty for other
+    drivers). ``plan``, ``limits``, ``install``: those sections.
     """
 
     source: str
@@ -256,9 +462,11 @@ class CellConfig:
     approx_T_target: np.ndarray
     standoff_m: float
     simulation: SimulationConfig | None
-    plan: dict[str, Any]
+    plan: PlanSettings
     options: ModelOptions
-    raw: dict[str, Any]
+    limits: Limits = field(default_factory=Limits)
+    install: InstallSettings = field(default_factory=InstallSettings)
+    rig_options: dict[str, Any] = field(default_factory=dict)
     sha256: str | None = None
     device_id: str | None = None
 
@@ -378,7 +586,9 @@ def config_from_dict(data: Any, source: str = "cell.yaml", sha256: str | None = 
         if key in plan.data:
             raise plan.error(key, f"no longer acts: {why}")
     options = options_from_dict(f.get("options", {}), source)
-    cfg = CellConfig(
+    plan_settings = _plan(plan, standoff, specs[names.index(reference)], sim)
+    limits = limits_from_dict(f.get("limits"), source)
+    return CellConfig(
         source=source,
         mount=mount,
         robot=robot,
@@ -392,24 +602,30 @@ def config_from_dict(data: Any, source: str = "cell.yaml", sha256: str | None = 
         approx_T_target=approx_target,
         standoff_m=standoff,
         simulation=sim,
-        plan=dict(plan.data),
+        plan=plan_settings,
         options=options,
-        raw=dict(f.data),
+        limits=limits,
+        install=_install(f.section("install")),
+        rig_options={k: v for k, v in cam_f.data.items() if k not in RIG_TYPED},
         sha256=sha256,
         device_id=device_id,
     )
-    from slidecal.routines.planner import planner_settings  # the plan: section's own schema
 
-    planner_settings(cfg)
-    return cfg
+
+def _install(f: Fields) -> InstallSettings:
+    for k in f.data:
+        if k not in INSTALL_KEYS:
+            raise f.error(str(k), f"is not an install field; the fields are {list(INSTALL_KEYS)}")
+    return InstallSettings(
+        dir=f.string("dir") if f.has("dir") else None,
+        accept_drift=f.boolean("accept_drift", False),
+        retries=f.integer("retries", minimum=0) if f.has("retries") else None,
+    )
 
 
 def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
     """The cell file of a validated cell (the inverse of :func:`config_from_dict`): every
     value explicit, transforms as ``{R, t_m}``, simulated cameras in full (no preset)."""
-    from slidecal.drivers.ur_pose import ur_pose_from_T
-    from slidecal.routines.session import options_to_dict, transform_to_dict
-
     r = cfg.robot
     robot: dict[str, Any] = {"driver": r.driver}
     if r.host is not None:
@@ -427,9 +643,16 @@ def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
         }
     if r.limits:
         robot["limits"] = dict(r.limits)
+    if r.ur_options.get("take_control"):
+        robot["take_control"] = True
+    if "payload_kg" in r.ur_options:
+        robot["payload"] = {"mass_kg": r.ur_options["payload_kg"]}
+        if r.ur_options["payload_cog_m"] is not None:
+            robot["payload"]["cog_m"] = list(r.ur_options["payload_cog_m"])
     cameras: dict[str, Any] = {"driver": cfg.camera_driver, "reference": cfg.reference_camera}
     if cfg.device_id is not None:
         cameras["device_id"] = cfg.device_id
+    cameras.update(cfg.rig_options)
     if cfg.camera_driver != "simulated":
         cameras["list"] = [
             {"name": c.name, "width": c.width, "height": c.height, **cfg.camera_options[c.name]}
@@ -477,15 +700,20 @@ def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
             out["simulation"]["kinematic_error"] = dict(sim.kinematic_error)
         if any(sim.board_bow_mm):
             out["simulation"]["board_bow_mm"] = list(sim.board_bow_mm)
-    out["plan"] = dict(cfg.plan)
+    out["plan"] = _plan_to_dict(cfg.plan)
     out["options"] = options_to_dict(cfg.options)
+    out["limits"] = limits_to_dict(cfg.limits)
+    out["install"] = {k: v for k, v in asdict(cfg.install).items() if v is not None}
     return out
+
+
+def limits_to_dict(limits: Limits) -> dict[str, Any]:
+    """The ``limits:`` section of ``limits`` (as a session records it)."""
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(limits).items()}
 
 
 def write_config(cfg: CellConfig, path: str | Path) -> Path:
     """Write the cell file of ``cfg`` (:func:`config_to_dict`) atomically."""
-    from slidecal.routines.schema import dump_yaml, write_atomic
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     write_atomic(path, dump_yaml(config_to_dict(cfg)))
@@ -549,8 +777,6 @@ def _robot(f: Fields) -> RobotConfig:
     if host is not None and driver != "ur":
         raise f.error("host", "is given for a simulated robot; set driver: ur or remove host")
     model = f.string("model", "UR5e")
-    from slidecal.drivers import ur_kinematics as urk
-
     try:
         urk.model_by_name(model)
     except InputError as e:
@@ -594,13 +820,11 @@ def _robot(f: Fields) -> RobotConfig:
         workspace_max_m=wmax,
         start_q=start_q,
         limits=limits,
-        raw=dict(f.data),
+        ur_options=cell_options(f.data),
     )
 
 
 def _preset_cameras(preset: str) -> tuple[list[SimCamera], dict[str, np.ndarray]]:
-    from slidecal.mocks import camera as simcam
-
     if preset == "r1":
         return [simcam.single_camera("cam")], {}
     ext = simcam.oak_d_like_extrinsics()  # T_<name>_left
@@ -772,8 +996,6 @@ def _cameras(
         if driver == "oak":
             if not cf.has("socket"):
                 raise cf.error("socket", "is missing; an OAK camera needs its socket (CAM_A ..)")
-            from slidecal.routines.session import OAK_SOCKET
-
             if not OAK_SOCKET.fullmatch(cf.string("socket")):
                 raise cf.error("socket", f"is {cf.get('socket')!r}; use CAM_A .. CAM_H")
             if cf.has("colour"):
@@ -792,7 +1014,3 @@ def _cameras(
         if dup is not None:
             raise f.error("list", f"gives socket {dup} to two cameras; each socket is one camera")
     return tuple(specs), opts
-
-
-# the sections shared with sessions are declared there; named here for readers of this module
-SHARED_KEYS = {"target": TARGET_KEYS, "options": OPTIONS_KEYS}

@@ -82,7 +82,7 @@ def check_libraries(cfg: Any) -> None:
 def camera_rig(cfg: Any) -> Any:
     """The camera driver object of a real cell (not opened)."""
     check_libraries(cfg)
-    section = Fields(cfg.raw.get("cameras") or {}, cfg.source, "cameras")
+    section = Fields(cfg.rig_options, cfg.source, "cameras")
     if cfg.camera_driver == "oak":
         return _oak(cfg, section)
     if cfg.camera_driver == "uvc":
@@ -117,7 +117,7 @@ def _oak(cfg: Any, section: Fields) -> Any:
           if f.has("white_balance_k")}
     exposure = section.integer("exposure_us", minimum=1) if section.has("exposure_us") else None
     iso = section.integer("iso", minimum=100) if section.has("iso") else None
-    device = section.get("device_id")
+    device = cfg.device_id
     try:
         return OakRig(
             None if device is None else str(device),

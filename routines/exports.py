@@ -40,6 +40,7 @@ from slidecal.routines.results_io import (
 )
 from slidecal.routines.session import dump_yaml, plain, write_atomic
 from slidecal.solver.errors import SlidecalError
+from slidecal.solver.geometry import rvec_from_R
 from slidecal.solver.result import CalibrationResult
 
 CAMCHAIN_FILE = "camchain.yaml"
@@ -159,8 +160,6 @@ def mrcal_cameramodel(
     reference camera's frame into this camera's (a Rodrigues vector, then the translation in
     metres; zero for the reference camera), also written as ``extrinsics`` for mrcal before
     2.5. ``imagersize``: width, height."""
-    from slidecal.solver.geometry import rvec_from_R
-
     _no_skew(result, "mrcal's OpenCV lens models")
     c = result.cameras[name]
     ref = _ordered_cameras(result)[0]
@@ -210,8 +209,6 @@ def hand_eye_dict(result: CalibrationResult, header: Mapping[str, Any] | None = 
     A transform whose translation the data did not determine is written with ``null``
     translation fields and no matrix.
     """
-    from slidecal.solver.geometry import rvec_from_R
-
     out: dict[str, Any] = {}
     if header:
         out["header"] = dict(header)

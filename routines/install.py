@@ -36,7 +36,9 @@ from typing import Any
 import numpy as np
 
 from slidecal.routines.lock import Lock
-from slidecal.routines.schema import _fsync_dir, dump_yaml, write_atomic
+from slidecal.routines.results_io import read_result
+from slidecal.routines.schema import _fsync_dir, dump_yaml, load_yaml, write_atomic
+from slidecal.routines.session import load_session
 from slidecal.solver.errors import InputError
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.result import CalibrationResult
@@ -70,8 +72,6 @@ def current_dir(store: str | Path) -> Path | None:
 
 def installed_result(store: str | Path) -> CalibrationResult | None:
     """The installed calibration (``current/result.yaml``), or None."""
-    from slidecal.routines.results_io import read_result
-
     d = current_dir(store)
     if d is None:
         return None
@@ -81,8 +81,6 @@ def installed_result(store: str | Path) -> CalibrationResult | None:
 def installed_session(directory: str | Path) -> CalibrationProblem | None:
     """The frames of the installed session kept in an install's ``directory`` (its
     ``session.yaml``: measured robot poses and detections), or None when it keeps none."""
-    from slidecal.routines.session import load_session
-
     d = Path(directory)
     if not (d / SESSION_FILE).is_file():
         return None
@@ -92,8 +90,6 @@ def installed_session(directory: str | Path) -> CalibrationProblem | None:
 def _session_copy(src: Path) -> str | None:
     """The text of ``src/session.yaml`` without its frames' image paths (None when there is
     no session file or no frame holds detections: nothing a check could compare with)."""
-    from slidecal.routines.session import load_yaml
-
     if not (src / SESSION_FILE).is_file():
         return None
     data = load_yaml(src / SESSION_FILE, "session.yaml")

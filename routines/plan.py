@@ -28,16 +28,18 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from slidecal.drivers.ur_pose import ur_pose_from_T
-from slidecal.routines.config import CellConfig, RobotConfig
 from slidecal.routines.schema import Fields, dump_yaml, load_yaml, write_atomic
 from slidecal.routines.session import ur_pose_field
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import R_from_rvec, Rz, T_from_Rt, inv_T, rotation_angle_deg
+
+if TYPE_CHECKING:  # plans are read without the cell schema (slidecal solve)
+    from slidecal.routines.config import CellConfig, RobotConfig
 
 PLAN_FORMAT = "slidecal.plan/1"
 #: The keys of ``plan.yaml`` (one list; :func:`plan_to_dict` writes exactly these).
@@ -101,8 +103,8 @@ class Plan:
         predicted_std: dict[str, float] | None = None,
         duration_s: float | None = None,
     ) -> Plan:
-        """The one way a plan is made: ``groups`` of ``T_base_tool`` (4, 4) poses moved with the
-        speed, acceleration and settling time of ``motion``, the cell's ``robot:`` section
+        """A new plan: ``groups`` of ``T_base_tool`` (4, 4) poses moved with the speed,
+        acceleration and settling time of ``motion``, the cell's ``robot:`` section
         (``cfg.robot``) or the plan whose poses these are taken from."""
         return cls(
             groups=tuple(tuple(g) for g in groups),
@@ -180,14 +182,11 @@ def plan_from_dict(data: Any, source: str = "plan.yaml") -> Plan:
         groups.append(tuple(poses))
     pstd = f.section("predicted_std")
     predicted = {str(k): pstd.number(str(k), minimum=0.0) for k in pstd.data} or None
-    motion = RobotConfig(
+    return Plan(
         speed_mps=f.number("speed_mps", 0.1, positive=True, maximum=MAX_SPEED_MPS),
         accel_mps2=f.number("accel_mps2", 0.5, positive=True, maximum=MAX_ACCEL_MPS2),
         settle_s=f.number("settle_s", 0.5, minimum=0.0, maximum=60.0),
-    )
-    return Plan.build(
-        groups,
-        motion,
+        groups=tuple(groups),
         via=ur_pose_field(f, "via") if f.has("via") else None,
         predicted_std=predicted if f.has("predicted_std") else None,
         duration_s=f.optional_number("duration_s", minimum=0.0),

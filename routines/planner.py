@@ -59,18 +59,19 @@ from __future__ import annotations
 
 import argparse
 import shlex
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from slidecal.drivers import ur_kinematics as urk
-from slidecal.routines.config import CellConfig, load_config
+from slidecal.mocks.cell import simulated_arm_dict
+from slidecal.mocks.robot import SimulatedUR, trapezoid_time_s
+from slidecal.routines.config import GOAL_KEYS, CellConfig, PlanGoal, PlanSettings, load_config
 from slidecal.routines.plan import Plan, tool_pose, write_plan
-from slidecal.routines.session import Fields
 from slidecal.solver.camera import project
-from slidecal.solver.degeneracy import check_configuration, nominal_K
+from slidecal.solver.degeneracy import check_configuration
 from slidecal.solver.errors import DegenerateError, HardwareFault, InputError
 from slidecal.solver.geometry import (
     R_from_rvec,
@@ -95,34 +96,6 @@ from slidecal.solver.uncertainty import frame_information as named_frame_informa
 
 help = "choose the shortest robot routine predicted to meet the accuracy goal (writes plan.yaml)"
 
-#: Keys of the cell file's ``plan:`` block (the one list of them; the cell reader refuses others).
-PLAN_KEYS = (
-    "goal",
-    "max_duration_s",
-    "tilts_deg",
-    "azimuths_deg",
-    "standoff_factors",
-    "step_mm",
-    "margin_px",
-    "depth_m",
-    "corner_noise_px",
-    "capture_s",
-    "fx_px",
-    "hfov_deg",
-    "min_groups",
-    "min_frames_per_group",
-    "max_groups",
-    "max_frames_per_group",
-    "extend_max_s",
-)
-GOAL_KEYS = ("fx_rel_std", "hand_eye_rot_std_deg", "hand_eye_t_std_mm")
-#: Largest tilt of the view against the board normal: the detector is tested to 40 deg.
-MAX_TILT_DEG = 40.0
-#: Corner noise assumed for the rendered simulated camera and for a real camera. The default
-#: cell's photograph-like images give about 0.043 px (docs/PLANNER.md); a run that misses its
-#: limits extends its plan with the noise it measured (docs/UNATTENDED.md).
-SIM_CORNER_NOISE_PX = 0.03
-REAL_CORNER_NOISE_PX = 0.1
 #: Tool rotation speed / acceleration of a linear move (the simulated arm's defaults).
 ANGULAR_SPEED_DEG_S = 60.0
 ANGULAR_ACCEL_DEG_S2 = 80.0
@@ -138,144 +111,6 @@ DIRECTIONS = np.array(
     + [[0.0, sy * _S2, sz * _S2] for sy in (1, -1) for sz in (1, -1)]
     + [[sx * _S3, sy * _S3, sz * _S3] for sx in (1, -1) for sy in (1, -1) for sz in (1, -1)]
 )
-
-
-@dataclass(frozen=True)
-class PlanGoal:
-    """What the plan must achieve: one-sigma targets (None: no target) and a time budget.
-
-    ``fx_rel_std``: std of fx over fx; ``hand_eye_rot_std_deg``: root of the trace of the
-    hand-eye rotation covariance, degrees; ``hand_eye_t_std_mm``: same for its translation.
-    """
-
-    fx_rel_std: float | None = 5e-4
-    hand_eye_rot_std_deg: float | None = 0.03
-    hand_eye_t_std_mm: float | None = None
-    max_duration_s: float = 60.0
-
-
-@dataclass(frozen=True)
-class PlannerSettings:
-    """Validated planner options (see the module docstring); ``K`` (3, 3) px and ``dist`` (5,)
-    the nominal reference camera; ``standoffs_m`` candidate standoffs, metres."""
-
-    goal: PlanGoal
-    K: np.ndarray
-    dist: np.ndarray
-    tilts_deg: tuple[float, ...] = (15.0, 25.0, 35.0)
-    azimuths_deg: tuple[float, ...] = tuple(float(a) for a in range(0, 360, 45))
-    standoffs_m: tuple[float, ...] = (0.5,)
-    step_mm: tuple[float, ...] = (40.0, 80.0)
-    margin_px: float = 20.0
-    depth_m: tuple[float, float] = (0.2, 0.9)
-    corner_noise_px: float = SIM_CORNER_NOISE_PX
-    capture_s: float = 0.05
-    min_groups: int = 3
-    min_frames_per_group: int = 3
-    max_groups: int = 6
-    max_frames_per_group: int = 8
-    extend_max_s: float = 60.0
-
-
-def _number_list(f: Fields, key: str, default: Sequence[float]) -> tuple[float, ...]:
-    v = f.get(key, list(default))
-    if not isinstance(v, list) or not v:
-        raise f.error(key, f"must be a non-empty list of numbers, got {v!r}")
-    out = []
-    for x in v:
-        if isinstance(x, bool) or not isinstance(x, int | float) or not np.isfinite(x):
-            raise f.error(key, f"must hold finite numbers only, got {x!r}")
-        out.append(float(x))
-    return tuple(out)
-
-
-def planner_settings(cfg: CellConfig) -> PlannerSettings:
-    """The planner options of a cell (its ``plan:`` block), validated; errors name the field."""
-    f = Fields(cfg.plan, cfg.source, "plan").only(PLAN_KEYS)
-    gf = f.section("goal", GOAL_KEYS)
-    defaults = {} if gf.data else {"fx_rel_std": 5e-4, "hand_eye_rot_std_deg": 0.03}
-    vals = {k: gf.number(k, positive=True) if gf.has(k) else defaults.get(k) for k in GOAL_KEYS}
-    goal = PlanGoal(**vals, max_duration_s=f.number("max_duration_s", 60.0, positive=True))
-    if (
-        goal.fx_rel_std is None
-        and goal.hand_eye_rot_std_deg is None
-        and (goal.hand_eye_t_std_mm is None)
-    ):
-        raise gf.error(None, f"names no goal; give at least one of {list(GOAL_KEYS)}")
-    tilts = _number_list(f, "tilts_deg", (15.0, 25.0, 35.0))
-    if any(not 0.0 < t <= MAX_TILT_DEG for t in tilts):
-        raise f.error(
-            "tilts_deg",
-            f"must be in (0, {MAX_TILT_DEG:g}] deg: steeper views lose corners, untilted ones "
-            "make the hand-eye translation unobservable",
-        )
-    az = _number_list(f, "azimuths_deg", tuple(float(a) for a in range(0, 360, 45)))
-    factors = _number_list(f, "standoff_factors", (1.0,))
-    if any(not 0.2 <= x <= 5.0 for x in factors):
-        raise f.error("standoff_factors", "must be between 0.2 and 5 (times standoff_m)")
-    steps = _number_list(f, "step_mm", (40.0, 80.0))
-    if any(s <= 0 for s in steps):
-        raise f.error("step_mm", "must be positive lengths in millimetres")
-    standoffs = tuple(cfg.standoff_m * x for x in factors)
-    depth = f.array("depth_m", (2,), [0.4 * min(standoffs), 1.8 * max(standoffs)])
-    if not 0 < depth[0] < depth[1]:
-        raise f.error("depth_m", "must be [near, far] with 0 < near < far (metres)")
-    sim = cfg.simulation
-    noise = f.number(
-        "corner_noise_px",
-        SIM_CORNER_NOISE_PX if sim is not None else REAL_CORNER_NOISE_PX,
-        positive=True,
-    )
-    spec = next(c for c in cfg.cameras if c.name == cfg.reference_camera)
-    K, dist = _nominal_camera(cfg, f, spec)
-    min_groups = f.integer("min_groups", 3, minimum=2)
-    min_frames = f.integer("min_frames_per_group", 3, minimum=2)
-    max_groups = f.integer("max_groups", 6, minimum=min_groups)
-    max_frames = f.integer("max_frames_per_group", 8, minimum=min_frames)
-    return PlannerSettings(
-        goal=goal,
-        K=K,
-        dist=dist,
-        tilts_deg=tilts,
-        azimuths_deg=az,
-        standoffs_m=standoffs,
-        step_mm=steps,
-        margin_px=f.number("margin_px", 20.0, minimum=0.0),
-        depth_m=(float(depth[0]), float(depth[1])),
-        corner_noise_px=noise,
-        capture_s=f.number("capture_s", 0.05, minimum=0.0),
-        min_groups=min_groups,
-        min_frames_per_group=min_frames,
-        max_groups=max_groups,
-        max_frames_per_group=max_frames,
-        extend_max_s=f.number("extend_max_s", 60.0, minimum=0.0),
-    )
-
-
-def _nominal_camera(cfg: CellConfig, f: Fields, spec: CameraSpec) -> tuple[np.ndarray, np.ndarray]:
-    """Nominal ``K`` (3, 3) px and distortion (5,) of the reference camera for planning."""
-    w, h = spec.width, spec.height
-    if f.has("fx_px") and f.has("hfov_deg"):
-        raise f.error("hfov_deg", "is given with fx_px; give one of them")
-    if f.has("fx_px"):
-        fx = f.number("fx_px", positive=True)
-    elif f.has("hfov_deg"):
-        hfov = f.number("hfov_deg", positive=True)
-        if hfov >= 170:
-            raise f.error("hfov_deg", f"is {hfov}; a pinhole camera has less than 170 deg")
-        fx = (w / 2.0) / np.tan(np.radians(hfov) / 2.0)
-    else:
-        sim = cfg.simulation
-        cam = (
-            None
-            if sim is None
-            else next((c for c in sim.cameras if c.name == cfg.reference_camera), None)
-        )
-        if cam is not None:  # a simulated camera's data sheet
-            return np.asarray(cam.K, float).copy(), np.asarray(cam.dist, float).copy()
-        return nominal_K((w, h)), np.zeros(5)
-    K = np.array([[fx, 0.0, (w - 1) / 2.0], [0.0, fx, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
-    return K, np.zeros(5)
 
 
 # -- geometry of candidates -------------------------------------------------------------------
@@ -335,8 +170,6 @@ def view_check(
 def move_time_s(T0: np.ndarray, T1: np.ndarray, speed_mps: float, accel_mps2: float) -> float:
     """Duration of a linear move ``T0 -> T1`` ((4, 4) each, metres): the longer of the
     translation's and the rotation's trapezoidal profiles (as :class:`SimulatedUR` moves)."""
-    from slidecal.mocks.robot import trapezoid_time_s
-
     length = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
     angle = float(np.linalg.norm(rvec_from_R(T0[:3, :3].T @ T1[:3, :3])))
     return max(
@@ -415,7 +248,7 @@ class _Nominal:
         return o.robot_noise_m > 0 or o.robot_noise_deg > 0
 
 
-def _nominal(cfg: CellConfig, settings: PlannerSettings) -> _Nominal:
+def _nominal(cfg: CellConfig, settings: PlanSettings) -> _Nominal:
     spec = next(c for c in cfg.cameras if c.name == cfg.reference_camera)
     if cfg.mount == "eye_in_hand":
         X = inv_T(cfg.approx_T_hand_eye)  # T_cam_tool
@@ -529,7 +362,7 @@ class _Group:
 
 
 def _rejection(
-    cfg: CellConfig, nom: _Nominal, s: PlannerSettings, T_base_tool: np.ndarray
+    cfg: CellConfig, nom: _Nominal, s: PlanSettings, T_base_tool: np.ndarray
 ) -> str | None:
     """Why a tool pose cannot be a frame (workspace, reach, view), or None."""
     lo, hi = cfg.robot.workspace_min_m, cfg.robot.workspace_max_m
@@ -574,7 +407,7 @@ def _via(cfg: CellConfig) -> np.ndarray:
 
 
 def _candidates(
-    cfg: CellConfig, nom: _Nominal, s: PlannerSettings
+    cfg: CellConfig, nom: _Nominal, s: PlanSettings
 ) -> tuple[list[_Group], dict[str, int], FrameInformation | None]:
     """Candidate groups with their usable frames' information; rejection counts by reason; the
     named layer's reading of the information (None without a candidate)."""
@@ -628,7 +461,7 @@ class _Chosen:
 
 
 class _Timing:
-    def __init__(self, cfg: CellConfig, s: PlannerSettings, start: np.ndarray | None) -> None:
+    def __init__(self, cfg: CellConfig, s: PlanSettings, start: np.ndarray | None) -> None:
         self.v, self.a = cfg.robot.speed_mps, cfg.robot.accel_mps2
         self.per_frame = cfg.robot.settle_s + s.capture_s
         self.start = start
@@ -659,7 +492,7 @@ def _greedy(
     cands: list[_Group],
     fim: FrameInformation,
     nom: _Nominal,
-    s: PlannerSettings,
+    s: PlanSettings,
     timing: _Timing,
     via: np.ndarray,
     prior: _Prior | None = None,
@@ -817,7 +650,7 @@ def _linear_group(nom: _Nominal, T_base_tool: np.ndarray) -> LinearGroup:
 
 # -- prediction of a whole plan ---------------------------------------------------------------
 def predict_std(
-    plan: Plan, cfg: CellConfig, settings: PlannerSettings | None = None
+    plan: Plan, cfg: CellConfig, settings: PlanSettings | None = None
 ) -> dict[str, float]:
     """Predicted one-sigma of a plan's estimates (the Cramer-Rao bound, docs/METHOD.md Sec. 6).
 
@@ -826,7 +659,7 @@ def predict_std(
     ``.t_mm`` and ``<target>.rot_deg`` / ``.t_mm``. Raises ``DegenerateError`` when the plan's
     Fisher information is singular or a parameter is unobservable.
     """
-    s = settings or planner_settings(cfg)
+    s = settings or cfg.plan
     nom = _nominal(cfg, s)
     T = np.array([T for _, T in plan.poses])
     problem = nom.problem(T)
@@ -898,8 +731,8 @@ def _start_pose(cfg: CellConfig) -> np.ndarray | None:
     """Where the simulated arm starts (``T_base_tool``), None for real cells (unknown)."""
     if not cfg.simulated:
         return None
-    if cfg.robot.raw.get("start_q") is not None:
-        q = np.asarray(cfg.robot.raw["start_q"], float)
+    if cfg.robot.start_q is not None:
+        q = cfg.robot.start_q
     elif cfg.robot.start_pose is not None:
         return cfg.robot.start_pose
     else:
@@ -915,9 +748,6 @@ def dry_run(plan: Plan, cfg: CellConfig) -> tuple[float, int | None, str]:
     in seconds for moves and settling, index of the first failing move in execution order or
     None, the failure message).
     """
-    from slidecal.mocks.cell import simulated_arm_dict
-    from slidecal.mocks.robot import SimulatedUR
-
     r = simulated_arm_dict(cfg)
     if not cfg.simulated:
         first = plan.via if plan.via is not None else plan.groups[0][0]
@@ -958,14 +788,14 @@ class PlanReport:
     rejected: dict[str, int]
 
 
-def make_plan(cfg: CellConfig, settings: PlannerSettings | None = None) -> PlanReport:
+def make_plan(cfg: CellConfig, settings: PlanSettings | None = None) -> PlanReport:
     """The plan that meets the cell's goal with the least robot time (module docstring).
 
     Raises ``InputError`` with the reason and what to change when no plan can: no reachable
     view of the target, the target does not fit in the image, or the goal needs more time than
     ``plan.max_duration_s``.
     """
-    s = settings or planner_settings(cfg)
+    s = settings or cfg.plan
     nom = _nominal(cfg, s)
     where = f"{cfg.source}: plan"
     cands, rejected, fim = _candidates(cfg, nom, s)
@@ -997,7 +827,7 @@ def _search(
     cands: list[_Group],
     fim: FrameInformation,
     nom: _Nominal,
-    s: PlannerSettings,
+    s: PlanSettings,
     timing: _Timing,
     via: np.ndarray,
     where: str,
@@ -1057,9 +887,8 @@ def extend_plan(
         cfg.options, robot_noise_m=robot_noise_mm / 1000.0, robot_noise_deg=robot_noise_deg
     )
     cfg_x = replace(cfg, options=options)
-    base = planner_settings(cfg)
     where = f"{cfg.source}: plan (extension)"
-    s = replace(base, corner_noise_px=corner_noise_px)
+    s = replace(cfg.plan, corner_noise_px=corner_noise_px)
     try:
         before = goal_ratios(predict_std(plan, cfg_x, s), cfg_x, PlanGoal(1.0, 1.0, 1.0))
     except DegenerateError:
@@ -1127,7 +956,7 @@ def _ban(cands: list[_Group], chosen: list[_Chosen], bad: int) -> None:
             i += 1
 
 
-def _board_too_big(cfg: CellConfig, s: PlannerSettings, nom: _Nominal) -> str | None:
+def _board_too_big(cfg: CellConfig, s: PlanSettings, nom: _Nominal) -> str | None:
     """Why the target cannot fit the image at any planned standoff (head-on view), or None."""
     pts = cfg.target.points_m
     ext = pts.max(axis=0)[:2] - pts.min(axis=0)[:2]
@@ -1150,7 +979,7 @@ def _board_too_big(cfg: CellConfig, s: PlannerSettings, nom: _Nominal) -> str | 
 
 def _no_candidates_message(
     cfg: CellConfig,
-    s: PlannerSettings,
+    s: PlanSettings,
     rejected: dict[str, int],
     n_ok: int,
     nom: _Nominal | None = None,
@@ -1175,7 +1004,7 @@ def _no_candidates_message(
     )
 
 
-def _goal_message(s: PlannerSettings, t: float, ratios: np.ndarray | None, stop: str) -> str:
+def _goal_message(s: PlanSettings, t: float, ratios: np.ndarray | None, stop: str) -> str:
     names = [
         n
         for n, v in zip(

@@ -3,15 +3,20 @@
 On a terminal: one status line rewritten in place. Elsewhere (a nightly job's log, a pipe):
 plain lines, each with a UTC timestamp, one per move, capture, detection count, retry, event
 and the verdict, so the log a job keeps tells what the run did. ``quiet`` prints nothing.
-Never used by solvers.
+Never used by solvers. :func:`signals_as_interrupt`: the operator's Ctrl-C, SIGTERM or SIGHUP
+as :class:`Interrupted`.
 """
 
 from __future__ import annotations
 
+import signal
 import sys
+import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from datetime import UTC, datetime
-from typing import TextIO
+from typing import Any, TextIO
 
 
 class Progress:
@@ -111,3 +116,36 @@ class Progress:
         self.stream.write("\n")
         self.stream.flush()
         self._width = 0
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C, SIGTERM or SIGHUP: the run stops like on Ctrl-C (robot stopped, frames kept)."""
+
+    def __init__(self, how: str = "Ctrl-C") -> None:
+        super().__init__(f"stopped by {how}")
+        self.how = how
+
+
+@contextmanager
+def signals_as_interrupt() -> Iterator[None]:
+    """Within the block, SIGINT (Ctrl-C), SIGTERM and SIGHUP raise :class:`Interrupted` (main
+    thread only; the previous handlers come back after). SIGINT gets its handler too: a
+    process started in the background by a shell or under ``nohup`` inherits SIGINT ignored,
+    and Python then installs no Ctrl-C handler of its own: ``kill -INT`` would not stop the
+    robot (seen: a run started so went on to its last frame)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    names = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM"}
+    if hasattr(signal, "SIGHUP"):
+        names[signal.SIGHUP] = "SIGHUP"
+
+    def handler(signum: int, _frame: Any) -> None:
+        raise Interrupted(names.get(signum, f"signal {signum}"))
+
+    old = {s: signal.signal(s, handler) for s in names}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)

@@ -35,8 +35,23 @@ from typing import Any
 
 import numpy as np
 
-from slidecal.drivers.ur_pose import T_from_ur_pose
+from slidecal.drivers import ur_kinematics as urk
+from slidecal.drivers.ur import URRobot
+from slidecal.drivers.ur_pose import T_from_ur_pose, ur_pose_from_T
+from slidecal.mocks.cell import SimulatedCell
+from slidecal.routines.config import (
+    REAL_CORNER_NOISE_PX,
+    CellConfig,
+    config_from_dict,
+    config_to_dict,
+    load_config,
+)
+from slidecal.routines.faults import CONTROLLER, FaultInjector
+from slidecal.routines.run import RunRequest, default_session_dir, run_calibration
+from slidecal.routines.session import dump_yaml, transform_to_dict, write_atomic
+from slidecal.routines.solve import RunOutcome
 from slidecal.solver.errors import HardwareFault, InputError
+from slidecal.solver.geometry import T_from_Rt, inv_T
 from slidecal.solver.problem import MOUNTS
 
 help = "rehearse the cell's routine through the real ur-rtde client on a loopback controller"
@@ -99,20 +114,20 @@ class LoopbackController:
 TWIN_HFOV_DEG = 60.0
 
 
-def simulated_twin(cfg: Any) -> Any:
+def simulated_twin(cfg: CellConfig) -> CellConfig:
     """The simulated cell standing in for a real one in a rehearsal (module docstring).
 
     Raises ``InputError`` when the cell gives too little to build one (several cameras that are
     not an OAK's left/right/rgb: their extrinsics are unknown).
     """
-    from slidecal.drivers import ur_kinematics as urk
-    from slidecal.drivers.ur_pose import ur_pose_from_T
-    from slidecal.routines.config import config_from_dict
-    from slidecal.routines.session import transform_to_dict
-    from slidecal.solver.geometry import T_from_Rt, inv_T
-
-    raw = dict(cfg.raw)
-    robot = {k: v for k, v in dict(raw.get("robot") or {}).items()
+    given = config_to_dict(cfg)
+    # the twin's board is simulated, so exact; its camera plans with the simulated camera's
+    # noise unless the cell sets one other than the real camera's default
+    given["target"] = {k: v for k, v in given["target"].items()
+                       if k not in ("flatness_mm", "print_tolerance")}
+    if cfg.plan.corner_noise_px == REAL_CORNER_NOISE_PX:
+        del given["plan"]["corner_noise_px"]
+    robot = {k: v for k, v in given["robot"].items()
              if k not in ("driver", "host", "take_control", "payload")}
     robot["driver"] = "simulated"
     names = [c.name for c in cfg.cameras]
@@ -153,7 +168,7 @@ def simulated_twin(cfg: Any) -> Any:
                 where=f"{cfg.source}: approximate",
             )
         robot["start_pose"] = ur_pose_from_T(T_base_tool)
-    twin = {**raw, "robot": robot, "simulation": sim,
+    twin = {**given, "robot": robot, "simulation": sim,
             "cameras": {"driver": "simulated", "reference": cfg.reference_camera}}
     return config_from_dict(twin, f"{cfg.source} (simulated twin)")
 
@@ -167,23 +182,16 @@ def rehearse(
     progress: bool | None = None,
     recording: bool = False,
     seed: int | None = None,
-) -> Any:
+) -> RunOutcome:
     """Run the cell's routine against the loopback controller; returns the ``RunOutcome``.
 
     Raises like :func:`~slidecal.routines.run.run_calibration` (``HardwareFault`` after an
     injected fault, with every frame before it in the session).
     """
-    from slidecal.drivers.ur import URRobot, cell_options
-    from slidecal.mocks.cell import SimulatedCell
-    from slidecal.routines.config import load_config
-    from slidecal.routines.faults import CONTROLLER, FaultInjector
-    from slidecal.routines.run import default_session_dir, run_calibration
-    from slidecal.routines.session import dump_yaml, write_atomic
-
     cfg = load_config(config)
     driver_options: dict[str, Any] = {}
     if not cfg.simulated:
-        driver_options = cell_options(cfg.robot.raw)
+        driver_options = cfg.robot.ur_options
         cfg = simulated_twin(cfg)
     assert cfg.simulation is not None
     cell = SimulatedCell.from_config(cfg, seed)
@@ -214,10 +222,10 @@ def rehearse(
     rig_cell = SimpleNamespace(robot=robot, rig=cell.rig, truth=cell.truth)
     report: dict[str, Any] = {"controller_options": options, "faults": list(faults or [])}
     try:
-        outcome = run_calibration(
+        outcome = run_calibration(RunRequest(
             cfg, out_dir=out, progress=progress, recording=recording, cell=rig_cell,
             faults=injector,
-        )
+        ))
         return outcome
     finally:
         try:

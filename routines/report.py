@@ -17,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from slidecal.routines.schema import write_atomic
 from slidecal.routines.verdict import Verdict, coverage_fraction
 from slidecal.solver.camera import project
 from slidecal.solver.geometry import inv_T
@@ -263,8 +264,6 @@ def write_report(
     summary: str | None = None,
 ) -> Path:
     """Write ``report.png`` and ``report.html`` into ``session_dir``; return the HTML's path."""
-    from slidecal.routines.session import write_atomic
-
     d = Path(session_dir)
     panels: list[tuple[str, np.ndarray]] = []
     for name in result.cameras:

@@ -430,3 +430,34 @@ def _only_numbers(value: Any, depth: int = 0) -> bool:
 def _short(value: Any) -> str:
     text = repr(value)
     return text if len(text) <= 60 else text[:57] + "..."
+
+
+def check_out_dir(out: Path, what: str = "--out") -> None:
+    """Refuse an output directory that cannot be one: empty, a file, under a file, or not
+    writable (checked on the nearest existing parent; nothing is created here)."""
+    if str(out) in ("", "."):
+        raise InputError(f"{what} is empty or '.'; name a new directory for the session")
+    if out.exists() and not out.is_dir():
+        raise InputError(f"is a file; {what} must name a directory", where=str(out))
+    p = out
+    while not p.exists():
+        if p.parent == p:
+            break
+        p = p.parent
+    if p.exists() and not p.is_dir():
+        raise InputError(f"{p} is a file; {what} must lie under a directory", where=str(out))
+    if p.exists() and not os.access(p, os.W_OK | os.X_OK):
+        raise InputError(
+            f"cannot be written ({p} is read-only for this user); choose a writable {what}",
+            where=str(out),
+        )
+
+
+def check_out_file(path: Path, what: str = "--out") -> None:
+    """Refuse an output file that is a directory or lies under a file or a read-only place."""
+    if str(path) in ("", "."):
+        raise InputError(f"{what} is empty; name a file")
+    if path.is_dir():
+        raise InputError(f"is a directory; {what} must name a file", where=str(path))
+    if str(path.parent) not in ("", "."):
+        check_out_dir(path.parent, what)

@@ -485,6 +485,7 @@ class Session:
     ``sockets``: camera name -> OAK board socket (empty unless the cameras were an OAK).
     ``detect_reasons``: per (frame id, camera) whose image was detected on reading and gave
     nothing usable, why (the detector's reasons, e.g. a board of another size seen).
+    ``limits``: the gate's limits the run recorded (the cell's ``limits:``), None without.
     """
 
     directory: Path
@@ -500,6 +501,7 @@ class Session:
     camera_driver: str | None = None
     sockets: dict[str, str] = field(default_factory=dict)
     detect_reasons: dict[tuple[int, str], tuple[str, ...]] = field(default_factory=dict)
+    limits: Any = None
 
 
 def read_session(directory: str | Path, detect_images: bool = True) -> CalibrationProblem:
@@ -639,6 +641,7 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
         else None,
         sockets=sockets,
         detect_reasons=reasons,
+        limits=f.get("limits"),
     )
 
 

@@ -23,7 +23,8 @@ from typing import Any
 import pytest
 
 from slidecal.routines.config import CellConfig, load_config
-from slidecal.routines.run import RunOutcome, run_calibration
+from slidecal.routines.run import RunRequest, run_calibration
+from slidecal.routines.solve import RunOutcome
 from slidecal.solver.errors import InputError
 
 
@@ -49,7 +50,9 @@ def simulated_run(
             "simulated_run only runs simulated cells"
         )
     return run_calibration(
-        cfg, out_dir=Path(tmp_path) / "session", progress=False, recording=recording, seed=seed
+        RunRequest(
+            cfg, out_dir=Path(tmp_path) / "session", progress=False, recording=recording, seed=seed
+        )
     )
 
 

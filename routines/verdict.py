@@ -54,13 +54,17 @@ from typing import Any
 
 import numpy as np
 
+from slidecal.routines.install import installed_session
 from slidecal.routines.results_io import (
     SCALE_INCONCLUSIVE,
+    hand_eye_names,
+    hand_eye_transforms,
     scale_tolerance,
 )
 from slidecal.routines.session import Fields, dump_yaml, load_yaml, write_atomic
+from slidecal.solver import drift
 from slidecal.solver.adequacy import LEFT_OUT
-from slidecal.solver.errors import InputError
+from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import rotation_angle_deg
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.result import CalibrationResult
@@ -529,12 +533,6 @@ def _coverage(problem: CalibrationProblem, lim: Limits) -> list[Check]:
 # ----------------------------------------------------------------------------- comparison
 
 
-def _hand_eyes(result: CalibrationResult) -> dict[str, Any]:
-    from slidecal.routines.results_io import hand_eye_transforms
-
-    return hand_eye_transforms(result)
-
-
 def displacement_px(
     new: CalibrationResult,
     old: CalibrationResult,
@@ -563,10 +561,8 @@ def displacement_px(
     d_a = np.asarray(a.distortion, dtype=float).reshape(-1)[:5]
     rays = cv2.undistortPoints(px.reshape(-1, 1, 2), K_a, d_a).reshape(-1, 2)
     P_cam = np.hstack([rays, np.ones((len(rays), 1))]) * distance_m
-    from slidecal.routines.results_io import hand_eye_names
-
     key = hand_eye_names(old).get(camera)
-    he_a, he_b = _hand_eyes(old), _hand_eyes(new)
+    he_a, he_b = hand_eye_transforms(old), hand_eye_transforms(new)
     Ta = he_a[key].T if key in he_a else None
     Tb = he_b[key].T if key in he_b else None
     if Ta is not None and Tb is not None:
@@ -620,7 +616,7 @@ def compare(
             zz = _z(da[k], db[k], _f(a.std.get(p)), _f(b.std.get(p)))
             if zz is not None:
                 z[f"{n}.{p}"] = zz
-    he_a, he_b = _hand_eyes(new), _hand_eyes(old)
+    he_a, he_b = hand_eye_transforms(new), hand_eye_transforms(old)
     pairs = [(k, he_a[k], he_b[k]) for k in he_a if k in he_b]
     pairs += [(k, t, old.rig[k]) for k, t in new.rig.items() if k in old.rig]
     for key, ta, tb in pairs:
@@ -679,8 +675,6 @@ def compare(
 
 def _stored_session(path: str) -> tuple[CalibrationProblem | None, str | None]:
     """The installed session an install directory keeps, or (None, why it could not be read)."""
-    from slidecal.routines.install import installed_session
-
     p = Path(path)
     if not p.is_dir():
         return None, None
@@ -702,9 +696,6 @@ def paired_compare(
     ``drifted`` when the corners' displacement field is significant and moves points of the
     central ``region`` of the image by more than ``px_limit``. ``info["usable"]`` is False
     (with ``info["why"]`` and no checks) when no camera has enough shared poses."""
-    from slidecal.solver import drift
-    from slidecal.solver.errors import DegenerateError
-
     pairs = drift.match_poses(
         [f.T_base_tool for f in new.frames], [f.T_base_tool for f in old.frames]
     )

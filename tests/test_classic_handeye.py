@@ -397,8 +397,8 @@ def test_benchmark_row_runs_and_stays_near_the_bound():
 # -- through the session files ------------------------------------------------------------------
 @pytest.mark.parametrize("robot", [True, False], ids=["classic-hand-eye", "images-only"])
 def test_solve_a_recorded_session_with_a_frame_that_saw_nothing(tmp_path: Path, robot):
-    from slidecal.routines.run import solve_session
     from slidecal.routines.session import write_session
+    from slidecal.routines.solve import solve_session
 
     s = sc.classic(np.random.default_rng(19), 12, 0.0, 0.0, 0.0)
     problem = _blank(s.problem, [5])

@@ -25,7 +25,7 @@ from slidecal.mocks.cell import SimulatedCell  # noqa: E402
 from slidecal.routines import cli  # noqa: E402
 from slidecal.routines.config import load_config, load_packaged_cell  # noqa: E402
 from slidecal.routines.devices import camera_rig  # noqa: E402
-from slidecal.routines.run import run_calibration  # noqa: E402
+from slidecal.routines.run import RunRequest, run_calibration  # noqa: E402
 from slidecal.routines.session import SessionWriter  # noqa: E402
 from slidecal.solver.errors import InputError  # noqa: E402
 from slidecal.solver.result import (  # noqa: E402
@@ -64,9 +64,9 @@ def write_cell(tmp_path, data) -> Path:
 
 
 def use_simulated_robot(monkeypatch, cell):
-    import slidecal.drivers.ur as ur
+    import slidecal.routines.acquire as acquire
 
-    monkeypatch.setattr(ur, "URRobot", lambda *a, **k: cell.robot)
+    monkeypatch.setattr(acquire, "URRobot", lambda *a, **k: cell.robot)
 
 
 # ---------------------------------------------------------------------------------- UVC cell
@@ -122,7 +122,7 @@ def test_a_uvc_cell_runs_end_to_end(tmp_path, monkeypatch):
                                           "height": spec.height, "source": 0, "exposure": 150,
                                           "drop_frames": 1}]}
     path = write_cell(tmp_path, real_cell("default_cell.yaml", cameras))
-    out = run_calibration(path, out_dir=tmp_path / "s", progress=False, recording=False)
+    out = run_calibration(RunRequest(path, out_dir=tmp_path / "s", progress=False, recording=False))
     session = yaml.safe_load((out.session_dir / "session.yaml").read_text())
     cam = session["devices"]["camera"]
     assert cam["driver"] == "uvc" and cam["backend"] == "V4L2"
@@ -191,7 +191,7 @@ def oak_device(monkeypatch):
 def test_the_oak_cell_settings_reach_the_driver(tmp_path, oak_device):
     """Issue 10 item 1: the cell's exposure, ISO, focus (and frame rate, resize) reach the
     cameras' initial controls through the run's connection code."""
-    from slidecal.routines.run import _connect_real
+    from slidecal.routines.acquire import _connect_real
 
     world, _ = oak_device
     cfg = load_config(write_cell(tmp_path, real_cell("oak_cell.yaml", OAK_CAMERAS)))

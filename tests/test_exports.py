@@ -21,7 +21,7 @@ from slidecal.routines.exports import (
     result_header,
     write_all_exports,
 )
-from slidecal.routines.run import solve_session
+from slidecal.routines.solve import solve_session
 from slidecal.solver.geometry import R_from_rvec, Rx, Ry, Rz
 from slidecal.solver.result import TransformEstimate
 

@@ -14,8 +14,9 @@ import yaml
 from slidecal.routines.config import load_config
 from slidecal.routines.plan import Plan, read_plan
 from slidecal.routines.planner import PlanGoal, dry_run, extend_plan, make_plan
-from slidecal.routines.run import EXTEND_MARGIN, extend_for_limits, run_calibration, solve_session
+from slidecal.routines.run import EXTEND_MARGIN, RunRequest, extend_for_limits, run_calibration
 from slidecal.routines.session import load_session
+from slidecal.routines.solve import solve_session
 from slidecal.routines.verdict import Limits
 from slidecal.solver.geometry import rotation_angle_deg
 
@@ -96,7 +97,9 @@ def test_run_extends_until_its_limits_hold(tmp_path: Path):
     run records more groups into the same session, solves the whole and is accepted."""
     limit_mm = 0.4
     cfg = load_config(overrides={"limits": {"hand_eye_t_std_mm": limit_mm}})
-    o = run_calibration(cfg, out_dir=tmp_path / "s", progress=False, recording=False, seed=0)
+    o = run_calibration(
+        RunRequest(cfg, out_dir=tmp_path / "s", progress=False, recording=False, seed=0)
+    )
     doc = yaml.safe_load((tmp_path / "s" / "session.yaml").read_text())
     events = [e for e in doc["events"] if e["kind"] == "extended"]
     assert events and "translation one-sigma" in events[0]["message"]

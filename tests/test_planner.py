@@ -17,7 +17,6 @@ from slidecal.routines.planner import (
     _via,
     frame_information,
     make_plan,
-    planner_settings,
 )
 from slidecal.solver.degeneracy import check_configuration
 from slidecal.solver.errors import InputError, SlidecalError
@@ -55,7 +54,7 @@ def test_duration_is_the_simulated_robot_time(default_report):
         for T in g:
             robot.move_linear(T, plan.speed_mps, plan.accel_mps2)
             robot.wait_settled(plan.settle_s)
-    capture = planner_settings(cfg).capture_s * plan.n_poses
+    capture = cfg.plan.capture_s * plan.n_poses
     assert plan.duration_s == pytest.approx(robot.robot_time_s + capture, rel=1e-9)
 
 
@@ -63,7 +62,7 @@ def test_summed_frame_information_equals_solver_bound(default_report):
     """The per-frame Schur complements (robot pose corrections marginalised) add up to the
     solver's Cramer-Rao bound of the whole plan."""
     cfg, rep = default_report
-    s = planner_settings(cfg)
+    s = cfg.plan
     nom = _nominal(cfg, s)
     T = np.array([T for _, T in rep.plan.poses])
     fim = frame_information(nom, T)
@@ -146,13 +145,13 @@ def test_plan_options_are_validated():
     d = _default_dict()
     d["plan"] = {"goal": {"fx_std": 1e-3}}
     with pytest.raises(InputError, match=r"plan\.goal\.fx_std"):
-        planner_settings(config_from_dict(d))
+        config_from_dict(d)
     d["plan"] = {"tilt_angles": [20]}
     with pytest.raises(InputError, match=r"plan\.tilt_angles"):
-        planner_settings(config_from_dict(d))
+        config_from_dict(d)
     d["plan"] = {"tilts_deg": [60]}
     with pytest.raises(InputError, match=r"plan\.tilts_deg"):
-        planner_settings(config_from_dict(d))
+        config_from_dict(d)
 
 
 # -- property: 200 random cells --------------------------------------------------------------------
@@ -259,7 +258,7 @@ def _with_start_at_via(d: dict) -> dict:
 
 def _independent_checks(cfg, plan) -> None:
     """Workspace, reach, view with margin (OpenCV projection) and full-rank Fisher."""
-    s = planner_settings(cfg)
+    s = cfg.plan
     lo, hi = cfg.robot.workspace_min_m, cfg.robot.workspace_max_m
     model = urk.model_by_name(cfg.robot.model)
     spec = cfg.cameras[0]

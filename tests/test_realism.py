@@ -230,9 +230,9 @@ def test_session_records_and_checks_the_true_poses(tmp_path: Path) -> None:
 def test_default_cell_run_judged_against_the_effective_truth(tmp_path: Path) -> None:
     """The realistic default cell end to end: the session holds the arm's true poses, every
     error lies within 4 reported std of the truth the session can know."""
-    from slidecal.routines.run import run_calibration
+    from slidecal.routines.run import RunRequest, run_calibration
 
-    o = run_calibration(out_dir=tmp_path / "s", progress=False, recording=False, seed=4)
+    o = run_calibration(RunRequest(out_dir=tmp_path / "s", progress=False, recording=False, seed=4))
     s = load_session(o.session_dir, detect_images=False)
     assert len(s.simulation["frames"]) == o.n_frames
     T_true = [np.asarray(f["T_base_tool"]) for f in s.simulation["frames"]]

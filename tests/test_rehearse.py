@@ -9,7 +9,7 @@ import yaml
 
 from slidecal.routines import cli
 from slidecal.routines.rehearse import rehearse
-from slidecal.routines.run import run_calibration
+from slidecal.routines.run import RunRequest, run_calibration
 from slidecal.routines.session import load_session
 from slidecal.solver.errors import HardwareFault, InputError
 
@@ -83,7 +83,9 @@ def test_rehearsal_gives_the_calibration_of_the_simulated_run(tmp_path):
     """Same cell, same plan, same truth: the two estimates differ only by their noise (the
     controller draws its own pose errors), so by less than 4 sigma of the difference."""
     reh = rehearse(None, tmp_path / "rehearsal", progress=False)
-    run = run_calibration(None, out_dir=tmp_path / "run", progress=False, recording=False)
+    run = run_calibration(
+        RunRequest(None, out_dir=tmp_path / "run", progress=False, recording=False)
+    )
     assert reh.n_frames == run.n_frames
     info = yaml.safe_load((tmp_path / "rehearsal" / "rehearsal.yaml").read_text())
     assert info["controller"]["polyscope_version"].startswith("5.12")

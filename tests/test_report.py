@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from slidecal.routines.report import residual_vectors, uncertainty_map, write_report
-from slidecal.routines.run import solve_session
 from slidecal.routines.session import load_session
+from slidecal.routines.solve import solve_session
 from slidecal.routines.verdict import judge
 from slidecal.solver.result import RobotAccuracy
 

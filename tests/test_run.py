@@ -12,8 +12,9 @@ import yaml
 from slidecal.mocks.cell import SimulatedCell
 from slidecal.routines.config import load_config
 from slidecal.routines.plan import read_plan
-from slidecal.routines.run import frames_on_disk, run_calibration, solve_session
+from slidecal.routines.run import RunRequest, frames_on_disk, run_calibration
 from slidecal.routines.session import load_session
+from slidecal.routines.solve import solve_session
 from slidecal.solver.errors import HardwareFault
 
 
@@ -21,7 +22,7 @@ from slidecal.solver.errors import HardwareFault
 def outcome(tmp_path_factory):
     out = tmp_path_factory.mktemp("run") / "session"
     t0 = time.monotonic()
-    o = run_calibration(out_dir=out, progress=False, recording=True, seed=0)
+    o = run_calibration(RunRequest(out_dir=out, progress=False, recording=True, seed=0))
     assert time.monotonic() - t0 < 90.0
     return o
 
@@ -98,7 +99,9 @@ def test_eye_to_hand_cell_end_to_end(tmp_path: Path) -> None:
     from importlib import resources
 
     cell = resources.files("slidecal.mocks").joinpath("eye_to_hand_cell.yaml")
-    o = run_calibration(str(cell), out_dir=tmp_path / "s", progress=False, recording=False, seed=3)
+    o = run_calibration(
+        RunRequest(str(cell), out_dir=tmp_path / "s", progress=False, recording=False, seed=3)
+    )
     assert o.result.mount == "eye_to_hand" and o.result.converged
     assert o.errors["cam.fx_rel"] < 1e-3
     assert o.errors["T_base_cam.rot_deg"] < 0.05 and o.errors["T_base_cam.t_mm"] < 1.0
@@ -112,7 +115,7 @@ def test_fault_mid_run_stops_robot_and_keeps_frames(tmp_path: Path) -> None:
     cell.robot.inject_fault("protective_stop", at_move=7)
     out = tmp_path / "s"
     with pytest.raises(HardwareFault, match="5 frames captured before it"):
-        run_calibration(cfg, out_dir=out, progress=False, recording=False, cell=cell)
+        run_calibration(RunRequest(cfg, out_dir=out, progress=False, recording=False, cell=cell))
     assert cell.robot.stopped
     assert frames_on_disk(out) == 5
     s = load_session(out, detect_images=False)
@@ -134,7 +137,9 @@ def test_ctrl_c_stops_robot_and_keeps_frames(tmp_path: Path) -> None:
 
     cell.rig.capture = capture_then_interrupt
     with pytest.raises(KeyboardInterrupt):
-        run_calibration(cfg, out_dir=tmp_path / "s", progress=False, recording=False, cell=cell)
+        run_calibration(
+            RunRequest(cfg, out_dir=tmp_path / "s", progress=False, recording=False, cell=cell)
+        )
     assert cell.robot.stopped and frames_on_disk(tmp_path / "s") == 2
     ev = load_session(tmp_path / "s", detect_images=False).events[-1]
     assert ev["kind"] == "interrupted" and ev["message"] == "stopped by Ctrl-C (robot stopped)"

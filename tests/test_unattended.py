@@ -29,7 +29,7 @@ from slidecal.routines.install import (
 )
 from slidecal.routines.lock import Lock, cell_lock_path
 from slidecal.routines.progress import Progress
-from slidecal.routines.run import frames_on_disk, run_calibration
+from slidecal.routines.run import RunRequest, frames_on_disk, run_calibration
 from slidecal.routines.session import SessionWriter, load_session, write_atomic
 from slidecal.solver.errors import HardwareFault, InputError
 
@@ -141,7 +141,7 @@ def test_resume_of_a_complete_session_refused(tmp_path: Path) -> None:
 
     shutil.copytree(DATA / "r1_session", tmp_path / "s")
     with pytest.raises(InputError, match="is complete; nothing to resume"):
-        run_calibration(resume=tmp_path / "s", progress=False)
+        run_calibration(RunRequest(resume=tmp_path / "s", progress=False))
 
 
 @pytest.mark.slow
@@ -152,10 +152,10 @@ def test_fault_then_resume_in_process(tmp_path: Path, at_move: int, kept: int) -
     cell.robot.inject_fault("protective_stop", at_move=at_move)
     out = tmp_path / "s"
     with pytest.raises(HardwareFault, match="slidecal run --resume"):
-        run_calibration(cfg, out_dir=out, progress=False, recording=False, cell=cell)
+        run_calibration(RunRequest(cfg, out_dir=out, progress=False, recording=False, cell=cell))
     n = len(yaml.safe_load((out / "session.yaml").read_text())["frames"])
     assert cell.robot.stopped and n == kept
-    o = run_calibration(cfg, resume=out, progress=False)
+    o = run_calibration(RunRequest(cfg, resume=out, progress=False))
     assert o.verdict.verdict == "accepted" and o.n_frames == 9
     s = load_session(out, detect_images=False)
     assert [e["kind"] for e in s.events] == ["fault", "resumed"]
@@ -171,9 +171,9 @@ def test_dropped_frames_and_a_lost_camera_are_retried(tmp_path: Path) -> None:
     cell.rig.inject_fault("no_frame", at_capture=1)
     cell.rig.inject_fault("disconnect", at_capture=4)
     buf = io.StringIO()
-    o = run_calibration(
+    o = run_calibration(RunRequest(
         cfg, out_dir=tmp_path / "s", progress=Progress(9, stream=buf), recording=False, cell=cell
-    )
+    ))
     assert o.n_frames == 9 and o.verdict.verdict == "accepted"
     s = load_session(tmp_path / "s", detect_images=False)
     retries = [e for e in s.events if e["kind"] == "retry"]
@@ -196,9 +196,9 @@ def test_retries_exhausted_is_a_fault_with_frames_kept(tmp_path: Path) -> None:
 
     cell.rig.open = open_once
     with pytest.raises(HardwareFault, match="2 frames captured before it"):
-        run_calibration(
+        run_calibration(RunRequest(
             cfg, out_dir=tmp_path / "s", progress=False, recording=False, cell=cell, retries=1
-        )
+        ))
     assert cell.robot.stopped
 
 
@@ -217,7 +217,9 @@ def test_image_without_corners_is_captured_again(tmp_path: Path) -> None:
         return images
 
     cell.rig.capture = blank_once
-    o = run_calibration(cfg, out_dir=tmp_path / "s", progress=False, recording=False, cell=cell)
+    o = run_calibration(
+        RunRequest(cfg, out_dir=tmp_path / "s", progress=False, recording=False, cell=cell)
+    )
     assert o.n_frames == 9
     ev = load_session(tmp_path / "s", detect_images=False).events
     assert [e["kind"] for e in ev] == ["retry"] and "no corner" in ev[0]["message"]
@@ -255,7 +257,9 @@ def test_run_on_a_locked_cell_refused_before_connecting(tmp_path: Path, monkeypa
     cell = SimulatedCell.from_config(cfg, seed=0)
     with Lock(cell_lock_path(f"file:{cell_file.resolve()}"), "the cell"):
         with pytest.raises(InputError, match="is in use by process"):
-            run_calibration(str(cell_file), out_dir=tmp_path / "s", progress=False, cell=cell)
+            run_calibration(
+                RunRequest(str(cell_file), out_dir=tmp_path / "s", progress=False, cell=cell)
+            )
     assert cell.robot.moves == 0 and not (tmp_path / "s").exists()
 
 
@@ -266,7 +270,7 @@ def test_run_on_a_locked_cell_refused_before_connecting(tmp_path: Path, monkeypa
 def solved_dir(tmp_path_factory):
     import shutil
 
-    from slidecal.routines.run import solve_session
+    from slidecal.routines.solve import solve_session
 
     d = tmp_path_factory.mktemp("inst") / "s"
     shutil.copytree(DATA / "r1_session", d)
@@ -339,14 +343,14 @@ def test_run_install_then_check_ok_then_drifted(tmp_path: Path) -> None:
 
     store = tmp_path / "store"
     cfg = load_config()
-    o = run_calibration(
+    o = run_calibration(RunRequest(
         cfg,
         out_dir=tmp_path / "s",
         progress=False,
         recording=False,
         install=store,
         cell=same_cell(cfg, 3, 1),
-    )
+    ))
     assert o.installed_to is not None and o.exit_code == 0
     info = yaml.safe_load((store / CURRENT / "installed.yaml").read_text())
     assert info["chain_rms_px"]["cam"] > 0
@@ -462,7 +466,9 @@ def test_degenerate_user_plan_refused_before_the_robot_moves(tmp_path: Path) -> 
     write_plan(flat, tmp_path / "flat.yaml")
     cell = SimulatedCell.from_config(cfg, seed=0)
     with pytest.raises(InputError, match="flat.yaml: group 0 has no translation"):
-        run_calibration(cfg, plan=tmp_path / "flat.yaml", out_dir=tmp_path / "s", cell=cell)
+        run_calibration(
+            RunRequest(cfg, plan=tmp_path / "flat.yaml", out_dir=tmp_path / "s", cell=cell)
+        )
     assert cell.robot.moves == 0 and not (tmp_path / "s").exists()
 
 
@@ -499,7 +505,9 @@ def test_disk_full_mid_run_stops_the_robot_one_line(tmp_path: Path, monkeypatch,
 
     monkeypatch.setattr(session_mod.SessionWriter, "append_frame", append)
     with pytest.raises(InputError, match="No space left on device.*robot was stopped"):
-        run_calibration(cfg, out_dir=tmp_path / "s", progress=False, recording=False, cell=cell)
+        run_calibration(
+            RunRequest(cfg, out_dir=tmp_path / "s", progress=False, recording=False, cell=cell)
+        )
     assert cell.robot.stopped and frames_on_disk(tmp_path / "s") == 2
 
 

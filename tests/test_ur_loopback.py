@@ -511,7 +511,7 @@ def test_sigterm_during_a_move_stops_the_arm_through_the_real_client(fake, robot
     """SIGTERM (like Ctrl-C) interrupts the driver's watch of an asynchronous moveL at once;
     the stop the routine then sends (``_abort`` -> ``stop()`` -> ``stopL``) goes through the
     real ur-rtde client and halts the arm short of its target."""
-    from slidecal.routines.run import Interrupted, signals_as_interrupt
+    from slidecal.routines.progress import Interrupted, signals_as_interrupt
 
     T0 = robot.measured_pose()
     T1 = shifted(T0, 0.15, 0.0, 0.0)  # 1.5 s at 0.1 m/s

@@ -23,8 +23,8 @@ from unattended_helpers import (  # noqa: E402
 )
 
 from slidecal.routines.config import load_config  # noqa: E402
-from slidecal.routines.run import solve_session  # noqa: E402
 from slidecal.routines.session import load_session  # noqa: E402
+from slidecal.routines.solve import solve_session  # noqa: E402
 from slidecal.routines.verdict import (  # noqa: E402
     STD_HINT,
     Limits,
@@ -341,9 +341,7 @@ def test_limits_from_cell_file(tmp_path: Path) -> None:
     text = resources.files("slidecal.mocks").joinpath("default_cell.yaml").read_text()
     cell = tmp_path / "cell.yaml"
     cell.write_text(text + "limits: {max_rms_px: 0.5, coverage_grid: [4, 3]}\n")
-    from slidecal.routines.run import cell_limits
-
-    lim = cell_limits(load_config(cell))
+    lim = load_config(cell).limits
     assert lim.max_rms_px == 0.5 and lim.coverage_grid == (4, 3) and lim.fx_rel_std == 0.005
 
 

@@ -13,11 +13,11 @@ from slidecal.mocks.scenarios import (  # noqa: F401 - re-exported for the tests
     rotations_in_degrees,
     square_size,
 )
+from slidecal.routines.acquire import acquire
 from slidecal.routines.config import load_config
 from slidecal.routines.plan import Plan, write_plan
 from slidecal.routines.planner import make_plan
 from slidecal.routines.progress import Progress
-from slidecal.routines.run import _acquire
 from slidecal.routines.session import SessionWriter
 
 DATA = Path(__file__).parent / "data"
@@ -37,7 +37,7 @@ def record_without_translation(out: Path, seed: int = 0) -> Path:
     write_plan(bad, out / "plan.yaml")
     cell.robot.connect()
     cell.rig.open()
-    _acquire(cell.robot, cell.rig, bad, cfg, writer, None, Progress(bad.n_poses, quiet=True))
+    acquire(cell.robot, cell.rig, bad, cfg, writer, None, Progress(bad.n_poses, quiet=True))
     writer.finish("complete")
     return out
 

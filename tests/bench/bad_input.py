@@ -28,8 +28,8 @@ import yaml
 
 from slidecal.routines import cli
 from slidecal.routines.config import CELL_KEYS
+from slidecal.routines.config import PLAN_KEYS as PLANNER_KEYS
 from slidecal.routines.plan import PLAN_KEYS
-from slidecal.routines.planner import PLAN_KEYS as PLANNER_KEYS
 from slidecal.routines.results_io import RESULT_KEYS, RESULT_PART_KEYS, read_result
 from slidecal.routines.schema import dump_yaml, parse_yaml
 from slidecal.routines.session import OPTIONS_KEYS, SESSION_KEYS, TARGET_KEYS

@@ -33,10 +33,9 @@ from slidecal.routines.planner import (
     group_R_board_cam,
     group_T_cam_board,
     make_plan,
-    planner_settings,
     predict_std,
 )
-from slidecal.routines.run import run_calibration
+from slidecal.routines.run import RunRequest, run_calibration
 from tests.bench.report import RESULTS, publish_report, report_header
 
 
@@ -44,7 +43,7 @@ def naive_plan(cfg: CellConfig, duration_s: float, rng: np.random.Generator) -> 
     """Random groups (tilt 10-35 deg about a random in-plane axis, 3-5 frames displaced along
     random directions by 40-80 mm) until the next group would exceed ``duration_s`` (robot
     time of moves, settling and capture, as the planner counts it)."""
-    s = planner_settings(cfg)
+    s = cfg.plan
     nom = _nominal(cfg, s)
     centre = cfg.target.points_m.mean(axis=0)
     via = _via(cfg)
@@ -93,14 +92,14 @@ def _monte_carlo(cfg: CellConfig, plan: Plan, seeds: range) -> dict[str, np.ndar
     }
     with tempfile.TemporaryDirectory() as tmp:
         for s in seeds:
-            o = run_calibration(
+            o = run_calibration(RunRequest(
                 cfg,
                 plan=plan,
                 out_dir=Path(tmp) / f"s{s}",
                 progress=False,
                 recording=False,
                 seed=s,
-            )
+            ))
             c = o.result.cameras[cam]
             out["fx"].append(float(c.K[0, 0] - K_true[0, 0]))
             out["rot"].append(o.errors["T_tool_cam.rot_deg"])
@@ -144,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
     dflt = default_plan(cfg)
     dflt_t, _, _ = dry_run(dflt, cfg)
     dflt_pred = predict_std(dflt, cfg)
-    s = planner_settings(cfg)
+    s = cfg.plan
 
     fx_true = float(cfg.simulation.cameras[0].K[0, 0])
     # rescaled prediction: the same plan's bound with the corner noise the solver measured

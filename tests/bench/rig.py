@@ -41,7 +41,7 @@ from slidecal.mocks import scenarios as rs
 from slidecal.mocks.scenarios import scale_pixels
 from slidecal.mocks.truth import rig_bounds
 from slidecal.routines.results_io import truth_transform
-from slidecal.routines.run import run_calibration
+from slidecal.routines.run import RunRequest, run_calibration
 from slidecal.routines.session import load_session
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import SlidecalError
@@ -224,9 +224,9 @@ def oak_cell_end_to_end(seeds: list[int]) -> list[dict[str, float]]:
     for seed in seeds:
         with tempfile.TemporaryDirectory() as tmp:
             t0 = time.perf_counter()
-            o = run_calibration(
+            o = run_calibration(RunRequest(
                 cfg, out_dir=Path(tmp) / "s", progress=False, recording=False, seed=seed
-            )
+            ))
             d: dict[str, float] = {"seed": seed, "time_s": time.perf_counter() - t0}
             truth = load_session(o.session_dir, detect_images=False).simulation
             for key, est in o.result.rig.items():

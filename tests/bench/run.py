@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from slidecal.routines.results_io import hand_eye_transforms
-from slidecal.routines.run import run_calibration
+from slidecal.routines.run import RunRequest, run_calibration
 from slidecal.routines.session import load_session
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import SlidecalError
@@ -73,9 +73,9 @@ def run_seeds(config: str | None, seeds: list[int]) -> list[dict[str, float]]:
     with tempfile.TemporaryDirectory() as tmp:
         for seed in seeds:
             t0 = time.perf_counter()
-            out = run_calibration(
+            out = run_calibration(RunRequest(
                 config, out_dir=Path(tmp) / f"s{seed}", progress=False, recording=False, seed=seed
-            )
+            ))
             row = {
                 "seed": seed,
                 "wall_s": time.perf_counter() - t0,

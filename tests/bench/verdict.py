@@ -51,8 +51,9 @@ from slidecal.routines.check import run_check
 from slidecal.routines.config import load_config
 from slidecal.routines.install import install
 from slidecal.routines.planner import make_plan
-from slidecal.routines.run import run_calibration, solve_session
+from slidecal.routines.run import RunRequest, run_calibration
 from slidecal.routines.session import load_session
+from slidecal.routines.solve import solve_session
 from slidecal.routines.verdict import Limits, judge
 from slidecal.solver.adequacy import LEFT_OUT
 from slidecal.solver.calibrate import calibrate
@@ -126,14 +127,14 @@ def mount_eye_to_hand(doc: dict) -> None:
 def _run(cfg, work: Path, cell_seed: int, run_seed: int, plan=None):  # noqa: ANN001, ANN202
     """A run of the cell ``cell_seed`` (see :func:`same_cell`) and its session's problem;
     ``plan``: the plan (default: the planner's for ``cfg``)."""
-    o = run_calibration(
+    o = run_calibration(RunRequest(
         cfg,
         plan=plan,
         out_dir=work / f"run{cell_seed}_{run_seed}_{len(list(work.iterdir()))}",
         progress=False,
         recording=False,
         cell=same_cell(cfg, cell_seed, run_seed),
-    )
+    ))
     return o, load_session(o.session_dir).problem
 
 
@@ -142,13 +143,13 @@ def _runs(n: int, work: Path, overrides: dict | None = None, first: int = 1):
     cfg = load_config(overrides=overrides)
     out = []
     for seed in range(first, first + n):
-        o = run_calibration(
+        o = run_calibration(RunRequest(
             cfg,
             out_dir=work / f"run{seed}_{len(list(work.iterdir()))}",
             progress=False,
             recording=False,
             seed=seed,
-        )
+        ))
         out.append((o, load_session(o.session_dir).problem))
     return out
 
@@ -455,7 +456,9 @@ def _fault_row(kind: str, at: int, work: Path) -> str:
     out = work / f"fault_{kind}_{at}"
     code = "completed"
     try:
-        o = run_calibration(cfg, out_dir=out, progress=False, recording=False, cell=cell)
+        o = run_calibration(
+            RunRequest(cfg, out_dir=out, progress=False, recording=False, cell=cell)
+        )
         code = f"completed, {o.verdict.verdict}"
     except HardwareFault:
         code = "HardwareFault (exit 3)"
@@ -465,7 +468,7 @@ def _fault_row(kind: str, at: int, work: Path) -> str:
     kept = len(doc["frames"])
     resumed = ""
     if doc["status"] != "complete":
-        r = run_calibration(cfg, resume=out, progress=False)
+        r = run_calibration(RunRequest(cfg, resume=out, progress=False))
         resumed = f"{r.n_frames} frames, {r.verdict.verdict}"
     where = "move" if kind in ("protective_stop", "timeout") else "capture"
     where = f"{where} {at}" + (
@@ -496,7 +499,8 @@ def part_faults(work: Path) -> list[str]:
         lines.append(_signal_row(sig, name.split()[0], after, work))
     lines += [
         "",
-        "Faults injected in the simulated cell (in-process), then `run_calibration(resume=...)`:",
+        "Faults injected in the simulated cell (in-process), then "
+        "`run_calibration(RunRequest(resume=...))`:",
         "",
         "| fault | run | robot stopped | frames kept | events | resume |",
         "|---|---|---|---|---|---|",
