@@ -66,7 +66,14 @@ from slidecal.mocks import camera as simcam
 from slidecal.mocks.camera import SimCamera
 from slidecal.mocks.render import Photo
 from slidecal.routines.devices import OAK_CAMERA_KEYS, OAK_RIG_KEYS, UVC_CAMERA_KEYS
-from slidecal.routines.schema import Fields, dump_yaml, load_yaml, parse_yaml, write_atomic
+from slidecal.routines.schema import (
+    CELL_SECTIONS,
+    Fields,
+    dump_yaml,
+    load_yaml,
+    parse_yaml,
+    write_atomic,
+)
 from slidecal.routines.session import (
     OAK_SOCKET,
     options_from_dict,
@@ -108,19 +115,7 @@ KINEMATIC_ERROR_DEFAULTS = {
 PHOTO_KEYS = tuple(f.name for f in fields(Photo))
 
 CELL_KEYS: dict[str, tuple[str, ...]] = {
-    "": (
-        "format",
-        "mount",
-        "robot",
-        "cameras",
-        "target",
-        "approximate",
-        "simulation",
-        "plan",
-        "options",
-        "limits",  # the verdict's limits (routines/verdict.py: limits_from_dict)
-        "install",  # the install store (INSTALL_KEYS)
-    ),
+    "": CELL_SECTIONS,
     "robot": (
         "driver",
         "host",

@@ -212,6 +212,22 @@ def load_yaml(path: Path, what: str) -> Any:
 # ----------------------------------------------------------------------------- field checks
 
 
+#: the cell file's top-level sections (routines/config.py validates each; a solve reads limits:)
+CELL_SECTIONS = (
+    "format",
+    "mount",
+    "robot",
+    "cameras",
+    "target",
+    "approximate",
+    "simulation",
+    "plan",
+    "options",
+    "limits",  # the verdict's limits (routines/verdict.py: limits_from_dict)
+    "install",  # the install store (INSTALL_KEYS)
+)
+
+
 def nearest(key: str, valid: Iterable[str]) -> str | None:
     """The valid key closest to a misspelt ``key`` (None when nothing is close)."""
     valid = list(valid)

@@ -26,7 +26,13 @@ from slidecal.routines.results_io import (
     summary_text,
     write_result,
 )
-from slidecal.routines.schema import check_out_file, load_yaml, write_atomic
+from slidecal.routines.schema import (
+    CELL_SECTIONS,
+    Fields,
+    check_out_file,
+    load_yaml,
+    write_atomic,
+)
 from slidecal.routines.session import Session, load_session
 from slidecal.routines.verdict import Limits, Verdict, judge, limits_from_dict, write_verdict
 from slidecal.solver.calibrate import calibrate
@@ -313,8 +319,8 @@ def cell_file_limits(path: str | Path) -> Limits:
     cell (the rest of the cell, checked by every run, describes hardware a solve does not use).
     """
     data = load_yaml(Path(path), "cell file")
-    section = data.get("limits") if isinstance(data, Mapping) else None
-    return limits_from_dict(section, Path(path).name)
+    Fields(data, Path(path).name).only(CELL_SECTIONS)  # a misspelt limits: is not ignored
+    return limits_from_dict(data.get("limits"), Path(path).name)
 
 
 def print_outcome(outcome: RunOutcome, quiet: bool) -> None:

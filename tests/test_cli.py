@@ -129,3 +129,13 @@ def test_session_of_photographs_with_a_wrong_dictionary_names_the_right_one(tmp_
     assert "no ArUco marker of DICT_5X5_100 found" in p.stderr
     assert "set target.dictionary to DICT_6X6_50" in p.stderr
     assert not (tmp_path / "r.yaml").exists()
+
+
+def test_solve_config_misspelt_limits_is_refused(tmp_path: Path, capsys) -> None:
+    """`solve --config` reads only the cell's limits:, but a misspelt section is not ignored."""
+    cell = tmp_path / "cell.yaml"
+    cell.write_text("limts: {fx_rel_std: 0.01}\n")
+    code = cli.main(["solve", str(DATA / "r1_session"), "--quiet", "--config", str(cell)])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "\n" not in err
+    assert "cell.yaml: limts" in err and "did you mean limits" in err
