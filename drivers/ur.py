@@ -318,7 +318,9 @@ class URRobot:
         Afterwards :attr:`controller_info` says what the controller is: ``polyscope_version``,
         ``robot_model``, ``serial_number`` (None where the PolyScope version cannot say),
         ``controller_version`` (RTDE), ``remote_control`` (True, or None when it cannot be
-        asked), ``ik_check`` (``controller`` or ``host``), ``speed_slider``, ``safety_mode``,
+        asked), ``ik_check`` (``controller`` or ``host``), ``speed_slider`` (the fraction of the
+        commanded speed the arm runs at: the pendant's slider times the trajectory limiter,
+        ``getSpeedScalingCombined``), ``safety_mode``,
         ``program_stopped`` (the program stopped with consent, or None), ``payload``.
         """
         try:
@@ -411,7 +413,7 @@ class URRobot:
                 f"({SAFETY_MODES.get(safety_mode, 'unknown')})"
             )
         self.controller_info["safety_mode"] = SAFETY_MODES[safety_mode]
-        self.controller_info["speed_slider"] = float(self._receive.getSpeedScaling())
+        self.controller_info["speed_slider"] = float(self._receive.getSpeedScalingCombined())
         runtime = int(self._receive.getRuntimeState())
         if runtime != RUNTIME_STOPPED and not running:
             running = True
@@ -560,9 +562,10 @@ class URRobot:
         from the trapezoidal move time): a blocking ``moveL`` whose connection drops waits up to
         300 s inside ur-rtde (measured against ``slidecal.mocks.ur_controller``), which an
         unattended cell cannot afford. The deadline counts the rotation (at ``speed_mps`` read
-        as rad/s, what the controller does for a pure rotation) and the pendant's speed slider
-        (``getSpeedScaling``, re-read while moving); arrival needs both the position within
-        ``arrival_tol_m`` and the orientation within ``arrival_tol_deg``.
+        as rad/s, what the controller does for a pure rotation) and the executed speed fraction
+        (``getSpeedScalingCombined``: the pendant's slider, ``target_speed_fraction``, times the
+        trajectory limiter, ``speed_scaling``; re-read while moving); arrival needs both the
+        position within ``arrival_tol_m`` and the orientation within ``arrival_tol_deg``.
         """
         self._require()
         if not 0 < speed_mps <= self.max_speed_mps:
@@ -594,7 +597,7 @@ class URRobot:
                 T_now = self.measured_pose()  # live data or HardwareFault
                 safety = int(self._receive.getSafetyMode())
                 speed = np.asarray(self._receive.getActualTCPSpeed(), dtype=float)
-                slider = float(self._receive.getSpeedScaling())
+                slider = float(self._receive.getSpeedScalingCombined())
             except HardwareFault:
                 self.stop()
                 raise
@@ -617,7 +620,8 @@ class URRobot:
                     f"moveL to {_describe(T)} was accepted but the robot is "
                     f"{miss * 1000:.1f} mm and {miss_deg:.2f} deg away, at {_describe(T_now)}, "
                     + ("at rest" if at_rest else f"still moving after {now - t0:.1f} s")
-                    + f" (speed slider {slider:.0%}); check the pendant and the TCP setting"
+                    + f" (running at {slider:.0%} of the commanded speed: the pendant's slider "
+                    "times the trajectory limiter); check the pendant and the TCP setting"
                 )
             time.sleep(0.004)
 

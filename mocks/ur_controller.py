@@ -27,8 +27,9 @@ the process that drives it. It binds one loopback address (``--host``, default 1
 What it models (options): the PolyScope version (``--polyscope 3.15|5.5|5.9|5.12``: the RTDE
 controller version, the dashboard's commands, the script the client uploads), the robot model
 (``--model``, the kinematics of :mod:`slidecal.drivers.ur_kinematics`) and start joints
-(``--start-q``), the pendant's speed slider (``--speed-slider``: ``speed_scaling`` and
-``target_speed_fraction``, every motion slowed by it), the robot and safety modes
+(``--start-q``), the pendant's speed slider (``--speed-slider``: ``target_speed_fraction``,
+as a controller reports it; ``speed_scaling`` is the trajectory limiter's factor, 1 here; every
+motion runs at their product), the robot and safety modes
 (``--robot-mode``, ``--safety-mode``: 2 is reduced mode, where the arm moves normally), local
 or remote control (``--local``), a program already running (``--program NAME``: playing until
 stopped from the dashboard or replaced by an uploaded script), the error of the reported pose
@@ -263,8 +264,10 @@ class Robot:
             return [0.0, 0.0, 9.81]
         if name in ("actual_main_voltage", "actual_robot_voltage"):
             return 48.0
-        if name in ("speed_scaling", "target_speed_fraction"):
+        if name == "target_speed_fraction":
             return self.speed_slider
+        if name == "speed_scaling":
+            return 1.0  # the trajectory limiter's factor: nothing limits a straight moveL here
         return {"VECTOR6D": [0.0] * 6, "VECTOR3D": [0.0] * 3, "DOUBLE": 0.0}.get(kind, 0)
 
     def set_input(self, name: str, val: object) -> None:

@@ -48,7 +48,8 @@ class FakeController:
         self.refuse_connection = False
         self.version = "5.12.2.1101534"
         self.program: str | None = None
-        self.speed_scaling = 1.0
+        self.speed_scaling = 1.0  # the trajectory limiter's factor
+        self.target_speed_fraction = 1.0  # the pendant's slider
         self.payload: tuple | None = None
         self.paused: str | None = None  # a program paused on the pendant
         self.runtime_state: int | None = None  # None: from program / paused
@@ -92,6 +93,12 @@ def install_fakes(monkeypatch: pytest.MonkeyPatch, ctl: FakeController) -> None:
 
         def getSpeedScaling(self):
             return ctl.speed_scaling
+
+        def getTargetSpeedFraction(self):
+            return ctl.target_speed_fraction
+
+        def getSpeedScalingCombined(self):  # computed by the client (rtde_receive_interface.cpp)
+            return ctl.speed_scaling * ctl.target_speed_fraction
 
         def getRobotMode(self):
             return ctl.robot_mode

@@ -415,10 +415,28 @@ def test_reduced_mode_is_normal_operation_and_the_payload_is_set(make_fake):
         bounded(robot.close, 10.0)
 
 
+def test_the_slider_is_reported_as_a_controller_reports_it(make_fake):
+    """Issue 36 item 2. On a controller the pendant's slider is ``target_speed_fraction``;
+    ``speed_scaling`` is the trajectory limiter's factor; ur-rtde's
+    ``getSpeedScalingCombined`` is their product (``rtde_receive_interface.cpp``). Read here
+    through the real client, so the loopback cannot agree with the driver on anything else."""
+    import rtde_receive
+
+    fake = make_fake("--speed-slider", "0.2")
+    receive = rtde_receive.RTDEReceiveInterface(fake.host, FREQ_HZ)
+    try:
+        assert receive.getTargetSpeedFraction() == pytest.approx(0.2)
+        assert receive.getSpeedScaling() == pytest.approx(1.0)
+        assert receive.getSpeedScalingCombined() == pytest.approx(0.2)
+    finally:
+        receive.disconnect()
+
+
 @pytest.mark.slow  # several seconds: the second CI tier
 def test_a_slow_speed_slider_is_not_a_time_out(make_fake):
     """At a 20 % slider a 5 cm move takes 2.5 s: the deadline from the commanded speed alone
-    (2 x 0.6 s + 1 s) aborted it (issue 10.6)."""
+    (2 x 0.6 s + 1 s) aborted it (issue 10.6), and so did one from the trajectory limiter's
+    ``getSpeedScaling`` (1 while the slider is at 20 %: issue 36 item 2)."""
     fake = make_fake("--speed-slider", "0.2")
     robot = URRobot(fake.host, frequency=FREQ_HZ, settle_timeout_s=1.0)
     robot.connect()
