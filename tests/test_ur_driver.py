@@ -119,6 +119,9 @@ def install_fakes(monkeypatch: pytest.MonkeyPatch, ctl: FakeController) -> None:
             ctl.calls.append(("receive.disconnect",))
 
     class RTDEControlInterface:
+        #: the members of ur-rtde's Flags enum the driver uses (checked against ur-rtde below)
+        Flags = types.SimpleNamespace(FLAG_UPLOAD_SCRIPT=1, FLAG_UPPER_RANGE_REGISTERS=8)
+
         def __init__(self, hostname, frequency=-1.0, flags=1, ur_cap_port=50002, rt_priority=0):
             ctl.calls.append(("RTDEControlInterface", hostname, frequency))
 
@@ -444,8 +447,21 @@ def test_the_fakes_match_the_installed_ur_rtde(monkeypatch, module):
     methods = [k for k, v in vars(fake).items() if callable(v) and (not k.startswith("_")
                                                                      or k == "__init__")]
     assert len(methods) >= 5
+    for name, flag in vars(getattr(fake, "Flags", types.SimpleNamespace())).items():
+        assert int(getattr(real.Flags, name)) == flag, name
     for name in methods:
         assert hasattr(real, name), f"{module}.{fake.__name__}.{name} is not in ur-rtde"
         assert overloads(getattr(real, name), name), name  # introspectable: really checked
         check_callable(vars(fake)[name], getattr(real, name), name,
                        f"{module}.{fake.__name__}.{name}")
+
+
+def test_the_upper_register_range_is_a_cell_option(ctl):
+    """Issue 36 item 6: ``robot.upper_range_registers`` reaches the driver, checked."""
+    from slidecal.drivers.ur import cell_options
+
+    assert cell_options({"upper_range_registers": True})["upper_range_registers"] is True
+    assert cell_options({})["upper_range_registers"] is False
+    with pytest.raises(InputError, match="true or false") as e:
+        cell_options({"upper_range_registers": "yes"})
+    assert e.value.where == "robot.upper_range_registers"

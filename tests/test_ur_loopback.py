@@ -546,3 +546,56 @@ def test_sigterm_during_a_move_stops_the_arm_through_the_real_client(fake, robot
     assert T0[0, 3] + 0.005 < x_now < T1[0, 3] - 0.05  # moved, and stopped well short
     time.sleep(0.3)
     assert np.allclose(fake.state()["tcp_pose"], st["tcp_pose"], atol=1e-9)  # at rest
+
+
+def test_cb3_payload_without_cog_keeps_the_controllers_cog(make_fake):
+    """Issue 36 item 4. ur-rtde sends [0, 0, 0] for an empty CoG; the script line that keeps
+    the current CoG is tagged ``$5.0`` (``rtde_control.script``), so the real client leaves it
+    out on 3.x and the CoG would become the flange centre. Through the real client: on 3.15
+    the driver reads the CoG (``getPayloadCog``) and sends it back; on 5.12 the script keeps it.
+    """
+    for version in ("3.15", "5.12"):
+        fake = make_fake("--polyscope", version, "--payload-cog", "0,0.01,0.07")
+        robot = URRobot(fake.host, frequency=FREQ_HZ, payload_kg=1.2)
+        robot.connect()
+        try:
+            assert fake.state()["payload"] == [1.2, [0.0, 0.01, 0.07]], version
+        finally:
+            bounded(robot.close, 10.0)
+
+
+def test_a_script_left_by_a_dropped_link_is_named_on_resume(fake):
+    """Issue 36 item 5. Over a dead link the driver does not send stopScript (ur-rtde would
+    wait 300 s), so ur-rtde's script keeps playing; the next connect says it is that script
+    and what to do, instead of "a program is running"."""
+    robot = URRobot(fake.host, frequency=FREQ_HZ)
+    robot.connect()
+    assert fake.ctl("drop") == {"ok": "drop"}
+    bounded(robot.close, 10.0)
+    assert fake.ctl("reopen") == {"ok": "reopen"}
+    assert fake.state()["runtime_state"] == 2  # the script still plays
+    with pytest.raises(HardwareFault, match=r"ur-rtde's control script .* still runs.*lost its "
+                       r"link.*stop on the pendant.*take_control: true.*resume"):
+        URRobot(fake.host, frequency=FREQ_HZ).connect()
+    robot = URRobot(fake.host, frequency=FREQ_HZ, take_control=True)
+    robot.connect()
+    bounded(robot.close, 10.0)
+
+
+def test_fieldbus_registers_in_use_are_named_and_the_upper_range_works(make_fake):
+    """Issue 36 item 6. A fieldbus holding the RTDE input registers makes the controller
+    answer ``IN_USE`` in the input recipe and the real client throw "One of the RTDE input
+    registers are already in use!"; the driver says so and offers the upper range, with which
+    the real client and the loopback run the register protocol at offset 24."""
+    fake = make_fake("--fieldbus")
+    with pytest.raises(HardwareFault, match=r"EtherNet/IP, PROFINET or a MODBUS.*"
+                       r"upper_range_registers: true"):
+        URRobot(fake.host, frequency=FREQ_HZ).connect()
+    robot = URRobot(fake.host, frequency=FREQ_HZ, upper_range_registers=True)
+    robot.connect()
+    try:
+        T1 = shifted(robot.measured_pose(), 0.02, 0.0, 0.0)
+        robot.move_linear(T1, 0.1, 1.0)
+        assert_pose_close(T_from_ur_pose(fake.state()["tcp_pose"]), T1)
+    finally:
+        bounded(robot.close, 10.0)
