@@ -39,8 +39,10 @@ stopped from the dashboard or replaced by an uploaded script), the payload's cen
 set on the pendant (``--payload-cog``), a fieldbus on the input registers (``--fieldbus``), the
 error of the reported pose
 (``--noise-mm``, ``--noise-deg``, ``--seed``: drawn once per rest pose, as a kinematic model's
-error is), and a host that drops every packet (``--silent``: connections are never answered,
-not even refused).
+error is), a host that drops every packet (``--silent``: connections are never answered,
+not even refused) and a host too busy to run this process (``--starve S,EVERY_S``). The state
+says how long the event loop went unscheduled at most (``cycle_gap_max_s``): a Python process
+on a loaded host misses its 500 Hz stream where a controller does not.
 
 Arm model: MOVEL (3) moves the TCP on a straight line at the commanded speed times the slider
 (rotation interpolated on the geodesic at 1 rad/s times the slider), starting
@@ -538,6 +540,10 @@ class FakeController:
         self.frozen = False
         self.running = True
         self.log: list[str] = []
+        #: the longest time between two passes of the event loop (a pass is due every 8 ms at
+        #: most): how long this process went unscheduled, e.g. on a host under CPU load
+        self.cycle_gap_max_s = 0.0
+        self.starve: tuple[float, float] | None = None  # (seconds, every seconds): --starve
 
     def bind(self) -> None:
         for port, kind in ((RTDE_PORT, "rtde"), (SCRIPT_PORT, "script"),
@@ -682,6 +688,7 @@ class FakeController:
                 "commands": r.commands, "texts": r.texts, "events": r.events,
                 "script_uploads": r.script_uploads, "dashboard": r.dashboard, "log": self.log,
                 "connections": [c.kind for c in self.conns], "frozen": self.frozen,
+                "cycle_gap_max_s": self.cycle_gap_max_s,
             }), flush=True)
             return
         if cmd in ("pstop", "estop", "stall", "drop_next", "freeze_next"):
@@ -714,8 +721,14 @@ class FakeController:
     # --------------------------------------------------------------------------------- loop
     def run(self) -> None:
         stdin = sys.stdin.fileno()
+        last = time.monotonic()
+        next_starve = last + (self.starve[1] if self.starve else 0.0)
         while self.running:
+            if self.starve is not None and time.monotonic() >= next_starve:
+                time.sleep(self.starve[0])  # a host that does not schedule this process
+                next_starve = time.monotonic() + self.starve[1]
             now = time.monotonic()
+            self.cycle_gap_max_s, last = max(self.cycle_gap_max_s, now - last), now
             started = [c for c in self.conns if c.started and not self.frozen]
             timeout = min([max(0.0, c.next_send - now) for c in started], default=0.008)
             readers = [stdin, *self.listeners, *(c.sock for c in self.conns)]
@@ -787,6 +800,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--payload-cog", type=_floats, default=[0.0, 0.0, 0.0],
                    help="the payload's centre of gravity set on the pendant, metres")
+    p.add_argument("--starve", type=_floats, metavar="S,EVERY_S",
+                   help="stall the event loop S seconds every EVERY_S seconds (host CPU load)")
     p.add_argument("--fieldbus", action="store_true",
                    help="EtherNet/IP, PROFINET or MODBUS holds input registers 0-23")
     p.add_argument("--silent", action="store_true", help="drop every packet (a dead host)")
@@ -803,6 +818,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({"error": f"bad option: {e}"}), flush=True)
         return 2
     fake = FakeController(robot, a.host)
+    fake.starve = None if a.starve is None else (a.starve[0], a.starve[1])
     try:
         fake.bind()
         if a.silent:

@@ -599,3 +599,12 @@ def test_fieldbus_registers_in_use_are_named_and_the_upper_range_works(make_fake
         assert_pose_close(T_from_ur_pose(fake.state()["tcp_pose"]), T1)
     finally:
         bounded(robot.close, 10.0)
+
+
+def test_the_loopback_measures_how_long_it_went_unscheduled(make_fake):
+    """Issue 36 item 3: the loopback reports its longest event-loop gap (what a rehearsal's
+    stale-data limit is fitted to), here with a host that stalls it 0.3 s every 0.4 s."""
+    assert make_fake().state()["cycle_gap_max_s"] < 0.3
+    fake = make_fake("--starve", "0.3,0.4")
+    time.sleep(1.0)
+    assert fake.state()["cycle_gap_max_s"] >= 0.3
