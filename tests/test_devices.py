@@ -78,7 +78,7 @@ class RenderingCapture:
     rig = None
     instances: list = []
 
-    def __init__(self, source):
+    def __init__(self, source, apiPreference=cv2.CAP_ANY):  # noqa: N803 - OpenCV's name
         self.props = {cv2.CAP_PROP_FRAME_WIDTH: 640.0, cv2.CAP_PROP_FRAME_HEIGHT: 480.0,
                       cv2.CAP_PROP_AUTOFOCUS: 1.0}
         self.image = None
