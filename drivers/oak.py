@@ -564,11 +564,13 @@ def _not_taken(name: str, out: Mapping[str, Any], got: Mapping[str, Any]) -> lis
 
 
 def _features_dict(f: Any) -> dict[str, Any]:
+    calib = getattr(f, "calibrationResolution", None)
     return {
         "socket": _text(f.socket),
         "sensor": str(f.sensorName),
         "width": int(f.width),
         "height": int(f.height),
+        "calibration_resolution": None if calib is None else [int(calib.width), int(calib.height)],
         "autofocus": bool(f.hasAutofocus),
         "modes": [
             {
@@ -640,6 +642,60 @@ class OakCalibrationStore:
         return self.read()
 
 
+# ------------------------------------------------------------- image geometry of an output
+def stream_geometry(camera: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    """Camera name -> how its output was made from the sensor, from a session's
+    ``devices.camera`` block (:meth:`OakRig.capabilities`): ``size``, ``resize_mode``, ``fov``
+    (x, y, w, h: the sensor mode's view of the full pixel array), ``full`` (the array's width,
+    height) and ``calibration_size`` (``CameraFeatures.calibrationResolution``, or None)."""
+    sensors = {s.get("socket"): s for s in camera.get("sensors") or ()}
+    out = {}
+    for name, o in (camera.get("outputs") or {}).items():
+        sensor = sensors.get(o.get("socket"))
+        if sensor is None:
+            continue
+        full = (int(sensor["width"]), int(sensor["height"]))
+        fov = (o.get("sensor_mode") or {}).get("fov") or (0, 0, *full)
+        out[name] = {
+            "size": tuple(o["size"]),
+            "resize_mode": o.get("resize_mode", "stretch"),
+            "fov": tuple(float(v) for v in fov),
+            "full": full,
+            "calibration_size": sensor.get("calibration_resolution"),
+        }
+    return out
+
+
+def _pixel_map(ax: float, bx: float, ay: float, by: float) -> np.ndarray:
+    """``u' = ax u + bx``, ``v' = ay v + by`` as the 3x3 matrix that maps a K with it."""
+    return np.array([[ax, 0.0, bx], [0.0, ay, by], [0.0, 0.0, 1.0]])
+
+
+def _output_from_full(size: tuple[int, int], resize_mode: str, fov: Sequence[float]) -> np.ndarray:
+    """Full pixel array -> an output of ``size`` made from ``fov`` with ``resize_mode``.
+
+    Pixel centres follow OpenCV ((0, 0) is the centre of the top-left pixel): a scale ``s`` and
+    an offset ``o`` map ``u`` to ``s (u + 0.5) - 0.5 + o``."""
+    x0, y0, fw, fh = fov
+    w, h = size
+    sx, sy = w / fw, h / fh
+    if resize_mode == "crop":
+        sx = sy = max(sx, sy)
+    elif resize_mode == "letterbox":
+        sx = sy = min(sx, sy)
+    ox, oy = (w - sx * fw) / 2.0, (h - sy * fh) / 2.0
+    return _pixel_map(sx, sx * (0.5 - x0) - 0.5 + ox, sy, sy * (0.5 - y0) - 0.5 + oy)
+
+
+def _stored_from_full(full: Sequence[int], stored: Sequence[int]) -> np.ndarray:
+    """Full pixel array -> the size a socket's calibration is stored at, as depthai relates
+    them (``CalibrationHandler.getCameraIntrinsics`` with ``keepAspectRatio``): one scale, the
+    limiting side whole, the other cropped centrally, the principal point scaled as it is."""
+    (W, H), (w0, h0) = full, stored
+    s = max(w0 / W, h0 / H)
+    return _pixel_map(s, (w0 - s * W) / 2.0, s, (h0 - s * H) / 2.0)
+
+
 # ------------------------------------------------------------------------ calibration writing
 def _reference(result: CalibrationResult) -> str:
     if result.reference_camera:
@@ -685,6 +741,7 @@ def oak_calibration_handler(
     stereo: tuple[str, str] | None = ("left", "right"),
     base: Any = None,
     lens_positions: Mapping[str, int] | None = None,
+    streams: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> Any:
     """A ``dai.CalibrationHandler`` holding the result's intrinsics, distortion and extrinsics.
 
@@ -693,7 +750,11 @@ def oak_calibration_handler(
     come from ``cv2.stereoRectify``. ``base``: a handler or its JSON dict to start from (the
     device's own calibration: its board name, IMU extrinsics, lens positions and design
     translations are kept); it is not modified. ``lens_positions``: camera name -> the lens
-    position 0..255 the calibration holds at (auto-focus cameras).
+    position 0..255 the calibration holds at (auto-focus cameras). ``streams``: camera name ->
+    how its output was made (:func:`stream_geometry`); such a camera's K is mapped back through
+    the resize to the size the device stores that socket at (the base's stored size, else the
+    sensor's ``calibration_size``, else the full array) and written at that size, where
+    depthai's ``getCameraIntrinsics`` finds it. Cameras without one are written at their own size.
     """
     import cv2
 
@@ -706,8 +767,16 @@ def oak_calibration_handler(
     handler = handler_from_json(base_json)
     sock = {n: _board_socket(dai, sockets[n], n) for n in result.cameras}
     for name, cam in result.cameras.items():
-        K = np.asarray(cam.K, float).tolist()
-        handler.setCameraIntrinsics(sock[name], K, cam.width, cam.height)
+        K, size = np.asarray(cam.K, float), (cam.width, cam.height)
+        stream = (streams or {}).get(name)
+        if stream is not None:
+            if handler.hasCameraCalibration(sock[name]):
+                size = tuple(handler.getDefaultIntrinsics(sock[name])[1:])
+            else:
+                size = tuple(stream.get("calibration_size") or stream["full"])
+            out = _output_from_full((cam.width, cam.height), stream["resize_mode"], stream["fov"])
+            K = _stored_from_full(stream["full"], size) @ np.linalg.solve(out, K)
+        handler.setCameraIntrinsics(sock[name], K.tolist(), *size)
         d = np.zeros(14)
         dist = np.asarray(cam.distortion, float).reshape(-1)
         if dist.size > 14:
@@ -750,6 +819,7 @@ def write_oak_calibration_json(
     stereo: tuple[str, str] | None = ("left", "right"),
     base: Any = None,
     lens_positions: Mapping[str, int] | None = None,
+    streams: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> Path:
     """Write the result as a depthai calibration JSON (``eepromToJsonFile``); returns the path.
 
@@ -758,7 +828,7 @@ def write_oak_calibration_json(
     ``slidecal flash`` writes it to the device.
     """
     handler = oak_calibration_handler(
-        result, sockets, stereo=stereo, base=base, lens_positions=lens_positions
+        result, sockets, stereo=stereo, base=base, lens_positions=lens_positions, streams=streams
     )
     path = Path(path)
     if not handler.eepromToJsonFile(str(path)):
@@ -768,14 +838,18 @@ def write_oak_calibration_json(
 
 # --------------------------------------------------------------- comparing two calibrations
 def device_camera(
-    data: Mapping[str, Any], socket: str, size: tuple[int, int], resize_mode: str = "stretch"
+    data: Mapping[str, Any],
+    socket: str,
+    size: tuple[int, int],
+    resize_mode: str = "stretch",
+    stream: Mapping[str, Any] | None = None,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """``(K (3, 3) px, distortion (14,))`` of a socket in depthai calibration JSON, mapped to an
-    output of ``size`` (width, height) made from the calibrated field of view with
-    ``resize_mode``; None when the JSON holds no perspective calibration of that socket.
-
-    Pixel centres follow OpenCV ((0, 0) is the centre of the top-left pixel): a scale ``s`` and
-    an offset ``o`` map ``u`` to ``s (u + 0.5) - 0.5 + o``.
+    output of ``size`` (width, height) made with ``resize_mode``; None when the JSON holds no
+    perspective calibration of that socket. The output is made from ``stream``'s ``fov`` of its
+    ``full`` array (:func:`stream_geometry`), the stored size being a centred crop of that array
+    as depthai reads it (a 16:9 calibration of a 4:3 sensor); without ``stream``, from the
+    stored calibration's whole view.
     """
     dai = import_depthai()
     h = handler_from_json(data)
@@ -786,19 +860,11 @@ def device_camera(
     K0 = np.asarray(K0, float)
     if w0 <= 0 or h0 <= 0:
         return None
-    w, hh = size
-    sx, sy = w / w0, hh / h0
-    if resize_mode == "crop":
-        sx = sy = max(sx, sy)
-    elif resize_mode == "letterbox":
-        sx = sy = min(sx, sy)
-    ox, oy = (w - sx * w0) / 2.0, (hh - sy * h0) / 2.0
-    K = K0.copy()
-    K[0, :] *= sx
-    K[1, :] *= sy
-    K[0, 2] = sx * (K0[0, 2] + 0.5) - 0.5 + ox
-    K[1, 2] = sy * (K0[1, 2] + 0.5) - 0.5 + oy
-    K[2] = [0.0, 0.0, 1.0]
+    full = (w0, h0) if stream is None else stream["full"]
+    fov = (0, 0, *full) if stream is None else stream["fov"]
+    K = _output_from_full(size, resize_mode, fov) @ np.linalg.solve(
+        _stored_from_full(full, (w0, h0)), K0
+    )
     return K, np.asarray(h.getDistortionCoefficients(s), float)
 
 
@@ -824,6 +890,7 @@ def projection_shift_px(
     distance_m: float,
     resize_mode: str = "stretch",
     grid: int = 9,
+    streams: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> dict[str, dict[str, float]]:
     """How far the device's calibration moves projected points against ``result``, per camera.
 
@@ -831,8 +898,9 @@ def projection_shift_px(
     (a ``grid`` x ``grid`` lattice of the reference camera's pixels, back-projected with the
     result), are projected into each camera with the result's model and with the device's
     (intrinsics mapped to the session's image size, and its extrinsics to the reference camera
-    where the camera is not the reference). Returns ``{name: {rms_px, max_px}}`` for the
-    cameras the device has a perspective calibration of and the result a complete transform.
+    where the camera is not the reference; ``streams`` as in :func:`device_camera`). Returns
+    ``{name: {rms_px, max_px}}`` for the cameras the device has a perspective calibration of
+    and the result a complete transform.
     """
     import cv2
 
@@ -847,7 +915,9 @@ def projection_shift_px(
     for name, cam in result.cameras.items():
         if name not in sockets:
             continue
-        dev = device_camera(data, sockets[name], (cam.width, cam.height), resize_mode)
+        dev = device_camera(
+            data, sockets[name], (cam.width, cam.height), resize_mode, (streams or {}).get(name)
+        )
         T_dev = device_T_cam_ref(data, sockets[name], sockets[ref]) if name != ref else np.eye(4)
         if dev is None or T_dev is None:
             continue

@@ -63,6 +63,8 @@ DASHBOARD_PORT, RTDE_PORT = 29999, 30004
 RUNTIME_STATES = {0: "stopping", 1: "stopped", 2: "playing", 3: "pausing", 4: "paused",
                   5: "resuming"}
 RUNTIME_STOPPED = 1
+#: The program name of ur-rtde's control script (its ``def``), as the dashboard reports it.
+LEFTOVER_SCRIPT = "rtde_control"
 
 #: Safety modes (``getSafetyMode``) and what the operator should do about them.
 SAFETY_MODES: dict[int, str] = {
@@ -191,7 +193,9 @@ def cell_options(robot_section: Any) -> dict[str, Any]:
     ``take_control: true`` is the user's consent to stop a program running on the controller
     (ur-rtde stops it to upload its own script; without it :meth:`URRobot.connect` refuses).
     ``payload: {mass_kg: 1.2, cog_m: [0, 0, 0.05]}`` is set on the controller at connect
-    (centre of gravity in the flange frame, metres; optional).
+    (centre of gravity in the flange frame, metres; optional). ``upper_range_registers: true``
+    makes ur-rtde use the RTDE input registers 24-47 (``FLAG_UPPER_RANGE_REGISTERS``) where a
+    fieldbus (EtherNet/IP, PROFINET, MODBUS) holds 0-23.
     """
     raw = dict(robot_section or {})
     out: dict[str, Any] = {}
@@ -199,6 +203,11 @@ def cell_options(robot_section: Any) -> dict[str, Any]:
     if not isinstance(take, bool):
         raise InputError(f"must be true or false, got {take!r}", where="robot.take_control")
     out["take_control"] = take
+    upper = raw.get("upper_range_registers", False)
+    if not isinstance(upper, bool):
+        raise InputError(f"must be true or false, got {upper!r}",
+                         where="robot.upper_range_registers")
+    out["upper_range_registers"] = upper
     payload = raw.get("payload")
     if payload is not None:
         if not isinstance(payload, dict) or "mass_kg" not in payload or set(payload) - {
@@ -249,7 +258,13 @@ class URRobot:
         interface stops it to upload its own script); without it :meth:`connect` refuses.
     payload_kg, payload_cog_m
         When given, set on the controller at connect (``setPayload``): mass in kg, centre of
-        gravity (3,) in metres in the flange frame (None: the controller's default estimate).
+        gravity (3,) in metres in the flange frame. None keeps the centre of gravity the
+        controller holds: ur-rtde sends [0, 0, 0] for it, which its script turns into the
+        current one on PolyScope 5 only (its ``$5.0`` lines); on 3.x it is read
+        (``getPayloadCog``) and sent back, else the flange centre would be set.
+    upper_range_registers
+        Use the RTDE input registers 24-47 (``FLAG_UPPER_RANGE_REGISTERS``), for controllers
+        whose fieldbus (EtherNet/IP, PROFINET, MODBUS) holds 0-23.
     connect_timeout_s
         How long each port of the controller may take to answer at connect.
     """
@@ -271,6 +286,7 @@ class URRobot:
         payload_kg: float | None = None,
         payload_cog_m: np.ndarray | list[float] | None = None,
         connect_timeout_s: float = 3.0,
+        upper_range_registers: bool = False,
     ) -> None:
         if not 0 < max_speed_mps <= 3.0:
             raise InputError(f"max_speed_mps must be in (0, 3] (ur-rtde's range): {max_speed_mps}")
@@ -300,6 +316,7 @@ class URRobot:
         self.payload_kg = None if payload_kg is None else float(payload_kg)
         self.payload_cog_m = cog
         self.connect_timeout_s = float(connect_timeout_s)
+        self.upper_range_registers = bool(upper_range_registers)
         self.controller_info: dict[str, Any] = {}
         self._version: tuple[int, ...] = ()
         self._ik_on_controller = True
@@ -318,7 +335,9 @@ class URRobot:
         Afterwards :attr:`controller_info` says what the controller is: ``polyscope_version``,
         ``robot_model``, ``serial_number`` (None where the PolyScope version cannot say),
         ``controller_version`` (RTDE), ``remote_control`` (True, or None when it cannot be
-        asked), ``ik_check`` (``controller`` or ``host``), ``speed_slider``, ``safety_mode``,
+        asked), ``ik_check`` (``controller`` or ``host``), ``speed_slider`` (the fraction of the
+        commanded speed the arm runs at: the pendant's slider times the trajectory limiter,
+        ``getSpeedScalingCombined``), ``safety_mode``,
         ``program_stopped`` (the program stopped with consent, or None), ``payload``.
         """
         try:
@@ -388,7 +407,9 @@ class URRobot:
         }
         self._ik_on_controller = has_ik_query(version)
         try:
-            self._receive = rtde_receive.RTDEReceiveInterface(self.hostname, self.frequency)
+            self._receive = rtde_receive.RTDEReceiveInterface(
+                self.hostname, self.frequency, [], False, self.upper_range_registers
+            )
         except RuntimeError as e:
             self.close()
             raise HardwareFault(
@@ -411,13 +432,21 @@ class URRobot:
                 f"({SAFETY_MODES.get(safety_mode, 'unknown')})"
             )
         self.controller_info["safety_mode"] = SAFETY_MODES[safety_mode]
-        self.controller_info["speed_slider"] = float(self._receive.getSpeedScaling())
+        self.controller_info["speed_slider"] = float(self._receive.getSpeedScalingCombined())
         runtime = int(self._receive.getRuntimeState())
         if runtime != RUNTIME_STOPPED and not running:
             running = True
             program_state = f"runtime state {RUNTIME_STATES.get(runtime, runtime)}"
             self.controller_info["program_state"] = program_state
         if running:
+            if not self.take_control and LEFTOVER_SCRIPT in program_state.split():
+                self.close()
+                raise HardwareFault(
+                    f"ur-rtde's control script ({program_state}) still runs on the {where}: "
+                    "an earlier connection lost its link before it could stop it (no program of "
+                    "yours is running). Press stop on the pendant, or allow slidecal to stop it "
+                    "with 'take_control: true' in the cell file's robot section, then resume"
+                )
             if not self.take_control:
                 self.close()
                 raise HardwareFault(
@@ -426,10 +455,21 @@ class URRobot:
                     "'take_control: true' in the cell file's robot section"
                 )
             self.controller_info["program_stopped"] = program_state
+        flags = rtde_control.RTDEControlInterface.Flags
         try:
-            self._control = rtde_control.RTDEControlInterface(self.hostname, self.frequency)
+            self._control = rtde_control.RTDEControlInterface(
+                self.hostname, self.frequency, int(flags.FLAG_UPLOAD_SCRIPT) | (
+                    int(flags.FLAG_UPPER_RANGE_REGISTERS) if self.upper_range_registers else 0)
+            )
         except RuntimeError as e:
             self.close()
+            if "already in use" in str(e):
+                raise HardwareFault(
+                    f"the RTDE input registers ur-rtde needs are taken on the {where}: "
+                    "EtherNet/IP, PROFINET or a MODBUS unit in its installation uses them. "
+                    "Switch that fieldbus off, or set 'upper_range_registers: true' in the cell "
+                    "file's robot section (registers 24-47) if the fieldbus leaves those free"
+                ) from None
             raise HardwareFault(
                 f"cannot open RTDE control of the {where}: {e}; check that it is in remote "
                 "control and that no other program controls it"
@@ -449,6 +489,18 @@ class URRobot:
             ) from None
         if self.payload_kg is not None:
             cog = [] if self.payload_cog_m is None else [float(v) for v in self.payload_cog_m]
+            if not cog and self._version[0] < 5:  # see payload_cog_m in the class docstring
+                try:
+                    cog = [float(v) for v in self._receive.getPayloadCog()]
+                except RuntimeError:
+                    cog = []
+                if len(cog) != 3:
+                    self.close()
+                    raise InputError(
+                        f"PolyScope {self.controller_info['polyscope_version']} cannot keep the "
+                        "payload's centre of gravity and did not report it; give cog_m",
+                        where="robot.payload",
+                    )
             if not self._control.setPayload(self.payload_kg, cog):
                 self.close()
                 raise HardwareFault(
@@ -560,9 +612,10 @@ class URRobot:
         from the trapezoidal move time): a blocking ``moveL`` whose connection drops waits up to
         300 s inside ur-rtde (measured against ``slidecal.mocks.ur_controller``), which an
         unattended cell cannot afford. The deadline counts the rotation (at ``speed_mps`` read
-        as rad/s, what the controller does for a pure rotation) and the pendant's speed slider
-        (``getSpeedScaling``, re-read while moving); arrival needs both the position within
-        ``arrival_tol_m`` and the orientation within ``arrival_tol_deg``.
+        as rad/s, what the controller does for a pure rotation) and the executed speed fraction
+        (``getSpeedScalingCombined``: the pendant's slider, ``target_speed_fraction``, times the
+        trajectory limiter, ``speed_scaling``; re-read while moving); arrival needs both the
+        position within ``arrival_tol_m`` and the orientation within ``arrival_tol_deg``.
         """
         self._require()
         if not 0 < speed_mps <= self.max_speed_mps:
@@ -594,7 +647,7 @@ class URRobot:
                 T_now = self.measured_pose()  # live data or HardwareFault
                 safety = int(self._receive.getSafetyMode())
                 speed = np.asarray(self._receive.getActualTCPSpeed(), dtype=float)
-                slider = float(self._receive.getSpeedScaling())
+                slider = float(self._receive.getSpeedScalingCombined())
             except HardwareFault:
                 self.stop()
                 raise
@@ -617,7 +670,8 @@ class URRobot:
                     f"moveL to {_describe(T)} was accepted but the robot is "
                     f"{miss * 1000:.1f} mm and {miss_deg:.2f} deg away, at {_describe(T_now)}, "
                     + ("at rest" if at_rest else f"still moving after {now - t0:.1f} s")
-                    + f" (speed slider {slider:.0%}); check the pendant and the TCP setting"
+                    + f" (running at {slider:.0%} of the commanded speed: the pendant's slider "
+                    "times the trajectory limiter); check the pendant and the TCP setting"
                 )
             time.sleep(0.004)
 

@@ -9,15 +9,22 @@ Every setting is set and then read back, and what the camera did with it is reco
   A camera that still reads autofocus on afterwards is refused; one without the control
   (fixed focus, or a video file) is recorded as such. ``focus`` sets a manual focus value;
 - the exposure is locked: manual at ``exposure`` where asked (V4L2: ``CAP_PROP_AUTO_EXPOSURE``
-  1 means manual, exposure in 100 microsecond steps); otherwise a camera (not a video file) runs
+  1 means manual, exposure in 100 microsecond steps; an exposure that does not read back is
+  refused); otherwise a camera (not a video file) runs
   its auto exposure for ``settle_frames`` frames, then auto exposure is switched off and the
   exposure it reached is set and read back (``settings.exposure``). The white balance likewise:
   a camera whose auto white balance is on (``CAP_PROP_AUTO_WB``) has it switched off at the
   colour temperature it reached (``CAP_PROP_WB_TEMPERATURE``); a grey camera has no such
   control, which is recorded. A frame rate is set where asked. A camera that ignores any of
-  these or reads back another value is reported in :attr:`UvcCamera.messages` (the run goes
-  on: the images say whether exposure is usable; the focus and size are what the intrinsics
-  depend on).
+  the others or reads back another value is reported in :attr:`UvcCamera.messages` (the run
+  goes on: the images say whether exposure is usable; the focus and size are what the
+  intrinsics depend on).
+
+Those values mean what they say only in OpenCV's V4L2 backend with raw (un-normalised)
+property ranges: a camera on Linux is opened with ``cv2.CAP_V4L2`` (the default backend order
+may pick another, GStreamer, whose values mean something else) and ``CAP_PROP_MODE`` is set to
+0, which switches the backend to raw ranges whatever ``OPENCV_VIDEOIO_V4L_RANGE_NORMALIZED``
+says (with it, ``CAP_PROP_AUTO_EXPOSURE`` is mapped from [0, 1) and 1 is not "manual").
 
 Drivers buffer a few frames, so a capture right after the robot stopped could return an image
 exposed while it moved: :meth:`UvcCamera.capture` grabs and drops ``drop_frames`` frames first,
@@ -26,6 +33,7 @@ then retrieves a fresh one.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -120,7 +128,8 @@ class UvcCamera:
 
     def open(self) -> None:
         """Open; set format, size, frame rate, focus and exposure, and read them back."""
-        cap = cv2.VideoCapture(self.source)
+        v4l2 = sys.platform.startswith("linux") and not Path(str(self.source)).is_file()
+        cap = cv2.VideoCapture(self.source, cv2.CAP_V4L2 if v4l2 else cv2.CAP_ANY)
         if not cap.isOpened():
             raise HardwareFault(
                 f"camera {self.name}: cannot open {self.source!r}; check that it is plugged in, "
@@ -139,6 +148,8 @@ class UvcCamera:
             self._backend = str(cap.getBackendName())
         except cv2.error:
             self._backend = None
+        if self._backend == "V4L2":  # raw property ranges (module docstring); reads back 0
+            self._set(cap, "raw_ranges", cv2.CAP_PROP_MODE, 0)
         if self.fourcc is not None:
             code = cv2.VideoWriter_fourcc(*self.fourcc)
             if not self._set(cap, "fourcc", cv2.CAP_PROP_FOURCC, code):
@@ -186,10 +197,16 @@ class UvcCamera:
                 )
                 return
         held = self._set(cap, "exposure", cv2.CAP_PROP_EXPOSURE, value)
+        if self.exposure is not None and not (manual and held):
+            raise HardwareFault(
+                f"camera {self.name}: manual exposure {value:g} not taken (auto exposure reads "
+                f"{self.settings['auto_exposure']['read_back']:g}, exposure "
+                f"{self.settings['exposure']['read_back']:g}); set an exposure the camera "
+                "supports (v4l2-ctl -l), or remove exposure to lock the auto exposure"
+            )
         if not (manual and held):
-            what = "manual exposure" if self.exposure is not None else "locking the exposure at"
             self.messages.append(
-                f"camera {self.name}: {what} {value:g} not taken (auto "
+                f"camera {self.name}: locking the exposure at {value:g} not taken (auto "
                 f"exposure reads {self.settings['auto_exposure']['read_back']:g}, exposure "
                 f"{self.settings['exposure']['read_back']:g}); auto exposure may stay on"
             )

@@ -19,7 +19,10 @@ the process that drives it. It binds one loopback address (``--host``, default 1
   ``output_int_register_1`` (yes/no answers). A command whose script lines the client left out
   for this controller version (ur-rtde drops lines tagged ``$5.10|3.15`` etc. below that
   version) is signalled done without effect, so its answer register keeps whatever the previous
-  command left, as on a real controller.
+  command left, as on a real controller. The registers are counted from the script's
+  ``reg_offset_int`` / ``reg_offset_float`` (24 when the client uses the upper range,
+  ``FLAG_UPPER_RANGE_REGISTERS``). With ``--fieldbus`` (EtherNet/IP, PROFINET or MODBUS on) the
+  input registers 0-23 are taken: an input recipe naming one is answered ``IN_USE``.
 - 29999 dashboard: one line per command, a welcome line on connect; the commands a PolyScope
   version lacks (``is in remote control``, ``get serial number`` before 5.6) are answered
   ``could not understand``.
@@ -27,23 +30,30 @@ the process that drives it. It binds one loopback address (``--host``, default 1
 What it models (options): the PolyScope version (``--polyscope 3.15|5.5|5.9|5.12``: the RTDE
 controller version, the dashboard's commands, the script the client uploads), the robot model
 (``--model``, the kinematics of :mod:`slidecal.drivers.ur_kinematics`) and start joints
-(``--start-q``), the pendant's speed slider (``--speed-slider``: ``speed_scaling`` and
-``target_speed_fraction``, every motion slowed by it), the robot and safety modes
+(``--start-q``), the pendant's speed slider (``--speed-slider``: ``target_speed_fraction``,
+as a controller reports it; ``speed_scaling`` is the trajectory limiter's factor, 1 here; every
+motion runs at their product), the robot and safety modes
 (``--robot-mode``, ``--safety-mode``: 2 is reduced mode, where the arm moves normally), local
 or remote control (``--local``), a program already running (``--program NAME``: playing until
-stopped from the dashboard or replaced by an uploaded script), the error of the reported pose
+stopped from the dashboard or replaced by an uploaded script), the payload's centre of gravity
+set on the pendant (``--payload-cog``), a fieldbus on the input registers (``--fieldbus``), the
+error of the reported pose
 (``--noise-mm``, ``--noise-deg``, ``--seed``: drawn once per rest pose, as a kinematic model's
-error is), and a host that drops every packet (``--silent``: connections are never answered,
-not even refused).
+error is), a host that drops every packet (``--silent``: connections are never answered,
+not even refused) and a host too busy to run this process (``--starve S,EVERY_S``). The state
+says how long the event loop went unscheduled at most (``cycle_gap_max_s``): a Python process
+on a loaded host misses its 500 Hz stream where a controller does not.
 
 Arm model: MOVEL (3) moves the TCP on a straight line at the commanded speed times the slider
 (rotation interpolated on the geodesic at 1 rad/s times the slider), starting
 ``MOTION_LATENCY_S`` after the command is acknowledged; STOPL (33) stops at once,
-SET_TCP (29), SET_PAYLOAD (17), GET_TCP_OFFSET (40), GET_INVERSE_KINEMATICS (30, 46) answer the
-analytic solution nearest ``qnear`` and, like URScript's ``get_inverse_kin``, stop the script
-with a runtime error when there is none; IS_POSE_WITHIN_SAFETY_LIMITS (36) and the
-has-solution variants (60, 61) answer 1/0; STOP_SCRIPT (255) ends the script. Poses below the
-plane ``z = SAFETY_Z_MIN_M`` are outside the safety limits.
+SET_TCP (29), SET_PAYLOAD (17: a zero CoG keeps the current one only where the script has its
+``$5.0`` lines, PolyScope 5; on 3.x the CoG becomes the flange centre), GET_TCP_OFFSET (40),
+GET_INVERSE_KINEMATICS (30, 46) answer the analytic solution nearest ``qnear`` and, like
+URScript's ``get_inverse_kin``, stop the script with a runtime error when there is none;
+IS_POSE_WITHIN_SAFETY_LIMITS (36) and the has-solution variants (60, 61) answer 1/0;
+STOP_SCRIPT (255) ends the script. Poses below the plane ``z = SAFETY_Z_MIN_M`` are outside
+the safety limits.
 
 Control channel: one command per line on stdin, one JSON line per answer on stdout:
 ``state`` (the robot state and logs), ``pstop`` / ``estop`` (a protective / emergency stop
@@ -51,7 +61,8 @@ halfway through the next move: safety mode 3 / 7, the script stops), ``stall`` (
 stops halfway and never finishes, no fault raised), ``drop_next`` / ``freeze_next`` (``drop`` /
 ``freeze`` halfway through the next move), ``freeze`` (a silent network loss: open sockets stay
 open but nothing is sent or answered and new connections are never answered), ``drop`` (close
-every connection and listener), ``slider X``, ``safety N``, ``robotmode N``, ``program NAME``,
+every connection and listener; a running script keeps running), ``reopen`` (listen again after
+a ``drop``: the link is back), ``slider X``, ``safety N``, ``robotmode N``, ``program NAME``,
 ``quit`` (also on end of stdin, so the controller never outlives its parent's pipe).
 At start it prints ``{"ready": true, ...}`` or ``{"error": ...}`` (exit code 2), e.g. when a
 port is taken.
@@ -63,6 +74,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import select
 import socket
 import struct
@@ -161,7 +173,9 @@ class Robot:
     def __init__(self, version: str = DEFAULT_VERSION, model: str = "UR5e",
                  start_q: np.ndarray = Q0, speed_slider: float = 1.0, robot_mode: int = 7,
                  safety_mode: int = 1, remote: bool = True, program: str | None = None,
-                 noise_m: float = 0.0, noise_deg: float = 0.0, seed: int = 0) -> None:
+                 noise_m: float = 0.0, noise_deg: float = 0.0, seed: int = 0,
+                 payload_cog: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                 fieldbus: bool = False) -> None:
         if version not in VERSIONS:
             raise ValueError(f"unknown PolyScope version {version!r}; use one of {list(VERSIONS)}")
         self.version = version
@@ -179,7 +193,10 @@ class Robot:
         self.program = program  # a program (not ur-rtde's script) playing on the controller
         self.runtime_state = RUNTIME_PLAYING if program else RUNTIME_STOPPED
         self.script_text = ""
-        self.payload: tuple[float, list[float]] | None = None
+        self.payload: tuple[float, list[float]] | None = None  # what the client set
+        self.active_payload = (0.0, [float(c) for c in payload_cog])  # what the arm carries
+        self.fieldbus = bool(fieldbus)
+        self.reg_int = self.reg_float = 0  # the script's register offsets
         self.noise_m, self.noise_deg = float(noise_m), float(noise_deg)
         self.rng = np.random.default_rng(seed)
         self.T_error = np.eye(4)  # the reported pose's error at the current rest pose
@@ -219,6 +236,11 @@ class Robot:
         fn = SCRIPT_FUNCTION.get(cmd)
         return fn is None or fn in self.script_text
 
+    def fieldbus_has(self, name: str) -> bool:
+        """Whether a fieldbus adapter holds this input register (the lower range 0-23)."""
+        m = re.fullmatch(r"input_(int|double)_register_(\d+)", name)
+        return self.fieldbus and m is not None and int(m.group(2)) < 24
+
     def dashboard_has(self, command: str) -> bool:
         """Whether this PolyScope's dashboard server knows ``command``."""
         major, minor = self.controller_version[:2]
@@ -251,27 +273,35 @@ class Robot:
         if name == "joint_mode":
             return [253] * 6
         if name.startswith("output_int_register_"):
-            return self.out_int.get(int(name.rsplit("_", 1)[1]), 0)
+            return self.out_int.get(int(name.rsplit("_", 1)[1]) - self.reg_int, 0)
         if name.startswith("output_double_register_"):
-            return self.out_double.get(int(name.rsplit("_", 1)[1]), 0.0)
+            return self.out_double.get(int(name.rsplit("_", 1)[1]) - self.reg_float, 0.0)
         if name.startswith("input_int_register_"):
-            return self.in_int.get(int(name.rsplit("_", 1)[1]), 0)
+            return self.in_int.get(int(name.rsplit("_", 1)[1]) - self.reg_int, 0)
         if name.startswith("input_double_register_"):
-            return self.in_double.get(int(name.rsplit("_", 1)[1]), 0.0)
+            return self.in_double.get(int(name.rsplit("_", 1)[1]) - self.reg_float, 0.0)
+        if name == "payload":
+            return self.active_payload[0]
+        if name == "payload_cog":
+            return list(self.active_payload[1])
         kind = var_type(name)
         if name == "actual_tool_accelerometer":
             return [0.0, 0.0, 9.81]
         if name in ("actual_main_voltage", "actual_robot_voltage"):
             return 48.0
-        if name in ("speed_scaling", "target_speed_fraction"):
+        if name == "target_speed_fraction":
             return self.speed_slider
+        if name == "speed_scaling":
+            return 1.0  # the trajectory limiter's factor: nothing limits a straight moveL here
         return {"VECTOR6D": [0.0] * 6, "VECTOR3D": [0.0] * 3, "DOUBLE": 0.0}.get(kind, 0)
 
     def set_input(self, name: str, val: object) -> None:
         if name.startswith("input_int_register_"):
-            self.in_int[int(name.rsplit("_", 1)[1])] = int(val)  # type: ignore[call-overload]
+            i = int(name.rsplit("_", 1)[1]) - self.reg_int
+            self.in_int[i] = int(val)  # type: ignore[call-overload]
         elif name.startswith("input_double_register_"):
-            self.in_double[int(name.rsplit("_", 1)[1])] = float(val)  # type: ignore[arg-type]
+            i = int(name.rsplit("_", 1)[1]) - self.reg_float
+            self.in_double[i] = float(val)  # type: ignore[arg-type]
 
     # ------------------------------------------------------------------------------ script
     def start_script(self, text: str) -> None:
@@ -279,6 +309,10 @@ class Robot:
             self.events.append(f"program {self.program} replaced by an uploaded script")
             self.program = None
         self.script_text = text
+        for kind in ("int", "float"):
+            # ur-rtde writes the offset after the placeholder's comment, on the next line
+            m = re.search(rf"reg_offset_{kind} = \D*?(\d+)", text)
+            setattr(self, f"reg_{kind}", int(m.group(1)) if m else 0)
         self.script_uploads += 1
         self.runtime_state = RUNTIME_PLAYING
         self.executing = False
@@ -331,7 +365,10 @@ class Robot:
             return True
         if cmd == SET_PAYLOAD:
             d = self._doubles(0, 4)
-            self.payload = (d[0], d[1:4])
+            cog = d[1:4]
+            if not any(cog) and "get_target_payload_cog()" in self.script_text:  # $5.0 lines
+                cog = list(self.active_payload[1])
+            self.payload = self.active_payload = (d[0], cog)
             return True
         if cmd in (IK_ARGS, IK_DEFAULT, IK_HAS_SOLUTION_ARGS, IK_HAS_SOLUTION_DEFAULT):
             near = self._doubles(6, 6) if cmd in (IK_ARGS, IK_HAS_SOLUTION_ARGS) else self.q
@@ -503,6 +540,10 @@ class FakeController:
         self.frozen = False
         self.running = True
         self.log: list[str] = []
+        #: the longest time between two passes of the event loop (a pass is due every 8 ms at
+        #: most): how long this process went unscheduled, e.g. on a host under CPU load
+        self.cycle_gap_max_s = 0.0
+        self.starve: tuple[float, float] | None = None  # (seconds, every seconds): --starve
 
     def bind(self) -> None:
         for port, kind in ((RTDE_PORT, "rtde"), (SCRIPT_PORT, "script"),
@@ -569,7 +610,7 @@ class FakeController:
             names = [n for n in payload.decode().split(",") if n]
             rid = len(c.inputs) + 1
             c.inputs[rid] = names
-            types = [var_type(n) for n in names]
+            types = ["IN_USE" if self.robot.fieldbus_has(n) else var_type(n) for n in names]
             self._send(c, message(I, bytes([rid]) + ",".join(types).encode()))
         elif kind == S:
             c.started, c.next_send = True, time.monotonic()
@@ -647,6 +688,7 @@ class FakeController:
                 "commands": r.commands, "texts": r.texts, "events": r.events,
                 "script_uploads": r.script_uploads, "dashboard": r.dashboard, "log": self.log,
                 "connections": [c.kind for c in self.conns], "frozen": self.frozen,
+                "cycle_gap_max_s": self.cycle_gap_max_s,
             }), flush=True)
             return
         if cmd in ("pstop", "estop", "stall", "drop_next", "freeze_next"):
@@ -655,6 +697,8 @@ class FakeController:
             self._freeze()
         elif cmd == "drop":
             self.close_all()
+        elif cmd == "reopen":
+            self.bind()
         elif word == "slider" and arg:
             r.speed_slider = float(arg)
         elif word == "safety" and arg:
@@ -677,8 +721,14 @@ class FakeController:
     # --------------------------------------------------------------------------------- loop
     def run(self) -> None:
         stdin = sys.stdin.fileno()
+        last = time.monotonic()
+        next_starve = last + (self.starve[1] if self.starve else 0.0)
         while self.running:
+            if self.starve is not None and time.monotonic() >= next_starve:
+                time.sleep(self.starve[0])  # a host that does not schedule this process
+                next_starve = time.monotonic() + self.starve[1]
             now = time.monotonic()
+            self.cycle_gap_max_s, last = max(self.cycle_gap_max_s, now - last), now
             started = [c for c in self.conns if c.started and not self.frozen]
             timeout = min([max(0.0, c.next_send - now) for c in started], default=0.008)
             readers = [stdin, *self.listeners, *(c.sock for c in self.conns)]
@@ -748,6 +798,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise-mm", type=float, default=0.0, help="reported position error")
     p.add_argument("--noise-deg", type=float, default=0.0, help="reported rotation error")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--payload-cog", type=_floats, default=[0.0, 0.0, 0.0],
+                   help="the payload's centre of gravity set on the pendant, metres")
+    p.add_argument("--starve", type=_floats, metavar="S,EVERY_S",
+                   help="stall the event loop S seconds every EVERY_S seconds (host CPU load)")
+    p.add_argument("--fieldbus", action="store_true",
+                   help="EtherNet/IP, PROFINET or MODBUS holds input registers 0-23")
     p.add_argument("--silent", action="store_true", help="drop every packet (a dead host)")
     return p
 
@@ -757,11 +813,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         robot = Robot(a.polyscope, a.model, Q0 if a.start_q is None else np.array(a.start_q),
                       a.speed_slider, a.robot_mode, a.safety_mode, not a.local, a.program,
-                      a.noise_mm / 1000.0, a.noise_deg, a.seed)
+                      a.noise_mm / 1000.0, a.noise_deg, a.seed, a.payload_cog, a.fieldbus)
     except Exception as e:  # noqa: BLE001 - reported on the channel the parent reads
         print(json.dumps({"error": f"bad option: {e}"}), flush=True)
         return 2
     fake = FakeController(robot, a.host)
+    fake.starve = None if a.starve is None else (a.starve[0], a.starve[1])
     try:
         fake.bind()
         if a.silent:

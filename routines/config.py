@@ -129,6 +129,7 @@ CELL_KEYS: dict[str, tuple[str, ...]] = {
         "workspace",
         "limits",
         "take_control",  # ur only; validated by slidecal.drivers.ur.cell_options
+        "upper_range_registers",  # ur only; likewise
         "payload",
     ),
     "robot.workspace": ("min_m", "max_m"),

@@ -247,13 +247,14 @@ def device_calibration_outputs(
     sockets = {n: o["socket"] for n, o in outputs.items()}
     lens = {n: o["focus"] for n, o in outputs.items() if o.get("focus") is not None}
     user = read_device_calibration(session_dir, devices, "user")
+    streams = oak.stream_geometry(devices.get("camera") or {})
     Path(export_dir).mkdir(parents=True, exist_ok=True)
     paths, lines = [], []
     try:
         paths.append(
             oak.write_oak_calibration_json(
                 result, Path(export_dir) / "depthai_calibration.json", sockets, base=user,
-                lens_positions=lens,
+                lens_positions=lens, streams=streams,
             )
         )
     except InputError as e:
@@ -266,7 +267,9 @@ def device_calibration_outputs(
         if data is None:
             continue
         try:
-            shift = oak.projection_shift_px(result, data, sockets, distance, resize)
+            shift = oak.projection_shift_px(
+                result, data, sockets, distance, resize, streams=streams
+            )
         except InputError as e:
             lines.append(f"note: the device {kind} calibration was not compared: {e}")
             continue

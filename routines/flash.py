@@ -8,7 +8,8 @@ working distance). With ``--write`` it opens the device the session was recorded
 another one), reads the calibration it uses now and saves it as
 ``SESSION_DIR/device_calibration_backup_<time>.json`` BEFORE writing anything, builds the new
 calibration from that one (board name, IMU extrinsics, design translations kept; intrinsics,
-distortion, extrinsics, rectification and lens positions from the result), saves it as
+distortion, extrinsics, rectification and lens positions from the result; each camera's K
+mapped back through the session's resize to the size the device stores that socket at), saves it as
 ``device_calibration_flashed_<time>.json``, writes it into the device's user calibration area
 (``flashCalibration``; the factory area is never touched), reads it back and compares. To undo:
 flash the backup file with depthai (``device.flashCalibration(dai.CalibrationHandler(path))``)
@@ -106,10 +107,13 @@ def flash_session(
     recorded_id = (devices.get("camera") or {}).get("device_id")
     distance = float(devices.get("working_distance_m") or 0.5)
     resize = next(iter(outputs.values())).get("resize_mode", "stretch")
+    streams = oak.stream_geometry(devices.get("camera") or {})
     lines = []
     recorded = read_device_calibration(session_dir, devices, "user")
     if recorded is not None:
-        shift = oak.projection_shift_px(result, recorded, sockets, distance, resize)
+        shift = oak.projection_shift_px(
+            result, recorded, sockets, distance, resize, streams=streams
+        )
         for name, v in shift.items():
             lines.append(
                 f"{name} ({sockets[name]}): the device's calibration at recording time moves "
@@ -135,7 +139,9 @@ def flash_session(
         current = store.read().eepromToJson()
         backup = session_dir / f"device_calibration_backup_{stamp}.json"
         write_atomic(backup, json.dumps(current, indent=1))
-        handler = oak.oak_calibration_handler(result, sockets, base=current, lens_positions=lens)
+        handler = oak.oak_calibration_handler(
+            result, sockets, base=current, lens_positions=lens, streams=streams
+        )
         new = handler.eepromToJson()
         flashed = session_dir / f"device_calibration_flashed_{stamp}.json"
         write_atomic(flashed, json.dumps(new, indent=1))

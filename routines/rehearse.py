@@ -18,7 +18,9 @@ an OAK named left/right/rgb), the arm starting with the camera at the stand-off 
 the target; the cell's ``take_control`` and ``payload`` go to the driver as on the real cell.
 The session gets, besides what ``slidecal run`` writes, ``rehearsal.yaml``: what the
 controller said it was (:attr:`URRobot.controller_info`) and what it saw (its events, the final
-arm state).
+arm state, the longest time its event loop went unscheduled). The driver's stale-data limit is
+the rehearsal's (:data:`LOOPBACK_STALE_S`): the host's load must not fail a rehearsal, and a
+fault after the loopback itself starved says so.
 """
 
 from __future__ import annotations
@@ -58,6 +60,10 @@ help = "rehearse the cell's routine through the real ur-rtde client on a loopbac
 REHEARSAL_FILE = "rehearsal.yaml"
 #: The controller's state after the last rehearsal in this process (the fault table reads it).
 LAST_CONTROLLER_STATE: dict[str, Any] = {}
+#: The rehearsal's stale-data limit (the driver's is 0.1 s): the loopback controller is a Python
+#: process on the host's CPUs and goes unscheduled under load for far longer than a controller's
+#: cycle; three times the longest gap it showed before the run if that is longer.
+LOOPBACK_STALE_S = 1.0
 
 
 class LoopbackController:
@@ -205,6 +211,7 @@ def rehearse(
     ]
     out = Path(out_dir) if out_dir is not None else default_session_dir()
     controller = LoopbackController(options)
+    stale_s = max(LOOPBACK_STALE_S, 3.0 * controller.ctl("state").get("cycle_gap_max_s", 0.0))
     robot = URRobot(
         controller.host,
         max_speed_mps=cfg.robot.speed_mps,
@@ -212,6 +219,7 @@ def rehearse(
         tcp=cfg.robot.tcp,
         model=cfg.robot.model,
         frequency=125.0,
+        stale_timeout_s=stale_s,
         **driver_options,
     )
     # the simulated cameras render from the controller's arm, not the simulated one
@@ -220,26 +228,43 @@ def rehearse(
     if faults:
         injector = FaultInjector(faults, lambda kind: controller.ctl(CONTROLLER[kind]), cell.rig)
     rig_cell = SimpleNamespace(robot=robot, rig=cell.rig, truth=cell.truth)
-    report: dict[str, Any] = {"controller_options": options, "faults": list(faults or [])}
+    report: dict[str, Any] = {"controller_options": options, "faults": list(faults or []),
+                              "stale_limit_s": stale_s}
+    state: dict[str, Any] = {}
     try:
         outcome = run_calibration(RunRequest(
             cfg, out_dir=out, progress=progress, recording=recording, cell=rig_cell,
             faults=injector,
         ))
         return outcome
+    except HardwareFault as e:
+        state = _state(controller)
+        gap_s = state.get("cycle_gap_max_s", 0.0)
+        if gap_s >= stale_s:
+            raise HardwareFault(
+                f"{e}. The loopback controller itself went {gap_s:.2f} s unscheduled (this "
+                f"host's CPU load; the rehearsal allows {stale_s:.2f} s): not the driver's "
+                "fault; rehearse again on a less busy machine"
+            ) from None
+        raise
     finally:
-        try:
-            state = controller.ctl("state")
-        except HardwareFault:
-            state = {}
+        state = state or _state(controller)
         controller.stop()
         LAST_CONTROLLER_STATE.clear()
         LAST_CONTROLLER_STATE.update(state)
         report["controller"] = robot.controller_info
         report["controller_events"] = state.get("events", [])
         report["arm_at_rest"] = not state.get("moving", True) and not state.get("stalled")
+        report["controller_cycle_gap_max_s"] = state.get("cycle_gap_max_s")
         if out.is_dir():
             write_atomic(out / REHEARSAL_FILE, dump_yaml(report))
+
+
+def _state(controller: LoopbackController) -> dict[str, Any]:
+    try:
+        return controller.ctl("state")
+    except HardwareFault:
+        return {}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -78,7 +78,7 @@ class RenderingCapture:
     rig = None
     instances: list = []
 
-    def __init__(self, source):
+    def __init__(self, source, apiPreference=cv2.CAP_ANY):  # noqa: N803 - OpenCV's name
         self.props = {cv2.CAP_PROP_FRAME_WIDTH: 640.0, cv2.CAP_PROP_FRAME_HEIGHT: 480.0,
                       cv2.CAP_PROP_AUTOFOCUS: 1.0}
         self.image = None
@@ -268,6 +268,17 @@ def test_an_oak_session_records_the_device_compares_and_flashes(tmp_path, oak_de
     np.testing.assert_allclose(K_dev, result.cameras["left"].K, rtol=1e-6)
     assert world.user.eepromToJson()["boardName"] == "OAK-D"
     assert world.user.getLensPosition(fake_depthai.dai.CameraBoardSocket.CAM_A) == 130
+    # issue 36 item 1: the colour stream, stretched from the whole 4:3 array, is written at the
+    # size the device stores CAM_A at (1080p, a 16:9 crop), as depthai reads it there: fx as
+    # the stream's (the crop keeps the width), fy through the stretch and the crop
+    A = fake_depthai.dai.CameraBoardSocket.CAM_A
+    K_rgb = np.asarray(result.cameras["rgb"].K)
+    export = fake_depthai.dai.CalibrationHandler(str(sdir / "export" / "depthai_calibration.json"))
+    for h in (world.user, export):
+        assert h.getDefaultIntrinsics(A)[1:] == (1920, 1080)
+        K = np.asarray(h.getCameraIntrinsics(A, 1920, 1080))
+        assert K[0, 0] == pytest.approx(K_rgb[0, 0], rel=1e-6)
+        assert K[1, 1] == pytest.approx(K_rgb[1, 1] * 3040 / 1080 * 1920 / 4056, rel=1e-6)
 
 
 # ---------------------------------------------------------------------- configuration errors

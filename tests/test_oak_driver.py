@@ -196,6 +196,64 @@ def test_device_camera_maps_the_calibration_to_the_output_size():
     assert device_camera(js, "CAM_B", (1280, 800)) is None
 
 
+#: A session's record of an OAK-D's colour stream (OakRig.capabilities): 1920x1080 stretched
+#: from the binned 2028x1520 mode, which sees the whole 4056x3040 array.
+RGB_STRETCHED = {
+    "sensors": [{"socket": "CAM_A", "width": 4056, "height": 3040,
+                 "calibration_resolution": None}],
+    "outputs": {"rgb": {"socket": "CAM_A", "size": [1920, 1080], "resize_mode": "stretch",
+                        "sensor_mode": {"width": 2028, "height": 1520,
+                                        "fov": [0, 0, 4056, 3040]}}},
+}
+
+
+def test_a_stretched_stream_is_written_at_the_size_the_device_stores():
+    """Issue 36 item 1, against the real CalibrationHandler. depthai's
+    ``getCameraIntrinsics(socket, w, h)`` (``keepAspectRatio``, its default) reads a calibration
+    at another aspect ratio than the stored one as a centred crop with one scale, the principal
+    point scaled as it is: a K written at the stretched size reads back with fy 25 % short."""
+    dai = dai_real
+    A = dai.CameraBoardSocket.CAM_A
+    f, cx, cy = 3090.0, 2031.0, 1512.0
+    K_full = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+    truth = dai.CalibrationHandler()
+    truth.setCameraIntrinsics(A, K_full.tolist(), 4056, 3040)
+    # the K the session solves for the stretched stream: one scale per axis, pixel centres
+    sx, sy = 1920 / 4056, 1080 / 3040
+    K_out = np.array([[f * sx, 0.0, sx * (cx + 0.5) - 0.5], [0.0, f * sy, sy * (cy + 0.5) - 0.5],
+                      [0.0, 0.0, 1.0]])
+    r = _result(np.random.default_rng(9))
+    rgb = CameraEstimate("rgb", 1920, 1080, K_out, np.zeros(5), {}, 0.1)
+    r = CalibrationResult(**{**r.__dict__, "cameras": {**r.cameras, "rgb": rgb}})
+    streams = oak.stream_geometry(RGB_STRETCHED)
+    # a device with nothing stored for CAM_A: written at the full array
+    h = oak_calibration_handler(r, streams=streams)
+    assert h.getDefaultIntrinsics(A)[1:] == (4056, 3040)
+    K = np.array(h.getCameraIntrinsics(A, 4056, 3040))
+    np.testing.assert_allclose(K, K_full, rtol=1e-6)
+    assert K[0, 0] == K[1, 1]
+    np.testing.assert_allclose(h.getCameraIntrinsics(A, 1920, 1080),
+                               truth.getCameraIntrinsics(A, 1920, 1080), rtol=1e-6)
+    # the other cameras have no stream record: written at their own size as before
+    assert h.getDefaultIntrinsics(dai.CameraBoardSocket.CAM_B)[1:] == (1280, 800)
+    # a device that stores CAM_A at 1080p (a 16:9 crop of the array), as the base or as the
+    # sensor's calibrationResolution: written there, and read there as the crop stream's K
+    crop_K = np.array(truth.getCameraIntrinsics(A, 1920, 1080))
+    base = dai.CalibrationHandler()
+    base.setCameraIntrinsics(A, crop_K.tolist(), 1920, 1080)
+    calib_1080p = {**RGB_STRETCHED, "sensors": [
+        {**RGB_STRETCHED["sensors"][0], "calibration_resolution": [1920, 1080]}]}
+    for h in (oak_calibration_handler(r, base=base, streams=streams),
+              oak_calibration_handler(r, streams=oak.stream_geometry(calib_1080p))):
+        assert h.getDefaultIntrinsics(A)[1:] == (1920, 1080)
+        np.testing.assert_allclose(h.getCameraIntrinsics(A, 1920, 1080), crop_K, rtol=1e-6)
+        # and the comparison reads that stored 16:9 calibration back to the stretched stream
+        K, _ = device_camera(h.eepromToJson(), "CAM_A", (1920, 1080), "stretch", streams["rgb"])
+        np.testing.assert_allclose(K, K_out, rtol=1e-6)
+    assert projection_shift_px(r, h.eepromToJson(), {"rgb": "CAM_A", "left": "CAM_B"}, 0.5,
+                               streams=streams)["rgb"]["max_px"] < 2e-3
+
+
 def test_projection_shift_against_a_device_calibration():
     r = _result(np.random.default_rng(8))
     cams = {n: CameraEstimate(n, c.width, c.height, c.K, np.zeros(5), {}, 0.1)

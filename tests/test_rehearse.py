@@ -130,3 +130,32 @@ def test_a_dead_controller_is_a_hardware_fault(monkeypatch, tmp_path):
 
 def _refuse(self, options, host=None):
     raise HardwareFault("the loopback controller did not start: port 30004 (rtde) is taken")
+
+
+def _starving(monkeypatch, starve: str) -> None:
+    """The loopback controller started on a host that stalls it (``--starve S,EVERY_S``)."""
+    from slidecal.routines import rehearse as rh
+
+    start = rh.LoopbackController.__init__
+    monkeypatch.setattr(rh.LoopbackController, "__init__",
+                        lambda self, options, host=None: start(self, [*options, "--starve",
+                                                                      starve], host))
+
+
+@pytest.mark.slow
+def test_a_rehearsal_does_not_fail_for_the_hosts_load(tmp_path, monkeypatch):
+    """Issue 36 item 3: a loopback stalled 0.3 s every 2 s (a host at load 5) tripped the
+    driver's 0.1 s stale-data limit; the rehearsal's limit fits the loopback's gaps."""
+    _starving(monkeypatch, "0.3,2")
+    outcome = rehearse(None, tmp_path / "s", progress=False)
+    assert outcome.n_frames > 0
+    info = yaml.safe_load((tmp_path / "s" / "rehearsal.yaml").read_text())
+    assert info["controller_cycle_gap_max_s"] >= 0.3 and info["stale_limit_s"] >= 0.9
+
+
+@pytest.mark.slow
+def test_a_starved_loopback_is_named_in_the_fault(tmp_path, monkeypatch):
+    _starving(monkeypatch, "1.5,3")
+    with pytest.raises(HardwareFault, match=r"loopback controller itself went 1\.\d\d s "
+                       r"unscheduled .* not the driver's fault"):
+        rehearse(None, tmp_path / "s", progress=False)

@@ -48,7 +48,8 @@ class FakeController:
         self.refuse_connection = False
         self.version = "5.12.2.1101534"
         self.program: str | None = None
-        self.speed_scaling = 1.0
+        self.speed_scaling = 1.0  # the trajectory limiter's factor
+        self.target_speed_fraction = 1.0  # the pendant's slider
         self.payload: tuple | None = None
         self.paused: str | None = None  # a program paused on the pendant
         self.runtime_state: int | None = None  # None: from program / paused
@@ -93,6 +94,12 @@ def install_fakes(monkeypatch: pytest.MonkeyPatch, ctl: FakeController) -> None:
         def getSpeedScaling(self):
             return ctl.speed_scaling
 
+        def getTargetSpeedFraction(self):
+            return ctl.target_speed_fraction
+
+        def getSpeedScalingCombined(self):  # computed by the client (rtde_receive_interface.cpp)
+            return ctl.speed_scaling * ctl.target_speed_fraction
+
         def getRobotMode(self):
             return ctl.robot_mode
 
@@ -112,6 +119,9 @@ def install_fakes(monkeypatch: pytest.MonkeyPatch, ctl: FakeController) -> None:
             ctl.calls.append(("receive.disconnect",))
 
     class RTDEControlInterface:
+        #: the members of ur-rtde's Flags enum the driver uses (checked against ur-rtde below)
+        Flags = types.SimpleNamespace(FLAG_UPLOAD_SCRIPT=1, FLAG_UPPER_RANGE_REGISTERS=8)
+
         def __init__(self, hostname, frequency=-1.0, flags=1, ur_cap_port=50002, rt_priority=0):
             ctl.calls.append(("RTDEControlInterface", hostname, frequency))
 
@@ -437,8 +447,21 @@ def test_the_fakes_match_the_installed_ur_rtde(monkeypatch, module):
     methods = [k for k, v in vars(fake).items() if callable(v) and (not k.startswith("_")
                                                                      or k == "__init__")]
     assert len(methods) >= 5
+    for name, flag in vars(getattr(fake, "Flags", types.SimpleNamespace())).items():
+        assert int(getattr(real.Flags, name)) == flag, name
     for name in methods:
         assert hasattr(real, name), f"{module}.{fake.__name__}.{name} is not in ur-rtde"
         assert overloads(getattr(real, name), name), name  # introspectable: really checked
         check_callable(vars(fake)[name], getattr(real, name), name,
                        f"{module}.{fake.__name__}.{name}")
+
+
+def test_the_upper_register_range_is_a_cell_option(ctl):
+    """Issue 36 item 6: ``robot.upper_range_registers`` reaches the driver, checked."""
+    from slidecal.drivers.ur import cell_options
+
+    assert cell_options({"upper_range_registers": True})["upper_range_registers"] is True
+    assert cell_options({})["upper_range_registers"] is False
+    with pytest.raises(InputError, match="true or false") as e:
+        cell_options({"upper_range_registers": "yes"})
+    assert e.value.where == "robot.upper_range_registers"

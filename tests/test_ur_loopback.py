@@ -415,10 +415,28 @@ def test_reduced_mode_is_normal_operation_and_the_payload_is_set(make_fake):
         bounded(robot.close, 10.0)
 
 
+def test_the_slider_is_reported_as_a_controller_reports_it(make_fake):
+    """Issue 36 item 2. On a controller the pendant's slider is ``target_speed_fraction``;
+    ``speed_scaling`` is the trajectory limiter's factor; ur-rtde's
+    ``getSpeedScalingCombined`` is their product (``rtde_receive_interface.cpp``). Read here
+    through the real client, so the loopback cannot agree with the driver on anything else."""
+    import rtde_receive
+
+    fake = make_fake("--speed-slider", "0.2")
+    receive = rtde_receive.RTDEReceiveInterface(fake.host, FREQ_HZ)
+    try:
+        assert receive.getTargetSpeedFraction() == pytest.approx(0.2)
+        assert receive.getSpeedScaling() == pytest.approx(1.0)
+        assert receive.getSpeedScalingCombined() == pytest.approx(0.2)
+    finally:
+        receive.disconnect()
+
+
 @pytest.mark.slow  # several seconds: the second CI tier
 def test_a_slow_speed_slider_is_not_a_time_out(make_fake):
     """At a 20 % slider a 5 cm move takes 2.5 s: the deadline from the commanded speed alone
-    (2 x 0.6 s + 1 s) aborted it (issue 10.6)."""
+    (2 x 0.6 s + 1 s) aborted it (issue 10.6), and so did one from the trajectory limiter's
+    ``getSpeedScaling`` (1 while the slider is at 20 %: issue 36 item 2)."""
     fake = make_fake("--speed-slider", "0.2")
     robot = URRobot(fake.host, frequency=FREQ_HZ, settle_timeout_s=1.0)
     robot.connect()
@@ -528,3 +546,65 @@ def test_sigterm_during_a_move_stops_the_arm_through_the_real_client(fake, robot
     assert T0[0, 3] + 0.005 < x_now < T1[0, 3] - 0.05  # moved, and stopped well short
     time.sleep(0.3)
     assert np.allclose(fake.state()["tcp_pose"], st["tcp_pose"], atol=1e-9)  # at rest
+
+
+def test_cb3_payload_without_cog_keeps_the_controllers_cog(make_fake):
+    """Issue 36 item 4. ur-rtde sends [0, 0, 0] for an empty CoG; the script line that keeps
+    the current CoG is tagged ``$5.0`` (``rtde_control.script``), so the real client leaves it
+    out on 3.x and the CoG would become the flange centre. Through the real client: on 3.15
+    the driver reads the CoG (``getPayloadCog``) and sends it back; on 5.12 the script keeps it.
+    """
+    for version in ("3.15", "5.12"):
+        fake = make_fake("--polyscope", version, "--payload-cog", "0,0.01,0.07")
+        robot = URRobot(fake.host, frequency=FREQ_HZ, payload_kg=1.2)
+        robot.connect()
+        try:
+            assert fake.state()["payload"] == [1.2, [0.0, 0.01, 0.07]], version
+        finally:
+            bounded(robot.close, 10.0)
+
+
+def test_a_script_left_by_a_dropped_link_is_named_on_resume(fake):
+    """Issue 36 item 5. Over a dead link the driver does not send stopScript (ur-rtde would
+    wait 300 s), so ur-rtde's script keeps playing; the next connect says it is that script
+    and what to do, instead of "a program is running"."""
+    robot = URRobot(fake.host, frequency=FREQ_HZ)
+    robot.connect()
+    assert fake.ctl("drop") == {"ok": "drop"}
+    bounded(robot.close, 10.0)
+    assert fake.ctl("reopen") == {"ok": "reopen"}
+    assert fake.state()["runtime_state"] == 2  # the script still plays
+    with pytest.raises(HardwareFault, match=r"ur-rtde's control script .* still runs.*lost its "
+                       r"link.*stop on the pendant.*take_control: true.*resume"):
+        URRobot(fake.host, frequency=FREQ_HZ).connect()
+    robot = URRobot(fake.host, frequency=FREQ_HZ, take_control=True)
+    robot.connect()
+    bounded(robot.close, 10.0)
+
+
+def test_fieldbus_registers_in_use_are_named_and_the_upper_range_works(make_fake):
+    """Issue 36 item 6. A fieldbus holding the RTDE input registers makes the controller
+    answer ``IN_USE`` in the input recipe and the real client throw "One of the RTDE input
+    registers are already in use!"; the driver says so and offers the upper range, with which
+    the real client and the loopback run the register protocol at offset 24."""
+    fake = make_fake("--fieldbus")
+    with pytest.raises(HardwareFault, match=r"EtherNet/IP, PROFINET or a MODBUS.*"
+                       r"upper_range_registers: true"):
+        URRobot(fake.host, frequency=FREQ_HZ).connect()
+    robot = URRobot(fake.host, frequency=FREQ_HZ, upper_range_registers=True)
+    robot.connect()
+    try:
+        T1 = shifted(robot.measured_pose(), 0.02, 0.0, 0.0)
+        robot.move_linear(T1, 0.1, 1.0)
+        assert_pose_close(T_from_ur_pose(fake.state()["tcp_pose"]), T1)
+    finally:
+        bounded(robot.close, 10.0)
+
+
+def test_the_loopback_measures_how_long_it_went_unscheduled(make_fake):
+    """Issue 36 item 3: the loopback reports its longest event-loop gap (what a rehearsal's
+    stale-data limit is fitted to), here with a host that stalls it 0.3 s every 0.4 s."""
+    assert make_fake().state()["cycle_gap_max_s"] < 0.3
+    fake = make_fake("--starve", "0.3,0.4")
+    time.sleep(1.0)
+    assert fake.state()["cycle_gap_max_s"] >= 0.3

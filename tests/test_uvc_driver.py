@@ -56,7 +56,10 @@ class FakeCapture:
 
     Like V4L2: a property the camera lacks cannot be set and reads -1; ``autofocus`` is
     "off-able", "stuck" (reads 1 whatever is set) or "absent"; exposure snaps to steps of
-    ``exposure_step``."""
+    ``exposure_step``. Like OpenCV's V4L2 backend (``cap_v4l.cpp``): with ``normalized`` (the
+    environment's ``OPENCV_VIDEOIO_V4L_RANGE_NORMALIZED``) ``CAP_PROP_AUTO_EXPOSURE`` is mapped
+    from [0, 1) onto V4L2's menu 0..4 (1 is then no valid entry and is refused), until
+    ``CAP_PROP_MODE`` is set to 0 (raw ranges; it then reads 0)."""
 
     instances: list[FakeCapture] = []
     sizes = [(640, 480), (1280, 720)]
@@ -65,9 +68,10 @@ class FakeCapture:
     autofocus = "off-able"
     white_balance = "absent"  # "off-able", "stuck" (stays on) or "absent" (a grey camera)
     frames_left = 100
+    normalized = False
 
-    def __init__(self, source):
-        self.source = source
+    def __init__(self, source, apiPreference=cv2.CAP_ANY):  # noqa: N803 - OpenCV's name
+        self.source, self.api = source, apiPreference
         self.props = {
             cv2.CAP_PROP_FRAME_WIDTH: 640.0,
             cv2.CAP_PROP_FRAME_HEIGHT: 480.0,
@@ -88,10 +92,17 @@ class FakeCapture:
         return self.source != 99
 
     def getBackendName(self):
-        return "V4L2"
+        return "V4L2" if self.api == cv2.CAP_V4L2 else "FFMPEG"
 
     def set(self, prop, value):
         self.sets.append((prop, value))
+        if prop == cv2.CAP_PROP_MODE:
+            self.normalized = bool(round(value))
+            return True
+        if prop == cv2.CAP_PROP_AUTO_EXPOSURE and self.normalized:
+            value = round(value * 4)  # Range(0, 4)
+            if value not in (1, 3):  # V4L2's manual and aperture-priority entries
+                return False
         if prop in (cv2.CAP_PROP_AUTO_EXPOSURE, cv2.CAP_PROP_EXPOSURE):
             if not self.exposure_supported:
                 return False
@@ -116,6 +127,10 @@ class FakeCapture:
         return True
 
     def get(self, prop):
+        if prop == cv2.CAP_PROP_MODE:
+            return self.props.get(cv2.CAP_PROP_FOURCC, 0.0) if self.normalized else 0.0
+        if prop == cv2.CAP_PROP_AUTO_EXPOSURE and self.normalized:
+            return self.props[prop] / 4
         return self.props.get(prop, -1.0)
 
     def grab(self):
@@ -151,6 +166,8 @@ def fake(monkeypatch):
     FakeCapture.exposure_step = 1.0
     FakeCapture.autofocus = "off-able"
     FakeCapture.frames_left = 100
+    FakeCapture.normalized = False
+    FakeCapture.white_balance = "absent"
     monkeypatch.setattr(cv2, "VideoCapture", FakeCapture)
     return FakeCapture
 
@@ -196,10 +213,11 @@ def test_a_camera_that_keeps_autofocus_on_is_refused(fake):
 def test_settings_the_camera_ignores_are_reported(fake):
     fake.exposure_step = 39.0  # 150 reads back as 156
     cam = UvcCamera(0, "c", 640, 480, exposure=150)
-    cam.open()
+    # issue 36 item 7: a requested exposure that did not lock is refused, not noted
+    with pytest.raises(HardwareFault, match="manual exposure 150 not taken") as e:
+        cam.open()
     assert cam.settings["exposure"] == {"requested": 150.0, "read_back": 156.0, "accepted": False}
-    assert "manual exposure 150 not taken" in cam.messages[0]
-    assert "exposure 156" in cam.messages[0]
+    assert "exposure 156" in str(e.value) and fake.instances[0].released
 
 
 def test_fake_refuses_size_fallback_and_reports_missing_exposure(fake):
@@ -208,8 +226,8 @@ def test_fake_refuses_size_fallback_and_reports_missing_exposure(fake):
     assert fake.instances[0].released
     fake.exposure_supported = False
     cam = UvcCamera(0, "c", 640, 480, exposure=100)
-    cam.open()
-    assert "manual exposure 100 not taken" in cam.messages[0]
+    with pytest.raises(HardwareFault, match="manual exposure 100 not taken"):
+        cam.open()
 
 
 def test_fake_unplugged_and_not_open(fake):
@@ -268,3 +286,25 @@ def test_a_camera_without_exposure_control_is_reported(fake):
     cam = UvcCamera(0, "c", 640, 480, settle_frames=0)
     cam.open()
     assert "locking the exposure at 166 not taken" in cam.messages[0]
+
+
+def test_a_camera_is_opened_with_v4l2_in_raw_ranges(fake, monkeypatch):
+    """Issue 36 item 7: ``CAP_PROP_AUTO_EXPOSURE = 1`` means manual only in OpenCV's V4L2
+    backend with raw ranges. A camera on Linux is opened with ``CAP_V4L2`` and switched to raw
+    ranges before any control, so a normalising environment cannot turn the lock into a no-op."""
+    monkeypatch.setattr("sys.platform", "linux")
+    fake.normalized = True  # OPENCV_VIDEOIO_V4L_RANGE_NORMALIZED=1
+    cam = UvcCamera(0, "c", 640, 480, exposure=150)
+    cam.open()
+    cap = fake.instances[0]
+    assert cap.api == cv2.CAP_V4L2 and cam.capabilities()["backend"] == "V4L2"
+    assert cap.sets[0] == (cv2.CAP_PROP_MODE, 0.0)
+    assert cam.settings["raw_ranges"]["accepted"]
+    assert cap.get(cv2.CAP_PROP_AUTO_EXPOSURE) == 1.0 and cam.messages == []
+
+
+def test_the_real_opencv_takes_the_v4l2_backend_without_a_device():
+    """The real cv2.VideoCapture with CAP_V4L2 and no such device: not opened, said in one
+    line (the real video-file tests above open through the default backend)."""
+    with pytest.raises(HardwareFault, match="cannot open 63"):
+        UvcCamera(63, "c", 640, 480).open()
