@@ -349,6 +349,16 @@ class URRobot:
                 f"ur-rtde is not importable ({e}); install it with 'pip install ur-rtde>=1.6'"
             ) from None
         where = f"robot at {self.hostname}"
+        running, program_state = self._ask_dashboard(dashboard_client, where)
+        self._check_state(rtde_receive, where, running, program_state)
+        self._open_control(rtde_control, where)
+        self._set_tool(where)
+        self._last_timestamp = -np.inf
+        self._fresh()
+
+    def _ask_dashboard(self, dashboard_client: Any, where: str) -> tuple[bool, str]:
+        """The dashboard's answers (version, model, remote control, the program's state) into
+        :attr:`controller_info`; whether a program runs, and its state."""
         rtde_version = probe_controller(self.hostname, self.connect_timeout_s)
         try:
             self._dashboard = dashboard_client.DashboardClient(self.hostname)
@@ -406,6 +416,13 @@ class URRobot:
             "program_stopped": None,
         }
         self._ik_on_controller = has_ik_query(version)
+        return running, program_state
+
+    def _check_state(
+        self, rtde_receive: Any, where: str, running: bool, program_state: str
+    ) -> None:
+        """Open RTDE receive; refuse a robot not running, not in normal safety mode, or running
+        a program the user did not let slidecal stop."""
         try:
             self._receive = rtde_receive.RTDEReceiveInterface(
                 self.hostname, self.frequency, [], False, self.upper_range_registers
@@ -455,6 +472,10 @@ class URRobot:
                     "'take_control: true' in the cell file's robot section"
                 )
             self.controller_info["program_stopped"] = program_state
+
+    def _open_control(self, rtde_control: Any, where: str) -> None:
+        """Open RTDE control (ur-rtde uploads its script), naming a fieldbus that holds the
+        registers."""
         flags = rtde_control.RTDEControlInterface.Flags
         try:
             self._control = rtde_control.RTDEControlInterface(
@@ -474,6 +495,9 @@ class URRobot:
                 f"cannot open RTDE control of the {where}: {e}; check that it is in remote "
                 "control and that no other program controls it"
             ) from None
+
+    def _set_tool(self, where: str) -> None:
+        """The TCP offset (the cell's, or the controller's) and the payload."""
         if self.tcp is not None and not self._control.setTcp(ur_pose_from_T(self.tcp)):
             self.close()
             raise HardwareFault(f"the {where} refused the TCP offset {ur_pose_from_T(self.tcp)}")
@@ -508,8 +532,6 @@ class URRobot:
                     "the values against the arm's rated payload"
                 )
             self.controller_info["payload"] = {"mass_kg": self.payload_kg, "cog_m": cog or None}
-        self._last_timestamp = -np.inf
-        self._fresh()
 
     def close(self) -> None:
         """Stop the control script and disconnect (idempotent); never moves the robot.
