@@ -31,6 +31,8 @@ optional, additive, so the format stays ``slidecal.session/1`` and older session
 - ``frames[i].quality``: per camera, what the detector said (``ok``, ``reasons``,
   ``homography_rms_px``, ``coverage``, ``n_corners``); informative only.
 - ``events``: what happened during the run (``{kind, message, ...}``), e.g. a fault.
+- ``detections_file``: the detections table; ``frames[i].detections`` then counts each camera's
+  corners in it (``{camera: n}``) instead of giving them inline (``{camera: {ids, px}}``).
 - ``status``: ``recording`` | ``complete`` | ``aborted``.
 - ``simulation``: the truth of a simulated run under the result file's names:
   ``cameras: {name: {K, distortion}}``, ``T_tool_cam`` (or ``T_base_cam``; ``T_tool_<name>`` per
