@@ -1188,7 +1188,23 @@ class SessionWriter:
         return self.directory
 
     def _write(self) -> None:
-        write_atomic(self.directory / SESSION_FILE, dump_yaml(self.data))
+        write_atomic(self.directory / SESSION_FILE, self._text())
+
+    def _text(self) -> str:
+        """``dump_yaml(self.data)``, each frame's text made once (a frame is not changed once
+        written): appending stays linear in the frames instead of quadratic."""
+        frames = self.data["frames"]
+        cache = self.__dict__.setdefault("_frame_yaml", [])
+        cache.extend(dump_yaml([fr]) for fr in frames[len(cache) :])
+        keys = list(self.data)
+        at = keys.index("frames")
+        head = {k: self.data[k] for k in keys[:at]}
+        tail = {k: self.data[k] for k in keys[at + 1 :]}
+        return (
+            (dump_yaml(head) if head else "")
+            + ("frames:\n" + "".join(cache) if frames else "frames: []\n")
+            + (dump_yaml(tail) if tail else "")
+        )
 
 
 def _declared(extra: Mapping[str, Any] | None, keys: Sequence[str], what: str) -> None:

@@ -12,7 +12,9 @@ from slidecal.drivers.ur_pose import T_from_ur_pose
 from slidecal.routines.session import (
     SESSION_FILE,
     SessionWriter,
+    dump_yaml,
     load_session,
+    load_yaml,
     read_session,
     write_session,
 )
@@ -88,6 +90,9 @@ def test_writer_appends_frames_at_once_with_images(tmp_path: Path) -> None:
     w.add_event("fault", "protective stop", frame=3)
     s = load_session(tmp_path / "s")
     assert s.events[0]["kind"] == "fault"
+    # each frame's text is made once, and the file is still the dump of the whole
+    text = (tmp_path / "s" / SESSION_FILE).read_text()
+    assert text == dump_yaml(load_yaml(tmp_path / "s" / SESSION_FILE, "session"))
     assert not list((tmp_path / "s").glob(".*.tmp"))  # no temporary file left behind
     with pytest.raises(InputError, match="already holds a session"):
         SessionWriter(tmp_path / "s", p.target, p.cameras)
