@@ -499,8 +499,8 @@ class Session:
     ``sockets``: camera name -> OAK board socket (empty unless the cameras were an OAK).
     ``detect_reasons``: per (frame id, camera) whose image was detected on reading and gave
     nothing usable, why (the detector's reasons, e.g. a board of another size seen).
-    ``limits``: the ``limits:`` block as written (validated by whoever judges with it), ``cell``
-    and it being what a solve needs beyond the problem, read with it in one pass.
+    ``limits``: the ``limits:`` block as written (validated where it is judged with), so that
+    a solve reads ``session.yaml`` once.
     """
 
     directory: Path
@@ -904,10 +904,11 @@ def _detection_table(f: Fields, directory: Path, n_cameras: int) -> DetectionTab
         raise InputError(
             f"is not a readable .npy file ({why}); restore the session's own file", where=rel
         ) from None
-    if table.ndim != 1 or table.dtype.names != DETECTION_DTYPE.names:
+    if table.ndim != 1 or table.dtype != DETECTION_DTYPE:
+        fields = ", ".join(f"{n} {DETECTION_DTYPE[n].name}" for n in DETECTION_DTYPE.names)
         raise InputError(
-            "is not a detections table (a 1-d array with fields "
-            f"{', '.join(DETECTION_DTYPE.names)}); restore the session's own file",
+            f"is not a detections table (a 1-d array of records {fields}); restore the "
+            "session's own file",
             where=rel,
         )
     table = table[(table["camera"] >= 0) & (table["camera"] < n_cameras)]
