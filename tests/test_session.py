@@ -9,6 +9,8 @@ import pytest
 import yaml
 
 from slidecal.drivers.ur_pose import T_from_ur_pose
+from slidecal.routines.install import install, installed_session
+from slidecal.routines.run import solve_session
 from slidecal.routines.session import (
     SESSION_FILE,
     SessionWriter,
@@ -329,6 +331,14 @@ def test_old_sessions_with_inline_detections_read_as_rewritten_in_the_table_form
     assert doc["detections_file"] == "detections.npy"
     assert all(isinstance(n, int) for f in doc["frames"] for n in f["detections"].values())
     _same(old.problem, read_session(tmp_path / "s"))
+
+
+def test_an_install_keeps_the_detections_table(tmp_path: Path) -> None:
+    old = load_session(DATA / "r1_session", detect_images=False)
+    write_session(tmp_path / "s", old.problem)
+    result = solve_session(tmp_path / "s").result
+    entry = install(tmp_path / "store", tmp_path / "s", result, "accepted")
+    _same(old.problem, installed_session(entry))
 
 
 def test_the_detections_table_is_numpys_own_format(tmp_path: Path) -> None:
