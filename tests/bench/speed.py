@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import os
 import pstats
+import resource
 import statistics
 import subprocess
 import sys
@@ -120,13 +121,20 @@ def simulated_problem(n_frames: int, seed: int = 7) -> CalibrationProblem:
 ENV = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
 
 
-def _run_s(argv: list[str]) -> float:
+def _run_s(argv: list[str]) -> tuple[float, float]:
+    """Wall and CPU seconds (user + system) of a process."""
+    cpu = _children_cpu_s()
     t = time.perf_counter()
     done = subprocess.run(argv, capture_output=True, text=True, env=ENV)
     dt = time.perf_counter() - t
     if done.returncode not in (0, 1):  # 1: solved but not accepted by the verdict
         raise RuntimeError(f"{' '.join(argv)} failed ({done.returncode}): {done.stderr[-400:]}")
-    return dt
+    return dt, _children_cpu_s() - cpu
+
+
+def _children_cpu_s() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
 
 
 def _opencv_s(problem: CalibrationProblem) -> tuple[float, float]:
@@ -169,6 +177,7 @@ def measure(n_frames: int, work: Path, repeats: int) -> dict[str, float]:
     for _ in range(repeats):
         ours.append(_run_s(solve))
         theirs.append(_run_s([sys.executable, str(script), str(session)]))
+    (ours, ours_cpu), (theirs, theirs_cpu) = zip(*ours, strict=True), zip(*theirs, strict=True)
     for _ in range(repeats):
         t = time.perf_counter()
         problem = load_session(session).problem
@@ -188,6 +197,8 @@ def measure(n_frames: int, work: Path, repeats: int) -> dict[str, float]:
         "session_mb": session_mb,
         "slidecal_s": med(ours),
         "opencv_script_s": med(theirs),
+        "slidecal_cpu_s": med(ours_cpu),
+        "opencv_script_cpu_s": med(theirs_cpu),
         "load_s": med(loads),
         "calibrate_s": med(solves),
         "calibrate_camera_s": med(cvs),
@@ -268,12 +279,13 @@ def report(rows: list[dict[str, float]], repeats: int) -> str:
         "solve (`calibrate`, the arm's accuracy learned) against `cv2.calibrateCamera` on the "
         "same detections; `cv2.calibrateHandEye` s: in process, the script's hand-eye alone "
         "(OpenCV's Park takes every pair of frames: it grows as frames squared). The machine "
-        "the figures come from may be shared: compare figures of one run.",
+        "the figures come from may be shared: compare figures of one run; CPU: the whole "
+        "processes' CPU seconds (user + system), steadier than wall time on a busy machine.",
         "",
         "| frames | session MB | slidecal solve s | OpenCV script s | ratio (target) "
         "| load s (target) | calibrate s | cv2.calibrateCamera s | ratio (target) "
-        "| cv2.calibrateHandEye s |",
-        "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+        "| cv2.calibrateHandEye s | CPU s: slidecal / script (ratio) |",
+        "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for r in rows:
         n = int(r["frames"])
@@ -285,7 +297,8 @@ def report(rows: list[dict[str, float]], repeats: int) -> str:
             f"{r['opencv_script_s']:.2f} | {whole:.2f} (<= {WHOLE_TARGET.get(n, '-')}) | "
             f"{r['load_s']:.3f}{load_target} | {r['calibrate_s']:.2f} | "
             f"{r['calibrate_camera_s']:.2f} | {inproc:.2f} (<= {SOLVE_TARGET}) | "
-            f"{r['hand_eye_s']:.2f} |"
+            f"{r['hand_eye_s']:.2f} | {r['slidecal_cpu_s']:.2f} / {r['opencv_script_cpu_s']:.2f} "
+            f"({r['slidecal_cpu_s'] / r['opencv_script_cpu_s']:.2f}) |"
         )
     return "\n".join(lines) + "\n"
 
