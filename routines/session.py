@@ -1180,6 +1180,7 @@ class SessionWriter:
     def set_simulation(self, simulation: Mapping[str, Any]) -> None:
         """Record the simulated truth (``simulation:`` block)."""
         self.data["simulation"] = plain(dict(simulation))
+        self.__dict__.pop("_item_text", None)
         self._write()
 
     def finish(self, status: str = "complete") -> Path:
@@ -1192,20 +1193,29 @@ class SessionWriter:
         write_atomic(self.directory / SESSION_FILE, self._text())
 
     def _text(self) -> str:
-        """``dump_yaml(self.data)``, each frame's text made once (a frame is not changed once
-        written): appending stays linear in the frames instead of quadratic."""
-        frames = self.data["frames"]
-        cache = self.__dict__.setdefault("_frame_yaml", [])
-        cache.extend(dump_yaml([fr]) for fr in frames[len(cache) :])
-        keys = list(self.data)
-        at = keys.index("frames")
-        head = {k: self.data[k] for k in keys[:at]}
-        tail = {k: self.data[k] for k in keys[at + 1 :]}
-        return (
-            (dump_yaml(head) if head else "")
-            + ("frames:\n" + "".join(cache) if frames else "frames: []\n")
-            + (dump_yaml(tail) if tail else "")
-        )
+        """``dump_yaml(self.data)``, the text of each frame and of its simulated truth made once
+        (neither changes once written): appending stays linear in the frames, not quadratic."""
+        cache = self.__dict__.setdefault("_item_text", {"frames": [], "simulation": []})
+        out = []
+        for key, value in self.data.items():
+            sim = key == "simulation" and isinstance(value, Mapping)
+            sim_frames = value.get("frames") if sim else None
+            if key == "frames":
+                out.append(_list_text(key, value, cache[key], 0))
+            elif isinstance(sim_frames, list) and list(value)[-1] == "frames":
+                head = {k: v for k, v in value.items() if k != "frames"}
+                out.append(f"{key}:\n" + (dump_yaml(head, 2) if head else ""))
+                out.append(_list_text("frames", sim_frames, cache[key], 2))
+            else:
+                out.append(dump_yaml({key: value}, 0))
+        return "".join(out)
+
+
+def _list_text(key: str, items: list[Any], cache: list[str], indent: int) -> str:
+    """``key: [items]`` as a block list ``indent`` deep, each item's text cached in ``cache``."""
+    cache.extend(dump_yaml([x], indent) for x in items[len(cache) :])
+    pad = " " * indent
+    return f"{pad}{key}:\n" + "".join(cache) if items else f"{pad}{key}: []\n"
 
 
 def _declared(extra: Mapping[str, Any] | None, keys: Sequence[str], what: str) -> None:

@@ -81,10 +81,11 @@ def test_round_trip_gives_the_same_problem(tmp_path: Path) -> None:
 def test_writer_appends_frames_at_once_with_images(tmp_path: Path) -> None:
     rng = np.random.default_rng(4)
     p = _problem(rng, 3)
-    w = SessionWriter(tmp_path / "s", p.target, p.cameras)
+    w = SessionWriter(tmp_path / "s", p.target, p.cameras, simulation={"seed": 7})
     img = rng.integers(0, 255, (800, 1280), dtype=np.uint8)
     for k, fr in enumerate(p.frames):
-        w.append_frame(fr.T_base_tool, {"left": img}, fr.detections, group=fr.group)
+        T = fr.T_base_tool
+        w.append_frame(T, {"left": img}, fr.detections, group=fr.group, T_base_tool_true=T)
         # after each append the file on disk is a valid session holding every frame so far
         s = load_session(tmp_path / "s", detect_images=False)
         assert len(s.problem.frames) == k + 1 and s.status == "recording"
@@ -92,7 +93,7 @@ def test_writer_appends_frames_at_once_with_images(tmp_path: Path) -> None:
     w.add_event("fault", "protective stop", frame=3)
     s = load_session(tmp_path / "s")
     assert s.events[0]["kind"] == "fault"
-    # each frame's text is made once, and the file is still the dump of the whole
+    # each frame's text (and its truth's) is made once, and the file is the dump of the whole
     text = (tmp_path / "s" / SESSION_FILE).read_text()
     assert text == dump_yaml(load_yaml(tmp_path / "s" / SESSION_FILE, "session"))
     assert not list((tmp_path / "s").glob(".*.tmp"))  # no temporary file left behind
