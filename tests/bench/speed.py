@@ -241,7 +241,11 @@ def profile(session: Path, out: Path, top: int = 20) -> str:
             if where == file and name == function:
                 phases[label] = phases.get(label, 0.0) + cum
     total = sum(by_module.values())
-    lines = [f"cProfile of `slidecal solve` on the {session.name[8:]}-frame session ", ""]
+    lines = [
+        f"cProfile of `slidecal solve` on the {session.name[8:]}-frame session (seconds; the "
+        "phases overlap: an import inside a phase counts in both):",
+        "",
+    ]
     lines += ["| phase | cumulative s |", "| --- | ---: |", f"| whole process | {total:.2f} |"]
     lines += [f"| {label} | {phases.get(label, 0.0):.3f} |" for _, _, label in PHASES]
     lines += ["", "| module | own s |", "| --- | ---: |"]
