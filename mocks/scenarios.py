@@ -1369,9 +1369,9 @@ def scale_session(
 
 # ------------------------------------------- session files edited as a user's mistakes make them
 def copy_session(src: Path, dst: Path) -> Path:
-    """The session file and plan of ``src`` (detections inline, no images) in ``dst``."""
+    """The session file, its detections and plan of ``src`` (no images) in ``dst``."""
     dst.mkdir(parents=True)
-    for name in ("session.yaml", "plan.yaml"):
+    for name in ("session.yaml", "detections.npy", "plan.yaml"):
         if (src / name).is_file():
             shutil.copy(src / name, dst / name)
     doc = yaml.safe_load((dst / "session.yaml").read_text())

@@ -51,7 +51,17 @@ SESSION_FILE = "session.yaml"
 #: A new result is "worse" when one of its one-sigmas exceeds the installed one's by this factor.
 WORSE_FACTOR = 1.25
 
-_FILES = ("result.yaml", "summary.txt", "verdict.yaml", "plan.yaml", "report.html", "report.png")
+#: What an install keeps of the session directory (``detections.npy``: the corners its
+#: ``session.yaml`` counts, which ``slidecal check`` compares with)
+_FILES = (
+    "result.yaml",
+    "summary.txt",
+    "verdict.yaml",
+    "plan.yaml",
+    "report.html",
+    "report.png",
+    "detections.npy",
+)
 
 
 class NotInstalled(InputError):

@@ -37,20 +37,25 @@ class DuplicateKeyError(yaml.constructor.ConstructorError):
 
 
 class StrictLoader(_BaseLoader):  # type: ignore[misc, valid-type]
-    """The safe YAML loader, refusing a key that appears twice in one mapping."""
+    """The safe YAML loader, refusing a key that appears twice in one mapping.
+
+    A mapping whose dict is shorter than its list of keys had a key twice (or a merge): only
+    then are its keys compared one by one, so a valid file costs one length test per mapping.
+    """
 
     def construct_mapping(self, node: Any, deep: bool = False) -> dict[Any, Any]:
+        pairs = node.value[:]  # flatten_mapping rewrites node.value when it merges
+        data = super().construct_mapping(node, deep=deep)
+        if len(data) != len(pairs):
+            self._refuse_repeated_key(pairs)
+        return data
+
+    def _refuse_repeated_key(self, pairs: list[tuple[Any, Any]]) -> None:
         seen: dict[Any, Any] = {}
-        for key_node, _ in node.value:
+        for key_node, _ in pairs:
             if key_node.tag == "tag:yaml.org,2002:merge":  # '<<: *anchor' merges, not a key
                 continue
             key = self.construct_object(key_node, deep=True)
-            try:
-                hash(key)
-            except TypeError:
-                raise yaml.constructor.ConstructorError(
-                    None, None, "a mapping key must be a plain value", key_node.start_mark
-                ) from None
             if key in seen:
                 raise DuplicateKeyError(
                     None,
@@ -60,7 +65,6 @@ class StrictLoader(_BaseLoader):  # type: ignore[misc, valid-type]
                     key_node.start_mark,
                 )
             seen[key] = key_node.start_mark
-        return super().construct_mapping(node, deep=deep)
 
 
 # ----------------------------------------------------------------------------- reading, writing
@@ -79,11 +83,36 @@ def plain(obj: Any) -> Any:
     return obj
 
 
-def dump_yaml(data: Any) -> str:
-    """YAML text of ``data`` (numbers in flow-style leaf lists, keys in insertion order)."""
-    return yaml.dump(
-        plain(data), Dumper=_Dumper, default_flow_style=None, sort_keys=False, width=100
+def dump_yaml(data: Any, indent: int | None = None) -> str:
+    """YAML text of ``data`` (numbers in flow-style leaf lists, keys in insertion order).
+
+    ``indent``: ``data`` is a part of a document (entries of a mapping, or items of a list)
+    nested that many spaces deep: its top level in block style and its lines wrapped as the
+    whole document's would be, so that parts dumped apart join into the document's text.
+    """
+    text = yaml.dump(
+        plain(data),
+        Dumper=_Dumper if indent is None else _PartDumper,
+        default_flow_style=None,
+        sort_keys=False,
+        width=100 - (indent or 0),
     )
+    return "".join(" " * indent + line for line in text.splitlines(True)) if indent else text
+
+
+class _PartDumper(_Dumper):  # type: ignore[misc, valid-type]
+    """The dumper with a top mapping in block style even when all its values are scalars (as
+    it is inside a larger document)."""
+
+    def represent(self, data: Any) -> None:
+        self._top = data
+        super().represent(data)
+
+    def represent_mapping(self, tag: str, mapping: Any, flow_style: Any = None) -> Any:
+        node = super().represent_mapping(tag, mapping, flow_style)
+        if mapping is self._top:
+            node.flow_style = False
+        return node
 
 
 def write_atomic(path: Path, text: str | bytes) -> None:
@@ -156,12 +185,13 @@ def parse_yaml(text: str, source: str) -> Any:
             node = loader.get_single_node()
             if node is None:
                 return None
-            _refuse_duplicate_keys(node, "", source, set())
-            return loader.construct_document(node)
+            try:
+                return loader.construct_document(node)
+            except DuplicateKeyError as e:  # name the field when the key's text repeats
+                _refuse_duplicate_keys(node, "", source, set())
+                raise InputError(str(e.problem), where=source) from None
         finally:
             loader.dispose()
-    except DuplicateKeyError as e:
-        raise InputError(str(e.problem), where=source) from None
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         line = f" at line {mark.line + 1}" if mark is not None else ""

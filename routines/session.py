@@ -1,10 +1,15 @@
 """Session directories on disk (``slidecal.session/1``, docs/FORMATS.md): read them, write them.
 
 A session is everything one run observed: ``SESSION_DIR/session.yaml`` plus the images under
-``SESSION_DIR/images/``. :func:`read_session` turns it into a
+``SESSION_DIR/images/``, and the detected corners in ``SESSION_DIR/detections.npy``, one table
+of every corner (:data:`DETECTION_DTYPE`) that ``session.yaml`` names in ``detections_file``
+and counts per frame and camera (a 1000-frame session reads in a fraction of a second; sessions
+with the corners inline in ``session.yaml`` still read). :func:`read_session` turns it into a
 :class:`~slidecal.solver.problem.CalibrationProblem`; :class:`SessionWriter` creates it and
-appends each frame the moment it is captured, rewriting ``session.yaml`` atomically (temporary
-file, fsync, rename), so a crash loses at most the frame in flight.
+appends each frame the moment it is captured: images first, then the frame's corners appended to
+the table (its header's row count rewritten in place after them), then ``session.yaml``
+rewritten atomically (temporary file, fsync, rename). A crash loses at most the frame in flight:
+rows beyond the frames ``session.yaml`` lists are not read, and the next write overwrites them.
 
 The keys each part of the file accepts are declared once, in :data:`SESSION_KEYS`; reading
 refuses any other key with the nearest valid one. Fields beyond the first version (all
@@ -26,6 +31,8 @@ optional, additive, so the format stays ``slidecal.session/1`` and older session
 - ``frames[i].quality``: per camera, what the detector said (``ok``, ``reasons``,
   ``homography_rms_px``, ``coverage``, ``n_corners``); informative only.
 - ``events``: what happened during the run (``{kind, message, ...}``), e.g. a fault.
+- ``detections_file``: the detections table; ``frames[i].detections`` then counts each camera's
+  corners in it (``{camera: n}``) instead of giving them inline (``{camera: {ids, px}}``).
 - ``status``: ``recording`` | ``complete`` | ``aborted``.
 - ``simulation``: the truth of a simulated run under the result file's names:
   ``cameras: {name: {K, distortion}}``, ``T_tool_cam`` (or ``T_base_cam``; ``T_tool_<name>`` per
@@ -39,6 +46,7 @@ optional, additive, so the format stays ``slidecal.session/1`` and older session
 
 from __future__ import annotations
 
+import io
 import os
 import re
 from collections.abc import Mapping, Sequence
@@ -71,6 +79,11 @@ from slidecal.solver.problem import (
 SESSION_FORMAT = "slidecal.session/1"
 SESSION_FILE = "session.yaml"
 IMAGE_DIR = "images"
+DETECTIONS_FILE = "detections.npy"
+#: One row per detected corner: frame id, camera (index in ``cameras:``), corner id, pixel u, v
+DETECTION_DTYPE = np.dtype(
+    [("frame", "<i8"), ("camera", "<i4"), ("id", "<i4"), ("u", "<f8"), ("v", "<f8")]
+)
 KNOWLEDGE = ("robot", "board_translation", "board_direction", "none")
 MOUNTS = ("eye_in_hand", "eye_to_hand", "none")
 STATUSES = ("recording", "complete", "aborted")
@@ -98,6 +111,7 @@ SESSION_KEYS: dict[str, tuple[str, ...]] = {
         "purpose",
         "installed",
         "simulation",
+        "detections_file",
         "frames",
         "events",
     ),
@@ -485,7 +499,8 @@ class Session:
     ``sockets``: camera name -> OAK board socket (empty unless the cameras were an OAK).
     ``detect_reasons``: per (frame id, camera) whose image was detected on reading and gave
     nothing usable, why (the detector's reasons, e.g. a board of another size seen).
-    ``limits``: the gate's limits the run recorded (the cell's ``limits:``), None without.
+    ``limits``: the ``limits:`` block as written (validated where it is judged with), so that
+    a solve reads ``session.yaml`` once.
     """
 
     directory: Path
@@ -553,12 +568,14 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
         if cf.has("socket"):
             sockets[name] = _socket(cf)
     names = [c.name for c in cameras]
+    table = _detection_table(f, directory, len(cameras))
 
     raw_frames = f.list("frames", hint="frame {id, T_base_tool, detections}")
     frames: list[Frame] = []
     quality: dict[tuple[int, str], dict[str, Any]] = {}
     images: dict[tuple[int, str], Path] = {}
     reasons: dict[tuple[int, str], tuple[str, ...]] = {}
+    ids_seen: set[int] = set()
     for i, fr in enumerate(raw_frames):
         frame, q, im = _read_frame(
             Fields(fr, SESSION_FILE, f"frames[{i}]"),
@@ -567,12 +584,14 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
             cameras,
             detect_images,
             reasons,
+            table,
         )
-        if any(x.id == frame.id for x in frames):
+        if frame.id in ids_seen:
             raise InputError(
                 f"frame id {frame.id} appears twice; ids must be unique",
                 where=f"{SESSION_FILE}: frames[{i}].id",
             )
+        ids_seen.add(frame.id)
         frames.append(frame)
         quality.update(q)
         images.update(im)
@@ -693,8 +712,11 @@ def _simulation_truth(f: Fields | None, names: Sequence[str]) -> dict[str, Any] 
         f.integer("seed", minimum=0)
     if f.has("board_bow_mm"):
         f.array("board_bow_mm", (2,))
+    frames = f.list("frames", required=False)
+    if _plain_truth_frames(frames):
+        return dict(f.data)
     seen: set[int] = set()
-    for i, fr in enumerate(f.list("frames", required=False)):
+    for i, fr in enumerate(frames):
         ff = Fields(fr, f.file, f"{f.path}.frames[{i}]")
         ff.only(SESSION_KEYS["simulation.frames[]"])
         fid = ff.integer("id", minimum=0)
@@ -704,6 +726,32 @@ def _simulation_truth(f: Fields | None, names: Sequence[str]) -> dict[str, Any] 
         ur_pose_field(ff, "T_base_tool")
         ur_pose_field(ff, "T_base_tool_measured")
     return dict(f.data)
+
+
+def _plain_truth_frames(frames: list[Any]) -> bool:
+    """Whether the simulated truth's frames pass every check at once (ids unique, UR poses of 6
+    finite numbers in metres and radians): a simulated run's thousand frames are then read
+    without checking each field apart, which is what names a bad one."""
+    keys = SESSION_KEYS["simulation.frames[]"]
+    poses = []
+    for fr in frames:
+        if type(fr) is not dict or len(fr) != len(keys) or any(k not in fr for k in keys):
+            return False
+        if type(fr["id"]) is not int or fr["id"] < 0:
+            return False
+        for k in keys[1:]:
+            if type(fr[k]) is not list or len(fr[k]) != 6:
+                return False
+            poses.append(fr[k])
+    if any(type(v) is not float and type(v) is not int for p in poses for v in p):
+        return False
+    p = np.array(poses, dtype=float).reshape(-1, 6)
+    return bool(
+        len({fr["id"] for fr in frames}) == len(frames)
+        and np.isfinite(p).all()
+        and (np.linalg.norm(p[:, :3], axis=1) <= 100.0).all()
+        and (np.abs(p[:, 3:]) <= 2 * np.pi).all()
+    )
 
 
 def _check_format(f: Fields, expected: str, what: str) -> None:
@@ -726,6 +774,7 @@ def _read_frame(
     cameras: Sequence[CameraSpec],
     detect_images: bool,
     reasons: dict[tuple[int, str], tuple[str, ...]],
+    table: DetectionTable | None,
 ) -> tuple[Frame, dict[tuple[int, str], dict[str, Any]], dict[tuple[int, str], Path]]:
     """One frame; ``reasons`` collects why an image detected here gave nothing usable."""
     f.only(SESSION_KEYS["frames[]"])
@@ -737,22 +786,22 @@ def _read_frame(
 
     image_paths: dict[str, Path] = {}
     ims = f.section("images")
-    for name, rel in ims.data.items():
+    for name in ims.data:
         if name not in names:
             raise ims.error(str(name), f"unknown camera {name!r}; cameras are {names}")
-        if not isinstance(rel, str) or not rel.strip():
-            raise ims.error(str(name), f"must be a path relative to the session, got {rel!r}")
-        if Path(rel).is_absolute() or ".." in Path(rel).parts:
-            raise ims.error(str(name), f"{rel!r} leaves the session; give a path inside it")
-        image_paths[str(name)] = directory / rel
+        image_paths[str(name)] = directory / _inside(ims, str(name))
 
     detections: dict[str, Detection] = {}
     dets = f.section("detections")
     for name in dets.data:
         if name not in names:
             raise dets.error(str(name), f"unknown camera {name!r}; cameras are {names}")
-        spec = cameras[names.index(str(name))]
-        detections[str(name)] = _read_detection(dets.section(str(name)), target, spec)
+        k = names.index(str(name))
+        value = dets.data[name]
+        if isinstance(value, int) and not isinstance(value, bool):
+            detections[name] = _stored_detection(dets, name, (fid, k), table, target, cameras[k])
+        else:
+            detections[str(name)] = _read_detection(dets.section(str(name)), target, cameras[k])
 
     for name, path in image_paths.items():
         if name in detections:
@@ -782,36 +831,136 @@ def _read_frame(
 
 
 def _read_detection(f: Fields, target: Target, camera: CameraSpec) -> Detection:
+    """A detection given inline, ``{ids, px}``."""
     f.only(SESSION_KEYS["detection"])
     ids_raw = f.get("ids", [])
-    px_raw = f.get("px", [])
     if not isinstance(ids_raw, list) or not all(
         isinstance(i, int) and not isinstance(i, bool) for i in ids_raw
     ):
         raise f.error("ids", "must be a list of integer corner ids")
-    px = as_array(px_raw, (-1, 2), f.where("px"))
+    px = as_array(f.get("px", []), (-1, 2), f.where("px"))
     if len(ids_raw) != len(px):
         raise f.error(
             "px", f"has {len(px)} positions for {len(ids_raw)} ids; give one [u, v] per id"
         )
-    n = len(target.points_m)
-    bad = [i for i in ids_raw if i < 0 or i >= n]
-    if bad:
-        raise f.error("ids", f"id {bad[0]} is not on the target (ids are 0..{n - 1})")
     ids = np.asarray(ids_raw, dtype=np.int64)
+    return _checked_detection(ids, px, f.where("ids"), f.where("px"), target, camera)
+
+
+def _stored_detection(
+    f: Fields,
+    name: str,
+    key: tuple[int, int],
+    table: DetectionTable | None,
+    target: Target,
+    camera: CameraSpec,
+) -> Detection:
+    """A detection whose corners (``key``: frame id, camera index) are in the detections file;
+    ``f.data[name]`` counts them."""
+    n = f.integer(name, minimum=0)
+    if table is None:
+        raise f.error(
+            name,
+            f"counts {n} corners but the session names no detections_file; give "
+            f"detections_file: {DETECTIONS_FILE} or the corners inline as {{ids, px}}",
+        )
+    ids, px = table.rows.get(key, (np.zeros(0, np.int64), np.zeros((0, 2))))
+    where = f"{table.name}: frame {key[0]}, camera {name!r}"
+    if len(ids) != n:
+        raise InputError(
+            f"holds {len(ids)} corners where session.yaml counts {n}; the file is damaged or "
+            "belongs to another session: restore the session's own file",
+            where=where,
+        )
+    return _checked_detection(ids, px, where, where, target, camera)
+
+
+def _checked_detection(
+    ids: np.ndarray,
+    px: np.ndarray,
+    where_ids: str,
+    where_px: str,
+    target: Target,
+    camera: CameraSpec,
+) -> Detection:
+    """``Detection(ids, px)`` once its ids are on the target, once each, and its pixels finite
+    and inside the camera's image."""
+    n = len(target.points_m)
+    bad = (ids < 0) | (ids >= n)
+    if bad.any():
+        raise InputError(
+            f"id {ids[bad][0]} is not on the target (ids are 0..{n - 1})", where=where_ids
+        )
     if len(np.unique(ids)) != len(ids):
-        raise f.error("ids", "has repeated ids; each corner may appear once per image")
+        raise InputError("has repeated ids; each corner may appear once per image", where=where_ids)
+    if not np.isfinite(px).all():
+        raise InputError("must hold finite numbers only (no NaN, no inf)", where=where_px)
     w, h = camera.width, camera.height
     outside = (px[:, 0] < -DETECTION_MARGIN_PX - 0.5) | (px[:, 0] > w - 0.5 + DETECTION_MARGIN_PX)
     outside |= (px[:, 1] < -DETECTION_MARGIN_PX - 0.5) | (px[:, 1] > h - 0.5 + DETECTION_MARGIN_PX)
     if outside.any():
         u, v = px[np.flatnonzero(outside)[0]]
-        raise f.error(
-            "px",
+        raise InputError(
             f"[{u:.1f}, {v:.1f}] lies outside the {w} x {h} image of camera {camera.name!r}; give "
             "pixels of that image (u across, v down; check the cameras' width and height)",
+            where=where_px,
         )
     return Detection(ids, px)
+
+
+@dataclass(frozen=True)
+class DetectionTable:
+    """The detections file read: per (frame id, camera index) its corner ids and pixels."""
+
+    name: str
+    rows: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]]
+
+
+def _detection_table(f: Fields, directory: Path, n_cameras: int) -> DetectionTable | None:
+    """The table ``detections_file`` names (None when the session names none)."""
+    if not f.has("detections_file"):
+        return None
+    rel = _inside(f, "detections_file")
+    path = directory / rel
+    if not path.is_file():
+        raise f.error(
+            "detections_file", f"{rel} not found; restore it (it holds the frames' corners)"
+        )
+    try:
+        table = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as e:
+        why = " ".join(str(e).split())
+        raise InputError(
+            f"is not a readable .npy file ({why}); restore the session's own file", where=rel
+        ) from None
+    if table.ndim != 1 or table.dtype != DETECTION_DTYPE:
+        fields = ", ".join(f"{n} {DETECTION_DTYPE[n].name}" for n in DETECTION_DTYPE.names)
+        raise InputError(
+            f"is not a detections table (a 1-d array of records {fields}); restore the "
+            "session's own file",
+            where=rel,
+        )
+    table = table[(table["camera"] >= 0) & (table["camera"] < n_cameras)]
+    key = table["frame"].astype(np.int64) * n_cameras + table["camera"]
+    order = np.argsort(key, kind="stable")
+    keys, starts, counts = np.unique(key[order], return_index=True, return_counts=True)
+    ids = table["id"][order].astype(np.int64)
+    px = np.column_stack([table["u"][order], table["v"][order]]).astype(float)
+    rows = {
+        divmod(k, n_cameras): (ids[a : a + c], px[a : a + c])
+        for k, a, c in zip(keys.tolist(), starts.tolist(), counts.tolist(), strict=True)
+    }
+    return DetectionTable(rel, rows)
+
+
+def _inside(f: Fields, key: str) -> str:
+    """A path relative to the session, refused when it leaves it."""
+    rel = f.get(key)
+    if not isinstance(rel, str) or not rel.strip():
+        raise f.error(key, f"must be a path relative to the session, got {rel!r}")
+    if Path(rel).is_absolute() or ".." in Path(rel).parts:
+        raise f.error(key, f"{rel!r} leaves the session; give a path inside it")
+    return rel
 
 
 def _detect_file(
@@ -840,16 +989,43 @@ def _detect_file(
 # ----------------------------------------------------------------------------- writing
 
 
-def detection_to_dict(det: Detection) -> dict[str, Any]:
-    """``{ids, px}`` of a detection."""
-    return {"ids": [int(i) for i in det.ids], "px": plain(np.asarray(det.px, dtype=float))}
+def _npy_header(n_rows: int) -> bytes:
+    """The ``.npy`` header of a detections table of ``n_rows`` rows; numpy pads it so that its
+    length does not change as the table grows (rewritten in place)."""
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        buf,
+        {
+            "descr": np.lib.format.dtype_to_descr(DETECTION_DTYPE),
+            "fortran_order": False,
+            "shape": (n_rows,),
+        },
+    )
+    return buf.getvalue()
+
+
+def _append_rows(path: Path, n_rows: int, rows: np.ndarray) -> int:
+    """Write ``rows`` after the first ``n_rows`` of the table at ``path`` (over any rows of a
+    frame that was in flight), then the header that counts them; return the new count."""
+    with open(path, "r+b") as f:
+        f.seek(len(_npy_header(n_rows)) + n_rows * DETECTION_DTYPE.itemsize)
+        f.write(rows.tobytes())
+        f.truncate()
+        f.flush()
+        os.fsync(f.fileno())
+        f.seek(0)
+        f.write(_npy_header(n_rows + len(rows)))
+        f.flush()
+        os.fsync(f.fileno())
+    return n_rows + len(rows)
 
 
 class SessionWriter:
     """Create a session directory and append frames as they are captured.
 
-    Each :meth:`append_frame` writes the images (PNG) first and then rewrites ``session.yaml``
-    atomically, so the file on disk always describes complete frames only.
+    Each :meth:`append_frame` writes the images (PNG) first, then appends the frame's corners to
+    ``detections.npy`` and rewrites ``session.yaml`` atomically, so the files on disk always
+    describe complete frames only.
     """
 
     def __init__(
@@ -901,6 +1077,7 @@ class SessionWriter:
             self.data["simulation"] = plain(dict(simulation))
         self.data["frames"] = []
         self.data["events"] = []
+        self._rows = 0
         self._write()
 
     @classmethod
@@ -927,6 +1104,14 @@ class SessionWriter:
         w.data = dict(data)
         w.data.setdefault("frames", [])
         w.data.setdefault("events", [])
+        # the rows the listed frames count; a frame in flight's rows beyond them are overwritten
+        w._rows = sum(
+            v
+            for fr in w.data["frames"]
+            if isinstance(fr, Mapping) and isinstance(fr.get("detections"), Mapping)
+            for v in fr["detections"].values()
+            if isinstance(v, int) and not isinstance(v, bool)
+        )
         w.data["status"] = "recording"
         w._write()
         return w
@@ -984,7 +1169,8 @@ class SessionWriter:
                 os.replace(tmp, self.directory / rel)
                 entry["images"][name] = rel
         if detections:
-            entry["detections"] = {n: detection_to_dict(d) for n, d in detections.items()}
+            entry["detections"] = {n: len(d.ids) for n, d in detections.items()}
+            self._append_detections(fid, detections)
         if quality:
             entry["quality"] = plain({n: dict(q) for n, q in quality.items()})
         if extra:
@@ -1002,6 +1188,19 @@ class SessionWriter:
         self._write()
         return fid
 
+    def _append_detections(self, fid: int, detections: Mapping[str, Detection]) -> None:
+        path = self.directory / self.data.setdefault("detections_file", DETECTIONS_FILE)
+        if self._rows == 0 or not path.is_file():  # a new table (over an old session's)
+            write_atomic(path, _npy_header(0))
+            self._rows = 0
+        parts = []
+        for name, d in detections.items():
+            rows = np.zeros(len(d.ids), DETECTION_DTYPE)
+            rows["frame"], rows["camera"], rows["id"] = fid, self._names.index(name), d.ids
+            rows["u"], rows["v"] = d.px[:, 0], d.px[:, 1]
+            parts.append(rows)
+        self._rows = _append_rows(path, self._rows, np.concatenate(parts))
+
     def add_event(self, kind: str, message: str, **fields: Any) -> None:
         """Record what happened (a fault, an abort) in ``events`` and write the file now."""
         self.data["events"].append({"kind": kind, "message": message, **plain(fields)})
@@ -1010,6 +1209,7 @@ class SessionWriter:
     def set_simulation(self, simulation: Mapping[str, Any]) -> None:
         """Record the simulated truth (``simulation:`` block)."""
         self.data["simulation"] = plain(dict(simulation))
+        self.__dict__.pop("_item_text", None)
         self._write()
 
     def finish(self, status: str = "complete") -> Path:
@@ -1019,7 +1219,32 @@ class SessionWriter:
         return self.directory
 
     def _write(self) -> None:
-        write_atomic(self.directory / SESSION_FILE, dump_yaml(self.data))
+        write_atomic(self.directory / SESSION_FILE, self._text())
+
+    def _text(self) -> str:
+        """``dump_yaml(self.data)``, the text of each frame and of its simulated truth made once
+        (neither changes once written): appending stays linear in the frames, not quadratic."""
+        cache = self.__dict__.setdefault("_item_text", {"frames": [], "simulation": []})
+        out = []
+        for key, value in self.data.items():
+            sim = key == "simulation" and isinstance(value, Mapping)
+            sim_frames = value.get("frames") if sim else None
+            if key == "frames":
+                out.append(_list_text(key, value, cache[key], 0))
+            elif isinstance(sim_frames, list) and list(value)[-1] == "frames":
+                head = {k: v for k, v in value.items() if k != "frames"}
+                out.append(f"{key}:\n" + (dump_yaml(head, 2) if head else ""))
+                out.append(_list_text("frames", sim_frames, cache[key], 2))
+            else:
+                out.append(dump_yaml({key: value}, 0))
+        return "".join(out)
+
+
+def _list_text(key: str, items: list[Any], cache: list[str], indent: int) -> str:
+    """``key: [items]`` as a block list ``indent`` deep, each item's text cached in ``cache``."""
+    cache.extend(dump_yaml([x], indent) for x in items[len(cache) :])
+    pad = " " * indent
+    return f"{pad}{key}:\n" + "".join(cache) if items else f"{pad}{key}: []\n"
 
 
 def _declared(extra: Mapping[str, Any] | None, keys: Sequence[str], what: str) -> None:

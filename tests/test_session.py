@@ -9,10 +9,14 @@ import pytest
 import yaml
 
 from slidecal.drivers.ur_pose import T_from_ur_pose
+from slidecal.routines.install import install, installed_session
+from slidecal.routines.run import solve_session
 from slidecal.routines.session import (
     SESSION_FILE,
     SessionWriter,
+    dump_yaml,
     load_session,
+    load_yaml,
     read_session,
     write_session,
 )
@@ -77,10 +81,11 @@ def test_round_trip_gives_the_same_problem(tmp_path: Path) -> None:
 def test_writer_appends_frames_at_once_with_images(tmp_path: Path) -> None:
     rng = np.random.default_rng(4)
     p = _problem(rng, 3)
-    w = SessionWriter(tmp_path / "s", p.target, p.cameras)
+    w = SessionWriter(tmp_path / "s", p.target, p.cameras, simulation={"seed": 7})
     img = rng.integers(0, 255, (800, 1280), dtype=np.uint8)
     for k, fr in enumerate(p.frames):
-        w.append_frame(fr.T_base_tool, {"left": img}, fr.detections, group=fr.group)
+        T = fr.T_base_tool
+        w.append_frame(T, {"left": img}, fr.detections, group=fr.group, T_base_tool_true=T)
         # after each append the file on disk is a valid session holding every frame so far
         s = load_session(tmp_path / "s", detect_images=False)
         assert len(s.problem.frames) == k + 1 and s.status == "recording"
@@ -88,6 +93,9 @@ def test_writer_appends_frames_at_once_with_images(tmp_path: Path) -> None:
     w.add_event("fault", "protective stop", frame=3)
     s = load_session(tmp_path / "s")
     assert s.events[0]["kind"] == "fault"
+    # each frame's text (and its truth's) is made once, and the file is the dump of the whole
+    text = (tmp_path / "s" / SESSION_FILE).read_text()
+    assert text == dump_yaml(load_yaml(tmp_path / "s" / SESSION_FILE, "session"))
     assert not list((tmp_path / "s").glob(".*.tmp"))  # no temporary file left behind
     with pytest.raises(InputError, match="already holds a session"):
         SessionWriter(tmp_path / "s", p.target, p.cameras)
@@ -313,6 +321,73 @@ def test_old_sessions_still_load() -> None:
     assert len(s.problem.frames) > 10 and s.cell == "default_cell.yaml"
     assert s.cell_sha256 is None and s.sockets == {} and s.camera_driver == "simulated"
     assert s.simulation is not None and s.status == "complete"
+
+
+def test_old_sessions_with_inline_detections_read_as_rewritten_in_the_table_form(
+    tmp_path: Path,
+) -> None:
+    old = load_session(DATA / "r1_session", detect_images=False)
+    write_session(tmp_path / "s", old.problem)
+    doc = yaml.safe_load((tmp_path / "s" / SESSION_FILE).read_text())
+    assert doc["detections_file"] == "detections.npy"
+    assert all(isinstance(n, int) for f in doc["frames"] for n in f["detections"].values())
+    _same(old.problem, read_session(tmp_path / "s"))
+
+
+def test_an_install_keeps_the_detections_table(tmp_path: Path) -> None:
+    old = load_session(DATA / "r1_session", detect_images=False)
+    write_session(tmp_path / "s", old.problem)
+    result = solve_session(tmp_path / "s").result
+    entry = install(tmp_path / "store", tmp_path / "s", result, "accepted")
+    _same(old.problem, installed_session(entry))
+
+
+def test_the_detections_table_is_numpys_own_format(tmp_path: Path) -> None:
+    p = _problem(np.random.default_rng(8), 3)
+    write_session(tmp_path / "s", p)
+    table = np.load(tmp_path / "s" / "detections.npy")
+    f1 = table[table["frame"] == 1]
+    left = f1[f1["camera"] == 0]
+    np.testing.assert_array_equal(left["id"], p.frames[1].detections["left"].ids)
+    np.testing.assert_array_equal(left["u"], p.frames[1].detections["left"].px[:, 0])
+
+
+def test_a_frame_in_flight_is_not_read_and_is_overwritten_on_resume(tmp_path: Path) -> None:
+    """A crash after a frame's corners reached the table but before session.yaml listed it:
+    the reader ignores the rows, and the resumed run writes its next frame over them."""
+    p = _problem(np.random.default_rng(9), 4)
+    w = SessionWriter(tmp_path / "s", p.target, p.cameras, options=p.options)
+    for fr in p.frames[:2]:
+        w.append_frame(fr.T_base_tool, detections=fr.detections, group=fr.group)
+    listed = (tmp_path / "s" / SESSION_FILE).read_text()
+    w.append_frame(p.frames[2].T_base_tool, detections=p.frames[2].detections)
+    (tmp_path / "s" / SESSION_FILE).write_text(listed)  # the crash: session.yaml not rewritten
+    assert len(read_session(tmp_path / "s").frames) == 2
+    w2 = SessionWriter.reopen(tmp_path / "s")
+    for fr in p.frames[2:]:
+        w2.append_frame(fr.T_base_tool, detections=fr.detections, group=fr.group)
+    _same(p, read_session(tmp_path / "s"))
+    n_rows = sum(len(d.ids) for fr in p.frames for d in fr.detections.values())
+    assert len(np.load(tmp_path / "s" / "detections.npy")) == n_rows
+
+
+def test_a_damaged_or_missing_detections_table_is_named(tmp_path: Path) -> None:
+    p = _problem(np.random.default_rng(10), 2)
+    write_session(tmp_path / "s", p)
+    table = np.load(tmp_path / "s" / "detections.npy")
+    np.save(tmp_path / "s" / "detections.npy", table[:-1])
+    with pytest.raises(InputError, match=r"^detections.npy: frame 1, camera 'right': holds \d+"):
+        read_session(tmp_path / "s")
+    table["id"][0] = 500
+    np.save(tmp_path / "s" / "detections.npy", table)
+    with pytest.raises(InputError, match="frame 0, camera 'left': id 500 is not on the target"):
+        read_session(tmp_path / "s")
+    np.save(tmp_path / "s" / "detections.npy", np.zeros((3, 5)))
+    with pytest.raises(InputError, match="detections.npy: is not a detections table"):
+        read_session(tmp_path / "s")
+    (tmp_path / "s" / "detections.npy").unlink()
+    with pytest.raises(InputError, match="detections_file: detections.npy not found"):
+        read_session(tmp_path / "s")
 
 
 def test_session_records_the_cell_and_the_oak_sockets(tmp_path: Path) -> None:
