@@ -6,7 +6,7 @@ Every captured frame is on disk the moment it is captured
 SIGHUP the robot is stopped, the event is written into the session (``events``, ``status:
 aborted``) and the exception raised again with where the frames are. A dropped frame or an
 image without corners is captured again (``retries``). Two runs on one cell cannot interleave
-(:mod:`slidecal.routines.lock`).
+(:mod:`slidecal.routines.ops.lock`).
 """
 
 from __future__ import annotations
@@ -21,12 +21,12 @@ from slidecal.mocks.cell import SimulatedCell
 from slidecal.routines.config import CellConfig, limits_to_dict
 from slidecal.routines.devices import camera_rig, record_devices
 from slidecal.routines.exports import OAK_DEFAULT_SOCKETS
-from slidecal.routines.faults import FaultInjector
-from slidecal.routines.lock import Lock, cell_lock_path
+from slidecal.routines.ops.faults import FaultInjector
+from slidecal.routines.ops.lock import Lock, cell_lock_path
+from slidecal.routines.ops.verdict import Limits
 from slidecal.routines.plan import Plan, check_plan, write_plan
 from slidecal.routines.progress import Interrupted, Progress, signals_as_interrupt
 from slidecal.routines.session import SessionWriter
-from slidecal.routines.verdict import Limits
 from slidecal.solver.detect import detect
 from slidecal.solver.errors import HardwareFault, InputError
 

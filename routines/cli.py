@@ -37,11 +37,11 @@ EXIT_INTERRUPTED = 130
 SUBCOMMANDS: dict[str, str] = {
     "run": "slidecal.routines.run",
     "solve": "slidecal.routines.solve",
-    "check": "slidecal.routines.check",
-    "rollback": "slidecal.routines.install",
+    "check": "slidecal.routines.ops.check",
+    "rollback": "slidecal.routines.ops.install",
     "plan": "slidecal.routines.planner",
-    "rehearse": "slidecal.routines.rehearse",
-    "flash": "slidecal.routines.flash",
+    "rehearse": "slidecal.routines.ops.rehearse",
+    "flash": "slidecal.routines.ops.flash",
 }
 
 

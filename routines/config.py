@@ -66,6 +66,7 @@ from slidecal.mocks import camera as simcam
 from slidecal.mocks.camera import SimCamera
 from slidecal.mocks.render import Photo
 from slidecal.routines.devices import OAK_CAMERA_KEYS, OAK_RIG_KEYS, UVC_CAMERA_KEYS
+from slidecal.routines.ops.verdict import Limits, limits_from_dict
 from slidecal.routines.schema import (
     CELL_SECTIONS,
     Fields,
@@ -84,7 +85,6 @@ from slidecal.routines.session import (
     transform_to_dict,
     ur_pose_field,
 )
-from slidecal.routines.verdict import Limits, limits_from_dict
 from slidecal.solver.degeneracy import nominal_K
 from slidecal.solver.errors import InputError
 from slidecal.solver.problem import MOUNTS, CameraSpec, ModelOptions, Target

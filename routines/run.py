@@ -12,11 +12,11 @@ THE ROBOT NEVER MOVES unless the cell file names real hardware (``robot.driver: 
 or an interrupt, stops the robot and marks the session aborted; ``RunRequest(resume=SESSION)``
 continues such a session.
 
-After the solve the gate of :mod:`slidecal.routines.verdict` decides
+After the solve the gate of :mod:`slidecal.routines.ops.verdict` decides
 (:func:`slidecal.routines.solve.finish_solve`): ``verdict.yaml`` in the session; ``result.yaml``
 and ``export/`` for an accepted (or drifted) result, ``rejected/`` without exports otherwise;
 ``report.html`` and ``report.png``; and, with an install store, the install
-(:mod:`slidecal.routines.install`). ``docs/UNATTENDED.md`` is the contract.
+(:mod:`slidecal.routines.ops.install`). ``docs/UNATTENDED.md`` is the contract.
 """
 
 from __future__ import annotations
@@ -36,7 +36,8 @@ from slidecal.mocks.cell import SimulatedCell
 from slidecal.routines.acquire import DEFAULT_RETRIES, cell_key, clock, record_session, sockets
 from slidecal.routines.config import CellConfig, PlanGoal, load_config
 from slidecal.routines.devices import check_libraries
-from slidecal.routines.install import NotInstalled, install
+from slidecal.routines.ops.install import NotInstalled, install
+from slidecal.routines.ops.verdict import Limits, judge
 from slidecal.routines.plan import Plan, read_plan
 from slidecal.routines.planner import extend_plan, make_plan, predict_std
 from slidecal.routines.progress import Progress
@@ -49,7 +50,6 @@ from slidecal.routines.solve import (
     installed_calibration,
     print_outcome,
 )
-from slidecal.routines.verdict import Limits, judge
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.drift import chain_rms_px
 from slidecal.solver.errors import DegenerateError, InputError
@@ -89,7 +89,7 @@ class RunRequest:
     cell
         A prepared :class:`~slidecal.mocks.cell.SimulatedCell` (tests inject faults into it).
     install
-        An install store (:mod:`slidecal.routines.install`; default: the cell's
+        An install store (:mod:`slidecal.routines.ops.install`; default: the cell's
         ``install.dir``): an accepted result is installed there; ``force`` installs one less
         certain than the installed one, ``accept_drift`` a drifted one.
     installed
@@ -99,7 +99,7 @@ class RunRequest:
         first frame it lacks (``out_dir`` and ``plan`` must be None).
     faults
         ``KIND@FRAME`` strings (simulated cells only) or a prepared
-        :class:`~slidecal.routines.faults.FaultInjector`: faults to inject (``--fault``).
+        :class:`~slidecal.routines.ops.faults.FaultInjector`: faults to inject (``--fault``).
     retries
         Captures of a pose tried again after a dropped frame (reconnecting the camera) or an
         image without a single corner (default: the cell's ``install.retries``, else 2).
@@ -436,7 +436,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--fault",
         action="append",
         metavar="KIND@FRAME",
-        help="simulated cells: inject a hardware fault (see slidecal.routines.faults)",
+        help="simulated cells: inject a hardware fault (see slidecal.routines.ops.faults)",
     )
     p.add_argument(
         "--install",

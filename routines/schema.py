@@ -253,7 +253,7 @@ CELL_SECTIONS = (
     "simulation",
     "plan",
     "options",
-    "limits",  # the verdict's limits (routines/verdict.py: limits_from_dict)
+    "limits",  # the verdict's limits (routines/ops/verdict.py: limits_from_dict)
     "install",  # the install store (INSTALL_KEYS)
 )
 

@@ -16,9 +16,10 @@ from typing import Any
 
 from slidecal.routines.devices import device_calibration_outputs
 from slidecal.routines.exports import result_header, write_all_exports
-from slidecal.routines.install import current_dir
+from slidecal.routines.ops.install import current_dir
+from slidecal.routines.ops.report import write_report
+from slidecal.routines.ops.verdict import Limits, Verdict, judge, limits_from_dict, write_verdict
 from slidecal.routines.plan import read_plan
-from slidecal.routines.report import write_report
 from slidecal.routines.results_io import (
     RESULT_FILE,
     errors_against_truth,
@@ -34,7 +35,6 @@ from slidecal.routines.schema import (
     write_atomic,
 )
 from slidecal.routines.session import Session, load_session
-from slidecal.routines.verdict import Limits, Verdict, judge, limits_from_dict, write_verdict
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.result import CalibrationResult
@@ -53,7 +53,7 @@ class RunOutcome:
     ``errors``: against the simulated truth (simulated cells; see
     :func:`~slidecal.routines.results_io.errors_against_truth`). ``robot_time_s``: the robot's
     (simulated) clock spent moving and settling; ``wall_time_s``: this process's time.
-    ``verdict``: the gate's decision (:mod:`slidecal.routines.verdict`); a rejected result is
+    ``verdict``: the gate's decision (:mod:`slidecal.routines.ops.verdict`); a rejected result is
     written under ``rejected/`` and has no exports. ``installed_to``: the install store's new
     entry (None when not installed; ``install_note`` says why). ``export_errors``: exports
     that failed, one line each. ``exit_code``: what ``slidecal`` exits with.

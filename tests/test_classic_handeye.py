@@ -586,7 +586,7 @@ def test_a_classic_session_with_a_wrong_square_size_is_rejected_for_its_scale(ey
     # described 2 % too small: eye-to-hand the solve took it as the arm's error (learned
     # accuracy 0.1-0.25 -> 0.7-0.8 mm) and put the camera 10 mm off, 14-16 times its reported
     # std, and the verdict accepted it (no move at one orientation to check the scale on)
-    from slidecal.routines.verdict import judge
+    from slidecal.routines.ops.verdict import judge
 
     s = sc.classic_real_arm(np.random.default_rng(2001), eye_in_hand=eye_in_hand)
     t = s.problem.target

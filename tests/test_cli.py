@@ -79,7 +79,7 @@ def test_unattended_subcommands_registered() -> None:
 
 
 def test_solve_rejected_exit_4_and_rollback_cli(tmp_path: Path, capsys) -> None:
-    from slidecal.routines.install import install, installed_result
+    from slidecal.routines.ops.install import install, installed_result
     from slidecal.routines.solve import solve_session
 
     shutil.copytree(DATA / "r1_session", tmp_path / "s")

@@ -12,12 +12,12 @@ import pytest
 import yaml
 
 from slidecal.routines.config import load_config
+from slidecal.routines.ops.verdict import Limits
 from slidecal.routines.plan import Plan, read_plan
 from slidecal.routines.planner import PlanGoal, dry_run, extend_plan, make_plan
 from slidecal.routines.run import EXTEND_MARGIN, RunRequest, extend_for_limits, run_calibration
 from slidecal.routines.session import load_session
 from slidecal.routines.solve import solve_session
-from slidecal.routines.verdict import Limits
 from slidecal.solver.geometry import rotation_angle_deg
 
 DATA = Path(__file__).parent / "data"

@@ -7,7 +7,7 @@ import pytest
 
 from slidecal.mocks import robot as simrobot
 from slidecal.routines import cli
-from slidecal.routines.faults import FAULT_KINDS, FaultInjector, FaultSpec, parse_fault
+from slidecal.routines.ops.faults import FAULT_KINDS, FaultInjector, FaultSpec, parse_fault
 from slidecal.routines.session import load_session
 from slidecal.solver.errors import InputError
 

@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from slidecal.routines import cli
-from slidecal.routines.rehearse import rehearse
+from slidecal.routines.ops.rehearse import rehearse
 from slidecal.routines.run import RunRequest, run_calibration
 from slidecal.routines.session import load_session
 from slidecal.solver.errors import HardwareFault, InputError
@@ -40,8 +40,8 @@ def _write(tmp_path, cell) -> str:
 
 def test_a_real_cell_is_rehearsed_through_its_simulated_twin(tmp_path):
     from slidecal.routines.config import load_config
+    from slidecal.routines.ops.rehearse import simulated_twin
     from slidecal.routines.planner import make_plan
-    from slidecal.routines.rehearse import simulated_twin
 
     real = load_config(_write(tmp_path, REAL_CELL))
     twin = simulated_twin(real)
@@ -60,7 +60,7 @@ def test_a_real_cell_is_rehearsed_through_its_simulated_twin(tmp_path):
 
 def test_a_twin_cannot_invent_extrinsics(tmp_path):
     from slidecal.routines.config import load_config
-    from slidecal.routines.rehearse import simulated_twin
+    from slidecal.routines.ops.rehearse import simulated_twin
 
     cell = {**REAL_CELL, "cameras": {"driver": "uvc", "list": [
         {"name": "a", "width": 640, "height": 480}, {"name": "b", "width": 640, "height": 480}]}}
@@ -121,7 +121,7 @@ def test_a_fault_in_a_rehearsal_stops_keeps_frames_and_exits_3(tmp_path, capsys)
 
 
 def test_a_dead_controller_is_a_hardware_fault(monkeypatch, tmp_path):
-    from slidecal.routines import rehearse as rh
+    from slidecal.routines.ops import rehearse as rh
 
     monkeypatch.setattr(rh.LoopbackController, "__init__", _refuse)
     with pytest.raises(HardwareFault, match="did not start"):
@@ -134,7 +134,7 @@ def _refuse(self, options, host=None):
 
 def _starving(monkeypatch, starve: str) -> None:
     """The loopback controller started on a host that stalls it (``--starve S,EVERY_S``)."""
-    from slidecal.routines import rehearse as rh
+    from slidecal.routines.ops import rehearse as rh
 
     start = rh.LoopbackController.__init__
     monkeypatch.setattr(rh.LoopbackController, "__init__",

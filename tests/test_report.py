@@ -12,10 +12,10 @@ import cv2
 import numpy as np
 import pytest
 
-from slidecal.routines.report import residual_vectors, uncertainty_map, write_report
+from slidecal.routines.ops.report import residual_vectors, uncertainty_map, write_report
+from slidecal.routines.ops.verdict import judge
 from slidecal.routines.session import load_session
 from slidecal.routines.solve import solve_session
-from slidecal.routines.verdict import judge
 from slidecal.solver.result import RobotAccuracy
 
 DATA = Path(__file__).parent / "data"

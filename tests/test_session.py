@@ -9,8 +9,7 @@ import pytest
 import yaml
 
 from slidecal.drivers.ur_pose import T_from_ur_pose
-from slidecal.routines.install import install, installed_session
-from slidecal.routines.run import solve_session
+from slidecal.routines.ops.install import install, installed_session
 from slidecal.routines.session import (
     SESSION_FILE,
     SessionWriter,
@@ -20,6 +19,7 @@ from slidecal.routines.session import (
     read_session,
     write_session,
 )
+from slidecal.routines.solve import solve_session
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import T_from_Rt, random_rotation
 from slidecal.solver.problem import (

@@ -19,7 +19,7 @@ from slidecal.mocks.cell import SimulatedCell
 from slidecal.mocks.scenarios import cell_overrides, same_cell
 from slidecal.routines import cli
 from slidecal.routines.config import load_config
-from slidecal.routines.install import (
+from slidecal.routines.ops.install import (
     CURRENT,
     NotInstalled,
     history,
@@ -27,7 +27,7 @@ from slidecal.routines.install import (
     installed_result,
     rollback,
 )
-from slidecal.routines.lock import Lock, cell_lock_path
+from slidecal.routines.ops.lock import Lock, cell_lock_path
 from slidecal.routines.progress import Progress
 from slidecal.routines.run import RunRequest, frames_on_disk, run_calibration
 from slidecal.routines.session import SessionWriter, load_session, write_atomic
@@ -316,7 +316,7 @@ def test_rejected_never_installed_worse_needs_force(solved_dir, tmp_path: Path) 
 
 
 def test_a_crash_while_installing_leaves_current_intact(solved_dir, tmp_path, monkeypatch):
-    import slidecal.routines.install as inst
+    import slidecal.routines.ops.install as inst
 
     d, r = solved_dir
     store = tmp_path / "store"
@@ -339,7 +339,7 @@ def test_a_crash_while_installing_leaves_current_intact(solved_dir, tmp_path, mo
 
 @pytest.mark.slow
 def test_run_install_then_check_ok_then_drifted(tmp_path: Path) -> None:
-    from slidecal.routines.check import run_check
+    from slidecal.routines.ops.check import run_check
 
     store = tmp_path / "store"
     cfg = load_config()
@@ -368,8 +368,8 @@ def test_run_install_then_check_ok_then_drifted(tmp_path: Path) -> None:
 
 
 def test_install_keeps_the_session_without_images(solved_dir, tmp_path: Path) -> None:
-    from slidecal.routines.install import installed_session
-    from slidecal.routines.verdict import judge
+    from slidecal.routines.ops.install import installed_session
+    from slidecal.routines.ops.verdict import judge
 
     d, r = solved_dir
     doc = yaml.safe_load((d / "session.yaml").read_text())

@@ -23,9 +23,7 @@ from unattended_helpers import (  # noqa: E402
 )
 
 from slidecal.routines.config import load_config  # noqa: E402
-from slidecal.routines.session import load_session  # noqa: E402
-from slidecal.routines.solve import solve_session  # noqa: E402
-from slidecal.routines.verdict import (  # noqa: E402
+from slidecal.routines.ops.verdict import (  # noqa: E402
     STD_HINT,
     Limits,
     compare,
@@ -33,6 +31,8 @@ from slidecal.routines.verdict import (  # noqa: E402
     limits_from_dict,
     read_verdict,
 )
+from slidecal.routines.session import load_session  # noqa: E402
+from slidecal.routines.solve import solve_session  # noqa: E402
 from slidecal.solver.errors import InputError  # noqa: E402
 from slidecal.solver.geometry import R_from_rvec  # noqa: E402
 from slidecal.solver.result import ModelAdequacy, ScaleCheck  # noqa: E402
@@ -315,7 +315,7 @@ def test_paired_needs_shared_poses(solved) -> None:
 
 @pytest.mark.slow
 def test_check_pairs_or_falls_back_and_says_so(solved) -> None:
-    from slidecal.routines.check import judge_problem
+    from slidecal.routines.ops.check import judge_problem
 
     o, problem = solved
     cfg = load_config()

@@ -19,8 +19,8 @@ from typing import Any
 
 from slidecal.mocks import robot as simrobot
 from slidecal.routines import cli
-from slidecal.routines import rehearse as rh
-from slidecal.routines.faults import FAULT_KINDS, FaultSpec
+from slidecal.routines.ops import rehearse as rh
+from slidecal.routines.ops.faults import FAULT_KINDS, FaultSpec
 from slidecal.routines.session import load_yaml
 from tests.bench.report import RESULTS, bench_command, publish_report
 

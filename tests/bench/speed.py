@@ -215,7 +215,7 @@ PHASES = (
     ("solver/refine.py", "refine", "calibrate: refine"),
     ("solver/adequacy.py", "free_pose_fit", "calibrate: free_pose_fit"),
     ("routines/run.py", "finish_solve", "finish_solve"),
-    ("routines/report.py", "write_report", "finish_solve: write_report"),
+    ("routines/ops/report.py", "write_report", "finish_solve: write_report"),
     ("routines/results_io.py", "write_result", "finish_solve: write_result"),
     ("routines/exports.py", "write_all_exports", "finish_solve: write_all_exports"),
 )

@@ -47,14 +47,14 @@ from slidecal.mocks.scenarios import (
     same_cell,
     square_size,
 )
-from slidecal.routines.check import run_check
 from slidecal.routines.config import load_config
-from slidecal.routines.install import install
+from slidecal.routines.ops.check import run_check
+from slidecal.routines.ops.install import install
+from slidecal.routines.ops.verdict import Limits, judge
 from slidecal.routines.planner import make_plan
 from slidecal.routines.run import RunRequest, run_calibration
 from slidecal.routines.session import load_session
 from slidecal.routines.solve import solve_session
-from slidecal.routines.verdict import Limits, judge
 from slidecal.solver.adequacy import LEFT_OUT
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.drift import Z_LIMIT, chain_rms_px

@@ -7,13 +7,13 @@ groups, among those the installed session recorded a frame at (:func:`recorded_p
 
 When the install keeps its session (``session.yaml``), the paired comparison decides: the
 check's corners against those the installed session recorded at the same robot poses
-(:func:`slidecal.routines.verdict.paired_compare`; limit ``check_max_px``). Otherwise (and
+(:func:`slidecal.routines.ops.verdict.paired_compare`; limit ``check_max_px``). Otherwise (and
 said in the verdict's notes) two measurements against the installed calibration decide; with
 a paired comparison their figures are kept in the verdict file:
 
 - the change: the installed calibration re-estimated from the check's frames (:func:`refit`:
   fx, fy, cx, cy, the hand-eye and the target pose free; distortion and rig fixed; the robot's
-  pose noise in the model), compared by :func:`slidecal.routines.verdict.compare` as the
+  pose noise in the model), compared by :func:`slidecal.routines.ops.verdict.compare` as the
   largest change in units of the combined one-sigma and as the largest pixel displacement of
   points at the working distance (limits ``max_change_sigma``, ``max_change_px``);
 - what the fixed calibration cannot explain: the installed calibration held fixed, only the
@@ -39,15 +39,9 @@ from scipy.optimize import least_squares
 
 from slidecal.routines.acquire import cell_key, record_session
 from slidecal.routines.config import CellConfig, load_config
-from slidecal.routines.install import INSTALLED_FILE, current_dir, installed_session
-from slidecal.routines.plan import Plan, read_plan
-from slidecal.routines.planner import dry_run, make_plan
-from slidecal.routines.progress import Progress
-from slidecal.routines.report import uncertainty_map
-from slidecal.routines.results_io import hand_eye_names, hand_eye_transforms, read_result
-from slidecal.routines.schema import check_out_dir
-from slidecal.routines.session import load_session, load_yaml
-from slidecal.routines.verdict import (
+from slidecal.routines.ops.install import INSTALLED_FILE, current_dir, installed_session
+from slidecal.routines.ops.report import uncertainty_map
+from slidecal.routines.ops.verdict import (
     Check,
     Verdict,
     compare,
@@ -55,6 +49,12 @@ from slidecal.routines.verdict import (
     paired_compare,
     write_verdict,
 )
+from slidecal.routines.plan import Plan, read_plan
+from slidecal.routines.planner import dry_run, make_plan
+from slidecal.routines.progress import Progress
+from slidecal.routines.results_io import hand_eye_names, hand_eye_transforms, read_result
+from slidecal.routines.schema import check_out_dir
+from slidecal.routines.session import load_session, load_yaml
 from slidecal.solver.camera import project
 from slidecal.solver.drift import T_cam_board as _T_cam_board
 from slidecal.solver.drift import fit_target, match_poses
@@ -160,7 +160,7 @@ def refit(
     frame, dominate and must be in the covariance. Residuals are whitened by the installed
     calibration's pixel noise; one-sigmas from the covariance, scaled up by the reduced
     chi-square when it exceeds 1. Compared with the installed one by
-    :func:`slidecal.routines.verdict.compare`."""
+    :func:`slidecal.routines.ops.verdict.compare`."""
     mount = installed.mount
     ref = installed.reference_camera or next(iter(installed.cameras))
     cams = [c.name for c in problem.cameras if c.name in installed.cameras]

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from slidecal.routines.lock import Lock
+from slidecal.routines.ops.lock import Lock
 from slidecal.routines.results_io import read_result
 from slidecal.routines.schema import _fsync_dir, dump_yaml, load_yaml, write_atomic
 from slidecal.routines.session import load_session

@@ -48,7 +48,7 @@ from slidecal.routines.config import (
     config_to_dict,
     load_config,
 )
-from slidecal.routines.faults import CONTROLLER, FaultInjector
+from slidecal.routines.ops.faults import CONTROLLER, FaultInjector
 from slidecal.routines.run import RunRequest, default_session_dir, run_calibration
 from slidecal.routines.session import dump_yaml, transform_to_dict, write_atomic
 from slidecal.routines.solve import RunOutcome
@@ -272,7 +272,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", help="a cell file, real or simulated (default: the default cell)")
     p.add_argument("--out", help="session directory to create (default: sessions/<time>)")
     p.add_argument("--fault", action="append", metavar="KIND@FRAME",
-                   help="inject a hardware fault (see slidecal.routines.faults)")
+                   help="inject a hardware fault (see slidecal.routines.ops.faults)")
     p.add_argument("--polyscope", default="5.12", help="controller version: 3.15 5.5 5.9 5.12")
     p.add_argument("--speed-slider", type=float, default=1.0, help="pendant speed slider 0-1")
     p.add_argument("--seed", type=int, help="the simulated cell's random seed")

@@ -54,7 +54,7 @@ from typing import Any
 
 import numpy as np
 
-from slidecal.routines.install import installed_session
+from slidecal.routines.ops.install import installed_session
 from slidecal.routines.results_io import (
     SCALE_INCONCLUSIVE,
     hand_eye_names,

@@ -17,8 +17,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from slidecal.routines.ops.verdict import Verdict, coverage_fraction
 from slidecal.routines.schema import write_atomic
-from slidecal.routines.verdict import Verdict, coverage_fraction
 from slidecal.solver.camera import project
 from slidecal.solver.geometry import inv_T
 from slidecal.solver.problem import CalibrationProblem
