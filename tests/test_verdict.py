@@ -24,6 +24,7 @@ from unattended_helpers import (  # noqa: E402
 
 from slidecal.routines.config import load_config  # noqa: E402
 from slidecal.routines.ops.verdict import (  # noqa: E402
+    ONE_ORIENTATION_FOCAL,
     STD_HINT,
     Limits,
     compare,
@@ -167,6 +168,9 @@ def test_a_hand_eye_from_translations_alone_has_its_own_limit(solved) -> None:
     assert _failed(dataclasses.replace(r, hand_eye=full)) == {"std"}
     alone = dataclasses.replace(he, std_rot_deg=0.5, t_m=None, std_t_mm=None)
     assert _failed(dataclasses.replace(r, hand_eye=alone)) == set()
+    # accepted, but its focal lengths are said to rest on what one orientation cannot check
+    assert ONE_ORIENTATION_FOCAL in judge(dataclasses.replace(r, hand_eye=alone)).notes
+    assert ONE_ORIENTATION_FOCAL not in judge(r).notes
     worse = dataclasses.replace(alone, std_rot_deg=1.5)
     v = judge(dataclasses.replace(r, hand_eye=worse), Limits())
     assert {c.test for c in v.reasons} == {"std"}

@@ -326,6 +326,9 @@ def judge(
         notes.append(STD_HINT)  # not for a transform the data did not determine at all
     for name, why in result.unobservable.items():
         notes.append(f"{name} not determined: {why}")
+    he = result.hand_eye
+    if he is not None and he.R is not None and he.t_m is None and result.cameras:
+        notes.append(ONE_ORIENTATION_FOCAL)
     notes.extend(m for m in result.messages if LEFT_OUT in m)  # frames left out for their poses
     if not quality_ok:
         verdict = "rejected"
@@ -367,6 +370,17 @@ def _reprojection(result: CalibrationResult, lim: Limits) -> list[Check]:
         out.append(Check("reprojection", ok, _f(rms), lim.max_rms_px, f"rms {rms:.3f} px"))
     return out
 
+
+#: A session of one orientation: its focal lengths rest on what it cannot check
+#: (docs/ERROR_MODEL.md Sec. 6); said, not rejected, since its principal point and hand-eye
+#: rotation stand
+ONE_ORIENTATION_FOCAL = (
+    "the focal lengths of a session of one orientation rest on the lengths of the arm's moves "
+    "along the viewing direction and on a detector unbiased with the pattern's size, which "
+    "one orientation cannot check (real arms gave them 0.5-2.8 % low): before using fx, fy as "
+    "the camera's calibration, add two tilted orientations (plan: tilts_deg) or give the "
+    "intrinsics from a calibration that had them"
+)
 
 #: What a user can do about a one-sigma beyond its limit (a note of the verdict): the data
 #: tell no more; more of them, or a limit that fits the cell
