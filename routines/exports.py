@@ -187,13 +187,20 @@ def mrcal_cameramodel(
     return "\n".join(lines) + "\n"
 
 
-def _quat_xyzw(R: np.ndarray) -> list[float]:
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.from_matrix(np.asarray(R, dtype=float)).as_quat()  # x, y, z, w
-    if q[3] < 0:
-        q = -q
-    return [float(v) for v in q]
+def quat_xyzw(R: np.ndarray) -> list[float]:
+    """The unit quaternion [x, y, z, w] (w >= 0) nearest to a 3x3 rotation matrix: the top
+    eigenvector of Bar-Itzhack's symmetric 4x4 matrix."""
+    (a, b, c), (d, e, f), (g, h, i) = np.asarray(R, dtype=float)
+    K = np.array(
+        [
+            [a - e - i, d + b, g + c, h - f],
+            [d + b, e - a - i, h + f, c - g],
+            [g + c, h + f, i - a - e, d - b],
+            [h - f, c - g, d - b, a + e + i],
+        ]
+    )
+    q = np.linalg.eigh(K)[1][:, -1]
+    return [float(v) for v in (-q if q[3] < 0 else q)]
 
 
 def _rpy_deg(R: np.ndarray) -> list[float]:
@@ -229,7 +236,7 @@ def hand_eye_dict(result: CalibrationResult, header: Mapping[str, Any] | None = 
         tm = None if t.t_m is None else np.asarray(t.t_m, dtype=float)
         e["matrix_4x4"] = plain(t.T) if tm is not None else None
         e["translation_m"] = plain(tm) if tm is not None else None
-        e["quaternion_xyzw"] = _quat_xyzw(R)
+        e["quaternion_xyzw"] = quat_xyzw(R)
         e["ur_pendant"] = {
             "position_mm": plain(tm * 1000.0) if tm is not None else None,
             "rotation_vector_rad": plain(rvec_from_R(R)),
