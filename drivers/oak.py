@@ -1,58 +1,9 @@
-"""Luxonis OAK cameras through depthai v3 (``CameraRig`` protocol of ``drivers/base.py``), the
-device's own calibration, and writing a calibration result into a depthai ``CalibrationHandler``.
+"""Luxonis OAK cameras through depthai v3 (``CameraRig`` of ``drivers/base.py``), the device's
+own calibration, and a calibration result written into a depthai ``CalibrationHandler``.
 
-Capture: one ``dai.node.Camera`` per socket and the pipeline's auto-calibration turned OFF (it is
-on by default and would rewrite the stereo calibration on start). ``depthai`` is an extra
-(``pip install 'slidecal[oak]'``); it is imported when an :class:`OakRig` is made, so this module
-imports without it.
-
-Image geometry: ``requestOutput`` crops to the requested aspect ratio by default (a 1920x1080
-output of a 4056x3040 sensor loses a quarter of its height). :class:`OakRig` builds each camera
-on the sensor mode with the widest field of view that runs at the requested frame rate (the
-smallest such mode that still covers the requested size) and asks for the output with an
-explicit resize mode, ``stretch`` by default: the whole field of view, scaled to the requested
-size (non-square pixels when the aspect ratios differ; the camera model's separate fx, fy take
-that). Undistortion is off. A frame rate is always requested (default 10 fps) so the three
-streams stay well within USB2/PoE bandwidth; the mode used is in :meth:`OakRig.capabilities`.
-
-Lens and exposure: manual exposure and ISO (``exposure_us``, ``iso``) for every camera, a manual
-lens position (``focus``) for every auto-focus camera and a fixed white balance
-(``white_balance_k``, default 5000 K) for colour cameras. A calibration holds at one lens
-position only, so an auto-focus camera without ``focus`` is refused with one line saying so
-(rather than locking wherever the autofocus happened to be). Without ``exposure_us`` the auto
-exposure runs for ``AUTO_EXPOSURE_SETTLE_S`` after start and is then locked
-(``CameraControl.setAutoExposureLock`` through each camera's ``inputControl`` queue): nothing
-is captured with the exposure still moving. After start every camera's settings are read back
-from two frame sets (``ImgFrame.getExposureTime``, ``getSensitivity``, ``getLensPosition``,
-``getColorTemperature``) into :meth:`OakRig.capabilities` (``outputs.<name>.read_back``); an
-exposure that still changes between the two is a ``HardwareFault``, a value the device did not
-take is reported in ``messages``.
-
-Synchronisation: :meth:`OakRig.capture` first discards every frame already queued, notes the
-host time, then keeps only frames whose device timestamp (``ImgFrame.getTimestamp()``, on the
-host's steady clock) is later than that. It returns the oldest frame of the first camera for
-which every other camera has a frame within ``sync_tolerance_s`` of it (the nearest one, taken
-once that camera has a frame at or after it: frames of the cameras arrive through their own
-queues, and an earlier frame read first is not the nearest when the next is nearer), so the set
-was exposed after the call and together. The stereo pair of an OAK-D is hardware-synced
-(a few microseconds apart); the colour camera runs free at the same rate with a fixed phase,
-so its nearest frame can be up to half a period away: the default tolerance is a little more
-than half a frame period (55 ms at 10 fps; the arm is at rest at every capture).
-A closed queue (``dai.MessageQueue.QueueException``), a link error or a closed device means the
-device is gone: the pipeline is stopped and a ``HardwareFault`` raised. depthai v3 does not close
-the output queues when a device crashes or is unplugged (its XLink reader waits for a
-reconnection and the pipeline still says it runs), so ``Device.isClosed()`` is checked while
-waiting for frames; automatic reconnection is switched off (``setMaxReconnectionAttempts(0)``):
-a reconnected device restarts with the initial controls only (the exposure lock lost) and
-depthai reconnects to any available device.
-
-Calibration files: extrinsics in depthai are in CENTIMETRES and ``setCameraExtrinsics(src, dst,
-R, t)`` maps points of ``src`` into ``dst`` (``R_dst_src``, ``t_dst_src``). Each camera stores one
-link; we chain them as the factory calibration does: stereo left -> stereo right -> the others.
-Distortion is 14 coefficients in OpenCV order (k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4 tx ty),
-zero-padded. The handler stores float32: values round-trip exactly at that precision. A
-handler written for a device starts from the device's own (board name, IMU extrinsics, lens
-positions, design translations kept) and overwrites only what was calibrated.
+Sensor modes, the exposure lock, synchronisation, a lost device and the calibration's units:
+docs/DRIVERS.md. ``depthai`` (``pip install 'slidecal[oak]'``) is imported when an
+:class:`OakRig` is made; this module imports without it.
 """
 
 from __future__ import annotations

@@ -1,41 +1,7 @@
 """A Universal Robots arm through ur-rtde (``Robot`` protocol of ``drivers/base.py``).
 
-Built on ``rtde_control.RTDEControlInterface``, ``rtde_receive.RTDEReceiveInterface`` and
-``dashboard_client.DashboardClient`` (ur-rtde >= 1.6). The client's traps are handled
-here: ``moveL`` returns False instead of raising (we stop and raise ``HardwareFault`` saying why);
-the receive interface keeps returning its last values after a lost connection (we check
-``isConnected()`` and that ``getTimestamp()`` advances before trusting a pose); no automatic
-protective-stop recovery (an unattended calibration stops and reports). Every pose goes through
-:mod:`slidecal.drivers.ur_pose`. The ur-rtde modules are imported in :meth:`URRobot.connect`, so
-this module imports without them.
-
-Connecting (:meth:`URRobot.connect`), in this order, so that nothing blocks for long and nothing
-on the controller is disturbed without consent:
-
-1. Reachability: a TCP connection with a time-out to the dashboard (29999, whose welcome line
-   must arrive) and to RTDE (30004, which must answer a protocol-version request), before any
-   of ur-rtde's constructors, which block for about two minutes on a host that drops packets
-   and cannot be interrupted by Ctrl-C while they do.
-2. What the controller is, from the dashboard: PolyScope version, robot model, serial number
-   (:attr:`URRobot.controller_info`, for the session).
-3. Remote control, decided from the version: asked on e-Series from PolyScope 5.6 (before that
-   the dashboard cannot say and ur-rtde's ``isInRemoteControl`` answers False); CB3 arms
-   (PolyScope 3.x) have no local/remote control.
-4. Robot mode running; safety mode normal or reduced (reduced is normal operation).
-5. **A program already running or paused**: ur-rtde's control interface stops it and uploads
-   its own script (a paused program too: the script is sent on port 30003, which ends whatever
-   program the controller holds, while the dashboard's ``running`` answers False for a paused
-   one). Refused unless the user consented with ``take_control=True`` (the cell file's
-   ``robot.take_control: true``). Asked twice: the dashboard's program state, and just before
-   the control interface opens the RTDE runtime state (``getRuntimeState``: anything but
-   stopped), so a program started in between is not stopped either.
-6. The control interface; the TCP and, when given, the payload (``setPayload(mass, cog)``).
-
-Reachability queries (:meth:`URRobot.is_reachable`) use the controller's
-``getInverseKinematicsHasSolution`` where its script lines exist (PolyScope 5.10+ and 3.15+);
-below that ur-rtde leaves them out and the answer would be whatever the previous command left,
-so the host-side kinematics of :mod:`slidecal.drivers.ur_kinematics` (with the joint limits)
-answer instead.
+The order of the connection's checks, what is refused and how the client's traps are handled:
+docs/DRIVERS.md. ur-rtde is imported in :meth:`URRobot.connect`; this module imports without it.
 """
 
 from __future__ import annotations

@@ -1,35 +1,5 @@
-"""A single UVC (USB video class) camera through ``cv2.VideoCapture``: a ``CameraRig`` of one.
-
-Every setting is set and then read back, and what the camera did with it is recorded
-(:attr:`UvcCamera.settings`, :meth:`UvcCamera.capabilities`):
-
-- the resolution: a camera silently falls back to another size, which would make the
-  intrinsics wrong: a mismatch is refused;
-- autofocus is switched off (``CAP_PROP_AUTOFOCUS`` 0): a calibration holds at one focus only.
-  A camera that still reads autofocus on afterwards is refused; one without the control
-  (fixed focus, or a video file) is recorded as such. ``focus`` sets a manual focus value;
-- the exposure is locked: manual at ``exposure`` where asked (V4L2: ``CAP_PROP_AUTO_EXPOSURE``
-  1 means manual, exposure in 100 microsecond steps; an exposure that does not read back is
-  refused); otherwise a camera (not a video file) runs
-  its auto exposure for ``settle_frames`` frames, then auto exposure is switched off and the
-  exposure it reached is set and read back (``settings.exposure``). The white balance likewise:
-  a camera whose auto white balance is on (``CAP_PROP_AUTO_WB``) has it switched off at the
-  colour temperature it reached (``CAP_PROP_WB_TEMPERATURE``); a grey camera has no such
-  control, which is recorded. A frame rate is set where asked. A camera that ignores any of
-  the others or reads back another value is reported in :attr:`UvcCamera.messages` (the run
-  goes on: the images say whether exposure is usable; the focus and size are what the
-  intrinsics depend on).
-
-Those values mean what they say only in OpenCV's V4L2 backend with raw (un-normalised)
-property ranges: a camera on Linux is opened with ``cv2.CAP_V4L2`` (the default backend order
-may pick another, GStreamer, whose values mean something else) and ``CAP_PROP_MODE`` is set to
-0, which switches the backend to raw ranges whatever ``OPENCV_VIDEOIO_V4L_RANGE_NORMALIZED``
-says (with it, ``CAP_PROP_AUTO_EXPOSURE`` is mapped from [0, 1) and 1 is not "manual").
-
-Drivers buffer a few frames, so a capture right after the robot stopped could return an image
-exposed while it moved: :meth:`UvcCamera.capture` grabs and drops ``drop_frames`` frames first,
-then retrieves a fresh one.
-"""
+"""A single UVC camera through ``cv2.VideoCapture`` (V4L2, raw property ranges): a ``CameraRig``
+of one. Every setting is set, read back and recorded (docs/DRIVERS.md)."""
 
 from __future__ import annotations
 

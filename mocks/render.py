@@ -1,39 +1,6 @@
-"""Render what a simulated camera sees of a planar target (ray casting through the lens model).
-
-For every pixel the renderer undistorts the pixel (``solver/camera.py``, so it agrees with
-``project`` by construction), intersects the ray with the board plane and looks the board's
-texture up there (inverse mapping). Anti-aliasing: ``n x n`` sub-samples per pixel at offsets
-``(k + 0.5) / n - 0.5`` px from the pixel centre (pixel (0, 0) is the centre of the top-left
-pixel), averaged (a sensor with 100 % fill factor). The texture is looked up with bilinear
-interpolation at a resolution chosen per render so that one texel spans at least two
-sub-samples' footprints on the board. Why: a texture much finer than the sub-samples would
-quantise an edge's position in steps of ``1 / n`` px; with bilinear texels of width ``tau`` the
-sum over sub-samples of the edge's ramp is exact when ``tau`` is a multiple of the sub-sample
-spacing ``s`` and otherwise off by a periodic, zero-mean error of at most 0.028 px for
-``tau / s`` in [1, 2] and 0.017 px for ``tau / s`` in [2, 3] (n = 3; computed, and checked on
-rendered edges in ``tests/test_render.py``). The texture's own smoothing (a tent) is subtracted
-from the optical blur, so the total blur stays ``blur_sigma_px`` where it can.
-
-Then, in this order: optical blur (Gaussian, ``blur_sigma_px``), vignetting, exposure gain,
-additive Gaussian read noise (``noise_std`` grey levels), clipping and quantisation to uint8.
-
-Photograph-like imaging (``Photo``, off unless asked for: the clean path above is what the
-accuracy tests and benchmarks of the solver rely on): depth-dependent defocus (thin lens: a blur
-circle of ``f_px * aperture * |1/z - 1/z_focus|`` px, rendered as a Gaussian of a quarter of that
-diameter), uneven light (vignetting and a linear gradient), specular glare spots, lateral
-chromatic aberration (the red and blue images scaled radially about the principal point against
-green, whose geometry is the lens model's, so the truth is the green channel's), shot and read
-noise on a Bayer mosaic demosaiced by OpenCV (colour) or per pixel (mono), and JPEG
-compression.
-
-Board appearance (board frame of ``solver/problem.py``: +z into the board, away from a camera
-that reads the print): the print (ChArUco from OpenCV's own ``CharucoBoard.generateImage``, or a
-chessboard whose square (0, 0) at the board origin is black, or AprilTags from OpenCV's
-dictionary bits; an AprilGrid with Kalibr's black squares in the gaps at every tag corner) with a
-white margin all round (one square; one cell of a lone tag, as tags are printed from their
-family's images; a quarter of a tag beyond an AprilGrid's outer corner squares).
-A camera on the +z side sees the back of the board: plain grey. Rays that miss the
-board show a plain background grey.
+"""Render what a simulated camera sees of a planar target (ray casting through the lens model
+of ``solver/camera.py``, so it agrees with ``project``), optionally photograph-like
+(:class:`Photo`). Sampling, blur, noise and the board's appearance: docs/DRIVERS.md.
 """
 
 from __future__ import annotations

@@ -1,36 +1,8 @@
-"""A simulated UR e-Series arm implementing the ``Robot`` protocol (``drivers/base.py``).
+"""A simulated UR e-Series arm (``Robot`` protocol of ``drivers/base.py``).
 
-State is the true ``T_base_tool`` and the joint vector. ``move_linear`` checks the straight
-line joint by joint with the analytic kinematics of :mod:`slidecal.drivers.ur_kinematics`
-(reachable, inside the limits, away from singularities, continuous in joint space) and advances
-a simulated clock by the duration of a trapezoidal speed profile. ``measured_pose`` returns the
-true pose with configurable noise, as the controller's encoders and kinematic model would.
-Faults can be injected to test what the routine does with them.
-
-A real arm is not its nominal model: :class:`KinematicError` perturbs the kinematic parameters
-(joint zero offsets, link lengths and offsets, twists between nominally parallel axes), adds a
-gravity-dependent deflection of the shoulder and elbow and a cyclic transmission error per
-joint, so that the flange misses the pose the controller computes by 0.5-2 mm and
-0.05-0.2 deg, smoothly over the workspace (ISO 9283 *accuracy*), on top of a random
-repeatability of tens of micrometres and ~0.005 deg per stop. The controller reports the
-nominal model's pose of the joints (``measured_pose``); the cameras see ``true_pose``.
-
-A cell description (the ``robot:`` section of a YAML cell file) builds one with
-:meth:`SimulatedUR.from_dict`::
-
-    model: UR5e
-    start_pose: [0.3, -0.4, 0.4, 3.1416, 0.0, 0.0]   # UR pose of the TCP: metres, axis-angle rad
-    tcp: [0.0, 0.0, 0.1, 0.0, 0.0, 0.0]               # optional T_flange_tcp as a UR pose
-    start_q: [0.0, -1.57, 1.57, -1.57, -1.57, 0.0]    # optional; overrides start_pose
-    limits: {max_speed_mps: 1.0, max_accel_mps2: 2.5, max_angular_speed_deg_s: 60,
-             max_angular_accel_deg_s2: 80, z_min_m: 0.0}
-    noise: {pose_noise_m: 5.0e-5, pose_noise_deg: 0.005}
-    kinematic_error: {mm: 1.0, deg: 0.1, repeatability_mm: 0.03, repeatability_deg: 0.005}
-    seed: 0
-
-``kinematic_error`` (optional; absent: the arm is its nominal model): the size of the arm's
-systematic error (see :meth:`KinematicError.random`) and its repeatability; drawn from the
-arm's own seed.
+The controller reports the nominal model's pose of the joints (``measured_pose``), the cameras
+see ``true_pose``, which a :class:`KinematicError` moves away from it. The model and its
+``robot:`` cell section: docs/DRIVERS.md.
 """
 
 from __future__ import annotations

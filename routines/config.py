@@ -2,50 +2,9 @@
 
 THE ROBOT NEVER MOVES unless the file names real hardware: ``robot.driver: ur`` with a
 ``host``. Without a file, the packaged simulated cell (``mocks/default_cell.yaml``) is used.
-
-Layout (every field but ``target`` and the approximate target pose has a default)::
-
-    mount: eye_in_hand             # eye_in_hand (camera on the tool) | eye_to_hand
-    robot:
-      driver: simulated            # simulated | ur
-      host: 192.168.1.10           # ur only: the controller's address
-      model: UR5e                  # UR3e | UR5e | UR10e | UR16e
-      tcp: [0, 0, 0, 0, 0, 0]      # TCP on the flange as a UR pose (what the controller uses)
-      speed_mps: 0.10
-      accel_mps2: 0.5
-      settle_s: 0.5
-      start_pose: [x, y, z, rx, ry, rz]   # simulated only: where the arm starts
-      workspace: {min_m: [x, y, z], max_m: [x, y, z]}   # TCP box (base frame) plans must keep
-      take_control: false          # ur only: true lets slidecal stop a program running on it
-      payload: {mass_kg: 1.2, cog_m: [0, 0, 0.05]}      # ur only, optional: set at connect
-    cameras:
-      driver: simulated            # simulated | oak | uvc
-      reference: left              # rigs: the camera the others are expressed against
-      list:                        # oak / uvc: name, width, height and driver options
-        - {name: left, width: 1280, height: 800, socket: CAM_B}
-    target: {kind: charuco, squares_x: 11, squares_y: 8, square_size_m: 0.03,
-             marker_size_m: 0.022, dictionary: DICT_5X5_100}   # as in session.yaml
-    approximate:                   # rough geometry for planning (a tape measure is enough)
-      T_base_board: {rpy_deg: [180, 0, 0], t_m: [0.3, 0.07, 0.0]}   # eye_in_hand
-      T_tool_cam: {rpy_deg: [0, 0, 90], t_m: [0.03, -0.06, 0.045]}  # eye_in_hand
-      # eye_to_hand: T_base_cam and T_tool_board
-      standoff_m: 0.5              # camera-to-board distance the plan keeps
-    simulation:                    # simulated cells only: the truth
-      seed: 0
-      camera_preset: r1            # r1 | oak_d_like (fills cameras and rig below)
-      cameras: {cam: {width, height, K, distortion, blur_sigma_px, noise_std, exposure}}
-      T_tool_cam: {rpy_deg | R | q_wxyz, t_m | t_mm}  # or T_base_cam (eye_to_hand); ref. camera
-      T_base_board: {rpy_deg | R | q_wxyz, t_m | t_mm}  # or T_tool_board (eye_to_hand)
-      rig: {right: {R, t_m}}              # T_<name>_<reference> of the other cameras
-      noise: {robot_mm: 0.05, robot_deg: 0.005}
-      target_jitter: {mm: 2.0, deg: 0.5}  # the target's true pose moves this much per seed
-    plan: {tilts_deg: [15, 25, 35], step_mm: [40, 80]}   # the planner's options (PLAN_KEYS)
-    options: {skew: false, unit_aspect: false, distortion: [true, true, true, true, false],
-              robot_noise_mm: 0.05, robot_noise_deg: 0.005}   # robot: 1-sigma pose error per axis
-
 Every key, its unit and its default: docs/FORMATS.md. The keys each section accepts are declared
-once, in :data:`CELL_KEYS`; an unknown key is refused with the nearest valid one. Every error
-names the file and the field, says what is wrong and how to fix it, in one line.
+once, in :data:`CELL_KEYS`; an unknown key is refused with the nearest valid one, and every
+error names the file and the field, what is wrong and how to fix it, in one line.
 """
 
 from __future__ import annotations

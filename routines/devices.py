@@ -1,34 +1,11 @@
 """From a cell file to camera driver objects, and what the devices say about themselves into
-the session directory.
+the session directory (the ``cameras:`` keys: docs/FORMATS.md).
 
-:func:`check_libraries` refuses, before anything connects, a cell that names a driver whose
-library is not installed, naming the extra that brings it. :func:`camera_rig` maps the cell's
-``cameras:`` section to an :class:`~slidecal.drivers.oak.OakRig` or a
-:class:`~slidecal.drivers.uvc.UvcCamera`. :func:`record_devices` writes what the open camera
-reports (capabilities, and an OAK's own calibrations as depthai JSON beside ``session.yaml``)
-and returns the ``devices:`` block of the session. :func:`device_calibration_outputs` (after a
-solve) writes the depthai JSON export starting from the device's own calibration and says how
-far the device's calibrations move projected points against the new result.
-
-Camera keys of a cell file (besides ``name``, ``width``, ``height`` of each camera)::
-
-    cameras:
-      driver: oak
-      device_id: 18443010D1E4F1F500   # MX id or IP; default: the first device found
-      fps: 10                         # one frame rate for every camera (bandwidth)
-      resize: stretch                 # stretch (whole field of view) | crop | letterbox
-      exposure_us: 8000               # manual exposure for every camera, with iso
-      iso: 400
-      list:
-        - {name: left, width: 1280, height: 800, socket: CAM_B}
-        - {name: rgb, width: 1920, height: 1080, socket: CAM_A, colour: true, focus: 130,
-           white_balance_k: 5000}    # focus: lens position 0..255, required with autofocus
-
-    cameras:
-      driver: uvc
-      list:
-        - {name: cam, width: 1280, height: 720, source: 0, fourcc: MJPG, exposure: 150,
-           focus: 30, fps: 15, drop_frames: 4}   # source: index, /dev/video path or file
+:func:`check_libraries` refuses a cell whose driver's library is not installed, naming the extra
+that brings it; :func:`camera_rig` builds the rig; :func:`record_devices` writes what the open
+camera reports (an OAK's own calibrations as depthai JSON beside ``session.yaml``);
+:func:`device_calibration_outputs` writes the depthai export of a solve and how far the device's
+calibrations move projected points against it.
 """
 
 from __future__ import annotations

@@ -1,40 +1,6 @@
-"""Calibration results on disk: ``result.yaml`` (docs/FORMATS.md), exports, a human summary.
-
-``result.yaml`` (format ``slidecal.result/1``) holds the contract's fields (``cameras`` with K,
-distortion, std, reproj_rms_px; ``T_tool_cam`` / ``T_base_cam`` or ``T_tool_<name>`` per camera
-of a rig; rig ``T_<name>_<ref>``) and these extensions, all additive:
-
-- ``mount``, ``reference_camera``, ``converged``, ``iterations``;
-- ``T_base_board`` (eye-in-hand) or ``T_tool_board`` (eye-to-hand): the estimated target pose;
-- ``reprojection: {rms_px, sigma_px, per_image: [{frame, camera, rms_px}]}``; ``sigma_px`` is
-  the noise estimated from the residuals (docs/METHOD.md Sec. 6);
-- ``unobservable: {parameter: reason}``; ``messages: [...]`` (soft failures);
-- ``scale_checks: [{frame_a, frame_b, robot_mm, camera_mm, ratio}]`` and ``scale_check:
-  {median_ratio, worst_ratio, n}``;
-- ``H_inf: {"a<-b": 3x3}``; ``outliers: [[frame, camera, corner id]]``;
-  ``linear: {camera: K}`` (closed-form intrinsics before refinement);
-- ``parameter_names`` and ``covariance`` (rows named by ``parameter_names``);
-- ``adequacy: {adequate, reasons, detector_noise_px: {camera: px}, normalised_rms: {camera:
-  ratio}, worst_frames: [{frame, camera, normalised_rms}]}``: whether the model explains the
-  images against the detector's noise measured with a free board pose per image;
-- ``robot_accuracy: {translation_mm, rotation_deg, estimated, worst_frames: [{frame,
-  translation_mm, rotation_deg}], left_out_frames: [...]}``: the robot's pose accuracy as the
-  camera sees it; ``left_out_frames`` (only when there are some, same fields): the frames the
-  solve left out because their recorded pose was off far beyond the others' (or their image
-  far beyond the detector's noise; a rig's frame that lost one image keeps the others and is not
-  listed), with the pose correction the solve had given them.
-
-A value the data cannot determine is ``null``, never a number. ``T_tool_<name>`` of a rig's
-non-reference camera is composed from the reference's hand-eye and the rig extrinsics; its std
-comes from the joint covariance (correlations kept, :mod:`slidecal.solver.uncertainty`).
-
-``parameter_names`` are the reported quantities (``cam.fx``, ``T_tool_cam.rx`` .. ``.tz``,
-docs/FORMATS.md). A result written before them (the optimiser's ``X0.r0`` .. ``Y.t2`` and
-``cam.f``) is read and its covariance converted to these names (:func:`_named_from_legacy`).
-
-Exports for existing tools: OpenCV ``FileStorage`` YAML per camera (``camera_matrix``,
-``distortion_coefficients``, ``image_width``, ``image_height``), ROS ``camera_info`` YAML per
-camera, and the depthai calibration JSON through the OAK driver when the rig is an OAK.
+"""Calibration results on disk: ``result.yaml`` (``slidecal.result/1``, docs/FORMATS.md: its
+fields, the covariance's parameter names, older results still read), the OpenCV and ROS
+exports, a human summary. A value the data cannot determine is ``null``, never a number.
 """
 
 from __future__ import annotations

@@ -1,47 +1,12 @@
 """Session directories on disk (``slidecal.session/1``, docs/FORMATS.md): read them, write them.
 
-A session is everything one run observed: ``SESSION_DIR/session.yaml`` plus the images under
-``SESSION_DIR/images/``, and the detected corners in ``SESSION_DIR/detections.npy``, one table
-of every corner (:data:`DETECTION_DTYPE`) that ``session.yaml`` names in ``detections_file``
-and counts per frame and camera (a 1000-frame session reads in a fraction of a second; sessions
-with the corners inline in ``session.yaml`` still read). :func:`read_session` turns it into a
-:class:`~slidecal.solver.problem.CalibrationProblem`; :class:`SessionWriter` creates it and
-appends each frame the moment it is captured: images first, then the frame's corners appended to
-the table (its header's row count rewritten in place after them), then ``session.yaml``
-rewritten atomically (temporary file, fsync, rename). A crash loses at most the frame in flight:
-rows beyond the frames ``session.yaml`` lists are not read, and the next write overwrites them.
-
-The keys each part of the file accepts are declared once, in :data:`SESSION_KEYS`; reading
-refuses any other key with the nearest valid one. Fields beyond the first version (all
-optional, additive, so the format stays ``slidecal.session/1`` and older sessions still load):
-
-- ``knowledge``: ``robot`` | ``board_translation`` | ``board_direction`` | ``none`` (default:
-  ``robot`` when every frame has ``T_base_tool``, ``none`` when no frame has one).
-- ``reference_camera``: the camera a rig's other cameras are expressed against.
-- ``options``: ``{skew, unit_aspect, distortion: [k1, k2, p1, p2, k3 as booleans],
-  outlier_threshold_px, robot_noise_mm, robot_noise_deg, estimate_robot_noise}``
-  (``ModelOptions``; the robot noise is the one-sigma error of each axis of the measured poses,
-  where the estimation of the robot's accuracy starts; with ``estimate_robot_noise: false``
-  it is taken as the truth, 0 then treating the poses as exact).
-- ``cell``, ``cell_sha256``: the cell file the run came from and the SHA-256 of its bytes;
-  ``robot_driver``, ``camera_driver``; ``cameras[i].socket``: an OAK camera's board socket
-  (what ``solve`` needs to write the depthai calibration again).
-- ``frames[i].group``: orientation group; ``frames[i].motion_board``: board-frame motion
-  knowledge (3 numbers, metres or a unit direction; docs/METHOD.md Sec. 3).
-- ``frames[i].quality``: per camera, what the detector said (``ok``, ``reasons``,
-  ``homography_rms_px``, ``coverage``, ``n_corners``); informative only.
-- ``events``: what happened during the run (``{kind, message, ...}``), e.g. a fault.
-- ``detections_file``: the detections table; ``frames[i].detections`` then counts each camera's
-  corners in it (``{camera: n}``) instead of giving them inline (``{camera: {ids, px}}``).
-- ``status``: ``recording`` | ``complete`` | ``aborted``.
-- ``simulation``: the truth of a simulated run under the result file's names:
-  ``cameras: {name: {K, distortion}}``, ``T_tool_cam`` (or ``T_base_cam``; ``T_tool_<name>`` per
-  camera of a rig), ``T_base_board`` (or ``T_tool_board``), ``T_<name>_<ref>``, ``noise``,
-  ``seed``, ``frames: [{id, T_base_tool, T_base_tool_measured}]`` (per frame the pose the arm
-  really reached and the one it reported, UR poses: what the judge of the result needs).
-  Transforms are ``{R: 3x3, t_m: [x, y, z]}``.
-- ``frames[i].T_base_tool``: a UR pose, or from another controller a transform
-  (``{q_wxyz | rpy_deg | R, t_mm | t_m}``: :func:`robot_pose_field`).
+A session is ``SESSION_DIR/session.yaml``, the images under ``SESSION_DIR/images/`` and the
+corners in ``SESSION_DIR/detections.npy`` (:data:`DETECTION_DTYPE`; older sessions hold them
+inline). :func:`read_session` turns it into a :class:`~slidecal.solver.problem.CalibrationProblem`;
+:class:`SessionWriter` appends each frame as it is captured: images, then the frame's rows of the
+table (its header's row count rewritten after them), then ``session.yaml`` rewritten atomically,
+so a crash loses at most the frame in flight. The keys each part accepts are declared once, in
+:data:`SESSION_KEYS`; any other key is refused with the nearest valid one.
 """
 
 from __future__ import annotations

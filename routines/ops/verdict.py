@@ -1,48 +1,6 @@
-"""The verdict a nightly job can trust: ``accepted | rejected | drifted | ok``, with reasons.
-
-Every ``slidecal run``, ``solve`` and ``check`` writes ``verdict.yaml`` into the session::
-
-    format: slidecal.verdict/1
-    verdict: rejected        # accepted | rejected | drifted (run, solve); ok | drifted (check)
-    command: run
-    exit_code: 4
-    reasons:                       # every test that failed, each with its figure and limit
-      - {test: scale, message: "...", value: 0.833, limit: 0.01}
-    checks:                        # every test made, passed or not
-      - {test: reprojection, passed: true, value: 0.21, limit: 1.0, message: "..."}
-    installed: {path: ..., max_sigma: 1.3, max_displacement_px: 0.21}   # when compared
-
-The gate (:func:`judge`), each test with a limit from the cell file's ``limits:`` section
-(:class:`Limits`, defaults below):
-
-- ``converged``: the solver's least squares converged;
-- ``reprojection``: the model-adequacy test of the solver (``result.adequacy``) when present,
-  else the reprojection rms against ``max_rms_px``;
-- ``std``: each parameter's one-sigma against its limit (``fx_rel_std``, ``cxy_std_px``,
-  ``hand_eye_rot_std_deg``, ``hand_eye_t_std_mm``, rig likewise;
-  ``hand_eye_rot_std_deg_from_translations`` for a hand-eye rotation from translations alone,
-  ``cxy_std_px_from_translations`` and ``fx_rel_std_from_translations`` for the intrinsics of
-  such a session);
-- ``scale``: the median camera/robot length ratio of the moves (``result.scale_checks``:
-  translations, or a classic session's moves where its geometry pins the scale) must be
-  within 1 +- tol, tol the larger of ``scale_tolerance`` and 4 times the ratio's own standard
-  error (and the test fails as inconclusive when tol exceeds 5 times ``scale_tolerance``);
-- ``coverage``: the fraction of a ``coverage_grid`` of image cells holding a detected corner;
-- ``installed``: the difference from the installed calibration, per parameter in units of
-  the two calibrations' combined one-sigma (``max_change_sigma``) and as the largest pixel
-  displacement of points at the working distance (``max_change_px``; it counts only when the
-  change is also beyond ``max_change_sigma``, so a re-estimate too imprecise to tell is not
-  called a drift). Only this test makes a
-  result ``drifted`` (a valid calibration that differs from the installed one), with:
-- ``paired``: when the installed session is known (``installed_problem``, or the
-  ``session.yaml`` an install store keeps) and shares robot poses with this one (the same
-  plan): the corners at the shared poses compared with the installed session's, corner by
-  corner (:func:`paired_compare`, :mod:`slidecal.solver.drift`): drift when their
-  displacement field is beyond :data:`slidecal.solver.drift.Z_LIMIT` sigma of its noise and
-  moves points of the central ``change_region`` by more than ``max_change_px``.
-  Any other failure makes it ``rejected``.
-
-Exit codes (documented in ``docs/UNATTENDED.md``): 0 accepted / ok, 4 rejected, 5 drifted.
+"""The verdict a nightly job can trust (``verdict.yaml``): ``accepted | rejected | drifted |
+ok``, with reasons. The gate (:func:`judge`) tests the solve against the cell's ``limits:``
+(:class:`Limits`); its tests, the file and the exit codes: docs/UNATTENDED.md.
 """
 
 from __future__ import annotations
