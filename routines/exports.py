@@ -1,25 +1,9 @@
-"""Exports of an accepted calibration for other tools, and the result header.
-
-Written into ``export/`` next to ``result.yaml`` (never for a rejected result):
-
-- ``opencv_<cam>.yaml``, ``camera_info_<cam>.yaml``: OpenCV FileStorage and ROS camera_info
-  (:mod:`slidecal.routines.results_io`);
-- ``camchain.yaml``: Kalibr's camera chain (``pinhole`` / ``radtan``; ``T_cn_cnm1`` maps
-  camera n-1 into camera n), for rigs and single cameras;
-- ``hand_eye.yaml``: every hand-eye transform as a 4x4 matrix, as translation plus quaternion
-  (order x, y, z, w, the Hamilton convention) with the parent and child frame names, and as the
-  UR teach pendant shows a pose (millimetres, rotation vector in radians, RPY in degrees);
-- ``mrcal_<cam>.cameramodel``: mrcal's native camera model per camera (``LENSMODEL_OPENCV5``;
-  ``rt_cam_ref`` the reference camera's pose in this one), read by ``mrcal.cameramodel`` and
-  mrcal's tools (``mrcal-show-projection-uncertainty`` needs mrcal's own solve, not this file);
-- ``depthai_calibration.json``: for OAK rigs (the session names the sockets).
-
-Kalibr's ``pinhole`` and mrcal's OpenCV models have no skew: a camera solved with skew (the
-``skew`` option) and a skew that is not zero gets no ``camchain.yaml`` or ``.cameramodel``, and
-the failure line says so.
-
-A failed export does not stop the others; :func:`write_all_exports` returns the failures as
-one-line messages for the caller to print (``slidecal: export ...: ...``) and record.
+"""Exports of an accepted calibration for other tools (``export/``, never for a rejected
+result), and the result header: OpenCV and ROS files per camera, Kalibr's ``camchain.yaml``,
+``hand_eye.yaml`` (4x4, translation + quaternion x, y, z, w, and as a UR pendant shows it),
+mrcal's ``.cameramodel`` per camera and an OAK's depthai JSON (docs/FORMATS.md). A camera with
+skew gets no Kalibr or mrcal file. A failed export does not stop the others:
+:func:`write_all_exports` returns the failures as one-line messages.
 """
 
 from __future__ import annotations

@@ -7,16 +7,7 @@ Callable from Python for scripted commissioning::
     print(outcome.summary)
 
 THE ROBOT NEVER MOVES unless the cell file names real hardware (``robot.driver: ur`` with a
-``host``); without a file the packaged simulated cell is used. The capture loop
-(:mod:`slidecal.routines.acquire`) writes every frame the moment it is captured and, on a fault
-or an interrupt, stops the robot and marks the session aborted; ``RunRequest(resume=SESSION)``
-continues such a session.
-
-After the solve the gate of :mod:`slidecal.routines.ops.verdict` decides
-(:func:`slidecal.routines.solve.finish_solve`): ``verdict.yaml`` in the session; ``result.yaml``
-and ``export/`` for an accepted (or drifted) result, ``rejected/`` without exports otherwise;
-``report.html`` and ``report.png``; and, with an install store, the install
-(:mod:`slidecal.routines.ops.install`). ``docs/UNATTENDED.md`` is the contract.
+``host``). What a run writes and when: docs/UNATTENDED.md.
 """
 
 from __future__ import annotations

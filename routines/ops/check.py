@@ -1,29 +1,10 @@
 """``slidecal check --config CELL --installed STORE``: does the installed calibration still hold?
 
-A short verification, not a calibration: a handful of frames (at most
-:data:`MAX_ROBOT_TIME_S` of robot time) at known robot poses, taken from the plan of the
-installed calibration (or the planner's plan for the cell): the first two poses of its first
-groups, among those the installed session recorded a frame at (:func:`recorded_plan`).
-
-When the install keeps its session (``session.yaml``), the paired comparison decides: the
-check's corners against those the installed session recorded at the same robot poses
-(:func:`slidecal.routines.ops.verdict.paired_compare`; limit ``check_max_px``). Otherwise (and
-said in the verdict's notes) two measurements against the installed calibration decide; with
-a paired comparison their figures are kept in the verdict file:
-
-- the change: the installed calibration re-estimated from the check's frames (:func:`refit`:
-  fx, fy, cx, cy, the hand-eye and the target pose free; distortion and rig fixed; the robot's
-  pose noise in the model), compared by :func:`slidecal.routines.ops.verdict.compare` as the
-  largest change in units of the combined one-sigma and as the largest pixel displacement of
-  points at the working distance (limits ``max_change_sigma``, ``max_change_px``);
-- what the fixed calibration cannot explain: the installed calibration held fixed, only the
-  target's pose fitted (the board may have been put back slightly differently), the residual
-  rms against what the installed calibration explained on its own session (``chain_rms_px``
-  in ``installed.yaml``), ``drift_px = sqrt(residual^2 - expected^2)`` (limits
-  ``check_max_rms_ratio`` and ``check_max_px``, both exceeded for a failure).
-
-Verdict ``ok`` when every test passes, else ``drifted``; written with the figures to the
-check's session as ``verdict.yaml``; exit 0 / 5.
+A short verification, not a calibration: a handful of frames (at most :data:`MAX_ROBOT_TIME_S`
+of robot time) at poses the installed session recorded (:func:`recorded_plan`). The corners
+compared pair by pair with the installed session's decide when the store keeps it; otherwise the
+installed calibration re-estimated from the check (:func:`refit`) and its residual with only the
+target's pose free decide. Verdict ``ok`` or ``drifted`` (exit 0 / 5): docs/UNATTENDED.md.
 """
 
 from __future__ import annotations

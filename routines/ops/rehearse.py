@@ -1,26 +1,11 @@
 """Rehearse a cell's calibration through the real ur-rtde client (``slidecal rehearse``).
 
-``slidecal rehearse [--config CELL] [--out DIR] [--fault KIND@FRAME] [--polyscope V]
-[--speed-slider X]`` starts the loopback UR controller (``slidecal.mocks.ur_controller``) in
-its own process on a loopback address of its own, connects the real UR driver
-(:class:`~slidecal.drivers.ur.URRobot`, i.e. ur-rtde) to it, and runs the cell's routine
-(:func:`~slidecal.routines.run.run_calibration`: plan, reachability checks, moves, captures,
-solve) with the cell's simulated cameras rendering the target from the controller's true TCP
-pose. The controller reports that pose with the cell's simulated robot error
-(``simulation.noise``), drawn once per rest pose. Nothing leaves the machine; no robot moves.
-
-A simulated cell (``robot.driver: simulated``, e.g. the default cell) is rehearsed as it is:
-its ``simulation`` block is the truth the cameras render. A real cell (``robot.driver: ur``) is
-rehearsed through its simulated twin (:func:`simulated_twin`): the same robot model, TCP,
-speeds, workspace, target, mount, camera names and sizes, the rough geometry of
-``approximate`` taken as the truth, cameras of a plausible lens (or the OAK-D-like preset for
-an OAK named left/right/rgb), the arm starting with the camera at the stand-off straight over
-the target; the cell's ``take_control`` and ``payload`` go to the driver as on the real cell.
-The session gets, besides what ``slidecal run`` writes, ``rehearsal.yaml``: what the
-controller said it was (:attr:`URRobot.controller_info`) and what it saw (its events, the final
-arm state, the longest time its event loop went unscheduled). The driver's stale-data limit is
-the rehearsal's (:data:`LOOPBACK_STALE_S`): the host's load must not fail a rehearsal, and a
-fault after the loopback itself starved says so.
+Starts the loopback UR controller (:mod:`slidecal.mocks.ur_controller`) in its own process on a
+loopback address of its own, connects the real UR driver to it and runs the cell's routine
+(:func:`~slidecal.routines.run.run_calibration`), its simulated cameras rendering from the
+controller's true pose. A real cell is rehearsed through its simulated twin (:func:`simulated_twin`).
+Besides what ``slidecal run`` writes, the session gets ``rehearsal.yaml``: what the controller
+said it was and what it saw. Nothing leaves the machine; no robot moves.
 """
 
 from __future__ import annotations
@@ -121,7 +106,10 @@ TWIN_HFOV_DEG = 60.0
 
 
 def simulated_twin(cfg: CellConfig) -> CellConfig:
-    """The simulated cell standing in for a real one in a rehearsal (module docstring).
+    """The simulated cell standing in for a real one in a rehearsal: the same robot model, TCP,
+    speeds, workspace, target, mount, camera names and sizes, ``approximate`` taken as the truth,
+    cameras of a plausible lens (or the OAK-D-like preset), the camera starting at the stand-off
+    over the target.
 
     Raises ``InputError`` when the cell gives too little to build one (several cameras that are
     not an OAK's left/right/rgb: their extrinsics are unknown).
