@@ -423,15 +423,8 @@ def _robot_accuracy_from(f: Fields) -> RobotAccuracy:
     )
 
 
-def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
-    """Validate a parsed ``result.yaml`` (see :func:`read_result`)."""
-    f = Fields(data, source)
-    fmt = f.require("format")
-    if fmt != RESULT_FORMAT:
-        raise f.error("format", f"is {fmt!r}; expected {RESULT_FORMAT!r}")
-    for key in f.data:
-        if key not in RESULT_KEYS and not (isinstance(key, str) and _TRANSFORM_KEY.fullmatch(key)):
-            raise unknown_key_error(f.where(str(key)), key, RESULT_KEYS)
+def _cameras_from(f: Fields) -> dict[str, CameraEstimate]:
+    """The ``cameras:`` section of a result, by name."""
     cams: dict[str, CameraEstimate] = {}
     cf = f.sub("cameras")
     assert cf is not None
@@ -453,6 +446,19 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
             {str(k): _nullable(std, str(k), minimum=0.0) for k in std.data},
             _nullable(c, "reproj_rms_px", minimum=0.0),
         )
+    return cams
+
+
+def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
+    """Validate a parsed ``result.yaml`` (see :func:`read_result`)."""
+    f = Fields(data, source)
+    fmt = f.require("format")
+    if fmt != RESULT_FORMAT:
+        raise f.error("format", f"is {fmt!r}; expected {RESULT_FORMAT!r}")
+    for key in f.data:
+        if key not in RESULT_KEYS and not (isinstance(key, str) and _TRANSFORM_KEY.fullmatch(key)):
+            raise unknown_key_error(f.where(str(key)), key, RESULT_KEYS)
+    cams = _cameras_from(f)
     names = list(cams)
     mount = f.choice("mount", RESULT_MOUNTS, "eye_in_hand")
     ref = f.string("reference_camera", names[0])
@@ -503,16 +509,8 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
             raise f.error("covariance", "is not symmetric; it was not written by slidecal")
     outliers = []
     for i, o in enumerate(f.list("outliers", required=False, hint="[frame, camera, corner id]")):
-        if not (
-            isinstance(o, list)
-            and len(o) == 3
-            and isinstance(o[0], int)
-            and not isinstance(o[0], bool)
-            and isinstance(o[1], str)
-            and o[1] in cams
-            and isinstance(o[2], int)
-            and not isinstance(o[2], bool)
-        ):
+        ok = isinstance(o, list) and len(o) == 3 and isinstance(o[1], str) and o[1] in cams
+        if not (ok and all(isinstance(v, int) and not isinstance(v, bool) for v in o[::2])):
             raise f.error(f"outliers[{i}]", "must be [frame id, camera name, corner id]")
         outliers.append((int(o[0]), str(o[1]), int(o[2])))
     unobs = f.section("unobservable")
