@@ -111,32 +111,20 @@ def _text(value: Any) -> str | None:
 class OakRig:
     """The cameras of one OAK device, captured as a synchronised set.
 
-    Parameters
-    ----------
-    device_id
-        The device's id (MxId or IP) or None for the first device found.
-    sockets
-        Camera name -> board socket name (``"CAM_A"`` ...). The first is the sync reference.
-    sizes
-        Camera name -> (width, height) in pixels of the requested output.
-    colour
-        Names of the cameras delivered as BGR (``BGR888i``); the others as grey (``GRAY8``).
-    exposure_us, iso
-        Manual exposure (microseconds) and sensitivity for every camera (both or neither;
-        neither leaves auto-exposure on).
-    focus
-        Camera name -> manual lens position 0..255; required for every auto-focus camera.
-    white_balance_k
-        Camera name -> colour temperature 1000..12000 K of the colour cameras' fixed white
-        balance (default 5000 K).
-    fps
-        Frame rate requested from every camera (one rate, so the streams stay in step).
-    resize_mode
-        ``stretch`` (whole field of view, default), ``crop`` or ``letterbox``.
-    sync_tolerance_s
-        Largest timestamp difference within a set (default ``0.55 / fps``).
-    timeout_s
-        How long :meth:`capture` waits for a complete set.
+    ``device_id``: the device's id (MxId or IP) or None for the first device found.
+    ``sockets``: camera name -> board socket name (``"CAM_A"`` ...). The first is the sync
+    reference.
+    ``sizes``: camera name -> (width, height) in pixels of the requested output.
+    ``colour``: names of the cameras delivered as BGR (``BGR888i``); the others as grey (``GRAY8``).
+    ``exposure_us``, ``iso``: manual exposure (microseconds) and sensitivity for every camera (both
+    or neither; neither leaves auto-exposure on).
+    ``focus``: camera name -> manual lens position 0..255; required for every auto-focus camera.
+    ``white_balance_k``: camera name -> colour temperature 1000..12000 K of the colour cameras'
+    fixed white balance (default 5000 K).
+    ``fps``: frame rate requested from every camera (one rate, so the streams stay in step).
+    ``resize_mode``: ``stretch`` (whole field of view, default), ``crop`` or ``letterbox``.
+    ``sync_tolerance_s``: largest timestamp difference within a set (default ``0.55 / fps``).
+    ``timeout_s``: how long :meth:`capture` waits for a complete set.
     """
 
     def __init__(
@@ -248,7 +236,7 @@ class OakRig:
 
     def _lock_and_read_back(self) -> None:
         """Lock a running auto exposure, then read every camera's settings back from two frame
-        sets (module docstring)."""
+        sets (docs/DRIVERS.md)."""
         dai = self._dai
         if self.exposure_us is None:
             time.sleep(AUTO_EXPOSURE_SETTLE_S)
@@ -423,7 +411,7 @@ class OakRig:
         )
 
     def capture(self) -> dict[str, np.ndarray]:
-        """One synchronised set exposed after this call (see the module docstring)."""
+        """One synchronised set exposed after this call (docs/DRIVERS.md)."""
         if self._pipeline is None:
             raise HardwareFault("OAK rig not open: call open() first")
         try:

@@ -200,39 +200,27 @@ def _describe(T: np.ndarray) -> str:
 class URRobot:
     """A UR arm driven over RTDE.
 
-    Parameters
-    ----------
-    hostname
-        The controller's IP address or name.
-    max_speed_mps, max_accel_mps2
-        Largest TCP speed and acceleration a move may ask for.
-    tcp
-        ``T_flange_tcp`` (4, 4), metres, set on the controller at connect; None keeps the
-        controller's TCP (then poses are of that TCP).
-    frequency
-        RTDE frequency in Hz; -1 is 500 Hz on e-Series, 125 Hz on CB3.
-    model
-        ``"UR5e"`` etc.: when given, :meth:`is_reachable` also rejects poses near a singularity
-        of the controller's joint solution (``ur_kinematics.singularity``).
-    stale_timeout_s
-        How long ``getTimestamp()`` may stay unchanged before the data is called stale.
-    arrival_tol_m, arrival_tol_deg
-        Largest distance and rotation between the target and the measured pose after a
-        completed move: both must hold.
-    take_control
-        The user's consent to stop a program running on the controller (ur-rtde's control
-        interface stops it to upload its own script); without it :meth:`connect` refuses.
-    payload_kg, payload_cog_m
-        When given, set on the controller at connect (``setPayload``): mass in kg, centre of
-        gravity (3,) in metres in the flange frame. None keeps the centre of gravity the
-        controller holds: ur-rtde sends [0, 0, 0] for it, which its script turns into the
-        current one on PolyScope 5 only (its ``$5.0`` lines); on 3.x it is read
-        (``getPayloadCog``) and sent back, else the flange centre would be set.
-    upper_range_registers
-        Use the RTDE input registers 24-47 (``FLAG_UPPER_RANGE_REGISTERS``), for controllers
-        whose fieldbus (EtherNet/IP, PROFINET, MODBUS) holds 0-23.
-    connect_timeout_s
-        How long each port of the controller may take to answer at connect.
+    ``hostname``: the controller's IP address or name.
+    ``max_speed_mps``, ``max_accel_mps2``: largest TCP speed and acceleration a move may ask for.
+    ``tcp``: ``T_flange_tcp`` (4, 4), metres, set on the controller at connect; None keeps the
+    controller's TCP (then poses are of that TCP).
+    ``frequency``: RTDE frequency in Hz; -1 is 500 Hz on e-Series, 125 Hz on CB3.
+    ``model``: ``"UR5e"`` etc.: when given, :meth:`is_reachable` also rejects poses near a
+    singularity of the controller's joint solution (``ur_kinematics.singularity``).
+    ``stale_timeout_s``: how long ``getTimestamp()`` may stay unchanged before the data is called
+    stale.
+    ``arrival_tol_m``, ``arrival_tol_deg``: largest distance and rotation between the target and the
+    measured pose after a completed move: both must hold.
+    ``take_control``: the user's consent to stop a program running on the controller (ur-rtde's
+    control interface stops it to upload its own script); without it :meth:`connect` refuses.
+    ``payload_kg``, ``payload_cog_m``: when given, set on the controller at connect
+    (``setPayload``): mass in kg, centre of gravity (3,) in metres in the flange frame. None keeps
+    the centre of gravity the controller holds: ur-rtde sends [0, 0, 0] for it, which its script
+    turns into the current one on PolyScope 5 only (its ``$5.0`` lines); on 3.x it is read
+    (``getPayloadCog``) and sent back, else the flange centre would be set.
+    ``upper_range_registers``: use the RTDE input registers 24-47 (``FLAG_UPPER_RANGE_REGISTERS``),
+    for controllers whose fieldbus (EtherNet/IP, PROFINET, MODBUS) holds 0-23.
+    ``connect_timeout_s``: how long each port of the controller may take to answer at connect.
     """
 
     def __init__(
@@ -294,7 +282,7 @@ class URRobot:
 
     # ---------------------------------------------------------------------------- connection
     def connect(self) -> None:
-        """Connect (see the module docstring for the order of checks); ``HardwareFault`` unless
+        """Connect (docs/DRIVERS.md: the order of checks); ``HardwareFault`` unless
         the robot is running in normal or reduced safety mode, ready for remote commands, and
         nothing the user did not consent to would be stopped.
 

@@ -22,28 +22,18 @@ SETTLE_FRAMES = 30
 class UvcCamera:
     """One camera by index (``/dev/video<index>``), device path or video file path.
 
-    Parameters
-    ----------
-    index_or_path
-        ``cv2.VideoCapture`` source.
-    name
-        The camera's name in sessions and results.
-    width, height
-        Required image size in pixels; anything else is refused.
-    fourcc
-        Pixel format such as ``"MJPG"`` (needed by many cameras for large sizes), or None.
-    exposure
-        Manual exposure in the backend's unit (V4L2: 100 microsecond steps), or None for auto.
-    focus
-        Manual focus value in the backend's unit (V4L2: ``focus_absolute``), or None to keep
-        the lens where it is (autofocus is switched off either way).
-    fps
-        Frame rate to request, or None for the camera's default.
-    drop_frames
-        Buffered frames discarded before each capture.
-    settle_frames
-        Frames the auto exposure / white balance run before they are locked (cameras only, not
-        video files).
+    ``index_or_path``: ``cv2.VideoCapture`` source.
+    ``name``: the camera's name in sessions and results.
+    ``width``, ``height``: required image size in pixels; anything else is refused.
+    ``fourcc``: pixel format such as ``"MJPG"`` (needed by many cameras for large sizes), or None.
+    ``exposure``: manual exposure in the backend's unit (V4L2: 100 microsecond steps), or None for
+    auto.
+    ``focus``: manual focus value in the backend's unit (V4L2: ``focus_absolute``), or None to keep
+    the lens where it is (autofocus is switched off either way).
+    ``fps``: frame rate to request, or None for the camera's default.
+    ``drop_frames``: buffered frames discarded before each capture.
+    ``settle_frames``: frames the auto exposure / white balance run before they are locked (cameras
+    only, not video files).
     """
 
     def __init__(
@@ -118,7 +108,7 @@ class UvcCamera:
             self._backend = str(cap.getBackendName())
         except cv2.error:
             self._backend = None
-        if self._backend == "V4L2":  # raw property ranges (module docstring); reads back 0
+        if self._backend == "V4L2":  # raw property ranges (docs/DRIVERS.md); reads back 0
             self._set(cap, "raw_ranges", cv2.CAP_PROP_MODE, 0)
         if self.fourcc is not None:
             code = cv2.VideoWriter_fourcc(*self.fourcc)

@@ -287,28 +287,20 @@ def render_target(
 ) -> np.ndarray:
     """The image camera ``cam`` takes of ``target`` at pose ``T_cam_board``.
 
-    Parameters
-    ----------
-    target
-        A ``charuco`` or ``chessboard`` target (board frame and ids of ``solver/problem.py``).
-    cam
-        The simulated camera (``SimCamera``: size, ``K`` (3, 3) px, ``dist`` (5,), blur, noise,
-        exposure, colour).
-    T_cam_board
-        (4, 4) board frame to camera frame, metres.
-    rng
-        Source of the read noise.
-    vignetting
-        Relative fall-off at the image corners (0: none; 0.3: corners 30 % darker), quadratic in
-        the distance from the principal point (the clean path; ``photo`` has its own).
-    photo
-        Photograph-like imaging (``Photo``); None: ``cam.photo`` (None there too: the clean
-        renderer of the module docstring).
-    bow_m
-        The real board's bow along its x and y (metres at the pattern's centre line against its
-        edges, +z into the board: ``solver/target_shape.py``'s bow modes); (0, 0): flat. Each
-        ray meets the bowed surface (two fixed-point steps from the plane; the bow's slope is
-        about 1e-3, so the second step moves the hit by under a micrometre).
+    ``target``: A ``charuco`` or ``chessboard`` target (board frame and ids of
+    ``solver/problem.py``).
+    ``cam``: the simulated camera (``SimCamera``: size, ``K`` (3, 3) px, ``dist`` (5,), blur, noise,
+    exposure, colour).
+    ``T_cam_board``: (4, 4) board frame to camera frame, metres.
+    ``rng``: source of the read noise.
+    ``vignetting``: relative fall-off at the image corners (0: none; 0.3: corners 30 % darker),
+    quadratic in the distance from the principal point (the clean path; ``photo`` has its own).
+    ``photo``: photograph-like imaging (``Photo``); None: ``cam.photo`` (None there too: the clean
+    renderer, docs/DRIVERS.md).
+    ``bow_m``: the real board's bow along its x and y (metres at the pattern's centre line against
+    its edges, +z into the board: ``solver/target_shape.py``'s bow modes); (0, 0): flat. Each ray
+    meets the bowed surface (two fixed-point steps from the plane; the bow's slope is about 1e-3, so
+    the second step moves the hit by under a micrometre).
 
     Returns
     -------

@@ -150,36 +150,25 @@ def _describe(T: np.ndarray) -> str:
 
 
 class SimulatedUR:
-    """A simulated UR arm; see the module docstring.
+    """A simulated UR arm (docs/DRIVERS.md).
 
-    Parameters
-    ----------
-    rng
-        Draws the measurement noise.
-    model
-        Kinematic model (``ur_kinematics.UR5E`` ...).
-    start_q
-        Initial joint vector (6,), radians.
-    T_flange_tcp
-        TCP offset (4, 4), metres; poses are of the TCP. None: the flange.
-    max_speed_mps, max_accel_mps2
-        Upper bounds of the linear speed and acceleration a move may ask for.
-    max_angular_speed_deg_s, max_angular_accel_deg_s2
-        Tool rotation speed and acceleration used for the rotational part of a move.
-    pose_noise_m
-        Standard deviation of the measured position, per axis, metres.
-    pose_noise_deg
-        Standard deviation of each component of a small rotation vector applied to the
-        measured orientation, degrees (the rms rotation angle is ``sqrt(3)`` times this).
-    z_min_m
-        Lowest allowed TCP height in the base frame (a table or safety plane), or None.
-    move_timeout_s
-        Time a move that times out (injected fault) spends before it gives up.
-    kinematic_error
-        The arm's deviation from its nominal model (None: the arm is its model, exactly).
-        ``true_pose`` is then the perturbed arm's pose of the joints with the stop's
-        repeatability error; ``measured_pose`` stays the nominal model's (what the controller
-        computes), with ``pose_noise_*`` on top.
+    ``rng``: draws the measurement noise.
+    ``model``: kinematic model (``ur_kinematics.UR5E`` ...).
+    ``start_q``: initial joint vector (6,), radians.
+    ``T_flange_tcp``: TCP offset (4, 4), metres; poses are of the TCP. None: the flange.
+    ``max_speed_mps``, ``max_accel_mps2``: upper bounds of the linear speed and acceleration a move
+    may ask for.
+    ``max_angular_speed_deg_s``, ``max_angular_accel_deg_s2``: tool rotation speed and acceleration
+    used for the rotational part of a move.
+    ``pose_noise_m``: standard deviation of the measured position, per axis, metres.
+    ``pose_noise_deg``: standard deviation of each component of a small rotation vector applied to
+    the measured orientation, degrees (the rms rotation angle is ``sqrt(3)`` times this).
+    ``z_min_m``: lowest allowed TCP height in the base frame (a table or safety plane), or None.
+    ``move_timeout_s``: time a move that times out (injected fault) spends before it gives up.
+    ``kinematic_error``: the arm's deviation from its nominal model (None: the arm is its model,
+    exactly). ``true_pose`` is then the perturbed arm's pose of the joints with the stop's
+    repeatability error; ``measured_pose`` stays the nominal model's (what the controller computes),
+    with ``pose_noise_*`` on top.
     """
 
     def __init__(
@@ -237,7 +226,7 @@ class SimulatedUR:
     # ----------------------------------------------------------------- construction from YAML
     @classmethod
     def from_dict(cls, cell: Mapping[str, Any]) -> SimulatedUR:
-        """Build from a cell description (see the module docstring); unknown keys are errors."""
+        """Build from a cell description (docs/DRIVERS.md); unknown keys are errors."""
         known = {
             "model",
             "start_pose",

@@ -718,7 +718,7 @@ def _floats(text: str) -> list[float]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The controller's command line (see the module docstring)."""
+    """The controller's command line (docs/DRIVERS.md)."""
     p = argparse.ArgumentParser(
         prog="python -m slidecal.mocks.ur_controller",
         description="A loopback UR controller for the real ur-rtde client.",

@@ -395,7 +395,7 @@ class SimulationConfig:
 
 @dataclass(frozen=True)
 class CellConfig:
-    """A validated cell description (see the module docstring).
+    """A validated cell description (docs/FORMATS.md).
 
     ``source``: the file's name; ``sha256``: the SHA-256 of its bytes (recorded in sessions).
     ``camera_options``: per camera the driver options of ``cameras.list``; ``rig_options``: the

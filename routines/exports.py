@@ -195,7 +195,7 @@ def _rpy_deg(R: np.ndarray) -> list[float]:
 
 
 def hand_eye_dict(result: CalibrationResult, header: Mapping[str, Any] | None = None) -> dict:
-    """``hand_eye.yaml``: every hand-eye transform in three forms (see the module docstring).
+    """``hand_eye.yaml``: every hand-eye transform in three forms.
 
     A transform whose translation the data did not determine is written with ``null``
     translation fields and no matrix.

@@ -42,21 +42,13 @@ def _nominal_K(spec: CameraSpec) -> np.ndarray:
 class RerunLog:
     """Log one run; see the module docstring for the entity tree.
 
-    Parameters
-    ----------
-    path
-        Where to save the ``.rrd`` recording (None: no file).
-    cameras
-        The rig's cameras (name and size).
-    target
-        The calibration target (board frame points).
-    mount
-        ``eye_in_hand`` | ``eye_to_hand``.
-    T_hand_eye_approx, T_target_approx
-        (4, 4) approximate ``T_tool_cam``/``T_base_cam`` and ``T_base_board``/``T_tool_board``
-        for the display while recording (metres).
-    spawn
-        Also open a viewer and stream to it.
+    ``path``: where to save the ``.rrd`` recording (None: no file).
+    ``cameras``: the rig's cameras (name and size).
+    ``target``: the calibration target (board frame points).
+    ``mount``: ``eye_in_hand`` | ``eye_to_hand``.
+    ``T_hand_eye_approx``, ``T_target_approx``: (4, 4) approximate ``T_tool_cam``/``T_base_cam`` and
+    ``T_base_board``/``T_tool_board`` for the display while recording (metres).
+    ``spawn``: also open a viewer and stream to it.
     """
 
     def __init__(

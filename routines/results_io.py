@@ -168,7 +168,7 @@ def camera_to_dict(c: CameraEstimate) -> dict[str, Any]:
 
 
 def result_to_dict(result: CalibrationResult) -> dict[str, Any]:
-    """The ``result.yaml`` mapping of a result (see the module docstring)."""
+    """The ``result.yaml`` mapping of a result (docs/FORMATS.md)."""
     d: dict[str, Any] = {"format": RESULT_FORMAT}
     d["cameras"] = {n: camera_to_dict(c) for n, c in result.cameras.items()}
     for key, t in hand_eye_transforms(result).items():

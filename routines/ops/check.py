@@ -105,7 +105,7 @@ def _hand_eye_T(installed: CalibrationResult, camera: str) -> np.ndarray:
 def expected_rms_px(
     installed: CalibrationResult, info: dict[str, Any], cfg: CellConfig
 ) -> dict[str, float]:
-    """What the installed calibration explains per camera (see the module docstring)."""
+    """What the installed calibration explains per camera (docs/UNATTENDED.md)."""
     rec = info.get("chain_rms_px") or {}
     out = {}
     for n, c in installed.cameras.items():

@@ -228,7 +228,7 @@ def judge(
     installed_path: str | None = None,
     installed_problem: CalibrationProblem | None = None,
 ) -> Verdict:
-    """The verdict of a solved calibration (see the module docstring). ``installed_problem``:
+    """The verdict of a solved calibration (docs/UNATTENDED.md). ``installed_problem``:
     the installed session's frames (default: the ``session.yaml`` an install store keeps
     beside ``installed_path``), for the paired comparison at the poses both sessions share."""
     lim = limits or Limits()
