@@ -689,9 +689,7 @@ class URRobot:
         """``HardwareFault`` when a "no" from the controller came from a stopped control script
         (ur-rtde answers False / [] then, as for an unreachable pose)."""
         if not self._control.isProgramRunning():
-            raise HardwareFault(
-                self._diagnose(f"the reachability query for {_describe(T)} failed")
-            )
+            raise HardwareFault(self._diagnose(f"the reachability query for {_describe(T)} failed"))
 
     def is_reachable(self, T_base_tool: np.ndarray) -> bool:
         """An IK solution near the current joints, inside the joint and safety limits.

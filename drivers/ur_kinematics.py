@@ -67,9 +67,7 @@ UR16E = URModel("UR16e", 0.1807, -0.4784, -0.36, 0.17415, 0.11985, 0.11655)
 UR3 = URModel("UR3", 0.1519, -0.24365, -0.21325, 0.11235, 0.08535, 0.0819)
 UR5 = URModel("UR5", 0.089159, -0.425, -0.39225, 0.10915, 0.09465, 0.0823)
 UR10 = URModel("UR10", 0.1273, -0.612, -0.5723, 0.163941, 0.1157, 0.0922)
-MODELS: dict[str, URModel] = {
-    m.name.lower(): m for m in (UR3E, UR5E, UR10E, UR16E, UR3, UR5, UR10)
-}
+MODELS: dict[str, URModel] = {m.name.lower(): m for m in (UR3E, UR5E, UR10E, UR16E, UR3, UR5, UR10)}
 
 #: A common "home" configuration (elbow up, tool pointing down), radians.
 Q_HOME = np.array([0.0, -np.pi / 2, np.pi / 2, -np.pi / 2, -np.pi / 2, 0.0])

@@ -188,10 +188,7 @@ class SimulatedCell:
         seed = sim.seed if seed is None else int(seed)
         robot_seed, camera_seed, target_seed = np.random.SeedSequence(seed).spawn(3)
         rdict = simulated_arm_dict(cfg, robot_seed)
-        rdict["noise"] = {
-            "pose_noise_m": sim.robot_noise_m,
-            "pose_noise_deg": sim.robot_noise_deg,
-        }
+        rdict["noise"] = {"pose_noise_m": sim.robot_noise_m, "pose_noise_deg": sim.robot_noise_deg}
         if sim.kinematic_error is not None:  # a real arm's accuracy (mocks/robot.py)
             rdict["kinematic_error"] = dict(sim.kinematic_error)
         robot = SimulatedUR.from_dict(rdict)

@@ -537,12 +537,7 @@ def r1_poses(rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.nda
     up = np.array([1.0, 0.0, 0.0])  # image up away from the robot base
     tilts = [(25.0, 0.0), (0.0, 25.0), (-20.0, -18.0), (18.0, -20.0)]
     moves_mm = np.array(
-        [
-            [60.0, 0.0, -40.0],
-            [0.0, 50.0, 45.0],
-            [-35.0, -30.0, 55.0],
-            [30.0, -40.0, -50.0],
-        ]
+        [[60.0, 0.0, -40.0], [0.0, 50.0, 45.0], [-35.0, -30.0, 55.0], [30.0, -40.0, -50.0]]
     )
     poses = []
     for gi, (ax_deg, ay_deg) in enumerate(tilts):
@@ -1276,9 +1271,7 @@ ONE_TAG_ROBOT_NOISE = (5e-5, 0.005)
 
 def one_tag_geometry() -> np.ndarray:
     """The one-tag row's camera-board poses: 7 orientations of an 8 cm tag (seed 7)."""
-    return camera_board_poses(
-        np.random.default_rng(7), 7, square_tag(0.08), aim_spread_m=0.15
-    )
+    return camera_board_poses(np.random.default_rng(7), 7, square_tag(0.08), aim_spread_m=0.15)
 
 
 def one_tag_session(rng: np.random.Generator, geometry: np.ndarray) -> Scenario:

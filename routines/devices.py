@@ -22,10 +22,7 @@ from slidecal.solver.errors import InputError
 from slidecal.solver.result import CalibrationResult
 
 #: Driver -> (module it needs, the package that brings it, the slidecal extra).
-LIBRARIES = {
-    "ur": ("rtde_control", "ur-rtde", "ur"),
-    "oak": ("depthai", "depthai", "oak"),
-}
+LIBRARIES = {"ur": ("rtde_control", "ur-rtde", "ur"), "oak": ("depthai", "depthai", "oak")}
 OAK_RIG_KEYS = ("driver", "reference", "list", "device_id", "fps", "resize", "exposure_us", "iso",
                 "sync_tolerance_s")
 OAK_CAMERA_KEYS = ("socket", "colour", "focus", "white_balance_k")

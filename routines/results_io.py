@@ -314,15 +314,7 @@ RESULT_KEYS = (
 )
 #: The keys of the parts of ``result.yaml``.
 RESULT_PART_KEYS: dict[str, tuple[str, ...]] = {
-    "cameras.*": (
-        "width",
-        "height",
-        "K",
-        "distortion_model",
-        "distortion",
-        "std",
-        "reproj_rms_px",
-    ),
+    "cameras.*": ("width", "height", "K", "distortion_model", "distortion", "std", "reproj_rms_px"),
     "transform": ("R", "t_m", "std_rot_deg", "std_t_mm"),
     "reprojection": ("rms_px", "sigma_px", "per_image"),
     "reprojection.per_image[]": ("frame", "camera", "rms_px"),

@@ -81,15 +81,7 @@ SESSION_KEYS: dict[str, tuple[str, ...]] = {
         "events",
     ),
     "cameras[]": ("name", "width", "height", "socket"),
-    "frames[]": (
-        "id",
-        "group",
-        "T_base_tool",
-        "motion_board",
-        "images",
-        "detections",
-        "quality",
-    ),
+    "frames[]": ("id", "group", "T_base_tool", "motion_board", "images", "detections", "quality"),
     "detection": ("ids", "px"),
     # and transforms named T_<a>_<b>
     "simulation": ("cameras", "noise", "seed", "frames", "board_bow_mm"),

@@ -219,9 +219,7 @@ def finish_solve(
         report = write_report(session_dir, result, verdict, session.problem, installed, summary)
     except (OSError, ValueError) as e:
         export_errors.append(f"report failed: {' '.join(str(e).split())}")
-    return Solved(
-        verdict, result, target, summary, tuple(exports), tuple(export_errors), report
-    )
+    return Solved(verdict, result, target, summary, tuple(exports), tuple(export_errors), report)
 
 
 def _session_status(session: Session, plan_poses: int | None) -> str:

@@ -73,9 +73,7 @@ class FaultInjector:
         self._arm_robot = arm_robot
         self._rig = rig
         self.fired: list[FaultSpec] = []
-        if any(s.kind not in ROBOT_FAULTS for s in self.specs) and not hasattr(
-            rig, "inject_fault"
-        ):
+        if any(s.kind not in ROBOT_FAULTS for s in self.specs) and not hasattr(rig, "inject_fault"):
             raise InputError("camera faults need a simulated camera rig", where="--fault")
 
     @classmethod
