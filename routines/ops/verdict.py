@@ -336,6 +336,15 @@ STD_HINT = (
 )
 
 
+def _std_check(
+    what: str, value: float | None, limit: float, unit: str, fmt: str, note: str, scale: float = 1
+) -> Check:
+    """The ``std`` check of one one-sigma ``value`` (None: not determined) against ``limit``."""
+    shown = "unknown" if value is None else f"{value * scale:{fmt}} {unit}"
+    ok = value is not None and value <= limit
+    return Check("std", ok, value, limit, f"{what} one-sigma {shown} ({note})")
+
+
 def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
     out = []
     he = result.hand_eye
@@ -348,73 +357,32 @@ def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
         for p, val in (("fx", K[0, 0]), ("fy", K[1, 1])):
             s = _f(c.std.get(p))
             rel = s / abs(val) if s is not None and val != 0 else None
-            ok = rel is not None and rel <= fx_lim
-            out.append(
-                Check(
-                    "std",
-                    ok,
-                    rel,
-                    fx_lim,
-                    f"camera {name}: {p} one-sigma "
-                    + (f"{rel * 100:.3f} %" if rel is not None else "unknown")
-                    + f" (limit {fx_lim * 100:g} %; limits.fx_rel_std{suffix})",
-                )
-            )
+            note = f"limit {fx_lim * 100:g} %; limits.fx_rel_std{suffix}"
+            out.append(_std_check(f"camera {name}: {p}", rel, fx_lim, "%", ".3f", note, 100))
         for p in ("cx", "cy"):
+            one = ", a session of one orientation" if one_orientation else ""
+            note = f"limit {cxy_lim:g} px{one}; limits.cxy_std_px{suffix}"
             s = _f(c.std.get(p))
-            ok = s is not None and s <= cxy_lim
-            out.append(
-                Check(
-                    "std",
-                    ok,
-                    s,
-                    cxy_lim,
-                    f"camera {name}: {p} one-sigma "
-                    + (f"{s:.3f} px" if s is not None else "unknown")
-                    + f" (limit {cxy_lim:g} px"
-                    + (", a session of one orientation" if one_orientation else "")
-                    + f"; limits.cxy_std_px{suffix})",
-                )
-            )
-    transforms = []
-    if result.hand_eye is not None:
-        transforms.append(result.hand_eye)
+            out.append(_std_check(f"camera {name}: {p}", s, cxy_lim, "px", ".3f", note))
+    transforms = [result.hand_eye] if result.hand_eye is not None else []
     transforms.extend(result.rig.values())
     for t in transforms:
         if t.R is None:
             out.append(Check("std", False, None, None, f"{t.name}: rotation not determined"))
             continue
-        s = _f(t.std_rot_deg)
         full = t.t_m is not None  # else: from translations alone (no rotation in the session)
         rot_lim = lim.hand_eye_rot_std_deg if full else lim.hand_eye_rot_std_deg_from_translations
-        ok = s is not None and s <= rot_lim
-        out.append(
-            Check(
-                "std",
-                ok,
-                s,
-                rot_lim,
-                f"{t.name}: rotation one-sigma "
-                + (f"{s:.4f} deg" if s is not None else "unknown")
-                + f" (limit {rot_lim:g} deg"
-                + ("" if full else ", a hand-eye from translations alone")
-                + f"; limits.hand_eye_rot_std_deg{'' if full else '_from_translations'})",
-            )
+        note = (
+            f"limit {rot_lim:g} deg" + ("" if full else ", a hand-eye from translations alone")
+            + f"; limits.hand_eye_rot_std_deg{'' if full else '_from_translations'}"
         )
+        s = _f(t.std_rot_deg)
+        out.append(_std_check(f"{t.name}: rotation", s, rot_lim, "deg", ".4f", note))
         if t.t_m is not None:
+            t_lim = lim.hand_eye_t_std_mm
+            note = f"limit {t_lim:g} mm; limits.hand_eye_t_std_mm"
             s = _f(t.std_t_mm)
-            ok = s is not None and s <= lim.hand_eye_t_std_mm
-            out.append(
-                Check(
-                    "std",
-                    ok,
-                    s,
-                    lim.hand_eye_t_std_mm,
-                    f"{t.name}: translation one-sigma "
-                    + (f"{s:.3f} mm" if s is not None else "unknown")
-                    + f" (limit {lim.hand_eye_t_std_mm:g} mm; limits.hand_eye_t_std_mm)",
-                )
-            )
+            out.append(_std_check(f"{t.name}: translation", s, t_lim, "mm", ".3f", note))
     return out
 
 
