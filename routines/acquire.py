@@ -95,11 +95,11 @@ def record_session(
     extended: str | None = None,
     log: Any = None,
 ) -> Recorded:
-    """Connect, lock the cell, move through ``plan`` (from pose ``start``), capture, detect and
-    write the session ``out`` (``resume``: append to the session there; ``extended``: the plan
-    grew, why, and ``plan.yaml`` is rewritten). ``log``: the run's open rerun log, to go on
-    with. On a fault or an interrupt (Ctrl-C, SIGTERM, SIGHUP) the robot is stopped, the
-    session marked aborted with the event, and the exception raised again."""
+    """Connect, lock the cell, move through ``plan`` from pose ``start``, capture, detect and write
+    the session ``out`` (``resume``: append to it; ``extended``: the plan grew, why). ``log``: the
+    run's open rerun log. On a fault or an interrupt the robot is stopped, the session marked
+    aborted with the event, and the exception raised again.
+    """
     truth: dict[str, Any] | None = None
     if cfg.simulated:
         if cell is None:

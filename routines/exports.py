@@ -57,9 +57,8 @@ def file_sha256(path: str | Path | None) -> str | None:
 
 
 def result_header(cell_path: str | Path | None, cell_name: str | None = None) -> dict[str, Any]:
-    """``{slidecal_version, created_utc, cell, cell_sha256}`` for result files and exports.
-
-    Without a cell file, a packaged cell named ``cell_name`` (``default_cell.yaml``) is hashed.
+    """``{slidecal_version, created_utc, cell, cell_sha256}``; without a cell file the packaged cell
+    ``cell_name`` is hashed.
     """
     digest = file_sha256(cell_path)
     if cell_path is None and cell_name:
@@ -134,16 +133,11 @@ def _numbers(values: Any) -> str:
 def mrcal_cameramodel(
     result: CalibrationResult, name: str, header: Mapping[str, Any] | None = None
 ) -> str:
-    """mrcal's ``.cameramodel`` text of camera ``name`` (a Python literal ``dict``, as mrcal
-    writes and reads it). ``ValueError`` when a camera has a skew or the rig transform of
-    ``name`` is not in the result.
-
-    ``lensmodel`` ``LENSMODEL_OPENCV5``, written before ``intrinsics`` (mrcal's C reader wants
-    that order): ``fx, fy, cx, cy`` and OpenCV's ``k1 k2 p1 p2 k3`` (mrcal's OpenCV models are
-    OpenCV's projection, pixel coordinates as OpenCV's and slidecal's). ``rt_cam_ref``: the
-    reference camera's frame into this camera's (a Rodrigues vector, then the translation in
-    metres; zero for the reference camera), also written as ``extrinsics`` for mrcal before
-    2.5. ``imagersize``: width, height."""
+    """mrcal's ``.cameramodel`` text (a Python ``dict`` literal) of camera ``name``:
+    ``LENSMODEL_OPENCV5`` written before ``intrinsics`` (mrcal's C reader wants that order),
+    ``rt_cam_ref`` (Rodrigues vector, metres; also as ``extrinsics`` for mrcal before 2.5),
+    ``imagersize``. ``ValueError`` when the camera has a skew or its rig transform is missing.
+    """
     _no_skew(result, "mrcal's OpenCV lens models")
     c = result.cameras[name]
     ref = _ordered_cameras(result)[0]
@@ -195,10 +189,8 @@ def _rpy_deg(R: np.ndarray) -> list[float]:
 
 
 def hand_eye_dict(result: CalibrationResult, header: Mapping[str, Any] | None = None) -> dict:
-    """``hand_eye.yaml``: every hand-eye transform in three forms.
-
-    A transform whose translation the data did not determine is written with ``null``
-    translation fields and no matrix.
+    """``hand_eye.yaml``: every hand-eye transform in three forms; an undetermined translation is
+    ``null``, without a matrix.
     """
     out: dict[str, Any] = {}
     if header:

@@ -40,15 +40,11 @@ def _nominal_K(spec: CameraSpec) -> np.ndarray:
 
 
 class RerunLog:
-    """Log one run; see the module docstring for the entity tree.
+    """Log one run (the entity tree: module docstring).
 
-    ``path``: where to save the ``.rrd`` recording (None: no file).
-    ``cameras``: the rig's cameras (name and size).
-    ``target``: the calibration target (board frame points).
-    ``mount``: ``eye_in_hand`` | ``eye_to_hand``.
-    ``T_hand_eye_approx``, ``T_target_approx``: (4, 4) approximate ``T_tool_cam``/``T_base_cam`` and
-    ``T_base_board``/``T_tool_board`` for the display while recording (metres).
-    ``spawn``: also open a viewer and stream to it.
+    ``path``: the ``.rrd`` file (None: none). ``cameras``: the rig's cameras. ``target``: the board.
+    ``mount``: ``eye_in_hand`` | ``eye_to_hand``. ``T_hand_eye_approx``, ``T_target_approx``: (4, 4)
+    metres, shown while recording. ``spawn``: also stream to a viewer.
     """
 
     def __init__(

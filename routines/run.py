@@ -59,41 +59,19 @@ MIN_GROUP_MOVE_M = 0.002
 class RunRequest:
     """What :func:`run_calibration` is asked to do.
 
-    config
-        A cell file, a loaded :class:`CellConfig`, or None for the default simulated cell.
-    plan
-        A ``plan.yaml``, a :class:`Plan`, or None: the planner chooses one for the cell
-        (:func:`slidecal.routines.planner.make_plan`: non-degenerate, reachable, in view, the
-        goal of the cell's ``plan:`` block in the least robot time), or refuses with the reason.
-        A plan given here is checked for degeneracy before the robot moves.
-    out_dir
-        The session directory to create (default ``sessions/<date>_<time>``).
-    progress
-        True/False to force the progress output on/off; None: on (a status line on a
-        terminal, plain timestamped lines otherwise).
-    recording
-        Write ``recording.rrd`` (rerun) into the session; ``spawn`` also opens a viewer.
-    seed
-        Simulated cells: overrides ``simulation.seed``.
-    overrides
-        Nested values merged over the cell file (see :func:`load_config`).
-    cell
-        A prepared :class:`~slidecal.mocks.cell.SimulatedCell` (tests inject faults into it).
-    install
-        An install store (:mod:`slidecal.routines.ops.install`; default: the cell's
-        ``install.dir``): an accepted result is installed there; ``force`` installs one less
-        certain than the installed one, ``accept_drift`` a drifted one.
-    installed
-        The calibration to compare with (default: the install store's current one).
-    resume
-        A session directory whose run stopped (fault, interrupt): continue its plan from the
-        first frame it lacks (``out_dir`` and ``plan`` must be None).
-    faults
-        ``KIND@FRAME`` strings (simulated cells only) or a prepared
-        :class:`~slidecal.routines.ops.faults.FaultInjector`: faults to inject (``--fault``).
-    retries
-        Captures of a pose tried again after a dropped frame (reconnecting the camera) or an
-        image without a single corner (default: the cell's ``install.retries``, else 2).
+    ``config``: a cell file, a loaded :class:`CellConfig`, or None for the default simulated cell.
+    ``plan``: a ``plan.yaml``, a :class:`Plan` (checked for degeneracy before the robot moves), or
+    None: the planner's plan for the cell, or a refusal with the reason. ``out_dir``: the session
+    directory to create (default ``sessions/<date>_<time>``). ``progress``: force the progress
+    output on/off (None: on). ``recording``: write ``recording.rrd`` (rerun); ``spawn`` also opens a
+    viewer. ``seed``: overrides ``simulation.seed``. ``overrides``: nested values merged over the
+    cell file. ``cell``: a prepared :class:`~slidecal.mocks.cell.SimulatedCell`. ``install``: an
+    install store (default: the cell's ``install.dir``); ``force`` installs a less certain result,
+    ``accept_drift`` a drifted one. ``installed``: the calibration to compare with (default: the
+    store's current one). ``resume``: a stopped session to continue from the first frame it lacks
+    (``out_dir`` and ``plan`` None). ``faults``: ``KIND@FRAME`` strings (simulated cells) or a
+    :class:`~slidecal.routines.ops.faults.FaultInjector`. ``retries``: captures of a pose tried
+    again after a dropped frame or an image without corners (default: ``install.retries``, else 2).
     """
 
     config: str | Path | CellConfig | None = None
@@ -120,10 +98,10 @@ def default_session_dir() -> Path:
 
 
 def check_user_plan(plan: Plan, cfg: CellConfig, where: str) -> None:
-    """Refuse a user's plan that cannot determine the calibration, before the robot moves:
-    a group whose poses differ in orientation or hold no translation (the method needs pure
-    translations inside each group), or a plan the planner's prediction finds degenerate
-    (frames that do not see the target, too few orientations)."""
+    """Refuse, before the robot moves, a user's plan that cannot determine the calibration: a group
+    whose poses differ in orientation or hold no translation, or a plan the planner's prediction
+    finds degenerate.
+    """
     for g, group in enumerate(plan.groups):
         T0 = group[0]
         for k, T in enumerate(group[1:], start=1):
@@ -341,16 +319,10 @@ def extend_for_limits(
     limits: Limits,
     session: Session,
 ) -> tuple[Plan | None, str]:
-    """The longer plan a run records next when its result misses only the gate's one-sigma
-    limits (the data is sound but not enough of it: an arm less accurate than the plan was made
-    for), with why; or None and why not (an empty reason when nothing was missed).
-
-    Planned for the accuracy the data showed (:func:`slidecal.routines.planner.extend_plan`):
-    the reference camera's residual rms, the robot's learned accuracy, the one-sigma each limit
-    asks for times :data:`EXTEND_MARGIN`, within the cell's ``plan.extend_max_s`` of robot time
-    (0: never extend). Only the planner's plans are extended (they carry its prediction,
-    ``predicted_std``); a plan written by hand is run as written. Simulated and real cells
-    alike: the extension is checked like any plan before the robot moves.
+    """The longer plan a run records next when its result misses only the gate's one-sigma limits,
+    with why; or None and why not (an empty reason when nothing was missed). Planned for the
+    accuracy the data showed (:func:`slidecal.routines.planner.extend_plan`) within the cell's
+    ``plan.extend_max_s`` of robot time (0: never); only the planner's plans are extended.
     """
     verdict = judge(result, limits, session.problem, command="run")
     if verdict.verdict != "rejected":

@@ -37,10 +37,8 @@ class DuplicateKeyError(yaml.constructor.ConstructorError):
 
 
 class StrictLoader(_BaseLoader):  # type: ignore[misc, valid-type]
-    """The safe YAML loader, refusing a key that appears twice in one mapping.
-
-    A mapping whose dict is shorter than its list of keys had a key twice (or a merge): only
-    then are its keys compared one by one, so a valid file costs one length test per mapping.
+    """The safe YAML loader, refusing a key that appears twice in one mapping (keys compared only
+    where a mapping's dict is shorter than its list of keys).
     """
 
     def construct_mapping(self, node: Any, deep: bool = False) -> dict[Any, Any]:
@@ -85,10 +83,8 @@ def plain(obj: Any) -> Any:
 
 def dump_yaml(data: Any, indent: int | None = None) -> str:
     """YAML text of ``data`` (numbers in flow-style leaf lists, keys in insertion order).
-
-    ``indent``: ``data`` is a part of a document (entries of a mapping, or items of a list)
-    nested that many spaces deep: its top level in block style and its lines wrapped as the
-    whole document's would be, so that parts dumped apart join into the document's text.
+    ``indent``: ``data`` is a part of a document nested that many spaces deep, dumped so that
+    parts join into the whole document's text.
     """
     text = yaml.dump(
         plain(data),
@@ -116,11 +112,8 @@ class _PartDumper(_Dumper):  # type: ignore[misc, valid-type]
 
 
 def write_atomic(path: Path, text: str | bytes) -> None:
-    """Write ``path`` so that it holds either its old or its new content, never a mix.
-
-    The text goes to a temporary file in the same directory, is flushed and fsynced, then
-    renamed over ``path``; the directory is fsynced so the rename survives a power cut. When
-    writing fails (a full disk) the temporary file is removed and the error raised.
+    """Write ``path`` so that it holds either its old or its new content: a fsynced temporary file
+    renamed over it, the directory fsynced; on failure the temporary file is removed.
     """
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp")

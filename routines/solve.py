@@ -48,15 +48,10 @@ REJECTED_DIR = "rejected"
 
 @dataclass(frozen=True)
 class RunOutcome:
-    """What a run produced.
-
-    ``errors``: against the simulated truth (simulated cells; see
-    :func:`~slidecal.routines.results_io.errors_against_truth`). ``robot_time_s``: the robot's
-    (simulated) clock spent moving and settling; ``wall_time_s``: this process's time.
-    ``verdict``: the gate's decision (:mod:`slidecal.routines.ops.verdict`); a rejected result is
-    written under ``rejected/`` and has no exports. ``installed_to``: the install store's new
-    entry (None when not installed; ``install_note`` says why). ``export_errors``: exports
-    that failed, one line each. ``exit_code``: what ``slidecal`` exits with.
+    """What a run produced: ``errors`` against the simulated truth (simulated cells), the robot's
+    and this process's time, the gate's ``verdict`` (a rejected result is written under
+    ``rejected/`` without exports), ``installed_to`` (None when not installed: ``install_note``
+    says why), ``export_errors`` (one line each) and :attr:`exit_code`.
     """
 
     session_dir: Path
@@ -163,12 +158,9 @@ def finish_solve(
     plan_poses: int | None = None,
     notes: Sequence[str] = (),
 ) -> Solved:
-    """Judge a solved session and write what the verdict allows (``notes``: what the run
-    itself has to say, e.g. that it extended its plan, added to the verdict's notes).
-
-    Always: ``verdict.yaml`` in the session, ``summary.txt`` next to the result, the report
-    (``report.html``, ``report.png``) in the session. Accepted or drifted: ``result.yaml`` and
-    ``export/``. Rejected: ``rejected/result.yaml`` and its summary, no exports.
+    """Judge a solved session and write what the verdict allows: always ``verdict.yaml``,
+    ``summary.txt`` and the report; ``result.yaml`` and ``export/`` when accepted or drifted,
+    ``rejected/`` without exports otherwise. ``notes``: the run's own notes for the verdict.
     """
     status = _session_status(session, plan_poses)
     verdict = judge(
@@ -262,9 +254,9 @@ def solve_session(
 ) -> RunOutcome:
     """Solve a recorded session again (``slidecal solve``): read, calibrate, judge, write.
 
-    An existing result file is not overwritten without ``force``. ``installed``: an install
-    store or result to compare with; ``config``: a cell file whose ``limits:`` apply (default:
-    the limits the session recorded, else the defaults).
+    An existing result is not overwritten without ``force``. ``installed``: an install store or
+    result to compare with; ``config``: a cell file whose ``limits:`` apply (default: the
+    session's).
     """
     t0 = time.monotonic()
     session_dir = Path(session_dir)
