@@ -366,18 +366,12 @@ class RobotConfig:
 class SimulationConfig:
     """The ``simulation:`` section: the truth of a simulated cell.
 
-    ``cameras``: the simulated cameras (:class:`~slidecal.mocks.camera.SimCamera`, the type the
-    simulator renders with). ``T_hand_eye`` (4, 4): ``T_tool_cam`` (eye-in-hand) or
-    ``T_base_cam`` (eye-to-hand) of the reference camera; ``T_target`` (4, 4): ``T_base_board``
-    or ``T_tool_board``; ``rig``: ``T_<name>_<reference>`` (4, 4) per other camera. Noise: robot
-    position std per axis (metres) and rotation std per axis (degrees). ``target_jitter_mm`` /
-    ``_deg``: the target is set up anew for each run: its true pose moves by this one-sigma
-    amount per axis, drawn from the run's seed.
-    ``kinematic_error``: the simulated arm's systematic error (``mm``, ``deg``,
-    ``repeatability_mm``, ``repeatability_deg``; ``slidecal.mocks.robot.KinematicError``), or
-    None for an arm that is exactly its nominal model. ``board_bow_mm``: the simulated board's
-    true bow along its x and y (``solver/target_shape.py``'s bow modes, mm; the renderer draws
-    it).
+    ``cameras``: :class:`~slidecal.mocks.camera.SimCamera` per name; ``T_hand_eye``, ``T_target``,
+    ``rig`` (4, 4): the reference camera's hand-eye, the target pose and ``T_<name>_<reference>``;
+    robot noise per axis (metres, degrees); ``target_jitter_mm``/``_deg``: one-sigma per axis of
+    the target's pose drawn anew per run; ``kinematic_error``: the arm's systematic error
+    (:class:`~slidecal.mocks.robot.KinematicError` sizes; None: the nominal model);
+    ``board_bow_mm``: the board's true bow along x and y.
     """
 
     seed: int
@@ -395,13 +389,9 @@ class SimulationConfig:
 
 @dataclass(frozen=True)
 class CellConfig:
-    """A validated cell description (docs/FORMATS.md).
-
-    ``source``: the file's name; ``sha256``: the SHA-256 of its bytes (recorded in sessions).
-    ``camera_options``: per camera the driver options of ``cameras.list``; ``rig_options``: the
-    camera driver's options of the ``cameras:`` section (``fps``, ``resize`` ..; read by
-    slidecal.routines.devices); ``sockets``: OAK board socket per camera (empty for other
-    drivers). ``plan``, ``limits``, ``install``: those sections.
+    """A validated cell description (docs/FORMATS.md). ``sha256``: of the file's bytes;
+    ``camera_options``: per camera its ``cameras.list`` driver options; ``rig_options``: the
+    ``cameras:`` section's driver options; ``sockets``: OAK board socket per camera.
     """
 
     source: str

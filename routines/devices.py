@@ -148,11 +148,10 @@ def _uvc(cfg: Any, section: Fields) -> Any:
 
 # ------------------------------------------------------------------------------ the session
 def record_devices(rig: Any, session_dir: str | Path, working_distance_m: float) -> dict[str, Any]:
-    """Write what the open rig reports into ``session_dir`` and return the session's
-    ``devices:`` block: ``camera`` (the driver's capabilities), ``working_distance_m`` and, for
-    an OAK, ``calibration_files`` (``user``/``factory``: depthai JSON files beside
-    ``session.yaml``, absent where the device holds none). Rigs without a report (the
-    simulated cell) give an empty block."""
+    """Write what the open rig reports into ``session_dir`` and return the session's ``devices:``
+    block (``camera``, ``working_distance_m``, an OAK's ``calibration_files``); empty for rigs
+    without a report.
+    """
     capabilities = getattr(rig, "capabilities", None)
     if capabilities is None:
         return {}
@@ -205,10 +204,9 @@ def read_device_calibration(session_dir: str | Path, devices: Mapping[str, Any],
 def device_calibration_outputs(
     result: CalibrationResult, session_dir: str | Path, export_dir: str | Path
 ) -> tuple[list[Path], str]:
-    """After a solve of an OAK session: the depthai JSON export started from the device's own
-    calibration (``export/depthai_calibration.json``, replacing the one made from scratch) and
-    the summary lines comparing the device's calibrations with the result. Sessions of other
-    cameras: nothing."""
+    """After a solve of an OAK session: the depthai export started from the device's own
+    calibration, and summary lines comparing the device's calibrations with the result.
+    """
     session_dir = Path(session_dir)
     if not any((session_dir / f).is_file() for f in (USER_FILE, FACTORY_FILE)):
         return [], ""  # not an OAK session, or a device without calibration: nothing to add

@@ -255,8 +255,7 @@ SCALE_INCONCLUSIVE = 5.0
 def scale_tolerance(ratios: np.ndarray, floor: float) -> tuple[float, float]:
     """(median ratio, tolerance) of the moves' camera/robot length ratios: the tolerance is the
     larger of ``floor`` and four standard errors of the median (1.4826 MAD / sqrt(n) * 1.25).
-    One move's ratio scatters with the robot's accuracy over its length; a wrong square size or
-    TCP scale moves the median."""
+    """
     m = float(np.median(ratios))
     mad = float(np.median(np.abs(ratios - m))) * 1.4826
     se = 1.25 * mad / np.sqrt(len(ratios))
@@ -689,10 +688,10 @@ def summary_text(
     truth: Mapping[str, Any] | None = None,
     scale_floor: float = 0.01,
 ) -> str:
-    """A human summary: reprojection error, per-parameter std, hand-eye in mm and degrees,
-    what was unobservable and why, the scale check, and (simulated runs) the errors against
-    the truth. ``scale_floor``: the verdict's ``scale_tolerance`` (the scale line says what the
-    verdict's scale check says: the median ratio against its tolerance)."""
+    """A human summary: reprojection, per-parameter std, hand-eye in mm and degrees, what was
+    unobservable and why, the scale check against ``scale_floor`` (the verdict's
+    ``scale_tolerance``) and, for simulated runs, the errors against the truth.
+    """
     lines = ["slidecal calibration result", "=" * 27]
     lines.append(
         f"converged: {'yes' if result.converged else 'NO'} after {result.iterations} iterations; "
@@ -826,16 +825,9 @@ def _unit(v: np.ndarray) -> str:
 
 
 def errors_against_truth(result: CalibrationResult, truth: Mapping[str, Any]) -> dict[str, float]:
-    """Errors of a result against a session's ``simulation:`` block (same names).
-
-    Keys: ``<cam>.fx_rel`` (relative), ``<cam>.fx_px``, ``fy``, ``cx``, ``cy`` (pixels);
-    ``<T_name>.rot_deg`` (angle of R_est R_true'), ``<T_name>.t_mm`` (translation error norm)
-    for every hand-eye, rig and target transform present in both.
-
-    The intrinsics and the rig are judged against the physical truth. The hand-eye and the
-    target pose are judged against the truth the data can know (:func:`judged_truth`): when the
-    block records the poses the arm really reached (``frames``), the physical truth moved by
-    the arm's constant error over the frames the solve used.
+    """Errors of a result against a session's ``simulation:`` block (same names): ``<cam>.fx_rel``,
+    ``<cam>.fx_px`` .. ``cy`` (pixels), ``<T_name>.rot_deg`` and ``.t_mm`` per transform in both.
+    The hand-eye and the target pose are judged against :func:`judged_truth`.
     """
     out: dict[str, float] = {}
     tcams = truth.get("cameras") or {}
@@ -865,12 +857,9 @@ def errors_against_truth(result: CalibrationResult, truth: Mapping[str, Any]) ->
 
 
 def judged_truth(result: CalibrationResult, truth: Mapping[str, Any]) -> dict[str, np.ndarray]:
-    """The transforms (4x4, result-file names) a result is judged against.
-
-    Every ``T_<a>_<b>`` of the block; with the arm's true and reported poses (``frames``) the
-    hand-eye of every camera and the target pose become the effective truth
-    (:func:`slidecal.mocks.cell.effective_truth`) over the frames the solve used, weighted by
-    the robot accuracy the solve estimated (else the simulated arm's).
+    """The transforms (4x4, result-file names) a result is judged against: the block's, hand-eyes
+    and target pose replaced, where the block records the arm's true and reported poses, by the
+    effective truth (:func:`slidecal.mocks.cell.effective_truth`) over the frames the solve used.
     """
     out = {
         k: T

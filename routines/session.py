@@ -450,14 +450,10 @@ def options_to_dict(options: ModelOptions) -> dict[str, Any]:
 class Session:
     """A session read from disk: the solver's problem plus what the run recorded around it.
 
-    ``simulation``: the truth block of a simulated run (None for real runs). ``events``: what
-    happened (faults, aborts). ``quality``: per (frame id, camera) the detector's report.
-    ``cell``/``cell_sha256``: the cell file the run came from (None in older sessions);
-    ``sockets``: camera name -> OAK board socket (empty unless the cameras were an OAK).
-    ``detect_reasons``: per (frame id, camera) whose image was detected on reading and gave
-    nothing usable, why (the detector's reasons, e.g. a board of another size seen).
-    ``limits``: the ``limits:`` block as written (validated where it is judged with), so that
-    a solve reads ``session.yaml`` once.
+    ``simulation``: the truth block (None for real runs); ``events``: faults, aborts; ``quality``
+    and ``detect_reasons``: per (frame id, camera) the detector's report, and why an image
+    detected on reading gave nothing; ``cell``/``cell_sha256``: the cell file (None in older
+    sessions); ``sockets``: OAK board socket per camera; ``limits``: the ``limits:`` block.
     """
 
     directory: Path
@@ -482,13 +478,9 @@ def read_session(directory: str | Path, detect_images: bool = True) -> Calibrati
 
 
 def load_session(directory: str | Path, detect_images: bool = True) -> Session:
-    """Read and validate ``directory/session.yaml``.
-
-    Detections given in the file are used as they are; a camera with an image but no detections
-    is detected with :func:`slidecal.solver.detect.detect` (``detect_images``; otherwise it is an
-    error). Frames keep their entries when a camera saw nothing (empty ids). Without robot
-    poses, knowledge and mount become ``"none"``. Every problem is an ``InputError`` naming
-    ``session.yaml: <field>``.
+    """Read and validate ``directory/session.yaml``; a camera with an image but no detections is
+    detected (``detect_images``, else an error). Without robot poses, knowledge and mount become
+    ``"none"``. Every problem is an ``InputError`` naming ``session.yaml: <field>``.
     """
     directory = Path(directory)
     if not directory.is_dir():
@@ -978,11 +970,8 @@ def _append_rows(path: Path, n_rows: int, rows: np.ndarray) -> int:
 
 
 class SessionWriter:
-    """Create a session directory and append frames as they are captured.
-
-    Each :meth:`append_frame` writes the images (PNG) first, then appends the frame's corners to
-    ``detections.npy`` and rewrites ``session.yaml`` atomically, so the files on disk always
-    describe complete frames only.
+    """Create a session directory and append frames as they are captured (images, then corners,
+    then ``session.yaml`` atomically: the files always describe complete frames only).
     """
 
     def __init__(
@@ -1092,12 +1081,10 @@ class SessionWriter:
     ) -> int:
         """Write one frame now and return its id (``frame_id``, default: the next free id).
 
-        ``T_base_tool`` (4, 4), metres: the pose measured after settling (None without a robot).
-        ``images``: uint8 (H, W) or (H, W, 3) per camera name, saved as PNG. ``detections``:
-        per camera (an empty detection when the camera saw nothing). ``motion_board`` (3,):
-        board-frame motion knowledge (paper's cases). ``T_base_tool_true`` (4, 4): simulated
-        runs, the pose the arm really reached, recorded with ``T_base_tool`` in the
-        ``simulation:`` block's ``frames`` (ignored without a ``simulation:`` block).
+        ``T_base_tool`` (4, 4) m: the measured pose (None without a robot); ``images``: uint8 (H, W)
+        or (H, W, 3) per camera, saved as PNG; ``detections`` per camera; ``motion_board`` (3,):
+        board-frame motion knowledge; ``T_base_tool_true`` (4, 4): the pose the simulated arm really
+        reached (kept only with a ``simulation:`` block).
         """
         import cv2
 
