@@ -133,15 +133,12 @@ def refit(
     robot_noise_m: float = 5e-5,
     robot_noise_deg: float = 0.005,
 ) -> CalibrationResult:
-    """The installed calibration re-estimated from the check's frames: each camera's fx, fy,
-    cx, cy, the reference camera's hand-eye and the target pose are free; the distortion and a
-    rig's extrinsics stay as installed. Each measured robot pose gets a small correction with
-    the robot's noise as its prior (``robot_noise_m`` / ``_deg``, one-sigma per axis, as in the
-    solver): with a handful of frames the robot's pose errors, common to all corners of a
-    frame, dominate and must be in the covariance. Residuals are whitened by the installed
-    calibration's pixel noise; one-sigmas from the covariance, scaled up by the reduced
-    chi-square when it exceeds 1. Compared with the installed one by
-    :func:`slidecal.routines.ops.verdict.compare`."""
+    """The installed calibration re-estimated from the check's frames: fx, fy, cx, cy, the
+    reference camera's hand-eye and the target pose free, distortion and rig as installed; each
+    measured robot pose corrected under the robot's noise prior (``robot_noise_m``/``_deg``), the
+    residuals whitened by the installed pixel noise, the one-sigmas scaled up by a reduced
+    chi-square above 1.
+    """
     mount = installed.mount
     ref = installed.reference_camera or next(iter(installed.cameras))
     cams = [c.name for c in problem.cameras if c.name in installed.cameras]
@@ -242,10 +239,10 @@ def judge_problem(
     cfg: CellConfig,
     installed_problem: CalibrationProblem | None = None,
 ) -> Verdict:
-    """The check's verdict of recorded check frames against the installed calibration: the
-    paired comparison with ``installed_problem`` (the installed session's frames) when the
-    check's poses are among its poses, else (said in the notes) the re-estimate and the
-    fixed-calibration residuals."""
+    """The check's verdict of recorded check frames against the installed calibration: paired with
+    ``installed_problem`` when the check's poses are among its poses, else (said in the notes)
+    the re-estimate and the fixed-calibration residuals.
+    """
     Y, res = fit_target(problem, installed)
     rms = {n: float(np.sqrt(np.mean(np.sum(r**2, axis=1)))) for n, r in res.items() if len(r)}
     drift = {n: float(np.sqrt(max(rms[n] ** 2 - expected[n] ** 2, 0.0))) for n in rms}

@@ -61,10 +61,8 @@ def parse_fault(text: str) -> FaultSpec:
 
 
 class FaultInjector:
-    """Arms each fault just before the move to its frame (``before_frame``, called by the run).
-
-    ``arm_robot(kind)`` makes the robot's next move fail that way; camera faults are injected
-    into a simulated rig (``inject_fault(kind, at_capture)``, mocks/camera.py).
+    """Arms each fault just before the move to its frame (``before_frame``): ``arm_robot(kind)`` for
+    the robot, ``inject_fault(kind, at_capture)`` for a simulated rig.
     """
 
     def __init__(self, specs: Iterable[FaultSpec | str], arm_robot: Callable[[str], None],

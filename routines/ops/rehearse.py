@@ -107,13 +107,9 @@ TWIN_HFOV_DEG = 60.0
 
 
 def simulated_twin(cfg: CellConfig) -> CellConfig:
-    """The simulated cell standing in for a real one in a rehearsal: the same robot model, TCP,
-    speeds, workspace, target, mount, camera names and sizes, ``approximate`` taken as the truth,
-    cameras of a plausible lens (or the OAK-D-like preset), the camera starting at the stand-off
-    over the target.
-
-    Raises ``InputError`` when the cell gives too little to build one (several cameras that are
-    not an OAK's left/right/rgb: their extrinsics are unknown).
+    """The simulated cell standing in for a real one in a rehearsal: its robot, target, mount and
+    cameras' names and sizes, ``approximate`` taken as the truth. ``InputError`` when the cell
+    gives too little (several cameras that are not an OAK's left/right/rgb).
     """
     given = config_to_dict(cfg)
     # the twin's board is simulated, so exact; its camera plans with the simulated camera's
@@ -178,10 +174,8 @@ def rehearse(
     recording: bool = False,
     seed: int | None = None,
 ) -> RunOutcome:
-    """Run the cell's routine against the loopback controller; returns the ``RunOutcome``.
-
-    Raises like :func:`~slidecal.routines.run.run_calibration` (``HardwareFault`` after an
-    injected fault, with every frame before it in the session).
+    """Run the cell's routine against the loopback controller; returns the ``RunOutcome``, raises
+    as :func:`~slidecal.routines.run.run_calibration`.
     """
     cfg = load_config(config)
     driver_options: dict[str, Any] = {}

@@ -43,37 +43,18 @@ EXIT_CODES = {
 
 @dataclass(frozen=True)
 class Limits:
-    """The gate's limits (the cell file's ``limits:`` section; every field optional).
+    """The gate's limits (the cell file's ``limits:`` section; every field optional; their meaning
+    and defaults: docs/UNATTENDED.md).
 
-    ``max_rms_px``: reprojection rms when the solver gives no adequacy test.
-    ``fx_rel_std``: relative one-sigma of fx and fy. ``cxy_std_px``: one-sigma of cx, cy.
-    ``hand_eye_rot_std_deg`` / ``hand_eye_t_std_mm``: one-sigma of the hand-eye (and rig); the
-    translation's is the root of the three axes' variances. A real arm's accuracy (0.5-2 mm,
-    mostly systematic) sets it for a sound session: on public real sessions (an industrial arm,
-    28-30 frames) 1.5-1.9 mm, 1.1-2.0 mm with two of their frames left out
-    (docs/PUBLIC_DATA.md), so the default (3 mm) accepts those; a cell that needs less sets
-    its own.
-    ``hand_eye_rot_std_deg_from_translations``: one-sigma of a hand-eye rotation the session
-    determines from translations alone (one orientation: its translation is not observable);
-    on a real arm it is a few tenths of a degree, and the full hand-eye's limit would reject
-    the intrinsics with it. ``cxy_std_px_from_translations``: one-sigma of cx, cy in such a
-    session: the principal point rests on the arm's orientation accuracy (an orientation error
-    of d radians moves the image by f d pixels: 3.5 px at 0.1 deg and f = 2000 px), and the
-    general limit would reject an honest result that the session cannot make more precise.
-    ``fx_rel_std_from_translations``: relative one-sigma of fx, fy in such a session: they rest
-    on the lengths of the arm's moves and on the board's perspective in one view (public real
-    data, 13 frames: 0.12-0.30 % with the arm's accuracy, the scale of its moves and the
-    board's tolerance carried).
-    ``scale_tolerance``: smallest tolerance of the camera/robot length ratio around 1.
-    ``min_coverage``: fraction of the ``coverage_grid`` ([columns, rows]) cells holding a
-    corner, over all frames, per camera. ``max_change_sigma``: a parameter's change from the
-    installed calibration in units of the combined one-sigma. ``max_change_px``: the largest
-    displacement of a point at the working distance (``working_distance_m``) between the two,
-    over the central ``change_region`` (fraction of width and height) of the image.
-    ``check_max_rms_ratio``: ``slidecal check``: residual rms over the expected rms (detector
-    noise and installed uncertainty together). ``check_max_px``: the drift a check tolerates.
-    ``check_change_px``: the check's ``max_change_px`` (its re-estimate from a handful of
-    frames is noisier than a full calibration's).
+    ``max_rms_px``: reprojection rms without an adequacy test. ``fx_rel_std``, ``cxy_std_px``,
+    ``hand_eye_rot_std_deg``, ``hand_eye_t_std_mm``: one-sigma limits (the translation's is the
+    root of the three axes' variances); ``*_from_translations``: those of a session of one
+    orientation, whose hand-eye rotation and principal point rest on the arm's orientation
+    accuracy. ``scale_tolerance``: of the length ratio around 1. ``min_coverage``: of the
+    ``coverage_grid`` ([columns, rows]) per camera. ``max_change_sigma``, ``max_change_px``: a
+    drift from the installed calibration, the latter over the central ``change_region`` at
+    ``working_distance_m``. ``check_max_rms_ratio``, ``check_max_px``, ``check_change_px``:
+    ``slidecal check``'s.
     """
 
     max_rms_px: float = 1.0
@@ -467,14 +448,10 @@ def displacement_px(
     region: float = 0.5,
     n: int = 11,
 ) -> float:
-    """The largest image displacement of points at ``distance_m`` in front of ``camera``.
-
-    A grid of ``n x n`` pixels over the central ``region`` (fraction of width and height: the
-    image's corners hold no target in a usual plan, and the distortion is extrapolated there)
-    of the old calibration's image is cast to rays with its
-    intrinsics, placed at ``distance_m``, carried into the tool (or base) frame with its
-    hand-eye, and projected back with the new calibration's hand-eye and intrinsics. Without
-    a hand-eye in both, the intrinsics alone are compared.
+    """The largest image displacement of points at ``distance_m`` in front of ``camera``: an
+    ``n x n`` grid over the central ``region`` of the old image cast to rays, carried through the
+    old hand-eye and back through the new hand-eye and intrinsics (the intrinsics alone without
+    a hand-eye in both).
     """
     import cv2
 
@@ -617,11 +594,11 @@ def paired_compare(
     px_limit: float,
     region: float = 0.5,
 ) -> tuple[list[Check], dict[str, Any]]:
-    """The paired drift test (:mod:`slidecal.solver.drift`) of the frames of ``new`` taken at
-    the measured robot poses of frames of ``old`` (the installed session), per camera:
-    ``drifted`` when the corners' displacement field is significant and moves points of the
-    central ``region`` of the image by more than ``px_limit``. ``info["usable"]`` is False
-    (with ``info["why"]`` and no checks) when no camera has enough shared poses."""
+    """The paired drift test (:mod:`slidecal.solver.drift`) per camera of the frames of ``new`` at
+    robot poses of ``old`` (the installed session): ``drifted`` when the corners' displacement
+    field is significant and moves the central ``region`` by more than ``px_limit``.
+    ``info["usable"]`` False (with ``info["why"]``, no checks) without enough shared poses.
+    """
     pairs = drift.match_poses(
         [f.T_base_tool for f in new.frames], [f.T_base_tool for f in old.frames]
     )
@@ -716,11 +693,9 @@ def judge_check(
     extra: Mapping[str, Any] | None = None,
     notes: Sequence[str] = (),
 ) -> Verdict:
-    """The verdict of ``slidecal check``: ``ok`` unless the images at known robot poses
-    disagree with the installed calibration by more than the limits (then ``drifted``).
-
-    Per camera: ``residual_rms_px`` measured, ``expected_rms_px`` what detector noise and the
-    installed uncertainty explain, ``drift_px`` the part beyond that (px).
+    """The verdict of ``slidecal check``: ``ok``, or ``drifted`` when the images disagree with the
+    installed calibration beyond the limits (per camera ``residual_rms_px``, ``expected_rms_px``
+    and ``drift_px``).
     """
     lim = limits or Limits()
     checks = []
