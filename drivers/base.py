@@ -26,9 +26,8 @@ from slidecal.solver.problem import CameraSpec
 
 @runtime_checkable
 class Robot(Protocol):
-    """A robot arm that moves its TCP in straight lines and reports where it is.
-
-    Poses are ``T_base_tool`` (4, 4), metres, with the TCP the robot was configured with.
+    """A robot arm that moves its TCP in straight lines and reports where it is: poses are
+    ``T_base_tool`` (4, 4), metres, of the TCP the robot was configured with.
     """
 
     def connect(self) -> None:
@@ -44,10 +43,8 @@ class Robot(Protocol):
         ...
 
     def move_linear(self, T_base_tool: np.ndarray, speed_mps: float, accel_mps2: float) -> None:
-        """Move the TCP in a straight line to ``T_base_tool`` and block until it arrives.
-
-        Raises ``HardwareFault`` (after stopping the robot) on a protective or emergency stop,
-        a lost connection or a time-out.
+        """Move the TCP in a straight line to ``T_base_tool`` and block until it arrives; after
+        stopping the robot, ``HardwareFault`` on a stop, a lost connection or a time-out.
         """
         ...
 

@@ -123,9 +123,8 @@ def _check_T(T: np.ndarray) -> np.ndarray:
 
 
 def fk(q: np.ndarray, model: URModel = UR5E, T_flange_tcp: np.ndarray | None = None) -> np.ndarray:
-    """``T_base_tool`` (4, 4), metres, of joint angles ``q`` (6,) radians.
-
-    ``T_flange_tcp`` (4, 4), metres: the TCP offset set on the controller (None: the flange).
+    """``T_base_tool`` (4, 4), metres, of joint angles ``q`` (6,) radians; ``T_flange_tcp`` (4, 4):
+    the TCP offset (None: the flange).
     """
     q = _check_q(q)
     T = np.eye(4)
@@ -151,9 +150,8 @@ def _acos(x: float, tol: float = 1e-10) -> float | None:
 
 
 def _ik_flange(T: np.ndarray, m: URModel, q6_singular: float = 0.0) -> list[np.ndarray]:
-    """All closed-form solutions (angles in (-pi, pi]) for the flange pose ``T`` (Hawkins 2013).
-
-    At a wrist singularity (``sin(q5) = 0``) q6 is free; ``q6_singular`` is used for it.
+    """All closed-form solutions (angles in (-pi, pi]) for the flange pose ``T`` (Hawkins 2013); at
+    a wrist singularity q6 is ``q6_singular``.
     """
     R = T[:3, :3]
     p06 = T[:3, 3]
@@ -248,9 +246,8 @@ def ik(
 
 
 def singularity(q: np.ndarray, model: URModel = UR5E) -> str | None:
-    """Which singularity the configuration ``q`` (6,) radians is near, or None.
-
-    Thresholds: :data:`WRIST_SIN_MIN`, :data:`ELBOW_SIN_MIN`, :data:`SHOULDER_RADIUS_MIN_M`.
+    """Which singularity the configuration ``q`` (6,) radians is near (:data:`WRIST_SIN_MIN`,
+    :data:`ELBOW_SIN_MIN`, :data:`SHOULDER_RADIUS_MIN_M`), or None.
     """
     q = _check_q(q)
     if abs(np.sin(q[4])) < WRIST_SIN_MIN:
@@ -272,10 +269,8 @@ def reachable(
     model: URModel = UR5E,
     T_flange_tcp: np.ndarray | None = None,
 ) -> bool:
-    """Whether ``T_base_tool`` (4, 4, metres) has a non-singular solution inside the limits.
-
-    With ``q_near`` (6,) radians only the solution nearest to it counts (the one a linear move
-    from there would use); without it any solution does.
+    """Whether ``T_base_tool`` (4, 4, metres) has a non-singular solution inside the limits (with
+    ``q_near`` (6,) rad: the solution nearest it, as a linear move from there would use).
     """
     sols = ik(T_base_tool, q_near, model, T_flange_tcp)
     if q_near is not None:

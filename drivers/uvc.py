@@ -22,18 +22,11 @@ SETTLE_FRAMES = 30
 class UvcCamera:
     """One camera by index (``/dev/video<index>``), device path or video file path.
 
-    ``index_or_path``: ``cv2.VideoCapture`` source.
-    ``name``: the camera's name in sessions and results.
-    ``width``, ``height``: required image size in pixels; anything else is refused.
-    ``fourcc``: pixel format such as ``"MJPG"`` (needed by many cameras for large sizes), or None.
-    ``exposure``: manual exposure in the backend's unit (V4L2: 100 microsecond steps), or None for
-    auto.
-    ``focus``: manual focus value in the backend's unit (V4L2: ``focus_absolute``), or None to keep
-    the lens where it is (autofocus is switched off either way).
-    ``fps``: frame rate to request, or None for the camera's default.
-    ``drop_frames``: buffered frames discarded before each capture.
-    ``settle_frames``: frames the auto exposure / white balance run before they are locked (cameras
-    only, not video files).
+    ``name``: in sessions and results. ``width``, ``height``: required size, px (else refused).
+    ``fourcc``: e.g. ``"MJPG"``. ``exposure``, ``focus``: manual values in the backend's unit (V4L2:
+    100 us steps, ``focus_absolute``); None: auto exposure locked after ``settle_frames``, the lens
+    kept where it is (autofocus off either way). ``fps``: None for the default. ``drop_frames``:
+    buffered frames discarded before each capture.
     """
 
     def __init__(
