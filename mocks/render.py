@@ -285,27 +285,13 @@ def render_target(
     photo: Photo | None = None,
     bow_m: tuple[float, float] = (0.0, 0.0),
 ) -> np.ndarray:
-    """The image camera ``cam`` takes of ``target`` at pose ``T_cam_board``.
+    """The image camera ``cam`` (``SimCamera``) takes of ``target`` (charuco or chessboard) at
+    ``T_cam_board`` (4, 4), metres: uint8 (H, W), or (H, W, 3) BGR when ``cam.colour``.
 
-    ``target``: A ``charuco`` or ``chessboard`` target (board frame and ids of
-    ``solver/problem.py``).
-    ``cam``: the simulated camera (``SimCamera``: size, ``K`` (3, 3) px, ``dist`` (5,), blur, noise,
-    exposure, colour).
-    ``T_cam_board``: (4, 4) board frame to camera frame, metres.
-    ``rng``: source of the read noise.
-    ``vignetting``: relative fall-off at the image corners (0: none; 0.3: corners 30 % darker),
-    quadratic in the distance from the principal point (the clean path; ``photo`` has its own).
-    ``photo``: photograph-like imaging (``Photo``); None: ``cam.photo`` (None there too: the clean
-    renderer, docs/DRIVERS.md).
-    ``bow_m``: the real board's bow along its x and y (metres at the pattern's centre line against
-    its edges, +z into the board: ``solver/target_shape.py``'s bow modes); (0, 0): flat. Each ray
-    meets the bowed surface (two fixed-point steps from the plane; the bow's slope is about 1e-3, so
-    the second step moves the hit by under a micrometre).
-
-    Returns
-    -------
-    np.ndarray
-        uint8 (H, W), or (H, W, 3) BGR when ``cam.colour``.
+    ``rng``: the read noise. ``vignetting``: relative fall-off at the image corners, quadratic in
+    the distance from the principal point. ``photo``: :class:`Photo` (None: ``cam.photo``, None
+    there too: the clean renderer). ``bow_m``: the board's bow along x and y (metres,
+    ``solver/target_shape.py``'s modes; (0, 0): flat).
     """
     _check_target(target)
     T = np.asarray(T_cam_board, dtype=float)
@@ -437,22 +423,14 @@ def _sensor(
 
 @dataclass(frozen=True)
 class Photo:
-    """Photograph-like imaging; the defaults are those of an industrial colour camera with a
-    fixed-focus lens at f/4 under workshop light, as they show in real calibration images.
+    """Photograph-like imaging; the defaults are an industrial colour camera with a fixed-focus lens
+    at f/4 under workshop light.
 
-    ``aperture_mm``: entrance pupil diameter (focal length / f-number); 0: no defocus.
-    ``focus_distance_m``: where the lens is focused; None: at the board's nearest point's depth
-    plus 10 % (so the board is slightly out of focus, more at its far side).
-    ``pixel_pitch_um``: converts ``aperture_mm`` and ``K``'s focal length in pixels to the blur
-    circle. ``chromatic_red``, ``chromatic_blue``: radial scale of the red and blue images
-    against green (lateral chromatic aberration; 5e-4 moves an edge 0.5 px at 1000 px from the
-    principal point). ``full_well_e``: electrons at full scale (shot noise; 0: none); the read
-    noise is the camera's ``noise_std`` (grey levels). ``bayer``: colour cameras mosaic and
-    demosaic (RGGB, OpenCV's edge-aware demosaicing). ``jpeg_quality``: 1..100, 0: no
-    compression. ``vignetting``: fall-off at the image corners; ``gradient``: brightness change
-    across the image along a random direction (uneven light). ``glare_spots``: number of
-    specular highlights (Gaussian, ``glare_radius`` times the image diagonal, peak
-    ``glare_strength`` of full scale) at random positions in the middle of the image.
+    ``aperture_mm``: entrance pupil (0: no defocus); ``focus_distance_m`` (None: 10 % beyond the
+    board's nearest point); ``pixel_pitch_um``; ``chromatic_red``, ``chromatic_blue``: radial scale
+    of those images against green; ``full_well_e``: shot noise (0: none); ``bayer``: RGGB mosaic and
+    OpenCV demosaicing; ``jpeg_quality`` (0: none); ``vignetting``, ``gradient``: uneven light;
+    ``glare_spots`` of ``glare_radius`` (of the diagonal) and ``glare_strength`` (of full scale).
     """
 
     aperture_mm: float = 2.0

@@ -31,10 +31,8 @@ GEAR_CYCLES = 30.0
 
 
 def trapezoid_time_s(distance: float, max_speed: float, max_accel: float) -> float:
-    """Duration of a rest-to-rest move over ``distance`` with a trapezoidal speed profile.
-
-    Units are consistent (metres, m/s, m/s^2 or radians, rad/s, rad/s^2). A move too short to
-    reach ``max_speed`` is a triangle: ``2 sqrt(d / a)``; otherwise ``d / v + v / a``.
+    """Duration of a rest-to-rest trapezoidal move over ``distance`` (consistent units, linear or
+    angular): ``2 sqrt(d / a)`` when too short to reach ``max_speed``, else ``d / v + v / a``.
     """
     d = abs(float(distance))
     if d == 0.0:
@@ -54,16 +52,11 @@ def _interpolate(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
 class KinematicError:
     """How a real arm differs from its nominal Denavit-Hartenberg model (all (6,) per joint).
 
-    Joint ``i`` of the true arm is ``Rz(q_i + d_theta_i + e_i(q)) Tz(d_i + d_d_i)
-    Tx(a_i + d_a_i) Rx(alpha_i + d_alpha_i)``, with ``e_i(q) = gravity_rad_i * cos(load
-    angle) + cyclic_rad_i * sin(2 q_i + cyclic_phase_i) + gear_rad_i * sin(GEAR_CYCLES q_i +
-    gear_phase_i)``: the shoulder and elbow sag with the horizontal reach of the links they carry
-    (the load angle of joint 2 is ``q2``, of joint 3 ``q2 + q3``; the other joints' gravity terms
-    are 0), every joint has a twice-per-turn error (bearing and encoder eccentricity) and a
-    faster transmission error of its gearbox (``GEAR_CYCLES`` per turn, a period of 12 deg of
-    joint motion: a 50 mm move already sees it change). ``repeatability_m``,
-    ``repeatability_deg``: the one-sigma random error of each stop (per axis), redrawn at every
-    move.
+    Joint ``i`` of the true arm is ``Rz(q_i + d_theta_i + e_i(q)) Tz(d_i + d_d_i) Tx(a_i + d_a_i)
+    Rx(alpha_i + d_alpha_i)`` with ``e_i(q) = gravity_rad_i cos(load angle) + cyclic_rad_i sin(2 q_i
+    + cyclic_phase_i) + gear_rad_i sin(GEAR_CYCLES q_i + gear_phase_i)`` (load angle ``q2`` for
+    joint 2, ``q2 + q3`` for joint 3, no gravity term elsewhere). ``repeatability_m``,
+    ``repeatability_deg``: one-sigma per axis of each stop's random error.
     """
 
     d_theta: np.ndarray
@@ -87,12 +80,8 @@ class KinematicError:
         repeatability_mm: float = 0.03,
         repeatability_deg: float = 0.005,
     ) -> KinematicError:
-        """A random arm whose flange errs by about ``mm`` and ``deg`` (rms over the workspace).
-
-        Angular parameters are drawn at ``deg / 3`` one-sigma each (the flange's orientation
-        error adds six joints' and two twists' worth); lengths at ``mm / 3`` each. Measured
-        on UR5e arms drawn with the defaults (1 mm, 0.1 deg): 0.5-2 mm and 0.05-0.2 deg over
-        the reachable workspace (``tests/test_sim_robot.py``).
+        """A random arm whose flange errs by about ``mm`` and ``deg`` (rms over the workspace):
+        angular parameters drawn at ``deg / 3`` one-sigma each, lengths at ``mm / 3``.
         """
         if mm < 0 or deg < 0 or repeatability_mm < 0 or repeatability_deg < 0:
             raise InputError("kinematic_error sizes must not be negative", where="robot")
@@ -152,23 +141,13 @@ def _describe(T: np.ndarray) -> str:
 class SimulatedUR:
     """A simulated UR arm (docs/DRIVERS.md).
 
-    ``rng``: draws the measurement noise.
-    ``model``: kinematic model (``ur_kinematics.UR5E`` ...).
-    ``start_q``: initial joint vector (6,), radians.
-    ``T_flange_tcp``: TCP offset (4, 4), metres; poses are of the TCP. None: the flange.
-    ``max_speed_mps``, ``max_accel_mps2``: upper bounds of the linear speed and acceleration a move
-    may ask for.
-    ``max_angular_speed_deg_s``, ``max_angular_accel_deg_s2``: tool rotation speed and acceleration
-    used for the rotational part of a move.
-    ``pose_noise_m``: standard deviation of the measured position, per axis, metres.
-    ``pose_noise_deg``: standard deviation of each component of a small rotation vector applied to
-    the measured orientation, degrees (the rms rotation angle is ``sqrt(3)`` times this).
-    ``z_min_m``: lowest allowed TCP height in the base frame (a table or safety plane), or None.
-    ``move_timeout_s``: time a move that times out (injected fault) spends before it gives up.
-    ``kinematic_error``: the arm's deviation from its nominal model (None: the arm is its model,
-    exactly). ``true_pose`` is then the perturbed arm's pose of the joints with the stop's
-    repeatability error; ``measured_pose`` stays the nominal model's (what the controller computes),
-    with ``pose_noise_*`` on top.
+    ``rng``: draws the measurement noise. ``model``: ``ur_kinematics.UR5E`` ... ``start_q`` (6,)
+    rad. ``T_flange_tcp`` (4, 4) m (None: the flange). ``max_speed_mps``, ``max_accel_mps2``,
+    ``max_angular_speed_deg_s``, ``max_angular_accel_deg_s2``: the move's limits. ``pose_noise_m``,
+    ``pose_noise_deg``: one-sigma of the measured position per axis and of each rotation-vector
+    component. ``z_min_m``: lowest TCP height (None: none). ``move_timeout_s``: what a timed-out
+    move spends. ``kinematic_error``: the arm's deviation from its model (None: exact);
+    ``true_pose`` is then the perturbed arm's, ``measured_pose`` the nominal model's.
     """
 
     def __init__(
@@ -333,12 +312,10 @@ class SimulatedUR:
         return self._moves
 
     def inject_fault(self, kind: str, at_move: int) -> None:
-        """Make the ``move_linear`` call number ``at_move`` (counting from 0) fail.
-
-        ``"protective_stop"`` (``"emergency_stop"``): the arm stops halfway and the move raises;
-        further moves raise until :meth:`clear_fault`. ``"disconnect"``: the move arrives, then
-        the connection is lost: ``measured_pose`` and further moves raise (stale data).
-        ``"timeout"``: the arm stalls halfway and the move raises after ``move_timeout_s``.
+        """Make ``move_linear`` call number ``at_move`` (from 0) fail: ``"protective_stop"`` /
+        ``"emergency_stop"`` stop halfway and raise until :meth:`clear_fault`; ``"disconnect"``
+        arrives, then every call raises (stale data); ``"timeout"`` stalls halfway and raises after
+        ``move_timeout_s``.
         """
         if kind not in FAULT_KINDS:
             raise InputError(f"unknown fault kind {kind!r}; use one of {FAULT_KINDS}")
@@ -412,9 +389,7 @@ class SimulatedUR:
 
     def move_linear(self, T_base_tool: np.ndarray, speed_mps: float, accel_mps2: float) -> None:
         """Move the TCP in a straight line to ``T_base_tool`` (4, 4), metres; block until there.
-
-        Raises ``HardwareFault`` (the arm staying where it was, or stopped halfway for an
-        injected fault) when the line leaves the workspace or a fault occurs.
+        ``HardwareFault`` when the line leaves the workspace or a fault occurs.
         """
         move_index = self._moves
         self._moves += 1
