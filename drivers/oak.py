@@ -63,13 +63,10 @@ def _board_socket(dai: Any, name: str, camera: str) -> Any:
 def choose_sensor_mode(
     modes: Sequence[Mapping[str, Any]], size: tuple[int, int], fps: float
 ) -> dict[str, Any] | None:
-    """The sensor mode to build a camera on: the widest field of view that runs at ``fps``.
-
-    ``modes``: ``{width, height, min_fps, max_fps, fov: (x, y, w, h)}`` per sensor mode (the
-    device's ``CameraFeatures.configs``). Among the modes whose field of view is (within 1 %)
-    the largest and whose frame rate range holds ``fps``, the smallest that covers ``size``
-    (width, height), else the largest. None when the device lists no modes. ``InputError`` when
-    no widest-view mode runs at ``fps``.
+    """The sensor mode to build a camera on: among ``modes`` (``{width, height, min_fps, max_fps,
+    fov}``, the device's ``CameraFeatures.configs``) of the widest field of view (within 1 %) that
+    run at ``fps``, the smallest covering ``size``, else the largest. None without modes;
+    ``InputError`` when no widest-view mode runs at ``fps``.
     """
     if not modes:
         return None
@@ -111,20 +108,13 @@ def _text(value: Any) -> str | None:
 class OakRig:
     """The cameras of one OAK device, captured as a synchronised set.
 
-    ``device_id``: the device's id (MxId or IP) or None for the first device found.
-    ``sockets``: camera name -> board socket name (``"CAM_A"`` ...). The first is the sync
-    reference.
-    ``sizes``: camera name -> (width, height) in pixels of the requested output.
-    ``colour``: names of the cameras delivered as BGR (``BGR888i``); the others as grey (``GRAY8``).
-    ``exposure_us``, ``iso``: manual exposure (microseconds) and sensitivity for every camera (both
-    or neither; neither leaves auto-exposure on).
-    ``focus``: camera name -> manual lens position 0..255; required for every auto-focus camera.
-    ``white_balance_k``: camera name -> colour temperature 1000..12000 K of the colour cameras'
-    fixed white balance (default 5000 K).
-    ``fps``: frame rate requested from every camera (one rate, so the streams stay in step).
-    ``resize_mode``: ``stretch`` (whole field of view, default), ``crop`` or ``letterbox``.
-    ``sync_tolerance_s``: largest timestamp difference within a set (default ``0.55 / fps``).
-    ``timeout_s``: how long :meth:`capture` waits for a complete set.
+    ``device_id``: MxId or IP (None: the first device). ``sockets``: camera name -> board socket
+    (``"CAM_A"`` ...), the first the sync reference. ``sizes``: name -> (width, height) px.
+    ``colour``: the names delivered as BGR (others grey). ``exposure_us``, ``iso``: manual exposure
+    for every camera (both or neither). ``focus``: name -> lens position 0..255 (required for
+    auto-focus cameras). ``white_balance_k``: name -> 1000..12000 K (default 5000). ``fps``: one
+    rate for all. ``resize_mode``: ``stretch`` | ``crop`` | ``letterbox``. ``sync_tolerance_s``:
+    within a set (default ``0.55 / fps``). ``timeout_s``: :meth:`capture`'s wait for a set.
     """
 
     def __init__(
@@ -526,11 +516,9 @@ def _features_dict(f: Any) -> dict[str, Any]:
 
 # ---------------------------------------------------------------------- the device's EEPROM
 class OakCalibrationStore:
-    """The calibration areas of one OAK device, for ``slidecal flash``.
-
-    ``read()`` is the calibration the device uses (``readCalibration``); ``flash(handler)``
-    writes the user area (``flashCalibration``; never the factory area) and returns what the
-    device holds afterwards, read back. Use as a context manager.
+    """The calibration areas of one OAK device (a context manager, for ``slidecal flash``):
+    ``read()`` the calibration in use, ``flash(handler)`` writes the user area (never the factory
+    area) and returns what the device holds afterwards.
     """
 
     def __init__(self, device_id: str | None = None) -> None:
@@ -684,16 +672,12 @@ def oak_calibration_handler(
 ) -> Any:
     """A ``dai.CalibrationHandler`` holding the result's intrinsics, distortion and extrinsics.
 
-    ``sockets``: camera name -> board socket name (default left CAM_B, right CAM_C, rgb CAM_A).
-    ``stereo``: the (left, right) names of the stereo pair, or None; rectification rotations
-    come from ``cv2.stereoRectify``. ``base``: a handler or its JSON dict to start from (the
-    device's own calibration: its board name, IMU extrinsics, lens positions and design
-    translations are kept); it is not modified. ``lens_positions``: camera name -> the lens
-    position 0..255 the calibration holds at (auto-focus cameras). ``streams``: camera name ->
-    how its output was made (:func:`stream_geometry`); such a camera's K is mapped back through
-    the resize to the size the device stores that socket at (the base's stored size, else the
-    sensor's ``calibration_size``, else the full array) and written at that size, where
-    depthai's ``getCameraIntrinsics`` finds it. Cameras without one are written at their own size.
+    ``sockets``: camera name -> board socket (default left CAM_B, right CAM_C, rgb CAM_A).
+    ``stereo``: the (left, right) pair, rectified with ``cv2.stereoRectify``, or None. ``base``: a
+    handler or JSON dict to start from, unmodified (the device's own: its board name, IMU
+    extrinsics, lens positions and design translations kept). ``lens_positions``: name -> 0..255.
+    ``streams``: name -> how its output was made (:func:`stream_geometry`): its K is mapped back to
+    the size the device stores that socket at; without one, written at its own size.
     """
     import cv2
 
@@ -760,11 +744,8 @@ def write_oak_calibration_json(
     lens_positions: Mapping[str, int] | None = None,
     streams: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> Path:
-    """Write the result as a depthai calibration JSON (``eepromToJsonFile``); returns the path.
-
-    ``base``: the device's calibration (handler or JSON dict) to start from, see
-    :func:`oak_calibration_handler`. Load the file with ``dai.CalibrationHandler(path)``;
-    ``slidecal flash`` writes it to the device.
+    """Write the result as a depthai calibration JSON (``eepromToJsonFile``) from ``base`` (see
+    :func:`oak_calibration_handler`); returns the path.
     """
     handler = oak_calibration_handler(
         result, sockets, stereo=stereo, base=base, lens_positions=lens_positions, streams=streams
@@ -784,11 +765,8 @@ def device_camera(
     stream: Mapping[str, Any] | None = None,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """``(K (3, 3) px, distortion (14,))`` of a socket in depthai calibration JSON, mapped to an
-    output of ``size`` (width, height) made with ``resize_mode``; None when the JSON holds no
-    perspective calibration of that socket. The output is made from ``stream``'s ``fov`` of its
-    ``full`` array (:func:`stream_geometry`), the stored size being a centred crop of that array
-    as depthai reads it (a 16:9 calibration of a 4:3 sensor); without ``stream``, from the
-    stored calibration's whole view.
+    output of ``size`` made with ``resize_mode`` from ``stream``'s ``fov`` (:func:`stream_geometry`;
+    none: the stored calibration's view); None without a perspective calibration of that socket.
     """
     dai = import_depthai()
     h = handler_from_json(data)
@@ -831,15 +809,10 @@ def projection_shift_px(
     grid: int = 9,
     streams: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> dict[str, dict[str, float]]:
-    """How far the device's calibration moves projected points against ``result``, per camera.
-
-    Points on a plane ``distance_m`` in front of the reference camera, spread over the image
-    (a ``grid`` x ``grid`` lattice of the reference camera's pixels, back-projected with the
-    result), are projected into each camera with the result's model and with the device's
-    (intrinsics mapped to the session's image size, and its extrinsics to the reference camera
-    where the camera is not the reference; ``streams`` as in :func:`device_camera`). Returns
-    ``{name: {rms_px, max_px}}`` for the cameras the device has a perspective calibration of
-    and the result a complete transform.
+    """How far the device's calibration moves projected points against ``result``, per camera:
+    ``{name: {rms_px, max_px}}`` over a ``grid`` x ``grid`` lattice of the reference camera's pixels
+    back-projected to ``distance_m`` and projected with both models (``streams``: as in
+    :func:`device_camera`).
     """
     import cv2
 
