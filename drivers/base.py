@@ -1,18 +1,8 @@
-"""The hardware interfaces the routine drives: small ``typing.Protocol`` classes.
-
-Real drivers (``drivers/ur.py`` through ur-rtde, ``drivers/oak.py`` through depthai v3,
-``drivers/uvc.py`` through OpenCV) and the simulated cell (``mocks/``) implement the same
-protocols, so the routine never knows which it has. Every failure is raised as
-:class:`slidecal.solver.errors.HardwareFault` with a message that says what to do.
-
-Real drivers also report what they are connected to, for the session (optional, so the
-simulated cell and users' own rigs need not): ``capabilities() -> dict`` (plain data: model,
-serial, sensors and modes, the settings as the device read them back) and, for devices that
-carry their own calibration, ``device_calibrations() -> dict`` (``user``/``factory``: the
-device's calibration in its own format, or None). ``routines/devices.py`` records both.
-
-The hardware libraries are extras (``pip install 'slidecal[ur]'``, ``'slidecal[oak]'``,
-``'slidecal[all]'``); each driver imports its library only when used.
+"""The hardware interfaces the routine drives: small ``typing.Protocol`` classes that the real
+drivers (``ur``, ``oak``, ``uvc``) and the simulated cell implement alike. Every failure is a
+:class:`slidecal.solver.errors.HardwareFault` saying what to do. Real drivers may also report
+``capabilities()`` and ``device_calibrations()`` (``user``/``factory``) for the session; each
+imports its library (an extra: ``pip install 'slidecal[ur]'``, ``'slidecal[oak]'``) when used.
 """
 
 from __future__ import annotations

@@ -1,19 +1,10 @@
 """Forward and analytic inverse kinematics of the Universal Robots e-Series (pure numpy).
 
-Convention: standard Denavit-Hartenberg parameters as Universal Robots publishes them
-("DH parameters for calculations of kinematics and dynamics"): joint i contributes
-``Rz(q_i) Tz(d_i) Tx(a_i) Rx(alpha_i)`` with ``a = (0, a2, a3, 0, 0, 0)``,
-``d = (d1, 0, 0, d4, d5, d6)``, ``alpha = (pi/2, 0, 0, pi/2, -pi/2, 0)``. The DH base frame is the
-controller's ``base`` frame (the frame of ``getActualTCPPose``) and DH frame 6 is the tool
-flange, so ``fk(q)`` is ``T_base_tool`` of a zero TCP, as the controller reports it.
-
-Inverse kinematics: the closed form of K. P. Hawkins, "Analytic inverse kinematics for the
-Universal Robots UR-5/UR-10 arms" (2013): two shoulder, two wrist and two elbow branches, eight
-solutions for a generic pose.
-
-Joint limits: the e-Series user manuals give +-360 deg for every joint. The elbow cannot
-physically turn further than about +-180 deg (the upper arm hits the shoulder), which is why
-Universal Robots' own ROS description limits it to +-pi; we do the same.
+Standard DH parameters as Universal Robots publishes them (joint i: ``Rz(q_i) Tz(d_i) Tx(a_i)
+Rx(alpha_i)``; base frame the controller's ``base``, frame 6 the flange), so ``fk(q)`` is
+``T_base_tool`` of a zero TCP. Inverse kinematics: Hawkins' closed form (2013), eight
+solutions for a generic pose. Joint limits +-360 deg, the elbow +-180 deg as in Universal
+Robots' ROS description.
 """
 
 from __future__ import annotations

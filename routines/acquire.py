@@ -1,12 +1,6 @@
 """The capture loop of ``slidecal run`` and ``slidecal check``: connect the cell's robot and
-cameras, lock the cell, move through a plan, capture, detect and write the session.
-
-Every captured frame is on disk the moment it is captured
-(:class:`~slidecal.routines.session.SessionWriter`). On a ``HardwareFault``, Ctrl-C, SIGTERM or
-SIGHUP the robot is stopped, the event is written into the session (``events``, ``status:
-aborted``) and the exception raised again with where the frames are. A dropped frame or an
-image without corners is captured again (``retries``). Two runs on one cell cannot interleave
-(:mod:`slidecal.routines.ops.lock`).
+cameras, lock the cell, move through a plan, capture, detect and write the session frame by
+frame; on a fault or an interrupt stop the robot and mark the session aborted.
 """
 
 from __future__ import annotations

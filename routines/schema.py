@@ -1,16 +1,6 @@
-"""The format layer's common part: strict YAML reading and typed, named access to fields.
-
-Every file slidecal reads (cell, plan, session, result; docs/FORMATS.md) goes through
-:func:`load_yaml` and :class:`Fields`:
-
-- the file must be UTF-8 text and valid YAML; a key given twice in one mapping is refused
-  (PyYAML would silently keep the last one);
-- each section declares the keys it accepts (:meth:`Fields.only`); an unknown key is refused
-  with the nearest valid one (``options.robot_noise_mmm: unknown key; did you mean
-  robot_noise_mm?``);
-- numbers are finite, arrays have their shape, sizes are positive, choices are among their
-  options.
-
+"""The format layer's common part: strict YAML reading (:func:`load_yaml`: UTF-8, no key twice
+in a mapping) and typed, named access to fields (:class:`Fields`: declared keys, an unknown one
+refused with the nearest valid one; finite numbers, shaped arrays, positive sizes, choices).
 Every failure is one :class:`~slidecal.solver.errors.InputError` line naming ``file: field``,
 what is wrong and how to fix it.
 """

@@ -1,11 +1,6 @@
-"""The morning report of a run: ``report.html`` (self-contained) and ``report.png``.
-
-Written into the session by every ``run`` and ``solve`` (and ``check``): the verdict and its
-reasons; per camera the residual vectors over the image (magnified) on the corner coverage
-grid, and the projection-uncertainty map (one-sigma pixel error of a ray through each pixel,
-from the covariance of the intrinsics); the robot's accuracy per frame when the solver
-estimated it; the difference from the installed calibration. Drawn with OpenCV; the HTML
-inlines its images (``data:`` URIs) and needs no network.
+"""The morning report of a run: ``report.html`` (self-contained) and ``report.png``: the verdict,
+per camera the magnified residuals on the coverage grid and the projection-uncertainty map,
+the robot's accuracy per frame and the difference from the installed calibration.
 """
 
 from __future__ import annotations
