@@ -386,12 +386,6 @@ class OakRig:
             out[kind] = None if data == empty else data
         return out
 
-    def read_calibration(self) -> Any:
-        """The device's current ``dai.CalibrationHandler`` (keep it as a backup before flashing)."""
-        if self._pipeline is None:
-            raise HardwareFault("OAK rig not open: call open() first")
-        return self._pipeline.getDefaultDevice().readCalibration()
-
     def _lost(self, reason: str) -> HardwareFault:
         self.close()
         which = f"OAK device {self._capabilities.get('device_id') or self.device_id or ''}"

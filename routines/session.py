@@ -1127,12 +1127,6 @@ class SessionWriter:
         self.data["events"].append({"kind": kind, "message": message, **plain(fields)})
         self._write()
 
-    def set_simulation(self, simulation: Mapping[str, Any]) -> None:
-        """Record the simulated truth (``simulation:`` block)."""
-        self.data["simulation"] = plain(dict(simulation))
-        self.__dict__.pop("_item_text", None)
-        self._write()
-
     def finish(self, status: str = "complete") -> Path:
         """Mark the session ``complete`` (or ``aborted``) and return its directory."""
         self.data["status"] = status
