@@ -2,8 +2,7 @@
 drivers (``ur``, ``oak``, ``uvc``) and the simulated cell implement alike. Every failure is a
 :class:`slidecal.solver.errors.HardwareFault` saying what to do. Real drivers may also report
 ``capabilities()`` and ``device_calibrations()`` (``user``/``factory``) for the session; each
-imports its library (an extra: ``pip install 'slidecal[ur]'``, ``'slidecal[oak]'``) when used.
-"""
+imports its library (an extra: ``pip install 'slidecal[ur]'``, ``'slidecal[oak]'``) when used."""
 
 from __future__ import annotations
 
@@ -17,8 +16,7 @@ from slidecal.solver.problem import CameraSpec
 @runtime_checkable
 class Robot(Protocol):
     """A robot arm that moves its TCP in straight lines and reports where it is: poses are
-    ``T_base_tool`` (4, 4), metres, of the TCP the robot was configured with.
-    """
+    ``T_base_tool`` (4, 4), metres, of the TCP the robot was configured with."""
 
     def connect(self) -> None:
         """Open the connection; raise ``HardwareFault`` when the robot is not ready to move."""
@@ -34,8 +32,7 @@ class Robot(Protocol):
 
     def move_linear(self, T_base_tool: np.ndarray, speed_mps: float, accel_mps2: float) -> None:
         """Move the TCP in a straight line to ``T_base_tool`` and block until it arrives; after
-        stopping the robot, ``HardwareFault`` on a stop, a lost connection or a time-out.
-        """
+        stopping the robot, ``HardwareFault`` on a stop, a lost connection or a time-out."""
         ...
 
     def wait_settled(self, settle_s: float) -> None:

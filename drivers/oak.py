@@ -66,8 +66,7 @@ def choose_sensor_mode(
     """The sensor mode to build a camera on: among ``modes`` (``{width, height, min_fps, max_fps,
     fov}``, the device's ``CameraFeatures.configs``) of the widest field of view (within 1 %) that
     run at ``fps``, the smallest covering ``size``, else the largest. None without modes;
-    ``InputError`` when no widest-view mode runs at ``fps``.
-    """
+    ``InputError`` when no widest-view mode runs at ``fps``."""
     if not modes:
         return None
 
@@ -512,8 +511,7 @@ def _features_dict(f: Any) -> dict[str, Any]:
 class OakCalibrationStore:
     """The calibration areas of one OAK device (a context manager, for ``slidecal flash``):
     ``read()`` the calibration in use, ``flash(handler)`` writes the user area (never the factory
-    area) and returns what the device holds afterwards.
-    """
+    area) and returns what the device holds afterwards."""
 
     def __init__(self, device_id: str | None = None) -> None:
         self.device_id = device_id
@@ -739,8 +737,7 @@ def write_oak_calibration_json(
     streams: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> Path:
     """Write the result as a depthai calibration JSON (``eepromToJsonFile``) from ``base`` (see
-    :func:`oak_calibration_handler`); returns the path.
-    """
+    :func:`oak_calibration_handler`); returns the path."""
     handler = oak_calibration_handler(
         result, sockets, stereo=stereo, base=base, lens_positions=lens_positions, streams=streams
     )
@@ -760,8 +757,7 @@ def device_camera(
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """``(K (3, 3) px, distortion (14,))`` of a socket in depthai calibration JSON, mapped to an
     output of ``size`` made with ``resize_mode`` from ``stream``'s ``fov`` (:func:`stream_geometry`;
-    none: the stored calibration's view); None without a perspective calibration of that socket.
-    """
+    none: the stored calibration's view); None without a perspective calibration of that socket."""
     dai = import_depthai()
     h = handler_from_json(data)
     s = _board_socket(dai, socket, socket)
@@ -806,8 +802,7 @@ def projection_shift_px(
     """How far the device's calibration moves projected points against ``result``, per camera:
     ``{name: {rms_px, max_px}}`` over a ``grid`` x ``grid`` lattice of the reference camera's pixels
     back-projected to ``distance_m`` and projected with both models (``streams``: as in
-    :func:`device_camera`).
-    """
+    :func:`device_camera`)."""
     import cv2
 
     ref = _reference(result)

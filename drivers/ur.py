@@ -94,8 +94,7 @@ def probe_controller(host: str, timeout_s: float) -> tuple[int, int, int, int]:
     """Check within ``timeout_s`` (per port) that ``host`` answers as a UR controller (dashboard
     welcome line, RTDE protocol 2) with plain sockets, before ur-rtde's blocking constructors;
     returns the controller version ``(major, minor, bugfix, build)``. ``HardwareFault`` saying which
-    port did what.
-    """
+    port did what."""
     where = f"the robot controller at {host}"
 
     def fail(port: int, e: BaseException) -> HardwareFault:
@@ -154,8 +153,7 @@ def cell_options(robot_section: Any) -> dict[str, Any]:
     """``URRobot`` keyword arguments from a cell file's ``robot:`` section: ``take_control``
     (consent to stop a running program), ``payload: {mass_kg, cog_m}`` (flange frame, metres; set at
     connect) and ``upper_range_registers`` (RTDE input registers 24-47, where a fieldbus holds
-    0-23).
-    """
+    0-23)."""
     raw = dict(robot_section or {})
     out: dict[str, Any] = {}
     take = raw.get("take_control", False)
@@ -267,8 +265,7 @@ class URRobot:
         consent to would be stopped. Fills :attr:`controller_info` (``polyscope_version``,
         ``robot_model``, ``serial_number``, ``controller_version``, ``remote_control``,
         ``ik_check``, ``speed_slider``, ``safety_mode``, ``program_stopped``, ``payload``; None
-        where the controller cannot say).
-        """
+        where the controller cannot say)."""
         try:
             import dashboard_client
             import rtde_control
@@ -464,8 +461,7 @@ class URRobot:
 
     def close(self) -> None:
         """Stop the control script (over a live link only: ur-rtde's ``stopScript`` would wait 300 s
-        on a lost one) and disconnect; idempotent, never moves the robot.
-        """
+        on a lost one) and disconnect; idempotent, never moves the robot."""
         control, receive, dashboard = self._control, self._receive, self._dashboard
         live = self._link_alive()
         self._control = self._receive = self._dashboard = None
@@ -643,8 +639,7 @@ class URRobot:
     def stop(self) -> None:
         """``stopL``: decelerate the tool to rest; safe at any time. Skipped over a lost link
         (ur-rtde would wait 300 s): the controller finishes its planned, checked move and stops
-        there.
-        """
+        there."""
         if not self._link_alive():
             return
         try:
@@ -662,8 +657,7 @@ class URRobot:
         """An IK solution near the current joints, inside the joint and safety limits: the
         controller's ``getInverseKinematicsHasSolution`` on PolyScope 5.10+ / 3.15+, else the
         host-side kinematics with the model's joint limits (the controller still judges the safety
-        limits).
-        """
+        limits)."""
         self._require()
         T = np.asarray(T_base_tool, dtype=float)
         pose = ur_pose_from_T(T)

@@ -115,8 +115,7 @@ def _check_T(T: np.ndarray) -> np.ndarray:
 
 def fk(q: np.ndarray, model: URModel = UR5E, T_flange_tcp: np.ndarray | None = None) -> np.ndarray:
     """``T_base_tool`` (4, 4), metres, of joint angles ``q`` (6,) radians; ``T_flange_tcp`` (4, 4):
-    the TCP offset (None: the flange).
-    """
+    the TCP offset (None: the flange)."""
     q = _check_q(q)
     T = np.eye(4)
     for Ti in _link_transforms(q, model):
@@ -142,8 +141,7 @@ def _acos(x: float, tol: float = 1e-10) -> float | None:
 
 def _ik_flange(T: np.ndarray, m: URModel, q6_singular: float = 0.0) -> list[np.ndarray]:
     """All closed-form solutions (angles in (-pi, pi]) for the flange pose ``T`` (Hawkins 2013); at
-    a wrist singularity q6 is ``q6_singular``.
-    """
+    a wrist singularity q6 is ``q6_singular``."""
     R = T[:3, :3]
     p06 = T[:3, 3]
     p05 = p06 - m.d6 * R[:, 2]
@@ -238,8 +236,7 @@ def ik(
 
 def singularity(q: np.ndarray, model: URModel = UR5E) -> str | None:
     """Which singularity the configuration ``q`` (6,) radians is near (:data:`WRIST_SIN_MIN`,
-    :data:`ELBOW_SIN_MIN`, :data:`SHOULDER_RADIUS_MIN_M`), or None.
-    """
+    :data:`ELBOW_SIN_MIN`, :data:`SHOULDER_RADIUS_MIN_M`), or None."""
     q = _check_q(q)
     if abs(np.sin(q[4])) < WRIST_SIN_MIN:
         return f"wrist singularity (q5 = {np.degrees(q[4]):.1f} deg, axes 4 and 6 aligned)"
@@ -261,8 +258,7 @@ def reachable(
     T_flange_tcp: np.ndarray | None = None,
 ) -> bool:
     """Whether ``T_base_tool`` (4, 4, metres) has a non-singular solution inside the limits (with
-    ``q_near`` (6,) rad: the solution nearest it, as a linear move from there would use).
-    """
+    ``q_near`` (6,) rad: the solution nearest it, as a linear move from there would use)."""
     sols = ik(T_base_tool, q_near, model, T_flange_tcp)
     if q_near is not None:
         sols = sols[:1]

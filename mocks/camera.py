@@ -25,8 +25,7 @@ FAULT_KINDS = ("no_frame", "disconnect", "lost")
 class SimCamera:
     """A simulated camera: ``K`` (3, 3) px, ``dist`` (5,) OpenCV order, ``blur_sigma_px``,
     ``noise_std`` (grey levels), ``exposure`` gain (1.0: white at about 217), ``colour`` (BGR),
-    ``vignetting``, ``photo`` (:class:`~slidecal.mocks.render.Photo`; None: the clean renderer).
-    """
+    ``vignetting``, ``photo`` (:class:`~slidecal.mocks.render.Photo`; None: the clean renderer)."""
 
     name: str
     width: int
@@ -75,8 +74,7 @@ def single_camera(name: str = "cam", **overrides: float | bool | Photo) -> SimCa
 
 def oak_d_like(**overrides: float | bool | Photo) -> list[SimCamera]:
     """An OAK-D-like head: mono "left", "right" (1280 x 800) and colour "rgb" (1920 x 1080); keyword
-    overrides (blur, noise, exposure) apply to all three.
-    """
+    overrides (blur, noise, exposure) apply to all three."""
     mono = dict(overrides)
     rgb = {**overrides, "colour": True}
     return [
@@ -109,8 +107,7 @@ def oak_d_like(**overrides: float | bool | Photo) -> list[SimCamera]:
 
 def oak_d_like_extrinsics() -> dict[str, np.ndarray]:
     """True ``T_<name>_left`` (4, 4), metres: right 75 mm, rgb 37.5 mm along the left camera's +x,
-    each a few tenths of a degree misaligned.
-    """
+    each a few tenths of a degree misaligned."""
     R_left_right = R_from_rvec(np.deg2rad([0.12, -0.35, 0.08]))
     R_left_rgb = R_from_rvec(np.deg2rad([-0.25, 0.18, -0.30]))
     T_left_right = T_from_Rt(R_left_right, np.array([0.0750, 0.0003, -0.0002]))
@@ -133,8 +130,7 @@ class SimulatedCameraRig:
     """A ``CameraRig`` of simulated cameras looking at ``target``: ``poses()`` gives each camera's
     true ``T_<camera>_board`` (4, 4) m, ``capture()`` renders there and keeps them in
     ``last_poses``; ``capture_count`` counts calls, failed ones included; ``bow_m``: the board's bow
-    (metres).
-    """
+    (metres)."""
 
     cameras: Sequence[SimCamera]
     target: Target
@@ -171,8 +167,7 @@ class SimulatedCameraRig:
 
     def inject_fault(self, kind: str, at_capture: int) -> None:
         """Make capture ``at_capture`` (from 0) fail with ``HardwareFault``: ``"no_frame"`` that
-        one, ``"disconnect"`` every one until the rig is reopened, ``"lost"`` for good.
-        """
+        one, ``"disconnect"`` every one until the rig is reopened, ``"lost"`` for good."""
         if kind not in FAULT_KINDS:
             raise InputError(f"unknown fault {kind!r}; use one of {FAULT_KINDS}")
         self._faults.append(_Fault(kind, int(at_capture)))

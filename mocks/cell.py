@@ -32,8 +32,7 @@ def _transform_dict(T: np.ndarray) -> dict[str, Any]:
 
 def truth_block(cfg: Any, T_target: np.ndarray | None = None) -> dict[str, Any]:
     """The session's ``simulation:`` block (result-file names) of a simulated cell ``cfg``;
-    ``T_target`` (4, 4): this run's target pose (default: the cell's, before jitter).
-    """
+    ``T_target`` (4, 4): this run's target pose (default: the cell's, before jitter)."""
     sim = cfg.simulation
     if sim is None:
         return {}
@@ -143,8 +142,7 @@ def simulated_arm_dict(cfg: Any, seed: Any = 0) -> dict[str, Any]:
 @dataclass
 class SimulatedCell:
     """A simulated robot, a simulated camera rig, the ``truth`` (:func:`truth_block`) and the
-    ``config`` they were built from.
-    """
+    ``config`` they were built from."""
 
     config: Any
     robot: SimulatedUR
@@ -155,8 +153,7 @@ class SimulatedCell:
     @classmethod
     def from_config(cls, cfg: Any, seed: int | None = None) -> SimulatedCell:
         """Build the cell of a simulated ``cfg`` (``seed`` overrides ``simulation.seed``); robot and
-        camera noise from independent streams.
-        """
+        camera noise from independent streams."""
         sim = cfg.simulation
         if sim is None or cfg.robot.driver != "simulated":
             raise InputError(

@@ -1,7 +1,6 @@
 """Render what a simulated camera sees of a planar target (ray casting through the lens model
 of ``solver/camera.py``, so it agrees with ``project``), optionally photograph-like
-(:class:`Photo`). Sampling, blur, noise and the board's appearance: docs/DRIVERS.md.
-"""
+(:class:`Photo`). Sampling, blur, noise and the board's appearance: docs/DRIVERS.md."""
 
 from __future__ import annotations
 

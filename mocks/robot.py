@@ -32,8 +32,7 @@ GEAR_CYCLES = 30.0
 
 def trapezoid_time_s(distance: float, max_speed: float, max_accel: float) -> float:
     """Duration of a rest-to-rest trapezoidal move over ``distance`` (consistent units, linear or
-    angular): ``2 sqrt(d / a)`` when too short to reach ``max_speed``, else ``d / v + v / a``.
-    """
+    angular): ``2 sqrt(d / a)`` when too short to reach ``max_speed``, else ``d / v + v / a``."""
     d = abs(float(distance))
     if d == 0.0:
         return 0.0
@@ -81,8 +80,7 @@ class KinematicError:
         repeatability_deg: float = 0.005,
     ) -> KinematicError:
         """A random arm whose flange errs by about ``mm`` and ``deg`` (rms over the workspace):
-        angular parameters drawn at ``deg / 3`` one-sigma each, lengths at ``mm / 3``.
-        """
+        angular parameters drawn at ``deg / 3`` one-sigma each, lengths at ``mm / 3``."""
         if mm < 0 or deg < 0 or repeatability_mm < 0 or repeatability_deg < 0:
             raise InputError("kinematic_error sizes must not be negative", where="robot")
         ang = np.radians(deg) / 3.0
@@ -304,8 +302,7 @@ class SimulatedUR:
         """Make ``move_linear`` call number ``at_move`` (from 0) fail: ``"protective_stop"`` /
         ``"emergency_stop"`` stop halfway and raise until :meth:`clear_fault`; ``"disconnect"``
         arrives, then every call raises (stale data); ``"timeout"`` stalls halfway and raises after
-        ``move_timeout_s``.
-        """
+        ``move_timeout_s``."""
         if kind not in FAULT_KINDS:
             raise InputError(f"unknown fault kind {kind!r}; use one of {FAULT_KINDS}")
         self._faults[int(at_move)] = kind
@@ -378,8 +375,7 @@ class SimulatedUR:
 
     def move_linear(self, T_base_tool: np.ndarray, speed_mps: float, accel_mps2: float) -> None:
         """Move the TCP in a straight line to ``T_base_tool`` (4, 4), metres; block until there.
-        ``HardwareFault`` when the line leaves the workspace or a fault occurs.
-        """
+        ``HardwareFault`` when the line leaves the workspace or a fault occurs."""
         move_index = self._moves
         self._moves += 1
         self._check_ready()

@@ -64,8 +64,7 @@ D0 = np.diag([1.0, -1.0, -1.0])  # camera looking at the board along -z (docs/SE
 class Scenario:
     """A synthetic problem with its truth: ``truth`` in the solver's parametrisation, ``T_tool_cam``
     or ``T_base_cam`` and ``T_base_board`` (4, 4) where a robot is involved, and the detections'
-    pixel noise ``sigma_px``.
-    """
+    pixel noise ``sigma_px``."""
 
     problem: CalibrationProblem
     truth: ModelState
@@ -78,8 +77,7 @@ class Scenario:
 @dataclass(frozen=True)
 class RigScenario(Scenario):
     """A rig :class:`Scenario`; ``sigma_by_camera_px``: each camera's pixel noise (``sigma_px`` the
-    reference camera's).
-    """
+    reference camera's)."""
 
     sigma_by_camera_px: Mapping[str, float] = field(default_factory=dict)
 
@@ -192,8 +190,7 @@ def robot_poses(
 ) -> np.ndarray:
     """Measured ``T_base_tool`` (n, 4, 4) of a group's frames: eye-in-hand with ``T_base_fixed =
     T_base_board`` and ``T_tool_x = T_tool_cam``, eye-to-hand with ``T_base_cam`` and
-    ``T_tool_board`` (the displacement is then a board motion).
-    """
+    ``T_tool_board`` (the displacement is then a board motion)."""
     out = []
     for T in group.T_board:
         T_board_cam = np.eye(4)
@@ -242,8 +239,7 @@ def _board_frame_scenario(
     presumed: np.ndarray | None = None,
 ) -> Scenario:
     """One orientation group; camera centres (n, 3) in the board frame, frame 0 the reference;
-    ``presumed`` (n, 3): the motion the solver is told (default: the true one).
-    """
+    ``presumed`` (n, 3): the motion the solver is told (default: the true one)."""
     target = paper_grid()
     dist = np.zeros(5)
     moves = centres - centres[0] if presumed is None else presumed - presumed[0]
@@ -275,8 +271,7 @@ def _robot_translation_scenario(
     presumed: np.ndarray | None = None,
 ) -> Scenario:
     """Known translations in an unknown robot frame (Case 1 and its generalisation): the base is the
-    board frame turned arbitrarily, the tool is the camera.
-    """
+    board frame turned arbitrarily, the tool is the camera."""
     target = paper_grid()
     dist = np.zeros(5)
     R_base_board = R_from_rvec(np.array([0.3, -0.2, 0.5]))
@@ -373,8 +368,7 @@ def s5_T_right_board() -> np.ndarray:
 class StereoScene:
     """Noise-free S5 set-up at the level of homographies, l.u. and pixels: ``board_xy`` (N, 2),
     ``K_left``, ``K_right``, ``X_left = R_left_right X_right + t_left_right``, and the right
-    camera's view poses ``R_right_board`` (n, 3, 3), ``t_right_board`` (n, 3).
-    """
+    camera's view poses ``R_right_board`` (n, 3, 3), ``t_right_board`` (n, 3)."""
 
     board_xy: np.ndarray
     K_left: np.ndarray
@@ -441,8 +435,7 @@ def s5_rig(
 ) -> RigScenario:
     """S5 as a general-motion rig problem (knowledge and mount "none", reference "right"):
     ``sigma_px`` the right camera's noise, ``left_factor`` times it the left's; zero skew, no
-    distortion; points outside the 300 x 240 images not detected.
-    """
+    distortion; points outside the 300 x 240 images not detected."""
     target = s5_grid()
     Ts = s5_T_right_board()
     sig = {"left": left_factor * sigma_px, "right": sigma_px}
@@ -494,8 +487,7 @@ def r1_target() -> Target:
 def r1_poses(rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The R1 cell: ``T_base_board`` and the planned ``T_base_tool`` (20, 4, 4): 4 tilt groups of 25
     deg looking at the board centre from 0.5 m, each its pose and 4 non-coplanar translations of
-    40-80 mm.
-    """
+    40-80 mm."""
     target = r1_target()
     centre_board = target.points_m.mean(axis=0)
     # board frame: +z into the table (down), so a camera above reads the print (R_cam_board ~ I)
@@ -627,8 +619,7 @@ def r1_eye_to_hand(
     options: ModelOptions | None = None,
 ) -> Scenario:
     """R1 mirrored: the camera fixed in the cell, the board on the tool. The camera-board poses
-    are R1's, so the tilt groups and translations carry over (the board moves, not the camera).
-    """
+    are R1's, so the tilt groups and translations carry over (the board moves, not the camera)."""
     return _r1_cell(rng, sigma_px, robot_noise_m, robot_noise_deg, options, False)
 
 
@@ -656,8 +647,7 @@ def real_arm_poses(
     """Where a UR5e with a random kinematic error (``KinematicError.random`` of these sizes) really
     puts the tool for ``planned`` ``T_base_tool`` (F, 4, 4), plus each stop's repeatability error.
     Each pose's joints are the solution nearest the previous pose's, from the configuration a walk
-    from ``Q_HOME`` ends in, so every frame stands on one configuration.
-    """
+    from ``Q_HOME`` ends in, so every frame stands on one configuration."""
     from slidecal.mocks.robot import KinematicError
 
     ke = KinematicError.random(rng, arm_mm, arm_deg, repeatability_mm, repeatability_deg)
@@ -743,8 +733,7 @@ def r1_real_arm(
 
 def real_board_of(target: Target, rng: np.random.Generator) -> tuple[Target, Target, np.ndarray]:
     """A real board of ``target``'s description: (the target as a session describes it, with a real
-    board's tolerance; the bowed board the camera sees; the bow (2,), metres).
-    """
+    board's tolerance; the bowed board the camera sees; the bow (2,), metres)."""
     from slidecal.solver.target_shape import PRINT_TOLERANCE, default_flatness_m, shape_modes
 
     flat = default_flatness_m(target.points_m)
@@ -768,8 +757,7 @@ def _real_arm_frames(
     bow_m: np.ndarray | None = None,
 ) -> list[Frame]:
     """R1's camera and board (``target``; on the tool at ``T_tool_board`` eye-to-hand) at the arm's
-    true poses; each frame records the planned pose and what ``detect`` sees.
-    """
+    true poses; each frame records the planned pose and what ``detect`` sees."""
     target = target or r1_target()
     frames = []
     for k, (T_true, T_meas) in enumerate(zip(true, planned, strict=True)):
@@ -794,8 +782,7 @@ def effective_truth(
     frames: Sequence[int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The hand-eye and target pose ``(T_hand_eye, T_target)`` as the session can know them (over
-    ``frames``, default all): :func:`slidecal.mocks.cell.effective_truth`.
-    """
+    ``frames``, default all): :func:`slidecal.mocks.cell.effective_truth`."""
     from slidecal.mocks.cell import effective_truth as _effective
 
     used = list(range(len(s.problem.frames)) if frames is None else frames)
@@ -882,8 +869,7 @@ def hide_views(
     problem: CalibrationProblem, hidden: Mapping[tuple[int, str], Hide]
 ) -> CalibrationProblem:
     """The problem with views removed or cut, by (frame index, camera): ``"none"`` (no detection),
-    ``"empty"`` (no corners) or ``"half"`` (the corners whose board x is below their median).
-    """
+    ``"empty"`` (no corners) or ``"half"`` (the corners whose board x is below their median)."""
     frames = list(problem.frames)
     for (fi, cam), how in hidden.items():
         f = frames[fi]
@@ -923,8 +909,7 @@ def camera_board_poses(
 ) -> np.ndarray:
     """``T_cam_board`` (n, 4, 4), each at its own orientation: the camera looks from ``distance_m``
     at a point within ``aim_spread_m`` of the target centre, tilted ``tilt_deg`` from the board
-    normal toward a random azimuth and rolled by up to ``roll_deg``.
-    """
+    normal toward a random azimuth and rolled by up to ``roll_deg``."""
     centre = target.points_m.mean(axis=0)
     out = []
     for _ in range(n_orientations):
@@ -981,8 +966,7 @@ def classic_real_arm(
     """A classic hand-eye session (:func:`camera_board_poses`) on a UR5e whose kinematics err by
     about ``arm_mm`` and ``arm_deg``; views out of reach are drawn again. ``detect``: as
     :func:`r1_real_arm`'s. ``arm_scale``: the true positions are ``1 + arm_scale`` times as far from
-    the base as the reported ones.
-    """
+    the base as the reported ones."""
     target = r1_target()
     S = _in_reach()
     T_base_board = S @ r1_poses()[0]
@@ -1036,8 +1020,7 @@ def tag_real_arm(
 ) -> Scenario:
     """Eye-to-hand with one AprilTag (``side_m``) on the tool and R1's fixed camera: ``n_frames`` in
     the orientations of ``TAG_TILTS_DEG`` at random places 0.45-0.85 m away, on a UR5e erring by
-    about ``arm_mm`` and ``arm_deg``; a tag reaching the border keeps the corners inside.
-    """
+    about ``arm_mm`` and ``arm_deg``; a tag reaching the border keeps the corners inside."""
     target = square_tag(side_m)
     w, h = R1_SIZE_PX
     planned: list[np.ndarray] = []
@@ -1168,8 +1151,7 @@ def drifting_arm(
 ) -> tuple[Scenario, np.ndarray]:
     """The one-orientation session of ``r1_real_arm`` on an arm whose orientation drifts linearly
     along the moves: a random ``D`` (rad/m, largest gain ``drift_deg`` per ``over_m``) turns the
-    tool by ``D (t - mean t)``, plus repeatability per stop. Returns the scenario and ``D``.
-    """
+    tool by ``D (t - mean t)``, plus repeatability per stop. Returns the scenario and ``D``."""
     base = r1_real_arm(rng, sigma_px, translations_only=True)
     T_meas = np.stack([f.T_base_tool for f in base.problem.frames])
     D = rng.normal(size=(3, 3))
@@ -1228,8 +1210,7 @@ def one_tag_session(rng: np.random.Generator, geometry: np.ndarray) -> Scenario:
 def scale_pixels(problem: CalibrationProblem, factor: Mapping[str, float]) -> CalibrationProblem:
     """The problem with camera ``c``'s pixels and image size multiplied by ``factor[c]``: ``K``
     becomes ``diag(f, f, 1) K``, distortion unchanged, so equal row weights on it are per-camera
-    weights ``1 / sigma_c^2`` when ``factor[c] = sigma_ref / sigma_c``.
-    """
+    weights ``1 / sigma_c^2`` when ``factor[c] = sigma_ref / sigma_c``."""
     frames = []
     for fr in problem.frames:
         dets = {c: Detection(d.ids, d.px * factor.get(c, 1.0)) for c, d in fr.detections.items()}
@@ -1247,8 +1228,7 @@ def scale_pixels(problem: CalibrationProblem, factor: Mapping[str, float]) -> Ca
 
 def estimate_homographies(board_xy: np.ndarray, px: np.ndarray) -> np.ndarray:
     """Homographies (n, 3, 3) per view of ``board_xy`` (N, 2) l.u. seen at ``px`` (n, N, 2):
-    normalised DLT, then reprojection-error refinement.
-    """
+    normalised DLT, then reprojection-error refinement."""
     return np.array([refine_homography(homography_dlt(board_xy, p), board_xy, p) for p in px])
 
 
@@ -1342,8 +1322,7 @@ def cell_overrides(fx_rel: float = 0.0, cx_px: float = 0.0, he_deg: float = 0.0)
 
 def same_cell(cfg, cell_seed: int, run_seed: int) -> SimulatedCell:  # noqa: ANN001
     """The simulated cell of ``cfg`` built with ``cell_seed`` (its arm's error and board pose), run
-    with fresh noise from ``run_seed``: two runs of one cell.
-    """
+    with fresh noise from ``run_seed``: two runs of one cell."""
     cell = SimulatedCell.from_config(cfg, cell_seed)
     robot_rng, camera_rng = np.random.SeedSequence([cell_seed, run_seed]).spawn(2)
     cell.robot.rng = np.random.default_rng(robot_rng)

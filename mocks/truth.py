@@ -38,8 +38,7 @@ class Calibration:
     """What a row's normalised errors say against a calibrated Gaussian estimator: the coverage
     inside 2 and beyond 3 sigma with their binomial ranges, the ``scale`` (rms of error / std per
     degree of freedom) with its chi-square interval, all at the level ``VERDICT_P``, and the
-    ``verdict``: "consistent" or what is off.
-    """
+    ``verdict``: "consistent" or what is off."""
 
     trials: int
     dof: int
@@ -59,8 +58,7 @@ def _two_sided(cdf_below: float, sf_above: float) -> float:
 
 def calibration(values: list[float] | np.ndarray, dof: int) -> Calibration:
     """Compare normalised errors ``values`` (error / std, ``dof`` 1, or squared Mahalanobis
-    distances, ``dof`` 3) with a calibrated Gaussian estimator (:class:`Calibration`).
-    """
+    distances, ``dof`` 3) with a calibrated Gaussian estimator (:class:`Calibration`)."""
     v = np.asarray(values, dtype=float)
     n = len(v)
     q = v**2 if dof == 1 else v  # squared distance per trial
@@ -143,8 +141,7 @@ def rig_bounds(
     sigma_by_camera_px: Mapping[str, float],
 ) -> tuple[NamedCovariance, NamedCovariance]:
     """(the Cramer-Rao bound with per-camera pixel noise ``sigma_by_camera_px``, the sandwich
-    covariance of an estimator weighing all pixel rows alike), for the named quantities.
-    """
+    covariance of an estimator weighing all pixel rows alike), for the named quantities."""
     sig = dict(sigma_by_camera_px)
     ref = sig[problem.reference]
     crb = predicted_covariance(problem, truth, ref, structure=structure, camera_sigma_px=sig)
@@ -173,8 +170,7 @@ def split_halves(
 
 def halves_z(a: float, std_a: float, b: float, std_b: float) -> float:
     """``(a - b) / sqrt(std_a^2 + std_b^2)``: over random splits its rms is about 1 for an honest
-    std.
-    """
+    std."""
     return float((a - b) / np.hypot(std_a, std_b))
 
 

@@ -1,7 +1,6 @@
 """The capture loop of ``slidecal run`` and ``slidecal check``: connect the cell's robot and
 cameras, lock the cell, move through a plan, capture, detect and write the session frame by
-frame; on a fault or an interrupt stop the robot and mark the session aborted.
-"""
+frame; on a fault or an interrupt stop the robot and mark the session aborted."""
 
 from __future__ import annotations
 
@@ -92,8 +91,7 @@ def record_session(
     """Connect, lock the cell, move through ``plan`` from pose ``start``, capture, detect and write
     the session ``out`` (``resume``: append to it; ``extended``: the plan grew, why). ``log``: the
     run's open rerun log. On a fault or an interrupt the robot is stopped, the session marked
-    aborted with the event, and the exception raised again.
-    """
+    aborted with the event, and the exception raised again."""
     truth: dict[str, Any] | None = None
     if cfg.simulated:
         if cell is None:

@@ -3,8 +3,7 @@
 ``main(args) -> int``). Every ``SlidecalError`` and every failure to read or write a file is one
 line ``slidecal: <message>`` on stderr, no traceback; the exit codes are in docs/UNATTENDED.md
 (0 accepted or ok, 2 bad input, 3 hardware fault, 4 rejected, 5 drifted, 6 not installed,
-130 interrupted).
-"""
+130 interrupted)."""
 
 from __future__ import annotations
 

@@ -359,8 +359,7 @@ class SimulationConfig:
 class CellConfig:
     """A validated cell description (docs/FORMATS.md). ``sha256``: of the file's bytes;
     ``camera_options``: per camera its ``cameras.list`` driver options; ``rig_options``: the
-    ``cameras:`` section's driver options; ``sockets``: OAK board socket per camera.
-    """
+    ``cameras:`` section's driver options; ``sockets``: OAK board socket per camera."""
 
     source: str
     mount: str

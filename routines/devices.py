@@ -150,8 +150,7 @@ def _uvc(cfg: Any, section: Fields) -> Any:
 def record_devices(rig: Any, session_dir: str | Path, working_distance_m: float) -> dict[str, Any]:
     """Write what the open rig reports into ``session_dir`` and return the session's ``devices:``
     block (``camera``, ``working_distance_m``, an OAK's ``calibration_files``); empty for rigs
-    without a report.
-    """
+    without a report."""
     capabilities = getattr(rig, "capabilities", None)
     if capabilities is None:
         return {}
@@ -205,8 +204,7 @@ def device_calibration_outputs(
     result: CalibrationResult, session_dir: str | Path, export_dir: str | Path
 ) -> tuple[list[Path], str]:
     """After a solve of an OAK session: the depthai export started from the device's own
-    calibration, and summary lines comparing the device's calibrations with the result.
-    """
+    calibration, and summary lines comparing the device's calibrations with the result."""
     session_dir = Path(session_dir)
     if not any((session_dir / f).is_file() for f in (USER_FILE, FACTORY_FILE)):
         return [], ""  # not an OAK session, or a device without calibration: nothing to add

@@ -3,8 +3,7 @@ result), and the result header: OpenCV and ROS files per camera, Kalibr's ``camc
 ``hand_eye.yaml`` (4x4, translation + quaternion x, y, z, w, and as a UR pendant shows it),
 mrcal's ``.cameramodel`` per camera and an OAK's depthai JSON (docs/FORMATS.md). A camera with
 skew gets no Kalibr or mrcal file. A failed export does not stop the others:
-:func:`write_all_exports` returns the failures as one-line messages.
-"""
+:func:`write_all_exports` returns the failures as one-line messages."""
 
 from __future__ import annotations
 
@@ -58,8 +57,7 @@ def file_sha256(path: str | Path | None) -> str | None:
 
 def result_header(cell_path: str | Path | None, cell_name: str | None = None) -> dict[str, Any]:
     """``{slidecal_version, created_utc, cell, cell_sha256}``; without a cell file the packaged cell
-    ``cell_name`` is hashed.
-    """
+    ``cell_name`` is hashed."""
     digest = file_sha256(cell_path)
     if cell_path is None and cell_name:
         from importlib import resources
@@ -136,8 +134,7 @@ def mrcal_cameramodel(
     """mrcal's ``.cameramodel`` text (a Python ``dict`` literal) of camera ``name``:
     ``LENSMODEL_OPENCV5`` written before ``intrinsics`` (mrcal's C reader wants that order),
     ``rt_cam_ref`` (Rodrigues vector, metres; also as ``extrinsics`` for mrcal before 2.5),
-    ``imagersize``. ``ValueError`` when the camera has a skew or its rig transform is missing.
-    """
+    ``imagersize``. ``ValueError`` when the camera has a skew or its rig transform is missing."""
     _no_skew(result, "mrcal's OpenCV lens models")
     c = result.cameras[name]
     ref = _ordered_cameras(result)[0]
@@ -190,8 +187,7 @@ def _rpy_deg(R: np.ndarray) -> list[float]:
 
 def hand_eye_dict(result: CalibrationResult, header: Mapping[str, Any] | None = None) -> dict:
     """``hand_eye.yaml``: every hand-eye transform in three forms; an undetermined translation is
-    ``null``, without a matrix.
-    """
+    ``null``, without a matrix."""
     out: dict[str, Any] = {}
     if header:
         out["header"] = dict(header)

@@ -21,8 +21,7 @@ from typing import Any, TextIO
 
 class Progress:
     """Progress output: ``quiet`` prints nothing; ``lines`` forces plain timestamped lines (None:
-    when ``stream`` is not a terminal, else one status line rewritten in place).
-    """
+    when ``stream`` is not a terminal, else one status line rewritten in place)."""
 
     @classmethod
     def from_option(cls, progress: bool | Progress | None, total: int) -> Progress:
@@ -127,8 +126,7 @@ class Interrupted(KeyboardInterrupt):
 def signals_as_interrupt() -> Iterator[None]:
     """Within the block, SIGINT, SIGTERM and SIGHUP raise :class:`Interrupted` (main thread only;
     the previous handlers come back after). SIGINT too, as a process started in the background
-    inherits it ignored.
-    """
+    inherits it ignored."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return

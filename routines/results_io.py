@@ -1,7 +1,6 @@
 """Calibration results on disk: ``result.yaml`` (``slidecal.result/1``, docs/FORMATS.md: its
 fields, the covariance's parameter names, older results still read), the OpenCV and ROS
-exports, a human summary. A value the data cannot determine is ``null``, never a number.
-"""
+exports, a human summary. A value the data cannot determine is ``null``, never a number."""
 
 from __future__ import annotations
 
@@ -254,8 +253,7 @@ SCALE_INCONCLUSIVE = 5.0
 
 def scale_tolerance(ratios: np.ndarray, floor: float) -> tuple[float, float]:
     """(median ratio, tolerance) of the moves' camera/robot length ratios: the tolerance is the
-    larger of ``floor`` and four standard errors of the median (1.4826 MAD / sqrt(n) * 1.25).
-    """
+    larger of ``floor`` and four standard errors of the median (1.4826 MAD / sqrt(n) * 1.25)."""
     m = float(np.median(ratios))
     mad = float(np.median(np.abs(ratios - m))) * 1.4826
     se = 1.25 * mad / np.sqrt(len(ratios))
@@ -669,8 +667,7 @@ def summary_text(
 ) -> str:
     """A human summary: reprojection, per-parameter std, hand-eye in mm and degrees, what was
     unobservable and why, the scale check against ``scale_floor`` (the verdict's
-    ``scale_tolerance``) and, for simulated runs, the errors against the truth.
-    """
+    ``scale_tolerance``) and, for simulated runs, the errors against the truth."""
     lines = ["slidecal calibration result", "=" * 27]
     lines.append(
         f"converged: {'yes' if result.converged else 'NO'} after {result.iterations} iterations; "
@@ -806,8 +803,7 @@ def _unit(v: np.ndarray) -> str:
 def errors_against_truth(result: CalibrationResult, truth: Mapping[str, Any]) -> dict[str, float]:
     """Errors of a result against a session's ``simulation:`` block (same names): ``<cam>.fx_rel``,
     ``<cam>.fx_px`` .. ``cy`` (pixels), ``<T_name>.rot_deg`` and ``.t_mm`` per transform in both.
-    The hand-eye and the target pose are judged against :func:`judged_truth`.
-    """
+    The hand-eye and the target pose are judged against :func:`judged_truth`."""
     out: dict[str, float] = {}
     tcams = truth.get("cameras") or {}
     for name, c in result.cameras.items():
@@ -838,8 +834,7 @@ def errors_against_truth(result: CalibrationResult, truth: Mapping[str, Any]) ->
 def judged_truth(result: CalibrationResult, truth: Mapping[str, Any]) -> dict[str, np.ndarray]:
     """The transforms (4x4, result-file names) a result is judged against: the block's, hand-eyes
     and target pose replaced, where the block records the arm's true and reported poses, by the
-    effective truth (:func:`slidecal.mocks.cell.effective_truth`) over the frames the solve used.
-    """
+    effective truth (:func:`slidecal.mocks.cell.effective_truth`) over the frames the solve used."""
     out = {
         k: T
         for k in truth

@@ -100,8 +100,7 @@ def default_session_dir() -> Path:
 def check_user_plan(plan: Plan, cfg: CellConfig, where: str) -> None:
     """Refuse, before the robot moves, a user's plan that cannot determine the calibration: a group
     whose poses differ in orientation or hold no translation, or a plan the planner's prediction
-    finds degenerate.
-    """
+    finds degenerate."""
     for g, group in enumerate(plan.groups):
         T0 = group[0]
         for k, T in enumerate(group[1:], start=1):
@@ -322,8 +321,7 @@ def extend_for_limits(
     """The longer plan a run records next when its result misses only the gate's one-sigma limits,
     with why; or None and why not (an empty reason when nothing was missed). Planned for the
     accuracy the data showed (:func:`slidecal.routines.planner.extend_plan`) within the cell's
-    ``plan.extend_max_s`` of robot time (0: never); only the planner's plans are extended.
-    """
+    ``plan.extend_max_s`` of robot time (0: never); only the planner's plans are extended."""
     verdict = judge(result, limits, session.problem, command="run")
     if verdict.verdict != "rejected":
         return None, ""

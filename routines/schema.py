@@ -2,8 +2,7 @@
 in a mapping) and typed, named access to fields (:class:`Fields`: declared keys, an unknown one
 refused with the nearest valid one; finite numbers, shaped arrays, positive sizes, choices).
 Every failure is one :class:`~slidecal.solver.errors.InputError` line naming ``file: field``,
-what is wrong and how to fix it.
-"""
+what is wrong and how to fix it."""
 
 from __future__ import annotations
 
@@ -28,8 +27,7 @@ class DuplicateKeyError(yaml.constructor.ConstructorError):
 
 class StrictLoader(_BaseLoader):  # type: ignore[misc, valid-type]
     """The safe YAML loader, refusing a key that appears twice in one mapping (keys compared only
-    where a mapping's dict is shorter than its list of keys).
-    """
+    where a mapping's dict is shorter than its list of keys)."""
 
     def construct_mapping(self, node: Any, deep: bool = False) -> dict[Any, Any]:
         pairs = node.value[:]  # flatten_mapping rewrites node.value when it merges
@@ -74,8 +72,7 @@ def plain(obj: Any) -> Any:
 def dump_yaml(data: Any, indent: int | None = None) -> str:
     """YAML text of ``data`` (numbers in flow-style leaf lists, keys in insertion order).
     ``indent``: ``data`` is a part of a document nested that many spaces deep, dumped so that
-    parts join into the whole document's text.
-    """
+    parts join into the whole document's text."""
     text = yaml.dump(
         plain(data),
         Dumper=_Dumper if indent is None else _PartDumper,
@@ -103,8 +100,7 @@ class _PartDumper(_Dumper):  # type: ignore[misc, valid-type]
 
 def write_atomic(path: Path, text: str | bytes) -> None:
     """Write ``path`` so that it holds either its old or its new content: a fsynced temporary file
-    renamed over it, the directory fsynced; on failure the temporary file is removed.
-    """
+    renamed over it, the directory fsynced; on failure the temporary file is removed."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp")
     data = text.encode() if isinstance(text, str) else text

@@ -457,8 +457,7 @@ def read_session(directory: str | Path, detect_images: bool = True) -> Calibrati
 def load_session(directory: str | Path, detect_images: bool = True) -> Session:
     """Read and validate ``directory/session.yaml``; a camera with an image but no detections is
     detected (``detect_images``, else an error). Without robot poses, knowledge and mount become
-    ``"none"``. Every problem is an ``InputError`` naming ``session.yaml: <field>``.
-    """
+    ``"none"``. Every problem is an ``InputError`` naming ``session.yaml: <field>``."""
     directory = Path(directory)
     if not directory.is_dir():
         raise InputError(
@@ -948,8 +947,7 @@ def _append_rows(path: Path, n_rows: int, rows: np.ndarray) -> int:
 
 class SessionWriter:
     """Create a session directory and append frames as they are captured (images, then corners,
-    then ``session.yaml`` atomically: the files always describe complete frames only).
-    """
+    then ``session.yaml`` atomically: the files always describe complete frames only)."""
 
     def __init__(
         self,

@@ -51,8 +51,7 @@ class RunOutcome:
     """What a run produced: ``errors`` against the simulated truth (simulated cells), the robot's
     and this process's time, the gate's ``verdict`` (a rejected result is written under
     ``rejected/`` without exports), ``installed_to`` (None when not installed: ``install_note``
-    says why), ``export_errors`` (one line each) and :attr:`exit_code`.
-    """
+    says why), ``export_errors`` (one line each) and :attr:`exit_code`."""
 
     session_dir: Path
     result: CalibrationResult
@@ -160,8 +159,7 @@ def finish_solve(
 ) -> Solved:
     """Judge a solved session and write what the verdict allows: always ``verdict.yaml``,
     ``summary.txt`` and the report; ``result.yaml`` and ``export/`` when accepted or drifted,
-    ``rejected/`` without exports otherwise. ``notes``: the run's own notes for the verdict.
-    """
+    ``rejected/`` without exports otherwise. ``notes``: the run's own notes for the verdict."""
     status = _session_status(session, plan_poses)
     verdict = judge(
         result,
@@ -233,8 +231,7 @@ def _session_status(session: Session, plan_poses: int | None) -> str:
 
 def detection_hint(reasons: Mapping[tuple[int, str], Sequence[str]], n_frames: int) -> str:
     """What the detector said most often of the images it found nothing usable in (a board
-    counted in inner corners, another board size, nothing at all), or "" when it said nothing.
-    """
+    counted in inner corners, another board size, nothing at all), or "" when it said nothing."""
     counts: dict[str, int] = {}
     for why in reasons.values():
         if why:
@@ -306,8 +303,7 @@ def solve_session(
 
 def cell_file_limits(path: str | Path) -> Limits:
     """The gate's limits of a cell file (its ``limits:`` section): what a solve takes of a
-    cell (the rest of the cell, checked by every run, describes hardware a solve does not use).
-    """
+    cell (the rest of the cell, checked by every run, describes hardware a solve does not use)."""
     data = load_yaml(Path(path), "cell file")
     Fields(data, Path(path).name).only(CELL_SECTIONS)  # a misspelt limits: is not ignored
     return limits_from_dict(data.get("limits"), Path(path).name)

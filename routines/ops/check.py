@@ -137,8 +137,7 @@ def refit(
     reference camera's hand-eye and the target pose free, distortion and rig as installed; each
     measured robot pose corrected under the robot's noise prior (``robot_noise_m``/``_deg``), the
     residuals whitened by the installed pixel noise, the one-sigmas scaled up by a reduced
-    chi-square above 1.
-    """
+    chi-square above 1."""
     mount = installed.mount
     ref = installed.reference_camera or next(iter(installed.cameras))
     cams = [c.name for c in problem.cameras if c.name in installed.cameras]
@@ -241,8 +240,7 @@ def judge_problem(
 ) -> Verdict:
     """The check's verdict of recorded check frames against the installed calibration: paired with
     ``installed_problem`` when the check's poses are among its poses, else (said in the notes)
-    the re-estimate and the fixed-calibration residuals.
-    """
+    the re-estimate and the fixed-calibration residuals."""
     Y, res = fit_target(problem, installed)
     rms = {n: float(np.sqrt(np.mean(np.sum(r**2, axis=1)))) for n, r in res.items() if len(r)}
     drift = {n: float(np.sqrt(max(rms[n] ** 2 - expected[n] ** 2, 0.0))) for n in rms}

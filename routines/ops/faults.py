@@ -1,8 +1,7 @@
 """Injected hardware faults (``--fault KIND@FRAME``, :data:`FAULT_KINDS`) for ``slidecal run`` on a
 simulated cell and ``slidecal rehearse``: ``FRAME`` counts captured frames from 0, the fault
 hits the move to (or the capture of) that frame. The table of what each kind does is
-docs/results/FAULTS.md (``python -m tests.bench faults``).
-"""
+docs/results/FAULTS.md (``python -m tests.bench faults``)."""
 
 from __future__ import annotations
 
@@ -52,8 +51,7 @@ def parse_fault(text: str) -> FaultSpec:
 
 class FaultInjector:
     """Arms each fault just before the move to its frame (``before_frame``): ``arm_robot(kind)`` for
-    the robot, ``inject_fault(kind, at_capture)`` for a simulated rig.
-    """
+    the robot, ``inject_fault(kind, at_capture)`` for a simulated rig."""
 
     def __init__(self, specs: Iterable[FaultSpec | str], arm_robot: Callable[[str], None],
                  rig: Any) -> None:

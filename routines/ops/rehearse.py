@@ -109,8 +109,7 @@ TWIN_HFOV_DEG = 60.0
 def simulated_twin(cfg: CellConfig) -> CellConfig:
     """The simulated cell standing in for a real one in a rehearsal: its robot, target, mount and
     cameras' names and sizes, ``approximate`` taken as the truth. ``InputError`` when the cell
-    gives too little (several cameras that are not an OAK's left/right/rgb).
-    """
+    gives too little (several cameras that are not an OAK's left/right/rgb)."""
     given = config_to_dict(cfg)
     # the twin's board is simulated, so exact; its camera plans with the simulated camera's
     # noise unless the cell sets one other than the real camera's default
@@ -175,8 +174,7 @@ def rehearse(
     seed: int | None = None,
 ) -> RunOutcome:
     """Run the cell's routine against the loopback controller; returns the ``RunOutcome``, raises
-    as :func:`~slidecal.routines.run.run_calibration`.
-    """
+    as :func:`~slidecal.routines.run.run_calibration`."""
     cfg = load_config(config)
     driver_options: dict[str, Any] = {}
     if not cfg.simulated:

@@ -1,7 +1,6 @@
 """The morning report of a run: ``report.html`` (self-contained) and ``report.png``: the verdict,
 per camera the magnified residuals on the coverage grid and the projection-uncertainty map,
-the robot's accuracy per frame and the difference from the installed calibration.
-"""
+the robot's accuracy per frame and the difference from the installed calibration."""
 
 from __future__ import annotations
 

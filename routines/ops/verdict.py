@@ -1,7 +1,6 @@
 """The verdict a nightly job can trust (``verdict.yaml``): ``accepted | rejected | drifted |
 ok``, with reasons. The gate (:func:`judge`) tests the solve against the cell's ``limits:``
-(:class:`Limits`); its tests, the file and the exit codes: docs/UNATTENDED.md.
-"""
+(:class:`Limits`); its tests, the file and the exit codes: docs/UNATTENDED.md."""
 
 from __future__ import annotations
 
@@ -451,8 +450,7 @@ def displacement_px(
     """The largest image displacement of points at ``distance_m`` in front of ``camera``: an
     ``n x n`` grid over the central ``region`` of the old image cast to rays, carried through the
     old hand-eye and back through the new hand-eye and intrinsics (the intrinsics alone without
-    a hand-eye in both).
-    """
+    a hand-eye in both)."""
     import cv2
 
     a, b = old.cameras[camera], new.cameras[camera]
@@ -597,8 +595,7 @@ def paired_compare(
     """The paired drift test (:mod:`slidecal.solver.drift`) per camera of the frames of ``new`` at
     robot poses of ``old`` (the installed session): ``drifted`` when the corners' displacement
     field is significant and moves the central ``region`` by more than ``px_limit``.
-    ``info["usable"]`` False (with ``info["why"]``, no checks) without enough shared poses.
-    """
+    ``info["usable"]`` False (with ``info["why"]``, no checks) without enough shared poses."""
     pairs = drift.match_poses(
         [f.T_base_tool for f in new.frames], [f.T_base_tool for f in old.frames]
     )
@@ -695,8 +692,7 @@ def judge_check(
 ) -> Verdict:
     """The verdict of ``slidecal check``: ``ok``, or ``drifted`` when the images disagree with the
     installed calibration beyond the limits (per camera ``residual_rms_px``, ``expected_rms_px``
-    and ``drift_px``).
-    """
+    and ``drift_px``)."""
     lim = limits or Limits()
     checks = []
     for n, r in residual_rms_px.items():
