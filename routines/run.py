@@ -132,8 +132,7 @@ def check_user_plan(plan: Plan, cfg: CellConfig, where: str) -> None:
 
 
 def run_calibration(request: RunRequest | None = None) -> RunOutcome:
-    """Run a calibration end to end (:class:`RunRequest`), judge it, and return what it
-    produced."""
+    """Run a calibration end to end (:class:`RunRequest`), judge it, and return what it produced."""
     q = request or RunRequest()
     t0 = time.monotonic()
     cfg = q.config if isinstance(q.config, CellConfig) else load_config(q.config, q.overrides)
