@@ -24,8 +24,7 @@ DEFAULT_SOCKETS = {"left": "CAM_B", "right": "CAM_C", "rgb": "CAM_A"}
 DEFAULT_SIZES = {"left": (1280, 800), "right": (1280, 800), "rgb": (1920, 1080)}
 #: Resize modes of ``requestOutput`` (``dai.ImgResizeMode``), as the cell file names them.
 RESIZE_MODES = ("stretch", "crop", "letterbox")
-#: Frame rate requested when the cell gives none: two 1280x800 grey and a 1920x1080 BGR stream
-#: at 10 fps are about 83 MB/s, within USB3 and a gigabit PoE link (the default 30 fps is 250).
+#: Frame rate requested when the cell gives none: three streams well within USB3 and gigabit PoE.
 DEFAULT_FPS = 10.0
 DEFAULT_WHITE_BALANCE_K = 5000
 #: How long the auto exposure runs after start before it is locked (cells without exposure_us).

@@ -16,16 +16,12 @@ import numpy as np
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import Rx, Rz, inv_T
 
-#: ``|sin(q5)|`` below this is a wrist singularity: joint axes 4 and 6 are nearly parallel, and the
-#: wrist joints' speeds grow as ``1 / |sin(q5)|`` (20 times the tool's angular speed at 0.05,
-#: i.e. within 2.9 deg of alignment), so a linear move near it trips the joint speed limits.
+#: ``|sin(q5)|`` below this is a wrist singularity (wrist joint speeds grow as ``1 / |sin(q5)|``).
 WRIST_SIN_MIN = 0.05
-#: ``|sin(q3)|`` below this is an elbow singularity: the arm is stretched out (edge of the
-#: workspace) or folded; the shoulder/elbow speeds grow as ``1 / |a2 a3 sin(q3)|``.
+#: ``|sin(q3)|`` below this is an elbow singularity (the arm stretched out or folded).
 ELBOW_SIN_MIN = 0.05
-#: Horizontal distance (metres) from the base z axis to the wrist point below which we call the
-#: pose shoulder-singular: the base joint turns at ``v / r`` for a tool moving sideways at ``v``,
-#: so at 0.05 m a 0.25 m/s move needs 5 rad/s, beyond the base joint's 3.14 rad/s.
+#: Wrist point's distance (metres) from the base z axis below which the pose is shoulder-singular
+#: (the base joint turns at ``v / r`` for a tool moving sideways at ``v``).
 SHOULDER_RADIUS_MIN_M = 0.05
 
 

@@ -21,8 +21,7 @@ from slidecal.solver.geometry import R_from_rvec, Rx, Rz, T_from_Rt, rvec_from_R
 #: Straight lines are checked at least every 5 mm and every 1 deg of tool rotation.
 STEP_M = 0.005
 STEP_RAD = np.radians(1.0)
-#: Largest joint change between two such samples before we call the path discontinuous (a
-#: branch flip or a pass through a singularity): 0.2 rad per 5 mm would be 10 rad/s at 0.25 m/s.
+#: Largest joint change between two such samples before the path is discontinuous (a branch flip).
 MAX_JOINT_STEP_RAD = 0.2
 
 FAULT_KINDS = ("protective_stop", "emergency_stop", "disconnect", "timeout")

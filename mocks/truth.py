@@ -26,10 +26,8 @@ P_2SIGMA = float(norm.cdf(2.0) - norm.cdf(-2.0))  # 0.9545
 P_3SIGMA = float(norm.cdf(3.0) - norm.cdf(-3.0))  # 0.9973
 CHI2_3_2SIGMA = float(chi2.ppf(P_2SIGMA, 3))
 CHI2_3_3SIGMA = float(chi2.ppf(P_3SIGMA, 3))
-#: a row's verdict: miscalibrated when a calibrated Gaussian estimator would give its sum of
-#: squared normalised errors (or fewer / more trials inside 2 sigma) with probability below
-#: this (two-sided; the tail test one-sided). Three tests on some 40 rows: about one false
-#: alarm per report is sampling noise. The report's ranges and intervals are at this level
+#: A row is miscalibrated when a calibrated Gaussian estimator would give its errors with
+#: probability below this (two-sided; the tail test one-sided); the reports' intervals too.
 VERDICT_P = 0.01
 
 

@@ -55,13 +55,7 @@ CELL_MOUNTS = ("eye_in_hand", "eye_to_hand")
 CAMERA_PRESETS = ("r1", "oak_d_like")
 DEFAULT_CELL = "default_cell.yaml"
 
-#: The keys every section of a cell file accepts: add a new key here (one place per section),
-#: then read it in that section's function below. ``target`` and ``options`` take
-#: :data:`~slidecal.routines.session.TARGET_KEYS` and ``OPTIONS_KEYS`` (shared with sessions);
-#: ``plan`` takes :data:`PLAN_KEYS`.
-#: ``simulation.kinematic_error``: the simulated arm's systematic error and its defaults
-#: (``slidecal.mocks.robot.KinematicError``: flange errors of this size, mm and deg rms, on top of
-#: per-stop repeatability).
+#: ``simulation.kinematic_error``'s defaults (``slidecal.mocks.robot.KinematicError`` sizes).
 KINEMATIC_ERROR_DEFAULTS = {
     "mm": 1.0,
     "deg": 0.1,
@@ -73,6 +67,8 @@ KINEMATIC_ERROR_DEFAULTS = {
 #: (photograph-like imaging) a cell file may set.
 PHOTO_KEYS = tuple(f.name for f in fields(Photo))
 
+#: The keys every section of a cell file accepts (``target``, ``options`` and ``plan`` take
+#: ``TARGET_KEYS``, ``OPTIONS_KEYS`` and :data:`PLAN_KEYS`): add a key here, then read it.
 CELL_KEYS: dict[str, tuple[str, ...]] = {
     "": CELL_SECTIONS,
     "robot": (
@@ -126,9 +122,7 @@ PLAN_KEYS = (
 GOAL_KEYS = ("fx_rel_std", "hand_eye_rot_std_deg", "hand_eye_t_std_mm")
 #: Largest tilt of the view against the board normal: the detector is tested to 40 deg.
 MAX_TILT_DEG = 40.0
-#: Corner noise assumed for the rendered simulated camera and for a real camera. The default
-#: cell's photograph-like images give about 0.043 px (docs/PLANNER.md); a run that misses its
-#: limits extends its plan with the noise it measured (docs/UNATTENDED.md).
+#: Corner noise assumed for the rendered simulated camera and for a real camera (docs/PLANNER.md).
 SIM_CORNER_NOISE_PX = 0.03
 REAL_CORNER_NOISE_PX = 0.1
 #: Keys of the ``install:`` section (:class:`InstallSettings`).

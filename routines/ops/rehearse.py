@@ -46,9 +46,8 @@ help = "rehearse the cell's routine through the real ur-rtde client on a loopbac
 REHEARSAL_FILE = "rehearsal.yaml"
 #: The controller's state after the last rehearsal in this process (the fault table reads it).
 LAST_CONTROLLER_STATE: dict[str, Any] = {}
-#: The rehearsal's stale-data limit (the driver's is 0.1 s): the loopback controller is a Python
-#: process on the host's CPUs and goes unscheduled under load for far longer than a controller's
-#: cycle; three times the longest gap it showed before the run if that is longer.
+#: The rehearsal's stale-data limit (a Python loopback goes unscheduled under load far longer than
+#: a controller's cycle); three times the longest gap it showed before the run if that is longer.
 LOOPBACK_STALE_S = 1.0
 
 
