@@ -204,12 +204,9 @@ def ik(
     model: URModel = UR5E,
     T_flange_tcp: np.ndarray | None = None,
 ) -> list[np.ndarray]:
-    """Joint solutions (each (6,), radians) reaching ``T_base_tool`` (4, 4, metres).
-
-    Up to eight analytic solutions, each angle shifted by whole turns toward ``q_near`` (6,)
-    (default: the angles in (-pi, pi]) and kept only inside the joint limits; sorted by distance
-    to ``q_near`` when given. Empty when the pose is out of reach.
-    """
+    """Joint solutions (each (6,), radians) reaching ``T_base_tool`` (4, 4, metres) inside the joint
+    limits, each angle shifted by whole turns toward ``q_near`` (6,) and sorted by distance to it
+    when given; empty when out of reach."""
     T = _check_T(T_base_tool)
     if T_flange_tcp is not None:
         T = T @ inv_T(_check_T(T_flange_tcp))

@@ -207,11 +207,8 @@ def _texture(
 def _subsample_rays(
     width: int, height: int, K_bytes: bytes, dist_bytes: bytes, n: int
 ) -> np.ndarray:
-    """Undistorted normalised coordinates (n H, n W, 2) float32 of every sub-sample of a camera.
-
-    Exact undistortion at the pixel centres; the sub-samples, at most ``0.5 - 0.5 / n`` px away,
-    use the local inverse Jacobian of the lens model (second-order error below 1e-4 px).
-    """
+    """Undistorted normalised coordinates (n H, n W, 2) float32 of every sub-sample of a camera:
+    exact at the pixel centres, by the lens model's local inverse Jacobian around them."""
     K = np.frombuffer(K_bytes).reshape(3, 3)
     dist = np.frombuffer(dist_bytes)
     u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))

@@ -128,11 +128,8 @@ RETIRED_PLAN_KEYS = {
 
 @dataclass(frozen=True)
 class PlanGoal:
-    """What the plan must achieve: one-sigma targets (None: no target) and a time budget.
-
-    ``fx_rel_std``: std of fx over fx; ``hand_eye_rot_std_deg``: root of the trace of the
-    hand-eye rotation covariance, degrees; ``hand_eye_t_std_mm``: same for its translation.
-    """
+    """What the plan must achieve: one-sigma targets (None: none; the hand-eye's are roots of the
+    covariance traces) and a time budget."""
 
     fx_rel_std: float | None = 5e-4
     hand_eye_rot_std_deg: float | None = 0.03
@@ -372,10 +369,8 @@ class CellConfig:
 
 
 def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None):
-    """Read and validate a cell file; ``None``: the packaged default simulated cell.
-
-    ``overrides``: nested values merged over the file (e.g. ``{"simulation": {"seed": 3}}``).
-    """
+    """Read and validate a cell file (None: the packaged default simulated cell); ``overrides``:
+    nested values merged over it, e.g. ``{"simulation": {"seed": 3}}``."""
     if path is None:
         return load_packaged_cell(DEFAULT_CELL, overrides)
     path = Path(path)

@@ -1,19 +1,5 @@
-"""A rerun recording of a calibration run (rerun-sdk 0.41; the only module that imports rerun).
-
-One :class:`rerun.RecordingStream` per run, saved to ``SESSION_DIR/recording.rrd`` (and
-streamed to a viewer with ``spawn``). Entity tree (``world`` is the robot base frame, z up):
-
-- ``world/base``: the base axes (static); ``world/board``: the board corners (approximate pose
-  while recording, the estimate at the end);
-- ``world/tool``: ``T_base_tool`` at every capture; ``world/tool_path``: the TCP path so far;
-- ``world/tool/<cam>`` (eye-in-hand) or ``world/<cam>`` (eye-to-hand): the camera frustum
-  (``Pinhole``, RDF axes); ``.../<cam>/image``: the image, ``.../image/detections`` and, after
-  the solve, ``.../image/reprojections``;
-- ``residuals/<cam>``: per-frame reprojection rms (time series);
-- ``log``: events and the final estimate with its uncertainty (``TextLog``).
-
-Timelines: ``capture`` (frame id) and ``robot_time`` (simulated or measured robot seconds).
-"""
+"""A rerun recording of a calibration run, ``SESSION_DIR/recording.rrd`` (rerun-sdk 0.41; the
+only module that imports rerun). Its entity tree and timelines: docs/DRIVERS.md."""
 
 from __future__ import annotations
 
@@ -40,7 +26,7 @@ def _nominal_K(spec: CameraSpec) -> np.ndarray:
 
 
 class RerunLog:
-    """Log one run (the entity tree: module docstring).
+    """Log one run (the entity tree: docs/DRIVERS.md).
 
     ``path``: the ``.rrd`` file (None: none). ``cameras``: the rig's cameras. ``target``: the board.
     ``mount``: ``eye_in_hand`` | ``eye_to_hand``. ``T_hand_eye_approx``, ``T_target_approx``: (4, 4)

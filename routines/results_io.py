@@ -43,11 +43,8 @@ RESULT_FILE = "result.yaml"
 
 
 def hand_eye_names(result: CalibrationResult) -> dict[str, str]:
-    """Camera name -> the result file's name of its hand-eye transform.
-
-    ``T_tool_cam`` / ``T_base_cam`` for a single camera; ``T_tool_<name>`` / ``T_base_<name>``
-    for every camera of a rig. Empty without a robot.
-    """
+    """Camera name -> the result file's name of its hand-eye (``T_tool_cam`` / ``T_base_cam``, or
+    ``T_tool_<name>`` / ``T_base_<name>`` per camera of a rig); empty without a robot."""
     if result.hand_eye is None:
         return {}
     return named_hand_eye_names(result.mount, list(result.cameras))
@@ -504,11 +501,8 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
 
 
 def write_opencv_yaml(camera: CameraEstimate, path: str | Path) -> Path:
-    """OpenCV ``FileStorage`` YAML of one camera (as OpenCV's calibration sample writes it).
-
-    Nodes: ``image_width``, ``image_height``, ``camera_name``, ``camera_matrix`` (3x3),
-    ``distortion_coefficients`` (1x5: k1 k2 p1 p2 k3), ``avg_reprojection_error`` (px).
-    """
+    """OpenCV ``FileStorage`` YAML of one camera, as OpenCV's calibration sample writes it
+    (``camera_matrix`` 3x3, ``distortion_coefficients`` 1x5, ``avg_reprojection_error`` px)."""
     import cv2
 
     path = Path(path)
@@ -530,11 +524,8 @@ def write_opencv_yaml(camera: CameraEstimate, path: str | Path) -> Path:
 
 
 def camera_info_dict(camera: CameraEstimate) -> dict[str, Any]:
-    """The ROS ``camera_info`` YAML mapping (camera_calibration_parsers layout) of one camera.
-
-    Monocular: rectification identity, projection ``[K | 0]``; ``plumb_bob`` is OpenCV's
-    k1 k2 p1 p2 k3.
-    """
+    """The ROS ``camera_info`` mapping of one camera (monocular: identity rectification, projection
+    ``[K | 0]``; ``plumb_bob`` is OpenCV's k1 k2 p1 p2 k3)."""
     K = np.asarray(camera.K, dtype=float)
     P = np.hstack([K, np.zeros((3, 1))])
     return {
@@ -560,11 +551,8 @@ def write_camera_info(camera: CameraEstimate, path: str | Path) -> Path:
 
 
 def write_depthai_json(result: CalibrationResult, path: str | Path, sockets: Mapping[str, Any]):
-    """The depthai calibration JSON of an OAK rig, written by the OAK driver's writer.
-
-    ``sockets``: camera name -> board socket name (``CAM_A``...). Raises ``InputError`` when
-    this slidecal has no OAK writer.
-    """
+    """The depthai calibration JSON of an OAK rig (``sockets``: camera name -> ``CAM_A``...);
+    ``InputError`` without the OAK driver."""
     try:
         from slidecal.drivers import oak
     except ImportError:  # the OAK driver is optional at run time (depthai missing)
