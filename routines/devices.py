@@ -1,11 +1,6 @@
-"""From a cell file to camera driver objects, and what the devices say about themselves into
-the session directory (the ``cameras:`` keys: docs/FORMATS.md).
-
-:func:`check_libraries` refuses a cell whose driver's library is not installed, naming the extra
-that brings it; :func:`camera_rig` builds the rig; :func:`record_devices` writes what the open
-camera reports (an OAK's own calibrations as depthai JSON beside ``session.yaml``);
-:func:`device_calibration_outputs` writes the depthai export of a solve and how far the device's
-calibrations move projected points against it.
+"""From a cell file to camera driver objects (:func:`camera_rig`, after :func:`check_libraries`),
+and what the devices say about themselves into the session (:func:`record_devices`,
+:func:`device_calibration_outputs`); the ``cameras:`` keys: docs/FORMATS.md.
 """
 
 from __future__ import annotations

@@ -1,12 +1,10 @@
 """Session directories on disk (``slidecal.session/1``, docs/FORMATS.md): read them, write them.
 
-A session is ``SESSION_DIR/session.yaml``, the images under ``SESSION_DIR/images/`` and the
-corners in ``SESSION_DIR/detections.npy`` (:data:`DETECTION_DTYPE`; older sessions hold them
-inline). :func:`read_session` turns it into a :class:`~slidecal.solver.problem.CalibrationProblem`;
-:class:`SessionWriter` appends each frame as it is captured: images, then the frame's rows of the
-table (its header's row count rewritten after them), then ``session.yaml`` rewritten atomically,
-so a crash loses at most the frame in flight. The keys each part accepts are declared once, in
-:data:`SESSION_KEYS`; any other key is refused with the nearest valid one.
+:func:`read_session` turns ``session.yaml``, ``images/`` and ``detections.npy``
+(:data:`DETECTION_DTYPE`; older sessions hold the corners inline) into a
+:class:`~slidecal.solver.problem.CalibrationProblem`; :class:`SessionWriter` appends each frame
+as it is captured, so a crash loses at most the frame in flight. The keys each part accepts
+are declared once, in :data:`SESSION_KEYS`.
 """
 
 from __future__ import annotations

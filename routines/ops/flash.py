@@ -1,12 +1,8 @@
-"""Write a session's calibration into its OAK device (``slidecal flash SESSION``).
-
-Without ``--write`` it only says how far the device's current calibration moves projected points
-against the result. With ``--write`` it opens the session's device (no other), saves the
-calibration it uses now as ``SESSION_DIR/device_calibration_backup_<time>.json`` BEFORE writing,
-builds the new one from it (intrinsics, distortion, extrinsics and lens positions from the
-result; each K mapped back to the size the device stores), saves that too, writes it into the
-device's user area (never the factory area), reads it back and compares. To undo: flash the
-backup with depthai, or ``device.factoryResetCalibration()``.
+"""Write a session's calibration into its OAK device (``slidecal flash SESSION``): without
+``--write`` only how far the device's calibration moves projected points against the result;
+with it, the device's calibration saved as ``device_calibration_backup_<time>.json`` first, the
+new one built from it, written into the user area (never the factory area) and read back.
+To undo: flash the backup with depthai, or ``device.factoryResetCalibration()``.
 """
 
 from __future__ import annotations

@@ -1,12 +1,8 @@
-"""Rehearse a cell's calibration through the real ur-rtde client (``slidecal rehearse``).
-
-Starts the loopback UR controller (:mod:`slidecal.mocks.ur_controller`) in its own process on a
-loopback address of its own, connects the real UR driver to it and runs the cell's routine
-(:func:`~slidecal.routines.run.run_calibration`), its simulated cameras rendering from the
-controller's true pose. A real cell is rehearsed through its simulated twin
-(:func:`simulated_twin`).
-Besides what ``slidecal run`` writes, the session gets ``rehearsal.yaml``: what the controller
-said it was and what it saw. Nothing leaves the machine; no robot moves.
+"""Rehearse a cell's calibration through the real ur-rtde client (``slidecal rehearse``): the
+loopback UR controller (:mod:`slidecal.mocks.ur_controller`) in its own process, the real UR
+driver connected to it, the cell's routine run with simulated cameras rendering from the
+controller's true pose (a real cell through its :func:`simulated_twin`), and ``rehearsal.yaml``
+saying what the controller was and saw. Nothing leaves the machine; no robot moves.
 """
 
 from __future__ import annotations
