@@ -1,19 +1,8 @@
-"""The hardware interfaces the routine drives: small ``typing.Protocol`` classes.
-
-Real drivers (``drivers/ur.py`` through ur-rtde, ``drivers/oak.py`` through depthai v3,
-``drivers/uvc.py`` through OpenCV) and the simulated cell (``mocks/``) implement the same
-protocols, so the routine never knows which it has. Every failure is raised as
-:class:`slidecal.solver.errors.HardwareFault` with a message that says what to do.
-
-Real drivers also report what they are connected to, for the session (optional, so the
-simulated cell and users' own rigs need not): ``capabilities() -> dict`` (plain data: model,
-serial, sensors and modes, the settings as the device read them back) and, for devices that
-carry their own calibration, ``device_calibrations() -> dict`` (``user``/``factory``: the
-device's calibration in its own format, or None). ``routines/devices.py`` records both.
-
-The hardware libraries are extras (``pip install 'slidecal[ur]'``, ``'slidecal[oak]'``,
-``'slidecal[all]'``); each driver imports its library only when used.
-"""
+"""The hardware interfaces the routine drives: small ``typing.Protocol`` classes that the real
+drivers (``ur``, ``oak``, ``uvc``) and the simulated cell implement alike. Every failure is a
+:class:`slidecal.solver.errors.HardwareFault` saying what to do. Real drivers may also report
+``capabilities()`` and ``device_calibrations()`` (``user``/``factory``) for the session; each
+imports its library (an extra: ``pip install 'slidecal[ur]'``, ``'slidecal[oak]'``) when used."""
 
 from __future__ import annotations
 
@@ -26,10 +15,8 @@ from slidecal.solver.problem import CameraSpec
 
 @runtime_checkable
 class Robot(Protocol):
-    """A robot arm that moves its TCP in straight lines and reports where it is.
-
-    Poses are ``T_base_tool`` (4, 4), metres, with the TCP the robot was configured with.
-    """
+    """A robot arm that moves its TCP in straight lines and reports where it is: poses are
+    ``T_base_tool`` (4, 4), metres, of the TCP the robot was configured with."""
 
     def connect(self) -> None:
         """Open the connection; raise ``HardwareFault`` when the robot is not ready to move."""
@@ -44,11 +31,8 @@ class Robot(Protocol):
         ...
 
     def move_linear(self, T_base_tool: np.ndarray, speed_mps: float, accel_mps2: float) -> None:
-        """Move the TCP in a straight line to ``T_base_tool`` and block until it arrives.
-
-        Raises ``HardwareFault`` (after stopping the robot) on a protective or emergency stop,
-        a lost connection or a time-out.
-        """
+        """Move the TCP in a straight line to ``T_base_tool`` and block until it arrives; after
+        stopping the robot, ``HardwareFault`` on a stop, a lost connection or a time-out."""
         ...
 
     def wait_settled(self, settle_s: float) -> None:

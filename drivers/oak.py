@@ -1,58 +1,9 @@
-"""Luxonis OAK cameras through depthai v3 (``CameraRig`` protocol of ``drivers/base.py``), the
-device's own calibration, and writing a calibration result into a depthai ``CalibrationHandler``.
+"""Luxonis OAK cameras through depthai v3 (``CameraRig`` of ``drivers/base.py``), the device's
+own calibration, and a calibration result written into a depthai ``CalibrationHandler``.
 
-Capture: one ``dai.node.Camera`` per socket and the pipeline's auto-calibration turned OFF (it is
-on by default and would rewrite the stereo calibration on start). ``depthai`` is an extra
-(``pip install 'slidecal[oak]'``); it is imported when an :class:`OakRig` is made, so this module
-imports without it.
-
-Image geometry: ``requestOutput`` crops to the requested aspect ratio by default (a 1920x1080
-output of a 4056x3040 sensor loses a quarter of its height). :class:`OakRig` builds each camera
-on the sensor mode with the widest field of view that runs at the requested frame rate (the
-smallest such mode that still covers the requested size) and asks for the output with an
-explicit resize mode, ``stretch`` by default: the whole field of view, scaled to the requested
-size (non-square pixels when the aspect ratios differ; the camera model's separate fx, fy take
-that). Undistortion is off. A frame rate is always requested (default 10 fps) so the three
-streams stay well within USB2/PoE bandwidth; the mode used is in :meth:`OakRig.capabilities`.
-
-Lens and exposure: manual exposure and ISO (``exposure_us``, ``iso``) for every camera, a manual
-lens position (``focus``) for every auto-focus camera and a fixed white balance
-(``white_balance_k``, default 5000 K) for colour cameras. A calibration holds at one lens
-position only, so an auto-focus camera without ``focus`` is refused with one line saying so
-(rather than locking wherever the autofocus happened to be). Without ``exposure_us`` the auto
-exposure runs for ``AUTO_EXPOSURE_SETTLE_S`` after start and is then locked
-(``CameraControl.setAutoExposureLock`` through each camera's ``inputControl`` queue): nothing
-is captured with the exposure still moving. After start every camera's settings are read back
-from two frame sets (``ImgFrame.getExposureTime``, ``getSensitivity``, ``getLensPosition``,
-``getColorTemperature``) into :meth:`OakRig.capabilities` (``outputs.<name>.read_back``); an
-exposure that still changes between the two is a ``HardwareFault``, a value the device did not
-take is reported in ``messages``.
-
-Synchronisation: :meth:`OakRig.capture` first discards every frame already queued, notes the
-host time, then keeps only frames whose device timestamp (``ImgFrame.getTimestamp()``, on the
-host's steady clock) is later than that. It returns the oldest frame of the first camera for
-which every other camera has a frame within ``sync_tolerance_s`` of it (the nearest one, taken
-once that camera has a frame at or after it: frames of the cameras arrive through their own
-queues, and an earlier frame read first is not the nearest when the next is nearer), so the set
-was exposed after the call and together. The stereo pair of an OAK-D is hardware-synced
-(a few microseconds apart); the colour camera runs free at the same rate with a fixed phase,
-so its nearest frame can be up to half a period away: the default tolerance is a little more
-than half a frame period (55 ms at 10 fps; the arm is at rest at every capture).
-A closed queue (``dai.MessageQueue.QueueException``), a link error or a closed device means the
-device is gone: the pipeline is stopped and a ``HardwareFault`` raised. depthai v3 does not close
-the output queues when a device crashes or is unplugged (its XLink reader waits for a
-reconnection and the pipeline still says it runs), so ``Device.isClosed()`` is checked while
-waiting for frames; automatic reconnection is switched off (``setMaxReconnectionAttempts(0)``):
-a reconnected device restarts with the initial controls only (the exposure lock lost) and
-depthai reconnects to any available device.
-
-Calibration files: extrinsics in depthai are in CENTIMETRES and ``setCameraExtrinsics(src, dst,
-R, t)`` maps points of ``src`` into ``dst`` (``R_dst_src``, ``t_dst_src``). Each camera stores one
-link; we chain them as the factory calibration does: stereo left -> stereo right -> the others.
-Distortion is 14 coefficients in OpenCV order (k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4 tx ty),
-zero-padded. The handler stores float32: values round-trip exactly at that precision. A
-handler written for a device starts from the device's own (board name, IMU extrinsics, lens
-positions, design translations kept) and overwrites only what was calibrated.
+Sensor modes, the exposure lock, synchronisation, a lost device and the calibration's units:
+docs/DRIVERS.md. ``depthai`` (``pip install 'slidecal[oak]'``) is imported when an
+:class:`OakRig` is made; this module imports without it.
 """
 
 from __future__ import annotations
@@ -73,8 +24,7 @@ DEFAULT_SOCKETS = {"left": "CAM_B", "right": "CAM_C", "rgb": "CAM_A"}
 DEFAULT_SIZES = {"left": (1280, 800), "right": (1280, 800), "rgb": (1920, 1080)}
 #: Resize modes of ``requestOutput`` (``dai.ImgResizeMode``), as the cell file names them.
 RESIZE_MODES = ("stretch", "crop", "letterbox")
-#: Frame rate requested when the cell gives none: two 1280x800 grey and a 1920x1080 BGR stream
-#: at 10 fps are about 83 MB/s, within USB3 and a gigabit PoE link (the default 30 fps is 250).
+#: Frame rate requested when the cell gives none: three streams well within USB3 and gigabit PoE.
 DEFAULT_FPS = 10.0
 DEFAULT_WHITE_BALANCE_K = 5000
 #: How long the auto exposure runs after start before it is locked (cells without exposure_us).
@@ -112,14 +62,10 @@ def _board_socket(dai: Any, name: str, camera: str) -> Any:
 def choose_sensor_mode(
     modes: Sequence[Mapping[str, Any]], size: tuple[int, int], fps: float
 ) -> dict[str, Any] | None:
-    """The sensor mode to build a camera on: the widest field of view that runs at ``fps``.
-
-    ``modes``: ``{width, height, min_fps, max_fps, fov: (x, y, w, h)}`` per sensor mode (the
-    device's ``CameraFeatures.configs``). Among the modes whose field of view is (within 1 %)
-    the largest and whose frame rate range holds ``fps``, the smallest that covers ``size``
-    (width, height), else the largest. None when the device lists no modes. ``InputError`` when
-    no widest-view mode runs at ``fps``.
-    """
+    """The sensor mode to build a camera on: among ``modes`` (``{width, height, min_fps, max_fps,
+    fov}``, the device's ``CameraFeatures.configs``) of the widest field of view (within 1 %) that
+    run at ``fps``, the smallest covering ``size``, else the largest. None without modes;
+    ``InputError`` when no widest-view mode runs at ``fps``."""
     if not modes:
         return None
 
@@ -160,32 +106,13 @@ def _text(value: Any) -> str | None:
 class OakRig:
     """The cameras of one OAK device, captured as a synchronised set.
 
-    Parameters
-    ----------
-    device_id
-        The device's id (MxId or IP) or None for the first device found.
-    sockets
-        Camera name -> board socket name (``"CAM_A"`` ...). The first is the sync reference.
-    sizes
-        Camera name -> (width, height) in pixels of the requested output.
-    colour
-        Names of the cameras delivered as BGR (``BGR888i``); the others as grey (``GRAY8``).
-    exposure_us, iso
-        Manual exposure (microseconds) and sensitivity for every camera (both or neither;
-        neither leaves auto-exposure on).
-    focus
-        Camera name -> manual lens position 0..255; required for every auto-focus camera.
-    white_balance_k
-        Camera name -> colour temperature 1000..12000 K of the colour cameras' fixed white
-        balance (default 5000 K).
-    fps
-        Frame rate requested from every camera (one rate, so the streams stay in step).
-    resize_mode
-        ``stretch`` (whole field of view, default), ``crop`` or ``letterbox``.
-    sync_tolerance_s
-        Largest timestamp difference within a set (default ``0.55 / fps``).
-    timeout_s
-        How long :meth:`capture` waits for a complete set.
+    ``device_id``: MxId or IP (None: the first device). ``sockets``: camera name -> board socket
+    (``"CAM_A"`` ...), the first the sync reference. ``sizes``: name -> (width, height) px.
+    ``colour``: the names delivered as BGR (others grey). ``exposure_us``, ``iso``: manual exposure
+    for every camera (both or neither). ``focus``: name -> lens position 0..255 (required for
+    auto-focus cameras). ``white_balance_k``: name -> 1000..12000 K (default 5000). ``fps``: one
+    rate for all. ``resize_mode``: ``stretch`` | ``crop`` | ``letterbox``. ``sync_tolerance_s``:
+    within a set (default ``0.55 / fps``). ``timeout_s``: :meth:`capture`'s wait for a set.
     """
 
     def __init__(
@@ -297,7 +224,7 @@ class OakRig:
 
     def _lock_and_read_back(self) -> None:
         """Lock a running auto exposure, then read every camera's settings back from two frame
-        sets (module docstring)."""
+        sets (docs/DRIVERS.md)."""
         dai = self._dai
         if self.exposure_us is None:
             time.sleep(AUTO_EXPOSURE_SETTLE_S)
@@ -353,9 +280,7 @@ class OakRig:
             size = self.sizes[name]
             modes = [
                 {
-                    "width": int(c.width),
-                    "height": int(c.height),
-                    "min_fps": float(c.minFps),
+                    "width": int(c.width), "height": int(c.height), "min_fps": float(c.minFps),
                     "max_fps": float(c.maxFps),
                     "fov": (float(c.fov.x), float(c.fov.y), float(c.fov.width),
                             float(c.fov.height)),
@@ -385,15 +310,9 @@ class OakRig:
             if self.exposure_us is None:  # created before start, as depthai v3 requires
                 self._controls[name] = cam.inputControl.createInputQueue()
             outputs[name] = {
-                "socket": socket,
-                "size": list(size),
-                "type": _text(kind),
-                "resize_mode": self.resize_mode,
-                "fps": self.fps,
-                "sensor_mode": mode,
-                "exposure_us": self.exposure_us,
-                "iso": self.iso,
-                "focus": self.focus.get(name),
+                "socket": socket, "size": list(size), "type": _text(kind),
+                "resize_mode": self.resize_mode, "fps": self.fps, "sensor_mode": mode,
+                "exposure_us": self.exposure_us, "iso": self.iso, "focus": self.focus.get(name),
                 "white_balance_k": self.white_balance_k.get(name),
             }
         bytes_per_s = sum(
@@ -402,8 +321,7 @@ class OakRig:
         )
         bootloader = _call(device, "getBootloaderVersion")
         self._capabilities = {
-            "driver": "oak",
-            "depthai_version": str(getattr(dai, "__version__", "")),
+            "driver": "oak", "depthai_version": str(getattr(dai, "__version__", "")),
             "device_id": _call(device, "getDeviceId"),
             "device_name": _text(_call(device, "getDeviceName")),
             "product_name": _text(_call(device, "getProductName")),
@@ -457,12 +375,6 @@ class OakRig:
             out[kind] = None if data == empty else data
         return out
 
-    def read_calibration(self) -> Any:
-        """The device's current ``dai.CalibrationHandler`` (keep it as a backup before flashing)."""
-        if self._pipeline is None:
-            raise HardwareFault("OAK rig not open: call open() first")
-        return self._pipeline.getDefaultDevice().readCalibration()
-
     def _lost(self, reason: str) -> HardwareFault:
         self.close()
         which = f"OAK device {self._capabilities.get('device_id') or self.device_id or ''}"
@@ -472,7 +384,7 @@ class OakRig:
         )
 
     def capture(self) -> dict[str, np.ndarray]:
-        """One synchronised set exposed after this call (see the module docstring)."""
+        """One synchronised set exposed after this call (docs/DRIVERS.md)."""
         if self._pipeline is None:
             raise HardwareFault("OAK rig not open: call open() first")
         try:
@@ -542,8 +454,7 @@ def _settings(msg: Any) -> dict[str, Any]:
     temperature (K; 0 for a mono camera)."""
     return {
         "exposure_us": int(round(msg.getExposureTime().total_seconds() * 1e6)),
-        "iso": int(msg.getSensitivity()),
-        "lens_position": int(msg.getLensPosition()),
+        "iso": int(msg.getSensitivity()), "lens_position": int(msg.getLensPosition()),
         "colour_temperature_k": int(msg.getColorTemperature()),
     }
 
@@ -566,19 +477,14 @@ def _not_taken(name: str, out: Mapping[str, Any], got: Mapping[str, Any]) -> lis
 def _features_dict(f: Any) -> dict[str, Any]:
     calib = getattr(f, "calibrationResolution", None)
     return {
-        "socket": _text(f.socket),
-        "sensor": str(f.sensorName),
-        "width": int(f.width),
+        "socket": _text(f.socket), "sensor": str(f.sensorName), "width": int(f.width),
         "height": int(f.height),
         "calibration_resolution": None if calib is None else [int(calib.width), int(calib.height)],
         "autofocus": bool(f.hasAutofocus),
         "modes": [
             {
-                "width": int(c.width),
-                "height": int(c.height),
-                "min_fps": float(c.minFps),
-                "max_fps": float(c.maxFps),
-                "type": _text(c.type),
+                "width": int(c.width), "height": int(c.height), "min_fps": float(c.minFps),
+                "max_fps": float(c.maxFps), "type": _text(c.type),
             }
             for c in f.configs
         ],
@@ -587,12 +493,9 @@ def _features_dict(f: Any) -> dict[str, Any]:
 
 # ---------------------------------------------------------------------- the device's EEPROM
 class OakCalibrationStore:
-    """The calibration areas of one OAK device, for ``slidecal flash``.
-
-    ``read()`` is the calibration the device uses (``readCalibration``); ``flash(handler)``
-    writes the user area (``flashCalibration``; never the factory area) and returns what the
-    device holds afterwards, read back. Use as a context manager.
-    """
+    """The calibration areas of one OAK device (a context manager, for ``slidecal flash``):
+    ``read()`` the calibration in use, ``flash(handler)`` writes the user area (never the factory
+    area) and returns what the device holds afterwards."""
 
     def __init__(self, device_id: str | None = None) -> None:
         self.device_id = device_id
@@ -657,10 +560,8 @@ def stream_geometry(camera: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
         full = (int(sensor["width"]), int(sensor["height"]))
         fov = (o.get("sensor_mode") or {}).get("fov") or (0, 0, *full)
         out[name] = {
-            "size": tuple(o["size"]),
-            "resize_mode": o.get("resize_mode", "stretch"),
-            "fov": tuple(float(v) for v in fov),
-            "full": full,
+            "size": tuple(o["size"]), "resize_mode": o.get("resize_mode", "stretch"),
+            "fov": tuple(float(v) for v in fov), "full": full,
             "calibration_size": sensor.get("calibration_resolution"),
         }
     return out
@@ -745,16 +646,12 @@ def oak_calibration_handler(
 ) -> Any:
     """A ``dai.CalibrationHandler`` holding the result's intrinsics, distortion and extrinsics.
 
-    ``sockets``: camera name -> board socket name (default left CAM_B, right CAM_C, rgb CAM_A).
-    ``stereo``: the (left, right) names of the stereo pair, or None; rectification rotations
-    come from ``cv2.stereoRectify``. ``base``: a handler or its JSON dict to start from (the
-    device's own calibration: its board name, IMU extrinsics, lens positions and design
-    translations are kept); it is not modified. ``lens_positions``: camera name -> the lens
-    position 0..255 the calibration holds at (auto-focus cameras). ``streams``: camera name ->
-    how its output was made (:func:`stream_geometry`); such a camera's K is mapped back through
-    the resize to the size the device stores that socket at (the base's stored size, else the
-    sensor's ``calibration_size``, else the full array) and written at that size, where
-    depthai's ``getCameraIntrinsics`` finds it. Cameras without one are written at their own size.
+    ``sockets``: camera name -> board socket (default left CAM_B, right CAM_C, rgb CAM_A).
+    ``stereo``: the (left, right) pair, rectified with ``cv2.stereoRectify``, or None. ``base``: a
+    handler or JSON dict to start from, unmodified (the device's own: its board name, IMU
+    extrinsics, lens positions and design translations kept). ``lens_positions``: name -> 0..255.
+    ``streams``: name -> how its output was made (:func:`stream_geometry`): its K is mapped back to
+    the size the device stores that socket at; without one, written at its own size.
     """
     import cv2
 
@@ -821,12 +718,8 @@ def write_oak_calibration_json(
     lens_positions: Mapping[str, int] | None = None,
     streams: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> Path:
-    """Write the result as a depthai calibration JSON (``eepromToJsonFile``); returns the path.
-
-    ``base``: the device's calibration (handler or JSON dict) to start from, see
-    :func:`oak_calibration_handler`. Load the file with ``dai.CalibrationHandler(path)``;
-    ``slidecal flash`` writes it to the device.
-    """
+    """Write the result as a depthai calibration JSON (``eepromToJsonFile``) from ``base`` (see
+    :func:`oak_calibration_handler`); returns the path."""
     handler = oak_calibration_handler(
         result, sockets, stereo=stereo, base=base, lens_positions=lens_positions, streams=streams
     )
@@ -845,12 +738,8 @@ def device_camera(
     stream: Mapping[str, Any] | None = None,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """``(K (3, 3) px, distortion (14,))`` of a socket in depthai calibration JSON, mapped to an
-    output of ``size`` (width, height) made with ``resize_mode``; None when the JSON holds no
-    perspective calibration of that socket. The output is made from ``stream``'s ``fov`` of its
-    ``full`` array (:func:`stream_geometry`), the stored size being a centred crop of that array
-    as depthai reads it (a 16:9 calibration of a 4:3 sensor); without ``stream``, from the
-    stored calibration's whole view.
-    """
+    output of ``size`` made with ``resize_mode`` from ``stream``'s ``fov`` (:func:`stream_geometry`;
+    none: the stored calibration's view); None without a perspective calibration of that socket."""
     dai = import_depthai()
     h = handler_from_json(data)
     s = _board_socket(dai, socket, socket)
@@ -892,16 +781,10 @@ def projection_shift_px(
     grid: int = 9,
     streams: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> dict[str, dict[str, float]]:
-    """How far the device's calibration moves projected points against ``result``, per camera.
-
-    Points on a plane ``distance_m`` in front of the reference camera, spread over the image
-    (a ``grid`` x ``grid`` lattice of the reference camera's pixels, back-projected with the
-    result), are projected into each camera with the result's model and with the device's
-    (intrinsics mapped to the session's image size, and its extrinsics to the reference camera
-    where the camera is not the reference; ``streams`` as in :func:`device_camera`). Returns
-    ``{name: {rms_px, max_px}}`` for the cameras the device has a perspective calibration of
-    and the result a complete transform.
-    """
+    """How far the device's calibration moves projected points against ``result``, per camera:
+    ``{name: {rms_px, max_px}}`` over a ``grid`` x ``grid`` lattice of the reference camera's pixels
+    back-projected to ``distance_m`` and projected with both models (``streams``: as in
+    :func:`device_camera`)."""
     import cv2
 
     ref = _reference(result)

@@ -1,41 +1,7 @@
 """A Universal Robots arm through ur-rtde (``Robot`` protocol of ``drivers/base.py``).
 
-Built on ``rtde_control.RTDEControlInterface``, ``rtde_receive.RTDEReceiveInterface`` and
-``dashboard_client.DashboardClient`` (ur-rtde >= 1.6). The client's traps are handled
-here: ``moveL`` returns False instead of raising (we stop and raise ``HardwareFault`` saying why);
-the receive interface keeps returning its last values after a lost connection (we check
-``isConnected()`` and that ``getTimestamp()`` advances before trusting a pose); no automatic
-protective-stop recovery (an unattended calibration stops and reports). Every pose goes through
-:mod:`slidecal.drivers.ur_pose`. The ur-rtde modules are imported in :meth:`URRobot.connect`, so
-this module imports without them.
-
-Connecting (:meth:`URRobot.connect`), in this order, so that nothing blocks for long and nothing
-on the controller is disturbed without consent:
-
-1. Reachability: a TCP connection with a time-out to the dashboard (29999, whose welcome line
-   must arrive) and to RTDE (30004, which must answer a protocol-version request), before any
-   of ur-rtde's constructors, which block for about two minutes on a host that drops packets
-   and cannot be interrupted by Ctrl-C while they do.
-2. What the controller is, from the dashboard: PolyScope version, robot model, serial number
-   (:attr:`URRobot.controller_info`, for the session).
-3. Remote control, decided from the version: asked on e-Series from PolyScope 5.6 (before that
-   the dashboard cannot say and ur-rtde's ``isInRemoteControl`` answers False); CB3 arms
-   (PolyScope 3.x) have no local/remote control.
-4. Robot mode running; safety mode normal or reduced (reduced is normal operation).
-5. **A program already running or paused**: ur-rtde's control interface stops it and uploads
-   its own script (a paused program too: the script is sent on port 30003, which ends whatever
-   program the controller holds, while the dashboard's ``running`` answers False for a paused
-   one). Refused unless the user consented with ``take_control=True`` (the cell file's
-   ``robot.take_control: true``). Asked twice: the dashboard's program state, and just before
-   the control interface opens the RTDE runtime state (``getRuntimeState``: anything but
-   stopped), so a program started in between is not stopped either.
-6. The control interface; the TCP and, when given, the payload (``setPayload(mass, cog)``).
-
-Reachability queries (:meth:`URRobot.is_reachable`) use the controller's
-``getInverseKinematicsHasSolution`` where its script lines exist (PolyScope 5.10+ and 3.15+);
-below that ur-rtde leaves them out and the answer would be whatever the previous command left,
-so the host-side kinematics of :mod:`slidecal.drivers.ur_kinematics` (with the joint limits)
-answer instead.
+The order of the connection's checks, what is refused and how the client's traps are handled:
+docs/DRIVERS.md. ur-rtde is imported in :meth:`URRobot.connect`; this module imports without it.
 """
 
 from __future__ import annotations
@@ -84,16 +50,8 @@ SAFETY_MODES: dict[int, str] = {
     13: "three-position enabling stop: hold the enabling device or switch mode",
 }
 ROBOT_MODES: dict[int, str] = {
-    -1: "no controller",
-    0: "disconnected",
-    1: "confirm safety",
-    2: "booting",
-    3: "power off",
-    4: "power on",
-    5: "idle (brakes engaged)",
-    6: "backdrive",
-    7: "running",
-    8: "updating firmware",
+    -1: "no controller", 0: "disconnected", 1: "confirm safety", 2: "booting", 3: "power off",
+    4: "power on", 5: "idle (brakes engaged)", 6: "backdrive", 7: "running", 8: "updating firmware",
 }
 
 
@@ -125,14 +83,10 @@ def _recv_exactly(sock: socket.socket, n: int) -> bytes:
 
 
 def probe_controller(host: str, timeout_s: float) -> tuple[int, int, int, int]:
-    """Check within ``timeout_s`` (per port) that ``host`` answers as a UR controller.
-
-    The dashboard (29999) must send its welcome line; RTDE (30004) must accept protocol
-    version 2 and give its controller version, which is returned ``(major, minor, bugfix,
-    build)``. Pure Python sockets with time-outs: a host that drops packets fails here in
-    seconds (ur-rtde's constructors would block for minutes, deaf to Ctrl-C).
-    Raises ``HardwareFault`` saying which port did what.
-    """
+    """Check within ``timeout_s`` (per port) that ``host`` answers as a UR controller (dashboard
+    welcome line, RTDE protocol 2) with plain sockets, before ur-rtde's blocking constructors;
+    returns the controller version ``(major, minor, bugfix, build)``. ``HardwareFault`` saying which
+    port did what."""
     where = f"the robot controller at {host}"
 
     def fail(port: int, e: BaseException) -> HardwareFault:
@@ -188,15 +142,10 @@ def move_time_s(distance: float, max_speed: float, max_accel: float) -> float:
 
 
 def cell_options(robot_section: Any) -> dict[str, Any]:
-    """``URRobot`` keyword arguments from a cell file's ``robot:`` section (its raw mapping).
-
-    ``take_control: true`` is the user's consent to stop a program running on the controller
-    (ur-rtde stops it to upload its own script; without it :meth:`URRobot.connect` refuses).
-    ``payload: {mass_kg: 1.2, cog_m: [0, 0, 0.05]}`` is set on the controller at connect
-    (centre of gravity in the flange frame, metres; optional). ``upper_range_registers: true``
-    makes ur-rtde use the RTDE input registers 24-47 (``FLAG_UPPER_RANGE_REGISTERS``) where a
-    fieldbus (EtherNet/IP, PROFINET, MODBUS) holds 0-23.
-    """
+    """``URRobot`` keyword arguments from a cell file's ``robot:`` section: ``take_control``
+    (consent to stop a running program), ``payload: {mass_kg, cog_m}`` (flange frame, metres; set at
+    connect) and ``upper_range_registers`` (RTDE input registers 24-47, where a fieldbus holds
+    0-23)."""
     raw = dict(robot_section or {})
     out: dict[str, Any] = {}
     take = raw.get("take_control", False)
@@ -234,39 +183,14 @@ def _describe(T: np.ndarray) -> str:
 class URRobot:
     """A UR arm driven over RTDE.
 
-    Parameters
-    ----------
-    hostname
-        The controller's IP address or name.
-    max_speed_mps, max_accel_mps2
-        Largest TCP speed and acceleration a move may ask for.
-    tcp
-        ``T_flange_tcp`` (4, 4), metres, set on the controller at connect; None keeps the
-        controller's TCP (then poses are of that TCP).
-    frequency
-        RTDE frequency in Hz; -1 is 500 Hz on e-Series, 125 Hz on CB3.
-    model
-        ``"UR5e"`` etc.: when given, :meth:`is_reachable` also rejects poses near a singularity
-        of the controller's joint solution (``ur_kinematics.singularity``).
-    stale_timeout_s
-        How long ``getTimestamp()`` may stay unchanged before the data is called stale.
-    arrival_tol_m, arrival_tol_deg
-        Largest distance and rotation between the target and the measured pose after a
-        completed move: both must hold.
-    take_control
-        The user's consent to stop a program running on the controller (ur-rtde's control
-        interface stops it to upload its own script); without it :meth:`connect` refuses.
-    payload_kg, payload_cog_m
-        When given, set on the controller at connect (``setPayload``): mass in kg, centre of
-        gravity (3,) in metres in the flange frame. None keeps the centre of gravity the
-        controller holds: ur-rtde sends [0, 0, 0] for it, which its script turns into the
-        current one on PolyScope 5 only (its ``$5.0`` lines); on 3.x it is read
-        (``getPayloadCog``) and sent back, else the flange centre would be set.
-    upper_range_registers
-        Use the RTDE input registers 24-47 (``FLAG_UPPER_RANGE_REGISTERS``), for controllers
-        whose fieldbus (EtherNet/IP, PROFINET, MODBUS) holds 0-23.
-    connect_timeout_s
-        How long each port of the controller may take to answer at connect.
+    ``hostname``: the controller's address. ``max_speed_mps``, ``max_accel_mps2``: the largest a
+    move may ask for. ``tcp``: ``T_flange_tcp`` (4, 4) m set at connect (None: the controller's).
+    ``frequency``: RTDE Hz (-1: 500 e-Series, 125 CB3). ``model``: ``"UR5e"`` etc.: also refuse
+    poses near a singularity. ``stale_timeout_s``: how long ``getTimestamp()`` may stand still.
+    ``arrival_tol_m``, ``arrival_tol_deg``: both must hold after a move. ``take_control``: consent
+    to stop a running program. ``payload_kg``, ``payload_cog_m`` (3,) m flange frame: set at connect
+    (None keeps the controller's centre of gravity). ``upper_range_registers``: RTDE input registers
+    24-47. ``connect_timeout_s``: per port at connect.
     """
 
     def __init__(
@@ -328,18 +252,12 @@ class URRobot:
 
     # ---------------------------------------------------------------------------- connection
     def connect(self) -> None:
-        """Connect (see the module docstring for the order of checks); ``HardwareFault`` unless
-        the robot is running in normal or reduced safety mode, ready for remote commands, and
-        nothing the user did not consent to would be stopped.
-
-        Afterwards :attr:`controller_info` says what the controller is: ``polyscope_version``,
-        ``robot_model``, ``serial_number`` (None where the PolyScope version cannot say),
-        ``controller_version`` (RTDE), ``remote_control`` (True, or None when it cannot be
-        asked), ``ik_check`` (``controller`` or ``host``), ``speed_slider`` (the fraction of the
-        commanded speed the arm runs at: the pendant's slider times the trajectory limiter,
-        ``getSpeedScalingCombined``), ``safety_mode``,
-        ``program_stopped`` (the program stopped with consent, or None), ``payload``.
-        """
+        """Connect (the order of checks: docs/DRIVERS.md); ``HardwareFault`` unless the robot runs
+        in normal or reduced safety mode, takes remote commands, and nothing the user did not
+        consent to would be stopped. Fills :attr:`controller_info` (``polyscope_version``,
+        ``robot_model``, ``serial_number``, ``controller_version``, ``remote_control``,
+        ``ik_check``, ``speed_slider``, ``safety_mode``, ``program_stopped``, ``payload``; None
+        where the controller cannot say)."""
         try:
             import dashboard_client
             import rtde_control
@@ -407,13 +325,10 @@ class URRobot:
                 self.model = None
         self.controller_info = {
             "polyscope_version": ".".join(str(v) for v in version),
-            "controller_version": ".".join(str(v) for v in rtde_version),
-            "robot_model": model_text,
-            "serial_number": serial,
-            "remote_control": remote,
+            "controller_version": ".".join(str(v) for v in rtde_version), "robot_model": model_text,
+            "serial_number": serial, "remote_control": remote,
             "ik_check": "controller" if has_ik_query(version) else "host",
-            "program_state": program_state,
-            "program_stopped": None,
+            "program_state": program_state, "program_stopped": None,
         }
         self._ik_on_controller = has_ik_query(version)
         return running, program_state
@@ -534,11 +449,8 @@ class URRobot:
             self.controller_info["payload"] = {"mass_kg": self.payload_kg, "cog_m": cog or None}
 
     def close(self) -> None:
-        """Stop the control script and disconnect (idempotent); never moves the robot.
-
-        The script is stopped only over a live link: after a lost connection ur-rtde's
-        ``stopScript`` waits on the last received runtime state, i.e. up to 300 s.
-        """
+        """Stop the control script (over a live link only: ur-rtde's ``stopScript`` would wait 300 s
+        on a lost one) and disconnect; idempotent, never moves the robot."""
         control, receive, dashboard = self._control, self._receive, self._dashboard
         live = self._link_alive()
         self._control = self._receive = self._dashboard = None
@@ -630,14 +542,10 @@ class URRobot:
         """``moveL`` to ``T_base_tool`` (4, 4), metres; returns on arrival, ``HardwareFault`` on
         failure.
 
-        The move is sent asynchronously and watched here (live pose, safety mode, a deadline
-        from the trapezoidal move time): a blocking ``moveL`` whose connection drops waits up to
-        300 s inside ur-rtde (measured against ``slidecal.mocks.ur_controller``), which an
-        unattended cell cannot afford. The deadline counts the rotation (at ``speed_mps`` read
-        as rad/s, what the controller does for a pure rotation) and the executed speed fraction
-        (``getSpeedScalingCombined``: the pendant's slider, ``target_speed_fraction``, times the
-        trajectory limiter, ``speed_scaling``; re-read while moving); arrival needs both the
-        position within ``arrival_tol_m`` and the orientation within ``arrival_tol_deg``.
+        Sent asynchronously and watched here (live pose, safety mode, a deadline from the
+        trapezoidal move time at the executed speed fraction, ``getSpeedScalingCombined``): a
+        blocking ``moveL`` waits up to 300 s over a dropped link. Arrival needs both
+        ``arrival_tol_m`` and ``_deg``.
         """
         self._require()
         if not 0 < speed_mps <= self.max_speed_mps:
@@ -718,12 +626,9 @@ class URRobot:
         time.sleep(settle_s)
 
     def stop(self) -> None:
-        """``stopL``: decelerate the tool to rest. Safe at any time, also when not connected.
-
-        Over a lost link nothing can be sent: ur-rtde's ``stopL`` would then wait up to 300 s
-        (measured), so it is skipped; the controller finishes the move it was given (a planned,
-        checked pose) and stops there.
-        """
+        """``stopL``: decelerate the tool to rest; safe at any time. Skipped over a lost link
+        (ur-rtde would wait 300 s): the controller finishes its planned, checked move and stops
+        there."""
         if not self._link_alive():
             return
         try:
@@ -735,19 +640,13 @@ class URRobot:
         """``HardwareFault`` when a "no" from the controller came from a stopped control script
         (ur-rtde answers False / [] then, as for an unreachable pose)."""
         if not self._control.isProgramRunning():
-            raise HardwareFault(
-                self._diagnose(f"the reachability query for {_describe(T)} failed")
-            )
+            raise HardwareFault(self._diagnose(f"the reachability query for {_describe(T)} failed"))
 
     def is_reachable(self, T_base_tool: np.ndarray) -> bool:
-        """An IK solution near the current joints, inside the joint and safety limits.
-
-        On PolyScope 5.10+ / 3.15+ the controller answers (``getInverseKinematicsHasSolution``
-        first: URScript's ``get_inverse_kin`` raises on an unreachable pose and stops the
-        control script; found with the real client against ``slidecal.mocks.ur_controller``).
-        Below that the host-side kinematics (``ur_kinematics.ik`` with the model's joint limits
-        and the controller's TCP) answer, the controller still judges the safety limits.
-        """
+        """An IK solution near the current joints, inside the joint and safety limits: the
+        controller's ``getInverseKinematicsHasSolution`` on PolyScope 5.10+ / 3.15+, else the
+        host-side kinematics with the model's joint limits (the controller still judges the safety
+        limits)."""
         self._require()
         T = np.asarray(T_base_tool, dtype=float)
         pose = ur_pose_from_T(T)

@@ -1,19 +1,10 @@
 """Forward and analytic inverse kinematics of the Universal Robots e-Series (pure numpy).
 
-Convention: standard Denavit-Hartenberg parameters as Universal Robots publishes them
-("DH parameters for calculations of kinematics and dynamics"): joint i contributes
-``Rz(q_i) Tz(d_i) Tx(a_i) Rx(alpha_i)`` with ``a = (0, a2, a3, 0, 0, 0)``,
-``d = (d1, 0, 0, d4, d5, d6)``, ``alpha = (pi/2, 0, 0, pi/2, -pi/2, 0)``. The DH base frame is the
-controller's ``base`` frame (the frame of ``getActualTCPPose``) and DH frame 6 is the tool
-flange, so ``fk(q)`` is ``T_base_tool`` of a zero TCP, as the controller reports it.
-
-Inverse kinematics: the closed form of K. P. Hawkins, "Analytic inverse kinematics for the
-Universal Robots UR-5/UR-10 arms" (2013): two shoulder, two wrist and two elbow branches, eight
-solutions for a generic pose.
-
-Joint limits: the e-Series user manuals give +-360 deg for every joint. The elbow cannot
-physically turn further than about +-180 deg (the upper arm hits the shoulder), which is why
-Universal Robots' own ROS description limits it to +-pi; we do the same.
+Standard DH parameters as Universal Robots publishes them (joint i: ``Rz(q_i) Tz(d_i) Tx(a_i)
+Rx(alpha_i)``; base frame the controller's ``base``, frame 6 the flange), so ``fk(q)`` is
+``T_base_tool`` of a zero TCP. Inverse kinematics: Hawkins' closed form (2013), eight
+solutions for a generic pose. Joint limits +-360 deg, the elbow +-180 deg as in Universal
+Robots' ROS description.
 """
 
 from __future__ import annotations
@@ -25,16 +16,12 @@ import numpy as np
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import Rx, Rz, inv_T
 
-#: ``|sin(q5)|`` below this is a wrist singularity: joint axes 4 and 6 are nearly parallel, and the
-#: wrist joints' speeds grow as ``1 / |sin(q5)|`` (20 times the tool's angular speed at 0.05,
-#: i.e. within 2.9 deg of alignment), so a linear move near it trips the joint speed limits.
+#: ``|sin(q5)|`` below this is a wrist singularity (wrist joint speeds grow as ``1 / |sin(q5)|``).
 WRIST_SIN_MIN = 0.05
-#: ``|sin(q3)|`` below this is an elbow singularity: the arm is stretched out (edge of the
-#: workspace) or folded; the shoulder/elbow speeds grow as ``1 / |a2 a3 sin(q3)|``.
+#: ``|sin(q3)|`` below this is an elbow singularity (the arm stretched out or folded).
 ELBOW_SIN_MIN = 0.05
-#: Horizontal distance (metres) from the base z axis to the wrist point below which we call the
-#: pose shoulder-singular: the base joint turns at ``v / r`` for a tool moving sideways at ``v``,
-#: so at 0.05 m a 0.25 m/s move needs 5 rad/s, beyond the base joint's 3.14 rad/s.
+#: Wrist point's distance (metres) from the base z axis below which the pose is shoulder-singular
+#: (the base joint turns at ``v / r`` for a tool moving sideways at ``v``).
 SHOULDER_RADIUS_MIN_M = 0.05
 
 
@@ -67,9 +54,7 @@ UR16E = URModel("UR16e", 0.1807, -0.4784, -0.36, 0.17415, 0.11985, 0.11655)
 UR3 = URModel("UR3", 0.1519, -0.24365, -0.21325, 0.11235, 0.08535, 0.0819)
 UR5 = URModel("UR5", 0.089159, -0.425, -0.39225, 0.10915, 0.09465, 0.0823)
 UR10 = URModel("UR10", 0.1273, -0.612, -0.5723, 0.163941, 0.1157, 0.0922)
-MODELS: dict[str, URModel] = {
-    m.name.lower(): m for m in (UR3E, UR5E, UR10E, UR16E, UR3, UR5, UR10)
-}
+MODELS: dict[str, URModel] = {m.name.lower(): m for m in (UR3E, UR5E, UR10E, UR16E, UR3, UR5, UR10)}
 
 #: A common "home" configuration (elbow up, tool pointing down), radians.
 Q_HOME = np.array([0.0, -np.pi / 2, np.pi / 2, -np.pi / 2, -np.pi / 2, 0.0])
@@ -101,12 +86,8 @@ _RX_0 = np.eye(3)
 
 def _link_transforms(q: np.ndarray, m: URModel) -> list[np.ndarray]:
     return [
-        _dh(q[0], m.d1, 0.0, _RX_P),
-        _dh(q[1], 0.0, m.a2, _RX_0),
-        _dh(q[2], 0.0, m.a3, _RX_0),
-        _dh(q[3], m.d4, 0.0, _RX_P),
-        _dh(q[4], m.d5, 0.0, _RX_M),
-        _dh(q[5], m.d6, 0.0, _RX_0),
+        _dh(q[0], m.d1, 0.0, _RX_P), _dh(q[1], 0.0, m.a2, _RX_0), _dh(q[2], 0.0, m.a3, _RX_0),
+        _dh(q[3], m.d4, 0.0, _RX_P), _dh(q[4], m.d5, 0.0, _RX_M), _dh(q[5], m.d6, 0.0, _RX_0),
     ]
 
 
@@ -125,10 +106,8 @@ def _check_T(T: np.ndarray) -> np.ndarray:
 
 
 def fk(q: np.ndarray, model: URModel = UR5E, T_flange_tcp: np.ndarray | None = None) -> np.ndarray:
-    """``T_base_tool`` (4, 4), metres, of joint angles ``q`` (6,) radians.
-
-    ``T_flange_tcp`` (4, 4), metres: the TCP offset set on the controller (None: the flange).
-    """
+    """``T_base_tool`` (4, 4), metres, of joint angles ``q`` (6,) radians; ``T_flange_tcp`` (4, 4):
+    the TCP offset (None: the flange)."""
     q = _check_q(q)
     T = np.eye(4)
     for Ti in _link_transforms(q, model):
@@ -153,10 +132,8 @@ def _acos(x: float, tol: float = 1e-10) -> float | None:
 
 
 def _ik_flange(T: np.ndarray, m: URModel, q6_singular: float = 0.0) -> list[np.ndarray]:
-    """All closed-form solutions (angles in (-pi, pi]) for the flange pose ``T`` (Hawkins 2013).
-
-    At a wrist singularity (``sin(q5) = 0``) q6 is free; ``q6_singular`` is used for it.
-    """
+    """All closed-form solutions (angles in (-pi, pi]) for the flange pose ``T`` (Hawkins 2013); at
+    a wrist singularity q6 is ``q6_singular``."""
     R = T[:3, :3]
     p06 = T[:3, 3]
     p05 = p06 - m.d6 * R[:, 2]
@@ -227,12 +204,9 @@ def ik(
     model: URModel = UR5E,
     T_flange_tcp: np.ndarray | None = None,
 ) -> list[np.ndarray]:
-    """Joint solutions (each (6,), radians) reaching ``T_base_tool`` (4, 4, metres).
-
-    Up to eight analytic solutions, each angle shifted by whole turns toward ``q_near`` (6,)
-    (default: the angles in (-pi, pi]) and kept only inside the joint limits; sorted by distance
-    to ``q_near`` when given. Empty when the pose is out of reach.
-    """
+    """Joint solutions (each (6,), radians) reaching ``T_base_tool`` (4, 4, metres) inside the joint
+    limits, each angle shifted by whole turns toward ``q_near`` (6,) and sorted by distance to it
+    when given; empty when out of reach."""
     T = _check_T(T_base_tool)
     if T_flange_tcp is not None:
         T = T @ inv_T(_check_T(T_flange_tcp))
@@ -250,10 +224,8 @@ def ik(
 
 
 def singularity(q: np.ndarray, model: URModel = UR5E) -> str | None:
-    """Which singularity the configuration ``q`` (6,) radians is near, or None.
-
-    Thresholds: :data:`WRIST_SIN_MIN`, :data:`ELBOW_SIN_MIN`, :data:`SHOULDER_RADIUS_MIN_M`.
-    """
+    """Which singularity the configuration ``q`` (6,) radians is near (:data:`WRIST_SIN_MIN`,
+    :data:`ELBOW_SIN_MIN`, :data:`SHOULDER_RADIUS_MIN_M`), or None."""
     q = _check_q(q)
     if abs(np.sin(q[4])) < WRIST_SIN_MIN:
         return f"wrist singularity (q5 = {np.degrees(q[4]):.1f} deg, axes 4 and 6 aligned)"
@@ -274,11 +246,8 @@ def reachable(
     model: URModel = UR5E,
     T_flange_tcp: np.ndarray | None = None,
 ) -> bool:
-    """Whether ``T_base_tool`` (4, 4, metres) has a non-singular solution inside the limits.
-
-    With ``q_near`` (6,) radians only the solution nearest to it counts (the one a linear move
-    from there would use); without it any solution does.
-    """
+    """Whether ``T_base_tool`` (4, 4, metres) has a non-singular solution inside the limits (with
+    ``q_near`` (6,) rad: the solution nearest it, as a linear move from there would use)."""
     sols = ik(T_base_tool, q_near, model, T_flange_tcp)
     if q_near is not None:
         sols = sols[:1]

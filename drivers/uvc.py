@@ -1,35 +1,5 @@
-"""A single UVC (USB video class) camera through ``cv2.VideoCapture``: a ``CameraRig`` of one.
-
-Every setting is set and then read back, and what the camera did with it is recorded
-(:attr:`UvcCamera.settings`, :meth:`UvcCamera.capabilities`):
-
-- the resolution: a camera silently falls back to another size, which would make the
-  intrinsics wrong: a mismatch is refused;
-- autofocus is switched off (``CAP_PROP_AUTOFOCUS`` 0): a calibration holds at one focus only.
-  A camera that still reads autofocus on afterwards is refused; one without the control
-  (fixed focus, or a video file) is recorded as such. ``focus`` sets a manual focus value;
-- the exposure is locked: manual at ``exposure`` where asked (V4L2: ``CAP_PROP_AUTO_EXPOSURE``
-  1 means manual, exposure in 100 microsecond steps; an exposure that does not read back is
-  refused); otherwise a camera (not a video file) runs
-  its auto exposure for ``settle_frames`` frames, then auto exposure is switched off and the
-  exposure it reached is set and read back (``settings.exposure``). The white balance likewise:
-  a camera whose auto white balance is on (``CAP_PROP_AUTO_WB``) has it switched off at the
-  colour temperature it reached (``CAP_PROP_WB_TEMPERATURE``); a grey camera has no such
-  control, which is recorded. A frame rate is set where asked. A camera that ignores any of
-  the others or reads back another value is reported in :attr:`UvcCamera.messages` (the run
-  goes on: the images say whether exposure is usable; the focus and size are what the
-  intrinsics depend on).
-
-Those values mean what they say only in OpenCV's V4L2 backend with raw (un-normalised)
-property ranges: a camera on Linux is opened with ``cv2.CAP_V4L2`` (the default backend order
-may pick another, GStreamer, whose values mean something else) and ``CAP_PROP_MODE`` is set to
-0, which switches the backend to raw ranges whatever ``OPENCV_VIDEOIO_V4L_RANGE_NORMALIZED``
-says (with it, ``CAP_PROP_AUTO_EXPOSURE`` is mapped from [0, 1) and 1 is not "manual").
-
-Drivers buffer a few frames, so a capture right after the robot stopped could return an image
-exposed while it moved: :meth:`UvcCamera.capture` grabs and drops ``drop_frames`` frames first,
-then retrieves a fresh one.
-"""
+"""A single UVC camera through ``cv2.VideoCapture`` (V4L2, raw property ranges): a ``CameraRig``
+of one. Every setting is set, read back and recorded (docs/DRIVERS.md)."""
 
 from __future__ import annotations
 
@@ -52,28 +22,11 @@ SETTLE_FRAMES = 30
 class UvcCamera:
     """One camera by index (``/dev/video<index>``), device path or video file path.
 
-    Parameters
-    ----------
-    index_or_path
-        ``cv2.VideoCapture`` source.
-    name
-        The camera's name in sessions and results.
-    width, height
-        Required image size in pixels; anything else is refused.
-    fourcc
-        Pixel format such as ``"MJPG"`` (needed by many cameras for large sizes), or None.
-    exposure
-        Manual exposure in the backend's unit (V4L2: 100 microsecond steps), or None for auto.
-    focus
-        Manual focus value in the backend's unit (V4L2: ``focus_absolute``), or None to keep
-        the lens where it is (autofocus is switched off either way).
-    fps
-        Frame rate to request, or None for the camera's default.
-    drop_frames
-        Buffered frames discarded before each capture.
-    settle_frames
-        Frames the auto exposure / white balance run before they are locked (cameras only, not
-        video files).
+    ``name``: in sessions and results. ``width``, ``height``: required size, px (else refused).
+    ``fourcc``: e.g. ``"MJPG"``. ``exposure``, ``focus``: manual values in the backend's unit (V4L2:
+    100 us steps, ``focus_absolute``); None: auto exposure locked after ``settle_frames``, the lens
+    kept where it is (autofocus off either way). ``fps``: None for the default. ``drop_frames``:
+    buffered frames discarded before each capture.
     """
 
     def __init__(
@@ -148,7 +101,7 @@ class UvcCamera:
             self._backend = str(cap.getBackendName())
         except cv2.error:
             self._backend = None
-        if self._backend == "V4L2":  # raw property ranges (module docstring); reads back 0
+        if self._backend == "V4L2":  # raw property ranges (docs/DRIVERS.md); reads back 0
             self._set(cap, "raw_ranges", cv2.CAP_PROP_MODE, 0)
         if self.fourcc is not None:
             code = cv2.VideoWriter_fourcc(*self.fourcc)
@@ -161,8 +114,7 @@ class UvcCamera:
         cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height)
         got = (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
         self.settings["size"] = {
-            "requested": [self.width, self.height],
-            "read_back": list(got),
+            "requested": [self.width, self.height], "read_back": list(got),
             "accepted": got == (self.width, self.height),
         }
         if got != (self.width, self.height):
@@ -253,9 +205,7 @@ class UvcCamera:
         if self._cap is None:
             raise HardwareFault(f"camera {self.name} not open: call open() first")
         return {
-            "driver": "uvc",
-            "source": str(self.source),
-            "backend": self._backend,
+            "driver": "uvc", "source": str(self.source), "backend": self._backend,
             "settings": {k: dict(v) for k, v in self.settings.items()},
             "messages": list(self.messages),
         }

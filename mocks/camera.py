@@ -1,15 +1,8 @@
 """Simulated cameras: a ``CameraRig`` that renders the target at the true poses of the cell.
 
-Presets:
-
-- ``single_camera()``: the R1 robot-cell camera of docs/results/BENCHMARKS.md (1280 x 800,
-  fx = fy = 880, cx 640, cy 400, k1 -0.12, k2 0.05, p1 5e-4, p2 -3e-4, k3 0).
-- ``oak_d_like()``: a Luxonis OAK-D-like head. Two global-shutter OV9282 mono cameras
-  "left" and "right" at 1280 x 800 with the datasheet's 72 deg HFOV / 50 deg VFOV
-  (fx = 640 / tan(36 deg) ~ 880 px), 75 mm baseline; an IMX378 colour camera "rgb" at
-  1920 x 1080 with 69 deg HFOV (fx ~ 1400 px), mounted midway between them. Each camera has
-  slightly different intrinsics and mild distortion, and the extrinsics carry sub-degree
-  misalignments, as a real unit would. ``oak_d_like_extrinsics()`` gives ``T_<name>_left``.
+Presets: ``single_camera()`` (R1's camera, 1280 x 800, fx = fy = 880) and ``oak_d_like()`` (two
+OV9282 mono cameras 75 mm apart and an IMX378 colour camera between them, each with its own
+intrinsics, mild distortion and sub-degree misalignment; ``oak_d_like_extrinsics()``).
 """
 
 from __future__ import annotations
@@ -30,15 +23,9 @@ FAULT_KINDS = ("no_frame", "disconnect", "lost")
 
 @dataclass(frozen=True)
 class SimCamera:
-    """A simulated camera.
-
-    ``K`` (3, 3) pixels; ``dist`` (5,) k1, k2, p1, p2, k3 (OpenCV order); ``blur_sigma_px``
-    optical blur; ``noise_std`` read noise in grey levels; ``exposure`` gain (1.0: printed white
-    at about 217 of 255); ``colour``: BGR images instead of grey; ``vignetting``: relative
-    fall-off at the image corners. ``photo``: photograph-like imaging (``mocks/render.py``
-    ``Photo``: defocus, chromatic aberration, shot noise, Bayer, JPEG, uneven light, glare);
-    None: the clean renderer.
-    """
+    """A simulated camera: ``K`` (3, 3) px, ``dist`` (5,) OpenCV order, ``blur_sigma_px``,
+    ``noise_std`` (grey levels), ``exposure`` gain (1.0: white at about 217), ``colour`` (BGR),
+    ``vignetting``, ``photo`` (:class:`~slidecal.mocks.render.Photo`; None: the clean renderer)."""
 
     name: str
     width: int
@@ -76,64 +63,41 @@ def single_camera(name: str = "cam", **overrides: float | bool | Photo) -> SimCa
     """The R1 camera (docs/results/BENCHMARKS.md); keyword overrides for blur, noise, exposure,
     colour, photo."""
     return SimCamera(
-        name,
-        1280,
-        800,
-        K_matrix(880.0, 880.0, 640.0, 400.0),
-        np.array([-0.12, 0.05, 5e-4, -3e-4, 0.0]),
-        **overrides,
+        name, 1280, 800, K_matrix(880.0, 880.0, 640.0, 400.0),
+        np.array([-0.12, 0.05, 5e-4, -3e-4, 0.0]), **overrides,
     )
 
 
 def oak_d_like(**overrides: float | bool | Photo) -> list[SimCamera]:
-    """An OAK-D-like head: mono "left", "right" (1280 x 800) and colour "rgb" (1920 x 1080).
-
-    Keyword overrides (blur, noise, exposure) apply to all three; see the module docstring.
-    """
+    """An OAK-D-like head: mono "left", "right" (1280 x 800) and colour "rgb" (1920 x 1080); keyword
+    overrides (blur, noise, exposure) apply to all three."""
     mono = dict(overrides)
     rgb = {**overrides, "colour": True}
     return [
         SimCamera(
-            "left",
-            1280,
-            800,
-            K_matrix(881.2, 880.6, 643.1, 401.7),
-            np.array([-0.052, 0.021, 2e-4, -1e-4, 0.0]),
-            **mono,
+            "left", 1280, 800, K_matrix(881.2, 880.6, 643.1, 401.7),
+            np.array([-0.052, 0.021, 2e-4, -1e-4, 0.0]), **mono,
         ),
         SimCamera(
-            "right",
-            1280,
-            800,
-            K_matrix(879.8, 879.5, 636.4, 398.9),
-            np.array([-0.049, 0.018, -1e-4, 3e-4, 0.0]),
-            **mono,
+            "right", 1280, 800, K_matrix(879.8, 879.5, 636.4, 398.9),
+            np.array([-0.049, 0.018, -1e-4, 3e-4, 0.0]), **mono,
         ),
         SimCamera(
-            "rgb",
-            1920,
-            1080,
-            K_matrix(1402.5, 1401.8, 957.3, 543.6),
-            np.array([0.071, -0.112, 4e-4, 2e-4, 0.03]),
-            **rgb,
+            "rgb", 1920, 1080, K_matrix(1402.5, 1401.8, 957.3, 543.6),
+            np.array([0.071, -0.112, 4e-4, 2e-4, 0.03]), **rgb,
         ),
     ]
 
 
 def oak_d_like_extrinsics() -> dict[str, np.ndarray]:
-    """True ``T_<name>_left`` (4, 4), metres, for the cameras of :func:`oak_d_like`.
-
-    The right camera sits 75 mm along the left camera's +x, the colour camera 37.5 mm; each has
-    a small misalignment (a few tenths of a degree) as assembled units do.
-    """
+    """True ``T_<name>_left`` (4, 4), metres: right 75 mm, rgb 37.5 mm along the left camera's +x,
+    each a few tenths of a degree misaligned."""
     R_left_right = R_from_rvec(np.deg2rad([0.12, -0.35, 0.08]))
     R_left_rgb = R_from_rvec(np.deg2rad([-0.25, 0.18, -0.30]))
     T_left_right = T_from_Rt(R_left_right, np.array([0.0750, 0.0003, -0.0002]))
     T_left_rgb = T_from_Rt(R_left_rgb, np.array([0.0375, 0.0004, 0.0008]))
     return {
-        "left": np.eye(4),
-        "right": np.linalg.inv(T_left_right),
-        "rgb": np.linalg.inv(T_left_rgb),
+        "left": np.eye(4), "right": np.linalg.inv(T_left_right), "rgb": np.linalg.inv(T_left_rgb),
     }
 
 
@@ -145,14 +109,10 @@ class _Fault:
 
 @dataclass
 class SimulatedCameraRig:
-    """A ``CameraRig`` of simulated cameras looking at ``target``.
-
-    ``poses()`` returns the true ``T_<camera>_board`` (4, 4), metres, of every camera at the
-    current state of the simulated cell (supplied by the cell). ``capture()`` renders every
-    camera there and remembers those poses in ``last_poses`` (the truth of that capture).
-    ``capture_count`` counts the calls of ``capture()`` on an open rig, failed ones included.
-    ``bow_m``: the board's true bow along its x and y (metres; ``mocks/render.py``), (0, 0): flat.
-    """
+    """A ``CameraRig`` of simulated cameras looking at ``target``: ``poses()`` gives each camera's
+    true ``T_<camera>_board`` (4, 4) m, ``capture()`` renders there and keeps them in
+    ``last_poses``; ``capture_count`` counts calls, failed ones included; ``bow_m``: the board's bow
+    (metres)."""
 
     cameras: Sequence[SimCamera]
     target: Target
@@ -188,13 +148,8 @@ class SimulatedCameraRig:
         self.is_open = False
 
     def inject_fault(self, kind: str, at_capture: int) -> None:
-        """Make the capture with 0-based index ``at_capture`` fail with ``HardwareFault``.
-
-        ``"no_frame"``: that one capture times out (a dropped frame; the next one works).
-        ``"disconnect"``: the device is lost at that capture; every capture fails until the rig
-        is closed and opened again. ``"lost"``: the device is gone for good from that capture
-        on (opening the rig again fails too).
-        """
+        """Make capture ``at_capture`` (from 0) fail with ``HardwareFault``: ``"no_frame"`` that
+        one, ``"disconnect"`` every one until the rig is reopened, ``"lost"`` for good."""
         if kind not in FAULT_KINDS:
             raise InputError(f"unknown fault {kind!r}; use one of {FAULT_KINDS}")
         self._faults.append(_Fault(kind, int(at_capture)))
@@ -227,11 +182,7 @@ class SimulatedCameraRig:
         self.last_poses = {c.name: np.array(poses[c.name], dtype=float) for c in self.cameras}
         return {
             c.name: render_target(
-                self.target,
-                c,
-                self.last_poses[c.name],
-                self.rng,
-                vignetting=c.vignetting,
+                self.target, c, self.last_poses[c.name], self.rng, vignetting=c.vignetting,
                 bow_m=self.bow_m,
             )
             for c in self.cameras

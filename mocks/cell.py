@@ -1,17 +1,8 @@
 """A simulated robot cell: a :class:`SimulatedUR`, a :class:`SimulatedCameraRig` and the truth.
 
-The rig's ``poses`` callable computes each camera's true ``T_cam_board`` from the robot's true
-pose (not the noisy measured one), the true hand-eye and rig extrinsics and the true target pose:
-
-- eye-in-hand: ``T_cam_board = T_cam_ref @ inv(T_tool_ref) @ inv(T_base_tool) @ T_base_board``
-- eye-to-hand: ``T_cam_board = T_cam_ref @ inv(T_base_ref) @ T_base_tool @ T_tool_board``
-
-where ``ref`` is the rig's reference camera and ``T_cam_ref`` its extrinsics (identity for the
-reference itself). The cell is a validated cell description (``CellConfig`` of
-``slidecal.routines.config``), read by attribute: this package sits below ``routines`` and
-imports only ``solver`` and ``drivers``. The packaged cells: ``default_cell.yaml`` (UR5e,
-eye-in-hand, the R1 camera), ``oak_cell.yaml`` (an OAK-D-like head, eye-in-hand),
-``eye_to_hand_cell.yaml``.
+Each camera sees the board at its true ``T_cam_board``, composed from the robot's true pose
+(not the measured one), the true hand-eye, rig extrinsics and target pose. The cell is a
+validated ``CellConfig`` read by attribute: this package imports only ``solver`` and ``drivers``.
 """
 
 from __future__ import annotations
@@ -40,10 +31,8 @@ def _transform_dict(T: np.ndarray) -> dict[str, Any]:
 
 
 def truth_block(cfg: Any, T_target: np.ndarray | None = None) -> dict[str, Any]:
-    """The session's ``simulation:`` block (result-file names) of a simulated cell ``cfg``.
-
-    ``T_target`` (4, 4): the target pose of this run (default: the cell's, before jitter).
-    """
+    """The session's ``simulation:`` block (result-file names) of a simulated cell ``cfg``;
+    ``T_target`` (4, 4): this run's target pose (default: the cell's, before jitter)."""
     sim = cfg.simulation
     if sim is None:
         return {}
@@ -70,9 +59,7 @@ def truth_block(cfg: Any, T_target: np.ndarray | None = None) -> dict[str, Any]:
         "robot_deg": sim.robot_noise_deg,
         "cameras": {
             c.name: {
-                "blur_sigma_px": c.blur_sigma_px,
-                "noise_std": c.noise_std,
-                "exposure": c.exposure,
+                "blur_sigma_px": c.blur_sigma_px, "noise_std": c.noise_std, "exposure": c.exposure,
             }
             for c in sim.cameras
         },
@@ -96,19 +83,11 @@ def effective_truth(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The hand-eye and target pose ``(T_hand_eye, T_target)`` as a session can know them.
 
-    ``mount``: ``eye_in_hand`` (``T_hand_eye`` = ``T_tool_cam``, ``T_target`` =
-    ``T_base_board``) or ``eye_to_hand`` (``T_base_cam``, ``T_tool_board``): the physical truth
-    of the reference camera. ``T_base_tool_true`` / ``_measured`` (4, 4) per frame: the pose the
-    arm reached and the one it reported.
-
-    A constant part of the arm's error is indistinguishable from a change of the hand-eye (in
-    the tool frame) or of the target (in the base frame): no camera can tell them apart. The
-    solver's per-frame pose corrections have a zero-mean prior, so it converges to the pair
-    that leaves the smallest corrections: ``X' = B X``, ``Y' = Y A`` (``X`` = inverse hand-eye,
-    ``Y`` = target pose) minimising, over the frames, ``|rot(E_k)|^2 / sigma_rot^2 +
-    |t(E_k)|^2 / sigma_t^2`` with ``E_k`` the correction that maps the measured pose onto the
-    one the camera saw. Physical and effective truth differ by the arm's constant error. A
-    rig's other cameras move with the reference (``T_hand_eye' @ T_ref_<name>``).
+    ``mount`` names the physical truth ``T_hand_eye``, ``T_target`` of the reference camera;
+    ``T_base_tool_true`` / ``_measured`` (4, 4) per frame. The arm's constant error is
+    indistinguishable from a change of both, so the solver's zero-mean pose corrections converge to
+    ``X' = B X``, ``Y' = Y A`` (``X`` the inverse hand-eye, ``Y`` the target pose) minimising
+    ``sum_k |rot(E_k)|^2 / sigma_rot^2 + |t(E_k)|^2 / sigma_t^2`` over the corrections ``E_k``.
     """
     T_true = [np.asarray(T, dtype=float) for T in T_base_tool_true]
     T_meas = [np.asarray(T, dtype=float) for T in T_base_tool_measured]
@@ -160,11 +139,8 @@ def simulated_arm_dict(cfg: Any, seed: Any = 0) -> dict[str, Any]:
 
 @dataclass
 class SimulatedCell:
-    """A simulated robot, a simulated camera rig and the truth they were built from.
-
-    ``truth``: the session's ``simulation:`` block (result-file names, see
-    :func:`truth_block`); ``config``: the cell description it was built from.
-    """
+    """A simulated robot, a simulated camera rig, the ``truth`` (:func:`truth_block`) and the
+    ``config`` they were built from."""
 
     config: Any
     robot: SimulatedUR
@@ -174,11 +150,8 @@ class SimulatedCell:
 
     @classmethod
     def from_config(cls, cfg: Any, seed: int | None = None) -> SimulatedCell:
-        """Build the cell of a simulated ``cfg``; ``seed`` overrides ``simulation.seed``.
-
-        The robot's measurement noise and the cameras' image noise come from independent
-        streams of ``numpy.random.default_rng(seed)``.
-        """
+        """Build the cell of a simulated ``cfg`` (``seed`` overrides ``simulation.seed``); robot and
+        camera noise from independent streams."""
         sim = cfg.simulation
         if sim is None or cfg.robot.driver != "simulated":
             raise InputError(
@@ -188,10 +161,7 @@ class SimulatedCell:
         seed = sim.seed if seed is None else int(seed)
         robot_seed, camera_seed, target_seed = np.random.SeedSequence(seed).spawn(3)
         rdict = simulated_arm_dict(cfg, robot_seed)
-        rdict["noise"] = {
-            "pose_noise_m": sim.robot_noise_m,
-            "pose_noise_deg": sim.robot_noise_deg,
-        }
+        rdict["noise"] = {"pose_noise_m": sim.robot_noise_m, "pose_noise_deg": sim.robot_noise_deg}
         if sim.kinematic_error is not None:  # a real arm's accuracy (mocks/robot.py)
             rdict["kinematic_error"] = dict(sim.kinematic_error)
         robot = SimulatedUR.from_dict(rdict)

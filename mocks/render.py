@@ -1,40 +1,6 @@
-"""Render what a simulated camera sees of a planar target (ray casting through the lens model).
-
-For every pixel the renderer undistorts the pixel (``solver/camera.py``, so it agrees with
-``project`` by construction), intersects the ray with the board plane and looks the board's
-texture up there (inverse mapping). Anti-aliasing: ``n x n`` sub-samples per pixel at offsets
-``(k + 0.5) / n - 0.5`` px from the pixel centre (pixel (0, 0) is the centre of the top-left
-pixel), averaged (a sensor with 100 % fill factor). The texture is looked up with bilinear
-interpolation at a resolution chosen per render so that one texel spans at least two
-sub-samples' footprints on the board. Why: a texture much finer than the sub-samples would
-quantise an edge's position in steps of ``1 / n`` px; with bilinear texels of width ``tau`` the
-sum over sub-samples of the edge's ramp is exact when ``tau`` is a multiple of the sub-sample
-spacing ``s`` and otherwise off by a periodic, zero-mean error of at most 0.028 px for
-``tau / s`` in [1, 2] and 0.017 px for ``tau / s`` in [2, 3] (n = 3; computed, and checked on
-rendered edges in ``tests/test_render.py``). The texture's own smoothing (a tent) is subtracted
-from the optical blur, so the total blur stays ``blur_sigma_px`` where it can.
-
-Then, in this order: optical blur (Gaussian, ``blur_sigma_px``), vignetting, exposure gain,
-additive Gaussian read noise (``noise_std`` grey levels), clipping and quantisation to uint8.
-
-Photograph-like imaging (``Photo``, off unless asked for: the clean path above is what the
-accuracy tests and benchmarks of the solver rely on): depth-dependent defocus (thin lens: a blur
-circle of ``f_px * aperture * |1/z - 1/z_focus|`` px, rendered as a Gaussian of a quarter of that
-diameter), uneven light (vignetting and a linear gradient), specular glare spots, lateral
-chromatic aberration (the red and blue images scaled radially about the principal point against
-green, whose geometry is the lens model's, so the truth is the green channel's), shot and read
-noise on a Bayer mosaic demosaiced by OpenCV (colour) or per pixel (mono), and JPEG
-compression.
-
-Board appearance (board frame of ``solver/problem.py``: +z into the board, away from a camera
-that reads the print): the print (ChArUco from OpenCV's own ``CharucoBoard.generateImage``, or a
-chessboard whose square (0, 0) at the board origin is black, or AprilTags from OpenCV's
-dictionary bits; an AprilGrid with Kalibr's black squares in the gaps at every tag corner) with a
-white margin all round (one square; one cell of a lone tag, as tags are printed from their
-family's images; a quarter of a tag beyond an AprilGrid's outer corner squares).
-A camera on the +z side sees the back of the board: plain grey. Rays that miss the
-board show a plain background grey.
-"""
+"""Render what a simulated camera sees of a planar target (ray casting through the lens model
+of ``solver/camera.py``, so it agrees with ``project``), optionally photograph-like
+(:class:`Photo`). Sampling, blur, noise and the board's appearance: docs/DRIVERS.md."""
 
 from __future__ import annotations
 
@@ -122,26 +88,16 @@ def _check_target(target: Target) -> None:
 def _texture_of(target: Target, texels_per_unit: int) -> _Texture:
     if target.kind in ("apriltag", "aprilgrid"):
         return _tag_texture(
-            target.kind,
-            target.tag_size_m,
-            target.tag_ids,
+            target.kind, target.tag_size_m, target.tag_ids,
             tuple(map(tuple, np.round(target.points_m[::4, :2], 12)))
             if target.kind == "apriltag"
             else (),
-            target.tag_cols,
-            target.tag_rows,
-            target.tag_spacing,
-            target.dictionary or "DICT_APRILTAG_36h11",
-            texels_per_unit,
+            target.tag_cols, target.tag_rows, target.tag_spacing,
+            target.dictionary or "DICT_APRILTAG_36h11", texels_per_unit,
         )
     return _texture(
-        target.kind,
-        target.squares_x,
-        target.squares_y,
-        target.square_size_m,
-        target.marker_size_m,
-        target.dictionary,
-        texels_per_unit,
+        target.kind, target.squares_x, target.squares_y, target.square_size_m, target.marker_size_m,
+        target.dictionary, texels_per_unit,
     )
 
 
@@ -251,11 +207,8 @@ def _texture(
 def _subsample_rays(
     width: int, height: int, K_bytes: bytes, dist_bytes: bytes, n: int
 ) -> np.ndarray:
-    """Undistorted normalised coordinates (n H, n W, 2) float32 of every sub-sample of a camera.
-
-    Exact undistortion at the pixel centres; the sub-samples, at most ``0.5 - 0.5 / n`` px away,
-    use the local inverse Jacobian of the lens model (second-order error below 1e-4 px).
-    """
+    """Undistorted normalised coordinates (n H, n W, 2) float32 of every sub-sample of a camera:
+    exact at the pixel centres, by the lens model's local inverse Jacobian around them."""
     K = np.frombuffer(K_bytes).reshape(3, 3)
     dist = np.frombuffer(dist_bytes)
     u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
@@ -318,35 +271,13 @@ def render_target(
     photo: Photo | None = None,
     bow_m: tuple[float, float] = (0.0, 0.0),
 ) -> np.ndarray:
-    """The image camera ``cam`` takes of ``target`` at pose ``T_cam_board``.
+    """The image camera ``cam`` (``SimCamera``) takes of ``target`` (charuco or chessboard) at
+    ``T_cam_board`` (4, 4), metres: uint8 (H, W), or (H, W, 3) BGR when ``cam.colour``.
 
-    Parameters
-    ----------
-    target
-        A ``charuco`` or ``chessboard`` target (board frame and ids of ``solver/problem.py``).
-    cam
-        The simulated camera (``SimCamera``: size, ``K`` (3, 3) px, ``dist`` (5,), blur, noise,
-        exposure, colour).
-    T_cam_board
-        (4, 4) board frame to camera frame, metres.
-    rng
-        Source of the read noise.
-    vignetting
-        Relative fall-off at the image corners (0: none; 0.3: corners 30 % darker), quadratic in
-        the distance from the principal point (the clean path; ``photo`` has its own).
-    photo
-        Photograph-like imaging (``Photo``); None: ``cam.photo`` (None there too: the clean
-        renderer of the module docstring).
-    bow_m
-        The real board's bow along its x and y (metres at the pattern's centre line against its
-        edges, +z into the board: ``solver/target_shape.py``'s bow modes); (0, 0): flat. Each
-        ray meets the bowed surface (two fixed-point steps from the plane; the bow's slope is
-        about 1e-3, so the second step moves the hit by under a micrometre).
-
-    Returns
-    -------
-    np.ndarray
-        uint8 (H, W), or (H, W, 3) BGR when ``cam.colour``.
+    ``rng``: the read noise. ``vignetting``: relative fall-off at the image corners, quadratic in
+    the distance from the principal point. ``photo``: :class:`Photo` (None: ``cam.photo``, None
+    there too: the clean renderer). ``bow_m``: the board's bow along x and y (metres,
+    ``solver/target_shape.py``'s modes; (0, 0): flat).
     """
     _check_target(target)
     T = np.asarray(T_cam_board, dtype=float)
@@ -396,11 +327,7 @@ def render_target(
             uv = cv2.perspectiveTransform(rays, S @ G)
         uv[w_h <= 0.0] = _OUTSIDE  # behind the camera: past the board plane's horizon
         hi = cv2.remap(
-            image,
-            uv,
-            None,
-            interpolation=cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_CONSTANT,
+            image, uv, None, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
             borderValue=BACKGROUND,
         )
     img = cv2.resize(hi, (W, H), interpolation=cv2.INTER_AREA)  # exact n x n box average
@@ -478,22 +405,14 @@ def _sensor(
 
 @dataclass(frozen=True)
 class Photo:
-    """Photograph-like imaging; the defaults are those of an industrial colour camera with a
-    fixed-focus lens at f/4 under workshop light, as they show in real calibration images.
+    """Photograph-like imaging; the defaults are an industrial colour camera with a fixed-focus lens
+    at f/4 under workshop light.
 
-    ``aperture_mm``: entrance pupil diameter (focal length / f-number); 0: no defocus.
-    ``focus_distance_m``: where the lens is focused; None: at the board's nearest point's depth
-    plus 10 % (so the board is slightly out of focus, more at its far side).
-    ``pixel_pitch_um``: converts ``aperture_mm`` and ``K``'s focal length in pixels to the blur
-    circle. ``chromatic_red``, ``chromatic_blue``: radial scale of the red and blue images
-    against green (lateral chromatic aberration; 5e-4 moves an edge 0.5 px at 1000 px from the
-    principal point). ``full_well_e``: electrons at full scale (shot noise; 0: none); the read
-    noise is the camera's ``noise_std`` (grey levels). ``bayer``: colour cameras mosaic and
-    demosaic (RGGB, OpenCV's edge-aware demosaicing). ``jpeg_quality``: 1..100, 0: no
-    compression. ``vignetting``: fall-off at the image corners; ``gradient``: brightness change
-    across the image along a random direction (uneven light). ``glare_spots``: number of
-    specular highlights (Gaussian, ``glare_radius`` times the image diagonal, peak
-    ``glare_strength`` of full scale) at random positions in the middle of the image.
+    ``aperture_mm``: entrance pupil (0: no defocus); ``focus_distance_m`` (None: 10 % beyond the
+    board's nearest point); ``pixel_pitch_um``; ``chromatic_red``, ``chromatic_blue``: radial scale
+    of those images against green; ``full_well_e``: shot noise (0: none); ``bayer``: RGGB mosaic and
+    OpenCV demosaicing; ``jpeg_quality`` (0: none); ``vignetting``, ``gradient``: uneven light;
+    ``glare_spots`` of ``glare_radius`` (of the diagonal) and ``glare_strength`` (of full scale).
     """
 
     aperture_mm: float = 2.0
@@ -518,15 +437,8 @@ class Photo:
 
 
 CLEAN_PHOTO = Photo(
-    aperture_mm=0.0,
-    chromatic_red=0.0,
-    chromatic_blue=0.0,
-    full_well_e=0.0,
-    bayer=False,
-    jpeg_quality=0,
-    vignetting=0.0,
-    gradient=0.0,
-    glare_spots=0,
+    aperture_mm=0.0, chromatic_red=0.0, chromatic_blue=0.0, full_well_e=0.0, bayer=False,
+    jpeg_quality=0, vignetting=0.0, gradient=0.0, glare_spots=0,
 )  # the photo pipeline with every effect off (equals the clean renderer but for the noise draw)
 
 
@@ -622,8 +534,7 @@ def _photo(
     gain = np.float32(255.0 * cam.exposure)
     if cam.colour:
         bgr = [
-            _radial_scale(img, K, photo.chromatic_blue),
-            img,
+            _radial_scale(img, K, photo.chromatic_blue), img,
             _radial_scale(img, K, photo.chromatic_red),
         ]
         signal = [c * gain for c in bgr]

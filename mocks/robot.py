@@ -1,36 +1,8 @@
-"""A simulated UR e-Series arm implementing the ``Robot`` protocol (``drivers/base.py``).
+"""A simulated UR e-Series arm (``Robot`` protocol of ``drivers/base.py``).
 
-State is the true ``T_base_tool`` and the joint vector. ``move_linear`` checks the straight
-line joint by joint with the analytic kinematics of :mod:`slidecal.drivers.ur_kinematics`
-(reachable, inside the limits, away from singularities, continuous in joint space) and advances
-a simulated clock by the duration of a trapezoidal speed profile. ``measured_pose`` returns the
-true pose with configurable noise, as the controller's encoders and kinematic model would.
-Faults can be injected to test what the routine does with them.
-
-A real arm is not its nominal model: :class:`KinematicError` perturbs the kinematic parameters
-(joint zero offsets, link lengths and offsets, twists between nominally parallel axes), adds a
-gravity-dependent deflection of the shoulder and elbow and a cyclic transmission error per
-joint, so that the flange misses the pose the controller computes by 0.5-2 mm and
-0.05-0.2 deg, smoothly over the workspace (ISO 9283 *accuracy*), on top of a random
-repeatability of tens of micrometres and ~0.005 deg per stop. The controller reports the
-nominal model's pose of the joints (``measured_pose``); the cameras see ``true_pose``.
-
-A cell description (the ``robot:`` section of a YAML cell file) builds one with
-:meth:`SimulatedUR.from_dict`::
-
-    model: UR5e
-    start_pose: [0.3, -0.4, 0.4, 3.1416, 0.0, 0.0]   # UR pose of the TCP: metres, axis-angle rad
-    tcp: [0.0, 0.0, 0.1, 0.0, 0.0, 0.0]               # optional T_flange_tcp as a UR pose
-    start_q: [0.0, -1.57, 1.57, -1.57, -1.57, 0.0]    # optional; overrides start_pose
-    limits: {max_speed_mps: 1.0, max_accel_mps2: 2.5, max_angular_speed_deg_s: 60,
-             max_angular_accel_deg_s2: 80, z_min_m: 0.0}
-    noise: {pose_noise_m: 5.0e-5, pose_noise_deg: 0.005}
-    kinematic_error: {mm: 1.0, deg: 0.1, repeatability_mm: 0.03, repeatability_deg: 0.005}
-    seed: 0
-
-``kinematic_error`` (optional; absent: the arm is its nominal model): the size of the arm's
-systematic error (see :meth:`KinematicError.random`) and its repeatability; drawn from the
-arm's own seed.
+The controller reports the nominal model's pose of the joints (``measured_pose``), the cameras
+see ``true_pose``, which a :class:`KinematicError` moves away from it. The model and its
+``robot:`` cell section: docs/DRIVERS.md.
 """
 
 from __future__ import annotations
@@ -49,8 +21,7 @@ from slidecal.solver.geometry import R_from_rvec, Rx, Rz, T_from_Rt, rvec_from_R
 #: Straight lines are checked at least every 5 mm and every 1 deg of tool rotation.
 STEP_M = 0.005
 STEP_RAD = np.radians(1.0)
-#: Largest joint change between two such samples before we call the path discontinuous (a
-#: branch flip or a pass through a singularity): 0.2 rad per 5 mm would be 10 rad/s at 0.25 m/s.
+#: Largest joint change between two such samples before the path is discontinuous (a branch flip).
 MAX_JOINT_STEP_RAD = 0.2
 
 FAULT_KINDS = ("protective_stop", "emergency_stop", "disconnect", "timeout")
@@ -59,11 +30,8 @@ GEAR_CYCLES = 30.0
 
 
 def trapezoid_time_s(distance: float, max_speed: float, max_accel: float) -> float:
-    """Duration of a rest-to-rest move over ``distance`` with a trapezoidal speed profile.
-
-    Units are consistent (metres, m/s, m/s^2 or radians, rad/s, rad/s^2). A move too short to
-    reach ``max_speed`` is a triangle: ``2 sqrt(d / a)``; otherwise ``d / v + v / a``.
-    """
+    """Duration of a rest-to-rest trapezoidal move over ``distance`` (consistent units, linear or
+    angular): ``2 sqrt(d / a)`` when too short to reach ``max_speed``, else ``d / v + v / a``."""
     d = abs(float(distance))
     if d == 0.0:
         return 0.0
@@ -82,16 +50,11 @@ def _interpolate(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
 class KinematicError:
     """How a real arm differs from its nominal Denavit-Hartenberg model (all (6,) per joint).
 
-    Joint ``i`` of the true arm is ``Rz(q_i + d_theta_i + e_i(q)) Tz(d_i + d_d_i)
-    Tx(a_i + d_a_i) Rx(alpha_i + d_alpha_i)``, with ``e_i(q) = gravity_rad_i * cos(load
-    angle) + cyclic_rad_i * sin(2 q_i + cyclic_phase_i) + gear_rad_i * sin(GEAR_CYCLES q_i +
-    gear_phase_i)``: the shoulder and elbow sag with the horizontal reach of the links they carry
-    (the load angle of joint 2 is ``q2``, of joint 3 ``q2 + q3``; the other joints' gravity terms
-    are 0), every joint has a twice-per-turn error (bearing and encoder eccentricity) and a
-    faster transmission error of its gearbox (``GEAR_CYCLES`` per turn, a period of 12 deg of
-    joint motion: a 50 mm move already sees it change). ``repeatability_m``,
-    ``repeatability_deg``: the one-sigma random error of each stop (per axis), redrawn at every
-    move.
+    Joint ``i`` of the true arm is ``Rz(q_i + d_theta_i + e_i(q)) Tz(d_i + d_d_i) Tx(a_i + d_a_i)
+    Rx(alpha_i + d_alpha_i)`` with ``e_i(q) = gravity_rad_i cos(load angle) + cyclic_rad_i sin(2 q_i
+    + cyclic_phase_i) + gear_rad_i sin(GEAR_CYCLES q_i + gear_phase_i)`` (load angle ``q2`` for
+    joint 2, ``q2 + q3`` for joint 3, no gravity term elsewhere). ``repeatability_m``,
+    ``repeatability_deg``: one-sigma per axis of each stop's random error.
     """
 
     d_theta: np.ndarray
@@ -115,13 +78,8 @@ class KinematicError:
         repeatability_mm: float = 0.03,
         repeatability_deg: float = 0.005,
     ) -> KinematicError:
-        """A random arm whose flange errs by about ``mm`` and ``deg`` (rms over the workspace).
-
-        Angular parameters are drawn at ``deg / 3`` one-sigma each (the flange's orientation
-        error adds six joints' and two twists' worth); lengths at ``mm / 3`` each. Measured
-        on UR5e arms drawn with the defaults (1 mm, 0.1 deg): 0.5-2 mm and 0.05-0.2 deg over
-        the reachable workspace (``tests/test_sim_robot.py``).
-        """
+        """A random arm whose flange errs by about ``mm`` and ``deg`` (rms over the workspace):
+        angular parameters drawn at ``deg / 3`` one-sigma each, lengths at ``mm / 3``."""
         if mm < 0 or deg < 0 or repeatability_mm < 0 or repeatability_deg < 0:
             raise InputError("kinematic_error sizes must not be negative", where="robot")
         ang = np.radians(deg) / 3.0
@@ -130,17 +88,12 @@ class KinematicError:
         twist[[0, 3, 4, 5]] *= 0.5  # the perpendicular axes are machined more easily than the
         # nominally parallel shoulder/elbow/wrist-1 axes, whose misalignment builds up
         return cls(
-            d_theta=rng.normal(0.0, ang, 6),
-            d_d=rng.normal(0.0, lin, 6),
-            d_a=rng.normal(0.0, lin, 6) * np.array([0, 1, 1, 0, 0, 0]),
-            d_alpha=twist,
+            d_theta=rng.normal(0.0, ang, 6), d_d=rng.normal(0.0, lin, 6),
+            d_a=rng.normal(0.0, lin, 6) * np.array([0, 1, 1, 0, 0, 0]), d_alpha=twist,
             gravity_rad=np.abs(rng.normal(0.0, ang, 6)) * np.array([0, 1, 1, 0, 0, 0]),
-            cyclic_rad=rng.normal(0.0, 0.3 * ang, 6),
-            cyclic_phase=rng.uniform(0.0, 2 * np.pi, 6),
-            gear_rad=rng.normal(0.0, 0.5 * ang, 6),
-            gear_phase=rng.uniform(0.0, 2 * np.pi, 6),
-            repeatability_m=repeatability_mm / 1000.0,
-            repeatability_deg=repeatability_deg,
+            cyclic_rad=rng.normal(0.0, 0.3 * ang, 6), cyclic_phase=rng.uniform(0.0, 2 * np.pi, 6),
+            gear_rad=rng.normal(0.0, 0.5 * ang, 6), gear_phase=rng.uniform(0.0, 2 * np.pi, 6),
+            repeatability_m=repeatability_mm / 1000.0, repeatability_deg=repeatability_deg,
         )
 
     def joint_errors(self, q: np.ndarray) -> np.ndarray:
@@ -178,36 +131,15 @@ def _describe(T: np.ndarray) -> str:
 
 
 class SimulatedUR:
-    """A simulated UR arm; see the module docstring.
+    """A simulated UR arm (docs/DRIVERS.md).
 
-    Parameters
-    ----------
-    rng
-        Draws the measurement noise.
-    model
-        Kinematic model (``ur_kinematics.UR5E`` ...).
-    start_q
-        Initial joint vector (6,), radians.
-    T_flange_tcp
-        TCP offset (4, 4), metres; poses are of the TCP. None: the flange.
-    max_speed_mps, max_accel_mps2
-        Upper bounds of the linear speed and acceleration a move may ask for.
-    max_angular_speed_deg_s, max_angular_accel_deg_s2
-        Tool rotation speed and acceleration used for the rotational part of a move.
-    pose_noise_m
-        Standard deviation of the measured position, per axis, metres.
-    pose_noise_deg
-        Standard deviation of each component of a small rotation vector applied to the
-        measured orientation, degrees (the rms rotation angle is ``sqrt(3)`` times this).
-    z_min_m
-        Lowest allowed TCP height in the base frame (a table or safety plane), or None.
-    move_timeout_s
-        Time a move that times out (injected fault) spends before it gives up.
-    kinematic_error
-        The arm's deviation from its nominal model (None: the arm is its model, exactly).
-        ``true_pose`` is then the perturbed arm's pose of the joints with the stop's
-        repeatability error; ``measured_pose`` stays the nominal model's (what the controller
-        computes), with ``pose_noise_*`` on top.
+    ``rng``: draws the measurement noise. ``model``: ``ur_kinematics.UR5E`` ... ``start_q`` (6,)
+    rad. ``T_flange_tcp`` (4, 4) m (None: the flange). ``max_speed_mps``, ``max_accel_mps2``,
+    ``max_angular_speed_deg_s``, ``max_angular_accel_deg_s2``: the move's limits. ``pose_noise_m``,
+    ``pose_noise_deg``: one-sigma of the measured position per axis and of each rotation-vector
+    component. ``z_min_m``: lowest TCP height (None: none). ``move_timeout_s``: what a timed-out
+    move spends. ``kinematic_error``: the arm's deviation from its model (None: exact);
+    ``true_pose`` is then the perturbed arm's, ``measured_pose`` the nominal model's.
     """
 
     def __init__(
@@ -228,8 +160,7 @@ class SimulatedUR:
         kinematic_error: KinematicError | None = None,
     ) -> None:
         for name, value in (
-            ("max_speed_mps", max_speed_mps),
-            ("max_accel_mps2", max_accel_mps2),
+            ("max_speed_mps", max_speed_mps), ("max_accel_mps2", max_accel_mps2),
             ("max_angular_speed_deg_s", max_angular_speed_deg_s),
             ("max_angular_accel_deg_s2", max_angular_accel_deg_s2),
         ):
@@ -265,16 +196,9 @@ class SimulatedUR:
     # ----------------------------------------------------------------- construction from YAML
     @classmethod
     def from_dict(cls, cell: Mapping[str, Any]) -> SimulatedUR:
-        """Build from a cell description (see the module docstring); unknown keys are errors."""
+        """Build from a cell description (docs/DRIVERS.md); unknown keys are errors."""
         known = {
-            "model",
-            "start_pose",
-            "start_q",
-            "tcp",
-            "limits",
-            "noise",
-            "seed",
-            "kinematic_error",
+            "model", "start_pose", "start_q", "tcp", "limits", "noise", "seed", "kinematic_error",
         }
         unknown = set(cell) - known
         if unknown:
@@ -288,12 +212,8 @@ class SimulatedUR:
         noise = dict(cell.get("noise") or {})
         kw: dict[str, Any] = {}
         for key in (
-            "max_speed_mps",
-            "max_accel_mps2",
-            "max_angular_speed_deg_s",
-            "max_angular_accel_deg_s2",
-            "z_min_m",
-            "move_timeout_s",
+            "max_speed_mps", "max_accel_mps2", "max_angular_speed_deg_s",
+            "max_angular_accel_deg_s2", "z_min_m", "move_timeout_s",
         ):
             if key in limits:
                 kw[key] = limits.pop(key)
@@ -372,13 +292,10 @@ class SimulatedUR:
         return self._moves
 
     def inject_fault(self, kind: str, at_move: int) -> None:
-        """Make the ``move_linear`` call number ``at_move`` (counting from 0) fail.
-
-        ``"protective_stop"`` (``"emergency_stop"``): the arm stops halfway and the move raises;
-        further moves raise until :meth:`clear_fault`. ``"disconnect"``: the move arrives, then
-        the connection is lost: ``measured_pose`` and further moves raise (stale data).
-        ``"timeout"``: the arm stalls halfway and the move raises after ``move_timeout_s``.
-        """
+        """Make ``move_linear`` call number ``at_move`` (from 0) fail: ``"protective_stop"`` /
+        ``"emergency_stop"`` stop halfway and raise until :meth:`clear_fault`; ``"disconnect"``
+        arrives, then every call raises (stale data); ``"timeout"`` stalls halfway and raises after
+        ``move_timeout_s``."""
         if kind not in FAULT_KINDS:
             raise InputError(f"unknown fault kind {kind!r}; use one of {FAULT_KINDS}")
         self._faults[int(at_move)] = kind
@@ -451,10 +368,7 @@ class SimulatedUR:
 
     def move_linear(self, T_base_tool: np.ndarray, speed_mps: float, accel_mps2: float) -> None:
         """Move the TCP in a straight line to ``T_base_tool`` (4, 4), metres; block until there.
-
-        Raises ``HardwareFault`` (the arm staying where it was, or stopped halfway for an
-        injected fault) when the line leaves the workspace or a fault occurs.
-        """
+        ``HardwareFault`` when the line leaves the workspace or a fault occurs."""
         move_index = self._moves
         self._moves += 1
         self._check_ready()

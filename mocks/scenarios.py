@@ -1,22 +1,10 @@
 """Synthetic scenes with ground truth: the one place every set-up of docs/SETUPS.md is built.
 
-Tests, benchmarks and docs take their scenes from here:
-
-- homography-level scenes (noise-free homographies and pixel observations, for the linear
-  method and its tests): :func:`board_xy`, :func:`tilt_R`, :func:`centre_on_axis`,
-  :func:`make_group` (one orientation group of a translated camera), :func:`s1_group`,
-  :func:`s2_group`, :func:`robot_poses`, and S5's stereo head :func:`s5_scene`
-  (:class:`StereoScene`);
-- calibration problems (:class:`Scenario`: noisy detections and measured motion, the true model
-  state in the solver's parametrisation and the noise): S1-S4 (:func:`s1`, :func:`s2`,
-  :func:`s3`), R1 and its variants (:func:`r1`, :func:`r1_eye_to_hand`,
-  :func:`r1_real_arm`), rigs (:class:`RigScenario`: :func:`s5_rig`, :func:`oak_rig`,
-  :func:`hide_views`) and classic hand-eye sessions (:func:`classic`, every frame at its own
-  orientation, in R1's cell).
-
-Board frame: z = 0 plane; a camera with ``R_cam_board`` and centre ``C`` (board frame) sees
-board point ``X`` at ``K (R_cam_board (X - C))``. S1-S5 lengths in the paper's units ("l.u."),
-R1 in metres. No images: the rendered-image simulator is ``mocks/camera.py``.
+Homography-level scenes for the linear method (:func:`make_group`, :func:`s5_scene`), calibration
+problems with their truth (:class:`Scenario`: S1-S4, R1 and its real-arm variants, rigs, classic
+hand-eye sessions), and the scenes and session edits the studies and tests share. Board frame:
+z = 0 plane; S1-S5 in the paper's length units ("l.u."), R1 in metres. No images here: the
+rendered-image simulator is ``mocks/camera.py``.
 """
 
 from __future__ import annotations
@@ -74,12 +62,9 @@ D0 = np.diag([1.0, -1.0, -1.0])  # camera looking at the board along -z (docs/SE
 
 @dataclass(frozen=True)
 class Scenario:
-    """A synthetic problem with its truth.
-
-    ``truth``: the true state in the solver's parametrisation; ``T_tool_cam`` (eye-in-hand) or
-    ``T_base_cam`` (eye-to-hand) and ``T_base_board`` as 4x4 transforms where a robot is
-    involved; ``sigma_px``: the pixel noise the detections carry.
-    """
+    """A synthetic problem with its truth: ``truth`` in the solver's parametrisation, ``T_tool_cam``
+    or ``T_base_cam`` and ``T_base_board`` (4, 4) where a robot is involved, and the detections'
+    pixel noise ``sigma_px``."""
 
     problem: CalibrationProblem
     truth: ModelState
@@ -91,10 +76,8 @@ class Scenario:
 
 @dataclass(frozen=True)
 class RigScenario(Scenario):
-    """A rig :class:`Scenario`; ``sigma_by_camera_px``: the pixel noise of each camera.
-
-    ``sigma_px`` is the reference camera's noise.
-    """
+    """A rig :class:`Scenario`; ``sigma_by_camera_px``: each camera's pixel noise (``sigma_px`` the
+    reference camera's)."""
 
     sigma_by_camera_px: Mapping[str, float] = field(default_factory=dict)
 
@@ -205,12 +188,9 @@ def s2_group(
 def robot_poses(
     group: Group, T_base_fixed: np.ndarray, T_tool_x: np.ndarray, mount: str
 ) -> np.ndarray:
-    """Measured ``T_base_tool`` (n, 4, 4) of a group's frames.
-
-    Eye-in-hand: ``T_base_fixed = T_base_board`` (board fixed), ``T_tool_x = T_tool_cam``.
-    Eye-to-hand: ``T_base_fixed = T_base_cam`` (camera fixed), ``T_tool_x = T_tool_board``; the
-    camera displacement ``T`` relative to the board is then a board motion.
-    """
+    """Measured ``T_base_tool`` (n, 4, 4) of a group's frames: eye-in-hand with ``T_base_fixed =
+    T_base_board`` and ``T_tool_x = T_tool_cam``, eye-to-hand with ``T_base_cam`` and
+    ``T_tool_board`` (the displacement is then a board motion)."""
     out = []
     for T in group.T_board:
         T_board_cam = np.eye(4)
@@ -258,11 +238,8 @@ def _board_frame_scenario(
     rng: np.random.Generator,
     presumed: np.ndarray | None = None,
 ) -> Scenario:
-    """One orientation group; camera centres (n, 3) in the board frame, frame 0 the reference.
-
-    ``presumed`` (n, 3): the motion the solver is told (defaults to the true one): S4 uses it
-    to inject robot motion errors.
-    """
+    """One orientation group; camera centres (n, 3) in the board frame, frame 0 the reference;
+    ``presumed`` (n, 3): the motion the solver is told (default: the true one)."""
     target = paper_grid()
     dist = np.zeros(5)
     moves = centres - centres[0] if presumed is None else presumed - presumed[0]
@@ -293,11 +270,8 @@ def _robot_translation_scenario(
     rng: np.random.Generator,
     presumed: np.ndarray | None = None,
 ) -> Scenario:
-    """Known translations in an unknown robot frame (Case 1 and its generalisation).
-
-    The robot base is the board frame rotated by an arbitrary rotation, the tool is the camera;
-    only the displacements (their lengths and mutual angles) carry information.
-    """
+    """Known translations in an unknown robot frame (Case 1 and its generalisation): the base is the
+    board frame turned arbitrarily, the tool is the camera."""
     target = paper_grid()
     dist = np.zeros(5)
     R_base_board = R_from_rvec(np.array([0.3, -0.2, 0.5]))
@@ -346,13 +320,7 @@ def s2(n_images: int, sigma_px: float, rng: np.random.Generator, phi_deg: float 
     steps = np.arange(n_images)[:, None] * 5.0
     opts = ModelOptions(distortion=NO_DISTORTION)
     return _board_frame_scenario(
-        K_S2,
-        R,
-        C0 + steps * real,
-        "board_direction",
-        opts,
-        sigma_px,
-        rng,
+        K_S2, R, C0 + steps * real, "board_direction", opts, sigma_px, rng,
         presumed=C0 + steps * normal,
     )
 
@@ -380,11 +348,7 @@ def s5_grid() -> Target:
 
 
 def s5_T_right_board() -> np.ndarray:
-    """The right camera's six view poses ``T_right_board`` (6, 4, 4), l.u. (docs/SETUPS.md S5).
-
-    ``R_right_board = R(r) diag(1, -1, -1)``, camera centre 130 l.u. from the grid centre on the
-    optical axis.
-    """
+    """The right camera's six view poses ``T_right_board`` (6, 4, 4), l.u. (docs/SETUPS.md S5)."""
     flip = np.diag([1.0, -1.0, -1.0])
     out = []
     for rv in S5_VIEWS_DEG:
@@ -396,12 +360,9 @@ def s5_T_right_board() -> np.ndarray:
 
 @dataclass(frozen=True)
 class StereoScene:
-    """Noise-free S5 set-up at the level of homographies.
-
-    ``board_xy`` (N, 2): grid points, board frame, l.u. ``K_left``, ``K_right`` (3, 3) pixels.
-    ``R_left_right`` (3, 3), ``t_left_right`` (3,) l.u.: ``X_left = R X_right + t``.
-    ``R_right_board`` (n, 3, 3), ``t_right_board`` (n, 3) l.u.: the right camera's view poses.
-    """
+    """Noise-free S5 set-up at the level of homographies, l.u. and pixels: ``board_xy`` (N, 2),
+    ``K_left``, ``K_right``, ``X_left = R_left_right X_right + t_left_right``, and the right
+    camera's view poses ``R_right_board`` (n, 3, 3), ``t_right_board`` (n, 3)."""
 
     board_xy: np.ndarray
     K_left: np.ndarray
@@ -450,13 +411,9 @@ def s5_scene() -> StereoScene:
     """The S5 set-up of docs/SETUPS.md (14 x 10 grid, pitch 5 l.u., six stereo views)."""
     Ts = s5_T_right_board()
     return StereoScene(
-        board_xy=board_xy(14, 10),
-        K_left=S5_K_LEFT,
-        K_right=S5_K_RIGHT,
-        R_left_right=S5_T_LEFT_RIGHT[:3, :3],
-        t_left_right=S5_T_LEFT_RIGHT[:3, 3],
-        R_right_board=Ts[:, :3, :3],
-        t_right_board=Ts[:, :3, 3],
+        board_xy=board_xy(14, 10), K_left=S5_K_LEFT, K_right=S5_K_RIGHT,
+        R_left_right=S5_T_LEFT_RIGHT[:3, :3], t_left_right=S5_T_LEFT_RIGHT[:3, 3],
+        R_right_board=Ts[:, :3, :3], t_right_board=Ts[:, :3, 3],
     )
 
 
@@ -466,12 +423,9 @@ def s5_rig(
     left_factor: float = 1.0,
     options: ModelOptions | None = None,
 ) -> RigScenario:
-    """S5 as a general-motion rig problem (knowledge "none", mount "none", reference "right").
-
-    ``sigma_px``: the right camera's corner noise; the left camera's is ``left_factor`` times
-    it. Options default to zero skew and no distortion (the paper's model). Points outside the
-    300 x 240 images are not detected.
-    """
+    """S5 as a general-motion rig problem (knowledge and mount "none", reference "right"):
+    ``sigma_px`` the right camera's noise, ``left_factor`` times it the left's; zero skew, no
+    distortion; points outside the 300 x 240 images not detected."""
     target = s5_grid()
     Ts = s5_T_right_board()
     sig = {"left": left_factor * sigma_px, "right": sigma_px}
@@ -487,21 +441,13 @@ def s5_rig(
         }
         frames.append(Frame(k, dets))
     problem = CalibrationProblem(
-        target,
-        (CameraSpec("left", *PAPER_SIZE_PX), CameraSpec("right", *PAPER_SIZE_PX)),
-        tuple(frames),
-        "none",
-        "none",
-        options or ModelOptions(distortion=NO_DISTORTION),
+        target, (CameraSpec("left", *PAPER_SIZE_PX), CameraSpec("right", *PAPER_SIZE_PX)),
+        tuple(frames), "none", "none", options or ModelOptions(distortion=NO_DISTORTION),
         reference_camera="right",
     )
     truth = ModelState(
-        {c: K[c].copy() for c in K},
-        {c: np.zeros(5) for c in K},
-        {"left": S5_T_LEFT_RIGHT.copy()},
-        Ts,
-        np.eye(4),
-        np.zeros(len(Ts)),
+        {c: K[c].copy() for c in K}, {c: np.zeros(5) for c in K}, {"left": S5_T_LEFT_RIGHT.copy()},
+        Ts, np.eye(4), np.zeros(len(Ts)),
     )
     return RigScenario(problem, truth, sigma_px, sigma_by_camera_px=sig)
 
@@ -521,13 +467,9 @@ def r1_target() -> Target:
 
 
 def r1_poses(rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The R1 cell: ``T_base_board`` and the planned ``T_base_tool`` poses (20, 4, 4).
-
-    Board flat on the table 0.5 m below the camera's first pose; 4 tilt groups (25 deg about
-    different axes, looking at the board centre from 0.5 m) of 5 frames: the group's pose and
-    4 translations of 40-80 mm in non-coplanar directions (each with a component along the
-    viewing axis: translations parallel to the board are degenerate, docs/METHOD.md Sec. 7).
-    """
+    """The R1 cell: ``T_base_board`` and the planned ``T_base_tool`` (20, 4, 4): 4 tilt groups of 25
+    deg looking at the board centre from 0.5 m, each its pose and 4 non-coplanar translations of
+    40-80 mm."""
     target = r1_target()
     centre_board = target.points_m.mean(axis=0)
     # board frame: +z into the table (down), so a camera above reads the print (R_cam_board ~ I)
@@ -537,12 +479,7 @@ def r1_poses(rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.nda
     up = np.array([1.0, 0.0, 0.0])  # image up away from the robot base
     tilts = [(25.0, 0.0), (0.0, 25.0), (-20.0, -18.0), (18.0, -20.0)]
     moves_mm = np.array(
-        [
-            [60.0, 0.0, -40.0],
-            [0.0, 50.0, 45.0],
-            [-35.0, -30.0, 55.0],
-            [30.0, -40.0, -50.0],
-        ]
+        [[60.0, 0.0, -40.0], [0.0, 50.0, 45.0], [-35.0, -30.0, 55.0], [30.0, -40.0, -50.0]]
     )
     poses = []
     for gi, (ax_deg, ay_deg) in enumerate(tilts):
@@ -598,21 +535,13 @@ def r1_scenario(
     truth in the solver's parametrisation and the hand-eye and target poses of the mount (the
     target on the tool at ``T_tool_board`` eye-to-hand)."""
     problem = CalibrationProblem(
-        target,
-        (CameraSpec("cam", *size),),
-        tuple(frames),
-        "eye_in_hand" if eye_in_hand else "eye_to_hand",
-        "robot",
-        options or ModelOptions(),
+        target, (CameraSpec("cam", *size),), tuple(frames),
+        "eye_in_hand" if eye_in_hand else "eye_to_hand", "robot", options or ModelOptions(),
     )
     T_hand_eye = R1_T_TOOL_CAM if eye_in_hand else R1_T_BASE_CAM
     T_target = T_base_board if eye_in_hand else T_tool_board
     truth = ModelState(
-        {"cam": R1_K},
-        {"cam": np.array(dist, dtype=float)},
-        {},
-        inv_T(T_hand_eye)[None],
-        T_target,
+        {"cam": R1_K}, {"cam": np.array(dist, dtype=float)}, {}, inv_T(T_hand_eye)[None], T_target,
         np.zeros(len(frames)),
     )
     return Scenario(problem, truth, sigma_px, T_hand_eye, T_target, T_base_tool_true)
@@ -664,8 +593,7 @@ def r1_eye_to_hand(
     options: ModelOptions | None = None,
 ) -> Scenario:
     """R1 mirrored: the camera fixed in the cell, the board on the tool. The camera-board poses
-    are R1's, so the tilt groups and translations carry over (the board moves, not the camera).
-    """
+    are R1's, so the tilt groups and translations carry over (the board moves, not the camera)."""
     return _r1_cell(rng, sigma_px, robot_noise_m, robot_noise_deg, options, False)
 
 
@@ -690,16 +618,10 @@ def real_arm_poses(
     repeatability_mm: float = 0.03,
     repeatability_deg: float = 0.005,
 ) -> np.ndarray:
-    """Where a UR5e with a random kinematic error really puts the tool for ``planned``
-    ``T_base_tool`` poses (F, 4, 4): the controller's inverse kinematics (nominal model) gives
-    the joints, the perturbed arm (``KinematicError.random`` with these sizes) the pose, plus
-    the stop's repeatability error. The controller reports the planned poses.
-
-    Each pose's joints are the solution nearest the previous pose's, as a program's moves take
-    them, starting from the configuration the walk from ``Q_HOME`` ends in: the solution
-    nearest ``Q_HOME`` for the first pose can be a branch the next poses cannot reach, and that
-    first frame would then stand on another configuration, with another kinematic error, than
-    the frames after it (a session no integrator records)."""
+    """Where a UR5e with a random kinematic error (``KinematicError.random`` of these sizes) really
+    puts the tool for ``planned`` ``T_base_tool`` (F, 4, 4), plus each stop's repeatability error.
+    Each pose's joints are the solution nearest the previous pose's, from the configuration a walk
+    from ``Q_HOME`` ends in, so every frame stands on one configuration."""
     from slidecal.mocks.robot import KinematicError
 
     ke = KinematicError.random(rng, arm_mm, arm_deg, repeatability_mm, repeatability_deg)
@@ -732,17 +654,13 @@ def r1_real_arm(
     detect: ImageModel | None = None,
     real_board: bool = False,
 ) -> Scenario:
-    """R1 on a real arm: a UR5e (R1's cell within its reach) whose kinematics err by about
-    ``arm_mm`` and ``arm_deg`` (:class:`slidecal.mocks.robot.KinematicError`, drawn anew from
-    ``rng``); the measured poses are the planned ones, the camera sees the true ones.
+    """R1 on a UR5e whose kinematics err by about ``arm_mm`` and ``arm_deg`` (drawn from ``rng``):
+    the measured poses are the planned ones, the camera sees the true ones.
 
-    ``translations_only``: one orientation (R1's first tilt) and 12 translations of 40-80 mm in
-    non-coplanar directions, the session of the issue's real data. ``detect``: the image model,
-    ``T_cam_board -> Detection`` (default: R1's projected corners with ``sigma_px`` Gaussian
-    noise). ``real_board``: the board is a real one, bowed along x and y by a draw of a real
-    board's flatness (:func:`real_board_of`), and the session describes it as a file would (a real
-    board's tolerance). ``T_hand_eye`` and ``T_target`` are the physical truth; see
-    :func:`effective_truth` for what the data can determine.
+    ``translations_only``: one orientation, 12 non-coplanar translations of 40-80 mm. ``detect``:
+    the image model (default: projected corners with ``sigma_px`` noise). ``real_board``: a bowed
+    board described with a real board's tolerance (:func:`real_board_of`). What the data can
+    determine of the truth: :func:`effective_truth`.
     """
     target = r1_target()
     seen, bow = None, np.zeros(2)
@@ -757,12 +675,8 @@ def r1_real_arm(
         R_base_cam = (base @ R1_T_TOOL_CAM)[:3, :3]
         dirs = np.array(
             [
-                [1.0, 0.0, -0.6],
-                [0.0, 1.0, 0.7],
-                [-0.7, -0.6, 1.0],
-                [0.6, -0.8, -0.9],
-                [0.9, 0.5, 0.4],
-                [-0.5, 0.9, -0.5],
+                [1.0, 0.0, -0.6], [0.0, 1.0, 0.7], [-0.7, -0.6, 1.0], [0.6, -0.8, -0.9],
+                [0.9, 0.5, 0.4], [-0.5, 0.9, -0.5],
             ]
         )
         moves = [
@@ -788,10 +702,8 @@ def r1_real_arm(
 
 
 def real_board_of(target: Target, rng: np.random.Generator) -> tuple[Target, Target, np.ndarray]:
-    """A real board of ``target``'s description: (the target as a session describes it, with a
-    real board's tolerance; the board as it is, bowed along x and y by draws of that flatness,
-    which the camera sees; that bow (2,), metres). The print is exact: its error is carried,
-    not estimated."""
+    """A real board of ``target``'s description: (the target as a session describes it, with a real
+    board's tolerance; the bowed board the camera sees; the bow (2,), metres)."""
     from slidecal.solver.target_shape import PRINT_TOLERANCE, default_flatness_m, shape_modes
 
     flat = default_flatness_m(target.points_m)
@@ -814,10 +726,8 @@ def _real_arm_frames(
     T_tool_board: np.ndarray = R1_T_TOOL_BOARD,
     bow_m: np.ndarray | None = None,
 ) -> list[Frame]:
-    """R1's camera and board (``target``, R1's by default; on the tool at ``T_tool_board``
-    eye-to-hand) at the arm's true poses; each frame records the planned pose (what the
-    controller reports) and what ``detect`` sees (default: the projected points with
-    ``sigma_px`` Gaussian noise)."""
+    """R1's camera and board (``target``; on the tool at ``T_tool_board`` eye-to-hand) at the arm's
+    true poses; each frame records the planned pose and what ``detect`` sees."""
     target = target or r1_target()
     frames = []
     for k, (T_true, T_meas) in enumerate(zip(true, planned, strict=True)):
@@ -841,23 +751,14 @@ def effective_truth(
     sigma_mm: float = 1.0,
     frames: Sequence[int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The hand-eye and target pose ``(T_hand_eye, T_target)`` as the session can know them
-    (``frames``: the indices of the frames the solve used; default all).
-
-    A constant part of the arm's error is indistinguishable from a change of the hand-eye (in
-    the tool frame) or of the target (in the base frame): no camera can tell them apart. The
-    solver's per-frame pose corrections have a zero-mean prior, so it converges to the pair
-    that leaves the smallest corrections (:func:`slidecal.mocks.cell.effective_truth`, which
-    the session judge uses too). Physical truth and effective truth differ by the arm's
-    constant error (about ``sigma_*``).
-    """
+    """The hand-eye and target pose ``(T_hand_eye, T_target)`` as the session can know them (over
+    ``frames``, default all): :func:`slidecal.mocks.cell.effective_truth`."""
     from slidecal.mocks.cell import effective_truth as _effective
 
     used = list(range(len(s.problem.frames)) if frames is None else frames)
     true = s.T_base_tool_true
     T_he, T_tg = _effective(
-        s.problem.mount,
-        true if true is None else true[used],
+        s.problem.mount, true if true is None else true[used],
         [s.problem.frames[i].T_base_tool for i in used],
         inv_T(s.truth.X[0]),  # X = T_cam_tool / T_cam_base
         s.truth.Y,
@@ -879,12 +780,9 @@ def oak_rig(
 ) -> RigScenario:
     """The OAK-D-like head eye-in-hand on the R1 cell; reference camera "left".
 
-    ``sigma_px``: corner noise (pixels) of every camera, or per camera name. ``cameras``: which
-    of "left", "right", "rgb" the rig has (must include "left"). ``robot_noise_m``,
-    ``robot_noise_deg``: one-sigma noise injected into the measured ``T_base_tool`` (the model
-    is told through ``options``). ``view_offset_deg``: the left camera is R1's camera turned by
-    this angle about its y axis (the robot poses stay R1's), so the board sits off-centre and,
-    at 20 deg, the right camera loses up to a third of the corners in half of the frames.
+    ``sigma_px``: corner noise, one or per camera. ``cameras``: of "left", "right", "rgb" (with
+    "left"). ``robot_noise_m``, ``robot_noise_deg``: one-sigma noise of the measured poses.
+    ``view_offset_deg``: the left camera turned about its y axis by this, the board off-centre.
     Corners outside an image (2 px margin) are not detected.
     """
     sims = {c.name: c for c in oak_d_like()}
@@ -912,20 +810,12 @@ def oak_rig(
         measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
         frames.append(Frame(k, dets, T_base_tool=measured))
     problem = CalibrationProblem(
-        target,
-        tuple(sims[c].spec for c in cameras),
-        tuple(frames),
-        "eye_in_hand",
-        "robot",
-        options or ModelOptions(),
-        reference_camera="left",
+        target, tuple(sims[c].spec for c in cameras), tuple(frames), "eye_in_hand", "robot",
+        options or ModelOptions(), reference_camera="left",
     )
     truth = ModelState(
-        {c: sims[c].K.copy() for c in cameras},
-        {c: sims[c].dist.copy() for c in cameras},
-        {c: extr[c].copy() for c in cameras if c != "left"},
-        inv_T(T_tool_left)[None],
-        T_base_board,
+        {c: sims[c].K.copy() for c in cameras}, {c: sims[c].dist.copy() for c in cameras},
+        {c: extr[c].copy() for c in cameras if c != "left"}, inv_T(T_tool_left)[None], T_base_board,
         np.zeros(len(poses)),
     )
     return RigScenario(
@@ -939,12 +829,8 @@ Hide = Literal["none", "empty", "half"]
 def hide_views(
     problem: CalibrationProblem, hidden: Mapping[tuple[int, str], Hide]
 ) -> CalibrationProblem:
-    """The problem with some views removed or cut, keyed by (frame index, camera name).
-
-    ``"none"``: the camera has no detection in that frame; ``"empty"``: a detection with no
-    corners (a session records it so); ``"half"``: only the corners whose board x is below the
-    median of the detected ones (the board half out of view).
-    """
+    """The problem with views removed or cut, by (frame index, camera): ``"none"`` (no detection),
+    ``"empty"`` (no corners) or ``"half"`` (the corners whose board x is below their median)."""
     frames = list(problem.frames)
     for (fi, cam), how in hidden.items():
         f = frames[fi]
@@ -982,13 +868,9 @@ def camera_board_poses(
     roll_deg: float = 30.0,
     aim_spread_m: float = 0.06,
 ) -> np.ndarray:
-    """``T_cam_board`` (n, 4, 4): views of the target, each at its own orientation.
-
-    The camera looks at a point near the target centre (within ``aim_spread_m`` in the board
-    plane, so the target lands on different parts of the image) from ``distance_m``, its axis
-    tilted from the board normal by ``tilt_deg`` toward a random azimuth, rolled about the
-    optical axis by up to ``roll_deg``.
-    """
+    """``T_cam_board`` (n, 4, 4), each at its own orientation: the camera looks from ``distance_m``
+    at a point within ``aim_spread_m`` of the target centre, tilted ``tilt_deg`` from the board
+    normal toward a random azimuth and rolled by up to ``roll_deg``."""
     centre = target.points_m.mean(axis=0)
     out = []
     for _ in range(n_orientations):
@@ -1042,14 +924,10 @@ def classic_real_arm(
     detect: ImageModel | None = None,
     arm_scale: float = 0.0,
 ) -> Scenario:
-    """A classic hand-eye session (every frame at its own orientation, :func:`camera_board_poses`)
-    on a real arm: a UR5e whose kinematics err by about ``arm_mm`` and ``arm_deg``
-    (:func:`real_arm_poses`); the controller reports the planned poses. Views the arm cannot
-    reach (R1's cell moved within reach, :func:`_in_reach`) are drawn again. ``detect``: the
-    image model, as :func:`r1_real_arm`'s. ``arm_scale``: the arm's true positions are
-    ``1 + arm_scale`` times as far from its base as the reported ones (an arm whose link
-    lengths err alike; a calibrated arm's moves are right to about 0.1 %). A real classic
-    session: 28 frames, no two alike."""
+    """A classic hand-eye session (:func:`camera_board_poses`) on a UR5e whose kinematics err by
+    about ``arm_mm`` and ``arm_deg``; views out of reach are drawn again. ``detect``: as
+    :func:`r1_real_arm`'s. ``arm_scale``: the true positions are ``1 + arm_scale`` times as far from
+    the base as the reported ones."""
     target = r1_target()
     S = _in_reach()
     T_base_board = S @ r1_poses()[0]
@@ -1078,12 +956,7 @@ def classic_real_arm(
 #: The tag session's 7 orientations of the tag seen by the camera: (tilt about x, tilt about y,
 #: roll) deg
 TAG_TILTS_DEG = (
-    (0, 0, 0),
-    (30, 0, 10),
-    (-30, 0, -10),
-    (0, 30, 20),
-    (0, -30, -20),
-    (22, 22, 30),
+    (0, 0, 0), (30, 0, 10), (-30, 0, -10), (0, 30, 20), (0, -30, -20), (22, 22, 30),
     (-22, -22, -30),
 )
 #: The tag on the tool, facing away from the flange a few centimetres off its axis
@@ -1101,13 +974,9 @@ def tag_real_arm(
     side_m: float = 0.10,
     detect: ImageModel | None = None,
 ) -> Scenario:
-    """Eye-to-hand with one AprilTag (its 4 corners, ``side_m``) on the tool, R1's fixed camera:
-    ``n_frames`` frames in the 7 orientations of ``TAG_TILTS_DEG``, each at a random place in
-    the image 0.45-0.85 m away, on a UR5e whose kinematics err by about ``arm_mm`` and
-    ``arm_deg`` (:func:`real_arm_poses`; the controller reports the planned poses). Frames whose
-    tag reaches the image border keep the corners inside it. The session of a fixed camera
-    calibrated against a tag on the arm, with many frames spread over a large part of the
-    workspace: where a real arm's error is correlated from frame to frame."""
+    """Eye-to-hand with one AprilTag (``side_m``) on the tool and R1's fixed camera: ``n_frames`` in
+    the orientations of ``TAG_TILTS_DEG`` at random places 0.45-0.85 m away, on a UR5e erring by
+    about ``arm_mm`` and ``arm_deg``; a tag reaching the border keeps the corners inside."""
     target = square_tag(side_m)
     w, h = R1_SIZE_PX
     planned: list[np.ndarray] = []
@@ -1133,13 +1002,7 @@ def tag_real_arm(
         true, planned_a, np.eye(4), False, sigma_px, rng, detect, target, TAG_T_TOOL_TAG
     )
     return r1_scenario(
-        target,
-        frames,
-        False,
-        None,
-        sigma_px,
-        np.eye(4),
-        T_base_tool_true=true,
+        target, frames, False, None, sigma_px, np.eye(4), T_base_tool_true=true,
         T_tool_board=TAG_T_TOOL_TAG,
     )
 
@@ -1159,12 +1022,9 @@ def classic(
 ) -> Scenario:
     """A classic hand-eye session in the R1 cell: ``n_frames`` orientations, all different.
 
-    ``per_orientation`` > 1 adds translated frames at each orientation (a mixed session: then
-    ``n_frames`` orientations of ``per_orientation`` frames). ``target``: R1's ChArUco board by
-    default; ``distortion`` (5,): the lens (R1's by default). Robot poses are measured with
-    ``robot_noise_m`` per axis and ``robot_noise_deg`` per rotation-vector component.
-    ``T_cam_board`` (n, 4, 4): the views (:func:`camera_board_poses`) when the geometry must stay
-    the same over Monte-Carlo trials; ``rng`` then draws only the noise (and the translations).
+    ``per_orientation``: translated frames per orientation (a mixed session). ``target``,
+    ``distortion`` (5,): R1's by default. ``robot_noise_m``, ``robot_noise_deg``: one-sigma noise of
+    the measured poses. ``T_cam_board`` (n, 4, 4): fixed views, ``rng`` then drawing only the noise.
     """
     target = target or r1_target()
     dist = R1_DIST.copy() if distortion is None else np.asarray(distortion, dtype=float)
@@ -1196,8 +1056,7 @@ def board_in_view(s: Scenario) -> np.ndarray:
 NOISE_FREE: dict[str, Callable[[np.random.Generator], Scenario]] = {
     "R1": lambda rng: r1(rng, 0.0, 0.0, 0.0),
     "R1-eye-to-hand": lambda rng: r1_eye_to_hand(rng, 0.0, 0.0, 0.0),
-    "S1": lambda rng: s1(30.0, 0.0, rng),
-    "S2": lambda rng: s2(5, 0.0, rng),
+    "S1": lambda rng: s1(30.0, 0.0, rng), "S2": lambda rng: s2(5, 0.0, rng),
     "S3": lambda rng: s3(5, 0.0, rng),
 }
 
@@ -1239,11 +1098,9 @@ def drifting_arm(
     over_m: float = 0.06,
     detect: ImageModel | None = None,
 ) -> tuple[Scenario, np.ndarray]:
-    """The one-orientation session of ``r1_real_arm`` on an arm whose orientation drifts
-    linearly along the moves (the part of a real arm's error that mimics the principal point):
-    a random ``D`` (rad/m, largest gain ``drift_deg`` per ``over_m``) turns the tool by
-    ``D (t - mean t)``, plus 0.003 deg / 0.02 mm repeatability per stop; the controller
-    reports the commanded poses. Returns the scenario and ``D``."""
+    """The one-orientation session of ``r1_real_arm`` on an arm whose orientation drifts linearly
+    along the moves: a random ``D`` (rad/m, largest gain ``drift_deg`` per ``over_m``) turns the
+    tool by ``D (t - mean t)``, plus repeatability per stop. Returns the scenario and ``D``."""
     base = r1_real_arm(rng, sigma_px, translations_only=True)
     T_meas = np.stack([f.T_base_tool for f in base.problem.frames])
     D = rng.normal(size=(3, 3))
@@ -1276,48 +1133,33 @@ ONE_TAG_ROBOT_NOISE = (5e-5, 0.005)
 
 def one_tag_geometry() -> np.ndarray:
     """The one-tag row's camera-board poses: 7 orientations of an 8 cm tag (seed 7)."""
-    return camera_board_poses(
-        np.random.default_rng(7), 7, square_tag(0.08), aim_spread_m=0.15
-    )
+    return camera_board_poses(np.random.default_rng(7), 7, square_tag(0.08), aim_spread_m=0.15)
 
 
 def one_tag_session(rng: np.random.Generator, geometry: np.ndarray) -> Scenario:
     """The one-tag row's session: eye-to-hand, 5 frames at each of ``geometry``'s 7
     orientations, the tag's 4 corners, no distortion."""
     return classic(
-        rng,
-        7,
-        ONE_TAG_SIGMA_PX,
-        *ONE_TAG_ROBOT_NOISE,
-        eye_in_hand=False,
+        rng, 7, ONE_TAG_SIGMA_PX, *ONE_TAG_ROBOT_NOISE, eye_in_hand=False,
         options=ModelOptions(
             distortion=NO_DISTORTION, robot_noise_m=ONE_TAG_ROBOT_NOISE[0],
             robot_noise_deg=ONE_TAG_ROBOT_NOISE[1],
         ),
-        target=square_tag(0.08),
-        per_orientation=5,
-        distortion=np.zeros(5),
-        T_cam_board=geometry,
+        target=square_tag(0.08), per_orientation=5, distortion=np.zeros(5), T_cam_board=geometry,
     )
 
 
 def scale_pixels(problem: CalibrationProblem, factor: Mapping[str, float]) -> CalibrationProblem:
-    """The problem with camera ``c``'s pixel coordinates and image size multiplied by
-    ``factor[c]`` (about pixel (0, 0)).
-
-    The camera ``K`` becomes ``diag(f, f, 1) K`` (distortion acts before ``K`` and is unchanged)
-    and its corner noise ``f sigma``: calibrating the scaled problem with the solver's equal
-    row weights is the maximum-likelihood estimate with per-camera weights ``1 / sigma_c^2``
-    when ``factor[c] = sigma_ref / sigma_c``.
-    """
+    """The problem with camera ``c``'s pixels and image size multiplied by ``factor[c]``: ``K``
+    becomes ``diag(f, f, 1) K``, distortion unchanged, so equal row weights on it are per-camera
+    weights ``1 / sigma_c^2`` when ``factor[c] = sigma_ref / sigma_c``."""
     frames = []
     for fr in problem.frames:
         dets = {c: Detection(d.ids, d.px * factor.get(c, 1.0)) for c, d in fr.detections.items()}
         frames.append(replace(fr, detections=dets))
     cams = tuple(
         CameraSpec(
-            c.name,
-            round(c.width * factor.get(c.name, 1.0)),
+            c.name, round(c.width * factor.get(c.name, 1.0)),
             round(c.height * factor.get(c.name, 1.0)),
         )
         for c in problem.cameras
@@ -1326,10 +1168,8 @@ def scale_pixels(problem: CalibrationProblem, factor: Mapping[str, float]) -> Ca
 
 
 def estimate_homographies(board_xy: np.ndarray, px: np.ndarray) -> np.ndarray:
-    """Homographies (n, 3, 3): normalised DLT, then reprojection-error refinement, per view.
-
-    ``board_xy`` (N, 2) l.u.; ``px`` (n, N, 2) pixels.
-    """
+    """Homographies (n, 3, 3) per view of ``board_xy`` (N, 2) l.u. seen at ``px`` (n, N, 2):
+    normalised DLT, then reprojection-error refinement."""
     return np.array([refine_homography(homography_dlt(board_xy, p), board_xy, p) for p in px])
 
 
@@ -1422,11 +1262,8 @@ def cell_overrides(fx_rel: float = 0.0, cx_px: float = 0.0, he_deg: float = 0.0)
 
 
 def same_cell(cfg, cell_seed: int, run_seed: int) -> SimulatedCell:  # noqa: ANN001
-    """The simulated cell of ``cfg`` built with ``cell_seed`` (its arm's kinematic error and
-    the board's pose: the cell itself), run with fresh random streams from ``run_seed`` (the
-    arm's repeatability and pose noise, the cameras' image and detector noise): two runs of
-    one cell are the same arm in front of the same board, as in a real cell. (A plain
-    ``seed`` draws a new arm and a new board pose for every run.)"""
+    """The simulated cell of ``cfg`` built with ``cell_seed`` (its arm's error and board pose), run
+    with fresh noise from ``run_seed``: two runs of one cell."""
     cell = SimulatedCell.from_config(cfg, cell_seed)
     robot_rng, camera_rng = np.random.SeedSequence([cell_seed, run_seed]).spawn(2)
     cell.robot.rng = np.random.default_rng(robot_rng)

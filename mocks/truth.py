@@ -26,26 +26,17 @@ P_2SIGMA = float(norm.cdf(2.0) - norm.cdf(-2.0))  # 0.9545
 P_3SIGMA = float(norm.cdf(3.0) - norm.cdf(-3.0))  # 0.9973
 CHI2_3_2SIGMA = float(chi2.ppf(P_2SIGMA, 3))
 CHI2_3_3SIGMA = float(chi2.ppf(P_3SIGMA, 3))
-#: a row's verdict: miscalibrated when a calibrated Gaussian estimator would give its sum of
-#: squared normalised errors (or fewer / more trials inside 2 sigma) with probability below
-#: this (two-sided; the tail test one-sided). Three tests on some 40 rows: about one false
-#: alarm per report is sampling noise. The report's ranges and intervals are at this level
+#: A row is miscalibrated when a calibrated Gaussian estimator would give its errors with
+#: probability below this (two-sided; the tail test one-sided); the reports' intervals too.
 VERDICT_P = 0.01
 
 
 @dataclass(frozen=True)
 class Calibration:
-    """What a row's normalised errors say against a calibrated Gaussian estimator.
-
-    ``dof`` per trial: 1 for a scalar error / std, 3 for a 3-vector's squared Mahalanobis
-    distance (chi-square(3)). Coverage: trials within 2 sigma (scalar) or below
-    chi-square(3)'s 95.45 % point, and the binomial range that holds that count with
-    probability 1 - ``VERDICT_P``; beyond 3 sigma likewise (its 99.73 % point). ``scale``:
-    the rms of error / std per degree of freedom, the factor by which the reported std is too
-    small (above 1) or too large, with its 1 - ``VERDICT_P`` interval from the
-    chi-square(dof x trials) law of the sum; ``verdict``: "consistent" or
-    what is off, at the two-sided level ``VERDICT_P`` of either test.
-    """
+    """What a row's normalised errors say against a calibrated Gaussian estimator: the coverage
+    inside 2 and beyond 3 sigma with their binomial ranges, the ``scale`` (rms of error / std per
+    degree of freedom) with its chi-square interval, all at the level ``VERDICT_P``, and the
+    ``verdict``: "consistent" or what is off."""
 
     trials: int
     dof: int
@@ -64,13 +55,8 @@ def _two_sided(cdf_below: float, sf_above: float) -> float:
 
 
 def calibration(values: list[float] | np.ndarray, dof: int) -> Calibration:
-    """Compare normalised errors with a calibrated Gaussian estimator (:class:`Calibration`).
-
-    ``values``: error / std per trial (``dof`` 1) or the squared Mahalanobis distance (``dof``
-    3). The sum of squares over ``n`` trials is chi-square(``dof n``) when the reported std is
-    right; the count inside 2 sigma is binomial(``n``, 0.9545), beyond 3 sigma binomial(``n``,
-    0.0027).
-    """
+    """Compare normalised errors ``values`` (error / std, ``dof`` 1, or squared Mahalanobis
+    distances, ``dof`` 3) with a calibrated Gaussian estimator (:class:`Calibration`)."""
     v = np.asarray(values, dtype=float)
     n = len(v)
     q = v**2 if dof == 1 else v  # squared distance per trial
@@ -101,16 +87,8 @@ def calibration(values: list[float] | np.ndarray, dof: int) -> Calibration:
     else:
         verdict = "consistent"
     return Calibration(
-        n,
-        dof,
-        inside,
-        _binomial_range(n, P_2SIGMA),
-        beyond,
-        _binomial_range(n, 1.0 - P_3SIGMA),
-        scale,
-        scale_range,
-        worst,
-        verdict,
+        n, dof, inside, _binomial_range(n, P_2SIGMA), beyond, _binomial_range(n, 1.0 - P_3SIGMA),
+        scale, scale_range, worst, verdict,
     )
 
 
@@ -152,17 +130,8 @@ def rig_bounds(
     truth: ModelState,
     sigma_by_camera_px: Mapping[str, float],
 ) -> tuple[NamedCovariance, NamedCovariance]:
-    """The Cramer-Rao bound with per-camera pixel noise, and an equal-weight estimator's.
-
-    ``sigma_by_camera_px``: one-sigma corner noise (pixels, each axis) of every camera. Robot
-    pose prior rows (``structure.pose_sigma``) are whitened by the model itself.
-
-    Returns
-    -------
-    crb : the bound, rows weighed by their camera's noise (the named quantities).
-    unit_weight : the sandwich covariance of an estimator that weighs all pixel rows alike and
-        the prior rows by the pooled noise.
-    """
+    """(the Cramer-Rao bound with per-camera pixel noise ``sigma_by_camera_px``, the sandwich
+    covariance of an estimator weighing all pixel rows alike), for the named quantities."""
     sig = dict(sigma_by_camera_px)
     ref = sig[problem.reference]
     crb = predicted_covariance(problem, truth, ref, structure=structure, camera_sigma_px=sig)
@@ -173,11 +142,8 @@ def rig_bounds(
 def split_halves(
     groups: Sequence[int], rng: np.random.Generator, by_group: bool = False
 ) -> np.ndarray:
-    """A random split of a session's frames into two halves: True for half A (per frame).
-
-    ``groups``: each frame's orientation group (all equal where there are none). Within each
-    group half its frames go to A (the odd one to either at random); ``by_group``: whole groups
-    instead, half of them to A, so an error shared by one group's frames falls in one half.
+    """A random split of a session's frames into halves: True for half A, per frame. ``groups``:
+    each frame's orientation group; half of each group to A, or with ``by_group`` half the groups.
     """
     g = np.asarray(groups)
     in_a = np.zeros(len(g), dtype=bool)
@@ -193,10 +159,8 @@ def split_halves(
 
 
 def halves_z(a: float, std_a: float, b: float, std_b: float) -> float:
-    """The halves' difference in the std both report: ``(a - b) / sqrt(std_a^2 + std_b^2)``.
-
-    Over random splits its rms is about 1 when the std is honest (below 1 when the halves
-    share an error, such as the arm's smooth error, that the std counts)."""
+    """``(a - b) / sqrt(std_a^2 + std_b^2)``: over random splits its rms is about 1 for an honest
+    std."""
     return float((a - b) / np.hypot(std_a, std_b))
 
 

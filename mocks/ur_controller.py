@@ -1,71 +1,8 @@
 """A loopback Universal Robots controller for the real ur-rtde client (tests and rehearsals).
 
-Run as its own process (``python -m slidecal.mocks.ur_controller [options]``): the ur-rtde
-constructors hold Python's GIL while they block, so the controller must never be a thread of
-the process that drives it. It binds one loopback address (``--host``, default 127.0.0.1; any
-127.x.y.z works on Linux, so parallel runs do not collide) on the fixed UR ports:
-
-- 30004 RTDE (protocol 2; big-endian; header uint16 size incl. header + uint8 type):
-  ``V`` 86 protocol version (answer uint8 accepted), ``v`` 118 controller version (4 x uint32),
-  ``O`` 79 output recipe (request: float64 frequency + comma-separated names; answer: uint8
-  recipe id + comma-separated types, ``NOT_FOUND`` for an unknown name), ``I`` 73 input recipe
-  (answer: uint8 recipe id + types, numbered 1, 2, ... per connection), ``S`` 83 start and
-  ``P`` 80 pause (answer uint8 success), ``U`` 85 data package (uint8 recipe id + fields).
-- 30003 script port: the client writes its control script here; once a top-level ``end``
-  line arrives the "script" runs (runtime state 2, playing) and the controller plays its
-  register protocol: command id in ``input_int_register_0``, doubles in
-  ``input_double_register_0..``; ``output_int_register_0`` is 1 (ready) while the command is 0
-  and 2 (done) once a command is processed; results in ``output_double_register_0..5`` or
-  ``output_int_register_1`` (yes/no answers). A command whose script lines the client left out
-  for this controller version (ur-rtde drops lines tagged ``$5.10|3.15`` etc. below that
-  version) is signalled done without effect, so its answer register keeps whatever the previous
-  command left, as on a real controller. The registers are counted from the script's
-  ``reg_offset_int`` / ``reg_offset_float`` (24 when the client uses the upper range,
-  ``FLAG_UPPER_RANGE_REGISTERS``). With ``--fieldbus`` (EtherNet/IP, PROFINET or MODBUS on) the
-  input registers 0-23 are taken: an input recipe naming one is answered ``IN_USE``.
-- 29999 dashboard: one line per command, a welcome line on connect; the commands a PolyScope
-  version lacks (``is in remote control``, ``get serial number`` before 5.6) are answered
-  ``could not understand``.
-
-What it models (options): the PolyScope version (``--polyscope 3.15|5.5|5.9|5.12``: the RTDE
-controller version, the dashboard's commands, the script the client uploads), the robot model
-(``--model``, the kinematics of :mod:`slidecal.drivers.ur_kinematics`) and start joints
-(``--start-q``), the pendant's speed slider (``--speed-slider``: ``target_speed_fraction``,
-as a controller reports it; ``speed_scaling`` is the trajectory limiter's factor, 1 here; every
-motion runs at their product), the robot and safety modes
-(``--robot-mode``, ``--safety-mode``: 2 is reduced mode, where the arm moves normally), local
-or remote control (``--local``), a program already running (``--program NAME``: playing until
-stopped from the dashboard or replaced by an uploaded script), the payload's centre of gravity
-set on the pendant (``--payload-cog``), a fieldbus on the input registers (``--fieldbus``), the
-error of the reported pose
-(``--noise-mm``, ``--noise-deg``, ``--seed``: drawn once per rest pose, as a kinematic model's
-error is), a host that drops every packet (``--silent``: connections are never answered,
-not even refused) and a host too busy to run this process (``--starve S,EVERY_S``). The state
-says how long the event loop went unscheduled at most (``cycle_gap_max_s``): a Python process
-on a loaded host misses its 500 Hz stream where a controller does not.
-
-Arm model: MOVEL (3) moves the TCP on a straight line at the commanded speed times the slider
-(rotation interpolated on the geodesic at 1 rad/s times the slider), starting
-``MOTION_LATENCY_S`` after the command is acknowledged; STOPL (33) stops at once,
-SET_TCP (29), SET_PAYLOAD (17: a zero CoG keeps the current one only where the script has its
-``$5.0`` lines, PolyScope 5; on 3.x the CoG becomes the flange centre), GET_TCP_OFFSET (40),
-GET_INVERSE_KINEMATICS (30, 46) answer the analytic solution nearest ``qnear`` and, like
-URScript's ``get_inverse_kin``, stop the script with a runtime error when there is none;
-IS_POSE_WITHIN_SAFETY_LIMITS (36) and the has-solution variants (60, 61) answer 1/0;
-STOP_SCRIPT (255) ends the script. Poses below the plane ``z = SAFETY_Z_MIN_M`` are outside
-the safety limits.
-
-Control channel: one command per line on stdin, one JSON line per answer on stdout:
-``state`` (the robot state and logs), ``pstop`` / ``estop`` (a protective / emergency stop
-halfway through the next move: safety mode 3 / 7, the script stops), ``stall`` (the next move
-stops halfway and never finishes, no fault raised), ``drop_next`` / ``freeze_next`` (``drop`` /
-``freeze`` halfway through the next move), ``freeze`` (a silent network loss: open sockets stay
-open but nothing is sent or answered and new connections are never answered), ``drop`` (close
-every connection and listener; a running script keeps running), ``reopen`` (listen again after
-a ``drop``: the link is back), ``slider X``, ``safety N``, ``robotmode N``, ``program NAME``,
-``quit`` (also on end of stdin, so the controller never outlives its parent's pipe).
-At start it prints ``{"ready": true, ...}`` or ``{"error": ...}`` (exit code 2), e.g. when a
-port is taken.
+Run as its own process (``python -m slidecal.mocks.ur_controller --help``): the ur-rtde
+constructors hold the GIL while they block. Its ports, register protocol, modelled PolyScope
+versions, arm model and stdin control channel: docs/DRIVERS.md.
 """
 
 
@@ -487,16 +424,13 @@ class Robot:
         safety = SAFETY_MODE_NAMES.get(self.safety_mode, "UNDEFINED_SAFETY_MODE")
         name = self.program or ("<unnamed>" if not running else "rtde_control")
         answers = {
-            "PolyscopeVersion": self.polyscope_text,
-            "get serial number": SERIAL_NUMBER,
+            "PolyscopeVersion": self.polyscope_text, "get serial number": SERIAL_NUMBER,
             "is in remote control": "true" if self.remote else "false",
             "robotmode": "Robotmode: " + ROBOT_MODE_NAMES.get(self.robot_mode, "NO_CONTROLLER"),
-            "safetymode": "Safetymode: " + safety,
-            "safetystatus": "Safetystatus: " + safety,
+            "safetymode": "Safetymode: " + safety, "safetystatus": "Safetystatus: " + safety,
             "running": f"Program running: {'true' if running else 'false'}",
             "programState": ("PLAYING " if running else "STOPPED ") + name,
-            "get robot model": self.model.name.rstrip("e"),
-            "close popup": "closing popup",
+            "get robot model": self.model.name.rstrip("e"), "close popup": "closing popup",
             "close safety popup": "closing safety popup",
         }
         if cmd in answers:
@@ -781,7 +715,7 @@ def _floats(text: str) -> list[float]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The controller's command line (see the module docstring)."""
+    """The controller's command line (docs/DRIVERS.md)."""
     p = argparse.ArgumentParser(
         prog="python -m slidecal.mocks.ur_controller",
         description="A loopback UR controller for the real ur-rtde client.",

@@ -1,13 +1,6 @@
 """The capture loop of ``slidecal run`` and ``slidecal check``: connect the cell's robot and
-cameras, lock the cell, move through a plan, capture, detect and write the session.
-
-Every captured frame is on disk the moment it is captured
-(:class:`~slidecal.routines.session.SessionWriter`). On a ``HardwareFault``, Ctrl-C, SIGTERM or
-SIGHUP the robot is stopped, the event is written into the session (``events``, ``status:
-aborted``) and the exception raised again with where the frames are. A dropped frame or an
-image without corners is captured again (``retries``). Two runs on one cell cannot interleave
-(:mod:`slidecal.routines.ops.lock`).
-"""
+cameras, lock the cell, move through a plan, capture, detect and write the session frame by
+frame; on a fault or an interrupt stop the robot and mark the session aborted."""
 
 from __future__ import annotations
 
@@ -58,11 +51,7 @@ def _connect_real(cfg: CellConfig) -> tuple[Any, Any]:
     rig = camera_rig(cfg)  # first: refuses a missing library or a bad camera field
     r = cfg.robot
     robot = URRobot(
-        r.host,
-        max_speed_mps=r.speed_mps,
-        max_accel_mps2=r.accel_mps2,
-        tcp=r.tcp,
-        model=r.model,
+        r.host, max_speed_mps=r.speed_mps, max_accel_mps2=r.accel_mps2, tcp=r.tcp, model=r.model,
         **r.ur_options,  # take_control, payload
     )
     return robot, rig
@@ -95,11 +84,10 @@ def record_session(
     extended: str | None = None,
     log: Any = None,
 ) -> Recorded:
-    """Connect, lock the cell, move through ``plan`` (from pose ``start``), capture, detect and
-    write the session ``out`` (``resume``: append to the session there; ``extended``: the plan
-    grew, why, and ``plan.yaml`` is rewritten). ``log``: the run's open rerun log, to go on
-    with. On a fault or an interrupt (Ctrl-C, SIGTERM, SIGHUP) the robot is stopped, the
-    session marked aborted with the event, and the exception raised again."""
+    """Connect, lock the cell, move through ``plan`` from pose ``start``, capture, detect and write
+    the session ``out`` (``resume``: append to it; ``extended``: the plan grew, why). ``log``: the
+    run's open rerun log. On a fault or an interrupt the robot is stopped, the session marked
+    aborted with the event, and the exception raised again."""
     truth: dict[str, Any] | None = None
     if cfg.simulated:
         if cell is None:
@@ -167,15 +155,8 @@ def _open_writer(
     extra.update(more or {})
     try:
         return SessionWriter(
-            out,
-            cfg.target,
-            specs,
-            mount=cfg.mount,
-            knowledge="robot",
-            options=cfg.options,
-            reference_camera=cfg.reference_camera,
-            simulation=truth,
-            extra=extra,
+            out, cfg.target, specs, mount=cfg.mount, knowledge="robot", options=cfg.options,
+            reference_camera=cfg.reference_camera, simulation=truth, extra=extra,
             sockets=sockets(cfg) or {},
         )
     except OSError as e:
@@ -189,13 +170,8 @@ def _open_log(out: Path, cfg: CellConfig, specs: tuple, recording: bool, spawn: 
 
     try:
         return RerunLog(
-            out / RECORDING_FILE if recording else None,
-            specs,
-            cfg.target,
-            cfg.mount,
-            cfg.approx_T_hand_eye,
-            cfg.approx_T_target,
-            spawn=spawn,
+            out / RECORDING_FILE if recording else None, specs, cfg.target, cfg.mount,
+            cfg.approx_T_hand_eye, cfg.approx_T_target, spawn=spawn,
         )
     except Exception as e:  # noqa: BLE001 - rerun raises its own types for a missing viewer
         msg = " ".join(str(e).split()).split(". ")[0] or type(e).__name__
@@ -261,10 +237,8 @@ def _detect_all(images, cfg: CellConfig):
         rep = detect(img, cfg.target)
         detections[name] = rep.detection
         quality[name] = {
-            "ok": bool(rep.ok),
-            "reasons": list(rep.reasons),
-            "homography_rms_px": float(rep.homography_rms_px),
-            "coverage": float(rep.coverage),
+            "ok": bool(rep.ok), "reasons": list(rep.reasons),
+            "homography_rms_px": float(rep.homography_rms_px), "coverage": float(rep.coverage),
             "n_corners": int(len(rep.detection.ids)),
         }
     return detections, quality

@@ -1,19 +1,9 @@
-"""The ``slidecal`` command line.
-
-``slidecal run [--config cell.yaml] [--out SESSION_DIR] [--plan plan.yaml] [--install STORE]
-[--resume SESSION_DIR] ...``, ``slidecal solve SESSION_DIR [--out result.yaml]``, ``slidecal
-check --config CELL --installed STORE``, ``slidecal rollback STORE``. Every ``SlidecalError``
-(and every failure to read or write a file) is printed as one line ``slidecal: <message>`` on
-stderr, no traceback.
-
-Exit codes (docs/UNATTENDED.md): 0 accepted (run, solve) or ok (check); 2 bad input; 3 hardware
-fault; 4 rejected; 5 drifted; 6 accepted but not installed (less certain than the installed
-calibration: ``--force``); 130 interrupted (Ctrl-C, SIGTERM or SIGHUP: the robot is stopped,
-the frames kept, the session marked aborted; ``slidecal run --resume`` continues it).
-
-Adding a subcommand: write a module with ``add_arguments(parser)`` and ``main(args) -> int``
-and name it in :data:`SUBCOMMANDS`.
-"""
+"""The ``slidecal`` command line: ``run``, ``solve``, ``check``, ``rollback`` and the others of
+:data:`SUBCOMMANDS` (a subcommand is a module with ``add_arguments(parser)`` and
+``main(args) -> int``). Every ``SlidecalError`` and every failure to read or write a file is one
+line ``slidecal: <message>`` on stderr, no traceback; the exit codes are in docs/UNATTENDED.md
+(0 accepted or ok, 2 bad input, 3 hardware fault, 4 rejected, 5 drifted, 6 not installed,
+130 interrupted)."""
 
 from __future__ import annotations
 
@@ -35,12 +25,9 @@ EXIT_INTERRUPTED = 130
 #: Only the module of the command given is imported: ``slidecal solve`` imports what it
 #: solves with, not the simulator, the planner or the drivers.
 SUBCOMMANDS: dict[str, str] = {
-    "run": "slidecal.routines.run",
-    "solve": "slidecal.routines.solve",
-    "check": "slidecal.routines.ops.check",
-    "rollback": "slidecal.routines.ops.install",
-    "plan": "slidecal.routines.planner",
-    "rehearse": "slidecal.routines.ops.rehearse",
+    "run": "slidecal.routines.run", "solve": "slidecal.routines.solve",
+    "check": "slidecal.routines.ops.check", "rollback": "slidecal.routines.ops.install",
+    "plan": "slidecal.routines.planner", "rehearse": "slidecal.routines.ops.rehearse",
     "flash": "slidecal.routines.ops.flash",
 }
 

@@ -2,50 +2,9 @@
 
 THE ROBOT NEVER MOVES unless the file names real hardware: ``robot.driver: ur`` with a
 ``host``. Without a file, the packaged simulated cell (``mocks/default_cell.yaml``) is used.
-
-Layout (every field but ``target`` and the approximate target pose has a default)::
-
-    mount: eye_in_hand             # eye_in_hand (camera on the tool) | eye_to_hand
-    robot:
-      driver: simulated            # simulated | ur
-      host: 192.168.1.10           # ur only: the controller's address
-      model: UR5e                  # UR3e | UR5e | UR10e | UR16e
-      tcp: [0, 0, 0, 0, 0, 0]      # TCP on the flange as a UR pose (what the controller uses)
-      speed_mps: 0.10
-      accel_mps2: 0.5
-      settle_s: 0.5
-      start_pose: [x, y, z, rx, ry, rz]   # simulated only: where the arm starts
-      workspace: {min_m: [x, y, z], max_m: [x, y, z]}   # TCP box (base frame) plans must keep
-      take_control: false          # ur only: true lets slidecal stop a program running on it
-      payload: {mass_kg: 1.2, cog_m: [0, 0, 0.05]}      # ur only, optional: set at connect
-    cameras:
-      driver: simulated            # simulated | oak | uvc
-      reference: left              # rigs: the camera the others are expressed against
-      list:                        # oak / uvc: name, width, height and driver options
-        - {name: left, width: 1280, height: 800, socket: CAM_B}
-    target: {kind: charuco, squares_x: 11, squares_y: 8, square_size_m: 0.03,
-             marker_size_m: 0.022, dictionary: DICT_5X5_100}   # as in session.yaml
-    approximate:                   # rough geometry for planning (a tape measure is enough)
-      T_base_board: {rpy_deg: [180, 0, 0], t_m: [0.3, 0.07, 0.0]}   # eye_in_hand
-      T_tool_cam: {rpy_deg: [0, 0, 90], t_m: [0.03, -0.06, 0.045]}  # eye_in_hand
-      # eye_to_hand: T_base_cam and T_tool_board
-      standoff_m: 0.5              # camera-to-board distance the plan keeps
-    simulation:                    # simulated cells only: the truth
-      seed: 0
-      camera_preset: r1            # r1 | oak_d_like (fills cameras and rig below)
-      cameras: {cam: {width, height, K, distortion, blur_sigma_px, noise_std, exposure}}
-      T_tool_cam: {rpy_deg | R | q_wxyz, t_m | t_mm}  # or T_base_cam (eye_to_hand); ref. camera
-      T_base_board: {rpy_deg | R | q_wxyz, t_m | t_mm}  # or T_tool_board (eye_to_hand)
-      rig: {right: {R, t_m}}              # T_<name>_<reference> of the other cameras
-      noise: {robot_mm: 0.05, robot_deg: 0.005}
-      target_jitter: {mm: 2.0, deg: 0.5}  # the target's true pose moves this much per seed
-    plan: {tilts_deg: [15, 25, 35], step_mm: [40, 80]}   # the planner's options (PLAN_KEYS)
-    options: {skew: false, unit_aspect: false, distortion: [true, true, true, true, false],
-              robot_noise_mm: 0.05, robot_noise_deg: 0.005}   # robot: 1-sigma pose error per axis
-
 Every key, its unit and its default: docs/FORMATS.md. The keys each section accepts are declared
-once, in :data:`CELL_KEYS`; an unknown key is refused with the nearest valid one. Every error
-names the file and the field, says what is wrong and how to fix it, in one line.
+once, in :data:`CELL_KEYS`; an unknown key is refused with the nearest valid one, and every
+error names the file and the field, what is wrong and how to fix it, in one line.
 """
 
 from __future__ import annotations
@@ -96,50 +55,30 @@ CELL_MOUNTS = ("eye_in_hand", "eye_to_hand")
 CAMERA_PRESETS = ("r1", "oak_d_like")
 DEFAULT_CELL = "default_cell.yaml"
 
-#: The keys every section of a cell file accepts: add a new key here (one place per section),
-#: then read it in that section's function below. ``target`` and ``options`` take
-#: :data:`~slidecal.routines.session.TARGET_KEYS` and ``OPTIONS_KEYS`` (shared with sessions);
-#: ``plan`` takes :data:`PLAN_KEYS`.
-#: ``simulation.kinematic_error``: the simulated arm's systematic error and its defaults
-#: (``slidecal.mocks.robot.KinematicError``: flange errors of this size, mm and deg rms, on top of
-#: per-stop repeatability).
+#: ``simulation.kinematic_error``'s defaults (``slidecal.mocks.robot.KinematicError`` sizes).
 KINEMATIC_ERROR_DEFAULTS = {
-    "mm": 1.0,
-    "deg": 0.1,
-    "repeatability_mm": 0.03,
-    "repeatability_deg": 0.005,
+    "mm": 1.0, "deg": 0.1, "repeatability_mm": 0.03, "repeatability_deg": 0.005,
 }
 
 #: ``simulation.cameras.<name>.photo``: the fields of ``slidecal.mocks.render.Photo``
 #: (photograph-like imaging) a cell file may set.
 PHOTO_KEYS = tuple(f.name for f in fields(Photo))
 
+#: The keys every section of a cell file accepts (``target``, ``options`` and ``plan`` take
+#: ``TARGET_KEYS``, ``OPTIONS_KEYS`` and :data:`PLAN_KEYS`): add a key here, then read it.
 CELL_KEYS: dict[str, tuple[str, ...]] = {
     "": CELL_SECTIONS,
     "robot": (
-        "driver",
-        "host",
-        "model",
-        "tcp",
-        "speed_mps",
-        "accel_mps2",
-        "settle_s",
-        "start_pose",
-        "start_q",
-        "workspace",
-        "limits",
+        "driver", "host", "model", "tcp", "speed_mps", "accel_mps2", "settle_s", "start_pose",
+        "start_q", "workspace", "limits",
         "take_control",  # ur only; validated by slidecal.drivers.ur.cell_options
         "upper_range_registers",  # ur only; likewise
         "payload",
     ),
     "robot.workspace": ("min_m", "max_m"),
     "robot.limits": (
-        "max_speed_mps",
-        "max_accel_mps2",
-        "max_angular_speed_deg_s",
-        "max_angular_accel_deg_s2",
-        "z_min_m",
-        "move_timeout_s",
+        "max_speed_mps", "max_accel_mps2", "max_angular_speed_deg_s", "max_angular_accel_deg_s2",
+        "z_min_m", "move_timeout_s",
     ),
     # the camera drivers' own fields are declared beside the code that reads them
     "cameras": OAK_RIG_KEYS,
@@ -148,60 +87,29 @@ CELL_KEYS: dict[str, tuple[str, ...]] = {
     "approximate.eye_in_hand": ("T_base_board", "T_tool_cam", "standoff_m"),
     "approximate.eye_to_hand": ("T_base_cam", "T_tool_board", "standoff_m"),
     "simulation": (
-        "seed",
-        "camera_preset",
-        "cameras",
-        "rig",
-        "noise",
-        "target_jitter",
-        "kinematic_error",
+        "seed", "camera_preset", "cameras", "rig", "noise", "target_jitter", "kinematic_error",
         "board_bow_mm",
     ),
     "simulation.cameras.*": (
-        "width",
-        "height",
-        "K",
-        "distortion",
-        "blur_sigma_px",
-        "noise_std",
-        "exposure",
-        "colour",
-        "vignetting",
-        "photo",
+        "width", "height", "K", "distortion", "blur_sigma_px", "noise_std", "exposure", "colour",
+        "vignetting", "photo",
     ),
     # ``photo: true`` takes every default of ``slidecal.mocks.render.Photo``; a mapping sets some
     "simulation.cameras.*.photo": PHOTO_KEYS,
-    "simulation.noise": ("robot_mm", "robot_deg"),
-    "simulation.target_jitter": ("mm", "deg"),
+    "simulation.noise": ("robot_mm", "robot_deg"), "simulation.target_jitter": ("mm", "deg"),
     "simulation.kinematic_error": ("mm", "deg", "repeatability_mm", "repeatability_deg"),
 }
 
 #: Keys of the cell file's ``plan:`` block, the planner's options (slidecal.routines.planner).
 PLAN_KEYS = (
-    "goal",
-    "max_duration_s",
-    "tilts_deg",
-    "azimuths_deg",
-    "standoff_factors",
-    "step_mm",
-    "margin_px",
-    "depth_m",
-    "corner_noise_px",
-    "capture_s",
-    "fx_px",
-    "hfov_deg",
-    "min_groups",
-    "min_frames_per_group",
-    "max_groups",
-    "max_frames_per_group",
-    "extend_max_s",
+    "goal", "max_duration_s", "tilts_deg", "azimuths_deg", "standoff_factors", "step_mm",
+    "margin_px", "depth_m", "corner_noise_px", "capture_s", "fx_px", "hfov_deg", "min_groups",
+    "min_frames_per_group", "max_groups", "max_frames_per_group", "extend_max_s",
 )
 GOAL_KEYS = ("fx_rel_std", "hand_eye_rot_std_deg", "hand_eye_t_std_mm")
 #: Largest tilt of the view against the board normal: the detector is tested to 40 deg.
 MAX_TILT_DEG = 40.0
-#: Corner noise assumed for the rendered simulated camera and for a real camera. The default
-#: cell's photograph-like images give about 0.043 px (docs/PLANNER.md); a run that misses its
-#: limits extends its plan with the noise it measured (docs/UNATTENDED.md).
+#: Corner noise assumed for the rendered simulated camera and for a real camera (docs/PLANNER.md).
 SIM_CORNER_NOISE_PX = 0.03
 REAL_CORNER_NOISE_PX = 0.1
 #: Keys of the ``install:`` section (:class:`InstallSettings`).
@@ -220,11 +128,8 @@ RETIRED_PLAN_KEYS = {
 
 @dataclass(frozen=True)
 class PlanGoal:
-    """What the plan must achieve: one-sigma targets (None: no target) and a time budget.
-
-    ``fx_rel_std``: std of fx over fx; ``hand_eye_rot_std_deg``: root of the trace of the
-    hand-eye rotation covariance, degrees; ``hand_eye_t_std_mm``: same for its translation.
-    """
+    """What the plan must achieve: one-sigma targets (None: none; the hand-eye's are roots of the
+    covariance traces) and a time budget."""
 
     fx_rel_std: float | None = 5e-4
     hand_eye_rot_std_deg: float | None = 0.03
@@ -305,8 +210,7 @@ def _plan(
     if not 0 < depth[0] < depth[1]:
         raise f.error("depth_m", "must be [near, far] with 0 < near < far (metres)")
     noise = f.number(
-        "corner_noise_px",
-        SIM_CORNER_NOISE_PX if sim is not None else REAL_CORNER_NOISE_PX,
+        "corner_noise_px", SIM_CORNER_NOISE_PX if sim is not None else REAL_CORNER_NOISE_PX,
         positive=True,
     )
     fx = _nominal_fx(f, spec)
@@ -324,23 +228,12 @@ def _plan(
     max_groups = f.integer("max_groups", 6, minimum=min_groups)
     max_frames = f.integer("max_frames_per_group", 8, minimum=min_frames)
     return PlanSettings(
-        goal=goal,
-        K=K,
-        dist=dist,
-        fx_px=fx,
-        tilts_deg=tilts,
-        azimuths_deg=az,
-        standoff_factors=factors,
-        standoffs_m=standoffs,
-        step_mm=steps,
+        goal=goal, K=K, dist=dist, fx_px=fx, tilts_deg=tilts, azimuths_deg=az,
+        standoff_factors=factors, standoffs_m=standoffs, step_mm=steps,
         margin_px=f.number("margin_px", 20.0, minimum=0.0),
-        depth_m=(float(depth[0]), float(depth[1])),
-        corner_noise_px=noise,
-        capture_s=f.number("capture_s", 0.05, minimum=0.0),
-        min_groups=min_groups,
-        min_frames_per_group=min_frames,
-        max_groups=max_groups,
-        max_frames_per_group=max_frames,
+        depth_m=(float(depth[0]), float(depth[1])), corner_noise_px=noise,
+        capture_s=f.number("capture_s", 0.05, minimum=0.0), min_groups=min_groups,
+        min_frames_per_group=min_frames, max_groups=max_groups, max_frames_per_group=max_frames,
         extend_max_s=f.number("extend_max_s", 60.0, minimum=0.0),
     )
 
@@ -407,18 +300,12 @@ class RobotConfig:
 class SimulationConfig:
     """The ``simulation:`` section: the truth of a simulated cell.
 
-    ``cameras``: the simulated cameras (:class:`~slidecal.mocks.camera.SimCamera`, the type the
-    simulator renders with). ``T_hand_eye`` (4, 4): ``T_tool_cam`` (eye-in-hand) or
-    ``T_base_cam`` (eye-to-hand) of the reference camera; ``T_target`` (4, 4): ``T_base_board``
-    or ``T_tool_board``; ``rig``: ``T_<name>_<reference>`` (4, 4) per other camera. Noise: robot
-    position std per axis (metres) and rotation std per axis (degrees). ``target_jitter_mm`` /
-    ``_deg``: the target is set up anew for each run: its true pose moves by this one-sigma
-    amount per axis, drawn from the run's seed.
-    ``kinematic_error``: the simulated arm's systematic error (``mm``, ``deg``,
-    ``repeatability_mm``, ``repeatability_deg``; ``slidecal.mocks.robot.KinematicError``), or
-    None for an arm that is exactly its nominal model. ``board_bow_mm``: the simulated board's
-    true bow along its x and y (``solver/target_shape.py``'s bow modes, mm; the renderer draws
-    it).
+    ``cameras``: :class:`~slidecal.mocks.camera.SimCamera` per name; ``T_hand_eye``, ``T_target``,
+    ``rig`` (4, 4): the reference camera's hand-eye, the target pose and ``T_<name>_<reference>``;
+    robot noise per axis (metres, degrees); ``target_jitter_mm``/``_deg``: one-sigma per axis of
+    the target's pose drawn anew per run; ``kinematic_error``: the arm's systematic error
+    (:class:`~slidecal.mocks.robot.KinematicError` sizes; None: the nominal model);
+    ``board_bow_mm``: the board's true bow along x and y.
     """
 
     seed: int
@@ -436,14 +323,9 @@ class SimulationConfig:
 
 @dataclass(frozen=True)
 class CellConfig:
-    """A validated cell description (see the module docstring).
-
-    ``source``: the file's name; ``sha256``: the SHA-256 of its bytes (recorded in sessions).
-    ``camera_options``: per camera the driver options of ``cameras.list``; ``rig_options``: the
-    camera driver's options of the ``cameras:`` section (``fps``, ``resize`` ..; read by
-    slidecal.routines.devices); ``sockets``: OAK board socket per camera (empty for other
-    drivers). ``plan``, ``limits``, ``install``: those sections.
-    """
+    """A validated cell description (docs/FORMATS.md). ``sha256``: of the file's bytes;
+    ``camera_options``: per camera its ``cameras.list`` driver options; ``rig_options``: the
+    ``cameras:`` section's driver options; ``sockets``: OAK board socket per camera."""
 
     source: str
     mount: str
@@ -487,10 +369,8 @@ class CellConfig:
 
 
 def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None):
-    """Read and validate a cell file; ``None``: the packaged default simulated cell.
-
-    ``overrides``: nested values merged over the file (e.g. ``{"simulation": {"seed": 3}}``).
-    """
+    """Read and validate a cell file (None: the packaged default simulated cell); ``overrides``:
+    nested values merged over it, e.g. ``{"simulation": {"seed": 3}}``."""
     if path is None:
         return load_packaged_cell(DEFAULT_CELL, overrides)
     path = Path(path)
@@ -585,25 +465,12 @@ def config_from_dict(data: Any, source: str = "cell.yaml", sha256: str | None = 
     plan_settings = _plan(plan, standoff, specs[names.index(reference)], sim)
     limits = limits_from_dict(f.get("limits"), source)
     return CellConfig(
-        source=source,
-        mount=mount,
-        robot=robot,
-        camera_driver=driver,
-        cameras=specs,
-        camera_options=cam_opts,
-        reference_camera=reference,
-        target=target,
-        target_dict=target_to_dict(target),
-        approx_T_hand_eye=approx_he,
-        approx_T_target=approx_target,
-        standoff_m=standoff,
-        simulation=sim,
-        plan=plan_settings,
-        options=options,
-        limits=limits,
-        install=_install(f.section("install")),
-        rig_options={k: v for k, v in cam_f.data.items() if k not in RIG_TYPED},
-        sha256=sha256,
+        source=source, mount=mount, robot=robot, camera_driver=driver, cameras=specs,
+        camera_options=cam_opts, reference_camera=reference, target=target,
+        target_dict=target_to_dict(target), approx_T_hand_eye=approx_he,
+        approx_T_target=approx_target, standoff_m=standoff, simulation=sim, plan=plan_settings,
+        options=options, limits=limits, install=_install(f.section("install")),
+        rig_options={k: v for k, v in cam_f.data.items() if k not in RIG_TYPED}, sha256=sha256,
         device_id=device_id,
     )
 
@@ -656,15 +523,11 @@ def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
         ]
     he_key, tg_key = _names(cfg.mount)
     out: dict[str, Any] = {
-        "format": CELL_FORMAT,
-        "mount": cfg.mount,
-        "robot": robot,
-        "cameras": cameras,
+        "format": CELL_FORMAT, "mount": cfg.mount, "robot": robot, "cameras": cameras,
         "target": dict(cfg.target_dict),
         "approximate": {
             tg_key: transform_to_dict(cfg.approx_T_target),
-            he_key: transform_to_dict(cfg.approx_T_hand_eye),
-            "standoff_m": cfg.standoff_m,
+            he_key: transform_to_dict(cfg.approx_T_hand_eye), "standoff_m": cfg.standoff_m,
         },
     }
     sim = cfg.simulation
@@ -673,21 +536,15 @@ def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
             "seed": sim.seed,
             "cameras": {
                 c.name: {
-                    "width": c.width,
-                    "height": c.height,
-                    "K": np.asarray(c.K).tolist(),
-                    "distortion": np.asarray(c.dist).tolist(),
-                    "blur_sigma_px": c.blur_sigma_px,
-                    "noise_std": c.noise_std,
-                    "exposure": c.exposure,
-                    "colour": c.colour,
+                    "width": c.width, "height": c.height, "K": np.asarray(c.K).tolist(),
+                    "distortion": np.asarray(c.dist).tolist(), "blur_sigma_px": c.blur_sigma_px,
+                    "noise_std": c.noise_std, "exposure": c.exposure, "colour": c.colour,
                     "vignetting": c.vignetting,
                     "photo": asdict(c.photo) if c.photo is not None else False,
                 }
                 for c in sim.cameras
             },
-            he_key: transform_to_dict(sim.T_hand_eye),
-            tg_key: transform_to_dict(sim.T_target),
+            he_key: transform_to_dict(sim.T_hand_eye), tg_key: transform_to_dict(sim.T_target),
             "rig": {n: transform_to_dict(T) for n, T in sim.rig.items()},
             "noise": {"robot_mm": sim.robot_noise_m * 1000.0, "robot_deg": sim.robot_noise_deg},
             "target_jitter": {"mm": sim.target_jitter_mm, "deg": sim.target_jitter_deg},
@@ -804,19 +661,9 @@ def _robot(f: Fields) -> RobotConfig:
         k: lf.number(k, positive=k != "z_min_m") for k in CELL_KEYS["robot.limits"] if lf.has(k)
     }
     return RobotConfig(
-        driver=driver,
-        host=host,
-        model=model,
-        tcp=_pose(f, "tcp"),
-        speed_mps=speed,
-        accel_mps2=accel,
-        settle_s=settle,
-        start_pose=_pose(f, "start_pose"),
-        workspace_min_m=wmin,
-        workspace_max_m=wmax,
-        start_q=start_q,
-        limits=limits,
-        ur_options=cell_options(f.data),
+        driver=driver, host=host, model=model, tcp=_pose(f, "tcp"), speed_mps=speed,
+        accel_mps2=accel, settle_s=settle, start_pose=_pose(f, "start_pose"), workspace_min_m=wmin,
+        workspace_max_m=wmax, start_q=start_q, limits=limits, ur_options=cell_options(f.data),
     )
 
 
@@ -853,9 +700,7 @@ def _sim_camera(c: Fields, name: str, base: SimCamera | None) -> SimCamera:
         if c.has(key):
             values[key] = c.integer(key, minimum=1, maximum=100_000)
     for key, lo, hi in (
-        ("blur_sigma_px", 0.0, 20.0),
-        ("noise_std", 0.0, 100.0),
-        ("exposure", 1e-6, 100.0),
+        ("blur_sigma_px", 0.0, 20.0), ("noise_std", 0.0, 100.0), ("exposure", 1e-6, 100.0),
         ("vignetting", 0.0, 1.0),
     ):
         if c.has(key):
@@ -935,17 +780,13 @@ def _simulation(f: Fields, mount: str) -> SimulationConfig:
             for k, v in KINEMATIC_ERROR_DEFAULTS.items()
         }
     return SimulationConfig(
-        seed=seed,
-        cameras=tuple(cams),
-        T_hand_eye=transform_from_dict(f, he_key),
-        T_target=transform_from_dict(f, tg_key),
-        rig=rig,
+        seed=seed, cameras=tuple(cams), T_hand_eye=transform_from_dict(f, he_key),
+        T_target=transform_from_dict(f, tg_key), rig=rig,
         robot_noise_m=nf.number("robot_mm", 0.05, minimum=0.0, maximum=100.0) / 1000.0,
         robot_noise_deg=nf.number("robot_deg", 0.005, minimum=0.0, maximum=10.0),
         target_jitter_mm=jf.number("mm", 0.0, minimum=0.0, maximum=1000.0),
         target_jitter_deg=jf.number("deg", 0.0, minimum=0.0, maximum=90.0),
-        kinematic_error=kinematic_error,
-        board_bow_mm=_board_bow(f),
+        kinematic_error=kinematic_error, board_bow_mm=_board_bow(f),
     )
 
 
@@ -984,8 +825,7 @@ def _cameras(
             raise cf.error("name", f"{name!r} appears twice; camera names must be unique")
         specs.append(
             CameraSpec(
-                name,
-                cf.integer("width", minimum=1, maximum=100_000),
+                name, cf.integer("width", minimum=1, maximum=100_000),
                 cf.integer("height", minimum=1, maximum=100_000),
             )
         )

@@ -1,34 +1,6 @@
-"""From a cell file to camera driver objects, and what the devices say about themselves into
-the session directory.
-
-:func:`check_libraries` refuses, before anything connects, a cell that names a driver whose
-library is not installed, naming the extra that brings it. :func:`camera_rig` maps the cell's
-``cameras:`` section to an :class:`~slidecal.drivers.oak.OakRig` or a
-:class:`~slidecal.drivers.uvc.UvcCamera`. :func:`record_devices` writes what the open camera
-reports (capabilities, and an OAK's own calibrations as depthai JSON beside ``session.yaml``)
-and returns the ``devices:`` block of the session. :func:`device_calibration_outputs` (after a
-solve) writes the depthai JSON export starting from the device's own calibration and says how
-far the device's calibrations move projected points against the new result.
-
-Camera keys of a cell file (besides ``name``, ``width``, ``height`` of each camera)::
-
-    cameras:
-      driver: oak
-      device_id: 18443010D1E4F1F500   # MX id or IP; default: the first device found
-      fps: 10                         # one frame rate for every camera (bandwidth)
-      resize: stretch                 # stretch (whole field of view) | crop | letterbox
-      exposure_us: 8000               # manual exposure for every camera, with iso
-      iso: 400
-      list:
-        - {name: left, width: 1280, height: 800, socket: CAM_B}
-        - {name: rgb, width: 1920, height: 1080, socket: CAM_A, colour: true, focus: 130,
-           white_balance_k: 5000}    # focus: lens position 0..255, required with autofocus
-
-    cameras:
-      driver: uvc
-      list:
-        - {name: cam, width: 1280, height: 720, source: 0, fourcc: MJPG, exposure: 150,
-           focus: 30, fps: 15, drop_frames: 4}   # source: index, /dev/video path or file
+"""From a cell file to camera driver objects (:func:`camera_rig`, after :func:`check_libraries`),
+and what the devices say about themselves into the session (:func:`record_devices`,
+:func:`device_calibration_outputs`); the ``cameras:`` keys: docs/FORMATS.md.
 """
 
 from __future__ import annotations
@@ -45,10 +17,7 @@ from slidecal.solver.errors import InputError
 from slidecal.solver.result import CalibrationResult
 
 #: Driver -> (module it needs, the package that brings it, the slidecal extra).
-LIBRARIES = {
-    "ur": ("rtde_control", "ur-rtde", "ur"),
-    "oak": ("depthai", "depthai", "oak"),
-}
+LIBRARIES = {"ur": ("rtde_control", "ur-rtde", "ur"), "oak": ("depthai", "depthai", "oak")}
 OAK_RIG_KEYS = ("driver", "reference", "list", "device_id", "fps", "resize", "exposure_us", "iso",
                 "sync_tolerance_s")
 OAK_CAMERA_KEYS = ("socket", "colour", "focus", "white_balance_k")
@@ -120,14 +89,9 @@ def _oak(cfg: Any, section: Fields) -> Any:
     device = cfg.device_id
     try:
         return OakRig(
-            None if device is None else str(device),
-            sockets,
-            {c.name: (c.width, c.height) for c in cfg.cameras},
-            colour=colour,
-            exposure_us=exposure,
-            iso=iso,
-            focus=focus,
-            white_balance_k=wb,
+            None if device is None else str(device), sockets,
+            {c.name: (c.width, c.height) for c in cfg.cameras}, colour=colour, exposure_us=exposure,
+            iso=iso, focus=focus, white_balance_k=wb,
             fps=section.number("fps", DEFAULT_FPS, positive=True),
             resize_mode=section.choice("resize", RESIZE_MODES, "stretch"),
             sync_tolerance_s=(
@@ -158,15 +122,9 @@ def _uvc(cfg: Any, section: Fields) -> Any:
 
     try:
         return UvcCamera(
-            source,
-            c.name,
-            c.width,
-            c.height,
-            fourcc=str(f.get("fourcc")) if f.has("fourcc") else None,
-            exposure=opt("exposure"),
-            focus=opt("focus"),
-            fps=opt("fps"),
-            drop_frames=f.integer("drop_frames", 4, minimum=0),
+            source, c.name, c.width, c.height,
+            fourcc=str(f.get("fourcc")) if f.has("fourcc") else None, exposure=opt("exposure"),
+            focus=opt("focus"), fps=opt("fps"), drop_frames=f.integer("drop_frames", 4, minimum=0),
         )
     except InputError as e:
         raise InputError(str(e), where=f.where()) from None
@@ -174,11 +132,9 @@ def _uvc(cfg: Any, section: Fields) -> Any:
 
 # ------------------------------------------------------------------------------ the session
 def record_devices(rig: Any, session_dir: str | Path, working_distance_m: float) -> dict[str, Any]:
-    """Write what the open rig reports into ``session_dir`` and return the session's
-    ``devices:`` block: ``camera`` (the driver's capabilities), ``working_distance_m`` and, for
-    an OAK, ``calibration_files`` (``user``/``factory``: depthai JSON files beside
-    ``session.yaml``, absent where the device holds none). Rigs without a report (the
-    simulated cell) give an empty block."""
+    """Write what the open rig reports into ``session_dir`` and return the session's ``devices:``
+    block (``camera``, ``working_distance_m``, an OAK's ``calibration_files``); empty for rigs
+    without a report."""
     capabilities = getattr(rig, "capabilities", None)
     if capabilities is None:
         return {}
@@ -231,10 +187,8 @@ def read_device_calibration(session_dir: str | Path, devices: Mapping[str, Any],
 def device_calibration_outputs(
     result: CalibrationResult, session_dir: str | Path, export_dir: str | Path
 ) -> tuple[list[Path], str]:
-    """After a solve of an OAK session: the depthai JSON export started from the device's own
-    calibration (``export/depthai_calibration.json``, replacing the one made from scratch) and
-    the summary lines comparing the device's calibrations with the result. Sessions of other
-    cameras: nothing."""
+    """After a solve of an OAK session: the depthai export started from the device's own
+    calibration, and summary lines comparing the device's calibrations with the result."""
     session_dir = Path(session_dir)
     if not any((session_dir / f).is_file() for f in (USER_FILE, FACTORY_FILE)):
         return [], ""  # not an OAK session, or a device without calibration: nothing to add

@@ -1,26 +1,9 @@
-"""Exports of an accepted calibration for other tools, and the result header.
-
-Written into ``export/`` next to ``result.yaml`` (never for a rejected result):
-
-- ``opencv_<cam>.yaml``, ``camera_info_<cam>.yaml``: OpenCV FileStorage and ROS camera_info
-  (:mod:`slidecal.routines.results_io`);
-- ``camchain.yaml``: Kalibr's camera chain (``pinhole`` / ``radtan``; ``T_cn_cnm1`` maps
-  camera n-1 into camera n), for rigs and single cameras;
-- ``hand_eye.yaml``: every hand-eye transform as a 4x4 matrix, as translation plus quaternion
-  (order x, y, z, w, the Hamilton convention) with the parent and child frame names, and as the
-  UR teach pendant shows a pose (millimetres, rotation vector in radians, RPY in degrees);
-- ``mrcal_<cam>.cameramodel``: mrcal's native camera model per camera (``LENSMODEL_OPENCV5``;
-  ``rt_cam_ref`` the reference camera's pose in this one), read by ``mrcal.cameramodel`` and
-  mrcal's tools (``mrcal-show-projection-uncertainty`` needs mrcal's own solve, not this file);
-- ``depthai_calibration.json``: for OAK rigs (the session names the sockets).
-
-Kalibr's ``pinhole`` and mrcal's OpenCV models have no skew: a camera solved with skew (the
-``skew`` option) and a skew that is not zero gets no ``camchain.yaml`` or ``.cameramodel``, and
-the failure line says so.
-
-A failed export does not stop the others; :func:`write_all_exports` returns the failures as
-one-line messages for the caller to print (``slidecal: export ...: ...``) and record.
-"""
+"""Exports of an accepted calibration for other tools (``export/``, never for a rejected
+result), and the result header: OpenCV and ROS files per camera, Kalibr's ``camchain.yaml``,
+``hand_eye.yaml`` (4x4, translation + quaternion x, y, z, w, and as a UR pendant shows it),
+mrcal's ``.cameramodel`` per camera and an OAK's depthai JSON (docs/FORMATS.md). A camera with
+skew gets no Kalibr or mrcal file. A failed export does not stop the others:
+:func:`write_all_exports` returns the failures as one-line messages."""
 
 from __future__ import annotations
 
@@ -73,10 +56,8 @@ def file_sha256(path: str | Path | None) -> str | None:
 
 
 def result_header(cell_path: str | Path | None, cell_name: str | None = None) -> dict[str, Any]:
-    """``{slidecal_version, created_utc, cell, cell_sha256}`` for result files and exports.
-
-    Without a cell file, a packaged cell named ``cell_name`` (``default_cell.yaml``) is hashed.
-    """
+    """``{slidecal_version, created_utc, cell, cell_sha256}``; without a cell file the packaged cell
+    ``cell_name`` is hashed."""
     digest = file_sha256(cell_path)
     if cell_path is None and cell_name:
         from importlib import resources
@@ -127,12 +108,9 @@ def camchain_dict(result: CalibrationResult, header: Mapping[str, Any] | None = 
         K = np.asarray(c.K, dtype=float)
         d = np.asarray(c.distortion, dtype=float).reshape(-1)
         entry: dict[str, Any] = {
-            "camera_model": "pinhole",
-            "intrinsics": plain([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]),
-            "distortion_model": "radtan",
-            "distortion_coeffs": plain(d[:4]),
-            "resolution": [int(c.width), int(c.height)],
-            "rostopic": f"/{n}/image_raw",
+            "camera_model": "pinhole", "intrinsics": plain([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]),
+            "distortion_model": "radtan", "distortion_coeffs": plain(d[:4]),
+            "resolution": [int(c.width), int(c.height)], "rostopic": f"/{n}/image_raw",
             "cam_overlaps": [j for j in range(len(names)) if j != i],
         }
         if i > 0:
@@ -150,16 +128,10 @@ def _numbers(values: Any) -> str:
 def mrcal_cameramodel(
     result: CalibrationResult, name: str, header: Mapping[str, Any] | None = None
 ) -> str:
-    """mrcal's ``.cameramodel`` text of camera ``name`` (a Python literal ``dict``, as mrcal
-    writes and reads it). ``ValueError`` when a camera has a skew or the rig transform of
-    ``name`` is not in the result.
-
-    ``lensmodel`` ``LENSMODEL_OPENCV5``, written before ``intrinsics`` (mrcal's C reader wants
-    that order): ``fx, fy, cx, cy`` and OpenCV's ``k1 k2 p1 p2 k3`` (mrcal's OpenCV models are
-    OpenCV's projection, pixel coordinates as OpenCV's and slidecal's). ``rt_cam_ref``: the
-    reference camera's frame into this camera's (a Rodrigues vector, then the translation in
-    metres; zero for the reference camera), also written as ``extrinsics`` for mrcal before
-    2.5. ``imagersize``: width, height."""
+    """mrcal's ``.cameramodel`` text (a Python ``dict`` literal) of camera ``name``:
+    ``LENSMODEL_OPENCV5`` written before ``intrinsics`` (mrcal's C reader wants that order),
+    ``rt_cam_ref`` (Rodrigues vector, metres; also as ``extrinsics`` for mrcal before 2.5),
+    ``imagersize``. ``ValueError`` when the camera has a skew or its rig transform is missing."""
     _no_skew(result, "mrcal's OpenCV lens models")
     c = result.cameras[name]
     ref = _ordered_cameras(result)[0]
@@ -178,22 +150,25 @@ def mrcal_cameramodel(
         "{",
         "    'lensmodel': 'LENSMODEL_OPENCV5',",
         "    # fx, fy, cx, cy, then OpenCV's k1, k2, p1, p2, k3",
-        f"    'intrinsics': {_numbers(intrinsics)},",
-        f"    'rt_cam_ref': {_numbers(rt)},",
+        f"    'intrinsics': {_numbers(intrinsics)},", f"    'rt_cam_ref': {_numbers(rt)},",
         f"    'extrinsics': {_numbers(rt)},",
-        f"    'imagersize': [{int(c.width)}, {int(c.height)}],",
-        "}",
+        f"    'imagersize': [{int(c.width)}, {int(c.height)}],", "}",
     ]
     return "\n".join(lines) + "\n"
 
 
-def _quat_xyzw(R: np.ndarray) -> list[float]:
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.from_matrix(np.asarray(R, dtype=float)).as_quat()  # x, y, z, w
-    if q[3] < 0:
-        q = -q
-    return [float(v) for v in q]
+def quat_xyzw(R: np.ndarray) -> list[float]:
+    """The unit quaternion [x, y, z, w] (w >= 0) nearest to a 3x3 rotation matrix: the top
+    eigenvector of Bar-Itzhack's symmetric 4x4 matrix."""
+    (a, b, c), (d, e, f), (g, h, i) = np.asarray(R, dtype=float)
+    K = np.array(
+        [
+            [a - e - i, d + b, g + c, h - f], [d + b, e - a - i, h + f, c - g],
+            [g + c, h + f, i - a - e, d - b], [h - f, c - g, d - b, a + e + i],
+        ]
+    )
+    q = np.linalg.eigh(K)[1][:, -1]
+    return [float(v) for v in (-q if q[3] < 0 else q)]
 
 
 def _rpy_deg(R: np.ndarray) -> list[float]:
@@ -204,11 +179,8 @@ def _rpy_deg(R: np.ndarray) -> list[float]:
 
 
 def hand_eye_dict(result: CalibrationResult, header: Mapping[str, Any] | None = None) -> dict:
-    """``hand_eye.yaml``: every hand-eye transform in three forms (see the module docstring).
-
-    A transform whose translation the data did not determine is written with ``null``
-    translation fields and no matrix.
-    """
+    """``hand_eye.yaml``: every hand-eye transform in three forms; an undetermined translation is
+    ``null``, without a matrix."""
     out: dict[str, Any] = {}
     if header:
         out["header"] = dict(header)
@@ -229,11 +201,10 @@ def hand_eye_dict(result: CalibrationResult, header: Mapping[str, Any] | None = 
         tm = None if t.t_m is None else np.asarray(t.t_m, dtype=float)
         e["matrix_4x4"] = plain(t.T) if tm is not None else None
         e["translation_m"] = plain(tm) if tm is not None else None
-        e["quaternion_xyzw"] = _quat_xyzw(R)
+        e["quaternion_xyzw"] = quat_xyzw(R)
         e["ur_pendant"] = {
             "position_mm": plain(tm * 1000.0) if tm is not None else None,
-            "rotation_vector_rad": plain(rvec_from_R(R)),
-            "rpy_deg": _rpy_deg(R),
+            "rotation_vector_rad": plain(rvec_from_R(R)), "rpy_deg": _rpy_deg(R),
         }
         e["std_rot_deg"] = t.std_rot_deg
         e["std_t_mm"] = t.std_t_mm if tm is not None else None

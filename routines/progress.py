@@ -20,12 +20,8 @@ from typing import Any, TextIO
 
 
 class Progress:
-    """Progress output; see the module docstring.
-
-    ``quiet``: True prints nothing; False or None print (a status line on a terminal, plain
-    timestamped lines otherwise). ``lines``: force the plain-line mode (None: when ``stream``
-    is not a terminal).
-    """
+    """Progress output: ``quiet`` prints nothing; ``lines`` forces plain timestamped lines (None:
+    when ``stream`` is not a terminal, else one status line rewritten in place)."""
 
     @classmethod
     def from_option(cls, progress: bool | Progress | None, total: int) -> Progress:
@@ -128,11 +124,9 @@ class Interrupted(KeyboardInterrupt):
 
 @contextmanager
 def signals_as_interrupt() -> Iterator[None]:
-    """Within the block, SIGINT (Ctrl-C), SIGTERM and SIGHUP raise :class:`Interrupted` (main
-    thread only; the previous handlers come back after). SIGINT gets its handler too: a
-    process started in the background by a shell or under ``nohup`` inherits SIGINT ignored,
-    and Python then installs no Ctrl-C handler of its own: ``kill -INT`` would not stop the
-    robot (seen: a run started so went on to its last frame)."""
+    """Within the block, SIGINT, SIGTERM and SIGHUP raise :class:`Interrupted` (main thread only;
+    the previous handlers come back after). SIGINT too, as a process started in the background
+    inherits it ignored."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return

@@ -1,19 +1,5 @@
-"""A rerun recording of a calibration run (rerun-sdk 0.41; the only module that imports rerun).
-
-One :class:`rerun.RecordingStream` per run, saved to ``SESSION_DIR/recording.rrd`` (and
-streamed to a viewer with ``spawn``). Entity tree (``world`` is the robot base frame, z up):
-
-- ``world/base``: the base axes (static); ``world/board``: the board corners (approximate pose
-  while recording, the estimate at the end);
-- ``world/tool``: ``T_base_tool`` at every capture; ``world/tool_path``: the TCP path so far;
-- ``world/tool/<cam>`` (eye-in-hand) or ``world/<cam>`` (eye-to-hand): the camera frustum
-  (``Pinhole``, RDF axes); ``.../<cam>/image``: the image, ``.../image/detections`` and, after
-  the solve, ``.../image/reprojections``;
-- ``residuals/<cam>``: per-frame reprojection rms (time series);
-- ``log``: events and the final estimate with its uncertainty (``TextLog``).
-
-Timelines: ``capture`` (frame id) and ``robot_time`` (simulated or measured robot seconds).
-"""
+"""A rerun recording of a calibration run, ``SESSION_DIR/recording.rrd`` (rerun-sdk 0.41; the
+only module that imports rerun). Its entity tree and timelines: docs/DRIVERS.md."""
 
 from __future__ import annotations
 
@@ -40,23 +26,11 @@ def _nominal_K(spec: CameraSpec) -> np.ndarray:
 
 
 class RerunLog:
-    """Log one run; see the module docstring for the entity tree.
+    """Log one run (the entity tree: docs/DRIVERS.md).
 
-    Parameters
-    ----------
-    path
-        Where to save the ``.rrd`` recording (None: no file).
-    cameras
-        The rig's cameras (name and size).
-    target
-        The calibration target (board frame points).
-    mount
-        ``eye_in_hand`` | ``eye_to_hand``.
-    T_hand_eye_approx, T_target_approx
-        (4, 4) approximate ``T_tool_cam``/``T_base_cam`` and ``T_base_board``/``T_tool_board``
-        for the display while recording (metres).
-    spawn
-        Also open a viewer and stream to it.
+    ``path``: the ``.rrd`` file (None: none). ``cameras``: the rig's cameras. ``target``: the board.
+    ``mount``: ``eye_in_hand`` | ``eye_to_hand``. ``T_hand_eye_approx``, ``T_target_approx``: (4, 4)
+    metres, shown while recording. ``spawn``: also stream to a viewer.
     """
 
     def __init__(
@@ -104,8 +78,7 @@ class RerunLog:
             p, rr.Transform3D(translation=T_target[:3, 3], mat3x3=T_target[:3, :3]), static=static
         )
         self.rec.log(
-            f"{p}/corners",
-            rr.Points3D(self.target.points_m, radii=0.002, colors=[200, 200, 0]),
+            f"{p}/corners", rr.Points3D(self.target.points_m, radii=0.002, colors=[200, 200, 0]),
             static=static,
         )
 
@@ -119,17 +92,14 @@ class RerunLog:
     ) -> None:
         p = self._cam_path(name)
         self.rec.log(
-            p,
-            rr.Transform3D(translation=T_parent_cam[:3, 3], mat3x3=T_parent_cam[:3, :3]),
+            p, rr.Transform3D(translation=T_parent_cam[:3, 3], mat3x3=T_parent_cam[:3, :3]),
             static=static,
         )
         self.rec.log(
             p,
             rr.Pinhole(
-                image_from_camera=K,
-                resolution=[spec.width, spec.height],
-                camera_xyz=rr.ViewCoordinates.RDF,
-                image_plane_distance=0.1,
+                image_from_camera=K, resolution=[spec.width, spec.height],
+                camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.1,
             ),
             static=static,
         )

@@ -1,41 +1,6 @@
-"""Calibration results on disk: ``result.yaml`` (docs/FORMATS.md), exports, a human summary.
-
-``result.yaml`` (format ``slidecal.result/1``) holds the contract's fields (``cameras`` with K,
-distortion, std, reproj_rms_px; ``T_tool_cam`` / ``T_base_cam`` or ``T_tool_<name>`` per camera
-of a rig; rig ``T_<name>_<ref>``) and these extensions, all additive:
-
-- ``mount``, ``reference_camera``, ``converged``, ``iterations``;
-- ``T_base_board`` (eye-in-hand) or ``T_tool_board`` (eye-to-hand): the estimated target pose;
-- ``reprojection: {rms_px, sigma_px, per_image: [{frame, camera, rms_px}]}``; ``sigma_px`` is
-  the noise estimated from the residuals (docs/METHOD.md Sec. 6);
-- ``unobservable: {parameter: reason}``; ``messages: [...]`` (soft failures);
-- ``scale_checks: [{frame_a, frame_b, robot_mm, camera_mm, ratio}]`` and ``scale_check:
-  {median_ratio, worst_ratio, n}``;
-- ``H_inf: {"a<-b": 3x3}``; ``outliers: [[frame, camera, corner id]]``;
-  ``linear: {camera: K}`` (closed-form intrinsics before refinement);
-- ``parameter_names`` and ``covariance`` (rows named by ``parameter_names``);
-- ``adequacy: {adequate, reasons, detector_noise_px: {camera: px}, normalised_rms: {camera:
-  ratio}, worst_frames: [{frame, camera, normalised_rms}]}``: whether the model explains the
-  images against the detector's noise measured with a free board pose per image;
-- ``robot_accuracy: {translation_mm, rotation_deg, estimated, worst_frames: [{frame,
-  translation_mm, rotation_deg}], left_out_frames: [...]}``: the robot's pose accuracy as the
-  camera sees it; ``left_out_frames`` (only when there are some, same fields): the frames the
-  solve left out because their recorded pose was off far beyond the others' (or their image
-  far beyond the detector's noise; a rig's frame that lost one image keeps the others and is not
-  listed), with the pose correction the solve had given them.
-
-A value the data cannot determine is ``null``, never a number. ``T_tool_<name>`` of a rig's
-non-reference camera is composed from the reference's hand-eye and the rig extrinsics; its std
-comes from the joint covariance (correlations kept, :mod:`slidecal.solver.uncertainty`).
-
-``parameter_names`` are the reported quantities (``cam.fx``, ``T_tool_cam.rx`` .. ``.tz``,
-docs/FORMATS.md). A result written before them (the optimiser's ``X0.r0`` .. ``Y.t2`` and
-``cam.f``) is read and its covariance converted to these names (:func:`_named_from_legacy`).
-
-Exports for existing tools: OpenCV ``FileStorage`` YAML per camera (``camera_matrix``,
-``distortion_coefficients``, ``image_width``, ``image_height``), ROS ``camera_info`` YAML per
-camera, and the depthai calibration JSON through the OAK driver when the rig is an OAK.
-"""
+"""Calibration results on disk: ``result.yaml`` (``slidecal.result/1``, docs/FORMATS.md: its
+fields, the covariance's parameter names, older results still read), the OpenCV and ROS
+exports, a human summary. A value the data cannot determine is ``null``, never a number."""
 
 from __future__ import annotations
 
@@ -78,11 +43,8 @@ RESULT_FILE = "result.yaml"
 
 
 def hand_eye_names(result: CalibrationResult) -> dict[str, str]:
-    """Camera name -> the result file's name of its hand-eye transform.
-
-    ``T_tool_cam`` / ``T_base_cam`` for a single camera; ``T_tool_<name>`` / ``T_base_<name>``
-    for every camera of a rig. Empty without a robot.
-    """
+    """Camera name -> the result file's name of its hand-eye (``T_tool_cam`` / ``T_base_cam``, or
+    ``T_tool_<name>`` / ``T_base_<name>`` per camera of a rig); empty without a robot."""
     if result.hand_eye is None:
         return {}
     return named_hand_eye_names(result.mount, list(result.cameras))
@@ -123,10 +85,7 @@ def hand_eye_transforms(result: CalibrationResult) -> dict[str, TransformEstimat
         if he.t_m is not None and rig.t_m is not None:
             t = he.R @ (-rig.R.T @ rig.t_m) + he.t_m
         out[key] = TransformEstimate(
-            key,
-            R,
-            t,
-            named.std_rot_deg(key) if named is not None else None,
+            key, R, t, named.std_rot_deg(key) if named is not None else None,
             named.std_t_mm(key) if named is not None and t is not None else None,
         )
     return out
@@ -154,12 +113,7 @@ def _named_from_legacy(
 
     T_cam_ref = {c: T(t) for c in cams if c != ref and (t := rig.get(f"T_{c}_{ref}")) is not None}
     layout = legacy_layout(
-        tuple(pnames),
-        tuple(cams),
-        ref,
-        mount,
-        T(hand_eye),
-        T(target),
+        tuple(pnames), tuple(cams), ref, mount, T(hand_eye), T(target),
         {c: v for c, v in T_cam_ref.items() if v is not None},
     )
     if cov is None:
@@ -182,8 +136,7 @@ def transform_estimate_to_dict(t: TransformEstimate) -> dict[str, Any]:
     """``{R, t_m, std_rot_deg, std_t_mm}``; null where unobservable."""
     return {
         "R": plain(t.R) if t.R is not None else None,
-        "t_m": plain(t.t_m) if t.t_m is not None else None,
-        "std_rot_deg": _num(t.std_rot_deg),
+        "t_m": plain(t.t_m) if t.t_m is not None else None, "std_rot_deg": _num(t.std_rot_deg),
         "std_t_mm": _num(t.std_t_mm) if t.t_m is not None else None,
     }
 
@@ -191,18 +144,15 @@ def transform_estimate_to_dict(t: TransformEstimate) -> dict[str, Any]:
 def camera_to_dict(c: CameraEstimate) -> dict[str, Any]:
     """One camera's block of ``result.yaml``."""
     return {
-        "width": int(c.width),
-        "height": int(c.height),
-        "K": plain(np.asarray(c.K, dtype=float)),
+        "width": int(c.width), "height": int(c.height), "K": plain(np.asarray(c.K, dtype=float)),
         "distortion_model": "opencv5",
         "distortion": plain(np.asarray(c.distortion, dtype=float).reshape(-1)[:5]),
-        "std": {k: _num(v) for k, v in c.std.items()},
-        "reproj_rms_px": _num(c.reproj_rms_px),
+        "std": {k: _num(v) for k, v in c.std.items()}, "reproj_rms_px": _num(c.reproj_rms_px),
     }
 
 
 def result_to_dict(result: CalibrationResult) -> dict[str, Any]:
-    """The ``result.yaml`` mapping of a result (see the module docstring)."""
+    """The ``result.yaml`` mapping of a result (docs/FORMATS.md)."""
     d: dict[str, Any] = {"format": RESULT_FORMAT}
     d["cameras"] = {n: camera_to_dict(c) for n, c in result.cameras.items()}
     for key, t in hand_eye_transforms(result).items():
@@ -228,11 +178,8 @@ def result_to_dict(result: CalibrationResult) -> dict[str, Any]:
     d["messages"] = list(result.messages)
     d["scale_checks"] = [
         {
-            "frame_a": int(s.frame_a),
-            "frame_b": int(s.frame_b),
-            "robot_mm": _num(s.robot_mm),
-            "camera_mm": _num(s.camera_mm),
-            "ratio": _num(s.ratio),
+            "frame_a": int(s.frame_a), "frame_b": int(s.frame_b), "robot_mm": _num(s.robot_mm),
+            "camera_mm": _num(s.camera_mm), "ratio": _num(s.ratio),
         }
         for s in result.scale_checks
     ]
@@ -245,8 +192,7 @@ def result_to_dict(result: CalibrationResult) -> dict[str, Any]:
     ad = result.adequacy
     if ad is not None:
         d["adequacy"] = {
-            "adequate": bool(ad.adequate),
-            "reasons": list(ad.reasons),
+            "adequate": bool(ad.adequate), "reasons": list(ad.reasons),
             "detector_noise_px": {k: _num(v) for k, v in ad.detector_noise_px.items()},
             "normalised_rms": {k: _num(v) for k, v in ad.normalised_rms.items()},
             "worst_frames": [
@@ -257,16 +203,13 @@ def result_to_dict(result: CalibrationResult) -> dict[str, Any]:
     bd = result.board
     if bd is not None:
         d["board"] = {
-            "bow_mm": [_num(v) for v in bd.bow_mm],
-            "bow_std_mm": [_num(v) for v in bd.bow_std_mm],
-            "flatness_mm": _num(bd.flatness_mm),
-            "print_tolerance": _num(bd.print_tolerance),
+            "bow_mm": [_num(v) for v in bd.bow_mm], "bow_std_mm": [_num(v) for v in bd.bow_std_mm],
+            "flatness_mm": _num(bd.flatness_mm), "print_tolerance": _num(bd.print_tolerance),
         }
     ra = result.robot_accuracy
     if ra is not None:
         d["robot_accuracy"] = {
-            "translation_mm": _num(ra.translation_mm),
-            "rotation_deg": _num(ra.rotation_deg),
+            "translation_mm": _num(ra.translation_mm), "rotation_deg": _num(ra.rotation_deg),
             "estimated": bool(ra.estimated),
             "worst_frames": [
                 {"frame": int(f), "translation_mm": _num(t), "rotation_deg": _num(r)}
@@ -288,9 +231,7 @@ SCALE_INCONCLUSIVE = 5.0
 
 def scale_tolerance(ratios: np.ndarray, floor: float) -> tuple[float, float]:
     """(median ratio, tolerance) of the moves' camera/robot length ratios: the tolerance is the
-    larger of ``floor`` and four standard errors of the median (1.4826 MAD / sqrt(n) * 1.25).
-    One move's ratio scatters with the robot's accuracy over its length; a wrong square size or
-    TCP scale moves the median."""
+    larger of ``floor`` and four standard errors of the median (1.4826 MAD / sqrt(n) * 1.25)."""
     m = float(np.median(ratios))
     mad = float(np.median(np.abs(ratios - m))) * 1.4826
     se = 1.25 * mad / np.sqrt(len(ratios))
@@ -325,38 +266,13 @@ def write_result(
 #: The keys of ``result.yaml`` besides the transforms (named ``T_<a>_<b>``): one list, kept in
 #: step with :func:`result_to_dict`; the reader refuses any other key.
 RESULT_KEYS = (
-    "format",
-    "cameras",
-    "mount",
-    "reference_camera",
-    "converged",
-    "iterations",
-    "reprojection",
-    "unobservable",
-    "messages",
-    "scale_checks",
-    "scale_check",
-    "H_inf",
-    "outliers",
-    "linear",
-    "parameter_names",
-    "covariance",
-    "adequacy",
-    "robot_accuracy",
-    "board",
-    "header",
+    "format", "cameras", "mount", "reference_camera", "converged", "iterations", "reprojection",
+    "unobservable", "messages", "scale_checks", "scale_check", "H_inf", "outliers", "linear",
+    "parameter_names", "covariance", "adequacy", "robot_accuracy", "board", "header",
 )
 #: The keys of the parts of ``result.yaml``.
 RESULT_PART_KEYS: dict[str, tuple[str, ...]] = {
-    "cameras.*": (
-        "width",
-        "height",
-        "K",
-        "distortion_model",
-        "distortion",
-        "std",
-        "reproj_rms_px",
-    ),
+    "cameras.*": ("width", "height", "K", "distortion_model", "distortion", "std", "reproj_rms_px"),
     "transform": ("R", "t_m", "std_rot_deg", "std_t_mm"),
     "reprojection": ("rms_px", "sigma_px", "per_image"),
     "reprojection.per_image[]": ("frame", "camera", "rms_px"),
@@ -365,11 +281,7 @@ RESULT_PART_KEYS: dict[str, tuple[str, ...]] = {
     "adequacy": ("adequate", "reasons", "detector_noise_px", "normalised_rms", "worst_frames"),
     "adequacy.worst_frames[]": ("frame", "camera", "normalised_rms"),
     "robot_accuracy": (
-        "translation_mm",
-        "rotation_deg",
-        "estimated",
-        "worst_frames",
-        "left_out_frames",
+        "translation_mm", "rotation_deg", "estimated", "worst_frames", "left_out_frames",
     ),
     "board": ("bow_mm", "bow_std_mm", "flatness_mm", "print_tolerance"),
     "robot_accuracy.worst_frames[]": ("frame", "translation_mm", "rotation_deg"),
@@ -407,17 +319,13 @@ def _adequacy_from(f: Fields, names: list[str]) -> ModelAdequacy:
         wf.only(RESULT_PART_KEYS["adequacy.worst_frames[]"])
         worst.append(
             (
-                wf.integer("frame", minimum=0),
-                wf.choice("camera", names),
+                wf.integer("frame", minimum=0), wf.choice("camera", names),
                 _nullable(wf, "normalised_rms", minimum=0.0),
             )
         )
     return ModelAdequacy(
-        _camera_numbers(a, "detector_noise_px", names),
-        _camera_numbers(a, "normalised_rms", names),
-        tuple(worst),
-        a.boolean("adequate"),
-        tuple(reasons),
+        _camera_numbers(a, "detector_noise_px", names), _camera_numbers(a, "normalised_rms", names),
+        tuple(worst), a.boolean("adequate"), tuple(reasons),
     )
 
 
@@ -425,10 +333,8 @@ def _board_from(f: Fields) -> BoardShape:
     b = f.section("board", RESULT_PART_KEYS["board"])
     bow, sd = b.array("bow_mm", (2,)), b.array("bow_std_mm", (2,))
     return BoardShape(
-        (float(bow[0]), float(bow[1])),
-        (float(sd[0]), float(sd[1])),
-        b.number("flatness_mm", minimum=0.0),
-        b.number("print_tolerance", minimum=0.0),
+        (float(bow[0]), float(bow[1])), (float(sd[0]), float(sd[1])),
+        b.number("flatness_mm", minimum=0.0), b.number("print_tolerance", minimum=0.0),
     )
 
 
@@ -442,30 +348,19 @@ def _robot_accuracy_from(f: Fields) -> RobotAccuracy:
             wf.only(RESULT_PART_KEYS[f"robot_accuracy.{key}[]"])
             rows.append(
                 (
-                    wf.integer("frame", minimum=0),
-                    _nullable(wf, "translation_mm", minimum=0.0),
+                    wf.integer("frame", minimum=0), _nullable(wf, "translation_mm", minimum=0.0),
                     _nullable(wf, "rotation_deg", minimum=0.0),
                 )
             )
         lists[key] = tuple(rows)
     return RobotAccuracy(
-        _nullable(r, "translation_mm", minimum=0.0),
-        _nullable(r, "rotation_deg", minimum=0.0),
-        lists["worst_frames"],
-        r.boolean("estimated"),
-        lists["left_out_frames"],
+        _nullable(r, "translation_mm", minimum=0.0), _nullable(r, "rotation_deg", minimum=0.0),
+        lists["worst_frames"], r.boolean("estimated"), lists["left_out_frames"],
     )
 
 
-def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
-    """Validate a parsed ``result.yaml`` (see :func:`read_result`)."""
-    f = Fields(data, source)
-    fmt = f.require("format")
-    if fmt != RESULT_FORMAT:
-        raise f.error("format", f"is {fmt!r}; expected {RESULT_FORMAT!r}")
-    for key in f.data:
-        if key not in RESULT_KEYS and not (isinstance(key, str) and _TRANSFORM_KEY.fullmatch(key)):
-            raise unknown_key_error(f.where(str(key)), key, RESULT_KEYS)
+def _cameras_from(f: Fields) -> dict[str, CameraEstimate]:
+    """The ``cameras:`` section of a result, by name."""
     cams: dict[str, CameraEstimate] = {}
     cf = f.sub("cameras")
     assert cf is not None
@@ -479,14 +374,25 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
             c.choice("distortion_model", ("opencv5",))
         std = c.section("std")
         cams[name] = CameraEstimate(
-            name,
-            c.integer("width", minimum=1, maximum=100_000),
-            c.integer("height", minimum=1, maximum=100_000),
-            c.array("K", (3, 3)),
+            name, c.integer("width", minimum=1, maximum=100_000),
+            c.integer("height", minimum=1, maximum=100_000), c.array("K", (3, 3)),
             c.array("distortion", (5,)),
             {str(k): _nullable(std, str(k), minimum=0.0) for k in std.data},
             _nullable(c, "reproj_rms_px", minimum=0.0),
         )
+    return cams
+
+
+def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
+    """Validate a parsed ``result.yaml`` (see :func:`read_result`)."""
+    f = Fields(data, source)
+    fmt = f.require("format")
+    if fmt != RESULT_FORMAT:
+        raise f.error("format", f"is {fmt!r}; expected {RESULT_FORMAT!r}")
+    for key in f.data:
+        if key not in RESULT_KEYS and not (isinstance(key, str) and _TRANSFORM_KEY.fullmatch(key)):
+            raise unknown_key_error(f.where(str(key)), key, RESULT_KEYS)
+    cams = _cameras_from(f)
     names = list(cams)
     mount = f.choice("mount", RESULT_MOUNTS, "eye_in_hand")
     ref = f.string("reference_camera", names[0])
@@ -504,10 +410,7 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
             raise s.error("R", "is not a rotation matrix (orthonormal, det +1)")
         t = s.array("t_m", (3,)) if s.has("t_m") else None
         return TransformEstimate(
-            name or key,
-            R,
-            t,
-            s.optional_number("std_rot_deg", minimum=0.0),
+            name or key, R, t, s.optional_number("std_rot_deg", minimum=0.0),
             s.optional_number("std_t_mm", minimum=0.0),
         )
 
@@ -537,16 +440,8 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
             raise f.error("covariance", "is not symmetric; it was not written by slidecal")
     outliers = []
     for i, o in enumerate(f.list("outliers", required=False, hint="[frame, camera, corner id]")):
-        if not (
-            isinstance(o, list)
-            and len(o) == 3
-            and isinstance(o[0], int)
-            and not isinstance(o[0], bool)
-            and isinstance(o[1], str)
-            and o[1] in cams
-            and isinstance(o[2], int)
-            and not isinstance(o[2], bool)
-        ):
+        ok = isinstance(o, list) and len(o) == 3 and isinstance(o[1], str) and o[1] in cams
+        if not (ok and all(isinstance(v, int) and not isinstance(v, bool) for v in o[::2])):
             raise f.error(f"outliers[{i}]", "must be [frame id, camera name, corner id]")
         outliers.append((int(o[0]), str(o[1]), int(o[2])))
     unobs = f.section("unobservable")
@@ -558,10 +453,8 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
         sf = Fields(sc, source, f"scale_checks[{i}]").only(RESULT_PART_KEYS["scale_checks[]"])
         checks.append(
             ScaleCheck(
-                sf.integer("frame_a", minimum=0),
-                sf.integer("frame_b", minimum=0),
-                _nullable(sf, "robot_mm", minimum=0.0),
-                _nullable(sf, "camera_mm", minimum=0.0),
+                sf.integer("frame_a", minimum=0), sf.integer("frame_b", minimum=0),
+                _nullable(sf, "robot_mm", minimum=0.0), _nullable(sf, "camera_mm", minimum=0.0),
             )
         )
     sc_sum = f.section("scale_check", RESULT_PART_KEYS["scale_check"])
@@ -592,28 +485,15 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
     T_target = te(tname) if tname else None
     pnames, cov = _named_from_legacy(pnames, cov, cams, ref, mount, hand_eye, T_target, rig)
     return CalibrationResult(
-        cameras=cams,
-        hand_eye=hand_eye,
-        rig=rig,
-        T_target=T_target,
-        converged=f.boolean("converged", False),
-        iterations=f.integer("iterations", 0, minimum=0),
+        cameras=cams, hand_eye=hand_eye, rig=rig, T_target=T_target,
+        converged=f.boolean("converged", False), iterations=f.integer("iterations", 0, minimum=0),
         reproj_rms_px=_nullable(rep, "rms_px", minimum=0.0),
-        sigma_px=_nullable(rep, "sigma_px", minimum=0.0),
-        parameter_names=tuple(pnames),
-        covariance=cov,
-        residuals_px=residuals,
-        outliers=tuple(outliers),
+        sigma_px=_nullable(rep, "sigma_px", minimum=0.0), parameter_names=tuple(pnames),
+        covariance=cov, residuals_px=residuals, outliers=tuple(outliers),
         unobservable={str(k): v for k, v in unobs.data.items()},
-        messages=tuple(f.strings("messages")),
-        scale_checks=tuple(checks),
-        H_inf=H_inf,
-        linear=linear,
-        mount=mount,
-        reference_camera=ref,
-        adequacy=adequacy,
-        robot_accuracy=robot_accuracy,
-        board=board,
+        messages=tuple(f.strings("messages")), scale_checks=tuple(checks), H_inf=H_inf,
+        linear=linear, mount=mount, reference_camera=ref, adequacy=adequacy,
+        robot_accuracy=robot_accuracy, board=board,
     )
 
 
@@ -621,11 +501,8 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
 
 
 def write_opencv_yaml(camera: CameraEstimate, path: str | Path) -> Path:
-    """OpenCV ``FileStorage`` YAML of one camera (as OpenCV's calibration sample writes it).
-
-    Nodes: ``image_width``, ``image_height``, ``camera_name``, ``camera_matrix`` (3x3),
-    ``distortion_coefficients`` (1x5: k1 k2 p1 p2 k3), ``avg_reprojection_error`` (px).
-    """
+    """OpenCV ``FileStorage`` YAML of one camera, as OpenCV's calibration sample writes it
+    (``camera_matrix`` 3x3, ``distortion_coefficients`` 1x5, ``avg_reprojection_error`` px)."""
     import cv2
 
     path = Path(path)
@@ -647,22 +524,17 @@ def write_opencv_yaml(camera: CameraEstimate, path: str | Path) -> Path:
 
 
 def camera_info_dict(camera: CameraEstimate) -> dict[str, Any]:
-    """The ROS ``camera_info`` YAML mapping (camera_calibration_parsers layout) of one camera.
-
-    Monocular: rectification identity, projection ``[K | 0]``; ``plumb_bob`` is OpenCV's
-    k1 k2 p1 p2 k3.
-    """
+    """The ROS ``camera_info`` mapping of one camera (monocular: identity rectification, projection
+    ``[K | 0]``; ``plumb_bob`` is OpenCV's k1 k2 p1 p2 k3)."""
     K = np.asarray(camera.K, dtype=float)
     P = np.hstack([K, np.zeros((3, 1))])
     return {
-        "image_width": int(camera.width),
-        "image_height": int(camera.height),
+        "image_width": int(camera.width), "image_height": int(camera.height),
         "camera_name": camera.name,
         "camera_matrix": {"rows": 3, "cols": 3, "data": plain(K.reshape(-1))},
         "distortion_model": "plumb_bob",
         "distortion_coefficients": {
-            "rows": 1,
-            "cols": 5,
+            "rows": 1, "cols": 5,
             "data": plain(np.asarray(camera.distortion, dtype=float).reshape(-1)[:5]),
         },
         "rectification_matrix": {"rows": 3, "cols": 3, "data": plain(np.eye(3).reshape(-1))},
@@ -679,11 +551,8 @@ def write_camera_info(camera: CameraEstimate, path: str | Path) -> Path:
 
 
 def write_depthai_json(result: CalibrationResult, path: str | Path, sockets: Mapping[str, Any]):
-    """The depthai calibration JSON of an OAK rig, written by the OAK driver's writer.
-
-    ``sockets``: camera name -> board socket name (``CAM_A``...). Raises ``InputError`` when
-    this slidecal has no OAK writer.
-    """
+    """The depthai calibration JSON of an OAK rig (``sockets``: camera name -> ``CAM_A``...);
+    ``InputError`` without the OAK driver."""
     try:
         from slidecal.drivers import oak
     except ImportError:  # the OAK driver is optional at run time (depthai missing)
@@ -733,10 +602,9 @@ def summary_text(
     truth: Mapping[str, Any] | None = None,
     scale_floor: float = 0.01,
 ) -> str:
-    """A human summary: reprojection error, per-parameter std, hand-eye in mm and degrees,
-    what was unobservable and why, the scale check, and (simulated runs) the errors against
-    the truth. ``scale_floor``: the verdict's ``scale_tolerance`` (the scale line says what the
-    verdict's scale check says: the median ratio against its tolerance)."""
+    """A human summary: reprojection, per-parameter std, hand-eye in mm and degrees, what was
+    unobservable and why, the scale check against ``scale_floor`` (the verdict's
+    ``scale_tolerance``) and, for simulated runs, the errors against the truth."""
     lines = ["slidecal calibration result", "=" * 27]
     lines.append(
         f"converged: {'yes' if result.converged else 'NO'} after {result.iterations} iterations; "
@@ -751,11 +619,7 @@ def summary_text(
             f"camera {name} ({c.width}x{c.height}), reprojection rms {_fmt(c.reproj_rms_px)} px"
         )
         for label, val in (
-            ("fx", K[0, 0]),
-            ("fy", K[1, 1]),
-            ("cx", K[0, 2]),
-            ("cy", K[1, 2]),
-            ("s", K[0, 1]),
+            ("fx", K[0, 0]), ("fy", K[1, 1]), ("cx", K[0, 2]), ("cy", K[1, 2]), ("s", K[0, 1]),
         ):
             if label in std or not std:  # no std at all: the covariance was not computed
                 lines.append(f"  {label:3s} = {val:10.3f} px  +- {_fmt(std.get(label))} px")
@@ -870,17 +734,9 @@ def _unit(v: np.ndarray) -> str:
 
 
 def errors_against_truth(result: CalibrationResult, truth: Mapping[str, Any]) -> dict[str, float]:
-    """Errors of a result against a session's ``simulation:`` block (same names).
-
-    Keys: ``<cam>.fx_rel`` (relative), ``<cam>.fx_px``, ``fy``, ``cx``, ``cy`` (pixels);
-    ``<T_name>.rot_deg`` (angle of R_est R_true'), ``<T_name>.t_mm`` (translation error norm)
-    for every hand-eye, rig and target transform present in both.
-
-    The intrinsics and the rig are judged against the physical truth. The hand-eye and the
-    target pose are judged against the truth the data can know (:func:`judged_truth`): when the
-    block records the poses the arm really reached (``frames``), the physical truth moved by
-    the arm's constant error over the frames the solve used.
-    """
+    """Errors of a result against a session's ``simulation:`` block (same names): ``<cam>.fx_rel``,
+    ``<cam>.fx_px`` .. ``cy`` (pixels), ``<T_name>.rot_deg`` and ``.t_mm`` per transform in both.
+    The hand-eye and the target pose are judged against :func:`judged_truth`."""
     out: dict[str, float] = {}
     tcams = truth.get("cameras") or {}
     for name, c in result.cameras.items():
@@ -909,13 +765,9 @@ def errors_against_truth(result: CalibrationResult, truth: Mapping[str, Any]) ->
 
 
 def judged_truth(result: CalibrationResult, truth: Mapping[str, Any]) -> dict[str, np.ndarray]:
-    """The transforms (4x4, result-file names) a result is judged against.
-
-    Every ``T_<a>_<b>`` of the block; with the arm's true and reported poses (``frames``) the
-    hand-eye of every camera and the target pose become the effective truth
-    (:func:`slidecal.mocks.cell.effective_truth`) over the frames the solve used, weighted by
-    the robot accuracy the solve estimated (else the simulated arm's).
-    """
+    """The transforms (4x4, result-file names) a result is judged against: the block's, hand-eyes
+    and target pose replaced, where the block records the arm's true and reported poses, by the
+    effective truth (:func:`slidecal.mocks.cell.effective_truth`) over the frames the solve used."""
     out = {
         k: T
         for k in truth
@@ -952,8 +804,7 @@ def truth_frames(truth: Mapping[str, Any]) -> list[tuple[int, np.ndarray, np.nda
     for fr in truth.get("frames") or []:
         out.append(
             (
-                int(fr["id"]),
-                T_from_ur_pose(np.asarray(fr["T_base_tool"], dtype=float)),
+                int(fr["id"]), T_from_ur_pose(np.asarray(fr["T_base_tool"], dtype=float)),
                 T_from_ur_pose(np.asarray(fr["T_base_tool_measured"], dtype=float)),
             )
         )

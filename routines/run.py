@@ -7,16 +7,7 @@ Callable from Python for scripted commissioning::
     print(outcome.summary)
 
 THE ROBOT NEVER MOVES unless the cell file names real hardware (``robot.driver: ur`` with a
-``host``); without a file the packaged simulated cell is used. The capture loop
-(:mod:`slidecal.routines.acquire`) writes every frame the moment it is captured and, on a fault
-or an interrupt, stops the robot and marks the session aborted; ``RunRequest(resume=SESSION)``
-continues such a session.
-
-After the solve the gate of :mod:`slidecal.routines.ops.verdict` decides
-(:func:`slidecal.routines.solve.finish_solve`): ``verdict.yaml`` in the session; ``result.yaml``
-and ``export/`` for an accepted (or drifted) result, ``rejected/`` without exports otherwise;
-``report.html`` and ``report.png``; and, with an install store, the install
-(:mod:`slidecal.routines.ops.install`). ``docs/UNATTENDED.md`` is the contract.
+``host``). What a run writes and when: docs/UNATTENDED.md.
 """
 
 from __future__ import annotations
@@ -68,41 +59,19 @@ MIN_GROUP_MOVE_M = 0.002
 class RunRequest:
     """What :func:`run_calibration` is asked to do.
 
-    config
-        A cell file, a loaded :class:`CellConfig`, or None for the default simulated cell.
-    plan
-        A ``plan.yaml``, a :class:`Plan`, or None: the planner chooses one for the cell
-        (:func:`slidecal.routines.planner.make_plan`: non-degenerate, reachable, in view, the
-        goal of the cell's ``plan:`` block in the least robot time), or refuses with the reason.
-        A plan given here is checked for degeneracy before the robot moves.
-    out_dir
-        The session directory to create (default ``sessions/<date>_<time>``).
-    progress
-        True/False to force the progress output on/off; None: on (a status line on a
-        terminal, plain timestamped lines otherwise).
-    recording
-        Write ``recording.rrd`` (rerun) into the session; ``spawn`` also opens a viewer.
-    seed
-        Simulated cells: overrides ``simulation.seed``.
-    overrides
-        Nested values merged over the cell file (see :func:`load_config`).
-    cell
-        A prepared :class:`~slidecal.mocks.cell.SimulatedCell` (tests inject faults into it).
-    install
-        An install store (:mod:`slidecal.routines.ops.install`; default: the cell's
-        ``install.dir``): an accepted result is installed there; ``force`` installs one less
-        certain than the installed one, ``accept_drift`` a drifted one.
-    installed
-        The calibration to compare with (default: the install store's current one).
-    resume
-        A session directory whose run stopped (fault, interrupt): continue its plan from the
-        first frame it lacks (``out_dir`` and ``plan`` must be None).
-    faults
-        ``KIND@FRAME`` strings (simulated cells only) or a prepared
-        :class:`~slidecal.routines.ops.faults.FaultInjector`: faults to inject (``--fault``).
-    retries
-        Captures of a pose tried again after a dropped frame (reconnecting the camera) or an
-        image without a single corner (default: the cell's ``install.retries``, else 2).
+    ``config``: a cell file, a loaded :class:`CellConfig`, or None for the default simulated cell.
+    ``plan``: a ``plan.yaml``, a :class:`Plan` (checked for degeneracy before the robot moves), or
+    None: the planner's plan for the cell, or a refusal with the reason. ``out_dir``: the session
+    directory to create (default ``sessions/<date>_<time>``). ``progress``: force the progress
+    output on/off (None: on). ``recording``: write ``recording.rrd`` (rerun); ``spawn`` also opens a
+    viewer. ``seed``: overrides ``simulation.seed``. ``overrides``: nested values merged over the
+    cell file. ``cell``: a prepared :class:`~slidecal.mocks.cell.SimulatedCell`. ``install``: an
+    install store (default: the cell's ``install.dir``); ``force`` installs a less certain result,
+    ``accept_drift`` a drifted one. ``installed``: the calibration to compare with (default: the
+    store's current one). ``resume``: a stopped session to continue from the first frame it lacks
+    (``out_dir`` and ``plan`` None). ``faults``: ``KIND@FRAME`` strings (simulated cells) or a
+    :class:`~slidecal.routines.ops.faults.FaultInjector`. ``retries``: captures of a pose tried
+    again after a dropped frame or an image without corners (default: ``install.retries``, else 2).
     """
 
     config: str | Path | CellConfig | None = None
@@ -129,10 +98,9 @@ def default_session_dir() -> Path:
 
 
 def check_user_plan(plan: Plan, cfg: CellConfig, where: str) -> None:
-    """Refuse a user's plan that cannot determine the calibration, before the robot moves:
-    a group whose poses differ in orientation or hold no translation (the method needs pure
-    translations inside each group), or a plan the planner's prediction finds degenerate
-    (frames that do not see the target, too few orientations)."""
+    """Refuse, before the robot moves, a user's plan that cannot determine the calibration: a group
+    whose poses differ in orientation or hold no translation, or a plan the planner's prediction
+    finds degenerate."""
     for g, group in enumerate(plan.groups):
         T0 = group[0]
         for k, T in enumerate(group[1:], start=1):
@@ -164,8 +132,7 @@ def check_user_plan(plan: Plan, cfg: CellConfig, where: str) -> None:
 
 
 def run_calibration(request: RunRequest | None = None) -> RunOutcome:
-    """Run a calibration end to end (:class:`RunRequest`), judge it, and return what it
-    produced."""
+    """Run a calibration end to end (:class:`RunRequest`), judge it, and return what it produced."""
     q = request or RunRequest()
     t0 = time.monotonic()
     cfg = q.config if isinstance(q.config, CellConfig) else load_config(q.config, q.overrides)
@@ -199,11 +166,7 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
     record = partial(record, retries=retries, faults=q.faults)
     recording = q.recording and q.resume is None  # a resumed run's recording stays as it was
     rec = record(
-        plan=plan,
-        start=start,
-        resume=q.resume is not None,
-        recording=recording,
-        spawn=q.spawn,
+        plan=plan, start=start, resume=q.resume is not None, recording=recording, spawn=q.spawn,
         seed=seed,
     )
     robot, log = rec.robot, rec.log
@@ -227,19 +190,11 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
         prog.total = plan.n_poses
         robot = record(plan=plan, start=n_done, resume=True, extended=said, log=log).robot
     fin = finish_solve(
-        result,
-        out,
-        session,
-        cfg.limits,
-        command="run",
+        result, out, session, cfg.limits, command="run",
         truth=session.simulation,  # as recorded, with the poses the arm really reached
         cell_path=q.config if isinstance(q.config, str | Path) else None,
-        cell_name=cfg.source,
-        oak_sockets=sockets(cfg),
-        installed=inst_result,
-        installed_path=inst_path,
-        plan_poses=plan.n_poses,
-        notes=notes,
+        cell_name=cfg.source, oak_sockets=sockets(cfg), installed=inst_result,
+        installed_path=inst_path, plan_poses=plan.n_poses, notes=notes,
     )
     rec_path = None
     if log is not None:
@@ -251,11 +206,7 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
         prog.event(line)
     prog.done(f"done: {fin.result_path}")
     return fin.outcome(
-        session,
-        t0,
-        clock(robot),
-        recording_path=rec_path,
-        installed_to=installed_to,
+        session, t0, clock(robot), recording_path=rec_path, installed_to=installed_to,
         install_note=note,
     )
 
@@ -324,11 +275,7 @@ def _install(
         return None, "the result was rejected; the installed calibration stays"
     try:
         d = install(
-            store,
-            fin.result_path.parent,
-            fin.result,
-            v.verdict,
-            force=force,
+            store, fin.result_path.parent, fin.result, v.verdict, force=force,
             accept_drift=accept_drift,
             info={"cell": cfg.source, "chain_rms_px": chain_rms_px(fin.result, session.problem)},
         )
@@ -350,17 +297,10 @@ def extend_for_limits(
     limits: Limits,
     session: Session,
 ) -> tuple[Plan | None, str]:
-    """The longer plan a run records next when its result misses only the gate's one-sigma
-    limits (the data is sound but not enough of it: an arm less accurate than the plan was made
-    for), with why; or None and why not (an empty reason when nothing was missed).
-
-    Planned for the accuracy the data showed (:func:`slidecal.routines.planner.extend_plan`):
-    the reference camera's residual rms, the robot's learned accuracy, the one-sigma each limit
-    asks for times :data:`EXTEND_MARGIN`, within the cell's ``plan.extend_max_s`` of robot time
-    (0: never extend). Only the planner's plans are extended (they carry its prediction,
-    ``predicted_std``); a plan written by hand is run as written. Simulated and real cells
-    alike: the extension is checked like any plan before the robot moves.
-    """
+    """The longer plan a run records next when its result misses only the gate's one-sigma limits,
+    with why; or None and why not (an empty reason when nothing was missed). Planned for the
+    accuracy the data showed (:func:`slidecal.routines.planner.extend_plan`) within the cell's
+    ``plan.extend_max_s`` of robot time (0: never); only the planner's plans are extended."""
     verdict = judge(result, limits, session.problem, command="run")
     if verdict.verdict != "rejected":
         return None, ""
@@ -433,37 +373,30 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "board's placement too: another seed is another cell)",
     )
     p.add_argument(
-        "--fault",
-        action="append",
-        metavar="KIND@FRAME",
+        "--fault", action="append", metavar="KIND@FRAME",
         help="simulated cells: inject a hardware fault (see slidecal.routines.ops.faults)",
     )
     p.add_argument(
-        "--install",
-        metavar="STORE",
+        "--install", metavar="STORE",
         help="install an accepted result into this store (default: the cell's install.dir)",
     )
     p.add_argument(
-        "--installed",
-        metavar="STORE",
+        "--installed", metavar="STORE",
         help="compare with this install store or result.yaml (default: --install's)",
     )
     p.add_argument(
         "--force", action="store_true", help="install even if less certain than the installed"
     )
     p.add_argument(
-        "--accept-drift",
-        action="store_true",
+        "--accept-drift", action="store_true",
         help="install a result that differs from the installed one (verdict drifted)",
     )
     p.add_argument(
-        "--resume",
-        metavar="SESSION_DIR",
+        "--resume", metavar="SESSION_DIR",
         help="continue a stopped run's session from its first missing frame",
     )
     p.add_argument(
-        "--retries",
-        type=int,
+        "--retries", type=int,
         help="captures tried again per pose after a dropped frame or no corners (default 2)",
     )
 
@@ -472,20 +405,10 @@ def main(args: argparse.Namespace) -> int:
     """Run, print the summary, exit with the verdict's code."""
     outcome = run_calibration(
         RunRequest(
-            args.config,
-            plan=args.plan,
-            out_dir=args.out,
-            progress=False if args.quiet else None,
-            recording=not args.no_recording,
-            spawn=args.spawn,
-            seed=args.seed,
-            install=args.install,
-            force=args.force,
-            accept_drift=True if args.accept_drift else None,
-            installed=args.installed,
-            resume=args.resume,
-            retries=args.retries,
-            faults=args.fault,
+            args.config, plan=args.plan, out_dir=args.out, progress=False if args.quiet else None,
+            recording=not args.no_recording, spawn=args.spawn, seed=args.seed, install=args.install,
+            force=args.force, accept_drift=True if args.accept_drift else None,
+            installed=args.installed, resume=args.resume, retries=args.retries, faults=args.fault,
         )
     )
     print_outcome(outcome, args.quiet)

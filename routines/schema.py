@@ -1,19 +1,8 @@
-"""The format layer's common part: strict YAML reading and typed, named access to fields.
-
-Every file slidecal reads (cell, plan, session, result; docs/FORMATS.md) goes through
-:func:`load_yaml` and :class:`Fields`:
-
-- the file must be UTF-8 text and valid YAML; a key given twice in one mapping is refused
-  (PyYAML would silently keep the last one);
-- each section declares the keys it accepts (:meth:`Fields.only`); an unknown key is refused
-  with the nearest valid one (``options.robot_noise_mmm: unknown key; did you mean
-  robot_noise_mm?``);
-- numbers are finite, arrays have their shape, sizes are positive, choices are among their
-  options.
-
+"""The format layer's common part: strict YAML reading (:func:`load_yaml`: UTF-8, no key twice
+in a mapping) and typed, named access to fields (:class:`Fields`: declared keys, an unknown one
+refused with the nearest valid one; finite numbers, shaped arrays, positive sizes, choices).
 Every failure is one :class:`~slidecal.solver.errors.InputError` line naming ``file: field``,
-what is wrong and how to fix it.
-"""
+what is wrong and how to fix it."""
 
 from __future__ import annotations
 
@@ -37,11 +26,8 @@ class DuplicateKeyError(yaml.constructor.ConstructorError):
 
 
 class StrictLoader(_BaseLoader):  # type: ignore[misc, valid-type]
-    """The safe YAML loader, refusing a key that appears twice in one mapping.
-
-    A mapping whose dict is shorter than its list of keys had a key twice (or a merge): only
-    then are its keys compared one by one, so a valid file costs one length test per mapping.
-    """
+    """The safe YAML loader, refusing a key that appears twice in one mapping (keys compared only
+    where a mapping's dict is shorter than its list of keys)."""
 
     def construct_mapping(self, node: Any, deep: bool = False) -> dict[Any, Any]:
         pairs = node.value[:]  # flatten_mapping rewrites node.value when it merges
@@ -85,17 +71,11 @@ def plain(obj: Any) -> Any:
 
 def dump_yaml(data: Any, indent: int | None = None) -> str:
     """YAML text of ``data`` (numbers in flow-style leaf lists, keys in insertion order).
-
-    ``indent``: ``data`` is a part of a document (entries of a mapping, or items of a list)
-    nested that many spaces deep: its top level in block style and its lines wrapped as the
-    whole document's would be, so that parts dumped apart join into the document's text.
-    """
+    ``indent``: ``data`` is a part of a document nested that many spaces deep, dumped so that
+    parts join into the whole document's text."""
     text = yaml.dump(
-        plain(data),
-        Dumper=_Dumper if indent is None else _PartDumper,
-        default_flow_style=None,
-        sort_keys=False,
-        width=100 - (indent or 0),
+        plain(data), Dumper=_Dumper if indent is None else _PartDumper, default_flow_style=None,
+        sort_keys=False, width=100 - (indent or 0),
     )
     return "".join(" " * indent + line for line in text.splitlines(True)) if indent else text
 
@@ -116,12 +96,8 @@ class _PartDumper(_Dumper):  # type: ignore[misc, valid-type]
 
 
 def write_atomic(path: Path, text: str | bytes) -> None:
-    """Write ``path`` so that it holds either its old or its new content, never a mix.
-
-    The text goes to a temporary file in the same directory, is flushed and fsynced, then
-    renamed over ``path``; the directory is fsynced so the rename survives a power cut. When
-    writing fails (a full disk) the temporary file is removed and the error raised.
-    """
+    """Write ``path`` so that it holds either its old or its new content: a fsynced temporary file
+    renamed over it, the directory fsynced; on failure the temporary file is removed."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp")
     data = text.encode() if isinstance(text, str) else text
@@ -244,15 +220,7 @@ def load_yaml(path: Path, what: str) -> Any:
 
 #: the cell file's top-level sections (routines/config.py validates each; a solve reads limits:)
 CELL_SECTIONS = (
-    "format",
-    "mount",
-    "robot",
-    "cameras",
-    "target",
-    "approximate",
-    "simulation",
-    "plan",
-    "options",
+    "format", "mount", "robot", "cameras", "target", "approximate", "simulation", "plan", "options",
     "limits",  # the verdict's limits (routines/ops/verdict.py: limits_from_dict)
     "install",  # the install store (INSTALL_KEYS)
 )
@@ -431,11 +399,8 @@ def _kind(value: Any) -> str:
     return {
         "NoneType": "nothing (null)",
         "str": f"the text {value!r}" if isinstance(value, str) and len(value) < 40 else "text",
-        "list": "a list",
-        "dict": "a mapping",
-        "int": f"the number {value!r}",
-        "float": f"the number {value!r}",
-        "bool": f"{value!r}",
+        "list": "a list", "dict": "a mapping", "int": f"the number {value!r}",
+        "float": f"the number {value!r}", "bool": f"{value!r}",
     }.get(type(value).__name__, type(value).__name__)
 
 

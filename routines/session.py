@@ -1,47 +1,10 @@
 """Session directories on disk (``slidecal.session/1``, docs/FORMATS.md): read them, write them.
 
-A session is everything one run observed: ``SESSION_DIR/session.yaml`` plus the images under
-``SESSION_DIR/images/``, and the detected corners in ``SESSION_DIR/detections.npy``, one table
-of every corner (:data:`DETECTION_DTYPE`) that ``session.yaml`` names in ``detections_file``
-and counts per frame and camera (a 1000-frame session reads in a fraction of a second; sessions
-with the corners inline in ``session.yaml`` still read). :func:`read_session` turns it into a
-:class:`~slidecal.solver.problem.CalibrationProblem`; :class:`SessionWriter` creates it and
-appends each frame the moment it is captured: images first, then the frame's corners appended to
-the table (its header's row count rewritten in place after them), then ``session.yaml``
-rewritten atomically (temporary file, fsync, rename). A crash loses at most the frame in flight:
-rows beyond the frames ``session.yaml`` lists are not read, and the next write overwrites them.
-
-The keys each part of the file accepts are declared once, in :data:`SESSION_KEYS`; reading
-refuses any other key with the nearest valid one. Fields beyond the first version (all
-optional, additive, so the format stays ``slidecal.session/1`` and older sessions still load):
-
-- ``knowledge``: ``robot`` | ``board_translation`` | ``board_direction`` | ``none`` (default:
-  ``robot`` when every frame has ``T_base_tool``, ``none`` when no frame has one).
-- ``reference_camera``: the camera a rig's other cameras are expressed against.
-- ``options``: ``{skew, unit_aspect, distortion: [k1, k2, p1, p2, k3 as booleans],
-  outlier_threshold_px, robot_noise_mm, robot_noise_deg, estimate_robot_noise}``
-  (``ModelOptions``; the robot noise is the one-sigma error of each axis of the measured poses,
-  where the estimation of the robot's accuracy starts; with ``estimate_robot_noise: false``
-  it is taken as the truth, 0 then treating the poses as exact).
-- ``cell``, ``cell_sha256``: the cell file the run came from and the SHA-256 of its bytes;
-  ``robot_driver``, ``camera_driver``; ``cameras[i].socket``: an OAK camera's board socket
-  (what ``solve`` needs to write the depthai calibration again).
-- ``frames[i].group``: orientation group; ``frames[i].motion_board``: board-frame motion
-  knowledge (3 numbers, metres or a unit direction; docs/METHOD.md Sec. 3).
-- ``frames[i].quality``: per camera, what the detector said (``ok``, ``reasons``,
-  ``homography_rms_px``, ``coverage``, ``n_corners``); informative only.
-- ``events``: what happened during the run (``{kind, message, ...}``), e.g. a fault.
-- ``detections_file``: the detections table; ``frames[i].detections`` then counts each camera's
-  corners in it (``{camera: n}``) instead of giving them inline (``{camera: {ids, px}}``).
-- ``status``: ``recording`` | ``complete`` | ``aborted``.
-- ``simulation``: the truth of a simulated run under the result file's names:
-  ``cameras: {name: {K, distortion}}``, ``T_tool_cam`` (or ``T_base_cam``; ``T_tool_<name>`` per
-  camera of a rig), ``T_base_board`` (or ``T_tool_board``), ``T_<name>_<ref>``, ``noise``,
-  ``seed``, ``frames: [{id, T_base_tool, T_base_tool_measured}]`` (per frame the pose the arm
-  really reached and the one it reported, UR poses: what the judge of the result needs).
-  Transforms are ``{R: 3x3, t_m: [x, y, z]}``.
-- ``frames[i].T_base_tool``: a UR pose, or from another controller a transform
-  (``{q_wxyz | rpy_deg | R, t_mm | t_m}``: :func:`robot_pose_field`).
+:func:`read_session` turns ``session.yaml``, ``images/`` and ``detections.npy``
+(:data:`DETECTION_DTYPE`; older sessions hold the corners inline) into a
+:class:`~slidecal.solver.problem.CalibrationProblem`; :class:`SessionWriter` appends each frame
+as it is captured, so a crash loses at most the frame in flight. The keys each part accepts
+are declared once, in :data:`SESSION_KEYS`.
 """
 
 from __future__ import annotations
@@ -93,38 +56,12 @@ OAK_SOCKET = re.compile(r"CAM_[A-H]")
 #: The keys every part of ``session.yaml`` accepts (add a new field here, then read it below).
 SESSION_KEYS: dict[str, tuple[str, ...]] = {
     "": (
-        "format",
-        "status",
-        "mount",
-        "knowledge",
-        "target",
-        "cameras",
-        "reference_camera",
-        "options",
-        "cell",
-        "cell_sha256",
-        "robot_driver",
-        "camera_driver",
-        "devices",
-        "controller",
-        "limits",
-        "purpose",
-        "installed",
-        "simulation",
-        "detections_file",
-        "frames",
-        "events",
+        "format", "status", "mount", "knowledge", "target", "cameras", "reference_camera",
+        "options", "cell", "cell_sha256", "robot_driver", "camera_driver", "devices", "controller",
+        "limits", "purpose", "installed", "simulation", "detections_file", "frames", "events",
     ),
     "cameras[]": ("name", "width", "height", "socket"),
-    "frames[]": (
-        "id",
-        "group",
-        "T_base_tool",
-        "motion_board",
-        "images",
-        "detections",
-        "quality",
-    ),
+    "frames[]": ("id", "group", "T_base_tool", "motion_board", "images", "detections", "quality"),
     "detection": ("ids", "px"),
     # and transforms named T_<a>_<b>
     "simulation": ("cameras", "noise", "seed", "frames", "board_bow_mm"),
@@ -141,38 +78,22 @@ SESSION_KEYS: dict[str, tuple[str, ...]] = {
 TOLERANCE_KEYS = ("flatness_mm", "print_tolerance")
 TARGET_KEYS: dict[str, tuple[str, ...]] = {
     "charuco": (
-        "kind",
-        "squares_x",
-        "squares_y",
-        "square_size_m",
-        "marker_size_m",
-        "dictionary",
+        "kind", "squares_x", "squares_y", "square_size_m", "marker_size_m", "dictionary",
         *TOLERANCE_KEYS,
     ),
     "chessboard": ("kind", "squares_x", "squares_y", "square_size_m", *TOLERANCE_KEYS),
     "points": ("kind", "points_m", *TOLERANCE_KEYS),
     "apriltag": ("kind", "tag_size_m", "dictionary", "tag_ids", "tag_origins_m", *TOLERANCE_KEYS),
     "aprilgrid": (
-        "kind",
-        "tag_cols",
-        "tag_rows",
-        "tag_size_m",
-        "tag_spacing",
-        "dictionary",
-        *TOLERANCE_KEYS,
+        "kind", "tag_cols", "tag_rows", "tag_size_m", "tag_spacing", "dictionary", *TOLERANCE_KEYS,
     ),
 }
 TARGET_KINDS = tuple(TARGET_KEYS)
 
 #: The keys of an ``options:`` block (cell files and sessions).
 OPTIONS_KEYS = (
-    "skew",
-    "unit_aspect",
-    "distortion",
-    "outlier_threshold_px",
-    "robot_noise_mm",
-    "robot_noise_deg",
-    "estimate_robot_noise",
+    "skew", "unit_aspect", "distortion", "outlier_threshold_px", "robot_noise_mm",
+    "robot_noise_deg", "estimate_robot_noise",
 )
 
 #: How far (pixels) a given detection may lie outside its camera's image (a corner is inside)
@@ -423,25 +344,19 @@ def _kind_to_dict(target: Target) -> dict[str, Any]:
         return {"kind": "points", "points_m": plain(target.points_m[:, :2])}
     if target.kind == "aprilgrid":
         return {
-            "kind": "aprilgrid",
-            "tag_cols": target.tag_cols,
-            "tag_rows": target.tag_rows,
-            "tag_size_m": target.tag_size_m,
-            "tag_spacing": target.tag_spacing,
+            "kind": "aprilgrid", "tag_cols": target.tag_cols, "tag_rows": target.tag_rows,
+            "tag_size_m": target.tag_size_m, "tag_spacing": target.tag_spacing,
             "dictionary": target.dictionary,
         }
     if target.kind == "apriltag":
         return {
-            "kind": "apriltag",
-            "tag_size_m": target.tag_size_m,
+            "kind": "apriltag", "tag_size_m": target.tag_size_m,
             "tag_ids": [int(i) for i in target.tag_ids],
             "tag_origins_m": [[float(x), float(y)] for x, y in target.tag_origins_m],
             "dictionary": target.dictionary,
         }
     d: dict[str, Any] = {
-        "kind": target.kind,
-        "squares_x": target.squares_x,
-        "squares_y": target.squares_y,
+        "kind": target.kind, "squares_x": target.squares_x, "squares_y": target.squares_y,
         "square_size_m": target.square_size_m,
     }
     if target.kind == "charuco":
@@ -476,8 +391,7 @@ def options_from_dict(data: Any, file: str, path: str = "options") -> ModelOptio
 def options_to_dict(options: ModelOptions) -> dict[str, Any]:
     """The ``options:`` block of :class:`ModelOptions`."""
     return {
-        "skew": options.skew,
-        "unit_aspect": options.unit_aspect,
+        "skew": options.skew, "unit_aspect": options.unit_aspect,
         "distortion": list(options.distortion),
         "outlier_threshold_px": options.outlier_threshold_px,
         "robot_noise_mm": options.robot_noise_m * 1000.0,
@@ -493,14 +407,10 @@ def options_to_dict(options: ModelOptions) -> dict[str, Any]:
 class Session:
     """A session read from disk: the solver's problem plus what the run recorded around it.
 
-    ``simulation``: the truth block of a simulated run (None for real runs). ``events``: what
-    happened (faults, aborts). ``quality``: per (frame id, camera) the detector's report.
-    ``cell``/``cell_sha256``: the cell file the run came from (None in older sessions);
-    ``sockets``: camera name -> OAK board socket (empty unless the cameras were an OAK).
-    ``detect_reasons``: per (frame id, camera) whose image was detected on reading and gave
-    nothing usable, why (the detector's reasons, e.g. a board of another size seen).
-    ``limits``: the ``limits:`` block as written (validated where it is judged with), so that
-    a solve reads ``session.yaml`` once.
+    ``simulation``: the truth block (None for real runs); ``events``: faults, aborts; ``quality``
+    and ``detect_reasons``: per (frame id, camera) the detector's report, and why an image
+    detected on reading gave nothing; ``cell``/``cell_sha256``: the cell file (None in older
+    sessions); ``sockets``: OAK board socket per camera; ``limits``: the ``limits:`` block.
     """
 
     directory: Path
@@ -525,14 +435,9 @@ def read_session(directory: str | Path, detect_images: bool = True) -> Calibrati
 
 
 def load_session(directory: str | Path, detect_images: bool = True) -> Session:
-    """Read and validate ``directory/session.yaml``.
-
-    Detections given in the file are used as they are; a camera with an image but no detections
-    is detected with :func:`slidecal.solver.detect.detect` (``detect_images``; otherwise it is an
-    error). Frames keep their entries when a camera saw nothing (empty ids). Without robot
-    poses, knowledge and mount become ``"none"``. Every problem is an ``InputError`` naming
-    ``session.yaml: <field>``.
-    """
+    """Read and validate ``directory/session.yaml``; a camera with an image but no detections is
+    detected (``detect_images``, else an error). Without robot poses, knowledge and mount become
+    ``"none"``. Every problem is an ``InputError`` naming ``session.yaml: <field>``."""
     directory = Path(directory)
     if not directory.is_dir():
         raise InputError(
@@ -560,8 +465,7 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
             raise cf.error("name", f"{name!r} appears twice; camera names must be unique")
         cameras.append(
             CameraSpec(
-                name,
-                cf.integer("width", minimum=1, maximum=100_000),
+                name, cf.integer("width", minimum=1, maximum=100_000),
                 cf.integer("height", minimum=1, maximum=100_000),
             )
         )
@@ -578,13 +482,8 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
     ids_seen: set[int] = set()
     for i, fr in enumerate(raw_frames):
         frame, q, im = _read_frame(
-            Fields(fr, SESSION_FILE, f"frames[{i}]"),
-            directory,
-            target,
-            cameras,
-            detect_images,
-            reasons,
-            table,
+            Fields(fr, SESSION_FILE, f"frames[{i}]"), directory, target, cameras, detect_images,
+            reasons, table,
         )
         if frame.id in ids_seen:
             raise InputError(
@@ -629,9 +528,7 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
         raise f.error("reference_camera", f"{ref!r} is not a camera; cameras are {names}")
     options = options_from_dict(f.get("options", {}), SESSION_FILE)
     problem = CalibrationProblem(
-        target=target,
-        cameras=tuple(cameras),
-        frames=tuple(frames),
+        target=target, cameras=tuple(cameras), frames=tuple(frames),
         mount=mount,  # type: ignore[arg-type]
         knowledge=knowledge,  # type: ignore[arg-type]
         options=options,
@@ -643,24 +540,16 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
     if sha is not None and not re.fullmatch(r"[0-9a-f]{64}", sha):
         raise f.error("cell_sha256", "must be 64 lowercase hex digits (a SHA-256)")
     return Session(
-        directory=directory,
-        problem=problem,
-        simulation=sim,
-        events=events,
-        status=f.choice("status", STATUSES, "complete"),
-        quality=quality,
-        images=images,
-        cell=f.string("cell", "-") if f.has("cell") else None,
-        cell_sha256=sha,
+        directory=directory, problem=problem, simulation=sim, events=events,
+        status=f.choice("status", STATUSES, "complete"), quality=quality, images=images,
+        cell=f.string("cell", "-") if f.has("cell") else None, cell_sha256=sha,
         robot_driver=f.choice("robot_driver", ("simulated", "ur"), "ur")
         if f.has("robot_driver")
         else None,
         camera_driver=f.choice("camera_driver", CAMERA_DRIVERS, "oak")
         if f.has("camera_driver")
         else None,
-        sockets=sockets,
-        detect_reasons=reasons,
-        limits=f.get("limits"),
+        sockets=sockets, detect_reasons=reasons, limits=f.get("limits"),
     )
 
 
@@ -996,8 +885,7 @@ def _npy_header(n_rows: int) -> bytes:
     np.lib.format.write_array_header_1_0(
         buf,
         {
-            "descr": np.lib.format.dtype_to_descr(DETECTION_DTYPE),
-            "fortran_order": False,
+            "descr": np.lib.format.dtype_to_descr(DETECTION_DTYPE), "fortran_order": False,
             "shape": (n_rows,),
         },
     )
@@ -1021,12 +909,8 @@ def _append_rows(path: Path, n_rows: int, rows: np.ndarray) -> int:
 
 
 class SessionWriter:
-    """Create a session directory and append frames as they are captured.
-
-    Each :meth:`append_frame` writes the images (PNG) first, then appends the frame's corners to
-    ``detections.npy`` and rewrites ``session.yaml`` atomically, so the files on disk always
-    describe complete frames only.
-    """
+    """Create a session directory and append frames as they are captured (images, then corners,
+    then ``session.yaml`` atomically: the files always describe complete frames only)."""
 
     def __init__(
         self,
@@ -1135,12 +1019,10 @@ class SessionWriter:
     ) -> int:
         """Write one frame now and return its id (``frame_id``, default: the next free id).
 
-        ``T_base_tool`` (4, 4), metres: the pose measured after settling (None without a robot).
-        ``images``: uint8 (H, W) or (H, W, 3) per camera name, saved as PNG. ``detections``:
-        per camera (an empty detection when the camera saw nothing). ``motion_board`` (3,):
-        board-frame motion knowledge (paper's cases). ``T_base_tool_true`` (4, 4): simulated
-        runs, the pose the arm really reached, recorded with ``T_base_tool`` in the
-        ``simulation:`` block's ``frames`` (ignored without a ``simulation:`` block).
+        ``T_base_tool`` (4, 4) m: the measured pose (None without a robot); ``images``: uint8 (H, W)
+        or (H, W, 3) per camera, saved as PNG; ``detections`` per camera; ``motion_board`` (3,):
+        board-frame motion knowledge; ``T_base_tool_true`` (4, 4): the pose the simulated arm really
+        reached (kept only with a ``simulation:`` block).
         """
         import cv2
 
@@ -1206,12 +1088,6 @@ class SessionWriter:
         self.data["events"].append({"kind": kind, "message": message, **plain(fields)})
         self._write()
 
-    def set_simulation(self, simulation: Mapping[str, Any]) -> None:
-        """Record the simulated truth (``simulation:`` block)."""
-        self.data["simulation"] = plain(dict(simulation))
-        self.__dict__.pop("_item_text", None)
-        self._write()
-
     def finish(self, status: str = "complete") -> Path:
         """Mark the session ``complete`` (or ``aborted``) and return its directory."""
         self.data["status"] = status
@@ -1264,22 +1140,13 @@ def write_session(
 ) -> Path:
     """Write a problem (detections only, no images) as a session directory."""
     w = SessionWriter(
-        directory,
-        problem.target,
-        problem.cameras,
-        mount=problem.mount,
-        knowledge=problem.knowledge,
-        options=problem.options,
-        reference_camera=problem.reference_camera,
-        simulation=simulation,
-        overwrite=overwrite,
+        directory, problem.target, problem.cameras, mount=problem.mount,
+        knowledge=problem.knowledge, options=problem.options,
+        reference_camera=problem.reference_camera, simulation=simulation, overwrite=overwrite,
     )
     for fr in problem.frames:
         w.append_frame(
-            fr.T_base_tool,
-            detections=fr.detections,
-            group=fr.group,
-            motion_board=fr.motion_board,
+            fr.T_base_tool, detections=fr.detections, group=fr.group, motion_board=fr.motion_board,
             frame_id=fr.id,
         )
     return w.finish()

@@ -48,16 +48,10 @@ REJECTED_DIR = "rejected"
 
 @dataclass(frozen=True)
 class RunOutcome:
-    """What a run produced.
-
-    ``errors``: against the simulated truth (simulated cells; see
-    :func:`~slidecal.routines.results_io.errors_against_truth`). ``robot_time_s``: the robot's
-    (simulated) clock spent moving and settling; ``wall_time_s``: this process's time.
-    ``verdict``: the gate's decision (:mod:`slidecal.routines.ops.verdict`); a rejected result is
-    written under ``rejected/`` and has no exports. ``installed_to``: the install store's new
-    entry (None when not installed; ``install_note`` says why). ``export_errors``: exports
-    that failed, one line each. ``exit_code``: what ``slidecal`` exits with.
-    """
+    """What a run produced: ``errors`` against the simulated truth (simulated cells), the robot's
+    and this process's time, the gate's ``verdict`` (a rejected result is written under
+    ``rejected/`` without exports), ``installed_to`` (None when not installed: ``install_note``
+    says why), ``export_errors`` (one line each) and :attr:`exit_code`."""
 
     session_dir: Path
     result: CalibrationResult
@@ -111,21 +105,14 @@ class Solved:
         """The :class:`RunOutcome` of this solve of ``session`` (``t0``: the command's start,
         ``time.monotonic``; ``more``: the run's own fields, e.g. ``installed_to``)."""
         return RunOutcome(
-            session_dir=session.directory,
-            result=self.result,
-            result_path=self.result_path,
-            summary=self.summary,
-            n_frames=len(session.problem.frames),
-            wall_time_s=time.monotonic() - t0,
-            robot_time_s=robot_time_s,
+            session_dir=session.directory, result=self.result, result_path=self.result_path,
+            summary=self.summary, n_frames=len(session.problem.frames),
+            wall_time_s=time.monotonic() - t0, robot_time_s=robot_time_s,
             errors=errors_against_truth(self.result, session.simulation)
             if session.simulation
             else {},
-            exports=self.exports,
-            verdict=self.verdict,
-            export_errors=self.export_errors,
-            report_path=self.report,
-            **more,
+            exports=self.exports, verdict=self.verdict, export_errors=self.export_errors,
+            report_path=self.report, **more,
         )
 
 
@@ -163,21 +150,12 @@ def finish_solve(
     plan_poses: int | None = None,
     notes: Sequence[str] = (),
 ) -> Solved:
-    """Judge a solved session and write what the verdict allows (``notes``: what the run
-    itself has to say, e.g. that it extended its plan, added to the verdict's notes).
-
-    Always: ``verdict.yaml`` in the session, ``summary.txt`` next to the result, the report
-    (``report.html``, ``report.png``) in the session. Accepted or drifted: ``result.yaml`` and
-    ``export/``. Rejected: ``rejected/result.yaml`` and its summary, no exports.
-    """
+    """Judge a solved session and write what the verdict allows: always ``verdict.yaml``,
+    ``summary.txt`` and the report; ``result.yaml`` and ``export/`` when accepted or drifted,
+    ``rejected/`` without exports otherwise. ``notes``: the run's own notes for the verdict."""
     status = _session_status(session, plan_poses)
     verdict = judge(
-        result,
-        limits,
-        session.problem,
-        installed,
-        command=command,
-        session_status=status,
+        result, limits, session.problem, installed, command=command, session_status=status,
         installed_path=installed_path,
     )
     if notes:
@@ -219,9 +197,7 @@ def finish_solve(
         report = write_report(session_dir, result, verdict, session.problem, installed, summary)
     except (OSError, ValueError) as e:
         export_errors.append(f"report failed: {' '.join(str(e).split())}")
-    return Solved(
-        verdict, result, target, summary, tuple(exports), tuple(export_errors), report
-    )
+    return Solved(verdict, result, target, summary, tuple(exports), tuple(export_errors), report)
 
 
 def _session_status(session: Session, plan_poses: int | None) -> str:
@@ -243,8 +219,7 @@ def _session_status(session: Session, plan_poses: int | None) -> str:
 
 def detection_hint(reasons: Mapping[tuple[int, str], Sequence[str]], n_frames: int) -> str:
     """What the detector said most often of the images it found nothing usable in (a board
-    counted in inner corners, another board size, nothing at all), or "" when it said nothing.
-    """
+    counted in inner corners, another board size, nothing at all), or "" when it said nothing."""
     counts: dict[str, int] = {}
     for why in reasons.values():
         if why:
@@ -264,9 +239,9 @@ def solve_session(
 ) -> RunOutcome:
     """Solve a recorded session again (``slidecal solve``): read, calibrate, judge, write.
 
-    An existing result file is not overwritten without ``force``. ``installed``: an install
-    store or result to compare with; ``config``: a cell file whose ``limits:`` apply (default:
-    the limits the session recorded, else the defaults).
+    An existing result is not overwritten without ``force``. ``installed``: an install store or
+    result to compare with; ``config``: a cell file whose ``limits:`` apply (default: the
+    session's).
     """
     t0 = time.monotonic()
     session_dir = Path(session_dir)
@@ -297,27 +272,16 @@ def solve_session(
             raise
         raise DegenerateError(f"{e}; {hint}") from e
     fin = finish_solve(
-        result,
-        session_dir,
-        session,
-        limits,
-        command="solve",
-        truth=session.simulation,
-        cell_path=config,
-        cell_name=session.cell,
-        oak_sockets=session.sockets or None,
-        installed=inst_result,
-        installed_path=inst_path,
-        result_path=path,
-        plan_poses=plan_poses,
+        result, session_dir, session, limits, command="solve", truth=session.simulation,
+        cell_path=config, cell_name=session.cell, oak_sockets=session.sockets or None,
+        installed=inst_result, installed_path=inst_path, result_path=path, plan_poses=plan_poses,
     )
     return fin.outcome(session, t0)
 
 
 def cell_file_limits(path: str | Path) -> Limits:
     """The gate's limits of a cell file (its ``limits:`` section): what a solve takes of a
-    cell (the rest of the cell, checked by every run, describes hardware a solve does not use).
-    """
+    cell (the rest of the cell, checked by every run, describes hardware a solve does not use)."""
     data = load_yaml(Path(path), "cell file")
     Fields(data, Path(path).name).only(CELL_SECTIONS)  # a misspelt limits: is not ignored
     return limits_from_dict(data.get("limits"), Path(path).name)

@@ -35,14 +35,9 @@ def simulated_run(
     recording: bool = False,
     **overrides: Any,
 ) -> RunOutcome:
-    """Run the routine end to end on a simulated cell into ``tmp_path/session``.
-
-    ``overrides``: top-level cell sections merged over the file (e.g.
-    ``simulation={"noise": {"robot_mm": 0.1}}``, ``plan={"tilts_deg": [20, 30]}``, the
-    planner's options; ``limits={"max_rms_px": 0.5}``, the verdict's). The outcome carries the
-    verdict (``outcome.verdict.verdict``, ``outcome.exit_code``). Refuses cells that name real
-    hardware.
-    """
+    """Run the routine end to end on a simulated cell into ``tmp_path/session`` and return the
+    outcome; ``overrides``: top-level cell sections merged over the file (e.g. ``plan={"tilts_deg":
+    [20, 30]}``, ``limits={"max_rms_px": 0.5}``). Refuses real hardware."""
     cfg = config if isinstance(config, CellConfig) else load_config(config, overrides)
     if not cfg.simulated:
         raise InputError(

@@ -18,6 +18,7 @@ from slidecal.routines.exports import (
     camchain_dict,
     hand_eye_dict,
     mrcal_cameramodel,
+    quat_xyzw,
     result_header,
     write_all_exports,
 )
@@ -181,3 +182,15 @@ def test_result_header(tmp_path: Path) -> None:
 
     assert h["cell"] == "cell.yaml" and h["cell_sha256"] == hashlib.sha256(b"x: 1\n").hexdigest()
     assert h["created_utc"].endswith("Z") and h["slidecal_version"]
+
+
+def test_quaternion_matches_scipy():
+    mats = [np.eye(3), Rx(np.pi), Ry(np.pi), Rz(np.pi), Rx(np.pi) @ Rz(np.pi / 2)]
+    mats += list(Rotation.random(200, random_state=4).as_matrix())
+    for R in mats:
+        q = Rotation.from_matrix(R).as_quat()
+        q = -q if q[3] < 0 else q
+        ours = np.array(quat_xyzw(R))
+        if abs(q[3]) < 1e-9:  # w = 0: q and -q are the same rotation
+            ours = ours * np.sign(ours @ q)
+        np.testing.assert_allclose(ours, q, atol=1e-12)

@@ -1,29 +1,10 @@
 """``slidecal check --config CELL --installed STORE``: does the installed calibration still hold?
 
-A short verification, not a calibration: a handful of frames (at most
-:data:`MAX_ROBOT_TIME_S` of robot time) at known robot poses, taken from the plan of the
-installed calibration (or the planner's plan for the cell): the first two poses of its first
-groups, among those the installed session recorded a frame at (:func:`recorded_plan`).
-
-When the install keeps its session (``session.yaml``), the paired comparison decides: the
-check's corners against those the installed session recorded at the same robot poses
-(:func:`slidecal.routines.ops.verdict.paired_compare`; limit ``check_max_px``). Otherwise (and
-said in the verdict's notes) two measurements against the installed calibration decide; with
-a paired comparison their figures are kept in the verdict file:
-
-- the change: the installed calibration re-estimated from the check's frames (:func:`refit`:
-  fx, fy, cx, cy, the hand-eye and the target pose free; distortion and rig fixed; the robot's
-  pose noise in the model), compared by :func:`slidecal.routines.ops.verdict.compare` as the
-  largest change in units of the combined one-sigma and as the largest pixel displacement of
-  points at the working distance (limits ``max_change_sigma``, ``max_change_px``);
-- what the fixed calibration cannot explain: the installed calibration held fixed, only the
-  target's pose fitted (the board may have been put back slightly differently), the residual
-  rms against what the installed calibration explained on its own session (``chain_rms_px``
-  in ``installed.yaml``), ``drift_px = sqrt(residual^2 - expected^2)`` (limits
-  ``check_max_rms_ratio`` and ``check_max_px``, both exceeded for a failure).
-
-Verdict ``ok`` when every test passes, else ``drifted``; written with the figures to the
-check's session as ``verdict.yaml``; exit 0 / 5.
+A short verification, not a calibration: a handful of frames (at most :data:`MAX_ROBOT_TIME_S`
+of robot time) at poses the installed session recorded (:func:`recorded_plan`). The corners
+compared pair by pair with the installed session's decide when the store keeps it; otherwise the
+installed calibration re-estimated from the check (:func:`refit`) and its residual with only the
+target's pose free decide. Verdict ``ok`` or ``drifted`` (exit 0 / 5): docs/UNATTENDED.md.
 """
 
 from __future__ import annotations
@@ -77,9 +58,7 @@ def check_plan_from(plan: Plan, cfg: CellConfig, frames: int = DEFAULT_FRAMES) -
     while True:
         groups = tuple(tuple(g[:per]) for g in plan.groups[:n_groups])
         short = Plan.build(
-            groups,
-            plan,
-            via=plan.via,
+            groups, plan, via=plan.via,
             notes=(f"check: {sum(len(g) for g in groups)} frames of the installed plan",),
         )
         robot_s, bad, why = dry_run(short, cfg)
@@ -124,7 +103,7 @@ def _hand_eye_T(installed: CalibrationResult, camera: str) -> np.ndarray:
 def expected_rms_px(
     installed: CalibrationResult, info: dict[str, Any], cfg: CellConfig
 ) -> dict[str, float]:
-    """What the installed calibration explains per camera (see the module docstring)."""
+    """What the installed calibration explains per camera (docs/UNATTENDED.md)."""
     rec = info.get("chain_rms_px") or {}
     out = {}
     for n, c in installed.cameras.items():
@@ -152,15 +131,11 @@ def refit(
     robot_noise_m: float = 5e-5,
     robot_noise_deg: float = 0.005,
 ) -> CalibrationResult:
-    """The installed calibration re-estimated from the check's frames: each camera's fx, fy,
-    cx, cy, the reference camera's hand-eye and the target pose are free; the distortion and a
-    rig's extrinsics stay as installed. Each measured robot pose gets a small correction with
-    the robot's noise as its prior (``robot_noise_m`` / ``_deg``, one-sigma per axis, as in the
-    solver): with a handful of frames the robot's pose errors, common to all corners of a
-    frame, dominate and must be in the covariance. Residuals are whitened by the installed
-    calibration's pixel noise; one-sigmas from the covariance, scaled up by the reduced
-    chi-square when it exceeds 1. Compared with the installed one by
-    :func:`slidecal.routines.ops.verdict.compare`."""
+    """The installed calibration re-estimated from the check's frames: fx, fy, cx, cy, the
+    reference camera's hand-eye and the target pose free, distortion and rig as installed; each
+    measured robot pose corrected under the robot's noise prior (``robot_noise_m``/``_deg``), the
+    residuals whitened by the installed pixel noise, the one-sigmas scaled up by a reduced
+    chi-square above 1."""
     mount = installed.mount
     ref = installed.reference_camera or next(iter(installed.cameras))
     cams = [c.name for c in problem.cameras if c.name in installed.cameras]
@@ -245,11 +220,8 @@ def refit(
     t_mm = float(np.sqrt(np.trace(cov[nk + 3 : nk + 6, nk + 3 : nk + 6])) * 1000.0)
     he = TransformEstimate(installed.hand_eye.name, X[:3, :3], X[:3, 3], rot_deg, t_mm)
     return dataclasses.replace(
-        installed,
-        cameras=cameras,
-        hand_eye=he,
-        T_target=TransformEstimate("target", Y[:3, :3], Y[:3, 3]),
-        covariance=None,
+        installed, cameras=cameras, hand_eye=he,
+        T_target=TransformEstimate("target", Y[:3, :3], Y[:3, 3]), covariance=None,
         parameter_names=(),
     )
 
@@ -261,10 +233,9 @@ def judge_problem(
     cfg: CellConfig,
     installed_problem: CalibrationProblem | None = None,
 ) -> Verdict:
-    """The check's verdict of recorded check frames against the installed calibration: the
-    paired comparison with ``installed_problem`` (the installed session's frames) when the
-    check's poses are among its poses, else (said in the notes) the re-estimate and the
-    fixed-calibration residuals."""
+    """The check's verdict of recorded check frames against the installed calibration: paired with
+    ``installed_problem`` when the check's poses are among its poses, else (said in the notes)
+    the re-estimate and the fixed-calibration residuals."""
     Y, res = fit_target(problem, installed)
     rms = {n: float(np.sqrt(np.mean(np.sum(r**2, axis=1)))) for n, r in res.items() if len(r)}
     drift = {n: float(np.sqrt(max(rms[n] ** 2 - expected[n] ** 2, 0.0))) for n in rms}
@@ -274,11 +245,8 @@ def judge_problem(
         sig[n] = None if not s else drift[n] / s
     extra = {
         "check": {
-            "frames": len(problem.frames),
-            "residual_rms_px": rms,
-            "expected_rms_px": {n: expected[n] for n in rms},
-            "drift_px": drift,
-            "drift_sigma": sig,
+            "frames": len(problem.frames), "residual_rms_px": rms,
+            "expected_rms_px": {n: expected[n] for n in rms}, "drift_px": drift, "drift_sigma": sig,
             "target_pose_t_m": [float(v) for v in Y[:3, 3]],
         }
     }
@@ -370,14 +338,7 @@ def run_check(
         raise InputError("already holds a session; choose a new --out directory", str(out))
     prog = Progress.from_option(progress, plan.n_poses)
     rec = record_session(
-        cfg,
-        plan,
-        out,
-        prog,
-        lock_key=cell_key(config, cfg),
-        seed=seed,
-        cell=cell,
-        retries=retries,
+        cfg, plan, out, prog, lock_key=cell_key(config, cfg), seed=seed, cell=cell, retries=retries,
         extra={"purpose": "check", "installed": str(cur)},
     )
     problem = load_session(out).problem
@@ -407,12 +368,8 @@ def main(args: argparse.Namespace) -> int:
     if not 2 <= args.frames <= 12:
         raise InputError(f"--frames must be 2 to 12, got {args.frames}")
     verdict, out = run_check(
-        args.config,
-        args.installed,
-        args.out,
-        frames=args.frames,
-        progress=False if args.quiet else None,
-        seed=args.seed,
+        args.config, args.installed, args.out, frames=args.frames,
+        progress=False if args.quiet else None, seed=args.seed,
     )
     print("\n".join(verdict.lines()) if not args.quiet else f"verdict: {verdict.verdict}")
     print(f"check session: {out}")

@@ -1,18 +1,7 @@
-"""Injected hardware faults: ``--fault KIND@FRAME`` for ``slidecal run`` (simulated cell) and
-``slidecal rehearse`` (loopback controller), and the table of what each does.
-
-Kinds (:data:`FAULT_KINDS`): ``protective_stop``, ``emergency_stop`` (the arm stops halfway
-through the move to that frame), ``disconnect`` (the robot's link is lost during that move),
-``stall`` (the arm stops halfway without any fault and never arrives), ``no_frame`` (every
-capture at that frame's pose times out, its retries included), ``camera_lost`` (the camera is
-gone for good from that capture on: reconnecting fails).
-``FRAME`` counts captured frames from 0: the fault hits the move to (or the capture of) that
-frame, so every frame before it is on disk. The routine then stops the arm, records the event
-in the session and exits with the hardware-fault code 3.
-
-The table of what each kind does (``docs/results/FAULTS.md``) is a benchmark in the checkout:
-``python -m tests.bench faults`` (tests/bench/faults.py).
-"""
+"""Injected hardware faults (``--fault KIND@FRAME``, :data:`FAULT_KINDS`) for ``slidecal run`` on a
+simulated cell and ``slidecal rehearse``: ``FRAME`` counts captured frames from 0, the fault
+hits the move to (or the capture of) that frame. The table of what each kind does is
+docs/results/FAULTS.md (``python -m tests.bench faults``)."""
 
 from __future__ import annotations
 
@@ -61,11 +50,8 @@ def parse_fault(text: str) -> FaultSpec:
 
 
 class FaultInjector:
-    """Arms each fault just before the move to its frame (``before_frame``, called by the run).
-
-    ``arm_robot(kind)`` makes the robot's next move fail that way; camera faults are injected
-    into a simulated rig (``inject_fault(kind, at_capture)``, mocks/camera.py).
-    """
+    """Arms each fault just before the move to its frame (``before_frame``): ``arm_robot(kind)`` for
+    the robot, ``inject_fault(kind, at_capture)`` for a simulated rig."""
 
     def __init__(self, specs: Iterable[FaultSpec | str], arm_robot: Callable[[str], None],
                  rig: Any) -> None:
@@ -73,9 +59,7 @@ class FaultInjector:
         self._arm_robot = arm_robot
         self._rig = rig
         self.fired: list[FaultSpec] = []
-        if any(s.kind not in ROBOT_FAULTS for s in self.specs) and not hasattr(
-            rig, "inject_fault"
-        ):
+        if any(s.kind not in ROBOT_FAULTS for s in self.specs) and not hasattr(rig, "inject_fault"):
             raise InputError("camera faults need a simulated camera rig", where="--fault")
 
     @classmethod

@@ -1,19 +1,8 @@
-"""Write a session's calibration into its OAK device (``slidecal flash SESSION``).
-
-``slidecal flash SESSION_DIR [--result result.yaml] [--device-id ID] [--write]``
-
-Without ``--write`` nothing is written: it says what would change (how far the device's current
-calibration, as recorded in the session, moves projected points against the result at the
-working distance). With ``--write`` it opens the device the session was recorded with (refusing
-another one), reads the calibration it uses now and saves it as
-``SESSION_DIR/device_calibration_backup_<time>.json`` BEFORE writing anything, builds the new
-calibration from that one (board name, IMU extrinsics, design translations kept; intrinsics,
-distortion, extrinsics, rectification and lens positions from the result; each camera's K
-mapped back through the session's resize to the size the device stores that socket at), saves it as
-``device_calibration_flashed_<time>.json``, writes it into the device's user calibration area
-(``flashCalibration``; the factory area is never touched), reads it back and compares. To undo:
-flash the backup file with depthai (``device.flashCalibration(dai.CalibrationHandler(path))``)
-or ``device.factoryResetCalibration()`` to return to the factory calibration.
+"""Write a session's calibration into its OAK device (``slidecal flash SESSION``): without
+``--write`` only how far the device's calibration moves projected points against the result;
+with it, the device's calibration saved as ``device_calibration_backup_<time>.json`` first, the
+new one built from it, written into the user area (never the factory area) and read back.
+To undo: flash the backup with depthai, or ``device.factoryResetCalibration()``.
 """
 
 from __future__ import annotations
@@ -40,8 +29,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--result", help="result file (default: SESSION_DIR/result.yaml)")
     p.add_argument("--device-id", help="the device to write (default: the session's device)")
     p.add_argument(
-        "--write",
-        action="store_true",
+        "--write", action="store_true",
         help="really write the device's user calibration area (a backup is saved first)",
     )
 

@@ -1,28 +1,10 @@
 """The install store: where the calibration in use lives, with its history and a rollback.
 
-``STORE/`` (``--install STORE`` or ``install: {dir: STORE}`` in the cell file)::
-
-    current -> history/20261201T020000_123456Z     # a symbolic link, replaced atomically
-    history/20261130T020000_654321Z/               # every install, complete, never modified
-        result.yaml  summary.txt  verdict.yaml  plan.yaml  report.html  export/...
-        session.yaml                               # the session's frames, without images
-        installed.yaml                             # when, from which session, which cell
-    history/<older>/ROLLED_BACK                    # marks an install that was rolled back
-
-An install copies the files into ``STORE/.staging-<time>/``, fsyncs every file and the
-directory, renames it into ``history/`` (one atomic rename) and then points ``current`` at it
-by renaming a new link over the old one (atomic): a reader sees the old install or the new
-one, never a half-written file, and a crash at any point leaves ``current`` intact.
-``session.yaml`` is the installed session's file (``slidecal.session/1``) with its frames'
-measured robot poses and detections but without the image paths: ``slidecal check`` revisits
-those poses and compares its corners with these (:func:`installed_session`).
-``slidecal rollback STORE`` points ``current`` at the install before it (skipping rolled-back
-ones) and marks the one it leaves ``ROLLED_BACK``.
-
-Only ``accepted`` results are installed (``drifted`` ones with ``--accept-drift``): a
-rejected result never replaces an accepted one. A result whose uncertainty is larger than the
-installed one's (any of fx, fy, cx, cy, hand-eye rotation and translation one-sigma by more
-than :data:`WORSE_FACTOR`) needs ``force``.
+``STORE/current`` links to one complete, never modified ``STORE/history/<time>/``; an install
+is staged, fsynced, renamed into ``history/`` and the link replaced atomically, so a reader
+never sees a half-written install. Only accepted results are installed (drifted ones on
+request), and one less certain than the installed (:data:`WORSE_FACTOR`) needs ``force``.
+The layout and ``slidecal rollback``: docs/UNATTENDED.md.
 """
 
 from __future__ import annotations
@@ -54,12 +36,7 @@ WORSE_FACTOR = 1.25
 #: What an install keeps of the session directory (``detections.npy``: the corners its
 #: ``session.yaml`` counts, which ``slidecal check`` compares with)
 _FILES = (
-    "result.yaml",
-    "summary.txt",
-    "verdict.yaml",
-    "plan.yaml",
-    "report.html",
-    "report.png",
+    "result.yaml", "summary.txt", "verdict.yaml", "plan.yaml", "report.html", "report.png",
     "detections.npy",
 )
 
@@ -235,9 +212,7 @@ def install(
                 write_atomic(staging / SESSION_FILE, session_text)
             meta = {
                 "installed_utc": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
-                "session": str(src.resolve()),
-                "verdict": verdict,
-                "forced": bool(force),
+                "session": str(src.resolve()), "verdict": verdict, "forced": bool(force),
                 **(info or {}),
             }
             write_atomic(staging / INSTALLED_FILE, dump_yaml(meta))

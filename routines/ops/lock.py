@@ -41,11 +41,8 @@ def _pid_alive(pid: int) -> bool:
 
 
 class Lock:
-    """An exclusive lock file; a context manager. ``what`` names the locked thing in messages.
-
-    ``stale``: after :meth:`acquire`, the description of a stale lock that was taken over
-    (None when there was none).
-    """
+    """An exclusive lock file; a context manager. ``what`` names the locked thing in messages;
+    ``stale``: after :meth:`acquire`, the stale lock taken over (None when there was none)."""
 
     def __init__(self, path: str | Path, what: str) -> None:
         self.path = Path(path)

@@ -1,26 +1,8 @@
-"""Rehearse a cell's calibration through the real ur-rtde client (``slidecal rehearse``).
-
-``slidecal rehearse [--config CELL] [--out DIR] [--fault KIND@FRAME] [--polyscope V]
-[--speed-slider X]`` starts the loopback UR controller (``slidecal.mocks.ur_controller``) in
-its own process on a loopback address of its own, connects the real UR driver
-(:class:`~slidecal.drivers.ur.URRobot`, i.e. ur-rtde) to it, and runs the cell's routine
-(:func:`~slidecal.routines.run.run_calibration`: plan, reachability checks, moves, captures,
-solve) with the cell's simulated cameras rendering the target from the controller's true TCP
-pose. The controller reports that pose with the cell's simulated robot error
-(``simulation.noise``), drawn once per rest pose. Nothing leaves the machine; no robot moves.
-
-A simulated cell (``robot.driver: simulated``, e.g. the default cell) is rehearsed as it is:
-its ``simulation`` block is the truth the cameras render. A real cell (``robot.driver: ur``) is
-rehearsed through its simulated twin (:func:`simulated_twin`): the same robot model, TCP,
-speeds, workspace, target, mount, camera names and sizes, the rough geometry of
-``approximate`` taken as the truth, cameras of a plausible lens (or the OAK-D-like preset for
-an OAK named left/right/rgb), the arm starting with the camera at the stand-off straight over
-the target; the cell's ``take_control`` and ``payload`` go to the driver as on the real cell.
-The session gets, besides what ``slidecal run`` writes, ``rehearsal.yaml``: what the
-controller said it was (:attr:`URRobot.controller_info`) and what it saw (its events, the final
-arm state, the longest time its event loop went unscheduled). The driver's stale-data limit is
-the rehearsal's (:data:`LOOPBACK_STALE_S`): the host's load must not fail a rehearsal, and a
-fault after the loopback itself starved says so.
+"""Rehearse a cell's calibration through the real ur-rtde client (``slidecal rehearse``): the
+loopback UR controller (:mod:`slidecal.mocks.ur_controller`) in its own process, the real UR
+driver connected to it, the cell's routine run with simulated cameras rendering from the
+controller's true pose (a real cell through its :func:`simulated_twin`), and ``rehearsal.yaml``
+saying what the controller was and saw. Nothing leaves the machine; no robot moves.
 """
 
 from __future__ import annotations
@@ -60,9 +42,8 @@ help = "rehearse the cell's routine through the real ur-rtde client on a loopbac
 REHEARSAL_FILE = "rehearsal.yaml"
 #: The controller's state after the last rehearsal in this process (the fault table reads it).
 LAST_CONTROLLER_STATE: dict[str, Any] = {}
-#: The rehearsal's stale-data limit (the driver's is 0.1 s): the loopback controller is a Python
-#: process on the host's CPUs and goes unscheduled under load for far longer than a controller's
-#: cycle; three times the longest gap it showed before the run if that is longer.
+#: The rehearsal's stale-data limit (a Python loopback goes unscheduled under load far longer than
+#: a controller's cycle); three times the longest gap it showed before the run if that is longer.
 LOOPBACK_STALE_S = 1.0
 
 
@@ -121,11 +102,9 @@ TWIN_HFOV_DEG = 60.0
 
 
 def simulated_twin(cfg: CellConfig) -> CellConfig:
-    """The simulated cell standing in for a real one in a rehearsal (module docstring).
-
-    Raises ``InputError`` when the cell gives too little to build one (several cameras that are
-    not an OAK's left/right/rgb: their extrinsics are unknown).
-    """
+    """The simulated cell standing in for a real one in a rehearsal: its robot, target, mount and
+    cameras' names and sizes, ``approximate`` taken as the truth. ``InputError`` when the cell
+    gives too little (several cameras that are not an OAK's left/right/rgb)."""
     given = config_to_dict(cfg)
     # the twin's board is simulated, so exact; its camera plans with the simulated camera's
     # noise unless the cell sets one other than the real camera's default
@@ -189,11 +168,8 @@ def rehearse(
     recording: bool = False,
     seed: int | None = None,
 ) -> RunOutcome:
-    """Run the cell's routine against the loopback controller; returns the ``RunOutcome``.
-
-    Raises like :func:`~slidecal.routines.run.run_calibration` (``HardwareFault`` after an
-    injected fault, with every frame before it in the session).
-    """
+    """Run the cell's routine against the loopback controller; returns the ``RunOutcome``, raises
+    as :func:`~slidecal.routines.run.run_calibration`."""
     cfg = load_config(config)
     driver_options: dict[str, Any] = {}
     if not cfg.simulated:
@@ -203,8 +179,7 @@ def rehearse(
     cell = SimulatedCell.from_config(cfg, seed)
     sim = cfg.simulation
     options = [
-        "--model", cfg.robot.model, "--polyscope", polyscope,
-        "--speed-slider", str(speed_slider),
+        "--model", cfg.robot.model, "--polyscope", polyscope, "--speed-slider", str(speed_slider),
         "--start-q=" + ",".join(f"{v:.17g}" for v in cell.robot.q),
         "--noise-mm", str(sim.robot_noise_m * 1000.0), "--noise-deg", str(sim.robot_noise_deg),
         "--seed", str(cell.seed),
@@ -213,13 +188,8 @@ def rehearse(
     controller = LoopbackController(options)
     stale_s = max(LOOPBACK_STALE_S, 3.0 * controller.ctl("state").get("cycle_gap_max_s", 0.0))
     robot = URRobot(
-        controller.host,
-        max_speed_mps=cfg.robot.speed_mps,
-        max_accel_mps2=cfg.robot.accel_mps2,
-        tcp=cfg.robot.tcp,
-        model=cfg.robot.model,
-        frequency=125.0,
-        stale_timeout_s=stale_s,
+        controller.host, max_speed_mps=cfg.robot.speed_mps, max_accel_mps2=cfg.robot.accel_mps2,
+        tcp=cfg.robot.tcp, model=cfg.robot.model, frequency=125.0, stale_timeout_s=stale_s,
         **driver_options,
     )
     # the simulated cameras render from the controller's arm, not the simulated one

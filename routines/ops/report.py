@@ -1,12 +1,6 @@
-"""The morning report of a run: ``report.html`` (self-contained) and ``report.png``.
-
-Written into the session by every ``run`` and ``solve`` (and ``check``): the verdict and its
-reasons; per camera the residual vectors over the image (magnified) on the corner coverage
-grid, and the projection-uncertainty map (one-sigma pixel error of a ray through each pixel,
-from the covariance of the intrinsics); the robot's accuracy per frame when the solver
-estimated it; the difference from the installed calibration. Drawn with OpenCV; the HTML
-inlines its images (``data:`` URIs) and needs no network.
-"""
+"""The morning report of a run: ``report.html`` (self-contained) and ``report.png``: the verdict,
+per camera the magnified residuals on the coverage grid and the projection-uncertainty map,
+the robot's accuracy per frame and the difference from the installed calibration."""
 
 from __future__ import annotations
 
@@ -28,9 +22,7 @@ REPORT_HTML = "report.html"
 REPORT_PNG = "report.png"
 PANEL_W = 560
 _COLOURS = {
-    "accepted": (60, 160, 60),
-    "ok": (60, 160, 60),
-    "drifted": (0, 140, 230),
+    "accepted": (60, 160, 60), "ok": (60, 160, 60), "drifted": (0, 140, 230),
     "rejected": (40, 40, 210),
 }
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
@@ -88,19 +80,15 @@ def residual_vectors(
     K, d = np.asarray(cam.K, float), np.asarray(cam.distortion, float).reshape(-1)[:5]
     poses = _board_poses(result, problem, camera)
     pts = problem.target.points_m
-    at, res = [], []
+    at, P = [np.zeros((0, 2))], [np.zeros((0, 3))]
     for fr in problem.frames:
         det = fr.detections.get(camera)
-        if fr.id not in poses or det is None:
-            continue
-        T = poses[fr.id]
-        P = pts[det.ids] @ T[:3, :3].T + T[:3, 3]
-        px = np.asarray(det.px, float)
-        at.append(px)
-        res.append(px - project(K, d, P))
-    if not at:
-        return np.zeros((0, 2)), np.zeros((0, 2))
-    return np.vstack(at), np.vstack(res)
+        if fr.id in poses and det is not None:
+            T = poses[fr.id]
+            P.append(pts[det.ids] @ T[:3, :3].T + T[:3, 3])
+            at.append(np.asarray(det.px, float))
+    px = np.vstack(at)
+    return px, px - project(K, d, np.vstack(P)) if len(px) else np.zeros((0, 2))
 
 
 def uncertainty_map(result: CalibrationResult, camera: str, n: tuple[int, int] = (32, 20)):
@@ -172,11 +160,13 @@ def residual_panel(
         rms = float(np.sqrt(np.mean(np.sum(res**2, 1))))
         mag = 12.0 / max(rms * s, 1e-9)  # about 12 display pixels for an rms residual
         mag = float(10 ** np.floor(np.log10(mag)))
-        for p, r in zip(at, res, strict=True):
-            a = (int(p[0] * s), int(p[1] * s))
-            b = (int((p[0] + r[0] * mag) * s), int((p[1] + r[1] * mag) * s))
-            cv2.line(img, a, b, (40, 40, 200), 1, cv2.LINE_AA)
-            cv2.circle(img, a, 1, (90, 90, 90), -1)
+        a = (at * s).astype(np.int32)
+        b = ((at + res * mag) * s).astype(np.int32)
+        cv2.polylines(img, list(np.stack([a, b], 1)), False, (40, 40, 200), 1, cv2.LINE_AA)
+        for dx, dy in ((0, 0), (1, 0), (-1, 0), (0, 1), (0, -1)):  # cv2.circle's radius-1 dot
+            x, y = a[:, 0] + dx, a[:, 1] + dy
+            keep = (x >= 0) & (x < PANEL_W) & (y >= 0) & (y < H + 40)
+            img[y[keep], x[keep]] = (90, 90, 90)
         _text(
             img,
             f"{camera}: residuals x{mag:g} (rms {rms:.3f} px), corners in {frac * 100:.0f} % "

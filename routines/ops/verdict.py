@@ -1,49 +1,6 @@
-"""The verdict a nightly job can trust: ``accepted | rejected | drifted | ok``, with reasons.
-
-Every ``slidecal run``, ``solve`` and ``check`` writes ``verdict.yaml`` into the session::
-
-    format: slidecal.verdict/1
-    verdict: rejected        # accepted | rejected | drifted (run, solve); ok | drifted (check)
-    command: run
-    exit_code: 4
-    reasons:                       # every test that failed, each with its figure and limit
-      - {test: scale, message: "...", value: 0.833, limit: 0.01}
-    checks:                        # every test made, passed or not
-      - {test: reprojection, passed: true, value: 0.21, limit: 1.0, message: "..."}
-    installed: {path: ..., max_sigma: 1.3, max_displacement_px: 0.21}   # when compared
-
-The gate (:func:`judge`), each test with a limit from the cell file's ``limits:`` section
-(:class:`Limits`, defaults below):
-
-- ``converged``: the solver's least squares converged;
-- ``reprojection``: the model-adequacy test of the solver (``result.adequacy``) when present,
-  else the reprojection rms against ``max_rms_px``;
-- ``std``: each parameter's one-sigma against its limit (``fx_rel_std``, ``cxy_std_px``,
-  ``hand_eye_rot_std_deg``, ``hand_eye_t_std_mm``, rig likewise;
-  ``hand_eye_rot_std_deg_from_translations`` for a hand-eye rotation from translations alone,
-  ``cxy_std_px_from_translations`` and ``fx_rel_std_from_translations`` for the intrinsics of
-  such a session);
-- ``scale``: the median camera/robot length ratio of the moves (``result.scale_checks``:
-  translations, or a classic session's moves where its geometry pins the scale) must be
-  within 1 +- tol, tol the larger of ``scale_tolerance`` and 4 times the ratio's own standard
-  error (and the test fails as inconclusive when tol exceeds 5 times ``scale_tolerance``);
-- ``coverage``: the fraction of a ``coverage_grid`` of image cells holding a detected corner;
-- ``installed``: the difference from the installed calibration, per parameter in units of
-  the two calibrations' combined one-sigma (``max_change_sigma``) and as the largest pixel
-  displacement of points at the working distance (``max_change_px``; it counts only when the
-  change is also beyond ``max_change_sigma``, so a re-estimate too imprecise to tell is not
-  called a drift). Only this test makes a
-  result ``drifted`` (a valid calibration that differs from the installed one), with:
-- ``paired``: when the installed session is known (``installed_problem``, or the
-  ``session.yaml`` an install store keeps) and shares robot poses with this one (the same
-  plan): the corners at the shared poses compared with the installed session's, corner by
-  corner (:func:`paired_compare`, :mod:`slidecal.solver.drift`): drift when their
-  displacement field is beyond :data:`slidecal.solver.drift.Z_LIMIT` sigma of its noise and
-  moves points of the central ``change_region`` by more than ``max_change_px``.
-  Any other failure makes it ``rejected``.
-
-Exit codes (documented in ``docs/UNATTENDED.md``): 0 accepted / ok, 4 rejected, 5 drifted.
-"""
+"""The verdict a nightly job can trust (``verdict.yaml``): ``accepted | rejected | drifted |
+ok``, with reasons. The gate (:func:`judge`) tests the solve against the cell's ``limits:``
+(:class:`Limits`); its tests, the file and the exit codes: docs/UNATTENDED.md."""
 
 from __future__ import annotations
 
@@ -76,46 +33,24 @@ EXIT_OK = 0
 EXIT_REJECTED = 4
 EXIT_DRIFTED = 5
 EXIT_CODES = {
-    "accepted": EXIT_OK,
-    "ok": EXIT_OK,
-    "rejected": EXIT_REJECTED,
-    "drifted": EXIT_DRIFTED,
+    "accepted": EXIT_OK, "ok": EXIT_OK, "rejected": EXIT_REJECTED, "drifted": EXIT_DRIFTED,
 }
 
 
 @dataclass(frozen=True)
 class Limits:
-    """The gate's limits (the cell file's ``limits:`` section; every field optional).
+    """The gate's limits (the cell file's ``limits:`` section; every field optional; their meaning
+    and defaults: docs/UNATTENDED.md).
 
-    ``max_rms_px``: reprojection rms when the solver gives no adequacy test.
-    ``fx_rel_std``: relative one-sigma of fx and fy. ``cxy_std_px``: one-sigma of cx, cy.
-    ``hand_eye_rot_std_deg`` / ``hand_eye_t_std_mm``: one-sigma of the hand-eye (and rig); the
-    translation's is the root of the three axes' variances. A real arm's accuracy (0.5-2 mm,
-    mostly systematic) sets it for a sound session: on public real sessions (an industrial arm,
-    28-30 frames) 1.5-1.9 mm, 1.1-2.0 mm with two of their frames left out
-    (docs/PUBLIC_DATA.md), so the default (3 mm) accepts those; a cell that needs less sets
-    its own.
-    ``hand_eye_rot_std_deg_from_translations``: one-sigma of a hand-eye rotation the session
-    determines from translations alone (one orientation: its translation is not observable);
-    on a real arm it is a few tenths of a degree, and the full hand-eye's limit would reject
-    the intrinsics with it. ``cxy_std_px_from_translations``: one-sigma of cx, cy in such a
-    session: the principal point rests on the arm's orientation accuracy (an orientation error
-    of d radians moves the image by f d pixels: 3.5 px at 0.1 deg and f = 2000 px), and the
-    general limit would reject an honest result that the session cannot make more precise.
-    ``fx_rel_std_from_translations``: relative one-sigma of fx, fy in such a session: they rest
-    on the lengths of the arm's moves and on the board's perspective in one view (public real
-    data, 13 frames: 0.12-0.30 % with the arm's accuracy, the scale of its moves and the
-    board's tolerance carried).
-    ``scale_tolerance``: smallest tolerance of the camera/robot length ratio around 1.
-    ``min_coverage``: fraction of the ``coverage_grid`` ([columns, rows]) cells holding a
-    corner, over all frames, per camera. ``max_change_sigma``: a parameter's change from the
-    installed calibration in units of the combined one-sigma. ``max_change_px``: the largest
-    displacement of a point at the working distance (``working_distance_m``) between the two,
-    over the central ``change_region`` (fraction of width and height) of the image.
-    ``check_max_rms_ratio``: ``slidecal check``: residual rms over the expected rms (detector
-    noise and installed uncertainty together). ``check_max_px``: the drift a check tolerates.
-    ``check_change_px``: the check's ``max_change_px`` (its re-estimate from a handful of
-    frames is noisier than a full calibration's).
+    ``max_rms_px``: reprojection rms without an adequacy test. ``fx_rel_std``, ``cxy_std_px``,
+    ``hand_eye_rot_std_deg``, ``hand_eye_t_std_mm``: one-sigma limits (the translation's is the
+    root of the three axes' variances); ``*_from_translations``: those of a session of one
+    orientation, whose hand-eye rotation and principal point rest on the arm's orientation
+    accuracy. ``scale_tolerance``: of the length ratio around 1. ``min_coverage``: of the
+    ``coverage_grid`` ([columns, rows]) per camera. ``max_change_sigma``, ``max_change_px``: a
+    drift from the installed calibration, the latter over the central ``change_region`` at
+    ``working_distance_m``. ``check_max_rms_ratio``, ``check_max_px``, ``check_change_px``:
+    ``slidecal check``'s.
     """
 
     max_rms_px: float = 1.0
@@ -226,9 +161,7 @@ def verdict_to_dict(v: Verdict) -> dict[str, Any]:
         return d
 
     d: dict[str, Any] = {
-        "format": VERDICT_FORMAT,
-        "verdict": v.verdict,
-        "command": v.command,
+        "format": VERDICT_FORMAT, "verdict": v.verdict, "command": v.command,
         "exit_code": v.exit_code,
         "reasons": [{k: x for k, x in c(ch).items() if k != "passed"} for ch in v.reasons],
         "checks": [c(ch) for ch in v.checks],
@@ -270,7 +203,7 @@ def judge(
     installed_path: str | None = None,
     installed_problem: CalibrationProblem | None = None,
 ) -> Verdict:
-    """The verdict of a solved calibration (see the module docstring). ``installed_problem``:
+    """The verdict of a solved calibration (docs/UNATTENDED.md). ``installed_problem``:
     the installed session's frames (default: the ``session.yaml`` an install store keeps
     beside ``installed_path``), for the paired comparison at the poses both sessions share."""
     lim = limits or Limits()
@@ -279,20 +212,14 @@ def judge(
     if session_status != "complete":
         checks.append(
             Check(
-                "session",
-                False,
-                None,
-                None,
+                "session", False, None, None,
                 f"the session is {session_status} (the run stopped before its plan was done); "
                 "run it again or resume it with slidecal run --resume",
             )
         )
     checks.append(
         Check(
-            "converged",
-            bool(result.converged),
-            float(result.iterations),
-            None,
+            "converged", bool(result.converged), float(result.iterations), None,
             f"the solver {'converged' if result.converged else 'did NOT converge'} "
             f"after {result.iterations} iterations",
         )
@@ -356,10 +283,7 @@ def _reprojection(result: CalibrationResult, lim: Limits) -> list[Check]:
         ok = bool(np.isfinite(r) and r <= lim.max_rms_px)
         out.append(
             Check(
-                "reprojection",
-                ok,
-                _f(r),
-                lim.max_rms_px,
+                "reprojection", ok, _f(r), lim.max_rms_px,
                 f"camera {name}: reprojection rms {r:.3f} px (limit {lim.max_rms_px:g} px"
                 + ("" if ok else "; the model or the robot poses do not explain the images")
                 + ")",
@@ -392,6 +316,15 @@ STD_HINT = (
 )
 
 
+def _std_check(
+    what: str, value: float | None, limit: float, unit: str, fmt: str, note: str, scale: float = 1
+) -> Check:
+    """The ``std`` check of one one-sigma ``value`` (None: not determined) against ``limit``."""
+    shown = "unknown" if value is None else f"{value * scale:{fmt}} {unit}"
+    ok = value is not None and value <= limit
+    return Check("std", ok, value, limit, f"{what} one-sigma {shown} ({note})")
+
+
 def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
     out = []
     he = result.hand_eye
@@ -404,73 +337,32 @@ def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
         for p, val in (("fx", K[0, 0]), ("fy", K[1, 1])):
             s = _f(c.std.get(p))
             rel = s / abs(val) if s is not None and val != 0 else None
-            ok = rel is not None and rel <= fx_lim
-            out.append(
-                Check(
-                    "std",
-                    ok,
-                    rel,
-                    fx_lim,
-                    f"camera {name}: {p} one-sigma "
-                    + (f"{rel * 100:.3f} %" if rel is not None else "unknown")
-                    + f" (limit {fx_lim * 100:g} %; limits.fx_rel_std{suffix})",
-                )
-            )
+            note = f"limit {fx_lim * 100:g} %; limits.fx_rel_std{suffix}"
+            out.append(_std_check(f"camera {name}: {p}", rel, fx_lim, "%", ".3f", note, 100))
         for p in ("cx", "cy"):
+            one = ", a session of one orientation" if one_orientation else ""
+            note = f"limit {cxy_lim:g} px{one}; limits.cxy_std_px{suffix}"
             s = _f(c.std.get(p))
-            ok = s is not None and s <= cxy_lim
-            out.append(
-                Check(
-                    "std",
-                    ok,
-                    s,
-                    cxy_lim,
-                    f"camera {name}: {p} one-sigma "
-                    + (f"{s:.3f} px" if s is not None else "unknown")
-                    + f" (limit {cxy_lim:g} px"
-                    + (", a session of one orientation" if one_orientation else "")
-                    + f"; limits.cxy_std_px{suffix})",
-                )
-            )
-    transforms = []
-    if result.hand_eye is not None:
-        transforms.append(result.hand_eye)
+            out.append(_std_check(f"camera {name}: {p}", s, cxy_lim, "px", ".3f", note))
+    transforms = [result.hand_eye] if result.hand_eye is not None else []
     transforms.extend(result.rig.values())
     for t in transforms:
         if t.R is None:
             out.append(Check("std", False, None, None, f"{t.name}: rotation not determined"))
             continue
-        s = _f(t.std_rot_deg)
         full = t.t_m is not None  # else: from translations alone (no rotation in the session)
         rot_lim = lim.hand_eye_rot_std_deg if full else lim.hand_eye_rot_std_deg_from_translations
-        ok = s is not None and s <= rot_lim
-        out.append(
-            Check(
-                "std",
-                ok,
-                s,
-                rot_lim,
-                f"{t.name}: rotation one-sigma "
-                + (f"{s:.4f} deg" if s is not None else "unknown")
-                + f" (limit {rot_lim:g} deg"
-                + ("" if full else ", a hand-eye from translations alone")
-                + f"; limits.hand_eye_rot_std_deg{'' if full else '_from_translations'})",
-            )
+        note = (
+            f"limit {rot_lim:g} deg" + ("" if full else ", a hand-eye from translations alone")
+            + f"; limits.hand_eye_rot_std_deg{'' if full else '_from_translations'}"
         )
+        s = _f(t.std_rot_deg)
+        out.append(_std_check(f"{t.name}: rotation", s, rot_lim, "deg", ".4f", note))
         if t.t_m is not None:
+            t_lim = lim.hand_eye_t_std_mm
+            note = f"limit {t_lim:g} mm; limits.hand_eye_t_std_mm"
             s = _f(t.std_t_mm)
-            ok = s is not None and s <= lim.hand_eye_t_std_mm
-            out.append(
-                Check(
-                    "std",
-                    ok,
-                    s,
-                    lim.hand_eye_t_std_mm,
-                    f"{t.name}: translation one-sigma "
-                    + (f"{s:.3f} mm" if s is not None else "unknown")
-                    + f" (limit {lim.hand_eye_t_std_mm:g} mm; limits.hand_eye_t_std_mm)",
-                )
-            )
+            out.append(_std_check(f"{t.name}: translation", s, t_lim, "mm", ".3f", note))
     return out
 
 
@@ -483,10 +375,7 @@ def _scale(result: CalibrationResult, lim: Limits) -> list[Check]:
     if tol > SCALE_INCONCLUSIVE * lim.scale_tolerance:
         return [
             Check(
-                "scale",
-                False,
-                tol,
-                SCALE_INCONCLUSIVE * lim.scale_tolerance,
+                "scale", False, tol, SCALE_INCONCLUSIVE * lim.scale_tolerance,
                 f"the camera/robot length ratios of the {len(ratios)} moves scatter too much to "
                 f"check the scale (median {m:.4f} +- {tol:.4f}); check target.square_size_m, "
                 "the robot's TCP and units",
@@ -495,10 +384,7 @@ def _scale(result: CalibrationResult, lim: Limits) -> list[Check]:
     ok = abs(m - 1.0) <= tol
     return [
         Check(
-            "scale",
-            bool(ok),
-            abs(m - 1.0),
-            tol,
+            "scale", bool(ok), abs(m - 1.0), tol,
             f"camera/robot length ratio {m:.4f} over {len(ratios)} moves (allowed 1 +- {tol:.4f})"
             + ("" if ok else "; check target.square_size_m and the robot's TCP and units"),
         )
@@ -532,10 +418,7 @@ def _coverage(problem: CalibrationProblem, lim: Limits) -> list[Check]:
         nx, ny = lim.coverage_grid
         out.append(
             Check(
-                "coverage",
-                bool(ok),
-                frac,
-                lim.min_coverage,
+                "coverage", bool(ok), frac, lim.min_coverage,
                 f"camera {c.name}: corners seen in {frac * 100:.0f} % of the {nx}x{ny} image "
                 f"cells (at least {lim.min_coverage * 100:.0f} %)"
                 + ("" if ok else "; plan views that bring the target to the image's edges"),
@@ -555,15 +438,10 @@ def displacement_px(
     region: float = 0.5,
     n: int = 11,
 ) -> float:
-    """The largest image displacement of points at ``distance_m`` in front of ``camera``.
-
-    A grid of ``n x n`` pixels over the central ``region`` (fraction of width and height: the
-    image's corners hold no target in a usual plan, and the distortion is extrapolated there)
-    of the old calibration's image is cast to rays with its
-    intrinsics, placed at ``distance_m``, carried into the tool (or base) frame with its
-    hand-eye, and projected back with the new calibration's hand-eye and intrinsics. Without
-    a hand-eye in both, the intrinsics alone are compared.
-    """
+    """The largest image displacement of points at ``distance_m`` in front of ``camera``: an
+    ``n x n`` grid over the central ``region`` of the old image cast to rays, carried through the
+    old hand-eye and back through the new hand-eye and intrinsics (the intrinsics alone without
+    a hand-eye in both)."""
     import cv2
 
     a, b = old.cameras[camera], new.cameras[camera]
@@ -607,10 +485,7 @@ def compare(
     common = [n for n in new.cameras if n in old.cameras]
     if not common:
         check = Check(
-            "installed",
-            False,
-            None,
-            None,
+            "installed", False, None, None,
             f"the installed calibration has cameras {list(old.cameras)}, this one "
             f"{list(new.cameras)}; they cannot be compared",
         )
@@ -652,9 +527,7 @@ def compare(
     worst_c = max(disp, key=lambda k: disp[k])
     checks = [
         Check(
-            "installed",
-            worst_z is None or worst_z <= lim.max_change_sigma,
-            worst_z,
+            "installed", worst_z is None or worst_z <= lim.max_change_sigma, worst_z,
             lim.max_change_sigma,
             (
                 f"largest change from the installed calibration: {worst_p} by {worst_z:.1f} "
@@ -679,8 +552,7 @@ def compare(
         ),
     ]
     info = {
-        "max_sigma": _f(worst_z),
-        "max_sigma_parameter": worst_p,
+        "max_sigma": _f(worst_z), "max_sigma_parameter": worst_p,
         "max_displacement_px": {k: _f(v) for k, v in disp.items()},
         "sigma": {k: _f(v) for k, v in z.items()},
     }
@@ -705,11 +577,10 @@ def paired_compare(
     px_limit: float,
     region: float = 0.5,
 ) -> tuple[list[Check], dict[str, Any]]:
-    """The paired drift test (:mod:`slidecal.solver.drift`) of the frames of ``new`` taken at
-    the measured robot poses of frames of ``old`` (the installed session), per camera:
-    ``drifted`` when the corners' displacement field is significant and moves points of the
-    central ``region`` of the image by more than ``px_limit``. ``info["usable"]`` is False
-    (with ``info["why"]`` and no checks) when no camera has enough shared poses."""
+    """The paired drift test (:mod:`slidecal.solver.drift`) per camera of the frames of ``new`` at
+    robot poses of ``old`` (the installed session): ``drifted`` when the corners' displacement
+    field is significant and moves the central ``region`` by more than ``px_limit``.
+    ``info["usable"]`` False (with ``info["why"]``, no checks) without enough shared poses."""
     pairs = drift.match_poses(
         [f.T_base_tool for f in new.frames], [f.T_base_tool for f in old.frames]
     )
@@ -756,10 +627,7 @@ def paired_compare(
         s = fld.mean_px
         checks.append(
             Check(
-                "paired",
-                not bad,
-                fld.max_px,
-                px_limit,
+                "paired", not bad, fld.max_px, px_limit,
                 f"camera {cam}: at {fld.n_poses} of the installed session's robot poses its "
                 f"corners moved by up to {fld.max_px:.2f} px (limit {px_limit:g} px) at "
                 f"{fld.max_z:.1f} sigma (limit {drift.Z_LIMIT:g}): shift ({s[0]:+.2f}, "
@@ -776,15 +644,10 @@ def paired_compare(
             )
         )
         per[cam] = {
-            "poses": fld.n_poses,
-            "corners": fld.n_corners,
-            "max_px": _f(fld.max_px),
-            "max_z": _f(fld.max_z),
-            "field_px": [_f(v) for v in fld.mean_px],
-            "field_std_px": [_f(v) for v in fld.std_px],
-            "radius_px": _f(fld.radius_px),
-            "corner_noise_px": _f(fld.corner_noise_px),
-            "pose_scatter_px": _f(fld.pose_scatter_px),
+            "poses": fld.n_poses, "corners": fld.n_corners, "max_px": _f(fld.max_px),
+            "max_z": _f(fld.max_z), "field_px": [_f(v) for v in fld.mean_px],
+            "field_std_px": [_f(v) for v in fld.std_px], "radius_px": _f(fld.radius_px),
+            "corner_noise_px": _f(fld.corner_noise_px), "pose_scatter_px": _f(fld.pose_scatter_px),
             "equivalent": {k: _f(v) for k, v in eq.items()},
         }
     if not checks:
@@ -804,12 +667,9 @@ def judge_check(
     extra: Mapping[str, Any] | None = None,
     notes: Sequence[str] = (),
 ) -> Verdict:
-    """The verdict of ``slidecal check``: ``ok`` unless the images at known robot poses
-    disagree with the installed calibration by more than the limits (then ``drifted``).
-
-    Per camera: ``residual_rms_px`` measured, ``expected_rms_px`` what detector noise and the
-    installed uncertainty explain, ``drift_px`` the part beyond that (px).
-    """
+    """The verdict of ``slidecal check``: ``ok``, or ``drifted`` when the images disagree with the
+    installed calibration beyond the limits (per camera ``residual_rms_px``, ``expected_rms_px``
+    and ``drift_px``)."""
     lim = limits or Limits()
     checks = []
     for n, r in residual_rms_px.items():
@@ -817,10 +677,7 @@ def judge_check(
         ok = ratio <= lim.check_max_rms_ratio or drift_px[n] <= lim.check_max_px
         checks.append(
             Check(
-                "check",
-                bool(ok),
-                _f(ratio),
-                lim.check_max_rms_ratio,
+                "check", bool(ok), _f(ratio), lim.check_max_rms_ratio,
                 f"camera {n}: residual rms {r:.3f} px at {n_frames} known robot poses is "
                 f"{ratio:.2f} times what the installed calibration explains "
                 f"({expected_rms_px[n]:.3f} px; limit {lim.check_max_rms_ratio:g}); drift "
