@@ -280,7 +280,9 @@ class OakRig:
             size = self.sizes[name]
             modes = [
                 {
-                    "width": int(c.width), "height": int(c.height), "min_fps": float(c.minFps),
+                    "width": int(c.width),
+                    "height": int(c.height),
+                    "min_fps": float(c.minFps),
                     "max_fps": float(c.maxFps),
                     "fov": (float(c.fov.x), float(c.fov.y), float(c.fov.width),
                             float(c.fov.height)),
@@ -310,9 +312,15 @@ class OakRig:
             if self.exposure_us is None:  # created before start, as depthai v3 requires
                 self._controls[name] = cam.inputControl.createInputQueue()
             outputs[name] = {
-                "socket": socket, "size": list(size), "type": _text(kind),
-                "resize_mode": self.resize_mode, "fps": self.fps, "sensor_mode": mode,
-                "exposure_us": self.exposure_us, "iso": self.iso, "focus": self.focus.get(name),
+                "socket": socket,
+                "size": list(size),
+                "type": _text(kind),
+                "resize_mode": self.resize_mode,
+                "fps": self.fps,
+                "sensor_mode": mode,
+                "exposure_us": self.exposure_us,
+                "iso": self.iso,
+                "focus": self.focus.get(name),
                 "white_balance_k": self.white_balance_k.get(name),
             }
         bytes_per_s = sum(
@@ -321,7 +329,8 @@ class OakRig:
         )
         bootloader = _call(device, "getBootloaderVersion")
         self._capabilities = {
-            "driver": "oak", "depthai_version": str(getattr(dai, "__version__", "")),
+            "driver": "oak",
+            "depthai_version": str(getattr(dai, "__version__", "")),
             "device_id": _call(device, "getDeviceId"),
             "device_name": _text(_call(device, "getDeviceName")),
             "product_name": _text(_call(device, "getProductName")),
@@ -454,7 +463,8 @@ def _settings(msg: Any) -> dict[str, Any]:
     temperature (K; 0 for a mono camera)."""
     return {
         "exposure_us": int(round(msg.getExposureTime().total_seconds() * 1e6)),
-        "iso": int(msg.getSensitivity()), "lens_position": int(msg.getLensPosition()),
+        "iso": int(msg.getSensitivity()),
+        "lens_position": int(msg.getLensPosition()),
         "colour_temperature_k": int(msg.getColorTemperature()),
     }
 
@@ -477,14 +487,19 @@ def _not_taken(name: str, out: Mapping[str, Any], got: Mapping[str, Any]) -> lis
 def _features_dict(f: Any) -> dict[str, Any]:
     calib = getattr(f, "calibrationResolution", None)
     return {
-        "socket": _text(f.socket), "sensor": str(f.sensorName), "width": int(f.width),
+        "socket": _text(f.socket),
+        "sensor": str(f.sensorName),
+        "width": int(f.width),
         "height": int(f.height),
         "calibration_resolution": None if calib is None else [int(calib.width), int(calib.height)],
         "autofocus": bool(f.hasAutofocus),
         "modes": [
             {
-                "width": int(c.width), "height": int(c.height), "min_fps": float(c.minFps),
-                "max_fps": float(c.maxFps), "type": _text(c.type),
+                "width": int(c.width),
+                "height": int(c.height),
+                "min_fps": float(c.minFps),
+                "max_fps": float(c.maxFps),
+                "type": _text(c.type),
             }
             for c in f.configs
         ],
@@ -560,8 +575,10 @@ def stream_geometry(camera: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
         full = (int(sensor["width"]), int(sensor["height"]))
         fov = (o.get("sensor_mode") or {}).get("fov") or (0, 0, *full)
         out[name] = {
-            "size": tuple(o["size"]), "resize_mode": o.get("resize_mode", "stretch"),
-            "fov": tuple(float(v) for v in fov), "full": full,
+            "size": tuple(o["size"]),
+            "resize_mode": o.get("resize_mode", "stretch"),
+            "fov": tuple(float(v) for v in fov),
+            "full": full,
             "calibration_size": sensor.get("calibration_resolution"),
         }
     return out

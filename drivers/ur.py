@@ -50,8 +50,16 @@ SAFETY_MODES: dict[int, str] = {
     13: "three-position enabling stop: hold the enabling device or switch mode",
 }
 ROBOT_MODES: dict[int, str] = {
-    -1: "no controller", 0: "disconnected", 1: "confirm safety", 2: "booting", 3: "power off",
-    4: "power on", 5: "idle (brakes engaged)", 6: "backdrive", 7: "running", 8: "updating firmware",
+    -1: "no controller",
+    0: "disconnected",
+    1: "confirm safety",
+    2: "booting",
+    3: "power off",
+    4: "power on",
+    5: "idle (brakes engaged)",
+    6: "backdrive",
+    7: "running",
+    8: "updating firmware",
 }
 
 
@@ -325,10 +333,13 @@ class URRobot:
                 self.model = None
         self.controller_info = {
             "polyscope_version": ".".join(str(v) for v in version),
-            "controller_version": ".".join(str(v) for v in rtde_version), "robot_model": model_text,
-            "serial_number": serial, "remote_control": remote,
+            "controller_version": ".".join(str(v) for v in rtde_version),
+            "robot_model": model_text,
+            "serial_number": serial,
+            "remote_control": remote,
             "ik_check": "controller" if has_ik_query(version) else "host",
-            "program_state": program_state, "program_stopped": None,
+            "program_state": program_state,
+            "program_stopped": None,
         }
         self._ik_on_controller = has_ik_query(version)
         return running, program_state

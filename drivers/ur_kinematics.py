@@ -86,8 +86,12 @@ _RX_0 = np.eye(3)
 
 def _link_transforms(q: np.ndarray, m: URModel) -> list[np.ndarray]:
     return [
-        _dh(q[0], m.d1, 0.0, _RX_P), _dh(q[1], 0.0, m.a2, _RX_0), _dh(q[2], 0.0, m.a3, _RX_0),
-        _dh(q[3], m.d4, 0.0, _RX_P), _dh(q[4], m.d5, 0.0, _RX_M), _dh(q[5], m.d6, 0.0, _RX_0),
+        _dh(q[0], m.d1, 0.0, _RX_P),
+        _dh(q[1], 0.0, m.a2, _RX_0),
+        _dh(q[2], 0.0, m.a3, _RX_0),
+        _dh(q[3], m.d4, 0.0, _RX_P),
+        _dh(q[4], m.d5, 0.0, _RX_M),
+        _dh(q[5], m.d6, 0.0, _RX_0),
     ]
 
 

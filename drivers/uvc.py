@@ -114,7 +114,8 @@ class UvcCamera:
         cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height)
         got = (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
         self.settings["size"] = {
-            "requested": [self.width, self.height], "read_back": list(got),
+            "requested": [self.width, self.height],
+            "read_back": list(got),
             "accepted": got == (self.width, self.height),
         }
         if got != (self.width, self.height):
@@ -205,7 +206,9 @@ class UvcCamera:
         if self._cap is None:
             raise HardwareFault(f"camera {self.name} not open: call open() first")
         return {
-            "driver": "uvc", "source": str(self.source), "backend": self._backend,
+            "driver": "uvc",
+            "source": str(self.source),
+            "backend": self._backend,
             "settings": {k: dict(v) for k, v in self.settings.items()},
             "messages": list(self.messages),
         }

@@ -63,8 +63,12 @@ def single_camera(name: str = "cam", **overrides: float | bool | Photo) -> SimCa
     """The R1 camera (docs/results/BENCHMARKS.md); keyword overrides for blur, noise, exposure,
     colour, photo."""
     return SimCamera(
-        name, 1280, 800, K_matrix(880.0, 880.0, 640.0, 400.0),
-        np.array([-0.12, 0.05, 5e-4, -3e-4, 0.0]), **overrides,
+        name,
+        1280,
+        800,
+        K_matrix(880.0, 880.0, 640.0, 400.0),
+        np.array([-0.12, 0.05, 5e-4, -3e-4, 0.0]),
+        **overrides,
     )
 
 
@@ -75,16 +79,28 @@ def oak_d_like(**overrides: float | bool | Photo) -> list[SimCamera]:
     rgb = {**overrides, "colour": True}
     return [
         SimCamera(
-            "left", 1280, 800, K_matrix(881.2, 880.6, 643.1, 401.7),
-            np.array([-0.052, 0.021, 2e-4, -1e-4, 0.0]), **mono,
+            "left",
+            1280,
+            800,
+            K_matrix(881.2, 880.6, 643.1, 401.7),
+            np.array([-0.052, 0.021, 2e-4, -1e-4, 0.0]),
+            **mono,
         ),
         SimCamera(
-            "right", 1280, 800, K_matrix(879.8, 879.5, 636.4, 398.9),
-            np.array([-0.049, 0.018, -1e-4, 3e-4, 0.0]), **mono,
+            "right",
+            1280,
+            800,
+            K_matrix(879.8, 879.5, 636.4, 398.9),
+            np.array([-0.049, 0.018, -1e-4, 3e-4, 0.0]),
+            **mono,
         ),
         SimCamera(
-            "rgb", 1920, 1080, K_matrix(1402.5, 1401.8, 957.3, 543.6),
-            np.array([0.071, -0.112, 4e-4, 2e-4, 0.03]), **rgb,
+            "rgb",
+            1920,
+            1080,
+            K_matrix(1402.5, 1401.8, 957.3, 543.6),
+            np.array([0.071, -0.112, 4e-4, 2e-4, 0.03]),
+            **rgb,
         ),
     ]
 
@@ -97,7 +113,9 @@ def oak_d_like_extrinsics() -> dict[str, np.ndarray]:
     T_left_right = T_from_Rt(R_left_right, np.array([0.0750, 0.0003, -0.0002]))
     T_left_rgb = T_from_Rt(R_left_rgb, np.array([0.0375, 0.0004, 0.0008]))
     return {
-        "left": np.eye(4), "right": np.linalg.inv(T_left_right), "rgb": np.linalg.inv(T_left_rgb),
+        "left": np.eye(4),
+        "right": np.linalg.inv(T_left_right),
+        "rgb": np.linalg.inv(T_left_rgb),
     }
 
 
@@ -182,7 +200,11 @@ class SimulatedCameraRig:
         self.last_poses = {c.name: np.array(poses[c.name], dtype=float) for c in self.cameras}
         return {
             c.name: render_target(
-                self.target, c, self.last_poses[c.name], self.rng, vignetting=c.vignetting,
+                self.target,
+                c,
+                self.last_poses[c.name],
+                self.rng,
+                vignetting=c.vignetting,
                 bow_m=self.bow_m,
             )
             for c in self.cameras

@@ -59,7 +59,9 @@ def truth_block(cfg: Any, T_target: np.ndarray | None = None) -> dict[str, Any]:
         "robot_deg": sim.robot_noise_deg,
         "cameras": {
             c.name: {
-                "blur_sigma_px": c.blur_sigma_px, "noise_std": c.noise_std, "exposure": c.exposure,
+                "blur_sigma_px": c.blur_sigma_px,
+                "noise_std": c.noise_std,
+                "exposure": c.exposure,
             }
             for c in sim.cameras
         },

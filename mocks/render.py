@@ -88,16 +88,26 @@ def _check_target(target: Target) -> None:
 def _texture_of(target: Target, texels_per_unit: int) -> _Texture:
     if target.kind in ("apriltag", "aprilgrid"):
         return _tag_texture(
-            target.kind, target.tag_size_m, target.tag_ids,
+            target.kind,
+            target.tag_size_m,
+            target.tag_ids,
             tuple(map(tuple, np.round(target.points_m[::4, :2], 12)))
             if target.kind == "apriltag"
             else (),
-            target.tag_cols, target.tag_rows, target.tag_spacing,
-            target.dictionary or "DICT_APRILTAG_36h11", texels_per_unit,
+            target.tag_cols,
+            target.tag_rows,
+            target.tag_spacing,
+            target.dictionary or "DICT_APRILTAG_36h11",
+            texels_per_unit,
         )
     return _texture(
-        target.kind, target.squares_x, target.squares_y, target.square_size_m, target.marker_size_m,
-        target.dictionary, texels_per_unit,
+        target.kind,
+        target.squares_x,
+        target.squares_y,
+        target.square_size_m,
+        target.marker_size_m,
+        target.dictionary,
+        texels_per_unit,
     )
 
 
@@ -327,7 +337,11 @@ def render_target(
             uv = cv2.perspectiveTransform(rays, S @ G)
         uv[w_h <= 0.0] = _OUTSIDE  # behind the camera: past the board plane's horizon
         hi = cv2.remap(
-            image, uv, None, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+            image,
+            uv,
+            None,
+            interpolation=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
             borderValue=BACKGROUND,
         )
     img = cv2.resize(hi, (W, H), interpolation=cv2.INTER_AREA)  # exact n x n box average
@@ -437,8 +451,15 @@ class Photo:
 
 
 CLEAN_PHOTO = Photo(
-    aperture_mm=0.0, chromatic_red=0.0, chromatic_blue=0.0, full_well_e=0.0, bayer=False,
-    jpeg_quality=0, vignetting=0.0, gradient=0.0, glare_spots=0,
+    aperture_mm=0.0,
+    chromatic_red=0.0,
+    chromatic_blue=0.0,
+    full_well_e=0.0,
+    bayer=False,
+    jpeg_quality=0,
+    vignetting=0.0,
+    gradient=0.0,
+    glare_spots=0,
 )  # the photo pipeline with every effect off (equals the clean renderer but for the noise draw)
 
 
@@ -534,7 +555,8 @@ def _photo(
     gain = np.float32(255.0 * cam.exposure)
     if cam.colour:
         bgr = [
-            _radial_scale(img, K, photo.chromatic_blue), img,
+            _radial_scale(img, K, photo.chromatic_blue),
+            img,
             _radial_scale(img, K, photo.chromatic_red),
         ]
         signal = [c * gain for c in bgr]

@@ -88,12 +88,17 @@ class KinematicError:
         twist[[0, 3, 4, 5]] *= 0.5  # the perpendicular axes are machined more easily than the
         # nominally parallel shoulder/elbow/wrist-1 axes, whose misalignment builds up
         return cls(
-            d_theta=rng.normal(0.0, ang, 6), d_d=rng.normal(0.0, lin, 6),
-            d_a=rng.normal(0.0, lin, 6) * np.array([0, 1, 1, 0, 0, 0]), d_alpha=twist,
+            d_theta=rng.normal(0.0, ang, 6),
+            d_d=rng.normal(0.0, lin, 6),
+            d_a=rng.normal(0.0, lin, 6) * np.array([0, 1, 1, 0, 0, 0]),
+            d_alpha=twist,
             gravity_rad=np.abs(rng.normal(0.0, ang, 6)) * np.array([0, 1, 1, 0, 0, 0]),
-            cyclic_rad=rng.normal(0.0, 0.3 * ang, 6), cyclic_phase=rng.uniform(0.0, 2 * np.pi, 6),
-            gear_rad=rng.normal(0.0, 0.5 * ang, 6), gear_phase=rng.uniform(0.0, 2 * np.pi, 6),
-            repeatability_m=repeatability_mm / 1000.0, repeatability_deg=repeatability_deg,
+            cyclic_rad=rng.normal(0.0, 0.3 * ang, 6),
+            cyclic_phase=rng.uniform(0.0, 2 * np.pi, 6),
+            gear_rad=rng.normal(0.0, 0.5 * ang, 6),
+            gear_phase=rng.uniform(0.0, 2 * np.pi, 6),
+            repeatability_m=repeatability_mm / 1000.0,
+            repeatability_deg=repeatability_deg,
         )
 
     def joint_errors(self, q: np.ndarray) -> np.ndarray:
@@ -160,7 +165,8 @@ class SimulatedUR:
         kinematic_error: KinematicError | None = None,
     ) -> None:
         for name, value in (
-            ("max_speed_mps", max_speed_mps), ("max_accel_mps2", max_accel_mps2),
+            ("max_speed_mps", max_speed_mps),
+            ("max_accel_mps2", max_accel_mps2),
             ("max_angular_speed_deg_s", max_angular_speed_deg_s),
             ("max_angular_accel_deg_s2", max_angular_accel_deg_s2),
         ):

@@ -320,7 +320,13 @@ def s2(n_images: int, sigma_px: float, rng: np.random.Generator, phi_deg: float 
     steps = np.arange(n_images)[:, None] * 5.0
     opts = ModelOptions(distortion=NO_DISTORTION)
     return _board_frame_scenario(
-        K_S2, R, C0 + steps * real, "board_direction", opts, sigma_px, rng,
+        K_S2,
+        R,
+        C0 + steps * real,
+        "board_direction",
+        opts,
+        sigma_px,
+        rng,
         presumed=C0 + steps * normal,
     )
 
@@ -411,9 +417,13 @@ def s5_scene() -> StereoScene:
     """The S5 set-up of docs/SETUPS.md (14 x 10 grid, pitch 5 l.u., six stereo views)."""
     Ts = s5_T_right_board()
     return StereoScene(
-        board_xy=board_xy(14, 10), K_left=S5_K_LEFT, K_right=S5_K_RIGHT,
-        R_left_right=S5_T_LEFT_RIGHT[:3, :3], t_left_right=S5_T_LEFT_RIGHT[:3, 3],
-        R_right_board=Ts[:, :3, :3], t_right_board=Ts[:, :3, 3],
+        board_xy=board_xy(14, 10),
+        K_left=S5_K_LEFT,
+        K_right=S5_K_RIGHT,
+        R_left_right=S5_T_LEFT_RIGHT[:3, :3],
+        t_left_right=S5_T_LEFT_RIGHT[:3, 3],
+        R_right_board=Ts[:, :3, :3],
+        t_right_board=Ts[:, :3, 3],
     )
 
 
@@ -441,13 +451,21 @@ def s5_rig(
         }
         frames.append(Frame(k, dets))
     problem = CalibrationProblem(
-        target, (CameraSpec("left", *PAPER_SIZE_PX), CameraSpec("right", *PAPER_SIZE_PX)),
-        tuple(frames), "none", "none", options or ModelOptions(distortion=NO_DISTORTION),
+        target,
+        (CameraSpec("left", *PAPER_SIZE_PX), CameraSpec("right", *PAPER_SIZE_PX)),
+        tuple(frames),
+        "none",
+        "none",
+        options or ModelOptions(distortion=NO_DISTORTION),
         reference_camera="right",
     )
     truth = ModelState(
-        {c: K[c].copy() for c in K}, {c: np.zeros(5) for c in K}, {"left": S5_T_LEFT_RIGHT.copy()},
-        Ts, np.eye(4), np.zeros(len(Ts)),
+        {c: K[c].copy() for c in K},
+        {c: np.zeros(5) for c in K},
+        {"left": S5_T_LEFT_RIGHT.copy()},
+        Ts,
+        np.eye(4),
+        np.zeros(len(Ts)),
     )
     return RigScenario(problem, truth, sigma_px, sigma_by_camera_px=sig)
 
@@ -535,13 +553,21 @@ def r1_scenario(
     truth in the solver's parametrisation and the hand-eye and target poses of the mount (the
     target on the tool at ``T_tool_board`` eye-to-hand)."""
     problem = CalibrationProblem(
-        target, (CameraSpec("cam", *size),), tuple(frames),
-        "eye_in_hand" if eye_in_hand else "eye_to_hand", "robot", options or ModelOptions(),
+        target,
+        (CameraSpec("cam", *size),),
+        tuple(frames),
+        "eye_in_hand" if eye_in_hand else "eye_to_hand",
+        "robot",
+        options or ModelOptions(),
     )
     T_hand_eye = R1_T_TOOL_CAM if eye_in_hand else R1_T_BASE_CAM
     T_target = T_base_board if eye_in_hand else T_tool_board
     truth = ModelState(
-        {"cam": R1_K}, {"cam": np.array(dist, dtype=float)}, {}, inv_T(T_hand_eye)[None], T_target,
+        {"cam": R1_K},
+        {"cam": np.array(dist, dtype=float)},
+        {},
+        inv_T(T_hand_eye)[None],
+        T_target,
         np.zeros(len(frames)),
     )
     return Scenario(problem, truth, sigma_px, T_hand_eye, T_target, T_base_tool_true)
@@ -675,8 +701,12 @@ def r1_real_arm(
         R_base_cam = (base @ R1_T_TOOL_CAM)[:3, :3]
         dirs = np.array(
             [
-                [1.0, 0.0, -0.6], [0.0, 1.0, 0.7], [-0.7, -0.6, 1.0], [0.6, -0.8, -0.9],
-                [0.9, 0.5, 0.4], [-0.5, 0.9, -0.5],
+                [1.0, 0.0, -0.6],
+                [0.0, 1.0, 0.7],
+                [-0.7, -0.6, 1.0],
+                [0.6, -0.8, -0.9],
+                [0.9, 0.5, 0.4],
+                [-0.5, 0.9, -0.5],
             ]
         )
         moves = [
@@ -758,7 +788,8 @@ def effective_truth(
     used = list(range(len(s.problem.frames)) if frames is None else frames)
     true = s.T_base_tool_true
     T_he, T_tg = _effective(
-        s.problem.mount, true if true is None else true[used],
+        s.problem.mount,
+        true if true is None else true[used],
         [s.problem.frames[i].T_base_tool for i in used],
         inv_T(s.truth.X[0]),  # X = T_cam_tool / T_cam_base
         s.truth.Y,
@@ -810,12 +841,20 @@ def oak_rig(
         measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
         frames.append(Frame(k, dets, T_base_tool=measured))
     problem = CalibrationProblem(
-        target, tuple(sims[c].spec for c in cameras), tuple(frames), "eye_in_hand", "robot",
-        options or ModelOptions(), reference_camera="left",
+        target,
+        tuple(sims[c].spec for c in cameras),
+        tuple(frames),
+        "eye_in_hand",
+        "robot",
+        options or ModelOptions(),
+        reference_camera="left",
     )
     truth = ModelState(
-        {c: sims[c].K.copy() for c in cameras}, {c: sims[c].dist.copy() for c in cameras},
-        {c: extr[c].copy() for c in cameras if c != "left"}, inv_T(T_tool_left)[None], T_base_board,
+        {c: sims[c].K.copy() for c in cameras},
+        {c: sims[c].dist.copy() for c in cameras},
+        {c: extr[c].copy() for c in cameras if c != "left"},
+        inv_T(T_tool_left)[None],
+        T_base_board,
         np.zeros(len(poses)),
     )
     return RigScenario(
@@ -956,7 +995,12 @@ def classic_real_arm(
 #: The tag session's 7 orientations of the tag seen by the camera: (tilt about x, tilt about y,
 #: roll) deg
 TAG_TILTS_DEG = (
-    (0, 0, 0), (30, 0, 10), (-30, 0, -10), (0, 30, 20), (0, -30, -20), (22, 22, 30),
+    (0, 0, 0),
+    (30, 0, 10),
+    (-30, 0, -10),
+    (0, 30, 20),
+    (0, -30, -20),
+    (22, 22, 30),
     (-22, -22, -30),
 )
 #: The tag on the tool, facing away from the flange a few centimetres off its axis
@@ -1002,7 +1046,13 @@ def tag_real_arm(
         true, planned_a, np.eye(4), False, sigma_px, rng, detect, target, TAG_T_TOOL_TAG
     )
     return r1_scenario(
-        target, frames, False, None, sigma_px, np.eye(4), T_base_tool_true=true,
+        target,
+        frames,
+        False,
+        None,
+        sigma_px,
+        np.eye(4),
+        T_base_tool_true=true,
         T_tool_board=TAG_T_TOOL_TAG,
     )
 
@@ -1056,7 +1106,8 @@ def board_in_view(s: Scenario) -> np.ndarray:
 NOISE_FREE: dict[str, Callable[[np.random.Generator], Scenario]] = {
     "R1": lambda rng: r1(rng, 0.0, 0.0, 0.0),
     "R1-eye-to-hand": lambda rng: r1_eye_to_hand(rng, 0.0, 0.0, 0.0),
-    "S1": lambda rng: s1(30.0, 0.0, rng), "S2": lambda rng: s2(5, 0.0, rng),
+    "S1": lambda rng: s1(30.0, 0.0, rng),
+    "S2": lambda rng: s2(5, 0.0, rng),
     "S3": lambda rng: s3(5, 0.0, rng),
 }
 
@@ -1140,12 +1191,19 @@ def one_tag_session(rng: np.random.Generator, geometry: np.ndarray) -> Scenario:
     """The one-tag row's session: eye-to-hand, 5 frames at each of ``geometry``'s 7
     orientations, the tag's 4 corners, no distortion."""
     return classic(
-        rng, 7, ONE_TAG_SIGMA_PX, *ONE_TAG_ROBOT_NOISE, eye_in_hand=False,
+        rng,
+        7,
+        ONE_TAG_SIGMA_PX,
+        *ONE_TAG_ROBOT_NOISE,
+        eye_in_hand=False,
         options=ModelOptions(
             distortion=NO_DISTORTION, robot_noise_m=ONE_TAG_ROBOT_NOISE[0],
             robot_noise_deg=ONE_TAG_ROBOT_NOISE[1],
         ),
-        target=square_tag(0.08), per_orientation=5, distortion=np.zeros(5), T_cam_board=geometry,
+        target=square_tag(0.08),
+        per_orientation=5,
+        distortion=np.zeros(5),
+        T_cam_board=geometry,
     )
 
 
@@ -1159,7 +1217,8 @@ def scale_pixels(problem: CalibrationProblem, factor: Mapping[str, float]) -> Ca
         frames.append(replace(fr, detections=dets))
     cams = tuple(
         CameraSpec(
-            c.name, round(c.width * factor.get(c.name, 1.0)),
+            c.name,
+            round(c.width * factor.get(c.name, 1.0)),
             round(c.height * factor.get(c.name, 1.0)),
         )
         for c in problem.cameras

@@ -87,8 +87,16 @@ def calibration(values: list[float] | np.ndarray, dof: int) -> Calibration:
     else:
         verdict = "consistent"
     return Calibration(
-        n, dof, inside, _binomial_range(n, P_2SIGMA), beyond, _binomial_range(n, 1.0 - P_3SIGMA),
-        scale, scale_range, worst, verdict,
+        n,
+        dof,
+        inside,
+        _binomial_range(n, P_2SIGMA),
+        beyond,
+        _binomial_range(n, 1.0 - P_3SIGMA),
+        scale,
+        scale_range,
+        worst,
+        verdict,
     )
 
 

@@ -424,13 +424,16 @@ class Robot:
         safety = SAFETY_MODE_NAMES.get(self.safety_mode, "UNDEFINED_SAFETY_MODE")
         name = self.program or ("<unnamed>" if not running else "rtde_control")
         answers = {
-            "PolyscopeVersion": self.polyscope_text, "get serial number": SERIAL_NUMBER,
+            "PolyscopeVersion": self.polyscope_text,
+            "get serial number": SERIAL_NUMBER,
             "is in remote control": "true" if self.remote else "false",
             "robotmode": "Robotmode: " + ROBOT_MODE_NAMES.get(self.robot_mode, "NO_CONTROLLER"),
-            "safetymode": "Safetymode: " + safety, "safetystatus": "Safetystatus: " + safety,
+            "safetymode": "Safetymode: " + safety,
+            "safetystatus": "Safetystatus: " + safety,
             "running": f"Program running: {'true' if running else 'false'}",
             "programState": ("PLAYING " if running else "STOPPED ") + name,
-            "get robot model": self.model.name.rstrip("e"), "close popup": "closing popup",
+            "get robot model": self.model.name.rstrip("e"),
+            "close popup": "closing popup",
             "close safety popup": "closing safety popup",
         }
         if cmd in answers:

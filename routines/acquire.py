@@ -51,7 +51,11 @@ def _connect_real(cfg: CellConfig) -> tuple[Any, Any]:
     rig = camera_rig(cfg)  # first: refuses a missing library or a bad camera field
     r = cfg.robot
     robot = URRobot(
-        r.host, max_speed_mps=r.speed_mps, max_accel_mps2=r.accel_mps2, tcp=r.tcp, model=r.model,
+        r.host,
+        max_speed_mps=r.speed_mps,
+        max_accel_mps2=r.accel_mps2,
+        tcp=r.tcp,
+        model=r.model,
         **r.ur_options,  # take_control, payload
     )
     return robot, rig
@@ -155,8 +159,15 @@ def _open_writer(
     extra.update(more or {})
     try:
         return SessionWriter(
-            out, cfg.target, specs, mount=cfg.mount, knowledge="robot", options=cfg.options,
-            reference_camera=cfg.reference_camera, simulation=truth, extra=extra,
+            out,
+            cfg.target,
+            specs,
+            mount=cfg.mount,
+            knowledge="robot",
+            options=cfg.options,
+            reference_camera=cfg.reference_camera,
+            simulation=truth,
+            extra=extra,
             sockets=sockets(cfg) or {},
         )
     except OSError as e:
@@ -170,8 +181,13 @@ def _open_log(out: Path, cfg: CellConfig, specs: tuple, recording: bool, spawn: 
 
     try:
         return RerunLog(
-            out / RECORDING_FILE if recording else None, specs, cfg.target, cfg.mount,
-            cfg.approx_T_hand_eye, cfg.approx_T_target, spawn=spawn,
+            out / RECORDING_FILE if recording else None,
+            specs,
+            cfg.target,
+            cfg.mount,
+            cfg.approx_T_hand_eye,
+            cfg.approx_T_target,
+            spawn=spawn,
         )
     except Exception as e:  # noqa: BLE001 - rerun raises its own types for a missing viewer
         msg = " ".join(str(e).split()).split(". ")[0] or type(e).__name__
@@ -237,8 +253,10 @@ def _detect_all(images, cfg: CellConfig):
         rep = detect(img, cfg.target)
         detections[name] = rep.detection
         quality[name] = {
-            "ok": bool(rep.ok), "reasons": list(rep.reasons),
-            "homography_rms_px": float(rep.homography_rms_px), "coverage": float(rep.coverage),
+            "ok": bool(rep.ok),
+            "reasons": list(rep.reasons),
+            "homography_rms_px": float(rep.homography_rms_px),
+            "coverage": float(rep.coverage),
             "n_corners": int(len(rep.detection.ids)),
         }
     return detections, quality

@@ -25,9 +25,12 @@ EXIT_INTERRUPTED = 130
 #: Only the module of the command given is imported: ``slidecal solve`` imports what it
 #: solves with, not the simulator, the planner or the drivers.
 SUBCOMMANDS: dict[str, str] = {
-    "run": "slidecal.routines.run", "solve": "slidecal.routines.solve",
-    "check": "slidecal.routines.ops.check", "rollback": "slidecal.routines.ops.install",
-    "plan": "slidecal.routines.planner", "rehearse": "slidecal.routines.ops.rehearse",
+    "run": "slidecal.routines.run",
+    "solve": "slidecal.routines.solve",
+    "check": "slidecal.routines.ops.check",
+    "rollback": "slidecal.routines.ops.install",
+    "plan": "slidecal.routines.planner",
+    "rehearse": "slidecal.routines.ops.rehearse",
     "flash": "slidecal.routines.ops.flash",
 }
 

@@ -57,7 +57,10 @@ DEFAULT_CELL = "default_cell.yaml"
 
 #: ``simulation.kinematic_error``'s defaults (``slidecal.mocks.robot.KinematicError`` sizes).
 KINEMATIC_ERROR_DEFAULTS = {
-    "mm": 1.0, "deg": 0.1, "repeatability_mm": 0.03, "repeatability_deg": 0.005,
+    "mm": 1.0,
+    "deg": 0.1,
+    "repeatability_mm": 0.03,
+    "repeatability_deg": 0.005,
 }
 
 #: ``simulation.cameras.<name>.photo``: the fields of ``slidecal.mocks.render.Photo``
@@ -69,8 +72,17 @@ PHOTO_KEYS = tuple(f.name for f in fields(Photo))
 CELL_KEYS: dict[str, tuple[str, ...]] = {
     "": CELL_SECTIONS,
     "robot": (
-        "driver", "host", "model", "tcp", "speed_mps", "accel_mps2", "settle_s", "start_pose",
-        "start_q", "workspace", "limits",
+        "driver",
+        "host",
+        "model",
+        "tcp",
+        "speed_mps",
+        "accel_mps2",
+        "settle_s",
+        "start_pose",
+        "start_q",
+        "workspace",
+        "limits",
         "take_control",  # ur only; validated by slidecal.drivers.ur.cell_options
         "upper_range_registers",  # ur only; likewise
         "payload",
@@ -96,7 +108,8 @@ CELL_KEYS: dict[str, tuple[str, ...]] = {
     ),
     # ``photo: true`` takes every default of ``slidecal.mocks.render.Photo``; a mapping sets some
     "simulation.cameras.*.photo": PHOTO_KEYS,
-    "simulation.noise": ("robot_mm", "robot_deg"), "simulation.target_jitter": ("mm", "deg"),
+    "simulation.noise": ("robot_mm", "robot_deg"),
+    "simulation.target_jitter": ("mm", "deg"),
     "simulation.kinematic_error": ("mm", "deg", "repeatability_mm", "repeatability_deg"),
 }
 
@@ -210,7 +223,8 @@ def _plan(
     if not 0 < depth[0] < depth[1]:
         raise f.error("depth_m", "must be [near, far] with 0 < near < far (metres)")
     noise = f.number(
-        "corner_noise_px", SIM_CORNER_NOISE_PX if sim is not None else REAL_CORNER_NOISE_PX,
+        "corner_noise_px",
+        SIM_CORNER_NOISE_PX if sim is not None else REAL_CORNER_NOISE_PX,
         positive=True,
     )
     fx = _nominal_fx(f, spec)
@@ -228,12 +242,23 @@ def _plan(
     max_groups = f.integer("max_groups", 6, minimum=min_groups)
     max_frames = f.integer("max_frames_per_group", 8, minimum=min_frames)
     return PlanSettings(
-        goal=goal, K=K, dist=dist, fx_px=fx, tilts_deg=tilts, azimuths_deg=az,
-        standoff_factors=factors, standoffs_m=standoffs, step_mm=steps,
+        goal=goal,
+        K=K,
+        dist=dist,
+        fx_px=fx,
+        tilts_deg=tilts,
+        azimuths_deg=az,
+        standoff_factors=factors,
+        standoffs_m=standoffs,
+        step_mm=steps,
         margin_px=f.number("margin_px", 20.0, minimum=0.0),
-        depth_m=(float(depth[0]), float(depth[1])), corner_noise_px=noise,
-        capture_s=f.number("capture_s", 0.05, minimum=0.0), min_groups=min_groups,
-        min_frames_per_group=min_frames, max_groups=max_groups, max_frames_per_group=max_frames,
+        depth_m=(float(depth[0]), float(depth[1])),
+        corner_noise_px=noise,
+        capture_s=f.number("capture_s", 0.05, minimum=0.0),
+        min_groups=min_groups,
+        min_frames_per_group=min_frames,
+        max_groups=max_groups,
+        max_frames_per_group=max_frames,
         extend_max_s=f.number("extend_max_s", 60.0, minimum=0.0),
     )
 
@@ -465,12 +490,25 @@ def config_from_dict(data: Any, source: str = "cell.yaml", sha256: str | None = 
     plan_settings = _plan(plan, standoff, specs[names.index(reference)], sim)
     limits = limits_from_dict(f.get("limits"), source)
     return CellConfig(
-        source=source, mount=mount, robot=robot, camera_driver=driver, cameras=specs,
-        camera_options=cam_opts, reference_camera=reference, target=target,
-        target_dict=target_to_dict(target), approx_T_hand_eye=approx_he,
-        approx_T_target=approx_target, standoff_m=standoff, simulation=sim, plan=plan_settings,
-        options=options, limits=limits, install=_install(f.section("install")),
-        rig_options={k: v for k, v in cam_f.data.items() if k not in RIG_TYPED}, sha256=sha256,
+        source=source,
+        mount=mount,
+        robot=robot,
+        camera_driver=driver,
+        cameras=specs,
+        camera_options=cam_opts,
+        reference_camera=reference,
+        target=target,
+        target_dict=target_to_dict(target),
+        approx_T_hand_eye=approx_he,
+        approx_T_target=approx_target,
+        standoff_m=standoff,
+        simulation=sim,
+        plan=plan_settings,
+        options=options,
+        limits=limits,
+        install=_install(f.section("install")),
+        rig_options={k: v for k, v in cam_f.data.items() if k not in RIG_TYPED},
+        sha256=sha256,
         device_id=device_id,
     )
 
@@ -523,11 +561,15 @@ def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
         ]
     he_key, tg_key = _names(cfg.mount)
     out: dict[str, Any] = {
-        "format": CELL_FORMAT, "mount": cfg.mount, "robot": robot, "cameras": cameras,
+        "format": CELL_FORMAT,
+        "mount": cfg.mount,
+        "robot": robot,
+        "cameras": cameras,
         "target": dict(cfg.target_dict),
         "approximate": {
             tg_key: transform_to_dict(cfg.approx_T_target),
-            he_key: transform_to_dict(cfg.approx_T_hand_eye), "standoff_m": cfg.standoff_m,
+            he_key: transform_to_dict(cfg.approx_T_hand_eye),
+            "standoff_m": cfg.standoff_m,
         },
     }
     sim = cfg.simulation
@@ -536,15 +578,21 @@ def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
             "seed": sim.seed,
             "cameras": {
                 c.name: {
-                    "width": c.width, "height": c.height, "K": np.asarray(c.K).tolist(),
-                    "distortion": np.asarray(c.dist).tolist(), "blur_sigma_px": c.blur_sigma_px,
-                    "noise_std": c.noise_std, "exposure": c.exposure, "colour": c.colour,
+                    "width": c.width,
+                    "height": c.height,
+                    "K": np.asarray(c.K).tolist(),
+                    "distortion": np.asarray(c.dist).tolist(),
+                    "blur_sigma_px": c.blur_sigma_px,
+                    "noise_std": c.noise_std,
+                    "exposure": c.exposure,
+                    "colour": c.colour,
                     "vignetting": c.vignetting,
                     "photo": asdict(c.photo) if c.photo is not None else False,
                 }
                 for c in sim.cameras
             },
-            he_key: transform_to_dict(sim.T_hand_eye), tg_key: transform_to_dict(sim.T_target),
+            he_key: transform_to_dict(sim.T_hand_eye),
+            tg_key: transform_to_dict(sim.T_target),
             "rig": {n: transform_to_dict(T) for n, T in sim.rig.items()},
             "noise": {"robot_mm": sim.robot_noise_m * 1000.0, "robot_deg": sim.robot_noise_deg},
             "target_jitter": {"mm": sim.target_jitter_mm, "deg": sim.target_jitter_deg},
@@ -661,9 +709,19 @@ def _robot(f: Fields) -> RobotConfig:
         k: lf.number(k, positive=k != "z_min_m") for k in CELL_KEYS["robot.limits"] if lf.has(k)
     }
     return RobotConfig(
-        driver=driver, host=host, model=model, tcp=_pose(f, "tcp"), speed_mps=speed,
-        accel_mps2=accel, settle_s=settle, start_pose=_pose(f, "start_pose"), workspace_min_m=wmin,
-        workspace_max_m=wmax, start_q=start_q, limits=limits, ur_options=cell_options(f.data),
+        driver=driver,
+        host=host,
+        model=model,
+        tcp=_pose(f, "tcp"),
+        speed_mps=speed,
+        accel_mps2=accel,
+        settle_s=settle,
+        start_pose=_pose(f, "start_pose"),
+        workspace_min_m=wmin,
+        workspace_max_m=wmax,
+        start_q=start_q,
+        limits=limits,
+        ur_options=cell_options(f.data),
     )
 
 
@@ -700,7 +758,9 @@ def _sim_camera(c: Fields, name: str, base: SimCamera | None) -> SimCamera:
         if c.has(key):
             values[key] = c.integer(key, minimum=1, maximum=100_000)
     for key, lo, hi in (
-        ("blur_sigma_px", 0.0, 20.0), ("noise_std", 0.0, 100.0), ("exposure", 1e-6, 100.0),
+        ("blur_sigma_px", 0.0, 20.0),
+        ("noise_std", 0.0, 100.0),
+        ("exposure", 1e-6, 100.0),
         ("vignetting", 0.0, 1.0),
     ):
         if c.has(key):
@@ -780,13 +840,17 @@ def _simulation(f: Fields, mount: str) -> SimulationConfig:
             for k, v in KINEMATIC_ERROR_DEFAULTS.items()
         }
     return SimulationConfig(
-        seed=seed, cameras=tuple(cams), T_hand_eye=transform_from_dict(f, he_key),
-        T_target=transform_from_dict(f, tg_key), rig=rig,
+        seed=seed,
+        cameras=tuple(cams),
+        T_hand_eye=transform_from_dict(f, he_key),
+        T_target=transform_from_dict(f, tg_key),
+        rig=rig,
         robot_noise_m=nf.number("robot_mm", 0.05, minimum=0.0, maximum=100.0) / 1000.0,
         robot_noise_deg=nf.number("robot_deg", 0.005, minimum=0.0, maximum=10.0),
         target_jitter_mm=jf.number("mm", 0.0, minimum=0.0, maximum=1000.0),
         target_jitter_deg=jf.number("deg", 0.0, minimum=0.0, maximum=90.0),
-        kinematic_error=kinematic_error, board_bow_mm=_board_bow(f),
+        kinematic_error=kinematic_error,
+        board_bow_mm=_board_bow(f),
     )
 
 
@@ -825,7 +889,8 @@ def _cameras(
             raise cf.error("name", f"{name!r} appears twice; camera names must be unique")
         specs.append(
             CameraSpec(
-                name, cf.integer("width", minimum=1, maximum=100_000),
+                name,
+                cf.integer("width", minimum=1, maximum=100_000),
                 cf.integer("height", minimum=1, maximum=100_000),
             )
         )

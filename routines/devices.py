@@ -89,9 +89,14 @@ def _oak(cfg: Any, section: Fields) -> Any:
     device = cfg.device_id
     try:
         return OakRig(
-            None if device is None else str(device), sockets,
-            {c.name: (c.width, c.height) for c in cfg.cameras}, colour=colour, exposure_us=exposure,
-            iso=iso, focus=focus, white_balance_k=wb,
+            None if device is None else str(device),
+            sockets,
+            {c.name: (c.width, c.height) for c in cfg.cameras},
+            colour=colour,
+            exposure_us=exposure,
+            iso=iso,
+            focus=focus,
+            white_balance_k=wb,
             fps=section.number("fps", DEFAULT_FPS, positive=True),
             resize_mode=section.choice("resize", RESIZE_MODES, "stretch"),
             sync_tolerance_s=(
@@ -122,9 +127,15 @@ def _uvc(cfg: Any, section: Fields) -> Any:
 
     try:
         return UvcCamera(
-            source, c.name, c.width, c.height,
-            fourcc=str(f.get("fourcc")) if f.has("fourcc") else None, exposure=opt("exposure"),
-            focus=opt("focus"), fps=opt("fps"), drop_frames=f.integer("drop_frames", 4, minimum=0),
+            source,
+            c.name,
+            c.width,
+            c.height,
+            fourcc=str(f.get("fourcc")) if f.has("fourcc") else None,
+            exposure=opt("exposure"),
+            focus=opt("focus"),
+            fps=opt("fps"),
+            drop_frames=f.integer("drop_frames", 4, minimum=0),
         )
     except InputError as e:
         raise InputError(str(e), where=f.where()) from None

@@ -108,9 +108,12 @@ def camchain_dict(result: CalibrationResult, header: Mapping[str, Any] | None = 
         K = np.asarray(c.K, dtype=float)
         d = np.asarray(c.distortion, dtype=float).reshape(-1)
         entry: dict[str, Any] = {
-            "camera_model": "pinhole", "intrinsics": plain([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]),
-            "distortion_model": "radtan", "distortion_coeffs": plain(d[:4]),
-            "resolution": [int(c.width), int(c.height)], "rostopic": f"/{n}/image_raw",
+            "camera_model": "pinhole",
+            "intrinsics": plain([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]),
+            "distortion_model": "radtan",
+            "distortion_coeffs": plain(d[:4]),
+            "resolution": [int(c.width), int(c.height)],
+            "rostopic": f"/{n}/image_raw",
             "cam_overlaps": [j for j in range(len(names)) if j != i],
         }
         if i > 0:
@@ -150,9 +153,11 @@ def mrcal_cameramodel(
         "{",
         "    'lensmodel': 'LENSMODEL_OPENCV5',",
         "    # fx, fy, cx, cy, then OpenCV's k1, k2, p1, p2, k3",
-        f"    'intrinsics': {_numbers(intrinsics)},", f"    'rt_cam_ref': {_numbers(rt)},",
+        f"    'intrinsics': {_numbers(intrinsics)},",
+        f"    'rt_cam_ref': {_numbers(rt)},",
         f"    'extrinsics': {_numbers(rt)},",
-        f"    'imagersize': [{int(c.width)}, {int(c.height)}],", "}",
+        f"    'imagersize': [{int(c.width)}, {int(c.height)}],",
+        "}",
     ]
     return "\n".join(lines) + "\n"
 
@@ -163,8 +168,10 @@ def quat_xyzw(R: np.ndarray) -> list[float]:
     (a, b, c), (d, e, f), (g, h, i) = np.asarray(R, dtype=float)
     K = np.array(
         [
-            [a - e - i, d + b, g + c, h - f], [d + b, e - a - i, h + f, c - g],
-            [g + c, h + f, i - a - e, d - b], [h - f, c - g, d - b, a + e + i],
+            [a - e - i, d + b, g + c, h - f],
+            [d + b, e - a - i, h + f, c - g],
+            [g + c, h + f, i - a - e, d - b],
+            [h - f, c - g, d - b, a + e + i],
         ]
     )
     q = np.linalg.eigh(K)[1][:, -1]
@@ -204,7 +211,8 @@ def hand_eye_dict(result: CalibrationResult, header: Mapping[str, Any] | None = 
         e["quaternion_xyzw"] = quat_xyzw(R)
         e["ur_pendant"] = {
             "position_mm": plain(tm * 1000.0) if tm is not None else None,
-            "rotation_vector_rad": plain(rvec_from_R(R)), "rpy_deg": _rpy_deg(R),
+            "rotation_vector_rad": plain(rvec_from_R(R)),
+            "rpy_deg": _rpy_deg(R),
         }
         e["std_rot_deg"] = t.std_rot_deg
         e["std_t_mm"] = t.std_t_mm if tm is not None else None

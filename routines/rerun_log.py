@@ -78,7 +78,8 @@ class RerunLog:
             p, rr.Transform3D(translation=T_target[:3, 3], mat3x3=T_target[:3, :3]), static=static
         )
         self.rec.log(
-            f"{p}/corners", rr.Points3D(self.target.points_m, radii=0.002, colors=[200, 200, 0]),
+            f"{p}/corners",
+            rr.Points3D(self.target.points_m, radii=0.002, colors=[200, 200, 0]),
             static=static,
         )
 
@@ -92,14 +93,17 @@ class RerunLog:
     ) -> None:
         p = self._cam_path(name)
         self.rec.log(
-            p, rr.Transform3D(translation=T_parent_cam[:3, 3], mat3x3=T_parent_cam[:3, :3]),
+            p,
+            rr.Transform3D(translation=T_parent_cam[:3, 3], mat3x3=T_parent_cam[:3, :3]),
             static=static,
         )
         self.rec.log(
             p,
             rr.Pinhole(
-                image_from_camera=K, resolution=[spec.width, spec.height],
-                camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.1,
+                image_from_camera=K,
+                resolution=[spec.width, spec.height],
+                camera_xyz=rr.ViewCoordinates.RDF,
+                image_plane_distance=0.1,
             ),
             static=static,
         )

@@ -85,7 +85,10 @@ def hand_eye_transforms(result: CalibrationResult) -> dict[str, TransformEstimat
         if he.t_m is not None and rig.t_m is not None:
             t = he.R @ (-rig.R.T @ rig.t_m) + he.t_m
         out[key] = TransformEstimate(
-            key, R, t, named.std_rot_deg(key) if named is not None else None,
+            key,
+            R,
+            t,
+            named.std_rot_deg(key) if named is not None else None,
             named.std_t_mm(key) if named is not None and t is not None else None,
         )
     return out
@@ -113,7 +116,12 @@ def _named_from_legacy(
 
     T_cam_ref = {c: T(t) for c in cams if c != ref and (t := rig.get(f"T_{c}_{ref}")) is not None}
     layout = legacy_layout(
-        tuple(pnames), tuple(cams), ref, mount, T(hand_eye), T(target),
+        tuple(pnames),
+        tuple(cams),
+        ref,
+        mount,
+        T(hand_eye),
+        T(target),
         {c: v for c, v in T_cam_ref.items() if v is not None},
     )
     if cov is None:
@@ -136,7 +144,8 @@ def transform_estimate_to_dict(t: TransformEstimate) -> dict[str, Any]:
     """``{R, t_m, std_rot_deg, std_t_mm}``; null where unobservable."""
     return {
         "R": plain(t.R) if t.R is not None else None,
-        "t_m": plain(t.t_m) if t.t_m is not None else None, "std_rot_deg": _num(t.std_rot_deg),
+        "t_m": plain(t.t_m) if t.t_m is not None else None,
+        "std_rot_deg": _num(t.std_rot_deg),
         "std_t_mm": _num(t.std_t_mm) if t.t_m is not None else None,
     }
 
@@ -144,10 +153,13 @@ def transform_estimate_to_dict(t: TransformEstimate) -> dict[str, Any]:
 def camera_to_dict(c: CameraEstimate) -> dict[str, Any]:
     """One camera's block of ``result.yaml``."""
     return {
-        "width": int(c.width), "height": int(c.height), "K": plain(np.asarray(c.K, dtype=float)),
+        "width": int(c.width),
+        "height": int(c.height),
+        "K": plain(np.asarray(c.K, dtype=float)),
         "distortion_model": "opencv5",
         "distortion": plain(np.asarray(c.distortion, dtype=float).reshape(-1)[:5]),
-        "std": {k: _num(v) for k, v in c.std.items()}, "reproj_rms_px": _num(c.reproj_rms_px),
+        "std": {k: _num(v) for k, v in c.std.items()},
+        "reproj_rms_px": _num(c.reproj_rms_px),
     }
 
 
@@ -178,8 +190,11 @@ def result_to_dict(result: CalibrationResult) -> dict[str, Any]:
     d["messages"] = list(result.messages)
     d["scale_checks"] = [
         {
-            "frame_a": int(s.frame_a), "frame_b": int(s.frame_b), "robot_mm": _num(s.robot_mm),
-            "camera_mm": _num(s.camera_mm), "ratio": _num(s.ratio),
+            "frame_a": int(s.frame_a),
+            "frame_b": int(s.frame_b),
+            "robot_mm": _num(s.robot_mm),
+            "camera_mm": _num(s.camera_mm),
+            "ratio": _num(s.ratio),
         }
         for s in result.scale_checks
     ]
@@ -192,7 +207,8 @@ def result_to_dict(result: CalibrationResult) -> dict[str, Any]:
     ad = result.adequacy
     if ad is not None:
         d["adequacy"] = {
-            "adequate": bool(ad.adequate), "reasons": list(ad.reasons),
+            "adequate": bool(ad.adequate),
+            "reasons": list(ad.reasons),
             "detector_noise_px": {k: _num(v) for k, v in ad.detector_noise_px.items()},
             "normalised_rms": {k: _num(v) for k, v in ad.normalised_rms.items()},
             "worst_frames": [
@@ -203,13 +219,16 @@ def result_to_dict(result: CalibrationResult) -> dict[str, Any]:
     bd = result.board
     if bd is not None:
         d["board"] = {
-            "bow_mm": [_num(v) for v in bd.bow_mm], "bow_std_mm": [_num(v) for v in bd.bow_std_mm],
-            "flatness_mm": _num(bd.flatness_mm), "print_tolerance": _num(bd.print_tolerance),
+            "bow_mm": [_num(v) for v in bd.bow_mm],
+            "bow_std_mm": [_num(v) for v in bd.bow_std_mm],
+            "flatness_mm": _num(bd.flatness_mm),
+            "print_tolerance": _num(bd.print_tolerance),
         }
     ra = result.robot_accuracy
     if ra is not None:
         d["robot_accuracy"] = {
-            "translation_mm": _num(ra.translation_mm), "rotation_deg": _num(ra.rotation_deg),
+            "translation_mm": _num(ra.translation_mm),
+            "rotation_deg": _num(ra.rotation_deg),
             "estimated": bool(ra.estimated),
             "worst_frames": [
                 {"frame": int(f), "translation_mm": _num(t), "rotation_deg": _num(r)}
@@ -319,13 +338,17 @@ def _adequacy_from(f: Fields, names: list[str]) -> ModelAdequacy:
         wf.only(RESULT_PART_KEYS["adequacy.worst_frames[]"])
         worst.append(
             (
-                wf.integer("frame", minimum=0), wf.choice("camera", names),
+                wf.integer("frame", minimum=0),
+                wf.choice("camera", names),
                 _nullable(wf, "normalised_rms", minimum=0.0),
             )
         )
     return ModelAdequacy(
-        _camera_numbers(a, "detector_noise_px", names), _camera_numbers(a, "normalised_rms", names),
-        tuple(worst), a.boolean("adequate"), tuple(reasons),
+        _camera_numbers(a, "detector_noise_px", names),
+        _camera_numbers(a, "normalised_rms", names),
+        tuple(worst),
+        a.boolean("adequate"),
+        tuple(reasons),
     )
 
 
@@ -333,8 +356,10 @@ def _board_from(f: Fields) -> BoardShape:
     b = f.section("board", RESULT_PART_KEYS["board"])
     bow, sd = b.array("bow_mm", (2,)), b.array("bow_std_mm", (2,))
     return BoardShape(
-        (float(bow[0]), float(bow[1])), (float(sd[0]), float(sd[1])),
-        b.number("flatness_mm", minimum=0.0), b.number("print_tolerance", minimum=0.0),
+        (float(bow[0]), float(bow[1])),
+        (float(sd[0]), float(sd[1])),
+        b.number("flatness_mm", minimum=0.0),
+        b.number("print_tolerance", minimum=0.0),
     )
 
 
@@ -348,14 +373,18 @@ def _robot_accuracy_from(f: Fields) -> RobotAccuracy:
             wf.only(RESULT_PART_KEYS[f"robot_accuracy.{key}[]"])
             rows.append(
                 (
-                    wf.integer("frame", minimum=0), _nullable(wf, "translation_mm", minimum=0.0),
+                    wf.integer("frame", minimum=0),
+                    _nullable(wf, "translation_mm", minimum=0.0),
                     _nullable(wf, "rotation_deg", minimum=0.0),
                 )
             )
         lists[key] = tuple(rows)
     return RobotAccuracy(
-        _nullable(r, "translation_mm", minimum=0.0), _nullable(r, "rotation_deg", minimum=0.0),
-        lists["worst_frames"], r.boolean("estimated"), lists["left_out_frames"],
+        _nullable(r, "translation_mm", minimum=0.0),
+        _nullable(r, "rotation_deg", minimum=0.0),
+        lists["worst_frames"],
+        r.boolean("estimated"),
+        lists["left_out_frames"],
     )
 
 
@@ -374,8 +403,10 @@ def _cameras_from(f: Fields) -> dict[str, CameraEstimate]:
             c.choice("distortion_model", ("opencv5",))
         std = c.section("std")
         cams[name] = CameraEstimate(
-            name, c.integer("width", minimum=1, maximum=100_000),
-            c.integer("height", minimum=1, maximum=100_000), c.array("K", (3, 3)),
+            name,
+            c.integer("width", minimum=1, maximum=100_000),
+            c.integer("height", minimum=1, maximum=100_000),
+            c.array("K", (3, 3)),
             c.array("distortion", (5,)),
             {str(k): _nullable(std, str(k), minimum=0.0) for k in std.data},
             _nullable(c, "reproj_rms_px", minimum=0.0),
@@ -410,7 +441,10 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
             raise s.error("R", "is not a rotation matrix (orthonormal, det +1)")
         t = s.array("t_m", (3,)) if s.has("t_m") else None
         return TransformEstimate(
-            name or key, R, t, s.optional_number("std_rot_deg", minimum=0.0),
+            name or key,
+            R,
+            t,
+            s.optional_number("std_rot_deg", minimum=0.0),
             s.optional_number("std_t_mm", minimum=0.0),
         )
 
@@ -453,8 +487,10 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
         sf = Fields(sc, source, f"scale_checks[{i}]").only(RESULT_PART_KEYS["scale_checks[]"])
         checks.append(
             ScaleCheck(
-                sf.integer("frame_a", minimum=0), sf.integer("frame_b", minimum=0),
-                _nullable(sf, "robot_mm", minimum=0.0), _nullable(sf, "camera_mm", minimum=0.0),
+                sf.integer("frame_a", minimum=0),
+                sf.integer("frame_b", minimum=0),
+                _nullable(sf, "robot_mm", minimum=0.0),
+                _nullable(sf, "camera_mm", minimum=0.0),
             )
         )
     sc_sum = f.section("scale_check", RESULT_PART_KEYS["scale_check"])
@@ -485,15 +521,28 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
     T_target = te(tname) if tname else None
     pnames, cov = _named_from_legacy(pnames, cov, cams, ref, mount, hand_eye, T_target, rig)
     return CalibrationResult(
-        cameras=cams, hand_eye=hand_eye, rig=rig, T_target=T_target,
-        converged=f.boolean("converged", False), iterations=f.integer("iterations", 0, minimum=0),
+        cameras=cams,
+        hand_eye=hand_eye,
+        rig=rig,
+        T_target=T_target,
+        converged=f.boolean("converged", False),
+        iterations=f.integer("iterations", 0, minimum=0),
         reproj_rms_px=_nullable(rep, "rms_px", minimum=0.0),
-        sigma_px=_nullable(rep, "sigma_px", minimum=0.0), parameter_names=tuple(pnames),
-        covariance=cov, residuals_px=residuals, outliers=tuple(outliers),
+        sigma_px=_nullable(rep, "sigma_px", minimum=0.0),
+        parameter_names=tuple(pnames),
+        covariance=cov,
+        residuals_px=residuals,
+        outliers=tuple(outliers),
         unobservable={str(k): v for k, v in unobs.data.items()},
-        messages=tuple(f.strings("messages")), scale_checks=tuple(checks), H_inf=H_inf,
-        linear=linear, mount=mount, reference_camera=ref, adequacy=adequacy,
-        robot_accuracy=robot_accuracy, board=board,
+        messages=tuple(f.strings("messages")),
+        scale_checks=tuple(checks),
+        H_inf=H_inf,
+        linear=linear,
+        mount=mount,
+        reference_camera=ref,
+        adequacy=adequacy,
+        robot_accuracy=robot_accuracy,
+        board=board,
     )
 
 
@@ -529,12 +578,14 @@ def camera_info_dict(camera: CameraEstimate) -> dict[str, Any]:
     K = np.asarray(camera.K, dtype=float)
     P = np.hstack([K, np.zeros((3, 1))])
     return {
-        "image_width": int(camera.width), "image_height": int(camera.height),
+        "image_width": int(camera.width),
+        "image_height": int(camera.height),
         "camera_name": camera.name,
         "camera_matrix": {"rows": 3, "cols": 3, "data": plain(K.reshape(-1))},
         "distortion_model": "plumb_bob",
         "distortion_coefficients": {
-            "rows": 1, "cols": 5,
+            "rows": 1,
+            "cols": 5,
             "data": plain(np.asarray(camera.distortion, dtype=float).reshape(-1)[:5]),
         },
         "rectification_matrix": {"rows": 3, "cols": 3, "data": plain(np.eye(3).reshape(-1))},
@@ -619,7 +670,11 @@ def summary_text(
             f"camera {name} ({c.width}x{c.height}), reprojection rms {_fmt(c.reproj_rms_px)} px"
         )
         for label, val in (
-            ("fx", K[0, 0]), ("fy", K[1, 1]), ("cx", K[0, 2]), ("cy", K[1, 2]), ("s", K[0, 1]),
+            ("fx", K[0, 0]),
+            ("fy", K[1, 1]),
+            ("cx", K[0, 2]),
+            ("cy", K[1, 2]),
+            ("s", K[0, 1]),
         ):
             if label in std or not std:  # no std at all: the covariance was not computed
                 lines.append(f"  {label:3s} = {val:10.3f} px  +- {_fmt(std.get(label))} px")
@@ -804,7 +859,8 @@ def truth_frames(truth: Mapping[str, Any]) -> list[tuple[int, np.ndarray, np.nda
     for fr in truth.get("frames") or []:
         out.append(
             (
-                int(fr["id"]), T_from_ur_pose(np.asarray(fr["T_base_tool"], dtype=float)),
+                int(fr["id"]),
+                T_from_ur_pose(np.asarray(fr["T_base_tool"], dtype=float)),
                 T_from_ur_pose(np.asarray(fr["T_base_tool_measured"], dtype=float)),
             )
         )

@@ -166,7 +166,11 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
     record = partial(record, retries=retries, faults=q.faults)
     recording = q.recording and q.resume is None  # a resumed run's recording stays as it was
     rec = record(
-        plan=plan, start=start, resume=q.resume is not None, recording=recording, spawn=q.spawn,
+        plan=plan,
+        start=start,
+        resume=q.resume is not None,
+        recording=recording,
+        spawn=q.spawn,
         seed=seed,
     )
     robot, log = rec.robot, rec.log
@@ -190,11 +194,19 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
         prog.total = plan.n_poses
         robot = record(plan=plan, start=n_done, resume=True, extended=said, log=log).robot
     fin = finish_solve(
-        result, out, session, cfg.limits, command="run",
+        result,
+        out,
+        session,
+        cfg.limits,
+        command="run",
         truth=session.simulation,  # as recorded, with the poses the arm really reached
         cell_path=q.config if isinstance(q.config, str | Path) else None,
-        cell_name=cfg.source, oak_sockets=sockets(cfg), installed=inst_result,
-        installed_path=inst_path, plan_poses=plan.n_poses, notes=notes,
+        cell_name=cfg.source,
+        oak_sockets=sockets(cfg),
+        installed=inst_result,
+        installed_path=inst_path,
+        plan_poses=plan.n_poses,
+        notes=notes,
     )
     rec_path = None
     if log is not None:
@@ -206,7 +218,11 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
         prog.event(line)
     prog.done(f"done: {fin.result_path}")
     return fin.outcome(
-        session, t0, clock(robot), recording_path=rec_path, installed_to=installed_to,
+        session,
+        t0,
+        clock(robot),
+        recording_path=rec_path,
+        installed_to=installed_to,
         install_note=note,
     )
 
@@ -275,7 +291,11 @@ def _install(
         return None, "the result was rejected; the installed calibration stays"
     try:
         d = install(
-            store, fin.result_path.parent, fin.result, v.verdict, force=force,
+            store,
+            fin.result_path.parent,
+            fin.result,
+            v.verdict,
+            force=force,
             accept_drift=accept_drift,
             info={"cell": cfg.source, "chain_rms_px": chain_rms_px(fin.result, session.problem)},
         )
@@ -373,30 +393,37 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "board's placement too: another seed is another cell)",
     )
     p.add_argument(
-        "--fault", action="append", metavar="KIND@FRAME",
+        "--fault",
+        action="append",
+        metavar="KIND@FRAME",
         help="simulated cells: inject a hardware fault (see slidecal.routines.ops.faults)",
     )
     p.add_argument(
-        "--install", metavar="STORE",
+        "--install",
+        metavar="STORE",
         help="install an accepted result into this store (default: the cell's install.dir)",
     )
     p.add_argument(
-        "--installed", metavar="STORE",
+        "--installed",
+        metavar="STORE",
         help="compare with this install store or result.yaml (default: --install's)",
     )
     p.add_argument(
         "--force", action="store_true", help="install even if less certain than the installed"
     )
     p.add_argument(
-        "--accept-drift", action="store_true",
+        "--accept-drift",
+        action="store_true",
         help="install a result that differs from the installed one (verdict drifted)",
     )
     p.add_argument(
-        "--resume", metavar="SESSION_DIR",
+        "--resume",
+        metavar="SESSION_DIR",
         help="continue a stopped run's session from its first missing frame",
     )
     p.add_argument(
-        "--retries", type=int,
+        "--retries",
+        type=int,
         help="captures tried again per pose after a dropped frame or no corners (default 2)",
     )
 
@@ -405,10 +432,20 @@ def main(args: argparse.Namespace) -> int:
     """Run, print the summary, exit with the verdict's code."""
     outcome = run_calibration(
         RunRequest(
-            args.config, plan=args.plan, out_dir=args.out, progress=False if args.quiet else None,
-            recording=not args.no_recording, spawn=args.spawn, seed=args.seed, install=args.install,
-            force=args.force, accept_drift=True if args.accept_drift else None,
-            installed=args.installed, resume=args.resume, retries=args.retries, faults=args.fault,
+            args.config,
+            plan=args.plan,
+            out_dir=args.out,
+            progress=False if args.quiet else None,
+            recording=not args.no_recording,
+            spawn=args.spawn,
+            seed=args.seed,
+            install=args.install,
+            force=args.force,
+            accept_drift=True if args.accept_drift else None,
+            installed=args.installed,
+            resume=args.resume,
+            retries=args.retries,
+            faults=args.fault,
         )
     )
     print_outcome(outcome, args.quiet)

@@ -74,8 +74,11 @@ def dump_yaml(data: Any, indent: int | None = None) -> str:
     ``indent``: ``data`` is a part of a document nested that many spaces deep, dumped so that
     parts join into the whole document's text."""
     text = yaml.dump(
-        plain(data), Dumper=_Dumper if indent is None else _PartDumper, default_flow_style=None,
-        sort_keys=False, width=100 - (indent or 0),
+        plain(data),
+        Dumper=_Dumper if indent is None else _PartDumper,
+        default_flow_style=None,
+        sort_keys=False,
+        width=100 - (indent or 0),
     )
     return "".join(" " * indent + line for line in text.splitlines(True)) if indent else text
 
@@ -220,7 +223,15 @@ def load_yaml(path: Path, what: str) -> Any:
 
 #: the cell file's top-level sections (routines/config.py validates each; a solve reads limits:)
 CELL_SECTIONS = (
-    "format", "mount", "robot", "cameras", "target", "approximate", "simulation", "plan", "options",
+    "format",
+    "mount",
+    "robot",
+    "cameras",
+    "target",
+    "approximate",
+    "simulation",
+    "plan",
+    "options",
     "limits",  # the verdict's limits (routines/ops/verdict.py: limits_from_dict)
     "install",  # the install store (INSTALL_KEYS)
 )
@@ -399,8 +410,11 @@ def _kind(value: Any) -> str:
     return {
         "NoneType": "nothing (null)",
         "str": f"the text {value!r}" if isinstance(value, str) and len(value) < 40 else "text",
-        "list": "a list", "dict": "a mapping", "int": f"the number {value!r}",
-        "float": f"the number {value!r}", "bool": f"{value!r}",
+        "list": "a list",
+        "dict": "a mapping",
+        "int": f"the number {value!r}",
+        "float": f"the number {value!r}",
+        "bool": f"{value!r}",
     }.get(type(value).__name__, type(value).__name__)
 
 

@@ -78,14 +78,25 @@ SESSION_KEYS: dict[str, tuple[str, ...]] = {
 TOLERANCE_KEYS = ("flatness_mm", "print_tolerance")
 TARGET_KEYS: dict[str, tuple[str, ...]] = {
     "charuco": (
-        "kind", "squares_x", "squares_y", "square_size_m", "marker_size_m", "dictionary",
+        "kind",
+        "squares_x",
+        "squares_y",
+        "square_size_m",
+        "marker_size_m",
+        "dictionary",
         *TOLERANCE_KEYS,
     ),
     "chessboard": ("kind", "squares_x", "squares_y", "square_size_m", *TOLERANCE_KEYS),
     "points": ("kind", "points_m", *TOLERANCE_KEYS),
     "apriltag": ("kind", "tag_size_m", "dictionary", "tag_ids", "tag_origins_m", *TOLERANCE_KEYS),
     "aprilgrid": (
-        "kind", "tag_cols", "tag_rows", "tag_size_m", "tag_spacing", "dictionary", *TOLERANCE_KEYS,
+        "kind",
+        "tag_cols",
+        "tag_rows",
+        "tag_size_m",
+        "tag_spacing",
+        "dictionary",
+        *TOLERANCE_KEYS,
     ),
 }
 TARGET_KINDS = tuple(TARGET_KEYS)
@@ -344,19 +355,25 @@ def _kind_to_dict(target: Target) -> dict[str, Any]:
         return {"kind": "points", "points_m": plain(target.points_m[:, :2])}
     if target.kind == "aprilgrid":
         return {
-            "kind": "aprilgrid", "tag_cols": target.tag_cols, "tag_rows": target.tag_rows,
-            "tag_size_m": target.tag_size_m, "tag_spacing": target.tag_spacing,
+            "kind": "aprilgrid",
+            "tag_cols": target.tag_cols,
+            "tag_rows": target.tag_rows,
+            "tag_size_m": target.tag_size_m,
+            "tag_spacing": target.tag_spacing,
             "dictionary": target.dictionary,
         }
     if target.kind == "apriltag":
         return {
-            "kind": "apriltag", "tag_size_m": target.tag_size_m,
+            "kind": "apriltag",
+            "tag_size_m": target.tag_size_m,
             "tag_ids": [int(i) for i in target.tag_ids],
             "tag_origins_m": [[float(x), float(y)] for x, y in target.tag_origins_m],
             "dictionary": target.dictionary,
         }
     d: dict[str, Any] = {
-        "kind": target.kind, "squares_x": target.squares_x, "squares_y": target.squares_y,
+        "kind": target.kind,
+        "squares_x": target.squares_x,
+        "squares_y": target.squares_y,
         "square_size_m": target.square_size_m,
     }
     if target.kind == "charuco":
@@ -391,7 +408,8 @@ def options_from_dict(data: Any, file: str, path: str = "options") -> ModelOptio
 def options_to_dict(options: ModelOptions) -> dict[str, Any]:
     """The ``options:`` block of :class:`ModelOptions`."""
     return {
-        "skew": options.skew, "unit_aspect": options.unit_aspect,
+        "skew": options.skew,
+        "unit_aspect": options.unit_aspect,
         "distortion": list(options.distortion),
         "outlier_threshold_px": options.outlier_threshold_px,
         "robot_noise_mm": options.robot_noise_m * 1000.0,
@@ -465,7 +483,8 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
             raise cf.error("name", f"{name!r} appears twice; camera names must be unique")
         cameras.append(
             CameraSpec(
-                name, cf.integer("width", minimum=1, maximum=100_000),
+                name,
+                cf.integer("width", minimum=1, maximum=100_000),
                 cf.integer("height", minimum=1, maximum=100_000),
             )
         )
@@ -482,8 +501,13 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
     ids_seen: set[int] = set()
     for i, fr in enumerate(raw_frames):
         frame, q, im = _read_frame(
-            Fields(fr, SESSION_FILE, f"frames[{i}]"), directory, target, cameras, detect_images,
-            reasons, table,
+            Fields(fr, SESSION_FILE, f"frames[{i}]"),
+            directory,
+            target,
+            cameras,
+            detect_images,
+            reasons,
+            table,
         )
         if frame.id in ids_seen:
             raise InputError(
@@ -528,7 +552,9 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
         raise f.error("reference_camera", f"{ref!r} is not a camera; cameras are {names}")
     options = options_from_dict(f.get("options", {}), SESSION_FILE)
     problem = CalibrationProblem(
-        target=target, cameras=tuple(cameras), frames=tuple(frames),
+        target=target,
+        cameras=tuple(cameras),
+        frames=tuple(frames),
         mount=mount,  # type: ignore[arg-type]
         knowledge=knowledge,  # type: ignore[arg-type]
         options=options,
@@ -540,16 +566,24 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
     if sha is not None and not re.fullmatch(r"[0-9a-f]{64}", sha):
         raise f.error("cell_sha256", "must be 64 lowercase hex digits (a SHA-256)")
     return Session(
-        directory=directory, problem=problem, simulation=sim, events=events,
-        status=f.choice("status", STATUSES, "complete"), quality=quality, images=images,
-        cell=f.string("cell", "-") if f.has("cell") else None, cell_sha256=sha,
+        directory=directory,
+        problem=problem,
+        simulation=sim,
+        events=events,
+        status=f.choice("status", STATUSES, "complete"),
+        quality=quality,
+        images=images,
+        cell=f.string("cell", "-") if f.has("cell") else None,
+        cell_sha256=sha,
         robot_driver=f.choice("robot_driver", ("simulated", "ur"), "ur")
         if f.has("robot_driver")
         else None,
         camera_driver=f.choice("camera_driver", CAMERA_DRIVERS, "oak")
         if f.has("camera_driver")
         else None,
-        sockets=sockets, detect_reasons=reasons, limits=f.get("limits"),
+        sockets=sockets,
+        detect_reasons=reasons,
+        limits=f.get("limits"),
     )
 
 
@@ -885,7 +919,8 @@ def _npy_header(n_rows: int) -> bytes:
     np.lib.format.write_array_header_1_0(
         buf,
         {
-            "descr": np.lib.format.dtype_to_descr(DETECTION_DTYPE), "fortran_order": False,
+            "descr": np.lib.format.dtype_to_descr(DETECTION_DTYPE),
+            "fortran_order": False,
             "shape": (n_rows,),
         },
     )
@@ -1140,13 +1175,22 @@ def write_session(
 ) -> Path:
     """Write a problem (detections only, no images) as a session directory."""
     w = SessionWriter(
-        directory, problem.target, problem.cameras, mount=problem.mount,
-        knowledge=problem.knowledge, options=problem.options,
-        reference_camera=problem.reference_camera, simulation=simulation, overwrite=overwrite,
+        directory,
+        problem.target,
+        problem.cameras,
+        mount=problem.mount,
+        knowledge=problem.knowledge,
+        options=problem.options,
+        reference_camera=problem.reference_camera,
+        simulation=simulation,
+        overwrite=overwrite,
     )
     for fr in problem.frames:
         w.append_frame(
-            fr.T_base_tool, detections=fr.detections, group=fr.group, motion_board=fr.motion_board,
+            fr.T_base_tool,
+            detections=fr.detections,
+            group=fr.group,
+            motion_board=fr.motion_board,
             frame_id=fr.id,
         )
     return w.finish()

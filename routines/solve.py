@@ -105,14 +105,21 @@ class Solved:
         """The :class:`RunOutcome` of this solve of ``session`` (``t0``: the command's start,
         ``time.monotonic``; ``more``: the run's own fields, e.g. ``installed_to``)."""
         return RunOutcome(
-            session_dir=session.directory, result=self.result, result_path=self.result_path,
-            summary=self.summary, n_frames=len(session.problem.frames),
-            wall_time_s=time.monotonic() - t0, robot_time_s=robot_time_s,
+            session_dir=session.directory,
+            result=self.result,
+            result_path=self.result_path,
+            summary=self.summary,
+            n_frames=len(session.problem.frames),
+            wall_time_s=time.monotonic() - t0,
+            robot_time_s=robot_time_s,
             errors=errors_against_truth(self.result, session.simulation)
             if session.simulation
             else {},
-            exports=self.exports, verdict=self.verdict, export_errors=self.export_errors,
-            report_path=self.report, **more,
+            exports=self.exports,
+            verdict=self.verdict,
+            export_errors=self.export_errors,
+            report_path=self.report,
+            **more,
         )
 
 
@@ -155,7 +162,12 @@ def finish_solve(
     ``rejected/`` without exports otherwise. ``notes``: the run's own notes for the verdict."""
     status = _session_status(session, plan_poses)
     verdict = judge(
-        result, limits, session.problem, installed, command=command, session_status=status,
+        result,
+        limits,
+        session.problem,
+        installed,
+        command=command,
+        session_status=status,
         installed_path=installed_path,
     )
     if notes:
@@ -272,9 +284,19 @@ def solve_session(
             raise
         raise DegenerateError(f"{e}; {hint}") from e
     fin = finish_solve(
-        result, session_dir, session, limits, command="solve", truth=session.simulation,
-        cell_path=config, cell_name=session.cell, oak_sockets=session.sockets or None,
-        installed=inst_result, installed_path=inst_path, result_path=path, plan_poses=plan_poses,
+        result,
+        session_dir,
+        session,
+        limits,
+        command="solve",
+        truth=session.simulation,
+        cell_path=config,
+        cell_name=session.cell,
+        oak_sockets=session.sockets or None,
+        installed=inst_result,
+        installed_path=inst_path,
+        result_path=path,
+        plan_poses=plan_poses,
     )
     return fin.outcome(session, t0)
 

@@ -58,7 +58,9 @@ def check_plan_from(plan: Plan, cfg: CellConfig, frames: int = DEFAULT_FRAMES) -
     while True:
         groups = tuple(tuple(g[:per]) for g in plan.groups[:n_groups])
         short = Plan.build(
-            groups, plan, via=plan.via,
+            groups,
+            plan,
+            via=plan.via,
             notes=(f"check: {sum(len(g) for g in groups)} frames of the installed plan",),
         )
         robot_s, bad, why = dry_run(short, cfg)
@@ -220,8 +222,11 @@ def refit(
     t_mm = float(np.sqrt(np.trace(cov[nk + 3 : nk + 6, nk + 3 : nk + 6])) * 1000.0)
     he = TransformEstimate(installed.hand_eye.name, X[:3, :3], X[:3, 3], rot_deg, t_mm)
     return dataclasses.replace(
-        installed, cameras=cameras, hand_eye=he,
-        T_target=TransformEstimate("target", Y[:3, :3], Y[:3, 3]), covariance=None,
+        installed,
+        cameras=cameras,
+        hand_eye=he,
+        T_target=TransformEstimate("target", Y[:3, :3], Y[:3, 3]),
+        covariance=None,
         parameter_names=(),
     )
 
@@ -245,8 +250,11 @@ def judge_problem(
         sig[n] = None if not s else drift[n] / s
     extra = {
         "check": {
-            "frames": len(problem.frames), "residual_rms_px": rms,
-            "expected_rms_px": {n: expected[n] for n in rms}, "drift_px": drift, "drift_sigma": sig,
+            "frames": len(problem.frames),
+            "residual_rms_px": rms,
+            "expected_rms_px": {n: expected[n] for n in rms},
+            "drift_px": drift,
+            "drift_sigma": sig,
             "target_pose_t_m": [float(v) for v in Y[:3, 3]],
         }
     }
@@ -338,7 +346,14 @@ def run_check(
         raise InputError("already holds a session; choose a new --out directory", str(out))
     prog = Progress.from_option(progress, plan.n_poses)
     rec = record_session(
-        cfg, plan, out, prog, lock_key=cell_key(config, cfg), seed=seed, cell=cell, retries=retries,
+        cfg,
+        plan,
+        out,
+        prog,
+        lock_key=cell_key(config, cfg),
+        seed=seed,
+        cell=cell,
+        retries=retries,
         extra={"purpose": "check", "installed": str(cur)},
     )
     problem = load_session(out).problem
@@ -368,8 +383,12 @@ def main(args: argparse.Namespace) -> int:
     if not 2 <= args.frames <= 12:
         raise InputError(f"--frames must be 2 to 12, got {args.frames}")
     verdict, out = run_check(
-        args.config, args.installed, args.out, frames=args.frames,
-        progress=False if args.quiet else None, seed=args.seed,
+        args.config,
+        args.installed,
+        args.out,
+        frames=args.frames,
+        progress=False if args.quiet else None,
+        seed=args.seed,
     )
     print("\n".join(verdict.lines()) if not args.quiet else f"verdict: {verdict.verdict}")
     print(f"check session: {out}")

@@ -29,7 +29,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--result", help="result file (default: SESSION_DIR/result.yaml)")
     p.add_argument("--device-id", help="the device to write (default: the session's device)")
     p.add_argument(
-        "--write", action="store_true",
+        "--write",
+        action="store_true",
         help="really write the device's user calibration area (a backup is saved first)",
     )
 

@@ -212,7 +212,9 @@ def install(
                 write_atomic(staging / SESSION_FILE, session_text)
             meta = {
                 "installed_utc": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
-                "session": str(src.resolve()), "verdict": verdict, "forced": bool(force),
+                "session": str(src.resolve()),
+                "verdict": verdict,
+                "forced": bool(force),
                 **(info or {}),
             }
             write_atomic(staging / INSTALLED_FILE, dump_yaml(meta))

@@ -179,7 +179,8 @@ def rehearse(
     cell = SimulatedCell.from_config(cfg, seed)
     sim = cfg.simulation
     options = [
-        "--model", cfg.robot.model, "--polyscope", polyscope, "--speed-slider", str(speed_slider),
+        "--model", cfg.robot.model, "--polyscope", polyscope,
+        "--speed-slider", str(speed_slider),
         "--start-q=" + ",".join(f"{v:.17g}" for v in cell.robot.q),
         "--noise-mm", str(sim.robot_noise_m * 1000.0), "--noise-deg", str(sim.robot_noise_deg),
         "--seed", str(cell.seed),
@@ -188,8 +189,13 @@ def rehearse(
     controller = LoopbackController(options)
     stale_s = max(LOOPBACK_STALE_S, 3.0 * controller.ctl("state").get("cycle_gap_max_s", 0.0))
     robot = URRobot(
-        controller.host, max_speed_mps=cfg.robot.speed_mps, max_accel_mps2=cfg.robot.accel_mps2,
-        tcp=cfg.robot.tcp, model=cfg.robot.model, frequency=125.0, stale_timeout_s=stale_s,
+        controller.host,
+        max_speed_mps=cfg.robot.speed_mps,
+        max_accel_mps2=cfg.robot.accel_mps2,
+        tcp=cfg.robot.tcp,
+        model=cfg.robot.model,
+        frequency=125.0,
+        stale_timeout_s=stale_s,
         **driver_options,
     )
     # the simulated cameras render from the controller's arm, not the simulated one

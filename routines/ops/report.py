@@ -22,7 +22,9 @@ REPORT_HTML = "report.html"
 REPORT_PNG = "report.png"
 PANEL_W = 560
 _COLOURS = {
-    "accepted": (60, 160, 60), "ok": (60, 160, 60), "drifted": (0, 140, 230),
+    "accepted": (60, 160, 60),
+    "ok": (60, 160, 60),
+    "drifted": (0, 140, 230),
     "rejected": (40, 40, 210),
 }
 _FONT = cv2.FONT_HERSHEY_SIMPLEX

@@ -33,7 +33,10 @@ EXIT_OK = 0
 EXIT_REJECTED = 4
 EXIT_DRIFTED = 5
 EXIT_CODES = {
-    "accepted": EXIT_OK, "ok": EXIT_OK, "rejected": EXIT_REJECTED, "drifted": EXIT_DRIFTED,
+    "accepted": EXIT_OK,
+    "ok": EXIT_OK,
+    "rejected": EXIT_REJECTED,
+    "drifted": EXIT_DRIFTED,
 }
 
 
@@ -161,7 +164,9 @@ def verdict_to_dict(v: Verdict) -> dict[str, Any]:
         return d
 
     d: dict[str, Any] = {
-        "format": VERDICT_FORMAT, "verdict": v.verdict, "command": v.command,
+        "format": VERDICT_FORMAT,
+        "verdict": v.verdict,
+        "command": v.command,
         "exit_code": v.exit_code,
         "reasons": [{k: x for k, x in c(ch).items() if k != "passed"} for ch in v.reasons],
         "checks": [c(ch) for ch in v.checks],
@@ -212,14 +217,20 @@ def judge(
     if session_status != "complete":
         checks.append(
             Check(
-                "session", False, None, None,
+                "session",
+                False,
+                None,
+                None,
                 f"the session is {session_status} (the run stopped before its plan was done); "
                 "run it again or resume it with slidecal run --resume",
             )
         )
     checks.append(
         Check(
-            "converged", bool(result.converged), float(result.iterations), None,
+            "converged",
+            bool(result.converged),
+            float(result.iterations),
+            None,
             f"the solver {'converged' if result.converged else 'did NOT converge'} "
             f"after {result.iterations} iterations",
         )
@@ -283,7 +294,10 @@ def _reprojection(result: CalibrationResult, lim: Limits) -> list[Check]:
         ok = bool(np.isfinite(r) and r <= lim.max_rms_px)
         out.append(
             Check(
-                "reprojection", ok, _f(r), lim.max_rms_px,
+                "reprojection",
+                ok,
+                _f(r),
+                lim.max_rms_px,
                 f"camera {name}: reprojection rms {r:.3f} px (limit {lim.max_rms_px:g} px"
                 + ("" if ok else "; the model or the robot poses do not explain the images")
                 + ")",
@@ -375,7 +389,10 @@ def _scale(result: CalibrationResult, lim: Limits) -> list[Check]:
     if tol > SCALE_INCONCLUSIVE * lim.scale_tolerance:
         return [
             Check(
-                "scale", False, tol, SCALE_INCONCLUSIVE * lim.scale_tolerance,
+                "scale",
+                False,
+                tol,
+                SCALE_INCONCLUSIVE * lim.scale_tolerance,
                 f"the camera/robot length ratios of the {len(ratios)} moves scatter too much to "
                 f"check the scale (median {m:.4f} +- {tol:.4f}); check target.square_size_m, "
                 "the robot's TCP and units",
@@ -384,7 +401,10 @@ def _scale(result: CalibrationResult, lim: Limits) -> list[Check]:
     ok = abs(m - 1.0) <= tol
     return [
         Check(
-            "scale", bool(ok), abs(m - 1.0), tol,
+            "scale",
+            bool(ok),
+            abs(m - 1.0),
+            tol,
             f"camera/robot length ratio {m:.4f} over {len(ratios)} moves (allowed 1 +- {tol:.4f})"
             + ("" if ok else "; check target.square_size_m and the robot's TCP and units"),
         )
@@ -418,7 +438,10 @@ def _coverage(problem: CalibrationProblem, lim: Limits) -> list[Check]:
         nx, ny = lim.coverage_grid
         out.append(
             Check(
-                "coverage", bool(ok), frac, lim.min_coverage,
+                "coverage",
+                bool(ok),
+                frac,
+                lim.min_coverage,
                 f"camera {c.name}: corners seen in {frac * 100:.0f} % of the {nx}x{ny} image "
                 f"cells (at least {lim.min_coverage * 100:.0f} %)"
                 + ("" if ok else "; plan views that bring the target to the image's edges"),
@@ -485,7 +508,10 @@ def compare(
     common = [n for n in new.cameras if n in old.cameras]
     if not common:
         check = Check(
-            "installed", False, None, None,
+            "installed",
+            False,
+            None,
+            None,
             f"the installed calibration has cameras {list(old.cameras)}, this one "
             f"{list(new.cameras)}; they cannot be compared",
         )
@@ -527,7 +553,9 @@ def compare(
     worst_c = max(disp, key=lambda k: disp[k])
     checks = [
         Check(
-            "installed", worst_z is None or worst_z <= lim.max_change_sigma, worst_z,
+            "installed",
+            worst_z is None or worst_z <= lim.max_change_sigma,
+            worst_z,
             lim.max_change_sigma,
             (
                 f"largest change from the installed calibration: {worst_p} by {worst_z:.1f} "
@@ -552,7 +580,8 @@ def compare(
         ),
     ]
     info = {
-        "max_sigma": _f(worst_z), "max_sigma_parameter": worst_p,
+        "max_sigma": _f(worst_z),
+        "max_sigma_parameter": worst_p,
         "max_displacement_px": {k: _f(v) for k, v in disp.items()},
         "sigma": {k: _f(v) for k, v in z.items()},
     }
@@ -627,7 +656,10 @@ def paired_compare(
         s = fld.mean_px
         checks.append(
             Check(
-                "paired", not bad, fld.max_px, px_limit,
+                "paired",
+                not bad,
+                fld.max_px,
+                px_limit,
                 f"camera {cam}: at {fld.n_poses} of the installed session's robot poses its "
                 f"corners moved by up to {fld.max_px:.2f} px (limit {px_limit:g} px) at "
                 f"{fld.max_z:.1f} sigma (limit {drift.Z_LIMIT:g}): shift ({s[0]:+.2f}, "
@@ -644,10 +676,15 @@ def paired_compare(
             )
         )
         per[cam] = {
-            "poses": fld.n_poses, "corners": fld.n_corners, "max_px": _f(fld.max_px),
-            "max_z": _f(fld.max_z), "field_px": [_f(v) for v in fld.mean_px],
-            "field_std_px": [_f(v) for v in fld.std_px], "radius_px": _f(fld.radius_px),
-            "corner_noise_px": _f(fld.corner_noise_px), "pose_scatter_px": _f(fld.pose_scatter_px),
+            "poses": fld.n_poses,
+            "corners": fld.n_corners,
+            "max_px": _f(fld.max_px),
+            "max_z": _f(fld.max_z),
+            "field_px": [_f(v) for v in fld.mean_px],
+            "field_std_px": [_f(v) for v in fld.std_px],
+            "radius_px": _f(fld.radius_px),
+            "corner_noise_px": _f(fld.corner_noise_px),
+            "pose_scatter_px": _f(fld.pose_scatter_px),
             "equivalent": {k: _f(v) for k, v in eq.items()},
         }
     if not checks:
@@ -677,7 +714,10 @@ def judge_check(
         ok = ratio <= lim.check_max_rms_ratio or drift_px[n] <= lim.check_max_px
         checks.append(
             Check(
-                "check", bool(ok), _f(ratio), lim.check_max_rms_ratio,
+                "check",
+                bool(ok),
+                _f(ratio),
+                lim.check_max_rms_ratio,
                 f"camera {n}: residual rms {r:.3f} px at {n_frames} known robot poses is "
                 f"{ratio:.2f} times what the installed calibration explains "
                 f"({expected_rms_px[n]:.3f} px; limit {lim.check_max_rms_ratio:g}); drift "
