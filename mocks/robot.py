@@ -204,7 +204,14 @@ class SimulatedUR:
     def from_dict(cls, cell: Mapping[str, Any]) -> SimulatedUR:
         """Build from a cell description (docs/DRIVERS.md); unknown keys are errors."""
         known = {
-            "model", "start_pose", "start_q", "tcp", "limits", "noise", "seed", "kinematic_error",
+            "model",
+            "start_pose",
+            "start_q",
+            "tcp",
+            "limits",
+            "noise",
+            "seed",
+            "kinematic_error",
         }
         unknown = set(cell) - known
         if unknown:
@@ -218,8 +225,12 @@ class SimulatedUR:
         noise = dict(cell.get("noise") or {})
         kw: dict[str, Any] = {}
         for key in (
-            "max_speed_mps", "max_accel_mps2", "max_angular_speed_deg_s",
-            "max_angular_accel_deg_s2", "z_min_m", "move_timeout_s",
+            "max_speed_mps",
+            "max_accel_mps2",
+            "max_angular_speed_deg_s",
+            "max_angular_accel_deg_s2",
+            "z_min_m",
+            "move_timeout_s",
         ):
             if key in limits:
                 kw[key] = limits.pop(key)

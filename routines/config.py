@@ -89,8 +89,12 @@ CELL_KEYS: dict[str, tuple[str, ...]] = {
     ),
     "robot.workspace": ("min_m", "max_m"),
     "robot.limits": (
-        "max_speed_mps", "max_accel_mps2", "max_angular_speed_deg_s", "max_angular_accel_deg_s2",
-        "z_min_m", "move_timeout_s",
+        "max_speed_mps",
+        "max_accel_mps2",
+        "max_angular_speed_deg_s",
+        "max_angular_accel_deg_s2",
+        "z_min_m",
+        "move_timeout_s",
     ),
     # the camera drivers' own fields are declared beside the code that reads them
     "cameras": OAK_RIG_KEYS,
@@ -99,12 +103,26 @@ CELL_KEYS: dict[str, tuple[str, ...]] = {
     "approximate.eye_in_hand": ("T_base_board", "T_tool_cam", "standoff_m"),
     "approximate.eye_to_hand": ("T_base_cam", "T_tool_board", "standoff_m"),
     "simulation": (
-        "seed", "camera_preset", "cameras", "rig", "noise", "target_jitter", "kinematic_error",
+        "seed",
+        "camera_preset",
+        "cameras",
+        "rig",
+        "noise",
+        "target_jitter",
+        "kinematic_error",
         "board_bow_mm",
     ),
     "simulation.cameras.*": (
-        "width", "height", "K", "distortion", "blur_sigma_px", "noise_std", "exposure", "colour",
-        "vignetting", "photo",
+        "width",
+        "height",
+        "K",
+        "distortion",
+        "blur_sigma_px",
+        "noise_std",
+        "exposure",
+        "colour",
+        "vignetting",
+        "photo",
     ),
     # ``photo: true`` takes every default of ``slidecal.mocks.render.Photo``; a mapping sets some
     "simulation.cameras.*.photo": PHOTO_KEYS,
@@ -115,9 +133,23 @@ CELL_KEYS: dict[str, tuple[str, ...]] = {
 
 #: Keys of the cell file's ``plan:`` block, the planner's options (slidecal.routines.planner).
 PLAN_KEYS = (
-    "goal", "max_duration_s", "tilts_deg", "azimuths_deg", "standoff_factors", "step_mm",
-    "margin_px", "depth_m", "corner_noise_px", "capture_s", "fx_px", "hfov_deg", "min_groups",
-    "min_frames_per_group", "max_groups", "max_frames_per_group", "extend_max_s",
+    "goal",
+    "max_duration_s",
+    "tilts_deg",
+    "azimuths_deg",
+    "standoff_factors",
+    "step_mm",
+    "margin_px",
+    "depth_m",
+    "corner_noise_px",
+    "capture_s",
+    "fx_px",
+    "hfov_deg",
+    "min_groups",
+    "min_frames_per_group",
+    "max_groups",
+    "max_frames_per_group",
+    "extend_max_s",
 )
 GOAL_KEYS = ("fx_rel_std", "hand_eye_rot_std_deg", "hand_eye_t_std_mm")
 #: Largest tilt of the view against the board normal: the detector is tested to 40 deg.

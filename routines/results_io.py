@@ -285,9 +285,26 @@ def write_result(
 #: The keys of ``result.yaml`` besides the transforms (named ``T_<a>_<b>``): one list, kept in
 #: step with :func:`result_to_dict`; the reader refuses any other key.
 RESULT_KEYS = (
-    "format", "cameras", "mount", "reference_camera", "converged", "iterations", "reprojection",
-    "unobservable", "messages", "scale_checks", "scale_check", "H_inf", "outliers", "linear",
-    "parameter_names", "covariance", "adequacy", "robot_accuracy", "board", "header",
+    "format",
+    "cameras",
+    "mount",
+    "reference_camera",
+    "converged",
+    "iterations",
+    "reprojection",
+    "unobservable",
+    "messages",
+    "scale_checks",
+    "scale_check",
+    "H_inf",
+    "outliers",
+    "linear",
+    "parameter_names",
+    "covariance",
+    "adequacy",
+    "robot_accuracy",
+    "board",
+    "header",
 )
 #: The keys of the parts of ``result.yaml``.
 RESULT_PART_KEYS: dict[str, tuple[str, ...]] = {
@@ -300,7 +317,11 @@ RESULT_PART_KEYS: dict[str, tuple[str, ...]] = {
     "adequacy": ("adequate", "reasons", "detector_noise_px", "normalised_rms", "worst_frames"),
     "adequacy.worst_frames[]": ("frame", "camera", "normalised_rms"),
     "robot_accuracy": (
-        "translation_mm", "rotation_deg", "estimated", "worst_frames", "left_out_frames",
+        "translation_mm",
+        "rotation_deg",
+        "estimated",
+        "worst_frames",
+        "left_out_frames",
     ),
     "board": ("bow_mm", "bow_std_mm", "flatness_mm", "print_tolerance"),
     "robot_accuracy.worst_frames[]": ("frame", "translation_mm", "rotation_deg"),

@@ -56,9 +56,27 @@ OAK_SOCKET = re.compile(r"CAM_[A-H]")
 #: The keys every part of ``session.yaml`` accepts (add a new field here, then read it below).
 SESSION_KEYS: dict[str, tuple[str, ...]] = {
     "": (
-        "format", "status", "mount", "knowledge", "target", "cameras", "reference_camera",
-        "options", "cell", "cell_sha256", "robot_driver", "camera_driver", "devices", "controller",
-        "limits", "purpose", "installed", "simulation", "detections_file", "frames", "events",
+        "format",
+        "status",
+        "mount",
+        "knowledge",
+        "target",
+        "cameras",
+        "reference_camera",
+        "options",
+        "cell",
+        "cell_sha256",
+        "robot_driver",
+        "camera_driver",
+        "devices",
+        "controller",
+        "limits",
+        "purpose",
+        "installed",
+        "simulation",
+        "detections_file",
+        "frames",
+        "events",
     ),
     "cameras[]": ("name", "width", "height", "socket"),
     "frames[]": ("id", "group", "T_base_tool", "motion_board", "images", "detections", "quality"),
@@ -103,8 +121,13 @@ TARGET_KINDS = tuple(TARGET_KEYS)
 
 #: The keys of an ``options:`` block (cell files and sessions).
 OPTIONS_KEYS = (
-    "skew", "unit_aspect", "distortion", "outlier_threshold_px", "robot_noise_mm",
-    "robot_noise_deg", "estimate_robot_noise",
+    "skew",
+    "unit_aspect",
+    "distortion",
+    "outlier_threshold_px",
+    "robot_noise_mm",
+    "robot_noise_deg",
+    "estimate_robot_noise",
 )
 
 #: How far (pixels) a given detection may lie outside its camera's image (a corner is inside)

@@ -36,7 +36,12 @@ WORSE_FACTOR = 1.25
 #: What an install keeps of the session directory (``detections.npy``: the corners its
 #: ``session.yaml`` counts, which ``slidecal check`` compares with)
 _FILES = (
-    "result.yaml", "summary.txt", "verdict.yaml", "plan.yaml", "report.html", "report.png",
+    "result.yaml",
+    "summary.txt",
+    "verdict.yaml",
+    "plan.yaml",
+    "report.html",
+    "report.png",
     "detections.npy",
 )
 
