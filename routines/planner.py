@@ -30,33 +30,11 @@ of robot time, until the goal and the minimum structure (``min_groups`` groups o
 simulated arm and predicted whole (the arm's error shared by a group's frames included); where
 that misses the goal, the search runs again for a goal tightened by the factor.
 
-The ``plan:`` block of the cell file (every key optional)::
-
-    plan:
-      goal: {fx_rel_std: 5.0e-4, hand_eye_rot_std_deg: 0.1, hand_eye_t_std_mm: null}
-      max_duration_s: 60
-      tilts_deg: [15, 25, 35]          # candidate tilts of the view against the board normal
-      azimuths_deg: [0, 45, ..., 315]  # candidate tilt axes (in the board plane)
-      standoff_factors: [1.0]          # candidate standoffs, times approximate.standoff_m
-      step_mm: [40, 80]                # candidate translation lengths
-      margin_px: 20                    # every corner this far inside the image
-      depth_m: [0.2, 1.5]              # usable corner depth (default 0.4 .. 1.8 x standoff)
-      corner_noise_px: 0.043           # expected corner noise (default: 0.03 simulated, 0.043
-                                       # with photo-like images, 0.1 real)
-      robot_noise_mm: 0.15             # the arm's accuracy per axis to predict for (default:
-      robot_noise_deg: 0.025           # options.robot_noise_*, at least 0.15 mm / 0.025 deg)
-      capture_s: 0.05                  # per frame, on top of robot.settle_s
-      fx_px: 880                       # nominal focal length (or hfov_deg); simulated cells:
-                                       # the simulated camera's data sheet values by default
-      min_groups: 3                    # two leave the hand-eye translation unobservable
-      min_frames_per_group: 3
-      max_groups: 6
-      max_frames_per_group: 8
-      extend_max_s: 60                 # robot time a run may add when its result misses the
-                                       # gate's one-sigma limits (0: never; routines/run.py)
-
-Only the reference camera is planned for (its
-visibility and its Fisher information); the other cameras of a rig are not checked.
+The ``plan:`` block of the cell file (every key optional) is described in docs/FORMATS.md;
+``robot_noise_mm`` / ``robot_noise_deg``: the arm's accuracy per axis the prediction assumes
+(default: the cell's ``options.robot_noise_*``, at least :data:`PLAN_ARM_NOISE`).
+Only the reference camera is planned for (its visibility and its information); the other
+cameras of a rig are not checked.
 """
 
 from __future__ import annotations
@@ -86,7 +64,6 @@ from slidecal.solver.degeneracy import check_configuration
 from slidecal.solver.errors import DegenerateError, HardwareFault, InputError
 from slidecal.solver.geometry import (
     R_from_rvec,
-    Rz,
     T_from_Rt,
     inv_T,
     rotation_angle_deg,
@@ -130,7 +107,7 @@ def group_R_board_cam(tilt_deg: float, azimuth_deg: float) -> np.ndarray:
     the in-plane axis at ``azimuth_deg`` (the geometry of ``plan.camera_poses_board``)."""
     phi = np.radians(azimuth_deg)
     axis = np.array([np.cos(phi), np.sin(phi), 0.0])
-    return R_from_rvec(axis * np.radians(tilt_deg)) @ Rz(0.0)
+    return R_from_rvec(axis * np.radians(tilt_deg))
 
 
 def group_T_cam_board(
@@ -146,36 +123,6 @@ def group_T_cam_board(
     for k, o in enumerate(offsets_cam_m):
         out[k] = inv_T(T_from_Rt(R_board_cam, c0 + R_board_cam @ o))
     return out
-
-
-def view_check(
-    T_cam_board: np.ndarray,
-    points_board_m: np.ndarray,
-    K: np.ndarray,
-    dist: np.ndarray,
-    size: tuple[int, int],
-    margin_px: float,
-    depth_m: tuple[float, float],
-) -> str | None:
-    """Why the target is not fully in view at ``T_cam_board`` (4, 4), or None when it is.
-
-    ``points_board_m`` (N, 3) board frame, metres; ``K`` (3, 3) px; ``dist`` (5,); ``size``
-    (width, height) px. Every corner must be at a depth in ``depth_m`` and at least
-    ``margin_px`` inside the image.
-    """
-    P = points_board_m @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
-    z = P[:, 2]
-    if np.any(z < depth_m[0]) or np.any(z > depth_m[1]):
-        return (
-            f"corner depths {z.min():.2f}..{z.max():.2f} m leave the usable range "
-            f"{depth_m[0]:.2f}..{depth_m[1]:.2f} m"
-        )
-    px = project(K, dist, P)
-    w, h = size
-    lo, hi = margin_px - 0.5, np.array([w, h]) - 0.5 - margin_px
-    if np.any(px < lo) or np.any(px > hi):
-        return f"the target leaves the image (margin {margin_px:g} px)"
-    return None
 
 
 def move_time_s(T0: np.ndarray, T1: np.ndarray, speed_mps: float, accel_mps2: float) -> float:
@@ -259,29 +206,15 @@ def _information(cfg: CellConfig, s: PlanSettings, T_base_tool: np.ndarray) -> F
     return info
 
 
-@dataclass(frozen=True)
-class _Goals:
-    """The goal parameters' names and how to turn a covariance into goal-relative stds."""
-
-    info: FrameInformation
-    fx_name: str
-    hand_eye: str
-    fx: float
-    goal: PlanGoal
-
-    def ratios(self, cov: np.ndarray) -> np.ndarray:
-        """Predicted std over target per goal (only the goals that are set); ``cov`` is the
-        inverse of summed frame information."""
-        named = self.info.named(cov)
-        out = []
-        g = self.goal
-        if g.fx_rel_std is not None:
-            out.append(_or_inf(named.std(self.fx_name)) / self.fx / g.fx_rel_std)
-        if g.hand_eye_rot_std_deg is not None:
-            out.append(_or_inf(named.std_rot_deg(self.hand_eye)) / g.hand_eye_rot_std_deg)
-        if g.hand_eye_t_std_mm is not None:
-            out.append(_or_inf(named.std_t_mm(self.hand_eye)) / g.hand_eye_t_std_mm)
-        return np.array(out)
+def _ratios(named: NamedCovariance, cfg: CellConfig, s: PlanSettings) -> np.ndarray:
+    """Predicted std over target per goal that is set (:data:`GOAL_KEYS` order)."""
+    cam, he = cfg.reference_camera, _hand_eye(cfg)
+    std = {
+        "fx_rel_std": _or_inf(named.std(f"{cam}.fx")) / float(s.K[0, 0]),
+        "hand_eye_rot_std_deg": _or_inf(named.std_rot_deg(he)),
+        "hand_eye_t_std_mm": _or_inf(named.std_t_mm(he)),
+    }
+    return np.array([std[k] / g for k in GOAL_KEYS if (g := getattr(s.goal, k)) is not None])
 
 
 def _or_inf(v: float | None) -> float:
@@ -321,16 +254,13 @@ def _rejection(cfg: CellConfig, s: PlanSettings, T_base_tool: np.ndarray) -> str
     p = T_base_tool[:3, 3]
     if lo is not None and hi is not None and (np.any(p < lo) or np.any(p > hi)):
         return "workspace"
-    why = view_check(
-        nominal_T_cam_board(cfg, T_base_tool),
-        cfg.target.points_m,
-        s.K,
-        s.dist,
-        (_spec(cfg).width, _spec(cfg).height),
-        s.margin_px,
-        s.depth_m,
-    )
-    if why is not None:
+    T_cb = nominal_T_cam_board(cfg, T_base_tool)
+    P = cfg.target.points_m @ T_cb[:3, :3].T + T_cb[:3, 3]  # every corner in depth and image
+    if np.any(P[:, 2] < s.depth_m[0]) or np.any(P[:, 2] > s.depth_m[1]):
+        return "view"
+    px, spec = project(s.K, s.dist, P), _spec(cfg)
+    hi = np.array([spec.width, spec.height]) - 0.5 - s.margin_px
+    if np.any(px < s.margin_px - 0.5) or np.any(px > hi):
         return "view"
     if not _reachable(T_base_tool, cfg):
         return "reach"
@@ -456,9 +386,10 @@ def _greedy(
 
     Returns the choice, its predicted duration, its goal ratios (None: still singular) and why
     the search stopped: "met", "time" (over the budget) or "exhausted" (no candidate left)."""
-    frames = mount_names(cfg.mount)
-    assert frames is not None  # the planner plans robot sessions only
-    goals = _Goals(fim, f"{cfg.reference_camera}.fx", frames.hand_eye, float(s.K[0, 0]), s.goal)
+
+    def goal_ratios_of(cov: np.ndarray) -> np.ndarray:  # cov: an inverse of summed information
+        return _ratios(fim.named(cov), cfg, s)
+
     P = len(fim.kinds)
     ridge = _ridge(fim, s)
     chosen: list[_Chosen] = []
@@ -469,12 +400,12 @@ def _greedy(
 
     def objective(A: np.ndarray) -> float:
         c = np.linalg.inv(A + ridge)
-        return float(np.sum(goals.ratios(c) ** 2))
+        return float(np.sum(goal_ratios_of(c) ** 2))
 
     f_now = objective(info)
     while True:
         cov = _covariance(info) if chosen or n_prior else None
-        ratios = goals.ratios(cov) if cov is not None else None
+        ratios = goal_ratios_of(cov) if cov is not None else None
         structure_ok = len(chosen) + n_prior >= s.min_groups and all(
             len(c.frames) >= s.min_frames_per_group for c in chosen
         )
@@ -498,7 +429,7 @@ def _greedy(
                 continue
             g = cands[c.group]
             T_last = g.T_base_tool[c.frames[-1]]
-            nxt = seq_next_via(chosen, ci, via)
+            nxt = via if ci + 1 < len(chosen) else None  # the via pose after the group
             base_dt = timing.move(T_last, nxt) if nxt is not None else 0.0
             for k in np.flatnonzero(g.usable):
                 if k in c.frames or k in g.banned:
@@ -537,14 +468,7 @@ def _greedy(
         t_now = _duration(_sequence(cands, chosen, via), timing)
         if t_now > s.goal.max_duration_s:
             cov = _covariance(info)
-            return chosen, t_now, goals.ratios(cov) if cov is not None else None, "time"
-
-
-def seq_next_via(chosen, ci, via):  # noqa: ANN001, ANN201 - internal helper
-    """The via pose that follows group ``ci`` of the choice (None for the last group)."""
-    if ci + 1 >= len(chosen):
-        return None
-    return via
+            return chosen, t_now, goal_ratios_of(cov) if cov is not None else None, "time"
 
 
 def _better(best, f_now, f_new, dt, A, action):  # noqa: ANN001, ANN202 - internal helper
@@ -565,45 +489,29 @@ def _ridge(info: FrameInformation, s: PlanSettings) -> np.ndarray:
 def _linear_ok(
     cands: list[_Group], chosen: list[_Chosen], cfg: CellConfig, s: PlanSettings
 ) -> bool:
-    """Whether the linear step accepts the plan (exact homographies of the nominal model)."""
+    """Whether the linear step accepts the plan: the exact homographies ``K [r1 r2 t]`` (eq. 10)
+    of the nominal model and the robot's moves, per group."""
+    groups = []
+    for c in chosen:
+        T = cands[c.group].T_base_tool[c.frames]
+        H = [s.K @ nominal_T_cam_board(cfg, Tk)[:3, [0, 1, 3]] for Tk in T]
+        H = [h / np.linalg.norm(h[:, :2]) for h in H]
+        groups.append(LinearGroup(np.array(H), T[:, :3, 3] - T[0, :3, 3]))
+    o, spec = cfg.options, _spec(cfg)
     try:
-        _check_linear(cands, chosen, cfg, s)
+        check_configuration(
+            groups,
+            "robot",
+            skew=o.skew,
+            unit_aspect=o.unit_aspect,
+            image_size=(spec.width, spec.height),
+            K_guess=s.K,
+            hand_eye=True,
+            robot_translations=[g.motion for g in groups],
+        )
     except DegenerateError:
         return False
     return True
-
-
-def _check_linear(
-    cands: list[_Group], chosen: list[_Chosen], cfg: CellConfig, s: PlanSettings
-) -> None:
-    groups, moves = [], []
-    K = s.K
-    for c in chosen:
-        T = cands[c.group].T_base_tool[c.frames]
-        groups.append(_linear_group(cfg, K, T))
-        moves.append(T[:, :3, 3] - T[0, :3, 3])
-    o = cfg.options
-    check_configuration(
-        groups,
-        "robot",
-        skew=o.skew,
-        unit_aspect=o.unit_aspect,
-        image_size=(_spec(cfg).width, _spec(cfg).height),
-        K_guess=K,
-        hand_eye=True,
-        robot_translations=moves,
-    )
-
-
-def _linear_group(cfg: CellConfig, K: np.ndarray, T_base_tool: np.ndarray) -> LinearGroup:
-    """Exact homographies ``K [r1 r2 t]`` (eq. 10) of a group's frames and its robot moves."""
-    H = []
-    for T in T_base_tool:
-        T_cb = nominal_T_cam_board(cfg, T)
-        Hk = K @ np.column_stack([T_cb[:3, 0], T_cb[:3, 1], T_cb[:3, 3]])
-        H.append(Hk / np.linalg.norm(Hk[:, :2]))
-    p = T_base_tool[:, :3, 3]
-    return LinearGroup(np.array(H), p - p[0])
 
 
 # -- prediction of a whole plan ---------------------------------------------------------------
@@ -658,16 +566,9 @@ def _hand_eye(cfg: CellConfig) -> str:
 
 def goal_ratios(pred: dict[str, float], cfg: CellConfig, goal: PlanGoal) -> dict[str, float]:
     """Predicted std over the goal's target, per goal that is set (<= 1: met)."""
-    cam = cfg.reference_camera
-    he = _hand_eye(cfg)
-    out = {}
-    if goal.fx_rel_std is not None:
-        out["fx_rel_std"] = pred[f"{cam}.fx_rel"] / goal.fx_rel_std
-    if goal.hand_eye_rot_std_deg is not None:
-        out["hand_eye_rot_std_deg"] = pred[f"{he}.rot_deg"] / goal.hand_eye_rot_std_deg
-    if goal.hand_eye_t_std_mm is not None:
-        out["hand_eye_t_std_mm"] = pred[f"{he}.t_mm"] / goal.hand_eye_t_std_mm
-    return out
+    cam, he = cfg.reference_camera, _hand_eye(cfg)
+    keys = dict(zip(GOAL_KEYS, (f"{cam}.fx_rel", f"{he}.rot_deg", f"{he}.t_mm"), strict=True))
+    return {k: pred[keys[k]] / g for k in GOAL_KEYS if (g := getattr(goal, k)) is not None}
 
 
 # -- dry run ----------------------------------------------------------------------------------
@@ -914,7 +815,7 @@ def _ban(cands: list[_Group], chosen: list[_Chosen], bad: int) -> None:
         i += 1
         for k in c.frames:
             if bad == i:
-                cands[c.group].banned.add(k if k != 0 else 0)
+                cands[c.group].banned.add(k)
                 return
             i += 1
 
@@ -934,19 +835,13 @@ def _board_too_big(cfg: CellConfig, s: PlanSettings) -> str | None:
     d_min = min(max(fx * ext[0] / w, fy * ext[1] / h), max(fx * ext[1] / w, fy * ext[0] / h))
     return (
         f"the target leaves the view: it ({ext[0] * 1000:.0f} x {ext[1] * 1000:.0f} mm) spans "
-        f"{need[0]:.0f} x "
-        f"{need[1]:.0f} px at {d:.2f} m, more than the {spec.width} x {spec.height} px "
-        f"image holds (margins {s.margin_px:g} px); increase approximate.standoff_m to at "
-        f"least {d_min:.2f} m or use a smaller target"
+        f"{need[0]:.0f} x {need[1]:.0f} px at {d:.2f} m, more than the {spec.width} x "
+        f"{spec.height} px image holds (margins {s.margin_px:g} px); increase "
+        f"approximate.standoff_m to at least {d_min:.2f} m or use a smaller target"
     )
 
 
-def _no_candidates_message(
-    cfg: CellConfig,
-    s: PlanSettings,
-    rejected: dict[str, int],
-    n_ok: int,
-) -> str:
+def _no_candidates_message(cfg: CellConfig, s: PlanSettings, rejected: dict, n_ok: int) -> str:
     too_big = _board_too_big(cfg, s)
     if too_big is not None:
         return f"no plan possible: {too_big}"
@@ -968,15 +863,7 @@ def _no_candidates_message(
 
 
 def _goal_message(s: PlanSettings, t: float, ratios: np.ndarray | None, stop: str) -> str:
-    names = [
-        n
-        for n, v in zip(
-            ("fx_rel_std", "hand_eye_rot_std_deg", "hand_eye_t_std_mm"),
-            (s.goal.fx_rel_std, s.goal.hand_eye_rot_std_deg, s.goal.hand_eye_t_std_mm),
-            strict=True,
-        )
-        if v is not None
-    ]
+    names = [k for k in GOAL_KEYS if getattr(s.goal, k) is not None]
     if ratios is None:
         state = "no non-degenerate plan was found"
         worst = names[0]
