@@ -583,6 +583,7 @@ def planned_covariance(
     trend_groups, coords, dims = translation_trends(T, groups)
     spread = float(np.sqrt(np.mean(np.sum(coords**2, axis=1)))) if dims else 1.0
     common, rotation, share = common_trend(T, trend_groups, dims)
+    fixed = len(dims) == 1 and len(set(groups)) == 1  # one orientation: its scale is fx's
     st = replace(
         st,
         pose_groups=groups if len(set(groups)) > 1 and np.bincount(groups).min() >= 2 else None,
@@ -590,7 +591,10 @@ def planned_covariance(
         trend_groups=trend_groups if dims else None,
         trend_coords=coords if dims else None,
         trend_dims=dims,
-        trend_sigma=(sig[0] / spread, sig[1] / spread) if dims else None,
+        trend_sigma=(sig[0] / spread, SIGMA_FLOOR[1] if fixed else sig[1] / spread)
+        if dims
+        else None,
+        trend_scale_fixed=fixed,
         common_map=common,
         common_rotation=rotation,
         common_sigma=(sig[0] / share[0], sig[1] / max(share[1], 1e-3))
