@@ -195,8 +195,6 @@ PLAN_KEYS = (
     "max_groups",
     "max_frames_per_group",
     "extend_max_s",
-    "robot_noise_mm",
-    "robot_noise_deg",
 )
 GOAL_KEYS = ("fx_rel_std", "hand_eye_rot_std_deg", "hand_eye_t_std_mm")
 #: Largest tilt of the view against the board normal: the detector is tested to 40 deg.
@@ -263,6 +261,8 @@ class PlanSettings:
     max_groups: int
     max_frames_per_group: int
     extend_max_s: float
+    #: the arm's accuracy (mm, deg per axis) to predict for; None: ``arm_noise``'s default
+    #: (a run's extension sets what it learned)
     robot_noise: tuple[float, float] | None = None
 
 
@@ -348,17 +348,7 @@ def _plan(
         max_groups=max_groups,
         max_frames_per_group=max_frames,
         extend_max_s=f.number("extend_max_s", 60.0, minimum=0.0),
-        robot_noise=_plan_arm(f),
     )
-
-
-def _plan_arm(f: Fields) -> tuple[float, float] | None:
-    """``plan.robot_noise_mm`` and ``robot_noise_deg``: both or neither."""
-    if not (f.has("robot_noise_mm") or f.has("robot_noise_deg")):
-        return None
-    if not (f.has("robot_noise_mm") and f.has("robot_noise_deg")):
-        raise f.error("robot_noise_mm", "give both robot_noise_mm and robot_noise_deg, or neither")
-    return (f.number("robot_noise_mm", positive=True), f.number("robot_noise_deg", positive=True))
 
 
 def _nominal_fx(f: Fields, spec: CameraSpec) -> float | None:

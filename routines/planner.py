@@ -30,9 +30,7 @@ of robot time, until the goal and the minimum structure (``min_groups`` groups o
 simulated arm and predicted whole (the arm's error shared by a group's frames included); where
 that misses the goal, the search runs again for a goal tightened by the factor.
 
-The ``plan:`` block of the cell file (every key optional) is described in docs/FORMATS.md;
-``robot_noise_mm`` / ``robot_noise_deg``: the arm's accuracy per axis the prediction assumes
-(default: the cell's ``options.robot_noise_*``, at least :data:`PLAN_ARM_NOISE`).
+The ``plan:`` block of the cell file (every key optional) is described in docs/FORMATS.md.
 Only the reference camera is planned for (its visibility and its information); the other
 cameras of a rig are not checked.
 """
@@ -150,9 +148,9 @@ def _spec(cfg: CellConfig) -> CameraSpec:
 
 
 def arm_noise(cfg: CellConfig, s: PlanSettings) -> tuple[float, float]:
-    """The arm's accuracy (mm, deg per axis) the prediction assumes: ``plan.robot_noise_*``,
-    else the cell's ``options.robot_noise_*`` but at least what a solve learns of a real arm
-    (:data:`~slidecal.routines.config.PLAN_ARM_NOISE`)."""
+    """The arm's accuracy (mm, deg per axis) the prediction assumes: what a run's extension
+    learned (``s.robot_noise``), else the cell's ``options.robot_noise_*`` but at least what a
+    solve learns of a real arm (:data:`~slidecal.routines.config.PLAN_ARM_NOISE`)."""
     if s.robot_noise is not None:
         return s.robot_noise
     o = cfg.options
