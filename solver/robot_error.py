@@ -29,7 +29,7 @@ from scipy.special import chdtrc  # the chi-square's tail (scipy.stats costs 0.4
 from slidecal.solver.model import TREND_AXES, BundleModel
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.refine import SIGMA_FLOOR, RefineOutput
-from slidecal.solver.target_shape import shape_excess
+from slidecal.solver.target_shape import READING_WEIGHT, shape_excess
 
 
 @dataclass(frozen=True)
@@ -427,13 +427,6 @@ def session_trend_excess(
     return (MOVE_SCALE_SIGMA**2 - tau**2) / tau**4 * (A @ A.T)
 
 
-#: The weight of the reading "the arm erred by the linear field the classic session learned"
-#: against "its moves were as reported" (the solve without that field, its levels as learned):
-#: the images cannot tell which, so each is given half (docs/ROBOT_ACCURACY.md, "A classic
-#: session")
-FIELD_WEIGHT = 0.5
-
-
 def session_field_step(out: RefineOutput) -> np.ndarray | None:
     """The step (P,) of the optimiser's coordinates from the solve of a classic session (one
     linear trend of the pose corrections over the whole session's positions) to its reading
@@ -446,7 +439,7 @@ def session_field_step(out: RefineOutput) -> np.ndarray | None:
     tell that scale from the hand-eye's translation along the viewing direction, and the
     trend's level, learned from the same frames, understates it. Neither reading is the
     better on every arm (docs/ROBOT_ACCURACY.md), so the result is reported between them
-    (:data:`FIELD_WEIGHT`) and their spread is carried in the covariance
+    (:data:`READING_WEIGHT`) and their spread is carried in the covariance
     (:func:`session_field_excess`)."""
     return _without_field(out, out.state.V)
 
@@ -470,14 +463,14 @@ def _without_field(out: RefineOutput, V: np.ndarray | None) -> np.ndarray | None
 def reported_response(out: RefineOutput, response: np.ndarray) -> np.ndarray:
     """The reported value's response (P, k) to what moves the solve by ``response`` (P, k):
     for a classic session, reported between its readings with and without the field
-    (:func:`session_field_step`), the solve's own plus :data:`FIELD_WEIGHT` times the field
+    (:func:`session_field_step`), the solve's own plus :data:`READING_WEIGHT` times the field
     step's response (the trend's part of ``response`` taken back); ``response`` itself for any
     other session. The board's modes reach the result so (its scale: a classic session's
     reading without the field takes it whole as a shift of the hand-eye along the view, the
     field's reading partly as an arm scale)."""
     v = out.model.slices.get("V")
     step = None if v is None else _without_field(out, response[v])
-    return response if step is None else response + FIELD_WEIGHT * step
+    return response if step is None else response + READING_WEIGHT * step
 
 
 def session_field_excess(
@@ -486,12 +479,12 @@ def session_field_excess(
     """What the covariance gains (PSD) from the two readings of a classic session's linear
     field (:func:`session_field_step`): their spread about the reported value,
     ``w (1 - w) d d'`` with ``d`` the reported quantities' step between them and ``w``
-    :data:`FIELD_WEIGHT`; None for any other session."""
+    :data:`READING_WEIGHT`; None for any other session."""
     step = session_field_step(out)
     if step is None:
         return None
     d = step if project is None else project[0] @ step[project[1]]
-    return FIELD_WEIGHT * (1.0 - FIELD_WEIGHT) * np.outer(d, d)
+    return READING_WEIGHT * (1.0 - READING_WEIGHT) * np.outer(d, d)
 
 
 def untold_field_excess(

@@ -18,7 +18,7 @@ another matter: a lens the distortion model fits imperfectly leaves a misfit of 
 order, and where the frames hold the board at one place in the image (a robot's translation
 groups do) the images cannot say which it is (public robot data: taking the bow off brought
 one board's fx toward the robot's own scale and took the other's away from it). Both readings
-are kept, weighted by :data:`BOW_WEIGHT` (one half): the estimate moves by ``G w bow``, and
+are kept, weighted by :data:`READING_WEIGHT` (one half): the estimate moves by ``G w bow``, and
 the covariance gains ``G S G'``, ``S`` the modes' second moment about the reported value: for
 the bow the readings' spread and the bow's posterior, ``w (1 - w) bow bow' + w cov(bow)``; for
 the print its tolerance. ``J_n`` is made by differences of the model's residuals with the
@@ -40,10 +40,9 @@ FLATNESS_PER_DIAGONAL = 3e-4
 #: x and y scales and its shear (a good print on a rigid plate; a paper print from an office
 #: printer errs by 0.1-0.5 %: give that board's ``print_tolerance``).
 PRINT_TOLERANCE = 2e-4
-#: The weight of the reading "the misfit the images show is the board's bow" against "it is
-#: not the board" (a lens the distortion model fits imperfectly): the images of a robot's
-#: session cannot tell them apart, so each is given half
-BOW_WEIGHT = 0.5
+#: The weight of one of two readings the images cannot tell apart (the board's bow or a lens the
+#: model misses; a classic session's arm field or none): each is given half
+READING_WEIGHT = 0.5
 #: Difference step of the board-shape modes (metres of bow, relative strain)
 _STEP = 1e-6
 
@@ -116,7 +115,7 @@ class BoardFit:
     def shift(self) -> np.ndarray:
         """The optimiser's coordinates' step (P,) from the flat-board solve to the reported
         value: the bow's response at its reading's weight."""
-        return BOW_WEIGHT * (self.response[:, 3:] @ self.bow_m)
+        return READING_WEIGHT * (self.response[:, 3:] @ self.bow_m)
 
 
 def fit_board(problem, out) -> BoardFit | None:  # noqa: ANN001 - CalibrationProblem, RefineOutput
@@ -168,7 +167,8 @@ def fit_board(problem, out) -> BoardFit | None:  # noqa: ANN001 - CalibrationPro
         post = np.linalg.inv(C + (out.sigma_px / sig[3]) ** 2 * np.eye(2))
         bow, bow_cov = -post @ g, out.sigma_px**2 * post
     mode_cov = np.diag(np.r_[sig[:3] ** 2, 0.0, 0.0])
-    mode_cov[3:, 3:] = BOW_WEIGHT * bow_cov + BOW_WEIGHT * (1.0 - BOW_WEIGHT) * np.outer(bow, bow)
+    w = READING_WEIGHT
+    mode_cov[3:, 3:] = w * bow_cov + w * (1.0 - w) * np.outer(bow, bow)
     return BoardFit(bow, 0.5 * (bow_cov + bow_cov.T), G, mode_cov)
 
 

@@ -48,14 +48,13 @@ from slidecal.solver.problem import (
 from slidecal.solver.refine import RefineOutput
 from slidecal.solver.result import ROT, TRANS, NamedCovariance
 from slidecal.solver.robot_error import (
-    FIELD_WEIGHT,
     ImageErrors,
     covariance_terms,
     image_errors,
     reported_response,
     session_field_step,
 )
-from slidecal.solver.target_shape import BoardFit, fit_board
+from slidecal.solver.target_shape import READING_WEIGHT, BoardFit, fit_board
 
 
 # -- the optimiser's coordinates ------------------------------------------------------------------
@@ -311,7 +310,7 @@ def reported_covariance(
     3. the covariance: the model's own, plus every term of the error model
        (:func:`result_covariance`, :func:`slidecal.solver.robot_error.covariance_terms`);
     4. the value: the solve's, moved by the board's fit and halfway to a classic session's
-       reading without its linear field (:data:`~slidecal.solver.robot_error.FIELD_WEIGHT`).
+       reading without its linear field (:data:`~slidecal.solver.target_shape.READING_WEIGHT`).
     """
     board = with_session_scale(problem, out, fit_board(problem, out), board_scale)
     if board is not None:  # its modes' response at the reported value (a classic session's)
@@ -325,7 +324,7 @@ def reported_covariance(
         state = out.model.apply(state, board.shift)
     field_step = session_field_step(out)  # a classic session: with its arm's field or not
     if field_step is not None:
-        state = out.model.apply(state, FIELD_WEIGHT * field_step)
+        state = out.model.apply(state, READING_WEIGHT * field_step)
     return Reported(state, names, named, board, images, field_step)
 
 

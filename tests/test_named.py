@@ -281,7 +281,8 @@ def test_a_classic_sessions_linear_field_is_read_both_ways(monkeypatch):
 
     from slidecal.solver.geometry import inv_T
     from slidecal.solver.refine import _refine
-    from slidecal.solver.robot_error import FIELD_WEIGHT, session_field_step
+    from slidecal.solver.robot_error import session_field_step
+    from slidecal.solver.target_shape import READING_WEIGHT
     from slidecal.solver.uncertainty import layout_of, named_step
 
     s = sc.classic_real_arm(np.random.default_rng(2006), arm_scale=0.005)
@@ -309,7 +310,7 @@ def test_a_classic_sessions_linear_field_is_read_both_ways(monkeypatch):
     np.testing.assert_allclose(step_t, moved_t, rtol=0.05, atol=2e-5)
     np.testing.assert_allclose(step_r, moved_r, rtol=0.05, atol=2e-5)
     # reported halfway, the spread in the covariance, and said
-    np.testing.assert_allclose(res.hand_eye.t_m, X0[:3, 3] + FIELD_WEIGHT * step_t, atol=2e-5)
+    np.testing.assert_allclose(res.hand_eye.t_m, X0[:3, 3] + READING_WEIGHT * step_t, atol=2e-5)
     tz = res.parameter_names.index("T_tool_cam.tz")
     assert res.covariance[tz, tz] >= 0.25 * step_t[2] ** 2
     assert any("read without that field" in line for line in res.messages)
@@ -544,8 +545,8 @@ def test_a_classic_sessions_board_reaches_the_result_between_its_two_readings(mo
 
     from slidecal.solver.geometry import inv_T
     from slidecal.solver.refine import _refine
-    from slidecal.solver.robot_error import FIELD_WEIGHT, reported_response, session_field_step
-    from slidecal.solver.target_shape import fit_board
+    from slidecal.solver.robot_error import reported_response, session_field_step
+    from slidecal.solver.target_shape import READING_WEIGHT, fit_board
     from slidecal.solver.uncertainty import layout_of, named_step
 
     s = sc.classic_real_arm(np.random.default_rng(2006), arm_scale=0.005)
@@ -571,8 +572,8 @@ def test_a_classic_sessions_board_reaches_the_result_between_its_two_readings(mo
         return named_step(layout, tuple(out.names), eps * response[:, 0])["T_tool_cam.tz"]
 
     moved_with = tz(r) - tz(base)
-    moved_reported = tz(r, FIELD_WEIGHT * session_field_step(r)) - tz(
-        base, FIELD_WEIGHT * session_field_step(base)
+    moved_reported = tz(r, READING_WEIGHT * session_field_step(r)) - tz(
+        base, READING_WEIGHT * session_field_step(base)
     )
     rep = reported_response(out, G)
     # the readings take the scale unlike: here the field's moves tz by +0.12 mm, the reported
