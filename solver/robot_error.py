@@ -10,9 +10,9 @@ the reported quantities (docs/ROBOT_ACCURACY.md, docs/METHOD.md Sec. 6):
   cannot observe (:func:`tool_offset_excess`), its error smooth over the workspace
   (:func:`smooth_arm_excess`, :func:`common_trend_excess`), a classic session's linear field
   (:func:`session_trend_excess`, :func:`session_field_excess`, :func:`untold_field_excess`);
-- the images: an image's errors going together (:func:`image_misfit_excess`, read when
-  :func:`correlated_image_errors` or :func:`misfit_image` says so), an orientation group's
-  (:func:`group_misfit_excess`, read by :func:`grouped_detection_errors`);
+- the images: an image's errors, or an orientation group's, going together
+  (:func:`cluster_excess`, read when :func:`images_err_together` or
+  :func:`grouped_detection_errors` says so);
 - the board's shape (:func:`slidecal.solver.target_shape.shape_excess`).
 
 One entry point, :func:`covariance_terms`, gives them all for a finished solve;
@@ -34,10 +34,9 @@ from slidecal.solver.target_shape import READING_WEIGHT, shape_excess
 
 @dataclass(frozen=True)
 class ImageErrors:
-    """How a finished solve's image errors read: ``correlated`` (neighbouring corners'
-    correlation, pairs) by :func:`correlated_image_errors`, else ``misfit`` (frame index, rms
-    over the noise, p-value) by :func:`misfit_image`; ``grouped`` (statistic, degrees of
-    freedom, p-value) by :func:`grouped_detection_errors`; each None when not read."""
+    """How a finished solve's image errors read (:func:`image_errors`): ``correlated`` and
+    ``misfit`` by :func:`images_err_together`, ``grouped`` (statistic, degrees of freedom,
+    p-value) by :func:`grouped_detection_errors`; each None when not read."""
 
     correlated: tuple[float, int] | None = None
     misfit: tuple[int, float, float] | None = None
@@ -46,12 +45,10 @@ class ImageErrors:
 
 def image_errors(problem: CalibrationProblem, out: RefineOutput, groups: np.ndarray) -> ImageErrors:
     """Whether a finished solve's image errors go together, image by image or over the frames
-    of an orientation group (``groups`` (F,)): what :func:`covariance_terms` reads them by."""
+    of an orientation group (``groups`` (F,))."""
     correlated = misfit = None
     if len(out.model.frame_rows) >= MIN_CLUSTER_FRAMES:  # (with fewer frames they cannot be)
-        correlated = correlated_image_errors(out)
-        misfit = None if correlated is not None else misfit_image(out)
-    # a group's detections err together (images too small for the two readings above)
+        correlated, misfit = images_err_together(out)
     grouped = grouped_detection_errors(out, groups) if problem.knowledge == "robot" else None
     return ImageErrors(correlated, misfit, grouped)
 
@@ -60,18 +57,16 @@ def covariance_terms(
     problem: CalibrationProblem,
     out: RefineOutput,
     project: tuple[np.ndarray, np.ndarray],
-    correlated: tuple | None | str = "read",
-    grouped: np.ndarray | None = None,
+    images: ImageErrors,
+    groups: np.ndarray,
 ) -> list[np.ndarray]:
     """Every term the error model adds to the model's covariance of a finished solve's reported
-    quantities, each (k, k) symmetric and positive semi-definite, in the order they are added.
-
-    ``project``: the reported quantities' Jacobian (k, u) and the u optimiser coordinates it
-    uses. ``correlated``: what :func:`correlated_image_errors` (or else :func:`misfit_image`)
-    says of ``out`` ("read": read it here); ``grouped``: the frames' orientation groups when
-    :func:`grouped_detection_errors` says their detections' errors go together. Terms that
-    compare two readings of the same error (not PSD) add their positive part.
-    """
+    quantities, each (k, k) symmetric and positive semi-definite, in the order they are added
+    (docs/ERROR_MODEL.md Sec. 3). ``project``: the reported quantities' Jacobian (k, u) and the
+    u optimiser coordinates it uses; ``images``: how the images' errors read; ``groups`` (F,):
+    the frames' orientation groups. A term comparing two readings adds its positive part."""
+    frames = np.arange(len(problem.frames))
+    by_frame = images.correlated is not None or images.misfit is not None
     parts = (
         (smooth_arm_excess(out, project), True),  # the frames' error: independent or trend
         (common_trend_excess(out, project), True),  # the groups' trends: one field or each its own
@@ -81,9 +76,9 @@ def covariance_terms(
         (level_excess(out, project), False),  # the noise levels are estimates
         (tool_offset_excess(problem, out, project), False),  # an unobserved hand-eye offset
         (shape_excess(out, project), False),  # the real board is not quite the one described
-        (image_misfit_excess(out, project, correlated), True),  # an image's errors go together
-        # a group's detections err together (a fixed pattern of the detector at a view)
-        (group_misfit_excess(out, grouped, project) if grouped is not None else None, True),
+        # the detections' errors go together within an image, or within an orientation group
+        (cluster_excess(out, project, frames) if by_frame else None, True),
+        (cluster_excess(out, project, groups) if images.grouped else None, True),
     )
     terms = []
     for extra, two_readings in parts:
@@ -518,8 +513,7 @@ def untold_field_excess(
     return excess
 
 
-#: Fewest frames for the covariance with frames as clusters (:func:`image_misfit_excess`): its
-#: estimate rests on the frames' scores, one term each
+#: Fewest clusters for the sandwich (:func:`cluster_excess`): it rests on one score per cluster
 MIN_CLUSTER_FRAMES = 4
 #: Neighbouring corners' residuals correlated beyond this, along their line or across it (and
 #: beyond twice their sampling spread, :func:`neighbour_correlation`): an image's errors are not
@@ -539,41 +533,7 @@ MISFIT_IMAGE_P = 0.01
 MISFIT_IMAGE_SHARE = 0.1
 
 
-def misfit_image(out: RefineOutput) -> tuple[int, float, float] | None:
-    """The image whose residuals independent errors explain least, when they do not and it
-    matters: (frame index, its residuals' rms over the solve's noise, p-value over the
-    session's images), else None (docs/METHOD.md, "The images' errors, image by image").
-
-    With every corner's error its own at the solve's noise ``s``, frame k's weighted sum of
-    squares over ``s^2`` is at most a chi-square on its pixel rows (the parameters take a share
-    of it: counting every row makes the test err on the side of silence). The smallest upper
-    tail over the G frames, times G (Bonferroni), below :data:`MISFIT_IMAGE_P` says that some
-    image's errors go together; it is read when that image's excess is at least
-    :data:`MISFIT_IMAGE_SHARE` of the session's squares."""
-    # an image needs as many corners as its neighbours' correlation does (a lone tag's pose
-    # takes most of its 4 corners' freedom)
-    m = out.model
-    n_px = len(out.residuals)
-    if not out.sigma_px > 0:
-        return None
-    w = m.row_weights[:n_px] if m.row_weights is not None else out.inlier_rows.astype(float)
-    tails, total = [], 0.0
-    for k, rows in m.frame_rows.items():
-        wk, rk = w[rows], out.residuals[rows]
-        n = int(np.count_nonzero(wk > 0))
-        S = float(np.sum(wk * rk * rk)) / out.sigma_px**2
-        total += S
-        if n >= 2 * NEIGHBOUR_MIN_CORNERS:
-            tails.append((float(chdtrc(n, S)), k, float(np.sqrt(S / n)), S - n))
-    if not tails:
-        return None
-    p, k, ratio, excess = min(tails)
-    p = min(p * len(tails), 1.0)
-    return (k, ratio, p) if p < MISFIT_IMAGE_P and excess >= MISFIT_IMAGE_SHARE * total else None
-
-
-#: Fewest orientation groups of two frames or more for the covariance with the groups as
-#: clusters (:func:`group_misfit_excess`): its estimate rests on one score per group
+#: Fewest orientation groups of two frames or more for :func:`grouped_detection_errors`
 MIN_CLUSTER_GROUPS = 5
 #: :func:`grouped_detection_errors` reads the groups' errors below this p-value
 GROUPED_ERRORS_P = 0.01
@@ -626,91 +586,65 @@ def grouped_detection_errors(
     return (stat, dof, p) if p < GROUPED_ERRORS_P else None
 
 
-def group_misfit_excess(
+def images_err_together(
     out: RefineOutput,
-    groups: np.ndarray,
-    project: tuple[np.ndarray, np.ndarray] | None = None,
-) -> np.ndarray | None:
-    """What the covariance of the reported quantities gains when the detections' errors are
-    taken together over each orientation group rather than corner by corner: the sandwich with
-    the groups as clusters, ``A^-1 (G / (G - 1) sum_g s_g s_g') A^-1`` (``s_g``: the sum of the
-    group's frames' scores, :meth:`BundleModel.frame_scores`), less the model's covariance
-    (symmetric, not PSD: its positive part is carried); None without a covariance or
-    ``project``, or with fewer than :data:`MIN_CLUSTER_GROUPS` groups. Read when
-    :func:`grouped_detection_errors` says so (the caller's choice)."""
-    m = out.model
-    w_all = getattr(m, "row_weights", None)
-    if project is None or out.covariance_blocks is None or w_all is None:
-        return None
-    if not out.sigma_px > 0:
-        return None
-    Sf = m.frame_scores(out.state, np.asarray(w_all, float))
-    of = np.array([groups[k] for k in m.frame_rows])
-    S = np.array([Sf[of == g].sum(axis=0) for g in np.unique(of)])
-    if len(S) < MIN_CLUSTER_GROUPS:
-        return None
-    return _cluster_excess(out, project, S)
-
-
-def correlated_image_errors(out: RefineOutput) -> tuple[float, int] | None:
-    """The neighbouring corners' residual correlation and its pairs when it says that an
-    image's errors go together (beyond :data:`CORRELATED_NEIGHBOURS` and twice its sampling
-    spread), else None: when :func:`image_misfit_excess` reads the frames' scores."""
+) -> tuple[tuple[float, int] | None, tuple[int, float, float] | None]:
+    """Whether an image's errors go together: ``(correlated, misfit)``, ``correlated`` the
+    neighbouring corners' residual correlation and its pairs when beyond
+    :data:`CORRELATED_NEIGHBOURS` and twice its sampling spread; else ``misfit`` (frame index,
+    its residuals' rms over the solve's noise, p-value) for the image whose residuals
+    independent errors explain least, when they do not (Bonferroni below
+    :data:`MISFIT_IMAGE_P`, each frame's weighted squares over ``s^2`` at most a chi-square on
+    its pixel rows) and its excess is at least :data:`MISFIT_IMAGE_SHARE` of the session's
+    squares; None for each not read."""
     rho, pairs = neighbour_correlation(out)
-    if pairs == 0 or rho < CORRELATED_NEIGHBOURS + 2.0 / np.sqrt(pairs):
-        return None
-    return rho, pairs
-
-
-def image_misfit_excess(
-    out: RefineOutput,
-    project: tuple[np.ndarray, np.ndarray] | None = None,
-    correlated: tuple | None | str = "read",
-) -> np.ndarray | None:
-    """What the covariance of the reported quantities gains when each image's errors are taken
-    together rather than corner by corner (symmetric, not PSD: its positive part is carried);
-    None without a covariance, with fewer than :data:`MIN_CLUSTER_FRAMES` frames or without
-    ``project`` (docs/METHOD.md, "The images' errors, image by image").
-
-    The model's covariance ``s^2 A^-1`` holds when every corner's error is independent of the
-    others'. A real image's are not: neighbouring corners' residuals correlate by 0.47 on
-    real photographs (the lens beyond its model, the print, the light), and the principal point
-    of half a session then lands 2 to 4 of its reported std from the other half's. The
-    covariance that holds whatever the errors within an image are is the sandwich with frames
-    as clusters, ``A^-1 (G / (G - 1) sum_k g_k g_k') A^-1`` over the global parameters
-    (``g_k``: frame k's score, :meth:`BundleModel.frame_scores`; a frame's own pose
-    correction has none at the minimum); the difference from the model's is returned. With
-    independent errors the two agree to the sampling noise of G terms. Read only when
-    ``correlated`` (:func:`correlated_image_errors` of ``out``, or :func:`misfit_image`'s; read
-    here when "read") is not None."""
+    if pairs > 0 and rho >= CORRELATED_NEIGHBOURS + 2.0 / np.sqrt(pairs):
+        return (rho, pairs), None
     m = out.model
-    w_all = getattr(m, "row_weights", None)
-    if project is None or out.covariance_blocks is None or w_all is None:
-        return None
-    if not out.sigma_px > 0 or len(m.frame_rows) < MIN_CLUSTER_FRAMES:
-        return None
-    if correlated == "read":
-        correlated = correlated_image_errors(out) or misfit_image(out)
-    if correlated is None:
-        return None  # each corner's error its own: the model's covariance holds
-    return _cluster_excess(out, project, m.frame_scores(out.state, np.asarray(w_all, float)))
+    n_px = len(out.residuals)
+    if not out.sigma_px > 0:
+        return None, None
+    w = m.row_weights[:n_px] if m.row_weights is not None else out.inlier_rows.astype(float)
+    tails, total = [], 0.0
+    for k, rows in m.frame_rows.items():
+        wk, rk = w[rows], out.residuals[rows]
+        n = int(np.count_nonzero(wk > 0))
+        S = float(np.sum(wk * rk * rk)) / out.sigma_px**2
+        total += S
+        if n >= 2 * NEIGHBOUR_MIN_CORNERS:  # as many corners as the neighbours' test needs
+            tails.append((float(chdtrc(n, S)), k, float(np.sqrt(S / n)), S - n))
+    if not tails:
+        return None, None
+    p, k, ratio, excess = min(tails)
+    p = min(p * len(tails), 1.0)
+    read = p < MISFIT_IMAGE_P and excess >= MISFIT_IMAGE_SHARE * total
+    return None, ((k, ratio, p) if read else None)
 
 
-def _cluster_excess(
-    out: RefineOutput, project: tuple[np.ndarray, np.ndarray], S: np.ndarray
+def cluster_excess(
+    out: RefineOutput, project: tuple[np.ndarray, np.ndarray], clusters: np.ndarray
 ) -> np.ndarray | None:
-    """The sandwich ``A^-1 (G / (G - 1) sum_c s_c s_c') A^-1`` of the reported quantities over
-    the clusters' scores ``S`` (G, P0: global columns) less the model's covariance; None when
-    the reported quantities use a frame's own columns."""
+    """What the reported quantities' covariance (k, k; symmetric, not PSD) gains when the
+    detections' errors go together within each cluster of frames (``clusters`` (F,): the
+    frames' cluster labels, each frame its own or its orientation group): the sandwich
+    ``A^-1 (G / (G - 1) sum_c s_c s_c') A^-1`` over the global parameters (``s_c``: the sum of
+    the cluster's frames' scores, :meth:`BundleModel.frame_scores`) less the model's
+    covariance. None without a covariance, with fewer than :data:`MIN_CLUSTER_FRAMES`
+    clusters, or when the reported quantities use a frame's own columns."""
+    m = out.model
+    if out.covariance_blocks is None or m.row_weights is None or not out.sigma_px > 0:
+        return None
+    Sf = m.frame_scores(out.state, np.asarray(m.row_weights, float))
+    of = np.array([clusters[k] for k in m.frame_rows])
+    S = np.array([Sf[of == c].sum(axis=0) for c in np.unique(of)])
     G, P0 = S.shape
     J, used = project
-    if np.any(used >= P0):
+    if G < MIN_CLUSTER_FRAMES or np.any(used >= P0):
         return None
     gg = out.covariance_blocks.gg[used, :]  # s^2 times the rows of the reduced inverse
     Q = J @ gg  # (k, P0)
     meat = (S.T @ S) * (G / (G - 1.0))
     return Q @ meat @ Q.T / out.sigma_px**4 - J @ gg[:, used] @ J.T
-
 
 
 #: Fewest corners of an image for its neighbours to enter :func:`neighbour_correlation`: with

@@ -247,20 +247,12 @@ def _used(J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def result_covariance(
-    problem: CalibrationProblem,
-    out: RefineOutput,
-    correlated: tuple | None | str = "read",
-    grouped: np.ndarray | None = None,
+    problem: CalibrationProblem, out: RefineOutput, images: ImageErrors, groups: np.ndarray
 ) -> tuple[tuple[str, ...], NamedCovariance | None]:
     """The reported quantities of a refinement (``RefineOutput``) of ``problem`` and their
-    named covariance (None when the refinement has none). ``correlated``: what
-    :func:`correlated_image_errors` (or else :func:`misfit_image`) says of ``out``, when the
-    caller has it ("read": read it here). ``grouped``: the frames' orientation groups when
-    :func:`grouped_detection_errors` says their detections' errors go together (then the
-    covariance carries :func:`group_misfit_excess`).
-
-    The model's own covariance ``J C J'`` of the reported quantities, plus every term of the
-    error model (:func:`slidecal.solver.robot_error.covariance_terms`)."""
+    named covariance (None when the refinement has none): the model's own ``J C J'`` plus
+    every term of the error model (:func:`slidecal.solver.robot_error.covariance_terms`;
+    ``images``: how the images' errors read, ``groups`` (F,): the orientation groups)."""
     layout = layout_of(problem, out.model.st, out.state)
     if out.covariance_blocks is None:
         return reported_names(layout, out.names), None
@@ -268,7 +260,7 @@ def result_covariance(
     project = _used(J)  # the reported quantities from the parameters they use
     C = project[0] @ out.covariance_blocks.submatrix(project[1], project[1]) @ project[0].T
     named = NamedCovariance(names, 0.5 * (C + C.T))
-    for extra in covariance_terms(problem, out, project, correlated, grouped):
+    for extra in covariance_terms(problem, out, project, images, groups):
         named = NamedCovariance(names, named.matrix + extra)
     return names, named
 
@@ -317,8 +309,7 @@ def reported_covariance(
         board = replace(board, response=reported_response(out, board.response))
         out = replace(out, board=board)
     images = image_errors(problem, out, groups)
-    grouped = groups if images.grouped is not None else None
-    names, named = result_covariance(problem, out, images.correlated or images.misfit, grouped)
+    names, named = result_covariance(problem, out, images, groups)
     state = out.state
     if board is not None:  # between the readings of the board's misfit (target_shape.py)
         state = out.model.apply(state, board.shift)
