@@ -68,11 +68,8 @@ def covariance_terms(
     frames = np.arange(len(problem.frames))
     by_frame = images.correlated is not None or images.misfit is not None
     parts = (
-        (smooth_arm_excess(out, project), True),  # the frames' error: independent or trend
-        (common_trend_excess(out, project), True),  # the groups' trends: one field or each its own
-        (session_trend_excess(out, project), False),  # a classic session's trend, at least 0.1 %
-        (session_field_excess(out, project), False),  # its two readings: with the field or not
-        (untold_field_excess(out, project), False),  # no trend modelled: the arm's linear field
+        (smooth_field_excess(out, project), False),  # the arm's smooth error no image places
+        (session_field_excess(out, project), False),  # a classic session's two readings
         (level_excess(out, project), False),  # the noise levels are estimates
         (tool_offset_excess(problem, out, project), False),  # an unobserved hand-eye offset
         (shape_excess(out, project), False),  # the real board is not quite the one described
@@ -80,17 +77,9 @@ def covariance_terms(
         (cluster_excess(out, project, frames) if by_frame else None, True),
         (cluster_excess(out, project, groups) if images.grouped else None, True),
     )
-    terms = []
-    for extra, two_readings in parts:
-        if extra is None:
-            continue
-        extra = 0.5 * (extra + extra.T)
-        if two_readings:
-            w, V = np.linalg.eigh(extra)
-            cover = (V * np.clip(w, 0.0, None)) @ V.T
-            extra = 0.5 * (cover + cover.T)
-        terms.append(extra)
-    return terms
+    return [
+        _positive_part(x) if cover else 0.5 * (x + x.T) for x, cover in parts if x is not None
+    ]
 
 
 def _columns(
@@ -240,24 +229,25 @@ def tool_offset_excess(
     return TOOL_OFFSET_SIGMA_M**2 * (G @ G.T)
 
 
-def _correction_gain(
-    out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None
-) -> np.ndarray:
-    """How the estimate moves per unit shift of each frame's pose-correction prior mean: the
-    covariance's columns of the corrections ``E`` over their prior variances (k, 6 F; per
-    frame rotation then translation, as ``E``)."""
-    m = out.model
-    e = m.slices["E"]
-    sig = np.asarray(m.pose_sigma, float)
-    A = _columns(out, project, np.arange(e.start, e.stop))
-    return A / np.tile(np.repeat(sig**2, 3), (e.stop - e.start) // 6)
+def _positive_part(extra: np.ndarray) -> np.ndarray:
+    """The positive part of a symmetric matrix: what covers both readings it compares."""
+    w, V = np.linalg.eigh(0.5 * (extra + extra.T))
+    cover = (V * np.clip(w, 0.0, None)) @ V.T
+    return 0.5 * (cover + cover.T)
+
+
+def _sandwich(A: np.ndarray, basis: np.ndarray, level: float, prior: float) -> np.ndarray:
+    """``A (level^2 basis basis' - prior I) A'``: the response ``A`` (k, n) to n corrections'
+    prior means, their true covariance a field along ``basis`` (n, d) against the prior's."""
+    B = A @ basis
+    field = level**2 * (B @ B.T)
+    return field - prior * (A @ A.T) if prior else field
 
 
 def _untold_trends(m: BundleModel) -> tuple[np.ndarray, list[bool]]:
-    """Whether the images could tell the orientation groups' trends: per axis (rotation,
-    translation), the trend's level went to the floor (its share below a tenth of the frames');
-    per trend group, it is too short to tell a trend from its frames' scatter (fewer degrees of
-    freedom left to the scatter than the trend takes)."""
+    """Whether the images could tell the groups' trends: per axis (rotation, translation), the
+    trend's level went to the floor (its share below a tenth of the frames'); per trend group,
+    it is too short (fewer dof left to the scatter than the trend takes)."""
     st = m.st
     sig = np.asarray(m.pose_sigma, float)
     tau = np.asarray(m.trend_sigma, float) if "V" in m.slices else np.zeros(2)
@@ -268,120 +258,106 @@ def _untold_trends(m: BundleModel) -> tuple[np.ndarray, list[bool]]:
     return floored, short
 
 
-def smooth_arm_excess(
-    out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
+#: The four ways the arm's smooth error no image places is seen (:func:`smooth_field_excess`)
+SMOOTH_FIELD_WAYS = ("groups", "shared", "session", "untold")
+
+
+def smooth_field_excess(
+    out: RefineOutput,
+    project: tuple[np.ndarray, np.ndarray] | None = None,
+    ways: tuple[str, ...] = SMOOTH_FIELD_WAYS,
 ) -> np.ndarray | None:
-    """What the covariance of the optimiser's coordinates (P, P; symmetric, not PSD) gains when
-    the frames' own pose corrections, modelled independent, are in truth a linear trend along
-    the moves of their orientation group, in the axes (rotation, translation) whose trend the
-    images could not resolve; None when there is nothing to add (docs/ROBOT_ACCURACY.md).
+    """What the covariance gains from the arm's smooth error where no image places it
+    (docs/ERROR_MODEL.md S5', M3): ``A (S - L) A'``, ``A`` the estimate's response to a shift of
+    the corrections' prior means (their covariance columns over their prior variances ``L``),
+    ``S`` the field's covariance; a reading that competes with the prior's adds its positive
+    part. None when no way applies. ``project``: the reported quantities' Jacobian (k, u) and
+    the u parameters it uses (else the optimiser's P x P). The ways (``ways``):
 
-    A real arm's error is smooth over the workspace: frames a few centimetres apart err alike.
-    Where the trend's level went to the floor and its group has too few frames to tell a trend
-    from scatter (fewer degrees of freedom left to the scatter than the trend takes, per axis:
-    R1's groups of five frames spanning three directions keep one for three), the data cannot
-    say which share of the frames' error is smooth, and the estimator's spread differs between
-    the readings: a trend of the translation is a scale error of the moves, which reaches the
-    focal lengths, and independent corrections average it down. The estimate stays the model's;
-    its covariance is the sandwich ``C L^-1 S L^-1 C`` over the corrections' prior rows (``C``:
-    the covariance's columns of the corrections, ``L``: their prior variances, ``S``: the
-    corrections' true covariance). Independent (``S = L``) gives the model's own covariance;
-    all trend gives, per group and axis, ``S = tau^2 c c'`` with ``c`` the frames' offsets
-    along the moves and ``tau`` such that the trend carries each frame's level on average. The
-    excess of the second over the first is returned: its positive part (added by
-    :func:`result_covariance`) covers both readings and every mixture of them. With
-    ``project`` (as :func:`level_excess`), the excess of the reported quantities (k, k).
-    """
+    - ``groups``: a group too short to tell its trend from scatter, the trend's level floored:
+      each frame's correction all trend along the group's moves (one orientation's
+      translation always, at least ``MOVE_SCALE_SIGMA`` of the moves: it is the focal length);
+    - ``shared``: the groups' translation trends one field over all positions, at the trends'
+      level, at least the shared quadratic field's and, where the groups could not tell their
+      trends, ``MOVE_SCALE_SIGMA``;
+    - ``session``: a classic session's one trend at least ``MOVE_SCALE_SIGMA``;
+    - ``untold``: no trend modelled, learned levels: a field ``M d_k`` of the translation
+      corrections over the positions at ``MOVE_SCALE_SIGMA`` per coefficient."""
     m, st = out.model, out.model.st
-    if out.covariance_blocks is None or "E" not in m.slices or not st.trend_dims:
+    if out.covariance_blocks is None:
         return None
-    if st.trend_groups is None or st.trend_coords is None or m.pose_sigma is None:
+    parts = []  # (excess, whether it competes with the prior)
+    has_e = "E" in m.slices and m.pose_sigma is not None
+    if has_e:
+        sig = np.asarray(m.pose_sigma, float)
+        e = m.slices["E"]
+        A = _columns(out, project, np.arange(e.start, e.stop))
+        A = A / np.tile(np.repeat(sig**2, 3), (e.stop - e.start) // 6)
+    if "groups" in ways and has_e and st.trend_dims and st.trend_coords is not None:
+        floored, short = _untold_trends(m)
+        fixed = st.trend_scale_fixed  # one orientation: its translation trend is not learned
+        excess = None
+        for g, dims in enumerate(st.trend_dims):
+            carried = (floored[0] and short[g], floored[1] and (short[g] or fixed))
+            if not any(carried):  # the scatter keeps as many dof as the trend takes
+                continue
+            k = np.flatnonzero(st.trend_groups == g)
+            c = st.trend_coords[k, :dims]
+            rms = np.sqrt(np.mean(np.sum(c**2, axis=1)))
+            level = (sig[0], max(sig[1], MOVE_SCALE_SIGMA * rms) if fixed else sig[1])
+            for a in range(6):
+                if carried[a // 3]:
+                    i = a // 3
+                    part = _sandwich(A[:, 6 * k + a], c / rms, level[i], sig[i] ** 2)
+                    excess = part if excess is None else excess + part
+        if excess is not None:
+            parts.append((excess, True))
+    if "shared" in ways and "V" in m.slices and len(st.trend_dims) >= 2:
+        if st.T_meas is not None and m.trend_sigma is not None:
+            parts.append((_shared_field(out, project), True))
+    if "session" in ways and _session_trend(out) and m.trend_sigma[1] < MOVE_SCALE_SIGMA:
+        tau = float(m.trend_sigma[1])
+        sv = m.slices["V"]
+        At = _columns(out, project, np.arange(sv.start, sv.stop))[:, ~m.trend_rotation_rows]
+        parts.append(((MOVE_SCALE_SIGMA**2 - tau**2) / tau**4 * (At @ At.T), False))
+    untold = has_e and "V" not in m.slices and getattr(m, "level_redundancy", None)
+    if "untold" in ways and untold and st.T_meas is not None and len(st.T_meas) >= 3:
+        D = st.T_meas[:, :3, 3] - st.T_meas[:, :3, 3].mean(axis=0)
+        excess = np.zeros((len(A), len(A)))
+        for a in range(3):  # the base frame's axis of the correction; D's columns: M's row a
+            excess += _sandwich(A[:, 3 + a :: 6], D, MOVE_SCALE_SIGMA, 0.0)
+        parts.append((excess, False))
+    if not parts:
         return None
-    sig = np.asarray(m.pose_sigma, float)
-    floored, short = _untold_trends(m)
-    # per group, (rotation, translation): carried; one orientation's translation trend always
-    # (its level is not learned: refine.Structure.trend_scale_fixed)
-    carried = [
-        (bool(floored[0] and s), bool(floored[1] and (s or st.trend_scale_fixed))) for s in short
-    ]
-    if not any(any(c) for c in carried):
-        return None
-    A = _correction_gain(out, project)
-    excess = np.zeros((len(A), len(A)))
-    for g, dims in enumerate(st.trend_dims):
-        k = np.flatnonzero(st.trend_groups == g)
-        if not any(carried[g]):  # the scatter keeps as many dof as the trend takes: the images
-            continue  # tell
-        c = st.trend_coords[k, :dims]
-        rms = np.sqrt(np.mean(np.sum(c**2, axis=1)))
-        c = c / rms  # the trend carries sig per frame
-        # one orientation: the moves' scale is never below an arm's (MOVE_SCALE_SIGMA)
-        level = (sig[0], max(sig[1], MOVE_SCALE_SIGMA * rms) if st.trend_scale_fixed else sig[1])
-        for a in range(6):
-            i = a // 3
-            if carried[g][i]:
-                Ak = A[:, 6 * k + a]
-                B = Ak @ c
-                excess += level[i] ** 2 * (B @ B.T) - sig[i] ** 2 * (Ak @ Ak.T)
-    return excess
+    return sum(_positive_part(x) if cover else x for x, cover in parts)
 
 
-def common_trend_excess(
-    out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
-) -> np.ndarray | None:
-    """What the covariance gains when the orientation groups' translation trends, modelled
-    independent from group to group, are in truth one field the groups share (symmetric, not
-    PSD: its positive part is added); None without two trend groups (docs/ROBOT_ACCURACY.md).
-
-    A real arm errs alike at one place whatever the orientation: the groups' trends along their
-    moves have a common part. Its rotation is estimated where the session has the frames for
-    it (the shared corrections ``W``, :func:`slidecal.solver.refine.common_trend`); its linear
-    translation never is, because its scales and shears of the moves are the focal lengths and
-    the principal point again (a field that shifts the positions along y in proportion to their
-    depth moves the vanishing point of the depth moves, which the principal point also moves):
-    the images cannot tell them apart, and independent trends average it down over the groups.
-    The estimate stays the model's; its covariance is the sandwich over the trends' prior
-    rows, with each translation trend's prior variance ``tau^2`` shared by every group along
-    the directions they have in common (``C L^-1 S L^-1 C`` as in :func:`smooth_arm_excess`).
-    The shared field's level is the trends' level learned, which measures only how the groups'
-    trends differ; at least the level learned for the quadratic field the groups share, where
-    the session has the frames for one (a smooth field's linear part is no smaller than its
-    quadratic part over the same span); and where the groups could not tell their trends
-    (the level went to the floor, or a group is too short to tell a trend from its scatter), at
-    least ``MOVE_SCALE_SIGMA``: an arm's moves are not known better than 0.1 % in scale."""
+def _shared_field(out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    """:func:`smooth_field_excess`'s ``shared`` way: the groups' translation trends, modelled
+    independent at ``tau``, one linear field over every position (its scales and shears are the
+    focal lengths and principal point again: no image places it)."""
     m, st = out.model, out.model.st
-    if out.covariance_blocks is None or "V" not in m.slices or len(st.trend_dims) < 2:
-        return None
-    if st.T_meas is None or m.trend_sigma is None:
-        return None
     tau = float(m.trend_sigma[1])
-    # the field's level. The trends' level learned is what tells the groups' trends apart, not
-    # what they share (no image measures that); the quadratic field they share, where the
-    # session learns one, says how much the arm's error varies over the workspace, and a
-    # smooth field's linear part is no smaller than its quadratic part over the same span
     level = tau
     if "W" in m.slices and m.common_sigma is not None and np.any(~m.common_rotation_rows):
-        level = max(level, float(m.common_sigma[1]))
-    if m.pose_sigma is not None:  # the groups could not tell their trends (floor or too short):
-        floored, short = _untold_trends(m)  # never below an arm's scale error of its moves
-        if floored[1] or any(short):
+        level = max(level, float(m.common_sigma[1]))  # a smooth field's linear part >= quadratic
+    if m.pose_sigma is not None:
+        floored, short = _untold_trends(m)
+        if floored[1] or any(short):  # the groups could not tell their trends
             level = max(level, MOVE_SCALE_SIGMA)
     sv = m.slices["V"]
     A = _columns(out, project, np.arange(sv.start, sv.stop)) / tau**2  # gain on the priors
-    axes = list(TREND_AXES)
+    ai0 = list(TREND_AXES).index
     excess = np.zeros((len(A), len(A)))
     for a in (3, 4, 5):
-        ai = axes.index(a)
-        common = np.zeros((len(A), 3))
+        cols, basis = [], []
         for g, dims in enumerate(st.trend_dims):
             k = np.flatnonzero(st.trend_groups == g)
             d = st.T_meas[k, :3, 3] - st.T_meas[k, :3, 3].mean(axis=0)
-            B = np.linalg.pinv(d) @ st.trend_coords[k, :dims]  # (3, dims): the group's basis
-            o = m.trend_offsets[g] + ai * dims
-            Ag = A[:, o : o + dims]
-            common += Ag @ B.T
-            excess -= tau**2 * (Ag @ Ag.T)
-        excess += level**2 * (common @ common.T)
+            o = m.trend_offsets[g] + ai0(a) * dims
+            cols.append(np.arange(o, o + dims))
+            basis.append((np.linalg.pinv(d) @ st.trend_coords[k, :dims]).T)  # (dims, 3)
+        excess += _sandwich(A[:, np.concatenate(cols)], np.vstack(basis), level, tau**2)
     return excess
 
 
@@ -393,33 +369,6 @@ def _session_trend(out: RefineOutput) -> bool:
         return False
     whole = st.trend_groups is not None and bool(np.all(st.trend_groups == 0))
     return len(st.trend_dims) == 1 and not st.trend_scale_fixed and whole
-
-
-def session_trend_excess(
-    out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
-) -> np.ndarray | None:
-    """What the covariance gains (PSD) when a classic session's one trend, over the tool's
-    positions of the whole session, errs in its translation by at least an arm's scale error of
-    its moves (:data:`MOVE_SCALE_SIGMA`); None for any other session or a learned level already
-    above that (docs/ROBOT_ACCURACY.md, "A classic session").
-
-    With every frame at its own orientation, the linear part of the arm's error over the
-    positions (a scale or shear of the moves) reaches the focal lengths through the robot's
-    translations, and the images tell it only as far as they tell the focal lengths alone. Its
-    learned level, from the same frames, comes out below 0.1 % of the moves on most simulated
-    arms, while the arm's error that is not linear in the position (it follows the joints)
-    pulls the robot's share of fx and fy the same way on every frame. The estimate stays the
-    model's; its covariance is the sandwich over the trend's translation rows with their prior
-    variance ``tau^2`` raised to ``MOVE_SCALE_SIGMA^2`` (as :func:`common_trend_excess`)."""
-    m = out.model
-    if not _session_trend(out):
-        return None
-    tau = float(m.trend_sigma[1])
-    if tau >= MOVE_SCALE_SIGMA:
-        return None
-    sv = m.slices["V"]
-    A = _columns(out, project, np.arange(sv.start, sv.stop))[:, ~m.trend_rotation_rows]
-    return (MOVE_SCALE_SIGMA**2 - tau**2) / tau**4 * (A @ A.T)
 
 
 def session_field_step(out: RefineOutput) -> np.ndarray | None:
@@ -480,37 +429,6 @@ def session_field_excess(
         return None
     d = step if project is None else project[0] @ step[project[1]]
     return READING_WEIGHT * (1.0 - READING_WEIGHT) * np.outer(d, d)
-
-
-def untold_field_excess(
-    out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
-) -> np.ndarray | None:
-    """What the covariance gains (PSD) from a linear field of the arm's translation error over
-    the tool's positions that the solve does not model (no trend: an eye-to-hand classic
-    session, or one too short for the session's trend), at an arm's scale error of its moves
-    (:data:`MOVE_SCALE_SIGMA` per coefficient); None when the solve models a trend, has no pose
-    corrections or holds the user's levels (docs/ROBOT_ACCURACY.md, "A classic session").
-
-    A frame's translation correction is in the base frame, so the field adds ``M d_k`` to frame
-    k's (``d_k`` its measured position less the session's mean, ``M`` (3, 3) with independent
-    coefficients). The estimate responds to a shift of the corrections' prior means by the
-    covariance's columns of the corrections over their prior variance; the field's share of
-    the covariance is that response's square at the field's level, as the trend's would be
-    with its level at ``MOVE_SCALE_SIGMA`` (:func:`session_trend_excess`)."""
-    m, st = out.model, out.model.st
-    if out.covariance_blocks is None or "E" not in m.slices or "V" in m.slices:
-        return None
-    if st.T_meas is None or m.pose_sigma is None or len(st.T_meas) < 3:
-        return None
-    if not getattr(m, "level_redundancy", None):  # the levels are the user's, not learned
-        return None
-    A = _correction_gain(out, project)
-    D = st.T_meas[:, :3, 3] - st.T_meas[:, :3, 3].mean(axis=0)
-    excess = np.zeros((len(A), len(A)))
-    for a in range(3):  # the base frame's axis of the correction; D's columns: M's row a
-        B = A[:, 3 + a :: 6] @ D
-        excess += MOVE_SCALE_SIGMA**2 * (B @ B.T)
-    return excess
 
 
 #: Fewest clusters for the sandwich (:func:`cluster_excess`): it rests on one score per cluster

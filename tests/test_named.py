@@ -330,12 +330,12 @@ def test_smooth_arm_cover_widens_what_the_groups_cannot_tell(monkeypatch):
     # moves from the frames' scatter (the trend's level goes to the floor); the reported
     # covariance covers the estimator's spread under both readings: never below the model's
     # own, the focal lengths (a trend of the translation is a scale error of the moves) wider
-    from slidecal.solver.robot_error import smooth_arm_excess
+    from slidecal.solver.robot_error import smooth_field_excess
     from slidecal.solver.uncertainty import layout_of, propagate
 
     s = sc.r1_real_arm(np.random.default_rng(2000))
     res, out = _solve_keeping_the_refinement(s.problem, monkeypatch)
-    assert smooth_arm_excess(out) is not None
+    assert smooth_field_excess(out, ways=("groups",)) is not None
     own = propagate(layout_of(s.problem, out.model.st, out.state), out.names, out.covariance)
     reported = res.named_covariance
     assert reported.names == own.names
@@ -353,12 +353,12 @@ def test_smooth_arm_cover_leaves_exact_poses_alone_and_carries_one_orientations_
     # translation error is all trend is carried, on the translation axes only (the drifting
     # arm's rotation trend is learned, not carried)
     from slidecal.solver.refine import SIGMA_FLOOR
-    from slidecal.solver.robot_error import smooth_arm_excess
+    from slidecal.solver.robot_error import smooth_field_excess
 
     _, out = _solve_keeping_the_refinement(
         sc.r1(np.random.default_rng(7), 0.15, 0.0, 0.0).problem, monkeypatch
     )
-    assert smooth_arm_excess(out) is None
+    assert smooth_field_excess(out, ways=("groups",)) is None
     for s, drifts in (
         (drifting_arm(np.random.default_rng(7))[0], True),
         (sc.r1_real_arm(np.random.default_rng(2000), translations_only=True), False),
@@ -368,7 +368,7 @@ def test_smooth_arm_cover_leaves_exact_poses_alone_and_carries_one_orientations_
         assert m.st.trend_scale_fixed and m.trend_sigma[1] == SIGMA_FLOOR[1]
         if drifts:  # the drifting arm's rotation trend is learned
             assert m.trend_sigma[0] * m.trend_spread > 0.1 * m.pose_sigma[0]
-        extra = smooth_arm_excess(out)
+        extra = smooth_field_excess(out, ways=("groups",))
         assert extra is not None and np.trace(extra) > 0.0
 
 
@@ -480,7 +480,7 @@ def test_untold_field_gain_is_the_response_of_a_solve(monkeypatch):
     # the estimate's response to it; that response, to first order, is what re-solving with the
     # measured positions moved by the field gives (the levels held at the learned ones)
     from slidecal.solver.refine import _refine
-    from slidecal.solver.robot_error import MOVE_SCALE_SIGMA, untold_field_excess
+    from slidecal.solver.robot_error import MOVE_SCALE_SIGMA, smooth_field_excess
     from slidecal.solver.uncertainty import _jacobian, _used, layout_of
 
     s = sc.classic_real_arm(np.random.default_rng(2005), eye_in_hand=False)
@@ -489,7 +489,7 @@ def test_untold_field_gain_is_the_response_of_a_solve(monkeypatch):
     assert "E" in m.slices and "V" not in m.slices
     names, J = _jacobian(layout_of(s.problem, m.st, out.state), tuple(out.names))
     project = _used(J)
-    extra = untold_field_excess(out, project)
+    extra = smooth_field_excess(out, project, ("untold",))
     assert extra is not None
     assert np.all(np.linalg.eigvalsh(extra) > -1e-12 * np.abs(extra).max())
     rows = [names.index(f"cam.{p}") for p in ("fx", "fy", "cx", "cy")]
@@ -517,20 +517,19 @@ def test_untold_field_gain_is_the_response_of_a_solve(monkeypatch):
     assert want[:2].min() > 0.2 * res.cameras["cam"].std["fx"]  # the field matters to fx, fy
     np.testing.assert_allclose(got, want, rtol=0.15, atol=0.02)
     # the trend an eye-in-hand classic session learns is carried at no less than 0.1 %
-    from slidecal.solver.robot_error import session_trend_excess
 
     e = sc.classic_real_arm(np.random.default_rng(2135))
     res_e, out_e = _solve_keeping_the_refinement(e.problem, monkeypatch)
     assert "V" in out_e.model.slices and out_e.model.trend_sigma[1] < MOVE_SCALE_SIGMA
     names_e, J_e = _jacobian(layout_of(e.problem, out_e.model.st, out_e.state), out_e.names)
-    more = session_trend_excess(out_e, _used(J_e))
-    assert more is not None and untold_field_excess(out_e, _used(J_e)) is None
+    more = smooth_field_excess(out_e, _used(J_e), ("session",))
+    assert more is not None and smooth_field_excess(out_e, _used(J_e), ("untold",)) is None
     assert np.all(np.linalg.eigvalsh(more) > -1e-12 * np.abs(more).max())
     assert more[names_e.index("cam.fx"), names_e.index("cam.fx")] > 0.0
     # R1's groups have trends of their own, and exact poses carry no correction: neither adds
     for scen in (sc.r1_real_arm(np.random.default_rng(2000)), sc.r1(np.random.default_rng(7))):
         _, o = _solve_keeping_the_refinement(scen.problem, monkeypatch)
-        assert session_trend_excess(o) is None and untold_field_excess(o) is None
+        assert smooth_field_excess(o, ways=("session", "untold")) is None
 
 
 def test_a_classic_sessions_board_reaches_the_result_between_its_two_readings(monkeypatch):
