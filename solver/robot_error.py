@@ -1,22 +1,12 @@
-"""The error model's arm and image terms: what a finished solve's covariance leaves out.
+"""The error model's terms: what a finished solve's covariance gains beyond the model's own.
 
-The bundle model (:mod:`slidecal.solver.model`) takes every corner's error as its own and the
-robot's pose errors as independent per frame (or per orientation group, or a linear trend, with
-levels learned by variance components). A real session departs from that in ways the images
-cannot always tell; each term below is one such departure, as what it adds to the covariance of
-the reported quantities (docs/ROBOT_ACCURACY.md, docs/METHOD.md Sec. 6):
-
-- the arm: its levels are estimates (:func:`level_excess`), a tool-side offset the session
-  cannot observe (:func:`tool_offset_excess`), its error smooth over the workspace
-  (:func:`smooth_arm_excess`, :func:`common_trend_excess`), a classic session's linear field
-  (:func:`session_trend_excess`, :func:`session_field_excess`, :func:`untold_field_excess`);
-- the images: an image's errors, or an orientation group's, going together
-  (:func:`cluster_excess`, read when :func:`images_err_together` or
-  :func:`grouped_detection_errors` says so);
-- the board's shape (:func:`slidecal.solver.target_shape.shape_excess`).
-
-One entry point, :func:`covariance_terms`, gives them all for a finished solve;
-:func:`slidecal.solver.uncertainty.reported_covariance` adds them to the model's covariance.
+Each term is one source of docs/ERROR_MODEL.md seen through one mechanism (Sec. 3): the levels
+are estimates (:func:`level_excess`, M2), the arm's smooth error no image places
+(:func:`smooth_field_excess`, M3), a tool-side offset one orientation cannot observe
+(:func:`tool_offset_excess`, M4), a classic session's two readings of its field
+(:func:`session_field_excess`, M5), the detections' errors going together within an image or
+an orientation group (:func:`cluster_excess`, M6), the board (:func:`shape_excess`, M4, M5).
+:func:`covariance_terms` lists them for a finished solve.
 """
 
 from __future__ import annotations
@@ -94,34 +84,19 @@ def _columns(
     return J @ out.covariance_blocks.submatrix(used, cols)
 
 
-#: Fewest degrees of freedom behind an estimated pose level for which its uncertainty is
-#: carried into the covariance (below, the level is hardly estimated at all: ``nu / (nu - 2)``
-#: would exceed 3).
+#: Fewest dof behind a level for its uncertainty to be carried (below, ``nu / (nu - 2)`` > 3)
 MIN_LEVEL_DOF = 3.0
 
 
 def level_excess(
     out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
 ) -> np.ndarray | None:
-    """What the covariance of the optimiser's coordinates (P, P; positive semi-definite) gains
-    because the robot's accuracy levels are estimated from few degrees of freedom, not known;
-    None when there is nothing to add (docs/ROBOT_ACCURACY.md).
-
-    The variance-component step estimates each level (rotation, translation) of the frames'
-    own pose corrections ``E``, their orientation groups' ``U`` and the trends along the moves
-    ``V`` with redundancy ``nu`` (the sum of ``1 - h`` over the block's prior rows: 5 to 15 for
-    13 frames whose images pin their poses nearly as well as the arm's accuracy does). Taken
-    as known, a level's share of the covariance, ``C_b C_b' / sigma^2`` over the block's prior
-    rows of that kind (``C_b``: the covariance's columns of the block, ``sigma``: the level),
-    is what the estimator spreads when the level is right; with the level an estimate on
-    ``nu`` degrees of freedom the expected true variance is ``nu / (nu - 2)`` times it (the
-    mean of a scaled inverse chi-square), the error's law a Student t's rather than a
-    Gaussian's. The excess of the shares is returned, for levels resting on at least
-    :data:`MIN_LEVEL_DOF` degrees of freedom and not at their floor (a shared level below a
-    tenth of the frames' own: what :func:`smooth_arm_excess` covers). With ``project`` (the
-    reported quantities' Jacobian (k, u) and the u parameters it uses), the excess of the
-    reported quantities (k, k), made without the P x P matrix.
-    """
+    """What the covariance (PSD) gains because the arm's levels are estimates on ``nu`` dof
+    (M2): ``(nu / (nu - 2) - 1) C_b C_b' / sigma^2`` per level ``sigma`` of the corrections
+    ``E``, ``U``, ``V``, ``W`` (``C_b``: the covariance's columns of that block's rows of that
+    kind), the mean of a scaled inverse chi-square; for levels on at least
+    :data:`MIN_LEVEL_DOF` dof, above twice their floor, and (shared levels) at least a tenth of
+    the frames' own. ``project`` as :func:`smooth_field_excess`. None when nothing is added."""
     m = out.model
     red = getattr(m, "level_redundancy", None)
     if out.covariance_blocks is None or not red or m.pose_sigma is None:
@@ -159,14 +134,9 @@ def level_excess(
     return excess if np.any(excess) else None
 
 
-#: One-sigma per axis (metres) of a tool-side translation the session cannot observe (the
-#: camera's offset from the flange eye-in-hand, the board's eye-to-hand, with one
-#: orientation): the covariance carries it for an offset within about 17 cm of the flange.
+#: One-sigma per axis of a tool-side offset one orientation cannot observe: within ~17 cm
 TOOL_OFFSET_SIGMA_M = 0.1
-#: One-sigma relative error of the length of an arm's moves (0.1 %: 0.2 mm over 20 cm), the
-#: least the all-trend reading of a one-orientation session carries (there the moves' scale is
-#: the focal length's and no image tells it, whatever scatter the frames show), and the least
-#: level of the field the groups' translation trends share (:func:`common_trend_excess`)
+#: One-sigma relative error of an arm's move lengths: true to scale within about 0.1 %
 MOVE_SCALE_SIGMA = 1e-3
 
 
@@ -174,19 +144,10 @@ def tool_offset_gain(
     problem: CalibrationProblem, out: RefineOutput, project: tuple[np.ndarray, np.ndarray]
 ) -> np.ndarray | None:
     """How the reported quantities move per metre of the tool-side translation the session
-    cannot observe (k, m): the m unobserved directions of the camera's offset from the flange
-    (eye-in-hand) or the board's (eye-to-hand), which the solve takes as zero. None when every
-    direction is observed or the poses carry no corrections (docs/ROBOT_ACCURACY.md).
-
-    With one orientation the offset only moves the target's pose, as long as the poses are
-    exact. With the pose corrections, a frame's rotation turns the tool about the flange and
-    moves the camera (or board) by the rotation times the offset: a part of the arm's error the
-    solve attributes to the translation corrections and, through their trend along the moves,
-    to the scale of the moves and the focal lengths. The gain is the estimator's response to the
-    offset held at another value: ``-N^-1 J' W J_o`` (``N`` the normal matrix, ``J_o`` the
-    residuals' Jacobian along the unobserved directions, ``W`` the solve's row weights), through
-    the reported quantities' Jacobian (``project``, as :func:`level_excess`).
-    """
+    cannot observe (k, m: its m unobserved directions, held at zero): ``-N^-1 J' W J_o``
+    (``J_o`` the residuals' Jacobian along them, ``W`` the solve's weights). A frame's rotation
+    correction times that offset is a translation: it reaches the moves' scale and fx. None
+    when every direction is observed or the poses carry no corrections."""
     m, st = out.model, out.model.st
     weights = getattr(m, "row_weights", None)
     if out.covariance_blocks is None or "E" not in m.slices or weights is None:
@@ -220,9 +181,7 @@ def tool_offset_gain(
 def tool_offset_excess(
     problem: CalibrationProblem, out: RefineOutput, project: tuple[np.ndarray, np.ndarray]
 ) -> np.ndarray | None:
-    """What the reported quantities' covariance (k, k) gains from the unobserved tool-side
-    translation (:func:`tool_offset_gain`) at :data:`TOOL_OFFSET_SIGMA_M` per axis; None when
-    there is none."""
+    """S7 (M4): :func:`tool_offset_gain` at :data:`TOOL_OFFSET_SIGMA_M` per axis; or None."""
     G = tool_offset_gain(problem, out, project)
     if G is None:
         return None
@@ -372,26 +331,15 @@ def _session_trend(out: RefineOutput) -> bool:
 
 
 def session_field_step(out: RefineOutput) -> np.ndarray | None:
-    """The step (P,) of the optimiser's coordinates from the solve of a classic session (one
-    linear trend of the pose corrections over the whole session's positions) to its reading
-    without that field; None for any other session.
-
-    The reading without the field is the solve with the trend held at zero, the levels as
-    learned: to first order the solve's posterior conditioned on ``V = 0``, the step
-    ``-C[:, V] C[V, V]^-1 V``. Where the arm's error is mostly linear over the positions the
-    field takes it; where a scale of the arm's moves is among it, a classic session cannot
-    tell that scale from the hand-eye's translation along the viewing direction, and the
-    trend's level, learned from the same frames, understates it. Neither reading is the
-    better on every arm (docs/ROBOT_ACCURACY.md), so the result is reported between them
-    (:data:`READING_WEIGHT`) and their spread is carried in the covariance
-    (:func:`session_field_excess`)."""
+    """A classic session's step (P,) from its solve (one trend over all its positions) to its
+    reading without that field, the levels as learned: to first order ``-C[:, V] C[V, V]^-1
+    V``. The images cannot tell the two readings apart (M5): the result is reported between
+    them at :data:`READING_WEIGHT`. None for any other session."""
     return _without_field(out, out.state.V)
 
 
 def _without_field(out: RefineOutput, V: np.ndarray | None) -> np.ndarray | None:
-    """``-C[:, V] C[V, V]^-1 V`` for a classic session's solve (``V``: the trend's coordinates,
-    (n_V,) or (n_V, k)): the optimiser's step to its reading without the field; None for any
-    other session."""
+    """``-C[:, V] C[V, V]^-1 V`` (``V`` (n_V,) or (n_V, k)) for a classic session; or None."""
     m = out.model
     if not _session_trend(out) or V is None:
         return None
@@ -405,13 +353,9 @@ def _without_field(out: RefineOutput, V: np.ndarray | None) -> np.ndarray | None
 
 
 def reported_response(out: RefineOutput, response: np.ndarray) -> np.ndarray:
-    """The reported value's response (P, k) to what moves the solve by ``response`` (P, k):
-    for a classic session, reported between its readings with and without the field
-    (:func:`session_field_step`), the solve's own plus :data:`READING_WEIGHT` times the field
-    step's response (the trend's part of ``response`` taken back); ``response`` itself for any
-    other session. The board's modes reach the result so (its scale: a classic session's
-    reading without the field takes it whole as a shift of the hand-eye along the view, the
-    field's reading partly as an arm scale)."""
+    """The reported value's response (P, k) to what moves the solve by ``response`` (P, k): a
+    classic session's plus :data:`READING_WEIGHT` times its field step's response (the board's
+    modes reach the result so); ``response`` itself for any other session."""
     v = out.model.slices.get("V")
     step = None if v is None else _without_field(out, response[v])
     return response if step is None else response + READING_WEIGHT * step
@@ -420,10 +364,8 @@ def reported_response(out: RefineOutput, response: np.ndarray) -> np.ndarray:
 def session_field_excess(
     out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
 ) -> np.ndarray | None:
-    """What the covariance gains (PSD) from the two readings of a classic session's linear
-    field (:func:`session_field_step`): their spread about the reported value,
-    ``w (1 - w) d d'`` with ``d`` the reported quantities' step between them and ``w``
-    :data:`READING_WEIGHT`; None for any other session."""
+    """M5: the two readings' spread ``w (1 - w) d d'`` (``d`` the step between them,
+    :func:`session_field_step`; ``w`` :data:`READING_WEIGHT`); None for any other session."""
     step = session_field_step(out)
     if step is None:
         return None
@@ -431,50 +373,31 @@ def session_field_excess(
     return READING_WEIGHT * (1.0 - READING_WEIGHT) * np.outer(d, d)
 
 
-#: Fewest clusters for the sandwich (:func:`cluster_excess`): it rests on one score per cluster
+#: Fewest clusters for the sandwich (:func:`cluster_excess`): one score per cluster
 MIN_CLUSTER_FRAMES = 4
-#: Neighbouring corners' residuals correlated beyond this, along their line or across it (and
-#: beyond twice their sampling spread, :func:`neighbour_correlation`): an image's errors are not
-#: independent corner by corner. Independent detections stay below it; below it the frames'
-#: scores would only add their noise.
+#: Neighbours' residual correlation beyond which an image's errors go together (and beyond
+#: twice its sampling spread): independent detections stay below it
 CORRELATED_NEIGHBOURS = 0.05
-
-
-#: An image's residuals beyond what independent errors at the solve's noise give, at this level
-#: over the session's images (Bonferroni): its errors go together though its neighbouring
-#: corners' correlation does not show it (a few corners of one image erring alike: a glare spot,
-#: a flaw of the print, a corner the detector misplaced)
+#: Bonferroni level over the images for one image's misfit (:func:`images_err_together`)
 MISFIT_IMAGE_P = 0.01
-#: ... and its excess over that chi-square's mean at least this share of the session's weighted
-#: squares: the model's covariance, which spreads that excess over every image, understates the
-#: spread it causes by about as much; images that differ a little in sharpness stay below it.
+#: ... read only at least this share of the session's squares: a smaller excess changes little
 MISFIT_IMAGE_SHARE = 0.1
-
-
 #: Fewest orientation groups of two frames or more for :func:`grouped_detection_errors`
 MIN_CLUSTER_GROUPS = 5
-#: :func:`grouped_detection_errors` reads the groups' errors below this p-value
+#: The groups' mean residuals' chi-square tail below which they are read
 GROUPED_ERRORS_P = 0.01
 
 
 def grouped_detection_errors(
     out: RefineOutput, groups: np.ndarray
 ) -> tuple[float, int, float] | None:
-    """(statistic, degrees of freedom, p-value) when the detections' errors go together over
-    the frames of an orientation group, and the session's images are too small for the
-    neighbours' correlation or an image's own misfit to tell (fewer than
-    :data:`NEIGHBOUR_MIN_CORNERS` corners per
-    image, the median: a lone tag's 4); else None (docs/METHOD.md, "The images' errors, image by
-    image"). ``groups``: the frames' orientation groups (F,).
-
-    A detector errs alike on a corner seen alike: at one orientation a corner's refinement can
-    be biased by the view's perspective on every frame (a fixed pattern), which no image shows
-    alone. For every group, camera and corner id seen in two frames or more of the group, the
-    mean ``m`` of the ``n`` weighted residuals per axis; with each detection's error its own,
-    ``sum n m^2 / v`` (``v``: the residuals' mean square, which takes what the fit leaves of
-    each residual) is about chi-square with one degree of freedom per cluster and axis. Its
-    upper tail below :data:`GROUPED_ERRORS_P` reads them (with :data:`MIN_CLUSTER_GROUPS`
-    groups or more)."""
+    """(statistic, dof, p-value) when the detections' errors go together over the frames of an
+    orientation group (``groups`` (F,)) in images too small for :func:`images_err_together`
+    (median corners below :data:`NEIGHBOUR_MIN_CORNERS`), else None: a detector biased by one
+    view's perspective errs alike on every frame of it. Per group, camera and corner id seen
+    twice or more, the ``n`` weighted residuals' mean ``m``: ``sum n m^2 / v`` (``v`` their mean
+    square) is about chi-square on two dof each, read below :data:`GROUPED_ERRORS_P` with
+    :data:`MIN_CLUSTER_GROUPS` groups or more."""
     m = out.model
     if not m.chunks or len(groups) != len(m.problem.frames):
         return None
@@ -507,14 +430,13 @@ def grouped_detection_errors(
 def images_err_together(
     out: RefineOutput,
 ) -> tuple[tuple[float, int] | None, tuple[int, float, float] | None]:
-    """Whether an image's errors go together: ``(correlated, misfit)``, ``correlated`` the
-    neighbouring corners' residual correlation and its pairs when beyond
-    :data:`CORRELATED_NEIGHBOURS` and twice its sampling spread; else ``misfit`` (frame index,
-    its residuals' rms over the solve's noise, p-value) for the image whose residuals
-    independent errors explain least, when they do not (Bonferroni below
-    :data:`MISFIT_IMAGE_P`, each frame's weighted squares over ``s^2`` at most a chi-square on
-    its pixel rows) and its excess is at least :data:`MISFIT_IMAGE_SHARE` of the session's
-    squares; None for each not read."""
+    """Whether an image's errors go together: ``(correlated, misfit)``. ``correlated``: the
+    neighbours' correlation and pairs (:func:`neighbour_correlation`) when beyond
+    :data:`CORRELATED_NEIGHBOURS` and twice its sampling spread; else ``misfit``: (frame, rms
+    over the noise, p) of the image independent errors explain least, its weighted squares
+    over ``s^2`` against a chi-square on its pixel rows, read below :data:`MISFIT_IMAGE_P`
+    (Bonferroni) with an excess of :data:`MISFIT_IMAGE_SHARE` of the session's squares or more
+    (a glare spot, a misplaced corner). None for each not read."""
     rho, pairs = neighbour_correlation(out)
     if pairs > 0 and rho >= CORRELATED_NEIGHBOURS + 2.0 / np.sqrt(pairs):
         return (rho, pairs), None
@@ -542,11 +464,10 @@ def images_err_together(
 def cluster_excess(
     out: RefineOutput, project: tuple[np.ndarray, np.ndarray], clusters: np.ndarray
 ) -> np.ndarray | None:
-    """What the reported quantities' covariance (k, k; symmetric, not PSD) gains when the
-    detections' errors go together within each cluster of frames (``clusters`` (F,): the
-    frames' cluster labels, each frame its own or its orientation group): the sandwich
-    ``A^-1 (G / (G - 1) sum_c s_c s_c') A^-1`` over the global parameters (``s_c``: the sum of
-    the cluster's frames' scores, :meth:`BundleModel.frame_scores`) less the model's
+    """M6: what the reported quantities' covariance (k, k; symmetric, not PSD) gains when the
+    detections' errors go together within each cluster (``clusters`` (F,): each frame's label,
+    the frame itself or its orientation group): ``A^-1 (G / (G - 1) sum_c s_c s_c') A^-1``
+    over the global parameters (``s_c`` the cluster's frames' scores summed) less the model's
     covariance. None without a covariance, with fewer than :data:`MIN_CLUSTER_FRAMES`
     clusters, or when the reported quantities use a frame's own columns."""
     m = out.model
@@ -565,9 +486,7 @@ def cluster_excess(
     return Q @ meat @ Q.T / out.sigma_px**4 - J @ gg[:, used] @ J.T
 
 
-#: Fewest corners of an image for its neighbours to enter :func:`neighbour_correlation`: with
-#: fewer, its pose takes most of what its residuals could vary (a lone tag's 4 corners: 8
-#: residuals, 6 pose coordinates), and their correlation says little of the errors'.
+#: Fewest corners of an image for its neighbours to count: with fewer its pose takes their freedom
 NEIGHBOUR_MIN_CORNERS = 12
 
 
@@ -588,20 +507,13 @@ def corner_residuals(out: RefineOutput) -> tuple[np.ndarray, np.ndarray]:
 
 
 def neighbour_correlation(out: RefineOutput) -> tuple[float, int]:
-    """How much the residuals of neighbouring corners of one image go together, and over how
-    many pairs: over every image's neighbour pairs (corners at the target's smallest spacing),
-    the mean product of their weighted residuals along the line through the two corners and,
-    apart, across it, each over the mean square of one coordinate; the larger of the two, and
-    the pairs' count; (0, 0) without a pair. Images with fewer than
-    :data:`NEIGHBOUR_MIN_CORNERS` corners are left out.
-
-    About 0 when each corner's error is its own: simulated detections of independent noise
-    read -0.06 to 0.03 on sessions of 13 frames or more, -0.1 to 0.11 on small ones (the fit
-    itself makes it slightly negative), with a sampling spread of about one over the square
-    root of the pairs. Corners on one line of the board share its edge, and an error of that
-    edge (the print, blur, the light) moves them together across it: the rendered images of
-    mocks/render.py read 0.08-0.17 across and nothing along (-0.03, the fit's share), real
-    photographs (OpenCV's stereo samples, ``tests/data/opencv_left``, ``opencv_right``) 0.47."""
+    """How much neighbouring corners' residuals go together, and over how many pairs: over
+    every image's pairs at the target's smallest spacing, the mean product of their weighted
+    residuals along the pair's line and across it, each over one coordinate's mean square; the
+    larger, and the pairs; (0, 0) without one. About 0 (slightly negative: the fit's share) for
+    independent errors, with a sampling spread of one over the root of the pairs; an edge's
+    error (print, blur, light) moves a line's corners together across it. Images with fewer
+    than :data:`NEIGHBOUR_MIN_CORNERS` corners are left out."""
     m = out.model
     pts = m.problem.target.points_m
     if len(pts) < 2:
