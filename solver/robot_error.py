@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.special import chdtrc  # the chi-square's tail (scipy.stats costs 0.4 s)
+from scipy.special import chdtrc  # the chi-square's tail (scipy.stats is slow to import)
 
 from slidecal.solver.model import TREND_AXES, BundleModel
 from slidecal.solver.problem import CalibrationProblem
@@ -24,9 +24,8 @@ from slidecal.solver.target_shape import READING_WEIGHT, shape_excess
 
 @dataclass(frozen=True)
 class ImageErrors:
-    """How a finished solve's image errors read (:func:`image_errors`): ``correlated`` and
-    ``misfit`` by :func:`images_err_together`, ``grouped`` (statistic, degrees of freedom,
-    p-value) by :func:`grouped_detection_errors`; each None when not read."""
+    """How a solve's image errors read: ``correlated``, ``misfit`` (:func:`images_err_together`),
+    ``grouped`` (:func:`grouped_detection_errors`); each None when not read."""
 
     correlated: tuple[float, int] | None = None
     misfit: tuple[int, float, float] | None = None
@@ -75,8 +74,7 @@ def covariance_terms(
 def _columns(
     out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None, cols: np.ndarray
 ) -> np.ndarray:
-    """``cov[:, cols]`` of the optimiser's covariance, or with ``project`` = (J (k, u), the u
-    parameters it uses) ``J cov[used, cols]`` (k, len(cols)): the reported quantities' rows."""
+    """``cov[:, cols]`` of the optimiser's covariance, or ``J cov[used, cols]`` with ``project``."""
     cols = np.asarray(cols, int)
     if project is None:
         return np.asarray(out.covariance, float)[:, cols]
@@ -204,9 +202,8 @@ def _sandwich(A: np.ndarray, basis: np.ndarray, level: float, prior: float) -> n
 
 
 def _untold_trends(m: BundleModel) -> tuple[np.ndarray, list[bool]]:
-    """Whether the images could tell the groups' trends: per axis (rotation, translation), the
-    trend's level went to the floor (its share below a tenth of the frames'); per trend group,
-    it is too short (fewer dof left to the scatter than the trend takes)."""
+    """Per axis, whether the groups' trend level went to the floor (below a tenth of the
+    frames'); per group, whether it is too short to tell a trend from its scatter."""
     st = m.st
     sig = np.asarray(m.pose_sigma, float)
     tau = np.asarray(m.trend_sigma, float) if "V" in m.slices else np.zeros(2)

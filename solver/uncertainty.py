@@ -268,14 +268,10 @@ def result_covariance(
 # -- a finished solve, as reported ------------------------------------------------------------
 @dataclass(frozen=True)
 class Reported:
-    """A finished solve as it is reported (:func:`reported_covariance`).
-
-    ``state``: the reported value (the solve's, moved between the readings of the board's
-    misfit and of a classic session's linear field); ``names``: the reported quantities;
-    ``covariance``: theirs (None when the solve has none); ``board``: the board's fit (None for
-    a board taken as exact); ``images``: how the images' errors were read; ``field_step``: a
-    classic session's step (P,) to its reading without the arm's linear field, else None.
-    """
+    """A finished solve as reported (:func:`reported_covariance`): ``state`` the reported value,
+    ``names`` and ``covariance`` (None without one) the reported quantities', ``board`` the
+    board's fit (None for an exact board), ``images`` how the images' errors read,
+    ``field_step`` a classic session's step to its reading without its field (else None)."""
 
     state: ModelState
     names: tuple[str, ...]
@@ -292,18 +288,13 @@ def reported_covariance(
     board_scale: float = 0.0,
 ) -> Reported:
     """The one way from a finished solve (``out`` of ``problem``; ``groups`` (F,): its frames'
-    orientation groups) to its reported value and covariance, whatever the session:
-
-    1. the board: its bow and print scale (:func:`slidecal.solver.target_shape.fit_board`), the
-       scale at least ``board_scale`` (a classic session's unexplained length ratio, relative;
-       :func:`with_session_scale`), its response taken at the reported value;
-    2. the images: whether their errors go together, image by image or over an orientation
-       group (:func:`slidecal.solver.robot_error.image_errors`);
-    3. the covariance: the model's own, plus every term of the error model
-       (:func:`result_covariance`, :func:`slidecal.solver.robot_error.covariance_terms`);
-    4. the value: the solve's, moved by the board's fit and halfway to a classic session's
-       reading without its linear field (:data:`~slidecal.solver.target_shape.READING_WEIGHT`).
-    """
+    orientation groups) to its reported value and covariance, whatever the session
+    (docs/ERROR_MODEL.md Sec. 3): the board's fit (its scale at least ``board_scale``, a
+    classic session's unexplained length ratio; its response at the reported value), how the
+    images' errors read, the model's covariance plus every term of the error model
+    (:func:`result_covariance`), and the value moved by the board's fit and halfway
+    (:data:`~slidecal.solver.target_shape.READING_WEIGHT`) to a classic session's reading
+    without its field."""
     board = with_session_scale(problem, out, fit_board(problem, out), board_scale)
     if board is not None:  # its modes' response at the reported value (a classic session's)
         board = replace(board, response=reported_response(out, board.response))
