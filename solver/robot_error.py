@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.special import chdtrc  # the chi-square's tail (scipy.stats is slow to import)
 
-from slidecal.solver.model import TREND_AXES, BundleModel
+from slidecal.solver.model import BundleModel
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.refine import SIGMA_FLOOR, RefineOutput
 from slidecal.solver.target_shape import READING_WEIGHT, shape_excess
@@ -214,8 +214,8 @@ def _untold_trends(m: BundleModel) -> tuple[np.ndarray, list[bool]]:
     return floored, short
 
 
-#: The four ways the arm's smooth error no image places is seen (:func:`smooth_field_excess`)
-SMOOTH_FIELD_WAYS = ("groups", "shared", "session", "untold")
+#: The ways the arm's smooth error no image places is seen (:func:`smooth_field_excess`)
+SMOOTH_FIELD_WAYS = ("groups", "field")
 
 
 def smooth_field_excess(
@@ -225,31 +225,28 @@ def smooth_field_excess(
 ) -> np.ndarray | None:
     """What the covariance gains from the arm's smooth error where no image places it
     (docs/ERROR_MODEL.md S5', M3): ``A (S - L) A'``, ``A`` the estimate's response to a shift of
-    the corrections' prior means (their covariance columns over their prior variances ``L``),
-    ``S`` the field's covariance; a reading that competes with the prior's adds its positive
-    part. None when no way applies. ``project``: the reported quantities' Jacobian (k, u) and
-    the u parameters it uses (else the optimiser's P x P). The ways (``ways``):
+    the frames' corrections' prior means (their covariance columns over their prior variances),
+    ``L`` the prior's covariance of the corrections, ``S`` the field's; each way adds its
+    positive part. None when no way applies. ``project``: the reported quantities' Jacobian
+    (k, u) and the u parameters it uses (else the optimiser's P x P). The ways (``ways``):
 
     - ``groups``: a group too short to tell its trend from scatter, the trend's level floored:
       each frame's correction all trend along the group's moves (one orientation's
       translation always, at least ``MOVE_SCALE_SIGMA`` of the moves: it is the focal length);
-    - ``shared``: the groups' translation trends one field over all positions, at the trends'
-      level, at least the shared quadratic field's and, where the groups could not tell their
-      trends, ``MOVE_SCALE_SIGMA``;
-    - ``session``: a classic session's one trend at least ``MOVE_SCALE_SIGMA``;
-    - ``untold``: no trend modelled, learned levels: a field ``M d_k`` of the translation
-      corrections over the positions at ``MOVE_SCALE_SIGMA`` per coefficient."""
+    - ``field``: the translation's linear field over every position, one for all the trends
+      (each modelled at its own ``tau``), at least ``tau``, the shared quadratic field's level
+      and, where the trends could not tell it (floored, too short, one trend over a classic
+      session's positions, or none), ``MOVE_SCALE_SIGMA``. The trends' own coordinates
+      respond through the corrections they add to (a trend is ``V c_k`` on frame k's)."""
     m, st = out.model, out.model.st
-    if out.covariance_blocks is None:
+    if out.covariance_blocks is None or "E" not in m.slices or m.pose_sigma is None:
         return None
-    parts = []  # (excess, whether it competes with the prior)
-    has_e = "E" in m.slices and m.pose_sigma is not None
-    if has_e:
-        sig = np.asarray(m.pose_sigma, float)
-        e = m.slices["E"]
-        A = _columns(out, project, np.arange(e.start, e.stop))
-        A = A / np.tile(np.repeat(sig**2, 3), (e.stop - e.start) // 6)
-    if "groups" in ways and has_e and st.trend_dims and st.trend_coords is not None:
+    sig = np.asarray(m.pose_sigma, float)
+    e = m.slices["E"]
+    A = _columns(out, project, np.arange(e.start, e.stop))
+    A = A / np.tile(np.repeat(sig**2, 3), (e.stop - e.start) // 6)
+    parts = []
+    if "groups" in ways and st.trend_dims and st.trend_coords is not None:
         floored, short = _untold_trends(m)
         fixed = st.trend_scale_fixed  # one orientation: its translation trend is not learned
         excess = None
@@ -267,53 +264,49 @@ def smooth_field_excess(
                     part = _sandwich(A[:, 6 * k + a], c / rms, level[i], sig[i] ** 2)
                     excess = part if excess is None else excess + part
         if excess is not None:
-            parts.append((excess, True))
-    if "shared" in ways and "V" in m.slices and len(st.trend_dims) >= 2:
-        if st.T_meas is not None and m.trend_sigma is not None:
-            parts.append((_shared_field(out, project), True))
-    if "session" in ways and _session_trend(out) and m.trend_sigma[1] < MOVE_SCALE_SIGMA:
-        tau = float(m.trend_sigma[1])
-        sv = m.slices["V"]
-        At = _columns(out, project, np.arange(sv.start, sv.stop))[:, ~m.trend_rotation_rows]
-        parts.append(((MOVE_SCALE_SIGMA**2 - tau**2) / tau**4 * (At @ At.T), False))
-    untold = has_e and "V" not in m.slices and getattr(m, "level_redundancy", None)
-    if "untold" in ways and untold and st.T_meas is not None and len(st.T_meas) >= 3:
-        D = st.T_meas[:, :3, 3] - st.T_meas[:, :3, 3].mean(axis=0)
-        excess = np.zeros((len(A), len(A)))
-        for a in range(3):  # the base frame's axis of the correction; D's columns: M's row a
-            excess += _sandwich(A[:, 3 + a :: 6], D, MOVE_SCALE_SIGMA, 0.0)
-        parts.append((excess, False))
-    if not parts:
-        return None
-    return sum(_positive_part(x) if cover else x for x, cover in parts)
+            parts.append(excess)
+    field = _linear_field(out, A) if "field" in ways else None
+    if field is not None:
+        parts.append(field)
+    return sum(_positive_part(x) for x in parts) if parts else None
 
 
-def _shared_field(out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
-    """:func:`smooth_field_excess`'s ``shared`` way: the groups' translation trends, modelled
-    independent at ``tau``, one linear field over every position (its scales and shears are the
-    focal lengths and principal point again: no image places it)."""
+def _linear_field(out: RefineOutput, A: np.ndarray) -> np.ndarray | None:
+    """:func:`smooth_field_excess`'s ``field`` way over the corrections' gains ``A`` (k, 6 F);
+    None where it does not apply (a one-orientation trend, the user's levels)."""
     m, st = out.model, out.model.st
-    tau = float(m.trend_sigma[1])
-    level = tau
-    if "W" in m.slices and m.common_sigma is not None and np.any(~m.common_rotation_rows):
-        level = max(level, float(m.common_sigma[1]))  # a smooth field's linear part >= quadratic
-    if m.pose_sigma is not None:
+    if st.T_meas is None or len(st.T_meas) < 3:
+        return None
+    if "V" in m.slices:
+        if m.trend_sigma is None or not (len(st.trend_dims) >= 2 or _session_trend(out)):
+            return None
+        tau = float(m.trend_sigma[1])
+        trends = [np.flatnonzero(st.trend_groups == g) for g in range(len(st.trend_dims))]
+        coords = [st.trend_coords[k, :d] for k, d in zip(trends, st.trend_dims, strict=True)]
+        level = tau
+        if "W" in m.slices and m.common_sigma is not None and np.any(~m.common_rotation_rows):
+            level = max(level, float(m.common_sigma[1]))  # its linear part >= the quadratic
         floored, short = _untold_trends(m)
-        if floored[1] or any(short):  # the groups could not tell their trends
+        if floored[1] or any(short) or _session_trend(out):
             level = max(level, MOVE_SCALE_SIGMA)
-    sv = m.slices["V"]
-    A = _columns(out, project, np.arange(sv.start, sv.stop)) / tau**2  # gain on the priors
-    ai0 = list(TREND_AXES).index
+    elif getattr(m, "level_redundancy", None):  # no trend modelled, the levels learned
+        tau, level = 0.0, MOVE_SCALE_SIGMA
+        trends = [np.arange(len(st.T_meas))]
+        coords = [np.zeros((len(st.T_meas), 0))]
+    else:
+        return None
     excess = np.zeros((len(A), len(A)))
-    for a in (3, 4, 5):
-        cols, basis = [], []
-        for g, dims in enumerate(st.trend_dims):
-            k = np.flatnonzero(st.trend_groups == g)
+    for a in (3, 4, 5):  # the base frame's axis of the correction
+        common = 0.0
+        for k, c in zip(trends, coords, strict=True):
             d = st.T_meas[k, :3, 3] - st.T_meas[k, :3, 3].mean(axis=0)
-            o = m.trend_offsets[g] + ai0(a) * dims
-            cols.append(np.arange(o, o + dims))
-            basis.append((np.linalg.pinv(d) @ st.trend_coords[k, :dims]).T)  # (dims, 3)
-        excess += _sandwich(A[:, np.concatenate(cols)], np.vstack(basis), level, tau**2)
+            if c.shape[1]:  # the field along the trend's own directions (its basis: pinv)
+                d = c @ (np.linalg.pinv(d) @ c).T
+            Ak = A[:, 6 * k + a]
+            common = common + Ak @ d
+            if tau:
+                excess -= tau**2 * ((Ak @ c) @ (Ak @ c).T)
+        excess += level**2 * (common @ common.T)
     return excess
 
 

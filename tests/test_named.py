@@ -473,6 +473,33 @@ def test_unobserved_tool_offset_gain_is_the_response_of_a_solve(monkeypatch):
     assert tool_offset_gain(p, exact, (J[:, used], used)) is None
 
 
+def test_a_trend_moves_the_result_as_the_corrections_it_adds_to(monkeypatch):
+    # a trend adds V c_k to frame k's correction E_k, so shifting its prior mean by one unit
+    # moves the reported quantities as shifting every frame's correction by c_k does: the
+    # field way of smooth_field_excess reads every trend through the frames' corrections
+    from slidecal.solver.model import TREND_AXES
+    from slidecal.solver.robot_error import _columns
+    from slidecal.solver.uncertainty import _jacobian, _used, layout_of
+
+    s = sc.tag_real_arm(np.random.default_rng(10), n_frames=70)
+    _, out = _solve_keeping_the_refinement(s.problem, monkeypatch)
+    m, st = out.model, out.model.st
+    assert "V" in m.slices and len(st.trend_dims) >= 2
+    project = _used(_jacobian(layout_of(s.problem, st, out.state), tuple(out.names))[1])
+    e, v = m.slices["E"], m.slices["V"]
+    sig, tau = np.asarray(m.pose_sigma, float), np.asarray(m.trend_sigma, float)
+    A_E = _columns(out, project, np.arange(e.start, e.stop))
+    A_E = A_E / np.tile(np.repeat(sig**2, 3), (e.stop - e.start) // 6)
+    A_V = _columns(out, project, np.arange(v.start, v.stop))
+    for g, dims in enumerate(st.trend_dims):
+        k = np.flatnonzero(st.trend_groups == g)
+        for ai, a in enumerate(TREND_AXES):
+            o = m.trend_offsets[g] + ai * dims
+            via_v = A_V[:, o : o + dims] / tau[a // 3] ** 2
+            via_e = A_E[:, 6 * k + a] @ st.trend_coords[k, :dims]
+            np.testing.assert_allclose(via_e, via_v, rtol=1e-6, atol=1e-9 * np.abs(via_v).max())
+
+
 def test_untold_field_gain_is_the_response_of_a_solve(monkeypatch):
     # a classic eye-to-hand session (28 frames, each at its own orientation) keeps independent
     # pose corrections: no trend over the tool's positions. The covariance carries a linear
@@ -480,7 +507,7 @@ def test_untold_field_gain_is_the_response_of_a_solve(monkeypatch):
     # the estimate's response to it; that response, to first order, is what re-solving with the
     # measured positions moved by the field gives (the levels held at the learned ones)
     from slidecal.solver.refine import _refine
-    from slidecal.solver.robot_error import MOVE_SCALE_SIGMA, smooth_field_excess
+    from slidecal.solver.robot_error import MOVE_SCALE_SIGMA, _session_trend, smooth_field_excess
     from slidecal.solver.uncertainty import _jacobian, _used, layout_of
 
     s = sc.classic_real_arm(np.random.default_rng(2005), eye_in_hand=False)
@@ -489,7 +516,7 @@ def test_untold_field_gain_is_the_response_of_a_solve(monkeypatch):
     assert "E" in m.slices and "V" not in m.slices
     names, J = _jacobian(layout_of(s.problem, m.st, out.state), tuple(out.names))
     project = _used(J)
-    extra = smooth_field_excess(out, project, ("untold",))
+    extra = smooth_field_excess(out, project, ("field",))
     assert extra is not None
     assert np.all(np.linalg.eigvalsh(extra) > -1e-12 * np.abs(extra).max())
     rows = [names.index(f"cam.{p}") for p in ("fx", "fy", "cx", "cy")]
@@ -522,14 +549,14 @@ def test_untold_field_gain_is_the_response_of_a_solve(monkeypatch):
     res_e, out_e = _solve_keeping_the_refinement(e.problem, monkeypatch)
     assert "V" in out_e.model.slices and out_e.model.trend_sigma[1] < MOVE_SCALE_SIGMA
     names_e, J_e = _jacobian(layout_of(e.problem, out_e.model.st, out_e.state), out_e.names)
-    more = smooth_field_excess(out_e, _used(J_e), ("session",))
-    assert more is not None and smooth_field_excess(out_e, _used(J_e), ("untold",)) is None
+    more = smooth_field_excess(out_e, _used(J_e), ("field",))  # the trend's, not one untold
+    assert more is not None and _session_trend(out_e) and "V" in out_e.model.slices
     assert np.all(np.linalg.eigvalsh(more) > -1e-12 * np.abs(more).max())
     assert more[names_e.index("cam.fx"), names_e.index("cam.fx")] > 0.0
     # R1's groups have trends of their own, and exact poses carry no correction: neither adds
     for scen in (sc.r1_real_arm(np.random.default_rng(2000)), sc.r1(np.random.default_rng(7))):
         _, o = _solve_keeping_the_refinement(scen.problem, monkeypatch)
-        assert smooth_field_excess(o, ways=("session", "untold")) is None
+        assert not _session_trend(o) and ("V" in o.model.slices or "E" not in o.model.slices)
 
 
 def test_a_classic_sessions_board_reaches_the_result_between_its_two_readings(monkeypatch):
