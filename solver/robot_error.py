@@ -59,7 +59,7 @@ def covariance_terms(
     parts = (
         (smooth_field_excess(out, project), False),  # the arm's smooth error no image places
         (session_field_excess(out, project), False),  # a classic session's two readings
-        (level_excess(out, project), False),  # the noise levels are estimates
+        (level_excess(out, project), False),  # the arm's levels are estimates
         (tool_offset_excess(problem, out, project), False),  # an unobserved hand-eye offset
         (shape_excess(out, project), False),  # the real board is not quite the one described
         # the detections' errors go together within an image, or within an orientation group
