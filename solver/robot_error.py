@@ -84,6 +84,8 @@ def _columns(
 
 #: Fewest dof behind a level for its uncertainty to be carried (below, ``nu / (nu - 2)`` > 3)
 MIN_LEVEL_DOF = 3.0
+#: A shared level counts from this share of a frame's own: below, it adds under 1 % to its variance
+SHARED_LEVEL_SHARE = 0.1
 
 
 def level_excess(
@@ -125,7 +127,7 @@ def level_excess(
             if nu < MIN_LEVEL_DOF or not rows.any() or level <= 2.0 * SIGMA_FLOOR[i]:
                 continue
             share = per_frame if np.isscalar(per_frame) else per_frame[i]
-            if key != "E" and level * share < 0.1 * sig[i]:
+            if key != "E" and level * share < SHARED_LEVEL_SHARE * sig[i]:
                 continue
             Ci = C[:, rows]
             excess += (nu / (nu - 2.0) - 1.0) * (Ci @ Ci.T) / level**2
@@ -207,7 +209,7 @@ def _untold_trends(m: BundleModel) -> tuple[np.ndarray, list[bool]]:
     st = m.st
     sig = np.asarray(m.pose_sigma, float)
     tau = np.asarray(m.trend_sigma, float) if "V" in m.slices else np.zeros(2)
-    floored = tau * m.trend_spread < 0.1 * sig
+    floored = tau * m.trend_spread < SHARED_LEVEL_SHARE * sig
     short = [
         len(np.flatnonzero(st.trend_groups == g)) - 1 - d < d for g, d in enumerate(st.trend_dims)
     ]
