@@ -1,22 +1,12 @@
-"""The error model's arm and image terms: what a finished solve's covariance leaves out.
+"""The error model's terms: what a finished solve's covariance gains beyond the model's own.
 
-The bundle model (:mod:`slidecal.solver.model`) takes every corner's error as its own and the
-robot's pose errors as independent per frame (or per orientation group, or a linear trend, with
-levels learned by variance components). A real session departs from that in ways the images
-cannot always tell; each term below is one such departure, as what it adds to the covariance of
-the reported quantities (docs/ROBOT_ACCURACY.md, docs/METHOD.md Sec. 6):
-
-- the arm: its levels are estimates (:func:`level_excess`), a tool-side offset the session
-  cannot observe (:func:`tool_offset_excess`), its error smooth over the workspace
-  (:func:`smooth_arm_excess`, :func:`common_trend_excess`), a classic session's linear field
-  (:func:`session_trend_excess`, :func:`session_field_excess`, :func:`untold_field_excess`);
-- the images: an image's errors going together (:func:`image_misfit_excess`, read when
-  :func:`correlated_image_errors` or :func:`misfit_image` says so), an orientation group's
-  (:func:`group_misfit_excess`, read by :func:`grouped_detection_errors`);
-- the board's shape (:func:`slidecal.solver.target_shape.shape_excess`).
-
-One entry point, :func:`covariance_terms`, gives them all for a finished solve;
-:func:`slidecal.solver.uncertainty.reported_covariance` adds them to the model's covariance.
+Each term is one source of docs/ERROR_MODEL.md seen through one mechanism (Sec. 3): the levels
+are estimates (:func:`level_excess`, M2), the arm's smooth error no image places
+(:func:`smooth_field_excess`, M3), a tool-side offset one orientation cannot observe
+(:func:`tool_offset_excess`, M4), a classic session's two readings of its field
+(:func:`session_field_excess`, M5), the detections' errors going together within an image or
+an orientation group (:func:`cluster_excess`, M6), the board (:func:`shape_excess`, M4, M5).
+:func:`covariance_terms` lists them for a finished solve.
 """
 
 from __future__ import annotations
@@ -24,20 +14,18 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.special import chdtrc  # the chi-square's tail (scipy.stats costs 0.4 s)
+from scipy.special import chdtrc  # the chi-square's tail (scipy.stats is slow to import)
 
-from slidecal.solver.model import TREND_AXES, BundleModel
+from slidecal.solver.model import BundleModel
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.refine import SIGMA_FLOOR, RefineOutput
-from slidecal.solver.target_shape import shape_excess
+from slidecal.solver.target_shape import READING_WEIGHT, shape_excess
 
 
 @dataclass(frozen=True)
 class ImageErrors:
-    """How a finished solve's image errors read: ``correlated`` (neighbouring corners'
-    correlation, pairs) by :func:`correlated_image_errors`, else ``misfit`` (frame index, rms
-    over the noise, p-value) by :func:`misfit_image`; ``grouped`` (statistic, degrees of
-    freedom, p-value) by :func:`grouped_detection_errors`; each None when not read."""
+    """How a solve's image errors read: ``correlated``, ``misfit`` (:func:`images_err_together`),
+    ``grouped`` (:func:`grouped_detection_errors`); each None when not read."""
 
     correlated: tuple[float, int] | None = None
     misfit: tuple[int, float, float] | None = None
@@ -46,12 +34,10 @@ class ImageErrors:
 
 def image_errors(problem: CalibrationProblem, out: RefineOutput, groups: np.ndarray) -> ImageErrors:
     """Whether a finished solve's image errors go together, image by image or over the frames
-    of an orientation group (``groups`` (F,)): what :func:`covariance_terms` reads them by."""
+    of an orientation group (``groups`` (F,))."""
     correlated = misfit = None
     if len(out.model.frame_rows) >= MIN_CLUSTER_FRAMES:  # (with fewer frames they cannot be)
-        correlated = correlated_image_errors(out)
-        misfit = None if correlated is not None else misfit_image(out)
-    # a group's detections err together (images too small for the two readings above)
+        correlated, misfit = images_err_together(out)
     grouped = grouped_detection_errors(out, groups) if problem.knowledge == "robot" else None
     return ImageErrors(correlated, misfit, grouped)
 
@@ -60,49 +46,35 @@ def covariance_terms(
     problem: CalibrationProblem,
     out: RefineOutput,
     project: tuple[np.ndarray, np.ndarray],
-    correlated: tuple | None | str = "read",
-    grouped: np.ndarray | None = None,
+    images: ImageErrors,
+    groups: np.ndarray,
 ) -> list[np.ndarray]:
     """Every term the error model adds to the model's covariance of a finished solve's reported
-    quantities, each (k, k) symmetric and positive semi-definite, in the order they are added.
-
-    ``project``: the reported quantities' Jacobian (k, u) and the u optimiser coordinates it
-    uses. ``correlated``: what :func:`correlated_image_errors` (or else :func:`misfit_image`)
-    says of ``out`` ("read": read it here); ``grouped``: the frames' orientation groups when
-    :func:`grouped_detection_errors` says their detections' errors go together. Terms that
-    compare two readings of the same error (not PSD) add their positive part.
-    """
+    quantities, each (k, k) symmetric and positive semi-definite, in the order they are added
+    (docs/ERROR_MODEL.md Sec. 3). ``project``: the reported quantities' Jacobian (k, u) and the
+    u optimiser coordinates it uses; ``images``: how the images' errors read; ``groups`` (F,):
+    the frames' orientation groups. A term comparing two readings adds its positive part."""
+    frames = np.arange(len(problem.frames))
+    by_frame = images.correlated is not None or images.misfit is not None
     parts = (
-        (smooth_arm_excess(out, project), True),  # the frames' error: independent or trend
-        (common_trend_excess(out, project), True),  # the groups' trends: one field or each its own
-        (session_trend_excess(out, project), False),  # a classic session's trend, at least 0.1 %
-        (session_field_excess(out, project), False),  # its two readings: with the field or not
-        (untold_field_excess(out, project), False),  # no trend modelled: the arm's linear field
-        (level_excess(out, project), False),  # the noise levels are estimates
+        (smooth_field_excess(out, project), False),  # the arm's smooth error no image places
+        (session_field_excess(out, project), False),  # a classic session's two readings
+        (level_excess(out, project), False),  # the arm's levels are estimates
         (tool_offset_excess(problem, out, project), False),  # an unobserved hand-eye offset
         (shape_excess(out, project), False),  # the real board is not quite the one described
-        (image_misfit_excess(out, project, correlated), True),  # an image's errors go together
-        # a group's detections err together (a fixed pattern of the detector at a view)
-        (group_misfit_excess(out, grouped, project) if grouped is not None else None, True),
+        # the detections' errors go together within an image, or within an orientation group
+        (cluster_excess(out, project, frames) if by_frame else None, True),
+        (cluster_excess(out, project, groups) if images.grouped else None, True),
     )
-    terms = []
-    for extra, two_readings in parts:
-        if extra is None:
-            continue
-        extra = 0.5 * (extra + extra.T)
-        if two_readings:
-            w, V = np.linalg.eigh(extra)
-            cover = (V * np.clip(w, 0.0, None)) @ V.T
-            extra = 0.5 * (cover + cover.T)
-        terms.append(extra)
-    return terms
+    return [
+        _positive_part(x) if cover else 0.5 * (x + x.T) for x, cover in parts if x is not None
+    ]
 
 
 def _columns(
     out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None, cols: np.ndarray
 ) -> np.ndarray:
-    """``cov[:, cols]`` of the optimiser's covariance, or with ``project`` = (J (k, u), the u
-    parameters it uses) ``J cov[used, cols]`` (k, len(cols)): the reported quantities' rows."""
+    """``cov[:, cols]`` of the optimiser's covariance, or ``J cov[used, cols]`` with ``project``."""
     cols = np.asarray(cols, int)
     if project is None:
         return np.asarray(out.covariance, float)[:, cols]
@@ -110,34 +82,21 @@ def _columns(
     return J @ out.covariance_blocks.submatrix(used, cols)
 
 
-#: Fewest degrees of freedom behind an estimated pose level for which its uncertainty is
-#: carried into the covariance (below, the level is hardly estimated at all: ``nu / (nu - 2)``
-#: would exceed 3).
+#: Fewest dof behind a level for its uncertainty to be carried (below, ``nu / (nu - 2)`` > 3)
 MIN_LEVEL_DOF = 3.0
+#: A shared level counts from this share of a frame's own: below, it adds under 1 % to its variance
+SHARED_LEVEL_SHARE = 0.1
 
 
 def level_excess(
     out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
 ) -> np.ndarray | None:
-    """What the covariance of the optimiser's coordinates (P, P; positive semi-definite) gains
-    because the robot's accuracy levels are estimated from few degrees of freedom, not known;
-    None when there is nothing to add (docs/ROBOT_ACCURACY.md).
-
-    The variance-component step estimates each level (rotation, translation) of the frames'
-    own pose corrections ``E``, their orientation groups' ``U`` and the trends along the moves
-    ``V`` with redundancy ``nu`` (the sum of ``1 - h`` over the block's prior rows: 5 to 15 for
-    13 frames whose images pin their poses nearly as well as the arm's accuracy does). Taken
-    as known, a level's share of the covariance, ``C_b C_b' / sigma^2`` over the block's prior
-    rows of that kind (``C_b``: the covariance's columns of the block, ``sigma``: the level),
-    is what the estimator spreads when the level is right; with the level an estimate on
-    ``nu`` degrees of freedom the expected true variance is ``nu / (nu - 2)`` times it (the
-    mean of a scaled inverse chi-square), the error's law a Student t's rather than a
-    Gaussian's. The excess of the shares is returned, for levels resting on at least
-    :data:`MIN_LEVEL_DOF` degrees of freedom and not at their floor (a shared level below a
-    tenth of the frames' own: what :func:`smooth_arm_excess` covers). With ``project`` (the
-    reported quantities' Jacobian (k, u) and the u parameters it uses), the excess of the
-    reported quantities (k, k), made without the P x P matrix.
-    """
+    """What the covariance (PSD) gains because the arm's levels are estimates on ``nu`` dof
+    (M2): ``(nu / (nu - 2) - 1) C_b C_b' / sigma^2`` per level ``sigma`` of the corrections
+    ``E``, ``U``, ``V``, ``W`` (``C_b``: the covariance's columns of that block's rows of that
+    kind), the mean of a scaled inverse chi-square; for levels on at least
+    :data:`MIN_LEVEL_DOF` dof, above twice their floor, and (shared levels) at least a tenth of
+    the frames' own. ``project`` as :func:`smooth_field_excess`. None when nothing is added."""
     m = out.model
     red = getattr(m, "level_redundancy", None)
     if out.covariance_blocks is None or not red or m.pose_sigma is None:
@@ -168,21 +127,16 @@ def level_excess(
             if nu < MIN_LEVEL_DOF or not rows.any() or level <= 2.0 * SIGMA_FLOOR[i]:
                 continue
             share = per_frame if np.isscalar(per_frame) else per_frame[i]
-            if key != "E" and level * share < 0.1 * sig[i]:
+            if key != "E" and level * share < SHARED_LEVEL_SHARE * sig[i]:
                 continue
             Ci = C[:, rows]
             excess += (nu / (nu - 2.0) - 1.0) * (Ci @ Ci.T) / level**2
     return excess if np.any(excess) else None
 
 
-#: One-sigma per axis (metres) of a tool-side translation the session cannot observe (the
-#: camera's offset from the flange eye-in-hand, the board's eye-to-hand, with one
-#: orientation): the covariance carries it for an offset within about 17 cm of the flange.
+#: One-sigma per axis of a tool-side offset one orientation cannot observe: within ~17 cm
 TOOL_OFFSET_SIGMA_M = 0.1
-#: One-sigma relative error of the length of an arm's moves (0.1 %: 0.2 mm over 20 cm), the
-#: least the all-trend reading of a one-orientation session carries (there the moves' scale is
-#: the focal length's and no image tells it, whatever scatter the frames show), and the least
-#: level of the field the groups' translation trends share (:func:`common_trend_excess`)
+#: One-sigma relative error of an arm's move lengths: true to scale within about 0.1 %
 MOVE_SCALE_SIGMA = 1e-3
 
 
@@ -190,19 +144,10 @@ def tool_offset_gain(
     problem: CalibrationProblem, out: RefineOutput, project: tuple[np.ndarray, np.ndarray]
 ) -> np.ndarray | None:
     """How the reported quantities move per metre of the tool-side translation the session
-    cannot observe (k, m): the m unobserved directions of the camera's offset from the flange
-    (eye-in-hand) or the board's (eye-to-hand), which the solve takes as zero. None when every
-    direction is observed or the poses carry no corrections (docs/ROBOT_ACCURACY.md).
-
-    With one orientation the offset only moves the target's pose, as long as the poses are
-    exact. With the pose corrections, a frame's rotation turns the tool about the flange and
-    moves the camera (or board) by the rotation times the offset: a part of the arm's error the
-    solve attributes to the translation corrections and, through their trend along the moves,
-    to the scale of the moves and the focal lengths. The gain is the estimator's response to the
-    offset held at another value: ``-N^-1 J' W J_o`` (``N`` the normal matrix, ``J_o`` the
-    residuals' Jacobian along the unobserved directions, ``W`` the solve's row weights), through
-    the reported quantities' Jacobian (``project``, as :func:`level_excess`).
-    """
+    cannot observe (k, m: its m unobserved directions, held at zero): ``-N^-1 J' W J_o``
+    (``J_o`` the residuals' Jacobian along them, ``W`` the solve's weights). A frame's rotation
+    correction times that offset is a translation: it reaches the moves' scale and fx. None
+    when every direction is observed or the poses carry no corrections."""
     m, st = out.model, out.model.st
     weights = getattr(m, "row_weights", None)
     if out.covariance_blocks is None or "E" not in m.slices or weights is None:
@@ -236,156 +181,133 @@ def tool_offset_gain(
 def tool_offset_excess(
     problem: CalibrationProblem, out: RefineOutput, project: tuple[np.ndarray, np.ndarray]
 ) -> np.ndarray | None:
-    """What the reported quantities' covariance (k, k) gains from the unobserved tool-side
-    translation (:func:`tool_offset_gain`) at :data:`TOOL_OFFSET_SIGMA_M` per axis; None when
-    there is none."""
+    """S7 (M4): :func:`tool_offset_gain` at :data:`TOOL_OFFSET_SIGMA_M` per axis; or None."""
     G = tool_offset_gain(problem, out, project)
     if G is None:
         return None
     return TOOL_OFFSET_SIGMA_M**2 * (G @ G.T)
 
 
-def _correction_gain(
-    out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None
-) -> np.ndarray:
-    """How the estimate moves per unit shift of each frame's pose-correction prior mean: the
-    covariance's columns of the corrections ``E`` over their prior variances (k, 6 F; per
-    frame rotation then translation, as ``E``)."""
-    m = out.model
-    e = m.slices["E"]
-    sig = np.asarray(m.pose_sigma, float)
-    A = _columns(out, project, np.arange(e.start, e.stop))
-    return A / np.tile(np.repeat(sig**2, 3), (e.stop - e.start) // 6)
+def _positive_part(extra: np.ndarray) -> np.ndarray:
+    """The positive part of a symmetric matrix: what covers both readings it compares."""
+    w, V = np.linalg.eigh(0.5 * (extra + extra.T))
+    cover = (V * np.clip(w, 0.0, None)) @ V.T
+    return 0.5 * (cover + cover.T)
+
+
+def _sandwich(A: np.ndarray, basis: np.ndarray, level: float, prior: float) -> np.ndarray:
+    """``A (level^2 basis basis' - prior I) A'``: the response ``A`` (k, n) to n corrections'
+    prior means, their true covariance a field along ``basis`` (n, d) against the prior's."""
+    B = A @ basis
+    field = level**2 * (B @ B.T)
+    return field - prior * (A @ A.T) if prior else field
 
 
 def _untold_trends(m: BundleModel) -> tuple[np.ndarray, list[bool]]:
-    """Whether the images could tell the orientation groups' trends: per axis (rotation,
-    translation), the trend's level went to the floor (its share below a tenth of the frames');
-    per trend group, it is too short to tell a trend from its frames' scatter (fewer degrees of
-    freedom left to the scatter than the trend takes)."""
+    """Per axis, whether the groups' trend level went to the floor (below a tenth of the
+    frames'); per group, whether it is too short to tell a trend from its scatter."""
     st = m.st
     sig = np.asarray(m.pose_sigma, float)
     tau = np.asarray(m.trend_sigma, float) if "V" in m.slices else np.zeros(2)
-    floored = tau * m.trend_spread < 0.1 * sig
+    floored = tau * m.trend_spread < SHARED_LEVEL_SHARE * sig
     short = [
         len(np.flatnonzero(st.trend_groups == g)) - 1 - d < d for g, d in enumerate(st.trend_dims)
     ]
     return floored, short
 
 
-def smooth_arm_excess(
-    out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
-) -> np.ndarray | None:
-    """What the covariance of the optimiser's coordinates (P, P; symmetric, not PSD) gains when
-    the frames' own pose corrections, modelled independent, are in truth a linear trend along
-    the moves of their orientation group, in the axes (rotation, translation) whose trend the
-    images could not resolve; None when there is nothing to add (docs/ROBOT_ACCURACY.md).
+#: The ways the arm's smooth error no image places is seen (:func:`smooth_field_excess`)
+SMOOTH_FIELD_WAYS = ("groups", "field")
 
-    A real arm's error is smooth over the workspace: frames a few centimetres apart err alike.
-    Where the trend's level went to the floor and its group has too few frames to tell a trend
-    from scatter (fewer degrees of freedom left to the scatter than the trend takes, per axis:
-    R1's groups of five frames spanning three directions keep one for three), the data cannot
-    say which share of the frames' error is smooth, and the estimator's spread differs between
-    the readings: a trend of the translation is a scale error of the moves, which reaches the
-    focal lengths, and independent corrections average it down. The estimate stays the model's;
-    its covariance is the sandwich ``C L^-1 S L^-1 C`` over the corrections' prior rows (``C``:
-    the covariance's columns of the corrections, ``L``: their prior variances, ``S``: the
-    corrections' true covariance). Independent (``S = L``) gives the model's own covariance;
-    all trend gives, per group and axis, ``S = tau^2 c c'`` with ``c`` the frames' offsets
-    along the moves and ``tau`` such that the trend carries each frame's level on average. The
-    excess of the second over the first is returned: its positive part (added by
-    :func:`result_covariance`) covers both readings and every mixture of them. With
-    ``project`` (as :func:`level_excess`), the excess of the reported quantities (k, k).
-    """
+
+def smooth_field_excess(
+    out: RefineOutput,
+    project: tuple[np.ndarray, np.ndarray] | None = None,
+    ways: tuple[str, ...] = SMOOTH_FIELD_WAYS,
+) -> np.ndarray | None:
+    """What the covariance gains from the arm's smooth error where no image places it
+    (docs/ERROR_MODEL.md S5', M3): ``A (S - L) A'``, ``A`` the estimate's response to a shift of
+    the frames' corrections' prior means (their covariance columns over their prior variances),
+    ``L`` the prior's covariance of the corrections, ``S`` the field's; each way adds its
+    positive part. None when no way applies. ``project``: the reported quantities' Jacobian
+    (k, u) and the u parameters it uses (else the optimiser's P x P). The ways (``ways``):
+
+    - ``groups``: a group too short to tell its trend from scatter, the trend's level floored:
+      each frame's correction all trend along the group's moves (one orientation's
+      translation always, at least ``MOVE_SCALE_SIGMA`` of the moves: it is the focal length);
+    - ``field``: the translation's linear field over every position, one for all the trends
+      (each modelled at its own ``tau``), at least ``tau``, the shared quadratic field's level
+      and, where the trends could not tell it (floored, too short, one trend over a classic
+      session's positions, or none), ``MOVE_SCALE_SIGMA``. The trends' own coordinates
+      respond through the corrections they add to (a trend is ``V c_k`` on frame k's)."""
     m, st = out.model, out.model.st
-    if out.covariance_blocks is None or "E" not in m.slices or not st.trend_dims:
-        return None
-    if st.trend_groups is None or st.trend_coords is None or m.pose_sigma is None:
+    if out.covariance_blocks is None or "E" not in m.slices or m.pose_sigma is None:
         return None
     sig = np.asarray(m.pose_sigma, float)
-    floored, short = _untold_trends(m)
-    # per group, (rotation, translation): carried; one orientation's translation trend always
-    # (its level is not learned: refine.Structure.trend_scale_fixed)
-    carried = [
-        (bool(floored[0] and s), bool(floored[1] and (s or st.trend_scale_fixed))) for s in short
-    ]
-    if not any(any(c) for c in carried):
-        return None
-    A = _correction_gain(out, project)
-    excess = np.zeros((len(A), len(A)))
-    for g, dims in enumerate(st.trend_dims):
-        k = np.flatnonzero(st.trend_groups == g)
-        if not any(carried[g]):  # the scatter keeps as many dof as the trend takes: the images
-            continue  # tell
-        c = st.trend_coords[k, :dims]
-        rms = np.sqrt(np.mean(np.sum(c**2, axis=1)))
-        c = c / rms  # the trend carries sig per frame
-        # one orientation: the moves' scale is never below an arm's (MOVE_SCALE_SIGMA)
-        level = (sig[0], max(sig[1], MOVE_SCALE_SIGMA * rms) if st.trend_scale_fixed else sig[1])
-        for a in range(6):
-            i = a // 3
-            if carried[g][i]:
-                Ak = A[:, 6 * k + a]
-                B = Ak @ c
-                excess += level[i] ** 2 * (B @ B.T) - sig[i] ** 2 * (Ak @ Ak.T)
-    return excess
-
-
-def common_trend_excess(
-    out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
-) -> np.ndarray | None:
-    """What the covariance gains when the orientation groups' translation trends, modelled
-    independent from group to group, are in truth one field the groups share (symmetric, not
-    PSD: its positive part is added); None without two trend groups (docs/ROBOT_ACCURACY.md).
-
-    A real arm errs alike at one place whatever the orientation: the groups' trends along their
-    moves have a common part. Its rotation is estimated where the session has the frames for
-    it (the shared corrections ``W``, :func:`slidecal.solver.refine.common_trend`); its linear
-    translation never is, because its scales and shears of the moves are the focal lengths and
-    the principal point again (a field that shifts the positions along y in proportion to their
-    depth moves the vanishing point of the depth moves, which the principal point also moves):
-    the images cannot tell them apart, and independent trends average it down over the groups.
-    The estimate stays the model's; its covariance is the sandwich over the trends' prior
-    rows, with each translation trend's prior variance ``tau^2`` shared by every group along
-    the directions they have in common (``C L^-1 S L^-1 C`` as in :func:`smooth_arm_excess`).
-    The shared field's level is the trends' level learned, which measures only how the groups'
-    trends differ; at least the level learned for the quadratic field the groups share, where
-    the session has the frames for one (a smooth field's linear part is no smaller than its
-    quadratic part over the same span); and where the groups could not tell their trends
-    (the level went to the floor, or a group is too short to tell a trend from its scatter), at
-    least ``MOVE_SCALE_SIGMA``: an arm's moves are not known better than 0.1 % in scale."""
-    m, st = out.model, out.model.st
-    if out.covariance_blocks is None or "V" not in m.slices or len(st.trend_dims) < 2:
-        return None
-    if st.T_meas is None or m.trend_sigma is None:
-        return None
-    tau = float(m.trend_sigma[1])
-    # the field's level. The trends' level learned is what tells the groups' trends apart, not
-    # what they share (no image measures that); the quadratic field they share, where the
-    # session learns one, says how much the arm's error varies over the workspace, and a
-    # smooth field's linear part is no smaller than its quadratic part over the same span
-    level = tau
-    if "W" in m.slices and m.common_sigma is not None and np.any(~m.common_rotation_rows):
-        level = max(level, float(m.common_sigma[1]))
-    if m.pose_sigma is not None:  # the groups could not tell their trends (floor or too short):
-        floored, short = _untold_trends(m)  # never below an arm's scale error of its moves
-        if floored[1] or any(short):
-            level = max(level, MOVE_SCALE_SIGMA)
-    sv = m.slices["V"]
-    A = _columns(out, project, np.arange(sv.start, sv.stop)) / tau**2  # gain on the priors
-    axes = list(TREND_AXES)
-    excess = np.zeros((len(A), len(A)))
-    for a in (3, 4, 5):
-        ai = axes.index(a)
-        common = np.zeros((len(A), 3))
+    e = m.slices["E"]
+    A = _columns(out, project, np.arange(e.start, e.stop))
+    A = A / np.tile(np.repeat(sig**2, 3), (e.stop - e.start) // 6)
+    parts = []
+    if "groups" in ways and st.trend_dims and st.trend_coords is not None:
+        floored, short = _untold_trends(m)
+        fixed = st.trend_scale_fixed  # one orientation: its translation trend is not learned
+        excess = None
         for g, dims in enumerate(st.trend_dims):
+            carried = (floored[0] and short[g], floored[1] and (short[g] or fixed))
+            if not any(carried):  # the scatter keeps as many dof as the trend takes
+                continue
             k = np.flatnonzero(st.trend_groups == g)
+            c = st.trend_coords[k, :dims]
+            rms = np.sqrt(np.mean(np.sum(c**2, axis=1)))
+            level = (sig[0], max(sig[1], MOVE_SCALE_SIGMA * rms) if fixed else sig[1])
+            for a in range(6):
+                if carried[a // 3]:
+                    i = a // 3
+                    part = _sandwich(A[:, 6 * k + a], c / rms, level[i], sig[i] ** 2)
+                    excess = part if excess is None else excess + part
+        if excess is not None:
+            parts.append(excess)
+    field = _linear_field(out, A) if "field" in ways else None
+    if field is not None:
+        parts.append(field)
+    return sum(_positive_part(x) for x in parts) if parts else None
+
+
+def _linear_field(out: RefineOutput, A: np.ndarray) -> np.ndarray | None:
+    """:func:`smooth_field_excess`'s ``field`` way over the corrections' gains ``A`` (k, 6 F);
+    None where it does not apply (a one-orientation trend, the user's levels)."""
+    m, st = out.model, out.model.st
+    if st.T_meas is None or len(st.T_meas) < 3:
+        return None
+    if "V" in m.slices:
+        if m.trend_sigma is None or not (len(st.trend_dims) >= 2 or _session_trend(out)):
+            return None
+        tau = float(m.trend_sigma[1])
+        trends = [np.flatnonzero(st.trend_groups == g) for g in range(len(st.trend_dims))]
+        coords = [st.trend_coords[k, :d] for k, d in zip(trends, st.trend_dims, strict=True)]
+        level = tau
+        if "W" in m.slices and m.common_sigma is not None and np.any(~m.common_rotation_rows):
+            level = max(level, float(m.common_sigma[1]))  # its linear part >= the quadratic
+        floored, short = _untold_trends(m)
+        if floored[1] or any(short) or _session_trend(out):
+            level = max(level, MOVE_SCALE_SIGMA)
+    elif getattr(m, "level_redundancy", None):  # no trend modelled, the levels learned
+        tau, level = 0.0, MOVE_SCALE_SIGMA
+        trends = [np.arange(len(st.T_meas))]
+        coords = [np.zeros((len(st.T_meas), 0))]
+    else:
+        return None
+    excess = np.zeros((len(A), len(A)))
+    for a in (3, 4, 5):  # the base frame's axis of the correction
+        common = 0.0
+        for k, c in zip(trends, coords, strict=True):
             d = st.T_meas[k, :3, 3] - st.T_meas[k, :3, 3].mean(axis=0)
-            B = np.linalg.pinv(d) @ st.trend_coords[k, :dims]  # (3, dims): the group's basis
-            o = m.trend_offsets[g] + ai * dims
-            Ag = A[:, o : o + dims]
-            common += Ag @ B.T
-            excess -= tau**2 * (Ag @ Ag.T)
+            if c.shape[1]:  # the field along the trend's own directions (its basis: pinv)
+                d = c @ (np.linalg.pinv(d) @ c).T
+            Ak = A[:, 6 * k + a]
+            common = common + Ak @ d
+            if tau:
+                excess -= tau**2 * ((Ak @ c) @ (Ak @ c).T)
         excess += level**2 * (common @ common.T)
     return excess
 
@@ -400,61 +322,16 @@ def _session_trend(out: RefineOutput) -> bool:
     return len(st.trend_dims) == 1 and not st.trend_scale_fixed and whole
 
 
-def session_trend_excess(
-    out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
-) -> np.ndarray | None:
-    """What the covariance gains (PSD) when a classic session's one trend, over the tool's
-    positions of the whole session, errs in its translation by at least an arm's scale error of
-    its moves (:data:`MOVE_SCALE_SIGMA`); None for any other session or a learned level already
-    above that (docs/ROBOT_ACCURACY.md, "A classic session").
-
-    With every frame at its own orientation, the linear part of the arm's error over the
-    positions (a scale or shear of the moves) reaches the focal lengths through the robot's
-    translations, and the images tell it only as far as they tell the focal lengths alone. Its
-    learned level, from the same frames, comes out below 0.1 % of the moves on most simulated
-    arms, while the arm's error that is not linear in the position (it follows the joints)
-    pulls the robot's share of fx and fy the same way on every frame. The estimate stays the
-    model's; its covariance is the sandwich over the trend's translation rows with their prior
-    variance ``tau^2`` raised to ``MOVE_SCALE_SIGMA^2`` (as :func:`common_trend_excess`)."""
-    m = out.model
-    if not _session_trend(out):
-        return None
-    tau = float(m.trend_sigma[1])
-    if tau >= MOVE_SCALE_SIGMA:
-        return None
-    sv = m.slices["V"]
-    A = _columns(out, project, np.arange(sv.start, sv.stop))[:, ~m.trend_rotation_rows]
-    return (MOVE_SCALE_SIGMA**2 - tau**2) / tau**4 * (A @ A.T)
-
-
-#: The weight of the reading "the arm erred by the linear field the classic session learned"
-#: against "its moves were as reported" (the solve without that field, its levels as learned):
-#: the images cannot tell which, so each is given half (docs/ROBOT_ACCURACY.md, "A classic
-#: session")
-FIELD_WEIGHT = 0.5
-
-
 def session_field_step(out: RefineOutput) -> np.ndarray | None:
-    """The step (P,) of the optimiser's coordinates from the solve of a classic session (one
-    linear trend of the pose corrections over the whole session's positions) to its reading
-    without that field; None for any other session.
-
-    The reading without the field is the solve with the trend held at zero, the levels as
-    learned: to first order the solve's posterior conditioned on ``V = 0``, the step
-    ``-C[:, V] C[V, V]^-1 V``. Where the arm's error is mostly linear over the positions the
-    field takes it; where a scale of the arm's moves is among it, a classic session cannot
-    tell that scale from the hand-eye's translation along the viewing direction, and the
-    trend's level, learned from the same frames, understates it. Neither reading is the
-    better on every arm (docs/ROBOT_ACCURACY.md), so the result is reported between them
-    (:data:`FIELD_WEIGHT`) and their spread is carried in the covariance
-    (:func:`session_field_excess`)."""
+    """A classic session's step (P,) from its solve (one trend over all its positions) to its
+    reading without that field, the levels as learned: to first order ``-C[:, V] C[V, V]^-1
+    V``. The images cannot tell the two readings apart (M5): the result is reported between
+    them at :data:`READING_WEIGHT`. None for any other session."""
     return _without_field(out, out.state.V)
 
 
 def _without_field(out: RefineOutput, V: np.ndarray | None) -> np.ndarray | None:
-    """``-C[:, V] C[V, V]^-1 V`` for a classic session's solve (``V``: the trend's coordinates,
-    (n_V,) or (n_V, k)): the optimiser's step to its reading without the field; None for any
-    other session."""
+    """``-C[:, V] C[V, V]^-1 V`` (``V`` (n_V,) or (n_V, k)) for a classic session; or None."""
     m = out.model
     if not _session_trend(out) or V is None:
         return None
@@ -468,142 +345,51 @@ def _without_field(out: RefineOutput, V: np.ndarray | None) -> np.ndarray | None
 
 
 def reported_response(out: RefineOutput, response: np.ndarray) -> np.ndarray:
-    """The reported value's response (P, k) to what moves the solve by ``response`` (P, k):
-    for a classic session, reported between its readings with and without the field
-    (:func:`session_field_step`), the solve's own plus :data:`FIELD_WEIGHT` times the field
-    step's response (the trend's part of ``response`` taken back); ``response`` itself for any
-    other session. The board's modes reach the result so (its scale: a classic session's
-    reading without the field takes it whole as a shift of the hand-eye along the view, the
-    field's reading partly as an arm scale)."""
+    """The reported value's response (P, k) to what moves the solve by ``response`` (P, k): a
+    classic session's plus :data:`READING_WEIGHT` times its field step's response (the board's
+    modes reach the result so); ``response`` itself for any other session."""
     v = out.model.slices.get("V")
     step = None if v is None else _without_field(out, response[v])
-    return response if step is None else response + FIELD_WEIGHT * step
+    return response if step is None else response + READING_WEIGHT * step
 
 
 def session_field_excess(
     out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
 ) -> np.ndarray | None:
-    """What the covariance gains (PSD) from the two readings of a classic session's linear
-    field (:func:`session_field_step`): their spread about the reported value,
-    ``w (1 - w) d d'`` with ``d`` the reported quantities' step between them and ``w``
-    :data:`FIELD_WEIGHT`; None for any other session."""
+    """M5: the two readings' spread ``w (1 - w) d d'`` (``d`` the step between them,
+    :func:`session_field_step`; ``w`` :data:`READING_WEIGHT`); None for any other session."""
     step = session_field_step(out)
     if step is None:
         return None
     d = step if project is None else project[0] @ step[project[1]]
-    return FIELD_WEIGHT * (1.0 - FIELD_WEIGHT) * np.outer(d, d)
+    return READING_WEIGHT * (1.0 - READING_WEIGHT) * np.outer(d, d)
 
 
-def untold_field_excess(
-    out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
-) -> np.ndarray | None:
-    """What the covariance gains (PSD) from a linear field of the arm's translation error over
-    the tool's positions that the solve does not model (no trend: an eye-to-hand classic
-    session, or one too short for the session's trend), at an arm's scale error of its moves
-    (:data:`MOVE_SCALE_SIGMA` per coefficient); None when the solve models a trend, has no pose
-    corrections or holds the user's levels (docs/ROBOT_ACCURACY.md, "A classic session").
-
-    A frame's translation correction is in the base frame, so the field adds ``M d_k`` to frame
-    k's (``d_k`` its measured position less the session's mean, ``M`` (3, 3) with independent
-    coefficients). The estimate responds to a shift of the corrections' prior means by the
-    covariance's columns of the corrections over their prior variance; the field's share of
-    the covariance is that response's square at the field's level, as the trend's would be
-    with its level at ``MOVE_SCALE_SIGMA`` (:func:`session_trend_excess`)."""
-    m, st = out.model, out.model.st
-    if out.covariance_blocks is None or "E" not in m.slices or "V" in m.slices:
-        return None
-    if st.T_meas is None or m.pose_sigma is None or len(st.T_meas) < 3:
-        return None
-    if not getattr(m, "level_redundancy", None):  # the levels are the user's, not learned
-        return None
-    A = _correction_gain(out, project)
-    D = st.T_meas[:, :3, 3] - st.T_meas[:, :3, 3].mean(axis=0)
-    excess = np.zeros((len(A), len(A)))
-    for a in range(3):  # the base frame's axis of the correction; D's columns: M's row a
-        B = A[:, 3 + a :: 6] @ D
-        excess += MOVE_SCALE_SIGMA**2 * (B @ B.T)
-    return excess
-
-
-#: Fewest frames for the covariance with frames as clusters (:func:`image_misfit_excess`): its
-#: estimate rests on the frames' scores, one term each
+#: Fewest clusters for the sandwich (:func:`cluster_excess`): one score per cluster
 MIN_CLUSTER_FRAMES = 4
-#: Neighbouring corners' residuals correlated beyond this, along their line or across it (and
-#: beyond twice their sampling spread, :func:`neighbour_correlation`): an image's errors are not
-#: independent corner by corner. Independent detections stay below it; below it the frames'
-#: scores would only add their noise.
+#: Neighbours' residual correlation beyond which an image's errors go together (and beyond
+#: twice its sampling spread): independent detections stay below it
 CORRELATED_NEIGHBOURS = 0.05
-
-
-#: An image's residuals beyond what independent errors at the solve's noise give, at this level
-#: over the session's images (Bonferroni): its errors go together though its neighbouring
-#: corners' correlation does not show it (a few corners of one image erring alike: a glare spot,
-#: a flaw of the print, a corner the detector misplaced)
+#: Bonferroni level over the images for one image's misfit (:func:`images_err_together`)
 MISFIT_IMAGE_P = 0.01
-#: ... and its excess over that chi-square's mean at least this share of the session's weighted
-#: squares: the model's covariance, which spreads that excess over every image, understates the
-#: spread it causes by about as much; images that differ a little in sharpness stay below it.
+#: ... read only at least this share of the session's squares: a smaller excess changes little
 MISFIT_IMAGE_SHARE = 0.1
-
-
-def misfit_image(out: RefineOutput) -> tuple[int, float, float] | None:
-    """The image whose residuals independent errors explain least, when they do not and it
-    matters: (frame index, its residuals' rms over the solve's noise, p-value over the
-    session's images), else None (docs/METHOD.md, "The images' errors, image by image").
-
-    With every corner's error its own at the solve's noise ``s``, frame k's weighted sum of
-    squares over ``s^2`` is at most a chi-square on its pixel rows (the parameters take a share
-    of it: counting every row makes the test err on the side of silence). The smallest upper
-    tail over the G frames, times G (Bonferroni), below :data:`MISFIT_IMAGE_P` says that some
-    image's errors go together; it is read when that image's excess is at least
-    :data:`MISFIT_IMAGE_SHARE` of the session's squares."""
-    # an image needs as many corners as its neighbours' correlation does (a lone tag's pose
-    # takes most of its 4 corners' freedom)
-    m = out.model
-    n_px = len(out.residuals)
-    if not out.sigma_px > 0:
-        return None
-    w = m.row_weights[:n_px] if m.row_weights is not None else out.inlier_rows.astype(float)
-    tails, total = [], 0.0
-    for k, rows in m.frame_rows.items():
-        wk, rk = w[rows], out.residuals[rows]
-        n = int(np.count_nonzero(wk > 0))
-        S = float(np.sum(wk * rk * rk)) / out.sigma_px**2
-        total += S
-        if n >= 2 * NEIGHBOUR_MIN_CORNERS:
-            tails.append((float(chdtrc(n, S)), k, float(np.sqrt(S / n)), S - n))
-    if not tails:
-        return None
-    p, k, ratio, excess = min(tails)
-    p = min(p * len(tails), 1.0)
-    return (k, ratio, p) if p < MISFIT_IMAGE_P and excess >= MISFIT_IMAGE_SHARE * total else None
-
-
-#: Fewest orientation groups of two frames or more for the covariance with the groups as
-#: clusters (:func:`group_misfit_excess`): its estimate rests on one score per group
+#: Fewest orientation groups of two frames or more for :func:`grouped_detection_errors`
 MIN_CLUSTER_GROUPS = 5
-#: :func:`grouped_detection_errors` reads the groups' errors below this p-value
+#: The groups' mean residuals' chi-square tail below which they are read
 GROUPED_ERRORS_P = 0.01
 
 
 def grouped_detection_errors(
     out: RefineOutput, groups: np.ndarray
 ) -> tuple[float, int, float] | None:
-    """(statistic, degrees of freedom, p-value) when the detections' errors go together over
-    the frames of an orientation group, and the session's images are too small for the
-    neighbours' correlation or an image's own misfit to tell (fewer than
-    :data:`NEIGHBOUR_MIN_CORNERS` corners per
-    image, the median: a lone tag's 4); else None (docs/METHOD.md, "The images' errors, image by
-    image"). ``groups``: the frames' orientation groups (F,).
-
-    A detector errs alike on a corner seen alike: at one orientation a corner's refinement can
-    be biased by the view's perspective on every frame (a fixed pattern), which no image shows
-    alone. For every group, camera and corner id seen in two frames or more of the group, the
-    mean ``m`` of the ``n`` weighted residuals per axis; with each detection's error its own,
-    ``sum n m^2 / v`` (``v``: the residuals' mean square, which takes what the fit leaves of
-    each residual) is about chi-square with one degree of freedom per cluster and axis. Its
-    upper tail below :data:`GROUPED_ERRORS_P` reads them (with :data:`MIN_CLUSTER_GROUPS`
-    groups or more)."""
+    """(statistic, dof, p-value) when the detections' errors go together over the frames of an
+    orientation group (``groups`` (F,)) in images too small for :func:`images_err_together`
+    (median corners below :data:`NEIGHBOUR_MIN_CORNERS`), else None: a detector biased by one
+    view's perspective errs alike on every frame of it. Per group, camera and corner id seen
+    twice or more, the ``n`` weighted residuals' mean ``m``: ``sum n m^2 / v`` (``v`` their mean
+    square) is about chi-square on two dof each, read below :data:`GROUPED_ERRORS_P` with
+    :data:`MIN_CLUSTER_GROUPS` groups or more."""
     m = out.model
     if not m.chunks or len(groups) != len(m.problem.frames):
         return None
@@ -633,85 +419,58 @@ def grouped_detection_errors(
     return (stat, dof, p) if p < GROUPED_ERRORS_P else None
 
 
-def group_misfit_excess(
+def images_err_together(
     out: RefineOutput,
-    groups: np.ndarray,
-    project: tuple[np.ndarray, np.ndarray] | None = None,
-) -> np.ndarray | None:
-    """What the covariance of the reported quantities gains when the detections' errors are
-    taken together over each orientation group rather than corner by corner: the sandwich with
-    the groups as clusters, ``A^-1 (G / (G - 1) sum_g s_g s_g') A^-1`` (``s_g``: the sum of the
-    group's frames' scores, :meth:`BundleModel.frame_scores`), less the model's covariance
-    (symmetric, not PSD: its positive part is carried); None without a covariance or
-    ``project``, or with fewer than :data:`MIN_CLUSTER_GROUPS` groups. Read when
-    :func:`grouped_detection_errors` says so (the caller's choice)."""
-    m = out.model
-    w_all = getattr(m, "row_weights", None)
-    if project is None or out.covariance_blocks is None or w_all is None:
-        return None
-    if not out.sigma_px > 0:
-        return None
-    Sf = m.frame_scores(out.state, np.asarray(w_all, float))
-    of = np.array([groups[k] for k in m.frame_rows])
-    S = np.array([Sf[of == g].sum(axis=0) for g in np.unique(of)])
-    if len(S) < MIN_CLUSTER_GROUPS:
-        return None
-    return _cluster_excess(out, project, S)
-
-
-def correlated_image_errors(out: RefineOutput) -> tuple[float, int] | None:
-    """The neighbouring corners' residual correlation and its pairs when it says that an
-    image's errors go together (beyond :data:`CORRELATED_NEIGHBOURS` and twice its sampling
-    spread), else None: when :func:`image_misfit_excess` reads the frames' scores."""
+) -> tuple[tuple[float, int] | None, tuple[int, float, float] | None]:
+    """Whether an image's errors go together: ``(correlated, misfit)``. ``correlated``: the
+    neighbours' correlation and pairs (:func:`neighbour_correlation`) when beyond
+    :data:`CORRELATED_NEIGHBOURS` and twice its sampling spread; else ``misfit``: (frame, rms
+    over the noise, p) of the image independent errors explain least, its weighted squares
+    over ``s^2`` against a chi-square on its pixel rows, read below :data:`MISFIT_IMAGE_P`
+    (Bonferroni) with an excess of :data:`MISFIT_IMAGE_SHARE` of the session's squares or more
+    (a glare spot, a misplaced corner). None for each not read."""
     rho, pairs = neighbour_correlation(out)
-    if pairs == 0 or rho < CORRELATED_NEIGHBOURS + 2.0 / np.sqrt(pairs):
-        return None
-    return rho, pairs
-
-
-def image_misfit_excess(
-    out: RefineOutput,
-    project: tuple[np.ndarray, np.ndarray] | None = None,
-    correlated: tuple | None | str = "read",
-) -> np.ndarray | None:
-    """What the covariance of the reported quantities gains when each image's errors are taken
-    together rather than corner by corner (symmetric, not PSD: its positive part is carried);
-    None without a covariance, with fewer than :data:`MIN_CLUSTER_FRAMES` frames or without
-    ``project`` (docs/METHOD.md, "The images' errors, image by image").
-
-    The model's covariance ``s^2 A^-1`` holds when every corner's error is independent of the
-    others'. A real image's are not: neighbouring corners' residuals correlate by 0.47 on
-    real photographs (the lens beyond its model, the print, the light), and the principal point
-    of half a session then lands 2 to 4 of its reported std from the other half's. The
-    covariance that holds whatever the errors within an image are is the sandwich with frames
-    as clusters, ``A^-1 (G / (G - 1) sum_k g_k g_k') A^-1`` over the global parameters
-    (``g_k``: frame k's score, :meth:`BundleModel.frame_scores`; a frame's own pose
-    correction has none at the minimum); the difference from the model's is returned. With
-    independent errors the two agree to the sampling noise of G terms. Read only when
-    ``correlated`` (:func:`correlated_image_errors` of ``out``, or :func:`misfit_image`'s; read
-    here when "read") is not None."""
+    if pairs > 0 and rho >= CORRELATED_NEIGHBOURS + 2.0 / np.sqrt(pairs):
+        return (rho, pairs), None
     m = out.model
-    w_all = getattr(m, "row_weights", None)
-    if project is None or out.covariance_blocks is None or w_all is None:
-        return None
-    if not out.sigma_px > 0 or len(m.frame_rows) < MIN_CLUSTER_FRAMES:
-        return None
-    if correlated == "read":
-        correlated = correlated_image_errors(out) or misfit_image(out)
-    if correlated is None:
-        return None  # each corner's error its own: the model's covariance holds
-    return _cluster_excess(out, project, m.frame_scores(out.state, np.asarray(w_all, float)))
+    n_px = len(out.residuals)
+    if not out.sigma_px > 0:
+        return None, None
+    w = m.row_weights[:n_px] if m.row_weights is not None else out.inlier_rows.astype(float)
+    tails, total = [], 0.0
+    for k, rows in m.frame_rows.items():
+        wk, rk = w[rows], out.residuals[rows]
+        n = int(np.count_nonzero(wk > 0))
+        S = float(np.sum(wk * rk * rk)) / out.sigma_px**2
+        total += S
+        if n >= 2 * NEIGHBOUR_MIN_CORNERS:  # as many corners as the neighbours' test needs
+            tails.append((float(chdtrc(n, S)), k, float(np.sqrt(S / n)), S - n))
+    if not tails:
+        return None, None
+    p, k, ratio, excess = min(tails)
+    p = min(p * len(tails), 1.0)
+    read = p < MISFIT_IMAGE_P and excess >= MISFIT_IMAGE_SHARE * total
+    return None, ((k, ratio, p) if read else None)
 
 
-def _cluster_excess(
-    out: RefineOutput, project: tuple[np.ndarray, np.ndarray], S: np.ndarray
+def cluster_excess(
+    out: RefineOutput, project: tuple[np.ndarray, np.ndarray], clusters: np.ndarray
 ) -> np.ndarray | None:
-    """The sandwich ``A^-1 (G / (G - 1) sum_c s_c s_c') A^-1`` of the reported quantities over
-    the clusters' scores ``S`` (G, P0: global columns) less the model's covariance; None when
-    the reported quantities use a frame's own columns."""
+    """M6: what the reported quantities' covariance (k, k; symmetric, not PSD) gains when the
+    detections' errors go together within each cluster (``clusters`` (F,): each frame's label,
+    the frame itself or its orientation group): ``A^-1 (G / (G - 1) sum_c s_c s_c') A^-1``
+    over the global parameters (``s_c`` the cluster's frames' scores summed) less the model's
+    covariance. None without a covariance, with fewer than :data:`MIN_CLUSTER_FRAMES`
+    clusters, or when the reported quantities use a frame's own columns."""
+    m = out.model
+    if out.covariance_blocks is None or m.row_weights is None or not out.sigma_px > 0:
+        return None
+    Sf = m.frame_scores(out.state, np.asarray(m.row_weights, float))
+    of = np.array([clusters[k] for k in m.frame_rows])
+    S = np.array([Sf[of == c].sum(axis=0) for c in np.unique(of)])
     G, P0 = S.shape
     J, used = project
-    if np.any(used >= P0):
+    if G < MIN_CLUSTER_FRAMES or np.any(used >= P0):
         return None
     gg = out.covariance_blocks.gg[used, :]  # s^2 times the rows of the reduced inverse
     Q = J @ gg  # (k, P0)
@@ -719,10 +478,7 @@ def _cluster_excess(
     return Q @ meat @ Q.T / out.sigma_px**4 - J @ gg[:, used] @ J.T
 
 
-
-#: Fewest corners of an image for its neighbours to enter :func:`neighbour_correlation`: with
-#: fewer, its pose takes most of what its residuals could vary (a lone tag's 4 corners: 8
-#: residuals, 6 pose coordinates), and their correlation says little of the errors'.
+#: Fewest corners of an image for its neighbours to count: with fewer its pose takes their freedom
 NEIGHBOUR_MIN_CORNERS = 12
 
 
@@ -743,20 +499,13 @@ def corner_residuals(out: RefineOutput) -> tuple[np.ndarray, np.ndarray]:
 
 
 def neighbour_correlation(out: RefineOutput) -> tuple[float, int]:
-    """How much the residuals of neighbouring corners of one image go together, and over how
-    many pairs: over every image's neighbour pairs (corners at the target's smallest spacing),
-    the mean product of their weighted residuals along the line through the two corners and,
-    apart, across it, each over the mean square of one coordinate; the larger of the two, and
-    the pairs' count; (0, 0) without a pair. Images with fewer than
-    :data:`NEIGHBOUR_MIN_CORNERS` corners are left out.
-
-    About 0 when each corner's error is its own: simulated detections of independent noise
-    read -0.06 to 0.03 on sessions of 13 frames or more, -0.1 to 0.11 on small ones (the fit
-    itself makes it slightly negative), with a sampling spread of about one over the square
-    root of the pairs. Corners on one line of the board share its edge, and an error of that
-    edge (the print, blur, the light) moves them together across it: the rendered images of
-    mocks/render.py read 0.08-0.17 across and nothing along (-0.03, the fit's share), real
-    photographs (OpenCV's stereo samples, ``tests/data/opencv_left``, ``opencv_right``) 0.47."""
+    """How much neighbouring corners' residuals go together, and over how many pairs: over
+    every image's pairs at the target's smallest spacing, the mean product of their weighted
+    residuals along the pair's line and across it, each over one coordinate's mean square; the
+    larger, and the pairs; (0, 0) without one. About 0 (slightly negative: the fit's share) for
+    independent errors, with a sampling spread of one over the root of the pairs; an edge's
+    error (print, blur, light) moves a line's corners together across it. Images with fewer
+    than :data:`NEIGHBOUR_MIN_CORNERS` corners are left out."""
     m = out.model
     pts = m.problem.target.points_m
     if len(pts) < 2:

@@ -1,28 +1,13 @@
-"""What a real board's tolerance does to the estimate: the covariance it adds.
+"""The board as it is (docs/ERROR_MODEL.md S8): what its bow and print add to a solve.
 
-The model takes the board as described: a flat plane with the pattern printed at its nominal
-scale. Real boards are neither: a printed board bows by a few tenths of a millimetre over half
-a metre, and a print is scaled, stretched along one axis and sheared by a few hundredths of a
-per cent (docs/ROBOT_ACCURACY.md, "The board"). These errors do not average out over frames:
-every frame sees the same board. Their effect depends on the session: with many orientations
-the images tell the board's shape from the camera's, but the focal length still follows the
-bow (a bowl seen face-on looks like a closer or farther board: 0.1-0.3 % of fx on public robot
-data); with one orientation (translation-only sessions) the principal point rests on the
-board's perspective in that one view, which a shear of 0.02 % moves by several pixels.
-
-To first order, the estimator responds to each of five board-shape modes (isotropic scale,
-anisotropy and shear of the print; a bow along x and along y, zero at the board's edges and
-``1`` at its centre line) by ``G = -N^-1 J' W J_n``. The bow is measured: the low-order misfit
-the images show, under the board's flatness as prior. Whether that misfit is the board is
-another matter: a lens the distortion model fits imperfectly leaves a misfit of the same low
-order, and where the frames hold the board at one place in the image (a robot's translation
-groups do) the images cannot say which it is (public robot data: taking the bow off brought
-one board's fx toward the robot's own scale and took the other's away from it). Both readings
-are kept, weighted by :data:`BOW_WEIGHT` (one half): the estimate moves by ``G w bow``, and
-the covariance gains ``G S G'``, ``S`` the modes' second moment about the reported value: for
-the bow the readings' spread and the bow's posterior, ``w (1 - w) bow bow' + w cov(bow)``; for
-the print its tolerance. ``J_n`` is made by differences of the model's residuals with the
-board points moved; ``J' W J_n`` with the solve's own Jacobian (:meth:`BundleModel.pixel_gradient`).
+The model takes the board as described: flat, printed at its nominal scale. A real board bows
+and its print is scaled, stretched and sheared; every frame sees the same board, so these do
+not average out. To first order the estimator responds to each of five modes (scale,
+anisotropy, shear; a bow along x and along y) by ``G = -N^-1 J' W J_n`` (``J_n`` by differences
+of the model's residuals with the board points moved). The bow is estimated under the board's
+flatness as prior; a lens the distortion model misses leaves the same low-order misfit, which
+the images of a robot's session cannot tell from it, so both readings are kept at
+:data:`READING_WEIGHT` (M5); the print is carried at its tolerance (M4).
 """
 
 from __future__ import annotations
@@ -33,17 +18,12 @@ import numpy as np
 
 from slidecal.solver.problem import Target
 
-#: Default one-sigma bow of a board's surface, per metre of its diagonal: 0.2 mm for a board of
-#: 0.65 m, the size real boards show.
+#: Default one-sigma bow per metre of the pattern's diagonal: a real board's 0.2 mm over 0.65 m
 FLATNESS_PER_DIAGONAL = 3e-4
-#: Default one-sigma relative error of the printed pattern: its scale, the difference of its
-#: x and y scales and its shear (a good print on a rigid plate; a paper print from an office
-#: printer errs by 0.1-0.5 %: give that board's ``print_tolerance``).
+#: Default one-sigma relative error of the print's scale, anisotropy and shear: a good plate
 PRINT_TOLERANCE = 2e-4
-#: The weight of the reading "the misfit the images show is the board's bow" against "it is
-#: not the board" (a lens the distortion model fits imperfectly): the images of a robot's
-#: session cannot tell them apart, so each is given half
-BOW_WEIGHT = 0.5
+#: Each of two readings the images cannot tell apart weighs alike (bow or lens; field or none)
+READING_WEIGHT = 0.5
 #: Difference step of the board-shape modes (metres of bow, relative strain)
 _STEP = 1e-6
 
@@ -97,15 +77,11 @@ def shape_modes(target: Target, points_m: np.ndarray) -> list[np.ndarray]:
 
 @dataclass(frozen=True)
 class BoardFit:
-    """The board's shape as the solve sees it (:func:`fit_board`).
-
-    ``bow_m`` (2,): the bow along x and along y (metres at the pattern's centre line, +z into
-    the board) estimated with the parameters, to first order from the flat-board solve;
-    ``bow_cov`` (2, 2) its covariance. ``response`` (P, 5): the optimiser's coordinates per
-    unit of each mode (:func:`shape_modes`) at the flat-board solve; ``mode_cov`` (5, 5): the
-    modes' second moment about the reported value (the print's tolerance; the bow's two
-    readings, module docstring).
-    """
+    """The board's shape as the solve sees it (:func:`fit_board`): ``bow_m`` (2,) the bow along
+    x and y (metres at the centre line, +z into the board) and ``bow_cov`` its covariance;
+    ``response`` (P, 5) the optimiser's coordinates per unit of each mode
+    (:func:`shape_modes`); ``mode_cov`` (5, 5) the modes' second moment about the reported
+    value: the print's tolerance, the bow's two readings ``w cov(bow) + w (1 - w) bow bow'``."""
 
     bow_m: np.ndarray
     bow_cov: np.ndarray
@@ -114,28 +90,16 @@ class BoardFit:
 
     @property
     def shift(self) -> np.ndarray:
-        """The optimiser's coordinates' step (P,) from the flat-board solve to the reported
-        value: the bow's response at its reading's weight."""
-        return BOW_WEIGHT * (self.response[:, 3:] @ self.bow_m)
+        """The step (P,) from the flat-board solve to the reported value: ``G w bow``."""
+        return READING_WEIGHT * (self.response[:, 3:] @ self.bow_m)
 
 
 def fit_board(problem, out) -> BoardFit | None:  # noqa: ANN001 - CalibrationProblem, RefineOutput
-    """The board's bow estimated jointly with the parameters, to first order, and what the
-    board's tolerance leaves uncertain; None without a covariance or with a tolerance of 0.
-
-    With ``N = J' W J`` the solve's normal matrix (its covariance over ``s^2``), ``J_n`` the
-    residuals' change per unit of each mode (differences of the model's residuals with the
-    board points moved) and ``b = J' W J_n``: a mode moves the estimate by ``G = -N^-1 b`` per
-    unit. The bow's two modes are estimated as parameters would be, their prior the board's
-    flatness: ``C = J_n' W J_n + b' G`` is their information after the parameters',
-    ``bow = -(C + L)^-1 (J_n' W r + G' g)`` (``L = s^2 / flatness^2``, ``r`` the pixel
-    residuals, ``g`` the solve's whole gradient, priors included), its covariance
-    ``s^2 (C + L)^-1``. The parameters move by ``G w bow`` (:attr:`BoardFit.shift`; the
-    covariance and the residuals are the flat board's solve's), ``w`` the weight of the
-    reading that the misfit is the board (module docstring): the readings' spread ``w (1 - w)
-    bow bow'``, the bow's posterior at ``w`` and the print's tolerance are carried as
-    uncertainty (``mode_cov``).
-    """
+    """The board's bow estimated with the parameters, to first order, and what the board's
+    tolerance leaves uncertain; None without a covariance or with a tolerance of 0. With
+    ``b = J' W J_n`` and ``G = -N^-1 b``: ``C = J_n' W J_n + b' G`` is the bow's information
+    after the parameters', ``bow = -(C + L)^-1 (J_n' W r + G' g)`` (``L = s^2 / flatness^2``,
+    ``g`` the solve's whole gradient), its covariance ``s^2 (C + L)^-1``."""
     m, state = out.model, out.state
     sig = tolerances(problem.target)
     if out.covariance_blocks is None or m.row_weights is None or not out.sigma_px > 0:
@@ -168,15 +132,15 @@ def fit_board(problem, out) -> BoardFit | None:  # noqa: ANN001 - CalibrationPro
         post = np.linalg.inv(C + (out.sigma_px / sig[3]) ** 2 * np.eye(2))
         bow, bow_cov = -post @ g, out.sigma_px**2 * post
     mode_cov = np.diag(np.r_[sig[:3] ** 2, 0.0, 0.0])
-    mode_cov[3:, 3:] = BOW_WEIGHT * bow_cov + BOW_WEIGHT * (1.0 - BOW_WEIGHT) * np.outer(bow, bow)
+    w = READING_WEIGHT
+    mode_cov[3:, 3:] = w * bow_cov + w * (1.0 - w) * np.outer(bow, bow)
     return BoardFit(bow, 0.5 * (bow_cov + bow_cov.T), G, mode_cov)
 
 
 def shape_excess(out, project) -> np.ndarray | None:  # noqa: ANN001 - RefineOutput
-    """What the covariance of the reported quantities (k, k) gains from the board's shape
-    (``out.board``, :class:`BoardFit`): ``G S G'`` with ``S`` the modes' second moment, ``G``
-    mapped by ``project`` = (the reported quantities' Jacobian (k, u), the u parameters it
-    uses); None without a board fit."""
+    """What the reported quantities' covariance (k, k) gains from the board (``out.board``):
+    ``G S G'``, ``S`` the modes' second moment, through ``project`` (J (k, u), the u parameters
+    it uses); None without a board fit."""
     fit = getattr(out, "board", None)
     if fit is None:
         return None

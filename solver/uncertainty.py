@@ -50,14 +50,13 @@ from slidecal.solver.problem import (
 from slidecal.solver.refine import SIGMA_FLOOR, RefineOutput, common_trend, translation_trends
 from slidecal.solver.result import ROT, TRANS, NamedCovariance
 from slidecal.solver.robot_error import (
-    FIELD_WEIGHT,
     ImageErrors,
     covariance_terms,
     image_errors,
     reported_response,
     session_field_step,
 )
-from slidecal.solver.target_shape import BoardFit, fit_board
+from slidecal.solver.target_shape import READING_WEIGHT, BoardFit, fit_board
 
 
 # -- the optimiser's coordinates ------------------------------------------------------------------
@@ -250,20 +249,12 @@ def _used(J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def result_covariance(
-    problem: CalibrationProblem,
-    out: RefineOutput,
-    correlated: tuple | None | str = "read",
-    grouped: np.ndarray | None = None,
+    problem: CalibrationProblem, out: RefineOutput, images: ImageErrors, groups: np.ndarray
 ) -> tuple[tuple[str, ...], NamedCovariance | None]:
     """The reported quantities of a refinement (``RefineOutput``) of ``problem`` and their
-    named covariance (None when the refinement has none). ``correlated``: what
-    :func:`correlated_image_errors` (or else :func:`misfit_image`) says of ``out``, when the
-    caller has it ("read": read it here). ``grouped``: the frames' orientation groups when
-    :func:`grouped_detection_errors` says their detections' errors go together (then the
-    covariance carries :func:`group_misfit_excess`).
-
-    The model's own covariance ``J C J'`` of the reported quantities, plus every term of the
-    error model (:func:`slidecal.solver.robot_error.covariance_terms`)."""
+    named covariance (None when the refinement has none): the model's own ``J C J'`` plus
+    every term of the error model (:func:`slidecal.solver.robot_error.covariance_terms`;
+    ``images``: how the images' errors read, ``groups`` (F,): the orientation groups)."""
     layout = layout_of(problem, out.model.st, out.state)
     if out.covariance_blocks is None:
         return reported_names(layout, out.names), None
@@ -271,7 +262,7 @@ def result_covariance(
     project = _used(J)  # the reported quantities from the parameters they use
     C = project[0] @ out.covariance_blocks.submatrix(project[1], project[1]) @ project[0].T
     named = NamedCovariance(names, 0.5 * (C + C.T))
-    for extra in covariance_terms(problem, out, project, correlated, grouped):
+    for extra in covariance_terms(problem, out, project, images, groups):
         named = NamedCovariance(names, named.matrix + extra)
     return names, named
 
@@ -279,14 +270,10 @@ def result_covariance(
 # -- a finished solve, as reported ------------------------------------------------------------
 @dataclass(frozen=True)
 class Reported:
-    """A finished solve as it is reported (:func:`reported_covariance`).
-
-    ``state``: the reported value (the solve's, moved between the readings of the board's
-    misfit and of a classic session's linear field); ``names``: the reported quantities;
-    ``covariance``: theirs (None when the solve has none); ``board``: the board's fit (None for
-    a board taken as exact); ``images``: how the images' errors were read; ``field_step``: a
-    classic session's step (P,) to its reading without the arm's linear field, else None.
-    """
+    """A finished solve as reported (:func:`reported_covariance`): ``state`` the reported value,
+    ``names`` and ``covariance`` (None without one) the reported quantities', ``board`` the
+    board's fit (None for an exact board), ``images`` how the images' errors read,
+    ``field_step`` a classic session's step to its reading without its field (else None)."""
 
     state: ModelState
     names: tuple[str, ...]
@@ -303,31 +290,25 @@ def reported_covariance(
     board_scale: float = 0.0,
 ) -> Reported:
     """The one way from a finished solve (``out`` of ``problem``; ``groups`` (F,): its frames'
-    orientation groups) to its reported value and covariance, whatever the session:
-
-    1. the board: its bow and print scale (:func:`slidecal.solver.target_shape.fit_board`), the
-       scale at least ``board_scale`` (a classic session's unexplained length ratio, relative;
-       :func:`with_session_scale`), its response taken at the reported value;
-    2. the images: whether their errors go together, image by image or over an orientation
-       group (:func:`slidecal.solver.robot_error.image_errors`);
-    3. the covariance: the model's own, plus every term of the error model
-       (:func:`result_covariance`, :func:`slidecal.solver.robot_error.covariance_terms`);
-    4. the value: the solve's, moved by the board's fit and halfway to a classic session's
-       reading without its linear field (:data:`~slidecal.solver.robot_error.FIELD_WEIGHT`).
-    """
+    orientation groups) to its reported value and covariance, whatever the session
+    (docs/ERROR_MODEL.md Sec. 3): the board's fit (its scale at least ``board_scale``, a
+    classic session's unexplained length ratio; its response at the reported value), how the
+    images' errors read, the model's covariance plus every term of the error model
+    (:func:`result_covariance`), and the value moved by the board's fit and halfway
+    (:data:`~slidecal.solver.target_shape.READING_WEIGHT`) to a classic session's reading
+    without its field."""
     board = with_session_scale(problem, out, fit_board(problem, out), board_scale)
     if board is not None:  # its modes' response at the reported value (a classic session's)
         board = replace(board, response=reported_response(out, board.response))
         out = replace(out, board=board)
     images = image_errors(problem, out, groups)
-    grouped = groups if images.grouped is not None else None
-    names, named = result_covariance(problem, out, images.correlated or images.misfit, grouped)
+    names, named = result_covariance(problem, out, images, groups)
     state = out.state
     if board is not None:  # between the readings of the board's misfit (target_shape.py)
         state = out.model.apply(state, board.shift)
     field_step = session_field_step(out)  # a classic session: with its arm's field or not
     if field_step is not None:
-        state = out.model.apply(state, FIELD_WEIGHT * field_step)
+        state = out.model.apply(state, READING_WEIGHT * field_step)
     return Reported(state, names, named, board, images, field_step)
 
 

@@ -1,6 +1,6 @@
 """An image's errors taken together: the frames' scores, the neighbouring corners' residual
 correlation that decides whether they are read, and what that does on real photographs
-(solver/robot_error.py ``image_misfit_excess``, docs/METHOD.md Sec. 6)."""
+(solver/robot_error.py ``cluster_excess``, docs/METHOD.md Sec. 6)."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from slidecal.solver.calibrate import calibrate
 from slidecal.solver.robot_error import (
     CORRELATED_NEIGHBOURS,
     _neighbour_pairs,
-    misfit_image,
+    images_err_together,
     neighbour_correlation,
 )
 
@@ -145,7 +145,7 @@ def test_an_edge_error_shared_along_the_board_lines_is_read(monkeypatch):
     res, out = _solve_keeping_the_refinement(problem, monkeypatch)
     rho, pairs = neighbour_correlation(out)
     assert rho > CORRELATED_NEIGHBOURS + 2.0 / np.sqrt(pairs)
-    assert named_mod.correlated_image_errors(out) == (rho, pairs)
+    assert images_err_together(out)[0] == (rho, pairs)
     assert any("neighbouring corners go together" in m for m in res.messages)
     # the two directions pooled (their mean) read half: under the previous gate of 0.1
     assert _pooled(out) < 0.1 + 2.0 / np.sqrt(pairs)
@@ -178,7 +178,7 @@ def test_a_lone_tag_says_nothing_of_its_corners_correlation(monkeypatch):
     s = one_tag_session(np.random.default_rng(1087), one_tag_geometry())  # one of the nine
     _, out = _solve_keeping_the_refinement(s.problem, monkeypatch)
     assert neighbour_correlation(out) == (0.0, 0)
-    assert named_mod.correlated_image_errors(out) is None
+    assert images_err_together(out)[0] is None
 
 
 def test_real_photographs_carry_their_correlated_errors(tmp_path, monkeypatch):
@@ -251,9 +251,9 @@ def test_a_small_misfit_of_one_image_among_many_is_not_read(monkeypatch):
     s = sc.r1_real_arm(np.random.default_rng(2001))
     problem, _ = _glare(s.problem, 5, 0.6)
     res, out = _solve_keeping_the_refinement(problem, monkeypatch)
-    assert misfit_image(out) is None
+    assert images_err_together(out)[1] is None
     monkeypatch.setattr(named_mod, "MISFIT_IMAGE_SHARE", 0.0)
-    assert misfit_image(out)[0] == 5
+    assert images_err_together(out)[1][0] == 5
 
 
 def test_independent_detections_leave_every_image_within_its_noise(monkeypatch):
@@ -261,7 +261,7 @@ def test_independent_detections_leave_every_image_within_its_noise(monkeypatch):
         _, out = _solve_keeping_the_refinement(
             sc.r1_real_arm(np.random.default_rng(seed)).problem, monkeypatch
         )
-        assert misfit_image(out) is None
+        assert images_err_together(out)[1] is None
 
 
 def test_a_few_corners_of_one_image_erring_together_are_read(monkeypatch):
@@ -275,7 +275,7 @@ def test_a_few_corners_of_one_image_erring_together_are_read(monkeypatch):
     res, out = _solve_keeping_the_refinement(problem, monkeypatch)
     rho, pairs = neighbour_correlation(out)
     assert rho < CORRELATED_NEIGHBOURS + 2.0 / np.sqrt(pairs)  # the neighbours do not tell
-    frame, ratio, p = misfit_image(out)
+    frame, ratio, p = images_err_together(out)[1]
     assert frame == 5 and ratio > 1.3 and p < named_mod.MISFIT_IMAGE_P
     note = [m for m in res.messages if "image by image" in m]
     assert len(note) == 1 and f"frame {problem.frames[5].id} are" in note[0]

@@ -281,7 +281,8 @@ def test_a_classic_sessions_linear_field_is_read_both_ways(monkeypatch):
 
     from slidecal.solver.geometry import inv_T
     from slidecal.solver.refine import _refine
-    from slidecal.solver.robot_error import FIELD_WEIGHT, session_field_step
+    from slidecal.solver.robot_error import session_field_step
+    from slidecal.solver.target_shape import READING_WEIGHT
     from slidecal.solver.uncertainty import layout_of, named_step
 
     s = sc.classic_real_arm(np.random.default_rng(2006), arm_scale=0.005)
@@ -309,7 +310,7 @@ def test_a_classic_sessions_linear_field_is_read_both_ways(monkeypatch):
     np.testing.assert_allclose(step_t, moved_t, rtol=0.05, atol=2e-5)
     np.testing.assert_allclose(step_r, moved_r, rtol=0.05, atol=2e-5)
     # reported halfway, the spread in the covariance, and said
-    np.testing.assert_allclose(res.hand_eye.t_m, X0[:3, 3] + FIELD_WEIGHT * step_t, atol=2e-5)
+    np.testing.assert_allclose(res.hand_eye.t_m, X0[:3, 3] + READING_WEIGHT * step_t, atol=2e-5)
     tz = res.parameter_names.index("T_tool_cam.tz")
     assert res.covariance[tz, tz] >= 0.25 * step_t[2] ** 2
     assert any("read without that field" in line for line in res.messages)
@@ -329,12 +330,12 @@ def test_smooth_arm_cover_widens_what_the_groups_cannot_tell(monkeypatch):
     # moves from the frames' scatter (the trend's level goes to the floor); the reported
     # covariance covers the estimator's spread under both readings: never below the model's
     # own, the focal lengths (a trend of the translation is a scale error of the moves) wider
-    from slidecal.solver.robot_error import smooth_arm_excess
+    from slidecal.solver.robot_error import smooth_field_excess
     from slidecal.solver.uncertainty import layout_of, propagate
 
     s = sc.r1_real_arm(np.random.default_rng(2000))
     res, out = _solve_keeping_the_refinement(s.problem, monkeypatch)
-    assert smooth_arm_excess(out) is not None
+    assert smooth_field_excess(out, ways=("groups",)) is not None
     own = propagate(layout_of(s.problem, out.model.st, out.state), out.names, out.covariance)
     reported = res.named_covariance
     assert reported.names == own.names
@@ -352,12 +353,12 @@ def test_smooth_arm_cover_leaves_exact_poses_alone_and_carries_one_orientations_
     # translation error is all trend is carried, on the translation axes only (the drifting
     # arm's rotation trend is learned, not carried)
     from slidecal.solver.refine import SIGMA_FLOOR
-    from slidecal.solver.robot_error import smooth_arm_excess
+    from slidecal.solver.robot_error import smooth_field_excess
 
     _, out = _solve_keeping_the_refinement(
         sc.r1(np.random.default_rng(7), 0.15, 0.0, 0.0).problem, monkeypatch
     )
-    assert smooth_arm_excess(out) is None
+    assert smooth_field_excess(out, ways=("groups",)) is None
     for s, drifts in (
         (drifting_arm(np.random.default_rng(7))[0], True),
         (sc.r1_real_arm(np.random.default_rng(2000), translations_only=True), False),
@@ -367,7 +368,7 @@ def test_smooth_arm_cover_leaves_exact_poses_alone_and_carries_one_orientations_
         assert m.st.trend_scale_fixed and m.trend_sigma[1] == SIGMA_FLOOR[1]
         if drifts:  # the drifting arm's rotation trend is learned
             assert m.trend_sigma[0] * m.trend_spread > 0.1 * m.pose_sigma[0]
-        extra = smooth_arm_excess(out)
+        extra = smooth_field_excess(out, ways=("groups",))
         assert extra is not None and np.trace(extra) > 0.0
 
 
@@ -472,6 +473,33 @@ def test_unobserved_tool_offset_gain_is_the_response_of_a_solve(monkeypatch):
     assert tool_offset_gain(p, exact, (J[:, used], used)) is None
 
 
+def test_a_trend_moves_the_result_as_the_corrections_it_adds_to(monkeypatch):
+    # a trend adds V c_k to frame k's correction E_k, so shifting its prior mean by one unit
+    # moves the reported quantities as shifting every frame's correction by c_k does: the
+    # field way of smooth_field_excess reads every trend through the frames' corrections
+    from slidecal.solver.model import TREND_AXES
+    from slidecal.solver.robot_error import _columns
+    from slidecal.solver.uncertainty import _jacobian, _used, layout_of
+
+    s = sc.tag_real_arm(np.random.default_rng(10), n_frames=70)
+    _, out = _solve_keeping_the_refinement(s.problem, monkeypatch)
+    m, st = out.model, out.model.st
+    assert "V" in m.slices and len(st.trend_dims) >= 2
+    project = _used(_jacobian(layout_of(s.problem, st, out.state), tuple(out.names))[1])
+    e, v = m.slices["E"], m.slices["V"]
+    sig, tau = np.asarray(m.pose_sigma, float), np.asarray(m.trend_sigma, float)
+    A_E = _columns(out, project, np.arange(e.start, e.stop))
+    A_E = A_E / np.tile(np.repeat(sig**2, 3), (e.stop - e.start) // 6)
+    A_V = _columns(out, project, np.arange(v.start, v.stop))
+    for g, dims in enumerate(st.trend_dims):
+        k = np.flatnonzero(st.trend_groups == g)
+        for ai, a in enumerate(TREND_AXES):
+            o = m.trend_offsets[g] + ai * dims
+            via_v = A_V[:, o : o + dims] / tau[a // 3] ** 2
+            via_e = A_E[:, 6 * k + a] @ st.trend_coords[k, :dims]
+            np.testing.assert_allclose(via_e, via_v, rtol=1e-6, atol=1e-9 * np.abs(via_v).max())
+
+
 def test_untold_field_gain_is_the_response_of_a_solve(monkeypatch):
     # a classic eye-to-hand session (28 frames, each at its own orientation) keeps independent
     # pose corrections: no trend over the tool's positions. The covariance carries a linear
@@ -479,7 +507,7 @@ def test_untold_field_gain_is_the_response_of_a_solve(monkeypatch):
     # the estimate's response to it; that response, to first order, is what re-solving with the
     # measured positions moved by the field gives (the levels held at the learned ones)
     from slidecal.solver.refine import _refine
-    from slidecal.solver.robot_error import MOVE_SCALE_SIGMA, untold_field_excess
+    from slidecal.solver.robot_error import MOVE_SCALE_SIGMA, _session_trend, smooth_field_excess
     from slidecal.solver.uncertainty import _jacobian, _used, layout_of
 
     s = sc.classic_real_arm(np.random.default_rng(2005), eye_in_hand=False)
@@ -488,7 +516,7 @@ def test_untold_field_gain_is_the_response_of_a_solve(monkeypatch):
     assert "E" in m.slices and "V" not in m.slices
     names, J = _jacobian(layout_of(s.problem, m.st, out.state), tuple(out.names))
     project = _used(J)
-    extra = untold_field_excess(out, project)
+    extra = smooth_field_excess(out, project, ("field",))
     assert extra is not None
     assert np.all(np.linalg.eigvalsh(extra) > -1e-12 * np.abs(extra).max())
     rows = [names.index(f"cam.{p}") for p in ("fx", "fy", "cx", "cy")]
@@ -516,20 +544,19 @@ def test_untold_field_gain_is_the_response_of_a_solve(monkeypatch):
     assert want[:2].min() > 0.2 * res.cameras["cam"].std["fx"]  # the field matters to fx, fy
     np.testing.assert_allclose(got, want, rtol=0.15, atol=0.02)
     # the trend an eye-in-hand classic session learns is carried at no less than 0.1 %
-    from slidecal.solver.robot_error import session_trend_excess
 
     e = sc.classic_real_arm(np.random.default_rng(2135))
     res_e, out_e = _solve_keeping_the_refinement(e.problem, monkeypatch)
     assert "V" in out_e.model.slices and out_e.model.trend_sigma[1] < MOVE_SCALE_SIGMA
     names_e, J_e = _jacobian(layout_of(e.problem, out_e.model.st, out_e.state), out_e.names)
-    more = session_trend_excess(out_e, _used(J_e))
-    assert more is not None and untold_field_excess(out_e, _used(J_e)) is None
+    more = smooth_field_excess(out_e, _used(J_e), ("field",))  # the trend's, not one untold
+    assert more is not None and _session_trend(out_e) and "V" in out_e.model.slices
     assert np.all(np.linalg.eigvalsh(more) > -1e-12 * np.abs(more).max())
     assert more[names_e.index("cam.fx"), names_e.index("cam.fx")] > 0.0
     # R1's groups have trends of their own, and exact poses carry no correction: neither adds
     for scen in (sc.r1_real_arm(np.random.default_rng(2000)), sc.r1(np.random.default_rng(7))):
         _, o = _solve_keeping_the_refinement(scen.problem, monkeypatch)
-        assert session_trend_excess(o) is None and untold_field_excess(o) is None
+        assert not _session_trend(o) and ("V" in o.model.slices or "E" not in o.model.slices)
 
 
 def test_a_classic_sessions_board_reaches_the_result_between_its_two_readings(monkeypatch):
@@ -544,8 +571,8 @@ def test_a_classic_sessions_board_reaches_the_result_between_its_two_readings(mo
 
     from slidecal.solver.geometry import inv_T
     from slidecal.solver.refine import _refine
-    from slidecal.solver.robot_error import FIELD_WEIGHT, reported_response, session_field_step
-    from slidecal.solver.target_shape import fit_board
+    from slidecal.solver.robot_error import reported_response, session_field_step
+    from slidecal.solver.target_shape import READING_WEIGHT, fit_board
     from slidecal.solver.uncertainty import layout_of, named_step
 
     s = sc.classic_real_arm(np.random.default_rng(2006), arm_scale=0.005)
@@ -571,8 +598,8 @@ def test_a_classic_sessions_board_reaches_the_result_between_its_two_readings(mo
         return named_step(layout, tuple(out.names), eps * response[:, 0])["T_tool_cam.tz"]
 
     moved_with = tz(r) - tz(base)
-    moved_reported = tz(r, FIELD_WEIGHT * session_field_step(r)) - tz(
-        base, FIELD_WEIGHT * session_field_step(base)
+    moved_reported = tz(r, READING_WEIGHT * session_field_step(r)) - tz(
+        base, READING_WEIGHT * session_field_step(base)
     )
     rep = reported_response(out, G)
     # the readings take the scale unlike: here the field's moves tz by +0.12 mm, the reported
