@@ -7,7 +7,7 @@ trend of the translation along the moves from the one group, estimated the frame
 at 0.05 mm and reported fx to 0.042 % where it was 0.136 % off (3.2 std; cy 4.2 std). One
 orientation's translation trend is a scale of the moves, which is the focal length's: its level
 is no longer learned from the images, and the reading that the frames' translation error is
-all trend is carried in the covariance (solver/robot_error.py ``smooth_arm_excess``); 40 such
+all trend is carried in the covariance (solver/robot_error.py ``smooth_field_excess``); 40 such
 sessions: fx, cy rms error/std 0.75, 0.97, none beyond 3 (``python tests/blackbox.py
 --translation-seeds 40``).
 """

@@ -324,10 +324,10 @@ def main(argv: list[str] | None = None) -> int:
         f"{100 * P_3SIGMA**args.trials:.0f} %: abs(error)/std <= 3 on every seed is a statement "
         "about the tail that a calibrated estimator meets only by luck at this many trials.",
         "",
-        "The covariance covers the arm's smooth error (docs/ROBOT_ACCURACY.md): where an "
+        "The covariance covers the arm's smooth error (docs/ERROR_MODEL.md): where an "
         "orientation group has too few frames to tell a linear trend of the pose error along its "
         "moves from the frames' scatter (R1's groups of five), the reported covariance is the "
-        "larger of the estimator's spread under both readings (`smooth_arm_excess`); a "
+        "larger of the estimator's spread under both readings (`smooth_field_excess`, way `groups`); a "
         "one-orientation session (the two 13-frame rows) does not learn its translation trend, "
         "which is a scale of the moves and so the focal length's, and always carries that "
         "reading on the translation axes, at no less than 0.1 % of the moves. Where one "
@@ -347,9 +347,9 @@ def main(argv: list[str] | None = None) -> int:
         "board), on the same arm. No orientation group has a trend of its own; eye-in-hand, "
         "the session gets one linear trend of the pose corrections over the tool's positions "
         "(`SESSION_TREND_MIN_FRAMES`), whose translation the covariance carries at no less "
-        "than 0.1 % of the moves (`session_trend_excess`); eye-to-hand, the corrections stay "
+        "than 0.1 % of the moves (`smooth_field_excess`, way `field`); eye-to-hand, the corrections stay "
         "independent and the covariance carries a linear field of the translations over the "
-        "positions at that level (`untold_field_excess`). Eye-in-hand, the result is reported "
+        "positions at that level (`smooth_field_excess`, way `field`). Eye-in-hand, the result is reported "
         "halfway between the readings with and without that trend, their spread in its "
         "covariance (`session_field_step`); the long-armed row (points only) puts the arm's "
         f"positions {100 * LONG_ARM:.1f} % further from its base than reported "
@@ -364,7 +364,7 @@ def main(argv: list[str] | None = None) -> int:
         "loosely. Besides each group's offset and trend, the groups share a trend of the "
         "rotation and a quadratic field of the translation (`common_trend`), and the covariance "
         "covers the reading where their translation trends are one field "
-        "(`common_trend_excess`).",
+        "(`smooth_field_excess`, way `field`).",
         "",
         *reality_table(rows),
         "",
