@@ -501,52 +501,70 @@ def _refine(
 ) -> RefineOutput:
     """The solve behind :func:`refine`; ``estimate``: estimate the pose prior's sigmas and each
     camera's noise by variance components (the structure must carry pose corrections)."""
-    model = BundleModel(problem, structure)
-    n_px = model.n_rows
-    n_prior = 6 * len(problem.frames) if "E" in model.slices else 0
-    n_groups_u = 0
-    if "U" in model.slices:
-        n_groups_u = (model.slices["U"].stop - model.slices["U"].start) // 6
-        n_prior += 6 * n_groups_u
-    n_trend = model.slices["V"].stop - model.slices["V"].start if "V" in model.slices else 0
-    n_common = model.slices["W"].stop - model.slices["W"].start if "W" in model.slices else 0
-    n_prior += n_trend + n_common
-    estimate = estimate and n_prior > 0
-    inlier = np.ones(n_px + n_prior, dtype=bool)
-    cam_w = np.ones(n_px + n_prior)  # per-camera noise weights, relative to the reference
-    cam_rows = [model.camera_rows(ci, n_px + n_prior) for ci in range(len(model.cams))]
-    state = _respect_options(problem, init)
-    if n_prior:
-        state = with_pose_corrections(state, len(problem.frames), n_groups_u, n_trend, n_common)
-    model.sigma_px = 0.2  # a typical corner noise; re-estimated below when poses are noisy
-    total_it = 0
-    converged = False
-    P = len(model.names)
-    n_obs_rows = max(n_px, 1)
+    s = _Solve(problem, structure, init, estimate)
+    s.iterate(max_iter, robust)
+    return s.output()
 
-    def noise(r: np.ndarray, w: np.ndarray) -> float:
-        dof = max(int(np.sum(w[:n_px] > 0)) + n_prior - P, 1)
+
+_ROT_ROWS = np.array([True, True, True, False, False, False])
+
+
+class _Solve:
+    """One solve's mutable state: the model, the state, the inlier rows and per-camera weights,
+    and the variance components' iteration (Foerstner's steps with Steffensen's acceleration)."""
+
+    def __init__(
+        self, problem: CalibrationProblem, structure: Structure, init: ModelState, estimate: bool
+    ) -> None:
+        model = BundleModel(problem, structure)
+        self.problem, self.model = problem, model
+        n_px = model.n_rows
+        n_prior = 6 * len(problem.frames) if "E" in model.slices else 0
+        n_groups_u = 0
+        if "U" in model.slices:
+            n_groups_u = (model.slices["U"].stop - model.slices["U"].start) // 6
+            n_prior += 6 * n_groups_u
+        n_trend = model.slices["V"].stop - model.slices["V"].start if "V" in model.slices else 0
+        n_common = model.slices["W"].stop - model.slices["W"].start if "W" in model.slices else 0
+        n_prior += n_trend + n_common
+        self.n_px, self.n_prior = n_px, n_prior
+        self.estimate = estimate and n_prior > 0
+        self.inlier = np.ones(n_px + n_prior, dtype=bool)
+        self.cam_w = np.ones(n_px + n_prior)  # per-camera noise weights, relative to the ref
+        self.cam_rows = [model.camera_rows(ci, n_px + n_prior) for ci in range(len(model.cams))]
+        state = _respect_options(problem, init)
+        if n_prior:
+            state = with_pose_corrections(
+                state, len(problem.frames), n_groups_u, n_trend, n_common
+            )
+        self.state = state
+        model.sigma_px = 0.2  # a typical corner noise; re-estimated when poses are noisy
+        self.total_it = 0
+        self.converged = False
+        self.P = len(model.names)
+        self.n_obs_rows = max(n_px, 1)
+        self.camera_blocks: dict[int, tuple] = {}
+        self.vce_step = 0
+        self.vce_note: list[str] = []
+        self.last_step: dict[str, float] = {}
+
+    def noise(self, r: np.ndarray, w: np.ndarray) -> float:
+        dof = max(int(np.sum(w[: self.n_px] > 0)) + self.n_prior - self.P, 1)
         return float(np.sqrt(np.sum(w * r * r) / dof))
 
-    def camera_sigmas(r: np.ndarray) -> np.ndarray:
+    def camera_sigmas(self, r: np.ndarray) -> np.ndarray:
         """Each camera's own noise estimate (its share of the dof taken by the parameters)."""
         out = []
-        for rows in cam_rows:
-            m = rows & inlier
+        for rows in self.cam_rows:
+            m = rows & self.inlier
             n = int(m.sum())
-            dof = max(n - P * n / n_obs_rows, 1.0)
+            dof = max(n - self.P * n / self.n_obs_rows, 1.0)
             out.append(np.sqrt(np.sum(r[m] ** 2) / dof) if n else np.nan)
         return np.array(out)
 
-    def variance_components(nb: NormalBlocks, Ni: BlockInverse, delta: np.ndarray) -> bool:
-        """One Foerstner step at the state ``delta`` (P,) from ``state``, to first order
-        (``nb``: the normal equations at ``state``, ``Ni`` their inverse): every camera's noise
-        and the two pose sigmas from their residuals and redundancy numbers; True when one
-        moved by more than 2-3 %."""
-        nonlocal cam_w
-        r = nb.r.copy()
-        r[:n_px] += model.pixel_step(state, delta)
-        moved = model.apply(state, delta)  # E, U and V at the step (linear in delta)
+    def _prior_hats(self, Ni: BlockInverse) -> tuple[np.ndarray, ...]:
+        """The hat matrix's diagonal over the prior rows of E, U, V and W (empty when absent)."""
+        model = self.model
         diag_E = np.diagonal(Ni.EE, axis1=1, axis2=2).reshape(-1)
         h = np.clip(model.prior_scale**2 * diag_E, 0.0, 1.0)
         h_u = h_v = h_w = np.zeros(0)
@@ -559,33 +577,22 @@ def _refine(
         if "W" in model.slices:
             diag_W = np.diagonal(Ni.gg)[model.slices["W"]]
             h_w = np.clip(model.common_prior_scale**2 * diag_W, 0.0, 1.0)
-        sig = []
-        for ci, rows in enumerate(cam_rows):
-            m = rows & inlier
-            if not m.any():
-                sig.append(np.nan)
-                continue
-            if len(cam_rows) == 1:  # the hat matrix's trace is P: the prior rows take sum(h)
-                used = len(model.names) - float(np.sum(h) + np.sum(h_u) + np.sum(h_v) + np.sum(h_w))
-            else:
-                used = camera_trace(Ni, ci, m)
-            sig.append(np.sqrt(np.sum(r[m] ** 2) / max(m.sum() - used, 1.0)))
-        sig = np.array(sig)
-        ref_i = model.cams.index(model.ref)
-        E = moved.E.reshape(-1)
-        is_rot = np.tile([True, True, True, False, False, False], len(problem.frames))
+        return h, h_u, h_v, h_w
+
+    def _pose_levels(self, E: np.ndarray, h: np.ndarray) -> list[float]:
+        """Foerstner's step for the frames' own two levels (rotation, translation)."""
+        model = self.model
+        is_rot = np.tile(_ROT_ROWS, len(self.problem.frames))
         new_pose, reds = [], []
         for comp, floor, old in zip((is_rot, ~is_rot), SIGMA_FLOOR, model.pose_sigma, strict=True):
             red = float(np.sum(1.0 - h[comp]))
             reds.append(red)
             v = np.sqrt(np.sum(E[comp] ** 2) / red) if red > 1e-12 else floor
-            if vce_step[0] < 2 and red > 0.2 * comp.sum():
-                # the first steps jump: with the corrections' pixel-only estimates
-                # e / (1 - h) and their noise variance c = s h / (1 - h), the moment
-                # estimate mean(e^2 / (1 - h)^2 - c) is the fixed point of a scalar model;
-                # Foerstner's iteration then converges to its own fixed point in a few steps
-                # (from above, alone, at a rate c / (sigma^2 + c): slow when the pixels pin
-                # each pose about as well as the arm's accuracy does)
+            if self.vce_step < 2 and red > 0.2 * comp.sum():
+                # the first steps jump to the moment estimate mean(e^2 / (1 - h)^2 - c) of the
+                # corrections' pixel-only estimates e / (1 - h), noise variance c = s h / (1 - h):
+                # Foerstner's iteration alone converges slowly from above when the pixels pin
+                # each pose about as well as the arm's accuracy does
                 one = 1.0 - h[comp]
                 pinned = one > 1e-9  # a correction the prior alone holds has no pixel estimate
                 e, one, hc = E[comp][pinned], one[pinned], h[comp][pinned]
@@ -593,11 +600,37 @@ def _refine(
                 if m > floor**2:
                     v = min(v, np.sqrt(m))
             v = max(float(v), floor)
-            if vce_step[0] >= 2:
-                v = max(accelerate(f"E{comp[0]}", old, v, floor), floor)
+            if self.vce_step >= 2:
+                v = max(self.accelerate(f"E{comp[0]}", old, v, floor), floor)
             new_pose.append(v)
         model.level_redundancy["E"] = (reds[0], reds[1])
-        vce_step[0] += 1
+        return new_pose
+
+    def variance_components(self, nb: NormalBlocks, Ni: BlockInverse, delta: np.ndarray) -> bool:
+        """One Foerstner step at the state ``delta`` (P,) from ``state``, to first order
+        (``nb``: the normal equations at ``state``, ``Ni`` their inverse): every camera's noise
+        and the two pose sigmas from their residuals and redundancy numbers; True when one
+        moved by more than 2-3 %."""
+        model, state, inlier, n_px = self.model, self.state, self.inlier, self.n_px
+        r = nb.r.copy()
+        r[:n_px] += model.pixel_step(state, delta)
+        moved = model.apply(state, delta)  # E, U and V at the step (linear in delta)
+        h, h_u, h_v, h_w = self._prior_hats(Ni)
+        sig = []
+        for ci, rows in enumerate(self.cam_rows):
+            m = rows & inlier
+            if not m.any():
+                sig.append(np.nan)
+                continue
+            if len(self.cam_rows) == 1:  # the hat matrix's trace is P: the prior rows take sum(h)
+                used = len(model.names) - float(np.sum(h) + np.sum(h_u) + np.sum(h_v) + np.sum(h_w))
+            else:
+                used = self.camera_trace(Ni, ci, m)
+            sig.append(np.sqrt(np.sum(r[m] ** 2) / max(m.sum() - used, 1.0)))
+        sig = np.array(sig)
+        ref_i = model.cams.index(model.ref)
+        new_pose = self._pose_levels(moved.E.reshape(-1), h)
+        self.vce_step += 1
         changed = False
         ok = np.isfinite(sig) & (sig > 0)
         if ok[ref_i]:
@@ -605,34 +638,31 @@ def _refine(
                 changed = True
             model.sigma_px = float(sig[ref_i])
             if len(model.cams) > 1 and np.all(ok):
-                new_w = np.ones(n_px + n_prior)
-                for rows, sc in zip(cam_rows, sig, strict=True):
+                new_w = np.ones(n_px + self.n_prior)
+                for rows, sc in zip(self.cam_rows, sig, strict=True):
                     new_w[rows] = (sig[ref_i] / sc) ** 2
-                if np.max(np.abs(new_w / cam_w - 1.0)) > 0.02:
+                if np.max(np.abs(new_w / self.cam_w - 1.0)) > 0.02:
                     changed = True
-                cam_w = new_w
+                self.cam_w = new_w
         for new, old, floor in zip(new_pose, model.pose_sigma, SIGMA_FLOOR, strict=True):
             if abs(new / old - 1.0) > 0.03 and max(new, old) > 2 * floor:
                 changed = True
         model.pose_sigma = (new_pose[0], new_pose[1])
         if len(h_u):  # the orientation groups' shared corrections: their own two levels
             U = moved.U.reshape(-1)
-            u_rot = np.tile([True, True, True, False, False, False], len(U) // 6)
-            model.group_sigma, shifted = shared_levels("U", U, h_u, u_rot, model.group_sigma, 1.0)
+            u_rot = np.tile(_ROT_ROWS, len(U) // 6)
+            model.group_sigma, shifted = self.shared_levels(
+                "U", U, h_u, u_rot, model.group_sigma, 1.0
+            )
             changed |= shifted
         if len(h_v):  # the trends along the moves: two levels of their own
-            v_rot = model.trend_rotation_rows
-            model.trend_sigma, shifted = shared_levels(
-                "V", moved.V, h_v, v_rot, model.trend_sigma, model.trend_spread
+            model.trend_sigma, shifted = self.shared_levels(
+                "V", moved.V, h_v, model.trend_rotation_rows, model.trend_sigma, model.trend_spread
             )
             changed |= shifted
         if len(h_w):  # the trend every group shares: two levels of its own
-            model.common_sigma, shifted = shared_levels(
-                "W",
-                moved.W,
-                h_w,
-                model.common_rotation_rows,
-                model.common_sigma,
+            model.common_sigma, shifted = self.shared_levels(
+                "W", moved.W, h_w, model.common_rotation_rows, model.common_sigma,
                 model.common_spread,
             )
             changed |= shifted
@@ -640,19 +670,19 @@ def _refine(
             return False
         return changed
 
-    camera_blocks: dict[int, tuple] = {}
-
-    def camera_trace(Ni: BlockInverse, ci: int, m: np.ndarray) -> float:
+    def camera_trace(self, Ni: BlockInverse, ci: int, m: np.ndarray) -> float:
         """The hat matrix's trace over camera ``ci``'s inlier rows ``m``: the parameters its
         rows take. The camera's pixel blocks are made once per linearisation (its weight is
         one number over its rows: a factor)."""
-        hit = camera_blocks.get(ci)
-        if hit is None or hit[0] is not state or not np.array_equal(hit[1], m):
-            hit = (state, m.copy(), model.normal_blocks(state, m.astype(float), keep=False))
-            camera_blocks[ci] = hit
-        return float(cam_w[np.flatnonzero(m)[0]]) * Ni.trace_with(hit[2])
+        hit = self.camera_blocks.get(ci)
+        if hit is None or hit[0] is not self.state or not np.array_equal(hit[1], m):
+            blocks = self.model.normal_blocks(self.state, m.astype(float), keep=False)
+            hit = (self.state, m.copy(), blocks)
+            self.camera_blocks[ci] = hit
+        return float(self.cam_w[np.flatnonzero(m)[0]]) * Ni.trace_with(hit[2])
 
     def shared_levels(
+        self,
         key: str,
         values: np.ndarray,
         h_s: np.ndarray,
@@ -664,7 +694,8 @@ def _refine(
         several frames; the new levels and whether one that matters moved by more than 3 %.
         ``per_frame`` turns a level into its share of a frame's correction: a share below a
         tenth of the frames' own level adds under 1 % to their variance, and its creeping
-        (from the floor, at a few % per step) keeps no iteration going."""
+        keeps no iteration going."""
+        model = self.model
         new, moved, reds, data = [], False, [], []
         for comp, floor, old, own in zip(
             (rot, ~rot), SIGMA_FLOOR, levels, model.pose_sigma, strict=True
@@ -679,17 +710,16 @@ def _refine(
                 nu = GROUP_LEVEL_PRIOR_DOF
                 data.append(float(v) if red > 1e-6 else 0.0)
                 v = np.sqrt((np.sum(values[comp] ** 2) + nu * own**2) / (red + nu))
-            elif vce_step[0] > 2 and v < old and red < 0.25 * comp.sum():
+            elif self.vce_step > 2 and v < old and red < 0.25 * comp.sum():
                 # falling while the prior holds three quarters of it: the images do not
-                # support a level of its own (the iteration would creep toward 0 for
-                # tens of steps); the frames' own corrections carry this part
+                # support a level of its own; the frames' own corrections carry this part
                 v = old if key == "W" else floor
             translation = len(new) == 1  # the levels come as (rotation, translation)
             if key == "V" and translation and model.st.trend_scale_fixed:
                 v = floor  # the translation trend of one orientation (Structure)
             v = max(float(v), floor)
-            if vce_step[0] > 2:
-                v = max(accelerate(f"{key}{comp[0]}", old, v, floor), floor)
+            if self.vce_step > 2:
+                v = max(self.accelerate(f"{key}{comp[0]}", old, v, floor), floor)
             share = per_frame if np.isscalar(per_frame) else per_frame[len(new)]
             big = max(v, old) > max(2 * floor, 0.1 * own / max(share, 1e-12))
             if abs(v / old - 1.0) > 0.03 and big:
@@ -700,154 +730,162 @@ def _refine(
             model.group_sigma_data = (data[0], data[1])
         return (new[0], new[1]), moved
 
-    vce_step = [0]
-    vce_note: list[str] = []
-    last_step: dict[str, float] = {}
-
-    def accelerate(key: str, old: float, new: float, floor: float) -> float:
-        """Steffensen in log space: Foerstner's iteration converges geometrically, at a rate
-        near 1 when the images pin the poses about as well as the prior does; two successive
-        steps in the same direction give the rate, and the step is stretched to the fixed
-        point it implies (at most 4 times)."""
+    def accelerate(self, key: str, old: float, new: float, floor: float) -> float:
+        """Steffensen in log space: two successive steps in the same direction give the
+        iteration's geometric rate, and the step is stretched to the fixed point it implies
+        (at most 4 times)."""
         if new <= floor or old <= floor:
-            last_step.pop(key, None)
+            self.last_step.pop(key, None)
             return new
         d = float(np.log(new / old))
-        prev = last_step.get(key)
-        last_step[key] = d
+        prev = self.last_step.get(key)
+        self.last_step[key] = d
         if prev is None or d * prev <= 0 or abs(d) >= abs(prev):
             return new
         rho = d / prev
         return float(old * np.exp(d * min(1.0 / (1.0 - rho), 4.0)))
 
-    def settle_levels() -> bool:
+    def settle_levels(self) -> bool:
         """The noise levels to their fixed point at the present linearisation: Foerstner's
-        steps, each at the Gauss-Newton step the last levels give, to first order (the pose
-        corrections enter the residuals nearly linearly: a step costs a solve and an inverse of
-        the reduced system, no evaluation); True when they moved. The caller then steps the
-        state under them and settles again: at the minimum, the first step moves nothing."""
+        steps, each at the Gauss-Newton step the last levels give, to first order (a step
+        costs a solve and an inverse of the reduced system, no evaluation); True when they
+        moved."""
         moved = False
-        while vce_step[0] < MAX_VCE_STEPS:
-            nb = model.normal_blocks(state, inlier * cam_w)
+        while self.vce_step < MAX_VCE_STEPS:
+            nb = self.model.normal_blocks(self.state, self.inlier * self.cam_w)
             Ni = nb.inverse()  # the redundancy numbers' and the step's
             delta = -Ni.times(nb.g_g, nb.g_E)
             if not np.all(np.isfinite(delta)):
-                delta = np.zeros(P)
-            if not variance_components(nb, Ni, delta):
+                delta = np.zeros(self.P)
+            if not self.variance_components(nb, Ni, delta):
                 break
             moved = True
         return moved
 
-    if estimate:
-        model.sigma_px = max(noise(model.evaluate(state, jacobian=False)[0], inlier * cam_w), 1e-3)
-    # while the variance components move: the levels settle at the present linearisation
-    # (settle_levels), one Gauss-Newton step moves the state under them, and again; at the
-    # joint fixed point the first level step moves nothing and the state is converged fully
-    steps = min(1, max_iter) if estimate else max_iter
-    lam = LM_START_DAMPING
-    for _ in range(40 if estimate else 10):
-        weights = inlier * cam_w
-        # the full solves after the levels' steps start from the damping the last step reached
-        # (a fresh 1e-4 damps the weakly determined pose corrections' directions: two more
-        # iterations to the same minimum)
-        warm = estimate and steps == max_iter
-        start = VCE_STEP_DAMPING if estimate else LM_START_DAMPING
-        state, converged, it, r, lam = _lm(model, state, weights, steps, lam if warm else start)
-        total_it += it
-        changed = False
-        if estimate:
-            if vce_step[0] < MAX_VCE_STEPS:
-                changed = settle_levels()
-            elif not vce_note:  # still creeping (toward the floor, or slowly): the last
-                # levels are kept and the parameters converged under them, so the estimate
-                # is the minimum of a definite model and not a point part way along the creep
-                vce_note.append(
-                    f"the noise levels were still moving after {vce_step[0]} updates; the last "
-                    "ones were kept"
-                )
-            if not changed and steps < max_iter:
-                steps, changed = max_iter, True  # converge fully at the final levels
-        else:
-            if len(model.cams) > 1:  # per-camera noise: reweigh to a fixed point
-                sig = camera_sigmas(r)
-                ref_i = model.cams.index(model.ref)
-                ok = np.isfinite(sig) & (sig > 0)
-                if ok[ref_i] and np.all(ok):
-                    new_w = np.ones(n_px + n_prior)
-                    for rows, sc in zip(cam_rows, sig, strict=True):
-                        new_w[rows] = (sig[ref_i] / sc) ** 2
-                    if np.max(np.abs(new_w / cam_w - 1.0)) > 0.04:
-                        cam_w, changed = new_w, True
-            if n_prior:  # the prior rows are weighed by the pixel noise: a fixed point
-                sigma = noise(r, inlier * cam_w)
-                if abs(sigma / model.sigma_px - 1.0) > 0.02:
-                    model.sigma_px, changed = sigma, True
-        if changed:
-            continue
-        if not robust:
-            break
+    def _creep_note(self) -> None:
+        if not self.vce_note:
+            self.vce_note.append(
+                f"the noise levels were still moving after {self.vce_step} updates; the last "
+                "ones were kept"
+            )
+
+    def _reweigh(self, r: np.ndarray) -> bool:
+        """Exact-pose solves: each camera's weight and the prior rows' pixel noise to their
+        fixed point; True when one moved."""
+        model, changed = self.model, False
+        if len(model.cams) > 1:  # per-camera noise: reweigh to a fixed point
+            sig = self.camera_sigmas(r)
+            ref_i = model.cams.index(model.ref)
+            ok = np.isfinite(sig) & (sig > 0)
+            if ok[ref_i] and np.all(ok):
+                new_w = np.ones(self.n_px + self.n_prior)
+                for rows, sc in zip(self.cam_rows, sig, strict=True):
+                    new_w[rows] = (sig[ref_i] / sc) ** 2
+                if np.max(np.abs(new_w / self.cam_w - 1.0)) > 0.04:
+                    self.cam_w, changed = new_w, True
+        if self.n_prior:  # the prior rows are weighed by the pixel noise: a fixed point
+            sigma = self.noise(r, self.inlier * self.cam_w)
+            if abs(sigma / model.sigma_px - 1.0) > 0.02:
+                model.sigma_px, changed = sigma, True
+        return changed
+
+    def _flag_outliers(self, r: np.ndarray) -> bool:
+        """Detections beyond both the options' threshold and 5 times their camera's noise get
+        zero weight; True when the set is unchanged."""
+        n_px, inlier, cam_w = self.n_px, self.inlier, self.cam_w
         per_pt = np.hypot(r[0:n_px:2], r[1:n_px:2])
         inl = inlier[0:n_px:2]
-        sigma = noise(r, inlier * cam_w)
+        sigma = self.noise(r, inlier * cam_w)
         thresh = np.maximum(
-            problem.options.outlier_threshold_px, 5.0 * sigma / np.sqrt(cam_w[0:n_px:2])
+            self.problem.options.outlier_threshold_px, 5.0 * sigma / np.sqrt(cam_w[0:n_px:2])
         )
         new_out = per_pt > thresh
         if np.array_equal(new_out, ~inl):
-            break
+            return True
         inlier[:n_px] = np.repeat(~new_out, 2)
-    else:
-        if estimate:  # the noise levels still creep (toward the floor, or slowly): keep the
-            # last ones and converge the parameters under them, so the estimate is the
-            # minimum of a definite model and not a point part way along the creep
-            state, converged, it, _, _ = _lm(model, state, inlier * cam_w, max_iter)
-            total_it += it
-            if not vce_note:
-                vce_note.append(
-                    f"the noise levels were still moving after {vce_step[0]} updates; the last "
-                    "ones were kept"
-                )
-    weights = inlier * cam_w
-    model.row_weights = weights  # the solve's last row weights (its covariance's)
-    nb = model.normal_blocks(state, weights)
-    r = nb.r
-    inlier_rows = inlier.copy()
-    n_in = int(inlier_rows[:n_px].sum())
-    dof = n_in + n_prior - P
-    messages: list[str] = list(vce_note)
-    sigma_px = noise(r, weights)
-    cov = None
-    if dof <= 0:
-        messages.append(
-            f"covariance not computed: {n_in} residuals for {P} parameters; capture more frames"
-        )
-    else:
-        try:
-            cov = nb.inverse(check_condition=True).scaled(sigma_px**2)
-        except np.linalg.LinAlgError as e:
-            messages.append(
-                f"covariance not computed ({e}): some parameter is barely observable; "
-                "add tilts or frames covering the image"
-            )
-    r, inlier_rows = r[:n_px], inlier_rows[:n_px]
-    outliers: list[tuple[int, str, int]] = []
-    for ch in model.chunks:
-        w = weights[ch.rows][0::2]
-        for cid in ch.corner_ids[w == 0]:
-            outliers.append((ch.key[0], ch.camera, int(cid)))
-    if not converged:
-        messages.append(f"refinement stopped after {total_it} iterations without converging")
-    return RefineOutput(
-        state,
-        model.names,
-        cov,
-        r,
-        inlier_rows,
-        sigma_px,
-        converged,
-        total_it,
-        tuple(outliers),
-        tuple(messages),
-        model,
-    )
+        return False
 
+    def iterate(self, max_iter: int, robust: bool) -> None:
+        """Levenberg-Marquardt to convergence with the weights, levels and outliers to their
+        fixed point. With ``estimate``: the levels settle at the present linearisation, one
+        Gauss-Newton step moves the state under them, and again; at the joint fixed point the
+        first level step moves nothing and the state is converged fully."""
+        model, estimate = self.model, self.estimate
+        if estimate:
+            r0 = model.evaluate(self.state, jacobian=False)[0]
+            model.sigma_px = max(self.noise(r0, self.inlier * self.cam_w), 1e-3)
+        steps = min(1, max_iter) if estimate else max_iter
+        lam = LM_START_DAMPING
+        for _ in range(40 if estimate else 10):
+            weights = self.inlier * self.cam_w
+            # the full solves after the levels' steps start from the damping the last step
+            # reached (a fresh one damps the weakly determined pose corrections' directions)
+            warm = estimate and steps == max_iter
+            start = VCE_STEP_DAMPING if estimate else LM_START_DAMPING
+            self.state, self.converged, it, r, lam = _lm(
+                model, self.state, weights, steps, lam if warm else start
+            )
+            self.total_it += it
+            changed = False
+            if estimate:
+                if self.vce_step < MAX_VCE_STEPS:
+                    changed = self.settle_levels()
+                else:  # still creeping: the last levels are kept and the parameters converged
+                    # under them, so the estimate is the minimum of a definite model
+                    self._creep_note()
+                if not changed and steps < max_iter:
+                    steps, changed = max_iter, True  # converge fully at the final levels
+            else:
+                changed = self._reweigh(r)
+            if changed:
+                continue
+            if not robust or self._flag_outliers(r):
+                break
+        else:
+            if estimate:  # the levels still creep: converge the parameters under the last
+                self.state, self.converged, it, _, _ = _lm(
+                    model, self.state, self.inlier * self.cam_w, max_iter
+                )
+                self.total_it += it
+                self._creep_note()
+
+    def output(self) -> RefineOutput:
+        """The solve's covariance, outliers and messages at the state reached."""
+        model, state, n_px, P = self.model, self.state, self.n_px, self.P
+        weights = self.inlier * self.cam_w
+        model.row_weights = weights  # the solve's last row weights (its covariance's)
+        nb = model.normal_blocks(state, weights)
+        r = nb.r
+        inlier_rows = self.inlier.copy()
+        n_in = int(inlier_rows[:n_px].sum())
+        dof = n_in + self.n_prior - P
+        messages: list[str] = list(self.vce_note)
+        sigma_px = self.noise(r, weights)
+        cov = None
+        if dof <= 0:
+            messages.append(
+                f"covariance not computed: {n_in} residuals for {P} parameters; capture more "
+                "frames"
+            )
+        else:
+            try:
+                cov = nb.inverse(check_condition=True).scaled(sigma_px**2)
+            except np.linalg.LinAlgError as e:
+                messages.append(
+                    f"covariance not computed ({e}): some parameter is barely observable; "
+                    "add tilts or frames covering the image"
+                )
+        r, inlier_rows = r[:n_px], inlier_rows[:n_px]
+        outliers: list[tuple[int, str, int]] = []
+        for ch in model.chunks:
+            w = weights[ch.rows][0::2]
+            for cid in ch.corner_ids[w == 0]:
+                outliers.append((ch.key[0], ch.camera, int(cid)))
+        if not self.converged:
+            messages.append(
+                f"refinement stopped after {self.total_it} iterations without converging"
+            )
+        return RefineOutput(
+            state, model.names, cov, r, inlier_rows, sigma_px, self.converged, self.total_it,
+            tuple(outliers), tuple(messages), model,
+        )
