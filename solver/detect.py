@@ -1,63 +1,30 @@
 """Target detection: corner ids and pixels of a ChArUco board, a chessboard, an AprilGrid or
-AprilTags in one image.
+AprilTags in one image (ids and board frame of ``solver/problem.py``; pixel (0, 0) is the centre
+of the top-left pixel, OpenCV's convention). Colour images: the green channel (half of a Bayer
+sensor's pixels, and free of lateral chromatic aberration's red and blue shifts).
 
-Convention: ids and the board frame of ``solver/problem.py``; pixel (0, 0) is the centre of the
-top-left pixel (OpenCV's convention for corner positions, checked against rendered images in
-``tests/test_detect.py``).
-
-ChArUco: ``cv2.aruco.CharucoDetector`` (marker corners refined to sub-pixel, missed markers
-recovered with ``tryRefineMarkers``, a corner accepted with one adjacent marker), then every
-chessboard corner refined again with ``cv2.cornerSubPix`` in a window sized per corner so that
-it holds no marker edge: the nearest marker corner lies ``(square - marker) / 2`` from the
-chessboard corner along both board axes, which under a tilt can be only a few pixels away, and
-a marker edge inside the window pulls the corner by tenths of a pixel.
+ChArUco: ``cv2.aruco.CharucoDetector`` (missed markers recovered with ``tryRefineMarkers``),
+then every chessboard corner refined again by ``cv2.cornerSubPix`` in a window sized to hold no
+marker edge (the nearest marker corner lies ``(square - marker) / 2`` along both board axes).
 
 Chessboard: a cascade, fastest first, each step tried only when the one before found nothing
-(figures per 2-megapixel image on the development machine, ``docs/DETECTION.md``):
+(``docs/DETECTION.md``): ``cv2.findChessboardCorners`` on the image reduced to a long side of
+about 1000 px; the same with its light made even (``flatten_light``); ``findChessboardCornersSB``
+on the reduced image; the same at full resolution, then with ``CALIB_CB_EXHAUSTIVE``. The corners
+are refined at full resolution by ``cornerSubPix`` in a window of 0.3 times the distance to the
+nearest grid neighbour (3 to 25 px half-width). The whole board must be in view. Corner order
+under the board's symmetries: (1) the board is seen from its printed side (``x`` cross ``y`` > 0
+in the image, v down); (2) the square next to corner 0 is black; (3) a board still symmetric
+(``squares_x + squares_y`` even) takes the corner 0 that makes its +x axis point most to the right.
 
-1. ``cv2.findChessboardCorners`` (adaptive threshold, fast check) on the image reduced by an
-   integer factor to a long side of about 1000 px (~0.01 s);
-2. the same on the reduced image with its light made even (``flatten_light``: a glare that
-   lifts the black squares towards white, ~0.05 s);
-3. ``cv2.findChessboardCornersSB`` without flags on the reduced image (~0.05 s);
-4. the same at full resolution (~0.2 s), then with ``CALIB_CB_EXHAUSTIVE`` on the reduced image.
+AprilTag and AprilGrid: ``cv2.aruco.ArucoDetector`` with the target's family, corners refined by
+``cornerSubPix`` (``CORNER_REFINE_APRILTAG`` is biased, ``docs/DETECTION.md``); a lone tag's
+corners are the intersections of its fitted border edges; on an AprilGrid, tags the quad finder
+missed are predicted from their neighbours and kept when their code reads back.
 
-No step uses ``CALIB_CB_NORMALIZE_IMAGE`` (it lost the board in most real photographs). The
-corners are then refined at full resolution by ``cv2.cornerSubPix`` in a window per corner of
-0.3 times the distance to its nearest grid neighbour (3 to 25 px half-width): on rendered images
-within 0.01 px rms of ``findChessboardCornersSB`` with ``CALIB_CB_ACCURACY`` at a twentieth of
-the time, and on real photographs (``tests/data/opencv_left``) more consistent with a lens model
-than it (``tests/test_detect.py``); larger windows reach background clutter in photographs. The
-whole board must be in view (a plain chessboard seen in part has no corner that says which one
-it is). Its corner order is ambiguous under the board's symmetries; the rule used here:
-
-1. the board is seen from its printed side, so its +x and +y axes keep their handedness in the
-   image (``x`` cross ``y`` > 0 with v pointing down);
-2. the square at the board origin, next to corner 0, is black (``mocks/render.py`` prints it
-   so, as does a standard OpenCV pattern of this layout);
-3. if the board is symmetric under that test (``squares_x + squares_y`` even, the outer corner
-   squares are all black), corner 0 is the one that makes the board's +x axis point most to the
-   right in the image. Prefer boards with one odd and one even count of squares.
-
-AprilTag and AprilGrid: ``cv2.aruco.ArucoDetector`` with ``DICT_APRILTAG_36h11`` (or the
-target's family), corners refined by ``cornerSubPix`` (``CORNER_REFINE_APRILTAG`` is biased by
-about 0.65 px on rendered tags, ``docs/DETECTION.md``); a lone tag's corners (L-corners, which
-``cornerSubPix`` pulls inwards) are then the intersections of its fitted border edges; each
-decoded tag of the target gives its four corners with the ids of ``solver/problem.py``. On an
-AprilGrid, tags the quad finder missed are predicted from their neighbours and kept when their
-code reads back.
-
-Colour images: the green channel is used (it carries half of a Bayer sensor's pixels, and
-lateral chromatic aberration moves red and blue edges against it; a luma mix blends the three
-and moves corners by a fraction of the fringe).
-
-When nothing usable is found, the report says what was seen: no board, a board of another size
-(with the fix for ``squares_x``/``squares_y``), too few corners, an image too dark, saturated or
-blurred (the blur figure is the edge width: the std of a Gaussian blur that explains the
-steepest edges of the image).
-
-Quality: a local homography check flags corners that are grossly wrong (wrong id, snapped onto
-a marker corner); they are removed and listed in ``rejected_ids``.
+When nothing usable is found, the report says what was seen (no board, a board of another size,
+too few corners, an image too dark, saturated or blurred). A local homography check removes
+grossly wrong corners and lists them in ``rejected_ids``.
 """
 
 from __future__ import annotations
@@ -71,10 +38,8 @@ import numpy as np
 from slidecal.solver.errors import InputError
 from slidecal.solver.problem import Detection, Target
 
-# Local homography check: a corner farther than this from the prediction of a homography fitted
-# to its grid neighbours (one square away, or two or three when too few) is rejected: a lens
-# departs from a homography over such a neighbourhood by about a pixel and the detector's noise
-# adds a tenth, while a gross error is at least a marker margin or a whole square (a wrong id).
+# Local homography check: a corner farther than this from its grid neighbours' homography is
+# rejected (a lens departs from one by about a pixel; a gross error is a marker margin or more).
 OUTLIER_THRESHOLD_PX = 3.0
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 60, 1e-3)
 _MAX_HALF_WINDOW_PX = 8
