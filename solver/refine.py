@@ -34,9 +34,7 @@ class RefineOutput:
 
     state: ModelState
     names: tuple[str, ...]
-    # the covariance of the optimiser's coordinates in blocks (``covariance`` is its dense
-    # form, made on demand: P x P is 6000 x 6000 at 1000 frames with the arm's accuracy
-    # learned, where the reported quantities need a few rows of it)
+    # the covariance of the optimiser's coordinates in blocks (``covariance``: dense, on demand)
     covariance_blocks: BlockInverse | None
     residuals: np.ndarray  # (R,) pixels, outliers included
     inlier_rows: np.ndarray  # (R,) bool
@@ -46,14 +44,12 @@ class RefineOutput:
     outliers: tuple[tuple[int, str, int], ...]
     messages: tuple[str, ...]
     model: BundleModel
-    # the free board pose per image fitted to this solve's detections and intrinsics (the
-    # robot test's; :func:`slidecal.solver.adequacy.assess` reuses it), when one was made
+    # the robot test's free board pose per image at this solve's intrinsics, when it stood
     free_pose: FreePoseFit | None = None
-    # the robot test's free-pose fit when the solve went on to learn the arm's accuracy (made
-    # at the exact-pose intrinsics: its poses start the final fit)
+    # the robot test's free-pose fit when the solve went on to learn the arm's accuracy
     test_fit: FreePoseFit | None = None
-    # robot sessions: the robot's one-sigma pose error per axis (radians, metres) the model used:
-    # (0, 0) for exact poses; whether it was estimated from the data; the test that decided
+    # robot sessions: the one-sigma pose error per axis (radians, metres), (0, 0) for exact
+    # poses; whether it was estimated; the test that decided
     robot_sigma: tuple[float, float] | None = None
     robot_sigma_estimated: bool = False
     robot_test: str = ""
@@ -133,44 +129,29 @@ def _lm(
     return state, converged, it, r, lam
 
 
-#: Levenberg-Marquardt's damping (times the normal matrix's diagonal) at the start of a solve:
-#: the linear start is close enough for nearly Gauss-Newton steps; a start it does not suit
-#: raises it tenfold per refused step.
+#: Levenberg-Marquardt's damping (times the diagonal) at the start: the linear start is close.
 LM_START_DAMPING = 1e-6
-#: The damping of the Gauss-Newton steps of the variance-component phase: nearly none, since a
-#: larger one holds back the directions only the pose prior pins (an orientation group's
-#: translation against the board's) and the levels creep along with them for tens of steps.
+#: The variance-component phase's damping: a larger one holds back the prior-pinned directions.
 VCE_STEP_DAMPING = 1e-9
 #: Most variance-component steps of one solve (then the last levels are kept, with a note)
 MAX_VCE_STEPS = 40
-#: Significance level of the test "the measured robot poses explain the images as well as a
-#: free board pose per image does" (an F test): below it, the robot's accuracy is estimated.
+#: F test "the robot poses explain the images as free poses do": below it, the arm's accuracy
+#: is learned.
 ROBOT_TEST_P = 1e-3
-#: Smallest robot pose sigma the estimation keeps (radians, metres): below it a component is
-#: as good as exact and the prior just holds its corrections at zero.
+#: Smallest pose sigma kept (radians, metres): below it a component is as good as exact.
 SIGMA_FLOOR = (1e-7, 1e-7)
-#: Weight (degrees of freedom) of the prior on the orientation groups' shared level: the
-#: frames' own level, as if seen twice (a scaled inverse chi-square prior: the level's square
-#: is the groups' sum of squares plus twice the frames' level squared, over the groups'
-#: redundancy plus two). The images tell the groups' offsets from the hand-eye on a few degrees
-#: of freedom only; there the level alone falls to zero and stays, and the frames' corrections,
-#: taken as independent, overstate what the groups tell the hand-eye.
+#: Degrees of freedom of the prior at the frames' own level on the groups' shared level (the
+#: images tell the groups' offsets on a few dof only, where the level alone falls to zero).
 GROUP_LEVEL_PRIOR_DOF = 2.0
-#: Robot sigmas beyond any arm (radians, metres: 2 deg, 20 mm, twice what the adequacy test
-#: accepts): the estimation stops there, the model is wrong (units, frames) and will be marked so.
+#: Robot sigmas beyond any arm (2 deg, 20 mm): the estimation stops, the records are wrong.
 SIGMA_BEYOND = (np.radians(2.0), 0.02)
-#: Smallest rms spread (metres) of an orientation group's positions along a direction for the
-#: trend of the pose correction along it to be estimated (``translation_trends``).
+#: Smallest rms spread (metres) of a group's positions along a direction for a trend along it.
 TREND_MIN_SPREAD_M = 0.005
-#: Fewest frames of an eye-in-hand session without trends of its own orientation groups (a
-#: classic hand-eye session) for one linear trend of the pose corrections over the tool's
-#: positions of the whole session: an arm's error is smooth over its workspace, and its linear
-#: part (a scale or shear of the positions) reaches the focal lengths through the moves.
+#: Fewest frames of a classic eye-in-hand session for one trend over the whole session (the
+#: arm's linear error reaches the focal lengths through the moves).
 SESSION_TREND_MIN_FRAMES = 8
-#: Trend frames per coordinate of the corrections the trend groups share (:func:`common_trend`):
-#: the rotation trend's 9 coordinates need 27 frames, the quadratic translation field's 18
-#: coordinates 54 (positions spread in space); fewer cannot tell a shared field from the
-#: groups' own trends and scatter.
+#: Trend frames per coordinate of the shared field (:func:`common_trend`): fewer cannot tell it
+#: from the groups' own trends and scatter.
 COMMON_FIELD_FRAMES_PER_COORD = 3
 
 
@@ -186,28 +167,22 @@ def refine(
 ) -> RefineOutput:
     """Minimise the reprojection error over all detections (docs/METHOD.md Sec. 5).
 
-    Outliers: after a first solve, detections whose residual exceeds both
-    ``options.outlier_threshold_px`` and 5 times their camera's estimated noise are flagged,
-    given zero weight and the solve repeated. They are returned in ``outliers``: never silently
-    dropped. Cameras of a rig may differ in noise (a mono global-shutter camera and a colour
-    camera): each camera's noise is estimated from its residuals and its rows weighed by it
-    (maximum likelihood with one noise level per camera), iterated to a fixed point together
-    with the pose-prior scale. Covariance: ``s^2 (J' W J)^-1`` with ``s^2 = sum(w r^2) / (n - p)``
-    (docs/METHOD.md Sec. 6); ``sigma_px`` is the reference camera's noise.
+    Outliers: detections beyond both ``options.outlier_threshold_px`` and 5 times their
+    camera's noise get zero weight and the solve is repeated; they are returned in
+    ``outliers``. Each camera's noise is estimated from its residuals and its rows weighed by it,
+    to a fixed point with the pose-prior scale. Covariance: ``s^2 (J' W J)^-1`` with
+    ``s^2 = sum(w r^2) / (n - p)`` (Sec. 6); ``sigma_px`` is the reference camera's noise.
 
     Robot sessions with ``options.estimate_robot_noise`` (the default) learn the robot's
-    accuracy: the measured poses are first taken as exact, and an F test compares that fit with
-    a free board pose per image (the detector's floor, :mod:`slidecal.solver.adequacy`). When
-    the poses explain the images, that solve stands (``robot_sigma`` (0, 0)). Otherwise every
-    pose gets a correction (rotation, translation) with a zero-mean Gaussian prior whose two
-    one-sigma levels are estimated with the image noise of every camera by variance-component
-    estimation (Foerstner's iteration with redundancy numbers, to a fixed point): the
-    covariance then carries the robot's accuracy.
+    accuracy: the poses are first taken as exact, and an F test compares that fit with a free
+    board pose per image. When the poses explain the images, that solve stands (``robot_sigma``
+    (0, 0)). Otherwise every pose gets a correction with a zero-mean Gaussian prior (and the
+    orientation groups, trends and shared field theirs, ``Structure``) whose levels are
+    estimated with each camera's noise by variance components (Foerstner's iteration).
 
     ``record_check``: what is wrong with the robot's records, told from the images alone
     (:func:`slidecal.solver.adequacy.record_check`), asked only when the exact-pose solve puts
-    the poses beyond any arm or does not converge: then no accuracy of an arm is learned (it
-    would run its whole budget to the same rejection). None: not asked.
+    the poses beyond any arm or does not converge; then no accuracy is learned. None: not asked.
     """
     o = problem.options
     robot = problem.knowledge == "robot"
@@ -248,9 +223,7 @@ def refine(
     beyond = any(v > lim for v, lim in zip(sig0, SIGMA_BEYOND, strict=True))
     doubt = record_check is not None and (beyond or not out0.converged)
     if doubt and (cause := record_check(problem)) is not None:
-        # the records were read in another convention or paired with other images (told from
-        # the images alone): no accuracy of an arm explains them, and learning one would run
-        # its full budget of iterations (minutes) to the same rejection
+        # no accuracy of an arm explains records read wrongly or paired with other images
         return _with_robot(
             replace(out0, free_pose=fit), (0.0, 0.0), False, f"robot accuracy not learned: {cause}"
         )
@@ -263,8 +236,7 @@ def refine(
     pose_groups = orientation_groups(T_meas)
     trend_groups, trend_coords, trend_dims = translation_trends(T_meas, pose_groups)
     if not trend_dims and structure.eye_in_hand and len(T_meas) >= SESSION_TREND_MIN_FRAMES:
-        # no orientation group long enough for a trend of its own (a classic hand-eye session):
-        # one trend over the whole session (docs/ROBOT_ACCURACY.md)
+        # no group long enough for a trend of its own (a classic session): one over the session
         whole = np.zeros(len(T_meas), dtype=int)
         trend_groups, trend_coords, trend_dims = translation_trends(T_meas, whole)
     spread = float(np.sqrt(np.mean(np.sum(trend_coords**2, axis=1)))) if trend_dims else 0.0
@@ -353,22 +325,12 @@ def common_trend(
     what a level of each kind (rotation, translation) is in a frame's correction (metres: the
     coordinates' rms over the frames); ``(None, None, (0, 0))`` with fewer than two trend groups.
 
-    - The rotation: one linear trend of it over the frames' offsets from their own group's mean
-      (3 x m coordinates over the m directions those offsets span, as
-      :func:`translation_trends` makes for one group): the part of the groups' rotation trends
-      they have in common. Only with :data:`COMMON_FIELD_FRAMES_PER_COORD` trend frames or more
-      per coordinate (27 for offsets spread in space): fewer cannot tell it from the groups'
-      own trends and offsets (R1's four groups of five frames: 9 coordinates for 20 frames).
-    - The translation: a quadratic field of the positions (3 axes times the products of the
-      positions' coordinates over the directions they span, each less its mean): an arm
-      sagging under gravity by an amount that grows with its reach, and the like; only with
-      :data:`COMMON_FIELD_FRAMES_PER_COORD` trend frames or more per coordinate of it (fewer
-      cannot tell a field from the frames' own scatter: R1's 20 frames would give 18
-      coordinates to it and learn the white noise of the poses as a field). Its linear
-      part is left out: a scale or shear of the moves is the focal lengths and the principal
-      point again, a skew one a rotation of the robot's base (the camera's or the board's pose
-      again), which the images cannot tell apart from them; the covariance carries it
-      (:func:`slidecal.solver.robot_error.common_trend_excess`).
+    - The rotation: one linear trend over the frames' offsets from their own group's mean.
+    - The translation: a quadratic field of the positions (an arm sagging with its reach); its
+      linear part is left out (a scale or shear of the moves is the intrinsics again; the
+      covariance carries it).
+
+    Each only with :data:`COMMON_FIELD_FRAMES_PER_COORD` trend frames or more per coordinate.
     """
     none = (None, None, (0.0, 0.0))
     if len(trend_dims) < 2:
