@@ -269,11 +269,10 @@ def _detect_charuco(
     """The ChArUco corners, the reasons when none, and the path ("charuco", or
     "charuco-legacy" for a board of OpenCV's layout before 4.6).
 
-    OpenCV 4.6 changed where the markers sit on a board with an even number of rows
-    (``squares_y``); boards printed before, and many bought ones, keep the old layout. Their
-    markers decode but no corner interpolates (the markers' neighbours disagree with the
-    board). Such an image is detected again with the old layout, and the layout giving more
-    corners is kept; the corners' ids and board positions are the same in both.
+    OpenCV 4.6 moved the markers of a board with an even ``squares_y``; boards printed before
+    keep the old layout, whose markers decode but interpolate no corner. Such an image is
+    detected again with the old layout, and the layout giving more corners kept (ids and board
+    positions are the same in both).
     """
     ids, px, reasons, n_markers = _detect_charuco_layout(grey, target, blur_px, legacy=False)
     if target.squares_y % 2 == 0 and n_markers >= 2 and len(ids) < n_markers / 2:
@@ -355,13 +354,10 @@ def _refine_charuco(
     """``cornerSubPix`` per corner with the largest window that holds no marker edge.
 
     The four marker outlines around a corner are mapped into the image by the homography of
-    the adjacent markers that were detected (exact for their own corners; the board-wide one
-    ``H`` when none was), and the window, centred on the corner's estimate, stops 2 px short
-    of the nearest outline point (L-inf: the window is a square). Sampling the outlines, not
-    only their corners: under perspective an edge can come nearer than its corner. A window
-    narrower than 1.5 times the image's blur (``blur_px``, the edge width) sees only the blurred
-    middle of the junction and drifts (by up to 2 px on defocused images, docs/DETECTION.md):
-    such a corner keeps the detector's estimate.
+    the adjacent detected markers (else the board-wide ``H``); the square window, centred on
+    the corner, stops 2 px short of the nearest outline point. A window narrower than 1.5
+    times the image's blur (``blur_px``) sees only the blurred junction and drifts: such a
+    corner keeps the detector's estimate.
     """
     sq, m = target.square_size_m, target.marker_size_m
     g = 0.5 * (sq - m)
@@ -731,11 +727,10 @@ def _recover_grid_tags(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Tags of an AprilGrid the marker detector missed, found where the found ones predict them.
 
-    Kalibr's corner squares touch every tag's corners, which merges the tag's outline with them
-    and makes OpenCV's quad finder miss tags (a fifth of them on tilted views, most of them when
-    tags are small). Each missing tag's corners are predicted by a homography fitted to the found
-    corners of the tags around it, refined like found ones, and kept only if the tag's cells read
-    back as its own code (at most 3 of its bits wrong; the 36h11 codes differ in at least 11).
+    Kalibr's corner squares touch every tag's corners and make OpenCV's quad finder miss tags.
+    Each missing tag's corners are predicted by a homography fitted to the found corners of the
+    tags around it, refined like found ones, and kept only if the tag's cells read back as its
+    own code (at most 3 of its bits wrong; the 36h11 codes differ in at least 11).
     """
     d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, target.dictionary))
     cells = d.markerSize + 2
@@ -869,10 +864,9 @@ TAG_EDGE_DEPTH = 0.7
 def _tag_edge_corners(grey: np.ndarray, q: np.ndarray, cells: float) -> np.ndarray:
     """A lone tag's corners (4, 2) as the intersections of its fitted border edges.
 
-    A tag's outer corners are L-corners: ``cornerSubPix`` pulls them towards the inside of the
-    tag by about a third of the blur (docs/DETECTION.md), which shrinks every tag and biases
-    the focal length. The edges themselves are located without that bias. Any side that cannot
-    be fitted keeps the input corners (``q``, from ``cornerSubPix``)."""
+    ``cornerSubPix`` pulls a tag's L-corners inwards (shrinking the tag, biasing the focal
+    length); the edges are located without that bias. A side that cannot be fitted keeps the
+    input corners ``q``."""
     centre = q.mean(axis=0)
     grey_f = grey.astype(np.float32)  # interpolated profiles without 8-bit rounding
     curves = []
@@ -921,10 +915,8 @@ def _refine_tag(grey: np.ndarray, q: np.ndarray, target: Target) -> np.ndarray:
     """``cornerSubPix`` of one tag's corners (4, 2), finally in a window that stays inside the
     tag's black border cell (and, on an AprilGrid, inside the gap's corner square).
 
-    On an AprilGrid the quad fit's corners can be 3-4 px off (the corner squares touch the tag
-    and bend its outline), more than that window: a first pass with a window of 1.5 cells
-    brings them within reach (slightly biased by the tag's data bits), the second removes the
-    bias."""
+    On an AprilGrid the quad fit's corners can be off by more than that window: a first pass
+    with a window of 1.5 cells brings them within reach, the second removes its bias."""
     side = float(np.mean(np.linalg.norm(q - np.roll(q, 1, axis=0), axis=1)))
     cell_px = side / _tag_cells(target)
     limit_px = cell_px

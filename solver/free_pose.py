@@ -38,14 +38,11 @@ def free_pose_fit(
     """Fit a free board pose to every image with fixed intrinsics and distortion.
 
     ``images``: (frame index, camera, board points (n, 3), pixels (n, 2)) of the inlier
-    detections. Each pose is the reprojection-error minimum of OpenCV's iterative PnP, started
-    from the better of ``starts`` (``T_cam_board`` per (frame index, camera), e.g. the robot
-    model's prediction) and the closed-form planar solution (IPPE), so that a wildly wrong
-    robot model cannot spoil the floor it is judged against. Images with fewer than 4 points
-    are skipped. The candidate poses are scored for all images at once (one projection per
-    camera), not image by image. ``closed_form`` False: the closed form only for the images
-    without a start, or whose start PnP does not refine (the starts are free-pose minima
-    already, e.g. of an earlier fit).
+    detections. Each pose is OpenCV's iterative PnP minimum from the better of ``starts``
+    (``T_cam_board`` per (frame index, camera)) and the closed-form planar solution (IPPE), so
+    that a wrong robot model cannot spoil the floor it is judged against; images with fewer
+    than 4 points are skipped. ``closed_form`` False: IPPE only for the images without a start
+    or whose start does not refine.
     """
     todo = [
         (fi, cam, pts.astype(np.float64), px.astype(np.float64))
