@@ -35,7 +35,7 @@ from slidecal.solver.adequacy import (
 )
 from slidecal.solver.degeneracy import check_configuration, n_directions
 from slidecal.solver.errors import DegenerateError, InputError
-from slidecal.solver.free_pose import FreePoseFit
+from slidecal.solver.free_pose import FreePoseFit, pnp_from
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, project_to_SO3
 from slidecal.solver.handeye import ax_xb_park_martin, rotation_from_directions
 from slidecal.solver.homography import group_homographies
@@ -68,6 +68,7 @@ from slidecal.solver.result import (
     BoardShape,
     CalibrationResult,
     CameraEstimate,
+    NamedCovariance,
     ScaleCheck,
     TransformEstimate,
 )
@@ -448,24 +449,10 @@ def pnp_pose(
         return None
     obj, img = board_pts.astype(np.float64), px.astype(np.float64)
     if guess is not None:
-        rvec0, _ = cv2.Rodrigues(guess[:3, :3])
-        ok, rvec, tvec = cv2.solvePnP(
-            obj,
-            img,
-            K,
-            dist,
-            rvec0,
-            guess[:3, 3].reshape(3, 1).copy(),
-            useExtrinsicGuess=True,
-            flags=cv2.SOLVEPNP_ITERATIVE,
-        )
-    else:
-        flags = cv2.SOLVEPNP_IPPE if fast else cv2.SOLVEPNP_ITERATIVE
-        ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=flags)
-    if not ok:
-        return None
-    R, _ = cv2.Rodrigues(rvec)
-    return T_from_Rt(R, tvec.reshape(3))
+        return pnp_from(obj, img, K, dist, guess)
+    flags = cv2.SOLVEPNP_IPPE if fast else cv2.SOLVEPNP_ITERATIVE
+    ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=flags)
+    return T_from_Rt(cv2.Rodrigues(rvec)[0], tvec.reshape(3)) if ok else None
 
 
 def _frame_poses(
@@ -996,13 +983,7 @@ def _result(
         he_key = hand_eye_names(problem.mount, [c.name for c in problem.cameras])[problem.reference]
         rot_ok, t_ok = layout.rotation_reported, layout.translation_reported
         T_he = inv_T(state.X[0])
-        hand_eye = TransformEstimate(
-            he_name,
-            T_he[:3, :3] if rot_ok else None,
-            T_he[:3, 3] if t_ok else None,
-            named.std_rot_deg(he_key) if named is not None else None,
-            named.std_t_mm(he_key) if named is not None else None,
-        )
+        hand_eye = _estimate(he_name, T_he, rot_ok, t_ok, named, he_key)
         # the target pose is tied to the hand-eye transform: what the data cannot determine of
         # one, it cannot determine of the other (no made-up numbers)
         if not rot_ok:
@@ -1015,25 +996,13 @@ def _result(
                 f"depends on the hand-eye translation ({he_name}.t), which this session cannot "
                 "determine; add orientations tilted about two non-parallel axes"
             )
-        T_target = TransformEstimate(
-            tgt_name,
-            state.Y[:3, :3] if rot_ok else None,
-            state.Y[:3, 3] if t_ok else None,
-            named.std_rot_deg(tgt_name) if named is not None else None,
-            named.std_t_mm(tgt_name) if named is not None else None,
-        )
+        T_target = _estimate(tgt_name, state.Y, rot_ok, t_ok, named)
     rig = {}
     H_inf = {}
     ref = problem.reference
     for c, T in state.T_cam_ref.items():
         key = f"T_{c}_{ref}"
-        rig[key] = TransformEstimate(
-            key,
-            T[:3, :3],
-            T[:3, 3],
-            named.std_rot_deg(key) if named is not None else None,
-            named.std_t_mm(key) if named is not None else None,
-        )
+        rig[key] = _estimate(key, T, True, True, named)
         Hab = state.K[c] @ T[:3, :3] @ np.linalg.inv(state.K[ref])
         H_inf[f"{c}<-{ref}"] = Hab / Hab[2, 2]
     residuals = {}
@@ -1087,6 +1056,21 @@ def _result(
         adequacy=adequacy,
         robot_accuracy=robot_accuracy,
         board=_board_shape(problem, reported.board),
+    )
+
+
+def _estimate(
+    name: str, T: np.ndarray, rot_ok: bool, t_ok: bool, named: NamedCovariance | None, key: str = ""
+) -> TransformEstimate:
+    """``T`` (4, 4) as the result reports it: its rotation and translation where observable,
+    with their stds from ``named`` under ``key`` (or ``name``)."""
+    key = key or name
+    return TransformEstimate(
+        name,
+        T[:3, :3] if rot_ok else None,
+        T[:3, 3] if t_ok else None,
+        named.std_rot_deg(key) if named is not None else None,
+        named.std_t_mm(key) if named is not None else None,
     )
 
 

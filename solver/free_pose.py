@@ -55,7 +55,7 @@ def free_pose_fit(
     for fi, cam, obj, img in todo:
         T0 = starts.get((fi, cam))
         good_start = T0 is not None and T0[2, 3] > 0
-        refined.append(_pnp(obj, img, K[cam], dist[cam], T0) if good_start else None)
+        refined.append(pnp_from(obj, img, K[cam], dist[cam], T0) if good_start else None)
         if good_start and not closed_form and refined[-1] is not None:
             closed.append(None)
             continue
@@ -68,7 +68,7 @@ def free_pose_fit(
     alt: list[np.ndarray | None] = [None] * len(todo)
     for k, (_, cam, obj, img) in enumerate(todo):
         if closed_rss[k] is not None and (best[k] is None or closed_rss[k] < best[k]):
-            alt[k] = _pnp(obj, img, K[cam], dist[cam], closed[k])
+            alt[k] = pnp_from(obj, img, K[cam], dist[cam], closed[k])
     alt_rss = _scored(todo, alt, K, dist)
     rss: dict[tuple[int, str], float] = {}
     rows: dict[tuple[int, str], int] = {}
@@ -117,7 +117,7 @@ def _scored(
     return out
 
 
-def _pnp(
+def pnp_from(
     obj: np.ndarray, img: np.ndarray, K: np.ndarray, dist: np.ndarray, T0: np.ndarray
 ) -> np.ndarray | None:
     """OpenCV's iterative PnP (the reprojection-error minimum) started at ``T0``: the pose
