@@ -814,18 +814,10 @@ def robot_accuracy(problem: CalibrationProblem, out: RefineOutput) -> RobotAccur
     E = out.model.pose_corrections(out.state)
     if E is not None:
         for f, e in zip(problem.frames, E, strict=True):
-            worst.append(
-                (
-                    int(f.id),
-                    float(1000.0 * np.linalg.norm(e[3:])),
-                    float(np.degrees(np.linalg.norm(e[:3]))),
-                )
-            )
-        worst.sort(
-            key=lambda w: (
-                -(w[1] / max(1000.0 * sig[1], 1e-6) + w[2] / max(np.degrees(sig[0]), 1e-9))
-            )
-        )
+            t_mm, r_deg = 1000.0 * np.linalg.norm(e[3:]), np.degrees(np.linalg.norm(e[:3]))
+            worst.append((int(f.id), float(t_mm), float(r_deg)))
+        t_sig, r_sig = max(1000.0 * sig[1], 1e-6), max(np.degrees(sig[0]), 1e-9)
+        worst.sort(key=lambda w: -(w[1] / t_sig + w[2] / r_sig))
     return RobotAccuracy(
         translation_mm=float(1000.0 * sig[1]),
         rotation_deg=float(np.degrees(sig[0])),

@@ -149,19 +149,9 @@ def _chunks(problem: CalibrationProblem) -> list[_Chunk]:
             det = frame.detections.get(cam.name)
             if det is None or len(det.ids) == 0:
                 continue
-            n = len(det.ids)
-            chunks.append(
-                _Chunk(
-                    fi,
-                    cam.name,
-                    slice(row, row + 2 * n),
-                    pts[det.ids],
-                    det.px,
-                    (frame.id, cam.name),
-                    det.ids,
-                )
-            )
-            row += 2 * n
+            rows, key = slice(row, row + 2 * len(det.ids)), (frame.id, cam.name)
+            chunks.append(_Chunk(fi, cam.name, rows, pts[det.ids], det.px, key, det.ids))
+            row = rows.stop
     return chunks
 
 
@@ -390,10 +380,7 @@ class BundleModel:
             if self.dist_names:
                 add(f"dist:{c}", [f"{c}.{n}" for n in self.dist_names])
             if c != self.ref:
-                add(
-                    f"rig:{c}",
-                    [f"T_{c}_{self.ref}.{a}" for a in ("rx", "ry", "rz", "tx", "ty", "tz")],
-                )
+                add(f"rig:{c}", [f"T_{c}_{self.ref}.{a}" for a in POSE_AXES])
         st = structure
         for g in range(n_groups):
             block = [f"X{g}.r{i}" for i in range(st.X_rot_basis.shape[1])]
@@ -406,10 +393,7 @@ class BundleModel:
             add("Y", yb)
         if structure.pose_sigma is not None and structure.pose_groups is not None:
             n_pg = int(structure.pose_groups.max()) + 1
-            add(
-                "U",
-                [f"pose_group{g}.{a}" for g in range(n_pg) for a in POSE_AXES],
-            )
+            add("U", [f"pose_group{g}.{a}" for g in range(n_pg) for a in POSE_AXES])
         self.trend_offsets: list[int] = []  # first V index of each trend group
         if structure.pose_sigma is not None and structure.trend_sigma is not None:
             block = []
@@ -420,10 +404,7 @@ class BundleModel:
         if structure.pose_sigma is not None and structure.common_sigma is not None:
             add("W", [f"shared_field.{j}" for j in range(structure.common_map.shape[2])])
         if structure.pose_sigma is not None:
-            add(
-                "E",
-                [f"pose{int(f.id)}.{a}" for f in problem.frames for a in POSE_AXES],
-            )
+            add("E", [f"pose{int(f.id)}.{a}" for f in problem.frames for a in POSE_AXES])
         self.s_frames = np.flatnonzero(structure.s_free)
         if len(self.s_frames):
             add("s", [f"s{int(problem.frames[i].id)}" for i in self.s_frames])
@@ -456,14 +437,10 @@ class BundleModel:
         for c in self.cams:
             d = delta[self.slices[f"intr:{c}"]]
             k = K[c].copy()
-            if self.problem.options.unit_aspect:
-                k[0, 0] += d[0]
-                k[1, 1] += d[0]
-                rest = d[1:]
-            else:
-                k[0, 0] += d[0]
-                k[1, 1] += d[1]
-                rest = d[2:]
+            unit = self.problem.options.unit_aspect
+            k[0, 0] += d[0]
+            k[1, 1] += d[0] if unit else d[1]
+            rest = d[1:] if unit else d[2:]
             k[0, 2] += rest[0]
             k[1, 2] += rest[1]
             if self.problem.options.skew:
