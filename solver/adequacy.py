@@ -25,8 +25,8 @@ from slidecal.solver.geometry import (
     T_from_Rt,
     inv_T,
     project_to_SO3,
+    quat_wxyz_from_R,
     rotation_angle_deg,
-    rvec_from_R,
 )
 from slidecal.solver.model import ModelState, orientation_groups
 from slidecal.solver.problem import CalibrationProblem
@@ -400,14 +400,6 @@ def _pairing(problem: CalibrationProblem, frames: list[int], T_cam: list[np.ndar
 CONVENTION_MARGIN = 2.0
 
 
-def _quat_wxyz(R: np.ndarray) -> np.ndarray:
-    """The unit quaternion (w, x, y, z) of ``R`` (the inverse of ``R_from_quat_wxyz``)."""
-    v = rvec_from_R(R)
-    angle = float(np.linalg.norm(v))
-    axis = v / angle if angle > 0 else np.zeros(3)
-    return np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * axis])
-
-
 def _rpy(R: np.ndarray) -> tuple[float, float, float]:
     """(roll, pitch, yaw) of ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (radians)."""
     pitch = float(-np.arcsin(np.clip(R[2, 0], -1.0, 1.0)))
@@ -419,7 +411,7 @@ def _rotation_read_as(kind: str, R: np.ndarray) -> np.ndarray:
     if kind == "transposed":
         return R.T
     if kind == "quaternion scalar last":  # [x, y, z, w] read as [w, x, y, z]
-        w, x, y, z = _quat_wxyz(R)
+        w, x, y, z = quat_wxyz_from_R(R)
         return R_from_quat_wxyz(np.array([z, w, x, y]))
     roll, pitch, yaw = _rpy(R)
     if kind == "angles reversed":  # [yaw, pitch, roll] (KUKA's A, B, C) read as [roll, ...]

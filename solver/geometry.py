@@ -69,6 +69,15 @@ def R_from_quat_wxyz(q: np.ndarray) -> np.ndarray:
     )
 
 
+def quat_wxyz_from_R(R: np.ndarray) -> np.ndarray:
+    """The unit quaternion ``(w, x, y, z)`` (4,), ``w >= 0``, of ``R`` (3, 3) (the inverse of
+    :func:`R_from_quat_wxyz`)."""
+    v = rvec_from_R(R)
+    angle = float(np.linalg.norm(v))
+    axis = v / angle if angle > 0 else np.zeros(3)
+    return np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * axis])
+
+
 def project_to_SO3(M: np.ndarray) -> np.ndarray:
     """The rotation nearest to a 3x3 matrix in the Frobenius norm (SVD, det = +1)."""
     U, _, Vt = np.linalg.svd(np.asarray(M, dtype=float))
