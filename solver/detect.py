@@ -173,9 +173,8 @@ def grey_of(image: np.ndarray, colour: str = COLOUR_CONVERSION) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
-# Image checks, reported when the target is not found. Thresholds: a printed board needs its
-# white well above its black; these are the levels at which OpenCV's detectors start to fail on
-# rendered boards (docs/DETECTION.md).
+# Image checks, reported when the target is not found: the levels at which OpenCV's detectors
+# start to fail on rendered boards (docs/DETECTION.md).
 DARK_MEAN_GREY = 25.0
 SATURATED_FRACTION = 0.25
 BLURRED_SIGMA_PX = 2.5
@@ -562,9 +561,8 @@ def _chessboard_not_found(grey: np.ndarray, target: Target) -> str:
 
 
 TAG_REFINEMENTS = ("edges", "subpix", "apriltag", "none")
-# measured in docs/DETECTION.md: an AprilGrid's tag corners are X-junctions with its corner
-# squares (``cornerSubPix`` is unbiased on them); a lone tag's corners are L-corners, which
-# ``cornerSubPix`` pulls inwards, so its corners are intersections of its fitted border edges
+# an AprilGrid's tag corners are X-junctions (``cornerSubPix`` is unbiased on them); a lone
+# tag's are L-corners, taken as the intersections of its fitted border edges
 TAG_REFINEMENT = {"apriltag": "edges", "aprilgrid": "subpix"}
 
 
@@ -599,9 +597,8 @@ def _family_of(dictionary: str) -> str:
 def other_family(grey: np.ndarray, dictionary: str) -> str:
     """Why no marker of ``dictionary`` was found when markers of another family are in view:
     the family with the most markers (at least ``_OTHER_FAMILY_MIN_MARKERS``) and the
-    smallest dictionary of it that holds every id seen, as a sentence; "" when none is. Looked
-    for on the image reduced to a long side of about ``REDUCED_LONG_SIDE_PX`` (a failed
-    frame's cost: about 10 ms per family there)."""
+    smallest dictionary of it that holds every id seen, as a sentence; "" when none is (looked
+    for on the reduced image)."""
     img = _reduce(grey, reduction_factor(grey.shape))
     own = _family_of(dictionary)
     best: tuple[int, str, int] = (0, "", 0)
@@ -626,10 +623,8 @@ def other_family(grey: np.ndarray, dictionary: str) -> str:
     )
 
 
-#: ``minMarkerDistanceRate`` of the second look for tags the first missed: OpenCV groups quads
-#: whose corners lie closer on average than 0.125 of the smaller one's perimeter and decodes one
-#: of each group, so a tag on a narrow white margin is grouped with its paper's outline and may
-#: be lost; at this rate a tag's duplicate quads from the adaptive thresholds still group.
+#: ``minMarkerDistanceRate`` of the second look for tags the first missed (OpenCV's default
+#: groups a tag on a narrow margin with its paper's outline and may lose it).
 TAG_RETRY_MARKER_DISTANCE_RATE = 0.02
 
 
@@ -901,9 +896,7 @@ def _tag_edge_corners(grey: np.ndarray, q: np.ndarray, cells: float) -> np.ndarr
 
 
 #: Farthest a tag corner may move in its last ``cornerSubPix`` pass, in cells of the tag (and
-#: at least :data:`TAG_SUBPIX_JUMP_MIN_PX`): OpenCV's quad corners are within about a pixel of a
-#: lone tag's, and a farther move is the paper's corner or the background beyond a one-cell
-#: margin pulling the window.
+#: at least :data:`TAG_SUBPIX_JUMP_MIN_PX`): farther, the paper's corner pulled the window.
 TAG_SUBPIX_JUMP_CELLS = 0.25
 TAG_SUBPIX_JUMP_MIN_PX = 2.0
 #: How far a lone tag's ``cornerSubPix`` window reaches each way, in cells (an AprilGrid's: 0.8
