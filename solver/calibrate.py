@@ -225,9 +225,9 @@ def _linear_groups(
     homographies: dict | None = None,
 ) -> list[tuple[list[int], list[LinearGroup]]]:
     """Per orientation group: the frames every camera in ``cams`` saw well enough, and one
-    ``LinearGroup`` per camera (the group's homographies with a common scale: jointly refined
-    with ``joint``, else the rescaled per-frame DLTs; the known motion). ``homographies``: a
-    cache of them by (camera, frames, joint), filled here (a rig's pairs reuse each camera's)."""
+    ``LinearGroup`` per camera (homographies with a common scale: jointly refined with
+    ``joint``, else rescaled per-frame DLTs). ``homographies``: their cache by (camera, frames,
+    joint), filled here."""
     cache = {} if homographies is None else homographies
     pts = problem.target.points_m[:, :2]
     out = []
@@ -277,10 +277,8 @@ def _with_rotation(problem: CalibrationProblem, st: Structure, R_X: np.ndarray) 
 
 
 def _best_start(problem: CalibrationProblem, cam: str, candidates: list[np.ndarray]) -> int:
-    """Index of the start ``K`` (3, 3) that explains the images best through the robot poses.
-
-    For each candidate: per-frame PnP poses and the hand-eye start (:func:`init_motion`) predict
-    every detection through the robot poses; the smallest median reprojection error wins.
+    """Index of the start ``K`` (3, 3) whose PnP poses and hand-eye start (:func:`init_motion`)
+    predict the detections best through the robot poses (smallest median reprojection error).
     """
     o = problem.options
     exact = replace(problem, options=replace(o, robot_noise_m=0.0, robot_noise_deg=0.0))
@@ -635,10 +633,10 @@ def calibrate(
 class _Pass:
     """One pass of the pipeline over a problem: its solve, and what it asks of the loop.
 
-    ``again``: the problem to solve next (a frame or image left out, or frames without a board
-    pose skipped), with ``prefix`` the lines the final result then opens with and ``gone`` the
-    frame left out for its pose (for ``RobotAccuracy.left_out``); ``bad``: the outlier left
-    out, whose pass is finished instead should the next one fail; ``result``: a restart's."""
+    ``again``: the problem to solve next (an outlier left out, or frames without a board pose
+    skipped), ``prefix`` the lines the result then opens with, ``gone`` the frame left out for
+    its pose; ``bad``: the outlier left out (its pass is finished should the next one fail);
+    ``result``: a restart's."""
 
     problem: CalibrationProblem
     notes: list[str]
@@ -874,8 +872,7 @@ def _field_note(
     problem: CalibrationProblem, out: RefineOutput, step: np.ndarray
 ) -> tuple[str, ...]:
     """A line saying how far a classic session's two readings of its arm's linear field put
-    the hand-eye apart (``session_field_step``), when they do by half a millimetre or 0.05 deg
-    or more (what a cell would notice)."""
+    the hand-eye apart (``session_field_step``), from half a millimetre or 0.05 deg."""
     layout = layout_of(problem, out.model.st, out.state)
     frames = mount_names(layout.mount)
     if frames is None:
@@ -1088,10 +1085,9 @@ def _board_shape(problem: CalibrationProblem, fit: BoardFit | None) -> BoardShap
 
 
 def _fitted_poses(out: RefineOutput, fit: FreePoseFit | None = None) -> dict[int, np.ndarray]:
-    """The reference camera's ``T_cam_board`` per frame index from a free-pose fit of this
-    state's intrinsics started from its predictions (``fit``, by default the robot test's when
-    the refinement kept it), for the images in which no detection was flagged (the fit uses the
-    inliers): the same PnP minimum :func:`scale_checks` would compute again."""
+    """The reference camera's ``T_cam_board`` per frame index from a free-pose fit at this
+    state's intrinsics (``fit``, by default the robot test's), for the images without a flagged
+    detection: the PnP minimum :func:`scale_checks` would compute again."""
     fit, m = out.free_pose if fit is None else fit, out.model
     if fit is None:
         return {}
