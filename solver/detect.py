@@ -223,22 +223,10 @@ def detect(
 ) -> DetectionReport:
     """Find the target's corners in ``image``; never raises for an image without the target.
 
-    Parameters
-    ----------
-    image
-        uint8 (H, W) grey or (H, W, 3) BGR (other dtypes are rescaled to 0..255).
-    target
-        A ``charuco``, ``chessboard``, ``apriltag`` or ``aprilgrid`` target.
-    min_corners
-        Fewer kept corners than this make the frame unusable (``ok`` False); at least 4 (one
-        tag's corners, the least that fixes the board's pose in the image).
-    colour
-        How a colour image becomes grey: "green" (default), "luma" or "mean".
-
-    Returns
-    -------
-    DetectionReport
-        Ids and pixels (pixel (0, 0) is the centre of the top-left pixel) and diagnostics.
+    ``image``: uint8 (H, W) grey or (H, W, 3) BGR (other dtypes are rescaled to 0..255);
+    ``target``: a ``charuco``, ``chessboard``, ``apriltag`` or ``aprilgrid`` target; fewer kept
+    corners than ``min_corners`` (at least 4) make the frame unusable; ``colour``: how a colour
+    image becomes grey ("green", "luma" or "mean"). Returns the ids, pixels and diagnostics.
     """
     grey = grey_of(image, colour)
     stats = image_stats(grey)

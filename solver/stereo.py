@@ -81,28 +81,14 @@ def infinite_homography(
     refine: bool = True,
     max_iterations: int = 50,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The infinite homography from camera b's image to camera a's, from stereo views.
+    """``(H_inf, mu)``: the infinite homography (3, 3) from camera b's image to camera a's
+    (``x_a ~ H_inf x_b`` in pixels, ``K_a R_a_b K_b^-1`` at ``det = 1``) and the per-view scales
+    (n,) with ``h_a1 = mu_k H_inf h_b1``, ``h_a2 = mu_k H_inf h_b2`` (eqs. 58-61).
 
-    Parameters
-    ----------
-    H_a, H_b : (n, 3, 3)
-        Board plane to pixel homographies of camera a and camera b; view k is the same board
-        pose seen by both cameras. n >= 2 with different board orientations.
-    sizes : ((width_a, height_a), (width_b, height_b)) in pixels, optional
-        Image sizes for the normalisation; without them a data-based scale is used.
-    refine : bool
-        After the linear solution (eqs. 58-61), minimise ``sum_k ||A_k - mu_k H B_k||^2`` over
-        ``H`` and ``mu_k`` by alternating least squares, where ``A_k``, ``B_k`` are the
-        normalised, unit-norm columns ``[h1 h2]`` of view k (errors in camera a's columns).
-
-    Returns
-    -------
-    H_inf : (3, 3)
-        ``x_a ~ H_inf x_b`` in pixels, ``H_inf = K_a R_a_b K_b^-1`` up to scale, normalised to
-        ``det(H_inf) = 1``.
-    mu : (n,)
-        Per-view scales with ``h_a1 = mu_k H_inf h_b1`` and ``h_a2 = mu_k H_inf h_b2`` for the
-        homographies as given (eqs. 58-59).
+    ``H_a``, ``H_b`` (n, 3, 3): board plane to pixels, view k the same board pose in both
+    cameras, n >= 2 orientations. ``sizes``: for the normalisation (else a data-based scale).
+    ``refine``: after the linear solution, minimise ``sum_k ||A_k - mu_k H B_k||^2`` (``A_k``,
+    ``B_k`` the normalised unit-norm columns ``[h1 h2]``) by alternating least squares.
     """
     H_a = _check_homographies(H_a, "H_a")
     H_b = _check_homographies(H_b, "H_b")
@@ -241,22 +227,11 @@ def rig_linear_intrinsics(
     ``s`` is carried by ``w_b``, whose own rows are homogeneous. The eq. 62 rows get the median
     norm of the cameras' rows.
 
-    Parameters
-    ----------
-    Hs_a, Hs_b : (n_a, 3, 3), (n_b, 3, 3)
-        Board plane to pixel homographies of each camera (any views, not necessarily paired).
-    H_inf : (3, 3) or None
-        Camera b's image to camera a's, in pixels (:func:`infinite_homography`); None solves
-        each camera alone with the same rows (the separate calibration,
-        ``slidecal.solver.linear.zhang_intrinsics``).
-    skew, unit_aspect : bool
-        Estimate the skew (else zero); assume ``fx == fy``.
-    sizes : ((width_a, height_a), (width_b, height_b)) in pixels.
-    row_weighting : see ``slidecal.solver.linear.linear_system`` (``"unit"``: docs/S5.md).
-
-    Returns
-    -------
-    K_a, K_b : (3, 3) intrinsics in pixels, ``K[2, 2] = 1``.
+    ``Hs_a``, ``Hs_b`` (n_a, 3, 3), (n_b, 3, 3): each camera's homographies (views not
+    necessarily paired). ``H_inf``: :func:`infinite_homography`'s, or None to solve each camera
+    alone with the same rows (``slidecal.solver.linear.zhang_intrinsics``). ``skew``,
+    ``unit_aspect``, ``row_weighting``: as for ``linear_system`` (``"unit"``: docs/S5.md).
+    Returns ``K_a``, ``K_b`` (3, 3) in pixels.
     """
     Hs = (_check_homographies(Hs_a, "Hs_a"), _check_homographies(Hs_b, "Hs_b"))
     options = {"skew": skew, "unit_aspect": unit_aspect, "row_weighting": row_weighting}
@@ -387,25 +362,11 @@ def rig_linear_intrinsics_translation(
     more groups). Coupling rows for every translation (:func:`_shared_translation_rows`); with
     ``_EQ62_MIN_GROUPS`` groups and ``use_eq62`` the six rows of eq. 62 too.
 
-    Parameters
-    ----------
-    groups_a, groups_b : sequences of ``slidecal.solver.linear.LinearGroup``
-        Group g of camera a and of camera b hold the same frames: ``H`` (n_g, 3, 3) board plane
-        to pixels. ``motion`` (n_g, 3) is read from ``groups_a`` (``groups_b``'s must be None or
-        equal); its meaning follows ``knowledge`` (see ``LinearGroup``), in board units.
-    knowledge : "robot", "board_translation", "board_direction" or "lengths"
-    skew, unit_aspect : bool
-        Estimate the skew (else zero); assume ``fx == fy``.
-    sizes : ((width_a, height_a), (width_b, height_b)) in pixels.
-    use_eq62 : bool
-        Add eq. 62 when there are three or more groups (with one group ``H_inf`` is unknown,
-        with two it is too uncertain to help).
-    row_weighting : see ``slidecal.solver.linear.linear_system``; coupling rows get the noise
-        scale of their two sides.
-
-    Returns
-    -------
-    K_a, K_b : (3, 3) intrinsics in pixels, ``K[2, 2] = 1``.
+    ``groups_a``, ``groups_b``: ``LinearGroup`` per orientation group, the same frames in both
+    (``motion`` read from ``groups_a``, board units, by ``knowledge``: "robot",
+    "board_translation", "board_direction" or "lengths"). ``use_eq62``: add eq. 62 with three or
+    more groups. ``row_weighting``: as for ``linear_system``; coupling rows get the noise scale
+    of their two sides. Returns ``K_a``, ``K_b`` (3, 3) in pixels.
     """
     if knowledge not in _TRANSLATION_KNOWLEDGE:
         raise InputError(
