@@ -537,9 +537,7 @@ class BundleModel:
         without the pose-correction columns (2 n, P0) and, third, each observation's block of
         its own frame's correction (n, 2, 6); the prior rows are left to the caller.
         ``transposed`` (with ``split``, or without pose corrections): the pixel rows' Jacobian
-        transposed, (P, 2 n), every observation's u row first, then every v row
-        (``axis_rows`` orders a row vector so): one parameter's column is contiguous, and
-        the normal matrix's product runs at the speed of a symmetric rank-k update.
+        transposed, (P, 2 n), every u row first, then every v row (``axis_rows``' order).
         """
         n, P_ = self.n_obs, len(self.names)
         st = self.st
