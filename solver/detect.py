@@ -809,7 +809,7 @@ def _side_curve(
     s = np.arange(-half_px, half_px + 1e-9, 0.25)
     P = a + t[:, None, None] * u + s[None, :, None] * n
     prof = cv2.remap(  # cubic: a linear interpolation locks an edge along a pixel row or
-        grey,  # column to the grid (a face-on tag: 0.08 px rms -> 0.05 on its renders)
+        grey,  # column to the grid
         P[..., 0].astype(np.float32),
         P[..., 1].astype(np.float32),
         cv2.INTER_CUBIC,
