@@ -193,12 +193,8 @@ def w_basis(skew: bool, unit_aspect: bool) -> tuple[np.ndarray, tuple[str, ...]]
     if skew:
         return I6, W_NAMES
     if unit_aspect:
-        return np.column_stack([I6[0] + I6[2], I6[3], I6[4], I6[5]]), (
-            "w11=w22",
-            "w13",
-            "w23",
-            "w33",
-        )
+        basis = np.column_stack([I6[0] + I6[2], I6[3], I6[4], I6[5]])
+        return basis, ("w11=w22", "w13", "w23", "w33")
     return I6[:, [0, 2, 3, 4, 5]], ("w11", "w22", "w13", "w23", "w33")
 
 
@@ -354,12 +350,8 @@ def linear_system(
                 add(conic_row(hn, D[keep]), nrm(hn) + nD[keep])
         elif knowledge == "robot":  # pairs of translations, generalising eq. 27
             k, j = robot_pairs(len(D))
-            add(
-                conic_row(D[j], D[k]),
-                nD[j] + nD[k],
-                g,
-                -np.sum(motion[1:][j] * T[k], axis=1),
-            )
+            coef = -np.sum(motion[1:][j] * T[k], axis=1)
+            add(conic_row(D[j], D[k]), nD[j] + nD[k], g, coef)
     A = (
         np.concatenate([np.concatenate(conics) @ B, np.concatenate(c_cols)], axis=1)
         if conics
