@@ -1,15 +1,11 @@
 """Does the model explain the data? The detector's noise, measured without the robot model.
 
-A robot-pose model that is wrong (poses taken as exact when the arm errs by a millimetre, angles
-in degrees read as radians, a wrong square size) leaves residuals larger than the detector's
-noise. To say so, the detector's noise must be known independently of the robot poses: here it
-is the residual of a fit of every image alone, with the solution's intrinsics and distortion and
-a free board pose per image (:func:`free_pose_fit`). That residual is the floor of the detector
-and the lens model; what the robot model leaves above it is the robot model's share.
-
-:func:`assess` compares the two per camera and per image, reads the robot's accuracy as the
-camera saw it (the per-frame pose corrections of the refinement) and marks the result unusable,
-with the figure and its limit, when the model cannot explain the data.
+The floor is the residual of a fit of every image alone with the solution's intrinsics and a
+free board pose per image (:func:`free_pose_fit`): the detector's and the lens model's noise.
+:func:`assess` compares the robot model's residuals with it per camera and per image, reads the
+robot's accuracy from the refinement's pose corrections, and marks the result unusable, with the
+figure and its limit, when the model cannot explain the data; the record checks tell wrongly
+read or paired robot records from the images alone.
 """
 
 from __future__ import annotations
@@ -29,8 +25,8 @@ from slidecal.solver.geometry import (
     T_from_Rt,
     inv_T,
     project_to_SO3,
+    quat_wxyz_from_R,
     rotation_angle_deg,
-    rvec_from_R,
 )
 from slidecal.solver.model import ModelState, orientation_groups
 from slidecal.solver.problem import CalibrationProblem
@@ -54,7 +50,7 @@ MAX_ROBOT_ROTATION_DEG = 1.0
 MAX_DETECTOR_NOISE_PX = 1.5
 #: The robot's translation errors growing with the moves like this (the camera sees the moves
 #: this much longer or shorter than the robot reports): a wrong square size or robot units, not
-#: an arm's accuracy (real arms: 0.1-0.5 % with a printed board's own scale error).
+#: an arm's accuracy.
 MAX_SCALE_ERROR = 0.02
 
 
@@ -65,15 +61,12 @@ def _parameters_used(out: RefineOutput) -> dict[str, float]:
     cameras' noise levels are alike."""
     m = out.model
     n_px = len(out.inlier_rows)
-    # pixel rows, then one prior row per pose-correction coordinate (the shared ones, then the
-    # frames'; they are the last columns)
+    # pixel rows, then one prior row per pose-correction coordinate (the last columns)
     n_all = n_px + (len(m.names) - m.shared_start if "E" in m.slices else 0)
     w = np.ones(n_all)
     w[:n_px] = out.inlier_rows
     normal = m.normal_blocks(out.state, w)
-    # the blocks of the inverse that are needed: the refinement's covariance over s^2 when it
-    # was made with these weights (one camera: the solve's own row weights are these), else
-    # inverted here
+    # the refinement's covariance over s^2 when made with these weights, else inverted here
     same = m.row_weights is not None and np.array_equal(m.row_weights, w)
     if same and out.covariance_blocks is not None and out.sigma_px > 0:
         Ni = out.covariance_blocks.scaled(1.0 / out.sigma_px**2)
@@ -88,10 +81,8 @@ def _parameters_used(out: RefineOutput) -> dict[str, float]:
 
 def final_free_pose_fit(out: RefineOutput) -> FreePoseFit:
     """The free-pose fit of a refinement's inlier detections at its final intrinsics: the robot
-    test's when the refinement kept it as its own (same detections, intrinsics and starts);
-    started from the robot test's poses when the refinement went on to learn the arm's accuracy
-    (free minima at nearly the same intrinsics: no closed form needed); else started from the
-    refinement's predictions, with the closed form as a guard."""
+    test's when the refinement kept it, started from its poses when the refinement went on to
+    learn the arm's accuracy, else from the refinement's predictions."""
     if out.free_pose is not None:
         return out.free_pose
     images = session_images(out.model, out.inlier_rows)
@@ -151,9 +142,7 @@ def image_outlier(
 ) -> ImageOutlier | None:
     """The robot session's image farthest beyond :data:`MAX_FRAME_NORMALISED_RMS` times its
     camera's detector noise, None when every image is within it (or without robot poses: an
-    image-only model poses each image freely, as the floor does). Such an image's pose or
-    detection is wrong: a corner misplaced by a glare or a blur, a tag's corner refined onto
-    another edge, a pose the arm did not reach; the session is solved without it."""
+    image-only model poses each image freely, as the floor does)."""
     if problem.knowledge != "robot":
         return None
     scores = _image_scores(out, fit)
@@ -203,11 +192,9 @@ def assess(
         n = sum(k for _, cam, _, _, k in scores if cam == c)
         if not (sig > 0) or n == 0:
             continue
-        # the robot model's noise estimate against the floor, each from its own redundancy:
-        # the image-wise fit spends 6 rows per image on its pose, the robot model the share of
-        # its parameters (pose corrections under their prior count in part) this camera's rows
-        # carry; both estimate the detector's noise when the model is adequate, whatever the
-        # number of points per image
+        # the robot model's noise against the floor, each over its own redundancy (the
+        # free-pose fit spends 6 rows per image, the robot model this camera's share of its
+        # parameters)
         redundancy = max(n - used.get(c, 0.0), 1.0)
         normalised[c] = float(np.sqrt(rss / redundancy) / sig)
         if normalised[c] > MAX_NORMALISED_RMS:
@@ -254,9 +241,7 @@ def assess(
                 "vectors in radians and the frame conventions"
             )
     if (reasons or not out.converged) and (paired := record_check(problem)) is not None:
-        # the cause, told from the images alone: the other figures come from a solve on wrong
-        # records (its intrinsics too, so even the free-pose floor looks like a lens problem)
-        # and would send the user elsewhere
+        # the cause, told from the images alone: the other figures come from wrong records
         reasons[:] = [paired]
     adequacy = ModelAdequacy(
         detector_noise_px=dict(fit.sigma_px),
@@ -268,10 +253,8 @@ def assess(
     return adequacy, robot
 
 
-#: The robot's and the camera's rotation angle between two frames (the angle of a relative
-#: rotation is the same in the tool's and the camera's frame, whatever the hand-eye) agree to
-#: this when poses and images are paired as recorded: a real arm's 0.1-0.2 deg and the images'
-#: own pose error (0.02-0.1 deg) stay well below it.
+#: The robot's and the camera's rotation angle between two frames (the same in the tool's and
+#: the camera's frame, whatever the hand-eye) agree to this when paired as recorded.
 MAX_PAIRING_ROTATION_DEG = 0.5
 #: Pairs of frames whose relative rotation (robot's or camera's) is at least this are tested by
 #: their rotation angles; pairs below ``PAIRING_SAME_ORIENTATION_DEG`` by their move lengths.
@@ -333,15 +316,11 @@ def record_check(problem: CalibrationProblem) -> str | None:
 
 def pairing_check(problem: CalibrationProblem) -> str | None:
     """Whether the robot poses and the images are paired as recorded, told without the robot
-    model: the reference camera's board poses from the images alone (``cv2.calibrateCamera``,
-    Zhang's method; sessions of two orientations or more) give its motion between every two
-    frames. The rotation angle must equal the robot's; a pure move's length must equal the
-    robot's up to one scale for the session. Each pair is scored against
-    ``MAX_PAIRING_ROTATION_DEG`` or ``MAX_PAIRING_LENGTH`` (above 1: they disagree). When the
-    median pair disagrees, the poses and images are paired wrongly throughout (and the shift
-    of ``PAIRING_SHIFTS`` that fits, if one does, is named); else the frames whose median pair
-    disagrees are named. None when they agree or the session cannot tell. Costs an OpenCV
-    calibration: run it for a result already in doubt."""
+    model: the reference camera's board poses from the images alone give its motion between
+    every two frames, whose rotation angle must equal the robot's and a pure move's length the
+    robot's up to one scale (limits ``MAX_PAIRING_ROTATION_DEG``, ``MAX_PAIRING_LENGTH``). Names
+    the shift of ``PAIRING_SHIFTS`` that fits, or the frames that disagree; None when they agree
+    or the session cannot tell. Costs an OpenCV calibration."""
     seen = _images_alone(problem)
     return None if seen is None else _pairing(problem, *seen)
 
@@ -415,20 +394,10 @@ def _pairing(problem: CalibrationProblem, frames: list[int], T_cam: list[np.ndar
     )
 
 
-#: A reading of the robot's records fits the images when what must stay fixed through it (the
-#: board in the base frame eye-in-hand, the target on the tool eye-to-hand) spreads by no more
-#: than a working arm and the images' own poses explain: the pairing test's rotation limit and
-#: the robot-accuracy limit on translation. The records as read must spread by more than
-#: ``CONVENTION_MARGIN`` times that for another reading to be named.
+#: A reading of the robot's records fits when what must stay fixed through it spreads within
+#: the pairing test's rotation limit and the robot-accuracy translation limit; the records as
+#: read must spread by this factor more for another reading to be named.
 CONVENTION_MARGIN = 2.0
-
-
-def _quat_wxyz(R: np.ndarray) -> np.ndarray:
-    """The unit quaternion (w, x, y, z) of ``R`` (the inverse of ``R_from_quat_wxyz``)."""
-    v = rvec_from_R(R)
-    angle = float(np.linalg.norm(v))
-    axis = v / angle if angle > 0 else np.zeros(3)
-    return np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * axis])
 
 
 def _rpy(R: np.ndarray) -> tuple[float, float, float]:
@@ -442,7 +411,7 @@ def _rotation_read_as(kind: str, R: np.ndarray) -> np.ndarray:
     if kind == "transposed":
         return R.T
     if kind == "quaternion scalar last":  # [x, y, z, w] read as [w, x, y, z]
-        w, x, y, z = _quat_wxyz(R)
+        w, x, y, z = quat_wxyz_from_R(R)
         return R_from_quat_wxyz(np.array([z, w, x, y]))
     roll, pitch, yaw = _rpy(R)
     if kind == "angles reversed":  # [yaw, pitch, roll] (KUKA's A, B, C) read as [roll, ...]
@@ -513,15 +482,11 @@ def _fixed_spread(
 def convention_check(problem: CalibrationProblem) -> str | None:
     """Whether the robot's records were read in their own convention, told from the images
     alone: through the right poses and the best hand-eye, the board stays fixed in the base
-    frame (eye-in-hand; eye-to-hand the target on the tool) to within the arm's accuracy. When
-    it does not through the poses as read, the readings of ``CONVENTIONS`` (inverted poses,
-    transposed rotations, a quaternion's scalar last, angles in the other order or composed the
-    other way) are tried, and the one through which it does is named with its fix. None when the
-    poses as read fit, none of the readings does, or the session cannot tell (one
-    orientation). Images of 4 or 5 points (a lone tag) serve when the session has no others:
-    their poses are rougher (0.3-0.45 deg, 1-1.5 mm of spread through the right reading of a
-    simulated 205-frame tag session) but a wrong reading spreads by degrees and decimetres. Costs
-    an OpenCV calibration: run it for a result already in doubt."""
+    frame (eye-to-hand: the target on the tool) within the arm's accuracy. Otherwise the
+    readings of ``CONVENTIONS`` are tried and the one that fits is named with its fix. None
+    when the poses as read fit, no reading does, or the session has one orientation. Images of
+    4 or 5 points (a lone tag) serve when the session has no others. Costs an OpenCV
+    calibration."""
     seen = _images_alone(problem) or _images_alone(problem, 4)
     return None if seen is None else _convention(problem, *seen)
 
@@ -606,9 +571,7 @@ def _move_scale(
 
 
 #: A classic session's moves are checked for their scale only when it pins the camera/robot
-#: length ratio to this relative standard error (:func:`classic_scale_fit`): aimed at the board
-#: from nearly one distance, a scale of what the camera sees is a shift of the hand-eye along
-#: the view, and a check would test the geometry, not the board (:func:`unchecked_scale_note`).
+#: length ratio to this relative standard error (else a scale is a shift of the hand-eye).
 MAX_CLASSIC_SCALE_SE = 0.003
 
 
@@ -631,20 +594,13 @@ def classic_scale_fit(
     problem: CalibrationProblem, poses: dict[int, np.ndarray], R_static_base: np.ndarray
 ) -> tuple[float, float, np.ndarray] | None:
     """The camera/robot length ratio of a session from the images alone: ``(ratio, relative
-    standard error, q)``, ``q`` the tool-frame place of the point that rides with the tool
-    (:func:`_moving_point`: the camera centre eye-in-hand, the board's origin eye-to-hand) in
-    metres; None with fewer than four frames with a pose or a geometry that leaves the scale
-    free (every frame on one sphere about the point it is aimed at).
+    standard error, q)``, ``q`` (metres) the tool-frame place of :func:`_moving_point`; None
+    with fewer than four posed frames or when the geometry leaves the scale free.
 
-    The point as the camera sees it, ``a_k`` in the still frame (the board's eye-in-hand, the
-    camera's eye-to-hand; ``poses``: frame index -> ``T_cam_board`` from the images alone),
-    is where the robot puts it up to the still frame's pose and the scale the camera reads
-    lengths in: ``lambda a_k = R (p_k + R_k q) + t`` (``R_static_base`` = ``R``: a rotation,
-    which a wrong square size does not change; ``p_k``, ``R_k``: the measured tool pose),
-    linear least squares in ``lambda``, ``q``, ``t``. The ratio is ``1 / lambda``; its
-    standard error is the fit's, from its residuals (the arm's error taken as independent from
-    frame to frame: a lower bound, used to tell whether the session's geometry pins the scale
-    at all)."""
+    Linear least squares of ``lambda a_k = R (p_k + R_k q) + t`` in ``lambda``, ``q``, ``t``:
+    ``a_k`` the moving point in the still frame (``poses``: frame index -> ``T_cam_board``),
+    ``R`` = ``R_static_base``, ``p_k``, ``R_k`` the measured tool pose. The ratio is
+    ``1 / lambda``; its standard error takes the arm's error as independent per frame."""
     idx = sorted(poses)
     if len(idx) < 4:
         return None
@@ -676,16 +632,10 @@ def scale_moves(
 ) -> list[tuple[int, int, float, float]]:
     """The moves whose length both the camera and the robot tell, ``(frame index a, b, robot
     length, camera length)`` in metres, of at least ``min_move_m`` for the robot; ``poses``:
-    frame index -> ``T_cam_board`` from the images alone. ``groups``: the frames'
-    ``orientation_groups`` (computed when None).
-
-    Between consecutive frames of an orientation group: the point that rides with the tool as
-    the camera sees it (:func:`_moving_point`) against the tool's translation. A session with
-    no two such frames (a classic hand-eye session: every frame at its own orientation) has
-    no move the robot makes without turning: between consecutive frames, that point's move
-    against the robot's move of the same point, placed on the tool by
-    :func:`classic_scale_fit`, when the fit pins the ratio (:data:`MAX_CLASSIC_SCALE_SE`); no
-    moves otherwise. A wrong square size scales every length the camera tells."""
+    frame index -> ``T_cam_board`` from the images alone; ``groups``: the frames'
+    ``orientation_groups`` (computed when None). Consecutive frames of an orientation group;
+    a classic session (one frame per orientation) uses the point :func:`classic_scale_fit`
+    places on the tool, when the fit pins the ratio (:data:`MAX_CLASSIC_SCALE_SE`)."""
     T = np.stack([f.T_base_tool for f in problem.frames])
     groups = orientation_groups(T) if groups is None else groups
     q = np.zeros(3)
@@ -746,10 +696,8 @@ POSE_OUTLIER_RATIO = 5.0
 LEFT_OUT = "left out of the solve"
 #: Fewest frames with pose corrections for the test (the typical size must mean something).
 POSE_OUTLIER_MIN_FRAMES = 8
-#: How many neighbours a frame's correction is held against, in space (the nearest tool
-#: positions of its orientation group, or of the session) and in time (the frames recorded just
-#: before and after it): a glitch stands out against both; a real arm's error, alike at nearby
-#: places and over a run of frames on one joint configuration, does not.
+#: How many neighbours a frame's correction is held against, in space and in time: a glitch
+#: stands out against both, a real arm's error is shared by nearby frames.
 POSE_OUTLIER_NEIGHBOURS = 4
 
 
@@ -789,23 +737,18 @@ def pose_outlier(
     problem: CalibrationProblem, out: RefineOutput, groups: np.ndarray | None = None
 ) -> PoseOutlier | None:
     """The frame whose robot pose correction is largest against the typical frame's, when it is
-    beyond ``POSE_OUTLIER_RATIO`` (rotation and translation tested apart: a 3-vector each); None
-    without pose corrections, with fewer than ``POSE_OUTLIER_MIN_FRAMES`` frames or when every
-    frame is within the ratio. The corrections are those of the refinement under the learned
-    accuracy: a frame whose image pins its pose loosely is shrunk toward zero by the prior and
-    is not flagged (the test is conservative). A frame is flagged only when its correction less
-    the median of its neighbours' is beyond the ratio too, both in space and in time
-    (:data:`POSE_OUTLIER_NEIGHBOURS`): a glitch is alone, a real arm's error is shared; the
-    largest such frame is the one returned. ``groups``: the frames' orientation groups, when
-    the caller has them."""
+    beyond ``POSE_OUTLIER_RATIO`` (rotation and translation tested apart) and its correction
+    less the median of its neighbours' is too, in space and in time
+    (:func:`_pose_neighbours`); None without pose corrections, with fewer than
+    ``POSE_OUTLIER_MIN_FRAMES`` frames or when every frame is within the ratio. ``groups``: the
+    frames' orientation groups, when the caller has them."""
     if problem.knowledge != "robot" or "E" not in out.model.slices:
         return None
     E = out.model.pose_corrections(out.state)
     if E is None or len(E) < POSE_OUTLIER_MIN_FRAMES:
         return None
     sizes = [np.linalg.norm(E[:, :3], axis=1), np.linalg.norm(E[:, 3:], axis=1)]
-    # the rms size of a Gaussian 3-vector whose median squared size is the frames' (the median
-    # of chi-square with 3 degrees of freedom is 2.366)
+    # the rms of a Gaussian 3-vector from its median square (chi-square(3)'s median: 2.366)
     typical = [float(np.sqrt(3.0 * np.median(size**2) / 2.366)) for size in sizes]
 
     def ratio(e: np.ndarray) -> np.ndarray:  # (n, 6) corrections -> (n,) against the typical
@@ -863,18 +806,10 @@ def robot_accuracy(problem: CalibrationProblem, out: RefineOutput) -> RobotAccur
     E = out.model.pose_corrections(out.state)
     if E is not None:
         for f, e in zip(problem.frames, E, strict=True):
-            worst.append(
-                (
-                    int(f.id),
-                    float(1000.0 * np.linalg.norm(e[3:])),
-                    float(np.degrees(np.linalg.norm(e[:3]))),
-                )
-            )
-        worst.sort(
-            key=lambda w: (
-                -(w[1] / max(1000.0 * sig[1], 1e-6) + w[2] / max(np.degrees(sig[0]), 1e-9))
-            )
-        )
+            t_mm, r_deg = 1000.0 * np.linalg.norm(e[3:]), np.degrees(np.linalg.norm(e[:3]))
+            worst.append((int(f.id), float(t_mm), float(r_deg)))
+        t_sig, r_sig = max(1000.0 * sig[1], 1e-6), max(np.degrees(sig[0]), 1e-9)
+        worst.sort(key=lambda w: -(w[1] / t_sig + w[2] / r_sig))
     return RobotAccuracy(
         translation_mm=float(1000.0 * sig[1]),
         rotation_deg=float(np.degrees(sig[0])),

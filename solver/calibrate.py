@@ -1,15 +1,12 @@
 """The calibration pipeline: a problem in, a result with its diagnostics out.
 
-1. check the problem (one clear error per bad input); images with fewer than 4 points and
-   frames that saw nothing are skipped with a message (never a reason to refuse a session),
-2. per camera and orientation group, joint homographies (docs/METHOD.md Sec. 3),
-3. the degeneracy analysis (Sec. 7) and the linear intrinsics for the knowledge at hand; Zhang
-   from all frames when no two frames share an orientation (classic hand-eye sessions),
-4. per-frame board poses and the motion unknowns (hand-eye rotation from translations, Sec. 4,
-   or from general motions, AX = XB, when the translations do not determine it; hand-eye
-   translation where rotations make it observable),
-5. maximum-likelihood refinement over all detections with covariance (Secs. 5, 6),
-6. the result: named covariance, what was unobservable, a per-move scale check.
+1. check the problem; skip images with fewer than 4 points and frames that saw nothing,
+2. per camera and orientation group, the homographies and the linear intrinsics (Secs. 3, 7;
+   Zhang for classic hand-eye sessions),
+3. per-frame board poses and the motion unknowns (Sec. 4, or AX = XB),
+4. the refinement with the arm's accuracy learned (Secs. 5, 6), pose and image outliers left
+   out and the session solved again,
+5. the result: the reported covariance, what was unobservable, the adequacy and scale checks.
 """
 
 from __future__ import annotations
@@ -38,7 +35,7 @@ from slidecal.solver.adequacy import (
 )
 from slidecal.solver.degeneracy import check_configuration, n_directions
 from slidecal.solver.errors import DegenerateError, InputError
-from slidecal.solver.free_pose import FreePoseFit
+from slidecal.solver.free_pose import FreePoseFit, pnp_from
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, project_to_SO3
 from slidecal.solver.handeye import ax_xb_park_martin, rotation_from_directions
 from slidecal.solver.homography import group_homographies
@@ -71,6 +68,7 @@ from slidecal.solver.result import (
     BoardShape,
     CalibrationResult,
     CameraEstimate,
+    NamedCovariance,
     ScaleCheck,
     TransformEstimate,
 )
@@ -82,13 +80,9 @@ from slidecal.solver.stereo import (
 from slidecal.solver.target_shape import BoardFit
 from slidecal.solver.uncertainty import Reported, layout_of, named_step, reported_covariance
 
-# An image with fewer points than this is skipped (with a message): a plane homography and a
-# planar PnP pose need 4 points (8 equations for 8 unknowns). Intrinsics from few points are
-# honest only when there are enough images: the frame counts are checked separately.
+# An image with fewer points than this is skipped: a homography and a planar pose need 4.
 MIN_CORNERS = 4
-# Robot positions farther apart than this (and than 20 target sizes) are millimetres given as
-# metres: a camera that sees the target from every pose does not travel 20 m (moves of
-# 20-500 mm read as metres do). The target size keeps unit-free scenarios (the paper's) apart.
+# Robot positions farther apart than this (and 20 target sizes) are millimetres given as metres.
 MAX_SPAN_M = 20.0
 
 
@@ -165,10 +159,8 @@ def usable_frames(problem: CalibrationProblem) -> tuple[CalibrationProblem, tupl
     """The problem without the images and frames that cannot enter the solve, and why.
 
     An image with fewer than ``MIN_CORNERS`` points is skipped; a frame in which no camera kept
-    an image is skipped whole (the session keeps its record: a frame that saw nothing is never
-    a reason to refuse a session). Returns the reduced problem (frame ids unchanged) and one
-    message per skipped image or frame. Raises ``DegenerateError`` when fewer than 2 frames
-    remain, with the count and what to add.
+    an image is skipped whole. Returns the reduced problem (frame ids unchanged) and one message
+    per skip. Raises ``DegenerateError`` when fewer than 2 frames remain.
     """
     kept: list[Frame] = []
     notes: list[str] = []
@@ -233,9 +225,9 @@ def _linear_groups(
     homographies: dict | None = None,
 ) -> list[tuple[list[int], list[LinearGroup]]]:
     """Per orientation group: the frames every camera in ``cams`` saw well enough, and one
-    ``LinearGroup`` per camera (the group's homographies with a common scale: jointly refined
-    with ``joint``, else the rescaled per-frame DLTs; the known motion). ``homographies``: a
-    cache of them by (camera, frames, joint), filled here (a rig's pairs reuse each camera's)."""
+    ``LinearGroup`` per camera (homographies with a common scale: jointly refined with
+    ``joint``, else rescaled per-frame DLTs). ``homographies``: their cache by (camera, frames,
+    joint), filled here."""
     cache = {} if homographies is None else homographies
     pts = problem.target.points_m[:, :2]
     out = []
@@ -285,10 +277,8 @@ def _with_rotation(problem: CalibrationProblem, st: Structure, R_X: np.ndarray) 
 
 
 def _best_start(problem: CalibrationProblem, cam: str, candidates: list[np.ndarray]) -> int:
-    """Index of the start ``K`` (3, 3) that explains the images best through the robot poses.
-
-    For each candidate: per-frame PnP poses and the hand-eye start (:func:`init_motion`) predict
-    every detection through the robot poses; the smallest median reprojection error wins.
+    """Index of the start ``K`` (3, 3) whose PnP poses and hand-eye start (:func:`init_motion`)
+    predict the detections best through the robot poses (smallest median reprojection error).
     """
     o = problem.options
     exact = replace(problem, options=replace(o, robot_noise_m=0.0, robot_noise_deg=0.0))
@@ -325,12 +315,11 @@ def linear_camera(
 ) -> np.ndarray:
     """Closed-form ``K`` (3, 3) of one camera (docs/METHOD.md Sec. 3; Zhang for general motion).
 
-    ``joint``: the paper's joint homographies per orientation group (the accurate linear
-    method); False uses rescaled per-frame DLTs, enough to start the refinement and faster.
-    Robot sessions without translation groups whose Zhang estimate is not positive definite or
-    not plausible (few, noisy points per image), or with ``focal_sweep``, start from the image
-    centre and the focal length that explains the images best through the robot poses (Zhang's
-    estimate competing); ``notes`` receives a line when Zhang's estimate is not the start.
+    ``joint``: the paper's joint homographies per orientation group; False: rescaled per-frame
+    DLTs, enough to start the refinement. Robot sessions without translation groups whose Zhang
+    estimate is implausible, or with ``focal_sweep``, start from the image centre and the focal
+    length that explains the images best through the robot poses (Zhang's competing);
+    ``notes`` receives a line when Zhang's estimate is not the start.
     """
     spec = problem.camera(cam)
     o = problem.options
@@ -450,34 +439,18 @@ def pnp_pose(
 ) -> np.ndarray | None:
     """``T_cam_board`` (4, 4) from one image of the planar target, or None when it fails.
 
-    ``fast``: OpenCV's IPPE (closed form for planar targets, five times faster, within
-    micrometres of the iterative solver on consistent data: enough for a start); otherwise the
-    iterative reprojection-error minimum (what the scale check needs: on inconsistent data,
-    e.g. a wrong square size, IPPE's closed form hides part of the scale error). ``guess``
-    (4, 4): a start for the iterative minimum (the minimum itself depends on the image only).
+    ``fast``: OpenCV's IPPE (closed form, enough for a start); otherwise the iterative
+    reprojection-error minimum (the scale check's: IPPE hides part of a scale error).
+    ``guess`` (4, 4): a start for the iterative minimum.
     """
     if len(px) < 4:
         return None
     obj, img = board_pts.astype(np.float64), px.astype(np.float64)
     if guess is not None:
-        rvec0, _ = cv2.Rodrigues(guess[:3, :3])
-        ok, rvec, tvec = cv2.solvePnP(
-            obj,
-            img,
-            K,
-            dist,
-            rvec0,
-            guess[:3, 3].reshape(3, 1).copy(),
-            useExtrinsicGuess=True,
-            flags=cv2.SOLVEPNP_ITERATIVE,
-        )
-    else:
-        flags = cv2.SOLVEPNP_IPPE if fast else cv2.SOLVEPNP_ITERATIVE
-        ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=flags)
-    if not ok:
-        return None
-    R, _ = cv2.Rodrigues(rvec)
-    return T_from_Rt(R, tvec.reshape(3))
+        return pnp_from(obj, img, K, dist, guess)
+    flags = cv2.SOLVEPNP_IPPE if fast else cv2.SOLVEPNP_ITERATIVE
+    ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=flags)
+    return T_from_Rt(cv2.Rodrigues(rvec)[0], tvec.reshape(3)) if ok else None
 
 
 def _frame_poses(
@@ -526,9 +499,7 @@ def _rotation_ax_xb(groups: np.ndarray, M: np.ndarray, poses: dict[int, np.ndarr
     """``R_X`` (3, 3) of ``T_cam_board(k) = X M_k Y`` from general motions (classic hand-eye).
 
     Between frames ``i``, ``j``: ``P_i P_j^-1 = X (M_i M_j^-1) X^-1``, an ``AX = XB`` problem
-    (``A`` from the camera's board poses, ``B`` from the robot's), solved by Park and Martin over
-    all pairs of orientations (one frame per orientation group: frames of one group differ by a
-    translation, which carries no rotation information).
+    solved by Park and Martin over all pairs of orientation groups (one frame each).
     """
     rep = {}
     for i in sorted(poses):
@@ -644,20 +615,16 @@ def calibrate(
     """Calibrate every camera, the hand-eye transform and the rig from one session.
 
     ``joint_homographies``: start from the paper's linear method with jointly refined
-    homographies (``result.linear`` is then that method's estimate); by default the start uses
-    rescaled per-frame DLTs, which the refinement does not need improved (same optimum,
-    measured) and costs a third of the solve time less. ``focal_sweep``: start a classic
-    single-camera robot session (no two frames at one orientation) from the focal length that
-    fits the images best through the robot poses instead of Zhang's closed form; done
-    automatically when the refinement from Zhang's start does not converge (few or noisy
-    points per image).
+    homographies (``result.linear`` is then that method's estimate); by default rescaled
+    per-frame DLTs (the same optimum, faster). ``focal_sweep``: start a classic single-camera
+    robot session from the focal length that fits the images best through the robot poses
+    instead of Zhang's closed form (done anyway when the refinement from Zhang's start does
+    not converge).
 
     A frame whose robot pose the images contradict far beyond the arm's accuracy elsewhere
-    (``adequacy.pose_outlier``: a pose read before the arm settled, an image paired with another
-    pose) is left out and the session solved again without it, with a message naming it and its
-    misfit; so is, when no pose is, a frame whose image the robot model leaves far beyond its
-    camera's detector noise (``adequacy.image_outlier``: a corner misplaced by a glare or a
-    blur, a misdetection); at most one frame in ten (at least one) is left out so.
+    (``adequacy.pose_outlier``), or else whose image is far beyond its camera's detector noise
+    (``adequacy.image_outlier``), is left out and the session solved again, with a message; at
+    most one frame in ten (at least one).
     """
     return _pipeline(problem, joint_homographies, focal_sweep, ())
 
@@ -666,10 +633,10 @@ def calibrate(
 class _Pass:
     """One pass of the pipeline over a problem: its solve, and what it asks of the loop.
 
-    ``again``: the problem to solve next (a frame or image left out, or frames without a board
-    pose skipped), with ``prefix`` the lines the final result then opens with and ``gone`` the
-    frame left out for its pose (for ``RobotAccuracy.left_out``); ``bad``: the outlier left
-    out, whose pass is finished instead should the next one fail; ``result``: a restart's."""
+    ``again``: the problem to solve next (an outlier left out, or frames without a board pose
+    skipped), ``prefix`` the lines the result then opens with, ``gone`` the frame left out for
+    its pose; ``bad``: the outlier left out (its pass is finished should the next one fail);
+    ``result``: a restart's."""
 
     problem: CalibrationProblem
     notes: list[str]
@@ -889,14 +856,8 @@ def session_scale(
     """How far a classic session's camera/robot length ratio is from 1 beyond what its fit can
     tell from noise (:func:`slidecal.solver.adequacy.classic_scale_fit`):
     ``sqrt(max(0, (ratio - 1)^2 - (2 se)^2))``, relative; 0 for any other session or where its
-    geometry does not pin the ratio (docs/METHOD.md Sec. 3).
-
-    A classic session cannot tell a board printed at another scale from an arm whose moves are
-    longer or shorter than it reports: with every frame aimed at the board, either moves the
-    hand-eye along the viewing direction, and the solve, which models the arm's linear field
-    at a level learned from the same frames, takes little of it. Where the images alone read a
-    scale the noise does not explain, it is carried in the covariance as the board's scale
-    uncertainty (:func:`with_session_scale`)."""
+    geometry does not pin the ratio. The covariance carries it as the board's scale
+    uncertainty: a classic session cannot tell a board's scale from the arm's."""
     poses = _fitted_poses(out, fit) if problem.knowledge == "robot" else {}
     if not classic(groups, poses):
         return 0.0
@@ -911,8 +872,7 @@ def _field_note(
     problem: CalibrationProblem, out: RefineOutput, step: np.ndarray
 ) -> tuple[str, ...]:
     """A line saying how far a classic session's two readings of its arm's linear field put
-    the hand-eye apart (``session_field_step``), when they do by half a millimetre or 0.05 deg
-    or more (what a cell would notice)."""
+    the hand-eye apart (``session_field_step``), from half a millimetre or 0.05 deg."""
     layout = layout_of(problem, out.model.st, out.state)
     frames = mount_names(layout.mount)
     if frames is None:
@@ -1020,13 +980,7 @@ def _result(
         he_key = hand_eye_names(problem.mount, [c.name for c in problem.cameras])[problem.reference]
         rot_ok, t_ok = layout.rotation_reported, layout.translation_reported
         T_he = inv_T(state.X[0])
-        hand_eye = TransformEstimate(
-            he_name,
-            T_he[:3, :3] if rot_ok else None,
-            T_he[:3, 3] if t_ok else None,
-            named.std_rot_deg(he_key) if named is not None else None,
-            named.std_t_mm(he_key) if named is not None else None,
-        )
+        hand_eye = _estimate(he_name, T_he, rot_ok, t_ok, named, he_key)
         # the target pose is tied to the hand-eye transform: what the data cannot determine of
         # one, it cannot determine of the other (no made-up numbers)
         if not rot_ok:
@@ -1039,25 +993,13 @@ def _result(
                 f"depends on the hand-eye translation ({he_name}.t), which this session cannot "
                 "determine; add orientations tilted about two non-parallel axes"
             )
-        T_target = TransformEstimate(
-            tgt_name,
-            state.Y[:3, :3] if rot_ok else None,
-            state.Y[:3, 3] if t_ok else None,
-            named.std_rot_deg(tgt_name) if named is not None else None,
-            named.std_t_mm(tgt_name) if named is not None else None,
-        )
+        T_target = _estimate(tgt_name, state.Y, rot_ok, t_ok, named)
     rig = {}
     H_inf = {}
     ref = problem.reference
     for c, T in state.T_cam_ref.items():
         key = f"T_{c}_{ref}"
-        rig[key] = TransformEstimate(
-            key,
-            T[:3, :3],
-            T[:3, 3],
-            named.std_rot_deg(key) if named is not None else None,
-            named.std_t_mm(key) if named is not None else None,
-        )
+        rig[key] = _estimate(key, T, True, True, named)
         Hab = state.K[c] @ T[:3, :3] @ np.linalg.inv(state.K[ref])
         H_inf[f"{c}<-{ref}"] = Hab / Hab[2, 2]
     residuals = {}
@@ -1114,6 +1056,21 @@ def _result(
     )
 
 
+def _estimate(
+    name: str, T: np.ndarray, rot_ok: bool, t_ok: bool, named: NamedCovariance | None, key: str = ""
+) -> TransformEstimate:
+    """``T`` (4, 4) as the result reports it: its rotation and translation where observable,
+    with their stds from ``named`` under ``key`` (or ``name``)."""
+    key = key or name
+    return TransformEstimate(
+        name,
+        T[:3, :3] if rot_ok else None,
+        T[:3, 3] if t_ok else None,
+        named.std_rot_deg(key) if named is not None else None,
+        named.std_t_mm(key) if named is not None else None,
+    )
+
+
 def _board_shape(problem: CalibrationProblem, fit: BoardFit | None) -> BoardShape | None:
     """The result's :class:`BoardShape` of a board fit (None without one)."""
     if fit is None or (problem.target.flatness_m <= 0 and problem.target.print_tolerance <= 0):
@@ -1128,10 +1085,9 @@ def _board_shape(problem: CalibrationProblem, fit: BoardFit | None) -> BoardShap
 
 
 def _fitted_poses(out: RefineOutput, fit: FreePoseFit | None = None) -> dict[int, np.ndarray]:
-    """The reference camera's ``T_cam_board`` per frame index from a free-pose fit of this
-    state's intrinsics started from its predictions (``fit``, by default the robot test's when
-    the refinement kept it), for the images in which no detection was flagged (the fit uses the
-    inliers): the same PnP minimum :func:`scale_checks` would compute again."""
+    """The reference camera's ``T_cam_board`` per frame index from a free-pose fit at this
+    state's intrinsics (``fit``, by default the robot test's), for the images without a flagged
+    detection: the PnP minimum :func:`scale_checks` would compute again."""
     fit, m = out.free_pose if fit is None else fit, out.model
     if fit is None:
         return {}
@@ -1172,12 +1128,10 @@ def scale_checks(
     guesses: dict[int, np.ndarray] | None = None,
     known: dict[int, np.ndarray] | None = None,
 ) -> tuple[ScaleCheck, ...]:
-    """Per move (:func:`slidecal.solver.adequacy.scale_moves`: within an orientation group, or
-    between consecutive frames of a classic session whose geometry pins the scale): its length
-    as the reference camera saw it (from a PnP pose per frame with the final intrinsics: the
-    image alone, ``guesses`` only start it) against the robot's. A ratio away from 1 means a
-    wrong square size or a wrong robot/TCP scale. ``known``: such poses (frame index ->
-    ``T_cam_board``) already computed."""
+    """Per move (:func:`slidecal.solver.adequacy.scale_moves`): its length as the reference
+    camera saw it (PnP with the final intrinsics; ``guesses`` only start it) against the
+    robot's; a ratio away from 1 means a wrong square size or robot/TCP scale. ``known``: such
+    poses (frame index -> ``T_cam_board``) already computed."""
     if problem.knowledge != "robot":
         return ()
     poses = image_poses(problem, state, guesses, known)

@@ -1,19 +1,13 @@
 """Degenerate configurations of the linear method (docs/METHOD.md Sec. 7; paper Sec. III-A).
 
-:func:`check_configuration` analyses the data before solving and raises ``DegenerateError``
-naming the configuration and the fix. Two kinds of test:
+:func:`check_configuration` raises ``DegenerateError`` naming the configuration and the fix:
 
-- Geometric, on the camera pose implied by each group's homography with a nominal ``K``
-  (``f`` = image width, principal point at the centre, unless ``K_guess`` is given). They work on
-  noisy data, where an exactly singular configuration no longer gives a zero singular value.
-  Angle threshold ``MIN_ANGLE_DEG`` = 5 deg: below it the linear estimate of the nearest
-  non-degenerate configuration is already several times noisier than at 20-30 deg (measured on
-  the S1/S2 set-ups), and a nominal ``K`` misplaces the axes by a few degrees at most.
-- Algebraic: the conditioned linear system (``slidecal.solver.linear.linear_system``) must have a
-  one-dimensional null space: its second smallest singular value over its largest must exceed
-  ``MIN_CONDITIONING`` = 1e-6. Measured noise-free on the S1/S2/S3 set-ups: exactly degenerate
-  configurations give 1e-14 to 1e-16; the weakest accepted one tried (translations 3 deg out of
-  the board plane) gives 1e-3, regular ones 0.04 to 0.4.
+- geometric tests on the camera pose each group's homography implies with a nominal ``K``
+  (robust to noise, where a singular configuration no longer gives a zero singular value):
+  angles below ``MIN_ANGLE_DEG`` make the linear estimate several times noisier;
+- algebraic: the conditioned linear system (``slidecal.solver.linear.linear_system``) must have
+  a one-dimensional null space (second smallest over largest singular value above
+  ``MIN_CONDITIONING``; degenerate configurations give 1e-14 to 1e-16).
 """
 
 from __future__ import annotations

@@ -1,63 +1,30 @@
 """Target detection: corner ids and pixels of a ChArUco board, a chessboard, an AprilGrid or
-AprilTags in one image.
+AprilTags in one image (ids and board frame of ``solver/problem.py``; pixel (0, 0) is the centre
+of the top-left pixel, OpenCV's convention). Colour images: the green channel (half of a Bayer
+sensor's pixels, and free of lateral chromatic aberration's red and blue shifts).
 
-Convention: ids and the board frame of ``solver/problem.py``; pixel (0, 0) is the centre of the
-top-left pixel (OpenCV's convention for corner positions, checked against rendered images in
-``tests/test_detect.py``).
-
-ChArUco: ``cv2.aruco.CharucoDetector`` (marker corners refined to sub-pixel, missed markers
-recovered with ``tryRefineMarkers``, a corner accepted with one adjacent marker), then every
-chessboard corner refined again with ``cv2.cornerSubPix`` in a window sized per corner so that
-it holds no marker edge: the nearest marker corner lies ``(square - marker) / 2`` from the
-chessboard corner along both board axes, which under a tilt can be only a few pixels away, and
-a marker edge inside the window pulls the corner by tenths of a pixel.
+ChArUco: ``cv2.aruco.CharucoDetector`` (missed markers recovered with ``tryRefineMarkers``),
+then every chessboard corner refined again by ``cv2.cornerSubPix`` in a window sized to hold no
+marker edge (the nearest marker corner lies ``(square - marker) / 2`` along both board axes).
 
 Chessboard: a cascade, fastest first, each step tried only when the one before found nothing
-(figures per 2-megapixel image on the development machine, ``docs/DETECTION.md``):
+(``docs/DETECTION.md``): ``cv2.findChessboardCorners`` on the image reduced to a long side of
+about 1000 px; the same with its light made even (``flatten_light``); ``findChessboardCornersSB``
+on the reduced image; the same at full resolution, then with ``CALIB_CB_EXHAUSTIVE``. The corners
+are refined at full resolution by ``cornerSubPix`` in a window of 0.3 times the distance to the
+nearest grid neighbour (3 to 25 px half-width). The whole board must be in view. Corner order
+under the board's symmetries: (1) the board is seen from its printed side (``x`` cross ``y`` > 0
+in the image, v down); (2) the square next to corner 0 is black; (3) a board still symmetric
+(``squares_x + squares_y`` even) takes the corner 0 that makes its +x axis point most to the right.
 
-1. ``cv2.findChessboardCorners`` (adaptive threshold, fast check) on the image reduced by an
-   integer factor to a long side of about 1000 px (~0.01 s);
-2. the same on the reduced image with its light made even (``flatten_light``: a glare that
-   lifts the black squares towards white, ~0.05 s);
-3. ``cv2.findChessboardCornersSB`` without flags on the reduced image (~0.05 s);
-4. the same at full resolution (~0.2 s), then with ``CALIB_CB_EXHAUSTIVE`` on the reduced image.
+AprilTag and AprilGrid: ``cv2.aruco.ArucoDetector`` with the target's family, corners refined by
+``cornerSubPix`` (``CORNER_REFINE_APRILTAG`` is biased, ``docs/DETECTION.md``); a lone tag's
+corners are the intersections of its fitted border edges; on an AprilGrid, tags the quad finder
+missed are predicted from their neighbours and kept when their code reads back.
 
-No step uses ``CALIB_CB_NORMALIZE_IMAGE`` (it lost the board in most real photographs). The
-corners are then refined at full resolution by ``cv2.cornerSubPix`` in a window per corner of
-0.3 times the distance to its nearest grid neighbour (3 to 25 px half-width): on rendered images
-within 0.01 px rms of ``findChessboardCornersSB`` with ``CALIB_CB_ACCURACY`` at a twentieth of
-the time, and on real photographs (``tests/data/opencv_left``) more consistent with a lens model
-than it (``tests/test_detect.py``); larger windows reach background clutter in photographs. The
-whole board must be in view (a plain chessboard seen in part has no corner that says which one
-it is). Its corner order is ambiguous under the board's symmetries; the rule used here:
-
-1. the board is seen from its printed side, so its +x and +y axes keep their handedness in the
-   image (``x`` cross ``y`` > 0 with v pointing down);
-2. the square at the board origin, next to corner 0, is black (``mocks/render.py`` prints it
-   so, as does a standard OpenCV pattern of this layout);
-3. if the board is symmetric under that test (``squares_x + squares_y`` even, the outer corner
-   squares are all black), corner 0 is the one that makes the board's +x axis point most to the
-   right in the image. Prefer boards with one odd and one even count of squares.
-
-AprilTag and AprilGrid: ``cv2.aruco.ArucoDetector`` with ``DICT_APRILTAG_36h11`` (or the
-target's family), corners refined by ``cornerSubPix`` (``CORNER_REFINE_APRILTAG`` is biased by
-about 0.65 px on rendered tags, ``docs/DETECTION.md``); a lone tag's corners (L-corners, which
-``cornerSubPix`` pulls inwards) are then the intersections of its fitted border edges; each
-decoded tag of the target gives its four corners with the ids of ``solver/problem.py``. On an
-AprilGrid, tags the quad finder missed are predicted from their neighbours and kept when their
-code reads back.
-
-Colour images: the green channel is used (it carries half of a Bayer sensor's pixels, and
-lateral chromatic aberration moves red and blue edges against it; a luma mix blends the three
-and moves corners by a fraction of the fringe).
-
-When nothing usable is found, the report says what was seen: no board, a board of another size
-(with the fix for ``squares_x``/``squares_y``), too few corners, an image too dark, saturated or
-blurred (the blur figure is the edge width: the std of a Gaussian blur that explains the
-steepest edges of the image).
-
-Quality: a local homography check flags corners that are grossly wrong (wrong id, snapped onto
-a marker corner); they are removed and listed in ``rejected_ids``.
+When nothing usable is found, the report says what was seen (no board, a board of another size,
+too few corners, an image too dark, saturated or blurred). A local homography check removes
+grossly wrong corners and lists them in ``rejected_ids``.
 """
 
 from __future__ import annotations
@@ -71,10 +38,8 @@ import numpy as np
 from slidecal.solver.errors import InputError
 from slidecal.solver.problem import Detection, Target
 
-# Local homography check: a corner farther than this from the prediction of a homography fitted
-# to its grid neighbours (one square away, or two or three when too few) is rejected: a lens
-# departs from a homography over such a neighbourhood by about a pixel and the detector's noise
-# adds a tenth, while a gross error is at least a marker margin or a whole square (a wrong id).
+# Local homography check: a corner farther than this from its grid neighbours' homography is
+# rejected (a lens departs from one by about a pixel; a gross error is a marker margin or more).
 OUTLIER_THRESHOLD_PX = 3.0
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 60, 1e-3)
 _MAX_HALF_WINDOW_PX = 8
@@ -208,9 +173,8 @@ def grey_of(image: np.ndarray, colour: str = COLOUR_CONVERSION) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
-# Image checks, reported when the target is not found. Thresholds: a printed board needs its
-# white well above its black; these are the levels at which OpenCV's detectors start to fail on
-# rendered boards (docs/DETECTION.md).
+# Image checks, reported when the target is not found: the levels at which OpenCV's detectors
+# start to fail on rendered boards (docs/DETECTION.md).
 DARK_MEAN_GREY = 25.0
 SATURATED_FRACTION = 0.25
 BLURRED_SIGMA_PX = 2.5
@@ -259,22 +223,10 @@ def detect(
 ) -> DetectionReport:
     """Find the target's corners in ``image``; never raises for an image without the target.
 
-    Parameters
-    ----------
-    image
-        uint8 (H, W) grey or (H, W, 3) BGR (other dtypes are rescaled to 0..255).
-    target
-        A ``charuco``, ``chessboard``, ``apriltag`` or ``aprilgrid`` target.
-    min_corners
-        Fewer kept corners than this make the frame unusable (``ok`` False); at least 4 (one
-        tag's corners, the least that fixes the board's pose in the image).
-    colour
-        How a colour image becomes grey: "green" (default), "luma" or "mean".
-
-    Returns
-    -------
-    DetectionReport
-        Ids and pixels (pixel (0, 0) is the centre of the top-left pixel) and diagnostics.
+    ``image``: uint8 (H, W) grey or (H, W, 3) BGR (other dtypes are rescaled to 0..255);
+    ``target``: a ``charuco``, ``chessboard``, ``apriltag`` or ``aprilgrid`` target; fewer kept
+    corners than ``min_corners`` (at least 4) make the frame unusable; ``colour``: how a colour
+    image becomes grey ("green", "luma" or "mean"). Returns the ids, pixels and diagnostics.
     """
     grey = grey_of(image, colour)
     stats = image_stats(grey)
@@ -304,11 +256,10 @@ def _detect_charuco(
     """The ChArUco corners, the reasons when none, and the path ("charuco", or
     "charuco-legacy" for a board of OpenCV's layout before 4.6).
 
-    OpenCV 4.6 changed where the markers sit on a board with an even number of rows
-    (``squares_y``); boards printed before, and many bought ones, keep the old layout. Their
-    markers decode but no corner interpolates (the markers' neighbours disagree with the
-    board). Such an image is detected again with the old layout, and the layout giving more
-    corners is kept; the corners' ids and board positions are the same in both.
+    OpenCV 4.6 moved the markers of a board with an even ``squares_y``; boards printed before
+    keep the old layout, whose markers decode but interpolate no corner. Such an image is
+    detected again with the old layout, and the layout giving more corners kept (ids and board
+    positions are the same in both).
     """
     ids, px, reasons, n_markers = _detect_charuco_layout(grey, target, blur_px, legacy=False)
     if target.squares_y % 2 == 0 and n_markers >= 2 and len(ids) < n_markers / 2:
@@ -390,13 +341,10 @@ def _refine_charuco(
     """``cornerSubPix`` per corner with the largest window that holds no marker edge.
 
     The four marker outlines around a corner are mapped into the image by the homography of
-    the adjacent markers that were detected (exact for their own corners; the board-wide one
-    ``H`` when none was), and the window, centred on the corner's estimate, stops 2 px short
-    of the nearest outline point (L-inf: the window is a square). Sampling the outlines, not
-    only their corners: under perspective an edge can come nearer than its corner. A window
-    narrower than 1.5 times the image's blur (``blur_px``, the edge width) sees only the blurred
-    middle of the junction and drifts (by up to 2 px on defocused images, docs/DETECTION.md):
-    such a corner keeps the detector's estimate.
+    the adjacent detected markers (else the board-wide ``H``); the square window, centred on
+    the corner, stops 2 px short of the nearest outline point. A window narrower than 1.5
+    times the image's blur (``blur_px``) sees only the blurred junction and drifts: such a
+    corner keeps the detector's estimate.
     """
     sq, m = target.square_size_m, target.marker_size_m
     g = 0.5 * (sq - m)
@@ -601,9 +549,8 @@ def _chessboard_not_found(grey: np.ndarray, target: Target) -> str:
 
 
 TAG_REFINEMENTS = ("edges", "subpix", "apriltag", "none")
-# measured in docs/DETECTION.md: an AprilGrid's tag corners are X-junctions with its corner
-# squares (``cornerSubPix`` is unbiased on them); a lone tag's corners are L-corners, which
-# ``cornerSubPix`` pulls inwards, so its corners are intersections of its fitted border edges
+# an AprilGrid's tag corners are X-junctions (``cornerSubPix`` is unbiased on them); a lone
+# tag's are L-corners, taken as the intersections of its fitted border edges
 TAG_REFINEMENT = {"apriltag": "edges", "aprilgrid": "subpix"}
 
 
@@ -638,9 +585,8 @@ def _family_of(dictionary: str) -> str:
 def other_family(grey: np.ndarray, dictionary: str) -> str:
     """Why no marker of ``dictionary`` was found when markers of another family are in view:
     the family with the most markers (at least ``_OTHER_FAMILY_MIN_MARKERS``) and the
-    smallest dictionary of it that holds every id seen, as a sentence; "" when none is. Looked
-    for on the image reduced to a long side of about ``REDUCED_LONG_SIDE_PX`` (a failed
-    frame's cost: about 10 ms per family there)."""
+    smallest dictionary of it that holds every id seen, as a sentence; "" when none is (looked
+    for on the reduced image)."""
     img = _reduce(grey, reduction_factor(grey.shape))
     own = _family_of(dictionary)
     best: tuple[int, str, int] = (0, "", 0)
@@ -665,10 +611,8 @@ def other_family(grey: np.ndarray, dictionary: str) -> str:
     )
 
 
-#: ``minMarkerDistanceRate`` of the second look for tags the first missed: OpenCV groups quads
-#: whose corners lie closer on average than 0.125 of the smaller one's perimeter and decodes one
-#: of each group, so a tag on a narrow white margin is grouped with its paper's outline and may
-#: be lost; at this rate a tag's duplicate quads from the adaptive thresholds still group.
+#: ``minMarkerDistanceRate`` of the second look for tags the first missed (OpenCV's default
+#: groups a tag on a narrow margin with its paper's outline and may lose it).
 TAG_RETRY_MARKER_DISTANCE_RATE = 0.02
 
 
@@ -766,11 +710,10 @@ def _recover_grid_tags(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Tags of an AprilGrid the marker detector missed, found where the found ones predict them.
 
-    Kalibr's corner squares touch every tag's corners, which merges the tag's outline with them
-    and makes OpenCV's quad finder miss tags (a fifth of them on tilted views, most of them when
-    tags are small). Each missing tag's corners are predicted by a homography fitted to the found
-    corners of the tags around it, refined like found ones, and kept only if the tag's cells read
-    back as its own code (at most 3 of its bits wrong; the 36h11 codes differ in at least 11).
+    Kalibr's corner squares touch every tag's corners and make OpenCV's quad finder miss tags.
+    Each missing tag's corners are predicted by a homography fitted to the found corners of the
+    tags around it, refined like found ones, and kept only if the tag's cells read back as its
+    own code (at most 3 of its bits wrong; the 36h11 codes differ in at least 11).
     """
     d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, target.dictionary))
     cells = d.markerSize + 2
@@ -866,7 +809,7 @@ def _side_curve(
     s = np.arange(-half_px, half_px + 1e-9, 0.25)
     P = a + t[:, None, None] * u + s[None, :, None] * n
     prof = cv2.remap(  # cubic: a linear interpolation locks an edge along a pixel row or
-        grey,  # column to the grid (a face-on tag: 0.08 px rms -> 0.05 on its renders)
+        grey,  # column to the grid
         P[..., 0].astype(np.float32),
         P[..., 1].astype(np.float32),
         cv2.INTER_CUBIC,
@@ -904,10 +847,9 @@ TAG_EDGE_DEPTH = 0.7
 def _tag_edge_corners(grey: np.ndarray, q: np.ndarray, cells: float) -> np.ndarray:
     """A lone tag's corners (4, 2) as the intersections of its fitted border edges.
 
-    A tag's outer corners are L-corners: ``cornerSubPix`` pulls them towards the inside of the
-    tag by about a third of the blur (docs/DETECTION.md), which shrinks every tag and biases
-    the focal length. The edges themselves are located without that bias. Any side that cannot
-    be fitted keeps the input corners (``q``, from ``cornerSubPix``)."""
+    ``cornerSubPix`` pulls a tag's L-corners inwards (shrinking the tag, biasing the focal
+    length); the edges are located without that bias. A side that cannot be fitted keeps the
+    input corners ``q``."""
     centre = q.mean(axis=0)
     grey_f = grey.astype(np.float32)  # interpolated profiles without 8-bit rounding
     curves = []
@@ -942,9 +884,7 @@ def _tag_edge_corners(grey: np.ndarray, q: np.ndarray, cells: float) -> np.ndarr
 
 
 #: Farthest a tag corner may move in its last ``cornerSubPix`` pass, in cells of the tag (and
-#: at least :data:`TAG_SUBPIX_JUMP_MIN_PX`): OpenCV's quad corners are within about a pixel of a
-#: lone tag's, and a farther move is the paper's corner or the background beyond a one-cell
-#: margin pulling the window.
+#: at least :data:`TAG_SUBPIX_JUMP_MIN_PX`): farther, the paper's corner pulled the window.
 TAG_SUBPIX_JUMP_CELLS = 0.25
 TAG_SUBPIX_JUMP_MIN_PX = 2.0
 #: How far a lone tag's ``cornerSubPix`` window reaches each way, in cells (an AprilGrid's: 0.8
@@ -956,10 +896,8 @@ def _refine_tag(grey: np.ndarray, q: np.ndarray, target: Target) -> np.ndarray:
     """``cornerSubPix`` of one tag's corners (4, 2), finally in a window that stays inside the
     tag's black border cell (and, on an AprilGrid, inside the gap's corner square).
 
-    On an AprilGrid the quad fit's corners can be 3-4 px off (the corner squares touch the tag
-    and bend its outline), more than that window: a first pass with a window of 1.5 cells
-    brings them within reach (slightly biased by the tag's data bits), the second removes the
-    bias."""
+    On an AprilGrid the quad fit's corners can be off by more than that window: a first pass
+    with a window of 1.5 cells brings them within reach, the second removes its bias."""
     side = float(np.mean(np.linalg.norm(q - np.roll(q, 1, axis=0), axis=1)))
     cell_px = side / _tag_cells(target)
     limit_px = cell_px

@@ -1,35 +1,24 @@
 """The paired drift test: the same commanded robot poses, seen twice, compared corner by corner.
 
-A robot arm's error is mostly systematic and repeatable (a function of its joint
-configuration); only its repeatability is random. An unchanged camera, on a repeatable arm, in
-front of an unmoved board therefore sees every corner where it saw it at the same commanded
-pose before, up to the detector's noise and the arm's repeatability. A changed camera moves
-the points: a principal-point shift moves all of them alike, a focal-length change scales them
-about the principal point, a hand-eye rotation shifts and turns them.
+An arm's error is mostly repeatable, so an unchanged camera in front of an unmoved board sees
+every corner where it saw it at the same commanded pose before, up to the detector's noise and
+the arm's repeatability. Per shared pose ``k`` the displacement of each corner (new minus old,
+px) is fitted with ``d = s + a q + w J q`` (``q = (p - c) / R``: the old pixel about the
+principal point ``c`` over the corners' rms radius ``R``; ``J`` the quarter turn): a shift
+``s`` (2,), a scale ``a`` and a rotation ``w``, in px at radius ``R``; corners beyond five
+robust sigmas are dropped. The poses' fields are averaged; the noise of the mean is the
+scatter of the per-pose fields (pooled over the shift components and over scale and
+rotation), never below what the per-corner scatter (1.4826 MAD) explains. ``z``: each mean
+over its one-sigma.
 
-Per shared pose ``k`` the displacement of each corner (new minus old, px) is fitted with the
-small linear field ``d = s + a q + w J q`` (``q = (p - c) / R``: the old pixel about the
-principal point ``c`` in units of ``R``, the rms radius of the corners; ``J`` the quarter
-turn): ``s`` (2,) a shift, ``a`` a scale and ``w`` a rotation, all in px (``a`` and ``w``: the
-displacement at radius ``R``). Corners beyond five robust sigmas of that fit are dropped. The
-poses' fields are averaged; the noise of the mean comes from the data: the scatter of the
-per-pose fields about their mean (the arm's repeatability moves a whole pose at once), pooled
-over the two shift components and over scale and rotation, never below what the per-corner
-scatter (robust, 1.4826 MAD) alone explains. ``z``: each parameter's mean over its one-sigma.
-
-Drift: the field is significant (largest ``z`` beyond :data:`Z_LIMIT`) AND its largest
-displacement over the region compared is beyond the pixel limit. What the field corresponds
-to, through the installed intrinsics: the shift is a principal-point change or a camera
-rotation about its x / y axes (the two cannot be told apart here), the scale a focal-length
-change, the rotation a camera rotation about its optical axis. A board moved since the
-installed session gives the same kind of field: a paired comparison cannot tell a bumped
-board from a changed camera.
+Drift: the largest ``z`` beyond :data:`Z_LIMIT` AND the field's largest displacement beyond
+the pixel limit. Through the installed intrinsics the shift is a principal-point change or a
+camera rotation about x / y, the scale a focal-length change, the rotation one about the
+optical axis; a bumped board gives the same kind of field.
 
 The unpaired check (:func:`fit_target`, :func:`chain_rms_px`): the installed calibration held
 fixed, the one target pose that best explains new images through the measured robot poses, and
-the residuals it leaves per camera.
-
-Pure: arrays in, :class:`DisplacementField` out; no I/O.
+the residuals it leaves per camera. Arrays in, :class:`DisplacementField` out; no I/O.
 """
 
 from __future__ import annotations

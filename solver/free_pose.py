@@ -38,14 +38,11 @@ def free_pose_fit(
     """Fit a free board pose to every image with fixed intrinsics and distortion.
 
     ``images``: (frame index, camera, board points (n, 3), pixels (n, 2)) of the inlier
-    detections. Each pose is the reprojection-error minimum of OpenCV's iterative PnP, started
-    from the better of ``starts`` (``T_cam_board`` per (frame index, camera), e.g. the robot
-    model's prediction) and the closed-form planar solution (IPPE), so that a wildly wrong
-    robot model cannot spoil the floor it is judged against. Images with fewer than 4 points
-    are skipped. The candidate poses are scored for all images at once (one projection per
-    camera), not image by image. ``closed_form`` False: the closed form only for the images
-    without a start, or whose start PnP does not refine (the starts are free-pose minima
-    already, e.g. of an earlier fit).
+    detections. Each pose is OpenCV's iterative PnP minimum from the better of ``starts``
+    (``T_cam_board`` per (frame index, camera)) and the closed-form planar solution (IPPE), so
+    that a wrong robot model cannot spoil the floor it is judged against; images with fewer
+    than 4 points are skipped. ``closed_form`` False: IPPE only for the images without a start
+    or whose start does not refine.
     """
     todo = [
         (fi, cam, pts.astype(np.float64), px.astype(np.float64))
@@ -58,7 +55,7 @@ def free_pose_fit(
     for fi, cam, obj, img in todo:
         T0 = starts.get((fi, cam))
         good_start = T0 is not None and T0[2, 3] > 0
-        refined.append(_pnp(obj, img, K[cam], dist[cam], T0) if good_start else None)
+        refined.append(pnp_from(obj, img, K[cam], dist[cam], T0) if good_start else None)
         if good_start and not closed_form and refined[-1] is not None:
             closed.append(None)
             continue
@@ -71,7 +68,7 @@ def free_pose_fit(
     alt: list[np.ndarray | None] = [None] * len(todo)
     for k, (_, cam, obj, img) in enumerate(todo):
         if closed_rss[k] is not None and (best[k] is None or closed_rss[k] < best[k]):
-            alt[k] = _pnp(obj, img, K[cam], dist[cam], closed[k])
+            alt[k] = pnp_from(obj, img, K[cam], dist[cam], closed[k])
     alt_rss = _scored(todo, alt, K, dist)
     rss: dict[tuple[int, str], float] = {}
     rows: dict[tuple[int, str], int] = {}
@@ -120,7 +117,7 @@ def _scored(
     return out
 
 
-def _pnp(
+def pnp_from(
     obj: np.ndarray, img: np.ndarray, K: np.ndarray, dist: np.ndarray, T0: np.ndarray
 ) -> np.ndarray | None:
     """OpenCV's iterative PnP (the reprojection-error minimum) started at ``T0``: the pose

@@ -69,6 +69,15 @@ def R_from_quat_wxyz(q: np.ndarray) -> np.ndarray:
     )
 
 
+def quat_wxyz_from_R(R: np.ndarray) -> np.ndarray:
+    """The unit quaternion ``(w, x, y, z)`` (4,), ``w >= 0``, of ``R`` (3, 3) (the inverse of
+    :func:`R_from_quat_wxyz`)."""
+    v = rvec_from_R(R)
+    angle = float(np.linalg.norm(v))
+    axis = v / angle if angle > 0 else np.zeros(3)
+    return np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * axis])
+
+
 def project_to_SO3(M: np.ndarray) -> np.ndarray:
     """The rotation nearest to a 3x3 matrix in the Frobenius norm (SVD, det = +1)."""
     U, _, Vt = np.linalg.svd(np.asarray(M, dtype=float))
@@ -97,11 +106,8 @@ def transform_points(T_a_b: np.ndarray, p_b: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray | None = None) -> float:
-    """Angle in degrees of ``R_a`` (or of ``R_a R_b'`` when ``R_b`` is given): an error measure.
-
-    From :func:`rvec_from_R` (``atan2``), exact also for tiny angles where ``arccos`` of the
-    trace loses half the digits.
-    """
+    """Angle in degrees of ``R_a`` (or of ``R_a R_b'`` when ``R_b`` is given), by
+    :func:`rvec_from_R` (exact also for tiny angles, where ``arccos`` of the trace is not)."""
     R = np.asarray(R_a, float) if R_b is None else np.asarray(R_a, float) @ np.asarray(R_b).T
     return float(np.degrees(np.linalg.norm(rvec_from_R(R))))
 
@@ -130,8 +136,7 @@ def look_at_R_cam_world(
     """``R_cam_world`` of a camera at ``p_cam_world`` looking at ``p_target_world``.
 
     Camera axes (docs/METHOD.md Sec. 1): +z along the optical axis, +x right, +y down;
-    ``up_world`` is
-    the world direction that should appear as up (-y) in the image.
+    ``up_world`` is the world direction that should appear as up (-y) in the image.
     """
     z = np.asarray(p_target_world, float) - np.asarray(p_cam_world, float)
     z /= np.linalg.norm(z)
@@ -153,8 +158,7 @@ def random_rotation(rng: np.random.Generator, max_angle_rad: float = np.pi) -> n
 def right_singular(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Singular values ``sv`` (n,) and right singular vectors ``Vt`` (n, n) of ``A`` (m, n),
     any m: a system with fewer rows than unknowns is padded with zero rows (its null space is
-    then the last rows of ``Vt``). Thin SVD: ``U`` is never formed, so the cost stays linear in
-    m (a full ``U`` of a 10000-row system is 10000 x 10000)."""
+    then the last rows of ``Vt``). Thin SVD: the cost stays linear in m."""
     A = np.asarray(A, dtype=float)
     m, n = A.shape
     if m < n:

@@ -16,6 +16,7 @@ from slidecal.solver.geometry import (
     T_from_Rt,
     inv_T,
     project_to_SO3,
+    quat_wxyz_from_R,
     rvec_from_R,
     skew,
 )
@@ -192,14 +193,6 @@ def ax_xb_park_martin(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return T_from_Rt(R_X, _translation_ax_xb(A, B, R_X))
 
 
-def _quat(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion ``(w, x, y, z)`` (4,) of a rotation matrix (3, 3), ``w >= 0``."""
-    v = rvec_from_R(R)
-    angle = np.linalg.norm(v)
-    axis = v / angle if angle > 0 else np.zeros(3)
-    return np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * axis])
-
-
 def _qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     w1, v1, w2, v2 = p[0], p[1:], q[0], q[1:]
     return np.concatenate([[w1 * w2 - v1 @ v2], w1 * v2 + w2 * v1 + np.cross(v1, v2)])
@@ -207,7 +200,7 @@ def _qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 def _dual_quat(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Real and dual parts (4,), (4,) of the unit dual quaternion of ``T`` (4, 4)."""
-    q = _quat(T[:3, :3])
+    q = quat_wxyz_from_R(T[:3, :3])
     return q, 0.5 * _qmul(np.concatenate([[0.0], T[:3, 3]]), q)
 
 
@@ -301,17 +294,11 @@ def tsai_lenz(T_base_tool: np.ndarray, T_cam_board: np.ndarray) -> np.ndarray:
     M = np.concatenate(rows)
     sv = np.linalg.svd(M, compute_uv=False)
     if sv[2] < 1e-3 * sv[0]:  # each skew block has rank 2: one axis leaves sv[2] = 0
-        raise DegenerateError(
-            "the robot rotations are all about one axis (or absent): the hand-eye transform is "
-            "undetermined; rotate about at least two non-parallel axes"
-        )
+        raise DegenerateError(_SINGLE_AXIS)
     # skew(pa + pb) p' = pb - pa  (with the sign convention A X = X B, rotations of A).
     pp, *_ = np.linalg.lstsq(M, np.concatenate(rhs), rcond=None)
     p = 2.0 * pp / np.sqrt(1.0 + pp @ pp)
     n = np.linalg.norm(p)
     angle = 2.0 * np.arcsin(min(n / 2.0, 1.0))
     R_X = R_from_rvec(angle * p / n) if n > 0 else np.eye(3)
-    C = np.concatenate([A[:3, :3] - np.eye(3) for A in As])
-    d = np.concatenate([R_X @ B[:3, 3] - A[:3, 3] for A, B in zip(As, Bs, strict=True)])
-    t_X, *_ = np.linalg.lstsq(C, d, rcond=None)
-    return T_from_Rt(R_X, t_X)
+    return T_from_Rt(R_X, _translation_ax_xb(np.array(As), np.array(Bs), R_X))

@@ -3,11 +3,9 @@
 ``H`` (3, 3) maps board points ``(X, Y, 1)`` (board frame, any length unit) to image points
 (pixels): ``x ~ H (X, Y, 1)``, ``H = lambda K [r1 r2 t]`` (docs/METHOD.md Sec. 2).
 
-Normalisation convention of every returned ``H``: unit Frobenius norm and ``H[2, 2] > 0``. Since
-``H[2, 2] = lambda t_z`` with ``t_z > 0`` for a board in front of the camera, this is the scale
-with ``lambda > 0`` (the third component of ``K^-1 h3`` is positive for any ``K`` with positive
-focal lengths). A joint group estimate (:func:`group_homographies`) applies one common scale to
-all its frames, chosen so that frame 0 has unit norm, so ``h1, h2`` are identical in all frames.
+Every returned ``H`` has unit Frobenius norm and ``H[2, 2] = lambda t_z > 0`` (``lambda > 0``
+for a board in front of the camera). A joint group estimate (:func:`group_homographies`) scales
+all its frames alike, frame 0 to unit norm: ``h1, h2`` are identical in all frames.
 """
 
 from __future__ import annotations

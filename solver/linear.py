@@ -27,7 +27,7 @@ def conic_row(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """
     a = np.asarray(a, dtype=float)
     b = np.asarray(b, dtype=float)
-    if a.ndim == 1 and b.ndim == 1:  # one row: plain floats (a stack of 0-d arrays costs 10x)
+    if a.ndim == 1 and b.ndim == 1:  # one row: plain floats (faster than 0-d arrays)
         a0, a1, a2 = a.tolist()
         b0, b1, b2 = b.tolist()
         return np.array(
@@ -168,8 +168,8 @@ class LinearSystem:
 
     ``A`` (rows, m + G): weighted rows, unit-norm columns; ``col_scale`` (m + G,):
     ``x = col_scale * y`` for a null vector ``y`` of ``A``; ``basis`` (6, m):
-    ``w = basis @ x[:m]``; ``N`` (3, 3) the image normalisation; ``sigma``: the board-side
-    scale (board units per normalised unit);
+    ``w = basis @ x[:m]``; ``unknowns``: the columns' names; ``N`` (3, 3) the image
+    normalisation; ``sigma``: the board-side scale (board units per normalised unit);
     ``h_scale`` (G,): each group's homographies were divided by it (so ``|h1|, |h2| ~ 1``).
     """
 
@@ -193,12 +193,8 @@ def w_basis(skew: bool, unit_aspect: bool) -> tuple[np.ndarray, tuple[str, ...]]
     if skew:
         return I6, W_NAMES
     if unit_aspect:
-        return np.column_stack([I6[0] + I6[2], I6[3], I6[4], I6[5]]), (
-            "w11=w22",
-            "w13",
-            "w23",
-            "w33",
-        )
+        basis = np.column_stack([I6[0] + I6[2], I6[3], I6[4], I6[5]])
+        return basis, ("w11=w22", "w13", "w23", "w33")
     return I6[:, [0, 2, 3, 4, 5]], ("w11", "w22", "w13", "w23", "w33")
 
 
@@ -279,18 +275,12 @@ def linear_system(
     ``"robot"``: ``Delta_i' W Delta_j = (T_i . T_j) c`` for the pairs ``1 <= i <= j`` of
     :func:`robot_pairs` (all of them in groups of up to 21 translations);
     ``"none"``: Zhang's two rows of every frame (each frame its own pose), no ``c``.
-    Conditioning (docs/METHOD.md, "Numerical conditioning"): isotropic image normalisation,
-    board-side
-    scale making the homography columns commensurate (translations scaled with it), each group's
-    homographies scaled so ``|h1|, |h2| ~ 1`` (``c`` commensurate with ``w``), then rows and
-    columns normalised. Rows: ``row_weighting="noise"`` (default) divides the row of ``a' W b``
-    by ``|a| + |b|``, its noise scale when every homography column carries similar noise, so a
-    short translation's row weighs less than a long one's; ``"unit"`` gives unit-norm rows
-    (docs/METHOD.md's recipe). Measured over 100 trials at 0.5 px: ``fx`` std 2.9 px ("noise")
-    against
-    4.1 px ("unit") on S2 with 5 images, 3.2 against 5.0 px on S1 (30 deg). Columns always
-    unit norm. ``condition=False`` skips all of it (pixels and board units as given; only for
-    demonstrating why it matters).
+    Conditioning (docs/METHOD.md, "Numerical conditioning"): isotropic image normalisation, a
+    board-side scale making the homography columns commensurate (translations scaled with it),
+    each group's homographies scaled so ``|h1|, |h2| ~ 1``, then rows and columns normalised.
+    Rows: ``row_weighting="noise"`` (default) divides the row of ``a' W b`` by ``|a| + |b|``,
+    its noise scale (a short translation's row weighs less than a long one's); ``"unit"``
+    gives unit-norm rows (docs/METHOD.md's recipe). ``condition=False`` skips all of it.
     """
     _check_groups(groups, knowledge)
     N = image_normalisation(*image_size) if condition else np.eye(3)
@@ -360,12 +350,8 @@ def linear_system(
                 add(conic_row(hn, D[keep]), nrm(hn) + nD[keep])
         elif knowledge == "robot":  # pairs of translations, generalising eq. 27
             k, j = robot_pairs(len(D))
-            add(
-                conic_row(D[j], D[k]),
-                nD[j] + nD[k],
-                g,
-                -np.sum(motion[1:][j] * T[k], axis=1),
-            )
+            coef = -np.sum(motion[1:][j] * T[k], axis=1)
+            add(conic_row(D[j], D[k]), nD[j] + nD[k], g, coef)
     A = (
         np.concatenate([np.concatenate(conics) @ B, np.concatenate(c_cols)], axis=1)
         if conics

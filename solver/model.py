@@ -58,12 +58,8 @@ class ModelState:
     s: np.ndarray
     E: np.ndarray | None = None
     U: np.ndarray | None = None  # (G, 6) per orientation group, added to its frames' E
-    # (n,) the orientation groups' linear trends of the correction along their translations
-    # (``Structure.trend_*``), added to their frames' E
-    V: np.ndarray | None = None
-    # (n,) the corrections every trend group shares (``Structure.common_*``), added to their
-    # frames' E
-    W: np.ndarray | None = None
+    V: np.ndarray | None = None  # (n,) the trends (``Structure.trend_*``), added to their E
+    W: np.ndarray | None = None  # (n,) the shared field (``Structure.common_*``), added to E
 
 
 @dataclass(frozen=True)
@@ -91,35 +87,25 @@ class Structure:
     T_meas: np.ndarray | None = None
     pose_sigma: tuple[float, float] | None = None
     eye_in_hand: bool = True
-    # a real arm's error is smooth over the workspace: nearly the same for the frames of one
-    # orientation group, different between groups. ``pose_groups`` (F,): the group of each
-    # frame for a shared correction ``U`` per group with prior sigmas ``group_sigma`` (radians,
-    # metres); None: corrections independent from frame to frame
+    # ``pose_groups`` (F,): each frame's orientation group, for a shared correction ``U`` per
+    # group with prior sigmas ``group_sigma`` (radians, metres); None: frames independent
     pose_groups: np.ndarray | None = None
     group_sigma: tuple[float, float] | None = None
-    # and it drifts smoothly along a move: the correction of frame k in trend group g gains
-    # ``D_g c_k``, ``c_k`` (trend_dims[g],) the frame's measured translation offset from the
-    # group's mean in a basis of the directions the group spans (``trend_coords`` (F, 3),
-    # metres, zero-padded), ``D_g`` (6, trend_dims[g]) per unit of offset (rad/m, m/m) with
-    # prior sigmas ``trend_sigma``; ``trend_groups`` (F,): the trend group of each frame, -1
-    # for none (groups of too few frames, or not spread along a direction)
+    # a trend along the moves: frame k of trend group g gains ``D_g c_k``, ``c_k`` its measured
+    # translation offset from the group's mean in a basis of the group's directions
+    # (``trend_coords`` (F, 3), metres, zero-padded), ``D_g`` (6, trend_dims[g]) (rad/m, m/m)
+    # with prior sigmas ``trend_sigma``; ``trend_groups`` (F,): trend group per frame, -1: none
     trend_groups: np.ndarray | None = None
     trend_coords: np.ndarray | None = None
     trend_dims: tuple[int, ...] = ()
     trend_sigma: tuple[float, float] | None = None
-    # one orientation (a translation-only session): the trend's scale along the moves is the
-    # focal length's, which no image tells apart, and one group's trend is too few coordinates
-    # to learn a level from; its translation part stays at the floor and the reading that the
-    # frames' translation error is all trend is carried in the covariance
-    # (robot_error.smooth_arm_excess)
+    # one orientation: the trend's translation scale is the focal length's, which no image
+    # tells apart; it stays at the floor (the covariance carries it)
     trend_scale_fixed: bool = False
-    # and the arm errs alike at one place whatever the orientation: the groups share part of
-    # their error (a rotation trend, a quadratic translation field: :func:`common_trend`). The
-    # correction of frame k gains ``common_map[k] W`` (``common_map`` (F, 6, n), per metre of
-    # the frame's offset; zero for frames of no trend group), ``W`` (n,) with prior sigmas
-    # ``common_sigma`` (rad/m, m/m) on the columns of ``common_rotation`` (n,) and the
-    # others; none with fewer than two trend groups or too few frames; ``common_spread``
-    # (rotation, translation): what a level is in a frame's correction (metres per axis)
+    # the error the trend groups share (:func:`slidecal.solver.refine.common_trend`): frame k
+    # gains ``common_map[k] W`` (``common_map`` (F, 6, n)), ``W`` (n,) with prior sigmas
+    # ``common_sigma`` (rad/m, m/m) on the rotation columns ``common_rotation`` (n,) and the
+    # others; ``common_spread`` (rotation, translation): a level's share of a frame's (metres)
     common_map: np.ndarray | None = None
     common_rotation: np.ndarray | None = None
     common_sigma: tuple[float, float] | None = None
@@ -163,19 +149,9 @@ def _chunks(problem: CalibrationProblem) -> list[_Chunk]:
             det = frame.detections.get(cam.name)
             if det is None or len(det.ids) == 0:
                 continue
-            n = len(det.ids)
-            chunks.append(
-                _Chunk(
-                    fi,
-                    cam.name,
-                    slice(row, row + 2 * n),
-                    pts[det.ids],
-                    det.px,
-                    (frame.id, cam.name),
-                    det.ids,
-                )
-            )
-            row += 2 * n
+            rows, key = slice(row, row + 2 * len(det.ids)), (frame.id, cam.name)
+            chunks.append(_Chunk(fi, cam.name, rows, pts[det.ids], det.px, key, det.ids))
+            row = rows.stop
     return chunks
 
 
@@ -363,7 +339,7 @@ class NormalBlocks:
                 Si = np.linalg.pinv(S)
         F = len(s_E)
         SiL = (Si @ L).reshape(P0, F, 6)
-        # each frame's L_k' Si L_k, as a stack of products (einsum: 3x slower here)
+        # each frame's L_k' Si L_k, as a stack of products
         EE = Ei + np.transpose(L.reshape(P0, F, 6), (1, 2, 0)) @ np.transpose(SiL, (1, 0, 2))
         outer_E = s_E[:, :, None] * s_E[:, None, :]
         return BlockInverse(
@@ -404,10 +380,7 @@ class BundleModel:
             if self.dist_names:
                 add(f"dist:{c}", [f"{c}.{n}" for n in self.dist_names])
             if c != self.ref:
-                add(
-                    f"rig:{c}",
-                    [f"T_{c}_{self.ref}.{a}" for a in ("rx", "ry", "rz", "tx", "ty", "tz")],
-                )
+                add(f"rig:{c}", [f"T_{c}_{self.ref}.{a}" for a in POSE_AXES])
         st = structure
         for g in range(n_groups):
             block = [f"X{g}.r{i}" for i in range(st.X_rot_basis.shape[1])]
@@ -420,10 +393,7 @@ class BundleModel:
             add("Y", yb)
         if structure.pose_sigma is not None and structure.pose_groups is not None:
             n_pg = int(structure.pose_groups.max()) + 1
-            add(
-                "U",
-                [f"pose_group{g}.{a}" for g in range(n_pg) for a in POSE_AXES],
-            )
+            add("U", [f"pose_group{g}.{a}" for g in range(n_pg) for a in POSE_AXES])
         self.trend_offsets: list[int] = []  # first V index of each trend group
         if structure.pose_sigma is not None and structure.trend_sigma is not None:
             block = []
@@ -434,30 +404,23 @@ class BundleModel:
         if structure.pose_sigma is not None and structure.common_sigma is not None:
             add("W", [f"shared_field.{j}" for j in range(structure.common_map.shape[2])])
         if structure.pose_sigma is not None:
-            add(
-                "E",
-                [f"pose{int(f.id)}.{a}" for f in problem.frames for a in POSE_AXES],
-            )
+            add("E", [f"pose{int(f.id)}.{a}" for f in problem.frames for a in POSE_AXES])
         self.s_frames = np.flatnonzero(structure.s_free)
         if len(self.s_frames):
             add("s", [f"s{int(problem.frames[i].id)}" for i in self.s_frames])
         self.names = tuple(names)
         self.sigma_px = 1.0  # pixel noise used to weigh the pose prior rows (set by refine)
-        # one-sigma (radians, metres) of the pose corrections' prior: the structure's, or the
-        # robot's accuracy as refine estimates it
+        # one-sigma levels (radians, metres) of the priors: the structure's, then refine's
         self.pose_sigma = structure.pose_sigma
         self.group_sigma = structure.group_sigma
         self.trend_sigma = structure.trend_sigma
         self.common_sigma = structure.common_sigma
-        # the redundancy (degrees of freedom) behind each estimated pose level, per block
-        # ("E" frames, "U" groups, "V" trends): (rotation, translation), the last
-        # variance-component step's sum of 1 - h over the block's prior rows
+        # per block ("E", "U", "V", "W"): the last variance-component step's redundancy
+        # (rotation, translation), the sum of 1 - h over its prior rows
         self.level_redundancy: dict[str, tuple[float, float]] = {}
-        # the groups' level as their corrections alone say it (radians, metres), without its
-        # prior (GROUP_LEVEL_PRIOR_DOF): the arm's accuracy reported
+        # the groups' level from their corrections alone, without its prior (radians, metres)
         self.group_sigma_data: tuple[float, float] | None = None
-        # the row weights of the last solve (inliers, each camera's noise against the
-        # reference camera's): what its covariance was made with; None before one
+        # the last solve's row weights (inliers, per-camera noise): its covariance's
         self.row_weights: np.ndarray | None = None
         self._normal_cache: tuple | None = None  # (state, pixel weights, blocks) of the last
         self._eval_cache: tuple | None = None  # (state, evaluate's output) of the last
@@ -474,14 +437,10 @@ class BundleModel:
         for c in self.cams:
             d = delta[self.slices[f"intr:{c}"]]
             k = K[c].copy()
-            if self.problem.options.unit_aspect:
-                k[0, 0] += d[0]
-                k[1, 1] += d[0]
-                rest = d[1:]
-            else:
-                k[0, 0] += d[0]
-                k[1, 1] += d[1]
-                rest = d[2:]
+            unit = self.problem.options.unit_aspect
+            k[0, 0] += d[0]
+            k[1, 1] += d[0] if unit else d[1]
+            rest = d[1:] if unit else d[2:]
             k[0, 2] += rest[0]
             k[1, 2] += rest[1]
             if self.problem.options.skew:
@@ -578,9 +537,7 @@ class BundleModel:
         without the pose-correction columns (2 n, P0) and, third, each observation's block of
         its own frame's correction (n, 2, 6); the prior rows are left to the caller.
         ``transposed`` (with ``split``, or without pose corrections): the pixel rows' Jacobian
-        transposed, (P, 2 n), every observation's u row first, then every v row
-        (``axis_rows`` orders a row vector so): one parameter's column is contiguous, and
-        the normal matrix's product runs at the speed of a symmetric rank-k update.
+        transposed, (P, 2 n), every u row first, then every v row (``axis_rows``' order).
         """
         n, P_ = self.n_obs, len(self.names)
         st = self.st
@@ -724,13 +681,9 @@ class BundleModel:
     ) -> NormalBlocks:
         """``J' W J`` and ``J' W r`` split into the global parameters and the per-frame blocks.
 
-        With pose corrections the Jacobian is never formed whole: each frame's six correction
-        columns touch only that frame's rows (and one prior row each), so their blocks are
-        accumulated per frame; everything else (intrinsics, rig, X, Y, the groups' U, ...) is
-        global. The evaluation is kept for the last state, so reweighing (a camera's rows, the
-        priors) costs products only; so are the pixel blocks of the last weights, unless
-        ``keep`` is False (a one-off weighting, e.g. one camera's rows, that should not push
-        out the solve's own).
+        Each frame's six correction columns touch only its rows (and one prior row each), so
+        their blocks are accumulated per frame. The evaluation is kept for the last state, and
+        the pixel blocks for the last weights unless ``keep`` is False (a one-off weighting).
         """
         ax = self.axis_rows
         if "E" not in self.slices:
@@ -855,11 +808,8 @@ class BundleModel:
     ) -> tuple[np.ndarray, np.ndarray]:
         """``J' W J`` and ``J' W r`` of the pixel rows from ``JT`` = J' (P, 2 n), C-ordered,
         with ``w`` and ``r`` in its column order: ``(J' W^1/2)(J' W^1/2)'``, one symmetric
-        product of a row-major matrix (measured for 3 cameras, 400 frames: 63 ms against 80 ms
-        for ``J' (W J)`` of the row-interleaved Jacobian). (Multiplying a rig's cameras apart,
-        over the columns each touches, gathers as much as it saves: measured 47 ms either
-        way.) Columns of zero weight (another camera's rows when a camera's share is asked
-        for) are left out when they are a quarter or more."""
+        product of a row-major matrix. Columns of zero weight are left out when they are a
+        quarter or more."""
         nz = w != 0
         if np.count_nonzero(nz) < 0.75 * len(w):
             JT, w, r = JT[:, nz], w[nz], r[nz]
@@ -1088,20 +1038,17 @@ class BundleModel:
 
 
 def _per_frame(A_gE: np.ndarray, Ei: np.ndarray) -> np.ndarray:
-    """``A_gE[:, k] @ Ei[k]`` for every frame k: (P0, F, 6) from (P0, F, 6) and (F, 6, 6), as
-    a stack of products (einsum: 3x slower on these shapes)."""
+    """``A_gE[:, k] @ Ei[k]`` for every frame k: (P0, F, 6) from (P0, F, 6) and (F, 6, 6)."""
     return np.transpose(np.transpose(A_gE, (1, 0, 2)) @ Ei, (1, 0, 2))
 
 
 def _mv(M: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Matrix-vector products (n, 3) of stacks ``M`` (n, 3, 3) and ``v`` (n, 3) (matmul: einsum
-    is several times slower on stacks of small matrices)."""
+    """Matrix-vector products (n, 3) of stacks ``M`` (n, 3, 3) and ``v`` (n, 3)."""
     return (M @ v[:, :, None])[:, :, 0]
 
 
 def _put_rows(J: np.ndarray, idx: np.ndarray | slice, cols: slice, vals: np.ndarray) -> None:
-    """``J[idx, :, cols] = vals`` for ``J`` (n, 2, P), as one 2-D assignment per pixel axis
-    (numpy's mixed index-and-slice assignment on the 3-D array is several times slower)."""
+    """``J[idx, :, cols] = vals`` for ``J`` (n, 2, P), one 2-D assignment per pixel axis."""
     for i in range(J.shape[1]):
         J[:, i, :][idx, cols] = vals[:, i, :]
 
@@ -1189,20 +1136,14 @@ def with_pose_corrections(
 
 @functools.cache
 def _blas_controller() -> ThreadpoolController:
-    """One controller for the process: building one scans the loaded libraries (about 2 ms,
-    more than a small solve's BLAS work), limiting through it does not. Built on first use,
-    when numpy's BLAS is loaded."""
+    """One controller for the process (building one scans the loaded libraries), built on
+    first use, when numpy's BLAS is loaded."""
     return ThreadpoolController()
 
 
 def single_threaded_blas(fn):  # noqa: ANN001, ANN201 - a plain decorator
-    """Run ``fn`` with one BLAS thread.
-
-    The normal matrices here are small (tens of columns): a threaded BLAS gains nothing on them
-    and, on a busy 2-core machine, its spinning threads made one 2800 x 21 product take 250 ms
-    instead of 0.1 ms (measured). ``threadpoolctl`` is the maintained way to limit it; one
-    controller (:func:`_blas_controller`) serves every call.
-    """
+    """Run ``fn`` with one BLAS thread: the normal matrices are small (tens of columns), where
+    a threaded BLAS's spinning threads cost far more than they gain on a busy machine."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
@@ -1294,8 +1235,8 @@ def build_structure(problem: CalibrationProblem, R_X: np.ndarray | None = None) 
         M = np.linalg.inv(T) if problem.mount == "eye_in_hand" else T  # one batched call
         groups = np.zeros(F, dtype=int)
         Y_rot, Y_t = I3, I3
-        # rotation axes of every frame relative to the first (tool frame for eye-in-hand, base
-        # frame for eye-to-hand): the hand-eye translation is observable across them (Tsai-Lenz)
+        # rotation axes relative to the first frame: the hand-eye translation is observable
+        # across them (Tsai-Lenz)
         R0 = T[0, :3, :3]
         axes = []
         for t in T[1:]:

@@ -71,10 +71,8 @@ class Target:
     tag_cols: int = 0
     tag_rows: int = 0
     tag_spacing: float = 0.0
-    # how well the real board matches this description (one-sigma): the bow of its surface
-    # (metres) and the relative error of the printed pattern's scale, anisotropy and shear; 0: as
-    # described (a target read from a file gets a real board's defaults,
-    # ``solver/target_shape.py``)
+    # the real board's one-sigma departure from this description: the bow (metres) and the
+    # print's relative scale error; 0: exact (``solver/target_shape.py``)
     flatness_m: float = 0.0
     print_tolerance: float = 0.0
 
@@ -268,15 +266,10 @@ class ModelOptions:
     ``outlier_threshold_px``: a detection whose residual exceeds this after the first solve is
     flagged and down-weighted (robust loss), never silently dropped.
     ``robot_noise_m``, ``robot_noise_deg``: one-sigma noise of each axis of the measured robot
-    poses (translation, and each rotation-vector component). With 0 the poses are exact inputs;
-    otherwise every pose gets a correction with this Gaussian prior (errors in variables), so
-    the estimate and its covariance account for the robot's measurement noise.
-    ``estimate_robot_noise``: learn the robot's accuracy from the data (robot sessions): the
-    poses are first taken as exact and tested against a free board pose per image; when they
-    do not explain the images, every pose gets a correction whose one-sigma levels (rotation,
-    translation) are estimated together with the parameters and the image noise (variance
-    components), ``robot_noise_*`` then being only where the estimation starts. False: the
-    ``robot_noise_*`` values are taken as the truth.
+    poses (translation, each rotation-vector component): 0, exact poses; else every pose gets a
+    correction with this Gaussian prior. ``estimate_robot_noise``: learn the arm's accuracy from
+    the data (robot sessions; ``robot_noise_*`` only start the estimation); False: take
+    ``robot_noise_*`` as the truth.
     """
 
     skew: bool = False

@@ -26,6 +26,7 @@ from slidecal.solver.model import (
     with_pose_corrections,
 )
 from slidecal.solver.problem import CalibrationProblem
+from slidecal.solver.tails import f_tail
 
 
 @dataclass(frozen=True)
@@ -34,9 +35,7 @@ class RefineOutput:
 
     state: ModelState
     names: tuple[str, ...]
-    # the covariance of the optimiser's coordinates in blocks (``covariance`` is its dense
-    # form, made on demand: P x P is 6000 x 6000 at 1000 frames with the arm's accuracy
-    # learned, where the reported quantities need a few rows of it)
+    # the covariance of the optimiser's coordinates in blocks (``covariance``: dense, on demand)
     covariance_blocks: BlockInverse | None
     residuals: np.ndarray  # (R,) pixels, outliers included
     inlier_rows: np.ndarray  # (R,) bool
@@ -46,14 +45,12 @@ class RefineOutput:
     outliers: tuple[tuple[int, str, int], ...]
     messages: tuple[str, ...]
     model: BundleModel
-    # the free board pose per image fitted to this solve's detections and intrinsics (the
-    # robot test's; :func:`slidecal.solver.adequacy.assess` reuses it), when one was made
+    # the robot test's free board pose per image at this solve's intrinsics, when it stood
     free_pose: FreePoseFit | None = None
-    # the robot test's free-pose fit when the solve went on to learn the arm's accuracy (made
-    # at the exact-pose intrinsics: its poses start the final fit)
+    # the robot test's free-pose fit when the solve went on to learn the arm's accuracy
     test_fit: FreePoseFit | None = None
-    # robot sessions: the robot's one-sigma pose error per axis (radians, metres) the model used:
-    # (0, 0) for exact poses; whether it was estimated from the data; the test that decided
+    # robot sessions: the one-sigma pose error per axis (radians, metres), (0, 0) for exact
+    # poses; whether it was estimated; the test that decided
     robot_sigma: tuple[float, float] | None = None
     robot_sigma_estimated: bool = False
     robot_test: str = ""
@@ -133,44 +130,29 @@ def _lm(
     return state, converged, it, r, lam
 
 
-#: Levenberg-Marquardt's damping (times the normal matrix's diagonal) at the start of a solve:
-#: the linear start is close enough for nearly Gauss-Newton steps; a start it does not suit
-#: raises it tenfold per refused step.
+#: Levenberg-Marquardt's damping (times the diagonal) at the start: the linear start is close.
 LM_START_DAMPING = 1e-6
-#: The damping of the Gauss-Newton steps of the variance-component phase: nearly none, since a
-#: larger one holds back the directions only the pose prior pins (an orientation group's
-#: translation against the board's) and the levels creep along with them for tens of steps.
+#: The variance-component phase's damping: a larger one holds back the prior-pinned directions.
 VCE_STEP_DAMPING = 1e-9
 #: Most variance-component steps of one solve (then the last levels are kept, with a note)
 MAX_VCE_STEPS = 40
-#: Significance level of the test "the measured robot poses explain the images as well as a
-#: free board pose per image does" (an F test): below it, the robot's accuracy is estimated.
+#: F test "the robot poses explain the images as free poses do": below it, the arm's accuracy
+#: is learned.
 ROBOT_TEST_P = 1e-3
-#: Smallest robot pose sigma the estimation keeps (radians, metres): below it a component is
-#: as good as exact and the prior just holds its corrections at zero.
+#: Smallest pose sigma kept (radians, metres): below it a component is as good as exact.
 SIGMA_FLOOR = (1e-7, 1e-7)
-#: Weight (degrees of freedom) of the prior on the orientation groups' shared level: the
-#: frames' own level, as if seen twice (a scaled inverse chi-square prior: the level's square
-#: is the groups' sum of squares plus twice the frames' level squared, over the groups'
-#: redundancy plus two). The images tell the groups' offsets from the hand-eye on a few degrees
-#: of freedom only; there the level alone falls to zero and stays, and the frames' corrections,
-#: taken as independent, overstate what the groups tell the hand-eye.
+#: Degrees of freedom of the prior at the frames' own level on the groups' shared level (the
+#: images tell the groups' offsets on a few dof only, where the level alone falls to zero).
 GROUP_LEVEL_PRIOR_DOF = 2.0
-#: Robot sigmas beyond any arm (radians, metres: 2 deg, 20 mm, twice what the adequacy test
-#: accepts): the estimation stops there, the model is wrong (units, frames) and will be marked so.
+#: Robot sigmas beyond any arm (2 deg, 20 mm): the estimation stops, the records are wrong.
 SIGMA_BEYOND = (np.radians(2.0), 0.02)
-#: Smallest rms spread (metres) of an orientation group's positions along a direction for the
-#: trend of the pose correction along it to be estimated (``translation_trends``).
+#: Smallest rms spread (metres) of a group's positions along a direction for a trend along it.
 TREND_MIN_SPREAD_M = 0.005
-#: Fewest frames of an eye-in-hand session without trends of its own orientation groups (a
-#: classic hand-eye session) for one linear trend of the pose corrections over the tool's
-#: positions of the whole session: an arm's error is smooth over its workspace, and its linear
-#: part (a scale or shear of the positions) reaches the focal lengths through the moves.
+#: Fewest frames of a classic eye-in-hand session for one trend over the whole session (the
+#: arm's linear error reaches the focal lengths through the moves).
 SESSION_TREND_MIN_FRAMES = 8
-#: Trend frames per coordinate of the corrections the trend groups share (:func:`common_trend`):
-#: the rotation trend's 9 coordinates need 27 frames, the quadratic translation field's 18
-#: coordinates 54 (positions spread in space); fewer cannot tell a shared field from the
-#: groups' own trends and scatter.
+#: Trend frames per coordinate of the shared field (:func:`common_trend`): fewer cannot tell it
+#: from the groups' own trends and scatter.
 COMMON_FIELD_FRAMES_PER_COORD = 3
 
 
@@ -186,28 +168,22 @@ def refine(
 ) -> RefineOutput:
     """Minimise the reprojection error over all detections (docs/METHOD.md Sec. 5).
 
-    Outliers: after a first solve, detections whose residual exceeds both
-    ``options.outlier_threshold_px`` and 5 times their camera's estimated noise are flagged,
-    given zero weight and the solve repeated. They are returned in ``outliers``: never silently
-    dropped. Cameras of a rig may differ in noise (a mono global-shutter camera and a colour
-    camera): each camera's noise is estimated from its residuals and its rows weighed by it
-    (maximum likelihood with one noise level per camera), iterated to a fixed point together
-    with the pose-prior scale. Covariance: ``s^2 (J' W J)^-1`` with ``s^2 = sum(w r^2) / (n - p)``
-    (docs/METHOD.md Sec. 6); ``sigma_px`` is the reference camera's noise.
+    Outliers: detections beyond both ``options.outlier_threshold_px`` and 5 times their
+    camera's noise get zero weight and the solve is repeated; they are returned in
+    ``outliers``. Each camera's noise is estimated from its residuals and its rows weighed by it,
+    to a fixed point with the pose-prior scale. Covariance: ``s^2 (J' W J)^-1`` with
+    ``s^2 = sum(w r^2) / (n - p)`` (Sec. 6); ``sigma_px`` is the reference camera's noise.
 
     Robot sessions with ``options.estimate_robot_noise`` (the default) learn the robot's
-    accuracy: the measured poses are first taken as exact, and an F test compares that fit with
-    a free board pose per image (the detector's floor, :mod:`slidecal.solver.adequacy`). When
-    the poses explain the images, that solve stands (``robot_sigma`` (0, 0)). Otherwise every
-    pose gets a correction (rotation, translation) with a zero-mean Gaussian prior whose two
-    one-sigma levels are estimated with the image noise of every camera by variance-component
-    estimation (Foerstner's iteration with redundancy numbers, to a fixed point): the
-    covariance then carries the robot's accuracy.
+    accuracy: the poses are first taken as exact, and an F test compares that fit with a free
+    board pose per image. When the poses explain the images, that solve stands (``robot_sigma``
+    (0, 0)). Otherwise every pose gets a correction with a zero-mean Gaussian prior (and the
+    orientation groups, trends and shared field theirs, ``Structure``) whose levels are
+    estimated with each camera's noise by variance components (Foerstner's iteration).
 
     ``record_check``: what is wrong with the robot's records, told from the images alone
     (:func:`slidecal.solver.adequacy.record_check`), asked only when the exact-pose solve puts
-    the poses beyond any arm or does not converge: then no accuracy of an arm is learned (it
-    would run its whole budget to the same rejection). None: not asked.
+    the poses beyond any arm or does not converge; then no accuracy is learned. None: not asked.
     """
     o = problem.options
     robot = problem.knowledge == "robot"
@@ -248,9 +224,7 @@ def refine(
     beyond = any(v > lim for v, lim in zip(sig0, SIGMA_BEYOND, strict=True))
     doubt = record_check is not None and (beyond or not out0.converged)
     if doubt and (cause := record_check(problem)) is not None:
-        # the records were read in another convention or paired with other images (told from
-        # the images alone): no accuracy of an arm explains them, and learning one would run
-        # its full budget of iterations (minutes) to the same rejection
+        # no accuracy of an arm explains records read wrongly or paired with other images
         return _with_robot(
             replace(out0, free_pose=fit), (0.0, 0.0), False, f"robot accuracy not learned: {cause}"
         )
@@ -263,8 +237,7 @@ def refine(
     pose_groups = orientation_groups(T_meas)
     trend_groups, trend_coords, trend_dims = translation_trends(T_meas, pose_groups)
     if not trend_dims and structure.eye_in_hand and len(T_meas) >= SESSION_TREND_MIN_FRAMES:
-        # no orientation group long enough for a trend of its own (a classic hand-eye session):
-        # one trend over the whole session (docs/ROBOT_ACCURACY.md)
+        # no group long enough for a trend of its own (a classic session): one over the session
         whole = np.zeros(len(T_meas), dtype=int)
         trend_groups, trend_coords, trend_dims = translation_trends(T_meas, whole)
     spread = float(np.sqrt(np.mean(np.sum(trend_coords**2, axis=1)))) if trend_dims else 0.0
@@ -353,22 +326,12 @@ def common_trend(
     what a level of each kind (rotation, translation) is in a frame's correction (metres: the
     coordinates' rms over the frames); ``(None, None, (0, 0))`` with fewer than two trend groups.
 
-    - The rotation: one linear trend of it over the frames' offsets from their own group's mean
-      (3 x m coordinates over the m directions those offsets span, as
-      :func:`translation_trends` makes for one group): the part of the groups' rotation trends
-      they have in common. Only with :data:`COMMON_FIELD_FRAMES_PER_COORD` trend frames or more
-      per coordinate (27 for offsets spread in space): fewer cannot tell it from the groups'
-      own trends and offsets (R1's four groups of five frames: 9 coordinates for 20 frames).
-    - The translation: a quadratic field of the positions (3 axes times the products of the
-      positions' coordinates over the directions they span, each less its mean): an arm
-      sagging under gravity by an amount that grows with its reach, and the like; only with
-      :data:`COMMON_FIELD_FRAMES_PER_COORD` trend frames or more per coordinate of it (fewer
-      cannot tell a field from the frames' own scatter: R1's 20 frames would give 18
-      coordinates to it and learn the white noise of the poses as a field). Its linear
-      part is left out: a scale or shear of the moves is the focal lengths and the principal
-      point again, a skew one a rotation of the robot's base (the camera's or the board's pose
-      again), which the images cannot tell apart from them; the covariance carries it
-      (:func:`slidecal.solver.robot_error.common_trend_excess`).
+    - The rotation: one linear trend over the frames' offsets from their own group's mean.
+    - The translation: a quadratic field of the positions (an arm sagging with its reach); its
+      linear part is left out (a scale or shear of the moves is the intrinsics again; the
+      covariance carries it).
+
+    Each only with :data:`COMMON_FIELD_FRAMES_PER_COORD` trend frames or more per coordinate.
     """
     none = (None, None, (0.0, 0.0))
     if len(trend_dims) < 2:
@@ -436,8 +399,6 @@ def _robot_pose_test(out: RefineOutput, fit) -> tuple[float, str]:  # noqa: ANN0
     unknowns per image where the robot model spends its motion unknowns. Each camera's sums
     are weighed by its floor noise.
     """
-    from scipy.special import fdtrc  # the F distribution's tail (scipy.stats costs 0.4 s)
-
     m = out.model
     rss_r = rss_f = 0.0
     rows = images = 0
@@ -459,7 +420,7 @@ def _robot_pose_test(out: RefineOutput, fit) -> tuple[float, str]:  # noqa: ANN0
     if rss_f <= 0:
         return 1.0, "no image to test"
     F = ((rss_r - rss_f) / d1) / (rss_f / d2)
-    p = float(fdtrc(d1, d2, max(F, 0.0)))
+    p = f_tail(d1, d2, max(F, 0.0))
     ratio = np.sqrt(max(rss_r, 0.0) / max(rss_f, 1e-300))
     return (
         p,
@@ -501,52 +462,70 @@ def _refine(
 ) -> RefineOutput:
     """The solve behind :func:`refine`; ``estimate``: estimate the pose prior's sigmas and each
     camera's noise by variance components (the structure must carry pose corrections)."""
-    model = BundleModel(problem, structure)
-    n_px = model.n_rows
-    n_prior = 6 * len(problem.frames) if "E" in model.slices else 0
-    n_groups_u = 0
-    if "U" in model.slices:
-        n_groups_u = (model.slices["U"].stop - model.slices["U"].start) // 6
-        n_prior += 6 * n_groups_u
-    n_trend = model.slices["V"].stop - model.slices["V"].start if "V" in model.slices else 0
-    n_common = model.slices["W"].stop - model.slices["W"].start if "W" in model.slices else 0
-    n_prior += n_trend + n_common
-    estimate = estimate and n_prior > 0
-    inlier = np.ones(n_px + n_prior, dtype=bool)
-    cam_w = np.ones(n_px + n_prior)  # per-camera noise weights, relative to the reference
-    cam_rows = [model.camera_rows(ci, n_px + n_prior) for ci in range(len(model.cams))]
-    state = _respect_options(problem, init)
-    if n_prior:
-        state = with_pose_corrections(state, len(problem.frames), n_groups_u, n_trend, n_common)
-    model.sigma_px = 0.2  # a typical corner noise; re-estimated below when poses are noisy
-    total_it = 0
-    converged = False
-    P = len(model.names)
-    n_obs_rows = max(n_px, 1)
+    s = _Solve(problem, structure, init, estimate)
+    s.iterate(max_iter, robust)
+    return s.output()
 
-    def noise(r: np.ndarray, w: np.ndarray) -> float:
-        dof = max(int(np.sum(w[:n_px] > 0)) + n_prior - P, 1)
+
+_ROT_ROWS = np.array([True, True, True, False, False, False])
+
+
+class _Solve:
+    """One solve's mutable state: the model, the state, the inlier rows and per-camera weights,
+    and the variance components' iteration (Foerstner's steps with Steffensen's acceleration)."""
+
+    def __init__(
+        self, problem: CalibrationProblem, structure: Structure, init: ModelState, estimate: bool
+    ) -> None:
+        model = BundleModel(problem, structure)
+        self.problem, self.model = problem, model
+        n_px = model.n_rows
+        n_prior = 6 * len(problem.frames) if "E" in model.slices else 0
+        n_groups_u = 0
+        if "U" in model.slices:
+            n_groups_u = (model.slices["U"].stop - model.slices["U"].start) // 6
+            n_prior += 6 * n_groups_u
+        n_trend = model.slices["V"].stop - model.slices["V"].start if "V" in model.slices else 0
+        n_common = model.slices["W"].stop - model.slices["W"].start if "W" in model.slices else 0
+        n_prior += n_trend + n_common
+        self.n_px, self.n_prior = n_px, n_prior
+        self.estimate = estimate and n_prior > 0
+        self.inlier = np.ones(n_px + n_prior, dtype=bool)
+        self.cam_w = np.ones(n_px + n_prior)  # per-camera noise weights, relative to the ref
+        self.cam_rows = [model.camera_rows(ci, n_px + n_prior) for ci in range(len(model.cams))]
+        state = _respect_options(problem, init)
+        if n_prior:
+            state = with_pose_corrections(
+                state, len(problem.frames), n_groups_u, n_trend, n_common
+            )
+        self.state = state
+        model.sigma_px = 0.2  # a typical corner noise; re-estimated when poses are noisy
+        self.total_it = 0
+        self.converged = False
+        self.P = len(model.names)
+        self.n_obs_rows = max(n_px, 1)
+        self.camera_blocks: dict[int, tuple] = {}
+        self.vce_step = 0
+        self.vce_note: list[str] = []
+        self.last_step: dict[str, float] = {}
+
+    def noise(self, r: np.ndarray, w: np.ndarray) -> float:
+        dof = max(int(np.sum(w[: self.n_px] > 0)) + self.n_prior - self.P, 1)
         return float(np.sqrt(np.sum(w * r * r) / dof))
 
-    def camera_sigmas(r: np.ndarray) -> np.ndarray:
+    def camera_sigmas(self, r: np.ndarray) -> np.ndarray:
         """Each camera's own noise estimate (its share of the dof taken by the parameters)."""
         out = []
-        for rows in cam_rows:
-            m = rows & inlier
+        for rows in self.cam_rows:
+            m = rows & self.inlier
             n = int(m.sum())
-            dof = max(n - P * n / n_obs_rows, 1.0)
+            dof = max(n - self.P * n / self.n_obs_rows, 1.0)
             out.append(np.sqrt(np.sum(r[m] ** 2) / dof) if n else np.nan)
         return np.array(out)
 
-    def variance_components(nb: NormalBlocks, Ni: BlockInverse, delta: np.ndarray) -> bool:
-        """One Foerstner step at the state ``delta`` (P,) from ``state``, to first order
-        (``nb``: the normal equations at ``state``, ``Ni`` their inverse): every camera's noise
-        and the two pose sigmas from their residuals and redundancy numbers; True when one
-        moved by more than 2-3 %."""
-        nonlocal cam_w
-        r = nb.r.copy()
-        r[:n_px] += model.pixel_step(state, delta)
-        moved = model.apply(state, delta)  # E, U and V at the step (linear in delta)
+    def _prior_hats(self, Ni: BlockInverse) -> tuple[np.ndarray, ...]:
+        """The hat matrix's diagonal over the prior rows of E, U, V and W (empty when absent)."""
+        model = self.model
         diag_E = np.diagonal(Ni.EE, axis1=1, axis2=2).reshape(-1)
         h = np.clip(model.prior_scale**2 * diag_E, 0.0, 1.0)
         h_u = h_v = h_w = np.zeros(0)
@@ -559,33 +538,22 @@ def _refine(
         if "W" in model.slices:
             diag_W = np.diagonal(Ni.gg)[model.slices["W"]]
             h_w = np.clip(model.common_prior_scale**2 * diag_W, 0.0, 1.0)
-        sig = []
-        for ci, rows in enumerate(cam_rows):
-            m = rows & inlier
-            if not m.any():
-                sig.append(np.nan)
-                continue
-            if len(cam_rows) == 1:  # the hat matrix's trace is P: the prior rows take sum(h)
-                used = len(model.names) - float(np.sum(h) + np.sum(h_u) + np.sum(h_v) + np.sum(h_w))
-            else:
-                used = camera_trace(Ni, ci, m)
-            sig.append(np.sqrt(np.sum(r[m] ** 2) / max(m.sum() - used, 1.0)))
-        sig = np.array(sig)
-        ref_i = model.cams.index(model.ref)
-        E = moved.E.reshape(-1)
-        is_rot = np.tile([True, True, True, False, False, False], len(problem.frames))
+        return h, h_u, h_v, h_w
+
+    def _pose_levels(self, E: np.ndarray, h: np.ndarray) -> list[float]:
+        """Foerstner's step for the frames' own two levels (rotation, translation)."""
+        model = self.model
+        is_rot = np.tile(_ROT_ROWS, len(self.problem.frames))
         new_pose, reds = [], []
         for comp, floor, old in zip((is_rot, ~is_rot), SIGMA_FLOOR, model.pose_sigma, strict=True):
             red = float(np.sum(1.0 - h[comp]))
             reds.append(red)
             v = np.sqrt(np.sum(E[comp] ** 2) / red) if red > 1e-12 else floor
-            if vce_step[0] < 2 and red > 0.2 * comp.sum():
-                # the first steps jump: with the corrections' pixel-only estimates
-                # e / (1 - h) and their noise variance c = s h / (1 - h), the moment
-                # estimate mean(e^2 / (1 - h)^2 - c) is the fixed point of a scalar model;
-                # Foerstner's iteration then converges to its own fixed point in a few steps
-                # (from above, alone, at a rate c / (sigma^2 + c): slow when the pixels pin
-                # each pose about as well as the arm's accuracy does)
+            if self.vce_step < 2 and red > 0.2 * comp.sum():
+                # the first steps jump to the moment estimate mean(e^2 / (1 - h)^2 - c) of the
+                # corrections' pixel-only estimates e / (1 - h), noise variance c = s h / (1 - h):
+                # Foerstner's iteration alone converges slowly from above when the pixels pin
+                # each pose about as well as the arm's accuracy does
                 one = 1.0 - h[comp]
                 pinned = one > 1e-9  # a correction the prior alone holds has no pixel estimate
                 e, one, hc = E[comp][pinned], one[pinned], h[comp][pinned]
@@ -593,11 +561,37 @@ def _refine(
                 if m > floor**2:
                     v = min(v, np.sqrt(m))
             v = max(float(v), floor)
-            if vce_step[0] >= 2:
-                v = max(accelerate(f"E{comp[0]}", old, v, floor), floor)
+            if self.vce_step >= 2:
+                v = max(self.accelerate(f"E{comp[0]}", old, v, floor), floor)
             new_pose.append(v)
         model.level_redundancy["E"] = (reds[0], reds[1])
-        vce_step[0] += 1
+        return new_pose
+
+    def variance_components(self, nb: NormalBlocks, Ni: BlockInverse, delta: np.ndarray) -> bool:
+        """One Foerstner step at the state ``delta`` (P,) from ``state``, to first order
+        (``nb``: the normal equations at ``state``, ``Ni`` their inverse): every camera's noise
+        and the two pose sigmas from their residuals and redundancy numbers; True when one
+        moved by more than 2-3 %."""
+        model, state, inlier, n_px = self.model, self.state, self.inlier, self.n_px
+        r = nb.r.copy()
+        r[:n_px] += model.pixel_step(state, delta)
+        moved = model.apply(state, delta)  # E, U and V at the step (linear in delta)
+        h, h_u, h_v, h_w = self._prior_hats(Ni)
+        sig = []
+        for ci, rows in enumerate(self.cam_rows):
+            m = rows & inlier
+            if not m.any():
+                sig.append(np.nan)
+                continue
+            if len(self.cam_rows) == 1:  # the hat matrix's trace is P: the prior rows take sum(h)
+                used = len(model.names) - float(np.sum(h) + np.sum(h_u) + np.sum(h_v) + np.sum(h_w))
+            else:
+                used = self.camera_trace(Ni, ci, m)
+            sig.append(np.sqrt(np.sum(r[m] ** 2) / max(m.sum() - used, 1.0)))
+        sig = np.array(sig)
+        ref_i = model.cams.index(model.ref)
+        new_pose = self._pose_levels(moved.E.reshape(-1), h)
+        self.vce_step += 1
         changed = False
         ok = np.isfinite(sig) & (sig > 0)
         if ok[ref_i]:
@@ -605,34 +599,31 @@ def _refine(
                 changed = True
             model.sigma_px = float(sig[ref_i])
             if len(model.cams) > 1 and np.all(ok):
-                new_w = np.ones(n_px + n_prior)
-                for rows, sc in zip(cam_rows, sig, strict=True):
+                new_w = np.ones(n_px + self.n_prior)
+                for rows, sc in zip(self.cam_rows, sig, strict=True):
                     new_w[rows] = (sig[ref_i] / sc) ** 2
-                if np.max(np.abs(new_w / cam_w - 1.0)) > 0.02:
+                if np.max(np.abs(new_w / self.cam_w - 1.0)) > 0.02:
                     changed = True
-                cam_w = new_w
+                self.cam_w = new_w
         for new, old, floor in zip(new_pose, model.pose_sigma, SIGMA_FLOOR, strict=True):
             if abs(new / old - 1.0) > 0.03 and max(new, old) > 2 * floor:
                 changed = True
         model.pose_sigma = (new_pose[0], new_pose[1])
         if len(h_u):  # the orientation groups' shared corrections: their own two levels
             U = moved.U.reshape(-1)
-            u_rot = np.tile([True, True, True, False, False, False], len(U) // 6)
-            model.group_sigma, shifted = shared_levels("U", U, h_u, u_rot, model.group_sigma, 1.0)
+            u_rot = np.tile(_ROT_ROWS, len(U) // 6)
+            model.group_sigma, shifted = self.shared_levels(
+                "U", U, h_u, u_rot, model.group_sigma, 1.0
+            )
             changed |= shifted
         if len(h_v):  # the trends along the moves: two levels of their own
-            v_rot = model.trend_rotation_rows
-            model.trend_sigma, shifted = shared_levels(
-                "V", moved.V, h_v, v_rot, model.trend_sigma, model.trend_spread
+            model.trend_sigma, shifted = self.shared_levels(
+                "V", moved.V, h_v, model.trend_rotation_rows, model.trend_sigma, model.trend_spread
             )
             changed |= shifted
         if len(h_w):  # the trend every group shares: two levels of its own
-            model.common_sigma, shifted = shared_levels(
-                "W",
-                moved.W,
-                h_w,
-                model.common_rotation_rows,
-                model.common_sigma,
+            model.common_sigma, shifted = self.shared_levels(
+                "W", moved.W, h_w, model.common_rotation_rows, model.common_sigma,
                 model.common_spread,
             )
             changed |= shifted
@@ -640,19 +631,19 @@ def _refine(
             return False
         return changed
 
-    camera_blocks: dict[int, tuple] = {}
-
-    def camera_trace(Ni: BlockInverse, ci: int, m: np.ndarray) -> float:
+    def camera_trace(self, Ni: BlockInverse, ci: int, m: np.ndarray) -> float:
         """The hat matrix's trace over camera ``ci``'s inlier rows ``m``: the parameters its
         rows take. The camera's pixel blocks are made once per linearisation (its weight is
         one number over its rows: a factor)."""
-        hit = camera_blocks.get(ci)
-        if hit is None or hit[0] is not state or not np.array_equal(hit[1], m):
-            hit = (state, m.copy(), model.normal_blocks(state, m.astype(float), keep=False))
-            camera_blocks[ci] = hit
-        return float(cam_w[np.flatnonzero(m)[0]]) * Ni.trace_with(hit[2])
+        hit = self.camera_blocks.get(ci)
+        if hit is None or hit[0] is not self.state or not np.array_equal(hit[1], m):
+            blocks = self.model.normal_blocks(self.state, m.astype(float), keep=False)
+            hit = (self.state, m.copy(), blocks)
+            self.camera_blocks[ci] = hit
+        return float(self.cam_w[np.flatnonzero(m)[0]]) * Ni.trace_with(hit[2])
 
     def shared_levels(
+        self,
         key: str,
         values: np.ndarray,
         h_s: np.ndarray,
@@ -664,7 +655,8 @@ def _refine(
         several frames; the new levels and whether one that matters moved by more than 3 %.
         ``per_frame`` turns a level into its share of a frame's correction: a share below a
         tenth of the frames' own level adds under 1 % to their variance, and its creeping
-        (from the floor, at a few % per step) keeps no iteration going."""
+        keeps no iteration going."""
+        model = self.model
         new, moved, reds, data = [], False, [], []
         for comp, floor, old, own in zip(
             (rot, ~rot), SIGMA_FLOOR, levels, model.pose_sigma, strict=True
@@ -679,17 +671,16 @@ def _refine(
                 nu = GROUP_LEVEL_PRIOR_DOF
                 data.append(float(v) if red > 1e-6 else 0.0)
                 v = np.sqrt((np.sum(values[comp] ** 2) + nu * own**2) / (red + nu))
-            elif vce_step[0] > 2 and v < old and red < 0.25 * comp.sum():
+            elif self.vce_step > 2 and v < old and red < 0.25 * comp.sum():
                 # falling while the prior holds three quarters of it: the images do not
-                # support a level of its own (the iteration would creep toward 0 for
-                # tens of steps); the frames' own corrections carry this part
+                # support a level of its own; the frames' own corrections carry this part
                 v = old if key == "W" else floor
             translation = len(new) == 1  # the levels come as (rotation, translation)
             if key == "V" and translation and model.st.trend_scale_fixed:
                 v = floor  # the translation trend of one orientation (Structure)
             v = max(float(v), floor)
-            if vce_step[0] > 2:
-                v = max(accelerate(f"{key}{comp[0]}", old, v, floor), floor)
+            if self.vce_step > 2:
+                v = max(self.accelerate(f"{key}{comp[0]}", old, v, floor), floor)
             share = per_frame if np.isscalar(per_frame) else per_frame[len(new)]
             big = max(v, old) > max(2 * floor, 0.1 * own / max(share, 1e-12))
             if abs(v / old - 1.0) > 0.03 and big:
@@ -700,154 +691,162 @@ def _refine(
             model.group_sigma_data = (data[0], data[1])
         return (new[0], new[1]), moved
 
-    vce_step = [0]
-    vce_note: list[str] = []
-    last_step: dict[str, float] = {}
-
-    def accelerate(key: str, old: float, new: float, floor: float) -> float:
-        """Steffensen in log space: Foerstner's iteration converges geometrically, at a rate
-        near 1 when the images pin the poses about as well as the prior does; two successive
-        steps in the same direction give the rate, and the step is stretched to the fixed
-        point it implies (at most 4 times)."""
+    def accelerate(self, key: str, old: float, new: float, floor: float) -> float:
+        """Steffensen in log space: two successive steps in the same direction give the
+        iteration's geometric rate, and the step is stretched to the fixed point it implies
+        (at most 4 times)."""
         if new <= floor or old <= floor:
-            last_step.pop(key, None)
+            self.last_step.pop(key, None)
             return new
         d = float(np.log(new / old))
-        prev = last_step.get(key)
-        last_step[key] = d
+        prev = self.last_step.get(key)
+        self.last_step[key] = d
         if prev is None or d * prev <= 0 or abs(d) >= abs(prev):
             return new
         rho = d / prev
         return float(old * np.exp(d * min(1.0 / (1.0 - rho), 4.0)))
 
-    def settle_levels() -> bool:
+    def settle_levels(self) -> bool:
         """The noise levels to their fixed point at the present linearisation: Foerstner's
-        steps, each at the Gauss-Newton step the last levels give, to first order (the pose
-        corrections enter the residuals nearly linearly: a step costs a solve and an inverse of
-        the reduced system, no evaluation); True when they moved. The caller then steps the
-        state under them and settles again: at the minimum, the first step moves nothing."""
+        steps, each at the Gauss-Newton step the last levels give, to first order (a step
+        costs a solve and an inverse of the reduced system, no evaluation); True when they
+        moved."""
         moved = False
-        while vce_step[0] < MAX_VCE_STEPS:
-            nb = model.normal_blocks(state, inlier * cam_w)
+        while self.vce_step < MAX_VCE_STEPS:
+            nb = self.model.normal_blocks(self.state, self.inlier * self.cam_w)
             Ni = nb.inverse()  # the redundancy numbers' and the step's
             delta = -Ni.times(nb.g_g, nb.g_E)
             if not np.all(np.isfinite(delta)):
-                delta = np.zeros(P)
-            if not variance_components(nb, Ni, delta):
+                delta = np.zeros(self.P)
+            if not self.variance_components(nb, Ni, delta):
                 break
             moved = True
         return moved
 
-    if estimate:
-        model.sigma_px = max(noise(model.evaluate(state, jacobian=False)[0], inlier * cam_w), 1e-3)
-    # while the variance components move: the levels settle at the present linearisation
-    # (settle_levels), one Gauss-Newton step moves the state under them, and again; at the
-    # joint fixed point the first level step moves nothing and the state is converged fully
-    steps = min(1, max_iter) if estimate else max_iter
-    lam = LM_START_DAMPING
-    for _ in range(40 if estimate else 10):
-        weights = inlier * cam_w
-        # the full solves after the levels' steps start from the damping the last step reached
-        # (a fresh 1e-4 damps the weakly determined pose corrections' directions: two more
-        # iterations to the same minimum)
-        warm = estimate and steps == max_iter
-        start = VCE_STEP_DAMPING if estimate else LM_START_DAMPING
-        state, converged, it, r, lam = _lm(model, state, weights, steps, lam if warm else start)
-        total_it += it
-        changed = False
-        if estimate:
-            if vce_step[0] < MAX_VCE_STEPS:
-                changed = settle_levels()
-            elif not vce_note:  # still creeping (toward the floor, or slowly): the last
-                # levels are kept and the parameters converged under them, so the estimate
-                # is the minimum of a definite model and not a point part way along the creep
-                vce_note.append(
-                    f"the noise levels were still moving after {vce_step[0]} updates; the last "
-                    "ones were kept"
-                )
-            if not changed and steps < max_iter:
-                steps, changed = max_iter, True  # converge fully at the final levels
-        else:
-            if len(model.cams) > 1:  # per-camera noise: reweigh to a fixed point
-                sig = camera_sigmas(r)
-                ref_i = model.cams.index(model.ref)
-                ok = np.isfinite(sig) & (sig > 0)
-                if ok[ref_i] and np.all(ok):
-                    new_w = np.ones(n_px + n_prior)
-                    for rows, sc in zip(cam_rows, sig, strict=True):
-                        new_w[rows] = (sig[ref_i] / sc) ** 2
-                    if np.max(np.abs(new_w / cam_w - 1.0)) > 0.04:
-                        cam_w, changed = new_w, True
-            if n_prior:  # the prior rows are weighed by the pixel noise: a fixed point
-                sigma = noise(r, inlier * cam_w)
-                if abs(sigma / model.sigma_px - 1.0) > 0.02:
-                    model.sigma_px, changed = sigma, True
-        if changed:
-            continue
-        if not robust:
-            break
+    def _creep_note(self) -> None:
+        if not self.vce_note:
+            self.vce_note.append(
+                f"the noise levels were still moving after {self.vce_step} updates; the last "
+                "ones were kept"
+            )
+
+    def _reweigh(self, r: np.ndarray) -> bool:
+        """Exact-pose solves: each camera's weight and the prior rows' pixel noise to their
+        fixed point; True when one moved."""
+        model, changed = self.model, False
+        if len(model.cams) > 1:  # per-camera noise: reweigh to a fixed point
+            sig = self.camera_sigmas(r)
+            ref_i = model.cams.index(model.ref)
+            ok = np.isfinite(sig) & (sig > 0)
+            if ok[ref_i] and np.all(ok):
+                new_w = np.ones(self.n_px + self.n_prior)
+                for rows, sc in zip(self.cam_rows, sig, strict=True):
+                    new_w[rows] = (sig[ref_i] / sc) ** 2
+                if np.max(np.abs(new_w / self.cam_w - 1.0)) > 0.04:
+                    self.cam_w, changed = new_w, True
+        if self.n_prior:  # the prior rows are weighed by the pixel noise: a fixed point
+            sigma = self.noise(r, self.inlier * self.cam_w)
+            if abs(sigma / model.sigma_px - 1.0) > 0.02:
+                model.sigma_px, changed = sigma, True
+        return changed
+
+    def _flag_outliers(self, r: np.ndarray) -> bool:
+        """Detections beyond both the options' threshold and 5 times their camera's noise get
+        zero weight; True when the set is unchanged."""
+        n_px, inlier, cam_w = self.n_px, self.inlier, self.cam_w
         per_pt = np.hypot(r[0:n_px:2], r[1:n_px:2])
         inl = inlier[0:n_px:2]
-        sigma = noise(r, inlier * cam_w)
+        sigma = self.noise(r, inlier * cam_w)
         thresh = np.maximum(
-            problem.options.outlier_threshold_px, 5.0 * sigma / np.sqrt(cam_w[0:n_px:2])
+            self.problem.options.outlier_threshold_px, 5.0 * sigma / np.sqrt(cam_w[0:n_px:2])
         )
         new_out = per_pt > thresh
         if np.array_equal(new_out, ~inl):
-            break
+            return True
         inlier[:n_px] = np.repeat(~new_out, 2)
-    else:
-        if estimate:  # the noise levels still creep (toward the floor, or slowly): keep the
-            # last ones and converge the parameters under them, so the estimate is the
-            # minimum of a definite model and not a point part way along the creep
-            state, converged, it, _, _ = _lm(model, state, inlier * cam_w, max_iter)
-            total_it += it
-            if not vce_note:
-                vce_note.append(
-                    f"the noise levels were still moving after {vce_step[0]} updates; the last "
-                    "ones were kept"
-                )
-    weights = inlier * cam_w
-    model.row_weights = weights  # the solve's last row weights (its covariance's)
-    nb = model.normal_blocks(state, weights)
-    r = nb.r
-    inlier_rows = inlier.copy()
-    n_in = int(inlier_rows[:n_px].sum())
-    dof = n_in + n_prior - P
-    messages: list[str] = list(vce_note)
-    sigma_px = noise(r, weights)
-    cov = None
-    if dof <= 0:
-        messages.append(
-            f"covariance not computed: {n_in} residuals for {P} parameters; capture more frames"
-        )
-    else:
-        try:
-            cov = nb.inverse(check_condition=True).scaled(sigma_px**2)
-        except np.linalg.LinAlgError as e:
-            messages.append(
-                f"covariance not computed ({e}): some parameter is barely observable; "
-                "add tilts or frames covering the image"
-            )
-    r, inlier_rows = r[:n_px], inlier_rows[:n_px]
-    outliers: list[tuple[int, str, int]] = []
-    for ch in model.chunks:
-        w = weights[ch.rows][0::2]
-        for cid in ch.corner_ids[w == 0]:
-            outliers.append((ch.key[0], ch.camera, int(cid)))
-    if not converged:
-        messages.append(f"refinement stopped after {total_it} iterations without converging")
-    return RefineOutput(
-        state,
-        model.names,
-        cov,
-        r,
-        inlier_rows,
-        sigma_px,
-        converged,
-        total_it,
-        tuple(outliers),
-        tuple(messages),
-        model,
-    )
+        return False
 
+    def iterate(self, max_iter: int, robust: bool) -> None:
+        """Levenberg-Marquardt to convergence with the weights, levels and outliers to their
+        fixed point. With ``estimate``: the levels settle at the present linearisation, one
+        Gauss-Newton step moves the state under them, and again; at the joint fixed point the
+        first level step moves nothing and the state is converged fully."""
+        model, estimate = self.model, self.estimate
+        if estimate:
+            r0 = model.evaluate(self.state, jacobian=False)[0]
+            model.sigma_px = max(self.noise(r0, self.inlier * self.cam_w), 1e-3)
+        steps = min(1, max_iter) if estimate else max_iter
+        lam = LM_START_DAMPING
+        for _ in range(40 if estimate else 10):
+            weights = self.inlier * self.cam_w
+            # the full solves after the levels' steps start from the damping the last step
+            # reached (a fresh one damps the weakly determined pose corrections' directions)
+            warm = estimate and steps == max_iter
+            start = VCE_STEP_DAMPING if estimate else LM_START_DAMPING
+            self.state, self.converged, it, r, lam = _lm(
+                model, self.state, weights, steps, lam if warm else start
+            )
+            self.total_it += it
+            changed = False
+            if estimate:
+                if self.vce_step < MAX_VCE_STEPS:
+                    changed = self.settle_levels()
+                else:  # still creeping: the last levels are kept and the parameters converged
+                    # under them, so the estimate is the minimum of a definite model
+                    self._creep_note()
+                if not changed and steps < max_iter:
+                    steps, changed = max_iter, True  # converge fully at the final levels
+            else:
+                changed = self._reweigh(r)
+            if changed:
+                continue
+            if not robust or self._flag_outliers(r):
+                break
+        else:
+            if estimate:  # the levels still creep: converge the parameters under the last
+                self.state, self.converged, it, _, _ = _lm(
+                    model, self.state, self.inlier * self.cam_w, max_iter
+                )
+                self.total_it += it
+                self._creep_note()
+
+    def output(self) -> RefineOutput:
+        """The solve's covariance, outliers and messages at the state reached."""
+        model, state, n_px, P = self.model, self.state, self.n_px, self.P
+        weights = self.inlier * self.cam_w
+        model.row_weights = weights  # the solve's last row weights (its covariance's)
+        nb = model.normal_blocks(state, weights)
+        r = nb.r
+        inlier_rows = self.inlier.copy()
+        n_in = int(inlier_rows[:n_px].sum())
+        dof = n_in + self.n_prior - P
+        messages: list[str] = list(self.vce_note)
+        sigma_px = self.noise(r, weights)
+        cov = None
+        if dof <= 0:
+            messages.append(
+                f"covariance not computed: {n_in} residuals for {P} parameters; capture more "
+                "frames"
+            )
+        else:
+            try:
+                cov = nb.inverse(check_condition=True).scaled(sigma_px**2)
+            except np.linalg.LinAlgError as e:
+                messages.append(
+                    f"covariance not computed ({e}): some parameter is barely observable; "
+                    "add tilts or frames covering the image"
+                )
+        r, inlier_rows = r[:n_px], inlier_rows[:n_px]
+        outliers: list[tuple[int, str, int]] = []
+        for ch in model.chunks:
+            w = weights[ch.rows][0::2]
+            for cid in ch.corner_ids[w == 0]:
+                outliers.append((ch.key[0], ch.camera, int(cid)))
+        if not self.converged:
+            messages.append(
+                f"refinement stopped after {self.total_it} iterations without converging"
+            )
+        return RefineOutput(
+            state, model.names, cov, r, inlier_rows, sigma_px, self.converged, self.total_it,
+            tuple(outliers), tuple(messages), model,
+        )

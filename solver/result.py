@@ -139,9 +139,7 @@ class RobotAccuracy:
     ``worst_frames``: (frame id, translation error mm, rotation error deg), worst first;
     ``estimated``: True when learned from the data, False when the user's prior was used as is;
     ``left_out``: (frame id, translation error mm, rotation error deg) of the frames the solve
-    left out because their recorded pose was off far beyond the others', or their image far
-    beyond the detector's noise (in the order left out; the pose correction they had). A rig's
-    frame whose one image was left out keeps its other images and is not listed.
+    left out for their pose or image, in that order (a rig frame keeping other images is not).
     """
 
     translation_mm: float
@@ -155,11 +153,9 @@ class RobotAccuracy:
 class BoardShape:
     """The board as the solve saw it (``solver/target_shape.py``).
 
-    ``bow_mm`` (x, y): the estimated bow along the board's x and y axes (its centre line against
-    its edges, +z into the board), ``bow_std_mm`` their one-sigma; ``flatness_mm`` and
-    ``print_tolerance``: the board's tolerance the solve assumed (the bow's prior; the print's
-    error, carried in the covariance). The parameters are reported halfway between the readings
-    "the misfit is the board" and "it is not", the spread of the two in their covariance.
+    ``bow_mm`` (x, y): the estimated bow along the board's axes (centre against edges, +z into
+    the board), ``bow_std_mm`` its one-sigma; ``flatness_mm``, ``print_tolerance``: the
+    tolerance the solve assumed.
     """
 
     bow_mm: tuple[float, float]
@@ -176,19 +172,13 @@ class CalibrationResult:
     camera, None without a robot. ``rig``: ``T_<name>_<reference>`` for every other camera.
     ``T_target``: ``T_base_board`` (eye-in-hand) or ``T_tool_board`` (eye-to-hand).
     ``H_inf``: infinite homographies ``x_a ~ H x_b`` keyed ``"a<-b"`` (docs/METHOD.md Sec. 8).
-    ``parameter_names`` name the rows of ``covariance``: the reported quantities as users read
-    them (``cam.fx``, ``T_tool_cam.rx`` .. ``.tz`` of the transform as reported, rig
-    ``T_right_left.*``; a rig's hand-eye of every camera as the file names it, ``T_tool_<name>``;
-    :mod:`slidecal.solver.uncertainty`). ``residuals_px``: per (frame id, camera)
-    the rms reprojection error of that image. ``outliers``: (frame id, camera, corner id) flagged
-    by the robust loss. ``sigma_px``: the noise estimated from the residuals, ``s`` of
-    docs/METHOD.md
-    Sec. 6. ``unobservable``: parameter name -> why it was fixed. ``messages``: soft failures of
-    secondary computations (e.g. a covariance that could not be computed).
-    ``linear``: the linear (closed-form) intrinsics per camera before refinement.
-    ``adequacy``: the model-adequacy test (None when it could not be made); ``robot_accuracy``:
-    the robot's pose accuracy as the data shows it (None without robot poses). ``board``: the
-    board's bow and assumed tolerance (None for a board taken as exact).
+    ``parameter_names`` name the rows of ``covariance`` (:mod:`slidecal.solver.uncertainty`).
+    ``residuals_px``: per (frame id, camera) the rms reprojection error. ``outliers``: (frame
+    id, camera, corner id) flagged by the robust loss. ``sigma_px``: ``s`` of docs/METHOD.md
+    Sec. 6. ``unobservable``: parameter name -> why it was fixed. ``messages``: soft failures
+    and notes. ``linear``: the closed-form intrinsics per camera. ``adequacy``: the
+    model-adequacy test; ``robot_accuracy``: the arm's accuracy as the data shows it;
+    ``board``: the board's bow (None for a board taken as exact).
     """
 
     cameras: dict[str, CameraEstimate]

@@ -1,19 +1,12 @@
 """Stereo heads: the infinite homography and the joint linear calibration of two cameras.
 
 docs/METHOD.md Sec. 8 (Malm and Heyden 2006, Sec. IV). Two cameras ``a`` and ``b`` are rigidly
-joined
-with ``X_a = R_a_b X_b + t_a_b`` (camera-frame coordinates). For a board pose seen by both,
-``H_a = lambda_a K_a [r1 r2 t]_a`` and ``H_b = lambda_b K_b [r1 r2 t]_b`` (plane to pixels), and the
-infinite homography ``H_inf = K_a R_a_b K_b^-1`` maps camera b's image to camera a's
-(``x_a ~ H_inf x_b`` for points at infinity).
-
-Conventions used throughout: homographies are (3, 3) from board-plane coordinates ``(X, Y, 1)`` to
-pixels; ``sizes`` are ``((width_a, height_a), (width_b, height_b))`` in pixels. The per-camera
-rows of the joint calibrations are those of ``slidecal.solver.linear.linear_system`` (same basis,
-normalisation and row weighting, docs/METHOD.md Sec. 3, "Numerical conditioning"); this module
-adds only what couples the cameras of a rig: the infinite homography (eqs. 58-61), its transfer
-of the absolute conic (eq. 62), the shared translations (eqs. 33-42) and the relative rotation
-(eq. 63).
+joined with ``X_a = R_a_b X_b + t_a_b`` (camera-frame coordinates); the infinite homography
+``H_inf = K_a R_a_b K_b^-1`` maps camera b's image to camera a's. Homographies are (3, 3) from
+board-plane ``(X, Y, 1)`` to pixels; ``sizes`` are ``((width_a, height_a), (width_b,
+height_b))`` in pixels. The per-camera rows are ``slidecal.solver.linear.linear_system``'s; this
+module adds what couples the cameras: the infinite homography (eqs. 58-61), its transfer of the
+absolute conic (eq. 62), the shared translations (eqs. 33-42) and the relative rotation (eq. 63).
 """
 
 from __future__ import annotations
@@ -40,9 +33,8 @@ from slidecal.solver.linear import (
     zhang_intrinsics,
 )
 
-# Relative size of the third singular value of the stacked (unit) columns h_b1, h_b2 of all views
-# below which the views are taken as one orientation (pure translation): H_inf is then not
-# determined (a rotation of the head by less than about 0.1 deg between views).
+# Third singular value of the views' stacked unit columns below which they are one orientation
+# (H_inf undetermined: the head turned by less than about 0.1 deg).
 _MIN_ORIENTATION_SPREAD = 2e-3
 
 
@@ -89,28 +81,14 @@ def infinite_homography(
     refine: bool = True,
     max_iterations: int = 50,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The infinite homography from camera b's image to camera a's, from stereo views.
+    """``(H_inf, mu)``: the infinite homography (3, 3) from camera b's image to camera a's
+    (``x_a ~ H_inf x_b`` in pixels, ``K_a R_a_b K_b^-1`` at ``det = 1``) and the per-view scales
+    (n,) with ``h_a1 = mu_k H_inf h_b1``, ``h_a2 = mu_k H_inf h_b2`` (eqs. 58-61).
 
-    Parameters
-    ----------
-    H_a, H_b : (n, 3, 3)
-        Board plane to pixel homographies of camera a and camera b; view k is the same board
-        pose seen by both cameras. n >= 2 with different board orientations.
-    sizes : ((width_a, height_a), (width_b, height_b)) in pixels, optional
-        Image sizes for the normalisation; without them a data-based scale is used.
-    refine : bool
-        After the linear solution (eqs. 58-61), minimise ``sum_k ||A_k - mu_k H B_k||^2`` over
-        ``H`` and ``mu_k`` by alternating least squares, where ``A_k``, ``B_k`` are the
-        normalised, unit-norm columns ``[h1 h2]`` of view k (errors in camera a's columns).
-
-    Returns
-    -------
-    H_inf : (3, 3)
-        ``x_a ~ H_inf x_b`` in pixels, ``H_inf = K_a R_a_b K_b^-1`` up to scale, normalised to
-        ``det(H_inf) = 1``.
-    mu : (n,)
-        Per-view scales with ``h_a1 = mu_k H_inf h_b1`` and ``h_a2 = mu_k H_inf h_b2`` for the
-        homographies as given (eqs. 58-59).
+    ``H_a``, ``H_b`` (n, 3, 3): board plane to pixels, view k the same board pose in both
+    cameras, n >= 2 orientations. ``sizes``: for the normalisation (else a data-based scale).
+    ``refine``: after the linear solution, minimise ``sum_k ||A_k - mu_k H B_k||^2`` (``A_k``,
+    ``B_k`` the normalised unit-norm columns ``[h1 h2]``) by alternating least squares.
     """
     H_a = _check_homographies(H_a, "H_a")
     H_b = _check_homographies(H_b, "H_b")
@@ -249,24 +227,11 @@ def rig_linear_intrinsics(
     ``s`` is carried by ``w_b``, whose own rows are homogeneous. The eq. 62 rows get the median
     norm of the cameras' rows.
 
-    Parameters
-    ----------
-    Hs_a, Hs_b : (n_a, 3, 3), (n_b, 3, 3)
-        Board plane to pixel homographies of each camera (any views, not necessarily paired).
-    H_inf : (3, 3) or None
-        Camera b's image to camera a's, in pixels (:func:`infinite_homography`); None solves
-        each camera alone with the same rows (the separate calibration,
-        ``slidecal.solver.linear.zhang_intrinsics``).
-    skew, unit_aspect : bool
-        Estimate the skew (else zero); assume ``fx == fy``.
-    sizes : ((width_a, height_a), (width_b, height_b)) in pixels.
-    row_weighting : see ``slidecal.solver.linear.linear_system``. ``"unit"`` by default: on S5
-        (docs/S5.md, 100 trials per noise level, both sweeps) the mean error of fx, fy, cx, cy
-        per px of noise is 4-18 % lower than with ``"noise"``, alone and joint alike.
-
-    Returns
-    -------
-    K_a, K_b : (3, 3) intrinsics in pixels, ``K[2, 2] = 1``.
+    ``Hs_a``, ``Hs_b`` (n_a, 3, 3), (n_b, 3, 3): each camera's homographies (views not
+    necessarily paired). ``H_inf``: :func:`infinite_homography`'s, or None to solve each camera
+    alone with the same rows (``slidecal.solver.linear.zhang_intrinsics``). ``skew``,
+    ``unit_aspect``, ``row_weighting``: as for ``linear_system`` (``"unit"``: docs/S5.md).
+    Returns ``K_a``, ``K_b`` (3, 3) in pixels.
     """
     Hs = (_check_homographies(Hs_a, "Hs_a"), _check_homographies(Hs_b, "Hs_b"))
     options = {"skew": skew, "unit_aspect": unit_aspect, "row_weighting": row_weighting}
@@ -310,10 +275,7 @@ def relative_rotation(K_a: np.ndarray, K_b: np.ndarray, H_inf: np.ndarray) -> np
 
 
 
-#: Orientation groups from which a translated rig adds eq. 62: ``H_inf`` rests on the groups'
-#: reference views alone. Measured on S5 translated (0.3 px, 30 trials, rms of fx, fy of both
-#: cameras): with two groups eq. 62 raised the error by 10-40 % (robot, lengths), with three
-#: or four it lowered it by 5-15 %.
+#: Orientation groups from which a translated rig adds eq. 62 (``H_inf`` from fewer is too rough).
 _EQ62_MIN_GROUPS = 3
 _TRANSLATION_KNOWLEDGE = ("robot", "board_translation", "board_direction", "lengths")
 
@@ -393,39 +355,18 @@ def rig_linear_intrinsics_translation(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Joint linear intrinsics of a stereo head translated in front of a board (eqs. 33-42).
 
-    Both cameras undergo the same translations ``T``. Unknowns ``(w_a, w_b, c_1 .. c_G)``:
-    each camera's rows are those of ``slidecal.solver.linear.linear_system`` for its groups and
-    the knowledge (Zhang's rows with ``c_g``, the knowledge rows of docs/METHOD.md Sec. 3, its
-    basis, normalisation and ``row_weighting``); one ``c_g`` serves both cameras: camera b's
-    ``c_g`` column is rescaled by the known ratio of the two cameras' conditioned
-    ``lambda_g^2``, from the per-view scales ``mu_g`` of :func:`infinite_homography` (on the
-    groups' reference frames) with two or more groups (with one, ``w_b``'s free scale absorbs
-    it). Coupling rows for every translation k of a group (:func:`_shared_translation_rows`)
-    hold whatever the knowledge; with three or more groups (``_EQ62_MIN_GROUPS``) and
-    ``use_eq62`` the six rows of eq. 62 are added (``H_inf`` at the exact scale the rescaling
-    implies, rows at the median norm of the cameras' rows).
+    Both cameras undergo the same translations. Unknowns ``(w_a, w_b, c_1 .. c_G)``: each
+    camera's rows are ``slidecal.solver.linear.linear_system``'s for its groups and the
+    knowledge; one ``c_g`` serves both cameras (camera b's column rescaled by the ratio of the
+    cameras' conditioned ``lambda_g^2`` from :func:`infinite_homography`'s ``mu_g``, with two or
+    more groups). Coupling rows for every translation (:func:`_shared_translation_rows`); with
+    ``_EQ62_MIN_GROUPS`` groups and ``use_eq62`` the six rows of eq. 62 too.
 
-    Parameters
-    ----------
-    groups_a, groups_b : sequences of ``slidecal.solver.linear.LinearGroup``
-        Group g of camera a and of camera b hold the same frames: ``H`` (n_g, 3, 3) board plane
-        to pixels. ``motion`` (n_g, 3) is read from ``groups_a`` (``groups_b``'s must be None or
-        equal); its meaning follows ``knowledge`` (see ``LinearGroup``), in board units.
-    knowledge : "robot", "board_translation", "board_direction" or "lengths"
-    skew, unit_aspect : bool
-        Estimate the skew (else zero); assume ``fx == fy``.
-    sizes : ((width_a, height_a), (width_b, height_b)) in pixels.
-    use_eq62 : bool
-        Add eq. 62 when there are three or more groups (with one group ``H_inf`` is unknown,
-        with two it is too uncertain to help).
-    row_weighting : see ``slidecal.solver.linear.linear_system``; coupling rows get the noise
-        scale of their two sides. ``"noise"`` by default: on the OAK rig of R1 without lens
-        distortion at 0.15 px (100 trials) the rms error of fx, fy, cx, cy of either camera is
-        1.6-7x lower than with ``"unit"``.
-
-    Returns
-    -------
-    K_a, K_b : (3, 3) intrinsics in pixels, ``K[2, 2] = 1``.
+    ``groups_a``, ``groups_b``: ``LinearGroup`` per orientation group, the same frames in both
+    (``motion`` read from ``groups_a``, board units, by ``knowledge``: "robot",
+    "board_translation", "board_direction" or "lengths"). ``use_eq62``: add eq. 62 with three or
+    more groups. ``row_weighting``: as for ``linear_system``; coupling rows get the noise scale
+    of their two sides. Returns ``K_a``, ``K_b`` (3, 3) in pixels.
     """
     if knowledge not in _TRANSLATION_KNOWLEDGE:
         raise InputError(
