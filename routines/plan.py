@@ -250,7 +250,8 @@ def default_plan(
     step_mm: float = 80.0,
 ) -> Plan:
     """The fixed default plan of a cell (see the module docstring): a reference the planner is
-    measured against (``python -m tests.bench planner``); ``slidecal run`` executes the planner's plan.
+    measured against (``python -m tests.bench planner``); ``slidecal run`` executes the
+    planner's plan.
 
     Uses the cell's approximate target pose and hand-eye (``approximate:``) and ``standoff_m``;
     poses are converted to ``T_base_tool`` through the approximate hand-eye (eye-in-hand) or
