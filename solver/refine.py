@@ -12,6 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.special import fdtrc  # the F distribution's tail (scipy.stats is slow to import)
 
 from slidecal.solver.free_pose import FreePoseFit, free_pose_fit, model_starts, session_images
 from slidecal.solver.geometry import rvec_from_R
@@ -398,7 +399,6 @@ def _robot_pose_test(out: RefineOutput, fit) -> tuple[float, str]:  # noqa: ANN0
     unknowns per image where the robot model spends its motion unknowns. Each camera's sums
     are weighed by its floor noise.
     """
-    from scipy.special import fdtrc  # the F distribution's tail (scipy.stats costs 0.4 s)
 
     m = out.model
     rss_r = rss_f = 0.0
