@@ -898,8 +898,8 @@ def _correlation_note(
     seen: tuple[float, int] | None,
     misfit: tuple[int, float, float] | None,
 ) -> tuple[str, ...]:
-    """A line when the covariance was read image by image: why (``correlated_image_errors``,
-    else ``misfit_image``)."""
+    """A line when the covariance was read image by image: why (``images_err_together``: the
+    neighbours' correlation, else one image's misfit)."""
     why = None
     if seen is not None:
         why = (

@@ -8,8 +8,8 @@ then every chessboard corner refined again by ``cv2.cornerSubPix`` in a window s
 marker edge (the nearest marker corner lies ``(square - marker) / 2`` along both board axes).
 
 Chessboard: a cascade, fastest first, each step tried only when the one before found nothing
-(``docs/DETECTION.md``): ``cv2.findChessboardCorners`` on the image reduced to a long side of
-about 1000 px; the same with its light made even (``flatten_light``); ``findChessboardCornersSB``
+(``docs/results/DETECTION.md``): ``cv2.findChessboardCorners`` on the image reduced to a long
+side of about 1000 px; the same with its light made even (``flatten_light``); ``findChessboardCornersSB``
 on the reduced image; the same at full resolution, then with ``CALIB_CB_EXHAUSTIVE``. The corners
 are refined at full resolution by ``cornerSubPix`` in a window of 0.3 times the distance to the
 nearest grid neighbour (3 to 25 px half-width). The whole board must be in view. Corner order
@@ -18,7 +18,7 @@ in the image, v down); (2) the square next to corner 0 is black; (3) a board sti
 (``squares_x + squares_y`` even) takes the corner 0 that makes its +x axis point most to the right.
 
 AprilTag and AprilGrid: ``cv2.aruco.ArucoDetector`` with the target's family, corners refined by
-``cornerSubPix`` (``CORNER_REFINE_APRILTAG`` is biased, ``docs/DETECTION.md``); a lone tag's
+``cornerSubPix`` (``CORNER_REFINE_APRILTAG`` is biased, ``docs/results/DETECTION.md``); a lone tag's
 corners are the intersections of its fitted border edges; on an AprilGrid, tags the quad finder
 missed are predicted from their neighbours and kept when their code reads back.
 
@@ -131,7 +131,7 @@ def _charuco_detector(key: CharucoKey, legacy: bool = False) -> cv2.aruco.Charuc
 
 
 COLOUR_CONVERSIONS = ("green", "luma", "mean")
-COLOUR_CONVERSION = "green"  # measured in docs/DETECTION.md (chromatic aberration)
+COLOUR_CONVERSION = "green"  # measured in docs/results/DETECTION.md (chromatic aberration)
 
 
 #: The percentiles of a non-8-bit image mapped to 0 and 255 (:func:`grey_of`)
@@ -174,7 +174,7 @@ def grey_of(image: np.ndarray, colour: str = COLOUR_CONVERSION) -> np.ndarray:
 
 
 # Image checks, reported when the target is not found: the levels at which OpenCV's detectors
-# start to fail on rendered boards (docs/DETECTION.md).
+# start to fail on rendered boards (docs/results/DETECTION.md).
 DARK_MEAN_GREY = 25.0
 SATURATED_FRACTION = 0.25
 BLURRED_SIGMA_PX = 2.5

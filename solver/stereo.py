@@ -230,7 +230,7 @@ def rig_linear_intrinsics(
     ``Hs_a``, ``Hs_b`` (n_a, 3, 3), (n_b, 3, 3): each camera's homographies (views not
     necessarily paired). ``H_inf``: :func:`infinite_homography`'s, or None to solve each camera
     alone with the same rows (``slidecal.solver.linear.zhang_intrinsics``). ``skew``,
-    ``unit_aspect``, ``row_weighting``: as for ``linear_system`` (``"unit"``: docs/S5.md).
+    ``unit_aspect``, ``row_weighting``: as for ``linear_system`` (``"unit"``: docs/results/S5.md).
     Returns ``K_a``, ``K_b`` (3, 3) in pixels.
     """
     Hs = (_check_homographies(Hs_a, "Hs_a"), _check_homographies(Hs_b, "Hs_b"))
