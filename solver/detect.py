@@ -8,14 +8,14 @@ then every chessboard corner refined again by ``cv2.cornerSubPix`` in a window s
 marker edge (the nearest marker corner lies ``(square - marker) / 2`` along both board axes).
 
 Chessboard: a cascade, fastest first, each step tried only when the one before found nothing
-(``docs/results/DETECTION.md``): ``cv2.findChessboardCorners`` on the image reduced to a long
-side of about 1000 px; the same with its light made even (``flatten_light``); ``findChessboardCornersSB``
+(``docs/results/DETECTION.md``): ``cv2.findChessboardCorners`` on the image reduced to a long side
+of about 1000 px; the same with its light made even (``flatten_light``); ``findChessboardCornersSB``
 on the reduced image; the same at full resolution, then with ``CALIB_CB_EXHAUSTIVE``. The corners
 are refined at full resolution by ``cornerSubPix`` in a window of 0.3 times the distance to the
-nearest grid neighbour (3 to 25 px half-width). The whole board must be in view. Corner order
-under the board's symmetries: (1) the board is seen from its printed side (``x`` cross ``y`` > 0
-in the image, v down); (2) the square next to corner 0 is black; (3) a board still symmetric
-(``squares_x + squares_y`` even) takes the corner 0 that makes its +x axis point most to the right.
+nearest grid neighbour (3 to 25 px half-width). The whole board must be in view. Corner order under
+the board's symmetries: (1) the board is seen from its printed side (``x`` cross ``y`` > 0 in the
+image, v down); (2) the square next to corner 0 is black; (3) a board still symmetric (``squares_x +
+squares_y`` even) takes the corner 0 that makes its +x axis point most to the right.
 
 AprilTag and AprilGrid: ``cv2.aruco.ArucoDetector`` with the target's family, corners refined by
 ``cornerSubPix`` (``CORNER_REFINE_APRILTAG`` is biased, ``docs/results/DETECTION.md``); a lone tag's
