@@ -33,6 +33,7 @@ BENCHMARKS: dict[str, str] = {
     "public": "real robot data: the public KUKA sessions (data not shipped: --data DIR)",
     "bad_input": "every malformed file and option: refused in one line naming file and field",
     "split_half": "honesty on real images: split a session at random, z of the halves' difference",
+    "speed": "slidecal solve against an OpenCV script, whole process and in process; load time",
 }
 
 
