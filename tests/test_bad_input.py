@@ -1,4 +1,4 @@
-"""The bad-input table (tests/bench/bad_input.yaml): every malformed cell, plan, session and result
+"""The bad-input table (tests/data/bad_input.yaml): every malformed cell, plan, session and result
 file is refused with exit code 2 and one line naming the file and the field, no traceback, no
 output; and the readers, fuzzed, raise nothing but InputError."""
 
@@ -21,8 +21,8 @@ from slidecal.routines.schema import Fields, load_yaml
 from slidecal.routines.session import session_from_dict
 from slidecal.solver.errors import InputError
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout: tests.bench
-from tests.bench import bad_input  # noqa: E402 - the table and its runner
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout: tests.*
+from tests import bad_input_table as bad_input  # noqa: E402 - the table and its runner
 
 CASES = bad_input.cases()
 DOC = Path(__file__).parents[1] / "docs" / "results" / "BAD_INPUT.md"
