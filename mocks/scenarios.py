@@ -19,9 +19,10 @@ import numpy as np
 import yaml
 
 from slidecal.drivers import ur_kinematics as urk
+from slidecal.mocks import cell
 from slidecal.mocks.camera import oak_d_like, oak_d_like_extrinsics, single_camera
-from slidecal.mocks.cell import SimulatedCell
 from slidecal.mocks.render import render_target
+from slidecal.mocks.robot import KinematicError
 from slidecal.solver.camera import K_matrix, project
 from slidecal.solver.detect import detect as detect_target
 from slidecal.solver.errors import InputError
@@ -45,6 +46,7 @@ from slidecal.solver.problem import (
     ModelOptions,
     Target,
 )
+from slidecal.solver.target_shape import PRINT_TOLERANCE, default_flatness_m, shape_modes
 
 #: An image model: what a camera finds of the board at ``T_cam_board`` (4, 4), drawing noise
 #: from the generator, the board bowed by ``bow_m`` (2,) (metres, ``solver/target_shape.py``'s
@@ -545,7 +547,6 @@ def r1_scenario(
     sigma_px: float,
     T_base_board: np.ndarray,
     dist: np.ndarray = R1_DIST,
-    size: tuple[int, int] = R1_SIZE_PX,
     T_base_tool_true: np.ndarray | None = None,
     T_tool_board: np.ndarray = R1_T_TOOL_BOARD,
 ) -> Scenario:
@@ -554,7 +555,7 @@ def r1_scenario(
     target on the tool at ``T_tool_board`` eye-to-hand)."""
     problem = CalibrationProblem(
         target,
-        (CameraSpec("cam", *size),),
+        (CameraSpec("cam", *R1_SIZE_PX),),
         tuple(frames),
         "eye_in_hand" if eye_in_hand else "eye_to_hand",
         "robot",
@@ -573,30 +574,33 @@ def r1_scenario(
     return Scenario(problem, truth, sigma_px, T_hand_eye, T_target, T_base_tool_true)
 
 
-def _r1_cell(
-    rng: np.random.Generator,
-    sigma_px: float,
-    robot_noise_m: float,
-    robot_noise_deg: float,
-    options: ModelOptions | None,
+def _tool_pose(
+    T_cam_board: np.ndarray,
+    T_base_board: np.ndarray,
     eye_in_hand: bool,
-) -> Scenario:
-    """R1's camera-board poses, with the camera on the tool or fixed in the cell."""
-    target = r1_target()
-    T_base_board, poses = r1_poses()
-    frames = []
-    for k, T_bt in enumerate(poses):
-        T_cam_board = inv_T(T_bt @ R1_T_TOOL_CAM) @ T_base_board
-        # eye-to-hand: the same camera-board poses, the board moving with the tool
-        T_base_tool = (
-            T_bt if eye_in_hand else (R1_T_BASE_CAM @ T_cam_board @ inv_T(R1_T_TOOL_BOARD))
-        )
-        det = projected_detection(
-            R1_K, R1_DIST, T_cam_board, target, R1_SIZE_PX, sigma_px, rng, 2.0
-        )
-        measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
-        frames.append(Frame(k, {"cam": det}, T_base_tool=measured))
-    return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board)
+    T_tool_board: np.ndarray = R1_T_TOOL_BOARD,
+) -> np.ndarray:
+    """The ``T_base_tool`` putting R1's camera at ``T_cam_board``: on the tool, the board at
+    ``T_base_board``; or fixed at ``R1_T_BASE_CAM``, the board on the tool at ``T_tool_board``."""
+    if eye_in_hand:
+        return T_base_board @ inv_T(T_cam_board) @ inv_T(R1_T_TOOL_CAM)
+    return R1_T_BASE_CAM @ T_cam_board @ inv_T(T_tool_board)
+
+
+def _r1_detection(
+    T_cam_board: np.ndarray,
+    target: Target,
+    sigma_px: float,
+    rng: np.random.Generator,
+    detect: ImageModel | None = None,
+    bow_m: np.ndarray | None = None,
+    dist: np.ndarray = R1_DIST,
+) -> Detection:
+    """What R1's camera finds of ``target`` at ``T_cam_board``: ``detect``'s image model, or the
+    projected points 2 px inside the image with ``sigma_px`` noise."""
+    if detect is not None:
+        return detect(T_cam_board, rng, np.zeros(2) if bow_m is None else bow_m)
+    return projected_detection(R1_K, dist, T_cam_board, target, R1_SIZE_PX, sigma_px, rng, 2.0)
 
 
 def r1(
@@ -605,22 +609,22 @@ def r1(
     robot_noise_m: float = 5e-5,
     robot_noise_deg: float = 0.005,
     options: ModelOptions | None = None,
+    eye_in_hand: bool = True,
 ) -> Scenario:
     """R1 (docs/SETUPS.md): eye-in-hand UR5e-class cell, ChArUco 11 x 8 x 30 mm, 1280 x 800
-    camera with distortion, 4 tilt groups of 5 frames, robot poses measured with noise."""
-    return _r1_cell(rng, sigma_px, robot_noise_m, robot_noise_deg, options, True)
-
-
-def r1_eye_to_hand(
-    rng: np.random.Generator,
-    sigma_px: float = 0.15,
-    robot_noise_m: float = 5e-5,
-    robot_noise_deg: float = 0.005,
-    options: ModelOptions | None = None,
-) -> Scenario:
-    """R1 mirrored: the camera fixed in the cell, the board on the tool. The camera-board poses
-    are R1's, so the tilt groups and translations carry over (the board moves, not the camera)."""
-    return _r1_cell(rng, sigma_px, robot_noise_m, robot_noise_deg, options, False)
+    camera with distortion, 4 tilt groups of 5 frames, robot poses measured with noise.
+    ``eye_in_hand`` False: R1 mirrored, the camera fixed in the cell and the board on the tool;
+    the camera-board poses are R1's, so the tilt groups and translations carry over."""
+    target = r1_target()
+    T_base_board, poses = r1_poses()
+    frames = []
+    for k, T_bt in enumerate(poses):
+        T_cam_board = inv_T(T_bt @ R1_T_TOOL_CAM) @ T_base_board
+        T_base_tool = T_bt if eye_in_hand else _tool_pose(T_cam_board, T_base_board, False)
+        det = _r1_detection(T_cam_board, target, sigma_px, rng)
+        measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
+        frames.append(Frame(k, {"cam": det}, T_base_tool=measured))
+    return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board)
 
 
 # -- a real arm: systematic kinematic error (REALITY: accuracy is not repeatability) ------------
@@ -648,8 +652,6 @@ def real_arm_poses(
     puts the tool for ``planned`` ``T_base_tool`` (F, 4, 4), plus each stop's repeatability error.
     Each pose's joints are the solution nearest the previous pose's, from the configuration a walk
     from ``Q_HOME`` ends in, so every frame stands on one configuration."""
-    from slidecal.mocks.robot import KinematicError
-
     ke = KinematicError.random(rng, arm_mm, arm_deg, repeatability_mm, repeatability_deg)
     out = np.empty_like(planned)
     q_prev = urk.Q_HOME
@@ -713,15 +715,10 @@ def r1_real_arm(
             R_base_cam @ (d / np.linalg.norm(d)) * length for d in dirs for length in (0.05, -0.07)
         ]
         poses = np.stack([base] + [T_from_Rt(base[:3, :3], base[:3, 3] + m) for m in moves])
-    if eye_in_hand:
-        planned = poses
-    else:  # the same camera-board poses, the board on the tool, the camera fixed
-        planned = np.stack(
-            [
-                R1_T_BASE_CAM @ inv_T(T @ R1_T_TOOL_CAM) @ T_base_board @ inv_T(R1_T_TOOL_BOARD)
-                for T in poses
-            ]
-        )
+    planned = poses
+    if not eye_in_hand:  # the same camera-board poses, the board on the tool, the camera fixed
+        T_cb = [inv_T(T @ R1_T_TOOL_CAM) @ T_base_board for T in poses]
+        planned = np.stack([_tool_pose(T, T_base_board, False) for T in T_cb])
     true = real_arm_poses(planned, rng, arm_mm, arm_deg)
     frames = _real_arm_frames(
         true, planned, T_base_board, eye_in_hand, sigma_px, rng, detect, target=seen, bow_m=bow
@@ -734,8 +731,6 @@ def r1_real_arm(
 def real_board_of(target: Target, rng: np.random.Generator) -> tuple[Target, Target, np.ndarray]:
     """A real board of ``target``'s description: (the target as a session describes it, with a real
     board's tolerance; the bowed board the camera sees; the bow (2,), metres)."""
-    from slidecal.solver.target_shape import PRINT_TOLERANCE, default_flatness_m, shape_modes
-
     flat = default_flatness_m(target.points_m)
     described = replace(target, flatness_m=flat, print_tolerance=PRINT_TOLERANCE)
     bow = rng.normal(0.0, flat, 2)
@@ -765,12 +760,7 @@ def _real_arm_frames(
             T_cam_board = inv_T(T_true @ R1_T_TOOL_CAM) @ T_base_board
         else:
             T_cam_board = inv_T(R1_T_BASE_CAM) @ T_true @ T_tool_board
-        if detect is None:
-            det = projected_detection(
-                R1_K, R1_DIST, T_cam_board, target, R1_SIZE_PX, sigma_px, rng, 2.0
-            )
-        else:
-            det = detect(T_cam_board, rng, np.zeros(2) if bow_m is None else bow_m)
+        det = _r1_detection(T_cam_board, target, sigma_px, rng, detect, bow_m)
         frames.append(Frame(k, {"cam": det}, T_base_tool=T_meas))
     return frames
 
@@ -783,11 +773,9 @@ def effective_truth(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The hand-eye and target pose ``(T_hand_eye, T_target)`` as the session can know them (over
     ``frames``, default all): :func:`slidecal.mocks.cell.effective_truth`."""
-    from slidecal.mocks.cell import effective_truth as _effective
-
     used = list(range(len(s.problem.frames)) if frames is None else frames)
     true = s.T_base_tool_true
-    T_he, T_tg = _effective(
+    T_he, T_tg = cell.effective_truth(
         s.problem.mount,
         true if true is None else true[used],
         [s.problem.frames[i].T_base_tool for i in used],
@@ -970,20 +958,14 @@ def classic_real_arm(
     target = r1_target()
     S = _in_reach()
     T_base_board = S @ r1_poses()[0]
-
-    def planned_pose(T_cam_board: np.ndarray) -> np.ndarray:
-        if eye_in_hand:
-            return T_base_board @ inv_T(T_cam_board) @ inv_T(R1_T_TOOL_CAM)
-        return R1_T_BASE_CAM @ T_cam_board @ inv_T(R1_T_TOOL_BOARD)
-
     views: list[np.ndarray] = []
     while len(views) < n_frames:
         for T in camera_board_poses(rng, 2 * n_frames, target):
-            if _reachable(planned_pose(T)):
+            if _reachable(_tool_pose(T, T_base_board, eye_in_hand)):
                 views.append(T)
                 if len(views) == n_frames:
                     break
-    planned = np.stack([planned_pose(T) for T in views])
+    planned = np.stack([_tool_pose(T, T_base_board, eye_in_hand) for T in views])
     true = real_arm_poses(planned, rng, arm_mm, arm_deg)
     true[:, :3, 3] *= 1.0 + arm_scale
     frames = _real_arm_frames(true, planned, T_base_board, eye_in_hand, sigma_px, rng, detect)
@@ -1084,16 +1066,11 @@ def classic(
     T_base_board = r1_poses()[0]
     frames = []
     for k, T_c_b in enumerate(T_cb):
-        if eye_in_hand:
-            T_base_tool = T_base_board @ inv_T(T_c_b) @ inv_T(R1_T_TOOL_CAM)
-        else:
-            T_base_tool = R1_T_BASE_CAM @ T_c_b @ inv_T(R1_T_TOOL_BOARD)
-        det = projected_detection(R1_K, dist, T_c_b, target, R1_SIZE_PX, sigma_px, rng, 2.0)
+        T_base_tool = _tool_pose(T_c_b, T_base_board, eye_in_hand)
+        det = _r1_detection(T_c_b, target, sigma_px, rng, dist=dist)
         measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
         frames.append(Frame(k, {"cam": det}, T_base_tool=measured))
-    return r1_scenario(
-        target, frames, eye_in_hand, options, sigma_px, T_base_board, dist, R1_SIZE_PX
-    )
+    return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board, dist)
 
 
 def board_in_view(s: Scenario) -> np.ndarray:
@@ -1105,7 +1082,7 @@ def board_in_view(s: Scenario) -> np.ndarray:
 #: must return its truth to round-off (the pipeline's and the refinement's tests).
 NOISE_FREE: dict[str, Callable[[np.random.Generator], Scenario]] = {
     "R1": lambda rng: r1(rng, 0.0, 0.0, 0.0),
-    "R1-eye-to-hand": lambda rng: r1_eye_to_hand(rng, 0.0, 0.0, 0.0),
+    "R1-eye-to-hand": lambda rng: r1(rng, 0.0, 0.0, 0.0, eye_in_hand=False),
     "S1": lambda rng: s1(30.0, 0.0, rng),
     "S2": lambda rng: s2(5, 0.0, rng),
     "S3": lambda rng: s3(5, 0.0, rng),
@@ -1163,12 +1140,7 @@ def drifting_arm(
         T_true = T_from_Rt(R_from_rvec(e) @ T[:3, :3], T[:3, 3] + rng.normal(0.0, 2e-5, 3))
         true.append(T_true)
         T_cam_board = inv_T(T_true @ R1_T_TOOL_CAM) @ base.T_target
-        if detect is None:
-            det = projected_detection(
-                R1_K, R1_DIST, T_cam_board, target, R1_SIZE_PX, sigma_px, rng, 2.0
-            )
-        else:
-            det = detect(T_cam_board, rng, np.zeros(2))
+        det = _r1_detection(T_cam_board, target, sigma_px, rng, detect)
         frames.append(Frame(k, {"cam": det}, T_base_tool=T))
     scenario = r1_scenario(
         target, frames, True, None, sigma_px, base.T_target, T_base_tool_true=np.stack(true)
@@ -1320,11 +1292,11 @@ def cell_overrides(fx_rel: float = 0.0, cx_px: float = 0.0, he_deg: float = 0.0)
     return {"simulation": sim}
 
 
-def same_cell(cfg, cell_seed: int, run_seed: int) -> SimulatedCell:  # noqa: ANN001
+def same_cell(cfg, cell_seed: int, run_seed: int) -> cell.SimulatedCell:  # noqa: ANN001
     """The simulated cell of ``cfg`` built with ``cell_seed`` (its arm's error and board pose), run
     with fresh noise from ``run_seed``: two runs of one cell."""
-    cell = SimulatedCell.from_config(cfg, cell_seed)
+    sim = cell.SimulatedCell.from_config(cfg, cell_seed)
     robot_rng, camera_rng = np.random.SeedSequence([cell_seed, run_seed]).spawn(2)
-    cell.robot.rng = np.random.default_rng(robot_rng)
-    cell.rig.rng = np.random.default_rng(camera_rng)
-    return cell
+    sim.robot.rng = np.random.default_rng(robot_rng)
+    sim.rig.rng = np.random.default_rng(camera_rng)
+    return sim
