@@ -111,6 +111,11 @@ class KinematicError:
             + self.gear_rad * np.sin(GEAR_CYCLES * q + self.gear_phase)
         )
 
+    def stop_error(self, rng: np.random.Generator) -> np.ndarray:
+        """One stop's random repeatability error (4, 4): the true pose is ``fk(q) @`` it."""
+        dR = R_from_rvec(rng.normal(0.0, np.radians(self.repeatability_deg), 3))
+        return T_from_Rt(dR, rng.normal(0.0, self.repeatability_m, 3))
+
     def fk(
         self, q: np.ndarray, model: urk.URModel, T_flange_tcp: np.ndarray | None = None
     ) -> np.ndarray:
@@ -288,10 +293,8 @@ class SimulatedUR:
     def _new_stop(self) -> None:
         """Draw the repeatability error of the stop just reached."""
         ke = self.kinematic_error
-        if ke is None or (ke.repeatability_m == 0 and ke.repeatability_deg == 0):
-            return
-        dR = R_from_rvec(self.rng.normal(0.0, np.radians(ke.repeatability_deg), 3))
-        self._stop_error = T_from_Rt(dR, self.rng.normal(0.0, ke.repeatability_m, 3))
+        if ke is not None and (ke.repeatability_m != 0 or ke.repeatability_deg != 0):
+            self._stop_error = ke.stop_error(self.rng)
 
     @property
     def q(self) -> np.ndarray:

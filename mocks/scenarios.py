@@ -664,9 +664,7 @@ def real_arm_poses(
             q_prev = sols[0]
             joints.append(q_prev)
     for k, q in enumerate(joints):
-        dR = R_from_rvec(rng.normal(0.0, np.radians(repeatability_deg), 3))
-        stop = T_from_Rt(dR, rng.normal(0.0, repeatability_mm / 1000.0, 3))
-        out[k] = ke.fk(q, urk.UR5E) @ stop
+        out[k] = ke.fk(q, urk.UR5E) @ ke.stop_error(rng)
     return out
 
 
