@@ -230,7 +230,7 @@ def projected_detection(
     return Detection(ids, px[ids] + rng.normal(0.0, sigma_px, (len(ids), 2)))
 
 
-def _board_frame_scenario(
+def _paper_scenario(
     K: np.ndarray,
     R_cam_board: np.ndarray,
     centres: np.ndarray,
@@ -241,57 +241,42 @@ def _board_frame_scenario(
     presumed: np.ndarray | None = None,
 ) -> Scenario:
     """One orientation group; camera centres (n, 3) in the board frame, frame 0 the reference;
-    ``presumed`` (n, 3): the motion the solver is told (default: the true one)."""
+    ``presumed`` (n, 3): the centres the solver is told (default: the true ones). ``knowledge``
+    "robot": known translations in an unknown robot frame (Case 1 and its generalisation), the
+    base the board frame turned arbitrarily, the tool the camera; else motions in the board
+    frame."""
     target = paper_grid()
     dist = np.zeros(5)
-    moves = centres - centres[0] if presumed is None else presumed - presumed[0]
-    frames = []
-    Ts = []
-    for k, C in enumerate(centres):
-        T = T_from_Rt(R_cam_board, -R_cam_board @ C)
-        Ts.append(T)
-        det = projected_detection(K, dist, T, target, PAPER_SIZE_PX, sigma_px, rng)
-        m = moves[k]
-        if knowledge == "board_direction":
-            m = m / np.linalg.norm(m) if np.linalg.norm(m) > 0 else np.zeros(3)
-        frames.append(Frame(k, {"cam": det}, motion_board=m, group=0))
-    problem = CalibrationProblem(
-        target, (CameraSpec("cam", *PAPER_SIZE_PX),), tuple(frames), "none", knowledge, options
-    )
-    s = np.array([np.linalg.norm(c - centres[0]) for c in centres])
-    truth = ModelState({"cam": K}, {"cam": dist}, {}, np.stack([Ts[0]]), np.eye(4), s)
-    return Scenario(problem, truth, sigma_px)
-
-
-def _robot_translation_scenario(
-    K: np.ndarray,
-    R_cam_board: np.ndarray,
-    centres: np.ndarray,
-    options: ModelOptions,
-    sigma_px: float,
-    rng: np.random.Generator,
-    presumed: np.ndarray | None = None,
-) -> Scenario:
-    """Known translations in an unknown robot frame (Case 1 and its generalisation): the base is the
-    board frame turned arbitrarily, the tool is the camera."""
-    target = paper_grid()
-    dist = np.zeros(5)
-    R_base_board = R_from_rvec(np.array([0.3, -0.2, 0.5]))
-    T_base_board = T_from_Rt(R_base_board, np.array([10.0, -20.0, 5.0]))
     told = centres if presumed is None else presumed
+    robot = knowledge == "robot"
+    T_base_board = T_from_Rt(R_from_rvec(np.array([0.3, -0.2, 0.5])), np.array([10.0, -20.0, 5.0]))
     frames = []
     for k, C in enumerate(centres):
         T_cam_board = T_from_Rt(R_cam_board, -R_cam_board @ C)
         det = projected_detection(K, dist, T_cam_board, target, PAPER_SIZE_PX, sigma_px, rng)
-        T_base_cam_told = T_base_board @ inv_T(T_from_Rt(R_cam_board, -R_cam_board @ told[k]))
-        frames.append(Frame(k, {"cam": det}, T_base_tool=T_base_cam_told))
+        if robot:
+            T_base_cam_told = T_base_board @ inv_T(T_from_Rt(R_cam_board, -R_cam_board @ told[k]))
+            frames.append(Frame(k, {"cam": det}, T_base_tool=T_base_cam_told))
+            continue
+        m = told[k] - told[0]
+        if knowledge == "board_direction":
+            m = m / np.linalg.norm(m) if np.linalg.norm(m) > 0 else np.zeros(3)
+        frames.append(Frame(k, {"cam": det}, motion_board=m, group=0))
     problem = CalibrationProblem(
-        target, (CameraSpec("cam", *PAPER_SIZE_PX),), tuple(frames), "eye_in_hand", "robot", options
+        target,
+        (CameraSpec("cam", *PAPER_SIZE_PX),),
+        tuple(frames),
+        "eye_in_hand" if robot else "none",
+        knowledge,
+        options,
     )
-    truth = ModelState(
-        {"cam": K}, {"cam": dist}, {}, np.eye(4)[None], T_base_board, np.zeros(len(centres))
-    )
-    return Scenario(problem, truth, sigma_px, np.eye(4), T_base_board)
+    cam = ({"cam": K}, {"cam": dist}, {})
+    if robot:
+        truth = ModelState(*cam, np.eye(4)[None], T_base_board, np.zeros(len(centres)))
+        return Scenario(problem, truth, sigma_px, np.eye(4), T_base_board)
+    s = np.array([np.linalg.norm(c - centres[0]) for c in centres])
+    T_cam_board_0 = T_from_Rt(R_cam_board, -R_cam_board @ centres[0])
+    return Scenario(problem, ModelState(*cam, T_cam_board_0[None], np.eye(4), s), sigma_px)
 
 
 def s1(
@@ -309,7 +294,7 @@ def s1(
     centres = C0 + steps * (1.0 + step_error) * axis
     presumed = C0 + steps * axis
     opts = ModelOptions(unit_aspect=True, distortion=NO_DISTORTION)
-    return _robot_translation_scenario(K_S1, R, centres, opts, sigma_px, rng, presumed)
+    return _paper_scenario(K_S1, R, centres, "robot", opts, sigma_px, rng, presumed)
 
 
 def s2(n_images: int, sigma_px: float, rng: np.random.Generator, phi_deg: float = 0.0) -> Scenario:
@@ -321,7 +306,7 @@ def s2(n_images: int, sigma_px: float, rng: np.random.Generator, phi_deg: float 
     real = Rx(np.radians(phi_deg)) @ normal
     steps = np.arange(n_images)[:, None] * 5.0
     opts = ModelOptions(distortion=NO_DISTORTION)
-    return _board_frame_scenario(
+    return _paper_scenario(
         K_S2,
         R,
         C0 + steps * real,
@@ -339,7 +324,7 @@ def s3(n_images: int, sigma_px: float, rng: np.random.Generator) -> Scenario:
     normal = np.array([0.0, 0.0, 1.0]) * np.sign(-C0[2])
     centres = C0 + np.arange(n_images)[:, None] * 5.0 * normal
     opts = ModelOptions(skew=True, distortion=NO_DISTORTION)
-    return _board_frame_scenario(K_S2, R, centres, "board_translation", opts, sigma_px, rng)
+    return _paper_scenario(K_S2, R, centres, "board_translation", opts, sigma_px, rng)
 
 
 # -- S5: a stereo head (paper Figs. 7-9) --------------------------------------------------------
