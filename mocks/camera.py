@@ -120,12 +120,6 @@ def oak_d_like_extrinsics() -> dict[str, np.ndarray]:
 
 
 @dataclass
-class _Fault:
-    kind: str
-    at_capture: int
-
-
-@dataclass
 class SimulatedCameraRig:
     """A ``CameraRig`` of simulated cameras looking at ``target``: ``poses()`` gives each camera's
     true ``T_<camera>_board`` (4, 4) m, ``capture()`` renders there and keeps them in
@@ -140,7 +134,7 @@ class SimulatedCameraRig:
     is_open: bool = False
     capture_count: int = 0
     last_poses: dict[str, np.ndarray] = field(default_factory=dict)
-    _faults: list[_Fault] = field(default_factory=list)
+    _faults: list[tuple[str, int]] = field(default_factory=list)  # (kind, at capture)
     _disconnected: bool = False
     _lost: bool = False
 
@@ -170,7 +164,7 @@ class SimulatedCameraRig:
         one, ``"disconnect"`` every one until the rig is reopened, ``"lost"`` for good."""
         if kind not in FAULT_KINDS:
             raise InputError(f"unknown fault {kind!r}; use one of {FAULT_KINDS}")
-        self._faults.append(_Fault(kind, int(at_capture)))
+        self._faults.append((kind, int(at_capture)))
 
     def capture(self) -> dict[str, np.ndarray]:
         """One synchronised set of images by camera name (uint8 grey, or BGR for colour)."""
@@ -178,11 +172,11 @@ class SimulatedCameraRig:
             raise HardwareFault("capture() on a closed camera rig: call open() first")
         index = self.capture_count
         self.capture_count += 1
-        for f in self._faults:
-            if f.at_capture == index:
-                if f.kind in ("disconnect", "lost"):
+        for kind, at_capture in self._faults:
+            if at_capture == index:
+                if kind in ("disconnect", "lost"):
                     self._disconnected = True
-                    self._lost = self._lost or f.kind == "lost"
+                    self._lost = self._lost or kind == "lost"
                 else:
                     names = [c.name for c in self.cameras]
                     raise HardwareFault(

@@ -459,8 +459,7 @@ def s5_rig(
 
 # -- R1: a UR5e-class cell, eye-in-hand or eye-to-hand ------------------------------------------
 R1_SIZE_PX = (1280, 800)
-R1_K = K_matrix(880.0, 880.0, 640.0, 400.0)
-R1_DIST = np.array([-0.12, 0.05, 5e-4, -3e-4, 0.0])
+R1_K, R1_DIST = single_camera().K, single_camera().dist
 R1_T_TOOL_CAM = T_from_Rt(
     R_from_rvec(np.radians([1.5, -2.0, 90.0])), np.array([0.035, -0.06, 0.09])
 )
@@ -758,7 +757,7 @@ def effective_truth(
     ``frames``, default all): :func:`slidecal.mocks.cell.effective_truth`."""
     used = list(range(len(s.problem.frames)) if frames is None else frames)
     true = s.T_base_tool_true
-    T_he, T_tg = cell.effective_truth(
+    return cell.effective_truth(
         s.problem.mount,
         true if true is None else true[used],
         [s.problem.frames[i].T_base_tool for i in used],
@@ -767,7 +766,6 @@ def effective_truth(
         sigma_rot_deg,
         sigma_mm,
     )
-    return T_he, T_tg
 
 
 # -- rigs on R1: the OAK-D-like head --------------------------------------------------------------
@@ -791,11 +789,7 @@ def oak_rig(
     cameras = tuple(cameras)
     if "left" not in cameras or any(c not in sims for c in cameras):
         raise InputError(f"cameras must include 'left' and be among {list(sims)}, got {cameras}")
-    sig = (
-        {c: float(sigma_px[c]) for c in cameras}
-        if isinstance(sigma_px, Mapping)
-        else {c: float(sigma_px) for c in cameras}
-    )
+    sig = {c: float(sigma_px[c] if isinstance(sigma_px, Mapping) else sigma_px) for c in cameras}
     extr = oak_d_like_extrinsics()
     T_tool_left = R1_T_TOOL_CAM @ T_from_Rt(Ry(np.radians(view_offset_deg)), np.zeros(3))
     target = r1_target()
@@ -1077,7 +1071,7 @@ def render_detector(sigma_px: float) -> ImageModel:
     """The ``render`` image model: R1's camera renders the board (bowed as the trial's board
     is), the detector finds it."""
     cam = single_camera()
-    target = Target.charuco(11, 8, 0.030, 0.022)
+    target = r1_target()
 
     def run(T_cam_board: np.ndarray, rng: np.random.Generator, bow_m: np.ndarray) -> Detection:
         image = render_target(target, cam, T_cam_board, rng, bow_m=(bow_m[0], bow_m[1]))
