@@ -24,6 +24,13 @@ STEP_RAD = np.radians(1.0)
 #: Largest joint change between two such samples before the path is discontinuous (a branch flip).
 MAX_JOINT_STEP_RAD = 0.2
 
+#: The move limits that must be positive (``SimulatedUR``'s arguments, the cell's ``limits:``).
+SPEED_LIMITS = (
+    "max_speed_mps",
+    "max_accel_mps2",
+    "max_angular_speed_deg_s",
+    "max_angular_accel_deg_s2",
+)
 FAULT_KINDS = ("protective_stop", "emergency_stop", "disconnect", "timeout")
 #: Cycles per joint turn of the simulated gearboxes' transmission error (a 12 deg period).
 GEAR_CYCLES = 30.0
@@ -169,12 +176,8 @@ class SimulatedUR:
         move_timeout_s: float = 30.0,
         kinematic_error: KinematicError | None = None,
     ) -> None:
-        for name, value in (
-            ("max_speed_mps", max_speed_mps),
-            ("max_accel_mps2", max_accel_mps2),
-            ("max_angular_speed_deg_s", max_angular_speed_deg_s),
-            ("max_angular_accel_deg_s2", max_angular_accel_deg_s2),
-        ):
+        speeds = (max_speed_mps, max_accel_mps2, max_angular_speed_deg_s, max_angular_accel_deg_s2)
+        for name, value in zip(SPEED_LIMITS, speeds, strict=True):
             if not value > 0:
                 raise InputError(f"{name} must be positive, got {value}")
         if pose_noise_m < 0 or pose_noise_deg < 0:
@@ -228,20 +231,9 @@ class SimulatedUR:
         T_flange_tcp = T_from_ur_pose(cell["tcp"]) if cell.get("tcp") is not None else None
         limits = dict(cell.get("limits") or {})
         noise = dict(cell.get("noise") or {})
-        kw: dict[str, Any] = {}
-        for key in (
-            "max_speed_mps",
-            "max_accel_mps2",
-            "max_angular_speed_deg_s",
-            "max_angular_accel_deg_s2",
-            "z_min_m",
-            "move_timeout_s",
-        ):
-            if key in limits:
-                kw[key] = limits.pop(key)
-        for key in ("pose_noise_m", "pose_noise_deg"):
-            if key in noise:
-                kw[key] = float(noise.pop(key))
+        limit_keys = (*SPEED_LIMITS, "z_min_m", "move_timeout_s")
+        kw: dict[str, Any] = {k: limits.pop(k) for k in limit_keys if k in limits}
+        kw |= {k: float(noise.pop(k)) for k in ("pose_noise_m", "pose_noise_deg") if k in noise}
         if limits or noise:
             raise InputError(f"unknown key(s) {sorted(limits) + sorted(noise)}", where="robot")
         if cell.get("start_q") is not None:
@@ -269,10 +261,8 @@ class SimulatedUR:
         ke = cell.get("kinematic_error")
         if ke is not None:
             ke = dict(ke)
-            sizes = {}
-            for key in ("mm", "deg", "repeatability_mm", "repeatability_deg"):
-                if key in ke:
-                    sizes[key] = float(ke.pop(key))
+            size_keys = ("mm", "deg", "repeatability_mm", "repeatability_deg")
+            sizes = {k: float(ke.pop(k)) for k in size_keys if k in ke}
             if ke:
                 raise InputError(
                     f"unknown key(s) {sorted(ke)}; kinematic_error takes mm, deg, "

@@ -93,11 +93,6 @@ def board_xy(nx: int = 9, ny: int = 7, pitch: float = 5.0) -> np.ndarray:
     return np.column_stack([X.ravel(), Y.ravel()])
 
 
-def paper_grid() -> Target:
-    """S1-S4's target: 9 x 7 points, pitch 5 l.u., centred on the board origin."""
-    return Target.points(board_xy())
-
-
 def tilt_R(ax_deg: float = 0.0, ay_deg: float = 0.0, order: str = "xy") -> np.ndarray:
     """``R_cam_board = D0 (Rx Ry)^T`` (order "xy") or ``D0 (Ry Rx)^T`` (order "yx")."""
     a, b = Rx(np.radians(ax_deg)), Ry(np.radians(ay_deg))
@@ -245,7 +240,7 @@ def _paper_scenario(
     "robot": known translations in an unknown robot frame (Case 1 and its generalisation), the
     base the board frame turned arbitrarily, the tool the camera; else motions in the board
     frame."""
-    target = paper_grid()
+    target = Target.points(board_xy())  # 9 x 7 points, pitch 5 l.u., centred on the origin
     dist = np.zeros(5)
     told = centres if presumed is None else presumed
     robot = knowledge == "robot"
@@ -335,11 +330,6 @@ S5_T_LEFT_RIGHT = T_from_Rt(R_from_rvec(np.radians([0.0, 5.0, 0.0])), np.array([
 S5_VIEWS_DEG = ((20, 0, 0), (0, 20, 0), (-20, -20, 0), (15, -15, 10), (-10, 25, -5), (25, 10, 5))
 
 
-def s5_grid() -> Target:
-    """S5's target: 14 x 10 points, pitch 5 l.u., centred on the board origin."""
-    return Target.points(board_xy(14, 10))
-
-
 def s5_T_right_board() -> np.ndarray:
     """The right camera's six view poses ``T_right_board`` (6, 4, 4), l.u. (docs/SETUPS.md S5)."""
     flip = np.diag([1.0, -1.0, -1.0])
@@ -423,7 +413,7 @@ def s5_rig(
     """S5 as a general-motion rig problem (knowledge and mount "none", reference "right"):
     ``sigma_px`` the right camera's noise, ``left_factor`` times it the left's; zero skew, no
     distortion; points outside the 300 x 240 images not detected."""
-    target = s5_grid()
+    target = Target.points(board_xy(14, 10))
     Ts = s5_T_right_board()
     sig = {"left": left_factor * sigma_px, "right": sigma_px}
     K = {"left": S5_K_LEFT, "right": S5_K_RIGHT}
