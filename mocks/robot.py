@@ -47,7 +47,7 @@ def trapezoid_time_s(distance: float, max_speed: float, max_accel: float) -> flo
     return d / max_speed + max_speed / max_accel
 
 
-def _interpolate(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
+def interpolate_pose(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
     """Pose a fraction ``s`` along the straight line (and rotation geodesic) from T0 to T1."""
     rvec = rvec_from_R(T0[:3, :3].T @ T1[:3, :3])
     return T_from_Rt(T0[:3, :3] @ R_from_rvec(s * rvec), (1 - s) * T0[:3, 3] + s * T1[:3, 3])
@@ -342,15 +342,13 @@ class SimulatedUR:
             T[:3, :3] = T[:3, :3] @ dR
         return T
 
-    def _check_line(self, T0: np.ndarray, T1: np.ndarray) -> list[np.ndarray]:
-        """Joint vectors along the line T0 -> T1; raise ``HardwareFault`` naming a bad pose."""
-        length = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
-        angle = float(np.linalg.norm(rvec_from_R(T0[:3, :3].T @ T1[:3, :3])))
-        n = max(1, int(np.ceil(length / STEP_M)), int(np.ceil(angle / STEP_RAD)))
+    def _check_line(self, T0: np.ndarray, T1: np.ndarray, n: int) -> list[np.ndarray]:
+        """Joint vectors at ``n`` steps along the line T0 -> T1; raise ``HardwareFault`` naming a
+        bad pose."""
         q_prev = self._q
         qs = []
         for k in range(1, n + 1):
-            T = _interpolate(T0, T1, k / n)
+            T = interpolate_pose(T0, T1, k / n)
             where = f"pose {_describe(T)} ({k}/{n} along the move to {_describe(T1)})"
             if self.z_min_m is not None and T[2, 3] < self.z_min_m:
                 raise HardwareFault(
@@ -390,9 +388,10 @@ class SimulatedUR:
         if T1.shape != (4, 4) or not np.all(np.isfinite(T1)):
             raise InputError(f"move_linear needs a finite 4x4 T_base_tool, got shape {T1.shape}")
         T0 = self._T
-        qs = self._check_line(T0, T1)
         length = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
         angle = float(np.linalg.norm(rvec_from_R(T0[:3, :3].T @ T1[:3, :3])))
+        n = max(1, int(np.ceil(length / STEP_M)), int(np.ceil(angle / STEP_RAD)))
+        qs = self._check_line(T0, T1, n)
         duration = max(
             trapezoid_time_s(length, speed_mps, accel_mps2),
             trapezoid_time_s(angle, self.max_angular_speed_rad_s, self.max_angular_accel_rad_s2),

@@ -190,9 +190,7 @@ def robot_poses(
     ``T_tool_board`` (the displacement is then a board motion)."""
     out = []
     for T in group.T_board:
-        T_board_cam = np.eye(4)
-        T_board_cam[:3, :3] = group.R_cam_board.T
-        T_board_cam[:3, 3] = group.C0 + T
+        T_board_cam = T_from_Rt(group.R_cam_board.T, group.C0 + T)
         if mount == "eye_in_hand":
             out.append(T_base_fixed @ T_board_cam @ np.linalg.inv(T_tool_x))
         else:
@@ -365,10 +363,9 @@ class StereoScene:
 
     def homographies(self) -> tuple[np.ndarray, np.ndarray]:
         """True plane-to-pixel homographies (n, 3, 3) of the left and the right camera."""
-        pairs = [
-            self._pair(R, t) for R, t in zip(self.R_right_board, self.t_right_board, strict=True)
-        ]
-        return np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
+        views = zip(self.R_right_board, self.t_right_board, strict=True)
+        left, right = zip(*(self._pair(R, t) for R, t in views), strict=True)
+        return np.array(left), np.array(right)
 
     def translated(
         self, views: Sequence[int], steps_board: np.ndarray

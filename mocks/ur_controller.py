@@ -22,6 +22,7 @@ import numpy as np
 
 from slidecal.drivers import ur_kinematics as urk
 from slidecal.drivers.ur_pose import T_from_ur_pose, ur_pose_from_T
+from slidecal.mocks.robot import interpolate_pose
 from slidecal.solver.geometry import R_from_rvec, inv_T, rvec_from_R
 
 HOST = "127.0.0.1"
@@ -341,21 +342,13 @@ class Robot:
         slider = max(self.speed_slider, 1e-3)
         duration = max(dist / max(speed_mps, 1e-3), float(np.linalg.norm(rvec)) / 1.0,
                        0.02) / slider
-        self.motion = {"T0": T0, "T1": T_target, "rvec": rvec,
+        self.motion = {"T0": T0, "T1": T_target,
                        "t_start": time.monotonic() + MOTION_LATENCY_S,
                        "duration": duration, "blocking": blocking,
                        "fault": self.next_move_fault}
         self.next_move_fault = None
         dt_tcp = (T_target[:3, 3] - T0[:3, 3]) / duration
         self.motion["speed"] = np.concatenate([dt_tcp, T0[:3, :3] @ rvec / duration])
-
-    def _pose_at(self, s: float) -> np.ndarray:
-        m = self.motion
-        assert m is not None
-        T = np.eye(4)
-        T[:3, :3] = m["T0"][:3, :3] @ R_from_rvec(s * m["rvec"])
-        T[:3, 3] = (1 - s) * m["T0"][:3, 3] + s * m["T1"][:3, 3]
-        return T
 
     def _set_flange(self, T: np.ndarray) -> None:
         self.T_base_flange = T
@@ -373,7 +366,7 @@ class Robot:
         self.speed = m["speed"]
         s = min(1.0, (now - m["t_start"]) / m["duration"])
         if m["fault"] and s >= 0.5:
-            self._set_flange(self._pose_at(0.5))
+            self._set_flange(interpolate_pose(m["T0"], m["T1"], 0.5))
             fault = m["fault"]
             if fault == "stall":
                 m["fault"], m["t_start"], m["duration"] = None, np.inf, 1.0
@@ -391,7 +384,7 @@ class Robot:
         if m["t_start"] == np.inf:
             return  # stalled: never arrives
 
-        self._set_flange(self._pose_at(s))
+        self._set_flange(interpolate_pose(m["T0"], m["T1"], s))
         if s >= 1.0:
             self._stop_motion()
             if m["blocking"] and self.runtime_state == RUNTIME_PLAYING:
