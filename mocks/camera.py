@@ -75,7 +75,6 @@ def single_camera(name: str = "cam", **overrides: float | bool | Photo) -> SimCa
 def oak_d_like(**overrides: float | bool | Photo) -> list[SimCamera]:
     """An OAK-D-like head: mono "left", "right" (1280 x 800) and colour "rgb" (1920 x 1080); keyword
     overrides (blur, noise, exposure) apply to all three."""
-    mono = dict(overrides)
     rgb = {**overrides, "colour": True}
     return [
         SimCamera(
@@ -84,7 +83,7 @@ def oak_d_like(**overrides: float | bool | Photo) -> list[SimCamera]:
             800,
             K_matrix(881.2, 880.6, 643.1, 401.7),
             np.array([-0.052, 0.021, 2e-4, -1e-4, 0.0]),
-            **mono,
+            **overrides,
         ),
         SimCamera(
             "right",
@@ -92,7 +91,7 @@ def oak_d_like(**overrides: float | bool | Photo) -> list[SimCamera]:
             800,
             K_matrix(879.8, 879.5, 636.4, 398.9),
             np.array([-0.049, 0.018, -1e-4, 3e-4, 0.0]),
-            **mono,
+            **overrides,
         ),
         SimCamera(
             "rgb",
