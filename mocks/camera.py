@@ -75,7 +75,6 @@ def single_camera(name: str = "cam", **overrides: float | bool | Photo) -> SimCa
 def oak_d_like(**overrides: float | bool | Photo) -> list[SimCamera]:
     """An OAK-D-like head: mono "left", "right" (1280 x 800) and colour "rgb" (1920 x 1080); keyword
     overrides (blur, noise, exposure) apply to all three."""
-    mono = dict(overrides)
     rgb = {**overrides, "colour": True}
     return [
         SimCamera(
@@ -84,7 +83,7 @@ def oak_d_like(**overrides: float | bool | Photo) -> list[SimCamera]:
             800,
             K_matrix(881.2, 880.6, 643.1, 401.7),
             np.array([-0.052, 0.021, 2e-4, -1e-4, 0.0]),
-            **mono,
+            **overrides,
         ),
         SimCamera(
             "right",
@@ -92,7 +91,7 @@ def oak_d_like(**overrides: float | bool | Photo) -> list[SimCamera]:
             800,
             K_matrix(879.8, 879.5, 636.4, 398.9),
             np.array([-0.049, 0.018, -1e-4, 3e-4, 0.0]),
-            **mono,
+            **overrides,
         ),
         SimCamera(
             "rgb",
@@ -120,12 +119,6 @@ def oak_d_like_extrinsics() -> dict[str, np.ndarray]:
 
 
 @dataclass
-class _Fault:
-    kind: str
-    at_capture: int
-
-
-@dataclass
 class SimulatedCameraRig:
     """A ``CameraRig`` of simulated cameras looking at ``target``: ``poses()`` gives each camera's
     true ``T_<camera>_board`` (4, 4) m, ``capture()`` renders there and keeps them in
@@ -140,7 +133,7 @@ class SimulatedCameraRig:
     is_open: bool = False
     capture_count: int = 0
     last_poses: dict[str, np.ndarray] = field(default_factory=dict)
-    _faults: list[_Fault] = field(default_factory=list)
+    _faults: list[tuple[str, int]] = field(default_factory=list)  # (kind, at capture)
     _disconnected: bool = False
     _lost: bool = False
 
@@ -170,7 +163,7 @@ class SimulatedCameraRig:
         one, ``"disconnect"`` every one until the rig is reopened, ``"lost"`` for good."""
         if kind not in FAULT_KINDS:
             raise InputError(f"unknown fault {kind!r}; use one of {FAULT_KINDS}")
-        self._faults.append(_Fault(kind, int(at_capture)))
+        self._faults.append((kind, int(at_capture)))
 
     def capture(self) -> dict[str, np.ndarray]:
         """One synchronised set of images by camera name (uint8 grey, or BGR for colour)."""
@@ -178,11 +171,11 @@ class SimulatedCameraRig:
             raise HardwareFault("capture() on a closed camera rig: call open() first")
         index = self.capture_count
         self.capture_count += 1
-        for f in self._faults:
-            if f.at_capture == index:
-                if f.kind in ("disconnect", "lost"):
+        for kind, at_capture in self._faults:
+            if at_capture == index:
+                if kind in ("disconnect", "lost"):
                     self._disconnected = True
-                    self._lost = self._lost or f.kind == "lost"
+                    self._lost = self._lost or kind == "lost"
                 else:
                     names = [c.name for c in self.cameras]
                     raise HardwareFault(

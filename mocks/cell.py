@@ -176,19 +176,13 @@ class SimulatedCell:
             dR = R_from_rvec(jr.normal(0.0, np.radians(sim.target_jitter_deg), 3))
             dt = jr.normal(0.0, sim.target_jitter_mm / 1000.0, 3)
             T_tg = T_tg @ T_from_Rt(dR, dt)
-        if cfg.mount == "eye_in_hand":
-            T_ref_tool = inv_T(T_he)
+        T_ref_x = inv_T(T_he)  # T_ref_tool eye-in-hand, T_ref_base eye-to-hand
+        eye_in_hand = cfg.mount == "eye_in_hand"
 
-            def poses() -> dict[str, np.ndarray]:
-                T_ref_board = T_ref_tool @ inv_T(robot.true_pose()) @ T_tg
-                return {n: T @ T_ref_board for n, T in T_cam_ref.items()}
-
-        else:
-            T_ref_base = inv_T(T_he)
-
-            def poses() -> dict[str, np.ndarray]:
-                T_ref_board = T_ref_base @ robot.true_pose() @ T_tg
-                return {n: T @ T_ref_board for n, T in T_cam_ref.items()}
+        def poses() -> dict[str, np.ndarray]:
+            T_bt = robot.true_pose()
+            T_ref_board = T_ref_x @ (inv_T(T_bt) if eye_in_hand else T_bt) @ T_tg
+            return {n: T @ T_ref_board for n, T in T_cam_ref.items()}
 
         bow_m = (sim.board_bow_mm[0] / 1000.0, sim.board_bow_mm[1] / 1000.0)
         rig = SimulatedCameraRig(

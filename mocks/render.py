@@ -381,13 +381,8 @@ def _bowed_hits(
 
 def _pick_texels_per_square(target: Target, texel_min_m: float) -> int:
     """The finest texture level whose texel is at least ``texel_min_m``."""
-    if not np.isfinite(texel_min_m):
-        return TEXELS_PER_SQUARE[0]
-    best = TEXELS_PER_SQUARE[0]
-    for tps in TEXELS_PER_SQUARE:
-        if unit_m(target) / tps >= texel_min_m:
-            best = tps
-    return best
+    fine_enough = [tps for tps in TEXELS_PER_SQUARE if unit_m(target) / tps >= texel_min_m]
+    return fine_enough[-1] if fine_enough else TEXELS_PER_SQUARE[0]
 
 
 def _sensor(

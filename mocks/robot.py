@@ -24,6 +24,13 @@ STEP_RAD = np.radians(1.0)
 #: Largest joint change between two such samples before the path is discontinuous (a branch flip).
 MAX_JOINT_STEP_RAD = 0.2
 
+#: The move limits that must be positive (``SimulatedUR``'s arguments, the cell's ``limits:``).
+SPEED_LIMITS = (
+    "max_speed_mps",
+    "max_accel_mps2",
+    "max_angular_speed_deg_s",
+    "max_angular_accel_deg_s2",
+)
 FAULT_KINDS = ("protective_stop", "emergency_stop", "disconnect", "timeout")
 #: Cycles per joint turn of the simulated gearboxes' transmission error (a 12 deg period).
 GEAR_CYCLES = 30.0
@@ -40,7 +47,7 @@ def trapezoid_time_s(distance: float, max_speed: float, max_accel: float) -> flo
     return d / max_speed + max_speed / max_accel
 
 
-def _interpolate(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
+def interpolate_pose(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
     """Pose a fraction ``s`` along the straight line (and rotation geodesic) from T0 to T1."""
     rvec = rvec_from_R(T0[:3, :3].T @ T1[:3, :3])
     return T_from_Rt(T0[:3, :3] @ R_from_rvec(s * rvec), (1 - s) * T0[:3, 3] + s * T1[:3, 3])
@@ -111,6 +118,11 @@ class KinematicError:
             + self.gear_rad * np.sin(GEAR_CYCLES * q + self.gear_phase)
         )
 
+    def stop_error(self, rng: np.random.Generator) -> np.ndarray:
+        """One stop's random repeatability error (4, 4): the true pose is ``fk(q) @`` it."""
+        dR = R_from_rvec(rng.normal(0.0, np.radians(self.repeatability_deg), 3))
+        return T_from_Rt(dR, rng.normal(0.0, self.repeatability_m, 3))
+
     def fk(
         self, q: np.ndarray, model: urk.URModel, T_flange_tcp: np.ndarray | None = None
     ) -> np.ndarray:
@@ -164,12 +176,8 @@ class SimulatedUR:
         move_timeout_s: float = 30.0,
         kinematic_error: KinematicError | None = None,
     ) -> None:
-        for name, value in (
-            ("max_speed_mps", max_speed_mps),
-            ("max_accel_mps2", max_accel_mps2),
-            ("max_angular_speed_deg_s", max_angular_speed_deg_s),
-            ("max_angular_accel_deg_s2", max_angular_accel_deg_s2),
-        ):
+        speeds = (max_speed_mps, max_accel_mps2, max_angular_speed_deg_s, max_angular_accel_deg_s2)
+        for name, value in zip(SPEED_LIMITS, speeds, strict=True):
             if not value > 0:
                 raise InputError(f"{name} must be positive, got {value}")
         if pose_noise_m < 0 or pose_noise_deg < 0:
@@ -223,20 +231,9 @@ class SimulatedUR:
         T_flange_tcp = T_from_ur_pose(cell["tcp"]) if cell.get("tcp") is not None else None
         limits = dict(cell.get("limits") or {})
         noise = dict(cell.get("noise") or {})
-        kw: dict[str, Any] = {}
-        for key in (
-            "max_speed_mps",
-            "max_accel_mps2",
-            "max_angular_speed_deg_s",
-            "max_angular_accel_deg_s2",
-            "z_min_m",
-            "move_timeout_s",
-        ):
-            if key in limits:
-                kw[key] = limits.pop(key)
-        for key in ("pose_noise_m", "pose_noise_deg"):
-            if key in noise:
-                kw[key] = float(noise.pop(key))
+        limit_keys = (*SPEED_LIMITS, "z_min_m", "move_timeout_s")
+        kw: dict[str, Any] = {k: limits.pop(k) for k in limit_keys if k in limits}
+        kw |= {k: float(noise.pop(k)) for k in ("pose_noise_m", "pose_noise_deg") if k in noise}
         if limits or noise:
             raise InputError(f"unknown key(s) {sorted(limits) + sorted(noise)}", where="robot")
         if cell.get("start_q") is not None:
@@ -264,10 +261,8 @@ class SimulatedUR:
         ke = cell.get("kinematic_error")
         if ke is not None:
             ke = dict(ke)
-            sizes = {}
-            for key in ("mm", "deg", "repeatability_mm", "repeatability_deg"):
-                if key in ke:
-                    sizes[key] = float(ke.pop(key))
+            size_keys = ("mm", "deg", "repeatability_mm", "repeatability_deg")
+            sizes = {k: float(ke.pop(k)) for k in size_keys if k in ke}
             if ke:
                 raise InputError(
                     f"unknown key(s) {sorted(ke)}; kinematic_error takes mm, deg, "
@@ -288,10 +283,8 @@ class SimulatedUR:
     def _new_stop(self) -> None:
         """Draw the repeatability error of the stop just reached."""
         ke = self.kinematic_error
-        if ke is None or (ke.repeatability_m == 0 and ke.repeatability_deg == 0):
-            return
-        dR = R_from_rvec(self.rng.normal(0.0, np.radians(ke.repeatability_deg), 3))
-        self._stop_error = T_from_Rt(dR, self.rng.normal(0.0, ke.repeatability_m, 3))
+        if ke is not None and (ke.repeatability_m != 0 or ke.repeatability_deg != 0):
+            self._stop_error = ke.stop_error(self.rng)
 
     @property
     def q(self) -> np.ndarray:
@@ -349,15 +342,13 @@ class SimulatedUR:
             T[:3, :3] = T[:3, :3] @ dR
         return T
 
-    def _check_line(self, T0: np.ndarray, T1: np.ndarray) -> list[np.ndarray]:
-        """Joint vectors along the line T0 -> T1; raise ``HardwareFault`` naming a bad pose."""
-        length = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
-        angle = float(np.linalg.norm(rvec_from_R(T0[:3, :3].T @ T1[:3, :3])))
-        n = max(1, int(np.ceil(length / STEP_M)), int(np.ceil(angle / STEP_RAD)))
+    def _check_line(self, T0: np.ndarray, T1: np.ndarray, n: int) -> list[np.ndarray]:
+        """Joint vectors at ``n`` steps along the line T0 -> T1; raise ``HardwareFault`` naming a
+        bad pose."""
         q_prev = self._q
         qs = []
         for k in range(1, n + 1):
-            T = _interpolate(T0, T1, k / n)
+            T = interpolate_pose(T0, T1, k / n)
             where = f"pose {_describe(T)} ({k}/{n} along the move to {_describe(T1)})"
             if self.z_min_m is not None and T[2, 3] < self.z_min_m:
                 raise HardwareFault(
@@ -397,9 +388,10 @@ class SimulatedUR:
         if T1.shape != (4, 4) or not np.all(np.isfinite(T1)):
             raise InputError(f"move_linear needs a finite 4x4 T_base_tool, got shape {T1.shape}")
         T0 = self._T
-        qs = self._check_line(T0, T1)
         length = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
         angle = float(np.linalg.norm(rvec_from_R(T0[:3, :3].T @ T1[:3, :3])))
+        n = max(1, int(np.ceil(length / STEP_M)), int(np.ceil(angle / STEP_RAD)))
+        qs = self._check_line(T0, T1, n)
         duration = max(
             trapezoid_time_s(length, speed_mps, accel_mps2),
             trapezoid_time_s(angle, self.max_angular_speed_rad_s, self.max_angular_accel_rad_s2),

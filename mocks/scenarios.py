@@ -19,9 +19,10 @@ import numpy as np
 import yaml
 
 from slidecal.drivers import ur_kinematics as urk
+from slidecal.mocks import cell
 from slidecal.mocks.camera import oak_d_like, oak_d_like_extrinsics, single_camera
-from slidecal.mocks.cell import SimulatedCell
 from slidecal.mocks.render import render_target
+from slidecal.mocks.robot import KinematicError
 from slidecal.solver.camera import K_matrix, project
 from slidecal.solver.detect import detect as detect_target
 from slidecal.solver.errors import InputError
@@ -45,6 +46,7 @@ from slidecal.solver.problem import (
     ModelOptions,
     Target,
 )
+from slidecal.solver.target_shape import PRINT_TOLERANCE, default_flatness_m, shape_modes
 
 #: An image model: what a camera finds of the board at ``T_cam_board`` (4, 4), drawing noise
 #: from the generator, the board bowed by ``bow_m`` (2,) (metres, ``solver/target_shape.py``'s
@@ -89,11 +91,6 @@ def board_xy(nx: int = 9, ny: int = 7, pitch: float = 5.0) -> np.ndarray:
     y = (np.arange(ny) - (ny - 1) / 2) * pitch
     X, Y = np.meshgrid(x, y)
     return np.column_stack([X.ravel(), Y.ravel()])
-
-
-def paper_grid() -> Target:
-    """S1-S4's target: 9 x 7 points, pitch 5 l.u., centred on the board origin."""
-    return Target.points(board_xy())
 
 
 def tilt_R(ax_deg: float = 0.0, ay_deg: float = 0.0, order: str = "xy") -> np.ndarray:
@@ -193,9 +190,7 @@ def robot_poses(
     ``T_tool_board`` (the displacement is then a board motion)."""
     out = []
     for T in group.T_board:
-        T_board_cam = np.eye(4)
-        T_board_cam[:3, :3] = group.R_cam_board.T
-        T_board_cam[:3, 3] = group.C0 + T
+        T_board_cam = T_from_Rt(group.R_cam_board.T, group.C0 + T)
         if mount == "eye_in_hand":
             out.append(T_base_fixed @ T_board_cam @ np.linalg.inv(T_tool_x))
         else:
@@ -228,7 +223,7 @@ def projected_detection(
     return Detection(ids, px[ids] + rng.normal(0.0, sigma_px, (len(ids), 2)))
 
 
-def _board_frame_scenario(
+def _paper_scenario(
     K: np.ndarray,
     R_cam_board: np.ndarray,
     centres: np.ndarray,
@@ -239,57 +234,42 @@ def _board_frame_scenario(
     presumed: np.ndarray | None = None,
 ) -> Scenario:
     """One orientation group; camera centres (n, 3) in the board frame, frame 0 the reference;
-    ``presumed`` (n, 3): the motion the solver is told (default: the true one)."""
-    target = paper_grid()
+    ``presumed`` (n, 3): the centres the solver is told (default: the true ones). ``knowledge``
+    "robot": known translations in an unknown robot frame (Case 1 and its generalisation), the
+    base the board frame turned arbitrarily, the tool the camera; else motions in the board
+    frame."""
+    target = Target.points(board_xy())  # 9 x 7 points, pitch 5 l.u., centred on the origin
     dist = np.zeros(5)
-    moves = centres - centres[0] if presumed is None else presumed - presumed[0]
-    frames = []
-    Ts = []
-    for k, C in enumerate(centres):
-        T = T_from_Rt(R_cam_board, -R_cam_board @ C)
-        Ts.append(T)
-        det = projected_detection(K, dist, T, target, PAPER_SIZE_PX, sigma_px, rng)
-        m = moves[k]
-        if knowledge == "board_direction":
-            m = m / np.linalg.norm(m) if np.linalg.norm(m) > 0 else np.zeros(3)
-        frames.append(Frame(k, {"cam": det}, motion_board=m, group=0))
-    problem = CalibrationProblem(
-        target, (CameraSpec("cam", *PAPER_SIZE_PX),), tuple(frames), "none", knowledge, options
-    )
-    s = np.array([np.linalg.norm(c - centres[0]) for c in centres])
-    truth = ModelState({"cam": K}, {"cam": dist}, {}, np.stack([Ts[0]]), np.eye(4), s)
-    return Scenario(problem, truth, sigma_px)
-
-
-def _robot_translation_scenario(
-    K: np.ndarray,
-    R_cam_board: np.ndarray,
-    centres: np.ndarray,
-    options: ModelOptions,
-    sigma_px: float,
-    rng: np.random.Generator,
-    presumed: np.ndarray | None = None,
-) -> Scenario:
-    """Known translations in an unknown robot frame (Case 1 and its generalisation): the base is the
-    board frame turned arbitrarily, the tool is the camera."""
-    target = paper_grid()
-    dist = np.zeros(5)
-    R_base_board = R_from_rvec(np.array([0.3, -0.2, 0.5]))
-    T_base_board = T_from_Rt(R_base_board, np.array([10.0, -20.0, 5.0]))
     told = centres if presumed is None else presumed
+    robot = knowledge == "robot"
+    T_base_board = T_from_Rt(R_from_rvec(np.array([0.3, -0.2, 0.5])), np.array([10.0, -20.0, 5.0]))
     frames = []
     for k, C in enumerate(centres):
         T_cam_board = T_from_Rt(R_cam_board, -R_cam_board @ C)
         det = projected_detection(K, dist, T_cam_board, target, PAPER_SIZE_PX, sigma_px, rng)
-        T_base_cam_told = T_base_board @ inv_T(T_from_Rt(R_cam_board, -R_cam_board @ told[k]))
-        frames.append(Frame(k, {"cam": det}, T_base_tool=T_base_cam_told))
+        if robot:
+            T_base_cam_told = T_base_board @ inv_T(T_from_Rt(R_cam_board, -R_cam_board @ told[k]))
+            frames.append(Frame(k, {"cam": det}, T_base_tool=T_base_cam_told))
+            continue
+        m = told[k] - told[0]
+        if knowledge == "board_direction":
+            m = m / np.linalg.norm(m) if np.linalg.norm(m) > 0 else np.zeros(3)
+        frames.append(Frame(k, {"cam": det}, motion_board=m, group=0))
     problem = CalibrationProblem(
-        target, (CameraSpec("cam", *PAPER_SIZE_PX),), tuple(frames), "eye_in_hand", "robot", options
+        target,
+        (CameraSpec("cam", *PAPER_SIZE_PX),),
+        tuple(frames),
+        "eye_in_hand" if robot else "none",
+        knowledge,
+        options,
     )
-    truth = ModelState(
-        {"cam": K}, {"cam": dist}, {}, np.eye(4)[None], T_base_board, np.zeros(len(centres))
-    )
-    return Scenario(problem, truth, sigma_px, np.eye(4), T_base_board)
+    cam = ({"cam": K}, {"cam": dist}, {})
+    if robot:
+        truth = ModelState(*cam, np.eye(4)[None], T_base_board, np.zeros(len(centres)))
+        return Scenario(problem, truth, sigma_px, np.eye(4), T_base_board)
+    s = np.array([np.linalg.norm(c - centres[0]) for c in centres])
+    T_cam_board_0 = T_from_Rt(R_cam_board, -R_cam_board @ centres[0])
+    return Scenario(problem, ModelState(*cam, T_cam_board_0[None], np.eye(4), s), sigma_px)
 
 
 def s1(
@@ -307,7 +287,7 @@ def s1(
     centres = C0 + steps * (1.0 + step_error) * axis
     presumed = C0 + steps * axis
     opts = ModelOptions(unit_aspect=True, distortion=NO_DISTORTION)
-    return _robot_translation_scenario(K_S1, R, centres, opts, sigma_px, rng, presumed)
+    return _paper_scenario(K_S1, R, centres, "robot", opts, sigma_px, rng, presumed)
 
 
 def s2(n_images: int, sigma_px: float, rng: np.random.Generator, phi_deg: float = 0.0) -> Scenario:
@@ -319,7 +299,7 @@ def s2(n_images: int, sigma_px: float, rng: np.random.Generator, phi_deg: float 
     real = Rx(np.radians(phi_deg)) @ normal
     steps = np.arange(n_images)[:, None] * 5.0
     opts = ModelOptions(distortion=NO_DISTORTION)
-    return _board_frame_scenario(
+    return _paper_scenario(
         K_S2,
         R,
         C0 + steps * real,
@@ -337,7 +317,7 @@ def s3(n_images: int, sigma_px: float, rng: np.random.Generator) -> Scenario:
     normal = np.array([0.0, 0.0, 1.0]) * np.sign(-C0[2])
     centres = C0 + np.arange(n_images)[:, None] * 5.0 * normal
     opts = ModelOptions(skew=True, distortion=NO_DISTORTION)
-    return _board_frame_scenario(K_S2, R, centres, "board_translation", opts, sigma_px, rng)
+    return _paper_scenario(K_S2, R, centres, "board_translation", opts, sigma_px, rng)
 
 
 # -- S5: a stereo head (paper Figs. 7-9) --------------------------------------------------------
@@ -346,11 +326,6 @@ S5_K_RIGHT = K_matrix(400.0, 400.0, 150.0, 120.0)
 # X_left = R X_right + t (docs/SETUPS.md S5): T_left_right, l.u.
 S5_T_LEFT_RIGHT = T_from_Rt(R_from_rvec(np.radians([0.0, 5.0, 0.0])), np.array([-20.0, 0.0, 0.0]))
 S5_VIEWS_DEG = ((20, 0, 0), (0, 20, 0), (-20, -20, 0), (15, -15, 10), (-10, 25, -5), (25, 10, 5))
-
-
-def s5_grid() -> Target:
-    """S5's target: 14 x 10 points, pitch 5 l.u., centred on the board origin."""
-    return Target.points(board_xy(14, 10))
 
 
 def s5_T_right_board() -> np.ndarray:
@@ -388,10 +363,9 @@ class StereoScene:
 
     def homographies(self) -> tuple[np.ndarray, np.ndarray]:
         """True plane-to-pixel homographies (n, 3, 3) of the left and the right camera."""
-        pairs = [
-            self._pair(R, t) for R, t in zip(self.R_right_board, self.t_right_board, strict=True)
-        ]
-        return np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
+        views = zip(self.R_right_board, self.t_right_board, strict=True)
+        left, right = zip(*(self._pair(R, t) for R, t in views), strict=True)
+        return np.array(left), np.array(right)
 
     def translated(
         self, views: Sequence[int], steps_board: np.ndarray
@@ -436,7 +410,7 @@ def s5_rig(
     """S5 as a general-motion rig problem (knowledge and mount "none", reference "right"):
     ``sigma_px`` the right camera's noise, ``left_factor`` times it the left's; zero skew, no
     distortion; points outside the 300 x 240 images not detected."""
-    target = s5_grid()
+    target = Target.points(board_xy(14, 10))
     Ts = s5_T_right_board()
     sig = {"left": left_factor * sigma_px, "right": sigma_px}
     K = {"left": S5_K_LEFT, "right": S5_K_RIGHT}
@@ -472,8 +446,7 @@ def s5_rig(
 
 # -- R1: a UR5e-class cell, eye-in-hand or eye-to-hand ------------------------------------------
 R1_SIZE_PX = (1280, 800)
-R1_K = K_matrix(880.0, 880.0, 640.0, 400.0)
-R1_DIST = np.array([-0.12, 0.05, 5e-4, -3e-4, 0.0])
+R1_K, R1_DIST = single_camera().K, single_camera().dist
 R1_T_TOOL_CAM = T_from_Rt(
     R_from_rvec(np.radians([1.5, -2.0, 90.0])), np.array([0.035, -0.06, 0.09])
 )
@@ -545,7 +518,6 @@ def r1_scenario(
     sigma_px: float,
     T_base_board: np.ndarray,
     dist: np.ndarray = R1_DIST,
-    size: tuple[int, int] = R1_SIZE_PX,
     T_base_tool_true: np.ndarray | None = None,
     T_tool_board: np.ndarray = R1_T_TOOL_BOARD,
 ) -> Scenario:
@@ -554,7 +526,7 @@ def r1_scenario(
     target on the tool at ``T_tool_board`` eye-to-hand)."""
     problem = CalibrationProblem(
         target,
-        (CameraSpec("cam", *size),),
+        (CameraSpec("cam", *R1_SIZE_PX),),
         tuple(frames),
         "eye_in_hand" if eye_in_hand else "eye_to_hand",
         "robot",
@@ -573,30 +545,33 @@ def r1_scenario(
     return Scenario(problem, truth, sigma_px, T_hand_eye, T_target, T_base_tool_true)
 
 
-def _r1_cell(
-    rng: np.random.Generator,
-    sigma_px: float,
-    robot_noise_m: float,
-    robot_noise_deg: float,
-    options: ModelOptions | None,
+def _tool_pose(
+    T_cam_board: np.ndarray,
+    T_base_board: np.ndarray,
     eye_in_hand: bool,
-) -> Scenario:
-    """R1's camera-board poses, with the camera on the tool or fixed in the cell."""
-    target = r1_target()
-    T_base_board, poses = r1_poses()
-    frames = []
-    for k, T_bt in enumerate(poses):
-        T_cam_board = inv_T(T_bt @ R1_T_TOOL_CAM) @ T_base_board
-        # eye-to-hand: the same camera-board poses, the board moving with the tool
-        T_base_tool = (
-            T_bt if eye_in_hand else (R1_T_BASE_CAM @ T_cam_board @ inv_T(R1_T_TOOL_BOARD))
-        )
-        det = projected_detection(
-            R1_K, R1_DIST, T_cam_board, target, R1_SIZE_PX, sigma_px, rng, 2.0
-        )
-        measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
-        frames.append(Frame(k, {"cam": det}, T_base_tool=measured))
-    return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board)
+    T_tool_board: np.ndarray = R1_T_TOOL_BOARD,
+) -> np.ndarray:
+    """The ``T_base_tool`` putting R1's camera at ``T_cam_board``: on the tool, the board at
+    ``T_base_board``; or fixed at ``R1_T_BASE_CAM``, the board on the tool at ``T_tool_board``."""
+    if eye_in_hand:
+        return T_base_board @ inv_T(T_cam_board) @ inv_T(R1_T_TOOL_CAM)
+    return R1_T_BASE_CAM @ T_cam_board @ inv_T(T_tool_board)
+
+
+def _r1_detection(
+    T_cam_board: np.ndarray,
+    target: Target,
+    sigma_px: float,
+    rng: np.random.Generator,
+    detect: ImageModel | None = None,
+    bow_m: np.ndarray | None = None,
+    dist: np.ndarray = R1_DIST,
+) -> Detection:
+    """What R1's camera finds of ``target`` at ``T_cam_board``: ``detect``'s image model, or the
+    projected points 2 px inside the image with ``sigma_px`` noise."""
+    if detect is not None:
+        return detect(T_cam_board, rng, np.zeros(2) if bow_m is None else bow_m)
+    return projected_detection(R1_K, dist, T_cam_board, target, R1_SIZE_PX, sigma_px, rng, 2.0)
 
 
 def r1(
@@ -605,22 +580,22 @@ def r1(
     robot_noise_m: float = 5e-5,
     robot_noise_deg: float = 0.005,
     options: ModelOptions | None = None,
+    eye_in_hand: bool = True,
 ) -> Scenario:
     """R1 (docs/SETUPS.md): eye-in-hand UR5e-class cell, ChArUco 11 x 8 x 30 mm, 1280 x 800
-    camera with distortion, 4 tilt groups of 5 frames, robot poses measured with noise."""
-    return _r1_cell(rng, sigma_px, robot_noise_m, robot_noise_deg, options, True)
-
-
-def r1_eye_to_hand(
-    rng: np.random.Generator,
-    sigma_px: float = 0.15,
-    robot_noise_m: float = 5e-5,
-    robot_noise_deg: float = 0.005,
-    options: ModelOptions | None = None,
-) -> Scenario:
-    """R1 mirrored: the camera fixed in the cell, the board on the tool. The camera-board poses
-    are R1's, so the tilt groups and translations carry over (the board moves, not the camera)."""
-    return _r1_cell(rng, sigma_px, robot_noise_m, robot_noise_deg, options, False)
+    camera with distortion, 4 tilt groups of 5 frames, robot poses measured with noise.
+    ``eye_in_hand`` False: R1 mirrored, the camera fixed in the cell and the board on the tool;
+    the camera-board poses are R1's, so the tilt groups and translations carry over."""
+    target = r1_target()
+    T_base_board, poses = r1_poses()
+    frames = []
+    for k, T_bt in enumerate(poses):
+        T_cam_board = inv_T(T_bt @ R1_T_TOOL_CAM) @ T_base_board
+        T_base_tool = T_bt if eye_in_hand else _tool_pose(T_cam_board, T_base_board, False)
+        det = _r1_detection(T_cam_board, target, sigma_px, rng)
+        measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
+        frames.append(Frame(k, {"cam": det}, T_base_tool=measured))
+    return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board)
 
 
 # -- a real arm: systematic kinematic error (REALITY: accuracy is not repeatability) ------------
@@ -648,8 +623,6 @@ def real_arm_poses(
     puts the tool for ``planned`` ``T_base_tool`` (F, 4, 4), plus each stop's repeatability error.
     Each pose's joints are the solution nearest the previous pose's, from the configuration a walk
     from ``Q_HOME`` ends in, so every frame stands on one configuration."""
-    from slidecal.mocks.robot import KinematicError
-
     ke = KinematicError.random(rng, arm_mm, arm_deg, repeatability_mm, repeatability_deg)
     out = np.empty_like(planned)
     q_prev = urk.Q_HOME
@@ -662,9 +635,7 @@ def real_arm_poses(
             q_prev = sols[0]
             joints.append(q_prev)
     for k, q in enumerate(joints):
-        dR = R_from_rvec(rng.normal(0.0, np.radians(repeatability_deg), 3))
-        stop = T_from_Rt(dR, rng.normal(0.0, repeatability_mm / 1000.0, 3))
-        out[k] = ke.fk(q, urk.UR5E) @ stop
+        out[k] = ke.fk(q, urk.UR5E) @ ke.stop_error(rng)
     return out
 
 
@@ -713,15 +684,10 @@ def r1_real_arm(
             R_base_cam @ (d / np.linalg.norm(d)) * length for d in dirs for length in (0.05, -0.07)
         ]
         poses = np.stack([base] + [T_from_Rt(base[:3, :3], base[:3, 3] + m) for m in moves])
-    if eye_in_hand:
-        planned = poses
-    else:  # the same camera-board poses, the board on the tool, the camera fixed
-        planned = np.stack(
-            [
-                R1_T_BASE_CAM @ inv_T(T @ R1_T_TOOL_CAM) @ T_base_board @ inv_T(R1_T_TOOL_BOARD)
-                for T in poses
-            ]
-        )
+    planned = poses
+    if not eye_in_hand:  # the same camera-board poses, the board on the tool, the camera fixed
+        T_cb = [inv_T(T @ R1_T_TOOL_CAM) @ T_base_board for T in poses]
+        planned = np.stack([_tool_pose(T, T_base_board, False) for T in T_cb])
     true = real_arm_poses(planned, rng, arm_mm, arm_deg)
     frames = _real_arm_frames(
         true, planned, T_base_board, eye_in_hand, sigma_px, rng, detect, target=seen, bow_m=bow
@@ -734,8 +700,6 @@ def r1_real_arm(
 def real_board_of(target: Target, rng: np.random.Generator) -> tuple[Target, Target, np.ndarray]:
     """A real board of ``target``'s description: (the target as a session describes it, with a real
     board's tolerance; the bowed board the camera sees; the bow (2,), metres)."""
-    from slidecal.solver.target_shape import PRINT_TOLERANCE, default_flatness_m, shape_modes
-
     flat = default_flatness_m(target.points_m)
     described = replace(target, flatness_m=flat, print_tolerance=PRINT_TOLERANCE)
     bow = rng.normal(0.0, flat, 2)
@@ -765,12 +729,7 @@ def _real_arm_frames(
             T_cam_board = inv_T(T_true @ R1_T_TOOL_CAM) @ T_base_board
         else:
             T_cam_board = inv_T(R1_T_BASE_CAM) @ T_true @ T_tool_board
-        if detect is None:
-            det = projected_detection(
-                R1_K, R1_DIST, T_cam_board, target, R1_SIZE_PX, sigma_px, rng, 2.0
-            )
-        else:
-            det = detect(T_cam_board, rng, np.zeros(2) if bow_m is None else bow_m)
+        det = _r1_detection(T_cam_board, target, sigma_px, rng, detect, bow_m)
         frames.append(Frame(k, {"cam": det}, T_base_tool=T_meas))
     return frames
 
@@ -783,11 +742,9 @@ def effective_truth(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The hand-eye and target pose ``(T_hand_eye, T_target)`` as the session can know them (over
     ``frames``, default all): :func:`slidecal.mocks.cell.effective_truth`."""
-    from slidecal.mocks.cell import effective_truth as _effective
-
     used = list(range(len(s.problem.frames)) if frames is None else frames)
     true = s.T_base_tool_true
-    T_he, T_tg = _effective(
+    return cell.effective_truth(
         s.problem.mount,
         true if true is None else true[used],
         [s.problem.frames[i].T_base_tool for i in used],
@@ -796,7 +753,6 @@ def effective_truth(
         sigma_rot_deg,
         sigma_mm,
     )
-    return T_he, T_tg
 
 
 # -- rigs on R1: the OAK-D-like head --------------------------------------------------------------
@@ -820,11 +776,7 @@ def oak_rig(
     cameras = tuple(cameras)
     if "left" not in cameras or any(c not in sims for c in cameras):
         raise InputError(f"cameras must include 'left' and be among {list(sims)}, got {cameras}")
-    sig = (
-        {c: float(sigma_px[c]) for c in cameras}
-        if isinstance(sigma_px, Mapping)
-        else {c: float(sigma_px) for c in cameras}
-    )
+    sig = {c: float(sigma_px[c] if isinstance(sigma_px, Mapping) else sigma_px) for c in cameras}
     extr = oak_d_like_extrinsics()
     T_tool_left = R1_T_TOOL_CAM @ T_from_Rt(Ry(np.radians(view_offset_deg)), np.zeros(3))
     target = r1_target()
@@ -970,20 +922,14 @@ def classic_real_arm(
     target = r1_target()
     S = _in_reach()
     T_base_board = S @ r1_poses()[0]
-
-    def planned_pose(T_cam_board: np.ndarray) -> np.ndarray:
-        if eye_in_hand:
-            return T_base_board @ inv_T(T_cam_board) @ inv_T(R1_T_TOOL_CAM)
-        return R1_T_BASE_CAM @ T_cam_board @ inv_T(R1_T_TOOL_BOARD)
-
     views: list[np.ndarray] = []
     while len(views) < n_frames:
         for T in camera_board_poses(rng, 2 * n_frames, target):
-            if _reachable(planned_pose(T)):
+            if _reachable(_tool_pose(T, T_base_board, eye_in_hand)):
                 views.append(T)
                 if len(views) == n_frames:
                     break
-    planned = np.stack([planned_pose(T) for T in views])
+    planned = np.stack([_tool_pose(T, T_base_board, eye_in_hand) for T in views])
     true = real_arm_poses(planned, rng, arm_mm, arm_deg)
     true[:, :3, 3] *= 1.0 + arm_scale
     frames = _real_arm_frames(true, planned, T_base_board, eye_in_hand, sigma_px, rng, detect)
@@ -1084,16 +1030,11 @@ def classic(
     T_base_board = r1_poses()[0]
     frames = []
     for k, T_c_b in enumerate(T_cb):
-        if eye_in_hand:
-            T_base_tool = T_base_board @ inv_T(T_c_b) @ inv_T(R1_T_TOOL_CAM)
-        else:
-            T_base_tool = R1_T_BASE_CAM @ T_c_b @ inv_T(R1_T_TOOL_BOARD)
-        det = projected_detection(R1_K, dist, T_c_b, target, R1_SIZE_PX, sigma_px, rng, 2.0)
+        T_base_tool = _tool_pose(T_c_b, T_base_board, eye_in_hand)
+        det = _r1_detection(T_c_b, target, sigma_px, rng, dist=dist)
         measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
         frames.append(Frame(k, {"cam": det}, T_base_tool=measured))
-    return r1_scenario(
-        target, frames, eye_in_hand, options, sigma_px, T_base_board, dist, R1_SIZE_PX
-    )
+    return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board, dist)
 
 
 def board_in_view(s: Scenario) -> np.ndarray:
@@ -1105,7 +1046,7 @@ def board_in_view(s: Scenario) -> np.ndarray:
 #: must return its truth to round-off (the pipeline's and the refinement's tests).
 NOISE_FREE: dict[str, Callable[[np.random.Generator], Scenario]] = {
     "R1": lambda rng: r1(rng, 0.0, 0.0, 0.0),
-    "R1-eye-to-hand": lambda rng: r1_eye_to_hand(rng, 0.0, 0.0, 0.0),
+    "R1-eye-to-hand": lambda rng: r1(rng, 0.0, 0.0, 0.0, eye_in_hand=False),
     "S1": lambda rng: s1(30.0, 0.0, rng),
     "S2": lambda rng: s2(5, 0.0, rng),
     "S3": lambda rng: s3(5, 0.0, rng),
@@ -1117,7 +1058,7 @@ def render_detector(sigma_px: float) -> ImageModel:
     """The ``render`` image model: R1's camera renders the board (bowed as the trial's board
     is), the detector finds it."""
     cam = single_camera()
-    target = Target.charuco(11, 8, 0.030, 0.022)
+    target = r1_target()
 
     def run(T_cam_board: np.ndarray, rng: np.random.Generator, bow_m: np.ndarray) -> Detection:
         image = render_target(target, cam, T_cam_board, rng, bow_m=(bow_m[0], bow_m[1]))
@@ -1163,12 +1104,7 @@ def drifting_arm(
         T_true = T_from_Rt(R_from_rvec(e) @ T[:3, :3], T[:3, 3] + rng.normal(0.0, 2e-5, 3))
         true.append(T_true)
         T_cam_board = inv_T(T_true @ R1_T_TOOL_CAM) @ base.T_target
-        if detect is None:
-            det = projected_detection(
-                R1_K, R1_DIST, T_cam_board, target, R1_SIZE_PX, sigma_px, rng, 2.0
-            )
-        else:
-            det = detect(T_cam_board, rng, np.zeros(2))
+        det = _r1_detection(T_cam_board, target, sigma_px, rng, detect)
         frames.append(Frame(k, {"cam": det}, T_base_tool=T))
     scenario = r1_scenario(
         target, frames, True, None, sigma_px, base.T_target, T_base_tool_true=np.stack(true)
@@ -1320,11 +1256,11 @@ def cell_overrides(fx_rel: float = 0.0, cx_px: float = 0.0, he_deg: float = 0.0)
     return {"simulation": sim}
 
 
-def same_cell(cfg, cell_seed: int, run_seed: int) -> SimulatedCell:  # noqa: ANN001
+def same_cell(cfg, cell_seed: int, run_seed: int) -> cell.SimulatedCell:  # noqa: ANN001
     """The simulated cell of ``cfg`` built with ``cell_seed`` (its arm's error and board pose), run
     with fresh noise from ``run_seed``: two runs of one cell."""
-    cell = SimulatedCell.from_config(cfg, cell_seed)
+    sim = cell.SimulatedCell.from_config(cfg, cell_seed)
     robot_rng, camera_rng = np.random.SeedSequence([cell_seed, run_seed]).spawn(2)
-    cell.robot.rng = np.random.default_rng(robot_rng)
-    cell.rig.rng = np.random.default_rng(camera_rng)
-    return cell
+    sim.robot.rng = np.random.default_rng(robot_rng)
+    sim.rig.rng = np.random.default_rng(camera_rng)
+    return sim

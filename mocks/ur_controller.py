@@ -22,6 +22,7 @@ import numpy as np
 
 from slidecal.drivers import ur_kinematics as urk
 from slidecal.drivers.ur_pose import T_from_ur_pose, ur_pose_from_T
+from slidecal.mocks.robot import interpolate_pose
 from slidecal.solver.geometry import R_from_rvec, inv_T, rvec_from_R
 
 HOST = "127.0.0.1"
@@ -44,6 +45,8 @@ MOTION_LATENCY_S = 0.03
 SAFETY_MODE_NAMES = {1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY",
                      5: "SAFEGUARD_STOP", 6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP",
                      8: "VIOLATION", 9: "FAULT"}
+#: The safety mode a ``pstop`` / ``estop`` move fault leaves and what the events call it.
+SAFETY_STOPS = {"pstop": (3, "protective stop"), "estop": (7, "robot emergency stop")}
 ROBOT_MODE_NAMES = {3: "POWER_OFF", 4: "POWER_ON", 5: "IDLE", 7: "RUNNING"}
 
 # RTDE message types
@@ -87,16 +90,16 @@ TYPES = {
 }
 
 
+#: An RTDE register's variable name.
+REGISTER = re.compile(r"(input|output)_(int|double)_register_(\d+)")
+
+
 def var_type(name: str) -> str:
     """The RTDE type of a variable name, ``NOT_FOUND`` when this fake does not know it."""
     if name in TYPES:
         return TYPES[name]
-    for prefix, kind in (("input_int_register_", "INT32"), ("output_int_register_", "INT32"),
-                         ("input_double_register_", "DOUBLE"),
-                         ("output_double_register_", "DOUBLE")):
-        if name.startswith(prefix) and name[len(prefix):].isdigit():
-            return kind
-    return "NOT_FOUND"
+    m = REGISTER.fullmatch(name)
+    return "NOT_FOUND" if m is None else "INT32" if m[2] == "int" else "DOUBLE"
 
 
 def message(kind: int, payload: bytes = b"") -> bytes:
@@ -175,8 +178,8 @@ class Robot:
 
     def fieldbus_has(self, name: str) -> bool:
         """Whether a fieldbus adapter holds this input register (the lower range 0-23)."""
-        m = re.fullmatch(r"input_(int|double)_register_(\d+)", name)
-        return self.fieldbus and m is not None and int(m.group(2)) < 24
+        m = REGISTER.fullmatch(name)
+        return self.fieldbus and m is not None and m[1] == "input" and int(m[3]) < 24
 
     def dashboard_has(self, command: str) -> bool:
         """Whether this PolyScope's dashboard server knows ``command``."""
@@ -209,14 +212,9 @@ class Robot:
             return STATUS_BIT_POWER_ON | (STATUS_BIT_PROGRAM_RUNNING if running else 0)
         if name == "joint_mode":
             return [253] * 6
-        if name.startswith("output_int_register_"):
-            return self.out_int.get(int(name.rsplit("_", 1)[1]) - self.reg_int, 0)
-        if name.startswith("output_double_register_"):
-            return self.out_double.get(int(name.rsplit("_", 1)[1]) - self.reg_float, 0.0)
-        if name.startswith("input_int_register_"):
-            return self.in_int.get(int(name.rsplit("_", 1)[1]) - self.reg_int, 0)
-        if name.startswith("input_double_register_"):
-            return self.in_double.get(int(name.rsplit("_", 1)[1]) - self.reg_float, 0.0)
+        if REGISTER.fullmatch(name):
+            table, i, cast = self._register(name)
+            return table.get(i, cast(0))
         if name == "payload":
             return self.active_payload[0]
         if name == "payload_cog":
@@ -232,13 +230,18 @@ class Robot:
             return 1.0  # the trajectory limiter's factor: nothing limits a straight moveL here
         return {"VECTOR6D": [0.0] * 6, "VECTOR3D": [0.0] * 3, "DOUBLE": 0.0}.get(kind, 0)
 
+    def _register(self, name: str) -> tuple[dict, int, type]:
+        """The table, index (the script's offset removed) and type of an RTDE register name."""
+        direction, kind, _, number = name.split("_")
+        tables = {"input": (self.in_int, self.in_double), "output": (self.out_int, self.out_double)}
+        if kind == "int":
+            return tables[direction][0], int(number) - self.reg_int, int
+        return tables[direction][1], int(number) - self.reg_float, float
+
     def set_input(self, name: str, val: object) -> None:
-        if name.startswith("input_int_register_"):
-            i = int(name.rsplit("_", 1)[1]) - self.reg_int
-            self.in_int[i] = int(val)  # type: ignore[call-overload]
-        elif name.startswith("input_double_register_"):
-            i = int(name.rsplit("_", 1)[1]) - self.reg_float
-            self.in_double[i] = float(val)  # type: ignore[arg-type]
+        if REGISTER.fullmatch(name) and name.startswith("input_"):
+            table, i, cast = self._register(name)
+            table[i] = cast(val)
 
     # ------------------------------------------------------------------------------ script
     def start_script(self, text: str) -> None:
@@ -339,21 +342,13 @@ class Robot:
         slider = max(self.speed_slider, 1e-3)
         duration = max(dist / max(speed_mps, 1e-3), float(np.linalg.norm(rvec)) / 1.0,
                        0.02) / slider
-        self.motion = {"T0": T0, "T1": T_target, "rvec": rvec,
+        self.motion = {"T0": T0, "T1": T_target,
                        "t_start": time.monotonic() + MOTION_LATENCY_S,
                        "duration": duration, "blocking": blocking,
                        "fault": self.next_move_fault}
         self.next_move_fault = None
         dt_tcp = (T_target[:3, 3] - T0[:3, 3]) / duration
         self.motion["speed"] = np.concatenate([dt_tcp, T0[:3, :3] @ rvec / duration])
-
-    def _pose_at(self, s: float) -> np.ndarray:
-        m = self.motion
-        assert m is not None
-        T = np.eye(4)
-        T[:3, :3] = m["T0"][:3, :3] @ R_from_rvec(s * m["rvec"])
-        T[:3, 3] = (1 - s) * m["T0"][:3, 3] + s * m["T1"][:3, 3]
-        return T
 
     def _set_flange(self, T: np.ndarray) -> None:
         self.T_base_flange = T
@@ -371,7 +366,7 @@ class Robot:
         self.speed = m["speed"]
         s = min(1.0, (now - m["t_start"]) / m["duration"])
         if m["fault"] and s >= 0.5:
-            self._set_flange(self._pose_at(0.5))
+            self._set_flange(interpolate_pose(m["T0"], m["T1"], 0.5))
             fault = m["fault"]
             if fault == "stall":
                 m["fault"], m["t_start"], m["duration"] = None, np.inf, 1.0
@@ -379,17 +374,17 @@ class Robot:
                 self.events.append("stall: the arm stopped halfway through a move")
                 return
             self._stop_motion()
-            if fault == "pstop":
-                self.protective_stop()
-            elif fault == "estop":
-                self.emergency_stop()
+            if fault in SAFETY_STOPS:
+                self.safety_mode, what = SAFETY_STOPS[fault]
+                self.events.append(what)
+                self._script_error(f"{what}: the program stopped")
             else:
                 self.network_fault = fault  # drop | freeze, acted on by the controller loop
             return
         if m["t_start"] == np.inf:
             return  # stalled: never arrives
 
-        self._set_flange(self._pose_at(s))
+        self._set_flange(interpolate_pose(m["T0"], m["T1"], s))
         if s >= 1.0:
             self._stop_motion()
             if m["blocking"] and self.runtime_state == RUNTIME_PLAYING:
@@ -400,16 +395,6 @@ class Robot:
             self._draw_error()
         self.motion = None
         self.speed = np.zeros(6)
-
-    def protective_stop(self) -> None:
-        self.safety_mode = 3
-        self.events.append("protective stop")
-        self._script_error("protective stop: the program stopped")
-
-    def emergency_stop(self) -> None:
-        self.safety_mode = 7
-        self.events.append("robot emergency stop")
-        self._script_error("robot emergency stop: the program stopped")
 
     # --------------------------------------------------------------------------- dashboard
     def dashboard_answer(self, line: str) -> str | None:

@@ -279,12 +279,12 @@ def test_a_refusal_after_skipped_frames_says_frames_were_skipped():
 
 
 # -- no made-up numbers -------------------------------------------------------------------------
-@pytest.mark.parametrize("make", [sc.r1, sc.r1_eye_to_hand], ids=["eye-in-hand", "eye-to-hand"])
-def test_target_translation_is_none_when_the_hand_eye_translation_is_unobservable(make):
-    s = make(np.random.default_rng(15))
+@pytest.mark.parametrize("eye_in_hand", [True, False], ids=["eye-in-hand", "eye-to-hand"])
+def test_target_translation_is_none_when_the_hand_eye_translation_is_unobservable(eye_in_hand):
+    s = sc.r1(np.random.default_rng(15), eye_in_hand=eye_in_hand)
     res = calibrate(replace(s.problem, frames=s.problem.frames[:5]))  # one tilt: translations
     he_name, tgt = ("T_tool_cam", "T_base_board")
-    if make is sc.r1_eye_to_hand:
+    if not eye_in_hand:
         he_name, tgt = ("T_base_cam", "T_tool_board")
     assert res.hand_eye.t_m is None and f"{he_name}.t" in res.unobservable
     assert res.T_target.t_m is None and res.T_target.std_t_mm is None
