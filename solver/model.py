@@ -610,10 +610,7 @@ class BundleModel:
                 [_rmul(_cross_rows(q_X, A), st.X_rot_basis), _rmul(A, st.X_t_basis)],
                 axis=2,
             )
-            cols = self.slices["X:0"].start + g[:, None] * mx + np.arange(mx)
-            rows = np.arange(n)[:, None]
-            J[rows, 0, cols] = blk[:, 0, :]
-            J[rows, 1, cols] = blk[:, 1, :]
+            _put_cols(J, self.slices["X:0"].start + g[:, None] * mx + np.arange(mx), blk)
         if "Y" in self.slices:
             if one_group:  # A2 = A RX RM: per frame RX RM, gathered once
                 B = RX0 @ Ms[:, :3, :3]
@@ -634,27 +631,20 @@ class BundleModel:
                 return r, self._pixel_jacobian(J, transposed), blk
             if "U" in self.slices:  # a group's correction moves its frames like theirs
                 ucols = self.slices["U"].start + self.st.pose_groups[f][:, None] * 6 + np.arange(6)
-                rows_u = np.arange(n)[:, None]
-                J[rows_u, 0, ucols] = blk[:, 0, :]
-                J[rows_u, 1, ucols] = blk[:, 1, :]
+                _put_cols(J, ucols, blk)
             if "V" in self.slices:  # a trend moves a frame like its own correction, times c_k
                 self._trend_columns(J, blk)
             if "W" in self.slices:  # so do the corrections the groups share, through their map
                 sw, s0 = self.slices["W"], self.shared_start
                 Sw = self.shared_map[:, :, sw.start - s0 : sw.stop - s0]
                 J[:, :, sw] = np.einsum("nab,nbm->nam", blk, Sw[f])
-            cols = self.slices["E"].start + f[:, None] * 6 + np.arange(6)
-            rows = np.arange(n)[:, None]
-            J[rows, 0, cols] = blk[:, 0, :]
-            J[rows, 1, cols] = blk[:, 1, :]
-            sl = self.slices["E"]
-            prior = np.zeros((sl.stop - sl.start, P_))
-            prior[np.arange(prior.shape[0]), np.arange(sl.start, sl.stop)] = self.prior_scale
-            blocks = [J.reshape(2 * n, P_), prior]
-            for su, scale, _ in self._shared_priors(state):
-                prior_u = np.zeros((su.stop - su.start, P_))
-                prior_u[np.arange(prior_u.shape[0]), np.arange(su.start, su.stop)] = scale
-                blocks.append(prior_u)
+            _put_cols(J, self.slices["E"].start + f[:, None] * 6 + np.arange(6), blk)
+            blocks = [J.reshape(2 * n, P_)]
+            priors = [(self.slices["E"], self.prior_scale)]
+            for sl, scale in priors + [(su, scale) for su, scale, _ in self._shared_priors(state)]:
+                prior = np.zeros((sl.stop - sl.start, P_))
+                prior[np.arange(prior.shape[0]), np.arange(sl.start, sl.stop)] = scale
+                blocks.append(prior)
             return r, np.vstack(blocks)
         return r, self._pixel_jacobian(J, transposed)
 
@@ -1051,6 +1041,13 @@ def _put_rows(J: np.ndarray, idx: np.ndarray | slice, cols: slice, vals: np.ndar
     """``J[idx, :, cols] = vals`` for ``J`` (n, 2, P), one 2-D assignment per pixel axis."""
     for i in range(J.shape[1]):
         J[:, i, :][idx, cols] = vals[:, i, :]
+
+
+def _put_cols(J: np.ndarray, cols: np.ndarray, vals: np.ndarray) -> None:
+    """``J[k, :, cols[k]] = vals[k]`` for every row k of ``J`` (n, 2, P), ``cols`` (n, m)."""
+    rows = np.arange(len(cols))[:, None]
+    J[rows, 0, cols] = vals[:, 0, :]
+    J[rows, 1, cols] = vals[:, 1, :]
 
 
 def _put_pose(
