@@ -382,15 +382,12 @@ class BundleModel:
             if c != self.ref:
                 add(f"rig:{c}", [f"T_{c}_{self.ref}.{a}" for a in POSE_AXES])
         st = structure
-        for g in range(n_groups):
-            block = [f"X{g}.r{i}" for i in range(st.X_rot_basis.shape[1])]
-            block += [f"X{g}.t{i}" for i in range(st.X_t_basis.shape[1])]
+        poses = [(f"X:{g}", f"X{g}", st.X_rot_basis, st.X_t_basis) for g in range(n_groups)]
+        for key, name, rot, t in poses + [("Y", "Y", st.Y_rot_basis, st.Y_t_basis)]:
+            block = [f"{name}.r{i}" for i in range(rot.shape[1])]
+            block += [f"{name}.t{i}" for i in range(t.shape[1])]
             if block:
-                add(f"X:{g}", block)
-        yb = [f"Y.r{i}" for i in range(st.Y_rot_basis.shape[1])]
-        yb += [f"Y.t{i}" for i in range(st.Y_t_basis.shape[1])]
-        if yb:
-            add("Y", yb)
+                add(key, block)
         if structure.pose_sigma is not None and structure.pose_groups is not None:
             n_pg = int(structure.pose_groups.max()) + 1
             add("U", [f"pose_group{g}.{a}" for g in range(n_pg) for a in POSE_AXES])
@@ -1249,17 +1246,8 @@ def build_structure(problem: CalibrationProblem, R_X: np.ndarray | None = None) 
                 "unobservable (docs/METHOD.md Sec. 4); add orientation groups tilted about two "
                 "non-parallel axes"
             )
-        else:
-            _, sv, Vt = np.linalg.svd(np.asarray(axes))
-            if len(sv) < 2 or sv[1] < 0.05 * sv[0]:
-                X_t = complement_basis((I3 if R_X is None else R_X) @ Vt[0])
-                unobs[f"{he}.t_along_rotation_axis"] = (
-                    "all rotations share one axis, so the hand-eye translation along it is "
-                    "unobservable; tilt about a second, non-parallel axis"
-                )
             # with no rotations and one translation direction, X R_M Y can rotate about that
             # direction without changing any image (gauge): fix Y's rotation about it
-        if not axes:
             d = np.array([M[k, :3, 3] - M[0, :3, 3] for k in range(1, F)]).reshape(-1, 3)
             d = d[np.linalg.norm(d, axis=1) > 1e-9]
             if len(d) == 0:
@@ -1272,6 +1260,14 @@ def build_structure(problem: CalibrationProblem, R_X: np.ndarray | None = None) 
                 unobs[f"{he}.R"] = (
                     "all translations are parallel, so the hand-eye rotation about that direction "
                     "is unobservable; translate along at least two non-parallel directions"
+                )
+        else:
+            _, sv, Vt = np.linalg.svd(np.asarray(axes))
+            if len(sv) < 2 or sv[1] < 0.05 * sv[0]:
+                X_t = complement_basis((I3 if R_X is None else R_X) @ Vt[0])
+                unobs[f"{he}.t_along_rotation_axis"] = (
+                    "all rotations share one axis, so the hand-eye translation along it is "
+                    "unobservable; tilt about a second, non-parallel axis"
                 )
     elif kn in ("board_translation", "board_direction"):
         groups = np.array([f.group if f.group is not None else 0 for f in frames], dtype=int)
