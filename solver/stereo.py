@@ -273,8 +273,6 @@ def relative_rotation(K_a: np.ndarray, K_b: np.ndarray, H_inf: np.ndarray) -> np
     return project_to_SO3(M / (np.sign(d) * abs(d) ** (1.0 / 3.0)))
 
 
-
-
 #: Orientation groups from which a translated rig adds eq. 62 (``H_inf`` from fewer is too rough).
 _EQ62_MIN_GROUPS = 3
 _TRANSLATION_KNOWLEDGE = ("robot", "board_translation", "board_direction", "lengths")
