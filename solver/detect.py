@@ -449,32 +449,24 @@ def find_chessboard(
     f = reduction_factor(grey.shape)
     small = _reduce(grey, f)
     for path in paths:
-        if path == "classic_reduced":
-            c = _classic(small, size)
+        full = path.endswith("_full")
+        img = grey if full else small
+        if path in ("classic_reduced", "classic_full"):
+            c = _classic(img, size)
         elif path == "classic_flat_reduced":
             c = _classic(flatten_light(small), size)
-        elif path == "sb_reduced":
-            c = _sb(small, size)
+        elif path == "sb_reduced" or (path == "sb_full" and f > 1):  # f = 1: sb_reduced's image
+            c = _sb(img, size)
         elif path == "sb_full":
-            if f == 1:
-                continue  # the same image as sb_reduced
-            c = _sb(grey, size)
-            if c is not None:
-                return c, path
+            continue
         elif path == "sb_exhaustive_reduced":
-            c = _sb(small, size, cv2.CALIB_CB_EXHAUSTIVE)
-        elif path == "classic_full":
-            c = _classic(grey, size)
-            if c is not None:
-                return c, path
+            c = _sb(img, size, cv2.CALIB_CB_EXHAUSTIVE)
         elif path == "sb_accuracy_full":
-            c = _sb(grey, size, cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
-            if c is not None:
-                return c, path
+            c = _sb(img, size, cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
         else:
             raise InputError(f"unknown chessboard detector path {path!r}")
-        if c is not None:
-            return (c + 0.5) * f - 0.5, path  # pixel centres of the reduced image
+        if c is not None:  # the reduced image's pixel centres taken to full resolution
+            return (c if full else (c + 0.5) * f - 0.5), path
     return None, ""
 
 
