@@ -951,22 +951,15 @@ def _result(
     cams = {}
     for spec in problem.cameras:
         c = spec.name
-        std = {}
-        for n in (*INTRINSIC_NAMES, *DISTORTION_NAMES):
-            v = named.std(f"{c}.{n}") if named is not None else None
-            if v is not None:
-                std[n] = v
+        names = (*INTRINSIC_NAMES, *DISTORTION_NAMES) if named is not None else ()
+        std = {n: v for n in names if (v := named.std(f"{c}.{n}")) is not None}
         n_px = len(out.inlier_rows)
         rows = (
             model.camera_rows(model.cams.index(c), n_px) & out.inlier_rows
             if c in model.cams
             else np.zeros(n_px, dtype=bool)
         )
-        rms = (
-            float(np.sqrt(np.mean(out.residuals[:n_px][rows] ** 2) * 2))
-            if rows.any()
-            else float("nan")
-        )
+        rms = _rms_px(out.residuals[:n_px][rows])
         cams[c] = CameraEstimate(c, spec.width, spec.height, state.K[c], state.dist[c], std, rms)
     unobs = dict(st.unobservable)
     for i, on in enumerate(problem.options.distortion):
@@ -1002,12 +995,7 @@ def _result(
         rig[key] = _estimate(key, T, True, True, named)
         Hab = state.K[c] @ T[:3, :3] @ np.linalg.inv(state.K[ref])
         H_inf[f"{c}<-{ref}"] = Hab / Hab[2, 2]
-    residuals = {}
-    for ch in model.chunks:
-        r = out.residuals[ch.rows]
-        residuals[ch.key] = float(np.sqrt(np.mean(r**2) * 2))
-    inl = out.residuals[out.inlier_rows]
-    rms = float(np.sqrt(np.mean(inl**2) * 2)) if len(inl) else float("nan")
+    residuals = {ch.key: _rms_px(out.residuals[ch.rows]) for ch in model.chunks}
     adequacy, robot_accuracy = assess(problem, out, fit, groups)
     known = _fitted_poses(out, fit)  # the scale checks' poses; the model guesses the others'
     guesses = {i: model.T_ref_board(state, i) for i in range(len(problem.frames)) if i not in known}
@@ -1026,7 +1014,7 @@ def _result(
         T_target=T_target,
         converged=out.converged,
         iterations=out.iterations,
-        reproj_rms_px=rms,
+        reproj_rms_px=_rms_px(out.residuals[out.inlier_rows]),
         sigma_px=out.sigma_px,
         # the reported quantities (solver/uncertainty.py): robot-pose corrections and board
         # poses are nuisance parameters, marginalised
@@ -1038,10 +1026,10 @@ def _result(
         messages=out.messages
         + (
             _correlation_note(problem, images.correlated, images.misfit)
+            + _grouped_note(images.grouped)
             if named is not None
             else ()
         )
-        + (_grouped_note(images.grouped) if named is not None else ())
         + field_note
         + bad_images_note(adequacy)
         + scale_note,
@@ -1054,6 +1042,11 @@ def _result(
         robot_accuracy=robot_accuracy,
         board=_board_shape(problem, reported.board),
     )
+
+
+def _rms_px(r: np.ndarray) -> float:
+    """Rms image error (px) of the pixel residuals ``r`` (u, v interleaved); nan for none."""
+    return float(np.sqrt(np.mean(r**2) * 2)) if len(r) else float("nan")
 
 
 def _estimate(

@@ -58,18 +58,17 @@ def check_configuration(
     groups: Sequence[LinearGroup],
     knowledge: str,
     *,
-    skew: bool = False,
-    unit_aspect: bool = False,
     image_size: tuple[float, float],
     K_guess: np.ndarray | None = None,
     hand_eye: bool = False,
     robot_translations: Sequence[np.ndarray] | None = None,
+    **options,
 ) -> LinearSystem:
     """Refuse degenerate data for the linear method with a ``DegenerateError`` saying the fix;
     return the conditioned linear system it accepted (``linear_intrinsics`` solves it as is).
 
-    ``groups``, ``knowledge``, ``skew``, ``unit_aspect``, ``image_size``: as for
-    ``linear_intrinsics``. ``K_guess`` (3, 3) pixels: used for the geometric tests (default
+    ``groups``, ``knowledge``, ``image_size`` and ``options`` (``skew``, ``unit_aspect``): as
+    for ``linear_intrinsics``. ``K_guess`` (3, 3) pixels: used for the geometric tests (default
     :func:`nominal_K`). ``hand_eye``: the hand-eye rotation is also wanted; then the robot
     translations (``robot_translations``: per group (n, 3), default ``group.motion``) must span
     two directions.
@@ -94,19 +93,12 @@ def check_configuration(
             )
 
     # Geometric tests, only when the orientations alone (Zhang) cannot rescue the system.
-    zhang = linear_system(
-        [LinearGroup(np.asarray(grp.H)[:1]) for grp in groups],
-        "none",
-        skew=skew,
-        unit_aspect=unit_aspect,
-        image_size=image_size,
-    )
+    first = [LinearGroup(np.asarray(grp.H)[:1]) for grp in groups]
+    zhang = linear_system(first, "none", image_size=image_size, **options)
     if knowledge != "none" and _conditioning(zhang.A) < MIN_CONDITIONING:
         _geometric_tests(groups, knowledge, K)
 
-    system = linear_system(
-        groups, knowledge, skew=skew, unit_aspect=unit_aspect, image_size=image_size
-    )
+    system = linear_system(groups, knowledge, image_size=image_size, **options)
     n_unknowns = system.A.shape[1] - 1
     if system.A.shape[0] < n_unknowns:
         raise DegenerateError(

@@ -100,20 +100,24 @@ def _charuco_key(target: Target) -> CharucoKey:
 @lru_cache(maxsize=8)
 def _charuco_board(key: CharucoKey, legacy: bool = False) -> cv2.aruco.CharucoBoard:
     squares_x, squares_y, square_m, marker_m, dictionary = key
-    if not dictionary.startswith("DICT_") or not hasattr(cv2.aruco, dictionary):
-        raise InputError(
-            f"unknown ArUco dictionary {dictionary!r}; use an OpenCV name such as DICT_5X5_100"
-        )
+    d = _dictionary(dictionary, "ArUco dictionary", "DICT_5X5_100")
     if not 0.0 < marker_m < square_m:
         raise InputError(
             f"marker_size_m ({marker_m}) must be positive and smaller than square_size_m "
             f"({square_m})"
         )
-    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
     board = cv2.aruco.CharucoBoard((squares_x, squares_y), square_m, marker_m, d)
     if legacy:
         board.setLegacyPattern(True)
     return board
+
+
+def _dictionary(name: str, what: str, example: str) -> cv2.aruco.Dictionary:
+    """OpenCV's predefined dictionary ``name``; an ``InputError`` naming it (``what``, e.g. "tag
+    family", and an ``example`` of a valid name) when OpenCV has none of that name."""
+    if not name.startswith("DICT_") or not hasattr(cv2.aruco, name):
+        raise InputError(f"unknown {what} {name!r}; use an OpenCV name such as {example}")
+    return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
 
 
 @lru_cache(maxsize=8)
@@ -445,32 +449,24 @@ def find_chessboard(
     f = reduction_factor(grey.shape)
     small = _reduce(grey, f)
     for path in paths:
-        if path == "classic_reduced":
-            c = _classic(small, size)
+        full = path.endswith("_full")
+        img = grey if full else small
+        if path in ("classic_reduced", "classic_full"):
+            c = _classic(img, size)
         elif path == "classic_flat_reduced":
             c = _classic(flatten_light(small), size)
-        elif path == "sb_reduced":
-            c = _sb(small, size)
+        elif path == "sb_reduced" or (path == "sb_full" and f > 1):  # f = 1: sb_reduced's image
+            c = _sb(img, size)
         elif path == "sb_full":
-            if f == 1:
-                continue  # the same image as sb_reduced
-            c = _sb(grey, size)
-            if c is not None:
-                return c, path
+            continue
         elif path == "sb_exhaustive_reduced":
-            c = _sb(small, size, cv2.CALIB_CB_EXHAUSTIVE)
-        elif path == "classic_full":
-            c = _classic(grey, size)
-            if c is not None:
-                return c, path
+            c = _sb(img, size, cv2.CALIB_CB_EXHAUSTIVE)
         elif path == "sb_accuracy_full":
-            c = _sb(grey, size, cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
-            if c is not None:
-                return c, path
+            c = _sb(img, size, cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
         else:
             raise InputError(f"unknown chessboard detector path {path!r}")
-        if c is not None:
-            return (c + 0.5) * f - 0.5, path  # pixel centres of the reduced image
+        if c is not None:  # the reduced image's pixel centres taken to full resolution
+            return (c if full else (c + 0.5) * f - 0.5), path
     return None, ""
 
 
@@ -622,11 +618,7 @@ def _tag_detector(
 ) -> cv2.aruco.ArucoDetector:
     """OpenCV's marker detector for a tag family; ``marker_distance_rate`` > 0 sets
     ``minMarkerDistanceRate`` (0: OpenCV's default)."""
-    if not dictionary.startswith("DICT_") or not hasattr(cv2.aruco, dictionary):
-        raise InputError(
-            f"unknown tag family {dictionary!r}; use an OpenCV name such as DICT_APRILTAG_36h11"
-        )
-    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
+    d = _dictionary(dictionary, "tag family", "DICT_APRILTAG_36h11")
     dp = cv2.aruco.DetectorParameters()
     if marker_distance_rate > 0.0:
         dp.minMarkerDistanceRate = marker_distance_rate

@@ -210,6 +210,23 @@ def _finish_group(Hn: np.ndarray, Tb: np.ndarray, Ti: np.ndarray) -> np.ndarray:
     return Hs / s
 
 
+def _fit_group(obs_n, Tb, Ti, unpack, place, x0: np.ndarray, max_iter: int = 30) -> np.ndarray:  # noqa: ANN001
+    """The group's homographies fitted to all its frames: ``unpack`` maps the parameters to the
+    (normalised) homographies, ``place(k, J_k)`` a frame's (N, 9) Jacobian to its rows."""
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        return np.concatenate(
+            [_residual_and_jac(H, b, p)[0] for H, (b, p) in zip(unpack(x), obs_n, strict=True)]
+        )
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        pairs = enumerate(zip(unpack(x), obs_n, strict=True))
+        return np.vstack([place(k, _residual_and_jac(H, b, p)[1]) for k, (H, (b, p)) in pairs])
+
+    x = _levenberg_marquardt(fun, jac, x0, max_iter)
+    return _finish_group(np.array(unpack(x)), Tb, Ti)
+
+
 def group_homographies(observations: Sequence[Observation], max_iter: int = 30) -> np.ndarray:
     """Joint homographies (n, 3, 3) of one orientation group (docs/METHOD.md Sec. 3).
 
@@ -227,24 +244,14 @@ def group_homographies(observations: Sequence[Observation], max_iter: int = 30) 
     def unpack(x: np.ndarray) -> list[np.ndarray]:
         return [np.column_stack([x[0:3], x[3:6], x[6 + 3 * k : 9 + 3 * k]]) for k in range(n)]
 
-    def fun(x: np.ndarray) -> np.ndarray:
-        return np.concatenate(
-            [_residual_and_jac(H, b, p)[0] for H, (b, p) in zip(unpack(x), obs_n, strict=True)]
-        )
-
-    def jac(x: np.ndarray) -> np.ndarray:
-        blocks = []
-        for k, (H, (b, p)) in enumerate(zip(unpack(x), obs_n, strict=True)):
-            Jk = _residual_and_jac(H, b, p)[1]
-            B = np.zeros((len(Jk), 6 + 3 * n))
-            B[:, 0:6] = Jk[:, 0:6]
-            B[:, 6 + 3 * k : 9 + 3 * k] = Jk[:, 6:9]
-            blocks.append(B)
-        return np.vstack(blocks)
+    def place(k: int, Jk: np.ndarray) -> np.ndarray:
+        B = np.zeros((len(Jk), 6 + 3 * n))
+        B[:, 0:6] = Jk[:, 0:6]
+        B[:, 6 + 3 * k : 9 + 3 * k] = Jk[:, 6:9]
+        return B
 
     x0 = np.concatenate([h12, h3.reshape(-1)])
-    x = _levenberg_marquardt(fun, jac, x0, max_iter)
-    return _finish_group(np.array(unpack(x)), Tb, Ti)
+    return _fit_group(obs_n, Tb, Ti, unpack, place, x0, max_iter)
 
 
 def constrained_group_homographies(
@@ -275,17 +282,7 @@ def constrained_group_homographies(
     def unpack(x: np.ndarray) -> list[np.ndarray]:
         return [np.column_stack([x[0:3], x[3:6], x[6:9] - s * x[9:12]]) for s in steps]
 
-    def fun(x: np.ndarray) -> np.ndarray:
-        return np.concatenate(
-            [_residual_and_jac(H, b, p)[0] for H, (b, p) in zip(unpack(x), obs_n, strict=True)]
-        )
+    def place(k: int, Jk: np.ndarray) -> np.ndarray:
+        return np.hstack([Jk[:, 0:6], Jk[:, 6:9], -steps[k] * Jk[:, 6:9]])
 
-    def jac(x: np.ndarray) -> np.ndarray:
-        blocks = []
-        for H, s, (b, p) in zip(unpack(x), steps, obs_n, strict=True):
-            Jk = _residual_and_jac(H, b, p)[1]
-            blocks.append(np.hstack([Jk[:, 0:6], Jk[:, 6:9], -s * Jk[:, 6:9]]))
-        return np.vstack(blocks)
-
-    x = _levenberg_marquardt(fun, jac, x0)
-    return _finish_group(np.array(unpack(x)), Tb, Ti)
+    return _fit_group(obs_n, Tb, Ti, unpack, place, x0)

@@ -455,33 +455,22 @@ def linear_intrinsics(
     groups: Sequence[LinearGroup],
     knowledge: str,
     *,
-    skew: bool = False,
-    unit_aspect: bool = False,
-    image_size: tuple[float, float],
-    condition: bool = True,
-    row_weighting: Literal["noise", "unit"] = "noise",
     system: LinearSystem | None = None,
+    **options,
 ) -> LinearSolution:
     """Closed-form intrinsics from translation groups (docs/METHOD.md Sec. 3, every row of its
     table).
 
     ``groups``: orientation groups (:class:`LinearGroup`, homographies in pixels and board
-    units). ``image_size``: (width, height) pixels. Any number of groups; Zhang's rows of every
-    group are always stacked (they add information when the groups differ in orientation).
-    Raises ``DegenerateError`` when the system has no unique, positive definite solution.
-    ``condition``: see :func:`linear_system` (keep True). ``system``: the system of these
-    arguments when already built (``check_configuration`` returns it).
+    units). ``options``: the keywords of :func:`linear_system` (``image_size`` (width, height)
+    pixels, ``skew``, ``unit_aspect``, ``condition``, ``row_weighting``). Any number of groups;
+    Zhang's rows of every group are always stacked (they add information when the groups differ
+    in orientation). Raises ``DegenerateError`` when the system has no unique, positive definite
+    solution. ``system``: the system of these arguments when already built
+    (``check_configuration`` returns it).
     """
     if system is None:
-        system = linear_system(
-            groups,
-            knowledge,
-            skew=skew,
-            unit_aspect=unit_aspect,
-            image_size=image_size,
-            condition=condition,
-            row_weighting=row_weighting,
-        )
+        system = linear_system(groups, knowledge, **options)
     x, sv = _solve_null(system)
     m = system.basis.shape[1]
     w = system.basis @ x[:m]
@@ -518,30 +507,16 @@ def _signed_lengths(K: np.ndarray, H: np.ndarray, directions: np.ndarray) -> np.
     return out
 
 
-def zhang_intrinsics(
-    Hs: np.ndarray,
-    *,
-    skew: bool = False,
-    unit_aspect: bool = False,
-    image_size: tuple[float, float],
-    row_weighting: Literal["noise", "unit"] = "noise",
-) -> np.ndarray:
+def zhang_intrinsics(Hs: np.ndarray, **options) -> np.ndarray:
     """Zhang's general-motion intrinsics ``K`` (3, 3) from homographies ``Hs`` (n, 3, 3).
 
     Each homography (board plane to pixels, any scale) is its own pose (eqs. 10-11). Needs at
     least 3 orientations with skew, 2 with zero skew (4 unknowns), fewer with unit aspect.
-    ``row_weighting``: see :func:`linear_system`.
+    ``options``: the keywords of :func:`linear_system` (``image_size`` (width, height) pixels,
+    ``skew``, ``unit_aspect``, ``row_weighting``).
     """
     Hs = np.asarray(Hs, dtype=float).reshape(-1, 3, 3)
-    groups = [LinearGroup(H[None]) for H in Hs]
-    system = linear_system(
-        groups,
-        "none",
-        skew=skew,
-        unit_aspect=unit_aspect,
-        image_size=image_size,
-        row_weighting=row_weighting,
-    )
+    system = linear_system([LinearGroup(H[None]) for H in Hs], "none", **options)
     x, sv = _solve_null(system)
     if sv[-2] <= 1e-10 * sv[0]:
         raise DegenerateError(

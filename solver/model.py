@@ -382,15 +382,12 @@ class BundleModel:
             if c != self.ref:
                 add(f"rig:{c}", [f"T_{c}_{self.ref}.{a}" for a in POSE_AXES])
         st = structure
-        for g in range(n_groups):
-            block = [f"X{g}.r{i}" for i in range(st.X_rot_basis.shape[1])]
-            block += [f"X{g}.t{i}" for i in range(st.X_t_basis.shape[1])]
+        poses = [(f"X:{g}", f"X{g}", st.X_rot_basis, st.X_t_basis) for g in range(n_groups)]
+        for key, name, rot, t in poses + [("Y", "Y", st.Y_rot_basis, st.Y_t_basis)]:
+            block = [f"{name}.r{i}" for i in range(rot.shape[1])]
+            block += [f"{name}.t{i}" for i in range(t.shape[1])]
             if block:
-                add(f"X:{g}", block)
-        yb = [f"Y.r{i}" for i in range(st.Y_rot_basis.shape[1])]
-        yb += [f"Y.t{i}" for i in range(st.Y_t_basis.shape[1])]
-        if yb:
-            add("Y", yb)
+                add(key, block)
         if structure.pose_sigma is not None and structure.pose_groups is not None:
             n_pg = int(structure.pose_groups.max()) + 1
             add("U", [f"pose_group{g}.{a}" for g in range(n_pg) for a in POSE_AXES])
@@ -610,10 +607,7 @@ class BundleModel:
                 [_rmul(_cross_rows(q_X, A), st.X_rot_basis), _rmul(A, st.X_t_basis)],
                 axis=2,
             )
-            cols = self.slices["X:0"].start + g[:, None] * mx + np.arange(mx)
-            rows = np.arange(n)[:, None]
-            J[rows, 0, cols] = blk[:, 0, :]
-            J[rows, 1, cols] = blk[:, 1, :]
+            _put_cols(J, self.slices["X:0"].start + g[:, None] * mx + np.arange(mx), blk)
         if "Y" in self.slices:
             if one_group:  # A2 = A RX RM: per frame RX RM, gathered once
                 B = RX0 @ Ms[:, :3, :3]
@@ -634,27 +628,20 @@ class BundleModel:
                 return r, self._pixel_jacobian(J, transposed), blk
             if "U" in self.slices:  # a group's correction moves its frames like theirs
                 ucols = self.slices["U"].start + self.st.pose_groups[f][:, None] * 6 + np.arange(6)
-                rows_u = np.arange(n)[:, None]
-                J[rows_u, 0, ucols] = blk[:, 0, :]
-                J[rows_u, 1, ucols] = blk[:, 1, :]
+                _put_cols(J, ucols, blk)
             if "V" in self.slices:  # a trend moves a frame like its own correction, times c_k
                 self._trend_columns(J, blk)
             if "W" in self.slices:  # so do the corrections the groups share, through their map
                 sw, s0 = self.slices["W"], self.shared_start
                 Sw = self.shared_map[:, :, sw.start - s0 : sw.stop - s0]
                 J[:, :, sw] = np.einsum("nab,nbm->nam", blk, Sw[f])
-            cols = self.slices["E"].start + f[:, None] * 6 + np.arange(6)
-            rows = np.arange(n)[:, None]
-            J[rows, 0, cols] = blk[:, 0, :]
-            J[rows, 1, cols] = blk[:, 1, :]
-            sl = self.slices["E"]
-            prior = np.zeros((sl.stop - sl.start, P_))
-            prior[np.arange(prior.shape[0]), np.arange(sl.start, sl.stop)] = self.prior_scale
-            blocks = [J.reshape(2 * n, P_), prior]
-            for su, scale, _ in self._shared_priors(state):
-                prior_u = np.zeros((su.stop - su.start, P_))
-                prior_u[np.arange(prior_u.shape[0]), np.arange(su.start, su.stop)] = scale
-                blocks.append(prior_u)
+            _put_cols(J, self.slices["E"].start + f[:, None] * 6 + np.arange(6), blk)
+            blocks = [J.reshape(2 * n, P_)]
+            priors = [(self.slices["E"], self.prior_scale)]
+            for sl, scale in priors + [(su, scale) for su, scale, _ in self._shared_priors(state)]:
+                prior = np.zeros((sl.stop - sl.start, P_))
+                prior[np.arange(prior.shape[0]), np.arange(sl.start, sl.stop)] = scale
+                blocks.append(prior)
             return r, np.vstack(blocks)
         return r, self._pixel_jacobian(J, transposed)
 
@@ -1053,6 +1040,13 @@ def _put_rows(J: np.ndarray, idx: np.ndarray | slice, cols: slice, vals: np.ndar
         J[:, i, :][idx, cols] = vals[:, i, :]
 
 
+def _put_cols(J: np.ndarray, cols: np.ndarray, vals: np.ndarray) -> None:
+    """``J[k, :, cols[k]] = vals[k]`` for every row k of ``J`` (n, 2, P), ``cols`` (n, m)."""
+    rows = np.arange(len(cols))[:, None]
+    J[rows, 0, cols] = vals[:, 0, :]
+    J[rows, 1, cols] = vals[:, 1, :]
+
+
 def _put_pose(
     J: np.ndarray, c0: int, q: np.ndarray, A: np.ndarray, rot_basis: np.ndarray, t_basis: np.ndarray
 ) -> None:
@@ -1252,17 +1246,8 @@ def build_structure(problem: CalibrationProblem, R_X: np.ndarray | None = None) 
                 "unobservable (docs/METHOD.md Sec. 4); add orientation groups tilted about two "
                 "non-parallel axes"
             )
-        else:
-            _, sv, Vt = np.linalg.svd(np.asarray(axes))
-            if len(sv) < 2 or sv[1] < 0.05 * sv[0]:
-                X_t = complement_basis((I3 if R_X is None else R_X) @ Vt[0])
-                unobs[f"{he}.t_along_rotation_axis"] = (
-                    "all rotations share one axis, so the hand-eye translation along it is "
-                    "unobservable; tilt about a second, non-parallel axis"
-                )
             # with no rotations and one translation direction, X R_M Y can rotate about that
             # direction without changing any image (gauge): fix Y's rotation about it
-        if not axes:
             d = np.array([M[k, :3, 3] - M[0, :3, 3] for k in range(1, F)]).reshape(-1, 3)
             d = d[np.linalg.norm(d, axis=1) > 1e-9]
             if len(d) == 0:
@@ -1275,6 +1260,14 @@ def build_structure(problem: CalibrationProblem, R_X: np.ndarray | None = None) 
                 unobs[f"{he}.R"] = (
                     "all translations are parallel, so the hand-eye rotation about that direction "
                     "is unobservable; translate along at least two non-parallel directions"
+                )
+        else:
+            _, sv, Vt = np.linalg.svd(np.asarray(axes))
+            if len(sv) < 2 or sv[1] < 0.05 * sv[0]:
+                X_t = complement_basis((I3 if R_X is None else R_X) @ Vt[0])
+                unobs[f"{he}.t_along_rotation_axis"] = (
+                    "all rotations share one axis, so the hand-eye translation along it is "
+                    "unobservable; tilt about a second, non-parallel axis"
                 )
     elif kn in ("board_translation", "board_direction"):
         groups = np.array([f.group if f.group is not None else 0 for f in frames], dtype=int)

@@ -213,10 +213,9 @@ def rig_linear_intrinsics(
     Hs_b: np.ndarray,
     H_inf: np.ndarray | None,
     *,
-    skew: bool = False,
-    unit_aspect: bool = False,
     sizes: Sequence[tuple[float, float]],
     row_weighting: Literal["noise", "unit"] = "unit",
+    **options,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Joint linear intrinsics of both cameras of a stereo head (eqs. 10-11 with eq. 62).
 
@@ -229,12 +228,13 @@ def rig_linear_intrinsics(
 
     ``Hs_a``, ``Hs_b`` (n_a, 3, 3), (n_b, 3, 3): each camera's homographies (views not
     necessarily paired). ``H_inf``: :func:`infinite_homography`'s, or None to solve each camera
-    alone with the same rows (``slidecal.solver.linear.zhang_intrinsics``). ``skew``,
-    ``unit_aspect``, ``row_weighting``: as for ``linear_system`` (``"unit"``: docs/results/S5.md).
+    alone with the same rows (``slidecal.solver.linear.zhang_intrinsics``). ``row_weighting`` and
+    ``options`` (``skew``, ``unit_aspect``): as for ``linear_system`` (``"unit"``:
+    docs/results/S5.md).
     Returns ``K_a``, ``K_b`` (3, 3) in pixels.
     """
     Hs = (_check_homographies(Hs_a, "Hs_a"), _check_homographies(Hs_b, "Hs_b"))
-    options = {"skew": skew, "unit_aspect": unit_aspect, "row_weighting": row_weighting}
+    options = {**options, "row_weighting": row_weighting}
     if H_inf is None:
         K_a, K_b = (
             zhang_intrinsics(H, image_size=size, **options)
@@ -271,8 +271,6 @@ def relative_rotation(K_a: np.ndarray, K_b: np.ndarray, H_inf: np.ndarray) -> np
     if not np.isfinite(d) or abs(d) < 1e-300:
         raise DegenerateError("relative_rotation: K_a^-1 H_inf K_b is singular; check H_inf")
     return project_to_SO3(M / (np.sign(d) * abs(d) ** (1.0 / 3.0)))
-
-
 
 
 #: Orientation groups from which a translated rig adds eq. 62 (``H_inf`` from fewer is too rough).
@@ -347,11 +345,10 @@ def rig_linear_intrinsics_translation(
     groups_b: Sequence[LinearGroup],
     knowledge: str,
     *,
-    skew: bool = False,
-    unit_aspect: bool = False,
     sizes: Sequence[tuple[float, float]],
     use_eq62: bool = True,
     row_weighting: Literal["noise", "unit"] = "noise",
+    **options,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Joint linear intrinsics of a stereo head translated in front of a board (eqs. 33-42).
 
@@ -365,8 +362,9 @@ def rig_linear_intrinsics_translation(
     ``groups_a``, ``groups_b``: ``LinearGroup`` per orientation group, the same frames in both
     (``motion`` read from ``groups_a``, board units, by ``knowledge``: "robot",
     "board_translation", "board_direction" or "lengths"). ``use_eq62``: add eq. 62 with three or
-    more groups. ``row_weighting``: as for ``linear_system``; coupling rows get the noise scale
-    of their two sides. Returns ``K_a``, ``K_b`` (3, 3) in pixels.
+    more groups. ``row_weighting`` and ``options`` (``skew``, ``unit_aspect``): as for
+    ``linear_system``; coupling rows get the noise scale of their two sides. Returns ``K_a``,
+    ``K_b`` (3, 3) in pixels.
     """
     if knowledge not in _TRANSLATION_KNOWLEDGE:
         raise InputError(
@@ -380,7 +378,7 @@ def rig_linear_intrinsics_translation(
         H_inf, mu = infinite_homography(
             np.array([g.H[0] for g in ga]), np.array([g.H[0] for g in gb]), sizes=sizes
         )
-    options = {"skew": skew, "unit_aspect": unit_aspect, "row_weighting": row_weighting}
+    options = {**options, "row_weighting": row_weighting}
     sys_a, sys_b = (
         linear_system(g, knowledge, image_size=size, **options)
         for g, size in zip((ga, gb), sizes, strict=True)
