@@ -36,6 +36,7 @@ from slidecal.routines.schema import (
 )
 from slidecal.routines.session import (
     OAK_SOCKET,
+    camera_spec,
     options_from_dict,
     options_to_dict,
     target_from_dict,
@@ -924,16 +925,7 @@ def _cameras(
     opts: dict[str, dict[str, Any]] = {}
     for i, c in enumerate(lst):
         cf = Fields(c, f.file, f"{f.path}.list[{i}]").only(CELL_KEYS[f"cameras.list[].{driver}"])
-        name = cf.string("name")
-        if name in opts:
-            raise cf.error("name", f"{name!r} appears twice; camera names must be unique")
-        specs.append(
-            CameraSpec(
-                name,
-                cf.integer("width", minimum=1, maximum=100_000),
-                cf.integer("height", minimum=1, maximum=100_000),
-            )
-        )
+        specs.append(camera_spec(cf, list(opts)))
         if driver == "oak":
             if not cf.has("socket"):
                 raise cf.error("socket", "is missing; an OAK camera needs its socket (CAM_A ..)")
@@ -948,7 +940,9 @@ def _cameras(
                 cf.number("exposure")
             if cf.has("drop_frames"):
                 cf.integer("drop_frames", minimum=0, maximum=100)
-        opts[name] = {k: v for k, v in cf.data.items() if k not in ("name", "width", "height")}
+        opts[specs[-1].name] = {
+            k: v for k, v in cf.data.items() if k not in ("name", "width", "height")
+        }
     if driver == "oak":
         socks = [o["socket"] for o in opts.values()]
         dup = next((s for s in socks if socks.count(s) > 1), None)

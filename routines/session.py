@@ -501,18 +501,9 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
     sockets: dict[str, str] = {}
     for i, c in enumerate(cams):
         cf = Fields(c, SESSION_FILE, f"cameras[{i}]").only(SESSION_KEYS["cameras[]"])
-        name = cf.string("name")
-        if any(x.name == name for x in cameras):
-            raise cf.error("name", f"{name!r} appears twice; camera names must be unique")
-        cameras.append(
-            CameraSpec(
-                name,
-                cf.integer("width", minimum=1, maximum=100_000),
-                cf.integer("height", minimum=1, maximum=100_000),
-            )
-        )
+        cameras.append(camera_spec(cf, [x.name for x in cameras]))
         if cf.has("socket"):
-            sockets[name] = _socket(cf)
+            sockets[cameras[-1].name] = _socket(cf)
     names = [c.name for c in cameras]
     table = _detection_table(f, directory, len(cameras))
 
@@ -607,6 +598,19 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
         sockets=sockets,
         detect_reasons=reasons,
         limits=f.get("limits"),
+    )
+
+
+def camera_spec(cf: Fields, taken: Sequence[str]) -> CameraSpec:
+    """A camera's ``{name, width, height}`` (cell files and sessions); ``taken``: the names
+    already read, which this one must not repeat."""
+    name = cf.string("name")
+    if name in taken:
+        raise cf.error("name", f"{name!r} appears twice; camera names must be unique")
+    return CameraSpec(
+        name,
+        cf.integer("width", minimum=1, maximum=100_000),
+        cf.integer("height", minimum=1, maximum=100_000),
     )
 
 
