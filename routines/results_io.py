@@ -638,26 +638,6 @@ def write_depthai_json(result: CalibrationResult, path: str | Path, sockets: Map
     return writer(result, Path(path), dict(sockets))
 
 
-def write_exports(
-    result: CalibrationResult,
-    out_dir: str | Path,
-    oak_sockets: Mapping[str, Any] | None = None,
-) -> list[Path]:
-    """OpenCV and ROS files per camera (``opencv_<name>.yaml``, ``camera_info_<name>.yaml``)
-    and, for an OAK rig (``oak_sockets`` given), ``depthai_calibration.json``."""
-    out = Path(out_dir)
-    paths = []
-    for name, cam in result.cameras.items():
-        paths.append(write_opencv_yaml(cam, out / f"opencv_{name}.yaml"))
-        paths.append(write_camera_info(cam, out / f"camera_info_{name}.yaml"))
-    if oak_sockets:
-        try:
-            paths.append(write_depthai_json(result, out / "depthai_calibration.json", oak_sockets))
-        except InputError:
-            pass  # reported in the summary by the caller; the other exports stand
-    return paths
-
-
 # ----------------------------------------------------------------------------- summary
 
 
