@@ -505,9 +505,7 @@ def config_from_dict(data: Any, source: str = "cell.yaml", sha256: str | None = 
         raise cam_f.error("device_id", f"is an OAK option; the driver here is {driver!r}")
     specs, cam_opts = _cameras(cam_f, driver, sim)
     names = [c.name for c in specs]
-    reference = cam_f.string("reference", names[0])
-    if reference not in names:
-        raise cam_f.error("reference", f"{reference!r} is not a camera; cameras are {names}")
+    reference = cam_f.camera("reference", names)
     if sim is not None:
         missing = [n for n in names if n != reference and n not in sim.rig]
         if missing:

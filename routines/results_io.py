@@ -447,9 +447,7 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
     cams = _cameras_from(f)
     names = list(cams)
     mount = f.choice("mount", RESULT_MOUNTS, "eye_in_hand")
-    ref = f.string("reference_camera", names[0])
-    if ref not in cams:
-        raise f.error("reference_camera", f"{ref!r} is not a camera; cameras are {names}")
+    ref = f.camera("reference_camera", names)
 
     def te(key: str, name: str | None = None) -> TransformEstimate | None:
         if not f.has(key):
@@ -527,11 +525,7 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
             raise hf.error(str(k), "must be named 'a<-b' with two of the result's cameras")
         H_inf[str(k)] = hf.array(str(k), (3, 3))
     lf = f.section("linear")
-    linear = {}
-    for k in lf.data:
-        if k not in cams:
-            raise lf.error(str(k), f"unknown camera {k!r}; cameras are {names}")
-        linear[str(k)] = lf.array(str(k), (3, 3))
+    linear = {k: lf.array(k, (3, 3)) for k in lf.cameras(names)}
     hf_ = f.section("header", RESULT_PART_KEYS["header"])  # provenance: checked, not kept
     for k in hf_.data:
         if hf_.get(k) is not None and not isinstance(hf_.get(k), str):

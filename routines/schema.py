@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import difflib
 import os
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -310,6 +310,20 @@ class Fields:
         sub = self.sub(key, required=False)
         sub = sub if sub is not None else Fields({}, self.file, self.where(key).split(": ")[-1])
         return sub.only(valid) if valid is not None else sub
+
+    def cameras(self, names: Sequence[str]) -> Iterator[str]:
+        """The keys of a per-camera mapping, each refused unless one of ``names``."""
+        for key in self.data:
+            if key not in names:
+                raise self.error(str(key), f"unknown camera {key!r}; cameras are {list(names)}")
+            yield str(key)
+
+    def camera(self, key: str, names: Sequence[str]) -> str:
+        """A camera's name among ``names`` (the first when absent)."""
+        name = self.string(key, names[0])
+        if name not in names:
+            raise self.error(key, f"{name!r} is not a camera; cameras are {list(names)}")
+        return name
 
     def choice(self, key: str, options: Sequence[str], default: str | None = None) -> str:
         """A string among ``options``."""

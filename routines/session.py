@@ -561,9 +561,7 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
                     f"is missing; knowledge {knowledge!r} needs motion_board on every frame",
                     where=f"{SESSION_FILE}: frames[{i}].motion_board",
                 )
-    ref = f.string("reference_camera", names[0]) if f.has("reference_camera") else None
-    if ref is not None and ref not in names:
-        raise f.error("reference_camera", f"{ref!r} is not a camera; cameras are {names}")
+    ref = f.camera("reference_camera", names) if f.has("reference_camera") else None
     options = options_from_dict(f.get("options", {}), SESSION_FILE)
     problem = CalibrationProblem(
         target=target,
@@ -641,10 +639,8 @@ def _simulation_truth(f: Fields | None, names: Sequence[str]) -> dict[str, Any] 
         elif key not in SESSION_KEYS["simulation"]:
             raise unknown_key_error(f.where(str(key)), key, SESSION_KEYS["simulation"])
     cf = f.section("cameras")
-    for name in cf.data:
-        if name not in names:
-            raise cf.error(str(name), f"unknown camera {name!r}; cameras are {list(names)}")
-        c = cf.section(str(name), SESSION_KEYS["simulation.cameras.*"])
+    for name in cf.cameras(names):
+        c = cf.section(name, SESSION_KEYS["simulation.cameras.*"])
         c.array("K", (3, 3))
         c.array("distortion", (5,))
     nf = f.section("noise", SESSION_KEYS["simulation.noise"])
@@ -734,24 +730,18 @@ def _read_frame(
     motion = f.array("motion_board", (3,)) if f.has("motion_board") else None
     group = f.integer("group", minimum=0) if f.has("group") else None
 
-    image_paths: dict[str, Path] = {}
     ims = f.section("images")
-    for name in ims.data:
-        if name not in names:
-            raise ims.error(str(name), f"unknown camera {name!r}; cameras are {names}")
-        image_paths[str(name)] = directory / _inside(ims, str(name))
+    image_paths = {name: directory / _inside(ims, name) for name in ims.cameras(names)}
 
     detections: dict[str, Detection] = {}
     dets = f.section("detections")
-    for name in dets.data:
-        if name not in names:
-            raise dets.error(str(name), f"unknown camera {name!r}; cameras are {names}")
-        k = names.index(str(name))
+    for name in dets.cameras(names):
+        k = names.index(name)
         value = dets.data[name]
         if isinstance(value, int) and not isinstance(value, bool):
             detections[name] = _stored_detection(dets, name, (fid, k), table, target, cameras[k])
         else:
-            detections[str(name)] = _read_detection(dets.section(str(name)), target, cameras[k])
+            detections[name] = _read_detection(dets.section(name), target, cameras[k])
 
     for name, path in image_paths.items():
         if name in detections:
@@ -770,12 +760,8 @@ def _read_frame(
         detections[name], why = _detect_file(path, target, ims.where(name), spec)
         if why:
             reasons[(fid, name)] = why
-    quality: dict[tuple[int, str], dict[str, Any]] = {}
     q = f.section("quality")
-    for name in q.data:
-        if name not in names:
-            raise q.error(str(name), f"unknown camera {name!r}; cameras are {names}")
-        quality[(fid, str(name))] = dict(q.section(str(name)).data)
+    quality = {(fid, name): dict(q.section(name).data) for name in q.cameras(names)}
     frame = Frame(id=fid, detections=detections, T_base_tool=T, motion_board=motion, group=group)
     return frame, quality, {(fid, n): p for n, p in image_paths.items()}
 
