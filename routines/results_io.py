@@ -9,9 +9,11 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from slidecal.drivers.ur_pose import T_from_ur_pose, pendant_text
+from slidecal.mocks.cell import effective_truth
 from slidecal.routines.schema import (
     Fields,
     dump_yaml,
@@ -567,8 +569,6 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
 def write_opencv_yaml(camera: CameraEstimate, path: str | Path) -> Path:
     """OpenCV ``FileStorage`` YAML of one camera, as OpenCV's calibration sample writes it
     (``camera_matrix`` 3x3, ``distortion_coefficients`` 1x5, ``avg_reprojection_error`` px)."""
-    import cv2
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
@@ -833,8 +833,6 @@ def judged_truth(result: CalibrationResult, truth: Mapping[str, Any]) -> dict[st
     ref_key = he_names.get(_reference(result))
     if not frames or ref_key not in out or tname not in out:
         return out
-    from slidecal.mocks.cell import effective_truth
-
     rot_deg, mm = _robot_sigma(result, truth)
     T_he, T_tg = out[ref_key], out[tname]
     T_he_eff, T_tg_eff = effective_truth(

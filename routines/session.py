@@ -17,6 +17,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from slidecal.drivers.ur_pose import T_from_ur_pose, ur_pose_from_T
@@ -29,7 +30,9 @@ from slidecal.routines.schema import (  # noqa: F401 - re-exported: the format l
     unknown_key_error,
     write_atomic,
 )
+from slidecal.solver.detect import detect
 from slidecal.solver.errors import InputError
+from slidecal.solver.geometry import R_from_quat_wxyz, Rx, Ry, Rz, T_from_Rt
 from slidecal.solver.problem import (
     CalibrationProblem,
     CameraSpec,
@@ -38,6 +41,7 @@ from slidecal.solver.problem import (
     ModelOptions,
     Target,
 )
+from slidecal.solver.target_shape import PRINT_TOLERANCE, default_flatness_m
 
 SESSION_FORMAT = "slidecal.session/1"
 SESSION_FILE = "session.yaml"
@@ -153,8 +157,6 @@ def transform_from_dict(f: Fields, key: str) -> np.ndarray:
     R roll, pitch, yaw) or ``q_wxyz`` (a unit quaternion, scalar first as ABB writes it).
     Translation: ``t_m`` (metres) or ``t_mm`` (millimetres).
     """
-    from slidecal.solver.geometry import R_from_quat_wxyz, Rx, Ry, Rz, T_from_Rt
-
     sub = f.sub(key)
     assert sub is not None
     sub.only(ROTATION_KEYS + TRANSLATION_KEYS)
@@ -244,8 +246,6 @@ def robot_pose_field(f: Fields, key: str) -> np.ndarray:
 
 def _dictionary_size(name: str) -> int | None:
     """Number of markers of an OpenCV predefined ArUco dictionary (None: not one)."""
-    import cv2
-
     if not re.fullmatch(r"DICT_\w+", name) or not isinstance(getattr(cv2.aruco, name, None), int):
         return None
     try:
@@ -261,8 +261,6 @@ def target_from_dict(
     aprilgrid). Its tolerance (``flatness_mm``, ``print_tolerance``) takes a real board's
     defaults when not given (``solver/target_shape.py``), or 0 with ``exact_by_default`` (a
     simulated board is exactly as described)."""
-    from slidecal.solver.target_shape import PRINT_TOLERANCE, default_flatness_m
-
     f = Fields(data, file, path).only(
         tuple(dict.fromkeys(k for v in TARGET_KEYS.values() for k in v))
     )
@@ -297,8 +295,6 @@ def _target_of_kind(f: Fields, kind: str) -> Target:
             raise f.error("points_m", "has points beyond 10 m; give the positions in metres")
         return Target.points(pts)
     if kind in ("apriltag", "aprilgrid"):
-        import cv2
-
         tag = f.number("tag_size_m", positive=True)
         if tag > 2.0:
             raise f.error("tag_size_m", f"is {tag} m; give the tag size in metres (e.g. 0.088)")
@@ -903,10 +899,6 @@ def _detect_file(
     path: Path, target: Target, where: str, camera: CameraSpec
 ) -> tuple[Detection, tuple[str, ...]]:
     """The detection of an image file, and the detector's reasons when it found nothing usable."""
-    import cv2
-
-    from slidecal.solver.detect import detect
-
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise InputError(f"{path.name} is not a readable image; replace it", where=where)
@@ -1072,8 +1064,6 @@ class SessionWriter:
         board-frame motion knowledge; ``T_base_tool_true`` (4, 4): the pose the simulated arm really
         reached (kept only with a ``simulation:`` block).
         """
-        import cv2
-
         _declared(extra, SESSION_KEYS["frames[]"], "frame")
         used = [int(fr["id"]) for fr in self.data["frames"]]
         fid = (max(used) + 1 if used else 0) if frame_id is None else int(frame_id)
