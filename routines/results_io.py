@@ -5,7 +5,8 @@ exports, a human summary. A value the data cannot determine is ``null``, never a
 from __future__ import annotations
 
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from dataclasses import astuple, fields
 from pathlib import Path
 from typing import Any
 
@@ -183,23 +184,16 @@ def result_to_dict(result: CalibrationResult) -> dict[str, Any]:
     d["reprojection"] = {
         "rms_px": _num(result.reproj_rms_px),
         "sigma_px": _num(result.sigma_px),
-        "per_image": [
-            {"frame": int(f), "camera": c, "rms_px": _num(v)}
-            for (f, c), v in sorted(result.residuals_px.items())
-        ],
+        "per_image": _rows(
+            [(f, c, v) for (f, c), v in sorted(result.residuals_px.items())],
+            "reprojection.per_image[]",
+        ),
     }
     d["unobservable"] = dict(result.unobservable)
     d["messages"] = list(result.messages)
-    d["scale_checks"] = [
-        {
-            "frame_a": int(s.frame_a),
-            "frame_b": int(s.frame_b),
-            "robot_mm": _num(s.robot_mm),
-            "camera_mm": _num(s.camera_mm),
-            "ratio": _num(s.ratio),
-        }
-        for s in result.scale_checks
-    ]
+    d["scale_checks"] = _rows(
+        [(*astuple(s), s.ratio) for s in result.scale_checks], "scale_checks[]"
+    )
     d["scale_check"] = scale_check_summary(result.scale_checks)
     d["H_inf"] = {k: plain(v) for k, v in result.H_inf.items()}
     d["outliers"] = [[int(f), c, int(i)] for f, c, i in result.outliers]
@@ -213,10 +207,7 @@ def result_to_dict(result: CalibrationResult) -> dict[str, Any]:
             "reasons": list(ad.reasons),
             "detector_noise_px": {k: _num(v) for k, v in ad.detector_noise_px.items()},
             "normalised_rms": {k: _num(v) for k, v in ad.normalised_rms.items()},
-            "worst_frames": [
-                {"frame": int(f), "camera": c, "normalised_rms": _num(v)}
-                for f, c, v in ad.worst_frames
-            ],
+            "worst_frames": _rows(ad.worst_frames, "adequacy.worst_frames[]"),
         }
     bd = result.board
     if bd is not None:
@@ -232,16 +223,12 @@ def result_to_dict(result: CalibrationResult) -> dict[str, Any]:
             "translation_mm": _num(ra.translation_mm),
             "rotation_deg": _num(ra.rotation_deg),
             "estimated": bool(ra.estimated),
-            "worst_frames": [
-                {"frame": int(f), "translation_mm": _num(t), "rotation_deg": _num(r)}
-                for f, t, r in ra.worst_frames
-            ],
+            "worst_frames": _rows(ra.worst_frames, "robot_accuracy.worst_frames[]"),
         }
         if ra.left_out:
-            d["robot_accuracy"]["left_out_frames"] = [
-                {"frame": int(f), "translation_mm": _num(t), "rotation_deg": _num(r)}
-                for f, t, r in ra.left_out
-            ]
+            d["robot_accuracy"]["left_out_frames"] = _rows(
+                ra.left_out, "robot_accuracy.left_out_frames[]"
+            )
     return d
 
 
@@ -352,24 +339,48 @@ def _camera_numbers(f: Fields, key: str, names: list[str]) -> dict[str, float]:
     return {str(k): _nullable(sub, str(k), minimum=0.0) for k in sub.data}
 
 
+def _rows(rows: Sequence[Sequence[Any]], part: str) -> list[dict[str, Any]]:
+    """The entries of a list of ``result.yaml``: each row's values under the keys of ``part``
+    (frame ids as integers, camera names as text, numbers null where not finite)."""
+    return [
+        {
+            k: v if isinstance(v, str) else int(v) if k.startswith("frame") else _num(v)
+            for k, v in zip(RESULT_PART_KEYS[part], row, strict=True)
+        }
+        for row in rows
+    ]
+
+
+def _rows_from(
+    f: Fields, key: str, hint: str, names: list[str], keys: Sequence[str] | None = None
+) -> tuple[tuple[Any, ...], ...]:
+    """The list ``key`` of ``f`` read back (:func:`_rows`): per entry the values of ``keys``
+    (default: all of the part's keys) in order, frame ids non-negative, cameras of ``names``."""
+    part = f"{f.path}.{key}[]" if f.path else f"{key}[]"
+    rows = []
+    for i, w in enumerate(f.list(key, required=False, hint=hint)):
+        wf = Fields(w, f.file, part.replace("[]", f"[{i}]")).only(RESULT_PART_KEYS[part])
+        rows.append(
+            tuple(
+                wf.integer(k, minimum=0)
+                if k.startswith("frame")
+                else wf.choice(k, names)
+                if k == "camera"
+                else _nullable(wf, k, minimum=0.0)
+                for k in keys or RESULT_PART_KEYS[part]
+            )
+        )
+    return tuple(rows)
+
+
 def _adequacy_from(f: Fields, names: list[str]) -> ModelAdequacy:
     a = f.section("adequacy", RESULT_PART_KEYS["adequacy"])
     reasons = a.strings("reasons") if a.has("reasons") else []
-    worst = []
-    for i, w in enumerate(a.list("worst_frames", required=False, hint="{frame, camera, ...}")):
-        wf = Fields(w, f.file, f"adequacy.worst_frames[{i}]")
-        wf.only(RESULT_PART_KEYS["adequacy.worst_frames[]"])
-        worst.append(
-            (
-                wf.integer("frame", minimum=0),
-                wf.choice("camera", names),
-                _nullable(wf, "normalised_rms", minimum=0.0),
-            )
-        )
+    worst = _rows_from(a, "worst_frames", "{frame, camera, ...}", names)
     return ModelAdequacy(
         _camera_numbers(a, "detector_noise_px", names),
         _camera_numbers(a, "normalised_rms", names),
-        tuple(worst),
+        worst,  # type: ignore[arg-type]
         a.boolean("adequate"),
         tuple(reasons),
     )
@@ -388,20 +399,7 @@ def _board_from(f: Fields) -> BoardShape:
 
 def _robot_accuracy_from(f: Fields) -> RobotAccuracy:
     r = f.section("robot_accuracy", RESULT_PART_KEYS["robot_accuracy"])
-    lists = {}
-    for key in ("worst_frames", "left_out_frames"):
-        rows = []
-        for i, w in enumerate(r.list(key, required=False, hint="{frame, ...}")):
-            wf = Fields(w, f.file, f"robot_accuracy.{key}[{i}]")
-            wf.only(RESULT_PART_KEYS[f"robot_accuracy.{key}[]"])
-            rows.append(
-                (
-                    wf.integer("frame", minimum=0),
-                    _nullable(wf, "translation_mm", minimum=0.0),
-                    _nullable(wf, "rotation_deg", minimum=0.0),
-                )
-            )
-        lists[key] = tuple(rows)
+    lists = {k: _rows_from(r, k, "{frame, ...}", []) for k in ("worst_frames", "left_out_frames")}
     return RobotAccuracy(
         _nullable(r, "translation_mm", minimum=0.0),
         _nullable(r, "rotation_deg", minimum=0.0),
@@ -503,17 +501,8 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
     for k, v in unobs.data.items():
         if not isinstance(v, str):
             raise unobs.error(str(k), "must be the reason as text")
-    checks = []
-    for i, sc in enumerate(f.list("scale_checks", required=False, hint="scale check")):
-        sf = Fields(sc, source, f"scale_checks[{i}]").only(RESULT_PART_KEYS["scale_checks[]"])
-        checks.append(
-            ScaleCheck(
-                sf.integer("frame_a", minimum=0),
-                sf.integer("frame_b", minimum=0),
-                _nullable(sf, "robot_mm", minimum=0.0),
-                _nullable(sf, "camera_mm", minimum=0.0),
-            )
-        )
+    scale_keys = [fl.name for fl in fields(ScaleCheck)]  # not the ratio, which they give
+    checks = [ScaleCheck(*r) for r in _rows_from(f, "scale_checks", "scale check", [], scale_keys)]
     sc_sum = f.section("scale_check", RESULT_PART_KEYS["scale_check"])
     for k in ("median_ratio", "worst_ratio"):
         _nullable(sc_sum, k)
