@@ -370,35 +370,13 @@ def target_to_dict(target: Target) -> dict[str, Any]:
 
 
 def _kind_to_dict(target: Target) -> dict[str, Any]:
+    """The kind-specific keys of a ``target:`` block (:data:`TARGET_KEYS`)."""
     if target.kind == "points":
         return {"kind": "points", "points_m": plain(target.points_m[:, :2])}
-    if target.kind == "aprilgrid":
-        return {
-            "kind": "aprilgrid",
-            "tag_cols": target.tag_cols,
-            "tag_rows": target.tag_rows,
-            "tag_size_m": target.tag_size_m,
-            "tag_spacing": target.tag_spacing,
-            "dictionary": target.dictionary,
-        }
-    if target.kind == "apriltag":
-        return {
-            "kind": "apriltag",
-            "tag_size_m": target.tag_size_m,
-            "tag_ids": [int(i) for i in target.tag_ids],
-            "tag_origins_m": [[float(x), float(y)] for x, y in target.tag_origins_m],
-            "dictionary": target.dictionary,
-        }
-    d: dict[str, Any] = {
-        "kind": target.kind,
-        "squares_x": target.squares_x,
-        "squares_y": target.squares_y,
-        "square_size_m": target.square_size_m,
-    }
-    if target.kind == "charuco":
-        d["marker_size_m"] = target.marker_size_m
-        d["dictionary"] = target.dictionary
-    return d
+    keys = TARGET_KEYS[target.kind][1 : -len(TOLERANCE_KEYS)]
+    if target.kind == "apriltag":  # the order slidecal has always written them in
+        keys = ("tag_size_m", "tag_ids", "tag_origins_m", "dictionary")
+    return {"kind": target.kind, **{k: plain(getattr(target, k)) for k in keys}}
 
 
 def options_from_dict(data: Any, file: str, path: str = "options") -> ModelOptions:
