@@ -29,10 +29,9 @@ from slidecal.routines.ops.verdict import Limits, limits_from_dict
 from slidecal.routines.schema import (
     CELL_SECTIONS,
     Fields,
-    dump_yaml,
     load_yaml,
     parse_yaml,
-    write_atomic,
+    write_yaml,
 )
 from slidecal.routines.session import (
     OAK_SOCKET,
@@ -654,10 +653,7 @@ def limits_to_dict(limits: Limits) -> dict[str, Any]:
 
 def write_config(cfg: CellConfig, path: str | Path) -> Path:
     """Write the cell file of ``cfg`` (:func:`config_to_dict`) atomically."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(path, dump_yaml(config_to_dict(cfg)))
-    return path
+    return write_yaml(path, config_to_dict(cfg))
 
 
 def _names(mount: str) -> tuple[str, str]:
@@ -701,10 +697,6 @@ def _approximate(f: Fields, mount: str) -> tuple[np.ndarray, np.ndarray, float]:
         raise app.error(he_key, "is missing; give the rough camera pose in the base frame")
     standoff = app.number("standoff_m", 0.5, positive=True, maximum=20.0)
     return approx_he, approx_target, standoff
-
-
-def _pose(f: Fields, key: str) -> np.ndarray | None:
-    return ur_pose_field(f, key) if f.has(key) else None
 
 
 def _robot(f: Fields) -> RobotConfig:
@@ -751,11 +743,11 @@ def _robot(f: Fields) -> RobotConfig:
         driver=driver,
         host=host,
         model=model,
-        tcp=_pose(f, "tcp"),
+        tcp=ur_pose_field(f, "tcp") if f.has("tcp") else None,
         speed_mps=speed,
         accel_mps2=accel,
         settle_s=settle,
-        start_pose=_pose(f, "start_pose"),
+        start_pose=ur_pose_field(f, "start_pose") if f.has("start_pose") else None,
         workspace_min_m=wmin,
         workspace_max_m=wmax,
         start_q=start_q,

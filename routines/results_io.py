@@ -17,11 +17,10 @@ from slidecal.drivers.ur_pose import T_from_ur_pose, pendant_text
 from slidecal.mocks.cell import effective_truth
 from slidecal.routines.schema import (
     Fields,
-    dump_yaml,
     load_yaml,
     plain,
     unknown_key_error,
-    write_atomic,
+    write_yaml,
 )
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import T_from_Rt, rotation_angle_deg, rvec_from_R
@@ -262,13 +261,10 @@ def write_result(
     """Write ``result.yaml`` atomically; return its path. ``header``: written after
     ``format`` (slidecal version, time, cell file hash: :func:`slidecal.routines.exports.
     result_header`)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     d = result_to_dict(result)
     if header:
         d = {"format": d.pop("format"), "header": dict(header), **d}
-    write_atomic(path, dump_yaml(d))
-    return path
+    return write_yaml(path, d)
 
 
 #: The keys of ``result.yaml`` besides the transforms (named ``T_<a>_<b>``): one list, kept in
@@ -599,10 +595,7 @@ def camera_info_dict(camera: CameraEstimate) -> dict[str, Any]:
 
 def write_camera_info(camera: CameraEstimate, path: str | Path) -> Path:
     """Write :func:`camera_info_dict` as YAML."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(path, dump_yaml(camera_info_dict(camera)))
-    return path
+    return write_yaml(path, camera_info_dict(camera))
 
 
 def write_depthai_json(result: CalibrationResult, path: str | Path, sockets: Mapping[str, Any]):

@@ -119,6 +119,14 @@ def write_atomic(path: Path, text: str | bytes) -> None:
     _fsync_dir(path.parent)
 
 
+def write_yaml(path: str | Path, data: Any) -> Path:
+    """Write ``data`` as YAML at ``path`` (:func:`write_atomic`, its folder created); return it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(path, dump_yaml(data))
+    return path
+
+
 def _fsync_dir(directory: Path) -> None:
     try:
         fd = os.open(directory, os.O_RDONLY)

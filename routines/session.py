@@ -403,16 +403,10 @@ def options_from_dict(data: Any, file: str, path: str = "options") -> ModelOptio
 
 
 def options_to_dict(options: ModelOptions) -> dict[str, Any]:
-    """The ``options:`` block of :class:`ModelOptions`."""
-    return {
-        "skew": options.skew,
-        "unit_aspect": options.unit_aspect,
-        "distortion": list(options.distortion),
-        "outlier_threshold_px": options.outlier_threshold_px,
-        "robot_noise_mm": options.robot_noise_m * 1000.0,
-        "robot_noise_deg": options.robot_noise_deg,
-        "estimate_robot_noise": options.estimate_robot_noise,
-    }
+    """The ``options:`` block of :class:`ModelOptions` (``robot_noise_mm``: ``robot_noise_m``)."""
+    d = {k: plain(getattr(options, k.replace("_mm", "_m"))) for k in OPTIONS_KEYS}
+    d["robot_noise_mm"] *= 1000.0
+    return d
 
 
 # ----------------------------------------------------------------------------- reading
