@@ -662,13 +662,9 @@ def _names(mount: str) -> tuple[str, str]:
     return frames.hand_eye, frames.target
 
 
-def _other_mount(mount: str) -> str:
-    return "eye_to_hand" if mount == "eye_in_hand" else "eye_in_hand"
-
-
 def _refuse_other_mount(f: Fields, mount: str) -> None:
     """A hand-eye or target pose named for the other mount is a user's mistake: say so."""
-    other = _other_mount(mount)
+    other = "eye_to_hand" if mount == "eye_in_hand" else "eye_in_hand"
     for mine, theirs in zip(_names(mount), _names(other), strict=True):
         if theirs in f.data:
             raise f.error(
@@ -819,9 +815,7 @@ def _photo(c: Fields) -> Photo | None:
         default = getattr(defaults, name)
         if isinstance(default, bool):
             values[name] = pf.boolean(name)
-        elif name == "jpeg_quality":
-            values[name] = pf.integer(name, minimum=0, maximum=100)
-        elif name == "glare_spots":
+        elif name in ("jpeg_quality", "glare_spots"):
             values[name] = pf.integer(name, minimum=0, maximum=100)
         elif name == "focus_distance_m":
             values[name] = None if pf.data[name] is None else pf.number(name, minimum=1e-3)

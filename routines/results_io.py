@@ -616,6 +616,10 @@ def write_depthai_json(result: CalibrationResult, path: str | Path, sockets: Map
 
 # ----------------------------------------------------------------------------- summary
 
+#: The intrinsics a summary lists: name and place in K; the distortion's names (OpenCV's order)
+K_ENTRIES = (("fx", (0, 0)), ("fy", (1, 1)), ("cx", (0, 2)), ("cy", (1, 2)), ("s", (0, 1)))
+DIST_LABELS = ("k1", "k2", "p1", "p2", "k3")
+
 
 def _fmt(x: float | None, spec: str = ".3f") -> str:
     """A figure of the summary; "n/a" when absent, powers of ten when it is a million or more
@@ -646,23 +650,15 @@ def summary_text(
         lines.append(
             f"camera {name} ({c.width}x{c.height}), reprojection rms {_fmt(c.reproj_rms_px)} px"
         )
-        for label, val in (
-            ("fx", K[0, 0]),
-            ("fy", K[1, 1]),
-            ("cx", K[0, 2]),
-            ("cy", K[1, 2]),
-            ("s", K[0, 1]),
-        ):
-            if label in std or not std:  # no std at all: the covariance was not computed
-                lines.append(f"  {label:3s} = {val:10.3f} px  +- {_fmt(std.get(label))} px")
-            else:  # held by the options (the skew: 0 unless estimated), not estimated
-                lines.append(f"  {label:3s} = {val:10.3f} px  (fixed)")
         dist = np.asarray(c.distortion).reshape(-1)
-        for label, val in zip(("k1", "k2", "p1", "p2", "k3"), dist[:5], strict=False):
-            if label in std or not std:
-                lines.append(f"  {label:3s} = {val:+.6f}     +- {_fmt(std.get(label), '.6f')}")
-            else:
-                lines.append(f"  {label:3s} = {val:+.6f}     (fixed)")
+        rows = [(label, K[ij], "10.3f", ".3f", " px") for label, ij in K_ENTRIES]
+        rows += [(lb, v, "+.6f", ".6f", "") for lb, v in zip(DIST_LABELS, dist[:5], strict=False)]
+        for label, val, spec, std_spec, unit in rows:
+            value = f"  {label:3s} = {val:{spec}}{unit:5s}"
+            if label in std or not std:  # no std at all: the covariance was not computed
+                lines.append(f"{value}+- {_fmt(std.get(label), std_spec)}{unit}")
+            else:  # held by the options (the skew: 0 unless estimated), not estimated
+                lines.append(f"{value}(fixed)")
     for key, t in hand_eye_transforms(result).items():
         lines.extend(_transform_lines(key, t))
     for key, t in result.rig.items():
@@ -777,8 +773,8 @@ def errors_against_truth(result: CalibrationResult, truth: Mapping[str, Any]) ->
         Kt = np.asarray(tcams[name]["K"], dtype=float)
         K = np.asarray(c.K, dtype=float)
         out[f"{name}.fx_rel"] = float(abs(K[0, 0] - Kt[0, 0]) / Kt[0, 0])
-        for label, (i, j) in (("fx", (0, 0)), ("fy", (1, 1)), ("cx", (0, 2)), ("cy", (1, 2))):
-            out[f"{name}.{label}_px"] = float(abs(K[i, j] - Kt[i, j]))
+        for label, ij in K_ENTRIES[:4]:
+            out[f"{name}.{label}_px"] = float(abs(K[ij] - Kt[ij]))
     est: dict[str, TransformEstimate] = dict(hand_eye_transforms(result))
     est.update(result.rig)
     tname = target_pose_name(result.mount)
