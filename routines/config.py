@@ -31,6 +31,7 @@ from slidecal.routines.schema import (
     Fields,
     load_yaml,
     parse_yaml,
+    plain,
     write_yaml,
 )
 from slidecal.routines.session import (
@@ -614,21 +615,7 @@ def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
     if sim is not None:
         out["simulation"] = {
             "seed": sim.seed,
-            "cameras": {
-                c.name: {
-                    "width": c.width,
-                    "height": c.height,
-                    "K": np.asarray(c.K).tolist(),
-                    "distortion": np.asarray(c.dist).tolist(),
-                    "blur_sigma_px": c.blur_sigma_px,
-                    "noise_std": c.noise_std,
-                    "exposure": c.exposure,
-                    "colour": c.colour,
-                    "vignetting": c.vignetting,
-                    "photo": asdict(c.photo) if c.photo is not None else False,
-                }
-                for c in sim.cameras
-            },
+            "cameras": {c.name: _sim_camera_to_dict(c) for c in sim.cameras},
             he_key: transform_to_dict(sim.T_hand_eye),
             tg_key: transform_to_dict(sim.T_target),
             "rig": {n: transform_to_dict(T) for n, T in sim.rig.items()},
@@ -643,6 +630,14 @@ def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
     out["options"] = options_to_dict(cfg.options)
     out["limits"] = limits_to_dict(cfg.limits)
     out["install"] = {k: v for k, v in asdict(cfg.install).items() if v is not None}
+    return out
+
+
+def _sim_camera_to_dict(c: SimCamera) -> dict[str, Any]:
+    """A ``simulation.cameras.<name>`` entry in full (``distortion`` is the camera's ``dist``)."""
+    keys = CELL_KEYS["simulation.cameras.*"]
+    out = {k: plain(getattr(c, "dist" if k == "distortion" else k)) for k in keys}
+    out["photo"] = asdict(c.photo) if c.photo is not None else False
     return out
 
 
