@@ -307,11 +307,9 @@ class Fields:
 
     def sub(self, key: str, required: bool = True) -> Fields | None:
         """The nested mapping at ``key``."""
-        if not self.has(key):
-            if required:
-                raise self.error(key, "is missing; add it (docs/FORMATS.md lists every field)")
+        if not required and not self.has(key):
             return None
-        return Fields(self.data[key], self.file, f"{self.path}.{key}" if self.path else key)
+        return Fields(self.require(key), self.file, f"{self.path}.{key}" if self.path else key)
 
     def section(self, key: str, valid: Sequence[str] | None = None) -> Fields:
         """The nested mapping at ``key`` (empty when absent), restricted to ``valid`` keys."""
@@ -408,11 +406,9 @@ class Fields:
         self, key: str, required: bool = True, non_empty: bool = False, hint: str = "an entry"
     ) -> list[Any]:
         """A YAML list (empty when absent and not required); ``hint``: what an entry is."""
-        if not self.has(key):
-            if required:
-                raise self.error(key, "is missing; add it (docs/FORMATS.md lists every field)")
+        if not required and not self.has(key):
             return []
-        v = self.data[key]
+        v = self.require(key)
         if not isinstance(v, list):
             raise self.error(key, f"must be a list of {hint}, got {_kind(v)}")
         if non_empty and not v:
