@@ -449,11 +449,7 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
         if not f.has(key):
             return None
         s = f.section(key, RESULT_PART_KEYS["transform"])
-        R = s.array("R", (3, 3)) if s.has("R") else None
-        if R is not None and (
-            not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0
-        ):
-            raise s.error("R", "is not a rotation matrix (orthonormal, det +1)")
+        R = s.rotation("R") if s.has("R") else None
         t = s.array("t_m", (3,)) if s.has("t_m") else None
         return TransformEstimate(
             name or key,

@@ -402,6 +402,13 @@ class Fields:
         v = self.require(key) if default is None else self.get(key, default)
         return as_array(v, shape, self.where(key))
 
+    def rotation(self, key: str, advice: str = "") -> np.ndarray:
+        """A 3x3 rotation matrix (orthonormal, det +1); ``advice`` ends the message refusing one."""
+        R = self.array(key, (3, 3))
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+            raise self.error(key, f"is not a rotation matrix (orthonormal, det +1){advice}")
+        return R
+
     def list(
         self, key: str, required: bool = True, non_empty: bool = False, hint: str = "an entry"
     ) -> list[Any]:

@@ -169,9 +169,7 @@ def transform_from_dict(f: Fields, key: str) -> np.ndarray:
     else:
         t = sub.array("t_m", (3,))
     if sub.has("R"):
-        R = sub.array("R", (3, 3))
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
-            raise sub.error("R", "is not a rotation matrix (orthonormal, det +1); fix the values")
+        R = sub.rotation("R", "; fix the values")
     elif sub.has("rpy_deg"):
         r, p, y = np.radians(sub.array("rpy_deg", (3,)))
         R = Rz(y) @ Ry(p) @ Rx(r)
