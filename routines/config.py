@@ -834,9 +834,7 @@ def _simulation(f: Fields, mount: str) -> SimulationConfig:
     if preset is not None:
         cams, rig = _preset_cameras(preset)
     cf = f.section("cameras")
-    for name in cf.data:
-        if not isinstance(name, str) or not name.strip():
-            raise cf.error(str(name), "must be a camera name (text)")
+    for name in cf.cameras():
         c = cf.section(name, CELL_KEYS["simulation.cameras.*"])
         base = next((x for x in cams if x.name == name), None)
         new = _sim_camera(c, name, base)

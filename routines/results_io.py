@@ -412,9 +412,7 @@ def _cameras_from(f: Fields) -> dict[str, CameraEstimate]:
     assert cf is not None
     if not cf.data:
         raise cf.error(None, "is empty; a result holds at least one camera")
-    for name in cf.data:
-        if not isinstance(name, str) or not name.strip():
-            raise cf.error(str(name), "must be a camera name (text)")
+    for name in cf.cameras():
         c = cf.section(name, RESULT_PART_KEYS["cameras.*"])
         if c.has("distortion_model"):
             c.choice("distortion_model", ("opencv5",))

@@ -317,10 +317,13 @@ class Fields:
         sub = sub if sub is not None else Fields({}, self.file, self.where(key).split(": ")[-1])
         return sub.only(valid) if valid is not None else sub
 
-    def cameras(self, names: Sequence[str]) -> Iterator[str]:
-        """The keys of a per-camera mapping, each refused unless one of ``names``."""
+    def cameras(self, names: Sequence[str] | None = None) -> Iterator[str]:
+        """The keys of a per-camera mapping, each refused unless one of ``names`` (None: unless
+        a name as text)."""
         for key in self.data:
-            if key not in names:
+            if names is None and (not isinstance(key, str) or not key.strip()):
+                raise self.error(str(key), "must be a camera name (text)")
+            if names is not None and key not in names:
                 raise self.error(str(key), f"unknown camera {key!r}; cameras are {list(names)}")
             yield str(key)
 
