@@ -35,6 +35,7 @@ from slidecal.routines.schema import (
     write_yaml,
 )
 from slidecal.routines.session import (
+    CAMERA_DRIVERS,
     OAK_SOCKET,
     camera_spec,
     options_from_dict,
@@ -51,7 +52,6 @@ from slidecal.solver.problem import MOUNTS, CameraSpec, ModelOptions, Target
 
 CELL_FORMAT = "slidecal.cell/1"
 ROBOT_DRIVERS = ("simulated", "ur")
-CAMERA_DRIVERS = ("simulated", "oak", "uvc")
 CELL_MOUNTS = ("eye_in_hand", "eye_to_hand")
 CAMERA_PRESETS = ("r1", "oak_d_like")
 DEFAULT_CELL = "default_cell.yaml"
@@ -237,14 +237,10 @@ def _plan(
     """The ``plan:`` section (``spec``: the reference camera); errors name the field."""
     f.only(PLAN_KEYS)
     gf = f.section("goal", GOAL_KEYS)
-    defaults = {} if gf.data else {"fx_rel_std": 5e-4, "hand_eye_rot_std_deg": 0.1}
+    defaults = {} if gf.data else asdict(PlanGoal())  # no goal: the default ones
     vals = {k: gf.number(k, positive=True) if gf.has(k) else defaults.get(k) for k in GOAL_KEYS}
     goal = PlanGoal(**vals, max_duration_s=f.number("max_duration_s", 60.0, positive=True))
-    if (
-        goal.fx_rel_std is None
-        and goal.hand_eye_rot_std_deg is None
-        and (goal.hand_eye_t_std_mm is None)
-    ):
+    if all(v is None for v in vals.values()):
         raise gf.error(None, f"names no goal; give at least one of {list(GOAL_KEYS)}")
     tilts = _number_list(f, "tilts_deg", (15.0, 25.0, 35.0))
     if any(not 0.0 < t <= MAX_TILT_DEG for t in tilts):
