@@ -29,13 +29,15 @@ from slidecal.routines.ops.verdict import Limits, limits_from_dict
 from slidecal.routines.schema import (
     CELL_SECTIONS,
     Fields,
-    dump_yaml,
     load_yaml,
     parse_yaml,
-    write_atomic,
+    plain,
+    write_yaml,
 )
 from slidecal.routines.session import (
+    CAMERA_DRIVERS,
     OAK_SOCKET,
+    camera_spec,
     options_from_dict,
     options_to_dict,
     target_from_dict,
@@ -50,7 +52,6 @@ from slidecal.solver.problem import MOUNTS, CameraSpec, ModelOptions, Target
 
 CELL_FORMAT = "slidecal.cell/1"
 ROBOT_DRIVERS = ("simulated", "ur")
-CAMERA_DRIVERS = ("simulated", "oak", "uvc")
 CELL_MOUNTS = ("eye_in_hand", "eye_to_hand")
 CAMERA_PRESETS = ("r1", "oak_d_like")
 DEFAULT_CELL = "default_cell.yaml"
@@ -230,11 +231,7 @@ def _plan(
     defaults = {} if gf.data else {"fx_rel_std": 5e-4, "hand_eye_rot_std_deg": 0.03}
     vals = {k: gf.number(k, positive=True) if gf.has(k) else defaults.get(k) for k in GOAL_KEYS}
     goal = PlanGoal(**vals, max_duration_s=f.number("max_duration_s", 60.0, positive=True))
-    if (
-        goal.fx_rel_std is None
-        and goal.hand_eye_rot_std_deg is None
-        and (goal.hand_eye_t_std_mm is None)
-    ):
+    if all(v is None for v in vals.values()):
         raise gf.error(None, f"names no goal; give at least one of {list(GOAL_KEYS)}")
     tilts = _number_list(f, "tilts_deg", (15.0, 25.0, 35.0))
     if any(not 0.0 < t <= MAX_TILT_DEG for t in tilts):
@@ -496,9 +493,7 @@ def config_from_dict(data: Any, source: str = "cell.yaml", sha256: str | None = 
         raise cam_f.error("device_id", f"is an OAK option; the driver here is {driver!r}")
     specs, cam_opts = _cameras(cam_f, driver, sim)
     names = [c.name for c in specs]
-    reference = cam_f.string("reference", names[0])
-    if reference not in names:
-        raise cam_f.error("reference", f"{reference!r} is not a camera; cameras are {names}")
+    reference = cam_f.camera("reference", names)
     if sim is not None:
         missing = [n for n in names if n != reference and n not in sim.rig]
         if missing:
@@ -608,21 +603,7 @@ def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
     if sim is not None:
         out["simulation"] = {
             "seed": sim.seed,
-            "cameras": {
-                c.name: {
-                    "width": c.width,
-                    "height": c.height,
-                    "K": np.asarray(c.K).tolist(),
-                    "distortion": np.asarray(c.dist).tolist(),
-                    "blur_sigma_px": c.blur_sigma_px,
-                    "noise_std": c.noise_std,
-                    "exposure": c.exposure,
-                    "colour": c.colour,
-                    "vignetting": c.vignetting,
-                    "photo": asdict(c.photo) if c.photo is not None else False,
-                }
-                for c in sim.cameras
-            },
+            "cameras": {c.name: _sim_camera_to_dict(c) for c in sim.cameras},
             he_key: transform_to_dict(sim.T_hand_eye),
             tg_key: transform_to_dict(sim.T_target),
             "rig": {n: transform_to_dict(T) for n, T in sim.rig.items()},
@@ -640,6 +621,14 @@ def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
     return out
 
 
+def _sim_camera_to_dict(c: SimCamera) -> dict[str, Any]:
+    """A ``simulation.cameras.<name>`` entry in full (``distortion`` is the camera's ``dist``)."""
+    keys = CELL_KEYS["simulation.cameras.*"]
+    out = {k: plain(getattr(c, "dist" if k == "distortion" else k)) for k in keys}
+    out["photo"] = asdict(c.photo) if c.photo is not None else False
+    return out
+
+
 def limits_to_dict(limits: Limits) -> dict[str, Any]:
     """The ``limits:`` section of ``limits`` (as a session records it)."""
     return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(limits).items()}
@@ -647,10 +636,7 @@ def limits_to_dict(limits: Limits) -> dict[str, Any]:
 
 def write_config(cfg: CellConfig, path: str | Path) -> Path:
     """Write the cell file of ``cfg`` (:func:`config_to_dict`) atomically."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(path, dump_yaml(config_to_dict(cfg)))
-    return path
+    return write_yaml(path, config_to_dict(cfg))
 
 
 def _names(mount: str) -> tuple[str, str]:
@@ -659,13 +645,9 @@ def _names(mount: str) -> tuple[str, str]:
     return frames.hand_eye, frames.target
 
 
-def _other_mount(mount: str) -> str:
-    return "eye_to_hand" if mount == "eye_in_hand" else "eye_in_hand"
-
-
 def _refuse_other_mount(f: Fields, mount: str) -> None:
     """A hand-eye or target pose named for the other mount is a user's mistake: say so."""
-    other = _other_mount(mount)
+    other = "eye_to_hand" if mount == "eye_in_hand" else "eye_in_hand"
     for mine, theirs in zip(_names(mount), _names(other), strict=True):
         if theirs in f.data:
             raise f.error(
@@ -694,10 +676,6 @@ def _approximate(f: Fields, mount: str) -> tuple[np.ndarray, np.ndarray, float]:
         raise app.error(he_key, "is missing; give the rough camera pose in the base frame")
     standoff = app.number("standoff_m", 0.5, positive=True, maximum=20.0)
     return approx_he, approx_target, standoff
-
-
-def _pose(f: Fields, key: str) -> np.ndarray | None:
-    return ur_pose_field(f, key) if f.has(key) else None
 
 
 def _robot(f: Fields) -> RobotConfig:
@@ -744,11 +722,11 @@ def _robot(f: Fields) -> RobotConfig:
         driver=driver,
         host=host,
         model=model,
-        tcp=_pose(f, "tcp"),
+        tcp=ur_pose_field(f, "tcp") if f.has("tcp") else None,
         speed_mps=speed,
         accel_mps2=accel,
         settle_s=settle,
-        start_pose=_pose(f, "start_pose"),
+        start_pose=ur_pose_field(f, "start_pose") if f.has("start_pose") else None,
         workspace_min_m=wmin,
         workspace_max_m=wmax,
         start_q=start_q,
@@ -820,9 +798,7 @@ def _photo(c: Fields) -> Photo | None:
         default = getattr(defaults, name)
         if isinstance(default, bool):
             values[name] = pf.boolean(name)
-        elif name == "jpeg_quality":
-            values[name] = pf.integer(name, minimum=0, maximum=100)
-        elif name == "glare_spots":
+        elif name in ("jpeg_quality", "glare_spots"):
             values[name] = pf.integer(name, minimum=0, maximum=100)
         elif name == "focus_distance_m":
             values[name] = None if pf.data[name] is None else pf.number(name, minimum=1e-3)
@@ -846,9 +822,7 @@ def _simulation(f: Fields, mount: str) -> SimulationConfig:
     if preset is not None:
         cams, rig = _preset_cameras(preset)
     cf = f.section("cameras")
-    for name in cf.data:
-        if not isinstance(name, str) or not name.strip():
-            raise cf.error(str(name), "must be a camera name (text)")
+    for name in cf.cameras():
         c = cf.section(name, CELL_KEYS["simulation.cameras.*"])
         base = next((x for x in cams if x.name == name), None)
         new = _sim_camera(c, name, base)
@@ -916,16 +890,7 @@ def _cameras(
     opts: dict[str, dict[str, Any]] = {}
     for i, c in enumerate(lst):
         cf = Fields(c, f.file, f"{f.path}.list[{i}]").only(CELL_KEYS[f"cameras.list[].{driver}"])
-        name = cf.string("name")
-        if name in opts:
-            raise cf.error("name", f"{name!r} appears twice; camera names must be unique")
-        specs.append(
-            CameraSpec(
-                name,
-                cf.integer("width", minimum=1, maximum=100_000),
-                cf.integer("height", minimum=1, maximum=100_000),
-            )
-        )
+        specs.append(camera_spec(cf, list(opts)))
         if driver == "oak":
             if not cf.has("socket"):
                 raise cf.error("socket", "is missing; an OAK camera needs its socket (CAM_A ..)")
@@ -940,7 +905,9 @@ def _cameras(
                 cf.number("exposure")
             if cf.has("drop_frames"):
                 cf.integer("drop_frames", minimum=0, maximum=100)
-        opts[name] = {k: v for k, v in cf.data.items() if k not in ("name", "width", "height")}
+        opts[specs[-1].name] = {
+            k: v for k, v in cf.data.items() if k not in ("name", "width", "height")
+        }
     if driver == "oak":
         socks = [o["socket"] for o in opts.values()]
         dup = next((s for s in socks if socks.count(s) > 1), None)

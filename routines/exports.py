@@ -231,9 +231,10 @@ def write_all_exports(
     paths: list[Path] = []
     errors: list[str] = []
 
-    def attempt(name: str, fn) -> None:  # noqa: ANN001 - a writer returning its path
+    def attempt(name: str, write) -> None:  # noqa: ANN001 - writes its file at the path given
         try:
-            paths.append(fn())
+            write(out / name)
+            paths.append(out / name)
         except (SlidecalError, OSError, ValueError) as e:
             errors.append(f"export {name} failed: {' '.join(str(e).split())}")
 
@@ -242,40 +243,17 @@ def write_all_exports(
     except OSError as e:
         return [], [f"export directory {out} cannot be created: {e.strerror or e}"]
     for name, cam in result.cameras.items():
-        attempt(
-            f"opencv_{name}.yaml",
-            lambda c=cam, n=name: write_opencv_yaml(c, out / f"opencv_{n}.yaml"),
-        )
-        attempt(
-            f"camera_info_{name}.yaml",
-            lambda c=cam, n=name: write_camera_info(c, out / f"camera_info_{n}.yaml"),
-        )
-
-    def camchain() -> Path:
-        p = out / CAMCHAIN_FILE
-        text = dump_yaml(camchain_dict(result))
-        if header:
-            text = "".join(f"# {k}: {v}\n" for k, v in header.items()) + text
-        write_atomic(p, text)
-        return p
-
-    attempt(CAMCHAIN_FILE, camchain)
+        attempt(f"opencv_{name}.yaml", lambda p, c=cam: write_opencv_yaml(c, p))
+        attempt(f"camera_info_{name}.yaml", lambda p, c=cam: write_camera_info(c, p))
+    comment = "".join(f"# {k}: {v}\n" for k, v in (header or {}).items())
+    attempt(CAMCHAIN_FILE, lambda p: write_atomic(p, comment + dump_yaml(camchain_dict(result))))
     for name in result.cameras:
-
-        def cameramodel(n: str = name) -> Path:
-            p = out / f"mrcal_{n}{MRCAL_SUFFIX}"
-            write_atomic(p, mrcal_cameramodel(result, n, header))
-            return p
-
-        attempt(f"mrcal_{name}{MRCAL_SUFFIX}", cameramodel)
+        attempt(
+            f"mrcal_{name}{MRCAL_SUFFIX}",
+            lambda p, n=name: write_atomic(p, mrcal_cameramodel(result, n, header)),
+        )
     if result.hand_eye is not None:
-
-        def hand_eye() -> Path:
-            p = out / HAND_EYE_FILE
-            write_atomic(p, dump_yaml(hand_eye_dict(result, header)))
-            return p
-
-        attempt(HAND_EYE_FILE, hand_eye)
+        attempt(HAND_EYE_FILE, lambda p: write_atomic(p, dump_yaml(hand_eye_dict(result, header))))
     if oak_sockets:
-        attempt(DEPTHAI_FILE, lambda: write_depthai_json(result, out / DEPTHAI_FILE, oak_sockets))
+        attempt(DEPTHAI_FILE, lambda p: write_depthai_json(result, p, oak_sockets))
     return paths, errors

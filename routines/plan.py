@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from slidecal.drivers.ur_pose import ur_pose_from_T
-from slidecal.routines.schema import Fields, dump_yaml, load_yaml, write_atomic
+from slidecal.routines.schema import Fields, load_yaml, write_yaml
 from slidecal.routines.session import ur_pose_field
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import R_from_rvec, Rz, T_from_Rt, inv_T, rotation_angle_deg
@@ -145,10 +145,7 @@ def plan_to_dict(plan: Plan) -> dict[str, Any]:
 
 def write_plan(plan: Plan, path: str | Path) -> Path:
     """Write ``plan.yaml`` atomically."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(path, dump_yaml(plan_to_dict(plan)))
-    return path
+    return write_yaml(path, plan_to_dict(plan))
 
 
 def read_plan(path: str | Path) -> Plan:

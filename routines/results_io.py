@@ -5,20 +5,22 @@ exports, a human summary. A value the data cannot determine is ``null``, never a
 from __future__ import annotations
 
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from dataclasses import astuple, fields
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from slidecal.drivers.ur_pose import T_from_ur_pose, pendant_text
+from slidecal.mocks.cell import effective_truth
 from slidecal.routines.schema import (
     Fields,
-    dump_yaml,
     load_yaml,
     plain,
     unknown_key_error,
-    write_atomic,
+    write_yaml,
 )
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import T_from_Rt, rotation_angle_deg, rvec_from_R
@@ -181,23 +183,16 @@ def result_to_dict(result: CalibrationResult) -> dict[str, Any]:
     d["reprojection"] = {
         "rms_px": _num(result.reproj_rms_px),
         "sigma_px": _num(result.sigma_px),
-        "per_image": [
-            {"frame": int(f), "camera": c, "rms_px": _num(v)}
-            for (f, c), v in sorted(result.residuals_px.items())
-        ],
+        "per_image": _rows(
+            [(f, c, v) for (f, c), v in sorted(result.residuals_px.items())],
+            "reprojection.per_image[]",
+        ),
     }
     d["unobservable"] = dict(result.unobservable)
     d["messages"] = list(result.messages)
-    d["scale_checks"] = [
-        {
-            "frame_a": int(s.frame_a),
-            "frame_b": int(s.frame_b),
-            "robot_mm": _num(s.robot_mm),
-            "camera_mm": _num(s.camera_mm),
-            "ratio": _num(s.ratio),
-        }
-        for s in result.scale_checks
-    ]
+    d["scale_checks"] = _rows(
+        [(*astuple(s), s.ratio) for s in result.scale_checks], "scale_checks[]"
+    )
     d["scale_check"] = scale_check_summary(result.scale_checks)
     d["H_inf"] = {k: plain(v) for k, v in result.H_inf.items()}
     d["outliers"] = [[int(f), c, int(i)] for f, c, i in result.outliers]
@@ -211,10 +206,7 @@ def result_to_dict(result: CalibrationResult) -> dict[str, Any]:
             "reasons": list(ad.reasons),
             "detector_noise_px": {k: _num(v) for k, v in ad.detector_noise_px.items()},
             "normalised_rms": {k: _num(v) for k, v in ad.normalised_rms.items()},
-            "worst_frames": [
-                {"frame": int(f), "camera": c, "normalised_rms": _num(v)}
-                for f, c, v in ad.worst_frames
-            ],
+            "worst_frames": _rows(ad.worst_frames, "adequacy.worst_frames[]"),
         }
     bd = result.board
     if bd is not None:
@@ -230,16 +222,12 @@ def result_to_dict(result: CalibrationResult) -> dict[str, Any]:
             "translation_mm": _num(ra.translation_mm),
             "rotation_deg": _num(ra.rotation_deg),
             "estimated": bool(ra.estimated),
-            "worst_frames": [
-                {"frame": int(f), "translation_mm": _num(t), "rotation_deg": _num(r)}
-                for f, t, r in ra.worst_frames
-            ],
+            "worst_frames": _rows(ra.worst_frames, "robot_accuracy.worst_frames[]"),
         }
         if ra.left_out:
-            d["robot_accuracy"]["left_out_frames"] = [
-                {"frame": int(f), "translation_mm": _num(t), "rotation_deg": _num(r)}
-                for f, t, r in ra.left_out
-            ]
+            d["robot_accuracy"]["left_out_frames"] = _rows(
+                ra.left_out, "robot_accuracy.left_out_frames[]"
+            )
     return d
 
 
@@ -273,13 +261,10 @@ def write_result(
     """Write ``result.yaml`` atomically; return its path. ``header``: written after
     ``format`` (slidecal version, time, cell file hash: :func:`slidecal.routines.exports.
     result_header`)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     d = result_to_dict(result)
     if header:
         d = {"format": d.pop("format"), "header": dict(header), **d}
-    write_atomic(path, dump_yaml(d))
-    return path
+    return write_yaml(path, d)
 
 
 #: The keys of ``result.yaml`` besides the transforms (named ``T_<a>_<b>``): one list, kept in
@@ -350,24 +335,48 @@ def _camera_numbers(f: Fields, key: str, names: list[str]) -> dict[str, float]:
     return {str(k): _nullable(sub, str(k), minimum=0.0) for k in sub.data}
 
 
+def _rows(rows: Sequence[Sequence[Any]], part: str) -> list[dict[str, Any]]:
+    """The entries of a list of ``result.yaml``: each row's values under the keys of ``part``
+    (frame ids as integers, camera names as text, numbers null where not finite)."""
+    return [
+        {
+            k: v if isinstance(v, str) else int(v) if k.startswith("frame") else _num(v)
+            for k, v in zip(RESULT_PART_KEYS[part], row, strict=True)
+        }
+        for row in rows
+    ]
+
+
+def _rows_from(
+    f: Fields, key: str, hint: str, names: list[str], keys: Sequence[str] | None = None
+) -> tuple[tuple[Any, ...], ...]:
+    """The list ``key`` of ``f`` read back (:func:`_rows`): per entry the values of ``keys``
+    (default: all of the part's keys) in order, frame ids non-negative, cameras of ``names``."""
+    part = f"{f.path}.{key}[]" if f.path else f"{key}[]"
+    rows = []
+    for i, w in enumerate(f.list(key, required=False, hint=hint)):
+        wf = Fields(w, f.file, part.replace("[]", f"[{i}]")).only(RESULT_PART_KEYS[part])
+        rows.append(
+            tuple(
+                wf.integer(k, minimum=0)
+                if k.startswith("frame")
+                else wf.choice(k, names)
+                if k == "camera"
+                else _nullable(wf, k, minimum=0.0)
+                for k in keys or RESULT_PART_KEYS[part]
+            )
+        )
+    return tuple(rows)
+
+
 def _adequacy_from(f: Fields, names: list[str]) -> ModelAdequacy:
     a = f.section("adequacy", RESULT_PART_KEYS["adequacy"])
     reasons = a.strings("reasons") if a.has("reasons") else []
-    worst = []
-    for i, w in enumerate(a.list("worst_frames", required=False, hint="{frame, camera, ...}")):
-        wf = Fields(w, f.file, f"adequacy.worst_frames[{i}]")
-        wf.only(RESULT_PART_KEYS["adequacy.worst_frames[]"])
-        worst.append(
-            (
-                wf.integer("frame", minimum=0),
-                wf.choice("camera", names),
-                _nullable(wf, "normalised_rms", minimum=0.0),
-            )
-        )
+    worst = _rows_from(a, "worst_frames", "{frame, camera, ...}", names)
     return ModelAdequacy(
         _camera_numbers(a, "detector_noise_px", names),
         _camera_numbers(a, "normalised_rms", names),
-        tuple(worst),
+        worst,  # type: ignore[arg-type]
         a.boolean("adequate"),
         tuple(reasons),
     )
@@ -386,20 +395,7 @@ def _board_from(f: Fields) -> BoardShape:
 
 def _robot_accuracy_from(f: Fields) -> RobotAccuracy:
     r = f.section("robot_accuracy", RESULT_PART_KEYS["robot_accuracy"])
-    lists = {}
-    for key in ("worst_frames", "left_out_frames"):
-        rows = []
-        for i, w in enumerate(r.list(key, required=False, hint="{frame, ...}")):
-            wf = Fields(w, f.file, f"robot_accuracy.{key}[{i}]")
-            wf.only(RESULT_PART_KEYS[f"robot_accuracy.{key}[]"])
-            rows.append(
-                (
-                    wf.integer("frame", minimum=0),
-                    _nullable(wf, "translation_mm", minimum=0.0),
-                    _nullable(wf, "rotation_deg", minimum=0.0),
-                )
-            )
-        lists[key] = tuple(rows)
+    lists = {k: _rows_from(r, k, "{frame, ...}", []) for k in ("worst_frames", "left_out_frames")}
     return RobotAccuracy(
         _nullable(r, "translation_mm", minimum=0.0),
         _nullable(r, "rotation_deg", minimum=0.0),
@@ -416,9 +412,7 @@ def _cameras_from(f: Fields) -> dict[str, CameraEstimate]:
     assert cf is not None
     if not cf.data:
         raise cf.error(None, "is empty; a result holds at least one camera")
-    for name in cf.data:
-        if not isinstance(name, str) or not name.strip():
-            raise cf.error(str(name), "must be a camera name (text)")
+    for name in cf.cameras():
         c = cf.section(name, RESULT_PART_KEYS["cameras.*"])
         if c.has("distortion_model"):
             c.choice("distortion_model", ("opencv5",))
@@ -447,19 +441,13 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
     cams = _cameras_from(f)
     names = list(cams)
     mount = f.choice("mount", RESULT_MOUNTS, "eye_in_hand")
-    ref = f.string("reference_camera", names[0])
-    if ref not in cams:
-        raise f.error("reference_camera", f"{ref!r} is not a camera; cameras are {names}")
+    ref = f.camera("reference_camera", names)
 
     def te(key: str, name: str | None = None) -> TransformEstimate | None:
         if not f.has(key):
             return None
         s = f.section(key, RESULT_PART_KEYS["transform"])
-        R = s.array("R", (3, 3)) if s.has("R") else None
-        if R is not None and (
-            not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0
-        ):
-            raise s.error("R", "is not a rotation matrix (orthonormal, det +1)")
+        R = s.rotation("R") if s.has("R") else None
         t = s.array("t_m", (3,)) if s.has("t_m") else None
         return TransformEstimate(
             name or key,
@@ -503,17 +491,8 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
     for k, v in unobs.data.items():
         if not isinstance(v, str):
             raise unobs.error(str(k), "must be the reason as text")
-    checks = []
-    for i, sc in enumerate(f.list("scale_checks", required=False, hint="scale check")):
-        sf = Fields(sc, source, f"scale_checks[{i}]").only(RESULT_PART_KEYS["scale_checks[]"])
-        checks.append(
-            ScaleCheck(
-                sf.integer("frame_a", minimum=0),
-                sf.integer("frame_b", minimum=0),
-                _nullable(sf, "robot_mm", minimum=0.0),
-                _nullable(sf, "camera_mm", minimum=0.0),
-            )
-        )
+    scale_keys = [fl.name for fl in fields(ScaleCheck)]  # not the ratio, which they give
+    checks = [ScaleCheck(*r) for r in _rows_from(f, "scale_checks", "scale check", [], scale_keys)]
     sc_sum = f.section("scale_check", RESULT_PART_KEYS["scale_check"])
     for k in ("median_ratio", "worst_ratio"):
         _nullable(sc_sum, k)
@@ -527,11 +506,7 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
             raise hf.error(str(k), "must be named 'a<-b' with two of the result's cameras")
         H_inf[str(k)] = hf.array(str(k), (3, 3))
     lf = f.section("linear")
-    linear = {}
-    for k in lf.data:
-        if k not in cams:
-            raise lf.error(str(k), f"unknown camera {k!r}; cameras are {names}")
-        linear[str(k)] = lf.array(str(k), (3, 3))
+    linear = {k: lf.array(k, (3, 3)) for k in lf.cameras(names)}
     hf_ = f.section("header", RESULT_PART_KEYS["header"])  # provenance: checked, not kept
     for k in hf_.data:
         if hf_.get(k) is not None and not isinstance(hf_.get(k), str):
@@ -573,8 +548,6 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
 def write_opencv_yaml(camera: CameraEstimate, path: str | Path) -> Path:
     """OpenCV ``FileStorage`` YAML of one camera, as OpenCV's calibration sample writes it
     (``camera_matrix`` 3x3, ``distortion_coefficients`` 1x5, ``avg_reprojection_error`` px)."""
-    import cv2
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
@@ -616,10 +589,7 @@ def camera_info_dict(camera: CameraEstimate) -> dict[str, Any]:
 
 def write_camera_info(camera: CameraEstimate, path: str | Path) -> Path:
     """Write :func:`camera_info_dict` as YAML."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(path, dump_yaml(camera_info_dict(camera)))
-    return path
+    return write_yaml(path, camera_info_dict(camera))
 
 
 def write_depthai_json(result: CalibrationResult, path: str | Path, sockets: Mapping[str, Any]):
@@ -638,27 +608,11 @@ def write_depthai_json(result: CalibrationResult, path: str | Path, sockets: Map
     return writer(result, Path(path), dict(sockets))
 
 
-def write_exports(
-    result: CalibrationResult,
-    out_dir: str | Path,
-    oak_sockets: Mapping[str, Any] | None = None,
-) -> list[Path]:
-    """OpenCV and ROS files per camera (``opencv_<name>.yaml``, ``camera_info_<name>.yaml``)
-    and, for an OAK rig (``oak_sockets`` given), ``depthai_calibration.json``."""
-    out = Path(out_dir)
-    paths = []
-    for name, cam in result.cameras.items():
-        paths.append(write_opencv_yaml(cam, out / f"opencv_{name}.yaml"))
-        paths.append(write_camera_info(cam, out / f"camera_info_{name}.yaml"))
-    if oak_sockets:
-        try:
-            paths.append(write_depthai_json(result, out / "depthai_calibration.json", oak_sockets))
-        except InputError:
-            pass  # reported in the summary by the caller; the other exports stand
-    return paths
-
-
 # ----------------------------------------------------------------------------- summary
+
+#: The intrinsics a summary lists: name and place in K; the distortion's names (OpenCV's order)
+K_ENTRIES = (("fx", (0, 0)), ("fy", (1, 1)), ("cx", (0, 2)), ("cy", (1, 2)), ("s", (0, 1)))
+DIST_LABELS = ("k1", "k2", "p1", "p2", "k3")
 
 
 def _fmt(x: float | None, spec: str = ".3f") -> str:
@@ -690,23 +644,15 @@ def summary_text(
         lines.append(
             f"camera {name} ({c.width}x{c.height}), reprojection rms {_fmt(c.reproj_rms_px)} px"
         )
-        for label, val in (
-            ("fx", K[0, 0]),
-            ("fy", K[1, 1]),
-            ("cx", K[0, 2]),
-            ("cy", K[1, 2]),
-            ("s", K[0, 1]),
-        ):
-            if label in std or not std:  # no std at all: the covariance was not computed
-                lines.append(f"  {label:3s} = {val:10.3f} px  +- {_fmt(std.get(label))} px")
-            else:  # held by the options (the skew: 0 unless estimated), not estimated
-                lines.append(f"  {label:3s} = {val:10.3f} px  (fixed)")
         dist = np.asarray(c.distortion).reshape(-1)
-        for label, val in zip(("k1", "k2", "p1", "p2", "k3"), dist[:5], strict=False):
-            if label in std or not std:
-                lines.append(f"  {label:3s} = {val:+.6f}     +- {_fmt(std.get(label), '.6f')}")
-            else:
-                lines.append(f"  {label:3s} = {val:+.6f}     (fixed)")
+        rows = [(label, K[ij], "10.3f", ".3f", " px") for label, ij in K_ENTRIES]
+        rows += [(lb, v, "+.6f", ".6f", "") for lb, v in zip(DIST_LABELS, dist[:5], strict=False)]
+        for label, val, spec, std_spec, unit in rows:
+            value = f"  {label:3s} = {val:{spec}}{unit:5s}"
+            if label in std or not std:  # no std at all: the covariance was not computed
+                lines.append(f"{value}+- {_fmt(std.get(label), std_spec)}{unit}")
+            else:  # held by the options (the skew: 0 unless estimated), not estimated
+                lines.append(f"{value}(fixed)")
     for key, t in hand_eye_transforms(result).items():
         lines.extend(_transform_lines(key, t))
     for key, t in result.rig.items():
@@ -821,8 +767,8 @@ def errors_against_truth(result: CalibrationResult, truth: Mapping[str, Any]) ->
         Kt = np.asarray(tcams[name]["K"], dtype=float)
         K = np.asarray(c.K, dtype=float)
         out[f"{name}.fx_rel"] = float(abs(K[0, 0] - Kt[0, 0]) / Kt[0, 0])
-        for label, (i, j) in (("fx", (0, 0)), ("fy", (1, 1)), ("cx", (0, 2)), ("cy", (1, 2))):
-            out[f"{name}.{label}_px"] = float(abs(K[i, j] - Kt[i, j]))
+        for label, ij in K_ENTRIES[:4]:
+            out[f"{name}.{label}_px"] = float(abs(K[ij] - Kt[ij]))
     est: dict[str, TransformEstimate] = dict(hand_eye_transforms(result))
     est.update(result.rig)
     tname = target_pose_name(result.mount)
@@ -859,8 +805,6 @@ def judged_truth(result: CalibrationResult, truth: Mapping[str, Any]) -> dict[st
     ref_key = he_names.get(_reference(result))
     if not frames or ref_key not in out or tname not in out:
         return out
-    from slidecal.mocks.cell import effective_truth
-
     rot_deg, mm = _robot_sigma(result, truth)
     T_he, T_tg = out[ref_key], out[tname]
     T_he_eff, T_tg_eff = effective_truth(

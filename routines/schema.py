@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import difflib
 import os
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -117,6 +117,14 @@ def write_atomic(path: Path, text: str | bytes) -> None:
             pass
         raise
     _fsync_dir(path.parent)
+
+
+def write_yaml(path: str | Path, data: Any) -> Path:
+    """Write ``data`` as YAML at ``path`` (:func:`write_atomic`, its folder created); return it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(path, dump_yaml(data))
+    return path
 
 
 def _fsync_dir(directory: Path) -> None:
@@ -299,17 +307,32 @@ class Fields:
 
     def sub(self, key: str, required: bool = True) -> Fields | None:
         """The nested mapping at ``key``."""
-        if not self.has(key):
-            if required:
-                raise self.error(key, "is missing; add it (docs/FORMATS.md lists every field)")
+        if not required and not self.has(key):
             return None
-        return Fields(self.data[key], self.file, f"{self.path}.{key}" if self.path else key)
+        return Fields(self.require(key), self.file, f"{self.path}.{key}" if self.path else key)
 
     def section(self, key: str, valid: Sequence[str] | None = None) -> Fields:
         """The nested mapping at ``key`` (empty when absent), restricted to ``valid`` keys."""
         sub = self.sub(key, required=False)
         sub = sub if sub is not None else Fields({}, self.file, self.where(key).split(": ")[-1])
         return sub.only(valid) if valid is not None else sub
+
+    def cameras(self, names: Sequence[str] | None = None) -> Iterator[str]:
+        """The keys of a per-camera mapping, each refused unless one of ``names`` (None: unless
+        a name as text)."""
+        for key in self.data:
+            if names is None and (not isinstance(key, str) or not key.strip()):
+                raise self.error(str(key), "must be a camera name (text)")
+            if names is not None and key not in names:
+                raise self.error(str(key), f"unknown camera {key!r}; cameras are {list(names)}")
+            yield str(key)
+
+    def camera(self, key: str, names: Sequence[str]) -> str:
+        """A camera's name among ``names`` (the first when absent)."""
+        name = self.string(key, names[0])
+        if name not in names:
+            raise self.error(key, f"{name!r} is not a camera; cameras are {list(names)}")
+        return name
 
     def choice(self, key: str, options: Sequence[str], default: str | None = None) -> str:
         """A string among ``options``."""
@@ -382,15 +405,20 @@ class Fields:
         v = self.require(key) if default is None else self.get(key, default)
         return as_array(v, shape, self.where(key))
 
+    def rotation(self, key: str, advice: str = "") -> np.ndarray:
+        """A 3x3 rotation matrix (orthonormal, det +1); ``advice`` ends the message refusing one."""
+        R = self.array(key, (3, 3))
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+            raise self.error(key, f"is not a rotation matrix (orthonormal, det +1){advice}")
+        return R
+
     def list(
         self, key: str, required: bool = True, non_empty: bool = False, hint: str = "an entry"
     ) -> list[Any]:
         """A YAML list (empty when absent and not required); ``hint``: what an entry is."""
-        if not self.has(key):
-            if required:
-                raise self.error(key, "is missing; add it (docs/FORMATS.md lists every field)")
+        if not required and not self.has(key):
             return []
-        v = self.data[key]
+        v = self.require(key)
         if not isinstance(v, list):
             raise self.error(key, f"must be a list of {hint}, got {_kind(v)}")
         if non_empty and not v:

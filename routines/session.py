@@ -17,6 +17,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from slidecal.drivers.ur_pose import T_from_ur_pose, ur_pose_from_T
@@ -29,7 +30,9 @@ from slidecal.routines.schema import (  # noqa: F401 - re-exported: the format l
     unknown_key_error,
     write_atomic,
 )
+from slidecal.solver.detect import detect
 from slidecal.solver.errors import InputError
+from slidecal.solver.geometry import R_from_quat_wxyz, Rx, Ry, Rz, T_from_Rt
 from slidecal.solver.problem import (
     CalibrationProblem,
     CameraSpec,
@@ -38,6 +41,7 @@ from slidecal.solver.problem import (
     ModelOptions,
     Target,
 )
+from slidecal.solver.target_shape import PRINT_TOLERANCE, default_flatness_m
 
 SESSION_FORMAT = "slidecal.session/1"
 SESSION_FILE = "session.yaml"
@@ -153,8 +157,6 @@ def transform_from_dict(f: Fields, key: str) -> np.ndarray:
     R roll, pitch, yaw) or ``q_wxyz`` (a unit quaternion, scalar first as ABB writes it).
     Translation: ``t_m`` (metres) or ``t_mm`` (millimetres).
     """
-    from slidecal.solver.geometry import R_from_quat_wxyz, Rx, Ry, Rz, T_from_Rt
-
     sub = f.sub(key)
     assert sub is not None
     sub.only(ROTATION_KEYS + TRANSLATION_KEYS)
@@ -167,9 +169,7 @@ def transform_from_dict(f: Fields, key: str) -> np.ndarray:
     else:
         t = sub.array("t_m", (3,))
     if sub.has("R"):
-        R = sub.array("R", (3, 3))
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
-            raise sub.error("R", "is not a rotation matrix (orthonormal, det +1); fix the values")
+        R = sub.rotation("R", "; fix the values")
     elif sub.has("rpy_deg"):
         r, p, y = np.radians(sub.array("rpy_deg", (3,)))
         R = Rz(y) @ Ry(p) @ Rx(r)
@@ -244,8 +244,6 @@ def robot_pose_field(f: Fields, key: str) -> np.ndarray:
 
 def _dictionary_size(name: str) -> int | None:
     """Number of markers of an OpenCV predefined ArUco dictionary (None: not one)."""
-    import cv2
-
     if not re.fullmatch(r"DICT_\w+", name) or not isinstance(getattr(cv2.aruco, name, None), int):
         return None
     try:
@@ -261,8 +259,6 @@ def target_from_dict(
     aprilgrid). Its tolerance (``flatness_mm``, ``print_tolerance``) takes a real board's
     defaults when not given (``solver/target_shape.py``), or 0 with ``exact_by_default`` (a
     simulated board is exactly as described)."""
-    from slidecal.solver.target_shape import PRINT_TOLERANCE, default_flatness_m
-
     f = Fields(data, file, path).only(
         tuple(dict.fromkeys(k for v in TARGET_KEYS.values() for k in v))
     )
@@ -297,8 +293,6 @@ def _target_of_kind(f: Fields, kind: str) -> Target:
             raise f.error("points_m", "has points beyond 10 m; give the positions in metres")
         return Target.points(pts)
     if kind in ("apriltag", "aprilgrid"):
-        import cv2
-
         tag = f.number("tag_size_m", positive=True)
         if tag > 2.0:
             raise f.error("tag_size_m", f"is {tag} m; give the tag size in metres (e.g. 0.088)")
@@ -374,35 +368,13 @@ def target_to_dict(target: Target) -> dict[str, Any]:
 
 
 def _kind_to_dict(target: Target) -> dict[str, Any]:
+    """The kind-specific keys of a ``target:`` block (:data:`TARGET_KEYS`)."""
     if target.kind == "points":
         return {"kind": "points", "points_m": plain(target.points_m[:, :2])}
-    if target.kind == "aprilgrid":
-        return {
-            "kind": "aprilgrid",
-            "tag_cols": target.tag_cols,
-            "tag_rows": target.tag_rows,
-            "tag_size_m": target.tag_size_m,
-            "tag_spacing": target.tag_spacing,
-            "dictionary": target.dictionary,
-        }
-    if target.kind == "apriltag":
-        return {
-            "kind": "apriltag",
-            "tag_size_m": target.tag_size_m,
-            "tag_ids": [int(i) for i in target.tag_ids],
-            "tag_origins_m": [[float(x), float(y)] for x, y in target.tag_origins_m],
-            "dictionary": target.dictionary,
-        }
-    d: dict[str, Any] = {
-        "kind": target.kind,
-        "squares_x": target.squares_x,
-        "squares_y": target.squares_y,
-        "square_size_m": target.square_size_m,
-    }
-    if target.kind == "charuco":
-        d["marker_size_m"] = target.marker_size_m
-        d["dictionary"] = target.dictionary
-    return d
+    keys = TARGET_KEYS[target.kind][1 : -len(TOLERANCE_KEYS)]
+    if target.kind == "apriltag":  # the order slidecal has always written them in
+        keys = ("tag_size_m", "tag_ids", "tag_origins_m", "dictionary")
+    return {"kind": target.kind, **{k: plain(getattr(target, k)) for k in keys}}
 
 
 def options_from_dict(data: Any, file: str, path: str = "options") -> ModelOptions:
@@ -429,16 +401,10 @@ def options_from_dict(data: Any, file: str, path: str = "options") -> ModelOptio
 
 
 def options_to_dict(options: ModelOptions) -> dict[str, Any]:
-    """The ``options:`` block of :class:`ModelOptions`."""
-    return {
-        "skew": options.skew,
-        "unit_aspect": options.unit_aspect,
-        "distortion": list(options.distortion),
-        "outlier_threshold_px": options.outlier_threshold_px,
-        "robot_noise_mm": options.robot_noise_m * 1000.0,
-        "robot_noise_deg": options.robot_noise_deg,
-        "estimate_robot_noise": options.estimate_robot_noise,
-    }
+    """The ``options:`` block of :class:`ModelOptions` (``robot_noise_mm``: ``robot_noise_m``)."""
+    d = {k: plain(getattr(options, k.replace("_mm", "_m"))) for k in OPTIONS_KEYS}
+    d["robot_noise_mm"] *= 1000.0
+    return d
 
 
 # ----------------------------------------------------------------------------- reading
@@ -501,18 +467,9 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
     sockets: dict[str, str] = {}
     for i, c in enumerate(cams):
         cf = Fields(c, SESSION_FILE, f"cameras[{i}]").only(SESSION_KEYS["cameras[]"])
-        name = cf.string("name")
-        if any(x.name == name for x in cameras):
-            raise cf.error("name", f"{name!r} appears twice; camera names must be unique")
-        cameras.append(
-            CameraSpec(
-                name,
-                cf.integer("width", minimum=1, maximum=100_000),
-                cf.integer("height", minimum=1, maximum=100_000),
-            )
-        )
+        cameras.append(camera_spec(cf, [x.name for x in cameras]))
         if cf.has("socket"):
-            sockets[name] = _socket(cf)
+            sockets[cameras[-1].name] = _socket(cf)
     names = [c.name for c in cameras]
     table = _detection_table(f, directory, len(cameras))
 
@@ -570,9 +527,7 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
                     f"is missing; knowledge {knowledge!r} needs motion_board on every frame",
                     where=f"{SESSION_FILE}: frames[{i}].motion_board",
                 )
-    ref = f.string("reference_camera", names[0]) if f.has("reference_camera") else None
-    if ref is not None and ref not in names:
-        raise f.error("reference_camera", f"{ref!r} is not a camera; cameras are {names}")
+    ref = f.camera("reference_camera", names) if f.has("reference_camera") else None
     options = options_from_dict(f.get("options", {}), SESSION_FILE)
     problem = CalibrationProblem(
         target=target,
@@ -610,6 +565,19 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
     )
 
 
+def camera_spec(cf: Fields, taken: Sequence[str]) -> CameraSpec:
+    """A camera's ``{name, width, height}`` (cell files and sessions); ``taken``: the names
+    already read, which this one must not repeat."""
+    name = cf.string("name")
+    if name in taken:
+        raise cf.error("name", f"{name!r} appears twice; camera names must be unique")
+    return CameraSpec(
+        name,
+        cf.integer("width", minimum=1, maximum=100_000),
+        cf.integer("height", minimum=1, maximum=100_000),
+    )
+
+
 def _socket(cf: Fields) -> str:
     s = cf.string("socket")
     if not OAK_SOCKET.fullmatch(s):
@@ -637,10 +605,8 @@ def _simulation_truth(f: Fields | None, names: Sequence[str]) -> dict[str, Any] 
         elif key not in SESSION_KEYS["simulation"]:
             raise unknown_key_error(f.where(str(key)), key, SESSION_KEYS["simulation"])
     cf = f.section("cameras")
-    for name in cf.data:
-        if name not in names:
-            raise cf.error(str(name), f"unknown camera {name!r}; cameras are {list(names)}")
-        c = cf.section(str(name), SESSION_KEYS["simulation.cameras.*"])
+    for name in cf.cameras(names):
+        c = cf.section(name, SESSION_KEYS["simulation.cameras.*"])
         c.array("K", (3, 3))
         c.array("distortion", (5,))
     nf = f.section("noise", SESSION_KEYS["simulation.noise"])
@@ -730,24 +696,18 @@ def _read_frame(
     motion = f.array("motion_board", (3,)) if f.has("motion_board") else None
     group = f.integer("group", minimum=0) if f.has("group") else None
 
-    image_paths: dict[str, Path] = {}
     ims = f.section("images")
-    for name in ims.data:
-        if name not in names:
-            raise ims.error(str(name), f"unknown camera {name!r}; cameras are {names}")
-        image_paths[str(name)] = directory / _inside(ims, str(name))
+    image_paths = {name: directory / _inside(ims, name) for name in ims.cameras(names)}
 
     detections: dict[str, Detection] = {}
     dets = f.section("detections")
-    for name in dets.data:
-        if name not in names:
-            raise dets.error(str(name), f"unknown camera {name!r}; cameras are {names}")
-        k = names.index(str(name))
+    for name in dets.cameras(names):
+        k = names.index(name)
         value = dets.data[name]
         if isinstance(value, int) and not isinstance(value, bool):
             detections[name] = _stored_detection(dets, name, (fid, k), table, target, cameras[k])
         else:
-            detections[str(name)] = _read_detection(dets.section(str(name)), target, cameras[k])
+            detections[name] = _read_detection(dets.section(name), target, cameras[k])
 
     for name, path in image_paths.items():
         if name in detections:
@@ -766,12 +726,8 @@ def _read_frame(
         detections[name], why = _detect_file(path, target, ims.where(name), spec)
         if why:
             reasons[(fid, name)] = why
-    quality: dict[tuple[int, str], dict[str, Any]] = {}
     q = f.section("quality")
-    for name in q.data:
-        if name not in names:
-            raise q.error(str(name), f"unknown camera {name!r}; cameras are {names}")
-        quality[(fid, str(name))] = dict(q.section(str(name)).data)
+    quality = {(fid, name): dict(q.section(name).data) for name in q.cameras(names)}
     frame = Frame(id=fid, detections=detections, T_base_tool=T, motion_board=motion, group=group)
     return frame, quality, {(fid, n): p for n, p in image_paths.items()}
 
@@ -913,10 +869,6 @@ def _detect_file(
     path: Path, target: Target, where: str, camera: CameraSpec
 ) -> tuple[Detection, tuple[str, ...]]:
     """The detection of an image file, and the detector's reasons when it found nothing usable."""
-    import cv2
-
-    from slidecal.solver.detect import detect
-
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise InputError(f"{path.name} is not a readable image; replace it", where=where)
@@ -1082,8 +1034,6 @@ class SessionWriter:
         board-frame motion knowledge; ``T_base_tool_true`` (4, 4): the pose the simulated arm really
         reached (kept only with a ``simulation:`` block).
         """
-        import cv2
-
         _declared(extra, SESSION_KEYS["frames[]"], "frame")
         used = [int(fr["id"]) for fr in self.data["frames"]]
         fid = (max(used) + 1 if used else 0) if frame_id is None else int(frame_id)

@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 import yaml
 
+from slidecal.routines.exports import write_all_exports
 from slidecal.routines.results_io import (
     RESULT_FORMAT,
     camera_info_dict,
     errors_against_truth,
     read_result,
     summary_text,
-    write_exports,
     write_result,
 )
 from slidecal.solver.geometry import Rx, Ry, Rz
@@ -175,7 +175,7 @@ def test_result_round_trip(tmp_path: Path, rig: bool) -> None:
 
 
 def test_opencv_filestorage_reads_the_export_back(tmp_path: Path) -> None:
-    paths = write_exports(_result(), tmp_path)
+    paths, _ = write_all_exports(_result(), tmp_path)
     fs = cv2.FileStorage(str(tmp_path / "opencv_left.yaml"), cv2.FILE_STORAGE_READ)
     np.testing.assert_allclose(fs.getNode("camera_matrix").mat(), K)
     np.testing.assert_allclose(fs.getNode("distortion_coefficients").mat().ravel(), DIST)
@@ -186,7 +186,7 @@ def test_opencv_filestorage_reads_the_export_back(tmp_path: Path) -> None:
 
 
 def test_ros_camera_info_layout(tmp_path: Path) -> None:
-    write_exports(_result(), tmp_path)
+    write_all_exports(_result(), tmp_path)
     d = yaml.safe_load((tmp_path / "camera_info_left.yaml").read_text())
     assert d == camera_info_dict(_result().cameras["left"])
     assert d["distortion_model"] == "plumb_bob" and d["camera_name"] == "left"
