@@ -11,6 +11,7 @@ import argparse
 import importlib
 import sys
 from collections.abc import Sequence
+from importlib.metadata import version
 
 from slidecal.routines.progress import signals_as_interrupt
 from slidecal.routines.solve import one_line
@@ -42,6 +43,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         prog="slidecal",
         description="Camera, hand-eye and stereo calibration from robot translations.",
     )
+    parser.add_argument("--version", action="version", version=f"slidecal {version('slidecal')}")
     sub = parser.add_subparsers(dest="command", required=True)
     for name, module in SUBCOMMANDS.items():
         if command not in (None, name):

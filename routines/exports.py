@@ -98,8 +98,16 @@ def _no_skew(result: CalibrationResult, model: str) -> None:
 
 def camchain_dict(result: CalibrationResult, header: Mapping[str, Any] | None = None) -> dict:
     """Kalibr's ``camchain.yaml`` mapping (cam0 is the reference camera). ``ValueError`` when a
-    camera has a skew (Kalibr's pinhole model has none)."""
+    camera has a skew or a k3 (Kalibr's pinhole-radtan model has neither)."""
     _no_skew(result, "Kalibr's pinhole model")
+    for name, c in result.cameras.items():
+        k3 = float(np.asarray(c.distortion, dtype=float).reshape(-1)[4:5].sum())
+        if k3 != 0.0:
+            raise ValueError(
+                f"camera {name} has k3 = {k3:.4g}, which Kalibr's radtan model cannot hold (it "
+                "would be dropped); solve with k3 fixed (options: {distortion: [true, true, true, "
+                "true, false]}) for this export"
+            )
     out: dict[str, Any] = {}
     names = _ordered_cameras(result)
     ref = names[0]

@@ -139,3 +139,9 @@ def test_solve_config_misspelt_limits_is_refused(tmp_path: Path, capsys) -> None
     err = capsys.readouterr().err.strip()
     assert code == 2 and "\n" not in err
     assert "cell.yaml: limts" in err and "did you mean limits" in err
+
+
+def test_version(capsys) -> None:
+    with pytest.raises(SystemExit) as e:
+        cli.main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.startswith("slidecal ")

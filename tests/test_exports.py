@@ -147,6 +147,19 @@ def test_a_skewed_camera_gets_no_kalibr_or_mrcal_file(result, tmp_path) -> None:
     assert (tmp_path / "opencv_cam.yaml") in paths and not (tmp_path / "camchain.yaml").exists()
 
 
+def test_a_camera_with_k3_gets_no_kalibr_file(result, tmp_path) -> None:
+    """Kalibr's radtan has k1 k2 p1 p2 only: a k3 would be dropped without a word."""
+    cam = result.cameras["cam"]
+    d = np.asarray(cam.distortion, dtype=float).copy()
+    d[4] = 0.0305
+    with_k3 = dataclasses.replace(result, cameras={"cam": dataclasses.replace(cam, distortion=d)})
+    paths, errors = write_all_exports(with_k3, tmp_path)
+    assert len(errors) == 1 and errors[0].startswith("export camchain.yaml failed")
+    assert "\n" not in errors[0] and "k3 = 0.0305" in errors[0]
+    assert (tmp_path / "mrcal_cam.cameramodel") in paths
+    assert not (tmp_path / "camchain.yaml").exists()
+
+
 def test_depthai_json_for_an_oak_rig_and_failed_export_reported(result, tmp_path) -> None:
     dai = pytest.importorskip("depthai")
     rig = _rig(result)
