@@ -101,7 +101,8 @@ def camchain_dict(result: CalibrationResult, header: Mapping[str, Any] | None = 
     camera has a skew or a k3 (Kalibr's pinhole-radtan model has neither)."""
     _no_skew(result, "Kalibr's pinhole model")
     for name, c in result.cameras.items():
-        k3 = float(np.asarray(c.distortion, dtype=float).reshape(-1)[4:5].sum())
+        d = np.asarray(c.distortion, dtype=float).reshape(-1)
+        k3 = float(d[4]) if d.size > 4 else 0.0
         if k3 != 0.0:
             raise ValueError(
                 f"camera {name} has k3 = {k3:.4g}, which Kalibr's radtan model cannot hold (it "

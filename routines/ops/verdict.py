@@ -264,8 +264,7 @@ def judge(
         notes.append(STD_HINT)  # not for a transform the data did not determine at all
     for name, why in result.unobservable.items():
         notes.append(f"{name} not determined: {why}")
-    he = result.hand_eye
-    if he is not None and he.R is not None and he.t_m is None and result.cameras:
+    if one_orientation(result) and result.cameras:
         notes.append(ONE_ORIENTATION_FOCAL)
     notes.extend(m for m in result.messages if LEFT_OUT in m)  # frames left out for their poses
     if not quality_ok:
@@ -339,13 +338,19 @@ def _std_check(
     return Check("std", ok, value, limit, f"{what} one-sigma {shown} ({note})")
 
 
+def one_orientation(result: CalibrationResult) -> bool:
+    """A robot session of one orientation: its hand-eye rotation determined, its translation
+    not (the intrinsics rest on the moves alone; the ``_from_translations`` limits apply)."""
+    he = result.hand_eye
+    return he is not None and he.R is not None and he.t_m is None
+
+
 def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
     out = []
-    he = result.hand_eye
-    one_orientation = he is not None and he.R is not None and he.t_m is None
-    cxy_lim = lim.cxy_std_px_from_translations if one_orientation else lim.cxy_std_px
-    fx_lim = lim.fx_rel_std_from_translations if one_orientation else lim.fx_rel_std
-    suffix = "_from_translations" if one_orientation else ""  # the limits' field names
+    alone = one_orientation(result)  # the hand-eye from translations alone
+    cxy_lim = lim.cxy_std_px_from_translations if alone else lim.cxy_std_px
+    fx_lim = lim.fx_rel_std_from_translations if alone else lim.fx_rel_std
+    suffix = "_from_translations" if alone else ""  # the limits' field names
     for name, c in result.cameras.items():
         K = np.asarray(c.K, dtype=float)
         for p, val in (("fx", K[0, 0]), ("fy", K[1, 1])):
@@ -354,7 +359,7 @@ def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
             note = f"limit {fx_lim * 100:g} %; limits.fx_rel_std{suffix}"
             out.append(_std_check(f"camera {name}: {p}", rel, fx_lim, "%", ".3f", note, 100))
         for p in ("cx", "cy"):
-            one = ", a session of one orientation" if one_orientation else ""
+            one = ", a session of one orientation" if alone else ""
             note = f"limit {cxy_lim:g} px{one}; limits.cxy_std_px{suffix}"
             s = _f(c.std.get(p))
             out.append(_std_check(f"camera {name}: {p}", s, cxy_lim, "px", ".3f", note))
