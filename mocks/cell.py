@@ -12,13 +12,13 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from slidecal.drivers.ur_pose import ur_pose_from_T
 from slidecal.mocks.camera import SimulatedCameraRig
 from slidecal.mocks.robot import SimulatedUR
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, rvec_from_R
+from slidecal.solver.numeric import least_squares
 from slidecal.solver.problem import MOUNTS
 
 #: Hand-eye and target-pose names per mount (the result file's names).
@@ -118,7 +118,7 @@ def effective_truth(
 
     if not T_true:
         return inv_T(X), Y
-    p = least_squares(corrections, np.zeros(12), method="lm").x
+    p = least_squares(corrections, np.zeros(12)).x
     A = T_from_Rt(R_from_rvec(p[:3]), p[3:6])
     B = T_from_Rt(R_from_rvec(p[6:9]), p[9:12])
     return inv_T(B @ X), Y @ A

@@ -28,11 +28,11 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
 
 from slidecal.solver.camera import project
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, rvec_from_R
+from slidecal.solver.numeric import least_squares
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.result import CalibrationResult
 
@@ -295,7 +295,7 @@ def fit_target(
         return np.concatenate(out)
 
     theta0 = np.concatenate([rvec_from_R(Y0[:3, :3]), Y0[:3, 3]])
-    sol = least_squares(residuals, theta0, x_scale="jac")
+    sol = least_squares(residuals, theta0)
     Y = T_from_Rt(R_from_rvec(sol.x[:3]), sol.x[3:])
     r = residuals(sol.x).reshape(-1, 2)
     per: dict[str, list[np.ndarray]] = {c: [] for c in cams}

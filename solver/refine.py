@@ -12,7 +12,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.special import fdtrc  # the F distribution's tail (scipy.stats is slow to import)
 
 from slidecal.solver.free_pose import FreePoseFit, free_pose_fit, model_starts, session_images
 from slidecal.solver.geometry import rvec_from_R
@@ -26,6 +25,7 @@ from slidecal.solver.model import (
     single_threaded_blas,
     with_pose_corrections,
 )
+from slidecal.solver.numeric import f_tail
 from slidecal.solver.problem import CalibrationProblem
 
 
@@ -421,7 +421,7 @@ def _robot_pose_test(out: RefineOutput, fit) -> tuple[float, str]:  # noqa: ANN0
     if rss_f <= 0:
         return 1.0, "no image to test"
     F = ((rss_r - rss_f) / d1) / (rss_f / d2)
-    p = float(fdtrc(d1, d2, max(F, 0.0)))
+    p = float(f_tail(d1, d2, max(F, 0.0)))
     ratio = np.sqrt(max(rss_r, 0.0) / max(rss_f, 1e-300))
     return (
         p,

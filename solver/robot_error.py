@@ -14,9 +14,9 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.special import chdtrc  # the chi-square's tail (scipy.stats is slow to import)
 
 from slidecal.solver.model import BundleModel
+from slidecal.solver.numeric import chi2_tail
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.refine import SIGMA_FLOOR, RefineOutput
 from slidecal.solver.target_shape import READING_WEIGHT, shape_excess
@@ -415,7 +415,7 @@ def grouped_detection_errors(
         return None
     stat = sum(float(sums[k] @ sums[k]) / counts[k] for k in kept) / v
     dof = 2 * len(kept)
-    p = float(chdtrc(dof, stat))
+    p = float(chi2_tail(dof, stat))
     return (stat, dof, p) if p < GROUPED_ERRORS_P else None
 
 
@@ -444,7 +444,7 @@ def images_err_together(
         S = float(np.sum(wk * rk * rk)) / out.sigma_px**2
         total += S
         if n >= 2 * NEIGHBOUR_MIN_CORNERS:  # as many corners as the neighbours' test needs
-            tails.append((float(chdtrc(n, S)), k, float(np.sqrt(S / n)), S - n))
+            tails.append((float(chi2_tail(n, S)), k, float(np.sqrt(S / n)), S - n))
     if not tails:
         return None, None
     p, k, ratio, excess = min(tails)

@@ -16,7 +16,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from slidecal.routines.acquire import cell_key, record_session
 from slidecal.routines.config import CellConfig, load_config
@@ -41,6 +40,7 @@ from slidecal.solver.drift import T_cam_board as _T_cam_board
 from slidecal.solver.drift import fit_target, match_poses
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt
+from slidecal.solver.numeric import least_squares
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.result import CalibrationResult, TransformEstimate
 
@@ -199,7 +199,7 @@ def refit(
         [[K0[c][0, 0], K0[c][1, 1], K0[c][0, 2], K0[c][1, 2]] for c in cams]
         + [np.zeros(12 + 6 * len(frames))]
     )
-    sol = least_squares(residuals, theta0, x_scale="jac")
+    sol = least_squares(residuals, theta0)
     r = sol.fun
     dof = max(len(r) - len(theta0), 1)
     JtJ = sol.jac.T @ sol.jac
