@@ -668,22 +668,7 @@ def r1_real_arm(
     T_base_board = S @ T_base_board
     poses = np.stack([S @ T for T in poses])
     if translations_only:
-        base = poses[0]
-        R_base_cam = (base @ R1_T_TOOL_CAM)[:3, :3]
-        dirs = np.array(
-            [
-                [1.0, 0.0, -0.6],
-                [0.0, 1.0, 0.7],
-                [-0.7, -0.6, 1.0],
-                [0.6, -0.8, -0.9],
-                [0.9, 0.5, 0.4],
-                [-0.5, 0.9, -0.5],
-            ]
-        )
-        moves = [
-            R_base_cam @ (d / np.linalg.norm(d)) * length for d in dirs for length in (0.05, -0.07)
-        ]
-        poses = np.stack([base] + [T_from_Rt(base[:3, :3], base[:3, 3] + m) for m in moves])
+        poses = np.stack([poses[0], *_r1_translations(poses[0])])
     planned = poses
     if not eye_in_hand:  # the same camera-board poses, the board on the tool, the camera fixed
         T_cb = [inv_T(T @ R1_T_TOOL_CAM) @ T_base_board for T in poses]
@@ -695,6 +680,45 @@ def r1_real_arm(
     return r1_scenario(
         target, frames, eye_in_hand, options, sigma_px, T_base_board, T_base_tool_true=true
     )
+
+
+def _r1_translations(T_base_tool: np.ndarray) -> list[np.ndarray]:
+    """12 pure translations of ``T_base_tool`` by 50 and -70 mm in 6 non-coplanar directions of
+    R1's camera axes."""
+    R_base_cam = (T_base_tool @ R1_T_TOOL_CAM)[:3, :3]
+    dirs = np.array(
+        [
+            [1.0, 0.0, -0.6],
+            [0.0, 1.0, 0.7],
+            [-0.7, -0.6, 1.0],
+            [0.6, -0.8, -0.9],
+            [0.9, 0.5, 0.4],
+            [-0.5, 0.9, -0.5],
+        ]
+    )
+    moves = [R_base_cam @ (d / np.linalg.norm(d)) * s for d in dirs for s in (0.05, -0.07)]
+    return [T_from_Rt(T_base_tool[:3, :3], T_base_tool[:3, 3] + m) for m in moves]
+
+
+def symmetric_board_r1(
+    rng: np.random.Generator,
+    sigma_px: float = 0.15,
+    robot_noise_m: float = 5e-5,
+    robot_noise_deg: float = 0.005,
+) -> Scenario:
+    """R1 mirrored (:func:`r1` with ``eye_in_hand`` False) with an 8 x 6-square chessboard of 30 mm
+    on the tool, a board that looks the same after a half turn: R1's 20 frames and 13 more at its
+    first orientation (its pure translations, :func:`_r1_translations`), 33 frames."""
+    target = Target.chessboard(8, 6, 0.030)
+    T_base_board, poses = r1_poses()
+    frames = []
+    for k, T_bt in enumerate([*poses, *_r1_translations(poses[0]), poses[0]]):
+        T_cam_board = inv_T(T_bt @ R1_T_TOOL_CAM) @ T_base_board
+        T_base_tool = _tool_pose(T_cam_board, T_base_board, False)
+        det = _r1_detection(T_cam_board, target, sigma_px, rng)
+        measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
+        frames.append(Frame(k, {"cam": det}, T_base_tool=measured))
+    return r1_scenario(target, frames, False, None, sigma_px, T_base_board)
 
 
 def real_board_of(target: Target, rng: np.random.Generator) -> tuple[Target, Target, np.ndarray]:
@@ -1133,7 +1157,8 @@ def one_tag_session(rng: np.random.Generator, geometry: np.ndarray) -> Scenario:
         *ONE_TAG_ROBOT_NOISE,
         eye_in_hand=False,
         options=ModelOptions(
-            distortion=NO_DISTORTION, robot_noise_m=ONE_TAG_ROBOT_NOISE[0],
+            distortion=NO_DISTORTION,
+            robot_noise_m=ONE_TAG_ROBOT_NOISE[0],
             robot_noise_deg=ONE_TAG_ROBOT_NOISE[1],
         ),
         target=square_tag(0.08),
