@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
+import cv2
 import numpy as np
 import yaml
 
@@ -719,6 +720,27 @@ def symmetric_board_r1(
         measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
         frames.append(Frame(k, {"cam": det}, T_base_tool=measured))
     return r1_scenario(target, frames, False, None, sigma_px, T_base_board)
+
+
+def recorded_dataset(
+    directory: str | Path, rng: np.random.Generator, translations_only: bool = False
+) -> np.ndarray:
+    """A dataset as another tool records it: R1's views (:func:`r1_poses`; ``translations_only``:
+    its first orientation and its 12 pure translations) rendered by half of R1's camera (640 x 400)
+    as ``1.png``, ``2.png``, ... in ``directory``. Returns the ``T_base_tool`` (F, 4, 4) of the
+    images, metres, for writing in any convention."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    cam = single_camera()
+    cam = replace(cam, width=640, height=400, K=K_matrix(440.0, 440.0, 319.75, 199.75))
+    target = r1_target()
+    T_base_board, poses = r1_poses()
+    if translations_only:
+        poses = np.stack([poses[0], *_r1_translations(poses[0])])
+    for k, T in enumerate(poses):
+        img = render_target(target, cam, inv_T(T @ R1_T_TOOL_CAM) @ T_base_board, rng)
+        cv2.imwrite(str(directory / f"{k + 1}.png"), img)
+    return poses
 
 
 def real_board_of(target: Target, rng: np.random.Generator) -> tuple[Target, Target, np.ndarray]:

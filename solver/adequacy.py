@@ -16,7 +16,7 @@ from typing import ClassVar
 import cv2
 import numpy as np
 
-from slidecal.solver.detect import half_turn_symmetric, half_turns
+from slidecal.solver.detect import half_turn_symmetric, half_turn_T, half_turns
 from slidecal.solver.free_pose import FreePoseFit, free_pose_fit, model_starts, session_images
 from slidecal.solver.geometry import (
     R_from_quat_wxyz,
@@ -371,8 +371,7 @@ def _pairing(problem: CalibrationProblem, frames: list[int], T_cam: list[np.ndar
     wrong = float(np.mean(np.array(list(recorded.values())) > 1.0))
     if half_turn_symmetric(problem.target):  # a board read the other way round, not a pairing
         turned = half_turns([T[:3, :3] for T in T_cam], [T_tool[k, :3, :3] for k in frames])[0]
-        c = problem.target.points_m.mean(axis=0)
-        H = T_from_Rt(Rz(np.pi), np.array([2.0 * c[0], 2.0 * c[1], 0.0]))  # board <- turned
+        H = half_turn_T(problem.target)
         again = [T @ H if turned[a] else T for a, T in enumerate(T_cam)]
         sc = np.array(list(scores(0, again).values()))
         if turned.any() and np.median(sc) <= 1.0 and np.mean(sc > 1.0) < wrong / 3:

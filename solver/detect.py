@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 
 from slidecal.solver.errors import DegenerateError, InputError
-from slidecal.solver.geometry import R_from_rvec, Rz, rotation_angle_deg
+from slidecal.solver.geometry import R_from_rvec, Rz, T_from_Rt, rotation_angle_deg
 from slidecal.solver.problem import CalibrationProblem, Detection, Target
 
 # Local homography check: a corner farther than this from its grid neighbours' homography is
@@ -1098,11 +1098,19 @@ def half_turned(detection: Detection, target: Target) -> Detection:
     return Detection(len(target.points_m) - 1 - detection.ids, detection.px, detection.reason)
 
 
-def _board_rotations(problem: CalibrationProblem, cam: str) -> dict[int, np.ndarray]:
-    """``R_cam_board`` (3, 3) of each frame (index) where ``cam`` saw at least 4 corners, from the
+def half_turn_T(target: Target) -> np.ndarray:
+    """The board transform (4, 4) of a half turn about ``target``'s centre: board <- turned
+    board (a pose ``T_cam_board`` read the other way round is ``T_cam_board @ half_turn_T``)."""
+    c = target.points_m.mean(axis=0)
+    return T_from_Rt(Rz(np.pi), np.array([2.0 * c[0], 2.0 * c[1], 0.0]))
+
+
+def board_poses(problem: CalibrationProblem, cam: str) -> dict[int, np.ndarray]:
+    """``T_cam_board`` (4, 4) of each frame (index) where ``cam`` saw at least 4 corners, from the
     images alone: OpenCV's pinhole calibration from a guess (f the image's long side, the
-    principal point at its centre; one orientation's frames then keep equal rotations), each
-    frame's own PnP with the guess if that fails. A half turn changes no frame's intrinsics."""
+    principal point at its centre; one orientation's frames then keep equal rotations), then
+    with the principal point and distortion free where that fits better; each frame's own PnP
+    with the guess where OpenCV fails. A half turn changes no frame's intrinsics."""
     w, h = problem.camera(cam).width, problem.camera(cam).height
     K = np.array([[max(w, h), 0.0, (w - 1) / 2], [0.0, max(w, h), (h - 1) / 2], [0.0, 0.0, 1.0]])
     idx, obj, img = [], [], []
@@ -1122,11 +1130,28 @@ def _board_rotations(problem: CalibrationProblem, cam: str) -> dict[int, np.ndar
         | cv2.CALIB_FIX_K3
     )
     try:
-        rvecs = cv2.calibrateCamera(obj, img, (w, h), K, np.zeros(5), flags=flags)[3]
+        rms, K, _, rvecs, tvecs = cv2.calibrateCamera(obj, img, (w, h), K, np.zeros(5), flags=flags)
+        free = cv2.calibrateCamera(
+            obj, img, (w, h), K, np.zeros(5), flags=cv2.CALIB_USE_INTRINSIC_GUESS
+        )
+        if np.isfinite(free[0]) and free[0] < rms and _plausible_focal(free[1], w, h):
+            rvecs, tvecs = free[3], free[4]
     except cv2.error:
-        pnp = cv2.SOLVEPNP_IPPE
-        rvecs = [cv2.solvePnP(o, i, K, None, flags=pnp)[1] for o, i in zip(obj, img, strict=True)]
-    return {k: R_from_rvec(np.reshape(r, 3)) for k, r in zip(idx, rvecs, strict=True)}
+        pnp = [
+            cv2.solvePnP(o, i, K, None, flags=cv2.SOLVEPNP_IPPE)
+            for o, i in zip(obj, img, strict=True)
+        ]
+        rvecs, tvecs = [r[1] for r in pnp], [r[2] for r in pnp]
+    return {
+        k: T_from_Rt(R_from_rvec(np.reshape(r, 3)), np.reshape(t, 3))
+        for k, r, t in zip(idx, rvecs, tvecs, strict=True)
+    }
+
+
+def _plausible_focal(K: np.ndarray, w: int, h: int) -> bool:
+    """A focal length between a tenth and ten times the image's long side (degenerate views,
+    such as one orientation's, drive a free calibration far away)."""
+    return bool(0.1 * max(w, h) < K[0, 0] < 10.0 * max(w, h))
 
 
 def half_turns(
@@ -1185,7 +1210,7 @@ def resolve_half_turns(problem: CalibrationProblem) -> tuple[CalibrationProblem,
     matters = problem.knowledge != "none" or len(problem.cameras) > 1
     frames, notes = list(problem.frames), []
     for cam in problem.cameras:
-        R = _board_rotations(problem, cam.name)
+        R = {k: T[:3, :3] for k, T in board_poses(problem, cam.name).items()}
         idx = list(R)
         if len(idx) < 2:
             continue
