@@ -49,6 +49,17 @@ POSE_KEYS = ("pose", "pose_flange", "T_base_tool", "tool_pose", "robot_pose")
 #: Euler orders real controllers use, as ``scipy``'s sequence of the angles in the file's order:
 #: upper case about the turning axes (intrinsic), lower case about the fixed ones
 EULER = {"Z-Y-X": "ZYX", "X-Y-Z fixed": "xyz", "X-Y-Z": "XYZ", "Z-Y-Z": "ZYZ"}
+#: The rotation formats a row of 6, 7, 12 or 16 numbers may hold
+READINGS = {
+    6: (
+        "rotation vector rad",
+        "rotation vector deg",
+        *(f"Euler {e} {u}" for e in EULER for u in ("deg", "rad")),
+    ),
+    7: ("quaternion w-first", "quaternion w-last"),
+    12: ("3x4 matrix by rows",),
+    16: ("4x4 matrix by rows", "4x4 matrix by columns"),
+}
 UNITS = {"m": 1.0, "mm": 1e-3}
 DIRECTIONS = ("tool in base", "base in tool")
 NUMBER = r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?"
@@ -60,19 +71,9 @@ def natural_key(name: str) -> list[Any]:
     return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
 
 
-def rotation_readings(n: int) -> tuple[str, ...]:
-    """The rotation formats a row of ``n`` numbers may hold."""
-    if n == 6:
-        units = ("rad", "deg")
-        return (
-            *(f"rotation vector {u}" for u in units),
-            *(f"Euler {e} {u}" for e in EULER for u in units),
-        )
-    return {
-        7: ("quaternion w-first", "quaternion w-last"),
-        12: ("3x4 matrix by rows",),
-        16: ("4x4 matrix by rows", "4x4 matrix by columns"),
-    }[n]
+def conventions(n: int) -> list[str]:
+    """Every reading of a row of ``n`` numbers, named as ``--convention`` takes them."""
+    return [f"{u}, {r}, {d}" for r in READINGS[n] for u in UNITS for d in DIRECTIONS]
 
 
 def pose_of(numbers: np.ndarray, unit: str, rotation: str, direction: str) -> np.ndarray:
@@ -89,7 +90,7 @@ def pose_of(numbers: np.ndarray, unit: str, rotation: str, direction: str) -> np
         elif rotation.startswith("rotation vector"):
             rot = Rotation.from_rotvec(a, degrees=deg)
         else:
-            rot = Rotation.from_euler(EULER[rotation.split()[1]], a, degrees=deg)
+            rot = Rotation.from_euler(EULER[rotation[6:-4]], a, degrees=deg)  # "Euler ... deg"
         R = rot.as_matrix()
     T = T_from_Rt(R, t * UNITS[unit])
     return T if direction == "tool in base" else inv_T(T)
@@ -157,38 +158,27 @@ def find_convention(
     mount: str,
     forced: str | None = None,
     where: str = "poses",
-) -> tuple[str, np.ndarray, dict[str, float], list[tuple[str, dict[str, float]]]]:
+) -> tuple[str, dict[str, float], list[tuple[str, dict[str, float]]]]:
     """The reading of ``records`` (F rows of one length) that fits the images-alone ``T_cam``:
-    (its name, ``T_base_tool`` (F, 4, 4), its evidence, the other readings' names and evidence,
-    best first). ``forced``: the name to take (its evidence is still given). Refuses in one line
-    when none fits, or when another reading that gives other poses fits within
-    ``CONVENTION_MARGIN`` of it."""
+    (its name, its evidence, the other readings' names and evidence, best first). ``forced``:
+    the name to take (its evidence is still given). Refuses in one line when none fits, or when
+    another reading that gives other poses fits within ``CONVENTION_MARGIN`` of it."""
     rows = np.stack(records)
-    tried: list[tuple[float, str, np.ndarray, dict[str, float]]] = []
-    for rotation in rotation_readings(rows.shape[1]):
-        for unit in UNITS:
-            for direction in DIRECTIONS:
-                name = f"{unit}, {rotation}, {direction}"
-                if forced is not None and name != forced:
-                    continue
-                T = np.stack([pose_of(r, unit, rotation, direction) for r in rows])
-                if any(np.allclose(T, other, atol=1e-9) for _, _, other, _ in tried):
-                    continue  # the same poses as a reading before (e.g. no rotation at all)
-                e = evidence(T, T_cam, mount)
-                tried.append((score(e), name, T, e))
-    if not tried:
-        names = [
-            f"{u}, {r}, {d}"
-            for r in rotation_readings(rows.shape[1])
-            for u in UNITS
-            for d in DIRECTIONS
-        ]
+    names = conventions(rows.shape[1])
+    if forced is not None and forced not in names:
         raise InputError(f"--convention {forced!r} is not one of: {'; '.join(names)}")
+    tried: list[tuple[float, str, np.ndarray, dict[str, float]]] = []
+    for name in [forced] if forced else names:
+        T = np.stack([pose_of(r, *name.split(", ")) for r in rows])
+        if any(np.allclose(T, other, atol=1e-9) for _, _, other, _ in tried):
+            continue  # the same poses as a reading before (e.g. no rotation at all)
+        e = evidence(T, T_cam, mount)
+        tried.append((score(e), name, T, e))
     tried.sort(key=lambda x: x[0])
-    best, name, T, e = tried[0]
+    best, name, _, e = tried[0]
     others = [(n, ev) for _, n, _, ev in tried[1:]]
     if forced is not None:
-        return name, T, e, others
+        return name, e, others
     figures = "; ".join(f"{n}: {describe(ev)}" for _, n, _, ev in tried[:3])
     if not best <= 1.0:
         raise InputError(
@@ -209,7 +199,7 @@ def find_convention(
             "give the one meant with --convention",
             where=where,
         )
-    return name, T, e, others
+    return name, e, others
 
 
 def _numbers(value: Any, where: str) -> np.ndarray:
@@ -251,7 +241,7 @@ def read_rows(path: Path) -> list[tuple[str | None, np.ndarray, str]]:
 
 def sidecar_rows(directory: Path, key: str | None) -> list[tuple[str | None, np.ndarray, str]]:
     """The pose of each sidecar file (``17.json`` beside ``17.jpg``) in ``directory`` under
-    ``key`` (dotted for a nested one) or the first of ``POSE_KEYS``."""
+    ``key`` or the first of ``POSE_KEYS``."""
     rows = []
     files = [p for p in directory.iterdir() if p.suffix.lower() in SIDECAR_SUFFIXES]
     for p in sorted(files, key=lambda p: natural_key(p.name)):
@@ -261,12 +251,9 @@ def sidecar_rows(directory: Path, key: str | None) -> list[tuple[str | None, np.
             raise InputError(
                 f"has none of the keys {list(POSE_KEYS)}; name the pose's with --pose-key", p.name
             )
-        value: Any = data
-        for part in keys[0].split("."):
-            if not isinstance(value, Mapping) or part not in value:
-                raise InputError(f"has no key {keys[0]!r}", where=p.name)
-            value = value[part]
-        rows.append((p.stem, _numbers(value, f"{p.name}: {keys[0]}"), p.name))
+        if not isinstance(data, Mapping) or keys[0] not in data:
+            raise InputError(f"has no key {keys[0]!r}", where=p.name)
+        rows.append((p.stem, _numbers(data[keys[0]], f"{p.name}: {keys[0]}"), p.name))
     if not rows:
         raise InputError("holds no JSON or YAML pose file", where=str(directory))
     return rows
@@ -313,8 +300,6 @@ def main(args: argparse.Namespace) -> int:
     """Read, find the convention, write the session, print the choice and its evidence."""
     cfg = load_config(args.config)
     folder, poses = Path(args.images), Path(args.poses)
-    if not folder.is_dir():
-        raise InputError("is not a folder of images", where=str(folder))
     images = sorted(
         (p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES),
         key=lambda p: natural_key(p.name),
@@ -356,7 +341,7 @@ def main(args: argparse.Namespace) -> int:
     if half_turn_symmetric(cfg.target):  # read the right way round by continuity, for the tests
         turned = half_turns([T[:3, :3] for T in cams])[0]
         cams = [T @ half_turn_T(cfg.target) if t else T for T, t in zip(cams, turned, strict=True)]
-    chosen, _, e, others = find_convention(
+    chosen, e, others = find_convention(
         [shots[k][1] for k in idx], cams, cfg.mount, args.convention, poses.name
     )
     unit, rotation, direction = chosen.split(", ")

@@ -32,7 +32,9 @@ def record(T_base_tool, convention):
         if rotation.startswith("rotation vector"):
             rows.append([*t, *rot.as_rotvec(degrees=deg)])
         elif rotation.startswith("Euler"):
-            rows.append([*t, *rot.as_euler(EULER_SEQ[rotation.split()[1]], degrees=deg)])
+            rows.append(
+                [*t, *rot.as_euler(EULER_SEQ[rotation[len("Euler ") : -len(" deg")]], degrees=deg)]
+            )
         elif rotation.startswith("quaternion"):
             x, y, z, w = rot.as_quat()
             rows.append([*t, *([w, x, y, z] if "w-first" in rotation else [x, y, z, w])])
@@ -46,16 +48,6 @@ def record(T_base_tool, convention):
                 )
             )
     return np.array(rows)
-
-
-def conventions():
-    return [
-        f"{u}, {r}, {d}"
-        for n in (6, 7, 12, 16)
-        for r in importer.rotation_readings(n)
-        for u in importer.UNITS
-        for d in importer.DIRECTIONS
-    ]
 
 
 FAST = (
@@ -82,7 +74,11 @@ def _import(tmp_path, images, poses, *extra):
 
 @pytest.mark.parametrize(
     "convention",
-    [pytest.param(c, marks=() if c in FAST else pytest.mark.slow) for c in conventions()],
+    [
+        pytest.param(c, marks=() if c in FAST else pytest.mark.slow)
+        for n in (6, 7, 12, 16)
+        for c in importer.conventions(n)
+    ],
 )
 def test_import_finds_the_convention_used(dataset, tmp_path, capsys, convention):
     d, T_true = dataset
