@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 
 from slidecal.solver.errors import DegenerateError, InputError
-from slidecal.solver.geometry import R_from_rvec, Rz, T_from_Rt, rotation_angle_deg
+from slidecal.solver.geometry import R_from_rvec, Rz, T_from_Rt
 from slidecal.solver.problem import CalibrationProblem, Detection, Target
 
 # Local homography check: a corner farther than this from its grid neighbours' homography is
@@ -1134,7 +1134,8 @@ def board_poses(problem: CalibrationProblem, cam: str) -> dict[int, np.ndarray]:
         free = cv2.calibrateCamera(
             obj, img, (w, h), K, np.zeros(5), flags=cv2.CALIB_USE_INTRINSIC_GUESS
         )
-        if np.isfinite(free[0]) and free[0] < rms and _plausible_focal(free[1], w, h):
+        f = free[1][0, 0]  # a free focal length far from the guess: degenerate views
+        if np.isfinite(free[0]) and free[0] < rms and 0.1 * max(w, h) < f < 10.0 * max(w, h):
             rvecs, tvecs = free[3], free[4]
     except cv2.error:
         pnp = [
@@ -1148,12 +1149,6 @@ def board_poses(problem: CalibrationProblem, cam: str) -> dict[int, np.ndarray]:
     }
 
 
-def _plausible_focal(K: np.ndarray, w: int, h: int) -> bool:
-    """A focal length between a tenth and ten times the image's long side (degenerate views,
-    such as one orientation's, drive a free calibration far away)."""
-    return bool(0.1 * max(w, h) < K[0, 0] < 10.0 * max(w, h))
-
-
 def half_turns(
     R_cam_board: list[np.ndarray], R_base_tool: list[np.ndarray] | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -1164,19 +1159,15 @@ def half_turns(
     The fewer turns of the two equivalent answers. Returns (turned (n,) bool, margin (n,) deg:
     how much worse the other choice fits, median over the frame's pairs)."""
     n = len(R_cam_board)
-    Z = Rz(np.pi)
-    cost = np.zeros((2, n, n))
-    for i in range(n):
-        for j in range(n):
-            if i != j:
-                ref = (
-                    0.0
-                    if R_base_tool is None
-                    else rotation_angle_deg(R_base_tool[i].T @ R_base_tool[j])
-                )
-                rel = R_cam_board[i].T @ R_cam_board[j]
-                cost[0, i, j] = abs(rotation_angle_deg(rel) - ref)
-                cost[1, i, j] = abs(rotation_angle_deg(rel @ Z) - ref)
+
+    def angles_deg(R: np.ndarray, turn: float = 1.0) -> np.ndarray:  # of R_i' R_j Rz(0 or pi)
+        rel = np.einsum("iba,jbc->ijac", R, R)
+        trace = turn * (rel[..., 0, 0] + rel[..., 1, 1]) + rel[..., 2, 2]
+        return np.degrees(np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0)))
+
+    R = np.asarray(R_cam_board)
+    ref = 0.0 if R_base_tool is None else angles_deg(np.asarray(R_base_tool))
+    cost = np.abs(np.stack([angles_deg(R), angles_deg(R, -1.0)]) - ref)
     others = ~np.eye(n, dtype=bool)
 
     def fit(i: int, s: np.ndarray) -> np.ndarray:  # median cost of frame i unturned, turned
