@@ -706,15 +706,21 @@ def symmetric_board_r1(
     sigma_px: float = 0.15,
     robot_noise_m: float = 5e-5,
     robot_noise_deg: float = 0.005,
+    rolled: Sequence[int] = (),
 ) -> Scenario:
     """R1 mirrored (:func:`r1` with ``eye_in_hand`` False) with an 8 x 6-square chessboard of 30 mm
     on the tool, a board that looks the same after a half turn: R1's 20 frames and 13 more at its
-    first orientation (its pure translations, :func:`_r1_translations`), 33 frames."""
+    first orientation (its pure translations, :func:`_r1_translations`), 33 frames. The frames
+    ``rolled`` have the tool turned so that the board turns 150 deg about its centre in view."""
     target = Target.chessboard(8, 6, 0.030)
+    c = target.points_m.mean(axis=0)
+    roll = T_from_Rt(Rz(np.radians(150.0)), c - Rz(np.radians(150.0)) @ c)
     T_base_board, poses = r1_poses()
     frames = []
     for k, T_bt in enumerate([*poses, *_r1_translations(poses[0]), poses[0]]):
-        T_cam_board = inv_T(T_bt @ R1_T_TOOL_CAM) @ T_base_board
+        T_cam_board = (
+            inv_T(T_bt @ R1_T_TOOL_CAM) @ T_base_board @ (roll if k in rolled else np.eye(4))
+        )
         T_base_tool = _tool_pose(T_cam_board, T_base_board, False)
         det = _r1_detection(T_cam_board, target, sigma_px, rng)
         measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
@@ -722,25 +728,24 @@ def symmetric_board_r1(
     return r1_scenario(target, frames, False, None, sigma_px, T_base_board)
 
 
-def recorded_dataset(
-    directory: str | Path, rng: np.random.Generator, translations_only: bool = False
-) -> np.ndarray:
-    """A dataset as another tool records it: R1's views (:func:`r1_poses`; ``translations_only``:
-    its first orientation and its 12 pure translations) rendered by half of R1's camera (640 x 400)
-    as ``1.png``, ``2.png``, ... in ``directory``. Returns the ``T_base_tool`` (F, 4, 4) of the
+#: Half of R1's camera (640 x 400): recorded datasets render faster and keep R1's geometry
+R1_HALF = replace(single_camera(), width=640, height=400, K=K_matrix(440.0, 440.0, 319.75, 199.75))
+
+
+def recorded_dataset(directory: str | Path, s: Scenario, rng: np.random.Generator) -> np.ndarray:
+    """Scenario ``s``'s frames as another tool records them: each view of its target at the
+    frame's ``T_base_tool`` (its truth's hand-eye and target pose) rendered by ``R1_HALF`` as
+    ``1.png``, ``2.png``, ... in ``directory``. Returns the ``T_base_tool`` (F, 4, 4) of the
     images, metres, for writing in any convention."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    cam = single_camera()
-    cam = replace(cam, width=640, height=400, K=K_matrix(440.0, 440.0, 319.75, 199.75))
-    target = r1_target()
-    T_base_board, poses = r1_poses()
-    if translations_only:
-        poses = np.stack([poses[0], *_r1_translations(poses[0])])
-    for k, T in enumerate(poses):
-        img = render_target(target, cam, inv_T(T @ R1_T_TOOL_CAM) @ T_base_board, rng)
+    T = np.stack([f.T_base_tool for f in s.problem.frames])
+    X, Y = s.truth.X[0], s.truth.Y  # T_cam_tool, T_base_board; eye-to-hand T_cam_base, T_tool_board
+    for k, T_bt in enumerate(T):
+        T_cam_board = X @ (inv_T(T_bt) if s.problem.mount == "eye_in_hand" else T_bt) @ Y
+        img = render_target(s.problem.target, R1_HALF, T_cam_board, rng)
         cv2.imwrite(str(directory / f"{k + 1}.png"), img)
-    return poses
+    return T
 
 
 def real_board_of(target: Target, rng: np.random.Generator) -> tuple[Target, Target, np.ndarray]:

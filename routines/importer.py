@@ -96,13 +96,19 @@ def pose_of(numbers: np.ndarray, unit: str, rotation: str, direction: str) -> np
     return T if direction == "tool in base" else inv_T(T)
 
 
-def evidence(T_tool: np.ndarray, T_cam: Sequence[np.ndarray], mount: str) -> dict[str, float]:
+def evidence(
+    T_tool: np.ndarray, T_cam: Sequence[np.ndarray], mount: str, turn: np.ndarray | None = None
+) -> dict[str, float]:
     """How poses ``T_tool`` (F, 4, 4) fit the images-alone ``T_cam`` (``T_cam_board``), with no
     hand-eye: the rms difference of the rotation angle between two frames (pairs turned by
     ``PAIRING_MIN_ROTATION_DEG`` or more), the median camera-to-robot length ratio of the pure
     moves (``MIN_MOVE_M`` or longer), and how far the board's pose in the base (eye-to-hand: on
     the tool) spreads through the poses with the best hand-eye (nan when the poses hold no
-    rotation)."""
+    rotation). ``turn``: a symmetric board's half turn (``half_turn_T``); each frame is first
+    read the way round these poses' rotations tell (:func:`half_turns`)."""
+    if turn is not None:
+        turned = half_turns([T[:3, :3] for T in T_cam], list(T_tool[:, :3, :3]))[0]
+        T_cam = [T @ turn if t else T for T, t in zip(T_cam, turned, strict=True)]
     seen = [_moving_point(T, mount) for T in T_cam]
     errs, ratios = [], []
     for i in range(len(T_cam)):
@@ -158,11 +164,13 @@ def find_convention(
     mount: str,
     forced: str | None = None,
     where: str = "poses",
+    turn: np.ndarray | None = None,
 ) -> tuple[str, dict[str, float], list[tuple[str, dict[str, float]]]]:
     """The reading of ``records`` (F rows of one length) that fits the images-alone ``T_cam``:
     (its name, its evidence, the other readings' names and evidence, best first). ``forced``:
     the name to take (its evidence is still given). Refuses in one line when none fits, or when
-    another reading that gives other poses fits within ``CONVENTION_MARGIN`` of it."""
+    another reading that gives other poses fits within ``CONVENTION_MARGIN`` of it. ``turn``: as
+    :func:`evidence`'s."""
     rows = np.stack(records)
     names = conventions(rows.shape[1])
     if forced is not None and forced not in names:
@@ -172,7 +180,7 @@ def find_convention(
         T = np.stack([pose_of(r, *name.split(", ")) for r in rows])
         if any(np.allclose(T, other, atol=1e-9) for _, _, other, _ in tried):
             continue  # the same poses as a reading before (e.g. no rotation at all)
-        e = evidence(T, T_cam, mount)
+        e = evidence(T, T_cam, mount, turn)
         tried.append((score(e), name, T, e))
     tried.sort(key=lambda x: x[0])
     best, name, _, e = tried[0]
@@ -180,6 +188,13 @@ def find_convention(
     if forced is not None:
         return name, e, others
     figures = "; ".join(f"{n}: {describe(ev)}" for _, n, _, ev in tried[:3])
+    if not e["rotated_pairs"]:  # every reading's rotations stand still
+        raise InputError(
+            f"the images show no rotation between frames, so they cannot tell the rotation "
+            f"format or the direction of the poses ({figures}); give the reading meant with "
+            "--convention",
+            where=where,
+        )
     if not best <= 1.0:
         raise InputError(
             f"no reading of the poses fits the images (best: {figures}); check that the rows "
@@ -188,15 +203,9 @@ def find_convention(
         )
     alike = [t for t in tried[1:] if t[0] <= max(CONVENTION_MARGIN * best, 1e-12) and t[0] <= 1.0]
     if alike:
-        why = (
-            "the images show no rotation between frames, so the rotation format and the "
-            "direction cannot be told"
-            if not e["rotated_pairs"]
-            else "frames turned about several axes tell them apart"
-        )
         raise InputError(
-            f"{len(alike) + 1} readings of the poses fit the images alike ({figures}): {why}; "
-            "give the one meant with --convention",
+            f"{len(alike) + 1} readings of the poses fit the images alike ({figures}): frames "
+            "turned about several axes tell them apart; give the one meant with --convention",
             where=where,
         )
     return name, e, others
@@ -337,12 +346,14 @@ def main(args: argparse.Namespace) -> int:
             "target of --config the one in the images?)",
             str(folder),
         )
-    cams = [T_cam[k] for k in idx]
-    if half_turn_symmetric(cfg.target):  # read the right way round by continuity, for the tests
-        turned = half_turns([T[:3, :3] for T in cams])[0]
-        cams = [T @ half_turn_T(cfg.target) if t else T for T, t in zip(cams, turned, strict=True)]
+    turn = half_turn_T(cfg.target) if half_turn_symmetric(cfg.target) else None
     chosen, e, others = find_convention(
-        [shots[k][1] for k in idx], cams, cfg.mount, args.convention, poses.name
+        [shots[k][1] for k in idx],
+        [T_cam[k] for k in idx],
+        cfg.mount,
+        args.convention,
+        poses.name,
+        turn,
     )
     unit, rotation, direction = chosen.split(", ")
     report = {

@@ -3,6 +3,7 @@ convention; the import must find the one used, refuse what the images cannot tel
 what does not pair, by name."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -13,6 +14,7 @@ from slidecal.mocks import scenarios as sc
 from slidecal.routines import importer
 from slidecal.routines.cli import main as cli
 from slidecal.routines.session import load_session
+from slidecal.solver.calibrate import calibrate
 from slidecal.solver.geometry import inv_T, rotation_angle_deg
 
 CELL = str(sc.Path(sc.__file__).with_name("default_cell.yaml"))
@@ -63,7 +65,8 @@ FAST = (
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
     d = tmp_path_factory.mktemp("recorded")
-    return d, sc.recorded_dataset(d / "images", np.random.default_rng(0))
+    s = sc.r1(np.random.default_rng(0), 0.0, 0.0, 0.0)
+    return d, sc.recorded_dataset(d / "images", s, np.random.default_rng(0))
 
 
 def _import(tmp_path, images, poses, *extra):
@@ -120,14 +123,21 @@ def test_sidecars_by_name_and_unpaired_reported(dataset, tmp_path, capsys):
 
 
 def test_rotation_free_dataset_is_refused_naming_what_cannot_be_told(tmp_path, capsys):
-    T = sc.recorded_dataset(tmp_path / "images", np.random.default_rng(1), translations_only=True)
+    s = sc.r1(np.random.default_rng(1), 0.0, 0.0, 0.0)  # its first orientation's 5 frames
+    s = replace(s, problem=replace(s.problem, frames=s.problem.frames[:5]))
+    T = sc.recorded_dataset(tmp_path / "images", s, np.random.default_rng(1))
     poses = tmp_path / "poses.txt"
     np.savetxt(poses, record(T, "mm, Euler Z-Y-X deg, tool in base"))
     code, _ = _import(tmp_path, tmp_path / "images", poses)
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1
-    assert "fit the images alike" in err and "no rotation between frames" in err
-    assert "--convention" in err
+    assert "no rotation between frames" in err and "--convention" in err
+    # the reading meant, given, is taken: the poses are the recorded ones
+    forced = ("--convention", "mm, Euler Z-Y-X deg, tool in base")
+    code, out = _import(tmp_path, tmp_path / "images", poses, *forced)
+    assert code == 0
+    got = np.stack([f.T_base_tool for f in load_session(out).problem.frames])
+    assert np.abs(got - T).max() < 1e-6
 
 
 def test_count_mismatch_in_order_is_refused(dataset, tmp_path, capsys):
@@ -142,3 +152,58 @@ def test_count_mismatch_in_order_is_refused(dataset, tmp_path, capsys):
 def test_natural_order():
     names = ["10.jpg", "2.jpg", "1.jpg"]
     assert sorted(names, key=importer.natural_key) == ["1.jpg", "2.jpg", "10.jpg"]
+
+
+@pytest.mark.slow  # renders 33 images, solves: the second CI tier
+def test_symmetric_board_turned_in_view_imported_and_solved(tmp_path, capsys):
+    # the ABB-like case through the real renderer and detector: an 8 x 6-square chessboard on the
+    # tool, eye-to-hand; in 6 frames the tool turns the board 150 deg in view, so the detector's
+    # rule reads its corner 0 at the opposite corner there. The import still finds the poses'
+    # convention; the solve turns those frames back by the robot and the focal length matches
+    rolled = (6, 7, 8, 9, 15, 16)
+    s = sc.symmetric_board_r1(np.random.default_rng(6), 0.0, 0.0, 0.0, rolled=rolled)
+    T = sc.recorded_dataset(tmp_path / "images", s, np.random.default_rng(6))
+    cell = tmp_path / "cell.yaml"
+    cfg = yaml.safe_load(sc.Path(CELL).with_name("eye_to_hand_cell.yaml").read_text())
+    cfg["target"] = {"kind": "chessboard", "squares_x": 8, "squares_y": 6, "square_size_m": 0.03}
+    cell.write_text(yaml.safe_dump(cfg))
+    poses = tmp_path / "poses.txt"
+    np.savetxt(poses, record(T, "mm, Euler Z-Y-X deg, tool in base"))
+    out = tmp_path / "session"
+    argv = [
+        "import",
+        str(tmp_path / "images"),
+        str(poses),
+        "--config",
+        str(cell),
+        "--out",
+        str(out),
+    ]
+    assert cli(argv) == 0, capsys.readouterr().err
+    assert "poses read as: mm, Euler Z-Y-X deg, tool in base\n" in capsys.readouterr().out
+    problem = load_session(out).problem
+    # the frames the detector read the other way round than the truth (or all the others)
+    flipped = []
+    for k, f in enumerate(problem.frames):
+        X, Y = s.truth.X[0], s.truth.Y
+        px = sc.projected_detection(
+            sc.R1_HALF.K,
+            sc.R1_HALF.dist,
+            X @ T[k] @ Y,
+            problem.target,
+            (640, 400),
+            0.0,
+            np.random.default_rng(),
+        ).px
+        det = f.detections[name := problem.reference]
+        if np.linalg.norm(det.px[0] - px[0]) > np.linalg.norm(det.px[0] - px[-1]):
+            flipped.append(k)
+    assert flipped and len(flipped) < len(T)
+    if 2 * len(flipped) > len(T):
+        flipped = [k for k in range(len(T)) if k not in flipped]
+    res = calibrate(problem)
+    turned = next(m for m in res.messages if "half turn" in m)
+    assert turned.startswith(f"frames {flipped} ")
+    # 33 views of 35 corners at about 0.1 px: the focal length to a few tenths of a percent
+    assert res.cameras[name].K[0, 0] == pytest.approx(sc.R1_HALF.K[0, 0], rel=5e-3)
+    assert res.adequacy.adequate
