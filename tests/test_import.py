@@ -207,3 +207,24 @@ def test_symmetric_board_turned_in_view_imported_and_solved(tmp_path, capsys):
     # 33 views of 35 corners at about 0.1 px: the focal length to a few tenths of a percent
     assert res.cameras[name].K[0, 0] == pytest.approx(sc.R1_HALF.K[0, 0], rel=5e-3)
     assert res.adequacy.adequate
+
+
+def test_bad_pose_files_are_refused_in_one_line(dataset, tmp_path, capsys):
+    d, T_true = dataset
+    poses = tmp_path / "poses.csv"
+    rows = record(T_true, "m, rotation vector rad, tool in base")
+    text = "x,y,z,rx,ry,rz\n" + "\n".join(",".join(map(str, r)) for r in rows)
+    poses.write_text(text.replace(",".join(map(str, rows[1])), "1,2,3,4,5", 1))
+    assert _import(tmp_path, d / "images", poses)[0] == 2
+    err = capsys.readouterr().err
+    assert (
+        err.startswith("slidecal: poses.csv: line 3: a pose must be 6 numbers")
+        and err.count("\n") == 1
+    )
+    assert _import(tmp_path, tmp_path / "nowhere", poses)[0] == 2
+    assert "nowhere" in capsys.readouterr().err
+    side = tmp_path / "side"
+    side.mkdir()
+    (side / "1.json").write_text(json.dumps({"joints": [0.0] * 6}))
+    assert _import(tmp_path, d / "images", side)[0] == 2
+    assert "1.json: has none of the keys" in capsys.readouterr().err
