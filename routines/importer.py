@@ -35,9 +35,16 @@ from slidecal.solver.adequacy import (
     _fixed_spread,
     _moving_point,
 )
-from slidecal.solver.detect import board_poses, detect, half_turn_symmetric, half_turn_T, half_turns
+from slidecal.solver.detect import (
+    angles_between_deg,
+    board_poses,
+    detect,
+    half_turn_symmetric,
+    half_turn_T,
+    half_turns,
+)
 from slidecal.solver.errors import InputError
-from slidecal.solver.geometry import T_from_Rt, inv_T, project_to_SO3, rotation_angle_deg
+from slidecal.solver.geometry import T_from_Rt, inv_T, project_to_SO3
 from slidecal.solver.problem import CalibrationProblem, CameraSpec, Detection, Frame
 
 help = "turn a folder of images and a file of robot poses recorded elsewhere into a session"
@@ -109,24 +116,22 @@ def evidence(
     if turn is not None:
         turned = half_turns([T[:3, :3] for T in T_cam], list(T_tool[:, :3, :3]))[0]
         T_cam = [T @ turn if t else T for T, t in zip(T_cam, turned, strict=True)]
-    seen = [_moving_point(T, mount) for T in T_cam]
-    errs, ratios = [], []
-    for i in range(len(T_cam)):
-        for j in range(i + 1, len(T_cam)):
-            robot = rotation_angle_deg(T_tool[i, :3, :3].T @ T_tool[j, :3, :3])
-            camera = rotation_angle_deg(T_cam[i][:3, :3], T_cam[j][:3, :3])
-            move = float(np.linalg.norm(T_tool[j, :3, 3] - T_tool[i, :3, 3]))
-            if max(robot, camera) >= PAIRING_MIN_ROTATION_DEG:
-                errs.append(camera - robot)
-            elif max(robot, camera) < PAIRING_SAME_ORIENTATION_DEG and move >= MIN_MOVE_M:
-                ratios.append(float(np.linalg.norm(seen[j] - seen[i])) / move)
+    iu = np.triu_indices(len(T_cam), 1)
+    robot = angles_between_deg(T_tool[:, :3, :3])[iu]
+    camera = angles_between_deg([T[:3, :3] for T in T_cam])[iu]
+    t, p = T_tool[:, :3, 3], np.stack([_moving_point(T, mount) for T in T_cam])
+    move = np.linalg.norm(t[:, None] - t[None], axis=2)[iu]
+    turned = np.maximum(robot, camera)
+    errs = (camera - robot)[turned >= PAIRING_MIN_ROTATION_DEG]
+    pure = (turned < PAIRING_SAME_ORIENTATION_DEG) & (move >= MIN_MOVE_M)
+    ratios = np.linalg.norm(p[:, None] - p[None], axis=2)[iu][pure] / move[pure]
     spread = (float("nan"),) * 2
     if len(errs) >= 3:
         spread = _fixed_spread(T_tool, list(T_cam), mount == "eye_in_hand")
     return {
-        "rotation_rms_deg": float(np.sqrt(np.mean(np.square(errs)))) if errs else float("nan"),
+        "rotation_rms_deg": float(np.sqrt(np.mean(np.square(errs)))) if len(errs) else np.nan,
         "rotated_pairs": len(errs),
-        "move_ratio": float(np.median(ratios)) if ratios else float("nan"),
+        "move_ratio": float(np.median(ratios)) if len(ratios) else np.nan,
         "moved_pairs": len(ratios),
         "board_spread_deg": spread[0],
         "board_spread_mm": spread[1],

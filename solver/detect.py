@@ -1149,6 +1149,14 @@ def board_poses(problem: CalibrationProblem, cam: str) -> dict[int, np.ndarray]:
     }
 
 
+def angles_between_deg(R: np.ndarray | list[np.ndarray], turned: bool = False) -> np.ndarray:
+    """(n, n) rotation angles (deg) of ``R_i' R_j`` for ``R`` (n, 3, 3), of ``R_i' R_j Rz(pi)``
+    when ``turned`` (good to about 1e-6 deg near 0)."""
+    rel = np.einsum("iba,jbc->ijac", np.asarray(R), np.asarray(R))
+    trace = (-1.0 if turned else 1.0) * (rel[..., 0, 0] + rel[..., 1, 1]) + rel[..., 2, 2]
+    return np.degrees(np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0)))
+
+
 def half_turns(
     R_cam_board: list[np.ndarray], R_base_tool: list[np.ndarray] | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -1159,15 +1167,8 @@ def half_turns(
     The fewer turns of the two equivalent answers. Returns (turned (n,) bool, margin (n,) deg:
     how much worse the other choice fits, median over the frame's pairs)."""
     n = len(R_cam_board)
-
-    def angles_deg(R: np.ndarray, turn: float = 1.0) -> np.ndarray:  # of R_i' R_j Rz(0 or pi)
-        rel = np.einsum("iba,jbc->ijac", R, R)
-        trace = turn * (rel[..., 0, 0] + rel[..., 1, 1]) + rel[..., 2, 2]
-        return np.degrees(np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0)))
-
-    R = np.asarray(R_cam_board)
-    ref = 0.0 if R_base_tool is None else angles_deg(np.asarray(R_base_tool))
-    cost = np.abs(np.stack([angles_deg(R), angles_deg(R, -1.0)]) - ref)
+    ref = 0.0 if R_base_tool is None else angles_between_deg(R_base_tool)
+    cost = np.abs(np.stack([angles_between_deg(R_cam_board, t) for t in (False, True)]) - ref)
     others = ~np.eye(n, dtype=bool)
 
     def fit(i: int, s: np.ndarray) -> np.ndarray:  # median cost of frame i unturned, turned
