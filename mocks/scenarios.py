@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
+import cv2
 import numpy as np
 import yaml
 
@@ -668,22 +669,7 @@ def r1_real_arm(
     T_base_board = S @ T_base_board
     poses = np.stack([S @ T for T in poses])
     if translations_only:
-        base = poses[0]
-        R_base_cam = (base @ R1_T_TOOL_CAM)[:3, :3]
-        dirs = np.array(
-            [
-                [1.0, 0.0, -0.6],
-                [0.0, 1.0, 0.7],
-                [-0.7, -0.6, 1.0],
-                [0.6, -0.8, -0.9],
-                [0.9, 0.5, 0.4],
-                [-0.5, 0.9, -0.5],
-            ]
-        )
-        moves = [
-            R_base_cam @ (d / np.linalg.norm(d)) * length for d in dirs for length in (0.05, -0.07)
-        ]
-        poses = np.stack([base] + [T_from_Rt(base[:3, :3], base[:3, 3] + m) for m in moves])
+        poses = np.stack([poses[0], *_r1_translations(poses[0])])
     planned = poses
     if not eye_in_hand:  # the same camera-board poses, the board on the tool, the camera fixed
         T_cb = [inv_T(T @ R1_T_TOOL_CAM) @ T_base_board for T in poses]
@@ -695,6 +681,71 @@ def r1_real_arm(
     return r1_scenario(
         target, frames, eye_in_hand, options, sigma_px, T_base_board, T_base_tool_true=true
     )
+
+
+def _r1_translations(T_base_tool: np.ndarray) -> list[np.ndarray]:
+    """12 pure translations of ``T_base_tool`` by 50 and -70 mm in 6 non-coplanar directions of
+    R1's camera axes."""
+    R_base_cam = (T_base_tool @ R1_T_TOOL_CAM)[:3, :3]
+    dirs = np.array(
+        [
+            [1.0, 0.0, -0.6],
+            [0.0, 1.0, 0.7],
+            [-0.7, -0.6, 1.0],
+            [0.6, -0.8, -0.9],
+            [0.9, 0.5, 0.4],
+            [-0.5, 0.9, -0.5],
+        ]
+    )
+    moves = [R_base_cam @ (d / np.linalg.norm(d)) * s for d in dirs for s in (0.05, -0.07)]
+    return [T_from_Rt(T_base_tool[:3, :3], T_base_tool[:3, 3] + m) for m in moves]
+
+
+def symmetric_board_r1(
+    rng: np.random.Generator,
+    sigma_px: float = 0.15,
+    robot_noise_m: float = 5e-5,
+    robot_noise_deg: float = 0.005,
+    rolled: Sequence[int] = (),
+) -> Scenario:
+    """R1 mirrored (:func:`r1` with ``eye_in_hand`` False) with an 8 x 6-square chessboard of 30 mm
+    on the tool, a board that looks the same after a half turn: R1's 20 frames and 13 more at its
+    first orientation (its pure translations, :func:`_r1_translations`), 33 frames. The frames
+    ``rolled`` have the tool turned so that the board turns 150 deg about its centre in view."""
+    target = Target.chessboard(8, 6, 0.030)
+    c = target.points_m.mean(axis=0)
+    roll = T_from_Rt(Rz(np.radians(150.0)), c - Rz(np.radians(150.0)) @ c)
+    T_base_board, poses = r1_poses()
+    frames = []
+    for k, T_bt in enumerate([*poses, *_r1_translations(poses[0]), poses[0]]):
+        T_cam_board = (
+            inv_T(T_bt @ R1_T_TOOL_CAM) @ T_base_board @ (roll if k in rolled else np.eye(4))
+        )
+        T_base_tool = _tool_pose(T_cam_board, T_base_board, False)
+        det = _r1_detection(T_cam_board, target, sigma_px, rng)
+        measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
+        frames.append(Frame(k, {"cam": det}, T_base_tool=measured))
+    return r1_scenario(target, frames, False, None, sigma_px, T_base_board)
+
+
+#: Half of R1's camera (640 x 400): recorded datasets render faster and keep R1's geometry
+R1_HALF = replace(single_camera(), width=640, height=400, K=K_matrix(440.0, 440.0, 319.75, 199.75))
+
+
+def recorded_dataset(directory: str | Path, s: Scenario, rng: np.random.Generator) -> np.ndarray:
+    """Scenario ``s``'s frames as another tool records them: each view of its target at the
+    frame's ``T_base_tool`` (its truth's hand-eye and target pose) rendered by ``R1_HALF`` as
+    ``1.png``, ``2.png``, ... in ``directory``. Returns the ``T_base_tool`` (F, 4, 4) of the
+    images, metres, for writing in any convention."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    T = np.stack([f.T_base_tool for f in s.problem.frames])
+    X, Y = s.truth.X[0], s.truth.Y  # T_cam_tool, T_base_board; eye-to-hand T_cam_base, T_tool_board
+    for k, T_bt in enumerate(T):
+        T_cam_board = X @ (inv_T(T_bt) if s.problem.mount == "eye_in_hand" else T_bt) @ Y
+        img = render_target(s.problem.target, R1_HALF, T_cam_board, rng)
+        cv2.imwrite(str(directory / f"{k + 1}.png"), img)
+    return T
 
 
 def real_board_of(target: Target, rng: np.random.Generator) -> tuple[Target, Target, np.ndarray]:
@@ -1133,7 +1184,8 @@ def one_tag_session(rng: np.random.Generator, geometry: np.ndarray) -> Scenario:
         *ONE_TAG_ROBOT_NOISE,
         eye_in_hand=False,
         options=ModelOptions(
-            distortion=NO_DISTORTION, robot_noise_m=ONE_TAG_ROBOT_NOISE[0],
+            distortion=NO_DISTORTION,
+            robot_noise_m=ONE_TAG_ROBOT_NOISE[0],
             robot_noise_deg=ONE_TAG_ROBOT_NOISE[1],
         ),
         target=square_tag(0.08),

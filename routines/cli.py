@@ -28,6 +28,7 @@ EXIT_INTERRUPTED = 130
 SUBCOMMANDS: dict[str, str] = {
     "run": "slidecal.routines.run",
     "solve": "slidecal.routines.solve",
+    "import": "slidecal.routines.importer",
     "check": "slidecal.routines.ops.check",
     "rollback": "slidecal.routines.ops.install",
     "plan": "slidecal.routines.planner",

@@ -79,6 +79,7 @@ SESSION_KEYS: dict[str, tuple[str, ...]] = {
         "installed",
         "simulation",
         "detections_file",
+        "import",  # slidecal import: the pose convention chosen and its evidence
         "frames",
         "events",
     ),

@@ -16,6 +16,7 @@ from typing import ClassVar
 import cv2
 import numpy as np
 
+from slidecal.solver.detect import half_turn_symmetric, half_turn_T, half_turns
 from slidecal.solver.free_pose import FreePoseFit, free_pose_fit, model_starts, session_images
 from slidecal.solver.geometry import (
     R_from_quat_wxyz,
@@ -328,9 +329,9 @@ def pairing_check(problem: CalibrationProblem) -> str | None:
 def _pairing(problem: CalibrationProblem, frames: list[int], T_cam: list[np.ndarray]) -> str | None:
     """:func:`pairing_check` on the images-alone poses ``T_cam`` of ``frames``."""
     T_tool = np.stack([f.T_base_tool for f in problem.frames])
-    seen = [_moving_point(T, problem.mount) for T in T_cam]
 
-    def scores(shift: int) -> dict[tuple[int, int], float]:
+    def scores(shift: int, T_cam: list[np.ndarray] = T_cam) -> dict[tuple[int, int], float]:
+        seen = [_moving_point(T, problem.mount) for T in T_cam]
         rot: dict[tuple[int, int], float] = {}
         length: dict[tuple[int, int], float] = {}
         for a in range(len(frames)):
@@ -368,6 +369,21 @@ def _pairing(problem: CalibrationProblem, frames: list[int], T_cam: list[np.ndar
     if overall <= 1.0 and not bad:
         return None
     wrong = float(np.mean(np.array(list(recorded.values())) > 1.0))
+    if half_turn_symmetric(problem.target):  # a board read the other way round, not a pairing
+        turned = half_turns([T[:3, :3] for T in T_cam], [T_tool[k, :3, :3] for k in frames])[0]
+        H = half_turn_T(problem.target)
+        again = [T @ H if turned[a] else T for a, T in enumerate(T_cam)]
+        sc = np.array(list(scores(0, again).values()))
+        if turned.any() and np.median(sc) <= 1.0 and np.mean(sc > 1.0) < wrong / 3:
+            sx, sy = problem.target.squares_x, problem.target.squares_y
+            return (
+                f"frames {[int(problem.frames[frames[a]].id) for a in np.flatnonzero(turned)]}: "
+                f"{what} until their board is turned by half a turn: the {sx} x {sy}-square "
+                "chessboard looks the same after a half turn and its corner 0 was read at the "
+                "opposite corner there, not a pairing fault; slidecal's solve turns such frames "
+                "back by the robot's rotations, or use a board with one odd and one even count "
+                "of squares"
+            )
     shifted = []  # (fraction of pairs that disagree, shift) of the shifts that fit
     for shift in PAIRING_SHIFTS:
         sc = np.array(list(scores(shift).values()))

@@ -34,6 +34,7 @@ from slidecal.solver.adequacy import (
     unchecked_scale_note,
 )
 from slidecal.solver.degeneracy import check_configuration, n_directions
+from slidecal.solver.detect import resolve_half_turns
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.free_pose import FreePoseFit, pnp_from
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, project_to_SO3
@@ -626,7 +627,9 @@ def calibrate(
     (``adequacy.image_outlier``), is left out and the session solved again, with a message; at
     most one frame in ten (at least one).
     """
-    return _pipeline(problem, joint_homographies, focal_sweep, ())
+    problem, turned = resolve_half_turns(problem)  # a symmetric board read the right way round
+    res = _pipeline(problem, joint_homographies, focal_sweep, ())
+    return replace(res, messages=(*turned, *res.messages)) if turned else res
 
 
 @dataclass

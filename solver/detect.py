@@ -15,7 +15,9 @@ are refined at full resolution by ``cornerSubPix`` in a window of 0.3 times the 
 nearest grid neighbour (3 to 25 px half-width). The whole board must be in view. Corner order under
 the board's symmetries: (1) the board is seen from its printed side (``x`` cross ``y`` > 0 in the
 image, v down); (2) the square next to corner 0 is black; (3) a board still symmetric (``squares_x +
-squares_y`` even) takes the corner 0 that makes its +x axis point most to the right.
+squares_y`` even: it looks the same after a half turn, :func:`half_turn_symmetric`) takes the
+corner 0 that makes its +x axis point most to the right. Rule 3 is a guess, so such a detection is
+marked ``ambiguous``; :func:`resolve_half_turns` decides each frame's half turn before a solve.
 
 AprilTag and AprilGrid: ``cv2.aruco.ArucoDetector`` with the target's family, corners refined by
 ``cornerSubPix`` (``CORNER_REFINE_APRILTAG`` is biased, ``docs/results/DETECTION.md``); a lone tag's
@@ -29,14 +31,15 @@ grossly wrong corners and lists them in ``rejected_ids``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 
 import cv2
 import numpy as np
 
-from slidecal.solver.errors import InputError
-from slidecal.solver.problem import Detection, Target
+from slidecal.solver.errors import DegenerateError, InputError
+from slidecal.solver.geometry import R_from_rvec, Rz, T_from_Rt
+from slidecal.solver.problem import CalibrationProblem, Detection, Target
 
 # Local homography check: a corner farther than this from its grid neighbours' homography is
 # rejected (a lens departs from one by about a pixel; a gross error is a marker margin or more).
@@ -58,6 +61,7 @@ class DetectionReport:
     ``path``: the detector step that found the corners ("" when none did). ``blur_sigma_px``:
     edge width of the image (std of the Gaussian blur that explains its steepest edges).
     ``mean_grey``: mean grey level (0..255); ``saturated_fraction``: fraction of pixels at 255.
+    ``ambiguous``: the board looks the same after a half turn, so corner 0 was guessed (rule 3).
     """
 
     detection: Detection
@@ -70,6 +74,7 @@ class DetectionReport:
     blur_sigma_px: float = float("nan")
     mean_grey: float = float("nan")
     saturated_fraction: float = float("nan")
+    ambiguous: bool = False
 
     @property
     def diagnosis(self) -> str:
@@ -1070,4 +1075,160 @@ def _report(
         blur_sigma_px=blur,
         mean_grey=mean,
         saturated_fraction=saturated,
+        ambiguous=bool(len(ids)) and half_turn_symmetric(target),
     )
+
+
+# -- boards that look the same after a half turn -------------------------------------------------
+#: A frame's half turn is decided when the other choice misses the robot's rotation between frames
+#: (without a robot: the other frames' board rotations) by this much more, median over its pairs
+#: (images-alone board poses are good to a degree or two; a wrong turn misses by tens of degrees).
+HALF_TURN_MARGIN_DEG = 20.0
+
+
+def half_turn_symmetric(target: Target) -> bool:
+    """Whether ``target`` looks the same after a half turn about its centre: a chessboard with
+    both square counts even or both odd (its corner 0 cannot be read from one image)."""
+    return target.kind == "chessboard" and (target.squares_x + target.squares_y) % 2 == 0
+
+
+def half_turned(detection: Detection, target: Target) -> Detection:
+    """``detection`` with the board's corner ids read after a half turn (corner ``i`` of the
+    row-major grid becomes ``n - 1 - i``)."""
+    return Detection(len(target.points_m) - 1 - detection.ids, detection.px, detection.reason)
+
+
+def half_turn_T(target: Target) -> np.ndarray:
+    """The board transform (4, 4) of a half turn about ``target``'s centre: board <- turned
+    board (a pose ``T_cam_board`` read the other way round is ``T_cam_board @ half_turn_T``)."""
+    c = target.points_m.mean(axis=0)
+    return T_from_Rt(Rz(np.pi), np.array([2.0 * c[0], 2.0 * c[1], 0.0]))
+
+
+def board_poses(problem: CalibrationProblem, cam: str) -> dict[int, np.ndarray]:
+    """``T_cam_board`` (4, 4) of each frame (index) where ``cam`` saw at least 4 corners, from the
+    images alone: OpenCV's pinhole calibration from a guess (f the image's long side, the
+    principal point at its centre; one orientation's frames then keep equal rotations), then
+    with the principal point and distortion free where that fits better; each frame's own PnP
+    with the guess where OpenCV fails. A half turn changes no frame's intrinsics."""
+    w, h = problem.camera(cam).width, problem.camera(cam).height
+    K = np.array([[max(w, h), 0.0, (w - 1) / 2], [0.0, max(w, h), (h - 1) / 2], [0.0, 0.0, 1.0]])
+    idx, obj, img = [], [], []
+    for k, f in enumerate(problem.frames):
+        d = f.detections.get(cam)
+        if d is not None and len(d.ids) >= 4:
+            idx.append(k)
+            obj.append(problem.target.points_m[d.ids].astype(np.float32))
+            img.append(d.px.reshape(-1, 1, 2).astype(np.float32))
+    flags = (
+        cv2.CALIB_USE_INTRINSIC_GUESS
+        | cv2.CALIB_FIX_PRINCIPAL_POINT
+        | cv2.CALIB_FIX_ASPECT_RATIO
+        | cv2.CALIB_ZERO_TANGENT_DIST
+        | cv2.CALIB_FIX_K1
+        | cv2.CALIB_FIX_K2
+        | cv2.CALIB_FIX_K3
+    )
+    try:
+        rms, K, _, rvecs, tvecs = cv2.calibrateCamera(obj, img, (w, h), K, np.zeros(5), flags=flags)
+        free = cv2.calibrateCamera(
+            obj, img, (w, h), K, np.zeros(5), flags=cv2.CALIB_USE_INTRINSIC_GUESS
+        )
+        f = free[1][0, 0]  # a free focal length far from the guess: degenerate views
+        if np.isfinite(free[0]) and free[0] < rms and 0.1 * max(w, h) < f < 10.0 * max(w, h):
+            rvecs, tvecs = free[3], free[4]
+    except cv2.error:
+        pnp = [
+            cv2.solvePnP(o, i, K, None, flags=cv2.SOLVEPNP_IPPE)
+            for o, i in zip(obj, img, strict=True)
+        ]
+        rvecs, tvecs = [r[1] for r in pnp], [r[2] for r in pnp]
+    return {
+        k: T_from_Rt(R_from_rvec(np.reshape(r, 3)), np.reshape(t, 3))
+        for k, r, t in zip(idx, rvecs, tvecs, strict=True)
+    }
+
+
+def angles_between_deg(R: np.ndarray | list[np.ndarray], turned: bool = False) -> np.ndarray:
+    """(n, n) rotation angles (deg) of ``R_i' R_j`` for ``R`` (n, 3, 3), of ``R_i' R_j Rz(pi)``
+    when ``turned`` (good to about 1e-6 deg near 0)."""
+    rel = np.einsum("iba,jbc->ijac", np.asarray(R), np.asarray(R))
+    trace = (-1.0 if turned else 1.0) * (rel[..., 0, 0] + rel[..., 1, 1]) + rel[..., 2, 2]
+    return np.degrees(np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def half_turns(
+    R_cam_board: list[np.ndarray], R_base_tool: list[np.ndarray] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Which frames' board poses ``R_cam_board`` (n, 3, 3, images alone) are turned by half a
+    turn about the board normal: the choice under which the angle of the camera's rotation
+    between every two frames matches the robot's (``R_base_tool``, any mount: an angle does not
+    depend on the hand-eye), or without a robot is smallest (continuity with the other frames).
+    The fewer turns of the two equivalent answers. Returns (turned (n,) bool, margin (n,) deg:
+    how much worse the other choice fits, median over the frame's pairs)."""
+    n = len(R_cam_board)
+    ref = 0.0 if R_base_tool is None else angles_between_deg(R_base_tool)
+    cost = np.abs(np.stack([angles_between_deg(R_cam_board, t) for t in (False, True)]) - ref)
+    others = ~np.eye(n, dtype=bool)
+
+    def fit(i: int, s: np.ndarray) -> np.ndarray:  # median cost of frame i unturned, turned
+        return np.array([np.median(cost[t ^ s, i, np.arange(n)][others[i]]) for t in (0, 1)])
+
+    s = np.zeros(n, dtype=int)
+    for _ in range(n):  # one frame at a time to the better choice, until none changes
+        changed = False
+        for i in range(n):
+            best = int(np.argmin(fit(i, s)))
+            changed |= best != s[i]
+            s[i] = best
+        if not changed:
+            break
+    if 2 * s.sum() > n:
+        s = 1 - s
+    margin = np.array([abs(float(np.diff(fit(i, s))[0])) for i in range(n)])
+    return s.astype(bool), margin
+
+
+def resolve_half_turns(problem: CalibrationProblem) -> tuple[CalibrationProblem, tuple[str, ...]]:
+    """``problem`` with each frame of a board symmetric under a half turn read the right way
+    round (:func:`half_turns`, by the robot's rotations, else by continuity), and a line per
+    camera naming the frames turned. A frame neither choice fits better by
+    ``HALF_TURN_MARGIN_DEG`` is refused (DegenerateError) when its turn matters: with robot poses,
+    board-frame motions or a rig (one camera's frames alone each have their own board pose)."""
+    target = problem.target
+    if not half_turn_symmetric(target) or len(problem.frames) < 2:
+        return problem, ()
+    robot = problem.knowledge == "robot"
+    matters = problem.knowledge != "none" or len(problem.cameras) > 1
+    frames, notes = list(problem.frames), []
+    for cam in problem.cameras:
+        R = {k: T[:3, :3] for k, T in board_poses(problem, cam.name).items()}
+        idx = list(R)
+        if len(idx) < 2:
+            continue
+        tools = [problem.frames[k].T_base_tool[:3, :3] for k in idx] if robot else None
+        turned, margin = half_turns([R[k] for k in idx], tools)
+        sure = margin >= HALF_TURN_MARGIN_DEG
+        unsure = [problem.frames[idx[a]].id for a in np.flatnonzero(~sure)]
+        if unsure and matters:
+            sx, sy = target.squares_x, target.squares_y
+            raise DegenerateError(
+                f"frames {unsure} {cam.name!r}: the {sx} x {sy}-square chessboard looks the same "
+                "after a half turn, and neither way round fits "
+                f"{'the robot rotations' if robot else 'the other frames'} better by "
+                f"{HALF_TURN_MARGIN_DEG:.0f} deg: leave those frames out, or use a board with "
+                f"one odd and one even count of squares (e.g. {sx + 1} x {sy})"
+            )
+        done = [idx[a] for a in np.flatnonzero(turned & sure)]
+        for k in done:
+            dets = dict(frames[k].detections)
+            dets[cam.name] = half_turned(dets[cam.name], target)
+            frames[k] = replace(frames[k], detections=dets)
+        if done:
+            notes.append(
+                f"frames {[problem.frames[k].id for k in done]} {cam.name!r}: the chessboard looks "
+                "the same after a half turn and was read the other way round there; turned back, "
+                f"as {'the robot rotations between frames' if robot else 'the other frames'} "
+                f"tell (the other way fits worse by {margin[turned & sure].min():.0f} deg or more)"
+            )
+    return replace(problem, frames=tuple(frames)), tuple(notes)
