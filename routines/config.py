@@ -217,6 +217,9 @@ class PlanSettings:
     #: the arm's accuracy (mm, deg per axis) to predict for; None: ``arm_noise``'s default
     #: (a run's extension sets what it learned)
     robot_noise: tuple[float, float] | None = None
+    #: (mm, deg) of each of the arm's error sources a run's solve learned
+    #: (``RobotAccuracy.levels``); None: every source at ``robot_noise``
+    robot_levels: Mapping[str, tuple[float, float]] | None = None
 
 
 def _number_list(f: Fields, key: str, default: Sequence[float]) -> tuple[float, ...]:

@@ -158,6 +158,13 @@ def arm_noise(cfg: CellConfig, s: PlanSettings) -> tuple[float, float]:
     return max(o.robot_noise_m * 1000.0, mm), max(o.robot_noise_deg, deg)
 
 
+def _levels(s: PlanSettings) -> dict[str, tuple[float, float]] | None:
+    """``s.robot_levels`` as ``planned_covariance`` takes them (rad, m), None when not set."""
+    if s.robot_levels is None:
+        return None
+    return {k: (np.radians(deg), mm / 1000.0) for k, (mm, deg) in s.robot_levels.items()}
+
+
 def nominal_problem(
     cfg: CellConfig, s: PlanSettings, T_base_tool: np.ndarray
 ) -> CalibrationProblem:
@@ -199,7 +206,7 @@ def _information(cfg: CellConfig, s: PlanSettings, T_base_tool: np.ndarray) -> F
     of any plan add up); every frame must see the target."""
     problem = nominal_problem(cfg, s, T_base_tool)
     state = nominal_state(cfg, s, len(T_base_tool))
-    info = planned_covariance(problem, state, s.corner_noise_px, per_frame=True)
+    info = planned_covariance(problem, state, s.corner_noise_px, levels=_levels(s), per_frame=True)
     assert isinstance(info, FrameInformation)
     return info
 
@@ -531,7 +538,8 @@ def predict_std(
         raise DegenerateError(
             "a planned frame does not see the target; move the frame or the target into view"
         )
-    named = planned_covariance(problem, nominal_state(cfg, s, len(T)), s.corner_noise_px)
+    state = nominal_state(cfg, s, len(T))
+    named = planned_covariance(problem, state, s.corner_noise_px, levels=_levels(s))
     assert isinstance(named, NamedCovariance)
     d = np.diag(named.matrix)
     if not np.all(np.isfinite(named.matrix)) or np.any(d <= 0):
@@ -732,23 +740,25 @@ def extend_plan(
     robot_noise_mm: float,
     robot_noise_deg: float,
     max_duration_s: float,
+    levels: Mapping[str, tuple[float, float]] | None = None,
 ) -> PlanReport:
     """``plan`` with more orientation groups after it, for a run whose recorded frames missed
     the accuracy its gate asks for: the greedy search of :func:`make_plan` with the frames of
-    ``plan`` already counted, the noise the data showed (``corner_noise_px``, the robot's
-    accuracy ``robot_noise_mm`` / ``robot_noise_deg`` per axis) instead of the cell's prior, the
-    ``goal`` to meet, and orientations not visited yet (a systematic arm error repeats at a
-    repeated pose, so going back adds less than the model would credit). ``achieved``: the
-    one-sigma the recorded frames gave, per goal key (as :class:`PlanGoal`'s): where it exceeds
-    the prediction for those frames (the arm's error is partly systematic, which the
-    prediction's independent per-frame errors understate), the goal is tightened by that
-    factor. The new groups take at most ``max_duration_s`` of robot time. Raises
-    ``InputError`` (with the reason) when no extension within that time is predicted to meet
-    the goal.
+    ``plan`` already counted, the noise the data showed instead of the cell's prior
+    (``corner_noise_px``; the robot's accuracy ``robot_noise_mm`` / ``robot_noise_deg`` per axis
+    and ``levels``, the (mm, deg) of each of its sources as the solve learned them,
+    ``RobotAccuracy.levels``; None: every source at the accuracy), the ``goal`` to meet, and
+    orientations not visited yet (a systematic arm error repeats at a repeated pose, so going
+    back adds less than the model would credit). ``achieved``: the one-sigma the recorded frames
+    gave, per goal key (as :class:`PlanGoal`'s): where it exceeds the prediction for those
+    frames (what the prediction does not model: the solve's levels are estimates, its errors
+    go together), the goal is tightened by that factor. The new groups take at most
+    ``max_duration_s`` of robot time. Raises ``InputError`` (with the reason) when no extension
+    within that time is predicted to meet the goal.
     """
     where = f"{cfg.source}: plan (extension)"
     noise = (robot_noise_mm, robot_noise_deg)
-    s = replace(cfg.plan, corner_noise_px=corner_noise_px, robot_noise=noise)
+    s = replace(cfg.plan, corner_noise_px=corner_noise_px, robot_noise=noise, robot_levels=levels)
     try:
         before = goal_ratios(predict_std(plan, cfg, s), cfg, PlanGoal(1.0, 1.0, 1.0))
     except DegenerateError:

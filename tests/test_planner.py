@@ -93,6 +93,28 @@ def test_prediction_carries_the_arms_shared_error(default_report):
     assert full.std_rot_deg("T_tool_cam") > 1.3 * per_pose.std_rot_deg("T_tool_cam")
 
 
+def test_prediction_takes_each_source_at_the_level_given(default_report):
+    """An extension predicts with the levels the first part's solve learned, per source: every
+    source at the arm's level is the cell's prediction; the arm's error all per pose (the shared
+    sources at the floor) is the bound of independent per-pose errors."""
+    cfg, rep = default_report
+    s = cfg.plan
+    T = np.array([T for _, T in rep.plan.poses])
+    problem = nominal_problem(cfg, s, T)
+    truth = nominal_state(cfg, s, len(T))
+    o = problem.options
+    sig = (np.radians(o.robot_noise_deg), o.robot_noise_m)
+    full = planned_covariance(problem, truth, s.corner_noise_px)
+    each = dict.fromkeys(("pose", "group", "trend", "field"), sig)
+    same = planned_covariance(problem, truth, s.corner_noise_px, levels=each)
+    np.testing.assert_allclose(same.matrix, full.matrix, rtol=1e-12)
+    pose = planned_covariance(problem, truth, s.corner_noise_px, levels={"pose": sig})
+    per_pose = predicted_covariance(problem, truth, s.corner_noise_px)
+    for n in ("cam.fx", "T_tool_cam.rx", "T_tool_cam.tz"):
+        assert pose.std(n) == pytest.approx(per_pose.std(n), rel=1e-4)
+    assert pose.std_t_mm("T_tool_cam") < 0.8 * full.std_t_mm("T_tool_cam")
+
+
 @pytest.mark.slow
 def test_reported_std_is_the_predicted_one(default_report, tmp_path):
     """On the default cell the std a run reports is the plan's prediction (issue 35: the
