@@ -155,9 +155,15 @@ PLAN_KEYS = (
 GOAL_KEYS = ("fx_rel_std", "hand_eye_rot_std_deg", "hand_eye_t_std_mm")
 #: Largest tilt of the view against the board normal: the detector is tested to 40 deg.
 MAX_TILT_DEG = 40.0
-#: Corner noise assumed for the rendered simulated camera and for a real camera (docs/PLANNER.md).
+#: Corner noise assumed for the rendered simulated camera, with photograph-like imaging (what
+#: the default cell's runs measure, docs/results/PLANNER.md) and for a real camera; a run that
+#: misses its limits extends its plan with the noise it measured (docs/UNATTENDED.md).
 SIM_CORNER_NOISE_PX = 0.03
+PHOTO_CORNER_NOISE_PX = 0.043
 REAL_CORNER_NOISE_PX = 0.1
+#: The arm's accuracy (mm, deg per axis) a plan is predicted for unless the cell states more: the
+#: level a solve learns of an industrial arm over a calibration's poses (docs/results/REALITY.md).
+PLAN_ARM_NOISE = (0.15, 0.025)
 #: Keys of the ``install:`` section (:class:`InstallSettings`).
 INSTALL_KEYS = ("dir", "accept_drift", "retries")
 #: ``cameras:`` keys with a field of their own in :class:`CellConfig` (not in ``rig_options``).
@@ -178,7 +184,7 @@ class PlanGoal:
     covariance traces) and a time budget."""
 
     fx_rel_std: float | None = 5e-4
-    hand_eye_rot_std_deg: float | None = 0.03
+    hand_eye_rot_std_deg: float | None = 0.1
     hand_eye_t_std_mm: float | None = None
     max_duration_s: float = 60.0
 
@@ -208,6 +214,12 @@ class PlanSettings:
     max_groups: int
     max_frames_per_group: int
     extend_max_s: float
+    #: the arm's accuracy (mm, deg per axis) to predict for; None: ``arm_noise``'s default
+    #: (a run's extension sets what it learned)
+    robot_noise: tuple[float, float] | None = None
+    #: (mm, deg) of each of the arm's error sources a run's solve learned
+    #: (``RobotAccuracy.levels``); None: every source at ``robot_noise``
+    robot_levels: Mapping[str, tuple[float, float]] | None = None
 
 
 def _number_list(f: Fields, key: str, default: Sequence[float]) -> tuple[float, ...]:
@@ -228,7 +240,7 @@ def _plan(
     """The ``plan:`` section (``spec``: the reference camera); errors name the field."""
     f.only(PLAN_KEYS)
     gf = f.section("goal", GOAL_KEYS)
-    defaults = {} if gf.data else {"fx_rel_std": 5e-4, "hand_eye_rot_std_deg": 0.03}
+    defaults = {} if gf.data else {"fx_rel_std": 5e-4, "hand_eye_rot_std_deg": 0.1}
     vals = {k: gf.number(k, positive=True) if gf.has(k) else defaults.get(k) for k in GOAL_KEYS}
     goal = PlanGoal(**vals, max_duration_s=f.number("max_duration_s", 60.0, positive=True))
     if all(v is None for v in vals.values()):
@@ -251,13 +263,12 @@ def _plan(
     depth = f.array("depth_m", (2,), [0.4 * min(standoffs), 1.8 * max(standoffs)])
     if not 0 < depth[0] < depth[1]:
         raise f.error("depth_m", "must be [near, far] with 0 < near < far (metres)")
-    noise = f.number(
-        "corner_noise_px",
-        SIM_CORNER_NOISE_PX if sim is not None else REAL_CORNER_NOISE_PX,
-        positive=True,
-    )
-    fx = _nominal_fx(f, spec)
     cam = None if sim is None else next((c for c in sim.cameras if c.name == spec.name), None)
+    noise = REAL_CORNER_NOISE_PX if sim is None else SIM_CORNER_NOISE_PX
+    if cam is not None and cam.photo is not None:
+        noise = PHOTO_CORNER_NOISE_PX
+    noise = f.number("corner_noise_px", noise, positive=True)
+    fx = _nominal_fx(f, spec)
     if fx is not None:
         w, h = spec.width, spec.height
         K = np.array([[fx, 0.0, (w - 1) / 2.0], [0.0, fx, (h - 1) / 2.0], [0.0, 0.0, 1.0]])

@@ -19,40 +19,20 @@ time budget), choose orientation groups (tilts) and translations per group such 
 Method: candidate groups look at the board centre from the standoff, tilted by ``tilts_deg``
 about in-plane axes at ``azimuths_deg``; candidate frames of a group are the group's pose
 displaced (camera axes) along 18 directions, each with a component along the viewing axis
-(translations parallel to the board are degenerate, docs/METHOD.md Sec. 7), by ``step_mm``. Each
-candidate frame's Fisher information on the shared parameters (intrinsics, distortion, hand-eye,
-target pose) is computed once, with its own robot-pose correction marginalised out (Schur
-complement; the corrections are per frame, so a plan's information is the sum over its frames).
-A greedy search then adds the frame or the new group (two frames) that most reduces the goal's
-predicted variance per second of robot time, until the goal and the minimum structure
-(``min_groups`` groups of ``min_frames_per_group`` frames) are met. The chosen plan is checked by
-a dry run of the simulated arm and its prediction recomputed with the solver's own
-:func:`~slidecal.solver.refine.fisher_covariance`.
+(translations parallel to the board are degenerate, docs/METHOD.md Sec. 7), by ``step_mm``. The
+prediction is the solver's (:func:`slidecal.solver.uncertainty.planned_covariance`) for the
+problem a run would give it (:func:`nominal_problem`: exact corners, the arm at
+:func:`arm_noise`). Each candidate frame's information is computed once, with its own pose
+correction marginalised out, so a plan's is the sum over its frames; a greedy search adds the
+frame or the new group (two frames) that most reduces the goal's predicted variance per second
+of robot time, until the goal and the minimum structure (``min_groups`` groups of
+``min_frames_per_group`` frames) are met. The chosen plan is checked by a dry run of the
+simulated arm and predicted whole (the arm's error shared by a group's frames included); where
+that misses the goal, the search runs again for a goal tightened by the factor.
 
-The ``plan:`` block of the cell file (every key optional)::
-
-    plan:
-      goal: {fx_rel_std: 5.0e-4, hand_eye_rot_std_deg: 0.03, hand_eye_t_std_mm: null}
-      max_duration_s: 60
-      tilts_deg: [15, 25, 35]          # candidate tilts of the view against the board normal
-      azimuths_deg: [0, 45, ..., 315]  # candidate tilt axes (in the board plane)
-      standoff_factors: [1.0]          # candidate standoffs, times approximate.standoff_m
-      step_mm: [40, 80]                # candidate translation lengths
-      margin_px: 20                    # every corner this far inside the image
-      depth_m: [0.2, 1.5]              # usable corner depth (default 0.4 .. 1.8 x standoff)
-      corner_noise_px: 0.03            # expected corner noise (default: 0.03 simulated, 0.1 real)
-      capture_s: 0.05                  # per frame, on top of robot.settle_s
-      fx_px: 880                       # nominal focal length (or hfov_deg); simulated cells:
-                                       # the simulated camera's data sheet values by default
-      min_groups: 3                    # two leave the hand-eye translation unobservable
-      min_frames_per_group: 3
-      max_groups: 6
-      max_frames_per_group: 8
-      extend_max_s: 60                 # robot time a run may add when its result misses the
-                                       # gate's one-sigma limits (0: never; routines/run.py)
-
-Only the reference camera is planned for (its
-visibility and its Fisher information); the other cameras of a rig are not checked.
+The ``plan:`` block of the cell file (every key optional) is described in docs/FORMATS.md.
+Only the reference camera is planned for (its visibility and its information); the other
+cameras of a rig are not checked.
 """
 
 from __future__ import annotations
@@ -68,21 +48,27 @@ import numpy as np
 from slidecal.drivers import ur_kinematics as urk
 from slidecal.mocks.cell import simulated_arm_dict
 from slidecal.mocks.robot import SimulatedUR, trapezoid_time_s
-from slidecal.routines.config import GOAL_KEYS, CellConfig, PlanGoal, PlanSettings, load_config
+from slidecal.routines.config import (
+    GOAL_KEYS,
+    PLAN_ARM_NOISE,
+    CellConfig,
+    PlanGoal,
+    PlanSettings,
+    load_config,
+)
 from slidecal.routines.plan import Plan, tool_pose, write_plan
 from slidecal.solver.camera import project
 from slidecal.solver.degeneracy import check_configuration
 from slidecal.solver.errors import DegenerateError, HardwareFault, InputError
 from slidecal.solver.geometry import (
     R_from_rvec,
-    Rz,
     T_from_Rt,
     inv_T,
     rotation_angle_deg,
     rvec_from_R,
 )
 from slidecal.solver.linear import LinearGroup
-from slidecal.solver.model import ModelState, Structure, build_structure
+from slidecal.solver.model import ModelState
 from slidecal.solver.problem import (
     INTRINSIC_NAMES,
     CalibrationProblem,
@@ -91,8 +77,8 @@ from slidecal.solver.problem import (
     Frame,
     mount_names,
 )
-from slidecal.solver.uncertainty import FrameInformation, predicted_covariance
-from slidecal.solver.uncertainty import frame_information as named_frame_information
+from slidecal.solver.result import NamedCovariance
+from slidecal.solver.uncertainty import FrameInformation, planned_covariance
 
 help = "choose the shortest robot routine predicted to meet the accuracy goal (writes plan.yaml)"
 
@@ -119,7 +105,7 @@ def group_R_board_cam(tilt_deg: float, azimuth_deg: float) -> np.ndarray:
     the in-plane axis at ``azimuth_deg`` (the geometry of ``plan.camera_poses_board``)."""
     phi = np.radians(azimuth_deg)
     axis = np.array([np.cos(phi), np.sin(phi), 0.0])
-    return R_from_rvec(axis * np.radians(tilt_deg)) @ Rz(0.0)
+    return R_from_rvec(axis * np.radians(tilt_deg))
 
 
 def group_T_cam_board(
@@ -137,36 +123,6 @@ def group_T_cam_board(
     return out
 
 
-def view_check(
-    T_cam_board: np.ndarray,
-    points_board_m: np.ndarray,
-    K: np.ndarray,
-    dist: np.ndarray,
-    size: tuple[int, int],
-    margin_px: float,
-    depth_m: tuple[float, float],
-) -> str | None:
-    """Why the target is not fully in view at ``T_cam_board`` (4, 4), or None when it is.
-
-    ``points_board_m`` (N, 3) board frame, metres; ``K`` (3, 3) px; ``dist`` (5,); ``size``
-    (width, height) px. Every corner must be at a depth in ``depth_m`` and at least
-    ``margin_px`` inside the image.
-    """
-    P = points_board_m @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
-    z = P[:, 2]
-    if np.any(z < depth_m[0]) or np.any(z > depth_m[1]):
-        return (
-            f"corner depths {z.min():.2f}..{z.max():.2f} m leave the usable range "
-            f"{depth_m[0]:.2f}..{depth_m[1]:.2f} m"
-        )
-    px = project(K, dist, P)
-    w, h = size
-    lo, hi = margin_px - 0.5, np.array([w, h]) - 0.5 - margin_px
-    if np.any(px < lo) or np.any(px > hi):
-        return f"the target leaves the image (margin {margin_px:g} px)"
-    return None
-
-
 def move_time_s(T0: np.ndarray, T1: np.ndarray, speed_mps: float, accel_mps2: float) -> float:
     """Duration of a linear move ``T0 -> T1`` ((4, 4) each, metres): the longer of the
     translation's and the rotation's trapezoidal profiles (as :class:`SimulatedUR` moves)."""
@@ -179,159 +135,95 @@ def move_time_s(T0: np.ndarray, T1: np.ndarray, speed_mps: float, accel_mps2: fl
 
 
 # -- the predicted model ----------------------------------------------------------------------
-@dataclass(frozen=True)
-class _Nominal:
-    """The nominal cell the prediction is made for."""
+def nominal_T_cam_board(cfg: CellConfig, T_base_tool: np.ndarray) -> np.ndarray:
+    """The nominal ``T_cam_board`` (4, 4) of the reference camera at a tool pose (4, 4)."""
+    X = inv_T(cfg.approx_T_hand_eye)  # T_cam_tool (eye-in-hand) or T_cam_base (eye-to-hand)
+    if cfg.mount == "eye_in_hand":
+        return X @ inv_T(T_base_tool) @ cfg.approx_T_target
+    return X @ T_base_tool @ cfg.approx_T_target
 
-    cfg: CellConfig
-    spec: CameraSpec
-    K: np.ndarray
-    dist: np.ndarray
-    X: np.ndarray  # T_cam_tool (eye-in-hand) or T_cam_base (eye-to-hand), (4, 4)
-    Y: np.ndarray  # T_base_board or T_tool_board, (4, 4)
-    sigma_px: float
 
-    @property
-    def cam(self) -> str:
-        return self.spec.name
+def _spec(cfg: CellConfig) -> CameraSpec:
+    return next(c for c in cfg.cameras if c.name == cfg.reference_camera)
 
-    def T_cam_board(self, T_base_tool: np.ndarray) -> np.ndarray:
-        """The nominal ``T_cam_board`` (4, 4) of the reference camera at a tool pose."""
-        if self.cfg.mount == "eye_in_hand":
-            return self.X @ inv_T(T_base_tool) @ self.Y
-        return self.X @ T_base_tool @ self.Y
 
-    def detection(self, T_cam_board: np.ndarray, margin_px: float = 2.0) -> Detection:
-        """Exact projections of the corners in the image (ids ascending)."""
-        pts = self.cfg.target.points_m
-        P = pts @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
+def arm_noise(cfg: CellConfig, s: PlanSettings) -> tuple[float, float]:
+    """The arm's accuracy (mm, deg per axis) the prediction assumes: what a run's extension
+    learned (``s.robot_noise``), else the cell's ``options.robot_noise_*`` but at least what a
+    solve learns of a real arm (:data:`~slidecal.routines.config.PLAN_ARM_NOISE`)."""
+    if s.robot_noise is not None:
+        return s.robot_noise
+    o = cfg.options
+    mm, deg = PLAN_ARM_NOISE
+    return max(o.robot_noise_m * 1000.0, mm), max(o.robot_noise_deg, deg)
+
+
+def _levels(s: PlanSettings) -> dict[str, tuple[float, float]] | None:
+    """``s.robot_levels`` as ``planned_covariance`` takes them (rad, m), None when not set."""
+    if s.robot_levels is None:
+        return None
+    return {k: (np.radians(deg), mm / 1000.0) for k, (mm, deg) in s.robot_levels.items()}
+
+
+def nominal_problem(
+    cfg: CellConfig, s: PlanSettings, T_base_tool: np.ndarray
+) -> CalibrationProblem:
+    """The problem a run of tool poses ``T_base_tool`` (F, 4, 4) would give the solver: the
+    cell's target and reference camera, each frame's corners in the image (``margin`` 2 px)
+    projected exactly through the nominal camera, the arm's accuracy at :func:`arm_noise`."""
+    spec, pts = _spec(cfg), cfg.target.points_m
+    w, h = spec.width, spec.height
+    frames = []
+    for k, T in enumerate(T_base_tool):
+        T_cb = nominal_T_cam_board(cfg, T)
+        P = pts @ T_cb[:3, :3].T + T_cb[:3, 3]
         ok = P[:, 2] > 1e-6
         px = np.full((len(P), 2), np.nan)
-        px[ok] = project(self.K, self.dist, P[ok])
-        w, h = self.spec.width, self.spec.height
-        ok &= (px[:, 0] >= margin_px - 0.5) & (px[:, 0] <= w - 0.5 - margin_px)
-        ok &= (px[:, 1] >= margin_px - 0.5) & (px[:, 1] <= h - 0.5 - margin_px)
+        px[ok] = project(s.K, s.dist, P[ok])
+        ok &= (px[:, 0] >= 1.5) & (px[:, 0] <= w - 2.5) & (px[:, 1] >= 1.5) & (px[:, 1] <= h - 2.5)
         ids = np.flatnonzero(ok)
-        return Detection(ids, px[ids])
-
-    def problem(self, T_base_tool: np.ndarray) -> CalibrationProblem:
-        """The predicted problem of tool poses (F, 4, 4) (exact detections)."""
-        frames = tuple(
-            Frame(k, {self.cam: self.detection(self.T_cam_board(T))}, T_base_tool=T)
-            for k, T in enumerate(T_base_tool)
-        )
-        return CalibrationProblem(
-            self.cfg.target,
-            (CameraSpec(self.cam, self.spec.width, self.spec.height),),
-            frames,
-            self.cfg.mount,
-            "robot",
-            self.cfg.options,
-        )
-
-    def state(self, n_frames: int) -> ModelState:
-        """The nominal state in the solver's parametrisation."""
-        E = np.zeros((n_frames, 6)) if self._noisy else None
-        return ModelState(
-            {self.cam: self.K},
-            {self.cam: self.dist},
-            {},
-            self.X[None],
-            self.Y,
-            np.zeros(n_frames),
-            E,
-        )
-
-    @property
-    def _noisy(self) -> bool:
-        o = self.cfg.options
-        return o.robot_noise_m > 0 or o.robot_noise_deg > 0
+        frames.append(Frame(k, {spec.name: Detection(ids, px[ids])}, T_base_tool=T))
+    mm, deg = arm_noise(cfg, s)
+    options = replace(cfg.options, robot_noise_m=mm / 1000.0, robot_noise_deg=deg)
+    cams = (CameraSpec(spec.name, w, h),)
+    return CalibrationProblem(cfg.target, cams, tuple(frames), cfg.mount, "robot", options)
 
 
-def _nominal(cfg: CellConfig, settings: PlanSettings) -> _Nominal:
-    spec = next(c for c in cfg.cameras if c.name == cfg.reference_camera)
-    if cfg.mount == "eye_in_hand":
-        X = inv_T(cfg.approx_T_hand_eye)  # T_cam_tool
-    else:
-        X = inv_T(cfg.approx_T_hand_eye)  # T_cam_base
-    return _Nominal(
-        cfg, spec, settings.K, settings.dist, X, cfg.approx_T_target, settings.corner_noise_px
+def nominal_state(cfg: CellConfig, s: PlanSettings, n_frames: int) -> ModelState:
+    """The nominal cell in the solver's parametrisation (the truth the prediction is made at)."""
+    cam, X = cfg.reference_camera, inv_T(cfg.approx_T_hand_eye)
+    return ModelState(
+        {cam: s.K}, {cam: s.dist}, {}, X[None], cfg.approx_T_target, np.zeros(n_frames)
     )
 
 
-def _full_structure(nom: _Nominal, T_base_tool: np.ndarray) -> Structure:
-    """Every block fully estimated (hand-eye translation observable): the per-frame blocks."""
-    F = len(T_base_tool)
-    eih = nom.cfg.mount == "eye_in_hand"
-    M = np.stack([inv_T(T) for T in T_base_tool]) if eih else np.array(T_base_tool)
-    o = nom.cfg.options
-    I3 = np.eye(3)
-    return Structure(
-        np.zeros(F, dtype=int),
-        M,
-        np.zeros((F, 3)),
-        np.zeros(F, dtype=bool),
-        I3,
-        I3,
-        I3,
-        I3,
-        {},
-        T_meas=np.array(T_base_tool) if nom._noisy else None,
-        pose_sigma=(max(np.radians(o.robot_noise_deg), 1e-9), max(o.robot_noise_m, 1e-9))
-        if nom._noisy
-        else None,
-        eye_in_hand=eih,
-    )
+def _detections(problem: CalibrationProblem) -> list[Detection]:
+    return [f.detections[problem.reference] for f in problem.frames]
 
 
-def frame_information(nom: _Nominal, T_base_tool: np.ndarray) -> FrameInformation:
-    """Fisher information of each frame on the shared parameters (the named layer's).
-
-    ``T_base_tool`` (F, 4, 4), metres; every frame must see the target. A frame's own robot
-    pose correction (Gaussian prior ``options.robot_noise_*``) is marginalised out by a Schur
-    complement, so the information of a set of frames is the sum of theirs (docs/METHOD.md Sec. 6).
-    """
-    return named_frame_information(
-        nom.problem(T_base_tool),
-        _full_structure(nom, T_base_tool),
-        nom.state(len(T_base_tool)),
-        nom.sigma_px,
-    )
+def _information(cfg: CellConfig, s: PlanSettings, T_base_tool: np.ndarray) -> FrameInformation:
+    """Each frame's information on the shared parameters (the solver's, per frame: the frames
+    of any plan add up); every frame must see the target."""
+    problem = nominal_problem(cfg, s, T_base_tool)
+    state = nominal_state(cfg, s, len(T_base_tool))
+    info = planned_covariance(problem, state, s.corner_noise_px, levels=_levels(s), per_frame=True)
+    assert isinstance(info, FrameInformation)
+    return info
 
 
-@dataclass(frozen=True)
-class _Goals:
-    """The goal parameters' names and how to turn a covariance into goal-relative stds."""
-
-    info: FrameInformation
-    fx_name: str
-    hand_eye: str
-    fx: float
-    goal: PlanGoal
-
-    def ratios(self, cov: np.ndarray) -> np.ndarray:
-        """Predicted std over target per goal (only the goals that are set); ``cov`` is the
-        inverse of summed frame information."""
-        named = self.info.named(cov)
-        out = []
-        g = self.goal
-        if g.fx_rel_std is not None:
-            out.append(_or_inf(named.std(self.fx_name)) / self.fx / g.fx_rel_std)
-        if g.hand_eye_rot_std_deg is not None:
-            out.append(_or_inf(named.std_rot_deg(self.hand_eye)) / g.hand_eye_rot_std_deg)
-        if g.hand_eye_t_std_mm is not None:
-            out.append(_or_inf(named.std_t_mm(self.hand_eye)) / g.hand_eye_t_std_mm)
-        return np.array(out)
+def _ratios(named: NamedCovariance, cfg: CellConfig, s: PlanSettings) -> np.ndarray:
+    """Predicted std over target per goal that is set (:data:`GOAL_KEYS` order)."""
+    cam, he = cfg.reference_camera, _hand_eye(cfg)
+    std = {
+        "fx_rel_std": _or_inf(named.std(f"{cam}.fx")) / float(s.K[0, 0]),
+        "hand_eye_rot_std_deg": _or_inf(named.std_rot_deg(he)),
+        "hand_eye_t_std_mm": _or_inf(named.std_t_mm(he)),
+    }
+    return np.array([std[k] / g for k in GOAL_KEYS if (g := getattr(s.goal, k)) is not None])
 
 
 def _or_inf(v: float | None) -> float:
     return float("inf") if v is None else v
-
-
-def _goals(info: FrameInformation, nom: _Nominal, goal: PlanGoal) -> _Goals:
-    frames = mount_names(nom.cfg.mount)
-    assert frames is not None  # the planner plans robot sessions only
-    return _Goals(info, f"{nom.cam}.fx", frames.hand_eye, float(nom.K[0, 0]), goal)
 
 
 def _covariance(info: np.ndarray) -> np.ndarray | None:
@@ -361,24 +253,19 @@ class _Group:
     banned: set[int] = field(default_factory=set)
 
 
-def _rejection(
-    cfg: CellConfig, nom: _Nominal, s: PlanSettings, T_base_tool: np.ndarray
-) -> str | None:
+def _rejection(cfg: CellConfig, s: PlanSettings, T_base_tool: np.ndarray) -> str | None:
     """Why a tool pose cannot be a frame (workspace, reach, view), or None."""
     lo, hi = cfg.robot.workspace_min_m, cfg.robot.workspace_max_m
     p = T_base_tool[:3, 3]
     if lo is not None and hi is not None and (np.any(p < lo) or np.any(p > hi)):
         return "workspace"
-    why = view_check(
-        nom.T_cam_board(T_base_tool),
-        cfg.target.points_m,
-        nom.K,
-        nom.dist,
-        (nom.spec.width, nom.spec.height),
-        s.margin_px,
-        s.depth_m,
-    )
-    if why is not None:
+    T_cb = nominal_T_cam_board(cfg, T_base_tool)
+    P = cfg.target.points_m @ T_cb[:3, :3].T + T_cb[:3, 3]  # every corner in depth and image
+    if np.any(P[:, 2] < s.depth_m[0]) or np.any(P[:, 2] > s.depth_m[1]):
+        return "view"
+    px, spec = project(s.K, s.dist, P), _spec(cfg)
+    hi = np.array([spec.width, spec.height]) - 0.5 - s.margin_px
+    if np.any(px < s.margin_px - 0.5) or np.any(px > hi):
         return "view"
     if not _reachable(T_base_tool, cfg):
         return "reach"
@@ -407,7 +294,7 @@ def _via(cfg: CellConfig) -> np.ndarray:
 
 
 def _candidates(
-    cfg: CellConfig, nom: _Nominal, s: PlanSettings
+    cfg: CellConfig, s: PlanSettings
 ) -> tuple[list[_Group], dict[str, int], FrameInformation | None]:
     """Candidate groups with their usable frames' information; rejection counts by reason; the
     named layer's reading of the information (None without a candidate)."""
@@ -416,7 +303,7 @@ def _candidates(
     counts = {"workspace": 0, "view": 0, "reach": 0}
     groups: list[_Group] = []
     fim: FrameInformation | None = None
-    via_why = _rejection(cfg, nom, s, _via(cfg))
+    via_why = _rejection(cfg, s, _via(cfg))
     if via_why is not None:
         counts[via_why] += 1
         return [], counts, fim
@@ -426,7 +313,7 @@ def _candidates(
                 R = group_R_board_cam(tilt, az)
                 T_cb = group_T_cam_board(centre, d, R, offsets)
                 T_bt = np.stack([tool_pose(cfg, T) for T in T_cb])
-                why = [_rejection(cfg, nom, s, T) for T in T_bt]
+                why = [_rejection(cfg, s, T) for T in T_bt]
                 for w in why:
                     if w is not None:
                         counts[w] += 1
@@ -435,7 +322,7 @@ def _candidates(
                     continue
                 g = _Group(tilt, az, d, T_bt, usable)
                 idx = np.flatnonzero(usable)
-                fim = frame_information(nom, T_bt[idx])
+                fim = _information(cfg, s, T_bt[idx])
                 info = fim.per_frame
                 g.info = np.zeros((len(T_bt),) + info.shape[1:])
                 g.info[idx] = info
@@ -491,7 +378,7 @@ def _duration(seq, timing: _Timing) -> float:
 def _greedy(
     cands: list[_Group],
     fim: FrameInformation,
-    nom: _Nominal,
+    cfg: CellConfig,
     s: PlanSettings,
     timing: _Timing,
     via: np.ndarray,
@@ -504,9 +391,12 @@ def _greedy(
 
     Returns the choice, its predicted duration, its goal ratios (None: still singular) and why
     the search stopped: "met", "time" (over the budget) or "exhausted" (no candidate left)."""
-    goals = _goals(fim, nom, s.goal)
+
+    def goal_ratios_of(cov: np.ndarray) -> np.ndarray:  # cov: an inverse of summed information
+        return _ratios(fim.named(cov), cfg, s)
+
     P = len(fim.kinds)
-    ridge = _ridge(fim, nom)
+    ridge = _ridge(fim, s)
     chosen: list[_Chosen] = []
     info = np.zeros((P, P)) if prior is None else prior.info.copy()
     n_prior = 0 if prior is None else prior.n_groups
@@ -515,17 +405,17 @@ def _greedy(
 
     def objective(A: np.ndarray) -> float:
         c = np.linalg.inv(A + ridge)
-        return float(np.sum(goals.ratios(c) ** 2))
+        return float(np.sum(goal_ratios_of(c) ** 2))
 
     f_now = objective(info)
     while True:
         cov = _covariance(info) if chosen or n_prior else None
-        ratios = goals.ratios(cov) if cov is not None else None
+        ratios = goal_ratios_of(cov) if cov is not None else None
         structure_ok = len(chosen) + n_prior >= s.min_groups and all(
             len(c.frames) >= s.min_frames_per_group for c in chosen
         )
         met = ratios is not None and bool(np.all(ratios <= 1.0))
-        if met and structure_ok and (n_prior or _linear_ok(cands, chosen, nom)):
+        if met and structure_ok and (n_prior or _linear_ok(cands, chosen, cfg, s)):
             return chosen, t_now, ratios, "met"
         only_fix = met and not structure_ok
         # the minimum structure first: min_groups groups of min_frames_per_group frames (fewer
@@ -544,7 +434,7 @@ def _greedy(
                 continue
             g = cands[c.group]
             T_last = g.T_base_tool[c.frames[-1]]
-            nxt = seq_next_via(chosen, ci, via)
+            nxt = via if ci + 1 < len(chosen) else None  # the via pose after the group
             base_dt = timing.move(T_last, nxt) if nxt is not None else 0.0
             for k in np.flatnonzero(g.usable):
                 if k in c.frames or k in g.banned:
@@ -583,14 +473,7 @@ def _greedy(
         t_now = _duration(_sequence(cands, chosen, via), timing)
         if t_now > s.goal.max_duration_s:
             cov = _covariance(info)
-            return chosen, t_now, goals.ratios(cov) if cov is not None else None, "time"
-
-
-def seq_next_via(chosen, ci, via):  # noqa: ANN001, ANN201 - internal helper
-    """The via pose that follows group ``ci`` of the choice (None for the last group)."""
-    if ci + 1 >= len(chosen):
-        return None
-    return via
+            return chosen, t_now, goal_ratios_of(cov) if cov is not None else None, "time"
 
 
 def _better(best, f_now, f_new, dt, A, action):  # noqa: ANN001, ANN202 - internal helper
@@ -600,59 +483,48 @@ def _better(best, f_now, f_new, dt, A, action):  # noqa: ANN001, ANN202 - intern
     return best
 
 
-def _ridge(info: FrameInformation, nom: _Nominal) -> np.ndarray:
+def _ridge(info: FrameInformation, s: PlanSettings) -> np.ndarray:
     """A weak prior (P, P) that keeps the greedy's first steps finite: 30 % of f on the
     intrinsics, 1 on distortion, 0.5 rad / 0.5 m on the poses."""
-    sd = {"intrinsics": 0.3 * nom.K[0, 0], "distortion": 1.0}
+    sd = {"intrinsics": 0.3 * s.K[0, 0], "distortion": 1.0}
     d = np.array([sd.get(k, 0.5) for k in info.kinds])
     return np.diag(1.0 / d**2)
 
 
-def _linear_ok(cands: list[_Group], chosen: list[_Chosen], nom: _Nominal) -> bool:
-    """Whether the linear step accepts the plan (exact homographies of the nominal model)."""
+def _linear_ok(
+    cands: list[_Group], chosen: list[_Chosen], cfg: CellConfig, s: PlanSettings
+) -> bool:
+    """Whether the linear step accepts the plan: the exact homographies ``K [r1 r2 t]`` (eq. 10)
+    of the nominal model and the robot's moves, per group."""
+    groups = []
+    for c in chosen:
+        T = cands[c.group].T_base_tool[c.frames]
+        H = [s.K @ nominal_T_cam_board(cfg, Tk)[:3, [0, 1, 3]] for Tk in T]
+        H = [h / np.linalg.norm(h[:, :2]) for h in H]
+        groups.append(LinearGroup(np.array(H), T[:, :3, 3] - T[0, :3, 3]))
+    o, spec = cfg.options, _spec(cfg)
     try:
-        _check_linear(cands, chosen, nom)
+        check_configuration(
+            groups,
+            "robot",
+            skew=o.skew,
+            unit_aspect=o.unit_aspect,
+            image_size=(spec.width, spec.height),
+            K_guess=s.K,
+            hand_eye=True,
+            robot_translations=[g.motion for g in groups],
+        )
     except DegenerateError:
         return False
     return True
-
-
-def _check_linear(cands: list[_Group], chosen: list[_Chosen], nom: _Nominal) -> None:
-    groups, moves = [], []
-    K = nom.K
-    for c in chosen:
-        T = cands[c.group].T_base_tool[c.frames]
-        groups.append(_linear_group(nom, T))
-        moves.append(T[:, :3, 3] - T[0, :3, 3])
-    o = nom.cfg.options
-    check_configuration(
-        groups,
-        "robot",
-        skew=o.skew,
-        unit_aspect=o.unit_aspect,
-        image_size=(nom.spec.width, nom.spec.height),
-        K_guess=K,
-        hand_eye=True,
-        robot_translations=moves,
-    )
-
-
-def _linear_group(nom: _Nominal, T_base_tool: np.ndarray) -> LinearGroup:
-    """Exact homographies ``K [r1 r2 t]`` (eq. 10) of a group's frames and its robot moves."""
-    H = []
-    for T in T_base_tool:
-        T_cb = nom.T_cam_board(T)
-        Hk = nom.K @ np.column_stack([T_cb[:3, 0], T_cb[:3, 1], T_cb[:3, 3]])
-        H.append(Hk / np.linalg.norm(Hk[:, :2]))
-    p = T_base_tool[:, :3, 3]
-    return LinearGroup(np.array(H), p - p[0])
 
 
 # -- prediction of a whole plan ---------------------------------------------------------------
 def predict_std(
     plan: Plan, cfg: CellConfig, settings: PlanSettings | None = None
 ) -> dict[str, float]:
-    """Predicted one-sigma of a plan's estimates (the Cramer-Rao bound, docs/METHOD.md Sec. 6).
+    """Predicted one-sigma of a plan's estimates: the solver's prediction
+    (:func:`slidecal.solver.uncertainty.planned_covariance`) of the :func:`nominal_problem`.
 
     Keys as :func:`slidecal.routines.results_io.errors_against_truth`: ``<cam>.fx_px`` ..
     ``<cam>.cy_px``, ``<cam>.fx_rel``, distortion ``<cam>.k1`` ..., ``<hand-eye>.rot_deg`` /
@@ -660,18 +532,15 @@ def predict_std(
     Fisher information is singular or a parameter is unobservable.
     """
     s = settings or cfg.plan
-    nom = _nominal(cfg, s)
     T = np.array([T for _, T in plan.poses])
-    problem = nom.problem(T)
-    if any(len(f.detections[nom.cam].ids) < 4 for f in problem.frames):
+    problem = nominal_problem(cfg, s, T)
+    if any(len(d.ids) < 4 for d in _detections(problem)):
         raise DegenerateError(
             "a planned frame does not see the target; move the frame or the target into view"
         )
-    st = build_structure(problem, nom.X[:3, :3])
-    if st.unobservable:
-        name, why = next(iter(st.unobservable.items()))
-        raise DegenerateError(f"the plan leaves {name} unobservable: {why}")
-    named = predicted_covariance(problem, nom.state(len(T)), nom.sigma_px, structure=st)
+    state = nominal_state(cfg, s, len(T))
+    named = planned_covariance(problem, state, s.corner_noise_px, levels=_levels(s))
+    assert isinstance(named, NamedCovariance)
     d = np.diag(named.matrix)
     if not np.all(np.isfinite(named.matrix)) or np.any(d <= 0):
         raise DegenerateError(
@@ -679,13 +548,13 @@ def predict_std(
             "different axes and translations out of the board plane"
         )
     out: dict[str, float] = {}
-    cam = nom.cam
+    cam = cfg.reference_camera
     for n, var in zip(named.names, d, strict=True):
         if n.startswith(f"{cam}."):
             key = n.split(".", 1)[1]
             unit = "_px" if key in INTRINSIC_NAMES else ""
             out[f"{cam}.{key}{unit}"] = float(np.sqrt(var))
-    out[f"{cam}.fx_rel"] = out[f"{cam}.fx_px"] / float(nom.K[0, 0])
+    out[f"{cam}.fx_rel"] = out[f"{cam}.fx_px"] / float(s.K[0, 0])
     frames = mount_names(cfg.mount)
     assert frames is not None  # the planner plans robot sessions only
     for tf in (frames.hand_eye, frames.target):
@@ -703,16 +572,9 @@ def _hand_eye(cfg: CellConfig) -> str:
 
 def goal_ratios(pred: dict[str, float], cfg: CellConfig, goal: PlanGoal) -> dict[str, float]:
     """Predicted std over the goal's target, per goal that is set (<= 1: met)."""
-    cam = cfg.reference_camera
-    he = _hand_eye(cfg)
-    out = {}
-    if goal.fx_rel_std is not None:
-        out["fx_rel_std"] = pred[f"{cam}.fx_rel"] / goal.fx_rel_std
-    if goal.hand_eye_rot_std_deg is not None:
-        out["hand_eye_rot_std_deg"] = pred[f"{he}.rot_deg"] / goal.hand_eye_rot_std_deg
-    if goal.hand_eye_t_std_mm is not None:
-        out["hand_eye_t_std_mm"] = pred[f"{he}.t_mm"] / goal.hand_eye_t_std_mm
-    return out
+    cam, he = cfg.reference_camera, _hand_eye(cfg)
+    keys = dict(zip(GOAL_KEYS, (f"{cam}.fx_rel", f"{he}.rot_deg", f"{he}.t_mm"), strict=True))
+    return {k: pred[keys[k]] / g for k in GOAL_KEYS if (g := getattr(goal, k)) is not None}
 
 
 # -- dry run ----------------------------------------------------------------------------------
@@ -796,18 +658,13 @@ def make_plan(cfg: CellConfig, settings: PlanSettings | None = None) -> PlanRepo
     ``plan.max_duration_s``.
     """
     s = settings or cfg.plan
-    nom = _nominal(cfg, s)
     where = f"{cfg.source}: plan"
-    cands, rejected, fim = _candidates(cfg, nom, s)
+    cands, rejected, fim = _candidates(cfg, s)
     if len(cands) < s.min_groups:
-        raise InputError(_no_candidates_message(cfg, s, rejected, len(cands), nom), where=where)
+        raise InputError(_no_candidates_message(cfg, s, rejected, len(cands)), where=where)
     via = _via(cfg)
     assert fim is not None  # there are candidates
-    plan, robot_s = _search(cfg, cands, fim, nom, s, _Timing(cfg, s, _start_pose(cfg)), via, where)
-    try:
-        pred = predict_std(plan, cfg, s)
-    except DegenerateError as e:
-        raise InputError(f"the chosen plan is degenerate ({e})", where=where) from None
+    plan, robot_s, pred = _search(cfg, cands, fim, s, _Timing(cfg, s, _start_pose(cfg)), via, where)
     n = plan.n_poses
     duration = robot_s + n * s.capture_s
     ratios_d = goal_ratios(pred, cfg, s.goal)
@@ -815,8 +672,9 @@ def make_plan(cfg: CellConfig, settings: PlanSettings | None = None) -> PlanRepo
         f"planned: {len(plan.groups)} groups, {n} frames, predicted {duration:.1f} s of robot time "
         f"(moves and settling {robot_s:.1f} s, capture {n * s.capture_s:.1f} s); goal ratios "
         + ", ".join(f"{k} {v:.2f}" for k, v in ratios_d.items()),
-        f"prediction for corner noise {s.corner_noise_px:g} px and robot noise "
-        f"{cfg.options.robot_noise_m * 1000:g} mm / {cfg.options.robot_noise_deg:g} deg",
+        "prediction for corner noise {:g} px and the arm's accuracy {:g} mm / {:g} deg".format(
+            s.corner_noise_px, *arm_noise(cfg, s)
+        ),
     )
     plan = replace(plan, predicted_std=pred, duration_s=float(duration), notes=notes)
     return PlanReport(plan, ratios_d, sum(int(g.usable.sum()) for g in cands), rejected)
@@ -826,21 +684,26 @@ def _search(
     cfg: CellConfig,
     cands: list[_Group],
     fim: FrameInformation,
-    nom: _Nominal,
     s: PlanSettings,
     timing: _Timing,
     via: np.ndarray,
     where: str,
     before: Plan | None = None,
     prior: _Prior | None = None,
-) -> tuple[Plan, float]:
+) -> tuple[Plan, float, dict[str, float]]:
     """The greedy choice that passes the dry run (a failing move bans its pose and the search
-    runs again), as a plan after ``before`` (an extension: ``before``'s groups first); and its
-    robot time (moves and settling) in seconds. Raises ``InputError`` when none does."""
+    runs again) and whose prediction (:func:`predict_std`) meets the goal (where the frames'
+    summed information promised more, the search runs again for the goal tightened by that
+    factor), as a plan after ``before`` (an extension: ``before``'s groups first); its robot
+    time (moves and settling) in seconds and its prediction. Raises ``InputError`` when none
+    does."""
     last_failure = ""
     skip = 0 if before is None else sum(len(g) + (before.via is not None) for g in before.groups)
+    n_goals = sum(getattr(s.goal, k) is not None for k in GOAL_KEYS)
+    factor = np.ones(n_goals)  # goal / the search's target, per goal set
     for _attempt in range(12):
-        chosen, t_pred, ratios, stop = _greedy(cands, fim, nom, s, timing, via, prior)
+        tight = replace(s, goal=_scaled(s.goal, 1.0 / factor))
+        chosen, t_pred, ratios, stop = _greedy(cands, fim, cfg, tight, timing, via, prior)
         if stop != "met":
             raise InputError(_goal_message(s, t_pred, ratios, stop), where=where)
         plan = _to_plan(cfg, cands, chosen, via, ())
@@ -848,7 +711,15 @@ def _search(
             plan = Plan.build(before.groups + plan.groups, before, via=before.via)
         robot_s, bad, why = dry_run(plan, cfg)
         if bad is None:
-            return plan, robot_s
+            try:
+                pred = predict_std(plan, cfg, s)
+            except DegenerateError as e:
+                raise InputError(f"the chosen plan is degenerate ({e})", where=where) from None
+            got = np.array(list(goal_ratios(pred, cfg, s.goal).values()))
+            if np.all(got <= 1.0):
+                return plan, robot_s, pred
+            factor = np.maximum(factor, 1.02 * got * factor / np.maximum(ratios, 1e-12))
+            continue
         last_failure = why
         if bad < skip:  # the recorded part itself fails: nothing to ban in the new part
             break
@@ -869,28 +740,27 @@ def extend_plan(
     robot_noise_mm: float,
     robot_noise_deg: float,
     max_duration_s: float,
+    levels: Mapping[str, tuple[float, float]] | None = None,
 ) -> PlanReport:
     """``plan`` with more orientation groups after it, for a run whose recorded frames missed
     the accuracy its gate asks for: the greedy search of :func:`make_plan` with the frames of
-    ``plan`` already counted, the noise the data showed (``corner_noise_px``, the robot's
-    accuracy ``robot_noise_mm`` / ``robot_noise_deg`` per axis) instead of the cell's prior, the
-    ``goal`` to meet, and orientations not visited yet (a systematic arm error repeats at a
-    repeated pose, so going back adds less than the model would credit). ``achieved``: the
-    one-sigma the recorded frames gave, per goal key (as :class:`PlanGoal`'s): where it exceeds
-    the prediction for those frames (the arm's error is partly systematic, which the
-    prediction's independent per-frame errors understate), the goal is tightened by that
-    factor. The new groups take at most ``max_duration_s`` of robot time. Raises
-    ``InputError`` (with the reason) when no extension within that time is predicted to meet
-    the goal.
+    ``plan`` already counted, the noise the data showed instead of the cell's prior
+    (``corner_noise_px``; the robot's accuracy ``robot_noise_mm`` / ``robot_noise_deg`` per axis
+    and ``levels``, the (mm, deg) of each of its sources as the solve learned them,
+    ``RobotAccuracy.levels``; None: every source at the accuracy), the ``goal`` to meet, and
+    orientations not visited yet (a systematic arm error repeats at a repeated pose, so going
+    back adds less than the model would credit). ``achieved``: the one-sigma the recorded frames
+    gave, per goal key (as :class:`PlanGoal`'s): where it exceeds the prediction for those
+    frames (what the prediction does not model: the solve's levels are estimates, its errors
+    go together), the goal is tightened by that factor. The new groups take at most
+    ``max_duration_s`` of robot time. Raises ``InputError`` (with the reason) when no extension
+    within that time is predicted to meet the goal.
     """
-    options = replace(
-        cfg.options, robot_noise_m=robot_noise_mm / 1000.0, robot_noise_deg=robot_noise_deg
-    )
-    cfg_x = replace(cfg, options=options)
     where = f"{cfg.source}: plan (extension)"
-    s = replace(cfg.plan, corner_noise_px=corner_noise_px)
+    noise = (robot_noise_mm, robot_noise_deg)
+    s = replace(cfg.plan, corner_noise_px=corner_noise_px, robot_noise=noise, robot_levels=levels)
     try:
-        before = goal_ratios(predict_std(plan, cfg_x, s), cfg_x, PlanGoal(1.0, 1.0, 1.0))
+        before = goal_ratios(predict_std(plan, cfg, s), cfg, PlanGoal(1.0, 1.0, 1.0))
     except DegenerateError:
         before = {}
     tight: dict[str, float | None] = dict.fromkeys(GOAL_KEYS)
@@ -902,13 +772,12 @@ def extend_plan(
             tight[k] = target / max(1.0, factor)
     goal = PlanGoal(**tight, max_duration_s=max_duration_s)
     s = replace(s, goal=goal)
-    nom = _nominal(cfg_x, s)
-    cands, rejected, fim = _candidates(cfg_x, nom, s)
+    cands, rejected, fim = _candidates(cfg, s)
     if fim is None:
         raise InputError("no candidate view of the target is left to extend the plan", where=where)
     T_old = np.array([T for _, T in plan.poses])
-    sees = [len(nom.detection(nom.T_cam_board(T)).ids) >= 4 for T in T_old]
-    info = frame_information(nom, T_old[sees]).per_frame.sum(axis=0)
+    sees = [len(d.ids) >= 4 for d in _detections(nominal_problem(cfg, s, T_old))]
+    info = _information(cfg, s, T_old[sees]).per_frame.sum(axis=0)
     R_first = [g[0][:3, :3] for g in plan.groups]
     same = {
         i
@@ -918,13 +787,9 @@ def extend_plan(
     prior = _Prior(info, len(plan.groups), same)
     via = plan.via if plan.via is not None else _via(cfg)
     timing = _Timing(cfg, s, T_old[-1])
-    ext, robot_s = _search(cfg_x, cands, fim, nom, s, timing, via, where, plan, prior)
-    try:
-        pred = predict_std(ext, cfg_x, s)
-    except DegenerateError as e:
-        raise InputError(f"the extended plan is degenerate ({e})", where=where) from None
+    ext, robot_s, pred = _search(cfg, cands, fim, s, timing, via, where, plan, prior)
     n_new = ext.n_poses - plan.n_poses
-    ratios = goal_ratios(pred, cfg_x, goal)
+    ratios = goal_ratios(pred, cfg, goal)
     notes = plan.notes + (
         f"extended by {len(ext.groups) - len(plan.groups)} groups, {n_new} frames (the first "
         f"run's data: corner noise {corner_noise_px:.3g} px, robot accuracy "
@@ -934,6 +799,13 @@ def extend_plan(
     duration = robot_s + ext.n_poses * s.capture_s
     ext = replace(ext, predicted_std=pred, notes=notes, duration_s=float(duration))
     return PlanReport(ext, ratios, sum(int(g.usable.sum()) for g in cands), rejected)
+
+
+def _scaled(goal: PlanGoal, mult: np.ndarray) -> PlanGoal:
+    """``goal`` with each target that is set (in :data:`GOAL_KEYS` order) times ``mult``."""
+    it = iter(mult)
+    vals = {k: None if (v := getattr(goal, k)) is None else v * next(it) for k in GOAL_KEYS}
+    return replace(goal, **vals)
 
 
 def _to_plan(cfg, cands, chosen, via, notes) -> Plan:  # noqa: ANN001 - internal helper
@@ -951,40 +823,34 @@ def _ban(cands: list[_Group], chosen: list[_Chosen], bad: int) -> None:
         i += 1
         for k in c.frames:
             if bad == i:
-                cands[c.group].banned.add(k if k != 0 else 0)
+                cands[c.group].banned.add(k)
                 return
             i += 1
 
 
-def _board_too_big(cfg: CellConfig, s: PlanSettings, nom: _Nominal) -> str | None:
+def _board_too_big(cfg: CellConfig, s: PlanSettings) -> str | None:
     """Why the target cannot fit the image at any planned standoff (head-on view), or None."""
     pts = cfg.target.points_m
     ext = pts.max(axis=0)[:2] - pts.min(axis=0)[:2]
     d = max(s.standoffs_m)
-    w = nom.spec.width - 2 * s.margin_px
-    h = nom.spec.height - 2 * s.margin_px
-    fx, fy = float(nom.K[0, 0]), float(nom.K[1, 1])
+    spec = _spec(cfg)
+    w = spec.width - 2 * s.margin_px
+    h = spec.height - 2 * s.margin_px
+    fx, fy = float(s.K[0, 0]), float(s.K[1, 1])
     need = (fx * ext[0] / d, fy * ext[1] / d)
     if (need[0] <= w and need[1] <= h) or (fx * ext[1] / d <= w and fy * ext[0] / d <= h):
         return None
     d_min = min(max(fx * ext[0] / w, fy * ext[1] / h), max(fx * ext[1] / w, fy * ext[0] / h))
     return (
         f"the target leaves the view: it ({ext[0] * 1000:.0f} x {ext[1] * 1000:.0f} mm) spans "
-        f"{need[0]:.0f} x "
-        f"{need[1]:.0f} px at {d:.2f} m, more than the {nom.spec.width} x {nom.spec.height} px "
-        f"image holds (margins {s.margin_px:g} px); increase approximate.standoff_m to at "
-        f"least {d_min:.2f} m or use a smaller target"
+        f"{need[0]:.0f} x {need[1]:.0f} px at {d:.2f} m, more than the {spec.width} x "
+        f"{spec.height} px image holds (margins {s.margin_px:g} px); increase "
+        f"approximate.standoff_m to at least {d_min:.2f} m or use a smaller target"
     )
 
 
-def _no_candidates_message(
-    cfg: CellConfig,
-    s: PlanSettings,
-    rejected: dict[str, int],
-    n_ok: int,
-    nom: _Nominal | None = None,
-) -> str:
-    too_big = _board_too_big(cfg, s, nom) if nom is not None else None
+def _no_candidates_message(cfg: CellConfig, s: PlanSettings, rejected: dict, n_ok: int) -> str:
+    too_big = _board_too_big(cfg, s)
     if too_big is not None:
         return f"no plan possible: {too_big}"
     worst = max(rejected, key=lambda k: rejected[k]) if any(rejected.values()) else "view"
@@ -1005,15 +871,7 @@ def _no_candidates_message(
 
 
 def _goal_message(s: PlanSettings, t: float, ratios: np.ndarray | None, stop: str) -> str:
-    names = [
-        n
-        for n, v in zip(
-            ("fx_rel_std", "hand_eye_rot_std_deg", "hand_eye_t_std_mm"),
-            (s.goal.fx_rel_std, s.goal.hand_eye_rot_std_deg, s.goal.hand_eye_t_std_mm),
-            strict=True,
-        )
-        if v is not None
-    ]
+    names = [k for k in GOAL_KEYS if getattr(s.goal, k) is not None]
     if ratios is None:
         state = "no non-degenerate plan was found"
         worst = names[0]

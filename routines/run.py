@@ -306,8 +306,10 @@ def _install(
 
 #: How many times a run extends its plan when its result misses the gate's one-sigma limits.
 EXTEND_ROUNDS = 2
-#: An extension plans for this fraction of each one-sigma limit (the prediction is a model).
-EXTEND_MARGIN = 0.7
+#: An extension plans for this fraction of each one-sigma limit: its prediction is the recorded
+#: frames' result's (the arm's learned levels, scaled to what those frames achieved), the rest a
+#: margin for levels learned again on more frames.
+EXTEND_MARGIN = 0.9
 
 
 def extend_for_limits(
@@ -356,8 +358,9 @@ def extend_for_limits(
     t_mm = acc.translation_mm if acc is not None else cfg.options.robot_noise_m * 1000.0
     rot_deg = acc.rotation_deg if acc is not None else cfg.options.robot_noise_deg
     try:
+        levels = acc.levels if acc is not None else None
         report = extend_plan(
-            cfg, plan, goal, achieved, float(cam.reproj_rms_px), t_mm, rot_deg, budget_s
+            cfg, plan, goal, achieved, float(cam.reproj_rms_px), t_mm, rot_deg, budget_s, levels
         )
     except InputError as e:
         return None, f"not extended: {e}"

@@ -831,4 +831,5 @@ def robot_accuracy(problem: CalibrationProblem, out: RefineOutput) -> RobotAccur
         rotation_deg=float(np.degrees(sig[0])),
         worst_frames=tuple(worst[:5]),
         estimated=out.robot_sigma_estimated,
+        levels={k: (1000.0 * t, float(np.degrees(r))) for k, (r, t) in out.robot_levels.items()},
     )

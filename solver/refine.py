@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -53,6 +53,9 @@ class RefineOutput:
     # poses; whether it was estimated; the test that decided
     robot_sigma: tuple[float, float] | None = None
     robot_sigma_estimated: bool = False
+    # each source's share of that error (rad, m) by name ("pose", "group", "trend", "field"),
+    # ``robot_sigma`` their root sum of squares; empty where no accuracy was learned
+    robot_levels: dict[str, tuple[float, float]] = field(default_factory=dict)
     robot_test: str = ""
     # the board's bow and tolerance (``solver/target_shape.py`` ``BoardFit``) once fitted
     board: object | None = None
@@ -271,14 +274,15 @@ def refine(
         _refine(problem, noisy, out0.state, max_iter, robust, estimate=True), test_fit=fit
     )
     m = out.model
-    levels = [m.pose_sigma]
+    levels = {"pose": m.pose_sigma}
     if m.group_sigma is not None and "U" in m.slices:  # as the data say it, not its prior
-        levels.append(m.group_sigma if m.group_sigma_data is None else m.group_sigma_data)
+        levels["group"] = m.group_sigma if m.group_sigma_data is None else m.group_sigma_data
     if "V" in m.slices:  # a trend's share of a frame's error: its level times the offset
-        levels.append(tuple(spread * np.asarray(m.trend_sigma)))
+        levels["trend"] = tuple(spread * np.asarray(m.trend_sigma))
     if "W" in m.slices:  # what the groups share: its levels times their shares
-        levels.append(tuple(np.asarray(common_spread) * np.asarray(m.common_sigma)))
-    total = tuple(float(np.linalg.norm(axis)) for axis in zip(*levels, strict=True))
+        levels["field"] = tuple(np.asarray(common_spread) * np.asarray(m.common_sigma))
+    total = tuple(float(np.linalg.norm(axis)) for axis in zip(*levels.values(), strict=True))
+    out = replace(out, robot_levels={k: (float(r), float(t)) for k, (r, t) in levels.items()})
     return _with_robot(
         out,
         total,

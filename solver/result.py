@@ -139,7 +139,10 @@ class RobotAccuracy:
     ``worst_frames``: (frame id, translation error mm, rotation error deg), worst first;
     ``estimated``: True when learned from the data, False when the user's prior was used as is;
     ``left_out``: (frame id, translation error mm, rotation error deg) of the frames the solve
-    left out for their pose or image, in that order (a rig frame keeping other images is not).
+    left out for their pose or image, in that order (a rig frame keeping other images is not);
+    ``levels``: (translation mm, rotation deg) of each source the solve learned ("pose",
+    "group", "trend", "field": docs/ERROR_MODEL.md S3-S5), whose root sum of squares is the
+    accuracy (empty where not learned; not written to result files).
     """
 
     translation_mm: float
@@ -147,6 +150,7 @@ class RobotAccuracy:
     worst_frames: tuple[tuple[int, float, float], ...]
     estimated: bool
     left_out: tuple[tuple[int, float, float], ...] = ()
+    levels: dict[str, tuple[float, float]] = field(default_factory=dict, compare=False)
 
 
 @dataclass(frozen=True)

@@ -24,10 +24,12 @@ marginalised (their rows dropped from the joint covariance).
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from slidecal.solver.errors import DegenerateError
 from slidecal.solver.geometry import inv_T, skew
 from slidecal.solver.model import (
     BundleModel,
@@ -35,6 +37,7 @@ from slidecal.solver.model import (
     Structure,
     build_structure,
     fisher_covariance,
+    orientation_groups,
     with_pose_corrections,
 )
 from slidecal.solver.problem import (
@@ -45,7 +48,7 @@ from slidecal.solver.problem import (
     hand_eye_names,
     mount_names,
 )
-from slidecal.solver.refine import RefineOutput
+from slidecal.solver.refine import SIGMA_FLOOR, RefineOutput, common_trend, translation_trends
 from slidecal.solver.result import ROT, TRANS, NamedCovariance
 from slidecal.solver.robot_error import (
     ImageErrors,
@@ -524,3 +527,73 @@ def is_legacy(names: tuple[str, ...] | list[str]) -> bool:
     """Whether covariance row names are the optimiser's (a result of an earlier version)."""
     pat = re.compile(r"(X\d+|Y)\.[rt]\d|s\d+|.+\.f")
     return any(pat.fullmatch(n) for n in names)
+
+
+# -- a plan's prediction (the planner's) -------------------------------------------------------
+#: The arm's error sources a plan's prediction models (docs/ERROR_MODEL.md S3-S5).
+_SOURCES = ("pose", "group", "trend", "field")
+
+
+def planned_covariance(
+    problem: CalibrationProblem,
+    truth: ModelState,
+    sigma_px: float,
+    *,
+    levels: Mapping[str, tuple[float, float]] | None = None,
+    per_frame: bool = False,
+) -> NamedCovariance | FrameInformation:
+    """What a solve of the planned ``problem`` (exact detections: their ids count) would report
+    at ``truth`` when its corners err by ``sigma_px`` and its arm as ``levels`` say: the
+    Cramer-Rao bound of the error model's arm (docs/ERROR_MODEL.md S3-S5: a correction per
+    pose, one per orientation group, a trend along each group's moves and a field they share,
+    as the solve's noisy model is built by :func:`slidecal.solver.refine.refine`), named.
+    ``levels``: each source's share of a frame's error (rad, m) by name, as
+    ``RefineOutput.robot_levels`` (a source it lacks at ``SIGMA_FLOOR``); None: every source at
+    ``problem.options``'s ``robot_noise_*``. Raises ``DegenerateError`` when the plan leaves a
+    reported quantity unobservable.
+
+    ``per_frame``: each frame's information instead (:class:`FrameInformation`, for a search
+    over many candidate frames: each frame keeps only its own pose correction, and every
+    transform is taken as observable, so the frames of any plan add up).
+    """
+    st = build_structure(problem, truth.X[0][:3, :3])
+    o = problem.options
+    sig = (max(np.radians(o.robot_noise_deg), SIGMA_FLOOR[0]), max(o.robot_noise_m, SIGMA_FLOOR[1]))
+    given = levels if levels else dict.fromkeys(_SOURCES, sig)
+    lv = {k: np.maximum(given.get(k, SIGMA_FLOOR), SIGMA_FLOOR) for k in _SOURCES}
+    T = np.stack([f.T_base_tool for f in problem.frames])
+    st = replace(st, T_meas=T, pose_sigma=tuple(lv["pose"]))
+    if per_frame:
+        I3 = np.eye(3)
+        full = replace(st, X_rot_basis=I3, X_t_basis=I3, Y_rot_basis=I3, Y_t_basis=I3)
+        return frame_information(problem, full, truth, sigma_px)
+    if st.unobservable:
+        name, why = next(iter(st.unobservable.items()))
+        raise DegenerateError(f"the plan leaves {name} unobservable: {why}")
+    groups = orientation_groups(T)
+    trend_groups, coords, dims = translation_trends(T, groups)
+    spread = float(np.sqrt(np.mean(np.sum(coords**2, axis=1)))) if dims else 1.0
+    common, rotation, share = common_trend(T, trend_groups, dims)
+    fixed = len(dims) == 1 and len(set(groups)) == 1  # one orientation: its scale is fx's
+    trend = lv["trend"] / spread
+    st = replace(
+        st,
+        pose_groups=groups if len(set(groups)) > 1 and np.bincount(groups).min() >= 2 else None,
+        group_sigma=tuple(lv["group"]),
+        trend_groups=trend_groups if dims else None,
+        trend_coords=coords if dims else None,
+        trend_dims=dims,
+        trend_sigma=(trend[0], SIGMA_FLOOR[1] if fixed else trend[1]) if dims else None,
+        trend_scale_fixed=fixed,
+        common_map=common,
+        common_rotation=rotation,
+        common_sigma=(lv["field"][0] / share[0], lv["field"][1] / max(share[1], 1e-3))
+        if common is not None
+        else None,
+        common_spread=share,
+    )
+    size = {k: sl.stop - sl.start for k, sl in BundleModel(problem, st).slices.items()}
+    n = (size.get("U", 0) // 6, size.get("V", 0), size.get("W", 0))
+    state = with_pose_corrections(truth, len(T), *n)
+    names, cov = fisher_covariance(problem, st, state, sigma_px)
+    return propagate(layout_of(problem, st, truth), names, cov)

@@ -50,10 +50,6 @@ def real_cell(packaged: str, cameras: dict) -> dict:
     data["robot"].pop("start_pose", None)
     data["cameras"] = cameras
     data.pop("simulation")
-    if "hand_eye_rot_std_deg" in data["plan"].get("goal", {}):
-        # a real cell starts where the arm stands (unknown): the simulated OAK cell's tight
-        # goal does not fit in a minute from there
-        data["plan"]["goal"]["hand_eye_rot_std_deg"] = 0.02
     return data
 
 

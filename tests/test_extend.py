@@ -40,6 +40,16 @@ def _planners(plan: Plan) -> Plan:
     return replace(plan, predicted_std={"cam.fx_rel": 1e-4})
 
 
+def test_the_learned_accuracy_is_its_sources_together(solved):
+    """What an extension plans with: the level of each of the arm's sources the solve learned,
+    whose root sum of squares is the accuracy the result reports."""
+    acc = solved[0].robot_accuracy
+    assert acc.estimated and "pose" in acc.levels and len(acc.levels) >= 2
+    t_mm, deg = np.sqrt(np.sum(np.square(list(acc.levels.values())), axis=0))
+    assert t_mm == pytest.approx(acc.translation_mm, rel=1e-9)
+    assert deg == pytest.approx(acc.rotation_deg, rel=1e-9)
+
+
 def test_an_accepted_result_is_not_extended(solved):
     result, session, plan = solved
     assert extend_for_limits(load_config(), _planners(plan), result, Limits(), session) == (
@@ -71,7 +81,9 @@ def test_extension_keeps_the_recorded_part_and_visits_new_orientations():
     goal = PlanGoal(3.5e-3, 0.14, 1.4)
     # the recorded frames gave a hand-eye translation 2.8 mm, far above the prediction for them
     achieved = {"fx_rel_std": 1e-4, "hand_eye_rot_std_deg": 0.05, "hand_eye_t_std_mm": 2.8}
-    rep = extend_plan(cfg, plan, goal, achieved, 0.05, 0.7, 0.04, 60.0)
+    # the arm's accuracy as the first part's solve learned it: all of it per pose
+    levels = {"pose": (0.7, 0.04)}
+    rep = extend_plan(cfg, plan, goal, achieved, 0.05, 0.7, 0.04, 60.0, levels)
     x = rep.plan
     n = len(plan.groups)
     assert len(x.groups) > n
@@ -87,7 +99,7 @@ def test_extension_keeps_the_recorded_part_and_visits_new_orientations():
     before_s, _, _ = dry_run(plan, cfg)
     assert robot_s - before_s <= 60.0
     # recorded frames as good as their prediction need fewer new frames than ones far worse
-    easy = extend_plan(cfg, plan, goal, {}, 0.05, 0.7, 0.04, 60.0).plan
+    easy = extend_plan(cfg, plan, goal, {}, 0.05, 0.7, 0.04, 60.0, levels).plan
     assert easy.n_poses < x.n_poses
 
 
