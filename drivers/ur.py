@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from slidecal.drivers import ur_kinematics as urk
-from slidecal.drivers.ur_pose import T_from_ur_pose, pendant_text, ur_pose_from_T
+from slidecal.drivers.ur_pose import T_from_ur_pose, describe, ur_pose_from_T
 from slidecal.solver.errors import HardwareFault, InputError
 from slidecal.solver.geometry import rvec_from_R
 
@@ -141,14 +141,6 @@ def probe_controller(host: str, timeout_s: float) -> tuple[int, int, int, int]:
         raise fail(RTDE_PORT, e) from None
 
 
-def move_time_s(distance: float, max_speed: float, max_accel: float) -> float:
-    """Rest-to-rest time of a trapezoidal profile (metres or radians, per second, per s^2)."""
-    d = abs(float(distance))
-    if d <= max_speed**2 / max_accel:
-        return 2.0 * float(np.sqrt(d / max_accel))
-    return d / max_speed + max_speed / max_accel
-
-
 def cell_options(robot_section: Any) -> dict[str, Any]:
     """``URRobot`` keyword arguments from a cell file's ``robot:`` section: ``take_control``
     (consent to stop a running program), ``payload: {mass_kg, cog_m}`` (flange frame, metres; set at
@@ -156,15 +148,10 @@ def cell_options(robot_section: Any) -> dict[str, Any]:
     0-23)."""
     raw = dict(robot_section or {})
     out: dict[str, Any] = {}
-    take = raw.get("take_control", False)
-    if not isinstance(take, bool):
-        raise InputError(f"must be true or false, got {take!r}", where="robot.take_control")
-    out["take_control"] = take
-    upper = raw.get("upper_range_registers", False)
-    if not isinstance(upper, bool):
-        raise InputError(f"must be true or false, got {upper!r}",
-                         where="robot.upper_range_registers")
-    out["upper_range_registers"] = upper
+    for key in ("take_control", "upper_range_registers"):
+        out[key] = raw.get(key, False)
+        if not isinstance(out[key], bool):
+            raise InputError(f"must be true or false, got {out[key]!r}", where=f"robot.{key}")
     payload = raw.get("payload")
     if payload is not None:
         if not isinstance(payload, dict) or "mass_kg" not in payload or set(payload) - {
@@ -181,11 +168,6 @@ def cell_options(robot_section: Any) -> dict[str, Any]:
                              where="robot.payload.mass_kg") from None
         out["payload_cog_m"] = payload.get("cog_m")
     return out
-
-
-def _describe(T: np.ndarray) -> str:
-    pose = ", ".join(f"{v:.4f}" for v in ur_pose_from_T(T))
-    return f"[{pose}] ({pendant_text(T)})"
 
 
 class URRobot:
@@ -275,10 +257,14 @@ class URRobot:
                 f"ur-rtde is not importable ({e}); install it with 'pip install ur-rtde>=1.6'"
             ) from None
         where = f"robot at {self.hostname}"
-        running, program_state = self._ask_dashboard(dashboard_client, where)
-        self._check_state(rtde_receive, where, running, program_state)
-        self._open_control(rtde_control, where)
-        self._set_tool(where)
+        try:  # every refusal below disconnects first
+            running, program_state = self._ask_dashboard(dashboard_client, where)
+            self._check_state(rtde_receive, where, running, program_state)
+            self._open_control(rtde_control, where)
+            self._set_tool(where)
+        except BaseException:
+            self.close()
+            raise
         self._last_timestamp = -np.inf
         self._fresh()
 
@@ -298,7 +284,6 @@ class URRobot:
                 ("PLAYING", "PAUSED", "PAUSING", "RESUMING")
             )
         except RuntimeError as e:
-            self.close()
             raise HardwareFault(
                 f"the dashboard server of the {where} (port 29999) does not answer ({e}); "
                 "check that the controller is booted and not in a pop-up"
@@ -314,13 +299,11 @@ class URRobot:
             try:
                 remote = bool(self._dashboard.isInRemoteControl())
             except RuntimeError as e:  # the dashboard's socket failed (boost system_error)
-                self.close()
                 raise HardwareFault(
                     f"the dashboard server of the {where} (port 29999) stopped answering ({e}); "
                     "check the network and that the controller is not in a pop-up"
                 ) from None
             if not remote:
-                self.close()
                 raise HardwareFault(
                     f"{where} is in local control; switch it to remote control on the teach "
                     "pendant"
@@ -354,14 +337,12 @@ class URRobot:
                 self.hostname, self.frequency, [], False, self.upper_range_registers
             )
         except RuntimeError as e:
-            self.close()
             raise HardwareFault(
                 f"cannot connect to the {where} over RTDE (port 30004): {e}; check the network "
                 "and that the controller is on"
             ) from None
         robot_mode = int(self._receive.getRobotMode())
         if robot_mode != ROBOT_MODE_RUNNING:
-            self.close()
             raise HardwareFault(
                 f"{where} is not ready: robot mode {robot_mode} "
                 f"({ROBOT_MODES.get(robot_mode, 'unknown')}); power it on and release the brakes "
@@ -369,7 +350,6 @@ class URRobot:
             )
         safety_mode = int(self._receive.getSafetyMode())
         if safety_mode not in SAFETY_MODES_OK:
-            self.close()
             raise HardwareFault(
                 f"{where} is not in normal safety mode: {safety_mode} "
                 f"({SAFETY_MODES.get(safety_mode, 'unknown')})"
@@ -383,7 +363,6 @@ class URRobot:
             self.controller_info["program_state"] = program_state
         if running:
             if not self.take_control and LEFTOVER_SCRIPT in program_state.split():
-                self.close()
                 raise HardwareFault(
                     f"ur-rtde's control script ({program_state}) still runs on the {where}: "
                     "an earlier connection lost its link before it could stop it (no program of "
@@ -391,7 +370,6 @@ class URRobot:
                     "with 'take_control: true' in the cell file's robot section, then resume"
                 )
             if not self.take_control:
-                self.close()
                 raise HardwareFault(
                     f"a program is running on the {where} ({program_state}); connecting would "
                     "stop it. Stop it on the pendant, or allow slidecal to stop it with "
@@ -409,7 +387,6 @@ class URRobot:
                     int(flags.FLAG_UPPER_RANGE_REGISTERS) if self.upper_range_registers else 0)
             )
         except RuntimeError as e:
-            self.close()
             if "already in use" in str(e):
                 raise HardwareFault(
                     f"the RTDE input registers ur-rtde needs are taken on the {where}: "
@@ -425,14 +402,12 @@ class URRobot:
     def _set_tool(self, where: str) -> None:
         """The TCP offset (the cell's, or the controller's) and the payload."""
         if self.tcp is not None and not self._control.setTcp(ur_pose_from_T(self.tcp)):
-            self.close()
             raise HardwareFault(f"the {where} refused the TCP offset {ur_pose_from_T(self.tcp)}")
         try:  # ur-rtde raises RuntimeError when the control script does not answer
             self._T_flange_tcp = (
                 self.tcp if self.tcp is not None else T_from_ur_pose(self._control.getTCPOffset())
             )
         except (RuntimeError, ValueError) as e:
-            self.close()
             raise HardwareFault(
                 f"the {where} did not give its TCP offset ({e}); check the pendant for a "
                 "message, or set robot.tcp in the cell file"
@@ -445,14 +420,12 @@ class URRobot:
                 except RuntimeError:
                     cog = []
                 if len(cog) != 3:
-                    self.close()
                     raise InputError(
                         f"PolyScope {self.controller_info['polyscope_version']} cannot keep the "
                         "payload's centre of gravity and did not report it; give cog_m",
                         where="robot.payload",
                     )
             if not self._control.setPayload(self.payload_kg, cog):
-                self.close()
                 raise HardwareFault(
                     f"the {where} refused the payload {self.payload_kg} kg at {cog} m; check "
                     "the values against the arm's rated payload"
@@ -567,7 +540,7 @@ class URRobot:
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise InputError(f"move_linear needs a finite 4x4 T_base_tool, got shape {T.shape}")
         T_start = self.measured_pose()
-        what = f"moveL to {_describe(T)} failed"
+        what = f"moveL to {describe(T)} failed"
         try:
             ok = self._control.moveL(ur_pose_from_T(T), float(speed_mps), float(accel_mps2), True)
         except RuntimeError as e:
@@ -579,7 +552,8 @@ class URRobot:
         d = float(np.linalg.norm(T[:3, 3] - T_start[:3, 3]))
         angle = float(np.linalg.norm(rvec_from_R(T_start[:3, :3].T @ T[:3, :3])))
         full_speed_s = max(
-            move_time_s(d, speed_mps, accel_mps2), move_time_s(angle, speed_mps, accel_mps2)
+            urk.trapezoid_time_s(d, speed_mps, accel_mps2),
+            urk.trapezoid_time_s(angle, speed_mps, accel_mps2),
         )
         t0 = time.monotonic()
         slowest = 1.0
@@ -608,8 +582,8 @@ class URRobot:
             ):
                 self.stop()
                 raise HardwareFault(
-                    f"moveL to {_describe(T)} was accepted but the robot is "
-                    f"{miss * 1000:.1f} mm and {miss_deg:.2f} deg away, at {_describe(T_now)}, "
+                    f"moveL to {describe(T)} was accepted but the robot is "
+                    f"{miss * 1000:.1f} mm and {miss_deg:.2f} deg away, at {describe(T_now)}, "
                     + ("at rest" if at_rest else f"still moving after {now - t0:.1f} s")
                     + f" (running at {slider:.0%} of the commanded speed: the pendant's slider "
                     "times the trajectory limiter); check the pendant and the TCP setting"
@@ -651,7 +625,7 @@ class URRobot:
         """``HardwareFault`` when a "no" from the controller came from a stopped control script
         (ur-rtde answers False / [] then, as for an unreachable pose)."""
         if not self._control.isProgramRunning():
-            raise HardwareFault(self._diagnose(f"the reachability query for {_describe(T)} failed"))
+            raise HardwareFault(self._diagnose(f"the reachability query for {describe(T)} failed"))
 
     def is_reachable(self, T_base_tool: np.ndarray) -> bool:
         """An IK solution near the current joints, inside the joint and safety limits: the
@@ -687,6 +661,6 @@ class URRobot:
                 return False
         except RuntimeError as e:
             raise HardwareFault(
-                f"{self._diagnose(f'the reachability query for {_describe(T)} failed')} ({e})"
+                f"{self._diagnose(f'the reachability query for {describe(T)} failed')} ({e})"
             ) from None
         return self.model is None or urk.singularity(np.asarray(q), self.model) is None

@@ -14,9 +14,10 @@ from typing import Any
 import numpy as np
 
 from slidecal.drivers import ur_kinematics as urk
-from slidecal.drivers.ur_pose import T_from_ur_pose, pendant_text, ur_pose_from_T
+from slidecal.drivers.ur_kinematics import trapezoid_time_s
+from slidecal.drivers.ur_pose import T_from_ur_pose, describe
 from slidecal.solver.errors import HardwareFault, InputError
-from slidecal.solver.geometry import R_from_rvec, Rx, Rz, T_from_Rt, rvec_from_R
+from slidecal.solver.geometry import R_from_rvec, Rx, T_from_Rt, rvec_from_R
 
 #: Straight lines are checked at least every 5 mm and every 1 deg of tool rotation.
 STEP_M = 0.005
@@ -32,19 +33,17 @@ SPEED_LIMITS = (
     "max_angular_accel_deg_s2",
 )
 FAULT_KINDS = ("protective_stop", "emergency_stop", "disconnect", "timeout")
+#: The stops a fault leaves the arm in: what the controller calls it and what the operator does.
+STOPS = {
+    "protective_stop": (
+        "protective stop", "check the cell for a collision, unlock it on the pendant and restart"
+    ),
+    "emergency_stop": (
+        "robot emergency stop", "release the emergency-stop button and reset it on the pendant"
+    ),
+}
 #: Cycles per joint turn of the simulated gearboxes' transmission error (a 12 deg period).
 GEAR_CYCLES = 30.0
-
-
-def trapezoid_time_s(distance: float, max_speed: float, max_accel: float) -> float:
-    """Duration of a rest-to-rest trapezoidal move over ``distance`` (consistent units, linear or
-    angular): ``2 sqrt(d / a)`` when too short to reach ``max_speed``, else ``d / v + v / a``."""
-    d = abs(float(distance))
-    if d == 0.0:
-        return 0.0
-    if d <= max_speed**2 / max_accel:
-        return 2.0 * float(np.sqrt(d / max_accel))
-    return d / max_speed + max_speed / max_accel
 
 
 def interpolate_pose(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
@@ -132,19 +131,8 @@ class KinematicError:
         d = np.array([model.d1, 0.0, 0.0, model.d4, model.d5, model.d6]) + self.d_d
         a = np.array([0.0, model.a2, model.a3, 0.0, 0.0, 0.0]) + self.d_a
         alpha = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0]) + self.d_alpha
-        T = np.eye(4)
-        for i in range(6):
-            L = np.eye(4)
-            Rzt = Rz(theta[i])
-            L[:3, :3] = Rzt @ Rx(alpha[i])
-            L[:3, 3] = Rzt @ np.array([a[i], 0.0, 0.0]) + np.array([0.0, 0.0, d[i]])
-            T = T @ L
+        T = urk.dh_chain(theta, d, a, tuple(Rx(v) for v in alpha))
         return T if T_flange_tcp is None else T @ T_flange_tcp
-
-
-def _describe(T: np.ndarray) -> str:
-    pose = ", ".join(f"{v:.4f}" for v in ur_pose_from_T(T))
-    return f"[{pose}] ({pendant_text(T)})"
 
 
 class SimulatedUR:
@@ -250,7 +238,7 @@ class SimulatedUR:
             ]
             if not sols:
                 raise InputError(
-                    f"start pose {_describe(T_start)} is out of reach or singular for a "
+                    f"start pose {describe(T_start)} is out of reach or singular for a "
                     f"{model.name}; move it closer to the base or give start_q",
                     where="robot.start_pose",
                 )
@@ -349,7 +337,7 @@ class SimulatedUR:
         qs = []
         for k in range(1, n + 1):
             T = interpolate_pose(T0, T1, k / n)
-            where = f"pose {_describe(T)} ({k}/{n} along the move to {_describe(T1)})"
+            where = f"pose {describe(T)} ({k}/{n} along the move to {describe(T1)})"
             if self.z_min_m is not None and T[2, 3] < self.z_min_m:
                 raise HardwareFault(
                     f"{where} is below the safety plane z = {self.z_min_m} m; plan higher poses"
@@ -402,23 +390,14 @@ class SimulatedUR:
             if half > 0:
                 self._q = qs[half - 1]
                 self._T = urk.fk(self._q, self.model, self.T_flange_tcp)
-            if fault == "protective_stop":
+            if fault in STOPS:
                 self._time_s += duration / 2
-                self._state_fault = (
-                    f"protective stop during move {move_index} at {_describe(self._T)}; "
-                    "check the cell for a collision, unlock it on the pendant and restart"
-                )
-                raise HardwareFault(self._state_fault)
-            if fault == "emergency_stop":
-                self._time_s += duration / 2
-                self._state_fault = (
-                    f"robot emergency stop during move {move_index} at {_describe(self._T)}; "
-                    "release the emergency-stop button and reset it on the pendant"
-                )
+                what, fix = STOPS[fault]
+                self._state_fault = f"{what} during move {move_index} at {describe(self._T)}; {fix}"
                 raise HardwareFault(self._state_fault)
             self._time_s += self.move_timeout_s
             raise HardwareFault(
-                f"move {move_index} to {_describe(T1)} did not finish within "
+                f"move {move_index} to {describe(T1)} did not finish within "
                 f"{self.move_timeout_s} s; check that the robot is in remote control and running"
             )
         self._q = qs[-1]
