@@ -279,14 +279,8 @@ class OakRig:
         for name, socket in self.sockets.items():
             size = self.sizes[name]
             modes = [
-                {
-                    "width": int(c.width),
-                    "height": int(c.height),
-                    "min_fps": float(c.minFps),
-                    "max_fps": float(c.maxFps),
-                    "fov": (float(c.fov.x), float(c.fov.y), float(c.fov.width),
-                            float(c.fov.height)),
-                }
+                _mode(c, fov=(float(c.fov.x), float(c.fov.y), float(c.fov.width),
+                              float(c.fov.height)))
                 for c in features[socket].configs
             ]
             try:
@@ -493,16 +487,18 @@ def _features_dict(f: Any) -> dict[str, Any]:
         "height": int(f.height),
         "calibration_resolution": None if calib is None else [int(calib.width), int(calib.height)],
         "autofocus": bool(f.hasAutofocus),
-        "modes": [
-            {
-                "width": int(c.width),
-                "height": int(c.height),
-                "min_fps": float(c.minFps),
-                "max_fps": float(c.maxFps),
-                "type": _text(c.type),
-            }
-            for c in f.configs
-        ],
+        "modes": [_mode(c, type=_text(c.type)) for c in f.configs],
+    }
+
+
+def _mode(c: Any, **more: Any) -> dict[str, Any]:
+    """A sensor mode (``CameraSensorConfig``) as plain data, with ``more``."""
+    return {
+        "width": int(c.width),
+        "height": int(c.height),
+        "min_fps": float(c.minFps),
+        "max_fps": float(c.maxFps),
+        **more,
     }
 
 

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from slidecal.drivers import ur_kinematics as urk
+from slidecal.drivers.base import checked_move
 from slidecal.drivers.ur_pose import T_from_ur_pose, describe, ur_pose_from_T
 from slidecal.solver.errors import HardwareFault, InputError
 from slidecal.solver.geometry import rvec_from_R
@@ -168,6 +169,11 @@ def cell_options(robot_section: Any) -> dict[str, Any]:
                              where="robot.payload.mass_kg") from None
         out["payload_cog_m"] = payload.get("cog_m")
     return out
+
+
+def _at_rest(tcp_speed: np.ndarray) -> bool:
+    """Below 1 mm/s and 1 mrad/s."""
+    return bool(np.linalg.norm(tcp_speed[:3]) < 1e-3 and np.linalg.norm(tcp_speed[3:]) < 1e-3)
 
 
 class URRobot:
@@ -532,13 +538,7 @@ class URRobot:
         ``arrival_tol_m`` and ``_deg``.
         """
         self._require()
-        if not 0 < speed_mps <= self.max_speed_mps:
-            raise InputError(f"speed_mps must be in (0, {self.max_speed_mps}], got {speed_mps}")
-        if not 0 < accel_mps2 <= self.max_accel_mps2:
-            raise InputError(f"accel_mps2 must be in (0, {self.max_accel_mps2}], got {accel_mps2}")
-        T = np.asarray(T_base_tool, dtype=float)
-        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-            raise InputError(f"move_linear needs a finite 4x4 T_base_tool, got shape {T.shape}")
+        T = checked_move(self, T_base_tool, speed_mps, accel_mps2)
         T_start = self.measured_pose()
         what = f"moveL to {describe(T)} failed"
         try:
@@ -573,7 +573,7 @@ class URRobot:
             expected_s = full_speed_s / slowest
             miss = float(np.linalg.norm(T_now[:3, 3] - T[:3, 3]))
             miss_deg = float(np.degrees(np.linalg.norm(rvec_from_R(T_now[:3, :3].T @ T[:3, :3]))))
-            at_rest = np.linalg.norm(speed[:3]) < 1e-3 and np.linalg.norm(speed[3:]) < 1e-3
+            at_rest = _at_rest(speed)
             if at_rest and miss <= self.arrival_tol_m and miss_deg <= self.arrival_tol_deg:
                 return
             now = time.monotonic()
@@ -599,7 +599,7 @@ class URRobot:
         while True:
             self._fresh()
             speed = np.asarray(self._receive.getActualTCPSpeed(), dtype=float)
-            if np.linalg.norm(speed[:3]) < 1e-3 and np.linalg.norm(speed[3:]) < 1e-3:
+            if _at_rest(speed):
                 break
             if time.monotonic() > deadline:
                 self.stop()

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from slidecal.drivers import ur_kinematics as urk
+from slidecal.drivers.base import checked_move
 from slidecal.drivers.ur_kinematics import trapezoid_time_s
 from slidecal.drivers.ur_pose import T_from_ur_pose, describe
 from slidecal.solver.errors import HardwareFault, InputError
@@ -187,9 +188,9 @@ class SimulatedUR:
         self._T = urk.fk(self._q, model, self.T_flange_tcp)
         self.kinematic_error = kinematic_error
         self._stop_error = np.eye(4)  # this stop's repeatability error (true = fk_true @ it)
-        self._time_s = 0.0
+        self.robot_time_s = 0.0  # simulated time spent moving and settling
         self._connected = False
-        self._moves = 0
+        self.moves = 0  # move_linear calls made, refused ones included
         self._faults: dict[int, str] = {}
         self._state_fault: str | None = None
         self.stop_calls = 0
@@ -279,16 +280,6 @@ class SimulatedUR:
         """The current joint vector (6,), radians."""
         return self._q.copy()
 
-    @property
-    def robot_time_s(self) -> float:
-        """Simulated time spent moving and settling, seconds."""
-        return self._time_s
-
-    @property
-    def moves(self) -> int:
-        """How many ``move_linear`` calls were made (including refused ones)."""
-        return self._moves
-
     def inject_fault(self, kind: str, at_move: int) -> None:
         """Make ``move_linear`` call number ``at_move`` (from 0) fail: ``"protective_stop"`` /
         ``"emergency_stop"`` stop halfway and raise until :meth:`clear_fault`; ``"disconnect"``
@@ -365,16 +356,10 @@ class SimulatedUR:
     def move_linear(self, T_base_tool: np.ndarray, speed_mps: float, accel_mps2: float) -> None:
         """Move the TCP in a straight line to ``T_base_tool`` (4, 4), metres; block until there.
         ``HardwareFault`` when the line leaves the workspace or a fault occurs."""
-        move_index = self._moves
-        self._moves += 1
+        move_index = self.moves
+        self.moves += 1
         self._check_ready()
-        if not (0.0 < speed_mps <= self.max_speed_mps):
-            raise InputError(f"speed_mps must be in (0, {self.max_speed_mps}], got {speed_mps}")
-        if not (0.0 < accel_mps2 <= self.max_accel_mps2):
-            raise InputError(f"accel_mps2 must be in (0, {self.max_accel_mps2}], got {accel_mps2}")
-        T1 = np.asarray(T_base_tool, dtype=float)
-        if T1.shape != (4, 4) or not np.all(np.isfinite(T1)):
-            raise InputError(f"move_linear needs a finite 4x4 T_base_tool, got shape {T1.shape}")
+        T1 = checked_move(self, T_base_tool, speed_mps, accel_mps2)
         T0 = self._T
         length = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
         angle = float(np.linalg.norm(rvec_from_R(T0[:3, :3].T @ T1[:3, :3])))
@@ -391,11 +376,11 @@ class SimulatedUR:
                 self._q = qs[half - 1]
                 self._T = urk.fk(self._q, self.model, self.T_flange_tcp)
             if fault in STOPS:
-                self._time_s += duration / 2
+                self.robot_time_s += duration / 2
                 what, fix = STOPS[fault]
                 self._state_fault = f"{what} during move {move_index} at {describe(self._T)}; {fix}"
                 raise HardwareFault(self._state_fault)
-            self._time_s += self.move_timeout_s
+            self.robot_time_s += self.move_timeout_s
             raise HardwareFault(
                 f"move {move_index} to {describe(T1)} did not finish within "
                 f"{self.move_timeout_s} s; check that the robot is in remote control and running"
@@ -403,7 +388,7 @@ class SimulatedUR:
         self._q = qs[-1]
         self._T = urk.fk(self._q, self.model, self.T_flange_tcp)
         self._new_stop()
-        self._time_s += duration
+        self.robot_time_s += duration
         self.move_log.append(self._T.copy())
         if fault == "disconnect":
             self._state_fault = (
@@ -416,7 +401,7 @@ class SimulatedUR:
         if settle_s < 0:
             raise InputError(f"settle_s must not be negative, got {settle_s}")
         self._check_ready()
-        self._time_s += float(settle_s)
+        self.robot_time_s += float(settle_s)
 
     def stop(self) -> None:
         """Record the stop (the simulated arm is never moving between calls)."""
