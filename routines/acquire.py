@@ -202,16 +202,12 @@ def _open_log(out: Path, cfg: CellConfig, specs: tuple, recording: bool, spawn: 
 def _abort(robot, writer, log, prog: Progress, e: BaseException, out: Path) -> None:
     """Stop the robot, record what happened, mark the session aborted, raise again."""
     robot.stop()
+    kind, msg = "fault", str(e)
     if isinstance(e, KeyboardInterrupt):
         kind = "interrupted"
-        msg = str(e) if isinstance(e, Interrupted) else "stopped by Ctrl-C"
-        msg = f"{msg} (robot stopped)"
+        msg = f"{msg if isinstance(e, Interrupted) else 'stopped by Ctrl-C'} (robot stopped)"
     elif isinstance(e, OSError):
-        kind = "fault"
         msg = f"writing the session failed: {e.strerror or e} ({e.filename})"
-    else:
-        kind = "fault"
-        msg = str(e)
     n = writer.n_frames
     try:
         writer.add_event(kind, msg, frames_kept=n, robot_time_s=clock(robot))
@@ -319,17 +315,16 @@ def acquire(
 ) -> None:
     """Move through the plan from pose ``start`` (execution order), capture, detect, record;
     ``faults``: a fault injector (``--fault``) told before each frame's move."""
-    i = 0
+    n = 0  # poses up to the end of this group
     for g, group in enumerate(plan.groups):
-        if i + len(group) <= start:
-            i += len(group)
+        n += len(group)
+        if n <= start:
             continue
         if plan.via is not None:
-            prog.step(i, "moving to the via pose")
+            prog.step(n - len(group), "moving to the via pose")
             robot.move_linear(plan.via, plan.speed_mps, plan.accel_mps2)
-        for T in group:
+        for i, T in enumerate(group, start=n - len(group)):
             if i < start:
-                i += 1
                 continue
             prog.step(i, f"group {g + 1}: moving")
             if faults is not None:
@@ -348,4 +343,3 @@ def acquire(
                 log.frame(fid, T_meas, images, detections, clock(robot))
             counts = ", ".join(f"{n} {q['n_corners']} corners" for n, q in quality.items())
             prog.frame_done(f"group {g + 1}, frame id {fid}: {counts}")
-            i += 1

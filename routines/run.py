@@ -265,14 +265,11 @@ def _new_session(q: RunRequest, cfg: CellConfig) -> Path:
 
 def _plan(plan: str | Path | Plan | None, cfg: CellConfig) -> Plan:
     """The plan to run: a user's, checked before the robot moves, or the planner's."""
-    if isinstance(plan, str | Path):
-        user = read_plan(plan)
-        check_user_plan(user, cfg, str(plan))
-        return user
-    if isinstance(plan, Plan):
-        check_user_plan(plan, cfg, "plan")
-        return plan
-    return make_plan(cfg).plan
+    if plan is None:
+        return make_plan(cfg).plan
+    user = plan if isinstance(plan, Plan) else read_plan(plan)
+    check_user_plan(user, cfg, "plan" if isinstance(plan, Plan) else str(plan))
+    return user
 
 
 def _install(
