@@ -91,6 +91,13 @@ def _recv_exactly(sock: socket.socket, n: int) -> bytes:
     return data
 
 
+def _rtde_answer(sock: socket.socket, request: bytes) -> bytes:
+    """Send an RTDE request, return the answer's payload."""
+    sock.sendall(request)
+    size, _ = struct.unpack(">HB", _recv_exactly(sock, 3))
+    return _recv_exactly(sock, size - 3)
+
+
 def probe_controller(host: str, timeout_s: float) -> tuple[int, int, int, int]:
     """Check within ``timeout_s`` (per port) that ``host`` answers as a UR controller (dashboard
     welcome line, RTDE protocol 2) with plain sockets, before ur-rtde's blocking constructors;
@@ -113,28 +120,20 @@ def probe_controller(host: str, timeout_s: float) -> tuple[int, int, int, int]:
     try:
         with socket.create_connection((host, DASHBOARD_PORT), timeout=timeout_s) as s:
             s.settimeout(timeout_s)
-            welcome = b""
-            while b"\n" not in welcome:
-                chunk = s.recv(256)
-                if not chunk:
-                    raise ConnectionResetError("closed by the controller")
-                welcome += chunk
+            while _recv_exactly(s, 1) != b"\n":  # the welcome line
+                pass
     except OSError as e:
         raise fail(DASHBOARD_PORT, e) from None
     try:
         with socket.create_connection((host, RTDE_PORT), timeout=timeout_s) as s:
             s.settimeout(timeout_s)
-            s.sendall(struct.pack(">HBH", 5, ord("V"), 2))
-            size, _ = struct.unpack(">HB", _recv_exactly(s, 3))
-            accepted = _recv_exactly(s, size - 3)
+            accepted = _rtde_answer(s, struct.pack(">HBH", 5, ord("V"), 2))
             if not accepted or accepted[0] != 1:
                 raise HardwareFault(
                     f"{where} refused RTDE protocol version 2; it needs PolyScope 3.10 / 5.0 or "
                     "newer"
                 )
-            s.sendall(struct.pack(">HB", 3, ord("v")))
-            size, _ = struct.unpack(">HB", _recv_exactly(s, 3))
-            payload = _recv_exactly(s, size - 3)
+            payload = _rtde_answer(s, struct.pack(">HB", 3, ord("v")))
             if len(payload) < 16:
                 raise ConnectionResetError("short controller-version answer")
             return tuple(struct.unpack(">4I", payload[:16]))  # type: ignore[return-value]
@@ -444,20 +443,14 @@ class URRobot:
         control, receive, dashboard = self._control, self._receive, self._dashboard
         live = self._link_alive()
         self._control = self._receive = self._dashboard = None
-        control_methods = ("stopScript", "disconnect") if live else ("disconnect",)
-        for obj, methods in ((control, control_methods), (receive, ("disconnect",))):
-            if obj is None:
-                continue
-            for m in methods:
+        calls = [(control, "stopScript")] if live else []
+        calls += [(control, "disconnect"), (receive, "disconnect"), (dashboard, "disconnect")]
+        for obj, method in calls:
+            if obj is not None:
                 try:
-                    getattr(obj, m)()
+                    getattr(obj, method)()
                 except RuntimeError:
                     pass
-        if dashboard is not None:
-            try:
-                dashboard.disconnect()
-            except RuntimeError:
-                pass
 
     # ------------------------------------------------------------------------------ checking
     def _require(self) -> None:

@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from datetime import datetime
 from functools import partial
 from pathlib import Path
@@ -374,7 +374,10 @@ def frames_on_disk(session_dir: str | Path) -> int:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The ``slidecal run`` options."""
     p.add_argument("--config", help="cell description (default: the simulated default cell)")
-    p.add_argument("--out", help="session directory to create (default: sessions/<time>)")
+    p.add_argument(
+        "--out", dest="out_dir", metavar="OUT",
+        help="session directory to create (default: sessions/<time>)",
+    )
     p.add_argument(
         "--plan",
         help="plan.yaml to execute, checked before the robot moves (default: the planner "
@@ -382,7 +385,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--spawn", action="store_true", help="open the rerun viewer live")
     p.add_argument("--quiet", action="store_true", help="no progress output")
-    p.add_argument("--no-recording", action="store_true", help="do not write recording.rrd")
+    p.add_argument(
+        "--no-recording", dest="recording", action="store_false", help="do not write recording.rrd"
+    )
     p.add_argument(
         "--seed",
         type=int,
@@ -391,6 +396,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--fault",
+        dest="faults",
         action="append",
         metavar="KIND@FRAME",
         help="simulated cells: inject a hardware fault (see slidecal.routines.ops.faults)",
@@ -410,7 +416,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--accept-drift",
-        action="store_true",
+        action="store_const",
+        const=True,
         help="install a result that differs from the installed one (verdict drifted)",
     )
     p.add_argument(
@@ -427,23 +434,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Run, print the summary, exit with the verdict's code."""
-    outcome = run_calibration(
-        RunRequest(
-            args.config,
-            plan=args.plan,
-            out_dir=args.out,
-            progress=False if args.quiet else None,
-            recording=not args.no_recording,
-            spawn=args.spawn,
-            seed=args.seed,
-            install=args.install,
-            force=args.force,
-            accept_drift=True if args.accept_drift else None,
-            installed=args.installed,
-            resume=args.resume,
-            retries=args.retries,
-            faults=args.fault,
-        )
-    )
+    given = {f.name: getattr(args, f.name) for f in fields(RunRequest) if hasattr(args, f.name)}
+    outcome = run_calibration(RunRequest(**given, progress=False if args.quiet else None))
     print_outcome(outcome, args.quiet)
     return outcome.exit_code
