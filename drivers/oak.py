@@ -725,17 +725,11 @@ def write_oak_calibration_json(
     result: CalibrationResult,
     path: str | Path,
     sockets: Mapping[str, str] | None = None,
-    *,
-    stereo: tuple[str, str] | None = ("left", "right"),
-    base: Any = None,
-    lens_positions: Mapping[str, int] | None = None,
-    streams: Mapping[str, Mapping[str, Any]] | None = None,
+    **options: Any,
 ) -> Path:
-    """Write the result as a depthai calibration JSON (``eepromToJsonFile``) from ``base`` (see
-    :func:`oak_calibration_handler`); returns the path."""
-    handler = oak_calibration_handler(
-        result, sockets, stereo=stereo, base=base, lens_positions=lens_positions, streams=streams
-    )
+    """Write the result as a depthai calibration JSON (``eepromToJsonFile``); ``options``: the
+    keywords of :func:`oak_calibration_handler`. Returns the path."""
+    handler = oak_calibration_handler(result, sockets, **options)
     path = Path(path)
     if not handler.eepromToJsonFile(str(path)):
         raise InputError("depthai could not write the file; check the directory", where=str(path))

@@ -5,6 +5,7 @@ frame; on a fault or an interrupt stop the robot and mark the session aborted.""
 from __future__ import annotations
 
 from collections.abc import Mapping
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -101,45 +102,38 @@ def record_session(
         robot, rig = _connect_real(cfg)
     if faults and not hasattr(faults, "before_frame"):
         faults = FaultInjector.for_simulated(faults, robot, rig)
-    lock = None
-    if lock_key is not None:
-        lock = Lock(cell_lock_path(lock_key), f"the cell ({lock_key})")
-        lock.acquire()
-        if lock.stale:
+    lock = Lock(cell_lock_path(lock_key), f"the cell ({lock_key})") if lock_key else None
+    with lock or nullcontext(), signals_as_interrupt():
+        if lock is not None and lock.stale:
             prog.event(lock.stale)
-    try:
-        with signals_as_interrupt():
-            prog.message("connecting")
-            robot.connect()
+        prog.message("connecting")
+        robot.connect()
+        try:
+            rig.open()
+            specs = tuple(rig.specs)
+            check_plan(plan, cfg, robot.is_reachable)  # refuse before anything moves
+            found = {**record_devices(rig, out, cfg.standoff_m), **_controller(robot)}
+            writer = _open_writer(out, cfg, specs, truth, resume, {**found, **(extra or {})})
+            if not resume or extended:
+                write_plan(plan, out / "plan.yaml")
+            if extended:
+                writer.add_event("extended", extended)
+            elif resume:
+                writer.add_event("resumed", f"resumed at frame {start + 1} of {plan.n_poses}")
+                prog.event(f"resuming {out} at frame {start + 1} of {plan.n_poses}")
+            if log is None and (recording or spawn):
+                log = _open_log(out, cfg, specs, recording, spawn, writer)
             try:
-                rig.open()
-                specs = tuple(rig.specs)
-                check_plan(plan, cfg, robot.is_reachable)  # refuse before anything moves
-                found = {**record_devices(rig, out, cfg.standoff_m), **_controller(robot)}
-                writer = _open_writer(out, cfg, specs, truth, resume, {**found, **(extra or {})})
-                if not resume or extended:
-                    write_plan(plan, out / "plan.yaml")
-                if extended:
-                    writer.add_event("extended", extended)
-                elif resume:
-                    writer.add_event("resumed", f"resumed at frame {start + 1} of {plan.n_poses}")
-                    prog.event(f"resuming {out} at frame {start + 1} of {plan.n_poses}")
-                if log is None and (recording or spawn):
-                    log = _open_log(out, cfg, specs, recording, spawn, writer)
+                acquire(robot, rig, plan, cfg, writer, log, prog, start, retries, faults)
+            except (HardwareFault, KeyboardInterrupt, OSError) as e:
+                _abort(robot, writer, log, prog, e, out)
+            writer.finish("complete")
+        finally:
+            for closer in (rig.close, robot.close):
                 try:
-                    acquire(robot, rig, plan, cfg, writer, log, prog, start, retries, faults)
-                except (HardwareFault, KeyboardInterrupt, OSError) as e:
-                    _abort(robot, writer, log, prog, e, out)
-                writer.finish("complete")
-            finally:
-                for closer in (rig.close, robot.close):
-                    try:
-                        closer()
-                    except Exception:  # noqa: BLE001 - closing must not hide the real error
-                        pass
-    finally:
-        if lock is not None:
-            lock.release()
+                    closer()
+                except Exception:  # noqa: BLE001 - closing must not hide the real error
+                    pass
     return Recorded(robot, log)
 
 
