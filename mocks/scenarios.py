@@ -142,9 +142,7 @@ def make_group(
     xy = board_xy() if xy is None else xy
     T_board = np.asarray(T_board, dtype=float)
     Hs = np.array([H_true(K, R_cam_board, C0 + T) for T in T_board])
-    obs = []
-    for px in plane_pixels(Hs, xy):
-        obs.append((xy, px + sigma_px * rng.normal(size=px.shape)))
+    obs = [(xy, px + sigma_px * rng.normal(size=px.shape)) for px in plane_pixels(Hs, xy)]
     return Group(R_cam_board, C0, T_board, obs, Hs)
 
 

@@ -344,11 +344,7 @@ def extend_for_limits(
         "hand_eye_rot_std_deg": he.std_rot_deg if he.std_rot_deg is not None else float("nan"),
         "hand_eye_t_std_mm": he.std_t_mm if he.std_t_mm is not None else float("nan"),
     }
-    goal = PlanGoal(
-        fx_rel_std=EXTEND_MARGIN * limits.fx_rel_std,
-        hand_eye_rot_std_deg=EXTEND_MARGIN * limits.hand_eye_rot_std_deg,
-        hand_eye_t_std_mm=EXTEND_MARGIN * limits.hand_eye_t_std_mm,
-    )
+    goal = PlanGoal(**{k: EXTEND_MARGIN * getattr(limits, k) for k in achieved})
     acc = result.robot_accuracy
     t_mm = acc.translation_mm if acc is not None else cfg.options.robot_noise_m * 1000.0
     rot_deg = acc.rotation_deg if acc is not None else cfg.options.robot_noise_deg

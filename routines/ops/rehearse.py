@@ -130,9 +130,8 @@ def simulated_twin(cfg: CellConfig) -> CellConfig:
             where=f"{cfg.source}: cameras.list",
         )
     frames = MOUNTS["eye_in_hand" if cfg.mount == "eye_in_hand" else "eye_to_hand"]
-    he_key, tg_key = frames.hand_eye, frames.target
-    sim[he_key] = transform_to_dict(cfg.approx_T_hand_eye)
-    sim[tg_key] = transform_to_dict(cfg.approx_T_target)
+    sim[frames.hand_eye] = transform_to_dict(cfg.approx_T_hand_eye)
+    sim[frames.target] = transform_to_dict(cfg.approx_T_target)
     if "start_q" not in robot and "start_pose" not in robot:
         # the camera at the stand-off, looking straight at the middle of the target
         pts = np.asarray(cfg.target.points_m, dtype=float)
