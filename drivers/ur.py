@@ -21,10 +21,8 @@ from slidecal.solver.errors import HardwareFault, InputError
 from slidecal.solver.geometry import rvec_from_R
 
 ROBOT_MODE_RUNNING = 7
-SAFETY_MODE_NORMAL = 1
-SAFETY_MODE_REDUCED = 2
-#: Safety modes in which the arm works normally (reduced mode: lower speed limits, still normal).
-SAFETY_MODES_OK = (SAFETY_MODE_NORMAL, SAFETY_MODE_REDUCED)
+#: Safety modes in which the arm works normally: normal, and reduced (lower speed limits).
+SAFETY_MODES_OK = (1, 2)
 DASHBOARD_PORT, RTDE_PORT = 29999, 30004
 #: RTDE runtime states (``getRuntimeState``); only STOPPED means no program would be ended.
 RUNTIME_STATES = {0: "stopping", 1: "stopped", 2: "playing", 3: "pausing", 4: "paused",
@@ -68,11 +66,6 @@ def parse_version(text: str) -> tuple[int, ...] | None:
     """``(major, minor, bugfix[, build])`` from a PolyScope version line, None if it holds none."""
     m = re.search(r"(\d+)\.(\d+)\.(\d+)(?:\.(\d+))?", text or "")
     return None if m is None else tuple(int(g) for g in m.groups() if g is not None)
-
-
-def remote_control_queryable(version: tuple[int, ...]) -> bool:
-    """Whether the dashboard can say if the arm is in remote control (e-Series, PolyScope 5.6+)."""
-    return version[0] == 5 and version[1] >= 6
 
 
 def has_ik_query(version: tuple[int, ...]) -> bool:
@@ -300,7 +293,7 @@ class URRobot:
         except RuntimeError:
             serial = None  # PolyScope < 5.6 cannot say
         remote: bool | None = None
-        if remote_control_queryable(version):
+        if version[0] == 5 and version[1] >= 6:  # the dashboard says it (PolyScope 5.6+)
             try:
                 remote = bool(self._dashboard.isInRemoteControl())
             except RuntimeError as e:  # the dashboard's socket failed (boost system_error)
@@ -319,17 +312,17 @@ class URRobot:
                 self.model = urk.model_by_name(name)
             except InputError:
                 self.model = None
+        self._ik_on_controller = has_ik_query(version)
         self.controller_info = {
             "polyscope_version": ".".join(str(v) for v in version),
             "controller_version": ".".join(str(v) for v in rtde_version),
             "robot_model": model_text,
             "serial_number": serial,
             "remote_control": remote,
-            "ik_check": "controller" if has_ik_query(version) else "host",
+            "ik_check": "controller" if self._ik_on_controller else "host",
             "program_state": program_state,
             "program_stopped": None,
         }
-        self._ik_on_controller = has_ik_query(version)
         return running, program_state
 
     def _check_state(

@@ -39,11 +39,6 @@ class URModel:
     q_min: tuple[float, ...] = (-2 * np.pi, -2 * np.pi, -np.pi, -2 * np.pi, -2 * np.pi, -2 * np.pi)
     q_max: tuple[float, ...] = (2 * np.pi, 2 * np.pi, np.pi, 2 * np.pi, 2 * np.pi, 2 * np.pi)
 
-    @property
-    def reach_m(self) -> float:
-        """Upper bound of the distance of the wrist point from the shoulder, metres."""
-        return abs(self.a2) + abs(self.a3)
-
 
 # Universal Robots' published DH table (e-Series).
 UR3E = URModel("UR3e", 0.15185, -0.24355, -0.2132, 0.13105, 0.08535, 0.0921)
