@@ -216,14 +216,13 @@ def ik(
     if T_flange_tcp is not None:
         T = T @ inv_T(_check_T(T_flange_tcp))
     sols: list[np.ndarray] = []
-    q6_singular = 0.0 if q_near is None else float(_check_q(q_near)[5])
-    for q in _ik_flange(T, model, q6_singular):
-        qq = _nearest_within_limits(q, q if q_near is None else _check_q(q_near), model)
-        # duplicates (at most 8 solutions): a max-abs test, ~20x cheaper than np.allclose
+    qn = None if q_near is None else _check_q(q_near)
+    for q in _ik_flange(T, model, 0.0 if qn is None else float(qn[5])):
+        qq = _nearest_within_limits(q, q if qn is None else qn, model)
+        # duplicates (at most 8 solutions): a max-abs test, cheaper than np.allclose
         if qq is not None and not any(float(np.max(np.abs(qq - s))) <= 1e-9 for s in sols):
             sols.append(qq)
-    if q_near is not None:
-        qn = _check_q(q_near)
+    if qn is not None:
         sols.sort(key=lambda s: float(np.max(np.abs(s - qn))))
     return sols
 
