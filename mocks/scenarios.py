@@ -854,10 +854,8 @@ def camera_board_poses(
         aim = centre + np.array([*rng.uniform(-aim_spread_m, aim_spread_m, 2), 0.0])
         p_cam = aim + rng.uniform(*distance_m) * view
         up = np.array([0.0, -1.0, 0.0])  # board -y appears up in the image
-        R_cam_board = look_at_R_cam_world(p_cam, aim, up)
-        R_cam_board = R_from_rvec([0.0, 0.0, np.radians(rng.uniform(-roll_deg, roll_deg))]) @ (
-            R_cam_board
-        )
+        roll = R_from_rvec([0.0, 0.0, np.radians(rng.uniform(-roll_deg, roll_deg))])
+        R_cam_board = roll @ look_at_R_cam_world(p_cam, aim, up)
         out.append(T_from_Rt(R_cam_board, -R_cam_board @ p_cam))
     return np.array(out)
 
@@ -880,13 +878,6 @@ def _translated(
     return np.array(out)
 
 
-def _reachable(T_base_tool: np.ndarray) -> bool:
-    """A UR5e reaches ``T_base_tool`` from its home joints away from its singularities."""
-    return any(
-        urk.singularity(q, urk.UR5E) is None for q in urk.ik(T_base_tool, urk.Q_HOME, urk.UR5E)
-    )
-
-
 def classic_real_arm(
     rng: np.random.Generator,
     n_frames: int = 28,
@@ -906,7 +897,7 @@ def classic_real_arm(
     views: list[np.ndarray] = []
     while len(views) < n_frames:
         for T in camera_board_poses(rng, 2 * n_frames, target):
-            if _reachable(_tool_pose(T, T_base_board, eye_in_hand)):
+            if urk.reachable(_tool_pose(T, T_base_board, eye_in_hand), None, urk.UR5E):
                 views.append(T)
                 if len(views) == n_frames:
                     break
@@ -963,7 +954,7 @@ def tag_real_arm(
             u, v = rng.uniform(0.12 * w, 0.88 * w), rng.uniform(0.15 * h, 0.85 * h)
             ray = np.array([(u - R1_K[0, 2]) / R1_K[0, 0], (v - R1_K[1, 2]) / R1_K[1, 1], 1.0])
             T = R1_T_BASE_CAM @ T_from_Rt(R, z * ray) @ inv_T(TAG_T_TOOL_TAG)
-            if _reachable(T):
+            if urk.reachable(T, None, urk.UR5E):
                 group.append(T)
         if len(group) < n:
             raise ValueError("the tag session's views are out of the UR5e's reach")
