@@ -298,7 +298,8 @@ def s2(
 ) -> Scenario:
     """S2 (Tables II, III): tilted 30 deg about x then 30 about y, translated along the board
     normal toward the plane by steps of 5; direction known, lengths unknown; zero skew.
-    ``phi_deg``: the real direction is rotated by phi about the board x axis (S4)."""
+    ``phi_deg``: the real direction is rotated by phi about the board x axis (S4). ``knowledge``,
+    ``options``: what the solver is told and solves for (default S2's; :func:`s3`)."""
     R, C0 = s2_geometry()
     normal = np.array([0.0, 0.0, 1.0]) * np.sign(-C0[2])  # toward the plane
     real = Rx(np.radians(phi_deg)) @ normal
