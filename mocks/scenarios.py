@@ -1152,18 +1152,13 @@ def scale_session(
     ``arm_error``: the robot poses err by ``ARM_ERROR``."""
     rng = np.random.default_rng(seed)
     frames: list[Frame] = []
-    base = None
     noise_m, noise_deg = ARM_ERROR if arm_error else (0.0, 0.0)
     while len(frames) < n_frames:
-        s = oak_rig(
+        base = oak_rig(
             rng, cameras=CAMERA_SETS[n_cameras], robot_noise_m=noise_m, robot_noise_deg=noise_deg
-        )
-        base = base or s.problem
-        for f in s.problem.frames:
-            if len(frames) < n_frames:
-                frames.append(replace(f, id=len(frames)))
-    assert base is not None
-    return replace(base, frames=tuple(frames))
+        ).problem
+        frames += base.frames
+    return replace(base, frames=tuple(replace(f, id=k) for k, f in enumerate(frames[:n_frames])))
 
 
 # ------------------------------------------- session files edited as a user's mistakes make them
