@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
+from contextlib import suppress
 from pathlib import Path
 from typing import Any
 
@@ -344,11 +345,9 @@ class OakRig:
 
     @staticmethod
     def _stop(pipeline: Any) -> None:
-        try:
+        with suppress(RuntimeError):
             pipeline.stop()
             pipeline.wait()
-        except RuntimeError:
-            pass
 
     def close(self) -> None:
         """Stop the pipeline (idempotent)."""
@@ -527,10 +526,8 @@ class OakCalibrationStore:
 
     def __exit__(self, *exc: object) -> None:
         if self._device is not None:
-            try:
+            with suppress(RuntimeError):
                 self._device.close()
-            except RuntimeError:
-                pass
         self._device = None
 
     def connected_id(self) -> str:

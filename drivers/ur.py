@@ -10,6 +10,7 @@ import re
 import socket
 import struct
 import time
+from contextlib import suppress
 from typing import Any
 
 import numpy as np
@@ -440,10 +441,8 @@ class URRobot:
         calls += [(control, "disconnect"), (receive, "disconnect"), (dashboard, "disconnect")]
         for obj, method in calls:
             if obj is not None:
-                try:
+                with suppress(RuntimeError):
                     getattr(obj, method)()
-                except RuntimeError:
-                    pass
 
     # ------------------------------------------------------------------------------ checking
     def _require(self) -> None:
@@ -602,10 +601,8 @@ class URRobot:
         there."""
         if not self._link_alive():
             return
-        try:
+        with suppress(RuntimeError):  # the connection gone while stopping
             self._control.stopL(10.0)
-        except RuntimeError:
-            pass  # connection gone while stopping
 
     def _script_answered(self, T: np.ndarray) -> None:
         """``HardwareFault`` when a "no" from the controller came from a stopped control script

@@ -5,7 +5,7 @@ frame; on a fault or an interrupt stop the robot and mark the session aborted.""
 from __future__ import annotations
 
 from collections.abc import Mapping
-from contextlib import nullcontext
+from contextlib import nullcontext, suppress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -130,10 +130,8 @@ def record_session(
             writer.finish("complete")
         finally:
             for closer in (rig.close, robot.close):
-                try:
+                with suppress(Exception):  # closing must not hide the real error
                     closer()
-                except Exception:  # noqa: BLE001 - closing must not hide the real error
-                    pass
     return Recorded(robot, log)
 
 
@@ -203,11 +201,9 @@ def _abort(robot, writer, log, prog: Progress, e: BaseException, out: Path) -> N
     elif isinstance(e, OSError):
         msg = f"writing the session failed: {e.strerror or e} ({e.filename})"
     n = writer.n_frames
-    try:
+    with suppress(OSError):  # the disk that failed the frame may fail the event too
         writer.add_event(kind, msg, frames_kept=n, robot_time_s=clock(robot))
         writer.finish("aborted")
-    except OSError:  # the disk that failed the frame may fail the event too
-        pass
     if log is not None:
         log.event(f"{kind}: {msg}", level="ERROR")
         log.close()
