@@ -965,7 +965,13 @@ def tag_real_arm(
     views = [_view(T, np.eye(4), False, TAG_T_TOOL_TAG) for T in true]
     frames = _r1_frames(views, planned_a, target, sigma_px, rng, detect=detect)
     return r1_scenario(
-        target, frames, False, None, sigma_px, np.eye(4), T_base_tool_true=true,
+        target,
+        frames,
+        False,
+        None,
+        sigma_px,
+        np.eye(4),
+        T_base_tool_true=true,
         T_tool_board=TAG_T_TOOL_TAG,
     )
 

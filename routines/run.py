@@ -371,7 +371,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """The ``slidecal run`` options."""
     p.add_argument("--config", help="cell description (default: the simulated default cell)")
     p.add_argument(
-        "--out", dest="out_dir", metavar="OUT",
+        "--out",
+        dest="out_dir",
+        metavar="OUT",
         help="session directory to create (default: sessions/<time>)",
     )
     p.add_argument(
