@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
+from contextlib import suppress
 from pathlib import Path
 from typing import Any
 
@@ -279,14 +280,8 @@ class OakRig:
         for name, socket in self.sockets.items():
             size = self.sizes[name]
             modes = [
-                {
-                    "width": int(c.width),
-                    "height": int(c.height),
-                    "min_fps": float(c.minFps),
-                    "max_fps": float(c.maxFps),
-                    "fov": (float(c.fov.x), float(c.fov.y), float(c.fov.width),
-                            float(c.fov.height)),
-                }
+                _mode(c, fov=(float(c.fov.x), float(c.fov.y), float(c.fov.width),
+                              float(c.fov.height)))
                 for c in features[socket].configs
             ]
             try:
@@ -350,11 +345,9 @@ class OakRig:
 
     @staticmethod
     def _stop(pipeline: Any) -> None:
-        try:
+        with suppress(RuntimeError):
             pipeline.stop()
             pipeline.wait()
-        except RuntimeError:
-            pass
 
     def close(self) -> None:
         """Stop the pipeline (idempotent)."""
@@ -493,16 +486,18 @@ def _features_dict(f: Any) -> dict[str, Any]:
         "height": int(f.height),
         "calibration_resolution": None if calib is None else [int(calib.width), int(calib.height)],
         "autofocus": bool(f.hasAutofocus),
-        "modes": [
-            {
-                "width": int(c.width),
-                "height": int(c.height),
-                "min_fps": float(c.minFps),
-                "max_fps": float(c.maxFps),
-                "type": _text(c.type),
-            }
-            for c in f.configs
-        ],
+        "modes": [_mode(c, type=_text(c.type)) for c in f.configs],
+    }
+
+
+def _mode(c: Any, **more: Any) -> dict[str, Any]:
+    """A sensor mode (``CameraSensorConfig``) as plain data, with ``more``."""
+    return {
+        "width": int(c.width),
+        "height": int(c.height),
+        "min_fps": float(c.minFps),
+        "max_fps": float(c.maxFps),
+        **more,
     }
 
 
@@ -531,10 +526,8 @@ class OakCalibrationStore:
 
     def __exit__(self, *exc: object) -> None:
         if self._device is not None:
-            try:
+            with suppress(RuntimeError):
                 self._device.close()
-            except RuntimeError:
-                pass
         self._device = None
 
     def connected_id(self) -> str:
@@ -729,17 +722,11 @@ def write_oak_calibration_json(
     result: CalibrationResult,
     path: str | Path,
     sockets: Mapping[str, str] | None = None,
-    *,
-    stereo: tuple[str, str] | None = ("left", "right"),
-    base: Any = None,
-    lens_positions: Mapping[str, int] | None = None,
-    streams: Mapping[str, Mapping[str, Any]] | None = None,
+    **options: Any,
 ) -> Path:
-    """Write the result as a depthai calibration JSON (``eepromToJsonFile``) from ``base`` (see
-    :func:`oak_calibration_handler`); returns the path."""
-    handler = oak_calibration_handler(
-        result, sockets, stereo=stereo, base=base, lens_positions=lens_positions, streams=streams
-    )
+    """Write the result as a depthai calibration JSON (``eepromToJsonFile``); ``options``: the
+    keywords of :func:`oak_calibration_handler`. Returns the path."""
+    handler = oak_calibration_handler(result, sockets, **options)
     path = Path(path)
     if not handler.eepromToJsonFile(str(path)):
         raise InputError("depthai could not write the file; check the directory", where=str(path))

@@ -10,20 +10,20 @@ import re
 import socket
 import struct
 import time
+from contextlib import suppress
 from typing import Any
 
 import numpy as np
 
 from slidecal.drivers import ur_kinematics as urk
-from slidecal.drivers.ur_pose import T_from_ur_pose, pendant_text, ur_pose_from_T
+from slidecal.drivers.base import checked_move
+from slidecal.drivers.ur_pose import T_from_ur_pose, describe, ur_pose_from_T
 from slidecal.solver.errors import HardwareFault, InputError
 from slidecal.solver.geometry import rvec_from_R
 
 ROBOT_MODE_RUNNING = 7
-SAFETY_MODE_NORMAL = 1
-SAFETY_MODE_REDUCED = 2
-#: Safety modes in which the arm works normally (reduced mode: lower speed limits, still normal).
-SAFETY_MODES_OK = (SAFETY_MODE_NORMAL, SAFETY_MODE_REDUCED)
+#: Safety modes in which the arm works normally: normal, and reduced (lower speed limits).
+SAFETY_MODES_OK = (1, 2)
 DASHBOARD_PORT, RTDE_PORT = 29999, 30004
 #: RTDE runtime states (``getRuntimeState``); only STOPPED means no program would be ended.
 RUNTIME_STATES = {0: "stopping", 1: "stopped", 2: "playing", 3: "pausing", 4: "paused",
@@ -69,11 +69,6 @@ def parse_version(text: str) -> tuple[int, ...] | None:
     return None if m is None else tuple(int(g) for g in m.groups() if g is not None)
 
 
-def remote_control_queryable(version: tuple[int, ...]) -> bool:
-    """Whether the dashboard can say if the arm is in remote control (e-Series, PolyScope 5.6+)."""
-    return version[0] == 5 and version[1] >= 6
-
-
 def has_ik_query(version: tuple[int, ...]) -> bool:
     """Whether ur-rtde's script holds ``get_inverse_kin_has_solution`` (PolyScope 5.10+, 3.15+)."""
     major, minor = version[0], version[1]
@@ -88,6 +83,13 @@ def _recv_exactly(sock: socket.socket, n: int) -> bytes:
             raise ConnectionResetError("closed by the controller")
         data += chunk
     return data
+
+
+def _rtde_answer(sock: socket.socket, request: bytes) -> bytes:
+    """Send an RTDE request, return the answer's payload."""
+    sock.sendall(request)
+    size, _ = struct.unpack(">HB", _recv_exactly(sock, 3))
+    return _recv_exactly(sock, size - 3)
 
 
 def probe_controller(host: str, timeout_s: float) -> tuple[int, int, int, int]:
@@ -112,41 +114,25 @@ def probe_controller(host: str, timeout_s: float) -> tuple[int, int, int, int]:
     try:
         with socket.create_connection((host, DASHBOARD_PORT), timeout=timeout_s) as s:
             s.settimeout(timeout_s)
-            welcome = b""
-            while b"\n" not in welcome:
-                chunk = s.recv(256)
-                if not chunk:
-                    raise ConnectionResetError("closed by the controller")
-                welcome += chunk
+            while _recv_exactly(s, 1) != b"\n":  # the welcome line
+                pass
     except OSError as e:
         raise fail(DASHBOARD_PORT, e) from None
     try:
         with socket.create_connection((host, RTDE_PORT), timeout=timeout_s) as s:
             s.settimeout(timeout_s)
-            s.sendall(struct.pack(">HBH", 5, ord("V"), 2))
-            size, _ = struct.unpack(">HB", _recv_exactly(s, 3))
-            accepted = _recv_exactly(s, size - 3)
+            accepted = _rtde_answer(s, struct.pack(">HBH", 5, ord("V"), 2))
             if not accepted or accepted[0] != 1:
                 raise HardwareFault(
                     f"{where} refused RTDE protocol version 2; it needs PolyScope 3.10 / 5.0 or "
                     "newer"
                 )
-            s.sendall(struct.pack(">HB", 3, ord("v")))
-            size, _ = struct.unpack(">HB", _recv_exactly(s, 3))
-            payload = _recv_exactly(s, size - 3)
+            payload = _rtde_answer(s, struct.pack(">HB", 3, ord("v")))
             if len(payload) < 16:
                 raise ConnectionResetError("short controller-version answer")
             return tuple(struct.unpack(">4I", payload[:16]))  # type: ignore[return-value]
     except OSError as e:
         raise fail(RTDE_PORT, e) from None
-
-
-def move_time_s(distance: float, max_speed: float, max_accel: float) -> float:
-    """Rest-to-rest time of a trapezoidal profile (metres or radians, per second, per s^2)."""
-    d = abs(float(distance))
-    if d <= max_speed**2 / max_accel:
-        return 2.0 * float(np.sqrt(d / max_accel))
-    return d / max_speed + max_speed / max_accel
 
 
 def cell_options(robot_section: Any) -> dict[str, Any]:
@@ -156,15 +142,10 @@ def cell_options(robot_section: Any) -> dict[str, Any]:
     0-23)."""
     raw = dict(robot_section or {})
     out: dict[str, Any] = {}
-    take = raw.get("take_control", False)
-    if not isinstance(take, bool):
-        raise InputError(f"must be true or false, got {take!r}", where="robot.take_control")
-    out["take_control"] = take
-    upper = raw.get("upper_range_registers", False)
-    if not isinstance(upper, bool):
-        raise InputError(f"must be true or false, got {upper!r}",
-                         where="robot.upper_range_registers")
-    out["upper_range_registers"] = upper
+    for key in ("take_control", "upper_range_registers"):
+        out[key] = raw.get(key, False)
+        if not isinstance(out[key], bool):
+            raise InputError(f"must be true or false, got {out[key]!r}", where=f"robot.{key}")
     payload = raw.get("payload")
     if payload is not None:
         if not isinstance(payload, dict) or "mass_kg" not in payload or set(payload) - {
@@ -183,9 +164,9 @@ def cell_options(robot_section: Any) -> dict[str, Any]:
     return out
 
 
-def _describe(T: np.ndarray) -> str:
-    pose = ", ".join(f"{v:.4f}" for v in ur_pose_from_T(T))
-    return f"[{pose}] ({pendant_text(T)})"
+def _at_rest(tcp_speed: np.ndarray) -> bool:
+    """Below 1 mm/s and 1 mrad/s."""
+    return bool(np.linalg.norm(tcp_speed[:3]) < 1e-3 and np.linalg.norm(tcp_speed[3:]) < 1e-3)
 
 
 class URRobot:
@@ -275,10 +256,14 @@ class URRobot:
                 f"ur-rtde is not importable ({e}); install it with 'pip install ur-rtde>=1.6'"
             ) from None
         where = f"robot at {self.hostname}"
-        running, program_state = self._ask_dashboard(dashboard_client, where)
-        self._check_state(rtde_receive, where, running, program_state)
-        self._open_control(rtde_control, where)
-        self._set_tool(where)
+        try:  # every refusal below disconnects first
+            running, program_state = self._ask_dashboard(dashboard_client, where)
+            self._check_state(rtde_receive, where, running, program_state)
+            self._open_control(rtde_control, where)
+            self._set_tool(where)
+        except BaseException:
+            self.close()
+            raise
         self._last_timestamp = -np.inf
         self._fresh()
 
@@ -298,7 +283,6 @@ class URRobot:
                 ("PLAYING", "PAUSED", "PAUSING", "RESUMING")
             )
         except RuntimeError as e:
-            self.close()
             raise HardwareFault(
                 f"the dashboard server of the {where} (port 29999) does not answer ({e}); "
                 "check that the controller is booted and not in a pop-up"
@@ -310,17 +294,15 @@ class URRobot:
         except RuntimeError:
             serial = None  # PolyScope < 5.6 cannot say
         remote: bool | None = None
-        if remote_control_queryable(version):
+        if version[0] == 5 and version[1] >= 6:  # the dashboard says it (PolyScope 5.6+)
             try:
                 remote = bool(self._dashboard.isInRemoteControl())
             except RuntimeError as e:  # the dashboard's socket failed (boost system_error)
-                self.close()
                 raise HardwareFault(
                     f"the dashboard server of the {where} (port 29999) stopped answering ({e}); "
                     "check the network and that the controller is not in a pop-up"
                 ) from None
             if not remote:
-                self.close()
                 raise HardwareFault(
                     f"{where} is in local control; switch it to remote control on the teach "
                     "pendant"
@@ -331,17 +313,17 @@ class URRobot:
                 self.model = urk.model_by_name(name)
             except InputError:
                 self.model = None
+        self._ik_on_controller = has_ik_query(version)
         self.controller_info = {
             "polyscope_version": ".".join(str(v) for v in version),
             "controller_version": ".".join(str(v) for v in rtde_version),
             "robot_model": model_text,
             "serial_number": serial,
             "remote_control": remote,
-            "ik_check": "controller" if has_ik_query(version) else "host",
+            "ik_check": "controller" if self._ik_on_controller else "host",
             "program_state": program_state,
             "program_stopped": None,
         }
-        self._ik_on_controller = has_ik_query(version)
         return running, program_state
 
     def _check_state(
@@ -354,14 +336,12 @@ class URRobot:
                 self.hostname, self.frequency, [], False, self.upper_range_registers
             )
         except RuntimeError as e:
-            self.close()
             raise HardwareFault(
                 f"cannot connect to the {where} over RTDE (port 30004): {e}; check the network "
                 "and that the controller is on"
             ) from None
         robot_mode = int(self._receive.getRobotMode())
         if robot_mode != ROBOT_MODE_RUNNING:
-            self.close()
             raise HardwareFault(
                 f"{where} is not ready: robot mode {robot_mode} "
                 f"({ROBOT_MODES.get(robot_mode, 'unknown')}); power it on and release the brakes "
@@ -369,7 +349,6 @@ class URRobot:
             )
         safety_mode = int(self._receive.getSafetyMode())
         if safety_mode not in SAFETY_MODES_OK:
-            self.close()
             raise HardwareFault(
                 f"{where} is not in normal safety mode: {safety_mode} "
                 f"({SAFETY_MODES.get(safety_mode, 'unknown')})"
@@ -383,7 +362,6 @@ class URRobot:
             self.controller_info["program_state"] = program_state
         if running:
             if not self.take_control and LEFTOVER_SCRIPT in program_state.split():
-                self.close()
                 raise HardwareFault(
                     f"ur-rtde's control script ({program_state}) still runs on the {where}: "
                     "an earlier connection lost its link before it could stop it (no program of "
@@ -391,7 +369,6 @@ class URRobot:
                     "with 'take_control: true' in the cell file's robot section, then resume"
                 )
             if not self.take_control:
-                self.close()
                 raise HardwareFault(
                     f"a program is running on the {where} ({program_state}); connecting would "
                     "stop it. Stop it on the pendant, or allow slidecal to stop it with "
@@ -409,7 +386,6 @@ class URRobot:
                     int(flags.FLAG_UPPER_RANGE_REGISTERS) if self.upper_range_registers else 0)
             )
         except RuntimeError as e:
-            self.close()
             if "already in use" in str(e):
                 raise HardwareFault(
                     f"the RTDE input registers ur-rtde needs are taken on the {where}: "
@@ -425,14 +401,12 @@ class URRobot:
     def _set_tool(self, where: str) -> None:
         """The TCP offset (the cell's, or the controller's) and the payload."""
         if self.tcp is not None and not self._control.setTcp(ur_pose_from_T(self.tcp)):
-            self.close()
             raise HardwareFault(f"the {where} refused the TCP offset {ur_pose_from_T(self.tcp)}")
         try:  # ur-rtde raises RuntimeError when the control script does not answer
             self._T_flange_tcp = (
                 self.tcp if self.tcp is not None else T_from_ur_pose(self._control.getTCPOffset())
             )
         except (RuntimeError, ValueError) as e:
-            self.close()
             raise HardwareFault(
                 f"the {where} did not give its TCP offset ({e}); check the pendant for a "
                 "message, or set robot.tcp in the cell file"
@@ -445,14 +419,12 @@ class URRobot:
                 except RuntimeError:
                     cog = []
                 if len(cog) != 3:
-                    self.close()
                     raise InputError(
                         f"PolyScope {self.controller_info['polyscope_version']} cannot keep the "
                         "payload's centre of gravity and did not report it; give cog_m",
                         where="robot.payload",
                     )
             if not self._control.setPayload(self.payload_kg, cog):
-                self.close()
                 raise HardwareFault(
                     f"the {where} refused the payload {self.payload_kg} kg at {cog} m; check "
                     "the values against the arm's rated payload"
@@ -465,20 +437,12 @@ class URRobot:
         control, receive, dashboard = self._control, self._receive, self._dashboard
         live = self._link_alive()
         self._control = self._receive = self._dashboard = None
-        control_methods = ("stopScript", "disconnect") if live else ("disconnect",)
-        for obj, methods in ((control, control_methods), (receive, ("disconnect",))):
-            if obj is None:
-                continue
-            for m in methods:
-                try:
-                    getattr(obj, m)()
-                except RuntimeError:
-                    pass
-        if dashboard is not None:
-            try:
-                dashboard.disconnect()
-            except RuntimeError:
-                pass
+        calls = [(control, "stopScript")] if live else []
+        calls += [(control, "disconnect"), (receive, "disconnect"), (dashboard, "disconnect")]
+        for obj, method in calls:
+            if obj is not None:
+                with suppress(RuntimeError):
+                    getattr(obj, method)()
 
     # ------------------------------------------------------------------------------ checking
     def _require(self) -> None:
@@ -559,15 +523,9 @@ class URRobot:
         ``arrival_tol_m`` and ``_deg``.
         """
         self._require()
-        if not 0 < speed_mps <= self.max_speed_mps:
-            raise InputError(f"speed_mps must be in (0, {self.max_speed_mps}], got {speed_mps}")
-        if not 0 < accel_mps2 <= self.max_accel_mps2:
-            raise InputError(f"accel_mps2 must be in (0, {self.max_accel_mps2}], got {accel_mps2}")
-        T = np.asarray(T_base_tool, dtype=float)
-        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-            raise InputError(f"move_linear needs a finite 4x4 T_base_tool, got shape {T.shape}")
+        T = checked_move(self, T_base_tool, speed_mps, accel_mps2)
         T_start = self.measured_pose()
-        what = f"moveL to {_describe(T)} failed"
+        what = f"moveL to {describe(T)} failed"
         try:
             ok = self._control.moveL(ur_pose_from_T(T), float(speed_mps), float(accel_mps2), True)
         except RuntimeError as e:
@@ -579,7 +537,8 @@ class URRobot:
         d = float(np.linalg.norm(T[:3, 3] - T_start[:3, 3]))
         angle = float(np.linalg.norm(rvec_from_R(T_start[:3, :3].T @ T[:3, :3])))
         full_speed_s = max(
-            move_time_s(d, speed_mps, accel_mps2), move_time_s(angle, speed_mps, accel_mps2)
+            urk.trapezoid_time_s(d, speed_mps, accel_mps2),
+            urk.trapezoid_time_s(angle, speed_mps, accel_mps2),
         )
         t0 = time.monotonic()
         slowest = 1.0
@@ -599,7 +558,7 @@ class URRobot:
             expected_s = full_speed_s / slowest
             miss = float(np.linalg.norm(T_now[:3, 3] - T[:3, 3]))
             miss_deg = float(np.degrees(np.linalg.norm(rvec_from_R(T_now[:3, :3].T @ T[:3, :3]))))
-            at_rest = np.linalg.norm(speed[:3]) < 1e-3 and np.linalg.norm(speed[3:]) < 1e-3
+            at_rest = _at_rest(speed)
             if at_rest and miss <= self.arrival_tol_m and miss_deg <= self.arrival_tol_deg:
                 return
             now = time.monotonic()
@@ -608,8 +567,8 @@ class URRobot:
             ):
                 self.stop()
                 raise HardwareFault(
-                    f"moveL to {_describe(T)} was accepted but the robot is "
-                    f"{miss * 1000:.1f} mm and {miss_deg:.2f} deg away, at {_describe(T_now)}, "
+                    f"moveL to {describe(T)} was accepted but the robot is "
+                    f"{miss * 1000:.1f} mm and {miss_deg:.2f} deg away, at {describe(T_now)}, "
                     + ("at rest" if at_rest else f"still moving after {now - t0:.1f} s")
                     + f" (running at {slider:.0%} of the commanded speed: the pendant's slider "
                     "times the trajectory limiter); check the pendant and the TCP setting"
@@ -625,7 +584,7 @@ class URRobot:
         while True:
             self._fresh()
             speed = np.asarray(self._receive.getActualTCPSpeed(), dtype=float)
-            if np.linalg.norm(speed[:3]) < 1e-3 and np.linalg.norm(speed[3:]) < 1e-3:
+            if _at_rest(speed):
                 break
             if time.monotonic() > deadline:
                 self.stop()
@@ -642,16 +601,14 @@ class URRobot:
         there."""
         if not self._link_alive():
             return
-        try:
+        with suppress(RuntimeError):  # the connection gone while stopping
             self._control.stopL(10.0)
-        except RuntimeError:
-            pass  # connection gone while stopping
 
     def _script_answered(self, T: np.ndarray) -> None:
         """``HardwareFault`` when a "no" from the controller came from a stopped control script
         (ur-rtde answers False / [] then, as for an unreachable pose)."""
         if not self._control.isProgramRunning():
-            raise HardwareFault(self._diagnose(f"the reachability query for {_describe(T)} failed"))
+            raise HardwareFault(self._diagnose(f"the reachability query for {describe(T)} failed"))
 
     def is_reachable(self, T_base_tool: np.ndarray) -> bool:
         """An IK solution near the current joints, inside the joint and safety limits: the
@@ -687,6 +644,6 @@ class URRobot:
                 return False
         except RuntimeError as e:
             raise HardwareFault(
-                f"{self._diagnose(f'the reachability query for {_describe(T)} failed')} ({e})"
+                f"{self._diagnose(f'the reachability query for {describe(T)} failed')} ({e})"
             ) from None
         return self.model is None or urk.singularity(np.asarray(q), self.model) is None

@@ -39,11 +39,6 @@ class URModel:
     q_min: tuple[float, ...] = (-2 * np.pi, -2 * np.pi, -np.pi, -2 * np.pi, -2 * np.pi, -2 * np.pi)
     q_max: tuple[float, ...] = (2 * np.pi, 2 * np.pi, np.pi, 2 * np.pi, 2 * np.pi, 2 * np.pi)
 
-    @property
-    def reach_m(self) -> float:
-        """Upper bound of the distance of the wrist point from the shoulder, metres."""
-        return abs(self.a2) + abs(self.a3)
-
 
 # Universal Robots' published DH table (e-Series).
 UR3E = URModel("UR3e", 0.15185, -0.24355, -0.2132, 0.13105, 0.08535, 0.0921)
@@ -70,6 +65,15 @@ def model_by_name(name: str) -> URModel:
         ) from None
 
 
+def trapezoid_time_s(distance: float, max_speed: float, max_accel: float) -> float:
+    """Duration of a rest-to-rest trapezoidal move over ``distance`` (consistent units, linear or
+    angular): ``2 sqrt(d / a)`` when too short to reach ``max_speed``, else ``d / v + v / a``."""
+    d = abs(float(distance))
+    if d <= max_speed**2 / max_accel:
+        return 2.0 * float(np.sqrt(d / max_accel))
+    return d / max_speed + max_speed / max_accel
+
+
 def _dh(theta: float, d: float, a: float, alpha_rot: np.ndarray) -> np.ndarray:
     """``Rz(theta) Tz(d) Tx(a) Rx(alpha)`` as 4x4 (alpha given as its rotation matrix)."""
     T = np.eye(4)
@@ -82,17 +86,16 @@ def _dh(theta: float, d: float, a: float, alpha_rot: np.ndarray) -> np.ndarray:
 _RX_P = Rx(np.pi / 2)
 _RX_M = Rx(-np.pi / 2)
 _RX_0 = np.eye(3)
+#: The nominal twists' rotations ``Rx(alpha_i)``.
+ALPHA_ROTS = (_RX_P, _RX_0, _RX_0, _RX_P, _RX_M, _RX_0)
 
 
-def _link_transforms(q: np.ndarray, m: URModel) -> list[np.ndarray]:
-    return [
-        _dh(q[0], m.d1, 0.0, _RX_P),
-        _dh(q[1], 0.0, m.a2, _RX_0),
-        _dh(q[2], 0.0, m.a3, _RX_0),
-        _dh(q[3], m.d4, 0.0, _RX_P),
-        _dh(q[4], m.d5, 0.0, _RX_M),
-        _dh(q[5], m.d6, 0.0, _RX_0),
-    ]
+def dh_chain(theta: np.ndarray, d: np.ndarray, a: np.ndarray, alpha_rots: tuple) -> np.ndarray:
+    """The six joints' ``_dh`` transforms multiplied: the flange pose (4, 4)."""
+    T = np.eye(4)
+    for i in range(6):
+        T = T @ _dh(theta[i], d[i], a[i], alpha_rots[i])
+    return T
 
 
 def _check_q(q: np.ndarray) -> np.ndarray:
@@ -112,10 +115,8 @@ def _check_T(T: np.ndarray) -> np.ndarray:
 def fk(q: np.ndarray, model: URModel = UR5E, T_flange_tcp: np.ndarray | None = None) -> np.ndarray:
     """``T_base_tool`` (4, 4), metres, of joint angles ``q`` (6,) radians; ``T_flange_tcp`` (4, 4):
     the TCP offset (None: the flange)."""
-    q = _check_q(q)
-    T = np.eye(4)
-    for Ti in _link_transforms(q, model):
-        T = T @ Ti
+    d = (model.d1, 0.0, 0.0, model.d4, model.d5, model.d6)
+    T = dh_chain(_check_q(q), d, (0.0, model.a2, model.a3, 0.0, 0.0, 0.0), ALPHA_ROTS)
     return T if T_flange_tcp is None else T @ T_flange_tcp
 
 
@@ -215,14 +216,13 @@ def ik(
     if T_flange_tcp is not None:
         T = T @ inv_T(_check_T(T_flange_tcp))
     sols: list[np.ndarray] = []
-    q6_singular = 0.0 if q_near is None else float(_check_q(q_near)[5])
-    for q in _ik_flange(T, model, q6_singular):
-        qq = _nearest_within_limits(q, q if q_near is None else _check_q(q_near), model)
-        # duplicates (at most 8 solutions): a max-abs test, ~20x cheaper than np.allclose
+    qn = None if q_near is None else _check_q(q_near)
+    for q in _ik_flange(T, model, 0.0 if qn is None else float(qn[5])):
+        qq = _nearest_within_limits(q, q if qn is None else qn, model)
+        # duplicates (at most 8 solutions): a max-abs test, cheaper than np.allclose
         if qq is not None and not any(float(np.max(np.abs(qq - s))) <= 1e-9 for s in sols):
             sols.append(qq)
-    if q_near is not None:
-        qn = _check_q(q_near)
+    if qn is not None:
         sols.sort(key=lambda s: float(np.max(np.abs(s - qn))))
     return sols
 

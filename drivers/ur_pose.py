@@ -2,7 +2,8 @@
 
 A UR pose ``[x, y, z, rx, ry, rz]`` (as ``getActualTCPPose`` returns it and ``moveL`` takes it)
 is ``T_base_tool`` of the TCP set on the controller: metres and an axis-angle vector in radians.
-The teach pendant shows millimetres and RPY; :func:`pendant_text` prints both for humans.
+The teach pendant shows millimetres and RPY; :func:`pendant_text` prints that for humans,
+:func:`describe` both.
 """
 
 from __future__ import annotations
@@ -39,3 +40,9 @@ def pendant_text(T_base_tool: np.ndarray) -> str:
     x, y, z = T[:3, 3] * 1000.0
     r, p, w = np.degrees([roll, pitch, yaw])
     return f"X {x:.2f} Y {y:.2f} Z {z:.2f} mm, RPY {r:.3f} {p:.3f} {w:.3f} deg"
+
+
+def describe(T_base_tool: np.ndarray) -> str:
+    """The UR pose and, in brackets, the pendant's view of it (for messages)."""
+    pose = ", ".join(f"{v:.4f}" for v in ur_pose_from_T(T_base_tool))
+    return f"[{pose}] ({pendant_text(T_base_tool)})"

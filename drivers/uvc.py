@@ -149,20 +149,19 @@ class UvcCamera:
                     "does not expose it); the exposure is not locked"
                 )
                 return
-        held = self._set(cap, "exposure", cv2.CAP_PROP_EXPOSURE, value)
-        if self.exposure is not None and not (manual and held):
+        if self._set(cap, "exposure", cv2.CAP_PROP_EXPOSURE, value) and manual:
+            return
+        reads = (f"(auto exposure reads {self.settings['auto_exposure']['read_back']:g}, "
+                 f"exposure {self.settings['exposure']['read_back']:g})")
+        if self.exposure is not None:
             raise HardwareFault(
-                f"camera {self.name}: manual exposure {value:g} not taken (auto exposure reads "
-                f"{self.settings['auto_exposure']['read_back']:g}, exposure "
-                f"{self.settings['exposure']['read_back']:g}); set an exposure the camera "
-                "supports (v4l2-ctl -l), or remove exposure to lock the auto exposure"
+                f"camera {self.name}: manual exposure {value:g} not taken {reads}; set an exposure "
+                "the camera supports (v4l2-ctl -l), or remove exposure to lock the auto exposure"
             )
-        if not (manual and held):
-            self.messages.append(
-                f"camera {self.name}: locking the exposure at {value:g} not taken (auto "
-                f"exposure reads {self.settings['auto_exposure']['read_back']:g}, exposure "
-                f"{self.settings['exposure']['read_back']:g}); auto exposure may stay on"
-            )
+        self.messages.append(
+            f"camera {self.name}: locking the exposure at {value:g} not taken {reads}; auto "
+            "exposure may stay on"
+        )
 
     def _lock_white_balance(self, cap: cv2.VideoCapture, auto_wb: bool) -> None:
         if not auto_wb:

@@ -14,9 +14,11 @@ from typing import Any
 import numpy as np
 
 from slidecal.drivers import ur_kinematics as urk
-from slidecal.drivers.ur_pose import T_from_ur_pose, pendant_text, ur_pose_from_T
+from slidecal.drivers.base import checked_move
+from slidecal.drivers.ur_kinematics import trapezoid_time_s
+from slidecal.drivers.ur_pose import T_from_ur_pose, describe
 from slidecal.solver.errors import HardwareFault, InputError
-from slidecal.solver.geometry import R_from_rvec, Rx, Rz, T_from_Rt, rvec_from_R
+from slidecal.solver.geometry import R_from_rvec, Rx, T_from_Rt, rvec_from_R
 
 #: Straight lines are checked at least every 5 mm and every 1 deg of tool rotation.
 STEP_M = 0.005
@@ -32,19 +34,17 @@ SPEED_LIMITS = (
     "max_angular_accel_deg_s2",
 )
 FAULT_KINDS = ("protective_stop", "emergency_stop", "disconnect", "timeout")
+#: The stops a fault leaves the arm in: what the controller calls it and what the operator does.
+STOPS = {
+    "protective_stop": (
+        "protective stop", "check the cell for a collision, unlock it on the pendant and restart"
+    ),
+    "emergency_stop": (
+        "robot emergency stop", "release the emergency-stop button and reset it on the pendant"
+    ),
+}
 #: Cycles per joint turn of the simulated gearboxes' transmission error (a 12 deg period).
 GEAR_CYCLES = 30.0
-
-
-def trapezoid_time_s(distance: float, max_speed: float, max_accel: float) -> float:
-    """Duration of a rest-to-rest trapezoidal move over ``distance`` (consistent units, linear or
-    angular): ``2 sqrt(d / a)`` when too short to reach ``max_speed``, else ``d / v + v / a``."""
-    d = abs(float(distance))
-    if d == 0.0:
-        return 0.0
-    if d <= max_speed**2 / max_accel:
-        return 2.0 * float(np.sqrt(d / max_accel))
-    return d / max_speed + max_speed / max_accel
 
 
 def interpolate_pose(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
@@ -132,19 +132,8 @@ class KinematicError:
         d = np.array([model.d1, 0.0, 0.0, model.d4, model.d5, model.d6]) + self.d_d
         a = np.array([0.0, model.a2, model.a3, 0.0, 0.0, 0.0]) + self.d_a
         alpha = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0]) + self.d_alpha
-        T = np.eye(4)
-        for i in range(6):
-            L = np.eye(4)
-            Rzt = Rz(theta[i])
-            L[:3, :3] = Rzt @ Rx(alpha[i])
-            L[:3, 3] = Rzt @ np.array([a[i], 0.0, 0.0]) + np.array([0.0, 0.0, d[i]])
-            T = T @ L
+        T = urk.dh_chain(theta, d, a, tuple(Rx(v) for v in alpha))
         return T if T_flange_tcp is None else T @ T_flange_tcp
-
-
-def _describe(T: np.ndarray) -> str:
-    pose = ", ".join(f"{v:.4f}" for v in ur_pose_from_T(T))
-    return f"[{pose}] ({pendant_text(T)})"
 
 
 class SimulatedUR:
@@ -199,9 +188,9 @@ class SimulatedUR:
         self._T = urk.fk(self._q, model, self.T_flange_tcp)
         self.kinematic_error = kinematic_error
         self._stop_error = np.eye(4)  # this stop's repeatability error (true = fk_true @ it)
-        self._time_s = 0.0
+        self.robot_time_s = 0.0  # simulated time spent moving and settling
         self._connected = False
-        self._moves = 0
+        self.moves = 0  # move_linear calls made, refused ones included
         self._faults: dict[int, str] = {}
         self._state_fault: str | None = None
         self.stop_calls = 0
@@ -250,7 +239,7 @@ class SimulatedUR:
             ]
             if not sols:
                 raise InputError(
-                    f"start pose {_describe(T_start)} is out of reach or singular for a "
+                    f"start pose {describe(T_start)} is out of reach or singular for a "
                     f"{model.name}; move it closer to the base or give start_q",
                     where="robot.start_pose",
                 )
@@ -290,16 +279,6 @@ class SimulatedUR:
     def q(self) -> np.ndarray:
         """The current joint vector (6,), radians."""
         return self._q.copy()
-
-    @property
-    def robot_time_s(self) -> float:
-        """Simulated time spent moving and settling, seconds."""
-        return self._time_s
-
-    @property
-    def moves(self) -> int:
-        """How many ``move_linear`` calls were made (including refused ones)."""
-        return self._moves
 
     def inject_fault(self, kind: str, at_move: int) -> None:
         """Make ``move_linear`` call number ``at_move`` (from 0) fail: ``"protective_stop"`` /
@@ -349,7 +328,7 @@ class SimulatedUR:
         qs = []
         for k in range(1, n + 1):
             T = interpolate_pose(T0, T1, k / n)
-            where = f"pose {_describe(T)} ({k}/{n} along the move to {_describe(T1)})"
+            where = f"pose {describe(T)} ({k}/{n} along the move to {describe(T1)})"
             if self.z_min_m is not None and T[2, 3] < self.z_min_m:
                 raise HardwareFault(
                     f"{where} is below the safety plane z = {self.z_min_m} m; plan higher poses"
@@ -377,16 +356,10 @@ class SimulatedUR:
     def move_linear(self, T_base_tool: np.ndarray, speed_mps: float, accel_mps2: float) -> None:
         """Move the TCP in a straight line to ``T_base_tool`` (4, 4), metres; block until there.
         ``HardwareFault`` when the line leaves the workspace or a fault occurs."""
-        move_index = self._moves
-        self._moves += 1
+        move_index = self.moves
+        self.moves += 1
         self._check_ready()
-        if not (0.0 < speed_mps <= self.max_speed_mps):
-            raise InputError(f"speed_mps must be in (0, {self.max_speed_mps}], got {speed_mps}")
-        if not (0.0 < accel_mps2 <= self.max_accel_mps2):
-            raise InputError(f"accel_mps2 must be in (0, {self.max_accel_mps2}], got {accel_mps2}")
-        T1 = np.asarray(T_base_tool, dtype=float)
-        if T1.shape != (4, 4) or not np.all(np.isfinite(T1)):
-            raise InputError(f"move_linear needs a finite 4x4 T_base_tool, got shape {T1.shape}")
+        T1 = checked_move(self, T_base_tool, speed_mps, accel_mps2)
         T0 = self._T
         length = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
         angle = float(np.linalg.norm(rvec_from_R(T0[:3, :3].T @ T1[:3, :3])))
@@ -402,29 +375,20 @@ class SimulatedUR:
             if half > 0:
                 self._q = qs[half - 1]
                 self._T = urk.fk(self._q, self.model, self.T_flange_tcp)
-            if fault == "protective_stop":
-                self._time_s += duration / 2
-                self._state_fault = (
-                    f"protective stop during move {move_index} at {_describe(self._T)}; "
-                    "check the cell for a collision, unlock it on the pendant and restart"
-                )
+            if fault in STOPS:
+                self.robot_time_s += duration / 2
+                what, fix = STOPS[fault]
+                self._state_fault = f"{what} during move {move_index} at {describe(self._T)}; {fix}"
                 raise HardwareFault(self._state_fault)
-            if fault == "emergency_stop":
-                self._time_s += duration / 2
-                self._state_fault = (
-                    f"robot emergency stop during move {move_index} at {_describe(self._T)}; "
-                    "release the emergency-stop button and reset it on the pendant"
-                )
-                raise HardwareFault(self._state_fault)
-            self._time_s += self.move_timeout_s
+            self.robot_time_s += self.move_timeout_s
             raise HardwareFault(
-                f"move {move_index} to {_describe(T1)} did not finish within "
+                f"move {move_index} to {describe(T1)} did not finish within "
                 f"{self.move_timeout_s} s; check that the robot is in remote control and running"
             )
         self._q = qs[-1]
         self._T = urk.fk(self._q, self.model, self.T_flange_tcp)
         self._new_stop()
-        self._time_s += duration
+        self.robot_time_s += duration
         self.move_log.append(self._T.copy())
         if fault == "disconnect":
             self._state_fault = (
@@ -437,7 +401,7 @@ class SimulatedUR:
         if settle_s < 0:
             raise InputError(f"settle_s must not be negative, got {settle_s}")
         self._check_ready()
-        self._time_s += float(settle_s)
+        self.robot_time_s += float(settle_s)
 
     def stop(self) -> None:
         """Record the stop (the simulated arm is never moving between calls)."""

@@ -143,9 +143,7 @@ def make_group(
     xy = board_xy() if xy is None else xy
     T_board = np.asarray(T_board, dtype=float)
     Hs = np.array([H_true(K, R_cam_board, C0 + T) for T in T_board])
-    obs = []
-    for px in plane_pixels(Hs, xy):
-        obs.append((xy, px + sigma_px * rng.normal(size=px.shape)))
+    obs = [(xy, px + sigma_px * rng.normal(size=px.shape)) for px in plane_pixels(Hs, xy)]
     return Group(R_cam_board, C0, T_board, obs, Hs)
 
 
@@ -291,34 +289,31 @@ def s1(
     return _paper_scenario(K_S1, R, centres, "robot", opts, sigma_px, rng, presumed)
 
 
-def s2(n_images: int, sigma_px: float, rng: np.random.Generator, phi_deg: float = 0.0) -> Scenario:
+def s2(
+    n_images: int,
+    sigma_px: float,
+    rng: np.random.Generator,
+    phi_deg: float = 0.0,
+    knowledge: str = "board_direction",
+    options: ModelOptions | None = None,
+) -> Scenario:
     """S2 (Tables II, III): tilted 30 deg about x then 30 about y, translated along the board
     normal toward the plane by steps of 5; direction known, lengths unknown; zero skew.
-    ``phi_deg``: the real direction is rotated by phi about the board x axis (S4)."""
+    ``phi_deg``: the real direction is rotated by phi about the board x axis (S4). ``knowledge``,
+    ``options``: what the solver is told and solves for (default S2's; :func:`s3`)."""
     R, C0 = s2_geometry()
     normal = np.array([0.0, 0.0, 1.0]) * np.sign(-C0[2])  # toward the plane
     real = Rx(np.radians(phi_deg)) @ normal
     steps = np.arange(n_images)[:, None] * 5.0
-    opts = ModelOptions(distortion=NO_DISTORTION)
-    return _paper_scenario(
-        K_S2,
-        R,
-        C0 + steps * real,
-        "board_direction",
-        opts,
-        sigma_px,
-        rng,
-        presumed=C0 + steps * normal,
-    )
+    opts = options or ModelOptions(distortion=NO_DISTORTION)
+    centres, presumed = C0 + steps * real, C0 + steps * normal
+    return _paper_scenario(K_S2, R, centres, knowledge, opts, sigma_px, rng, presumed)
 
 
 def s3(n_images: int, sigma_px: float, rng: np.random.Generator) -> Scenario:
     """S3 (Case 3): the S2 set-up with the full translation known; all five intrinsics."""
-    R, C0 = s2_geometry()
-    normal = np.array([0.0, 0.0, 1.0]) * np.sign(-C0[2])
-    centres = C0 + np.arange(n_images)[:, None] * 5.0 * normal
     opts = ModelOptions(skew=True, distortion=NO_DISTORTION)
-    return _paper_scenario(K_S2, R, centres, "board_translation", opts, sigma_px, rng)
+    return s2(n_images, sigma_px, rng, 0.0, "board_translation", opts)
 
 
 # -- S5: a stereo head (paper Figs. 7-9) --------------------------------------------------------
@@ -559,20 +554,44 @@ def _tool_pose(
     return R1_T_BASE_CAM @ T_cam_board @ inv_T(T_tool_board)
 
 
-def _r1_detection(
-    T_cam_board: np.ndarray,
+def _view(
+    T_base_tool: np.ndarray,
+    T_base_board: np.ndarray,
+    eye_in_hand: bool = True,
+    T_tool_board: np.ndarray = R1_T_TOOL_BOARD,
+) -> np.ndarray:
+    """R1's camera's ``T_cam_board`` with the tool at ``T_base_tool``: :func:`_tool_pose`'s
+    inverse."""
+    if eye_in_hand:
+        return inv_T(T_base_tool @ R1_T_TOOL_CAM) @ T_base_board
+    return inv_T(R1_T_BASE_CAM) @ T_base_tool @ T_tool_board
+
+
+def _r1_frames(
+    views: Sequence[np.ndarray],
+    told: Sequence[np.ndarray],
     target: Target,
     sigma_px: float,
     rng: np.random.Generator,
+    noise: tuple[float, float] = (0.0, 0.0),
     detect: ImageModel | None = None,
     bow_m: np.ndarray | None = None,
     dist: np.ndarray = R1_DIST,
-) -> Detection:
-    """What R1's camera finds of ``target`` at ``T_cam_board``: ``detect``'s image model, or the
-    projected points 2 px inside the image with ``sigma_px`` noise."""
-    if detect is not None:
-        return detect(T_cam_board, rng, np.zeros(2) if bow_m is None else bow_m)
-    return projected_detection(R1_K, dist, T_cam_board, target, R1_SIZE_PX, sigma_px, rng, 2.0)
+) -> list[Frame]:
+    """Per camera pose ``views[k]`` (``T_cam_board``), what R1's camera finds of ``target``
+    (``detect``'s image model, the board bowed by ``bow_m``; or the projected points 2 px inside
+    the image with ``sigma_px`` noise), then the robot pose ``told[k]`` with ``noise`` (metres,
+    degrees) as the arm measures it."""
+    frames = []
+    for k, (T_cam_board, T_base_tool) in enumerate(zip(views, told, strict=True)):
+        if detect is not None:
+            det = detect(T_cam_board, rng, np.zeros(2) if bow_m is None else bow_m)
+        else:
+            det = projected_detection(
+                R1_K, dist, T_cam_board, target, R1_SIZE_PX, sigma_px, rng, 2.0
+            )
+        frames.append(Frame(k, {"cam": det}, T_base_tool=_perturb(T_base_tool, rng, *noise)))
+    return frames
 
 
 def r1(
@@ -589,13 +608,10 @@ def r1(
     the camera-board poses are R1's, so the tilt groups and translations carry over."""
     target = r1_target()
     T_base_board, poses = r1_poses()
-    frames = []
-    for k, T_bt in enumerate(poses):
-        T_cam_board = inv_T(T_bt @ R1_T_TOOL_CAM) @ T_base_board
-        T_base_tool = T_bt if eye_in_hand else _tool_pose(T_cam_board, T_base_board, False)
-        det = _r1_detection(T_cam_board, target, sigma_px, rng)
-        measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
-        frames.append(Frame(k, {"cam": det}, T_base_tool=measured))
+    views = [_view(T, T_base_board) for T in poses]
+    told = poses if eye_in_hand else [_tool_pose(T, T_base_board, False) for T in views]
+    noise = (robot_noise_m, robot_noise_deg)
+    frames = _r1_frames(views, told, target, sigma_px, rng, noise)
     return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board)
 
 
@@ -605,11 +621,12 @@ def r1(
 R1_IN_REACH = T_from_Rt(Rz(np.pi), np.zeros(3))
 
 
-def _in_reach() -> np.ndarray:
-    T_base_board, _ = r1_poses()
+def _in_reach() -> tuple[np.ndarray, np.ndarray]:
+    """:func:`r1_poses` moved by ``R1_IN_REACH``."""
+    T_base_board, poses = r1_poses()
     S = R1_IN_REACH.copy()
     S[:3, 3] = np.array([0.5, 0.0, 0.0]) - S[:3, :3] @ T_base_board[:3, 3]
-    return S
+    return S @ T_base_board, np.stack([S @ T for T in poses])
 
 
 def real_arm_poses(
@@ -625,7 +642,6 @@ def real_arm_poses(
     Each pose's joints are the solution nearest the previous pose's, from the configuration a walk
     from ``Q_HOME`` ends in, so every frame stands on one configuration."""
     ke = KinematicError.random(rng, arm_mm, arm_deg, repeatability_mm, repeatability_deg)
-    out = np.empty_like(planned)
     q_prev = urk.Q_HOME
     for _ in range(2):  # the first walk finds the configuration, the second starts in it
         joints = []
@@ -635,9 +651,7 @@ def real_arm_poses(
                 raise ValueError(f"planned pose {k} is out of the UR5e's reach")
             q_prev = sols[0]
             joints.append(q_prev)
-    for k, q in enumerate(joints):
-        out[k] = ke.fk(q, urk.UR5E) @ ke.stop_error(rng)
-    return out
+    return np.stack([ke.fk(q, urk.UR5E) @ ke.stop_error(rng) for q in joints])
 
 
 def r1_real_arm(
@@ -660,24 +674,19 @@ def r1_real_arm(
     board described with a real board's tolerance (:func:`real_board_of`). What the data can
     determine of the truth: :func:`effective_truth`.
     """
-    target = r1_target()
-    seen, bow = None, np.zeros(2)
+    target = seen = r1_target()
+    bow = np.zeros(2)
     if real_board:
         target, seen, bow = real_board_of(target, rng)
-    S = _in_reach()
-    T_base_board, poses = r1_poses()
-    T_base_board = S @ T_base_board
-    poses = np.stack([S @ T for T in poses])
+    T_base_board, poses = _in_reach()
     if translations_only:
         poses = np.stack([poses[0], *_r1_translations(poses[0])])
     planned = poses
     if not eye_in_hand:  # the same camera-board poses, the board on the tool, the camera fixed
-        T_cb = [inv_T(T @ R1_T_TOOL_CAM) @ T_base_board for T in poses]
-        planned = np.stack([_tool_pose(T, T_base_board, False) for T in T_cb])
+        planned = np.stack([_tool_pose(_view(T, T_base_board), T_base_board, False) for T in poses])
     true = real_arm_poses(planned, rng, arm_mm, arm_deg)
-    frames = _real_arm_frames(
-        true, planned, T_base_board, eye_in_hand, sigma_px, rng, detect, target=seen, bow_m=bow
-    )
+    views = [_view(T, T_base_board, eye_in_hand) for T in true]
+    frames = _r1_frames(views, planned, seen, sigma_px, rng, detect=detect, bow_m=bow)
     return r1_scenario(
         target, frames, eye_in_hand, options, sigma_px, T_base_board, T_base_tool_true=true
     )
@@ -757,32 +766,6 @@ def real_board_of(target: Target, rng: np.random.Generator) -> tuple[Target, Tar
     modes = shape_modes(target, target.points_m)
     seen = replace(target, points_m=target.points_m + bow[0] * modes[3] + bow[1] * modes[4])
     return described, seen, bow
-
-
-def _real_arm_frames(
-    true: np.ndarray,
-    planned: np.ndarray,
-    T_base_board: np.ndarray,
-    eye_in_hand: bool,
-    sigma_px: float,
-    rng: np.random.Generator,
-    detect: ImageModel | None,
-    target: Target | None = None,
-    T_tool_board: np.ndarray = R1_T_TOOL_BOARD,
-    bow_m: np.ndarray | None = None,
-) -> list[Frame]:
-    """R1's camera and board (``target``; on the tool at ``T_tool_board`` eye-to-hand) at the arm's
-    true poses; each frame records the planned pose and what ``detect`` sees."""
-    target = target or r1_target()
-    frames = []
-    for k, (T_true, T_meas) in enumerate(zip(true, planned, strict=True)):
-        if eye_in_hand:
-            T_cam_board = inv_T(T_true @ R1_T_TOOL_CAM) @ T_base_board
-        else:
-            T_cam_board = inv_T(R1_T_BASE_CAM) @ T_true @ T_tool_board
-        det = _r1_detection(T_cam_board, target, sigma_px, rng, detect, bow_m)
-        frames.append(Frame(k, {"cam": det}, T_base_tool=T_meas))
-    return frames
 
 
 def effective_truth(
@@ -923,10 +906,8 @@ def camera_board_poses(
         aim = centre + np.array([*rng.uniform(-aim_spread_m, aim_spread_m, 2), 0.0])
         p_cam = aim + rng.uniform(*distance_m) * view
         up = np.array([0.0, -1.0, 0.0])  # board -y appears up in the image
-        R_cam_board = look_at_R_cam_world(p_cam, aim, up)
-        R_cam_board = R_from_rvec([0.0, 0.0, np.radians(rng.uniform(-roll_deg, roll_deg))]) @ (
-            R_cam_board
-        )
+        roll = R_from_rvec([0.0, 0.0, np.radians(rng.uniform(-roll_deg, roll_deg))])
+        R_cam_board = roll @ look_at_R_cam_world(p_cam, aim, up)
         out.append(T_from_Rt(R_cam_board, -R_cam_board @ p_cam))
     return np.array(out)
 
@@ -949,13 +930,6 @@ def _translated(
     return np.array(out)
 
 
-def _reachable(T_base_tool: np.ndarray) -> bool:
-    """A UR5e reaches ``T_base_tool`` from its home joints away from its singularities."""
-    return any(
-        urk.singularity(q, urk.UR5E) is None for q in urk.ik(T_base_tool, urk.Q_HOME, urk.UR5E)
-    )
-
-
 def classic_real_arm(
     rng: np.random.Generator,
     n_frames: int = 28,
@@ -971,19 +945,19 @@ def classic_real_arm(
     :func:`r1_real_arm`'s. ``arm_scale``: the true positions are ``1 + arm_scale`` times as far from
     the base as the reported ones."""
     target = r1_target()
-    S = _in_reach()
-    T_base_board = S @ r1_poses()[0]
+    T_base_board = _in_reach()[0]
     views: list[np.ndarray] = []
     while len(views) < n_frames:
         for T in camera_board_poses(rng, 2 * n_frames, target):
-            if _reachable(_tool_pose(T, T_base_board, eye_in_hand)):
+            if urk.reachable(_tool_pose(T, T_base_board, eye_in_hand), None, urk.UR5E):
                 views.append(T)
                 if len(views) == n_frames:
                     break
     planned = np.stack([_tool_pose(T, T_base_board, eye_in_hand) for T in views])
     true = real_arm_poses(planned, rng, arm_mm, arm_deg)
     true[:, :3, 3] *= 1.0 + arm_scale
-    frames = _real_arm_frames(true, planned, T_base_board, eye_in_hand, sigma_px, rng, detect)
+    views = [_view(T, T_base_board, eye_in_hand) for T in true]
+    frames = _r1_frames(views, planned, target, sigma_px, rng, detect=detect)
     return r1_scenario(
         target, frames, eye_in_hand, None, sigma_px, T_base_board, T_base_tool_true=true
     )
@@ -1032,16 +1006,15 @@ def tag_real_arm(
             u, v = rng.uniform(0.12 * w, 0.88 * w), rng.uniform(0.15 * h, 0.85 * h)
             ray = np.array([(u - R1_K[0, 2]) / R1_K[0, 0], (v - R1_K[1, 2]) / R1_K[1, 1], 1.0])
             T = R1_T_BASE_CAM @ T_from_Rt(R, z * ray) @ inv_T(TAG_T_TOOL_TAG)
-            if _reachable(T):
+            if urk.reachable(T, None, urk.UR5E):
                 group.append(T)
         if len(group) < n:
             raise ValueError("the tag session's views are out of the UR5e's reach")
         planned += group
     planned_a = np.stack(planned)
     true = real_arm_poses(planned_a, rng, arm_mm, arm_deg)
-    frames = _real_arm_frames(
-        true, planned_a, np.eye(4), False, sigma_px, rng, detect, target, TAG_T_TOOL_TAG
-    )
+    views = [_view(T, np.eye(4), False, TAG_T_TOOL_TAG) for T in true]
+    frames = _r1_frames(views, planned_a, target, sigma_px, rng, detect=detect)
     return r1_scenario(
         target,
         frames,
@@ -1079,12 +1052,9 @@ def classic(
         T_cam_board = camera_board_poses(rng, n_frames, target)
     T_cb = _translated(np.asarray(T_cam_board, dtype=float), rng, per_orientation)
     T_base_board = r1_poses()[0]
-    frames = []
-    for k, T_c_b in enumerate(T_cb):
-        T_base_tool = _tool_pose(T_c_b, T_base_board, eye_in_hand)
-        det = _r1_detection(T_c_b, target, sigma_px, rng, dist=dist)
-        measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
-        frames.append(Frame(k, {"cam": det}, T_base_tool=measured))
+    told = [_tool_pose(T, T_base_board, eye_in_hand) for T in T_cb]
+    noise = (robot_noise_m, robot_noise_deg)
+    frames = _r1_frames(T_cb, told, target, sigma_px, rng, noise, dist=dist)
     return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board, dist)
 
 
@@ -1150,13 +1120,13 @@ def drifting_arm(
     D *= np.radians(drift_deg) / over_m / np.linalg.norm(D, 2)
     t0 = T_meas[:, :3, 3].mean(axis=0)
     target, frames, true = base.problem.target, [], []
-    for k, T in enumerate(T_meas):
+    for T in T_meas:
         e = D @ (T[:3, 3] - t0) + rng.normal(0.0, np.radians(0.003), 3)
         T_true = T_from_Rt(R_from_rvec(e) @ T[:3, :3], T[:3, 3] + rng.normal(0.0, 2e-5, 3))
         true.append(T_true)
-        T_cam_board = inv_T(T_true @ R1_T_TOOL_CAM) @ base.T_target
-        det = _r1_detection(T_cam_board, target, sigma_px, rng, detect)
-        frames.append(Frame(k, {"cam": det}, T_base_tool=T))
+        view = [_view(T_true, base.T_target)]
+        frames += _r1_frames(view, [T], target, sigma_px, rng, detect=detect)
+    frames = [replace(f, id=k) for k, f in enumerate(frames)]
     scenario = r1_scenario(
         target, frames, True, None, sigma_px, base.T_target, T_base_tool_true=np.stack(true)
     )
@@ -1240,18 +1210,13 @@ def scale_session(
     ``arm_error``: the robot poses err by ``ARM_ERROR``."""
     rng = np.random.default_rng(seed)
     frames: list[Frame] = []
-    base = None
     noise_m, noise_deg = ARM_ERROR if arm_error else (0.0, 0.0)
     while len(frames) < n_frames:
-        s = oak_rig(
+        base = oak_rig(
             rng, cameras=CAMERA_SETS[n_cameras], robot_noise_m=noise_m, robot_noise_deg=noise_deg
-        )
-        base = base or s.problem
-        for f in s.problem.frames:
-            if len(frames) < n_frames:
-                frames.append(replace(f, id=len(frames)))
-    assert base is not None
-    return replace(base, frames=tuple(frames))
+        ).problem
+        frames += base.frames
+    return replace(base, frames=tuple(replace(f, id=k) for k, f in enumerate(frames[:n_frames])))
 
 
 # ------------------------------------------- session files edited as a user's mistakes make them
@@ -1261,11 +1226,7 @@ def copy_session(src: Path, dst: Path) -> Path:
     for name in ("session.yaml", "detections.npy", "plan.yaml"):
         if (src / name).is_file():
             shutil.copy(src / name, dst / name)
-    doc = yaml.safe_load((dst / "session.yaml").read_text())
-    for f in doc["frames"]:
-        f.pop("images", None)
-    (dst / "session.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
-    return dst
+    return edit_session(dst, lambda doc: [f.pop("images", None) for f in doc["frames"]])
 
 
 def edit_session(d: Path, fn) -> Path:  # noqa: ANN001 - fn edits the parsed document

@@ -674,12 +674,10 @@ class FakeController:
                         data = fd.recv(65536)
                     except OSError:
                         data = b""
-                    if data and not self.frozen:
-                        self._on_data(c, data)
-                    elif data:
-                        pass  # frozen: read and ignore, answer nothing
-                    else:
+                    if not data:
                         self._drop(c)
+                    elif not self.frozen:  # frozen: read and ignore, answer nothing
+                        self._on_data(c, data)
             self.robot.step()
             fault, self.robot.network_fault = self.robot.network_fault, None
             if fault == "drop":

@@ -5,6 +5,7 @@ frame; on a fault or an interrupt stop the robot and mark the session aborted.""
 from __future__ import annotations
 
 from collections.abc import Mapping
+from contextlib import nullcontext, suppress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -101,45 +102,36 @@ def record_session(
         robot, rig = _connect_real(cfg)
     if faults and not hasattr(faults, "before_frame"):
         faults = FaultInjector.for_simulated(faults, robot, rig)
-    lock = None
-    if lock_key is not None:
-        lock = Lock(cell_lock_path(lock_key), f"the cell ({lock_key})")
-        lock.acquire()
-        if lock.stale:
+    lock = Lock(cell_lock_path(lock_key), f"the cell ({lock_key})") if lock_key else None
+    with lock or nullcontext(), signals_as_interrupt():
+        if lock is not None and lock.stale:
             prog.event(lock.stale)
-    try:
-        with signals_as_interrupt():
-            prog.message("connecting")
-            robot.connect()
+        prog.message("connecting")
+        robot.connect()
+        try:
+            rig.open()
+            specs = tuple(rig.specs)
+            check_plan(plan, cfg, robot.is_reachable)  # refuse before anything moves
+            found = {**record_devices(rig, out, cfg.standoff_m), **_controller(robot)}
+            writer = _open_writer(out, cfg, specs, truth, resume, {**found, **(extra or {})})
+            if not resume or extended:
+                write_plan(plan, out / "plan.yaml")
+            if extended:
+                writer.add_event("extended", extended)
+            elif resume:
+                writer.add_event("resumed", f"resumed at frame {start + 1} of {plan.n_poses}")
+                prog.event(f"resuming {out} at frame {start + 1} of {plan.n_poses}")
+            if log is None and (recording or spawn):
+                log = _open_log(out, cfg, specs, recording, spawn, writer)
             try:
-                rig.open()
-                specs = tuple(rig.specs)
-                check_plan(plan, cfg, robot.is_reachable)  # refuse before anything moves
-                found = {**record_devices(rig, out, cfg.standoff_m), **_controller(robot)}
-                writer = _open_writer(out, cfg, specs, truth, resume, {**found, **(extra or {})})
-                if not resume or extended:
-                    write_plan(plan, out / "plan.yaml")
-                if extended:
-                    writer.add_event("extended", extended)
-                elif resume:
-                    writer.add_event("resumed", f"resumed at frame {start + 1} of {plan.n_poses}")
-                    prog.event(f"resuming {out} at frame {start + 1} of {plan.n_poses}")
-                if log is None and (recording or spawn):
-                    log = _open_log(out, cfg, specs, recording, spawn, writer)
-                try:
-                    acquire(robot, rig, plan, cfg, writer, log, prog, start, retries, faults)
-                except (HardwareFault, KeyboardInterrupt, OSError) as e:
-                    _abort(robot, writer, log, prog, e, out)
-                writer.finish("complete")
-            finally:
-                for closer in (rig.close, robot.close):
-                    try:
-                        closer()
-                    except Exception:  # noqa: BLE001 - closing must not hide the real error
-                        pass
-    finally:
-        if lock is not None:
-            lock.release()
+                acquire(robot, rig, plan, cfg, writer, log, prog, start, retries, faults)
+            except (HardwareFault, KeyboardInterrupt, OSError) as e:
+                _abort(robot, writer, log, prog, e, out)
+            writer.finish("complete")
+        finally:
+            for closer in (rig.close, robot.close):
+                with suppress(Exception):  # closing must not hide the real error
+                    closer()
     return Recorded(robot, log)
 
 
@@ -202,22 +194,16 @@ def _open_log(out: Path, cfg: CellConfig, specs: tuple, recording: bool, spawn: 
 def _abort(robot, writer, log, prog: Progress, e: BaseException, out: Path) -> None:
     """Stop the robot, record what happened, mark the session aborted, raise again."""
     robot.stop()
+    kind, msg = "fault", str(e)
     if isinstance(e, KeyboardInterrupt):
         kind = "interrupted"
-        msg = str(e) if isinstance(e, Interrupted) else "stopped by Ctrl-C"
-        msg = f"{msg} (robot stopped)"
+        msg = f"{msg if isinstance(e, Interrupted) else 'stopped by Ctrl-C'} (robot stopped)"
     elif isinstance(e, OSError):
-        kind = "fault"
         msg = f"writing the session failed: {e.strerror or e} ({e.filename})"
-    else:
-        kind = "fault"
-        msg = str(e)
     n = writer.n_frames
-    try:
+    with suppress(OSError):  # the disk that failed the frame may fail the event too
         writer.add_event(kind, msg, frames_kept=n, robot_time_s=clock(robot))
         writer.finish("aborted")
-    except OSError:  # the disk that failed the frame may fail the event too
-        pass
     if log is not None:
         log.event(f"{kind}: {msg}", level="ERROR")
         log.close()
@@ -319,17 +305,16 @@ def acquire(
 ) -> None:
     """Move through the plan from pose ``start`` (execution order), capture, detect, record;
     ``faults``: a fault injector (``--fault``) told before each frame's move."""
-    i = 0
+    n = 0  # poses up to the end of this group
     for g, group in enumerate(plan.groups):
-        if i + len(group) <= start:
-            i += len(group)
+        n += len(group)
+        if n <= start:
             continue
         if plan.via is not None:
-            prog.step(i, "moving to the via pose")
+            prog.step(n - len(group), "moving to the via pose")
             robot.move_linear(plan.via, plan.speed_mps, plan.accel_mps2)
-        for T in group:
+        for i, T in enumerate(group, start=n - len(group)):
             if i < start:
-                i += 1
                 continue
             prog.step(i, f"group {g + 1}: moving")
             if faults is not None:
@@ -348,4 +333,3 @@ def acquire(
                 log.frame(fid, T_meas, images, detections, clock(robot))
             counts = ", ".join(f"{n} {q['n_corners']} corners" for n, q in quality.items())
             prog.frame_done(f"group {g + 1}, frame id {fid}: {counts}")
-            i += 1

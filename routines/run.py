@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from datetime import datetime
 from functools import partial
 from pathlib import Path
@@ -265,14 +265,11 @@ def _new_session(q: RunRequest, cfg: CellConfig) -> Path:
 
 def _plan(plan: str | Path | Plan | None, cfg: CellConfig) -> Plan:
     """The plan to run: a user's, checked before the robot moves, or the planner's."""
-    if isinstance(plan, str | Path):
-        user = read_plan(plan)
-        check_user_plan(user, cfg, str(plan))
-        return user
-    if isinstance(plan, Plan):
-        check_user_plan(plan, cfg, "plan")
-        return plan
-    return make_plan(cfg).plan
+    if plan is None:
+        return make_plan(cfg).plan
+    user = plan if isinstance(plan, Plan) else read_plan(plan)
+    check_user_plan(user, cfg, "plan" if isinstance(plan, Plan) else str(plan))
+    return user
 
 
 def _install(
@@ -349,11 +346,7 @@ def extend_for_limits(
         "hand_eye_rot_std_deg": he.std_rot_deg if he.std_rot_deg is not None else float("nan"),
         "hand_eye_t_std_mm": he.std_t_mm if he.std_t_mm is not None else float("nan"),
     }
-    goal = PlanGoal(
-        fx_rel_std=EXTEND_MARGIN * limits.fx_rel_std,
-        hand_eye_rot_std_deg=EXTEND_MARGIN * limits.hand_eye_rot_std_deg,
-        hand_eye_t_std_mm=EXTEND_MARGIN * limits.hand_eye_t_std_mm,
-    )
+    goal = PlanGoal(**{k: EXTEND_MARGIN * getattr(limits, k) for k in achieved})
     acc = result.robot_accuracy
     t_mm = acc.translation_mm if acc is not None else cfg.options.robot_noise_m * 1000.0
     rot_deg = acc.rotation_deg if acc is not None else cfg.options.robot_noise_deg
@@ -380,7 +373,12 @@ def frames_on_disk(session_dir: str | Path) -> int:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The ``slidecal run`` options."""
     p.add_argument("--config", help="cell description (default: the simulated default cell)")
-    p.add_argument("--out", help="session directory to create (default: sessions/<time>)")
+    p.add_argument(
+        "--out",
+        dest="out_dir",
+        metavar="OUT",
+        help="session directory to create (default: sessions/<time>)",
+    )
     p.add_argument(
         "--plan",
         help="plan.yaml to execute, checked before the robot moves (default: the planner "
@@ -388,7 +386,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--spawn", action="store_true", help="open the rerun viewer live")
     p.add_argument("--quiet", action="store_true", help="no progress output")
-    p.add_argument("--no-recording", action="store_true", help="do not write recording.rrd")
+    p.add_argument(
+        "--no-recording", dest="recording", action="store_false", help="do not write recording.rrd"
+    )
     p.add_argument(
         "--seed",
         type=int,
@@ -397,6 +397,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--fault",
+        dest="faults",
         action="append",
         metavar="KIND@FRAME",
         help="simulated cells: inject a hardware fault (see slidecal.routines.ops.faults)",
@@ -416,7 +417,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--accept-drift",
-        action="store_true",
+        action="store_const",
+        const=True,
         help="install a result that differs from the installed one (verdict drifted)",
     )
     p.add_argument(
@@ -433,23 +435,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Run, print the summary, exit with the verdict's code."""
-    outcome = run_calibration(
-        RunRequest(
-            args.config,
-            plan=args.plan,
-            out_dir=args.out,
-            progress=False if args.quiet else None,
-            recording=not args.no_recording,
-            spawn=args.spawn,
-            seed=args.seed,
-            install=args.install,
-            force=args.force,
-            accept_drift=True if args.accept_drift else None,
-            installed=args.installed,
-            resume=args.resume,
-            retries=args.retries,
-            faults=args.fault,
-        )
-    )
+    given = {f.name: getattr(args, f.name) for f in fields(RunRequest) if hasattr(args, f.name)}
+    outcome = run_calibration(RunRequest(**given, progress=False if args.quiet else None))
     print_outcome(outcome, args.quiet)
     return outcome.exit_code

@@ -50,16 +50,14 @@ def _close(a: Any, b: Any, **tolerance: float) -> bool:
 
 def _compare(a: dict[str, Any], b: dict[str, Any]) -> list[int]:
     """The camera sockets whose calibration differs between two depthai JSON dicts."""
-    cams_a = {int(k): v for k, v in a.get("cameraData", [])}
-    cams_b = {int(k): v for k, v in b.get("cameraData", [])}
+    cams_a, cams_b = ({int(k): v for k, v in d.get("cameraData", [])} for d in (a, b))
     bad = sorted(set(cams_a) ^ set(cams_b))
     for key in set(cams_a) & set(cams_b):
         for field in ("intrinsicMatrix", "distortionCoeff", "width", "height"):
             if not _close(cams_a[key].get(field), cams_b[key].get(field), rtol=1e-6):
                 bad.append(key)
         ea, eb = cams_a[key].get("extrinsics", {}), cams_b[key].get("extrinsics", {})
-        ta = [ea.get("translation", {}).get(k, 0.0) for k in "xyz"]
-        tb = [eb.get("translation", {}).get(k, 0.0) for k in "xyz"]
+        ta, tb = ([e.get("translation", {}).get(k, 0.0) for k in "xyz"] for e in (ea, eb))
         if not (
             _close(ea.get("rotationMatrix"), eb.get("rotationMatrix"), atol=1e-7)
             and _close(ta, tb, atol=1e-6)

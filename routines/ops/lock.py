@@ -86,10 +86,7 @@ class Lock:
             pid, host = -1, socket.gethostname()
         if host == socket.gethostname() and (pid <= 0 or not _pid_alive(pid)):
             self.stale = f"stale lock of process {pid} (no longer running) taken over"
-            try:
-                self.path.unlink()
-            except FileNotFoundError:
-                pass
+            self.path.unlink(missing_ok=True)
             return None
         return pid, host
 
@@ -97,10 +94,7 @@ class Lock:
         """Remove the lock (only when held by this object)."""
         if self._held:
             self._held = False
-            try:
-                self.path.unlink()
-            except FileNotFoundError:
-                pass
+            self.path.unlink(missing_ok=True)
 
     def __enter__(self) -> Lock:
         return self.acquire()

@@ -73,12 +73,12 @@ class LoopbackController:
             )
         return json.loads(line)
 
-    def ctl(self, command: str) -> dict[str, Any]:
-        """Send one control command, return its JSON answer."""
+    def ctl(self, command: str, answer: bool = True) -> dict[str, Any]:
+        """Send one control command, return its JSON answer (``answer`` False: none awaited)."""
         assert self.proc.stdin is not None
         self.proc.stdin.write(command + "\n")
         self.proc.stdin.flush()
-        return self._read(5.0)
+        return self._read(5.0) if answer else {}
 
     def true_tcp_pose(self) -> np.ndarray:
         """The arm's true ``T_base_tool`` (4, 4), metres (what the cameras see)."""
@@ -88,9 +88,7 @@ class LoopbackController:
         """Quit the controller process (killed if it does not exit within 5 s)."""
         if self.proc.poll() is None:
             try:
-                assert self.proc.stdin is not None
-                self.proc.stdin.write("quit\n")
-                self.proc.stdin.flush()
+                self.ctl("quit", answer=False)
                 self.proc.wait(5.0)
             except (OSError, subprocess.TimeoutExpired):
                 self.proc.kill()
@@ -132,9 +130,8 @@ def simulated_twin(cfg: CellConfig) -> CellConfig:
             where=f"{cfg.source}: cameras.list",
         )
     frames = MOUNTS["eye_in_hand" if cfg.mount == "eye_in_hand" else "eye_to_hand"]
-    he_key, tg_key = frames.hand_eye, frames.target
-    sim[he_key] = transform_to_dict(cfg.approx_T_hand_eye)
-    sim[tg_key] = transform_to_dict(cfg.approx_T_target)
+    sim[frames.hand_eye] = transform_to_dict(cfg.approx_T_hand_eye)
+    sim[frames.target] = transform_to_dict(cfg.approx_T_target)
     if "start_q" not in robot and "start_pose" not in robot:
         # the camera at the stand-off, looking straight at the middle of the target
         pts = np.asarray(cfg.target.points_m, dtype=float)
