@@ -11,7 +11,12 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from slidecal.solver.camera import distortion_jacobian, project_with_jacobians, undistort_normalised
+from slidecal.solver.camera import (
+    as_distortion,
+    distortion_jacobian,
+    project_with_jacobians,
+    undistort_normalised,
+)
 from slidecal.solver.detect import charuco_board
 from slidecal.solver.errors import InputError
 from slidecal.solver.problem import Target
@@ -241,9 +246,7 @@ def _subsample_rays(
 
 def _rays(cam: SimCamera, n: int) -> np.ndarray:
     K = np.ascontiguousarray(cam.K, dtype=float)
-    dist = np.zeros(5)
-    dd = np.asarray(cam.dist, dtype=float).reshape(-1)
-    dist[: min(5, len(dd))] = dd[:5]
+    dist = as_distortion(cam.dist)
     return _subsample_rays(int(cam.width), int(cam.height), K.tobytes(), dist.tobytes(), n)
 
 
