@@ -19,6 +19,13 @@ from slidecal.solver.geometry import R_from_rvec, T_from_Rt
 from slidecal.solver.problem import CameraSpec, Target
 
 FAULT_KINDS = ("no_frame", "disconnect", "lost")
+#: One lens of each model for R1's 1280 x 800 camera (``solver/camera.py``): an M12-like rational
+#: lens and a mild fisheye (the opencv5 one is R1's).
+LENSES = {
+    "opencv5": np.array([-0.12, 0.05, 5e-4, -3e-4, 0.0]),
+    "rational": np.array([0.3, -0.1, 5e-4, -3e-4, 0.01, 0.42, -0.08, 0.02]),
+    "fisheye": np.array([-0.02, 0.01, -0.004, 0.001]),
+}
 
 
 @dataclass(frozen=True)
@@ -70,7 +77,7 @@ def single_camera(name: str = "cam", **overrides: float | bool | Photo) -> SimCa
         1280,
         800,
         K_matrix(880.0, 880.0, 640.0, 400.0),
-        np.array([-0.12, 0.05, 5e-4, -3e-4, 0.0]),
+        LENSES["opencv5"],
         **overrides,
     )
 

@@ -759,7 +759,7 @@ def _sim_camera(c: Fields, name: str, base: SimCamera | None) -> SimCamera:
     ):
         raise c.error("K", "must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
     dist = (
-        c.array("distortion", (5,))
+        c.distortion("distortion")
         if c.has("distortion")
         else (base.dist if base is not None else np.zeros(5))
     )
