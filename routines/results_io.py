@@ -418,8 +418,11 @@ def _cameras_from(f: Fields) -> dict[str, CameraEstimate]:
         model = c.choice("distortion_model", tuple(DISTORTION_MODELS), "opencv5")
         dist = c.distortion("distortion")
         if distortion_model(dist) != model:
-            n = len(DISTORTION_MODELS[model])
-            raise c.error("distortion", f"has {len(dist)} values; the {model} model has {n}")
+            raise c.error(
+                "distortion_model",
+                f"is {model}, but distortion has {len(dist)} values, the "
+                f"{distortion_model(dist)} model's; make them agree",
+            )
         std = c.section("std")
         cams[name] = CameraEstimate(
             name,

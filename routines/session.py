@@ -383,8 +383,10 @@ def options_from_dict(data: Any, file: str, path: str = "options") -> ModelOptio
     """:class:`ModelOptions` from an ``options:`` block (absent fields keep their defaults)."""
     f = Fields(data, file, path).only(OPTIONS_KEYS)
     base = ModelOptions()
-    model = f.choice("distortion_model", tuple(DISTORTION_MODELS), base.distortion_model)
-    names = DISTORTION_MODELS[model]
+    model = None  # the data chooses
+    if f.has("distortion_model"):
+        model = f.choice("distortion_model", tuple(DISTORTION_MODELS))
+    names = DISTORTION_MODELS[model or "opencv5"]
     dist = (True,) * len(names)
     if f.has("distortion"):
         v = f.get("distortion")
@@ -413,6 +415,8 @@ def options_to_dict(options: ModelOptions) -> dict[str, Any]:
     d = {k: plain(getattr(options, k.replace("_mm", "_m"))) for k in OPTIONS_KEYS}
     d["robot_noise_mm"] *= 1000.0
     d["distortion"] = list(options.distortion_mask)
+    if options.distortion_model is None:  # the data chooses
+        del d["distortion_model"]
     return d
 
 

@@ -40,6 +40,7 @@ from slidecal.solver.free_pose import FreePoseFit, pnp_from
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, project_to_SO3
 from slidecal.solver.handeye import ax_xb_park_martin, rotation_from_directions
 from slidecal.solver.homography import group_homographies
+from slidecal.solver.lens import choose_lens
 from slidecal.solver.linear import (
     LinearGroup,
     focal_from_homographies,
@@ -283,7 +284,7 @@ def _best_start(problem: CalibrationProblem, cam: str, candidates: list[np.ndarr
     """
     o = problem.options
     exact = replace(problem, options=replace(o, robot_noise_m=0.0, robot_noise_deg=0.0))
-    zero = zero_distortion(o.distortion_model)
+    zero = zero_distortion(o.lens)
     groups = frame_groups(exact)
     st = model = None  # the structure and its model, shared by the candidates where they can be
     best, best_err = 0, np.inf
@@ -626,9 +627,13 @@ def calibrate(
     A frame whose robot pose the images contradict far beyond the arm's accuracy elsewhere
     (``adequacy.pose_outlier``), or else whose image is far beyond its camera's detector noise
     (``adequacy.image_outlier``), is left out and the session solved again, with a message; at
-    most one frame in ten (at least one).
+    most one frame in ten (at least one). The lens model is tested (``solver/lens.py``).
     """
-    return _pipeline(problem, joint_homographies, focal_sweep, ())
+
+    def solve(p: CalibrationProblem) -> CalibrationResult:
+        return _pipeline(p, joint_homographies, focal_sweep, ())
+
+    return choose_lens(problem, solve(problem), solve)
 
 
 @dataclass
@@ -714,7 +719,7 @@ def _pass(
     problem, notes_skipped = usable_frames(problem)
     notes: list[str] = list(notes_skipped)
     groups = frame_groups(problem)
-    zero = zero_distortion(problem.options.distortion_model)
+    zero = zero_distortion(problem.options.lens)
     K_lin = {}
     H_cache: dict = {}  # every camera's homographies, reused by the rig's pairs
     for c in problem.cameras:

@@ -264,7 +264,8 @@ class ModelOptions:
     """What the camera model estimates.
 
     ``skew``: estimate the skew ``s`` (else 0). ``unit_aspect``: ``fx == fy``.
-    ``distortion_model``: the lens model, a key of ``solver/camera.py``'s DISTORTION_MODELS.
+    ``distortion_model``: the lens model, a key of ``solver/camera.py``'s DISTORTION_MODELS; None:
+    the data chooses (``solver/lens.py``), from opencv5 (:attr:`lens`).
     ``distortion``: which of its coefficients are estimated (the others stay 0): one flag each,
     or one flag for all, or opencv5's five flags for rational (k4-k6 follow k3):
     :attr:`distortion_mask`.
@@ -284,12 +285,17 @@ class ModelOptions:
     robot_noise_m: float = 0.0
     robot_noise_deg: float = 0.0
     estimate_robot_noise: bool = True
-    distortion_model: str = "opencv5"
+    distortion_model: str | None = None
+
+    @property
+    def lens(self) -> str:
+        """The lens model solved for (opencv5 until the data asks for another)."""
+        return self.distortion_model or "opencv5"
 
     @property
     def distortion_names(self) -> tuple[str, ...]:
         """The lens model's coefficients, in order."""
-        return DISTORTION_MODELS[self.distortion_model]
+        return DISTORTION_MODELS[self.lens]
 
     @property
     def distortion_mask(self) -> tuple[bool, ...]:
@@ -300,7 +306,7 @@ class ModelOptions:
         if len(set(d)) == 1 or (n == 8 and len(d) == 5):
             return (d + (d[-1],) * n)[:n]
         raise InputError(
-            f"options.distortion has {len(d)} flags; the {self.distortion_model} model has "
+            f"options.distortion has {len(d)} flags; the {self.lens} model has "
             f"{n} ({', '.join(self.distortion_names)}): give {n} flags"
         )
 
