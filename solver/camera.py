@@ -85,7 +85,7 @@ class Projection:
 
 def _radial(d: np.ndarray, r2: np.ndarray, jacobian: bool) -> tuple[np.ndarray, ...]:
     """The radial factor ``a`` of the model of ``d`` at ``r2`` and, with ``jacobian``,
-    ``da / dr2`` and ``da / dk`` (N, number of radial coefficients)."""
+    ``da / dr2`` and ``da / dk``, one (N,) array per radial coefficient."""
     if len(d) == 4:  # fisheye
         r2s = np.maximum(r2, _SMALL_R2)
         r = np.sqrt(r2s)
@@ -100,28 +100,29 @@ def _radial(d: np.ndarray, r2: np.ndarray, jacobian: bool) -> tuple[np.ndarray, 
         dthd_dth = 1.0 + powers @ (d * np.array([3.0, 5.0, 7.0, 9.0]))
         dthd_dr = dthd_dth / (1.0 + r2s)
         da_dr2 = np.where(small, d[0] - 1.0 / 3.0, (dthd_dr * r - th * poly) / (2.0 * r2s * r))
-        return a, da_dr2, powers * (th / r)[:, None]
+        return a, da_dr2, list((powers * (th / r)[:, None]).T)
     k1, k2, k3 = d[0], d[1], d[4]
-    k4, k5, k6 = (d[5], d[6], d[7]) if len(d) == 8 else (0.0, 0.0, 0.0)
-    num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
-    a = num / den
-    if not jacobian:
-        return (a,)
-    dnum = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-    dden = k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2)
-    da_dr2 = (dnum - a * dden) / den
-    powers = np.stack([r2, r2 * r2, r2**3], axis=1) / den[:, None]
-    d_k = np.concatenate([powers, -a[:, None] * powers], axis=1) if len(d) == 8 else powers
-    return a, da_dr2, d_k
+    a = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    da_dr2 = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2) if jacobian else None
+    r4 = r2 * r2
+    powers = [r2, r4, r4 * r2]  # da / d(k1, k2, k3) of opencv5
+    if len(d) == 8:  # a = numerator / denominator
+        k4, k5, k6 = d[5], d[6], d[7]
+        den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        a = a / den
+        if jacobian:
+            da_dr2 = (da_dr2 - a * (k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2))) / den
+            powers = [q / den for q in powers]
+            powers += [-a * q for q in powers]
+    return (a, da_dr2, powers) if jacobian else (a,)
 
 
 def _distort(
     d: np.ndarray, x: np.ndarray, y: np.ndarray, jacobian: bool = False, params: bool = True
 ) -> tuple:
     """Distorted normalised coordinates ``xd, yd`` of ``x, y`` and, with ``jacobian``, their
-    partial derivatives ``dxd_dx, dxd_dy, dyd_dx, dyd_dy`` and (with ``params``) the
-    (N, 2, len(d)) derivatives with respect to ``d``."""
+    (N, 2, 2) derivatives with respect to ``(x, y)`` and (with ``params``) the (N, 2, len(d))
+    ones with respect to ``d``."""
     r2 = x * x + y * y
     rad = _radial(d, r2, jacobian)
     a = rad[0]
@@ -132,20 +133,31 @@ def _distort(
     if not jacobian:
         return xd, yd
     da, da_dk = rad[1], rad[2]
-    dxd_dx = a + 2.0 * x * x * da + 2.0 * p1 * y + 6.0 * p2 * x
-    dxd_dy = 2.0 * x * y * da + 2.0 * p1 * x + 2.0 * p2 * y
-    dyd_dx = dxd_dy
-    dyd_dy = a + 2.0 * y * y * da + 6.0 * p1 * y + 2.0 * p2 * x
+    J = np.empty((len(x), 2, 2))
+    J[:, 0, 0] = a + 2.0 * x * x * da + 2.0 * p1 * y + 6.0 * p2 * x
+    J[:, 0, 1] = J[:, 1, 0] = 2.0 * xy * da + 2.0 * p1 * x + 2.0 * p2 * y
+    J[:, 1, 1] = a + 2.0 * y * y * da + 6.0 * p1 * y + 2.0 * p2 * x
     if not params:
-        return xd, yd, dxd_dx, dxd_dy, dyd_dx, dyd_dy
-    d_d = np.empty((len(x), 2, len(d)))
-    radial = [0, 1, 2, 3] if len(d) == 4 else [0, 1, 4, 5, 6, 7][: len(d) - 2]
-    d_d[:, 0, radial] = x[:, None] * da_dk
-    d_d[:, 1, radial] = y[:, None] * da_dk
-    if len(d) != 4:
-        d_d[:, 0, 2:4] = np.stack([2.0 * xy, r2 + 2.0 * x * x], axis=1)
-        d_d[:, 1, 2:4] = np.stack([r2 + 2.0 * y * y, 2.0 * xy], axis=1)
-    return xd, yd, dxd_dx, dxd_dy, dyd_dx, dyd_dy, d_d
+        return xd, yd, J
+    gx, gy = [x * g for g in da_dk], [y * g for g in da_dk]
+    if len(d) != 4:  # OpenCV's order: k1 k2 p1 p2 k3 (k4 k5 k6)
+        gx = [gx[0], gx[1], 2.0 * xy, r2 + 2.0 * x * x, *gx[2:]]
+        gy = [gy[0], gy[1], r2 + 2.0 * y * y, 2.0 * xy, *gy[2:]]
+    return xd, yd, J, np.stack([np.stack(gx, axis=1), np.stack(gy, axis=1)], axis=1)
+
+
+def _pixels(K: np.ndarray, xd: np.ndarray, yd: np.ndarray, *d_dist: np.ndarray) -> tuple:
+    """Pixels (N, 2) of distorted normalised ``xd, yd`` and, for each (N, 2, k) derivative of
+    ``(xd, yd)`` given, the pixels' (N, 2, k)."""
+    fx, s, cx = K[0]
+    fy, cy = K[1, 1], K[1, 2]
+    out = [np.stack([fx * xd + s * yd + cx, fy * yd + cy], axis=1)]
+    for D in d_dist:
+        J = np.empty_like(D)
+        J[:, 0] = fx * D[:, 0] + s * D[:, 1]
+        J[:, 1] = fy * D[:, 1]
+        out.append(J)
+    return tuple(out)
 
 
 def distortion_jacobian(
@@ -154,18 +166,8 @@ def distortion_jacobian(
     """Pixels (N, 2) of normalised undistorted coordinates ``xy`` (N, 2) and the 2 x 2
     Jacobians (N, 2, 2) of the pixels with respect to them: ``project_with_jacobians`` at
     ``z = 1`` without the parameters' Jacobians (the same numbers, a fraction of the work)."""
-    fx, s, cx = K[0]
-    fy, cy = K[1, 1], K[1, 2]
     xy = np.asarray(xy, dtype=float).reshape(-1, 2)
-    xd, yd, dxd_dx, dxd_dy, dyd_dx, dyd_dy = _distort(
-        as_distortion(dist), xy[:, 0], xy[:, 1], True, params=False
-    )
-    J = np.empty((len(xy), 2, 2))
-    J[:, 0, 0] = fx * dxd_dx + s * dyd_dx
-    J[:, 0, 1] = fx * dxd_dy + s * dyd_dy
-    J[:, 1, 0] = fy * dyd_dx
-    J[:, 1, 1] = fy * dyd_dy
-    return np.stack([fx * xd + s * yd + cx, fy * yd + cy], axis=1), J
+    return _pixels(K, *_distort(as_distortion(dist), xy[:, 0], xy[:, 1], True, params=False))
 
 
 def project_with_jacobians(
@@ -174,38 +176,18 @@ def project_with_jacobians(
     """Project ``P_cam`` (N, 3) and return the analytic Jacobians (see :class:`Projection`)."""
     P = np.asarray(P_cam, dtype=float).reshape(-1, 3)
     d = as_distortion(dist)
-    fx, s, cx = K[0]
-    fy, cy = K[1, 1], K[1, 2]
-    X, Y, Z = P[:, 0], P[:, 1], P[:, 2]
-    iz = 1.0 / Z
-    x, y = X * iz, Y * iz
+    iz = 1.0 / P[:, 2]
+    x, y = P[:, 0] * iz, P[:, 1] * iz
     if not jacobians:
-        xd, yd = _distort(d, x, y)
-        return Projection(np.stack([fx * xd + s * yd + cx, fy * yd + cy], axis=1))
-    xd, yd, dxd_dx, dxd_dy, dyd_dx, dyd_dy, d_d = _distort(d, x, y, True)
-    px = np.stack([fx * xd + s * yd + cx, fy * yd + cy], axis=1)
-    n = len(P)
-    # pixel w.r.t. normalised (x, y)
-    du_dx = fx * dxd_dx + s * dyd_dx
-    du_dy = fx * dxd_dy + s * dyd_dy
-    dv_dx = fy * dyd_dx
-    dv_dy = fy * dyd_dy
-    d_P = np.empty((n, 2, 3))
-    d_P[:, 0, 0] = du_dx * iz
-    d_P[:, 0, 1] = du_dy * iz
-    d_P[:, 0, 2] = -(du_dx * x + du_dy * y) * iz
-    d_P[:, 1, 0] = dv_dx * iz
-    d_P[:, 1, 1] = dv_dy * iz
-    d_P[:, 1, 2] = -(dv_dx * x + dv_dy * y) * iz
-    d_K = np.zeros((n, 2, 5))
-    d_K[:, 0, 0] = xd
-    d_K[:, 1, 1] = yd
-    d_K[:, 0, 2] = 1.0
-    d_K[:, 1, 3] = 1.0
-    d_K[:, 0, 4] = yd
-    d_dist = np.empty_like(d_d)
-    d_dist[:, 0, :] = fx * d_d[:, 0, :] + s * d_d[:, 1, :]
-    d_dist[:, 1, :] = fy * d_d[:, 1, :]
+        return Projection(_pixels(K, *_distort(d, x, y))[0])
+    xd, yd, J_xy, d_d = _distort(d, x, y, True)
+    px, J, d_dist = _pixels(K, xd, yd, J_xy, d_d)
+    d_P = np.empty((len(P), 2, 3))
+    d_P[:, :, :2] = J * iz[:, None, None]
+    d_P[:, :, 2] = -(J[:, :, 0] * x[:, None] + J[:, :, 1] * y[:, None]) * iz[:, None]
+    d_K = np.zeros((len(P), 2, 5))
+    d_K[:, 0, 0], d_K[:, 1, 1], d_K[:, 0, 4] = xd, yd, yd  # fx, fy, s
+    d_K[:, 0, 2] = d_K[:, 1, 3] = 1.0
     return Projection(px, d_P, d_K, d_dist)
 
 
