@@ -34,16 +34,6 @@ LENS_TEST_IMAGES = 40
 #: noise, so that exact simulated corners do not make round-off a lens
 LENS_NOISE_FLOOR_PX = 0.01
 _MIN_IMAGES, _MIN_CORNERS = 4, 6  # a free-pose fit of a planar target needs them
-# OpenCV's flags that hold each coefficient at 0 (p1, p2 together)
-_FIX = {
-    "k1": cv2.CALIB_FIX_K1, "k2": cv2.CALIB_FIX_K2, "k3": cv2.CALIB_FIX_K3,
-    "k4": cv2.CALIB_FIX_K4, "k5": cv2.CALIB_FIX_K5, "k6": cv2.CALIB_FIX_K6,
-    "p1": cv2.CALIB_ZERO_TANGENT_DIST, "p2": cv2.CALIB_ZERO_TANGENT_DIST,
-}  # fmt: skip
-_FIX_FISHEYE = {
-    "k1": cv2.fisheye.CALIB_FIX_K1, "k2": cv2.fisheye.CALIB_FIX_K2,
-    "k3": cv2.fisheye.CALIB_FIX_K3, "k4": cv2.fisheye.CALIB_FIX_K4,
-}  # fmt: skip
 
 
 def _free_fit(
@@ -53,14 +43,14 @@ def _free_fit(
     calibration with lens ``model`` and its coefficients ``mask``; None when it fails."""
     names = DISTORTION_MODELS[model]
     fisheye = model == "fisheye"
-    fix = _FIX_FISHEYE if fisheye else _FIX
     flags = 0
-    for n, on in zip(names, mask, strict=True):
-        flags |= 0 if on else fix[n]
+    for n, on in zip(names, mask, strict=True):  # hold the coefficient at 0 (p1, p2 together)
+        fix = "ZERO_TANGENT_DIST" if n[0] == "p" else f"FIX_{n.upper()}"
+        flags |= 0 if on else getattr(cv2.fisheye if fisheye else cv2, f"CALIB_{fix}")
     try:
         if fisheye:
             flags |= cv2.fisheye.CALIB_RECOMPUTE_EXTRINSIC | cv2.fisheye.CALIB_FIX_SKEW
-            crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 30, 1e-8)
+            crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 30, 1e-8)  # it settles in 30
             o = [p.reshape(-1, 1, 3) for p in obj]
             _, K, d, rv, tv = cv2.fisheye.calibrate(
                 o, img, size, None, None, flags=flags, criteria=crit
