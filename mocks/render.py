@@ -229,11 +229,7 @@ def _subsample_rays(
     u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
     px = np.stack([u.ravel(), v.ravel()], axis=1)
     xy = undistort_normalised(K, dist, px)
-    J = distortion_jacobian(K, dist, xy)[1]
-    det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-    Jinv = np.stack(
-        [J[:, 1, 1] / det, -J[:, 0, 1] / det, -J[:, 1, 0] / det, J[:, 0, 0] / det], axis=1
-    ).reshape(height, width, 2, 2)
+    Jinv = np.linalg.inv(distortion_jacobian(K, dist, xy)[1]).reshape(height, width, 2, 2)
     xy = xy.reshape(height, width, 2)
     off = (np.arange(n) + 0.5) / n - 0.5
     rays = np.empty((height, n, width, n, 2), dtype=np.float32)
