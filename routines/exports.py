@@ -209,8 +209,6 @@ def _valid_region(result: CalibrationResult, name: str) -> np.ndarray | None:
     """The closed contour (N, 2) px of the largest image region where camera ``name``'s one-sigma
     projection uncertainty is below :data:`VALID_REGION_PX`; None without a covariance or where
     it is nowhere below."""
-    if distortion_model(result.cameras[name].distortion) != "opencv5":
-        return None  # the uncertainty map knows the five-coefficient lens only
     m = uncertainty_map(result, name)
     if m is None:
         return None

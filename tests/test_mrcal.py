@@ -50,9 +50,8 @@ def test_mrcal_reads_and_projects_the_export(model, k3, lensmodel, tmp_path) -> 
         mrcal.project(P, *m.intrinsics()), project(cam.K, cam.distortion, P), atol=1e-9
     )
     region = m.valid_intrinsics_region()
-    if model == "opencv5":  # the uncertainty map knows the five-coefficient lens only
-        assert region is not None and np.array_equal(region[0], region[-1])
-        assert np.all((region >= 0) & (region <= [cam.width - 1, cam.height - 1]))
+    assert region is not None and np.array_equal(region[0], region[-1])
+    assert np.all((region >= 0) & (region <= [cam.width - 1, cam.height - 1]))
     if lensmodel == "LENSMODEL_OPENCV4":  # mrcal's own Kalibr converter takes it
         tool = shutil.which("mrcal-to-kalibr", path=str(Path(sys.executable).parent))
         if tool is not None:
