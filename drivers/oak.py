@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from slidecal.solver.camera import distortion_model
 from slidecal.solver.errors import HardwareFault, InputError
 from slidecal.solver.geometry import inv_T
 from slidecal.solver.problem import CameraSpec
@@ -688,9 +689,11 @@ def oak_calibration_handler(
         dist = np.asarray(cam.distortion, float).reshape(-1)
         if dist.size > 14:
             raise InputError(f"camera {name}: {dist.size} distortion coefficients, OAK takes 14")
-        d[: dist.size] = dist
+        d[: dist.size] = dist  # perspective: OpenCV's order; fisheye: k1-k4 first (depthai's)
         handler.setDistortionCoefficients(sock[name], d.tolist())
-        handler.setCameraType(sock[name], dai.CameraModel.Perspective)
+        fisheye = distortion_model(dist) == "fisheye"
+        model = dai.CameraModel.Fisheye if fisheye else dai.CameraModel.Perspective
+        handler.setCameraType(sock[name], model)
     for name, lens in (lens_positions or {}).items():
         if name in sock:
             handler.setLensPosition(sock[name], int(lens))

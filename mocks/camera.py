@@ -13,18 +13,26 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from slidecal.mocks.render import Photo, render_target
-from slidecal.solver.camera import K_matrix
+from slidecal.solver.camera import K_matrix, as_distortion
 from slidecal.solver.errors import HardwareFault, InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt
 from slidecal.solver.problem import CameraSpec, Target
 
 FAULT_KINDS = ("no_frame", "disconnect", "lost")
+#: One lens of each model for R1's 1280 x 800 camera (``solver/camera.py``): an M12-like rational
+#: lens and a mild fisheye (the opencv5 one is R1's).
+LENSES = {
+    "opencv5": np.array([-0.12, 0.05, 5e-4, -3e-4, 0.0]),
+    "rational": np.array([0.3, -0.1, 5e-4, -3e-4, 0.01, 0.42, -0.08, 0.02]),
+    "fisheye": np.array([-0.02, 0.01, -0.004, 0.001]),
+}
 
 
 @dataclass(frozen=True)
 class SimCamera:
-    """A simulated camera: ``K`` (3, 3) px, ``dist`` (5,) OpenCV order, ``blur_sigma_px``,
-    ``noise_std`` (grey levels), ``exposure`` gain (1.0: white at about 217), ``colour`` (BGR),
+    """A simulated camera: ``K`` (3, 3) px, ``dist`` (5,), (8,) or (4,) (its length names the lens
+    model, ``solver/camera.py``), ``blur_sigma_px``, ``noise_std`` (grey levels), ``exposure``
+    gain (1.0: white at about 217), ``colour`` (BGR),
     ``vignetting``, ``photo`` (:class:`~slidecal.mocks.render.Photo`; None: the clean renderer)."""
 
     name: str
@@ -43,11 +51,13 @@ class SimCamera:
         K = np.asarray(self.K, dtype=float)
         if K.shape != (3, 3):
             raise InputError(f"camera {self.name!r}: K must be 3x3, got shape {K.shape}")
-        d = np.zeros(5)
         dd = np.asarray(self.dist, dtype=float).reshape(-1)
-        if len(dd) > 5:
-            raise InputError(f"camera {self.name!r}: dist takes at most 5 values (k1 k2 p1 p2 k3)")
-        d[: len(dd)] = dd
+        if len(dd) > 5 and len(dd) != 8:
+            raise InputError(
+                f"camera {self.name!r}: dist takes at most 5 values (k1 k2 p1 p2 k3), 8 (rational) "
+                "or 4 (fisheye)"
+            )
+        d = as_distortion(dd)
         if self.width <= 0 or self.height <= 0:
             raise InputError(f"camera {self.name!r}: width and height must be positive")
         object.__setattr__(self, "K", K)
@@ -67,7 +77,7 @@ def single_camera(name: str = "cam", **overrides: float | bool | Photo) -> SimCa
         1280,
         800,
         K_matrix(880.0, 880.0, 640.0, 400.0),
-        np.array([-0.12, 0.05, 5e-4, -3e-4, 0.0]),
+        LENSES["opencv5"],
         **overrides,
     )
 

@@ -11,7 +11,12 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from slidecal.solver.camera import distortion_jacobian, project_with_jacobians, undistort_normalised
+from slidecal.solver.camera import (
+    as_distortion,
+    distortion_jacobian,
+    project_with_jacobians,
+    undistort_normalised,
+)
 from slidecal.solver.detect import charuco_board
 from slidecal.solver.errors import InputError
 from slidecal.solver.problem import Target
@@ -224,11 +229,7 @@ def _subsample_rays(
     u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
     px = np.stack([u.ravel(), v.ravel()], axis=1)
     xy = undistort_normalised(K, dist, px)
-    J = distortion_jacobian(K, dist, xy)[1]
-    det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-    Jinv = np.stack(
-        [J[:, 1, 1] / det, -J[:, 0, 1] / det, -J[:, 1, 0] / det, J[:, 0, 0] / det], axis=1
-    ).reshape(height, width, 2, 2)
+    Jinv = np.linalg.inv(distortion_jacobian(K, dist, xy)[1]).reshape(height, width, 2, 2)
     xy = xy.reshape(height, width, 2)
     off = (np.arange(n) + 0.5) / n - 0.5
     rays = np.empty((height, n, width, n, 2), dtype=np.float32)
@@ -241,9 +242,7 @@ def _subsample_rays(
 
 def _rays(cam: SimCamera, n: int) -> np.ndarray:
     K = np.ascontiguousarray(cam.K, dtype=float)
-    dist = np.zeros(5)
-    dd = np.asarray(cam.dist, dtype=float).reshape(-1)
-    dist[: min(5, len(dd))] = dd[:5]
+    dist = as_distortion(cam.dist)
     return _subsample_rays(int(cam.width), int(cam.height), K.tobytes(), dist.tobytes(), n)
 
 

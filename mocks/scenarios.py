@@ -601,18 +601,20 @@ def r1(
     robot_noise_deg: float = 0.005,
     options: ModelOptions | None = None,
     eye_in_hand: bool = True,
+    dist: np.ndarray = R1_DIST,
 ) -> Scenario:
     """R1 (docs/SETUPS.md): eye-in-hand UR5e-class cell, ChArUco 11 x 8 x 30 mm, 1280 x 800
     camera with distortion, 4 tilt groups of 5 frames, robot poses measured with noise.
     ``eye_in_hand`` False: R1 mirrored, the camera fixed in the cell and the board on the tool;
-    the camera-board poses are R1's, so the tilt groups and translations carry over."""
+    the camera-board poses are R1's, so the tilt groups and translations carry over. ``dist``:
+    the lens (its length names the model, ``solver/camera.py``)."""
     target = r1_target()
     T_base_board, poses = r1_poses()
     views = [_view(T, T_base_board) for T in poses]
     told = poses if eye_in_hand else [_tool_pose(T, T_base_board, False) for T in views]
     noise = (robot_noise_m, robot_noise_deg)
-    frames = _r1_frames(views, told, target, sigma_px, rng, noise)
-    return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board)
+    frames = _r1_frames(views, told, target, sigma_px, rng, noise, dist=dist)
+    return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board, dist)
 
 
 # -- a real arm: systematic kinematic error (REALITY: accuracy is not repeatability) ------------
@@ -725,15 +727,12 @@ def symmetric_board_r1(
     c = target.points_m.mean(axis=0)
     roll = T_from_Rt(Rz(np.radians(150.0)), c - Rz(np.radians(150.0)) @ c)
     T_base_board, poses = r1_poses()
-    frames = []
-    for k, T_bt in enumerate([*poses, *_r1_translations(poses[0]), poses[0]]):
-        T_cam_board = (
-            inv_T(T_bt @ R1_T_TOOL_CAM) @ T_base_board @ (roll if k in rolled else np.eye(4))
-        )
-        T_base_tool = _tool_pose(T_cam_board, T_base_board, False)
-        det = _r1_detection(T_cam_board, target, sigma_px, rng)
-        measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
-        frames.append(Frame(k, {"cam": det}, T_base_tool=measured))
+    tools = [*poses, *_r1_translations(poses[0]), poses[0]]
+    views = [
+        _view(T, T_base_board) @ (roll if k in rolled else np.eye(4)) for k, T in enumerate(tools)
+    ]
+    told = [_tool_pose(T, T_base_board, False) for T in views]
+    frames = _r1_frames(views, told, target, sigma_px, rng, (robot_noise_m, robot_noise_deg))
     return r1_scenario(target, frames, False, None, sigma_px, T_base_board)
 
 

@@ -46,6 +46,7 @@ from slidecal.routines.session import (
     transform_to_dict,
     ur_pose_field,
 )
+from slidecal.solver.camera import distortion_model, zero_distortion
 from slidecal.solver.degeneracy import nominal_K
 from slidecal.solver.errors import InputError
 from slidecal.solver.problem import MOUNTS, CameraSpec, ModelOptions, Target
@@ -235,9 +236,10 @@ def _number_list(f: Fields, key: str, default: Sequence[float]) -> tuple[float, 
 
 
 def _plan(
-    f: Fields, standoff_m: float, spec: CameraSpec, sim: SimulationConfig | None
+    f: Fields, standoff_m: float, spec: CameraSpec, sim: SimulationConfig | None, lens: str
 ) -> PlanSettings:
-    """The ``plan:`` section (``spec``: the reference camera); errors name the field."""
+    """The ``plan:`` section (``spec``: the reference camera, ``lens`` the lens model solved for:
+    a simulated camera's data sheet of another model is not used); errors name the field."""
     f.only(PLAN_KEYS)
     gf = f.section("goal", GOAL_KEYS)
     defaults = {} if gf.data else {"fx_rel_std": 5e-4, "hand_eye_rot_std_deg": 0.1}
@@ -272,11 +274,12 @@ def _plan(
     if fx is not None:
         w, h = spec.width, spec.height
         K = np.array([[fx, 0.0, (w - 1) / 2.0], [0.0, fx, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
-        dist = np.zeros(5)
-    elif cam is not None:  # a simulated camera's data sheet
+        dist = zero_distortion(lens)
+    elif cam is not None:  # a simulated camera's data sheet, its lens if of the model solved for
         K, dist = np.asarray(cam.K, float).copy(), np.asarray(cam.dist, float).copy()
+        dist = dist if distortion_model(dist) == lens else zero_distortion(lens)
     else:
-        K, dist = nominal_K((spec.width, spec.height)), np.zeros(5)
+        K, dist = nominal_K((spec.width, spec.height)), zero_distortion(lens)
     min_groups = f.integer("min_groups", 3, minimum=2)
     min_frames = f.integer("min_frames_per_group", 3, minimum=2)
     max_groups = f.integer("max_groups", 6, minimum=min_groups)
@@ -525,7 +528,8 @@ def config_from_dict(data: Any, source: str = "cell.yaml", sha256: str | None = 
         if key in plan.data:
             raise plan.error(key, f"no longer acts: {why}")
     options = options_from_dict(f.get("options", {}), source)
-    plan_settings = _plan(plan, standoff, specs[names.index(reference)], sim)
+    lens = options.lens
+    plan_settings = _plan(plan, standoff, specs[names.index(reference)], sim, lens)
     limits = limits_from_dict(f.get("limits"), source)
     return CellConfig(
         source=source,
@@ -770,7 +774,7 @@ def _sim_camera(c: Fields, name: str, base: SimCamera | None) -> SimCamera:
     ):
         raise c.error("K", "must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
     dist = (
-        c.array("distortion", (5,))
+        c.distortion("distortion")
         if c.has("distortion")
         else (base.dist if base is not None else np.zeros(5))
     )

@@ -1,9 +1,10 @@
 """Exports of an accepted calibration for other tools (``export/``, never for a rejected
 result), and the result header: OpenCV and ROS files per camera, Kalibr's ``camchain.yaml``,
 ``hand_eye.yaml`` (4x4, translation + quaternion x, y, z, w, and as a UR pendant shows it),
-mrcal's ``.cameramodel`` per camera and an OAK's depthai JSON (docs/FORMATS.md). A camera with
-skew gets no Kalibr or mrcal file. A failed export does not stop the others:
-:func:`write_all_exports` returns the failures as one-line messages."""
+mrcal's ``.cameramodel`` per camera and an OAK's depthai JSON (docs/FORMATS.md). Each lens model
+is written where the format has it (docs/FORMATS.md, "Lens models"); a camera with skew gets no
+Kalibr or mrcal file. A failed export does not stop the others: :func:`write_all_exports` returns
+the failures as one-line messages."""
 
 from __future__ import annotations
 
@@ -13,8 +14,10 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
+from slidecal.routines.ops.report import uncertainty_map
 from slidecal.routines.results_io import (
     hand_eye_transforms,
     write_camera_info,
@@ -22,6 +25,7 @@ from slidecal.routines.results_io import (
     write_opencv_yaml,
 )
 from slidecal.routines.session import dump_yaml, plain, write_atomic
+from slidecal.solver.camera import distortion_model
 from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import rvec_from_R
 from slidecal.solver.result import CalibrationResult
@@ -30,6 +34,15 @@ CAMCHAIN_FILE = "camchain.yaml"
 MRCAL_SUFFIX = ".cameramodel"
 HAND_EYE_FILE = "hand_eye.yaml"
 DEPTHAI_FILE = "depthai_calibration.json"
+
+#: mrcal's name of each lens model (a k3 not estimated, 0, is mrcal's OPENCV4); mrcal has no
+#: Kannala-Brandt model
+MRCAL_MODELS = {"opencv5": "LENSMODEL_OPENCV5", "rational": "LENSMODEL_OPENCV8"}
+#: Kalibr's name of each lens model it has (radtan: opencv5 without k3)
+KALIBR_MODELS = {"opencv5": "radtan", "fisheye": "equidistant"}
+#: ``valid_intrinsics_region``: where the one-sigma projection uncertainty is below this
+#: (docs/ERROR_MODEL.md, "Exports")
+VALID_REGION_PX = 1.0
 
 #: Socket of each camera of the simulated OAK-D-like head (as on an OAK-D).
 OAK_DEFAULT_SOCKETS = {"left": "CAM_B", "right": "CAM_C", "rgb": "CAM_A"}
@@ -98,11 +111,17 @@ def _no_skew(result: CalibrationResult, model: str) -> None:
 
 def camchain_dict(result: CalibrationResult, header: Mapping[str, Any] | None = None) -> dict:
     """Kalibr's ``camchain.yaml`` mapping (cam0 is the reference camera). ``ValueError`` when a
-    camera has a skew or a k3 (Kalibr's pinhole-radtan model has neither)."""
+    camera has a skew, a k3 (Kalibr's pinhole-radtan model has neither) or the rational model."""
     _no_skew(result, "Kalibr's pinhole model")
     for name, c in result.cameras.items():
         d = np.asarray(c.distortion, dtype=float).reshape(-1)
-        k3 = float(d[4]) if d.size > 4 else 0.0
+        model = distortion_model(d)
+        if model not in KALIBR_MODELS:
+            raise ValueError(
+                f"camera {name} has the {model} lens model, which Kalibr does not have; solve "
+                "with options: {distortion_model: opencv5} (k3 fixed) or fisheye for this export"
+            )
+        k3 = float(d[4]) if model == "opencv5" else 0.0
         if k3 != 0.0:
             raise ValueError(
                 f"camera {name} has k3 = {k3:.4g}, which Kalibr's radtan model cannot hold (it "
@@ -119,7 +138,7 @@ def camchain_dict(result: CalibrationResult, header: Mapping[str, Any] | None = 
         entry: dict[str, Any] = {
             "camera_model": "pinhole",
             "intrinsics": plain([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]),
-            "distortion_model": "radtan",
+            "distortion_model": KALIBR_MODELS[distortion_model(d)],
             "distortion_coeffs": plain(d[:4]),
             "resolution": [int(c.width), int(c.height)],
             "rostopic": f"/{n}/image_raw",
@@ -140,35 +159,67 @@ def _numbers(values: Any) -> str:
 def mrcal_cameramodel(
     result: CalibrationResult, name: str, header: Mapping[str, Any] | None = None
 ) -> str:
-    """mrcal's ``.cameramodel`` text (a Python ``dict`` literal) of camera ``name``:
-    ``LENSMODEL_OPENCV5`` written before ``intrinsics`` (mrcal's C reader wants that order),
+    """mrcal's ``.cameramodel`` text (a Python ``dict`` literal) of camera ``name``: the lens
+    model (``LENSMODEL_OPENCV4`` when k3 is 0, not estimated, else ``OPENCV5``, ``OPENCV8`` for
+    the rational model) written before ``intrinsics`` (mrcal's C reader wants that order),
     ``rt_cam_ref`` (Rodrigues vector, metres; also as ``extrinsics`` for mrcal before 2.5),
-    ``imagersize``. ``ValueError`` when the camera has a skew or its rig transform is missing."""
+    ``imagersize`` and, with a covariance, ``valid_intrinsics_region``: the contour where the
+    projection's one-sigma uncertainty is below :data:`VALID_REGION_PX`. ``ValueError`` when the
+    camera has a skew, a fisheye lens or its rig transform is missing."""
     _no_skew(result, "mrcal's OpenCV lens models")
     c = result.cameras[name]
+    dist = np.asarray(c.distortion, dtype=float).reshape(-1)
+    model = distortion_model(dist)
+    if model not in MRCAL_MODELS:
+        raise ValueError(
+            f"camera {name} has the {model} lens model, which mrcal does not have (no "
+            "Kannala-Brandt); solve with options: {distortion_model: rational} for this export"
+        )
+    lensmodel = MRCAL_MODELS[model]
+    if model == "opencv5" and dist[4] == 0.0:
+        lensmodel, dist = "LENSMODEL_OPENCV4", dist[:4]
     ref = _ordered_cameras(result)[0]
     T = _T_cam_ref(result, name, ref)
     if T is None:
         raise ValueError(f"the result holds no T_{name}_{ref}: camera {name} has no pose")
     K = np.asarray(c.K, dtype=float)
-    d = np.zeros(5)
-    dist = np.asarray(c.distortion, dtype=float).reshape(-1)[:5]
-    d[: len(dist)] = dist
-    intrinsics = [K[0, 0], K[1, 1], K[0, 2], K[1, 2], *d]
+    intrinsics = [K[0, 0], K[1, 1], K[0, 2], K[1, 2], *dist]
     rt = [*rvec_from_R(T[:3, :3]), *T[:3, 3]]
+    region = _valid_region(result, name)
     lines = [f"# {k}: {v}" for k, v in (header or {}).items()]
     lines += [
         f"# camera {name} from slidecal; the reference camera is {ref}",
         "{",
-        "    'lensmodel': 'LENSMODEL_OPENCV5',",
-        "    # fx, fy, cx, cy, then OpenCV's k1, k2, p1, p2, k3",
+        f"    'lensmodel': '{lensmodel}',",
+        "    # fx, fy, cx, cy, then OpenCV's distortion coefficients in its order",
         f"    'intrinsics': {_numbers(intrinsics)},",
         f"    'rt_cam_ref': {_numbers(rt)},",
         f"    'extrinsics': {_numbers(rt)},",
         f"    'imagersize': [{int(c.width)}, {int(c.height)}],",
-        "}",
     ]
-    return "\n".join(lines) + "\n"
+    if region is not None:
+        lines += [
+            f"    # the one-sigma projection uncertainty is below {VALID_REGION_PX} px inside",
+            f"    'valid_intrinsics_region': [{', '.join(_numbers(p) for p in region)}],",
+        ]
+    return "\n".join([*lines, "}"]) + "\n"
+
+
+def _valid_region(result: CalibrationResult, name: str) -> np.ndarray | None:
+    """The closed contour (N, 2) px of the largest image region where camera ``name``'s one-sigma
+    projection uncertainty is below :data:`VALID_REGION_PX`; None without a covariance or where
+    it is nowhere below."""
+    m = uncertainty_map(result, name)
+    if m is None:
+        return None
+    contours = cv2.findContours(
+        (m < VALID_REGION_PX).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE
+    )[0]
+    if not contours or len(best := max(contours, key=cv2.contourArea)) < 3:
+        return None
+    c = result.cameras[name]
+    xy = best.reshape(-1, 2) * [(c.width - 1) / (m.shape[1] - 1), (c.height - 1) / (m.shape[0] - 1)]
+    return np.vstack([xy, xy[:1]])
 
 
 def quat_xyzw(R: np.ndarray) -> list[float]:

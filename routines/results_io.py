@@ -22,6 +22,7 @@ from slidecal.routines.schema import (
     unknown_key_error,
     write_yaml,
 )
+from slidecal.solver.camera import DISTORTION_MODELS, distortion_model
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import T_from_Rt, rotation_angle_deg, rvec_from_R
 from slidecal.solver.problem import hand_eye_names as named_hand_eye_names
@@ -158,8 +159,8 @@ def camera_to_dict(c: CameraEstimate) -> dict[str, Any]:
         "width": int(c.width),
         "height": int(c.height),
         "K": plain(np.asarray(c.K, dtype=float)),
-        "distortion_model": "opencv5",
-        "distortion": plain(np.asarray(c.distortion, dtype=float).reshape(-1)[:5]),
+        "distortion_model": distortion_model(c.distortion),
+        "distortion": plain(np.asarray(c.distortion, dtype=float).reshape(-1)),
         "std": {k: _num(v) for k, v in c.std.items()},
         "reproj_rms_px": _num(c.reproj_rms_px),
     }
@@ -414,15 +415,21 @@ def _cameras_from(f: Fields) -> dict[str, CameraEstimate]:
         raise cf.error(None, "is empty; a result holds at least one camera")
     for name in cf.cameras():
         c = cf.section(name, RESULT_PART_KEYS["cameras.*"])
-        if c.has("distortion_model"):
-            c.choice("distortion_model", ("opencv5",))
+        model = c.choice("distortion_model", tuple(DISTORTION_MODELS), "opencv5")
+        dist = c.distortion("distortion")
+        if distortion_model(dist) != model:
+            raise c.error(
+                "distortion_model",
+                f"is {model}, but distortion has {len(dist)} values, the "
+                f"{distortion_model(dist)} model's; make them agree",
+            )
         std = c.section("std")
         cams[name] = CameraEstimate(
             name,
             c.integer("width", minimum=1, maximum=100_000),
             c.integer("height", minimum=1, maximum=100_000),
             c.array("K", (3, 3)),
-            c.array("distortion", (5,)),
+            dist,
             {str(k): _nullable(std, str(k), minimum=0.0) for k in std.data},
             _nullable(c, "reproj_rms_px", minimum=0.0),
         )
@@ -547,7 +554,8 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
 
 def write_opencv_yaml(camera: CameraEstimate, path: str | Path) -> Path:
     """OpenCV ``FileStorage`` YAML of one camera, as OpenCV's calibration sample writes it
-    (``camera_matrix`` 3x3, ``distortion_coefficients`` 1x5, ``avg_reprojection_error`` px)."""
+    (``camera_matrix`` 3x3, ``distortion_coefficients`` 1x5 or 1x8 for ``cv2`` or 1x4 for
+    ``cv2.fisheye`` with ``fisheye_model: 1``, ``avg_reprojection_error`` px)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
@@ -556,32 +564,33 @@ def write_opencv_yaml(camera: CameraEstimate, path: str | Path) -> Path:
         fs.write("image_height", int(camera.height))
         fs.write("camera_name", camera.name)
         fs.write("camera_matrix", np.asarray(camera.K, dtype=np.float64))
-        fs.write(
-            "distortion_coefficients",
-            np.asarray(camera.distortion, dtype=np.float64).reshape(1, -1)[:, :5],
-        )
+        d = np.asarray(camera.distortion, dtype=np.float64).reshape(1, -1)
+        fs.write("distortion_coefficients", d)
+        if distortion_model(d) == "fisheye":
+            fs.write("fisheye_model", 1)
         fs.write("avg_reprojection_error", float(camera.reproj_rms_px))
     finally:
         fs.release()
     return path
 
 
+#: ROS camera_info's name of each lens model (image_pipeline's camera_calibration_parsers)
+ROS_MODELS = {"opencv5": "plumb_bob", "rational": "rational_polynomial", "fisheye": "equidistant"}
+
+
 def camera_info_dict(camera: CameraEstimate) -> dict[str, Any]:
     """The ROS ``camera_info`` mapping of one camera (monocular: identity rectification, projection
-    ``[K | 0]``; ``plumb_bob`` is OpenCV's k1 k2 p1 p2 k3)."""
-    K = np.asarray(camera.K, dtype=float)
+    ``[K | 0]``; ``plumb_bob`` is OpenCV's k1 k2 p1 p2 k3, ``rational_polynomial`` its eight
+    coefficients, ``equidistant`` its fisheye's four)."""
+    K, d = np.asarray(camera.K, dtype=float), np.asarray(camera.distortion, dtype=float).ravel()
     P = np.hstack([K, np.zeros((3, 1))])
     return {
         "image_width": int(camera.width),
         "image_height": int(camera.height),
         "camera_name": camera.name,
         "camera_matrix": {"rows": 3, "cols": 3, "data": plain(K.reshape(-1))},
-        "distortion_model": "plumb_bob",
-        "distortion_coefficients": {
-            "rows": 1,
-            "cols": 5,
-            "data": plain(np.asarray(camera.distortion, dtype=float).reshape(-1)[:5]),
-        },
+        "distortion_model": ROS_MODELS[distortion_model(d)],
+        "distortion_coefficients": {"rows": 1, "cols": len(d), "data": plain(d)},
         "rectification_matrix": {"rows": 3, "cols": 3, "data": plain(np.eye(3).reshape(-1))},
         "projection_matrix": {"rows": 3, "cols": 4, "data": plain(P.reshape(-1))},
     }
@@ -610,9 +619,8 @@ def write_depthai_json(result: CalibrationResult, path: str | Path, sockets: Map
 
 # ----------------------------------------------------------------------------- summary
 
-#: The intrinsics a summary lists: name and place in K; the distortion's names (OpenCV's order)
+#: The intrinsics a summary lists: name and place in K
 K_ENTRIES = (("fx", (0, 0)), ("fy", (1, 1)), ("cx", (0, 2)), ("cy", (1, 2)), ("s", (0, 1)))
-DIST_LABELS = ("k1", "k2", "p1", "p2", "k3")
 
 
 def _fmt(x: float | None, spec: str = ".3f") -> str:
@@ -645,8 +653,9 @@ def summary_text(
             f"camera {name} ({c.width}x{c.height}), reprojection rms {_fmt(c.reproj_rms_px)} px"
         )
         dist = np.asarray(c.distortion).reshape(-1)
+        names = DISTORTION_MODELS[distortion_model(dist)]
         rows = [(label, K[ij], "10.3f", ".3f", " px") for label, ij in K_ENTRIES]
-        rows += [(lb, v, "+.6f", ".6f", "") for lb, v in zip(DIST_LABELS, dist[:5], strict=False)]
+        rows += [(lb, v, "+.6f", ".6f", "") for lb, v in zip(names, dist, strict=True)]
         for label, val, spec, std_spec, unit in rows:
             value = f"  {label:3s} = {val:{spec}}{unit:5s}"
             if label in std or not std:  # no std at all: the covariance was not computed

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from slidecal.solver.camera import DISTORTION_MODELS
 from slidecal.solver.errors import InputError
 
 _BaseLoader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
@@ -404,6 +405,16 @@ class Fields:
         """A float array of ``shape`` (-1 for any length), finite."""
         v = self.require(key) if default is None else self.get(key, default)
         return as_array(v, shape, self.where(key))
+
+    def distortion(self, key: str) -> np.ndarray:
+        """A lens's distortion vector: its length names the model (``solver/camera.py``)."""
+        d = self.array(key, (-1,))
+        if len(d) not in {len(v) for v in DISTORTION_MODELS.values()}:
+            models = "; ".join(
+                f"{len(v)} for {m} ({' '.join(v)})" for m, v in DISTORTION_MODELS.items()
+            )
+            raise self.error(key, f"has {len(d)} values; give {models}")
+        return d
 
     def rotation(self, key: str, advice: str = "") -> np.ndarray:
         """A 3x3 rotation matrix (orthonormal, det +1); ``advice`` ends the message refusing one."""

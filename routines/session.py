@@ -30,6 +30,7 @@ from slidecal.routines.schema import (  # noqa: F401 - re-exported: the format l
     unknown_key_error,
     write_atomic,
 )
+from slidecal.solver.camera import DISTORTION_MODELS
 from slidecal.solver.detect import detect
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import R_from_quat_wxyz, Rx, Ry, Rz, T_from_Rt
@@ -133,6 +134,7 @@ OPTIONS_KEYS = (
     "robot_noise_mm",
     "robot_noise_deg",
     "estimate_robot_noise",
+    "distortion_model",
 )
 
 #: How far (pixels) a given detection may lie outside its camera's image (a corner is inside)
@@ -382,13 +384,21 @@ def options_from_dict(data: Any, file: str, path: str = "options") -> ModelOptio
     """:class:`ModelOptions` from an ``options:`` block (absent fields keep their defaults)."""
     f = Fields(data, file, path).only(OPTIONS_KEYS)
     base = ModelOptions()
-    dist = base.distortion
+    model = None  # the data chooses
+    if f.has("distortion_model"):
+        model = f.choice("distortion_model", tuple(DISTORTION_MODELS))
+    names = DISTORTION_MODELS[model or "opencv5"]
+    dist = (True,) * len(names)
     if f.has("distortion"):
         v = f.get("distortion")
-        if not (isinstance(v, list) and len(v) == 5 and all(isinstance(b, bool) for b in v)):
-            raise f.error("distortion", "must be 5 booleans: which of k1, k2, p1, p2, k3 to fit")
+        flags = isinstance(v, list) and all(isinstance(b, bool) for b in v)
+        if not (flags and len(v) == len(names)):
+            raise f.error(
+                "distortion", f"must be {len(names)} booleans: which of {', '.join(names)} to fit"
+            )
         dist = tuple(v)
     return ModelOptions(
+        distortion_model=model,
         skew=f.boolean("skew", base.skew),
         unit_aspect=f.boolean("unit_aspect", base.unit_aspect),
         distortion=dist,  # type: ignore[arg-type]
@@ -405,6 +415,9 @@ def options_to_dict(options: ModelOptions) -> dict[str, Any]:
     """The ``options:`` block of :class:`ModelOptions` (``robot_noise_mm``: ``robot_noise_m``)."""
     d = {k: plain(getattr(options, k.replace("_mm", "_m"))) for k in OPTIONS_KEYS}
     d["robot_noise_mm"] *= 1000.0
+    d["distortion"] = list(options.distortion_mask)
+    if options.distortion_model is None:  # the data chooses
+        del d["distortion_model"]
     return d
 
 
@@ -609,7 +622,7 @@ def _simulation_truth(f: Fields | None, names: Sequence[str]) -> dict[str, Any] 
     for name in cf.cameras(names):
         c = cf.section(name, SESSION_KEYS["simulation.cameras.*"])
         c.array("K", (3, 3))
-        c.array("distortion", (5,))
+        c.distortion("distortion")
     nf = f.section("noise", SESSION_KEYS["simulation.noise"])
     nf.number("robot_mm", 0.0, minimum=0.0)
     nf.number("robot_deg", 0.0, minimum=0.0)

@@ -33,6 +33,7 @@ from slidecal.solver.adequacy import (
     static_rotation,
     unchecked_scale_note,
 )
+from slidecal.solver.camera import opencv_view, zero_distortion
 from slidecal.solver.degeneracy import check_configuration, n_directions
 from slidecal.solver.detect import resolve_half_turns
 from slidecal.solver.errors import DegenerateError, InputError
@@ -40,6 +41,7 @@ from slidecal.solver.free_pose import FreePoseFit, pnp_from
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, project_to_SO3
 from slidecal.solver.handeye import ax_xb_park_martin, rotation_from_directions
 from slidecal.solver.homography import group_homographies
+from slidecal.solver.lens import choose_lens
 from slidecal.solver.linear import (
     LinearGroup,
     focal_from_homographies,
@@ -283,7 +285,7 @@ def _best_start(problem: CalibrationProblem, cam: str, candidates: list[np.ndarr
     """
     o = problem.options
     exact = replace(problem, options=replace(o, robot_noise_m=0.0, robot_noise_deg=0.0))
-    zero = np.zeros(5)
+    zero = zero_distortion(o.lens)
     groups = frame_groups(exact)
     st = model = None  # the structure and its model, shared by the candidates where they can be
     best, best_err = 0, np.inf
@@ -450,6 +452,7 @@ def pnp_pose(
     if guess is not None:
         return pnp_from(obj, img, K, dist, guess)
     flags = cv2.SOLVEPNP_IPPE if fast else cv2.SOLVEPNP_ITERATIVE
+    K, dist, img = opencv_view(K, dist, img)
     ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=flags)
     return T_from_Rt(cv2.Rodrigues(rvec)[0], tvec.reshape(3)) if ok else None
 
@@ -625,10 +628,14 @@ def calibrate(
     A frame whose robot pose the images contradict far beyond the arm's accuracy elsewhere
     (``adequacy.pose_outlier``), or else whose image is far beyond its camera's detector noise
     (``adequacy.image_outlier``), is left out and the session solved again, with a message; at
-    most one frame in ten (at least one).
+    most one frame in ten (at least one). The lens model is tested (``solver/lens.py``).
     """
     problem, turned = resolve_half_turns(problem)  # a symmetric board read the right way round
-    res = _pipeline(problem, joint_homographies, focal_sweep, ())
+
+    def solve(p: CalibrationProblem) -> CalibrationResult:
+        return _pipeline(p, joint_homographies, focal_sweep, ())
+
+    res = choose_lens(problem, solve(problem), solve)
     return replace(res, messages=(*turned, *res.messages)) if turned else res
 
 
@@ -715,7 +722,7 @@ def _pass(
     problem, notes_skipped = usable_frames(problem)
     notes: list[str] = list(notes_skipped)
     groups = frame_groups(problem)
-    zero = np.zeros(5)
+    zero = zero_distortion(problem.options.lens)
     K_lin = {}
     H_cache: dict = {}  # every camera's homographies, reused by the rig's pairs
     for c in problem.cameras:
@@ -965,9 +972,10 @@ def _result(
         rms = _rms_px(out.residuals[:n_px][rows])
         cams[c] = CameraEstimate(c, spec.width, spec.height, state.K[c], state.dist[c], std, rms)
     unobs = dict(st.unobservable)
-    for i, on in enumerate(problem.options.distortion):
+    o = problem.options
+    for n, on in zip(o.distortion_names, o.distortion_mask, strict=True):
         if not on:
-            unobs.setdefault(f"distortion.{DISTORTION_NAMES[i]}", "fixed at 0 by the options")
+            unobs.setdefault(f"distortion.{n}", "fixed at 0 by the options")
     layout = layout_of(problem, st, state)
     frames = mount_names(layout.mount)
     hand_eye = T_target = None

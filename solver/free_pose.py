@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from slidecal.solver.camera import project
+from slidecal.solver.camera import opencv_view, project
 from slidecal.solver.geometry import T_from_Rt
 from slidecal.solver.model import BundleModel, ModelState
 
@@ -59,7 +59,8 @@ def free_pose_fit(
         if good_start and not closed_form and refined[-1] is not None:
             closed.append(None)
             continue
-        ok, rv, tv = cv2.solvePnP(obj, img, K[cam], dist[cam], flags=cv2.SOLVEPNP_IPPE)
+        Kc, dc, ic = opencv_view(K[cam], dist[cam], img)
+        ok, rv, tv = cv2.solvePnP(obj, ic, Kc, dc, flags=cv2.SOLVEPNP_IPPE)
         closed.append(T_from_Rt(cv2.Rodrigues(rv)[0], tv.reshape(3)) if ok else None)
     best = _scored(todo, refined, K, dist)
     closed_rss = _scored(todo, closed, K, dist)
@@ -123,6 +124,7 @@ def pnp_from(
     """OpenCV's iterative PnP (the reprojection-error minimum) started at ``T0``: the pose
     ``T_cam_board``, or None when it fails."""
     rv0 = cv2.Rodrigues(T0[:3, :3])[0]
+    K, dist, img = opencv_view(K, dist, img)
     ok, rv, tv = cv2.solvePnP(
         obj, img, K, dist, rv0, T0[:3, 3].reshape(3, 1).copy(), True, cv2.SOLVEPNP_ITERATIVE
     )

@@ -31,7 +31,7 @@ from threadpoolctl import ThreadpoolController
 from slidecal.solver.camera import project_with_jacobians
 from slidecal.solver.errors import DegenerateError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, rvec_from_R
-from slidecal.solver.problem import DISTORTION_NAMES, MOUNTS, CalibrationProblem
+from slidecal.solver.problem import MOUNTS, CalibrationProblem
 
 #: Axis names of a pose correction: rotation vector (radians), translation (metres).
 POSE_AXES = ("rx", "ry", "rz", "tx", "ty", "tz")
@@ -124,9 +124,8 @@ def intrinsic_names(problem: CalibrationProblem) -> tuple[str, ...]:
 
 def distortion_names(problem: CalibrationProblem) -> tuple[str, ...]:
     """Names of the estimated distortion coefficients."""
-    return tuple(
-        n for n, on in zip(DISTORTION_NAMES, problem.options.distortion, strict=True) if on
-    )
+    o = problem.options
+    return tuple(n for n, on in zip(o.distortion_names, o.distortion_mask, strict=True) if on)
 
 
 @dataclass(frozen=True)
@@ -365,7 +364,7 @@ class BundleModel:
         self.cams = [c.name for c in problem.cameras]
         self.intr = intrinsic_names(problem)
         self.dist_names = distortion_names(problem)
-        self.dist_idx = [DISTORTION_NAMES.index(n) for n in self.dist_names]
+        self.dist_idx = [problem.options.distortion_names.index(n) for n in self.dist_names]
         n_groups = int(structure.group_of_frame.max()) + 1 if len(structure.group_of_frame) else 0
         self.n_groups = n_groups
         names: list[str] = []

@@ -35,6 +35,7 @@ from typing import Literal
 
 import numpy as np
 
+from slidecal.solver.camera import DISTORTION_MODELS
 from slidecal.solver.errors import InputError
 
 Mount = Literal["eye_in_hand", "eye_to_hand", "none"]
@@ -48,7 +49,8 @@ Mount = Literal["eye_in_hand", "eye_to_hand", "none"]
 #   coordinates, its length unknown (the paper's Case 2).
 # - "none": nothing known; every frame has its own pose (Zhang's general-motion method).
 Knowledge = Literal["robot", "board_translation", "board_direction", "none"]
-DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3")
+#: Every distortion coefficient a lens model may have (``solver/camera.py``'s DISTORTION_MODELS).
+DISTORTION_NAMES = DISTORTION_MODELS["rational"]
 #: The intrinsics a camera reports, in pixels (``s``: skew, with ``ModelOptions.skew``).
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "s")
 
@@ -262,7 +264,11 @@ class ModelOptions:
     """What the camera model estimates.
 
     ``skew``: estimate the skew ``s`` (else 0). ``unit_aspect``: ``fx == fy``.
-    ``distortion``: which of k1, k2, p1, p2, k3 are estimated (the others stay 0).
+    ``distortion_model``: the lens model, a key of ``solver/camera.py``'s DISTORTION_MODELS; None:
+    the data chooses (``solver/lens.py``), from opencv5 (:attr:`lens`).
+    ``distortion``: which of its coefficients are estimated (the others stay 0): one flag each,
+    or one flag for all, or opencv5's five flags for rational (k4-k6 follow k3):
+    :attr:`distortion_mask`.
     ``outlier_threshold_px``: a detection whose residual exceeds this after the first solve is
     flagged and down-weighted (robust loss), never silently dropped.
     ``robot_noise_m``, ``robot_noise_deg``: one-sigma noise of each axis of the measured robot
@@ -274,11 +280,35 @@ class ModelOptions:
 
     skew: bool = False
     unit_aspect: bool = False
-    distortion: tuple[bool, bool, bool, bool, bool] = (True, True, True, True, True)
+    distortion: tuple[bool, ...] = (True, True, True, True, True)
     outlier_threshold_px: float = 2.0
     robot_noise_m: float = 0.0
     robot_noise_deg: float = 0.0
     estimate_robot_noise: bool = True
+    distortion_model: str | None = None
+
+    @property
+    def lens(self) -> str:
+        """The lens model solved for (opencv5 until the data asks for another)."""
+        return self.distortion_model or "opencv5"
+
+    @property
+    def distortion_names(self) -> tuple[str, ...]:
+        """The lens model's coefficients, in order."""
+        return DISTORTION_MODELS[self.lens]
+
+    @property
+    def distortion_mask(self) -> tuple[bool, ...]:
+        """Which of :attr:`distortion_names` are estimated, one flag each."""
+        n, d = len(self.distortion_names), tuple(bool(b) for b in self.distortion)
+        if len(d) == n:
+            return d
+        if len(set(d)) == 1 or (n == 8 and len(d) == 5):
+            return (d + (d[-1],) * n)[:n]
+        raise InputError(
+            f"options.distortion has {len(d)} flags; the {self.lens} model has "
+            f"{n} ({', '.join(self.distortion_names)}): give {n} flags"
+        )
 
 
 @dataclass(frozen=True)

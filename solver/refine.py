@@ -78,7 +78,7 @@ def _respect_options(problem: CalibrationProblem, state: ModelState) -> ModelSta
         if not o.skew:
             k[0, 1] = 0.0
         K[c] = k
-        dist[c] = np.where(np.array(o.distortion), state.dist[c], 0.0)
+        dist[c] = np.where(np.array(o.distortion_mask), state.dist[c], 0.0)
     return ModelState(K, dist, state.T_cam_ref, state.X, state.Y, state.s)
 
 

@@ -93,10 +93,10 @@ def test_kalibr_camchain_of_a_rig(result) -> None:
 def _mrcal_project(model: dict, p_ref: np.ndarray) -> np.ndarray:
     """Pixels of points in the reference frame (n, 3) by a ``.cameramodel`` read as mrcal's
     documentation reads it: ``rt_cam_ref`` into the camera, then LENSMODEL_OPENCV5's
-    ``q = f (P_radial + P_tangential) + c`` with ``k_0 .. k_4``."""
+    ``q = f (P_radial + P_tangential) + c`` with ``k_0 .. k_4`` (OPENCV4: ``k_4`` = 0)."""
     r, t = np.array(model["rt_cam_ref"][:3]), np.array(model["rt_cam_ref"][3:])
     p = p_ref @ R_from_rvec(r).T + t
-    fx, fy, cx, cy, k0, k1, k2, k3, k4 = model["intrinsics"]
+    fx, fy, cx, cy, k0, k1, k2, k3, k4 = [*model["intrinsics"], 0.0][:9]
     P = p[:, :2] / p[:, 2:]
     r2 = (P**2).sum(axis=1)
     radial = (1 + k0 * r2 + k1 * r2**2 + k4 * r2**3)[:, None] * P
@@ -124,7 +124,9 @@ def test_mrcal_cameramodels_of_a_rig_project_as_the_result(result, tmp_path) -> 
         model = ast.literal_eval(text)  # how mrcal.cameramodel reads the file
         # mrcal's C reader wants the lens model before the intrinsics; both pose keys agree
         assert list(model)[:2] == ["lensmodel", "intrinsics"]
-        assert model["lensmodel"] == "LENSMODEL_OPENCV5" and model["imagersize"] == [1280, 800]
+        # the session fixes k3: mrcal's OPENCV4 (mrcal-to-kalibr refuses an OPENCV5)
+        assert model["lensmodel"] == "LENSMODEL_OPENCV4" and model["imagersize"] == [1280, 800]
+        assert len(model["intrinsics"]) == 8
         assert model["rt_cam_ref"] == model["extrinsics"]
         cam = rig.cameras[name]
         T = np.eye(4) if name == "left" else rig.rig["T_right_left"].T
@@ -157,6 +159,8 @@ def test_a_camera_with_k3_gets_no_kalibr_file(result, tmp_path) -> None:
     assert len(errors) == 1 and errors[0].startswith("export camchain.yaml failed")
     assert "\n" not in errors[0] and "k3 = 0.0305" in errors[0]
     assert (tmp_path / "mrcal_cam.cameramodel") in paths
+    model = ast.literal_eval((tmp_path / "mrcal_cam.cameramodel").read_text())
+    assert model["lensmodel"] == "LENSMODEL_OPENCV5" and model["intrinsics"][-1] == 0.0305
     assert not (tmp_path / "camchain.yaml").exists()
 
 

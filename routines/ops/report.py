@@ -13,7 +13,13 @@ import numpy as np
 
 from slidecal.routines.ops.verdict import Verdict, coverage_fraction
 from slidecal.routines.schema import write_atomic
-from slidecal.solver.camera import project
+from slidecal.solver.camera import (
+    DISTORTION_MODELS,
+    distortion_model,
+    opencv_view,
+    project,
+    undistort_normalised,
+)
 from slidecal.solver.geometry import inv_T
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.result import CalibrationResult
@@ -36,7 +42,7 @@ def _board_poses(
     """``T_cam_board`` per frame id: the solved chain (robot pose, hand-eye, target, rig)
     when it is fully determined, else each image's own pose from the estimated intrinsics."""
     cam = result.cameras[camera]
-    K, d = np.asarray(cam.K, float), np.asarray(cam.distortion, float).reshape(-1)[:5]
+    K, d = np.asarray(cam.K, float), np.asarray(cam.distortion, float).reshape(-1)
     ref = result.reference_camera or next(iter(result.cameras))
     he, tg = result.hand_eye, result.T_target
     T_cam_ref = np.eye(4)
@@ -63,9 +69,8 @@ def _board_poses(
                 T_ref_board = inv_T(he.T) @ fr.T_base_tool @ tg.T
             out[fr.id] = T_cam_ref @ T_ref_board
             continue
-        ok, rvec, tvec = cv2.solvePnP(
-            pts[det.ids].astype(np.float64), np.asarray(det.px, np.float64), K, d
-        )
+        Kv, dv, px = opencv_view(K, d, np.asarray(det.px, np.float64))
+        ok, rvec, tvec = cv2.solvePnP(pts[det.ids].astype(np.float64), px, Kv, dv)
         if ok:
             T = np.eye(4)
             T[:3, :3] = cv2.Rodrigues(rvec)[0]
@@ -79,7 +84,7 @@ def residual_vectors(
 ) -> tuple[np.ndarray, np.ndarray]:
     """(detected px (N, 2), detected minus projected px (N, 2)) of every corner of a camera."""
     cam = result.cameras[camera]
-    K, d = np.asarray(cam.K, float), np.asarray(cam.distortion, float).reshape(-1)[:5]
+    K, d = np.asarray(cam.K, float), np.asarray(cam.distortion, float).reshape(-1)
     poses = _board_poses(result, problem, camera)
     pts = problem.target.points_m
     at, P = [np.zeros((0, 2))], [np.zeros((0, 3))]
@@ -100,7 +105,8 @@ def uncertainty_map(result: CalibrationResult, camera: str, n: tuple[int, int] =
     if result.covariance is None:
         return None
     cam = result.cameras[camera]
-    names = [f"{camera}.{p}" for p in ("fx", "fy", "cx", "cy", "s", "k1", "k2", "p1", "p2", "k3")]
+    lens = DISTORTION_MODELS[distortion_model(cam.distortion)]
+    names = [f"{camera}.{p}" for p in ("fx", "fy", "cx", "cy", "s", *lens)]
     idx = [
         (k, result.parameter_names.index(nm))
         for k, nm in enumerate(names)
@@ -109,10 +115,10 @@ def uncertainty_map(result: CalibrationResult, camera: str, n: tuple[int, int] =
     if not idx:
         return None
     C = np.asarray(result.covariance, float)[np.ix_([i for _, i in idx], [i for _, i in idx])]
-    K, d = np.asarray(cam.K, float), np.asarray(cam.distortion, float).reshape(-1)[:5]
+    K, d = np.asarray(cam.K, float), np.asarray(cam.distortion, float).reshape(-1)
     u, v = np.meshgrid(np.linspace(0, cam.width - 1, n[0]), np.linspace(0, cam.height - 1, n[1]))
     px = np.stack([u.ravel(), v.ravel()], 1)
-    rays = cv2.undistortPoints(px.reshape(-1, 1, 2), K, d).reshape(-1, 2)
+    rays = undistort_normalised(K, d, px)
     P = np.hstack([rays, np.ones((len(rays), 1))])
 
     def proj(theta: np.ndarray) -> np.ndarray:

@@ -21,6 +21,12 @@ from slidecal.routines.results_io import (
 from slidecal.routines.session import Fields, dump_yaml, load_yaml, write_atomic
 from slidecal.solver import drift
 from slidecal.solver.adequacy import LEFT_OUT
+from slidecal.solver.camera import (
+    DISTORTION_MODELS,
+    distortion_model,
+    project,
+    undistort_normalised,
+)
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import rotation_angle_deg
 from slidecal.solver.problem import CalibrationProblem
@@ -470,7 +476,6 @@ def displacement_px(
     ``n x n`` grid over the central ``region`` of the old image cast to rays, carried through the
     old hand-eye and back through the new hand-eye and intrinsics (the intrinsics alone without
     a hand-eye in both)."""
-    import cv2
 
     a, b = old.cameras[camera], new.cameras[camera]
     hw, hh = region * (a.width - 1) / 2, region * (a.height - 1) / 2
@@ -478,8 +483,7 @@ def displacement_px(
     u, v = np.meshgrid(np.linspace(cu - hw, cu + hw, n), np.linspace(cv - hh, cv + hh, n))
     px = np.stack([u.ravel(), v.ravel()], axis=1)
     K_a = np.asarray(a.K, dtype=float)
-    d_a = np.asarray(a.distortion, dtype=float).reshape(-1)[:5]
-    rays = cv2.undistortPoints(px.reshape(-1, 1, 2), K_a, d_a).reshape(-1, 2)
+    rays = undistort_normalised(K_a, a.distortion, px)
     P_cam = np.hstack([rays, np.ones((len(rays), 1))]) * distance_m
     key = hand_eye_names(old).get(camera)
     he_a, he_b = hand_eye_transforms(old), hand_eye_transforms(new)
@@ -492,9 +496,8 @@ def displacement_px(
     else:
         P_cam_b = P_cam
     K_b = np.asarray(b.K, dtype=float)
-    d_b = np.asarray(b.distortion, dtype=float).reshape(-1)[:5]
-    proj, _ = cv2.projectPoints(P_cam_b, np.zeros(3), np.zeros(3), K_b, d_b)
-    return float(np.max(np.linalg.norm(proj.reshape(-1, 2) - px, axis=1)))
+    proj = project(K_b, b.distortion, P_cam_b)
+    return float(np.max(np.linalg.norm(proj - px, axis=1)))
 
 
 def _z(a: float, b: float, sa: float | None, sb: float | None) -> float | None:
@@ -532,7 +535,8 @@ def compare(
                 z[f"{n}.{p}"] = zz
         da = np.asarray(a.distortion).reshape(-1)
         db = np.asarray(b.distortion).reshape(-1)
-        for k, p in enumerate(("k1", "k2", "p1", "p2", "k3")):
+        same = distortion_model(da) == distortion_model(db)  # else the displacement compares
+        for k, p in enumerate(DISTORTION_MODELS[distortion_model(da)] if same else ()):
             zz = _z(da[k], db[k], _f(a.std.get(p)), _f(b.std.get(p)))
             if zz is not None:
                 z[f"{n}.{p}"] = zz

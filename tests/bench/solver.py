@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from slidecal.mocks import scenarios as sc
+from slidecal.mocks.camera import LENSES
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import rotation_angle_deg
@@ -149,6 +150,17 @@ def r1_hand_eye_row(
     if robot_noise and not model_noise and not learn:
         row.extra += "; the bound is that of exact poses, so the ratio is what the noise costs"
     return row
+
+
+def lens_model_rows(trials: int) -> list[Row]:
+    """R1 without robot noise, one row per lens model (``mocks/camera.py``'s LENSES): the solver
+    told the model, against the bound of the same model."""
+    rows = []
+    for model, dist in LENSES.items():
+        opts = ModelOptions(distortion_model=model)
+        make = lambda rng, o=opts, d=dist: sc.r1(rng, 0.15, 0.0, 0.0, options=o, dist=d)  # noqa: E731
+        rows.append(run_row("R1", f"lens model {model}", make, trials, tuple(PARAMS)))
+    return rows
 
 
 def linear_per_frame(s: sc.Scenario) -> np.ndarray:
@@ -327,6 +339,9 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     """The options of ``python -m tests.bench``."""
     ap.add_argument("--trials", type=int, default=100, help="Monte-Carlo trials per row")
     ap.add_argument("--out", default=str(RESULTS / "BENCHMARKS.md"), help="the report to write")
+    ap.add_argument(
+        "--lens-models", action="store_true", help="only the R1 row of each lens model (printed)"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -336,8 +351,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     add_arguments(ap)
     args = ap.parse_args(argv)
+    if args.lens_models:
+        print(table(lens_model_rows(args.trials)))
+        return 0
     t0 = time.time()
     rows, notes = all_rows(args.trials)
+    rows += lens_model_rows(args.trials)
     sp = speed()
     ratio = sp["slidecal_s"] / sp["opencv_s"]
     lines = [

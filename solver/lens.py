@@ -1,0 +1,145 @@
+"""The lens model the images ask for (docs/ERROR_MODEL.md Sec. 5, "The lens model").
+
+Each camera's images are fitted alone (OpenCV's free-pose calibration: intrinsics and a pose
+per image) with every lens model of ``solver/camera.py``: the model solved for with its
+estimated coefficients, the others with all of theirs. Another model is asked for when it
+lowers the sum of squared residuals by more than the chi-square tail :data:`LENS_TEST_P` allows
+on its extra coefficients (at least one), in units of its own noise variance. Without
+``options.distortion_model`` the data chooses: the session is solved again with that model;
+with it, the result fails the adequacy test, so the verdict does not pass a lens the images
+refuse. Sessions of one orientation are not tested (the free-pose fit cannot run there).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import replace
+
+import cv2
+import numpy as np
+from scipy.special import chdtrc
+
+from slidecal.solver.camera import DISTORTION_MODELS, project
+from slidecal.solver.geometry import T_from_Rt
+from slidecal.solver.model import orientation_groups
+from slidecal.solver.problem import CalibrationProblem
+from slidecal.solver.result import CalibrationResult
+
+#: False-alarm rate of the lens test for a nested richer model and independent corner errors
+LENS_TEST_P = 1e-3
+#: Images per camera the test fits at most (evenly spread): enough to tell lens models apart,
+#: and a bound on its time
+LENS_TEST_IMAGES = 40
+#: The noise the test assumes at least (px per coordinate): a tenth of a sharp image's detector
+#: noise, so that exact simulated corners do not make round-off a lens
+LENS_NOISE_FLOOR_PX = 0.01
+_MIN_IMAGES, _MIN_CORNERS = 4, 6  # a free-pose fit of a planar target needs them
+
+
+def _free_fit(
+    obj: list[np.ndarray], img: list[np.ndarray], size: tuple[int, int], model: str, mask
+) -> tuple[float, int] | None:
+    """Sum of squared residuals (px^2, by :func:`project`) and parameters of OpenCV's free-pose
+    calibration with lens ``model`` and its coefficients ``mask``; None when it fails."""
+    names = DISTORTION_MODELS[model]
+    fisheye = model == "fisheye"
+    flags = 0
+    for n, on in zip(names, mask, strict=True):  # hold the coefficient at 0 (p1, p2 together)
+        fix = "ZERO_TANGENT_DIST" if n[0] == "p" else f"FIX_{n.upper()}"
+        flags |= 0 if on else getattr(cv2.fisheye if fisheye else cv2, f"CALIB_{fix}")
+    try:
+        if fisheye:
+            flags |= cv2.fisheye.CALIB_RECOMPUTE_EXTRINSIC | cv2.fisheye.CALIB_FIX_SKEW
+            crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 30, 1e-8)  # it settles in 30
+            o = [p.reshape(-1, 1, 3) for p in obj]
+            _, K, d, rv, tv = cv2.fisheye.calibrate(
+                o, img, size, None, None, flags=flags, criteria=crit
+            )
+        else:
+            flags |= cv2.CALIB_RATIONAL_MODEL if model == "rational" else 0
+            _, K, d, rv, tv = cv2.calibrateCamera(obj, img, size, None, None, flags=flags)
+    except cv2.error:
+        return None
+    d = np.asarray(d, float).ravel()[: len(names)]
+    cost = 0.0
+    for p, q, r, t in zip(obj, img, rv, tv, strict=True):
+        T = T_from_Rt(cv2.Rodrigues(np.asarray(r, float))[0], np.asarray(t, float).ravel())
+        e = project(K, d, p @ T[:3, :3].T + T[:3, 3]) - q.reshape(-1, 2)
+        cost += float(np.sum(e * e))
+    return (cost, 4 + int(sum(mask)) + 6 * len(obj)) if np.isfinite(cost) else None
+
+
+def _beats(fits: dict, n_rows: int, a: str, b: str) -> float | None:
+    """How far model ``a``'s free-pose fit lowers model ``b``'s squares, in units of ``a``'s own
+    noise variance; None when not beyond chance on ``a``'s extra coefficients (at least one)."""
+    if fits[a] is None or fits[b] is None:
+        return None
+    (c, p), (c_b, p_b) = fits[a], fits[b]
+    d = (c_b - c) / max(c / (n_rows - p), LENS_NOISE_FLOOR_PX**2)
+    return d if d > 0 and chdtrc(max(p - p_b, 1), d) < LENS_TEST_P else None
+
+
+def lens_check(problem: CalibrationProblem) -> tuple[str, str] | None:
+    """(the lens model the images ask for, why, one line) when one camera's images ask for
+    another than ``problem.options.lens``: of the models that beat it, the one with the fewest
+    coefficients that no other beats. None when none does or the test cannot run."""
+    o = problem.options
+    if problem.knowledge not in ("robot", "none"):
+        return None
+    if problem.knowledge == "robot":
+        T = np.stack([f.T_base_tool for f in problem.frames])
+        if len(set(orientation_groups(T).tolist())) < 2:
+            return None
+    for spec in problem.cameras:
+        dets = [f.detections[spec.name] for f in problem.frames if spec.name in f.detections]
+        dets = [d for d in dets if len(d.ids) >= _MIN_CORNERS]
+        if len(dets) < _MIN_IMAGES:
+            continue
+        pick = np.unique(np.linspace(0, len(dets) - 1, LENS_TEST_IMAGES).round().astype(int))
+        obj = [problem.target.points_m[dets[k].ids].astype(np.float32) for k in pick]
+        img = [dets[k].px.reshape(-1, 1, 2).astype(np.float32) for k in pick]
+        n_rows = 2 * sum(len(p) for p in obj)
+        size = (spec.width, spec.height)
+        fits = {
+            m: _free_fit(obj, img, size, m, o.distortion_mask if m == o.lens else (True,) * len(v))
+            for m, v in DISTORTION_MODELS.items()
+        }
+        asked = [m for m in fits if m != o.lens and _beats(fits, n_rows, m, o.lens) is not None]
+        beaten = {m: any(_beats(fits, n_rows, x, m) for x in fits if x != m) for m in asked}
+        asked.sort(key=lambda m: (beaten[m], fits[m][1]))
+        if asked:
+            m = asked[0]
+            rms_used, rms = (np.sqrt(2 * fits[x][0] / n_rows) for x in (o.lens, m))
+            return m, (
+                f"camera {spec.name}'s images ask for the {m} lens model: fitted alone with it "
+                f"their residuals fall from {rms_used:.3f} to {rms:.3f} px rms, "
+                f"{_beats(fits, n_rows, m, o.lens):.0f} times the noise variance, beyond chance "
+                f"(p < {LENS_TEST_P:g} on its extra coefficients; docs/ERROR_MODEL.md)"
+            )
+    return None
+
+
+def choose_lens(
+    problem: CalibrationProblem,
+    result: CalibrationResult,
+    solve: Callable[[CalibrationProblem], CalibrationResult],
+) -> CalibrationResult:
+    """``result`` of ``problem`` after the lens test (:func:`lens_check`): solved again by
+    ``solve`` with the model the images ask for when the options name none, else failing the
+    adequacy test with the reason (a note where the session has no adequacy test)."""
+    asked = lens_check(problem)
+    if asked is None:
+        return result
+    model, why = asked
+    o = problem.options
+    if o.distortion_model is None:
+        names = DISTORTION_MODELS[model]
+        opts = replace(o, distortion_model=model, distortion=(True,) * len(names))
+        res = solve(replace(problem, options=opts))
+        note = f"lens model {model}, chosen by the data: {why}"
+        return replace(res, messages=(note, *res.messages))
+    fix = f"; solve with options: {{distortion_model: {model}}}"
+    ad = result.adequacy
+    if ad is None:
+        return replace(result, messages=(*result.messages, why + fix))
+    return replace(result, adequacy=replace(ad, adequate=False, reasons=(*ad.reasons, why + fix)))
