@@ -17,11 +17,11 @@ from dataclasses import replace
 
 import cv2
 import numpy as np
-from scipy.special import chdtrc
 
 from slidecal.solver.camera import DISTORTION_MODELS, project
 from slidecal.solver.geometry import T_from_Rt
 from slidecal.solver.model import orientation_groups
+from slidecal.solver.numeric import chi2_tail
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.result import CalibrationResult
 
@@ -72,11 +72,11 @@ def _free_fit(
 def _beats(fits: dict, n_rows: int, a: str, b: str) -> float | None:
     """How far model ``a``'s free-pose fit lowers model ``b``'s squares, in units of ``a``'s own
     noise variance; None when not beyond chance on ``a``'s extra coefficients (at least one)."""
-    if fits[a] is None or fits[b] is None:
+    if fits.get(a) is None or fits.get(b) is None:
         return None
     (c, p), (c_b, p_b) = fits[a], fits[b]
     d = (c_b - c) / max(c / (n_rows - p), LENS_NOISE_FLOOR_PX**2)
-    return d if d > 0 and chdtrc(max(p - p_b, 1), d) < LENS_TEST_P else None
+    return d if d > 0 and chi2_tail(max(p - p_b, 1), d) < LENS_TEST_P else None
 
 
 def lens_check(problem: CalibrationProblem) -> tuple[str, str] | None:
@@ -100,10 +100,12 @@ def lens_check(problem: CalibrationProblem) -> tuple[str, str] | None:
         img = [dets[k].px.reshape(-1, 1, 2).astype(np.float32) for k in pick]
         n_rows = 2 * sum(len(p) for p in obj)
         size = (spec.width, spec.height)
-        fits = {
-            m: _free_fit(obj, img, size, m, o.distortion_mask if m == o.lens else (True,) * len(v))
-            for m, v in DISTORTION_MODELS.items()
-        }
+        fits = {}
+        for m, v in DISTORTION_MODELS.items():
+            # fisheye (the slowest fit) only where the five coefficients leave a richer lens
+            wide = m != "fisheye" or o.lens == m or _beats(fits, n_rows, "rational", "opencv5")
+            mask = o.distortion_mask if m == o.lens else (True,) * len(v)
+            fits[m] = _free_fit(obj, img, size, m, mask) if wide else None
         asked = [m for m in fits if m != o.lens and _beats(fits, n_rows, m, o.lens) is not None]
         beaten = {m: any(_beats(fits, n_rows, x, m) for x in fits if x != m) for m in asked}
         asked.sort(key=lambda m: (beaten[m], fits[m][1]))
