@@ -286,7 +286,8 @@ def write_all_exports(
     header: Mapping[str, Any] | None = None,
     oak_sockets: Mapping[str, Any] | None = None,
 ) -> tuple[list[Path], list[str]]:
-    """Write every export into ``out_dir``; return (paths written, one-line failures)."""
+    """Write every export into ``out_dir``; return (paths written, one line per export not
+    written: a format that cannot hold the calibration, or an ``error:`` writing it)."""
     out = Path(out_dir)
     paths: list[Path] = []
     errors: list[str] = []
@@ -295,13 +296,15 @@ def write_all_exports(
         try:
             write(out / name)
             paths.append(out / name)
-        except (SlidecalError, OSError, ValueError) as e:
-            errors.append(f"export {name} failed: {' '.join(str(e).split())}")
+        except (SlidecalError, ValueError) as e:  # the format cannot hold this calibration
+            errors.append(f"export {name} not written: {' '.join(str(e).split())}")
+        except OSError as e:
+            errors.append(f"error: export {name} failed: {' '.join(str(e).split())}")
 
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
-        return [], [f"export directory {out} cannot be created: {e.strerror or e}"]
+        return [], [f"error: export directory {out} cannot be created: {e.strerror or e}"]
     for name, cam in result.cameras.items():
         attempt(f"opencv_{name}.yaml", lambda p, c=cam: write_opencv_yaml(c, p))
         attempt(f"camera_info_{name}.yaml", lambda p, c=cam: write_camera_info(c, p))

@@ -200,7 +200,7 @@ def finish_solve(
     shown = {f"{k} not determined: {v}" for k, v in result.unobservable.items()}
     shown |= set(result.messages)
     lines += [v for v in verdict.lines() if v.removeprefix("  note: ") not in shown]
-    lines += [f"error: {e}" for e in export_errors]
+    lines += export_errors
     summary = "\n".join(lines) + "\n"
     write_atomic(target.parent / SUMMARY_FILE, summary)
     write_verdict(verdict, session_dir)
