@@ -246,7 +246,8 @@ def read_rows(path: Path) -> list[tuple[str | None, np.ndarray, str]]:
             raise InputError(
                 f"holds {len(names)} words {names[:3]}; one column may name the image", where
             )
-        nums = _numbers([t for t in tokens if t not in names], where)
+        told = f"{where} ({names[0]!r} read as the image's name)" if names else where
+        nums = _numbers([t for t in tokens if t not in names], told)
         rows.append((names[0] if names else None, nums, where))
     if not rows:
         raise InputError("holds no pose rows", where=path.name)
