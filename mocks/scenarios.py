@@ -1162,6 +1162,17 @@ def scale_pixels(problem: CalibrationProblem, factor: Mapping[str, float]) -> Ca
     return replace(problem, frames=tuple(frames), cameras=cams)
 
 
+def swap_cameras(problem: CalibrationProblem, a: str, b: str) -> CalibrationProblem:
+    """The problem with cameras ``a`` and ``b``'s detections exchanged in every frame (a stereo
+    head's left and right images swapped; the two must have one image size)."""
+    frames = []
+    for fr in problem.frames:
+        dets = dict(fr.detections)
+        dets[a], dets[b] = fr.detections.get(b), fr.detections.get(a)
+        frames.append(replace(fr, detections={c: d for c, d in dets.items() if d is not None}))
+    return replace(problem, frames=tuple(frames))
+
+
 def estimate_homographies(board_xy: np.ndarray, px: np.ndarray) -> np.ndarray:
     """Homographies (n, 3, 3) per view of ``board_xy`` (N, 2) l.u. seen at ``px`` (n, N, 2):
     normalised DLT, then reprojection-error refinement."""

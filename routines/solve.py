@@ -169,6 +169,7 @@ def finish_solve(
         command=command,
         session_status=status,
         installed_path=installed_path,
+        sockets=oak_sockets,
     )
     if notes:
         verdict = replace(verdict, notes=tuple(notes) + verdict.notes)

@@ -207,10 +207,12 @@ def judge(
     session_status: str = "complete",
     installed_path: str | None = None,
     installed_problem: CalibrationProblem | None = None,
+    sockets: Mapping[str, str] | None = None,
 ) -> Verdict:
     """The verdict of a solved calibration (docs/UNATTENDED.md). ``installed_problem``:
     the installed session's frames (default: the ``session.yaml`` an install store keeps
-    beside ``installed_path``), for the paired comparison at the poses both sessions share."""
+    beside ``installed_path``), for the paired comparison at the poses both sessions share.
+    ``sockets``: camera name -> OAK board socket, as the session recorded them."""
     lim = limits or Limits()
     checks: list[Check] = []
     notes: list[str] = []
@@ -238,6 +240,7 @@ def judge(
     checks.extend(_reprojection(result, lim))
     checks.extend(_stds(result, lim))
     checks.extend(_scale(result, lim))
+    checks.extend(_stereo_order(result, sockets or {}))
     if problem is not None:
         checks.extend(_coverage(problem, lim))
     cmp_info = None
@@ -412,6 +415,44 @@ def _scale(result: CalibrationResult, lim: Limits) -> list[Check]:
             tol,
             f"camera/robot length ratio {m:.4f} over {len(ratios)} moves (allowed 1 +- {tol:.4f})"
             + ("" if ok else "; check target.square_size_m and the robot's TCP and units"),
+        )
+    ]
+
+
+#: A stereo head's sockets (depthai's): CAM_B is the left camera and CAM_C the right one, seen
+#: from behind the head as its images are, so the right camera lies along the left one's +x
+STEREO_SOCKETS = ("CAM_B", "CAM_C")
+
+
+def _stereo_order(result: CalibrationResult, sockets: Mapping[str, str]) -> list[Check]:
+    """The ``stereo`` check: the camera on the right socket must lie along the left one's +x
+    (swapped images or sockets put it on the -x side at the same baseline)."""
+    by_socket = {str(s): n for n, s in sockets.items()}
+    left, right = (by_socket.get(s) for s in STEREO_SOCKETS)
+    if left not in result.cameras or right not in result.cameras:
+        return []
+    ref = result.reference_camera or next(iter(result.cameras))
+    T = {ref: np.eye(4)}  # T_<camera>_<reference>
+    T.update({k[2:].removesuffix(f"_{ref}"): t.T for k, t in result.rig.items() if t.T is not None})
+    if left not in T or right not in T:
+        return []
+    x_mm = float((T[left] @ np.linalg.inv(T[right]))[0, 3] * 1000.0)  # right's origin, left's x
+    ok = x_mm > 0
+    return [
+        Check(
+            "stereo",
+            ok,
+            x_mm,
+            0.0,
+            f"camera {right} ({STEREO_SOCKETS[1]}) lies {x_mm:+.1f} mm along the x axis of camera "
+            f"{left} ({STEREO_SOCKETS[0]})"
+            + (
+                ""
+                if ok
+                else f", where a stereo head's right camera lies along the left one's +x: the "
+                f"two cameras' images are swapped (or their sockets); give each camera its "
+                f"socket in the cell file's cameras: section and record again"
+            ),
         )
     ]
 
