@@ -8,8 +8,13 @@ import numpy as np
 import pytest
 
 from slidecal.mocks import scenarios as sc
+from slidecal.routines.config import load_packaged_cell
 from slidecal.routines.ops.verdict import judge
+from slidecal.routines.run import RunRequest, run_calibration
+from slidecal.routines.session import load_session
+from slidecal.routines.solve import solve_session
 from slidecal.solver.calibrate import calibrate
+from slidecal.solver.errors import DegenerateError
 
 OAK_SOCKETS = {"left": "CAM_B", "right": "CAM_C"}
 
@@ -32,3 +37,58 @@ def test_stereo_left_and_right_swapped_is_rejected_naming_the_swap(stereo):
     assert v.verdict == "rejected" and v.exit_code == 4
     (c,) = [c for c in v.reasons if c.test == "stereo"]
     assert -80 < c.value < -70 and "swapped" in c.message and "CAM_C" in c.message
+
+
+@pytest.fixture(scope="module")
+def eye_to_hand(tmp_path_factory):
+    """A good run of the simulated eye-to-hand cell (seed 1): its problem and result."""
+    cfg = load_packaged_cell("eye_to_hand_cell.yaml")
+    o = run_calibration(
+        RunRequest(
+            cfg,
+            out_dir=tmp_path_factory.mktemp("e2h") / "s",
+            progress=False,
+            recording=False,
+            seed=1,
+        )
+    )
+    assert o.verdict.verdict == "accepted", o.verdict.lines()
+    return load_session(o.session_dir).problem, o
+
+
+@pytest.mark.parametrize("factor", [1.01, 1.003])
+def test_focus_changed_halfway_is_rejected_naming_the_change(eye_to_hand, factor):
+    problem, o = eye_to_hand
+    assert all(c.passed for c in o.verdict.checks if c.test == "intrinsics")
+    half = len(problem.frames) // 2
+    changed = sc.focus_changed(problem, "cam", o.result.cameras["cam"].K, factor, half)
+    v = judge(calibrate(changed), problem=changed, command="solve")
+    assert v.verdict == "rejected"
+    (c,) = [c for c in v.reasons if c.test == "intrinsics"]
+    assert "focus" in c.message and c.value > c.limit
+    if factor == 1.01:  # where it changed (a 0.3 % change is placed only roughly)
+        assert f"from frame {problem.frames[half].id} on" in c.message
+
+
+def images_one_frame_late(doc: dict) -> None:
+    """The first image dropped: each image recorded with the previous frame's robot pose."""
+    frames = doc["frames"]
+    for k in range(len(frames) - 1, 0, -1):
+        frames[k]["T_base_tool"] = frames[k - 1]["T_base_tool"]
+    del frames[0]
+
+
+def test_images_paired_with_the_previous_pose_name_the_shift_alone(eye_to_hand, tmp_path):
+    _, o = eye_to_hand
+    d = sc.edit_session(sc.copy_session(o.session_dir, tmp_path / "s"), images_one_frame_late)
+    try:
+        v = solve_session(d).verdict
+    except DegenerateError as e:  # refused before a solve: the shift is the one cause given
+        message = str(e)
+    else:
+        assert v.verdict == "rejected"
+        assert [c.test for c in v.reasons if c.test != "session"] == ["adequacy"]
+        assert not v.notes
+        message = v.reasons[-1].message
+    assert "1 frame(s) later" in message and "shifted" in message
+    assert "T_tool_base" not in message and "did NOT converge" not in message

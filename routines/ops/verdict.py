@@ -9,6 +9,7 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from slidecal.routines.ops.install import installed_session
@@ -20,7 +21,7 @@ from slidecal.routines.results_io import (
 )
 from slidecal.routines.session import Fields, dump_yaml, load_yaml, write_atomic
 from slidecal.solver import drift
-from slidecal.solver.adequacy import LEFT_OUT
+from slidecal.solver.adequacy import LEFT_OUT, RECORDS_WRONG
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import rotation_angle_deg
 from slidecal.solver.problem import CalibrationProblem
@@ -53,7 +54,8 @@ class Limits:
     ``coverage_grid`` ([columns, rows]) per camera. ``max_change_sigma``, ``max_change_px``: a
     drift from the installed calibration, the latter over the central ``change_region`` at
     ``working_distance_m``. ``check_max_rms_ratio``, ``check_max_px``, ``check_change_px``:
-    ``slidecal check``'s.
+    ``slidecal check``'s. ``focal_change_stat``, ``focal_change_rel``: a focal length that
+    changed between two parts of the session (chi-square statistic, relative size).
     """
 
     max_rms_px: float = 1.0
@@ -74,6 +76,8 @@ class Limits:
     check_max_rms_ratio: float = 1.6
     check_max_px: float = 0.5
     check_change_px: float = 0.8
+    focal_change_stat: float = 12.0
+    focal_change_rel: float = 0.001
 
 
 def limits_from_dict(data: Any, source: str = "cell.yaml", path: str = "limits") -> Limits:
@@ -237,12 +241,18 @@ def judge(
             f"after {result.iterations} iterations",
         )
     )
+    ad = result.adequacy
+    if ad is not None and not ad.adequate and any(RECORDS_WRONG in r for r in ad.reasons):
+        # the robot's records are wrong: every other figure comes from a solve on them
+        checks += _reprojection(result, lim)
+        return Verdict("rejected", command, tuple(c for c in checks if c.test != "converged"))
     checks.extend(_reprojection(result, lim))
     checks.extend(_stds(result, lim))
     checks.extend(_scale(result, lim))
     checks.extend(_stereo_order(result, sockets or {}))
     if problem is not None:
         checks.extend(_coverage(problem, lim))
+        checks.extend(_intrinsics_change(problem, result, lim))
     cmp_info = None
     quality_ok = all(c.passed for c in checks)
     if installed is not None:
@@ -449,9 +459,9 @@ def _stereo_order(result: CalibrationResult, sockets: Mapping[str, str]) -> list
             + (
                 ""
                 if ok
-                else f", where a stereo head's right camera lies along the left one's +x: the "
-                f"two cameras' images are swapped (or their sockets); give each camera its "
-                f"socket in the cell file's cameras: section and record again"
+                else ", where a stereo head's right camera lies along the left one's +x: the "
+                "two cameras' images are swapped (or their sockets); give each camera its "
+                "socket in the cell file's cameras: section and record again"
             ),
         )
     ]
@@ -496,6 +506,105 @@ def _coverage(problem: CalibrationProblem, lim: Limits) -> list[Check]:
     return out
 
 
+#: Fewest corners of an image for its free pose to tell a focal scale
+INTRINSICS_MIN_CORNERS = 8
+
+
+def focal_change(
+    problem: CalibrationProblem, camera: str, K: np.ndarray, dist: np.ndarray
+) -> tuple[float, float, int] | None:
+    """The likeliest change of ``camera``'s focal length between two parts of the session (the
+    frames before and from some frame on, each part at least two images), from the images
+    alone: each image's free board pose at ``K``, ``dist``, linearised in the pose, a focal
+    scale per part and one principal point correction; ``(statistic, relative change, frame
+    index where it starts)``, the statistic the misfit the change explains in units of the
+    detector's variance (chi-square with one degree of freedom for one split when nothing
+    changed); None with fewer than four images."""
+    rows = []  # per image: frame index, N (3, 3), g (3,), rss, corners
+    for k, f in enumerate(problem.frames):
+        d = f.detections.get(camera)
+        if d is None or len(d.ids) < INTRINSICS_MIN_CORNERS:
+            continue
+        obj, px = problem.target.points_m[d.ids].astype(float), np.asarray(d.px, float)
+        ok, rv, tv = cv2.solvePnP(obj, px, K, dist)
+        if not ok:
+            continue
+        proj, jac = cv2.projectPoints(obj, rv, tv, K, dist)
+        r = (px - proj.reshape(-1, 2)).reshape(-1)
+        J = np.column_stack([K[0, 0] * jac[:, 6] + K[1, 1] * jac[:, 7], jac[:, 8], jac[:, 9]])
+        Q = np.linalg.qr(jac[:, :6])[0]  # the pose's directions, taken out
+        J, r = J - Q @ (Q.T @ J), r - Q @ (Q.T @ r)
+        rows.append((k, J.T @ J, J.T @ r, float(r @ r), len(px)))
+    if len(rows) < 4:
+        return None
+
+    def explained(split: int) -> tuple[float, float]:
+        """Misfit explained by a focal scale per part (one when ``split`` is 0) and a common
+        principal point correction, and the second part's scale against the first's."""
+        parts = [rows[:split], rows[split:]] if split else [rows]
+        n = len(parts)
+        N, g = np.zeros((n + 2, n + 2)), np.zeros(n + 2)
+        for i, part in enumerate(parts):
+            idx = [i, n, n + 1]
+            for _, Nk, gk, _, _ in part:
+                N[np.ix_(idx, idx)] += Nk
+                g[idx] += gk
+        x = np.linalg.lstsq(N, g, rcond=None)[0]
+        return float(g @ x), float(x[1] - x[0]) if split else 0.0
+
+    common, _ = explained(0)
+    rest = sum(r[3] for r in rows) - common
+    var = rest / max(2 * sum(r[4] for r in rows) - 6 * len(rows) - 3, 1)
+    best = (0.0, 0.0, 0)
+    for i in range(2, len(rows) - 1):
+        more, step = explained(i)
+        stat = (more - common) / var if var > 0 else 0.0
+        if stat > best[0]:
+            best = (stat, step, rows[i][0])
+    return best
+
+
+def _intrinsics_change(
+    problem: CalibrationProblem, result: CalibrationResult, lim: Limits
+) -> list[Check]:
+    """The ``intrinsics`` check per camera: a focal length that changed between parts of the
+    session (a focus ring or zoom moved): beyond ``focal_change_stat`` and ``focal_change_rel``."""
+    out = []
+    for name, c in result.cameras.items():
+        if name not in {s.name for s in problem.cameras}:
+            continue
+        try:
+            found = focal_change(
+                problem, name, np.asarray(c.K, float), np.asarray(c.distortion, float).reshape(-1)
+            )
+        except cv2.error:
+            found = None
+        if found is None:
+            continue
+        stat, rel, k = found
+        ok = stat <= lim.focal_change_stat or abs(rel) <= lim.focal_change_rel
+        frame = problem.frames[k].id
+        out.append(
+            Check(
+                "intrinsics",
+                bool(ok),
+                stat,
+                lim.focal_change_stat,
+                f"camera {name}: the images alone see its focal length {rel * 100:+.2f} % from "
+                f"frame {frame} on at {stat:.1f} (chi-square; limits.focal_change_stat "
+                f"{lim.focal_change_stat:g}, limits.focal_change_rel "
+                f"{lim.focal_change_rel * 100:g} %)"
+                + (
+                    ""
+                    if ok
+                    else ": the camera's intrinsics changed during the session (focus, zoom or "
+                    "the lens moved); lock the focus (and zoom) and record the session again"
+                ),
+            )
+        )
+    return out
+
+
 # ----------------------------------------------------------------------------- comparison
 
 
@@ -511,8 +620,6 @@ def displacement_px(
     ``n x n`` grid over the central ``region`` of the old image cast to rays, carried through the
     old hand-eye and back through the new hand-eye and intrinsics (the intrinsics alone without
     a hand-eye in both)."""
-    import cv2
-
     a, b = old.cameras[camera], new.cameras[camera]
     hw, hh = region * (a.width - 1) / 2, region * (a.height - 1) / 2
     cu, cv = (a.width - 1) / 2, (a.height - 1) / 2
