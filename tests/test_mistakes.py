@@ -4,6 +4,8 @@ each finding names its cause. The good session beside it must stay accepted."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -92,3 +94,33 @@ def test_images_paired_with_the_previous_pose_name_the_shift_alone(eye_to_hand, 
         message = v.reasons[-1].message
     assert "1 frame(s) later" in message and "shifted" in message
     assert "T_tool_base" not in message and "did NOT converge" not in message
+
+
+def _poses_off(problem, mm: float, seed: int = 0):  # noqa: ANN001, ANN202
+    """The robot's recorded positions off by ``mm`` per axis (one sigma), frame by frame."""
+    rng = np.random.default_rng(seed)
+    frames = []
+    for f in problem.frames:
+        T = np.array(f.T_base_tool, dtype=float)
+        T[:3, 3] += rng.normal(0.0, mm / 1000.0, 3)
+        frames.append(dataclasses.replace(f, T_base_tool=T))
+    return dataclasses.replace(problem, frames=tuple(frames))
+
+
+def test_learned_arm_error_beyond_the_installed_level_is_not_accepted(eye_to_hand):
+    problem, o = eye_to_hand
+    (c,) = [c for c in o.verdict.checks if c.test == "arm"]
+    assert c.passed and c.value < 0.5  # this cell's arm: tenths of a millimetre
+    off = _poses_off(problem, 1.0)
+    v = judge(calibrate(off), problem=off, installed=o.result, installed_problem=problem)
+    assert v.verdict != "accepted"
+    (c,) = [c for c in v.reasons if c.test == "arm"]
+    assert c.value > 2.5 and "installed calibration's" in c.message
+
+
+def test_learned_arm_error_beyond_its_class_is_rejected(eye_to_hand):
+    problem, _ = eye_to_hand
+    off = _poses_off(problem, 3.0, seed=1)
+    v = judge(calibrate(off), problem=off, command="solve")
+    assert v.verdict == "rejected"
+    assert any(c.test == "arm" and "beyond any arm of its class" in c.message for c in v.reasons)

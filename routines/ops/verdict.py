@@ -56,6 +56,9 @@ class Limits:
     ``working_distance_m``. ``check_max_rms_ratio``, ``check_max_px``, ``check_change_px``:
     ``slidecal check``'s. ``focal_change_stat``, ``focal_change_rel``: a focal length that
     changed between two parts of the session (chi-square statistic, relative size).
+    ``max_robot_error_mm``, ``max_robot_error_deg``: the arm's learned accuracy (rms per axis)
+    beyond which it is not the arm's; ``max_robot_error_ratio``: beyond this multiple of the
+    installed calibration's learned accuracy.
     """
 
     max_rms_px: float = 1.0
@@ -78,6 +81,9 @@ class Limits:
     check_change_px: float = 0.8
     focal_change_stat: float = 12.0
     focal_change_rel: float = 0.001
+    max_robot_error_mm: float = 2.0
+    max_robot_error_deg: float = 0.2
+    max_robot_error_ratio: float = 2.5
 
 
 def limits_from_dict(data: Any, source: str = "cell.yaml", path: str = "limits") -> Limits:
@@ -253,9 +259,11 @@ def judge(
     if problem is not None:
         checks.extend(_coverage(problem, lim))
         checks.extend(_intrinsics_change(problem, result, lim))
+    checks.extend(_arm(result, lim))
     cmp_info = None
     quality_ok = all(c.passed for c in checks)
     if installed is not None:
+        checks.extend(_arm(result, lim, installed))
         change, cmp_info = compare(result, installed, lim)
         if installed_path is not None:
             cmp_info = {"path": installed_path, **cmp_info}
@@ -396,6 +404,56 @@ def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
             s = _f(t.std_t_mm)
             out.append(_std_check(f"{t.name}: translation", s, t_lim, "mm", ".3f", note))
     return out
+
+
+#: What a learned arm error beyond its limit may be instead of the arm (the solve takes any
+#: error that moves whole frames as the arm's)
+NOT_THE_ARM = (
+    "the solve took as the arm's error what is something else: a focus or lens that moved, a "
+    "board that moved or is not the size described, a camera loose on its mount"
+)
+
+
+def _arm(
+    result: CalibrationResult, lim: Limits, installed: CalibrationResult | None = None
+) -> list[Check]:
+    """The ``arm`` check: the arm's learned accuracy against its class's level, or (with
+    ``installed``) against a multiple of the installed calibration's."""
+    ra = result.robot_accuracy
+    if ra is None or not ra.estimated:
+        return []
+    t, r = ra.translation_mm, ra.rotation_deg
+    if installed is None:
+        ok = t <= lim.max_robot_error_mm and r <= lim.max_robot_error_deg
+        return [
+            Check(
+                "arm",
+                bool(ok),
+                t,
+                lim.max_robot_error_mm,
+                f"the arm's accuracy learned from the session: {t:.2f} mm, {r:.3f} deg rms per "
+                f"axis (limits.max_robot_error_mm {lim.max_robot_error_mm:g}, "
+                f"limits.max_robot_error_deg {lim.max_robot_error_deg:g}: a six-axis arm's)"
+                + ("" if ok else f"; beyond any arm of its class: {NOT_THE_ARM}"),
+            )
+        ]
+    old = installed.robot_accuracy
+    if old is None or not old.estimated or old.translation_mm <= 0:
+        return []
+    ratio = t / old.translation_mm
+    ok = ratio <= lim.max_robot_error_ratio
+    return [
+        Check(
+            "arm",
+            bool(ok),
+            ratio,
+            lim.max_robot_error_ratio,
+            f"the arm's accuracy learned from the session, {t:.2f} mm rms per axis, is "
+            f"{ratio:.1f} times the installed calibration's ({old.translation_mm:.2f} mm; "
+            f"limits.max_robot_error_ratio {lim.max_robot_error_ratio:g})"
+            + ("" if ok else f": the same arm does not err more; {NOT_THE_ARM}"),
+        )
+    ]
 
 
 def _scale(result: CalibrationResult, lim: Limits) -> list[Check]:
