@@ -11,12 +11,13 @@ import pytest
 
 from slidecal.mocks import scenarios as sc
 from slidecal.routines.config import load_packaged_cell
+from slidecal.routines.ops.install import NotInstalled, install
 from slidecal.routines.ops.verdict import judge
 from slidecal.routines.run import RunRequest, run_calibration
 from slidecal.routines.session import load_session
 from slidecal.routines.solve import solve_session
 from slidecal.solver.calibrate import calibrate
-from slidecal.solver.errors import DegenerateError
+from slidecal.solver.errors import DegenerateError, InputError
 
 OAK_SOCKETS = {"left": "CAM_B", "right": "CAM_C"}
 
@@ -124,3 +125,40 @@ def test_learned_arm_error_beyond_its_class_is_rejected(eye_to_hand):
     v = judge(calibrate(off), problem=off, command="solve")
     assert v.verdict == "rejected"
     assert any(c.test == "arm" and "beyond any arm of its class" in c.message for c in v.reasons)
+
+
+@pytest.fixture(scope="module")
+def store(eye_to_hand, tmp_path_factory):
+    """The eye-to-hand run installed as a run installs it (its cell named)."""
+    _, o = eye_to_hand
+    s = tmp_path_factory.mktemp("store") / "store"
+    install(s, o.session_dir, o.result, "accepted", info={"cell": "eye_to_hand_cell.yaml"})
+    return s
+
+
+@pytest.mark.parametrize(
+    "edit, says",
+    [
+        (lambda doc: doc.update(cell="default_cell.yaml"), "holds the calibration of cell"),
+        (lambda doc: doc["cameras"][0].update(width=1920, height=1200), "1280x800, this one"),
+    ],
+)
+def test_solve_against_another_cells_store_says_so_before_comparing(
+    eye_to_hand, store, tmp_path, edit, says
+):
+    _, o = eye_to_hand
+    d = sc.edit_session(sc.copy_session(o.session_dir, tmp_path / "s"), edit)
+    with pytest.raises(InputError) as e:
+        solve_session(d, installed=store)
+    assert says in str(e.value) and "nothing was compared" in str(e.value)
+    assert "drift" not in str(e.value).replace("not a drift", "")
+    assert not (d / "result.yaml").exists()
+
+
+def test_a_drifted_result_names_a_flag_run_has_and_exits_0_once_installed(eye_to_hand, store):
+    _, o = eye_to_hand
+    with pytest.raises(NotInstalled, match="run again with --accept-drift"):
+        install(store, o.session_dir, o.result, "drifted")
+    drifted = dataclasses.replace(o, verdict=dataclasses.replace(o.verdict, verdict="drifted"))
+    assert drifted.exit_code == 5
+    assert dataclasses.replace(drifted, installed_to=store / "history" / "x").exit_code == 0

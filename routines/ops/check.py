@@ -20,7 +20,12 @@ from scipy.optimize import least_squares
 
 from slidecal.routines.acquire import cell_key, record_session
 from slidecal.routines.config import CellConfig, load_config
-from slidecal.routines.ops.install import INSTALLED_FILE, current_dir, installed_session
+from slidecal.routines.ops.install import (
+    INSTALLED_FILE,
+    check_same_cell,
+    current_dir,
+    installed_session,
+)
 from slidecal.routines.ops.report import uncertainty_map
 from slidecal.routines.ops.verdict import (
     Check,
@@ -326,6 +331,7 @@ def run_check(
         if (cur / INSTALLED_FILE).is_file()
         else {}
     )
+    check_same_cell(inst, str(cur), cfg.cameras, cfg.source)
     if (cur / "plan.yaml").is_file():
         base = read_plan(cur / "plan.yaml")
     else:
