@@ -26,13 +26,13 @@ from slidecal.routines.ops.install import (
     current_dir,
     installed_session,
 )
-from slidecal.routines.ops.report import uncertainty_map
 from slidecal.routines.ops.verdict import (
     Check,
     Verdict,
     compare,
     judge_check,
     paired_compare,
+    uncertainty_map,
     write_verdict,
 )
 from slidecal.routines.plan import Plan, read_plan

@@ -11,7 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from slidecal.routines.ops.verdict import Verdict, coverage_fraction
+from slidecal.routines.ops.verdict import Verdict, coverage_fraction, uncertainty_map
 from slidecal.routines.schema import write_atomic
 from slidecal.solver.camera import project
 from slidecal.solver.geometry import inv_T
@@ -91,44 +91,6 @@ def residual_vectors(
             at.append(np.asarray(det.px, float))
     px = np.vstack(at)
     return px, px - project(K, d, np.vstack(P)) if len(px) else np.zeros((0, 2))
-
-
-def uncertainty_map(result: CalibrationResult, camera: str, n: tuple[int, int] = (32, 20)):
-    """One-sigma pixel error (``n[1]`` x ``n[0]`` grid over the image) of the projection of a
-    fixed ray through each grid pixel, from the covariance of the camera's intrinsics; None
-    without a covariance."""
-    if result.covariance is None:
-        return None
-    cam = result.cameras[camera]
-    names = [f"{camera}.{p}" for p in ("fx", "fy", "cx", "cy", "s", "k1", "k2", "p1", "p2", "k3")]
-    idx = [
-        (k, result.parameter_names.index(nm))
-        for k, nm in enumerate(names)
-        if nm in result.parameter_names
-    ]
-    if not idx:
-        return None
-    C = np.asarray(result.covariance, float)[np.ix_([i for _, i in idx], [i for _, i in idx])]
-    K, d = np.asarray(cam.K, float), np.asarray(cam.distortion, float).reshape(-1)[:5]
-    u, v = np.meshgrid(np.linspace(0, cam.width - 1, n[0]), np.linspace(0, cam.height - 1, n[1]))
-    px = np.stack([u.ravel(), v.ravel()], 1)
-    rays = cv2.undistortPoints(px.reshape(-1, 1, 2), K, d).reshape(-1, 2)
-    P = np.hstack([rays, np.ones((len(rays), 1))])
-
-    def proj(theta: np.ndarray) -> np.ndarray:
-        Kp = np.array([[theta[0], theta[4], theta[2]], [0, theta[1], theta[3]], [0, 0, 1.0]])
-        return project(Kp, theta[5:], P)
-
-    theta0 = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1], *d])
-    J = np.zeros((len(P), 2, len(idx)))
-    for j, (k, _) in enumerate(idx):
-        h = 1e-6 * max(1.0, abs(theta0[k]))
-        tp, tm = theta0.copy(), theta0.copy()
-        tp[k] += h
-        tm[k] -= h
-        J[:, :, j] = (proj(tp) - proj(tm)) / (2 * h)
-    var = np.einsum("nij,jk,nik->n", J, C, J)
-    return np.sqrt(np.maximum(var, 0.0)).reshape(n[1], n[0])
 
 
 def _text(img: np.ndarray, s: str, org: tuple[int, int], scale=0.5, colour=(30, 30, 30), th=1):

@@ -22,6 +22,7 @@ from slidecal.routines.results_io import (
 from slidecal.routines.session import Fields, dump_yaml, load_yaml, write_atomic
 from slidecal.solver import drift
 from slidecal.solver.adequacy import LEFT_OUT, RECORDS_WRONG
+from slidecal.solver.camera import project
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import rotation_angle_deg
 from slidecal.solver.problem import CalibrationProblem
@@ -58,7 +59,8 @@ class Limits:
     changed between two parts of the session (chi-square statistic, relative size).
     ``max_robot_error_mm``, ``max_robot_error_deg``: the arm's learned accuracy (rms per axis)
     beyond which it is not the arm's; ``max_robot_error_ratio``: beyond this multiple of the
-    installed calibration's learned accuracy.
+    installed calibration's learned accuracy. ``max_projection_std_px``: the largest
+    projection one-sigma over the image.
     """
 
     max_rms_px: float = 1.0
@@ -84,6 +86,7 @@ class Limits:
     max_robot_error_mm: float = 2.0
     max_robot_error_deg: float = 0.2
     max_robot_error_ratio: float = 2.5
+    max_projection_std_px: float = 5.0
 
 
 def limits_from_dict(data: Any, source: str = "cell.yaml", path: str = "limits") -> Limits:
@@ -255,6 +258,7 @@ def judge(
     checks.extend(_reprojection(result, lim))
     checks.extend(_stds(result, lim))
     checks.extend(_scale(result, lim))
+    checks.extend(_projection(result, lim))
     checks.extend(_stereo_order(result, sockets or {}))
     if problem is not None:
         checks.extend(_coverage(problem, lim))
@@ -542,6 +546,74 @@ def coverage_fraction(
         iy = np.clip((px[:, 1] / spec.height * ny).astype(int), 0, ny - 1)
         np.add.at(counts, (iy, ix), 1)
     return float(np.mean(counts > 0)), counts
+
+
+def uncertainty_map(result: CalibrationResult, camera: str, n: tuple[int, int] = (32, 20)):
+    """One-sigma pixel error (``n[1]`` x ``n[0]`` grid over the image) of the projection of a
+    fixed ray through each grid pixel, from the covariance of the camera's intrinsics; None
+    without a covariance."""
+    if result.covariance is None:
+        return None
+    cam = result.cameras[camera]
+    names = [f"{camera}.{p}" for p in ("fx", "fy", "cx", "cy", "s", "k1", "k2", "p1", "p2", "k3")]
+    idx = [
+        (k, result.parameter_names.index(nm))
+        for k, nm in enumerate(names)
+        if nm in result.parameter_names
+    ]
+    if not idx:
+        return None
+    C = np.asarray(result.covariance, float)[np.ix_([i for _, i in idx], [i for _, i in idx])]
+    K, d = np.asarray(cam.K, float), np.asarray(cam.distortion, float).reshape(-1)[:5]
+    u, v = np.meshgrid(np.linspace(0, cam.width - 1, n[0]), np.linspace(0, cam.height - 1, n[1]))
+    px = np.stack([u.ravel(), v.ravel()], 1)
+    rays = cv2.undistortPoints(px.reshape(-1, 1, 2), K, d).reshape(-1, 2)
+    P = np.hstack([rays, np.ones((len(rays), 1))])
+
+    def proj(theta: np.ndarray) -> np.ndarray:
+        Kp = np.array([[theta[0], theta[4], theta[2]], [0, theta[1], theta[3]], [0, 0, 1.0]])
+        return project(Kp, theta[5:], P)
+
+    theta0 = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1], *d])
+    J = np.zeros((len(P), 2, len(idx)))
+    for j, (k, _) in enumerate(idx):
+        h = 1e-6 * max(1.0, abs(theta0[k]))
+        tp, tm = theta0.copy(), theta0.copy()
+        tp[k] += h
+        tm[k] -= h
+        J[:, :, j] = (proj(tp) - proj(tm)) / (2 * h)
+    var = np.einsum("nij,jk,nik->n", J, C, J)
+    return np.sqrt(np.maximum(var, 0.0)).reshape(n[1], n[0])
+
+
+def _projection(result: CalibrationResult, lim: Limits) -> list[Check]:
+    """The ``projection`` check per camera: the largest one-sigma of :func:`uncertainty_map`
+    over the whole image (its corners included: where the user may use the camera)."""
+    out = []
+    for name in result.cameras:
+        m = uncertainty_map(result, name, (16, 10))
+        if m is None:
+            continue
+        worst = float(np.max(m))
+        ok = worst <= lim.max_projection_std_px
+        out.append(
+            Check(
+                "projection",
+                ok,
+                worst,
+                lim.max_projection_std_px,
+                f"camera {name}: a point's projection one-sigma up to {worst:.2f} px over the "
+                f"image (rms {float(np.sqrt(np.mean(m**2))):.2f} px; limit "
+                f"{lim.max_projection_std_px:g} px, limits.max_projection_std_px)"
+                + (
+                    ""
+                    if ok
+                    else "; the intrinsics are not known where the images did not reach: add "
+                    "views that bring the board to the image's corners and edges"
+                ),
+            )
+        )
+    return out
 
 
 def _coverage(problem: CalibrationProblem, lim: Limits) -> list[Check]:
