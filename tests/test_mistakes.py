@@ -12,6 +12,7 @@ import pytest
 from slidecal.mocks import scenarios as sc
 from slidecal.routines.config import load_packaged_cell
 from slidecal.routines.ops.install import NotInstalled, install
+from slidecal.routines.ops.report import robot_panel
 from slidecal.routines.ops.verdict import judge
 from slidecal.routines.run import RunRequest, run_calibration
 from slidecal.routines.session import load_session
@@ -189,3 +190,12 @@ def test_projection_uncertainty_at_the_image_corners_is_judged(eye_to_hand):
     assert v.verdict == "rejected"
     (c,) = [c for c in v.reasons if c.test == "projection"]
     assert c.value > 5 and "corners and edges" in c.message
+
+
+def test_report_names_its_quantities_and_draws_axes(eye_to_hand):
+    _, o = eye_to_hand
+    html = (o.session_dir / "report.html").read_text()
+    assert html.index("The calibration") < html.index("Every test")  # the values near the top
+    assert "robot poses corrected within the arm's learned accuracy" in o.summary
+    img = robot_panel(o.result)
+    assert (img[20:160, 70] < 100).all() and (img[160, 70:540] < 100).all()  # both axes drawn

@@ -43,13 +43,7 @@ def _board_poses(
     if camera != ref:
         rig = result.rig.get(f"T_{camera}_{ref}")
         T_cam_ref = rig.T if rig is not None and rig.T is not None else None
-    chain = (
-        he is not None
-        and he.T is not None
-        and tg is not None
-        and tg.T is not None
-        and T_cam_ref is not None
-    )
+    chain = _chained(result) and T_cam_ref is not None
     out: dict[int, np.ndarray] = {}
     pts = problem.target.points_m
     for fr in problem.frames:
@@ -72,6 +66,12 @@ def _board_poses(
             T[:3, 3] = tvec.ravel()
             out[fr.id] = T
     return out
+
+
+def _chained(result: CalibrationResult) -> bool:
+    """Whether the hand-eye and target poses are both determined (residuals through the chain)."""
+    he, tg = result.hand_eye, result.T_target
+    return he is not None and he.T is not None and tg is not None and tg.T is not None
 
 
 def residual_vectors(
@@ -131,11 +131,13 @@ def residual_panel(
             x, y = a[:, 0] + dx, a[:, 1] + dy
             keep = (x >= 0) & (x < PANEL_W) & (y >= 0) & (y < H + 40)
             img[y[keep], x[keep]] = (90, 90, 90)
+        through = "the measured robot poses" if _chained(result) else "each image's pose"
         _text(
             img,
-            f"{camera}: residuals x{mag:g} (rms {rms:.3f} px), corners in {frac * 100:.0f} % "
-            "of cells",
+            f"{camera}: residuals via {through} x{mag:g}, rms {rms:.3f} px; "
+            f"{frac * 100:.0f} % of cells",
             (6, H + 25),
+            0.42,
         )
     return img
 
@@ -165,18 +167,29 @@ def robot_panel(result: CalibrationResult) -> np.ndarray | None:
     if ra is None or not ra.worst_frames:
         return None
     frames = sorted(ra.worst_frames)
-    img = np.full((200, PANEL_W, 3), 255, np.uint8)
+    img = np.full((220, PANEL_W, 3), 255, np.uint8)
     top = max(f[1] for f in frames) or 1.0
-    w = max(2, (PANEL_W - 40) // len(frames))
-    for k, (_fid, t_mm, _deg) in enumerate(frames):
+    x0, y0 = 70, 160  # the axes' origin
+    w = max(2, (PANEL_W - x0 - 10) // len(frames))
+    for k, (fid, t_mm, _deg) in enumerate(frames):
         h = int(140 * t_mm / top)
-        x = 20 + k * w
-        cv2.rectangle(img, (x, 160 - h), (x + w - 2, 160), (180, 120, 60), -1)
+        x = x0 + 2 + k * w
+        cv2.rectangle(img, (x, y0 - h), (x + w - 2, y0), (180, 120, 60), -1)
+        if k in (0, len(frames) - 1) or len(frames) <= 12:
+            _text(img, str(fid), (x, y0 + 14), 0.35)
+    cv2.line(img, (x0, y0), (PANEL_W - 8, y0), (30, 30, 30), 1)
+    cv2.line(img, (x0, y0), (x0, y0 - 145), (30, 30, 30), 1)
+    for v, y in ((0.0, y0), (top, y0 - 140)):
+        cv2.line(img, (x0 - 4, y), (x0, y), (30, 30, 30), 1)
+        _text(img, f"{v:.3f}", (6, y + 4), 0.35)
+    _text(img, "mm", (6, y0 - 70), 0.35)
+    _text(img, "frame id", (PANEL_W - 70, y0 + 28), 0.35)
     _text(
         img,
-        f"robot pose error per frame (max {top:.3f} mm); sigma {ra.translation_mm:.3f} mm,"
-        f" {ra.rotation_deg:.4f} deg",
-        (6, 185),
+        f"pose correction per frame; learned {ra.translation_mm:.3f} mm, "
+        f"{ra.rotation_deg:.4f} deg rms per axis",
+        (6, 210),
+        0.42,
     )
     return img
 
@@ -260,6 +273,8 @@ def write_report(
         parts.append("<h2>Reasons</h2><ul>")
         parts += [f"<li>{e(c.message)}</li>" for c in verdict.reasons]
         parts.append("</ul>")
+    if summary:  # the calibration's values near the top
+        parts.append(f"<h2>The calibration</h2><pre>{e(summary)}</pre>")
     parts.append(
         "<h2>Every test</h2><table><tr><th>test</th><th>result</th><th>figure</th>"
         "<th>limit</th><th>what</th></tr>"
@@ -296,8 +311,6 @@ def write_report(
         parts.append(
             "<h2>Notes</h2><ul>" + "".join(f"<li>{e(n)}</li>" for n in verdict.notes) + "</ul>"
         )
-    if summary:
-        parts.append(f"<h2>Summary</h2><pre>{e(summary)}</pre>")
     parts.append("</body></html>")
     path = d / REPORT_HTML
     write_atomic(path, "\n".join(parts))
