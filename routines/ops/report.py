@@ -14,7 +14,9 @@ import numpy as np
 from slidecal.routines.ops.verdict import Verdict, coverage_fraction, uncertainty_map
 from slidecal.routines.schema import write_atomic
 from slidecal.solver.camera import project
-from slidecal.solver.geometry import inv_T
+from slidecal.solver.drift import T_cam_board, hand_eye_T
+from slidecal.solver.errors import InputError
+from slidecal.solver.geometry import T_from_Rt
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.result import CalibrationResult
 
@@ -37,41 +39,33 @@ def _board_poses(
     when it is fully determined, else each image's own pose from the estimated intrinsics."""
     cam = result.cameras[camera]
     K, d = np.asarray(cam.K, float), np.asarray(cam.distortion, float).reshape(-1)[:5]
-    ref = result.reference_camera or next(iter(result.cameras))
-    he, tg = result.hand_eye, result.T_target
-    T_cam_ref = np.eye(4)
-    if camera != ref:
-        rig = result.rig.get(f"T_{camera}_{ref}")
-        T_cam_ref = rig.T if rig is not None and rig.T is not None else None
-    chain = _chained(result) and T_cam_ref is not None
+    X = _hand_eye(result, camera)
     out: dict[int, np.ndarray] = {}
     pts = problem.target.points_m
     for fr in problem.frames:
         det = fr.detections.get(camera)
         if det is None or len(det.ids) < 4:
             continue
-        if chain and fr.T_base_tool is not None:
-            if result.mount == "eye_in_hand":
-                T_ref_board = inv_T(he.T) @ inv_T(fr.T_base_tool) @ tg.T
-            else:
-                T_ref_board = inv_T(he.T) @ fr.T_base_tool @ tg.T
-            out[fr.id] = T_cam_ref @ T_ref_board
+        if X is not None and fr.T_base_tool is not None:
+            out[fr.id] = T_cam_board(result.mount, X, fr.T_base_tool, result.T_target.T)
             continue
         ok, rvec, tvec = cv2.solvePnP(
             pts[det.ids].astype(np.float64), np.asarray(det.px, np.float64), K, d
         )
         if ok:
-            T = np.eye(4)
-            T[:3, :3] = cv2.Rodrigues(rvec)[0]
-            T[:3, 3] = tvec.ravel()
-            out[fr.id] = T
+            out[fr.id] = T_from_Rt(cv2.Rodrigues(rvec)[0], tvec.ravel())
     return out
 
 
-def _chained(result: CalibrationResult) -> bool:
-    """Whether the hand-eye and target poses are both determined (residuals through the chain)."""
-    he, tg = result.hand_eye, result.T_target
-    return he is not None and he.T is not None and tg is not None and tg.T is not None
+def _hand_eye(result: CalibrationResult, camera: str) -> np.ndarray | None:
+    """The camera's hand-eye when it and the target pose are both determined (the residuals
+    through the chain), else None."""
+    if result.T_target is None or result.T_target.T is None:
+        return None
+    try:
+        return hand_eye_T(result, camera)
+    except InputError:
+        return None
 
 
 def residual_vectors(
@@ -131,7 +125,8 @@ def residual_panel(
             x, y = a[:, 0] + dx, a[:, 1] + dy
             keep = (x >= 0) & (x < PANEL_W) & (y >= 0) & (y < H + 40)
             img[y[keep], x[keep]] = (90, 90, 90)
-        through = "the measured robot poses" if _chained(result) else "each image's pose"
+        chained = _hand_eye(result, camera) is not None
+        through = "the measured robot poses" if chained else "each image's pose"
         _text(
             img,
             f"{camera}: residuals via {through} x{mag:g}, rms {rms:.3f} px; "

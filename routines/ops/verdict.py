@@ -60,7 +60,7 @@ class Limits:
     ``max_robot_error_mm``, ``max_robot_error_deg``: the arm's learned accuracy (rms per axis)
     beyond which it is not the arm's; ``max_robot_error_ratio``: beyond this multiple of the
     installed calibration's learned accuracy. ``max_projection_std_px``: the largest
-    projection one-sigma over the image.
+    projection one-sigma over the image (``_from_translations``: a session of one orientation's).
     """
 
     max_rms_px: float = 1.0
@@ -87,6 +87,7 @@ class Limits:
     max_robot_error_deg: float = 0.2
     max_robot_error_ratio: float = 2.5
     max_projection_std_px: float = 5.0
+    max_projection_std_px_from_translations: float = 15.0
 
 
 def limits_from_dict(data: Any, source: str = "cell.yaml", path: str = "limits") -> Limits:
@@ -590,21 +591,23 @@ def _projection(result: CalibrationResult, lim: Limits) -> list[Check]:
     """The ``projection`` check per camera: the largest one-sigma of :func:`uncertainty_map`
     over the whole image (its corners included: where the user may use the camera)."""
     out = []
+    alone = one_orientation(result)
+    limit = lim.max_projection_std_px_from_translations if alone else lim.max_projection_std_px
     for name in result.cameras:
         m = uncertainty_map(result, name, (16, 10))
         if m is None:
             continue
         worst = float(np.max(m))
-        ok = worst <= lim.max_projection_std_px
+        ok = worst <= limit
         out.append(
             Check(
                 "projection",
                 ok,
                 worst,
-                lim.max_projection_std_px,
+                limit,
                 f"camera {name}: a point's projection one-sigma up to {worst:.2f} px over the "
-                f"image (rms {float(np.sqrt(np.mean(m**2))):.2f} px; limit "
-                f"{lim.max_projection_std_px:g} px, limits.max_projection_std_px)"
+                f"image (rms {float(np.sqrt(np.mean(m**2))):.2f} px; limit {limit:g} px, "
+                f"limits.max_projection_std_px{'_from_translations' if alone else ''})"
                 + (
                     ""
                     if ok
