@@ -86,7 +86,7 @@ class Limits:
     max_robot_error_mm: float = 2.0
     max_robot_error_deg: float = 0.2
     max_robot_error_ratio: float = 2.5
-    max_projection_std_px: float = 5.0
+    max_projection_std_px: float = 10.0
     max_projection_std_px_from_translations: float = 15.0
 
 

@@ -346,7 +346,7 @@ def part_mistakes(work: Path, seeds: int) -> list[str]:
             )
             for f in (1.01, 1.003)
         ]
-        cases.append(("corners only in the central 40 % of the image", centre_only(p, 0.4)))
+        cases.append(("corners only in the central 35 % of the image", centre_only(p, 0.35)))
         for name, q in cases:
             lines.append(_mistake_row(f"{name}, seed {seed}", judge(calibrate(q), problem=q)))
         rig = sc.oak_rig(np.random.default_rng(seed)).problem
