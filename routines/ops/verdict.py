@@ -11,6 +11,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from scipy.ndimage import binary_dilation
 
 from slidecal.routines.ops.install import installed_session
 from slidecal.routines.results_io import (
@@ -259,7 +260,9 @@ def judge(
     checks.extend(_reprojection(result, lim))
     checks.extend(_stds(result, lim))
     checks.extend(_scale(result, lim))
-    checks.extend(_projection(result, lim))
+    projection, beyond = _projection(result, lim, problem)
+    checks.extend(projection)
+    notes.extend(beyond)
     checks.extend(_stereo_order(result, sockets or {}))
     if problem is not None:
         checks.extend(_coverage(problem, lim))
@@ -587,36 +590,46 @@ def uncertainty_map(result: CalibrationResult, camera: str, n: tuple[int, int] =
     return np.sqrt(np.maximum(var, 0.0)).reshape(n[1], n[0])
 
 
-def _projection(result: CalibrationResult, lim: Limits) -> list[Check]:
+def _projection(
+    result: CalibrationResult, lim: Limits, problem: CalibrationProblem | None
+) -> tuple[list[Check], list[str]]:
     """The ``projection`` check per camera: the largest one-sigma of :func:`uncertainty_map`
-    over the whole image (its corners included: where the user may use the camera)."""
-    out = []
+    over the image area the views covered (the 16 x 10 cells holding a corner and their
+    neighbours; the whole image without the problem), and a note where the rest of the image
+    is beyond the limit."""
+    out, notes = [], []
     alone = one_orientation(result)
     limit = lim.max_projection_std_px_from_translations if alone else lim.max_projection_std_px
+    field_name = f"limits.max_projection_std_px{'_from_translations' if alone else ''}"
     for name in result.cameras:
         m = uncertainty_map(result, name, (16, 10))
         if m is None:
             continue
-        worst = float(np.max(m))
-        ok = worst <= limit
+        seen = np.ones(m.shape, bool)
+        if problem is not None and name in {c.name for c in problem.cameras}:
+            counts = coverage_fraction(problem, name, (16, 10))[1]
+            seen = binary_dilation(counts > 0, np.ones((3, 3), bool)) if counts.any() else seen
+        inside, worst = float(np.max(m[seen])), float(np.max(m))
+        ok = inside <= limit
         out.append(
             Check(
                 "projection",
                 ok,
-                worst,
+                inside,
                 limit,
-                f"camera {name}: a point's projection one-sigma up to {worst:.2f} px over the "
-                f"image (rms {float(np.sqrt(np.mean(m**2))):.2f} px; limit {limit:g} px, "
-                f"limits.max_projection_std_px{'_from_translations' if alone else ''})"
-                + (
-                    ""
-                    if ok
-                    else "; the intrinsics are not known where the images did not reach: add "
-                    "views that bring the board to the image's corners and edges"
-                ),
+                f"camera {name}: a point's projection one-sigma up to {inside:.2f} px where its "
+                f"views reached, {worst:.2f} px over the whole image (limit {limit:g} px, "
+                f"{field_name})" + ("" if ok else "; the intrinsics are not known"),
             )
         )
-    return out
+        if ok and worst > limit:
+            notes.append(
+                f"camera {name}: beyond the image area its views covered, the projection "
+                f"one-sigma reaches {worst:.1f} px (limit {limit:g} px, {field_name}): the "
+                "calibration holds where the board was seen; views that bring the board to the "
+                "image's corners and edges extend it"
+            )
+    return out, notes
 
 
 def _coverage(problem: CalibrationProblem, lim: Limits) -> list[Check]:

@@ -302,8 +302,10 @@ def _mistake_row(name: str, v) -> str:  # noqa: ANN001 - a Verdict
         if not all(c.passed for c in quality)
         else ("drifted" if not all(c.passed for c in old) else "accepted")
     )
-    why = "; ".join(c.message for c in v.reasons[:2]).replace("|", "/")
-    return f"| {name} | {before} | {v.verdict} | {why} |"
+    why = "; ".join(c.message for c in v.reasons[:2]) or "; ".join(
+        n for n in v.notes if "beyond the image area" in n
+    )
+    return f"| {name} | {before} | {v.verdict} | {why.replace('|', '/')} |"
 
 
 def centre_only(problem, frac: float):  # noqa: ANN001, ANN201
@@ -327,7 +329,7 @@ def part_mistakes(work: Path, seeds: int) -> list[str]:
         "`oak_rig`, projected corners), judged as `slidecal solve` judges it. 'before': the "
         f"verdict without the tests issue 39 added ({', '.join(NEW_TESTS)}); 'now': with them.",
         "",
-        "| mistake | before | now | first reasons |",
+        "| mistake | before | now | first reasons (or the note on the image's corners) |",
         "|---|---|---|---|",
     ]
     cfg = load_packaged_cell("eye_to_hand_cell.yaml")
