@@ -1183,6 +1183,34 @@ def scale_pixels(problem: CalibrationProblem, factor: Mapping[str, float]) -> Ca
     return replace(problem, frames=tuple(frames), cameras=cams)
 
 
+def swap_cameras(problem: CalibrationProblem, a: str, b: str) -> CalibrationProblem:
+    """The problem with cameras ``a`` and ``b``'s detections exchanged in every frame (a stereo
+    head's left and right images swapped; the two must have one image size)."""
+    frames = []
+    for fr in problem.frames:
+        dets = dict(fr.detections)
+        dets[a], dets[b] = fr.detections.get(b), fr.detections.get(a)
+        frames.append(replace(fr, detections={c: d for c, d in dets.items() if d is not None}))
+    return replace(problem, frames=tuple(frames))
+
+
+def focus_changed(
+    problem: CalibrationProblem, camera: str, K: np.ndarray, factor: float, start: int
+) -> CalibrationProblem:
+    """The problem with ``camera``'s focal lengths ``factor`` times longer from frame index
+    ``start`` on (a focus ring turned mid-session): its pixels scaled about the principal point
+    of ``K``, the true intrinsics (the distortion acts before ``K``, so this is exact)."""
+    c = np.asarray(K, dtype=float)[:2, 2]
+    frames = list(problem.frames)
+    for k in range(start, len(frames)):
+        dets = dict(frames[k].detections)
+        if camera in dets:
+            d = dets[camera]
+            dets[camera] = Detection(d.ids, c + factor * (np.asarray(d.px, float) - c))
+        frames[k] = replace(frames[k], detections=dets)
+    return replace(problem, frames=tuple(frames))
+
+
 def estimate_homographies(board_xy: np.ndarray, px: np.ndarray) -> np.ndarray:
     """Homographies (n, 3, 3) per view of ``board_xy`` (N, 2) l.u. seen at ``px`` (n, N, 2):
     normalised DLT, then reprojection-error refinement."""

@@ -642,8 +642,9 @@ def summary_text(
     lines = ["slidecal calibration result", "=" * 27]
     lines.append(
         f"converged: {'yes' if result.converged else 'NO'} after {result.iterations} iterations; "
-        f"reprojection rms {_fmt(result.reproj_rms_px)} px, "
-        f"noise estimate sigma {_fmt(result.sigma_px)} px"
+        f"reprojection rms {_fmt(result.reproj_rms_px)} px (the solve's: robot poses "
+        f"corrected within the arm's learned accuracy), noise estimate sigma "
+        f"{_fmt(result.sigma_px)} px"
     )
     lines.extend(_adequacy_lines(result))
     for name, c in result.cameras.items():

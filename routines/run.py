@@ -27,7 +27,7 @@ from slidecal.mocks.cell import SimulatedCell
 from slidecal.routines.acquire import DEFAULT_RETRIES, cell_key, clock, record_session, sockets
 from slidecal.routines.config import CellConfig, PlanGoal, load_config
 from slidecal.routines.devices import check_libraries
-from slidecal.routines.ops.install import NotInstalled, install
+from slidecal.routines.ops.install import NotInstalled, check_same_cell, install
 from slidecal.routines.ops.verdict import Limits, judge
 from slidecal.routines.plan import Plan, read_plan
 from slidecal.routines.planner import extend_plan, make_plan, predict_std
@@ -155,6 +155,8 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
     inst_result, inst_path = installed_calibration(
         q.installed if q.installed is not None else store
     )
+    if inst_result is not None:
+        check_same_cell(inst_result, inst_path, cfg.cameras, cfg.source)
     cell = q.cell
     if cfg.simulated and cell is None:  # one simulated cell for the run and its extensions
         cell = SimulatedCell.from_config(cfg, seed)

@@ -16,7 +16,7 @@ from typing import Any
 
 from slidecal.routines.devices import device_calibration_outputs
 from slidecal.routines.exports import result_header, write_all_exports
-from slidecal.routines.ops.install import current_dir
+from slidecal.routines.ops.install import check_same_cell, current_dir
 from slidecal.routines.ops.report import write_report
 from slidecal.routines.ops.verdict import Limits, Verdict, judge, limits_from_dict, write_verdict
 from slidecal.routines.plan import read_plan
@@ -71,10 +71,13 @@ class RunOutcome:
 
     @property
     def exit_code(self) -> int:
-        """0 accepted, 4 rejected, 5 drifted, 6 accepted but not installed (docs/UNATTENDED.md)."""
+        """0 accepted (or installed), 4 rejected, 5 drifted, 6 accepted but not installed
+        (docs/UNATTENDED.md)."""
         if self.verdict is None:
             return 0
         code = self.verdict.exit_code
+        if self.installed_to is not None:
+            return 0  # a drifted result installed on request: what the job asked for is done
         if code == 0 and self.install_note is not None:
             return EXIT_NOT_INSTALLED
         return code
@@ -169,6 +172,7 @@ def finish_solve(
         command=command,
         session_status=status,
         installed_path=installed_path,
+        sockets=oak_sockets,
     )
     if notes:
         verdict = replace(verdict, notes=tuple(notes) + verdict.notes)
@@ -276,6 +280,8 @@ def solve_session(
     if (session_dir / "plan.yaml").is_file():
         plan_poses = read_plan(session_dir / "plan.yaml").n_poses
     inst_result, inst_path = installed_calibration(installed)
+    if inst_result is not None:
+        check_same_cell(inst_result, inst_path, session.problem.cameras, session.cell)
     try:
         result = calibrate(session.problem)
     except DegenerateError as e:

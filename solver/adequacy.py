@@ -710,6 +710,8 @@ def unchecked_scale_note(
 POSE_OUTLIER_RATIO = 5.0
 #: The words of the message that names a frame left out for its pose (the verdict lists them)
 LEFT_OUT = "left out of the solve"
+#: The words every finding of :func:`record_check` says (the verdict leads with it alone)
+RECORDS_WRONG = "the camera's own view of the motion"
 #: Fewest frames with pose corrections for the test (the typical size must mean something).
 POSE_OUTLIER_MIN_FRAMES = 8
 #: How many neighbours a frame's correction is held against, in space and in time: a glitch

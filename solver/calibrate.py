@@ -789,7 +789,13 @@ def _pass(
         again = replace(problem, frames=kept)
         return _Pass(problem, notes, again=again, prefix=(*notes_skipped, note))
     st = build_structure(problem)
-    X, Y, s = init_motion(problem, ref_poses, groups, st)
+    try:
+        X, Y, s = init_motion(problem, ref_poses, groups, st)
+    except DegenerateError:
+        paired = record_check(problem)  # the cause told from the images alone, and it alone
+        if paired is None:
+            raise
+        raise DegenerateError(paired) from None
     if apart:  # the measured robot motion carries the reference camera to their frames
         for c in apart:
             T_cam_ref[c] = _average_T(

@@ -84,8 +84,9 @@ def rotation_from_directions(
         raise DegenerateError(
             "the camera sees the robot's moves mirrored (a reflection, not a rotation, maps the "
             "robot's translations onto the camera's): the poses are T_tool_base (the inverse of "
-            "T_base_tool), the session's mount is the other one, or one axis of the robot's "
-            "frame is flipped; check the pose records and the mount"
+            "T_base_tool), the session's mount is the other one, one axis of the robot's frame "
+            "is flipped, or the images are paired with other frames' poses; check the pose "
+            "records, how they are paired with the images, and the mount"
         )
     return project_to_SO3(M)
 

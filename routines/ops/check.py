@@ -19,25 +19,30 @@ import numpy as np
 
 from slidecal.routines.acquire import cell_key, record_session
 from slidecal.routines.config import CellConfig, load_config
-from slidecal.routines.ops.install import INSTALLED_FILE, current_dir, installed_session
-from slidecal.routines.ops.report import uncertainty_map
+from slidecal.routines.ops.install import (
+    INSTALLED_FILE,
+    check_same_cell,
+    current_dir,
+    installed_session,
+)
 from slidecal.routines.ops.verdict import (
     Check,
     Verdict,
     compare,
     judge_check,
     paired_compare,
+    uncertainty_map,
     write_verdict,
 )
 from slidecal.routines.plan import Plan, read_plan
 from slidecal.routines.planner import dry_run, make_plan
 from slidecal.routines.progress import Progress
-from slidecal.routines.results_io import hand_eye_names, hand_eye_transforms, read_result
+from slidecal.routines.results_io import read_result
 from slidecal.routines.schema import check_out_dir
 from slidecal.routines.session import load_session, load_yaml
 from slidecal.solver.camera import project
 from slidecal.solver.drift import T_cam_board as _T_cam_board
-from slidecal.solver.drift import fit_target, match_poses
+from slidecal.solver.drift import fit_target, hand_eye_T, match_poses
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt
 from slidecal.solver.numeric import least_squares
@@ -90,18 +95,6 @@ def recorded_plan(plan: Plan, recorded: CalibrationProblem) -> Plan:
     return dataclasses.replace(plan, groups=groups) if groups else plan
 
 
-def _hand_eye_T(installed: CalibrationResult, camera: str) -> np.ndarray:
-
-    key = hand_eye_names(installed).get(camera)
-    t = hand_eye_transforms(installed).get(key) if key else None
-    if t is None or t.T is None:
-        raise InputError(
-            f"the installed calibration has no complete hand-eye for camera {camera!r}; "
-            "check needs the hand-eye rotation and translation"
-        )
-    return t.T
-
-
 def expected_rms_px(
     installed: CalibrationResult, info: dict[str, Any], cfg: CellConfig
 ) -> dict[str, float]:
@@ -141,7 +134,7 @@ def refit(
     mount = installed.mount
     ref = installed.reference_camera or next(iter(installed.cameras))
     cams = [c.name for c in problem.cameras if c.name in installed.cameras]
-    X0 = _hand_eye_T(installed, ref)
+    X0 = hand_eye_T(installed, ref)
     T_c_ref = {}
     for c in cams:
         if c == ref:
@@ -326,6 +319,7 @@ def run_check(
         if (cur / INSTALLED_FILE).is_file()
         else {}
     )
+    check_same_cell(inst, str(cur), cfg.cameras, cfg.source)
     if (cur / "plan.yaml").is_file():
         base = read_plan(cur / "plan.yaml")
     else:

@@ -97,6 +97,34 @@ def _session_copy(src: Path) -> str | None:
     return dump_yaml(doc)
 
 
+def check_same_cell(
+    installed: CalibrationResult, path: str | None, cameras: Any, cell: str | None
+) -> None:
+    """Refuse (InputError: nothing compared, nothing moved) an installed calibration of another
+    cell or camera: the cell its ``installed.yaml`` names against ``cell``, and the image size of
+    each of ``cameras`` (``name``, ``width``, ``height``) the installed calibration also has."""
+    meta = Path(path) / INSTALLED_FILE if path else None
+    old_cell = None
+    if meta is not None and meta.is_file():
+        data = load_yaml(meta, "installed.yaml")
+        old_cell = data.get("cell") if isinstance(data, dict) else None
+    if cell and old_cell and str(old_cell) != str(cell):
+        raise InputError(
+            f"holds the calibration of cell {old_cell}, not of this cell ({cell}): nothing was "
+            "compared; give this cell's install store",
+            where=str(path),
+        )
+    for c in cameras:
+        old = installed.cameras.get(c.name)
+        if old is not None and (old.width, old.height) != (c.width, c.height):
+            raise InputError(
+                f"holds camera {c.name!r} at {old.width}x{old.height}, this one is "
+                f"{c.width}x{c.height}: another camera, not a drift; nothing was compared; give "
+                "this camera's install store or result",
+                where=str(path),
+            )
+
+
 def history(store: str | Path) -> list[Path]:
     """Every install, oldest first."""
     h = Path(store) / HISTORY
@@ -179,7 +207,8 @@ def install(
     if verdict == "drifted" and not accept_drift:
         raise NotInstalled(
             "the result differs from the installed calibration (drifted); look at the report, "
-            "then install it with --accept-drift",
+            "then run again with --accept-drift (or install: {accept_drift: true} in the cell "
+            "file) to install such a result",
             where=str(store),
         )
     if store.exists() and not store.is_dir():

@@ -11,16 +11,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from slidecal.routines.ops.verdict import Verdict, coverage_fraction
+from slidecal.routines.ops.verdict import Verdict, coverage_fraction, uncertainty_map
 from slidecal.routines.schema import write_atomic
-from slidecal.solver.camera import (
-    DISTORTION_MODELS,
-    distortion_model,
-    opencv_view,
-    project,
-    undistort_normalised,
-)
-from slidecal.solver.geometry import inv_T
+from slidecal.solver.camera import opencv_view, project
+from slidecal.solver.drift import T_cam_board, hand_eye_T
+from slidecal.solver.errors import InputError
+from slidecal.solver.geometry import T_from_Rt
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.result import CalibrationResult
 
@@ -43,40 +39,32 @@ def _board_poses(
     when it is fully determined, else each image's own pose from the estimated intrinsics."""
     cam = result.cameras[camera]
     K, d = np.asarray(cam.K, float), np.asarray(cam.distortion, float).reshape(-1)
-    ref = result.reference_camera or next(iter(result.cameras))
-    he, tg = result.hand_eye, result.T_target
-    T_cam_ref = np.eye(4)
-    if camera != ref:
-        rig = result.rig.get(f"T_{camera}_{ref}")
-        T_cam_ref = rig.T if rig is not None and rig.T is not None else None
-    chain = (
-        he is not None
-        and he.T is not None
-        and tg is not None
-        and tg.T is not None
-        and T_cam_ref is not None
-    )
+    X = _hand_eye(result, camera)
     out: dict[int, np.ndarray] = {}
     pts = problem.target.points_m
     for fr in problem.frames:
         det = fr.detections.get(camera)
         if det is None or len(det.ids) < 4:
             continue
-        if chain and fr.T_base_tool is not None:
-            if result.mount == "eye_in_hand":
-                T_ref_board = inv_T(he.T) @ inv_T(fr.T_base_tool) @ tg.T
-            else:
-                T_ref_board = inv_T(he.T) @ fr.T_base_tool @ tg.T
-            out[fr.id] = T_cam_ref @ T_ref_board
+        if X is not None and fr.T_base_tool is not None:
+            out[fr.id] = T_cam_board(result.mount, X, fr.T_base_tool, result.T_target.T)
             continue
         Kv, dv, px = opencv_view(K, d, np.asarray(det.px, np.float64))
         ok, rvec, tvec = cv2.solvePnP(pts[det.ids].astype(np.float64), px, Kv, dv)
         if ok:
-            T = np.eye(4)
-            T[:3, :3] = cv2.Rodrigues(rvec)[0]
-            T[:3, 3] = tvec.ravel()
-            out[fr.id] = T
+            out[fr.id] = T_from_Rt(cv2.Rodrigues(rvec)[0], tvec.ravel())
     return out
+
+
+def _hand_eye(result: CalibrationResult, camera: str) -> np.ndarray | None:
+    """The camera's hand-eye when it and the target pose are both determined (the residuals
+    through the chain), else None."""
+    if result.T_target is None or result.T_target.T is None:
+        return None
+    try:
+        return hand_eye_T(result, camera)
+    except InputError:
+        return None
 
 
 def residual_vectors(
@@ -96,45 +84,6 @@ def residual_vectors(
             at.append(np.asarray(det.px, float))
     px = np.vstack(at)
     return px, px - project(K, d, np.vstack(P)) if len(px) else np.zeros((0, 2))
-
-
-def uncertainty_map(result: CalibrationResult, camera: str, n: tuple[int, int] = (32, 20)):
-    """One-sigma pixel error (``n[1]`` x ``n[0]`` grid over the image) of the projection of a
-    fixed ray through each grid pixel, from the covariance of the camera's intrinsics; None
-    without a covariance."""
-    if result.covariance is None:
-        return None
-    cam = result.cameras[camera]
-    lens = DISTORTION_MODELS[distortion_model(cam.distortion)]
-    names = [f"{camera}.{p}" for p in ("fx", "fy", "cx", "cy", "s", *lens)]
-    idx = [
-        (k, result.parameter_names.index(nm))
-        for k, nm in enumerate(names)
-        if nm in result.parameter_names
-    ]
-    if not idx:
-        return None
-    C = np.asarray(result.covariance, float)[np.ix_([i for _, i in idx], [i for _, i in idx])]
-    K, d = np.asarray(cam.K, float), np.asarray(cam.distortion, float).reshape(-1)
-    u, v = np.meshgrid(np.linspace(0, cam.width - 1, n[0]), np.linspace(0, cam.height - 1, n[1]))
-    px = np.stack([u.ravel(), v.ravel()], 1)
-    rays = undistort_normalised(K, d, px)
-    P = np.hstack([rays, np.ones((len(rays), 1))])
-
-    def proj(theta: np.ndarray) -> np.ndarray:
-        Kp = np.array([[theta[0], theta[4], theta[2]], [0, theta[1], theta[3]], [0, 0, 1.0]])
-        return project(Kp, theta[5:], P)
-
-    theta0 = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1], *d])
-    J = np.zeros((len(P), 2, len(idx)))
-    for j, (k, _) in enumerate(idx):
-        h = 1e-6 * max(1.0, abs(theta0[k]))
-        tp, tm = theta0.copy(), theta0.copy()
-        tp[k] += h
-        tm[k] -= h
-        J[:, :, j] = (proj(tp) - proj(tm)) / (2 * h)
-    var = np.einsum("nij,jk,nik->n", J, C, J)
-    return np.sqrt(np.maximum(var, 0.0)).reshape(n[1], n[0])
 
 
 def _text(img: np.ndarray, s: str, org: tuple[int, int], scale=0.5, colour=(30, 30, 30), th=1):
@@ -175,11 +124,14 @@ def residual_panel(
             x, y = a[:, 0] + dx, a[:, 1] + dy
             keep = (x >= 0) & (x < PANEL_W) & (y >= 0) & (y < H + 40)
             img[y[keep], x[keep]] = (90, 90, 90)
+        chained = _hand_eye(result, camera) is not None
+        through = "the measured robot poses" if chained else "each image's pose"
         _text(
             img,
-            f"{camera}: residuals x{mag:g} (rms {rms:.3f} px), corners in {frac * 100:.0f} % "
-            "of cells",
+            f"{camera}: residuals via {through} x{mag:g}, rms {rms:.3f} px; "
+            f"{frac * 100:.0f} % of cells",
             (6, H + 25),
+            0.42,
         )
     return img
 
@@ -209,18 +161,29 @@ def robot_panel(result: CalibrationResult) -> np.ndarray | None:
     if ra is None or not ra.worst_frames:
         return None
     frames = sorted(ra.worst_frames)
-    img = np.full((200, PANEL_W, 3), 255, np.uint8)
+    img = np.full((220, PANEL_W, 3), 255, np.uint8)
     top = max(f[1] for f in frames) or 1.0
-    w = max(2, (PANEL_W - 40) // len(frames))
-    for k, (_fid, t_mm, _deg) in enumerate(frames):
+    x0, y0 = 70, 160  # the axes' origin
+    w = max(2, (PANEL_W - x0 - 10) // len(frames))
+    for k, (fid, t_mm, _deg) in enumerate(frames):
         h = int(140 * t_mm / top)
-        x = 20 + k * w
-        cv2.rectangle(img, (x, 160 - h), (x + w - 2, 160), (180, 120, 60), -1)
+        x = x0 + 2 + k * w
+        cv2.rectangle(img, (x, y0 - h), (x + w - 2, y0), (180, 120, 60), -1)
+        if k in (0, len(frames) - 1) or len(frames) <= 12:
+            _text(img, str(fid), (x, y0 + 14), 0.35)
+    cv2.line(img, (x0, y0), (PANEL_W - 8, y0), (30, 30, 30), 1)
+    cv2.line(img, (x0, y0), (x0, y0 - 145), (30, 30, 30), 1)
+    for v, y in ((0.0, y0), (top, y0 - 140)):
+        cv2.line(img, (x0 - 4, y), (x0, y), (30, 30, 30), 1)
+        _text(img, f"{v:.3f}", (6, y + 4), 0.35)
+    _text(img, "mm", (6, y0 - 70), 0.35)
+    _text(img, "frame id", (PANEL_W - 70, y0 + 28), 0.35)
     _text(
         img,
-        f"robot pose error per frame (max {top:.3f} mm); sigma {ra.translation_mm:.3f} mm,"
-        f" {ra.rotation_deg:.4f} deg",
-        (6, 185),
+        f"pose correction per frame; learned {ra.translation_mm:.3f} mm, "
+        f"{ra.rotation_deg:.4f} deg rms per axis",
+        (6, 210),
+        0.42,
     )
     return img
 
@@ -304,6 +267,8 @@ def write_report(
         parts.append("<h2>Reasons</h2><ul>")
         parts += [f"<li>{e(c.message)}</li>" for c in verdict.reasons]
         parts.append("</ul>")
+    if summary:  # the calibration's values near the top
+        parts.append(f"<h2>The calibration</h2><pre>{e(summary)}</pre>")
     parts.append(
         "<h2>Every test</h2><table><tr><th>test</th><th>result</th><th>figure</th>"
         "<th>limit</th><th>what</th></tr>"
@@ -340,8 +305,6 @@ def write_report(
         parts.append(
             "<h2>Notes</h2><ul>" + "".join(f"<li>{e(n)}</li>" for n in verdict.notes) + "</ul>"
         )
-    if summary:
-        parts.append(f"<h2>Summary</h2><pre>{e(summary)}</pre>")
     parts.append("</body></html>")
     path = d / REPORT_HTML
     write_atomic(path, "\n".join(parts))

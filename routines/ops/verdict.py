@@ -9,7 +9,9 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
+from scipy.ndimage import binary_dilation
 
 from slidecal.routines.ops.install import installed_session
 from slidecal.routines.results_io import (
@@ -20,10 +22,11 @@ from slidecal.routines.results_io import (
 )
 from slidecal.routines.session import Fields, dump_yaml, load_yaml, write_atomic
 from slidecal.solver import drift
-from slidecal.solver.adequacy import LEFT_OUT
+from slidecal.solver.adequacy import LEFT_OUT, RECORDS_WRONG
 from slidecal.solver.camera import (
     DISTORTION_MODELS,
     distortion_model,
+    opencv_view,
     project,
     undistort_normalised,
 )
@@ -59,7 +62,12 @@ class Limits:
     ``coverage_grid`` ([columns, rows]) per camera. ``max_change_sigma``, ``max_change_px``: a
     drift from the installed calibration, the latter over the central ``change_region`` at
     ``working_distance_m``. ``check_max_rms_ratio``, ``check_max_px``, ``check_change_px``:
-    ``slidecal check``'s.
+    ``slidecal check``'s. ``focal_change_stat``, ``focal_change_rel``: a focal length that
+    changed between two parts of the session (chi-square statistic, relative size).
+    ``max_robot_error_mm``, ``max_robot_error_deg``: the arm's learned accuracy (rms per axis)
+    beyond which it is not the arm's; ``max_robot_error_ratio``: beyond this multiple of the
+    installed calibration's learned accuracy. ``max_projection_std_px``: the largest
+    projection one-sigma over the image (``_from_translations``: a session of one orientation's).
     """
 
     max_rms_px: float = 1.0
@@ -80,6 +88,13 @@ class Limits:
     check_max_rms_ratio: float = 1.6
     check_max_px: float = 0.5
     check_change_px: float = 0.8
+    focal_change_stat: float = 12.0
+    focal_change_rel: float = 0.001
+    max_robot_error_mm: float = 2.0
+    max_robot_error_deg: float = 0.2
+    max_robot_error_ratio: float = 2.5
+    max_projection_std_px: float = 10.0
+    max_projection_std_px_from_translations: float = 15.0
 
 
 def limits_from_dict(data: Any, source: str = "cell.yaml", path: str = "limits") -> Limits:
@@ -213,10 +228,12 @@ def judge(
     session_status: str = "complete",
     installed_path: str | None = None,
     installed_problem: CalibrationProblem | None = None,
+    sockets: Mapping[str, str] | None = None,
 ) -> Verdict:
     """The verdict of a solved calibration (docs/UNATTENDED.md). ``installed_problem``:
     the installed session's frames (default: the ``session.yaml`` an install store keeps
-    beside ``installed_path``), for the paired comparison at the poses both sessions share."""
+    beside ``installed_path``), for the paired comparison at the poses both sessions share.
+    ``sockets``: camera name -> OAK board socket, as the session recorded them."""
     lim = limits or Limits()
     checks: list[Check] = []
     notes: list[str] = []
@@ -241,14 +258,26 @@ def judge(
             f"after {result.iterations} iterations",
         )
     )
+    ad = result.adequacy
+    if ad is not None and not ad.adequate and any(RECORDS_WRONG in r for r in ad.reasons):
+        # the robot's records are wrong: every other figure comes from a solve on them
+        checks += _reprojection(result, lim)
+        return Verdict("rejected", command, tuple(c for c in checks if c.test != "converged"))
     checks.extend(_reprojection(result, lim))
     checks.extend(_stds(result, lim))
     checks.extend(_scale(result, lim))
+    projection, beyond = _projection(result, lim, problem)
+    checks.extend(projection)
+    notes.extend(beyond)
+    checks.extend(_stereo_order(result, sockets or {}))
     if problem is not None:
         checks.extend(_coverage(problem, lim))
+        checks.extend(_intrinsics_change(problem, result, lim))
+    checks.extend(_arm(result, lim))
     cmp_info = None
     quality_ok = all(c.passed for c in checks)
     if installed is not None:
+        checks.extend(_arm(result, lim, installed))
         change, cmp_info = compare(result, installed, lim)
         if installed_path is not None:
             cmp_info = {"path": installed_path, **cmp_info}
@@ -391,6 +420,56 @@ def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
     return out
 
 
+#: What a learned arm error beyond its limit may be instead of the arm (the solve takes any
+#: error that moves whole frames as the arm's)
+NOT_THE_ARM = (
+    "the solve took as the arm's error what is something else: a focus or lens that moved, a "
+    "board that moved or is not the size described, a camera loose on its mount"
+)
+
+
+def _arm(
+    result: CalibrationResult, lim: Limits, installed: CalibrationResult | None = None
+) -> list[Check]:
+    """The ``arm`` check: the arm's learned accuracy against its class's level, or (with
+    ``installed``) against a multiple of the installed calibration's."""
+    ra = result.robot_accuracy
+    if ra is None or not ra.estimated:
+        return []
+    t, r = ra.translation_mm, ra.rotation_deg
+    if installed is None:
+        ok = t <= lim.max_robot_error_mm and r <= lim.max_robot_error_deg
+        return [
+            Check(
+                "arm",
+                bool(ok),
+                t,
+                lim.max_robot_error_mm,
+                f"the arm's accuracy learned from the session: {t:.2f} mm, {r:.3f} deg rms per "
+                f"axis (limits.max_robot_error_mm {lim.max_robot_error_mm:g}, "
+                f"limits.max_robot_error_deg {lim.max_robot_error_deg:g}: a six-axis arm's)"
+                + ("" if ok else f"; beyond any arm of its class: {NOT_THE_ARM}"),
+            )
+        ]
+    old = installed.robot_accuracy
+    if old is None or not old.estimated or old.translation_mm <= 0:
+        return []
+    ratio = t / old.translation_mm
+    ok = ratio <= lim.max_robot_error_ratio
+    return [
+        Check(
+            "arm",
+            bool(ok),
+            ratio,
+            lim.max_robot_error_ratio,
+            f"the arm's accuracy learned from the session, {t:.2f} mm rms per axis, is "
+            f"{ratio:.1f} times the installed calibration's ({old.translation_mm:.2f} mm; "
+            f"limits.max_robot_error_ratio {lim.max_robot_error_ratio:g})"
+            + ("" if ok else f": the same arm does not err more; {NOT_THE_ARM}"),
+        )
+    ]
+
+
 def _scale(result: CalibrationResult, lim: Limits) -> list[Check]:
     ratios = np.array([s.ratio for s in result.scale_checks], dtype=float)
     ratios = ratios[np.isfinite(ratios)]
@@ -422,6 +501,44 @@ def _scale(result: CalibrationResult, lim: Limits) -> list[Check]:
     ]
 
 
+#: A stereo head's sockets (depthai's): CAM_B is the left camera and CAM_C the right one, seen
+#: from behind the head as its images are, so the right camera lies along the left one's +x
+STEREO_SOCKETS = ("CAM_B", "CAM_C")
+
+
+def _stereo_order(result: CalibrationResult, sockets: Mapping[str, str]) -> list[Check]:
+    """The ``stereo`` check: the camera on the right socket must lie along the left one's +x
+    (swapped images or sockets put it on the -x side at the same baseline)."""
+    by_socket = {str(s): n for n, s in sockets.items()}
+    left, right = (by_socket.get(s) for s in STEREO_SOCKETS)
+    if left not in result.cameras or right not in result.cameras:
+        return []
+    ref = result.reference_camera or next(iter(result.cameras))
+    T = {ref: np.eye(4)}  # T_<camera>_<reference>
+    T.update({k[2:].removesuffix(f"_{ref}"): t.T for k, t in result.rig.items() if t.T is not None})
+    if left not in T or right not in T:
+        return []
+    x_mm = float((T[left] @ np.linalg.inv(T[right]))[0, 3] * 1000.0)  # right's origin, left's x
+    ok = x_mm > 0
+    return [
+        Check(
+            "stereo",
+            ok,
+            x_mm,
+            0.0,
+            f"camera {right} ({STEREO_SOCKETS[1]}) lies {x_mm:+.1f} mm along the x axis of camera "
+            f"{left} ({STEREO_SOCKETS[0]})"
+            + (
+                ""
+                if ok
+                else ", where a stereo head's right camera lies along the left one's +x: the "
+                "two cameras' images are swapped (or their sockets); give each camera its "
+                "socket in the cell file's cameras: section and record again"
+            ),
+        )
+    ]
+
+
 def coverage_fraction(
     problem: CalibrationProblem, camera: str, grid: tuple[int, int] = (8, 6)
 ) -> tuple[float, np.ndarray]:
@@ -439,6 +556,87 @@ def coverage_fraction(
         iy = np.clip((px[:, 1] / spec.height * ny).astype(int), 0, ny - 1)
         np.add.at(counts, (iy, ix), 1)
     return float(np.mean(counts > 0)), counts
+
+
+def uncertainty_map(result: CalibrationResult, camera: str, n: tuple[int, int] = (32, 20)):
+    """One-sigma pixel error (``n[1]`` x ``n[0]`` grid over the image) of the projection of a
+    fixed ray through each grid pixel, from the covariance of the camera's intrinsics; None
+    without a covariance."""
+    if result.covariance is None:
+        return None
+    cam = result.cameras[camera]
+    lens = DISTORTION_MODELS[distortion_model(cam.distortion)]
+    names = [f"{camera}.{p}" for p in ("fx", "fy", "cx", "cy", "s", *lens)]
+    idx = [
+        (k, result.parameter_names.index(nm))
+        for k, nm in enumerate(names)
+        if nm in result.parameter_names
+    ]
+    if not idx:
+        return None
+    C = np.asarray(result.covariance, float)[np.ix_([i for _, i in idx], [i for _, i in idx])]
+    K, d = np.asarray(cam.K, float), np.asarray(cam.distortion, float).reshape(-1)
+    u, v = np.meshgrid(np.linspace(0, cam.width - 1, n[0]), np.linspace(0, cam.height - 1, n[1]))
+    px = np.stack([u.ravel(), v.ravel()], 1)
+    rays = undistort_normalised(K, d, px)
+    P = np.hstack([rays, np.ones((len(rays), 1))])
+
+    def proj(theta: np.ndarray) -> np.ndarray:
+        Kp = np.array([[theta[0], theta[4], theta[2]], [0, theta[1], theta[3]], [0, 0, 1.0]])
+        return project(Kp, theta[5:], P)
+
+    theta0 = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1], *d])
+    J = np.zeros((len(P), 2, len(idx)))
+    for j, (k, _) in enumerate(idx):
+        h = 1e-6 * max(1.0, abs(theta0[k]))
+        tp, tm = theta0.copy(), theta0.copy()
+        tp[k] += h
+        tm[k] -= h
+        J[:, :, j] = (proj(tp) - proj(tm)) / (2 * h)
+    var = np.einsum("nij,jk,nik->n", J, C, J)
+    return np.sqrt(np.maximum(var, 0.0)).reshape(n[1], n[0])
+
+
+def _projection(
+    result: CalibrationResult, lim: Limits, problem: CalibrationProblem | None
+) -> tuple[list[Check], list[str]]:
+    """The ``projection`` check per camera: the largest one-sigma of :func:`uncertainty_map`
+    over the image area the views covered (the 16 x 10 cells holding a corner and their
+    neighbours; the whole image without the problem), and a note where the rest of the image
+    is beyond the limit."""
+    out, notes = [], []
+    alone = one_orientation(result)
+    limit = lim.max_projection_std_px_from_translations if alone else lim.max_projection_std_px
+    field_name = f"limits.max_projection_std_px{'_from_translations' if alone else ''}"
+    for name in result.cameras:
+        m = uncertainty_map(result, name, (16, 10))
+        if m is None:
+            continue
+        seen = np.ones(m.shape, bool)
+        if problem is not None and name in {c.name for c in problem.cameras}:
+            counts = coverage_fraction(problem, name, (16, 10))[1]
+            seen = binary_dilation(counts > 0, np.ones((3, 3), bool)) if counts.any() else seen
+        inside, worst = float(np.max(m[seen])), float(np.max(m))
+        ok = inside <= limit
+        out.append(
+            Check(
+                "projection",
+                ok,
+                inside,
+                limit,
+                f"camera {name}: a point's projection one-sigma up to {inside:.2f} px where its "
+                f"views reached, {worst:.2f} px over the whole image (limit {limit:g} px, "
+                f"{field_name})" + ("" if ok else "; the intrinsics are not known"),
+            )
+        )
+        if ok and worst > limit:
+            notes.append(
+                f"camera {name}: beyond the image area its views covered, the projection "
+                f"one-sigma reaches {worst:.1f} px (limit {limit:g} px, {field_name}): the "
+                "calibration holds where the board was seen; views that bring the board to the "
+                "image's corners and edges extend it"
+            )
+    return out, notes
 
 
 def _coverage(problem: CalibrationProblem, lim: Limits) -> list[Check]:
@@ -461,6 +659,106 @@ def _coverage(problem: CalibrationProblem, lim: Limits) -> list[Check]:
     return out
 
 
+#: Fewest corners of an image for its free pose to tell a focal scale
+INTRINSICS_MIN_CORNERS = 8
+
+
+def focal_change(
+    problem: CalibrationProblem, camera: str, K0: np.ndarray, dist0: np.ndarray
+) -> tuple[float, float, int] | None:
+    """The likeliest change of ``camera``'s focal length between two parts of the session (the
+    frames before and from some frame on, each part at least two images), from the images
+    alone: each image's free board pose at ``K``, ``dist``, linearised in the pose, a focal
+    scale per part and one principal point correction; ``(statistic, relative change, frame
+    index where it starts)``, the statistic the misfit the change explains in units of the
+    detector's variance (chi-square with one degree of freedom for one split when nothing
+    changed); None with fewer than four images."""
+    rows = []  # per image: frame index, N (3, 3), g (3,), rss, corners
+    for k, f in enumerate(problem.frames):
+        d = f.detections.get(camera)
+        if d is None or len(d.ids) < INTRINSICS_MIN_CORNERS:
+            continue
+        obj = problem.target.points_m[d.ids].astype(float)
+        K, dist, px = opencv_view(K0, dist0, np.asarray(d.px, float))  # a fisheye: undistorted
+        ok, rv, tv = cv2.solvePnP(obj, px, K, dist)
+        if not ok:
+            continue
+        proj, jac = cv2.projectPoints(obj, rv, tv, K, dist)
+        r = (px - proj.reshape(-1, 2)).reshape(-1)
+        J = np.column_stack([K[0, 0] * jac[:, 6] + K[1, 1] * jac[:, 7], jac[:, 8], jac[:, 9]])
+        Q = np.linalg.qr(jac[:, :6])[0]  # the pose's directions, taken out
+        J, r = J - Q @ (Q.T @ J), r - Q @ (Q.T @ r)
+        rows.append((k, J.T @ J, J.T @ r, float(r @ r), len(px)))
+    if len(rows) < 4:
+        return None
+
+    def explained(split: int) -> tuple[float, float]:
+        """Misfit explained by a focal scale per part (one when ``split`` is 0) and a common
+        principal point correction, and the second part's scale against the first's."""
+        parts = [rows[:split], rows[split:]] if split else [rows]
+        n = len(parts)
+        N, g = np.zeros((n + 2, n + 2)), np.zeros(n + 2)
+        for i, part in enumerate(parts):
+            idx = [i, n, n + 1]
+            for _, Nk, gk, _, _ in part:
+                N[np.ix_(idx, idx)] += Nk
+                g[idx] += gk
+        x = np.linalg.lstsq(N, g, rcond=None)[0]
+        return float(g @ x), float(x[1] - x[0]) if split else 0.0
+
+    common, _ = explained(0)
+    rest = sum(r[3] for r in rows) - common
+    var = rest / max(2 * sum(r[4] for r in rows) - 6 * len(rows) - 3, 1)
+    best = (0.0, 0.0, 0)
+    for i in range(2, len(rows) - 1):
+        more, step = explained(i)
+        stat = (more - common) / var if var > 0 else 0.0
+        if stat > best[0]:
+            best = (stat, step, rows[i][0])
+    return best
+
+
+def _intrinsics_change(
+    problem: CalibrationProblem, result: CalibrationResult, lim: Limits
+) -> list[Check]:
+    """The ``intrinsics`` check per camera: a focal length that changed between parts of the
+    session (a focus ring or zoom moved): beyond ``focal_change_stat`` and ``focal_change_rel``."""
+    out = []
+    for name, c in result.cameras.items():
+        if name not in {s.name for s in problem.cameras}:
+            continue
+        try:
+            found = focal_change(
+                problem, name, np.asarray(c.K, float), np.asarray(c.distortion, float).reshape(-1)
+            )
+        except cv2.error:
+            found = None
+        if found is None:
+            continue
+        stat, rel, k = found
+        ok = stat <= lim.focal_change_stat or abs(rel) <= lim.focal_change_rel
+        frame = problem.frames[k].id
+        out.append(
+            Check(
+                "intrinsics",
+                bool(ok),
+                stat,
+                lim.focal_change_stat,
+                f"camera {name}: the images alone see its focal length {rel * 100:+.2f} % from "
+                f"frame {frame} on at {stat:.1f} (chi-square; limits.focal_change_stat "
+                f"{lim.focal_change_stat:g}, limits.focal_change_rel "
+                f"{lim.focal_change_rel * 100:g} %)"
+                + (
+                    ""
+                    if ok
+                    else ": the camera's intrinsics changed during the session (focus, zoom or "
+                    "the lens moved); lock the focus (and zoom) and record the session again"
+                ),
+            )
+        )
+    return out
+
+
 # ----------------------------------------------------------------------------- comparison
 
 
@@ -476,7 +774,6 @@ def displacement_px(
     ``n x n`` grid over the central ``region`` of the old image cast to rays, carried through the
     old hand-eye and back through the new hand-eye and intrinsics (the intrinsics alone without
     a hand-eye in both)."""
-
     a, b = old.cameras[camera], new.cameras[camera]
     hw, hh = region * (a.width - 1) / 2, region * (a.height - 1) / 2
     cu, cv = (a.width - 1) / 2, (a.height - 1) / 2

@@ -13,6 +13,7 @@ and ``<!-- end: X -->``), so that each part stays under a few minutes of a share
 - ``garbage``: the issue's garbage calibrations (recorded session, edited), their verdicts.
 - ``check``: per cell (seeds 1..N) one install, then ``slidecal check`` on the same cell
   unchanged and with each of the three changes.
+- ``mistakes``: issue 39's user mistakes on good runs, the verdict before and after its tests.
 - ``faults``: SIGTERM, SIGHUP and Ctrl-C sent to a ``slidecal run`` subprocess after a given
   frame, and faults injected in-process at several frames: robot stopped, frames kept, event
   recorded, ``--resume`` completes with an accepted verdict.
@@ -47,7 +48,7 @@ from slidecal.mocks.scenarios import (
     same_cell,
     square_size,
 )
-from slidecal.routines.config import load_config
+from slidecal.routines.config import load_config, load_packaged_cell
 from slidecal.routines.ops.check import run_check
 from slidecal.routines.ops.install import install
 from slidecal.routines.ops.verdict import Limits, judge
@@ -59,6 +60,7 @@ from slidecal.solver.adequacy import LEFT_OUT
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.drift import Z_LIMIT, chain_rms_px
 from slidecal.solver.errors import HardwareFault, InputError
+from slidecal.solver.problem import Detection
 from tests.bench.report import RESULTS
 from tests.unattended_helpers import record_without_translation, simulated_run_command
 
@@ -127,14 +129,16 @@ def mount_eye_to_hand(doc: dict) -> None:
 def _run(cfg, work: Path, cell_seed: int, run_seed: int, plan=None):  # noqa: ANN001, ANN202
     """A run of the cell ``cell_seed`` (see :func:`same_cell`) and its session's problem;
     ``plan``: the plan (default: the planner's for ``cfg``)."""
-    o = run_calibration(RunRequest(
-        cfg,
-        plan=plan,
-        out_dir=work / f"run{cell_seed}_{run_seed}_{len(list(work.iterdir()))}",
-        progress=False,
-        recording=False,
-        cell=same_cell(cfg, cell_seed, run_seed),
-    ))
+    o = run_calibration(
+        RunRequest(
+            cfg,
+            plan=plan,
+            out_dir=work / f"run{cell_seed}_{run_seed}_{len(list(work.iterdir()))}",
+            progress=False,
+            recording=False,
+            cell=same_cell(cfg, cell_seed, run_seed),
+        )
+    )
     return o, load_session(o.session_dir).problem
 
 
@@ -143,13 +147,15 @@ def _runs(n: int, work: Path, overrides: dict | None = None, first: int = 1):
     cfg = load_config(overrides=overrides)
     out = []
     for seed in range(first, first + n):
-        o = run_calibration(RunRequest(
-            cfg,
-            out_dir=work / f"run{seed}_{len(list(work.iterdir()))}",
-            progress=False,
-            recording=False,
-            seed=seed,
-        ))
+        o = run_calibration(
+            RunRequest(
+                cfg,
+                out_dir=work / f"run{seed}_{len(list(work.iterdir()))}",
+                progress=False,
+                recording=False,
+                seed=seed,
+            )
+        )
         out.append((o, load_session(o.session_dir).problem))
     return out
 
@@ -282,6 +288,78 @@ def part_garbage(work: Path) -> list[str]:
     o = solve_session(record_without_translation(work / "notr", seed=1))
     lines.append(_garbage_row("plan with no translation inside any group", o))
     return lines + ["", *classic_square_rows()]
+
+
+#: The tests issue 39 added: the verdict before them is the verdict of the others
+NEW_TESTS = ("stereo", "intrinsics", "arm", "projection")
+
+
+def _mistake_row(name: str, v) -> str:  # noqa: ANN001 - a Verdict
+    old = [c for c in v.checks if c.test not in NEW_TESTS]
+    quality = [c for c in old if c.test not in ("installed", "paired")]
+    before = (
+        "rejected"
+        if not all(c.passed for c in quality)
+        else ("drifted" if not all(c.passed for c in old) else "accepted")
+    )
+    why = "; ".join(c.message for c in v.reasons[:2]) or "; ".join(
+        n for n in v.notes if "beyond the image area" in n
+    )
+    return f"| {name} | {before} | {v.verdict} | {why.replace('|', '/')} |"
+
+
+def centre_only(problem, frac: float):  # noqa: ANN001, ANN201
+    """Only the corners within the central ``frac`` of each image's width and height."""
+    frames = []
+    for f in problem.frames:
+        dets = {}
+        for c, d in f.detections.items():
+            spec, px = problem.camera(c), np.asarray(d.px)
+            keep = np.all(np.abs(px / [spec.width, spec.height] - 0.5) < frac / 2, axis=1)
+            dets[c] = Detection(d.ids[keep], px[keep])
+        frames.append(replace(f, detections=dets))
+    return replace(problem, frames=tuple(frames))
+
+
+def part_mistakes(work: Path, seeds: int) -> list[str]:
+    """Issue 39's mistakes on good runs of the eye-to-hand cell (seeds 1..N) and the OAK-like
+    stereo head (projected corners): the verdict without the tests the issue added, and now."""
+    lines = [
+        "Each mistake made on a good run (eye-to-hand cell, seeds 1..N; the stereo head: "
+        "`oak_rig`, projected corners), judged as `slidecal solve` judges it. 'before': the "
+        f"verdict without the tests issue 39 added ({', '.join(NEW_TESTS)}); 'now': with them.",
+        "",
+        "| mistake | before | now | first reasons (or the note on the image's corners) |",
+        "|---|---|---|---|",
+    ]
+    cfg = load_packaged_cell("eye_to_hand_cell.yaml")
+    sockets = {"left": "CAM_B", "right": "CAM_C"}
+    for seed in range(1, seeds + 1):
+        o = run_calibration(
+            RunRequest(cfg, out_dir=work / f"m{seed}", progress=False, recording=False, seed=seed)
+        )
+        p = load_session(o.session_dir).problem
+        K = o.result.cameras["cam"].K
+        cases = [("none (the good run)", p)]
+        cases += [
+            (
+                f"fx {100 * (f - 1):g} % longer from the middle frame on",
+                sc.focus_changed(p, "cam", K, f, len(p.frames) // 2),
+            )
+            for f in (1.01, 1.003)
+        ]
+        cases.append(("corners only in the central 35 % of the image", centre_only(p, 0.35)))
+        for name, q in cases:
+            lines.append(_mistake_row(f"{name}, seed {seed}", judge(calibrate(q), problem=q)))
+        rig = sc.oak_rig(np.random.default_rng(seed)).problem
+        for name, q in (
+            ("stereo head, seed", rig),
+            ("left and right swapped, seed", sc.swap_cameras(rig, "left", "right")),
+        ):
+            lines.append(
+                _mistake_row(f"{name} {seed}", judge(calibrate(q), problem=q, sockets=sockets))
+            )
+    return lines
 
 
 def classic_square_rows() -> list[str]:
@@ -534,7 +612,9 @@ def write_section(part: str, lines: list[str], command: str) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--part", required=True, choices=("gate", "garbage", "check", "faults"))
+    ap.add_argument(
+        "--part", required=True, choices=("gate", "garbage", "check", "faults", "mistakes")
+    )
     ap.add_argument("--seeds", type=int, default=10)
     args = ap.parse_args(argv)
     os.environ.setdefault("SLIDECAL_LOCK_DIR", tempfile.gettempdir())
@@ -549,6 +629,9 @@ def main(argv: list[str] | None = None) -> int:
                 part_check(args.seeds, work),
                 f"{COMMAND} --part check --seeds {args.seeds}",
             )
+        elif args.part == "mistakes":
+            lines = part_mistakes(work, args.seeds)
+            cmd = f"{COMMAND} --part mistakes --seeds {args.seeds}"
         else:
             lines, cmd = part_faults(work), f"{COMMAND} --part faults"
     finally:
