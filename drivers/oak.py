@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from slidecal.solver.camera import distortion_model
+from slidecal.solver.camera import distortion_model, project, undistort_normalised
 from slidecal.solver.errors import HardwareFault, InputError
 from slidecal.solver.geometry import inv_T
 from slidecal.solver.problem import CameraSpec
@@ -798,9 +798,9 @@ def projection_shift_px(
     cref = result.cameras[ref]
     lattice = np.linspace(0.05, 0.95, grid)
     u, v = np.meshgrid(lattice * (cref.width - 1), lattice * (cref.height - 1))
-    px = np.stack([u.ravel(), v.ravel()], axis=1).reshape(-1, 1, 2)
-    rays = cv2.undistortPoints(px, np.asarray(cref.K, float), np.asarray(cref.distortion, float))
-    P_ref = np.hstack([rays.reshape(-1, 2), np.ones((len(px), 1))]) * distance_m
+    px = np.stack([u.ravel(), v.ravel()], axis=1)
+    rays = undistort_normalised(np.asarray(cref.K, float), cref.distortion, px)  # any lens model
+    P_ref = np.hstack([rays, np.ones((len(px), 1))]) * distance_m
     out: dict[str, dict[str, float]] = {}
     for name, cam in result.cameras.items():
         if name not in sockets:
@@ -816,13 +816,13 @@ def projection_shift_px(
         except InputError:
             continue  # the result has no complete transform of this camera: not compared
 
-        def project(T, K, d):
+        def seen(T, K, d):  # the device's: OpenCV's 14-coefficient perspective model
             P = P_ref @ T[:3, :3].T + T[:3, 3]
             img, _ = cv2.projectPoints(P, np.zeros(3), np.zeros(3), K, d)
             return img.reshape(-1, 2)
 
-        ours = project(T_ours, np.asarray(cam.K, float), np.asarray(cam.distortion, float))
-        theirs = project(T_dev, *dev)
+        ours = project(cam.K, cam.distortion, P_ref @ T_ours[:3, :3].T + T_ours[:3, 3])
+        theirs = seen(T_dev, *dev)
         e = np.linalg.norm(ours - theirs, axis=1)
         out[name] = {"rms_px": float(np.sqrt(np.mean(e**2))), "max_px": float(e.max())}
     return out

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from slidecal.solver.camera import project
+from slidecal.solver.camera import opencv_view, project
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, rvec_from_R
 from slidecal.solver.numeric import least_squares
@@ -278,9 +278,8 @@ def fit_target(
     if Y0 is None:
         c, T, P, px = obs[0]
         cam = installed.cameras[c]
-        ok, rv, tv = cv2.solvePnP(
-            P.astype(np.float64), px, np.asarray(cam.K, float), np.asarray(cam.distortion, float)
-        )
+        K, d, seen = opencv_view(np.asarray(cam.K, float), cam.distortion, px)  # any lens
+        ok, rv, tv = cv2.solvePnP(P.astype(np.float64), seen, K, d)
         T_cb = T_from_Rt(cv2.Rodrigues(rv)[0], tv.ravel())
         Y0 = T @ X[c] @ T_cb if mount == "eye_in_hand" else inv_T(T) @ X[c] @ T_cb
 

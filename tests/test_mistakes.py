@@ -184,7 +184,8 @@ def _centre_only(problem, frac: float):  # noqa: ANN001, ANN202
 def test_projection_uncertainty_at_the_image_corners_is_said(eye_to_hand):
     problem, o = eye_to_hand
     (c,) = [c for c in o.verdict.checks if c.test == "projection"]
-    assert c.passed and c.value < 1.0 and "2.5" in c.message  # 2.56 px over the whole image
+    whole = float(c.message.split("px where its views reached, ")[1].split(" px")[0])
+    assert c.passed and c.value < 1.0 and 1.2 <= whole <= 3.0  # the standard cells' range
     assert not any("beyond the image area" in n for n in o.verdict.notes)
     centre = _centre_only(problem, 0.35)  # a sixth of the image's cells, none at its corners
     v = judge(calibrate(centre), problem=centre, command="solve")

@@ -15,6 +15,7 @@ import time
 import types
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -273,6 +274,27 @@ def test_projection_shift_against_a_device_calibration():
     K0 = np.asarray(r.cameras["left"].K)
     x_edge = max(abs(0.05 * 1279 - K0[0, 2]), abs(0.95 * 1279 - K0[0, 2])) / K0[0, 0]
     assert shift["left"]["max_px"] == pytest.approx(2.0 * x_edge, rel=1e-3)
+
+
+def test_projection_shift_reads_a_fisheye_result_as_fisheye():
+    # our fisheye camera against the device's perspective one with the same K and no distortion:
+    # the lattice's rays are the fisheye's (cv2.undistortPoints would read its four
+    # coefficients as k1 k2 p1 p2), so the shift is the pinhole image of the fisheye's rays
+    r = _result(np.random.default_rng(8))
+    d4 = np.array([0.05, -0.01, 0.002, -0.0005])
+    cams = {n: CameraEstimate(n, c.width, c.height, c.K, np.zeros(5), {}, 0.1)
+            for n, c in r.cameras.items()}
+    device = oak_calibration_handler(CalibrationResult(**{**r.__dict__, "cameras": dict(cams)}))
+    cams["left"] = CameraEstimate("left", 1280, 800, cams["left"].K, d4, {}, 0.1)
+    ours = CalibrationResult(**{**r.__dict__, "cameras": cams})
+    shift = projection_shift_px(ours, device.eepromToJson(), {"left": "CAM_B"}, 0.5)
+    K = np.asarray(cams["left"].K, float)
+    lattice = np.linspace(0.05, 0.95, 9)
+    u, v = np.meshgrid(lattice * 1279, lattice * 799)
+    px = np.stack([u.ravel(), v.ravel()], 1).reshape(-1, 1, 2)
+    rays = cv2.fisheye.undistortPoints(px, K, d4).reshape(-1, 2)
+    want = np.linalg.norm(px.reshape(-1, 2) - (rays @ K[:2, :2].T + K[:2, 2]), axis=1).max()
+    assert shift["left"]["max_px"] == pytest.approx(want, rel=1e-3)
 
 
 def test_choose_sensor_mode():

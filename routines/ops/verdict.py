@@ -668,7 +668,7 @@ def focal_change(
 ) -> tuple[float, float, int] | None:
     """The likeliest change of ``camera``'s focal length between two parts of the session (the
     frames before and from some frame on, each part at least two images), from the images
-    alone: each image's free board pose at ``K``, ``dist``, linearised in the pose, a focal
+    alone: each image's free board pose at ``K0``, ``dist0``, linearised in the pose, a focal
     scale per part and one principal point correction; ``(statistic, relative change, frame
     index where it starts)``, the statistic the misfit the change explains in units of the
     detector's variance (chi-square with one degree of freedom for one split when nothing
