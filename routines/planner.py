@@ -850,6 +850,13 @@ def _board_too_big(cfg: CellConfig, s: PlanSettings) -> str | None:
 
 
 def _no_candidates_message(cfg: CellConfig, s: PlanSettings, rejected: dict, n_ok: int) -> str:
+    if s.fx_px is None and cfg.simulation is None:  # a real camera's lens guessed: say that first
+        hfov = np.degrees(2.0 * np.arctan((_spec(cfg).width / 2.0) / s.K[0, 0]))
+        return (
+            f"no plan possible for a {hfov:.0f}-degree lens, which the planner assumed: the "
+            f"cell does not give camera {cfg.reference_camera}'s field of view; set plan.hfov_deg "
+            "(the data sheet's horizontal field of view) or plan.fx_px"
+        )
     too_big = _board_too_big(cfg, s)
     if too_big is not None:
         return f"no plan possible: {too_big}"

@@ -198,6 +198,24 @@ def test_refused_when_the_target_leaves_the_view():
         make_plan(config_from_dict(d))
 
 
+def test_a_real_cameras_guessed_lens_is_named_first():
+    # a real cell without the lens: the planner's guess is the likelier cause than the geometry
+    d = _default_dict()
+    d["robot"] = {**d["robot"], "driver": "ur", "host": "192.0.2.10"}
+    d["robot"].pop("start_pose", None)
+    d["cameras"] = {"driver": "uvc", "list": [{"name": "cam", "source": 0, "width": 1280,
+                                              "height": 800}]}
+    d.pop("simulation")
+    d["approximate"]["standoff_m"] = 0.2
+    d["plan"] = {"depth_m": [0.1, 1.0]}
+    with pytest.raises(SlidecalError, match=r"53-degree lens.*plan\.hfov_deg") as e:
+        make_plan(config_from_dict(d))
+    assert "standoff" not in str(e.value)
+    d["plan"]["hfov_deg"] = 53.1  # given: the geometry is the cause again
+    with pytest.raises(SlidecalError, match="leaves the view"):
+        make_plan(config_from_dict(d))
+
+
 def test_refused_when_the_goal_needs_more_time():
     d = _default_dict()
     d["plan"] = {"goal": {"fx_rel_std": 1e-6}, "max_duration_s": 20}
