@@ -692,17 +692,22 @@ def focal_change(
     if len(rows) < 4:
         return None
 
+    sum_N = np.cumsum([r[1] for r in rows], axis=0)  # each part's sums from the running ones
+    sum_g = np.cumsum([r[2] for r in rows], axis=0)
+
     def explained(split: int) -> tuple[float, float]:
         """Misfit explained by a focal scale per part (one when ``split`` is 0) and a common
         principal point correction, and the second part's scale against the first's."""
-        parts = [rows[:split], rows[split:]] if split else [rows]
+        parts = [(sum_N[-1], sum_g[-1])]
+        if split:
+            first = (sum_N[split - 1], sum_g[split - 1])
+            parts = [first, (sum_N[-1] - first[0], sum_g[-1] - first[1])]
         n = len(parts)
         N, g = np.zeros((n + 2, n + 2)), np.zeros(n + 2)
-        for i, part in enumerate(parts):
+        for i, (Nk, gk) in enumerate(parts):
             idx = [i, n, n + 1]
-            for _, Nk, gk, _, _ in part:
-                N[np.ix_(idx, idx)] += Nk
-                g[idx] += gk
+            N[np.ix_(idx, idx)] += Nk
+            g[idx] += gk
         x = np.linalg.lstsq(N, g, rcond=None)[0]
         return float(g @ x), float(x[1] - x[0]) if split else 0.0
 
