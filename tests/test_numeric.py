@@ -1,5 +1,8 @@
 """solver.numeric against scipy, whose functions it stands in for on the command's path."""
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 from scipy.optimize import least_squares as scipy_least_squares
@@ -38,3 +41,10 @@ def test_least_squares_reaches_scipys_minimum():
     assert ours.fun @ ours.fun <= (theirs.fun @ theirs.fun) * (1 + 1e-9)
     np.testing.assert_allclose(ours.x, theirs.x, rtol=1e-6, atol=1e-8)
     np.testing.assert_allclose(ours.jac, theirs.jac, rtol=1e-4, atol=1e-6)
+
+
+def test_a_solve_imports_no_scipy():
+    # scipy's import costs a small session's whole solve (see solver/numeric.py)
+    code = "import sys, slidecal.routines.solve; print([m for m in sys.modules if 'scipy' in m])"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"

@@ -11,7 +11,6 @@ from typing import Any
 
 import cv2
 import numpy as np
-from scipy.ndimage import binary_dilation
 
 from slidecal.routines.ops.install import installed_session
 from slidecal.routines.results_io import (
@@ -615,7 +614,8 @@ def _projection(
         seen = np.ones(m.shape, bool)
         if problem is not None and name in {c.name for c in problem.cameras}:
             counts = coverage_fraction(problem, name, (16, 10))[1]
-            seen = binary_dilation(counts > 0, np.ones((3, 3), bool)) if counts.any() else seen
+            if counts.any():  # the cells the views reached, and their neighbours
+                seen = cv2.dilate((counts > 0).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
         inside, worst = float(np.max(m[seen])), float(np.max(m))
         ok = inside <= limit
         out.append(
