@@ -516,8 +516,9 @@ def r1_scenario(
     dist: np.ndarray = R1_DIST,
     T_base_tool_true: np.ndarray | None = None,
     T_tool_board: np.ndarray = R1_T_TOOL_BOARD,
+    K: np.ndarray = R1_K,
 ) -> Scenario:
-    """The scenario of R1's camera (``R1_K``, ``dist``) with these ``frames``: the problem, the
+    """The scenario of R1's camera (``K``, ``dist``) with these ``frames``: the problem, the
     truth in the solver's parametrisation and the hand-eye and target poses of the mount (the
     target on the tool at ``T_tool_board`` eye-to-hand)."""
     problem = CalibrationProblem(
@@ -531,7 +532,7 @@ def r1_scenario(
     T_hand_eye = R1_T_TOOL_CAM if eye_in_hand else R1_T_BASE_CAM
     T_target = T_base_board if eye_in_hand else T_tool_board
     truth = ModelState(
-        {"cam": R1_K},
+        {"cam": K},
         {"cam": np.array(dist, dtype=float)},
         {},
         inv_T(T_hand_eye)[None],
@@ -577,8 +578,9 @@ def _r1_frames(
     detect: ImageModel | None = None,
     bow_m: np.ndarray | None = None,
     dist: np.ndarray = R1_DIST,
+    K: np.ndarray = R1_K,
 ) -> list[Frame]:
-    """Per camera pose ``views[k]`` (``T_cam_board``), what R1's camera finds of ``target``
+    """Per camera pose ``views[k]`` (``T_cam_board``), what R1's camera (``K``) finds of ``target``
     (``detect``'s image model, the board bowed by ``bow_m``; or the projected points 2 px inside
     the image with ``sigma_px`` noise), then the robot pose ``told[k]`` with ``noise`` (metres,
     degrees) as the arm measures it."""
@@ -587,9 +589,7 @@ def _r1_frames(
         if detect is not None:
             det = detect(T_cam_board, rng, np.zeros(2) if bow_m is None else bow_m)
         else:
-            det = projected_detection(
-                R1_K, dist, T_cam_board, target, R1_SIZE_PX, sigma_px, rng, 2.0
-            )
+            det = projected_detection(K, dist, T_cam_board, target, R1_SIZE_PX, sigma_px, rng, 2.0)
         frames.append(Frame(k, {"cam": det}, T_base_tool=_perturb(T_base_tool, rng, *noise)))
     return frames
 
@@ -615,6 +615,33 @@ def r1(
     noise = (robot_noise_m, robot_noise_deg)
     frames = _r1_frames(views, told, target, sigma_px, rng, noise, dist=dist)
     return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board, dist)
+
+
+#: A wide M12 lens on R1's sensor (about 100 deg across, 120 deg diagonal): OpenCV's rational model
+#: fitted to an equidistant lens of 720 px per radian out to 62 deg off the axis (within 0.8 px).
+WIDE_K = K_matrix(720.0, 720.0, 640.0, 400.0)
+WIDE_RATIONAL = np.array([0.956, 0.185, 5e-4, -3e-4, 0.004, 1.289, 0.414, 0.027])
+
+
+def wide_r1(
+    rng: np.random.Generator,
+    sigma_px: float = 0.15,
+    options: ModelOptions | None = None,
+    dist: np.ndarray = WIDE_RATIONAL,
+) -> Scenario:
+    """R1's cell with a wide lens (``WIDE_K``, ``dist``) and exact robot poses: 4 orientations
+    20-40 deg off the board normal from 0.15-0.25 m, aimed within 0.12 m of the board's centre so
+    that it reaches the image's edges, each with 4 translations of 30-60 mm (20 frames, a fixed
+    plan as R1's; ``rng`` draws the pixel noise)."""
+    target = r1_target()
+    T_base_board, _ = r1_poses()
+    plan = np.random.default_rng(38)
+    views = _translated(
+        camera_board_poses(plan, 4, target, (0.15, 0.25), (20.0, 40.0), aim_spread_m=0.12), plan, 5
+    )
+    told = [_tool_pose(T, T_base_board, True) for T in views]
+    frames = _r1_frames(views, told, target, sigma_px, rng, dist=dist, K=WIDE_K)
+    return r1_scenario(target, frames, True, options, sigma_px, T_base_board, dist, K=WIDE_K)
 
 
 # -- a real arm: systematic kinematic error (REALITY: accuracy is not repeatability) ------------

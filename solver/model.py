@@ -1170,10 +1170,13 @@ def fisher_covariance(
         sc = (camera_sigma_px or {}).get(c, sigma_px)
         idx = model.cam_obs[ci]
         w[2 * idx] = w[2 * idx + 1] = (sigma_px / sc) ** 2
-    A = J.T @ (J * w[:, None])
-    scale = np.sqrt(np.diag(A))
+    Jw = J * np.sqrt(w)[:, None]
+    scale = np.linalg.norm(Jw, axis=0)
     scale[scale == 0] = 1.0
-    cov = sigma_px**2 * np.linalg.inv(A / np.outer(scale, scale)) / np.outer(scale, scale)
+    # from the QR of the scaled Jacobian, not from its normal matrix: a near-redundant lens model
+    # (rational k1-k6 on a narrow field) squares a condition of 1e9 past double precision
+    Ri = np.linalg.inv(np.linalg.qr(Jw / scale, mode="r"))
+    cov = sigma_px**2 * (Ri @ Ri.T) / np.outer(scale, scale)
     return model.names, cov
 
 

@@ -426,7 +426,10 @@ def linearised_estimator(
     state = with_pose_corrections(truth, len(problem.frames)) if "E" in model.slices else truth
     _, J = model.evaluate(state)
     names, Jn = _jacobian(layout_of(problem, st, truth), model.names)
-    return LinearisedEstimator(names, Jn @ np.linalg.solve(J.T @ J, J.T), st, state)
+    scale = np.linalg.norm(J, axis=0)
+    scale[scale == 0] = 1.0
+    Q, R = np.linalg.qr(J / scale)  # (J'J)^-1 J' without squaring the condition (fisher_covariance)
+    return LinearisedEstimator(names, Jn @ (np.linalg.solve(R, Q.T) / scale[:, None]), st, state)
 
 
 @dataclass(frozen=True)
