@@ -32,8 +32,8 @@ from slidecal.solver.adequacy import (
     MAX_ROBOT_TRANSLATION_MM,
     PAIRING_MIN_ROTATION_DEG,
     PAIRING_SAME_ORIENTATION_DEG,
-    _fixed_spread,
-    _moving_point,
+    fixed_spread,
+    moving_point,
 )
 from slidecal.solver.detect import (
     angles_between_deg,
@@ -119,7 +119,7 @@ def evidence(
     iu = np.triu_indices(len(T_cam), 1)
     robot = angles_between_deg(T_tool[:, :3, :3])[iu]
     camera = angles_between_deg([T[:3, :3] for T in T_cam])[iu]
-    t, p = T_tool[:, :3, 3], np.stack([_moving_point(T, mount) for T in T_cam])
+    t, p = T_tool[:, :3, 3], np.stack([moving_point(T, mount) for T in T_cam])
     move = np.linalg.norm(t[:, None] - t[None], axis=2)[iu]
     turned = np.maximum(robot, camera)
     errs = (camera - robot)[turned >= PAIRING_MIN_ROTATION_DEG]
@@ -127,7 +127,7 @@ def evidence(
     ratios = np.linalg.norm(p[:, None] - p[None], axis=2)[iu][pure] / move[pure]
     spread = (float("nan"),) * 2
     if len(errs) >= 3:
-        spread = _fixed_spread(T_tool, list(T_cam), mount == "eye_in_hand")
+        spread = fixed_spread(T_tool, list(T_cam), mount == "eye_in_hand")
     return {
         "rotation_rms_deg": float(np.sqrt(np.mean(np.square(errs)))) if len(errs) else np.nan,
         "rotated_pairs": len(errs),

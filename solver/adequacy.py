@@ -331,7 +331,7 @@ def _pairing(problem: CalibrationProblem, frames: list[int], T_cam: list[np.ndar
     T_tool = np.stack([f.T_base_tool for f in problem.frames])
 
     def scores(shift: int, T_cam: list[np.ndarray] = T_cam) -> dict[tuple[int, int], float]:
-        seen = [_moving_point(T, problem.mount) for T in T_cam]
+        seen = [moving_point(T, problem.mount) for T in T_cam]
         rot: dict[tuple[int, int], float] = {}
         length: dict[tuple[int, int], float] = {}
         for a in range(len(frames)):
@@ -467,7 +467,7 @@ CONVENTIONS = (
 )
 
 
-def _fixed_spread(
+def fixed_spread(
     T_tool: np.ndarray, T_cam: list[np.ndarray], eye_in_hand: bool
 ) -> tuple[float, float]:
     """How much what must stay fixed moves through the poses ``T_tool`` (``T_base_tool``) and
@@ -514,7 +514,7 @@ def _convention(
     eye_in_hand = problem.mount == "eye_in_hand"
     T_tool = np.stack([problem.frames[k].T_base_tool for k in frames])
     rot_lim, t_lim = MAX_PAIRING_ROTATION_DEG, MAX_ROBOT_TRANSLATION_MM
-    as_read = _fixed_spread(T_tool, T_cam, eye_in_hand)
+    as_read = fixed_spread(T_tool, T_cam, eye_in_hand)
     if as_read[0] <= CONVENTION_MARGIN * rot_lim and as_read[1] <= CONVENTION_MARGIN * t_lim:
         return None
     fits = []
@@ -525,7 +525,7 @@ def _convention(
             T_alt = np.stack(
                 [T_from_Rt(_rotation_read_as(kind, T[:3, :3]), T[:3, 3]) for T in T_tool]
             )
-        rot, t_mm = _fixed_spread(T_alt, T_cam, eye_in_hand)
+        rot, t_mm = fixed_spread(T_alt, T_cam, eye_in_hand)
         if rot <= rot_lim and t_mm <= t_lim:
             fits.append((rot / rot_lim + t_mm / t_lim, rot, t_mm, meaning, fix))
     if not fits:
@@ -541,7 +541,7 @@ def _convention(
     )
 
 
-def _moving_point(T_cam_board: np.ndarray, mount: str) -> np.ndarray:
+def moving_point(T_cam_board: np.ndarray, mount: str) -> np.ndarray:
     """What moves with the robot, as the camera sees it: the camera centre in the board's frame
     (eye-in-hand) or the board's origin in the camera's (eye-to-hand); a pure move of the tool
     moves it by the tool's translation (up to a rotation)."""
@@ -610,7 +610,7 @@ def classic_scale_fit(
     problem: CalibrationProblem, poses: dict[int, np.ndarray], R_static_base: np.ndarray
 ) -> tuple[float, float, np.ndarray] | None:
     """The camera/robot length ratio of a session from the images alone: ``(ratio, relative
-    standard error, q)``, ``q`` (metres) the tool-frame place of :func:`_moving_point`; None
+    standard error, q)``, ``q`` (metres) the tool-frame place of :func:`moving_point`; None
     with fewer than four posed frames or when the geometry leaves the scale free.
 
     Linear least squares of ``lambda a_k = R (p_k + R_k q) + t`` in ``lambda``, ``q``, ``t``:
@@ -623,7 +623,7 @@ def classic_scale_fit(
     rows, rhs = [], []
     for i in idx:
         T = problem.frames[i].T_base_tool
-        a = _moving_point(poses[i], problem.mount)
+        a = moving_point(poses[i], problem.mount)
         rows.append(np.hstack([a[:, None], -(R_static_base @ T[:3, :3]), -np.eye(3)]))
         rhs.append(R_static_base @ T[:3, 3])
     A, y = np.vstack(rows), np.concatenate(rhs)
@@ -669,7 +669,7 @@ def scale_moves(
             )
             if robot < min_move_m:
                 continue
-            pa, pb = (_moving_point(poses[i], problem.mount) for i in (a, b))
+            pa, pb = (moving_point(poses[i], problem.mount) for i in (a, b))
             moves.append((int(a), int(b), robot, float(np.linalg.norm(pb - pa))))
     return moves
 
