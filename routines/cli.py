@@ -11,8 +11,8 @@ import argparse
 import importlib
 import sys
 from collections.abc import Sequence
-from importlib.metadata import version
 
+from slidecal.routines import __version__
 from slidecal.routines.progress import signals_as_interrupt
 from slidecal.routines.solve import one_line
 from slidecal.solver.errors import HardwareFault, SlidecalError
@@ -44,7 +44,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         prog="slidecal",
         description="Camera, hand-eye and stereo calibration from robot translations.",
     )
-    parser.add_argument("--version", action="version", version=f"slidecal {version('slidecal')}")
+    parser.add_argument("--version", action="version", version=f"slidecal {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     for name, module in SUBCOMMANDS.items():
         if command not in (None, name):

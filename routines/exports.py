@@ -11,12 +11,14 @@ from __future__ import annotations
 import hashlib
 from collections.abc import Mapping
 from datetime import UTC, datetime
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
+from slidecal.routines import __version__
 from slidecal.routines.ops.report import uncertainty_map
 from slidecal.routines.results_io import (
     hand_eye_transforms,
@@ -48,16 +50,6 @@ VALID_REGION_PX = 1.0
 OAK_DEFAULT_SOCKETS = {"left": "CAM_B", "right": "CAM_C", "rgb": "CAM_A"}
 
 
-def slidecal_version() -> str:
-    """The installed slidecal's version (``unknown`` when not installed as a package)."""
-    from importlib import metadata
-
-    try:
-        return metadata.version("slidecal")
-    except metadata.PackageNotFoundError:
-        return "unknown"
-
-
 def file_sha256(path: str | Path | None) -> str | None:
     """SHA-256 of a file's bytes (None without a file)."""
     if path is None:
@@ -73,13 +65,11 @@ def result_header(cell_path: str | Path | None, cell_name: str | None = None) ->
     ``cell_name`` is hashed."""
     digest = file_sha256(cell_path)
     if cell_path is None and cell_name:
-        from importlib import resources
-
         ref = resources.files("slidecal.mocks").joinpath(str(cell_name))
         if ref.is_file():
             digest = hashlib.sha256(ref.read_bytes()).hexdigest()
     return {
-        "slidecal_version": slidecal_version(),
+        "slidecal_version": __version__,
         "created_utc": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "cell": str(cell_name or (Path(cell_path).name if cell_path else "unknown")),
         "cell_sha256": digest,
