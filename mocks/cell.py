@@ -21,9 +21,6 @@ from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, rvec_from_R
 from slidecal.solver.numeric import least_squares
 from slidecal.solver.problem import MOUNTS
 
-#: Hand-eye and target-pose names per mount (the result file's names).
-POSE_NAMES = {mount: (m.hand_eye, m.target) for mount, m in MOUNTS.items()}
-
 
 def _transform_dict(T: np.ndarray) -> dict[str, Any]:
     T = np.asarray(T, dtype=float)
@@ -36,8 +33,7 @@ def truth_block(cfg: Any, T_target: np.ndarray | None = None) -> dict[str, Any]:
     sim = cfg.simulation
     if sim is None:
         return {}
-    he_key, tg_key = POSE_NAMES[cfg.mount]
-    frames = MOUNTS[cfg.mount]
+    frames = MOUNTS[cfg.mount]  # the result file's names
     ref = cfg.reference_camera
     out: dict[str, Any] = {
         "cameras": {
@@ -46,14 +42,14 @@ def truth_block(cfg: Any, T_target: np.ndarray | None = None) -> dict[str, Any]:
         },
     }
     if len(sim.cameras) == 1:
-        out[he_key] = _transform_dict(sim.T_hand_eye)
+        out[frames.hand_eye] = _transform_dict(sim.T_hand_eye)
     else:
         for c in sim.cameras:
             T_ref_c = np.eye(4) if c.name == ref else np.linalg.inv(sim.rig[c.name])
             out[frames.hand_eye_of(c.name)] = _transform_dict(sim.T_hand_eye @ T_ref_c)
         for name, T in sim.rig.items():
             out[f"T_{name}_{ref}"] = _transform_dict(T)
-    out[tg_key] = _transform_dict(sim.T_target if T_target is None else T_target)
+    out[frames.target] = _transform_dict(sim.T_target if T_target is None else T_target)
     out["noise"] = {
         "robot_mm": sim.robot_noise_m * 1000.0,
         "robot_deg": sim.robot_noise_deg,

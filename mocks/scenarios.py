@@ -453,7 +453,7 @@ def r1_target() -> Target:
     return Target.charuco(11, 8, 0.030, 0.022)
 
 
-def r1_poses(rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+def r1_poses() -> tuple[np.ndarray, np.ndarray]:
     """The R1 cell: ``T_base_board`` and the planned ``T_base_tool`` (20, 4, 4): 4 tilt groups of 25
     deg looking at the board centre from 0.5 m, each its pose and 4 non-coplanar translations of
     40-80 mm."""
