@@ -1,18 +1,9 @@
-"""The lens model the images ask for (docs/ERROR_MODEL.md Sec. 5, "The lens model").
+"""The lens model the images ask for (docs/ERROR_MODEL.md Sec. 5, "The lens model", says how).
 
-A camera solved with the default lens (opencv5) is first screened at the solve's intrinsics:
-the score test of the rational model's extra coefficients, i.e. one Gauss-Newton step of every
-image's pose, fx, fy, cx, cy and the coefficients, with those solved for and with all of the
-rational model's. Only a camera the screen flags (chi-square tail below :data:`LENS_SCREEN_P`)
-and a camera of another lens are tested by the fits: each camera's images are fitted alone
-(OpenCV's free-pose calibration: intrinsics and a pose per image) with every lens model of
-``solver/camera.py``: the model solved for with its estimated coefficients, the others with all
-of theirs. Another model is asked for when it lowers the sum of squared residuals by more than
-the chi-square tail :data:`LENS_TEST_P` allows on its extra coefficients (at least one), in
-units of its own noise variance. Without ``options.distortion_model`` the data chooses: the
-session is solved again with that model; with it, the result fails the adequacy test, so the
-verdict does not pass a lens the images refuse. Sessions of one orientation are not tested (the
-free-pose fit cannot run there)."""
+A score test screens a camera solved with opencv5 at the solve's intrinsics; a camera it flags,
+and a camera of another lens, is fitted alone with every lens model (OpenCV's free-pose
+calibration) and asks for the model that beats the one solved for beyond chance: the session is
+solved again with it when the options name no model, else the result fails the adequacy test."""
 
 from __future__ import annotations
 
