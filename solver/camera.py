@@ -143,7 +143,7 @@ def _distort(
     if len(d) != 4:  # OpenCV's order: k1 k2 p1 p2 k3 (k4 k5 k6)
         gx = [gx[0], gx[1], 2.0 * xy, r2 + 2.0 * x * x, *gx[2:]]
         gy = [gy[0], gy[1], r2 + 2.0 * y * y, 2.0 * xy, *gy[2:]]
-    return xd, yd, J, np.stack([np.stack(gx, axis=1), np.stack(gy, axis=1)], axis=1)
+    return xd, yd, J, np.stack(gx + gy, axis=1).reshape(len(x), 2, len(gx))
 
 
 def _pixels(K: np.ndarray, xd: np.ndarray, yd: np.ndarray, *d_dist: np.ndarray) -> tuple:
@@ -153,9 +153,8 @@ def _pixels(K: np.ndarray, xd: np.ndarray, yd: np.ndarray, *d_dist: np.ndarray) 
     fy, cy = K[1, 1], K[1, 2]
     out = [np.stack([fx * xd + s * yd + cx, fy * yd + cy], axis=1)]
     for D in d_dist:
-        J = np.empty_like(D)
-        J[:, 0] = fx * D[:, 0] + s * D[:, 1]
-        J[:, 1] = fy * D[:, 1]
+        J = D * np.array([[fx], [fy]])
+        J[:, 0] += s * D[:, 1]
         out.append(J)
     return tuple(out)
 

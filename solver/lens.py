@@ -1,14 +1,9 @@
-"""The lens model the images ask for (docs/ERROR_MODEL.md Sec. 5, "The lens model").
+"""The lens model the images ask for (docs/ERROR_MODEL.md Sec. 5, "The lens model", says how).
 
-Each camera's images are fitted alone (OpenCV's free-pose calibration: intrinsics and a pose
-per image) with every lens model of ``solver/camera.py``: the model solved for with its
-estimated coefficients, the others with all of theirs. Another model is asked for when it
-lowers the sum of squared residuals by more than the chi-square tail :data:`LENS_TEST_P` allows
-on its extra coefficients (at least one), in units of its own noise variance. Without
-``options.distortion_model`` the data chooses: the session is solved again with that model;
-with it, the result fails the adequacy test, so the verdict does not pass a lens the images
-refuse. Sessions of one orientation are not tested (the free-pose fit cannot run there).
-"""
+A score test screens a camera solved with opencv5 at the solve's intrinsics; a camera it flags,
+and a camera of another lens, is fitted alone with every lens model (OpenCV's free-pose
+calibration) and asks for the model that beats the one solved for beyond chance: the session is
+solved again with it when the options name no model, else the result fails the adequacy test."""
 
 from __future__ import annotations
 
@@ -18,7 +13,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
-from slidecal.solver.camera import DISTORTION_MODELS, project
+from slidecal.solver.camera import DISTORTION_MODELS, project, project_with_jacobians
 from slidecal.solver.geometry import T_from_Rt
 from slidecal.solver.model import orientation_groups
 from slidecal.solver.numeric import chi2_tail
@@ -33,6 +28,9 @@ LENS_TEST_IMAGES = 40
 #: The noise the test assumes at least (px per coordinate): a tenth of a sharp image's detector
 #: noise, so that exact simulated corners do not make round-off a lens
 LENS_NOISE_FLOOR_PX = 0.01
+#: The screen's false-alarm rate: ten times the test's, a margin for its linearisation (a
+#: camera goes on only when the fits then beat it at LENS_TEST_P too)
+LENS_SCREEN_P = 1e-2
 _MIN_IMAGES, _MIN_CORNERS = 4, 6  # a free-pose fit of a planar target needs them
 
 
@@ -69,20 +67,52 @@ def _free_fit(
     return (cost, 4 + int(sum(mask)) + 6 * len(obj)) if np.isfinite(cost) else None
 
 
-def _beats(fits: dict, n_rows: int, a: str, b: str) -> float | None:
+def _screen_fits(
+    obj: list[np.ndarray], img: list[np.ndarray], K: np.ndarray, dist: np.ndarray, mask
+) -> dict[str, tuple[float, int]]:
+    """The free-pose fits of :func:`_free_fit` of opencv5 with coefficients ``mask`` and of the
+    rational model, linearised: each image's pose from OpenCV's planar PnP at ``K``, ``dist``
+    (opencv5), then one Gauss-Newton step of the poses, fx, fy, cx, cy and the coefficients."""
+    P, n = [], [len(p) for p in obj]
+    obj, img = [p.astype(float) for p in obj], [q.astype(float) for q in img]
+    for p, q in zip(obj, img, strict=True):
+        _, rv, tv = cv2.solvePnP(p, q, K, dist, flags=cv2.SOLVEPNP_IPPE)
+        P.append(p @ cv2.Rodrigues(rv)[0].T + tv.ravel())
+    P = np.concatenate(P)
+    pr = project_with_jacobians(K, np.r_[dist, 0.0, 0.0, 0.0], P)  # rational, k4-k6 at 0
+    r = np.concatenate(img).reshape(-1, 2, 1) - pr.px[:, :, None]
+    J_pose = np.concatenate([np.cross(P[:, None], pr.d_P), pr.d_P], axis=2)  # rotation, shift
+    J = np.concatenate([pr.d_K[:, :, :4], pr.d_dist, r], axis=2)
+    first = np.r_[0, np.cumsum(n)[:-1]]
+    A = np.add.reduceat(np.einsum("nki,nkj->nij", J_pose, J_pose), first)
+    B = np.add.reduceat(np.einsum("nki,nkj->nij", J_pose, J), first)
+    J = (J - J_pose @ np.repeat(np.linalg.solve(A, B), n, axis=0)).reshape(-1, J.shape[2])
+    J, r = J[:, :-1] / np.linalg.norm(J[:, :-1], axis=0), J[:, -1]  # the poses eliminated
+    fits = {}
+    for m, cols in (("opencv5", np.r_[0:4, 4 + np.flatnonzero(mask)]), ("rational", range(12))):
+        e = r - J[:, cols] @ np.linalg.lstsq(J[:, cols], r, rcond=None)[0]
+        fits[m] = (float(e @ e), len(cols) + 6 * len(obj))
+    return fits
+
+
+def _beats(fits: dict, n_rows: int, a: str, b: str, level: float = LENS_TEST_P) -> float | None:
     """How far model ``a``'s free-pose fit lowers model ``b``'s squares, in units of ``a``'s own
-    noise variance; None when not beyond chance on ``a``'s extra coefficients (at least one)."""
+    noise variance; None when not beyond chance (tail ``level``) on ``a``'s extra coefficients
+    (at least one)."""
     if fits.get(a) is None or fits.get(b) is None:
         return None
     (c, p), (c_b, p_b) = fits[a], fits[b]
     d = (c_b - c) / max(c / (n_rows - p), LENS_NOISE_FLOOR_PX**2)
-    return d if d > 0 and chi2_tail(max(p - p_b, 1), d) < LENS_TEST_P else None
+    return d if d > 0 and chi2_tail(max(p - p_b, 1), d) < level else None
 
 
-def lens_check(problem: CalibrationProblem) -> tuple[str, str] | None:
+def lens_check(
+    problem: CalibrationProblem, result: CalibrationResult | None = None
+) -> tuple[str, str] | None:
     """(the lens model the images ask for, why, one line) when one camera's images ask for
     another than ``problem.options.lens``: of the models that beat it, the one with the fewest
-    coefficients that no other beats. None when none does or the test cannot run."""
+    coefficients that no other beats. None when none does or the test cannot run. ``result``:
+    the solve of ``problem``, whose opencv5 cameras are screened first."""
     o = problem.options
     if problem.knowledge not in ("robot", "none"):
         return None
@@ -100,6 +130,11 @@ def lens_check(problem: CalibrationProblem) -> tuple[str, str] | None:
         img = [dets[k].px.reshape(-1, 1, 2).astype(np.float32) for k in pick]
         n_rows = 2 * sum(len(p) for p in obj)
         size = (spec.width, spec.height)
+        cam = None if result is None else result.cameras.get(spec.name)
+        if cam is not None and o.lens == "opencv5" and result.converged:
+            fits = _screen_fits(obj, img, cam.K, cam.distortion, o.distortion_mask)
+            if _beats(fits, n_rows, "rational", "opencv5", LENS_SCREEN_P) is None:
+                continue
         fits = {}
         for m, v in DISTORTION_MODELS.items():
             # fisheye (the slowest fit) only where the five coefficients leave a richer lens
@@ -129,7 +164,7 @@ def choose_lens(
     """``result`` of ``problem`` after the lens test (:func:`lens_check`): solved again by
     ``solve`` with the model the images ask for when the options name none, else failing the
     adequacy test with the reason (a note where the session has no adequacy test)."""
-    asked = lens_check(problem)
+    asked = lens_check(problem, result)
     if asked is None:
         return result
     model, why = asked

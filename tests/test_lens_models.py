@@ -19,6 +19,7 @@ from slidecal.routines.results_io import result_from_dict, result_to_dict
 from slidecal.routines.run import RunRequest, run_calibration
 from slidecal.routines.session import options_from_dict, options_to_dict
 from slidecal.routines.solve import solve_session
+from slidecal.solver import lens
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.camera import distortion_model, project
 from slidecal.solver.errors import InputError
@@ -130,6 +131,59 @@ def test_the_lens_test_keeps_a_five_coefficient_lens() -> None:
     for seed in range(30):
         s = sc.r1(np.random.default_rng(100 + seed), 0.15, options=ModelOptions())
         assert lens_check(s.problem) is None, seed
+
+
+def _rational_statistic(problem, fits) -> float:  # noqa: ANN001
+    """The lens test's statistic of the rational model over opencv5, from ``fits`` (the
+    screen's or the free-pose fits') of the camera's images."""
+    dets = [f.detections["cam"] for f in problem.frames]
+    obj = [problem.target.points_m[d.ids].astype(np.float32) for d in dets]
+    img = [d.px.reshape(-1, 1, 2).astype(np.float32) for d in dets]
+    return lens._beats(fits(obj, img), 2 * sum(map(len, obj)), "rational", "opencv5", 1.0)
+
+
+def test_the_lens_screen_is_a_score_test_of_the_rational_coefficients() -> None:
+    """At a five-coefficient lens (R1, 30 seeds, at the true intrinsics) the screen's statistic
+    is chi-square on the rational model's 3 extra coefficients (mean 3, the mean's std 0.45), so
+    that its false-alarm rate is its level; on a wide lens whose rational coefficients the
+    images ask for (k4-k6 at 0.8 of the wide lens's) it is the free-pose fits' statistic."""
+    mask = (True,) * 5
+    stats = []
+    for seed in range(30):
+        s = sc.r1(np.random.default_rng(100 + seed), 0.15, options=ModelOptions())
+        K, d = s.truth.K["cam"], s.truth.dist["cam"]
+        screen = lambda o, i, K=K, d=d: lens._screen_fits(o, i, K, d, mask)  # noqa: E731
+        stats.append(_rational_statistic(s.problem, screen) or 0.0)
+    assert 3.0 - 4 * 0.45 < np.mean(stats) < 3.0 + 4 * 0.45
+    dist = np.r_[sc.WIDE_RATIONAL[:5], 0.8 * sc.WIDE_RATIONAL[5:]]
+    o = ModelOptions(distortion_model="opencv5")
+    s = sc.wide_r1(np.random.default_rng(0), 0.15, o, dist=dist)
+    cam = calibrate(s.problem).cameras["cam"]
+    screen = lambda o, i: lens._screen_fits(o, i, cam.K, cam.distortion, mask)  # noqa: E731
+    size = (s.problem.cameras[0].width, s.problem.cameras[0].height)
+    free = lambda o, i: {  # noqa: E731
+        m: lens._free_fit(o, i, size, m, (True,) * n) for m, n in (("opencv5", 5), ("rational", 8))
+    }
+    full = _rational_statistic(s.problem, free)
+    assert full > 30 and _rational_statistic(s.problem, screen) == pytest.approx(full, rel=0.1)
+
+
+def test_a_five_coefficient_lens_passes_the_screen_without_the_fits(monkeypatch) -> None:
+    """The free-pose fits (the lens test's time) run only for a camera the screen flags."""
+
+    def refused(*args):  # noqa: ANN002, ANN202
+        raise AssertionError("the free-pose fits ran")
+
+    s = sc.r1(np.random.default_rng(7), 0.15, options=ModelOptions())
+    monkeypatch.setattr(lens, "_free_fit", refused)
+    assert calibrate(s.problem).messages == ()
+
+
+def test_a_wide_lens_is_solved_with_the_rational_model_it_asks_for() -> None:
+    s = sc.wide_r1(np.random.default_rng(1), 0.15, ModelOptions())
+    res = calibrate(s.problem)
+    assert distortion_model(res.cameras["cam"].distortion) == "rational"
+    assert res.messages[0].startswith("lens model rational, chosen by the data")
 
 
 def test_the_bound_of_a_near_redundant_lens_model_keeps_double_precision() -> None:
