@@ -651,17 +651,6 @@ class BundleModel:
         n, _, P_ = J.shape
         return J.reshape(2 * n, P_, order="F").T if transposed else J.reshape(2 * n, P_)
 
-    def normal_equations(
-        self, state: ModelState, weights: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Residuals (R,), ``J' W J`` (P, P) and ``J' W r`` (P,) with row weights ``weights``.
-
-        The dense form of :meth:`normal_blocks` (the solver itself never forms it).
-        """
-        nb = self.normal_blocks(state, weights)
-        A, g = nb.dense()
-        return nb.r, A, g
-
     def normal_blocks(
         self, state: ModelState, weights: np.ndarray, keep: bool = True
     ) -> NormalBlocks:

@@ -614,7 +614,7 @@ def test_a_classic_sessions_unexplained_scale_is_carried_in_its_covariance(monke
     def z_tz(res, s):  # noqa: ANN001, ANN202
         ra = res.robot_accuracy
         X, _ = sc.effective_truth(s, max(ra.rotation_deg, 1e-4), max(ra.translation_mm, 1e-3))
-        return abs(res.hand_eye.t_m[2] - X[2, 3]) / res.std_of("T_tool_cam.tz")
+        return abs(res.hand_eye.t_m[2] - X[2, 3]) / res.named_covariance.std("T_tool_cam.tz")
 
     s = sc.classic_real_arm(np.random.default_rng(2002), arm_scale=0.005)
     kept = {}
