@@ -8,7 +8,7 @@ The optimiser never reads the adequacy checks: the one check of the robot's reco
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -237,39 +237,7 @@ def refine(
             max(o.robot_noise_m, SIGMA_FLOOR[1]),
         )
     T_meas = np.stack([f.T_base_tool for f in problem.frames])
-    pose_groups = orientation_groups(T_meas)
-    trend_groups, trend_coords, trend_dims = translation_trends(T_meas, pose_groups)
-    if not trend_dims and structure.eye_in_hand and len(T_meas) >= SESSION_TREND_MIN_FRAMES:
-        # no group long enough for a trend of its own (a classic session): one over the session
-        whole = np.zeros(len(T_meas), dtype=int)
-        trend_groups, trend_coords, trend_dims = translation_trends(T_meas, whole)
-    spread = float(np.sqrt(np.mean(np.sum(trend_coords**2, axis=1)))) if trend_dims else 0.0
-    scale_fixed = len(trend_dims) == 1 and len(np.unique(pose_groups)) == 1
-    common_map, common_rotation, common_spread = common_trend(T_meas, trend_groups, trend_dims)
-    noisy = replace(
-        structure,
-        T_meas=T_meas,
-        pose_sigma=sig0,
-        pose_groups=pose_groups if _shared_groups(pose_groups) else None,
-        group_sigma=sig0,
-        trend_groups=trend_groups if trend_dims else None,
-        trend_coords=trend_coords if trend_dims else None,
-        trend_dims=trend_dims,
-        trend_sigma=(
-            (sig0[0] / spread, SIGMA_FLOOR[1] if scale_fixed else sig0[1] / spread)
-            if trend_dims
-            else None
-        ),
-        trend_scale_fixed=scale_fixed,
-        common_map=common_map,
-        common_rotation=common_rotation,
-        common_sigma=(
-            (sig0[0] / common_spread[0], sig0[1] / max(common_spread[1], 1e-3))
-            if common_map is not None
-            else None
-        ),
-        common_spread=common_spread,
-    )
+    noisy, spread = arm_structure(structure, T_meas, dict.fromkeys(ARM_SOURCES, sig0), True)
     out = replace(
         _refine(problem, noisy, out0.state, max_iter, robust, estimate=True), test_fit=fit
     )
@@ -280,7 +248,7 @@ def refine(
     if "V" in m.slices:  # a trend's share of a frame's error: its level times the offset
         levels["trend"] = tuple(spread * np.asarray(m.trend_sigma))
     if "W" in m.slices:  # what the groups share: its levels times their shares
-        levels["field"] = tuple(np.asarray(common_spread) * np.asarray(m.common_sigma))
+        levels["field"] = tuple(np.asarray(m.common_spread) * np.asarray(m.common_sigma))
     total = tuple(float(np.linalg.norm(axis)) for axis in zip(*levels.values(), strict=True))
     out = replace(out, robot_levels={k: (float(r), float(t)) for k, (r, t) in levels.items()})
     return _with_robot(
@@ -289,6 +257,54 @@ def refine(
         True,
         f"robot accuracy estimated: the poses taken as exact do not explain the images ({figure})",
     )
+
+
+#: The arm's error sources of the model (docs/ERROR_MODEL.md S3-S5), as ``arm_structure`` takes
+#: their levels
+ARM_SOURCES = ("pose", "group", "trend", "field")
+
+
+def arm_structure(
+    structure: Structure,
+    T_meas: np.ndarray,
+    levels: Mapping[str, tuple[float, float]],
+    session_trend: bool,
+) -> tuple[Structure, float]:
+    """``structure`` with the error model's arm on the measured poses ``T_meas`` (F, 4, 4): a
+    correction per pose, one per orientation group, a trend along each group's moves (with
+    ``session_trend``, one over a classic eye-in-hand session whose groups have none) and the
+    field the trends share (:func:`common_trend`), at ``levels``: each source's share of a
+    frame's error (rad, m) by the names of ``ARM_SOURCES``. Returns it and the trend frames'
+    rms offset (metres, over every frame)."""
+    pose_groups = orientation_groups(T_meas)
+    trend_groups, coords, dims = translation_trends(T_meas, pose_groups)
+    if not dims and session_trend and structure.eye_in_hand:
+        if len(T_meas) >= SESSION_TREND_MIN_FRAMES:  # one trend over the session
+            whole = np.zeros(len(T_meas), dtype=int)
+            trend_groups, coords, dims = translation_trends(T_meas, whole)
+    spread = float(np.sqrt(np.mean(np.sum(coords**2, axis=1)))) if dims else 1.0
+    fixed = len(dims) == 1 and len(np.unique(pose_groups)) == 1  # one orientation: fx's scale
+    common, rotation, share = common_trend(T_meas, trend_groups, dims)
+    trend, field_level = np.asarray(levels["trend"]) / spread, levels["field"]
+    noisy = replace(
+        structure,
+        T_meas=T_meas,
+        pose_sigma=tuple(levels["pose"]),
+        pose_groups=pose_groups if _shared_groups(pose_groups) else None,
+        group_sigma=tuple(levels["group"]),
+        trend_groups=trend_groups if dims else None,
+        trend_coords=coords if dims else None,
+        trend_dims=dims,
+        trend_sigma=(trend[0], SIGMA_FLOOR[1] if fixed else trend[1]) if dims else None,
+        trend_scale_fixed=fixed,
+        common_map=common,
+        common_rotation=rotation,
+        common_sigma=(field_level[0] / share[0], field_level[1] / max(share[1], 1e-3))
+        if common is not None
+        else None,
+        common_spread=share,
+    )
+    return noisy, spread
 
 
 def translation_trends(

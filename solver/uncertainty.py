@@ -37,7 +37,6 @@ from slidecal.solver.model import (
     Structure,
     build_structure,
     fisher_covariance,
-    orientation_groups,
     with_pose_corrections,
 )
 from slidecal.solver.problem import (
@@ -48,7 +47,7 @@ from slidecal.solver.problem import (
     hand_eye_names,
     mount_names,
 )
-from slidecal.solver.refine import SIGMA_FLOOR, RefineOutput, common_trend, translation_trends
+from slidecal.solver.refine import ARM_SOURCES, SIGMA_FLOOR, RefineOutput, arm_structure
 from slidecal.solver.result import ROT, TRANS, NamedCovariance
 from slidecal.solver.robot_error import (
     ImageErrors,
@@ -533,10 +532,6 @@ def is_legacy(names: tuple[str, ...] | list[str]) -> bool:
 
 
 # -- a plan's prediction (the planner's) -------------------------------------------------------
-#: The arm's error sources a plan's prediction models (docs/ERROR_MODEL.md S3-S5).
-_SOURCES = ("pose", "group", "trend", "field")
-
-
 def planned_covariance(
     problem: CalibrationProblem,
     truth: ModelState,
@@ -562,8 +557,8 @@ def planned_covariance(
     st = build_structure(problem, truth.X[0][:3, :3])
     o = problem.options
     sig = (max(np.radians(o.robot_noise_deg), SIGMA_FLOOR[0]), max(o.robot_noise_m, SIGMA_FLOOR[1]))
-    given = levels if levels else dict.fromkeys(_SOURCES, sig)
-    lv = {k: np.maximum(given.get(k, SIGMA_FLOOR), SIGMA_FLOOR) for k in _SOURCES}
+    given = levels if levels else dict.fromkeys(ARM_SOURCES, sig)
+    lv = {k: np.maximum(given.get(k, SIGMA_FLOOR), SIGMA_FLOOR) for k in ARM_SOURCES}
     T = np.stack([f.T_base_tool for f in problem.frames])
     st = replace(st, T_meas=T, pose_sigma=tuple(lv["pose"]))
     if per_frame:
@@ -573,28 +568,7 @@ def planned_covariance(
     if st.unobservable:
         name, why = next(iter(st.unobservable.items()))
         raise DegenerateError(f"the plan leaves {name} unobservable: {why}")
-    groups = orientation_groups(T)
-    trend_groups, coords, dims = translation_trends(T, groups)
-    spread = float(np.sqrt(np.mean(np.sum(coords**2, axis=1)))) if dims else 1.0
-    common, rotation, share = common_trend(T, trend_groups, dims)
-    fixed = len(dims) == 1 and len(set(groups)) == 1  # one orientation: its scale is fx's
-    trend = lv["trend"] / spread
-    st = replace(
-        st,
-        pose_groups=groups if len(set(groups)) > 1 and np.bincount(groups).min() >= 2 else None,
-        group_sigma=tuple(lv["group"]),
-        trend_groups=trend_groups if dims else None,
-        trend_coords=coords if dims else None,
-        trend_dims=dims,
-        trend_sigma=(trend[0], SIGMA_FLOOR[1] if fixed else trend[1]) if dims else None,
-        trend_scale_fixed=fixed,
-        common_map=common,
-        common_rotation=rotation,
-        common_sigma=(lv["field"][0] / share[0], lv["field"][1] / max(share[1], 1e-3))
-        if common is not None
-        else None,
-        common_spread=share,
-    )
+    st = arm_structure(st, T, lv, False)[0]
     size = {k: sl.stop - sl.start for k, sl in BundleModel(problem, st).slices.items()}
     n = (size.get("U", 0) // 6, size.get("V", 0), size.get("W", 0))
     state = with_pose_corrections(truth, len(T), *n)
