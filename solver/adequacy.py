@@ -16,7 +16,7 @@ from typing import ClassVar
 import cv2
 import numpy as np
 
-from slidecal.solver.detect import half_turn_symmetric, half_turn_T, half_turns
+from slidecal.solver.detect import board_poses, half_turn_symmetric, half_turn_T, half_turns
 from slidecal.solver.free_pose import FreePoseFit, free_pose_fit, model_starts, session_images
 from slidecal.solver.geometry import (
     R_from_quat_wxyz,
@@ -273,34 +273,17 @@ def _images_alone(
     problem: CalibrationProblem, min_points: int = 6
 ) -> tuple[list[int], list[np.ndarray]] | None:
     """The reference camera's board poses ``T_cam_board`` from the images alone
-    (``cv2.calibrateCamera``, Zhang's method) on the images with ``min_points`` points or more,
-    and the frame indices they belong to; None when the session cannot give them (no robot
-    poses, one orientation, fewer than 4 such images)."""
+    (:func:`board_poses`) on the images with ``min_points`` points or more, and the frame
+    indices they belong to; None when the session cannot give them (no robot poses, one
+    orientation, fewer than 4 such images)."""
     if problem.knowledge != "robot":
         return None
-    ref = problem.reference
-    spec = problem.camera(ref)
     T_tool = np.stack([f.T_base_tool for f in problem.frames])
     spread = max(rotation_angle_deg(T_tool[0, :3, :3], T[:3, :3]) for T in T_tool)
-    if spread < PAIRING_MIN_ROTATION_DEG:  # one orientation: Zhang cannot run
+    if spread < PAIRING_MIN_ROTATION_DEG:  # one orientation: no pose from the images alone
         return None
-    frames, obj, img = [], [], []
-    for k, f in enumerate(problem.frames):
-        d = f.detections.get(ref)
-        if d is not None and len(d.ids) >= min_points:
-            frames.append(k)
-            obj.append(problem.target.points_m[d.ids].astype(np.float32))
-            img.append(d.px.reshape(-1, 1, 2).astype(np.float32))
-    if len(frames) < 4:
-        return None
-    try:
-        _, _, _, rvecs, tvecs = cv2.calibrateCamera(obj, img, (spec.width, spec.height), None, None)
-    except cv2.error:
-        return None
-    T_cam = [
-        T_from_Rt(cv2.Rodrigues(r)[0], t.reshape(3)) for r, t in zip(rvecs, tvecs, strict=True)
-    ]
-    return frames, T_cam
+    seen = board_poses(problem, problem.reference, min_points)
+    return (list(seen), list(seen.values())) if len(seen) >= 4 else None
 
 
 def record_check(problem: CalibrationProblem) -> str | None:

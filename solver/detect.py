@@ -1105,18 +1105,21 @@ def half_turn_T(target: Target) -> np.ndarray:
     return T_from_Rt(Rz(np.pi), np.array([2.0 * c[0], 2.0 * c[1], 0.0]))
 
 
-def board_poses(problem: CalibrationProblem, cam: str) -> dict[int, np.ndarray]:
-    """``T_cam_board`` (4, 4) of each frame (index) where ``cam`` saw at least 4 corners, from the
-    images alone: OpenCV's pinhole calibration from a guess (f the image's long side, the
-    principal point at its centre; one orientation's frames then keep equal rotations), then
-    with the principal point and distortion free where that fits better; each frame's own PnP
-    with the guess where OpenCV fails. A half turn changes no frame's intrinsics."""
+def board_poses(
+    problem: CalibrationProblem, cam: str, min_points: int = 4
+) -> dict[int, np.ndarray]:
+    """``T_cam_board`` (4, 4) of each frame (index) where ``cam`` saw ``min_points`` corners or
+    more, from the images alone: OpenCV's pinhole calibration from a guess (f the image's long
+    side, the principal point at its centre; one orientation's frames then keep equal
+    rotations), then with the principal point and distortion free where that fits better; each
+    frame's own PnP with the guess where OpenCV fails. A half turn changes no frame's
+    intrinsics."""
     w, h = problem.camera(cam).width, problem.camera(cam).height
     K = np.array([[max(w, h), 0.0, (w - 1) / 2], [0.0, max(w, h), (h - 1) / 2], [0.0, 0.0, 1.0]])
     idx, obj, img = [], [], []
     for k, f in enumerate(problem.frames):
         d = f.detections.get(cam)
-        if d is not None and len(d.ids) >= 4:
+        if d is not None and len(d.ids) >= min_points:
             idx.append(k)
             obj.append(problem.target.points_m[d.ids].astype(np.float32))
             img.append(d.px.reshape(-1, 1, 2).astype(np.float32))
