@@ -289,7 +289,7 @@ def _images_alone(
 def record_check(problem: CalibrationProblem) -> str | None:
     """What is wrong with the robot's records, told from the images alone: read in another
     convention (:func:`convention_check`: one reading then fits every frame), else paired with
-    the wrong images (:func:`pairing_check`; a rotation read in the wrong convention also
+    the wrong images (:func:`_pairing`; a rotation read in the wrong convention also
     changes the angles between frames, so the convention is asked first). One OpenCV
     calibration for both; None when neither is found. Run it for a result already in doubt."""
     seen = _images_alone(problem)
@@ -298,19 +298,13 @@ def record_check(problem: CalibrationProblem) -> str | None:
     return _convention(problem, *seen) or _pairing(problem, *seen)
 
 
-def pairing_check(problem: CalibrationProblem) -> str | None:
-    """Whether the robot poses and the images are paired as recorded, told without the robot
-    model: the reference camera's board poses from the images alone give its motion between
-    every two frames, whose rotation angle must equal the robot's and a pure move's length the
-    robot's up to one scale (limits ``MAX_PAIRING_ROTATION_DEG``, ``MAX_PAIRING_LENGTH``). Names
-    the shift of ``PAIRING_SHIFTS`` that fits, or the frames that disagree; None when they agree
-    or the session cannot tell. Costs an OpenCV calibration."""
-    seen = _images_alone(problem)
-    return None if seen is None else _pairing(problem, *seen)
-
-
 def _pairing(problem: CalibrationProblem, frames: list[int], T_cam: list[np.ndarray]) -> str | None:
-    """:func:`pairing_check` on the images-alone poses ``T_cam`` of ``frames``."""
+    """Whether the robot poses and the images are paired as recorded, told without the robot
+    model from the images-alone poses ``T_cam`` of ``frames``: the reference camera's motion
+    between every two frames must have the robot's rotation angle, and a pure move the robot's
+    length up to one scale (limits ``MAX_PAIRING_ROTATION_DEG``, ``MAX_PAIRING_LENGTH``). Names
+    the shift of ``PAIRING_SHIFTS`` that fits, or the frames that disagree; None when they agree
+    or the session cannot tell."""
     T_tool = np.stack([f.T_base_tool for f in problem.frames])
 
     def scores(shift: int, T_cam: list[np.ndarray] = T_cam) -> dict[tuple[int, int], float]:
