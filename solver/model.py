@@ -38,6 +38,9 @@ POSE_AXES = ("rx", "ry", "rz", "tx", "ty", "tz")
 #: The axes of the pose correction that drift linearly along a group's translations
 #: (``Structure.trend_*``).
 TREND_AXES = (0, 1, 2, 3, 4, 5)
+_ROTATION_AXES = np.array([True, True, True, False, False, False])
+#: The model's attribute holding the levels of each block of corrections (``BundleModel.levels``)
+LEVELS = {"E": "pose_sigma", "U": "group_sigma", "V": "trend_sigma", "W": "common_sigma"}
 
 
 @dataclass(frozen=True)
@@ -572,7 +575,7 @@ class BundleModel:
             projections.append(pr)
         r = (px - self.o_px).reshape(-1)
         if "E" in self.slices:
-            r = np.concatenate([r, self.prior_scale * state.E.reshape(-1)])
+            r = np.concatenate([r, self.prior_scale("E") * state.E.reshape(-1)])
         for _, scale, values in self._shared_priors(state):
             r = np.concatenate([r, scale * values])
         if not jacobian:
@@ -636,7 +639,7 @@ class BundleModel:
                 J[:, :, sw] = np.einsum("nab,nbm->nam", blk, Sw[f])
             _put_cols(J, self.slices["E"].start + f[:, None] * 6 + np.arange(6), blk)
             blocks = [J.reshape(2 * n, P_)]
-            priors = [(self.slices["E"], self.prior_scale)]
+            priors = [(self.slices["E"], self.prior_scale("E"))]
             for sl, scale in priors + [(su, scale) for su, scale, _ in self._shared_priors(state)]:
                 prior = np.zeros((sl.stop - sl.start, P_))
                 prior[np.arange(prior.shape[0]), np.arange(sl.start, sl.stop)] = scale
@@ -697,7 +700,7 @@ class BundleModel:
                 A_gg, g_g, A_gE = self._with_shared(A_gg, g_g, A_gE, A_EE, g_E)
             if keep:
                 self._normal_cache = (state, w.copy(), rp, A_gg, g_g, A_gE, A_EE, g_E)
-        ps = self.prior_scale
+        ps = self.prior_scale("E")
         r_prior = [ps * state.E.reshape(-1)]
         A_EE = A_EE.copy()
         idx = np.arange(6)
@@ -876,15 +879,14 @@ class BundleModel:
 
     def _shared_priors(self, state: ModelState) -> list[tuple[slice, np.ndarray, np.ndarray]]:
         """(columns, pixel-unit prior scale, values) of the corrections shared by several frames
-        (the groups' ``U``, then the trends' ``V``): their prior rows follow the frames' ones."""
-        out = []
-        if "U" in self.slices:
-            out.append((self.slices["U"], self.group_prior_scale, state.U.reshape(-1)))
-        if "V" in self.slices:
-            out.append((self.slices["V"], self.trend_prior_scale, state.V))
-        if "W" in self.slices:  # the corrections the trend groups share
-            out.append((self.slices["W"], self.common_prior_scale, state.W))
-        return out
+        (the groups' ``U``, the trends' ``V``, the field's ``W``): their prior rows follow the
+        frames' ones."""
+        shared = (("U", state.U), ("V", state.V), ("W", state.W))
+        return [
+            (self.slices[k], self.prior_scale(k), v.reshape(-1))
+            for k, v in shared
+            if k in self.slices
+        ]
 
     def _trend_columns(self, J: np.ndarray, blk: np.ndarray) -> None:
         """Fill the trend columns of ``J`` (n, 2, P) from every observation's pose block."""
@@ -898,40 +900,11 @@ class BundleModel:
             J[idx, :, o : o + cols.shape[2] * m] = cols.reshape(len(idx), 2, -1)
 
     @property
-    def trend_rotation_rows(self) -> np.ndarray:
-        """(n,) bool over the trend coordinates ``V``: True for those of a rotation axis."""
-        return np.concatenate([np.repeat(np.array(TREND_AXES) < 3, m) for m in self.st.trend_dims])
-
-    @property
     def trend_spread(self) -> float:
         """Rms (metres) of the trend frames' offsets from their groups' means: a trend level
         times it is the trend's share of a frame's correction."""
         c = self.st.trend_coords[self.st.trend_groups >= 0]
         return float(np.sqrt(np.mean(np.sum(c**2, axis=1))))
-
-    @property
-    def common_rotation_rows(self) -> np.ndarray:
-        """(n,) bool over the common trend's coordinates ``W``: True for a rotation's."""
-        return self.st.common_rotation
-
-    @property
-    def common_spread(self) -> tuple[float, float]:
-        """(rotation, translation) metres: a level of the shared corrections ``W`` times it is
-        its share of a frame's correction, per axis."""
-        return self.st.common_spread
-
-    @property
-    def common_prior_scale(self) -> np.ndarray:
-        """(n,) pixel-unit scale of the common trend's prior rows."""
-        rot, t = self.common_sigma
-        return self.sigma_px * np.where(self.st.common_rotation, 1.0 / rot, 1.0 / t)
-
-    @property
-    def trend_prior_scale(self) -> np.ndarray:
-        """(n,) pixel-unit scale of the trends' prior rows."""
-        rot, t = self.trend_sigma
-        one = np.array([1.0 / rot] * 3 + [1.0 / t] * 3)[list(TREND_AXES)]
-        return self.sigma_px * np.concatenate([np.repeat(one, m) for m in self.st.trend_dims])
 
     def pose_corrections(self, state: ModelState) -> np.ndarray | None:
         """(F, 6) the whole correction of every measured pose (rotation vector, translation):
@@ -949,20 +922,35 @@ class BundleModel:
         F, _, m = S.shape
         return state.E + (S.reshape(6 * F, m) @ np.concatenate(parts)).reshape(F, 6)
 
-    @property
-    def group_prior_scale(self) -> np.ndarray:
-        """(6G,) pixel-unit scale of the group corrections' prior rows."""
-        rot, t = self.group_sigma
-        one = np.array([1.0 / rot] * 3 + [1.0 / t] * 3)
-        su = self.slices["U"]
-        return self.sigma_px * np.tile(one, (su.stop - su.start) // 6)
+    def levels(self, key: str) -> tuple[float, float]:
+        """The (rotation, translation) levels of the corrections ``key``: ``E`` the frames' own
+        and ``U`` the groups' (radians, metres), ``V`` the trends' and ``W`` the shared field's
+        (per metre)."""
+        return getattr(self, LEVELS[key])
 
-    @property
-    def prior_scale(self) -> np.ndarray:
-        """(6F,) pixel-unit scale of the pose-correction prior rows: sigma_px / sigma_axis."""
-        rot, t = self.pose_sigma
-        one = np.array([1.0 / rot] * 3 + [1.0 / t] * 3)
-        return self.sigma_px * np.tile(one, len(self.problem.frames))
+    def rotation_rows(self, key: str) -> np.ndarray:
+        """(n,) bool over the coordinates of the corrections ``key``: True for a rotation's."""
+        if key == "V":
+            return np.concatenate(
+                [np.repeat(np.array(TREND_AXES) < 3, m) for m in self.st.trend_dims]
+            )
+        if key == "W":
+            return self.st.common_rotation
+        sl = self.slices[key]
+        return np.tile(_ROTATION_AXES, (sl.stop - sl.start) // 6)
+
+    def prior_scale(self, key: str) -> np.ndarray:
+        """(n,) pixel-unit scale of the prior rows of the corrections ``key``: sigma_px / level."""
+        rot, t = self.levels(key)
+        return self.sigma_px * np.where(self.rotation_rows(key), 1.0 / rot, 1.0 / t)
+
+    def level_share(self, key: str) -> float | tuple[float, float]:
+        """A level of the corrections ``key`` times this is its share of a frame's correction
+        (per axis): 1 for the frames' own and the groups', the trend frames' rms offset for the
+        trends (metres), (rotation, translation) for the shared field (``Structure``)."""
+        if key == "V":
+            return self.trend_spread
+        return self.st.common_spread if key == "W" else 1.0
 
     def true_motions(self, state: ModelState) -> np.ndarray:
         """``M_k`` (F, 4, 4) with the Case 2 lengths and the robot pose corrections applied

@@ -16,6 +16,7 @@ import numpy as np
 from slidecal.solver.free_pose import FreePoseFit, free_pose_fit, model_starts, session_images
 from slidecal.solver.geometry import rvec_from_R
 from slidecal.solver.model import (
+    LEVELS,
     BlockInverse,
     BundleModel,
     ModelState,
@@ -248,7 +249,7 @@ def refine(
     if "V" in m.slices:  # a trend's share of a frame's error: its level times the offset
         levels["trend"] = tuple(spread * np.asarray(m.trend_sigma))
     if "W" in m.slices:  # what the groups share: its levels times their shares
-        levels["field"] = tuple(np.asarray(m.common_spread) * np.asarray(m.common_sigma))
+        levels["field"] = tuple(np.asarray(m.st.common_spread) * np.asarray(m.common_sigma))
     total = tuple(float(np.linalg.norm(axis)) for axis in zip(*levels.values(), strict=True))
     out = replace(out, robot_levels={k: (float(r), float(t)) for k, (r, t) in levels.items()})
     return _with_robot(
@@ -488,9 +489,6 @@ def _refine(
     return s.output()
 
 
-_ROT_ROWS = np.array([True, True, True, False, False, False])
-
-
 class _Solve:
     """One solve's mutable state: the model, the state, the inlier rows and per-camera weights,
     and the variance components' iteration (Foerstner's steps with Steffensen's acceleration)."""
@@ -544,27 +542,20 @@ class _Solve:
             out.append(np.sqrt(np.sum(r[m] ** 2) / dof) if n else np.nan)
         return np.array(out)
 
-    def _prior_hats(self, Ni: BlockInverse) -> tuple[np.ndarray, ...]:
-        """The hat matrix's diagonal over the prior rows of E, U, V and W (empty when absent)."""
+    def _prior_hats(self, Ni: BlockInverse) -> dict[str, np.ndarray]:
+        """The hat matrix's diagonal over the prior rows of each block of corrections (E, U, V,
+        W) the model has."""
         model = self.model
-        diag_E = np.diagonal(Ni.EE, axis1=1, axis2=2).reshape(-1)
-        h = np.clip(model.prior_scale**2 * diag_E, 0.0, 1.0)
-        h_u = h_v = h_w = np.zeros(0)
-        if "U" in model.slices:
-            diag_U = np.diagonal(Ni.gg)[model.slices["U"]]
-            h_u = np.clip(model.group_prior_scale**2 * diag_U, 0.0, 1.0)
-        if "V" in model.slices:
-            diag_V = np.diagonal(Ni.gg)[model.slices["V"]]
-            h_v = np.clip(model.trend_prior_scale**2 * diag_V, 0.0, 1.0)
-        if "W" in model.slices:
-            diag_W = np.diagonal(Ni.gg)[model.slices["W"]]
-            h_w = np.clip(model.common_prior_scale**2 * diag_W, 0.0, 1.0)
-        return h, h_u, h_v, h_w
+        diag = {"E": np.diagonal(Ni.EE, axis1=1, axis2=2).reshape(-1)}
+        for key in ("U", "V", "W"):
+            if key in model.slices:
+                diag[key] = np.diagonal(Ni.gg)[model.slices[key]]
+        return {k: np.clip(model.prior_scale(k) ** 2 * d, 0.0, 1.0) for k, d in diag.items()}
 
     def _pose_levels(self, E: np.ndarray, h: np.ndarray) -> list[float]:
         """Foerstner's step for the frames' own two levels (rotation, translation)."""
         model = self.model
-        is_rot = np.tile(_ROT_ROWS, len(self.problem.frames))
+        is_rot = model.rotation_rows("E")
         new_pose, reds = [], []
         for comp, floor, old in zip((is_rot, ~is_rot), SIGMA_FLOOR, model.pose_sigma, strict=True):
             red = float(np.sum(1.0 - h[comp]))
@@ -597,7 +588,7 @@ class _Solve:
         r = nb.r.copy()
         r[:n_px] += model.pixel_step(state, delta)
         moved = model.apply(state, delta)  # E, U and V at the step (linear in delta)
-        h, h_u, h_v, h_w = self._prior_hats(Ni)
+        hats = self._prior_hats(Ni)
         sig = []
         for ci, rows in enumerate(self.cam_rows):
             m = rows & inlier
@@ -605,13 +596,13 @@ class _Solve:
                 sig.append(np.nan)
                 continue
             if len(self.cam_rows) == 1:  # the hat matrix's trace is P: the prior rows take sum(h)
-                used = len(model.names) - float(np.sum(h) + np.sum(h_u) + np.sum(h_v) + np.sum(h_w))
+                used = len(model.names) - float(sum(np.sum(h) for h in hats.values()))
             else:
                 used = self.camera_trace(Ni, ci, m)
             sig.append(np.sqrt(np.sum(r[m] ** 2) / max(m.sum() - used, 1.0)))
         sig = np.array(sig)
         ref_i = model.cams.index(model.ref)
-        new_pose = self._pose_levels(moved.E.reshape(-1), h)
+        new_pose = self._pose_levels(moved.E.reshape(-1), hats["E"])
         self.vce_step += 1
         changed = False
         ok = np.isfinite(sig) & (sig > 0)
@@ -630,24 +621,12 @@ class _Solve:
             if abs(new / old - 1.0) > 0.03 and max(new, old) > 2 * floor:
                 changed = True
         model.pose_sigma = (new_pose[0], new_pose[1])
-        if len(h_u):  # the orientation groups' shared corrections: their own two levels
-            U = moved.U.reshape(-1)
-            u_rot = np.tile(_ROT_ROWS, len(U) // 6)
-            model.group_sigma, shifted = self.shared_levels(
-                "U", U, h_u, u_rot, model.group_sigma, 1.0
-            )
-            changed |= shifted
-        if len(h_v):  # the trends along the moves: two levels of their own
-            model.trend_sigma, shifted = self.shared_levels(
-                "V", moved.V, h_v, model.trend_rotation_rows, model.trend_sigma, model.trend_spread
-            )
-            changed |= shifted
-        if len(h_w):  # the trend every group shares: two levels of its own
-            model.common_sigma, shifted = self.shared_levels(
-                "W", moved.W, h_w, model.common_rotation_rows, model.common_sigma,
-                model.common_spread,
-            )
-            changed |= shifted
+        for key in ("U", "V", "W"):  # the groups', the trends' and the field's own two levels
+            if key in hats:
+                values = getattr(moved, key).reshape(-1)
+                level, shifted = self.shared_levels(key, values, hats[key])
+                setattr(model, LEVELS[key], level)
+                changed |= shifted
         if any(v > lim for v, lim in zip(new_pose, SIGMA_BEYOND, strict=True)):
             return False
         return changed
@@ -664,23 +643,18 @@ class _Solve:
         return float(self.cam_w[np.flatnonzero(m)[0]]) * Ni.trace_with(hit[2])
 
     def shared_levels(
-        self,
-        key: str,
-        values: np.ndarray,
-        h_s: np.ndarray,
-        rot: np.ndarray,
-        levels: tuple,
-        per_frame: float | tuple[float, float],
+        self, key: str, values: np.ndarray, h_s: np.ndarray
     ) -> tuple[tuple[float, float], bool]:
-        """Foerstner's step for the two levels (rotation, translation) of corrections shared by
-        several frames; the new levels and whether one that matters moved by more than 3 %.
-        ``per_frame`` turns a level into its share of a frame's correction: a share below a
-        tenth of the frames' own level adds under 1 % to their variance, and its creeping
-        keeps no iteration going."""
+        """Foerstner's step for the two levels (rotation, translation) of the corrections ``key``
+        shared by several frames (``values``, the hat matrix's diagonal ``h_s`` over their prior
+        rows); the new levels and whether one that matters moved by more than 3 %. A share of a
+        frame's correction (``BundleModel.level_share``) below a tenth of the frames' own level
+        adds under 1 % to their variance, and its creeping keeps no iteration going."""
         model = self.model
         new, moved, reds, data = [], False, [], []
+        rot, per_frame = model.rotation_rows(key), model.level_share(key)
         for comp, floor, old, own in zip(
-            (rot, ~rot), SIGMA_FLOOR, levels, model.pose_sigma, strict=True
+            (rot, ~rot), SIGMA_FLOOR, model.levels(key), model.pose_sigma, strict=True
         ):
             red = float(np.sum(1.0 - h_s[comp]))
             reds.append(red)

@@ -102,21 +102,11 @@ def level_excess(
     if out.covariance_blocks is None or not red or m.pose_sigma is None:
         return None
     sig = np.asarray(m.pose_sigma, float)
-    blocks = []  # (key, levels, per-frame share of a level, rotation rows)
-    for key in ("E", "U", "V", "W"):
-        if key not in m.slices or key not in red:
-            continue
-        n = m.slices[key].stop - m.slices[key].start
-        if key == "V":
-            rot = m.trend_rotation_rows
-            blocks.append((key, np.asarray(m.trend_sigma, float), m.trend_spread, rot))
-        elif key == "W":
-            rot = m.common_rotation_rows
-            blocks.append((key, np.asarray(m.common_sigma, float), m.common_spread, rot))
-        else:
-            rot = np.tile([True, True, True, False, False, False], n // 6)
-            levels = sig if key == "E" else np.asarray(m.group_sigma, float)
-            blocks.append((key, levels, 1.0, rot))
+    blocks = [  # (key, levels, per-frame share of a level, rotation rows)
+        (key, np.asarray(m.levels(key), float), m.level_share(key), m.rotation_rows(key))
+        for key in ("E", "U", "V", "W")
+        if key in m.slices and key in red
+    ]
     k = len(out.names) if project is None else len(project[0])
     excess = np.zeros((k, k))
     for key, levels, per_frame, rot in blocks:
@@ -286,7 +276,7 @@ def _linear_field(out: RefineOutput, A: np.ndarray) -> np.ndarray | None:
         trends = [np.flatnonzero(st.trend_groups == g) for g in range(len(st.trend_dims))]
         coords = [st.trend_coords[k, :d] for k, d in zip(trends, st.trend_dims, strict=True)]
         level = tau
-        if "W" in m.slices and m.common_sigma is not None and np.any(~m.common_rotation_rows):
+        if "W" in m.slices and m.common_sigma is not None and np.any(~m.st.common_rotation):
             level = max(level, float(m.common_sigma[1]))  # its linear part >= the quadratic
         floored, short = _untold_trends(m)
         if floored[1] or any(short) or _session_trend(out):
