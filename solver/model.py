@@ -628,15 +628,9 @@ class BundleModel:
             blk = self._pose_block(A, RX, RM, p_Y, Ms)
             if split:
                 return r, self._pixel_jacobian(J, transposed), blk
-            if "U" in self.slices:  # a group's correction moves its frames like theirs
-                ucols = self.slices["U"].start + self.st.pose_groups[f][:, None] * 6 + np.arange(6)
-                _put_cols(J, ucols, blk)
-            if "V" in self.slices:  # a trend moves a frame like its own correction, times c_k
-                self._trend_columns(J, blk)
-            if "W" in self.slices:  # so do the corrections the groups share, through their map
-                sw, s0 = self.slices["W"], self.shared_start
-                Sw = self.shared_map[:, :, sw.start - s0 : sw.stop - s0]
-                J[:, :, sw] = np.einsum("nab,nbm->nam", blk, Sw[f])
+            if self.shared_map is not None:  # they move each frame like its own, through S
+                shared = slice(self.shared_start, self.slices["E"].start)
+                J[:, :, shared] = np.einsum("nab,nbm->nam", blk, self.shared_map[f])
             _put_cols(J, self.slices["E"].start + f[:, None] * 6 + np.arange(6), blk)
             blocks = [J.reshape(2 * n, P_)]
             priors = [(self.slices["E"], self.prior_scale("E"))]
@@ -887,17 +881,6 @@ class BundleModel:
             for k, v in shared
             if k in self.slices
         ]
-
-    def _trend_columns(self, J: np.ndarray, blk: np.ndarray) -> None:
-        """Fill the trend columns of ``J`` (n, 2, P) from every observation's pose block."""
-        st, f = self.st, self.o_frame
-        tg = st.trend_groups[f]
-        for g, m in enumerate(st.trend_dims):
-            idx = np.flatnonzero(tg == g)
-            c = st.trend_coords[f[idx], :m]
-            cols = np.einsum("nac,nj->nacj", blk[idx][:, :, list(TREND_AXES)], c)
-            o = self.slices["V"].start + self.trend_offsets[g]
-            J[idx, :, o : o + cols.shape[2] * m] = cols.reshape(len(idx), 2, -1)
 
     @property
     def trend_spread(self) -> float:
