@@ -49,8 +49,6 @@ GROSS_PX = 20.0
 MATCH_M = 1e-3
 MATCH_DEG = 0.1
 
-PARAMETERS = ("shift_x", "shift_y", "scale", "rotation")
-
 
 @dataclass(frozen=True)
 class DisplacementField:

@@ -1,23 +1,9 @@
 """The bundle model: its state, structure, residuals and Jacobians, and its Fisher information.
 
-docs/METHOD.md Secs. 5 and 6 (the optimiser: :mod:`slidecal.solver.refine`).
-
-The model, for camera ``c`` of a rig and frame ``k`` of orientation group ``g``::
-
-    P_c = T_c_ref  X_g  M_k  Y  p_board,     x = project(K_c, dist_c, P_c)
-
-- knowledge "robot", eye_in_hand: ``X = T_cam_tool`` (inverse hand-eye), ``M_k = T_tool_base(k)``
-  (measured, inverted), ``Y = T_base_board``; one ``X`` for all frames.
-- knowledge "robot", eye_to_hand: ``X = T_cam_base``, ``M_k = T_base_tool(k)``,
-  ``Y = T_tool_board``.
-- "board_translation" (paper's Case 3): ``X_g = T_cam_board`` of the group's first frame,
-  ``M_k = Trans(-T_k)`` with ``T_k`` the known camera displacement (board frame), ``Y = I``.
-- "board_direction" (Case 2): as Case 3 with ``T_k = s_k n_k``, lengths ``s_k`` unknown.
-- "none" (Zhang): one ``X`` per frame, ``M = Y = I``.
-
-Rotations are updated on the left (``R <- exp([d]x) R``); Jacobians are analytic (chain rule
-through :mod:`slidecal.solver.camera`). Parameters the data cannot determine are not estimated:
-each block carries a basis of its observable directions, and what was fixed is reported.
+The model ``P_c = T_c_ref X_g M_k Y p`` of every knowledge and mount is docs/METHOD.md Sec. 5's
+(the optimiser: :mod:`slidecal.solver.refine`). Rotations are updated on the left
+(``R <- exp([d]x) R``); Jacobians are analytic (chain rule through
+:mod:`slidecal.solver.camera`).
 """
 
 from __future__ import annotations

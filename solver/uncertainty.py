@@ -2,23 +2,9 @@
 
 The optimiser (:mod:`slidecal.solver.refine`) keeps its own coordinates (the inverse hand-eye
 ``X`` in an observable basis, the target pose ``Y``, robot-pose corrections, ...). This module
-is the one place that turns them into what a result reports:
-
-- per camera ``<cam>.fx``, ``.fy``, ``.cx``, ``.cy`` (and ``.s`` with skew) in pixels, and the
-  estimated distortion coefficients ``<cam>.k1`` ... (OpenCV order);
-- the hand-eye transform as reported, ``T_tool_cam`` (eye-in-hand) or ``T_base_cam``
-  (eye-to-hand); in a rig one per camera, ``T_tool_<cam>`` / ``T_base_<cam>`` (as the result
-  file names them, :func:`hand_eye_names`);
-- the target pose ``T_base_board`` (eye-in-hand) or ``T_tool_board`` (eye-to-hand);
-- the rig extrinsics ``T_<cam>_<reference>``.
-
-Convention: a transform ``T_a_b`` (rotation ``R``, translation ``t``) carries six parameters
-``T_a_b.rx, .ry, .rz`` (radians) and ``.tx, .ty, .tz`` (metres): the perturbed transform is
-``R' = exp([r]x) R`` (rotation vector ``r`` applied on the LEFT, i.e. expressed in frame ``a``)
-and ``t' = t + (tx, ty, tz)`` (frame ``a``). A component the data cannot determine is absent
-from the names (never a zero row). Robot-pose corrections, per-frame board poses and any
-other coordinate of the optimiser's that is not a reported quantity are nuisance parameters:
-marginalised (their rows dropped from the joint covariance).
+is the one place that turns them into what a result reports: the quantities, their names,
+units and perturbation convention of docs/FORMATS.md ("Covariance names"), the nuisance
+parameters marginalised.
 """
 
 from __future__ import annotations
