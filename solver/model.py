@@ -9,7 +9,7 @@ The model ``P_c = T_c_ref X_g M_k Y p`` of every knowledge and mount is docs/MET
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from threadpoolctl import ThreadpoolController
@@ -470,6 +470,19 @@ class BundleModel:
             dw = delta[self.slices["W"]]
             W = (np.zeros_like(dw) if W is None else W) + dw
         return ModelState(K, dist, T_cam_ref, X, Y, s, E, U, V, W)
+
+    def with_corrections(self, state: ModelState) -> ModelState:
+        """``state`` with zero corrections of every block the model has (``E``, ``U``, ``V``,
+        ``W``) where it holds none, or a group's or trend's of another size."""
+        zero = {}
+        for key in ("E", "U", "V", "W"):
+            if key in self.slices:
+                n = self.slices[key].stop - self.slices[key].start
+                shape = (n // 6, 6) if key in ("E", "U") else (n,)
+                have = getattr(state, key)
+                if have is None or (key != "E" and len(have) != shape[0]):
+                    zero[key] = np.zeros(shape)
+        return replace(state, **zero) if zero else state
 
     def T_ref_board(self, state: ModelState, fi: int) -> np.ndarray:
         """``T_ref_board`` (4, 4) of the reference camera at frame index ``fi``."""
@@ -1056,23 +1069,6 @@ def _step_T(T: np.ndarray, d: np.ndarray, rot_basis: np.ndarray, t_basis: np.nda
     return T_from_Rt(R, t)
 
 
-def with_pose_corrections(
-    state: ModelState, n_frames: int, n_groups: int = 0, n_trend: int = 0, n_common: int = 0
-) -> ModelState:
-    """``state`` with zero robot-pose corrections ``E`` (n_frames, 6) where it has none, and
-    zero group corrections ``U`` (n_groups, 6), trends ``V`` (n_trend,) and common trend ``W``
-    (n_common,) when asked for."""
-    E = np.zeros((n_frames, 6)) if state.E is None else state.E
-    U, V, W = state.U, state.V, state.W
-    if n_groups and (U is None or len(U) != n_groups):
-        U = np.zeros((n_groups, 6))
-    if n_trend and (V is None or len(V) != n_trend):
-        V = np.zeros(n_trend)
-    if n_common and (W is None or len(W) != n_common):
-        W = np.zeros(n_common)
-    return ModelState(state.K, state.dist, state.T_cam_ref, state.X, state.Y, state.s, E, U, V, W)
-
-
 @functools.cache
 def _blas_controller() -> ThreadpoolController:
     """One controller for the process (building one scans the loaded libraries), built on
@@ -1108,9 +1104,7 @@ def fisher_covariance(
     """
     model = BundleModel(problem, structure)
     model.sigma_px = sigma_px
-    if "E" in model.slices:
-        truth = with_pose_corrections(truth, len(problem.frames))
-    _, J = model.evaluate(truth)
+    _, J = model.evaluate(model.with_corrections(truth))
     w = np.ones(J.shape[0])
     for ci, c in enumerate(model.cams):
         sc = (camera_sigma_px or {}).get(c, sigma_px)

@@ -24,7 +24,6 @@ from slidecal.solver.model import (
     Structure,
     orientation_groups,
     single_threaded_blas,
-    with_pose_corrections,
 )
 from slidecal.solver.numeric import f_tail
 from slidecal.solver.problem import CalibrationProblem
@@ -499,25 +498,13 @@ class _Solve:
         model = BundleModel(problem, structure)
         self.problem, self.model = problem, model
         n_px = model.n_rows
-        n_prior = 6 * len(problem.frames) if "E" in model.slices else 0
-        n_groups_u = 0
-        if "U" in model.slices:
-            n_groups_u = (model.slices["U"].stop - model.slices["U"].start) // 6
-            n_prior += 6 * n_groups_u
-        n_trend = model.slices["V"].stop - model.slices["V"].start if "V" in model.slices else 0
-        n_common = model.slices["W"].stop - model.slices["W"].start if "W" in model.slices else 0
-        n_prior += n_trend + n_common
+        n_prior = sum(sl.stop - sl.start for k, sl in model.slices.items() if k in LEVELS)
         self.n_px, self.n_prior = n_px, n_prior
         self.estimate = estimate and n_prior > 0
         self.inlier = np.ones(n_px + n_prior, dtype=bool)
         self.cam_w = np.ones(n_px + n_prior)  # per-camera noise weights, relative to the ref
         self.cam_rows = [model.camera_rows(ci, n_px + n_prior) for ci in range(len(model.cams))]
-        state = _respect_options(problem, init)
-        if n_prior:
-            state = with_pose_corrections(
-                state, len(problem.frames), n_groups_u, n_trend, n_common
-            )
-        self.state = state
+        self.state = model.with_corrections(_respect_options(problem, init))
         model.sigma_px = 0.2  # a typical corner noise; re-estimated when poses are noisy
         self.total_it = 0
         self.converged = False

@@ -23,7 +23,6 @@ from slidecal.solver.model import (
     Structure,
     build_structure,
     fisher_covariance,
-    with_pose_corrections,
 )
 from slidecal.solver.problem import (
     DISTORTION_NAMES,
@@ -363,7 +362,7 @@ def equal_weight_covariance(
     st = _structure(problem, truth, structure)
     model = BundleModel(problem, st)
     model.sigma_px = 1.0  # prior rows in units of their own sigma
-    state = with_pose_corrections(truth, len(problem.frames)) if "E" in model.slices else truth
+    state = model.with_corrections(truth)
     _, J = model.evaluate(state)
     sig_rows = np.repeat(np.array([camera_sigma_px[c] for c in model.cams])[model.o_cam], 2)
     n_px = len(sig_rows)
@@ -408,7 +407,7 @@ def linearised_estimator(
     """The linearised estimator (:class:`LinearisedEstimator`) of ``problem`` at ``truth``."""
     st = _structure(problem, truth, structure)
     model = BundleModel(problem, st)
-    state = with_pose_corrections(truth, len(problem.frames)) if "E" in model.slices else truth
+    state = model.with_corrections(truth)
     _, J = model.evaluate(state)
     names, Jn = _jacobian(layout_of(problem, st, truth), model.names)
     scale = np.linalg.norm(J, axis=0)
@@ -449,8 +448,7 @@ def frame_information(
     ``structure``) marginalised by a Schur complement (docs/METHOD.md Sec. 6)."""
     model = BundleModel(problem, structure)
     model.sigma_px = sigma_px
-    if "E" in model.slices:
-        truth = with_pose_corrections(truth, len(problem.frames))
+    truth = model.with_corrections(truth)
     _, J = model.evaluate(truth)
     e_sl = model.slices.get("E")
     P = e_sl.start if e_sl is not None else len(model.names)
@@ -555,8 +553,5 @@ def planned_covariance(
         name, why = next(iter(st.unobservable.items()))
         raise DegenerateError(f"the plan leaves {name} unobservable: {why}")
     st = arm_structure(st, T, lv, False)[0]
-    size = {k: sl.stop - sl.start for k, sl in BundleModel(problem, st).slices.items()}
-    n = (size.get("U", 0) // 6, size.get("V", 0), size.get("W", 0))
-    state = with_pose_corrections(truth, len(T), *n)
-    names, cov = fisher_covariance(problem, st, state, sigma_px)
+    names, cov = fisher_covariance(problem, st, truth, sigma_px)
     return propagate(layout_of(problem, st, truth), names, cov)
