@@ -452,24 +452,15 @@ class BundleModel:
         s = state.s.copy()
         if len(self.s_frames):
             s[self.s_frames] += delta[self.slices["s"]]
-        E = state.E
-        if "E" in self.slices:
-            E = (np.zeros((len(self.problem.frames), 6)) if E is None else E) + delta[
-                self.slices["E"]
-            ].reshape(-1, 6)
-        U = state.U
-        if "U" in self.slices:
-            du = delta[self.slices["U"]].reshape(-1, 6)
-            U = (np.zeros_like(du) if U is None else U) + du
-        V = state.V
-        if "V" in self.slices:
-            dv = delta[self.slices["V"]]
-            V = (np.zeros_like(dv) if V is None else V) + dv
-        W = state.W
-        if "W" in self.slices:
-            dw = delta[self.slices["W"]]
-            W = (np.zeros_like(dw) if W is None else W) + dw
-        return ModelState(K, dist, T_cam_ref, X, Y, s, E, U, V, W)
+        corrections = {}  # E, U (one row of six per frame or group), V, W
+        for key in LEVELS:
+            value = getattr(state, key)
+            if key in self.slices:
+                d = delta[self.slices[key]]
+                d = d.reshape(-1, 6) if key in ("E", "U") else d
+                value = (np.zeros_like(d) if value is None else value) + d
+            corrections[key] = value
+        return ModelState(K, dist, T_cam_ref, X, Y, s, **corrections)
 
     def with_corrections(self, state: ModelState) -> ModelState:
         """``state`` with zero corrections of every block the model has (``E``, ``U``, ``V``,
@@ -572,11 +563,8 @@ class BundleModel:
             pr = project_with_jacobians(state.K[c], state.dist[c], P[idx], jacobians=jacobian)
             px[idx] = pr.px
             projections.append(pr)
-        r = (px - self.o_px).reshape(-1)
-        if "E" in self.slices:
-            r = np.concatenate([r, self.prior_scale("E") * state.E.reshape(-1)])
-        for _, scale, values in self._shared_priors(state):
-            r = np.concatenate([r, scale * values])
+        priors = self._priors(state)
+        r = np.concatenate([(px - self.o_px).reshape(-1), *(sc * v for _, sc, v in priors)])
         if not jacobian:
             return r, None
         if split:  # the shared corrections' columns derive from the pose block (normal_blocks)
@@ -632,8 +620,7 @@ class BundleModel:
                 J[:, :, shared] = np.einsum("nab,nbm->nam", blk, self.shared_map[f])
             _put_cols(J, self.slices["E"].start + f[:, None] * 6 + np.arange(6), blk)
             blocks = [J.reshape(2 * n, P_)]
-            priors = [(self.slices["E"], self.prior_scale("E"))]
-            for sl, scale in priors + [(su, scale) for su, scale, _ in self._shared_priors(state)]:
+            for sl, scale, _ in priors:
                 prior = np.zeros((sl.stop - sl.start, P_))
                 prior[np.arange(prior.shape[0]), np.arange(sl.start, sl.stop)] = scale
                 blocks.append(prior)
@@ -699,7 +686,7 @@ class BundleModel:
         idx = np.arange(6)
         A_EE[:, idx, idx] += (wp * ps * ps).reshape(F, 6)
         g_E = g_E + (wp * ps * r_prior[0]).reshape(F, 6)
-        shared = self._shared_priors(state)
+        shared = self._priors(state)[1:]
         if shared:
             A_gg, g_g = A_gg.copy(), g_g.copy()
         row = 2 * n + 6 * F
@@ -870,16 +857,12 @@ class BundleModel:
             out.append(g)
         return np.array(out)
 
-    def _shared_priors(self, state: ModelState) -> list[tuple[slice, np.ndarray, np.ndarray]]:
-        """(columns, pixel-unit prior scale, values) of the corrections shared by several frames
-        (the groups' ``U``, the trends' ``V``, the field's ``W``): their prior rows follow the
-        frames' ones."""
-        shared = (("U", state.U), ("V", state.V), ("W", state.W))
-        return [
-            (self.slices[k], self.prior_scale(k), v.reshape(-1))
-            for k, v in shared
-            if k in self.slices
-        ]
+    def _priors(self, state: ModelState) -> list[tuple[slice, np.ndarray, np.ndarray]]:
+        """(columns, pixel-unit prior scale, values) of every block of corrections the model has:
+        the frames' ``E``, then the groups' ``U``, the trends' ``V`` and the field's ``W``, as
+        their prior rows follow the pixels'."""
+        keys = [k for k in LEVELS if k in self.slices]
+        return [(self.slices[k], self.prior_scale(k), getattr(state, k).ravel()) for k in keys]
 
     @property
     def trend_spread(self) -> float:
