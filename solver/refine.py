@@ -196,21 +196,7 @@ def refine(
             sig = structure.pose_sigma if structure.pose_sigma is not None else (0.0, 0.0)
             out = _with_robot(out, sig, False, "robot noise taken from the options")
         return out
-    exact = replace(
-        structure,
-        T_meas=None,
-        pose_sigma=None,
-        pose_groups=None,
-        group_sigma=None,
-        trend_groups=None,
-        trend_coords=None,
-        trend_dims=(),
-        trend_sigma=None,
-        common_map=None,
-        common_rotation=None,
-        common_sigma=None,
-        common_spread=(0.0, 0.0),
-    )
+    exact = replace(structure, T_meas=None, pose_sigma=None)  # no corrections: E, U, V, W
     start = ModelState(init.K, init.dist, init.T_cam_ref, init.X, init.Y, init.s)
     out0 = _refine(problem, exact, start, max_iter, robust, estimate=False)
     images = session_images(out0.model, out0.inlier_rows)
