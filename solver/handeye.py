@@ -46,6 +46,16 @@ def camera_displacements(K: np.ndarray, group: LinearGroup) -> np.ndarray:
     return np.array([Kinv @ (H[0][:, 2] - Hk[:, 2]) / lam for Hk in H])
 
 
+def n_directions(v: np.ndarray) -> int:
+    """How many independent directions (0 to 3) the non-zero rows of ``v`` (n, 3) span."""
+    v = v[np.linalg.norm(v, axis=1) > 0]
+    if len(v) == 0:
+        return 0
+    u = v / np.linalg.norm(v, axis=1, keepdims=True)
+    sv = np.linalg.svd(u, compute_uv=False)
+    return int(np.sum(sv >= _MIN_SPREAD * sv[0]))
+
+
 def rotation_from_directions(
     d_cam: np.ndarray, t_robot: np.ndarray, weights: np.ndarray | None = None
 ) -> np.ndarray:
@@ -62,10 +72,7 @@ def rotation_from_directions(
     w = np.ones(len(t)) if weights is None else np.asarray(weights, dtype=float).reshape(-1)
     keep = (np.linalg.norm(t, axis=1) > 0) & (w > 0)
     d, t, w = d[keep], t[keep], w[keep]
-    if len(t) >= 2:
-        u = t / np.linalg.norm(t, axis=1, keepdims=True)
-        sv = np.linalg.svd(u, compute_uv=False)
-    if len(t) < 2 or sv[1] < _MIN_SPREAD * sv[0]:
+    if n_directions(t) < 2:
         raise DegenerateError(
             "the robot translations are all parallel: the rotation about their direction is "
             "undetermined; translate along at least two non-parallel directions"
