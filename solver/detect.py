@@ -380,14 +380,18 @@ def _refine_charuco(
     # keep the blurred marker edge (~2 px) out of the (2 w + 1) window
     half = np.floor(dist - 2.0).astype(int)
     smallest = max(float(_MIN_HALF_WINDOW_PX), 1.5 * blur_px if np.isfinite(blur_px) else 0.0)
+    # too close to a marker to refine reliably: the detector's estimate stays
+    return _subpix(grey, px, np.where(half < smallest, 0, np.minimum(half, _MAX_HALF_WINDOW_PX)))
+
+
+def _subpix(grey: np.ndarray, px: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """``cornerSubPix`` of the corners ``px`` (n, 2), each in a window of half-width ``half``
+    (n,); a corner of half-width 0 stays where it is."""
     out = px.copy()
-    for w in np.unique(half):
+    for w in np.unique(half[half > 0]):
         sel = half == w
-        if w < smallest:
-            continue  # too close to a marker to refine reliably; keep the detector's estimate
-        w = min(int(w), _MAX_HALF_WINDOW_PX)
         c = px[sel].astype(np.float32).reshape(-1, 1, 2)
-        r = cv2.cornerSubPix(grey, c, (w, w), (-1, -1), _SUBPIX_CRITERIA)
+        r = cv2.cornerSubPix(grey, c, (int(w), int(w)), (-1, -1), _SUBPIX_CRITERIA)
         out[sel] = np.asarray(r, dtype=np.float64).reshape(-1, 2)
     return out
 
@@ -490,14 +494,7 @@ def refine_grid(grey: np.ndarray, grid: np.ndarray) -> np.ndarray:
         d[1:] = np.minimum(d[1:], dy)
     lo, hi = _SUBPIX_HALF_WINDOW_PX
     half = np.clip(np.floor(SUBPIX_WINDOW_FRACTION * d), lo, hi).astype(int).ravel()
-    px = grid.reshape(-1, 2)
-    out = px.copy()
-    for w in np.unique(half):
-        sel = half == w
-        c = px[sel].astype(np.float32).reshape(-1, 1, 2)
-        r = cv2.cornerSubPix(grey, c, (int(w), int(w)), (-1, -1), _SUBPIX_CRITERIA)
-        out[sel] = np.asarray(r, dtype=np.float64).reshape(-1, 2)
-    return out.reshape(rows, cols, 2)
+    return _subpix(grey, grid.reshape(-1, 2), half).reshape(rows, cols, 2)
 
 
 def _detect_chessboard(
