@@ -177,12 +177,9 @@ def refine(
     to a fixed point with the pose-prior scale. Covariance: ``s^2 (J' W J)^-1`` with
     ``s^2 = sum(w r^2) / (n - p)`` (Sec. 6); ``sigma_px`` is the reference camera's noise.
 
-    Robot sessions with ``options.estimate_robot_noise`` (the default) learn the robot's
-    accuracy: the poses are first taken as exact, and an F test compares that fit with a free
-    board pose per image. When the poses explain the images, that solve stands (``robot_sigma``
-    (0, 0)). Otherwise every pose gets a correction with a zero-mean Gaussian prior (and the
-    orientation groups, trends and shared field theirs, ``Structure``) whose levels are
-    estimated with each camera's noise by variance components (Foerstner's iteration).
+    Robot sessions with ``options.estimate_robot_noise`` (the default) learn the arm's
+    accuracy as docs/ERROR_MODEL.md Sec. 2 says; the exact-pose solve stands (``robot_sigma``
+    (0, 0)) where its F test finds that the poses explain the images.
 
     ``record_check``: what is wrong with the robot's records, told from the images alone
     (:func:`slidecal.solver.adequacy.record_check`), asked only when the exact-pose solve puts
