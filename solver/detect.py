@@ -1077,9 +1077,7 @@ def _report(
 
 
 # -- boards that look the same after a half turn -------------------------------------------------
-#: A frame's half turn is decided when the other choice misses the robot's rotation between frames
-#: (without a robot: the other frames' board rotations) by this much more, median over its pairs
-#: (images-alone board poses are good to a degree or two; a wrong turn misses by tens of degrees).
+#: A frame's half turn is decided when the other choice misses the rotations by this much more.
 HALF_TURN_MARGIN_DEG = 20.0
 
 

@@ -139,23 +139,19 @@ LM_START_DAMPING = 1e-6
 VCE_STEP_DAMPING = 1e-9
 #: Most variance-component steps of one solve (then the last levels are kept, with a note)
 MAX_VCE_STEPS = 40
-#: F test "the robot poses explain the images as free poses do": below it, the arm's accuracy
-#: is learned.
+#: F test of the exact poses against a free pose per image: below it, the arm's accuracy is learned.
 ROBOT_TEST_P = 1e-3
 #: Smallest pose sigma kept (radians, metres): below it a component is as good as exact.
 SIGMA_FLOOR = (1e-7, 1e-7)
-#: Degrees of freedom of the prior at the frames' own level on the groups' shared level (the
-#: images tell the groups' offsets on a few dof only, where the level alone falls to zero).
+#: Dof of the prior at the frames' own level on the groups' level (on few dof it falls to zero).
 GROUP_LEVEL_PRIOR_DOF = 2.0
 #: Robot sigmas beyond any arm (2 deg, 20 mm): the estimation stops, the records are wrong.
 SIGMA_BEYOND = (np.radians(2.0), 0.02)
 #: Smallest rms spread (metres) of a group's positions along a direction for a trend along it.
 TREND_MIN_SPREAD_M = 0.005
-#: Fewest frames of a classic eye-in-hand session for one trend over the whole session (the
-#: arm's linear error reaches the focal lengths through the moves).
+#: Fewest frames of a classic eye-in-hand session for one trend over the whole session.
 SESSION_TREND_MIN_FRAMES = 8
-#: Trend frames per coordinate of the shared field (:func:`common_trend`): fewer cannot tell it
-#: from the groups' own trends and scatter.
+#: Trend frames per coordinate of the shared field (:func:`common_trend`): fewer are scatter.
 COMMON_FIELD_FRAMES_PER_COORD = 3
 
 

@@ -357,8 +357,7 @@ def session_field_excess(
 
 #: Fewest clusters for the sandwich (:func:`cluster_excess`): one score per cluster
 MIN_CLUSTER_FRAMES = 4
-#: Neighbours' residual correlation beyond which an image's errors go together (and beyond
-#: twice its sampling spread): independent detections stay below it
+#: Neighbours' residual correlation (and twice its spread) beyond which errors go together
 CORRELATED_NEIGHBOURS = 0.05
 #: Bonferroni level over the images for one image's misfit (:func:`images_err_together`)
 MISFIT_IMAGE_P = 0.01
