@@ -91,12 +91,9 @@ SHARED_LEVEL_SHARE = 0.1
 def level_excess(
     out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
 ) -> np.ndarray | None:
-    """What the covariance (PSD) gains because the arm's levels are estimates on ``nu`` dof
-    (M2): ``(nu / (nu - 2) - 1) C_b C_b' / sigma^2`` per level ``sigma`` of the corrections
-    ``E``, ``U``, ``V``, ``W`` (``C_b``: the covariance's columns of that block's rows of that
-    kind), the mean of a scaled inverse chi-square; for levels on at least
-    :data:`MIN_LEVEL_DOF` dof, above twice their floor, and (shared levels) at least a tenth of
-    the frames' own. ``project`` as :func:`smooth_field_excess`. None when nothing is added."""
+    """What the covariance (PSD) gains because the arm's levels (of ``E``, ``U``, ``V``, ``W``)
+    are estimates: M2 of docs/ERROR_MODEL.md. ``project`` as :func:`smooth_field_excess`. None
+    when nothing is added."""
     m = out.model
     red = getattr(m, "level_redundancy", None)
     if out.covariance_blocks is None or not red or m.pose_sigma is None:
@@ -215,21 +212,11 @@ def smooth_field_excess(
     project: tuple[np.ndarray, np.ndarray] | None = None,
     ways: tuple[str, ...] = SMOOTH_FIELD_WAYS,
 ) -> np.ndarray | None:
-    """What the covariance gains from the arm's smooth error where no image places it
-    (docs/ERROR_MODEL.md S5', M3): ``A (S - L) A'``, ``A`` the estimate's response to a shift of
-    the frames' corrections' prior means (their covariance columns over their prior variances),
-    ``L`` the prior's covariance of the corrections, ``S`` the field's; each way adds its
-    positive part. None when no way applies. ``project``: the reported quantities' Jacobian
-    (k, u) and the u parameters it uses (else the optimiser's P x P). The ways (``ways``):
-
-    - ``groups``: a group too short to tell its trend from scatter, the trend's level floored:
-      each frame's correction all trend along the group's moves (one orientation's
-      translation always, at least ``MOVE_SCALE_SIGMA`` of the moves: it is the focal length);
-    - ``field``: the translation's linear field over every position, one for all the trends
-      (each modelled at its own ``tau``), at least ``tau``, the shared quadratic field's level
-      and, where the trends could not tell it (floored, too short, one trend over a classic
-      session's positions, or none), ``MOVE_SCALE_SIGMA``. The trends' own coordinates
-      respond through the corrections they add to (a trend is ``V c_k`` on frame k's)."""
+    """What the covariance gains from the arm's smooth error where no image places it: M3 of
+    docs/ERROR_MODEL.md (S5'), ``A (S - L) A'`` by each of ``ways`` (``groups``, ``field``, as
+    the page defines them), each its positive part; None when no way applies. ``project``: the
+    reported quantities' Jacobian (k, u) and the u parameters it uses (else the optimiser's
+    P x P)."""
     m, st = out.model, out.model.st
     if out.covariance_blocks is None or "E" not in m.slices or m.pose_sigma is None:
         return None
