@@ -432,12 +432,11 @@ def images_err_together(
 def cluster_excess(
     out: RefineOutput, project: tuple[np.ndarray, np.ndarray], clusters: np.ndarray
 ) -> np.ndarray | None:
-    """M6: what the reported quantities' covariance (k, k; symmetric, not PSD) gains when the
-    detections' errors go together within each cluster (``clusters`` (F,): each frame's label,
-    the frame itself or its orientation group): ``A^-1 (G / (G - 1) sum_c s_c s_c') A^-1``
-    over the global parameters (``s_c`` the cluster's frames' scores summed) less the model's
-    covariance. None without a covariance, with fewer than :data:`MIN_CLUSTER_FRAMES`
-    clusters, or when the reported quantities use a frame's own columns."""
+    """M6 of docs/ERROR_MODEL.md: what the reported quantities' covariance (k, k; symmetric, not
+    PSD) gains when the detections' errors go together within each cluster (``clusters`` (F,):
+    each frame's label, the frame itself or its orientation group). None without a covariance,
+    with fewer than :data:`MIN_CLUSTER_FRAMES` clusters, or when the reported quantities use a
+    frame's own columns."""
     m = out.model
     if out.covariance_blocks is None or m.row_weights is None or not out.sigma_px > 0:
         return None

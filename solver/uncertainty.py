@@ -526,9 +526,7 @@ def planned_covariance(
 ) -> NamedCovariance | FrameInformation:
     """What a solve of the planned ``problem`` (exact detections: their ids count) would report
     at ``truth`` when its corners err by ``sigma_px`` and its arm as ``levels`` say: the
-    Cramer-Rao bound of the error model's arm (docs/ERROR_MODEL.md S3-S5: a correction per
-    pose, one per orientation group, a trend along each group's moves and a field they share,
-    as the solve's noisy model is built by :func:`slidecal.solver.refine.refine`), named.
+    Cramer-Rao bound under the solve's arm (:func:`slidecal.solver.refine.arm_structure`), named.
     ``levels``: each source's share of a frame's error (rad, m) by name, as
     ``RefineOutput.robot_levels`` (a source it lacks at ``SIGMA_FLOOR``); None: every source at
     ``problem.options``'s ``robot_noise_*``. Raises ``DegenerateError`` when the plan leaves a
