@@ -324,13 +324,10 @@ def common_trend(
     from its n coordinates to each frame's correction, which of them are rotations (n,), and
     what a level of each kind (rotation, translation) is in a frame's correction (metres: the
     coordinates' rms over the frames); ``(None, None, (0, 0))`` with fewer than two trend groups.
-
-    - The rotation: one linear trend over the frames' offsets from their own group's mean.
-    - The translation: a quadratic field of the positions (an arm sagging with its reach); its
-      linear part is left out (a scale or shear of the moves is the intrinsics again; the
-      covariance carries it).
-
-    Each only with :data:`COMMON_FIELD_FRAMES_PER_COORD` trend frames or more per coordinate.
+    The rotation: one linear trend over the frames' offsets from their own group's mean; the
+    translation: a quadratic field of the positions without its linear part (S5, S5' of
+    docs/ERROR_MODEL.md); each with :data:`COMMON_FIELD_FRAMES_PER_COORD` trend frames or more
+    per coordinate.
     """
     none = (None, None, (0.0, 0.0))
     if len(trend_dims) < 2:
