@@ -145,11 +145,6 @@ class LinearSolution:
     singular_values: np.ndarray
     unknowns: tuple[str, ...]
 
-    @property
-    def conditioning(self) -> float:
-        """Second smallest over largest singular value: near 0 means the null space is not 1-D."""
-        return float(self.singular_values[-2] / self.singular_values[0])
-
 
 @dataclass(frozen=True)
 class LinearSystem:
