@@ -16,8 +16,8 @@ nearest grid neighbour (3 to 25 px half-width). The whole board must be in view.
 the board's symmetries: (1) the board is seen from its printed side (``x`` cross ``y`` > 0 in the
 image, v down); (2) the square next to corner 0 is black; (3) a board still symmetric (``squares_x +
 squares_y`` even: it looks the same after a half turn, :func:`half_turn_symmetric`) takes the
-corner 0 that makes its +x axis point most to the right. Rule 3 is a guess, so such a detection is
-marked ``ambiguous``; :func:`resolve_half_turns` decides each frame's half turn before a solve.
+corner 0 that makes its +x axis point most to the right. Rule 3 is a guess:
+:func:`resolve_half_turns` decides each frame's half turn before a solve.
 
 AprilTag and AprilGrid: ``cv2.aruco.ArucoDetector`` with the target's family, corners refined by
 ``cornerSubPix`` (``CORNER_REFINE_APRILTAG`` is biased, ``docs/results/DETECTION.md``); a lone tag's
@@ -61,7 +61,6 @@ class DetectionReport:
     ``path``: the detector step that found the corners ("" when none did). ``blur_sigma_px``:
     edge width of the image (std of the Gaussian blur that explains its steepest edges).
     ``mean_grey``: mean grey level (0..255); ``saturated_fraction``: fraction of pixels at 255.
-    ``ambiguous``: the board looks the same after a half turn, so corner 0 was guessed (rule 3).
     """
 
     detection: Detection
@@ -74,7 +73,6 @@ class DetectionReport:
     blur_sigma_px: float = float("nan")
     mean_grey: float = float("nan")
     saturated_fraction: float = float("nan")
-    ambiguous: bool = False
 
     @property
     def diagnosis(self) -> str:
@@ -1072,7 +1070,6 @@ def _report(
         blur_sigma_px=blur,
         mean_grey=mean,
         saturated_fraction=saturated,
-        ambiguous=bool(len(ids)) and half_turn_symmetric(target),
     )
 
 
