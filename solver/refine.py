@@ -50,13 +50,12 @@ class RefineOutput:
     # the robot test's free-pose fit when the solve went on to learn the arm's accuracy
     test_fit: FreePoseFit | None = None
     # robot sessions: the one-sigma pose error per axis (radians, metres), (0, 0) for exact
-    # poses; whether it was estimated; the test that decided
+    # poses; whether it was estimated
     robot_sigma: tuple[float, float] | None = None
     robot_sigma_estimated: bool = False
     # each source's share of that error (rad, m) by name ("pose", "group", "trend", "field"),
     # ``robot_sigma`` their root sum of squares; empty where no accuracy was learned
     robot_levels: dict[str, tuple[float, float]] = field(default_factory=dict)
-    robot_test: str = ""
     # the board's bow and tolerance (``solver/target_shape.py`` ``BoardFit``) once fitted
     board: object | None = None
 
@@ -187,29 +186,21 @@ def refine(
         out = _refine(problem, structure, init, max_iter, robust, estimate=False)
         if robot:
             sig = structure.pose_sigma if structure.pose_sigma is not None else (0.0, 0.0)
-            out = _with_robot(out, sig, False, "robot noise taken from the options")
+            out = _with_robot(out, sig, False)
         return out
     exact = replace(structure, T_meas=None, pose_sigma=None)  # no corrections: E, U, V, W
     start = ModelState(init.K, init.dist, init.T_cam_ref, init.X, init.Y, init.s)
     out0 = _refine(problem, exact, start, max_iter, robust, estimate=False)
     images = session_images(out0.model, out0.inlier_rows)
     fit = free_pose_fit(images, out0.state.K, out0.state.dist, model_starts(out0.model, out0.state))
-    p_value, figure = _robot_pose_test(out0, fit)
-    if p_value > ROBOT_TEST_P:
-        return _with_robot(
-            replace(out0, free_pose=fit),
-            (0.0, 0.0),
-            True,
-            f"robot poses taken as exact: they explain the images ({figure})",
-        )
+    if _robot_pose_test(out0, fit) > ROBOT_TEST_P:  # the poses explain the images
+        return _with_robot(replace(out0, free_pose=fit), (0.0, 0.0), True)
     sig0 = _pose_discrepancy(problem, out0, fit)
     beyond = any(v > lim for v, lim in zip(sig0, SIGMA_BEYOND, strict=True))
     doubt = record_check is not None and (beyond or not out0.converged)
-    if doubt and (cause := record_check(problem)) is not None:
+    if doubt and record_check(problem) is not None:
         # no accuracy of an arm explains records read wrongly or paired with other images
-        return _with_robot(
-            replace(out0, free_pose=fit), (0.0, 0.0), False, f"robot accuracy not learned: {cause}"
-        )
+        return _with_robot(replace(out0, free_pose=fit), (0.0, 0.0), False)
     if o.robot_noise_deg > 0 or o.robot_noise_m > 0:  # the user's values: where to start
         sig0 = (
             max(np.radians(o.robot_noise_deg), SIGMA_FLOOR[0]),
@@ -230,12 +221,7 @@ def refine(
         levels["field"] = tuple(np.asarray(m.st.common_spread) * np.asarray(m.common_sigma))
     total = tuple(float(np.linalg.norm(axis)) for axis in zip(*levels.values(), strict=True))
     out = replace(out, robot_levels={k: (float(r), float(t)) for k, (r, t) in levels.items()})
-    return _with_robot(
-        out,
-        total,
-        True,
-        f"robot accuracy estimated: the poses taken as exact do not explain the images ({figure})",
-    )
+    return _with_robot(out, total, True)
 
 
 #: The arm's error sources of the model (docs/ERROR_MODEL.md S3-S5), as ``arm_structure`` takes
@@ -377,19 +363,13 @@ def _shared_groups(pose_groups: np.ndarray) -> bool:
     return len(counts) > 1 and int(counts.min()) >= 2
 
 
-def _with_robot(
-    out: RefineOutput, sigma: tuple[float, float], estimated: bool, test: str
-) -> RefineOutput:
-    return replace(
-        out,
-        robot_sigma=(float(sigma[0]), float(sigma[1])),
-        robot_sigma_estimated=estimated,
-        robot_test=test,
-    )
+def _with_robot(out: RefineOutput, sigma: tuple[float, float], estimated: bool) -> RefineOutput:
+    sigma = (float(sigma[0]), float(sigma[1]))
+    return replace(out, robot_sigma=sigma, robot_sigma_estimated=estimated)
 
 
-def _robot_pose_test(out: RefineOutput, fit) -> tuple[float, str]:  # noqa: ANN001 - FreePoseFit
-    """p-value and a one-line figure of the F test: robot-pose model against free poses.
+def _robot_pose_test(out: RefineOutput, fit) -> float:  # noqa: ANN001 - FreePoseFit
+    """p-value of the F test: robot-pose model against free poses.
 
     Nested models on the same inlier detections and intrinsics: the free-pose fit spends 6
     unknowns per image where the robot model spends its motion unknowns. Each camera's sums
@@ -414,15 +394,10 @@ def _robot_pose_test(out: RefineOutput, fit) -> tuple[float, str]:  # noqa: ANN0
     )
     d1 = max(6 * images - (len(m.names) - shape), 1)
     d2 = max(rows - 6 * images, 1)
-    if rss_f <= 0:
-        return 1.0, "no image to test"
+    if rss_f <= 0:  # no image to test
+        return 1.0
     F = ((rss_r - rss_f) / d1) / (rss_f / d2)
-    p = float(f_tail(d1, d2, max(F, 0.0)))
-    ratio = np.sqrt(max(rss_r, 0.0) / max(rss_f, 1e-300))
-    return (
-        p,
-        f"F = {F:.2f} on ({d1}, {d2}) dof, p = {p:.1e}; residuals {ratio:.2f}x the free-pose fit's",
-    )
+    return float(f_tail(d1, d2, max(F, 0.0)))
 
 
 def _pose_discrepancy(problem: CalibrationProblem, out: RefineOutput, fit) -> tuple[float, float]:  # noqa: ANN001
