@@ -25,8 +25,8 @@ from slidecal.solver.linear import LinearGroup
 
 
 def hand_eye_rotation(K, groups, T_base_tool_per_group, mount):
-    """Hand-eye rotation from pure translations (docs/METHOD.md Sec. 4), all groups jointly, as
-    the solve's start computes it: ``R_tool_cam`` (eye-in-hand) or ``R_base_cam``."""
+    """Hand-eye rotation from pure translations (docs/METHOD.md Sec. 4), all groups jointly,
+    from their homographies: ``R_tool_cam`` (eye-in-hand) or ``R_base_cam``."""
     ds, ts = [], []
     for grp, T in zip(groups, T_base_tool_per_group, strict=True):
         t_base = T[:, :3, 3] - T[0, :3, 3]
