@@ -38,7 +38,6 @@ _EXPORTS = {
     "SlidecalError": "errors",
     "InputError": "errors",
     "DegenerateError": "errors",
-    "ConvergenceError": "errors",
     "HardwareFault": "errors",
 }
 

@@ -16,7 +16,7 @@ from typing import ClassVar
 import cv2
 import numpy as np
 
-from slidecal.solver.detect import half_turn_symmetric, half_turn_T, half_turns
+from slidecal.solver.detect import board_poses, half_turn_symmetric, half_turn_T, half_turns
 from slidecal.solver.free_pose import FreePoseFit, free_pose_fit, model_starts, session_images
 from slidecal.solver.geometry import (
     R_from_quat_wxyz,
@@ -34,24 +34,18 @@ from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.refine import RefineOutput
 from slidecal.solver.result import ModelAdequacy, RobotAccuracy
 
-#: A camera whose robot-model residual exceeds its free-pose (detector) floor by this factor is
-#: not explained by the model (about 1.0 when it is; sampling spread a few percent).
+#: Robot-model residuals over the free-pose (detector) floor beyond which a camera is unexplained.
 MAX_NORMALISED_RMS = 1.5
 #: One image this far above the floor: the frame's pose or detection is wrong.
 MAX_FRAME_NORMALISED_RMS = 4.0
-#: Images beyond that limit make the result unusable when their squares beyond the floor are at
-#: least this share of the session's (the result leans on them); fewer are named and it stands.
+#: Such images' share of the session's squares from which the result leans on them: unusable.
 MAX_BAD_IMAGE_SHARE = 0.1
-#: Robot accuracy beyond anything a working arm has (ISO 9283 accuracy of uncalibrated
-#: industrial arms: about 1 mm and 0.2 deg): units or frames are wrong, not the arm.
+#: Robot accuracy beyond any working arm: units or frames are wrong, not the arm.
 MAX_ROBOT_TRANSLATION_MM = 10.0
 MAX_ROBOT_ROTATION_DEG = 1.0
-#: The free-pose fit itself above this: the lens model or the detections are wrong (a corner
-#: detector on a sharp image is good to a few tenths of a pixel).
+#: The free-pose fit itself above this: the lens model or the detections are wrong.
 MAX_DETECTOR_NOISE_PX = 1.5
-#: The robot's translation errors growing with the moves like this (the camera sees the moves
-#: this much longer or shorter than the robot reports): a wrong square size or robot units, not
-#: an arm's accuracy.
+#: Moves seen this much longer or shorter than the robot reports: a wrong square size or unit.
 MAX_SCALE_ERROR = 0.02
 
 
@@ -254,16 +248,13 @@ def assess(
     return adequacy, robot
 
 
-#: The robot's and the camera's rotation angle between two frames (the same in the tool's and
-#: the camera's frame, whatever the hand-eye) agree to this when paired as recorded.
+#: The robot's and the camera's rotation angles between two frames agree to this when paired.
 MAX_PAIRING_ROTATION_DEG = 0.5
 #: Pairs of frames whose relative rotation (robot's or camera's) is at least this are tested by
 #: their rotation angles; pairs below ``PAIRING_SAME_ORIENTATION_DEG`` by their move lengths.
 PAIRING_MIN_ROTATION_DEG = 2.0
 PAIRING_SAME_ORIENTATION_DEG = 0.5
-#: A pure move's length as the camera sees it against the robot's, relative to the median of
-#: that ratio over the session (a wrong square size scales them all alike: the scale test's),
-#: agrees to this when paired as recorded.
+#: A pure move's camera/robot length ratio, over the session's median, agrees to this when paired.
 MAX_PAIRING_LENGTH = 0.05
 #: Shifts of the poses against the images that are tried, in frames.
 PAIRING_SHIFTS = (-2, -1, 1, 2)
@@ -273,40 +264,23 @@ def _images_alone(
     problem: CalibrationProblem, min_points: int = 6
 ) -> tuple[list[int], list[np.ndarray]] | None:
     """The reference camera's board poses ``T_cam_board`` from the images alone
-    (``cv2.calibrateCamera``, Zhang's method) on the images with ``min_points`` points or more,
-    and the frame indices they belong to; None when the session cannot give them (no robot
-    poses, one orientation, fewer than 4 such images)."""
+    (:func:`board_poses`) on the images with ``min_points`` points or more, and the frame
+    indices they belong to; None when the session cannot give them (no robot poses, one
+    orientation, fewer than 4 such images)."""
     if problem.knowledge != "robot":
         return None
-    ref = problem.reference
-    spec = problem.camera(ref)
     T_tool = np.stack([f.T_base_tool for f in problem.frames])
     spread = max(rotation_angle_deg(T_tool[0, :3, :3], T[:3, :3]) for T in T_tool)
-    if spread < PAIRING_MIN_ROTATION_DEG:  # one orientation: Zhang cannot run
+    if spread < PAIRING_MIN_ROTATION_DEG:  # one orientation: no pose from the images alone
         return None
-    frames, obj, img = [], [], []
-    for k, f in enumerate(problem.frames):
-        d = f.detections.get(ref)
-        if d is not None and len(d.ids) >= min_points:
-            frames.append(k)
-            obj.append(problem.target.points_m[d.ids].astype(np.float32))
-            img.append(d.px.reshape(-1, 1, 2).astype(np.float32))
-    if len(frames) < 4:
-        return None
-    try:
-        _, _, _, rvecs, tvecs = cv2.calibrateCamera(obj, img, (spec.width, spec.height), None, None)
-    except cv2.error:
-        return None
-    T_cam = [
-        T_from_Rt(cv2.Rodrigues(r)[0], t.reshape(3)) for r, t in zip(rvecs, tvecs, strict=True)
-    ]
-    return frames, T_cam
+    seen = board_poses(problem, problem.reference, min_points)
+    return (list(seen), list(seen.values())) if len(seen) >= 4 else None
 
 
 def record_check(problem: CalibrationProblem) -> str | None:
     """What is wrong with the robot's records, told from the images alone: read in another
     convention (:func:`convention_check`: one reading then fits every frame), else paired with
-    the wrong images (:func:`pairing_check`; a rotation read in the wrong convention also
+    the wrong images (:func:`_pairing`; a rotation read in the wrong convention also
     changes the angles between frames, so the convention is asked first). One OpenCV
     calibration for both; None when neither is found. Run it for a result already in doubt."""
     seen = _images_alone(problem)
@@ -315,19 +289,13 @@ def record_check(problem: CalibrationProblem) -> str | None:
     return _convention(problem, *seen) or _pairing(problem, *seen)
 
 
-def pairing_check(problem: CalibrationProblem) -> str | None:
-    """Whether the robot poses and the images are paired as recorded, told without the robot
-    model: the reference camera's board poses from the images alone give its motion between
-    every two frames, whose rotation angle must equal the robot's and a pure move's length the
-    robot's up to one scale (limits ``MAX_PAIRING_ROTATION_DEG``, ``MAX_PAIRING_LENGTH``). Names
-    the shift of ``PAIRING_SHIFTS`` that fits, or the frames that disagree; None when they agree
-    or the session cannot tell. Costs an OpenCV calibration."""
-    seen = _images_alone(problem)
-    return None if seen is None else _pairing(problem, *seen)
-
-
 def _pairing(problem: CalibrationProblem, frames: list[int], T_cam: list[np.ndarray]) -> str | None:
-    """:func:`pairing_check` on the images-alone poses ``T_cam`` of ``frames``."""
+    """Whether the robot poses and the images are paired as recorded, told without the robot
+    model from the images-alone poses ``T_cam`` of ``frames``: the reference camera's motion
+    between every two frames must have the robot's rotation angle, and a pure move the robot's
+    length up to one scale (limits ``MAX_PAIRING_ROTATION_DEG``, ``MAX_PAIRING_LENGTH``). Names
+    the shift of ``PAIRING_SHIFTS`` that fits, or the frames that disagree; None when they agree
+    or the session cannot tell."""
     T_tool = np.stack([f.T_base_tool for f in problem.frames])
 
     def scores(shift: int, T_cam: list[np.ndarray] = T_cam) -> dict[tuple[int, int], float]:
@@ -410,9 +378,7 @@ def _pairing(problem: CalibrationProblem, frames: list[int], T_cam: list[np.ndar
     )
 
 
-#: A reading of the robot's records fits when what must stay fixed through it spreads within
-#: the pairing test's rotation limit and the robot-accuracy translation limit; the records as
-#: read must spread by this factor more for another reading to be named.
+#: The records as read must spread this many times the limits for another reading to be named.
 CONVENTION_MARGIN = 2.0
 
 
@@ -586,8 +552,7 @@ def _move_scale(
     return float(np.median([c / r for _, _, r, c in moves])) - 1.0 if moves else None
 
 
-#: A classic session's moves are checked for their scale only when it pins the camera/robot
-#: length ratio to this relative standard error (else a scale is a shift of the hand-eye).
+#: A classic session's scale is checked only where its geometry pins it to this relative se.
 MAX_CLASSIC_SCALE_SE = 0.003
 
 
@@ -704,9 +669,7 @@ def unchecked_scale_note(
     )
 
 
-#: A frame whose robot pose correction (rotation or translation, as a 3-vector) is this many
-#: times the typical frame's (robust: from the median) is a gross error, not the arm's accuracy:
-#: a pose read before the arm settled, a glitch of the record, an image paired with another pose.
+#: A pose correction this many times the typical frame's (robust) is a gross error, not the arm.
 POSE_OUTLIER_RATIO = 5.0
 #: The words of the message that names a frame left out for its pose (the verdict lists them)
 LEFT_OUT = "left out of the solve"
@@ -714,8 +677,7 @@ LEFT_OUT = "left out of the solve"
 RECORDS_WRONG = "the camera's own view of the motion"
 #: Fewest frames with pose corrections for the test (the typical size must mean something).
 POSE_OUTLIER_MIN_FRAMES = 8
-#: How many neighbours a frame's correction is held against, in space and in time: a glitch
-#: stands out against both, a real arm's error is shared by nearby frames.
+#: Neighbours, in space and in time, a frame's correction is held against: a glitch stands alone.
 POSE_OUTLIER_NEIGHBOURS = 4
 
 

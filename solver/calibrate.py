@@ -34,12 +34,12 @@ from slidecal.solver.adequacy import (
     unchecked_scale_note,
 )
 from slidecal.solver.camera import opencv_view, zero_distortion
-from slidecal.solver.degeneracy import check_configuration, n_directions
+from slidecal.solver.degeneracy import check_configuration
 from slidecal.solver.detect import resolve_half_turns
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.free_pose import FreePoseFit, pnp_from
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, project_to_SO3
-from slidecal.solver.handeye import ax_xb_park_martin, rotation_from_directions
+from slidecal.solver.handeye import ax_xb_park_martin, n_directions, rotation_from_directions
 from slidecal.solver.homography import group_homographies
 from slidecal.solver.lens import choose_lens
 from slidecal.solver.linear import (

@@ -17,28 +17,21 @@ from collections.abc import Sequence
 import numpy as np
 
 from slidecal.solver.errors import DegenerateError
-from slidecal.solver.handeye import board_pose_from_homography, camera_displacements
+from slidecal.solver.handeye import (
+    board_pose_from_homography,
+    camera_displacements,
+    n_directions,
+)
 from slidecal.solver.linear import LinearGroup, LinearSystem, _check_groups, linear_system
 
 MIN_ANGLE_DEG = 5.0
 MIN_CONDITIONING = 1e-6
-_MIN_SPREAD = 1e-2  # second/first singular value of unit directions: about 0.6 deg
 
 
 def nominal_K(image_size: tuple[float, float]) -> np.ndarray:
     """Nominal intrinsics (3, 3) pixels: ``f`` = image width, principal point at the centre."""
     w, h = float(image_size[0]), float(image_size[1])
     return np.array([[w, 0.0, (w - 1) / 2], [0.0, w, (h - 1) / 2], [0.0, 0.0, 1.0]])
-
-
-def n_directions(v: np.ndarray) -> int:
-    """How many independent directions (0 to 3) the non-zero rows of ``v`` (n, 3) span."""
-    v = v[np.linalg.norm(v, axis=1) > 0]
-    if len(v) == 0:
-        return 0
-    u = v / np.linalg.norm(v, axis=1, keepdims=True)
-    sv = np.linalg.svd(u, compute_uv=False)
-    return int(np.sum(sv >= _MIN_SPREAD * sv[0]))
 
 
 def _conditioning(A: np.ndarray) -> float:

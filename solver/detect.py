@@ -16,8 +16,8 @@ nearest grid neighbour (3 to 25 px half-width). The whole board must be in view.
 the board's symmetries: (1) the board is seen from its printed side (``x`` cross ``y`` > 0 in the
 image, v down); (2) the square next to corner 0 is black; (3) a board still symmetric (``squares_x +
 squares_y`` even: it looks the same after a half turn, :func:`half_turn_symmetric`) takes the
-corner 0 that makes its +x axis point most to the right. Rule 3 is a guess, so such a detection is
-marked ``ambiguous``; :func:`resolve_half_turns` decides each frame's half turn before a solve.
+corner 0 that makes its +x axis point most to the right. Rule 3 is a guess:
+:func:`resolve_half_turns` decides each frame's half turn before a solve.
 
 AprilTag and AprilGrid: ``cv2.aruco.ArucoDetector`` with the target's family, corners refined by
 ``cornerSubPix`` (``CORNER_REFINE_APRILTAG`` is biased, ``docs/results/DETECTION.md``); a lone tag's
@@ -61,7 +61,6 @@ class DetectionReport:
     ``path``: the detector step that found the corners ("" when none did). ``blur_sigma_px``:
     edge width of the image (std of the Gaussian blur that explains its steepest edges).
     ``mean_grey``: mean grey level (0..255); ``saturated_fraction``: fraction of pixels at 255.
-    ``ambiguous``: the board looks the same after a half turn, so corner 0 was guessed (rule 3).
     """
 
     detection: Detection
@@ -74,7 +73,6 @@ class DetectionReport:
     blur_sigma_px: float = float("nan")
     mean_grey: float = float("nan")
     saturated_fraction: float = float("nan")
-    ambiguous: bool = False
 
     @property
     def diagnosis(self) -> str:
@@ -380,14 +378,18 @@ def _refine_charuco(
     # keep the blurred marker edge (~2 px) out of the (2 w + 1) window
     half = np.floor(dist - 2.0).astype(int)
     smallest = max(float(_MIN_HALF_WINDOW_PX), 1.5 * blur_px if np.isfinite(blur_px) else 0.0)
+    # too close to a marker to refine reliably: the detector's estimate stays
+    return _subpix(grey, px, np.where(half < smallest, 0, np.minimum(half, _MAX_HALF_WINDOW_PX)))
+
+
+def _subpix(grey: np.ndarray, px: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """``cornerSubPix`` of the corners ``px`` (n, 2), each in a window of half-width ``half``
+    (n,); a corner of half-width 0 stays where it is."""
     out = px.copy()
-    for w in np.unique(half):
+    for w in np.unique(half[half > 0]):
         sel = half == w
-        if w < smallest:
-            continue  # too close to a marker to refine reliably; keep the detector's estimate
-        w = min(int(w), _MAX_HALF_WINDOW_PX)
         c = px[sel].astype(np.float32).reshape(-1, 1, 2)
-        r = cv2.cornerSubPix(grey, c, (w, w), (-1, -1), _SUBPIX_CRITERIA)
+        r = cv2.cornerSubPix(grey, c, (int(w), int(w)), (-1, -1), _SUBPIX_CRITERIA)
         out[sel] = np.asarray(r, dtype=np.float64).reshape(-1, 2)
     return out
 
@@ -490,14 +492,7 @@ def refine_grid(grey: np.ndarray, grid: np.ndarray) -> np.ndarray:
         d[1:] = np.minimum(d[1:], dy)
     lo, hi = _SUBPIX_HALF_WINDOW_PX
     half = np.clip(np.floor(SUBPIX_WINDOW_FRACTION * d), lo, hi).astype(int).ravel()
-    px = grid.reshape(-1, 2)
-    out = px.copy()
-    for w in np.unique(half):
-        sel = half == w
-        c = px[sel].astype(np.float32).reshape(-1, 1, 2)
-        r = cv2.cornerSubPix(grey, c, (int(w), int(w)), (-1, -1), _SUBPIX_CRITERIA)
-        out[sel] = np.asarray(r, dtype=np.float64).reshape(-1, 2)
-    return out.reshape(rows, cols, 2)
+    return _subpix(grey, grid.reshape(-1, 2), half).reshape(rows, cols, 2)
 
 
 def _detect_chessboard(
@@ -1075,14 +1070,11 @@ def _report(
         blur_sigma_px=blur,
         mean_grey=mean,
         saturated_fraction=saturated,
-        ambiguous=bool(len(ids)) and half_turn_symmetric(target),
     )
 
 
 # -- boards that look the same after a half turn -------------------------------------------------
-#: A frame's half turn is decided when the other choice misses the robot's rotation between frames
-#: (without a robot: the other frames' board rotations) by this much more, median over its pairs
-#: (images-alone board poses are good to a degree or two; a wrong turn misses by tens of degrees).
+#: A frame's half turn is decided when the other choice misses the rotations by this much more.
 HALF_TURN_MARGIN_DEG = 20.0
 
 
@@ -1105,18 +1097,21 @@ def half_turn_T(target: Target) -> np.ndarray:
     return T_from_Rt(Rz(np.pi), np.array([2.0 * c[0], 2.0 * c[1], 0.0]))
 
 
-def board_poses(problem: CalibrationProblem, cam: str) -> dict[int, np.ndarray]:
-    """``T_cam_board`` (4, 4) of each frame (index) where ``cam`` saw at least 4 corners, from the
-    images alone: OpenCV's pinhole calibration from a guess (f the image's long side, the
-    principal point at its centre; one orientation's frames then keep equal rotations), then
-    with the principal point and distortion free where that fits better; each frame's own PnP
-    with the guess where OpenCV fails. A half turn changes no frame's intrinsics."""
+def board_poses(
+    problem: CalibrationProblem, cam: str, min_points: int = 4
+) -> dict[int, np.ndarray]:
+    """``T_cam_board`` (4, 4) of each frame (index) where ``cam`` saw ``min_points`` corners or
+    more, from the images alone: OpenCV's pinhole calibration from a guess (f the image's long
+    side, the principal point at its centre; one orientation's frames then keep equal
+    rotations), then with the principal point and distortion free where that fits better; each
+    frame's own PnP with the guess where OpenCV fails. A half turn changes no frame's
+    intrinsics."""
     w, h = problem.camera(cam).width, problem.camera(cam).height
     K = np.array([[max(w, h), 0.0, (w - 1) / 2], [0.0, max(w, h), (h - 1) / 2], [0.0, 0.0, 1.0]])
     idx, obj, img = [], [], []
     for k, f in enumerate(problem.frames):
         d = f.detections.get(cam)
-        if d is not None and len(d.ids) >= 4:
+        if d is not None and len(d.ids) >= min_points:
             idx.append(k)
             obj.append(problem.target.points_m[d.ids].astype(np.float32))
             img.append(d.px.reshape(-1, 1, 2).astype(np.float32))

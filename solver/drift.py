@@ -1,20 +1,8 @@
-"""The paired drift test: the same commanded robot poses, seen twice, compared corner by corner.
-
-An arm's error is mostly repeatable, so an unchanged camera in front of an unmoved board sees
-every corner where it saw it at the same commanded pose before, up to the detector's noise and
-the arm's repeatability. Per shared pose ``k`` the displacement of each corner (new minus old,
-px) is fitted with ``d = s + a q + w J q`` (``q = (p - c) / R``: the old pixel about the
-principal point ``c`` over the corners' rms radius ``R``; ``J`` the quarter turn): a shift
-``s`` (2,), a scale ``a`` and a rotation ``w``, in px at radius ``R``; corners beyond five
-robust sigmas are dropped. The poses' fields are averaged; the noise of the mean is the
-scatter of the per-pose fields (pooled over the shift components and over scale and
-rotation), never below what the per-corner scatter (1.4826 MAD) explains. ``z``: each mean
-over its one-sigma.
-
+"""The paired drift test: the same commanded robot poses, seen twice, compared corner by corner
+by the displacement field ``d = s + a q + w J q`` per shared pose, averaged over the poses, as
+docs/UNATTENDED.md ("The paired comparison") states it; ``z``: each mean over its one-sigma.
 Drift: the largest ``z`` beyond :data:`Z_LIMIT` AND the field's largest displacement beyond
-the pixel limit. Through the installed intrinsics the shift is a principal-point change or a
-camera rotation about x / y, the scale a focal-length change, the rotation one about the
-optical axis; a bumped board gives the same kind of field.
+the pixel limit.
 
 The unpaired check (:func:`fit_target`, :func:`chain_rms_px`): the installed calibration held
 fixed, the one target pose that best explains new images through the measured robot poses, and
@@ -48,8 +36,6 @@ GROSS_PX = 20.0
 #: Matching two measured robot poses as the same commanded pose: position and rotation.
 MATCH_M = 1e-3
 MATCH_DEG = 0.1
-
-PARAMETERS = ("shift_x", "shift_y", "scale", "rotation")
 
 
 @dataclass(frozen=True)

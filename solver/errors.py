@@ -26,9 +26,5 @@ class DegenerateError(SlidecalError):
     """The data (or a plan) cannot determine the requested parameters (docs/METHOD.md Sec. 7)."""
 
 
-class ConvergenceError(SlidecalError):
-    """An iterative solve failed to converge to a usable estimate."""
-
-
 class HardwareFault(SlidecalError):
     """The robot or a camera reported a fault (protective stop, lost connection, time-out)."""

@@ -253,36 +253,3 @@ def group_homographies(observations: Sequence[Observation], max_iter: int = 30) 
     x0 = np.concatenate([h12, h3.reshape(-1)])
     return _fit_group(obs_n, Tb, Ti, unpack, place, x0, max_iter)
 
-
-def constrained_group_homographies(
-    observations: Sequence[Observation], steps: np.ndarray
-) -> np.ndarray:
-    """The paper's constrained estimate (n, 3, 3) of a sequence along one unknown direction.
-
-    ``observations``: per frame ``(board_xy (N_k, 2), px (N_k, 2) pixels)``. ``steps`` (n,): the
-    displacement of frame k from frame 0 along the line (any consistent unit, ``steps[0] = 0``).
-    ``H_k = [h1 h2 h3_0 - steps[k] d]``: 11 parameters for the whole sequence, fitted to the
-    reprojection error of all frames. Scale convention as :func:`group_homographies`.
-    """
-    steps = np.asarray(steps, dtype=float).reshape(-1)
-    if len(steps) != len(observations):
-        raise InputError(
-            f"steps has {len(steps)} entries for {len(observations)} frames: give one per frame"
-        )
-    if len(steps) < 2 or np.ptp(steps) == 0.0:
-        raise InputError("constrained_group_homographies needs at least two distinct steps")
-    steps = steps - steps[0]
-    obs_n, Tb, Ti = _prepare_group(observations)
-    h12, h3 = _common_scale_init(obs_n)
-    # Initial d: least squares of h3_0 - h3_k = steps[k] d over k, with h3_0 re-fitted.
-    A = np.column_stack([np.ones(len(steps)), -steps])
-    coef, *_ = np.linalg.lstsq(A, h3, rcond=None)
-    x0 = np.concatenate([h12, coef[0], coef[1]])
-
-    def unpack(x: np.ndarray) -> list[np.ndarray]:
-        return [np.column_stack([x[0:3], x[3:6], x[6:9] - s * x[9:12]]) for s in steps]
-
-    def place(k: int, Jk: np.ndarray) -> np.ndarray:
-        return np.hstack([Jk[:, 0:6], Jk[:, 6:9], -steps[k] * Jk[:, 6:9]])
-
-    return _fit_group(obs_n, Tb, Ti, unpack, place, x0)

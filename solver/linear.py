@@ -92,17 +92,6 @@ def K_from_w(w: np.ndarray) -> np.ndarray:
     return K / K[2, 2]
 
 
-def w_from_K(K: np.ndarray) -> np.ndarray:
-    """Conic vector ``w`` (6,) of ``W = K^-T K^-1``, normalised to unit norm, ``w11 > 0``.
-
-    ``K`` (3, 3) upper triangular intrinsics (pixels).
-    """
-    Ki = np.linalg.inv(np.asarray(K, dtype=float))
-    W = Ki.T @ Ki
-    w = np.array([W[0, 0], W[0, 1], W[1, 1], W[0, 2], W[1, 2], W[2, 2]])
-    return w / np.linalg.norm(w)
-
-
 def image_normalisation(width: float, height: float) -> np.ndarray:
     """Isotropic image normalisation ``N`` (3, 3): pixels to centred, unit-scale coordinates.
 
@@ -155,11 +144,6 @@ class LinearSolution:
     lengths: tuple[np.ndarray, ...] | None
     singular_values: np.ndarray
     unknowns: tuple[str, ...]
-
-    @property
-    def conditioning(self) -> float:
-        """Second smallest over largest singular value: near 0 means the null space is not 1-D."""
-        return float(self.singular_values[-2] / self.singular_values[0])
 
 
 @dataclass(frozen=True)

@@ -1,29 +1,15 @@
 """The bundle model: its state, structure, residuals and Jacobians, and its Fisher information.
 
-docs/METHOD.md Secs. 5 and 6 (the optimiser: :mod:`slidecal.solver.refine`).
-
-The model, for camera ``c`` of a rig and frame ``k`` of orientation group ``g``::
-
-    P_c = T_c_ref  X_g  M_k  Y  p_board,     x = project(K_c, dist_c, P_c)
-
-- knowledge "robot", eye_in_hand: ``X = T_cam_tool`` (inverse hand-eye), ``M_k = T_tool_base(k)``
-  (measured, inverted), ``Y = T_base_board``; one ``X`` for all frames.
-- knowledge "robot", eye_to_hand: ``X = T_cam_base``, ``M_k = T_base_tool(k)``,
-  ``Y = T_tool_board``.
-- "board_translation" (paper's Case 3): ``X_g = T_cam_board`` of the group's first frame,
-  ``M_k = Trans(-T_k)`` with ``T_k`` the known camera displacement (board frame), ``Y = I``.
-- "board_direction" (Case 2): as Case 3 with ``T_k = s_k n_k``, lengths ``s_k`` unknown.
-- "none" (Zhang): one ``X`` per frame, ``M = Y = I``.
-
-Rotations are updated on the left (``R <- exp([d]x) R``); Jacobians are analytic (chain rule
-through :mod:`slidecal.solver.camera`). Parameters the data cannot determine are not estimated:
-each block carries a basis of its observable directions, and what was fixed is reported.
+The model ``P_c = T_c_ref X_g M_k Y p`` of every knowledge and mount is docs/METHOD.md Sec. 5's
+(the optimiser: :mod:`slidecal.solver.refine`). Rotations are updated on the left
+(``R <- exp([d]x) R``); Jacobians are analytic (chain rule through
+:mod:`slidecal.solver.camera`).
 """
 
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from threadpoolctl import ThreadpoolController
@@ -38,6 +24,9 @@ POSE_AXES = ("rx", "ry", "rz", "tx", "ty", "tz")
 #: The axes of the pose correction that drift linearly along a group's translations
 #: (``Structure.trend_*``).
 TREND_AXES = (0, 1, 2, 3, 4, 5)
+_ROTATION_AXES = np.array([True, True, True, False, False, False])
+#: The model's attribute holding the levels of each block of corrections (``BundleModel.levels``)
+LEVELS = {"E": "pose_sigma", "U": "group_sigma", "V": "trend_sigma", "W": "common_sigma"}
 
 
 @dataclass(frozen=True)
@@ -463,24 +452,28 @@ class BundleModel:
         s = state.s.copy()
         if len(self.s_frames):
             s[self.s_frames] += delta[self.slices["s"]]
-        E = state.E
-        if "E" in self.slices:
-            E = (np.zeros((len(self.problem.frames), 6)) if E is None else E) + delta[
-                self.slices["E"]
-            ].reshape(-1, 6)
-        U = state.U
-        if "U" in self.slices:
-            du = delta[self.slices["U"]].reshape(-1, 6)
-            U = (np.zeros_like(du) if U is None else U) + du
-        V = state.V
-        if "V" in self.slices:
-            dv = delta[self.slices["V"]]
-            V = (np.zeros_like(dv) if V is None else V) + dv
-        W = state.W
-        if "W" in self.slices:
-            dw = delta[self.slices["W"]]
-            W = (np.zeros_like(dw) if W is None else W) + dw
-        return ModelState(K, dist, T_cam_ref, X, Y, s, E, U, V, W)
+        corrections = {}  # E, U (one row of six per frame or group), V, W
+        for key in LEVELS:
+            value = getattr(state, key)
+            if key in self.slices:
+                d = delta[self.slices[key]]
+                d = d.reshape(-1, 6) if key in ("E", "U") else d
+                value = (np.zeros_like(d) if value is None else value) + d
+            corrections[key] = value
+        return ModelState(K, dist, T_cam_ref, X, Y, s, **corrections)
+
+    def with_corrections(self, state: ModelState) -> ModelState:
+        """``state`` with zero corrections of every block the model has (``E``, ``U``, ``V``,
+        ``W``) where it holds none, or a group's or trend's of another size."""
+        zero = {}
+        for key in ("E", "U", "V", "W"):
+            if key in self.slices:
+                n = self.slices[key].stop - self.slices[key].start
+                shape = (n // 6, 6) if key in ("E", "U") else (n,)
+                have = getattr(state, key)
+                if have is None or (key != "E" and len(have) != shape[0]):
+                    zero[key] = np.zeros(shape)
+        return replace(state, **zero) if zero else state
 
     def T_ref_board(self, state: ModelState, fi: int) -> np.ndarray:
         """``T_ref_board`` (4, 4) of the reference camera at frame index ``fi``."""
@@ -570,11 +563,8 @@ class BundleModel:
             pr = project_with_jacobians(state.K[c], state.dist[c], P[idx], jacobians=jacobian)
             px[idx] = pr.px
             projections.append(pr)
-        r = (px - self.o_px).reshape(-1)
-        if "E" in self.slices:
-            r = np.concatenate([r, self.prior_scale * state.E.reshape(-1)])
-        for _, scale, values in self._shared_priors(state):
-            r = np.concatenate([r, scale * values])
+        priors = self._priors(state)
+        r = np.concatenate([(px - self.o_px).reshape(-1), *(sc * v for _, sc, v in priors)])
         if not jacobian:
             return r, None
         if split:  # the shared corrections' columns derive from the pose block (normal_blocks)
@@ -625,19 +615,12 @@ class BundleModel:
             blk = self._pose_block(A, RX, RM, p_Y, Ms)
             if split:
                 return r, self._pixel_jacobian(J, transposed), blk
-            if "U" in self.slices:  # a group's correction moves its frames like theirs
-                ucols = self.slices["U"].start + self.st.pose_groups[f][:, None] * 6 + np.arange(6)
-                _put_cols(J, ucols, blk)
-            if "V" in self.slices:  # a trend moves a frame like its own correction, times c_k
-                self._trend_columns(J, blk)
-            if "W" in self.slices:  # so do the corrections the groups share, through their map
-                sw, s0 = self.slices["W"], self.shared_start
-                Sw = self.shared_map[:, :, sw.start - s0 : sw.stop - s0]
-                J[:, :, sw] = np.einsum("nab,nbm->nam", blk, Sw[f])
+            if self.shared_map is not None:  # they move each frame like its own, through S
+                shared = slice(self.shared_start, self.slices["E"].start)
+                J[:, :, shared] = np.einsum("nab,nbm->nam", blk, self.shared_map[f])
             _put_cols(J, self.slices["E"].start + f[:, None] * 6 + np.arange(6), blk)
             blocks = [J.reshape(2 * n, P_)]
-            priors = [(self.slices["E"], self.prior_scale)]
-            for sl, scale in priors + [(su, scale) for su, scale, _ in self._shared_priors(state)]:
+            for sl, scale, _ in priors:
                 prior = np.zeros((sl.stop - sl.start, P_))
                 prior[np.arange(prior.shape[0]), np.arange(sl.start, sl.stop)] = scale
                 blocks.append(prior)
@@ -650,17 +633,6 @@ class BundleModel:
         ``axis_rows`` order when ``transposed`` (``J`` then Fortran-ordered)."""
         n, _, P_ = J.shape
         return J.reshape(2 * n, P_, order="F").T if transposed else J.reshape(2 * n, P_)
-
-    def normal_equations(
-        self, state: ModelState, weights: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Residuals (R,), ``J' W J`` (P, P) and ``J' W r`` (P,) with row weights ``weights``.
-
-        The dense form of :meth:`normal_blocks` (the solver itself never forms it).
-        """
-        nb = self.normal_blocks(state, weights)
-        A, g = nb.dense()
-        return nb.r, A, g
 
     def normal_blocks(
         self, state: ModelState, weights: np.ndarray, keep: bool = True
@@ -708,13 +680,13 @@ class BundleModel:
                 A_gg, g_g, A_gE = self._with_shared(A_gg, g_g, A_gE, A_EE, g_E)
             if keep:
                 self._normal_cache = (state, w.copy(), rp, A_gg, g_g, A_gE, A_EE, g_E)
-        ps = self.prior_scale
+        ps = self.prior_scale("E")
         r_prior = [ps * state.E.reshape(-1)]
         A_EE = A_EE.copy()
         idx = np.arange(6)
         A_EE[:, idx, idx] += (wp * ps * ps).reshape(F, 6)
         g_E = g_E + (wp * ps * r_prior[0]).reshape(F, 6)
-        shared = self._shared_priors(state)
+        shared = self._priors(state)[1:]
         if shared:
             A_gg, g_g = A_gg.copy(), g_g.copy()
         row = 2 * n + 6 * F
@@ -885,33 +857,12 @@ class BundleModel:
             out.append(g)
         return np.array(out)
 
-    def _shared_priors(self, state: ModelState) -> list[tuple[slice, np.ndarray, np.ndarray]]:
-        """(columns, pixel-unit prior scale, values) of the corrections shared by several frames
-        (the groups' ``U``, then the trends' ``V``): their prior rows follow the frames' ones."""
-        out = []
-        if "U" in self.slices:
-            out.append((self.slices["U"], self.group_prior_scale, state.U.reshape(-1)))
-        if "V" in self.slices:
-            out.append((self.slices["V"], self.trend_prior_scale, state.V))
-        if "W" in self.slices:  # the corrections the trend groups share
-            out.append((self.slices["W"], self.common_prior_scale, state.W))
-        return out
-
-    def _trend_columns(self, J: np.ndarray, blk: np.ndarray) -> None:
-        """Fill the trend columns of ``J`` (n, 2, P) from every observation's pose block."""
-        st, f = self.st, self.o_frame
-        tg = st.trend_groups[f]
-        for g, m in enumerate(st.trend_dims):
-            idx = np.flatnonzero(tg == g)
-            c = st.trend_coords[f[idx], :m]
-            cols = np.einsum("nac,nj->nacj", blk[idx][:, :, list(TREND_AXES)], c)
-            o = self.slices["V"].start + self.trend_offsets[g]
-            J[idx, :, o : o + cols.shape[2] * m] = cols.reshape(len(idx), 2, -1)
-
-    @property
-    def trend_rotation_rows(self) -> np.ndarray:
-        """(n,) bool over the trend coordinates ``V``: True for those of a rotation axis."""
-        return np.concatenate([np.repeat(np.array(TREND_AXES) < 3, m) for m in self.st.trend_dims])
+    def _priors(self, state: ModelState) -> list[tuple[slice, np.ndarray, np.ndarray]]:
+        """(columns, pixel-unit prior scale, values) of every block of corrections the model has:
+        the frames' ``E``, then the groups' ``U``, the trends' ``V`` and the field's ``W``, as
+        their prior rows follow the pixels'."""
+        keys = [k for k in LEVELS if k in self.slices]
+        return [(self.slices[k], self.prior_scale(k), getattr(state, k).ravel()) for k in keys]
 
     @property
     def trend_spread(self) -> float:
@@ -919,30 +870,6 @@ class BundleModel:
         times it is the trend's share of a frame's correction."""
         c = self.st.trend_coords[self.st.trend_groups >= 0]
         return float(np.sqrt(np.mean(np.sum(c**2, axis=1))))
-
-    @property
-    def common_rotation_rows(self) -> np.ndarray:
-        """(n,) bool over the common trend's coordinates ``W``: True for a rotation's."""
-        return self.st.common_rotation
-
-    @property
-    def common_spread(self) -> tuple[float, float]:
-        """(rotation, translation) metres: a level of the shared corrections ``W`` times it is
-        its share of a frame's correction, per axis."""
-        return self.st.common_spread
-
-    @property
-    def common_prior_scale(self) -> np.ndarray:
-        """(n,) pixel-unit scale of the common trend's prior rows."""
-        rot, t = self.common_sigma
-        return self.sigma_px * np.where(self.st.common_rotation, 1.0 / rot, 1.0 / t)
-
-    @property
-    def trend_prior_scale(self) -> np.ndarray:
-        """(n,) pixel-unit scale of the trends' prior rows."""
-        rot, t = self.trend_sigma
-        one = np.array([1.0 / rot] * 3 + [1.0 / t] * 3)[list(TREND_AXES)]
-        return self.sigma_px * np.concatenate([np.repeat(one, m) for m in self.st.trend_dims])
 
     def pose_corrections(self, state: ModelState) -> np.ndarray | None:
         """(F, 6) the whole correction of every measured pose (rotation vector, translation):
@@ -960,20 +887,35 @@ class BundleModel:
         F, _, m = S.shape
         return state.E + (S.reshape(6 * F, m) @ np.concatenate(parts)).reshape(F, 6)
 
-    @property
-    def group_prior_scale(self) -> np.ndarray:
-        """(6G,) pixel-unit scale of the group corrections' prior rows."""
-        rot, t = self.group_sigma
-        one = np.array([1.0 / rot] * 3 + [1.0 / t] * 3)
-        su = self.slices["U"]
-        return self.sigma_px * np.tile(one, (su.stop - su.start) // 6)
+    def levels(self, key: str) -> tuple[float, float]:
+        """The (rotation, translation) levels of the corrections ``key``: ``E`` the frames' own
+        and ``U`` the groups' (radians, metres), ``V`` the trends' and ``W`` the shared field's
+        (per metre)."""
+        return getattr(self, LEVELS[key])
 
-    @property
-    def prior_scale(self) -> np.ndarray:
-        """(6F,) pixel-unit scale of the pose-correction prior rows: sigma_px / sigma_axis."""
-        rot, t = self.pose_sigma
-        one = np.array([1.0 / rot] * 3 + [1.0 / t] * 3)
-        return self.sigma_px * np.tile(one, len(self.problem.frames))
+    def rotation_rows(self, key: str) -> np.ndarray:
+        """(n,) bool over the coordinates of the corrections ``key``: True for a rotation's."""
+        if key == "V":
+            return np.concatenate(
+                [np.repeat(np.array(TREND_AXES) < 3, m) for m in self.st.trend_dims]
+            )
+        if key == "W":
+            return self.st.common_rotation
+        sl = self.slices[key]
+        return np.tile(_ROTATION_AXES, (sl.stop - sl.start) // 6)
+
+    def prior_scale(self, key: str) -> np.ndarray:
+        """(n,) pixel-unit scale of the prior rows of the corrections ``key``: sigma_px / level."""
+        rot, t = self.levels(key)
+        return self.sigma_px * np.where(self.rotation_rows(key), 1.0 / rot, 1.0 / t)
+
+    def level_share(self, key: str) -> float | tuple[float, float]:
+        """A level of the corrections ``key`` times this is its share of a frame's correction
+        (per axis): 1 for the frames' own and the groups', the trend frames' rms offset for the
+        trends (metres), (rotation, translation) for the shared field (``Structure``)."""
+        if key == "V":
+            return self.trend_spread
+        return self.st.common_spread if key == "W" else 1.0
 
     def true_motions(self, state: ModelState) -> np.ndarray:
         """``M_k`` (F, 4, 4) with the Case 2 lengths and the robot pose corrections applied
@@ -1110,23 +1052,6 @@ def _step_T(T: np.ndarray, d: np.ndarray, rot_basis: np.ndarray, t_basis: np.nda
     return T_from_Rt(R, t)
 
 
-def with_pose_corrections(
-    state: ModelState, n_frames: int, n_groups: int = 0, n_trend: int = 0, n_common: int = 0
-) -> ModelState:
-    """``state`` with zero robot-pose corrections ``E`` (n_frames, 6) where it has none, and
-    zero group corrections ``U`` (n_groups, 6), trends ``V`` (n_trend,) and common trend ``W``
-    (n_common,) when asked for."""
-    E = np.zeros((n_frames, 6)) if state.E is None else state.E
-    U, V, W = state.U, state.V, state.W
-    if n_groups and (U is None or len(U) != n_groups):
-        U = np.zeros((n_groups, 6))
-    if n_trend and (V is None or len(V) != n_trend):
-        V = np.zeros(n_trend)
-    if n_common and (W is None or len(W) != n_common):
-        W = np.zeros(n_common)
-    return ModelState(state.K, state.dist, state.T_cam_ref, state.X, state.Y, state.s, E, U, V, W)
-
-
 @functools.cache
 def _blas_controller() -> ThreadpoolController:
     """One controller for the process (building one scans the loaded libraries), built on
@@ -1162,9 +1087,7 @@ def fisher_covariance(
     """
     model = BundleModel(problem, structure)
     model.sigma_px = sigma_px
-    if "E" in model.slices:
-        truth = with_pose_corrections(truth, len(problem.frames))
-    _, J = model.evaluate(truth)
+    _, J = model.evaluate(model.with_corrections(truth))
     w = np.ones(J.shape[0])
     for ci, c in enumerate(model.cams):
         sc = (camera_sigma_px or {}).get(c, sigma_px)

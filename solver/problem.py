@@ -1,13 +1,8 @@
 """The solver's input: a frozen description of what a calibration session observed.
 
-Board frame and corner ids (documented in the README; fixed within a session format version):
+Board frame and corner ids (fixed within a session format version): ``charuco``,
+``chessboard`` and ``points`` as the README states them (OpenCV's board frame and ids), and
 
-- ``charuco`` and ``chessboard``: OpenCV's board frame. Origin at the outer top-left corner of
-  the printed board, +x along ``squares_x``, +y along ``squares_y`` (down the printed page), +z
-  into the board, away from a camera that reads the print. Inner corner ``(row r, column c)``,
-  ``0 <= c < squares_x - 1``, ``0 <= r < squares_y - 1``, has id ``r * (squares_x - 1) + c`` and
-  lies at ``((c + 1) * square_size_m, (r + 1) * square_size_m, 0)``: the id OpenCV's
-  ``CharucoBoard`` gives it.
 - ``apriltag``: one AprilTag (or a few) of family ``dictionary`` (OpenCV's name, default
   ``DICT_APRILTAG_36h11``), side ``tag_size_m`` measured across the black border. The tag
   ``tag_ids[k]`` has its outer top-left corner at ``tag_origins_m[k]`` (the first at the origin);
@@ -24,7 +19,6 @@ Board frame and corner ids (documented in the README; fixed within a session for
   frame keeps this module's convention (origin at the outer top-left corner of the top-left tag,
   +x right, +y down the printed page, +z into the board), so it differs from Kalibr's frame (origin
   at the bottom-left, +y up) by the flip ``Y = height - Y_kalibr``, ``Z = -Z_kalibr``.
-- ``points``: row ``i`` of ``points_m`` has id ``i`` (board coordinates, z = 0).
 """
 
 from __future__ import annotations

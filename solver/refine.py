@@ -8,7 +8,7 @@ The optimiser never reads the adequacy checks: the one check of the robot's reco
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -16,6 +16,7 @@ import numpy as np
 from slidecal.solver.free_pose import FreePoseFit, free_pose_fit, model_starts, session_images
 from slidecal.solver.geometry import rvec_from_R
 from slidecal.solver.model import (
+    LEVELS,
     BlockInverse,
     BundleModel,
     ModelState,
@@ -23,7 +24,6 @@ from slidecal.solver.model import (
     Structure,
     orientation_groups,
     single_threaded_blas,
-    with_pose_corrections,
 )
 from slidecal.solver.numeric import f_tail
 from slidecal.solver.problem import CalibrationProblem
@@ -50,13 +50,12 @@ class RefineOutput:
     # the robot test's free-pose fit when the solve went on to learn the arm's accuracy
     test_fit: FreePoseFit | None = None
     # robot sessions: the one-sigma pose error per axis (radians, metres), (0, 0) for exact
-    # poses; whether it was estimated; the test that decided
+    # poses; whether it was estimated
     robot_sigma: tuple[float, float] | None = None
     robot_sigma_estimated: bool = False
     # each source's share of that error (rad, m) by name ("pose", "group", "trend", "field"),
     # ``robot_sigma`` their root sum of squares; empty where no accuracy was learned
     robot_levels: dict[str, tuple[float, float]] = field(default_factory=dict)
-    robot_test: str = ""
     # the board's bow and tolerance (``solver/target_shape.py`` ``BoardFit``) once fitted
     board: object | None = None
 
@@ -139,23 +138,19 @@ LM_START_DAMPING = 1e-6
 VCE_STEP_DAMPING = 1e-9
 #: Most variance-component steps of one solve (then the last levels are kept, with a note)
 MAX_VCE_STEPS = 40
-#: F test "the robot poses explain the images as free poses do": below it, the arm's accuracy
-#: is learned.
+#: F test of the exact poses against a free pose per image: below it, the arm's accuracy is learned.
 ROBOT_TEST_P = 1e-3
 #: Smallest pose sigma kept (radians, metres): below it a component is as good as exact.
 SIGMA_FLOOR = (1e-7, 1e-7)
-#: Degrees of freedom of the prior at the frames' own level on the groups' shared level (the
-#: images tell the groups' offsets on a few dof only, where the level alone falls to zero).
+#: Dof of the prior at the frames' own level on the groups' level (on few dof it falls to zero).
 GROUP_LEVEL_PRIOR_DOF = 2.0
 #: Robot sigmas beyond any arm (2 deg, 20 mm): the estimation stops, the records are wrong.
 SIGMA_BEYOND = (np.radians(2.0), 0.02)
 #: Smallest rms spread (metres) of a group's positions along a direction for a trend along it.
 TREND_MIN_SPREAD_M = 0.005
-#: Fewest frames of a classic eye-in-hand session for one trend over the whole session (the
-#: arm's linear error reaches the focal lengths through the moves).
+#: Fewest frames of a classic eye-in-hand session for one trend over the whole session.
 SESSION_TREND_MIN_FRAMES = 8
-#: Trend frames per coordinate of the shared field (:func:`common_trend`): fewer cannot tell it
-#: from the groups' own trends and scatter.
+#: Trend frames per coordinate of the shared field (:func:`common_trend`): fewer are scatter.
 COMMON_FIELD_FRAMES_PER_COORD = 3
 
 
@@ -177,12 +172,9 @@ def refine(
     to a fixed point with the pose-prior scale. Covariance: ``s^2 (J' W J)^-1`` with
     ``s^2 = sum(w r^2) / (n - p)`` (Sec. 6); ``sigma_px`` is the reference camera's noise.
 
-    Robot sessions with ``options.estimate_robot_noise`` (the default) learn the robot's
-    accuracy: the poses are first taken as exact, and an F test compares that fit with a free
-    board pose per image. When the poses explain the images, that solve stands (``robot_sigma``
-    (0, 0)). Otherwise every pose gets a correction with a zero-mean Gaussian prior (and the
-    orientation groups, trends and shared field theirs, ``Structure``) whose levels are
-    estimated with each camera's noise by variance components (Foerstner's iteration).
+    Robot sessions with ``options.estimate_robot_noise`` (the default) learn the arm's
+    accuracy as docs/ERROR_MODEL.md Sec. 2 says; the exact-pose solve stands (``robot_sigma``
+    (0, 0)) where its F test finds that the poses explain the images.
 
     ``record_check``: what is wrong with the robot's records, told from the images alone
     (:func:`slidecal.solver.adequacy.record_check`), asked only when the exact-pose solve puts
@@ -194,82 +186,28 @@ def refine(
         out = _refine(problem, structure, init, max_iter, robust, estimate=False)
         if robot:
             sig = structure.pose_sigma if structure.pose_sigma is not None else (0.0, 0.0)
-            out = _with_robot(out, sig, False, "robot noise taken from the options")
+            out = _with_robot(out, sig, False)
         return out
-    exact = replace(
-        structure,
-        T_meas=None,
-        pose_sigma=None,
-        pose_groups=None,
-        group_sigma=None,
-        trend_groups=None,
-        trend_coords=None,
-        trend_dims=(),
-        trend_sigma=None,
-        common_map=None,
-        common_rotation=None,
-        common_sigma=None,
-        common_spread=(0.0, 0.0),
-    )
+    exact = replace(structure, T_meas=None, pose_sigma=None)  # no corrections: E, U, V, W
     start = ModelState(init.K, init.dist, init.T_cam_ref, init.X, init.Y, init.s)
     out0 = _refine(problem, exact, start, max_iter, robust, estimate=False)
     images = session_images(out0.model, out0.inlier_rows)
     fit = free_pose_fit(images, out0.state.K, out0.state.dist, model_starts(out0.model, out0.state))
-    p_value, figure = _robot_pose_test(out0, fit)
-    if p_value > ROBOT_TEST_P:
-        return _with_robot(
-            replace(out0, free_pose=fit),
-            (0.0, 0.0),
-            True,
-            f"robot poses taken as exact: they explain the images ({figure})",
-        )
+    if _robot_pose_test(out0, fit) > ROBOT_TEST_P:  # the poses explain the images
+        return _with_robot(replace(out0, free_pose=fit), (0.0, 0.0), True)
     sig0 = _pose_discrepancy(problem, out0, fit)
     beyond = any(v > lim for v, lim in zip(sig0, SIGMA_BEYOND, strict=True))
     doubt = record_check is not None and (beyond or not out0.converged)
-    if doubt and (cause := record_check(problem)) is not None:
+    if doubt and record_check(problem) is not None:
         # no accuracy of an arm explains records read wrongly or paired with other images
-        return _with_robot(
-            replace(out0, free_pose=fit), (0.0, 0.0), False, f"robot accuracy not learned: {cause}"
-        )
+        return _with_robot(replace(out0, free_pose=fit), (0.0, 0.0), False)
     if o.robot_noise_deg > 0 or o.robot_noise_m > 0:  # the user's values: where to start
         sig0 = (
             max(np.radians(o.robot_noise_deg), SIGMA_FLOOR[0]),
             max(o.robot_noise_m, SIGMA_FLOOR[1]),
         )
     T_meas = np.stack([f.T_base_tool for f in problem.frames])
-    pose_groups = orientation_groups(T_meas)
-    trend_groups, trend_coords, trend_dims = translation_trends(T_meas, pose_groups)
-    if not trend_dims and structure.eye_in_hand and len(T_meas) >= SESSION_TREND_MIN_FRAMES:
-        # no group long enough for a trend of its own (a classic session): one over the session
-        whole = np.zeros(len(T_meas), dtype=int)
-        trend_groups, trend_coords, trend_dims = translation_trends(T_meas, whole)
-    spread = float(np.sqrt(np.mean(np.sum(trend_coords**2, axis=1)))) if trend_dims else 0.0
-    scale_fixed = len(trend_dims) == 1 and len(np.unique(pose_groups)) == 1
-    common_map, common_rotation, common_spread = common_trend(T_meas, trend_groups, trend_dims)
-    noisy = replace(
-        structure,
-        T_meas=T_meas,
-        pose_sigma=sig0,
-        pose_groups=pose_groups if _shared_groups(pose_groups) else None,
-        group_sigma=sig0,
-        trend_groups=trend_groups if trend_dims else None,
-        trend_coords=trend_coords if trend_dims else None,
-        trend_dims=trend_dims,
-        trend_sigma=(
-            (sig0[0] / spread, SIGMA_FLOOR[1] if scale_fixed else sig0[1] / spread)
-            if trend_dims
-            else None
-        ),
-        trend_scale_fixed=scale_fixed,
-        common_map=common_map,
-        common_rotation=common_rotation,
-        common_sigma=(
-            (sig0[0] / common_spread[0], sig0[1] / max(common_spread[1], 1e-3))
-            if common_map is not None
-            else None
-        ),
-        common_spread=common_spread,
-    )
+    noisy, spread = arm_structure(structure, T_meas, dict.fromkeys(ARM_SOURCES, sig0), True)
     out = replace(
         _refine(problem, noisy, out0.state, max_iter, robust, estimate=True), test_fit=fit
     )
@@ -280,15 +218,58 @@ def refine(
     if "V" in m.slices:  # a trend's share of a frame's error: its level times the offset
         levels["trend"] = tuple(spread * np.asarray(m.trend_sigma))
     if "W" in m.slices:  # what the groups share: its levels times their shares
-        levels["field"] = tuple(np.asarray(common_spread) * np.asarray(m.common_sigma))
+        levels["field"] = tuple(np.asarray(m.st.common_spread) * np.asarray(m.common_sigma))
     total = tuple(float(np.linalg.norm(axis)) for axis in zip(*levels.values(), strict=True))
     out = replace(out, robot_levels={k: (float(r), float(t)) for k, (r, t) in levels.items()})
-    return _with_robot(
-        out,
-        total,
-        True,
-        f"robot accuracy estimated: the poses taken as exact do not explain the images ({figure})",
+    return _with_robot(out, total, True)
+
+
+#: The arm's error sources of the model (docs/ERROR_MODEL.md S3-S5), as ``arm_structure`` takes
+#: their levels
+ARM_SOURCES = ("pose", "group", "trend", "field")
+
+
+def arm_structure(
+    structure: Structure,
+    T_meas: np.ndarray,
+    levels: Mapping[str, tuple[float, float]],
+    session_trend: bool,
+) -> tuple[Structure, float]:
+    """``structure`` with the error model's arm on the measured poses ``T_meas`` (F, 4, 4): a
+    correction per pose, one per orientation group, a trend along each group's moves (with
+    ``session_trend``, one over a classic eye-in-hand session whose groups have none) and the
+    field the trends share (:func:`common_trend`), at ``levels``: each source's share of a
+    frame's error (rad, m) by the names of ``ARM_SOURCES``. Returns it and the trend frames'
+    rms offset (metres, over every frame)."""
+    pose_groups = orientation_groups(T_meas)
+    trend_groups, coords, dims = translation_trends(T_meas, pose_groups)
+    if not dims and session_trend and structure.eye_in_hand:
+        if len(T_meas) >= SESSION_TREND_MIN_FRAMES:  # one trend over the session
+            whole = np.zeros(len(T_meas), dtype=int)
+            trend_groups, coords, dims = translation_trends(T_meas, whole)
+    spread = float(np.sqrt(np.mean(np.sum(coords**2, axis=1)))) if dims else 1.0
+    fixed = len(dims) == 1 and len(np.unique(pose_groups)) == 1  # one orientation: fx's scale
+    common, rotation, share = common_trend(T_meas, trend_groups, dims)
+    trend, field_level = np.asarray(levels["trend"]) / spread, levels["field"]
+    noisy = replace(
+        structure,
+        T_meas=T_meas,
+        pose_sigma=tuple(levels["pose"]),
+        pose_groups=pose_groups if _shared_groups(pose_groups) else None,
+        group_sigma=tuple(levels["group"]),
+        trend_groups=trend_groups if dims else None,
+        trend_coords=coords if dims else None,
+        trend_dims=dims,
+        trend_sigma=(trend[0], SIGMA_FLOOR[1] if fixed else trend[1]) if dims else None,
+        trend_scale_fixed=fixed,
+        common_map=common,
+        common_rotation=rotation,
+        common_sigma=(field_level[0] / share[0], field_level[1] / max(share[1], 1e-3))
+        if common is not None
+        else None,
+        common_spread=share,
     )
+    return noisy, spread
 
 
 def translation_trends(
@@ -329,13 +310,10 @@ def common_trend(
     from its n coordinates to each frame's correction, which of them are rotations (n,), and
     what a level of each kind (rotation, translation) is in a frame's correction (metres: the
     coordinates' rms over the frames); ``(None, None, (0, 0))`` with fewer than two trend groups.
-
-    - The rotation: one linear trend over the frames' offsets from their own group's mean.
-    - The translation: a quadratic field of the positions (an arm sagging with its reach); its
-      linear part is left out (a scale or shear of the moves is the intrinsics again; the
-      covariance carries it).
-
-    Each only with :data:`COMMON_FIELD_FRAMES_PER_COORD` trend frames or more per coordinate.
+    The rotation: one linear trend over the frames' offsets from their own group's mean; the
+    translation: a quadratic field of the positions without its linear part (S5, S5' of
+    docs/ERROR_MODEL.md); each with :data:`COMMON_FIELD_FRAMES_PER_COORD` trend frames or more
+    per coordinate.
     """
     none = (None, None, (0.0, 0.0))
     if len(trend_dims) < 2:
@@ -385,19 +363,13 @@ def _shared_groups(pose_groups: np.ndarray) -> bool:
     return len(counts) > 1 and int(counts.min()) >= 2
 
 
-def _with_robot(
-    out: RefineOutput, sigma: tuple[float, float], estimated: bool, test: str
-) -> RefineOutput:
-    return replace(
-        out,
-        robot_sigma=(float(sigma[0]), float(sigma[1])),
-        robot_sigma_estimated=estimated,
-        robot_test=test,
-    )
+def _with_robot(out: RefineOutput, sigma: tuple[float, float], estimated: bool) -> RefineOutput:
+    sigma = (float(sigma[0]), float(sigma[1]))
+    return replace(out, robot_sigma=sigma, robot_sigma_estimated=estimated)
 
 
-def _robot_pose_test(out: RefineOutput, fit) -> tuple[float, str]:  # noqa: ANN001 - FreePoseFit
-    """p-value and a one-line figure of the F test: robot-pose model against free poses.
+def _robot_pose_test(out: RefineOutput, fit) -> float:  # noqa: ANN001 - FreePoseFit
+    """p-value of the F test: robot-pose model against free poses.
 
     Nested models on the same inlier detections and intrinsics: the free-pose fit spends 6
     unknowns per image where the robot model spends its motion unknowns. Each camera's sums
@@ -422,15 +394,10 @@ def _robot_pose_test(out: RefineOutput, fit) -> tuple[float, str]:  # noqa: ANN0
     )
     d1 = max(6 * images - (len(m.names) - shape), 1)
     d2 = max(rows - 6 * images, 1)
-    if rss_f <= 0:
-        return 1.0, "no image to test"
+    if rss_f <= 0:  # no image to test
+        return 1.0
     F = ((rss_r - rss_f) / d1) / (rss_f / d2)
-    p = float(f_tail(d1, d2, max(F, 0.0)))
-    ratio = np.sqrt(max(rss_r, 0.0) / max(rss_f, 1e-300))
-    return (
-        p,
-        f"F = {F:.2f} on ({d1}, {d2}) dof, p = {p:.1e}; residuals {ratio:.2f}x the free-pose fit's",
-    )
+    return float(f_tail(d1, d2, max(F, 0.0)))
 
 
 def _pose_discrepancy(problem: CalibrationProblem, out: RefineOutput, fit) -> tuple[float, float]:  # noqa: ANN001
@@ -472,9 +439,6 @@ def _refine(
     return s.output()
 
 
-_ROT_ROWS = np.array([True, True, True, False, False, False])
-
-
 class _Solve:
     """One solve's mutable state: the model, the state, the inlier rows and per-camera weights,
     and the variance components' iteration (Foerstner's steps with Steffensen's acceleration)."""
@@ -485,25 +449,13 @@ class _Solve:
         model = BundleModel(problem, structure)
         self.problem, self.model = problem, model
         n_px = model.n_rows
-        n_prior = 6 * len(problem.frames) if "E" in model.slices else 0
-        n_groups_u = 0
-        if "U" in model.slices:
-            n_groups_u = (model.slices["U"].stop - model.slices["U"].start) // 6
-            n_prior += 6 * n_groups_u
-        n_trend = model.slices["V"].stop - model.slices["V"].start if "V" in model.slices else 0
-        n_common = model.slices["W"].stop - model.slices["W"].start if "W" in model.slices else 0
-        n_prior += n_trend + n_common
+        n_prior = sum(sl.stop - sl.start for k, sl in model.slices.items() if k in LEVELS)
         self.n_px, self.n_prior = n_px, n_prior
         self.estimate = estimate and n_prior > 0
         self.inlier = np.ones(n_px + n_prior, dtype=bool)
         self.cam_w = np.ones(n_px + n_prior)  # per-camera noise weights, relative to the ref
         self.cam_rows = [model.camera_rows(ci, n_px + n_prior) for ci in range(len(model.cams))]
-        state = _respect_options(problem, init)
-        if n_prior:
-            state = with_pose_corrections(
-                state, len(problem.frames), n_groups_u, n_trend, n_common
-            )
-        self.state = state
+        self.state = model.with_corrections(_respect_options(problem, init))
         model.sigma_px = 0.2  # a typical corner noise; re-estimated when poses are noisy
         self.total_it = 0
         self.converged = False
@@ -528,27 +480,20 @@ class _Solve:
             out.append(np.sqrt(np.sum(r[m] ** 2) / dof) if n else np.nan)
         return np.array(out)
 
-    def _prior_hats(self, Ni: BlockInverse) -> tuple[np.ndarray, ...]:
-        """The hat matrix's diagonal over the prior rows of E, U, V and W (empty when absent)."""
+    def _prior_hats(self, Ni: BlockInverse) -> dict[str, np.ndarray]:
+        """The hat matrix's diagonal over the prior rows of each block of corrections (E, U, V,
+        W) the model has."""
         model = self.model
-        diag_E = np.diagonal(Ni.EE, axis1=1, axis2=2).reshape(-1)
-        h = np.clip(model.prior_scale**2 * diag_E, 0.0, 1.0)
-        h_u = h_v = h_w = np.zeros(0)
-        if "U" in model.slices:
-            diag_U = np.diagonal(Ni.gg)[model.slices["U"]]
-            h_u = np.clip(model.group_prior_scale**2 * diag_U, 0.0, 1.0)
-        if "V" in model.slices:
-            diag_V = np.diagonal(Ni.gg)[model.slices["V"]]
-            h_v = np.clip(model.trend_prior_scale**2 * diag_V, 0.0, 1.0)
-        if "W" in model.slices:
-            diag_W = np.diagonal(Ni.gg)[model.slices["W"]]
-            h_w = np.clip(model.common_prior_scale**2 * diag_W, 0.0, 1.0)
-        return h, h_u, h_v, h_w
+        diag = {"E": np.diagonal(Ni.EE, axis1=1, axis2=2).reshape(-1)}
+        for key in ("U", "V", "W"):
+            if key in model.slices:
+                diag[key] = np.diagonal(Ni.gg)[model.slices[key]]
+        return {k: np.clip(model.prior_scale(k) ** 2 * d, 0.0, 1.0) for k, d in diag.items()}
 
     def _pose_levels(self, E: np.ndarray, h: np.ndarray) -> list[float]:
         """Foerstner's step for the frames' own two levels (rotation, translation)."""
         model = self.model
-        is_rot = np.tile(_ROT_ROWS, len(self.problem.frames))
+        is_rot = model.rotation_rows("E")
         new_pose, reds = [], []
         for comp, floor, old in zip((is_rot, ~is_rot), SIGMA_FLOOR, model.pose_sigma, strict=True):
             red = float(np.sum(1.0 - h[comp]))
@@ -581,7 +526,7 @@ class _Solve:
         r = nb.r.copy()
         r[:n_px] += model.pixel_step(state, delta)
         moved = model.apply(state, delta)  # E, U and V at the step (linear in delta)
-        h, h_u, h_v, h_w = self._prior_hats(Ni)
+        hats = self._prior_hats(Ni)
         sig = []
         for ci, rows in enumerate(self.cam_rows):
             m = rows & inlier
@@ -589,13 +534,13 @@ class _Solve:
                 sig.append(np.nan)
                 continue
             if len(self.cam_rows) == 1:  # the hat matrix's trace is P: the prior rows take sum(h)
-                used = len(model.names) - float(np.sum(h) + np.sum(h_u) + np.sum(h_v) + np.sum(h_w))
+                used = len(model.names) - float(sum(np.sum(h) for h in hats.values()))
             else:
                 used = self.camera_trace(Ni, ci, m)
             sig.append(np.sqrt(np.sum(r[m] ** 2) / max(m.sum() - used, 1.0)))
         sig = np.array(sig)
         ref_i = model.cams.index(model.ref)
-        new_pose = self._pose_levels(moved.E.reshape(-1), h)
+        new_pose = self._pose_levels(moved.E.reshape(-1), hats["E"])
         self.vce_step += 1
         changed = False
         ok = np.isfinite(sig) & (sig > 0)
@@ -614,24 +559,12 @@ class _Solve:
             if abs(new / old - 1.0) > 0.03 and max(new, old) > 2 * floor:
                 changed = True
         model.pose_sigma = (new_pose[0], new_pose[1])
-        if len(h_u):  # the orientation groups' shared corrections: their own two levels
-            U = moved.U.reshape(-1)
-            u_rot = np.tile(_ROT_ROWS, len(U) // 6)
-            model.group_sigma, shifted = self.shared_levels(
-                "U", U, h_u, u_rot, model.group_sigma, 1.0
-            )
-            changed |= shifted
-        if len(h_v):  # the trends along the moves: two levels of their own
-            model.trend_sigma, shifted = self.shared_levels(
-                "V", moved.V, h_v, model.trend_rotation_rows, model.trend_sigma, model.trend_spread
-            )
-            changed |= shifted
-        if len(h_w):  # the trend every group shares: two levels of its own
-            model.common_sigma, shifted = self.shared_levels(
-                "W", moved.W, h_w, model.common_rotation_rows, model.common_sigma,
-                model.common_spread,
-            )
-            changed |= shifted
+        for key in ("U", "V", "W"):  # the groups', the trends' and the field's own two levels
+            if key in hats:
+                values = getattr(moved, key).reshape(-1)
+                level, shifted = self.shared_levels(key, values, hats[key])
+                setattr(model, LEVELS[key], level)
+                changed |= shifted
         if any(v > lim for v, lim in zip(new_pose, SIGMA_BEYOND, strict=True)):
             return False
         return changed
@@ -648,23 +581,18 @@ class _Solve:
         return float(self.cam_w[np.flatnonzero(m)[0]]) * Ni.trace_with(hit[2])
 
     def shared_levels(
-        self,
-        key: str,
-        values: np.ndarray,
-        h_s: np.ndarray,
-        rot: np.ndarray,
-        levels: tuple,
-        per_frame: float | tuple[float, float],
+        self, key: str, values: np.ndarray, h_s: np.ndarray
     ) -> tuple[tuple[float, float], bool]:
-        """Foerstner's step for the two levels (rotation, translation) of corrections shared by
-        several frames; the new levels and whether one that matters moved by more than 3 %.
-        ``per_frame`` turns a level into its share of a frame's correction: a share below a
-        tenth of the frames' own level adds under 1 % to their variance, and its creeping
-        keeps no iteration going."""
+        """Foerstner's step for the two levels (rotation, translation) of the corrections ``key``
+        shared by several frames (``values``, the hat matrix's diagonal ``h_s`` over their prior
+        rows); the new levels and whether one that matters moved by more than 3 %. A share of a
+        frame's correction (``BundleModel.level_share``) below a tenth of the frames' own level
+        adds under 1 % to their variance, and its creeping keeps no iteration going."""
         model = self.model
         new, moved, reds, data = [], False, [], []
+        rot, per_frame = model.rotation_rows(key), model.level_share(key)
         for comp, floor, old, own in zip(
-            (rot, ~rot), SIGMA_FLOOR, levels, model.pose_sigma, strict=True
+            (rot, ~rot), SIGMA_FLOOR, model.levels(key), model.pose_sigma, strict=True
         ):
             red = float(np.sum(1.0 - h_s[comp]))
             reds.append(red)

@@ -214,10 +214,3 @@ class CalibrationResult:
         if self.covariance is None:
             return None
         return NamedCovariance(tuple(self.parameter_names), np.asarray(self.covariance, float))
-
-    def std_of(self, name: str) -> float | None:
-        """One-sigma of a named parameter from the covariance, None when not estimated."""
-        if self.covariance is None or name not in self.parameter_names:
-            return None
-        i = self.parameter_names.index(name)
-        return float(np.sqrt(max(self.covariance[i, i], 0.0)))

@@ -91,32 +91,19 @@ SHARED_LEVEL_SHARE = 0.1
 def level_excess(
     out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
 ) -> np.ndarray | None:
-    """What the covariance (PSD) gains because the arm's levels are estimates on ``nu`` dof
-    (M2): ``(nu / (nu - 2) - 1) C_b C_b' / sigma^2`` per level ``sigma`` of the corrections
-    ``E``, ``U``, ``V``, ``W`` (``C_b``: the covariance's columns of that block's rows of that
-    kind), the mean of a scaled inverse chi-square; for levels on at least
-    :data:`MIN_LEVEL_DOF` dof, above twice their floor, and (shared levels) at least a tenth of
-    the frames' own. ``project`` as :func:`smooth_field_excess`. None when nothing is added."""
+    """What the covariance (PSD) gains because the arm's levels (of ``E``, ``U``, ``V``, ``W``)
+    are estimates: M2 of docs/ERROR_MODEL.md. ``project`` as :func:`smooth_field_excess`. None
+    when nothing is added."""
     m = out.model
     red = getattr(m, "level_redundancy", None)
     if out.covariance_blocks is None or not red or m.pose_sigma is None:
         return None
     sig = np.asarray(m.pose_sigma, float)
-    blocks = []  # (key, levels, per-frame share of a level, rotation rows)
-    for key in ("E", "U", "V", "W"):
-        if key not in m.slices or key not in red:
-            continue
-        n = m.slices[key].stop - m.slices[key].start
-        if key == "V":
-            rot = m.trend_rotation_rows
-            blocks.append((key, np.asarray(m.trend_sigma, float), m.trend_spread, rot))
-        elif key == "W":
-            rot = m.common_rotation_rows
-            blocks.append((key, np.asarray(m.common_sigma, float), m.common_spread, rot))
-        else:
-            rot = np.tile([True, True, True, False, False, False], n // 6)
-            levels = sig if key == "E" else np.asarray(m.group_sigma, float)
-            blocks.append((key, levels, 1.0, rot))
+    blocks = [  # (key, levels, per-frame share of a level, rotation rows)
+        (key, np.asarray(m.levels(key), float), m.level_share(key), m.rotation_rows(key))
+        for key in ("E", "U", "V", "W")
+        if key in m.slices and key in red
+    ]
     k = len(out.names) if project is None else len(project[0])
     excess = np.zeros((k, k))
     for key, levels, per_frame, rot in blocks:
@@ -225,21 +212,11 @@ def smooth_field_excess(
     project: tuple[np.ndarray, np.ndarray] | None = None,
     ways: tuple[str, ...] = SMOOTH_FIELD_WAYS,
 ) -> np.ndarray | None:
-    """What the covariance gains from the arm's smooth error where no image places it
-    (docs/ERROR_MODEL.md S5', M3): ``A (S - L) A'``, ``A`` the estimate's response to a shift of
-    the frames' corrections' prior means (their covariance columns over their prior variances),
-    ``L`` the prior's covariance of the corrections, ``S`` the field's; each way adds its
-    positive part. None when no way applies. ``project``: the reported quantities' Jacobian
-    (k, u) and the u parameters it uses (else the optimiser's P x P). The ways (``ways``):
-
-    - ``groups``: a group too short to tell its trend from scatter, the trend's level floored:
-      each frame's correction all trend along the group's moves (one orientation's
-      translation always, at least ``MOVE_SCALE_SIGMA`` of the moves: it is the focal length);
-    - ``field``: the translation's linear field over every position, one for all the trends
-      (each modelled at its own ``tau``), at least ``tau``, the shared quadratic field's level
-      and, where the trends could not tell it (floored, too short, one trend over a classic
-      session's positions, or none), ``MOVE_SCALE_SIGMA``. The trends' own coordinates
-      respond through the corrections they add to (a trend is ``V c_k`` on frame k's)."""
+    """What the covariance gains from the arm's smooth error where no image places it: M3 of
+    docs/ERROR_MODEL.md (S5'), ``A (S - L) A'`` by each of ``ways`` (``groups``, ``field``, as
+    the page defines them), each its positive part; None when no way applies. ``project``: the
+    reported quantities' Jacobian (k, u) and the u parameters it uses (else the optimiser's
+    P x P)."""
     m, st = out.model, out.model.st
     if out.covariance_blocks is None or "E" not in m.slices or m.pose_sigma is None:
         return None
@@ -286,7 +263,7 @@ def _linear_field(out: RefineOutput, A: np.ndarray) -> np.ndarray | None:
         trends = [np.flatnonzero(st.trend_groups == g) for g in range(len(st.trend_dims))]
         coords = [st.trend_coords[k, :d] for k, d in zip(trends, st.trend_dims, strict=True)]
         level = tau
-        if "W" in m.slices and m.common_sigma is not None and np.any(~m.common_rotation_rows):
+        if "W" in m.slices and m.common_sigma is not None and np.any(~m.st.common_rotation):
             level = max(level, float(m.common_sigma[1]))  # its linear part >= the quadratic
         floored, short = _untold_trends(m)
         if floored[1] or any(short) or _session_trend(out):
@@ -367,8 +344,7 @@ def session_field_excess(
 
 #: Fewest clusters for the sandwich (:func:`cluster_excess`): one score per cluster
 MIN_CLUSTER_FRAMES = 4
-#: Neighbours' residual correlation beyond which an image's errors go together (and beyond
-#: twice its sampling spread): independent detections stay below it
+#: Neighbours' residual correlation (and twice its spread) beyond which errors go together
 CORRELATED_NEIGHBOURS = 0.05
 #: Bonferroni level over the images for one image's misfit (:func:`images_err_together`)
 MISFIT_IMAGE_P = 0.01
@@ -456,12 +432,11 @@ def images_err_together(
 def cluster_excess(
     out: RefineOutput, project: tuple[np.ndarray, np.ndarray], clusters: np.ndarray
 ) -> np.ndarray | None:
-    """M6: what the reported quantities' covariance (k, k; symmetric, not PSD) gains when the
-    detections' errors go together within each cluster (``clusters`` (F,): each frame's label,
-    the frame itself or its orientation group): ``A^-1 (G / (G - 1) sum_c s_c s_c') A^-1``
-    over the global parameters (``s_c`` the cluster's frames' scores summed) less the model's
-    covariance. None without a covariance, with fewer than :data:`MIN_CLUSTER_FRAMES`
-    clusters, or when the reported quantities use a frame's own columns."""
+    """M6 of docs/ERROR_MODEL.md: what the reported quantities' covariance (k, k; symmetric, not
+    PSD) gains when the detections' errors go together within each cluster (``clusters`` (F,):
+    each frame's label, the frame itself or its orientation group). None without a covariance,
+    with fewer than :data:`MIN_CLUSTER_FRAMES` clusters, or when the reported quantities use a
+    frame's own columns."""
     m = out.model
     if out.covariance_blocks is None or m.row_weights is None or not out.sigma_px > 0:
         return None

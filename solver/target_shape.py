@@ -1,13 +1,7 @@
-"""The board as it is (docs/ERROR_MODEL.md S8): what its bow and print add to a solve.
-
-The model takes the board as described: flat, printed at its nominal scale. A real board bows
-and its print is scaled, stretched and sheared; every frame sees the same board, so these do
-not average out. To first order the estimator responds to each of five modes (scale,
-anisotropy, shear; a bow along x and along y) by ``G = -N^-1 J' W J_n`` (``J_n`` by differences
-of the model's residuals with the board points moved). The bow is estimated under the board's
-flatness as prior; a lens the distortion model misses leaves the same low-order misfit, which
-the images of a robot's session cannot tell from it, so both readings are kept at
-:data:`READING_WEIGHT` (M5); the print is carried at its tolerance (M4).
+"""The board as it is: what its bow and print add to a solve (docs/ERROR_MODEL.md S8, by M4
+and M5). The model takes the board as described, flat and printed at its nominal scale; the
+estimate's response to each of five modes (scale, anisotropy, shear; a bow along x and along
+y), the bow fitted under the board's flatness and the modes' second moment are the page's.
 """
 
 from __future__ import annotations

@@ -2,23 +2,9 @@
 
 The optimiser (:mod:`slidecal.solver.refine`) keeps its own coordinates (the inverse hand-eye
 ``X`` in an observable basis, the target pose ``Y``, robot-pose corrections, ...). This module
-is the one place that turns them into what a result reports:
-
-- per camera ``<cam>.fx``, ``.fy``, ``.cx``, ``.cy`` (and ``.s`` with skew) in pixels, and the
-  estimated distortion coefficients ``<cam>.k1`` ... (OpenCV order);
-- the hand-eye transform as reported, ``T_tool_cam`` (eye-in-hand) or ``T_base_cam``
-  (eye-to-hand); in a rig one per camera, ``T_tool_<cam>`` / ``T_base_<cam>`` (as the result
-  file names them, :func:`hand_eye_names`);
-- the target pose ``T_base_board`` (eye-in-hand) or ``T_tool_board`` (eye-to-hand);
-- the rig extrinsics ``T_<cam>_<reference>``.
-
-Convention: a transform ``T_a_b`` (rotation ``R``, translation ``t``) carries six parameters
-``T_a_b.rx, .ry, .rz`` (radians) and ``.tx, .ty, .tz`` (metres): the perturbed transform is
-``R' = exp([r]x) R`` (rotation vector ``r`` applied on the LEFT, i.e. expressed in frame ``a``)
-and ``t' = t + (tx, ty, tz)`` (frame ``a``). A component the data cannot determine is absent
-from the names (never a zero row). Robot-pose corrections, per-frame board poses and any
-other coordinate of the optimiser's that is not a reported quantity are nuisance parameters:
-marginalised (their rows dropped from the joint covariance).
+is the one place that turns them into what a result reports: the quantities, their names,
+units and perturbation convention of docs/FORMATS.md ("Covariance names"), the nuisance
+parameters marginalised.
 """
 
 from __future__ import annotations
@@ -37,8 +23,6 @@ from slidecal.solver.model import (
     Structure,
     build_structure,
     fisher_covariance,
-    orientation_groups,
-    with_pose_corrections,
 )
 from slidecal.solver.problem import (
     DISTORTION_NAMES,
@@ -48,7 +32,7 @@ from slidecal.solver.problem import (
     hand_eye_names,
     mount_names,
 )
-from slidecal.solver.refine import SIGMA_FLOOR, RefineOutput, common_trend, translation_trends
+from slidecal.solver.refine import ARM_SOURCES, SIGMA_FLOOR, RefineOutput, arm_structure
 from slidecal.solver.result import ROT, TRANS, NamedCovariance
 from slidecal.solver.robot_error import (
     ImageErrors,
@@ -378,7 +362,7 @@ def equal_weight_covariance(
     st = _structure(problem, truth, structure)
     model = BundleModel(problem, st)
     model.sigma_px = 1.0  # prior rows in units of their own sigma
-    state = with_pose_corrections(truth, len(problem.frames)) if "E" in model.slices else truth
+    state = model.with_corrections(truth)
     _, J = model.evaluate(state)
     sig_rows = np.repeat(np.array([camera_sigma_px[c] for c in model.cams])[model.o_cam], 2)
     n_px = len(sig_rows)
@@ -423,7 +407,7 @@ def linearised_estimator(
     """The linearised estimator (:class:`LinearisedEstimator`) of ``problem`` at ``truth``."""
     st = _structure(problem, truth, structure)
     model = BundleModel(problem, st)
-    state = with_pose_corrections(truth, len(problem.frames)) if "E" in model.slices else truth
+    state = model.with_corrections(truth)
     _, J = model.evaluate(state)
     names, Jn = _jacobian(layout_of(problem, st, truth), model.names)
     scale = np.linalg.norm(J, axis=0)
@@ -464,8 +448,7 @@ def frame_information(
     ``structure``) marginalised by a Schur complement (docs/METHOD.md Sec. 6)."""
     model = BundleModel(problem, structure)
     model.sigma_px = sigma_px
-    if "E" in model.slices:
-        truth = with_pose_corrections(truth, len(problem.frames))
+    truth = model.with_corrections(truth)
     _, J = model.evaluate(truth)
     e_sl = model.slices.get("E")
     P = e_sl.start if e_sl is not None else len(model.names)
@@ -533,10 +516,6 @@ def is_legacy(names: tuple[str, ...] | list[str]) -> bool:
 
 
 # -- a plan's prediction (the planner's) -------------------------------------------------------
-#: The arm's error sources a plan's prediction models (docs/ERROR_MODEL.md S3-S5).
-_SOURCES = ("pose", "group", "trend", "field")
-
-
 def planned_covariance(
     problem: CalibrationProblem,
     truth: ModelState,
@@ -547,9 +526,7 @@ def planned_covariance(
 ) -> NamedCovariance | FrameInformation:
     """What a solve of the planned ``problem`` (exact detections: their ids count) would report
     at ``truth`` when its corners err by ``sigma_px`` and its arm as ``levels`` say: the
-    Cramer-Rao bound of the error model's arm (docs/ERROR_MODEL.md S3-S5: a correction per
-    pose, one per orientation group, a trend along each group's moves and a field they share,
-    as the solve's noisy model is built by :func:`slidecal.solver.refine.refine`), named.
+    Cramer-Rao bound under the solve's arm (:func:`slidecal.solver.refine.arm_structure`), named.
     ``levels``: each source's share of a frame's error (rad, m) by name, as
     ``RefineOutput.robot_levels`` (a source it lacks at ``SIGMA_FLOOR``); None: every source at
     ``problem.options``'s ``robot_noise_*``. Raises ``DegenerateError`` when the plan leaves a
@@ -562,8 +539,8 @@ def planned_covariance(
     st = build_structure(problem, truth.X[0][:3, :3])
     o = problem.options
     sig = (max(np.radians(o.robot_noise_deg), SIGMA_FLOOR[0]), max(o.robot_noise_m, SIGMA_FLOOR[1]))
-    given = levels if levels else dict.fromkeys(_SOURCES, sig)
-    lv = {k: np.maximum(given.get(k, SIGMA_FLOOR), SIGMA_FLOOR) for k in _SOURCES}
+    given = levels if levels else dict.fromkeys(ARM_SOURCES, sig)
+    lv = {k: np.maximum(given.get(k, SIGMA_FLOOR), SIGMA_FLOOR) for k in ARM_SOURCES}
     T = np.stack([f.T_base_tool for f in problem.frames])
     st = replace(st, T_meas=T, pose_sigma=tuple(lv["pose"]))
     if per_frame:
@@ -573,30 +550,6 @@ def planned_covariance(
     if st.unobservable:
         name, why = next(iter(st.unobservable.items()))
         raise DegenerateError(f"the plan leaves {name} unobservable: {why}")
-    groups = orientation_groups(T)
-    trend_groups, coords, dims = translation_trends(T, groups)
-    spread = float(np.sqrt(np.mean(np.sum(coords**2, axis=1)))) if dims else 1.0
-    common, rotation, share = common_trend(T, trend_groups, dims)
-    fixed = len(dims) == 1 and len(set(groups)) == 1  # one orientation: its scale is fx's
-    trend = lv["trend"] / spread
-    st = replace(
-        st,
-        pose_groups=groups if len(set(groups)) > 1 and np.bincount(groups).min() >= 2 else None,
-        group_sigma=tuple(lv["group"]),
-        trend_groups=trend_groups if dims else None,
-        trend_coords=coords if dims else None,
-        trend_dims=dims,
-        trend_sigma=(trend[0], SIGMA_FLOOR[1] if fixed else trend[1]) if dims else None,
-        trend_scale_fixed=fixed,
-        common_map=common,
-        common_rotation=rotation,
-        common_sigma=(lv["field"][0] / share[0], lv["field"][1] / max(share[1], 1e-3))
-        if common is not None
-        else None,
-        common_spread=share,
-    )
-    size = {k: sl.stop - sl.start for k, sl in BundleModel(problem, st).slices.items()}
-    n = (size.get("U", 0) // 6, size.get("V", 0), size.get("W", 0))
-    state = with_pose_corrections(truth, len(T), *n)
-    names, cov = fisher_covariance(problem, st, state, sigma_px)
+    st = arm_structure(st, T, lv, False)[0]
+    names, cov = fisher_covariance(problem, st, truth, sigma_px)
     return propagate(layout_of(problem, st, truth), names, cov)

@@ -184,22 +184,22 @@ def _poses_reassigned(problem, order):
 
 
 def test_pairing_check_is_silent_on_a_right_session_and_names_the_wrong_pairing():
-    from slidecal.solver.adequacy import pairing_check
+    from slidecal.solver.adequacy import record_check
 
     s = sc.classic_real_arm(np.random.default_rng(4))  # 28 frames, every orientation different
     n = len(s.problem.frames)
-    assert pairing_check(s.problem) is None
+    assert record_check(s.problem) is None
     # the logger one frame behind: image k carries the pose of frame k - 1
-    late = pairing_check(_poses_reassigned(s.problem, [0, *range(n - 1)]))
+    late = record_check(_poses_reassigned(s.problem, [0, *range(n - 1)]))
     assert late is not None and "the pose recorded 1 frame(s) later" in late
     # two images swapped: those two frames are named
     order = list(range(n))
     order[5], order[17] = 17, 5
-    swapped = pairing_check(_poses_reassigned(s.problem, order))
+    swapped = record_check(_poses_reassigned(s.problem, order))
     assert swapped is not None and swapped.startswith("frames [5, 17]:")
     # the same session with the poses in a random order
     shuffled = _poses_reassigned(s.problem, np.random.default_rng(0).permutation(n))
-    assert "not paired as recorded" in pairing_check(shuffled)
+    assert "not paired as recorded" in record_check(shuffled)
 
 
 def _misread(problem, kind: str):
@@ -230,7 +230,7 @@ def _misread(problem, kind: str):
 
 @pytest.mark.parametrize("eye_in_hand", [True, False])
 def test_convention_check_names_how_the_records_were_misread(eye_in_hand):
-    from slidecal.solver.adequacy import convention_check, pairing_check
+    from slidecal.solver.adequacy import convention_check, record_check
 
     # a classic session on a real arm (28 frames, every orientation different): silent as read
     s = sc.classic_real_arm(np.random.default_rng(4), eye_in_hand=eye_in_hand)
@@ -255,7 +255,7 @@ def test_convention_check_names_how_the_records_were_misread(eye_in_hand):
     # poses paired with the wrong images are not a convention: that test says nothing
     n = len(s.problem.frames)
     shuffled = _poses_reassigned(s.problem, np.random.default_rng(0).permutation(n))
-    assert convention_check(shuffled) is None and pairing_check(shuffled) is not None
+    assert convention_check(shuffled) is None and record_check(shuffled) is not None
 
 
 def test_convention_check_reads_a_lone_tag_session():

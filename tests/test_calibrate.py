@@ -53,7 +53,7 @@ def test_noisy_r1_errors_within_reported_uncertainty():
     assert {"cam.fx", "cam.k1", "T_tool_cam.rx", "T_base_board.tz"} <= set(res.parameter_names)
     assert not any(n.startswith(("X0.", "Y.", "pose")) for n in res.parameter_names)
     assert res.covariance.shape == (len(res.parameter_names),) * 2
-    assert res.std_of("T_tool_cam.tx") is not None
+    assert res.named_covariance.std("T_tool_cam.tx") is not None
     assert all(abs(c.ratio - 1.0) < 0.01 for c in res.scale_checks)
 
 

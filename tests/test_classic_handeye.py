@@ -27,7 +27,7 @@ from slidecal.solver.geometry import (
     random_rotation,
     rotation_angle_deg,
 )
-from slidecal.solver.handeye import ax_xb_daniilidis, ax_xb_park_martin, daniilidis
+from slidecal.solver.handeye import ax_xb_park_martin
 from slidecal.solver.homography import homography_dlt
 from slidecal.solver.problem import (
     CalibrationProblem,
@@ -93,8 +93,8 @@ def _motions(rng, n, noise_deg=0.0):
     return X, np.array(A), np.array(B)
 
 
-@pytest.mark.parametrize("method", [ax_xb_park_martin, ax_xb_daniilidis])
-def test_ax_xb_noise_free_and_noisy(method):
+def test_ax_xb_noise_free_and_noisy():
+    method = ax_xb_park_martin
     rng = np.random.default_rng(1)
     X, A, B = _motions(rng, 6)
     Y = method(A, B)
@@ -105,27 +105,6 @@ def test_ax_xb_noise_free_and_noisy(method):
     Y = method(A, B)
     assert rotation_angle_deg(Y[:3, :3], X[:3, :3]) < 0.05
     assert np.linalg.norm(Y[:3, 3] - X[:3, 3]) < 3e-3
-
-
-def test_daniilidis_agrees_with_opencv():
-    rng = np.random.default_rng(2)
-    X = T_from_Rt(random_rotation(rng), rng.normal(size=3) * 0.1)
-    T_base_board = T_from_Rt(random_rotation(rng), rng.normal(size=3))
-    Tg = np.array(
-        [T_from_Rt(random_rotation(rng, 0.7), rng.normal(size=3) * 0.2) for _ in range(3)]
-    )
-    Tc = np.array([inv_T(X) @ inv_T(T) @ T_base_board for T in Tg])
-    Y = daniilidis(Tg, Tc)  # three poses: all pairs are the consecutive ones OpenCV uses
-    R_cv, t_cv = cv2.calibrateHandEye(
-        Tg[:, :3, :3],
-        Tg[:, :3, 3],
-        Tc[:, :3, :3],
-        Tc[:, :3, 3],
-        method=cv2.CALIB_HAND_EYE_DANIILIDIS,
-    )
-    assert rotation_angle_deg(Y[:3, :3], X[:3, :3]) < 1e-8
-    assert rotation_angle_deg(R_cv, X[:3, :3]) < 1e-6
-    np.testing.assert_allclose(Y[:3, 3], t_cv.ravel(), atol=1e-8)
 
 
 # -- classic sessions through the whole pipeline ------------------------------------------------
@@ -614,7 +593,7 @@ def test_a_classic_sessions_unexplained_scale_is_carried_in_its_covariance(monke
     def z_tz(res, s):  # noqa: ANN001, ANN202
         ra = res.robot_accuracy
         X, _ = sc.effective_truth(s, max(ra.rotation_deg, 1e-4), max(ra.translation_mm, 1e-3))
-        return abs(res.hand_eye.t_m[2] - X[2, 3]) / res.std_of("T_tool_cam.tz")
+        return abs(res.hand_eye.t_m[2] - X[2, 3]) / res.named_covariance.std("T_tool_cam.tz")
 
     s = sc.classic_real_arm(np.random.default_rng(2002), arm_scale=0.005)
     kept = {}

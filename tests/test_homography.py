@@ -9,7 +9,6 @@ import pytest
 from slidecal.mocks import scenarios as sl
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.homography import (
-    constrained_group_homographies,
     group_homographies,
     homography_dlt,
     homography_rms_px,
@@ -87,18 +86,6 @@ def test_group_homographies_noisy_common_scale_and_residual():
     assert np.degrees(np.arccos(d @ dt / np.linalg.norm(d) / np.linalg.norm(dt))) < 2.0
 
 
-def test_constrained_group_structure():
-    rng = np.random.default_rng(5)
-    g = sl.s2_group(5, rng)
-    steps = np.arange(5) * 5.0
-    Hs = constrained_group_homographies(g.observations, steps)
-    assert np.abs(Hs - g.H / np.linalg.norm(g.H[0])).max() < 1e-10
-    g = sl.s2_group(5, rng, 0.5)
-    Hs = constrained_group_homographies(g.observations, steps)
-    d = np.array([(Hs[0, :, 2] - Hs[k, :, 2]) / steps[k] for k in range(1, 5)])
-    assert np.abs(d - d[0]).max() < 1e-12 * np.linalg.norm(Hs[0])
-
-
 def test_input_errors():
     xy = sl.board_xy()
     with pytest.raises(InputError):
@@ -108,5 +95,3 @@ def test_input_errors():
     line = np.column_stack([np.arange(10.0), 2 * np.arange(10.0)])
     with pytest.raises(DegenerateError):
         homography_dlt(line, line * 3)
-    with pytest.raises(InputError):
-        constrained_group_homographies([(xy, xy), (xy, xy)], [0.0])

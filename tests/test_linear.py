@@ -14,12 +14,19 @@ from slidecal.solver.linear import (
     LinearGroup,
     image_normalisation,
     linear_intrinsics,
-    w_from_K,
     zhang_intrinsics,
     zhang_rows,
 )
 
 SIZE = sl.PAPER_SIZE_PX
+
+
+def w_from_K(K):
+    """The conic vector (6,) of ``W = K^-T K^-1``, unit norm, ``w11 > 0``: the truth's."""
+    Ki = np.linalg.inv(np.asarray(K, dtype=float))
+    W = Ki.T @ Ki
+    w = np.array([W[0, 0], W[0, 1], W[1, 1], W[0, 2], W[1, 2], W[2, 2]])
+    return w / np.linalg.norm(w)
 
 
 def _rel(K, K_true):

@@ -319,7 +319,7 @@ def test_a_tag_session_on_a_real_arm_shares_a_field_across_its_groups() -> None:
     m = out.model
     # the shared rotation trend (3 x 3) and quadratic translation field (3 x 6)
     assert "W" in m.slices and m.slices["W"].stop - m.slices["W"].start == 27
-    assert int(m.common_rotation_rows.sum()) == 9
+    assert int(m.st.common_rotation.sum()) == 9
 
 
 def test_a_tag_sessions_shared_linear_field_is_carried_at_its_quadratic_level(monkeypatch):
@@ -364,7 +364,7 @@ def test_a_short_tag_session_shares_the_rotation_trend_only(monkeypatch) -> None
     z = {p: (cam.K[a, b] - s.truth.K["cam"][a, b]) / cam.std[p] for p, (a, b) in _IJ.items()}
     assert all(abs(z[p]) < 3.0 for p in ("fx", "fy", "cx")), z
     m = refine(s.problem, build_structure(s.problem), s.truth).model
-    assert "W" in m.slices and m.common_rotation_rows.all() and len(m.common_rotation_rows) == 9
+    assert "W" in m.slices and m.st.common_rotation.all() and len(m.st.common_rotation) == 9
     monkeypatch.setattr(rf, "COMMON_FIELD_FRAMES_PER_COORD", 1000)  # no shared trend
     alone = calibrate(s.problem).cameras["cam"]
     assert abs(z["cy"]) < abs((alone.K[1, 2] - s.truth.K["cam"][1, 2]) / alone.std["cy"])

@@ -11,6 +11,12 @@ from slidecal.solver.problem import ModelOptions
 from slidecal.solver.refine import refine
 
 
+def _normal_equations(model, state, w):
+    """Residuals, ``J' W J`` and ``J' W r`` in the dense form of the model's blocks."""
+    nb = model.normal_blocks(state, w)
+    return (nb.r, *nb.dense())
+
+
 def _perturbed(
     truth: ModelState, rng, translate: bool = True, board: bool = True, k_px: float = 6.0
 ) -> ModelState:
@@ -211,7 +217,7 @@ def test_normal_equations_match_the_full_jacobian():
     )
     w = rng.uniform(0.5, 1.5, model.n_rows + 120)
     r, J = model.evaluate(state)
-    r2, A, g = model.normal_equations(state, w)
+    r2, A, g = _normal_equations(model, state, w)
     np.testing.assert_allclose(r2, r, atol=0)
     np.testing.assert_allclose(A, J.T @ (J * w[:, None]), rtol=1e-12, atol=1e-9 * np.abs(A).max())
     np.testing.assert_allclose(g, J.T @ (w * r), rtol=1e-12, atol=1e-9 * np.abs(g).max())
@@ -250,18 +256,15 @@ def test_normal_equations_match_the_full_jacobian_with_what_the_groups_share():
     model.sigma_px = 0.1
     rng = np.random.default_rng(29)
     F = len(s.problem.frames)
-    state = md.with_pose_corrections(
-        ModelState(s.truth.K, s.truth.dist, {}, s.truth.X, s.truth.Y, s.truth.s),
-        F,
-        len(np.unique(groups)),
-        model.slices["V"].stop - model.slices["V"].start,
-        len(rot),
+    state = model.with_corrections(
+        ModelState(s.truth.K, s.truth.dist, {}, s.truth.X, s.truth.Y, s.truth.s)
     )
+    assert state.U.shape == (len(np.unique(groups)), 6) and len(state.W) == len(rot)
     state = replace(state, E=rng.normal(0, 1e-4, (F, 6)), W=rng.normal(0, 1e-4, len(rot)))
     n_prior = sum(sl.stop - sl.start for k, sl in model.slices.items() if k in "UVWE")
     w = rng.uniform(0.5, 1.5, model.n_rows + n_prior)
     r, J = model.evaluate(state)
-    r2, A, g = model.normal_equations(state, w)
+    r2, A, g = _normal_equations(model, state, w)
     np.testing.assert_allclose(r2, r, atol=0)
     np.testing.assert_allclose(A, J.T @ (J * w[:, None]), rtol=1e-10, atol=1e-9 * np.abs(A).max())
     np.testing.assert_allclose(g, J.T @ (w * r), rtol=1e-10, atol=1e-9 * np.abs(g).max())
@@ -399,7 +402,7 @@ def test_trend_columns_match_finite_differences(translations_only: bool):
         # the pose block is the derivative at zero correction: exact up to ~1e-7 relative here
         np.testing.assert_allclose(J[:, i], (rp - rm) / (2 * h), atol=1e-5 * np.abs(J[:, i]).max())
     w = rng.uniform(0.5, 1.5, len(r))
-    r2, A, g = model.normal_equations(state, w)
+    r2, A, g = _normal_equations(model, state, w)
     np.testing.assert_allclose(r2, r, atol=0)
     np.testing.assert_allclose(A, J.T @ (J * w[:, None]), rtol=1e-12, atol=1e-9 * np.abs(A).max())
     np.testing.assert_allclose(g, J.T @ (w * r), rtol=1e-12, atol=1e-9 * np.abs(g).max())
@@ -472,7 +475,7 @@ def _noisy_model_and_blocks(seed: int, groups: bool):
     at a perturbed state: the blocked normal equations and the model."""
     from dataclasses import replace
 
-    from slidecal.solver.model import orientation_groups, with_pose_corrections
+    from slidecal.solver.model import orientation_groups
 
     opts = ModelOptions(robot_noise_m=1e-4, robot_noise_deg=0.01)
     s = sc.r1(np.random.default_rng(seed), options=opts)
@@ -484,7 +487,8 @@ def _noisy_model_and_blocks(seed: int, groups: bool):
     model.sigma_px = 0.15
     rng = np.random.default_rng(seed + 1)
     n_g = int(st.pose_groups.max()) + 1 if groups else 0
-    state = with_pose_corrections(_perturbed(s.truth, rng, k_px=2.0), 20, n_g)
+    state = model.with_corrections(_perturbed(s.truth, rng, k_px=2.0))
+    assert len(state.E) == 20 and (state.U is None if not n_g else len(state.U) == n_g)
     state = ModelState(
         state.K,
         state.dist,
@@ -579,19 +583,17 @@ def test_rig_normal_equations_match_the_full_jacobian(noisy):
     # three cameras (their Jacobian columns written camera by camera), with and without the
     # per-frame pose corrections accumulated frame by frame: the whole J' W J
     from slidecal.mocks.scenarios import oak_rig
-    from slidecal.solver.model import with_pose_corrections
-
     opts = ModelOptions(robot_noise_m=1e-4, robot_noise_deg=0.01) if noisy else None
     s = oak_rig(np.random.default_rng(42), cameras=("left", "right", "rgb"), options=opts)
     model = BundleModel(s.problem, build_structure(s.problem, s.truth.X[0][:3, :3]))
     model.sigma_px = 0.15
     state = s.truth
     if noisy:
-        state = with_pose_corrections(state, len(s.problem.frames))
+        state = model.with_corrections(state)
     rng = np.random.default_rng(43)
     r, J = model.evaluate(state)
     w = rng.uniform(0.5, 1.5, len(r))
-    r2, A, g = model.normal_equations(state, w)
+    r2, A, g = _normal_equations(model, state, w)
     assert len(model.cams) == 3 and ("E" in model.slices) == noisy
     np.testing.assert_allclose(r2, r, atol=0)
     np.testing.assert_allclose(A, J.T @ (J * w[:, None]), rtol=1e-12, atol=1e-9 * np.abs(A).max())
@@ -609,7 +611,7 @@ def test_one_cameras_normal_equations_leave_the_other_rows_out():
     w = np.random.default_rng(45).uniform(0.5, 1.5, len(r))
     w[np.repeat(model.o_cam != 1, 2)] = 0.0  # only the second camera's rows
     assert 0.2 < np.mean(w > 0) < 0.5
-    _, A, g = model.normal_equations(s.truth, w)
+    _, A, g = _normal_equations(model, s.truth, w)
     np.testing.assert_allclose(A, J.T @ (J * w[:, None]), rtol=1e-12, atol=1e-9 * np.abs(A).max())
     np.testing.assert_allclose(g, J.T @ (w * r), rtol=1e-12, atol=1e-9 * np.abs(g).max())
     assert np.abs(A[model.slices["intr:left"]]).max() == 0.0  # the first camera: no rows

@@ -13,7 +13,6 @@ import pytest
 from slidecal.mocks.scenarios import PAPER_SIZE_PX, estimate_homographies, params_of, s5_scene
 from slidecal.solver.errors import DegenerateError
 from slidecal.solver.geometry import R_from_rvec, rotation_angle_deg
-from slidecal.solver.linear import w_from_K
 from slidecal.solver.stereo import (
     conic_transfer_matrix,
     infinite_homography,
@@ -22,6 +21,14 @@ from slidecal.solver.stereo import (
 )
 
 SIZES = (PAPER_SIZE_PX, PAPER_SIZE_PX)
+
+
+def w_from_K(K):
+    """The conic vector (6,) of ``W = K^-T K^-1``, unit norm, ``w11 > 0``: the truth's."""
+    Ki = np.linalg.inv(np.asarray(K, dtype=float))
+    W = Ki.T @ Ki
+    w = np.array([W[0, 0], W[0, 1], W[1, 1], W[0, 2], W[1, 2], W[2, 2]])
+    return w / np.linalg.norm(w)
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from slidecal.mocks import scenarios as sc
-from slidecal.solver.adequacy import pairing_check
+from slidecal.solver.adequacy import record_check
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.detect import half_turn_symmetric, half_turned, half_turns, resolve_half_turns
 from slidecal.solver.errors import DegenerateError
@@ -103,6 +103,6 @@ def test_without_poses_refused_naming_the_symmetry_when_undecidable():
 
 def test_pairing_diagnosis_names_the_half_turn():
     s = sc.symmetric_board_r1(np.random.default_rng(5))
-    assert pairing_check(s.problem) is None
-    msg = pairing_check(_flipped(s.problem))
+    assert record_check(s.problem) is None
+    msg = record_check(_flipped(s.problem))
     assert msg is not None and "half turn" in msg and "paired with other poses" not in msg

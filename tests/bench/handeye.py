@@ -27,8 +27,8 @@ from slidecal.mocks.truth import hand_eye_bounds
 from slidecal.solver.calibrate import calibrate, pnp_pose
 from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import inv_T, rotation_angle_deg
-from slidecal.solver.handeye import daniilidis, park_martin, tsai_lenz
 from slidecal.solver.problem import ModelOptions, Target
+from tests.bench.closed_forms import daniilidis, park_martin, tsai_lenz
 from tests.bench.report import RESULTS, publish_report, report_header
 
 # the corner and robot pose noise of every row: the one-tag session's (mocks/scenarios.py)
@@ -234,8 +234,7 @@ def findings(rows: list[HandEyeRow]) -> list[str]:
         f"- Closed forms on the board rows: Park-Martin's rotation rms {min(pm):.4f} to "
         f"{max(pm):.4f} deg, Daniilidis' {min(dq):.4f} to {max(dq):.4f} deg: dual quaternions "
         f"are not better on noisy data, and {dq_fragile}. The solver starts from Park-Martin "
-        "between one frame per orientation; Daniilidis stays available "
-        "(`slidecal.solver.handeye.daniilidis`).",
+        "between one frame per orientation.",
         f"- OpenCV's Park on the same images differs from the ML hand-eye by {min(cv_std):.2f} "
         f"to {max(cv_std):.2f} reported std in rotation and {min(cv_t):.2f} to {max(cv_t):.2f} "
         "in translation on the board rows: the difference is the closed form's own error "
