@@ -1,26 +1,8 @@
-"""Motion plans (``slidecal.plan/1``, docs/FORMATS.md): orientation groups of ``T_base_tool``
-poses, and a fixed default plan.
-
-A plan is what the robot will do: groups of poses sharing one orientation (pure translations
+"""Motion plans (``slidecal.plan/1``, every key in :data:`PLAN_KEYS` and their meaning:
+docs/FORMATS.md): groups of ``T_base_tool`` poses sharing one orientation (pure translations
 inside a group, docs/METHOD.md Sec. 3) and the tilt changes between groups that make the
-hand-eye translation observable (Sec. 4). ``plan.yaml`` (every key in :data:`PLAN_KEYS`)::
-
-    format: slidecal.plan/1
-    speed_mps: 0.25
-    accel_mps2: 1.0
-    settle_s: 0.5
-    groups:                       # each a list of UR poses [x, y, z, rx, ry, rz] (m, rad)
-      - [[...], [...]]
-    via: [x, y, z, rx, ry, rz]    # optional: visited before each group, no capture (a safe,
-                                  # untilted pose: big reorientations never run as one line)
-    predicted_std: null           # reserved for the planner: predicted one-sigma per parameter
-    duration_s: null              # reserved for the planner: predicted robot time
-
-:func:`default_plan` is the fixed reference plan the planner is compared with: four
-groups tilted by ``tilt_deg`` about four different axes in the board plane (plus a small roll
-about the optical axis), five frames each, translations of 40-80 mm in non-coplanar
-directions with components along the viewing axis (translations parallel to the board plane
-alone are degenerate, docs/METHOD.md Sec. 7), every pose looking at the board from ``standoff_m``.
+hand-eye translation observable (Sec. 4); and :func:`default_plan`, the fixed reference plan
+the planner is compared with.
 """
 
 from __future__ import annotations
@@ -246,7 +228,7 @@ def default_plan(
     tilt_deg: float = 25.0,
     step_mm: float = 80.0,
 ) -> Plan:
-    """The fixed default plan of a cell (see the module docstring): a reference the planner is
+    """The fixed default plan of a cell (:func:`camera_poses_board`): a reference the planner is
     measured against (``python -m tests.bench planner``); ``slidecal run`` executes the
     planner's plan.
 

@@ -367,11 +367,6 @@ def extend_for_limits(
     )
 
 
-def frames_on_disk(session_dir: str | Path) -> int:
-    """Number of frames a session directory holds (for checks after a fault)."""
-    return len(load_session(session_dir, detect_images=False).problem.frames)
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The ``slidecal run`` options."""
     p.add_argument("--config", help="cell description (default: the simulated default cell)")

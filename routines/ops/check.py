@@ -28,8 +28,8 @@ from slidecal.routines.ops.install import (
 from slidecal.routines.ops.verdict import (
     Check,
     Verdict,
+    check_residuals,
     compare,
-    judge_check,
     paired_compare,
     uncertainty_map,
     write_verdict,
@@ -112,12 +112,6 @@ def expected_rms_px(
         )
         out[n] = float(np.hypot(c.reproj_rms_px, np.sqrt(2) * robot_px))
     return out
-
-
-def projection_sigma_px(installed: CalibrationResult, camera: str) -> float | None:
-    """The rms over the image of the installed calibration's projection one-sigma (px)."""
-    m = uncertainty_map(installed, camera, (16, 10))
-    return None if m is None else float(np.sqrt(np.mean(m**2)))
 
 
 def refit(
@@ -238,8 +232,9 @@ def judge_problem(
     rms = {n: float(np.sqrt(np.mean(np.sum(r**2, axis=1)))) for n, r in res.items() if len(r)}
     drift = {n: float(np.sqrt(max(rms[n] ** 2 - expected[n] ** 2, 0.0))) for n in rms}
     sig = {}
-    for n in rms:
-        s = projection_sigma_px(installed, n)
+    for n in rms:  # the drift in the rms over the image of the installed projection one-sigma
+        m = uncertainty_map(installed, n, (16, 10))
+        s = None if m is None else float(np.sqrt(np.mean(m**2)))
         sig[n] = None if not s else drift[n] / s
     extra = {
         "check": {
@@ -266,7 +261,7 @@ def judge_problem(
         )
         extra["check"]["paired"] = pinfo
         why = pinfo.get("why", "")
-    v = judge_check(rms, expected, drift, lim, len(problem.frames), extra, notes)
+    own = check_residuals(rms, expected, drift, lim, len(problem.frames))
     again = refit(problem, installed, cfg.options.robot_noise_m, cfg.options.robot_noise_deg)
     change, info = compare(
         again, installed, dataclasses.replace(lim, max_change_px=lim.check_change_px)
@@ -285,12 +280,10 @@ def judge_problem(
             f"no paired comparison ({why}); fell back to re-estimating the calibration from "
             "the check's frames"
         )
-        checks = (Check("paired", True, None, None, fallback),) + v.checks + tuple(change)
+        checks = (Check("paired", True, None, None, fallback), *own, *change)
         notes = [fallback] + notes
     verdict = "ok" if all(c.passed for c in checks) else "drifted"
-    return dataclasses.replace(
-        v, verdict=verdict, checks=checks, installed=info, notes=tuple(notes)
-    )
+    return Verdict(verdict, "check", checks, info, tuple(notes), extra)
 
 
 def run_check(

@@ -4,7 +4,7 @@ ok``, with reasons. The gate (:func:`judge`) tests the solve against the cell's 
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -19,7 +19,7 @@ from slidecal.routines.results_io import (
     hand_eye_transforms,
     scale_tolerance,
 )
-from slidecal.routines.session import Fields, dump_yaml, load_yaml, write_atomic
+from slidecal.routines.session import Fields, dump_yaml, write_atomic
 from slidecal.solver import drift
 from slidecal.solver.adequacy import LEFT_OUT, RECORDS_WRONG
 from slidecal.solver.camera import (
@@ -50,24 +50,8 @@ EXIT_CODES = {
 
 @dataclass(frozen=True)
 class Limits:
-    """The gate's limits (the cell file's ``limits:`` section; every field optional; their meaning
-    and defaults: docs/UNATTENDED.md).
-
-    ``max_rms_px``: reprojection rms without an adequacy test. ``fx_rel_std``, ``cxy_std_px``,
-    ``hand_eye_rot_std_deg``, ``hand_eye_t_std_mm``: one-sigma limits (the translation's is the
-    root of the three axes' variances); ``*_from_translations``: those of a session of one
-    orientation, whose hand-eye rotation and principal point rest on the arm's orientation
-    accuracy. ``scale_tolerance``: of the length ratio around 1. ``min_coverage``: of the
-    ``coverage_grid`` ([columns, rows]) per camera. ``max_change_sigma``, ``max_change_px``: a
-    drift from the installed calibration, the latter over the central ``change_region`` at
-    ``working_distance_m``. ``check_max_rms_ratio``, ``check_max_px``, ``check_change_px``:
-    ``slidecal check``'s. ``focal_change_stat``, ``focal_change_rel``: a focal length that
-    changed between two parts of the session (chi-square statistic, relative size).
-    ``max_robot_error_mm``, ``max_robot_error_deg``: the arm's learned accuracy (rms per axis)
-    beyond which it is not the arm's; ``max_robot_error_ratio``: beyond this multiple of the
-    installed calibration's learned accuracy. ``max_projection_std_px``: the largest
-    projection one-sigma over the image (``_from_translations``: a session of one orientation's).
-    """
+    """The gate's limits (the cell file's ``limits:`` section; every field optional): their
+    meaning and defaults are the table of docs/UNATTENDED.md."""
 
     max_rms_px: float = 1.0
     fx_rel_std: float = 0.005
@@ -204,15 +188,6 @@ def write_verdict(v: Verdict, directory: str | Path) -> Path:
     path = Path(directory) / VERDICT_FILE
     write_atomic(path, dump_yaml(verdict_to_dict(v)))
     return path
-
-
-def read_verdict(directory: str | Path) -> dict[str, Any]:
-    """The ``verdict.yaml`` of a directory as a mapping (format checked)."""
-    path = Path(directory) / VERDICT_FILE
-    data = load_yaml(path, "verdict file")
-    if not isinstance(data, Mapping) or data.get("format") != VERDICT_FORMAT:
-        raise InputError(f"is not a {VERDICT_FORMAT} file", where=str(path))
-    return dict(data)
 
 
 # ----------------------------------------------------------------------------- the gate
@@ -1006,19 +981,15 @@ def paired_compare(
     return checks, info
 
 
-def judge_check(
+def check_residuals(
     residual_rms_px: Mapping[str, float],
     expected_rms_px: Mapping[str, float],
     drift_px: Mapping[str, float],
-    limits: Limits | None = None,
-    n_frames: int = 0,
-    extra: Mapping[str, Any] | None = None,
-    notes: Sequence[str] = (),
-) -> Verdict:
-    """The verdict of ``slidecal check``: ``ok``, or ``drifted`` when the images disagree with the
-    installed calibration beyond the limits (per camera ``residual_rms_px``, ``expected_rms_px``
-    and ``drift_px``)."""
-    lim = limits or Limits()
+    lim: Limits,
+    n_frames: int,
+) -> list[Check]:
+    """``slidecal check``'s test per camera: the images disagree with the installed calibration
+    beyond the limits (``residual_rms_px``, ``expected_rms_px`` and ``drift_px``)."""
     checks = []
     for n, r in residual_rms_px.items():
         ratio = r / expected_rms_px[n] if expected_rms_px[n] > 0 else float("inf")
@@ -1035,5 +1006,4 @@ def judge_check(
                 f"{drift_px[n]:.2f} px (limit {lim.check_max_px:g} px)",
             )
         )
-    verdict = "ok" if all(c.passed for c in checks) else "drifted"
-    return Verdict(verdict, "check", tuple(checks), None, tuple(notes), dict(extra or {}))
+    return checks
