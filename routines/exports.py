@@ -18,6 +18,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from slidecal.drivers.ur_pose import rpy_deg
 from slidecal.routines import __version__
 from slidecal.routines.ops.report import uncertainty_map
 from slidecal.routines.results_io import (
@@ -45,9 +46,6 @@ KALIBR_MODELS = {"opencv5": "radtan", "fisheye": "equidistant"}
 #: ``valid_intrinsics_region``: where the one-sigma projection uncertainty is below this
 #: (docs/ERROR_MODEL.md, "Exports")
 VALID_REGION_PX = 1.0
-
-#: Socket of each camera of the simulated OAK-D-like head (as on an OAK-D).
-OAK_DEFAULT_SOCKETS = {"left": "CAM_B", "right": "CAM_C", "rgb": "CAM_A"}
 
 
 def file_sha256(path: str | Path | None) -> str | None:
@@ -228,13 +226,6 @@ def quat_xyzw(R: np.ndarray) -> list[float]:
     return [float(v) for v in (-q if q[3] < 0 else q)]
 
 
-def _rpy_deg(R: np.ndarray) -> list[float]:
-    pitch = np.arcsin(-np.clip(R[2, 0], -1.0, 1.0))
-    roll = np.arctan2(R[2, 1], R[2, 2])
-    yaw = np.arctan2(R[1, 0], R[0, 0])
-    return [float(v) for v in np.degrees([roll, pitch, yaw])]
-
-
 def hand_eye_dict(result: CalibrationResult, header: Mapping[str, Any] | None = None) -> dict:
     """``hand_eye.yaml``: every hand-eye transform in three forms; an undetermined translation is
     ``null``, without a matrix."""
@@ -262,7 +253,7 @@ def hand_eye_dict(result: CalibrationResult, header: Mapping[str, Any] | None = 
         e["ur_pendant"] = {
             "position_mm": plain(tm * 1000.0) if tm is not None else None,
             "rotation_vector_rad": plain(rvec_from_R(R)),
-            "rpy_deg": _rpy_deg(R),
+            "rpy_deg": rpy_deg(R),
         }
         e["std_rot_deg"] = t.std_rot_deg
         e["std_t_mm"] = t.std_t_mm if tm is not None else None
