@@ -65,12 +65,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         with signals_as_interrupt():
             return int(args._main(args) or 0)
-    except HardwareFault as e:
-        print(f"slidecal: {one_line(e)}", file=sys.stderr)
-        return EXIT_HARDWARE
     except SlidecalError as e:
         print(f"slidecal: {one_line(e)}", file=sys.stderr)
-        return EXIT_INPUT
+        return EXIT_HARDWARE if isinstance(e, HardwareFault) else EXIT_INPUT
     except KeyboardInterrupt as e:
         how = getattr(e, "how", "Ctrl-C")
         print(

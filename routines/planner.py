@@ -16,19 +16,10 @@ time budget), choose orientation groups (tilts) and translations per group such 
 - the predicted standard deviations meet the goal with the least robot time (moves by a
   trapezoidal profile, plus settle and capture time per frame).
 
-Method: candidate groups look at the board centre from the standoff, tilted by ``tilts_deg``
-about in-plane axes at ``azimuths_deg``; candidate frames of a group are the group's pose
-displaced (camera axes) along 18 directions, each with a component along the viewing axis
-(translations parallel to the board are degenerate, docs/METHOD.md Sec. 7), by ``step_mm``. The
-prediction is the solver's (:func:`slidecal.solver.uncertainty.planned_covariance`) for the
-problem a run would give it (:func:`nominal_problem`: exact corners, the arm at
-:func:`arm_noise`). Each candidate frame's information is computed once, with its own pose
-correction marginalised out, so a plan's is the sum over its frames; a greedy search adds the
-frame or the new group (two frames) that most reduces the goal's predicted variance per second
-of robot time, until the goal and the minimum structure (``min_groups`` groups of
-``min_frames_per_group`` frames) are met. The chosen plan is checked by a dry run of the
-simulated arm and predicted whole (the arm's error shared by a group's frames included); where
-that misses the goal, the search runs again for a goal tightened by the factor.
+Method: candidate groups and frames (:func:`_candidates`, :data:`DIRECTIONS`), each frame's
+information from the solver's prediction for the problem a run would give it
+(:func:`nominal_problem`, :func:`_information`), a greedy choice per second of robot time
+(:func:`_greedy`), checked by a dry run and predicted whole (:func:`_search`).
 
 The ``plan:`` block of the cell file (every key optional) is described in docs/FORMATS.md.
 Only the reference camera is planned for (its visibility and its information); the other

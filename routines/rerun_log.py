@@ -10,6 +10,7 @@ import numpy as np
 import rerun as rr
 
 from slidecal.solver.camera import project
+from slidecal.solver.drift import T_cam_board
 from slidecal.solver.geometry import inv_T
 from slidecal.solver.problem import CalibrationProblem, CameraSpec, Detection, Target
 from slidecal.solver.result import CalibrationResult
@@ -175,12 +176,9 @@ class RerunLog:
                     or len(det.ids) == 0
                 ):
                     continue
-                if problem.mount == "eye_in_hand":
-                    T_ref_board = inv_T(he) @ inv_T(fr.T_base_tool) @ Tt
-                else:
-                    T_ref_board = inv_T(he) @ fr.T_base_tool @ Tt
-                T_cam_board = inv_T(T_ref_cam[name]) @ T_ref_board
-                P = problem.target.points_m[det.ids] @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
+                T_ref_board = T_cam_board(problem.mount, he, fr.T_base_tool, Tt)
+                T_cb = inv_T(T_ref_cam[name]) @ T_ref_board
+                P = problem.target.points_m[det.ids] @ T_cb[:3, :3].T + T_cb[:3, 3]
                 px = project(est.K, est.distortion, P)
                 self.rec.log(
                     f"{self._cam_path(name)}/image/reprojections",
