@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from slidecal.routines.acquire import cell_key, record_session
+from slidecal.routines.acquire import cell_key, clock, record_session
 from slidecal.routines.config import CellConfig, load_config
 from slidecal.routines.ops.install import (
     INSTALLED_FILE,
@@ -347,8 +347,7 @@ def run_check(
     verdict = judge_problem(
         problem, inst, expected_rms_px(inst, info or {}, cfg), cfg, installed_problem=recorded
     )
-    t = getattr(rec.robot, "robot_time_s", None)
-    verdict.extra["check"]["robot_time_s"] = None if t is None else float(t)
+    verdict.extra["check"]["robot_time_s"] = clock(rec.robot)
     write_verdict(verdict, out)
     for line in verdict.lines():
         prog.event(line)

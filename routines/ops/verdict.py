@@ -777,13 +777,6 @@ def displacement_px(
     return float(np.max(np.linalg.norm(proj - px, axis=1)))
 
 
-def _z(a: float, b: float, sa: float | None, sb: float | None) -> float | None:
-    if sa is None or sb is None or not np.isfinite(sa) or not np.isfinite(sb):
-        return None
-    s = float(np.hypot(sa, sb))
-    return abs(a - b) / s if s > 0 else None
-
-
 def compare(
     new: CalibrationResult, old: CalibrationResult, lim: Limits | None = None
 ) -> tuple[list[Check], dict[str, Any]]:
@@ -802,35 +795,35 @@ def compare(
         )
         return [check], {"comparable": False}
     z: dict[str, float] = {}
+
+    def add(key: str, a: float, b: float, sa: float | None, sb: float | None) -> None:
+        """``z[key]``: the change ``a - b`` in combined sigmas, where both are known."""
+        if sa is not None and sb is not None and np.isfinite(sa) and np.isfinite(sb):
+            s = float(np.hypot(sa, sb))
+            if s > 0:
+                z[key] = abs(a - b) / s
+
     for n in common:
         a, b = new.cameras[n], old.cameras[n]
         Ka, Kb = np.asarray(a.K), np.asarray(b.K)
         vals = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
         for p, (i, j) in vals.items():
-            zz = _z(Ka[i, j], Kb[i, j], _f(a.std.get(p)), _f(b.std.get(p)))
-            if zz is not None:
-                z[f"{n}.{p}"] = zz
+            add(f"{n}.{p}", Ka[i, j], Kb[i, j], _f(a.std.get(p)), _f(b.std.get(p)))
         da = np.asarray(a.distortion).reshape(-1)
         db = np.asarray(b.distortion).reshape(-1)
         same = distortion_model(da) == distortion_model(db)  # else the displacement compares
         for k, p in enumerate(DISTORTION_MODELS[distortion_model(da)] if same else ()):
-            zz = _z(da[k], db[k], _f(a.std.get(p)), _f(b.std.get(p)))
-            if zz is not None:
-                z[f"{n}.{p}"] = zz
+            add(f"{n}.{p}", da[k], db[k], _f(a.std.get(p)), _f(b.std.get(p)))
     he_a, he_b = hand_eye_transforms(new), hand_eye_transforms(old)
     pairs = [(k, he_a[k], he_b[k]) for k in he_a if k in he_b]
     pairs += [(k, t, old.rig[k]) for k, t in new.rig.items() if k in old.rig]
     for key, ta, tb in pairs:
         if ta.R is not None and tb.R is not None:
             ang = rotation_angle_deg(ta.R, tb.R)
-            zz = _z(ang, 0.0, _f(ta.std_rot_deg), _f(tb.std_rot_deg))
-            if zz is not None:
-                z[f"{key}.rot"] = zz
+            add(f"{key}.rot", ang, 0.0, _f(ta.std_rot_deg), _f(tb.std_rot_deg))
         if ta.t_m is not None and tb.t_m is not None:
             dt = float(np.linalg.norm(np.asarray(ta.t_m) - np.asarray(tb.t_m)) * 1000.0)
-            zz = _z(dt, 0.0, _f(ta.std_t_mm), _f(tb.std_t_mm))
-            if zz is not None:
-                z[f"{key}.t"] = zz
+            add(f"{key}.t", dt, 0.0, _f(ta.std_t_mm), _f(tb.std_t_mm))
     disp = {
         n: displacement_px(new, old, n, lim.working_distance_m, lim.change_region) for n in common
     }
