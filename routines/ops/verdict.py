@@ -15,6 +15,7 @@ import numpy as np
 from slidecal.routines.ops.install import installed_session
 from slidecal.routines.results_io import (
     SCALE_INCONCLUSIVE,
+    _num,
     hand_eye_names,
     hand_eye_transforms,
     scale_tolerance,
@@ -152,19 +153,12 @@ class Verdict:
         return out
 
 
-def _f(x: Any) -> float | None:
-    if x is None:
-        return None
-    x = float(x)
-    return x if np.isfinite(x) else None
-
-
 def verdict_to_dict(v: Verdict) -> dict[str, Any]:
     """The ``verdict.yaml`` mapping."""
 
     def c(ch: Check) -> dict[str, Any]:
         d = asdict(ch)
-        d["value"], d["limit"] = _f(ch.value), _f(ch.limit)
+        d["value"], d["limit"] = _num(ch.value), _num(ch.limit)
         return d
 
     d: dict[str, Any] = {
@@ -232,12 +226,11 @@ def judge(
             f"after {result.iterations} iterations",
         )
     )
+    checks.extend(_reprojection(result, lim))
     ad = result.adequacy
     if ad is not None and not ad.adequate and any(RECORDS_WRONG in r for r in ad.reasons):
         # the robot's records are wrong: every other figure comes from a solve on them
-        checks += _reprojection(result, lim)
         return Verdict("rejected", command, tuple(c for c in checks if c.test != "converged"))
-    checks.extend(_reprojection(result, lim))
     checks.extend(_stds(result, lim))
     checks.extend(_scale(result, lim))
     projection, beyond = _projection(result, lim, problem)
@@ -294,7 +287,7 @@ def _reprojection(result: CalibrationResult, lim: Limits) -> list[Check]:
             if ad.adequate
             else "model adequacy failed: " + "; ".join(ad.reasons)
         )
-        return [Check("adequacy", bool(ad.adequate), _f(worst), None, msg)]
+        return [Check("adequacy", bool(ad.adequate), _num(worst), None, msg)]
     out = []
     rms = result.reproj_rms_px
     for name, c in result.cameras.items():
@@ -304,7 +297,7 @@ def _reprojection(result: CalibrationResult, lim: Limits) -> list[Check]:
             Check(
                 "reprojection",
                 ok,
-                _f(r),
+                _num(r),
                 lim.max_rms_px,
                 f"camera {name}: reprojection rms {r:.3f} px (limit {lim.max_rms_px:g} px"
                 + ("" if ok else "; the model or the robot poses do not explain the images")
@@ -313,7 +306,7 @@ def _reprojection(result: CalibrationResult, lim: Limits) -> list[Check]:
         )
     if not result.cameras:
         ok = bool(np.isfinite(rms) and rms <= lim.max_rms_px)
-        out.append(Check("reprojection", ok, _f(rms), lim.max_rms_px, f"rms {rms:.3f} px"))
+        out.append(Check("reprojection", ok, _num(rms), lim.max_rms_px, f"rms {rms:.3f} px"))
     return out
 
 
@@ -363,14 +356,14 @@ def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
     for name, c in result.cameras.items():
         K = np.asarray(c.K, dtype=float)
         for p, val in (("fx", K[0, 0]), ("fy", K[1, 1])):
-            s = _f(c.std.get(p))
+            s = _num(c.std.get(p))
             rel = s / abs(val) if s is not None and val != 0 else None
             note = f"limit {fx_lim * 100:g} %; limits.fx_rel_std{suffix}"
             out.append(_std_check(f"camera {name}: {p}", rel, fx_lim, "%", ".3f", note, 100))
         for p in ("cx", "cy"):
             one = ", a session of one orientation" if alone else ""
             note = f"limit {cxy_lim:g} px{one}; limits.cxy_std_px{suffix}"
-            s = _f(c.std.get(p))
+            s = _num(c.std.get(p))
             out.append(_std_check(f"camera {name}: {p}", s, cxy_lim, "px", ".3f", note))
     transforms = [result.hand_eye] if result.hand_eye is not None else []
     transforms.extend(result.rig.values())
@@ -384,12 +377,12 @@ def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
             f"limit {rot_lim:g} deg" + ("" if full else ", a hand-eye from translations alone")
             + f"; limits.hand_eye_rot_std_deg{'' if full else '_from_translations'}"
         )
-        s = _f(t.std_rot_deg)
+        s = _num(t.std_rot_deg)
         out.append(_std_check(f"{t.name}: rotation", s, rot_lim, "deg", ".4f", note))
         if t.t_m is not None:
             t_lim = lim.hand_eye_t_std_mm
             note = f"limit {t_lim:g} mm; limits.hand_eye_t_std_mm"
-            s = _f(t.std_t_mm)
+            s = _num(t.std_t_mm)
             out.append(_std_check(f"{t.name}: translation", s, t_lim, "mm", ".3f", note))
     return out
 
@@ -808,22 +801,22 @@ def compare(
         Ka, Kb = np.asarray(a.K), np.asarray(b.K)
         vals = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
         for p, (i, j) in vals.items():
-            add(f"{n}.{p}", Ka[i, j], Kb[i, j], _f(a.std.get(p)), _f(b.std.get(p)))
+            add(f"{n}.{p}", Ka[i, j], Kb[i, j], _num(a.std.get(p)), _num(b.std.get(p)))
         da = np.asarray(a.distortion).reshape(-1)
         db = np.asarray(b.distortion).reshape(-1)
         same = distortion_model(da) == distortion_model(db)  # else the displacement compares
         for k, p in enumerate(DISTORTION_MODELS[distortion_model(da)] if same else ()):
-            add(f"{n}.{p}", da[k], db[k], _f(a.std.get(p)), _f(b.std.get(p)))
+            add(f"{n}.{p}", da[k], db[k], _num(a.std.get(p)), _num(b.std.get(p)))
     he_a, he_b = hand_eye_transforms(new), hand_eye_transforms(old)
     pairs = [(k, he_a[k], he_b[k]) for k in he_a if k in he_b]
     pairs += [(k, t, old.rig[k]) for k, t in new.rig.items() if k in old.rig]
     for key, ta, tb in pairs:
         if ta.R is not None and tb.R is not None:
             ang = rotation_angle_deg(ta.R, tb.R)
-            add(f"{key}.rot", ang, 0.0, _f(ta.std_rot_deg), _f(tb.std_rot_deg))
+            add(f"{key}.rot", ang, 0.0, _num(ta.std_rot_deg), _num(tb.std_rot_deg))
         if ta.t_m is not None and tb.t_m is not None:
             dt = float(np.linalg.norm(np.asarray(ta.t_m) - np.asarray(tb.t_m)) * 1000.0)
-            add(f"{key}.t", dt, 0.0, _f(ta.std_t_mm), _f(tb.std_t_mm))
+            add(f"{key}.t", dt, 0.0, _num(ta.std_t_mm), _num(tb.std_t_mm))
     disp = {
         n: displacement_px(new, old, n, lim.working_distance_m, lim.change_region) for n in common
     }
@@ -859,10 +852,10 @@ def compare(
         ),
     ]
     info = {
-        "max_sigma": _f(worst_z),
+        "max_sigma": _num(worst_z),
         "max_sigma_parameter": worst_p,
-        "max_displacement_px": {k: _f(v) for k, v in disp.items()},
-        "sigma": {k: _f(v) for k, v in z.items()},
+        "max_displacement_px": {k: _num(v) for k, v in disp.items()},
+        "sigma": {k: _num(v) for k, v in z.items()},
     }
     return checks, info
 
@@ -957,14 +950,14 @@ def paired_compare(
         per[cam] = {
             "poses": fld.n_poses,
             "corners": fld.n_corners,
-            "max_px": _f(fld.max_px),
-            "max_z": _f(fld.max_z),
-            "field_px": [_f(v) for v in fld.mean_px],
-            "field_std_px": [_f(v) for v in fld.std_px],
-            "radius_px": _f(fld.radius_px),
-            "corner_noise_px": _f(fld.corner_noise_px),
-            "pose_scatter_px": _f(fld.pose_scatter_px),
-            "equivalent": {k: _f(v) for k, v in eq.items()},
+            "max_px": _num(fld.max_px),
+            "max_z": _num(fld.max_z),
+            "field_px": [_num(v) for v in fld.mean_px],
+            "field_std_px": [_num(v) for v in fld.std_px],
+            "radius_px": _num(fld.radius_px),
+            "corner_noise_px": _num(fld.corner_noise_px),
+            "pose_scatter_px": _num(fld.pose_scatter_px),
+            "equivalent": {k: _num(v) for k, v in eq.items()},
         }
     if not checks:
         return [], {"usable": False, "why": "; ".join(whys) or "no camera in common"}
@@ -991,7 +984,7 @@ def check_residuals(
             Check(
                 "check",
                 bool(ok),
-                _f(ratio),
+                _num(ratio),
                 lim.check_max_rms_ratio,
                 f"camera {n}: residual rms {r:.3f} px at {n_frames} known robot poses is "
                 f"{ratio:.2f} times what the installed calibration explains "
