@@ -183,8 +183,12 @@ class _Item(Fields):
         return f"{self.file}: {self.path}" + (f"[{key}]" if key is not None else "")
 
 
-def _axis_angle(axis: np.ndarray, angle_rad: float) -> np.ndarray:
-    return R_from_rvec(np.asarray(axis, dtype=float) / np.linalg.norm(axis) * angle_rad)
+def group_R_board_cam(tilt_deg: float, azimuth_deg: float) -> np.ndarray:
+    """``R_board_cam`` (3, 3) of a group: looking along +z_board, tilted by ``tilt_deg`` about
+    the in-plane axis at ``azimuth_deg`` (the geometry of :func:`camera_poses_board`)."""
+    phi = np.radians(azimuth_deg)
+    axis = np.array([np.cos(phi), np.sin(phi), 0.0])
+    return R_from_rvec(axis * np.radians(tilt_deg))
 
 
 def camera_poses_board(
@@ -208,10 +212,9 @@ def camera_poses_board(
     rolls = [-10.0, 10.0, -20.0, 20.0, 0.0, 30.0]
     out = []
     for g in range(groups):
-        phi = np.radians(45.0 + 360.0 * g / groups)
-        axis = np.array([np.cos(phi), np.sin(phi), 0.0])
         # camera axes aligned with the board's (looking along +z_board), tilted, then rolled
-        R_board_cam = _axis_angle(axis, np.radians(tilt_deg)) @ Rz(np.radians(rolls[g % 6]))
+        R_tilt = group_R_board_cam(tilt_deg, 45.0 + 360.0 * g / groups)
+        R_board_cam = R_tilt @ Rz(np.radians(rolls[g % 6]))
         centre_cam = c - standoff_m * R_board_cam[:, 2]
         frames = []
         for k in range(frames_per_group):
