@@ -1,9 +1,7 @@
 """The ``slidecal`` command line: ``run``, ``solve``, ``check``, ``rollback`` and the others of
 :data:`SUBCOMMANDS` (a subcommand is a module with ``add_arguments(parser)`` and
 ``main(args) -> int``). Every ``SlidecalError`` and every failure to read or write a file is one
-line ``slidecal: <message>`` on stderr, no traceback; the exit codes are in docs/UNATTENDED.md
-(0 accepted or ok, 2 bad input, 3 hardware fault, 4 rejected, 5 drifted, 6 not installed,
-130 interrupted)."""
+line ``slidecal: <message>`` on stderr, no traceback; the exit codes: docs/UNATTENDED.md."""
 
 from __future__ import annotations
 

@@ -1,10 +1,5 @@
-"""The calibration routine: plan, move, capture, detect, record, solve, write (``slidecal run``).
-
-Callable from Python for scripted commissioning::
-
-    from slidecal.routines.run import RunRequest, run_calibration
-    outcome = run_calibration(RunRequest("cell.yaml", out_dir="sessions/cell7"))
-    print(outcome.summary)
+"""The calibration routine: plan, move, capture, detect, record, solve, write (``slidecal run``;
+from Python: :func:`run_calibration`, README).
 
 THE ROBOT NEVER MOVES unless the cell file names real hardware (``robot.driver: ur`` with a
 ``host``). What a run writes and when: docs/UNATTENDED.md.

@@ -1,10 +1,6 @@
 """``slidecal check --config CELL --installed STORE``: does the installed calibration still hold?
-
-A short verification, not a calibration: a handful of frames (at most :data:`MAX_ROBOT_TIME_S`
-of robot time) at poses the installed session recorded (:func:`recorded_plan`). The corners
-compared pair by pair with the installed session's decide when the store keeps it; otherwise the
-installed calibration re-estimated from the check (:func:`refit`) and its residual with only the
-target's pose free decide. Verdict ``ok`` or ``drifted`` (exit 0 / 5): docs/UNATTENDED.md.
+A few frames at poses the installed session recorded, compared pair by pair with its corners, or
+the calibration re-estimated from them (:func:`refit`); ``ok`` or ``drifted``: docs/UNATTENDED.md.
 """
 
 from __future__ import annotations
