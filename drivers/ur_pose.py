@@ -1,10 +1,6 @@
-"""The one conversion between Universal Robots poses and ``T_base_tool`` (docs/METHOD.md Sec. 1).
-
-A UR pose ``[x, y, z, rx, ry, rz]`` (as ``getActualTCPPose`` returns it and ``moveL`` takes it)
-is ``T_base_tool`` of the TCP set on the controller: metres and an axis-angle vector in radians.
-The teach pendant shows millimetres and RPY; :func:`pendant_text` prints that for humans,
-:func:`describe` both.
-"""
+"""The one conversion between Universal Robots poses ``[x, y, z, rx, ry, rz]`` (metres, an
+axis-angle vector in radians) and ``T_base_tool`` (docs/METHOD.md Sec. 1), and the pose as the
+teach pendant shows it (:func:`pendant_text`; both: :func:`describe`)."""
 
 from __future__ import annotations
 

@@ -1,10 +1,7 @@
-"""Exports of an accepted calibration for other tools (``export/``, never for a rejected
-result), and the result header: OpenCV and ROS files per camera, Kalibr's ``camchain.yaml``,
-``hand_eye.yaml`` (4x4, translation + quaternion x, y, z, w, and as a UR pendant shows it),
-mrcal's ``.cameramodel`` per camera and an OAK's depthai JSON (docs/FORMATS.md). Each lens model
-is written where the format has it (docs/FORMATS.md, "Lens models"); a camera with skew gets no
-Kalibr or mrcal file. A failed export does not stop the others: :func:`write_all_exports` returns
-the failures as one-line messages."""
+"""Exports of an accepted calibration for other tools (``export/``, never for a rejected result)
+and the result header; what each file holds and where a lens model cannot go: docs/UNATTENDED.md,
+"Exports and the result header". A failed export does not stop the others:
+:func:`write_all_exports` returns the failures as one-line messages."""
 
 from __future__ import annotations
 
@@ -147,13 +144,9 @@ def _numbers(values: Any) -> str:
 def mrcal_cameramodel(
     result: CalibrationResult, name: str, header: Mapping[str, Any] | None = None
 ) -> str:
-    """mrcal's ``.cameramodel`` text (a Python ``dict`` literal) of camera ``name``: the lens
-    model (``LENSMODEL_OPENCV4`` when k3 is 0, not estimated, else ``OPENCV5``, ``OPENCV8`` for
-    the rational model) written before ``intrinsics`` (mrcal's C reader wants that order),
-    ``rt_cam_ref`` (Rodrigues vector, metres; also as ``extrinsics`` for mrcal before 2.5),
-    ``imagersize`` and, with a covariance, ``valid_intrinsics_region``: the contour where the
-    projection's one-sigma uncertainty is below :data:`VALID_REGION_PX`. ``ValueError`` when the
-    camera has a skew, a fisheye lens or its rig transform is missing."""
+    """mrcal's ``.cameramodel`` text (a Python ``dict`` literal) of camera ``name`` (what it holds:
+    docs/UNATTENDED.md), the lens model before ``intrinsics`` (mrcal's C reader wants that order).
+    ``ValueError`` when the camera has a skew, a fisheye lens or its rig transform is missing."""
     _no_skew(result, "mrcal's OpenCV lens models")
     c = result.cameras[name]
     dist = np.asarray(c.distortion, dtype=float).reshape(-1)

@@ -58,12 +58,8 @@ _OFFSETS = np.array(
 
 @dataclass(frozen=True)
 class Plan:
-    """Orientation groups of ``T_base_tool`` (4, 4) poses (metres) and how to move between them.
-
-    ``via`` (4, 4): visited before each group without a capture (None: straight to the group).
-    ``predicted_std`` (parameter name -> one-sigma) and ``duration_s`` are reserved for the
-    planner; None here.
-    """
+    """Orientation groups of ``T_base_tool`` (4, 4) poses (metres) and how to move between them;
+    the fields are ``plan.yaml``'s keys (docs/FORMATS.md; ``via`` None: straight to each group)."""
 
     groups: tuple[tuple[np.ndarray, ...], ...]
     via: np.ndarray | None = None
