@@ -567,10 +567,8 @@ def uncertainty_map(result: CalibrationResult, camera: str, n: tuple[int, int] =
 def _projection(
     result: CalibrationResult, lim: Limits, problem: CalibrationProblem | None
 ) -> tuple[list[Check], list[str]]:
-    """The ``projection`` check per camera: the largest one-sigma of :func:`uncertainty_map`
-    over the image area the views covered (the 16 x 10 cells holding a corner and their
-    neighbours; the whole image without the problem), and a note where the rest of the image
-    is beyond the limit."""
+    """The ``projection`` check per camera (docs/UNATTENDED.md; the whole image without the
+    problem), and a note where the rest of the image is beyond the limit."""
     out, notes = [], []
     alone = one_orientation(result)
     limit = lim.max_projection_std_px_from_translations if alone else lim.max_projection_std_px
@@ -634,13 +632,10 @@ INTRINSICS_MIN_CORNERS = 8
 def focal_change(
     problem: CalibrationProblem, camera: str, K0: np.ndarray, dist0: np.ndarray
 ) -> tuple[float, float, int] | None:
-    """The likeliest change of ``camera``'s focal length between two parts of the session (the
-    frames before and from some frame on, each part at least two images), from the images
-    alone: each image's free board pose at ``K0``, ``dist0``, linearised in the pose, a focal
-    scale per part and one principal point correction; ``(statistic, relative change, frame
-    index where it starts)``, the statistic the misfit the change explains in units of the
-    detector's variance (chi-square with one degree of freedom for one split when nothing
-    changed); None with fewer than four images."""
+    """The likeliest change of ``camera``'s focal length between two parts of the session, from
+    the images alone at ``K0``, ``dist0`` (the ``intrinsics`` test of docs/UNATTENDED.md):
+    ``(statistic, relative change, frame index where it starts)``; None with fewer than four
+    images."""
     rows = []  # per image: frame index, N (3, 3), g (3,), rss, corners
     for k, f in enumerate(problem.frames):
         d = f.detections.get(camera)
