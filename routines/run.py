@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from datetime import datetime
 from functools import partial
 from pathlib import Path
@@ -31,7 +31,6 @@ from slidecal.routines.schema import check_out_dir, load_yaml
 from slidecal.routines.session import Session, load_session
 from slidecal.routines.solve import (
     RunOutcome,
-    Solved,
     finish_solve,
     installed_calibration,
     print_outcome,
@@ -196,7 +195,7 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
         session,
         cfg.limits,
         command="run",
-        truth=session.simulation,  # as recorded, with the poses the arm really reached
+        t0=t0,
         cell_path=q.config if isinstance(q.config, str | Path) else None,
         cell_name=cfg.source,
         oak_sockets=sockets(cfg),
@@ -214,10 +213,10 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
     for line in fin.verdict.lines() + ([f"not installed: {note}"] if note else []):
         prog.event(line)
     prog.done(f"done: {fin.result_path}")
-    return fin.outcome(
-        session,
-        t0,
-        clock(robot),
+    return replace(
+        fin,
+        wall_time_s=time.monotonic() - t0,
+        robot_time_s=clock(robot),
         recording_path=rec_path,
         installed_to=installed_to,
         install_note=note,
@@ -271,7 +270,7 @@ def _plan(plan: str | Path | Plan | None, cfg: CellConfig) -> Plan:
 
 def _install(
     store: str | Path | None,
-    fin: Solved,
+    fin: RunOutcome,
     force: bool,
     accept_drift: bool,
     cfg: CellConfig,
