@@ -106,16 +106,9 @@ def _text(value: Any) -> str | None:
 
 
 class OakRig:
-    """The cameras of one OAK device, captured as a synchronised set.
-
-    ``device_id``: MxId or IP (None: the first device). ``sockets``: camera name -> board socket
-    (``"CAM_A"`` ...), the first the sync reference. ``sizes``: name -> (width, height) px.
-    ``colour``: the names delivered as BGR (others grey). ``exposure_us``, ``iso``: manual exposure
-    for every camera (both or neither). ``focus``: name -> lens position 0..255 (required for
-    auto-focus cameras). ``white_balance_k``: name -> 1000..12000 K (default 5000). ``fps``: one
-    rate for all. ``resize_mode``: ``stretch`` | ``crop`` | ``letterbox``. ``sync_tolerance_s``:
-    within a set (default ``0.55 / fps``). ``timeout_s``: :meth:`capture`'s wait for a set.
-    """
+    """The cameras of one OAK device, captured as a synchronised set; the arguments are the cell
+    file's ``cameras:`` keys (docs/FORMATS.md) with ``sockets`` and ``sizes`` by camera name (the
+    first socket the sync reference) and ``timeout_s``, :meth:`capture`'s wait for a set."""
 
     def __init__(
         self,
