@@ -833,9 +833,7 @@ def compare(
         ),
         Check(
             "installed",
-            # a displacement counts only when the change behind it is beyond the two
-            # calibrations' noise: an imprecise re-estimate (a realistic arm, a few frames)
-            # moves points by more than the limit without anything having changed
+            # a displacement counts only beyond the combined noise (docs/UNATTENDED.md)
             disp[worst_c] <= lim.max_change_px
             or (worst_z is not None and worst_z <= lim.max_change_sigma),
             disp[worst_c],
