@@ -251,9 +251,12 @@ def judge(
         checks.extend(change)
         if problem is not None:
             if installed_problem is None and installed_path is not None:
-                installed_problem, why = _stored_session(installed_path)
-                if why:
-                    notes.append(why)
+                try:  # None when the install keeps no session (or is a result file)
+                    installed_problem = installed_session(installed_path)
+                except InputError as e:
+                    notes.append(
+                        f"the installed session could not be read ({e}); no paired comparison"
+                    )
             if installed_problem is not None:
                 paired, info = paired_compare(
                     problem, installed_problem, installed, lim.max_change_px, lim.change_region
@@ -851,17 +854,6 @@ def compare(
         "sigma": {k: _num(v) for k, v in z.items()},
     }
     return checks, info
-
-
-def _stored_session(path: str) -> tuple[CalibrationProblem | None, str | None]:
-    """The installed session an install directory keeps, or (None, why it could not be read)."""
-    p = Path(path)
-    if not p.is_dir():
-        return None, None
-    try:
-        return installed_session(p), None
-    except InputError as e:
-        return None, f"the installed session could not be read ({e}); no paired comparison"
 
 
 def paired_compare(
