@@ -78,8 +78,6 @@ class Plan:
         *,
         via: np.ndarray | None = None,
         notes: Sequence[str] = (),
-        predicted_std: dict[str, float] | None = None,
-        duration_s: float | None = None,
     ) -> Plan:
         """A new plan: ``groups`` of ``T_base_tool`` (4, 4) poses moved with the speed,
         acceleration and settling time of ``motion``, the cell's ``robot:`` section
@@ -90,8 +88,6 @@ class Plan:
             speed_mps=motion.speed_mps,
             accel_mps2=motion.accel_mps2,
             settle_s=motion.settle_s,
-            predicted_std=predicted_std,
-            duration_s=duration_s,
             notes=tuple(notes),
         )
 
