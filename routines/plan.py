@@ -216,31 +216,13 @@ def camera_poses_board(
     return out
 
 
-def default_plan(
-    cfg: CellConfig,
-    frames_per_group: int = 5,
-    groups: int = 4,
-    tilt_deg: float = 25.0,
-    step_mm: float = 80.0,
-) -> Plan:
-    """The fixed default plan of a cell (:func:`camera_poses_board`): a reference the planner is
-    measured against (``python -m tests.bench planner``); ``slidecal run`` executes the
-    planner's plan.
-
-    Uses the cell's approximate target pose and hand-eye (``approximate:``) and ``standoff_m``;
-    poses are converted to ``T_base_tool`` through the approximate hand-eye (eye-in-hand) or
-    target-on-tool transform (eye-to-hand). ``step_mm``: the longest move within a group.
-    """
-    if not 2 <= groups <= 12:
-        raise InputError(f"groups must be 2..12, got {groups}")
-    if not 0.0 < tilt_deg <= 45.0:
-        raise InputError(f"tilt_deg must be in (0, 45], got {tilt_deg}")
-    if not step_mm > 0:
-        raise InputError(f"step_mm must be positive, got {step_mm}")
+def default_plan(cfg: CellConfig) -> Plan:
+    """The fixed default plan of a cell (:func:`camera_poses_board`: four groups tilted 25 deg,
+    five frames each, moves up to 80 mm): a reference the planner is measured against (``python
+    -m tests.bench planner``); ``slidecal run`` executes the planner's plan. Poses through the
+    cell's approximate hand-eye and target pose (``approximate:``), at ``standoff_m``."""
     centre = cfg.target.points_m.mean(axis=0)
-    T_cb = camera_poses_board(
-        centre, cfg.standoff_m, tilt_deg, step_mm / 1000.0, frames_per_group, groups
-    )
+    T_cb = camera_poses_board(centre, cfg.standoff_m, 25.0, 0.08)
     plan_groups = tuple(tuple(tool_pose(cfg, T) for T in grp) for grp in T_cb)
     via = tool_pose(cfg, camera_poses_board(centre, cfg.standoff_m, 0.0, 0.0, 2, 1)[0][0])
     return Plan.build(
@@ -248,8 +230,8 @@ def default_plan(
         cfg.robot,
         via=via,
         notes=(
-            f"default plan: {groups} groups tilted {tilt_deg:g} deg, {frames_per_group} frames "
-            f"each, moves up to {step_mm:g} mm at {cfg.standoff_m:g} m",
+            "default plan: 4 groups tilted 25 deg, 5 frames each, moves up to 80 mm at "
+            f"{cfg.standoff_m:g} m",
         ),
     )
 
