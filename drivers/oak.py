@@ -14,6 +14,7 @@ from contextlib import suppress
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from slidecal.solver.camera import distortion_model, project, undistort_normalised
@@ -657,8 +658,6 @@ def oak_calibration_handler(
     ``streams``: name -> how its output was made (:func:`stream_geometry`): its K is mapped back to
     the size the device stores that socket at; without one, written at its own size.
     """
-    import cv2
-
     dai = import_depthai()
     sockets = dict(DEFAULT_SOCKETS if sockets is None else sockets)
     unknown = [n for n in result.cameras if n not in sockets]
@@ -785,8 +784,6 @@ def projection_shift_px(
     ``{name: {rms_px, max_px}}`` over a ``grid`` x ``grid`` lattice of the reference camera's pixels
     back-projected to ``distance_m`` and projected with both models (``streams``: as in
     :func:`device_camera`)."""
-    import cv2
-
     ref = _reference(result)
     cref = result.cameras[ref]
     lattice = np.linspace(0.05, 0.95, grid)
