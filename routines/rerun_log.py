@@ -3,6 +3,7 @@ only module that imports rerun). Its entity tree and timelines: docs/DRIVERS.md.
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -48,8 +49,6 @@ class RerunLog:
         self.rec = rr.RecordingStream("slidecal", recording_id=recording_id)
         self.path = Path(path) if path is not None else None
         if spawn:
-            import shutil
-
             if shutil.which("rerun") is None:  # asked first: rerun itself would log to stderr
                 raise RuntimeError("no rerun viewer executable (`rerun`) on PATH")
             self.rec.spawn()

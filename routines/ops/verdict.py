@@ -4,6 +4,7 @@ ok``, with reasons. The gate (:func:`judge`) tests the solve against the cell's 
 
 from __future__ import annotations
 
+import difflib
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -90,8 +91,6 @@ def limits_from_dict(data: Any, source: str = "cell.yaml", path: str = "limits")
     known = [x.name for x in fields(Limits)]
     for k in f.data:
         if k not in known:
-            import difflib
-
             near = difflib.get_close_matches(str(k), known, n=1)
             hint = f"did you mean {near[0]!r}? " if near else ""
             raise f.error(str(k), f"is not a limit; {hint}the limits are {known}")
