@@ -725,19 +725,12 @@ def extend_plan(
     levels: Mapping[str, tuple[float, float]] | None = None,
 ) -> PlanReport:
     """``plan`` with more orientation groups after it, for a run whose recorded frames missed
-    the accuracy its gate asks for: the greedy search of :func:`make_plan` with the frames of
-    ``plan`` already counted, the noise the data showed instead of the cell's prior
-    (``corner_noise_px``; the robot's accuracy ``robot_noise_mm`` / ``robot_noise_deg`` per axis
-    and ``levels``, the (mm, deg) of each of its sources as the solve learned them,
-    ``RobotAccuracy.levels``; None: every source at the accuracy), the ``goal`` to meet, and
-    orientations not visited yet (a systematic arm error repeats at a repeated pose, so going
-    back adds less than the model would credit). ``achieved``: the one-sigma the recorded frames
-    gave, per goal key (as :class:`PlanGoal`'s): where it exceeds the prediction for those
-    frames (what the prediction does not model: the solve's levels are estimates, its errors
-    go together), the goal is tightened by that factor. The new groups take at most
-    ``max_duration_s`` of robot time. Raises ``InputError`` (with the reason) when no extension
-    within that time is predicted to meet the goal.
-    """
+    the accuracy its gate asks for (docs/UNATTENDED.md, "A run that extends its plan"): the
+    search of :func:`make_plan` with ``plan``'s frames counted, at the noise the data showed
+    (``corner_noise_px``; ``robot_noise_mm`` / ``_deg`` per axis and ``levels``, (mm, deg) per
+    source as ``RobotAccuracy.levels``), for ``goal`` tightened by how far ``achieved`` (the
+    recorded frames' one-sigma per goal key) exceeds their prediction, the new groups within
+    ``max_duration_s``. ``InputError`` (with the reason) when no extension meets the goal."""
     where = f"{cfg.source}: plan (extension)"
     noise = (robot_noise_mm, robot_noise_deg)
     s = replace(cfg.plan, corner_noise_px=corner_noise_px, robot_noise=noise, robot_levels=levels)

@@ -299,9 +299,8 @@ def _install(
 
 #: How many times a run extends its plan when its result misses the gate's one-sigma limits.
 EXTEND_ROUNDS = 2
-#: An extension plans for this fraction of each one-sigma limit: its prediction is the recorded
-#: frames' result's (the arm's learned levels, scaled to what those frames achieved), the rest a
-#: margin for levels learned again on more frames.
+#: An extension plans for this fraction of each one-sigma limit (a margin for levels learned
+#: again on more frames; docs/UNATTENDED.md).
 EXTEND_MARGIN = 0.9
 
 
