@@ -146,12 +146,11 @@ def finish_solve(
     write_result(result, target, header=header)
     exports: list[Path] = []
     export_errors: list[str] = []
-    if verdict.verdict != "rejected":
+    device_summary = ""
+    if verdict.verdict != "rejected":  # and for an OAK the export on the device's own calibration
         exports, export_errors = write_all_exports(
             result, target.parent / EXPORT_DIR, header, oak_sockets
         )
-    device_summary = ""
-    if verdict.verdict != "rejected":  # an OAK: the export on the device's own calibration
         device_exports, device_summary = device_calibration_outputs(
             result, session_dir, target.parent / EXPORT_DIR
         )

@@ -201,11 +201,10 @@ def rehearse(
                               "stale_limit_s": stale_s}
     state: dict[str, Any] = {}
     try:
-        outcome = run_calibration(RunRequest(
+        return run_calibration(RunRequest(
             cfg, out_dir=out, progress=progress, recording=recording, cell=rig_cell,
             faults=injector,
         ))
-        return outcome
     except HardwareFault as e:
         state = _state(controller)
         gap_s = state.get("cycle_gap_max_s", 0.0)
