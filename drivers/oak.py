@@ -14,6 +14,7 @@ from contextlib import suppress
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from slidecal.solver.camera import distortion_model, project, undistort_normalised
@@ -106,16 +107,9 @@ def _text(value: Any) -> str | None:
 
 
 class OakRig:
-    """The cameras of one OAK device, captured as a synchronised set.
-
-    ``device_id``: MxId or IP (None: the first device). ``sockets``: camera name -> board socket
-    (``"CAM_A"`` ...), the first the sync reference. ``sizes``: name -> (width, height) px.
-    ``colour``: the names delivered as BGR (others grey). ``exposure_us``, ``iso``: manual exposure
-    for every camera (both or neither). ``focus``: name -> lens position 0..255 (required for
-    auto-focus cameras). ``white_balance_k``: name -> 1000..12000 K (default 5000). ``fps``: one
-    rate for all. ``resize_mode``: ``stretch`` | ``crop`` | ``letterbox``. ``sync_tolerance_s``:
-    within a set (default ``0.55 / fps``). ``timeout_s``: :meth:`capture`'s wait for a set.
-    """
+    """The cameras of one OAK device, captured as a synchronised set; the arguments are the cell
+    file's ``cameras:`` keys (docs/FORMATS.md) with ``sockets`` and ``sizes`` by camera name (the
+    first socket the sync reference) and ``timeout_s``, :meth:`capture`'s wait for a set."""
 
     def __init__(
         self,
@@ -664,8 +658,6 @@ def oak_calibration_handler(
     ``streams``: name -> how its output was made (:func:`stream_geometry`): its K is mapped back to
     the size the device stores that socket at; without one, written at its own size.
     """
-    import cv2
-
     dai = import_depthai()
     sockets = dict(DEFAULT_SOCKETS if sockets is None else sockets)
     unknown = [n for n in result.cameras if n not in sockets]
@@ -792,8 +784,6 @@ def projection_shift_px(
     ``{name: {rms_px, max_px}}`` over a ``grid`` x ``grid`` lattice of the reference camera's pixels
     back-projected to ``distance_m`` and projected with both models (``streams``: as in
     :func:`device_camera`)."""
-    import cv2
-
     ref = _reference(result)
     cref = result.cameras[ref]
     lattice = np.linspace(0.05, 0.95, grid)

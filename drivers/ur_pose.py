@@ -1,10 +1,6 @@
-"""The one conversion between Universal Robots poses and ``T_base_tool`` (docs/METHOD.md Sec. 1).
-
-A UR pose ``[x, y, z, rx, ry, rz]`` (as ``getActualTCPPose`` returns it and ``moveL`` takes it)
-is ``T_base_tool`` of the TCP set on the controller: metres and an axis-angle vector in radians.
-The teach pendant shows millimetres and RPY; :func:`pendant_text` prints that for humans,
-:func:`describe` both.
-"""
+"""The one conversion between Universal Robots poses ``[x, y, z, rx, ry, rz]`` (metres, an
+axis-angle vector in radians) and ``T_base_tool`` (docs/METHOD.md Sec. 1), and the pose as the
+teach pendant shows it (:func:`pendant_text`; both: :func:`describe`)."""
 
 from __future__ import annotations
 
@@ -30,15 +26,19 @@ def ur_pose_from_T(T_base_tool: np.ndarray) -> list[float]:
     return [float(v) for v in (*T[:3, 3], *rvec_from_R(T[:3, :3]))]
 
 
-def pendant_text(T_base_tool: np.ndarray) -> str:
-    """The pose as the teach pendant shows it: millimetres and RPY in degrees (X-Y-Z fixed axes)."""
-    T = np.asarray(T_base_tool, dtype=float)
-    R = T[:3, :3]
+def rpy_deg(R: np.ndarray) -> list[float]:
+    """The pendant's RPY (roll, pitch, yaw) in degrees of ``R = Rz(yaw) Ry(pitch) Rx(roll)``."""
     pitch = np.arcsin(-np.clip(R[2, 0], -1.0, 1.0))
     roll = np.arctan2(R[2, 1], R[2, 2])
     yaw = np.arctan2(R[1, 0], R[0, 0])
+    return [float(v) for v in np.degrees([roll, pitch, yaw])]
+
+
+def pendant_text(T_base_tool: np.ndarray) -> str:
+    """The pose as the teach pendant shows it: millimetres and RPY in degrees (X-Y-Z fixed axes)."""
+    T = np.asarray(T_base_tool, dtype=float)
     x, y, z = T[:3, 3] * 1000.0
-    r, p, w = np.degrees([roll, pitch, yaw])
+    r, p, w = rpy_deg(T[:3, :3])
     return f"X {x:.2f} Y {y:.2f} Z {z:.2f} mm, RPY {r:.3f} {p:.3f} {w:.3f} deg"
 
 

@@ -20,13 +20,8 @@ SETTLE_FRAMES = 30
 
 
 class UvcCamera:
-    """One camera by index (``/dev/video<index>``), device path or video file path.
-
-    ``name``: in sessions and results. ``width``, ``height``: required size, px (else refused).
-    ``fourcc``: e.g. ``"MJPG"``. ``exposure``, ``focus``: manual values in the backend's unit (V4L2:
-    100 us steps, ``focus_absolute``); None: auto exposure locked after ``settle_frames``, the lens
-    kept where it is (autofocus off either way). ``fps``: None for the default. ``drop_frames``:
-    buffered frames discarded before each capture.
+    """One camera by index (``/dev/video<index>``), device path or video file path; the arguments
+    are the cell file's ``cameras:`` keys (docs/FORMATS.md; ``exposure`` in V4L2's 100 us steps).
     """
 
     def __init__(

@@ -10,11 +10,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from slidecal.drivers.oak import DEFAULT_SOCKETS
 from slidecal.drivers.ur import URRobot
 from slidecal.mocks.cell import SimulatedCell
 from slidecal.routines.config import CellConfig, limits_to_dict
 from slidecal.routines.devices import camera_rig, record_devices
-from slidecal.routines.exports import OAK_DEFAULT_SOCKETS
 from slidecal.routines.ops.faults import FaultInjector
 from slidecal.routines.ops.lock import Lock, cell_lock_path
 from slidecal.routines.ops.verdict import Limits
@@ -42,8 +42,8 @@ def sockets(cfg: CellConfig) -> dict[str, str] | None:
     if cfg.camera_driver == "oak":
         return {n: str(o.get("socket")) for n, o in cfg.camera_options.items()}
     names = [c.name for c in cfg.cameras]
-    if len(names) > 1 and all(n in OAK_DEFAULT_SOCKETS for n in names):
-        return {n: OAK_DEFAULT_SOCKETS[n] for n in names}
+    if len(names) > 1 and all(n in DEFAULT_SOCKETS for n in names):
+        return {n: DEFAULT_SOCKETS[n] for n in names}
     return None
 
 

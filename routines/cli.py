@@ -1,9 +1,7 @@
 """The ``slidecal`` command line: ``run``, ``solve``, ``check``, ``rollback`` and the others of
 :data:`SUBCOMMANDS` (a subcommand is a module with ``add_arguments(parser)`` and
 ``main(args) -> int``). Every ``SlidecalError`` and every failure to read or write a file is one
-line ``slidecal: <message>`` on stderr, no traceback; the exit codes are in docs/UNATTENDED.md
-(0 accepted or ok, 2 bad input, 3 hardware fault, 4 rejected, 5 drifted, 6 not installed,
-130 interrupted)."""
+line ``slidecal: <message>`` on stderr, no traceback; the exit codes: docs/UNATTENDED.md."""
 
 from __future__ import annotations
 
@@ -65,12 +63,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         with signals_as_interrupt():
             return int(args._main(args) or 0)
-    except HardwareFault as e:
-        print(f"slidecal: {one_line(e)}", file=sys.stderr)
-        return EXIT_HARDWARE
     except SlidecalError as e:
         print(f"slidecal: {one_line(e)}", file=sys.stderr)
-        return EXIT_INPUT
+        return EXIT_HARDWARE if isinstance(e, HardwareFault) else EXIT_INPUT
     except KeyboardInterrupt as e:
         how = getattr(e, "how", "Ctrl-C")
         print(

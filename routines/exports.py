@@ -1,10 +1,7 @@
-"""Exports of an accepted calibration for other tools (``export/``, never for a rejected
-result), and the result header: OpenCV and ROS files per camera, Kalibr's ``camchain.yaml``,
-``hand_eye.yaml`` (4x4, translation + quaternion x, y, z, w, and as a UR pendant shows it),
-mrcal's ``.cameramodel`` per camera and an OAK's depthai JSON (docs/FORMATS.md). Each lens model
-is written where the format has it (docs/FORMATS.md, "Lens models"); a camera with skew gets no
-Kalibr or mrcal file. A failed export does not stop the others: :func:`write_all_exports` returns
-the failures as one-line messages."""
+"""Exports of an accepted calibration for other tools (``export/``, never for a rejected result)
+and the result header; what each file holds and where a lens model cannot go: docs/UNATTENDED.md,
+"Exports and the result header". A failed export does not stop the others:
+:func:`write_all_exports` returns the failures as one-line messages."""
 
 from __future__ import annotations
 
@@ -18,6 +15,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from slidecal.drivers.ur_pose import rpy_deg
 from slidecal.routines import __version__
 from slidecal.routines.ops.report import uncertainty_map
 from slidecal.routines.results_io import (
@@ -45,9 +43,6 @@ KALIBR_MODELS = {"opencv5": "radtan", "fisheye": "equidistant"}
 #: ``valid_intrinsics_region``: where the one-sigma projection uncertainty is below this
 #: (docs/ERROR_MODEL.md, "Exports")
 VALID_REGION_PX = 1.0
-
-#: Socket of each camera of the simulated OAK-D-like head (as on an OAK-D).
-OAK_DEFAULT_SOCKETS = {"left": "CAM_B", "right": "CAM_C", "rgb": "CAM_A"}
 
 
 def file_sha256(path: str | Path | None) -> str | None:
@@ -149,13 +144,9 @@ def _numbers(values: Any) -> str:
 def mrcal_cameramodel(
     result: CalibrationResult, name: str, header: Mapping[str, Any] | None = None
 ) -> str:
-    """mrcal's ``.cameramodel`` text (a Python ``dict`` literal) of camera ``name``: the lens
-    model (``LENSMODEL_OPENCV4`` when k3 is 0, not estimated, else ``OPENCV5``, ``OPENCV8`` for
-    the rational model) written before ``intrinsics`` (mrcal's C reader wants that order),
-    ``rt_cam_ref`` (Rodrigues vector, metres; also as ``extrinsics`` for mrcal before 2.5),
-    ``imagersize`` and, with a covariance, ``valid_intrinsics_region``: the contour where the
-    projection's one-sigma uncertainty is below :data:`VALID_REGION_PX`. ``ValueError`` when the
-    camera has a skew, a fisheye lens or its rig transform is missing."""
+    """mrcal's ``.cameramodel`` text (a Python ``dict`` literal) of camera ``name`` (what it holds:
+    docs/UNATTENDED.md), the lens model before ``intrinsics`` (mrcal's C reader wants that order).
+    ``ValueError`` when the camera has a skew, a fisheye lens or its rig transform is missing."""
     _no_skew(result, "mrcal's OpenCV lens models")
     c = result.cameras[name]
     dist = np.asarray(c.distortion, dtype=float).reshape(-1)
@@ -228,13 +219,6 @@ def quat_xyzw(R: np.ndarray) -> list[float]:
     return [float(v) for v in (-q if q[3] < 0 else q)]
 
 
-def _rpy_deg(R: np.ndarray) -> list[float]:
-    pitch = np.arcsin(-np.clip(R[2, 0], -1.0, 1.0))
-    roll = np.arctan2(R[2, 1], R[2, 2])
-    yaw = np.arctan2(R[1, 0], R[0, 0])
-    return [float(v) for v in np.degrees([roll, pitch, yaw])]
-
-
 def hand_eye_dict(result: CalibrationResult, header: Mapping[str, Any] | None = None) -> dict:
     """``hand_eye.yaml``: every hand-eye transform in three forms; an undetermined translation is
     ``null``, without a matrix."""
@@ -262,7 +246,7 @@ def hand_eye_dict(result: CalibrationResult, header: Mapping[str, Any] | None = 
         e["ur_pendant"] = {
             "position_mm": plain(tm * 1000.0) if tm is not None else None,
             "rotation_vector_rad": plain(rvec_from_R(R)),
-            "rpy_deg": _rpy_deg(R),
+            "rpy_deg": rpy_deg(R),
         }
         e["std_rot_deg"] = t.std_rot_deg
         e["std_t_mm"] = t.std_t_mm if tm is not None else None

@@ -1,13 +1,7 @@
 """``slidecal import IMAGES_DIR POSES --config CELL --out SESSION_DIR``: a dataset recorded by
 something else, a folder of images and the robot's poses in its controller's convention, as a
-session (docs/FORMATS.md, "Recorded datasets").
-
-The convention (position units, rotation format, direction) is found from the images, not
-guessed: every reading of the poses is held against the board poses the images give alone (no
-hand-eye needed) by the rotation angle between every two frames, the length of the pure moves and
-the board's pose in the base (eye-to-hand: on the tool) staying fixed; the one that fits is
-kept, two that fit alike or none are refused with their figures. The limits are the record
-checks' (``solver/adequacy.py``).
+session; the convention found from the images (docs/FORMATS.md, "Recorded datasets") within the
+record checks' limits (``solver/adequacy.py``).
 """
 
 from __future__ import annotations

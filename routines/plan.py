@@ -1,26 +1,8 @@
-"""Motion plans (``slidecal.plan/1``, docs/FORMATS.md): orientation groups of ``T_base_tool``
-poses, and a fixed default plan.
-
-A plan is what the robot will do: groups of poses sharing one orientation (pure translations
+"""Motion plans (``slidecal.plan/1``, every key in :data:`PLAN_KEYS` and their meaning:
+docs/FORMATS.md): groups of ``T_base_tool`` poses sharing one orientation (pure translations
 inside a group, docs/METHOD.md Sec. 3) and the tilt changes between groups that make the
-hand-eye translation observable (Sec. 4). ``plan.yaml`` (every key in :data:`PLAN_KEYS`)::
-
-    format: slidecal.plan/1
-    speed_mps: 0.25
-    accel_mps2: 1.0
-    settle_s: 0.5
-    groups:                       # each a list of UR poses [x, y, z, rx, ry, rz] (m, rad)
-      - [[...], [...]]
-    via: [x, y, z, rx, ry, rz]    # optional: visited before each group, no capture (a safe,
-                                  # untilted pose: big reorientations never run as one line)
-    predicted_std: null           # reserved for the planner: predicted one-sigma per parameter
-    duration_s: null              # reserved for the planner: predicted robot time
-
-:func:`default_plan` is the fixed reference plan the planner is compared with: four
-groups tilted by ``tilt_deg`` about four different axes in the board plane (plus a small roll
-about the optical axis), five frames each, translations of 40-80 mm in non-coplanar
-directions with components along the viewing axis (translations parallel to the board plane
-alone are degenerate, docs/METHOD.md Sec. 7), every pose looking at the board from ``standoff_m``.
+hand-eye translation observable (Sec. 4); and :func:`default_plan`, the fixed reference plan
+the planner is compared with.
 """
 
 from __future__ import annotations
@@ -76,12 +58,8 @@ _OFFSETS = np.array(
 
 @dataclass(frozen=True)
 class Plan:
-    """Orientation groups of ``T_base_tool`` (4, 4) poses (metres) and how to move between them.
-
-    ``via`` (4, 4): visited before each group without a capture (None: straight to the group).
-    ``predicted_std`` (parameter name -> one-sigma) and ``duration_s`` are reserved for the
-    planner; None here.
-    """
+    """Orientation groups of ``T_base_tool`` (4, 4) poses (metres) and how to move between them;
+    the fields are ``plan.yaml``'s keys (docs/FORMATS.md; ``via`` None: straight to each group)."""
 
     groups: tuple[tuple[np.ndarray, ...], ...]
     via: np.ndarray | None = None
@@ -100,8 +78,6 @@ class Plan:
         *,
         via: np.ndarray | None = None,
         notes: Sequence[str] = (),
-        predicted_std: dict[str, float] | None = None,
-        duration_s: float | None = None,
     ) -> Plan:
         """A new plan: ``groups`` of ``T_base_tool`` (4, 4) poses moved with the speed,
         acceleration and settling time of ``motion``, the cell's ``robot:`` section
@@ -112,8 +88,6 @@ class Plan:
             speed_mps=motion.speed_mps,
             accel_mps2=motion.accel_mps2,
             settle_s=motion.settle_s,
-            predicted_std=predicted_std,
-            duration_s=duration_s,
             notes=tuple(notes),
         )
 
@@ -201,8 +175,12 @@ class _Item(Fields):
         return f"{self.file}: {self.path}" + (f"[{key}]" if key is not None else "")
 
 
-def _axis_angle(axis: np.ndarray, angle_rad: float) -> np.ndarray:
-    return R_from_rvec(np.asarray(axis, dtype=float) / np.linalg.norm(axis) * angle_rad)
+def group_R_board_cam(tilt_deg: float, azimuth_deg: float) -> np.ndarray:
+    """``R_board_cam`` (3, 3) of a group: looking along +z_board, tilted by ``tilt_deg`` about
+    the in-plane axis at ``azimuth_deg`` (the geometry of :func:`camera_poses_board`)."""
+    phi = np.radians(azimuth_deg)
+    axis = np.array([np.cos(phi), np.sin(phi), 0.0])
+    return R_from_rvec(axis * np.radians(tilt_deg))
 
 
 def camera_poses_board(
@@ -226,10 +204,9 @@ def camera_poses_board(
     rolls = [-10.0, 10.0, -20.0, 20.0, 0.0, 30.0]
     out = []
     for g in range(groups):
-        phi = np.radians(45.0 + 360.0 * g / groups)
-        axis = np.array([np.cos(phi), np.sin(phi), 0.0])
         # camera axes aligned with the board's (looking along +z_board), tilted, then rolled
-        R_board_cam = _axis_angle(axis, np.radians(tilt_deg)) @ Rz(np.radians(rolls[g % 6]))
+        R_tilt = group_R_board_cam(tilt_deg, 45.0 + 360.0 * g / groups)
+        R_board_cam = R_tilt @ Rz(np.radians(rolls[g % 6]))
         centre_cam = c - standoff_m * R_board_cam[:, 2]
         frames = []
         for k in range(frames_per_group):
@@ -239,31 +216,13 @@ def camera_poses_board(
     return out
 
 
-def default_plan(
-    cfg: CellConfig,
-    frames_per_group: int = 5,
-    groups: int = 4,
-    tilt_deg: float = 25.0,
-    step_mm: float = 80.0,
-) -> Plan:
-    """The fixed default plan of a cell (see the module docstring): a reference the planner is
-    measured against (``python -m tests.bench planner``); ``slidecal run`` executes the
-    planner's plan.
-
-    Uses the cell's approximate target pose and hand-eye (``approximate:``) and ``standoff_m``;
-    poses are converted to ``T_base_tool`` through the approximate hand-eye (eye-in-hand) or
-    target-on-tool transform (eye-to-hand). ``step_mm``: the longest move within a group.
-    """
-    if not 2 <= groups <= 12:
-        raise InputError(f"groups must be 2..12, got {groups}")
-    if not 0.0 < tilt_deg <= 45.0:
-        raise InputError(f"tilt_deg must be in (0, 45], got {tilt_deg}")
-    if not step_mm > 0:
-        raise InputError(f"step_mm must be positive, got {step_mm}")
+def default_plan(cfg: CellConfig) -> Plan:
+    """The fixed default plan of a cell (:func:`camera_poses_board`: four groups tilted 25 deg,
+    five frames each, moves up to 80 mm): a reference the planner is measured against (``python
+    -m tests.bench planner``); ``slidecal run`` executes the planner's plan. Poses through the
+    cell's approximate hand-eye and target pose (``approximate:``), at ``standoff_m``."""
     centre = cfg.target.points_m.mean(axis=0)
-    T_cb = camera_poses_board(
-        centre, cfg.standoff_m, tilt_deg, step_mm / 1000.0, frames_per_group, groups
-    )
+    T_cb = camera_poses_board(centre, cfg.standoff_m, 25.0, 0.08)
     plan_groups = tuple(tuple(tool_pose(cfg, T) for T in grp) for grp in T_cb)
     via = tool_pose(cfg, camera_poses_board(centre, cfg.standoff_m, 0.0, 0.0, 2, 1)[0][0])
     return Plan.build(
@@ -271,8 +230,8 @@ def default_plan(
         cfg.robot,
         via=via,
         notes=(
-            f"default plan: {groups} groups tilted {tilt_deg:g} deg, {frames_per_group} frames "
-            f"each, moves up to {step_mm:g} mm at {cfg.standoff_m:g} m",
+            "default plan: 4 groups tilted 25 deg, 5 frames each, moves up to 80 mm at "
+            f"{cfg.standoff_m:g} m",
         ),
     )
 

@@ -16,19 +16,10 @@ time budget), choose orientation groups (tilts) and translations per group such 
 - the predicted standard deviations meet the goal with the least robot time (moves by a
   trapezoidal profile, plus settle and capture time per frame).
 
-Method: candidate groups look at the board centre from the standoff, tilted by ``tilts_deg``
-about in-plane axes at ``azimuths_deg``; candidate frames of a group are the group's pose
-displaced (camera axes) along 18 directions, each with a component along the viewing axis
-(translations parallel to the board are degenerate, docs/METHOD.md Sec. 7), by ``step_mm``. The
-prediction is the solver's (:func:`slidecal.solver.uncertainty.planned_covariance`) for the
-problem a run would give it (:func:`nominal_problem`: exact corners, the arm at
-:func:`arm_noise`). Each candidate frame's information is computed once, with its own pose
-correction marginalised out, so a plan's is the sum over its frames; a greedy search adds the
-frame or the new group (two frames) that most reduces the goal's predicted variance per second
-of robot time, until the goal and the minimum structure (``min_groups`` groups of
-``min_frames_per_group`` frames) are met. The chosen plan is checked by a dry run of the
-simulated arm and predicted whole (the arm's error shared by a group's frames included); where
-that misses the goal, the search runs again for a goal tightened by the factor.
+Method: candidate groups and frames (:func:`_candidates`, :data:`DIRECTIONS`), each frame's
+information from the solver's prediction for the problem a run would give it
+(:func:`nominal_problem`, :func:`_information`), a greedy choice per second of robot time
+(:func:`_greedy`), checked by a dry run and predicted whole (:func:`_search`).
 
 The ``plan:`` block of the cell file (every key optional) is described in docs/FORMATS.md.
 Only the reference camera is planned for (its visibility and its information); the other
@@ -56,12 +47,11 @@ from slidecal.routines.config import (
     PlanSettings,
     load_config,
 )
-from slidecal.routines.plan import Plan, tool_pose, write_plan
+from slidecal.routines.plan import Plan, group_R_board_cam, tool_pose, write_plan
 from slidecal.solver.camera import project
 from slidecal.solver.degeneracy import check_configuration
 from slidecal.solver.errors import DegenerateError, HardwareFault, InputError
 from slidecal.solver.geometry import (
-    R_from_rvec,
     T_from_Rt,
     inv_T,
     rotation_angle_deg,
@@ -100,14 +90,6 @@ DIRECTIONS = np.array(
 
 
 # -- geometry of candidates -------------------------------------------------------------------
-def group_R_board_cam(tilt_deg: float, azimuth_deg: float) -> np.ndarray:
-    """``R_board_cam`` (3, 3) of a group: looking along +z_board, tilted by ``tilt_deg`` about
-    the in-plane axis at ``azimuth_deg`` (the geometry of ``plan.camera_poses_board``)."""
-    phi = np.radians(azimuth_deg)
-    axis = np.array([np.cos(phi), np.sin(phi), 0.0])
-    return R_from_rvec(axis * np.radians(tilt_deg))
-
-
 def group_T_cam_board(
     centre_board: np.ndarray, standoff_m: float, R_board_cam: np.ndarray, offsets_cam_m: np.ndarray
 ) -> np.ndarray:
@@ -743,19 +725,12 @@ def extend_plan(
     levels: Mapping[str, tuple[float, float]] | None = None,
 ) -> PlanReport:
     """``plan`` with more orientation groups after it, for a run whose recorded frames missed
-    the accuracy its gate asks for: the greedy search of :func:`make_plan` with the frames of
-    ``plan`` already counted, the noise the data showed instead of the cell's prior
-    (``corner_noise_px``; the robot's accuracy ``robot_noise_mm`` / ``robot_noise_deg`` per axis
-    and ``levels``, the (mm, deg) of each of its sources as the solve learned them,
-    ``RobotAccuracy.levels``; None: every source at the accuracy), the ``goal`` to meet, and
-    orientations not visited yet (a systematic arm error repeats at a repeated pose, so going
-    back adds less than the model would credit). ``achieved``: the one-sigma the recorded frames
-    gave, per goal key (as :class:`PlanGoal`'s): where it exceeds the prediction for those
-    frames (what the prediction does not model: the solve's levels are estimates, its errors
-    go together), the goal is tightened by that factor. The new groups take at most
-    ``max_duration_s`` of robot time. Raises ``InputError`` (with the reason) when no extension
-    within that time is predicted to meet the goal.
-    """
+    the accuracy its gate asks for (docs/UNATTENDED.md, "A run that extends its plan"): the
+    search of :func:`make_plan` with ``plan``'s frames counted, at the noise the data showed
+    (``corner_noise_px``; ``robot_noise_mm`` / ``_deg`` per axis and ``levels``, (mm, deg) per
+    source as ``RobotAccuracy.levels``), for ``goal`` tightened by how far ``achieved`` (the
+    recorded frames' one-sigma per goal key) exceeds their prediction, the new groups within
+    ``max_duration_s``. ``InputError`` (with the reason) when no extension meets the goal."""
     where = f"{cfg.source}: plan (extension)"
     noise = (robot_noise_mm, robot_noise_deg)
     s = replace(cfg.plan, corner_noise_px=corner_noise_px, robot_noise=noise, robot_levels=levels)

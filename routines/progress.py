@@ -1,10 +1,6 @@
-"""Progress of a run: frame i of n, the current step, the time left, and what happened.
-
-On a terminal: one status line rewritten in place. Elsewhere (a nightly job's log, a pipe):
-plain lines, each with a UTC timestamp, one per move, capture, detection count, retry, event
-and the verdict, so the log a job keeps tells what the run did. ``quiet`` prints nothing.
-Never used by solvers. :func:`signals_as_interrupt`: the operator's Ctrl-C, SIGTERM or SIGHUP
-as :class:`Interrupted`.
+"""Progress of a run: frame i of n, the current step, the time left, and what happened; on a
+terminal one status line, elsewhere plain timestamped lines (docs/UNATTENDED.md, "Logs a job can
+keep"). :func:`signals_as_interrupt`: Ctrl-C, SIGTERM or SIGHUP as :class:`Interrupted`.
 """
 
 from __future__ import annotations

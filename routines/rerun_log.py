@@ -3,6 +3,7 @@ only module that imports rerun). Its entity tree and timelines: docs/DRIVERS.md.
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -10,6 +11,7 @@ import numpy as np
 import rerun as rr
 
 from slidecal.solver.camera import project
+from slidecal.solver.drift import T_cam_board
 from slidecal.solver.geometry import inv_T
 from slidecal.solver.problem import CalibrationProblem, CameraSpec, Detection, Target
 from slidecal.solver.result import CalibrationResult
@@ -47,8 +49,6 @@ class RerunLog:
         self.rec = rr.RecordingStream("slidecal", recording_id=recording_id)
         self.path = Path(path) if path is not None else None
         if spawn:
-            import shutil
-
             if shutil.which("rerun") is None:  # asked first: rerun itself would log to stderr
                 raise RuntimeError("no rerun viewer executable (`rerun`) on PATH")
             self.rec.spawn()
@@ -175,12 +175,9 @@ class RerunLog:
                     or len(det.ids) == 0
                 ):
                     continue
-                if problem.mount == "eye_in_hand":
-                    T_ref_board = inv_T(he) @ inv_T(fr.T_base_tool) @ Tt
-                else:
-                    T_ref_board = inv_T(he) @ fr.T_base_tool @ Tt
-                T_cam_board = inv_T(T_ref_cam[name]) @ T_ref_board
-                P = problem.target.points_m[det.ids] @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
+                T_ref_board = T_cam_board(problem.mount, he, fr.T_base_tool, Tt)
+                T_cb = inv_T(T_ref_cam[name]) @ T_ref_board
+                P = problem.target.points_m[det.ids] @ T_cb[:3, :3].T + T_cb[:3, 3]
                 px = project(est.K, est.distortion, P)
                 self.rec.log(
                     f"{self._cam_path(name)}/image/reprojections",

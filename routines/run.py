@@ -1,10 +1,5 @@
-"""The calibration routine: plan, move, capture, detect, record, solve, write (``slidecal run``).
-
-Callable from Python for scripted commissioning::
-
-    from slidecal.routines.run import RunRequest, run_calibration
-    outcome = run_calibration(RunRequest("cell.yaml", out_dir="sessions/cell7"))
-    print(outcome.summary)
+"""The calibration routine: plan, move, capture, detect, record, solve, write (``slidecal run``;
+from Python: :func:`run_calibration`, README).
 
 THE ROBOT NEVER MOVES unless the cell file names real hardware (``robot.driver: ur`` with a
 ``host``). What a run writes and when: docs/UNATTENDED.md.
@@ -15,7 +10,7 @@ from __future__ import annotations
 import argparse
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from datetime import datetime
 from functools import partial
 from pathlib import Path
@@ -36,7 +31,6 @@ from slidecal.routines.schema import check_out_dir, load_yaml
 from slidecal.routines.session import Session, load_session
 from slidecal.routines.solve import (
     RunOutcome,
-    Solved,
     finish_solve,
     installed_calibration,
     print_outcome,
@@ -201,7 +195,7 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
         session,
         cfg.limits,
         command="run",
-        truth=session.simulation,  # as recorded, with the poses the arm really reached
+        t0=t0,
         cell_path=q.config if isinstance(q.config, str | Path) else None,
         cell_name=cfg.source,
         oak_sockets=sockets(cfg),
@@ -219,10 +213,10 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
     for line in fin.verdict.lines() + ([f"not installed: {note}"] if note else []):
         prog.event(line)
     prog.done(f"done: {fin.result_path}")
-    return fin.outcome(
-        session,
-        t0,
-        clock(robot),
+    return replace(
+        fin,
+        wall_time_s=time.monotonic() - t0,
+        robot_time_s=clock(robot),
         recording_path=rec_path,
         installed_to=installed_to,
         install_note=note,
@@ -276,7 +270,7 @@ def _plan(plan: str | Path | Plan | None, cfg: CellConfig) -> Plan:
 
 def _install(
     store: str | Path | None,
-    fin: Solved,
+    fin: RunOutcome,
     force: bool,
     accept_drift: bool,
     cfg: CellConfig,
@@ -305,9 +299,8 @@ def _install(
 
 #: How many times a run extends its plan when its result misses the gate's one-sigma limits.
 EXTEND_ROUNDS = 2
-#: An extension plans for this fraction of each one-sigma limit: its prediction is the recorded
-#: frames' result's (the arm's learned levels, scaled to what those frames achieved), the rest a
-#: margin for levels learned again on more frames.
+#: An extension plans for this fraction of each one-sigma limit (a margin for levels learned
+#: again on more frames; docs/UNATTENDED.md).
 EXTEND_MARGIN = 0.9
 
 
@@ -365,11 +358,6 @@ def extend_for_limits(
     return report.plan, (
         f"{missed} (robot accuracy {t_mm:.2f} mm / {rot_deg:.3f} deg as the data shows it)"
     )
-
-
-def frames_on_disk(session_dir: str | Path) -> int:
-    """Number of frames a session directory holds (for checks after a fault)."""
-    return len(load_session(session_dir, detect_images=False).problem.frames)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

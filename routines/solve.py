@@ -12,7 +12,6 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
 
 from slidecal.routines.devices import device_calibration_outputs
 from slidecal.routines.exports import result_header, write_all_exports
@@ -88,44 +87,6 @@ class RunOutcome:
 EXIT_NOT_INSTALLED = 6
 
 
-@dataclass(frozen=True)
-class Solved:
-    """What :func:`finish_solve` decided and wrote: the verdict, the result and its file, the
-    summary, the exports (and those that failed, one line each) and the report (None when it
-    failed)."""
-
-    verdict: Verdict
-    result: CalibrationResult
-    result_path: Path
-    summary: str
-    exports: tuple[Path, ...]
-    export_errors: tuple[str, ...]
-    report: Path | None
-
-    def outcome(
-        self, session: Session, t0: float, robot_time_s: float | None = None, **more
-    ) -> RunOutcome:
-        """The :class:`RunOutcome` of this solve of ``session`` (``t0``: the command's start,
-        ``time.monotonic``; ``more``: the run's own fields, e.g. ``installed_to``)."""
-        return RunOutcome(
-            session_dir=session.directory,
-            result=self.result,
-            result_path=self.result_path,
-            summary=self.summary,
-            n_frames=len(session.problem.frames),
-            wall_time_s=time.monotonic() - t0,
-            robot_time_s=robot_time_s,
-            errors=errors_against_truth(self.result, session.simulation)
-            if session.simulation
-            else {},
-            exports=self.exports,
-            verdict=self.verdict,
-            export_errors=self.export_errors,
-            report_path=self.report,
-            **more,
-        )
-
-
 def installed_calibration(path: str | Path | None) -> tuple[CalibrationResult | None, str | None]:
     """The installed calibration to compare with: an install store, a directory with a
     ``result.yaml`` or a result file; (None, None) without one."""
@@ -150,7 +111,7 @@ def finish_solve(
     session: Session,
     limits: Limits,
     command: str,
-    truth: Mapping[str, Any] | None = None,
+    t0: float,
     cell_path: str | Path | None = None,
     cell_name: str | None = None,
     oak_sockets: Mapping[str, str] | None = None,
@@ -159,10 +120,11 @@ def finish_solve(
     result_path: Path | None = None,
     plan_poses: int | None = None,
     notes: Sequence[str] = (),
-) -> Solved:
+) -> RunOutcome:
     """Judge a solved session and write what the verdict allows: always ``verdict.yaml``,
     ``summary.txt`` and the report; ``result.yaml`` and ``export/`` when accepted or drifted,
-    ``rejected/`` without exports otherwise. ``notes``: the run's own notes for the verdict."""
+    ``rejected/`` without exports otherwise. ``t0``: the command's start (``time.monotonic``);
+    ``notes``: the run's own notes for the verdict."""
     status = _session_status(session, plan_poses)
     verdict = judge(
         result,
@@ -184,17 +146,16 @@ def finish_solve(
     write_result(result, target, header=header)
     exports: list[Path] = []
     export_errors: list[str] = []
-    if verdict.verdict != "rejected":
+    device_summary = ""
+    if verdict.verdict != "rejected":  # and for an OAK the export on the device's own calibration
         exports, export_errors = write_all_exports(
             result, target.parent / EXPORT_DIR, header, oak_sockets
         )
-    device_summary = ""
-    if verdict.verdict != "rejected":  # an OAK: the export on the device's own calibration
         device_exports, device_summary = device_calibration_outputs(
             result, session_dir, target.parent / EXPORT_DIR
         )
         exports += [p for p in device_exports if p not in exports]
-    lines = [summary_text(result, truth, limits.scale_tolerance).rstrip("\n")]
+    lines = [summary_text(result, session.simulation, limits.scale_tolerance).rstrip("\n")]
     if device_summary.strip():
         lines.append(device_summary.rstrip("\n"))
     if status != "complete":
@@ -213,7 +174,20 @@ def finish_solve(
         report = write_report(session_dir, result, verdict, session.problem, installed, summary)
     except (OSError, ValueError) as e:
         export_errors.append(f"report failed: {' '.join(str(e).split())}")
-    return Solved(verdict, result, target, summary, tuple(exports), tuple(export_errors), report)
+    return RunOutcome(
+        session_dir=session.directory,
+        result=result,
+        result_path=target,
+        summary=summary,
+        n_frames=len(session.problem.frames),
+        wall_time_s=time.monotonic() - t0,
+        robot_time_s=None,
+        errors=errors_against_truth(result, session.simulation) if session.simulation else {},
+        exports=tuple(exports),
+        verdict=verdict,
+        export_errors=tuple(export_errors),
+        report_path=report,
+    )
 
 
 def _session_status(session: Session, plan_poses: int | None) -> str:
@@ -289,13 +263,13 @@ def solve_session(
         if not hint:
             raise
         raise DegenerateError(f"{e}; {hint}") from e
-    fin = finish_solve(
+    return finish_solve(
         result,
         session_dir,
         session,
         limits,
         command="solve",
-        truth=session.simulation,
+        t0=t0,
         cell_path=config,
         cell_name=session.cell,
         oak_sockets=session.sockets or None,
@@ -304,7 +278,6 @@ def solve_session(
         result_path=path,
         plan_poses=plan_poses,
     )
-    return fin.outcome(session, t0)
 
 
 def cell_file_limits(path: str | Path) -> Limits:

@@ -29,7 +29,7 @@ from slidecal.routines.ops.install import (
 )
 from slidecal.routines.ops.lock import Lock, cell_lock_path
 from slidecal.routines.progress import Progress
-from slidecal.routines.run import RunRequest, frames_on_disk, run_calibration
+from slidecal.routines.run import RunRequest, run_calibration
 from slidecal.routines.session import SessionWriter, load_session, write_atomic
 from slidecal.solver.errors import HardwareFault, InputError
 
@@ -508,7 +508,7 @@ def test_disk_full_mid_run_stops_the_robot_one_line(tmp_path: Path, monkeypatch,
         run_calibration(
             RunRequest(cfg, out_dir=tmp_path / "s", progress=False, recording=False, cell=cell)
         )
-    assert cell.robot.stopped and frames_on_disk(tmp_path / "s") == 2
+    assert cell.robot.stopped and _frames(tmp_path / "s") == 2
 
 
 # ----------------------------------------------------------------------------- logs
@@ -566,3 +566,8 @@ def test_board_bigger_than_the_view_is_not_a_workspace_problem() -> None:
     msg = str(e.value)
     assert "more than the 1280 x 800 px image holds" in msg and "standoff_m to at least" in msg
     assert "widen" not in msg
+
+
+def _frames(session_dir) -> int:  # noqa: ANN001
+    """Number of frames a session directory holds (for checks after a fault)."""
+    return len(load_session(session_dir, detect_images=False).problem.frames)

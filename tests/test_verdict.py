@@ -30,7 +30,6 @@ from slidecal.routines.ops.verdict import (  # noqa: E402
     compare,
     judge,
     limits_from_dict,
-    read_verdict,
 )
 from slidecal.routines.session import load_session  # noqa: E402
 from slidecal.routines.solve import solve_session  # noqa: E402
@@ -50,7 +49,8 @@ def solved(tmp_path_factory):
 def test_good_session_is_accepted_with_exports(solved) -> None:
     o, _ = solved
     assert o.verdict.verdict == "accepted" and o.exit_code == 0
-    v = read_verdict(o.session_dir)
+    v = yaml.safe_load((o.session_dir / "verdict.yaml").read_text())
+    assert v["format"] == "slidecal.verdict/1"
     assert v["verdict"] == "accepted" and v["reasons"] == [] and v["exit_code"] == 0
     tests = {c["test"] for c in v["checks"]}
     assert {"converged", "std", "scale", "coverage"} <= tests

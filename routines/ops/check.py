@@ -1,10 +1,6 @@
 """``slidecal check --config CELL --installed STORE``: does the installed calibration still hold?
-
-A short verification, not a calibration: a handful of frames (at most :data:`MAX_ROBOT_TIME_S`
-of robot time) at poses the installed session recorded (:func:`recorded_plan`). The corners
-compared pair by pair with the installed session's decide when the store keeps it; otherwise the
-installed calibration re-estimated from the check (:func:`refit`) and its residual with only the
-target's pose free decide. Verdict ``ok`` or ``drifted`` (exit 0 / 5): docs/UNATTENDED.md.
+A few frames at poses the installed session recorded, compared pair by pair with its corners, or
+the calibration re-estimated from them (:func:`refit`); ``ok`` or ``drifted``: docs/UNATTENDED.md.
 """
 
 from __future__ import annotations
@@ -17,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from slidecal.routines.acquire import cell_key, record_session
+from slidecal.routines.acquire import cell_key, clock, record_session
 from slidecal.routines.config import CellConfig, load_config
 from slidecal.routines.ops.install import (
     INSTALLED_FILE,
@@ -28,8 +24,8 @@ from slidecal.routines.ops.install import (
 from slidecal.routines.ops.verdict import (
     Check,
     Verdict,
+    check_residuals,
     compare,
-    judge_check,
     paired_compare,
     uncertainty_map,
     write_verdict,
@@ -112,12 +108,6 @@ def expected_rms_px(
         )
         out[n] = float(np.hypot(c.reproj_rms_px, np.sqrt(2) * robot_px))
     return out
-
-
-def projection_sigma_px(installed: CalibrationResult, camera: str) -> float | None:
-    """The rms over the image of the installed calibration's projection one-sigma (px)."""
-    m = uncertainty_map(installed, camera, (16, 10))
-    return None if m is None else float(np.sqrt(np.mean(m**2)))
 
 
 def refit(
@@ -238,8 +228,9 @@ def judge_problem(
     rms = {n: float(np.sqrt(np.mean(np.sum(r**2, axis=1)))) for n, r in res.items() if len(r)}
     drift = {n: float(np.sqrt(max(rms[n] ** 2 - expected[n] ** 2, 0.0))) for n in rms}
     sig = {}
-    for n in rms:
-        s = projection_sigma_px(installed, n)
+    for n in rms:  # the drift in the rms over the image of the installed projection one-sigma
+        m = uncertainty_map(installed, n, (16, 10))
+        s = None if m is None else float(np.sqrt(np.mean(m**2)))
         sig[n] = None if not s else drift[n] / s
     extra = {
         "check": {
@@ -266,7 +257,7 @@ def judge_problem(
         )
         extra["check"]["paired"] = pinfo
         why = pinfo.get("why", "")
-    v = judge_check(rms, expected, drift, lim, len(problem.frames), extra, notes)
+    own = check_residuals(rms, expected, drift, lim, len(problem.frames))
     again = refit(problem, installed, cfg.options.robot_noise_m, cfg.options.robot_noise_deg)
     change, info = compare(
         again, installed, dataclasses.replace(lim, max_change_px=lim.check_change_px)
@@ -285,12 +276,10 @@ def judge_problem(
             f"no paired comparison ({why}); fell back to re-estimating the calibration from "
             "the check's frames"
         )
-        checks = (Check("paired", True, None, None, fallback),) + v.checks + tuple(change)
+        checks = (Check("paired", True, None, None, fallback), *own, *change)
         notes = [fallback] + notes
     verdict = "ok" if all(c.passed for c in checks) else "drifted"
-    return dataclasses.replace(
-        v, verdict=verdict, checks=checks, installed=info, notes=tuple(notes)
-    )
+    return Verdict(verdict, "check", checks, info, tuple(notes), extra)
 
 
 def run_check(
@@ -354,8 +343,7 @@ def run_check(
     verdict = judge_problem(
         problem, inst, expected_rms_px(inst, info or {}, cfg), cfg, installed_problem=recorded
     )
-    t = getattr(rec.robot, "robot_time_s", None)
-    verdict.extra["check"]["robot_time_s"] = None if t is None else float(t)
+    verdict.extra["check"]["robot_time_s"] = clock(rec.robot)
     write_verdict(verdict, out)
     for line in verdict.lines():
         prog.event(line)

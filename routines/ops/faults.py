@@ -11,19 +11,18 @@ from typing import Any
 
 from slidecal.solver.errors import InputError
 
-FAULT_KINDS = ("protective_stop", "emergency_stop", "disconnect", "stall", "no_frame",
-               "camera_lost")
-ROBOT_FAULTS = ("protective_stop", "emergency_stop", "disconnect", "stall")
 #: How the simulated arm and camera rig (mocks/) produce each kind.
 SIMULATED = {"protective_stop": "protective_stop", "emergency_stop": "emergency_stop",
              "disconnect": "disconnect", "stall": "timeout", "no_frame": "no_frame",
              "camera_lost": "lost"}
+FAULT_KINDS = tuple(SIMULATED)
 #: Captures a ``no_frame`` fault spoils from its frame on: more than any capture retries, so the
 #: frame cannot be captured at that pose at all (a single dropped frame is retried, and survives)
 NO_FRAME_CAPTURES = 20
 #: The loopback controller's control command for each robot fault (mocks/ur_controller.py).
 CONTROLLER = {"protective_stop": "pstop", "emergency_stop": "estop", "disconnect": "drop_next",
               "stall": "stall"}
+ROBOT_FAULTS = tuple(CONTROLLER)
 
 
 @dataclass(frozen=True)

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from slidecal.drivers import oak
 from slidecal.routines.devices import oak_outputs, read_device_calibration, session_devices
 from slidecal.routines.results_io import RESULT_FILE, read_result
 from slidecal.routines.session import write_atomic
@@ -74,8 +75,6 @@ def flash_session(
     write: bool = False,
 ) -> str:
     """Flash (``write=True``) or describe the flash of a session's result; returns the report."""
-    from slidecal.drivers import oak
-
     session_dir = Path(session_dir)
     devices = session_devices(session_dir)
     outputs = oak_outputs(devices)

@@ -1,10 +1,5 @@
-"""The install store: where the calibration in use lives, with its history and a rollback.
-
-``STORE/current`` links to one complete, never modified ``STORE/history/<time>/``; an install
-is staged, fsynced, renamed into ``history/`` and the link replaced atomically, so a reader
-never sees a half-written install. Only accepted results are installed (drifted ones on
-request), and one less certain than the installed (:data:`WORSE_FACTOR`) needs ``force``.
-The layout and ``slidecal rollback``: docs/UNATTENDED.md.
+"""The install store: where the calibration in use lives, with its history and a rollback
+(``slidecal rollback``); its layout, atomic installs and refusals: docs/UNATTENDED.md.
 """
 
 from __future__ import annotations

@@ -1,10 +1,6 @@
-"""A lock file so that two runs on one cell (or two installs into one store) cannot interleave.
-
-The lock is a file created with ``O_CREAT | O_EXCL`` holding the owner's pid, host and start
-time. A lock whose pid no longer runs on this host is stale: it is reported and taken over.
-Cells are keyed by what they drive: a real robot by its controller's address (two cell files
-naming one robot share a lock), a simulated cell by its file's absolute path. Locks live in
-``$SLIDECAL_LOCK_DIR`` (default: the system's temporary directory).
+"""A lock file (``O_CREAT | O_EXCL``, holding the owner's pid, host and start time) so that two
+runs on one cell, or two installs into one store, cannot interleave; what a cell is keyed by,
+stale locks and ``$SLIDECAL_LOCK_DIR``: docs/UNATTENDED.md.
 """
 
 from __future__ import annotations

@@ -31,11 +31,12 @@ from slidecal.routines.config import (
     load_config,
 )
 from slidecal.routines.ops.faults import CONTROLLER, FaultInjector
+from slidecal.routines.plan import tool_pose
 from slidecal.routines.run import RunRequest, default_session_dir, run_calibration
 from slidecal.routines.session import dump_yaml, transform_to_dict, write_atomic
 from slidecal.routines.solve import RunOutcome
 from slidecal.solver.errors import HardwareFault, InputError
-from slidecal.solver.geometry import T_from_Rt, inv_T
+from slidecal.solver.geometry import T_from_Rt
 from slidecal.solver.problem import MOUNTS
 
 help = "rehearse the cell's routine through the real ur-rtde client on a loopback controller"
@@ -136,12 +137,7 @@ def simulated_twin(cfg: CellConfig) -> CellConfig:
         # the camera at the stand-off, looking straight at the middle of the target
         pts = np.asarray(cfg.target.points_m, dtype=float)
         mid = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
-        T_board_cam = T_from_Rt(np.eye(3), mid - [0.0, 0.0, cfg.standoff_m])
-        if cfg.mount == "eye_in_hand":
-            T_base_tool = cfg.approx_T_target @ T_board_cam @ inv_T(cfg.approx_T_hand_eye)
-        else:
-            T_base_tool = cfg.approx_T_hand_eye @ inv_T(T_board_cam) @ inv_T(
-                cfg.approx_T_target)
+        T_base_tool = tool_pose(cfg, T_from_Rt(np.eye(3), [0.0, 0.0, cfg.standoff_m] - mid))
         if not urk.reachable(T_base_tool, None, urk.model_by_name(cfg.robot.model),
                              cfg.robot.tcp):
             raise InputError(
@@ -205,11 +201,10 @@ def rehearse(
                               "stale_limit_s": stale_s}
     state: dict[str, Any] = {}
     try:
-        outcome = run_calibration(RunRequest(
+        return run_calibration(RunRequest(
             cfg, out_dir=out, progress=progress, recording=recording, cell=rig_cell,
             faults=injector,
         ))
-        return outcome
     except HardwareFault as e:
         state = _state(controller)
         gap_s = state.get("cycle_gap_max_s", 0.0)

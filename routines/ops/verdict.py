@@ -4,7 +4,8 @@ ok``, with reasons. The gate (:func:`judge`) tests the solve against the cell's 
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+import difflib
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -15,11 +16,12 @@ import numpy as np
 from slidecal.routines.ops.install import installed_session
 from slidecal.routines.results_io import (
     SCALE_INCONCLUSIVE,
+    _num,
     hand_eye_names,
     hand_eye_transforms,
     scale_tolerance,
 )
-from slidecal.routines.session import Fields, dump_yaml, load_yaml, write_atomic
+from slidecal.routines.session import Fields, dump_yaml, write_atomic
 from slidecal.solver import drift
 from slidecal.solver.adequacy import LEFT_OUT, RECORDS_WRONG
 from slidecal.solver.camera import (
@@ -50,24 +52,8 @@ EXIT_CODES = {
 
 @dataclass(frozen=True)
 class Limits:
-    """The gate's limits (the cell file's ``limits:`` section; every field optional; their meaning
-    and defaults: docs/UNATTENDED.md).
-
-    ``max_rms_px``: reprojection rms without an adequacy test. ``fx_rel_std``, ``cxy_std_px``,
-    ``hand_eye_rot_std_deg``, ``hand_eye_t_std_mm``: one-sigma limits (the translation's is the
-    root of the three axes' variances); ``*_from_translations``: those of a session of one
-    orientation, whose hand-eye rotation and principal point rest on the arm's orientation
-    accuracy. ``scale_tolerance``: of the length ratio around 1. ``min_coverage``: of the
-    ``coverage_grid`` ([columns, rows]) per camera. ``max_change_sigma``, ``max_change_px``: a
-    drift from the installed calibration, the latter over the central ``change_region`` at
-    ``working_distance_m``. ``check_max_rms_ratio``, ``check_max_px``, ``check_change_px``:
-    ``slidecal check``'s. ``focal_change_stat``, ``focal_change_rel``: a focal length that
-    changed between two parts of the session (chi-square statistic, relative size).
-    ``max_robot_error_mm``, ``max_robot_error_deg``: the arm's learned accuracy (rms per axis)
-    beyond which it is not the arm's; ``max_robot_error_ratio``: beyond this multiple of the
-    installed calibration's learned accuracy. ``max_projection_std_px``: the largest
-    projection one-sigma over the image (``_from_translations``: a session of one orientation's).
-    """
+    """The gate's limits (the cell file's ``limits:`` section; every field optional): their
+    meaning and defaults are the table of docs/UNATTENDED.md."""
 
     max_rms_px: float = 1.0
     fx_rel_std: float = 0.005
@@ -105,8 +91,6 @@ def limits_from_dict(data: Any, source: str = "cell.yaml", path: str = "limits")
     known = [x.name for x in fields(Limits)]
     for k in f.data:
         if k not in known:
-            import difflib
-
             near = difflib.get_close_matches(str(k), known, n=1)
             hint = f"did you mean {near[0]!r}? " if near else ""
             raise f.error(str(k), f"is not a limit; {hint}the limits are {known}")
@@ -168,19 +152,12 @@ class Verdict:
         return out
 
 
-def _f(x: Any) -> float | None:
-    if x is None:
-        return None
-    x = float(x)
-    return x if np.isfinite(x) else None
-
-
 def verdict_to_dict(v: Verdict) -> dict[str, Any]:
     """The ``verdict.yaml`` mapping."""
 
     def c(ch: Check) -> dict[str, Any]:
         d = asdict(ch)
-        d["value"], d["limit"] = _f(ch.value), _f(ch.limit)
+        d["value"], d["limit"] = _num(ch.value), _num(ch.limit)
         return d
 
     d: dict[str, Any] = {
@@ -204,15 +181,6 @@ def write_verdict(v: Verdict, directory: str | Path) -> Path:
     path = Path(directory) / VERDICT_FILE
     write_atomic(path, dump_yaml(verdict_to_dict(v)))
     return path
-
-
-def read_verdict(directory: str | Path) -> dict[str, Any]:
-    """The ``verdict.yaml`` of a directory as a mapping (format checked)."""
-    path = Path(directory) / VERDICT_FILE
-    data = load_yaml(path, "verdict file")
-    if not isinstance(data, Mapping) or data.get("format") != VERDICT_FORMAT:
-        raise InputError(f"is not a {VERDICT_FORMAT} file", where=str(path))
-    return dict(data)
 
 
 # ----------------------------------------------------------------------------- the gate
@@ -257,12 +225,11 @@ def judge(
             f"after {result.iterations} iterations",
         )
     )
+    checks.extend(_reprojection(result, lim))
     ad = result.adequacy
     if ad is not None and not ad.adequate and any(RECORDS_WRONG in r for r in ad.reasons):
         # the robot's records are wrong: every other figure comes from a solve on them
-        checks += _reprojection(result, lim)
         return Verdict("rejected", command, tuple(c for c in checks if c.test != "converged"))
-    checks.extend(_reprojection(result, lim))
     checks.extend(_stds(result, lim))
     checks.extend(_scale(result, lim))
     projection, beyond = _projection(result, lim, problem)
@@ -283,9 +250,12 @@ def judge(
         checks.extend(change)
         if problem is not None:
             if installed_problem is None and installed_path is not None:
-                installed_problem, why = _stored_session(installed_path)
-                if why:
-                    notes.append(why)
+                try:  # None when the install keeps no session (or is a result file)
+                    installed_problem = installed_session(installed_path)
+                except InputError as e:
+                    notes.append(
+                        f"the installed session could not be read ({e}); no paired comparison"
+                    )
             if installed_problem is not None:
                 paired, info = paired_compare(
                     problem, installed_problem, installed, lim.max_change_px, lim.change_region
@@ -319,7 +289,7 @@ def _reprojection(result: CalibrationResult, lim: Limits) -> list[Check]:
             if ad.adequate
             else "model adequacy failed: " + "; ".join(ad.reasons)
         )
-        return [Check("adequacy", bool(ad.adequate), _f(worst), None, msg)]
+        return [Check("adequacy", bool(ad.adequate), _num(worst), None, msg)]
     out = []
     rms = result.reproj_rms_px
     for name, c in result.cameras.items():
@@ -329,7 +299,7 @@ def _reprojection(result: CalibrationResult, lim: Limits) -> list[Check]:
             Check(
                 "reprojection",
                 ok,
-                _f(r),
+                _num(r),
                 lim.max_rms_px,
                 f"camera {name}: reprojection rms {r:.3f} px (limit {lim.max_rms_px:g} px"
                 + ("" if ok else "; the model or the robot poses do not explain the images")
@@ -338,7 +308,7 @@ def _reprojection(result: CalibrationResult, lim: Limits) -> list[Check]:
         )
     if not result.cameras:
         ok = bool(np.isfinite(rms) and rms <= lim.max_rms_px)
-        out.append(Check("reprojection", ok, _f(rms), lim.max_rms_px, f"rms {rms:.3f} px"))
+        out.append(Check("reprojection", ok, _num(rms), lim.max_rms_px, f"rms {rms:.3f} px"))
     return out
 
 
@@ -388,14 +358,14 @@ def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
     for name, c in result.cameras.items():
         K = np.asarray(c.K, dtype=float)
         for p, val in (("fx", K[0, 0]), ("fy", K[1, 1])):
-            s = _f(c.std.get(p))
+            s = _num(c.std.get(p))
             rel = s / abs(val) if s is not None and val != 0 else None
             note = f"limit {fx_lim * 100:g} %; limits.fx_rel_std{suffix}"
             out.append(_std_check(f"camera {name}: {p}", rel, fx_lim, "%", ".3f", note, 100))
         for p in ("cx", "cy"):
             one = ", a session of one orientation" if alone else ""
             note = f"limit {cxy_lim:g} px{one}; limits.cxy_std_px{suffix}"
-            s = _f(c.std.get(p))
+            s = _num(c.std.get(p))
             out.append(_std_check(f"camera {name}: {p}", s, cxy_lim, "px", ".3f", note))
     transforms = [result.hand_eye] if result.hand_eye is not None else []
     transforms.extend(result.rig.values())
@@ -409,12 +379,12 @@ def _stds(result: CalibrationResult, lim: Limits) -> list[Check]:
             f"limit {rot_lim:g} deg" + ("" if full else ", a hand-eye from translations alone")
             + f"; limits.hand_eye_rot_std_deg{'' if full else '_from_translations'}"
         )
-        s = _f(t.std_rot_deg)
+        s = _num(t.std_rot_deg)
         out.append(_std_check(f"{t.name}: rotation", s, rot_lim, "deg", ".4f", note))
         if t.t_m is not None:
             t_lim = lim.hand_eye_t_std_mm
             note = f"limit {t_lim:g} mm; limits.hand_eye_t_std_mm"
-            s = _f(t.std_t_mm)
+            s = _num(t.std_t_mm)
             out.append(_std_check(f"{t.name}: translation", s, t_lim, "mm", ".3f", note))
     return out
 
@@ -599,10 +569,8 @@ def uncertainty_map(result: CalibrationResult, camera: str, n: tuple[int, int] =
 def _projection(
     result: CalibrationResult, lim: Limits, problem: CalibrationProblem | None
 ) -> tuple[list[Check], list[str]]:
-    """The ``projection`` check per camera: the largest one-sigma of :func:`uncertainty_map`
-    over the image area the views covered (the 16 x 10 cells holding a corner and their
-    neighbours; the whole image without the problem), and a note where the rest of the image
-    is beyond the limit."""
+    """The ``projection`` check per camera (docs/UNATTENDED.md; the whole image without the
+    problem), and a note where the rest of the image is beyond the limit."""
     out, notes = [], []
     alone = one_orientation(result)
     limit = lim.max_projection_std_px_from_translations if alone else lim.max_projection_std_px
@@ -666,13 +634,10 @@ INTRINSICS_MIN_CORNERS = 8
 def focal_change(
     problem: CalibrationProblem, camera: str, K0: np.ndarray, dist0: np.ndarray
 ) -> tuple[float, float, int] | None:
-    """The likeliest change of ``camera``'s focal length between two parts of the session (the
-    frames before and from some frame on, each part at least two images), from the images
-    alone: each image's free board pose at ``K0``, ``dist0``, linearised in the pose, a focal
-    scale per part and one principal point correction; ``(statistic, relative change, frame
-    index where it starts)``, the statistic the misfit the change explains in units of the
-    detector's variance (chi-square with one degree of freedom for one split when nothing
-    changed); None with fewer than four images."""
+    """The likeliest change of ``camera``'s focal length between two parts of the session, from
+    the images alone at ``K0``, ``dist0`` (the ``intrinsics`` test of docs/UNATTENDED.md):
+    ``(statistic, relative change, frame index where it starts)``; None with fewer than four
+    images."""
     rows = []  # per image: frame index, N (3, 3), g (3,), rss, corners
     for k, f in enumerate(problem.frames):
         d = f.detections.get(camera)
@@ -802,13 +767,6 @@ def displacement_px(
     return float(np.max(np.linalg.norm(proj - px, axis=1)))
 
 
-def _z(a: float, b: float, sa: float | None, sb: float | None) -> float | None:
-    if sa is None or sb is None or not np.isfinite(sa) or not np.isfinite(sb):
-        return None
-    s = float(np.hypot(sa, sb))
-    return abs(a - b) / s if s > 0 else None
-
-
 def compare(
     new: CalibrationResult, old: CalibrationResult, lim: Limits | None = None
 ) -> tuple[list[Check], dict[str, Any]]:
@@ -827,35 +785,35 @@ def compare(
         )
         return [check], {"comparable": False}
     z: dict[str, float] = {}
+
+    def add(key: str, a: float, b: float, sa: float | None, sb: float | None) -> None:
+        """``z[key]``: the change ``a - b`` in combined sigmas, where both are known."""
+        if sa is not None and sb is not None and np.isfinite(sa) and np.isfinite(sb):
+            s = float(np.hypot(sa, sb))
+            if s > 0:
+                z[key] = abs(a - b) / s
+
     for n in common:
         a, b = new.cameras[n], old.cameras[n]
         Ka, Kb = np.asarray(a.K), np.asarray(b.K)
         vals = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
         for p, (i, j) in vals.items():
-            zz = _z(Ka[i, j], Kb[i, j], _f(a.std.get(p)), _f(b.std.get(p)))
-            if zz is not None:
-                z[f"{n}.{p}"] = zz
+            add(f"{n}.{p}", Ka[i, j], Kb[i, j], _num(a.std.get(p)), _num(b.std.get(p)))
         da = np.asarray(a.distortion).reshape(-1)
         db = np.asarray(b.distortion).reshape(-1)
         same = distortion_model(da) == distortion_model(db)  # else the displacement compares
         for k, p in enumerate(DISTORTION_MODELS[distortion_model(da)] if same else ()):
-            zz = _z(da[k], db[k], _f(a.std.get(p)), _f(b.std.get(p)))
-            if zz is not None:
-                z[f"{n}.{p}"] = zz
+            add(f"{n}.{p}", da[k], db[k], _num(a.std.get(p)), _num(b.std.get(p)))
     he_a, he_b = hand_eye_transforms(new), hand_eye_transforms(old)
     pairs = [(k, he_a[k], he_b[k]) for k in he_a if k in he_b]
     pairs += [(k, t, old.rig[k]) for k, t in new.rig.items() if k in old.rig]
     for key, ta, tb in pairs:
         if ta.R is not None and tb.R is not None:
             ang = rotation_angle_deg(ta.R, tb.R)
-            zz = _z(ang, 0.0, _f(ta.std_rot_deg), _f(tb.std_rot_deg))
-            if zz is not None:
-                z[f"{key}.rot"] = zz
+            add(f"{key}.rot", ang, 0.0, _num(ta.std_rot_deg), _num(tb.std_rot_deg))
         if ta.t_m is not None and tb.t_m is not None:
             dt = float(np.linalg.norm(np.asarray(ta.t_m) - np.asarray(tb.t_m)) * 1000.0)
-            zz = _z(dt, 0.0, _f(ta.std_t_mm), _f(tb.std_t_mm))
-            if zz is not None:
-                z[f"{key}.t"] = zz
+            add(f"{key}.t", dt, 0.0, _num(ta.std_t_mm), _num(tb.std_t_mm))
     disp = {
         n: displacement_px(new, old, n, lim.working_distance_m, lim.change_region) for n in common
     }
@@ -877,9 +835,7 @@ def compare(
         ),
         Check(
             "installed",
-            # a displacement counts only when the change behind it is beyond the two
-            # calibrations' noise: an imprecise re-estimate (a realistic arm, a few frames)
-            # moves points by more than the limit without anything having changed
+            # a displacement counts only beyond the combined noise (docs/UNATTENDED.md)
             disp[worst_c] <= lim.max_change_px
             or (worst_z is not None and worst_z <= lim.max_change_sigma),
             disp[worst_c],
@@ -891,23 +847,12 @@ def compare(
         ),
     ]
     info = {
-        "max_sigma": _f(worst_z),
+        "max_sigma": _num(worst_z),
         "max_sigma_parameter": worst_p,
-        "max_displacement_px": {k: _f(v) for k, v in disp.items()},
-        "sigma": {k: _f(v) for k, v in z.items()},
+        "max_displacement_px": {k: _num(v) for k, v in disp.items()},
+        "sigma": {k: _num(v) for k, v in z.items()},
     }
     return checks, info
-
-
-def _stored_session(path: str) -> tuple[CalibrationProblem | None, str | None]:
-    """The installed session an install directory keeps, or (None, why it could not be read)."""
-    p = Path(path)
-    if not p.is_dir():
-        return None, None
-    try:
-        return installed_session(p), None
-    except InputError as e:
-        return None, f"the installed session could not be read ({e}); no paired comparison"
 
 
 def paired_compare(
@@ -989,14 +934,14 @@ def paired_compare(
         per[cam] = {
             "poses": fld.n_poses,
             "corners": fld.n_corners,
-            "max_px": _f(fld.max_px),
-            "max_z": _f(fld.max_z),
-            "field_px": [_f(v) for v in fld.mean_px],
-            "field_std_px": [_f(v) for v in fld.std_px],
-            "radius_px": _f(fld.radius_px),
-            "corner_noise_px": _f(fld.corner_noise_px),
-            "pose_scatter_px": _f(fld.pose_scatter_px),
-            "equivalent": {k: _f(v) for k, v in eq.items()},
+            "max_px": _num(fld.max_px),
+            "max_z": _num(fld.max_z),
+            "field_px": [_num(v) for v in fld.mean_px],
+            "field_std_px": [_num(v) for v in fld.std_px],
+            "radius_px": _num(fld.radius_px),
+            "corner_noise_px": _num(fld.corner_noise_px),
+            "pose_scatter_px": _num(fld.pose_scatter_px),
+            "equivalent": {k: _num(v) for k, v in eq.items()},
         }
     if not checks:
         return [], {"usable": False, "why": "; ".join(whys) or "no camera in common"}
@@ -1006,19 +951,15 @@ def paired_compare(
     return checks, info
 
 
-def judge_check(
+def check_residuals(
     residual_rms_px: Mapping[str, float],
     expected_rms_px: Mapping[str, float],
     drift_px: Mapping[str, float],
-    limits: Limits | None = None,
-    n_frames: int = 0,
-    extra: Mapping[str, Any] | None = None,
-    notes: Sequence[str] = (),
-) -> Verdict:
-    """The verdict of ``slidecal check``: ``ok``, or ``drifted`` when the images disagree with the
-    installed calibration beyond the limits (per camera ``residual_rms_px``, ``expected_rms_px``
-    and ``drift_px``)."""
-    lim = limits or Limits()
+    lim: Limits,
+    n_frames: int,
+) -> list[Check]:
+    """``slidecal check``'s test per camera: the images disagree with the installed calibration
+    beyond the limits (``residual_rms_px``, ``expected_rms_px`` and ``drift_px``)."""
     checks = []
     for n, r in residual_rms_px.items():
         ratio = r / expected_rms_px[n] if expected_rms_px[n] > 0 else float("inf")
@@ -1027,7 +968,7 @@ def judge_check(
             Check(
                 "check",
                 bool(ok),
-                _f(ratio),
+                _num(ratio),
                 lim.check_max_rms_ratio,
                 f"camera {n}: residual rms {r:.3f} px at {n_frames} known robot poses is "
                 f"{ratio:.2f} times what the installed calibration explains "
@@ -1035,5 +976,4 @@ def judge_check(
                 f"{drift_px[n]:.2f} px (limit {lim.check_max_px:g} px)",
             )
         )
-    verdict = "ok" if all(c.passed for c in checks) else "drifted"
-    return Verdict(verdict, "check", tuple(checks), None, tuple(notes), dict(extra or {}))
+    return checks
