@@ -23,7 +23,6 @@ from slidecal.routines.schema import (
     write_yaml,
 )
 from slidecal.solver.camera import DISTORTION_MODELS, distortion_model
-from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import T_from_Rt, rotation_angle_deg, rvec_from_R
 from slidecal.solver.problem import hand_eye_names as named_hand_eye_names
 from slidecal.solver.problem import mount_names
@@ -372,14 +371,13 @@ def _rows_from(
 
 def _adequacy_from(f: Fields, names: list[str]) -> ModelAdequacy:
     a = f.section("adequacy", RESULT_PART_KEYS["adequacy"])
-    reasons = a.strings("reasons") if a.has("reasons") else []
     worst = _rows_from(a, "worst_frames", "{frame, camera, ...}", names)
     return ModelAdequacy(
         _camera_numbers(a, "detector_noise_px", names),
         _camera_numbers(a, "normalised_rms", names),
         worst,  # type: ignore[arg-type]
         a.boolean("adequate"),
-        tuple(reasons),
+        tuple(a.strings("reasons")),
     )
 
 
@@ -602,19 +600,10 @@ def write_camera_info(camera: CameraEstimate, path: str | Path) -> Path:
 
 
 def write_depthai_json(result: CalibrationResult, path: str | Path, sockets: Mapping[str, Any]):
-    """The depthai calibration JSON of an OAK rig (``sockets``: camera name -> ``CAM_A``...);
-    ``InputError`` without the OAK driver."""
-    try:
-        from slidecal.drivers import oak
-    except ImportError:  # the OAK driver is optional at run time (depthai missing)
-        oak = None
-    writer = getattr(oak, "write_oak_calibration_json", None) if oak is not None else None
-    if writer is None:
-        raise InputError(
-            "this slidecal has no depthai calibration writer (slidecal.drivers.oak."
-            "write_oak_calibration_json); use the OpenCV or ROS exports"
-        )
-    return writer(result, Path(path), dict(sockets))
+    """The depthai calibration JSON of an OAK rig (``sockets``: camera name -> ``CAM_A``...)."""
+    from slidecal.drivers.oak import write_oak_calibration_json  # loaded for OAK rigs only
+
+    return write_oak_calibration_json(result, Path(path), dict(sockets))
 
 
 # ----------------------------------------------------------------------------- summary
@@ -750,9 +739,7 @@ def _transform_lines(key: str, t: TransformEstimate) -> list[str]:
     else:
         x, y, z = np.asarray(t.t_m) * 1000.0
         out.append(f"  translation {x:.2f} {y:.2f} {z:.2f} mm (+- {_fmt(t.std_t_mm, '.3f')} mm)")
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = t.R, t.t_m
-        out.append(f"  as the pendant shows it: {pendant_text(T)}")
+        out.append(f"  as the pendant shows it: {pendant_text(T_from_Rt(t.R, t.t_m))}")
     return out
 
 
@@ -871,7 +858,4 @@ def truth_transform(truth: Mapping[str, Any], key: str) -> np.ndarray | None:
     tt = truth.get(key)
     if not isinstance(tt, Mapping) or tt.get("R") is None or tt.get("t_m") is None:
         return None
-    T = np.eye(4)
-    T[:3, :3] = np.asarray(tt["R"], dtype=float)
-    T[:3, 3] = np.asarray(tt["t_m"], dtype=float)
-    return T
+    return T_from_Rt(np.asarray(tt["R"], dtype=float), np.asarray(tt["t_m"], dtype=float))

@@ -476,14 +476,7 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
     f.only(SESSION_KEYS[""])
     target = target_from_dict(f.require("target"), SESSION_FILE)
 
-    cams = f.list("cameras", non_empty=True, hint="camera {name, width, height}")
-    cameras: list[CameraSpec] = []
-    sockets: dict[str, str] = {}
-    for i, c in enumerate(cams):
-        cf = Fields(c, SESSION_FILE, f"cameras[{i}]").only(SESSION_KEYS["cameras[]"])
-        cameras.append(camera_spec(cf, [x.name for x in cameras]))
-        if cf.has("socket"):
-            sockets[cameras[-1].name] = _socket(cf)
+    cameras, sockets = _cameras(f)
     names = [c.name for c in cameras]
     table = _detection_table(f, directory, len(cameras))
 
@@ -545,7 +538,7 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
     options = options_from_dict(f.get("options", {}), SESSION_FILE)
     problem = CalibrationProblem(
         target=target,
-        cameras=tuple(cameras),
+        cameras=cameras,
         frames=tuple(frames),
         mount=mount,  # type: ignore[arg-type]
         knowledge=knowledge,  # type: ignore[arg-type]
@@ -577,6 +570,18 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
         detect_reasons=reasons,
         limits=f.get("limits"),
     )
+
+
+def _cameras(f: Fields) -> tuple[tuple[CameraSpec, ...], dict[str, str]]:
+    """The session's cameras and the OAK board socket of those that give one."""
+    cameras: list[CameraSpec] = []
+    sockets: dict[str, str] = {}
+    for i, c in enumerate(f.list("cameras", non_empty=True, hint="camera {name, width, height}")):
+        cf = Fields(c, SESSION_FILE, f"cameras[{i}]").only(SESSION_KEYS["cameras[]"])
+        cameras.append(camera_spec(cf, [x.name for x in cameras]))
+        if cf.has("socket"):
+            sockets[cameras[-1].name] = _socket(cf)
+    return tuple(cameras), sockets
 
 
 def camera_spec(cf: Fields, taken: Sequence[str]) -> CameraSpec:
@@ -996,18 +1001,10 @@ class SessionWriter:
         data = load_yaml(directory / SESSION_FILE, "session file")
         f = Fields(data, SESSION_FILE)
         _check_format(f, SESSION_FORMAT, "session")
-        cams = f.require("cameras")
-        if not isinstance(cams, list):
-            raise f.error("cameras", "must be a list of {name, width, height}")
         w = cls.__new__(cls)
         w.directory = directory
         w.target = target_from_dict(f.require("target"), SESSION_FILE)
-        w.cameras = tuple(
-            CameraSpec(
-                c.string("name"), c.integer("width", minimum=1), c.integer("height", minimum=1)
-            )
-            for c in (Fields(x, SESSION_FILE, f"cameras[{i}]") for i, x in enumerate(cams))
-        )
+        w.cameras, _ = _cameras(f)
         w._names = [c.name for c in w.cameras]
         w.data = dict(data)
         w.data.setdefault("frames", [])
