@@ -96,6 +96,16 @@ def hand_eye_transforms(result: CalibrationResult) -> dict[str, TransformEstimat
     return out
 
 
+def transforms(result: CalibrationResult) -> dict[str, TransformEstimate]:
+    """Every transform of a result under its result-file name, in the file's order: the
+    hand-eyes, the rig's ``T_<name>_<ref>``, the target pose."""
+    out = {**hand_eye_transforms(result), **result.rig}
+    tname = target_pose_name(result.mount)
+    if tname is not None and result.T_target is not None:
+        out[tname] = result.T_target
+    return out
+
+
 def _named_from_legacy(
     pnames: list[str],
     cov: np.ndarray | None,
@@ -169,13 +179,8 @@ def result_to_dict(result: CalibrationResult) -> dict[str, Any]:
     """The ``result.yaml`` mapping of a result (docs/FORMATS.md)."""
     d: dict[str, Any] = {"format": RESULT_FORMAT}
     d["cameras"] = {n: camera_to_dict(c) for n, c in result.cameras.items()}
-    for key, t in hand_eye_transforms(result).items():
+    for key, t in transforms(result).items():
         d[key] = transform_estimate_to_dict(t)
-    for key, t in result.rig.items():
-        d[key] = transform_estimate_to_dict(t)
-    tname = target_pose_name(result.mount)
-    if tname is not None and result.T_target is not None:
-        d[tname] = transform_estimate_to_dict(result.T_target)
     d["mount"] = result.mount
     d["reference_camera"] = _reference(result)
     d["converged"] = bool(result.converged)
@@ -472,14 +477,8 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
     rig = {f"T_{n}_{ref}": t for n in cams if n != ref if (t := te(f"T_{n}_{ref}")) is not None}
     tname = target_pose_name(mount)
     rep = f.section("reprojection", RESULT_PART_KEYS["reprojection"])
-    residuals: dict[tuple[int, str], float] = {}
-    for i, r in enumerate(rep.list("per_image", required=False, hint="{frame, camera, rms_px}")):
-        rf = Fields(r, source, f"reprojection.per_image[{i}]")
-        rf.only(RESULT_PART_KEYS["reprojection.per_image[]"])
-        cam = rf.choice("camera", names)
-        fid = rf.integer("frame", minimum=0)
-        if rf.has("rms_px"):
-            residuals[(fid, cam)] = rf.number("rms_px", minimum=0.0)
+    per_image = _rows_from(rep, "per_image", "{frame, camera, rms_px}", names)
+    residuals = {(fid, cam): rms for fid, cam, rms in per_image if np.isfinite(rms)}
     pnames = f.strings("parameter_names")
     cov = None
     if f.has("covariance"):
@@ -652,13 +651,8 @@ def summary_text(
                 lines.append(f"{value}+- {_fmt(std.get(label), std_spec)}{unit}")
             else:  # held by the options (the skew: 0 unless estimated), not estimated
                 lines.append(f"{value}(fixed)")
-    for key, t in hand_eye_transforms(result).items():
+    for key, t in transforms(result).items():
         lines.extend(_transform_lines(key, t))
-    for key, t in result.rig.items():
-        lines.extend(_transform_lines(key, t))
-    tname = target_pose_name(result.mount)
-    if tname and result.T_target is not None:
-        lines.extend(_transform_lines(tname, result.T_target))
     if result.unobservable:
         lines.append("not determined by this data (fixed, not estimated):")
         lines.extend(f"  {k}: {v}" for k, v in result.unobservable.items())
@@ -766,13 +760,8 @@ def errors_against_truth(result: CalibrationResult, truth: Mapping[str, Any]) ->
         out[f"{name}.fx_rel"] = float(abs(K[0, 0] - Kt[0, 0]) / Kt[0, 0])
         for label, ij in K_ENTRIES[:4]:
             out[f"{name}.{label}_px"] = float(abs(K[ij] - Kt[ij]))
-    est: dict[str, TransformEstimate] = dict(hand_eye_transforms(result))
-    est.update(result.rig)
-    tname = target_pose_name(result.mount)
-    if tname and result.T_target is not None:
-        est[tname] = result.T_target
     judged = judged_truth(result, truth)
-    for key, t in est.items():
+    for key, t in transforms(result).items():
         T_true = judged.get(key)
         if T_true is None or t.R is None:
             continue
