@@ -25,6 +25,7 @@ from slidecal.mocks import camera as simcam
 from slidecal.mocks.camera import SimCamera
 from slidecal.mocks.cell import POSE_NAMES
 from slidecal.mocks.render import Photo
+from slidecal.mocks.robot import SPEED_LIMITS
 from slidecal.routines.devices import OAK_CAMERA_KEYS, OAK_RIG_KEYS, UVC_CAMERA_KEYS
 from slidecal.routines.ops.verdict import Limits, limits_from_dict
 from slidecal.routines.schema import (
@@ -91,14 +92,7 @@ CELL_KEYS: dict[str, tuple[str, ...]] = {
         "payload",
     ),
     "robot.workspace": ("min_m", "max_m"),
-    "robot.limits": (
-        "max_speed_mps",
-        "max_accel_mps2",
-        "max_angular_speed_deg_s",
-        "max_angular_accel_deg_s2",
-        "z_min_m",
-        "move_timeout_s",
-    ),
+    "robot.limits": (*SPEED_LIMITS, "z_min_m", "move_timeout_s"),  # the simulated arm's
     # the camera drivers' own fields are declared beside the code that reads them
     "cameras": OAK_RIG_KEYS,
     "cameras.list[].oak": ("name", "width", "height", *OAK_CAMERA_KEYS),
@@ -115,17 +109,9 @@ CELL_KEYS: dict[str, tuple[str, ...]] = {
         "kinematic_error",
         "board_bow_mm",
     ),
-    "simulation.cameras.*": (
-        "width",
-        "height",
-        "K",
-        "distortion",
-        "blur_sigma_px",
-        "noise_std",
-        "exposure",
-        "colour",
-        "vignetting",
-        "photo",
+    # a simulated camera's fields but its name (its ``dist`` is ``distortion``)
+    "simulation.cameras.*": tuple(
+        "distortion" if f.name == "dist" else f.name for f in fields(SimCamera)[1:]
     ),
     # ``photo: true`` takes every default of ``slidecal.mocks.render.Photo``; a mapping sets some
     "simulation.cameras.*.photo": PHOTO_KEYS,

@@ -13,7 +13,7 @@ import io
 import os
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -125,17 +125,9 @@ TARGET_KEYS: dict[str, tuple[str, ...]] = {
 }
 TARGET_KINDS = tuple(TARGET_KEYS)
 
-#: The keys of an ``options:`` block (cell files and sessions).
-OPTIONS_KEYS = (
-    "skew",
-    "unit_aspect",
-    "distortion",
-    "outlier_threshold_px",
-    "robot_noise_mm",
-    "robot_noise_deg",
-    "estimate_robot_noise",
-    "distortion_model",
-)
+#: The keys of an ``options:`` block (cell files and sessions): the fields of
+#: :class:`ModelOptions`, ``robot_noise_m`` given in millimetres
+OPTIONS_KEYS = tuple(f.name.replace("noise_m", "noise_mm") for f in fields(ModelOptions))
 
 #: How far (pixels) a given detection may lie outside its camera's image (a corner is inside)
 DETECTION_MARGIN_PX = 2.0
