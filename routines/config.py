@@ -13,6 +13,7 @@ import hashlib
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields, replace
 from importlib import resources
+from inspect import signature
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +26,7 @@ from slidecal.mocks import camera as simcam
 from slidecal.mocks.camera import SimCamera
 from slidecal.mocks.cell import POSE_NAMES
 from slidecal.mocks.render import Photo
-from slidecal.mocks.robot import SPEED_LIMITS
+from slidecal.mocks.robot import SPEED_LIMITS, KinematicError
 from slidecal.routines.devices import OAK_CAMERA_KEYS, OAK_RIG_KEYS, UVC_CAMERA_KEYS
 from slidecal.routines.ops.verdict import Limits, limits_from_dict
 from slidecal.routines.schema import (
@@ -59,12 +60,9 @@ CELL_MOUNTS = ("eye_in_hand", "eye_to_hand")
 CAMERA_PRESETS = ("r1", "oak_d_like")
 DEFAULT_CELL = "default_cell.yaml"
 
-#: ``simulation.kinematic_error``'s defaults (``slidecal.mocks.robot.KinematicError`` sizes).
+#: ``simulation.kinematic_error``'s defaults: the sizes of a random simulated arm
 KINEMATIC_ERROR_DEFAULTS = {
-    "mm": 1.0,
-    "deg": 0.1,
-    "repeatability_mm": 0.03,
-    "repeatability_deg": 0.005,
+    k: p.default for k, p in signature(KinematicError.random).parameters.items() if k != "rng"
 }
 
 #: ``simulation.cameras.<name>.photo``: the fields of ``slidecal.mocks.render.Photo``
@@ -117,7 +115,7 @@ CELL_KEYS: dict[str, tuple[str, ...]] = {
     "simulation.cameras.*.photo": PHOTO_KEYS,
     "simulation.noise": ("robot_mm", "robot_deg"),
     "simulation.target_jitter": ("mm", "deg"),
-    "simulation.kinematic_error": ("mm", "deg", "repeatability_mm", "repeatability_deg"),
+    "simulation.kinematic_error": tuple(KINEMATIC_ERROR_DEFAULTS),
 }
 
 #: Keys of the cell file's ``plan:`` block, the planner's options (slidecal.routines.planner).

@@ -97,31 +97,19 @@ SESSION_KEYS: dict[str, tuple[str, ...]] = {
     "simulation.noise.cameras.*": ("blur_sigma_px", "noise_std", "exposure"),
 }
 
-#: The keys of a ``target:`` block per kind (cell files and sessions).
 #: How well the real board matches its description (every kind): its bow and its print's error
 TOLERANCE_KEYS = ("flatness_mm", "print_tolerance")
+#: The keys of a ``target:`` block per kind (cell files and sessions): ``kind``, the kind's own
+#: (:class:`Target`'s fields of those names), the tolerance
 TARGET_KEYS: dict[str, tuple[str, ...]] = {
-    "charuco": (
-        "kind",
-        "squares_x",
-        "squares_y",
-        "square_size_m",
-        "marker_size_m",
-        "dictionary",
-        *TOLERANCE_KEYS,
-    ),
-    "chessboard": ("kind", "squares_x", "squares_y", "square_size_m", *TOLERANCE_KEYS),
-    "points": ("kind", "points_m", *TOLERANCE_KEYS),
-    "apriltag": ("kind", "tag_size_m", "dictionary", "tag_ids", "tag_origins_m", *TOLERANCE_KEYS),
-    "aprilgrid": (
-        "kind",
-        "tag_cols",
-        "tag_rows",
-        "tag_size_m",
-        "tag_spacing",
-        "dictionary",
-        *TOLERANCE_KEYS,
-    ),
+    kind: ("kind", *own, *TOLERANCE_KEYS)
+    for kind, own in {
+        "charuco": ("squares_x", "squares_y", "square_size_m", "marker_size_m", "dictionary"),
+        "chessboard": ("squares_x", "squares_y", "square_size_m"),
+        "points": ("points_m",),
+        "apriltag": ("tag_size_m", "dictionary", "tag_ids", "tag_origins_m"),
+        "aprilgrid": ("tag_cols", "tag_rows", "tag_size_m", "tag_spacing", "dictionary"),
+    }.items()
 }
 TARGET_KINDS = tuple(TARGET_KEYS)
 
