@@ -2,9 +2,8 @@
 
 THE ROBOT NEVER MOVES unless the file names real hardware: ``robot.driver: ur`` with a
 ``host``. Without a file, the packaged simulated cell (``mocks/default_cell.yaml``) is used.
-Every key, its unit and its default: docs/FORMATS.md. The keys each section accepts are declared
-once, in :data:`CELL_KEYS`; an unknown key is refused with the nearest valid one, and every
-error names the file and the field, what is wrong and how to fix it, in one line.
+Every key, its unit and its default, and how a bad one is refused: docs/FORMATS.md. The keys
+each section accepts are declared once, in :data:`CELL_KEYS`.
 """
 
 from __future__ import annotations

@@ -133,13 +133,8 @@ TRANSLATION_KEYS = ("t_m", "t_mm")
 
 
 def transform_from_dict(f: Fields, key: str) -> np.ndarray:
-    """A 4x4 transform from a mapping of one rotation and one translation.
-
-    Rotation: ``R`` (3x3), ``rpy_deg`` ([roll, pitch, yaw], the teach pendant's X-Y-Z fixed
-    axes: ``R = Rz(yaw) Ry(pitch) Rx(roll)``; KUKA's A, B, C are yaw, pitch, roll, Fanuc's W, P,
-    R roll, pitch, yaw) or ``q_wxyz`` (a unit quaternion, scalar first as ABB writes it).
-    Translation: ``t_m`` (metres) or ``t_mm`` (millimetres).
-    """
+    """A 4x4 transform from a mapping of one rotation (``R``, ``rpy_deg`` or ``q_wxyz``) and one
+    translation (``t_m`` or ``t_mm``); the conventions: docs/FORMATS.md, "Units"."""
     sub = f.sub(key)
     assert sub is not None
     sub.only(ROTATION_KEYS + TRANSLATION_KEYS)
@@ -207,8 +202,7 @@ def ur_pose_field(f: Fields, key: str) -> np.ndarray:
 
 def robot_pose_field(f: Fields, key: str) -> np.ndarray:
     """A frame's robot pose (4x4): a UR pose ``[x, y, z, rx, ry, rz]`` or, from any other
-    controller, a transform (:func:`transform_from_dict`: ``{q_wxyz, t_mm}`` as ABB records
-    it, ``{rpy_deg, t_mm}`` for KUKA's A, B, C or Fanuc's W, P, R, ``{R, t_m}``)."""
+    controller, a transform (:func:`transform_from_dict`)."""
     if not isinstance(f.get(key), Mapping):
         return ur_pose_field(f, key)
     T = transform_from_dict(f, key)
