@@ -39,6 +39,7 @@ from slidecal.routines.schema import (
 from slidecal.routines.session import (
     CAMERA_DRIVERS,
     OAK_SOCKET,
+    ROBOT_DRIVERS,
     camera_spec,
     options_from_dict,
     options_to_dict,
@@ -54,7 +55,6 @@ from slidecal.solver.errors import InputError
 from slidecal.solver.problem import CameraSpec, ModelOptions, Target
 
 CELL_FORMAT = "slidecal.cell/1"
-ROBOT_DRIVERS = ("simulated", "ur")
 CELL_MOUNTS = ("eye_in_hand", "eye_to_hand")
 CAMERA_PRESETS = ("r1", "oak_d_like")
 DEFAULT_CELL = "default_cell.yaml"

@@ -55,6 +55,7 @@ DETECTION_DTYPE = np.dtype(
 KNOWLEDGE = ("robot", "board_translation", "board_direction", "none")
 MOUNTS = ("eye_in_hand", "eye_to_hand", "none")
 STATUSES = ("recording", "complete", "aborted")
+ROBOT_DRIVERS = ("simulated", "ur")
 CAMERA_DRIVERS = ("simulated", "oak", "uvc")
 OAK_SOCKET = re.compile(r"CAM_[A-H]")
 
@@ -534,7 +535,7 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
         images=images,
         cell=f.string("cell", "-") if f.has("cell") else None,
         cell_sha256=sha,
-        robot_driver=f.choice("robot_driver", ("simulated", "ur"), "ur")
+        robot_driver=f.choice("robot_driver", ROBOT_DRIVERS, "ur")
         if f.has("robot_driver")
         else None,
         camera_driver=f.choice("camera_driver", CAMERA_DRIVERS, "oak")
