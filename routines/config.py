@@ -874,11 +874,10 @@ def _cameras(
         raise f.error(
             "list", f"is missing; driver {driver!r} needs a list of {{name, width, height}} cameras"
         )
-    lst = f.list("list", non_empty=True, hint="camera {name, width, height}")
     specs = []
     opts: dict[str, dict[str, Any]] = {}
-    for i, c in enumerate(lst):
-        cf = Fields(c, f.file, f"{f.path}.list[{i}]").only(CELL_KEYS[f"cameras.list[].{driver}"])
+    keys = CELL_KEYS[f"cameras.list[].{driver}"]
+    for cf in f.entries("list", keys, non_empty=True, hint="camera {name, width, height}"):
         specs.append(camera_spec(cf, list(opts)))
         if driver == "oak":
             if not cf.has("socket"):

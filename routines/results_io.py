@@ -359,8 +359,7 @@ def _rows_from(
     (default: all of the part's keys) in order, frame ids non-negative, cameras of ``names``."""
     part = f"{f.path}.{key}[]" if f.path else f"{key}[]"
     rows = []
-    for i, w in enumerate(f.list(key, required=False, hint=hint)):
-        wf = Fields(w, f.file, part.replace("[]", f"[{i}]")).only(RESULT_PART_KEYS[part])
+    for wf in f.entries(key, RESULT_PART_KEYS[part], required=False, hint=hint):
         rows.append(
             tuple(
                 wf.integer(k, minimum=0)

@@ -455,27 +455,15 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
     names = [c.name for c in cameras]
     table = _detection_table(f, directory, len(cameras))
 
-    raw_frames = f.list("frames", hint="frame {id, T_base_tool, detections}")
     frames: list[Frame] = []
     quality: dict[tuple[int, str], dict[str, Any]] = {}
     images: dict[tuple[int, str], Path] = {}
     reasons: dict[tuple[int, str], tuple[str, ...]] = {}
     ids_seen: set[int] = set()
-    for i, fr in enumerate(raw_frames):
-        frame, q, im = _read_frame(
-            Fields(fr, SESSION_FILE, f"frames[{i}]"),
-            directory,
-            target,
-            cameras,
-            detect_images,
-            reasons,
-            table,
-        )
+    for ff in f.entries("frames", hint="frame {id, T_base_tool, detections}"):
+        frame, q, im = _read_frame(ff, directory, target, cameras, detect_images, reasons, table)
         if frame.id in ids_seen:
-            raise InputError(
-                f"frame id {frame.id} appears twice; ids must be unique",
-                where=f"{SESSION_FILE}: frames[{i}].id",
-            )
+            raise ff.error("id", f"frame id {frame.id} appears twice; ids must be unique")
         ids_seen.add(frame.id)
         frames.append(frame)
         quality.update(q)
@@ -551,8 +539,8 @@ def _cameras(f: Fields) -> tuple[tuple[CameraSpec, ...], dict[str, str]]:
     """The session's cameras and the OAK board socket of those that give one."""
     cameras: list[CameraSpec] = []
     sockets: dict[str, str] = {}
-    for i, c in enumerate(f.list("cameras", non_empty=True, hint="camera {name, width, height}")):
-        cf = Fields(c, SESSION_FILE, f"cameras[{i}]").only(SESSION_KEYS["cameras[]"])
+    hint = "camera {name, width, height}"
+    for cf in f.entries("cameras", SESSION_KEYS["cameras[]"], non_empty=True, hint=hint):
         cameras.append(camera_spec(cf, [x.name for x in cameras]))
         if cf.has("socket"):
             sockets[cameras[-1].name] = _socket(cf)
@@ -581,8 +569,7 @@ def _socket(cf: Fields) -> str:
 
 def _events(f: Fields) -> tuple[dict[str, Any], ...]:
     out = []
-    for i, e in enumerate(f.list("events", required=False)):
-        ef = Fields(e, SESSION_FILE, f"events[{i}]")
+    for ef in f.entries("events", required=False):
         ef.string("kind")
         ef.string("message")
         out.append(dict(ef.data))
@@ -622,9 +609,7 @@ def _simulation_truth(f: Fields | None, names: Sequence[str]) -> dict[str, Any] 
     if _plain_truth_frames(frames):
         return dict(f.data)
     seen: set[int] = set()
-    for i, fr in enumerate(frames):
-        ff = Fields(fr, f.file, f"{f.path}.frames[{i}]")
-        ff.only(SESSION_KEYS["simulation.frames[]"])
+    for ff in f.entries("frames", SESSION_KEYS["simulation.frames[]"], required=False):
         fid = ff.integer("id", minimum=0)
         if fid in seen:
             raise ff.error("id", f"frame {fid} is listed twice; give each frame's truth once")
