@@ -335,7 +335,7 @@ def _nullable(f: Fields, key: str, minimum: float | None = None) -> float:
     return f.number(key, minimum=minimum) if f.has(key) else float("nan")
 
 
-def _camera_numbers(f: Fields, key: str, names: list[str]) -> dict[str, float]:
+def _numbers(f: Fields, key: str, names: list[str] | None = None) -> dict[str, float]:
     sub = f.section(key, names)
     return {str(k): _nullable(sub, str(k), minimum=0.0) for k in sub.data}
 
@@ -377,8 +377,8 @@ def _adequacy_from(f: Fields, names: list[str]) -> ModelAdequacy:
     a = f.section("adequacy", RESULT_PART_KEYS["adequacy"])
     worst = _rows_from(a, "worst_frames", "{frame, camera, ...}", names)
     return ModelAdequacy(
-        _camera_numbers(a, "detector_noise_px", names),
-        _camera_numbers(a, "normalised_rms", names),
+        _numbers(a, "detector_noise_px", names),
+        _numbers(a, "normalised_rms", names),
         worst,  # type: ignore[arg-type]
         a.boolean("adequate"),
         tuple(a.strings("reasons")),
@@ -425,14 +425,13 @@ def _cameras_from(f: Fields) -> dict[str, CameraEstimate]:
                 f"is {model}, but distortion has {len(dist)} values, the "
                 f"{distortion_model(dist)} model's; make them agree",
             )
-        std = c.section("std")
         cams[name] = CameraEstimate(
             name,
             c.integer("width", minimum=1, maximum=100_000),
             c.integer("height", minimum=1, maximum=100_000),
             c.array("K", (3, 3)),
             dist,
-            {str(k): _nullable(std, str(k), minimum=0.0) for k in std.data},
+            _numbers(c, "std"),
             _nullable(c, "reproj_rms_px", minimum=0.0),
         )
     return cams
