@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import astuple, fields
+from dataclasses import astuple, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -451,28 +451,26 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
     mount = f.choice("mount", RESULT_MOUNTS, "eye_in_hand")
     ref = f.camera("reference_camera", names)
 
-    def te(key: str, name: str | None = None) -> TransformEstimate | None:
+    def te(key: str) -> TransformEstimate | None:
         if not f.has(key):
             return None
         s = f.section(key, RESULT_PART_KEYS["transform"])
         R = s.rotation("R") if s.has("R") else None
         t = s.array("t_m", (3,)) if s.has("t_m") else None
         return TransformEstimate(
-            name or key,
+            key,
             R,
             t,
             s.optional_number("std_rot_deg", minimum=0.0),
             s.optional_number("std_t_mm", minimum=0.0),
         )
 
+    # every transform named is read (and must be one this result can hold)
+    Ts = {k: te(k) for k in f.data if isinstance(k, str) and _TRANSFORM_KEY.fullmatch(k)}
     frames = mount_names(mount)
-    hand_eye = None
-    if frames is not None:
-        hand_eye = te(named_hand_eye_names(mount, names)[ref], frames.hand_eye)
-    for key in f.data:  # every transform named must be one this result can hold
-        if isinstance(key, str) and _TRANSFORM_KEY.fullmatch(key):
-            te(key)
-    rig = {f"T_{n}_{ref}": t for n in cams if n != ref if (t := te(f"T_{n}_{ref}")) is not None}
+    he = Ts.get(named_hand_eye_names(mount, names)[ref]) if frames is not None else None
+    hand_eye = None if he is None or frames is None else replace(he, name=frames.hand_eye)
+    rig = {k: t for n in cams if n != ref if (t := Ts.get(k := f"T_{n}_{ref}")) is not None}
     tname = target_pose_name(mount)
     rep = f.section("reprojection", RESULT_PART_KEYS["reprojection"])
     per_image = _rows_from(rep, "per_image", "{frame, camera, rms_px}", names)
@@ -516,7 +514,7 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
     adequacy = _adequacy_from(f, names) if f.has("adequacy") else None
     robot_accuracy = _robot_accuracy_from(f) if f.has("robot_accuracy") else None
     board = _board_from(f) if f.has("board") else None
-    T_target = te(tname) if tname else None
+    T_target = Ts.get(tname) if tname else None
     pnames, cov = _named_from_legacy(pnames, cov, cams, ref, mount, hand_eye, T_target, rig)
     return CalibrationResult(
         cameras=cams,
