@@ -2,9 +2,8 @@
 
 THE ROBOT NEVER MOVES unless the file names real hardware: ``robot.driver: ur`` with a
 ``host``. Without a file, the packaged simulated cell (``mocks/default_cell.yaml``) is used.
-Every key, its unit and its default: docs/FORMATS.md. The keys each section accepts are declared
-once, in :data:`CELL_KEYS`; an unknown key is refused with the nearest valid one, and every
-error names the file and the field, what is wrong and how to fix it, in one line.
+Every key, its unit and its default, and how a bad one is refused: docs/FORMATS.md. The keys
+each section accepts are declared once, in :data:`CELL_KEYS`.
 """
 
 from __future__ import annotations
@@ -13,6 +12,7 @@ import hashlib
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields, replace
 from importlib import resources
+from inspect import signature
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +23,9 @@ from slidecal.drivers.ur import cell_options
 from slidecal.drivers.ur_pose import ur_pose_from_T
 from slidecal.mocks import camera as simcam
 from slidecal.mocks.camera import SimCamera
+from slidecal.mocks.cell import POSE_NAMES
 from slidecal.mocks.render import Photo
+from slidecal.mocks.robot import SPEED_LIMITS, KinematicError
 from slidecal.routines.devices import OAK_CAMERA_KEYS, OAK_RIG_KEYS, UVC_CAMERA_KEYS
 from slidecal.routines.ops.verdict import Limits, limits_from_dict
 from slidecal.routines.schema import (
@@ -37,6 +39,7 @@ from slidecal.routines.schema import (
 from slidecal.routines.session import (
     CAMERA_DRIVERS,
     OAK_SOCKET,
+    ROBOT_DRIVERS,
     camera_spec,
     options_from_dict,
     options_to_dict,
@@ -49,20 +52,16 @@ from slidecal.routines.session import (
 from slidecal.solver.camera import distortion_model, zero_distortion
 from slidecal.solver.degeneracy import nominal_K
 from slidecal.solver.errors import InputError
-from slidecal.solver.problem import MOUNTS, CameraSpec, ModelOptions, Target
+from slidecal.solver.problem import CameraSpec, ModelOptions, Target
 
 CELL_FORMAT = "slidecal.cell/1"
-ROBOT_DRIVERS = ("simulated", "ur")
 CELL_MOUNTS = ("eye_in_hand", "eye_to_hand")
 CAMERA_PRESETS = ("r1", "oak_d_like")
 DEFAULT_CELL = "default_cell.yaml"
 
-#: ``simulation.kinematic_error``'s defaults (``slidecal.mocks.robot.KinematicError`` sizes).
+#: ``simulation.kinematic_error``'s defaults: the sizes of a random simulated arm
 KINEMATIC_ERROR_DEFAULTS = {
-    "mm": 1.0,
-    "deg": 0.1,
-    "repeatability_mm": 0.03,
-    "repeatability_deg": 0.005,
+    k: p.default for k, p in signature(KinematicError.random).parameters.items() if k != "rng"
 }
 
 #: ``simulation.cameras.<name>.photo``: the fields of ``slidecal.mocks.render.Photo``
@@ -90,14 +89,7 @@ CELL_KEYS: dict[str, tuple[str, ...]] = {
         "payload",
     ),
     "robot.workspace": ("min_m", "max_m"),
-    "robot.limits": (
-        "max_speed_mps",
-        "max_accel_mps2",
-        "max_angular_speed_deg_s",
-        "max_angular_accel_deg_s2",
-        "z_min_m",
-        "move_timeout_s",
-    ),
+    "robot.limits": (*SPEED_LIMITS, "z_min_m", "move_timeout_s"),  # the simulated arm's
     # the camera drivers' own fields are declared beside the code that reads them
     "cameras": OAK_RIG_KEYS,
     "cameras.list[].oak": ("name", "width", "height", *OAK_CAMERA_KEYS),
@@ -114,23 +106,15 @@ CELL_KEYS: dict[str, tuple[str, ...]] = {
         "kinematic_error",
         "board_bow_mm",
     ),
-    "simulation.cameras.*": (
-        "width",
-        "height",
-        "K",
-        "distortion",
-        "blur_sigma_px",
-        "noise_std",
-        "exposure",
-        "colour",
-        "vignetting",
-        "photo",
+    # a simulated camera's fields but its name (its ``dist`` is ``distortion``)
+    "simulation.cameras.*": tuple(
+        "distortion" if f.name == "dist" else f.name for f in fields(SimCamera)[1:]
     ),
     # ``photo: true`` takes every default of ``slidecal.mocks.render.Photo``; a mapping sets some
     "simulation.cameras.*.photo": PHOTO_KEYS,
     "simulation.noise": ("robot_mm", "robot_deg"),
     "simulation.target_jitter": ("mm", "deg"),
-    "simulation.kinematic_error": ("mm", "deg", "repeatability_mm", "repeatability_deg"),
+    "simulation.kinematic_error": tuple(KINEMATIC_ERROR_DEFAULTS),
 }
 
 #: Keys of the cell file's ``plan:`` block, the planner's options (slidecal.routines.planner).
@@ -403,7 +387,6 @@ class CellConfig:
     camera_options: dict[str, dict[str, Any]]
     reference_camera: str
     target: Target
-    target_dict: dict[str, Any]
     approx_T_hand_eye: np.ndarray
     approx_T_target: np.ndarray
     standoff_m: float
@@ -478,14 +461,12 @@ def config_from_dict(data: Any, source: str = "cell.yaml", sha256: str | None = 
         raise f.error("format", f"is {f.get('format')!r}; expected {CELL_FORMAT!r}")
     mount = f.choice("mount", CELL_MOUNTS, "eye_in_hand")
     robot = _robot(f.section("robot", CELL_KEYS["robot"]))
-    simulated = f.section("robot").get("driver", "simulated") == "simulated"
+    simulated = robot.driver == "simulated"
     # a simulated board is exactly as described unless the cell gives its tolerance or bows it
     bowed = simulated and f.section("simulation").has("board_bow_mm")
     target = target_from_dict(f.require("target"), source, exact_by_default=simulated and not bowed)
 
-    sim = None
-    if robot.driver == "simulated":
-        sim = _simulation(f.section("simulation"), mount)
+    sim = _simulation(f.section("simulation"), mount) if simulated else None
     cam_f = f.section("cameras", CELL_KEYS["cameras"])
     driver = cam_f.choice("driver", CAMERA_DRIVERS, "simulated")
     if driver == "simulated" and sim is None:
@@ -540,7 +521,6 @@ def config_from_dict(data: Any, source: str = "cell.yaml", sha256: str | None = 
         camera_options=cam_opts,
         reference_camera=reference,
         target=target,
-        target_dict=target_to_dict(target),
         approx_T_hand_eye=approx_he,
         approx_T_target=approx_target,
         standoff_m=standoff,
@@ -601,13 +581,13 @@ def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
             {"name": c.name, "width": c.width, "height": c.height, **cfg.camera_options[c.name]}
             for c in cfg.cameras
         ]
-    he_key, tg_key = _names(cfg.mount)
+    he_key, tg_key = POSE_NAMES[cfg.mount]
     out: dict[str, Any] = {
         "format": CELL_FORMAT,
         "mount": cfg.mount,
         "robot": robot,
         "cameras": cameras,
-        "target": dict(cfg.target_dict),
+        "target": target_to_dict(cfg.target),
         "approximate": {
             tg_key: transform_to_dict(cfg.approx_T_target),
             he_key: transform_to_dict(cfg.approx_T_hand_eye),
@@ -654,16 +634,10 @@ def write_config(cfg: CellConfig, path: str | Path) -> Path:
     return write_yaml(path, config_to_dict(cfg))
 
 
-def _names(mount: str) -> tuple[str, str]:
-    """Hand-eye and target-pose field names of a mount."""
-    frames = MOUNTS["eye_in_hand" if mount == "eye_in_hand" else "eye_to_hand"]
-    return frames.hand_eye, frames.target
-
-
 def _refuse_other_mount(f: Fields, mount: str) -> None:
     """A hand-eye or target pose named for the other mount is a user's mistake: say so."""
     other = "eye_to_hand" if mount == "eye_in_hand" else "eye_in_hand"
-    for mine, theirs in zip(_names(mount), _names(other), strict=True):
+    for mine, theirs in zip(POSE_NAMES[mount], POSE_NAMES[other], strict=True):
         if theirs in f.data:
             raise f.error(
                 theirs,
@@ -677,7 +651,7 @@ def _approximate(f: Fields, mount: str) -> tuple[np.ndarray, np.ndarray, float]:
     app = f.section("approximate")
     _refuse_other_mount(app, mount)
     app.only(CELL_KEYS[f"approximate.{mount}"])
-    he_key, tg_key = _names(mount)
+    he_key, tg_key = POSE_NAMES[mount]
     if not app.has(tg_key):
         raise app.error(
             tg_key, "is missing; give the rough target pose (R, rpy_deg or q_wxyz; t_m or t_mm)"
@@ -828,7 +802,7 @@ def _photo(c: Fields) -> Photo | None:
 
 def _simulation(f: Fields, mount: str) -> SimulationConfig:
     _refuse_other_mount(f, mount)
-    he_key, tg_key = _names(mount)
+    he_key, tg_key = POSE_NAMES[mount]
     f.only((*CELL_KEYS["simulation"], he_key, tg_key))
     seed = f.integer("seed", 0, minimum=0)
     preset = f.choice("camera_preset", CAMERA_PRESETS, "r1") if f.has("camera_preset") else None
@@ -900,11 +874,10 @@ def _cameras(
         raise f.error(
             "list", f"is missing; driver {driver!r} needs a list of {{name, width, height}} cameras"
         )
-    lst = f.list("list", non_empty=True, hint="camera {name, width, height}")
     specs = []
     opts: dict[str, dict[str, Any]] = {}
-    for i, c in enumerate(lst):
-        cf = Fields(c, f.file, f"{f.path}.list[{i}]").only(CELL_KEYS[f"cameras.list[].{driver}"])
+    keys = CELL_KEYS[f"cameras.list[].{driver}"]
+    for cf in f.entries("list", keys, non_empty=True, hint="camera {name, width, height}"):
         specs.append(camera_spec(cf, list(opts)))
         if driver == "oak":
             if not cf.has("socket"):

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import astuple, fields
+from dataclasses import astuple, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +23,6 @@ from slidecal.routines.schema import (
     write_yaml,
 )
 from slidecal.solver.camera import DISTORTION_MODELS, distortion_model
-from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import T_from_Rt, rotation_angle_deg, rvec_from_R
 from slidecal.solver.problem import hand_eye_names as named_hand_eye_names
 from slidecal.solver.problem import mount_names
@@ -94,6 +93,16 @@ def hand_eye_transforms(result: CalibrationResult) -> dict[str, TransformEstimat
             named.std_rot_deg(key) if named is not None else None,
             named.std_t_mm(key) if named is not None and t is not None else None,
         )
+    return out
+
+
+def transforms(result: CalibrationResult) -> dict[str, TransformEstimate]:
+    """Every transform of a result under its result-file name, in the file's order: the
+    hand-eyes, the rig's ``T_<name>_<ref>``, the target pose."""
+    out = {**hand_eye_transforms(result), **result.rig}
+    tname = target_pose_name(result.mount)
+    if tname is not None and result.T_target is not None:
+        out[tname] = result.T_target
     return out
 
 
@@ -170,13 +179,8 @@ def result_to_dict(result: CalibrationResult) -> dict[str, Any]:
     """The ``result.yaml`` mapping of a result (docs/FORMATS.md)."""
     d: dict[str, Any] = {"format": RESULT_FORMAT}
     d["cameras"] = {n: camera_to_dict(c) for n, c in result.cameras.items()}
-    for key, t in hand_eye_transforms(result).items():
+    for key, t in transforms(result).items():
         d[key] = transform_estimate_to_dict(t)
-    for key, t in result.rig.items():
-        d[key] = transform_estimate_to_dict(t)
-    tname = target_pose_name(result.mount)
-    if tname is not None and result.T_target is not None:
-        d[tname] = transform_estimate_to_dict(result.T_target)
     d["mount"] = result.mount
     d["reference_camera"] = _reference(result)
     d["converged"] = bool(result.converged)
@@ -331,7 +335,7 @@ def _nullable(f: Fields, key: str, minimum: float | None = None) -> float:
     return f.number(key, minimum=minimum) if f.has(key) else float("nan")
 
 
-def _camera_numbers(f: Fields, key: str, names: list[str]) -> dict[str, float]:
+def _numbers(f: Fields, key: str, names: list[str] | None = None) -> dict[str, float]:
     sub = f.section(key, names)
     return {str(k): _nullable(sub, str(k), minimum=0.0) for k in sub.data}
 
@@ -355,8 +359,7 @@ def _rows_from(
     (default: all of the part's keys) in order, frame ids non-negative, cameras of ``names``."""
     part = f"{f.path}.{key}[]" if f.path else f"{key}[]"
     rows = []
-    for i, w in enumerate(f.list(key, required=False, hint=hint)):
-        wf = Fields(w, f.file, part.replace("[]", f"[{i}]")).only(RESULT_PART_KEYS[part])
+    for wf in f.entries(key, RESULT_PART_KEYS[part], required=False, hint=hint):
         rows.append(
             tuple(
                 wf.integer(k, minimum=0)
@@ -372,14 +375,13 @@ def _rows_from(
 
 def _adequacy_from(f: Fields, names: list[str]) -> ModelAdequacy:
     a = f.section("adequacy", RESULT_PART_KEYS["adequacy"])
-    reasons = a.strings("reasons") if a.has("reasons") else []
     worst = _rows_from(a, "worst_frames", "{frame, camera, ...}", names)
     return ModelAdequacy(
-        _camera_numbers(a, "detector_noise_px", names),
-        _camera_numbers(a, "normalised_rms", names),
+        _numbers(a, "detector_noise_px", names),
+        _numbers(a, "normalised_rms", names),
         worst,  # type: ignore[arg-type]
         a.boolean("adequate"),
-        tuple(reasons),
+        tuple(a.strings("reasons")),
     )
 
 
@@ -423,14 +425,13 @@ def _cameras_from(f: Fields) -> dict[str, CameraEstimate]:
                 f"is {model}, but distortion has {len(dist)} values, the "
                 f"{distortion_model(dist)} model's; make them agree",
             )
-        std = c.section("std")
         cams[name] = CameraEstimate(
             name,
             c.integer("width", minimum=1, maximum=100_000),
             c.integer("height", minimum=1, maximum=100_000),
             c.array("K", (3, 3)),
             dist,
-            {str(k): _nullable(std, str(k), minimum=0.0) for k in std.data},
+            _numbers(c, "std"),
             _nullable(c, "reproj_rms_px", minimum=0.0),
         )
     return cams
@@ -450,38 +451,30 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
     mount = f.choice("mount", RESULT_MOUNTS, "eye_in_hand")
     ref = f.camera("reference_camera", names)
 
-    def te(key: str, name: str | None = None) -> TransformEstimate | None:
+    def te(key: str) -> TransformEstimate | None:
         if not f.has(key):
             return None
         s = f.section(key, RESULT_PART_KEYS["transform"])
         R = s.rotation("R") if s.has("R") else None
         t = s.array("t_m", (3,)) if s.has("t_m") else None
         return TransformEstimate(
-            name or key,
+            key,
             R,
             t,
             s.optional_number("std_rot_deg", minimum=0.0),
             s.optional_number("std_t_mm", minimum=0.0),
         )
 
+    # every transform named is read (and must be one this result can hold)
+    Ts = {k: te(k) for k in f.data if isinstance(k, str) and _TRANSFORM_KEY.fullmatch(k)}
     frames = mount_names(mount)
-    hand_eye = None
-    if frames is not None:
-        hand_eye = te(named_hand_eye_names(mount, names)[ref], frames.hand_eye)
-    for key in f.data:  # every transform named must be one this result can hold
-        if isinstance(key, str) and _TRANSFORM_KEY.fullmatch(key):
-            te(key)
-    rig = {f"T_{n}_{ref}": t for n in cams if n != ref if (t := te(f"T_{n}_{ref}")) is not None}
+    he = Ts.get(named_hand_eye_names(mount, names)[ref]) if frames is not None else None
+    hand_eye = None if he is None or frames is None else replace(he, name=frames.hand_eye)
+    rig = {k: t for n in cams if n != ref if (t := Ts.get(k := f"T_{n}_{ref}")) is not None}
     tname = target_pose_name(mount)
     rep = f.section("reprojection", RESULT_PART_KEYS["reprojection"])
-    residuals: dict[tuple[int, str], float] = {}
-    for i, r in enumerate(rep.list("per_image", required=False, hint="{frame, camera, rms_px}")):
-        rf = Fields(r, source, f"reprojection.per_image[{i}]")
-        rf.only(RESULT_PART_KEYS["reprojection.per_image[]"])
-        cam = rf.choice("camera", names)
-        fid = rf.integer("frame", minimum=0)
-        if rf.has("rms_px"):
-            residuals[(fid, cam)] = rf.number("rms_px", minimum=0.0)
+    per_image = _rows_from(rep, "per_image", "{frame, camera, rms_px}", names)
+    residuals = {(fid, cam): rms for fid, cam, rms in per_image if np.isfinite(rms)}
     pnames = f.strings("parameter_names")
     cov = None
     if f.has("covariance"):
@@ -521,7 +514,7 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
     adequacy = _adequacy_from(f, names) if f.has("adequacy") else None
     robot_accuracy = _robot_accuracy_from(f) if f.has("robot_accuracy") else None
     board = _board_from(f) if f.has("board") else None
-    T_target = te(tname) if tname else None
+    T_target = Ts.get(tname) if tname else None
     pnames, cov = _named_from_legacy(pnames, cov, cams, ref, mount, hand_eye, T_target, rig)
     return CalibrationResult(
         cameras=cams,
@@ -602,19 +595,10 @@ def write_camera_info(camera: CameraEstimate, path: str | Path) -> Path:
 
 
 def write_depthai_json(result: CalibrationResult, path: str | Path, sockets: Mapping[str, Any]):
-    """The depthai calibration JSON of an OAK rig (``sockets``: camera name -> ``CAM_A``...);
-    ``InputError`` without the OAK driver."""
-    try:
-        from slidecal.drivers import oak
-    except ImportError:  # the OAK driver is optional at run time (depthai missing)
-        oak = None
-    writer = getattr(oak, "write_oak_calibration_json", None) if oak is not None else None
-    if writer is None:
-        raise InputError(
-            "this slidecal has no depthai calibration writer (slidecal.drivers.oak."
-            "write_oak_calibration_json); use the OpenCV or ROS exports"
-        )
-    return writer(result, Path(path), dict(sockets))
+    """The depthai calibration JSON of an OAK rig (``sockets``: camera name -> ``CAM_A``...)."""
+    from slidecal.drivers.oak import write_oak_calibration_json  # loaded for OAK rigs only
+
+    return write_oak_calibration_json(result, Path(path), dict(sockets))
 
 
 # ----------------------------------------------------------------------------- summary
@@ -663,13 +647,8 @@ def summary_text(
                 lines.append(f"{value}+- {_fmt(std.get(label), std_spec)}{unit}")
             else:  # held by the options (the skew: 0 unless estimated), not estimated
                 lines.append(f"{value}(fixed)")
-    for key, t in hand_eye_transforms(result).items():
+    for key, t in transforms(result).items():
         lines.extend(_transform_lines(key, t))
-    for key, t in result.rig.items():
-        lines.extend(_transform_lines(key, t))
-    tname = target_pose_name(result.mount)
-    if tname and result.T_target is not None:
-        lines.extend(_transform_lines(tname, result.T_target))
     if result.unobservable:
         lines.append("not determined by this data (fixed, not estimated):")
         lines.extend(f"  {k}: {v}" for k, v in result.unobservable.items())
@@ -750,9 +729,7 @@ def _transform_lines(key: str, t: TransformEstimate) -> list[str]:
     else:
         x, y, z = np.asarray(t.t_m) * 1000.0
         out.append(f"  translation {x:.2f} {y:.2f} {z:.2f} mm (+- {_fmt(t.std_t_mm, '.3f')} mm)")
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = t.R, t.t_m
-        out.append(f"  as the pendant shows it: {pendant_text(T)}")
+        out.append(f"  as the pendant shows it: {pendant_text(T_from_Rt(t.R, t.t_m))}")
     return out
 
 
@@ -779,13 +756,8 @@ def errors_against_truth(result: CalibrationResult, truth: Mapping[str, Any]) ->
         out[f"{name}.fx_rel"] = float(abs(K[0, 0] - Kt[0, 0]) / Kt[0, 0])
         for label, ij in K_ENTRIES[:4]:
             out[f"{name}.{label}_px"] = float(abs(K[ij] - Kt[ij]))
-    est: dict[str, TransformEstimate] = dict(hand_eye_transforms(result))
-    est.update(result.rig)
-    tname = target_pose_name(result.mount)
-    if tname and result.T_target is not None:
-        est[tname] = result.T_target
     judged = judged_truth(result, truth)
-    for key, t in est.items():
+    for key, t in transforms(result).items():
         T_true = judged.get(key)
         if T_true is None or t.R is None:
             continue
@@ -871,7 +843,4 @@ def truth_transform(truth: Mapping[str, Any], key: str) -> np.ndarray | None:
     tt = truth.get(key)
     if not isinstance(tt, Mapping) or tt.get("R") is None or tt.get("t_m") is None:
         return None
-    T = np.eye(4)
-    T[:3, :3] = np.asarray(tt["R"], dtype=float)
-    T[:3, 3] = np.asarray(tt["t_m"], dtype=float)
-    return T
+    return T_from_Rt(np.asarray(tt["R"], dtype=float), np.asarray(tt["t_m"], dtype=float))

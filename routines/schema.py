@@ -436,6 +436,14 @@ class Fields:
             raise self.error(key, f"is empty; give a list of at least one {hint}")
         return v
 
+    def entries(self, key: str, valid: Sequence[str] | None = None, **kw: Any) -> Iterator[Fields]:
+        """The mappings of the list ``key`` (:meth:`list`, ``kw`` its options), each one's fields
+        named ``key[i]`` and restricted to the ``valid`` keys."""
+        path = f"{self.path}.{key}" if self.path else key
+        for i, item in enumerate(self.list(key, **kw)):
+            entry = Fields(item, self.file, f"{path}[{i}]")
+            yield entry if valid is None else entry.only(valid)
+
     def strings(self, key: str) -> list[str]:
         """A list of strings (empty when absent)."""
         v = self.list(key, required=False)

@@ -13,7 +13,7 @@ import io
 import os
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -55,6 +55,7 @@ DETECTION_DTYPE = np.dtype(
 KNOWLEDGE = ("robot", "board_translation", "board_direction", "none")
 MOUNTS = ("eye_in_hand", "eye_to_hand", "none")
 STATUSES = ("recording", "complete", "aborted")
+ROBOT_DRIVERS = ("simulated", "ur")
 CAMERA_DRIVERS = ("simulated", "oak", "uvc")
 OAK_SOCKET = re.compile(r"CAM_[A-H]")
 
@@ -97,45 +98,25 @@ SESSION_KEYS: dict[str, tuple[str, ...]] = {
     "simulation.noise.cameras.*": ("blur_sigma_px", "noise_std", "exposure"),
 }
 
-#: The keys of a ``target:`` block per kind (cell files and sessions).
 #: How well the real board matches its description (every kind): its bow and its print's error
 TOLERANCE_KEYS = ("flatness_mm", "print_tolerance")
+#: The keys of a ``target:`` block per kind (cell files and sessions): ``kind``, the kind's own
+#: (:class:`Target`'s fields of those names), the tolerance
 TARGET_KEYS: dict[str, tuple[str, ...]] = {
-    "charuco": (
-        "kind",
-        "squares_x",
-        "squares_y",
-        "square_size_m",
-        "marker_size_m",
-        "dictionary",
-        *TOLERANCE_KEYS,
-    ),
-    "chessboard": ("kind", "squares_x", "squares_y", "square_size_m", *TOLERANCE_KEYS),
-    "points": ("kind", "points_m", *TOLERANCE_KEYS),
-    "apriltag": ("kind", "tag_size_m", "dictionary", "tag_ids", "tag_origins_m", *TOLERANCE_KEYS),
-    "aprilgrid": (
-        "kind",
-        "tag_cols",
-        "tag_rows",
-        "tag_size_m",
-        "tag_spacing",
-        "dictionary",
-        *TOLERANCE_KEYS,
-    ),
+    kind: ("kind", *own, *TOLERANCE_KEYS)
+    for kind, own in {
+        "charuco": ("squares_x", "squares_y", "square_size_m", "marker_size_m", "dictionary"),
+        "chessboard": ("squares_x", "squares_y", "square_size_m"),
+        "points": ("points_m",),
+        "apriltag": ("tag_size_m", "dictionary", "tag_ids", "tag_origins_m"),
+        "aprilgrid": ("tag_cols", "tag_rows", "tag_size_m", "tag_spacing", "dictionary"),
+    }.items()
 }
 TARGET_KINDS = tuple(TARGET_KEYS)
 
-#: The keys of an ``options:`` block (cell files and sessions).
-OPTIONS_KEYS = (
-    "skew",
-    "unit_aspect",
-    "distortion",
-    "outlier_threshold_px",
-    "robot_noise_mm",
-    "robot_noise_deg",
-    "estimate_robot_noise",
-    "distortion_model",
-)
+#: The keys of an ``options:`` block (cell files and sessions): the fields of
+#: :class:`ModelOptions`, ``robot_noise_m`` given in millimetres
+OPTIONS_KEYS = tuple(f.name.replace("noise_m", "noise_mm") for f in fields(ModelOptions))
 
 #: How far (pixels) a given detection may lie outside its camera's image (a corner is inside)
 DETECTION_MARGIN_PX = 2.0
@@ -153,13 +134,8 @@ TRANSLATION_KEYS = ("t_m", "t_mm")
 
 
 def transform_from_dict(f: Fields, key: str) -> np.ndarray:
-    """A 4x4 transform from a mapping of one rotation and one translation.
-
-    Rotation: ``R`` (3x3), ``rpy_deg`` ([roll, pitch, yaw], the teach pendant's X-Y-Z fixed
-    axes: ``R = Rz(yaw) Ry(pitch) Rx(roll)``; KUKA's A, B, C are yaw, pitch, roll, Fanuc's W, P,
-    R roll, pitch, yaw) or ``q_wxyz`` (a unit quaternion, scalar first as ABB writes it).
-    Translation: ``t_m`` (metres) or ``t_mm`` (millimetres).
-    """
+    """A 4x4 transform from a mapping of one rotation (``R``, ``rpy_deg`` or ``q_wxyz``) and one
+    translation (``t_m`` or ``t_mm``); the conventions: docs/FORMATS.md, "Units"."""
     sub = f.sub(key)
     assert sub is not None
     sub.only(ROTATION_KEYS + TRANSLATION_KEYS)
@@ -227,8 +203,7 @@ def ur_pose_field(f: Fields, key: str) -> np.ndarray:
 
 def robot_pose_field(f: Fields, key: str) -> np.ndarray:
     """A frame's robot pose (4x4): a UR pose ``[x, y, z, rx, ry, rz]`` or, from any other
-    controller, a transform (:func:`transform_from_dict`: ``{q_wxyz, t_mm}`` as ABB records
-    it, ``{rpy_deg, t_mm}`` for KUKA's A, B, C or Fanuc's W, P, R, ``{R, t_m}``)."""
+    controller, a transform (:func:`transform_from_dict`)."""
     if not isinstance(f.get(key), Mapping):
         return ur_pose_field(f, key)
     T = transform_from_dict(f, key)
@@ -476,38 +451,19 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
     f.only(SESSION_KEYS[""])
     target = target_from_dict(f.require("target"), SESSION_FILE)
 
-    cams = f.list("cameras", non_empty=True, hint="camera {name, width, height}")
-    cameras: list[CameraSpec] = []
-    sockets: dict[str, str] = {}
-    for i, c in enumerate(cams):
-        cf = Fields(c, SESSION_FILE, f"cameras[{i}]").only(SESSION_KEYS["cameras[]"])
-        cameras.append(camera_spec(cf, [x.name for x in cameras]))
-        if cf.has("socket"):
-            sockets[cameras[-1].name] = _socket(cf)
+    cameras, sockets = _cameras(f)
     names = [c.name for c in cameras]
     table = _detection_table(f, directory, len(cameras))
 
-    raw_frames = f.list("frames", hint="frame {id, T_base_tool, detections}")
     frames: list[Frame] = []
     quality: dict[tuple[int, str], dict[str, Any]] = {}
     images: dict[tuple[int, str], Path] = {}
     reasons: dict[tuple[int, str], tuple[str, ...]] = {}
     ids_seen: set[int] = set()
-    for i, fr in enumerate(raw_frames):
-        frame, q, im = _read_frame(
-            Fields(fr, SESSION_FILE, f"frames[{i}]"),
-            directory,
-            target,
-            cameras,
-            detect_images,
-            reasons,
-            table,
-        )
+    for ff in f.entries("frames", hint="frame {id, T_base_tool, detections}"):
+        frame, q, im = _read_frame(ff, directory, target, cameras, detect_images, reasons, table)
         if frame.id in ids_seen:
-            raise InputError(
-                f"frame id {frame.id} appears twice; ids must be unique",
-                where=f"{SESSION_FILE}: frames[{i}].id",
-            )
+            raise ff.error("id", f"frame id {frame.id} appears twice; ids must be unique")
         ids_seen.add(frame.id)
         frames.append(frame)
         quality.update(q)
@@ -545,7 +501,7 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
     options = options_from_dict(f.get("options", {}), SESSION_FILE)
     problem = CalibrationProblem(
         target=target,
-        cameras=tuple(cameras),
+        cameras=cameras,
         frames=tuple(frames),
         mount=mount,  # type: ignore[arg-type]
         knowledge=knowledge,  # type: ignore[arg-type]
@@ -567,7 +523,7 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
         images=images,
         cell=f.string("cell", "-") if f.has("cell") else None,
         cell_sha256=sha,
-        robot_driver=f.choice("robot_driver", ("simulated", "ur"), "ur")
+        robot_driver=f.choice("robot_driver", ROBOT_DRIVERS, "ur")
         if f.has("robot_driver")
         else None,
         camera_driver=f.choice("camera_driver", CAMERA_DRIVERS, "oak")
@@ -577,6 +533,18 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
         detect_reasons=reasons,
         limits=f.get("limits"),
     )
+
+
+def _cameras(f: Fields) -> tuple[tuple[CameraSpec, ...], dict[str, str]]:
+    """The session's cameras and the OAK board socket of those that give one."""
+    cameras: list[CameraSpec] = []
+    sockets: dict[str, str] = {}
+    hint = "camera {name, width, height}"
+    for cf in f.entries("cameras", SESSION_KEYS["cameras[]"], non_empty=True, hint=hint):
+        cameras.append(camera_spec(cf, [x.name for x in cameras]))
+        if cf.has("socket"):
+            sockets[cameras[-1].name] = _socket(cf)
+    return tuple(cameras), sockets
 
 
 def camera_spec(cf: Fields, taken: Sequence[str]) -> CameraSpec:
@@ -601,8 +569,7 @@ def _socket(cf: Fields) -> str:
 
 def _events(f: Fields) -> tuple[dict[str, Any], ...]:
     out = []
-    for i, e in enumerate(f.list("events", required=False)):
-        ef = Fields(e, SESSION_FILE, f"events[{i}]")
+    for ef in f.entries("events", required=False):
         ef.string("kind")
         ef.string("message")
         out.append(dict(ef.data))
@@ -642,9 +609,7 @@ def _simulation_truth(f: Fields | None, names: Sequence[str]) -> dict[str, Any] 
     if _plain_truth_frames(frames):
         return dict(f.data)
     seen: set[int] = set()
-    for i, fr in enumerate(frames):
-        ff = Fields(fr, f.file, f"{f.path}.frames[{i}]")
-        ff.only(SESSION_KEYS["simulation.frames[]"])
+    for ff in f.entries("frames", SESSION_KEYS["simulation.frames[]"], required=False):
         fid = ff.integer("id", minimum=0)
         if fid in seen:
             raise ff.error("id", f"frame {fid} is listed twice; give each frame's truth once")
@@ -996,18 +961,10 @@ class SessionWriter:
         data = load_yaml(directory / SESSION_FILE, "session file")
         f = Fields(data, SESSION_FILE)
         _check_format(f, SESSION_FORMAT, "session")
-        cams = f.require("cameras")
-        if not isinstance(cams, list):
-            raise f.error("cameras", "must be a list of {name, width, height}")
         w = cls.__new__(cls)
         w.directory = directory
         w.target = target_from_dict(f.require("target"), SESSION_FILE)
-        w.cameras = tuple(
-            CameraSpec(
-                c.string("name"), c.integer("width", minimum=1), c.integer("height", minimum=1)
-            )
-            for c in (Fields(x, SESSION_FILE, f"cameras[{i}]") for i, x in enumerate(cams))
-        )
+        w.cameras, _ = _cameras(f)
         w._names = [c.name for c in w.cameras]
         w.data = dict(data)
         w.data.setdefault("frames", [])
