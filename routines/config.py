@@ -23,7 +23,6 @@ from slidecal.drivers.ur import cell_options
 from slidecal.drivers.ur_pose import ur_pose_from_T
 from slidecal.mocks import camera as simcam
 from slidecal.mocks.camera import SimCamera
-from slidecal.mocks.cell import POSE_NAMES
 from slidecal.mocks.render import Photo
 from slidecal.mocks.robot import SPEED_LIMITS, KinematicError
 from slidecal.routines.devices import OAK_CAMERA_KEYS, OAK_RIG_KEYS, UVC_CAMERA_KEYS
@@ -52,10 +51,12 @@ from slidecal.routines.session import (
 from slidecal.solver.camera import distortion_model, zero_distortion
 from slidecal.solver.degeneracy import nominal_K
 from slidecal.solver.errors import InputError
-from slidecal.solver.problem import CameraSpec, ModelOptions, Target
+from slidecal.solver.problem import MOUNTS, CameraSpec, ModelOptions, Target
 
 CELL_FORMAT = "slidecal.cell/1"
 CELL_MOUNTS = ("eye_in_hand", "eye_to_hand")
+#: The hand-eye and target-pose keys per mount (the result file's names)
+POSE_NAMES = {mount: (m.hand_eye, m.target) for mount, m in MOUNTS.items()}
 CAMERA_PRESETS = ("r1", "oak_d_like")
 DEFAULT_CELL = "default_cell.yaml"
 
