@@ -567,8 +567,9 @@ def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
         }
     if r.limits:
         robot["limits"] = dict(r.limits)
-    if r.ur_options.get("take_control"):
-        robot["take_control"] = True
+    for key in ("take_control", "upper_range_registers"):
+        if r.ur_options.get(key):
+            robot[key] = True
     if "payload_kg" in r.ur_options:
         robot["payload"] = {"mass_kg": r.ur_options["payload_kg"]}
         if r.ur_options["payload_cog_m"] is not None:

@@ -312,7 +312,8 @@ def test_real_cell_write_then_read_gives_the_same_cell(tmp_path: Path) -> None:
 
     d = _default_dict()
     del d["simulation"]
-    d["robot"] = {"driver": "ur", "host": "10.0.0.2", "tcp": [0, 0, 0.1, 0, 0, 0]}
+    d["robot"] = {"driver": "ur", "host": "10.0.0.2", "tcp": [0, 0, 0.1, 0, 0, 0],
+                  "take_control": True, "upper_range_registers": True}  # fmt: skip
     d["cameras"] = {
         "driver": "oak",
         "device_id": "1844301011B5",
