@@ -333,23 +333,36 @@ VERSIONS = [
 ]
 
 
-@pytest.mark.parametrize("version", VERSIONS)
-def test_connect_on_every_polyscope_version_and_report_it(make_fake, version):
+@pytest.fixture(scope="module", params=VERSIONS)
+def version_robot(request):
+    """(PolyScope version, its controller, URRobot connected to it), shared by the tests of one
+    version: each test's checks are relative to the pose it finds, and every connect and close
+    through the real client costs seconds (ur-rtde's disconnect waits 0.5 s, twice per
+    interface)."""
+    version = request.param
+    fake = Fake("--polyscope", version)
+    try:
+        robot = URRobot(fake.host, frequency=FREQ_HZ, model="UR5e")
+        robot.connect()
+        try:
+            yield version, fake, robot
+        finally:
+            bounded(robot.close, 10.0)
+    finally:
+        fake.kill()
+
+
+def test_connect_on_every_polyscope_version_and_report_it(version_robot):
     """CB3 and e-Series below 5.6 cannot say whether they are in remote control (ur-rtde's
     isInRemoteControl answers False there): connecting must not refuse them (issue 10.3)."""
-    fake = make_fake("--polyscope", version)
-    robot = URRobot(fake.host, frequency=FREQ_HZ, model="UR5e")
-    robot.connect()
-    try:
-        info = robot.controller_info
-        assert info["polyscope_version"].startswith(version + ".")
-        assert info["robot_model"] == "UR5"
-        assert info["serial_number"] == (None if version in ("3.15", "5.5") else "20185500001")
-        assert info["remote_control"] is (None if version in ("3.15", "5.5") else True)
-        assert info["ik_check"] == ("host" if version in ("5.5", "5.9") else "controller")
-        robot.move_linear(shifted(robot.measured_pose(), 0.01, 0.0, 0.0), 0.1, 1.0)
-    finally:
-        bounded(robot.close, 10.0)
+    version, _, robot = version_robot
+    info = robot.controller_info
+    assert info["polyscope_version"].startswith(version + ".")
+    assert info["robot_model"] == "UR5"
+    assert info["serial_number"] == (None if version in ("3.15", "5.5") else "20185500001")
+    assert info["remote_control"] is (None if version in ("3.15", "5.5") else True)
+    assert info["ik_check"] == ("host" if version in ("5.5", "5.9") else "controller")
+    robot.move_linear(shifted(robot.measured_pose(), 0.01, 0.0, 0.0), 0.1, 1.0)
 
 
 def test_local_control_is_refused_where_it_can_be_asked(make_fake):
@@ -359,26 +372,20 @@ def test_local_control_is_refused_where_it_can_be_asked(make_fake):
     assert fake.state()["script_uploads"] == 0
 
 
-@pytest.mark.parametrize("version", VERSIONS)
-def test_reachability_below_5_10_does_not_trust_a_stale_register(make_fake, version):
+def test_reachability_below_5_10_does_not_trust_a_stale_register(version_robot):
     """Without get_inverse_kin_has_solution (ur-rtde drops it below 5.10 / 3.15) the answer
     register keeps the previous answer: a reachable pose then an unreachable one said True,
     and the controller's get_inverse_kin stopped the script (issue 10.5)."""
-    fake = make_fake("--polyscope", version)
-    robot = URRobot(fake.host, frequency=FREQ_HZ, model="UR5e")
-    robot.connect()
-    try:
-        T = robot.measured_pose()
-        assert robot.is_reachable(shifted(T, 0.05, 0.0, 0.0))
-        assert not robot.is_reachable(shifted(T, 5.0, 0.0, 0.0))
-        below = shifted(T, 0.0, 0.0, -T[2, 3] - 0.05)  # reachable, under the z = 0 limit
-        assert not robot.is_reachable(below)
-        robot.move_linear(shifted(T, 0.01, 0.0, 0.0), 0.1, 1.0)  # the script still runs
-        st = fake.state()
-        assert st["runtime_state"] == 2
-        assert (61 in st["commands"]) == (version in ("3.15", "5.12"))
-    finally:
-        bounded(robot.close, 10.0)
+    version, fake, robot = version_robot
+    T = robot.measured_pose()
+    assert robot.is_reachable(shifted(T, 0.05, 0.0, 0.0))
+    assert not robot.is_reachable(shifted(T, 5.0, 0.0, 0.0))
+    below = shifted(T, 0.0, 0.0, -T[2, 3] - 0.05)  # reachable, under the z = 0 limit
+    assert not robot.is_reachable(below)
+    robot.move_linear(shifted(T, 0.01, 0.0, 0.0), 0.1, 1.0)  # the script still runs
+    st = fake.state()
+    assert st["runtime_state"] == 2
+    assert (61 in st["commands"]) == (version in ("3.15", "5.12"))
 
 
 @pytest.mark.slow  # several seconds: the second CI tier
