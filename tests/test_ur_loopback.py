@@ -131,6 +131,23 @@ def bounded(fn, timeout_s: float) -> float:
     return time.monotonic() - t0
 
 
+@pytest.fixture(scope="module")
+def shared():
+    """(controller, connected URRobot) for the tests that only move relative to the pose they
+    find and query: every connect and close through the real client costs seconds (ur-rtde's
+    disconnect waits 0.5 s, twice per interface)."""
+    f = Fake()
+    try:
+        r = URRobot(f.host, frequency=FREQ_HZ, stale_timeout_s=1.0)  # 1.0 s: see ``robot``
+        r.connect()
+        try:
+            yield f, r
+        finally:
+            bounded(r.close, 10.0)
+    finally:
+        f.kill()
+
+
 @pytest.fixture
 def robot(fake):
     # the fake controller is a Python thread: on a machine busy with other work it can stall
@@ -194,7 +211,8 @@ def test_connect_tcp_measured_pose_and_clean_close(fake):
     assert elapsed < 5.0
 
 
-def test_move_linear_arrives_and_wait_settled_waits_for_rest(fake, robot):
+def test_move_linear_arrives_and_wait_settled_waits_for_rest(shared):
+    fake, robot = shared
     T0 = robot.measured_pose()
     T1 = shifted(T0, 0.03, -0.02, 0.01, rz_deg=5.0)
     speed_mps = 0.2
@@ -219,7 +237,8 @@ def test_move_linear_arrives_and_wait_settled_waits_for_rest(fake, robot):
     assert_pose_close(robot.measured_pose(), T2)
 
 
-def test_is_reachable_through_controller_calls(fake, robot):
+def test_is_reachable_through_controller_calls(shared):
+    fake, robot = shared
     T = robot.measured_pose()
     assert robot.is_reachable(shifted(T, 0.05, 0.0, 0.0))
     below = shifted(T, 0.0, 0.0, -T[2, 3] - 0.05)  # reachable, under the fake's z = 0 limit
@@ -228,7 +247,8 @@ def test_is_reachable_through_controller_calls(fake, robot):
     robot.move_linear(shifted(T, 0.01, 0.0, 0.0), 0.1, 1.0)  # the script still runs
 
 
-def test_an_unreachable_pose_does_not_break_the_next_move(fake, robot):
+def test_an_unreachable_pose_does_not_break_the_next_move(shared):
+    _, robot = shared
     T = robot.measured_pose()
     assert not robot.is_reachable(shifted(T, 5.0, 0.0, 0.0))
     robot.move_linear(shifted(T, 0.01, 0.0, 0.0), 0.1, 1.0)
