@@ -28,6 +28,7 @@ from slidecal.routines.ops.install import (
     rollback,
 )
 from slidecal.routines.ops.lock import Lock, cell_lock_path
+from slidecal.routines.plan import write_plan
 from slidecal.routines.progress import Progress
 from slidecal.routines.run import RunRequest, frames_on_disk, run_calibration
 from slidecal.routines.session import SessionWriter, load_session, write_atomic
@@ -458,7 +459,7 @@ def test_run_help_speaks_of_the_planner(capsys) -> None:
 
 
 def test_degenerate_user_plan_refused_before_the_robot_moves(tmp_path: Path, default_plan):
-    from slidecal.routines.plan import Plan, write_plan
+    from slidecal.routines.plan import Plan
 
     cfg = load_config()
     plan = default_plan
@@ -541,11 +542,14 @@ def test_hardware_fault_cli_exit_3_kept(monkeypatch, capsys) -> None:
     assert cli.main(["run", "--quiet"]) == 3
 
 
-def test_spawn_without_a_viewer_is_one_line(tmp_path: Path) -> None:
+def test_spawn_without_a_viewer_is_one_line(tmp_path: Path, default_plan) -> None:
+    write_plan(default_plan, tmp_path / "plan.yaml")  # planning is not what this is about
     p = _slidecal(
         "run",
         "--out",
         str(tmp_path / "s"),
+        "--plan",
+        str(tmp_path / "plan.yaml"),
         "--spawn",
         "--quiet",
         cwd=tmp_path,
