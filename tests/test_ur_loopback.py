@@ -1,12 +1,15 @@
 """URRobot end to end through the REAL ur-rtde client against the loopback controller.
 
 The controller (``slidecal.mocks.ur_controller``) runs in another process: the ur-rtde
-constructors hold the GIL while they block. Each test binds its own loopback address
+constructors hold the GIL while they block. Each controller binds its own loopback address
 127.<pid>.<n> on 30004/30003/29999, so parallel test runs do not collide; a taken port fails
-the test with the controller's message. Every wait is bounded: the controller's answers (select
-with a time-out), the driver's close (a daemon thread joined with a time-out; the ur-rtde
-methods release the GIL) and the controller's exit (killed in the fixture teardown). What
-could block inside a ur-rtde constructor runs in a subprocess with a time-out.
+the test with the controller's message. Tests that only move relative to the pose they find
+share a controller and a connection (module fixtures): ur-rtde's ``disconnect`` ends in a fixed
+0.5 s wait and its destructors call it again, so every close costs about 2 s. Every wait is
+bounded: the controller's answers (select with a time-out), the driver's close (a daemon thread
+joined with a time-out; the ur-rtde methods release the GIL) and the controller's exit (killed
+in the fixture teardown). What could block inside a ur-rtde constructor runs in a subprocess
+with a time-out.
 """
 
 from __future__ import annotations
@@ -134,8 +137,7 @@ def bounded(fn, timeout_s: float) -> float:
 @pytest.fixture(scope="module")
 def shared():
     """(controller, connected URRobot) for the tests that only move relative to the pose they
-    find and query: every connect and close through the real client costs seconds (ur-rtde's
-    disconnect waits 0.5 s, twice per interface)."""
+    find and query (see the module docstring)."""
     f = Fake()
     try:
         r = URRobot(f.host, frequency=FREQ_HZ, stale_timeout_s=1.0)  # 1.0 s: see ``robot``
@@ -356,9 +358,7 @@ VERSIONS = [
 @pytest.fixture(scope="module", params=VERSIONS)
 def version_robot(request):
     """(PolyScope version, its controller, URRobot connected to it), shared by the tests of one
-    version: each test's checks are relative to the pose it finds, and every connect and close
-    through the real client costs seconds (ur-rtde's disconnect waits 0.5 s, twice per
-    interface)."""
+    version (see the module docstring)."""
     version = request.param
     fake = Fake("--polyscope", version)
     try:
