@@ -4,7 +4,7 @@ The controller (``slidecal.mocks.ur_controller``) runs in another process: the u
 constructors hold the GIL while they block. Each controller binds its own loopback address
 127.<pid>.<n> on 30004/30003/29999, so parallel test runs do not collide; a taken port fails
 the test with the controller's message. Tests that only move relative to the pose they find
-share a controller and a connection (module fixtures): ur-rtde's ``disconnect`` ends in a fixed
+share a controller and a connection (class fixtures): ur-rtde's ``disconnect`` ends in a fixed
 0.5 s wait and its destructors call it again, so every close costs about 2 s. Every wait is
 bounded: the controller's answers (select with a time-out), the driver's close (a daemon thread
 joined with a time-out; the ur-rtde methods release the GIL) and the controller's exit (killed
@@ -134,7 +134,7 @@ def bounded(fn, timeout_s: float) -> float:
     return time.monotonic() - t0
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="class")
 def shared():
     """(controller, connected URRobot) for the tests that only move relative to the pose they
     find and query (see the module docstring)."""
@@ -213,47 +213,48 @@ def test_connect_tcp_measured_pose_and_clean_close(fake):
     assert elapsed < 5.0
 
 
-def test_move_linear_arrives_and_wait_settled_waits_for_rest(shared):
-    fake, robot = shared
-    T0 = robot.measured_pose()
-    T1 = shifted(T0, 0.03, -0.02, 0.01, rz_deg=5.0)
-    speed_mps = 0.2
-    t0 = time.monotonic()
-    robot.move_linear(T1, speed_mps, 1.0)
-    took_s = time.monotonic() - t0
-    expected_s = np.linalg.norm([0.03, -0.02, 0.01]) / speed_mps  # 0.19 s on the fake
-    assert took_s >= 0.9 * expected_s  # blocking: returned after the fake's motion ended
-    assert_pose_close(robot.measured_pose(), T1)
-    st = fake.state()
-    assert_pose_close(T_from_ur_pose(st["tcp_pose"]), T1)
-    assert st["commands"][-1] == 3 and not st["moving"]  # MOVEL = 3, done
-    # an asynchronous move through the real client: wait_settled must wait for rest
-    T2 = shifted(T1, -0.06, 0.0, 0.0)
-    t0 = time.monotonic()
-    assert robot._control.moveL(ur_pose_from_T(T2), speed_mps, 1.0, True)
-    # the controller starts the motion a few cycles after acknowledging the command
-    wait_until(lambda: np.linalg.norm(robot._receive.getActualTCPSpeed()) > 0, 1.0, "motion")
-    robot.wait_settled(0.05)
-    settled_s = time.monotonic() - t0
-    assert settled_s >= 0.8 * (0.06 / speed_mps) + 0.05
-    assert_pose_close(robot.measured_pose(), T2)
+class TestOneConnection:
+    """Moves and queries relative to the pose each test finds, on one connection."""
 
+    def test_move_linear_arrives_and_wait_settled_waits_for_rest(self, shared):
+        fake, robot = shared
+        T0 = robot.measured_pose()
+        T1 = shifted(T0, 0.03, -0.02, 0.01, rz_deg=5.0)
+        speed_mps = 0.2
+        t0 = time.monotonic()
+        robot.move_linear(T1, speed_mps, 1.0)
+        took_s = time.monotonic() - t0
+        expected_s = np.linalg.norm([0.03, -0.02, 0.01]) / speed_mps  # 0.19 s on the fake
+        assert took_s >= 0.9 * expected_s  # blocking: returned after the fake's motion ended
+        assert_pose_close(robot.measured_pose(), T1)
+        st = fake.state()
+        assert_pose_close(T_from_ur_pose(st["tcp_pose"]), T1)
+        assert st["commands"][-1] == 3 and not st["moving"]  # MOVEL = 3, done
+        # an asynchronous move through the real client: wait_settled must wait for rest
+        T2 = shifted(T1, -0.06, 0.0, 0.0)
+        t0 = time.monotonic()
+        assert robot._control.moveL(ur_pose_from_T(T2), speed_mps, 1.0, True)
+        # the controller starts the motion a few cycles after acknowledging the command
+        wait_until(lambda: np.linalg.norm(robot._receive.getActualTCPSpeed()) > 0, 1.0, "motion")
+        robot.wait_settled(0.05)
+        settled_s = time.monotonic() - t0
+        assert settled_s >= 0.8 * (0.06 / speed_mps) + 0.05
+        assert_pose_close(robot.measured_pose(), T2)
 
-def test_is_reachable_through_controller_calls(shared):
-    fake, robot = shared
-    T = robot.measured_pose()
-    assert robot.is_reachable(shifted(T, 0.05, 0.0, 0.0))
-    below = shifted(T, 0.0, 0.0, -T[2, 3] - 0.05)  # reachable, under the fake's z = 0 limit
-    assert not robot.is_reachable(below)
-    assert fake.state()["commands"][-2:] == [30, 36]  # IK with qnear, then the safety check
-    robot.move_linear(shifted(T, 0.01, 0.0, 0.0), 0.1, 1.0)  # the script still runs
+    def test_is_reachable_through_controller_calls(self, shared):
+        fake, robot = shared
+        T = robot.measured_pose()
+        assert robot.is_reachable(shifted(T, 0.05, 0.0, 0.0))
+        below = shifted(T, 0.0, 0.0, -T[2, 3] - 0.05)  # reachable, under the fake's z = 0 limit
+        assert not robot.is_reachable(below)
+        assert fake.state()["commands"][-2:] == [30, 36]  # IK with qnear, then the safety check
+        robot.move_linear(shifted(T, 0.01, 0.0, 0.0), 0.1, 1.0)  # the script still runs
 
-
-def test_an_unreachable_pose_does_not_break_the_next_move(shared):
-    _, robot = shared
-    T = robot.measured_pose()
-    assert not robot.is_reachable(shifted(T, 5.0, 0.0, 0.0))
-    robot.move_linear(shifted(T, 0.01, 0.0, 0.0), 0.1, 1.0)
+    def test_an_unreachable_pose_does_not_break_the_next_move(self, shared):
+        _, robot = shared
+        T = robot.measured_pose()
+        assert not robot.is_reachable(shifted(T, 5.0, 0.0, 0.0))
+        robot.move_linear(shifted(T, 0.01, 0.0, 0.0), 0.1, 1.0)
 
 
 def test_protective_stop_during_a_move_raises_and_stops(fake, monkeypatch):
@@ -355,7 +356,7 @@ VERSIONS = [
 ]
 
 
-@pytest.fixture(scope="module", params=VERSIONS)
+@pytest.fixture(scope="class", params=VERSIONS)
 def version_robot(request):
     """(PolyScope version, its controller, URRobot connected to it), shared by the tests of one
     version (see the module docstring)."""
@@ -372,17 +373,35 @@ def version_robot(request):
         fake.kill()
 
 
-def test_connect_on_every_polyscope_version_and_report_it(version_robot):
-    """CB3 and e-Series below 5.6 cannot say whether they are in remote control (ur-rtde's
-    isInRemoteControl answers False there): connecting must not refuse them (issue 10.3)."""
-    version, _, robot = version_robot
-    info = robot.controller_info
-    assert info["polyscope_version"].startswith(version + ".")
-    assert info["robot_model"] == "UR5"
-    assert info["serial_number"] == (None if version in ("3.15", "5.5") else "20185500001")
-    assert info["remote_control"] is (None if version in ("3.15", "5.5") else True)
-    assert info["ik_check"] == ("host" if version in ("5.5", "5.9") else "controller")
-    robot.move_linear(shifted(robot.measured_pose(), 0.01, 0.0, 0.0), 0.1, 1.0)
+class TestEveryPolyScopeVersion:
+    """One connection per version, shared by its tests."""
+
+    def test_connect_on_every_polyscope_version_and_report_it(self, version_robot):
+        """CB3 and e-Series below 5.6 cannot say whether they are in remote control (ur-rtde's
+        isInRemoteControl answers False there): connecting must not refuse them (issue 10.3)."""
+        version, _, robot = version_robot
+        info = robot.controller_info
+        assert info["polyscope_version"].startswith(version + ".")
+        assert info["robot_model"] == "UR5"
+        assert info["serial_number"] == (None if version in ("3.15", "5.5") else "20185500001")
+        assert info["remote_control"] is (None if version in ("3.15", "5.5") else True)
+        assert info["ik_check"] == ("host" if version in ("5.5", "5.9") else "controller")
+        robot.move_linear(shifted(robot.measured_pose(), 0.01, 0.0, 0.0), 0.1, 1.0)
+
+    def test_reachability_below_5_10_does_not_trust_a_stale_register(self, version_robot):
+        """Without get_inverse_kin_has_solution (ur-rtde drops it below 5.10 / 3.15) the answer
+        register keeps the previous answer: a reachable pose then an unreachable one said True,
+        and the controller's get_inverse_kin stopped the script (issue 10.5)."""
+        version, fake, robot = version_robot
+        T = robot.measured_pose()
+        assert robot.is_reachable(shifted(T, 0.05, 0.0, 0.0))
+        assert not robot.is_reachable(shifted(T, 5.0, 0.0, 0.0))
+        below = shifted(T, 0.0, 0.0, -T[2, 3] - 0.05)  # reachable, under the z = 0 limit
+        assert not robot.is_reachable(below)
+        robot.move_linear(shifted(T, 0.01, 0.0, 0.0), 0.1, 1.0)  # the script still runs
+        st = fake.state()
+        assert st["runtime_state"] == 2
+        assert (61 in st["commands"]) == (version in ("3.15", "5.12"))
 
 
 def test_local_control_is_refused_where_it_can_be_asked(make_fake):
@@ -390,22 +409,6 @@ def test_local_control_is_refused_where_it_can_be_asked(make_fake):
     with pytest.raises(HardwareFault, match="local control"):
         URRobot(fake.host, frequency=FREQ_HZ).connect()
     assert fake.state()["script_uploads"] == 0
-
-
-def test_reachability_below_5_10_does_not_trust_a_stale_register(version_robot):
-    """Without get_inverse_kin_has_solution (ur-rtde drops it below 5.10 / 3.15) the answer
-    register keeps the previous answer: a reachable pose then an unreachable one said True,
-    and the controller's get_inverse_kin stopped the script (issue 10.5)."""
-    version, fake, robot = version_robot
-    T = robot.measured_pose()
-    assert robot.is_reachable(shifted(T, 0.05, 0.0, 0.0))
-    assert not robot.is_reachable(shifted(T, 5.0, 0.0, 0.0))
-    below = shifted(T, 0.0, 0.0, -T[2, 3] - 0.05)  # reachable, under the z = 0 limit
-    assert not robot.is_reachable(below)
-    robot.move_linear(shifted(T, 0.01, 0.0, 0.0), 0.1, 1.0)  # the script still runs
-    st = fake.state()
-    assert st["runtime_state"] == 2
-    assert (61 in st["commands"]) == (version in ("3.15", "5.12"))
 
 
 @pytest.mark.slow  # several seconds: the second CI tier
