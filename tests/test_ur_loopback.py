@@ -256,6 +256,30 @@ class TestOneConnection:
         assert not robot.is_reachable(shifted(T, 5.0, 0.0, 0.0))
         robot.move_linear(shifted(T, 0.01, 0.0, 0.0), 0.1, 1.0)
 
+    def test_sigterm_during_a_move_stops_the_arm_through_the_real_client(self, shared):
+        """SIGTERM (like Ctrl-C) interrupts the driver's watch of an asynchronous moveL at once;
+        the stop the routine then sends (``_abort`` -> ``stop()`` -> ``stopL``) goes through the
+        real ur-rtde client and halts the arm short of its target."""
+        from slidecal.routines.progress import Interrupted, signals_as_interrupt
+
+        fake, robot = shared
+        n_before = len(fake.state()["commands"])
+        T0 = robot.measured_pose()
+        T1 = shifted(T0, 0.15, 0.0, 0.0)  # 1.5 s at 0.1 m/s
+        timer = threading.Timer(0.4, os.kill, (os.getpid(), signal.SIGTERM))
+        t0 = time.monotonic()
+        with signals_as_interrupt(), pytest.raises(Interrupted, match="SIGTERM"):
+            timer.start()
+            robot.move_linear(T1, 0.1, 1.0)
+        assert time.monotonic() - t0 < 1.2  # interrupted, not waited out
+        robot.stop()
+        st = fake.state()
+        assert 33 in st["commands"][n_before:] and not st["moving"]  # STOPL reached the controller
+        x_now = T_from_ur_pose(st["tcp_pose"])[0, 3]
+        assert T0[0, 3] + 0.005 < x_now < T1[0, 3] - 0.05  # moved, and stopped well short
+        time.sleep(0.3)
+        assert np.allclose(fake.state()["tcp_pose"], st["tcp_pose"], atol=1e-9)  # at rest
+
 
 def test_protective_stop_during_a_move_raises_and_stops(fake, monkeypatch):
     calls: list[tuple] = []
@@ -553,29 +577,6 @@ def test_connect_to_a_silent_host_honours_ctrl_c(make_fake):
         proc.kill()
         pytest.fail("connect() ignored Ctrl-C for 10 s")
     assert proc.returncode == 130 and "interrupted" in out
-
-
-def test_sigterm_during_a_move_stops_the_arm_through_the_real_client(fake, robot):
-    """SIGTERM (like Ctrl-C) interrupts the driver's watch of an asynchronous moveL at once;
-    the stop the routine then sends (``_abort`` -> ``stop()`` -> ``stopL``) goes through the
-    real ur-rtde client and halts the arm short of its target."""
-    from slidecal.routines.progress import Interrupted, signals_as_interrupt
-
-    T0 = robot.measured_pose()
-    T1 = shifted(T0, 0.15, 0.0, 0.0)  # 1.5 s at 0.1 m/s
-    timer = threading.Timer(0.4, os.kill, (os.getpid(), signal.SIGTERM))
-    t0 = time.monotonic()
-    with signals_as_interrupt(), pytest.raises(Interrupted, match="SIGTERM"):
-        timer.start()
-        robot.move_linear(T1, 0.1, 1.0)
-    assert time.monotonic() - t0 < 1.2  # interrupted, not waited out
-    robot.stop()
-    st = fake.state()
-    assert 33 in st["commands"] and not st["moving"]  # STOPL reached the controller
-    x_now = T_from_ur_pose(st["tcp_pose"])[0, 3]
-    assert T0[0, 3] + 0.005 < x_now < T1[0, 3] - 0.05  # moved, and stopped well short
-    time.sleep(0.3)
-    assert np.allclose(fake.state()["tcp_pose"], st["tcp_pose"], atol=1e-9)  # at rest
 
 
 def test_cb3_payload_without_cog_keeps_the_controllers_cog(make_fake):
