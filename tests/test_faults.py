@@ -8,6 +8,7 @@ import pytest
 from slidecal.mocks import robot as simrobot
 from slidecal.routines import cli
 from slidecal.routines.ops.faults import FAULT_KINDS, FaultInjector, FaultSpec, parse_fault
+from slidecal.routines.plan import write_plan
 from slidecal.routines.session import load_session
 from slidecal.solver.errors import InputError
 
@@ -64,13 +65,14 @@ def test_each_fault_stops_keeps_frames_records_and_exits_3(kind, tmp_path, monke
     assert not (out / "result.yaml").exists()
 
 
-def test_a_camera_lost_for_good_is_reported_by_its_cause(tmp_path, capsys):
+def test_a_camera_lost_for_good_is_reported_by_its_cause(tmp_path, capsys, default_plan):
     # the retries reconnect the camera; when that fails too, the error names what happened
     # (the rig disconnected, and reconnecting found no camera), not the closed rig the last
     # capture would have met
     out = tmp_path / "session"
-    code = cli.main(["run", "--out", str(out), "--fault", "camera_lost@1", "--quiet",
-                     "--no-recording"])
+    write_plan(default_plan, tmp_path / "plan.yaml")
+    code = cli.main(["run", "--out", str(out), "--plan", str(tmp_path / "plan.yaml"),
+                     "--fault", "camera_lost@1", "--quiet", "--no-recording"])
     err = capsys.readouterr().err
     assert code == 3, err
     assert "camera rig disconnected" in err and "reconnecting failed: no camera found" in err

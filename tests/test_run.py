@@ -108,14 +108,15 @@ def test_eye_to_hand_cell_end_to_end(tmp_path: Path) -> None:
     assert o.errors["T_tool_board.t_mm"] < 1.0
 
 
-def test_fault_mid_run_stops_robot_and_keeps_frames(tmp_path: Path) -> None:
+def test_fault_mid_run_stops_robot_and_keeps_frames(tmp_path: Path, default_plan) -> None:
     cfg = load_config()
     cell = SimulatedCell.from_config(cfg, seed=0)
     # moves: 0 via, 1-5 group 0 frames, 6 via, 7 first frame of group 1 -> 5 frames captured
     cell.robot.inject_fault("protective_stop", at_move=7)
     out = tmp_path / "s"
     with pytest.raises(HardwareFault, match="5 frames captured before it"):
-        run_calibration(RunRequest(cfg, out_dir=out, progress=False, recording=False, cell=cell))
+        run_calibration(RunRequest(cfg, plan=default_plan, out_dir=out, progress=False,
+                                   recording=False, cell=cell))
     assert cell.robot.stopped
     assert _frames(out) == 5
     s = load_session(out, detect_images=False)
@@ -125,7 +126,7 @@ def test_fault_mid_run_stops_robot_and_keeps_frames(tmp_path: Path) -> None:
     assert not (out / "result.yaml").exists()
 
 
-def test_ctrl_c_stops_robot_and_keeps_frames(tmp_path: Path) -> None:
+def test_ctrl_c_stops_robot_and_keeps_frames(tmp_path: Path, default_plan) -> None:
     cfg = load_config()
     cell = SimulatedCell.from_config(cfg, seed=0)
     capture = cell.rig.capture
@@ -138,7 +139,8 @@ def test_ctrl_c_stops_robot_and_keeps_frames(tmp_path: Path) -> None:
     cell.rig.capture = capture_then_interrupt
     with pytest.raises(KeyboardInterrupt):
         run_calibration(
-            RunRequest(cfg, out_dir=tmp_path / "s", progress=False, recording=False, cell=cell)
+            RunRequest(cfg, plan=default_plan, out_dir=tmp_path / "s", progress=False,
+                       recording=False, cell=cell)
         )
     assert cell.robot.stopped and _frames(tmp_path / "s") == 2
     ev = load_session(tmp_path / "s", detect_images=False).events[-1]

@@ -28,6 +28,7 @@ from slidecal.routines.ops.install import (
     rollback,
 )
 from slidecal.routines.ops.lock import Lock, cell_lock_path
+from slidecal.routines.plan import write_plan
 from slidecal.routines.progress import Progress
 from slidecal.routines.run import RunRequest, run_calibration
 from slidecal.routines.session import SessionWriter, load_session, write_atomic
@@ -245,7 +246,7 @@ def test_lock_refuses_a_second_run_and_takes_over_a_stale_one(tmp_path: Path) ->
     lk.release()
 
 
-def test_run_on_a_locked_cell_refused_before_connecting(tmp_path: Path, monkeypatch) -> None:
+def test_run_on_a_locked_cell_refused_before_connecting(tmp_path, monkeypatch, default_plan):
     from importlib import resources
 
     monkeypatch.setenv("SLIDECAL_LOCK_DIR", str(tmp_path))
@@ -258,7 +259,8 @@ def test_run_on_a_locked_cell_refused_before_connecting(tmp_path: Path, monkeypa
     with Lock(cell_lock_path(f"file:{cell_file.resolve()}"), "the cell"):
         with pytest.raises(InputError, match="is in use by process"):
             run_calibration(
-                RunRequest(str(cell_file), out_dir=tmp_path / "s", progress=False, cell=cell)
+                RunRequest(str(cell_file), plan=default_plan, out_dir=tmp_path / "s",
+                           progress=False, cell=cell)
             )
     assert cell.robot.moves == 0 and not (tmp_path / "s").exists()
 
@@ -456,12 +458,11 @@ def test_run_help_speaks_of_the_planner(capsys) -> None:
     assert "fixed default plan" not in text and "planner" in text and "--resume" in text
 
 
-def test_degenerate_user_plan_refused_before_the_robot_moves(tmp_path: Path) -> None:
-    from slidecal.routines.plan import Plan, write_plan
-    from slidecal.routines.planner import make_plan
+def test_degenerate_user_plan_refused_before_the_robot_moves(tmp_path: Path, default_plan):
+    from slidecal.routines.plan import Plan
 
     cfg = load_config()
-    plan = make_plan(cfg).plan
+    plan = default_plan
     flat = Plan(groups=tuple(tuple(g[0] for _ in g) for g in plan.groups), via=plan.via)
     write_plan(flat, tmp_path / "flat.yaml")
     cell = SimulatedCell.from_config(cfg, seed=0)
@@ -489,7 +490,7 @@ def test_disk_full_while_rewriting_session_yaml(tmp_path: Path, monkeypatch) -> 
     assert (tmp_path / "s" / "t.txt").read_text() == "ok"
 
 
-def test_disk_full_mid_run_stops_the_robot_one_line(tmp_path: Path, monkeypatch, capsys) -> None:
+def test_disk_full_mid_run_stops_the_robot_one_line(tmp_path, monkeypatch, default_plan):
     import slidecal.routines.session as session_mod
 
     cfg = load_config()
@@ -506,7 +507,8 @@ def test_disk_full_mid_run_stops_the_robot_one_line(tmp_path: Path, monkeypatch,
     monkeypatch.setattr(session_mod.SessionWriter, "append_frame", append)
     with pytest.raises(InputError, match="No space left on device.*robot was stopped"):
         run_calibration(
-            RunRequest(cfg, out_dir=tmp_path / "s", progress=False, recording=False, cell=cell)
+            RunRequest(cfg, plan=default_plan, out_dir=tmp_path / "s", progress=False,
+                       recording=False, cell=cell)
         )
     assert cell.robot.stopped and _frames(tmp_path / "s") == 2
 
@@ -540,11 +542,14 @@ def test_hardware_fault_cli_exit_3_kept(monkeypatch, capsys) -> None:
     assert cli.main(["run", "--quiet"]) == 3
 
 
-def test_spawn_without_a_viewer_is_one_line(tmp_path: Path) -> None:
+def test_spawn_without_a_viewer_is_one_line(tmp_path: Path, default_plan) -> None:
+    write_plan(default_plan, tmp_path / "plan.yaml")  # planning is not what this is about
     p = _slidecal(
         "run",
         "--out",
         str(tmp_path / "s"),
+        "--plan",
+        str(tmp_path / "plan.yaml"),
         "--spawn",
         "--quiet",
         cwd=tmp_path,

@@ -1,12 +1,15 @@
 """URRobot end to end through the REAL ur-rtde client against the loopback controller.
 
 The controller (``slidecal.mocks.ur_controller``) runs in another process: the ur-rtde
-constructors hold the GIL while they block. Each test binds its own loopback address
+constructors hold the GIL while they block. Each controller binds its own loopback address
 127.<pid>.<n> on 30004/30003/29999, so parallel test runs do not collide; a taken port fails
-the test with the controller's message. Every wait is bounded: the controller's answers (select
-with a time-out), the driver's close (a daemon thread joined with a time-out; the ur-rtde
-methods release the GIL) and the controller's exit (killed in the fixture teardown). What
-could block inside a ur-rtde constructor runs in a subprocess with a time-out.
+the test with the controller's message. Tests that only move relative to the pose they find
+share a controller and a connection (class fixtures): ur-rtde's ``disconnect`` ends in a fixed
+0.5 s wait and its destructors call it again, so every close costs about 2 s. Every wait is
+bounded: the controller's answers (select with a time-out), the driver's close (a daemon thread
+joined with a time-out; the ur-rtde methods release the GIL) and the controller's exit (killed
+in the fixture teardown). What could block inside a ur-rtde constructor runs in a subprocess
+with a time-out.
 """
 
 from __future__ import annotations
@@ -131,6 +134,22 @@ def bounded(fn, timeout_s: float) -> float:
     return time.monotonic() - t0
 
 
+@pytest.fixture(scope="class")
+def shared():
+    """(controller, connected URRobot) for the tests that only move relative to the pose they
+    find and query (see the module docstring)."""
+    f = Fake()
+    try:
+        r = URRobot(f.host, frequency=FREQ_HZ, stale_timeout_s=1.0)  # 1.0 s: see ``robot``
+        r.connect()
+        try:
+            yield f, r
+        finally:
+            bounded(r.close, 10.0)
+    finally:
+        f.kill()
+
+
 @pytest.fixture
 def robot(fake):
     # the fake controller is a Python thread: on a machine busy with other work it can stall
@@ -194,44 +213,72 @@ def test_connect_tcp_measured_pose_and_clean_close(fake):
     assert elapsed < 5.0
 
 
-def test_move_linear_arrives_and_wait_settled_waits_for_rest(fake, robot):
-    T0 = robot.measured_pose()
-    T1 = shifted(T0, 0.03, -0.02, 0.01, rz_deg=5.0)
-    speed_mps = 0.2
-    t0 = time.monotonic()
-    robot.move_linear(T1, speed_mps, 1.0)
-    took_s = time.monotonic() - t0
-    expected_s = np.linalg.norm([0.03, -0.02, 0.01]) / speed_mps  # 0.19 s on the fake
-    assert took_s >= 0.9 * expected_s  # blocking: returned after the fake's motion ended
-    assert_pose_close(robot.measured_pose(), T1)
-    st = fake.state()
-    assert_pose_close(T_from_ur_pose(st["tcp_pose"]), T1)
-    assert st["commands"][-1] == 3 and not st["moving"]  # MOVEL = 3, done
-    # an asynchronous move through the real client: wait_settled must wait for rest
-    T2 = shifted(T1, -0.06, 0.0, 0.0)
-    t0 = time.monotonic()
-    assert robot._control.moveL(ur_pose_from_T(T2), speed_mps, 1.0, True)
-    # the controller starts the motion a few cycles after acknowledging the command
-    wait_until(lambda: np.linalg.norm(robot._receive.getActualTCPSpeed()) > 0, 1.0, "motion")
-    robot.wait_settled(0.05)
-    settled_s = time.monotonic() - t0
-    assert settled_s >= 0.8 * (0.06 / speed_mps) + 0.05
-    assert_pose_close(robot.measured_pose(), T2)
+class TestOneConnection:
+    """Moves and queries relative to the pose each test finds, on one connection."""
 
+    def test_move_linear_arrives_and_wait_settled_waits_for_rest(self, shared):
+        fake, robot = shared
+        T0 = robot.measured_pose()
+        T1 = shifted(T0, 0.03, -0.02, 0.01, rz_deg=5.0)
+        speed_mps = 0.2
+        t0 = time.monotonic()
+        robot.move_linear(T1, speed_mps, 1.0)
+        took_s = time.monotonic() - t0
+        expected_s = np.linalg.norm([0.03, -0.02, 0.01]) / speed_mps  # 0.19 s on the fake
+        assert took_s >= 0.9 * expected_s  # blocking: returned after the fake's motion ended
+        assert_pose_close(robot.measured_pose(), T1)
+        st = fake.state()
+        assert_pose_close(T_from_ur_pose(st["tcp_pose"]), T1)
+        assert st["commands"][-1] == 3 and not st["moving"]  # MOVEL = 3, done
+        # an asynchronous move through the real client: wait_settled must wait for rest
+        T2 = shifted(T1, -0.06, 0.0, 0.0)
+        t0 = time.monotonic()
+        assert robot._control.moveL(ur_pose_from_T(T2), speed_mps, 1.0, True)
+        # the controller starts the motion a few cycles after acknowledging the command
+        wait_until(lambda: np.linalg.norm(robot._receive.getActualTCPSpeed()) > 0, 1.0, "motion")
+        robot.wait_settled(0.05)
+        settled_s = time.monotonic() - t0
+        assert settled_s >= 0.8 * (0.06 / speed_mps) + 0.05
+        assert_pose_close(robot.measured_pose(), T2)
 
-def test_is_reachable_through_controller_calls(fake, robot):
-    T = robot.measured_pose()
-    assert robot.is_reachable(shifted(T, 0.05, 0.0, 0.0))
-    below = shifted(T, 0.0, 0.0, -T[2, 3] - 0.05)  # reachable, under the fake's z = 0 limit
-    assert not robot.is_reachable(below)
-    assert fake.state()["commands"][-2:] == [30, 36]  # IK with qnear, then the safety check
-    robot.move_linear(shifted(T, 0.01, 0.0, 0.0), 0.1, 1.0)  # the script still runs
+    def test_is_reachable_through_controller_calls(self, shared):
+        fake, robot = shared
+        T = robot.measured_pose()
+        assert robot.is_reachable(shifted(T, 0.05, 0.0, 0.0))
+        below = shifted(T, 0.0, 0.0, -T[2, 3] - 0.05)  # reachable, under the fake's z = 0 limit
+        assert not robot.is_reachable(below)
+        assert fake.state()["commands"][-2:] == [30, 36]  # IK with qnear, then the safety check
+        robot.move_linear(shifted(T, 0.01, 0.0, 0.0), 0.1, 1.0)  # the script still runs
 
+    def test_an_unreachable_pose_does_not_break_the_next_move(self, shared):
+        _, robot = shared
+        T = robot.measured_pose()
+        assert not robot.is_reachable(shifted(T, 5.0, 0.0, 0.0))
+        robot.move_linear(shifted(T, 0.01, 0.0, 0.0), 0.1, 1.0)
 
-def test_an_unreachable_pose_does_not_break_the_next_move(fake, robot):
-    T = robot.measured_pose()
-    assert not robot.is_reachable(shifted(T, 5.0, 0.0, 0.0))
-    robot.move_linear(shifted(T, 0.01, 0.0, 0.0), 0.1, 1.0)
+    def test_sigterm_during_a_move_stops_the_arm_through_the_real_client(self, shared):
+        """SIGTERM (like Ctrl-C) interrupts the driver's watch of an asynchronous moveL at once;
+        the stop the routine then sends (``_abort`` -> ``stop()`` -> ``stopL``) goes through the
+        real ur-rtde client and halts the arm short of its target."""
+        from slidecal.routines.progress import Interrupted, signals_as_interrupt
+
+        fake, robot = shared
+        n_before = len(fake.state()["commands"])
+        T0 = robot.measured_pose()
+        T1 = shifted(T0, 0.15, 0.0, 0.0)  # 1.5 s at 0.1 m/s
+        timer = threading.Timer(0.4, os.kill, (os.getpid(), signal.SIGTERM))
+        t0 = time.monotonic()
+        with signals_as_interrupt(), pytest.raises(Interrupted, match="SIGTERM"):
+            timer.start()
+            robot.move_linear(T1, 0.1, 1.0)
+        assert time.monotonic() - t0 < 1.2  # interrupted, not waited out
+        robot.stop()
+        st = fake.state()
+        assert 33 in st["commands"][n_before:] and not st["moving"]  # STOPL reached the controller
+        x_now = T_from_ur_pose(st["tcp_pose"])[0, 3]
+        assert T0[0, 3] + 0.005 < x_now < T1[0, 3] - 0.05  # moved, and stopped well short
+        time.sleep(0.3)
+        assert np.allclose(fake.state()["tcp_pose"], st["tcp_pose"], atol=1e-9)  # at rest
 
 
 def test_protective_stop_during_a_move_raises_and_stops(fake, monkeypatch):
@@ -333,14 +380,30 @@ VERSIONS = [
 ]
 
 
-@pytest.mark.parametrize("version", VERSIONS)
-def test_connect_on_every_polyscope_version_and_report_it(make_fake, version):
-    """CB3 and e-Series below 5.6 cannot say whether they are in remote control (ur-rtde's
-    isInRemoteControl answers False there): connecting must not refuse them (issue 10.3)."""
-    fake = make_fake("--polyscope", version)
-    robot = URRobot(fake.host, frequency=FREQ_HZ, model="UR5e")
-    robot.connect()
+@pytest.fixture(scope="class", params=VERSIONS)
+def version_robot(request):
+    """(PolyScope version, its controller, URRobot connected to it), shared by the tests of one
+    version (see the module docstring)."""
+    version = request.param
+    fake = Fake("--polyscope", version)
     try:
+        robot = URRobot(fake.host, frequency=FREQ_HZ, model="UR5e")
+        robot.connect()
+        try:
+            yield version, fake, robot
+        finally:
+            bounded(robot.close, 10.0)
+    finally:
+        fake.kill()
+
+
+class TestEveryPolyScopeVersion:
+    """One connection per version, shared by its tests."""
+
+    def test_connect_on_every_polyscope_version_and_report_it(self, version_robot):
+        """CB3 and e-Series below 5.6 cannot say whether they are in remote control (ur-rtde's
+        isInRemoteControl answers False there): connecting must not refuse them (issue 10.3)."""
+        version, _, robot = version_robot
         info = robot.controller_info
         assert info["polyscope_version"].startswith(version + ".")
         assert info["robot_model"] == "UR5"
@@ -348,26 +411,12 @@ def test_connect_on_every_polyscope_version_and_report_it(make_fake, version):
         assert info["remote_control"] is (None if version in ("3.15", "5.5") else True)
         assert info["ik_check"] == ("host" if version in ("5.5", "5.9") else "controller")
         robot.move_linear(shifted(robot.measured_pose(), 0.01, 0.0, 0.0), 0.1, 1.0)
-    finally:
-        bounded(robot.close, 10.0)
 
-
-def test_local_control_is_refused_where_it_can_be_asked(make_fake):
-    fake = make_fake("--polyscope", "5.12", "--local")
-    with pytest.raises(HardwareFault, match="local control"):
-        URRobot(fake.host, frequency=FREQ_HZ).connect()
-    assert fake.state()["script_uploads"] == 0
-
-
-@pytest.mark.parametrize("version", VERSIONS)
-def test_reachability_below_5_10_does_not_trust_a_stale_register(make_fake, version):
-    """Without get_inverse_kin_has_solution (ur-rtde drops it below 5.10 / 3.15) the answer
-    register keeps the previous answer: a reachable pose then an unreachable one said True,
-    and the controller's get_inverse_kin stopped the script (issue 10.5)."""
-    fake = make_fake("--polyscope", version)
-    robot = URRobot(fake.host, frequency=FREQ_HZ, model="UR5e")
-    robot.connect()
-    try:
+    def test_reachability_below_5_10_does_not_trust_a_stale_register(self, version_robot):
+        """Without get_inverse_kin_has_solution (ur-rtde drops it below 5.10 / 3.15) the answer
+        register keeps the previous answer: a reachable pose then an unreachable one said True,
+        and the controller's get_inverse_kin stopped the script (issue 10.5)."""
+        version, fake, robot = version_robot
         T = robot.measured_pose()
         assert robot.is_reachable(shifted(T, 0.05, 0.0, 0.0))
         assert not robot.is_reachable(shifted(T, 5.0, 0.0, 0.0))
@@ -377,8 +426,13 @@ def test_reachability_below_5_10_does_not_trust_a_stale_register(make_fake, vers
         st = fake.state()
         assert st["runtime_state"] == 2
         assert (61 in st["commands"]) == (version in ("3.15", "5.12"))
-    finally:
-        bounded(robot.close, 10.0)
+
+
+def test_local_control_is_refused_where_it_can_be_asked(make_fake):
+    fake = make_fake("--polyscope", "5.12", "--local")
+    with pytest.raises(HardwareFault, match="local control"):
+        URRobot(fake.host, frequency=FREQ_HZ).connect()
+    assert fake.state()["script_uploads"] == 0
 
 
 @pytest.mark.slow  # several seconds: the second CI tier
@@ -523,29 +577,6 @@ def test_connect_to_a_silent_host_honours_ctrl_c(make_fake):
         proc.kill()
         pytest.fail("connect() ignored Ctrl-C for 10 s")
     assert proc.returncode == 130 and "interrupted" in out
-
-
-def test_sigterm_during_a_move_stops_the_arm_through_the_real_client(fake, robot):
-    """SIGTERM (like Ctrl-C) interrupts the driver's watch of an asynchronous moveL at once;
-    the stop the routine then sends (``_abort`` -> ``stop()`` -> ``stopL``) goes through the
-    real ur-rtde client and halts the arm short of its target."""
-    from slidecal.routines.progress import Interrupted, signals_as_interrupt
-
-    T0 = robot.measured_pose()
-    T1 = shifted(T0, 0.15, 0.0, 0.0)  # 1.5 s at 0.1 m/s
-    timer = threading.Timer(0.4, os.kill, (os.getpid(), signal.SIGTERM))
-    t0 = time.monotonic()
-    with signals_as_interrupt(), pytest.raises(Interrupted, match="SIGTERM"):
-        timer.start()
-        robot.move_linear(T1, 0.1, 1.0)
-    assert time.monotonic() - t0 < 1.2  # interrupted, not waited out
-    robot.stop()
-    st = fake.state()
-    assert 33 in st["commands"] and not st["moving"]  # STOPL reached the controller
-    x_now = T_from_ur_pose(st["tcp_pose"])[0, 3]
-    assert T0[0, 3] + 0.005 < x_now < T1[0, 3] - 0.05  # moved, and stopped well short
-    time.sleep(0.3)
-    assert np.allclose(fake.state()["tcp_pose"], st["tcp_pose"], atol=1e-9)  # at rest
 
 
 def test_cb3_payload_without_cog_keeps_the_controllers_cog(make_fake):
