@@ -1059,14 +1059,26 @@ def _blas_controller() -> ThreadpoolController:
     return ThreadpoolController()
 
 
+#: The calls now running under :func:`single_threaded_blas`'s limit (the outermost sets it)
+_BLAS_LIMITED: list[str] = []
+
+
 def single_threaded_blas(fn):  # noqa: ANN001, ANN201 - a plain decorator
     """Run ``fn`` with one BLAS thread: the normal matrices are small (tens of columns), where
-    a threaded BLAS's spinning threads cost far more than they gain on a busy machine."""
+    a threaded BLAS's spinning threads cost far more than they gain on a busy machine. A call
+    inside another keeps the outer one's limit (setting and restoring it restarts the BLAS's
+    threads)."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
-        with _blas_controller().limit(limits=1, user_api="blas"):
+        if _BLAS_LIMITED:
             return fn(*args, **kwargs)
+        with _blas_controller().limit(limits=1, user_api="blas"):
+            _BLAS_LIMITED.append(fn.__name__)
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                _BLAS_LIMITED.pop()
 
     return wrapper
 

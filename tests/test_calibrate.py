@@ -126,6 +126,25 @@ def test_bad_input_is_named():
         calibrate(replace(s.problem, frames=tuple(frames)))
 
 
+def test_a_solve_limits_the_blas_threads_once(monkeypatch):
+    # calibrate() and the refine() inside it each run with one BLAS thread; the inner call keeps
+    # the outer one's limit instead of setting and restoring it again
+    import slidecal.solver.model as model
+
+    ctl = model._blas_controller()
+    limits = []
+    real = ctl.limit
+
+    def spy(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        limits.append(kwargs)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(ctl, "limit", spy)
+    calibrate(sc.r1(np.random.default_rng(3)).problem)
+    assert limits == [{"limits": 1, "user_api": "blas"}]
+    assert model._BLAS_LIMITED == []
+
+
 def test_scale_checks_reuse_the_robot_tests_free_poses(monkeypatch):
     # poses kept exact: the robot test's free-pose fit already holds each image's PnP minimum
     # at the final intrinsics; the scale checks take it (images with a flagged detection
