@@ -771,6 +771,8 @@ class BundleModel:
         nz = w != 0
         if np.count_nonzero(nz) < 0.75 * len(w):
             JT, w, r = JT[:, nz], w[nz], r[nz]
+        if np.all(w == 1.0):  # unit weights: the same products without a weighted copy
+            return JT @ JT.T, JT @ r
         if np.all(w >= 0):
             sw = np.sqrt(w)
             Js = JT * sw
