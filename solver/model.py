@@ -285,10 +285,10 @@ class NormalBlocks:
         i6 = np.arange(6)
         A_EE[:, i6, i6] += lam * d_E
         Ei = np.linalg.inv(A_EE)  # (F, 6, 6)
-        L = _per_frame(self.A_gE, Ei)  # A_gE Ei per frame (P0, F, 6)
         P0 = len(self.g_g)
-        S = A_gg - L.reshape(P0, -1) @ self.A_gE.reshape(P0, -1).T
-        rhs = -self.g_g + L.reshape(P0, -1) @ self.g_E.reshape(-1)
+        L = _per_frame(self.A_gE, Ei).reshape(P0, -1)  # A_gE Ei per frame (P0, 6 F)
+        S = A_gg - L @ self.A_gE.reshape(P0, -1).T
+        rhs = -self.g_g + L @ self.g_E.reshape(-1)
         d_glob = np.linalg.solve(S, rhs)
         back = -self.g_E - (d_glob @ self.A_gE.reshape(P0, -1)).reshape(-1, 6)
         d_frames = (Ei @ back[:, :, None])[:, :, 0]
@@ -306,7 +306,8 @@ class NormalBlocks:
         s_g[s_g == 0] = 1.0
         s_E[s_E == 0] = 1.0
         A_gg = self.A_gg / np.outer(s_g, s_g)
-        A_gE = self.A_gE / (s_g[:, None, None] * s_E[None, :, :])
+        scale_gE = s_g[:, None, None] * s_E[None, :, :]
+        A_gE = self.A_gE / scale_gE
         A_EE = self.A_EE / (s_E[:, :, None] * s_E[:, None, :])
         try:
             Ei = np.linalg.inv(A_EE)
@@ -332,7 +333,7 @@ class NormalBlocks:
         outer_E = s_E[:, :, None] * s_E[:, None, :]
         return BlockInverse(
             gg=Si / np.outer(s_g, s_g),
-            gE=-SiL / (s_g[:, None, None] * s_E[None, :, :]),
+            gE=-SiL / scale_gE,
             EE=EE / outer_E,
             frame_inv=Ei / outer_E,
             coupling=L / s_E.reshape(1, -1),
@@ -968,8 +969,11 @@ class BundleModel:
 
 
 def _per_frame(A_gE: np.ndarray, Ei: np.ndarray) -> np.ndarray:
-    """``A_gE[:, k] @ Ei[k]`` for every frame k: (P0, F, 6) from (P0, F, 6) and (F, 6, 6)."""
-    return np.transpose(np.transpose(A_gE, (1, 0, 2)) @ Ei, (1, 0, 2))
+    """``A_gE[:, k] @ Ei[k]`` for every frame k: (P0, F, 6) from (P0, F, 6) and (F, 6, 6),
+    C-ordered (written in place: its (P0, 6 F) view is no copy)."""
+    out = np.empty(A_gE.shape)
+    np.matmul(np.transpose(A_gE, (1, 0, 2)), Ei, out=np.transpose(out, (1, 0, 2)))
+    return out
 
 
 def _mv(M: np.ndarray, v: np.ndarray) -> np.ndarray:
