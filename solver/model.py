@@ -306,8 +306,7 @@ class NormalBlocks:
         s_g[s_g == 0] = 1.0
         s_E[s_E == 0] = 1.0
         A_gg = self.A_gg / np.outer(s_g, s_g)
-        scale_gE = s_g[:, None, None] * s_E[None, :, :]
-        A_gE = self.A_gE / scale_gE
+        A_gE = self.A_gE / (s_g[:, None, None] * s_E[None, :, :])
         A_EE = self.A_EE / (s_E[:, :, None] * s_E[:, None, :])
         try:
             Ei = np.linalg.inv(A_EE)
@@ -333,7 +332,7 @@ class NormalBlocks:
         outer_E = s_E[:, :, None] * s_E[:, None, :]
         return BlockInverse(
             gg=Si / np.outer(s_g, s_g),
-            gE=-SiL / scale_gE,
+            gE=-SiL / (s_g[:, None, None] * s_E[None, :, :]),
             EE=EE / outer_E,
             frame_inv=Ei / outer_E,
             coupling=L / s_E.reshape(1, -1),
@@ -969,8 +968,7 @@ class BundleModel:
 
 
 def _per_frame(A_gE: np.ndarray, Ei: np.ndarray) -> np.ndarray:
-    """``A_gE[:, k] @ Ei[k]`` for every frame k: (P0, F, 6) from (P0, F, 6) and (F, 6, 6),
-    C-ordered (written in place: its (P0, 6 F) view is no copy)."""
+    """``A_gE[:, k] @ Ei[k]`` for every frame k: (P0, F, 6), C-ordered, from (P0, F, 6) and Ei."""
     out = np.empty(A_gE.shape)
     np.matmul(np.transpose(A_gE, (1, 0, 2)), Ei, out=np.transpose(out, (1, 0, 2)))
     return out
@@ -1065,26 +1063,14 @@ def _blas_controller() -> ThreadpoolController:
     return ThreadpoolController()
 
 
-#: The calls now running under :func:`single_threaded_blas`'s limit (the outermost sets it)
-_BLAS_LIMITED: list[str] = []
-
-
 def single_threaded_blas(fn):  # noqa: ANN001, ANN201 - a plain decorator
     """Run ``fn`` with one BLAS thread: the normal matrices are small (tens of columns), where
-    a threaded BLAS's spinning threads cost far more than they gain on a busy machine. A call
-    inside another keeps the outer one's limit (setting and restoring it restarts the BLAS's
-    threads)."""
+    a threaded BLAS's spinning threads cost far more than they gain on a busy machine."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
-        if _BLAS_LIMITED:
-            return fn(*args, **kwargs)
         with _blas_controller().limit(limits=1, user_api="blas"):
-            _BLAS_LIMITED.append(fn.__name__)
-            try:
-                return fn(*args, **kwargs)
-            finally:
-                _BLAS_LIMITED.pop()
+            return fn(*args, **kwargs)
 
     return wrapper
 

@@ -23,7 +23,6 @@ from slidecal.solver.model import (
     NormalBlocks,
     Structure,
     orientation_groups,
-    single_threaded_blas,
 )
 from slidecal.solver.numeric import f_tail
 from slidecal.solver.problem import CalibrationProblem
@@ -154,7 +153,6 @@ SESSION_TREND_MIN_FRAMES = 8
 COMMON_FIELD_FRAMES_PER_COORD = 3
 
 
-@single_threaded_blas
 def refine(
     problem: CalibrationProblem,
     structure: Structure,
