@@ -285,10 +285,10 @@ class NormalBlocks:
         i6 = np.arange(6)
         A_EE[:, i6, i6] += lam * d_E
         Ei = np.linalg.inv(A_EE)  # (F, 6, 6)
-        L = _per_frame(self.A_gE, Ei)  # A_gE Ei per frame (P0, F, 6)
         P0 = len(self.g_g)
-        S = A_gg - L.reshape(P0, -1) @ self.A_gE.reshape(P0, -1).T
-        rhs = -self.g_g + L.reshape(P0, -1) @ self.g_E.reshape(-1)
+        L = _per_frame(self.A_gE, Ei).reshape(P0, -1)  # A_gE Ei per frame (P0, 6 F)
+        S = A_gg - L @ self.A_gE.reshape(P0, -1).T
+        rhs = -self.g_g + L @ self.g_E.reshape(-1)
         d_glob = np.linalg.solve(S, rhs)
         back = -self.g_E - (d_glob @ self.A_gE.reshape(P0, -1)).reshape(-1, 6)
         d_frames = (Ei @ back[:, :, None])[:, :, 0]
@@ -771,6 +771,8 @@ class BundleModel:
         nz = w != 0
         if np.count_nonzero(nz) < 0.75 * len(w):
             JT, w, r = JT[:, nz], w[nz], r[nz]
+        if np.all(w == 1.0):  # unit weights: the same products without a weighted copy
+            return JT @ JT.T, JT @ r
         if np.all(w >= 0):
             sw = np.sqrt(w)
             Js = JT * sw
@@ -966,8 +968,10 @@ class BundleModel:
 
 
 def _per_frame(A_gE: np.ndarray, Ei: np.ndarray) -> np.ndarray:
-    """``A_gE[:, k] @ Ei[k]`` for every frame k: (P0, F, 6) from (P0, F, 6) and (F, 6, 6)."""
-    return np.transpose(np.transpose(A_gE, (1, 0, 2)) @ Ei, (1, 0, 2))
+    """``A_gE[:, k] @ Ei[k]`` for every frame k: (P0, F, 6), C-ordered, from (P0, F, 6) and Ei."""
+    out = np.empty(A_gE.shape)
+    np.matmul(np.transpose(A_gE, (1, 0, 2)), Ei, out=np.transpose(out, (1, 0, 2)))
+    return out
 
 
 def _mv(M: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -23,7 +23,6 @@ from slidecal.solver.model import (
     NormalBlocks,
     Structure,
     orientation_groups,
-    single_threaded_blas,
 )
 from slidecal.solver.numeric import f_tail
 from slidecal.solver.problem import CalibrationProblem
@@ -154,7 +153,6 @@ SESSION_TREND_MIN_FRAMES = 8
 COMMON_FIELD_FRAMES_PER_COORD = 3
 
 
-@single_threaded_blas
 def refine(
     problem: CalibrationProblem,
     structure: Structure,
@@ -404,20 +402,18 @@ def _pose_discrepancy(problem: CalibrationProblem, out: RefineOutput, fit) -> tu
     """Rms per axis (radians, metres) of the tool poses the images imply (free poses through
     the fitted hand-eye and target) against the measured ones: where the estimation starts."""
     m, st = out.model, out.state
-    rot, tr = [], []
-    for i, f in enumerate(problem.frames):
-        T_cb = fit.T_cam_board.get((i, m.ref))
-        if T_cb is None:
-            continue
-        X, Y = st.X[m.st.group_of_frame[i]], st.Y
-        if m.st.eye_in_hand:
-            T = Y @ np.linalg.inv(T_cb) @ X
-        else:
-            T = np.linalg.inv(X) @ T_cb @ np.linalg.inv(Y)
-        rot.append(rvec_from_R(T[:3, :3] @ f.T_base_tool[:3, :3].T))
-        tr.append(T[:3, 3] - f.T_base_tool[:3, 3])
-    if not rot:
+    seen = [i for i in range(len(problem.frames)) if (i, m.ref) in fit.T_cam_board]
+    if not seen:
         return 1e-4, 1e-4
+    T_cb = np.stack([fit.T_cam_board[(i, m.ref)] for i in seen])
+    X = st.X[m.st.group_of_frame[seen]]
+    if m.st.eye_in_hand:
+        T = st.Y @ np.linalg.inv(T_cb) @ X
+    else:
+        T = np.linalg.inv(X) @ T_cb @ np.linalg.inv(st.Y)
+    T_meas = np.stack([problem.frames[i].T_base_tool for i in seen])
+    rot = [rvec_from_R(R) for R in T[:, :3, :3] @ np.swapaxes(T_meas[:, :3, :3], 1, 2)]
+    tr = T[:, :3, 3] - T_meas[:, :3, 3]
     return (
         max(float(np.sqrt(np.mean(np.square(rot)))), SIGMA_FLOOR[0]),
         max(float(np.sqrt(np.mean(np.square(tr)))), SIGMA_FLOOR[1]),

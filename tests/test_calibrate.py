@@ -126,6 +126,24 @@ def test_bad_input_is_named():
         calibrate(replace(s.problem, frames=tuple(frames)))
 
 
+def test_a_solve_limits_the_blas_threads_once(monkeypatch):
+    # the solve runs with one BLAS thread, set once: the refinement inside it keeps the limit
+    # (setting and restoring it again restarts the BLAS's threads)
+    import slidecal.solver.model as model
+
+    ctl = model._blas_controller()
+    limits = []
+    real = ctl.limit
+
+    def spy(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        limits.append(kwargs)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(ctl, "limit", spy)
+    calibrate(sc.r1(np.random.default_rng(3)).problem)
+    assert limits == [{"limits": 1, "user_api": "blas"}]
+
+
 def test_scale_checks_reuse_the_robot_tests_free_poses(monkeypatch):
     # poses kept exact: the robot test's free-pose fit already holds each image's PnP minimum
     # at the final intrinsics; the scale checks take it (images with a flagged detection

@@ -615,3 +615,21 @@ def test_one_cameras_normal_equations_leave_the_other_rows_out():
     np.testing.assert_allclose(A, J.T @ (J * w[:, None]), rtol=1e-12, atol=1e-9 * np.abs(A).max())
     np.testing.assert_allclose(g, J.T @ (w * r), rtol=1e-12, atol=1e-9 * np.abs(g).max())
     assert np.abs(A[model.slices["intr:left"]]).max() == 0.0  # the first camera: no rows
+
+
+def test_unit_weights_give_the_weighted_products_exactly():
+    # the normal matrix of rows all weighing one skips the weighted copy: the same numbers
+    rng = np.random.default_rng(2)
+    JT, r = rng.standard_normal((7, 300)), rng.standard_normal(300)
+    A, g = BundleModel._weighted_gram(JT, np.ones(300), r)
+    Js = JT * np.sqrt(np.ones(300))
+    np.testing.assert_array_equal(A, Js @ Js.T)
+    np.testing.assert_array_equal(g, Js @ r)
+    for step in (3, 10):  # a third of the rows left out (dropped), a tenth (weighed zero)
+        w = np.ones(300)
+        w[::step] = 0.0
+        A, g = BundleModel._weighted_gram(JT, w, r)
+        keep = w != 0 if step == 3 else slice(None)
+        Js = JT[:, keep] * np.sqrt(w[keep])
+        np.testing.assert_array_equal(A, Js @ Js.T)
+        np.testing.assert_array_equal(g, Js @ (np.sqrt(w[keep]) * r[keep]))
