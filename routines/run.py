@@ -22,6 +22,7 @@ from slidecal.mocks.cell import SimulatedCell
 from slidecal.routines.acquire import DEFAULT_RETRIES, cell_key, clock, record_session, sockets
 from slidecal.routines.config import CellConfig, PlanGoal, load_config
 from slidecal.routines.devices import check_libraries
+from slidecal.routines.ops.faults import parse_fault
 from slidecal.routines.ops.install import NotInstalled, check_same_cell, install
 from slidecal.routines.ops.verdict import Limits, judge
 from slidecal.routines.plan import Plan, read_plan
@@ -142,6 +143,9 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
         raise InputError(f"--seed must be 0 or a positive integer, got {q.seed}")
     if store is not None:
         check_out_dir(Path(store), "--install")
+    for spec in q.faults if isinstance(q.faults, list | tuple) else ():
+        if isinstance(spec, str):
+            parse_fault(spec)  # a bad --fault is refused before the plan is made
     if q.resume is not None:
         out, plan, start, seed = _resumed(q)
     else:

@@ -7,6 +7,7 @@ import pytest
 
 from slidecal.mocks import robot as simrobot
 from slidecal.routines import cli
+from slidecal.routines import run as run_module
 from slidecal.routines.ops.faults import FAULT_KINDS, FaultInjector, FaultSpec, parse_fault
 from slidecal.routines.plan import write_plan
 from slidecal.routines.session import load_session
@@ -21,7 +22,8 @@ def test_parse_fault():
             parse_fault(bad)
 
 
-def test_a_bad_fault_is_bad_input_and_nothing_runs(tmp_path, capsys):
+def test_a_bad_fault_is_bad_input_and_nothing_runs(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(run_module, "make_plan", lambda *a, **k: pytest.fail("planned"))
     code = cli.main(["run", "--out", str(tmp_path / "s"), "--fault", "meteor@1", "--quiet"])
     assert code == 2
     assert "slidecal: --fault: 'meteor@1' is not KIND@FRAME" in capsys.readouterr().err
