@@ -903,6 +903,20 @@ def hide_views(
     return replace(problem, frames=tuple(frames))
 
 
+def centre_only(problem: CalibrationProblem, frac: float) -> CalibrationProblem:
+    """The problem with only the corners within the central ``frac`` of each image's width and
+    height (a session whose views never reached the image's edges)."""
+    frames = []
+    for f in problem.frames:
+        dets = {}
+        for c, d in f.detections.items():
+            spec, px = problem.camera(c), np.asarray(d.px)
+            keep = np.all(np.abs(px / [spec.width, spec.height] - 0.5) < frac / 2, axis=1)
+            dets[c] = Detection(d.ids[keep], px[keep])
+        frames.append(replace(f, detections=dets))
+    return replace(problem, frames=tuple(frames))
+
+
 # -- classic hand-eye sessions: every frame at its own orientation (R1's cell) -----------------
 def square_tag(side_m: float = 0.08) -> Target:
     """A single square tag's 4 corners (an AprilTag's outer corners), centred on the origin."""

@@ -19,7 +19,6 @@ from slidecal.routines.session import load_session
 from slidecal.routines.solve import solve_session
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import DegenerateError, InputError
-from slidecal.solver.problem import Detection
 
 OAK_SOCKETS = {"left": "CAM_B", "right": "CAM_C"}
 
@@ -166,28 +165,13 @@ def test_a_drifted_result_names_a_flag_run_has_and_exits_0_once_installed(eye_to
     assert dataclasses.replace(drifted, installed_to=store / "history" / "x").exit_code == 0
 
 
-def _centre_only(problem, frac: float):  # noqa: ANN001, ANN202
-    """Only the corners seen within the central ``frac`` of each image's width and height."""
-    frames = []
-    for f in problem.frames:
-        dets = {}
-        for c, d in f.detections.items():
-            spec, px = problem.camera(c), np.asarray(d.px)
-            keep = (np.abs(px[:, 0] / spec.width - 0.5) < frac / 2) & (
-                np.abs(px[:, 1] / spec.height - 0.5) < frac / 2
-            )
-            dets[c] = Detection(d.ids[keep], px[keep])
-        frames.append(dataclasses.replace(f, detections=dets))
-    return dataclasses.replace(problem, frames=tuple(frames))
-
-
 def test_projection_uncertainty_at_the_image_corners_is_said(eye_to_hand):
     problem, o = eye_to_hand
     (c,) = [c for c in o.verdict.checks if c.test == "projection"]
     whole = float(c.message.split("px where its views reached, ")[1].split(" px")[0])
     assert c.passed and c.value < 1.0 and 1.2 <= whole <= 3.0  # the standard cells' range
     assert not any("beyond the image area" in n for n in o.verdict.notes)
-    centre = _centre_only(problem, 0.35)  # a sixth of the image's cells, none at its corners
+    centre = sc.centre_only(problem, 0.35)  # a sixth of the image's cells, none at its corners
     v = judge(calibrate(centre), problem=centre, command="solve")
     (c,) = [c for c in v.checks if c.test == "projection"]
     assert c.passed and c.value < 2.0  # where the views reached, the calibration holds

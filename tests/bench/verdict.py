@@ -60,7 +60,6 @@ from slidecal.solver.adequacy import LEFT_OUT
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.drift import Z_LIMIT, chain_rms_px
 from slidecal.solver.errors import HardwareFault, InputError
-from slidecal.solver.problem import Detection
 from tests.bench.report import RESULTS
 from tests.unattended_helpers import record_without_translation, simulated_run_command
 
@@ -308,19 +307,6 @@ def _mistake_row(name: str, v) -> str:  # noqa: ANN001 - a Verdict
     return f"| {name} | {before} | {v.verdict} | {why.replace('|', '/')} |"
 
 
-def centre_only(problem, frac: float):  # noqa: ANN001, ANN201
-    """Only the corners within the central ``frac`` of each image's width and height."""
-    frames = []
-    for f in problem.frames:
-        dets = {}
-        for c, d in f.detections.items():
-            spec, px = problem.camera(c), np.asarray(d.px)
-            keep = np.all(np.abs(px / [spec.width, spec.height] - 0.5) < frac / 2, axis=1)
-            dets[c] = Detection(d.ids[keep], px[keep])
-        frames.append(replace(f, detections=dets))
-    return replace(problem, frames=tuple(frames))
-
-
 def part_mistakes(work: Path, seeds: int) -> list[str]:
     """Issue 39's mistakes on good runs of the eye-to-hand cell (seeds 1..N) and the OAK-like
     stereo head (projected corners): the verdict without the tests the issue added, and now."""
@@ -348,7 +334,7 @@ def part_mistakes(work: Path, seeds: int) -> list[str]:
             )
             for f in (1.01, 1.003)
         ]
-        cases.append(("corners only in the central 35 % of the image", centre_only(p, 0.35)))
+        cases.append(("corners only in the central 35 % of the image", sc.centre_only(p, 0.35)))
         for name, q in cases:
             lines.append(_mistake_row(f"{name}, seed {seed}", judge(calibrate(q), problem=q)))
         rig = sc.oak_rig(np.random.default_rng(seed)).problem
