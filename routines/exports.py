@@ -28,7 +28,7 @@ from slidecal.routines.session import dump_yaml, plain, write_atomic
 from slidecal.solver.camera import distortion_model
 from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import rvec_from_R
-from slidecal.solver.result import CalibrationResult
+from slidecal.solver.result import CalibrationResult, CameraEstimate
 
 CAMCHAIN_FILE = "camchain.yaml"
 MRCAL_SUFFIX = ".cameramodel"
@@ -94,18 +94,28 @@ def _no_skew(result: CalibrationResult, model: str) -> None:
             )
 
 
+def _lens(
+    name: str, c: CameraEstimate, models: Mapping[str, str], lacks: str, fix: str
+) -> tuple[str, np.ndarray]:
+    """Camera ``name``'s lens model and coefficients; ``ValueError`` (one line) when a format's
+    ``models`` have no such lens (``lacks``: whose; ``fix``: the options that solve for one)."""
+    d = np.asarray(c.distortion, dtype=float).reshape(-1)
+    model = distortion_model(d)
+    if model not in models:
+        raise ValueError(
+            f"camera {name} has the {model} lens model, which {lacks}; solve with options: "
+            f"{fix} for this export"
+        )
+    return model, d
+
+
 def camchain_dict(result: CalibrationResult, header: Mapping[str, Any] | None = None) -> dict:
     """Kalibr's ``camchain.yaml`` mapping (cam0 is the reference camera). ``ValueError`` when a
     camera has a skew, a k3 (Kalibr's pinhole-radtan model has neither) or the rational model."""
     _no_skew(result, "Kalibr's pinhole model")
     for name, c in result.cameras.items():
-        d = np.asarray(c.distortion, dtype=float).reshape(-1)
-        model = distortion_model(d)
-        if model not in KALIBR_MODELS:
-            raise ValueError(
-                f"camera {name} has the {model} lens model, which Kalibr does not have; solve "
-                "with options: {distortion_model: opencv5} (k3 fixed) or fisheye for this export"
-            )
+        model, d = _lens(name, c, KALIBR_MODELS, "Kalibr does not have",
+                         "{distortion_model: opencv5} (k3 fixed) or fisheye")  # fmt: skip
         k3 = float(d[4]) if model == "opencv5" else 0.0
         if k3 != 0.0:
             raise ValueError(
@@ -149,13 +159,8 @@ def mrcal_cameramodel(
     ``ValueError`` when the camera has a skew, a fisheye lens or its rig transform is missing."""
     _no_skew(result, "mrcal's OpenCV lens models")
     c = result.cameras[name]
-    dist = np.asarray(c.distortion, dtype=float).reshape(-1)
-    model = distortion_model(dist)
-    if model not in MRCAL_MODELS:
-        raise ValueError(
-            f"camera {name} has the {model} lens model, which mrcal does not have (no "
-            "Kannala-Brandt); solve with options: {distortion_model: rational} for this export"
-        )
+    model, dist = _lens(name, c, MRCAL_MODELS, "mrcal does not have (no Kannala-Brandt)",
+                        "{distortion_model: rational}")  # fmt: skip
     lensmodel = MRCAL_MODELS[model]
     if model == "opencv5" and dist[4] == 0.0:
         lensmodel, dist = "LENSMODEL_OPENCV4", dist[:4]
