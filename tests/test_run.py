@@ -94,20 +94,6 @@ def test_session_of_images_only_solves_the_same(outcome, tmp_path: Path) -> None
     )
 
 
-@pytest.mark.slow
-def test_eye_to_hand_cell_end_to_end(tmp_path: Path) -> None:
-    from importlib import resources
-
-    cell = resources.files("slidecal.mocks").joinpath("eye_to_hand_cell.yaml")
-    o = run_calibration(
-        RunRequest(str(cell), out_dir=tmp_path / "s", progress=False, recording=False, seed=3)
-    )
-    assert o.result.mount == "eye_to_hand" and o.result.converged
-    assert o.errors["cam.fx_rel"] < 1e-3
-    assert o.errors["T_base_cam.rot_deg"] < 0.05 and o.errors["T_base_cam.t_mm"] < 1.0
-    assert o.errors["T_tool_board.t_mm"] < 1.0
-
-
 def test_fault_mid_run_stops_robot_and_keeps_frames(tmp_path: Path, default_plan) -> None:
     cfg = load_config()
     cell = SimulatedCell.from_config(cfg, seed=0)
