@@ -21,7 +21,7 @@ import yaml
 
 from slidecal.drivers import ur_kinematics as urk
 from slidecal.mocks import cell
-from slidecal.mocks.camera import oak_d_like, oak_d_like_extrinsics, single_camera
+from slidecal.mocks.camera import SimCamera, oak_d_like, oak_d_like_extrinsics, single_camera
 from slidecal.mocks.render import render_target
 from slidecal.mocks.robot import KinematicError
 from slidecal.solver.camera import K_matrix, project
@@ -242,18 +242,15 @@ def _paper_scenario(
     told = centres if presumed is None else presumed
     robot = knowledge == "robot"
     T_base_board = T_from_Rt(R_from_rvec(np.array([0.3, -0.2, 0.5])), np.array([10.0, -20.0, 5.0]))
-    frames = []
-    for k, C in enumerate(centres):
-        T_cam_board = T_from_Rt(R_cam_board, -R_cam_board @ C)
-        det = projected_detection(K, dist, T_cam_board, target, PAPER_SIZE_PX, sigma_px, rng)
-        if robot:
-            T_base_cam_told = T_base_board @ inv_T(T_from_Rt(R_cam_board, -R_cam_board @ told[k]))
-            frames.append(Frame(k, {"cam": det}, T_base_tool=T_base_cam_told))
-            continue
-        m = told[k] - told[0]
+    views = [T_from_Rt(R_cam_board, -R_cam_board @ C) for C in centres]
+    poses = [T_base_board @ inv_T(T_from_Rt(R_cam_board, -R_cam_board @ C)) for C in told]
+    cams = [SimCamera("cam", *PAPER_SIZE_PX, K, dist)]
+    frames = _frames(views, poses, target, sigma_px, rng, cams=cams, margin_px=0.0)
+    for k, C in enumerate(() if robot else told):  # motions in the board frame, no robot poses
+        m = C - told[0]
         if knowledge == "board_direction":
             m = m / np.linalg.norm(m) if np.linalg.norm(m) > 0 else np.zeros(3)
-        frames.append(Frame(k, {"cam": det}, motion_board=m, group=0))
+        frames[k] = Frame(k, frames[k].detections, motion_board=m, group=0)
     problem = CalibrationProblem(
         target,
         (CameraSpec("cam", *PAPER_SIZE_PX),),
@@ -267,8 +264,7 @@ def _paper_scenario(
         truth = ModelState(*cam, np.eye(4)[None], T_base_board, np.zeros(len(centres)))
         return Scenario(problem, truth, sigma_px, np.eye(4), T_base_board)
     s = np.array([np.linalg.norm(c - centres[0]) for c in centres])
-    T_cam_board_0 = T_from_Rt(R_cam_board, -R_cam_board @ centres[0])
-    return Scenario(problem, ModelState(*cam, T_cam_board_0[None], np.eye(4), s), sigma_px)
+    return Scenario(problem, ModelState(*cam, views[0][None], np.eye(4), s), sigma_px)
 
 
 def s1(
@@ -410,16 +406,9 @@ def s5_rig(
     Ts = s5_T_right_board()
     sig = {"left": left_factor * sigma_px, "right": sigma_px}
     K = {"left": S5_K_LEFT, "right": S5_K_RIGHT}
-    T_cam_right = {"left": S5_T_LEFT_RIGHT, "right": np.eye(4)}
-    frames = []
-    for k, T in enumerate(Ts):
-        dets = {
-            c: projected_detection(
-                K[c], np.zeros(5), T_cam_right[c] @ T, target, PAPER_SIZE_PX, sig[c], rng
-            )
-            for c in ("left", "right")
-        }
-        frames.append(Frame(k, dets))
+    cams = [SimCamera(c, *PAPER_SIZE_PX, K[c], np.zeros(5)) for c in K]
+    T_cam_right = {"left": S5_T_LEFT_RIGHT}
+    frames = _frames(Ts, [None] * len(Ts), target, sig, rng, cams=cams, T_cam_ref=T_cam_right)
     problem = CalibrationProblem(
         target,
         (CameraSpec("left", *PAPER_SIZE_PX), CameraSpec("right", *PAPER_SIZE_PX)),
@@ -441,8 +430,8 @@ def s5_rig(
 
 
 # -- R1: a UR5e-class cell, eye-in-hand or eye-to-hand ------------------------------------------
-R1_SIZE_PX = (1280, 800)
-R1_K, R1_DIST = single_camera().K, single_camera().dist
+R1_CAM = single_camera()
+R1_SIZE_PX, R1_K, R1_DIST = (R1_CAM.width, R1_CAM.height), R1_CAM.K, R1_CAM.dist
 R1_T_TOOL_CAM = T_from_Rt(
     R_from_rvec(np.radians([1.5, -2.0, 90.0])), np.array([0.035, -0.06, 0.09])
 )
@@ -513,14 +502,13 @@ def r1_scenario(
     options: ModelOptions | None,
     sigma_px: float,
     T_base_board: np.ndarray,
-    dist: np.ndarray = R1_DIST,
+    cam: SimCamera = R1_CAM,
     T_base_tool_true: np.ndarray | None = None,
     T_tool_board: np.ndarray = R1_T_TOOL_BOARD,
-    K: np.ndarray = R1_K,
 ) -> Scenario:
-    """The scenario of R1's camera (``K``, ``dist``) with these ``frames``: the problem, the
-    truth in the solver's parametrisation and the hand-eye and target poses of the mount (the
-    target on the tool at ``T_tool_board`` eye-to-hand)."""
+    """The scenario of R1's camera (or ``cam``) with these ``frames``: the problem, the truth in
+    the solver's parametrisation and the hand-eye and target poses of the mount (the target on
+    the tool at ``T_tool_board`` eye-to-hand)."""
     problem = CalibrationProblem(
         target,
         (CameraSpec("cam", *R1_SIZE_PX),),
@@ -532,8 +520,8 @@ def r1_scenario(
     T_hand_eye = R1_T_TOOL_CAM if eye_in_hand else R1_T_BASE_CAM
     T_target = T_base_board if eye_in_hand else T_tool_board
     truth = ModelState(
-        {"cam": K},
-        {"cam": np.array(dist, dtype=float)},
+        {"cam": cam.K},
+        {"cam": cam.dist},
         {},
         inv_T(T_hand_eye)[None],
         T_target,
@@ -568,29 +556,38 @@ def _view(
     return inv_T(R1_T_BASE_CAM) @ T_base_tool @ T_tool_board
 
 
-def _r1_frames(
+def _frames(
     views: Sequence[np.ndarray],
-    told: Sequence[np.ndarray],
+    told: Sequence[np.ndarray | None],
     target: Target,
-    sigma_px: float,
+    sigma_px: float | Mapping[str, float],
     rng: np.random.Generator,
     noise: tuple[float, float] = (0.0, 0.0),
     detect: ImageModel | None = None,
     bow_m: np.ndarray | None = None,
-    dist: np.ndarray = R1_DIST,
-    K: np.ndarray = R1_K,
+    cams: Sequence[SimCamera] = (R1_CAM,),
+    T_cam_ref: Mapping[str, np.ndarray] | None = None,
+    margin_px: float = 2.0,
 ) -> list[Frame]:
-    """Per camera pose ``views[k]`` (``T_cam_board``), what R1's camera (``K``) finds of ``target``
-    (``detect``'s image model, the board bowed by ``bow_m``; or the projected points 2 px inside
-    the image with ``sigma_px`` noise), then the robot pose ``told[k]`` with ``noise`` (metres,
-    degrees) as the arm measures it."""
+    """Per pose ``views[k]`` (``T_cam_board`` of the first camera; camera ``c``'s is
+    ``T_cam_ref[c]`` times it), what each of ``cams`` (default R1's) finds of ``target``
+    (``detect``'s image model, the board bowed by ``bow_m``; or the projected points
+    ``margin_px`` inside the image with ``sigma_px`` noise, one or per camera), then the robot
+    pose ``told[k]`` with ``noise`` (metres, degrees) as the arm measures it."""
+    sig = sigma_px if isinstance(sigma_px, Mapping) else {c.name: sigma_px for c in cams}
     frames = []
     for k, (T_cam_board, T_base_tool) in enumerate(zip(views, told, strict=True)):
-        if detect is not None:
-            det = detect(T_cam_board, rng, np.zeros(2) if bow_m is None else bow_m)
-        else:
-            det = projected_detection(K, dist, T_cam_board, target, R1_SIZE_PX, sigma_px, rng, 2.0)
-        frames.append(Frame(k, {"cam": det}, T_base_tool=_perturb(T_base_tool, rng, *noise)))
+        dets = {}
+        for c in cams:
+            T = (T_cam_ref or {}).get(c.name, np.eye(4)) @ T_cam_board
+            if detect is not None:
+                dets[c.name] = detect(T, rng, np.zeros(2) if bow_m is None else bow_m)
+            else:
+                size, sigma = (c.width, c.height), sig[c.name]
+                dets[c.name] = projected_detection(
+                    c.K, c.dist, T, target, size, sigma, rng, margin_px
+                )
+        frames.append(Frame(k, dets, T_base_tool=_perturb(T_base_tool, rng, *noise)))
     return frames
 
 
@@ -613,8 +610,9 @@ def r1(
     views = [_view(T, T_base_board) for T in poses]
     told = poses if eye_in_hand else [_tool_pose(T, T_base_board, False) for T in views]
     noise = (robot_noise_m, robot_noise_deg)
-    frames = _r1_frames(views, told, target, sigma_px, rng, noise, dist=dist)
-    return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board, dist)
+    cam = replace(R1_CAM, dist=dist)
+    frames = _frames(views, told, target, sigma_px, rng, noise, cams=[cam])
+    return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board, cam)
 
 
 #: A wide M12 lens on R1's sensor (about 100 deg across, 120 deg diagonal): OpenCV's rational model
@@ -640,8 +638,9 @@ def wide_r1(
         camera_board_poses(plan, 4, target, (0.15, 0.25), (20.0, 40.0), aim_spread_m=0.12), plan, 5
     )
     told = [_tool_pose(T, T_base_board, True) for T in views]
-    frames = _r1_frames(views, told, target, sigma_px, rng, dist=dist, K=WIDE_K)
-    return r1_scenario(target, frames, True, options, sigma_px, T_base_board, dist, K=WIDE_K)
+    cam = replace(R1_CAM, K=WIDE_K, dist=dist)
+    frames = _frames(views, told, target, sigma_px, rng, cams=[cam])
+    return r1_scenario(target, frames, True, options, sigma_px, T_base_board, cam)
 
 
 # -- a real arm: systematic kinematic error (REALITY: accuracy is not repeatability) ------------
@@ -715,7 +714,7 @@ def r1_real_arm(
         planned = np.stack([_tool_pose(_view(T, T_base_board), T_base_board, False) for T in poses])
     true = real_arm_poses(planned, rng, arm_mm, arm_deg)
     views = [_view(T, T_base_board, eye_in_hand) for T in true]
-    frames = _r1_frames(views, planned, seen, sigma_px, rng, detect=detect, bow_m=bow)
+    frames = _frames(views, planned, seen, sigma_px, rng, detect=detect, bow_m=bow)
     return r1_scenario(
         target, frames, eye_in_hand, options, sigma_px, T_base_board, T_base_tool_true=true
     )
@@ -759,7 +758,7 @@ def symmetric_board_r1(
         _view(T, T_base_board) @ (roll if k in rolled else np.eye(4)) for k, T in enumerate(tools)
     ]
     told = [_tool_pose(T, T_base_board, False) for T in views]
-    frames = _r1_frames(views, told, target, sigma_px, rng, (robot_noise_m, robot_noise_deg))
+    frames = _frames(views, told, target, sigma_px, rng, (robot_noise_m, robot_noise_deg))
     return r1_scenario(target, frames, False, None, sigma_px, T_base_board)
 
 
@@ -841,17 +840,10 @@ def oak_rig(
     T_tool_left = R1_T_TOOL_CAM @ T_from_Rt(Ry(np.radians(view_offset_deg)), np.zeros(3))
     target = r1_target()
     T_base_board, poses = r1_poses()
-    frames = []
-    for k, T_base_tool in enumerate(poses):
-        T_left_board = inv_T(T_base_tool @ T_tool_left) @ T_base_board
-        dets = {}
-        for c in cameras:
-            s = sims[c]
-            dets[c] = projected_detection(
-                s.K, s.dist, extr[c] @ T_left_board, target, (s.width, s.height), sig[c], rng, 2.0
-            )
-        measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
-        frames.append(Frame(k, dets, T_base_tool=measured))
+    views = [inv_T(T @ T_tool_left) @ T_base_board for T in poses]
+    noise = (robot_noise_m, robot_noise_deg)
+    cams = [sims[c] for c in cameras]
+    frames = _frames(views, poses, target, sig, rng, noise, cams=cams, T_cam_ref=extr)
     problem = CalibrationProblem(
         target,
         tuple(sims[c].spec for c in cameras),
@@ -997,7 +989,7 @@ def classic_real_arm(
     true = real_arm_poses(planned, rng, arm_mm, arm_deg)
     true[:, :3, 3] *= 1.0 + arm_scale
     views = [_view(T, T_base_board, eye_in_hand) for T in true]
-    frames = _r1_frames(views, planned, target, sigma_px, rng, detect=detect)
+    frames = _frames(views, planned, target, sigma_px, rng, detect=detect)
     return r1_scenario(
         target, frames, eye_in_hand, None, sigma_px, T_base_board, T_base_tool_true=true
     )
@@ -1054,7 +1046,7 @@ def tag_real_arm(
     planned_a = np.stack(planned)
     true = real_arm_poses(planned_a, rng, arm_mm, arm_deg)
     views = [_view(T, np.eye(4), False, TAG_T_TOOL_TAG) for T in true]
-    frames = _r1_frames(views, planned_a, target, sigma_px, rng, detect=detect)
+    frames = _frames(views, planned_a, target, sigma_px, rng, detect=detect)
     return r1_scenario(
         target,
         frames,
@@ -1087,15 +1079,15 @@ def classic(
     the measured poses. ``T_cam_board`` (n, 4, 4): fixed views, ``rng`` then drawing only the noise.
     """
     target = target or r1_target()
-    dist = R1_DIST.copy() if distortion is None else np.asarray(distortion, dtype=float)
+    cam = R1_CAM if distortion is None else replace(R1_CAM, dist=distortion)
     if T_cam_board is None:
         T_cam_board = camera_board_poses(rng, n_frames, target)
     T_cb = _translated(np.asarray(T_cam_board, dtype=float), rng, per_orientation)
     T_base_board = r1_poses()[0]
     told = [_tool_pose(T, T_base_board, eye_in_hand) for T in T_cb]
     noise = (robot_noise_m, robot_noise_deg)
-    frames = _r1_frames(T_cb, told, target, sigma_px, rng, noise, dist=dist)
-    return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board, dist)
+    frames = _frames(T_cb, told, target, sigma_px, rng, noise, cams=[cam])
+    return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board, cam)
 
 
 def board_in_view(s: Scenario) -> np.ndarray:
@@ -1165,7 +1157,7 @@ def drifting_arm(
         T_true = T_from_Rt(R_from_rvec(e) @ T[:3, :3], T[:3, 3] + rng.normal(0.0, 2e-5, 3))
         true.append(T_true)
         view = [_view(T_true, base.T_target)]
-        frames += _r1_frames(view, [T], target, sigma_px, rng, detect=detect)
+        frames += _frames(view, [T], target, sigma_px, rng, detect=detect)
     frames = [replace(f, id=k) for k, f in enumerate(frames)]
     scenario = r1_scenario(
         target, frames, True, None, sigma_px, base.T_target, T_base_tool_true=np.stack(true)
