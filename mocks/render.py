@@ -444,19 +444,6 @@ class Photo:
             raise InputError("aperture_mm, pixel_pitch_um, full_well_e, glare_radius must be >= 0")
 
 
-CLEAN_PHOTO = Photo(
-    aperture_mm=0.0,
-    chromatic_red=0.0,
-    chromatic_blue=0.0,
-    full_well_e=0.0,
-    bayer=False,
-    jpeg_quality=0,
-    vignetting=0.0,
-    gradient=0.0,
-    glare_spots=0,
-)  # the photo pipeline with every effect off (equals the clean renderer but for the noise draw)
-
-
 def defocus_sigma_px(photo: Photo, f_px: float, inv_z: np.ndarray, inv_focus: float) -> np.ndarray:
     """Gaussian std (px) of the defocus blur at inverse depths ``inv_z`` (1/m): a quarter of the
     thin-lens blur circle diameter ``f_px * aperture * |1/z - 1/z_focus|``."""

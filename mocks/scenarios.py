@@ -13,9 +13,7 @@ import shutil
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Literal
 
-import cv2
 import numpy as np
 import yaml
 
@@ -179,23 +177,6 @@ def s2_group(
     """S2/S3: 30 deg about x then 30 about y, translated along the board normal toward it."""
     R, C0 = s2_geometry()
     return make_group(K, R, C0, line_steps([0.0, 0.0, -1.0], n), rng, sigma_px)
-
-
-def robot_poses(
-    group: Group, T_base_fixed: np.ndarray, T_tool_x: np.ndarray, mount: str
-) -> np.ndarray:
-    """Measured ``T_base_tool`` (n, 4, 4) of a group's frames: eye-in-hand with ``T_base_fixed =
-    T_base_board`` and ``T_tool_x = T_tool_cam``, eye-to-hand with ``T_base_cam`` and
-    ``T_tool_board`` (the displacement is then a board motion)."""
-    out = []
-    for T in group.T_board:
-        T_board_cam = T_from_Rt(group.R_cam_board.T, group.C0 + T)
-        if mount == "eye_in_hand":
-            out.append(T_base_fixed @ T_board_cam @ np.linalg.inv(T_tool_x))
-        else:
-            T_base_board = T_base_fixed @ np.linalg.inv(T_board_cam)
-            out.append(T_base_board @ np.linalg.inv(T_tool_x))
-    return np.array(out)
 
 
 # -- calibration problems: S1-S4 ----------------------------------------------------------------
@@ -762,26 +743,6 @@ def symmetric_board_r1(
     return r1_scenario(target, frames, False, None, sigma_px, T_base_board)
 
 
-#: Half of R1's camera (640 x 400): recorded datasets render faster and keep R1's geometry
-R1_HALF = replace(single_camera(), width=640, height=400, K=K_matrix(440.0, 440.0, 319.75, 199.75))
-
-
-def recorded_dataset(directory: str | Path, s: Scenario, rng: np.random.Generator) -> np.ndarray:
-    """Scenario ``s``'s frames as another tool records them: each view of its target at the
-    frame's ``T_base_tool`` (its truth's hand-eye and target pose) rendered by ``R1_HALF`` as
-    ``1.png``, ``2.png``, ... in ``directory``. Returns the ``T_base_tool`` (F, 4, 4) of the
-    images, metres, for writing in any convention."""
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    T = np.stack([f.T_base_tool for f in s.problem.frames])
-    X, Y = s.truth.X[0], s.truth.Y  # T_cam_tool, T_base_board; eye-to-hand T_cam_base, T_tool_board
-    for k, T_bt in enumerate(T):
-        T_cam_board = X @ (inv_T(T_bt) if s.problem.mount == "eye_in_hand" else T_bt) @ Y
-        img = render_target(s.problem.target, R1_HALF, T_cam_board, rng)
-        cv2.imwrite(str(directory / f"{k + 1}.png"), img)
-    return T
-
-
 def real_board_of(target: Target, rng: np.random.Generator) -> tuple[Target, Target, np.ndarray]:
     """A real board of ``target``'s description: (the target as a session describes it, with a real
     board's tolerance; the bowed board the camera sees; the bow (2,), metres)."""
@@ -864,35 +825,6 @@ def oak_rig(
     return RigScenario(
         problem, truth, sig["left"], T_tool_left, T_base_board, sigma_by_camera_px=sig
     )
-
-
-Hide = Literal["none", "empty", "half"]
-
-
-def hide_views(
-    problem: CalibrationProblem, hidden: Mapping[tuple[int, str], Hide]
-) -> CalibrationProblem:
-    """The problem with views removed or cut, by (frame index, camera): ``"none"`` (no detection),
-    ``"empty"`` (no corners) or ``"half"`` (the corners whose board x is below their median)."""
-    frames = list(problem.frames)
-    for (fi, cam), how in hidden.items():
-        f = frames[fi]
-        dets = dict(f.detections)
-        if cam not in dets:
-            raise InputError(f"frame {fi} has no detection of camera {cam!r} to hide")
-        if how == "none":
-            del dets[cam]
-        elif how == "empty":
-            dets[cam] = Detection(np.zeros(0, dtype=int), np.zeros((0, 2)))
-        elif how == "half":
-            d = dets[cam]
-            x = problem.target.points_m[d.ids, 0]
-            keep = x < np.median(x)
-            dets[cam] = Detection(d.ids[keep], d.px[keep])
-        else:
-            raise InputError(f"unknown way to hide a view {how!r}; use none, empty or half")
-        frames[fi] = replace(f, detections=dets)
-    return replace(problem, frames=tuple(frames))
 
 
 def centre_only(problem: CalibrationProblem, frac: float) -> CalibrationProblem:
@@ -1088,11 +1020,6 @@ def classic(
     noise = (robot_noise_m, robot_noise_deg)
     frames = _frames(T_cb, told, target, sigma_px, rng, noise, cams=[cam])
     return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board, cam)
-
-
-def board_in_view(s: Scenario) -> np.ndarray:
-    """Per frame, the number of target points the camera saw (for checking a built scenario)."""
-    return np.array([len(f.detections["cam"].ids) for f in s.problem.frames])
 
 
 #: The single-camera cells without any noise (pixels, robot poses), by name: a solve of each
