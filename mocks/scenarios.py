@@ -18,6 +18,7 @@ import numpy as np
 import yaml
 
 from slidecal.drivers import ur_kinematics as urk
+from slidecal.drivers.ur_pose import rpy_deg
 from slidecal.mocks import cell
 from slidecal.mocks.camera import SimCamera, oak_d_like, oak_d_like_extrinsics, single_camera
 from slidecal.mocks.render import render_target
@@ -1249,10 +1250,7 @@ def cell_overrides(fx_rel: float = 0.0, cx_px: float = 0.0, he_deg: float = 0.0)
     if he_deg:
         r, p, y = np.radians([0.8, -1.2, 90.5])  # the default cell's true T_tool_cam
         R = R_from_rvec(np.radians(he_deg) * np.array([0.6, 0.0, 0.8])) @ Rz(y) @ Ry(p) @ Rx(r)
-        rpy = np.degrees(
-            [np.arctan2(R[2, 1], R[2, 2]), -np.arcsin(R[2, 0]), np.arctan2(R[1, 0], R[0, 0])]
-        )  # the cell's rpy_deg convention: R = Rz(yaw) Ry(pitch) Rx(roll)
-        sim["T_tool_cam"] = {"rpy_deg": rpy.tolist(), "t_m": [0.032, -0.061, 0.045]}
+        sim["T_tool_cam"] = {"rpy_deg": rpy_deg(R), "t_m": [0.032, -0.061, 0.045]}
     return {"simulation": sim}
 
 
