@@ -470,15 +470,11 @@ class FakeController:
     def bind(self) -> None:
         for port, kind in ((RTDE_PORT, "rtde"), (SCRIPT_PORT, "script"),
                            (DASHBOARD_PORT, "dashboard")):
-            s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             try:
-                s.bind((self.host, port))
+                s = socket.create_server((self.host, port), backlog=8)  # SO_REUSEADDR on POSIX
             except OSError as e:
-                s.close()
                 self.close_all()
                 raise OSError(f"port {port} ({kind}) on {self.host} is taken: {e}") from None
-            s.listen(8)
             self.listeners[s] = kind
 
     def go_silent(self) -> None:
@@ -489,10 +485,7 @@ class FakeController:
             s.close()
         self.listeners = {}
         for port in (RTDE_PORT, SCRIPT_PORT, DASHBOARD_PORT):
-            s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            s.bind((self.host, port))
-            s.listen(0)
+            s = socket.create_server((self.host, port), backlog=0)
             filler = socket.create_connection((self.host, port), timeout=1.0)  # fills the queue
             self.blackhole += [s, filler]
 
