@@ -1,6 +1,6 @@
 """Synthetic scenes with ground truth: the one place every set-up of docs/SETUPS.md is built.
 
-Homography-level scenes for the linear method (:func:`make_group`, :func:`s5_scene`), calibration
+Homography-level scenes for the stereo method (:func:`s5_scene`), calibration
 problems with their truth (:class:`Scenario`: S1-S4, R1 and its real-arm variants, rigs, classic
 hand-eye sessions), and the scenes and session edits the studies and tests share. Board frame:
 z = 0 plane; S1-S5 in the paper's length units ("l.u."), R1 in metres. No images here: the
@@ -58,7 +58,6 @@ NO_DISTORTION = (False, False, False, False, False)
 PAPER_SIZE_PX = (300, 240)
 K_S1 = K_matrix(400.0, 400.0, 150.0, 120.0)
 K_S2 = K_matrix(400.0, 440.0, 150.0, 120.0)
-K_SKEW = np.array([[400.0, 3.0, 150.0], [0.0, 440.0, 120.0], [0.0, 0.0, 1.0]])
 D0 = np.diag([1.0, -1.0, -1.0])  # camera looking at the board along -z (docs/SETUPS.md)
 
 
@@ -105,52 +104,11 @@ def centre_on_axis(R_cam_board: np.ndarray, distance: float = 100.0) -> np.ndarr
     return -distance * (R_cam_board.T @ np.array([0.0, 0.0, 1.0]))
 
 
-def H_true(K: np.ndarray, R_cam_board: np.ndarray, C: np.ndarray) -> np.ndarray:
-    """``K [r1 r2 t]`` (3, 3) with ``t = -R C`` (lambda = 1)."""
-    t = -R_cam_board @ C
-    return K @ np.column_stack([R_cam_board[:, 0], R_cam_board[:, 1], t])
-
-
 def plane_pixels(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Pixels (..., N, 2) of board points ``xy`` (N, 2) through homographies ``H`` (..., 3, 3)."""
     X = np.column_stack([xy, np.ones(len(xy))])
     u = np.einsum("...ij,nj->...ni", H, X)
     return u[..., :2] / u[..., 2:3]
-
-
-@dataclass
-class Group:
-    """One orientation group: true pose, displacements (board frame) and noisy observations."""
-
-    R_cam_board: np.ndarray
-    C0: np.ndarray
-    T_board: np.ndarray  # (n, 3) camera displacement since frame 0, board frame
-    observations: list
-    H: np.ndarray  # (n, 3, 3) true homographies, common scale
-
-
-def make_group(
-    K: np.ndarray,
-    R_cam_board: np.ndarray,
-    C0: np.ndarray,
-    T_board: np.ndarray,
-    rng: np.random.Generator,
-    sigma_px: float = 0.0,
-    xy: np.ndarray | None = None,
-) -> Group:
-    """Observations of the board from ``C0 + T_board[k]`` with i.i.d. pixel noise ``sigma_px``."""
-    xy = board_xy() if xy is None else xy
-    T_board = np.asarray(T_board, dtype=float)
-    Hs = np.array([H_true(K, R_cam_board, C0 + T) for T in T_board])
-    obs = [(xy, px + sigma_px * rng.normal(size=px.shape)) for px in plane_pixels(Hs, xy)]
-    return Group(R_cam_board, C0, T_board, obs, Hs)
-
-
-def line_steps(direction: np.ndarray, n: int, step: float = 5.0) -> np.ndarray:
-    """Displacements (n, 3): 0, step, 2 step, ... along ``direction`` (normalised)."""
-    d = np.asarray(direction, dtype=float)
-    d = d / np.linalg.norm(d)
-    return np.arange(n)[:, None] * step * d
 
 
 def s1_geometry(theta_deg: float) -> tuple[np.ndarray, np.ndarray]:
@@ -164,20 +122,6 @@ def s2_geometry() -> tuple[np.ndarray, np.ndarray]:
     """S2/S3's ``R_cam_board`` (30 deg about x then 30 about y) and first centre."""
     R = tilt_R(30.0, 30.0)
     return R, centre_on_axis(R)
-
-
-def s1_group(theta_deg: float, n: int, rng: np.random.Generator, sigma_px: float = 0.0) -> Group:
-    """S1: rotated by theta about the board's y axis, translated toward the grid centre."""
-    R, C0 = s1_geometry(theta_deg)
-    return make_group(K_S1, R, C0, line_steps(-C0, n), rng, sigma_px)
-
-
-def s2_group(
-    n: int, rng: np.random.Generator, sigma_px: float = 0.0, K: np.ndarray = K_S2
-) -> Group:
-    """S2/S3: 30 deg about x then 30 about y, translated along the board normal toward it."""
-    R, C0 = s2_geometry()
-    return make_group(K, R, C0, line_steps([0.0, 0.0, -1.0], n), rng, sigma_px)
 
 
 # -- calibration problems: S1-S4 ----------------------------------------------------------------

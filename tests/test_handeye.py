@@ -1,5 +1,7 @@
 """Hand-eye rotation from translations (docs/METHOD.md Sec. 4) and the AX = XB cross-checks."""
 
+import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -23,9 +25,12 @@ from slidecal.solver.handeye import (
 from slidecal.solver.homography import group_homographies
 from slidecal.solver.linear import LinearGroup
 
+sys.path.insert(0, str(Path(__file__).parent))
+import linear_scenes as lg  # noqa: E402
+
 
 def robot_poses(
-    group: sl.Group, T_base_fixed: np.ndarray, T_tool_x: np.ndarray, mount: str
+    group: lg.Group, T_base_fixed: np.ndarray, T_tool_x: np.ndarray, mount: str
 ) -> np.ndarray:
     """Measured ``T_base_tool`` (n, 4, 4) of a group's frames: eye-in-hand with ``T_base_fixed =
     T_base_board`` and ``T_tool_x = T_tool_cam``, eye-to-hand with ``T_base_cam`` and
@@ -70,7 +75,7 @@ def _groups(rng, sigma=0.0, tilts=((30, 30), (-25, 10), (10, -30))):
     out = []
     for ax, ay in tilts:
         R = sl.tilt_R(ax, ay)
-        out.append(sl.make_group(sl.K_S2, R, sl.centre_on_axis(R), T, rng, sigma))
+        out.append(lg.make_group(sl.K_S2, R, sl.centre_on_axis(R), T, rng, sigma))
     return out
 
 
