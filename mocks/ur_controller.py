@@ -48,6 +48,9 @@ SAFETY_MODE_NAMES = {1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVE
 #: The safety mode a ``pstop`` / ``estop`` move fault leaves and what the events call it.
 SAFETY_STOPS = {"pstop": (3, "protective stop"), "estop": (7, "robot emergency stop")}
 ROBOT_MODE_NAMES = {3: "POWER_OFF", 4: "POWER_ON", 5: "IDLE", 7: "RUNNING"}
+#: The control channel's ``WORD VALUE`` settings: the robot's attribute and the value's type.
+SETTINGS = {"slider": ("speed_slider", float), "safety": ("safety_mode", int),
+            "robotmode": ("robot_mode", int)}
 
 # RTDE message types
 V, v, O, I, S, P, U, M = (ord(c) for c in "VvOISPUM")
@@ -614,12 +617,8 @@ class FakeController:
             self.close_all()
         elif cmd == "reopen":
             self.bind()
-        elif word == "slider" and arg:
-            r.speed_slider = float(arg)
-        elif word == "safety" and arg:
-            r.safety_mode = int(arg)
-        elif word == "robotmode" and arg:
-            r.robot_mode = int(arg)
+        elif word in SETTINGS and arg:
+            setattr(r, SETTINGS[word][0], SETTINGS[word][1](arg))
         elif word == "program" and arg:
             r.program, r.runtime_state = arg, RUNTIME_PLAYING
         elif cmd in ("quit", ""):
