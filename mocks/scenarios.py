@@ -979,31 +979,21 @@ NOISE_FREE: dict[str, Callable[[np.random.Generator], Scenario]] = {
 
 
 # --------------------------------------------- scenes of the studies and the tests built on them
-def render_detector(sigma_px: float) -> ImageModel:
-    """The ``render`` image model: R1's camera renders the board (bowed as the trial's board
-    is), the detector finds it."""
+def render_detector(tag_m: float | None = None) -> ImageModel:
+    """The ``render`` image model: R1's camera renders the board (bowed as the trial's board is),
+    the detector finds it; with ``tag_m``: one flat AprilTag of that side (36h11, id 0, a white
+    margin of one cell on the tool's darker surround) and its 4 corners (ids 0-3 in the centred
+    frame of :func:`square_tag`)."""
     cam = single_camera()
-    target = r1_target()
+    target = r1_target() if tag_m is None else Target.apriltag(tag_m)
+    T_board_seen = np.eye(4)  # square_tag's centred frame <- the tag's (origin at a corner)
+    if tag_m is not None:
+        T_board_seen = T_from_Rt(np.eye(3), np.array([-tag_m / 2, -tag_m / 2, 0.0]))
 
     def run(T_cam_board: np.ndarray, rng: np.random.Generator, bow_m: np.ndarray) -> Detection:
-        image = render_target(target, cam, T_cam_board, rng, bow_m=(bow_m[0], bow_m[1]))
+        bow = (bow_m[0], bow_m[1]) if tag_m is None else (0.0, 0.0)
+        image = render_target(target, cam, T_cam_board @ T_board_seen, rng, bow_m=bow)
         return detect_target(image, target).detection
-
-    return run
-
-
-def render_tag_detector(side_m: float = 0.10) -> ImageModel:
-    """The ``render`` image model of the tag session: R1's camera renders one AprilTag of
-    ``side_m`` (36h11, id 0, a white margin of one cell on the tool's darker surround), the
-    detector finds its 4 corners (ids 0-3 in the centred frame of ``scenarios.square_tag``)."""
-    cam = single_camera()
-    tag = Target.apriltag(side_m)
-    # square_tag's centred frame <- the tag's (origin at its top-left corner)
-    T_square_tag = T_from_Rt(np.eye(3), np.array([-side_m / 2, -side_m / 2, 0.0]))
-
-    def run(T_cam_square: np.ndarray, rng: np.random.Generator, bow_m: np.ndarray) -> Detection:
-        image = render_target(tag, cam, T_cam_square @ T_square_tag, rng)
-        return detect_target(image, tag).detection
 
     return run
 
