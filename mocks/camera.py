@@ -1,9 +1,5 @@
-"""Simulated cameras: a ``CameraRig`` that renders the target at the true poses of the cell.
-
-Presets: ``single_camera()`` (R1's camera, 1280 x 800, fx = fy = 880) and ``oak_d_like()`` (two
-OV9282 mono cameras 75 mm apart and an IMX378 colour camera between them, each with its own
-intrinsics, mild distortion and sub-degree misalignment; ``oak_d_like_extrinsics()``).
-"""
+"""Simulated cameras: a ``CameraRig`` that renders the target at the true poses of the cell, and
+the presets ``single_camera()`` (R1's camera) and ``oak_d_like()`` (an OAK-D-like head)."""
 
 from __future__ import annotations
 
@@ -82,7 +78,8 @@ def single_camera(name: str = "cam", **overrides: float | bool | Photo) -> SimCa
     )
 
 
-#: The OAK-D-like head's cameras: image size (px), (fx, fy, cx, cy) px, distortion (k1 k2 p1 p2 k3).
+#: The OAK-D-like head's cameras (two OV9282 mono, an IMX378 colour between them): image size
+#: (px), (fx, fy, cx, cy) px and distortion (k1 k2 p1 p2 k3), each its own.
 OAK_D_LIKE = {
     "left": ((1280, 800), (881.2, 880.6, 643.1, 401.7), (-0.052, 0.021, 2e-4, -1e-4, 0.0)),
     "right": ((1280, 800), (879.8, 879.5, 636.4, 398.9), (-0.049, 0.018, -1e-4, 3e-4, 0.0)),

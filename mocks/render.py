@@ -380,13 +380,7 @@ def _sensor(
 @dataclass(frozen=True)
 class Photo:
     """Photograph-like imaging; the defaults are an industrial colour camera with a fixed-focus lens
-    at f/4 under workshop light.
-
-    ``aperture_mm``: entrance pupil (0: no defocus); ``focus_distance_m`` (None: 10 % beyond the
-    board's nearest point); ``pixel_pitch_um``; ``chromatic_red``, ``chromatic_blue``: radial scale
-    of those images against green; ``full_well_e``: shot noise (0: none); ``bayer``: RGGB mosaic and
-    OpenCV demosaicing; ``jpeg_quality`` (0: none); ``vignetting``, ``gradient``: uneven light;
-    ``glare_spots`` of ``glare_radius`` (of the diagonal) and ``glare_strength`` (of full scale).
+    at f/4 under workshop light. The fields, their units and defaults: docs/FORMATS.md (``photo``).
     """
 
     aperture_mm: float = 2.0

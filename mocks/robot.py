@@ -1,9 +1,5 @@
-"""A simulated UR e-Series arm (``Robot`` protocol of ``drivers/base.py``).
-
-The controller reports the nominal model's pose of the joints (``measured_pose``), the cameras
-see ``true_pose``, which a :class:`KinematicError` moves away from it. The model and its
-``robot:`` cell section: docs/DRIVERS.md.
-"""
+"""A simulated UR e-Series arm (``Robot`` protocol of ``drivers/base.py``) and a real arm's
+kinematic error: docs/DRIVERS.md (the model, ``measured_pose`` against ``true_pose``, the cell)."""
 
 from __future__ import annotations
 

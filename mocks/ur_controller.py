@@ -158,13 +158,10 @@ class Robot:
         self.dashboard: list[str] = []
 
     # ------------------------------------------------------------------------------- state
-    def tcp_pose(self) -> list[float]:
-        """The true TCP pose."""
-        return ur_pose_from_T(self.T_base_flange @ self.T_flange_tcp)
-
-    def reported_tcp_pose(self) -> list[float]:
-        """The TCP pose as the controller reports it (its kinematic model's error included)."""
-        return ur_pose_from_T(self.T_base_flange @ self.T_flange_tcp @ self.T_error)
+    def tcp_pose(self, reported: bool = False) -> list[float]:
+        """The true TCP pose, or as the controller reports it (its kinematic model's error in)."""
+        T_error = self.T_error if reported else np.eye(4)
+        return ur_pose_from_T(self.T_base_flange @ self.T_flange_tcp @ T_error)
 
     def _draw_error(self) -> None:
         T = np.eye(4)
@@ -198,7 +195,7 @@ class Robot:
         if name in ("actual_q", "target_q"):
             return list(self.q)
         if name in ("actual_TCP_pose", "target_TCP_pose"):
-            return self.reported_tcp_pose()
+            return self.tcp_pose(reported=True)
         if name in ("actual_TCP_speed", "target_TCP_speed"):
             return list(self.speed)
         if name == "robot_mode":
@@ -595,7 +592,7 @@ class FakeController:
         if cmd == "state":
             print(json.dumps({
                 "tcp_pose": r.tcp_pose(), "flange_pose": ur_pose_from_T(r.T_base_flange),
-                "reported_tcp_pose": r.reported_tcp_pose(),
+                "reported_tcp_pose": r.tcp_pose(reported=True),
                 "tcp": ur_pose_from_T(r.T_flange_tcp), "q": list(r.q),
                 "safety_mode": r.safety_mode, "robot_mode": r.robot_mode,
                 "runtime_state": r.runtime_state, "program": r.program,
