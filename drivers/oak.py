@@ -603,16 +603,6 @@ def _stored_from_full(full: Sequence[int], stored: Sequence[int]) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------ calibration writing
-def _reference(result: CalibrationResult) -> str:
-    if result.reference_camera:
-        return result.reference_camera
-    linked = {k.split("_")[1] for k in result.rig}
-    roots = [n for n in result.cameras if n not in linked]
-    if len(roots) != 1:
-        raise InputError("the result names no reference camera; set reference_camera")
-    return roots[0]
-
-
 def _T_cam_ref(result: CalibrationResult, name: str, ref: str) -> np.ndarray:
     if name == ref:
         return np.eye(4)
@@ -689,7 +679,7 @@ def oak_calibration_handler(
     for name, lens in (lens_positions or {}).items():
         if name in sock:
             handler.setLensPosition(sock[name], int(lens))
-    ref = _reference(result)
+    ref = result.reference_camera or next(iter(result.cameras))
     order = [n for n in (stereo or ()) if n in result.cameras]
     order += [n for n in result.cameras if n not in order]
     T_ref = {n: _T_cam_ref(result, n, ref) for n in order}
@@ -784,7 +774,7 @@ def projection_shift_px(
     ``{name: {rms_px, max_px}}`` over a ``grid`` x ``grid`` lattice of the reference camera's pixels
     back-projected to ``distance_m`` and projected with both models (``streams``: as in
     :func:`device_camera`)."""
-    ref = _reference(result)
+    ref = result.reference_camera or next(iter(result.cameras))
     cref = result.cameras[ref]
     lattice = np.linspace(0.05, 0.95, grid)
     u, v = np.meshgrid(lattice * (cref.width - 1), lattice * (cref.height - 1))

@@ -86,16 +86,9 @@ def _dh(theta: float, d: float, a: float, alpha_rot: np.ndarray) -> np.ndarray:
 _RX_P = Rx(np.pi / 2)
 _RX_M = Rx(-np.pi / 2)
 _RX_0 = np.eye(3)
-#: The nominal twists' rotations ``Rx(alpha_i)``.
+#: The nominal twists ``alpha_i`` (radians) and their rotations ``Rx(alpha_i)``.
+ALPHAS = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
 ALPHA_ROTS = (_RX_P, _RX_0, _RX_0, _RX_P, _RX_M, _RX_0)
-
-
-def dh_chain(theta: np.ndarray, d: np.ndarray, a: np.ndarray, alpha_rots: tuple) -> np.ndarray:
-    """The six joints' ``_dh`` transforms multiplied: the flange pose (4, 4)."""
-    T = np.eye(4)
-    for i in range(6):
-        T = T @ _dh(theta[i], d[i], a[i], alpha_rots[i])
-    return T
 
 
 def _check_q(q: np.ndarray) -> np.ndarray:
@@ -112,11 +105,22 @@ def _check_T(T: np.ndarray) -> np.ndarray:
     return T
 
 
-def fk(q: np.ndarray, model: URModel = UR5E, T_flange_tcp: np.ndarray | None = None) -> np.ndarray:
+def fk(
+    q: np.ndarray,
+    model: URModel = UR5E,
+    T_flange_tcp: np.ndarray | None = None,
+    dh_error: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
     """``T_base_tool`` (4, 4), metres, of joint angles ``q`` (6,) radians; ``T_flange_tcp`` (4, 4):
-    the TCP offset (None: the flange)."""
-    d = (model.d1, 0.0, 0.0, model.d4, model.d5, model.d6)
-    T = dh_chain(_check_q(q), d, (0.0, model.a2, model.a3, 0.0, 0.0, 0.0), ALPHA_ROTS)
+    the TCP offset (None: the flange); ``dh_error``: ``(d_d, d_a, d_alpha)`` (6,) each, metres and
+    radians, added to the model's DH lengths and twists (a real arm, ``mocks/robot.py``)."""
+    d_d, d_a, d_alpha = (0.0, 0.0, None) if dh_error is None else dh_error
+    d = np.array([model.d1, 0.0, 0.0, model.d4, model.d5, model.d6]) + d_d
+    a = np.array([0.0, model.a2, model.a3, 0.0, 0.0, 0.0]) + d_a
+    rots = ALPHA_ROTS if d_alpha is None else tuple(Rx(v) for v in ALPHAS + d_alpha)
+    T = np.eye(4)
+    for i, theta in enumerate(_check_q(q)):
+        T = T @ _dh(theta, d[i], a[i], rots[i])
     return T if T_flange_tcp is None else T @ T_flange_tcp
 
 

@@ -1,9 +1,5 @@
-"""Simulated cameras: a ``CameraRig`` that renders the target at the true poses of the cell.
-
-Presets: ``single_camera()`` (R1's camera, 1280 x 800, fx = fy = 880) and ``oak_d_like()`` (two
-OV9282 mono cameras 75 mm apart and an IMX378 colour camera between them, each with its own
-intrinsics, mild distortion and sub-degree misalignment; ``oak_d_like_extrinsics()``).
-"""
+"""Simulated cameras: a ``CameraRig`` that renders the target at the true poses of the cell, and
+the presets ``single_camera()`` (R1's camera) and ``oak_d_like()`` (an OAK-D-like head)."""
 
 from __future__ import annotations
 
@@ -82,35 +78,22 @@ def single_camera(name: str = "cam", **overrides: float | bool | Photo) -> SimCa
     )
 
 
+#: The OAK-D-like head's cameras (two OV9282 mono, an IMX378 colour between them): image size
+#: (px), (fx, fy, cx, cy) px and distortion (k1 k2 p1 p2 k3), each its own.
+OAK_D_LIKE = {
+    "left": ((1280, 800), (881.2, 880.6, 643.1, 401.7), (-0.052, 0.021, 2e-4, -1e-4, 0.0)),
+    "right": ((1280, 800), (879.8, 879.5, 636.4, 398.9), (-0.049, 0.018, -1e-4, 3e-4, 0.0)),
+    "rgb": ((1920, 1080), (1402.5, 1401.8, 957.3, 543.6), (0.071, -0.112, 4e-4, 2e-4, 0.03)),
+}
+
+
 def oak_d_like(**overrides: float | bool | Photo) -> list[SimCamera]:
     """An OAK-D-like head: mono "left", "right" (1280 x 800) and colour "rgb" (1920 x 1080); keyword
     overrides (blur, noise, exposure) apply to all three."""
     rgb = {**overrides, "colour": True}
     return [
-        SimCamera(
-            "left",
-            1280,
-            800,
-            K_matrix(881.2, 880.6, 643.1, 401.7),
-            np.array([-0.052, 0.021, 2e-4, -1e-4, 0.0]),
-            **overrides,
-        ),
-        SimCamera(
-            "right",
-            1280,
-            800,
-            K_matrix(879.8, 879.5, 636.4, 398.9),
-            np.array([-0.049, 0.018, -1e-4, 3e-4, 0.0]),
-            **overrides,
-        ),
-        SimCamera(
-            "rgb",
-            1920,
-            1080,
-            K_matrix(1402.5, 1401.8, 957.3, 543.6),
-            np.array([0.071, -0.112, 4e-4, 2e-4, 0.03]),
-            **rgb,
-        ),
+        SimCamera(n, *size, K_matrix(*k), np.array(d), **(rgb if n == "rgb" else overrides))
+        for n, (size, k, d) in OAK_D_LIKE.items()
     ]
 
 

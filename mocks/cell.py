@@ -31,8 +31,6 @@ def truth_block(cfg: Any, T_target: np.ndarray | None = None) -> dict[str, Any]:
     """The session's ``simulation:`` block (result-file names) of a simulated cell ``cfg``;
     ``T_target`` (4, 4): this run's target pose (default: the cell's, before jitter)."""
     sim = cfg.simulation
-    if sim is None:
-        return {}
     frames = MOUNTS[cfg.mount]  # the result file's names
     ref = cfg.reference_camera
     out: dict[str, Any] = {

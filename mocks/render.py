@@ -4,7 +4,7 @@ of ``solver/camera.py``, so it agrees with ``project``), optionally photograph-l
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from typing import TYPE_CHECKING
 
@@ -38,23 +38,24 @@ SUBSAMPLES = 3  # n: n x n sub-samples per pixel
 TEXELS_PER_SQUARE = (16, 23, 32, 45, 64, 90, 128, 181, 256)
 TEXEL_FOOTPRINTS = 2.0
 _OUTSIDE = -1.0e5  # texture coordinate of a ray that hits the plane behind the camera
+DEFAULT_TAGS = "DICT_APRILTAG_36h11"  # a tag target's dictionary when it names none
 
 
 def margin_m(target: Target) -> float:
     """Width of the white margin around the printed pattern, metres."""
     if target.kind in ("apriltag", "aprilgrid"):
         d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, target.dictionary))
-        return _tag_margin_m(target.kind, target.tag_size_m, target.tag_spacing, d.markerSize + 2)
+        return _tag_margin_m(target, d.markerSize + 2)
     return target.square_size_m
 
 
-def _tag_margin_m(kind: str, tag_size_m: float, tag_spacing: float, cells: int) -> float:
+def _tag_margin_m(tag: Target, cells: int) -> float:
     """A tag print's white margin, metres: one cell of a lone tag (``cells`` across it), as a
     tag is printed from its family's images; a quarter of a tag beyond an AprilGrid's outer
     corner squares (``tag_spacing`` of a tag wide)."""
-    if kind == "aprilgrid":
-        return (0.25 + tag_spacing) * tag_size_m
-    return tag_size_m / cells
+    if tag.kind == "aprilgrid":
+        return (0.25 + tag.tag_spacing) * tag.tag_size_m
+    return tag.tag_size_m / cells
 
 
 def unit_m(target: Target) -> float:
@@ -91,52 +92,27 @@ def _check_target(target: Target) -> None:
 
 
 def _texture_of(target: Target, texels_per_unit: int) -> _Texture:
-    if target.kind in ("apriltag", "aprilgrid"):
-        return _tag_texture(
-            target.kind,
-            target.tag_size_m,
-            target.tag_ids,
-            tuple(map(tuple, np.round(target.points_m[::4, :2], 12)))
-            if target.kind == "apriltag"
-            else (),
-            target.tag_cols,
-            target.tag_rows,
-            target.tag_spacing,
-            target.dictionary or "DICT_APRILTAG_36h11",
-            texels_per_unit,
-        )
-    return _texture(
-        target.kind,
-        target.squares_x,
-        target.squares_y,
-        target.square_size_m,
-        target.marker_size_m,
-        target.dictionary,
-        texels_per_unit,
-    )
+    """The print's texture, cached by its description (of its points only a tag set's places)."""
+    printed = replace(target, points_m=None)  # hashable
+    if target.kind == "aprilgrid":
+        return _tag_texture(printed, (), texels_per_unit)
+    if target.kind == "apriltag":
+        origins = tuple(map(tuple, np.round(target.points_m[::4, :2], 12)))
+        return _tag_texture(printed, origins, texels_per_unit)
+    return _texture(printed, texels_per_unit)
 
 
 @lru_cache(maxsize=8)
 def _tag_texture(
-    kind: str,
-    tag_size_m: float,
-    tag_ids: tuple[int, ...],
-    tag_origins_m: tuple[tuple[float, float], ...],
-    tag_cols: int,
-    tag_rows: int,
-    tag_spacing: float,
-    dictionary: str,
-    texels_per_tag: int,
+    tag: Target, tag_origins_m: tuple[tuple[float, float], ...], texels_per_tag: int
 ) -> _Texture:
-    """Tags printed by their dictionary bits (and an AprilGrid's corner squares). The print is
-    piecewise constant on the rectangles between its edges; each texel is its exact area
-    average over them (tag edges need not fall on texel boundaries)."""
-    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
+    kind, tag_ids, tag_cols, tag_rows = tag.kind, tag.tag_ids, tag.tag_cols, tag.tag_rows
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, tag.dictionary or DEFAULT_TAGS))
     cells = d.markerSize + 2
-    s = tag_size_m
+    s = tag.tag_size_m
     tpm = texels_per_tag / s
-    gap = tag_spacing * s
-    mg = _tag_margin_m(kind, s, tag_spacing, cells)
+    gap = tag.tag_spacing * s
+    mg = _tag_margin_m(tag, cells)
     if kind == "aprilgrid":
         pitch = s + gap
         width, height = tag_cols * pitch - gap, tag_rows * pitch - gap
@@ -188,25 +164,15 @@ def _tag_texture(
 
 
 @lru_cache(maxsize=8)
-def _texture(
-    kind: str,
-    squares_x: int,
-    squares_y: int,
-    square_size_m: float,
-    marker_size_m: float,
-    dictionary: str,
-    texels_per_square: int,
-) -> _Texture:
+def _texture(board: Target, texels_per_square: int) -> _Texture:
     """The printed board with a margin of m texels: texel column j covers board x in
     [(j - m) / tpm, (j - m + 1) / tpm) (tpm texels per metre), likewise rows and y."""
     tps = texels_per_square
     m = tps  # margin in texels: one square
+    squares_x, squares_y = board.squares_x, board.squares_y
     w, h = squares_x * tps + 2 * m, squares_y * tps + 2 * m
-    if kind == "charuco":
-        board = charuco_board(
-            Target.charuco(squares_x, squares_y, square_size_m, marker_size_m, dictionary)
-        )
-        img = board.generateImage((w, h), marginSize=m, borderBits=1)
+    if board.kind == "charuco":
+        img = charuco_board(board).generateImage((w, h), marginSize=m, borderBits=1)
         binary = img.astype(np.float32) / 255.0
     else:
         r, c = np.divmod(np.arange(h * w), w)
@@ -215,7 +181,7 @@ def _texture(
         black = inside & ((sq_r + sq_c) % 2 == 0)
         binary = np.where(black, 0.0, 1.0).astype(np.float32).reshape(h, w)
     image = (BLACK + (WHITE - BLACK) * binary).astype(np.float32)
-    return _Texture(image, tps / square_size_m)
+    return _Texture(image, tps / board.square_size_m)
 
 
 @lru_cache(maxsize=4)
@@ -414,13 +380,7 @@ def _sensor(
 @dataclass(frozen=True)
 class Photo:
     """Photograph-like imaging; the defaults are an industrial colour camera with a fixed-focus lens
-    at f/4 under workshop light.
-
-    ``aperture_mm``: entrance pupil (0: no defocus); ``focus_distance_m`` (None: 10 % beyond the
-    board's nearest point); ``pixel_pitch_um``; ``chromatic_red``, ``chromatic_blue``: radial scale
-    of those images against green; ``full_well_e``: shot noise (0: none); ``bayer``: RGGB mosaic and
-    OpenCV demosaicing; ``jpeg_quality`` (0: none); ``vignetting``, ``gradient``: uneven light;
-    ``glare_spots`` of ``glare_radius`` (of the diagonal) and ``glare_strength`` (of full scale).
+    at f/4 under workshop light. The fields, their units and defaults: docs/FORMATS.md (``photo``).
     """
 
     aperture_mm: float = 2.0
@@ -442,19 +402,6 @@ class Photo:
             raise InputError(f"jpeg_quality must be 0 (none) or 1..100, got {self.jpeg_quality}")
         if min(self.aperture_mm, self.pixel_pitch_um, self.full_well_e, self.glare_radius) < 0:
             raise InputError("aperture_mm, pixel_pitch_um, full_well_e, glare_radius must be >= 0")
-
-
-CLEAN_PHOTO = Photo(
-    aperture_mm=0.0,
-    chromatic_red=0.0,
-    chromatic_blue=0.0,
-    full_well_e=0.0,
-    bayer=False,
-    jpeg_quality=0,
-    vignetting=0.0,
-    gradient=0.0,
-    glare_spots=0,
-)  # the photo pipeline with every effect off (equals the clean renderer but for the noise draw)
 
 
 def defocus_sigma_px(photo: Photo, f_px: float, inv_z: np.ndarray, inv_focus: float) -> np.ndarray:

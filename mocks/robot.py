@@ -1,9 +1,5 @@
-"""A simulated UR e-Series arm (``Robot`` protocol of ``drivers/base.py``).
-
-The controller reports the nominal model's pose of the joints (``measured_pose``), the cameras
-see ``true_pose``, which a :class:`KinematicError` moves away from it. The model and its
-``robot:`` cell section: docs/DRIVERS.md.
-"""
+"""A simulated UR e-Series arm (``Robot`` protocol of ``drivers/base.py``) and a real arm's
+kinematic error: docs/DRIVERS.md (the model, ``measured_pose`` against ``true_pose``, the cell)."""
 
 from __future__ import annotations
 
@@ -18,7 +14,7 @@ from slidecal.drivers.base import checked_move
 from slidecal.drivers.ur_kinematics import trapezoid_time_s
 from slidecal.drivers.ur_pose import T_from_ur_pose, describe
 from slidecal.solver.errors import HardwareFault, InputError
-from slidecal.solver.geometry import R_from_rvec, Rx, T_from_Rt, rvec_from_R
+from slidecal.solver.geometry import R_from_rvec, T_from_Rt, rvec_from_R
 
 #: Straight lines are checked at least every 5 mm and every 1 deg of tool rotation.
 STEP_M = 0.005
@@ -128,12 +124,8 @@ class KinematicError:
     ) -> np.ndarray:
         """The true ``T_base_tool`` (4, 4) of the arm at joints ``q`` (without repeatability)."""
         q = np.asarray(q, dtype=float)
-        theta = q + self.joint_errors(q)
-        d = np.array([model.d1, 0.0, 0.0, model.d4, model.d5, model.d6]) + self.d_d
-        a = np.array([0.0, model.a2, model.a3, 0.0, 0.0, 0.0]) + self.d_a
-        alpha = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0]) + self.d_alpha
-        T = urk.dh_chain(theta, d, a, tuple(Rx(v) for v in alpha))
-        return T if T_flange_tcp is None else T @ T_flange_tcp
+        dh_error = (self.d_d, self.d_a, self.d_alpha)
+        return urk.fk(q + self.joint_errors(q), model, T_flange_tcp, dh_error)
 
 
 class SimulatedUR:

@@ -1,6 +1,6 @@
 """Synthetic scenes with ground truth: the one place every set-up of docs/SETUPS.md is built.
 
-Homography-level scenes for the linear method (:func:`make_group`, :func:`s5_scene`), calibration
+Homography-level scenes for the stereo method (:func:`s5_scene`), calibration
 problems with their truth (:class:`Scenario`: S1-S4, R1 and its real-arm variants, rigs, classic
 hand-eye sessions), and the scenes and session edits the studies and tests share. Board frame:
 z = 0 plane; S1-S5 in the paper's length units ("l.u."), R1 in metres. No images here: the
@@ -13,15 +13,14 @@ import shutil
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Literal
 
-import cv2
 import numpy as np
 import yaml
 
 from slidecal.drivers import ur_kinematics as urk
+from slidecal.drivers.ur_pose import rpy_deg
 from slidecal.mocks import cell
-from slidecal.mocks.camera import oak_d_like, oak_d_like_extrinsics, single_camera
+from slidecal.mocks.camera import SimCamera, oak_d_like, oak_d_like_extrinsics, single_camera
 from slidecal.mocks.render import render_target
 from slidecal.mocks.robot import KinematicError
 from slidecal.solver.camera import K_matrix, project
@@ -59,7 +58,6 @@ NO_DISTORTION = (False, False, False, False, False)
 PAPER_SIZE_PX = (300, 240)
 K_S1 = K_matrix(400.0, 400.0, 150.0, 120.0)
 K_S2 = K_matrix(400.0, 440.0, 150.0, 120.0)
-K_SKEW = np.array([[400.0, 3.0, 150.0], [0.0, 440.0, 120.0], [0.0, 0.0, 1.0]])
 D0 = np.diag([1.0, -1.0, -1.0])  # camera looking at the board along -z (docs/SETUPS.md)
 
 
@@ -106,52 +104,11 @@ def centre_on_axis(R_cam_board: np.ndarray, distance: float = 100.0) -> np.ndarr
     return -distance * (R_cam_board.T @ np.array([0.0, 0.0, 1.0]))
 
 
-def H_true(K: np.ndarray, R_cam_board: np.ndarray, C: np.ndarray) -> np.ndarray:
-    """``K [r1 r2 t]`` (3, 3) with ``t = -R C`` (lambda = 1)."""
-    t = -R_cam_board @ C
-    return K @ np.column_stack([R_cam_board[:, 0], R_cam_board[:, 1], t])
-
-
 def plane_pixels(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Pixels (..., N, 2) of board points ``xy`` (N, 2) through homographies ``H`` (..., 3, 3)."""
     X = np.column_stack([xy, np.ones(len(xy))])
     u = np.einsum("...ij,nj->...ni", H, X)
     return u[..., :2] / u[..., 2:3]
-
-
-@dataclass
-class Group:
-    """One orientation group: true pose, displacements (board frame) and noisy observations."""
-
-    R_cam_board: np.ndarray
-    C0: np.ndarray
-    T_board: np.ndarray  # (n, 3) camera displacement since frame 0, board frame
-    observations: list
-    H: np.ndarray  # (n, 3, 3) true homographies, common scale
-
-
-def make_group(
-    K: np.ndarray,
-    R_cam_board: np.ndarray,
-    C0: np.ndarray,
-    T_board: np.ndarray,
-    rng: np.random.Generator,
-    sigma_px: float = 0.0,
-    xy: np.ndarray | None = None,
-) -> Group:
-    """Observations of the board from ``C0 + T_board[k]`` with i.i.d. pixel noise ``sigma_px``."""
-    xy = board_xy() if xy is None else xy
-    T_board = np.asarray(T_board, dtype=float)
-    Hs = np.array([H_true(K, R_cam_board, C0 + T) for T in T_board])
-    obs = [(xy, px + sigma_px * rng.normal(size=px.shape)) for px in plane_pixels(Hs, xy)]
-    return Group(R_cam_board, C0, T_board, obs, Hs)
-
-
-def line_steps(direction: np.ndarray, n: int, step: float = 5.0) -> np.ndarray:
-    """Displacements (n, 3): 0, step, 2 step, ... along ``direction`` (normalised)."""
-    d = np.asarray(direction, dtype=float)
-    d = d / np.linalg.norm(d)
-    return np.arange(n)[:, None] * step * d
 
 
 def s1_geometry(theta_deg: float) -> tuple[np.ndarray, np.ndarray]:
@@ -165,37 +122,6 @@ def s2_geometry() -> tuple[np.ndarray, np.ndarray]:
     """S2/S3's ``R_cam_board`` (30 deg about x then 30 about y) and first centre."""
     R = tilt_R(30.0, 30.0)
     return R, centre_on_axis(R)
-
-
-def s1_group(theta_deg: float, n: int, rng: np.random.Generator, sigma_px: float = 0.0) -> Group:
-    """S1: rotated by theta about the board's y axis, translated toward the grid centre."""
-    R, C0 = s1_geometry(theta_deg)
-    return make_group(K_S1, R, C0, line_steps(-C0, n), rng, sigma_px)
-
-
-def s2_group(
-    n: int, rng: np.random.Generator, sigma_px: float = 0.0, K: np.ndarray = K_S2
-) -> Group:
-    """S2/S3: 30 deg about x then 30 about y, translated along the board normal toward it."""
-    R, C0 = s2_geometry()
-    return make_group(K, R, C0, line_steps([0.0, 0.0, -1.0], n), rng, sigma_px)
-
-
-def robot_poses(
-    group: Group, T_base_fixed: np.ndarray, T_tool_x: np.ndarray, mount: str
-) -> np.ndarray:
-    """Measured ``T_base_tool`` (n, 4, 4) of a group's frames: eye-in-hand with ``T_base_fixed =
-    T_base_board`` and ``T_tool_x = T_tool_cam``, eye-to-hand with ``T_base_cam`` and
-    ``T_tool_board`` (the displacement is then a board motion)."""
-    out = []
-    for T in group.T_board:
-        T_board_cam = T_from_Rt(group.R_cam_board.T, group.C0 + T)
-        if mount == "eye_in_hand":
-            out.append(T_base_fixed @ T_board_cam @ np.linalg.inv(T_tool_x))
-        else:
-            T_base_board = T_base_fixed @ np.linalg.inv(T_board_cam)
-            out.append(T_base_board @ np.linalg.inv(T_tool_x))
-    return np.array(out)
 
 
 # -- calibration problems: S1-S4 ----------------------------------------------------------------
@@ -242,18 +168,15 @@ def _paper_scenario(
     told = centres if presumed is None else presumed
     robot = knowledge == "robot"
     T_base_board = T_from_Rt(R_from_rvec(np.array([0.3, -0.2, 0.5])), np.array([10.0, -20.0, 5.0]))
-    frames = []
-    for k, C in enumerate(centres):
-        T_cam_board = T_from_Rt(R_cam_board, -R_cam_board @ C)
-        det = projected_detection(K, dist, T_cam_board, target, PAPER_SIZE_PX, sigma_px, rng)
-        if robot:
-            T_base_cam_told = T_base_board @ inv_T(T_from_Rt(R_cam_board, -R_cam_board @ told[k]))
-            frames.append(Frame(k, {"cam": det}, T_base_tool=T_base_cam_told))
-            continue
-        m = told[k] - told[0]
+    views = [T_from_Rt(R_cam_board, -R_cam_board @ C) for C in centres]
+    poses = [T_base_board @ inv_T(T_from_Rt(R_cam_board, -R_cam_board @ C)) for C in told]
+    cams = [SimCamera("cam", *PAPER_SIZE_PX, K, dist)]
+    frames = _frames(views, poses, target, sigma_px, rng, cams=cams, margin_px=0.0)
+    for k, C in enumerate(() if robot else told):  # motions in the board frame, no robot poses
+        m = C - told[0]
         if knowledge == "board_direction":
             m = m / np.linalg.norm(m) if np.linalg.norm(m) > 0 else np.zeros(3)
-        frames.append(Frame(k, {"cam": det}, motion_board=m, group=0))
+        frames[k] = Frame(k, frames[k].detections, motion_board=m, group=0)
     problem = CalibrationProblem(
         target,
         (CameraSpec("cam", *PAPER_SIZE_PX),),
@@ -267,8 +190,7 @@ def _paper_scenario(
         truth = ModelState(*cam, np.eye(4)[None], T_base_board, np.zeros(len(centres)))
         return Scenario(problem, truth, sigma_px, np.eye(4), T_base_board)
     s = np.array([np.linalg.norm(c - centres[0]) for c in centres])
-    T_cam_board_0 = T_from_Rt(R_cam_board, -R_cam_board @ centres[0])
-    return Scenario(problem, ModelState(*cam, T_cam_board_0[None], np.eye(4), s), sigma_px)
+    return Scenario(problem, ModelState(*cam, views[0][None], np.eye(4), s), sigma_px)
 
 
 def s1(
@@ -410,16 +332,9 @@ def s5_rig(
     Ts = s5_T_right_board()
     sig = {"left": left_factor * sigma_px, "right": sigma_px}
     K = {"left": S5_K_LEFT, "right": S5_K_RIGHT}
-    T_cam_right = {"left": S5_T_LEFT_RIGHT, "right": np.eye(4)}
-    frames = []
-    for k, T in enumerate(Ts):
-        dets = {
-            c: projected_detection(
-                K[c], np.zeros(5), T_cam_right[c] @ T, target, PAPER_SIZE_PX, sig[c], rng
-            )
-            for c in ("left", "right")
-        }
-        frames.append(Frame(k, dets))
+    cams = [SimCamera(c, *PAPER_SIZE_PX, K[c], np.zeros(5)) for c in K]
+    T_cam_right = {"left": S5_T_LEFT_RIGHT}
+    frames = _frames(Ts, [None] * len(Ts), target, sig, rng, cams=cams, T_cam_ref=T_cam_right)
     problem = CalibrationProblem(
         target,
         (CameraSpec("left", *PAPER_SIZE_PX), CameraSpec("right", *PAPER_SIZE_PX)),
@@ -441,8 +356,8 @@ def s5_rig(
 
 
 # -- R1: a UR5e-class cell, eye-in-hand or eye-to-hand ------------------------------------------
-R1_SIZE_PX = (1280, 800)
-R1_K, R1_DIST = single_camera().K, single_camera().dist
+R1_CAM = single_camera()
+R1_SIZE_PX, R1_K, R1_DIST = (R1_CAM.width, R1_CAM.height), R1_CAM.K, R1_CAM.dist
 R1_T_TOOL_CAM = T_from_Rt(
     R_from_rvec(np.radians([1.5, -2.0, 90.0])), np.array([0.035, -0.06, 0.09])
 )
@@ -513,14 +428,13 @@ def r1_scenario(
     options: ModelOptions | None,
     sigma_px: float,
     T_base_board: np.ndarray,
-    dist: np.ndarray = R1_DIST,
+    cam: SimCamera = R1_CAM,
     T_base_tool_true: np.ndarray | None = None,
     T_tool_board: np.ndarray = R1_T_TOOL_BOARD,
-    K: np.ndarray = R1_K,
 ) -> Scenario:
-    """The scenario of R1's camera (``K``, ``dist``) with these ``frames``: the problem, the
-    truth in the solver's parametrisation and the hand-eye and target poses of the mount (the
-    target on the tool at ``T_tool_board`` eye-to-hand)."""
+    """The scenario of R1's camera (or ``cam``) with these ``frames``: the problem, the truth in
+    the solver's parametrisation and the hand-eye and target poses of the mount (the target on
+    the tool at ``T_tool_board`` eye-to-hand)."""
     problem = CalibrationProblem(
         target,
         (CameraSpec("cam", *R1_SIZE_PX),),
@@ -532,8 +446,8 @@ def r1_scenario(
     T_hand_eye = R1_T_TOOL_CAM if eye_in_hand else R1_T_BASE_CAM
     T_target = T_base_board if eye_in_hand else T_tool_board
     truth = ModelState(
-        {"cam": K},
-        {"cam": np.array(dist, dtype=float)},
+        {"cam": cam.K},
+        {"cam": cam.dist},
         {},
         inv_T(T_hand_eye)[None],
         T_target,
@@ -568,29 +482,38 @@ def _view(
     return inv_T(R1_T_BASE_CAM) @ T_base_tool @ T_tool_board
 
 
-def _r1_frames(
+def _frames(
     views: Sequence[np.ndarray],
-    told: Sequence[np.ndarray],
+    told: Sequence[np.ndarray | None],
     target: Target,
-    sigma_px: float,
+    sigma_px: float | Mapping[str, float],
     rng: np.random.Generator,
     noise: tuple[float, float] = (0.0, 0.0),
     detect: ImageModel | None = None,
     bow_m: np.ndarray | None = None,
-    dist: np.ndarray = R1_DIST,
-    K: np.ndarray = R1_K,
+    cams: Sequence[SimCamera] = (R1_CAM,),
+    T_cam_ref: Mapping[str, np.ndarray] | None = None,
+    margin_px: float = 2.0,
 ) -> list[Frame]:
-    """Per camera pose ``views[k]`` (``T_cam_board``), what R1's camera (``K``) finds of ``target``
-    (``detect``'s image model, the board bowed by ``bow_m``; or the projected points 2 px inside
-    the image with ``sigma_px`` noise), then the robot pose ``told[k]`` with ``noise`` (metres,
-    degrees) as the arm measures it."""
+    """Per pose ``views[k]`` (``T_cam_board`` of the first camera; camera ``c``'s is
+    ``T_cam_ref[c]`` times it), what each of ``cams`` (default R1's) finds of ``target``
+    (``detect``'s image model, the board bowed by ``bow_m``; or the projected points
+    ``margin_px`` inside the image with ``sigma_px`` noise, one or per camera), then the robot
+    pose ``told[k]`` with ``noise`` (metres, degrees) as the arm measures it."""
+    sig = sigma_px if isinstance(sigma_px, Mapping) else {c.name: sigma_px for c in cams}
     frames = []
     for k, (T_cam_board, T_base_tool) in enumerate(zip(views, told, strict=True)):
-        if detect is not None:
-            det = detect(T_cam_board, rng, np.zeros(2) if bow_m is None else bow_m)
-        else:
-            det = projected_detection(K, dist, T_cam_board, target, R1_SIZE_PX, sigma_px, rng, 2.0)
-        frames.append(Frame(k, {"cam": det}, T_base_tool=_perturb(T_base_tool, rng, *noise)))
+        dets = {}
+        for c in cams:
+            T = (T_cam_ref or {}).get(c.name, np.eye(4)) @ T_cam_board
+            if detect is not None:
+                dets[c.name] = detect(T, rng, np.zeros(2) if bow_m is None else bow_m)
+            else:
+                size, sigma = (c.width, c.height), sig[c.name]
+                dets[c.name] = projected_detection(
+                    c.K, c.dist, T, target, size, sigma, rng, margin_px
+                )
+        frames.append(Frame(k, dets, T_base_tool=_perturb(T_base_tool, rng, *noise)))
     return frames
 
 
@@ -613,8 +536,9 @@ def r1(
     views = [_view(T, T_base_board) for T in poses]
     told = poses if eye_in_hand else [_tool_pose(T, T_base_board, False) for T in views]
     noise = (robot_noise_m, robot_noise_deg)
-    frames = _r1_frames(views, told, target, sigma_px, rng, noise, dist=dist)
-    return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board, dist)
+    cam = replace(R1_CAM, dist=dist)
+    frames = _frames(views, told, target, sigma_px, rng, noise, cams=[cam])
+    return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board, cam)
 
 
 #: A wide M12 lens on R1's sensor (about 100 deg across, 120 deg diagonal): OpenCV's rational model
@@ -640,8 +564,9 @@ def wide_r1(
         camera_board_poses(plan, 4, target, (0.15, 0.25), (20.0, 40.0), aim_spread_m=0.12), plan, 5
     )
     told = [_tool_pose(T, T_base_board, True) for T in views]
-    frames = _r1_frames(views, told, target, sigma_px, rng, dist=dist, K=WIDE_K)
-    return r1_scenario(target, frames, True, options, sigma_px, T_base_board, dist, K=WIDE_K)
+    cam = replace(R1_CAM, K=WIDE_K, dist=dist)
+    frames = _frames(views, told, target, sigma_px, rng, cams=[cam])
+    return r1_scenario(target, frames, True, options, sigma_px, T_base_board, cam)
 
 
 # -- a real arm: systematic kinematic error (REALITY: accuracy is not repeatability) ------------
@@ -715,7 +640,7 @@ def r1_real_arm(
         planned = np.stack([_tool_pose(_view(T, T_base_board), T_base_board, False) for T in poses])
     true = real_arm_poses(planned, rng, arm_mm, arm_deg)
     views = [_view(T, T_base_board, eye_in_hand) for T in true]
-    frames = _r1_frames(views, planned, seen, sigma_px, rng, detect=detect, bow_m=bow)
+    frames = _frames(views, planned, seen, sigma_px, rng, detect=detect, bow_m=bow)
     return r1_scenario(
         target, frames, eye_in_hand, options, sigma_px, T_base_board, T_base_tool_true=true
     )
@@ -759,28 +684,8 @@ def symmetric_board_r1(
         _view(T, T_base_board) @ (roll if k in rolled else np.eye(4)) for k, T in enumerate(tools)
     ]
     told = [_tool_pose(T, T_base_board, False) for T in views]
-    frames = _r1_frames(views, told, target, sigma_px, rng, (robot_noise_m, robot_noise_deg))
+    frames = _frames(views, told, target, sigma_px, rng, (robot_noise_m, robot_noise_deg))
     return r1_scenario(target, frames, False, None, sigma_px, T_base_board)
-
-
-#: Half of R1's camera (640 x 400): recorded datasets render faster and keep R1's geometry
-R1_HALF = replace(single_camera(), width=640, height=400, K=K_matrix(440.0, 440.0, 319.75, 199.75))
-
-
-def recorded_dataset(directory: str | Path, s: Scenario, rng: np.random.Generator) -> np.ndarray:
-    """Scenario ``s``'s frames as another tool records them: each view of its target at the
-    frame's ``T_base_tool`` (its truth's hand-eye and target pose) rendered by ``R1_HALF`` as
-    ``1.png``, ``2.png``, ... in ``directory``. Returns the ``T_base_tool`` (F, 4, 4) of the
-    images, metres, for writing in any convention."""
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    T = np.stack([f.T_base_tool for f in s.problem.frames])
-    X, Y = s.truth.X[0], s.truth.Y  # T_cam_tool, T_base_board; eye-to-hand T_cam_base, T_tool_board
-    for k, T_bt in enumerate(T):
-        T_cam_board = X @ (inv_T(T_bt) if s.problem.mount == "eye_in_hand" else T_bt) @ Y
-        img = render_target(s.problem.target, R1_HALF, T_cam_board, rng)
-        cv2.imwrite(str(directory / f"{k + 1}.png"), img)
-    return T
 
 
 def real_board_of(target: Target, rng: np.random.Generator) -> tuple[Target, Target, np.ndarray]:
@@ -841,17 +746,10 @@ def oak_rig(
     T_tool_left = R1_T_TOOL_CAM @ T_from_Rt(Ry(np.radians(view_offset_deg)), np.zeros(3))
     target = r1_target()
     T_base_board, poses = r1_poses()
-    frames = []
-    for k, T_base_tool in enumerate(poses):
-        T_left_board = inv_T(T_base_tool @ T_tool_left) @ T_base_board
-        dets = {}
-        for c in cameras:
-            s = sims[c]
-            dets[c] = projected_detection(
-                s.K, s.dist, extr[c] @ T_left_board, target, (s.width, s.height), sig[c], rng, 2.0
-            )
-        measured = _perturb(T_base_tool, rng, robot_noise_m, robot_noise_deg)
-        frames.append(Frame(k, dets, T_base_tool=measured))
+    views = [inv_T(T @ T_tool_left) @ T_base_board for T in poses]
+    noise = (robot_noise_m, robot_noise_deg)
+    cams = [sims[c] for c in cameras]
+    frames = _frames(views, poses, target, sig, rng, noise, cams=cams, T_cam_ref=extr)
     problem = CalibrationProblem(
         target,
         tuple(sims[c].spec for c in cameras),
@@ -872,35 +770,6 @@ def oak_rig(
     return RigScenario(
         problem, truth, sig["left"], T_tool_left, T_base_board, sigma_by_camera_px=sig
     )
-
-
-Hide = Literal["none", "empty", "half"]
-
-
-def hide_views(
-    problem: CalibrationProblem, hidden: Mapping[tuple[int, str], Hide]
-) -> CalibrationProblem:
-    """The problem with views removed or cut, by (frame index, camera): ``"none"`` (no detection),
-    ``"empty"`` (no corners) or ``"half"`` (the corners whose board x is below their median)."""
-    frames = list(problem.frames)
-    for (fi, cam), how in hidden.items():
-        f = frames[fi]
-        dets = dict(f.detections)
-        if cam not in dets:
-            raise InputError(f"frame {fi} has no detection of camera {cam!r} to hide")
-        if how == "none":
-            del dets[cam]
-        elif how == "empty":
-            dets[cam] = Detection(np.zeros(0, dtype=int), np.zeros((0, 2)))
-        elif how == "half":
-            d = dets[cam]
-            x = problem.target.points_m[d.ids, 0]
-            keep = x < np.median(x)
-            dets[cam] = Detection(d.ids[keep], d.px[keep])
-        else:
-            raise InputError(f"unknown way to hide a view {how!r}; use none, empty or half")
-        frames[fi] = replace(f, detections=dets)
-    return replace(problem, frames=tuple(frames))
 
 
 def centre_only(problem: CalibrationProblem, frac: float) -> CalibrationProblem:
@@ -997,7 +866,7 @@ def classic_real_arm(
     true = real_arm_poses(planned, rng, arm_mm, arm_deg)
     true[:, :3, 3] *= 1.0 + arm_scale
     views = [_view(T, T_base_board, eye_in_hand) for T in true]
-    frames = _r1_frames(views, planned, target, sigma_px, rng, detect=detect)
+    frames = _frames(views, planned, target, sigma_px, rng, detect=detect)
     return r1_scenario(
         target, frames, eye_in_hand, None, sigma_px, T_base_board, T_base_tool_true=true
     )
@@ -1054,7 +923,7 @@ def tag_real_arm(
     planned_a = np.stack(planned)
     true = real_arm_poses(planned_a, rng, arm_mm, arm_deg)
     views = [_view(T, np.eye(4), False, TAG_T_TOOL_TAG) for T in true]
-    frames = _r1_frames(views, planned_a, target, sigma_px, rng, detect=detect)
+    frames = _frames(views, planned_a, target, sigma_px, rng, detect=detect)
     return r1_scenario(
         target,
         frames,
@@ -1087,20 +956,15 @@ def classic(
     the measured poses. ``T_cam_board`` (n, 4, 4): fixed views, ``rng`` then drawing only the noise.
     """
     target = target or r1_target()
-    dist = R1_DIST.copy() if distortion is None else np.asarray(distortion, dtype=float)
+    cam = R1_CAM if distortion is None else replace(R1_CAM, dist=distortion)
     if T_cam_board is None:
         T_cam_board = camera_board_poses(rng, n_frames, target)
     T_cb = _translated(np.asarray(T_cam_board, dtype=float), rng, per_orientation)
     T_base_board = r1_poses()[0]
     told = [_tool_pose(T, T_base_board, eye_in_hand) for T in T_cb]
     noise = (robot_noise_m, robot_noise_deg)
-    frames = _r1_frames(T_cb, told, target, sigma_px, rng, noise, dist=dist)
-    return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board, dist)
-
-
-def board_in_view(s: Scenario) -> np.ndarray:
-    """Per frame, the number of target points the camera saw (for checking a built scenario)."""
-    return np.array([len(f.detections["cam"].ids) for f in s.problem.frames])
+    frames = _frames(T_cb, told, target, sigma_px, rng, noise, cams=[cam])
+    return r1_scenario(target, frames, eye_in_hand, options, sigma_px, T_base_board, cam)
 
 
 #: The single-camera cells without any noise (pixels, robot poses), by name: a solve of each
@@ -1115,31 +979,21 @@ NOISE_FREE: dict[str, Callable[[np.random.Generator], Scenario]] = {
 
 
 # --------------------------------------------- scenes of the studies and the tests built on them
-def render_detector(sigma_px: float) -> ImageModel:
-    """The ``render`` image model: R1's camera renders the board (bowed as the trial's board
-    is), the detector finds it."""
+def render_detector(tag_m: float | None = None) -> ImageModel:
+    """The ``render`` image model: R1's camera renders the board (bowed as the trial's board is),
+    the detector finds it; with ``tag_m``: one flat AprilTag of that side (36h11, id 0, a white
+    margin of one cell on the tool's darker surround) and its 4 corners (ids 0-3 in the centred
+    frame of :func:`square_tag`)."""
     cam = single_camera()
-    target = r1_target()
+    target = r1_target() if tag_m is None else Target.apriltag(tag_m)
+    T_board_seen = np.eye(4)  # square_tag's centred frame <- the tag's (origin at a corner)
+    if tag_m is not None:
+        T_board_seen = T_from_Rt(np.eye(3), np.array([-tag_m / 2, -tag_m / 2, 0.0]))
 
     def run(T_cam_board: np.ndarray, rng: np.random.Generator, bow_m: np.ndarray) -> Detection:
-        image = render_target(target, cam, T_cam_board, rng, bow_m=(bow_m[0], bow_m[1]))
+        bow = (bow_m[0], bow_m[1]) if tag_m is None else (0.0, 0.0)
+        image = render_target(target, cam, T_cam_board @ T_board_seen, rng, bow_m=bow)
         return detect_target(image, target).detection
-
-    return run
-
-
-def render_tag_detector(side_m: float = 0.10) -> ImageModel:
-    """The ``render`` image model of the tag session: R1's camera renders one AprilTag of
-    ``side_m`` (36h11, id 0, a white margin of one cell on the tool's darker surround), the
-    detector finds its 4 corners (ids 0-3 in the centred frame of ``scenarios.square_tag``)."""
-    cam = single_camera()
-    tag = Target.apriltag(side_m)
-    # square_tag's centred frame <- the tag's (origin at its top-left corner)
-    T_square_tag = T_from_Rt(np.eye(3), np.array([-side_m / 2, -side_m / 2, 0.0]))
-
-    def run(T_cam_square: np.ndarray, rng: np.random.Generator, bow_m: np.ndarray) -> Detection:
-        image = render_target(tag, cam, T_cam_square @ T_square_tag, rng)
-        return detect_target(image, tag).detection
 
     return run
 
@@ -1165,7 +1019,7 @@ def drifting_arm(
         T_true = T_from_Rt(R_from_rvec(e) @ T[:3, :3], T[:3, 3] + rng.normal(0.0, 2e-5, 3))
         true.append(T_true)
         view = [_view(T_true, base.T_target)]
-        frames += _r1_frames(view, [T], target, sigma_px, rng, detect=detect)
+        frames += _frames(view, [T], target, sigma_px, rng, detect=detect)
     frames = [replace(f, id=k) for k, f in enumerate(frames)]
     scenario = r1_scenario(
         target, frames, True, None, sigma_px, base.T_target, T_base_tool_true=np.stack(true)
@@ -1330,10 +1184,7 @@ def cell_overrides(fx_rel: float = 0.0, cx_px: float = 0.0, he_deg: float = 0.0)
     if he_deg:
         r, p, y = np.radians([0.8, -1.2, 90.5])  # the default cell's true T_tool_cam
         R = R_from_rvec(np.radians(he_deg) * np.array([0.6, 0.0, 0.8])) @ Rz(y) @ Ry(p) @ Rx(r)
-        rpy = np.degrees(
-            [np.arctan2(R[2, 1], R[2, 2]), -np.arcsin(R[2, 0]), np.arctan2(R[1, 0], R[0, 0])]
-        )  # the cell's rpy_deg convention: R = Rz(yaw) Ry(pitch) Rx(roll)
-        sim["T_tool_cam"] = {"rpy_deg": rpy.tolist(), "t_m": [0.032, -0.061, 0.045]}
+        sim["T_tool_cam"] = {"rpy_deg": rpy_deg(R), "t_m": [0.032, -0.061, 0.045]}
     return {"simulation": sim}
 
 

@@ -90,20 +90,14 @@ def calibration(values: list[float] | np.ndarray, dof: int) -> Calibration:
         n,
         dof,
         inside,
-        _binomial_range(n, P_2SIGMA),
+        tuple(int(k) for k in binom.interval(1.0 - VERDICT_P, n, P_2SIGMA)),
         beyond,
-        _binomial_range(n, 1.0 - P_3SIGMA),
+        tuple(int(k) for k in binom.interval(1.0 - VERDICT_P, n, 1.0 - P_3SIGMA)),
         scale,
         scale_range,
         worst,
         verdict,
     )
-
-
-def _binomial_range(n: int, p: float) -> tuple[int, int]:
-    """The central range of a binomial(n, p) count that holds it with probability
-    1 - ``VERDICT_P``."""
-    return int(binom.ppf(VERDICT_P / 2.0, n, p)), int(binom.ppf(1.0 - VERDICT_P / 2.0, n, p))
 
 
 def hand_eye_errors(res, T_ref: np.ndarray) -> dict[str, np.ndarray]:  # noqa: ANN001

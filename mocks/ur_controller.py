@@ -48,6 +48,9 @@ SAFETY_MODE_NAMES = {1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVE
 #: The safety mode a ``pstop`` / ``estop`` move fault leaves and what the events call it.
 SAFETY_STOPS = {"pstop": (3, "protective stop"), "estop": (7, "robot emergency stop")}
 ROBOT_MODE_NAMES = {3: "POWER_OFF", 4: "POWER_ON", 5: "IDLE", 7: "RUNNING"}
+#: The control channel's ``WORD VALUE`` settings: the robot's attribute and the value's type.
+SETTINGS = {"slider": ("speed_slider", float), "safety": ("safety_mode", int),
+            "robotmode": ("robot_mode", int)}
 
 # RTDE message types
 V, v, O, I, S, P, U, M = (ord(c) for c in "VvOISPUM")
@@ -155,13 +158,10 @@ class Robot:
         self.dashboard: list[str] = []
 
     # ------------------------------------------------------------------------------- state
-    def tcp_pose(self) -> list[float]:
-        """The true TCP pose."""
-        return ur_pose_from_T(self.T_base_flange @ self.T_flange_tcp)
-
-    def reported_tcp_pose(self) -> list[float]:
-        """The TCP pose as the controller reports it (its kinematic model's error included)."""
-        return ur_pose_from_T(self.T_base_flange @ self.T_flange_tcp @ self.T_error)
+    def tcp_pose(self, reported: bool = False) -> list[float]:
+        """The true TCP pose, or as the controller reports it (its kinematic model's error in)."""
+        T_error = self.T_error if reported else np.eye(4)
+        return ur_pose_from_T(self.T_base_flange @ self.T_flange_tcp @ T_error)
 
     def _draw_error(self) -> None:
         T = np.eye(4)
@@ -195,7 +195,7 @@ class Robot:
         if name in ("actual_q", "target_q"):
             return list(self.q)
         if name in ("actual_TCP_pose", "target_TCP_pose"):
-            return self.reported_tcp_pose()
+            return self.tcp_pose(reported=True)
         if name in ("actual_TCP_speed", "target_TCP_speed"):
             return list(self.speed)
         if name == "robot_mode":
@@ -470,15 +470,11 @@ class FakeController:
     def bind(self) -> None:
         for port, kind in ((RTDE_PORT, "rtde"), (SCRIPT_PORT, "script"),
                            (DASHBOARD_PORT, "dashboard")):
-            s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             try:
-                s.bind((self.host, port))
+                s = socket.create_server((self.host, port), backlog=8)  # SO_REUSEADDR on POSIX
             except OSError as e:
-                s.close()
                 self.close_all()
                 raise OSError(f"port {port} ({kind}) on {self.host} is taken: {e}") from None
-            s.listen(8)
             self.listeners[s] = kind
 
     def go_silent(self) -> None:
@@ -489,10 +485,7 @@ class FakeController:
             s.close()
         self.listeners = {}
         for port in (RTDE_PORT, SCRIPT_PORT, DASHBOARD_PORT):
-            s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            s.bind((self.host, port))
-            s.listen(0)
+            s = socket.create_server((self.host, port), backlog=0)
             filler = socket.create_connection((self.host, port), timeout=1.0)  # fills the queue
             self.blackhole += [s, filler]
 
@@ -599,7 +592,7 @@ class FakeController:
         if cmd == "state":
             print(json.dumps({
                 "tcp_pose": r.tcp_pose(), "flange_pose": ur_pose_from_T(r.T_base_flange),
-                "reported_tcp_pose": r.reported_tcp_pose(),
+                "reported_tcp_pose": r.tcp_pose(reported=True),
                 "tcp": ur_pose_from_T(r.T_flange_tcp), "q": list(r.q),
                 "safety_mode": r.safety_mode, "robot_mode": r.robot_mode,
                 "runtime_state": r.runtime_state, "program": r.program,
@@ -621,12 +614,8 @@ class FakeController:
             self.close_all()
         elif cmd == "reopen":
             self.bind()
-        elif word == "slider" and arg:
-            r.speed_slider = float(arg)
-        elif word == "safety" and arg:
-            r.safety_mode = int(arg)
-        elif word == "robotmode" and arg:
-            r.robot_mode = int(arg)
+        elif word in SETTINGS and arg:
+            setattr(r, SETTINGS[word][0], SETTINGS[word][1](arg))
         elif word == "program" and arg:
             r.program, r.runtime_state = arg, RUNTIME_PLAYING
         elif cmd in ("quit", ""):

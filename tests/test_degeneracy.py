@@ -1,5 +1,7 @@
 """Degenerate configurations (docs/METHOD.md Sec. 7) refused, their neighbours accepted."""
 
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,8 +12,11 @@ from slidecal.solver.errors import DegenerateError
 from slidecal.solver.homography import group_homographies
 from slidecal.solver.linear import LinearGroup, linear_intrinsics
 
+sys.path.insert(0, str(Path(__file__).parent))
+import linear_scenes as lg  # noqa: E402
+
 SIZE = sl.PAPER_SIZE_PX
-NORMAL = sl.line_steps([0.0, 0.0, -1.0], 5)
+NORMAL = lg.line_steps([0.0, 0.0, -1.0], 5)
 
 
 def _dirs(T):
@@ -22,7 +27,7 @@ def _dirs(T):
 
 
 def _group(R, T, sigma, rng, K=sl.K_S2, motion=None):
-    g = sl.make_group(K, R, sl.centre_on_axis(R), T, rng, sigma)
+    g = lg.make_group(K, R, sl.centre_on_axis(R), T, rng, sigma)
     return LinearGroup(group_homographies(g.observations), T if motion is None else motion)
 
 
@@ -41,13 +46,13 @@ def test_case2_single_axis_tilt_refused_both_axes_accepted(sigma):
 @pytest.mark.parametrize("sigma", [0.0, 0.5])
 def test_case1_fronto_parallel_refused_tilted_accepted(sigma):
     rng = np.random.default_rng(2)
-    T = sl.line_steps([0.0, 0.0, -1.0], 5)
+    T = lg.line_steps([0.0, 0.0, -1.0], 5)
     grp = _group(sl.D0, T, sigma, rng, K=sl.K_S1)
     with pytest.raises(DegenerateError, match="tilt the camera by 20-30 deg"):
         check_configuration([grp], "lengths", unit_aspect=True, image_size=SIZE)
     with pytest.raises(DegenerateError, match="tilt the camera by 20-30 deg"):
         check_configuration([grp], "robot", unit_aspect=True, image_size=SIZE)
-    g = sl.s1_group(30.0, 5, rng, sigma)
+    g = lg.s1_group(30.0, 5, rng, sigma)
     grp = LinearGroup(group_homographies(g.observations), g.T_board)
     check_configuration([grp], "lengths", unit_aspect=True, image_size=SIZE)
 
@@ -57,12 +62,12 @@ def test_translations_parallel_to_board_refused(sigma):
     rng = np.random.default_rng(3)
     R = sl.tilt_R(30, 30)
     flat = np.array([[0, 0, 0], [5, 0, 0], [0, 5, 0], [5, 5, 0], [-5, 3, 0.0]])
-    grp = _group(R, flat, sigma, rng, K=sl.K_SKEW)
+    grp = _group(R, flat, sigma, rng, K=lg.K_SKEW)
     for knowledge in ("board_translation", "robot", "lengths"):
         with pytest.raises(DegenerateError, match="move along its normal"):
             check_configuration([grp], knowledge, skew=True, image_size=SIZE)
     tilted = flat + np.array([0, 0, -5.0]) * (np.arange(5) > 0)[:, None]
-    grp = _group(R, tilted, sigma, rng, K=sl.K_SKEW)
+    grp = _group(R, tilted, sigma, rng, K=lg.K_SKEW)
     check_configuration([grp], "board_translation", skew=True, image_size=SIZE)
 
 

@@ -1,5 +1,7 @@
 """Hand-eye rotation from translations (docs/METHOD.md Sec. 4) and the AX = XB cross-checks."""
 
+import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -22,6 +24,26 @@ from slidecal.solver.handeye import (
 )
 from slidecal.solver.homography import group_homographies
 from slidecal.solver.linear import LinearGroup
+
+sys.path.insert(0, str(Path(__file__).parent))
+import linear_scenes as lg  # noqa: E402
+
+
+def robot_poses(
+    group: lg.Group, T_base_fixed: np.ndarray, T_tool_x: np.ndarray, mount: str
+) -> np.ndarray:
+    """Measured ``T_base_tool`` (n, 4, 4) of a group's frames: eye-in-hand with ``T_base_fixed =
+    T_base_board`` and ``T_tool_x = T_tool_cam``, eye-to-hand with ``T_base_cam`` and
+    ``T_tool_board`` (the displacement is then a board motion)."""
+    out = []
+    for T in group.T_board:
+        T_board_cam = T_from_Rt(group.R_cam_board.T, group.C0 + T)
+        if mount == "eye_in_hand":
+            out.append(T_base_fixed @ T_board_cam @ np.linalg.inv(T_tool_x))
+        else:
+            T_base_board = T_base_fixed @ np.linalg.inv(T_board_cam)
+            out.append(T_base_board @ np.linalg.inv(T_tool_x))
+    return np.array(out)
 
 
 def hand_eye_rotation(K, groups, T_base_tool_per_group, mount):
@@ -53,7 +75,7 @@ def _groups(rng, sigma=0.0, tilts=((30, 30), (-25, 10), (10, -30))):
     out = []
     for ax, ay in tilts:
         R = sl.tilt_R(ax, ay)
-        out.append(sl.make_group(sl.K_S2, R, sl.centre_on_axis(R), T, rng, sigma))
+        out.append(lg.make_group(sl.K_S2, R, sl.centre_on_axis(R), T, rng, sigma))
     return out
 
 
@@ -103,7 +125,7 @@ def test_hand_eye_rotation_from_translations_noise_free(mount):
     groups, poses = [], []
     for g in _groups(rng):
         groups.append(LinearGroup(group_homographies(g.observations)))
-        poses.append(sl.robot_poses(g, T_base_fixed, T_tool_x, mount))
+        poses.append(robot_poses(g, T_base_fixed, T_tool_x, mount))
     R = hand_eye_rotation(sl.K_S2, groups, poses, mount)
     if mount == "eye_in_hand":
         truth = T_tool_x[:3, :3]  # R_tool_cam
@@ -125,7 +147,7 @@ def test_hand_eye_rotation_noisy_agrees_with_park_martin():
     for g in _groups(rng, sigma=0.2):
         grp = LinearGroup(group_homographies(g.observations))
         groups.append(grp)
-        poses.append(sl.robot_poses(g, T_base_board, T_tool_cam, "eye_in_hand"))
+        poses.append(robot_poses(g, T_base_board, T_tool_cam, "eye_in_hand"))
         T_cam_board += [board_pose_from_homography(sl.K_S2, H) for H in grp.H]
     R = hand_eye_rotation(sl.K_S2, groups, poses, "eye_in_hand")
     X = park_martin(np.concatenate(poses), np.array(T_cam_board))

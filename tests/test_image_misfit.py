@@ -163,7 +163,7 @@ def test_rendered_photographs_read_their_errors_across_the_board_lines(monkeypat
     # err together across the board's lines (0.08-0.17 over 120 arms) and not along them, so
     # the frames' scores are read; pooled they stayed under the previous gate
 
-    s = sc.r1_real_arm(np.random.default_rng(2000), detect=render_detector(0.15))
+    s = sc.r1_real_arm(np.random.default_rng(2000), detect=render_detector())
     res, out = _solve_keeping_the_refinement(s.problem, monkeypatch)
     rho, pairs = neighbour_correlation(out)
     assert rho > CORRELATED_NEIGHBOURS + 2.0 / np.sqrt(pairs)

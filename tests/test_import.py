@@ -4,21 +4,45 @@ what does not pair, by name."""
 
 import json
 from dataclasses import replace
+from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
 from slidecal.mocks import scenarios as sc
+from slidecal.mocks.camera import single_camera
+from slidecal.mocks.render import render_target
 from slidecal.routines import importer
 from slidecal.routines.cli import main as cli
 from slidecal.routines.session import load_session
 from slidecal.solver.calibrate import calibrate
+from slidecal.solver.camera import K_matrix
 from slidecal.solver.geometry import inv_T, rotation_angle_deg
 
 CELL = str(sc.Path(sc.__file__).with_name("default_cell.yaml"))
 EULER_SEQ = {"Z-Y-X": "ZYX", "X-Y-Z fixed": "xyz", "X-Y-Z": "XYZ", "Z-Y-Z": "ZYZ"}
+
+#: Half of R1's camera (640 x 400): recorded datasets render faster and keep R1's geometry
+R1_HALF = replace(single_camera(), width=640, height=400, K=K_matrix(440.0, 440.0, 319.75, 199.75))
+
+
+def recorded_dataset(directory: str | Path, s: sc.Scenario, rng: np.random.Generator) -> np.ndarray:
+    """Scenario ``s``'s frames as another tool records them: each view of its target at the
+    frame's ``T_base_tool`` (its truth's hand-eye and target pose) rendered by ``R1_HALF`` as
+    ``1.png``, ``2.png``, ... in ``directory``. Returns the ``T_base_tool`` (F, 4, 4) of the
+    images, metres, for writing in any convention."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    T = np.stack([f.T_base_tool for f in s.problem.frames])
+    X, Y = s.truth.X[0], s.truth.Y  # T_cam_tool, T_base_board; eye-to-hand T_cam_base, T_tool_board
+    for k, T_bt in enumerate(T):
+        T_cam_board = X @ (inv_T(T_bt) if s.problem.mount == "eye_in_hand" else T_bt) @ Y
+        img = render_target(s.problem.target, R1_HALF, T_cam_board, rng)
+        cv2.imwrite(str(directory / f"{k + 1}.png"), img)
+    return T
 
 
 def record(T_base_tool, convention):
@@ -66,7 +90,7 @@ FAST = (
 def dataset(tmp_path_factory):
     d = tmp_path_factory.mktemp("recorded")
     s = sc.r1(np.random.default_rng(0), 0.0, 0.0, 0.0)
-    return d, sc.recorded_dataset(d / "images", s, np.random.default_rng(0))
+    return d, recorded_dataset(d / "images", s, np.random.default_rng(0))
 
 
 def _import(tmp_path, images, poses, *extra):
@@ -125,7 +149,7 @@ def test_sidecars_by_name_and_unpaired_reported(dataset, tmp_path, capsys):
 def test_rotation_free_dataset_is_refused_naming_what_cannot_be_told(tmp_path, capsys):
     s = sc.r1(np.random.default_rng(1), 0.0, 0.0, 0.0)  # its first orientation's 5 frames
     s = replace(s, problem=replace(s.problem, frames=s.problem.frames[:5]))
-    T = sc.recorded_dataset(tmp_path / "images", s, np.random.default_rng(1))
+    T = recorded_dataset(tmp_path / "images", s, np.random.default_rng(1))
     poses = tmp_path / "poses.txt"
     np.savetxt(poses, record(T, "mm, Euler Z-Y-X deg, tool in base"))
     code, _ = _import(tmp_path, tmp_path / "images", poses)
@@ -162,7 +186,7 @@ def test_symmetric_board_turned_in_view_imported_and_solved(tmp_path, capsys):
     # convention; the solve turns those frames back by the robot and the focal length matches
     rolled = (6, 7, 8, 9, 15, 16)
     s = sc.symmetric_board_r1(np.random.default_rng(6), 0.0, 0.0, 0.0, rolled=rolled)
-    T = sc.recorded_dataset(tmp_path / "images", s, np.random.default_rng(6))
+    T = recorded_dataset(tmp_path / "images", s, np.random.default_rng(6))
     cell = tmp_path / "cell.yaml"
     cfg = yaml.safe_load(sc.Path(CELL).with_name("eye_to_hand_cell.yaml").read_text())
     cfg["target"] = {"kind": "chessboard", "squares_x": 8, "squares_y": 6, "square_size_m": 0.03}
@@ -187,8 +211,8 @@ def test_symmetric_board_turned_in_view_imported_and_solved(tmp_path, capsys):
     for k, f in enumerate(problem.frames):
         X, Y = s.truth.X[0], s.truth.Y
         px = sc.projected_detection(
-            sc.R1_HALF.K,
-            sc.R1_HALF.dist,
+            R1_HALF.K,
+            R1_HALF.dist,
             X @ T[k] @ Y,
             problem.target,
             (640, 400),
@@ -205,7 +229,7 @@ def test_symmetric_board_turned_in_view_imported_and_solved(tmp_path, capsys):
     turned = next(m for m in res.messages if "half turn" in m)
     assert turned.startswith(f"frames {flipped} ")
     # 33 views of 35 corners at about 0.1 px: the focal length to a few tenths of a percent
-    assert res.cameras[name].K[0, 0] == pytest.approx(sc.R1_HALF.K[0, 0], rel=5e-3)
+    assert res.cameras[name].K[0, 0] == pytest.approx(R1_HALF.K[0, 0], rel=5e-3)
     assert res.adequacy.adequate
 
 

@@ -1,6 +1,8 @@
 """Closed-form intrinsics (docs/METHOD.md Secs. 2-3): every knowledge row, assumptions, groups,
 noise."""
 
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +19,9 @@ from slidecal.solver.linear import (
     zhang_intrinsics,
     zhang_rows,
 )
+
+sys.path.insert(0, str(Path(__file__).parent))
+import linear_scenes as lg  # noqa: E402
 
 SIZE = sl.PAPER_SIZE_PX
 
@@ -40,12 +45,12 @@ def _normal_dirs(n):
 
 
 def test_conic_helpers():
-    K = sl.K_SKEW
+    K = lg.K_SKEW
     w = w_from_K(K)
     assert abs(np.linalg.norm(w) - 1) < 1e-12 and w[0] > 0
     assert _rel(K_from_w(w), K) < 1e-12
     assert _rel(K_from_w(-7.0 * w), K) < 1e-12  # sign and scale free
-    g = sl.s2_group(1, np.random.default_rng(0), K=K)
+    g = lg.s2_group(1, np.random.default_rng(0), K=K)
     assert np.abs(zhang_rows(g.H[0] / np.linalg.norm(g.H[0])) @ w).max() < 1e-14
     with pytest.raises(DegenerateError, match="not positive definite"):
         K_from_w(np.array([1.0, 0.0, -1.0, 0.0, 0.0, 1.0]))
@@ -57,7 +62,7 @@ def test_conic_helpers():
 def test_case1_lengths_noise_free():
     rng = np.random.default_rng(1)
     for theta in (10.0, 30.0, 60.0):
-        g = sl.s1_group(theta, 5, rng)
+        g = lg.s1_group(theta, 5, rng)
         grp = LinearGroup(group_homographies(g.observations), g.T_board)
         sol = linear_intrinsics([grp], "lengths", unit_aspect=True, image_size=SIZE)
         assert _rel(sol.K, sl.K_S1) < 1e-6
@@ -65,14 +70,14 @@ def test_case1_lengths_noise_free():
     # fx != fy (zero skew only): one direction gives 3 constraints for 4 unknowns, two suffice.
     R = sl.tilt_R(30, 30)
     T = np.array([[0, 0, 0], [0, 0, -5], [0, 0, -10], [4, 0, -3], [8, 0, -6.0]])
-    g = sl.make_group(sl.K_S2, R, sl.centre_on_axis(R), T, rng)
+    g = lg.make_group(sl.K_S2, R, sl.centre_on_axis(R), T, rng)
     grp = LinearGroup(group_homographies(g.observations), T)
     assert _rel(linear_intrinsics([grp], "lengths", image_size=SIZE).K, sl.K_S2) < 1e-6
 
 
 def test_case2_direction_noise_free_recovers_lengths_and_scale():
     rng = np.random.default_rng(2)
-    g = sl.s2_group(5, rng)
+    g = lg.s2_group(5, rng)
     Hs = group_homographies(g.observations)
     sol = linear_intrinsics([LinearGroup(Hs, _normal_dirs(5))], "board_direction", image_size=SIZE)
     assert _rel(sol.K, sl.K_S2) < 1e-6
@@ -82,7 +87,7 @@ def test_case2_direction_noise_free_recovers_lengths_and_scale():
     # A direction with in-plane components (rows with n_x, n_y != 0) and unit aspect.
     R = sl.tilt_R(30, 30)
     d = np.array([0.3, -0.2, -1.0])
-    g = sl.make_group(sl.K_S1, R, sl.centre_on_axis(R), sl.line_steps(d, 4), rng)
+    g = lg.make_group(sl.K_S1, R, sl.centre_on_axis(R), lg.line_steps(d, 4), rng)
     dirs = np.tile(d / np.linalg.norm(d), (4, 1))
     dirs[0] = 0
     sol = linear_intrinsics(
@@ -97,10 +102,10 @@ def test_case2_direction_noise_free_recovers_lengths_and_scale():
 
 def test_case3_full_translation_all_five_intrinsics():
     rng = np.random.default_rng(3)
-    g = sl.s2_group(5, rng, K=sl.K_SKEW)
+    g = lg.s2_group(5, rng, K=lg.K_SKEW)
     grp = LinearGroup(group_homographies(g.observations), g.T_board)
     sol = linear_intrinsics([grp], "board_translation", skew=True, image_size=SIZE)
-    assert _rel(sol.K, sl.K_SKEW) < 1e-6
+    assert _rel(sol.K, lg.K_SKEW) < 1e-6
     assert sol.unknowns[:6] == ("w11", "w12", "w22", "w13", "w23", "w33")
 
 
@@ -108,15 +113,15 @@ def test_robot_frame_single_tilt_three_directions():
     rng = np.random.default_rng(4)
     R = sl.tilt_R(30, 30)
     T = np.array([[0, 0, 0], [0, 0, -10], [8, 0, -6], [0, 8, -6], [5, 5, -5.0]])
-    g = sl.make_group(sl.K_SKEW, R, sl.centre_on_axis(R), T, rng)
+    g = lg.make_group(lg.K_SKEW, R, sl.centre_on_axis(R), T, rng)
     R_robot_board = random_rotation(rng)
     grp = LinearGroup(group_homographies(g.observations), T @ R_robot_board.T)
     sol = linear_intrinsics([grp], "robot", skew=True, image_size=SIZE)
-    assert _rel(sol.K, sl.K_SKEW) < 1e-6
+    assert _rel(sol.K, lg.K_SKEW) < 1e-6
     # Fronto-parallel board: still fine with three non-coplanar directions.
-    g = sl.make_group(sl.K_SKEW, sl.D0, sl.centre_on_axis(sl.D0), T, rng)
+    g = lg.make_group(lg.K_SKEW, sl.D0, sl.centre_on_axis(sl.D0), T, rng)
     grp = LinearGroup(group_homographies(g.observations), T @ R_robot_board.T)
-    assert _rel(linear_intrinsics([grp], "robot", skew=True, image_size=SIZE).K, sl.K_SKEW) < 1e-6
+    assert _rel(linear_intrinsics([grp], "robot", skew=True, image_size=SIZE).K, lg.K_SKEW) < 1e-6
 
 
 @pytest.mark.parametrize("knowledge", ["robot", "lengths", "board_direction", "board_translation"])
@@ -125,7 +130,7 @@ def test_multi_group_noise_free(knowledge):
     groups = []
     for ax, ay, d in ((30, 30, [0, 0, -1.0]), (-25, 10, [0.2, 0.1, -1]), (5, -35, [0, -0.3, -1])):
         R = sl.tilt_R(ax, ay)
-        g = sl.make_group(sl.K_SKEW, R, sl.centre_on_axis(R), sl.line_steps(d, 3), rng)
+        g = lg.make_group(lg.K_SKEW, R, sl.centre_on_axis(R), lg.line_steps(d, 3), rng)
         motion = g.T_board.copy()
         if knowledge == "robot":
             motion = motion @ random_rotation(rng).T  # each group its own robot-board rotation
@@ -133,7 +138,7 @@ def test_multi_group_noise_free(knowledge):
             motion[1:] /= np.linalg.norm(motion[1:], axis=1, keepdims=True)
         groups.append(LinearGroup(group_homographies(g.observations), motion))
     sol = linear_intrinsics(groups, knowledge, skew=True, image_size=SIZE)
-    assert _rel(sol.K, sl.K_SKEW) < 1e-6
+    assert _rel(sol.K, lg.K_SKEW) < 1e-6
     assert len(sol.scales) == 3
 
 
@@ -142,13 +147,13 @@ def test_zhang_alone():
     Hs = []
     for ax, ay in ((30, 0), (0, 30), (20, -25)):
         R = sl.tilt_R(ax, ay)
-        g = sl.make_group(sl.K_SKEW, R, sl.centre_on_axis(R), np.zeros((1, 3)), rng)
+        g = lg.make_group(lg.K_SKEW, R, sl.centre_on_axis(R), np.zeros((1, 3)), rng)
         Hs.append(group_homographies(g.observations)[0])
-    assert _rel(zhang_intrinsics(np.array(Hs), skew=True, image_size=SIZE), sl.K_SKEW) < 1e-6
-    assert _rel(zhang_intrinsics(np.array(Hs[:2]), image_size=SIZE)[:, 1:], sl.K_SKEW[:, 1:]) > 0
+    assert _rel(zhang_intrinsics(np.array(Hs), skew=True, image_size=SIZE), lg.K_SKEW) < 1e-6
+    assert _rel(zhang_intrinsics(np.array(Hs[:2]), image_size=SIZE)[:, 1:], lg.K_SKEW[:, 1:]) > 0
     K0 = sl.K_S2
     Hs2 = [
-        sl.H_true(K0, sl.tilt_R(a, b), sl.centre_on_axis(sl.tilt_R(a, b)))
+        lg.H_true(K0, sl.tilt_R(a, b), sl.centre_on_axis(sl.tilt_R(a, b)))
         for a, b in ((30, 0), (0, 30))
     ]
     assert _rel(zhang_intrinsics(np.array(Hs2), image_size=SIZE), K0) < 1e-6
@@ -159,7 +164,7 @@ def test_zhang_alone():
 def _s2_fx_errors(trials, sigma, n, rng, condition=True):
     err = []
     for _ in range(trials):
-        g = sl.s2_group(n, rng, sigma)
+        g = lg.s2_group(n, rng, sigma)
         grp = LinearGroup(group_homographies(g.observations), _normal_dirs(n))
         sol = linear_intrinsics([grp], "board_direction", image_size=SIZE, condition=condition)
         err.append(sol.K[0, 0] - sl.K_S2[0, 0])
@@ -182,12 +187,12 @@ def test_conditioning_matters():
         rng = np.random.default_rng(8)
         e = []
         for _ in range(5):
-            g = sl.s2_group(5, rng, 0.01, K=sl.K_SKEW)
+            g = lg.s2_group(5, rng, 0.01, K=lg.K_SKEW)
             grp = LinearGroup(group_homographies(g.observations), g.T_board)
             K = linear_intrinsics(
                 [grp], "board_translation", skew=True, image_size=SIZE, condition=condition
             ).K
-            e.append(_rel(K, sl.K_SKEW))
+            e.append(_rel(K, lg.K_SKEW))
         errs[condition] = max(e)
     assert errs[True] < 1e-3
     assert errs[False] > 5 * errs[True]
@@ -200,7 +205,7 @@ def test_row_weighting_noise_beats_unit_rows():
         rng = np.random.default_rng(9)
         e = []
         for _ in range(30):
-            g = sl.s2_group(5, rng, 0.5)
+            g = lg.s2_group(5, rng, 0.5)
             grp = LinearGroup(group_homographies(g.observations), _normal_dirs(5))
             sol = linear_intrinsics([grp], "board_direction", image_size=SIZE, row_weighting=rw)
             e.append(sol.K[0, 0] - 400.0)
@@ -212,7 +217,7 @@ def test_row_weighting_noise_beats_unit_rows():
 @pytest.mark.parametrize(
     ("skew", "unit_aspect", "K_true"),
     [
-        (True, False, sl.K_SKEW),
+        (True, False, lg.K_SKEW),
         (False, False, sl.K_S2),
         (False, True, sl.K_S1),
         (True, True, sl.K_S1),
@@ -222,7 +227,7 @@ def test_assumption_options_noise_free(knowledge, skew, unit_aspect, K_true):
     rng = np.random.default_rng(10)
     R = sl.tilt_R(25, -20)
     T = np.array([[0, 0, 0], [0, 0, -10], [8, 0, -6], [0, 8, -6], [5, 5, -5.0]])
-    g = sl.make_group(K_true, R, sl.centre_on_axis(R), T, rng)
+    g = lg.make_group(K_true, R, sl.centre_on_axis(R), T, rng)
     motion = T @ random_rotation(rng).T if knowledge == "robot" else T
     grp = LinearGroup(group_homographies(g.observations), motion)
     sol = linear_intrinsics([grp], knowledge, skew=skew, unit_aspect=unit_aspect, image_size=SIZE)
@@ -235,7 +240,7 @@ def _big_robot_group(n, rel_noise, rng):
     ``rel_noise`` on every entry (fast; the pairing is compared on the same data)."""
     R = sl.tilt_R(30, 30)
     T = np.concatenate([np.zeros((1, 3)), rng.uniform(-8, 8, (n - 1, 3)) + [0, 0, -6]])
-    g = sl.make_group(sl.K_S2, R, sl.centre_on_axis(R), T, rng, xy=sl.board_xy(2, 2))
+    g = lg.make_group(sl.K_S2, R, sl.centre_on_axis(R), T, rng, xy=sl.board_xy(2, 2))
     return LinearGroup(g.H * (1.0 + rel_noise * rng.normal(size=g.H.shape)), T)
 
 

@@ -252,7 +252,18 @@ def test_presets():
 
 # ----------------------------------------------------------------------------- photograph-like
 
-FLAT = render.CLEAN_PHOTO
+# the photo pipeline with every effect off (equals the clean renderer but for the noise draw)
+FLAT = render.Photo(
+    aperture_mm=0.0,
+    chromatic_red=0.0,
+    chromatic_blue=0.0,
+    full_well_e=0.0,
+    bayer=False,
+    jpeg_quality=0,
+    vignetting=0.0,
+    gradient=0.0,
+    glare_spots=0,
+)
 
 
 def test_photo_is_seeded_and_shaped_like_a_camera_image():

@@ -66,7 +66,7 @@ def test_the_rendered_tag_is_found_where_the_points_model_puts_its_corners() -> 
     # the tag row's image model: the rendered tag's 4 corners, in square_tag's centred frame,
     # where R1's camera projects them (the same ids, well under a pixel)
     T = T_from_Rt(R_from_rvec(np.array([0.3, -0.2, 0.1])), np.array([0.05, -0.04, 0.6]))
-    det = sc.render_tag_detector(0.10)(T, np.random.default_rng(0), np.zeros(2))
+    det = sc.render_detector(0.10)(T, np.random.default_rng(0), np.zeros(2))
     np.testing.assert_array_equal(det.ids, [0, 1, 2, 3])
     pts = sc.square_tag(0.10).points_m
     truth = project(sc.R1_K, sc.R1_DIST, pts @ T[:3, :3].T + T[:3, 3])

@@ -39,7 +39,7 @@ import cv2
 import numpy as np
 
 from slidecal.mocks import scenarios as sc
-from slidecal.mocks.scenarios import drifting_arm, render_detector, render_tag_detector
+from slidecal.mocks.scenarios import drifting_arm, render_detector
 from slidecal.mocks.truth import (
     CHI2_3_2SIGMA,
     CHI2_3_3SIGMA,
@@ -230,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.set_defaults(**TABLES[table][0], out=str(RESULTS / TABLES[table][1]))
     args = ap.parse_args(argv)
     t0 = time.time()
-    det = render_detector(args.sigma_px) if args.images == "render" else None
+    det = render_detector() if args.images == "render" else None
     kw = {"sigma_px": args.sigma_px, "arm_mm": args.arm_mm, "arm_deg": args.arm_deg, "detect": det}
     scenarios = [
         ("R1 eye-in-hand", lambda rng: sc.r1_real_arm(rng, **kw)),
@@ -260,7 +260,7 @@ def main(argv: list[str] | None = None) -> int:
                 lambda rng: sc.classic_real_arm(rng, arm_scale=LONG_ARM, **kw),
             )
         )
-    tag_kw = {**kw, "detect": render_tag_detector() if det is not None else None}
+    tag_kw = {**kw, "detect": render_detector(0.10) if det is not None else None}
     scenarios.append(
         (
             "eye-to-hand, one tag, 205 frames in 7 orientations",
@@ -360,7 +360,7 @@ def main(argv: list[str] | None = None) -> int:
         "public classic session's learned field suggests (docs/results/PUBLIC_DATA.md).",
         "",
         "The tag row is a fixed camera watching one AprilTag's 4 corners on the tool "
-        "(rendered: a 100 mm tag on a white margin of one cell, `render_tag_detector`): 205 "
+        "(rendered: a 100 mm tag on a white margin of one cell, `render_detector(0.10)`): 205 "
         "frames in 7 orientations, each at a random place in R1's image 0.45-0.85 m "
         "away (`tag_real_arm`): many frames spread over a large part of the workspace, where "
         "the arm's error is correlated from frame to frame and the images pin each pose "
