@@ -380,43 +380,6 @@ def equal_weight_covariance(
 
 
 @dataclass(frozen=True)
-class LinearisedEstimator:
-    """The maximum-likelihood step linearised at a known state, ``-(J'J)^-1 J' r``, in the
-    named quantities: exactly efficient by construction, so its Monte-Carlo spread over the
-    same noise draws tells how far from the bound a perfect estimator lands with that many
-    trials (a sampling reference). Build it with :func:`linearised_estimator`."""
-
-    names: tuple[str, ...]
-    gain: np.ndarray  # (n, R): named quantities from the residuals at the state
-    structure: Structure
-    state: ModelState
-
-    def errors(self, problem: CalibrationProblem) -> dict[str, float]:
-        """The linearised estimator's error of every named quantity on ``problem``'s
-        detections (the same frames, cameras and corner ids as the problem it was built on)."""
-        r, _ = BundleModel(problem, self.structure).evaluate(self.state, jacobian=False)
-        return dict(zip(self.names, -(self.gain @ r), strict=True))
-
-
-def linearised_estimator(
-    problem: CalibrationProblem,
-    truth: ModelState,
-    *,
-    structure: Structure | None = None,
-) -> LinearisedEstimator:
-    """The linearised estimator (:class:`LinearisedEstimator`) of ``problem`` at ``truth``."""
-    st = _structure(problem, truth, structure)
-    model = BundleModel(problem, st)
-    state = model.with_corrections(truth)
-    _, J = model.evaluate(state)
-    names, Jn = _jacobian(layout_of(problem, st, truth), model.names)
-    scale = np.linalg.norm(J, axis=0)
-    scale[scale == 0] = 1.0
-    Q, R = np.linalg.qr(J / scale)  # (J'J)^-1 J' without squaring the condition (fisher_covariance)
-    return LinearisedEstimator(names, Jn @ (np.linalg.solve(R, Q.T) / scale[:, None]), st, state)
-
-
-@dataclass(frozen=True)
 class FrameInformation:
     """Each frame's Fisher information on the shared parameters, and how to name its inverse.
 

@@ -11,7 +11,6 @@ from slidecal.solver.geometry import (
     Rz,
     T_from_Rt,
     inv_T,
-    random_rotation,
     rvec_from_R,
 )
 from slidecal.solver.handeye import (
@@ -22,6 +21,7 @@ from slidecal.solver.handeye import (
 )
 from slidecal.solver.homography import group_homographies
 from slidecal.solver.linear import LinearGroup
+from tests.helpers import random_rotation
 
 
 def hand_eye_rotation(K, groups, T_base_tool_per_group, mount):

@@ -7,7 +7,6 @@ import pytest
 
 from slidecal.mocks import scenarios as sl
 from slidecal.solver.errors import DegenerateError
-from slidecal.solver.geometry import random_rotation
 from slidecal.solver.homography import group_homographies
 from slidecal.solver.linear import (
     K_from_w,
@@ -17,6 +16,7 @@ from slidecal.solver.linear import (
     zhang_intrinsics,
     zhang_rows,
 )
+from tests.helpers import random_rotation
 
 SIZE = sl.PAPER_SIZE_PX
 
