@@ -1,31 +1,16 @@
 """Target detection: corner ids and pixels of a ChArUco board, a chessboard, an AprilGrid or
 AprilTags in one image (ids and board frame of ``solver/problem.py``; pixel (0, 0) is the centre
-of the top-left pixel, OpenCV's convention). Colour images: the green channel (half of a Bayer
-sensor's pixels, and free of lateral chromatic aberration's red and blue shifts).
+of the top-left pixel, OpenCV's convention). Colour images: the green channel. Which OpenCV
+detector, refinement and window each target gets, and why, is ``docs/results/DETECTION.md``.
 
-ChArUco: ``cv2.aruco.CharucoDetector`` (missed markers recovered with ``tryRefineMarkers``),
-then every chessboard corner refined again by ``cv2.cornerSubPix`` in a window sized to hold no
-marker edge (the nearest marker corner lies ``(square - marker) / 2`` along both board axes).
+A chessboard must be whole in view. Its corner order under the board's symmetries: (1) the board
+is seen from its printed side (``x`` cross ``y`` > 0 in the image, v down); (2) the square next
+to corner 0 is black; (3) a board still symmetric (``squares_x + squares_y`` even: it looks the
+same after a half turn, :func:`half_turn_symmetric`) takes the corner 0 that makes its +x axis
+point most to the right. Rule 3 is a guess: :func:`resolve_half_turns` decides each frame's half
+turn before a solve.
 
-Chessboard: a cascade, fastest first, each step tried only when the one before found nothing
-(``docs/results/DETECTION.md``): ``cv2.findChessboardCorners`` on the image reduced to a long side
-of about 1000 px; the same with its light made even (``flatten_light``); ``findChessboardCornersSB``
-on the reduced image; the same at full resolution, then with ``CALIB_CB_EXHAUSTIVE``. The corners
-are refined at full resolution by ``cornerSubPix`` in a window of 0.3 times the distance to the
-nearest grid neighbour (3 to 25 px half-width). The whole board must be in view. Corner order under
-the board's symmetries: (1) the board is seen from its printed side (``x`` cross ``y`` > 0 in the
-image, v down); (2) the square next to corner 0 is black; (3) a board still symmetric (``squares_x +
-squares_y`` even: it looks the same after a half turn, :func:`half_turn_symmetric`) takes the
-corner 0 that makes its +x axis point most to the right. Rule 3 is a guess:
-:func:`resolve_half_turns` decides each frame's half turn before a solve.
-
-AprilTag and AprilGrid: ``cv2.aruco.ArucoDetector`` with the target's family, corners refined by
-``cornerSubPix`` (``CORNER_REFINE_APRILTAG`` is biased, ``docs/results/DETECTION.md``); a lone tag's
-corners are the intersections of its fitted border edges; on an AprilGrid, tags the quad finder
-missed are predicted from their neighbours and kept when their code reads back.
-
-When nothing usable is found, the report says what was seen (no board, a board of another size,
-too few corners, an image too dark, saturated or blurred). A local homography check removes
+When nothing usable is found, the report says what was seen. A local homography check removes
 grossly wrong corners and lists them in ``rejected_ids``.
 """
 

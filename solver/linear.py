@@ -347,13 +347,8 @@ def linear_system(
     A = A[keep]
     col_scale = np.ones(A.shape[1])
     if condition:
-        if row_weighting == "unit":
-            A = A / rn[keep, None]
-        else:
-            A = A / noise_all[keep, None]
-        cn = np.linalg.norm(A, axis=0)
-        col_scale = 1.0 / np.where(cn > 0, cn, 1.0)
-        A = A * col_scale
+        A = A / (rn if row_weighting == "unit" else noise_all)[keep, None]  # the rows' weights
+        A, col_scale = unit_columns(A)
     names = wnames + tuple(f"c{g}" for g in range(G))
     return LinearSystem(A, col_scale, B, names, N, sigma, G, h_scale)
 
@@ -395,10 +390,6 @@ def solve_null(
             f"the linear system is singular (its null space is not one-dimensional): {remedy}"
         )
     return Vt[-1] * col_scale, sv
-
-
-def _solve_null(system: LinearSystem) -> tuple[np.ndarray, np.ndarray]:
-    return solve_null(system.A, system.col_scale, system.unknowns)
 
 
 def unit_columns(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -455,7 +446,7 @@ def linear_intrinsics(
     """
     if system is None:
         system = linear_system(groups, knowledge, **options)
-    x, sv = _solve_null(system)
+    x, sv = solve_null(system.A, system.col_scale, system.unknowns)
     m = system.basis.shape[1]
     w = system.basis @ x[:m]
     Kn = K_from_w(w)
@@ -501,12 +492,7 @@ def zhang_intrinsics(Hs: np.ndarray, **options) -> np.ndarray:
     """
     Hs = np.asarray(Hs, dtype=float).reshape(-1, 3, 3)
     system = linear_system([LinearGroup(H[None]) for H in Hs], "none", **options)
-    x, sv = _solve_null(system)
-    if sv[-2] <= 1e-10 * sv[0]:
-        raise DegenerateError(
-            "Zhang's method is singular for these views: use more orientations (at least 3 with "
-            "skew), tilted about different axes"
-        )
+    x, _ = solve_null(system.A, system.col_scale, system.unknowns)
     return K_from_normalised_w(system.basis @ x[: system.basis.shape[1]], system.N)
 
 
