@@ -259,12 +259,8 @@ def linear_system(
     ``"robot"``: ``Delta_i' W Delta_j = (T_i . T_j) c`` for the pairs ``1 <= i <= j`` of
     :func:`robot_pairs` (all of them in groups of up to 21 translations);
     ``"none"``: Zhang's two rows of every frame (each frame its own pose), no ``c``.
-    Conditioning (docs/METHOD.md, "Numerical conditioning"): isotropic image normalisation, a
-    board-side scale making the homography columns commensurate (translations scaled with it),
-    each group's homographies scaled so ``|h1|, |h2| ~ 1``, then rows and columns normalised.
-    Rows: ``row_weighting="noise"`` (default) divides the row of ``a' W b`` by ``|a| + |b|``,
-    its noise scale (a short translation's row weighs less than a long one's); ``"unit"``
-    gives unit-norm rows (docs/METHOD.md's recipe). ``condition=False`` skips all of it.
+    Conditioning: docs/METHOD.md, "Numerical conditioning" (``row_weighting="noise"``: each row
+    over its noise scale ``|a| + |b|``; ``"unit"``: unit-norm rows; ``condition=False``: none).
     """
     _check_groups(groups, knowledge)
     N = image_normalisation(*image_size) if condition else np.eye(3)
@@ -499,13 +495,9 @@ def zhang_intrinsics(Hs: np.ndarray, **options) -> np.ndarray:
 def focal_from_homographies(Hs: np.ndarray, *, image_size: tuple[float, float]) -> np.ndarray:
     """The one-parameter start ``K`` (3, 3): square pixels, no skew, the principal point at the
     image centre, and the focal length that best satisfies Zhang's rows (eqs. 10-11) of the
-    homographies ``Hs`` (n, 3, 3).
-
-    In centred, normalised coordinates ``w = (1, 0, 1, 0, 0, f^2)`` up to scale, so each row
-    ``r`` gives ``r_11 + r_22 + r_33 f^2 = 0``: ``f^2`` by linear least squares. For starting a
-    refinement when the full Zhang system is too noisy to be positive definite (few points per
-    image, small targets); falls back to ``f`` = image width when even ``f^2`` comes out
-    negative. ``image_size``: (width, height) pixels.
+    homographies ``Hs`` (n, 3, 3): with ``w = (1, 0, 1, 0, 0, f^2)`` in centred, normalised
+    coordinates each row gives ``r_11 + r_22 + r_33 f^2 = 0``. ``f`` = image width when ``f^2``
+    comes out negative. ``image_size``: (width, height) pixels.
     """
     Hs = np.asarray(Hs, dtype=float).reshape(-1, 3, 3)
     N = image_normalisation(*image_size)

@@ -217,14 +217,9 @@ def rig_linear_intrinsics(
     row_weighting: Literal["noise", "unit"] = "unit",
     **options,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Joint linear intrinsics of both cameras of a stereo head (eqs. 10-11 with eq. 62).
-
-    One homogeneous system in ``(w_a, s w_b)``: each camera's rows are those of
-    ``linear_system`` with knowledge ``"none"`` (Zhang's two rows per homography, its basis,
-    normalisation and ``row_weighting``) and the six rows of ``H_inf' W_a H_inf = s W_b``
-    (eq. 62, ``H_inf`` in the normalised images at ``det = 1``) couple them; the unknown scale
-    ``s`` is carried by ``w_b``, whose own rows are homogeneous. The eq. 62 rows get the median
-    norm of the cameras' rows.
+    """Joint linear intrinsics of both cameras of a stereo head (eqs. 10-11 with eq. 62;
+    docs/METHOD.md Sec. 8): each camera's ``linear_system`` rows of knowledge ``"none"`` and
+    the six rows of eq. 62 (at the median norm of the cameras' rows) in ``(w_a, s w_b)``.
 
     ``Hs_a``, ``Hs_b`` (n_a, 3, 3), (n_b, 3, 3): each camera's homographies (views not
     necessarily paired). ``H_inf``: :func:`infinite_homography`'s, or None to solve each camera
@@ -350,14 +345,11 @@ def rig_linear_intrinsics_translation(
     row_weighting: Literal["noise", "unit"] = "noise",
     **options,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Joint linear intrinsics of a stereo head translated in front of a board (eqs. 33-42).
-
-    Both cameras undergo the same translations. Unknowns ``(w_a, w_b, c_1 .. c_G)``: each
-    camera's rows are ``slidecal.solver.linear.linear_system``'s for its groups and the
-    knowledge; one ``c_g`` serves both cameras (camera b's column rescaled by the ratio of the
-    cameras' conditioned ``lambda_g^2`` from :func:`infinite_homography`'s ``mu_g``, with two or
-    more groups). Coupling rows for every translation (:func:`_shared_translation_rows`); with
-    ``_EQ62_MIN_GROUPS`` groups and ``use_eq62`` the six rows of eq. 62 too.
+    """Joint linear intrinsics of a stereo head translated in front of a board (eqs. 33-42;
+    docs/METHOD.md Sec. 8): unknowns ``(w_a, w_b, c_1 .. c_G)``, one ``c_g`` for both cameras
+    (camera b's column rescaled through :func:`infinite_homography`'s ``mu_g``), coupling rows
+    per translation (:func:`_shared_translation_rows`) and, from ``_EQ62_MIN_GROUPS`` groups
+    with ``use_eq62``, eq. 62.
 
     ``groups_a``, ``groups_b``: ``LinearGroup`` per orientation group, the same frames in both
     (``motion`` read from ``groups_a``, board units, by ``knowledge``: "robot",
