@@ -525,8 +525,8 @@ def _rotation_ax_xb(groups: np.ndarray, M: np.ndarray, poses: dict[int, np.ndarr
 def init_motion(
     problem: CalibrationProblem,
     poses: dict[int, np.ndarray],
-    groups: np.ndarray | None = None,
-    structure: Structure | None = None,
+    groups: np.ndarray,
+    st: Structure,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Initial ``X`` (G, 4, 4), ``Y`` (4, 4), ``s`` (F,) from per-frame reference-camera poses.
 
@@ -534,10 +534,9 @@ def init_motion(
     (t_M(k) - t_M(0))`` (camera displacement in camera axes against the known motion), so
     ``R_X`` is the orthogonal Procrustes solution over all such pairs (docs/METHOD.md Sec. 4); then
     ``X^-1 T_cam_board(k) = M_k Y`` is linear in ``R_X' t_X`` and ``t_Y`` (with the hand-eye
-    translation fixed at 0 when no rotations make it observable). ``groups``, ``structure``:
-    the problem's :func:`frame_groups` and ``build_structure(problem)`` when the caller has them.
+    translation fixed at 0 when no rotations make it observable). ``groups``, ``st``: the
+    problem's :func:`frame_groups` and ``build_structure(problem)``.
     """
-    st = build_structure(problem) if structure is None else structure
     F = len(problem.frames)
     s = np.zeros(F)
     if problem.knowledge == "none":
@@ -563,7 +562,6 @@ def init_motion(
                     d = X[g][:3, :3] @ st.direction[i]
                     s[i] = -d @ (poses[i][:3, 3] - X[g][:3, 3])
         return X, np.eye(4), s
-    groups = frame_groups(problem) if groups is None else groups
     d_cam, d_M = [np.zeros((0, 3))], [np.zeros((0, 3))]
     for g in np.unique(groups):  # every pair of frames a < b of a group (n^2 / 2 of them)
         idx = np.array([i for i in np.flatnonzero(groups == g) if i in poses], dtype=int)
@@ -614,16 +612,13 @@ def init_motion(
 # -- the whole pipeline -------------------------------------------------------------------------
 @single_threaded_blas
 def calibrate(
-    problem: CalibrationProblem, *, joint_homographies: bool = False, focal_sweep: bool = False
+    problem: CalibrationProblem, *, joint_homographies: bool = False
 ) -> CalibrationResult:
     """Calibrate every camera, the hand-eye transform and the rig from one session.
 
     ``joint_homographies``: start from the paper's linear method with jointly refined
     homographies (``result.linear`` is then that method's estimate); by default rescaled
-    per-frame DLTs (the same optimum, faster). ``focal_sweep``: start a classic single-camera
-    robot session from the focal length that fits the images best through the robot poses
-    instead of Zhang's closed form (done anyway when the refinement from Zhang's start does
-    not converge).
+    per-frame DLTs (the same optimum, faster).
 
     A frame whose robot pose the images contradict far beyond the arm's accuracy elsewhere
     (``adequacy.pose_outlier``), or else whose image is far beyond its camera's detector noise
@@ -633,7 +628,7 @@ def calibrate(
     problem, turned = resolve_half_turns(problem)  # a symmetric board read the right way round
 
     def solve(p: CalibrationProblem) -> CalibrationResult:
-        return _pipeline(p, joint_homographies, focal_sweep, ())
+        return _pipeline(p, joint_homographies, False, ())
 
     res = choose_lens(problem, solve(problem), solve)
     return replace(res, messages=(*turned, *res.messages)) if turned else res
