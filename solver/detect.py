@@ -45,7 +45,7 @@ class DetectionReport:
     the corners' convex hull. ``rejected_ids``: corners removed by the local homography check.
     ``path``: the detector step that found the corners ("" when none did). ``blur_sigma_px``:
     edge width of the image (std of the Gaussian blur that explains its steepest edges).
-    ``mean_grey``: mean grey level (0..255); ``saturated_fraction``: fraction of pixels at 255.
+    ``saturated_fraction``: fraction of pixels at 255.
     """
 
     detection: Detection
@@ -56,7 +56,6 @@ class DetectionReport:
     rejected_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     path: str = ""
     blur_sigma_px: float = float("nan")
-    mean_grey: float = float("nan")
     saturated_fraction: float = float("nan")
 
     @property
@@ -1053,7 +1052,6 @@ def _report(
         rejected_ids=rejected,
         path=path,
         blur_sigma_px=blur,
-        mean_grey=mean,
         saturated_fraction=saturated,
     )
 

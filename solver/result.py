@@ -24,17 +24,13 @@ class NamedCovariance:
     names: tuple[str, ...]
     matrix: np.ndarray
 
-    def index(self, names: list[str] | tuple[str, ...]) -> np.ndarray | None:
-        """Row indices of ``names``, None unless all are present."""
+    def block(self, names: list[str] | tuple[str, ...]) -> np.ndarray | None:
+        """The covariance of ``names`` (n, n), None unless all are present."""
         where = {n: i for i, n in enumerate(self.names)}
         if any(n not in where for n in names):
             return None
-        return np.array([where[n] for n in names], dtype=int)
-
-    def block(self, names: list[str] | tuple[str, ...]) -> np.ndarray | None:
-        """The covariance of ``names`` (n, n), None unless all are present."""
-        i = self.index(names)
-        return None if i is None else self.matrix[np.ix_(i, i)]
+        i = np.array([where[n] for n in names], dtype=int)
+        return self.matrix[np.ix_(i, i)]
 
     def std(self, name: str) -> float | None:
         """One-sigma of ``name``, None when it is not estimated."""
