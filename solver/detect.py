@@ -442,7 +442,7 @@ def find_chessboard(
     for path in paths:
         full = path.endswith("_full")
         img = grey if full else small
-        if path in ("classic_reduced", "classic_full"):
+        if path == "classic_reduced":
             c = _classic(img, size)
         elif path == "classic_flat_reduced":
             c = _classic(flatten_light(small), size)
@@ -452,8 +452,6 @@ def find_chessboard(
             continue
         elif path == "sb_exhaustive_reduced":
             c = _sb(img, size, cv2.CALIB_CB_EXHAUSTIVE)
-        elif path == "sb_accuracy_full":
-            c = _sb(img, size, cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
         else:
             raise InputError(f"unknown chessboard detector path {path!r}")
         if c is not None:  # the reduced image's pixel centres taken to full resolution
