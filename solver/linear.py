@@ -204,18 +204,6 @@ def _check_groups(groups: Sequence[LinearGroup], knowledge: str) -> None:
         raise InputError(f"unknown motion knowledge {knowledge!r}; use one of {KNOWLEDGE}")
     if len(groups) == 0:
         raise InputError("the linear method needs at least one orientation group")
-    for g, grp in enumerate(groups):
-        H = np.asarray(grp.H)
-        if H.ndim != 3 or H.shape[1:] != (3, 3):
-            raise InputError(f"group {g}: H must be an (n, 3, 3) array of homographies")
-        if knowledge not in ("none",):
-            if grp.motion is None:
-                raise InputError(f"group {g}: motion is required for knowledge {knowledge!r}")
-            if np.shape(grp.motion) != (len(H), 3):
-                raise InputError(
-                    f"group {g}: motion must be ({len(H)}, 3), one row per frame, got "
-                    f"{np.shape(grp.motion)}"
-                )
 
 
 #: Partners of each translation in a large orientation group (the robot knowledge): every pair

@@ -276,33 +276,10 @@ _TRANSLATION_KNOWLEDGE = ("robot", "board_translation", "board_direction", "leng
 def _rig_groups(
     groups_a: Sequence[LinearGroup], groups_b: Sequence[LinearGroup]
 ) -> tuple[list[LinearGroup], list[LinearGroup]]:
-    """Both cameras' groups checked, each with the one motion of the head (from ``groups_a``)."""
-    G = len(groups_a)
-    if G == 0 or len(groups_b) != G:
-        raise InputError(
-            f"groups_a has {G} groups and groups_b {len(groups_b)}: pass the same non-empty "
-            "orientation groups for both cameras"
-        )
-    out_a, out_b = [], []
-    for g, (ga, gb) in enumerate(zip(groups_a, groups_b, strict=True)):
-        A = _check_homographies(ga.H, f"groups_a[{g}].H")
-        B = _check_homographies(gb.H, f"groups_b[{g}].H")
-        if len(A) != len(B) or len(A) < 2:
-            raise InputError(
-                f"group {g}: camera a has {len(A)} frames, camera b {len(B)}; both need the same "
-                "frames, at least two (one translation)"
-            )
-        mot = None if ga.motion is None else np.asarray(ga.motion, dtype=float)
-        if mot is None or mot.shape != (len(A), 3):
-            raise InputError(f"group {g}: groups_a[{g}].motion must be ({len(A)}, 3)")
-        if gb.motion is not None and not np.allclose(np.asarray(gb.motion, float), mot):
-            raise InputError(
-                f"group {g}: the two cameras' motions differ; a rigid head has one translation "
-                "per frame: pass it in groups_a and None (or the same) in groups_b"
-            )
-        out_a.append(LinearGroup(A, mot))
-        out_b.append(LinearGroup(B, mot))
-    return out_a, out_b
+    """Both cameras' groups (the same frames), each with the one motion of the head, read from
+    ``groups_a``."""
+    pairs = zip(groups_a, groups_b, strict=True)
+    return list(groups_a), [LinearGroup(np.asarray(gb.H, float), ga.motion) for ga, gb in pairs]
 
 
 def _shared_translation_rows(
