@@ -105,7 +105,6 @@ def image_normalisation(width: float, height: float) -> np.ndarray:
     return np.array([[s, 0.0, -s * cx], [0.0, s, -s * cy], [0.0, 0.0, 1.0]])
 
 
-Knowledge = Literal["robot", "board_translation", "board_direction", "lengths", "none"]
 KNOWLEDGE = ("robot", "board_translation", "board_direction", "lengths", "none")
 
 

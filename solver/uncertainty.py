@@ -173,13 +173,11 @@ def _jacobian(layout: Layout, internal: tuple[str, ...]) -> tuple[tuple[str, ...
             out.add_transform(key, i, np.eye(6), True, True)
     m = mount_names(layout.mount)
     rot, trans = layout.rotation_reported, layout.translation_reported
-    if m is None or not rot or layout.X is None or layout.Y is None:
-        return tuple(out.names), np.array(out.rows).reshape(len(out.names), len(internal))
     Xr, Xt = layout.X_rot_basis, layout.X_t_basis
     Yr, Yt = layout.Y_rot_basis, layout.Y_t_basis
     xi = out.cols(_block_names("X0", Xr, Xt))
     yi = out.cols(_block_names("Y", Yr, Yt))
-    if xi is None or yi is None:
+    if m is None or not rot or layout.X is None or layout.Y is None or xi is None or yi is None:
         return tuple(out.names), np.array(out.rows).reshape(len(out.names), len(internal))
     BX = np.zeros((6, len(xi)))  # the optimiser's X coordinates -> X's perturbation
     BX[:3, : Xr.shape[1]] = Xr
