@@ -177,16 +177,6 @@ def homography_rms_px(H: np.ndarray, board_xy: np.ndarray, px: np.ndarray) -> fl
     return float(np.sqrt(np.mean(np.sum((xy - p) ** 2, axis=1))))
 
 
-def _prepare_group(observations: Sequence[Observation]):
-    if len(observations) < 1:
-        raise InputError("an orientation group needs at least one frame")
-    obs = [_check_pairs(b, p) for b, p in observations]
-    Tb = _similarity(np.concatenate([b for b, _ in obs]))
-    Ti = _similarity(np.concatenate([p for _, p in obs]))
-    obs_n = [(_apply(Tb, b), _apply(Ti, p)) for b, p in obs]
-    return obs_n, Tb, Ti
-
-
 def _common_scale_init(obs_n) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame DLTs rescaled to a common h1, h2: shared (6,) and per-frame h3 (n, 3)."""
     Hs = [_dlt_normalised(b, p) for b, p in obs_n]
@@ -201,32 +191,6 @@ def _common_scale_init(obs_n) -> tuple[np.ndarray, np.ndarray]:
     return np.mean(h12, axis=0), np.array(h3)
 
 
-def _finish_group(Hn: np.ndarray, Tb: np.ndarray, Ti: np.ndarray) -> np.ndarray:
-    Tii = np.linalg.inv(Ti)
-    Hs = np.array([Tii @ H @ Tb for H in Hn])
-    s = np.linalg.norm(Hs[0])
-    if np.median(Hs[:, 2, 2]) < 0:
-        s = -s
-    return Hs / s
-
-
-def _fit_group(obs_n, Tb, Ti, unpack, place, x0: np.ndarray, max_iter: int = 30) -> np.ndarray:  # noqa: ANN001
-    """The group's homographies fitted to all its frames: ``unpack`` maps the parameters to the
-    (normalised) homographies, ``place(k, J_k)`` a frame's (N, 9) Jacobian to its rows."""
-
-    def fun(x: np.ndarray) -> np.ndarray:
-        return np.concatenate(
-            [_residual_and_jac(H, b, p)[0] for H, (b, p) in zip(unpack(x), obs_n, strict=True)]
-        )
-
-    def jac(x: np.ndarray) -> np.ndarray:
-        pairs = enumerate(zip(unpack(x), obs_n, strict=True))
-        return np.vstack([place(k, _residual_and_jac(H, b, p)[1]) for k, (H, (b, p)) in pairs])
-
-    x = _levenberg_marquardt(fun, jac, x0, max_iter)
-    return _finish_group(np.array(unpack(x)), Tb, Ti)
-
-
 def group_homographies(observations: Sequence[Observation], max_iter: int = 30) -> np.ndarray:
     """Joint homographies (n, 3, 3) of one orientation group (docs/METHOD.md Sec. 3).
 
@@ -237,7 +201,12 @@ def group_homographies(observations: Sequence[Observation], max_iter: int = 30) 
     norm and ``h3[2] > 0`` (board in front of the camera). ``max_iter``: Levenberg-Marquardt
     iterations from the rescaled per-frame DLTs (0 returns those; a start for a refinement).
     """
-    obs_n, Tb, Ti = _prepare_group(observations)
+    if len(observations) < 1:
+        raise InputError("an orientation group needs at least one frame")
+    obs = [_check_pairs(b, p) for b, p in observations]
+    Tb = _similarity(np.concatenate([b for b, _ in obs]))
+    Ti = _similarity(np.concatenate([p for _, p in obs]))
+    obs_n = [(_apply(Tb, b), _apply(Ti, p)) for b, p in obs]
     h12, h3 = _common_scale_init(obs_n)
     n = len(obs_n)
 
@@ -250,6 +219,20 @@ def group_homographies(observations: Sequence[Observation], max_iter: int = 30) 
         B[:, 6 + 3 * k : 9 + 3 * k] = Jk[:, 6:9]
         return B
 
-    x0 = np.concatenate([h12, h3.reshape(-1)])
-    return _fit_group(obs_n, Tb, Ti, unpack, place, x0, max_iter)
+    def fun(x: np.ndarray) -> np.ndarray:
+        return np.concatenate(
+            [_residual_and_jac(H, b, p)[0] for H, (b, p) in zip(unpack(x), obs_n, strict=True)]
+        )
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        pairs = enumerate(zip(unpack(x), obs_n, strict=True))
+        return np.vstack([place(k, _residual_and_jac(H, b, p)[1]) for k, (H, (b, p)) in pairs])
+
+    x = _levenberg_marquardt(fun, jac, np.concatenate([h12, h3.reshape(-1)]), max_iter)
+    Tii = np.linalg.inv(Ti)
+    Hs = np.array([Tii @ H @ Tb for H in unpack(x)])
+    s = np.linalg.norm(Hs[0])
+    if np.median(Hs[:, 2, 2]) < 0:  # board in front of the camera
+        s = -s
+    return Hs / s
 
