@@ -484,19 +484,16 @@ def _average_T(Ts: list[np.ndarray]) -> np.ndarray:
     return T_from_Rt(R, np.mean([T[:3, 3] for T in Ts], axis=0))
 
 
-def _align(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The smallest rotation (3, 3) taking the direction of ``a`` (3,) onto that of ``b``."""
+def _align_translations(d_cam: np.ndarray, d_M: np.ndarray) -> np.ndarray:
+    """``R_X`` (3, 3), the smallest rotation taking the one robot translation direction onto the
+    camera's."""
+    sign = np.sign(d_M @ d_M[0])
+    a, b = d_M.T @ sign, d_cam.T @ sign
     a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
     v, c = np.cross(a, b), float(a @ b)
     if np.linalg.norm(v) < 1e-12:
         return np.eye(3) if c > 0 else R_from_rvec(np.pi * complement_basis(a)[:, 0])
     return R_from_rvec(v / np.linalg.norm(v) * np.arctan2(np.linalg.norm(v), c))
-
-
-def _align_translations(d_cam: np.ndarray, d_M: np.ndarray) -> np.ndarray:
-    """``R_X`` (3, 3) taking the one robot translation direction onto the camera's."""
-    sign = np.sign(d_M @ d_M[0])
-    return _align(d_M.T @ sign, d_cam.T @ sign)
 
 
 def _rotation_ax_xb(groups: np.ndarray, M: np.ndarray, poses: dict[int, np.ndarray]) -> np.ndarray:

@@ -25,11 +25,6 @@ _MIN_SPREAD = 1e-2
 _MIRRORED = 0.1
 
 
-def _group_scale(Kinv: np.ndarray, H0: np.ndarray) -> float:
-    m1, m2 = Kinv @ H0[:, 0], Kinv @ H0[:, 1]
-    return float(np.sqrt(0.5 * (m1 @ m1 + m2 @ m2)))
-
-
 def camera_displacements(K: np.ndarray, group: LinearGroup) -> np.ndarray:
     """Camera displacements ``d`` (n, 3) since frame 0, camera axes, board length unit.
 
@@ -40,7 +35,8 @@ def camera_displacements(K: np.ndarray, group: LinearGroup) -> np.ndarray:
     """
     H = np.asarray(group.H, dtype=float)
     Kinv = np.linalg.inv(np.asarray(K, dtype=float))
-    lam = _group_scale(Kinv, H[0])
+    m1, m2 = Kinv @ H[0][:, 0], Kinv @ H[0][:, 1]
+    lam = float(np.sqrt(0.5 * (m1 @ m1 + m2 @ m2)))
     if H[0][2, 2] < 0:
         lam = -lam
     return np.array([Kinv @ (H[0][:, 2] - Hk[:, 2]) / lam for Hk in H])

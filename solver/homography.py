@@ -137,10 +137,6 @@ def _levenberg_marquardt(fun, jac, x0: np.ndarray, max_iter: int = 30) -> np.nda
     return x
 
 
-def _h(H: np.ndarray) -> np.ndarray:
-    return H.T.reshape(-1)  # columns h1, h2, h3 stacked
-
-
 def _H(x: np.ndarray) -> np.ndarray:
     return x.reshape(3, 3).T
 
@@ -165,7 +161,7 @@ def refine_homography(H: np.ndarray, board_xy: np.ndarray, px: np.ndarray) -> np
     def jac(x: np.ndarray) -> np.ndarray:
         return _residual_and_jac(_H(x), bn, pn)[1]
 
-    x = _levenberg_marquardt(fun, jac, _h(Hn))
+    x = _levenberg_marquardt(fun, jac, Hn.T.reshape(-1))  # columns h1, h2, h3 stacked
     return _sign_scale(np.linalg.inv(Ti) @ _H(x) @ Tb)
 
 

@@ -273,15 +273,6 @@ _EQ62_MIN_GROUPS = 3
 _TRANSLATION_KNOWLEDGE = ("robot", "board_translation", "board_direction", "lengths")
 
 
-def _rig_groups(
-    groups_a: Sequence[LinearGroup], groups_b: Sequence[LinearGroup]
-) -> tuple[list[LinearGroup], list[LinearGroup]]:
-    """Both cameras' groups (the same frames), each with the one motion of the head, read from
-    ``groups_a``."""
-    pairs = zip(groups_a, groups_b, strict=True)
-    return list(groups_a), [LinearGroup(np.asarray(gb.H, float), ga.motion) for ga, gb in pairs]
-
-
 def _shared_translation_rows(
     Ha: np.ndarray, Hb: np.ndarray, f1: float, f2: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -340,7 +331,8 @@ def rig_linear_intrinsics_translation(
             f"unknown motion knowledge {knowledge!r} for a translated stereo head; use one of "
             f"{_TRANSLATION_KNOWLEDGE} (general motion: rig_linear_intrinsics)"
         )
-    ga, gb = _rig_groups(groups_a, groups_b)
+    ga = list(groups_a)  # camera b's groups take the head's one motion, camera a's
+    gb = [LinearGroup(np.asarray(b.H, float), a.motion) for a, b in zip(ga, groups_b, strict=True)]
     G = len(ga)
     H_inf, mu = None, np.ones(G)
     if G >= 2:
