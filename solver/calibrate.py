@@ -224,14 +224,13 @@ def _linear_groups(
     problem: CalibrationProblem,
     cams: tuple[str, ...],
     groups: np.ndarray,
-    joint: bool = True,
-    homographies: dict | None = None,
+    joint: bool,
+    cache: dict,
 ) -> list[tuple[list[int], list[LinearGroup]]]:
     """Per orientation group: the frames every camera in ``cams`` saw well enough, and one
     ``LinearGroup`` per camera (homographies with a common scale: jointly refined with
-    ``joint``, else rescaled per-frame DLTs). ``homographies``: their cache by (camera, frames,
+    ``joint``, else rescaled per-frame DLTs). ``cache``: the homographies by (camera, frames,
     joint), filled here."""
-    cache = {} if homographies is None else homographies
     pts = problem.target.points_m[:, :2]
     out = []
     for g in np.unique(groups):
@@ -311,10 +310,10 @@ def linear_camera(
     problem: CalibrationProblem,
     cam: str,
     groups: np.ndarray,
-    joint: bool = True,
-    notes: list[str] | None = None,
-    focal_sweep: bool = False,
-    homographies: dict | None = None,
+    joint: bool,
+    notes: list[str],
+    focal_sweep: bool,
+    homographies: dict,
 ) -> np.ndarray:
     """Closed-form ``K`` (3, 3) of one camera (docs/METHOD.md Sec. 3; Zhang for general motion).
 
@@ -371,7 +370,7 @@ def linear_camera(
             Kc[0, 0] = Kc[1, 1] = Kf[0, 0] * factor
             candidates.append(Kc)
         best = _best_start(problem, cam, candidates) if len(problem.cameras) == 1 else 0
-        if best >= n_zhang and notes is not None:
+        if best >= n_zhang:
             notes.append(
                 f"camera {cam!r}: Zhang's closed form was {reason} for these views; the "
                 "refinement started from the image centre and the focal length that fits the "
@@ -397,8 +396,8 @@ def linear_pair(
     cam: str,
     ref: str,
     groups: np.ndarray,
-    joint: bool = True,
-    homographies: dict | None = None,
+    joint: bool,
+    homographies: dict,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Joint closed-form ``(K_cam, K_ref)`` of two cameras of a rig (paper Sec. IV; docs/METHOD.md
     Sec. 8): both see the same translations (eqs. 33-42) and, with two or more orientations,
@@ -615,12 +614,9 @@ def calibrate(
 
     ``joint_homographies``: start from the paper's linear method with jointly refined
     homographies (``result.linear`` is then that method's estimate); by default rescaled
-    per-frame DLTs (the same optimum, faster).
-
-    A frame whose robot pose the images contradict far beyond the arm's accuracy elsewhere
-    (``adequacy.pose_outlier``), or else whose image is far beyond its camera's detector noise
-    (``adequacy.image_outlier``), is left out and the session solved again, with a message; at
-    most one frame in ten (at least one). The lens model is tested (``solver/lens.py``).
+    per-frame DLTs (the same optimum, faster). A pose or image outlier
+    (``adequacy.pose_outlier``, ``adequacy.image_outlier``) is left out and the session solved
+    again, at most one frame in ten (at least one); the lens model is tested (``solver/lens.py``).
     """
     problem, turned = resolve_half_turns(problem)  # a symmetric board read the right way round
 

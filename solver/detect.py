@@ -133,9 +133,8 @@ def grey_of(image: np.ndarray, colour: str = COLOUR_CONVERSION) -> np.ndarray:
     """uint8 (H, W) of an (H, W) grey or (H, W, 3|4) BGR(A) image.
 
     ``colour``: "green" (the G channel), "luma" (OpenCV's BGR2GRAY mix) or "mean" (the
-    channels' mean). Other dtypes (a 12- or 16-bit sensor's, a float image) are rescaled to
-    0..255 between their 0.01 and 99.99 percentiles, so that a few hot or dead pixels do not
-    squeeze the board into a handful of grey levels.
+    channels' mean). Other dtypes are rescaled to 0..255 between their
+    ``GREY_RANGE_PERCENTILES``.
     """
     img = np.asarray(image)
     if img.ndim == 3 and img.shape[2] == 1:
@@ -245,13 +244,7 @@ def _detect_charuco(
     grey: np.ndarray, target: Target, blur_px: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray, list, str]:
     """The ChArUco corners, the reasons when none, and the path ("charuco", or
-    "charuco-legacy" for a board of OpenCV's layout before 4.6).
-
-    OpenCV 4.6 moved the markers of a board with an even ``squares_y``; boards printed before
-    keep the old layout, whose markers decode but interpolate no corner. Such an image is
-    detected again with the old layout, and the layout giving more corners kept (ids and board
-    positions are the same in both).
-    """
+    "charuco-legacy": a board of OpenCV's layout before 4.6, docs/results/DETECTION.md)."""
     ids, px, reasons, n_markers = _detect_charuco_layout(grey, target, blur_px, legacy=False)
     if target.squares_y % 2 == 0 and n_markers >= 2 and len(ids) < n_markers / 2:
         old = _detect_charuco_layout(grey, target, blur_px, legacy=True)
@@ -329,14 +322,9 @@ def _refine_charuco(
     H: np.ndarray,
     blur_px: float = 0.0,
 ) -> np.ndarray:
-    """``cornerSubPix`` per corner with the largest window that holds no marker edge.
-
-    The four marker outlines around a corner are mapped into the image by the homography of
-    the adjacent detected markers (else the board-wide ``H``); the square window, centred on
-    the corner, stops 2 px short of the nearest outline point. A window narrower than 1.5
-    times the image's blur (``blur_px``) sees only the blurred junction and drifts: such a
-    corner keeps the detector's estimate.
-    """
+    """``cornerSubPix`` per corner with the largest window that holds no marker edge (the
+    outlines mapped by the adjacent markers' homography, else the board-wide ``H``); a corner
+    whose window is narrower than 1.5 times the image's blur ``blur_px`` keeps its estimate."""
     sq, m = target.square_size_m, target.marker_size_m
     g = 0.5 * (sq - m)
     t = g + np.linspace(0.0, 1.0, 9) * m
@@ -655,10 +643,9 @@ def _detect_tags(
 def _find_tags(
     grey: np.ndarray, family: str, refinement: str, wanted: set[int]
 ) -> tuple[list[np.ndarray], list[int]]:
-    """The decoded tags (corners (4, 2) each, ids): OpenCV's detector as it comes, and when a
-    tag of ``wanted`` is missing a second look with quads grouped only when they nearly
-    coincide (:data:`TAG_RETRY_MARKER_DISTANCE_RATE`), from which the missing ones are taken;
-    one quad per id (the largest: a tag's outer border, not the inner edge of its border)."""
+    """The decoded tags (corners (4, 2) each, ids): OpenCV's detector, and for a tag of
+    ``wanted`` it missed a second look (:data:`TAG_RETRY_MARKER_DISTANCE_RATE`); one quad per
+    id, the largest (a tag's outer border)."""
     found: dict[int, np.ndarray] = {}
     for rate in (0.0, TAG_RETRY_MARKER_DISTANCE_RATE):
         corners, ids, _ = _tag_detector(family, refinement, rate).detectMarkers(grey)
@@ -682,13 +669,9 @@ def _quad_area(q: np.ndarray) -> float:
 def _recover_grid_tags(
     grey: np.ndarray, target: Target, ids: np.ndarray, px: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Tags of an AprilGrid the marker detector missed, found where the found ones predict them.
-
-    Kalibr's corner squares touch every tag's corners and make OpenCV's quad finder miss tags.
-    Each missing tag's corners are predicted by a homography fitted to the found corners of the
-    tags around it, refined like found ones, and kept only if the tag's cells read back as its
-    own code (at most 3 of its bits wrong; the 36h11 codes differ in at least 11).
-    """
+    """Tags of an AprilGrid the marker detector missed, predicted by a homography on the found
+    tags around them, refined like found ones and kept only if the tag's cells read back as its
+    own code (at most 3 of its bits wrong; the 36h11 codes differ in at least 11)."""
     d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, target.dictionary))
     cells = d.markerSize + 2
     corner_ids = target.tag_corner_ids()

@@ -274,12 +274,8 @@ def reported_covariance(
 ) -> Reported:
     """The one way from a finished solve (``out`` of ``problem``; ``groups`` (F,): its frames'
     orientation groups) to its reported value and covariance, whatever the session
-    (docs/ERROR_MODEL.md Sec. 3): the board's fit (its scale at least ``board_scale``, a
-    classic session's unexplained length ratio; its response at the reported value), how the
-    images' errors read, the model's covariance plus every term of the error model
-    (:func:`result_covariance`), and the value moved by the board's fit and halfway
-    (:data:`~slidecal.solver.target_shape.READING_WEIGHT`) to a classic session's reading
-    without its field."""
+    (docs/ERROR_MODEL.md Sec. 3). ``board_scale``: the least relative scale uncertainty of the
+    board (a classic session's unexplained length ratio)."""
     board = with_session_scale(problem, out, fit_board(problem, out), board_scale)
     if board is not None:  # its modes' response at the reported value (a classic session's)
         board = replace(board, response=reported_response(out, board.response))
