@@ -131,16 +131,13 @@ class LinearSolution:
     """Result of :func:`linear_intrinsics`.
 
     ``K`` (3, 3) pixels, ``K[2, 2] = 1``. ``scales``: ``c = lambda^2`` per group in the caller's
-    units (``H`` as given in pixels and board units, ``H = lambda K [r1 r2 t]``). ``lengths``:
-    Case 2 only, per group an (n,) array of the recovered signed step lengths along the given
-    direction (board units; ``lengths[g][0] = 0``), else None. ``singular_values``: of the
-    conditioned system (descending; the last is the residual of the null vector). ``unknowns``:
-    names of the system's columns.
+    units (``H`` as given in pixels and board units, ``H = lambda K [r1 r2 t]``).
+    ``singular_values``: of the conditioned system (descending; the last is the residual of the
+    null vector). ``unknowns``: names of the system's columns.
     """
 
     K: np.ndarray
     scales: tuple[float, ...]
-    lengths: tuple[np.ndarray, ...] | None
     singular_values: np.ndarray
     unknowns: tuple[str, ...]
 
@@ -442,27 +439,7 @@ def linear_intrinsics(
         float(alpha * c * s**2 / system.sigma**2)
         for c, s in zip(x[m:], system.h_scale[: len(x) - m], strict=True)
     )
-    lengths = None
-    if knowledge == "board_direction":
-        lengths = tuple(
-            _signed_lengths(K, np.asarray(g.H, dtype=float), np.asarray(g.motion, dtype=float))
-            for g in groups
-        )
-    return LinearSolution(K, scales, lengths, sv, system.unknowns)
-
-
-def _signed_lengths(K: np.ndarray, H: np.ndarray, directions: np.ndarray) -> np.ndarray:
-    """Case 2 step lengths (n,): the camera displacement ``K^-1 Delta / lambda`` along ``R n``."""
-    H = _common_h12(H)
-    Ki = np.linalg.inv(K)
-    m1, m2 = Ki @ H[0][:, 0], Ki @ H[0][:, 1]
-    lam = np.sqrt(0.5 * (m1 @ m1 + m2 @ m2))
-    R = np.column_stack([m1 / lam, m2 / lam, np.cross(m1, m2) / lam**2])
-    out = np.zeros(len(H))
-    for k in range(1, len(H)):
-        n = directions[k] / np.linalg.norm(directions[k])
-        out[k] = (R @ n) @ (Ki @ (H[0][:, 2] - H[k][:, 2])) / lam  # eqs. 12-13
-    return out
+    return LinearSolution(K, scales, sv, system.unknowns)
 
 
 def zhang_intrinsics(Hs: np.ndarray, **options) -> np.ndarray:
