@@ -130,14 +130,12 @@ class LinearGroup:
 class LinearSolution:
     """Result of :func:`linear_intrinsics`.
 
-    ``K`` (3, 3) pixels, ``K[2, 2] = 1``. ``scales``: ``c = lambda^2`` per group in the caller's
-    units (``H`` as given in pixels and board units, ``H = lambda K [r1 r2 t]``).
-    ``singular_values``: of the conditioned system (descending; the last is the residual of the
-    null vector). ``unknowns``: names of the system's columns.
+    ``K`` (3, 3) pixels, ``K[2, 2] = 1``. ``singular_values``: of the conditioned system
+    (descending; the last is the residual of the null vector). ``unknowns``: names of the
+    system's columns (``w``'s coefficients, then each group's ``c = lambda^2``).
     """
 
     K: np.ndarray
-    scales: tuple[float, ...]
     singular_values: np.ndarray
     unknowns: tuple[str, ...]
 
@@ -427,19 +425,8 @@ def linear_intrinsics(
     if system is None:
         system = linear_system(groups, knowledge, **options)
     x, sv = solve_null(system.A, system.col_scale, system.unknowns)
-    m = system.basis.shape[1]
-    w = system.basis @ x[:m]
-    Kn = K_from_w(w)
-    K = K_from_normalised_w(w, system.N)
-    Kni = np.linalg.inv(Kn)
-    Wt = Kni.T @ Kni
-    w_true = np.array([Wt[0, 0], Wt[0, 1], Wt[1, 1], Wt[0, 2], Wt[1, 2], Wt[2, 2]])
-    alpha = (w_true @ w) / (w @ w)
-    scales = tuple(
-        float(alpha * c * s**2 / system.sigma**2)
-        for c, s in zip(x[m:], system.h_scale[: len(x) - m], strict=True)
-    )
-    return LinearSolution(K, scales, sv, system.unknowns)
+    K = K_from_normalised_w(system.basis @ x[: system.basis.shape[1]], system.N)
+    return LinearSolution(K, sv, system.unknowns)
 
 
 def zhang_intrinsics(Hs: np.ndarray, **options) -> np.ndarray:

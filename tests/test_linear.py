@@ -14,6 +14,8 @@ from slidecal.solver.linear import (
     _common_h12,
     image_normalisation,
     linear_intrinsics,
+    linear_system,
+    solve_null,
     zhang_intrinsics,
     zhang_rows,
 )
@@ -55,6 +57,21 @@ def signed_lengths(K, H, directions):
     return out
 
 
+def group_scales(groups, knowledge, **options):
+    """Each group's ``c = lambda^2`` (``H = lambda K [r1 r2 t]``, the caller's units) from the
+    null vector of the linear system, ``w`` taken at the scale of ``K^-T K^-1``."""
+    system = linear_system(groups, knowledge, **options)
+    x, _ = solve_null(system.A, system.col_scale, system.unknowns)
+    m = system.basis.shape[1]
+    w = system.basis @ x[:m]
+    Kni = np.linalg.inv(K_from_w(w))
+    Wt = Kni.T @ Kni
+    w_true = np.array([Wt[0, 0], Wt[0, 1], Wt[1, 1], Wt[0, 2], Wt[1, 2], Wt[2, 2]])
+    alpha = (w_true @ w) / (w @ w)
+    scales = zip(x[m:], system.h_scale, strict=True)
+    return [float(alpha * c * s**2 / system.sigma**2) for c, s in scales]
+
+
 def test_conic_helpers():
     K = sl.K_SKEW
     w = w_from_K(K)
@@ -94,7 +111,8 @@ def test_case2_direction_noise_free_recovers_lengths_and_scale():
     lengths = signed_lengths(sol.K, Hs, _normal_dirs(5))
     assert np.allclose(lengths, np.arange(5) * 5.0, rtol=1e-6, atol=1e-6)
     lam = 1.0 / np.linalg.norm(g.H[0])  # Hs = g.H * lam and g.H = K [r1 r2 t]
-    assert abs(sol.scales[0] / lam**2 - 1) < 1e-6
+    scale = group_scales([LinearGroup(Hs, _normal_dirs(5))], "board_direction", image_size=SIZE)
+    assert abs(scale[0] / lam**2 - 1) < 1e-6
     # A direction with in-plane components (rows with n_x, n_y != 0) and unit aspect.
     R = sl.tilt_R(30, 30)
     d = np.array([0.3, -0.2, -1.0])
@@ -148,7 +166,7 @@ def test_multi_group_noise_free(knowledge):
         groups.append(LinearGroup(group_homographies(g.observations), motion))
     sol = linear_intrinsics(groups, knowledge, skew=True, image_size=SIZE)
     assert _rel(sol.K, sl.K_SKEW) < 1e-6
-    assert len(sol.scales) == 3
+    assert sum(n.startswith("c") for n in sol.unknowns) == 3  # one scale per group
 
 
 def test_zhang_alone():
