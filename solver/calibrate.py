@@ -445,8 +445,6 @@ def pnp_pose(
     reprojection-error minimum (the scale check's: IPPE hides part of a scale error).
     ``guess`` (4, 4): a start for the iterative minimum.
     """
-    if len(px) < 4:
-        return None
     obj, img = board_pts.astype(np.float64), px.astype(np.float64)
     if guess is not None:
         return pnp_from(obj, img, K, dist, guess)
@@ -536,14 +534,7 @@ def init_motion(
     F = len(problem.frames)
     s = np.zeros(F)
     if problem.knowledge == "none":
-        X = np.stack([poses.get(i, np.eye(4)) for i in range(F)])
-        missing = [problem.frames[i].id for i in range(F) if i not in poses]
-        if missing:
-            raise DegenerateError(
-                f"frames {missing} have no board pose in the reference camera (fewer than "
-                f"{MIN_CORNERS} points, or PnP failed): general motion needs one per frame; "
-                "calibrate() skips such frames"
-            )
+        X = np.stack([poses[i] for i in range(F)])  # _pass skipped the frames without one
         return X, np.eye(4), s
     if problem.knowledge in ("board_translation", "board_direction"):
         G = int(st.group_of_frame.max()) + 1
@@ -878,9 +869,7 @@ def _field_note(
     """A line saying how far a classic session's two readings of its arm's linear field put
     the hand-eye apart (``session_field_step``), from half a millimetre or 0.05 deg."""
     layout = layout_of(problem, out.model.st, out.state)
-    frames = mount_names(layout.mount)
-    if frames is None:
-        return ()
+    frames = mount_names(layout.mount)  # a classic session's: a robot's mount
     d = named_step(layout, tuple(out.names), step)
     he = frames.hand_eye
     rot = [d.get(f"{he}.{a}", 0.0) for a in ("rx", "ry", "rz")]

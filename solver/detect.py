@@ -652,18 +652,14 @@ def _find_tags(
         seen: dict[int, np.ndarray] = {}
         for c, t in zip(corners, [] if ids is None else np.asarray(ids).reshape(-1), strict=True):
             q = np.asarray(c, dtype=np.float64).reshape(4, 2)
-            if int(t) not in seen or _quad_area(q) > _quad_area(seen[int(t)]):
+            area = cv2.contourArea(q.astype(np.float32))  # the largest: the tag's outer border
+            if int(t) not in seen or area > cv2.contourArea(seen[int(t)].astype(np.float32)):
                 seen[int(t)] = q
         for t, q in seen.items():
             found.setdefault(t, q)
         if wanted <= set(found):
             break
     return list(found.values()), list(found)
-
-
-def _quad_area(q: np.ndarray) -> float:
-    x, y = q[:, 0], q[:, 1]
-    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
 
 
 def _recover_grid_tags(

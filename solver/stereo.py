@@ -79,7 +79,6 @@ def infinite_homography(
     *,
     sizes: Sequence[tuple[float, float]] | None = None,
     refine: bool = True,
-    max_iterations: int = 50,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(H_inf, mu)``: the infinite homography (3, 3) from camera b's image to camera a's
     (``x_a ~ H_inf x_b`` in pixels, ``K_a R_a_b K_b^-1`` at ``det = 1``) and the per-view scales
@@ -142,7 +141,7 @@ def infinite_homography(
     mu_n = 1.0 / nu
 
     if refine:
-        for _ in range(max_iterations):
+        for _ in range(50):  # a bound: it stops at a step below 1e-13 long before
             lhs = np.einsum("k,kri,kci->rc", mu_n, A, B)
             rhs = np.einsum("k,kri,kci->rc", mu_n**2, B, B)
             H_new = np.linalg.solve(rhs.T, lhs.T).T
