@@ -190,12 +190,10 @@ def _common_scale_init(obs_n) -> tuple[np.ndarray, np.ndarray]:
 def group_homographies(observations: Sequence[Observation], max_iter: int = 30) -> np.ndarray:
     """Joint homographies (n, 3, 3) of one orientation group (docs/METHOD.md Sec. 3).
 
-    ``observations``: per frame ``(board_xy (N_k, 2) board frame, px (N_k, 2) pixels)``. One
-    shared ``h1, h2`` and one ``h3`` per frame minimise the reprojection error of all frames
-    jointly, so every ``Hs[k]`` has the same scale (identical first two columns) and
-    ``Delta_k = h3_0 - h3_k`` is meaningful (eqs. 12-13). Scale: ``Hs[0]`` has unit Frobenius
-    norm and ``h3[2] > 0`` (board in front of the camera). ``max_iter``: Levenberg-Marquardt
-    iterations from the rescaled per-frame DLTs (0 returns those; a start for a refinement).
+    ``observations``: per frame ``(board_xy (N_k, 2) board frame, px (N_k, 2) pixels)``; one
+    shared ``h1, h2`` and one ``h3`` per frame. Scale: ``Hs[0]`` has unit Frobenius norm and
+    ``h3[2] > 0``. ``max_iter``: Levenberg-Marquardt iterations from the rescaled per-frame
+    DLTs (0 returns those).
     """
     if len(observations) < 1:
         raise InputError("an orientation group needs at least one frame")

@@ -487,11 +487,8 @@ def planned_covariance(
     ``levels``: each source's share of a frame's error (rad, m) by name, as
     ``RefineOutput.robot_levels`` (a source it lacks at ``SIGMA_FLOOR``); None: every source at
     ``problem.options``'s ``robot_noise_*``. Raises ``DegenerateError`` when the plan leaves a
-    reported quantity unobservable.
-
-    ``per_frame``: each frame's information instead (:class:`FrameInformation`, for a search
-    over many candidate frames: each frame keeps only its own pose correction, and every
-    transform is taken as observable, so the frames of any plan add up).
+    reported quantity unobservable. ``per_frame``: each frame's information instead
+    (:class:`FrameInformation`, every transform taken as observable).
     """
     st = build_structure(problem, truth.X[0][:3, :3])
     o = problem.options
