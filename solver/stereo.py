@@ -6,7 +6,7 @@ joined with ``X_a = R_a_b X_b + t_a_b`` (camera-frame coordinates); the infinite
 board-plane ``(X, Y, 1)`` to pixels; ``sizes`` are ``((width_a, height_a), (width_b,
 height_b))`` in pixels. The per-camera rows are ``slidecal.solver.linear.linear_system``'s; this
 module adds what couples the cameras: the infinite homography (eqs. 58-61), its transfer of the
-absolute conic (eq. 62), the shared translations (eqs. 33-42) and the relative rotation (eq. 63).
+absolute conic (eq. 62) and the shared translations (eqs. 33-42).
 """
 
 from __future__ import annotations
@@ -16,8 +16,7 @@ from typing import Literal
 
 import numpy as np
 
-from slidecal.solver.errors import DegenerateError, InputError
-from slidecal.solver.geometry import project_to_SO3
+from slidecal.solver.errors import DegenerateError
 from slidecal.solver.linear import (
     K_from_normalised_w,
     LinearGroup,
@@ -36,17 +35,6 @@ from slidecal.solver.linear import (
 # Third singular value of the views' stacked unit columns below which they are one orientation
 # (H_inf undetermined: the head turned by less than about 0.1 deg).
 _MIN_ORIENTATION_SPREAD = 2e-3
-
-
-def _check_homographies(H: np.ndarray, name: str) -> np.ndarray:
-    H = np.asarray(H, dtype=float)
-    if H.ndim == 2:
-        H = H[None]
-    if H.ndim != 3 or H.shape[1:] != (3, 3):
-        raise InputError(f"{name} must be an (n, 3, 3) stack of homographies, got {H.shape}")
-    if not np.all(np.isfinite(H)):
-        raise InputError(f"{name} contains NaN or infinite entries: re-estimate the homographies")
-    return H
 
 
 def _normaliser(H: np.ndarray, size: tuple[float, float] | None) -> np.ndarray:
@@ -89,11 +77,8 @@ def infinite_homography(
     ``refine``: after the linear solution, minimise ``sum_k ||A_k - mu_k H B_k||^2`` (``A_k``,
     ``B_k`` the normalised unit-norm columns ``[h1 h2]``) by alternating least squares.
     """
-    H_a = _check_homographies(H_a, "H_a")
-    H_b = _check_homographies(H_b, "H_b")
+    H_a, H_b = np.asarray(H_a, dtype=float), np.asarray(H_b, dtype=float)
     n = len(H_a)
-    if len(H_b) != n:
-        raise InputError(f"H_a has {n} views but H_b has {len(H_b)}: pass the same stereo views")
     if n < 2:
         raise DegenerateError(
             "the infinite homography needs at least two stereo views with different board "
@@ -227,7 +212,7 @@ def rig_linear_intrinsics(
     docs/results/S5.md).
     Returns ``K_a``, ``K_b`` (3, 3) in pixels.
     """
-    Hs = (_check_homographies(Hs_a, "Hs_a"), _check_homographies(Hs_b, "Hs_b"))
+    Hs = (np.asarray(Hs_a, dtype=float), np.asarray(Hs_b, dtype=float))
     options = {**options, "row_weighting": row_weighting}
     if H_inf is None:
         K_a, K_b = (
@@ -254,22 +239,8 @@ def rig_linear_intrinsics(
     return _solve_rig(A, sys_a, sys_b, row_weighting, "joint stereo calibration (eqs. 10-11, 62)")
 
 
-def relative_rotation(K_a: np.ndarray, K_b: np.ndarray, H_inf: np.ndarray) -> np.ndarray:
-    """``R_a_b`` (3, 3) from ``H_inf = K_a R_a_b K_b^-1`` (eq. 63), projected onto SO(3).
-
-    ``K_a``, ``K_b``: (3, 3) intrinsics in pixels; ``H_inf``: (3, 3), any scale, camera b's image
-    to camera a's. ``X_a = R_a_b X_b + t_a_b`` for camera-frame coordinates.
-    """
-    M = np.linalg.solve(np.asarray(K_a, float), np.asarray(H_inf, float) @ np.asarray(K_b, float))
-    d = np.linalg.det(M)
-    if not np.isfinite(d) or abs(d) < 1e-300:
-        raise DegenerateError("relative_rotation: K_a^-1 H_inf K_b is singular; check H_inf")
-    return project_to_SO3(M / (np.sign(d) * abs(d) ** (1.0 / 3.0)))
-
-
 #: Orientation groups from which a translated rig adds eq. 62 (``H_inf`` from fewer is too rough).
 _EQ62_MIN_GROUPS = 3
-_TRANSLATION_KNOWLEDGE = ("robot", "board_translation", "board_direction", "lengths")
 
 
 def _shared_translation_rows(
@@ -325,11 +296,6 @@ def rig_linear_intrinsics_translation(
     ``linear_system``; coupling rows get the noise scale of their two sides. Returns ``K_a``,
     ``K_b`` (3, 3) in pixels.
     """
-    if knowledge not in _TRANSLATION_KNOWLEDGE:
-        raise InputError(
-            f"unknown motion knowledge {knowledge!r} for a translated stereo head; use one of "
-            f"{_TRANSLATION_KNOWLEDGE} (general motion: rig_linear_intrinsics)"
-        )
     ga = list(groups_a)  # camera b's groups take the head's one motion, camera a's
     gb = [LinearGroup(np.asarray(b.H, float), a.motion) for a, b in zip(ga, groups_b, strict=True)]
     G = len(ga)

@@ -1,5 +1,6 @@
-"""Helpers only the tests and benchmarks use: a random rotation, and the maximum-likelihood step
-linearised at a known state (a sampling reference beside the Cramer-Rao bound)."""
+"""Helpers only the tests and benchmarks use: a random rotation, a stereo head's relative rotation
+from its infinite homography, and the maximum-likelihood step linearised at a known state (a
+sampling reference beside the Cramer-Rao bound)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slidecal.solver.geometry import R_from_rvec
+from slidecal.solver.errors import DegenerateError
+from slidecal.solver.geometry import R_from_rvec, project_to_SO3
 from slidecal.solver.model import BundleModel, ModelState, Structure, build_structure
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.uncertainty import _jacobian, layout_of
@@ -18,6 +20,19 @@ def random_rotation(rng: np.random.Generator, max_angle_rad: float = np.pi) -> n
     axis = rng.normal(size=3)
     axis /= np.linalg.norm(axis)
     return R_from_rvec(axis * rng.uniform(0.0, max_angle_rad))
+
+
+def relative_rotation(K_a: np.ndarray, K_b: np.ndarray, H_inf: np.ndarray) -> np.ndarray:
+    """``R_a_b`` (3, 3) from ``H_inf = K_a R_a_b K_b^-1`` (eq. 63), projected onto SO(3).
+
+    ``K_a``, ``K_b``: (3, 3) intrinsics in pixels; ``H_inf``: (3, 3), any scale, camera b's image
+    to camera a's. ``X_a = R_a_b X_b + t_a_b`` for camera-frame coordinates.
+    """
+    M = np.linalg.solve(np.asarray(K_a, float), np.asarray(H_inf, float) @ np.asarray(K_b, float))
+    d = np.linalg.det(M)
+    if not np.isfinite(d) or abs(d) < 1e-300:
+        raise DegenerateError("relative_rotation: K_a^-1 H_inf K_b is singular; check H_inf")
+    return project_to_SO3(M / (np.sign(d) * abs(d) ** (1.0 / 3.0)))
 
 
 @dataclass(frozen=True)
