@@ -1071,13 +1071,11 @@ def _board_shape(problem: CalibrationProblem, fit: BoardFit | None) -> BoardShap
     )
 
 
-def _fitted_poses(out: RefineOutput, fit: FreePoseFit | None = None) -> dict[int, np.ndarray]:
+def _fitted_poses(out: RefineOutput, fit: FreePoseFit) -> dict[int, np.ndarray]:
     """The reference camera's ``T_cam_board`` per frame index from a free-pose fit at this
-    state's intrinsics (``fit``, by default the robot test's), for the images without a flagged
-    detection: the PnP minimum :func:`scale_checks` would compute again."""
-    fit, m = out.free_pose if fit is None else fit, out.model
-    if fit is None:
-        return {}
+    state's intrinsics, for the images without a flagged detection: the PnP minimum
+    :func:`scale_checks` would compute again."""
+    m = out.model
     return {
         ch.frame_index: fit.T_cam_board[(ch.frame_index, m.ref)]
         for ch in m.chunks

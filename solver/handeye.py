@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slidecal.solver.errors import DegenerateError, InputError
+from slidecal.solver.errors import DegenerateError
 from slidecal.solver.geometry import (
     T_from_Rt,
     project_to_SO3,
@@ -63,8 +63,6 @@ def rotation_from_directions(
     """
     d = np.asarray(d_cam, dtype=float).reshape(-1, 3)
     t = np.asarray(t_robot, dtype=float).reshape(-1, 3)
-    if len(d) != len(t):
-        raise InputError(f"d_cam has {len(d)} rows but t_robot has {len(t)}: pass matched pairs")
     w = np.ones(len(t)) if weights is None else np.asarray(weights, dtype=float).reshape(-1)
     keep = (np.linalg.norm(t, axis=1) > 0) & (w > 0)
     d, t, w = d[keep], t[keep], w[keep]

@@ -23,8 +23,6 @@ Observation = tuple[np.ndarray, np.ndarray]  # (board_xy (N, 2), px (N, 2))
 def _check_pairs(board_xy: np.ndarray, px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     b = np.asarray(board_xy, dtype=float)
     p = np.asarray(px, dtype=float).reshape(-1, 2)
-    if b.ndim != 2 or b.shape[1] not in (2, 3):
-        raise InputError("board_xy must be an (N, 2) array of board-plane coordinates")
     b = b[:, :2]
     if len(b) != len(p):
         raise InputError(f"board_xy has {len(b)} points but px has {len(p)}: pass matched pairs")
@@ -195,8 +193,6 @@ def group_homographies(observations: Sequence[Observation], max_iter: int = 30) 
     ``h3[2] > 0``. ``max_iter``: Levenberg-Marquardt iterations from the rescaled per-frame
     DLTs (0 returns those).
     """
-    if len(observations) < 1:
-        raise InputError("an orientation group needs at least one frame")
     obs = [_check_pairs(b, p) for b, p in observations]
     Tb = _similarity(np.concatenate([b for b, _ in obs]))
     Ti = _similarity(np.concatenate([p for _, p in obs]))
