@@ -16,6 +16,7 @@ grossly wrong corners and lists them in ``rejected_ids``.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
 
@@ -542,10 +543,7 @@ _OTHER_FAMILY_MIN_MARKERS = 3
 
 def _family_of(dictionary: str) -> str:
     """The family a dictionary belongs to: ``DICT_6X6_250`` -> ``DICT_6X6_1000``."""
-    for size in ("4X4", "5X5", "6X6", "7X7"):
-        if dictionary.startswith(f"DICT_{size}_"):
-            return f"DICT_{size}_1000"
-    return dictionary
+    return re.sub(r"^(DICT_[4-7]X[4-7])_\d+$", r"\1_1000", dictionary)
 
 
 def other_family(grey: np.ndarray, dictionary: str) -> str:
