@@ -279,22 +279,20 @@ def rig_linear_intrinsics_translation(
     knowledge: str,
     *,
     sizes: Sequence[tuple[float, float]],
-    use_eq62: bool = True,
     row_weighting: Literal["noise", "unit"] = "noise",
     **options,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Joint linear intrinsics of a stereo head translated in front of a board (eqs. 33-42;
     docs/METHOD.md Sec. 8): unknowns ``(w_a, w_b, c_1 .. c_G)``, one ``c_g`` for both cameras
     (camera b's column rescaled through :func:`infinite_homography`'s ``mu_g``), coupling rows
-    per translation (:func:`_shared_translation_rows`) and, from ``_EQ62_MIN_GROUPS`` groups
-    with ``use_eq62``, eq. 62.
+    per translation (:func:`_shared_translation_rows`) and, from ``_EQ62_MIN_GROUPS`` groups on,
+    eq. 62.
 
     ``groups_a``, ``groups_b``: ``LinearGroup`` per orientation group, the same frames in both
     (``motion`` read from ``groups_a``, board units, by ``knowledge``: "robot",
-    "board_translation", "board_direction" or "lengths"). ``use_eq62``: add eq. 62 with three or
-    more groups. ``row_weighting`` and ``options`` (``skew``, ``unit_aspect``): as for
-    ``linear_system``; coupling rows get the noise scale of their two sides. Returns ``K_a``,
-    ``K_b`` (3, 3) in pixels.
+    "board_translation", "board_direction" or "lengths"). ``row_weighting`` and ``options``
+    (``skew``, ``unit_aspect``): as for ``linear_system``; coupling rows get the noise scale of
+    their two sides. Returns ``K_a``, ``K_b`` (3, 3) in pixels.
     """
     ga = list(groups_a)  # camera b's groups take the head's one motion, camera a's
     gb = [LinearGroup(np.asarray(b.H, float), a.motion) for a, b in zip(ga, groups_b, strict=True)]
@@ -326,7 +324,7 @@ def rig_linear_intrinsics_translation(
         rows, noises = _shared_translation_rows(Ha, Hb, s_ba / r_g, s_ba**2 / r_g)
         rows = np.hstack([rows[:, :6] @ B, rows[:, 6:] @ B, np.zeros((len(rows), G))])
         blocks.append(rows / noises[:, None])
-    if H_inf is not None and use_eq62 and G >= _EQ62_MIN_GROUPS:
+    if H_inf is not None and G >= _EQ62_MIN_GROUPS:
         # exact scale: W_b = H_n' W_a H_n for the w_b the rescaled c_g columns imply
         H_n = sys_a.N @ H_inf @ np.linalg.inv(sys_b.N)
         scale = float(np.median(np.linalg.norm(np.vstack(blocks[:2]), axis=1)))
