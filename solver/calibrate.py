@@ -317,11 +317,11 @@ def linear_camera(
 ) -> np.ndarray:
     """Closed-form ``K`` (3, 3) of one camera (docs/METHOD.md Sec. 3; Zhang for general motion).
 
-    ``joint``: the paper's joint homographies per orientation group; False: rescaled per-frame
-    DLTs, enough to start the refinement. Robot sessions without translation groups whose Zhang
-    estimate is implausible, or with ``focal_sweep``, start from the image centre and the focal
-    length that explains the images best through the robot poses (Zhang's competing);
-    ``notes`` receives a line when Zhang's estimate is not the start.
+    ``joint``: the paper's joint homographies per orientation group, else rescaled per-frame
+    DLTs. A robot session without translation groups whose Zhang estimate is implausible, or
+    with ``focal_sweep``, starts from the image centre and the focal length that fits the images
+    best through the robot poses; ``notes`` receives a line when Zhang's estimate is not the
+    start.
     """
     spec = problem.camera(cam)
     o = problem.options
@@ -524,11 +524,9 @@ def init_motion(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Initial ``X`` (G, 4, 4), ``Y`` (4, 4), ``s`` (F,) from per-frame reference-camera poses.
 
-    Robot knowledge: within an orientation group, ``t_cam_board(k) - t_cam_board(0) = R_X
-    (t_M(k) - t_M(0))`` (camera displacement in camera axes against the known motion), so
-    ``R_X`` is the orthogonal Procrustes solution over all such pairs (docs/METHOD.md Sec. 4); then
-    ``X^-1 T_cam_board(k) = M_k Y`` is linear in ``R_X' t_X`` and ``t_Y`` (with the hand-eye
-    translation fixed at 0 when no rotations make it observable). ``groups``, ``st``: the
+    Robot knowledge: ``R_X`` by Procrustes over the camera's displacements within each group
+    against the robot's (docs/METHOD.md Sec. 4), then ``X^-1 T_cam_board(k) = M_k Y`` linear in
+    ``R_X' t_X`` and ``t_Y`` (``t_X`` 0 when no rotation observes it). ``groups``, ``st``: the
     problem's :func:`frame_groups` and ``build_structure(problem)``.
     """
     F = len(problem.frames)

@@ -742,13 +742,9 @@ _MIN_EDGE_POINTS = 8
 def _side_curve(
     grey: np.ndarray, a: np.ndarray, b: np.ndarray, centre: np.ndarray, half_px: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-    """The border edge of a tag between corners ``a`` and ``b`` as ``a + t u + f(t) n``.
-
-    Intensity profiles across the side (normal ``n`` pointing out of the tag, ``half_px`` each
-    way: inside the black border cell, out into the white margin) locate the edge where each
-    profile crosses half-way between its dark and bright ends (unbiased for a symmetric blur);
-    ``f`` is a quadratic in ``t`` (lens distortion bends the side a little), fitted with the
-    outlying points (glare, a scratch) removed. Returns (a, u, n, coefficients) or None."""
+    """The border edge of a tag between corners ``a`` and ``b`` as ``a + t u + f(t) n`` (``n``
+    out of the tag, ``f`` quadratic), from profiles ``half_px`` each way across the side
+    (docs/results/DETECTION.md, "One AprilTag"). Returns (a, u, n, coefficients) or None."""
     length = float(np.linalg.norm(b - a))
     u = (b - a) / length
     n = np.array([-u[1], u[0]])
@@ -794,11 +790,9 @@ TAG_EDGE_DEPTH = 0.7
 
 
 def _tag_edge_corners(grey: np.ndarray, q: np.ndarray, cells: float) -> np.ndarray:
-    """A lone tag's corners (4, 2) as the intersections of its fitted border edges.
-
-    ``cornerSubPix`` pulls a tag's L-corners inwards (shrinking the tag, biasing the focal
-    length); the edges are located without that bias. A side that cannot be fitted keeps the
-    input corners ``q``."""
+    """A lone tag's corners (4, 2) as the intersections of its fitted border edges (unbiased
+    where ``cornerSubPix`` pulls L-corners inwards); the corners ``q`` when a side cannot be
+    fitted."""
     centre = q.mean(axis=0)
     grey_f = grey.astype(np.float32)  # interpolated profiles without 8-bit rounding
     curves = []

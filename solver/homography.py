@@ -143,9 +143,7 @@ def refine_homography(H: np.ndarray, board_xy: np.ndarray, px: np.ndarray) -> np
     """Homography (3, 3) minimising the image reprojection error (Levenberg-Marquardt).
 
     ``H`` (3, 3): initial estimate. ``board_xy`` (N, 2): board frame, any unit. ``px`` (N, 2):
-    pixels. Solved in Hartley-normalised coordinates with an analytic Jacobian (the isotropic
-    image normalisation keeps the cost proportional to the pixel error). Returned with unit
-    Frobenius norm and ``H[2, 2] > 0``.
+    pixels. Returned with unit Frobenius norm and ``H[2, 2] > 0``.
     """
     b, p = _check_pairs(board_xy, px)
     Tb, Ti = _similarity(b), _similarity(p)

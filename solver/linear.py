@@ -412,15 +412,10 @@ def linear_intrinsics(
     **options,
 ) -> LinearSolution:
     """Closed-form intrinsics from translation groups (docs/METHOD.md Sec. 3, every row of its
-    table).
-
-    ``groups``: orientation groups (:class:`LinearGroup`, homographies in pixels and board
-    units). ``options``: the keywords of :func:`linear_system` (``image_size`` (width, height)
-    pixels, ``skew``, ``unit_aspect``, ``condition``, ``row_weighting``). Any number of groups;
-    Zhang's rows of every group are always stacked (they add information when the groups differ
-    in orientation). Raises ``DegenerateError`` when the system has no unique, positive definite
-    solution. ``system``: the system of these arguments when already built
-    (``check_configuration`` returns it).
+    table). ``groups``: orientation groups (:class:`LinearGroup`, homographies in pixels and
+    board units); ``options``: the keywords of :func:`linear_system`; ``system``: that system
+    when already built (``check_configuration`` returns it). Raises ``DegenerateError`` when it
+    has no unique, positive definite solution.
     """
     if system is None:
         system = linear_system(groups, knowledge, **options)
