@@ -220,9 +220,7 @@ def hand_eye_T(installed: CalibrationResult, camera: str) -> np.ndarray:
             # T_tool_cam = T_tool_ref @ T_ref_cam = T_tool_ref @ inv(T_cam_ref)
             known = (he.R, rig.R, he.t_m, rig.t_m)
             if all(v is not None for v in known):
-                T = np.eye(4)
-                T[:3, :3] = he.R @ rig.R.T
-                T[:3, 3] = he.R @ (-rig.R.T @ rig.t_m) + he.t_m
+                T = T_from_Rt(he.R @ rig.R.T, he.R @ (-rig.R.T @ rig.t_m) + he.t_m)
     if T is None:
         raise InputError(
             f"the installed calibration has no complete hand-eye for camera {camera!r}; "

@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from slidecal.solver.geometry import T_from_Rt
+
 #: A transform's perturbation, rotation vector (radians) then translation (metres), named so in
 #: a covariance (``T_tool_cam.rx`` .. ``T_tool_cam.tz``): docs/FORMATS.md
 ROT = ("rx", "ry", "rz")
@@ -84,10 +86,7 @@ class TransformEstimate:
         """The 4x4 transform, or None unless rotation and translation are both known."""
         if self.R is None or self.t_m is None:
             return None
-        T = np.eye(4)
-        T[:3, :3] = self.R
-        T[:3, 3] = self.t_m
-        return T
+        return T_from_Rt(self.R, self.t_m)
 
 
 @dataclass(frozen=True)
