@@ -313,13 +313,6 @@ def with_session_scale(
 
 
 # -- predictions at a known state -----------------------------------------------------------------
-def _structure(
-    problem: CalibrationProblem, truth: ModelState, structure: Structure | None
-) -> Structure:
-    """``structure``, or the problem's at the true hand-eye rotation when None."""
-    return build_structure(problem, truth.X[0][:3, :3]) if structure is None else structure
-
-
 def predicted_covariance(
     problem: CalibrationProblem,
     truth: ModelState,
@@ -336,7 +329,7 @@ def predicted_covariance(
     hand-eye rotation when None). The arm's per-pose error enters at the level of
     ``problem.options`` (``robot_noise_deg``, ``robot_noise_m``; exact poses when both are 0).
     """
-    st = _structure(problem, truth, structure)
+    st = build_structure(problem, truth.X[0][:3, :3]) if structure is None else structure
     names, cov = fisher_covariance(problem, st, truth, sigma_px, camera_sigma_px)
     return propagate(layout_of(problem, st, truth), names, cov)
 
@@ -353,7 +346,7 @@ def equal_weight_covariance(
     is ``camera_sigma_px`` (pixels, per axis): the sandwich ``A^-1 B A^-1`` at ``truth``. It
     equals :func:`predicted_covariance` when all cameras are equally noisy and cannot beat it
     otherwise."""
-    st = _structure(problem, truth, structure)
+    st = build_structure(problem, truth.X[0][:3, :3]) if structure is None else structure
     model = BundleModel(problem, st)
     model.sigma_px = 1.0  # prior rows in units of their own sigma
     state = model.with_corrections(truth)
