@@ -224,14 +224,13 @@ def _linear_groups(
     problem: CalibrationProblem,
     cams: tuple[str, ...],
     groups: np.ndarray,
-    joint: bool = True,
-    homographies: dict | None = None,
+    joint: bool,
+    cache: dict,
 ) -> list[tuple[list[int], list[LinearGroup]]]:
     """Per orientation group: the frames every camera in ``cams`` saw well enough, and one
     ``LinearGroup`` per camera (homographies with a common scale: jointly refined with
-    ``joint``, else rescaled per-frame DLTs). ``homographies``: their cache by (camera, frames,
+    ``joint``, else rescaled per-frame DLTs). ``cache``: the homographies by (camera, frames,
     joint), filled here."""
-    cache = {} if homographies is None else homographies
     pts = problem.target.points_m[:, :2]
     out = []
     for g in np.unique(groups):
@@ -311,18 +310,18 @@ def linear_camera(
     problem: CalibrationProblem,
     cam: str,
     groups: np.ndarray,
-    joint: bool = True,
-    notes: list[str] | None = None,
-    focal_sweep: bool = False,
-    homographies: dict | None = None,
+    joint: bool,
+    notes: list[str],
+    focal_sweep: bool,
+    homographies: dict,
 ) -> np.ndarray:
     """Closed-form ``K`` (3, 3) of one camera (docs/METHOD.md Sec. 3; Zhang for general motion).
 
-    ``joint``: the paper's joint homographies per orientation group; False: rescaled per-frame
-    DLTs, enough to start the refinement. Robot sessions without translation groups whose Zhang
-    estimate is implausible, or with ``focal_sweep``, start from the image centre and the focal
-    length that explains the images best through the robot poses (Zhang's competing);
-    ``notes`` receives a line when Zhang's estimate is not the start.
+    ``joint``: the paper's joint homographies per orientation group, else rescaled per-frame
+    DLTs. A robot session without translation groups whose Zhang estimate is implausible, or
+    with ``focal_sweep``, starts from the image centre and the focal length that fits the images
+    best through the robot poses; ``notes`` receives a line when Zhang's estimate is not the
+    start.
     """
     spec = problem.camera(cam)
     o = problem.options
@@ -371,7 +370,7 @@ def linear_camera(
             Kc[0, 0] = Kc[1, 1] = Kf[0, 0] * factor
             candidates.append(Kc)
         best = _best_start(problem, cam, candidates) if len(problem.cameras) == 1 else 0
-        if best >= n_zhang and notes is not None:
+        if best >= n_zhang:
             notes.append(
                 f"camera {cam!r}: Zhang's closed form was {reason} for these views; the "
                 "refinement started from the image centre and the focal length that fits the "
@@ -397,8 +396,8 @@ def linear_pair(
     cam: str,
     ref: str,
     groups: np.ndarray,
-    joint: bool = True,
-    homographies: dict | None = None,
+    joint: bool,
+    homographies: dict,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Joint closed-form ``(K_cam, K_ref)`` of two cameras of a rig (paper Sec. IV; docs/METHOD.md
     Sec. 8): both see the same translations (eqs. 33-42) and, with two or more orientations,
@@ -446,8 +445,6 @@ def pnp_pose(
     reprojection-error minimum (the scale check's: IPPE hides part of a scale error).
     ``guess`` (4, 4): a start for the iterative minimum.
     """
-    if len(px) < 4:
-        return None
     obj, img = board_pts.astype(np.float64), px.astype(np.float64)
     if guess is not None:
         return pnp_from(obj, img, K, dist, guess)
@@ -484,19 +481,16 @@ def _average_T(Ts: list[np.ndarray]) -> np.ndarray:
     return T_from_Rt(R, np.mean([T[:3, 3] for T in Ts], axis=0))
 
 
-def _align(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The smallest rotation (3, 3) taking the direction of ``a`` (3,) onto that of ``b``."""
+def _align_translations(d_cam: np.ndarray, d_M: np.ndarray) -> np.ndarray:
+    """``R_X`` (3, 3), the smallest rotation taking the one robot translation direction onto the
+    camera's."""
+    sign = np.sign(d_M @ d_M[0])
+    a, b = d_M.T @ sign, d_cam.T @ sign
     a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
     v, c = np.cross(a, b), float(a @ b)
     if np.linalg.norm(v) < 1e-12:
         return np.eye(3) if c > 0 else R_from_rvec(np.pi * complement_basis(a)[:, 0])
     return R_from_rvec(v / np.linalg.norm(v) * np.arctan2(np.linalg.norm(v), c))
-
-
-def _align_translations(d_cam: np.ndarray, d_M: np.ndarray) -> np.ndarray:
-    """``R_X`` (3, 3) taking the one robot translation direction onto the camera's."""
-    sign = np.sign(d_M @ d_M[0])
-    return _align(d_M.T @ sign, d_cam.T @ sign)
 
 
 def _rotation_ax_xb(groups: np.ndarray, M: np.ndarray, poses: dict[int, np.ndarray]) -> np.ndarray:
@@ -525,30 +519,20 @@ def _rotation_ax_xb(groups: np.ndarray, M: np.ndarray, poses: dict[int, np.ndarr
 def init_motion(
     problem: CalibrationProblem,
     poses: dict[int, np.ndarray],
-    groups: np.ndarray | None = None,
-    structure: Structure | None = None,
+    groups: np.ndarray,
+    st: Structure,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Initial ``X`` (G, 4, 4), ``Y`` (4, 4), ``s`` (F,) from per-frame reference-camera poses.
 
-    Robot knowledge: within an orientation group, ``t_cam_board(k) - t_cam_board(0) = R_X
-    (t_M(k) - t_M(0))`` (camera displacement in camera axes against the known motion), so
-    ``R_X`` is the orthogonal Procrustes solution over all such pairs (docs/METHOD.md Sec. 4); then
-    ``X^-1 T_cam_board(k) = M_k Y`` is linear in ``R_X' t_X`` and ``t_Y`` (with the hand-eye
-    translation fixed at 0 when no rotations make it observable). ``groups``, ``structure``:
-    the problem's :func:`frame_groups` and ``build_structure(problem)`` when the caller has them.
+    Robot knowledge: ``R_X`` by Procrustes over the camera's displacements within each group
+    against the robot's (docs/METHOD.md Sec. 4), then ``X^-1 T_cam_board(k) = M_k Y`` linear in
+    ``R_X' t_X`` and ``t_Y`` (``t_X`` 0 when no rotation observes it). ``groups``, ``st``: the
+    problem's :func:`frame_groups` and ``build_structure(problem)``.
     """
-    st = build_structure(problem) if structure is None else structure
     F = len(problem.frames)
     s = np.zeros(F)
     if problem.knowledge == "none":
-        X = np.stack([poses.get(i, np.eye(4)) for i in range(F)])
-        missing = [problem.frames[i].id for i in range(F) if i not in poses]
-        if missing:
-            raise DegenerateError(
-                f"frames {missing} have no board pose in the reference camera (fewer than "
-                f"{MIN_CORNERS} points, or PnP failed): general motion needs one per frame; "
-                "calibrate() skips such frames"
-            )
+        X = np.stack([poses[i] for i in range(F)])  # _pass skipped the frames without one
         return X, np.eye(4), s
     if problem.knowledge in ("board_translation", "board_direction"):
         G = int(st.group_of_frame.max()) + 1
@@ -563,7 +547,6 @@ def init_motion(
                     d = X[g][:3, :3] @ st.direction[i]
                     s[i] = -d @ (poses[i][:3, 3] - X[g][:3, 3])
         return X, np.eye(4), s
-    groups = frame_groups(problem) if groups is None else groups
     d_cam, d_M = [np.zeros((0, 3))], [np.zeros((0, 3))]
     for g in np.unique(groups):  # every pair of frames a < b of a group (n^2 / 2 of them)
         idx = np.array([i for i in np.flatnonzero(groups == g) if i in poses], dtype=int)
@@ -614,26 +597,20 @@ def init_motion(
 # -- the whole pipeline -------------------------------------------------------------------------
 @single_threaded_blas
 def calibrate(
-    problem: CalibrationProblem, *, joint_homographies: bool = False, focal_sweep: bool = False
+    problem: CalibrationProblem, *, joint_homographies: bool = False
 ) -> CalibrationResult:
     """Calibrate every camera, the hand-eye transform and the rig from one session.
 
     ``joint_homographies``: start from the paper's linear method with jointly refined
     homographies (``result.linear`` is then that method's estimate); by default rescaled
-    per-frame DLTs (the same optimum, faster). ``focal_sweep``: start a classic single-camera
-    robot session from the focal length that fits the images best through the robot poses
-    instead of Zhang's closed form (done anyway when the refinement from Zhang's start does
-    not converge).
-
-    A frame whose robot pose the images contradict far beyond the arm's accuracy elsewhere
-    (``adequacy.pose_outlier``), or else whose image is far beyond its camera's detector noise
-    (``adequacy.image_outlier``), is left out and the session solved again, with a message; at
-    most one frame in ten (at least one). The lens model is tested (``solver/lens.py``).
+    per-frame DLTs (the same optimum, faster). A pose or image outlier
+    (``adequacy.pose_outlier``, ``adequacy.image_outlier``) is left out and the session solved
+    again, at most one frame in ten (at least one); the lens model is tested (``solver/lens.py``).
     """
     problem, turned = resolve_half_turns(problem)  # a symmetric board read the right way round
 
     def solve(p: CalibrationProblem) -> CalibrationResult:
-        return _pipeline(p, joint_homographies, focal_sweep, ())
+        return _pipeline(p, joint_homographies, False, ())
 
     res = choose_lens(problem, solve(problem), solve)
     return replace(res, messages=(*turned, *res.messages)) if turned else res
@@ -890,9 +867,7 @@ def _field_note(
     """A line saying how far a classic session's two readings of its arm's linear field put
     the hand-eye apart (``session_field_step``), from half a millimetre or 0.05 deg."""
     layout = layout_of(problem, out.model.st, out.state)
-    frames = mount_names(layout.mount)
-    if frames is None:
-        return ()
+    frames = mount_names(layout.mount)  # a classic session's: a robot's mount
     d = named_step(layout, tuple(out.names), step)
     he = frames.hand_eye
     rot = [d.get(f"{he}.{a}", 0.0) for a in ("rx", "ry", "rz")]
@@ -1094,13 +1069,11 @@ def _board_shape(problem: CalibrationProblem, fit: BoardFit | None) -> BoardShap
     )
 
 
-def _fitted_poses(out: RefineOutput, fit: FreePoseFit | None = None) -> dict[int, np.ndarray]:
+def _fitted_poses(out: RefineOutput, fit: FreePoseFit) -> dict[int, np.ndarray]:
     """The reference camera's ``T_cam_board`` per frame index from a free-pose fit at this
-    state's intrinsics (``fit``, by default the robot test's), for the images without a flagged
-    detection: the PnP minimum :func:`scale_checks` would compute again."""
-    fit, m = out.free_pose if fit is None else fit, out.model
-    if fit is None:
-        return {}
+    state's intrinsics, for the images without a flagged detection: the PnP minimum
+    :func:`scale_checks` would compute again."""
+    m = out.model
     return {
         ch.frame_index: fit.T_cam_board[(ch.frame_index, m.ref)]
         for ch in m.chunks

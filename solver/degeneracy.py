@@ -1,13 +1,7 @@
-"""Degenerate configurations of the linear method (docs/METHOD.md Sec. 7; paper Sec. III-A).
-
-:func:`check_configuration` raises ``DegenerateError`` naming the configuration and the fix:
-
-- geometric tests on the camera pose each group's homography implies with a nominal ``K``
-  (robust to noise, where a singular configuration no longer gives a zero singular value):
-  angles below ``MIN_ANGLE_DEG`` make the linear estimate several times noisier;
-- algebraic: the conditioned linear system (``slidecal.solver.linear.linear_system``) must have
-  a one-dimensional null space (second smallest over largest singular value above
-  ``MIN_CONDITIONING``; degenerate configurations give 1e-14 to 1e-16).
+"""Degenerate configurations of the linear method (docs/METHOD.md Sec. 7; paper Sec. III-A):
+:func:`check_configuration` raises ``DegenerateError`` naming the configuration and the fix,
+by geometric tests on the camera poses the homographies imply (robust to noise) and by the
+conditioned linear system's null space.
 """
 
 from __future__ import annotations
@@ -24,8 +18,8 @@ from slidecal.solver.handeye import (
 )
 from slidecal.solver.linear import LinearGroup, LinearSystem, _check_groups, linear_system
 
-MIN_ANGLE_DEG = 5.0
-MIN_CONDITIONING = 1e-6
+MIN_ANGLE_DEG = 5.0  # a smaller angle makes the linear estimate several times noisier
+MIN_CONDITIONING = 1e-6  # degenerate configurations give 1e-14 to 1e-16
 
 
 def nominal_K(image_size: tuple[float, float]) -> np.ndarray:

@@ -1,36 +1,22 @@
 """Target detection: corner ids and pixels of a ChArUco board, a chessboard, an AprilGrid or
 AprilTags in one image (ids and board frame of ``solver/problem.py``; pixel (0, 0) is the centre
-of the top-left pixel, OpenCV's convention). Colour images: the green channel (half of a Bayer
-sensor's pixels, and free of lateral chromatic aberration's red and blue shifts).
+of the top-left pixel, OpenCV's convention). Colour images: the green channel. Which OpenCV
+detector, refinement and window each target gets, and why, is ``docs/results/DETECTION.md``.
 
-ChArUco: ``cv2.aruco.CharucoDetector`` (missed markers recovered with ``tryRefineMarkers``),
-then every chessboard corner refined again by ``cv2.cornerSubPix`` in a window sized to hold no
-marker edge (the nearest marker corner lies ``(square - marker) / 2`` along both board axes).
+A chessboard must be whole in view. Its corner order under the board's symmetries: (1) the board
+is seen from its printed side (``x`` cross ``y`` > 0 in the image, v down); (2) the square next
+to corner 0 is black; (3) a board still symmetric (``squares_x + squares_y`` even: it looks the
+same after a half turn, :func:`half_turn_symmetric`) takes the corner 0 that makes its +x axis
+point most to the right. Rule 3 is a guess: :func:`resolve_half_turns` decides each frame's half
+turn before a solve.
 
-Chessboard: a cascade, fastest first, each step tried only when the one before found nothing
-(``docs/results/DETECTION.md``): ``cv2.findChessboardCorners`` on the image reduced to a long side
-of about 1000 px; the same with its light made even (``flatten_light``); ``findChessboardCornersSB``
-on the reduced image; the same at full resolution, then with ``CALIB_CB_EXHAUSTIVE``. The corners
-are refined at full resolution by ``cornerSubPix`` in a window of 0.3 times the distance to the
-nearest grid neighbour (3 to 25 px half-width). The whole board must be in view. Corner order under
-the board's symmetries: (1) the board is seen from its printed side (``x`` cross ``y`` > 0 in the
-image, v down); (2) the square next to corner 0 is black; (3) a board still symmetric (``squares_x +
-squares_y`` even: it looks the same after a half turn, :func:`half_turn_symmetric`) takes the
-corner 0 that makes its +x axis point most to the right. Rule 3 is a guess:
-:func:`resolve_half_turns` decides each frame's half turn before a solve.
-
-AprilTag and AprilGrid: ``cv2.aruco.ArucoDetector`` with the target's family, corners refined by
-``cornerSubPix`` (``CORNER_REFINE_APRILTAG`` is biased, ``docs/results/DETECTION.md``); a lone tag's
-corners are the intersections of its fitted border edges; on an AprilGrid, tags the quad finder
-missed are predicted from their neighbours and kept when their code reads back.
-
-When nothing usable is found, the report says what was seen (no board, a board of another size,
-too few corners, an image too dark, saturated or blurred). A local homography check removes
+When nothing usable is found, the report says what was seen. A local homography check removes
 grossly wrong corners and lists them in ``rejected_ids``.
 """
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
 
@@ -60,7 +46,7 @@ class DetectionReport:
     the corners' convex hull. ``rejected_ids``: corners removed by the local homography check.
     ``path``: the detector step that found the corners ("" when none did). ``blur_sigma_px``:
     edge width of the image (std of the Gaussian blur that explains its steepest edges).
-    ``mean_grey``: mean grey level (0..255); ``saturated_fraction``: fraction of pixels at 255.
+    ``saturated_fraction``: fraction of pixels at 255.
     """
 
     detection: Detection
@@ -71,7 +57,6 @@ class DetectionReport:
     rejected_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     path: str = ""
     blur_sigma_px: float = float("nan")
-    mean_grey: float = float("nan")
     saturated_fraction: float = float("nan")
 
     @property
@@ -149,9 +134,8 @@ def grey_of(image: np.ndarray, colour: str = COLOUR_CONVERSION) -> np.ndarray:
     """uint8 (H, W) of an (H, W) grey or (H, W, 3|4) BGR(A) image.
 
     ``colour``: "green" (the G channel), "luma" (OpenCV's BGR2GRAY mix) or "mean" (the
-    channels' mean). Other dtypes (a 12- or 16-bit sensor's, a float image) are rescaled to
-    0..255 between their 0.01 and 99.99 percentiles, so that a few hot or dead pixels do not
-    squeeze the board into a handful of grey levels.
+    channels' mean). Other dtypes are rescaled to 0..255 between their
+    ``GREY_RANGE_PERCENTILES``.
     """
     img = np.asarray(image)
     if img.ndim == 3 and img.shape[2] == 1:
@@ -261,13 +245,7 @@ def _detect_charuco(
     grey: np.ndarray, target: Target, blur_px: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray, list, str]:
     """The ChArUco corners, the reasons when none, and the path ("charuco", or
-    "charuco-legacy" for a board of OpenCV's layout before 4.6).
-
-    OpenCV 4.6 moved the markers of a board with an even ``squares_y``; boards printed before
-    keep the old layout, whose markers decode but interpolate no corner. Such an image is
-    detected again with the old layout, and the layout giving more corners kept (ids and board
-    positions are the same in both).
-    """
+    "charuco-legacy": a board of OpenCV's layout before 4.6, docs/results/DETECTION.md)."""
     ids, px, reasons, n_markers = _detect_charuco_layout(grey, target, blur_px, legacy=False)
     if target.squares_y % 2 == 0 and n_markers >= 2 and len(ids) < n_markers / 2:
         old = _detect_charuco_layout(grey, target, blur_px, legacy=True)
@@ -345,14 +323,9 @@ def _refine_charuco(
     H: np.ndarray,
     blur_px: float = 0.0,
 ) -> np.ndarray:
-    """``cornerSubPix`` per corner with the largest window that holds no marker edge.
-
-    The four marker outlines around a corner are mapped into the image by the homography of
-    the adjacent detected markers (else the board-wide ``H``); the square window, centred on
-    the corner, stops 2 px short of the nearest outline point. A window narrower than 1.5
-    times the image's blur (``blur_px``) sees only the blurred junction and drifts: such a
-    corner keeps the detector's estimate.
-    """
+    """``cornerSubPix`` per corner with the largest window that holds no marker edge (the
+    outlines mapped by the adjacent markers' homography, else the board-wide ``H``); a corner
+    whose window is narrower than 1.5 times the image's blur ``blur_px`` keeps its estimate."""
     sq, m = target.square_size_m, target.marker_size_m
     g = 0.5 * (sq - m)
     t = g + np.linspace(0.0, 1.0, 9) * m
@@ -458,7 +431,7 @@ def find_chessboard(
     for path in paths:
         full = path.endswith("_full")
         img = grey if full else small
-        if path in ("classic_reduced", "classic_full"):
+        if path == "classic_reduced":
             c = _classic(img, size)
         elif path == "classic_flat_reduced":
             c = _classic(flatten_light(small), size)
@@ -468,8 +441,6 @@ def find_chessboard(
             continue
         elif path == "sb_exhaustive_reduced":
             c = _sb(img, size, cv2.CALIB_CB_EXHAUSTIVE)
-        elif path == "sb_accuracy_full":
-            c = _sb(img, size, cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
         else:
             raise InputError(f"unknown chessboard detector path {path!r}")
         if c is not None:  # the reduced image's pixel centres taken to full resolution
@@ -572,10 +543,7 @@ _OTHER_FAMILY_MIN_MARKERS = 3
 
 def _family_of(dictionary: str) -> str:
     """The family a dictionary belongs to: ``DICT_6X6_250`` -> ``DICT_6X6_1000``."""
-    for size in ("4X4", "5X5", "6X6", "7X7"):
-        if dictionary.startswith(f"DICT_{size}_"):
-            return f"DICT_{size}_1000"
-    return dictionary
+    return re.sub(r"^(DICT_[4-7]X[4-7])_\d+$", r"\1_1000", dictionary)
 
 
 def other_family(grey: np.ndarray, dictionary: str) -> str:
@@ -634,8 +602,6 @@ def _detect_tags(
 ) -> tuple[np.ndarray, np.ndarray, list]:
     """Corners of the target's AprilTags: each decoded tag of the target gives 4 corners."""
     refinement = refinement or TAG_REFINEMENT[target.kind]
-    if refinement not in TAG_REFINEMENTS:
-        raise InputError(f"tag refinement {refinement!r} unknown; use one of {TAG_REFINEMENTS}")
     family = target.dictionary or "DICT_APRILTAG_36h11"
     corners, tag_ids = _find_tags(grey, family, refinement, set(target.tag_corner_ids()))
     if len(tag_ids) == 0:
@@ -673,17 +639,17 @@ def _detect_tags(
 def _find_tags(
     grey: np.ndarray, family: str, refinement: str, wanted: set[int]
 ) -> tuple[list[np.ndarray], list[int]]:
-    """The decoded tags (corners (4, 2) each, ids): OpenCV's detector as it comes, and when a
-    tag of ``wanted`` is missing a second look with quads grouped only when they nearly
-    coincide (:data:`TAG_RETRY_MARKER_DISTANCE_RATE`), from which the missing ones are taken;
-    one quad per id (the largest: a tag's outer border, not the inner edge of its border)."""
+    """The decoded tags (corners (4, 2) each, ids): OpenCV's detector, and for a tag of
+    ``wanted`` it missed a second look (:data:`TAG_RETRY_MARKER_DISTANCE_RATE`); one quad per
+    id, the largest (a tag's outer border)."""
     found: dict[int, np.ndarray] = {}
     for rate in (0.0, TAG_RETRY_MARKER_DISTANCE_RATE):
         corners, ids, _ = _tag_detector(family, refinement, rate).detectMarkers(grey)
         seen: dict[int, np.ndarray] = {}
         for c, t in zip(corners, [] if ids is None else np.asarray(ids).reshape(-1), strict=True):
             q = np.asarray(c, dtype=np.float64).reshape(4, 2)
-            if int(t) not in seen or _quad_area(q) > _quad_area(seen[int(t)]):
+            area = cv2.contourArea(q.astype(np.float32))  # the largest: the tag's outer border
+            if int(t) not in seen or area > cv2.contourArea(seen[int(t)].astype(np.float32)):
                 seen[int(t)] = q
         for t, q in seen.items():
             found.setdefault(t, q)
@@ -692,21 +658,12 @@ def _find_tags(
     return list(found.values()), list(found)
 
 
-def _quad_area(q: np.ndarray) -> float:
-    x, y = q[:, 0], q[:, 1]
-    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
-
-
 def _recover_grid_tags(
     grey: np.ndarray, target: Target, ids: np.ndarray, px: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Tags of an AprilGrid the marker detector missed, found where the found ones predict them.
-
-    Kalibr's corner squares touch every tag's corners and make OpenCV's quad finder miss tags.
-    Each missing tag's corners are predicted by a homography fitted to the found corners of the
-    tags around it, refined like found ones, and kept only if the tag's cells read back as its
-    own code (at most 3 of its bits wrong; the 36h11 codes differ in at least 11).
-    """
+    """Tags of an AprilGrid the marker detector missed, predicted by a homography on the found
+    tags around them, refined like found ones and kept only if the tag's cells read back as its
+    own code (at most 3 of its bits wrong; the 36h11 codes differ in at least 11)."""
     d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, target.dictionary))
     cells = d.markerSize + 2
     corner_ids = target.tag_corner_ids()
@@ -785,13 +742,9 @@ _MIN_EDGE_POINTS = 8
 def _side_curve(
     grey: np.ndarray, a: np.ndarray, b: np.ndarray, centre: np.ndarray, half_px: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-    """The border edge of a tag between corners ``a`` and ``b`` as ``a + t u + f(t) n``.
-
-    Intensity profiles across the side (normal ``n`` pointing out of the tag, ``half_px`` each
-    way: inside the black border cell, out into the white margin) locate the edge where each
-    profile crosses half-way between its dark and bright ends (unbiased for a symmetric blur);
-    ``f`` is a quadratic in ``t`` (lens distortion bends the side a little), fitted with the
-    outlying points (glare, a scratch) removed. Returns (a, u, n, coefficients) or None."""
+    """The border edge of a tag between corners ``a`` and ``b`` as ``a + t u + f(t) n`` (``n``
+    out of the tag, ``f`` quadratic), from profiles ``half_px`` each way across the side
+    (docs/results/DETECTION.md, "One AprilTag"). Returns (a, u, n, coefficients) or None."""
     length = float(np.linalg.norm(b - a))
     u = (b - a) / length
     n = np.array([-u[1], u[0]])
@@ -837,11 +790,9 @@ TAG_EDGE_DEPTH = 0.7
 
 
 def _tag_edge_corners(grey: np.ndarray, q: np.ndarray, cells: float) -> np.ndarray:
-    """A lone tag's corners (4, 2) as the intersections of its fitted border edges.
-
-    ``cornerSubPix`` pulls a tag's L-corners inwards (shrinking the tag, biasing the focal
-    length); the edges are located without that bias. A side that cannot be fitted keeps the
-    input corners ``q``."""
+    """A lone tag's corners (4, 2) as the intersections of its fitted border edges (unbiased
+    where ``cornerSubPix`` pulls L-corners inwards); the corners ``q`` when a side cannot be
+    fitted."""
     centre = q.mean(axis=0)
     grey_f = grey.astype(np.float32)  # interpolated profiles without 8-bit rounding
     curves = []
@@ -1068,7 +1019,6 @@ def _report(
         rejected_ids=rejected,
         path=path,
         blur_sigma_px=blur,
-        mean_grey=mean,
         saturated_fraction=saturated,
     )
 

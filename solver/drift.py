@@ -70,19 +70,17 @@ class DisplacementField:
         """The largest ``z`` of the four parameters."""
         return float(np.max(self.z))
 
-    def drifted(self, px_limit: float, z_limit: float = Z_LIMIT) -> bool:
+    def drifted(self, px_limit: float) -> bool:
         """Significant and larger than ``px_limit``."""
-        return self.max_z > z_limit and self.max_px > px_limit
+        return self.max_z > Z_LIMIT and self.max_px > px_limit
 
 
 def match_poses(
     new: Sequence[np.ndarray | None],
     old: Sequence[np.ndarray | None],
-    tol_m: float = MATCH_M,
-    tol_deg: float = MATCH_DEG,
 ) -> list[tuple[int, int]]:
     """Pairs ``(i, j)``: pose ``new[i]`` is ``old[j]`` (``T_base_tool`` (4, 4) both, within
-    ``tol_m`` and ``tol_deg``; the nearest when several are); None poses never match."""
+    ``MATCH_M`` and ``MATCH_DEG``; the nearest when several are); None poses never match."""
     ia = [i for i, T in enumerate(new) if T is not None]
     jb = [j for j, T in enumerate(old) if T is not None]
     if not ia or not jb:
@@ -92,7 +90,7 @@ def match_poses(
     dt = np.linalg.norm(A[:, None, :3, 3] - B[None, :, :3, 3], axis=2)
     cos = (np.einsum("iab,jab->ij", A[:, :3, :3], B[:, :3, :3]) - 1.0) / 2.0
     dr = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-    cost = np.where((dt <= tol_m) & (dr <= tol_deg), dt / tol_m + dr / tol_deg, np.inf)
+    cost = np.where((dt <= MATCH_M) & (dr <= MATCH_DEG), dt / MATCH_M + dr / MATCH_DEG, np.inf)
     best = np.argmin(cost, axis=1)
     return [(ia[k], jb[int(best[k])]) for k in range(len(ia)) if np.isfinite(cost[k, best[k]])]
 
@@ -222,9 +220,7 @@ def hand_eye_T(installed: CalibrationResult, camera: str) -> np.ndarray:
             # T_tool_cam = T_tool_ref @ T_ref_cam = T_tool_ref @ inv(T_cam_ref)
             known = (he.R, rig.R, he.t_m, rig.t_m)
             if all(v is not None for v in known):
-                T = np.eye(4)
-                T[:3, :3] = he.R @ rig.R.T
-                T[:3, 3] = he.R @ (-rig.R.T @ rig.t_m) + he.t_m
+                T = T_from_Rt(he.R @ rig.R.T, he.R @ (-rig.R.T @ rig.t_m) + he.t_m)
     if T is None:
         raise InputError(
             f"the installed calibration has no complete hand-eye for camera {camera!r}; "

@@ -148,13 +148,6 @@ def look_at_R_cam_world(
     return np.stack([x, y, z])
 
 
-def random_rotation(rng: np.random.Generator, max_angle_rad: float = np.pi) -> np.ndarray:
-    """A random rotation with a uniformly drawn axis and an angle uniform in [0, max_angle_rad]."""
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    return R_from_rvec(axis * rng.uniform(0.0, max_angle_rad))
-
-
 def right_singular(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Singular values ``sv`` (n,) and right singular vectors ``Vt`` (n, n) of ``A`` (m, n),
     any m: a system with fewer rows than unknowns is padded with zero rows (its null space is

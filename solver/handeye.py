@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slidecal.solver.errors import DegenerateError, InputError
+from slidecal.solver.errors import DegenerateError
 from slidecal.solver.geometry import (
     T_from_Rt,
     project_to_SO3,
@@ -25,11 +25,6 @@ _MIN_SPREAD = 1e-2
 _MIRRORED = 0.1
 
 
-def _group_scale(Kinv: np.ndarray, H0: np.ndarray) -> float:
-    m1, m2 = Kinv @ H0[:, 0], Kinv @ H0[:, 1]
-    return float(np.sqrt(0.5 * (m1 @ m1 + m2 @ m2)))
-
-
 def camera_displacements(K: np.ndarray, group: LinearGroup) -> np.ndarray:
     """Camera displacements ``d`` (n, 3) since frame 0, camera axes, board length unit.
 
@@ -40,7 +35,8 @@ def camera_displacements(K: np.ndarray, group: LinearGroup) -> np.ndarray:
     """
     H = np.asarray(group.H, dtype=float)
     Kinv = np.linalg.inv(np.asarray(K, dtype=float))
-    lam = _group_scale(Kinv, H[0])
+    m1, m2 = Kinv @ H[0][:, 0], Kinv @ H[0][:, 1]
+    lam = float(np.sqrt(0.5 * (m1 @ m1 + m2 @ m2)))
     if H[0][2, 2] < 0:
         lam = -lam
     return np.array([Kinv @ (H[0][:, 2] - Hk[:, 2]) / lam for Hk in H])
@@ -67,8 +63,6 @@ def rotation_from_directions(
     """
     d = np.asarray(d_cam, dtype=float).reshape(-1, 3)
     t = np.asarray(t_robot, dtype=float).reshape(-1, 3)
-    if len(d) != len(t):
-        raise InputError(f"d_cam has {len(d)} rows but t_robot has {len(t)}: pass matched pairs")
     w = np.ones(len(t)) if weights is None else np.asarray(weights, dtype=float).reshape(-1)
     keep = (np.linalg.norm(t, axis=1) > 0) & (w > 0)
     d, t, w = d[keep], t[keep], w[keep]

@@ -23,8 +23,6 @@ Observation = tuple[np.ndarray, np.ndarray]  # (board_xy (N, 2), px (N, 2))
 def _check_pairs(board_xy: np.ndarray, px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     b = np.asarray(board_xy, dtype=float)
     p = np.asarray(px, dtype=float).reshape(-1, 2)
-    if b.ndim != 2 or b.shape[1] not in (2, 3):
-        raise InputError("board_xy must be an (N, 2) array of board-plane coordinates")
     b = b[:, :2]
     if len(b) != len(p):
         raise InputError(f"board_xy has {len(b)} points but px has {len(p)}: pass matched pairs")
@@ -137,10 +135,6 @@ def _levenberg_marquardt(fun, jac, x0: np.ndarray, max_iter: int = 30) -> np.nda
     return x
 
 
-def _h(H: np.ndarray) -> np.ndarray:
-    return H.T.reshape(-1)  # columns h1, h2, h3 stacked
-
-
 def _H(x: np.ndarray) -> np.ndarray:
     return x.reshape(3, 3).T
 
@@ -149,9 +143,7 @@ def refine_homography(H: np.ndarray, board_xy: np.ndarray, px: np.ndarray) -> np
     """Homography (3, 3) minimising the image reprojection error (Levenberg-Marquardt).
 
     ``H`` (3, 3): initial estimate. ``board_xy`` (N, 2): board frame, any unit. ``px`` (N, 2):
-    pixels. Solved in Hartley-normalised coordinates with an analytic Jacobian (the isotropic
-    image normalisation keeps the cost proportional to the pixel error). Returned with unit
-    Frobenius norm and ``H[2, 2] > 0``.
+    pixels. Returned with unit Frobenius norm and ``H[2, 2] > 0``.
     """
     b, p = _check_pairs(board_xy, px)
     Tb, Ti = _similarity(b), _similarity(p)
@@ -165,7 +157,7 @@ def refine_homography(H: np.ndarray, board_xy: np.ndarray, px: np.ndarray) -> np
     def jac(x: np.ndarray) -> np.ndarray:
         return _residual_and_jac(_H(x), bn, pn)[1]
 
-    x = _levenberg_marquardt(fun, jac, _h(Hn))
+    x = _levenberg_marquardt(fun, jac, Hn.T.reshape(-1))  # columns h1, h2, h3 stacked
     return _sign_scale(np.linalg.inv(Ti) @ _H(x) @ Tb)
 
 
@@ -175,16 +167,6 @@ def homography_rms_px(H: np.ndarray, board_xy: np.ndarray, px: np.ndarray) -> fl
     b, p = _check_pairs(board_xy, px)
     xy, _ = _project(np.asarray(H, dtype=float), b)
     return float(np.sqrt(np.mean(np.sum((xy - p) ** 2, axis=1))))
-
-
-def _prepare_group(observations: Sequence[Observation]):
-    if len(observations) < 1:
-        raise InputError("an orientation group needs at least one frame")
-    obs = [_check_pairs(b, p) for b, p in observations]
-    Tb = _similarity(np.concatenate([b for b, _ in obs]))
-    Ti = _similarity(np.concatenate([p for _, p in obs]))
-    obs_n = [(_apply(Tb, b), _apply(Ti, p)) for b, p in obs]
-    return obs_n, Tb, Ti
 
 
 def _common_scale_init(obs_n) -> tuple[np.ndarray, np.ndarray]:
@@ -201,43 +183,18 @@ def _common_scale_init(obs_n) -> tuple[np.ndarray, np.ndarray]:
     return np.mean(h12, axis=0), np.array(h3)
 
 
-def _finish_group(Hn: np.ndarray, Tb: np.ndarray, Ti: np.ndarray) -> np.ndarray:
-    Tii = np.linalg.inv(Ti)
-    Hs = np.array([Tii @ H @ Tb for H in Hn])
-    s = np.linalg.norm(Hs[0])
-    if np.median(Hs[:, 2, 2]) < 0:
-        s = -s
-    return Hs / s
-
-
-def _fit_group(obs_n, Tb, Ti, unpack, place, x0: np.ndarray, max_iter: int = 30) -> np.ndarray:  # noqa: ANN001
-    """The group's homographies fitted to all its frames: ``unpack`` maps the parameters to the
-    (normalised) homographies, ``place(k, J_k)`` a frame's (N, 9) Jacobian to its rows."""
-
-    def fun(x: np.ndarray) -> np.ndarray:
-        return np.concatenate(
-            [_residual_and_jac(H, b, p)[0] for H, (b, p) in zip(unpack(x), obs_n, strict=True)]
-        )
-
-    def jac(x: np.ndarray) -> np.ndarray:
-        pairs = enumerate(zip(unpack(x), obs_n, strict=True))
-        return np.vstack([place(k, _residual_and_jac(H, b, p)[1]) for k, (H, (b, p)) in pairs])
-
-    x = _levenberg_marquardt(fun, jac, x0, max_iter)
-    return _finish_group(np.array(unpack(x)), Tb, Ti)
-
-
 def group_homographies(observations: Sequence[Observation], max_iter: int = 30) -> np.ndarray:
     """Joint homographies (n, 3, 3) of one orientation group (docs/METHOD.md Sec. 3).
 
-    ``observations``: per frame ``(board_xy (N_k, 2) board frame, px (N_k, 2) pixels)``. One
-    shared ``h1, h2`` and one ``h3`` per frame minimise the reprojection error of all frames
-    jointly, so every ``Hs[k]`` has the same scale (identical first two columns) and
-    ``Delta_k = h3_0 - h3_k`` is meaningful (eqs. 12-13). Scale: ``Hs[0]`` has unit Frobenius
-    norm and ``h3[2] > 0`` (board in front of the camera). ``max_iter``: Levenberg-Marquardt
-    iterations from the rescaled per-frame DLTs (0 returns those; a start for a refinement).
+    ``observations``: per frame ``(board_xy (N_k, 2) board frame, px (N_k, 2) pixels)``; one
+    shared ``h1, h2`` and one ``h3`` per frame. Scale: ``Hs[0]`` has unit Frobenius norm and
+    ``h3[2] > 0``. ``max_iter``: Levenberg-Marquardt iterations from the rescaled per-frame
+    DLTs (0 returns those).
     """
-    obs_n, Tb, Ti = _prepare_group(observations)
+    obs = [_check_pairs(b, p) for b, p in observations]
+    Tb = _similarity(np.concatenate([b for b, _ in obs]))
+    Ti = _similarity(np.concatenate([p for _, p in obs]))
+    obs_n = [(_apply(Tb, b), _apply(Ti, p)) for b, p in obs]
     h12, h3 = _common_scale_init(obs_n)
     n = len(obs_n)
 
@@ -250,6 +207,20 @@ def group_homographies(observations: Sequence[Observation], max_iter: int = 30) 
         B[:, 6 + 3 * k : 9 + 3 * k] = Jk[:, 6:9]
         return B
 
-    x0 = np.concatenate([h12, h3.reshape(-1)])
-    return _fit_group(obs_n, Tb, Ti, unpack, place, x0, max_iter)
+    def fun(x: np.ndarray) -> np.ndarray:
+        return np.concatenate(
+            [_residual_and_jac(H, b, p)[0] for H, (b, p) in zip(unpack(x), obs_n, strict=True)]
+        )
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        pairs = enumerate(zip(unpack(x), obs_n, strict=True))
+        return np.vstack([place(k, _residual_and_jac(H, b, p)[1]) for k, (H, (b, p)) in pairs])
+
+    x = _levenberg_marquardt(fun, jac, np.concatenate([h12, h3.reshape(-1)]), max_iter)
+    Tii = np.linalg.inv(Ti)
+    Hs = np.array([Tii @ H @ Tb for H in unpack(x)])
+    s = np.linalg.norm(Hs[0])
+    if np.median(Hs[:, 2, 2]) < 0:  # board in front of the camera
+        s = -s
+    return Hs / s
 

@@ -105,7 +105,6 @@ def image_normalisation(width: float, height: float) -> np.ndarray:
     return np.array([[s, 0.0, -s * cx], [0.0, s, -s * cy], [0.0, 0.0, 1.0]])
 
 
-Knowledge = Literal["robot", "board_translation", "board_direction", "lengths", "none"]
 KNOWLEDGE = ("robot", "board_translation", "board_direction", "lengths", "none")
 
 
@@ -131,17 +130,12 @@ class LinearGroup:
 class LinearSolution:
     """Result of :func:`linear_intrinsics`.
 
-    ``K`` (3, 3) pixels, ``K[2, 2] = 1``. ``scales``: ``c = lambda^2`` per group in the caller's
-    units (``H`` as given in pixels and board units, ``H = lambda K [r1 r2 t]``). ``lengths``:
-    Case 2 only, per group an (n,) array of the recovered signed step lengths along the given
-    direction (board units; ``lengths[g][0] = 0``), else None. ``singular_values``: of the
-    conditioned system (descending; the last is the residual of the null vector). ``unknowns``:
-    names of the system's columns.
+    ``K`` (3, 3) pixels, ``K[2, 2] = 1``. ``singular_values``: of the conditioned system
+    (descending; the last is the residual of the null vector). ``unknowns``: names of the
+    system's columns (``w``'s coefficients, then each group's ``c = lambda^2``).
     """
 
     K: np.ndarray
-    scales: tuple[float, ...]
-    lengths: tuple[np.ndarray, ...] | None
     singular_values: np.ndarray
     unknowns: tuple[str, ...]
 
@@ -204,18 +198,6 @@ def _check_groups(groups: Sequence[LinearGroup], knowledge: str) -> None:
         raise InputError(f"unknown motion knowledge {knowledge!r}; use one of {KNOWLEDGE}")
     if len(groups) == 0:
         raise InputError("the linear method needs at least one orientation group")
-    for g, grp in enumerate(groups):
-        H = np.asarray(grp.H)
-        if H.ndim != 3 or H.shape[1:] != (3, 3):
-            raise InputError(f"group {g}: H must be an (n, 3, 3) array of homographies")
-        if knowledge not in ("none",):
-            if grp.motion is None:
-                raise InputError(f"group {g}: motion is required for knowledge {knowledge!r}")
-            if np.shape(grp.motion) != (len(H), 3):
-                raise InputError(
-                    f"group {g}: motion must be ({len(H)}, 3), one row per frame, got "
-                    f"{np.shape(grp.motion)}"
-                )
 
 
 #: Partners of each translation in a large orientation group (the robot knowledge): every pair
@@ -259,12 +241,8 @@ def linear_system(
     ``"robot"``: ``Delta_i' W Delta_j = (T_i . T_j) c`` for the pairs ``1 <= i <= j`` of
     :func:`robot_pairs` (all of them in groups of up to 21 translations);
     ``"none"``: Zhang's two rows of every frame (each frame its own pose), no ``c``.
-    Conditioning (docs/METHOD.md, "Numerical conditioning"): isotropic image normalisation, a
-    board-side scale making the homography columns commensurate (translations scaled with it),
-    each group's homographies scaled so ``|h1|, |h2| ~ 1``, then rows and columns normalised.
-    Rows: ``row_weighting="noise"`` (default) divides the row of ``a' W b`` by ``|a| + |b|``,
-    its noise scale (a short translation's row weighs less than a long one's); ``"unit"``
-    gives unit-norm rows (docs/METHOD.md's recipe). ``condition=False`` skips all of it.
+    Conditioning: docs/METHOD.md, "Numerical conditioning" (``row_weighting="noise"``: each row
+    over its noise scale ``|a| + |b|``; ``"unit"``: unit-norm rows; ``condition=False``: none).
     """
     _check_groups(groups, knowledge)
     N = image_normalisation(*image_size) if condition else np.eye(3)
@@ -347,13 +325,8 @@ def linear_system(
     A = A[keep]
     col_scale = np.ones(A.shape[1])
     if condition:
-        if row_weighting == "unit":
-            A = A / rn[keep, None]
-        else:
-            A = A / noise_all[keep, None]
-        cn = np.linalg.norm(A, axis=0)
-        col_scale = 1.0 / np.where(cn > 0, cn, 1.0)
-        A = A * col_scale
+        A = A / (rn if row_weighting == "unit" else noise_all)[keep, None]  # the rows' weights
+        A, col_scale = unit_columns(A)
     names = wnames + tuple(f"c{g}" for g in range(G))
     return LinearSystem(A, col_scale, B, names, N, sigma, G, h_scale)
 
@@ -395,10 +368,6 @@ def solve_null(
             f"the linear system is singular (its null space is not one-dimensional): {remedy}"
         )
     return Vt[-1] * col_scale, sv
-
-
-def _solve_null(system: LinearSystem) -> tuple[np.ndarray, np.ndarray]:
-    return solve_null(system.A, system.col_scale, system.unknowns)
 
 
 def unit_columns(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -443,52 +412,16 @@ def linear_intrinsics(
     **options,
 ) -> LinearSolution:
     """Closed-form intrinsics from translation groups (docs/METHOD.md Sec. 3, every row of its
-    table).
-
-    ``groups``: orientation groups (:class:`LinearGroup`, homographies in pixels and board
-    units). ``options``: the keywords of :func:`linear_system` (``image_size`` (width, height)
-    pixels, ``skew``, ``unit_aspect``, ``condition``, ``row_weighting``). Any number of groups;
-    Zhang's rows of every group are always stacked (they add information when the groups differ
-    in orientation). Raises ``DegenerateError`` when the system has no unique, positive definite
-    solution. ``system``: the system of these arguments when already built
-    (``check_configuration`` returns it).
+    table). ``groups``: orientation groups (:class:`LinearGroup`, homographies in pixels and
+    board units); ``options``: the keywords of :func:`linear_system`; ``system``: that system
+    when already built (``check_configuration`` returns it). Raises ``DegenerateError`` when it
+    has no unique, positive definite solution.
     """
     if system is None:
         system = linear_system(groups, knowledge, **options)
-    x, sv = _solve_null(system)
-    m = system.basis.shape[1]
-    w = system.basis @ x[:m]
-    Kn = K_from_w(w)
-    K = K_from_normalised_w(w, system.N)
-    Kni = np.linalg.inv(Kn)
-    Wt = Kni.T @ Kni
-    w_true = np.array([Wt[0, 0], Wt[0, 1], Wt[1, 1], Wt[0, 2], Wt[1, 2], Wt[2, 2]])
-    alpha = (w_true @ w) / (w @ w)
-    scales = tuple(
-        float(alpha * c * s**2 / system.sigma**2)
-        for c, s in zip(x[m:], system.h_scale[: len(x) - m], strict=True)
-    )
-    lengths = None
-    if knowledge == "board_direction":
-        lengths = tuple(
-            _signed_lengths(K, np.asarray(g.H, dtype=float), np.asarray(g.motion, dtype=float))
-            for g in groups
-        )
-    return LinearSolution(K, scales, lengths, sv, system.unknowns)
-
-
-def _signed_lengths(K: np.ndarray, H: np.ndarray, directions: np.ndarray) -> np.ndarray:
-    """Case 2 step lengths (n,): the camera displacement ``K^-1 Delta / lambda`` along ``R n``."""
-    H = _common_h12(H)
-    Ki = np.linalg.inv(K)
-    m1, m2 = Ki @ H[0][:, 0], Ki @ H[0][:, 1]
-    lam = np.sqrt(0.5 * (m1 @ m1 + m2 @ m2))
-    R = np.column_stack([m1 / lam, m2 / lam, np.cross(m1, m2) / lam**2])
-    out = np.zeros(len(H))
-    for k in range(1, len(H)):
-        n = directions[k] / np.linalg.norm(directions[k])
-        out[k] = (R @ n) @ (Ki @ (H[0][:, 2] - H[k][:, 2])) / lam  # eqs. 12-13
-    return out
+    x, sv = solve_null(system.A, system.col_scale, system.unknowns)
+    K = K_from_normalised_w(system.basis @ x[: system.basis.shape[1]], system.N)
+    return LinearSolution(K, sv, system.unknowns)
 
 
 def zhang_intrinsics(Hs: np.ndarray, **options) -> np.ndarray:
@@ -501,25 +434,16 @@ def zhang_intrinsics(Hs: np.ndarray, **options) -> np.ndarray:
     """
     Hs = np.asarray(Hs, dtype=float).reshape(-1, 3, 3)
     system = linear_system([LinearGroup(H[None]) for H in Hs], "none", **options)
-    x, sv = _solve_null(system)
-    if sv[-2] <= 1e-10 * sv[0]:
-        raise DegenerateError(
-            "Zhang's method is singular for these views: use more orientations (at least 3 with "
-            "skew), tilted about different axes"
-        )
+    x, _ = solve_null(system.A, system.col_scale, system.unknowns)
     return K_from_normalised_w(system.basis @ x[: system.basis.shape[1]], system.N)
 
 
 def focal_from_homographies(Hs: np.ndarray, *, image_size: tuple[float, float]) -> np.ndarray:
     """The one-parameter start ``K`` (3, 3): square pixels, no skew, the principal point at the
     image centre, and the focal length that best satisfies Zhang's rows (eqs. 10-11) of the
-    homographies ``Hs`` (n, 3, 3).
-
-    In centred, normalised coordinates ``w = (1, 0, 1, 0, 0, f^2)`` up to scale, so each row
-    ``r`` gives ``r_11 + r_22 + r_33 f^2 = 0``: ``f^2`` by linear least squares. For starting a
-    refinement when the full Zhang system is too noisy to be positive definite (few points per
-    image, small targets); falls back to ``f`` = image width when even ``f^2`` comes out
-    negative. ``image_size``: (width, height) pixels.
+    homographies ``Hs`` (n, 3, 3): with ``w = (1, 0, 1, 0, 0, f^2)`` in centred, normalised
+    coordinates each row gives ``r_11 + r_22 + r_33 f^2 = 0``. ``f`` = image width when ``f^2``
+    comes out negative. ``image_size``: (width, height) pixels.
     """
     Hs = np.asarray(Hs, dtype=float).reshape(-1, 3, 3)
     N = image_normalisation(*image_size)

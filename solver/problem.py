@@ -1,24 +1,12 @@
 """The solver's input: a frozen description of what a calibration session observed.
 
 Board frame and corner ids (fixed within a session format version): ``charuco``,
-``chessboard`` and ``points`` as the README states them (OpenCV's board frame and ids), and
-
-- ``apriltag``: one AprilTag (or a few) of family ``dictionary`` (OpenCV's name, default
-  ``DICT_APRILTAG_36h11``), side ``tag_size_m`` measured across the black border. The tag
-  ``tag_ids[k]`` has its outer top-left corner at ``tag_origins_m[k]`` (the first at the origin);
-  its corners have ids ``4 k + j``, ``j`` = 0 top-left, 1 top-right, 2 bottom-right,
-  3 bottom-left as the tag is printed (+x right, +y down the page: OpenCV's marker corner order).
-- ``aprilgrid``: Kalibr's AprilGrid, ``tag_cols`` x ``tag_rows`` tags of ``tag_size_m`` with a
-  gap of ``tag_spacing * tag_size_m`` between them, tag ids ``0 .. tag_cols * tag_rows - 1``
-  from the bottom-left tag of the printed grid, left to right, then upwards (Kalibr's order).
-  Corner ids are Kalibr's: corner row ``r`` counted from the bottom (two per tag row: its bottom
-  then its top edge), column ``c`` from the left (two per tag column), id
-  ``r * 2 tag_cols + c``; so tag ``t`` at tag row ``i = t // tag_cols``, column
-  ``k = t % tag_cols`` has corners ``b = 4 i tag_cols + 2 k`` (bottom-left), ``b + 1``
-  (bottom-right), ``b + 2 tag_cols + 1`` (top-right), ``b + 2 tag_cols`` (top-left). The board
-  frame keeps this module's convention (origin at the outer top-left corner of the top-left tag,
-  +x right, +y down the printed page, +z into the board), so it differs from Kalibr's frame (origin
-  at the bottom-left, +y up) by the flip ``Y = height - Y_kalibr``, ``Z = -Z_kalibr``.
+``chessboard`` and ``points`` as the README states them (OpenCV's board frame and ids);
+``apriltag`` (corners ``4 k + j`` of tag ``tag_ids[k]``, OpenCV's marker corner order) and
+``aprilgrid`` (Kalibr's tag and corner ids) as docs/results/DETECTION.md ("Target kinds and
+corner ids") states them. A tag target's board frame: origin at the outer top-left corner of
+the top-left tag, +x right, +y down the printed page, +z into the board (an AprilGrid's differs
+from Kalibr's by ``Y = height - Y_kalibr``, ``Z = -Z_kalibr``).
 """
 
 from __future__ import annotations

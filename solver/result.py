@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from slidecal.solver.geometry import T_from_Rt
+
 #: A transform's perturbation, rotation vector (radians) then translation (metres), named so in
 #: a covariance (``T_tool_cam.rx`` .. ``T_tool_cam.tz``): docs/FORMATS.md
 ROT = ("rx", "ry", "rz")
@@ -24,17 +26,13 @@ class NamedCovariance:
     names: tuple[str, ...]
     matrix: np.ndarray
 
-    def index(self, names: list[str] | tuple[str, ...]) -> np.ndarray | None:
-        """Row indices of ``names``, None unless all are present."""
+    def block(self, names: list[str] | tuple[str, ...]) -> np.ndarray | None:
+        """The covariance of ``names`` (n, n), None unless all are present."""
         where = {n: i for i, n in enumerate(self.names)}
         if any(n not in where for n in names):
             return None
-        return np.array([where[n] for n in names], dtype=int)
-
-    def block(self, names: list[str] | tuple[str, ...]) -> np.ndarray | None:
-        """The covariance of ``names`` (n, n), None unless all are present."""
-        i = self.index(names)
-        return None if i is None else self.matrix[np.ix_(i, i)]
+        i = np.array([where[n] for n in names], dtype=int)
+        return self.matrix[np.ix_(i, i)]
 
     def std(self, name: str) -> float | None:
         """One-sigma of ``name``, None when it is not estimated."""
@@ -88,10 +86,7 @@ class TransformEstimate:
         """The 4x4 transform, or None unless rotation and translation are both known."""
         if self.R is None or self.t_m is None:
             return None
-        T = np.eye(4)
-        T[:3, :3] = self.R
-        T[:3, 3] = self.t_m
-        return T
+        return T_from_Rt(self.R, self.t_m)
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ joined with ``X_a = R_a_b X_b + t_a_b`` (camera-frame coordinates); the infinite
 board-plane ``(X, Y, 1)`` to pixels; ``sizes`` are ``((width_a, height_a), (width_b,
 height_b))`` in pixels. The per-camera rows are ``slidecal.solver.linear.linear_system``'s; this
 module adds what couples the cameras: the infinite homography (eqs. 58-61), its transfer of the
-absolute conic (eq. 62), the shared translations (eqs. 33-42) and the relative rotation (eq. 63).
+absolute conic (eq. 62) and the shared translations (eqs. 33-42).
 """
 
 from __future__ import annotations
@@ -16,8 +16,7 @@ from typing import Literal
 
 import numpy as np
 
-from slidecal.solver.errors import DegenerateError, InputError
-from slidecal.solver.geometry import project_to_SO3
+from slidecal.solver.errors import DegenerateError
 from slidecal.solver.linear import (
     K_from_normalised_w,
     LinearGroup,
@@ -36,17 +35,6 @@ from slidecal.solver.linear import (
 # Third singular value of the views' stacked unit columns below which they are one orientation
 # (H_inf undetermined: the head turned by less than about 0.1 deg).
 _MIN_ORIENTATION_SPREAD = 2e-3
-
-
-def _check_homographies(H: np.ndarray, name: str) -> np.ndarray:
-    H = np.asarray(H, dtype=float)
-    if H.ndim == 2:
-        H = H[None]
-    if H.ndim != 3 or H.shape[1:] != (3, 3):
-        raise InputError(f"{name} must be an (n, 3, 3) stack of homographies, got {H.shape}")
-    if not np.all(np.isfinite(H)):
-        raise InputError(f"{name} contains NaN or infinite entries: re-estimate the homographies")
-    return H
 
 
 def _normaliser(H: np.ndarray, size: tuple[float, float] | None) -> np.ndarray:
@@ -79,7 +67,6 @@ def infinite_homography(
     *,
     sizes: Sequence[tuple[float, float]] | None = None,
     refine: bool = True,
-    max_iterations: int = 50,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(H_inf, mu)``: the infinite homography (3, 3) from camera b's image to camera a's
     (``x_a ~ H_inf x_b`` in pixels, ``K_a R_a_b K_b^-1`` at ``det = 1``) and the per-view scales
@@ -90,11 +77,8 @@ def infinite_homography(
     ``refine``: after the linear solution, minimise ``sum_k ||A_k - mu_k H B_k||^2`` (``A_k``,
     ``B_k`` the normalised unit-norm columns ``[h1 h2]``) by alternating least squares.
     """
-    H_a = _check_homographies(H_a, "H_a")
-    H_b = _check_homographies(H_b, "H_b")
+    H_a, H_b = np.asarray(H_a, dtype=float), np.asarray(H_b, dtype=float)
     n = len(H_a)
-    if len(H_b) != n:
-        raise InputError(f"H_a has {n} views but H_b has {len(H_b)}: pass the same stereo views")
     if n < 2:
         raise DegenerateError(
             "the infinite homography needs at least two stereo views with different board "
@@ -142,7 +126,7 @@ def infinite_homography(
     mu_n = 1.0 / nu
 
     if refine:
-        for _ in range(max_iterations):
+        for _ in range(50):  # a bound: it stops at a step below 1e-13 long before
             lhs = np.einsum("k,kri,kci->rc", mu_n, A, B)
             rhs = np.einsum("k,kri,kci->rc", mu_n**2, B, B)
             H_new = np.linalg.solve(rhs.T, lhs.T).T
@@ -217,14 +201,9 @@ def rig_linear_intrinsics(
     row_weighting: Literal["noise", "unit"] = "unit",
     **options,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Joint linear intrinsics of both cameras of a stereo head (eqs. 10-11 with eq. 62).
-
-    One homogeneous system in ``(w_a, s w_b)``: each camera's rows are those of
-    ``linear_system`` with knowledge ``"none"`` (Zhang's two rows per homography, its basis,
-    normalisation and ``row_weighting``) and the six rows of ``H_inf' W_a H_inf = s W_b``
-    (eq. 62, ``H_inf`` in the normalised images at ``det = 1``) couple them; the unknown scale
-    ``s`` is carried by ``w_b``, whose own rows are homogeneous. The eq. 62 rows get the median
-    norm of the cameras' rows.
+    """Joint linear intrinsics of both cameras of a stereo head (eqs. 10-11 with eq. 62;
+    docs/METHOD.md Sec. 8): each camera's ``linear_system`` rows of knowledge ``"none"`` and
+    the six rows of eq. 62 (at the median norm of the cameras' rows) in ``(w_a, s w_b)``.
 
     ``Hs_a``, ``Hs_b`` (n_a, 3, 3), (n_b, 3, 3): each camera's homographies (views not
     necessarily paired). ``H_inf``: :func:`infinite_homography`'s, or None to solve each camera
@@ -233,7 +212,7 @@ def rig_linear_intrinsics(
     docs/results/S5.md).
     Returns ``K_a``, ``K_b`` (3, 3) in pixels.
     """
-    Hs = (_check_homographies(Hs_a, "Hs_a"), _check_homographies(Hs_b, "Hs_b"))
+    Hs = (np.asarray(Hs_a, dtype=float), np.asarray(Hs_b, dtype=float))
     options = {**options, "row_weighting": row_weighting}
     if H_inf is None:
         K_a, K_b = (
@@ -260,54 +239,8 @@ def rig_linear_intrinsics(
     return _solve_rig(A, sys_a, sys_b, row_weighting, "joint stereo calibration (eqs. 10-11, 62)")
 
 
-def relative_rotation(K_a: np.ndarray, K_b: np.ndarray, H_inf: np.ndarray) -> np.ndarray:
-    """``R_a_b`` (3, 3) from ``H_inf = K_a R_a_b K_b^-1`` (eq. 63), projected onto SO(3).
-
-    ``K_a``, ``K_b``: (3, 3) intrinsics in pixels; ``H_inf``: (3, 3), any scale, camera b's image
-    to camera a's. ``X_a = R_a_b X_b + t_a_b`` for camera-frame coordinates.
-    """
-    M = np.linalg.solve(np.asarray(K_a, float), np.asarray(H_inf, float) @ np.asarray(K_b, float))
-    d = np.linalg.det(M)
-    if not np.isfinite(d) or abs(d) < 1e-300:
-        raise DegenerateError("relative_rotation: K_a^-1 H_inf K_b is singular; check H_inf")
-    return project_to_SO3(M / (np.sign(d) * abs(d) ** (1.0 / 3.0)))
-
-
 #: Orientation groups from which a translated rig adds eq. 62 (``H_inf`` from fewer is too rough).
 _EQ62_MIN_GROUPS = 3
-_TRANSLATION_KNOWLEDGE = ("robot", "board_translation", "board_direction", "lengths")
-
-
-def _rig_groups(
-    groups_a: Sequence[LinearGroup], groups_b: Sequence[LinearGroup]
-) -> tuple[list[LinearGroup], list[LinearGroup]]:
-    """Both cameras' groups checked, each with the one motion of the head (from ``groups_a``)."""
-    G = len(groups_a)
-    if G == 0 or len(groups_b) != G:
-        raise InputError(
-            f"groups_a has {G} groups and groups_b {len(groups_b)}: pass the same non-empty "
-            "orientation groups for both cameras"
-        )
-    out_a, out_b = [], []
-    for g, (ga, gb) in enumerate(zip(groups_a, groups_b, strict=True)):
-        A = _check_homographies(ga.H, f"groups_a[{g}].H")
-        B = _check_homographies(gb.H, f"groups_b[{g}].H")
-        if len(A) != len(B) or len(A) < 2:
-            raise InputError(
-                f"group {g}: camera a has {len(A)} frames, camera b {len(B)}; both need the same "
-                "frames, at least two (one translation)"
-            )
-        mot = None if ga.motion is None else np.asarray(ga.motion, dtype=float)
-        if mot is None or mot.shape != (len(A), 3):
-            raise InputError(f"group {g}: groups_a[{g}].motion must be ({len(A)}, 3)")
-        if gb.motion is not None and not np.allclose(np.asarray(gb.motion, float), mot):
-            raise InputError(
-                f"group {g}: the two cameras' motions differ; a rigid head has one translation "
-                "per frame: pass it in groups_a and None (or the same) in groups_b"
-            )
-        out_a.append(LinearGroup(A, mot))
-        out_b.append(LinearGroup(B, mot))
-    return out_a, out_b
 
 
 def _shared_translation_rows(
@@ -346,32 +279,23 @@ def rig_linear_intrinsics_translation(
     knowledge: str,
     *,
     sizes: Sequence[tuple[float, float]],
-    use_eq62: bool = True,
     row_weighting: Literal["noise", "unit"] = "noise",
     **options,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Joint linear intrinsics of a stereo head translated in front of a board (eqs. 33-42).
-
-    Both cameras undergo the same translations. Unknowns ``(w_a, w_b, c_1 .. c_G)``: each
-    camera's rows are ``slidecal.solver.linear.linear_system``'s for its groups and the
-    knowledge; one ``c_g`` serves both cameras (camera b's column rescaled by the ratio of the
-    cameras' conditioned ``lambda_g^2`` from :func:`infinite_homography`'s ``mu_g``, with two or
-    more groups). Coupling rows for every translation (:func:`_shared_translation_rows`); with
-    ``_EQ62_MIN_GROUPS`` groups and ``use_eq62`` the six rows of eq. 62 too.
+    """Joint linear intrinsics of a stereo head translated in front of a board (eqs. 33-42;
+    docs/METHOD.md Sec. 8): unknowns ``(w_a, w_b, c_1 .. c_G)``, one ``c_g`` for both cameras
+    (camera b's column rescaled through :func:`infinite_homography`'s ``mu_g``), coupling rows
+    per translation (:func:`_shared_translation_rows`) and, from ``_EQ62_MIN_GROUPS`` groups on,
+    eq. 62.
 
     ``groups_a``, ``groups_b``: ``LinearGroup`` per orientation group, the same frames in both
     (``motion`` read from ``groups_a``, board units, by ``knowledge``: "robot",
-    "board_translation", "board_direction" or "lengths"). ``use_eq62``: add eq. 62 with three or
-    more groups. ``row_weighting`` and ``options`` (``skew``, ``unit_aspect``): as for
-    ``linear_system``; coupling rows get the noise scale of their two sides. Returns ``K_a``,
-    ``K_b`` (3, 3) in pixels.
+    "board_translation", "board_direction" or "lengths"). ``row_weighting`` and ``options``
+    (``skew``, ``unit_aspect``): as for ``linear_system``; coupling rows get the noise scale of
+    their two sides. Returns ``K_a``, ``K_b`` (3, 3) in pixels.
     """
-    if knowledge not in _TRANSLATION_KNOWLEDGE:
-        raise InputError(
-            f"unknown motion knowledge {knowledge!r} for a translated stereo head; use one of "
-            f"{_TRANSLATION_KNOWLEDGE} (general motion: rig_linear_intrinsics)"
-        )
-    ga, gb = _rig_groups(groups_a, groups_b)
+    ga = list(groups_a)  # camera b's groups take the head's one motion, camera a's
+    gb = [LinearGroup(np.asarray(b.H, float), a.motion) for a, b in zip(ga, groups_b, strict=True)]
     G = len(ga)
     H_inf, mu = None, np.ones(G)
     if G >= 2:
@@ -400,7 +324,7 @@ def rig_linear_intrinsics_translation(
         rows, noises = _shared_translation_rows(Ha, Hb, s_ba / r_g, s_ba**2 / r_g)
         rows = np.hstack([rows[:, :6] @ B, rows[:, 6:] @ B, np.zeros((len(rows), G))])
         blocks.append(rows / noises[:, None])
-    if H_inf is not None and use_eq62 and G >= _EQ62_MIN_GROUPS:
+    if H_inf is not None and G >= _EQ62_MIN_GROUPS:
         # exact scale: W_b = H_n' W_a H_n for the w_b the rescaled c_g columns imply
         H_n = sys_a.N @ H_inf @ np.linalg.inv(sys_b.N)
         scale = float(np.median(np.linalg.norm(np.vstack(blocks[:2]), axis=1)))

@@ -173,13 +173,11 @@ def _jacobian(layout: Layout, internal: tuple[str, ...]) -> tuple[tuple[str, ...
             out.add_transform(key, i, np.eye(6), True, True)
     m = mount_names(layout.mount)
     rot, trans = layout.rotation_reported, layout.translation_reported
-    if m is None or not rot or layout.X is None or layout.Y is None:
-        return tuple(out.names), np.array(out.rows).reshape(len(out.names), len(internal))
     Xr, Xt = layout.X_rot_basis, layout.X_t_basis
     Yr, Yt = layout.Y_rot_basis, layout.Y_t_basis
     xi = out.cols(_block_names("X0", Xr, Xt))
     yi = out.cols(_block_names("Y", Yr, Yt))
-    if xi is None or yi is None:
+    if m is None or not rot or layout.X is None or layout.Y is None or xi is None or yi is None:
         return tuple(out.names), np.array(out.rows).reshape(len(out.names), len(internal))
     BX = np.zeros((6, len(xi)))  # the optimiser's X coordinates -> X's perturbation
     BX[:3, : Xr.shape[1]] = Xr
@@ -276,12 +274,8 @@ def reported_covariance(
 ) -> Reported:
     """The one way from a finished solve (``out`` of ``problem``; ``groups`` (F,): its frames'
     orientation groups) to its reported value and covariance, whatever the session
-    (docs/ERROR_MODEL.md Sec. 3): the board's fit (its scale at least ``board_scale``, a
-    classic session's unexplained length ratio; its response at the reported value), how the
-    images' errors read, the model's covariance plus every term of the error model
-    (:func:`result_covariance`), and the value moved by the board's fit and halfway
-    (:data:`~slidecal.solver.target_shape.READING_WEIGHT`) to a classic session's reading
-    without its field."""
+    (docs/ERROR_MODEL.md Sec. 3). ``board_scale``: the least relative scale uncertainty of the
+    board (a classic session's unexplained length ratio)."""
     board = with_session_scale(problem, out, fit_board(problem, out), board_scale)
     if board is not None:  # its modes' response at the reported value (a classic session's)
         board = replace(board, response=reported_response(out, board.response))
@@ -319,13 +313,6 @@ def with_session_scale(
 
 
 # -- predictions at a known state -----------------------------------------------------------------
-def _structure(
-    problem: CalibrationProblem, truth: ModelState, structure: Structure | None
-) -> Structure:
-    """``structure``, or the problem's at the true hand-eye rotation when None."""
-    return build_structure(problem, truth.X[0][:3, :3]) if structure is None else structure
-
-
 def predicted_covariance(
     problem: CalibrationProblem,
     truth: ModelState,
@@ -342,7 +329,7 @@ def predicted_covariance(
     hand-eye rotation when None). The arm's per-pose error enters at the level of
     ``problem.options`` (``robot_noise_deg``, ``robot_noise_m``; exact poses when both are 0).
     """
-    st = _structure(problem, truth, structure)
+    st = build_structure(problem, truth.X[0][:3, :3]) if structure is None else structure
     names, cov = fisher_covariance(problem, st, truth, sigma_px, camera_sigma_px)
     return propagate(layout_of(problem, st, truth), names, cov)
 
@@ -359,7 +346,7 @@ def equal_weight_covariance(
     is ``camera_sigma_px`` (pixels, per axis): the sandwich ``A^-1 B A^-1`` at ``truth``. It
     equals :func:`predicted_covariance` when all cameras are equally noisy and cannot beat it
     otherwise."""
-    st = _structure(problem, truth, structure)
+    st = build_structure(problem, truth.X[0][:3, :3]) if structure is None else structure
     model = BundleModel(problem, st)
     model.sigma_px = 1.0  # prior rows in units of their own sigma
     state = model.with_corrections(truth)
@@ -377,43 +364,6 @@ def equal_weight_covariance(
     Ai = np.linalg.inv(Js.T @ (w[:, None] * Js))
     cov = Ai @ (Js.T @ ((w**2)[:, None] * Js)) @ Ai / np.outer(scale, scale)
     return propagate(layout_of(problem, st, truth), model.names, cov)
-
-
-@dataclass(frozen=True)
-class LinearisedEstimator:
-    """The maximum-likelihood step linearised at a known state, ``-(J'J)^-1 J' r``, in the
-    named quantities: exactly efficient by construction, so its Monte-Carlo spread over the
-    same noise draws tells how far from the bound a perfect estimator lands with that many
-    trials (a sampling reference). Build it with :func:`linearised_estimator`."""
-
-    names: tuple[str, ...]
-    gain: np.ndarray  # (n, R): named quantities from the residuals at the state
-    structure: Structure
-    state: ModelState
-
-    def errors(self, problem: CalibrationProblem) -> dict[str, float]:
-        """The linearised estimator's error of every named quantity on ``problem``'s
-        detections (the same frames, cameras and corner ids as the problem it was built on)."""
-        r, _ = BundleModel(problem, self.structure).evaluate(self.state, jacobian=False)
-        return dict(zip(self.names, -(self.gain @ r), strict=True))
-
-
-def linearised_estimator(
-    problem: CalibrationProblem,
-    truth: ModelState,
-    *,
-    structure: Structure | None = None,
-) -> LinearisedEstimator:
-    """The linearised estimator (:class:`LinearisedEstimator`) of ``problem`` at ``truth``."""
-    st = _structure(problem, truth, structure)
-    model = BundleModel(problem, st)
-    state = model.with_corrections(truth)
-    _, J = model.evaluate(state)
-    names, Jn = _jacobian(layout_of(problem, st, truth), model.names)
-    scale = np.linalg.norm(J, axis=0)
-    scale[scale == 0] = 1.0
-    Q, R = np.linalg.qr(J / scale)  # (J'J)^-1 J' without squaring the condition (fisher_covariance)
-    return LinearisedEstimator(names, Jn @ (np.linalg.solve(R, Q.T) / scale[:, None]), st, state)
 
 
 @dataclass(frozen=True)
@@ -530,11 +480,8 @@ def planned_covariance(
     ``levels``: each source's share of a frame's error (rad, m) by name, as
     ``RefineOutput.robot_levels`` (a source it lacks at ``SIGMA_FLOOR``); None: every source at
     ``problem.options``'s ``robot_noise_*``. Raises ``DegenerateError`` when the plan leaves a
-    reported quantity unobservable.
-
-    ``per_frame``: each frame's information instead (:class:`FrameInformation`, for a search
-    over many candidate frames: each frame keeps only its own pose correction, and every
-    transform is taken as observable, so the frames of any plan add up).
+    reported quantity unobservable. ``per_frame``: each frame's information instead
+    (:class:`FrameInformation`, every transform taken as observable).
     """
     st = build_structure(problem, truth.X[0][:3, :3])
     o = problem.options

@@ -165,7 +165,7 @@ def test_scale_checks_reuse_the_robot_tests_free_poses(monkeypatch):
     res = calibrate(s.problem)
     out = outs[-1]
     assert res.robot_accuracy.translation_mm == 0.0 and out.free_pose is not None
-    known = _fitted_poses(out)
+    known = _fitted_poses(out, out.free_pose)
     assert len(known) == sum(bool(out.inlier_rows[ch.rows].all()) for ch in out.model.chunks) > 10
     guesses = {i: out.model.T_ref_board(out.state, i) for i in range(len(s.problem.frames))}
     fresh = scale_checks(s.problem, out.state, frame_groups(s.problem), guesses)

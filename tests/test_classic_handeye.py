@@ -24,7 +24,6 @@ from slidecal.solver.geometry import (
     T_from_Rt,
     inv_T,
     look_at_R_cam_world,
-    random_rotation,
     rotation_angle_deg,
 )
 from slidecal.solver.handeye import ax_xb_park_martin
@@ -38,6 +37,7 @@ from slidecal.solver.problem import (
     Target,
 )
 from slidecal.solver.uncertainty import predicted_covariance
+from tests.helpers import random_rotation
 
 EMPTY = Detection(np.zeros(0, int), np.zeros((0, 2)))
 NO_DIST = ModelOptions(distortion=sc.NO_DISTORTION)

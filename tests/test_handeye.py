@@ -13,7 +13,6 @@ from slidecal.solver.geometry import (
     Rz,
     T_from_Rt,
     inv_T,
-    random_rotation,
     rvec_from_R,
 )
 from slidecal.solver.handeye import (
@@ -24,6 +23,7 @@ from slidecal.solver.handeye import (
 )
 from slidecal.solver.homography import group_homographies
 from slidecal.solver.linear import LinearGroup
+from tests.helpers import random_rotation
 
 sys.path.insert(0, str(Path(__file__).parent))
 import linear_scenes as lg  # noqa: E402

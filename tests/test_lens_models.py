@@ -26,7 +26,7 @@ from slidecal.solver.errors import InputError
 from slidecal.solver.lens import lens_check
 from slidecal.solver.model import BundleModel, build_structure, fisher_covariance
 from slidecal.solver.problem import ModelOptions
-from slidecal.solver.uncertainty import linearised_estimator
+from tests.helpers import linearised_estimator
 
 MODELS = pytest.mark.parametrize("model", list(LENSES))
 

@@ -9,16 +9,19 @@ import pytest
 
 from slidecal.mocks import scenarios as sl
 from slidecal.solver.errors import DegenerateError
-from slidecal.solver.geometry import random_rotation
 from slidecal.solver.homography import group_homographies
 from slidecal.solver.linear import (
     K_from_w,
     LinearGroup,
+    _common_h12,
     image_normalisation,
     linear_intrinsics,
+    linear_system,
+    solve_null,
     zhang_intrinsics,
     zhang_rows,
 )
+from tests.helpers import random_rotation
 
 sys.path.insert(0, str(Path(__file__).parent))
 import linear_scenes as lg  # noqa: E402
@@ -44,6 +47,36 @@ def _normal_dirs(n):
     return d
 
 
+def signed_lengths(K, H, directions):
+    """Case 2 step lengths (n,) given ``K``: the camera displacement ``K^-1 Delta / lambda``
+    along ``R n`` (eqs. 12-13)."""
+    H = _common_h12(H)
+    Ki = np.linalg.inv(K)
+    m1, m2 = Ki @ H[0][:, 0], Ki @ H[0][:, 1]
+    lam = np.sqrt(0.5 * (m1 @ m1 + m2 @ m2))
+    R = np.column_stack([m1 / lam, m2 / lam, np.cross(m1, m2) / lam**2])
+    out = np.zeros(len(H))
+    for k in range(1, len(H)):
+        n = directions[k] / np.linalg.norm(directions[k])
+        out[k] = (R @ n) @ (Ki @ (H[0][:, 2] - H[k][:, 2])) / lam
+    return out
+
+
+def group_scales(groups, knowledge, **options):
+    """Each group's ``c = lambda^2`` (``H = lambda K [r1 r2 t]``, the caller's units) from the
+    null vector of the linear system, ``w`` taken at the scale of ``K^-T K^-1``."""
+    system = linear_system(groups, knowledge, **options)
+    x, _ = solve_null(system.A, system.col_scale, system.unknowns)
+    m = system.basis.shape[1]
+    w = system.basis @ x[:m]
+    Kni = np.linalg.inv(K_from_w(w))
+    Wt = Kni.T @ Kni
+    w_true = np.array([Wt[0, 0], Wt[0, 1], Wt[1, 1], Wt[0, 2], Wt[1, 2], Wt[2, 2]])
+    alpha = (w_true @ w) / (w @ w)
+    scales = zip(x[m:], system.h_scale, strict=True)
+    return [float(alpha * c * s**2 / system.sigma**2) for c, s in scales]
+
+
 def test_conic_helpers():
     K = lg.K_SKEW
     w = w_from_K(K)
@@ -66,7 +99,6 @@ def test_case1_lengths_noise_free():
         grp = LinearGroup(group_homographies(g.observations), g.T_board)
         sol = linear_intrinsics([grp], "lengths", unit_aspect=True, image_size=SIZE)
         assert _rel(sol.K, sl.K_S1) < 1e-6
-        assert sol.lengths is None
     # fx != fy (zero skew only): one direction gives 3 constraints for 4 unknowns, two suffice.
     R = sl.tilt_R(30, 30)
     T = np.array([[0, 0, 0], [0, 0, -5], [0, 0, -10], [4, 0, -3], [8, 0, -6.0]])
@@ -81,23 +113,23 @@ def test_case2_direction_noise_free_recovers_lengths_and_scale():
     Hs = group_homographies(g.observations)
     sol = linear_intrinsics([LinearGroup(Hs, _normal_dirs(5))], "board_direction", image_size=SIZE)
     assert _rel(sol.K, sl.K_S2) < 1e-6
-    assert np.allclose(sol.lengths[0], np.arange(5) * 5.0, rtol=1e-6, atol=1e-6)
+    lengths = signed_lengths(sol.K, Hs, _normal_dirs(5))
+    assert np.allclose(lengths, np.arange(5) * 5.0, rtol=1e-6, atol=1e-6)
     lam = 1.0 / np.linalg.norm(g.H[0])  # Hs = g.H * lam and g.H = K [r1 r2 t]
-    assert abs(sol.scales[0] / lam**2 - 1) < 1e-6
+    scale = group_scales([LinearGroup(Hs, _normal_dirs(5))], "board_direction", image_size=SIZE)
+    assert abs(scale[0] / lam**2 - 1) < 1e-6
     # A direction with in-plane components (rows with n_x, n_y != 0) and unit aspect.
     R = sl.tilt_R(30, 30)
     d = np.array([0.3, -0.2, -1.0])
     g = lg.make_group(sl.K_S1, R, sl.centre_on_axis(R), lg.line_steps(d, 4), rng)
     dirs = np.tile(d / np.linalg.norm(d), (4, 1))
     dirs[0] = 0
+    Hs = group_homographies(g.observations)
     sol = linear_intrinsics(
-        [LinearGroup(group_homographies(g.observations), dirs)],
-        "board_direction",
-        unit_aspect=True,
-        image_size=SIZE,
+        [LinearGroup(Hs, dirs)], "board_direction", unit_aspect=True, image_size=SIZE
     )
     assert _rel(sol.K, sl.K_S1) < 1e-6
-    assert np.allclose(sol.lengths[0], np.arange(4) * 5.0, atol=1e-6)
+    assert np.allclose(signed_lengths(sol.K, Hs, dirs), np.arange(4) * 5.0, atol=1e-6)
 
 
 def test_case3_full_translation_all_five_intrinsics():
@@ -139,7 +171,7 @@ def test_multi_group_noise_free(knowledge):
         groups.append(LinearGroup(group_homographies(g.observations), motion))
     sol = linear_intrinsics(groups, knowledge, skew=True, image_size=SIZE)
     assert _rel(sol.K, lg.K_SKEW) < 1e-6
-    assert len(sol.scales) == 3
+    assert sum(n.startswith("c") for n in sol.unknowns) == 3  # one scale per group
 
 
 def test_zhang_alone():

@@ -14,17 +14,17 @@ from slidecal.mocks.scenarios import drifting_arm
 from slidecal.mocks.truth import calibration, hand_eye_errors
 from slidecal.routines.results_io import hand_eye_transforms, read_result, write_result
 from slidecal.solver.calibrate import calibrate
-from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, random_rotation, rvec_from_R
+from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, rvec_from_R
 from slidecal.solver.model import build_structure, complement_basis, fisher_covariance
 from slidecal.solver.problem import MOUNTS, hand_eye_names
 from slidecal.solver.result import TransformEstimate
 from slidecal.solver.uncertainty import (
     Layout,
     is_legacy,
-    linearised_estimator,
     predicted_covariance,
     propagate,
 )
+from tests.helpers import linearised_estimator, random_rotation
 
 ROT = ("rx", "ry", "rz")
 SIX = ROT + ("tx", "ty", "tz")

@@ -35,12 +35,13 @@ from slidecal.drivers.oak import (  # noqa: E402
     write_oak_calibration_json,
 )
 from slidecal.solver.errors import HardwareFault, InputError  # noqa: E402
-from slidecal.solver.geometry import inv_T, random_rotation  # noqa: E402
+from slidecal.solver.geometry import inv_T  # noqa: E402
 from slidecal.solver.result import (  # noqa: E402
     CalibrationResult,
     CameraEstimate,
     TransformEstimate,
 )
+from tests.helpers import random_rotation  # noqa: E402
 
 # ------------------------------------------------------------------ calibration (real depthai)
 

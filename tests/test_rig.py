@@ -18,8 +18,9 @@ from slidecal.solver.geometry import rotation_angle_deg
 from slidecal.solver.homography import homography_dlt, refine_homography
 from slidecal.solver.model import build_structure, fisher_covariance
 from slidecal.solver.problem import CalibrationProblem, Detection
-from slidecal.solver.stereo import infinite_homography, relative_rotation
+from slidecal.solver.stereo import infinite_homography
 from slidecal.solver.uncertainty import predicted_covariance
+from tests.helpers import relative_rotation
 
 PARAMS = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
 

@@ -21,7 +21,7 @@ from slidecal.routines.session import (
 )
 from slidecal.routines.solve import solve_session
 from slidecal.solver.errors import InputError
-from slidecal.solver.geometry import T_from_Rt, random_rotation
+from slidecal.solver.geometry import T_from_Rt
 from slidecal.solver.problem import (
     CalibrationProblem,
     CameraSpec,
@@ -30,6 +30,7 @@ from slidecal.solver.problem import (
     ModelOptions,
     Target,
 )
+from tests.helpers import random_rotation
 
 
 def _problem(rng: np.random.Generator, n_frames: int = 4) -> CalibrationProblem:

@@ -16,9 +16,9 @@ from slidecal.solver.geometry import R_from_rvec, rotation_angle_deg
 from slidecal.solver.stereo import (
     conic_transfer_matrix,
     infinite_homography,
-    relative_rotation,
     rig_linear_intrinsics,
 )
+from tests.helpers import relative_rotation
 
 SIZES = (PAPER_SIZE_PX, PAPER_SIZE_PX)
 

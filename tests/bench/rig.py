@@ -49,8 +49,9 @@ from slidecal.solver.geometry import rotation_angle_deg
 from slidecal.solver.homography import homography_dlt, refine_homography
 from slidecal.solver.model import build_structure
 from slidecal.solver.problem import ModelOptions
-from slidecal.solver.stereo import infinite_homography, relative_rotation, rig_linear_intrinsics
+from slidecal.solver.stereo import infinite_homography, rig_linear_intrinsics
 from tests.bench.report import RESULTS, publish_report, report_header
+from tests.helpers import relative_rotation
 
 PARAMS = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
 ROBOT_NOISE = (5e-5, 0.005)  # metres, degrees: R1's robot pose noise

@@ -29,8 +29,9 @@ from slidecal.solver.geometry import rotation_angle_deg
 from slidecal.solver.homography import homography_dlt, refine_homography
 from slidecal.solver.linear import LinearGroup, linear_intrinsics
 from slidecal.solver.problem import ModelOptions
-from slidecal.solver.uncertainty import linearised_estimator, predicted_covariance
+from slidecal.solver.uncertainty import predicted_covariance
 from tests.bench.report import RESULTS, publish_report, report_header
+from tests.helpers import linearised_estimator
 
 PARAMS = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
 

@@ -27,8 +27,9 @@ from slidecal.mocks.scenarios import (
 )
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import rotation_angle_deg
-from slidecal.solver.stereo import infinite_homography, relative_rotation, rig_linear_intrinsics
+from slidecal.solver.stereo import infinite_homography, rig_linear_intrinsics
 from tests.bench.report import RESULTS, report_header
+from tests.helpers import relative_rotation
 
 PARAMS = ("fx", "fy", "cx", "cy")
 SIGMAS_PX = tuple(np.round(np.arange(0.1, 0.81, 0.1), 2))
