@@ -33,7 +33,6 @@ from slidecal.routines.schema import (
     load_yaml,
     parse_yaml,
     plain,
-    write_yaml,
 )
 from slidecal.routines.session import (
     CAMERA_DRIVERS,
@@ -629,11 +628,6 @@ def _sim_camera_to_dict(c: SimCamera) -> dict[str, Any]:
 def limits_to_dict(limits: Limits) -> dict[str, Any]:
     """The ``limits:`` section of ``limits`` (as a session records it)."""
     return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(limits).items()}
-
-
-def write_config(cfg: CellConfig, path: str | Path) -> Path:
-    """Write the cell file of ``cfg`` (:func:`config_to_dict`) atomically."""
-    return write_yaml(path, config_to_dict(cfg))
 
 
 def _refuse_other_mount(f: Fields, mount: str) -> None:

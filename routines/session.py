@@ -1,6 +1,6 @@
 """Session directories on disk (``slidecal.session/1``, docs/FORMATS.md): read them, write them.
 
-:func:`read_session` turns ``session.yaml``, ``images/`` and ``detections.npy``
+:func:`load_session` turns ``session.yaml``, ``images/`` and ``detections.npy``
 (:data:`DETECTION_DTYPE`; older sessions hold the corners inline) into a
 :class:`~slidecal.solver.problem.CalibrationProblem`; :class:`SessionWriter` appends each frame
 as it is captured, so a crash loses at most the frame in flight. The keys each part accepts
@@ -423,11 +423,6 @@ class Session:
     sockets: dict[str, str] = field(default_factory=dict)
     detect_reasons: dict[tuple[int, str], tuple[str, ...]] = field(default_factory=dict)
     limits: Any = None
-
-
-def read_session(directory: str | Path, detect_images: bool = True) -> CalibrationProblem:
-    """The :class:`CalibrationProblem` a session directory holds (see :func:`load_session`)."""
-    return load_session(directory, detect_images=detect_images).problem
 
 
 def load_session(directory: str | Path, detect_images: bool = True) -> Session:
@@ -1110,31 +1105,3 @@ def _declared(extra: Mapping[str, Any] | None, keys: Sequence[str], what: str) -
                 f"{k!r} is not a {what} field of {SESSION_FORMAT}; declare it in SESSION_KEYS"
             )
 
-
-def write_session(
-    directory: str | Path,
-    problem: CalibrationProblem,
-    simulation: Mapping[str, Any] | None = None,
-    overwrite: bool = False,
-) -> Path:
-    """Write a problem (detections only, no images) as a session directory."""
-    w = SessionWriter(
-        directory,
-        problem.target,
-        problem.cameras,
-        mount=problem.mount,
-        knowledge=problem.knowledge,
-        options=problem.options,
-        reference_camera=problem.reference_camera,
-        simulation=simulation,
-        overwrite=overwrite,
-    )
-    for fr in problem.frames:
-        w.append_frame(
-            fr.T_base_tool,
-            detections=fr.detections,
-            group=fr.group,
-            motion_board=fr.motion_board,
-            frame_id=fr.id,
-        )
-    return w.finish()

@@ -301,14 +301,14 @@ def _same_config(a, b) -> None:
 
 @pytest.mark.parametrize("name", ["default_cell.yaml", "oak_cell.yaml", "eye_to_hand_cell.yaml"])
 def test_cell_write_then_read_gives_the_same_cell(tmp_path: Path, name: str) -> None:
-    from slidecal.routines.config import write_config
+    from tests.session_io import write_config
 
     cfg = load_packaged_cell(name)
     _same_config(cfg, load_config(write_config(cfg, tmp_path / "cell.yaml")))
 
 
 def test_real_cell_write_then_read_gives_the_same_cell(tmp_path: Path) -> None:
-    from slidecal.routines.config import write_config
+    from tests.session_io import write_config
 
     d = _default_dict()
     del d["simulation"]

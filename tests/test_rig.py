@@ -7,7 +7,6 @@ from slidecal.mocks import scenarios as rs
 from slidecal.mocks.scenarios import scale_pixels
 from slidecal.mocks.truth import rig_bounds
 from slidecal.routines.results_io import read_result, write_result
-from slidecal.routines.session import read_session, write_session
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import DegenerateError
 from slidecal.solver.geometry import rotation_angle_deg
@@ -15,6 +14,7 @@ from slidecal.solver.homography import homography_dlt, refine_homography
 from slidecal.solver.model import build_structure, fisher_covariance
 from slidecal.solver.stereo import infinite_homography, relative_rotation
 from slidecal.solver.uncertainty import predicted_covariance
+from tests.session_io import read_session, write_session
 
 PARAMS = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
 
