@@ -10,7 +10,6 @@ from dataclasses import astuple, fields, replace
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from slidecal.drivers.ur_pose import T_from_ur_pose, pendant_text
@@ -540,65 +539,6 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
         robot_accuracy=robot_accuracy,
         board=board,
     )
-
-
-# ----------------------------------------------------------------------------- exports
-
-
-def write_opencv_yaml(camera: CameraEstimate, path: str | Path) -> Path:
-    """OpenCV ``FileStorage`` YAML of one camera, as OpenCV's calibration sample writes it
-    (``camera_matrix`` 3x3, ``distortion_coefficients`` 1x5 or 1x8 for ``cv2`` or 1x4 for
-    ``cv2.fisheye`` with ``fisheye_model: 1``, ``avg_reprojection_error`` px)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
-    try:
-        fs.write("image_width", int(camera.width))
-        fs.write("image_height", int(camera.height))
-        fs.write("camera_name", camera.name)
-        fs.write("camera_matrix", np.asarray(camera.K, dtype=np.float64))
-        d = np.asarray(camera.distortion, dtype=np.float64).reshape(1, -1)
-        fs.write("distortion_coefficients", d)
-        if distortion_model(d) == "fisheye":
-            fs.write("fisheye_model", 1)
-        fs.write("avg_reprojection_error", float(camera.reproj_rms_px))
-    finally:
-        fs.release()
-    return path
-
-
-#: ROS camera_info's name of each lens model (image_pipeline's camera_calibration_parsers)
-ROS_MODELS = {"opencv5": "plumb_bob", "rational": "rational_polynomial", "fisheye": "equidistant"}
-
-
-def camera_info_dict(camera: CameraEstimate) -> dict[str, Any]:
-    """The ROS ``camera_info`` mapping of one camera (monocular: identity rectification, projection
-    ``[K | 0]``; ``plumb_bob`` is OpenCV's k1 k2 p1 p2 k3, ``rational_polynomial`` its eight
-    coefficients, ``equidistant`` its fisheye's four)."""
-    K, d = np.asarray(camera.K, dtype=float), np.asarray(camera.distortion, dtype=float).ravel()
-    P = np.hstack([K, np.zeros((3, 1))])
-    return {
-        "image_width": int(camera.width),
-        "image_height": int(camera.height),
-        "camera_name": camera.name,
-        "camera_matrix": {"rows": 3, "cols": 3, "data": plain(K.reshape(-1))},
-        "distortion_model": ROS_MODELS[distortion_model(d)],
-        "distortion_coefficients": {"rows": 1, "cols": len(d), "data": plain(d)},
-        "rectification_matrix": {"rows": 3, "cols": 3, "data": plain(np.eye(3).reshape(-1))},
-        "projection_matrix": {"rows": 3, "cols": 4, "data": plain(P.reshape(-1))},
-    }
-
-
-def write_camera_info(camera: CameraEstimate, path: str | Path) -> Path:
-    """Write :func:`camera_info_dict` as YAML."""
-    return write_yaml(path, camera_info_dict(camera))
-
-
-def write_depthai_json(result: CalibrationResult, path: str | Path, sockets: Mapping[str, Any]):
-    """The depthai calibration JSON of an OAK rig (``sockets``: camera name -> ``CAM_A``...)."""
-    from slidecal.drivers.oak import write_oak_calibration_json  # loaded for OAK rigs only
-
-    return write_oak_calibration_json(result, Path(path), dict(sockets))
 
 
 # ----------------------------------------------------------------------------- summary
