@@ -377,7 +377,7 @@ class SimulationConfig:
 class CellConfig:
     """A validated cell description (docs/FORMATS.md). ``sha256``: of the file's bytes;
     ``camera_options``: per camera its ``cameras.list`` driver options; ``rig_options``: the
-    ``cameras:`` section's driver options; ``sockets``: OAK board socket per camera."""
+    ``cameras:`` section's driver options."""
 
     source: str
     mount: str
@@ -403,11 +403,6 @@ class CellConfig:
     def simulated(self) -> bool:
         """True when no real robot moves (``robot.driver: simulated``)."""
         return self.robot.driver == "simulated"
-
-    @property
-    def sockets(self) -> dict[str, str]:
-        """OAK board socket per camera (empty unless ``cameras.driver: oak``)."""
-        return {n: str(o["socket"]) for n, o in self.camera_options.items() if o.get("socket")}
 
     def session_fields(self) -> dict[str, Any]:
         """What a session records about its cell (``cell``, ``cell_sha256``, the drivers)."""

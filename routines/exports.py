@@ -42,24 +42,16 @@ KALIBR_MODELS = {"opencv5": "radtan", "fisheye": "equidistant"}
 VALID_REGION_PX = 1.0
 
 
-def file_sha256(path: str | Path | None) -> str | None:
-    """SHA-256 of a file's bytes (None without a file)."""
-    if path is None:
-        return None
-    try:
-        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-    except OSError:
-        return None
-
-
 def result_header(cell_path: str | Path | None, cell_name: str | None = None) -> dict[str, Any]:
     """``{slidecal_version, created_utc, cell, cell_sha256}``; without a cell file the packaged cell
     ``cell_name`` is hashed."""
-    digest = file_sha256(cell_path)
-    if cell_path is None and cell_name:
-        ref = resources.files("slidecal.mocks").joinpath(str(cell_name))
-        if ref.is_file():
-            digest = hashlib.sha256(ref.read_bytes()).hexdigest()
+    cell = Path(cell_path) if cell_path is not None else None
+    if cell is None and cell_name:
+        cell = resources.files("slidecal.mocks").joinpath(str(cell_name))
+    try:
+        digest = hashlib.sha256(cell.read_bytes()).hexdigest() if cell is not None else None
+    except OSError:  # no such file (a packaged cell's name that is not one), a directory
+        digest = None
     return {
         "slidecal_version": __version__,
         "created_utc": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
