@@ -403,10 +403,10 @@ def options_to_dict(options: ModelOptions) -> dict[str, Any]:
 class Session:
     """A session read from disk: the solver's problem plus what the run recorded around it.
 
-    ``simulation``: the truth block (None for real runs); ``events``: faults, aborts; ``quality``
-    and ``detect_reasons``: per (frame id, camera) the detector's report, and why an image
-    detected on reading gave nothing; ``cell``/``cell_sha256``: the cell file (None in older
-    sessions); ``sockets``: OAK board socket per camera; ``limits``: the ``limits:`` block.
+    ``simulation``: the truth block (None for real runs); ``events``: faults, aborts;
+    ``detect_reasons``: per (frame id, camera) why an image detected on reading gave nothing;
+    ``cell``/``cell_sha256``: the cell file (None in older sessions); ``sockets``: OAK board
+    socket per camera; ``limits``: the ``limits:`` block.
     """
 
     directory: Path
@@ -414,8 +414,6 @@ class Session:
     simulation: dict[str, Any] | None = None
     events: tuple[dict[str, Any], ...] = ()
     status: str = "complete"
-    quality: dict[tuple[int, str], dict[str, Any]] = field(default_factory=dict)
-    images: dict[tuple[int, str], Path] = field(default_factory=dict)
     cell: str | None = None
     cell_sha256: str | None = None
     robot_driver: str | None = None
@@ -451,18 +449,14 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
     table = _detection_table(f, directory, len(cameras))
 
     frames: list[Frame] = []
-    quality: dict[tuple[int, str], dict[str, Any]] = {}
-    images: dict[tuple[int, str], Path] = {}
     reasons: dict[tuple[int, str], tuple[str, ...]] = {}
     ids_seen: set[int] = set()
     for ff in f.entries("frames", hint="frame {id, T_base_tool, detections}"):
-        frame, q, im = _read_frame(ff, directory, target, cameras, detect_images, reasons, table)
+        frame = _read_frame(ff, directory, target, cameras, detect_images, reasons, table)
         if frame.id in ids_seen:
             raise ff.error("id", f"frame id {frame.id} appears twice; ids must be unique")
         ids_seen.add(frame.id)
         frames.append(frame)
-        quality.update(q)
-        images.update(im)
 
     with_pose = [fr.T_base_tool is not None for fr in frames]
     if any(with_pose) and not all(with_pose):
@@ -514,8 +508,6 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
         simulation=sim,
         events=events,
         status=f.choice("status", STATUSES, "complete"),
-        quality=quality,
-        images=images,
         cell=f.string("cell", "-") if f.has("cell") else None,
         cell_sha256=sha,
         robot_driver=f.choice("robot_driver", ROBOT_DRIVERS, "ur")
@@ -661,7 +653,7 @@ def _read_frame(
     detect_images: bool,
     reasons: dict[tuple[int, str], tuple[str, ...]],
     table: DetectionTable | None,
-) -> tuple[Frame, dict[tuple[int, str], dict[str, Any]], dict[tuple[int, str], Path]]:
+) -> Frame:
     """One frame; ``reasons`` collects why an image detected here gave nothing usable."""
     f.only(SESSION_KEYS["frames[]"])
     fid = f.integer("id", minimum=0)
@@ -701,9 +693,9 @@ def _read_frame(
         if why:
             reasons[(fid, name)] = why
     q = f.section("quality")
-    quality = {(fid, name): dict(q.section(name).data) for name in q.cameras(names)}
-    frame = Frame(id=fid, detections=detections, T_base_tool=T, motion_board=motion, group=group)
-    return frame, quality, {(fid, n): p for n, p in image_paths.items()}
+    for name in q.cameras(names):
+        q.section(name)
+    return Frame(id=fid, detections=detections, T_base_tool=T, motion_board=motion, group=group)
 
 
 def _read_detection(f: Fields, target: Target, camera: CameraSpec) -> Detection:
