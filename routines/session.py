@@ -416,7 +416,6 @@ class Session:
     status: str = "complete"
     cell: str | None = None
     cell_sha256: str | None = None
-    robot_driver: str | None = None
     camera_driver: str | None = None
     sockets: dict[str, str] = field(default_factory=dict)
     detect_reasons: dict[tuple[int, str], tuple[str, ...]] = field(default_factory=dict)
@@ -502,6 +501,8 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
     sha = f.string("cell_sha256", "-") if f.has("cell_sha256") else None
     if sha is not None and not re.fullmatch(r"[0-9a-f]{64}", sha):
         raise f.error("cell_sha256", "must be 64 lowercase hex digits (a SHA-256)")
+    if f.has("robot_driver"):  # recorded, not used
+        f.choice("robot_driver", ROBOT_DRIVERS)
     return Session(
         directory=directory,
         problem=problem,
@@ -510,9 +511,6 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
         status=f.choice("status", STATUSES, "complete"),
         cell=f.string("cell", "-") if f.has("cell") else None,
         cell_sha256=sha,
-        robot_driver=f.choice("robot_driver", ROBOT_DRIVERS, "ur")
-        if f.has("robot_driver")
-        else None,
         camera_driver=f.choice("camera_driver", CAMERA_DRIVERS, "oak")
         if f.has("camera_driver")
         else None,
