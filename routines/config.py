@@ -32,7 +32,6 @@ from slidecal.routines.schema import (
     Fields,
     load_yaml,
     parse_yaml,
-    plain,
 )
 from slidecal.routines.session import (
     CAMERA_DRIVERS,
@@ -542,8 +541,8 @@ def _install(f: Fields) -> InstallSettings:
 
 
 def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
-    """The cell file of a validated cell (the inverse of :func:`config_from_dict`): every
-    value explicit, transforms as ``{R, t_m}``, simulated cameras in full (no preset)."""
+    """The cell file of a validated real cell (the inverse of :func:`config_from_dict`): every
+    value explicit, transforms as ``{R, t_m}``; a simulated cell's truth is not written."""
     r = cfg.robot
     robot: dict[str, Any] = {"driver": r.driver}
     if r.host is not None:
@@ -590,33 +589,10 @@ def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
             "standoff_m": cfg.standoff_m,
         },
     }
-    sim = cfg.simulation
-    if sim is not None:
-        out["simulation"] = {
-            "seed": sim.seed,
-            "cameras": {c.name: _sim_camera_to_dict(c) for c in sim.cameras},
-            he_key: transform_to_dict(sim.T_hand_eye),
-            tg_key: transform_to_dict(sim.T_target),
-            "rig": {n: transform_to_dict(T) for n, T in sim.rig.items()},
-            "noise": {"robot_mm": sim.robot_noise_m * 1000.0, "robot_deg": sim.robot_noise_deg},
-            "target_jitter": {"mm": sim.target_jitter_mm, "deg": sim.target_jitter_deg},
-        }
-        if sim.kinematic_error is not None:
-            out["simulation"]["kinematic_error"] = dict(sim.kinematic_error)
-        if any(sim.board_bow_mm):
-            out["simulation"]["board_bow_mm"] = list(sim.board_bow_mm)
     out["plan"] = _plan_to_dict(cfg.plan)
     out["options"] = options_to_dict(cfg.options)
     out["limits"] = limits_to_dict(cfg.limits)
     out["install"] = {k: v for k, v in asdict(cfg.install).items() if v is not None}
-    return out
-
-
-def _sim_camera_to_dict(c: SimCamera) -> dict[str, Any]:
-    """A ``simulation.cameras.<name>`` entry in full (``distortion`` is the camera's ``dist``)."""
-    keys = CELL_KEYS["simulation.cameras.*"]
-    out = {k: plain(getattr(c, "dist" if k == "distortion" else k)) for k in keys}
-    out["photo"] = asdict(c.photo) if c.photo is not None else False
     return out
 
 

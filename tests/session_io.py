@@ -4,12 +4,14 @@ session frame by frame with ``SessionWriter`` and reads it with ``load_session``
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from slidecal.routines.config import CellConfig, config_to_dict
-from slidecal.routines.schema import write_yaml
-from slidecal.routines.session import SessionWriter, load_session
+from slidecal.mocks.camera import SimCamera
+from slidecal.routines.config import CELL_KEYS, POSE_NAMES, CellConfig, config_to_dict
+from slidecal.routines.schema import plain, write_yaml
+from slidecal.routines.session import SessionWriter, load_session, transform_to_dict
 from slidecal.solver.problem import CalibrationProblem
 
 
@@ -49,5 +51,35 @@ def write_session(
 
 
 def write_config(cfg: CellConfig, path: str | Path) -> Path:
-    """Write the cell file of ``cfg`` (:func:`config_to_dict`) atomically."""
-    return write_yaml(path, config_to_dict(cfg))
+    """Write the cell file of ``cfg``: :func:`config_to_dict`, and a simulated cell's truth in
+    full (no preset) after ``approximate``."""
+    out = config_to_dict(cfg)
+    sim = cfg.simulation
+    if sim is not None:
+        he_key, tg_key = POSE_NAMES[cfg.mount]
+        truth: dict[str, Any] = {
+            "seed": sim.seed,
+            "cameras": {c.name: _sim_camera_to_dict(c) for c in sim.cameras},
+            he_key: transform_to_dict(sim.T_hand_eye),
+            tg_key: transform_to_dict(sim.T_target),
+            "rig": {n: transform_to_dict(T) for n, T in sim.rig.items()},
+            "noise": {"robot_mm": sim.robot_noise_m * 1000.0, "robot_deg": sim.robot_noise_deg},
+            "target_jitter": {"mm": sim.target_jitter_mm, "deg": sim.target_jitter_deg},
+        }
+        if sim.kinematic_error is not None:
+            truth["kinematic_error"] = dict(sim.kinematic_error)
+        if any(sim.board_bow_mm):
+            truth["board_bow_mm"] = list(sim.board_bow_mm)
+        keys = list(out)
+        at = keys.index("approximate") + 1
+        out = {**{k: out[k] for k in keys[:at]}, "simulation": truth,
+               **{k: out[k] for k in keys[at:]}}  # fmt: skip
+    return write_yaml(path, out)
+
+
+def _sim_camera_to_dict(c: SimCamera) -> dict[str, Any]:
+    """A ``simulation.cameras.<name>`` entry in full (``distortion`` is the camera's ``dist``)."""
+    keys = CELL_KEYS["simulation.cameras.*"]
+    out = {k: plain(getattr(c, "dist" if k == "distortion" else k)) for k in keys}
+    out["photo"] = asdict(c.photo) if c.photo is not None else False
+    return out
