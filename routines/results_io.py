@@ -51,12 +51,6 @@ def hand_eye_names(result: CalibrationResult) -> dict[str, str]:
     return named_hand_eye_names(result.mount, list(result.cameras))
 
 
-def target_pose_name(mount: str) -> str | None:
-    """``T_base_board`` (eye-in-hand), ``T_tool_board`` (eye-to-hand), None otherwise."""
-    frames = mount_names(mount)
-    return None if frames is None else frames.target
-
-
 def _reference(result: CalibrationResult) -> str:
     return result.reference_camera or next(iter(result.cameras))
 
@@ -99,9 +93,9 @@ def transforms(result: CalibrationResult) -> dict[str, TransformEstimate]:
     """Every transform of a result under its result-file name, in the file's order: the
     hand-eyes, the rig's ``T_<name>_<ref>``, the target pose."""
     out = {**hand_eye_transforms(result), **result.rig}
-    tname = target_pose_name(result.mount)
-    if tname is not None and result.T_target is not None:
-        out[tname] = result.T_target
+    frames = mount_names(result.mount)
+    if frames is not None and result.T_target is not None:
+        out[frames.target] = result.T_target
     return out
 
 
@@ -470,7 +464,6 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
     he = Ts.get(named_hand_eye_names(mount, names)[ref]) if frames is not None else None
     hand_eye = None if he is None or frames is None else replace(he, name=frames.hand_eye)
     rig = {k: t for n in cams if n != ref if (t := Ts.get(k := f"T_{n}_{ref}")) is not None}
-    tname = target_pose_name(mount)
     rep = f.section("reprojection", RESULT_PART_KEYS["reprojection"])
     per_image = _rows_from(rep, "per_image", "{frame, camera, rms_px}", names)
     residuals = {(fid, cam): rms for fid, cam, rms in per_image if np.isfinite(rms)}
@@ -513,7 +506,7 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
     adequacy = _adequacy_from(f, names) if f.has("adequacy") else None
     robot_accuracy = _robot_accuracy_from(f) if f.has("robot_accuracy") else None
     board = _board_from(f) if f.has("board") else None
-    T_target = Ts.get(tname) if tname else None
+    T_target = Ts.get(frames.target) if frames is not None else None
     pnames, cov = _named_from_legacy(pnames, cov, cams, ref, mount, hand_eye, T_target, rig)
     return CalibrationResult(
         cameras=cams,
@@ -723,7 +716,7 @@ def judged_truth(result: CalibrationResult, truth: Mapping[str, Any]) -> dict[st
     used = {fid for fid, _ in result.residuals_px}
     frames = [f for f in frames if not used or f[0] in used]
     he_names = hand_eye_names(result)
-    tname = target_pose_name(result.mount)
+    tname = getattr(mount_names(result.mount), "target", None)
     ref_key = he_names.get(_reference(result))
     if not frames or ref_key not in out or tname not in out:
         return out
