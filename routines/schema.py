@@ -71,27 +71,12 @@ def dump_yaml(data: Any, indent: int | None = None) -> str:
     parts join into the whole document's text."""
     text = yaml.dump(
         plain(data),
-        Dumper=_Dumper if indent is None else _PartDumper,
+        Dumper=_Dumper,
         default_flow_style=None,
         sort_keys=False,
         width=100 - (indent or 0),
     )
     return "".join(" " * indent + line for line in text.splitlines(True)) if indent else text
-
-
-class _PartDumper(_Dumper):  # type: ignore[misc, valid-type]
-    """The dumper with a top mapping in block style even when all its values are scalars (as
-    it is inside a larger document)."""
-
-    def represent(self, data: Any) -> None:
-        self._top = data
-        super().represent(data)
-
-    def represent_mapping(self, tag: str, mapping: Any, flow_style: Any = None) -> Any:
-        node = super().represent_mapping(tag, mapping, flow_style)
-        if mapping is self._top:
-            node.flow_style = False
-        return node
 
 
 def write_atomic(path: Path, text: str | bytes) -> None:

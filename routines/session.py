@@ -1063,21 +1063,21 @@ class SessionWriter:
 
     def _text(self) -> str:
         """``dump_yaml(self.data)``, the text of each frame and of its simulated truth made once
-        (neither changes once written): appending stays linear in the frames, not quadratic."""
+        (neither changes once written): appending stays linear in the frames, not quadratic. The
+        rest is dumped with those lists empty, and the cached text fills them."""
         cache = self.__dict__.setdefault("_item_text", {"frames": [], "simulation": []})
-        out = []
-        for key, value in self.data.items():
-            sim = key == "simulation" and isinstance(value, Mapping)
-            sim_frames = value.get("frames") if sim else None
-            if key == "frames":
-                out.append(_list_text(key, value, cache[key], 0))
-            elif isinstance(sim_frames, list) and list(value)[-1] == "frames":
-                head = {k: v for k, v in value.items() if k != "frames"}
-                out.append(f"{key}:\n" + (dump_yaml(head, 2) if head else ""))
-                out.append(_list_text("frames", sim_frames, cache[key], 2))
-            else:
-                out.append(dump_yaml({key: value}, 0))
-        return "".join(out)
+        data, sim = dict(self.data, frames=[]), self.data.get("simulation")
+        lists = {"frames": (self.data["frames"], 0)}  # key -> (its frames, how deep they are)
+        if isinstance(sim, Mapping) and isinstance(sim.get("frames"), list):
+            data["simulation"] = dict(sim, frames=[])
+            lists["simulation"] = (sim["frames"], 2)
+        text = dump_yaml(data)
+        for key, (items, indent) in lists.items():  # the top-level frames: the only ones unindented
+            empty = f"\n{' ' * indent}frames: []\n"
+            at = text.index(empty, text.index(f"\n{key}:\n") if indent else 0)
+            fill = _list_text("frames", items, cache[key], indent)
+            text = text[: at + 1] + fill + text[at + len(empty) :]
+        return text
 
 
 def _list_text(key: str, items: list[Any], cache: list[str], indent: int) -> str:
