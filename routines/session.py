@@ -897,12 +897,11 @@ class SessionWriter:
         reference_camera: str | None = None,
         simulation: Mapping[str, Any] | None = None,
         extra: Mapping[str, Any] | None = None,
-        overwrite: bool = False,
         sockets: Mapping[str, str] | None = None,
     ) -> None:
         self.directory = Path(directory)
         _declared(extra, SESSION_KEYS[""], "session")
-        if (self.directory / SESSION_FILE).exists() and not overwrite:
+        if (self.directory / SESSION_FILE).exists():
             raise InputError(
                 "already holds a session; choose a new --out directory or delete the old one",
                 where=str(self.directory),

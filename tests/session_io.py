@@ -11,7 +11,12 @@ from typing import Any
 from slidecal.mocks.camera import SimCamera
 from slidecal.routines.config import CELL_KEYS, POSE_NAMES, CellConfig, config_to_dict
 from slidecal.routines.schema import plain, write_yaml
-from slidecal.routines.session import SessionWriter, load_session, transform_to_dict
+from slidecal.routines.session import (
+    SESSION_FILE,
+    SessionWriter,
+    load_session,
+    transform_to_dict,
+)
 from slidecal.solver.problem import CalibrationProblem
 
 
@@ -27,7 +32,10 @@ def write_session(
     simulation: Mapping[str, Any] | None = None,
     overwrite: bool = False,
 ) -> Path:
-    """Write a problem (detections only, no images) as a session directory."""
+    """Write a problem (detections only, no images) as a session directory (``overwrite``: over
+    the session it holds)."""
+    if overwrite:
+        (Path(directory) / SESSION_FILE).unlink(missing_ok=True)
     w = SessionWriter(
         directory,
         problem.target,
@@ -37,7 +45,6 @@ def write_session(
         options=problem.options,
         reference_camera=problem.reference_camera,
         simulation=simulation,
-        overwrite=overwrite,
     )
     for fr in problem.frames:
         w.append_frame(
