@@ -911,9 +911,7 @@ class SessionWriter:
         if knowledge not in KNOWLEDGE:
             raise InputError(f"knowledge {knowledge!r} unknown; use one of {', '.join(KNOWLEDGE)}")
         (self.directory / IMAGE_DIR).mkdir(parents=True, exist_ok=True)
-        self.target = target
-        self.cameras = tuple(cameras)
-        self._names = [c.name for c in self.cameras]
+        self._names = [c.name for c in cameras]
         self.data: dict[str, Any] = {"format": SESSION_FORMAT, "status": "recording"}
         if mount != "none":
             self.data["mount"] = mount
@@ -947,9 +945,8 @@ class SessionWriter:
         _check_format(f, SESSION_FORMAT, "session")
         w = cls.__new__(cls)
         w.directory = directory
-        w.target = target_from_dict(f.require("target"), SESSION_FILE)
-        w.cameras, _ = _cameras(f)
-        w._names = [c.name for c in w.cameras]
+        target_from_dict(f.require("target"), SESSION_FILE)  # refused now, not at the solve
+        w._names = [c.name for c in _cameras(f)[0]]
         w.data = dict(data)
         w.data.setdefault("frames", [])
         w.data.setdefault("events", [])
