@@ -900,16 +900,16 @@ class SessionWriter:
         sockets: Mapping[str, str] | None = None,
     ) -> None:
         self.directory = Path(directory)
-        _declared(extra, SESSION_KEYS[""], "session")
+        for k in extra or {}:  # a field the reader would refuse
+            if k not in SESSION_KEYS[""]:
+                raise InputError(
+                    f"{k!r} is not a session field of {SESSION_FORMAT}; declare it in SESSION_KEYS"
+                )
         if (self.directory / SESSION_FILE).exists():
             raise InputError(
                 "already holds a session; choose a new --out directory or delete the old one",
                 where=str(self.directory),
             )
-        if mount not in MOUNTS:
-            raise InputError(f"mount {mount!r} unknown; use one of {', '.join(MOUNTS)}")
-        if knowledge not in KNOWLEDGE:
-            raise InputError(f"knowledge {knowledge!r} unknown; use one of {', '.join(KNOWLEDGE)}")
         (self.directory / IMAGE_DIR).mkdir(parents=True, exist_ok=True)
         self._names = [c.name for c in cameras]
         self.data: dict[str, Any] = {"format": SESSION_FORMAT, "status": "recording"}
@@ -975,7 +975,6 @@ class SessionWriter:
         group: int | None = None,
         quality: Mapping[str, Mapping[str, Any]] | None = None,
         motion_board: np.ndarray | None = None,
-        extra: Mapping[str, Any] | None = None,
         frame_id: int | None = None,
         T_base_tool_true: np.ndarray | None = None,
     ) -> int:
@@ -986,7 +985,6 @@ class SessionWriter:
         board-frame motion knowledge; ``T_base_tool_true`` (4, 4): the pose the simulated arm really
         reached (kept only with a ``simulation:`` block).
         """
-        _declared(extra, SESSION_KEYS["frames[]"], "frame")
         used = [int(fr["id"]) for fr in self.data["frames"]]
         fid = (max(used) + 1 if used else 0) if frame_id is None else int(frame_id)
         if fid in used:
@@ -1015,8 +1013,6 @@ class SessionWriter:
             self._append_detections(fid, detections)
         if quality:
             entry["quality"] = plain({n: dict(q) for n, q in quality.items()})
-        if extra:
-            entry.update(plain(dict(extra)))
         self.data["frames"].append(entry)
         sim = self.data.get("simulation")
         if T_base_tool_true is not None and sim is not None and T_base_tool is not None:
@@ -1081,13 +1077,3 @@ def _list_text(key: str, items: list[Any], cache: list[str], indent: int) -> str
     cache.extend(dump_yaml([x], indent) for x in items[len(cache) :])
     pad = " " * indent
     return f"{pad}{key}:\n" + "".join(cache) if items else f"{pad}{key}: []\n"
-
-
-def _declared(extra: Mapping[str, Any] | None, keys: Sequence[str], what: str) -> None:
-    """Refuse to write a field the reader would refuse (declare it in ``SESSION_KEYS``)."""
-    for k in extra or {}:
-        if k not in keys:
-            raise InputError(
-                f"{k!r} is not a {what} field of {SESSION_FORMAT}; declare it in SESSION_KEYS"
-            )
-
