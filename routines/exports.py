@@ -135,7 +135,7 @@ def _lens(
     return model, d
 
 
-def camchain_dict(result: CalibrationResult, header: Mapping[str, Any] | None = None) -> dict:
+def camchain_dict(result: CalibrationResult) -> dict:
     """Kalibr's ``camchain.yaml`` mapping (cam0 is the reference camera). ``ValueError`` when a
     camera has a skew, a k3 (Kalibr's pinhole-radtan model has neither) or the rational model."""
     _no_skew(result, "Kalibr's pinhole model")

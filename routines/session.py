@@ -230,14 +230,12 @@ def _dictionary_size(name: str) -> int | None:
         return None
 
 
-def target_from_dict(
-    data: Any, file: str, path: str = "target", exact_by_default: bool = False
-) -> Target:
+def target_from_dict(data: Any, file: str, exact_by_default: bool = False) -> Target:
     """A :class:`Target` from a ``target:`` block (charuco, chessboard, points, apriltag or
     aprilgrid). Its tolerance (``flatness_mm``, ``print_tolerance``) takes a real board's
     defaults when not given (``solver/target_shape.py``), or 0 with ``exact_by_default`` (a
     simulated board is exactly as described)."""
-    f = Fields(data, file, path).only(
+    f = Fields(data, file, "target").only(
         tuple(dict.fromkeys(k for v in TARGET_KEYS.values() for k in v))
     )
     kind = f.choice("kind", TARGET_KINDS)
@@ -355,9 +353,9 @@ def _kind_to_dict(target: Target) -> dict[str, Any]:
     return {"kind": target.kind, **{k: plain(getattr(target, k)) for k in keys}}
 
 
-def options_from_dict(data: Any, file: str, path: str = "options") -> ModelOptions:
+def options_from_dict(data: Any, file: str) -> ModelOptions:
     """:class:`ModelOptions` from an ``options:`` block (absent fields keep their defaults)."""
-    f = Fields(data, file, path).only(OPTIONS_KEYS)
+    f = Fields(data, file, "options").only(OPTIONS_KEYS)
     base = ModelOptions()
     model = None  # the data chooses
     if f.has("distortion_model"):
