@@ -666,10 +666,9 @@ def _robot(f: Fields) -> RobotConfig:
         start_q = f.array("start_q", (6,))
         if np.any(np.abs(start_q) > 2 * np.pi + 1e-9):
             raise f.error("start_q", "has a joint beyond +-2 pi; give the joints in radians")
-        if driver != "simulated":
-            raise f.error("start_q", "is for the simulated arm; the real arm starts where it is")
-    if f.has("start_pose") and driver != "simulated":
-        raise f.error("start_pose", "is for the simulated arm; the real arm starts where it is")
+    for key in ("start_q", "start_pose"):
+        if f.has(key) and driver != "simulated":
+            raise f.error(key, "is for the simulated arm; the real arm starts where it is")
     lf = f.section("limits", CELL_KEYS["robot.limits"])
     limits = {
         k: lf.number(k, positive=k != "z_min_m") for k in CELL_KEYS["robot.limits"] if lf.has(k)
@@ -788,10 +787,9 @@ def _simulation(f: Fields, mount: str) -> SimulationConfig:
     rf = f.section("rig")
     for name in rf.data:
         rig[str(name)] = transform_from_dict(rf, str(name))
-    if not f.has(he_key):
-        raise f.error(he_key, f"is missing; the simulated cell needs the true {he_key}")
-    if not f.has(tg_key):
-        raise f.error(tg_key, f"is missing; the simulated cell needs the true {tg_key}")
+    for key in (he_key, tg_key):
+        if not f.has(key):
+            raise f.error(key, f"is missing; the simulated cell needs the true {key}")
     nf = f.section("noise", CELL_KEYS["simulation.noise"])
     jf = f.section("target_jitter", CELL_KEYS["simulation.target_jitter"])
     kinematic_error = None
