@@ -32,8 +32,6 @@ from slidecal.routines.schema import (
     Fields,
     load_yaml,
     parse_yaml,
-    plain,
-    write_yaml,
 )
 from slidecal.routines.session import (
     CAMERA_DRIVERS,
@@ -378,7 +376,7 @@ class SimulationConfig:
 class CellConfig:
     """A validated cell description (docs/FORMATS.md). ``sha256``: of the file's bytes;
     ``camera_options``: per camera its ``cameras.list`` driver options; ``rig_options``: the
-    ``cameras:`` section's driver options; ``sockets``: OAK board socket per camera."""
+    ``cameras:`` section's driver options."""
 
     source: str
     mount: str
@@ -404,11 +402,6 @@ class CellConfig:
     def simulated(self) -> bool:
         """True when no real robot moves (``robot.driver: simulated``)."""
         return self.robot.driver == "simulated"
-
-    @property
-    def sockets(self) -> dict[str, str]:
-        """OAK board socket per camera (empty unless ``cameras.driver: oak``)."""
-        return {n: str(o["socket"]) for n, o in self.camera_options.items() if o.get("socket")}
 
     def session_fields(self) -> dict[str, Any]:
         """What a session records about its cell (``cell``, ``cell_sha256``, the drivers)."""
@@ -548,8 +541,8 @@ def _install(f: Fields) -> InstallSettings:
 
 
 def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
-    """The cell file of a validated cell (the inverse of :func:`config_from_dict`): every
-    value explicit, transforms as ``{R, t_m}``, simulated cameras in full (no preset)."""
+    """The cell file of a validated real cell (the inverse of :func:`config_from_dict`): every
+    value explicit, transforms as ``{R, t_m}``; a simulated cell's truth is not written."""
     r = cfg.robot
     robot: dict[str, Any] = {"driver": r.driver}
     if r.host is not None:
@@ -596,21 +589,6 @@ def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
             "standoff_m": cfg.standoff_m,
         },
     }
-    sim = cfg.simulation
-    if sim is not None:
-        out["simulation"] = {
-            "seed": sim.seed,
-            "cameras": {c.name: _sim_camera_to_dict(c) for c in sim.cameras},
-            he_key: transform_to_dict(sim.T_hand_eye),
-            tg_key: transform_to_dict(sim.T_target),
-            "rig": {n: transform_to_dict(T) for n, T in sim.rig.items()},
-            "noise": {"robot_mm": sim.robot_noise_m * 1000.0, "robot_deg": sim.robot_noise_deg},
-            "target_jitter": {"mm": sim.target_jitter_mm, "deg": sim.target_jitter_deg},
-        }
-        if sim.kinematic_error is not None:
-            out["simulation"]["kinematic_error"] = dict(sim.kinematic_error)
-        if any(sim.board_bow_mm):
-            out["simulation"]["board_bow_mm"] = list(sim.board_bow_mm)
     out["plan"] = _plan_to_dict(cfg.plan)
     out["options"] = options_to_dict(cfg.options)
     out["limits"] = limits_to_dict(cfg.limits)
@@ -618,22 +596,9 @@ def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
     return out
 
 
-def _sim_camera_to_dict(c: SimCamera) -> dict[str, Any]:
-    """A ``simulation.cameras.<name>`` entry in full (``distortion`` is the camera's ``dist``)."""
-    keys = CELL_KEYS["simulation.cameras.*"]
-    out = {k: plain(getattr(c, "dist" if k == "distortion" else k)) for k in keys}
-    out["photo"] = asdict(c.photo) if c.photo is not None else False
-    return out
-
-
 def limits_to_dict(limits: Limits) -> dict[str, Any]:
     """The ``limits:`` section of ``limits`` (as a session records it)."""
     return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(limits).items()}
-
-
-def write_config(cfg: CellConfig, path: str | Path) -> Path:
-    """Write the cell file of ``cfg`` (:func:`config_to_dict`) atomically."""
-    return write_yaml(path, config_to_dict(cfg))
 
 
 def _refuse_other_mount(f: Fields, mount: str) -> None:
@@ -701,10 +666,9 @@ def _robot(f: Fields) -> RobotConfig:
         start_q = f.array("start_q", (6,))
         if np.any(np.abs(start_q) > 2 * np.pi + 1e-9):
             raise f.error("start_q", "has a joint beyond +-2 pi; give the joints in radians")
-        if driver != "simulated":
-            raise f.error("start_q", "is for the simulated arm; the real arm starts where it is")
-    if f.has("start_pose") and driver != "simulated":
-        raise f.error("start_pose", "is for the simulated arm; the real arm starts where it is")
+    for key in ("start_q", "start_pose"):
+        if f.has(key) and driver != "simulated":
+            raise f.error(key, "is for the simulated arm; the real arm starts where it is")
     lf = f.section("limits", CELL_KEYS["robot.limits"])
     limits = {
         k: lf.number(k, positive=k != "z_min_m") for k in CELL_KEYS["robot.limits"] if lf.has(k)
@@ -823,10 +787,9 @@ def _simulation(f: Fields, mount: str) -> SimulationConfig:
     rf = f.section("rig")
     for name in rf.data:
         rig[str(name)] = transform_from_dict(rf, str(name))
-    if not f.has(he_key):
-        raise f.error(he_key, f"is missing; the simulated cell needs the true {he_key}")
-    if not f.has(tg_key):
-        raise f.error(tg_key, f"is missing; the simulated cell needs the true {tg_key}")
+    for key in (he_key, tg_key):
+        if not f.has(key):
+            raise f.error(key, f"is missing; the simulated cell needs the true {key}")
     nf = f.section("noise", CELL_KEYS["simulation.noise"])
     jf = f.section("target_jitter", CELL_KEYS["simulation.target_jitter"])
     kinematic_error = None

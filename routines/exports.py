@@ -18,13 +18,8 @@ import numpy as np
 from slidecal.drivers.ur_pose import rpy_deg
 from slidecal.routines import __version__
 from slidecal.routines.ops.report import uncertainty_map
-from slidecal.routines.results_io import (
-    hand_eye_transforms,
-    write_camera_info,
-    write_depthai_json,
-    write_opencv_yaml,
-)
-from slidecal.routines.session import dump_yaml, plain, write_atomic
+from slidecal.routines.results_io import hand_eye_transforms
+from slidecal.routines.schema import dump_yaml, plain, write_atomic, write_yaml
 from slidecal.solver.camera import distortion_model
 from slidecal.solver.errors import SlidecalError
 from slidecal.solver.geometry import rvec_from_R
@@ -38,6 +33,8 @@ DEPTHAI_FILE = "depthai_calibration.json"
 #: mrcal's name of each lens model (a k3 not estimated, 0, is mrcal's OPENCV4); mrcal has no
 #: Kannala-Brandt model
 MRCAL_MODELS = {"opencv5": "LENSMODEL_OPENCV5", "rational": "LENSMODEL_OPENCV8"}
+#: ROS camera_info's name of each lens model (image_pipeline's camera_calibration_parsers)
+ROS_MODELS = {"opencv5": "plumb_bob", "rational": "rational_polynomial", "fisheye": "equidistant"}
 #: Kalibr's name of each lens model it has (radtan: opencv5 without k3)
 KALIBR_MODELS = {"opencv5": "radtan", "fisheye": "equidistant"}
 #: ``valid_intrinsics_region``: where the one-sigma projection uncertainty is below this
@@ -45,29 +42,58 @@ KALIBR_MODELS = {"opencv5": "radtan", "fisheye": "equidistant"}
 VALID_REGION_PX = 1.0
 
 
-def file_sha256(path: str | Path | None) -> str | None:
-    """SHA-256 of a file's bytes (None without a file)."""
-    if path is None:
-        return None
-    try:
-        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-    except OSError:
-        return None
-
-
 def result_header(cell_path: str | Path | None, cell_name: str | None = None) -> dict[str, Any]:
     """``{slidecal_version, created_utc, cell, cell_sha256}``; without a cell file the packaged cell
     ``cell_name`` is hashed."""
-    digest = file_sha256(cell_path)
-    if cell_path is None and cell_name:
-        ref = resources.files("slidecal.mocks").joinpath(str(cell_name))
-        if ref.is_file():
-            digest = hashlib.sha256(ref.read_bytes()).hexdigest()
+    cell = Path(cell_path) if cell_path is not None else None
+    if cell is None and cell_name:
+        cell = resources.files("slidecal.mocks").joinpath(str(cell_name))
+    try:
+        digest = hashlib.sha256(cell.read_bytes()).hexdigest() if cell is not None else None
+    except OSError:  # no such file (a packaged cell's name that is not one), a directory
+        digest = None
     return {
         "slidecal_version": __version__,
         "created_utc": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "cell": str(cell_name or (Path(cell_path).name if cell_path else "unknown")),
         "cell_sha256": digest,
+    }
+
+
+def write_opencv_yaml(camera: CameraEstimate, path: Path) -> None:
+    """OpenCV ``FileStorage`` YAML of one camera, as OpenCV's calibration sample writes it
+    (``camera_matrix`` 3x3, ``distortion_coefficients`` 1x5 or 1x8 for ``cv2`` or 1x4 for
+    ``cv2.fisheye`` with ``fisheye_model: 1``, ``avg_reprojection_error`` px)."""
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    try:
+        fs.write("image_width", int(camera.width))
+        fs.write("image_height", int(camera.height))
+        fs.write("camera_name", camera.name)
+        fs.write("camera_matrix", np.asarray(camera.K, dtype=np.float64))
+        d = np.asarray(camera.distortion, dtype=np.float64).reshape(1, -1)
+        fs.write("distortion_coefficients", d)
+        if distortion_model(d) == "fisheye":
+            fs.write("fisheye_model", 1)
+        fs.write("avg_reprojection_error", float(camera.reproj_rms_px))
+    finally:
+        fs.release()
+
+
+def camera_info_dict(camera: CameraEstimate) -> dict[str, Any]:
+    """The ROS ``camera_info`` mapping of one camera (monocular: identity rectification, projection
+    ``[K | 0]``; ``plumb_bob`` is OpenCV's k1 k2 p1 p2 k3, ``rational_polynomial`` its eight
+    coefficients, ``equidistant`` its fisheye's four)."""
+    K, d = np.asarray(camera.K, dtype=float), np.asarray(camera.distortion, dtype=float).ravel()
+    P = np.hstack([K, np.zeros((3, 1))])
+    return {
+        "image_width": int(camera.width),
+        "image_height": int(camera.height),
+        "camera_name": camera.name,
+        "camera_matrix": {"rows": 3, "cols": 3, "data": plain(K.reshape(-1))},
+        "distortion_model": ROS_MODELS[distortion_model(d)],
+        "distortion_coefficients": {"rows": 1, "cols": len(d), "data": plain(d)},
+        "rectification_matrix": {"rows": 3, "cols": 3, "data": plain(np.eye(3).reshape(-1))},
+        "projection_matrix": {"rows": 3, "cols": 4, "data": plain(P.reshape(-1))},
     }
 
 
@@ -109,7 +135,7 @@ def _lens(
     return model, d
 
 
-def camchain_dict(result: CalibrationResult, header: Mapping[str, Any] | None = None) -> dict:
+def camchain_dict(result: CalibrationResult) -> dict:
     """Kalibr's ``camchain.yaml`` mapping (cam0 is the reference camera). ``ValueError`` when a
     camera has a skew, a k3 (Kalibr's pinhole-radtan model has neither) or the rational model."""
     _no_skew(result, "Kalibr's pinhole model")
@@ -286,7 +312,7 @@ def write_all_exports(
         return [], [f"error: export directory {out} cannot be created: {e.strerror or e}"]
     for name, cam in result.cameras.items():
         attempt(f"opencv_{name}.yaml", lambda p, c=cam: write_opencv_yaml(c, p))
-        attempt(f"camera_info_{name}.yaml", lambda p, c=cam: write_camera_info(c, p))
+        attempt(f"camera_info_{name}.yaml", lambda p, c=cam: write_yaml(p, camera_info_dict(c)))
     comment = "".join(f"# {k}: {v}\n" for k, v in (header or {}).items())
     attempt(CAMCHAIN_FILE, lambda p: write_atomic(p, comment + dump_yaml(camchain_dict(result))))
     for name in result.cameras:
@@ -297,5 +323,7 @@ def write_all_exports(
     if result.hand_eye is not None:
         attempt(HAND_EYE_FILE, lambda p: write_atomic(p, dump_yaml(hand_eye_dict(result, header))))
     if oak_sockets:
-        attempt(DEPTHAI_FILE, lambda p: write_depthai_json(result, p, oak_sockets))
+        from slidecal.drivers.oak import write_oak_calibration_json  # loaded for OAK rigs only
+
+        attempt(DEPTHAI_FILE, lambda p: write_oak_calibration_json(result, p, dict(oak_sockets)))
     return paths, errors

@@ -10,7 +10,6 @@ from dataclasses import astuple, fields, replace
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from slidecal.drivers.ur_pose import T_from_ur_pose, pendant_text
@@ -50,12 +49,6 @@ def hand_eye_names(result: CalibrationResult) -> dict[str, str]:
     if result.hand_eye is None:
         return {}
     return named_hand_eye_names(result.mount, list(result.cameras))
-
-
-def target_pose_name(mount: str) -> str | None:
-    """``T_base_board`` (eye-in-hand), ``T_tool_board`` (eye-to-hand), None otherwise."""
-    frames = mount_names(mount)
-    return None if frames is None else frames.target
 
 
 def _reference(result: CalibrationResult) -> str:
@@ -100,9 +93,9 @@ def transforms(result: CalibrationResult) -> dict[str, TransformEstimate]:
     """Every transform of a result under its result-file name, in the file's order: the
     hand-eyes, the rig's ``T_<name>_<ref>``, the target pose."""
     out = {**hand_eye_transforms(result), **result.rig}
-    tname = target_pose_name(result.mount)
-    if tname is not None and result.T_target is not None:
-        out[tname] = result.T_target
+    frames = mount_names(result.mount)
+    if frames is not None and result.T_target is not None:
+        out[frames.target] = result.T_target
     return out
 
 
@@ -471,7 +464,6 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
     he = Ts.get(named_hand_eye_names(mount, names)[ref]) if frames is not None else None
     hand_eye = None if he is None or frames is None else replace(he, name=frames.hand_eye)
     rig = {k: t for n in cams if n != ref if (t := Ts.get(k := f"T_{n}_{ref}")) is not None}
-    tname = target_pose_name(mount)
     rep = f.section("reprojection", RESULT_PART_KEYS["reprojection"])
     per_image = _rows_from(rep, "per_image", "{frame, camera, rms_px}", names)
     residuals = {(fid, cam): rms for fid, cam, rms in per_image if np.isfinite(rms)}
@@ -514,7 +506,7 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
     adequacy = _adequacy_from(f, names) if f.has("adequacy") else None
     robot_accuracy = _robot_accuracy_from(f) if f.has("robot_accuracy") else None
     board = _board_from(f) if f.has("board") else None
-    T_target = Ts.get(tname) if tname else None
+    T_target = Ts.get(frames.target) if frames is not None else None
     pnames, cov = _named_from_legacy(pnames, cov, cams, ref, mount, hand_eye, T_target, rig)
     return CalibrationResult(
         cameras=cams,
@@ -540,65 +532,6 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
         robot_accuracy=robot_accuracy,
         board=board,
     )
-
-
-# ----------------------------------------------------------------------------- exports
-
-
-def write_opencv_yaml(camera: CameraEstimate, path: str | Path) -> Path:
-    """OpenCV ``FileStorage`` YAML of one camera, as OpenCV's calibration sample writes it
-    (``camera_matrix`` 3x3, ``distortion_coefficients`` 1x5 or 1x8 for ``cv2`` or 1x4 for
-    ``cv2.fisheye`` with ``fisheye_model: 1``, ``avg_reprojection_error`` px)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
-    try:
-        fs.write("image_width", int(camera.width))
-        fs.write("image_height", int(camera.height))
-        fs.write("camera_name", camera.name)
-        fs.write("camera_matrix", np.asarray(camera.K, dtype=np.float64))
-        d = np.asarray(camera.distortion, dtype=np.float64).reshape(1, -1)
-        fs.write("distortion_coefficients", d)
-        if distortion_model(d) == "fisheye":
-            fs.write("fisheye_model", 1)
-        fs.write("avg_reprojection_error", float(camera.reproj_rms_px))
-    finally:
-        fs.release()
-    return path
-
-
-#: ROS camera_info's name of each lens model (image_pipeline's camera_calibration_parsers)
-ROS_MODELS = {"opencv5": "plumb_bob", "rational": "rational_polynomial", "fisheye": "equidistant"}
-
-
-def camera_info_dict(camera: CameraEstimate) -> dict[str, Any]:
-    """The ROS ``camera_info`` mapping of one camera (monocular: identity rectification, projection
-    ``[K | 0]``; ``plumb_bob`` is OpenCV's k1 k2 p1 p2 k3, ``rational_polynomial`` its eight
-    coefficients, ``equidistant`` its fisheye's four)."""
-    K, d = np.asarray(camera.K, dtype=float), np.asarray(camera.distortion, dtype=float).ravel()
-    P = np.hstack([K, np.zeros((3, 1))])
-    return {
-        "image_width": int(camera.width),
-        "image_height": int(camera.height),
-        "camera_name": camera.name,
-        "camera_matrix": {"rows": 3, "cols": 3, "data": plain(K.reshape(-1))},
-        "distortion_model": ROS_MODELS[distortion_model(d)],
-        "distortion_coefficients": {"rows": 1, "cols": len(d), "data": plain(d)},
-        "rectification_matrix": {"rows": 3, "cols": 3, "data": plain(np.eye(3).reshape(-1))},
-        "projection_matrix": {"rows": 3, "cols": 4, "data": plain(P.reshape(-1))},
-    }
-
-
-def write_camera_info(camera: CameraEstimate, path: str | Path) -> Path:
-    """Write :func:`camera_info_dict` as YAML."""
-    return write_yaml(path, camera_info_dict(camera))
-
-
-def write_depthai_json(result: CalibrationResult, path: str | Path, sockets: Mapping[str, Any]):
-    """The depthai calibration JSON of an OAK rig (``sockets``: camera name -> ``CAM_A``...)."""
-    from slidecal.drivers.oak import write_oak_calibration_json  # loaded for OAK rigs only
-
-    return write_oak_calibration_json(result, Path(path), dict(sockets))
 
 
 # ----------------------------------------------------------------------------- summary
@@ -783,7 +716,7 @@ def judged_truth(result: CalibrationResult, truth: Mapping[str, Any]) -> dict[st
     used = {fid for fid, _ in result.residuals_px}
     frames = [f for f in frames if not used or f[0] in used]
     he_names = hand_eye_names(result)
-    tname = target_pose_name(result.mount)
+    tname = getattr(mount_names(result.mount), "target", None)
     ref_key = he_names.get(_reference(result))
     if not frames or ref_key not in out or tname not in out:
         return out

@@ -22,8 +22,12 @@ _BaseLoader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 _Dumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
 
 
-class DuplicateKeyError(yaml.constructor.ConstructorError):
-    """A key given twice in one YAML mapping (PyYAML would keep the last silently)."""
+MERGE = "tag:yaml.org,2002:merge"  # '<<: *anchor' merges a mapping, it is not a key
+
+
+class DuplicateKeyError(Exception):
+    """A key given twice in one YAML mapping (PyYAML would keep the last silently); ``args``:
+    the two key nodes."""
 
 
 class StrictLoader(_BaseLoader):  # type: ignore[misc, valid-type]
@@ -34,24 +38,15 @@ class StrictLoader(_BaseLoader):  # type: ignore[misc, valid-type]
         pairs = node.value[:]  # flatten_mapping rewrites node.value when it merges
         data = super().construct_mapping(node, deep=deep)
         if len(data) != len(pairs):
-            self._refuse_repeated_key(pairs)
+            seen: dict[Any, Any] = {}
+            for key_node, _ in pairs:
+                if key_node.tag == MERGE:
+                    continue
+                key = self.construct_object(key_node, deep=True)
+                if key in seen:
+                    raise DuplicateKeyError(seen[key], key_node)
+                seen[key] = key_node
         return data
-
-    def _refuse_repeated_key(self, pairs: list[tuple[Any, Any]]) -> None:
-        seen: dict[Any, Any] = {}
-        for key_node, _ in pairs:
-            if key_node.tag == "tag:yaml.org,2002:merge":  # '<<: *anchor' merges, not a key
-                continue
-            key = self.construct_object(key_node, deep=True)
-            if key in seen:
-                raise DuplicateKeyError(
-                    None,
-                    None,
-                    f"key {key!r} appears twice in one mapping (lines {seen[key].line + 1} and "
-                    f"{key_node.start_mark.line + 1}); keep one",
-                    key_node.start_mark,
-                )
-            seen[key] = key_node.start_mark
 
 
 # ----------------------------------------------------------------------------- reading, writing
@@ -76,27 +71,12 @@ def dump_yaml(data: Any, indent: int | None = None) -> str:
     parts join into the whole document's text."""
     text = yaml.dump(
         plain(data),
-        Dumper=_Dumper if indent is None else _PartDumper,
+        Dumper=_Dumper,
         default_flow_style=None,
         sort_keys=False,
         width=100 - (indent or 0),
     )
     return "".join(" " * indent + line for line in text.splitlines(True)) if indent else text
-
-
-class _PartDumper(_Dumper):  # type: ignore[misc, valid-type]
-    """The dumper with a top mapping in block style even when all its values are scalars (as
-    it is inside a larger document)."""
-
-    def represent(self, data: Any) -> None:
-        self._top = data
-        super().represent(data)
-
-    def represent_mapping(self, tag: str, mapping: Any, flow_style: Any = None) -> Any:
-        node = super().represent_mapping(tag, mapping, flow_style)
-        if mapping is self._top:
-            node.flow_style = False
-        return node
 
 
 def write_atomic(path: Path, text: str | bytes) -> None:
@@ -175,9 +155,12 @@ def parse_yaml(text: str, source: str) -> Any:
                 return None
             try:
                 return loader.construct_document(node)
-            except DuplicateKeyError as e:  # name the field when the key's text repeats
-                _refuse_duplicate_keys(node, "", source, set())
-                raise InputError(str(e.problem), where=source) from None
+            except DuplicateKeyError as e:
+                first, second = (k.start_mark.line + 1 for k in e.args)
+                raise InputError(
+                    f"appears twice (lines {first} and {second}); keep one",
+                    where=f"{source}: {_field(node, e.args[1], '', set())}",
+                ) from None
         finally:
             loader.dispose()
     except yaml.YAMLError as e:
@@ -191,31 +174,22 @@ def parse_yaml(text: str, source: str) -> Any:
         raise InputError("nests too deeply to be a slidecal file", where=source) from None
 
 
-def _refuse_duplicate_keys(node: Any, path: str, source: str, seen: set[int]) -> None:
-    """Walk the composed YAML; a key given twice in one mapping is an ``InputError``."""
+def _field(node: Any, key: Any, path: str, seen: set[int]) -> str | None:
+    """The field path of the key node ``key`` in the composed YAML ``node`` (None: not there)."""
     if id(node) in seen:  # an alias of a node already walked
-        return
+        return None
     seen.add(id(node))
     if isinstance(node, yaml.MappingNode):
-        first: dict[tuple[str, str], int] = {}
-        for key_node, value_node in node.value:
-            if key_node.tag == "tag:yaml.org,2002:merge":
-                continue
-            if not isinstance(key_node, yaml.ScalarNode):
-                continue  # refused by the constructor (a key must be a plain value)
-            name = key_node.value
-            field = f"{path}.{name}" if path else name
-            line = key_node.start_mark.line + 1
-            if (key_node.tag, name) in first:
-                raise InputError(
-                    f"appears twice (lines {first[(key_node.tag, name)]} and {line}); keep one",
-                    where=f"{source}: {field}",
-                )
-            first[(key_node.tag, name)] = line
-            _refuse_duplicate_keys(value_node, field, source, seen)
+        items = [(f"{path}.{k.value}" if path else str(k.value), k, v) for k, v in node.value]
     elif isinstance(node, yaml.SequenceNode):
-        for i, item in enumerate(node.value):
-            _refuse_duplicate_keys(item, f"{path}[{i}]", source, seen)
+        items = [(f"{path}[{i}]", None, v) for i, v in enumerate(node.value)]
+    else:
+        return None
+    for field, key_node, value in items:
+        found = field if key_node is key else _field(value, key, field, seen)
+        if found is not None:
+            return found
+    return None
 
 
 def load_yaml(path: Path, what: str) -> Any:

@@ -1,6 +1,6 @@
 """Session directories on disk (``slidecal.session/1``, docs/FORMATS.md): read them, write them.
 
-:func:`read_session` turns ``session.yaml``, ``images/`` and ``detections.npy``
+:func:`load_session` turns ``session.yaml``, ``images/`` and ``detections.npy``
 (:data:`DETECTION_DTYPE`; older sessions hold the corners inline) into a
 :class:`~slidecal.solver.problem.CalibrationProblem`; :class:`SessionWriter` appends each frame
 as it is captured, so a crash loses at most the frame in flight. The keys each part accepts
@@ -230,14 +230,12 @@ def _dictionary_size(name: str) -> int | None:
         return None
 
 
-def target_from_dict(
-    data: Any, file: str, path: str = "target", exact_by_default: bool = False
-) -> Target:
+def target_from_dict(data: Any, file: str, exact_by_default: bool = False) -> Target:
     """A :class:`Target` from a ``target:`` block (charuco, chessboard, points, apriltag or
     aprilgrid). Its tolerance (``flatness_mm``, ``print_tolerance``) takes a real board's
     defaults when not given (``solver/target_shape.py``), or 0 with ``exact_by_default`` (a
     simulated board is exactly as described)."""
-    f = Fields(data, file, path).only(
+    f = Fields(data, file, "target").only(
         tuple(dict.fromkeys(k for v in TARGET_KEYS.values() for k in v))
     )
     kind = f.choice("kind", TARGET_KINDS)
@@ -355,9 +353,9 @@ def _kind_to_dict(target: Target) -> dict[str, Any]:
     return {"kind": target.kind, **{k: plain(getattr(target, k)) for k in keys}}
 
 
-def options_from_dict(data: Any, file: str, path: str = "options") -> ModelOptions:
+def options_from_dict(data: Any, file: str) -> ModelOptions:
     """:class:`ModelOptions` from an ``options:`` block (absent fields keep their defaults)."""
-    f = Fields(data, file, path).only(OPTIONS_KEYS)
+    f = Fields(data, file, "options").only(OPTIONS_KEYS)
     base = ModelOptions()
     model = None  # the data chooses
     if f.has("distortion_model"):
@@ -403,10 +401,10 @@ def options_to_dict(options: ModelOptions) -> dict[str, Any]:
 class Session:
     """A session read from disk: the solver's problem plus what the run recorded around it.
 
-    ``simulation``: the truth block (None for real runs); ``events``: faults, aborts; ``quality``
-    and ``detect_reasons``: per (frame id, camera) the detector's report, and why an image
-    detected on reading gave nothing; ``cell``/``cell_sha256``: the cell file (None in older
-    sessions); ``sockets``: OAK board socket per camera; ``limits``: the ``limits:`` block.
+    ``simulation``: the truth block (None for real runs); ``events``: faults, aborts;
+    ``detect_reasons``: per (frame id, camera) why an image detected on reading gave nothing;
+    ``cell``/``cell_sha256``: the cell file (None in older sessions); ``sockets``: OAK board
+    socket per camera; ``limits``: the ``limits:`` block.
     """
 
     directory: Path
@@ -414,20 +412,12 @@ class Session:
     simulation: dict[str, Any] | None = None
     events: tuple[dict[str, Any], ...] = ()
     status: str = "complete"
-    quality: dict[tuple[int, str], dict[str, Any]] = field(default_factory=dict)
-    images: dict[tuple[int, str], Path] = field(default_factory=dict)
     cell: str | None = None
     cell_sha256: str | None = None
-    robot_driver: str | None = None
     camera_driver: str | None = None
     sockets: dict[str, str] = field(default_factory=dict)
     detect_reasons: dict[tuple[int, str], tuple[str, ...]] = field(default_factory=dict)
     limits: Any = None
-
-
-def read_session(directory: str | Path, detect_images: bool = True) -> CalibrationProblem:
-    """The :class:`CalibrationProblem` a session directory holds (see :func:`load_session`)."""
-    return load_session(directory, detect_images=detect_images).problem
 
 
 def load_session(directory: str | Path, detect_images: bool = True) -> Session:
@@ -456,18 +446,14 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
     table = _detection_table(f, directory, len(cameras))
 
     frames: list[Frame] = []
-    quality: dict[tuple[int, str], dict[str, Any]] = {}
-    images: dict[tuple[int, str], Path] = {}
     reasons: dict[tuple[int, str], tuple[str, ...]] = {}
     ids_seen: set[int] = set()
     for ff in f.entries("frames", hint="frame {id, T_base_tool, detections}"):
-        frame, q, im = _read_frame(ff, directory, target, cameras, detect_images, reasons, table)
+        frame = _read_frame(ff, directory, target, cameras, detect_images, reasons, table)
         if frame.id in ids_seen:
             raise ff.error("id", f"frame id {frame.id} appears twice; ids must be unique")
         ids_seen.add(frame.id)
         frames.append(frame)
-        quality.update(q)
-        images.update(im)
 
     with_pose = [fr.T_base_tool is not None for fr in frames]
     if any(with_pose) and not all(with_pose):
@@ -513,19 +499,16 @@ def session_from_dict(data: Any, directory: Path, detect_images: bool = True) ->
     sha = f.string("cell_sha256", "-") if f.has("cell_sha256") else None
     if sha is not None and not re.fullmatch(r"[0-9a-f]{64}", sha):
         raise f.error("cell_sha256", "must be 64 lowercase hex digits (a SHA-256)")
+    if f.has("robot_driver"):  # recorded, not used
+        f.choice("robot_driver", ROBOT_DRIVERS)
     return Session(
         directory=directory,
         problem=problem,
         simulation=sim,
         events=events,
         status=f.choice("status", STATUSES, "complete"),
-        quality=quality,
-        images=images,
         cell=f.string("cell", "-") if f.has("cell") else None,
         cell_sha256=sha,
-        robot_driver=f.choice("robot_driver", ROBOT_DRIVERS, "ur")
-        if f.has("robot_driver")
-        else None,
         camera_driver=f.choice("camera_driver", CAMERA_DRIVERS, "oak")
         if f.has("camera_driver")
         else None,
@@ -666,7 +649,7 @@ def _read_frame(
     detect_images: bool,
     reasons: dict[tuple[int, str], tuple[str, ...]],
     table: DetectionTable | None,
-) -> tuple[Frame, dict[tuple[int, str], dict[str, Any]], dict[tuple[int, str], Path]]:
+) -> Frame:
     """One frame; ``reasons`` collects why an image detected here gave nothing usable."""
     f.only(SESSION_KEYS["frames[]"])
     fid = f.integer("id", minimum=0)
@@ -706,9 +689,9 @@ def _read_frame(
         if why:
             reasons[(fid, name)] = why
     q = f.section("quality")
-    quality = {(fid, name): dict(q.section(name).data) for name in q.cameras(names)}
-    frame = Frame(id=fid, detections=detections, T_base_tool=T, motion_board=motion, group=group)
-    return frame, quality, {(fid, n): p for n, p in image_paths.items()}
+    for name in q.cameras(names):
+        q.section(name)
+    return Frame(id=fid, detections=detections, T_base_tool=T, motion_board=motion, group=group)
 
 
 def _read_detection(f: Fields, target: Target, camera: CameraSpec) -> Detection:
@@ -912,24 +895,21 @@ class SessionWriter:
         reference_camera: str | None = None,
         simulation: Mapping[str, Any] | None = None,
         extra: Mapping[str, Any] | None = None,
-        overwrite: bool = False,
         sockets: Mapping[str, str] | None = None,
     ) -> None:
         self.directory = Path(directory)
-        _declared(extra, SESSION_KEYS[""], "session")
-        if (self.directory / SESSION_FILE).exists() and not overwrite:
+        for k in extra or {}:  # a field the reader would refuse
+            if k not in SESSION_KEYS[""]:
+                raise InputError(
+                    f"{k!r} is not a session field of {SESSION_FORMAT}; declare it in SESSION_KEYS"
+                )
+        if (self.directory / SESSION_FILE).exists():
             raise InputError(
                 "already holds a session; choose a new --out directory or delete the old one",
                 where=str(self.directory),
             )
-        if mount not in MOUNTS:
-            raise InputError(f"mount {mount!r} unknown; use one of {', '.join(MOUNTS)}")
-        if knowledge not in KNOWLEDGE:
-            raise InputError(f"knowledge {knowledge!r} unknown; use one of {', '.join(KNOWLEDGE)}")
         (self.directory / IMAGE_DIR).mkdir(parents=True, exist_ok=True)
-        self.target = target
-        self.cameras = tuple(cameras)
-        self._names = [c.name for c in self.cameras]
+        self._names = [c.name for c in cameras]
         self.data: dict[str, Any] = {"format": SESSION_FORMAT, "status": "recording"}
         if mount != "none":
             self.data["mount"] = mount
@@ -963,9 +943,8 @@ class SessionWriter:
         _check_format(f, SESSION_FORMAT, "session")
         w = cls.__new__(cls)
         w.directory = directory
-        w.target = target_from_dict(f.require("target"), SESSION_FILE)
-        w.cameras, _ = _cameras(f)
-        w._names = [c.name for c in w.cameras]
+        target_from_dict(f.require("target"), SESSION_FILE)  # refused now, not at the solve
+        w._names = [c.name for c in _cameras(f)[0]]
         w.data = dict(data)
         w.data.setdefault("frames", [])
         w.data.setdefault("events", [])
@@ -994,7 +973,6 @@ class SessionWriter:
         group: int | None = None,
         quality: Mapping[str, Mapping[str, Any]] | None = None,
         motion_board: np.ndarray | None = None,
-        extra: Mapping[str, Any] | None = None,
         frame_id: int | None = None,
         T_base_tool_true: np.ndarray | None = None,
     ) -> int:
@@ -1005,7 +983,6 @@ class SessionWriter:
         board-frame motion knowledge; ``T_base_tool_true`` (4, 4): the pose the simulated arm really
         reached (kept only with a ``simulation:`` block).
         """
-        _declared(extra, SESSION_KEYS["frames[]"], "frame")
         used = [int(fr["id"]) for fr in self.data["frames"]]
         fid = (max(used) + 1 if used else 0) if frame_id is None else int(frame_id)
         if fid in used:
@@ -1034,8 +1011,6 @@ class SessionWriter:
             self._append_detections(fid, detections)
         if quality:
             entry["quality"] = plain({n: dict(q) for n, q in quality.items()})
-        if extra:
-            entry.update(plain(dict(extra)))
         self.data["frames"].append(entry)
         sim = self.data.get("simulation")
         if T_base_tool_true is not None and sim is not None and T_base_tool is not None:
@@ -1078,21 +1053,21 @@ class SessionWriter:
 
     def _text(self) -> str:
         """``dump_yaml(self.data)``, the text of each frame and of its simulated truth made once
-        (neither changes once written): appending stays linear in the frames, not quadratic."""
+        (neither changes once written): appending stays linear in the frames, not quadratic. The
+        rest is dumped with those lists empty, and the cached text fills them."""
         cache = self.__dict__.setdefault("_item_text", {"frames": [], "simulation": []})
-        out = []
-        for key, value in self.data.items():
-            sim = key == "simulation" and isinstance(value, Mapping)
-            sim_frames = value.get("frames") if sim else None
-            if key == "frames":
-                out.append(_list_text(key, value, cache[key], 0))
-            elif isinstance(sim_frames, list) and list(value)[-1] == "frames":
-                head = {k: v for k, v in value.items() if k != "frames"}
-                out.append(f"{key}:\n" + (dump_yaml(head, 2) if head else ""))
-                out.append(_list_text("frames", sim_frames, cache[key], 2))
-            else:
-                out.append(dump_yaml({key: value}, 0))
-        return "".join(out)
+        data, sim = dict(self.data, frames=[]), self.data.get("simulation")
+        lists = {"frames": (self.data["frames"], 0)}  # key -> (its frames, how deep they are)
+        if isinstance(sim, Mapping) and isinstance(sim.get("frames"), list):
+            data["simulation"] = dict(sim, frames=[])
+            lists["simulation"] = (sim["frames"], 2)
+        text = dump_yaml(data)
+        for key, (items, indent) in lists.items():  # the top-level frames: the only ones unindented
+            empty = f"\n{' ' * indent}frames: []\n"
+            at = text.index(empty, text.index(f"\n{key}:\n") if indent else 0)
+            fill = _list_text("frames", items, cache[key], indent)
+            text = text[: at + 1] + fill + text[at + len(empty) :]
+        return text
 
 
 def _list_text(key: str, items: list[Any], cache: list[str], indent: int) -> str:
@@ -1100,41 +1075,3 @@ def _list_text(key: str, items: list[Any], cache: list[str], indent: int) -> str
     cache.extend(dump_yaml([x], indent) for x in items[len(cache) :])
     pad = " " * indent
     return f"{pad}{key}:\n" + "".join(cache) if items else f"{pad}{key}: []\n"
-
-
-def _declared(extra: Mapping[str, Any] | None, keys: Sequence[str], what: str) -> None:
-    """Refuse to write a field the reader would refuse (declare it in ``SESSION_KEYS``)."""
-    for k in extra or {}:
-        if k not in keys:
-            raise InputError(
-                f"{k!r} is not a {what} field of {SESSION_FORMAT}; declare it in SESSION_KEYS"
-            )
-
-
-def write_session(
-    directory: str | Path,
-    problem: CalibrationProblem,
-    simulation: Mapping[str, Any] | None = None,
-    overwrite: bool = False,
-) -> Path:
-    """Write a problem (detections only, no images) as a session directory."""
-    w = SessionWriter(
-        directory,
-        problem.target,
-        problem.cameras,
-        mount=problem.mount,
-        knowledge=problem.knowledge,
-        options=problem.options,
-        reference_camera=problem.reference_camera,
-        simulation=simulation,
-        overwrite=overwrite,
-    )
-    for fr in problem.frames:
-        w.append_frame(
-            fr.T_base_tool,
-            detections=fr.detections,
-            group=fr.group,
-            motion_board=fr.motion_board,
-            frame_id=fr.id,
-        )
-    return w.finish()

@@ -11,7 +11,7 @@ import yaml
 
 from slidecal.mocks import scenarios as sc
 from slidecal.mocks.truth import hand_eye_bounds
-from slidecal.routines.session import SESSION_FILE, read_session
+from slidecal.routines.session import SESSION_FILE
 from slidecal.solver.adequacy import (
     MAX_CLASSIC_SCALE_SE,
     classic_scale_fit,
@@ -38,6 +38,7 @@ from slidecal.solver.problem import (
 )
 from slidecal.solver.uncertainty import predicted_covariance
 from tests.helpers import random_rotation
+from tests.session_io import read_session
 
 EMPTY = Detection(np.zeros(0, int), np.zeros((0, 2)))
 NO_DIST = ModelOptions(distortion=sc.NO_DISTORTION)
@@ -376,8 +377,8 @@ def test_benchmark_row_runs_and_stays_near_the_bound():
 # -- through the session files ------------------------------------------------------------------
 @pytest.mark.parametrize("robot", [True, False], ids=["classic-hand-eye", "images-only"])
 def test_solve_a_recorded_session_with_a_frame_that_saw_nothing(tmp_path: Path, robot):
-    from slidecal.routines.session import write_session
     from slidecal.routines.solve import solve_session
+    from tests.session_io import write_session
 
     s = sc.classic(np.random.default_rng(19), 12, 0.0, 0.0, 0.0)
     problem = _blank(s.problem, [5])

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
+from slidecal.routines.acquire import sockets
 from slidecal.routines.config import load_config, load_packaged_cell
 from slidecal.routines.plan import check_plan, default_plan, read_plan, write_plan
 from slidecal.solver.errors import InputError
@@ -216,7 +217,7 @@ def test_cell_records_its_hash_and_oak_sockets(tmp_path: Path) -> None:
     p = tmp_path / "cell.yaml"
     p.write_text(yaml.safe_dump(d))
     cfg = load_config(p)
-    assert cfg.sockets == {"left": "CAM_B", "right": "CAM_C"}
+    assert sockets(cfg) == {"left": "CAM_B", "right": "CAM_C"}
     assert cfg.session_fields()["cell_sha256"] == hashlib.sha256(p.read_bytes()).hexdigest()
     assert cfg.session_fields()["cell"] == "cell.yaml"
 
@@ -301,14 +302,14 @@ def _same_config(a, b) -> None:
 
 @pytest.mark.parametrize("name", ["default_cell.yaml", "oak_cell.yaml", "eye_to_hand_cell.yaml"])
 def test_cell_write_then_read_gives_the_same_cell(tmp_path: Path, name: str) -> None:
-    from slidecal.routines.config import write_config
+    from tests.session_io import write_config
 
     cfg = load_packaged_cell(name)
     _same_config(cfg, load_config(write_config(cfg, tmp_path / "cell.yaml")))
 
 
 def test_real_cell_write_then_read_gives_the_same_cell(tmp_path: Path) -> None:
-    from slidecal.routines.config import write_config
+    from tests.session_io import write_config
 
     d = _default_dict()
     del d["simulation"]

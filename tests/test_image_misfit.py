@@ -17,7 +17,6 @@ import yaml
 import slidecal.solver.robot_error as named_mod
 from slidecal.mocks import scenarios as sc
 from slidecal.mocks.scenarios import one_tag_geometry, one_tag_session, render_detector
-from slidecal.routines.session import read_session
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.robot_error import (
     CORRELATED_NEIGHBOURS,
@@ -25,6 +24,7 @@ from slidecal.solver.robot_error import (
     images_err_together,
     neighbour_correlation,
 )
+from tests.session_io import read_session
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_named import _solve_keeping_the_refinement  # noqa: E402

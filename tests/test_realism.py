@@ -207,7 +207,7 @@ def test_session_records_and_checks_the_true_poses(tmp_path: Path) -> None:
     np.testing.assert_allclose(frames[1]["T_base_tool"], ur_pose_from_T(true[1]), atol=1e-9)
     np.testing.assert_allclose(frames[1]["T_base_tool_measured"], ur_pose_from_T(meas[1]))
     # a real run (no simulation block) records nothing
-    w2 = SessionWriter(tmp_path / "r", w.target, w.cameras)
+    w2 = _writer(tmp_path / "real", None)
     w2.append_frame(meas[0], detections={"cam": empty}, T_base_tool_true=true[0])
     assert "simulation" not in w2.data
     # a pose that is not a UR pose, a frame listed twice: refused with the field

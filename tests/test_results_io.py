@@ -10,10 +10,9 @@ import numpy as np
 import pytest
 import yaml
 
-from slidecal.routines.exports import write_all_exports
+from slidecal.routines.exports import camera_info_dict, write_all_exports
 from slidecal.routines.results_io import (
     RESULT_FORMAT,
-    camera_info_dict,
     errors_against_truth,
     read_result,
     summary_text,

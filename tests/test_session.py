@@ -16,8 +16,6 @@ from slidecal.routines.session import (
     dump_yaml,
     load_session,
     load_yaml,
-    read_session,
-    write_session,
 )
 from slidecal.routines.solve import solve_session
 from slidecal.solver.errors import InputError
@@ -31,6 +29,7 @@ from slidecal.solver.problem import (
     Target,
 )
 from tests.helpers import random_rotation
+from tests.session_io import read_session, write_session
 
 
 def _problem(rng: np.random.Generator, n_frames: int = 4) -> CalibrationProblem:

@@ -36,9 +36,10 @@ import numpy as np
 
 import slidecal.routines
 from slidecal.mocks.scenarios import r1
-from slidecal.routines.session import load_session, write_session
+from slidecal.routines.session import load_session
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.problem import CalibrationProblem
+from tests.session_io import write_session
 
 #: Whole-process time of ``slidecal solve`` over the OpenCV script's, per frame count at most
 WHOLE_TARGET = {24: 2.0, 400: 1.2, 1000: 1.0}

@@ -25,7 +25,6 @@ import cv2
 import numpy as np
 
 from slidecal.mocks.truth import INTRINSICS, halves_z, hand_eye_errors, rms, split_halves
-from slidecal.routines.session import read_session
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.detect import detect
 from slidecal.solver.errors import InputError, SlidecalError
@@ -33,6 +32,7 @@ from slidecal.solver.geometry import inv_T, rotation_angle_deg
 from slidecal.solver.problem import CalibrationProblem, CameraSpec, Frame, Target
 from slidecal.solver.refine import orientation_groups
 from tests.bench.report import RESULTS, publish_report, report_header
+from tests.session_io import read_session
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 AXES = ("rx", "ry", "rz", "tx", "ty", "tz")
