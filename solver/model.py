@@ -597,12 +597,8 @@ class BundleModel:
                 axis=2,
             )
             _put_cols(J, self.slices["X:0"].start + g[:, None] * mx + np.arange(mx), blk)
-        if "Y" in self.slices:
-            if one_group:  # A2 = A RX RM: per frame RX RM, gathered once
-                B = RX0 @ Ms[:, :3, :3]
-                A2 = A @ B[f]
-            else:
-                A2 = A @ (RX @ RM)
+        if "Y" in self.slices:  # d px / d p_Y = A RX RM: per frame RX RM, gathered once
+            A2 = A @ (RX0 @ Ms[:, :3, :3])[f] if one_group else A @ (RX @ RM)
             _put_pose(J, self.slices["Y"].start, q_Y, A2, st.Y_rot_basis, st.Y_t_basis)
         has_s = self.o_s_col >= 0
         if len(self.s_frames):
@@ -612,7 +608,7 @@ class BundleModel:
             J[rows, 0, self.o_s_col[has_s]] = vals[:, 0]
             J[rows, 1, self.o_s_col[has_s]] = vals[:, 1]
         if "E" in self.slices:
-            blk = self._pose_block(A, RX, RM, p_Y, Ms)
+            blk = self._pose_block(A, RX, A2, RM, p_Y, Ms)
             if split:
                 return r, self._pixel_jacobian(J, transposed), blk
             if self.shared_map is not None:  # they move each frame like its own, through S
@@ -949,22 +945,26 @@ class BundleModel:
         return Ms
 
     def _pose_block(
-        self, A: np.ndarray, RX: np.ndarray, RM: np.ndarray, p_Y: np.ndarray, Ms: np.ndarray
+        self,
+        A: np.ndarray,
+        RX: np.ndarray,
+        A2: np.ndarray,
+        RM: np.ndarray,
+        p_Y: np.ndarray,
+        Ms: np.ndarray,
     ) -> np.ndarray:
-        """d px / d (pose correction) (n, 2, 6) of every observation's frame.
+        """d px / d (pose correction) (n, 2, 6) of every observation's frame, from ``A`` and
+        ``A2`` = d px / d p_X and d px / d p_Y (n, 2, 3).
 
-        The correction acts on the measured pose as ``R <- exp([d]x) R``, ``t <- t + tau``.
+        The correction acts on the measured pose as ``R <- exp([d]x) R``, ``t <- t + tau``;
+        a row ``a`` of a Jacobian times ``[v]x`` is ``(a x v)'``.
         """
-        n = self.n_obs
+        if self.st.eye_in_hand:  # M = T^-1: p_M = R' (p_Y - t), d p_M = R' [p_Y - t]x d - R' tau
+            v = p_Y + _mv(np.swapaxes(RM, 1, 2), Ms[self.o_frame, :3, 3])  # p_Y - t
+            return -np.concatenate([_cross_rows(v, A2), A2], axis=2)
         B = _rmul(A, RX[0]) if self.n_groups == 1 else A @ RX  # d px / d p_M
-        if self.st.eye_in_hand:  # M = T^-1: p_M = R' (p_Y - t)
-            t_true = -_mv(np.swapaxes(RM, 1, 2), Ms[self.o_frame, :3, 3])
-            D_rot = RM @ _skew_batch(p_Y - t_true)
-            D_t = -RM
-        else:  # M = T: p_M = R p_Y + t
-            D_rot = -_skew_batch(_mv(RM, p_Y))
-            D_t = np.broadcast_to(np.eye(3), (n, 3, 3))
-        return np.concatenate([B @ D_rot, B @ D_t], axis=2)
+        # M = T: p_M = R p_Y + t, d p_M = -[R p_Y]x d + tau
+        return np.concatenate([_cross_rows(_mv(RM, p_Y), B), B], axis=2)
 
 
 def _per_frame(A_gE: np.ndarray, Ei: np.ndarray) -> np.ndarray:
