@@ -535,16 +535,17 @@ class BundleModel:
         RY, tY = state.Y[:3, :3], state.Y[:3, 3]
         q_Y = self.o_pts @ RY.T
         p_Y = q_Y + tY
-        RM = Ms[f, :3, :3]
-        p_M = _mv(RM, p_Y) + Ms[f, :3, 3]
         one_group, one_camera = self.n_groups == 1, len(self.cams) == 1
-        if one_group:  # the robot cases: one X for every frame (3x3 products, no gathers)
+        if one_group:  # the robot cases: one X, so each frame's RX RM (made once, gathered)
             RX0 = state.X[0, :3, :3]
             RX = np.broadcast_to(RX0, (n, 3, 3))
-            q_X = p_M @ RX0.T
+            RXM = (RX0 @ Ms[:, :3, :3])[f]
+            q_X = _mv(RXM, p_Y) + (Ms[:, :3, 3] @ RX0.T)[f]
+            p_M = q_X @ RX0
             p_X = q_X + state.X[0, :3, 3]
         else:
             RX = state.X[g, :3, :3]
+            p_M = _mv(Ms[f, :3, :3], p_Y) + Ms[f, :3, 3]
             q_X = _mv(RX, p_M)
             p_X = q_X + state.X[g, :3, 3]
         T_cr = [state.T_cam_ref.get(c, np.eye(4)) for c in self.cams]
@@ -598,7 +599,7 @@ class BundleModel:
             )
             _put_cols(J, self.slices["X:0"].start + g[:, None] * mx + np.arange(mx), blk)
         if "Y" in self.slices:  # d px / d p_Y = A RX RM: per frame RX RM, gathered once
-            A2 = A @ (RX0 @ Ms[:, :3, :3])[f] if one_group else A @ (RX @ RM)
+            A2 = A @ (RXM if one_group else RX @ Ms[f, :3, :3])
             _put_pose(J, self.slices["Y"].start, q_Y, A2, st.Y_rot_basis, st.Y_t_basis)
         has_s = self.o_s_col >= 0
         if len(self.s_frames):
@@ -608,7 +609,7 @@ class BundleModel:
             J[rows, 0, self.o_s_col[has_s]] = vals[:, 0]
             J[rows, 1, self.o_s_col[has_s]] = vals[:, 1]
         if "E" in self.slices:
-            blk = self._pose_block(A, RX, A2, RM, p_Y, Ms)
+            blk = self._pose_block(A, RX, A2, p_Y, p_M, Ms)
             if split:
                 return r, self._pixel_jacobian(J, transposed), blk
             if self.shared_map is not None:  # they move each frame like its own, through S
@@ -949,8 +950,8 @@ class BundleModel:
         A: np.ndarray,
         RX: np.ndarray,
         A2: np.ndarray,
-        RM: np.ndarray,
         p_Y: np.ndarray,
+        p_M: np.ndarray,
         Ms: np.ndarray,
     ) -> np.ndarray:
         """d px / d (pose correction) (n, 2, 6) of every observation's frame, from ``A`` and
@@ -959,12 +960,13 @@ class BundleModel:
         The correction acts on the measured pose as ``R <- exp([d]x) R``, ``t <- t + tau``;
         a row ``a`` of a Jacobian times ``[v]x`` is ``(a x v)'``.
         """
+        t_M = Ms[:, :3, 3]
         if self.st.eye_in_hand:  # M = T^-1: p_M = R' (p_Y - t), d p_M = R' [p_Y - t]x d - R' tau
-            v = p_Y + _mv(np.swapaxes(RM, 1, 2), Ms[self.o_frame, :3, 3])  # p_Y - t
-            return -np.concatenate([_cross_rows(v, A2), A2], axis=2)
+            t = -np.einsum("kji,kj->ki", Ms[:, :3, :3], t_M)  # each frame's t = -R M's t
+            return -np.concatenate([_cross_rows(p_Y - t[self.o_frame], A2), A2], axis=2)
         B = _rmul(A, RX[0]) if self.n_groups == 1 else A @ RX  # d px / d p_M
         # M = T: p_M = R p_Y + t, d p_M = -[R p_Y]x d + tau
-        return np.concatenate([_cross_rows(_mv(RM, p_Y), B), B], axis=2)
+        return np.concatenate([_cross_rows(p_M - t_M[self.o_frame], B), B], axis=2)
 
 
 def _per_frame(A_gE: np.ndarray, Ei: np.ndarray) -> np.ndarray:
