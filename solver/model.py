@@ -147,21 +147,28 @@ def _chunks(problem: CalibrationProblem) -> list[_Chunk]:
 class BlockInverse:
     """Blocks of the inverse normal matrix (see :meth:`NormalBlocks.inverse`).
 
-    ``gg`` (P0, P0): the global parameters' block (the inverse of the reduced matrix);
-    ``gE`` (P0, F, 6): their coupling with each frame's correction; ``EE`` (F, 6, 6): each
-    frame's own block. ``frame_inv`` (F, 6, 6), ``coupling`` (P0, 6 F) and ``reduced_inv``
-    (P0, P0) give the frames' cross blocks ``coupling' reduced_inv coupling`` for :meth:`dense`;
-    ``global_scale`` (P0,): the global parameters' scaling of ``reduced_inv``
-    (``gg = reduced_inv / outer(global_scale, global_scale)``).
+    ``EE`` (F, 6, 6): each frame's own block. ``frame_inv`` (F, 6, 6), ``coupling`` (P0, 6 F)
+    and ``reduced_inv`` (P0, P0) give the frames' cross blocks ``coupling' reduced_inv
+    coupling`` for :meth:`dense`; ``global_scale`` (P0,): the global parameters' scaling of
+    ``reduced_inv``. The global and coupling blocks :attr:`gg` and :attr:`gE` derive from them.
     """
 
-    gg: np.ndarray
-    gE: np.ndarray
     EE: np.ndarray
     frame_inv: np.ndarray
     coupling: np.ndarray
     reduced_inv: np.ndarray
     global_scale: np.ndarray
+
+    @functools.cached_property
+    def gg(self) -> np.ndarray:
+        """(P0, P0): the global parameters' block (the inverse of the reduced matrix)."""
+        return self.reduced_inv / np.outer(self.global_scale, self.global_scale)
+
+    @functools.cached_property
+    def gE(self) -> np.ndarray:
+        """(P0, F, 6): the global parameters' coupling with each frame's correction."""
+        P0, F = len(self.global_scale), len(self.EE)
+        return -(self.reduced_inv @ self.coupling / self.global_scale[:, None]).reshape(P0, F, 6)
 
     def times(self, g_g: np.ndarray, g_E: np.ndarray) -> np.ndarray:
         """``inverse @ v`` (P,) for ``v`` = (global part (P0,), frames' part (F, 6)): the
@@ -189,8 +196,6 @@ class BlockInverse:
     def scaled(self, factor: float) -> BlockInverse:
         """The same blocks times ``factor`` (a covariance ``s^2 (J' W J)^-1``)."""
         return BlockInverse(
-            gg=factor * self.gg,
-            gE=factor * self.gE,
             EE=factor * self.EE,
             frame_inv=factor * self.frame_inv,
             coupling=self.coupling,
@@ -331,8 +336,6 @@ class NormalBlocks:
         EE = Ei + np.transpose(L.reshape(P0, F, 6), (1, 2, 0)) @ np.transpose(SiL, (1, 0, 2))
         outer_E = s_E[:, :, None] * s_E[:, None, :]
         return BlockInverse(
-            gg=Si / np.outer(s_g, s_g),
-            gE=-SiL / (s_g[:, None, None] * s_E[None, :, :]),
             EE=EE / outer_E,
             frame_inv=Ei / outer_E,
             coupling=L / s_E.reshape(1, -1),
