@@ -299,7 +299,7 @@ def _pairing(problem: CalibrationProblem, frames: list[int], T_cam: list[np.ndar
     T_tool = np.stack([f.T_base_tool for f in problem.frames])
 
     def scores(shift: int, T_cam: list[np.ndarray] = T_cam) -> dict[tuple[int, int], float]:
-        seen = [moving_point(T, problem.mount) for T in T_cam]
+        seen = moving_point(np.stack(T_cam), problem.mount)
         rot: dict[tuple[int, int], float] = {}
         length: dict[tuple[int, int], float] = {}
         for a in range(len(frames)):
@@ -510,10 +510,10 @@ def _convention(
 def moving_point(T_cam_board: np.ndarray, mount: str) -> np.ndarray:
     """What moves with the robot, as the camera sees it: the camera centre in the board's frame
     (eye-in-hand) or the board's origin in the camera's (eye-to-hand); a pure move of the tool
-    moves it by the tool's translation (up to a rotation)."""
+    moves it by the tool's translation (up to a rotation). ``T_cam_board`` (..., 4, 4)."""
     if mount == "eye_in_hand":
-        return -T_cam_board[:3, :3].T @ T_cam_board[:3, 3]
-    return T_cam_board[:3, 3]
+        return -np.einsum("...ji,...j->...i", T_cam_board[..., :3, :3], T_cam_board[..., :3, 3])
+    return T_cam_board[..., :3, 3]
 
 
 def bad_images_note(adequacy: ModelAdequacy | None) -> tuple[str, ...]:
@@ -626,16 +626,17 @@ def scale_moves(
         if fit is None or fit[1] > MAX_CLASSIC_SCALE_SE:
             return []
         q, chains = fit[2], [sorted(poses)]
+    tip = T[:, :3, :3] @ q + T[:, :3, 3]  # the tool's point q in the base frame, per frame
     moves = []
-    for idx in chains:
-        for a, b in zip(idx[:-1], idx[1:], strict=True):
-            robot = float(
-                np.linalg.norm(T[b, :3, :3] @ q + T[b, :3, 3] - T[a, :3, :3] @ q - T[a, :3, 3])
-            )
-            if robot < min_move_m:
-                continue
-            pa, pb = (moving_point(poses[i], problem.mount) for i in (a, b))
-            moves.append((int(a), int(b), robot, float(np.linalg.norm(pb - pa))))
+    for idx in (np.asarray(c, int) for c in chains if len(c) > 1):
+        robot = np.linalg.norm(tip[idx[1:]] - tip[idx[:-1]], axis=1)
+        seen = moving_point(np.stack([poses[i] for i in idx]), problem.mount)
+        camera = np.linalg.norm(seen[1:] - seen[:-1], axis=1)
+        moves += [
+            (int(a), int(b), float(r), float(c))
+            for a, b, r, c in zip(idx[:-1], idx[1:], robot, camera, strict=True)
+            if r >= min_move_m
+        ]
     return moves
 
 
