@@ -269,11 +269,6 @@ class NormalBlocks:
     A_EE: np.ndarray
     g_E: np.ndarray
 
-    def dense(self) -> tuple[np.ndarray, np.ndarray]:
-        """``J' W J`` (P, P) and ``J' W r`` (P,), global columns first, then frame by frame."""
-        A = _assemble(self.A_gg, self.A_gE, self.A_EE)
-        return A, np.concatenate([self.g_g, self.g_E.reshape(-1)])
-
     def diagonal(self) -> tuple[np.ndarray, np.ndarray]:
         """The diagonal of ``J' W J``: global (P0,) and per frame (F, 6)."""
         return np.diagonal(self.A_gg).copy(), np.diagonal(self.A_EE, axis1=1, axis2=2).copy()
@@ -765,20 +760,17 @@ class BundleModel:
         JT: np.ndarray, w: np.ndarray, r: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """``J' W J`` and ``J' W r`` of the pixel rows from ``JT`` = J' (P, 2 n), C-ordered,
-        with ``w`` and ``r`` in its column order: ``(J' W^1/2)(J' W^1/2)'``, one symmetric
-        product of a row-major matrix. Columns of zero weight are left out when they are a
-        quarter or more."""
+        with ``w`` (>= 0) and ``r`` in its column order: ``(J' W^1/2)(J' W^1/2)'``, one
+        symmetric product of a row-major matrix. Columns of zero weight are left out when they
+        are a quarter or more."""
         nz = w != 0
         if np.count_nonzero(nz) < 0.75 * len(w):
             JT, w, r = JT[:, nz], w[nz], r[nz]
         if np.all(w == 1.0):  # unit weights: the same products without a weighted copy
             return JT @ JT.T, JT @ r
-        if np.all(w >= 0):
-            sw = np.sqrt(w)
-            Js = JT * sw
-            return Js @ Js.T, Js @ (sw * r)
-        Jw = JT * w
-        return JT @ Jw.T, Jw @ r
+        sw = np.sqrt(w)
+        Js = JT * sw
+        return Js @ Js.T, Js @ (sw * r)
 
     @functools.cached_property
     def axis_rows(self) -> np.ndarray:
