@@ -967,7 +967,10 @@ class BundleModel:
         t_M = Ms[:, :3, 3]
         if self.st.eye_in_hand:  # M = T^-1: p_M = R' (p_Y - t), d p_M = R' [p_Y - t]x d - R' tau
             t = -np.einsum("kji,kj->ki", Ms[:, :3, :3], t_M)  # each frame's t = -R M's t
-            return -np.concatenate([_cross_rows(p_Y - t[self.o_frame], A2), A2], axis=2)
+            blk = np.empty(A2.shape[:2] + (6,))
+            _cross_rows(t[self.o_frame] - p_Y, A2, blk[:, :, :3])  # -(v x a) = (-v) x a
+            np.negative(A2, out=blk[:, :, 3:])
+            return blk
         B = _rmul(A, RX[0]) if self.n_groups == 1 else A @ RX  # d px / d p_M
         # M = T: p_M = R p_Y + t, d p_M = -[R p_Y]x d + tau
         return np.concatenate([_cross_rows(p_M - t_M[self.o_frame], B), B], axis=2)
@@ -982,7 +985,7 @@ def _per_frame(A_gE: np.ndarray, Ei: np.ndarray) -> np.ndarray:
 
 def _mv(M: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Matrix-vector products (n, 3) of stacks ``M`` (n, 3, 3) and ``v`` (n, 3)."""
-    return (M @ v[:, :, None])[:, :, 0]
+    return np.einsum("nij,nj->ni", M, v)
 
 
 def _put_rows(J: np.ndarray, idx: np.ndarray | slice, cols: slice, vals: np.ndarray) -> None:
@@ -1005,9 +1008,10 @@ def _put_pose(
     ``cross(q, A rows)`` times ``rot_basis`` (3, mr), then d px / d translation ``A`` (n, 2, 3)
     times ``t_basis`` (3, mt); a full basis (the identity) is written without its product."""
     mr, mt = rot_basis.shape[1], t_basis.shape[1]
-    if mr:
-        rot = _cross_rows(q, A)
-        J[:, :, c0 : c0 + mr] = rot if mr == 3 and _is_eye(rot_basis) else _rmul(rot, rot_basis)
+    if mr == 3 and _is_eye(rot_basis):
+        _cross_rows(q, A, J[:, :, c0 : c0 + 3])
+    elif mr:
+        J[:, :, c0 : c0 + mr] = _rmul(_cross_rows(q, A), rot_basis)
     if mt:
         c1 = c0 + mr
         J[:, :, c1 : c1 + mt] = A if mt == 3 and _is_eye(t_basis) else _rmul(A, t_basis)
@@ -1021,12 +1025,16 @@ def _is_eye(B: np.ndarray) -> bool:
 _EYE3 = np.eye(3)
 
 
-def _cross_rows(q: np.ndarray, A: np.ndarray) -> np.ndarray:
+def _cross_rows(q: np.ndarray, A: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """``cross(q_n, A_n[i])`` (n, m, 3) of vectors ``q`` (n, 3) with the rows of ``A``
-    (n, m, 3) (``np.cross`` with broadcasting, without its copies)."""
+    (n, m, 3) (``np.cross`` with broadcasting, without its copies), into ``out`` when given."""
+    out = np.empty(A.shape) if out is None else out
     q0, q1, q2 = q[:, 0, None], q[:, 1, None], q[:, 2, None]
     a0, a1, a2 = A[:, :, 0], A[:, :, 1], A[:, :, 2]
-    return np.stack([q1 * a2 - q2 * a1, q2 * a0 - q0 * a2, q0 * a1 - q1 * a0], axis=2)
+    out[:, :, 0] = q1 * a2 - q2 * a1
+    out[:, :, 1] = q2 * a0 - q0 * a2
+    out[:, :, 2] = q0 * a1 - q1 * a0
+    return out
 
 
 def _rmul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
