@@ -44,7 +44,7 @@ def _gamma_q(a: float, x: float) -> float:
     if x < a + 1.0:  # the series of P converges fast here, and P is not close to 1
         term = total = 1.0 / a
         n = a
-        while abs(term) > abs(total) * _EPS:
+        while term > total * _EPS:  # every term is positive (x, a > 0)
             n += 1.0
             term *= x / n
             total += term
