@@ -163,15 +163,13 @@ def image_outlier(
 def assess(
     problem: CalibrationProblem,
     out: RefineOutput,
-    fit: FreePoseFit | None = None,
+    fit: FreePoseFit,
     groups: np.ndarray | None = None,
 ) -> tuple[ModelAdequacy, RobotAccuracy | None]:
     """The model-adequacy test and the robot's accuracy of a refinement (see the module doc).
 
     ``fit``: :func:`final_free_pose_fit` of ``out``, ``groups``: the frames' orientation groups
     (robot sessions), when the caller already has them."""
-    if fit is None:
-        fit = final_free_pose_fit(out)
     m = out.model
     reasons: list[str] = []
     frame_ids = [f.id for f in problem.frames]

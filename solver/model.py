@@ -286,8 +286,7 @@ class NormalBlocks:
         A_EE[:, i6, i6] += lam * d_E
         Ei = np.linalg.inv(A_EE)  # (F, 6, 6)
         P0 = len(self.g_g)
-        L = _per_frame(self.A_gE, Ei).reshape(P0, -1)  # A_gE Ei per frame (P0, 6 F)
-        S = A_gg - L @ self.A_gE.reshape(P0, -1).T
+        L, S = _reduced(A_gg, self.A_gE, Ei)
         rhs = -self.g_g + L @ self.g_E.reshape(-1)
         d_glob = np.linalg.solve(S, rhs)
         back = -self.g_E - (d_glob @ self.A_gE.reshape(P0, -1)).reshape(-1, 6)
@@ -313,8 +312,7 @@ class NormalBlocks:
         except np.linalg.LinAlgError:
             Ei = np.linalg.pinv(A_EE)
         P0 = len(s_g)
-        L = _per_frame(A_gE, Ei).reshape(P0, -1)  # (P0, 6F)
-        S = A_gg - L @ A_gE.reshape(P0, -1).T
+        L, S = _reduced(A_gg, A_gE, Ei)
         if check_condition:
             cond = np.linalg.cond(S)
             if not np.isfinite(cond) or cond > 1e14:
@@ -974,6 +972,19 @@ class BundleModel:
         B = _rmul(A, RX[0]) if self.n_groups == 1 else A @ RX  # d px / d p_M
         # M = T: p_M = R p_Y + t, d p_M = -[R p_Y]x d + tau
         return np.concatenate([_cross_rows(p_M - t_M[self.o_frame], B), B], axis=2)
+
+
+def _reduced(A_gg: np.ndarray, A_gE: np.ndarray, Ei: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``L = A_gE Ei`` per frame (P0, 6 F) and the reduced matrix ``S = A_gg - L A_gE'``, made
+    as ``A_gg - M M'`` with ``M = A_gE C`` per frame, ``C C' = Ei``, where ``Ei`` is positive
+    definite (one symmetric product: half the work of ``L A_gE'``)."""
+    P0 = len(A_gg)
+    L = _per_frame(A_gE, Ei).reshape(P0, -1)
+    try:
+        M = _per_frame(A_gE, np.linalg.cholesky(Ei)).reshape(P0, -1)
+    except np.linalg.LinAlgError:
+        return L, A_gg - L @ A_gE.reshape(P0, -1).T
+    return L, A_gg - M @ M.T
 
 
 def _per_frame(A_gE: np.ndarray, Ei: np.ndarray) -> np.ndarray:
