@@ -60,14 +60,13 @@ def _parameters_used(out: RefineOutput) -> dict[str, float]:
     n_all = n_px + (len(m.names) - m.shared_start if "E" in m.slices else 0)
     w = np.ones(n_all)
     w[:n_px] = out.inlier_rows
+    normal = m.normal_blocks(out.state, w)
     # the refinement's covariance over s^2 when made with these weights, else inverted here
     same = m.row_weights is not None and np.array_equal(m.row_weights, w)
     if same and out.covariance_blocks is not None and out.sigma_px > 0:
         Ni = out.covariance_blocks.scaled(1.0 / out.sigma_px**2)
     else:
-        Ni = m.normal_blocks(out.state, w).inverse()
-    if len(m.cams) == 1:  # the hat matrix's trace is P: the pixel rows take what the priors leave
-        return {m.ref: len(m.names) - sum(float(np.sum(h)) for h in m.prior_hats(Ni).values())}
+        Ni = normal.inverse()
     used = {}
     for ci, c in enumerate(m.cams):
         wc = np.where(m.camera_rows(ci, n_all), w, 0.0)

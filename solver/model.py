@@ -901,15 +901,6 @@ class BundleModel:
         rot, t = self.levels(key)
         return self.sigma_px * np.where(self.rotation_rows(key), 1.0 / rot, 1.0 / t)
 
-    def prior_hats(self, Ni: BlockInverse) -> dict[str, np.ndarray]:
-        """The hat matrix's diagonal over the prior rows of each block of corrections (E, U, V,
-        W) the model has; ``Ni``: the inverse of the normal matrix (prior rows of unit weight)."""
-        diag = {"E": np.diagonal(Ni.EE, axis1=1, axis2=2).reshape(-1)} if "E" in self.slices else {}
-        for key in ("U", "V", "W"):
-            if key in self.slices:
-                diag[key] = np.diagonal(Ni.gg)[self.slices[key]]
-        return {k: np.clip(self.prior_scale(k) ** 2 * d, 0.0, 1.0) for k, d in diag.items()}
-
     def level_share(self, key: str) -> float | tuple[float, float]:
         """A level of the corrections ``key`` times this is its share of a frame's correction
         (per axis): 1 for the frames' own and the groups', the trend frames' rms offset for the

@@ -476,6 +476,16 @@ class _Solve:
             out.append(np.sqrt(np.sum(r[m] ** 2) / dof) if n else np.nan)
         return np.array(out)
 
+    def _prior_hats(self, Ni: BlockInverse) -> dict[str, np.ndarray]:
+        """The hat matrix's diagonal over the prior rows of each block of corrections (E, U, V,
+        W) the model has."""
+        model = self.model
+        diag = {"E": np.diagonal(Ni.EE, axis1=1, axis2=2).reshape(-1)}
+        for key in ("U", "V", "W"):
+            if key in model.slices:
+                diag[key] = np.diagonal(Ni.gg)[model.slices[key]]
+        return {k: np.clip(model.prior_scale(k) ** 2 * d, 0.0, 1.0) for k, d in diag.items()}
+
     def _pose_levels(self, E: np.ndarray, h: np.ndarray) -> list[float]:
         """Foerstner's step for the frames' own two levels (rotation, translation)."""
         model = self.model
@@ -512,7 +522,7 @@ class _Solve:
         r = nb.r.copy()
         r[:n_px] += model.pixel_step(state, delta)
         moved = model.apply(state, delta)  # E, U and V at the step (linear in delta)
-        hats = model.prior_hats(Ni)
+        hats = self._prior_hats(Ni)
         sig = []
         for ci, rows in enumerate(self.cam_rows):
             m = rows & inlier
