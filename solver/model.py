@@ -924,7 +924,7 @@ class BundleModel:
         st = self.st
         if st.pose_sigma is not None and state.E is not None:
             E = self.pose_corrections(state)
-            R = np.einsum("nij,njk->nik", _R_batch(E[:, :3]), st.T_meas[:, :3, :3])
+            R = np.einsum("nij,njk->nik", R_batch(E[:, :3]), st.T_meas[:, :3, :3])
             t = st.T_meas[:, :3, 3] + E[:, 3:]
             Ms = np.tile(np.eye(4), (len(R), 1, 1))
             if st.eye_in_hand:  # the inverse of (R, t): (R', -R' t)
@@ -1045,7 +1045,7 @@ def _rmul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return (A.reshape(n * a, b) @ B).reshape(n, a, B.shape[1])
 
 
-def _R_batch(v: np.ndarray) -> np.ndarray:
+def R_batch(v: np.ndarray) -> np.ndarray:
     """Rotation matrices (n, 3, 3) of rotation vectors (n, 3) (Rodrigues, series near 0)."""
     th = np.linalg.norm(v, axis=1)
     small = th < 1e-8
