@@ -62,10 +62,8 @@ def free_pose_fit(
     closed_rss = _scored(todo, closed, K, dist)
     # the closed form is refined only when it beats the refined model start (a wrong robot
     # model starting the pose in the wrong basin)
-    alt: list[np.ndarray | None] = [None] * len(todo)
-    for k, (_, cam, obj, img) in enumerate(todo):
-        if closed_rss[k] is not None and (best[k] is None or closed_rss[k] < best[k]):
-            alt[k] = pnp_from(obj, img, K[cam], dist[cam], closed[k])
+    beats = [c is not None and (b is None or c < b) for b, c in zip(best, closed_rss, strict=True)]
+    alt = _refined(todo, [T if b else None for T, b in zip(closed, beats, strict=True)], K, dist)
     alt_rss = _scored(todo, alt, K, dist)
     rss: dict[tuple[int, str], float] = {}
     rows: dict[tuple[int, str], int] = {}
@@ -92,9 +90,8 @@ def _refined(
     K: dict[str, np.ndarray],
     dist: dict[str, np.ndarray],
 ) -> list[np.ndarray | None]:
-    """Per image of ``todo``: the pose ``T_cam_board`` at the reprojection error's minimum
-    from its start in ``starts`` (None: no start, or the board behind the camera), every image
-    of a camera at once (padded to one size with copies of a point of zero weight)."""
+    """Per image of ``todo``: ``T_cam_board`` refined from its start in ``starts`` (None: no
+    start, or the board behind the camera) by :func:`_pose_minima`, a camera's images at once."""
     out: list[np.ndarray | None] = [None] * len(todo)
     for cam in dict.fromkeys(c for _, c, _, _ in todo):
         sel = [
@@ -125,10 +122,10 @@ def _pose_minima(
     T: np.ndarray,
     max_iter: int = 20,
 ) -> np.ndarray:
-    """Levenberg-Marquardt of m board poses ``T`` (m, 4, 4) at once, each on its own image:
-    board points ``obj`` (m, n, 3), pixels ``img`` (m, n, 2), weights ``w`` (m, n, 1); the
-    rotation stepped on the left. Returns the poses reached (m, 4, 4): each image's squares
-    stop falling by 1e-10 of themselves (OpenCV's iterative PnP, for every image at once)."""
+    """The poses ``T`` (m, 4, 4) at their images' reprojection minima (OpenCV's iterative
+    PnP, for m images at once): board points ``obj`` (m, n, 3), pixels ``img`` (m, n, 2),
+    weights ``w`` (m, n, 1, 0 for padding). Levenberg-Marquardt, the rotation stepped on the
+    left; an image stops where its squares stop falling by 1e-10 of themselves."""
     m, n = w.shape[:2]
     T = T.copy()
 
