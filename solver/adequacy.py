@@ -1,11 +1,8 @@
-"""Does the model explain the data? The detector's noise, measured without the robot model.
-
-The floor is the residual of a fit of every image alone with the solution's intrinsics and a
-free board pose per image (:func:`free_pose_fit`): the detector's and the lens model's noise.
-:func:`assess` compares the robot model's residuals with it per camera and per image, reads the
-robot's accuracy from the refinement's pose corrections, and marks the result unusable, with the
-figure and its limit, when the model cannot explain the data; the record checks tell wrongly
-read or paired robot records from the images alone.
+"""Does the model explain the data? :func:`assess` holds the robot model's residuals against
+the free-pose floor (:func:`free_pose_fit`) per camera and per image, reads the robot's accuracy
+from the pose corrections and marks the result unusable, with the figure and its limit, when the
+model cannot explain the data; the record checks tell wrongly read or paired robot records from
+the images alone.
 """
 
 from __future__ import annotations

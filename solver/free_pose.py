@@ -1,9 +1,5 @@
-"""The detector's floor: a free board pose fitted to every image, with fixed intrinsics.
-
-The residual of that fit is the detector's and the lens model's noise measured without the robot
-model: the optimiser's test of the robot poses (:func:`slidecal.solver.refine.refine`) and the
-adequacy checks (:mod:`slidecal.solver.adequacy`) both compare a solve against it.
-"""
+"""The detector's floor: a free board pose fitted to every image, with fixed intrinsics (the
+detector's and the lens model's noise, measured without the robot model)."""
 
 from __future__ import annotations
 

@@ -2,10 +2,8 @@
 F distribution's upper tails and a small Levenberg-Marquardt least-squares fit.
 
 Why not scipy: importing ``scipy.special`` or ``scipy.optimize`` costs a command more than its
-whole solve on a small session (they pull in scipy's array API layer and linear programming).
-These are the textbook methods (series and Lentz's continued fractions for the incomplete gamma
-and beta functions, Marquardt's damping with forward differences), checked against scipy in
-tests/test_numeric.py.
+whole solve on a small session. The textbook methods: series and Lentz's continued fractions
+for the incomplete gamma and beta functions, Marquardt's damping with forward differences.
 """
 
 from __future__ import annotations
