@@ -1,11 +1,8 @@
-"""Does the model explain the data? The detector's noise, measured without the robot model.
-
-The floor is the residual of a fit of every image alone with the solution's intrinsics and a
-free board pose per image (:func:`free_pose_fit`): the detector's and the lens model's noise.
-:func:`assess` compares the robot model's residuals with it per camera and per image, reads the
-robot's accuracy from the refinement's pose corrections, and marks the result unusable, with the
-figure and its limit, when the model cannot explain the data; the record checks tell wrongly
-read or paired robot records from the images alone.
+"""Does the model explain the data? :func:`assess` holds the robot model's residuals against
+the free-pose floor (:func:`free_pose_fit`) per camera and per image, reads the robot's accuracy
+from the pose corrections and marks the result unusable, with the figure and its limit, when the
+model cannot explain the data; the record checks tell wrongly read or paired robot records from
+the images alone.
 """
 
 from __future__ import annotations
@@ -162,15 +159,13 @@ def image_outlier(
 def assess(
     problem: CalibrationProblem,
     out: RefineOutput,
-    fit: FreePoseFit | None = None,
+    fit: FreePoseFit,
     groups: np.ndarray | None = None,
 ) -> tuple[ModelAdequacy, RobotAccuracy | None]:
     """The model-adequacy test and the robot's accuracy of a refinement (see the module doc).
 
     ``fit``: :func:`final_free_pose_fit` of ``out``, ``groups``: the frames' orientation groups
     (robot sessions), when the caller already has them."""
-    if fit is None:
-        fit = final_free_pose_fit(out)
     m = out.model
     reasons: list[str] = []
     frame_ids = [f.id for f in problem.frames]
@@ -299,7 +294,7 @@ def _pairing(problem: CalibrationProblem, frames: list[int], T_cam: list[np.ndar
     T_tool = np.stack([f.T_base_tool for f in problem.frames])
 
     def scores(shift: int, T_cam: list[np.ndarray] = T_cam) -> dict[tuple[int, int], float]:
-        seen = [moving_point(T, problem.mount) for T in T_cam]
+        seen = moving_point(np.stack(T_cam), problem.mount)
         rot: dict[tuple[int, int], float] = {}
         length: dict[tuple[int, int], float] = {}
         for a in range(len(frames)):
@@ -510,10 +505,10 @@ def _convention(
 def moving_point(T_cam_board: np.ndarray, mount: str) -> np.ndarray:
     """What moves with the robot, as the camera sees it: the camera centre in the board's frame
     (eye-in-hand) or the board's origin in the camera's (eye-to-hand); a pure move of the tool
-    moves it by the tool's translation (up to a rotation)."""
+    moves it by the tool's translation (up to a rotation). ``T_cam_board`` (..., 4, 4)."""
     if mount == "eye_in_hand":
-        return -T_cam_board[:3, :3].T @ T_cam_board[:3, 3]
-    return T_cam_board[:3, 3]
+        return -np.einsum("...ji,...j->...i", T_cam_board[..., :3, :3], T_cam_board[..., :3, 3])
+    return T_cam_board[..., :3, 3]
 
 
 def bad_images_note(adequacy: ModelAdequacy | None) -> tuple[str, ...]:
@@ -626,16 +621,17 @@ def scale_moves(
         if fit is None or fit[1] > MAX_CLASSIC_SCALE_SE:
             return []
         q, chains = fit[2], [sorted(poses)]
+    tip = T[:, :3, :3] @ q + T[:, :3, 3]  # the tool's point q in the base frame, per frame
     moves = []
-    for idx in chains:
-        for a, b in zip(idx[:-1], idx[1:], strict=True):
-            robot = float(
-                np.linalg.norm(T[b, :3, :3] @ q + T[b, :3, 3] - T[a, :3, :3] @ q - T[a, :3, 3])
-            )
-            if robot < min_move_m:
-                continue
-            pa, pb = (moving_point(poses[i], problem.mount) for i in (a, b))
-            moves.append((int(a), int(b), robot, float(np.linalg.norm(pb - pa))))
+    for idx in (np.asarray(c, int) for c in chains if len(c) > 1):
+        robot = np.linalg.norm(tip[idx[1:]] - tip[idx[:-1]], axis=1)
+        seen = moving_point(np.stack([poses[i] for i in idx]), problem.mount)
+        camera = np.linalg.norm(seen[1:] - seen[:-1], axis=1)
+        moves += [
+            (int(a), int(b), float(r), float(c))
+            for a, b, r, c in zip(idx[:-1], idx[1:], robot, camera, strict=True)
+            if r >= min_move_m
+        ]
     return moves
 
 

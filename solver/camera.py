@@ -154,7 +154,8 @@ def _pixels(K: np.ndarray, xd: np.ndarray, yd: np.ndarray, *d_dist: np.ndarray) 
     out = [np.stack([fx * xd + s * yd + cx, fy * yd + cy], axis=1)]
     for D in d_dist:
         J = D * np.array([[fx], [fy]])
-        J[:, 0] += s * D[:, 1]
+        if s:
+            J[:, 0] += s * D[:, 1]
         out.append(J)
     return tuple(out)
 

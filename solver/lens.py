@@ -1,9 +1,5 @@
-"""The lens model the images ask for (docs/ERROR_MODEL.md Sec. 5, "The lens model", says how).
-
-A score test screens a camera solved with opencv5 at the solve's intrinsics; a camera it flags,
-and a camera of another lens, is fitted alone with every lens model (OpenCV's free-pose
-calibration) and asks for the model that beats the one solved for beyond chance: the session is
-solved again with it when the options name no model, else the result fails the adequacy test."""
+"""The lens model the images ask for: the screen, the free-pose fits and the test of
+docs/ERROR_MODEL.md Sec. 5 ("The lens model")."""
 
 from __future__ import annotations
 

@@ -147,21 +147,28 @@ def _chunks(problem: CalibrationProblem) -> list[_Chunk]:
 class BlockInverse:
     """Blocks of the inverse normal matrix (see :meth:`NormalBlocks.inverse`).
 
-    ``gg`` (P0, P0): the global parameters' block (the inverse of the reduced matrix);
-    ``gE`` (P0, F, 6): their coupling with each frame's correction; ``EE`` (F, 6, 6): each
-    frame's own block. ``frame_inv`` (F, 6, 6), ``coupling`` (P0, 6 F) and ``reduced_inv``
-    (P0, P0) give the frames' cross blocks ``coupling' reduced_inv coupling`` for :meth:`dense`;
-    ``global_scale`` (P0,): the global parameters' scaling of ``reduced_inv``
-    (``gg = reduced_inv / outer(global_scale, global_scale)``).
+    ``EE`` (F, 6, 6): each frame's own block. ``frame_inv`` (F, 6, 6), ``coupling`` (P0, 6 F)
+    and ``reduced_inv`` (P0, P0) give the frames' cross blocks ``coupling' reduced_inv
+    coupling`` for :meth:`dense`; ``global_scale`` (P0,): the global parameters' scaling of
+    ``reduced_inv``. The global and coupling blocks :attr:`gg` and :attr:`gE` derive from them.
     """
 
-    gg: np.ndarray
-    gE: np.ndarray
     EE: np.ndarray
     frame_inv: np.ndarray
     coupling: np.ndarray
     reduced_inv: np.ndarray
     global_scale: np.ndarray
+
+    @functools.cached_property
+    def gg(self) -> np.ndarray:
+        """(P0, P0): the global parameters' block (the inverse of the reduced matrix)."""
+        return self.reduced_inv / np.outer(self.global_scale, self.global_scale)
+
+    @functools.cached_property
+    def gE(self) -> np.ndarray:
+        """(P0, F, 6): the global parameters' coupling with each frame's correction."""
+        P0, F = len(self.global_scale), len(self.EE)
+        return -(self.reduced_inv @ self.coupling / self.global_scale[:, None]).reshape(P0, F, 6)
 
     def times(self, g_g: np.ndarray, g_E: np.ndarray) -> np.ndarray:
         """``inverse @ v`` (P,) for ``v`` = (global part (P0,), frames' part (F, 6)): the
@@ -189,8 +196,6 @@ class BlockInverse:
     def scaled(self, factor: float) -> BlockInverse:
         """The same blocks times ``factor`` (a covariance ``s^2 (J' W J)^-1``)."""
         return BlockInverse(
-            gg=factor * self.gg,
-            gE=factor * self.gE,
             EE=factor * self.EE,
             frame_inv=factor * self.frame_inv,
             coupling=self.coupling,
@@ -264,11 +269,6 @@ class NormalBlocks:
     A_EE: np.ndarray
     g_E: np.ndarray
 
-    def dense(self) -> tuple[np.ndarray, np.ndarray]:
-        """``J' W J`` (P, P) and ``J' W r`` (P,), global columns first, then frame by frame."""
-        A = _assemble(self.A_gg, self.A_gE, self.A_EE)
-        return A, np.concatenate([self.g_g, self.g_E.reshape(-1)])
-
     def diagonal(self) -> tuple[np.ndarray, np.ndarray]:
         """The diagonal of ``J' W J``: global (P0,) and per frame (F, 6)."""
         return np.diagonal(self.A_gg).copy(), np.diagonal(self.A_EE, axis1=1, axis2=2).copy()
@@ -286,8 +286,7 @@ class NormalBlocks:
         A_EE[:, i6, i6] += lam * d_E
         Ei = np.linalg.inv(A_EE)  # (F, 6, 6)
         P0 = len(self.g_g)
-        L = _per_frame(self.A_gE, Ei).reshape(P0, -1)  # A_gE Ei per frame (P0, 6 F)
-        S = A_gg - L @ self.A_gE.reshape(P0, -1).T
+        L, S = _reduced(A_gg, self.A_gE, Ei)
         rhs = -self.g_g + L @ self.g_E.reshape(-1)
         d_glob = np.linalg.solve(S, rhs)
         back = -self.g_E - (d_glob @ self.A_gE.reshape(P0, -1)).reshape(-1, 6)
@@ -313,8 +312,7 @@ class NormalBlocks:
         except np.linalg.LinAlgError:
             Ei = np.linalg.pinv(A_EE)
         P0 = len(s_g)
-        L = _per_frame(A_gE, Ei).reshape(P0, -1)  # (P0, 6F)
-        S = A_gg - L @ A_gE.reshape(P0, -1).T
+        L, S = _reduced(A_gg, A_gE, Ei)
         if check_condition:
             cond = np.linalg.cond(S)
             if not np.isfinite(cond) or cond > 1e14:
@@ -331,8 +329,6 @@ class NormalBlocks:
         EE = Ei + np.transpose(L.reshape(P0, F, 6), (1, 2, 0)) @ np.transpose(SiL, (1, 0, 2))
         outer_E = s_E[:, :, None] * s_E[:, None, :]
         return BlockInverse(
-            gg=Si / np.outer(s_g, s_g),
-            gE=-SiL / (s_g[:, None, None] * s_E[None, :, :]),
             EE=EE / outer_E,
             frame_inv=Ei / outer_E,
             coupling=L / s_E.reshape(1, -1),
@@ -535,16 +531,17 @@ class BundleModel:
         RY, tY = state.Y[:3, :3], state.Y[:3, 3]
         q_Y = self.o_pts @ RY.T
         p_Y = q_Y + tY
-        RM = Ms[f, :3, :3]
-        p_M = _mv(RM, p_Y) + Ms[f, :3, 3]
         one_group, one_camera = self.n_groups == 1, len(self.cams) == 1
-        if one_group:  # the robot cases: one X for every frame (3x3 products, no gathers)
+        if one_group:  # the robot cases: one X, so each frame's RX RM (made once, gathered)
             RX0 = state.X[0, :3, :3]
             RX = np.broadcast_to(RX0, (n, 3, 3))
-            q_X = p_M @ RX0.T
+            RXM = (RX0 @ Ms[:, :3, :3])[f]
+            q_X = _mv(RXM, p_Y) + (Ms[:, :3, 3] @ RX0.T)[f]
+            p_M = q_X @ RX0
             p_X = q_X + state.X[0, :3, 3]
         else:
             RX = state.X[g, :3, :3]
+            p_M = _mv(Ms[f, :3, :3], p_Y) + Ms[f, :3, 3]
             q_X = _mv(RX, p_M)
             p_X = q_X + state.X[g, :3, 3]
         T_cr = [state.T_cam_ref.get(c, np.eye(4)) for c in self.cams]
@@ -597,12 +594,8 @@ class BundleModel:
                 axis=2,
             )
             _put_cols(J, self.slices["X:0"].start + g[:, None] * mx + np.arange(mx), blk)
-        if "Y" in self.slices:
-            if one_group:  # A2 = A RX RM: per frame RX RM, gathered once
-                B = RX0 @ Ms[:, :3, :3]
-                A2 = A @ B[f]
-            else:
-                A2 = A @ (RX @ RM)
+        if "Y" in self.slices:  # d px / d p_Y = A RX RM: per frame RX RM, gathered once
+            A2 = A @ (RXM if one_group else RX @ Ms[f, :3, :3])
             _put_pose(J, self.slices["Y"].start, q_Y, A2, st.Y_rot_basis, st.Y_t_basis)
         has_s = self.o_s_col >= 0
         if len(self.s_frames):
@@ -612,7 +605,7 @@ class BundleModel:
             J[rows, 0, self.o_s_col[has_s]] = vals[:, 0]
             J[rows, 1, self.o_s_col[has_s]] = vals[:, 1]
         if "E" in self.slices:
-            blk = self._pose_block(A, RX, RM, p_Y, Ms)
+            blk = self._pose_block(A, RX, A2, p_Y, p_M, Ms)
             if split:
                 return r, self._pixel_jacobian(J, transposed), blk
             if self.shared_map is not None:  # they move each frame like its own, through S
@@ -765,20 +758,17 @@ class BundleModel:
         JT: np.ndarray, w: np.ndarray, r: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """``J' W J`` and ``J' W r`` of the pixel rows from ``JT`` = J' (P, 2 n), C-ordered,
-        with ``w`` and ``r`` in its column order: ``(J' W^1/2)(J' W^1/2)'``, one symmetric
-        product of a row-major matrix. Columns of zero weight are left out when they are a
-        quarter or more."""
+        with ``w`` (>= 0) and ``r`` in its column order: ``(J' W^1/2)(J' W^1/2)'``, one
+        symmetric product of a row-major matrix. Columns of zero weight are left out when they
+        are a quarter or more."""
         nz = w != 0
         if np.count_nonzero(nz) < 0.75 * len(w):
             JT, w, r = JT[:, nz], w[nz], r[nz]
         if np.all(w == 1.0):  # unit weights: the same products without a weighted copy
             return JT @ JT.T, JT @ r
-        if np.all(w >= 0):
-            sw = np.sqrt(w)
-            Js = JT * sw
-            return Js @ Js.T, Js @ (sw * r)
-        Jw = JT * w
-        return JT @ Jw.T, Jw @ r
+        sw = np.sqrt(w)
+        Js = JT * sw
+        return Js @ Js.T, Js @ (sw * r)
 
     @functools.cached_property
     def axis_rows(self) -> np.ndarray:
@@ -934,7 +924,7 @@ class BundleModel:
         st = self.st
         if st.pose_sigma is not None and state.E is not None:
             E = self.pose_corrections(state)
-            R = np.einsum("nij,njk->nik", _R_batch(E[:, :3]), st.T_meas[:, :3, :3])
+            R = np.einsum("nij,njk->nik", R_batch(E[:, :3]), st.T_meas[:, :3, :3])
             t = st.T_meas[:, :3, 3] + E[:, 3:]
             Ms = np.tile(np.eye(4), (len(R), 1, 1))
             if st.eye_in_hand:  # the inverse of (R, t): (R', -R' t)
@@ -949,22 +939,43 @@ class BundleModel:
         return Ms
 
     def _pose_block(
-        self, A: np.ndarray, RX: np.ndarray, RM: np.ndarray, p_Y: np.ndarray, Ms: np.ndarray
+        self,
+        A: np.ndarray,
+        RX: np.ndarray,
+        A2: np.ndarray,
+        p_Y: np.ndarray,
+        p_M: np.ndarray,
+        Ms: np.ndarray,
     ) -> np.ndarray:
-        """d px / d (pose correction) (n, 2, 6) of every observation's frame.
+        """d px / d (pose correction) (n, 2, 6) of every observation's frame, from ``A`` and
+        ``A2`` = d px / d p_X and d px / d p_Y (n, 2, 3).
 
-        The correction acts on the measured pose as ``R <- exp([d]x) R``, ``t <- t + tau``.
+        The correction acts on the measured pose as ``R <- exp([d]x) R``, ``t <- t + tau``;
+        a row ``a`` of a Jacobian times ``[v]x`` is ``(a x v)'``.
         """
-        n = self.n_obs
+        t_M = Ms[:, :3, 3]
+        if self.st.eye_in_hand:  # M = T^-1: p_M = R' (p_Y - t), d p_M = R' [p_Y - t]x d - R' tau
+            t = -np.einsum("kji,kj->ki", Ms[:, :3, :3], t_M)  # each frame's t = -R M's t
+            blk = np.empty(A2.shape[:2] + (6,))
+            _cross_rows(t[self.o_frame] - p_Y, A2, blk[:, :, :3])  # -(v x a) = (-v) x a
+            np.negative(A2, out=blk[:, :, 3:])
+            return blk
         B = _rmul(A, RX[0]) if self.n_groups == 1 else A @ RX  # d px / d p_M
-        if self.st.eye_in_hand:  # M = T^-1: p_M = R' (p_Y - t)
-            t_true = -_mv(np.swapaxes(RM, 1, 2), Ms[self.o_frame, :3, 3])
-            D_rot = RM @ _skew_batch(p_Y - t_true)
-            D_t = -RM
-        else:  # M = T: p_M = R p_Y + t
-            D_rot = -_skew_batch(_mv(RM, p_Y))
-            D_t = np.broadcast_to(np.eye(3), (n, 3, 3))
-        return np.concatenate([B @ D_rot, B @ D_t], axis=2)
+        # M = T: p_M = R p_Y + t, d p_M = -[R p_Y]x d + tau
+        return np.concatenate([_cross_rows(p_M - t_M[self.o_frame], B), B], axis=2)
+
+
+def _reduced(A_gg: np.ndarray, A_gE: np.ndarray, Ei: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``L = A_gE Ei`` per frame (P0, 6 F) and the reduced matrix ``S = A_gg - L A_gE'``, made
+    as ``A_gg - M M'`` with ``M = A_gE C`` per frame, ``C C' = Ei``, where ``Ei`` is positive
+    definite (one symmetric product: half the work of ``L A_gE'``)."""
+    P0 = len(A_gg)
+    L = _per_frame(A_gE, Ei).reshape(P0, -1)
+    try:
+        M = _per_frame(A_gE, np.linalg.cholesky(Ei)).reshape(P0, -1)
+    except np.linalg.LinAlgError:
+        return L, A_gg - L @ A_gE.reshape(P0, -1).T
+    return L, A_gg - M @ M.T
 
 
 def _per_frame(A_gE: np.ndarray, Ei: np.ndarray) -> np.ndarray:
@@ -976,7 +987,7 @@ def _per_frame(A_gE: np.ndarray, Ei: np.ndarray) -> np.ndarray:
 
 def _mv(M: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Matrix-vector products (n, 3) of stacks ``M`` (n, 3, 3) and ``v`` (n, 3)."""
-    return (M @ v[:, :, None])[:, :, 0]
+    return np.einsum("nij,nj->ni", M, v)
 
 
 def _put_rows(J: np.ndarray, idx: np.ndarray | slice, cols: slice, vals: np.ndarray) -> None:
@@ -999,9 +1010,10 @@ def _put_pose(
     ``cross(q, A rows)`` times ``rot_basis`` (3, mr), then d px / d translation ``A`` (n, 2, 3)
     times ``t_basis`` (3, mt); a full basis (the identity) is written without its product."""
     mr, mt = rot_basis.shape[1], t_basis.shape[1]
-    if mr:
-        rot = _cross_rows(q, A)
-        J[:, :, c0 : c0 + mr] = rot if mr == 3 and _is_eye(rot_basis) else _rmul(rot, rot_basis)
+    if mr == 3 and _is_eye(rot_basis):
+        _cross_rows(q, A, J[:, :, c0 : c0 + 3])
+    elif mr:
+        J[:, :, c0 : c0 + mr] = _rmul(_cross_rows(q, A), rot_basis)
     if mt:
         c1 = c0 + mr
         J[:, :, c1 : c1 + mt] = A if mt == 3 and _is_eye(t_basis) else _rmul(A, t_basis)
@@ -1015,12 +1027,16 @@ def _is_eye(B: np.ndarray) -> bool:
 _EYE3 = np.eye(3)
 
 
-def _cross_rows(q: np.ndarray, A: np.ndarray) -> np.ndarray:
+def _cross_rows(q: np.ndarray, A: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """``cross(q_n, A_n[i])`` (n, m, 3) of vectors ``q`` (n, 3) with the rows of ``A``
-    (n, m, 3) (``np.cross`` with broadcasting, without its copies)."""
+    (n, m, 3) (``np.cross`` with broadcasting, without its copies), into ``out`` when given."""
+    out = np.empty(A.shape) if out is None else out
     q0, q1, q2 = q[:, 0, None], q[:, 1, None], q[:, 2, None]
     a0, a1, a2 = A[:, :, 0], A[:, :, 1], A[:, :, 2]
-    return np.stack([q1 * a2 - q2 * a1, q2 * a0 - q0 * a2, q0 * a1 - q1 * a0], axis=2)
+    out[:, :, 0] = q1 * a2 - q2 * a1
+    out[:, :, 1] = q2 * a0 - q0 * a2
+    out[:, :, 2] = q0 * a1 - q1 * a0
+    return out
 
 
 def _rmul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -1029,7 +1045,7 @@ def _rmul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return (A.reshape(n * a, b) @ B).reshape(n, a, B.shape[1])
 
 
-def _R_batch(v: np.ndarray) -> np.ndarray:
+def R_batch(v: np.ndarray) -> np.ndarray:
     """Rotation matrices (n, 3, 3) of rotation vectors (n, 3) (Rodrigues, series near 0)."""
     th = np.linalg.norm(v, axis=1)
     small = th < 1e-8

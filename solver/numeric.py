@@ -2,10 +2,8 @@
 F distribution's upper tails and a small Levenberg-Marquardt least-squares fit.
 
 Why not scipy: importing ``scipy.special`` or ``scipy.optimize`` costs a command more than its
-whole solve on a small session (they pull in scipy's array API layer and linear programming).
-These are the textbook methods (series and Lentz's continued fractions for the incomplete gamma
-and beta functions, Marquardt's damping with forward differences), checked against scipy in
-tests/test_numeric.py.
+whole solve on a small session. The textbook methods: series and Lentz's continued fractions
+for the incomplete gamma and beta functions, Marquardt's damping with forward differences.
 """
 
 from __future__ import annotations
@@ -44,7 +42,7 @@ def _gamma_q(a: float, x: float) -> float:
     if x < a + 1.0:  # the series of P converges fast here, and P is not close to 1
         term = total = 1.0 / a
         n = a
-        while abs(term) > abs(total) * _EPS:
+        while term > total * _EPS:  # every term is positive (x, a > 0)
             n += 1.0
             term *= x / n
             total += term

@@ -167,8 +167,7 @@ def refine(
     Outliers: detections beyond both ``options.outlier_threshold_px`` and 5 times their
     camera's noise get zero weight and the solve is repeated; they are returned in
     ``outliers``. Each camera's noise is estimated from its residuals and its rows weighed by it,
-    to a fixed point with the pose-prior scale. Covariance: ``s^2 (J' W J)^-1`` with
-    ``s^2 = sum(w r^2) / (n - p)`` (Sec. 6); ``sigma_px`` is the reference camera's noise.
+    to a fixed point with the pose-prior scale; ``sigma_px`` is the reference camera's noise.
 
     Robot sessions with ``options.estimate_robot_noise`` (the default) learn the arm's
     accuracy as docs/ERROR_MODEL.md Sec. 2 says; the exact-pose solve stands (``robot_sigma``
