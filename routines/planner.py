@@ -47,11 +47,12 @@ from slidecal.routines.config import (
     PlanSettings,
     load_config,
 )
-from slidecal.routines.plan import Plan, group_R_board_cam, tool_pose, write_plan
+from slidecal.routines.plan import Plan, tool_pose, write_plan
 from slidecal.solver.camera import project
 from slidecal.solver.degeneracy import check_configuration
 from slidecal.solver.errors import DegenerateError, HardwareFault, InputError
 from slidecal.solver.geometry import (
+    R_from_rvec,
     T_from_Rt,
     inv_T,
     rotation_angle_deg,
@@ -90,6 +91,14 @@ DIRECTIONS = np.array(
 
 
 # -- geometry of candidates -------------------------------------------------------------------
+def group_R_board_cam(tilt_deg: float, azimuth_deg: float) -> np.ndarray:
+    """``R_board_cam`` (3, 3) of a group: looking along +z_board, tilted by ``tilt_deg`` about
+    the in-plane axis at ``azimuth_deg``."""
+    phi = np.radians(azimuth_deg)
+    axis = np.array([np.cos(phi), np.sin(phi), 0.0])
+    return R_from_rvec(axis * np.radians(tilt_deg))
+
+
 def group_T_cam_board(
     centre_board: np.ndarray, standoff_m: float, R_board_cam: np.ndarray, offsets_cam_m: np.ndarray
 ) -> np.ndarray:

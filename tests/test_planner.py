@@ -3,6 +3,9 @@ why, the default cell's plan meets the goal by prediction, the prediction is the
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -27,6 +30,9 @@ from slidecal.solver.geometry import inv_T
 from slidecal.solver.linear import LinearGroup
 from slidecal.solver.model import build_structure
 from slidecal.solver.uncertainty import planned_covariance, predicted_covariance
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout: tests.*
+from tests.fixed_plan import default_plan  # noqa: E402 - the reference plan
 
 
 @pytest.fixture(scope="module")
@@ -155,7 +161,7 @@ def test_every_plan_moves_with_the_cells_robot_settings(tmp_path, default_report
     settings; the file keeps them."""
     from dataclasses import replace
 
-    from slidecal.routines.plan import Plan, default_plan, write_plan
+    from slidecal.routines.plan import Plan, write_plan
 
     cfg, report = default_report
     slow = replace(cfg, robot=replace(cfg.robot, speed_mps=0.05, accel_mps2=0.3, settle_s=1.5))

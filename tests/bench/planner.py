@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from slidecal.routines.config import CellConfig, load_config
-from slidecal.routines.plan import Plan, default_plan, tool_pose
+from slidecal.routines.plan import Plan, tool_pose
 from slidecal.routines.planner import (
     _rejection,
     _via,
@@ -38,6 +38,7 @@ from slidecal.routines.planner import (
 )
 from slidecal.routines.run import RunRequest, run_calibration
 from tests.bench.report import RESULTS, publish_report, report_header
+from tests.fixed_plan import default_plan
 
 #: The acceptance range of the median reported / predicted std (issue 35).
 LOW, HIGH = 0.8, 1.25
