@@ -258,23 +258,9 @@ def _rejection(cfg: CellConfig, s: PlanSettings, T_base_tool: np.ndarray) -> str
     hi = np.array([spec.width, spec.height]) - 0.5 - s.margin_px
     if np.any(px < s.margin_px - 0.5) or np.any(px > hi):
         return "view"
-    if not _reachable(T_base_tool, cfg):
+    if not urk.reachable(T_base_tool, None, urk.model_by_name(cfg.robot.model), cfg.robot.tcp):
         return "reach"
     return None
-
-
-def _reachable(T_base_tool: np.ndarray, cfg: CellConfig) -> bool:
-    """``ur_kinematics.reachable(T, None, ...)`` without its duplicate filtering: the closed-form
-    solutions are wrapped to (-pi, pi], inside every e-Series joint limit, so a pose is reachable
-    when one of them is not singular."""
-    model = urk.model_by_name(cfg.robot.model)
-    T = T_base_tool if cfg.robot.tcp is None else T_base_tool @ inv_T(cfg.robot.tcp)
-    return any(
-        urk.singularity(q, model) is None
-        and np.all(q >= np.array(model.q_min))
-        and np.all(q <= np.array(model.q_max))
-        for q in urk._ik_flange(T, model)
-    )
 
 
 def _via(cfg: CellConfig) -> np.ndarray:
