@@ -41,6 +41,7 @@ MAX_GROUP_ROTATION_DEG = 0.01
 MAX_SPEED_MPS = 1.0
 MAX_ACCEL_MPS2 = 2.5
 
+
 @dataclass(frozen=True)
 class Plan:
     """Orientation groups of ``T_base_tool`` (4, 4) poses (metres) and how to move between them;
