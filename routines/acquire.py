@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from contextlib import nullcontext, suppress
 from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -20,12 +21,28 @@ from slidecal.routines.ops.lock import Lock, cell_lock_path
 from slidecal.routines.ops.verdict import Limits
 from slidecal.routines.plan import Plan, check_plan, write_plan
 from slidecal.routines.progress import Interrupted, Progress, signals_as_interrupt
+from slidecal.routines.schema import check_out_dir
 from slidecal.routines.session import SessionWriter
 from slidecal.solver.detect import detect
 from slidecal.solver.errors import HardwareFault, InputError
 
 #: Captures of one pose tried again after a dropped frame or no corners at all (cell or CLI).
 DEFAULT_RETRIES = 2
+
+
+def new_session_dir(
+    out_dir: str | Path | None, prefix: str = "", resume: str = ", or continue it with --resume"
+) -> Path:
+    """The new session's directory (default ``sessions/<prefix><date>_<time>``), refused at once
+    when it cannot be one; ``resume``: how the refusal offers to continue the one there."""
+    stamp = datetime.now().strftime(f"{prefix}%Y%m%d_%H%M%S")
+    out = Path(out_dir) if out_dir is not None else Path("sessions") / stamp
+    check_out_dir(out)
+    if (out / "session.yaml").exists():
+        raise InputError(
+            f"already holds a session; choose a new --out directory{resume}", where=str(out)
+        )
+    return out
 
 
 def cell_key(config: Any, cfg: CellConfig) -> str | None:

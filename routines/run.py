@@ -11,7 +11,6 @@ import argparse
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, fields, replace
-from datetime import datetime
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -19,7 +18,14 @@ from typing import Any
 import numpy as np
 
 from slidecal.mocks.cell import SimulatedCell
-from slidecal.routines.acquire import DEFAULT_RETRIES, cell_key, clock, record_session, sockets
+from slidecal.routines.acquire import (
+    DEFAULT_RETRIES,
+    cell_key,
+    clock,
+    new_session_dir,
+    record_session,
+    sockets,
+)
 from slidecal.routines.config import CellConfig, PlanGoal, load_config
 from slidecal.routines.devices import check_libraries
 from slidecal.routines.ops.faults import parse_fault
@@ -87,11 +93,6 @@ class RunRequest:
     retries: int | None = None
 
 
-def default_session_dir() -> Path:
-    """``sessions/<date>_<time>`` under the current directory."""
-    return Path("sessions") / datetime.now().strftime("%Y%m%d_%H%M%S")
-
-
 def check_user_plan(plan: Plan, cfg: CellConfig, where: str) -> None:
     """Refuse, before the robot moves, a user's plan that cannot determine the calibration: a group
     whose poses differ in orientation or hold no translation, or a plan the planner's prediction
@@ -149,7 +150,8 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
     if q.resume is not None:
         out, plan, start, seed = _resumed(q)
     else:
-        out, plan, start, seed = _new_session(q, cfg), _plan(q.plan, cfg), 0, q.seed
+        out = new_session_dir(q.out_dir)
+        plan, start, seed = _plan(q.plan, cfg), 0, q.seed
     inst_result, inst_path = installed_calibration(
         q.installed if q.installed is not None else store
     )
@@ -249,18 +251,6 @@ def _resumed(q: RunRequest) -> tuple[Path, Plan, int, int | None]:
     if seed is None and isinstance(sim, Mapping) and isinstance(sim.get("seed"), int):
         seed = int(sim["seed"])
     return out, read_plan(out / "plan.yaml"), len(frames), seed
-
-
-def _new_session(q: RunRequest, cfg: CellConfig) -> Path:
-    """The new session's directory, refused at once when it cannot be one."""
-    out = Path(q.out_dir) if q.out_dir is not None else default_session_dir()
-    check_out_dir(out)
-    if (out / "session.yaml").exists():
-        raise InputError(
-            "already holds a session; choose a new --out directory, or continue it with --resume",
-            where=str(out),
-        )
-    return out
 
 
 def _plan(plan: str | Path | Plan | None, cfg: CellConfig) -> Plan:

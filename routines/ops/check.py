@@ -7,13 +7,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-from datetime import datetime
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from slidecal.routines.acquire import cell_key, clock, record_session
+from slidecal.routines.acquire import cell_key, clock, new_session_dir, record_session
 from slidecal.routines.config import CellConfig, load_config
 from slidecal.routines.ops.install import (
     INSTALLED_FILE,
@@ -34,7 +33,6 @@ from slidecal.routines.plan import Plan, read_plan
 from slidecal.routines.planner import dry_run, make_plan
 from slidecal.routines.progress import Progress
 from slidecal.routines.results_io import read_result
-from slidecal.routines.schema import check_out_dir
 from slidecal.routines.session import load_session, load_yaml
 from slidecal.solver.camera import project
 from slidecal.solver.drift import T_cam_board as _T_cam_board
@@ -319,14 +317,7 @@ def run_check(
     plan = check_plan_from(base, cfg, frames)
     if seed is not None and seed < 0:
         raise InputError(f"--seed must be 0 or a positive integer, got {seed}")
-    out = (
-        Path(out_dir)
-        if out_dir is not None
-        else Path("sessions") / datetime.now().strftime("check_%Y%m%d_%H%M%S")
-    )
-    check_out_dir(out)
-    if (out / "session.yaml").exists():
-        raise InputError("already holds a session; choose a new --out directory", str(out))
+    out = new_session_dir(out_dir, "check_", resume="")
     prog = Progress.from_option(progress, plan.n_poses)
     rec = record_session(
         cfg,
