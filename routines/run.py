@@ -29,7 +29,7 @@ from slidecal.routines.acquire import (
 from slidecal.routines.config import CellConfig, PlanGoal, load_config
 from slidecal.routines.devices import check_libraries
 from slidecal.routines.ops.faults import parse_fault
-from slidecal.routines.ops.install import NotInstalled, check_same_cell, install
+from slidecal.routines.ops.install import NotInstalled, check_same_cell, install, one_sigmas
 from slidecal.routines.ops.verdict import Limits, judge
 from slidecal.routines.plan import Plan, read_plan
 from slidecal.routines.planner import extend_plan, make_plan, predict_std
@@ -324,16 +324,12 @@ def extend_for_limits(
     he = result.hand_eye
     if cam is None or he is None:
         return None, "not extended: the reference camera or the hand-eye was not determined"
-    K = np.asarray(cam.K, dtype=float)
-    rel = [
-        float(cam.std[p]) / abs(v)
-        for p, v in (("fx", K[0, 0]), ("fy", K[1, 1]))
-        if cam.std.get(p) is not None
-    ]
+    u, ref, nan = one_sigmas(result), cfg.reference_camera, float("nan")
+    rel = [u[k] for k in (f"{ref}.fx_rel", f"{ref}.fy_rel") if k in u]
     achieved = {
-        "fx_rel_std": max(rel) if rel else float("nan"),
-        "hand_eye_rot_std_deg": he.std_rot_deg if he.std_rot_deg is not None else float("nan"),
-        "hand_eye_t_std_mm": he.std_t_mm if he.std_t_mm is not None else float("nan"),
+        "fx_rel_std": max(rel) if rel else nan,
+        "hand_eye_rot_std_deg": u.get(f"{he.name}.rot_deg", nan),
+        "hand_eye_t_std_mm": u.get(f"{he.name}.t_mm", nan),
     }
     goal = PlanGoal(**{k: EXTEND_MARGIN * getattr(limits, k) for k in achieved})
     acc = result.robot_accuracy

@@ -128,7 +128,9 @@ def history(store: str | Path) -> list[Path]:
     return sorted(p for p in h.iterdir() if p.is_dir() and not p.name.startswith("."))
 
 
-def _uncertainties(r: CalibrationResult) -> dict[str, float]:
+def one_sigmas(r: CalibrationResult) -> dict[str, float]:
+    """The finite one-sigmas of a result: ``<cam>.fx_rel`` (relative), ``<cam>.cx_px``,
+    ``<transform>.rot_deg``, ``<transform>.t_mm``."""
     out: dict[str, float] = {}
     for n, c in r.cameras.items():
         K = np.asarray(c.K, dtype=float)
@@ -150,7 +152,7 @@ def _uncertainties(r: CalibrationResult) -> dict[str, float]:
 
 def worse_than(new: CalibrationResult, old: CalibrationResult) -> str | None:
     """Why ``new`` is less certain than ``old`` (one line), or None when it is not."""
-    a, b = _uncertainties(new), _uncertainties(old)
+    a, b = one_sigmas(new), one_sigmas(old)
     worst = None
     for k in a:
         if k in b and b[k] > 0 and a[k] > WORSE_FACTOR * b[k]:
