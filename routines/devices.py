@@ -91,11 +91,7 @@ def _oak(cfg: Any, section: Fields) -> Any:
             white_balance_k=wb,
             fps=section.number("fps", DEFAULT_FPS, positive=True),
             resize_mode=section.choice("resize", RESIZE_MODES, "stretch"),
-            sync_tolerance_s=(
-                section.number("sync_tolerance_s", positive=True)
-                if section.has("sync_tolerance_s")
-                else None
-            ),
+            sync_tolerance_s=section.optional_number("sync_tolerance_s", positive=True),
         )
     except InputError as e:
         if e.where:
@@ -113,10 +109,6 @@ def _uvc(cfg: Any, section: Fields) -> Any:
     source = f.require("source")
     if isinstance(source, bool) or not isinstance(source, int | str):
         raise f.error("source", f"must be a device index or a path, got {source!r}")
-
-    def opt(key: str) -> float | None:
-        return f.number(key) if f.has(key) else None
-
     try:
         return UvcCamera(
             source,
@@ -124,9 +116,9 @@ def _uvc(cfg: Any, section: Fields) -> Any:
             c.width,
             c.height,
             fourcc=str(f.get("fourcc")) if f.has("fourcc") else None,
-            exposure=opt("exposure"),
-            focus=opt("focus"),
-            fps=opt("fps"),
+            exposure=f.optional_number("exposure"),
+            focus=f.optional_number("focus"),
+            fps=f.optional_number("fps"),
             drop_frames=f.integer("drop_frames", 4, minimum=0),
         )
     except InputError as e:
