@@ -15,9 +15,9 @@ import numpy as np
 from slidecal.routines.acquire import cell_key, clock, new_session_dir, record_session
 from slidecal.routines.config import CellConfig, load_config
 from slidecal.routines.ops.install import (
-    INSTALLED_FILE,
     check_same_cell,
     current_dir,
+    installed_info,
     installed_session,
 )
 from slidecal.routines.ops.verdict import (
@@ -33,7 +33,7 @@ from slidecal.routines.plan import Plan, read_plan
 from slidecal.routines.planner import dry_run, make_plan
 from slidecal.routines.progress import Progress
 from slidecal.routines.results_io import read_result
-from slidecal.routines.session import load_session, load_yaml
+from slidecal.routines.session import load_session
 from slidecal.solver.camera import project
 from slidecal.solver.drift import T_cam_board as _T_cam_board
 from slidecal.solver.drift import fit_target, hand_eye_T, match_poses
@@ -301,11 +301,7 @@ def run_check(
             where=str(store),
         )
     inst = read_result(cur / "result.yaml")
-    info = (
-        load_yaml(cur / INSTALLED_FILE, "installed.yaml")
-        if (cur / INSTALLED_FILE).is_file()
-        else {}
-    )
+    info = installed_info(cur)
     check_same_cell(inst, str(cur), cfg.cameras, cfg.source)
     if (cur / "plan.yaml").is_file():
         base = read_plan(cur / "plan.yaml")
@@ -332,7 +328,7 @@ def run_check(
     )
     problem = load_session(out).problem
     verdict = judge_problem(
-        problem, inst, expected_rms_px(inst, info or {}, cfg), cfg, installed_problem=recorded
+        problem, inst, expected_rms_px(inst, info, cfg), cfg, installed_problem=recorded
     )
     verdict.extra["check"]["robot_time_s"] = clock(rec.robot)
     write_verdict(verdict, out)

@@ -74,6 +74,13 @@ def installed_session(directory: str | Path) -> CalibrationProblem | None:
     return load_session(d, detect_images=False).problem
 
 
+def installed_info(directory: str | Path | None) -> dict[str, Any]:
+    """An install's ``installed.yaml`` (empty when there is none)."""
+    meta = Path(directory) / INSTALLED_FILE if directory else None
+    data = load_yaml(meta, "installed.yaml") if meta is not None and meta.is_file() else None
+    return data if isinstance(data, dict) else {}
+
+
 def _session_copy(src: Path) -> str | None:
     """The text of ``src/session.yaml`` without its frames' image paths (None when there is
     no session file or no frame holds detections: nothing a check could compare with)."""
@@ -98,11 +105,7 @@ def check_same_cell(
     """Refuse (InputError: nothing compared, nothing moved) an installed calibration of another
     cell or camera: the cell its ``installed.yaml`` names against ``cell``, and the image size of
     each of ``cameras`` (``name``, ``width``, ``height``) the installed calibration also has."""
-    meta = Path(path) / INSTALLED_FILE if path else None
-    old_cell = None
-    if meta is not None and meta.is_file():
-        data = load_yaml(meta, "installed.yaml")
-        old_cell = data.get("cell") if isinstance(data, dict) else None
+    old_cell = installed_info(path).get("cell")
     if cell and old_cell and str(old_cell) != str(cell):
         raise InputError(
             f"holds the calibration of cell {old_cell}, not of this cell ({cell}): nothing was "
