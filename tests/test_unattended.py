@@ -324,15 +324,15 @@ def test_a_crash_while_installing_leaves_current_intact(solved_dir, tmp_path, mo
     store = tmp_path / "store"
     first = install(store, d, r, "accepted")
     calls = {"n": 0}
-    real = inst._copy_synced
+    real = inst.write_atomic
 
-    def dies_midway(src, dst):  # noqa: ANN001
+    def dies_midway(dst, data):  # noqa: ANN001
         calls["n"] += 1
         if calls["n"] == 3:
             raise OSError(errno.ENOSPC, "No space left on device", str(dst))
-        real(src, dst)
+        real(dst, data)
 
-    monkeypatch.setattr(inst, "_copy_synced", dies_midway)
+    monkeypatch.setattr(inst, "write_atomic", dies_midway)
     with pytest.raises(OSError):
         install(store, d, r, "accepted")
     assert (store / CURRENT).resolve() == first and history(store) == [first]

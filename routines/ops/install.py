@@ -170,13 +170,6 @@ def worse_than(new: CalibrationResult, old: CalibrationResult) -> str | None:
     )
 
 
-def _copy_synced(src: Path, dst: Path) -> None:
-    with open(src, "rb") as fi, open(dst, "wb") as fo:
-        shutil.copyfileobj(fi, fo)
-        fo.flush()
-        os.fsync(fo.fileno())
-
-
 def _publish_link(store: Path, target: Path) -> None:
     tmp = store / f".{CURRENT}.tmp"
     if tmp.is_symlink() or tmp.exists():
@@ -233,14 +226,13 @@ def install(
         try:
             for name in _FILES:
                 if (src / name).is_file():
-                    _copy_synced(src / name, staging / name)
+                    write_atomic(staging / name, (src / name).read_bytes())
             exp = src / "export"
             if exp.is_dir():
                 (staging / "export").mkdir()
                 for p in sorted(exp.iterdir()):
                     if p.is_file():
-                        _copy_synced(p, staging / "export" / p.name)
-                _fsync_dir(staging / "export")
+                        write_atomic(staging / "export" / p.name, p.read_bytes())
             session_text = _session_copy(src)
             if session_text is not None:
                 write_atomic(staging / SESSION_FILE, session_text)
