@@ -199,21 +199,18 @@ def banner(verdict: Verdict, width: int = PANEL_W * 2) -> np.ndarray:
     return img
 
 
-def _stack(rows: list[np.ndarray], width: int) -> np.ndarray:
-    out = []
-    for r in rows:
-        if r.shape[1] < width:
-            pad = np.full((r.shape[0], width - r.shape[1], 3), 255, np.uint8)
-            r = np.hstack([r, pad])
-        out.append(r)
-    return np.vstack(out)
+def _pad(img: np.ndarray, height: int, width: int) -> np.ndarray:
+    """``img`` at the top left of a white ``height`` x ``width`` canvas."""
+    out = np.full((height, width, 3), 255, np.uint8)
+    out[: img.shape[0], : img.shape[1]] = img
+    return out
 
 
-def _png_b64(img: np.ndarray) -> str:
+def _png(img: np.ndarray, what: str = "a report image") -> bytes:
     ok, buf = cv2.imencode(".png", img)
     if not ok:
-        raise ValueError("OpenCV could not encode a report image")
-    return base64.b64encode(buf.tobytes()).decode()
+        raise ValueError(f"OpenCV could not encode {what}")
+    return buf.tobytes()
 
 
 def write_report(
@@ -241,13 +238,9 @@ def write_report(
     for k in range(0, len(panels), 2):
         pair = [p for _, p in panels[k : k + 2]]
         h = max(p.shape[0] for p in pair)
-        pair = [np.vstack([p, np.full((h - p.shape[0], PANEL_W, 3), 255, np.uint8)]) for p in pair]
-        rows.append(np.hstack(pair))
-    png = _stack(rows, PANEL_W * 2)
-    ok, buf = cv2.imencode(".png", png)
-    if not ok:
-        raise ValueError("OpenCV could not encode report.png")
-    write_atomic(d / REPORT_PNG, buf.tobytes())
+        rows.append(np.hstack([_pad(p, h, PANEL_W) for p in pair]))
+    png = np.vstack([_pad(r, r.shape[0], PANEL_W * 2) for r in rows])
+    write_atomic(d / REPORT_PNG, _png(png, REPORT_PNG))
 
     e = html.escape
     b, g, r = _COLOURS.get(verdict.verdict, (80, 80, 80))
@@ -298,9 +291,8 @@ def write_report(
     elif installed is None:
         parts.append("<p>No installed calibration to compare with.</p>")
     for title, img in panels:
-        parts.append(
-            f"<h2>{e(title)}</h2><img alt='{e(title)}' src='data:image/png;base64,{_png_b64(img)}'>"
-        )
+        b64 = base64.b64encode(_png(img)).decode()
+        parts.append(f"<h2>{e(title)}</h2><img alt='{e(title)}' src='data:image/png;base64,{b64}'>")
     if verdict.notes:
         parts.append(
             "<h2>Notes</h2><ul>" + "".join(f"<li>{e(n)}</li>" for n in verdict.notes) + "</ul>"
