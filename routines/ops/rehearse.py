@@ -42,8 +42,6 @@ from slidecal.solver.problem import MOUNTS
 
 help = "rehearse the cell's routine through the real ur-rtde client on a loopback controller"
 REHEARSAL_FILE = "rehearsal.yaml"
-#: The controller's state after the last rehearsal in this process (the fault table reads it).
-LAST_CONTROLLER_STATE: dict[str, Any] = {}
 #: The rehearsal's stale-data limit (a Python loopback goes unscheduled under load far longer than
 #: a controller's cycle); three times the longest gap it showed before the run if that is longer.
 LOOPBACK_STALE_S = 1.0
@@ -219,8 +217,6 @@ def rehearse(
     finally:
         state = state or _state(controller)
         controller.stop()
-        LAST_CONTROLLER_STATE.clear()
-        LAST_CONTROLLER_STATE.update(state)
         report["controller"] = robot.controller_info
         report["controller_events"] = state.get("events", [])
         report["arm_at_rest"] = not state.get("moving", True) and not state.get("stalled")
