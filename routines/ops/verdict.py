@@ -29,6 +29,7 @@ from slidecal.solver.camera import (
     distortion_model,
     opencv_view,
     project,
+    project_with_jacobians,
     undistort_normalised,
 )
 from slidecal.solver.errors import DegenerateError, InputError
@@ -551,20 +552,8 @@ def uncertainty_map(result: CalibrationResult, camera: str, n: tuple[int, int] =
     u, v = np.meshgrid(np.linspace(0, cam.width - 1, n[0]), np.linspace(0, cam.height - 1, n[1]))
     px = np.stack([u.ravel(), v.ravel()], 1)
     rays = undistort_normalised(K, d, px)
-    P = np.hstack([rays, np.ones((len(rays), 1))])
-
-    def proj(theta: np.ndarray) -> np.ndarray:
-        Kp = np.array([[theta[0], theta[4], theta[2]], [0, theta[1], theta[3]], [0, 0, 1.0]])
-        return project(Kp, theta[5:], P)
-
-    theta0 = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1], *d])
-    J = np.zeros((len(P), 2, len(idx)))
-    for j, (k, _) in enumerate(idx):
-        h = 1e-6 * max(1.0, abs(theta0[k]))
-        tp, tm = theta0.copy(), theta0.copy()
-        tp[k] += h
-        tm[k] -= h
-        J[:, :, j] = (proj(tp) - proj(tm)) / (2 * h)
+    at = project_with_jacobians(K, d, np.hstack([rays, np.ones((len(rays), 1))]))
+    J = np.concatenate([at.d_K, at.d_dist], axis=2)[:, :, [k for k, _ in idx]]  # (fx .. s, lens)
     var = np.einsum("nij,jk,nik->n", J, C, J)
     return np.sqrt(np.maximum(var, 0.0)).reshape(n[1], n[0])
 
