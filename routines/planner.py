@@ -50,6 +50,7 @@ from slidecal.routines.config import (
 from slidecal.routines.plan import Plan, tool_pose, write_plan
 from slidecal.solver.camera import project
 from slidecal.solver.degeneracy import check_configuration
+from slidecal.solver.drift import T_cam_board
 from slidecal.solver.errors import DegenerateError, HardwareFault, InputError
 from slidecal.solver.geometry import (
     R_from_rvec,
@@ -128,10 +129,7 @@ def move_time_s(T0: np.ndarray, T1: np.ndarray, speed_mps: float, accel_mps2: fl
 # -- the predicted model ----------------------------------------------------------------------
 def nominal_T_cam_board(cfg: CellConfig, T_base_tool: np.ndarray) -> np.ndarray:
     """The nominal ``T_cam_board`` (4, 4) of the reference camera at a tool pose (4, 4)."""
-    X = inv_T(cfg.approx_T_hand_eye)  # T_cam_tool (eye-in-hand) or T_cam_base (eye-to-hand)
-    if cfg.mount == "eye_in_hand":
-        return X @ inv_T(T_base_tool) @ cfg.approx_T_target
-    return X @ T_base_tool @ cfg.approx_T_target
+    return T_cam_board(cfg.mount, cfg.approx_T_hand_eye, T_base_tool, cfg.approx_T_target)
 
 
 def _spec(cfg: CellConfig) -> CameraSpec:
