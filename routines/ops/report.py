@@ -13,10 +13,10 @@ import numpy as np
 
 from slidecal.routines.ops.verdict import Verdict, coverage_fraction, uncertainty_map
 from slidecal.routines.schema import write_atomic
-from slidecal.solver.camera import opencv_view, project
+from slidecal.solver.calibrate import pnp_pose
+from slidecal.solver.camera import project
 from slidecal.solver.drift import T_cam_board, hand_eye_T
 from slidecal.solver.errors import InputError
-from slidecal.solver.geometry import T_from_Rt
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.result import CalibrationResult
 
@@ -49,10 +49,9 @@ def _board_poses(
         if X is not None and fr.T_base_tool is not None:
             out[fr.id] = T_cam_board(result.mount, X, fr.T_base_tool, result.T_target.T)
             continue
-        Kv, dv, px = opencv_view(K, d, np.asarray(det.px, np.float64))
-        ok, rvec, tvec = cv2.solvePnP(pts[det.ids].astype(np.float64), px, Kv, dv)
-        if ok:
-            out[fr.id] = T_from_Rt(cv2.Rodrigues(rvec)[0], tvec.ravel())
+        T = pnp_pose(K, d, pts[det.ids], np.asarray(det.px))
+        if T is not None:
+            out[fr.id] = T
     return out
 
 
