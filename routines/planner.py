@@ -230,15 +230,12 @@ def _covariance(info: np.ndarray) -> np.ndarray | None:
 # -- candidates -------------------------------------------------------------------------------
 @dataclass
 class _Group:
-    """A candidate group: its pose (index 0) and displaced frames; which are usable, and why
-    not; each frame's tool pose and information."""
+    """A candidate group: its pose (index 0) and displaced frames; each frame's tool pose,
+    whether it is usable and its information; the frames a failed dry run banned."""
 
-    tilt_deg: float
-    azimuth_deg: float
-    standoff_m: float
     T_base_tool: np.ndarray  # (n, 4, 4)
     usable: np.ndarray  # (n,) bool
-    info: np.ndarray | None = None  # (n, P, P)
+    info: np.ndarray  # (n, P, P)
     banned: set[int] = field(default_factory=set)
 
 
@@ -295,13 +292,11 @@ def _candidates(
                 usable = np.array([w is None for w in why])
                 if not usable[0] or usable.sum() < s.min_frames_per_group:
                     continue
-                g = _Group(tilt, az, d, T_bt, usable)
                 idx = np.flatnonzero(usable)
                 fim = _information(cfg, s, T_bt[idx])
-                info = fim.per_frame
-                g.info = np.zeros((len(T_bt),) + info.shape[1:])
-                g.info[idx] = info
-                groups.append(g)
+                info = np.zeros((len(T_bt),) + fim.per_frame.shape[1:])
+                info[idx] = fim.per_frame
+                groups.append(_Group(T_bt, usable, info))
     return groups, counts, fim
 
 
