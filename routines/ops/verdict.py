@@ -40,15 +40,8 @@ from slidecal.solver.result import CalibrationResult
 VERDICT_FORMAT = "slidecal.verdict/1"
 VERDICT_FILE = "verdict.yaml"
 
-EXIT_OK = 0
-EXIT_REJECTED = 4
-EXIT_DRIFTED = 5
-EXIT_CODES = {
-    "accepted": EXIT_OK,
-    "ok": EXIT_OK,
-    "rejected": EXIT_REJECTED,
-    "drifted": EXIT_DRIFTED,
-}
+#: The exit code of each verdict (docs/UNATTENDED.md)
+EXIT_CODES = {"accepted": 0, "ok": 0, "rejected": 4, "drifted": 5}
 
 
 @dataclass(frozen=True)
