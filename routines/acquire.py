@@ -129,7 +129,9 @@ def record_session(
             rig.open()
             specs = tuple(rig.specs)
             check_plan(plan, cfg, robot.is_reachable)  # refuse before anything moves
-            found = {**record_devices(rig, out, cfg.standoff_m), **_controller(robot)}
+            found = record_devices(rig, out, cfg.standoff_m)
+            if getattr(robot, "controller_info", None):  # what a real controller reported
+                found["controller"] = dict(robot.controller_info)
             writer = _open_writer(out, cfg, specs, truth, resume, {**found, **(extra or {})})
             if not resume or extended:
                 write_plan(plan, out / "plan.yaml")
@@ -237,12 +239,6 @@ def _abort(robot, writer, log, prog: Progress, e: BaseException, out: Path) -> N
     raise HardwareFault(
         f"{msg} (robot stopped; the {n} frames captured before it are in {out}{resume})"
     ) from e
-
-
-def _controller(robot: Any) -> dict[str, Any]:
-    """The session's ``controller:`` block: what a real robot controller reported on connect."""
-    info = getattr(robot, "controller_info", None)
-    return {"controller": dict(info)} if info else {}
 
 
 def clock(robot: Any) -> float | None:

@@ -676,7 +676,8 @@ def _search(
         chosen, t_pred, ratios, stop = _greedy(cands, fim, cfg, tight, timing, via, prior)
         if stop != "met":
             raise InputError(_goal_message(s, t_pred, ratios, stop), where=where)
-        plan = _to_plan(cfg, cands, chosen, via, ())
+        groups = tuple(tuple(cands[c.group].T_base_tool[k] for k in c.frames) for c in chosen)
+        plan = Plan.build(groups, cfg.robot, via=via)
         if before is not None:
             plan = Plan.build(before.groups + plan.groups, before, via=before.via)
         robot_s, bad, why = dry_run(plan, cfg)
@@ -769,11 +770,6 @@ def _scaled(goal: PlanGoal, mult: np.ndarray) -> PlanGoal:
     it = iter(mult)
     vals = {k: None if (v := getattr(goal, k)) is None else v * next(it) for k in GOAL_KEYS}
     return replace(goal, **vals)
-
-
-def _to_plan(cfg, cands, chosen, via, notes) -> Plan:  # noqa: ANN001 - internal helper
-    groups = tuple(tuple(cands[c.group].T_base_tool[k] for k in c.frames) for c in chosen)
-    return Plan.build(groups, cfg.robot, via=via, notes=notes)
 
 
 def _ban(cands: list[_Group], chosen: list[_Chosen], bad: int) -> None:

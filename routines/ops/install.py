@@ -45,10 +45,6 @@ class NotInstalled(InputError):
     """The result was not installed (rejected, drifted, or worse than the installed one)."""
 
 
-def _stamp() -> str:
-    return datetime.now(UTC).strftime("%Y%m%dT%H%M%S_%fZ")
-
-
 def current_dir(store: str | Path) -> Path | None:
     """The directory ``current`` points at, or None when nothing is installed."""
     cur = Path(store) / CURRENT
@@ -220,7 +216,7 @@ def install(
                     "it anyway with --force",
                     where=str(store),
                 )
-        stamp = _stamp()
+        stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S_%fZ")
         staging = store / f".staging-{stamp}"
         staging.mkdir()
         try:
