@@ -186,10 +186,6 @@ def nominal_state(cfg: CellConfig, s: PlanSettings, n_frames: int) -> ModelState
     )
 
 
-def _detections(problem: CalibrationProblem) -> list[Detection]:
-    return [f.detections[problem.reference] for f in problem.frames]
-
-
 def _information(cfg: CellConfig, s: PlanSettings, T_base_tool: np.ndarray) -> FrameInformation:
     """Each frame's information on the shared parameters (the solver's, per frame: the frames
     of any plan add up); every frame must see the target."""
@@ -337,14 +333,6 @@ def _sequence(cands: list[_Group], chosen: list[_Chosen], via: np.ndarray):
     return seq
 
 
-def _duration(seq, timing: _Timing) -> float:
-    t, prev = 0.0, timing.start
-    for kind, T in seq:
-        t += timing.move(prev, T) + (timing.per_frame if kind == "frame" else 0.0)
-        prev = T
-    return t
-
-
 def _greedy(
     cands: list[_Group],
     fim: FrameInformation,
@@ -440,7 +428,10 @@ def _greedy(
         else:
             chosen.append(_Chosen(i, [0, k]))
         info, f_now = A, objective(A)
-        t_now = _duration(_sequence(cands, chosen, via), timing)
+        t_now, prev = 0.0, timing.start
+        for kind, T in _sequence(cands, chosen, via):
+            t_now += timing.move(prev, T) + (timing.per_frame if kind == "frame" else 0.0)
+            prev = T
         if t_now > s.goal.max_duration_s:
             cov = _covariance(info)
             return chosen, t_now, goal_ratios_of(cov) if cov is not None else None, "time"
@@ -504,7 +495,7 @@ def predict_std(
     s = settings or cfg.plan
     T = np.array([T for _, T in plan.poses])
     problem = nominal_problem(cfg, s, T)
-    if any(len(d.ids) < 4 for d in _detections(problem)):
+    if any(len(f.detections[problem.reference].ids) < 4 for f in problem.frames):
         raise DegenerateError(
             "a planned frame does not see the target; move the frame or the target into view"
         )
@@ -740,7 +731,8 @@ def extend_plan(
     if fim is None:
         raise InputError("no candidate view of the target is left to extend the plan", where=where)
     T_old = np.array([T for _, T in plan.poses])
-    sees = [len(d.ids) >= 4 for d in _detections(nominal_problem(cfg, s, T_old))]
+    old = nominal_problem(cfg, s, T_old)
+    sees = [len(f.detections[old.reference].ids) >= 4 for f in old.frames]
     info = _information(cfg, s, T_old[sees]).per_frame.sum(axis=0)
     R_first = [g[0][:3, :3] for g in plan.groups]
     same = {

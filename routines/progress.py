@@ -44,17 +44,11 @@ class Progress:
         self._done = 0
         self._width = 0
 
-    def time_left_s(self) -> float | None:
-        """Wall time left, extrapolated from the frames done so far (None before the first)."""
-        if self._done == 0:
-            return None
-        per = (time.monotonic() - self._t0) / self._done
-        return per * (self.total - self._done)
-
     def step(self, index: int, what: str) -> None:
-        """Show ``frame index+1 of total: what`` and the time left."""
-        left = self.time_left_s()
-        eta = f", about {left:.0f} s left" if left is not None else ""
+        """Show ``frame index+1 of total: what`` and the wall time left, extrapolated from the
+        frames done so far."""
+        left = (time.monotonic() - self._t0) / max(self._done, 1) * (self.total - self._done)
+        eta = f", about {left:.0f} s left" if self._done else ""
         self._show(f"frame {index + 1} of {self.total}: {what}{eta}")
 
     def frame_done(self, detail: str | None = None) -> None:

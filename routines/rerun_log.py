@@ -70,11 +70,8 @@ class RerunLog:
     def _cam_path(self, name: str) -> str:
         return f"world/tool/{name}" if self.mount == "eye_in_hand" else f"world/{name}"
 
-    def _board_path(self) -> str:
-        return "world/board" if self.mount == "eye_in_hand" else "world/tool/board"
-
     def _log_board(self, T_target: np.ndarray, static: bool = False) -> None:
-        p = self._board_path()
+        p = "world/board" if self.mount == "eye_in_hand" else "world/tool/board"
         self.rec.log(
             p, rr.Transform3D(translation=T_target[:3, 3], mat3x3=T_target[:3, :3]), static=static
         )
