@@ -38,7 +38,7 @@ from slidecal.solver.camera import project
 from slidecal.solver.drift import T_cam_board as _T_cam_board
 from slidecal.solver.drift import fit_target, hand_eye_T, match_poses
 from slidecal.solver.errors import InputError
-from slidecal.solver.geometry import R_from_rvec, T_from_Rt
+from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T
 from slidecal.solver.numeric import least_squares
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.result import CalibrationResult, TransformEstimate
@@ -123,15 +123,8 @@ def refit(
     ref = installed.reference_camera or next(iter(installed.cameras))
     cams = [c.name for c in problem.cameras if c.name in installed.cameras]
     X0 = hand_eye_T(installed, ref)
-    T_c_ref = {}
-    for c in cams:
-        if c == ref:
-            T_c_ref[c] = np.eye(4)
-        else:
-            t = installed.rig.get(f"T_{c}_{ref}")
-            if t is None or t.T is None:
-                raise InputError(f"the installed calibration has no complete T_{c}_{ref}")
-            T_c_ref[c] = t.T
+    # T_<camera>_<reference> (hand_eye_T refuses an incomplete rig)
+    T_c_ref = {c: np.eye(4) if c == ref else inv_T(hand_eye_T(installed, c)) @ X0 for c in cams}
     Y0, _ = fit_target(problem, installed)
     pts = problem.target.points_m
     frames = [fr for fr in problem.frames if fr.T_base_tool is not None]
