@@ -292,8 +292,7 @@ def _reprojection(result: CalibrationResult, lim: Limits) -> list[Check]:
         )
         return [Check("adequacy", bool(ad.adequate), _num(worst), None, msg)]
     out = []
-    rms = result.reproj_rms_px
-    for name, c in result.cameras.items():
+    for name, c in result.cameras.items():  # a result holds a camera at least
         r = c.reproj_rms_px
         ok = bool(np.isfinite(r) and r <= lim.max_rms_px)
         out.append(
@@ -307,9 +306,6 @@ def _reprojection(result: CalibrationResult, lim: Limits) -> list[Check]:
                 + ")",
             )
         )
-    if not result.cameras:
-        ok = bool(np.isfinite(rms) and rms <= lim.max_rms_px)
-        out.append(Check("reprojection", ok, _num(rms), lim.max_rms_px, f"rms {rms:.3f} px"))
     return out
 
 
