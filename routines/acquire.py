@@ -6,7 +6,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from contextlib import nullcontext, suppress
-from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -79,15 +78,6 @@ def _connect_real(cfg: CellConfig) -> tuple[Any, Any]:
     return robot, rig
 
 
-@dataclass
-class Recorded:
-    """What :func:`record_session` leaves: the (closed) robot for its clock, the open rerun
-    log (None without recording)."""
-
-    robot: Any
-    log: Any
-
-
 def record_session(
     cfg: CellConfig,
     plan: Plan,
@@ -105,10 +95,11 @@ def record_session(
     faults: Any = None,
     extended: str | None = None,
     log: Any = None,
-) -> Recorded:
+) -> tuple[Any, Any]:
     """Connect, lock the cell, move through ``plan`` from pose ``start``, capture, detect and write
     the session ``out`` (``resume``: append to it; ``extended``: the plan grew, why). ``log``: the
-    run's open rerun log. On a fault or an interrupt the robot is stopped, the session marked
+    run's open rerun log. Returns the (closed) robot, for its clock, and the open rerun log (None
+    without recording). On a fault or an interrupt the robot is stopped, the session marked
     aborted with the event, and the exception raised again."""
     truth: dict[str, Any] | None = None
     if cfg.simulated:
@@ -151,7 +142,7 @@ def record_session(
             for closer in (rig.close, robot.close):
                 with suppress(Exception):  # closing must not hide the real error
                     closer()
-    return Recorded(robot, log)
+    return robot, log
 
 
 def _open_writer(

@@ -167,7 +167,7 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
     )
     record = partial(record, retries=retries, faults=q.faults)
     recording = q.recording and q.resume is None  # a resumed run's recording stays as it was
-    rec = record(
+    robot, log = record(
         plan=plan,
         start=start,
         resume=q.resume is not None,
@@ -175,7 +175,6 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
         spawn=q.spawn,
         seed=seed,
     )
-    robot, log = rec.robot, rec.log
     notes: list[str] = []
     for extension in range(EXTEND_ROUNDS + 1):
         prog.message("solving")
@@ -194,7 +193,7 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
         notes.append(said)
         prog.event(said)
         prog.total = plan.n_poses
-        robot = record(plan=plan, start=n_done, resume=True, extended=said, log=log).robot
+        robot, _ = record(plan=plan, start=n_done, resume=True, extended=said, log=log)
     fin = finish_solve(
         result,
         out,

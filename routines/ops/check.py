@@ -308,7 +308,7 @@ def run_check(
         raise InputError(f"--seed must be 0 or a positive integer, got {seed}")
     out = new_session_dir(out_dir, "check_", resume="")
     prog = Progress.from_option(progress, plan.n_poses)
-    rec = record_session(
+    robot, _ = record_session(
         cfg,
         plan,
         out,
@@ -323,7 +323,7 @@ def run_check(
     verdict = judge_problem(
         problem, inst, expected_rms_px(inst, info, cfg), cfg, installed_problem=recorded
     )
-    verdict.extra["check"]["robot_time_s"] = clock(rec.robot)
+    verdict.extra["check"]["robot_time_s"] = clock(robot)
     write_verdict(verdict, out)
     for line in verdict.lines():
         prog.event(line)
