@@ -120,7 +120,7 @@ def record_session(
             rig.open()
             specs = tuple(rig.specs)
             check_plan(plan, cfg, robot.is_reachable)  # refuse before anything moves
-            found = record_devices(rig, out, cfg.standoff_m)
+            found = {} if resume else record_devices(rig, out, cfg.standoff_m)  # a new session
             if getattr(robot, "controller_info", None):  # what a real controller reported
                 found["controller"] = dict(robot.controller_info)
             writer = _open_writer(out, cfg, specs, truth, resume, {**found, **(extra or {})})

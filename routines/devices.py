@@ -134,11 +134,6 @@ def record_devices(rig: Any, session_dir: str | Path, working_distance_m: float)
     if capabilities is None:
         return {}
     out = Path(session_dir)
-    if (out / SESSION_FILE).exists():
-        raise InputError(
-            "already holds a session; choose a new --out directory or delete the old one",
-            where=str(out),
-        )
     out.mkdir(parents=True, exist_ok=True)
     block: dict[str, Any] = {"camera": capabilities(), "working_distance_m": working_distance_m}
     calibrations = getattr(rig, "device_calibrations", None)
