@@ -31,7 +31,7 @@ from slidecal.routines.devices import check_libraries
 from slidecal.routines.ops.faults import parse_fault
 from slidecal.routines.ops.install import NotInstalled, check_same_cell, install, one_sigmas
 from slidecal.routines.ops.verdict import Limits, judge
-from slidecal.routines.plan import Plan, read_plan
+from slidecal.routines.plan import Plan, plan_from_dict, plan_to_dict, read_plan
 from slidecal.routines.planner import extend_plan, make_plan, predict_std
 from slidecal.routines.progress import Progress
 from slidecal.routines.schema import check_out_dir, load_yaml
@@ -45,13 +45,10 @@ from slidecal.routines.solve import (
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.drift import chain_rms_px
 from slidecal.solver.errors import DegenerateError, InputError
-from slidecal.solver.geometry import rotation_angle_deg
 from slidecal.solver.result import CalibrationResult
 
 help = "move the robot through a plan, capture, calibrate (simulated cell by default)"
 
-#: A user's plan: poses of one group may differ in orientation by this much (pendant rounding).
-MAX_GROUP_ROTATION_DEG = 0.5
 #: A user's plan: the smallest move inside a group that counts as a translation.
 MIN_GROUP_MOVE_M = 0.002
 
@@ -95,19 +92,10 @@ class RunRequest:
 
 def check_user_plan(plan: Plan, cfg: CellConfig, where: str) -> None:
     """Refuse, before the robot moves, a user's plan that cannot determine the calibration: a group
-    whose poses differ in orientation or hold no translation, or a plan the planner's prediction
-    finds degenerate."""
+    that holds no translation, or a plan the planner's prediction finds degenerate (a group's
+    orientation is the plan file's rule, :func:`~slidecal.routines.plan.plan_from_dict`)."""
     for g, group in enumerate(plan.groups):
         T0 = group[0]
-        for k, T in enumerate(group[1:], start=1):
-            angle = rotation_angle_deg(T[:3, :3], T0[:3, :3])
-            if angle > MAX_GROUP_ROTATION_DEG:
-                raise InputError(
-                    f"pose {k} of group {g} is rotated {angle:.2f} deg from the group's first "
-                    "pose; the poses of a group must share one orientation (pure translations), "
-                    "start a new group for a new orientation",
-                    where=where,
-                )
         d = np.array([T[:3, 3] - T0[:3, 3] for T in group[1:]]).reshape(-1, 3)
         d = d[np.linalg.norm(d, axis=1) >= MIN_GROUP_MOVE_M]
         if len(d) == 0:
@@ -256,6 +244,8 @@ def _plan(plan: str | Path | Plan | None, cfg: CellConfig) -> Plan:
     """The plan to run: a user's, checked before the robot moves, or the planner's."""
     if plan is None:
         return make_plan(cfg).plan
+    if isinstance(plan, Plan):  # a plan made in Python meets the plan file's rules too
+        plan_from_dict(plan_to_dict(plan), "plan")
     user = plan if isinstance(plan, Plan) else read_plan(plan)
     check_user_plan(user, cfg, "plan" if isinstance(plan, Plan) else str(plan))
     return user

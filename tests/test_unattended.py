@@ -473,6 +473,23 @@ def test_degenerate_user_plan_refused_before_the_robot_moves(tmp_path: Path, def
     assert cell.robot.moves == 0 and not (tmp_path / "s").exists()
 
 
+def test_a_python_plan_whose_group_turns_is_refused_before_the_robot_moves(tmp_path, default_plan):
+    """A Plan made in Python meets the plan file's rule: a group's poses share one orientation."""
+    import math
+    from dataclasses import replace
+
+    from slidecal.solver.geometry import R_from_rvec, T_from_Rt
+
+    first, *rest = default_plan.groups
+    turn = R_from_rvec([0.0, 0.0, math.radians(0.3)])  # 0.3 deg about the optical axis
+    turned = T_from_Rt(first[1][:3, :3] @ turn, first[1][:3, 3])
+    plan = replace(default_plan, groups=((first[0], turned, *first[2:]), *rest))
+    cell = SimulatedCell.from_config(load_config(), seed=0)
+    with pytest.raises(InputError, match=r"plan: groups\[0\]\[1\]: turns 0.3 deg"):
+        run_calibration(RunRequest(plan=plan, out_dir=tmp_path / "s", cell=cell))
+    assert cell.robot.moves == 0 and not (tmp_path / "s").exists()
+
+
 def test_disk_full_while_rewriting_session_yaml(tmp_path: Path, monkeypatch) -> None:
     w = SessionWriter(tmp_path / "s", load_config().target, load_config().cameras)
     before = (tmp_path / "s" / "session.yaml").read_text()
