@@ -359,7 +359,6 @@ def _greedy(
     info = np.zeros((P, P)) if prior is None else prior.info.copy()
     n_prior = 0 if prior is None else prior.n_groups
     t_now = 0.0
-    ratios = None
 
     def objective(A: np.ndarray) -> float:
         c = np.linalg.inv(A + ridge)

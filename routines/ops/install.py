@@ -239,8 +239,7 @@ def install(
                 "forced": bool(force),
                 **(info or {}),
             }
-            write_atomic(staging / INSTALLED_FILE, dump_yaml(meta))
-            _fsync_dir(staging)
+            write_atomic(staging / INSTALLED_FILE, dump_yaml(meta))  # each write syncs staging
             final = store / HISTORY / stamp
             os.replace(staging, final)
             _fsync_dir(store / HISTORY)
