@@ -693,38 +693,27 @@ def _search(
 
 
 def extend_plan(
-    cfg: CellConfig,
-    plan: Plan,
-    goal: PlanGoal,
-    achieved: Mapping[str, float],
-    corner_noise_px: float,
-    robot_noise_mm: float,
-    robot_noise_deg: float,
-    max_duration_s: float,
-    levels: Mapping[str, tuple[float, float]] | None = None,
+    cfg: CellConfig, plan: Plan, s: PlanSettings, achieved: Mapping[str, float]
 ) -> PlanReport:
     """``plan`` with more orientation groups after it, for a run whose recorded frames missed
     the accuracy its gate asks for (docs/UNATTENDED.md, "A run that extends its plan"): the
-    search of :func:`make_plan` with ``plan``'s frames counted, at the noise the data showed
-    (``corner_noise_px``; ``robot_noise_mm`` / ``_deg`` per axis and ``levels``, (mm, deg) per
-    source as ``RobotAccuracy.levels``), for ``goal`` tightened by how far ``achieved`` (the
-    recorded frames' one-sigma per goal key) exceeds their prediction, the new groups within
-    ``max_duration_s``. ``InputError`` (with the reason) when no extension meets the goal."""
+    search of :func:`make_plan` with ``plan``'s frames counted, under settings ``s`` that hold
+    the noise the data showed (``corner_noise_px``, ``robot_noise``, ``robot_levels``) and the
+    goal, tightened by how far ``achieved`` (the recorded frames' one-sigma per goal key)
+    exceeds their prediction. ``InputError`` (with the reason) when no extension meets it."""
     where = f"{cfg.source}: plan (extension)"
-    noise = (robot_noise_mm, robot_noise_deg)
-    s = replace(cfg.plan, corner_noise_px=corner_noise_px, robot_noise=noise, robot_levels=levels)
     try:
         before = goal_ratios(predict_std(plan, cfg, s), cfg, PlanGoal(1.0, 1.0, 1.0))
     except DegenerateError:
         before = {}
     tight: dict[str, float | None] = dict.fromkeys(GOAL_KEYS)
     for k in GOAL_KEYS:
-        target = getattr(goal, k)
+        target = getattr(s.goal, k)
         if target is not None:
             pred, got = before.get(k), achieved.get(k)
             factor = got / pred if pred and got and np.isfinite(got / pred) else 1.0
             tight[k] = target / max(1.0, factor)
-    goal = PlanGoal(**tight, max_duration_s=max_duration_s)
+    goal = PlanGoal(**tight, max_duration_s=s.goal.max_duration_s)
     s = replace(s, goal=goal)
     cands, rejected, fim = _candidates(cfg, s)
     if fim is None:
@@ -745,10 +734,11 @@ def extend_plan(
     ext, robot_s, pred = _search(cfg, cands, fim, s, timing, via, where, plan, prior)
     n_new = ext.n_poses - plan.n_poses
     ratios = goal_ratios(pred, cfg, goal)
+    mm, deg = arm_noise(cfg, s)  # the accuracy the first run's data showed
     notes = plan.notes + (
         f"extended by {len(ext.groups) - len(plan.groups)} groups, {n_new} frames (the first "
-        f"run's data: corner noise {corner_noise_px:.3g} px, robot accuracy "
-        f"{robot_noise_mm:.3g} mm / {robot_noise_deg:.3g} deg); predicted goal ratios "
+        f"run's data: corner noise {s.corner_noise_px:.3g} px, robot accuracy "
+        f"{mm:.3g} mm / {deg:.3g} deg); predicted goal ratios "
         + ", ".join(f"{k} {v:.2f}" for k, v in ratios.items()),
     )
     duration = robot_s + ext.n_poses * s.capture_s

@@ -320,15 +320,19 @@ def extend_for_limits(
         "hand_eye_rot_std_deg": u.get(f"{he.name}.rot_deg", nan),
         "hand_eye_t_std_mm": u.get(f"{he.name}.t_mm", nan),
     }
-    goal = PlanGoal(**{k: EXTEND_MARGIN * getattr(limits, k) for k in achieved})
+    goal = {k: EXTEND_MARGIN * getattr(limits, k) for k in achieved}
     acc = result.robot_accuracy
     t_mm = acc.translation_mm if acc is not None else cfg.options.robot_noise_m * 1000.0
     rot_deg = acc.rotation_deg if acc is not None else cfg.options.robot_noise_deg
+    s = replace(
+        cfg.plan,
+        goal=PlanGoal(**goal, max_duration_s=budget_s),
+        corner_noise_px=float(cam.reproj_rms_px),
+        robot_noise=(t_mm, rot_deg),
+        robot_levels=acc.levels if acc is not None else None,
+    )
     try:
-        levels = acc.levels if acc is not None else None
-        report = extend_plan(
-            cfg, plan, goal, achieved, float(cam.reproj_rms_px), t_mm, rot_deg, budget_s, levels
-        )
+        report = extend_plan(cfg, plan, s, achieved)
     except InputError as e:
         return None, f"not extended: {e}"
     if report.plan.n_poses == plan.n_poses:

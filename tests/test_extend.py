@@ -5,6 +5,7 @@ would do): what is extended, what is not, and that the extension keeps the recor
 from __future__ import annotations
 
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -83,7 +84,9 @@ def test_extension_keeps_the_recorded_part_and_visits_new_orientations():
     achieved = {"fx_rel_std": 1e-4, "hand_eye_rot_std_deg": 0.05, "hand_eye_t_std_mm": 2.8}
     # the arm's accuracy as the first part's solve learned it: all of it per pose
     levels = {"pose": (0.7, 0.04)}
-    rep = extend_plan(cfg, plan, goal, achieved, 0.05, 0.7, 0.04, 60.0, levels)
+    noise = {"corner_noise_px": 0.05, "robot_noise": (0.7, 0.04), "robot_levels": levels}
+    s = replace(cfg.plan, goal=goal, **noise)  # 60 s for the new groups
+    rep = extend_plan(cfg, plan, s, achieved)
     x = rep.plan
     n = len(plan.groups)
     assert len(x.groups) > n
@@ -99,7 +102,7 @@ def test_extension_keeps_the_recorded_part_and_visits_new_orientations():
     before_s, _, _ = dry_run(plan, cfg)
     assert robot_s - before_s <= 60.0
     # recorded frames as good as their prediction need fewer new frames than ones far worse
-    easy = extend_plan(cfg, plan, goal, {}, 0.05, 0.7, 0.04, 60.0, levels).plan
+    easy = extend_plan(cfg, plan, s, {}).plan
     assert easy.n_poses < x.n_poses
 
 
