@@ -202,8 +202,7 @@ def device_calibration_outputs(
     except InputError as e:
         lines.append(f"note: no depthai calibration export: {e}")
     distance = float(devices.get("working_distance_m") or 0.5)
-    modes = {o.get("resize_mode", "stretch") for o in outputs.values()}
-    resize = modes.pop() if len(modes) == 1 else "stretch"
+    resize = next(iter(outputs.values())).get("resize_mode", "stretch")  # the rig's one mode
     for kind in ("factory", "user"):
         data = read_device_calibration(session_dir, devices, kind)
         if data is None:
