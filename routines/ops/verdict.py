@@ -153,8 +153,9 @@ class Verdict:
         return out
 
 
-def verdict_to_dict(v: Verdict) -> dict[str, Any]:
-    """The ``verdict.yaml`` mapping."""
+def write_verdict(v: Verdict, directory: str | Path) -> Path:
+    """Write ``verdict.yaml`` (the verdict, its reasons, every check, the comparison with the
+    installed calibration, the notes) atomically into ``directory``; return its path."""
 
     def c(ch: Check) -> dict[str, Any]:
         d = asdict(ch)
@@ -174,13 +175,8 @@ def verdict_to_dict(v: Verdict) -> dict[str, Any]:
     if v.notes:
         d["notes"] = list(v.notes)
     d.update(v.extra)
-    return d
-
-
-def write_verdict(v: Verdict, directory: str | Path) -> Path:
-    """Write ``verdict.yaml`` atomically into ``directory``; return its path."""
     path = Path(directory) / VERDICT_FILE
-    write_atomic(path, dump_yaml(verdict_to_dict(v)))
+    write_atomic(path, dump_yaml(d))
     return path
 
 
