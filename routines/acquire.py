@@ -12,7 +12,6 @@ from typing import Any
 
 from slidecal.drivers.oak import DEFAULT_SOCKETS
 from slidecal.drivers.ur import URRobot
-from slidecal.mocks.cell import SimulatedCell
 from slidecal.routines.config import CellConfig, limits_to_dict
 from slidecal.routines.devices import camera_rig, record_devices
 from slidecal.routines.ops.faults import FaultInjector
@@ -88,7 +87,6 @@ def record_session(
     resume: bool = False,
     recording: bool = False,
     spawn: bool = False,
-    seed: int | None = None,
     cell: Any = None,
     retries: int = DEFAULT_RETRIES,
     extra: Mapping[str, Any] | None = None,
@@ -102,9 +100,7 @@ def record_session(
     without recording). On a fault or an interrupt the robot is stopped, the session marked
     aborted with the event, and the exception raised again."""
     truth: dict[str, Any] | None = None
-    if cfg.simulated:
-        if cell is None:
-            cell = SimulatedCell.from_config(cfg, seed)
+    if cfg.simulated:  # the caller's simulated cell (one for a run and its extensions)
         robot, rig, truth = cell.robot, cell.rig, cell.truth
     else:
         robot, rig = _connect_real(cfg)

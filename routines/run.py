@@ -161,7 +161,6 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
         resume=q.resume is not None,
         recording=recording,
         spawn=q.spawn,
-        seed=seed,
     )
     notes: list[str] = []
     for extension in range(EXTEND_ROUNDS + 1):

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from slidecal.mocks.cell import SimulatedCell
 from slidecal.routines.acquire import cell_key, clock, new_session_dir, record_session
 from slidecal.routines.config import CellConfig, load_config
 from slidecal.routines.ops.install import (
@@ -308,13 +309,14 @@ def run_check(
         raise InputError(f"--seed must be 0 or a positive integer, got {seed}")
     out = new_session_dir(out_dir, "check_", resume="")
     prog = Progress.from_option(progress, plan.n_poses)
+    if cfg.simulated and cell is None:
+        cell = SimulatedCell.from_config(cfg, seed)
     robot, _ = record_session(
         cfg,
         plan,
         out,
         prog,
         lock_key=cell_key(config, cfg),
-        seed=seed,
         cell=cell,
         retries=retries,
         extra={"purpose": "check", "installed": str(cur)},
