@@ -598,20 +598,9 @@ def dry_run(plan: Plan, cfg: CellConfig) -> tuple[float, int | None, str]:
 
 
 # -- the planner ------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class PlanReport:
-    """What the planner chose and predicted: the plan (with ``predicted_std`` and
-    ``duration_s``), the goal ratios (predicted over target, <= 1 met) and the candidate
-    statistics."""
-
-    plan: Plan
-    ratios: dict[str, float]
-    n_candidates: int
-    rejected: dict[str, int]
-
-
-def make_plan(cfg: CellConfig, settings: PlanSettings | None = None) -> PlanReport:
-    """The plan that meets the cell's goal with the least robot time (module docstring).
+def make_plan(cfg: CellConfig, settings: PlanSettings | None = None) -> Plan:
+    """The plan that meets the cell's goal with the least robot time (module docstring), with
+    its ``predicted_std`` and ``duration_s``.
 
     Raises ``InputError`` with the reason and what to change when no plan can: no reachable
     view of the target, the target does not fit in the image, or the goal needs more time than
@@ -636,8 +625,7 @@ def make_plan(cfg: CellConfig, settings: PlanSettings | None = None) -> PlanRepo
             s.corner_noise_px, *arm_noise(cfg, s)
         ),
     )
-    plan = replace(plan, predicted_std=pred, duration_s=float(duration), notes=notes)
-    return PlanReport(plan, ratios_d, sum(int(g.usable.sum()) for g in cands), rejected)
+    return replace(plan, predicted_std=pred, duration_s=float(duration), notes=notes)
 
 
 def _search(
@@ -694,7 +682,7 @@ def _search(
 
 def extend_plan(
     cfg: CellConfig, plan: Plan, s: PlanSettings, achieved: Mapping[str, float]
-) -> PlanReport:
+) -> Plan:
     """``plan`` with more orientation groups after it, for a run whose recorded frames missed
     the accuracy its gate asks for (docs/UNATTENDED.md, "A run that extends its plan"): the
     search of :func:`make_plan` with ``plan``'s frames counted, under settings ``s`` that hold
@@ -715,7 +703,7 @@ def extend_plan(
             tight[k] = target / max(1.0, factor)
     goal = PlanGoal(**tight, max_duration_s=s.goal.max_duration_s)
     s = replace(s, goal=goal)
-    cands, rejected, fim = _candidates(cfg, s)
+    cands, _, fim = _candidates(cfg, s)
     if fim is None:
         raise InputError("no candidate view of the target is left to extend the plan", where=where)
     T_old = np.array([T for _, T in plan.poses])
@@ -742,8 +730,7 @@ def extend_plan(
         + ", ".join(f"{k} {v:.2f}" for k, v in ratios.items()),
     )
     duration = robot_s + ext.n_poses * s.capture_s
-    ext = replace(ext, predicted_std=pred, notes=notes, duration_s=float(duration))
-    return PlanReport(ext, ratios, sum(int(g.usable.sum()) for g in cands), rejected)
+    return replace(ext, predicted_std=pred, notes=notes, duration_s=float(duration))
 
 
 def _scaled(goal: PlanGoal, mult: np.ndarray) -> PlanGoal:
@@ -856,12 +843,12 @@ def main(args: argparse.Namespace) -> int:
     if out.parent.exists() and not out.parent.is_dir():
         raise InputError(f"{out.parent} is a file; --out must lie in a directory", str(out))
     cfg = load_config(args.config)
-    report = make_plan(cfg)
-    path = write_plan(report.plan, out)
+    plan = make_plan(cfg)
+    path = write_plan(plan, out)
     if not args.quiet:
-        for n in report.plan.notes:
+        for n in plan.notes:
             print(n)
-        pred = report.plan.predicted_std or {}
+        pred = plan.predicted_std or {}
         cam = cfg.reference_camera
         he = _hand_eye(cfg)
         print(

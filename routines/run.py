@@ -242,7 +242,7 @@ def _resumed(q: RunRequest) -> tuple[Path, Plan, int, int | None]:
 def _plan(plan: str | Path | Plan | None, cfg: CellConfig) -> Plan:
     """The plan to run: a user's, checked before the robot moves, or the planner's."""
     if plan is None:
-        return make_plan(cfg).plan
+        return make_plan(cfg)
     if isinstance(plan, Plan):  # a plan made in Python meets the plan file's rules too
         plan_from_dict(plan_to_dict(plan), "plan")
     user = plan if isinstance(plan, Plan) else read_plan(plan)
@@ -331,13 +331,13 @@ def extend_for_limits(
         robot_levels=acc.levels if acc is not None else None,
     )
     try:
-        report = extend_plan(cfg, plan, s, achieved)
+        longer = extend_plan(cfg, plan, s, achieved)
     except InputError as e:
         return None, f"not extended: {e}"
-    if report.plan.n_poses == plan.n_poses:
+    if longer.n_poses == plan.n_poses:
         return None, "not extended: the planner predicts no gain from more frames"
     missed = "; ".join(c.message for c in failed)
-    return report.plan, (
+    return longer, (
         f"{missed} (robot accuracy {t_mm:.2f} mm / {rot_deg:.3f} deg as the data shows it)"
     )
 

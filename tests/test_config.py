@@ -194,7 +194,7 @@ def test_plan_tilts_override_changes_the_plan() -> None:
     from slidecal.routines.planner import make_plan
 
     def tilts(cfg) -> set[float]:
-        plan = make_plan(cfg).plan
+        plan = make_plan(cfg)
         out = set()
         for grp in plan.groups:
             T_cam_board = inv_T(grp[0] @ cfg.approx_T_hand_eye) @ cfg.approx_T_target

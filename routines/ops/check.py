@@ -300,7 +300,7 @@ def run_check(
     if (cur / "plan.yaml").is_file():
         base = read_plan(cur / "plan.yaml")
     else:
-        base = make_plan(cfg).plan
+        base = make_plan(cfg)
     recorded = installed_session(cur)
     if recorded is not None:
         base = recorded_plan(base, recorded)
