@@ -32,6 +32,9 @@ class FaultSpec:
     kind: str
     frame: int
 
+    def __str__(self) -> str:
+        return f"{self.kind}@{self.frame}"
+
 
 def parse_fault(text: str) -> FaultSpec:
     """``"protective_stop@3"`` -> ``FaultSpec("protective_stop", 3)``; ``InputError`` otherwise."""

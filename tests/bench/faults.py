@@ -49,13 +49,12 @@ def _session_facts(out: Path) -> tuple[int, str]:
 def run_row(spec: FaultSpec, rehearse: bool, workdir: Path) -> FaultRow:
     """Run ``slidecal run`` (simulated cell) or ``slidecal rehearse`` with one fault."""
     out = workdir / f"{'rehearse' if rehearse else 'run'}_{spec.kind}_{spec.frame}"
-    fault = f"{spec.kind}@{spec.frame}"  # as --fault takes it
     t0 = time.monotonic()
     stopped: list[bool] = []
     if rehearse:
-        argv = ["rehearse", "--out", str(out), "--fault", fault, "--quiet"]
+        argv = ["rehearse", "--out", str(out), "--fault", str(spec), "--quiet"]
     else:
-        argv = ["run", "--out", str(out), "--fault", fault, "--quiet", "--no-recording"]
+        argv = ["run", "--out", str(out), "--fault", str(spec), "--quiet", "--no-recording"]
         original = simrobot.SimulatedUR.stop
 
         def spy(self: Any) -> None:
@@ -75,7 +74,7 @@ def run_row(spec: FaultSpec, rehearse: bool, workdir: Path) -> FaultRow:
         at_rest = rehearsal.is_file() and load_yaml(rehearsal, "rehearsal").get("arm_at_rest")
         stopped.append(bool(at_rest))
     frames, event = _session_facts(out) if (out / "session.yaml").exists() else (0, "")
-    return FaultRow("rehearse" if rehearse else "run", fault, code, bool(stopped and
+    return FaultRow("rehearse" if rehearse else "run", str(spec), code, bool(stopped and
                     all(stopped)), frames, spec.frame, event, time.monotonic() - t0)
 
 
