@@ -282,7 +282,6 @@ def run_check(
     progress: bool | Progress | None = None,
     seed: int | None = None,
     cell: Any = None,
-    retries: int = 2,
 ) -> tuple[Verdict, Path]:
     """Record a short check session and judge it against the installed calibration; write
     ``verdict.yaml`` into the session; return the verdict and the session directory."""
@@ -318,7 +317,6 @@ def run_check(
         prog,
         lock_key=cell_key(config, cfg),
         cell=cell,
-        retries=retries,
         extra={"purpose": "check", "installed": str(cur)},
     )
     problem = load_session(out).problem
