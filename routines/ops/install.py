@@ -168,8 +168,7 @@ def worse_than(new: CalibrationResult, old: CalibrationResult) -> str | None:
 
 def _publish_link(store: Path, target: Path) -> None:
     tmp = store / f".{CURRENT}.tmp"
-    if tmp.is_symlink() or tmp.exists():
-        tmp.unlink()
+    tmp.unlink(missing_ok=True)  # a link left by an install that died here
     os.symlink(os.path.relpath(target, store), tmp)
     os.replace(tmp, store / CURRENT)
     _fsync_dir(store)
