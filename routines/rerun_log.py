@@ -45,9 +45,8 @@ class RerunLog:
         T_hand_eye_approx: np.ndarray,
         T_target_approx: np.ndarray,
         spawn: bool = False,
-        recording_id: str | None = None,
     ) -> None:
-        self.rec = rr.RecordingStream("slidecal", recording_id=recording_id)
+        self.rec = rr.RecordingStream("slidecal")
         self.path = Path(path) if path is not None else None
         if spawn:
             if shutil.which("rerun") is None:  # asked first: rerun itself would log to stderr
