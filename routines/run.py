@@ -24,7 +24,6 @@ from slidecal.routines.acquire import (
     clock,
     new_session_dir,
     record_session,
-    sockets,
 )
 from slidecal.routines.config import CellConfig, PlanGoal, load_config
 from slidecal.routines.devices import check_libraries
@@ -190,7 +189,7 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
         t0=t0,
         cell_path=q.config if isinstance(q.config, str | Path) else None,
         cell_name=cfg.source,
-        oak_sockets=sockets(cfg),
+        oak_sockets=session.sockets or None,  # as the session recorded them
         installed=inst_result,
         installed_path=inst_path,
         plan_poses=plan.n_poses,
