@@ -107,17 +107,23 @@ class RenderingCapture:
         self.rig.close()
 
 
-@pytest.mark.slow
-def test_a_uvc_cell_runs_end_to_end(tmp_path, monkeypatch):
+def uvc_cell(tmp_path, monkeypatch, **camera):
+    """The default cell with a UVC camera that renders the simulated one (seed 3), its robot
+    simulated: (the simulated cell, the real cell file)."""
     cell = SimulatedCell.from_config(load_config(None), seed=3)
     use_simulated_robot(monkeypatch, cell)
     RenderingCapture.rig, RenderingCapture.instances = cell.rig, []
     monkeypatch.setattr(cv2, "VideoCapture", RenderingCapture)
     spec = cell.rig.specs[0]
     cameras = {"driver": "uvc", "list": [{"name": spec.name, "width": spec.width,
-                                          "height": spec.height, "source": 0, "exposure": 150,
-                                          "drop_frames": 1}]}
-    path = write_cell(tmp_path, real_cell("default_cell.yaml", cameras))
+                                          "height": spec.height, "source": 0, **camera}]}
+    return cell, write_cell(tmp_path, real_cell("default_cell.yaml", cameras))
+
+
+@pytest.mark.slow
+def test_a_uvc_cell_runs_end_to_end(tmp_path, monkeypatch):
+    cell, path = uvc_cell(tmp_path, monkeypatch, exposure=150, drop_frames=1)
+    spec = cell.rig.specs[0]
     out = run_calibration(RunRequest(path, out_dir=tmp_path / "s", progress=False, recording=False))
     session = yaml.safe_load((out.session_dir / "session.yaml").read_text())
     cam = session["devices"]["camera"]
@@ -136,14 +142,7 @@ def test_a_uvc_cell_runs_end_to_end(tmp_path, monkeypatch):
 def test_a_stopped_uvc_run_resumes(tmp_path, monkeypatch):
     """A real rig reports itself into a resumed session as into a new one (the resume was
     refused: the session directory "already holds a session")."""
-    cell = SimulatedCell.from_config(load_config(None), seed=3)
-    use_simulated_robot(monkeypatch, cell)
-    RenderingCapture.rig, RenderingCapture.instances = cell.rig, []
-    monkeypatch.setattr(cv2, "VideoCapture", RenderingCapture)
-    spec = cell.rig.specs[0]
-    cameras = {"driver": "uvc", "list": [{"name": spec.name, "width": spec.width,
-                                          "height": spec.height, "source": 0}]}
-    path = write_cell(tmp_path, real_cell("default_cell.yaml", cameras))
+    cell, path = uvc_cell(tmp_path, monkeypatch)
     cell.robot.inject_fault("protective_stop", 4)
     with pytest.raises(HardwareFault):
         run_calibration(RunRequest(path, out_dir=tmp_path / "s", progress=False, recording=False))
