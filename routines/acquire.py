@@ -6,13 +6,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from contextlib import nullcontext, suppress
-from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
 from slidecal.drivers.oak import DEFAULT_SOCKETS
 from slidecal.drivers.ur import URRobot
-from slidecal.mocks.cell import SimulatedCell
 from slidecal.routines.config import CellConfig, limits_to_dict
 from slidecal.routines.devices import camera_rig, record_devices
 from slidecal.routines.ops.faults import FaultInjector
@@ -20,12 +19,28 @@ from slidecal.routines.ops.lock import Lock, cell_lock_path
 from slidecal.routines.ops.verdict import Limits
 from slidecal.routines.plan import Plan, check_plan, write_plan
 from slidecal.routines.progress import Interrupted, Progress, signals_as_interrupt
+from slidecal.routines.schema import check_out_dir
 from slidecal.routines.session import SessionWriter
 from slidecal.solver.detect import detect
 from slidecal.solver.errors import HardwareFault, InputError
 
 #: Captures of one pose tried again after a dropped frame or no corners at all (cell or CLI).
 DEFAULT_RETRIES = 2
+
+
+def new_session_dir(
+    out_dir: str | Path | None, prefix: str = "", resume: str = ", or continue it with --resume"
+) -> Path:
+    """The new session's directory (default ``sessions/<prefix><date>_<time>``), refused at once
+    when it cannot be one; ``resume``: how the refusal offers to continue the one there."""
+    stamp = datetime.now().strftime(f"{prefix}%Y%m%d_%H%M%S")
+    out = Path(out_dir) if out_dir is not None else Path("sessions") / stamp
+    check_out_dir(out)
+    if (out / "session.yaml").exists():
+        raise InputError(
+            f"already holds a session; choose a new --out directory{resume}", where=str(out)
+        )
+    return out
 
 
 def cell_key(config: Any, cfg: CellConfig) -> str | None:
@@ -62,15 +77,6 @@ def _connect_real(cfg: CellConfig) -> tuple[Any, Any]:
     return robot, rig
 
 
-@dataclass
-class Recorded:
-    """What :func:`record_session` leaves: the (closed) robot for its clock, the open rerun
-    log (None without recording)."""
-
-    robot: Any
-    log: Any
-
-
 def record_session(
     cfg: CellConfig,
     plan: Plan,
@@ -81,22 +87,20 @@ def record_session(
     resume: bool = False,
     recording: bool = False,
     spawn: bool = False,
-    seed: int | None = None,
     cell: Any = None,
     retries: int = DEFAULT_RETRIES,
     extra: Mapping[str, Any] | None = None,
     faults: Any = None,
     extended: str | None = None,
     log: Any = None,
-) -> Recorded:
+) -> tuple[Any, Any]:
     """Connect, lock the cell, move through ``plan`` from pose ``start``, capture, detect and write
     the session ``out`` (``resume``: append to it; ``extended``: the plan grew, why). ``log``: the
-    run's open rerun log. On a fault or an interrupt the robot is stopped, the session marked
+    run's open rerun log. Returns the (closed) robot, for its clock, and the open rerun log (None
+    without recording). On a fault or an interrupt the robot is stopped, the session marked
     aborted with the event, and the exception raised again."""
     truth: dict[str, Any] | None = None
-    if cfg.simulated:
-        if cell is None:
-            cell = SimulatedCell.from_config(cfg, seed)
+    if cfg.simulated:  # the caller's simulated cell (one for a run and its extensions)
         robot, rig, truth = cell.robot, cell.rig, cell.truth
     else:
         robot, rig = _connect_real(cfg)
@@ -112,7 +116,9 @@ def record_session(
             rig.open()
             specs = tuple(rig.specs)
             check_plan(plan, cfg, robot.is_reachable)  # refuse before anything moves
-            found = {**record_devices(rig, out, cfg.standoff_m), **_controller(robot)}
+            found = {} if resume else record_devices(rig, out, cfg.standoff_m)  # a new session
+            if getattr(robot, "controller_info", None):  # what a real controller reported
+                found["controller"] = dict(robot.controller_info)
             writer = _open_writer(out, cfg, specs, truth, resume, {**found, **(extra or {})})
             if not resume or extended:
                 write_plan(plan, out / "plan.yaml")
@@ -132,7 +138,7 @@ def record_session(
             for closer in (rig.close, robot.close):
                 with suppress(Exception):  # closing must not hide the real error
                     closer()
-    return Recorded(robot, log)
+    return robot, log
 
 
 def _open_writer(
@@ -220,12 +226,6 @@ def _abort(robot, writer, log, prog: Progress, e: BaseException, out: Path) -> N
     raise HardwareFault(
         f"{msg} (robot stopped; the {n} frames captured before it are in {out}{resume})"
     ) from e
-
-
-def _controller(robot: Any) -> dict[str, Any]:
-    """The session's ``controller:`` block: what a real robot controller reported on connect."""
-    info = getattr(robot, "controller_info", None)
-    return {"controller": dict(info)} if info else {}
 
 
 def clock(robot: Any) -> float | None:

@@ -54,9 +54,7 @@ def camera_rig(cfg: Any) -> Any:
     section = Fields(cfg.rig_options, cfg.source, "cameras")
     if cfg.camera_driver == "oak":
         return _oak(cfg, section)
-    if cfg.camera_driver == "uvc":
-        return _uvc(cfg, section)
-    raise section.error("driver", f"is {cfg.camera_driver!r}; a real cell needs oak or uvc")
+    return _uvc(cfg, section)  # a real robot's cell names oak or uvc cameras (load_config)
 
 
 def _camera_fields(cfg: Any, section: Fields) -> dict[str, Fields]:
@@ -91,11 +89,7 @@ def _oak(cfg: Any, section: Fields) -> Any:
             white_balance_k=wb,
             fps=section.number("fps", DEFAULT_FPS, positive=True),
             resize_mode=section.choice("resize", RESIZE_MODES, "stretch"),
-            sync_tolerance_s=(
-                section.number("sync_tolerance_s", positive=True)
-                if section.has("sync_tolerance_s")
-                else None
-            ),
+            sync_tolerance_s=section.optional_number("sync_tolerance_s", positive=True),
         )
     except InputError as e:
         if e.where:
@@ -113,10 +107,6 @@ def _uvc(cfg: Any, section: Fields) -> Any:
     source = f.require("source")
     if isinstance(source, bool) or not isinstance(source, int | str):
         raise f.error("source", f"must be a device index or a path, got {source!r}")
-
-    def opt(key: str) -> float | None:
-        return f.number(key) if f.has(key) else None
-
     try:
         return UvcCamera(
             source,
@@ -124,9 +114,9 @@ def _uvc(cfg: Any, section: Fields) -> Any:
             c.width,
             c.height,
             fourcc=str(f.get("fourcc")) if f.has("fourcc") else None,
-            exposure=opt("exposure"),
-            focus=opt("focus"),
-            fps=opt("fps"),
+            exposure=f.optional_number("exposure"),
+            focus=f.optional_number("focus"),
+            fps=f.optional_number("fps"),
             drop_frames=f.integer("drop_frames", 4, minimum=0),
         )
     except InputError as e:
@@ -142,11 +132,6 @@ def record_devices(rig: Any, session_dir: str | Path, working_distance_m: float)
     if capabilities is None:
         return {}
     out = Path(session_dir)
-    if (out / SESSION_FILE).exists():
-        raise InputError(
-            "already holds a session; choose a new --out directory or delete the old one",
-            where=str(out),
-        )
     out.mkdir(parents=True, exist_ok=True)
     block: dict[str, Any] = {"camera": capabilities(), "working_distance_m": working_distance_m}
     calibrations = getattr(rig, "device_calibrations", None)
@@ -217,8 +202,7 @@ def device_calibration_outputs(
     except InputError as e:
         lines.append(f"note: no depthai calibration export: {e}")
     distance = float(devices.get("working_distance_m") or 0.5)
-    modes = {o.get("resize_mode", "stretch") for o in outputs.values()}
-    resize = modes.pop() if len(modes) == 1 else "stretch"
+    resize = next(iter(outputs.values())).get("resize_mode", "stretch")  # the rig's one mode
     for kind in ("factory", "user"):
         data = read_device_calibration(session_dir, devices, kind)
         if data is None:

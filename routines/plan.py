@@ -1,8 +1,7 @@
 """Motion plans (``slidecal.plan/1``, every key in :data:`PLAN_KEYS` and their meaning:
 docs/FORMATS.md): groups of ``T_base_tool`` poses sharing one orientation (pure translations
 inside a group, docs/METHOD.md Sec. 3) and the tilt changes between groups that make the
-hand-eye translation observable (Sec. 4); and :func:`default_plan`, the fixed reference plan
-the planner is compared with.
+hand-eye translation observable (Sec. 4).
 """
 
 from __future__ import annotations
@@ -18,7 +17,7 @@ from slidecal.drivers.ur_pose import ur_pose_from_T
 from slidecal.routines.schema import Fields, load_yaml, write_yaml
 from slidecal.routines.session import ur_pose_field
 from slidecal.solver.errors import InputError
-from slidecal.solver.geometry import R_from_rvec, Rz, T_from_Rt, inv_T, rotation_angle_deg
+from slidecal.solver.geometry import inv_T, rotation_angle_deg
 
 if TYPE_CHECKING:  # plans are read without the cell schema (slidecal solve)
     from slidecal.routines.config import CellConfig, RobotConfig
@@ -41,19 +40,6 @@ MAX_GROUP_ROTATION_DEG = 0.01
 #: Speed and acceleration limits of calibration moves (as for the cell's ``robot:``).
 MAX_SPEED_MPS = 1.0
 MAX_ACCEL_MPS2 = 2.5
-
-#: Camera displacements within a group, board axes, as fractions of ``step_mm[1]``: five
-#: positions whose four moves from the first are non-coplanar and all leave the board plane
-#: (board-normal components of 40 to 75 % of ``step_mm[1]``).
-_OFFSETS = np.array(
-    [
-        [0.0, 0.0, 0.0],
-        [0.75, 0.5, -0.625],
-        [-0.875, 0.375, 0.5],
-        [0.375, -0.875, 0.75],
-        [-0.625, -0.625, -0.5],
-    ]
-)
 
 
 @dataclass(frozen=True)
@@ -173,67 +159,6 @@ class _Item(Fields):
 
     def where(self, key: str | None = None) -> str:
         return f"{self.file}: {self.path}" + (f"[{key}]" if key is not None else "")
-
-
-def group_R_board_cam(tilt_deg: float, azimuth_deg: float) -> np.ndarray:
-    """``R_board_cam`` (3, 3) of a group: looking along +z_board, tilted by ``tilt_deg`` about
-    the in-plane axis at ``azimuth_deg`` (the geometry of :func:`camera_poses_board`)."""
-    phi = np.radians(azimuth_deg)
-    axis = np.array([np.cos(phi), np.sin(phi), 0.0])
-    return R_from_rvec(axis * np.radians(tilt_deg))
-
-
-def camera_poses_board(
-    target_centre_board: np.ndarray,
-    standoff_m: float,
-    tilt_deg: float,
-    step_m: float,
-    frames_per_group: int = 5,
-    groups: int = 4,
-) -> list[list[np.ndarray]]:
-    """Desired ``T_cam_board`` (4, 4) per group and frame (the default plan's geometry).
-
-    ``target_centre_board`` (3,): board frame, metres. Group ``g`` looks at the centre from
-    ``standoff_m``, tilted by ``tilt_deg`` about the in-plane axis at ``45 + 360 g / groups``
-    degrees and rolled about the optical axis by ``(-10, 10, -20, 20, ...)`` degrees; frame
-    ``k`` is displaced by ``_OFFSETS[k] * step_m`` in board axes.
-    """
-    if frames_per_group < 2 or frames_per_group > len(_OFFSETS):
-        raise InputError(f"frames_per_group must be 2..{len(_OFFSETS)}, got {frames_per_group}")
-    c = np.asarray(target_centre_board, dtype=float).reshape(3)
-    rolls = [-10.0, 10.0, -20.0, 20.0, 0.0, 30.0]
-    out = []
-    for g in range(groups):
-        # camera axes aligned with the board's (looking along +z_board), tilted, then rolled
-        R_tilt = group_R_board_cam(tilt_deg, 45.0 + 360.0 * g / groups)
-        R_board_cam = R_tilt @ Rz(np.radians(rolls[g % 6]))
-        centre_cam = c - standoff_m * R_board_cam[:, 2]
-        frames = []
-        for k in range(frames_per_group):
-            p_cam_board = centre_cam + _OFFSETS[k] * step_m
-            frames.append(inv_T(T_from_Rt(R_board_cam, p_cam_board)))
-        out.append(frames)
-    return out
-
-
-def default_plan(cfg: CellConfig) -> Plan:
-    """The fixed default plan of a cell (:func:`camera_poses_board`: four groups tilted 25 deg,
-    five frames each, moves up to 80 mm): a reference the planner is measured against (``python
-    -m tests.bench planner``); ``slidecal run`` executes the planner's plan. Poses through the
-    cell's approximate hand-eye and target pose (``approximate:``), at ``standoff_m``."""
-    centre = cfg.target.points_m.mean(axis=0)
-    T_cb = camera_poses_board(centre, cfg.standoff_m, 25.0, 0.08)
-    plan_groups = tuple(tuple(tool_pose(cfg, T) for T in grp) for grp in T_cb)
-    via = tool_pose(cfg, camera_poses_board(centre, cfg.standoff_m, 0.0, 0.0, 2, 1)[0][0])
-    return Plan.build(
-        plan_groups,
-        cfg.robot,
-        via=via,
-        notes=(
-            "default plan: 4 groups tilted 25 deg, 5 frames each, moves up to 80 mm at "
-            f"{cfg.standoff_m:g} m",
-        ),
-    )
 
 
 def tool_pose(cfg: CellConfig, T_cam_board: np.ndarray) -> np.ndarray:

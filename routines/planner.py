@@ -47,11 +47,13 @@ from slidecal.routines.config import (
     PlanSettings,
     load_config,
 )
-from slidecal.routines.plan import Plan, group_R_board_cam, tool_pose, write_plan
+from slidecal.routines.plan import Plan, tool_pose, write_plan
 from slidecal.solver.camera import project
 from slidecal.solver.degeneracy import check_configuration
+from slidecal.solver.drift import T_cam_board
 from slidecal.solver.errors import DegenerateError, HardwareFault, InputError
 from slidecal.solver.geometry import (
+    R_from_rvec,
     T_from_Rt,
     inv_T,
     rotation_angle_deg,
@@ -90,6 +92,14 @@ DIRECTIONS = np.array(
 
 
 # -- geometry of candidates -------------------------------------------------------------------
+def group_R_board_cam(tilt_deg: float, azimuth_deg: float) -> np.ndarray:
+    """``R_board_cam`` (3, 3) of a group: looking along +z_board, tilted by ``tilt_deg`` about
+    the in-plane axis at ``azimuth_deg``."""
+    phi = np.radians(azimuth_deg)
+    axis = np.array([np.cos(phi), np.sin(phi), 0.0])
+    return R_from_rvec(axis * np.radians(tilt_deg))
+
+
 def group_T_cam_board(
     centre_board: np.ndarray, standoff_m: float, R_board_cam: np.ndarray, offsets_cam_m: np.ndarray
 ) -> np.ndarray:
@@ -119,10 +129,7 @@ def move_time_s(T0: np.ndarray, T1: np.ndarray, speed_mps: float, accel_mps2: fl
 # -- the predicted model ----------------------------------------------------------------------
 def nominal_T_cam_board(cfg: CellConfig, T_base_tool: np.ndarray) -> np.ndarray:
     """The nominal ``T_cam_board`` (4, 4) of the reference camera at a tool pose (4, 4)."""
-    X = inv_T(cfg.approx_T_hand_eye)  # T_cam_tool (eye-in-hand) or T_cam_base (eye-to-hand)
-    if cfg.mount == "eye_in_hand":
-        return X @ inv_T(T_base_tool) @ cfg.approx_T_target
-    return X @ T_base_tool @ cfg.approx_T_target
+    return T_cam_board(cfg.mount, cfg.approx_T_hand_eye, T_base_tool, cfg.approx_T_target)
 
 
 def _spec(cfg: CellConfig) -> CameraSpec:
@@ -179,10 +186,6 @@ def nominal_state(cfg: CellConfig, s: PlanSettings, n_frames: int) -> ModelState
     )
 
 
-def _detections(problem: CalibrationProblem) -> list[Detection]:
-    return [f.detections[problem.reference] for f in problem.frames]
-
-
 def _information(cfg: CellConfig, s: PlanSettings, T_base_tool: np.ndarray) -> FrameInformation:
     """Each frame's information on the shared parameters (the solver's, per frame: the frames
     of any plan add up); every frame must see the target."""
@@ -223,15 +226,12 @@ def _covariance(info: np.ndarray) -> np.ndarray | None:
 # -- candidates -------------------------------------------------------------------------------
 @dataclass
 class _Group:
-    """A candidate group: its pose (index 0) and displaced frames; which are usable, and why
-    not; each frame's tool pose and information."""
+    """A candidate group: its pose (index 0) and displaced frames; each frame's tool pose,
+    whether it is usable and its information; the frames a failed dry run banned."""
 
-    tilt_deg: float
-    azimuth_deg: float
-    standoff_m: float
     T_base_tool: np.ndarray  # (n, 4, 4)
     usable: np.ndarray  # (n,) bool
-    info: np.ndarray | None = None  # (n, P, P)
+    info: np.ndarray  # (n, P, P)
     banned: set[int] = field(default_factory=set)
 
 
@@ -249,23 +249,9 @@ def _rejection(cfg: CellConfig, s: PlanSettings, T_base_tool: np.ndarray) -> str
     hi = np.array([spec.width, spec.height]) - 0.5 - s.margin_px
     if np.any(px < s.margin_px - 0.5) or np.any(px > hi):
         return "view"
-    if not _reachable(T_base_tool, cfg):
+    if not urk.reachable(T_base_tool, None, urk.model_by_name(cfg.robot.model), cfg.robot.tcp):
         return "reach"
     return None
-
-
-def _reachable(T_base_tool: np.ndarray, cfg: CellConfig) -> bool:
-    """``ur_kinematics.reachable(T, None, ...)`` without its duplicate filtering: the closed-form
-    solutions are wrapped to (-pi, pi], inside every e-Series joint limit, so a pose is reachable
-    when one of them is not singular."""
-    model = urk.model_by_name(cfg.robot.model)
-    T = T_base_tool if cfg.robot.tcp is None else T_base_tool @ inv_T(cfg.robot.tcp)
-    return any(
-        urk.singularity(q, model) is None
-        and np.all(q >= np.array(model.q_min))
-        and np.all(q <= np.array(model.q_max))
-        for q in urk._ik_flange(T, model)
-    )
 
 
 def _via(cfg: CellConfig) -> np.ndarray:
@@ -302,13 +288,11 @@ def _candidates(
                 usable = np.array([w is None for w in why])
                 if not usable[0] or usable.sum() < s.min_frames_per_group:
                     continue
-                g = _Group(tilt, az, d, T_bt, usable)
                 idx = np.flatnonzero(usable)
                 fim = _information(cfg, s, T_bt[idx])
-                info = fim.per_frame
-                g.info = np.zeros((len(T_bt),) + info.shape[1:])
-                g.info[idx] = info
-                groups.append(g)
+                info = np.zeros((len(T_bt),) + fim.per_frame.shape[1:])
+                info[idx] = fim.per_frame
+                groups.append(_Group(T_bt, usable, info))
     return groups, counts, fim
 
 
@@ -349,14 +333,6 @@ def _sequence(cands: list[_Group], chosen: list[_Chosen], via: np.ndarray):
     return seq
 
 
-def _duration(seq, timing: _Timing) -> float:
-    t, prev = 0.0, timing.start
-    for kind, T in seq:
-        t += timing.move(prev, T) + (timing.per_frame if kind == "frame" else 0.0)
-        prev = T
-    return t
-
-
 def _greedy(
     cands: list[_Group],
     fim: FrameInformation,
@@ -383,7 +359,6 @@ def _greedy(
     info = np.zeros((P, P)) if prior is None else prior.info.copy()
     n_prior = 0 if prior is None else prior.n_groups
     t_now = 0.0
-    ratios = None
 
     def objective(A: np.ndarray) -> float:
         c = np.linalg.inv(A + ridge)
@@ -452,7 +427,10 @@ def _greedy(
         else:
             chosen.append(_Chosen(i, [0, k]))
         info, f_now = A, objective(A)
-        t_now = _duration(_sequence(cands, chosen, via), timing)
+        t_now, prev = 0.0, timing.start
+        for kind, T in _sequence(cands, chosen, via):
+            t_now += timing.move(prev, T) + (timing.per_frame if kind == "frame" else 0.0)
+            prev = T
         if t_now > s.goal.max_duration_s:
             cov = _covariance(info)
             return chosen, t_now, goal_ratios_of(cov) if cov is not None else None, "time"
@@ -516,7 +494,7 @@ def predict_std(
     s = settings or cfg.plan
     T = np.array([T for _, T in plan.poses])
     problem = nominal_problem(cfg, s, T)
-    if any(len(d.ids) < 4 for d in _detections(problem)):
+    if any(len(f.detections[problem.reference].ids) < 4 for f in problem.frames):
         raise DegenerateError(
             "a planned frame does not see the target; move the frame or the target into view"
         )
@@ -620,20 +598,9 @@ def dry_run(plan: Plan, cfg: CellConfig) -> tuple[float, int | None, str]:
 
 
 # -- the planner ------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class PlanReport:
-    """What the planner chose and predicted: the plan (with ``predicted_std`` and
-    ``duration_s``), the goal ratios (predicted over target, <= 1 met) and the candidate
-    statistics."""
-
-    plan: Plan
-    ratios: dict[str, float]
-    n_candidates: int
-    rejected: dict[str, int]
-
-
-def make_plan(cfg: CellConfig, settings: PlanSettings | None = None) -> PlanReport:
-    """The plan that meets the cell's goal with the least robot time (module docstring).
+def make_plan(cfg: CellConfig, settings: PlanSettings | None = None) -> Plan:
+    """The plan that meets the cell's goal with the least robot time (module docstring), with
+    its ``predicted_std`` and ``duration_s``.
 
     Raises ``InputError`` with the reason and what to change when no plan can: no reachable
     view of the target, the target does not fit in the image, or the goal needs more time than
@@ -658,8 +625,7 @@ def make_plan(cfg: CellConfig, settings: PlanSettings | None = None) -> PlanRepo
             s.corner_noise_px, *arm_noise(cfg, s)
         ),
     )
-    plan = replace(plan, predicted_std=pred, duration_s=float(duration), notes=notes)
-    return PlanReport(plan, ratios_d, sum(int(g.usable.sum()) for g in cands), rejected)
+    return replace(plan, predicted_std=pred, duration_s=float(duration), notes=notes)
 
 
 def _search(
@@ -688,7 +654,8 @@ def _search(
         chosen, t_pred, ratios, stop = _greedy(cands, fim, cfg, tight, timing, via, prior)
         if stop != "met":
             raise InputError(_goal_message(s, t_pred, ratios, stop), where=where)
-        plan = _to_plan(cfg, cands, chosen, via, ())
+        groups = tuple(tuple(cands[c.group].T_base_tool[k] for k in c.frames) for c in chosen)
+        plan = Plan.build(groups, cfg.robot, via=via)
         if before is not None:
             plan = Plan.build(before.groups + plan.groups, before, via=before.via)
         robot_s, bad, why = dry_run(plan, cfg)
@@ -714,44 +681,34 @@ def _search(
 
 
 def extend_plan(
-    cfg: CellConfig,
-    plan: Plan,
-    goal: PlanGoal,
-    achieved: Mapping[str, float],
-    corner_noise_px: float,
-    robot_noise_mm: float,
-    robot_noise_deg: float,
-    max_duration_s: float,
-    levels: Mapping[str, tuple[float, float]] | None = None,
-) -> PlanReport:
+    cfg: CellConfig, plan: Plan, s: PlanSettings, achieved: Mapping[str, float]
+) -> Plan:
     """``plan`` with more orientation groups after it, for a run whose recorded frames missed
     the accuracy its gate asks for (docs/UNATTENDED.md, "A run that extends its plan"): the
-    search of :func:`make_plan` with ``plan``'s frames counted, at the noise the data showed
-    (``corner_noise_px``; ``robot_noise_mm`` / ``_deg`` per axis and ``levels``, (mm, deg) per
-    source as ``RobotAccuracy.levels``), for ``goal`` tightened by how far ``achieved`` (the
-    recorded frames' one-sigma per goal key) exceeds their prediction, the new groups within
-    ``max_duration_s``. ``InputError`` (with the reason) when no extension meets the goal."""
+    search of :func:`make_plan` with ``plan``'s frames counted, under settings ``s`` that hold
+    the noise the data showed (``corner_noise_px``, ``robot_noise``, ``robot_levels``) and the
+    goal, tightened by how far ``achieved`` (the recorded frames' one-sigma per goal key)
+    exceeds their prediction. ``InputError`` (with the reason) when no extension meets it."""
     where = f"{cfg.source}: plan (extension)"
-    noise = (robot_noise_mm, robot_noise_deg)
-    s = replace(cfg.plan, corner_noise_px=corner_noise_px, robot_noise=noise, robot_levels=levels)
     try:
         before = goal_ratios(predict_std(plan, cfg, s), cfg, PlanGoal(1.0, 1.0, 1.0))
     except DegenerateError:
         before = {}
     tight: dict[str, float | None] = dict.fromkeys(GOAL_KEYS)
     for k in GOAL_KEYS:
-        target = getattr(goal, k)
+        target = getattr(s.goal, k)
         if target is not None:
             pred, got = before.get(k), achieved.get(k)
             factor = got / pred if pred and got and np.isfinite(got / pred) else 1.0
             tight[k] = target / max(1.0, factor)
-    goal = PlanGoal(**tight, max_duration_s=max_duration_s)
+    goal = PlanGoal(**tight, max_duration_s=s.goal.max_duration_s)
     s = replace(s, goal=goal)
-    cands, rejected, fim = _candidates(cfg, s)
+    cands, _, fim = _candidates(cfg, s)
     if fim is None:
         raise InputError("no candidate view of the target is left to extend the plan", where=where)
     T_old = np.array([T for _, T in plan.poses])
-    sees = [len(d.ids) >= 4 for d in _detections(nominal_problem(cfg, s, T_old))]
+    old = nominal_problem(cfg, s, T_old)
+    sees = [len(f.detections[old.reference].ids) >= 4 for f in old.frames]
     info = _information(cfg, s, T_old[sees]).per_frame.sum(axis=0)
     R_first = [g[0][:3, :3] for g in plan.groups]
     same = {
@@ -765,15 +722,15 @@ def extend_plan(
     ext, robot_s, pred = _search(cfg, cands, fim, s, timing, via, where, plan, prior)
     n_new = ext.n_poses - plan.n_poses
     ratios = goal_ratios(pred, cfg, goal)
+    mm, deg = arm_noise(cfg, s)  # the accuracy the first run's data showed
     notes = plan.notes + (
         f"extended by {len(ext.groups) - len(plan.groups)} groups, {n_new} frames (the first "
-        f"run's data: corner noise {corner_noise_px:.3g} px, robot accuracy "
-        f"{robot_noise_mm:.3g} mm / {robot_noise_deg:.3g} deg); predicted goal ratios "
+        f"run's data: corner noise {s.corner_noise_px:.3g} px, robot accuracy "
+        f"{mm:.3g} mm / {deg:.3g} deg); predicted goal ratios "
         + ", ".join(f"{k} {v:.2f}" for k, v in ratios.items()),
     )
     duration = robot_s + ext.n_poses * s.capture_s
-    ext = replace(ext, predicted_std=pred, notes=notes, duration_s=float(duration))
-    return PlanReport(ext, ratios, sum(int(g.usable.sum()) for g in cands), rejected)
+    return replace(ext, predicted_std=pred, notes=notes, duration_s=float(duration))
 
 
 def _scaled(goal: PlanGoal, mult: np.ndarray) -> PlanGoal:
@@ -781,11 +738,6 @@ def _scaled(goal: PlanGoal, mult: np.ndarray) -> PlanGoal:
     it = iter(mult)
     vals = {k: None if (v := getattr(goal, k)) is None else v * next(it) for k in GOAL_KEYS}
     return replace(goal, **vals)
-
-
-def _to_plan(cfg, cands, chosen, via, notes) -> Plan:  # noqa: ANN001 - internal helper
-    groups = tuple(tuple(cands[c.group].T_base_tool[k] for k in c.frames) for c in chosen)
-    return Plan.build(groups, cfg.robot, via=via, notes=notes)
 
 
 def _ban(cands: list[_Group], chosen: list[_Chosen], bad: int) -> None:
@@ -891,12 +843,12 @@ def main(args: argparse.Namespace) -> int:
     if out.parent.exists() and not out.parent.is_dir():
         raise InputError(f"{out.parent} is a file; --out must lie in a directory", str(out))
     cfg = load_config(args.config)
-    report = make_plan(cfg)
-    path = write_plan(report.plan, out)
+    plan = make_plan(cfg)
+    path = write_plan(plan, out)
     if not args.quiet:
-        for n in report.plan.notes:
+        for n in plan.notes:
             print(n)
-        pred = report.plan.predicted_std or {}
+        pred = plan.predicted_std or {}
         cam = cfg.reference_camera
         he = _hand_eye(cfg)
         print(

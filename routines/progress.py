@@ -44,18 +44,12 @@ class Progress:
         self._done = 0
         self._width = 0
 
-    def time_left_s(self) -> float | None:
-        """Wall time left, extrapolated from the frames done so far (None before the first)."""
-        if self._done == 0:
-            return None
-        per = (time.monotonic() - self._t0) / self._done
-        return per * (self.total - self._done)
-
     def step(self, index: int, what: str) -> None:
-        """Show ``frame index+1 of total: what`` and the time left."""
-        left = self.time_left_s()
-        eta = f", about {left:.0f} s left" if left is not None else ""
-        self._show(f"frame {index + 1} of {self.total}: {what}{eta}")
+        """Show ``frame index+1 of total: what`` and the wall time left, extrapolated from the
+        frames done so far."""
+        left = (time.monotonic() - self._t0) / max(self._done, 1) * (self.total - self._done)
+        eta = f", about {left:.0f} s left" if self._done else ""
+        self.message(f"frame {index + 1} of {self.total}: {what}{eta}")
 
     def frame_done(self, detail: str | None = None) -> None:
         """Count one frame as done (for the time estimate); ``detail``: e.g. the corner counts,
@@ -64,14 +58,8 @@ class Progress:
         if detail and self.lines:
             self._line(f"frame {self._done} of {self.total} done: {detail}")
 
-    def message(self, text: str) -> None:
-        """A status line that is not about a frame (connecting, solving)."""
-        self._show(text)
-
     def event(self, text: str) -> None:
         """Something a log must keep (a retry, a fault, the verdict): its own line always."""
-        if self.quiet:
-            return
         if not self.lines:
             self.done()
         self._line(text)
@@ -83,7 +71,8 @@ class Progress:
         self.stream.write(f"{stamp} {text}\n")
         self.stream.flush()
 
-    def _show(self, text: str) -> None:
+    def message(self, text: str) -> None:
+        """The status line (connecting, solving; a frame's step), or a plain line."""
         if self.quiet:
             return
         if self.lines:
@@ -104,7 +93,7 @@ class Progress:
             return
         if self._width == 0 and not text:
             return
-        self._show(text)
+        self.message(text)
         self.stream.write("\n")
         self.stream.flush()
         self._width = 0

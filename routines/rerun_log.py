@@ -5,14 +5,15 @@ from __future__ import annotations
 
 import shutil
 from collections.abc import Mapping, Sequence
+from contextlib import suppress
 from pathlib import Path
 
 import numpy as np
 import rerun as rr
 
 from slidecal.solver.camera import project
-from slidecal.solver.drift import T_cam_board
-from slidecal.solver.geometry import inv_T
+from slidecal.solver.drift import T_cam_board, hand_eye_T
+from slidecal.solver.errors import InputError
 from slidecal.solver.problem import CalibrationProblem, CameraSpec, Detection, Target
 from slidecal.solver.result import CalibrationResult
 
@@ -44,9 +45,8 @@ class RerunLog:
         T_hand_eye_approx: np.ndarray,
         T_target_approx: np.ndarray,
         spawn: bool = False,
-        recording_id: str | None = None,
     ) -> None:
-        self.rec = rr.RecordingStream("slidecal", recording_id=recording_id)
+        self.rec = rr.RecordingStream("slidecal")
         self.path = Path(path) if path is not None else None
         if spawn:
             if shutil.which("rerun") is None:  # asked first: rerun itself would log to stderr
@@ -69,11 +69,8 @@ class RerunLog:
     def _cam_path(self, name: str) -> str:
         return f"world/tool/{name}" if self.mount == "eye_in_hand" else f"world/{name}"
 
-    def _board_path(self) -> str:
-        return "world/board" if self.mount == "eye_in_hand" else "world/tool/board"
-
     def _log_board(self, T_target: np.ndarray, static: bool = False) -> None:
-        p = self._board_path()
+        p = "world/board" if self.mount == "eye_in_hand" else "world/tool/board"
         self.rec.log(
             p, rr.Transform3D(translation=T_target[:3, 3], mat3x3=T_target[:3, :3]), static=static
         )
@@ -146,19 +143,14 @@ class RerunLog:
     def final(self, problem: CalibrationProblem, result: CalibrationResult, summary: str) -> None:
         """The estimate: cameras and board at their estimated poses, reprojections, residuals
         per frame, and the summary (estimate with its uncertainty) as a ``TextLog``."""
-        ref = problem.reference
-        he = result.hand_eye.T if result.hand_eye is not None else None
         Tt = result.T_target.T if result.T_target is not None else None
         if Tt is not None:
             self._log_board(Tt, static=True)
-        T_ref_cam = {ref: np.eye(4)}
-        for key, te in result.rig.items():
-            name = key[2 : -len(ref) - 1]
-            if te.T is not None:
-                T_ref_cam[name] = inv_T(te.T)
+        X = {}  # each camera's hand-eye, where the solve determined it
         for name, est in result.cameras.items():
-            if he is not None and name in T_ref_cam:
-                self._log_camera(name, self.cameras[name], est.K, he @ T_ref_cam[name], static=True)
+            with suppress(InputError):
+                X[name] = hand_eye_T(result, name)
+                self._log_camera(name, self.cameras[name], est.K, X[name], static=True)
         for fr in problem.frames:
             self._time(fr.id, None)
             for name, det in fr.detections.items():
@@ -166,17 +158,11 @@ class RerunLog:
                 if rms is not None:
                     self.rec.log(f"residuals/{name}", rr.Scalars(float(rms)))
                 est = result.cameras.get(name)
-                if (
-                    est is None
-                    or he is None
-                    or Tt is None
-                    or fr.T_base_tool is None
-                    or name not in T_ref_cam
-                    or len(det.ids) == 0
-                ):
+                if est is None or Tt is None or fr.T_base_tool is None or name not in X:
                     continue
-                T_ref_board = T_cam_board(problem.mount, he, fr.T_base_tool, Tt)
-                T_cb = inv_T(T_ref_cam[name]) @ T_ref_board
+                if len(det.ids) == 0:
+                    continue
+                T_cb = T_cam_board(problem.mount, X[name], fr.T_base_tool, Tt)
                 P = problem.target.points_m[det.ids] @ T_cb[:3, :3].T + T_cb[:3, 3]
                 px = project(est.K, est.distortion, P)
                 self.rec.log(

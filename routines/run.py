@@ -11,7 +11,6 @@ import argparse
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, fields, replace
-from datetime import datetime
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -19,13 +18,19 @@ from typing import Any
 import numpy as np
 
 from slidecal.mocks.cell import SimulatedCell
-from slidecal.routines.acquire import DEFAULT_RETRIES, cell_key, clock, record_session, sockets
+from slidecal.routines.acquire import (
+    DEFAULT_RETRIES,
+    cell_key,
+    clock,
+    new_session_dir,
+    record_session,
+)
 from slidecal.routines.config import CellConfig, PlanGoal, load_config
 from slidecal.routines.devices import check_libraries
 from slidecal.routines.ops.faults import parse_fault
-from slidecal.routines.ops.install import NotInstalled, check_same_cell, install
+from slidecal.routines.ops.install import NotInstalled, check_same_cell, install, one_sigmas
 from slidecal.routines.ops.verdict import Limits, judge
-from slidecal.routines.plan import Plan, read_plan
+from slidecal.routines.plan import Plan, plan_from_dict, plan_to_dict, read_plan
 from slidecal.routines.planner import extend_plan, make_plan, predict_std
 from slidecal.routines.progress import Progress
 from slidecal.routines.schema import check_out_dir, load_yaml
@@ -39,13 +44,10 @@ from slidecal.routines.solve import (
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.drift import chain_rms_px
 from slidecal.solver.errors import DegenerateError, InputError
-from slidecal.solver.geometry import rotation_angle_deg
 from slidecal.solver.result import CalibrationResult
 
 help = "move the robot through a plan, capture, calibrate (simulated cell by default)"
 
-#: A user's plan: poses of one group may differ in orientation by this much (pendant rounding).
-MAX_GROUP_ROTATION_DEG = 0.5
 #: A user's plan: the smallest move inside a group that counts as a translation.
 MIN_GROUP_MOVE_M = 0.002
 
@@ -87,26 +89,12 @@ class RunRequest:
     retries: int | None = None
 
 
-def default_session_dir() -> Path:
-    """``sessions/<date>_<time>`` under the current directory."""
-    return Path("sessions") / datetime.now().strftime("%Y%m%d_%H%M%S")
-
-
 def check_user_plan(plan: Plan, cfg: CellConfig, where: str) -> None:
     """Refuse, before the robot moves, a user's plan that cannot determine the calibration: a group
-    whose poses differ in orientation or hold no translation, or a plan the planner's prediction
-    finds degenerate."""
+    that holds no translation, or a plan the planner's prediction finds degenerate (a group's
+    orientation is the plan file's rule, :func:`~slidecal.routines.plan.plan_from_dict`)."""
     for g, group in enumerate(plan.groups):
         T0 = group[0]
-        for k, T in enumerate(group[1:], start=1):
-            angle = rotation_angle_deg(T[:3, :3], T0[:3, :3])
-            if angle > MAX_GROUP_ROTATION_DEG:
-                raise InputError(
-                    f"pose {k} of group {g} is rotated {angle:.2f} deg from the group's first "
-                    "pose; the poses of a group must share one orientation (pure translations), "
-                    "start a new group for a new orientation",
-                    where=where,
-                )
         d = np.array([T[:3, 3] - T0[:3, 3] for T in group[1:]]).reshape(-1, 3)
         d = d[np.linalg.norm(d, axis=1) >= MIN_GROUP_MOVE_M]
         if len(d) == 0:
@@ -149,7 +137,8 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
     if q.resume is not None:
         out, plan, start, seed = _resumed(q)
     else:
-        out, plan, start, seed = _new_session(q, cfg), _plan(q.plan, cfg), 0, q.seed
+        out = new_session_dir(q.out_dir)
+        plan, start, seed = _plan(q.plan, cfg), 0, q.seed
     inst_result, inst_path = installed_calibration(
         q.installed if q.installed is not None else store
     )
@@ -165,15 +154,13 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
     )
     record = partial(record, retries=retries, faults=q.faults)
     recording = q.recording and q.resume is None  # a resumed run's recording stays as it was
-    rec = record(
+    robot, log = record(
         plan=plan,
         start=start,
         resume=q.resume is not None,
         recording=recording,
         spawn=q.spawn,
-        seed=seed,
     )
-    robot, log = rec.robot, rec.log
     notes: list[str] = []
     for extension in range(EXTEND_ROUNDS + 1):
         prog.message("solving")
@@ -192,7 +179,7 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
         notes.append(said)
         prog.event(said)
         prog.total = plan.n_poses
-        robot = record(plan=plan, start=n_done, resume=True, extended=said, log=log).robot
+        robot, _ = record(plan=plan, start=n_done, resume=True, extended=said, log=log)
     fin = finish_solve(
         result,
         out,
@@ -202,7 +189,7 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
         t0=t0,
         cell_path=q.config if isinstance(q.config, str | Path) else None,
         cell_name=cfg.source,
-        oak_sockets=sockets(cfg),
+        oak_sockets=session.sockets or None,  # as the session recorded them
         installed=inst_result,
         installed_path=inst_path,
         plan_poses=plan.n_poses,
@@ -251,22 +238,12 @@ def _resumed(q: RunRequest) -> tuple[Path, Plan, int, int | None]:
     return out, read_plan(out / "plan.yaml"), len(frames), seed
 
 
-def _new_session(q: RunRequest, cfg: CellConfig) -> Path:
-    """The new session's directory, refused at once when it cannot be one."""
-    out = Path(q.out_dir) if q.out_dir is not None else default_session_dir()
-    check_out_dir(out)
-    if (out / "session.yaml").exists():
-        raise InputError(
-            "already holds a session; choose a new --out directory, or continue it with --resume",
-            where=str(out),
-        )
-    return out
-
-
 def _plan(plan: str | Path | Plan | None, cfg: CellConfig) -> Plan:
     """The plan to run: a user's, checked before the robot moves, or the planner's."""
     if plan is None:
-        return make_plan(cfg).plan
+        return make_plan(cfg)
+    if isinstance(plan, Plan):  # a plan made in Python meets the plan file's rules too
+        plan_from_dict(plan_to_dict(plan), "plan")
     user = plan if isinstance(plan, Plan) else read_plan(plan)
     check_user_plan(user, cfg, "plan" if isinstance(plan, Plan) else str(plan))
     return user
@@ -334,32 +311,32 @@ def extend_for_limits(
     he = result.hand_eye
     if cam is None or he is None:
         return None, "not extended: the reference camera or the hand-eye was not determined"
-    K = np.asarray(cam.K, dtype=float)
-    rel = [
-        float(cam.std[p]) / abs(v)
-        for p, v in (("fx", K[0, 0]), ("fy", K[1, 1]))
-        if cam.std.get(p) is not None
-    ]
+    u, ref, nan = one_sigmas(result), cfg.reference_camera, float("nan")
+    rel = [u[k] for k in (f"{ref}.fx_rel", f"{ref}.fy_rel") if k in u]
     achieved = {
-        "fx_rel_std": max(rel) if rel else float("nan"),
-        "hand_eye_rot_std_deg": he.std_rot_deg if he.std_rot_deg is not None else float("nan"),
-        "hand_eye_t_std_mm": he.std_t_mm if he.std_t_mm is not None else float("nan"),
+        "fx_rel_std": max(rel) if rel else nan,
+        "hand_eye_rot_std_deg": u.get(f"{he.name}.rot_deg", nan),
+        "hand_eye_t_std_mm": u.get(f"{he.name}.t_mm", nan),
     }
-    goal = PlanGoal(**{k: EXTEND_MARGIN * getattr(limits, k) for k in achieved})
+    goal = {k: EXTEND_MARGIN * getattr(limits, k) for k in achieved}
     acc = result.robot_accuracy
     t_mm = acc.translation_mm if acc is not None else cfg.options.robot_noise_m * 1000.0
     rot_deg = acc.rotation_deg if acc is not None else cfg.options.robot_noise_deg
+    s = replace(
+        cfg.plan,
+        goal=PlanGoal(**goal, max_duration_s=budget_s),
+        corner_noise_px=float(cam.reproj_rms_px),
+        robot_noise=(t_mm, rot_deg),
+        robot_levels=acc.levels if acc is not None else None,
+    )
     try:
-        levels = acc.levels if acc is not None else None
-        report = extend_plan(
-            cfg, plan, goal, achieved, float(cam.reproj_rms_px), t_mm, rot_deg, budget_s, levels
-        )
+        longer = extend_plan(cfg, plan, s, achieved)
     except InputError as e:
         return None, f"not extended: {e}"
-    if report.plan.n_poses == plan.n_poses:
+    if longer.n_poses == plan.n_poses:
         return None, "not extended: the planner predicts no gain from more frames"
     missed = "; ".join(c.message for c in failed)
-    return report.plan, (
+    return longer, (
         f"{missed} (robot accuracy {t_mm:.2f} mm / {rot_deg:.3f} deg as the data shows it)"
     )
 

@@ -16,4 +16,4 @@ def default_plan():
     """The planner's plan for the default simulated cell (a second of planning), for the tests
     that run that cell only to meet a fault or a refusal; a Plan is frozen, so sharing it
     couples no test to another."""
-    return make_plan(load_config()).plan
+    return make_plan(load_config())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -10,9 +11,12 @@ import yaml
 
 from slidecal.routines.acquire import sockets
 from slidecal.routines.config import load_config, load_packaged_cell
-from slidecal.routines.plan import check_plan, default_plan, read_plan, write_plan
+from slidecal.routines.plan import check_plan, read_plan, write_plan
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import inv_T, rotation_angle_deg
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout: tests.*
+from tests.fixed_plan import default_plan  # noqa: E402 - the reference plan
 
 
 @pytest.mark.parametrize("name", ["default_cell.yaml", "oak_cell.yaml", "eye_to_hand_cell.yaml"])
@@ -191,7 +195,7 @@ def test_plan_tilts_override_changes_the_plan() -> None:
     from slidecal.routines.planner import make_plan
 
     def tilts(cfg) -> set[float]:
-        plan = make_plan(cfg).plan
+        plan = make_plan(cfg)
         out = set()
         for grp in plan.groups:
             T_cam_board = inv_T(grp[0] @ cfg.approx_T_hand_eye) @ cfg.approx_T_target

@@ -27,7 +27,7 @@ from slidecal.routines.config import load_config, load_packaged_cell  # noqa: E4
 from slidecal.routines.devices import camera_rig  # noqa: E402
 from slidecal.routines.run import RunRequest, run_calibration  # noqa: E402
 from slidecal.routines.session import SessionWriter  # noqa: E402
-from slidecal.solver.errors import InputError  # noqa: E402
+from slidecal.solver.errors import HardwareFault, InputError  # noqa: E402
 from slidecal.solver.result import (  # noqa: E402
     CalibrationResult,
     CameraEstimate,
@@ -107,17 +107,23 @@ class RenderingCapture:
         self.rig.close()
 
 
-@pytest.mark.slow
-def test_a_uvc_cell_runs_end_to_end(tmp_path, monkeypatch):
+def uvc_cell(tmp_path, monkeypatch, **camera):
+    """The default cell with a UVC camera that renders the simulated one (seed 3), its robot
+    simulated: (the simulated cell, the real cell file)."""
     cell = SimulatedCell.from_config(load_config(None), seed=3)
     use_simulated_robot(monkeypatch, cell)
     RenderingCapture.rig, RenderingCapture.instances = cell.rig, []
     monkeypatch.setattr(cv2, "VideoCapture", RenderingCapture)
     spec = cell.rig.specs[0]
     cameras = {"driver": "uvc", "list": [{"name": spec.name, "width": spec.width,
-                                          "height": spec.height, "source": 0, "exposure": 150,
-                                          "drop_frames": 1}]}
-    path = write_cell(tmp_path, real_cell("default_cell.yaml", cameras))
+                                          "height": spec.height, "source": 0, **camera}]}
+    return cell, write_cell(tmp_path, real_cell("default_cell.yaml", cameras))
+
+
+@pytest.mark.slow
+def test_a_uvc_cell_runs_end_to_end(tmp_path, monkeypatch):
+    cell, path = uvc_cell(tmp_path, monkeypatch, exposure=150, drop_frames=1)
+    spec = cell.rig.specs[0]
     out = run_calibration(RunRequest(path, out_dir=tmp_path / "s", progress=False, recording=False))
     session = yaml.safe_load((out.session_dir / "session.yaml").read_text())
     cam = session["devices"]["camera"]
@@ -131,6 +137,20 @@ def test_a_uvc_cell_runs_end_to_end(tmp_path, monkeypatch):
     truth = np.asarray(cell.truth["cameras"][spec.name]["K"])
     for label, (i, j) in {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}.items():
         assert abs(est.K[i][j] - truth[i, j]) < 5 * est.std[label] + 0.05, label
+
+
+def test_a_stopped_uvc_run_resumes(tmp_path, monkeypatch):
+    """A real rig reports itself into a resumed session as into a new one (the resume was
+    refused: the session directory "already holds a session")."""
+    cell, path = uvc_cell(tmp_path, monkeypatch)
+    cell.robot.inject_fault("protective_stop", 4)
+    with pytest.raises(HardwareFault):
+        run_calibration(RunRequest(path, out_dir=tmp_path / "s", progress=False, recording=False))
+    cell.robot.clear_fault()
+    out = run_calibration(RunRequest(path, resume=tmp_path / "s", progress=False))
+    session = yaml.safe_load((out.session_dir / "session.yaml").read_text())
+    assert session["status"] == "complete" and out.n_frames == len(session["frames"])
+    assert session["devices"]["camera"]["driver"] == "uvc"
 
 
 # ---------------------------------------------------------------------------------- OAK cell

@@ -5,6 +5,7 @@ would do): what is extended, what is not, and that the extension keeps the recor
 from __future__ import annotations
 
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +15,14 @@ import yaml
 from slidecal.routines.config import load_config
 from slidecal.routines.ops.verdict import Limits
 from slidecal.routines.plan import Plan, read_plan
-from slidecal.routines.planner import PlanGoal, dry_run, extend_plan, make_plan
+from slidecal.routines.planner import (
+    PlanGoal,
+    dry_run,
+    extend_plan,
+    goal_ratios,
+    make_plan,
+    predict_std,
+)
 from slidecal.routines.run import EXTEND_MARGIN, RunRequest, extend_for_limits, run_calibration
 from slidecal.routines.session import load_session
 from slidecal.routines.solve import solve_session
@@ -77,14 +85,15 @@ def test_extension_can_be_switched_off_and_hand_written_plans_run_as_written(sol
 @pytest.mark.slow
 def test_extension_keeps_the_recorded_part_and_visits_new_orientations():
     cfg = load_config()
-    plan = make_plan(cfg).plan
+    plan = make_plan(cfg)
     goal = PlanGoal(3.5e-3, 0.14, 1.4)
     # the recorded frames gave a hand-eye translation 2.8 mm, far above the prediction for them
     achieved = {"fx_rel_std": 1e-4, "hand_eye_rot_std_deg": 0.05, "hand_eye_t_std_mm": 2.8}
     # the arm's accuracy as the first part's solve learned it: all of it per pose
     levels = {"pose": (0.7, 0.04)}
-    rep = extend_plan(cfg, plan, goal, achieved, 0.05, 0.7, 0.04, 60.0, levels)
-    x = rep.plan
+    noise = {"corner_noise_px": 0.05, "robot_noise": (0.7, 0.04), "robot_levels": levels}
+    s = replace(cfg.plan, goal=goal, **noise)  # 60 s for the new groups
+    x = extend_plan(cfg, plan, s, achieved)
     n = len(plan.groups)
     assert len(x.groups) > n
     for old, kept in zip(plan.groups, x.groups[:n], strict=True):
@@ -93,13 +102,16 @@ def test_extension_keeps_the_recorded_part_and_visits_new_orientations():
         assert len(g) >= 3
         for old in plan.groups:
             assert rotation_angle_deg(g[0][:3, :3], old[0][:3, :3]) >= 1.0
-    assert all(v <= 1.0 for v in rep.ratios.values())
+    # the goal the extension planned for: tightened by how far the recorded part fell short
+    before = goal_ratios(predict_std(plan, cfg, s), cfg, PlanGoal(1.0, 1.0, 1.0))
+    tight = {k: getattr(goal, k) / max(1.0, achieved[k] / before[k]) for k in achieved}
+    assert all(v <= 1.0 for v in goal_ratios(x.predicted_std, cfg, PlanGoal(**tight)).values())
     robot_s, bad, _ = dry_run(x, cfg)
     assert bad is None
     before_s, _, _ = dry_run(plan, cfg)
     assert robot_s - before_s <= 60.0
     # recorded frames as good as their prediction need fewer new frames than ones far worse
-    easy = extend_plan(cfg, plan, goal, {}, 0.05, 0.7, 0.04, 60.0, levels).plan
+    easy = extend_plan(cfg, plan, s, {})
     assert easy.n_poses < x.n_poses
 
 

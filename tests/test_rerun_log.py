@@ -20,9 +20,7 @@ def test_recording_has_the_entity_tree(tmp_path: Path) -> None:
     T_tool_cam = T_from_Rt(np.eye(3), [0.0, 0.0, 0.05])
     T_base_board = T_from_Rt(Rx(np.pi), [0.0, 0.0, 0.0])
     path = tmp_path / "r.rrd"
-    log = RerunLog(
-        path, [spec], target, "eye_in_hand", T_tool_cam, T_base_board, recording_id="test"
-    )
+    log = RerunLog(path, [spec], target, "eye_in_hand", T_tool_cam, T_base_board)
     frames = []
     for i in range(3):
         T = T_from_Rt(Rx(np.pi), [0.01 * i, 0.0, 0.5])

@@ -324,15 +324,15 @@ def test_a_crash_while_installing_leaves_current_intact(solved_dir, tmp_path, mo
     store = tmp_path / "store"
     first = install(store, d, r, "accepted")
     calls = {"n": 0}
-    real = inst._copy_synced
+    real = inst.write_atomic
 
-    def dies_midway(src, dst):  # noqa: ANN001
+    def dies_midway(dst, data):  # noqa: ANN001
         calls["n"] += 1
         if calls["n"] == 3:
             raise OSError(errno.ENOSPC, "No space left on device", str(dst))
-        real(src, dst)
+        real(dst, data)
 
-    monkeypatch.setattr(inst, "_copy_synced", dies_midway)
+    monkeypatch.setattr(inst, "write_atomic", dies_midway)
     with pytest.raises(OSError):
         install(store, d, r, "accepted")
     assert (store / CURRENT).resolve() == first and history(store) == [first]
@@ -470,6 +470,23 @@ def test_degenerate_user_plan_refused_before_the_robot_moves(tmp_path: Path, def
         run_calibration(
             RunRequest(cfg, plan=tmp_path / "flat.yaml", out_dir=tmp_path / "s", cell=cell)
         )
+    assert cell.robot.moves == 0 and not (tmp_path / "s").exists()
+
+
+def test_a_python_plan_whose_group_turns_is_refused_before_the_robot_moves(tmp_path, default_plan):
+    """A Plan made in Python meets the plan file's rule: a group's poses share one orientation."""
+    import math
+    from dataclasses import replace
+
+    from slidecal.solver.geometry import R_from_rvec, T_from_Rt
+
+    first, *rest = default_plan.groups
+    turn = R_from_rvec([0.0, 0.0, math.radians(0.3)])  # 0.3 deg about the optical axis
+    turned = T_from_Rt(first[1][:3, :3] @ turn, first[1][:3, 3])
+    plan = replace(default_plan, groups=((first[0], turned, *first[2:]), *rest))
+    cell = SimulatedCell.from_config(load_config(), seed=0)
+    with pytest.raises(InputError, match=r"plan: groups\[0\]\[1\]: turns 0.3 deg"):
+        run_calibration(RunRequest(plan=plan, out_dir=tmp_path / "s", cell=cell))
     assert cell.robot.moves == 0 and not (tmp_path / "s").exists()
 
 

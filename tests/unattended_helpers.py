@@ -28,7 +28,7 @@ def record_without_translation(out: Path, seed: int = 0) -> Path:
     its first pose): what a hand-made plan can do (``slidecal run`` refuses such a plan
     before the robot moves; this records it anyway, to show what the verdict makes of it)."""
     cfg = load_config()
-    plan = make_plan(cfg).plan
+    plan = make_plan(cfg)
     bad = Plan.build([[g[0] for _ in g] for g in plan.groups], plan, via=plan.via)
     cell = SimulatedCell.from_config(cfg, seed)
     writer = SessionWriter(

@@ -7,18 +7,18 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-from datetime import datetime
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from slidecal.routines.acquire import cell_key, clock, record_session
+from slidecal.mocks.cell import SimulatedCell
+from slidecal.routines.acquire import cell_key, clock, new_session_dir, record_session
 from slidecal.routines.config import CellConfig, load_config
 from slidecal.routines.ops.install import (
-    INSTALLED_FILE,
     check_same_cell,
     current_dir,
+    installed_info,
     installed_session,
 )
 from slidecal.routines.ops.verdict import (
@@ -34,13 +34,12 @@ from slidecal.routines.plan import Plan, read_plan
 from slidecal.routines.planner import dry_run, make_plan
 from slidecal.routines.progress import Progress
 from slidecal.routines.results_io import read_result
-from slidecal.routines.schema import check_out_dir
-from slidecal.routines.session import load_session, load_yaml
+from slidecal.routines.session import load_session
 from slidecal.solver.camera import project
 from slidecal.solver.drift import T_cam_board as _T_cam_board
 from slidecal.solver.drift import fit_target, hand_eye_T, match_poses
 from slidecal.solver.errors import InputError
-from slidecal.solver.geometry import R_from_rvec, T_from_Rt
+from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T
 from slidecal.solver.numeric import least_squares
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.result import CalibrationResult, TransformEstimate
@@ -125,15 +124,8 @@ def refit(
     ref = installed.reference_camera or next(iter(installed.cameras))
     cams = [c.name for c in problem.cameras if c.name in installed.cameras]
     X0 = hand_eye_T(installed, ref)
-    T_c_ref = {}
-    for c in cams:
-        if c == ref:
-            T_c_ref[c] = np.eye(4)
-        else:
-            t = installed.rig.get(f"T_{c}_{ref}")
-            if t is None or t.T is None:
-                raise InputError(f"the installed calibration has no complete T_{c}_{ref}")
-            T_c_ref[c] = t.T
+    # T_<camera>_<reference> (hand_eye_T refuses an incomplete rig)
+    T_c_ref = {c: np.eye(4) if c == ref else inv_T(hand_eye_T(installed, c)) @ X0 for c in cams}
     Y0, _ = fit_target(problem, installed)
     pts = problem.target.points_m
     frames = [fr for fr in problem.frames if fr.T_base_tool is not None]
@@ -290,7 +282,6 @@ def run_check(
     progress: bool | Progress | None = None,
     seed: int | None = None,
     cell: Any = None,
-    retries: int = 2,
 ) -> tuple[Verdict, Path]:
     """Record a short check session and judge it against the installed calibration; write
     ``verdict.yaml`` into the session; return the verdict and the session directory."""
@@ -303,47 +294,36 @@ def run_check(
             where=str(store),
         )
     inst = read_result(cur / "result.yaml")
-    info = (
-        load_yaml(cur / INSTALLED_FILE, "installed.yaml")
-        if (cur / INSTALLED_FILE).is_file()
-        else {}
-    )
+    info = installed_info(cur)
     check_same_cell(inst, str(cur), cfg.cameras, cfg.source)
     if (cur / "plan.yaml").is_file():
         base = read_plan(cur / "plan.yaml")
     else:
-        base = make_plan(cfg).plan
+        base = make_plan(cfg)
     recorded = installed_session(cur)
     if recorded is not None:
         base = recorded_plan(base, recorded)
     plan = check_plan_from(base, cfg, frames)
     if seed is not None and seed < 0:
         raise InputError(f"--seed must be 0 or a positive integer, got {seed}")
-    out = (
-        Path(out_dir)
-        if out_dir is not None
-        else Path("sessions") / datetime.now().strftime("check_%Y%m%d_%H%M%S")
-    )
-    check_out_dir(out)
-    if (out / "session.yaml").exists():
-        raise InputError("already holds a session; choose a new --out directory", str(out))
+    out = new_session_dir(out_dir, "check_", resume="")
     prog = Progress.from_option(progress, plan.n_poses)
-    rec = record_session(
+    if cfg.simulated and cell is None:
+        cell = SimulatedCell.from_config(cfg, seed)
+    robot, _ = record_session(
         cfg,
         plan,
         out,
         prog,
         lock_key=cell_key(config, cfg),
-        seed=seed,
         cell=cell,
-        retries=retries,
         extra={"purpose": "check", "installed": str(cur)},
     )
     problem = load_session(out).problem
     verdict = judge_problem(
-        problem, inst, expected_rms_px(inst, info or {}, cfg), cfg, installed_problem=recorded
+        problem, inst, expected_rms_px(inst, info, cfg), cfg, installed_problem=recorded
     )
-    verdict.extra["check"]["robot_time_s"] = clock(rec.robot)
+    verdict.extra["check"]["robot_time_s"] = clock(robot)
     write_verdict(verdict, out)
     for line in verdict.lines():
         prog.event(line)

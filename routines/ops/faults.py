@@ -57,7 +57,6 @@ class FaultInjector:
         self.specs = tuple(s if isinstance(s, FaultSpec) else parse_fault(s) for s in specs)
         self._arm_robot = arm_robot
         self._rig = rig
-        self.fired: list[FaultSpec] = []
         if any(s.kind not in ROBOT_FAULTS for s in self.specs) and not hasattr(rig, "inject_fault"):
             raise InputError("camera faults need a simulated camera rig", where="--fault")
 
@@ -85,4 +84,3 @@ class FaultInjector:
                     self._rig.inject_fault("no_frame", self._rig.capture_count + k)
             else:
                 self._rig.inject_fault(SIMULATED[s.kind], self._rig.capture_count)
-            self.fired.append(s)

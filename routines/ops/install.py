@@ -45,10 +45,6 @@ class NotInstalled(InputError):
     """The result was not installed (rejected, drifted, or worse than the installed one)."""
 
 
-def _stamp() -> str:
-    return datetime.now(UTC).strftime("%Y%m%dT%H%M%S_%fZ")
-
-
 def current_dir(store: str | Path) -> Path | None:
     """The directory ``current`` points at, or None when nothing is installed."""
     cur = Path(store) / CURRENT
@@ -72,6 +68,13 @@ def installed_session(directory: str | Path) -> CalibrationProblem | None:
     if not (d / SESSION_FILE).is_file():
         return None
     return load_session(d, detect_images=False).problem
+
+
+def installed_info(directory: str | Path | None) -> dict[str, Any]:
+    """An install's ``installed.yaml`` (empty when there is none)."""
+    meta = Path(directory) / INSTALLED_FILE if directory else None
+    data = load_yaml(meta, "installed.yaml") if meta is not None and meta.is_file() else None
+    return data if isinstance(data, dict) else {}
 
 
 def _session_copy(src: Path) -> str | None:
@@ -98,11 +101,7 @@ def check_same_cell(
     """Refuse (InputError: nothing compared, nothing moved) an installed calibration of another
     cell or camera: the cell its ``installed.yaml`` names against ``cell``, and the image size of
     each of ``cameras`` (``name``, ``width``, ``height``) the installed calibration also has."""
-    meta = Path(path) / INSTALLED_FILE if path else None
-    old_cell = None
-    if meta is not None and meta.is_file():
-        data = load_yaml(meta, "installed.yaml")
-        old_cell = data.get("cell") if isinstance(data, dict) else None
+    old_cell = installed_info(path).get("cell")
     if cell and old_cell and str(old_cell) != str(cell):
         raise InputError(
             f"holds the calibration of cell {old_cell}, not of this cell ({cell}): nothing was "
@@ -128,7 +127,9 @@ def history(store: str | Path) -> list[Path]:
     return sorted(p for p in h.iterdir() if p.is_dir() and not p.name.startswith("."))
 
 
-def _uncertainties(r: CalibrationResult) -> dict[str, float]:
+def one_sigmas(r: CalibrationResult) -> dict[str, float]:
+    """The finite one-sigmas of a result: ``<cam>.fx_rel`` (relative), ``<cam>.cx_px``,
+    ``<transform>.rot_deg``, ``<transform>.t_mm``."""
     out: dict[str, float] = {}
     for n, c in r.cameras.items():
         K = np.asarray(c.K, dtype=float)
@@ -150,7 +151,7 @@ def _uncertainties(r: CalibrationResult) -> dict[str, float]:
 
 def worse_than(new: CalibrationResult, old: CalibrationResult) -> str | None:
     """Why ``new`` is less certain than ``old`` (one line), or None when it is not."""
-    a, b = _uncertainties(new), _uncertainties(old)
+    a, b = one_sigmas(new), one_sigmas(old)
     worst = None
     for k in a:
         if k in b and b[k] > 0 and a[k] > WORSE_FACTOR * b[k]:
@@ -165,17 +166,9 @@ def worse_than(new: CalibrationResult, old: CalibrationResult) -> str | None:
     )
 
 
-def _copy_synced(src: Path, dst: Path) -> None:
-    with open(src, "rb") as fi, open(dst, "wb") as fo:
-        shutil.copyfileobj(fi, fo)
-        fo.flush()
-        os.fsync(fo.fileno())
-
-
 def _publish_link(store: Path, target: Path) -> None:
     tmp = store / f".{CURRENT}.tmp"
-    if tmp.is_symlink() or tmp.exists():
-        tmp.unlink()
+    tmp.unlink(missing_ok=True)  # a link left by an install that died here
     os.symlink(os.path.relpath(target, store), tmp)
     os.replace(tmp, store / CURRENT)
     _fsync_dir(store)
@@ -222,20 +215,19 @@ def install(
                     "it anyway with --force",
                     where=str(store),
                 )
-        stamp = _stamp()
+        stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S_%fZ")
         staging = store / f".staging-{stamp}"
         staging.mkdir()
         try:
             for name in _FILES:
                 if (src / name).is_file():
-                    _copy_synced(src / name, staging / name)
+                    write_atomic(staging / name, (src / name).read_bytes())
             exp = src / "export"
             if exp.is_dir():
                 (staging / "export").mkdir()
                 for p in sorted(exp.iterdir()):
                     if p.is_file():
-                        _copy_synced(p, staging / "export" / p.name)
-                _fsync_dir(staging / "export")
+                        write_atomic(staging / "export" / p.name, p.read_bytes())
             session_text = _session_copy(src)
             if session_text is not None:
                 write_atomic(staging / SESSION_FILE, session_text)
@@ -246,8 +238,7 @@ def install(
                 "forced": bool(force),
                 **(info or {}),
             }
-            write_atomic(staging / INSTALLED_FILE, dump_yaml(meta))
-            _fsync_dir(staging)
+            write_atomic(staging / INSTALLED_FILE, dump_yaml(meta))  # each write syncs staging
             final = store / HISTORY / stamp
             os.replace(staging, final)
             _fsync_dir(store / HISTORY)

@@ -15,15 +15,12 @@ from pathlib import Path
 from slidecal.solver.errors import InputError
 
 
-def lock_dir() -> Path:
-    """Where cell locks live (``$SLIDECAL_LOCK_DIR`` or the temporary directory)."""
-    return Path(os.environ.get("SLIDECAL_LOCK_DIR") or tempfile.gettempdir())
-
-
 def cell_lock_path(key: str) -> Path:
-    """The lock file of a cell key (a robot host or a cell file path)."""
+    """The lock file of a cell key (a robot host or a cell file path), in ``$SLIDECAL_LOCK_DIR``
+    or the temporary directory."""
     digest = hashlib.sha256(key.encode()).hexdigest()[:16]
-    return lock_dir() / f"slidecal-cell-{digest}.lock"
+    directory = Path(os.environ.get("SLIDECAL_LOCK_DIR") or tempfile.gettempdir())
+    return directory / f"slidecal-cell-{digest}.lock"
 
 
 def _pid_alive(pid: int) -> bool:

@@ -23,6 +23,7 @@ from slidecal.drivers import ur_kinematics as urk
 from slidecal.drivers.ur import URRobot
 from slidecal.drivers.ur_pose import T_from_ur_pose, ur_pose_from_T
 from slidecal.mocks.cell import SimulatedCell
+from slidecal.routines.acquire import new_session_dir
 from slidecal.routines.config import (
     REAL_CORNER_NOISE_PX,
     CellConfig,
@@ -32,7 +33,7 @@ from slidecal.routines.config import (
 )
 from slidecal.routines.ops.faults import CONTROLLER, FaultInjector
 from slidecal.routines.plan import tool_pose
-from slidecal.routines.run import RunRequest, default_session_dir, run_calibration
+from slidecal.routines.run import RunRequest, run_calibration
 from slidecal.routines.session import dump_yaml, transform_to_dict, write_atomic
 from slidecal.routines.solve import RunOutcome
 from slidecal.solver.errors import HardwareFault, InputError
@@ -41,8 +42,6 @@ from slidecal.solver.problem import MOUNTS
 
 help = "rehearse the cell's routine through the real ur-rtde client on a loopback controller"
 REHEARSAL_FILE = "rehearsal.yaml"
-#: The controller's state after the last rehearsal in this process (the fault table reads it).
-LAST_CONTROLLER_STATE: dict[str, Any] = {}
 #: The rehearsal's stale-data limit (a Python loopback goes unscheduled under load far longer than
 #: a controller's cycle); three times the longest gap it showed before the run if that is longer.
 LOOPBACK_STALE_S = 1.0
@@ -178,7 +177,7 @@ def rehearse(
         "--noise-mm", str(sim.robot_noise_m * 1000.0), "--noise-deg", str(sim.robot_noise_deg),
         "--seed", str(cell.seed),
     ]
-    out = Path(out_dir) if out_dir is not None else default_session_dir()
+    out = new_session_dir(out_dir)
     controller = LoopbackController(options)
     stale_s = max(LOOPBACK_STALE_S, 3.0 * controller.ctl("state").get("cycle_gap_max_s", 0.0))
     robot = URRobot(
@@ -218,8 +217,6 @@ def rehearse(
     finally:
         state = state or _state(controller)
         controller.stop()
-        LAST_CONTROLLER_STATE.clear()
-        LAST_CONTROLLER_STATE.update(state)
         report["controller"] = robot.controller_info
         report["controller_events"] = state.get("events", [])
         report["arm_at_rest"] = not state.get("moving", True) and not state.get("stalled")

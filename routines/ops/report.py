@@ -13,10 +13,10 @@ import numpy as np
 
 from slidecal.routines.ops.verdict import Verdict, coverage_fraction, uncertainty_map
 from slidecal.routines.schema import write_atomic
-from slidecal.solver.camera import opencv_view, project
+from slidecal.solver.calibrate import pnp_pose
+from slidecal.solver.camera import project
 from slidecal.solver.drift import T_cam_board, hand_eye_T
 from slidecal.solver.errors import InputError
-from slidecal.solver.geometry import T_from_Rt
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.result import CalibrationResult
 
@@ -49,10 +49,9 @@ def _board_poses(
         if X is not None and fr.T_base_tool is not None:
             out[fr.id] = T_cam_board(result.mount, X, fr.T_base_tool, result.T_target.T)
             continue
-        Kv, dv, px = opencv_view(K, d, np.asarray(det.px, np.float64))
-        ok, rvec, tvec = cv2.solvePnP(pts[det.ids].astype(np.float64), px, Kv, dv)
-        if ok:
-            out[fr.id] = T_from_Rt(cv2.Rodrigues(rvec)[0], tvec.ravel())
+        T = pnp_pose(K, d, pts[det.ids], np.asarray(det.px))
+        if T is not None:
+            out[fr.id] = T
     return out
 
 
@@ -199,21 +198,18 @@ def banner(verdict: Verdict, width: int = PANEL_W * 2) -> np.ndarray:
     return img
 
 
-def _stack(rows: list[np.ndarray], width: int) -> np.ndarray:
-    out = []
-    for r in rows:
-        if r.shape[1] < width:
-            pad = np.full((r.shape[0], width - r.shape[1], 3), 255, np.uint8)
-            r = np.hstack([r, pad])
-        out.append(r)
-    return np.vstack(out)
+def _pad(img: np.ndarray, height: int, width: int) -> np.ndarray:
+    """``img`` at the top left of a white ``height`` x ``width`` canvas."""
+    out = np.full((height, width, 3), 255, np.uint8)
+    out[: img.shape[0], : img.shape[1]] = img
+    return out
 
 
-def _png_b64(img: np.ndarray) -> str:
+def _png(img: np.ndarray, what: str = "a report image") -> bytes:
     ok, buf = cv2.imencode(".png", img)
     if not ok:
-        raise ValueError("OpenCV could not encode a report image")
-    return base64.b64encode(buf.tobytes()).decode()
+        raise ValueError(f"OpenCV could not encode {what}")
+    return buf.tobytes()
 
 
 def write_report(
@@ -241,13 +237,9 @@ def write_report(
     for k in range(0, len(panels), 2):
         pair = [p for _, p in panels[k : k + 2]]
         h = max(p.shape[0] for p in pair)
-        pair = [np.vstack([p, np.full((h - p.shape[0], PANEL_W, 3), 255, np.uint8)]) for p in pair]
-        rows.append(np.hstack(pair))
-    png = _stack(rows, PANEL_W * 2)
-    ok, buf = cv2.imencode(".png", png)
-    if not ok:
-        raise ValueError("OpenCV could not encode report.png")
-    write_atomic(d / REPORT_PNG, buf.tobytes())
+        rows.append(np.hstack([_pad(p, h, PANEL_W) for p in pair]))
+    png = np.vstack([_pad(r, r.shape[0], PANEL_W * 2) for r in rows])
+    write_atomic(d / REPORT_PNG, _png(png, REPORT_PNG))
 
     e = html.escape
     b, g, r = _COLOURS.get(verdict.verdict, (80, 80, 80))
@@ -298,9 +290,8 @@ def write_report(
     elif installed is None:
         parts.append("<p>No installed calibration to compare with.</p>")
     for title, img in panels:
-        parts.append(
-            f"<h2>{e(title)}</h2><img alt='{e(title)}' src='data:image/png;base64,{_png_b64(img)}'>"
-        )
+        b64 = base64.b64encode(_png(img)).decode()
+        parts.append(f"<h2>{e(title)}</h2><img alt='{e(title)}' src='data:image/png;base64,{b64}'>")
     if verdict.notes:
         parts.append(
             "<h2>Notes</h2><ul>" + "".join(f"<li>{e(n)}</li>" for n in verdict.notes) + "</ul>"

@@ -29,6 +29,7 @@ from slidecal.solver.camera import (
     distortion_model,
     opencv_view,
     project,
+    project_with_jacobians,
     undistort_normalised,
 )
 from slidecal.solver.errors import DegenerateError, InputError
@@ -39,15 +40,8 @@ from slidecal.solver.result import CalibrationResult
 VERDICT_FORMAT = "slidecal.verdict/1"
 VERDICT_FILE = "verdict.yaml"
 
-EXIT_OK = 0
-EXIT_REJECTED = 4
-EXIT_DRIFTED = 5
-EXIT_CODES = {
-    "accepted": EXIT_OK,
-    "ok": EXIT_OK,
-    "rejected": EXIT_REJECTED,
-    "drifted": EXIT_DRIFTED,
-}
+#: The exit code of each verdict (docs/UNATTENDED.md)
+EXIT_CODES = {"accepted": 0, "ok": 0, "rejected": 4, "drifted": 5}
 
 
 @dataclass(frozen=True)
@@ -122,6 +116,13 @@ class Check:
     message: str
 
 
+def _check(
+    test: str, ok: Any, value: float | None, limit: float | None, message: str, fix: str = ""
+) -> Check:
+    """A :class:`Check` whose message, when it failed, ends with ``fix`` (the cause, the cure)."""
+    return Check(test, bool(ok), value, limit, message + ("" if ok else fix))
+
+
 @dataclass(frozen=True)
 class Verdict:
     """What the gate decided and why. ``installed``: the comparison with the installed
@@ -152,8 +153,9 @@ class Verdict:
         return out
 
 
-def verdict_to_dict(v: Verdict) -> dict[str, Any]:
-    """The ``verdict.yaml`` mapping."""
+def write_verdict(v: Verdict, directory: str | Path) -> Path:
+    """Write ``verdict.yaml`` (the verdict, its reasons, every check, the comparison with the
+    installed calibration, the notes) atomically into ``directory``; return its path."""
 
     def c(ch: Check) -> dict[str, Any]:
         d = asdict(ch)
@@ -173,13 +175,8 @@ def verdict_to_dict(v: Verdict) -> dict[str, Any]:
     if v.notes:
         d["notes"] = list(v.notes)
     d.update(v.extra)
-    return d
-
-
-def write_verdict(v: Verdict, directory: str | Path) -> Path:
-    """Write ``verdict.yaml`` atomically into ``directory``; return its path."""
     path = Path(directory) / VERDICT_FILE
-    write_atomic(path, dump_yaml(verdict_to_dict(v)))
+    write_atomic(path, dump_yaml(d))
     return path
 
 
@@ -291,8 +288,7 @@ def _reprojection(result: CalibrationResult, lim: Limits) -> list[Check]:
         )
         return [Check("adequacy", bool(ad.adequate), _num(worst), None, msg)]
     out = []
-    rms = result.reproj_rms_px
-    for name, c in result.cameras.items():
+    for name, c in result.cameras.items():  # a result holds a camera at least
         r = c.reproj_rms_px
         ok = bool(np.isfinite(r) and r <= lim.max_rms_px)
         out.append(
@@ -306,9 +302,6 @@ def _reprojection(result: CalibrationResult, lim: Limits) -> list[Check]:
                 + ")",
             )
         )
-    if not result.cameras:
-        ok = bool(np.isfinite(rms) and rms <= lim.max_rms_px)
-        out.append(Check("reprojection", ok, _num(rms), lim.max_rms_px, f"rms {rms:.3f} px"))
     return out
 
 
@@ -409,15 +402,15 @@ def _arm(
     if installed is None:
         ok = t <= lim.max_robot_error_mm and r <= lim.max_robot_error_deg
         return [
-            Check(
+            _check(
                 "arm",
-                bool(ok),
+                ok,
                 t,
                 lim.max_robot_error_mm,
                 f"the arm's accuracy learned from the session: {t:.2f} mm, {r:.3f} deg rms per "
                 f"axis (limits.max_robot_error_mm {lim.max_robot_error_mm:g}, "
-                f"limits.max_robot_error_deg {lim.max_robot_error_deg:g}: a six-axis arm's)"
-                + ("" if ok else f"; beyond any arm of its class: {NOT_THE_ARM}"),
+                f"limits.max_robot_error_deg {lim.max_robot_error_deg:g}: a six-axis arm's)",
+                f"; beyond any arm of its class: {NOT_THE_ARM}",
             )
         ]
     old = installed.robot_accuracy
@@ -426,15 +419,15 @@ def _arm(
     ratio = t / old.translation_mm
     ok = ratio <= lim.max_robot_error_ratio
     return [
-        Check(
+        _check(
             "arm",
-            bool(ok),
+            ok,
             ratio,
             lim.max_robot_error_ratio,
             f"the arm's accuracy learned from the session, {t:.2f} mm rms per axis, is "
             f"{ratio:.1f} times the installed calibration's ({old.translation_mm:.2f} mm; "
-            f"limits.max_robot_error_ratio {lim.max_robot_error_ratio:g})"
-            + ("" if ok else f": the same arm does not err more; {NOT_THE_ARM}"),
+            f"limits.max_robot_error_ratio {lim.max_robot_error_ratio:g})",
+            f": the same arm does not err more; {NOT_THE_ARM}",
         )
     ]
 
@@ -459,13 +452,13 @@ def _scale(result: CalibrationResult, lim: Limits) -> list[Check]:
         ]
     ok = abs(m - 1.0) <= tol
     return [
-        Check(
+        _check(
             "scale",
-            bool(ok),
+            ok,
             abs(m - 1.0),
             tol,
-            f"camera/robot length ratio {m:.4f} over {len(ratios)} moves (allowed 1 +- {tol:.4f})"
-            + ("" if ok else "; check target.square_size_m and the robot's TCP and units"),
+            f"camera/robot length ratio {m:.4f} over {len(ratios)} moves (allowed 1 +- {tol:.4f})",
+            "; check target.square_size_m and the robot's TCP and units",
         )
     ]
 
@@ -490,20 +483,16 @@ def _stereo_order(result: CalibrationResult, sockets: Mapping[str, str]) -> list
     x_mm = float((T[left] @ np.linalg.inv(T[right]))[0, 3] * 1000.0)  # right's origin, left's x
     ok = x_mm > 0
     return [
-        Check(
+        _check(
             "stereo",
             ok,
             x_mm,
             0.0,
             f"camera {right} ({STEREO_SOCKETS[1]}) lies {x_mm:+.1f} mm along the x axis of camera "
-            f"{left} ({STEREO_SOCKETS[0]})"
-            + (
-                ""
-                if ok
-                else ", where a stereo head's right camera lies along the left one's +x: the "
-                "two cameras' images are swapped (or their sockets); give each camera its "
-                "socket in the cell file's cameras: section and record again"
-            ),
+            f"{left} ({STEREO_SOCKETS[0]})",
+            ", where a stereo head's right camera lies along the left one's +x: the "
+            "two cameras' images are swapped (or their sockets); give each camera its "
+            "socket in the cell file's cameras: section and record again",
         )
     ]
 
@@ -548,20 +537,8 @@ def uncertainty_map(result: CalibrationResult, camera: str, n: tuple[int, int] =
     u, v = np.meshgrid(np.linspace(0, cam.width - 1, n[0]), np.linspace(0, cam.height - 1, n[1]))
     px = np.stack([u.ravel(), v.ravel()], 1)
     rays = undistort_normalised(K, d, px)
-    P = np.hstack([rays, np.ones((len(rays), 1))])
-
-    def proj(theta: np.ndarray) -> np.ndarray:
-        Kp = np.array([[theta[0], theta[4], theta[2]], [0, theta[1], theta[3]], [0, 0, 1.0]])
-        return project(Kp, theta[5:], P)
-
-    theta0 = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1], *d])
-    J = np.zeros((len(P), 2, len(idx)))
-    for j, (k, _) in enumerate(idx):
-        h = 1e-6 * max(1.0, abs(theta0[k]))
-        tp, tm = theta0.copy(), theta0.copy()
-        tp[k] += h
-        tm[k] -= h
-        J[:, :, j] = (proj(tp) - proj(tm)) / (2 * h)
+    at = project_with_jacobians(K, d, np.hstack([rays, np.ones((len(rays), 1))]))
+    J = np.concatenate([at.d_K, at.d_dist], axis=2)[:, :, [k for k, _ in idx]]  # (fx .. s, lens)
     var = np.einsum("nij,jk,nik->n", J, C, J)
     return np.sqrt(np.maximum(var, 0.0)).reshape(n[1], n[0])
 
@@ -587,14 +564,15 @@ def _projection(
         inside, worst = float(np.max(m[seen])), float(np.max(m))
         ok = inside <= limit
         out.append(
-            Check(
+            _check(
                 "projection",
                 ok,
                 inside,
                 limit,
                 f"camera {name}: a point's projection one-sigma up to {inside:.2f} px where its "
                 f"views reached, {worst:.2f} px over the whole image (limit {limit:g} px, "
-                f"{field_name})" + ("" if ok else "; the intrinsics are not known"),
+                f"{field_name})",
+                "; the intrinsics are not known",
             )
         )
         if ok and worst > limit:
@@ -614,14 +592,14 @@ def _coverage(problem: CalibrationProblem, lim: Limits) -> list[Check]:
         ok = frac >= lim.min_coverage
         nx, ny = lim.coverage_grid
         out.append(
-            Check(
+            _check(
                 "coverage",
-                bool(ok),
+                ok,
                 frac,
                 lim.min_coverage,
                 f"camera {c.name}: corners seen in {frac * 100:.0f} % of the {nx}x{ny} image "
-                f"cells (at least {lim.min_coverage * 100:.0f} %)"
-                + ("" if ok else "; plan views that bring the target to the image's edges"),
+                f"cells (at least {lim.min_coverage * 100:.0f} %)",
+                "; plan views that bring the target to the image's edges",
             )
         )
     return out
@@ -709,21 +687,17 @@ def _intrinsics_change(
         ok = stat <= lim.focal_change_stat or abs(rel) <= lim.focal_change_rel
         frame = problem.frames[k].id
         out.append(
-            Check(
+            _check(
                 "intrinsics",
-                bool(ok),
+                ok,
                 stat,
                 lim.focal_change_stat,
                 f"camera {name}: the images alone see its focal length {rel * 100:+.2f} % from "
                 f"frame {frame} on at {stat:.1f} (chi-square; limits.focal_change_stat "
                 f"{lim.focal_change_stat:g}, limits.focal_change_rel "
-                f"{lim.focal_change_rel * 100:g} %)"
-                + (
-                    ""
-                    if ok
-                    else ": the camera's intrinsics changed during the session (focus, zoom or "
-                    "the lens moved); lock the focus (and zoom) and record the session again"
-                ),
+                f"{lim.focal_change_rel * 100:g} %)",
+                ": the camera's intrinsics changed during the session (focus, zoom or "
+                "the lens moved); lock the focus (and zoom) and record the session again",
             )
         )
     return out
@@ -911,7 +885,7 @@ def paired_compare(
         eq = fld.equivalent
         s = fld.mean_px
         checks.append(
-            Check(
+            _check(
                 "paired",
                 not bad,
                 fld.max_px,
@@ -922,13 +896,9 @@ def paired_compare(
                 f"{s[1]:+.2f}) px, scale {s[2]:+.2f} px, turn {s[3]:+.2f} px at "
                 f"{fld.radius_px:.0f} px from the principal point; as the camera: principal "
                 f"point ({eq['cx_px']:+.2f}, {eq['cy_px']:+.2f}) px or a rotation of "
-                f"{eq['rotation_deg']:.3f} deg, focal length {eq['f_rel'] * 100:+.3f} %"
-                + (
-                    "; the camera changed or the board moved (a paired comparison cannot tell "
-                    "them apart: if the board was moved, calibrate and install anew)"
-                    if bad
-                    else ""
-                ),
+                f"{eq['rotation_deg']:.3f} deg, focal length {eq['f_rel'] * 100:+.3f} %",
+                "; the camera changed or the board moved (a paired comparison cannot tell "
+                "them apart: if the board was moved, calibrate and install anew)",
             )
         )
         per[cam] = {

@@ -52,7 +52,6 @@ def run_row(spec: FaultSpec, rehearse: bool, workdir: Path) -> FaultRow:
     t0 = time.monotonic()
     stopped: list[bool] = []
     if rehearse:
-        rh.LAST_CONTROLLER_STATE.clear()
         argv = ["rehearse", "--out", str(out), "--fault", str(spec), "--quiet"]
     else:
         argv = ["run", "--out", str(out), "--fault", str(spec), "--quiet", "--no-recording"]
@@ -71,8 +70,8 @@ def run_row(spec: FaultSpec, rehearse: bool, workdir: Path) -> FaultRow:
         if not rehearse:
             simrobot.SimulatedUR.stop = original  # type: ignore[method-assign]
     if rehearse:
-        st = rh.LAST_CONTROLLER_STATE
-        at_rest = not st.get("moving", True) and not st.get("stalled", False)
+        rehearsal = out / rh.REHEARSAL_FILE  # what the controller saw last
+        at_rest = rehearsal.is_file() and load_yaml(rehearsal, "rehearsal").get("arm_at_rest")
         stopped.append(bool(at_rest))
     frames, event = _session_facts(out) if (out / "session.yaml").exists() else (0, "")
     return FaultRow("rehearse" if rehearse else "run", str(spec), code, bool(stopped and

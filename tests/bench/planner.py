@@ -25,12 +25,14 @@ from pathlib import Path
 import numpy as np
 
 from slidecal.routines.config import CellConfig, load_config
-from slidecal.routines.plan import Plan, default_plan, tool_pose
+from slidecal.routines.plan import Plan, tool_pose
 from slidecal.routines.planner import (
+    _candidates,
     _rejection,
     _via,
     arm_noise,
     dry_run,
+    goal_ratios,
     group_R_board_cam,
     group_T_cam_board,
     make_plan,
@@ -38,6 +40,7 @@ from slidecal.routines.planner import (
 )
 from slidecal.routines.run import RunRequest, run_calibration
 from tests.bench.report import RESULTS, publish_report, report_header
+from tests.fixed_plan import default_plan
 
 #: The acceptance range of the median reported / predicted std (issue 35).
 LOW, HIGH = 0.8, 1.25
@@ -136,9 +139,10 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     cfg = load_config(None)
     t0 = time.monotonic()
-    report = make_plan(cfg)
+    plan = make_plan(cfg)
     t_plan = time.monotonic() - t0
-    plan = report.plan
+    cands, rejected, _ = _candidates(cfg, cfg.plan)  # the planner's candidates, counted
+    n_candidates = sum(int(g.usable.sum()) for g in cands)
     pred = plan.predicted_std or {}
     seeds = range(100, 100 + args.seeds)
     mc = _monte_carlo(cfg, plan, seeds)
@@ -176,8 +180,8 @@ def main(argv: list[str] | None = None) -> int:
         "",
         f"- Goal: fx_rel_std <= {s.goal.fx_rel_std}, hand_eye_rot_std_deg <= "
         f"{s.goal.hand_eye_rot_std_deg}, at most {s.goal.max_duration_s:g} s.",
-        f"- Planned in {t_plan:.1f} s (wall) from {report.n_candidates} usable candidate frames "
-        f"(rejected: {report.rejected}).",
+        f"- Planned in {t_plan:.1f} s (wall) from {n_candidates} usable candidate frames "
+        f"(rejected: {rejected}).",
         f"- {len(plan.groups)} groups, frames per group {[len(g) for g in plan.groups]}, "
         f"predicted duration {plan.duration_s:.1f} s (simulated robot time of moves and "
         f"settling {float(np.mean(mc['robot_s'])):.2f} s, plus {s.capture_s:g} s capture "
@@ -186,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
         f"(goal {s.goal.fx_rel_std * 100:g} %), hand-eye rotation {pred['T_tool_cam.rot_deg']:.4f} "
         f"deg (goal {s.goal.hand_eye_rot_std_deg}), hand-eye translation "
         f"{pred['T_tool_cam.t_mm']:.3f} mm; goal ratios "
-        + ", ".join(f"{k} {v:.2f}" for k, v in report.ratios.items())
+        + ", ".join(f"{k} {v:.2f}" for k, v in goal_ratios(pred, cfg, s.goal).items())
         + ".",
         "",
         "## Predicted against reported and achieved (rendered images, a real arm's error)",

@@ -202,7 +202,7 @@ def part_gate(n: int, work: Path) -> list[str]:
     t0 = time.monotonic()
     rows: dict[str, list] = {name: [] for name, _ in CASES}
     alone = alone_ext = 0
-    plan = make_plan(load_config()).plan  # the same for every run (the cell's plan: block)
+    plan = make_plan(load_config())  # the same for every run (the cell's plan: block)
     for seed in range(1, n + 1):
         inst, inst_problem = _run(load_config(), work, seed, 1, plan)
         alone += inst.verdict.verdict != "accepted"
@@ -399,7 +399,7 @@ def part_check(n: int, work: Path) -> list[str]:
     cases = [(name, cell_overrides(**ch) if ch else {}) for name, ch in CASES]
     cases.append((BOARD_MOVED, board_moved_overrides()))
     rows: dict[str, list] = {name: [] for name, _ in cases}
-    plan = make_plan(load_config()).plan
+    plan = make_plan(load_config())
     not_installed: list[str] = []
     for seed in range(1, n + 1):
         o, p = _run(load_config(), work, seed, 1, plan)
