@@ -48,16 +48,13 @@ def import_depthai() -> Any:
     return depthai
 
 
-def socket_names(dai: Any) -> list[str]:
-    """The board socket names a cell file may use (``CAM_A`` ...), from the installed depthai."""
-    return sorted(n for n in dai.CameraBoardSocket.__members__ if n.startswith("CAM_"))
-
-
 def _board_socket(dai: Any, name: str, camera: str) -> Any:
-    if name not in socket_names(dai):
+    """The ``dai.CameraBoardSocket`` a cell file names (``CAM_A`` ...) for ``camera``."""
+    names = sorted(n for n in dai.CameraBoardSocket.__members__ if n.startswith("CAM_"))
+    if name not in names:
         raise InputError(
             f"camera {camera!r}: socket {name!r} is not an OAK board socket; use one of "
-            f"{', '.join(socket_names(dai))}"
+            f"{', '.join(names)}"
         )
     return dai.CameraBoardSocket.__members__[name]
 
@@ -788,21 +785,17 @@ def projection_shift_px(
         dev = device_camera(
             data, sockets[name], (cam.width, cam.height), resize_mode, (streams or {}).get(name)
         )
-        T_dev = device_T_cam_ref(data, sockets[name], sockets[ref]) if name != ref else np.eye(4)
+        T_dev = device_T_cam_ref(data, sockets[name], sockets[ref])
         if dev is None or T_dev is None:
             continue
         try:
             T_ours = _T_cam_ref(result, name, ref)
         except InputError:
             continue  # the result has no complete transform of this camera: not compared
-
-        def seen(T, K, d):  # the device's: OpenCV's 14-coefficient perspective model
-            P = P_ref @ T[:3, :3].T + T[:3, 3]
-            img, _ = cv2.projectPoints(P, np.zeros(3), np.zeros(3), K, d)
-            return img.reshape(-1, 2)
-
         ours = project(cam.K, cam.distortion, P_ref @ T_ours[:3, :3].T + T_ours[:3, 3])
-        theirs = seen(T_dev, *dev)
-        e = np.linalg.norm(ours - theirs, axis=1)
+        # the device's model: OpenCV's 14-coefficient perspective one
+        theirs, _ = cv2.projectPoints(P_ref @ T_dev[:3, :3].T + T_dev[:3, 3], np.zeros(3),
+                                      np.zeros(3), *dev)
+        e = np.linalg.norm(ours - theirs.reshape(-1, 2), axis=1)
         out[name] = {"rms_px": float(np.sqrt(np.mean(e**2))), "max_px": float(e.max())}
     return out

@@ -83,12 +83,9 @@ def _dh(theta: float, d: float, a: float, alpha_rot: np.ndarray) -> np.ndarray:
     return T
 
 
-_RX_P = Rx(np.pi / 2)
-_RX_M = Rx(-np.pi / 2)
-_RX_0 = np.eye(3)
 #: The nominal twists ``alpha_i`` (radians) and their rotations ``Rx(alpha_i)``.
 ALPHAS = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
-ALPHA_ROTS = (_RX_P, _RX_0, _RX_0, _RX_P, _RX_M, _RX_0)
+ALPHA_ROTS = tuple(Rx(a) for a in ALPHAS)
 
 
 def _check_q(q: np.ndarray) -> np.ndarray:
@@ -169,9 +166,9 @@ def _ik_flange(T: np.ndarray, m: URModel, q6_singular: float = 0.0) -> list[np.n
                 q6 = np.arctan2(
                     (-R[0, 1] * sn1 + R[1, 1] * c1) / sn5, (R[0, 0] * sn1 - R[1, 0] * c1) / sn5
                 )
-            T01 = _dh(q1, m.d1, 0.0, _RX_P)
-            T45 = _dh(q5, m.d5, 0.0, _RX_M)
-            T56 = _dh(q6, m.d6, 0.0, _RX_0)
+            T01 = _dh(q1, m.d1, 0.0, ALPHA_ROTS[0])
+            T45 = _dh(q5, m.d5, 0.0, ALPHA_ROTS[4])
+            T56 = _dh(q6, m.d6, 0.0, ALPHA_ROTS[5])
             T14 = inv_T(T01) @ T @ inv_T(T45 @ T56)
             px, py = T14[0, 3], T14[1, 3]
             # Near a wrist singularity q5 comes from arccos(c5) with an error of about

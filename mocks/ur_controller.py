@@ -62,8 +62,8 @@ IK_HAS_SOLUTION_DEFAULT, IK_HAS_SOLUTION_ARGS, STOP_SCRIPT = 60, 61, 255
 SAFETY_BIT_NORMAL, SAFETY_BIT_REDUCED, SAFETY_BIT_PROTECTIVE = 1 << 0, 1 << 1, 1 << 2
 SAFETY_BIT_ROBOT_ESTOP = 1 << 7
 #: Script functions whose presence in the uploaded script decides whether a command works.
-SCRIPT_FUNCTION = {IK_HAS_SOLUTION_DEFAULT: "get_inverse_kin_has_solution(",
-                   IK_HAS_SOLUTION_ARGS: "get_inverse_kin_has_solution("}
+SCRIPT_FUNCTION = dict.fromkeys((IK_HAS_SOLUTION_DEFAULT, IK_HAS_SOLUTION_ARGS),
+                                "get_inverse_kin_has_solution(")
 STATUS_BIT_POWER_ON, STATUS_BIT_PROGRAM_RUNNING = 1 << 0, 1 << 1
 
 FORMATS = {
@@ -180,13 +180,6 @@ class Robot:
         """Whether a fieldbus adapter holds this input register (the lower range 0-23)."""
         m = REGISTER.fullmatch(name)
         return self.fieldbus and m is not None and m[1] == "input" and int(m[3]) < 24
-
-    def dashboard_has(self, command: str) -> bool:
-        """Whether this PolyScope's dashboard server knows ``command``."""
-        major, minor = self.controller_version[:2]
-        if command in ("is in remote control", "get serial number"):
-            return major >= 5 and minor >= 6
-        return True
 
     def value(self, name: str) -> object:
         """The current value of an RTDE output variable."""
@@ -404,7 +397,10 @@ class Robot:
         running = self.runtime_state == RUNTIME_PLAYING
         if cmd == "quit":
             return None
-        if not self.dashboard_has(cmd):
+        major, minor = self.controller_version[:2]
+        if cmd in ("is in remote control", "get serial number") and not (
+            major >= 5 and minor >= 6
+        ):  # PolyScope 5.6+ only
             return f"could not understand: '{cmd}'"
         safety = SAFETY_MODE_NAMES.get(self.safety_mode, "UNDEFINED_SAFETY_MODE")
         name = self.program or ("<unnamed>" if not running else "rtde_control")
@@ -511,8 +507,10 @@ class FakeController:
 
     # ------------------------------------------------------------------------------- RTDE
     def _rtde_message(self, c: Connection, kind: int, payload: bytes) -> None:
-        if kind == V:
-            self._send(c, message(V, b"\x01"))
+        if kind in (S, P):
+            c.started, c.next_send = kind == S, time.monotonic()
+        if kind in (V, S, P):  # accepted
+            self._send(c, message(kind, b"\x01"))
         elif kind == v:
             self._send(c, message(v, struct.pack(">4I", *self.robot.controller_version)))
         elif kind == O:
@@ -527,12 +525,6 @@ class FakeController:
             c.inputs[rid] = names
             types = ["IN_USE" if self.robot.fieldbus_has(n) else var_type(n) for n in names]
             self._send(c, message(I, bytes([rid]) + ",".join(types).encode()))
-        elif kind == S:
-            c.started, c.next_send = True, time.monotonic()
-            self._send(c, message(S, b"\x01"))
-        elif kind == P:
-            c.started = False
-            self._send(c, message(P, b"\x01"))
         elif kind == U:
             self._data_package(c, payload)
 
