@@ -88,6 +88,19 @@ def choose_sensor_mode(
     return dict(max(ok, key=lambda m: m["width"] * m["height"]))
 
 
+def _open_device(dai: Any, device_id: str | None, advice: str, pipeline: bool = False) -> Any:
+    """A ``dai.Device`` (``pipeline``: a ``dai.Pipeline`` on it), ``device_id`` or any;
+    ``HardwareFault`` ending in ``advice`` when none opens."""
+    try:
+        if device_id is None:
+            return dai.Pipeline() if pipeline else dai.Device()
+        device = dai.Device(dai.DeviceInfo(device_id))
+        return dai.Pipeline(device) if pipeline else device
+    except RuntimeError as e:
+        which = "any OAK device" if device_id is None else f"OAK device {device_id}"
+        raise HardwareFault(f"cannot open {which} ({e}); {advice}") from None
+
+
 def _call(obj: Any, method: str) -> Any:
     """``obj.method()`` or None where the device or platform does not provide it."""
     try:
@@ -183,18 +196,10 @@ class OakRig:
     def open(self) -> None:
         """Build and start the pipeline; ``HardwareFault`` when the device or a camera is absent,
         ``InputError`` when the cell asks for what this device cannot do."""
-        dai = self._dai
-        try:
-            if self.device_id is None:
-                pipeline = dai.Pipeline()
-            else:
-                pipeline = dai.Pipeline(dai.Device(dai.DeviceInfo(self.device_id)))
-        except RuntimeError as e:
-            which = "any OAK device" if self.device_id is None else f"OAK device {self.device_id}"
-            raise HardwareFault(
-                f"cannot open {which} ({e}); plug it into a USB3 port (or check its network "
-                "link), check the udev rules, and in a container pass /dev/bus/usb through"
-            ) from None
+        pipeline = _open_device(
+            self._dai, self.device_id, "plug it into a USB3 port (or check its network link), "
+            "check the udev rules, and in a container pass /dev/bus/usb through", pipeline=True
+        )
         try:
             self._queues = self._build(pipeline)
             pipeline.start()
@@ -505,15 +510,7 @@ class OakCalibrationStore:
         self._device: Any = None
 
     def __enter__(self) -> OakCalibrationStore:
-        dai = self._dai
-        try:
-            if self.device_id is None:
-                self._device = dai.Device()
-            else:
-                self._device = dai.Device(dai.DeviceInfo(self.device_id))
-        except RuntimeError as e:
-            which = "any OAK device" if self.device_id is None else f"OAK device {self.device_id}"
-            raise HardwareFault(f"cannot open {which} ({e}); plug it in and retry") from None
+        self._device = _open_device(self._dai, self.device_id, "plug it in and retry")
         return self
 
     def __exit__(self, *exc: object) -> None:

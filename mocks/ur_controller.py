@@ -601,7 +601,8 @@ class FakeController:
         if cmd in ("pstop", "estop", "stall", "drop_next", "freeze_next"):
             r.next_move_fault = cmd.removesuffix("_next")
         elif cmd == "freeze":
-            self._freeze()
+            self.frozen = True
+            self.go_silent()
         elif cmd == "drop":
             self.close_all()
         elif cmd == "reopen":
@@ -616,10 +617,6 @@ class FakeController:
             print(json.dumps({"error": f"unknown control command {cmd!r}"}), flush=True)
             return
         print(json.dumps({"ok": cmd}), flush=True)
-
-    def _freeze(self) -> None:
-        self.frozen = True
-        self.go_silent()
 
     # --------------------------------------------------------------------------------- loop
     def run(self) -> None:
@@ -666,7 +663,8 @@ class FakeController:
                 self.close_all()
             elif fault == "freeze":
                 self.robot.events.append("network went silent")
-                self._freeze()
+                self.frozen = True
+                self.go_silent()
             if self.frozen:
                 continue
             now = time.monotonic()
