@@ -1,9 +1,8 @@
 """Luxonis OAK cameras through depthai v3 (``CameraRig`` of ``drivers/base.py``), the device's
 own calibration, and a calibration result written into a depthai ``CalibrationHandler``.
 
-Sensor modes, the exposure lock, synchronisation, a lost device and the calibration's units:
-docs/DRIVERS.md. ``depthai`` (``pip install 'slidecal[oak]'``) is imported when an
-:class:`OakRig` is made; this module imports without it.
+Sensor modes, the exposure lock, synchronisation, a lost device, the calibration's units and
+when ``depthai`` is imported: docs/DRIVERS.md.
 """
 
 from __future__ import annotations
@@ -355,9 +354,7 @@ class OakRig:
         self._controls = {}
 
     def capabilities(self) -> dict[str, Any]:
-        """What the open device is and how it streams (plain data for the session): device id
-        (MX id or IP), name, product, platform, USB speed, bootloader version, the connected
-        sensors with their modes, per camera the sensor mode, size, resize mode and controls."""
+        """What the open device is and how it streams (plain data for the session)."""
         if not self._capabilities:
             raise HardwareFault("OAK rig not open: call open() first")
         return dict(self._capabilities)
@@ -637,8 +634,8 @@ def oak_calibration_handler(
 
     ``sockets``: camera name -> board socket (default left CAM_B, right CAM_C, rgb CAM_A).
     ``stereo``: the (left, right) pair, rectified with ``cv2.stereoRectify``, or None. ``base``: a
-    handler or JSON dict to start from, unmodified (the device's own: its board name, IMU
-    extrinsics, lens positions and design translations kept). ``lens_positions``: name -> 0..255.
+    handler or JSON dict to start from, unmodified (the device's own). ``lens_positions``: name ->
+    0..255.
     ``streams``: name -> how its output was made (:func:`stream_geometry`): its K is mapped back to
     the size the device stores that socket at; without one, written at its own size.
     """

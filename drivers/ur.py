@@ -243,10 +243,7 @@ class URRobot:
     def connect(self) -> None:
         """Connect (the order of checks: docs/DRIVERS.md); ``HardwareFault`` unless the robot runs
         in normal or reduced safety mode, takes remote commands, and nothing the user did not
-        consent to would be stopped. Fills :attr:`controller_info` (``polyscope_version``,
-        ``robot_model``, ``serial_number``, ``controller_version``, ``remote_control``,
-        ``ik_check``, ``speed_slider``, ``safety_mode``, ``program_stopped``, ``payload``; None
-        where the controller cannot say)."""
+        consent to would be stopped. Fills :attr:`controller_info` (None where it cannot say)."""
         try:
             import dashboard_client
             import rtde_control
@@ -514,14 +511,9 @@ class URRobot:
         return T_from_ur_pose(self._receive.getActualTCPPose())
 
     def move_linear(self, T_base_tool: np.ndarray, speed_mps: float, accel_mps2: float) -> None:
-        """``moveL`` to ``T_base_tool`` (4, 4), metres; returns on arrival, ``HardwareFault`` on
-        failure.
-
-        Sent asynchronously and watched here (live pose, safety mode, a deadline from the
-        trapezoidal move time at the executed speed fraction, ``getSpeedScalingCombined``): a
-        blocking ``moveL`` waits up to 300 s over a dropped link. Arrival needs both
-        ``arrival_tol_m`` and ``_deg``.
-        """
+        """``moveL`` to ``T_base_tool`` (4, 4), metres; returns on arrival (``arrival_tol_m`` and
+        ``_deg``), ``HardwareFault`` on failure. Sent asynchronously and watched here: a blocking
+        ``moveL`` waits up to 300 s over a dropped link."""
         self._require()
         T = checked_move(self, T_base_tool, speed_mps, accel_mps2)
         T_start = self.measured_pose()
@@ -611,10 +603,8 @@ class URRobot:
             raise HardwareFault(self._diagnose(f"the reachability query for {describe(T)} failed"))
 
     def is_reachable(self, T_base_tool: np.ndarray) -> bool:
-        """An IK solution near the current joints, inside the joint and safety limits: the
-        controller's ``getInverseKinematicsHasSolution`` on PolyScope 5.10+ / 3.15+, else the
-        host-side kinematics with the model's joint limits (the controller still judges the safety
-        limits)."""
+        """An IK solution near the current joints, inside the joint and safety limits (which
+        kinematics answer: docs/DRIVERS.md), not near a singularity when the model is known."""
         self._require()
         T = np.asarray(T_base_tool, dtype=float)
         pose = ur_pose_from_T(T)

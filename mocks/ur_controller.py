@@ -474,9 +474,8 @@ class FakeController:
             self.listeners[s] = kind
 
     def go_silent(self) -> None:
-        """Drop every packet from now on: the listeners are replaced by ones whose accept queue
-        is full and that are never served, so the kernel drops new connection requests (SYN)
-        without an answer, as a host behind a dead switch or a firewall does."""
+        """Drop every packet from now on, as a host behind a dead switch does: listeners whose
+        accept queue is full and never served, so the kernel drops connection requests (SYN)."""
         for s in self.listeners:
             s.close()
         self.listeners = {}
