@@ -91,7 +91,14 @@ TYPES = {
     "safety_status_bits": "UINT32", "actual_digital_input_bits": "UINT64",
     "actual_digital_output_bits": "UINT64",
 }
-
+#: Output variables that are constant here: the joints in running mode, gravity, the supply, and
+#: the trajectory limiter's factor (nothing limits a straight moveL).
+CONSTANTS = {"joint_mode": [253] * 6, "actual_tool_accelerometer": [0.0, 0.0, 9.81],
+             "actual_main_voltage": 48.0, "actual_robot_voltage": 48.0, "speed_scaling": 1.0}
+#: Output variables that are one attribute of :class:`Robot`.
+ATTRIBUTES = {"robot_mode": "robot_mode", "safety_mode": "safety_mode",
+              "safety_status": "safety_mode", "runtime_state": "runtime_state",
+              "target_speed_fraction": "speed_slider"}
 
 #: An RTDE register's variable name.
 REGISTER = re.compile(r"(input|output)_(int|double)_register_(\d+)")
@@ -183,6 +190,10 @@ class Robot:
 
     def value(self, name: str) -> object:
         """The current value of an RTDE output variable."""
+        if name in CONSTANTS:
+            return CONSTANTS[name]
+        if name in ATTRIBUTES:
+            return getattr(self, ATTRIBUTES[name])
         if name == "timestamp":
             return time.monotonic() - self.t0
         if name in ("actual_q", "target_q"):
@@ -191,20 +202,12 @@ class Robot:
             return self.tcp_pose(reported=True)
         if name in ("actual_TCP_speed", "target_TCP_speed"):
             return list(self.speed)
-        if name == "robot_mode":
-            return self.robot_mode
-        if name in ("safety_mode", "safety_status"):
-            return self.safety_mode
-        if name == "runtime_state":
-            return self.runtime_state
         if name == "safety_status_bits":
             return {2: SAFETY_BIT_NORMAL | SAFETY_BIT_REDUCED, 3: SAFETY_BIT_PROTECTIVE,
                     7: SAFETY_BIT_ROBOT_ESTOP}.get(self.safety_mode, SAFETY_BIT_NORMAL)
         if name == "robot_status_bits":
             running = self.runtime_state == RUNTIME_PLAYING
             return STATUS_BIT_POWER_ON | (STATUS_BIT_PROGRAM_RUNNING if running else 0)
-        if name == "joint_mode":
-            return [253] * 6
         if REGISTER.fullmatch(name):
             table, i, cast = self._register(name)
             return table.get(i, cast(0))
@@ -212,16 +215,7 @@ class Robot:
             return self.active_payload[0]
         if name == "payload_cog":
             return list(self.active_payload[1])
-        kind = var_type(name)
-        if name == "actual_tool_accelerometer":
-            return [0.0, 0.0, 9.81]
-        if name in ("actual_main_voltage", "actual_robot_voltage"):
-            return 48.0
-        if name == "target_speed_fraction":
-            return self.speed_slider
-        if name == "speed_scaling":
-            return 1.0  # the trajectory limiter's factor: nothing limits a straight moveL here
-        return {"VECTOR6D": [0.0] * 6, "VECTOR3D": [0.0] * 3, "DOUBLE": 0.0}.get(kind, 0)
+        return {"VECTOR6D": [0.0] * 6, "VECTOR3D": [0.0] * 3, "DOUBLE": 0.0}.get(var_type(name), 0)
 
     def _register(self, name: str) -> tuple[dict, int, type]:
         """The table, index (the script's offset removed) and type of an RTDE register name."""
