@@ -199,23 +199,20 @@ class OakRig:
             self._dai, self.device_id, "plug it into a USB3 port (or check its network link), "
             "check the udev rules, and in a container pass /dev/bus/usb through", pipeline=True
         )
-        try:
-            self._queues = self._build(pipeline)
-            pipeline.start()
-        except RuntimeError as e:
-            self._stop(pipeline)
-            raise HardwareFault(
-                f"the OAK pipeline did not start ({e}); replug the device"
-            ) from None
-        except BaseException:  # HardwareFault, InputError, Ctrl-C: nothing is left running
-            self._stop(pipeline)
-            raise
         self._pipeline = pipeline
         try:
-            self._lock_and_read_back()
-        except (self._dai.MessageQueue.QueueException, RuntimeError) as e:
-            raise self._lost(str(e) or type(e).__name__) from None
-        except BaseException:
+            try:
+                self._queues = self._build(pipeline)
+                pipeline.start()
+            except RuntimeError as e:
+                raise HardwareFault(
+                    f"the OAK pipeline did not start ({e}); replug the device"
+                ) from None
+            try:
+                self._lock_and_read_back()
+            except (self._dai.MessageQueue.QueueException, RuntimeError) as e:
+                raise self._lost(str(e) or type(e).__name__) from None
+        except BaseException:  # HardwareFault, InputError, Ctrl-C: nothing is left running
             self.close()
             raise
 
@@ -339,16 +336,12 @@ class OakRig:
         }
         return queues
 
-    @staticmethod
-    def _stop(pipeline: Any) -> None:
-        with suppress(RuntimeError):
-            pipeline.stop()
-            pipeline.wait()
-
     def close(self) -> None:
         """Stop the pipeline (idempotent)."""
         if self._pipeline is not None:
-            self._stop(self._pipeline)
+            with suppress(RuntimeError):
+                self._pipeline.stop()
+                self._pipeline.wait()
         self._pipeline = None
         self._queues = {}
         self._controls = {}

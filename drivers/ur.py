@@ -306,10 +306,7 @@ class URRobot:
                 )
         if self.model is None and model_text.upper().startswith("UR"):
             name = model_text.split()[0] + ("e" if version[0] >= 5 else "")
-            try:
-                self.model = urk.model_by_name(name)
-            except InputError:
-                self.model = None
+            self.model = urk.MODELS.get(name.lower())
         self._ik_on_controller = has_ik_query(version)
         self.controller_info = {
             "polyscope_version": ".".join(str(v) for v in version),
