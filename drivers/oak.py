@@ -730,21 +730,6 @@ def device_camera(
     return K, np.asarray(h.getDistortionCoefficients(s), float)
 
 
-def device_T_cam_ref(data: Mapping[str, Any], socket: str, ref_socket: str) -> np.ndarray | None:
-    """``T_cam_ref`` (4, 4), metres, between two sockets in depthai calibration JSON."""
-    dai = import_depthai()
-    h = handler_from_json(data)
-    a, b = _board_socket(dai, ref_socket, ref_socket), _board_socket(dai, socket, socket)
-    if a == b:
-        return np.eye(4)
-    try:
-        T = np.asarray(h.getCameraExtrinsics(a, b), float)
-    except RuntimeError:
-        return None
-    T[:3, 3] /= 100.0
-    return T
-
-
 def projection_shift_px(
     result: CalibrationResult,
     data: Mapping[str, Any],
@@ -758,6 +743,8 @@ def projection_shift_px(
     ``{name: {rms_px, max_px}}`` over a ``grid`` x ``grid`` lattice of the reference camera's pixels
     back-projected to ``distance_m`` and projected with both models (``streams``: as in
     :func:`device_camera`)."""
+    dai = import_depthai()
+    h = handler_from_json(data)
     ref = result.reference_camera or next(iter(result.cameras))
     cref = result.cameras[ref]
     lattice = np.linspace(0.05, 0.95, grid)
@@ -772,13 +759,15 @@ def projection_shift_px(
         dev = device_camera(
             data, sockets[name], (cam.width, cam.height), resize_mode, (streams or {}).get(name)
         )
-        T_dev = device_T_cam_ref(data, sockets[name], sockets[ref])
-        if dev is None or T_dev is None:
-            continue
-        try:
+        a, b = (_board_socket(dai, sockets[n], sockets[n]) for n in (ref, name))
+        try:  # T_cam_ref (4, 4), depthai's centimetres
+            T_dev = np.eye(4) if a == b else np.asarray(h.getCameraExtrinsics(a, b), float)
             T_ours = _T_cam_ref(result, name, ref)
-        except InputError:
-            continue  # the result has no complete transform of this camera: not compared
+        except (RuntimeError, InputError):
+            continue  # the device or the result has no complete transform of this camera
+        if dev is None:
+            continue
+        T_dev[:3, 3] /= 100.0
         ours = project(cam.K, cam.distortion, P_ref @ T_ours[:3, :3].T + T_ours[:3, 3])
         # the device's model: OpenCV's 14-coefficient perspective one
         theirs, _ = cv2.projectPoints(P_ref @ T_dev[:3, :3].T + T_dev[:3, 3], np.zeros(3),

@@ -1,8 +1,7 @@
 """A Universal Robots arm through ur-rtde (``Robot`` protocol of ``drivers/base.py``).
 
-The order of the connection's checks, what is refused and how the client's traps are handled:
-docs/DRIVERS.md. ur-rtde is imported in :meth:`URRobot.connect`; this module imports without it.
-"""
+The order of the connection's checks, what is refused, how the client's traps are handled and
+when ur-rtde is imported: docs/DRIVERS.md."""
 
 from __future__ import annotations
 
@@ -136,10 +135,8 @@ def probe_controller(host: str, timeout_s: float) -> tuple[int, int, int, int]:
 
 
 def cell_options(robot_section: Any) -> dict[str, Any]:
-    """``URRobot`` keyword arguments from a cell file's ``robot:`` section: ``take_control``
-    (consent to stop a running program), ``payload: {mass_kg, cog_m}`` (flange frame, metres; set at
-    connect) and ``upper_range_registers`` (RTDE input registers 24-47, where a fieldbus holds
-    0-23)."""
+    """``URRobot`` keyword arguments from a cell file's ``robot:`` section (``take_control``,
+    ``payload``, ``upper_range_registers``: docs/FORMATS.md)."""
     raw = dict(robot_section or {})
     out: dict[str, Any] = {}
     for key in ("take_control", "upper_range_registers"):
