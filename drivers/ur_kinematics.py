@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slidecal.solver.errors import InputError
-from slidecal.solver.geometry import Rx, Rz, inv_T
+from slidecal.solver.geometry import Rx, Rz, T_from_Rt, inv_T
 
 #: ``|sin(q5)|`` below this is a wrist singularity (wrist joint speeds grow as ``1 / |sin(q5)|``).
 WRIST_SIN_MIN = 0.05
@@ -76,11 +76,8 @@ def trapezoid_time_s(distance: float, max_speed: float, max_accel: float) -> flo
 
 def _dh(theta: float, d: float, a: float, alpha_rot: np.ndarray) -> np.ndarray:
     """``Rz(theta) Tz(d) Tx(a) Rx(alpha)`` as 4x4 (alpha given as its rotation matrix)."""
-    T = np.eye(4)
     Rzt = Rz(theta)
-    T[:3, :3] = Rzt @ alpha_rot
-    T[:3, 3] = Rzt @ np.array([a, 0.0, 0.0]) + np.array([0.0, 0.0, d])
-    return T
+    return T_from_Rt(Rzt @ alpha_rot, Rzt @ np.array([a, 0.0, 0.0]) + np.array([0.0, 0.0, d]))
 
 
 #: The nominal twists ``alpha_i`` (radians) and their rotations ``Rx(alpha_i)``.
