@@ -1,8 +1,7 @@
 """The hardware interfaces the routine drives: small ``typing.Protocol`` classes that the real
 drivers (``ur``, ``oak``, ``uvc``) and the simulated cell implement alike. Every failure is a
 :class:`slidecal.solver.errors.HardwareFault` saying what to do. Real drivers may also report
-``capabilities()`` and ``device_calibrations()`` (``user``/``factory``) for the session; each
-imports its library (an extra: ``pip install 'slidecal[ur]'``, ``'slidecal[oak]'``) when used."""
+``capabilities()`` and ``device_calibrations()`` (``user``/``factory``) for the session."""
 
 from __future__ import annotations
 

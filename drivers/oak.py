@@ -1,9 +1,8 @@
 """Luxonis OAK cameras through depthai v3 (``CameraRig`` of ``drivers/base.py``), the device's
 own calibration, and a calibration result written into a depthai ``CalibrationHandler``.
 
-Sensor modes, the exposure lock, synchronisation, a lost device and the calibration's units:
-docs/DRIVERS.md. ``depthai`` (``pip install 'slidecal[oak]'``) is imported when an
-:class:`OakRig` is made; this module imports without it.
+Sensor modes, the exposure lock, synchronisation, a lost device, the calibration's units and
+when ``depthai`` is imported: docs/DRIVERS.md.
 """
 
 from __future__ import annotations
@@ -48,16 +47,13 @@ def import_depthai() -> Any:
     return depthai
 
 
-def socket_names(dai: Any) -> list[str]:
-    """The board socket names a cell file may use (``CAM_A`` ...), from the installed depthai."""
-    return sorted(n for n in dai.CameraBoardSocket.__members__ if n.startswith("CAM_"))
-
-
 def _board_socket(dai: Any, name: str, camera: str) -> Any:
-    if name not in socket_names(dai):
+    """The ``dai.CameraBoardSocket`` a cell file names (``CAM_A`` ...) for ``camera``."""
+    names = sorted(n for n in dai.CameraBoardSocket.__members__ if n.startswith("CAM_"))
+    if name not in names:
         raise InputError(
             f"camera {camera!r}: socket {name!r} is not an OAK board socket; use one of "
-            f"{', '.join(socket_names(dai))}"
+            f"{', '.join(names)}"
         )
     return dai.CameraBoardSocket.__members__[name]
 
@@ -89,6 +85,19 @@ def choose_sensor_mode(
     if covering:
         return dict(min(covering, key=lambda m: m["width"] * m["height"]))
     return dict(max(ok, key=lambda m: m["width"] * m["height"]))
+
+
+def _open_device(dai: Any, device_id: str | None, advice: str, pipeline: bool = False) -> Any:
+    """A ``dai.Device`` (``pipeline``: a ``dai.Pipeline`` on it), ``device_id`` or any;
+    ``HardwareFault`` ending in ``advice`` when none opens."""
+    try:
+        if device_id is None:
+            return dai.Pipeline() if pipeline else dai.Device()
+        device = dai.Device(dai.DeviceInfo(device_id))
+        return dai.Pipeline(device) if pipeline else device
+    except RuntimeError as e:
+        which = "any OAK device" if device_id is None else f"OAK device {device_id}"
+        raise HardwareFault(f"cannot open {which} ({e}); {advice}") from None
 
 
 def _call(obj: Any, method: str) -> Any:
@@ -186,35 +195,24 @@ class OakRig:
     def open(self) -> None:
         """Build and start the pipeline; ``HardwareFault`` when the device or a camera is absent,
         ``InputError`` when the cell asks for what this device cannot do."""
-        dai = self._dai
-        try:
-            if self.device_id is None:
-                pipeline = dai.Pipeline()
-            else:
-                pipeline = dai.Pipeline(dai.Device(dai.DeviceInfo(self.device_id)))
-        except RuntimeError as e:
-            which = "any OAK device" if self.device_id is None else f"OAK device {self.device_id}"
-            raise HardwareFault(
-                f"cannot open {which} ({e}); plug it into a USB3 port (or check its network "
-                "link), check the udev rules, and in a container pass /dev/bus/usb through"
-            ) from None
-        try:
-            self._queues = self._build(pipeline)
-            pipeline.start()
-        except RuntimeError as e:
-            self._stop(pipeline)
-            raise HardwareFault(
-                f"the OAK pipeline did not start ({e}); replug the device"
-            ) from None
-        except BaseException:  # HardwareFault, InputError, Ctrl-C: nothing is left running
-            self._stop(pipeline)
-            raise
+        pipeline = _open_device(
+            self._dai, self.device_id, "plug it into a USB3 port (or check its network link), "
+            "check the udev rules, and in a container pass /dev/bus/usb through", pipeline=True
+        )
         self._pipeline = pipeline
         try:
-            self._lock_and_read_back()
-        except (self._dai.MessageQueue.QueueException, RuntimeError) as e:
-            raise self._lost(str(e) or type(e).__name__) from None
-        except BaseException:
+            try:
+                self._queues = self._build(pipeline)
+                pipeline.start()
+            except RuntimeError as e:
+                raise HardwareFault(
+                    f"the OAK pipeline did not start ({e}); replug the device"
+                ) from None
+            try:
+                self._lock_and_read_back()
+            except (self._dai.MessageQueue.QueueException, RuntimeError) as e:
+                raise self._lost(str(e) or type(e).__name__) from None
+        except BaseException:  # HardwareFault, InputError, Ctrl-C: nothing is left running
             self.close()
             raise
 
@@ -338,24 +336,18 @@ class OakRig:
         }
         return queues
 
-    @staticmethod
-    def _stop(pipeline: Any) -> None:
-        with suppress(RuntimeError):
-            pipeline.stop()
-            pipeline.wait()
-
     def close(self) -> None:
         """Stop the pipeline (idempotent)."""
         if self._pipeline is not None:
-            self._stop(self._pipeline)
+            with suppress(RuntimeError):
+                self._pipeline.stop()
+                self._pipeline.wait()
         self._pipeline = None
         self._queues = {}
         self._controls = {}
 
     def capabilities(self) -> dict[str, Any]:
-        """What the open device is and how it streams (plain data for the session): device id
-        (MX id or IP), name, product, platform, USB speed, bootloader version, the connected
-        sensors with their modes, per camera the sensor mode, size, resize mode and controls."""
+        """What the open device is and how it streams (plain data for the session)."""
         if not self._capabilities:
             raise HardwareFault("OAK rig not open: call open() first")
         return dict(self._capabilities)
@@ -508,15 +500,7 @@ class OakCalibrationStore:
         self._device: Any = None
 
     def __enter__(self) -> OakCalibrationStore:
-        dai = self._dai
-        try:
-            if self.device_id is None:
-                self._device = dai.Device()
-            else:
-                self._device = dai.Device(dai.DeviceInfo(self.device_id))
-        except RuntimeError as e:
-            which = "any OAK device" if self.device_id is None else f"OAK device {self.device_id}"
-            raise HardwareFault(f"cannot open {which} ({e}); plug it in and retry") from None
+        self._device = _open_device(self._dai, self.device_id, "plug it in and retry")
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -643,8 +627,8 @@ def oak_calibration_handler(
 
     ``sockets``: camera name -> board socket (default left CAM_B, right CAM_C, rgb CAM_A).
     ``stereo``: the (left, right) pair, rectified with ``cv2.stereoRectify``, or None. ``base``: a
-    handler or JSON dict to start from, unmodified (the device's own: its board name, IMU
-    extrinsics, lens positions and design translations kept). ``lens_positions``: name -> 0..255.
+    handler or JSON dict to start from, unmodified (the device's own). ``lens_positions``: name ->
+    0..255.
     ``streams``: name -> how its output was made (:func:`stream_geometry`): its K is mapped back to
     the size the device stores that socket at; without one, written at its own size.
     """
@@ -746,21 +730,6 @@ def device_camera(
     return K, np.asarray(h.getDistortionCoefficients(s), float)
 
 
-def device_T_cam_ref(data: Mapping[str, Any], socket: str, ref_socket: str) -> np.ndarray | None:
-    """``T_cam_ref`` (4, 4), metres, between two sockets in depthai calibration JSON."""
-    dai = import_depthai()
-    h = handler_from_json(data)
-    a, b = _board_socket(dai, ref_socket, ref_socket), _board_socket(dai, socket, socket)
-    if a == b:
-        return np.eye(4)
-    try:
-        T = np.asarray(h.getCameraExtrinsics(a, b), float)
-    except RuntimeError:
-        return None
-    T[:3, 3] /= 100.0
-    return T
-
-
 def projection_shift_px(
     result: CalibrationResult,
     data: Mapping[str, Any],
@@ -774,6 +743,8 @@ def projection_shift_px(
     ``{name: {rms_px, max_px}}`` over a ``grid`` x ``grid`` lattice of the reference camera's pixels
     back-projected to ``distance_m`` and projected with both models (``streams``: as in
     :func:`device_camera`)."""
+    dai = import_depthai()
+    h = handler_from_json(data)
     ref = result.reference_camera or next(iter(result.cameras))
     cref = result.cameras[ref]
     lattice = np.linspace(0.05, 0.95, grid)
@@ -788,21 +759,19 @@ def projection_shift_px(
         dev = device_camera(
             data, sockets[name], (cam.width, cam.height), resize_mode, (streams or {}).get(name)
         )
-        T_dev = device_T_cam_ref(data, sockets[name], sockets[ref]) if name != ref else np.eye(4)
-        if dev is None or T_dev is None:
-            continue
-        try:
+        a, b = (_board_socket(dai, sockets[n], sockets[n]) for n in (ref, name))
+        try:  # T_cam_ref (4, 4), depthai's centimetres
+            T_dev = np.eye(4) if a == b else np.asarray(h.getCameraExtrinsics(a, b), float)
             T_ours = _T_cam_ref(result, name, ref)
-        except InputError:
-            continue  # the result has no complete transform of this camera: not compared
-
-        def seen(T, K, d):  # the device's: OpenCV's 14-coefficient perspective model
-            P = P_ref @ T[:3, :3].T + T[:3, 3]
-            img, _ = cv2.projectPoints(P, np.zeros(3), np.zeros(3), K, d)
-            return img.reshape(-1, 2)
-
+        except (RuntimeError, InputError):
+            continue  # the device or the result has no complete transform of this camera
+        if dev is None:
+            continue
+        T_dev[:3, 3] /= 100.0
         ours = project(cam.K, cam.distortion, P_ref @ T_ours[:3, :3].T + T_ours[:3, 3])
-        theirs = seen(T_dev, *dev)
-        e = np.linalg.norm(ours - theirs, axis=1)
+        # the device's model: OpenCV's 14-coefficient perspective one
+        theirs, _ = cv2.projectPoints(P_ref @ T_dev[:3, :3].T + T_dev[:3, 3], np.zeros(3),
+                                      np.zeros(3), *dev)
+        e = np.linalg.norm(ours - theirs.reshape(-1, 2), axis=1)
         out[name] = {"rms_px": float(np.sqrt(np.mean(e**2))), "max_px": float(e.max())}
     return out

@@ -1,8 +1,7 @@
 """A Universal Robots arm through ur-rtde (``Robot`` protocol of ``drivers/base.py``).
 
-The order of the connection's checks, what is refused and how the client's traps are handled:
-docs/DRIVERS.md. ur-rtde is imported in :meth:`URRobot.connect`; this module imports without it.
-"""
+The order of the connection's checks, what is refused, how the client's traps are handled and
+when ur-rtde is imported: docs/DRIVERS.md."""
 
 from __future__ import annotations
 
@@ -136,10 +135,8 @@ def probe_controller(host: str, timeout_s: float) -> tuple[int, int, int, int]:
 
 
 def cell_options(robot_section: Any) -> dict[str, Any]:
-    """``URRobot`` keyword arguments from a cell file's ``robot:`` section: ``take_control``
-    (consent to stop a running program), ``payload: {mass_kg, cog_m}`` (flange frame, metres; set at
-    connect) and ``upper_range_registers`` (RTDE input registers 24-47, where a fieldbus holds
-    0-23)."""
+    """``URRobot`` keyword arguments from a cell file's ``robot:`` section (``take_control``,
+    ``payload``, ``upper_range_registers``: docs/FORMATS.md)."""
     raw = dict(robot_section or {})
     out: dict[str, Any] = {}
     for key in ("take_control", "upper_range_registers"):
@@ -243,10 +240,7 @@ class URRobot:
     def connect(self) -> None:
         """Connect (the order of checks: docs/DRIVERS.md); ``HardwareFault`` unless the robot runs
         in normal or reduced safety mode, takes remote commands, and nothing the user did not
-        consent to would be stopped. Fills :attr:`controller_info` (``polyscope_version``,
-        ``robot_model``, ``serial_number``, ``controller_version``, ``remote_control``,
-        ``ik_check``, ``speed_slider``, ``safety_mode``, ``program_stopped``, ``payload``; None
-        where the controller cannot say)."""
+        consent to would be stopped. Fills :attr:`controller_info` (None where it cannot say)."""
         try:
             import dashboard_client
             import rtde_control
@@ -309,10 +303,7 @@ class URRobot:
                 )
         if self.model is None and model_text.upper().startswith("UR"):
             name = model_text.split()[0] + ("e" if version[0] >= 5 else "")
-            try:
-                self.model = urk.model_by_name(name)
-            except InputError:
-                self.model = None
+            self.model = urk.MODELS.get(name.lower())
         self._ik_on_controller = has_ik_query(version)
         self.controller_info = {
             "polyscope_version": ".".join(str(v) for v in version),
@@ -514,14 +505,9 @@ class URRobot:
         return T_from_ur_pose(self._receive.getActualTCPPose())
 
     def move_linear(self, T_base_tool: np.ndarray, speed_mps: float, accel_mps2: float) -> None:
-        """``moveL`` to ``T_base_tool`` (4, 4), metres; returns on arrival, ``HardwareFault`` on
-        failure.
-
-        Sent asynchronously and watched here (live pose, safety mode, a deadline from the
-        trapezoidal move time at the executed speed fraction, ``getSpeedScalingCombined``): a
-        blocking ``moveL`` waits up to 300 s over a dropped link. Arrival needs both
-        ``arrival_tol_m`` and ``_deg``.
-        """
+        """``moveL`` to ``T_base_tool`` (4, 4), metres; returns on arrival (``arrival_tol_m`` and
+        ``_deg``), ``HardwareFault`` on failure. Sent asynchronously and watched here: a blocking
+        ``moveL`` waits up to 300 s over a dropped link."""
         self._require()
         T = checked_move(self, T_base_tool, speed_mps, accel_mps2)
         T_start = self.measured_pose()
@@ -611,10 +597,8 @@ class URRobot:
             raise HardwareFault(self._diagnose(f"the reachability query for {describe(T)} failed"))
 
     def is_reachable(self, T_base_tool: np.ndarray) -> bool:
-        """An IK solution near the current joints, inside the joint and safety limits: the
-        controller's ``getInverseKinematicsHasSolution`` on PolyScope 5.10+ / 3.15+, else the
-        host-side kinematics with the model's joint limits (the controller still judges the safety
-        limits)."""
+        """An IK solution near the current joints, inside the joint and safety limits (which
+        kinematics answer: docs/DRIVERS.md), not near a singularity when the model is known."""
         self._require()
         T = np.asarray(T_base_tool, dtype=float)
         pose = ur_pose_from_T(T)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slidecal.solver.errors import InputError
-from slidecal.solver.geometry import Rx, Rz, inv_T
+from slidecal.solver.geometry import Rx, Rz, T_from_Rt, inv_T
 
 #: ``|sin(q5)|`` below this is a wrist singularity (wrist joint speeds grow as ``1 / |sin(q5)|``).
 WRIST_SIN_MIN = 0.05
@@ -76,19 +76,13 @@ def trapezoid_time_s(distance: float, max_speed: float, max_accel: float) -> flo
 
 def _dh(theta: float, d: float, a: float, alpha_rot: np.ndarray) -> np.ndarray:
     """``Rz(theta) Tz(d) Tx(a) Rx(alpha)`` as 4x4 (alpha given as its rotation matrix)."""
-    T = np.eye(4)
     Rzt = Rz(theta)
-    T[:3, :3] = Rzt @ alpha_rot
-    T[:3, 3] = Rzt @ np.array([a, 0.0, 0.0]) + np.array([0.0, 0.0, d])
-    return T
+    return T_from_Rt(Rzt @ alpha_rot, Rzt @ np.array([a, 0.0, 0.0]) + np.array([0.0, 0.0, d]))
 
 
-_RX_P = Rx(np.pi / 2)
-_RX_M = Rx(-np.pi / 2)
-_RX_0 = np.eye(3)
 #: The nominal twists ``alpha_i`` (radians) and their rotations ``Rx(alpha_i)``.
 ALPHAS = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
-ALPHA_ROTS = (_RX_P, _RX_0, _RX_0, _RX_P, _RX_M, _RX_0)
+ALPHA_ROTS = tuple(Rx(a) for a in ALPHAS)
 
 
 def _check_q(q: np.ndarray) -> np.ndarray:
@@ -169,9 +163,9 @@ def _ik_flange(T: np.ndarray, m: URModel, q6_singular: float = 0.0) -> list[np.n
                 q6 = np.arctan2(
                     (-R[0, 1] * sn1 + R[1, 1] * c1) / sn5, (R[0, 0] * sn1 - R[1, 0] * c1) / sn5
                 )
-            T01 = _dh(q1, m.d1, 0.0, _RX_P)
-            T45 = _dh(q5, m.d5, 0.0, _RX_M)
-            T56 = _dh(q6, m.d6, 0.0, _RX_0)
+            T01 = _dh(q1, m.d1, 0.0, ALPHA_ROTS[0])
+            T45 = _dh(q5, m.d5, 0.0, ALPHA_ROTS[4])
+            T56 = _dh(q6, m.d6, 0.0, ALPHA_ROTS[5])
             T14 = inv_T(T01) @ T @ inv_T(T45 @ T56)
             px, py = T14[0, 3], T14[1, 3]
             # Near a wrist singularity q5 comes from arccos(c5) with an error of about

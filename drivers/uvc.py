@@ -66,13 +66,17 @@ class UvcCamera:
         """The one camera's name and size."""
         return (CameraSpec(self.name, self.width, self.height),)
 
+    def _record(self, key: str, requested: Any, read_back: Any, accepted: bool) -> bool:
+        """Record what became of a setting in :attr:`settings`; returns ``accepted``."""
+        self.settings[key] = {"requested": requested, "read_back": read_back, "accepted": accepted}
+        return accepted
+
     def _set(self, cap: cv2.VideoCapture, key: str, prop: int, value: float) -> bool:
         """Set, read back and record a property; True when the camera holds the value."""
         ok = bool(cap.set(prop, float(value)))
         got = float(cap.get(prop))
-        held = ok and abs(got - float(value)) <= max(0.5, 0.01 * abs(float(value)))
-        self.settings[key] = {"requested": float(value), "read_back": got, "accepted": held}
-        return held
+        return self._record(key, float(value), got,
+                            ok and abs(got - float(value)) <= max(0.5, 0.01 * abs(float(value))))
 
     def open(self) -> None:
         """Open; set format, size, frame rate, focus and exposure, and read them back."""
@@ -108,12 +112,8 @@ class UvcCamera:
         cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.width)
         cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height)
         got = (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
-        self.settings["size"] = {
-            "requested": [self.width, self.height],
-            "read_back": list(got),
-            "accepted": got == (self.width, self.height),
-        }
-        if got != (self.width, self.height):
+        if not self._record("size", [self.width, self.height], list(got),
+                            got == (self.width, self.height)):
             raise HardwareFault(
                 f"camera {self.name} delivers {got[0]}x{got[1]} instead of "
                 f"{self.width}x{self.height}; pick a size it supports (v4l2-ctl "
@@ -159,12 +159,9 @@ class UvcCamera:
         )
 
     def _lock_white_balance(self, cap: cv2.VideoCapture, auto_wb: bool) -> None:
-        if not auto_wb:
-            self.settings["auto_white_balance"] = {
-                "requested": 0.0, "read_back": float(cap.get(cv2.CAP_PROP_AUTO_WB)),
-                "accepted": True,
-            }
-            return  # off already, or no such control (a grey camera, a video file)
+        if not auto_wb:  # off already, or no such control (a grey camera, a video file)
+            self._record("auto_white_balance", 0.0, float(cap.get(cv2.CAP_PROP_AUTO_WB)), True)
+            return
         kelvin = float(cap.get(cv2.CAP_PROP_WB_TEMPERATURE))
         off = self._set(cap, "auto_white_balance", cv2.CAP_PROP_AUTO_WB, 0)
         held = kelvin > 0 and self._set(cap, "white_balance_k", cv2.CAP_PROP_WB_TEMPERATURE,
@@ -179,7 +176,7 @@ class UvcCamera:
     def _lock_focus(self, cap: cv2.VideoCapture) -> None:
         ok = bool(cap.set(cv2.CAP_PROP_AUTOFOCUS, 0))
         af = float(cap.get(cv2.CAP_PROP_AUTOFOCUS))
-        self.settings["autofocus"] = {"requested": 0.0, "read_back": af, "accepted": af == 0}
+        self._record("autofocus", 0.0, af, af == 0)
         if af > 0:
             raise HardwareFault(
                 f"camera {self.name} keeps autofocus on (reads {af:g} after switching it off); "

@@ -62,8 +62,8 @@ IK_HAS_SOLUTION_DEFAULT, IK_HAS_SOLUTION_ARGS, STOP_SCRIPT = 60, 61, 255
 SAFETY_BIT_NORMAL, SAFETY_BIT_REDUCED, SAFETY_BIT_PROTECTIVE = 1 << 0, 1 << 1, 1 << 2
 SAFETY_BIT_ROBOT_ESTOP = 1 << 7
 #: Script functions whose presence in the uploaded script decides whether a command works.
-SCRIPT_FUNCTION = {IK_HAS_SOLUTION_DEFAULT: "get_inverse_kin_has_solution(",
-                   IK_HAS_SOLUTION_ARGS: "get_inverse_kin_has_solution("}
+SCRIPT_FUNCTION = dict.fromkeys((IK_HAS_SOLUTION_DEFAULT, IK_HAS_SOLUTION_ARGS),
+                                "get_inverse_kin_has_solution(")
 STATUS_BIT_POWER_ON, STATUS_BIT_PROGRAM_RUNNING = 1 << 0, 1 << 1
 
 FORMATS = {
@@ -91,7 +91,14 @@ TYPES = {
     "safety_status_bits": "UINT32", "actual_digital_input_bits": "UINT64",
     "actual_digital_output_bits": "UINT64",
 }
-
+#: Output variables that are constant here: the joints in running mode, gravity, the supply, and
+#: the trajectory limiter's factor (nothing limits a straight moveL).
+CONSTANTS = {"joint_mode": [253] * 6, "actual_tool_accelerometer": [0.0, 0.0, 9.81],
+             "actual_main_voltage": 48.0, "actual_robot_voltage": 48.0, "speed_scaling": 1.0}
+#: Output variables that are one attribute of :class:`Robot`.
+ATTRIBUTES = {"robot_mode": "robot_mode", "safety_mode": "safety_mode",
+              "safety_status": "safety_mode", "runtime_state": "runtime_state",
+              "target_speed_fraction": "speed_slider"}
 
 #: An RTDE register's variable name.
 REGISTER = re.compile(r"(input|output)_(int|double)_register_(\d+)")
@@ -181,15 +188,12 @@ class Robot:
         m = REGISTER.fullmatch(name)
         return self.fieldbus and m is not None and m[1] == "input" and int(m[3]) < 24
 
-    def dashboard_has(self, command: str) -> bool:
-        """Whether this PolyScope's dashboard server knows ``command``."""
-        major, minor = self.controller_version[:2]
-        if command in ("is in remote control", "get serial number"):
-            return major >= 5 and minor >= 6
-        return True
-
     def value(self, name: str) -> object:
         """The current value of an RTDE output variable."""
+        if name in CONSTANTS:
+            return CONSTANTS[name]
+        if name in ATTRIBUTES:
+            return getattr(self, ATTRIBUTES[name])
         if name == "timestamp":
             return time.monotonic() - self.t0
         if name in ("actual_q", "target_q"):
@@ -198,20 +202,12 @@ class Robot:
             return self.tcp_pose(reported=True)
         if name in ("actual_TCP_speed", "target_TCP_speed"):
             return list(self.speed)
-        if name == "robot_mode":
-            return self.robot_mode
-        if name in ("safety_mode", "safety_status"):
-            return self.safety_mode
-        if name == "runtime_state":
-            return self.runtime_state
         if name == "safety_status_bits":
             return {2: SAFETY_BIT_NORMAL | SAFETY_BIT_REDUCED, 3: SAFETY_BIT_PROTECTIVE,
                     7: SAFETY_BIT_ROBOT_ESTOP}.get(self.safety_mode, SAFETY_BIT_NORMAL)
         if name == "robot_status_bits":
             running = self.runtime_state == RUNTIME_PLAYING
             return STATUS_BIT_POWER_ON | (STATUS_BIT_PROGRAM_RUNNING if running else 0)
-        if name == "joint_mode":
-            return [253] * 6
         if REGISTER.fullmatch(name):
             table, i, cast = self._register(name)
             return table.get(i, cast(0))
@@ -219,16 +215,7 @@ class Robot:
             return self.active_payload[0]
         if name == "payload_cog":
             return list(self.active_payload[1])
-        kind = var_type(name)
-        if name == "actual_tool_accelerometer":
-            return [0.0, 0.0, 9.81]
-        if name in ("actual_main_voltage", "actual_robot_voltage"):
-            return 48.0
-        if name == "target_speed_fraction":
-            return self.speed_slider
-        if name == "speed_scaling":
-            return 1.0  # the trajectory limiter's factor: nothing limits a straight moveL here
-        return {"VECTOR6D": [0.0] * 6, "VECTOR3D": [0.0] * 3, "DOUBLE": 0.0}.get(kind, 0)
+        return {"VECTOR6D": [0.0] * 6, "VECTOR3D": [0.0] * 3, "DOUBLE": 0.0}.get(var_type(name), 0)
 
     def _register(self, name: str) -> tuple[dict, int, type]:
         """The table, index (the script's offset removed) and type of an RTDE register name."""
@@ -404,7 +391,10 @@ class Robot:
         running = self.runtime_state == RUNTIME_PLAYING
         if cmd == "quit":
             return None
-        if not self.dashboard_has(cmd):
+        major, minor = self.controller_version[:2]
+        if cmd in ("is in remote control", "get serial number") and not (
+            major >= 5 and minor >= 6
+        ):  # PolyScope 5.6+ only
             return f"could not understand: '{cmd}'"
         safety = SAFETY_MODE_NAMES.get(self.safety_mode, "UNDEFINED_SAFETY_MODE")
         name = self.program or ("<unnamed>" if not running else "rtde_control")
@@ -478,9 +468,8 @@ class FakeController:
             self.listeners[s] = kind
 
     def go_silent(self) -> None:
-        """Drop every packet from now on: the listeners are replaced by ones whose accept queue
-        is full and that are never served, so the kernel drops new connection requests (SYN)
-        without an answer, as a host behind a dead switch or a firewall does."""
+        """Drop every packet from now on, as a host behind a dead switch does: listeners whose
+        accept queue is full and never served, so the kernel drops connection requests (SYN)."""
         for s in self.listeners:
             s.close()
         self.listeners = {}
@@ -511,8 +500,10 @@ class FakeController:
 
     # ------------------------------------------------------------------------------- RTDE
     def _rtde_message(self, c: Connection, kind: int, payload: bytes) -> None:
-        if kind == V:
-            self._send(c, message(V, b"\x01"))
+        if kind in (S, P):
+            c.started, c.next_send = kind == S, time.monotonic()
+        if kind in (V, S, P):  # accepted
+            self._send(c, message(kind, b"\x01"))
         elif kind == v:
             self._send(c, message(v, struct.pack(">4I", *self.robot.controller_version)))
         elif kind == O:
@@ -527,12 +518,6 @@ class FakeController:
             c.inputs[rid] = names
             types = ["IN_USE" if self.robot.fieldbus_has(n) else var_type(n) for n in names]
             self._send(c, message(I, bytes([rid]) + ",".join(types).encode()))
-        elif kind == S:
-            c.started, c.next_send = True, time.monotonic()
-            self._send(c, message(S, b"\x01"))
-        elif kind == P:
-            c.started = False
-            self._send(c, message(P, b"\x01"))
         elif kind == U:
             self._data_package(c, payload)
 
@@ -609,7 +594,8 @@ class FakeController:
         if cmd in ("pstop", "estop", "stall", "drop_next", "freeze_next"):
             r.next_move_fault = cmd.removesuffix("_next")
         elif cmd == "freeze":
-            self._freeze()
+            self.frozen = True
+            self.go_silent()
         elif cmd == "drop":
             self.close_all()
         elif cmd == "reopen":
@@ -624,10 +610,6 @@ class FakeController:
             print(json.dumps({"error": f"unknown control command {cmd!r}"}), flush=True)
             return
         print(json.dumps({"ok": cmd}), flush=True)
-
-    def _freeze(self) -> None:
-        self.frozen = True
-        self.go_silent()
 
     # --------------------------------------------------------------------------------- loop
     def run(self) -> None:
@@ -674,7 +656,8 @@ class FakeController:
                 self.close_all()
             elif fault == "freeze":
                 self.robot.events.append("network went silent")
-                self._freeze()
+                self.frozen = True
+                self.go_silent()
             if self.frozen:
                 continue
             now = time.monotonic()
