@@ -58,9 +58,20 @@ def write_session(
 
 
 def write_config(cfg: CellConfig, path: str | Path) -> Path:
-    """Write the cell file of ``cfg``: :func:`config_to_dict`, and a simulated cell's truth in
-    full (no preset) after ``approximate``."""
+    """Write the cell file of ``cfg``: :func:`config_to_dict`, its ``cameras:`` after ``robot``,
+    and a simulated cell's truth in full (no preset) after ``approximate``."""
     out = config_to_dict(cfg)
+    cameras: dict[str, Any] = {"driver": cfg.camera_driver, "reference": cfg.reference_camera}
+    if cfg.device_id is not None:
+        cameras["device_id"] = cfg.device_id
+    cameras.update(cfg.rig_options)
+    if cfg.camera_driver != "simulated":
+        cameras["list"] = [
+            {"name": c.name, "width": c.width, "height": c.height, **cfg.camera_options[c.name]}
+            for c in cfg.cameras
+        ]
+    keys = list(out)
+    out = {**{k: out[k] for k in keys[:3]}, "cameras": cameras, **{k: out[k] for k in keys[3:]}}
     sim = cfg.simulation
     if sim is not None:
         he_key, tg_key = POSE_NAMES[cfg.mount]
