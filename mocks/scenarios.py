@@ -33,7 +33,6 @@ from slidecal.solver.geometry import (
     look_at_R_cam_world,
     transform_points,
 )
-from slidecal.solver.homography import homography_dlt, refine_homography
 from slidecal.solver.model import ModelState
 from slidecal.solver.problem import (
     CalibrationProblem,
@@ -1040,36 +1039,6 @@ def one_tag_session(rng: np.random.Generator, geometry: np.ndarray) -> Scenario:
         distortion=np.zeros(5),
         T_cam_board=geometry,
     )
-
-
-def scale_pixels(problem: CalibrationProblem, factor: Mapping[str, float]) -> CalibrationProblem:
-    """The problem with camera ``c``'s pixels and image size multiplied by ``factor[c]``: ``K``
-    becomes ``diag(f, f, 1) K``, distortion unchanged, so equal row weights on it are per-camera
-    weights ``1 / sigma_c^2`` when ``factor[c] = sigma_ref / sigma_c``."""
-    frames = []
-    for fr in problem.frames:
-        dets = {c: Detection(d.ids, d.px * factor.get(c, 1.0)) for c, d in fr.detections.items()}
-        frames.append(replace(fr, detections=dets))
-    cams = tuple(
-        CameraSpec(
-            c.name,
-            round(c.width * factor.get(c.name, 1.0)),
-            round(c.height * factor.get(c.name, 1.0)),
-        )
-        for c in problem.cameras
-    )
-    return replace(problem, frames=tuple(frames), cameras=cams)
-
-
-def estimate_homographies(board_xy: np.ndarray, px: np.ndarray) -> np.ndarray:
-    """Homographies (n, 3, 3) per view of ``board_xy`` (N, 2) l.u. seen at ``px`` (n, N, 2):
-    normalised DLT, then reprojection-error refinement."""
-    return np.array([refine_homography(homography_dlt(board_xy, p), board_xy, p) for p in px])
-
-
-def params_of(K: np.ndarray) -> np.ndarray:
-    """(fx, fy, cx, cy) of an intrinsic matrix (3, 3), pixels."""
-    return np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
 
 
 #: the cameras of a 1, 2 or 3-camera session of :func:`scale_session`

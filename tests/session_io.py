@@ -22,7 +22,7 @@ from slidecal.routines.session import (
     load_session,
     transform_to_dict,
 )
-from slidecal.solver.problem import CalibrationProblem, Detection
+from slidecal.solver.problem import CalibrationProblem, CameraSpec, Detection
 
 
 def read_session(directory: str | Path, detect_images: bool = True) -> CalibrationProblem:
@@ -109,6 +109,25 @@ def _sim_camera_to_dict(c: SimCamera) -> dict[str, Any]:
 
 
 # ------------------------------------------- a user's mistakes: problems and session files edited
+def scale_pixels(problem: CalibrationProblem, factor: Mapping[str, float]) -> CalibrationProblem:
+    """The problem with camera ``c``'s pixels and image size multiplied by ``factor[c]``: ``K``
+    becomes ``diag(f, f, 1) K``, distortion unchanged, so equal row weights on it are per-camera
+    weights ``1 / sigma_c^2`` when ``factor[c] = sigma_ref / sigma_c``."""
+    frames = []
+    for fr in problem.frames:
+        dets = {c: Detection(d.ids, d.px * factor.get(c, 1.0)) for c, d in fr.detections.items()}
+        frames.append(replace(fr, detections=dets))
+    cams = tuple(
+        CameraSpec(
+            c.name,
+            round(c.width * factor.get(c.name, 1.0)),
+            round(c.height * factor.get(c.name, 1.0)),
+        )
+        for c in problem.cameras
+    )
+    return replace(problem, frames=tuple(frames), cameras=cams)
+
+
 def centre_only(problem: CalibrationProblem, frac: float) -> CalibrationProblem:
     """The problem with only the corners within the central ``frac`` of each image's width and
     height (a session whose views never reached the image's edges)."""
