@@ -48,11 +48,10 @@ def _reference(result: CalibrationResult) -> str:
 
 def hand_eye_transforms(result: CalibrationResult) -> dict[str, TransformEstimate]:
     """The hand-eye transform of every camera under its result-file name (see module doc)."""
-    if result.hand_eye is None:
+    he = result.hand_eye
+    if he is None:
         return {}
     names = hand_eye_names(result.mount, list(result.cameras))
-    he = result.hand_eye
-    assert he is not None
     ref = _reference(result)
     named = result.named_covariance
     out: dict[str, TransformEstimate] = {}
