@@ -2,20 +2,17 @@
 
 Homography-level scenes for the stereo method (:func:`s5_scene`), calibration
 problems with their truth (:class:`Scenario`: S1-S4, R1 and its real-arm variants, rigs, classic
-hand-eye sessions), and the scenes and session edits the studies and tests share. Board frame:
+hand-eye sessions), and the scenes the studies and tests share. Board frame:
 z = 0 plane; S1-S5 in the paper's length units ("l.u."), R1 in metres. No images here: the
 rendered-image simulator is ``mocks/camera.py``.
 """
 
 from __future__ import annotations
 
-import shutil
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 
 import numpy as np
-import yaml
 
 from slidecal.drivers import ur_kinematics as urk
 from slidecal.drivers.ur_pose import rpy_deg
@@ -36,7 +33,6 @@ from slidecal.solver.geometry import (
     look_at_R_cam_world,
     transform_points,
 )
-from slidecal.solver.homography import homography_dlt, refine_homography
 from slidecal.solver.model import ModelState
 from slidecal.solver.problem import (
     CalibrationProblem,
@@ -772,20 +768,6 @@ def oak_rig(
     )
 
 
-def centre_only(problem: CalibrationProblem, frac: float) -> CalibrationProblem:
-    """The problem with only the corners within the central ``frac`` of each image's width and
-    height (a session whose views never reached the image's edges)."""
-    frames = []
-    for f in problem.frames:
-        dets = {}
-        for c, d in f.detections.items():
-            spec, px = problem.camera(c), np.asarray(d.px)
-            keep = np.all(np.abs(px / [spec.width, spec.height] - 0.5) < frac / 2, axis=1)
-            dets[c] = Detection(d.ids[keep], px[keep])
-        frames.append(replace(f, detections=dets))
-    return replace(problem, frames=tuple(frames))
-
-
 # -- classic hand-eye sessions: every frame at its own orientation (R1's cell) -----------------
 def square_tag(side_m: float = 0.08) -> Target:
     """A single square tag's 4 corners (an AprilTag's outer corners), centred on the origin."""
@@ -1059,64 +1041,6 @@ def one_tag_session(rng: np.random.Generator, geometry: np.ndarray) -> Scenario:
     )
 
 
-def scale_pixels(problem: CalibrationProblem, factor: Mapping[str, float]) -> CalibrationProblem:
-    """The problem with camera ``c``'s pixels and image size multiplied by ``factor[c]``: ``K``
-    becomes ``diag(f, f, 1) K``, distortion unchanged, so equal row weights on it are per-camera
-    weights ``1 / sigma_c^2`` when ``factor[c] = sigma_ref / sigma_c``."""
-    frames = []
-    for fr in problem.frames:
-        dets = {c: Detection(d.ids, d.px * factor.get(c, 1.0)) for c, d in fr.detections.items()}
-        frames.append(replace(fr, detections=dets))
-    cams = tuple(
-        CameraSpec(
-            c.name,
-            round(c.width * factor.get(c.name, 1.0)),
-            round(c.height * factor.get(c.name, 1.0)),
-        )
-        for c in problem.cameras
-    )
-    return replace(problem, frames=tuple(frames), cameras=cams)
-
-
-def swap_cameras(problem: CalibrationProblem, a: str, b: str) -> CalibrationProblem:
-    """The problem with cameras ``a`` and ``b``'s detections exchanged in every frame (a stereo
-    head's left and right images swapped; the two must have one image size)."""
-    frames = []
-    for fr in problem.frames:
-        dets = dict(fr.detections)
-        dets[a], dets[b] = fr.detections.get(b), fr.detections.get(a)
-        frames.append(replace(fr, detections={c: d for c, d in dets.items() if d is not None}))
-    return replace(problem, frames=tuple(frames))
-
-
-def focus_changed(
-    problem: CalibrationProblem, camera: str, K: np.ndarray, factor: float, start: int
-) -> CalibrationProblem:
-    """The problem with ``camera``'s focal lengths ``factor`` times longer from frame index
-    ``start`` on (a focus ring turned mid-session): its pixels scaled about the principal point
-    of ``K``, the true intrinsics (the distortion acts before ``K``, so this is exact)."""
-    c = np.asarray(K, dtype=float)[:2, 2]
-    frames = list(problem.frames)
-    for k in range(start, len(frames)):
-        dets = dict(frames[k].detections)
-        if camera in dets:
-            d = dets[camera]
-            dets[camera] = Detection(d.ids, c + factor * (np.asarray(d.px, float) - c))
-        frames[k] = replace(frames[k], detections=dets)
-    return replace(problem, frames=tuple(frames))
-
-
-def estimate_homographies(board_xy: np.ndarray, px: np.ndarray) -> np.ndarray:
-    """Homographies (n, 3, 3) per view of ``board_xy`` (N, 2) l.u. seen at ``px`` (n, N, 2):
-    normalised DLT, then reprojection-error refinement."""
-    return np.array([refine_homography(homography_dlt(board_xy, p), board_xy, p) for p in px])
-
-
-def params_of(K: np.ndarray) -> np.ndarray:
-    """(fx, fy, cx, cy) of an intrinsic matrix (3, 3), pixels."""
-    return np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
-
-
 #: the cameras of a 1, 2 or 3-camera session of :func:`scale_session`
 CAMERA_SETS = {1: ("left",), 2: ("left", "right"), 3: ("left", "right", "rgb")}
 
@@ -1139,42 +1063,6 @@ def scale_session(
         ).problem
         frames += base.frames
     return replace(base, frames=tuple(replace(f, id=k) for k, f in enumerate(frames[:n_frames])))
-
-
-# ------------------------------------------- session files edited as a user's mistakes make them
-def copy_session(src: Path, dst: Path) -> Path:
-    """The session file, its detections and plan of ``src`` (no images) in ``dst``."""
-    dst.mkdir(parents=True)
-    for name in ("session.yaml", "detections.npy", "plan.yaml"):
-        if (src / name).is_file():
-            shutil.copy(src / name, dst / name)
-    return edit_session(dst, lambda doc: [f.pop("images", None) for f in doc["frames"]])
-
-
-def edit_session(d: Path, fn) -> Path:  # noqa: ANN001 - fn edits the parsed document
-    """Apply ``fn`` to the parsed ``session.yaml`` of ``d`` and write it back."""
-    doc = yaml.safe_load((d / "session.yaml").read_text())
-    fn(doc)
-    (d / "session.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
-    return d
-
-
-def rotations_in_degrees(doc: dict) -> None:
-    """The robot's rotation vectors written in degrees where radians are meant."""
-    for f in doc["frames"]:
-        p = f["T_base_tool"]
-        f["T_base_tool"] = p[:3] + [float(np.degrees(v)) for v in p[3:]]
-
-
-def square_size(size_m: float):  # noqa: ANN201
-    """A wrong square size (the marker scaled alike) in the session's target."""
-
-    def edit(doc: dict) -> None:
-        t = doc["target"]
-        t["marker_size_m"] = t["marker_size_m"] * size_m / t["square_size_m"]
-        t["square_size_m"] = size_m
-
-    return edit
 
 
 def cell_overrides(fx_rel: float = 0.0, cx_px: float = 0.0, he_deg: float = 0.0) -> dict:

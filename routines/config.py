@@ -541,8 +541,8 @@ def _install(f: Fields) -> InstallSettings:
 
 
 def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
-    """The cell file of a validated real cell (the inverse of :func:`config_from_dict`): every
-    value explicit, transforms as ``{R, t_m}``; a simulated cell's truth is not written."""
+    """A validated real cell's file but ``cameras:`` (the inverse of :func:`config_from_dict`):
+    every value explicit, transforms as ``{R, t_m}``; a simulated cell's truth is not written."""
     r = cfg.robot
     robot: dict[str, Any] = {"driver": r.driver}
     if r.host is not None:
@@ -567,21 +567,11 @@ def config_to_dict(cfg: CellConfig) -> dict[str, Any]:
         robot["payload"] = {"mass_kg": r.ur_options["payload_kg"]}
         if r.ur_options["payload_cog_m"] is not None:
             robot["payload"]["cog_m"] = list(r.ur_options["payload_cog_m"])
-    cameras: dict[str, Any] = {"driver": cfg.camera_driver, "reference": cfg.reference_camera}
-    if cfg.device_id is not None:
-        cameras["device_id"] = cfg.device_id
-    cameras.update(cfg.rig_options)
-    if cfg.camera_driver != "simulated":
-        cameras["list"] = [
-            {"name": c.name, "width": c.width, "height": c.height, **cfg.camera_options[c.name]}
-            for c in cfg.cameras
-        ]
     he_key, tg_key = POSE_NAMES[cfg.mount]
     out: dict[str, Any] = {
         "format": CELL_FORMAT,
         "mount": cfg.mount,
         "robot": robot,
-        "cameras": cameras,
         "target": target_to_dict(cfg.target),
         "approximate": {
             tg_key: transform_to_dict(cfg.approx_T_target),

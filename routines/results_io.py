@@ -23,8 +23,7 @@ from slidecal.routines.schema import (
 )
 from slidecal.solver.camera import DISTORTION_MODELS, distortion_model
 from slidecal.solver.geometry import T_from_Rt, rotation_angle_deg, rvec_from_R
-from slidecal.solver.problem import hand_eye_names as named_hand_eye_names
-from slidecal.solver.problem import mount_names
+from slidecal.solver.problem import hand_eye_names, mount_names
 from slidecal.solver.result import (
     BoardShape,
     CalibrationResult,
@@ -43,25 +42,16 @@ RESULT_FILE = "result.yaml"
 # ----------------------------------------------------------------------------- names
 
 
-def hand_eye_names(result: CalibrationResult) -> dict[str, str]:
-    """Camera name -> the result file's name of its hand-eye (``T_tool_cam`` / ``T_base_cam``, or
-    ``T_tool_<name>`` / ``T_base_<name>`` per camera of a rig); empty without a robot."""
-    if result.hand_eye is None:
-        return {}
-    return named_hand_eye_names(result.mount, list(result.cameras))
-
-
 def _reference(result: CalibrationResult) -> str:
     return result.reference_camera or next(iter(result.cameras))
 
 
 def hand_eye_transforms(result: CalibrationResult) -> dict[str, TransformEstimate]:
     """The hand-eye transform of every camera under its result-file name (see module doc)."""
-    names = hand_eye_names(result)
-    if not names:
-        return {}
     he = result.hand_eye
-    assert he is not None
+    if he is None:
+        return {}
+    names = hand_eye_names(result.mount, list(result.cameras))
     ref = _reference(result)
     named = result.named_covariance
     out: dict[str, TransformEstimate] = {}
@@ -461,7 +451,7 @@ def result_from_dict(data: Any, source: str = RESULT_FILE) -> CalibrationResult:
     # every transform named is read (and must be one this result can hold)
     Ts = {k: te(k) for k in f.data if isinstance(k, str) and _TRANSFORM_KEY.fullmatch(k)}
     frames = mount_names(mount)
-    he = Ts.get(named_hand_eye_names(mount, names)[ref]) if frames is not None else None
+    he = Ts.get(hand_eye_names(mount, names)[ref]) if frames is not None else None
     hand_eye = None if he is None or frames is None else replace(he, name=frames.hand_eye)
     rig = {k: t for n in cams if n != ref if (t := Ts.get(k := f"T_{n}_{ref}")) is not None}
     rep = f.section("reprojection", RESULT_PART_KEYS["reprojection"])
@@ -715,7 +705,7 @@ def judged_truth(result: CalibrationResult, truth: Mapping[str, Any]) -> dict[st
     frames = truth_frames(truth)
     used = {fid for fid, _ in result.residuals_px}
     frames = [f for f in frames if not used or f[0] in used]
-    he_names = hand_eye_names(result)
+    he_names = {} if result.hand_eye is None else hand_eye_names(result.mount, list(result.cameras))
     tname = getattr(mount_names(result.mount), "target", None)
     ref_key = he_names.get(_reference(result))
     if not frames or ref_key not in out or tname not in out:

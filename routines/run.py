@@ -195,11 +195,10 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
         plan_poses=plan.n_poses,
         notes=notes,
     )
-    rec_path = None
     if log is not None:
         log.final(session.problem, result, fin.summary)
         log.event(f"verdict: {fin.verdict.verdict}")
-        rec_path = log.close()
+        log.close()
     installed_to, note = _install(store, fin, q.force, accept_drift, cfg, session)
     for line in fin.verdict.lines() + ([f"not installed: {note}"] if note else []):
         prog.event(line)
@@ -208,7 +207,6 @@ def run_calibration(request: RunRequest | None = None) -> RunOutcome:
         fin,
         wall_time_s=time.monotonic() - t0,
         robot_time_s=clock(robot),
-        recording_path=rec_path,
         installed_to=installed_to,
         install_note=note,
     )

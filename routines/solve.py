@@ -60,7 +60,6 @@ class RunOutcome:
     wall_time_s: float
     robot_time_s: float | None
     errors: dict[str, float] = field(default_factory=dict)
-    recording_path: Path | None = None
     exports: tuple[Path, ...] = ()
     verdict: Verdict | None = None
     installed_to: Path | None = None

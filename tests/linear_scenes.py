@@ -6,6 +6,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slidecal.mocks.scenarios import K_S1, K_S2, board_xy, plane_pixels, s1_geometry, s2_geometry
+from slidecal.solver.homography import homography_dlt, refine_homography
 
 K_SKEW = np.array([[400.0, 3.0, 150.0], [0.0, 440.0, 120.0], [0.0, 0.0, 1.0]])
 
@@ -63,3 +64,14 @@ def s2_group(
     """S2/S3: 30 deg about x then 30 about y, translated along the board normal toward it."""
     R, C0 = s2_geometry()
     return make_group(K, R, C0, line_steps([0.0, 0.0, -1.0], n), rng, sigma_px)
+
+
+def estimate_homographies(board_xy: np.ndarray, px: np.ndarray) -> np.ndarray:
+    """Homographies (n, 3, 3) per view of ``board_xy`` (N, 2) l.u. seen at ``px`` (n, N, 2):
+    normalised DLT, then reprojection-error refinement."""
+    return np.array([refine_homography(homography_dlt(board_xy, p), board_xy, p) for p in px])
+
+
+def params_of(K: np.ndarray) -> np.ndarray:
+    """(fx, fy, cx, cy) of an intrinsic matrix (3, 3), pixels."""
+    return np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from slidecal.mocks import scenarios as sc
-from slidecal.routines.results_io import hand_eye_names, hand_eye_transforms
+from slidecal.routines.results_io import hand_eye_transforms
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.drift import (
     MIN_POSES,
@@ -21,6 +21,7 @@ from slidecal.solver.drift import (
 )
 from slidecal.solver.errors import DegenerateError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T
+from slidecal.solver.problem import hand_eye_names
 
 K = np.array([[880.0, 0.0, 640.0], [0.0, 880.0, 400.0], [0.0, 0.0, 1.0]])
 REGION = (320.0, 200.0, 960.0, 600.0)  # the central half of a 1280 x 800 image
@@ -142,6 +143,6 @@ def test_fit_target_explains_the_session_the_calibration_was_made_from():
     assert len(per["cam"]) == sum(len(f.detections["cam"].ids) for f in s.problem.frames)
     assert res.reproj_rms_px < chain_rms_px(res, s.problem)["cam"] < 2.0 * res.reproj_rms_px
     rig = calibrate(sc.oak_rig(np.random.default_rng(6)).problem)
-    names, he = hand_eye_names(rig), hand_eye_transforms(rig)
+    names, he = hand_eye_names(rig.mount, list(rig.cameras)), hand_eye_transforms(rig)
     for c in rig.cameras:
         np.testing.assert_allclose(hand_eye_T(rig, c), he[names[c]].T, atol=1e-15)

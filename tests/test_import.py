@@ -22,7 +22,7 @@ from slidecal.solver.calibrate import calibrate
 from slidecal.solver.camera import K_matrix
 from slidecal.solver.geometry import inv_T, rotation_angle_deg
 
-CELL = str(sc.Path(sc.__file__).with_name("default_cell.yaml"))
+CELL = str(Path(sc.__file__).with_name("default_cell.yaml"))
 EULER_SEQ = {"Z-Y-X": "ZYX", "X-Y-Z fixed": "xyz", "X-Y-Z": "XYZ", "Z-Y-Z": "ZYZ"}
 
 #: Half of R1's camera (640 x 400): recorded datasets render faster and keep R1's geometry
@@ -188,7 +188,7 @@ def test_symmetric_board_turned_in_view_imported_and_solved(tmp_path, capsys):
     s = sc.symmetric_board_r1(np.random.default_rng(6), 0.0, 0.0, 0.0, rolled=rolled)
     T = recorded_dataset(tmp_path / "images", s, np.random.default_rng(6))
     cell = tmp_path / "cell.yaml"
-    cfg = yaml.safe_load(sc.Path(CELL).with_name("eye_to_hand_cell.yaml").read_text())
+    cfg = yaml.safe_load(Path(CELL).with_name("eye_to_hand_cell.yaml").read_text())
     cfg["target"] = {"kind": "chessboard", "squares_x": 8, "squares_y": 6, "square_size_m": 0.03}
     cell.write_text(yaml.safe_dump(cfg))
     poses = tmp_path / "poses.txt"

@@ -19,6 +19,7 @@ from slidecal.routines.session import load_session
 from slidecal.routines.solve import solve_session
 from slidecal.solver.calibrate import calibrate
 from slidecal.solver.errors import DegenerateError, InputError
+from tests.session_io import centre_only, copy_session, edit_session, focus_changed, swap_cameras
 
 OAK_SOCKETS = {"left": "CAM_B", "right": "CAM_C"}
 
@@ -36,7 +37,7 @@ def test_stereo_pair_in_socket_order_is_accepted(stereo):
 
 
 def test_stereo_left_and_right_swapped_is_rejected_naming_the_swap(stereo):
-    swapped = sc.swap_cameras(stereo, "left", "right")
+    swapped = swap_cameras(stereo, "left", "right")
     v = judge(calibrate(swapped), problem=swapped, sockets=OAK_SOCKETS, command="solve")
     assert v.verdict == "rejected" and v.exit_code == 4
     (c,) = [c for c in v.reasons if c.test == "stereo"]
@@ -65,7 +66,7 @@ def test_focus_changed_halfway_is_rejected_naming_the_change(eye_to_hand, factor
     problem, o = eye_to_hand
     assert all(c.passed for c in o.verdict.checks if c.test == "intrinsics")
     half = len(problem.frames) // 2
-    changed = sc.focus_changed(problem, "cam", o.result.cameras["cam"].K, factor, half)
+    changed = focus_changed(problem, "cam", o.result.cameras["cam"].K, factor, half)
     v = judge(calibrate(changed), problem=changed, command="solve")
     assert v.verdict == "rejected"
     (c,) = [c for c in v.reasons if c.test == "intrinsics"]
@@ -84,7 +85,7 @@ def images_one_frame_late(doc: dict) -> None:
 
 def test_images_paired_with_the_previous_pose_name_the_shift_alone(eye_to_hand, tmp_path):
     _, o = eye_to_hand
-    d = sc.edit_session(sc.copy_session(o.session_dir, tmp_path / "s"), images_one_frame_late)
+    d = edit_session(copy_session(o.session_dir, tmp_path / "s"), images_one_frame_late)
     try:
         v = solve_session(d).verdict
     except DegenerateError as e:  # refused before a solve: the shift is the one cause given
@@ -148,7 +149,7 @@ def test_solve_against_another_cells_store_says_so_before_comparing(
     eye_to_hand, store, tmp_path, edit, says
 ):
     _, o = eye_to_hand
-    d = sc.edit_session(sc.copy_session(o.session_dir, tmp_path / "s"), edit)
+    d = edit_session(copy_session(o.session_dir, tmp_path / "s"), edit)
     with pytest.raises(InputError) as e:
         solve_session(d, installed=store)
     assert says in str(e.value) and "nothing was compared" in str(e.value)
@@ -171,7 +172,7 @@ def test_projection_uncertainty_at_the_image_corners_is_said(eye_to_hand):
     whole = float(c.message.split("px where its views reached, ")[1].split(" px")[0])
     assert c.passed and c.value < 1.0 and 1.2 <= whole <= 3.0  # the standard cells' range
     assert not any("beyond the image area" in n for n in o.verdict.notes)
-    centre = sc.centre_only(problem, 0.35)  # a sixth of the image's cells, none at its corners
+    centre = centre_only(problem, 0.35)  # a sixth of the image's cells, none at its corners
     v = judge(calibrate(centre), problem=centre, command="solve")
     (c,) = [c for c in v.checks if c.test == "projection"]
     assert c.passed and c.value < 2.0  # where the views reached, the calibration holds

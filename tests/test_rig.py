@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from slidecal.mocks import scenarios as rs
-from slidecal.mocks.scenarios import scale_pixels
 from slidecal.mocks.truth import rig_bounds
 from slidecal.routines.results_io import read_result, write_result
 from slidecal.solver.calibrate import calibrate
@@ -20,7 +19,7 @@ from slidecal.solver.problem import CalibrationProblem, Detection
 from slidecal.solver.stereo import infinite_homography
 from slidecal.solver.uncertainty import predicted_covariance
 from tests.helpers import relative_rotation
-from tests.session_io import read_session, write_session
+from tests.session_io import read_session, scale_pixels, write_session
 
 PARAMS = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
 

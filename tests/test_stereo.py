@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from slidecal.mocks.scenarios import PAPER_SIZE_PX, estimate_homographies, params_of, s5_scene
+from slidecal.mocks.scenarios import PAPER_SIZE_PX, s5_scene
 from slidecal.solver.errors import DegenerateError
 from slidecal.solver.geometry import R_from_rvec, rotation_angle_deg
 from slidecal.solver.stereo import (
@@ -19,6 +19,7 @@ from slidecal.solver.stereo import (
     rig_linear_intrinsics,
 )
 from tests.helpers import relative_rotation
+from tests.linear_scenes import estimate_homographies, params_of
 
 SIZES = (PAPER_SIZE_PX, PAPER_SIZE_PX)
 

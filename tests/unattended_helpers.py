@@ -1,5 +1,5 @@
 """Sessions for the verdict tests and the verdict study (tests/bench/verdict.py): the garbage
-a user can feed slidecal (the session-file edits are in :mod:`slidecal.mocks.scenarios`)."""
+a user can feed slidecal (the session-file edits are in :mod:`tests.session_io`)."""
 
 from __future__ import annotations
 
@@ -7,18 +7,18 @@ import sys
 from pathlib import Path
 
 from slidecal.mocks.cell import SimulatedCell
-from slidecal.mocks.scenarios import (  # noqa: F401 - re-exported for the tests
-    copy_session,
-    edit_session,
-    rotations_in_degrees,
-    square_size,
-)
 from slidecal.routines.acquire import acquire
 from slidecal.routines.config import load_config
 from slidecal.routines.plan import Plan, write_plan
 from slidecal.routines.planner import make_plan
 from slidecal.routines.progress import Progress
 from slidecal.routines.session import SessionWriter
+from tests.session_io import (  # noqa: F401 - re-exported for the tests
+    copy_session,
+    edit_session,
+    rotations_in_degrees,
+    square_size,
+)
 
 DATA = Path(__file__).parent / "data"
 

@@ -17,7 +17,6 @@ from slidecal.routines.ops.install import installed_session
 from slidecal.routines.results_io import (
     SCALE_INCONCLUSIVE,
     _num,
-    hand_eye_names,
     hand_eye_transforms,
     scale_tolerance,
 )
@@ -34,7 +33,7 @@ from slidecal.solver.camera import (
 )
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import rotation_angle_deg
-from slidecal.solver.problem import CalibrationProblem
+from slidecal.solver.problem import CalibrationProblem, hand_eye_names
 from slidecal.solver.result import CalibrationResult
 
 VERDICT_FORMAT = "slidecal.verdict/1"
@@ -726,7 +725,7 @@ def displacement_px(
     K_a = np.asarray(a.K, dtype=float)
     rays = undistort_normalised(K_a, a.distortion, px)
     P_cam = np.hstack([rays, np.ones((len(rays), 1))]) * distance_m
-    key = hand_eye_names(old).get(camera)
+    key = hand_eye_names(old.mount, list(old.cameras)).get(camera)
     he_a, he_b = hand_eye_transforms(old), hand_eye_transforms(new)
     Ta = he_a[key].T if key in he_a else None
     Tb = he_b[key].T if key in he_b else None

@@ -38,7 +38,6 @@ import numpy as np
 
 import slidecal.mocks as mocks
 from slidecal.mocks import scenarios as rs
-from slidecal.mocks.scenarios import scale_pixels
 from slidecal.mocks.truth import rig_bounds
 from slidecal.routines.results_io import truth_transform
 from slidecal.routines.run import RunRequest, run_calibration
@@ -52,6 +51,7 @@ from slidecal.solver.problem import ModelOptions
 from slidecal.solver.stereo import infinite_homography, rig_linear_intrinsics
 from tests.bench.report import RESULTS, publish_report, report_header
 from tests.helpers import relative_rotation
+from tests.session_io import scale_pixels
 
 PARAMS = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
 ROBOT_NOISE = (5e-5, 0.005)  # metres, degrees: R1's robot pose noise

@@ -21,8 +21,6 @@ import numpy as np
 from slidecal.mocks.scenarios import (
     PAPER_SIZE_PX,
     StereoScene,
-    estimate_homographies,
-    params_of,
     s5_scene,
 )
 from slidecal.solver.errors import InputError
@@ -30,6 +28,7 @@ from slidecal.solver.geometry import rotation_angle_deg
 from slidecal.solver.stereo import infinite_homography, rig_linear_intrinsics
 from tests.bench.report import RESULTS, report_header
 from tests.helpers import relative_rotation
+from tests.linear_scenes import estimate_homographies, params_of
 
 PARAMS = ("fx", "fy", "cx", "cy")
 SIGMAS_PX = tuple(np.round(np.arange(0.1, 0.81, 0.1), 2))

@@ -40,14 +40,7 @@ from scipy.spatial.transform import Rotation
 from slidecal.drivers.ur_pose import T_from_ur_pose, ur_pose_from_T
 from slidecal.mocks import scenarios as sc
 from slidecal.mocks.cell import SimulatedCell
-from slidecal.mocks.scenarios import (
-    cell_overrides,
-    copy_session,
-    edit_session,
-    rotations_in_degrees,
-    same_cell,
-    square_size,
-)
+from slidecal.mocks.scenarios import cell_overrides, same_cell
 from slidecal.routines.config import load_config, load_packaged_cell
 from slidecal.routines.ops.check import run_check
 from slidecal.routines.ops.install import install
@@ -61,6 +54,15 @@ from slidecal.solver.calibrate import calibrate
 from slidecal.solver.drift import Z_LIMIT, chain_rms_px
 from slidecal.solver.errors import HardwareFault, InputError
 from tests.bench.report import RESULTS
+from tests.session_io import (
+    centre_only,
+    copy_session,
+    edit_session,
+    focus_changed,
+    rotations_in_degrees,
+    square_size,
+    swap_cameras,
+)
 from tests.unattended_helpers import record_without_translation, simulated_run_command
 
 DOC = RESULTS / "VERDICT.md"
@@ -330,17 +332,17 @@ def part_mistakes(work: Path, seeds: int) -> list[str]:
         cases += [
             (
                 f"fx {100 * (f - 1):g} % longer from the middle frame on",
-                sc.focus_changed(p, "cam", K, f, len(p.frames) // 2),
+                focus_changed(p, "cam", K, f, len(p.frames) // 2),
             )
             for f in (1.01, 1.003)
         ]
-        cases.append(("corners only in the central 35 % of the image", sc.centre_only(p, 0.35)))
+        cases.append(("corners only in the central 35 % of the image", centre_only(p, 0.35)))
         for name, q in cases:
             lines.append(_mistake_row(f"{name}, seed {seed}", judge(calibrate(q), problem=q)))
         rig = sc.oak_rig(np.random.default_rng(seed)).problem
         for name, q in (
             ("stereo head, seed", rig),
-            ("left and right swapped, seed", sc.swap_cameras(rig, "left", "right")),
+            ("left and right swapped, seed", swap_cameras(rig, "left", "right")),
         ):
             lines.append(
                 _mistake_row(f"{name} {seed}", judge(calibrate(q), problem=q, sockets=sockets))
