@@ -1,12 +1,5 @@
-"""The error model's terms: what a finished solve's covariance gains beyond the model's own.
-
-Each term is one source of docs/ERROR_MODEL.md seen through one mechanism (Sec. 3): the levels
-are estimates (:func:`level_excess`, M2), the arm's smooth error no image places
-(:func:`smooth_field_excess`, M3), a tool-side offset one orientation cannot observe
-(:func:`tool_offset_excess`, M4), a classic session's two readings of its field
-(:func:`session_field_excess`, M5), the detections' errors going together within an image or
-an orientation group (:func:`cluster_excess`, M6), the board (:func:`shape_excess`, M4, M5).
-:func:`covariance_terms` lists them for a finished solve.
+"""The error model's terms (docs/ERROR_MODEL.md Sec. 3, M2-M6): what a finished solve's
+covariance gains beyond the model's own; :func:`covariance_terms` lists them.
 """
 
 from __future__ import annotations
@@ -91,9 +84,7 @@ SHARED_LEVEL_SHARE = 0.1
 def level_excess(
     out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
 ) -> np.ndarray | None:
-    """What the covariance (PSD) gains because the arm's levels (of ``E``, ``U``, ``V``, ``W``)
-    are estimates: M2 of docs/ERROR_MODEL.md. ``project`` as :func:`smooth_field_excess`. None
-    when nothing is added."""
+    """M2 (PSD); ``project`` as :func:`smooth_field_excess`. None when nothing is added."""
     m = out.model
     red = getattr(m, "level_redundancy", None)
     if out.covariance_blocks is None or not red or m.pose_sigma is None:
@@ -131,9 +122,7 @@ def tool_offset_gain(
     problem: CalibrationProblem, out: RefineOutput, project: tuple[np.ndarray, np.ndarray]
 ) -> np.ndarray | None:
     """How the reported quantities move per metre of the tool-side translation the session
-    cannot observe (k, m: its m unobserved directions, held at zero): ``-N^-1 J' W J_o``
-    (``J_o`` the residuals' Jacobian along them, ``W`` the solve's weights). A frame's rotation
-    correction times that offset is a translation: it reaches the moves' scale and fx. None
+    cannot observe (k, m: its m unobserved directions, held at zero): M4's ``G`` for S7. None
     when every direction is observed or the poses carry no corrections."""
     m, st = out.model, out.model.st
     weights = getattr(m, "row_weights", None)
@@ -212,11 +201,8 @@ def smooth_field_excess(
     project: tuple[np.ndarray, np.ndarray] | None = None,
     ways: tuple[str, ...] = SMOOTH_FIELD_WAYS,
 ) -> np.ndarray | None:
-    """What the covariance gains from the arm's smooth error where no image places it: M3 of
-    docs/ERROR_MODEL.md (S5'), ``A (S - L) A'`` by each of ``ways`` (``groups``, ``field``, as
-    the page defines them), each its positive part; None when no way applies. ``project``: the
-    reported quantities' Jacobian (k, u) and the u parameters it uses (else the optimiser's
-    P x P)."""
+    """M3 by each of ``ways``; None when no way applies. ``project``: the reported quantities'
+    Jacobian (k, u) and the u parameters it uses (else the optimiser's P x P)."""
     m, st = out.model, out.model.st
     if out.covariance_blocks is None or "E" not in m.slices or m.pose_sigma is None:
         return None
@@ -299,17 +285,12 @@ def _session_trend(out: RefineOutput) -> bool:
     return len(st.trend_dims) == 1 and not st.trend_scale_fixed and whole
 
 
-def session_field_step(out: RefineOutput) -> np.ndarray | None:
+def session_field_step(out: RefineOutput, V: np.ndarray | None = None) -> np.ndarray | None:
     """A classic session's step (P,) from its solve (one trend over all its positions) to its
-    reading without that field, the levels as learned: to first order ``-C[:, V] C[V, V]^-1
-    V``. The images cannot tell the two readings apart (M5): the result is reported between
-    them at :data:`READING_WEIGHT`. None for any other session."""
-    return _without_field(out, out.state.V)
-
-
-def _without_field(out: RefineOutput, V: np.ndarray | None) -> np.ndarray | None:
-    """``-C[:, V] C[V, V]^-1 V`` (``V`` (n_V,) or (n_V, k)) for a classic session; or None."""
+    reading without that field (M5): ``-C[:, V] C[V, V]^-1 V``, ``V`` the solve's trend or a
+    response (n_V, k) of it. None for any other session."""
     m = out.model
+    V = out.state.V if V is None else V
     if not _session_trend(out) or V is None:
         return None
     sv = m.slices["V"]
@@ -326,7 +307,7 @@ def reported_response(out: RefineOutput, response: np.ndarray) -> np.ndarray:
     classic session's plus :data:`READING_WEIGHT` times its field step's response (the board's
     modes reach the result so); ``response`` itself for any other session."""
     v = out.model.slices.get("V")
-    step = None if v is None else _without_field(out, response[v])
+    step = None if v is None else session_field_step(out, response[v])
     return response if step is None else response + READING_WEIGHT * step
 
 
@@ -360,12 +341,10 @@ def grouped_detection_errors(
     out: RefineOutput, groups: np.ndarray
 ) -> tuple[float, int, float] | None:
     """(statistic, dof, p-value) when the detections' errors go together over the frames of an
-    orientation group (``groups`` (F,)) in images too small for :func:`images_err_together`
-    (median corners below :data:`NEIGHBOUR_MIN_CORNERS`), else None: a detector biased by one
-    view's perspective errs alike on every frame of it. Per group, camera and corner id seen
-    twice or more, the ``n`` weighted residuals' mean ``m``: ``sum n m^2 / v`` (``v`` their mean
-    square) is about chi-square on two dof each, read below :data:`GROUPED_ERRORS_P` with
-    :data:`MIN_CLUSTER_GROUPS` groups or more."""
+    orientation group (``groups`` (F,)) in images too small for :func:`images_err_together`,
+    else None. Per group, camera and corner id seen twice or more, the ``n`` weighted
+    residuals' mean ``m``: ``sum n m^2 / v`` (``v`` their mean square) is about chi-square on
+    two dof each."""
     m = out.model
     if not m.chunks or len(groups) != len(m.problem.frames):
         return None
@@ -399,12 +378,10 @@ def images_err_together(
     out: RefineOutput,
 ) -> tuple[tuple[float, int] | None, tuple[int, float, float] | None]:
     """Whether an image's errors go together: ``(correlated, misfit)``. ``correlated``: the
-    neighbours' correlation and pairs (:func:`neighbour_correlation`) when beyond
-    :data:`CORRELATED_NEIGHBOURS` and twice its sampling spread; else ``misfit``: (frame, rms
-    over the noise, p) of the image independent errors explain least, its weighted squares
-    over ``s^2`` against a chi-square on its pixel rows, read below :data:`MISFIT_IMAGE_P`
-    (Bonferroni) with an excess of :data:`MISFIT_IMAGE_SHARE` of the session's squares or more
-    (a glare spot, a misplaced corner). None for each not read."""
+    neighbours' correlation and pairs (:func:`neighbour_correlation`) when read; else
+    ``misfit``: (frame, rms over the noise, p) of the image independent errors explain least,
+    its weighted squares over ``s^2`` against a chi-square on its pixel rows, when read. None
+    for each not read."""
     rho, pairs = neighbour_correlation(out)
     if pairs > 0 and rho >= CORRELATED_NEIGHBOURS + 2.0 / np.sqrt(pairs):
         return (rho, pairs), None
@@ -432,11 +409,10 @@ def images_err_together(
 def cluster_excess(
     out: RefineOutput, project: tuple[np.ndarray, np.ndarray], clusters: np.ndarray
 ) -> np.ndarray | None:
-    """M6 of docs/ERROR_MODEL.md: what the reported quantities' covariance (k, k; symmetric, not
-    PSD) gains when the detections' errors go together within each cluster (``clusters`` (F,):
-    each frame's label, the frame itself or its orientation group). None without a covariance,
-    with fewer than :data:`MIN_CLUSTER_FRAMES` clusters, or when the reported quantities use a
-    frame's own columns."""
+    """M6 (k, k; symmetric, not PSD) over ``clusters`` (F,): each frame's label, the frame
+    itself or its orientation group. None without a covariance, with fewer than
+    :data:`MIN_CLUSTER_FRAMES` clusters, or when the reported quantities use a frame's own
+    columns."""
     m = out.model
     if out.covariance_blocks is None or m.row_weights is None or not out.sigma_px > 0:
         return None
@@ -477,10 +453,9 @@ def neighbour_correlation(out: RefineOutput) -> tuple[float, int]:
     """How much neighbouring corners' residuals go together, and over how many pairs: over
     every image's pairs at the target's smallest spacing, the mean product of their weighted
     residuals along the pair's line and across it, each over one coordinate's mean square; the
-    larger, and the pairs; (0, 0) without one. About 0 (slightly negative: the fit's share) for
-    independent errors, with a sampling spread of one over the root of the pairs; an edge's
-    error (print, blur, light) moves a line's corners together across it. Images with fewer
-    than :data:`NEIGHBOUR_MIN_CORNERS` corners are left out."""
+    larger, and the pairs; (0, 0) without one. About 0 for independent errors, with a sampling
+    spread of one over the root of the pairs. Images with fewer than
+    :data:`NEIGHBOUR_MIN_CORNERS` corners are left out."""
     m = out.model
     pts = m.problem.target.points_m
     if len(pts) < 2:
