@@ -354,22 +354,17 @@ def grouped_detection_errors(
     if np.count_nonzero(sizes >= 2) < MIN_CLUSTER_GROUPS:
         return None
     e, ok = corner_residuals(out)
-    sums: dict[tuple[int, str, int], np.ndarray] = {}
-    counts: dict[tuple[int, str, int], int] = {}
-    for ch in m.chunks:
-        first = ch.rows.start // 2
-        g = int(groups[ch.frame_index])
-        for j, cid in enumerate(ch.corner_ids):
-            if ok[first + j]:
-                key = (g, ch.camera, int(cid))
-                sums[key] = sums.get(key, 0.0) + e[first + j]
-                counts[key] = counts.get(key, 0) + 1
+    ids = np.concatenate([ch.corner_ids for ch in m.chunks])
+    key = np.stack([groups[m.o_frame], m.o_cam, ids], axis=1)[ok]
+    _, at, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    sums = np.zeros((len(counts), 2))
+    np.add.at(sums, at.ravel(), e[ok])
     v = float(np.mean(e[ok] ** 2)) if ok.any() else 0.0
-    kept = [k for k, c in counts.items() if c >= 2]
-    if not kept or not v > 0.0:
+    kept = counts >= 2
+    if not kept.any() or not v > 0.0:
         return None
-    stat = sum(float(sums[k] @ sums[k]) / counts[k] for k in kept) / v
-    dof = 2 * len(kept)
+    stat = float(np.sum(np.sum(sums[kept] ** 2, axis=1) / counts[kept])) / v
+    dof = 2 * int(kept.sum())
     p = float(chi2_tail(dof, stat))
     return (stat, dof, p) if p < GROUPED_ERRORS_P else None
 
