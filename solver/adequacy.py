@@ -383,18 +383,23 @@ def _rpy(R: np.ndarray) -> tuple[float, float, float]:
     return float(np.arctan2(R[2, 1], R[2, 2])), pitch, float(np.arctan2(R[1, 0], R[0, 0]))
 
 
-def _rotation_read_as(kind: str, R: np.ndarray) -> np.ndarray:
-    """The rotation a record meant when slidecal read it as ``R`` under the mistake ``kind``."""
+def _read_as(kind: str, T: np.ndarray) -> np.ndarray:
+    """The pose a record meant when slidecal read it as ``T`` under the mistake ``kind``."""
+    R = T[:3, :3]
+    if kind == "inverted":
+        return inv_T(T)
     if kind == "transposed":
-        return R.T
-    if kind == "quaternion scalar last":  # [x, y, z, w] read as [w, x, y, z]
+        R = R.T
+    elif kind == "quaternion scalar last":  # [x, y, z, w] read as [w, x, y, z]
         w, x, y, z = quat_wxyz_from_R(R)
-        return R_from_quat_wxyz(np.array([z, w, x, y]))
-    roll, pitch, yaw = _rpy(R)
-    if kind == "angles reversed":  # [yaw, pitch, roll] (KUKA's A, B, C) read as [roll, ...]
-        return Rz(roll) @ Ry(pitch) @ Rx(yaw)
-    assert kind == "rotations composed the other way"  # R = Rx(roll) Ry(pitch) Rz(yaw)
-    return Rx(roll) @ Ry(pitch) @ Rz(yaw)
+        R = R_from_quat_wxyz(np.array([z, w, x, y]))
+    elif kind == "angles reversed":  # [yaw, pitch, roll] (KUKA's A, B, C) read as [roll, ...]
+        roll, pitch, yaw = _rpy(R)
+        R = Rz(roll) @ Ry(pitch) @ Rx(yaw)
+    else:  # "rotations composed the other way": R = Rx(roll) Ry(pitch) Rz(yaw)
+        roll, pitch, yaw = _rpy(R)
+        R = Rx(roll) @ Ry(pitch) @ Rz(yaw)
+    return T_from_Rt(R, T[:3, 3])
 
 
 #: The readings tried, each with what it means and its fix (``{other}``: the other mount).
@@ -480,13 +485,7 @@ def _convention(
         return None
     fits = []
     for kind, meaning, fix in CONVENTIONS:
-        if kind == "inverted":
-            T_alt = np.stack([inv_T(T) for T in T_tool])
-        else:
-            T_alt = np.stack(
-                [T_from_Rt(_rotation_read_as(kind, T[:3, :3]), T[:3, 3]) for T in T_tool]
-            )
-        rot, t_mm = fixed_spread(T_alt, T_cam, eye_in_hand)
+        rot, t_mm = fixed_spread(np.stack([_read_as(kind, T) for T in T_tool]), T_cam, eye_in_hand)
         if rot <= rot_lim and t_mm <= t_lim:
             fits.append((rot / rot_lim + t_mm / t_lim, rot, t_mm, meaning, fix))
     if not fits:
