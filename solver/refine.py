@@ -162,16 +162,10 @@ def refine(
     robust: bool = True,
     record_check: Callable[[CalibrationProblem], str | None] | None = None,
 ) -> RefineOutput:
-    """Minimise the reprojection error over all detections (docs/METHOD.md Sec. 5).
-
-    Outliers: detections beyond both ``options.outlier_threshold_px`` and 5 times their
-    camera's noise get zero weight and the solve is repeated; they are returned in
-    ``outliers``. Each camera's noise is estimated from its residuals and its rows weighed by it,
-    to a fixed point with the pose-prior scale; ``sigma_px`` is the reference camera's noise.
-
-    Robot sessions with ``options.estimate_robot_noise`` (the default) learn the arm's
-    accuracy as docs/ERROR_MODEL.md Sec. 2 says; the exact-pose solve stands (``robot_sigma``
-    (0, 0)) where its F test finds that the poses explain the images.
+    """Minimise the reprojection error over all detections (docs/METHOD.md Sec. 5), outliers
+    and each camera's noise as docs/ERROR_MODEL.md Sec. 2 says; robot sessions with
+    ``options.estimate_robot_noise`` (the default) learn the arm's accuracy there too.
+    ``sigma_px`` is the reference camera's noise.
 
     ``record_check``: what is wrong with the robot's records, told from the images alone
     (:func:`slidecal.solver.adequacy.record_check`), asked only when the exact-pose solve puts
@@ -232,12 +226,10 @@ def arm_structure(
     levels: Mapping[str, tuple[float, float]],
     session_trend: bool,
 ) -> tuple[Structure, float]:
-    """``structure`` with the error model's arm on the measured poses ``T_meas`` (F, 4, 4): a
-    correction per pose, one per orientation group, a trend along each group's moves (with
-    ``session_trend``, one over a classic eye-in-hand session whose groups have none) and the
-    field the trends share (:func:`common_trend`), at ``levels``: each source's share of a
-    frame's error (rad, m) by the names of ``ARM_SOURCES``. Returns it and the trend frames'
-    rms offset (metres, over every frame)."""
+    """``structure`` with the error model's arm (S3-S5) on the measured poses ``T_meas`` (F, 4,
+    4) at ``levels``: each source's share of a frame's error (rad, m) by the names of
+    ``ARM_SOURCES``; ``session_trend``: a classic eye-in-hand session may take one trend. Returns
+    it and the trend frames' rms offset (metres, over every frame)."""
     pose_groups = orientation_groups(T_meas)
     trend_groups, coords, dims = translation_trends(T_meas, pose_groups)
     if not dims and session_trend and structure.eye_in_hand:
@@ -273,12 +265,8 @@ def translation_trends(
     T_base_tool: np.ndarray, groups: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, tuple[int, ...]]:
     """The frames' coordinates for a linear trend of the pose correction along the moves of
-    each orientation group (``Structure.trend_*``).
-
-    A group takes part with three or more frames spread along a line or a plane: the offsets
-    ``d_k = t_k - mean(t)`` of its measured positions (metres) in an orthonormal basis of the
-    directions they span (rms spread above ``TREND_MIN_SPREAD_M`` and a tenth of the widest;
-    at most ``frames - 2`` of them, so the trend stays apart from the frames' own corrections).
+    each orientation group (``Structure.trend_*``): the offsets ``d_k = t_k - mean(t)`` of a
+    group's measured positions (metres) in an orthonormal basis of the directions they span.
     Returns the trend group per frame (-1: none), the coordinates (F, 3), zero-padded, and
     the number of directions per trend group.
     """
@@ -306,11 +294,8 @@ def common_trend(
     """The smooth error every trend group shares (``Structure.common_*``): its map (F, 6, n)
     from its n coordinates to each frame's correction, which of them are rotations (n,), and
     what a level of each kind (rotation, translation) is in a frame's correction (metres: the
-    coordinates' rms over the frames); ``(None, None, (0, 0))`` with fewer than two trend groups.
-    The rotation: one linear trend over the frames' offsets from their own group's mean; the
-    translation: a quadratic field of the positions without its linear part (S5, S5' of
-    docs/ERROR_MODEL.md); each with :data:`COMMON_FIELD_FRAMES_PER_COORD` trend frames or more
-    per coordinate.
+    coordinates' rms over the frames); ``(None, None, (0, 0))`` with fewer than two trend groups
+    (S5 of docs/ERROR_MODEL.md).
     """
     none = (None, None, (0.0, 0.0))
     if len(trend_dims) < 2:
@@ -354,8 +339,7 @@ def common_trend(
 
 def _shared_groups(pose_groups: np.ndarray) -> bool:
     """Whether a shared correction per orientation group adds anything: two or more groups,
-    each of two or more frames (a group of one frame would duplicate that frame's own
-    correction, as in a classic hand-eye session where every orientation differs)."""
+    each of two or more frames (one frame's would be its own correction again)."""
     counts = np.bincount(pose_groups)
     return len(counts) > 1 and int(counts.min()) >= 2
 
