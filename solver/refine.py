@@ -469,33 +469,6 @@ class _Solve:
                 diag[key] = np.diagonal(Ni.gg)[model.slices[key]]
         return {k: np.clip(model.prior_scale(k) ** 2 * d, 0.0, 1.0) for k, d in diag.items()}
 
-    def _pose_levels(self, E: np.ndarray, h: np.ndarray) -> list[float]:
-        """Foerstner's step for the frames' own two levels (rotation, translation)."""
-        model = self.model
-        is_rot = model.rotation_rows("E")
-        new_pose, reds = [], []
-        for comp, floor, old in zip((is_rot, ~is_rot), SIGMA_FLOOR, model.pose_sigma, strict=True):
-            red = float(np.sum(1.0 - h[comp]))
-            reds.append(red)
-            v = np.sqrt(np.sum(E[comp] ** 2) / red) if red > 1e-12 else floor
-            if self.vce_step < 2 and red > 0.2 * comp.sum():
-                # the first steps jump to the moment estimate mean(e^2 / (1 - h)^2 - c) of the
-                # corrections' pixel-only estimates e / (1 - h), noise variance c = s h / (1 - h):
-                # Foerstner's iteration alone converges slowly from above when the pixels pin
-                # each pose about as well as the arm's accuracy does
-                one = 1.0 - h[comp]
-                pinned = one > 1e-9  # a correction the prior alone holds has no pixel estimate
-                e, one, hc = E[comp][pinned], one[pinned], h[comp][pinned]
-                m = float(np.mean(e**2 / one**2 - old**2 * hc / one)) if len(e) else 0.0
-                if m > floor**2:
-                    v = min(v, np.sqrt(m))
-            v = max(float(v), floor)
-            if self.vce_step >= 2:
-                v = max(self.accelerate(f"E{comp[0]}", old, v, floor), floor)
-            new_pose.append(v)
-        model.level_redundancy["E"] = (reds[0], reds[1])
-        return new_pose
-
     def variance_components(self, nb: NormalBlocks, Ni: BlockInverse, delta: np.ndarray) -> bool:
         """One Foerstner step at the state ``delta`` (P,) from ``state``, to first order
         (``nb``: the normal equations at ``state``, ``Ni`` their inverse): every camera's noise
@@ -519,9 +492,8 @@ class _Solve:
             sig.append(np.sqrt(np.sum(r[m] ** 2) / max(m.sum() - used, 1.0)))
         sig = np.array(sig)
         ref_i = model.cams.index(model.ref)
-        new_pose = self._pose_levels(moved.E.reshape(-1), hats["E"])
+        new_pose, changed = self.levels_step("E", moved.E.reshape(-1), hats["E"])
         self.vce_step += 1
-        changed = False
         ok = np.isfinite(sig) & (sig > 0)
         if ok[ref_i]:
             if abs(sig[ref_i] / model.sigma_px - 1.0) > 0.02:
@@ -534,14 +506,11 @@ class _Solve:
                 if np.max(np.abs(new_w / self.cam_w - 1.0)) > 0.02:
                     changed = True
                 self.cam_w = new_w
-        for new, old, floor in zip(new_pose, model.pose_sigma, SIGMA_FLOOR, strict=True):
-            if abs(new / old - 1.0) > 0.03 and max(new, old) > 2 * floor:
-                changed = True
-        model.pose_sigma = (new_pose[0], new_pose[1])
+        model.pose_sigma = new_pose
         for key in ("U", "V", "W"):  # the groups', the trends' and the field's own two levels
             if key in hats:
                 values = getattr(moved, key).reshape(-1)
-                level, shifted = self.shared_levels(key, values, hats[key])
+                level, shifted = self.levels_step(key, values, hats[key])
                 setattr(model, LEVELS[key], level)
                 changed |= shifted
         if any(v > lim for v, lim in zip(new_pose, SIGMA_BEYOND, strict=True)):
@@ -559,14 +528,15 @@ class _Solve:
             self.camera_blocks[ci] = hit
         return float(self.cam_w[np.flatnonzero(m)[0]]) * Ni.trace_with(hit[2])
 
-    def shared_levels(
+    def levels_step(
         self, key: str, values: np.ndarray, h_s: np.ndarray
     ) -> tuple[tuple[float, float], bool]:
         """Foerstner's step for the two levels (rotation, translation) of the corrections ``key``
-        shared by several frames (``values``, the hat matrix's diagonal ``h_s`` over their prior
-        rows); the new levels and whether one that matters moved by more than 3 %. A share of a
-        frame's correction (``BundleModel.level_share``) below a tenth of the frames' own level
-        adds under 1 % to their variance, and its creeping keeps no iteration going."""
+        (``values``, the hat matrix's diagonal ``h_s`` over their prior rows; the shared ones
+        after the frames' own ``E``); the new levels and whether one that matters moved by more
+        than 3 %. A share of a frame's correction (``BundleModel.level_share``) below a tenth of
+        the frames' own level adds under 1 % to their variance, and its creeping keeps no
+        iteration going."""
         model = self.model
         new, moved, reds, data = [], False, [], []
         rot, per_frame = model.rotation_rows(key), model.level_share(key)
@@ -578,12 +548,24 @@ class _Solve:
             if not comp.any():
                 new.append(old)
                 continue
-            v = np.sqrt(np.sum(values[comp] ** 2) / red) if red > 1e-6 else floor
-            if key == "U":  # the groups' level, under its prior at the frames' own
+            tiny = 1e-12 if key == "E" else 1e-6  # below it the prior alone holds them
+            v = np.sqrt(np.sum(values[comp] ** 2) / red) if red > tiny else floor
+            if key == "E" and self.vce_step < 2 and red > 0.2 * comp.sum():
+                # the first steps jump to the moment estimate mean(e^2 / (1 - h)^2 - c) of the
+                # corrections' pixel-only estimates e / (1 - h), noise variance c = s h / (1 - h):
+                # Foerstner's iteration alone converges slowly from above when the pixels pin
+                # each pose about as well as the arm's accuracy does
+                one = 1.0 - h_s[comp]
+                pinned = one > 1e-9  # a correction the prior alone holds has no pixel estimate
+                e, one, hc = values[comp][pinned], one[pinned], h_s[comp][pinned]
+                m = float(np.mean(e**2 / one**2 - old**2 * hc / one)) if len(e) else 0.0
+                if m > floor**2:
+                    v = min(v, np.sqrt(m))
+            elif key == "U":  # the groups' level, under its prior at the frames' own
                 nu = GROUP_LEVEL_PRIOR_DOF
                 data.append(float(v) if red > 1e-6 else 0.0)
                 v = np.sqrt((np.sum(values[comp] ** 2) + nu * own**2) / (red + nu))
-            elif self.vce_step > 2 and v < old and red < 0.25 * comp.sum():
+            elif key != "E" and self.vce_step > 2 and v < old and red < 0.25 * comp.sum():
                 # falling while the prior holds three quarters of it: the images do not
                 # support a level of its own; the frames' own corrections carry this part
                 v = old if key == "W" else floor
@@ -591,7 +573,7 @@ class _Solve:
             if key == "V" and translation and model.st.trend_scale_fixed:
                 v = floor  # the translation trend of one orientation (Structure)
             v = max(float(v), floor)
-            if self.vce_step > 2:
+            if self.vce_step > (1 if key == "E" else 2):
                 v = max(self.accelerate(f"{key}{comp[0]}", old, v, floor), floor)
             share = per_frame if np.isscalar(per_frame) else per_frame[len(new)]
             big = max(v, old) > max(2 * floor, 0.1 * own / max(share, 1e-12))
