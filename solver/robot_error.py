@@ -8,7 +8,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from slidecal.solver.model import BundleModel
+from slidecal.solver.model import LEVELS, BundleModel
 from slidecal.solver.numeric import chi2_tail
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.refine import SIGMA_FLOOR, RefineOutput
@@ -49,18 +49,19 @@ def covariance_terms(
     the frames' orientation groups. A term comparing two readings adds its positive part."""
     frames = np.arange(len(problem.frames))
     by_frame = images.correlated is not None or images.misfit is not None
-    parts = (
-        (smooth_field_excess(out, project), False),  # the arm's smooth error no image places
-        (session_field_excess(out, project), False),  # a classic session's two readings
-        (level_excess(out, project), False),  # the arm's levels are estimates
-        (tool_offset_excess(problem, out, project), False),  # an unobserved hand-eye offset
-        (shape_excess(out, project), False),  # the real board is not quite the one described
-        # the detections' errors go together within an image, or within an orientation group
-        (cluster_excess(out, project, frames) if by_frame else None, True),
-        (cluster_excess(out, project, groups) if images.grouped else None, True),
+    terms = (
+        smooth_field_excess(out, project),  # the arm's smooth error no image places
+        session_field_excess(out, project),  # a classic session's two readings
+        level_excess(out, project),  # the arm's levels are estimates
+        tool_offset_excess(problem, out, project),  # an unobserved hand-eye offset
+        shape_excess(out, project),  # the real board is not quite the one described
     )
-    return [
-        _positive_part(x) if cover else 0.5 * (x + x.T) for x, cover in parts if x is not None
+    clusters = (  # the detections' errors go together within an image, or an orientation group
+        cluster_excess(out, project, frames) if by_frame else None,
+        cluster_excess(out, project, groups) if images.grouped else None,
+    )
+    return [0.5 * (x + x.T) for x in terms if x is not None] + [
+        _positive_part(x) for x in clusters if x is not None
     ]
 
 
@@ -137,9 +138,8 @@ def tool_offset_gain(
     ext = BundleModel(
         problem, replace(st, **{"X_t_basis" if st.eye_in_hand else "Y_t_basis": whole})
     )
-    ext.sigma_px, ext.pose_sigma = m.sigma_px, m.pose_sigma
-    ext.group_sigma, ext.trend_sigma = m.group_sigma, m.trend_sigma
-    ext.common_sigma = m.common_sigma
+    for name in ("sigma_px", *LEVELS.values()):  # the solve's noise and levels
+        setattr(ext, name, getattr(m, name))
     nb = ext.normal_blocks(out.state, weights, keep=False)
     at = {n: i for i, n in enumerate(ext.names)}
     known = set(m.names)
@@ -169,14 +169,6 @@ def _positive_part(extra: np.ndarray) -> np.ndarray:
     w, V = np.linalg.eigh(0.5 * (extra + extra.T))
     cover = (V * np.clip(w, 0.0, None)) @ V.T
     return 0.5 * (cover + cover.T)
-
-
-def _sandwich(A: np.ndarray, basis: np.ndarray, level: float, prior: float) -> np.ndarray:
-    """``A (level^2 basis basis' - prior I) A'``: the response ``A`` (k, n) to n corrections'
-    prior means, their true covariance a field along ``basis`` (n, d) against the prior's."""
-    B = A @ basis
-    field = level**2 * (B @ B.T)
-    return field - prior * (A @ A.T) if prior else field
 
 
 def _untold_trends(m: BundleModel) -> tuple[np.ndarray, list[bool]]:
@@ -224,9 +216,10 @@ def smooth_field_excess(
             rms = np.sqrt(np.mean(np.sum(c**2, axis=1)))
             level = (sig[0], max(sig[1], MOVE_SCALE_SIGMA * rms) if fixed else sig[1])
             for a in range(6):
-                if carried[a // 3]:
-                    i = a // 3
-                    part = _sandwich(A[:, 6 * k + a], c / rms, level[i], sig[i] ** 2)
+                if carried[a // 3]:  # A (S - L) A' of the corrections along axis a, S a trend
+                    i, Ak = a // 3, A[:, 6 * k + a]
+                    B = Ak @ (c / rms)
+                    part = level[i] ** 2 * (B @ B.T) - sig[i] ** 2 * (Ak @ Ak.T)
                     excess = part if excess is None else excess + part
         if excess is not None:
             parts.append(excess)
