@@ -91,18 +91,13 @@ def level_excess(
     if out.covariance_blocks is None or not red or m.pose_sigma is None:
         return None
     sig = np.asarray(m.pose_sigma, float)
-    blocks = [  # (key, levels, per-frame share of a level, rotation rows)
-        (key, np.asarray(m.levels(key), float), m.level_share(key), m.rotation_rows(key))
-        for key in ("E", "U", "V", "W")
-        if key in m.slices and key in red
-    ]
     k = len(out.names) if project is None else len(project[0])
     excess = np.zeros((k, k))
-    for key, levels, per_frame, rot in blocks:
-        sl = m.slices[key]
+    for key in (key for key in LEVELS if key in m.slices and key in red):
+        sl, rot, per_frame = m.slices[key], m.rotation_rows(key), m.level_share(key)
         C = _columns(out, project, np.arange(sl.start, sl.stop))
         for i, rows in enumerate((rot, ~rot)):
-            nu, level = float(red[key][i]), float(levels[i])
+            nu, level = float(red[key][i]), float(m.levels(key)[i])
             if nu < MIN_LEVEL_DOF or not rows.any() or level <= 2.0 * SIGMA_FLOOR[i]:
                 continue
             share = per_frame if np.isscalar(per_frame) else per_frame[i]
