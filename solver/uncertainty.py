@@ -277,8 +277,8 @@ def reported_covariance(
     images = image_errors(problem, out, groups)
     names, named = result_covariance(problem, out, images, groups)
     state = out.state
-    if board is not None:  # between the readings of the board's misfit (target_shape.py)
-        state = out.model.apply(state, board.shift)
+    if board is not None:  # between the readings of the board's misfit: G w bow (M5)
+        state = out.model.apply(state, READING_WEIGHT * (board.response[:, 3:] @ board.bow_m))
     field_step = session_field_step(out)  # a classic session: with its arm's field or not
     if field_step is not None:
         state = out.model.apply(state, READING_WEIGHT * field_step)
