@@ -26,7 +26,7 @@ from slidecal.solver.geometry import (
     quat_wxyz_from_R,
     rotation_angle_deg,
 )
-from slidecal.solver.model import ModelState, orientation_groups
+from slidecal.solver.model import ModelState
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.refine import RefineOutput
 from slidecal.solver.result import ModelAdequacy, RobotAccuracy
@@ -160,12 +160,12 @@ def assess(
     problem: CalibrationProblem,
     out: RefineOutput,
     fit: FreePoseFit,
-    groups: np.ndarray | None = None,
+    groups: np.ndarray,
 ) -> tuple[ModelAdequacy, RobotAccuracy | None]:
     """The model-adequacy test and the robot's accuracy of a refinement (see the module doc).
 
     ``fit``: :func:`final_free_pose_fit` of ``out``, ``groups``: the frames' orientation groups
-    (robot sessions), when the caller already has them."""
+    (robot sessions)."""
     m = out.model
     reasons: list[str] = []
     frame_ids = [f.id for f in problem.frames]
@@ -533,7 +533,7 @@ def _move_scale(
     fit: FreePoseFit,
     ref: str,
     R_static_base: np.ndarray,
-    groups: np.ndarray | None = None,
+    groups: np.ndarray,
 ) -> float | None:
     """Median over the session's moves (:func:`scale_moves`, of at least 5 mm) of
     (camera-seen length / robot length) - 1; None without such moves. The camera's own view
@@ -602,17 +602,16 @@ def scale_moves(
     problem: CalibrationProblem,
     poses: dict[int, np.ndarray],
     R_static_base: np.ndarray,
-    groups: np.ndarray | None,
+    groups: np.ndarray,
     min_move_m: float,
 ) -> list[tuple[int, int, float, float]]:
     """The moves whose length both the camera and the robot tell, ``(frame index a, b, robot
     length, camera length)`` in metres, of at least ``min_move_m`` for the robot; ``poses``:
     frame index -> ``T_cam_board`` from the images alone; ``groups``: the frames'
-    ``orientation_groups`` (computed when None). Consecutive frames of an orientation group;
+    ``orientation_groups``. Consecutive frames of an orientation group;
     a classic session (one frame per orientation) uses the point :func:`classic_scale_fit`
     places on the tool, when the fit pins the ratio (:data:`MAX_CLASSIC_SCALE_SE`)."""
     T = np.stack([f.T_base_tool for f in problem.frames])
-    groups = orientation_groups(T) if groups is None else groups
     q = np.zeros(3)
     chains = [[i for i in np.flatnonzero(groups == g) if i in poses] for g in np.unique(groups)]
     if classic(groups, poses):
@@ -638,7 +637,7 @@ def unchecked_scale_note(
     problem: CalibrationProblem,
     poses: dict[int, np.ndarray],
     R_static_base: np.ndarray,
-    groups: np.ndarray | None,
+    groups: np.ndarray,
 ) -> tuple[str, ...]:
     """The line saying that a classic session's geometry leaves its camera/robot scale
     unchecked (:func:`scale_moves` gives it no move), with the frames' distances from the
@@ -646,8 +645,6 @@ def unchecked_scale_note(
     -> ``T_cam_board`` from the images alone."""
     if len(poses) < 4:
         return ()
-    if groups is None:
-        groups = orientation_groups(np.stack([f.T_base_tool for f in problem.frames]))
     if not classic(groups, poses):  # moves at one orientation: checked
         return ()
     fit = classic_scale_fit(problem, poses, R_static_base)
@@ -709,14 +706,14 @@ class PoseOutlier:
 
 
 def pose_outlier(
-    problem: CalibrationProblem, out: RefineOutput, groups: np.ndarray | None = None
+    problem: CalibrationProblem, out: RefineOutput, groups: np.ndarray
 ) -> PoseOutlier | None:
     """The frame whose robot pose correction is largest against the typical frame's, when it is
     beyond ``POSE_OUTLIER_RATIO`` (rotation and translation tested apart) and its correction
     less the median of its neighbours' is too, in space and in time
     (:func:`_pose_neighbours`); None without pose corrections, with fewer than
     ``POSE_OUTLIER_MIN_FRAMES`` frames or when every frame is within the ratio. ``groups``: the
-    frames' orientation groups, when the caller has them."""
+    frames' orientation groups."""
     if problem.knowledge != "robot" or "E" not in out.model.slices:
         return None
     E = out.model.pose_corrections(out.state)
@@ -736,8 +733,6 @@ def pose_outlier(
     for k in np.argsort(-ratios):
         if ratios[k] <= POSE_OUTLIER_RATIO:
             return None
-        if groups is None:
-            groups = orientation_groups(T)
         local = [E[k] - np.median(E[nb], axis=0) for nb in _pose_neighbours(T, groups, int(k))]
         if min(float(ratio(d[None])[0]) for d in local) > POSE_OUTLIER_RATIO:
             break
