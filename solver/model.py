@@ -195,12 +195,11 @@ class BlockInverse:
 
     def scaled(self, factor: float) -> BlockInverse:
         """The same blocks times ``factor`` (a covariance ``s^2 (J' W J)^-1``)."""
-        return BlockInverse(
+        return replace(
+            self,
             EE=factor * self.EE,
             frame_inv=factor * self.frame_inv,
-            coupling=self.coupling,
             reduced_inv=factor * self.reduced_inv,
-            global_scale=self.global_scale,
         )
 
     def submatrix(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
