@@ -210,8 +210,13 @@ def assess(
             "detections"
         )
     robot = robot_accuracy(problem, out)
-    k = _move_scale(problem, fit, m.ref, static_rotation(out.state, problem.mount), groups)
-    if k is not None and abs(k) > MAX_SCALE_ERROR:
+    moves = []  # of 5 mm or more, as the reference camera's free poses and the robot see them
+    if problem.knowledge == "robot":
+        poses = {i: T for (i, cam), T in fit.T_cam_board.items() if cam == m.ref}
+        R_static = static_rotation(out.state, problem.mount)
+        moves = scale_moves(problem, poses, R_static, groups, 0.005)
+    k = float(np.median([c / r for _, _, r, c in moves])) - 1.0 if moves else 0.0
+    if abs(k) > MAX_SCALE_ERROR:
         reasons.append(
             f"the camera sees the robot's moves {100 * k:+.1f} % longer than the robot reports "
             f"(limit {100 * MAX_SCALE_ERROR:.0f} %): check the target's square_size_m and that "
@@ -526,24 +531,6 @@ def bad_images_note(adequacy: ModelAdequacy | None) -> tuple[str, ...]:
         f"{100 * MAX_BAD_IMAGE_SHARE:.0f} % of the session's squares, the result does not lean "
         "on them",
     )
-
-
-def _move_scale(
-    problem: CalibrationProblem,
-    fit: FreePoseFit,
-    ref: str,
-    R_static_base: np.ndarray,
-    groups: np.ndarray,
-) -> float | None:
-    """Median over the session's moves (:func:`scale_moves`, of at least 5 mm) of
-    (camera-seen length / robot length) - 1; None without such moves. The camera's own view
-    comes from the free board poses of the reference camera. ``R_static_base``, ``groups``: as
-    :func:`scale_moves` takes them."""
-    if problem.knowledge != "robot":
-        return None
-    poses = {i: T for (i, cam), T in fit.T_cam_board.items() if cam == ref}
-    moves = scale_moves(problem, poses, R_static_base, groups, 0.005)
-    return float(np.median([c / r for _, _, r, c in moves])) - 1.0 if moves else None
 
 
 #: A classic session's scale is checked only where its geometry pins it to this relative se.
