@@ -449,26 +449,6 @@ class _Solve:
         dof = max(int(np.sum(w[: self.n_px] > 0)) + self.n_prior - self.P, 1)
         return float(np.sqrt(np.sum(w * r * r) / dof))
 
-    def camera_sigmas(self, r: np.ndarray) -> np.ndarray:
-        """Each camera's own noise estimate (its share of the dof taken by the parameters)."""
-        out = []
-        for rows in self.cam_rows:
-            m = rows & self.inlier
-            n = int(m.sum())
-            dof = max(n - self.P * n / self.n_obs_rows, 1.0)
-            out.append(np.sqrt(np.sum(r[m] ** 2) / dof) if n else np.nan)
-        return np.array(out)
-
-    def _prior_hats(self, Ni: BlockInverse) -> dict[str, np.ndarray]:
-        """The hat matrix's diagonal over the prior rows of each block of corrections (E, U, V,
-        W) the model has."""
-        model = self.model
-        diag = {"E": np.diagonal(Ni.EE, axis1=1, axis2=2).reshape(-1)}
-        for key in ("U", "V", "W"):
-            if key in model.slices:
-                diag[key] = np.diagonal(Ni.gg)[model.slices[key]]
-        return {k: np.clip(model.prior_scale(k) ** 2 * d, 0.0, 1.0) for k, d in diag.items()}
-
     def variance_components(self, nb: NormalBlocks, Ni: BlockInverse, delta: np.ndarray) -> bool:
         """One Foerstner step at the state ``delta`` (P,) from ``state``, to first order
         (``nb``: the normal equations at ``state``, ``Ni`` their inverse): every camera's noise
@@ -478,7 +458,12 @@ class _Solve:
         r = nb.r.copy()
         r[:n_px] += model.pixel_step(state, delta)
         moved = model.apply(state, delta)  # E, U and V at the step (linear in delta)
-        hats = self._prior_hats(Ni)
+        # the hat matrix's diagonal over the prior rows of each block of corrections
+        diag = {"E": np.diagonal(Ni.EE, axis1=1, axis2=2).reshape(-1)}
+        for key in ("U", "V", "W"):
+            if key in model.slices:
+                diag[key] = np.diagonal(Ni.gg)[model.slices[key]]
+        hats = {k: np.clip(model.prior_scale(k) ** 2 * d, 0.0, 1.0) for k, d in diag.items()}
         sig = []
         for ci, rows in enumerate(self.cam_rows):
             m = rows & inlier
@@ -629,7 +614,13 @@ class _Solve:
         fixed point; True when one moved."""
         model, changed = self.model, False
         if len(model.cams) > 1:  # per-camera noise: reweigh to a fixed point
-            sig = self.camera_sigmas(r)
+            sig = []  # each camera's own noise (its share of the dof the parameters take)
+            for rows in self.cam_rows:
+                m = rows & self.inlier
+                n = int(m.sum())
+                dof = max(n - self.P * n / self.n_obs_rows, 1.0)
+                sig.append(np.sqrt(np.sum(r[m] ** 2) / dof) if n else np.nan)
+            sig = np.array(sig)
             ref_i = model.cams.index(model.ref)
             ok = np.isfinite(sig) & (sig > 0)
             if ok[ref_i] and np.all(ok):
