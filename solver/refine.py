@@ -442,7 +442,7 @@ class _Solve:
         self.n_obs_rows = max(n_px, 1)
         self.camera_blocks: dict[int, tuple] = {}
         self.vce_step = 0
-        self.vce_note: list[str] = []
+        self.creeping = False  # the levels still moved after MAX_VCE_STEPS (a note says so)
         self.last_step: dict[str, float] = {}
 
     def noise(self, r: np.ndarray, w: np.ndarray) -> float:
@@ -602,13 +602,6 @@ class _Solve:
             moved = True
         return moved
 
-    def _creep_note(self) -> None:
-        if not self.vce_note:
-            self.vce_note.append(
-                f"the noise levels were still moving after {self.vce_step} updates; the last "
-                "ones were kept"
-            )
-
     def _reweigh(self, r: np.ndarray) -> bool:
         """Exact-pose solves: each camera's weight and the prior rows' pixel noise to their
         fixed point; True when one moved."""
@@ -678,7 +671,7 @@ class _Solve:
                     changed = self.settle_levels()
                 else:  # still creeping: the last levels are kept and the parameters converged
                     # under them, so the estimate is the minimum of a definite model
-                    self._creep_note()
+                    self.creeping = True
                 if not changed and steps < max_iter:
                     steps, changed = max_iter, True  # converge fully at the final levels
             else:
@@ -693,7 +686,7 @@ class _Solve:
                     model, self.state, self.inlier * self.cam_w, max_iter
                 )
                 self.total_it += it
-                self._creep_note()
+                self.creeping = True
 
     def output(self) -> RefineOutput:
         """The solve's covariance, outliers and messages at the state reached."""
@@ -705,7 +698,12 @@ class _Solve:
         inlier_rows = self.inlier.copy()
         n_in = int(inlier_rows[:n_px].sum())
         dof = n_in + self.n_prior - P
-        messages: list[str] = list(self.vce_note)
+        messages: list[str] = []
+        if self.creeping:
+            messages.append(
+                f"the noise levels were still moving after {self.vce_step} updates; the last "
+                "ones were kept"
+            )
         sigma_px = self.noise(r, weights)
         cov = None
         if dof <= 0:
