@@ -526,7 +526,7 @@ class _Solve:
         new, moved, reds, data = [], False, [], []
         rot, per_frame = model.rotation_rows(key), model.level_share(key)
         for comp, floor, old, own in zip(
-            (rot, ~rot), SIGMA_FLOOR, model.levels(key), model.pose_sigma, strict=True
+            (rot, ~rot), SIGMA_FLOOR, getattr(model, LEVELS[key]), model.pose_sigma, strict=True
         ):
             red = float(np.sum(1.0 - h_s[comp]))
             reds.append(red)

@@ -97,7 +97,7 @@ def level_excess(
         sl, rot, per_frame = m.slices[key], m.rotation_rows(key), m.level_share(key)
         C = _columns(out, project, np.arange(sl.start, sl.stop))
         for i, rows in enumerate((rot, ~rot)):
-            nu, level = float(red[key][i]), float(m.levels(key)[i])
+            nu, level = float(red[key][i]), float(getattr(m, LEVELS[key])[i])
             if nu < MIN_LEVEL_DOF or not rows.any() or level <= 2.0 * SIGMA_FLOOR[i]:
                 continue
             share = per_frame if np.isscalar(per_frame) else per_frame[i]
