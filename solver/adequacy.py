@@ -26,7 +26,7 @@ from slidecal.solver.geometry import (
     quat_wxyz_from_R,
     rotation_angle_deg,
 )
-from slidecal.solver.model import ModelState, orientation_groups
+from slidecal.solver.model import ModelState
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.refine import RefineOutput
 from slidecal.solver.result import ModelAdequacy, RobotAccuracy
@@ -160,12 +160,12 @@ def assess(
     problem: CalibrationProblem,
     out: RefineOutput,
     fit: FreePoseFit,
-    groups: np.ndarray | None = None,
+    groups: np.ndarray,
 ) -> tuple[ModelAdequacy, RobotAccuracy | None]:
     """The model-adequacy test and the robot's accuracy of a refinement (see the module doc).
 
     ``fit``: :func:`final_free_pose_fit` of ``out``, ``groups``: the frames' orientation groups
-    (robot sessions), when the caller already has them."""
+    (robot sessions)."""
     m = out.model
     reasons: list[str] = []
     frame_ids = [f.id for f in problem.frames]
@@ -210,8 +210,13 @@ def assess(
             "detections"
         )
     robot = robot_accuracy(problem, out)
-    k = _move_scale(problem, fit, m.ref, static_rotation(out.state, problem.mount), groups)
-    if k is not None and abs(k) > MAX_SCALE_ERROR:
+    moves = []  # of 5 mm or more, as the reference camera's free poses and the robot see them
+    if problem.knowledge == "robot":
+        poses = {i: T for (i, cam), T in fit.T_cam_board.items() if cam == m.ref}
+        R_static = static_rotation(out.state, problem.mount)
+        moves = scale_moves(problem, poses, R_static, groups, 0.005)
+    k = float(np.median([c / r for _, _, r, c in moves])) - 1.0 if moves else 0.0
+    if abs(k) > MAX_SCALE_ERROR:
         reasons.append(
             f"the camera sees the robot's moves {100 * k:+.1f} % longer than the robot reports "
             f"(limit {100 * MAX_SCALE_ERROR:.0f} %): check the target's square_size_m and that "
@@ -383,18 +388,23 @@ def _rpy(R: np.ndarray) -> tuple[float, float, float]:
     return float(np.arctan2(R[2, 1], R[2, 2])), pitch, float(np.arctan2(R[1, 0], R[0, 0]))
 
 
-def _rotation_read_as(kind: str, R: np.ndarray) -> np.ndarray:
-    """The rotation a record meant when slidecal read it as ``R`` under the mistake ``kind``."""
+def _read_as(kind: str, T: np.ndarray) -> np.ndarray:
+    """The pose a record meant when slidecal read it as ``T`` under the mistake ``kind``."""
+    R = T[:3, :3]
+    if kind == "inverted":
+        return inv_T(T)
     if kind == "transposed":
-        return R.T
-    if kind == "quaternion scalar last":  # [x, y, z, w] read as [w, x, y, z]
+        R = R.T
+    elif kind == "quaternion scalar last":  # [x, y, z, w] read as [w, x, y, z]
         w, x, y, z = quat_wxyz_from_R(R)
-        return R_from_quat_wxyz(np.array([z, w, x, y]))
-    roll, pitch, yaw = _rpy(R)
-    if kind == "angles reversed":  # [yaw, pitch, roll] (KUKA's A, B, C) read as [roll, ...]
-        return Rz(roll) @ Ry(pitch) @ Rx(yaw)
-    assert kind == "rotations composed the other way"  # R = Rx(roll) Ry(pitch) Rz(yaw)
-    return Rx(roll) @ Ry(pitch) @ Rz(yaw)
+        R = R_from_quat_wxyz(np.array([z, w, x, y]))
+    elif kind == "angles reversed":  # [yaw, pitch, roll] (KUKA's A, B, C) read as [roll, ...]
+        roll, pitch, yaw = _rpy(R)
+        R = Rz(roll) @ Ry(pitch) @ Rx(yaw)
+    else:  # "rotations composed the other way": R = Rx(roll) Ry(pitch) Rz(yaw)
+        roll, pitch, yaw = _rpy(R)
+        R = Rx(roll) @ Ry(pitch) @ Rz(yaw)
+    return T_from_Rt(R, T[:3, 3])
 
 
 #: The readings tried, each with what it means and its fix (``{other}``: the other mount).
@@ -480,13 +490,7 @@ def _convention(
         return None
     fits = []
     for kind, meaning, fix in CONVENTIONS:
-        if kind == "inverted":
-            T_alt = np.stack([inv_T(T) for T in T_tool])
-        else:
-            T_alt = np.stack(
-                [T_from_Rt(_rotation_read_as(kind, T[:3, :3]), T[:3, 3]) for T in T_tool]
-            )
-        rot, t_mm = fixed_spread(T_alt, T_cam, eye_in_hand)
+        rot, t_mm = fixed_spread(np.stack([_read_as(kind, T) for T in T_tool]), T_cam, eye_in_hand)
         if rot <= rot_lim and t_mm <= t_lim:
             fits.append((rot / rot_lim + t_mm / t_lim, rot, t_mm, meaning, fix))
     if not fits:
@@ -527,24 +531,6 @@ def bad_images_note(adequacy: ModelAdequacy | None) -> tuple[str, ...]:
         f"{100 * MAX_BAD_IMAGE_SHARE:.0f} % of the session's squares, the result does not lean "
         "on them",
     )
-
-
-def _move_scale(
-    problem: CalibrationProblem,
-    fit: FreePoseFit,
-    ref: str,
-    R_static_base: np.ndarray,
-    groups: np.ndarray | None = None,
-) -> float | None:
-    """Median over the session's moves (:func:`scale_moves`, of at least 5 mm) of
-    (camera-seen length / robot length) - 1; None without such moves. The camera's own view
-    comes from the free board poses of the reference camera. ``R_static_base``, ``groups``: as
-    :func:`scale_moves` takes them."""
-    if problem.knowledge != "robot":
-        return None
-    poses = {i: T for (i, cam), T in fit.T_cam_board.items() if cam == ref}
-    moves = scale_moves(problem, poses, R_static_base, groups, 0.005)
-    return float(np.median([c / r for _, _, r, c in moves])) - 1.0 if moves else None
 
 
 #: A classic session's scale is checked only where its geometry pins it to this relative se.
@@ -603,17 +589,16 @@ def scale_moves(
     problem: CalibrationProblem,
     poses: dict[int, np.ndarray],
     R_static_base: np.ndarray,
-    groups: np.ndarray | None,
+    groups: np.ndarray,
     min_move_m: float,
 ) -> list[tuple[int, int, float, float]]:
     """The moves whose length both the camera and the robot tell, ``(frame index a, b, robot
     length, camera length)`` in metres, of at least ``min_move_m`` for the robot; ``poses``:
     frame index -> ``T_cam_board`` from the images alone; ``groups``: the frames'
-    ``orientation_groups`` (computed when None). Consecutive frames of an orientation group;
+    ``orientation_groups``. Consecutive frames of an orientation group;
     a classic session (one frame per orientation) uses the point :func:`classic_scale_fit`
     places on the tool, when the fit pins the ratio (:data:`MAX_CLASSIC_SCALE_SE`)."""
     T = np.stack([f.T_base_tool for f in problem.frames])
-    groups = orientation_groups(T) if groups is None else groups
     q = np.zeros(3)
     chains = [[i for i in np.flatnonzero(groups == g) if i in poses] for g in np.unique(groups)]
     if classic(groups, poses):
@@ -639,7 +624,7 @@ def unchecked_scale_note(
     problem: CalibrationProblem,
     poses: dict[int, np.ndarray],
     R_static_base: np.ndarray,
-    groups: np.ndarray | None,
+    groups: np.ndarray,
 ) -> tuple[str, ...]:
     """The line saying that a classic session's geometry leaves its camera/robot scale
     unchecked (:func:`scale_moves` gives it no move), with the frames' distances from the
@@ -647,8 +632,6 @@ def unchecked_scale_note(
     -> ``T_cam_board`` from the images alone."""
     if len(poses) < 4:
         return ()
-    if groups is None:
-        groups = orientation_groups(np.stack([f.T_base_tool for f in problem.frames]))
     if not classic(groups, poses):  # moves at one orientation: checked
         return ()
     fit = classic_scale_fit(problem, poses, R_static_base)
@@ -710,14 +693,14 @@ class PoseOutlier:
 
 
 def pose_outlier(
-    problem: CalibrationProblem, out: RefineOutput, groups: np.ndarray | None = None
+    problem: CalibrationProblem, out: RefineOutput, groups: np.ndarray
 ) -> PoseOutlier | None:
     """The frame whose robot pose correction is largest against the typical frame's, when it is
     beyond ``POSE_OUTLIER_RATIO`` (rotation and translation tested apart) and its correction
     less the median of its neighbours' is too, in space and in time
     (:func:`_pose_neighbours`); None without pose corrections, with fewer than
     ``POSE_OUTLIER_MIN_FRAMES`` frames or when every frame is within the ratio. ``groups``: the
-    frames' orientation groups, when the caller has them."""
+    frames' orientation groups."""
     if problem.knowledge != "robot" or "E" not in out.model.slices:
         return None
     E = out.model.pose_corrections(out.state)
@@ -737,8 +720,6 @@ def pose_outlier(
     for k in np.argsort(-ratios):
         if ratios[k] <= POSE_OUTLIER_RATIO:
             return None
-        if groups is None:
-            groups = orientation_groups(T)
         local = [E[k] - np.median(E[nb], axis=0) for nb in _pose_neighbours(T, groups, int(k))]
         if min(float(ratio(d[None])[0]) for d in local) > POSE_OUTLIER_RATIO:
             break

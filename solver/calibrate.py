@@ -992,7 +992,7 @@ def _result(
     known = _fitted_poses(out, fit)  # the scale checks' poses; the model guesses the others'
     guesses = {i: model.T_ref_board(state, i) for i in range(len(problem.frames)) if i not in known}
     poses = image_poses(problem, state, guesses, known)
-    checks = scale_checks(problem, state, groups, known=poses)
+    checks = scale_checks(problem, state, groups, poses)
     if not checks and poses:  # a classic session whose geometry leaves its scale unchecked
         scale_note = unchecked_scale_note(
             problem, poses, static_rotation(state, problem.mount), groups
@@ -1108,16 +1108,13 @@ def scale_checks(
     problem: CalibrationProblem,
     state: ModelState,
     groups: np.ndarray,
-    guesses: dict[int, np.ndarray] | None = None,
-    known: dict[int, np.ndarray] | None = None,
+    poses: dict[int, np.ndarray],
 ) -> tuple[ScaleCheck, ...]:
     """Per move (:func:`slidecal.solver.adequacy.scale_moves`): its length as the reference
-    camera saw it (PnP with the final intrinsics; ``guesses`` only start it) against the
-    robot's; a ratio away from 1 means a wrong square size or robot/TCP scale. ``known``: such
-    poses (frame index -> ``T_cam_board``) already computed."""
+    camera saw it (``poses``: frame index -> ``T_cam_board``, :func:`image_poses`) against the
+    robot's; a ratio away from 1 means a wrong square size or robot/TCP scale."""
     if problem.knowledge != "robot":
         return ()
-    poses = image_poses(problem, state, guesses, known)
     moves = scale_moves(problem, poses, static_rotation(state, problem.mount), groups, 0.001)
     ids = [f.id for f in problem.frames]
     return tuple(ScaleCheck(ids[a], ids[b], 1000.0 * r, 1000.0 * c) for a, b, r, c in moves)

@@ -541,18 +541,14 @@ _FAMILIES = (
 _OTHER_FAMILY_MIN_MARKERS = 3
 
 
-def _family_of(dictionary: str) -> str:
-    """The family a dictionary belongs to: ``DICT_6X6_250`` -> ``DICT_6X6_1000``."""
-    return re.sub(r"^(DICT_[4-7]X[4-7])_\d+$", r"\1_1000", dictionary)
-
-
 def other_family(grey: np.ndarray, dictionary: str) -> str:
     """Why no marker of ``dictionary`` was found when markers of another family are in view:
     the family with the most markers (at least ``_OTHER_FAMILY_MIN_MARKERS``) and the
     smallest dictionary of it that holds every id seen, as a sentence; "" when none is (looked
     for on the reduced image)."""
     img = _reduce(grey, reduction_factor(grey.shape))
-    own = _family_of(dictionary)
+    # the dictionary's family: DICT_6X6_250 -> DICT_6X6_1000
+    own = re.sub(r"^(DICT_[4-7]X[4-7])_\d+$", r"\1_1000", dictionary)
     best: tuple[int, str, int] = (0, "", 0)
     for family in _FAMILIES:
         if family == own:

@@ -279,12 +279,8 @@ def fit_target(
     sol = least_squares(residuals, theta0)
     Y = T_from_Rt(R_from_rvec(sol.x[:3]), sol.x[3:])
     r = residuals(sol.x).reshape(-1, 2)
-    per: dict[str, list[np.ndarray]] = {c: [] for c in cams}
-    k = 0
-    for c, _T, P, _px in obs:
-        per[c].append(r[k : k + len(P)])
-        k += len(P)
-    return Y, {c: np.vstack(v) if v else np.zeros((0, 2)) for c, v in per.items()}
+    of = np.repeat([c for c, *_ in obs], [len(P) for _, _, P, _ in obs])  # each row's camera
+    return Y, {c: r[of == c] for c in cams}
 
 
 def chain_rms_px(result: CalibrationResult, problem: CalibrationProblem) -> dict[str, float]:

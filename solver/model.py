@@ -25,7 +25,8 @@ POSE_AXES = ("rx", "ry", "rz", "tx", "ty", "tz")
 #: (``Structure.trend_*``).
 TREND_AXES = (0, 1, 2, 3, 4, 5)
 _ROTATION_AXES = np.array([True, True, True, False, False, False])
-#: The model's attribute holding the levels of each block of corrections (``BundleModel.levels``)
+#: The model's attribute holding the (rotation, translation) levels of each block of corrections:
+#: the frames' own and the groups' (radians, metres), the trends' and the shared field's (per metre)
 LEVELS = {"E": "pose_sigma", "U": "group_sigma", "V": "trend_sigma", "W": "common_sigma"}
 
 
@@ -195,12 +196,11 @@ class BlockInverse:
 
     def scaled(self, factor: float) -> BlockInverse:
         """The same blocks times ``factor`` (a covariance ``s^2 (J' W J)^-1``)."""
-        return BlockInverse(
+        return replace(
+            self,
             EE=factor * self.EE,
             frame_inv=factor * self.frame_inv,
-            coupling=self.coupling,
             reduced_inv=factor * self.reduced_inv,
-            global_scale=self.global_scale,
         )
 
     def submatrix(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -879,12 +879,6 @@ class BundleModel:
         F, _, m = S.shape
         return state.E + (S.reshape(6 * F, m) @ np.concatenate(parts)).reshape(F, 6)
 
-    def levels(self, key: str) -> tuple[float, float]:
-        """The (rotation, translation) levels of the corrections ``key``: ``E`` the frames' own
-        and ``U`` the groups' (radians, metres), ``V`` the trends' and ``W`` the shared field's
-        (per metre)."""
-        return getattr(self, LEVELS[key])
-
     def rotation_rows(self, key: str) -> np.ndarray:
         """(n,) bool over the coordinates of the corrections ``key``: True for a rotation's."""
         if key == "V":
@@ -898,7 +892,7 @@ class BundleModel:
 
     def prior_scale(self, key: str) -> np.ndarray:
         """(n,) pixel-unit scale of the prior rows of the corrections ``key``: sigma_px / level."""
-        rot, t = self.levels(key)
+        rot, t = getattr(self, LEVELS[key])
         return self.sigma_px * np.where(self.rotation_rows(key), 1.0 / rot, 1.0 / t)
 
     def level_share(self, key: str) -> float | tuple[float, float]:

@@ -162,16 +162,10 @@ def refine(
     robust: bool = True,
     record_check: Callable[[CalibrationProblem], str | None] | None = None,
 ) -> RefineOutput:
-    """Minimise the reprojection error over all detections (docs/METHOD.md Sec. 5).
-
-    Outliers: detections beyond both ``options.outlier_threshold_px`` and 5 times their
-    camera's noise get zero weight and the solve is repeated; they are returned in
-    ``outliers``. Each camera's noise is estimated from its residuals and its rows weighed by it,
-    to a fixed point with the pose-prior scale; ``sigma_px`` is the reference camera's noise.
-
-    Robot sessions with ``options.estimate_robot_noise`` (the default) learn the arm's
-    accuracy as docs/ERROR_MODEL.md Sec. 2 says; the exact-pose solve stands (``robot_sigma``
-    (0, 0)) where its F test finds that the poses explain the images.
+    """Minimise the reprojection error over all detections (docs/METHOD.md Sec. 5), outliers
+    and each camera's noise as docs/ERROR_MODEL.md Sec. 2 says; robot sessions with
+    ``options.estimate_robot_noise`` (the default) learn the arm's accuracy there too.
+    ``sigma_px`` is the reference camera's noise.
 
     ``record_check``: what is wrong with the robot's records, told from the images alone
     (:func:`slidecal.solver.adequacy.record_check`), asked only when the exact-pose solve puts
@@ -232,12 +226,10 @@ def arm_structure(
     levels: Mapping[str, tuple[float, float]],
     session_trend: bool,
 ) -> tuple[Structure, float]:
-    """``structure`` with the error model's arm on the measured poses ``T_meas`` (F, 4, 4): a
-    correction per pose, one per orientation group, a trend along each group's moves (with
-    ``session_trend``, one over a classic eye-in-hand session whose groups have none) and the
-    field the trends share (:func:`common_trend`), at ``levels``: each source's share of a
-    frame's error (rad, m) by the names of ``ARM_SOURCES``. Returns it and the trend frames'
-    rms offset (metres, over every frame)."""
+    """``structure`` with the error model's arm (S3-S5) on the measured poses ``T_meas`` (F, 4,
+    4) at ``levels``: each source's share of a frame's error (rad, m) by the names of
+    ``ARM_SOURCES``; ``session_trend``: a classic eye-in-hand session may take one trend. Returns
+    it and the trend frames' rms offset (metres, over every frame)."""
     pose_groups = orientation_groups(T_meas)
     trend_groups, coords, dims = translation_trends(T_meas, pose_groups)
     if not dims and session_trend and structure.eye_in_hand:
@@ -273,12 +265,8 @@ def translation_trends(
     T_base_tool: np.ndarray, groups: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, tuple[int, ...]]:
     """The frames' coordinates for a linear trend of the pose correction along the moves of
-    each orientation group (``Structure.trend_*``).
-
-    A group takes part with three or more frames spread along a line or a plane: the offsets
-    ``d_k = t_k - mean(t)`` of its measured positions (metres) in an orthonormal basis of the
-    directions they span (rms spread above ``TREND_MIN_SPREAD_M`` and a tenth of the widest;
-    at most ``frames - 2`` of them, so the trend stays apart from the frames' own corrections).
+    each orientation group (``Structure.trend_*``): the offsets ``d_k = t_k - mean(t)`` of a
+    group's measured positions (metres) in an orthonormal basis of the directions they span.
     Returns the trend group per frame (-1: none), the coordinates (F, 3), zero-padded, and
     the number of directions per trend group.
     """
@@ -306,11 +294,8 @@ def common_trend(
     """The smooth error every trend group shares (``Structure.common_*``): its map (F, 6, n)
     from its n coordinates to each frame's correction, which of them are rotations (n,), and
     what a level of each kind (rotation, translation) is in a frame's correction (metres: the
-    coordinates' rms over the frames); ``(None, None, (0, 0))`` with fewer than two trend groups.
-    The rotation: one linear trend over the frames' offsets from their own group's mean; the
-    translation: a quadratic field of the positions without its linear part (S5, S5' of
-    docs/ERROR_MODEL.md); each with :data:`COMMON_FIELD_FRAMES_PER_COORD` trend frames or more
-    per coordinate.
+    coordinates' rms over the frames); ``(None, None, (0, 0))`` with fewer than two trend groups
+    (S5 of docs/ERROR_MODEL.md).
     """
     none = (None, None, (0.0, 0.0))
     if len(trend_dims) < 2:
@@ -354,8 +339,7 @@ def common_trend(
 
 def _shared_groups(pose_groups: np.ndarray) -> bool:
     """Whether a shared correction per orientation group adds anything: two or more groups,
-    each of two or more frames (a group of one frame would duplicate that frame's own
-    correction, as in a classic hand-eye session where every orientation differs)."""
+    each of two or more frames (one frame's would be its own correction again)."""
     counts = np.bincount(pose_groups)
     return len(counts) > 1 and int(counts.min()) >= 2
 
@@ -458,59 +442,12 @@ class _Solve:
         self.n_obs_rows = max(n_px, 1)
         self.camera_blocks: dict[int, tuple] = {}
         self.vce_step = 0
-        self.vce_note: list[str] = []
+        self.creeping = False  # the levels still moved after MAX_VCE_STEPS (a note says so)
         self.last_step: dict[str, float] = {}
 
     def noise(self, r: np.ndarray, w: np.ndarray) -> float:
         dof = max(int(np.sum(w[: self.n_px] > 0)) + self.n_prior - self.P, 1)
         return float(np.sqrt(np.sum(w * r * r) / dof))
-
-    def camera_sigmas(self, r: np.ndarray) -> np.ndarray:
-        """Each camera's own noise estimate (its share of the dof taken by the parameters)."""
-        out = []
-        for rows in self.cam_rows:
-            m = rows & self.inlier
-            n = int(m.sum())
-            dof = max(n - self.P * n / self.n_obs_rows, 1.0)
-            out.append(np.sqrt(np.sum(r[m] ** 2) / dof) if n else np.nan)
-        return np.array(out)
-
-    def _prior_hats(self, Ni: BlockInverse) -> dict[str, np.ndarray]:
-        """The hat matrix's diagonal over the prior rows of each block of corrections (E, U, V,
-        W) the model has."""
-        model = self.model
-        diag = {"E": np.diagonal(Ni.EE, axis1=1, axis2=2).reshape(-1)}
-        for key in ("U", "V", "W"):
-            if key in model.slices:
-                diag[key] = np.diagonal(Ni.gg)[model.slices[key]]
-        return {k: np.clip(model.prior_scale(k) ** 2 * d, 0.0, 1.0) for k, d in diag.items()}
-
-    def _pose_levels(self, E: np.ndarray, h: np.ndarray) -> list[float]:
-        """Foerstner's step for the frames' own two levels (rotation, translation)."""
-        model = self.model
-        is_rot = model.rotation_rows("E")
-        new_pose, reds = [], []
-        for comp, floor, old in zip((is_rot, ~is_rot), SIGMA_FLOOR, model.pose_sigma, strict=True):
-            red = float(np.sum(1.0 - h[comp]))
-            reds.append(red)
-            v = np.sqrt(np.sum(E[comp] ** 2) / red) if red > 1e-12 else floor
-            if self.vce_step < 2 and red > 0.2 * comp.sum():
-                # the first steps jump to the moment estimate mean(e^2 / (1 - h)^2 - c) of the
-                # corrections' pixel-only estimates e / (1 - h), noise variance c = s h / (1 - h):
-                # Foerstner's iteration alone converges slowly from above when the pixels pin
-                # each pose about as well as the arm's accuracy does
-                one = 1.0 - h[comp]
-                pinned = one > 1e-9  # a correction the prior alone holds has no pixel estimate
-                e, one, hc = E[comp][pinned], one[pinned], h[comp][pinned]
-                m = float(np.mean(e**2 / one**2 - old**2 * hc / one)) if len(e) else 0.0
-                if m > floor**2:
-                    v = min(v, np.sqrt(m))
-            v = max(float(v), floor)
-            if self.vce_step >= 2:
-                v = max(self.accelerate(f"E{comp[0]}", old, v, floor), floor)
-            new_pose.append(v)
-        model.level_redundancy["E"] = (reds[0], reds[1])
-        return new_pose
 
     def variance_components(self, nb: NormalBlocks, Ni: BlockInverse, delta: np.ndarray) -> bool:
         """One Foerstner step at the state ``delta`` (P,) from ``state``, to first order
@@ -521,7 +458,12 @@ class _Solve:
         r = nb.r.copy()
         r[:n_px] += model.pixel_step(state, delta)
         moved = model.apply(state, delta)  # E, U and V at the step (linear in delta)
-        hats = self._prior_hats(Ni)
+        # the hat matrix's diagonal over the prior rows of each block of corrections
+        diag = {"E": np.diagonal(Ni.EE, axis1=1, axis2=2).reshape(-1)}
+        for key in ("U", "V", "W"):
+            if key in model.slices:
+                diag[key] = np.diagonal(Ni.gg)[model.slices[key]]
+        hats = {k: np.clip(model.prior_scale(k) ** 2 * d, 0.0, 1.0) for k, d in diag.items()}
         sig = []
         for ci, rows in enumerate(self.cam_rows):
             m = rows & inlier
@@ -535,9 +477,8 @@ class _Solve:
             sig.append(np.sqrt(np.sum(r[m] ** 2) / max(m.sum() - used, 1.0)))
         sig = np.array(sig)
         ref_i = model.cams.index(model.ref)
-        new_pose = self._pose_levels(moved.E.reshape(-1), hats["E"])
+        new_pose, changed = self.levels_step("E", moved.E.reshape(-1), hats["E"])
         self.vce_step += 1
-        changed = False
         ok = np.isfinite(sig) & (sig > 0)
         if ok[ref_i]:
             if abs(sig[ref_i] / model.sigma_px - 1.0) > 0.02:
@@ -550,14 +491,11 @@ class _Solve:
                 if np.max(np.abs(new_w / self.cam_w - 1.0)) > 0.02:
                     changed = True
                 self.cam_w = new_w
-        for new, old, floor in zip(new_pose, model.pose_sigma, SIGMA_FLOOR, strict=True):
-            if abs(new / old - 1.0) > 0.03 and max(new, old) > 2 * floor:
-                changed = True
-        model.pose_sigma = (new_pose[0], new_pose[1])
+        model.pose_sigma = new_pose
         for key in ("U", "V", "W"):  # the groups', the trends' and the field's own two levels
             if key in hats:
                 values = getattr(moved, key).reshape(-1)
-                level, shifted = self.shared_levels(key, values, hats[key])
+                level, shifted = self.levels_step(key, values, hats[key])
                 setattr(model, LEVELS[key], level)
                 changed |= shifted
         if any(v > lim for v, lim in zip(new_pose, SIGMA_BEYOND, strict=True)):
@@ -575,31 +513,44 @@ class _Solve:
             self.camera_blocks[ci] = hit
         return float(self.cam_w[np.flatnonzero(m)[0]]) * Ni.trace_with(hit[2])
 
-    def shared_levels(
+    def levels_step(
         self, key: str, values: np.ndarray, h_s: np.ndarray
     ) -> tuple[tuple[float, float], bool]:
         """Foerstner's step for the two levels (rotation, translation) of the corrections ``key``
-        shared by several frames (``values``, the hat matrix's diagonal ``h_s`` over their prior
-        rows); the new levels and whether one that matters moved by more than 3 %. A share of a
-        frame's correction (``BundleModel.level_share``) below a tenth of the frames' own level
-        adds under 1 % to their variance, and its creeping keeps no iteration going."""
+        (``values``, the hat matrix's diagonal ``h_s`` over their prior rows; the shared ones
+        after the frames' own ``E``); the new levels and whether one that matters moved by more
+        than 3 %. A share of a frame's correction (``BundleModel.level_share``) below a tenth of
+        the frames' own level adds under 1 % to their variance, and its creeping keeps no
+        iteration going."""
         model = self.model
         new, moved, reds, data = [], False, [], []
         rot, per_frame = model.rotation_rows(key), model.level_share(key)
         for comp, floor, old, own in zip(
-            (rot, ~rot), SIGMA_FLOOR, model.levels(key), model.pose_sigma, strict=True
+            (rot, ~rot), SIGMA_FLOOR, getattr(model, LEVELS[key]), model.pose_sigma, strict=True
         ):
             red = float(np.sum(1.0 - h_s[comp]))
             reds.append(red)
             if not comp.any():
                 new.append(old)
                 continue
-            v = np.sqrt(np.sum(values[comp] ** 2) / red) if red > 1e-6 else floor
-            if key == "U":  # the groups' level, under its prior at the frames' own
+            tiny = 1e-12 if key == "E" else 1e-6  # below it the prior alone holds them
+            v = np.sqrt(np.sum(values[comp] ** 2) / red) if red > tiny else floor
+            if key == "E" and self.vce_step < 2 and red > 0.2 * comp.sum():
+                # the first steps jump to the moment estimate mean(e^2 / (1 - h)^2 - c) of the
+                # corrections' pixel-only estimates e / (1 - h), noise variance c = s h / (1 - h):
+                # Foerstner's iteration alone converges slowly from above when the pixels pin
+                # each pose about as well as the arm's accuracy does
+                one = 1.0 - h_s[comp]
+                pinned = one > 1e-9  # a correction the prior alone holds has no pixel estimate
+                e, one, hc = values[comp][pinned], one[pinned], h_s[comp][pinned]
+                m = float(np.mean(e**2 / one**2 - old**2 * hc / one)) if len(e) else 0.0
+                if m > floor**2:
+                    v = min(v, np.sqrt(m))
+            elif key == "U":  # the groups' level, under its prior at the frames' own
                 nu = GROUP_LEVEL_PRIOR_DOF
                 data.append(float(v) if red > 1e-6 else 0.0)
                 v = np.sqrt((np.sum(values[comp] ** 2) + nu * own**2) / (red + nu))
-            elif self.vce_step > 2 and v < old and red < 0.25 * comp.sum():
+            elif key != "E" and self.vce_step > 2 and v < old and red < 0.25 * comp.sum():
                 # falling while the prior holds three quarters of it: the images do not
                 # support a level of its own; the frames' own corrections carry this part
                 v = old if key == "W" else floor
@@ -607,7 +558,7 @@ class _Solve:
             if key == "V" and translation and model.st.trend_scale_fixed:
                 v = floor  # the translation trend of one orientation (Structure)
             v = max(float(v), floor)
-            if self.vce_step > 2:
+            if self.vce_step > (1 if key == "E" else 2):
                 v = max(self.accelerate(f"{key}{comp[0]}", old, v, floor), floor)
             share = per_frame if np.isscalar(per_frame) else per_frame[len(new)]
             big = max(v, old) > max(2 * floor, 0.1 * own / max(share, 1e-12))
@@ -651,19 +602,18 @@ class _Solve:
             moved = True
         return moved
 
-    def _creep_note(self) -> None:
-        if not self.vce_note:
-            self.vce_note.append(
-                f"the noise levels were still moving after {self.vce_step} updates; the last "
-                "ones were kept"
-            )
-
     def _reweigh(self, r: np.ndarray) -> bool:
         """Exact-pose solves: each camera's weight and the prior rows' pixel noise to their
         fixed point; True when one moved."""
         model, changed = self.model, False
         if len(model.cams) > 1:  # per-camera noise: reweigh to a fixed point
-            sig = self.camera_sigmas(r)
+            sig = []  # each camera's own noise (its share of the dof the parameters take)
+            for rows in self.cam_rows:
+                m = rows & self.inlier
+                n = int(m.sum())
+                dof = max(n - self.P * n / self.n_obs_rows, 1.0)
+                sig.append(np.sqrt(np.sum(r[m] ** 2) / dof) if n else np.nan)
+            sig = np.array(sig)
             ref_i = model.cams.index(model.ref)
             ok = np.isfinite(sig) & (sig > 0)
             if ok[ref_i] and np.all(ok):
@@ -721,7 +671,7 @@ class _Solve:
                     changed = self.settle_levels()
                 else:  # still creeping: the last levels are kept and the parameters converged
                     # under them, so the estimate is the minimum of a definite model
-                    self._creep_note()
+                    self.creeping = True
                 if not changed and steps < max_iter:
                     steps, changed = max_iter, True  # converge fully at the final levels
             else:
@@ -736,7 +686,7 @@ class _Solve:
                     model, self.state, self.inlier * self.cam_w, max_iter
                 )
                 self.total_it += it
-                self._creep_note()
+                self.creeping = True
 
     def output(self) -> RefineOutput:
         """The solve's covariance, outliers and messages at the state reached."""
@@ -748,7 +698,12 @@ class _Solve:
         inlier_rows = self.inlier.copy()
         n_in = int(inlier_rows[:n_px].sum())
         dof = n_in + self.n_prior - P
-        messages: list[str] = list(self.vce_note)
+        messages: list[str] = []
+        if self.creeping:
+            messages.append(
+                f"the noise levels were still moving after {self.vce_step} updates; the last "
+                "ones were kept"
+            )
         sigma_px = self.noise(r, weights)
         cov = None
         if dof <= 0:

@@ -1,12 +1,5 @@
-"""The error model's terms: what a finished solve's covariance gains beyond the model's own.
-
-Each term is one source of docs/ERROR_MODEL.md seen through one mechanism (Sec. 3): the levels
-are estimates (:func:`level_excess`, M2), the arm's smooth error no image places
-(:func:`smooth_field_excess`, M3), a tool-side offset one orientation cannot observe
-(:func:`tool_offset_excess`, M4), a classic session's two readings of its field
-(:func:`session_field_excess`, M5), the detections' errors going together within an image or
-an orientation group (:func:`cluster_excess`, M6), the board (:func:`shape_excess`, M4, M5).
-:func:`covariance_terms` lists them for a finished solve.
+"""The error model's terms (docs/ERROR_MODEL.md Sec. 3, M2-M6): what a finished solve's
+covariance gains beyond the model's own; :func:`covariance_terms` lists them.
 """
 
 from __future__ import annotations
@@ -15,7 +8,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from slidecal.solver.model import BundleModel
+from slidecal.solver.model import LEVELS, BundleModel
 from slidecal.solver.numeric import chi2_tail
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.refine import SIGMA_FLOOR, RefineOutput
@@ -56,18 +49,19 @@ def covariance_terms(
     the frames' orientation groups. A term comparing two readings adds its positive part."""
     frames = np.arange(len(problem.frames))
     by_frame = images.correlated is not None or images.misfit is not None
-    parts = (
-        (smooth_field_excess(out, project), False),  # the arm's smooth error no image places
-        (session_field_excess(out, project), False),  # a classic session's two readings
-        (level_excess(out, project), False),  # the arm's levels are estimates
-        (tool_offset_excess(problem, out, project), False),  # an unobserved hand-eye offset
-        (shape_excess(out, project), False),  # the real board is not quite the one described
-        # the detections' errors go together within an image, or within an orientation group
-        (cluster_excess(out, project, frames) if by_frame else None, True),
-        (cluster_excess(out, project, groups) if images.grouped else None, True),
+    terms = (
+        smooth_field_excess(out, project),  # the arm's smooth error no image places
+        session_field_excess(out, project),  # a classic session's two readings
+        level_excess(out, project),  # the arm's levels are estimates
+        tool_offset_excess(problem, out, project),  # an unobserved hand-eye offset
+        shape_excess(out, project),  # the real board is not quite the one described
     )
-    return [
-        _positive_part(x) if cover else 0.5 * (x + x.T) for x, cover in parts if x is not None
+    clusters = (  # the detections' errors go together within an image, or an orientation group
+        cluster_excess(out, project, frames) if by_frame else None,
+        cluster_excess(out, project, groups) if images.grouped else None,
+    )
+    return [0.5 * (x + x.T) for x in terms if x is not None] + [
+        _positive_part(x) for x in clusters if x is not None
     ]
 
 
@@ -91,26 +85,19 @@ SHARED_LEVEL_SHARE = 0.1
 def level_excess(
     out: RefineOutput, project: tuple[np.ndarray, np.ndarray] | None = None
 ) -> np.ndarray | None:
-    """What the covariance (PSD) gains because the arm's levels (of ``E``, ``U``, ``V``, ``W``)
-    are estimates: M2 of docs/ERROR_MODEL.md. ``project`` as :func:`smooth_field_excess`. None
-    when nothing is added."""
+    """M2 (PSD); ``project`` as :func:`smooth_field_excess`. None when nothing is added."""
     m = out.model
     red = getattr(m, "level_redundancy", None)
     if out.covariance_blocks is None or not red or m.pose_sigma is None:
         return None
     sig = np.asarray(m.pose_sigma, float)
-    blocks = [  # (key, levels, per-frame share of a level, rotation rows)
-        (key, np.asarray(m.levels(key), float), m.level_share(key), m.rotation_rows(key))
-        for key in ("E", "U", "V", "W")
-        if key in m.slices and key in red
-    ]
     k = len(out.names) if project is None else len(project[0])
     excess = np.zeros((k, k))
-    for key, levels, per_frame, rot in blocks:
-        sl = m.slices[key]
+    for key in (key for key in LEVELS if key in m.slices and key in red):
+        sl, rot, per_frame = m.slices[key], m.rotation_rows(key), m.level_share(key)
         C = _columns(out, project, np.arange(sl.start, sl.stop))
         for i, rows in enumerate((rot, ~rot)):
-            nu, level = float(red[key][i]), float(levels[i])
+            nu, level = float(red[key][i]), float(getattr(m, LEVELS[key])[i])
             if nu < MIN_LEVEL_DOF or not rows.any() or level <= 2.0 * SIGMA_FLOOR[i]:
                 continue
             share = per_frame if np.isscalar(per_frame) else per_frame[i]
@@ -131,9 +118,7 @@ def tool_offset_gain(
     problem: CalibrationProblem, out: RefineOutput, project: tuple[np.ndarray, np.ndarray]
 ) -> np.ndarray | None:
     """How the reported quantities move per metre of the tool-side translation the session
-    cannot observe (k, m: its m unobserved directions, held at zero): ``-N^-1 J' W J_o``
-    (``J_o`` the residuals' Jacobian along them, ``W`` the solve's weights). A frame's rotation
-    correction times that offset is a translation: it reaches the moves' scale and fx. None
+    cannot observe (k, m: its m unobserved directions, held at zero): M4's ``G`` for S7. None
     when every direction is observed or the poses carry no corrections."""
     m, st = out.model, out.model.st
     weights = getattr(m, "row_weights", None)
@@ -148,9 +133,8 @@ def tool_offset_gain(
     ext = BundleModel(
         problem, replace(st, **{"X_t_basis" if st.eye_in_hand else "Y_t_basis": whole})
     )
-    ext.sigma_px, ext.pose_sigma = m.sigma_px, m.pose_sigma
-    ext.group_sigma, ext.trend_sigma = m.group_sigma, m.trend_sigma
-    ext.common_sigma = m.common_sigma
+    for name in ("sigma_px", *LEVELS.values()):  # the solve's noise and levels
+        setattr(ext, name, getattr(m, name))
     nb = ext.normal_blocks(out.state, weights, keep=False)
     at = {n: i for i, n in enumerate(ext.names)}
     known = set(m.names)
@@ -182,14 +166,6 @@ def _positive_part(extra: np.ndarray) -> np.ndarray:
     return 0.5 * (cover + cover.T)
 
 
-def _sandwich(A: np.ndarray, basis: np.ndarray, level: float, prior: float) -> np.ndarray:
-    """``A (level^2 basis basis' - prior I) A'``: the response ``A`` (k, n) to n corrections'
-    prior means, their true covariance a field along ``basis`` (n, d) against the prior's."""
-    B = A @ basis
-    field = level**2 * (B @ B.T)
-    return field - prior * (A @ A.T) if prior else field
-
-
 def _untold_trends(m: BundleModel) -> tuple[np.ndarray, list[bool]]:
     """Per axis, whether the groups' trend level went to the floor (below a tenth of the
     frames'); per group, whether it is too short to tell a trend from its scatter."""
@@ -212,11 +188,8 @@ def smooth_field_excess(
     project: tuple[np.ndarray, np.ndarray] | None = None,
     ways: tuple[str, ...] = SMOOTH_FIELD_WAYS,
 ) -> np.ndarray | None:
-    """What the covariance gains from the arm's smooth error where no image places it: M3 of
-    docs/ERROR_MODEL.md (S5'), ``A (S - L) A'`` by each of ``ways`` (``groups``, ``field``, as
-    the page defines them), each its positive part; None when no way applies. ``project``: the
-    reported quantities' Jacobian (k, u) and the u parameters it uses (else the optimiser's
-    P x P)."""
+    """M3 by each of ``ways``; None when no way applies. ``project``: the reported quantities'
+    Jacobian (k, u) and the u parameters it uses (else the optimiser's P x P)."""
     m, st = out.model, out.model.st
     if out.covariance_blocks is None or "E" not in m.slices or m.pose_sigma is None:
         return None
@@ -238,9 +211,10 @@ def smooth_field_excess(
             rms = np.sqrt(np.mean(np.sum(c**2, axis=1)))
             level = (sig[0], max(sig[1], MOVE_SCALE_SIGMA * rms) if fixed else sig[1])
             for a in range(6):
-                if carried[a // 3]:
-                    i = a // 3
-                    part = _sandwich(A[:, 6 * k + a], c / rms, level[i], sig[i] ** 2)
+                if carried[a // 3]:  # A (S - L) A' of the corrections along axis a, S a trend
+                    i, Ak = a // 3, A[:, 6 * k + a]
+                    B = Ak @ (c / rms)
+                    part = level[i] ** 2 * (B @ B.T) - sig[i] ** 2 * (Ak @ Ak.T)
                     excess = part if excess is None else excess + part
         if excess is not None:
             parts.append(excess)
@@ -299,17 +273,12 @@ def _session_trend(out: RefineOutput) -> bool:
     return len(st.trend_dims) == 1 and not st.trend_scale_fixed and whole
 
 
-def session_field_step(out: RefineOutput) -> np.ndarray | None:
+def session_field_step(out: RefineOutput, V: np.ndarray | None = None) -> np.ndarray | None:
     """A classic session's step (P,) from its solve (one trend over all its positions) to its
-    reading without that field, the levels as learned: to first order ``-C[:, V] C[V, V]^-1
-    V``. The images cannot tell the two readings apart (M5): the result is reported between
-    them at :data:`READING_WEIGHT`. None for any other session."""
-    return _without_field(out, out.state.V)
-
-
-def _without_field(out: RefineOutput, V: np.ndarray | None) -> np.ndarray | None:
-    """``-C[:, V] C[V, V]^-1 V`` (``V`` (n_V,) or (n_V, k)) for a classic session; or None."""
+    reading without that field (M5): ``-C[:, V] C[V, V]^-1 V``, ``V`` the solve's trend or a
+    response (n_V, k) of it. None for any other session."""
     m = out.model
+    V = out.state.V if V is None else V
     if not _session_trend(out) or V is None:
         return None
     sv = m.slices["V"]
@@ -326,7 +295,7 @@ def reported_response(out: RefineOutput, response: np.ndarray) -> np.ndarray:
     classic session's plus :data:`READING_WEIGHT` times its field step's response (the board's
     modes reach the result so); ``response`` itself for any other session."""
     v = out.model.slices.get("V")
-    step = None if v is None else _without_field(out, response[v])
+    step = None if v is None else session_field_step(out, response[v])
     return response if step is None else response + READING_WEIGHT * step
 
 
@@ -360,12 +329,10 @@ def grouped_detection_errors(
     out: RefineOutput, groups: np.ndarray
 ) -> tuple[float, int, float] | None:
     """(statistic, dof, p-value) when the detections' errors go together over the frames of an
-    orientation group (``groups`` (F,)) in images too small for :func:`images_err_together`
-    (median corners below :data:`NEIGHBOUR_MIN_CORNERS`), else None: a detector biased by one
-    view's perspective errs alike on every frame of it. Per group, camera and corner id seen
-    twice or more, the ``n`` weighted residuals' mean ``m``: ``sum n m^2 / v`` (``v`` their mean
-    square) is about chi-square on two dof each, read below :data:`GROUPED_ERRORS_P` with
-    :data:`MIN_CLUSTER_GROUPS` groups or more."""
+    orientation group (``groups`` (F,)) in images too small for :func:`images_err_together`,
+    else None. Per group, camera and corner id seen twice or more, the ``n`` weighted
+    residuals' mean ``m``: ``sum n m^2 / v`` (``v`` their mean square) is about chi-square on
+    two dof each."""
     m = out.model
     if not m.chunks or len(groups) != len(m.problem.frames):
         return None
@@ -375,22 +342,17 @@ def grouped_detection_errors(
     if np.count_nonzero(sizes >= 2) < MIN_CLUSTER_GROUPS:
         return None
     e, ok = corner_residuals(out)
-    sums: dict[tuple[int, str, int], np.ndarray] = {}
-    counts: dict[tuple[int, str, int], int] = {}
-    for ch in m.chunks:
-        first = ch.rows.start // 2
-        g = int(groups[ch.frame_index])
-        for j, cid in enumerate(ch.corner_ids):
-            if ok[first + j]:
-                key = (g, ch.camera, int(cid))
-                sums[key] = sums.get(key, 0.0) + e[first + j]
-                counts[key] = counts.get(key, 0) + 1
+    ids = np.concatenate([ch.corner_ids for ch in m.chunks])
+    key = np.stack([groups[m.o_frame], m.o_cam, ids], axis=1)[ok]
+    _, at, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    sums = np.zeros((len(counts), 2))
+    np.add.at(sums, at.ravel(), e[ok])
     v = float(np.mean(e[ok] ** 2)) if ok.any() else 0.0
-    kept = [k for k, c in counts.items() if c >= 2]
-    if not kept or not v > 0.0:
+    kept = counts >= 2
+    if not kept.any() or not v > 0.0:
         return None
-    stat = sum(float(sums[k] @ sums[k]) / counts[k] for k in kept) / v
-    dof = 2 * len(kept)
+    stat = float(np.sum(np.sum(sums[kept] ** 2, axis=1) / counts[kept])) / v
+    dof = 2 * int(kept.sum())
     p = float(chi2_tail(dof, stat))
     return (stat, dof, p) if p < GROUPED_ERRORS_P else None
 
@@ -399,12 +361,10 @@ def images_err_together(
     out: RefineOutput,
 ) -> tuple[tuple[float, int] | None, tuple[int, float, float] | None]:
     """Whether an image's errors go together: ``(correlated, misfit)``. ``correlated``: the
-    neighbours' correlation and pairs (:func:`neighbour_correlation`) when beyond
-    :data:`CORRELATED_NEIGHBOURS` and twice its sampling spread; else ``misfit``: (frame, rms
-    over the noise, p) of the image independent errors explain least, its weighted squares
-    over ``s^2`` against a chi-square on its pixel rows, read below :data:`MISFIT_IMAGE_P`
-    (Bonferroni) with an excess of :data:`MISFIT_IMAGE_SHARE` of the session's squares or more
-    (a glare spot, a misplaced corner). None for each not read."""
+    neighbours' correlation and pairs (:func:`neighbour_correlation`) when read; else
+    ``misfit``: (frame, rms over the noise, p) of the image independent errors explain least,
+    its weighted squares over ``s^2`` against a chi-square on its pixel rows, when read. None
+    for each not read."""
     rho, pairs = neighbour_correlation(out)
     if pairs > 0 and rho >= CORRELATED_NEIGHBOURS + 2.0 / np.sqrt(pairs):
         return (rho, pairs), None
@@ -432,11 +392,10 @@ def images_err_together(
 def cluster_excess(
     out: RefineOutput, project: tuple[np.ndarray, np.ndarray], clusters: np.ndarray
 ) -> np.ndarray | None:
-    """M6 of docs/ERROR_MODEL.md: what the reported quantities' covariance (k, k; symmetric, not
-    PSD) gains when the detections' errors go together within each cluster (``clusters`` (F,):
-    each frame's label, the frame itself or its orientation group). None without a covariance,
-    with fewer than :data:`MIN_CLUSTER_FRAMES` clusters, or when the reported quantities use a
-    frame's own columns."""
+    """M6 (k, k; symmetric, not PSD) over ``clusters`` (F,): each frame's label, the frame
+    itself or its orientation group. None without a covariance, with fewer than
+    :data:`MIN_CLUSTER_FRAMES` clusters, or when the reported quantities use a frame's own
+    columns."""
     m = out.model
     if out.covariance_blocks is None or m.row_weights is None or not out.sigma_px > 0:
         return None
@@ -477,10 +436,9 @@ def neighbour_correlation(out: RefineOutput) -> tuple[float, int]:
     """How much neighbouring corners' residuals go together, and over how many pairs: over
     every image's pairs at the target's smallest spacing, the mean product of their weighted
     residuals along the pair's line and across it, each over one coordinate's mean square; the
-    larger, and the pairs; (0, 0) without one. About 0 (slightly negative: the fit's share) for
-    independent errors, with a sampling spread of one over the root of the pairs; an edge's
-    error (print, blur, light) moves a line's corners together across it. Images with fewer
-    than :data:`NEIGHBOUR_MIN_CORNERS` corners are left out."""
+    larger, and the pairs; (0, 0) without one. About 0 for independent errors, with a sampling
+    spread of one over the root of the pairs. Images with fewer than
+    :data:`NEIGHBOUR_MIN_CORNERS` corners are left out."""
     m = out.model
     pts = m.problem.target.points_m
     if len(pts) < 2:

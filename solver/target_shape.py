@@ -82,11 +82,6 @@ class BoardFit:
     response: np.ndarray
     mode_cov: np.ndarray
 
-    @property
-    def shift(self) -> np.ndarray:
-        """The step (P,) from the flat-board solve to the reported value: ``G w bow``."""
-        return READING_WEIGHT * (self.response[:, 3:] @ self.bow_m)
-
 
 def fit_board(problem, out) -> BoardFit | None:  # noqa: ANN001 - CalibrationProblem, RefineOutput
     """The board's bow estimated with the parameters, to first order, and what the board's

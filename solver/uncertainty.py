@@ -154,13 +154,10 @@ def _jacobian(layout: Layout, internal: tuple[str, ...]) -> tuple[tuple[str, ...
     """Names of the reported quantities and their Jacobian (n, len(internal))."""
     out = _Rows(internal)
     for c in layout.cameras:
-        for n in INTRINSIC_NAMES[:2]:  # unit aspect: one focal length for both
+        for n in INTRINSIC_NAMES + DISTORTION_NAMES:
             i = out.cols([f"{c}.{n}"])
-            i = out.cols([f"{c}.f"]) if i is None else i
-            if i is not None:
-                out.add(f"{c}.{n}", i, np.ones(1))
-        for n in INTRINSIC_NAMES[2:] + DISTORTION_NAMES:
-            i = out.cols([f"{c}.{n}"])
+            if i is None and n in INTRINSIC_NAMES[:2]:  # unit aspect: one focal length for both
+                i = out.cols([f"{c}.f"])
             if i is not None:
                 out.add(f"{c}.{n}", i, np.ones(1))
     ref = layout.reference
@@ -179,12 +176,9 @@ def _jacobian(layout: Layout, internal: tuple[str, ...]) -> tuple[tuple[str, ...
     yi = out.cols(_block_names("Y", Yr, Yt))
     if m is None or not rot or layout.X is None or layout.Y is None or xi is None or yi is None:
         return tuple(out.names), np.array(out.rows).reshape(len(out.names), len(internal))
-    BX = np.zeros((6, len(xi)))  # the optimiser's X coordinates -> X's perturbation
-    BX[:3, : Xr.shape[1]] = Xr
-    BX[3:, Xr.shape[1] :] = Xt
-    BY = np.zeros((6, len(yi)))
-    BY[:3, : Yr.shape[1]] = Yr
-    BY[3:, Yr.shape[1] :] = Yt
+    # the optimiser's X (and Y) coordinates -> X's (Y's) perturbation
+    BX = np.block([[Xr, np.zeros_like(Xt)], [np.zeros_like(Xr), Xt]])
+    BY = np.block([[Yr, np.zeros_like(Yt)], [np.zeros_like(Yr), Yt]])
     he = hand_eye_names(layout.mount, list(layout.cameras))
     out.add_transform(he[ref], xi, _inverse_jacobian(layout.X) @ BX, rot, trans)
     for c, T in layout.T_cam_ref.items():  # T_holder_c = inv(T_c_ref @ X), correlations kept
@@ -283,8 +277,8 @@ def reported_covariance(
     images = image_errors(problem, out, groups)
     names, named = result_covariance(problem, out, images, groups)
     state = out.state
-    if board is not None:  # between the readings of the board's misfit (target_shape.py)
-        state = out.model.apply(state, board.shift)
+    if board is not None:  # between the readings of the board's misfit: G w bow (M5)
+        state = out.model.apply(state, READING_WEIGHT * (board.response[:, 3:] @ board.bow_m))
     field_step = session_field_step(out)  # a classic session: with its arm's field or not
     if field_step is not None:
         state = out.model.apply(state, READING_WEIGHT * field_step)

@@ -150,7 +150,7 @@ def test_scale_checks_reuse_the_robot_tests_free_poses(monkeypatch):
     # excepted) and equal the ones computed afresh from the model's guesses
     import importlib
 
-    from slidecal.solver.calibrate import _fitted_poses, frame_groups, scale_checks
+    from slidecal.solver.calibrate import _fitted_poses, frame_groups, image_poses, scale_checks
 
     pipeline = importlib.import_module("slidecal.solver.calibrate")  # the module, not calibrate()
     s = sc.r1(np.random.default_rng(3), 0.15, 0.0, 0.0)
@@ -168,7 +168,8 @@ def test_scale_checks_reuse_the_robot_tests_free_poses(monkeypatch):
     known = _fitted_poses(out, out.free_pose)
     assert len(known) == sum(bool(out.inlier_rows[ch.rows].all()) for ch in out.model.chunks) > 10
     guesses = {i: out.model.T_ref_board(out.state, i) for i in range(len(s.problem.frames))}
-    fresh = scale_checks(s.problem, out.state, frame_groups(s.problem), guesses)
+    poses = image_poses(s.problem, out.state, guesses)
+    fresh = scale_checks(s.problem, out.state, frame_groups(s.problem), poses)
     assert len(fresh) == len(res.scale_checks) > 10
     for a, b in zip(res.scale_checks, fresh, strict=True):
         assert (a.frame_a, a.frame_b) == (b.frame_a, b.frame_b)

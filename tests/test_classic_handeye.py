@@ -18,7 +18,7 @@ from slidecal.solver.adequacy import (
     scale_moves,
     unchecked_scale_note,
 )
-from slidecal.solver.calibrate import calibrate, pnp_pose
+from slidecal.solver.calibrate import calibrate, frame_groups, pnp_pose
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import (
     T_from_Rt,
@@ -544,10 +544,10 @@ def test_a_classic_sessions_scale_is_read_only_where_its_geometry_pins_it():
         problem, poses, R = _aimed_session(np.random.default_rng(3), far_near, scale)
         ratio, se, _ = classic_scale_fit(problem, poses, R)
         assert se < MAX_CLASSIC_SCALE_SE and abs(ratio - scale) < 4 * se + 1e-4, (ratio, se)
-        moves = scale_moves(problem, poses, R, None, 0.001)
+        moves = scale_moves(problem, poses, R, frame_groups(problem), 0.001)
         assert len(moves) == 19
         assert abs(np.median([c / r for *_, r, c in moves]) - scale) < 0.003
-    assert unchecked_scale_note(problem, poses, R, None) == ()
+    assert unchecked_scale_note(problem, poses, R, frame_groups(problem)) == ()
     # every frame 0.43 m from the point it is aimed at: a scale of the camera's view is a
     # shift of the hand-eye along the viewing direction, which the fit cannot tell apart; at
     # 0.41-0.46 m it barely can: no move is checked, and the result says so
@@ -555,8 +555,8 @@ def test_a_classic_sessions_scale_is_read_only_where_its_geometry_pins_it():
         problem, poses, R = _aimed_session(np.random.default_rng(3), distances, 1.02)
         fit = classic_scale_fit(problem, poses, R)
         assert fit is None or fit[1] > MAX_CLASSIC_SCALE_SE, fit
-        assert scale_moves(problem, poses, R, None, 0.001) == []
-        (note,) = unchecked_scale_note(problem, poses, R, None)
+        assert scale_moves(problem, poses, R, frame_groups(problem), 0.001) == []
+        (note,) = unchecked_scale_note(problem, poses, R, frame_groups(problem))
         assert "scale" in note and "not checked" in note and "nearer to and farther" in note
 
 

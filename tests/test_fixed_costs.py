@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from slidecal.mocks import scenarios as sc
-from slidecal.solver.calibrate import calibrate, frame_groups, scale_checks
+from slidecal.solver.calibrate import calibrate, frame_groups, image_poses, scale_checks
 from slidecal.solver.camera import K_matrix, project
 from slidecal.solver.free_pose import free_pose_fit
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, transform_points
@@ -101,7 +101,8 @@ def test_scale_checks_of_a_learned_arm_take_the_final_fit(monkeypatch):
     assert pnp_runs == [None]  # the start's poses only
     monkeypatch.setattr(pipeline, "_frame_poses", real_poses)
     guesses = {i: out.model.T_ref_board(out.state, i) for i in range(len(s.problem.frames))}
-    fresh = scale_checks(s.problem, out.state, frame_groups(s.problem), guesses)
+    poses = image_poses(s.problem, out.state, guesses)
+    fresh = scale_checks(s.problem, out.state, frame_groups(s.problem), poses)
     assert len(fresh) == len(res.scale_checks) > 10
     for a, b in zip(res.scale_checks, fresh, strict=True):
         assert (a.frame_a, a.frame_b, a.robot_mm) == (b.frame_a, b.frame_b, b.robot_mm)
