@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 
 from slidecal.solver.camera import opencv_view, project, project_with_jacobians
-from slidecal.solver.geometry import T_from_Rt
-from slidecal.solver.model import BundleModel, ModelState, R_batch
+from slidecal.solver.geometry import R_from_rvecs, T_from_Rt
+from slidecal.solver.model import BundleModel, ModelState
 
 
 @dataclass(frozen=True)
@@ -141,7 +141,7 @@ def _pose_minima(
         H = Jt @ J
         H += lam[:, None, None] * np.diagonal(H, axis1=1, axis2=2)[:, :, None] * np.eye(6)
         step = -np.linalg.solve(H, Jt @ e)[:, :, 0]
-        R, t = R_batch(step[:, :3]) @ T[k, :3, :3], T[k, :3, 3] + step[:, 3:]
+        R, t = R_from_rvecs(step[:, :3]) @ T[k, :3, :3], T[k, :3, 3] + step[:, 3:]
         e_new, cost_new, J_new = errors(k, R, t)
         ok = cost_new <= cost  # a nan is no decrease
         T[k[ok], :3, :3], T[k[ok], :3, 3] = R[ok], t[ok]

@@ -30,6 +30,26 @@ def R_from_rvec(rvec: np.ndarray) -> np.ndarray:
     return np.eye(3) + a * K + b * K @ K
 
 
+def R_from_rvecs(v: np.ndarray) -> np.ndarray:
+    """Rotation matrices (n, 3, 3) of rotation vectors (n, 3): :func:`R_from_rvec` for a stack."""
+    th = np.linalg.norm(v, axis=1)
+    small = th < 1e-8
+    ts = np.where(small, 1.0, th)
+    a = np.where(small, 1.0 - th**2 / 6.0, np.sin(ts) / ts)
+    b = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
+    S = _skew_batch(v)
+    return np.eye(3) + a[:, None, None] * S + b[:, None, None] * (S @ S)
+
+
+def _skew_batch(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices (n, 3, 3) of vectors (n, 3)."""
+    S = np.zeros((len(v), 3, 3))
+    S[:, 0, 1], S[:, 0, 2] = -v[:, 2], v[:, 1]
+    S[:, 1, 0], S[:, 1, 2] = v[:, 2], -v[:, 0]
+    S[:, 2, 0], S[:, 2, 1] = -v[:, 1], v[:, 0]
+    return S
+
+
 def rvec_from_R(R: np.ndarray) -> np.ndarray:
     """Rotation vector (3,) in radians, angle in [0, pi], of a rotation matrix (3, 3).
 

@@ -16,7 +16,7 @@ from threadpoolctl import ThreadpoolController
 
 from slidecal.solver.camera import project_with_jacobians
 from slidecal.solver.errors import DegenerateError
-from slidecal.solver.geometry import R_from_rvec, T_from_Rt, rvec_from_R
+from slidecal.solver.geometry import R_from_rvec, R_from_rvecs, T_from_Rt, rvec_from_R
 from slidecal.solver.problem import MOUNTS, CalibrationProblem
 
 #: Axis names of a pose correction: rotation vector (radians), translation (metres).
@@ -918,7 +918,7 @@ class BundleModel:
         st = self.st
         if st.pose_sigma is not None and state.E is not None:
             E = self.pose_corrections(state)
-            R = np.einsum("nij,njk->nik", R_batch(E[:, :3]), st.T_meas[:, :3, :3])
+            R = np.einsum("nij,njk->nik", R_from_rvecs(E[:, :3]), st.T_meas[:, :3, :3])
             t = st.T_meas[:, :3, 3] + E[:, 3:]
             Ms = np.tile(np.eye(4), (len(R), 1, 1))
             if st.eye_in_hand:  # the inverse of (R, t): (R', -R' t)
@@ -1037,26 +1037,6 @@ def _rmul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """``A @ B`` for a stack ``A`` (n, a, b) and one matrix ``B`` (b, c), as one product."""
     n, a, b = A.shape
     return (A.reshape(n * a, b) @ B).reshape(n, a, B.shape[1])
-
-
-def R_batch(v: np.ndarray) -> np.ndarray:
-    """Rotation matrices (n, 3, 3) of rotation vectors (n, 3) (Rodrigues, series near 0)."""
-    th = np.linalg.norm(v, axis=1)
-    small = th < 1e-8
-    ts = np.where(small, 1.0, th)
-    a = np.where(small, 1.0 - th**2 / 6.0, np.sin(ts) / ts)
-    b = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
-    S = _skew_batch(v)
-    return np.eye(3) + a[:, None, None] * S + b[:, None, None] * (S @ S)
-
-
-def _skew_batch(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices (n, 3, 3) of vectors (n, 3)."""
-    S = np.zeros((len(v), 3, 3))
-    S[:, 0, 1], S[:, 0, 2] = -v[:, 2], v[:, 1]
-    S[:, 1, 0], S[:, 1, 2] = v[:, 2], -v[:, 0]
-    S[:, 2, 0], S[:, 2, 1] = -v[:, 1], v[:, 0]
-    return S
 
 
 def _step_T(T: np.ndarray, d: np.ndarray, rot_basis: np.ndarray, t_basis: np.ndarray) -> np.ndarray:
