@@ -38,7 +38,7 @@ ROS_MODELS = {"opencv5": "plumb_bob", "rational": "rational_polynomial", "fishey
 #: Kalibr's name of each lens model it has (radtan: opencv5 without k3)
 KALIBR_MODELS = {"opencv5": "radtan", "fisheye": "equidistant"}
 #: ``valid_intrinsics_region``: where the one-sigma projection uncertainty is below this
-#: (docs/ERROR_MODEL.md, "Exports")
+#: (docs/ERROR_MODEL.md Sec. 4)
 VALID_REGION_PX = 1.0
 
 
