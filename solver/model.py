@@ -269,6 +269,13 @@ class NormalBlocks:
     A_EE: np.ndarray
     g_E: np.ndarray
 
+    @functools.cached_property
+    def frame_blocks(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The frames grouped by the global rows their coupling ``A_gE`` touches (a frame
+        couples with its own orientation group's and trend's shared corrections alone): per
+        group, those rows and its frames. The Schur products run block by block."""
+        return _patterns(np.any(self.A_gE != 0.0, axis=2))
+
     def diagonal(self) -> tuple[np.ndarray, np.ndarray]:
         """The diagonal of ``J' W J``: global (P0,) and per frame (F, 6)."""
         return np.diagonal(self.A_gg).copy(), np.diagonal(self.A_EE, axis1=1, axis2=2).copy()
@@ -286,7 +293,7 @@ class NormalBlocks:
         A_EE[:, i6, i6] += lam * d_E
         Ei = np.linalg.inv(A_EE)  # (F, 6, 6)
         P0 = len(self.g_g)
-        L, S = _reduced(A_gg, self.A_gE, Ei)
+        L, S = _reduced(A_gg, self.A_gE, Ei, self.frame_blocks)
         rhs = -self.g_g + L @ self.g_E.reshape(-1)
         d_glob = np.linalg.solve(S, rhs)
         back = -self.g_E - (d_glob @ self.A_gE.reshape(P0, -1)).reshape(-1, 6)
@@ -312,7 +319,7 @@ class NormalBlocks:
         except np.linalg.LinAlgError:
             Ei = np.linalg.pinv(A_EE)
         P0 = len(s_g)
-        L, S = _reduced(A_gg, A_gE, Ei)
+        L, S = _reduced(A_gg, A_gE, Ei, self.frame_blocks)
         if check_condition:
             cond = np.linalg.cond(S)
             if not np.isfinite(cond) or cond > 1e14:
@@ -324,9 +331,11 @@ class NormalBlocks:
             except np.linalg.LinAlgError:
                 Si = np.linalg.pinv(S)
         F = len(s_E)
-        SiL = (Si @ L).reshape(P0, F, 6)
-        # each frame's L_k' Si L_k, as a stack of products
-        EE = Ei + np.transpose(L.reshape(P0, F, 6), (1, 2, 0)) @ np.transpose(SiL, (1, 0, 2))
+        EE = Ei.copy()
+        for rows, ks in self.frame_blocks:  # each frame's L_k' Si L_k over the rows it touches
+            Lb = _block(L.reshape(P0, F, 6), rows, ks)
+            SiL = (_block(Si, rows, rows) @ Lb.reshape(len(rows), -1)).reshape(Lb.shape)
+            EE[ks] += np.transpose(Lb, (1, 2, 0)) @ np.transpose(SiL, (1, 0, 2))
         outer_E = s_E[:, :, None] * s_E[:, None, :]
         return BlockInverse(
             EE=EE / outer_E,
@@ -408,6 +417,8 @@ class BundleModel:
         self._motion_cache: tuple | None = None  # (state, true_motions) of the last
         self._index()
         self.shared_map = self._shared_map()
+        if self.shared_map is not None:  # the frames by the shared corrections they move
+            self.shared_blocks = _patterns(np.any(self.shared_map != 0.0, axis=1).T)
 
     # -- state updates -------------------------------------------------------------------------
     def apply(self, state: ModelState, delta: np.ndarray) -> ModelState:
@@ -746,8 +757,11 @@ class BundleModel:
         P1 = len(g_g)
         S2 = S.reshape(6 * F, m)
         Z = A_EE @ S  # (F, 6, m); A_EE is symmetric: Z[k]' = S[k]' A_EE[k]
-        A_ss = S2.T @ Z.reshape(6 * F, m)
-        A_gs = A_gE.reshape(P1, 6 * F) @ S2
+        A_ss, A_gs = np.zeros((m, m)), np.zeros((P1, m))
+        for cols, ks in self.shared_blocks:  # a frame's S touches a few columns
+            Sb = S[ks][:, :, cols].reshape(-1, len(cols))
+            A_ss[np.ix_(cols, cols)] += Sb.T @ Z[ks][:, :, cols].reshape(-1, len(cols))
+            A_gs[:, cols] += A_gE[:, ks].reshape(P1, -1) @ Sb
         A = np.empty((P1 + m, P1 + m))
         A[:P1, :P1], A[:P1, P1:], A[P1:, :P1], A[P1:, P1:] = A_gg, A_gs, A_gs.T, A_ss
         g = np.concatenate([g_g, S2.T @ g_E.reshape(-1)])
@@ -791,7 +805,7 @@ class BundleModel:
             S = self.shared_map
             F, _, m = S.shape
             dE = dE + (S.reshape(6 * F, m) @ delta[P1 : sl.start]).reshape(F, 6)
-        d += np.einsum("nac,nc->na", B, dE[self.o_frame]).reshape(-1)
+        d += (B @ dE[self.o_frame][:, :, None]).reshape(-1)
         return d
 
     def pixel_gradient(self, state: ModelState, weights: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -909,12 +923,6 @@ class BundleModel:
         cache = self._motion_cache
         if cache is not None and cache[0] is state:
             return cache[1]
-        Ms = self._true_motions(state)
-        Ms.setflags(write=False)
-        self._motion_cache = (state, Ms)
-        return Ms
-
-    def _true_motions(self, state: ModelState) -> np.ndarray:
         st = self.st
         if st.pose_sigma is not None and state.E is not None:
             E = self.pose_corrections(state)
@@ -930,6 +938,8 @@ class BundleModel:
             Ms = st.M.copy()
         if len(self.s_frames):
             Ms[self.s_frames, :3, 3] -= state.s[self.s_frames, None] * st.direction[self.s_frames]
+        Ms.setflags(write=False)
+        self._motion_cache = (state, Ms)
         return Ms
 
     def _pose_block(
@@ -959,17 +969,40 @@ class BundleModel:
         return np.concatenate([_cross_rows(p_M - t_M[self.o_frame], B), B], axis=2)
 
 
-def _reduced(A_gg: np.ndarray, A_gE: np.ndarray, Ei: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _reduced(
+    A_gg: np.ndarray, A_gE: np.ndarray, Ei: np.ndarray, blocks: list[tuple[np.ndarray, ...]]
+) -> tuple[np.ndarray, np.ndarray]:
     """``L = A_gE Ei`` per frame (P0, 6 F) and the reduced matrix ``S = A_gg - L A_gE'``, made
     as ``A_gg - M M'`` with ``M = A_gE C`` per frame, ``C C' = Ei``, where ``Ei`` is positive
-    definite (one symmetric product: half the work of ``L A_gE'``)."""
-    P0 = len(A_gg)
-    L = _per_frame(A_gE, Ei).reshape(P0, -1)
+    definite (one symmetric product: half the work of ``L A_gE'``), block by block of
+    ``blocks`` (:attr:`NormalBlocks.frame_blocks`)."""
+    L = _per_frame(A_gE, Ei)
     try:
-        M = _per_frame(A_gE, np.linalg.cholesky(Ei)).reshape(P0, -1)
+        M = N = _per_frame(A_gE, np.linalg.cholesky(Ei))
     except np.linalg.LinAlgError:
-        return L, A_gg - L @ A_gE.reshape(P0, -1).T
-    return L, A_gg - M @ M.T
+        M, N = L, A_gE
+    S = A_gg.copy()
+    for rows, ks in blocks:
+        Mb = _block(M, rows, ks).reshape(len(rows), -1)
+        Nb = Mb if N is M else _block(N, rows, ks).reshape(len(rows), -1)
+        S[np.ix_(rows, rows)] -= Mb @ Nb.T
+    return L.reshape(len(A_gg), -1), S
+
+
+def _patterns(touched: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The frames (columns of ``touched`` (m, F), bool) grouped by the rows they touch: per
+    group, those rows and its frames (frames that touch none left out)."""
+    patterns: dict[bytes, list[int]] = {}
+    for k, key in enumerate(np.packbits(touched, axis=0).T):
+        patterns.setdefault(key.tobytes(), []).append(k)
+    blocks = [(np.flatnonzero(touched[:, ks[0]]), np.array(ks)) for ks in patterns.values()]
+    return [(rows, ks) for rows, ks in blocks if len(rows)]
+
+
+def _block(X: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """``X[np.ix_(rows, cols)]``, or ``X`` itself where they are all of it."""
+    whole = len(rows) == X.shape[0] and len(cols) == X.shape[1]
+    return X if whole else X[np.ix_(rows, cols)]
 
 
 def _per_frame(A_gE: np.ndarray, Ei: np.ndarray) -> np.ndarray:

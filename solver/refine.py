@@ -181,17 +181,19 @@ def refine(
         return out
     exact = replace(structure, T_meas=None, pose_sigma=None)  # no corrections: E, U, V, W
     start = ModelState(init.K, init.dist, init.T_cam_ref, init.X, init.Y, init.s)
-    out0 = _refine(problem, exact, start, max_iter, robust, estimate=False)
+    s0 = _Solve(problem, exact, start, False)
+    s0.iterate(max_iter, robust)
+    out0 = s0.output(covariance=False)  # its covariance is made only where it is the result
     images = session_images(out0.model, out0.inlier_rows)
     fit = free_pose_fit(images, out0.state.K, out0.state.dist, model_starts(out0.model, out0.state))
     if _robot_pose_test(out0, fit) > ROBOT_TEST_P:  # the poses explain the images
-        return _with_robot(replace(out0, free_pose=fit), (0.0, 0.0), True)
+        return _with_robot(replace(s0.output(), free_pose=fit), (0.0, 0.0), True)
     sig0 = _pose_discrepancy(problem, out0, fit)
     beyond = any(v > lim for v, lim in zip(sig0, SIGMA_BEYOND, strict=True))
     doubt = record_check is not None and (beyond or not out0.converged)
     if doubt and record_check(problem) is not None:
         # no accuracy of an arm explains records read wrongly or paired with other images
-        return _with_robot(replace(out0, free_pose=fit), (0.0, 0.0), False)
+        return _with_robot(replace(s0.output(), free_pose=fit), (0.0, 0.0), False)
     if o.robot_noise_deg > 0 or o.robot_noise_m > 0:  # the user's values: where to start
         sig0 = (
             max(np.radians(o.robot_noise_deg), SIGMA_FLOOR[0]),
@@ -651,7 +653,7 @@ class _Solve:
         first level step moves nothing and the state is converged fully."""
         model, estimate = self.model, self.estimate
         if estimate:
-            r0 = model.evaluate(self.state, jacobian=False)[0]
+            r0 = model.trial_residuals(self.state)  # with the Jacobian the first step takes
             model.sigma_px = max(self.noise(r0, self.inlier * self.cam_w), 1e-3)
         steps = min(1, max_iter) if estimate else max_iter
         lam = LM_START_DAMPING
@@ -688,13 +690,14 @@ class _Solve:
                 self.total_it += it
                 self.creeping = True
 
-    def output(self) -> RefineOutput:
-        """The solve's covariance, outliers and messages at the state reached."""
+    def output(self, covariance: bool = True) -> RefineOutput:
+        """The solve's covariance (unless not ``covariance``), outliers and messages at the
+        state reached."""
         model, state, n_px, P = self.model, self.state, self.n_px, self.P
         weights = self.inlier * self.cam_w
         model.row_weights = weights  # the solve's last row weights (its covariance's)
-        nb = model.normal_blocks(state, weights)
-        r = nb.r
+        nb = model.normal_blocks(state, weights) if covariance else None
+        r = nb.r if covariance else model.trial_residuals(state)
         inlier_rows = self.inlier.copy()
         n_in = int(inlier_rows[:n_px].sum())
         dof = n_in + self.n_prior - P
@@ -706,12 +709,12 @@ class _Solve:
             )
         sigma_px = self.noise(r, weights)
         cov = None
-        if dof <= 0:
+        if covariance and dof <= 0:
             messages.append(
                 f"covariance not computed: {n_in} residuals for {P} parameters; capture more "
                 "frames"
             )
-        else:
+        elif covariance:
             try:
                 cov = nb.inverse(check_condition=True).scaled(sigma_px**2)
             except np.linalg.LinAlgError as e:
