@@ -762,9 +762,9 @@ def robot_accuracy(problem: CalibrationProblem, out: RefineOutput) -> RobotAccur
     worst: list[tuple[int, float, float]] = []
     E = out.model.pose_corrections(out.state)
     if E is not None:
-        for f, e in zip(problem.frames, E, strict=True):
-            t_mm, r_deg = 1000.0 * np.linalg.norm(e[3:]), np.degrees(np.linalg.norm(e[:3]))
-            worst.append((int(f.id), float(t_mm), float(r_deg)))
+        norms = np.linalg.norm(E.reshape(-1, 2, 3), axis=2)  # (F, 2): rotation, translation
+        for f, (r, t) in zip(problem.frames, norms, strict=True):
+            worst.append((int(f.id), float(1000.0 * t), float(np.degrees(r))))
         t_sig, r_sig = max(1000.0 * sig[1], 1e-6), max(np.degrees(sig[0]), 1e-9)
         worst.sort(key=lambda w: -(w[1] / t_sig + w[2] / r_sig))
     return RobotAccuracy(

@@ -373,19 +373,23 @@ def images_err_together(
     if not out.sigma_px > 0:
         return None, None
     w = m.row_weights[:n_px] if m.row_weights is not None else out.inlier_rows.astype(float)
-    tails, total = [], 0.0
-    for k, rows in m.frame_rows.items():
-        wk, rk = w[rows], out.residuals[rows]
-        n = int(np.count_nonzero(wk > 0))
-        S = float(np.sum(wk * rk * rk)) / out.sigma_px**2
-        total += S
-        if n >= 2 * NEIGHBOUR_MIN_CORNERS:  # as many corners as the neighbours' test needs
-            tails.append((float(chi2_tail(n, S)), k, float(np.sqrt(S / n)), S - n))
-    if not tails:
+    frames = sorted(m.frame_rows, key=lambda k: m.frame_rows[k].start)  # their rows tile R
+    starts = [m.frame_rows[k].start for k in frames]
+    S = np.add.reduceat(w * out.residuals**2, starts) / out.sigma_px**2
+    n = np.add.reduceat((w > 0).astype(int), starts)
+    idx = np.flatnonzero(n >= 2 * NEIGHBOUR_MIN_CORNERS)  # as many as the neighbours' test needs
+    if not len(idx):
         return None, None
-    p, k, ratio, excess = min(tails)
-    p = min(p * len(tails), 1.0)
-    read = p < MISFIT_IMAGE_P and excess >= MISFIT_IMAGE_SHARE * total
+    def tail(i: int) -> tuple[float, int, float, float]:
+        return float(chi2_tail(n[i], S[i])), frames[i], float(np.sqrt(S[i] / n[i])), S[i] - n[i]
+
+    # of the images with one count of rows, the one with the most squares has the least tail
+    o = idx[np.lexsort((-S[idx], n[idx]))]
+    p, k, ratio, excess = min(tail(i) for i in o[np.r_[True, n[o][1:] != n[o][:-1]]])
+    if p == 0.0:  # tails that underflow tie: the first image of them, as over every image
+        p, k, ratio, excess = min(tail(i) for i in idx)
+    p = min(p * len(idx), 1.0)
+    read = p < MISFIT_IMAGE_P and excess >= MISFIT_IMAGE_SHARE * float(np.sum(S))
     return None, ((k, ratio, p) if read else None)
 
 
@@ -463,7 +467,8 @@ def neighbour_correlation(out: RefineOutput) -> tuple[float, int]:
     along = line / np.maximum(np.linalg.norm(line, axis=1, keepdims=True), 1e-12)
     across = np.stack([-along[:, 1], along[:, 0]], axis=1)
     per_coordinate = pairs * squares / (2 * corners)
+    ea, eb = e[ia], e[ib]
     return max(
-        float(np.sum(np.sum(e[ia] * u, axis=1) * np.sum(e[ib] * u, axis=1))) / per_coordinate
+        float(np.sum(np.sum(ea * u, axis=1) * np.sum(eb * u, axis=1))) / per_coordinate
         for u in (along, across)
     ), pairs
