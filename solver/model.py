@@ -268,13 +268,10 @@ class NormalBlocks:
     A_gE: np.ndarray
     A_EE: np.ndarray
     g_E: np.ndarray
-
-    @functools.cached_property
-    def frame_blocks(self) -> list[tuple[np.ndarray, np.ndarray]]:
-        """The frames grouped by the global rows their coupling ``A_gE`` touches (a frame
-        couples with its own orientation group's and trend's shared corrections alone): per
-        group, those rows and its frames. The Schur products run block by block."""
-        return _patterns(np.any(self.A_gE != 0.0, axis=2))
+    # the frames grouped by the global rows their ``A_gE`` touches (a frame couples with its
+    # own group's and trend's shared corrections alone): per group, those rows and its frames;
+    # the Schur products run block by block
+    frame_blocks: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
 
     def diagonal(self) -> tuple[np.ndarray, np.ndarray]:
         """The diagonal of ``J' W J``: global (P0,) and per frame (F, 6)."""
@@ -590,12 +587,13 @@ class BundleModel:
             cols += [dK[:, :, 2], dK[:, :, 3]]
             if skew_on:
                 cols.append(dK[:, :, 4])
-            _put_rows(J, idx, self.slices[f"intr:{c}"], np.stack(cols, axis=2))
+            _put_rows(J, idx, self.slices[f"intr:{c}"], cols)
             if self.dist_names:
-                _put_rows(J, idx, self.slices[f"dist:{c}"], pr.d_dist[:, :, self.dist_idx])
+                lens = [pr.d_dist[:, :, k] for k in self.dist_idx]
+                _put_rows(J, idx, self.slices[f"dist:{c}"], lens)
             if c != self.ref:
                 rig = np.concatenate([_cross_rows(q_cr[idx], pr.d_P), pr.d_P], axis=2)
-                _put_rows(J, idx, self.slices[f"rig:{c}"], rig)
+                _put_rows(J, idx, self.slices[f"rig:{c}"], [rig[:, :, j] for j in range(6)])
         mx = st.X_rot_basis.shape[1] + st.X_t_basis.shape[1]
         if mx and self.n_groups == 1:  # written in place (no product with an identity basis)
             _put_pose(J, self.slices["X:0"].start, q_X, A, st.X_rot_basis, st.X_t_basis)
@@ -661,7 +659,7 @@ class BundleModel:
         w, wp = weights[: 2 * n], weights[2 * n : 2 * n + 6 * F]
         cache = self._normal_cache if keep else None
         if cache is not None and cache[0] is state and np.array_equal(cache[1], w):
-            rp, A_gg, g_g, A_gE, A_EE, g_E = cache[2:]  # only the priors' weights moved
+            rp, A_gg, g_g, A_gE, A_EE, g_E, blocks = cache[2:]  # only the priors' weights moved
         else:
             # JT (P1, 2 n): the columns before the shared ones, transposed, in axis_rows order
             r, JT, B = self._evaluation(state)
@@ -682,8 +680,9 @@ class BundleModel:
                 g_E[k] = Bwk.T @ rp[rows]
             if P1 < P0:  # the shared corrections: their columns are the frames' ones times S
                 A_gg, g_g, A_gE = self._with_shared(A_gg, g_g, A_gE, A_EE, g_E)
+            blocks = _patterns(np.any(A_gE != 0.0, axis=2))
             if keep:
-                self._normal_cache = (state, w.copy(), rp, A_gg, g_g, A_gE, A_EE, g_E)
+                self._normal_cache = (state, w.copy(), rp, A_gg, g_g, A_gE, A_EE, g_E, blocks)
         ps = self.prior_scale("E")
         r_prior = [ps * state.E.reshape(-1)]
         A_EE = A_EE.copy()
@@ -701,7 +700,7 @@ class BundleModel:
             r_prior.append(pu * values)
             A_gg[iu, iu] += wu * pu * pu
             g_g[iu] += wu * pu * r_prior[-1]
-        return NormalBlocks(np.concatenate([rp, *r_prior]), A_gg, g_g, A_gE, A_EE, g_E)
+        return NormalBlocks(np.concatenate([rp, *r_prior]), A_gg, g_g, A_gE, A_EE, g_E, blocks)
 
     @property
     def shared_start(self) -> int:
@@ -1017,10 +1016,11 @@ def _mv(M: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.einsum("nij,nj->ni", M, v)
 
 
-def _put_rows(J: np.ndarray, idx: np.ndarray | slice, cols: slice, vals: np.ndarray) -> None:
-    """``J[idx, :, cols] = vals`` for ``J`` (n, 2, P), one 2-D assignment per pixel axis."""
-    for i in range(J.shape[1]):
-        J[:, i, :][idx, cols] = vals[:, i, :]
+def _put_rows(J: np.ndarray, idx: np.ndarray | slice, cols: slice, vals: list[np.ndarray]) -> None:
+    """``J[idx, :, cols] = vals`` for ``J`` (n, 2, P), one (n, 2) column of ``vals`` at a time
+    (in the Fortran-ordered ``J`` of a solve each is one contiguous block)."""
+    for j, col in enumerate(vals):
+        J[idx, :, cols.start + j] = col
 
 
 def _put_cols(J: np.ndarray, cols: np.ndarray, vals: np.ndarray) -> None:
