@@ -796,15 +796,14 @@ class BundleModel:
         new evaluation. Pose corrections only (``E`` in the model)."""
         _, JT, B = self._evaluation(state)
         P1 = JT.shape[0]
-        d = np.empty(2 * self.n_obs)
-        d[self.axis_rows] = delta[:P1] @ JT
+        d = (delta[:P1] @ JT).reshape(2, -1).T.reshape(-1)  # from axis_rows' order
         sl = self.slices["E"]
         dE = delta[sl].reshape(-1, 6)
         if self.shared_map is not None:  # the shared corrections move each frame like its own
             S = self.shared_map
             F, _, m = S.shape
             dE = dE + (S.reshape(6 * F, m) @ delta[P1 : sl.start]).reshape(F, 6)
-        d += (B @ dE[self.o_frame][:, :, None]).reshape(-1)
+        d += np.einsum("nac,nc->na", B, dE[self.o_frame]).reshape(-1)
         return d
 
     def pixel_gradient(self, state: ModelState, weights: np.ndarray, v: np.ndarray) -> np.ndarray:
