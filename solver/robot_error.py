@@ -450,12 +450,12 @@ def neighbour_correlation(out: RefineOutput) -> tuple[float, int]:
     a, b = _neighbour_pairs(pts)
     e, ok = corner_residuals(out)
     # each image's corners by id: the row of corner id i of image c in table[c, i] (-1: none)
+    sizes = [len(ch.corner_ids) for ch in m.chunks]  # the images tile the corners in order
+    image = np.repeat(np.arange(len(sizes)), sizes)
+    seen = ok & (np.bincount(image[ok], minlength=len(sizes))[image] >= NEIGHBOUR_MIN_CORNERS)
+    ids = np.concatenate([ch.corner_ids for ch in m.chunks])
     table = np.full((len(m.chunks), len(pts)), -1)
-    for c, ch in enumerate(m.chunks):
-        first = ch.rows.start // 2
-        seen = ok[first : first + len(ch.corner_ids)]
-        if np.count_nonzero(seen) >= NEIGHBOUR_MIN_CORNERS:
-            table[c, ch.corner_ids[seen]] = first + np.flatnonzero(seen)
+    table[image[seen], ids[seen]] = np.flatnonzero(seen)
     ia, ib = table[:, a], table[:, b]
     both = (ia >= 0) & (ib >= 0)
     pairs, corners = int(both.sum()), int(ok.sum())
@@ -468,7 +468,10 @@ def neighbour_correlation(out: RefineOutput) -> tuple[float, int]:
     across = np.stack([-along[:, 1], along[:, 0]], axis=1)
     per_coordinate = pairs * squares / (2 * corners)
     ea, eb = e[ia], e[ib]
+
+    def along_u(x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return x[:, 0] * u[:, 0] + x[:, 1] * u[:, 1]  # np.sum(x * u, axis=1), without a reduction
+
     return max(
-        float(np.sum(np.sum(ea * u, axis=1) * np.sum(eb * u, axis=1))) / per_coordinate
-        for u in (along, across)
+        float(np.sum(along_u(ea, u) * along_u(eb, u))) / per_coordinate for u in (along, across)
     ), pairs
