@@ -468,10 +468,7 @@ def neighbour_correlation(out: RefineOutput) -> tuple[float, int]:
     across = np.stack([-along[:, 1], along[:, 0]], axis=1)
     per_coordinate = pairs * squares / (2 * corners)
     ea, eb = e[ia], e[ib]
-
-    def along_u(x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        return x[:, 0] * u[:, 0] + x[:, 1] * u[:, 1]  # np.sum(x * u, axis=1), without a reduction
-
     return max(
-        float(np.sum(along_u(ea, u) * along_u(eb, u))) / per_coordinate for u in (along, across)
+        float(np.sum(np.einsum("ij,ij->i", ea, u) * np.einsum("ij,ij->i", eb, u))) / per_coordinate
+        for u in (along, across)
     ), pairs
