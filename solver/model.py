@@ -330,8 +330,8 @@ class NormalBlocks:
         F = len(s_E)
         EE = Ei.copy()
         for rows, ks in self.frame_blocks:  # each frame's L_k' Si L_k over the rows it touches
-            Lb = _block(L.reshape(P0, F, 6), rows, ks)
-            SiL = (_block(Si, rows, rows) @ Lb.reshape(len(rows), -1)).reshape(Lb.shape)
+            Lb = L.reshape(P0, F, 6)[_ix(rows, ks)]
+            SiL = (Si[_ix(rows, rows)] @ Lb.reshape(len(Lb), -1)).reshape(Lb.shape)
             EE[ks] += np.transpose(Lb, (1, 2, 0)) @ np.transpose(SiL, (1, 0, 2))
         outer_E = s_E[:, :, None] * s_E[:, None, :]
         return BlockInverse(
@@ -758,8 +758,9 @@ class BundleModel:
         Z = A_EE @ S  # (F, 6, m); A_EE is symmetric: Z[k]' = S[k]' A_EE[k]
         A_ss, A_gs = np.zeros((m, m)), np.zeros((P1, m))
         for cols, ks in self.shared_blocks:  # a frame's S touches a few columns
-            Sb = S[ks][:, :, cols].reshape(-1, len(cols))
-            A_ss[np.ix_(cols, cols)] += Sb.T @ Z[ks][:, :, cols].reshape(-1, len(cols))
+            Sb, Zb = S[ks][:, :, cols], Z[ks][:, :, cols]
+            Sb = Sb.reshape(-1, Sb.shape[2])
+            A_ss[_ix(cols, cols)] += Sb.T @ Zb.reshape(len(Sb), -1)
             A_gs[:, cols] += A_gE[:, ks].reshape(P1, -1) @ Sb
         A = np.empty((P1 + m, P1 + m))
         A[:P1, :P1], A[:P1, P1:], A[P1:, :P1], A[P1:, P1:] = A_gg, A_gs, A_gs.T, A_ss
@@ -981,15 +982,24 @@ def _reduced(
         M, N = L, A_gE
     S = A_gg.copy()
     for rows, ks in blocks:
-        Mb = _block(M, rows, ks).reshape(len(rows), -1)
-        Nb = Mb if N is M else _block(N, rows, ks).reshape(len(rows), -1)
-        S[np.ix_(rows, rows)] -= Mb @ Nb.T
+        Mb = M[_ix(rows, ks)]
+        Mb = Mb.reshape(len(Mb), -1)
+        Nb = Mb if N is M else N[_ix(rows, ks)].reshape(len(Mb), -1)
+        S[_ix(rows, rows)] -= Mb @ Nb.T
     return L.reshape(len(A_gg), -1), S
+
+
+#: Frames from which the Schur products run by blocks: with fewer, the blocks' gathers cost
+#: more than the products they save
+SCHUR_BLOCK_FRAMES = 100
 
 
 def _patterns(touched: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     """The frames (columns of ``touched`` (m, F), bool) grouped by the rows they touch: per
-    group, those rows and its frames (frames that touch none left out)."""
+    group, those rows and its frames (frames that touch none left out); one block of all of
+    them where there are fewer than ``SCHUR_BLOCK_FRAMES`` frames."""
+    if touched.shape[1] < SCHUR_BLOCK_FRAMES:
+        return [(slice(None), slice(None))]
     patterns: dict[bytes, list[int]] = {}
     for k, key in enumerate(np.packbits(touched, axis=0).T):
         patterns.setdefault(key.tobytes(), []).append(k)
@@ -997,10 +1007,9 @@ def _patterns(touched: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     return [(rows, ks) for rows, ks in blocks if len(rows)]
 
 
-def _block(X: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """``X[np.ix_(rows, cols)]``, or ``X`` itself where they are all of it."""
-    whole = len(rows) == X.shape[0] and len(cols) == X.shape[1]
-    return X if whole else X[np.ix_(rows, cols)]
+def _ix(rows: np.ndarray | slice, cols: np.ndarray | slice) -> tuple:
+    """``np.ix_(rows, cols)``, or the two slices as they are (a view of the whole)."""
+    return (rows, cols) if isinstance(rows, slice) else np.ix_(rows, cols)
 
 
 def _per_frame(A_gE: np.ndarray, Ei: np.ndarray) -> np.ndarray:

@@ -174,15 +174,14 @@ def refine(
     o = problem.options
     robot = problem.knowledge == "robot"
     if not (robot and o.estimate_robot_noise):
-        out = _refine(problem, structure, init, max_iter, robust, estimate=False)
+        out = _Solve(problem, structure, init, False).iterate(max_iter, robust).output()
         if robot:
             sig = structure.pose_sigma if structure.pose_sigma is not None else (0.0, 0.0)
             out = _with_robot(out, sig, False)
         return out
     exact = replace(structure, T_meas=None, pose_sigma=None)  # no corrections: E, U, V, W
     start = ModelState(init.K, init.dist, init.T_cam_ref, init.X, init.Y, init.s)
-    s0 = _Solve(problem, exact, start, False)
-    s0.iterate(max_iter, robust)
+    s0 = _Solve(problem, exact, start, False).iterate(max_iter, robust)
     out0 = s0.output(covariance=False)  # its covariance is made only where it is the result
     images = session_images(out0.model, out0.inlier_rows)
     fit = free_pose_fit(images, out0.state.K, out0.state.dist, model_starts(out0.model, out0.state))
@@ -201,9 +200,8 @@ def refine(
         )
     T_meas = np.stack([f.T_base_tool for f in problem.frames])
     noisy, spread = arm_structure(structure, T_meas, dict.fromkeys(ARM_SOURCES, sig0), True)
-    out = replace(
-        _refine(problem, noisy, out0.state, max_iter, robust, estimate=True), test_fit=fit
-    )
+    out = _Solve(problem, noisy, out0.state, True).iterate(max_iter, robust).output()
+    out = replace(out, test_fit=fit)
     m = out.model
     levels = {"pose": m.pose_sigma}
     if m.group_sigma is not None and "U" in m.slices:  # as the data say it, not its prior
@@ -405,24 +403,11 @@ def _pose_discrepancy(problem: CalibrationProblem, out: RefineOutput, fit) -> tu
     )
 
 
-def _refine(
-    problem: CalibrationProblem,
-    structure: Structure,
-    init: ModelState,
-    max_iter: int,
-    robust: bool,
-    estimate: bool,
-) -> RefineOutput:
-    """The solve behind :func:`refine`; ``estimate``: estimate the pose prior's sigmas and each
-    camera's noise by variance components (the structure must carry pose corrections)."""
-    s = _Solve(problem, structure, init, estimate)
-    s.iterate(max_iter, robust)
-    return s.output()
-
-
 class _Solve:
     """One solve's mutable state: the model, the state, the inlier rows and per-camera weights,
-    and the variance components' iteration (Foerstner's steps with Steffensen's acceleration)."""
+    and the variance components' iteration (Foerstner's steps with Steffensen's acceleration).
+    ``estimate``: estimate the pose prior's sigmas and each camera's noise by variance
+    components (the structure must carry pose corrections)."""
 
     def __init__(
         self, problem: CalibrationProblem, structure: Structure, init: ModelState, estimate: bool
@@ -646,11 +631,11 @@ class _Solve:
         inlier[:n_px] = np.repeat(~new_out, 2)
         return False
 
-    def iterate(self, max_iter: int, robust: bool) -> None:
+    def iterate(self, max_iter: int, robust: bool) -> _Solve:
         """Levenberg-Marquardt to convergence with the weights, levels and outliers to their
-        fixed point. With ``estimate``: the levels settle at the present linearisation, one
-        Gauss-Newton step moves the state under them, and again; at the joint fixed point the
-        first level step moves nothing and the state is converged fully."""
+        fixed point (returns the solve). With ``estimate``: the levels settle at the present
+        linearisation, one Gauss-Newton step moves the state under them, and again; at the joint
+        fixed point the first level step moves nothing and the state is converged fully."""
         model, estimate = self.model, self.estimate
         if estimate:
             r0 = model.trial_residuals(self.state)  # with the Jacobian the first step takes
@@ -689,6 +674,7 @@ class _Solve:
                 )
                 self.total_it += it
                 self.creeping = True
+        return self
 
     def output(self, covariance: bool = True) -> RefineOutput:
         """The solve's covariance (unless not ``covariance``), outliers and messages at the

@@ -281,7 +281,7 @@ def test_a_classic_sessions_linear_field_is_read_both_ways(monkeypatch):
     from scipy.spatial.transform import Rotation
 
     from slidecal.solver.geometry import inv_T
-    from slidecal.solver.refine import _refine
+    from slidecal.solver.refine import _Solve
     from slidecal.solver.robot_error import session_field_step
     from slidecal.solver.target_shape import READING_WEIGHT
     from slidecal.solver.uncertainty import layout_of, named_step
@@ -301,7 +301,7 @@ def test_a_classic_sessions_linear_field_is_read_both_ways(monkeypatch):
         pose_sigma=m.pose_sigma,
         group_sigma=m.group_sigma,
     )
-    r = _refine(s.problem, held, replace(out.state, V=None), 100, robust=False, estimate=False)
+    r = _Solve(s.problem, held, replace(out.state, V=None), False).iterate(100, False).output()
     X0, X1 = inv_T(out.state.X[0]), inv_T(r.state.X[0])
     moved_t = X1[:3, 3] - X0[:3, 3]
     moved_r = Rotation.from_matrix(X1[:3, :3] @ X0[:3, :3].T).as_rotvec()
@@ -433,7 +433,7 @@ def test_unobserved_tool_offset_gain_is_the_response_of_a_solve(monkeypatch):
     # with the arm's rotation learned per frame, holding it at another value moves the focal
     # lengths. The gain the covariance carries is that response, to first order: re-solving
     # with the offset held 5 mm off along each axis moves the intrinsics by the gain times it
-    from slidecal.solver.refine import _refine
+    from slidecal.solver.refine import _Solve
     from slidecal.solver.robot_error import tool_offset_gain
     from slidecal.solver.uncertainty import _jacobian, layout_of
 
@@ -452,7 +452,7 @@ def test_unobserved_tool_offset_gain_is_the_response_of_a_solve(monkeypatch):
         X = out.state.X.copy()
         X[0, :3, 3] = t
         init = replace(out.state, X=X)
-        res = _refine(s.problem, st, init, 100, robust=False, estimate=False)
+        res = _Solve(s.problem, st, init, False).iterate(100, False).output()
         return np.array([res.state.K["cam"][i, j] for i, j in ((0, 0), (1, 1), (0, 2), (1, 2))])
 
     h = 0.002
@@ -507,7 +507,7 @@ def test_untold_field_gain_is_the_response_of_a_solve(monkeypatch):
     # field of the arm's translation error over them at an arm's scale error (0.1 %) through
     # the estimate's response to it; that response, to first order, is what re-solving with the
     # measured positions moved by the field gives (the levels held at the learned ones)
-    from slidecal.solver.refine import _refine
+    from slidecal.solver.refine import _Solve
     from slidecal.solver.robot_error import MOVE_SCALE_SIGMA, _session_trend, smooth_field_excess
     from slidecal.solver.uncertainty import _jacobian, _used, layout_of
 
@@ -529,7 +529,7 @@ def test_untold_field_gain_is_the_response_of_a_solve(monkeypatch):
         moved = T_meas.copy()
         moved[:, :3, 3] += D @ M.T
         st = replace(m.st, T_meas=moved, **levels)
-        r = _refine(s.problem, st, out.state, 100, robust=False, estimate=False)
+        r = _Solve(s.problem, st, out.state, False).iterate(100, False).output()
         return np.array([r.state.K["cam"][i, j] for i, j in ((0, 0), (1, 1), (0, 2), (1, 2))])
 
     h = 2e-3
@@ -571,7 +571,7 @@ def test_a_classic_sessions_board_reaches_the_result_between_its_two_readings(mo
     from dataclasses import replace as dc_replace
 
     from slidecal.solver.geometry import inv_T
-    from slidecal.solver.refine import _refine
+    from slidecal.solver.refine import _Solve
     from slidecal.solver.robot_error import reported_response, session_field_step
     from slidecal.solver.target_shape import READING_WEIGHT, fit_board
     from slidecal.solver.uncertainty import layout_of, named_step
@@ -587,8 +587,8 @@ def test_a_classic_sessions_board_reaches_the_result_between_its_two_readings(mo
     held = dc_replace(  # the levels as learned
         m.st, pose_sigma=m.pose_sigma, group_sigma=m.group_sigma, trend_sigma=m.trend_sigma
     )
-    base = _refine(p, held, out.state, 100, robust=False, estimate=False)
-    r = _refine(big, held, out.state, 100, robust=False, estimate=False)
+    base = _Solve(p, held, out.state, False).iterate(100, False).output()
+    r = _Solve(big, held, out.state, False).iterate(100, False).output()
     layout = layout_of(p, m.st, out.state)
 
     def tz(o, step=None):  # noqa: ANN001, ANN202 - the reading (with a step of the field)
