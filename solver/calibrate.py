@@ -575,12 +575,9 @@ def init_motion(
             "different tilts, or translate the robot between captures at each tilt"
         )
     idx = sorted(poses)
-    rows, rhs = [], []
-    for i in idx:
-        R_M = st.M[i][:3, :3]
-        rows.append(np.hstack([np.eye(3), R_M]))
-        rhs.append(R_X.T @ poses[i][:3, 3] - st.M[i][:3, 3])
-    A, b = np.vstack(rows), np.concatenate(rhs)
+    P, M = np.array([poses[i] for i in idx]), st.M[idx]
+    A = np.concatenate([np.broadcast_to(np.eye(3), (len(idx), 3, 3)), M[:, :3, :3]], axis=2)
+    A, b = A.reshape(-1, 6), ((R_X.T @ P[:, :3, 3:])[:, :, 0] - M[:, :3, 3]).reshape(-1)
     if st.X_t_basis.shape[1] == 3:
         sol = np.linalg.lstsq(A, b, rcond=None)[0]
         u, t_Y = sol[:3], sol[3:]
@@ -588,9 +585,7 @@ def init_motion(
         u = np.zeros(3)
         t_Y = np.linalg.lstsq(A[:, 3:], b, rcond=None)[0]
     X = T_from_Rt(R_X, R_X @ u)
-    R_Y = project_to_SO3(
-        np.sum([st.M[i][:3, :3].T @ R_X.T @ poses[i][:3, :3] for i in idx], axis=0)
-    )
+    R_Y = project_to_SO3(np.sum(np.swapaxes(M[:, :3, :3], 1, 2) @ R_X.T @ P[:, :3, :3], axis=0))
     return X[None], T_from_Rt(R_Y, t_Y), s
 
 
