@@ -101,7 +101,7 @@ def check_problem(problem: CalibrationProblem) -> None:
     n_pts = len(problem.target.points_m)
     if len(problem.frames) < 2:
         raise InputError("a calibration needs at least 2 frames; capture more")
-    for i in range(len(problem.frames)):
+    for i in _suspects(problem, n_pts):  # each frame the screen flags, in order, checked alone
         _check_frame(problem, i, n_pts)
     if problem.knowledge == "robot":
         p = np.array([np.asarray(f.T_base_tool, float)[:3, 3] for f in problem.frames])
@@ -119,6 +119,30 @@ def check_problem(problem: CalibrationProblem) -> None:
         raise InputError(f"mount must be eye_in_hand, eye_to_hand or none, not {problem.mount!r}")
     if problem.knowledge == "robot" and problem.mount == "none":
         raise InputError("a robot session needs mount: eye_in_hand or eye_to_hand")
+
+
+def _suspects(problem: CalibrationProblem, n_pts: int) -> list[int]:
+    """The frames :func:`_check_frame` may refuse (every one it refuses, perhaps others): all
+    frames' detections and poses screened at once."""
+    names = {c.name for c in problem.cameras}
+    dets = [(i, c, d) for i, f in enumerate(problem.frames) for c, d in f.detections.items()]
+    ids = np.concatenate([np.zeros(0, int), *(d.ids for *_, d in dets)])
+    px = np.concatenate([np.zeros((0, 2)), *(d.px for *_, d in dets)])
+    k = np.repeat(np.arange(len(dets)), [len(d.ids) for *_, d in dets])  # each corner's image
+    k_o, ids_o = k[np.lexsort((ids, k))], ids[np.lexsort((ids, k))]  # an image's ids in order
+    bad_k = k[(ids < 0) | (ids >= n_pts) | ~np.isfinite(px).all(axis=1)]
+    bad_k = np.r_[bad_k, k_o[1:][(k_o[1:] == k_o[:-1]) & (ids_o[1:] == ids_o[:-1])]]
+    bad = {dets[j][0] for j in bad_k} | {i for i, c, _ in dets if c not in names}
+    if problem.knowledge == "robot":  # anything but a finite (4, 4) array: _check_frame's
+        T = [f.T_base_tool for f in problem.frames]
+        ok = [isinstance(t, np.ndarray) and t.shape == (4, 4) for t in T]
+        M = np.array([t if o else np.full((4, 4), np.nan) for t, o in zip(T, ok, strict=True)])
+        rigid = np.isfinite(M).all(axis=(1, 2))
+        rigid[rigid] = abs(np.linalg.det(M[rigid, :3, :3]) - 1) <= 1e-6
+        bad |= set(np.flatnonzero(~rigid).tolist())
+    if problem.knowledge in ("board_translation", "board_direction"):
+        bad |= {i for i, f in enumerate(problem.frames) if f.motion_board is None}
+    return sorted(bad)
 
 
 def _check_frame(problem: CalibrationProblem, i: int, n_pts: int) -> None:
