@@ -103,17 +103,17 @@ def _residual_and_jac(H: np.ndarray, b: np.ndarray, p: np.ndarray):
     return r, J
 
 
-def _levenberg_marquardt(fun, jac, x0: np.ndarray, max_iter: int = 30) -> np.ndarray:  # noqa: ANN001
-    """Minimise ``|fun(x)|^2`` from ``x0`` (small dense problems; tolerates the homographies'
-    scale gauge through the damping). Stops when the cost no longer falls by 1e-12 relative."""
+def _levenberg_marquardt(fun, x0: np.ndarray, max_iter: int = 30) -> np.ndarray:  # noqa: ANN001
+    """Minimise ``|r(x)|^2`` from ``x0``, ``fun(x) = (r, dr/dx)`` (small dense problems; tolerates
+    the homographies' scale gauge through the damping). Stops when the cost no longer falls by
+    1e-12 relative."""
     x = np.asarray(x0, dtype=float)
     if max_iter <= 0:  # the start itself (no residuals to evaluate)
         return x
-    r = fun(x)
+    r, J = fun(x)
     cost = float(r @ r)
     lam = 1e-4
     for _ in range(max_iter):
-        J = jac(x)
         A = J.T @ J
         g = J.T @ r
         d = np.diag(A).copy()
@@ -121,7 +121,7 @@ def _levenberg_marquardt(fun, jac, x0: np.ndarray, max_iter: int = 30) -> np.nda
         while True:
             step = np.linalg.solve(A + lam * np.diag(d), -g)
             x_new = x + step
-            r_new = fun(x_new)
+            r_new, J_new = fun(x_new)
             cost_new = float(r_new @ r_new)
             if np.isfinite(cost_new) and cost_new <= cost:
                 break
@@ -129,7 +129,7 @@ def _levenberg_marquardt(fun, jac, x0: np.ndarray, max_iter: int = 30) -> np.nda
             if lam > 1e10:
                 return x
         done = cost - cost_new <= 1e-12 * cost + 1e-30
-        x, r, cost = x_new, r_new, cost_new
+        x, r, J, cost = x_new, r_new, J_new, cost_new
         lam = max(lam * 0.1, 1e-12)
         if done:
             break
@@ -152,13 +152,10 @@ def refine_homography(H: np.ndarray, board_xy: np.ndarray, px: np.ndarray) -> np
     Hn = Ti @ np.asarray(H, dtype=float) @ np.linalg.inv(Tb)
     Hn /= np.linalg.norm(Hn)
 
-    def fun(x: np.ndarray) -> np.ndarray:
-        return _residual_and_jac(_H(x), bn, pn)[0]
+    def fun(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return _residual_and_jac(_H(x), bn, pn)
 
-    def jac(x: np.ndarray) -> np.ndarray:
-        return _residual_and_jac(_H(x), bn, pn)[1]
-
-    x = _levenberg_marquardt(fun, jac, Hn.T.reshape(-1))  # columns h1, h2, h3 stacked
+    x = _levenberg_marquardt(fun, Hn.T.reshape(-1))  # columns h1, h2, h3 stacked
     return _sign_scale(np.linalg.inv(Ti) @ _H(x) @ Tb)
 
 
@@ -203,16 +200,13 @@ def group_homographies(observations: Sequence[Observation], max_iter: int = 30) 
         B[:, 6 + 3 * k : 9 + 3 * k] = Jk[:, 6:9]
         return B
 
-    def fun(x: np.ndarray) -> np.ndarray:
-        return np.concatenate(
-            [_residual_and_jac(H, b, p)[0] for H, (b, p) in zip(unpack(x), obs_n, strict=True)]
+    def fun(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        rj = [_residual_and_jac(H, b, p) for H, (b, p) in zip(unpack(x), obs_n, strict=True)]
+        return np.concatenate([r for r, _ in rj]), np.vstack(
+            [place(k, J) for k, (_, J) in enumerate(rj)]
         )
 
-    def jac(x: np.ndarray) -> np.ndarray:
-        pairs = enumerate(zip(unpack(x), obs_n, strict=True))
-        return np.vstack([place(k, _residual_and_jac(H, b, p)[1]) for k, (H, (b, p)) in pairs])
-
-    x = _levenberg_marquardt(fun, jac, np.concatenate([h12, h3.reshape(-1)]), max_iter)
+    x = _levenberg_marquardt(fun, np.concatenate([h12, h3.reshape(-1)]), max_iter)
     Tii = np.linalg.inv(Ti)
     Hs = Tii @ unpack(x) @ Tb
     s = np.linalg.norm(Hs[0])
