@@ -463,7 +463,7 @@ def pnp_pose(
     reprojection-error minimum (the scale check's: IPPE hides part of a scale error).
     ``guess`` (4, 4): a start for the iterative minimum.
     """
-    obj, img = board_pts.astype(np.float64), px.astype(np.float64)
+    obj, img = np.asarray(board_pts, np.float64), np.asarray(px, np.float64)
     if guess is not None:
         return pnp_from(obj, img, K, dist, guess)
     flags = cv2.SOLVEPNP_IPPE if fast else cv2.SOLVEPNP_ITERATIVE

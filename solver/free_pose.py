@@ -40,7 +40,7 @@ def free_pose_fit(
     than 4 points are skipped. ``closed_form`` False: IPPE only for the images without a start.
     """
     todo = [
-        (fi, cam, pts.astype(np.float64), px.astype(np.float64))
+        (fi, cam, np.asarray(pts, np.float64), np.asarray(px, np.float64))
         for fi, cam, pts, px in images
         if len(pts) >= 4
     ]
