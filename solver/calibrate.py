@@ -128,7 +128,7 @@ def _check_frames(problem: CalibrationProblem, n_pts: int) -> None:
     ids = np.concatenate([np.zeros(0, int), *(d.ids for *_, d in dets)])
     px = np.concatenate([np.zeros((0, 2)), *(d.px for *_, d in dets)])
     k = np.repeat(np.arange(len(dets)), [len(d.ids) for *_, d in dets])  # each corner's image
-    k_o, ids_o = k[np.lexsort((ids, k))], ids[np.lexsort((ids, k))]  # an image's ids in order
+    k_o, ids_o = np.array([k, ids])[:, np.lexsort((ids, k))]  # each image's ids in order
     fails = np.zeros((len(dets), 4), bool)  # per image, in the order they are told below
     fails[[j for j, (_, c, _) in enumerate(dets) if c not in names], 0] = True
     fails[k[(ids < 0) | (ids >= n_pts)], 1] = True
@@ -137,15 +137,12 @@ def _check_frames(problem: CalibrationProblem, n_pts: int) -> None:
     image_frame = np.array([i for i, _, _ in dets], dtype=int)
     bad = np.zeros((len(problem.frames), 4), bool)  # per frame: an image, then as told below
     bad[image_frame[fails.any(axis=1)], 0] = True
-    if problem.knowledge == "robot":
-        T = [
-            None if f.T_base_tool is None else np.asarray(f.T_base_tool, float)
-            for f in problem.frames
-        ]
-        M = np.array([np.full((4, 4), np.nan) if t is None or t.shape != (4, 4) else t for t in T])
+    if problem.knowledge == "robot":  # a missing pose (None) reads as nan
+        T = [np.asarray(f.T_base_tool, float) for f in problem.frames]
+        M = np.array([t if t.shape == (4, 4) else np.full((4, 4), np.nan) for t in T])
         rigid = np.isfinite(M).all(axis=(1, 2))
         rigid[rigid] = abs(np.linalg.det(M[rigid, :3, :3]) - 1) <= 1e-6
-        bad[:, 1], bad[:, 2] = [t is None for t in T], ~rigid
+        bad[:, 1], bad[:, 2] = [f.T_base_tool is None for f in problem.frames], ~rigid
     if problem.knowledge in ("board_translation", "board_direction"):
         bad[:, 3] = [f.motion_board is None for f in problem.frames]
     if not bad.any():

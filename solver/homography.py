@@ -21,9 +21,8 @@ Observation = tuple[np.ndarray, np.ndarray]  # (board_xy (N, 2), px (N, 2))
 
 
 def _check_pairs(board_xy: np.ndarray, px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    b = np.asarray(board_xy, dtype=float)
+    b = np.asarray(board_xy, dtype=float)[:, :2]
     p = np.asarray(px, dtype=float).reshape(-1, 2)
-    b = b[:, :2]
     if len(b) != len(p):
         raise InputError(f"board_xy has {len(b)} points but px has {len(p)}: pass matched pairs")
     if len(b) < 4:
