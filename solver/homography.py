@@ -61,8 +61,8 @@ def _dlt_normalised(b: np.ndarray, p: np.ndarray, w: np.ndarray) -> np.ndarray:
     A[:, 0 : 2 * n : 2, 6:9] = -p[:, :, :1] * X
     A[:, 1 : 2 * n : 2, 3:6] = X
     A[:, 1 : 2 * n : 2, 6:9] = -p[:, :, 1:2] * X
-    _, sv, Vt = np.linalg.svd(np.linalg.qr(A, mode="r"))  # a QR first, as LAPACK's own SVD does
-    for k in np.flatnonzero(np.sum(w, axis=1) < 8):  # from 16 rows on; fewer: theirs, unpadded
+    _, sv, Vt = np.linalg.svd(np.linalg.qr(A, mode="r"))  # a QR first: LAPACK's SVD of 16+ rows
+    for k in np.flatnonzero(np.sum(w, axis=1) < 8):  # takes one; fewer rows: alone, unpadded
         sv[k], Vt[k] = right_singular(A[k, : 2 * int(np.sum(w[k]))])
     if np.any(sv[:, -2] <= 1e-12 * sv[:, 0]):
         raise DegenerateError(
