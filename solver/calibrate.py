@@ -101,8 +101,7 @@ def check_problem(problem: CalibrationProblem) -> None:
     n_pts = len(problem.target.points_m)
     if len(problem.frames) < 2:
         raise InputError("a calibration needs at least 2 frames; capture more")
-    for i in range(len(problem.frames)):
-        _check_frame(problem, i, n_pts)
+    _check_frames(problem, n_pts)
     if problem.knowledge == "robot":
         p = np.array([np.asarray(f.T_base_tool, float)[:3, 3] for f in problem.frames])
         span = np.linalg.norm(p - p[0], axis=1)
@@ -121,41 +120,57 @@ def check_problem(problem: CalibrationProblem) -> None:
         raise InputError("a robot session needs mount: eye_in_hand or eye_to_hand")
 
 
-def _check_frame(problem: CalibrationProblem, i: int, n_pts: int) -> None:
-    """Raise :class:`InputError` naming what is wrong with frame ``i`` of ``problem`` (its
-    detections, its pose or motion for the knowledge), if anything."""
+def _check_frames(problem: CalibrationProblem, n_pts: int) -> None:
+    """Raise :class:`InputError` naming what is wrong with the first frame of ``problem`` where
+    something is (its detections, its pose or motion for the knowledge): all checked at once."""
     names = [c.name for c in problem.cameras]
-    f = problem.frames[i]
+    dets = [(i, c, d) for i, f in enumerate(problem.frames) for c, d in f.detections.items()]
+    ids = np.concatenate([np.zeros(0, int), *(d.ids for *_, d in dets)])
+    px = np.concatenate([np.zeros((0, 2)), *(d.px for *_, d in dets)])
+    k = np.repeat(np.arange(len(dets)), [len(d.ids) for *_, d in dets])  # each corner's image
+    k_o, ids_o = np.array([k, ids])[:, np.lexsort((ids, k))]  # each image's ids in order
+    fails = np.zeros((len(dets), 4), bool)  # per image, in the order they are told below
+    fails[[j for j, (_, c, _) in enumerate(dets) if c not in names], 0] = True
+    fails[k[(ids < 0) | (ids >= n_pts)], 1] = True
+    fails[k[~np.isfinite(px).all(axis=1)], 2] = True
+    fails[k_o[1:][(k_o[1:] == k_o[:-1]) & (ids_o[1:] == ids_o[:-1])], 3] = True
+    image_frame = np.array([i for i, _, _ in dets], dtype=int)
+    bad = np.zeros((len(problem.frames), 4), bool)  # per frame: an image, then as told below
+    bad[image_frame[fails.any(axis=1)], 0] = True
+    if problem.knowledge == "robot":  # a missing pose (None) reads as nan
+        T = [np.asarray(f.T_base_tool, float) for f in problem.frames]
+        M = np.array([t if t.shape == (4, 4) else np.full((4, 4), np.nan) for t in T])
+        rigid = np.isfinite(M).all(axis=(1, 2))
+        rigid[rigid] = abs(np.linalg.det(M[rigid, :3, :3]) - 1) <= 1e-6
+        bad[:, 1], bad[:, 2] = [f.T_base_tool is None for f in problem.frames], ~rigid
+    if problem.knowledge in ("board_translation", "board_direction"):
+        bad[:, 3] = [f.motion_board is None for f in problem.frames]
+    if not bad.any():
+        return
+    i = int(np.flatnonzero(bad.any(axis=1))[0])
     where = f"frames[{i}]"
-    for cam, det in f.detections.items():
-        if cam not in names:
-            raise InputError(f"unknown camera {cam!r}; cameras are {names}", where)
-        if len(det.ids) and (det.ids.min() < 0 or det.ids.max() >= n_pts):
-            raise InputError(
-                f"corner id out of range 0..{n_pts - 1} for this target; check the target "
-                "description (squares_x, squares_y)",
-                f"{where}.detections.{cam}.ids",
-            )
-        if not np.all(np.isfinite(det.px)):
-            raise InputError("pixel coordinates must be finite", f"{where}.detections.{cam}")
-        if len(np.unique(det.ids)) != len(det.ids):
-            raise InputError("a corner id appears twice", f"{where}.detections.{cam}.ids")
-    if problem.knowledge == "robot":
-        T = f.T_base_tool
-        if T is None:
-            raise InputError(
-                "T_base_tool is missing: every frame of a robot session needs the measured pose",
-                f"{where}.T_base_tool",
-            )
-        T = np.asarray(T, float)
-        if (
-            T.shape != (4, 4)
-            or not np.all(np.isfinite(T))
-            or abs(np.linalg.det(T[:3, :3]) - 1) > 1e-6
-        ):
-            raise InputError("T_base_tool is not a rigid transform", f"{where}.T_base_tool")
-    if problem.knowledge in ("board_translation", "board_direction") and (f.motion_board is None):
-        raise InputError("motion_board is missing for this knowledge", f"{where}")
+    for j in np.flatnonzero(fails.any(axis=1) & (image_frame == i))[:1]:
+        field = f"{where}.detections.{dets[j][1]}"
+        raise InputError(
+            *[
+                (f"unknown camera {dets[j][1]!r}; cameras are {names}", where),
+                (
+                    f"corner id out of range 0..{n_pts - 1} for this target; check the target "
+                    "description (squares_x, squares_y)",
+                    f"{field}.ids",
+                ),
+                ("pixel coordinates must be finite", field),
+                ("a corner id appears twice", f"{field}.ids"),
+            ][int(np.argmax(fails[j]))]
+        )
+    if bad[i, 1]:
+        raise InputError(
+            "T_base_tool is missing: every frame of a robot session needs the measured pose",
+            f"{where}.T_base_tool",
+        )
+    if bad[i, 2]:
+        raise InputError("T_base_tool is not a rigid transform", f"{where}.T_base_tool")
+    raise InputError("motion_board is missing for this knowledge", f"{where}")
 
 
 def usable_frames(problem: CalibrationProblem) -> tuple[CalibrationProblem, tuple[str, ...]]:
@@ -445,7 +460,7 @@ def pnp_pose(
     reprojection-error minimum (the scale check's: IPPE hides part of a scale error).
     ``guess`` (4, 4): a start for the iterative minimum.
     """
-    obj, img = board_pts.astype(np.float64), px.astype(np.float64)
+    obj, img = np.asarray(board_pts, np.float64), np.asarray(px, np.float64)
     if guess is not None:
         return pnp_from(obj, img, K, dist, guess)
     flags = cv2.SOLVEPNP_IPPE if fast else cv2.SOLVEPNP_ITERATIVE
@@ -575,12 +590,9 @@ def init_motion(
             "different tilts, or translate the robot between captures at each tilt"
         )
     idx = sorted(poses)
-    rows, rhs = [], []
-    for i in idx:
-        R_M = st.M[i][:3, :3]
-        rows.append(np.hstack([np.eye(3), R_M]))
-        rhs.append(R_X.T @ poses[i][:3, 3] - st.M[i][:3, 3])
-    A, b = np.vstack(rows), np.concatenate(rhs)
+    P, M = np.array([poses[i] for i in idx]), st.M[idx]
+    A = np.concatenate([np.broadcast_to(np.eye(3), (len(idx), 3, 3)), M[:, :3, :3]], axis=2)
+    A, b = A.reshape(-1, 6), ((R_X.T @ P[:, :3, 3:])[:, :, 0] - M[:, :3, 3]).reshape(-1)
     if st.X_t_basis.shape[1] == 3:
         sol = np.linalg.lstsq(A, b, rcond=None)[0]
         u, t_Y = sol[:3], sol[3:]
@@ -588,9 +600,7 @@ def init_motion(
         u = np.zeros(3)
         t_Y = np.linalg.lstsq(A[:, 3:], b, rcond=None)[0]
     X = T_from_Rt(R_X, R_X @ u)
-    R_Y = project_to_SO3(
-        np.sum([st.M[i][:3, :3].T @ R_X.T @ poses[i][:3, :3] for i in idx], axis=0)
-    )
+    R_Y = project_to_SO3(np.sum(np.swapaxes(M[:, :3, :3], 1, 2) @ R_X.T @ P[:, :3, :3], axis=0))
     return X[None], T_from_Rt(R_Y, t_Y), s
 
 

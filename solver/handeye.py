@@ -44,12 +44,10 @@ def camera_displacements(K: np.ndarray, group: LinearGroup) -> np.ndarray:
 
 def n_directions(v: np.ndarray) -> int:
     """How many independent directions (0 to 3) the non-zero rows of ``v`` (n, 3) span."""
-    v = v[np.linalg.norm(v, axis=1) > 0]
-    if len(v) == 0:
-        return 0
-    u = v / np.linalg.norm(v, axis=1, keepdims=True)
-    sv = np.linalg.svd(u, compute_uv=False)
-    return int(np.sum(sv >= _MIN_SPREAD * sv[0]))
+    n = np.linalg.norm(v, axis=1)
+    u = v[n > 0] / n[n > 0, None]
+    ev = np.linalg.eigvalsh(u.T @ u)  # the unit rows' squared singular values, ascending
+    return int(np.sum(ev >= _MIN_SPREAD**2 * ev[-1])) if len(u) else 0
 
 
 def rotation_from_directions(

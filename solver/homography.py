@@ -21,9 +21,8 @@ Observation = tuple[np.ndarray, np.ndarray]  # (board_xy (N, 2), px (N, 2))
 
 
 def _check_pairs(board_xy: np.ndarray, px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    b = np.asarray(board_xy, dtype=float)
+    b = np.asarray(board_xy, dtype=float)[:, :2]
     p = np.asarray(px, dtype=float).reshape(-1, 2)
-    b = b[:, :2]
     if len(b) != len(p):
         raise InputError(f"board_xy has {len(b)} points but px has {len(p)}: pass matched pairs")
     if len(b) < 4:
@@ -52,21 +51,24 @@ def _sign_scale(H: np.ndarray) -> np.ndarray:
     return -H if H[2, 2] < 0 else H
 
 
-def _dlt_normalised(b: np.ndarray, p: np.ndarray) -> np.ndarray:
-    n = len(b)
-    A = np.zeros((2 * n, 9))
-    X = np.column_stack([b, np.ones(n)])
-    A[0::2, 0:3] = X
-    A[0::2, 6:9] = -p[:, :1] * X
-    A[1::2, 3:6] = X
-    A[1::2, 6:9] = -p[:, 1:2] * X
-    # with 4 points (8 rows) the null vector is the 9th right singular vector
-    sv, Vt = right_singular(A)
-    if sv[-2] <= 1e-12 * sv[0]:
+def _dlt_normalised(b: np.ndarray, p: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """The DLTs (F, 3, 3) of F point sets at once: ``b``, ``p`` (F, n, 2), ``w`` (F, n) 1 for a
+    point and 0 for padding (a padded point's rows are zero: no change to the null vector)."""
+    F, n = w.shape
+    X = np.concatenate([b, np.ones((F, n, 1))], axis=2) * w[:, :, None]
+    A = np.zeros((F, max(2 * n, 9), 9))  # with 4 points (8 rows) the 9th right singular vector
+    A[:, 0 : 2 * n : 2, 0:3] = X
+    A[:, 0 : 2 * n : 2, 6:9] = -p[:, :, :1] * X
+    A[:, 1 : 2 * n : 2, 3:6] = X
+    A[:, 1 : 2 * n : 2, 6:9] = -p[:, :, 1:2] * X
+    _, sv, Vt = np.linalg.svd(np.linalg.qr(A, mode="r"))  # a QR first: LAPACK's SVD of 16+ rows
+    for k in np.flatnonzero(np.sum(w, axis=1) < 8):  # takes one; fewer rows: alone, unpadded
+        sv[k], Vt[k] = right_singular(A[k, : 2 * int(np.sum(w[k]))])
+    if np.any(sv[:, -2] <= 1e-12 * sv[:, 0]):
         raise DegenerateError(
             "the board points are (nearly) colinear: a homography needs points spread in 2D"
         )
-    return Vt[-1].reshape(3, 3)
+    return Vt[:, -1].reshape(F, 3, 3)
 
 
 def homography_dlt(board_xy: np.ndarray, px: np.ndarray) -> np.ndarray:
@@ -77,7 +79,7 @@ def homography_dlt(board_xy: np.ndarray, px: np.ndarray) -> np.ndarray:
     """
     b, p = _check_pairs(board_xy, px)
     Tb, Ti = _similarity(b), _similarity(p)
-    Hn = _dlt_normalised(_apply(Tb, b), _apply(Ti, p))
+    Hn = _dlt_normalised(_apply(Tb, b)[None], _apply(Ti, p)[None], np.ones((1, len(b))))[0]
     return _sign_scale(np.linalg.inv(Ti) @ Hn @ Tb)
 
 
@@ -94,25 +96,23 @@ def _residual_and_jac(H: np.ndarray, b: np.ndarray, p: np.ndarray):
     iw = 1.0 / u[:, 2]
     J = np.zeros((2 * n, 9))
     X = np.column_stack([b, np.ones(n)])  # coefficient of column j is X[:, j]
-    for j in range(3):
-        J[0::2, 3 * j + 0] = X[:, j] * iw
-        J[0::2, 3 * j + 2] = -X[:, j] * iw * xy[:, 0]
-        J[1::2, 3 * j + 1] = X[:, j] * iw
-        J[1::2, 3 * j + 2] = -X[:, j] * iw * xy[:, 1]
+    J[0::2, 0::3] = J[1::2, 1::3] = X * iw[:, None]
+    J[0::2, 2::3] = -X * iw[:, None] * xy[:, :1]
+    J[1::2, 2::3] = -X * iw[:, None] * xy[:, 1:]
     return r, J
 
 
-def _levenberg_marquardt(fun, jac, x0: np.ndarray, max_iter: int = 30) -> np.ndarray:  # noqa: ANN001
-    """Minimise ``|fun(x)|^2`` from ``x0`` (small dense problems; tolerates the homographies'
-    scale gauge through the damping). Stops when the cost no longer falls by 1e-12 relative."""
+def _levenberg_marquardt(fun, x0: np.ndarray, max_iter: int = 30) -> np.ndarray:  # noqa: ANN001
+    """Minimise ``|r(x)|^2`` from ``x0``, ``fun(x) = (r, dr/dx)`` (small dense problems; tolerates
+    the homographies' scale gauge through the damping). Stops when the cost no longer falls by
+    1e-12 relative."""
     x = np.asarray(x0, dtype=float)
     if max_iter <= 0:  # the start itself (no residuals to evaluate)
         return x
-    r = fun(x)
+    r, J = fun(x)
     cost = float(r @ r)
     lam = 1e-4
     for _ in range(max_iter):
-        J = jac(x)
         A = J.T @ J
         g = J.T @ r
         d = np.diag(A).copy()
@@ -120,7 +120,7 @@ def _levenberg_marquardt(fun, jac, x0: np.ndarray, max_iter: int = 30) -> np.nda
         while True:
             step = np.linalg.solve(A + lam * np.diag(d), -g)
             x_new = x + step
-            r_new = fun(x_new)
+            r_new, J_new = fun(x_new)
             cost_new = float(r_new @ r_new)
             if np.isfinite(cost_new) and cost_new <= cost:
                 break
@@ -128,7 +128,7 @@ def _levenberg_marquardt(fun, jac, x0: np.ndarray, max_iter: int = 30) -> np.nda
             if lam > 1e10:
                 return x
         done = cost - cost_new <= 1e-12 * cost + 1e-30
-        x, r, cost = x_new, r_new, cost_new
+        x, r, J, cost = x_new, r_new, J_new, cost_new
         lam = max(lam * 0.1, 1e-12)
         if done:
             break
@@ -151,13 +151,10 @@ def refine_homography(H: np.ndarray, board_xy: np.ndarray, px: np.ndarray) -> np
     Hn = Ti @ np.asarray(H, dtype=float) @ np.linalg.inv(Tb)
     Hn /= np.linalg.norm(Hn)
 
-    def fun(x: np.ndarray) -> np.ndarray:
-        return _residual_and_jac(_H(x), bn, pn)[0]
+    def fun(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return _residual_and_jac(_H(x), bn, pn)
 
-    def jac(x: np.ndarray) -> np.ndarray:
-        return _residual_and_jac(_H(x), bn, pn)[1]
-
-    x = _levenberg_marquardt(fun, jac, Hn.T.reshape(-1))  # columns h1, h2, h3 stacked
+    x = _levenberg_marquardt(fun, Hn.T.reshape(-1))  # columns h1, h2, h3 stacked
     return _sign_scale(np.linalg.inv(Ti) @ _H(x) @ Tb)
 
 
@@ -169,20 +166,6 @@ def homography_rms_px(H: np.ndarray, board_xy: np.ndarray, px: np.ndarray) -> fl
     return float(np.sqrt(np.mean(np.sum((xy - p) ** 2, axis=1))))
 
 
-def _common_scale_init(obs_n) -> tuple[np.ndarray, np.ndarray]:
-    """Per-frame DLTs rescaled to a common h1, h2: shared (6,) and per-frame h3 (n, 3)."""
-    Hs = [_dlt_normalised(b, p) for b, p in obs_n]
-    ref = np.concatenate([Hs[0][:, 0], Hs[0][:, 1]])
-    ref = ref / np.linalg.norm(ref)
-    h12, h3 = [], []
-    for H in Hs:
-        v = np.concatenate([H[:, 0], H[:, 1]])
-        alpha = (ref @ v) / (v @ v)  # least-squares scale (may be negative) onto the reference
-        h12.append(alpha * v)
-        h3.append(alpha * H[:, 2])
-    return np.mean(h12, axis=0), np.array(h3)
-
-
 def group_homographies(observations: Sequence[Observation], max_iter: int = 30) -> np.ndarray:
     """Joint homographies (n, 3, 3) of one orientation group (docs/METHOD.md Sec. 3).
 
@@ -192,14 +175,23 @@ def group_homographies(observations: Sequence[Observation], max_iter: int = 30) 
     DLTs (0 returns those).
     """
     obs = [_check_pairs(b, p) for b, p in observations]
-    Tb = _similarity(np.concatenate([b for b, _ in obs]))
-    Ti = _similarity(np.concatenate([p for _, p in obs]))
-    obs_n = [(_apply(Tb, b), _apply(Ti, p)) for b, p in obs]
-    h12, h3 = _common_scale_init(obs_n)
+    B, P = (np.concatenate(a) for a in zip(*obs, strict=True))  # every frame's points
+    Tb, Ti = _similarity(B), _similarity(P)
+    counts = np.array([len(b) for b, _ in obs])
+    w = np.arange(counts.max()) < counts[:, None]  # (frames, points): the padded stacks' points
+    bn, pn = np.zeros((2, *w.shape, 2))
+    bn[w], pn[w] = _apply(Tb, B), _apply(Ti, P)
+    obs_n = [(bk[:c], pk[:c]) for bk, pk, c in zip(bn, pn, counts, strict=True)]
+    Hs = _dlt_normalised(bn, pn, w)  # per frame, then scaled to frame 0's h1, h2 (any sign)
+    v = np.concatenate([Hs[:, :, 0], Hs[:, :, 1]], axis=1)[:, None]  # (n, 1, 6)
+    alpha = (v @ (v[0, 0] / np.linalg.norm(v[0, 0]))) / (v @ v.transpose(0, 2, 1))[:, 0]
+    h12, h3 = np.mean(alpha * v[:, 0], axis=0), alpha * Hs[:, :, 2]
     n = len(obs_n)
 
-    def unpack(x: np.ndarray) -> list[np.ndarray]:
-        return [np.column_stack([x[0:3], x[3:6], x[6 + 3 * k : 9 + 3 * k]]) for k in range(n)]
+    def unpack(x: np.ndarray) -> np.ndarray:
+        H = np.empty((n, 3, 3))
+        H[:, :, 0], H[:, :, 1], H[:, :, 2] = x[0:3], x[3:6], x[6:].reshape(n, 3)
+        return H
 
     def place(k: int, Jk: np.ndarray) -> np.ndarray:
         B = np.zeros((len(Jk), 6 + 3 * n))
@@ -207,20 +199,16 @@ def group_homographies(observations: Sequence[Observation], max_iter: int = 30) 
         B[:, 6 + 3 * k : 9 + 3 * k] = Jk[:, 6:9]
         return B
 
-    def fun(x: np.ndarray) -> np.ndarray:
-        return np.concatenate(
-            [_residual_and_jac(H, b, p)[0] for H, (b, p) in zip(unpack(x), obs_n, strict=True)]
+    def fun(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        rj = [_residual_and_jac(H, b, p) for H, (b, p) in zip(unpack(x), obs_n, strict=True)]
+        return np.concatenate([r for r, _ in rj]), np.vstack(
+            [place(k, J) for k, (_, J) in enumerate(rj)]
         )
 
-    def jac(x: np.ndarray) -> np.ndarray:
-        pairs = enumerate(zip(unpack(x), obs_n, strict=True))
-        return np.vstack([place(k, _residual_and_jac(H, b, p)[1]) for k, (H, (b, p)) in pairs])
-
-    x = _levenberg_marquardt(fun, jac, np.concatenate([h12, h3.reshape(-1)]), max_iter)
+    x = _levenberg_marquardt(fun, np.concatenate([h12, h3.reshape(-1)]), max_iter)
     Tii = np.linalg.inv(Ti)
-    Hs = np.array([Tii @ H @ Tb for H in unpack(x)])
+    Hs = Tii @ unpack(x) @ Tb
     s = np.linalg.norm(Hs[0])
     if np.median(Hs[:, 2, 2]) < 0:  # board in front of the camera
         s = -s
     return Hs / s
-

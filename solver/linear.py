@@ -178,12 +178,11 @@ def w_basis(skew: bool, unit_aspect: bool) -> tuple[np.ndarray, tuple[str, ...]]
 
 def _common_h12(H: np.ndarray) -> np.ndarray:
     """Rescale each H[k] (k >= 1) so its h1, h2 match frame 0's (no-op for joint estimates)."""
-    H = np.array(H, dtype=float)
-    ref = np.concatenate([H[0][:, 0], H[0][:, 1]])
-    for k in range(1, len(H)):
-        v = np.concatenate([H[k][:, 0], H[k][:, 1]])
-        H[k] *= (ref @ v) / (v @ v)
-    return H
+    H = np.asarray(H, dtype=float)
+    v = np.concatenate([H[:, :, 0], H[:, :, 1]], axis=1)[:, None]  # (n, 1, 6)
+    scale = (v @ v[0, 0]) / (v @ v.transpose(0, 2, 1))[:, 0]
+    scale[0] = 1.0
+    return H * scale[:, :, None]
 
 
 def _board_scale(Hs: list[np.ndarray]) -> float:
@@ -217,8 +216,8 @@ def robot_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
     partners = np.unique(np.linspace(0, n - 1, ROBOT_PARTNERS).round().astype(int))
     k = np.repeat(np.arange(n), len(partners) + 1)
     j = np.column_stack([np.arange(n), np.tile(partners, (n, 1))]).reshape(-1)
-    pairs = np.unique(np.column_stack([np.maximum(k, j), np.minimum(k, j)]), axis=0)
-    return pairs[:, 0], pairs[:, 1]
+    pairs = np.unique(np.maximum(k, j) * n + np.minimum(k, j))  # in the order of (k, j)
+    return pairs // n, pairs % n
 
 
 def linear_system(
