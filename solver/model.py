@@ -1045,21 +1045,13 @@ def _put_pose(
     ``cross(q, A rows)`` times ``rot_basis`` (3, mr), then d px / d translation ``A`` (n, 2, 3)
     times ``t_basis`` (3, mt); a full basis (the identity) is written without its product."""
     mr, mt = rot_basis.shape[1], t_basis.shape[1]
-    if mr == 3 and _is_eye(rot_basis):
+    if np.array_equal(rot_basis, np.eye(3)):
         _cross_rows(q, A, J[:, :, c0 : c0 + 3])
     elif mr:
         J[:, :, c0 : c0 + mr] = _rmul(_cross_rows(q, A), rot_basis)
     if mt:
         c1 = c0 + mr
-        J[:, :, c1 : c1 + mt] = A if mt == 3 and _is_eye(t_basis) else _rmul(A, t_basis)
-
-
-def _is_eye(B: np.ndarray) -> bool:
-    """Whether the basis ``B`` (3, 3) is exactly the identity."""
-    return bool(np.array_equal(B, _EYE3))
-
-
-_EYE3 = np.eye(3)
+        J[:, :, c1 : c1 + mt] = A if np.array_equal(t_basis, np.eye(3)) else _rmul(A, t_basis)
 
 
 def _cross_rows(q: np.ndarray, A: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
