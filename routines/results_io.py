@@ -23,6 +23,7 @@ from slidecal.routines.schema import (
 )
 from slidecal.solver.camera import DISTORTION_MODELS, distortion_model
 from slidecal.solver.geometry import T_from_Rt, rotation_angle_deg, rvec_from_R
+from slidecal.solver.numeric import median
 from slidecal.solver.problem import hand_eye_names, mount_names
 from slidecal.solver.result import (
     BoardShape,
@@ -227,8 +228,8 @@ SCALE_INCONCLUSIVE = 5.0
 def scale_tolerance(ratios: np.ndarray, floor: float) -> tuple[float, float]:
     """(median ratio, tolerance) of the moves' camera/robot length ratios: the tolerance is the
     larger of ``floor`` and four standard errors of the median (1.4826 MAD / sqrt(n) * 1.25)."""
-    m = float(np.median(ratios))
-    mad = float(np.median(np.abs(ratios - m))) * 1.4826
+    m = median(ratios)
+    mad = median(np.abs(ratios - m)) * 1.4826
     se = 1.25 * mad / np.sqrt(len(ratios))
     return m, max(floor, 4.0 * se)
 
@@ -240,7 +241,7 @@ def scale_check_summary(checks: tuple[ScaleCheck, ...]) -> dict[str, Any] | None
     if len(ratios) == 0:
         return None
     worst = ratios[int(np.argmax(np.abs(ratios - 1.0)))]
-    return {"median_ratio": float(np.median(ratios)), "worst_ratio": float(worst), "n": len(ratios)}
+    return {"median_ratio": median(ratios), "worst_ratio": float(worst), "n": len(ratios)}
 
 
 def write_result(

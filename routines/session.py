@@ -755,7 +755,7 @@ def _checked_detection(
         raise InputError(
             f"id {ids[bad][0]} is not on the target (ids are 0..{n - 1})", where=where_ids
         )
-    if len(np.unique(ids)) != len(ids):
+    if len(set(ids.tolist())) != len(ids):
         raise InputError("has repeated ids; each corner may appear once per image", where=where_ids)
     if not np.isfinite(px).all():
         raise InputError("must hold finite numbers only (no NaN, no inf)", where=where_px)
