@@ -30,10 +30,9 @@ _COLOURS = {
     "rejected": (40, 40, 210),
 }
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
-#: PNG encoding: unfiltered rows and zlib's default strategy encode these flat drawings sooner and
-#: smaller than OpenCV's defaults (its row filter is an option from OpenCV 4.11)
+#: unfiltered rows, zlib's default strategy: these drawings' PNGs sooner and smaller than by default
 _PNG = [cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_DEFAULT]
-if hasattr(cv2, "IMWRITE_PNG_FILTER"):
+if hasattr(cv2, "IMWRITE_PNG_FILTER"):  # an option from OpenCV 4.11
     _PNG += [cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE]
 
 
