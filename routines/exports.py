@@ -8,13 +8,13 @@ from __future__ import annotations
 import hashlib
 from collections.abc import Mapping
 from datetime import UTC, datetime
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
+from slidecal import mocks
 from slidecal.drivers.ur_pose import rpy_deg
 from slidecal.routines import __version__
 from slidecal.routines.ops.report import uncertainty_map
@@ -47,7 +47,7 @@ def result_header(cell_path: str | Path | None, cell_name: str | None = None) ->
     ``cell_name`` is hashed."""
     cell = Path(cell_path) if cell_path is not None else None
     if cell is None and cell_name:
-        cell = resources.files("slidecal.mocks").joinpath(str(cell_name))
+        cell = Path(mocks.__file__).parent / str(cell_name)  # a cell packaged with the simulator
     try:
         digest = hashlib.sha256(cell.read_bytes()).hexdigest() if cell is not None else None
     except OSError:  # no such file (a packaged cell's name that is not one), a directory

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from slidecal.drivers.ur_pose import T_from_ur_pose, pendant_text
-from slidecal.mocks.cell import effective_truth
+from slidecal.mocks.effective import effective_truth
 from slidecal.routines.schema import (
     Fields,
     load_yaml,
@@ -23,6 +23,7 @@ from slidecal.routines.schema import (
 )
 from slidecal.solver.camera import DISTORTION_MODELS, distortion_model
 from slidecal.solver.geometry import T_from_Rt, rotation_angle_deg, rvec_from_R
+from slidecal.solver.numeric import median
 from slidecal.solver.problem import hand_eye_names, mount_names
 from slidecal.solver.result import (
     BoardShape,
@@ -227,8 +228,8 @@ SCALE_INCONCLUSIVE = 5.0
 def scale_tolerance(ratios: np.ndarray, floor: float) -> tuple[float, float]:
     """(median ratio, tolerance) of the moves' camera/robot length ratios: the tolerance is the
     larger of ``floor`` and four standard errors of the median (1.4826 MAD / sqrt(n) * 1.25)."""
-    m = float(np.median(ratios))
-    mad = float(np.median(np.abs(ratios - m))) * 1.4826
+    m = median(ratios)
+    mad = median(np.abs(ratios - m)) * 1.4826
     se = 1.25 * mad / np.sqrt(len(ratios))
     return m, max(floor, 4.0 * se)
 
@@ -240,7 +241,7 @@ def scale_check_summary(checks: tuple[ScaleCheck, ...]) -> dict[str, Any] | None
     if len(ratios) == 0:
         return None
     worst = ratios[int(np.argmax(np.abs(ratios - 1.0)))]
-    return {"median_ratio": float(np.median(ratios)), "worst_ratio": float(worst), "n": len(ratios)}
+    return {"median_ratio": median(ratios), "worst_ratio": float(worst), "n": len(ratios)}
 
 
 def write_result(
@@ -694,7 +695,7 @@ def errors_against_truth(result: CalibrationResult, truth: Mapping[str, Any]) ->
 def judged_truth(result: CalibrationResult, truth: Mapping[str, Any]) -> dict[str, np.ndarray]:
     """The transforms (4x4, result-file names) a result is judged against: the block's, hand-eyes
     and target pose replaced, where the block records the arm's true and reported poses, by the
-    effective truth (:func:`slidecal.mocks.cell.effective_truth`) over the frames the solve used."""
+    effective truth (:func:`effective_truth`) over the frames the solve used."""
     out = {
         k: T
         for k in truth

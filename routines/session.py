@@ -263,7 +263,7 @@ def _target_of_kind(f: Fields, kind: str) -> Target:
         pts = f.array("points_m", (-1, 2))
         if len(pts) < 4:
             raise f.error("points_m", f"has {len(pts)} points; give at least 4 [X, Y] pairs")
-        if len(np.unique(pts, axis=0)) != len(pts):
+        if len({tuple(p) for p in pts.tolist()}) != len(pts):
             raise f.error("points_m", "has repeated points; each point may appear once")
         if np.abs(pts).max() > 10.0:
             raise f.error("points_m", "has points beyond 10 m; give the positions in metres")
@@ -755,7 +755,7 @@ def _checked_detection(
         raise InputError(
             f"id {ids[bad][0]} is not on the target (ids are 0..{n - 1})", where=where_ids
         )
-    if len(np.unique(ids)) != len(ids):
+    if len(set(ids.tolist())) != len(ids):
         raise InputError("has repeated ids; each corner may appear once per image", where=where_ids)
     if not np.isfinite(px).all():
         raise InputError("must hold finite numbers only (no NaN, no inf)", where=where_px)

@@ -27,6 +27,7 @@ from slidecal.solver.geometry import (
     rotation_angle_deg,
 )
 from slidecal.solver.model import ModelState
+from slidecal.solver.numeric import median
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.refine import RefineOutput
 from slidecal.solver.result import ModelAdequacy, RobotAccuracy
@@ -215,7 +216,7 @@ def assess(
         poses = {i: T for (i, cam), T in fit.T_cam_board.items() if cam == m.ref}
         R_static = static_rotation(out.state, problem.mount)
         moves = scale_moves(problem, poses, R_static, groups, 0.005)
-    k = float(np.median([c / r for _, _, r, c in moves])) - 1.0 if moves else 0.0
+    k = median([c / r for _, _, r, c in moves]) - 1.0 if moves else 0.0
     if abs(k) > MAX_SCALE_ERROR:
         reasons.append(
             f"the camera sees the robot's moves {100 * k:+.1f} % longer than the robot reports "
@@ -316,7 +317,7 @@ def _pairing(problem: CalibrationProblem, frames: list[int], T_cam: list[np.ndar
                     if move >= 0.005:
                         length[(a, b)] = float(np.linalg.norm(seen[b] - seen[a])) / move
         if length:
-            k = float(np.median(list(length.values())))
+            k = median(list(length.values()))
             length = {p: abs(v / k - 1.0) / MAX_PAIRING_LENGTH for p, v in length.items()}
         return rot | length
 
@@ -328,11 +329,11 @@ def _pairing(problem: CalibrationProblem, frames: list[int], T_cam: list[np.ndar
         f"rotation angles between frames to {MAX_PAIRING_ROTATION_DEG} deg, move lengths to "
         f"{100 * MAX_PAIRING_LENGTH:.0f} %)"
     )
-    overall = float(np.median(list(recorded.values())))
+    overall = median(list(recorded.values()))
     bad = []
     for a in range(len(frames)):
         mine = [v for (p, q), v in recorded.items() if a in (p, q)]
-        if len(mine) >= 3 and float(np.median(mine)) > 1.0:
+        if len(mine) >= 3 and median(mine) > 1.0:
             bad.append(int(problem.frames[frames[a]].id))
     if overall <= 1.0 and not bad:
         return None
@@ -342,7 +343,7 @@ def _pairing(problem: CalibrationProblem, frames: list[int], T_cam: list[np.ndar
         H = half_turn_T(problem.target)
         again = [T @ H if turned[a] else T for a, T in enumerate(T_cam)]
         sc = np.array(list(scores(0, again).values()))
-        if turned.any() and np.median(sc) <= 1.0 and np.mean(sc > 1.0) < wrong / 3:
+        if turned.any() and median(sc) <= 1.0 and np.mean(sc > 1.0) < wrong / 3:
             sx, sy = problem.target.squares_x, problem.target.squares_y
             return (
                 f"frames {[int(problem.frames[frames[a]].id) for a in np.flatnonzero(turned)]}: "
@@ -355,7 +356,7 @@ def _pairing(problem: CalibrationProblem, frames: list[int], T_cam: list[np.ndar
     shifted = []  # (fraction of pairs that disagree, shift) of the shifts that fit
     for shift in PAIRING_SHIFTS:
         sc = np.array(list(scores(shift).values()))
-        if len(sc) >= 3 and np.median(sc) <= 1.0 and np.mean(sc > 1.0) < wrong / 3:
+        if len(sc) >= 3 and median(sc) <= 1.0 and np.mean(sc > 1.0) < wrong / 3:
             shifted.append((float(np.mean(sc > 1.0)), shift))
     end = "; check how the poses and the images are logged and paired"
     if shifted:
@@ -600,7 +601,8 @@ def scale_moves(
     places on the tool, when the fit pins the ratio (:data:`MAX_CLASSIC_SCALE_SE`)."""
     T = np.stack([f.T_base_tool for f in problem.frames])
     q = np.zeros(3)
-    chains = [[i for i in np.flatnonzero(groups == g) if i in poses] for g in np.unique(groups)]
+    names = np.unique(groups, return_counts=True)[0]  # a plain np.unique imports numpy.ma
+    chains = [[i for i in np.flatnonzero(groups == g) if i in poses] for g in names]
     if classic(groups, poses):
         fit = classic_scale_fit(problem, poses, R_static_base)
         if fit is None or fit[1] > MAX_CLASSIC_SCALE_SE:
@@ -708,7 +710,7 @@ def pose_outlier(
         return None
     sizes = [np.linalg.norm(E[:, :3], axis=1), np.linalg.norm(E[:, 3:], axis=1)]
     # the rms of a Gaussian 3-vector from its median square (chi-square(3)'s median: 2.366)
-    typical = [float(np.sqrt(3.0 * np.median(size**2) / 2.366)) for size in sizes]
+    typical = [float(np.sqrt(3.0 * median(size**2) / 2.366)) for size in sizes]
 
     def ratio(e: np.ndarray) -> np.ndarray:  # (n, 6) corrections -> (n,) against the typical
         parts = [np.linalg.norm(e[:, :3], axis=1), np.linalg.norm(e[:, 3:], axis=1)]

@@ -20,7 +20,7 @@ import numpy as np
 from slidecal.solver.camera import opencv_view, project
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, rvec_from_R
-from slidecal.solver.numeric import least_squares
+from slidecal.solver.numeric import least_squares, median
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.result import CalibrationResult
 
@@ -116,7 +116,7 @@ def _design(q: np.ndarray) -> np.ndarray:
 
 
 def _robust_sigma(r: np.ndarray) -> float:
-    return float(1.4826 * np.median(np.abs(r - np.median(r)))) if len(r) else 0.0
+    return float(1.4826 * median(np.abs(r - median(r)))) if len(r) else 0.0
 
 
 def displacement_field(

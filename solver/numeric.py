@@ -1,5 +1,5 @@
 """The few numerical routines slidecal would otherwise take from scipy: the chi-square's and the
-F distribution's upper tails and a small Levenberg-Marquardt least-squares fit.
+F distribution's upper tails and a small Levenberg-Marquardt least-squares fit; and a median.
 
 Why not scipy: importing ``scipy.special`` or ``scipy.optimize`` costs a command more than its
 whole solve on a small session. The textbook methods: series and Lentz's continued fractions
@@ -138,3 +138,12 @@ def least_squares(
         if done:
             break
     return LeastSquaresFit(x, r, J)
+
+
+def median(x: np.ndarray | list[float]) -> float:
+    """``np.median`` of all of ``x`` (NaN if one is) without the import of numpy.ma that numpy's
+    makes at its first call: the middle value, or the mean of the two middle ones."""
+    a = np.sort(np.ravel(x).astype(float))
+    if not len(a) or np.isnan(a[-1]):
+        return float("nan")
+    return float(a[(len(a) - 1) // 2] + a[len(a) // 2]) / 2

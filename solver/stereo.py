@@ -31,6 +31,7 @@ from slidecal.solver.linear import (
     weighted_rows,
     zhang_intrinsics,
 )
+from slidecal.solver.numeric import median
 
 # Third singular value of the views' stacked unit columns below which they are one orientation
 # (H_inf undetermined: the head turned by less than about 0.1 deg).
@@ -228,7 +229,7 @@ def rig_linear_intrinsics(
     H_n = sys_a.N @ np.asarray(H_inf, dtype=float) @ np.linalg.inv(sys_b.N)
     d = np.linalg.det(H_n)
     H_n = H_n / (np.sign(d) * abs(d) ** (1.0 / 3.0))
-    scale = float(np.median(np.linalg.norm(np.vstack([A_a, A_b]), axis=1)))
+    scale = median(np.linalg.norm(np.vstack([A_a, A_b]), axis=1))
     A = np.vstack(
         [
             np.hstack([A_a, np.zeros_like(A_a)]),
@@ -327,7 +328,7 @@ def rig_linear_intrinsics_translation(
     if H_inf is not None and G >= _EQ62_MIN_GROUPS:
         # exact scale: W_b = H_n' W_a H_n for the w_b the rescaled c_g columns imply
         H_n = sys_a.N @ H_inf @ np.linalg.inv(sys_b.N)
-        scale = float(np.median(np.linalg.norm(np.vstack(blocks[:2]), axis=1)))
+        scale = median(np.linalg.norm(np.vstack(blocks[:2]), axis=1))
         blocks.append(np.hstack([_eq62_rows(H_n, sys_a, scale), np.zeros((6, G))]))
     return _solve_rig(
         np.vstack(blocks),

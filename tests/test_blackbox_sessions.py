@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 import blackbox as bb  # noqa: E402
 
 from slidecal.mocks.camera import SimCamera  # noqa: E402
-from slidecal.mocks.cell import effective_truth  # noqa: E402
+from slidecal.mocks.effective import effective_truth  # noqa: E402
 from slidecal.solver.camera import K_matrix  # noqa: E402
 from slidecal.solver.detect import detect  # noqa: E402
 

@@ -10,7 +10,7 @@ import pytest
 
 from slidecal.drivers.ur_pose import ur_pose_from_T
 from slidecal.mocks import scenarios as sc
-from slidecal.mocks.cell import effective_truth
+from slidecal.mocks.effective import effective_truth
 from slidecal.mocks.render import Photo
 from slidecal.mocks.scenarios import drifting_arm
 from slidecal.mocks.truth import hand_eye_errors

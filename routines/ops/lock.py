@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import os
-import socket
+import platform
 import tempfile
 import time
 from pathlib import Path
@@ -46,7 +46,7 @@ class Lock:
     def acquire(self) -> Lock:
         """Take the lock or raise ``InputError`` naming the process that holds it."""
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        body = f"{os.getpid()} {socket.gethostname()} {time.time():.0f}\n".encode()
+        body = f"{os.getpid()} {platform.node()} {time.time():.0f}\n".encode()
         for _ in range(3):
             try:
                 fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
@@ -76,8 +76,8 @@ class Lock:
         try:
             pid, host = int(text[0]), text[1]
         except (IndexError, ValueError):
-            pid, host = -1, socket.gethostname()
-        if host == socket.gethostname() and (pid <= 0 or not _pid_alive(pid)):
+            pid, host = -1, platform.node()
+        if host == platform.node() and (pid <= 0 or not _pid_alive(pid)):
             self.stale = f"stale lock of process {pid} (no longer running) taken over"
             self.path.unlink(missing_ok=True)
             return None

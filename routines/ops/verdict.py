@@ -33,6 +33,7 @@ from slidecal.solver.camera import (
 )
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import rotation_angle_deg
+from slidecal.solver.numeric import median
 from slidecal.solver.problem import CalibrationProblem, hand_eye_names
 from slidecal.solver.result import CalibrationResult
 
@@ -859,7 +860,7 @@ def paired_compare(
             a, b = drift.common_corners(dn.ids, dn.px, do.ids, do.px)
             if len(a) < drift.MIN_CORNERS:
                 continue
-            if float(np.median(np.linalg.norm(b - a, axis=1))) > drift.GROSS_PX:
+            if median(np.linalg.norm(b - a, axis=1)) > drift.GROSS_PX:
                 gross += 1
                 continue
             olds.append(a)
