@@ -16,10 +16,11 @@ import numpy as np
 
 from slidecal.drivers import ur_kinematics as urk
 from slidecal.drivers.ur_pose import rpy_deg
-from slidecal.mocks import cell, effective
+from slidecal.mocks import cell
 from slidecal.mocks.camera import SimCamera, oak_d_like, oak_d_like_extrinsics, single_camera
 from slidecal.mocks.render import render_target
 from slidecal.mocks.robot import KinematicError
+from slidecal.solver import robot_error
 from slidecal.solver.camera import K_matrix, project
 from slidecal.solver.detect import detect as detect_target
 from slidecal.solver.errors import InputError
@@ -702,10 +703,10 @@ def effective_truth(
     frames: Sequence[int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The hand-eye and target pose ``(T_hand_eye, T_target)`` as the session can know them (over
-    ``frames``, default all): :func:`slidecal.mocks.effective.effective_truth`."""
+    ``frames``, default all): :func:`slidecal.solver.robot_error.effective_truth`."""
     used = list(range(len(s.problem.frames)) if frames is None else frames)
     true = s.T_base_tool_true
-    return effective.effective_truth(
+    return robot_error.effective_truth(
         s.problem.mount,
         true if true is None else true[used],
         [s.problem.frames[i].T_base_tool for i in used],

@@ -13,7 +13,6 @@ from typing import Any
 import numpy as np
 
 from slidecal.drivers.ur_pose import T_from_ur_pose, pendant_text
-from slidecal.mocks.effective import effective_truth
 from slidecal.routines.schema import (
     Fields,
     load_yaml,
@@ -34,6 +33,7 @@ from slidecal.solver.result import (
     ScaleCheck,
     TransformEstimate,
 )
+from slidecal.solver.robot_error import effective_truth
 from slidecal.solver.uncertainty import is_legacy, legacy_layout, propagate, reported_names
 
 RESULT_FORMAT = "slidecal.result/1"
@@ -695,7 +695,7 @@ def errors_against_truth(result: CalibrationResult, truth: Mapping[str, Any]) ->
 def judged_truth(result: CalibrationResult, truth: Mapping[str, Any]) -> dict[str, np.ndarray]:
     """The transforms (4x4, result-file names) a result is judged against: the block's, hand-eyes
     and target pose replaced, where the block records the arm's true and reported poses, by the
-    effective truth (:func:`effective_truth`) over the frames the solve used."""
+    effective truth (``robot_error.effective_truth``) over the frames the solve used."""
     out = {
         k: T
         for k in truth

@@ -57,6 +57,7 @@ from slidecal.solver.model import (
     orientation_groups,
     single_threaded_blas,
 )
+from slidecal.solver.numeric import median
 from slidecal.solver.problem import (
     DISTORTION_NAMES,
     INTRINSIC_NAMES,
@@ -248,7 +249,7 @@ def _linear_groups(
     joint), filled here."""
     pts = problem.target.points_m[:, :2]
     out = []
-    for g in np.unique(groups):
+    for g in np.unique(groups, return_counts=True)[0]:
         idx = [
             i
             for i in np.flatnonzero(groups == g)
@@ -315,7 +316,7 @@ def _best_start(problem: CalibrationProblem, cam: str, candidates: list[np.ndarr
         if model is None or _rotation_enters(st):
             model = BundleModel(exact, _with_rotation(exact, st, X[0][:3, :3]))
         r, _ = model.evaluate(ModelState({cam: K}, {cam: zero}, {}, X, Y, s), jacobian=False)
-        err = float(np.median(np.hypot(r[0::2], r[1::2])))
+        err = float(median(np.hypot(r[0::2], r[1::2])))
         if np.isfinite(err) and err < best_err:
             best, best_err = k, err
     return best
@@ -563,7 +564,8 @@ def init_motion(
                     s[i] = -d @ (poses[i][:3, 3] - X[g][:3, 3])
         return X, np.eye(4), s
     d_cam, d_M = [np.zeros((0, 3))], [np.zeros((0, 3))]
-    for g in np.unique(groups):  # every pair of frames a < b of a group (n^2 / 2 of them)
+    # every pair of frames a < b of a group (n^2 / 2 of them)
+    for g in np.unique(groups, return_counts=True)[0]:
         idx = np.array([i for i in np.flatnonzero(groups == g) if i in poses], dtype=int)
         a, b = np.triu_indices(len(idx), 1)
         t_cam = np.array([poses[i][:3, 3] for i in idx]).reshape(-1, 3)

@@ -16,6 +16,7 @@ import numpy as np
 
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import right_singular
+from slidecal.solver.numeric import median
 
 Observation = tuple[np.ndarray, np.ndarray]  # (board_xy (N, 2), px (N, 2))
 
@@ -209,6 +210,6 @@ def group_homographies(observations: Sequence[Observation], max_iter: int = 30) 
     Tii = np.linalg.inv(Ti)
     Hs = Tii @ unpack(x) @ Tb
     s = np.linalg.norm(Hs[0])
-    if np.median(Hs[:, 2, 2]) < 0:  # board in front of the camera
+    if median(Hs[:, 2, 2]) < 0:  # board in front of the camera
         s = -s
     return Hs / s

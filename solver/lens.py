@@ -121,7 +121,8 @@ def lens_check(
         dets = [d for d in dets if len(d.ids) >= _MIN_CORNERS]
         if len(dets) < _MIN_IMAGES:
             continue
-        pick = np.unique(np.linspace(0, len(dets) - 1, LENS_TEST_IMAGES).round().astype(int))
+        at = np.linspace(0, len(dets) - 1, LENS_TEST_IMAGES).round().astype(int)
+        pick = np.unique(at, return_counts=True)[0]
         obj = [problem.target.points_m[dets[k].ids].astype(np.float32) for k in pick]
         img = [dets[k].px.reshape(-1, 1, 2).astype(np.float32) for k in pick]
         n_rows = 2 * sum(len(p) for p in obj)

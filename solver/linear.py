@@ -15,6 +15,7 @@ import numpy as np
 
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import right_singular
+from slidecal.solver.numeric import median
 
 W_NAMES = ("w11", "w12", "w22", "w13", "w23", "w33")
 
@@ -189,7 +190,7 @@ def _board_scale(Hs: list[np.ndarray]) -> float:
     r = [
         np.linalg.norm(H[:, 2]) / np.sqrt(0.5 * (H[:, 0] @ H[:, 0] + H[:, 1] @ H[:, 1])) for H in Hs
     ]
-    return float(np.median(r))
+    return float(median(r))
 
 
 def _check_groups(groups: Sequence[LinearGroup], knowledge: str) -> None:
@@ -213,10 +214,11 @@ def robot_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
     evenly spread partners (O(n) rows, see ``ROBOT_PARTNERS``)."""
     if n <= ROBOT_PARTNERS + 1:
         return np.tril_indices(n)
-    partners = np.unique(np.linspace(0, n - 1, ROBOT_PARTNERS).round().astype(int))
+    partners = np.linspace(0, n - 1, ROBOT_PARTNERS).round().astype(int)
+    partners = np.unique(partners, return_counts=True)[0]
     k = np.repeat(np.arange(n), len(partners) + 1)
     j = np.column_stack([np.arange(n), np.tile(partners, (n, 1))]).reshape(-1)
-    pairs = np.unique(np.maximum(k, j) * n + np.minimum(k, j))  # in the order of (k, j)
+    pairs = np.unique(np.maximum(k, j) * n + np.minimum(k, j), return_counts=True)[0]  # (k, j)
     return pairs // n, pairs % n
 
 

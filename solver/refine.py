@@ -237,7 +237,7 @@ def arm_structure(
             whole = np.zeros(len(T_meas), dtype=int)
             trend_groups, coords, dims = translation_trends(T_meas, whole)
     spread = float(np.sqrt(np.mean(np.sum(coords**2, axis=1)))) if dims else 1.0
-    fixed = len(dims) == 1 and len(np.unique(pose_groups)) == 1  # one orientation: fx's scale
+    fixed = len(dims) == 1 and len(set(pose_groups.tolist())) == 1  # one orientation: fx's scale
     common, rotation, share = common_trend(T_meas, trend_groups, dims)
     trend, field_level = np.asarray(levels["trend"]) / spread, levels["field"]
     noisy = replace(
@@ -272,7 +272,7 @@ def translation_trends(
     """
     F = len(T_base_tool)
     trend_groups, coords, dims = np.full(F, -1), np.zeros((F, 3)), []
-    for g in np.unique(groups):
+    for g in np.unique(groups, return_counts=True)[0]:
         k = np.flatnonzero(groups == g)
         if len(k) < 3:
             continue

@@ -25,9 +25,9 @@ sys.path.insert(0, str(Path(__file__).parent))
 import blackbox as bb  # noqa: E402
 
 from slidecal.mocks.camera import SimCamera  # noqa: E402
-from slidecal.mocks.effective import effective_truth  # noqa: E402
 from slidecal.solver.camera import K_matrix  # noqa: E402
 from slidecal.solver.detect import detect  # noqa: E402
+from slidecal.solver.robot_error import effective_truth  # noqa: E402
 
 #: a VGA camera for the fast rendered sessions
 VGA = SimCamera("left", 640, 480, K_matrix(560.0, 560.0, 321.0, 238.5), np.zeros(5))

@@ -1,7 +1,9 @@
 """solver.numeric against scipy, whose functions it stands in for on the command's path."""
 
+import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -60,3 +62,17 @@ def test_median_is_numpys_without_importing_numpy_ma():
     code += "print('numpy.ma' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_a_solve_imports_no_numpy_ma(tmp_path):
+    # np.median and a plain np.unique import numpy.ma at their first call (solver/numeric.py)
+    session = tmp_path / "r1_session"
+    shutil.copytree(Path(__file__).parent / "data" / "r1_session", session)
+    code = (
+        "import runpy, sys; sys.argv = ['slidecal', 'solve', sys.argv[1]]\n"
+        "try:\n    runpy.run_module('slidecal.routines.cli', run_name='__main__')\n"
+        "except SystemExit:\n    pass\n"
+        "print('numpy.ma' in sys.modules, file=sys.stderr)"
+    )
+    out = subprocess.run([sys.executable, "-c", code, str(session)], capture_output=True, text=True)
+    assert out.stderr.strip().splitlines()[-1] == "False"

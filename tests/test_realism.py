@@ -10,7 +10,6 @@ import pytest
 
 from slidecal.drivers.ur_pose import ur_pose_from_T
 from slidecal.mocks import scenarios as sc
-from slidecal.mocks.effective import effective_truth
 from slidecal.mocks.render import Photo
 from slidecal.mocks.scenarios import drifting_arm
 from slidecal.mocks.truth import hand_eye_errors
@@ -21,6 +20,7 @@ from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt
 from slidecal.solver.problem import CameraSpec, Detection, Target
 from slidecal.solver.result import CalibrationResult, CameraEstimate, TransformEstimate
+from slidecal.solver.robot_error import effective_truth
 
 K = np.array([[880.0, 0.0, 640.0], [0.0, 880.0, 400.0], [0.0, 0.0, 1.0]])
 
