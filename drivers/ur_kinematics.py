@@ -123,10 +123,6 @@ _WRIST_EXACT = 1e-7
 _EPS = float(np.finfo(float).eps)
 
 
-def _wrap(a: float) -> float:
-    return float((a + np.pi) % (2 * np.pi) - np.pi)
-
-
 def _acos(x: float, tol: float = 1e-10) -> float | None:
     """arccos, tolerating rounding up to ``tol`` outside [-1, 1]; None when truly outside."""
     if abs(x) > 1.0 + tol:
@@ -184,7 +180,7 @@ def _ik_flange(T: np.ndarray, m: URModel, q6_singular: float = 0.0) -> list[np.n
                 q3 = s3 * a3
                 q2 = np.arctan2(py, px) - np.arctan2(m.a3 * np.sin(q3), m.a2 + m.a3 * np.cos(q3))
                 q4 = q234 - q2 - q3
-                sols.append(np.array([_wrap(v) for v in (q1, q2, q3, q4, q5, q6)]))
+                sols.append((np.array([q1, q2, q3, q4, q5, q6]) + np.pi) % (2 * np.pi) - np.pi)
     return sols
 
 

@@ -22,12 +22,6 @@ _AXES = np.eye(3) * 0.05
 _AXIS_COLOURS = [[255, 0, 0], [0, 255, 0], [0, 0, 255]]
 
 
-def _nominal_K(spec: CameraSpec) -> np.ndarray:
-    """A stand-in pinhole (horizontal field of view about 70 deg) until the estimate exists."""
-    f = 0.7 * max(spec.width, spec.height)
-    return np.array([[f, 0.0, (spec.width - 1) / 2], [0.0, f, (spec.height - 1) / 2], [0, 0, 1]])
-
-
 class RerunLog:
     """Log one run (the entity tree: docs/DRIVERS.md).
 
@@ -63,8 +57,10 @@ class RerunLog:
             "world/base", rr.Arrows3D(vectors=_AXES * 2, colors=_AXIS_COLOURS), static=True
         )
         self._log_board(T_target_approx, static=True)
-        for name, spec in self.cameras.items():
-            self._log_camera(name, spec, _nominal_K(spec), T_hand_eye_approx, static=True)
+        for name, spec in self.cameras.items():  # a stand-in pinhole (70 deg) until an estimate
+            w, h, f = spec.width, spec.height, 0.7 * max(spec.width, spec.height)
+            K = np.array([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0, 0, 1]])
+            self._log_camera(name, spec, K, T_hand_eye_approx, static=True)
 
     def _cam_path(self, name: str) -> str:
         return f"world/tool/{name}" if self.mount == "eye_in_hand" else f"world/{name}"
