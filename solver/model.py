@@ -270,8 +270,8 @@ class NormalBlocks:
     g_E: np.ndarray
     # the frames grouped by the global rows their ``A_gE`` touches (a frame couples with its
     # own group's and trend's shared corrections alone): per group, those rows and its frames;
-    # the Schur products run block by block
-    frame_blocks: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    # the Schur products run block by block (by default one block: every row, every frame)
+    frame_blocks: list[tuple] = field(default_factory=lambda: [(slice(None), slice(None))])
 
     def diagonal(self) -> tuple[np.ndarray, np.ndarray]:
         """The diagonal of ``J' W J``: global (P0,) and per frame (F, 6)."""
@@ -651,7 +651,7 @@ class BundleModel:
             A, g = self._weighted_gram(JT, weights[ax], r[ax])
             P0 = JT.shape[0]
             return NormalBlocks(
-                r, A, g, np.zeros((P0, 0, 6)), np.zeros((0, 6, 6)), np.zeros((0, 6))
+                r, A, g, np.zeros((P0, 0, 6)), np.zeros((0, 6, 6)), np.zeros((0, 6)), []
             )
         n = self.n_obs
         sl = self.slices["E"]
