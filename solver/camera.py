@@ -171,24 +171,31 @@ def distortion_jacobian(
 
 
 def project_with_jacobians(
-    K: np.ndarray, dist: np.ndarray | None, P_cam: np.ndarray, jacobians: bool = True
+    K: np.ndarray,
+    dist: np.ndarray | None,
+    P_cam: np.ndarray,
+    jacobians: bool = True,
+    params: bool = True,
 ) -> Projection:
-    """Project ``P_cam`` (N, 3) and return the analytic Jacobians (see :class:`Projection`)."""
+    """Project ``P_cam`` (N, 3) and return the analytic Jacobians (see :class:`Projection`);
+    ``params`` False: the point's alone (``d_K``, ``d_dist`` None: a pose fit's)."""
     P = np.asarray(P_cam, dtype=float).reshape(-1, 3)
     d = as_distortion(dist)
     iz = 1.0 / P[:, 2]
     x, y = P[:, 0] * iz, P[:, 1] * iz
     if not jacobians:
         return Projection(_pixels(K, *_distort(d, x, y))[0])
-    xd, yd, J_xy, d_d = _distort(d, x, y, True)
-    px, J, d_dist = _pixels(K, xd, yd, J_xy, d_d)
+    xd, yd, *d_xy = _distort(d, x, y, True, params)
+    px, J, *d_dist = _pixels(K, xd, yd, *d_xy)
     d_P = np.empty((len(P), 2, 3))
     d_P[:, :, :2] = J * iz[:, None, None]
     d_P[:, :, 2] = -(J[:, :, 0] * x[:, None] + J[:, :, 1] * y[:, None]) * iz[:, None]
+    if not params:
+        return Projection(px, d_P)
     d_K = np.zeros((len(P), 2, 5))
     d_K[:, 0, 0], d_K[:, 1, 1], d_K[:, 0, 4] = xd, yd, yd  # fx, fy, s
     d_K[:, 0, 2] = d_K[:, 1, 3] = 1.0
-    return Projection(px, d_P, d_K, d_dist)
+    return Projection(px, d_P, d_K, d_dist[0])
 
 
 def undistort_normalised(

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from slidecal.solver.camera import distortion_jacobian, opencv_view, project
+from slidecal.solver.camera import opencv_view, project, project_with_jacobians
 from slidecal.solver.geometry import R_from_rvecs, T_from_Rt
 from slidecal.solver.model import BundleModel, ModelState
 
@@ -128,14 +128,9 @@ def _pose_minima(
     def errors(k: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple:
         """Images ``k``'s weighed residuals (k, 2 n, 1), squares and Jacobian (k, 2 n, 6)."""
         q = obj[k] @ np.swapaxes(R, 1, 2)  # the board points rotated into the camera
-        P = (q + t[:, None]).reshape(-1, 3)
-        iz = 1.0 / P[:, 2:]
-        xy = P[:, :2] * iz  # project_with_jacobians' d_P, without its d_K, d_dist (costly)
-        px, J = distortion_jacobian(K, dist, xy)
-        z = -(J[:, :, 0] * xy[:, None, 0] + J[:, :, 1] * xy[:, None, 1])
-        D = np.concatenate([J, z[:, :, None]], axis=2) * iz[:, :, None]
-        e = (px.reshape(len(k), n, 2) - img[k]) * w[k]
-        D = D.reshape(len(k), n, 2, 3) * w[k][:, :, :, None]
+        pr = project_with_jacobians(K, dist, (q + t[:, None]).reshape(-1, 3), params=False)
+        e = (pr.px.reshape(len(k), n, 2) - img[k]) * w[k]
+        D = pr.d_P.reshape(len(k), n, 2, 3) * w[k][:, :, :, None]
         J = np.concatenate([np.cross(q[:, :, None], D), D], axis=3).reshape(len(k), 2 * n, 6)
         return e.reshape(len(k), 2 * n, 1), np.sum(e * e, axis=(1, 2)), J
 
