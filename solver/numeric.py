@@ -143,7 +143,7 @@ def least_squares(
 def median(x: np.ndarray | list[float]) -> float:
     """``np.median`` of all of ``x`` (NaN if one is) without the import of numpy.ma that numpy's
     makes at its first call: the middle value, or the mean of the two middle ones."""
-    a = np.sort(np.ravel(x).astype(float))
+    a = np.sort(np.asarray(x, float), axis=None)  # one flattened copy
     if not len(a) or np.isnan(a[-1]):
         return float("nan")
     return float(a[(len(a) - 1) // 2] + a[len(a) // 2]) / 2
