@@ -27,7 +27,7 @@ from slidecal.solver.geometry import (
     rotation_angle_deg,
 )
 from slidecal.solver.model import ModelState
-from slidecal.solver.numeric import median
+from slidecal.solver.numeric import distinct, median
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.refine import RefineOutput
 from slidecal.solver.result import ModelAdequacy, RobotAccuracy
@@ -601,8 +601,7 @@ def scale_moves(
     places on the tool, when the fit pins the ratio (:data:`MAX_CLASSIC_SCALE_SE`)."""
     T = np.stack([f.T_base_tool for f in problem.frames])
     q = np.zeros(3)
-    names = np.unique(groups, return_counts=True)[0]  # a plain np.unique imports numpy.ma
-    chains = [[i for i in np.flatnonzero(groups == g) if i in poses] for g in names]
+    chains = [[i for i in np.flatnonzero(groups == g) if i in poses] for g in distinct(groups)]
     if classic(groups, poses):
         fit = classic_scale_fit(problem, poses, R_static_base)
         if fit is None or fit[1] > MAX_CLASSIC_SCALE_SE:

@@ -57,7 +57,7 @@ from slidecal.solver.model import (
     orientation_groups,
     single_threaded_blas,
 )
-from slidecal.solver.numeric import median
+from slidecal.solver.numeric import distinct, median
 from slidecal.solver.problem import (
     DISTORTION_NAMES,
     INTRINSIC_NAMES,
@@ -249,7 +249,7 @@ def _linear_groups(
     joint), filled here."""
     pts = problem.target.points_m[:, :2]
     out = []
-    for g in np.unique(groups, return_counts=True)[0]:
+    for g in distinct(groups):
         idx = [
             i
             for i in np.flatnonzero(groups == g)
@@ -564,8 +564,7 @@ def init_motion(
                     s[i] = -d @ (poses[i][:3, 3] - X[g][:3, 3])
         return X, np.eye(4), s
     d_cam, d_M = [np.zeros((0, 3))], [np.zeros((0, 3))]
-    # every pair of frames a < b of a group (n^2 / 2 of them)
-    for g in np.unique(groups, return_counts=True)[0]:
+    for g in distinct(groups):  # every pair of frames a < b of a group (n^2 / 2 of them)
         idx = np.array([i for i in np.flatnonzero(groups == g) if i in poses], dtype=int)
         a, b = np.triu_indices(len(idx), 1)
         t_cam = np.array([poses[i][:3, 3] for i in idx]).reshape(-1, 3)

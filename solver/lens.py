@@ -12,7 +12,7 @@ import numpy as np
 from slidecal.solver.camera import DISTORTION_MODELS, project, project_with_jacobians
 from slidecal.solver.geometry import T_from_Rt
 from slidecal.solver.model import orientation_groups
-from slidecal.solver.numeric import chi2_tail
+from slidecal.solver.numeric import chi2_tail, distinct
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.result import CalibrationResult
 
@@ -121,8 +121,7 @@ def lens_check(
         dets = [d for d in dets if len(d.ids) >= _MIN_CORNERS]
         if len(dets) < _MIN_IMAGES:
             continue
-        at = np.linspace(0, len(dets) - 1, LENS_TEST_IMAGES).round().astype(int)
-        pick = np.unique(at, return_counts=True)[0]
+        pick = distinct(np.linspace(0, len(dets) - 1, LENS_TEST_IMAGES).round().astype(int))
         obj = [problem.target.points_m[dets[k].ids].astype(np.float32) for k in pick]
         img = [dets[k].px.reshape(-1, 1, 2).astype(np.float32) for k in pick]
         n_rows = 2 * sum(len(p) for p in obj)

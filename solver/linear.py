@@ -15,7 +15,7 @@ import numpy as np
 
 from slidecal.solver.errors import DegenerateError, InputError
 from slidecal.solver.geometry import right_singular
-from slidecal.solver.numeric import median
+from slidecal.solver.numeric import distinct, median
 
 W_NAMES = ("w11", "w12", "w22", "w13", "w23", "w33")
 
@@ -214,11 +214,10 @@ def robot_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
     evenly spread partners (O(n) rows, see ``ROBOT_PARTNERS``)."""
     if n <= ROBOT_PARTNERS + 1:
         return np.tril_indices(n)
-    partners = np.linspace(0, n - 1, ROBOT_PARTNERS).round().astype(int)
-    partners = np.unique(partners, return_counts=True)[0]
+    partners = distinct(np.linspace(0, n - 1, ROBOT_PARTNERS).round().astype(int))
     k = np.repeat(np.arange(n), len(partners) + 1)
     j = np.column_stack([np.arange(n), np.tile(partners, (n, 1))]).reshape(-1)
-    pairs = np.unique(np.maximum(k, j) * n + np.minimum(k, j), return_counts=True)[0]  # (k, j)
+    pairs = distinct(np.maximum(k, j) * n + np.minimum(k, j))  # in the order of (k, j)
     return pairs // n, pairs % n
 
 

@@ -1,5 +1,5 @@
-"""The few numerical routines slidecal would otherwise take from scipy: the chi-square's and the
-F distribution's upper tails and a small Levenberg-Marquardt least-squares fit; and a median.
+"""Routines slidecal would otherwise take from scipy (the chi-square's and F's upper tails, a
+small Levenberg-Marquardt fit) and from numpy without its import of numpy.ma (median, unique).
 
 Why not scipy: importing ``scipy.special`` or ``scipy.optimize`` costs a command more than its
 whole solve on a small session. The textbook methods: series and Lentz's continued fractions
@@ -141,9 +141,13 @@ def least_squares(
 
 
 def median(x: np.ndarray | list[float]) -> float:
-    """``np.median`` of all of ``x`` (NaN if one is) without the import of numpy.ma that numpy's
-    makes at its first call: the middle value, or the mean of the two middle ones."""
+    """``np.median`` of all of ``x`` (NaN if one is) without numpy's import of numpy.ma."""
     a = np.sort(np.asarray(x, float), axis=None)  # one flattened copy
     if not len(a) or np.isnan(a[-1]):
         return float("nan")
     return float(a[(len(a) - 1) // 2] + a[len(a) // 2]) / 2
+
+
+def distinct(x: np.ndarray) -> np.ndarray:
+    """``np.unique(x)``, its sorted distinct values, without numpy's import of numpy.ma."""
+    return np.unique(x, return_counts=True)[0]

@@ -24,7 +24,7 @@ from slidecal.solver.model import (
     Structure,
     orientation_groups,
 )
-from slidecal.solver.numeric import f_tail
+from slidecal.solver.numeric import distinct, f_tail
 from slidecal.solver.problem import CalibrationProblem
 
 
@@ -272,7 +272,7 @@ def translation_trends(
     """
     F = len(T_base_tool)
     trend_groups, coords, dims = np.full(F, -1), np.zeros((F, 3)), []
-    for g in np.unique(groups, return_counts=True)[0]:
+    for g in distinct(groups):
         k = np.flatnonzero(groups == g)
         if len(k) < 3:
             continue

@@ -12,7 +12,7 @@ import numpy as np
 from slidecal.solver.errors import InputError
 from slidecal.solver.geometry import R_from_rvec, T_from_Rt, inv_T, rvec_from_R
 from slidecal.solver.model import LEVELS, BundleModel
-from slidecal.solver.numeric import chi2_tail, least_squares, median
+from slidecal.solver.numeric import chi2_tail, distinct, least_squares, median
 from slidecal.solver.problem import CalibrationProblem
 from slidecal.solver.refine import SIGMA_FLOOR, RefineOutput
 from slidecal.solver.target_shape import READING_WEIGHT, shape_excess
@@ -408,7 +408,7 @@ def cluster_excess(
         return None
     Sf = m.frame_scores(out.state, np.asarray(m.row_weights, float))
     of = np.array([clusters[k] for k in m.frame_rows])
-    S = np.array([Sf[of == c].sum(axis=0) for c in np.unique(of, return_counts=True)[0]])
+    S = np.array([Sf[of == c].sum(axis=0) for c in distinct(of)])
     G, P0 = S.shape
     J, used = project
     if G < MIN_CLUSTER_FRAMES or np.any(used >= P0):
